@@ -1,0 +1,1 @@
+"""Controllers: pure computation (no I/O, no clocks), reusable offline."""

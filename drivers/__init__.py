@@ -1,0 +1,1 @@
+"""Drivers: move bytes to and from hardware and enforce hardware safety. Never decide control."""

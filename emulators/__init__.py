@@ -1,0 +1,1 @@
+"""Emulators: numpy plants behind the same wire protocols as the real hardware."""

@@ -1,0 +1,48 @@
+"""The ``hil`` command line: parsing, dispatch, and one-line errors."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from hil import __version__
+from hil.commands import bench, demo, empc, emulate, identify, report, servo
+from hil.errors import HilError, NotYetAvailableError
+
+COMMAND_MODULES = (demo, bench, servo, empc, identify, emulate, report)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="hil",
+        description="Hardware-in-the-loop bridge: run model-based controllers in a fixed-rate "
+        "loop against a Modbus relay bench or a CiA 402 servo drive (real or emulated) and "
+        "record every session to MCAP.",
+        epilog="Start with 'hil demo'. Every command has its own --help.",
+    )
+    parser.add_argument("--version", action="version", version=f"hil {__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for module in COMMAND_MODULES:
+        module.register(subparsers)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.handler(args) or 0)
+    except NotYetAvailableError as exc:
+        print(f"hil: {exc}", file=sys.stderr)
+        return 3
+    except HilError as exc:
+        print(f"hil: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("hil: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
