@@ -1,10 +1,11 @@
 """FixedRateLoop: one base period, tasks running every ``divisor`` ticks, read -> compute -> write.
 
-Overrun policy: when a tick starts more than one whole base period after its deadline, the
-ticks in between are skipped and counted (per task, as ``missed``); the schedule stays on its
-absolute grid, so the loop never drifts. A task whose step takes longer than its own period is
-counted in ``overruns``. SIGINT/SIGTERM stop the loop at the next tick boundary; every
-component's ``safe_state()`` runs before :meth:`FixedRateLoop.run` returns, also on errors.
+Overrun policy: when the loop wakes up one or more whole base periods after a tick's deadline,
+the ticks whose slots have passed are skipped and counted (per task, as ``missed``); the
+schedule stays on its absolute grid, so the loop never drifts. In real time, a task whose step
+takes longer than its own period is counted in ``overruns`` (in lockstep, compute time is
+reported but costs no virtual time). SIGINT/SIGTERM stop the loop at the next tick boundary;
+every component's ``safe_state()`` runs before :meth:`FixedRateLoop.run` returns, also on errors.
 """
 
 from __future__ import annotations
@@ -176,6 +177,7 @@ class FixedRateLoop:
         self.stop_reason: str | None = None
         self.ticks = 0
         self.skipped_ticks = 0
+        self.start_ns = 0  # clock time of tick 0's deadline: the origin of the schedule grid
         for task in tasks:
             self.add_task(task)
 
@@ -230,13 +232,23 @@ class FixedRateLoop:
         clock, period = self.clock, self.base_period_ns
         windows = {t.name: _Window() for t in self.tasks}
         self._windows = windows
-        t0 = clock.start()
+        t0 = self.start_ns = clock.start()
         n = 0
         next_window = self._window_ticks
         perf = time.perf_counter_ns
+        realtime = clock.mode == "realtime"  # in lockstep, slow compute costs no virtual time
         while not self._stop.is_set() and (limit is None or n < limit):
             deadline = t0 + n * period
-            clock.wait_until(deadline)
+            late_by = clock.wait_until(deadline)
+            if late_by >= period:  # woke up in a later slot: skip to it, count what was lost
+                skip = late_by // period
+                if limit is not None:
+                    skip = min(skip, limit - n)
+                self._count_skipped(n, skip, windows)
+                n += skip
+                if limit is not None and n >= limit:
+                    break
+                deadline = t0 + n * period
             for task in self.tasks:
                 if n % task.divisor:
                     continue
@@ -247,7 +259,7 @@ class FixedRateLoop:
                 compute_ns = perf() - c0
                 window.lateness_us.append((start - deadline) / 1e3)
                 window.compute_us.append(compute_ns / 1e3)
-                if compute_ns > task.divisor * period:
+                if realtime and compute_ns > task.divisor * period:
                     window.overruns += 1
                 if stats.first_start_ns is None:
                     stats.first_start_ns = start
@@ -255,18 +267,12 @@ class FixedRateLoop:
                 stats.runs += 1
             n += 1
             self.ticks = n
-            late_by = clock.time_ns() - (t0 + n * period)
-            if late_by >= period:
-                skip = late_by // period
-                if limit is not None:
-                    skip = min(skip, limit - n)
-                self._count_skipped(n, skip, windows)
-                n += skip
             if n >= next_window:
                 self._publish_windows(final=False)
                 next_window = (n // self._window_ticks + 1) * self._window_ticks
 
     def _count_skipped(self, first: int, count: int, windows: dict[str, _Window]) -> None:
+        """Ticks ``first .. first + count - 1`` will not run: count each task's lost runs."""
         if count <= 0:
             return
         self.skipped_ticks += count
@@ -277,7 +283,7 @@ class FixedRateLoop:
         if self._on_event:
             self._on_event(
                 "loop.overrun",
-                f"skipped {count} tick(s) after tick {first - 1}",
+                f"skipped {count} tick(s) from tick {first}",
                 {"tick": first, "skipped": int(count)},
             )
 

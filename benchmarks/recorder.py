@@ -1,0 +1,60 @@
+"""Recorder cost on the loop thread (Topic.log) and sustained throughput, vs writing directly.
+
+Baseline: what a loop would pay writing each message itself (json.dumps + mcap add_message on
+the calling thread). Targets (DESIGN.md): <= 5 us per message on the loop thread, >= 50k msg/s.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+
+from mcap.writer import CompressionType, Writer
+
+from hil.recorder import Recorder
+
+N = 200_000
+MESSAGE = {"t": 0, "S_VA": [12.5, 431.2, 0.0], "relays": {"P1": True, "P2": False}, "k": 7}
+
+
+def direct_writer(path: str) -> float:
+    with open(path, "wb") as f:
+        writer = Writer(f, chunk_size=128 * 1024, compression=CompressionType.ZSTD)
+        writer.start()
+        schema = writer.register_schema("m", "jsonschema", b'{"type":"object"}')
+        channel = writer.register_channel("/m", "json", schema)
+        t0 = time.perf_counter()
+        for k in range(N):
+            writer.add_message(channel, k, json.dumps(MESSAGE).encode(), k)
+        elapsed = time.perf_counter() - t0
+        writer.finish()
+    return elapsed / N * 1e6
+
+
+def hil_recorder(path: str) -> tuple[float, float, int]:
+    recorder = Recorder(path, queue_size=N + 10)
+    topic = recorder.topic("/m", {"type": "object", "title": "m"})
+    t0 = time.perf_counter()
+    for k in range(N):
+        topic.log(k, MESSAGE)
+    enqueue = time.perf_counter() - t0
+    stats = recorder.close()
+    total = time.perf_counter() - t0
+    return enqueue / N * 1e6, N / total, stats.messages_written
+
+
+def main() -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        base_us = direct_writer(f"{tmp}/direct.mcap")
+        log_us, rate, written = hil_recorder(f"{tmp}/hil.mcap")
+    assert written >= N, f"recorder wrote {written} of {N}"
+    print(f"{'messages':<40} {N}")
+    print(f"{'direct json+mcap on the caller [us/msg]':<40} {base_us:8.2f}   (baseline)")
+    print(f"{'hil Topic.log on the loop thread [us/msg]':<40} {log_us:8.2f}   "
+          f"{base_us / log_us:.0f}x cheaper than writing directly (target <= 5 us)")
+    print(f"{'hil sustained throughput [msg/s]':<40} {rate:8.0f}   (target >= 50000)")
+
+
+if __name__ == "__main__":
+    main()
