@@ -1,0 +1,254 @@
+"""Modbus poll round trips (TCP loopback, RTU 115200 on a pty) and 100 Hz bench sampling.
+
+The emulator runs as its own process (``hil emulate bench``), like the hardware it replaces.
+Round trips: each transport's figure is printed next to a baseline measured in the same run
+(a hand-made frame on a raw socket or serial port; for a paced RTU line, the wire time of the
+frames). Sampling: a real-time session at 100 Hz polls the meter and the levels for
+``--duration`` s against the TCP emulator, next to the same loop without I/O, then briefly
+over a paced RTU line. Target (DESIGN.md): TCP poll p99 <= 2 ms. The machine is shared:
+figures are noisy, run it on a quiet box for figures worth quoting.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import socket
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import serial
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.framer.rtu import FramerRTU
+
+from drivers.modbus_bench import ModbusLink, parse_bus_url
+from hil.bench_io import attach_bench, load_bench_config
+from hil.clock import RealtimeClock
+from hil.config import deep_merge
+from hil.loop import FunctionTask
+from hil.session import Session
+from hil.stats import percentile_summary
+
+REPO = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
+METER_UNIT, FULL, SMALL = 2, 76, 6   # whole SDM630 map in one request; va_l1..va_l3
+
+
+def spawn(*args: str) -> tuple[subprocess.Popen, str]:
+    proc = subprocess.Popen([sys.executable, *args], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True, env=ENV)
+    return proc, proc.stdout.readline().strip()
+
+
+def emulator(*where: str) -> tuple[subprocess.Popen, str]:
+    proc, line = spawn("-m", "hil.cli", "emulate", "bench", *where)
+    match = re.search(r"listening on (\S+)", line)
+    if not match:
+        raise SystemExit(f"emulator did not start: {line!r}")
+    return proc, match.group(1)
+
+
+def null_modem(baud: int | None) -> tuple[subprocess.Popen, list[str]]:
+    """A pty pair in a helper process (its copy threads then do not share our GIL)."""
+    code = ("import sys; from emulators.null_modem import NullModem\n"
+            f"m = NullModem(baudrate={baud!r}); print(' '.join(m.ports), flush=True)\n"
+            "sys.stdin.read(); m.close()")
+    proc, line = spawn("-c", code)
+    return proc, line.split()
+
+
+def stop(proc: subprocess.Popen) -> None:
+    proc.terminate()
+    try:
+        proc.wait(timeout=5)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+
+
+def time_calls(call: Callable[[], object], n: int) -> np.ndarray:
+    for _ in range(min(50, n)):
+        call()
+    out = np.empty(n)
+    for i in range(n):
+        t0 = time.perf_counter_ns()
+        call()
+        out[i] = (time.perf_counter_ns() - t0) / 1e3
+    return out
+
+
+def row(name: str, samples_us: np.ndarray, note: str = "") -> None:
+    s = percentile_summary(samples_us)
+    print(f"  {name:<54} {s['p50']:>9.0f} {s['p99']:>9.0f} {s['max']:>9.0f}  {note}")
+
+
+def header(title: str) -> None:
+    print(f"\n{title}\n  {'':<54} {'p50 us':>9} {'p99 us':>9} {'max us':>9}")
+
+
+def raw_tcp(port: int) -> Callable[[], bytes]:
+    sock = socket.create_connection(("127.0.0.1", port))
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    request = struct.pack(">HHHBBHH", 1, 0, 6, METER_UNIT, 4, 0, FULL)
+    size = 9 + 2 * FULL
+
+    def call() -> bytes:
+        sock.sendall(request)
+        data = b""
+        while len(data) < size:
+            data += sock.recv(size - len(data))
+        return data
+
+    return call
+
+
+def raw_rtu(port: str, count: int) -> Callable[[], bytes]:
+    line = serial.Serial(port, 115200, timeout=1)
+    frame = bytes([METER_UNIT, 4, 0, 0, 0, count])
+    request = frame + FramerRTU.compute_CRC(frame).to_bytes(2, "big")
+    size = 5 + 2 * count
+
+    def call() -> bytes:
+        line.write(request)
+        return line.read(size)
+
+    return call
+
+
+def round_trips(n_tcp: int, n_rtu: int) -> None:
+    header("Poll round trip, meter unit (FC04)")
+    proc, url = emulator("--tcp", "127.0.0.1:0")
+    try:
+        port = parse_bus_url(url).port
+        row(f"TCP raw socket frame ({FULL} regs) [baseline]", time_calls(raw_tcp(port), n_tcp))
+        client = ModbusTcpClient("127.0.0.1", port=port, timeout=1, retries=0)
+        client.connect()
+        row(f"TCP pymodbus client ({FULL} regs)", time_calls(
+            lambda: client.read_input_registers(0, count=FULL, device_id=METER_UNIT), n_tcp))
+        client.close()
+        link = ModbusLink(parse_bus_url(url), timeout_s=0.1, attempts=2)
+        samples = time_calls(lambda: link.read_floats(METER_UNIT, 0, FULL), n_tcp)
+        row(f"TCP hil driver ({FULL} regs)", samples,
+            f"target p99 <= 2000 us: {'met' if np.percentile(samples, 99) <= 2000 else 'MISSED'}")
+        link.close()
+    finally:
+        stop(proc)
+    for baud in (None, 115200):
+        modem, ports = null_modem(baud)
+        proc, url = emulator("--serial", ports[1], "--baud", "115200")
+        kind = "RTU pty" if baud is None else "RTU pty paced at 115200 8N1"
+        try:
+            if baud is None:
+                row(f"{kind}: raw frame ({FULL} regs) [baseline]",
+                    time_calls(raw_rtu(ports[0], FULL), n_rtu))
+                client = ModbusSerialClient(ports[0], baudrate=115200, timeout=1, retries=0)
+                client.connect()
+                row(f"{kind}: pymodbus client ({FULL} regs)", time_calls(
+                    lambda c=client: c.read_input_registers(0, count=FULL,
+                                                            device_id=METER_UNIT), n_rtu))
+                client.close()
+            link = ModbusLink(parse_bus_url(f"modbus-rtu://{ports[0]}?baud=115200"),
+                              timeout_s=0.2, attempts=2)
+            for count in (FULL, SMALL):
+                n = n_rtu if baud is None else max(50, n_rtu // 5)
+                wire_us = (8 + 5 + 2 * count) * 10 / 115200 * 1e6
+                note = "" if baud is None else f"wire time of the frames {wire_us:.0f} us"
+                row(f"{kind}: hil driver ({count} regs)", time_calls(
+                    lambda c=count, lk=link: lk.read_floats(METER_UNIT, 0x12 if c == SMALL
+                                                            else 0, c), n), note)
+            link.close()
+        finally:
+            stop(proc)
+            modem.stdin.close()
+            stop(modem)
+
+
+def loop_only(duration_s: float) -> tuple[dict, int, int]:
+    with tempfile.TemporaryDirectory() as tmp:
+        session = Session(f"{tmp}/idle.mcap", RealtimeClock(), 0.01, kind="bench",
+                          handle_signals=False)
+        session.add_task(FunctionTask("bench_io", 1))
+        session.run(duration_s=duration_s)
+        session.close()
+        stats = session.loop.stats["bench_io"]
+        return stats.lateness.summary(), stats.runs, stats.missed
+
+
+def sampling(url: str, duration_s: float, config: dict) -> tuple[dict, int, int, int, int]:
+    with tempfile.TemporaryDirectory() as tmp:
+        session = Session(f"{tmp}/b.mcap", RealtimeClock(), 0.01, kind="bench", config=config,
+                          handle_signals=False)
+        rig = attach_bench(session, config, url)
+        session.run(duration_s=duration_s)
+        rig.close()
+        session.close()
+        stats = session.loop.stats["bench_io"]
+        late = sum(np.count_nonzero(np.asarray(m["lateness_us"]) > 5000)
+                   for m in _timing_messages(session))
+        return (stats.lateness.summary(), stats.runs, stats.missed,
+                rig.sampler.missed_power, late)
+
+
+def _timing_messages(session: Session) -> list[dict]:
+    from hil.reader import read_session
+
+    return [m for _, m in read_session(session.path).topic("/loop/bench_io/timing")]
+
+
+def sampling_report(duration_s: float, rtu_s: float) -> None:
+    print(f"\n100 Hz sampling (meter + levels every 10 ms, real time, recorded)\n"
+          f"  {'':<54} {'samples':>8} {'missed':>7} {'failed':>7} {'>5ms':>6} "
+          f"{'p50 us':>7} {'p99 us':>7} {'max us':>8}")
+
+    def line(name: str, lat: dict, runs: int, missed: int, failed: str, late: str) -> None:
+        print(f"  {name:<54} {runs:>8} {missed:>7} {failed:>7} {late:>6} "
+              f"{lat['p50']:>7.0f} {lat['p99']:>7.0f} {lat['max']:>8.0f}")
+
+    lat, runs, missed = loop_only(min(5.0, duration_s))
+    line(f"loop without I/O, {min(5.0, duration_s):g} s [baseline]", lat, runs, missed, "-", "-")
+    config = load_bench_config()
+    proc, url = emulator("--tcp", "127.0.0.1:0")
+    try:
+        lat, runs, missed, failed, late = sampling(url, duration_s, config)
+        line(f"TCP emulator process, {duration_s:g} s", lat, runs, missed, str(failed),
+             str(late))
+    finally:
+        stop(proc)
+    modem, ports = null_modem(115200)
+    proc, _ = emulator("--serial", ports[1])
+    small = deep_merge(config, {"meter": {"poll": ["va_l1", "va_l2", "va_l3"]},
+                                "sampling": {"levels_every": 10}})
+    try:
+        lat, runs, missed, failed, late = sampling(f"modbus-rtu://{ports[0]}?baud=115200",
+                                                   rtu_s, small)
+        line(f"RTU paced 115200, VA only, levels 10 Hz, {rtu_s:g} s", lat, runs, missed,
+             str(failed), str(late))
+    finally:
+        stop(proc)
+        modem.stdin.close()
+        stop(modem)
+    print("  missed = loop ticks skipped (the previous sample overran 10 ms); failed = polls "
+          "without an answer; >5ms = samples started more than 5 ms late")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--duration", type=float, default=30.0, help="TCP sampling run [s]")
+    parser.add_argument("--rtu-duration", type=float, default=10.0, help="RTU sampling run [s]")
+    parser.add_argument("--polls", type=int, default=3000, help="TCP round trips per row")
+    parser.add_argument("--rtu-polls", type=int, default=600, help="RTU round trips per row")
+    args = parser.parse_args()
+    started = time.monotonic()
+    round_trips(args.polls, args.rtu_polls)
+    sampling_report(args.duration, args.rtu_duration)
+    print(f"\n(total {time.monotonic() - started:.0f} s; shared machine: figures are noisy)")
+
+
+if __name__ == "__main__":
+    main()

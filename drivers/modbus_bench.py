@@ -1,0 +1,369 @@
+"""Relay bench driver over Modbus TCP or RTU: relays (coils), power meter and level sensors.
+
+Moves bytes only: no dwell, no decisions (``drivers/safety.py`` wraps it for everyone else).
+pymodbus clients run with ``retries=0``: its own retries re-send on a late reply and, on RTU
+where replies carry no transaction id, can take that late reply for the answer to the next
+request. :class:`ModbusLink` retries itself, checks every reply against its request, and after
+a failure drops the TCP connection or flushes the serial input before trying again.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import struct
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+from urllib.parse import parse_qsl, urlsplit
+
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.exceptions import ModbusException
+from pymodbus.pdu import ModbusPDU
+
+from hil.config import lookup
+from hil.errors import ConfigError, HilError
+
+SOURCE = "bench config"
+URL_FORMS = "modbus-tcp://HOST:PORT or modbus-rtu:///dev/X?baud=115200&parity=N"
+EXCEPTION_NAMES = {
+    1: "illegal function", 2: "illegal data address", 3: "illegal data value",
+    4: "server device failure", 5: "acknowledge", 6: "server device busy",
+    10: "gateway path unavailable", 11: "gateway target device failed to respond",
+}
+GATEWAY_CODES = (10, 11)  # the gateway answered for a device that did not: worth a retry
+
+logging.getLogger("pymodbus").addHandler(logging.NullHandler())  # we report errors ourselves
+
+
+class LinkError(HilError):
+    """No valid answer (timeout, connection refused or lost, garbled reply) after all tries."""
+
+
+class DeviceError(HilError):
+    """The device answered with a Modbus exception: the request itself is wrong."""
+
+    def __init__(self, message: str, code: int) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass(frozen=True)
+class BusSpec:
+    """Where the bench is: a TCP endpoint or a serial line."""
+
+    kind: str  # "tcp" | "rtu"
+    host: str = ""
+    port: int = 0
+    device: str = ""
+    baudrate: int = 115200
+    parity: str = "N"
+    stopbits: int = 1
+    bytesize: int = 8
+
+    @property
+    def url(self) -> str:
+        if self.kind == "tcp":
+            return f"modbus-tcp://{self.host}:{self.port}"
+        return f"modbus-rtu://{self.device}?baud={self.baudrate}&parity={self.parity}"
+
+
+def parse_bus_url(url: str) -> BusSpec:
+    """``modbus-tcp://HOST:PORT`` or ``modbus-rtu:///dev/X?baud=..&parity=..&stopbits=..``."""
+
+    def bad(why: str) -> ConfigError:
+        return ConfigError(f"bus URL {url!r}: {why} (expected {URL_FORMS})")
+
+    if not isinstance(url, str):
+        raise ConfigError(f"bus URL must be a string like {URL_FORMS}, got {url!r}")
+    parts = urlsplit(url)
+    if parts.scheme == "modbus-tcp":
+        if parts.path not in ("", "/") or parts.query or parts.fragment:
+            raise bad("a TCP URL has no path or query")
+        try:
+            host, port = parts.hostname, parts.port
+        except ValueError as exc:
+            raise bad(f"bad port ({exc})") from None
+        if not host:
+            raise bad("no host")
+        if port is None or port == 0:
+            raise bad("no port")
+        return BusSpec("tcp", host=host, port=port)
+    if parts.scheme == "modbus-rtu":
+        if parts.netloc or not parts.path.startswith("/") or len(parts.path) < 2:
+            raise bad("an RTU URL names a device path, e.g. modbus-rtu:///dev/ttyUSB0")
+        options = {"baud": "115200", "parity": "N", "stopbits": "1", "bytesize": "8"}
+        for key, value in parse_qsl(parts.query, keep_blank_values=True, strict_parsing=False):
+            if key not in options:
+                raise bad(f"unknown option {key!r} (known: {', '.join(options)})")
+            options[key] = value
+        try:
+            baud, stopbits, bytesize = (int(options[k]) for k in ("baud", "stopbits", "bytesize"))
+        except ValueError:
+            raise bad("baud, stopbits and bytesize must be integers") from None
+        parity = options["parity"].upper()
+        if baud <= 0 or parity not in ("N", "E", "O") or stopbits not in (1, 2) \
+                or bytesize not in (7, 8):
+            raise bad("baud > 0, parity N|E|O, stopbits 1|2, bytesize 7|8")
+        return BusSpec("rtu", device=parts.path, baudrate=baud, parity=parity,
+                       stopbits=stopbits, bytesize=bytesize)
+    raise bad(f"unknown scheme {parts.scheme!r}" if parts.scheme else "not a URL")
+
+
+class ModbusLink:
+    """One Modbus master: explicit timeout per request, ``attempts`` tries, reply checks."""
+
+    def __init__(self, spec: BusSpec, timeout_s: float, attempts: int) -> None:
+        if not timeout_s > 0 or attempts < 1:
+            raise ConfigError(f"{SOURCE}: bus.timeout_s must be > 0 and bus.attempts >= 1")
+        self.spec = spec
+        self.timeout_s = timeout_s
+        self.attempts = attempts
+        self.connections = 0  # successful (re)connections so far
+        if spec.kind == "tcp":
+            self.client: ModbusTcpClient | ModbusSerialClient = ModbusTcpClient(
+                spec.host, port=spec.port, timeout=timeout_s, retries=0)
+        else:
+            self.client = ModbusSerialClient(
+                spec.device, baudrate=spec.baudrate, parity=spec.parity,
+                stopbits=spec.stopbits, bytesize=spec.bytesize, timeout=timeout_s, retries=0)
+
+    def connect(self) -> bool:
+        if self.client.connected:
+            return True
+        if self.client.connect():
+            self.connections += 1
+            return True
+        return False
+
+    def close(self) -> None:
+        self.client.close()
+
+    def _reset(self) -> None:
+        """After a failed exchange: no stale bytes may be taken for the next reply."""
+        if self.spec.kind == "tcp":
+            self.client.close()
+        elif self.client.connected:
+            try:
+                self.client.socket.reset_input_buffer()  # type: ignore[union-attr]
+            except OSError:
+                self.client.close()
+
+    def execute(self, what: str, call: Callable[[], ModbusPDU],
+                check: Callable[[ModbusPDU], bool]) -> ModbusPDU:
+        """Run ``call`` until ``check`` accepts a reply; exceptions from the device raise."""
+        reason = ""
+        for _ in range(self.attempts):
+            if not self.connect():
+                reason = f"cannot connect to {self.spec.url}"
+                continue
+            try:
+                reply = call()
+            except (ModbusException, OSError, ValueError) as exc:
+                reason = _first_line(exc) or type(exc).__name__
+                self._reset()
+                continue
+            if reply.isError():
+                code = int(getattr(reply, "exception_code", 0))
+                name = EXCEPTION_NAMES.get(code, "unknown exception")
+                if code in GATEWAY_CODES:
+                    reason = f"exception {code:#04x} ({name})"
+                    continue
+                raise DeviceError(f"{what}: device answered exception {code:#04x} ({name})", code)
+            if not check(reply):
+                reason = "reply does not match the request"
+                self._reset()
+                continue
+            return reply
+        raise LinkError(f"{what}: no valid answer from {self.spec.url} after "
+                        f"{self.attempts} attempt(s): {reason}")
+
+    def read_coils(self, unit: int, address: int, count: int) -> list[bool]:
+        reply = self.execute(
+            f"read coils {address}..{address + count - 1} of unit {unit}",
+            lambda: self.client.read_coils(address, count=count, device_id=unit),
+            lambda r: r.function_code == 1 and len(r.bits) >= count,
+        )
+        return list(reply.bits[:count])
+
+    def write_coil(self, unit: int, address: int, on: bool) -> None:
+        self.execute(
+            f"write coil {address} of unit {unit}",
+            lambda: self.client.write_coil(address, on, device_id=unit),
+            lambda r: r.function_code == 5 and r.address == address and bool(r.bits[0]) == on,
+        )
+
+    def read_floats(self, unit: int, address: int, count: int) -> list[float]:
+        """``count`` registers from ``address`` (FC04) as float32, high word first."""
+        reply = self.execute(
+            f"read input registers {address:#06x}+{count} of unit {unit}",
+            lambda: self.client.read_input_registers(address, count=count, device_id=unit),
+            lambda r: r.function_code == 4 and len(r.registers) == count,
+        )
+        words = reply.registers
+        return list(struct.unpack(f">{count // 2}f", struct.pack(f">{count}H", *words)))
+
+
+def _first_line(exc: BaseException) -> str:
+    return str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+
+
+@dataclass(frozen=True)
+class RelaySpec:
+    name: str
+    coil: int
+    safe: bool
+    dwell_s: float
+
+
+def plan_reads(addresses: Mapping[str, int], max_count: int, max_gap: int
+               ) -> list[tuple[int, int, list[tuple[str, int]]]]:
+    """Group float32 registers into requests: ``(first, count, [(name, float index)])``.
+
+    Neighbours join one request while it stays within ``max_count`` registers and skips at
+    most ``max_gap`` registers between two wanted floats.
+    """
+    reads: list[tuple[int, int, list[tuple[str, int]]]] = []
+    for name, address in sorted(addresses.items(), key=lambda item: item[1]):
+        if reads:
+            first, count, names = reads[-1]
+            gap = address - (first + count)
+            if 0 <= gap <= max_gap and address + 2 - first <= max_count and gap % 2 == 0:
+                names.append((name, (address - first) // 2))
+                reads[-1] = (first, address + 2 - first, names)
+                continue
+        reads.append((address, 2, [(name, 0)]))
+    return reads
+
+
+@dataclass(frozen=True)
+class BenchMap:
+    """Units, relays and register maps of the bench (``bench.toml``), validated."""
+
+    units: dict[str, int]
+    relays: dict[str, RelaySpec]
+    meter_reads: list[tuple[int, int, list[tuple[str, int]]]]
+    level_reads: list[tuple[int, int, list[tuple[str, int]]]]
+
+    @property
+    def meter_quantities(self) -> list[str]:
+        return [name for _, _, names in self.meter_reads for name, _ in names]
+
+    @property
+    def level_names(self) -> list[str]:
+        return [name for _, _, names in self.level_reads for name, _ in names]
+
+    @classmethod
+    def from_config(cls, config: Mapping[str, Any]) -> BenchMap:
+        units = {role: lookup(config, f"units.{role}", int, source=SOURCE)
+                 for role in ("relays", "meter", "levels")}
+        for role, unit in units.items():
+            if not 1 <= unit <= 247:
+                raise ConfigError(f"{SOURCE}: key 'units.{role}' must be 1..247, got {unit}")
+        table = lookup(config, "relays", dict, source=SOURCE)
+        if not table:
+            raise ConfigError(f"{SOURCE}: [relays] is empty: name at least one relay")
+        relays: dict[str, RelaySpec] = {}
+        for name in table:
+            coil = lookup(config, f"relays.{name}.coil", int, source=SOURCE)
+            dwell = lookup(config, f"relays.{name}.dwell_s", float, 5.0, source=SOURCE)
+            if coil < 0 or not 0 <= dwell < math.inf:
+                raise ConfigError(f"{SOURCE}: relay {name}: coil must be >= 0 and dwell_s "
+                                  f"a finite number >= 0, got coil={coil}, dwell_s={dwell}")
+            clash = next((r.name for r in relays.values() if r.coil == coil), None)
+            if clash:
+                raise ConfigError(f"{SOURCE}: relays {clash} and {name} are both on coil {coil}")
+            relays[name] = RelaySpec(name, coil, lookup(
+                config, f"relays.{name}.safe", bool, False, source=SOURCE), dwell)
+        max_count = lookup(config, "meter.max_registers_per_request", int, 80, source=SOURCE)
+        if not 2 <= max_count <= 125:
+            raise ConfigError(f"{SOURCE}: key 'meter.max_registers_per_request' must be 2..125, "
+                              f"got {max_count}")
+        max_gap = lookup(config, "meter.max_gap_registers", int, 8, source=SOURCE)
+        meter = _float_map(config, "meter.registers")
+        poll = lookup(config, "meter.poll", list, list(meter), source=SOURCE)
+        unknown = [q for q in poll if q not in meter]
+        if unknown or not poll:
+            raise ConfigError(f"{SOURCE}: key 'meter.poll' must name registers of "
+                              f"[meter.registers], unknown: {unknown}")
+        levels = _float_map(config, "levels.registers")
+        return cls(
+            units, relays,
+            plan_reads({q: meter[q] for q in poll}, max_count, max_gap),
+            plan_reads(levels, max_count, max_gap),
+        )
+
+
+def _float_map(config: Mapping[str, Any], key: str) -> dict[str, int]:
+    table = lookup(config, key, dict, source=SOURCE)
+    if not table:
+        raise ConfigError(f"{SOURCE}: [{key}] is empty")
+    out: dict[str, int] = {}
+    for name in table:
+        address = lookup(config, f"{key}.{name}", int, source=SOURCE)
+        if not 0 <= address <= 0xFFFE:
+            raise ConfigError(f"{SOURCE}: key '{key}.{name}' must be a register 0..65534, "
+                              f"got {address}")
+        clash = next((n for n, a in out.items() if abs(a - address) < 2), None)
+        if clash:
+            raise ConfigError(f"{SOURCE}: '{key}.{name}' (register {address:#06x}) overlaps "
+                              f"'{key}.{clash}' (float32 values take two registers)")
+        out[name] = address
+    return out
+
+
+class ModbusBenchDriver:
+    """The bench's devices over one :class:`ModbusLink`. No dwell, no safety: see safety.py."""
+
+    def __init__(self, link: ModbusLink, bench_map: BenchMap) -> None:
+        self.link = link
+        self.map = bench_map
+        coils = [r.coil for r in bench_map.relays.values()]
+        self._coil_first, self._coil_count = min(coils), max(coils) - min(coils) + 1
+
+    def _read_block(self, unit: int, reads: list[tuple[int, int, list[tuple[str, int]]]]
+                    ) -> dict[str, float]:
+        out: dict[str, float] = {}
+        for first, count, names in reads:
+            floats = self.link.read_floats(unit, first, count)
+            for name, index in names:
+                out[name] = floats[index]
+        return out
+
+    def read_power(self) -> dict[str, float]:
+        """Every polled meter quantity (``meter.poll``) of one moment."""
+        return self._read_block(self.map.units["meter"], self.map.meter_reads)
+
+    def read_levels(self) -> dict[str, float]:
+        return self._read_block(self.map.units["levels"], self.map.level_reads)
+
+    def read_relays(self) -> dict[str, bool]:
+        bits = self.link.read_coils(self.map.units["relays"], self._coil_first,
+                                    self._coil_count)
+        return {name: bits[r.coil - self._coil_first] for name, r in self.map.relays.items()}
+
+    def write_relay(self, name: str, on: bool) -> dict[str, bool]:
+        """Switch one relay, read every relay back; raise LinkError when the coil disagrees."""
+        self.link.write_coil(self.map.units["relays"], self.map.relays[name].coil, on)
+        states = self.read_relays()
+        if states[name] != on:
+            raise LinkError(f"relay {name}: wrote {'on' if on else 'off'}, read back "
+                            f"{'on' if states[name] else 'off'}")
+        return states
+
+    def probe(self) -> None:
+        """One request to every unit; the first failure raises an error naming the unit."""
+        checks = (("relays", self.read_relays), ("meter", self.read_power),
+                  ("levels", self.read_levels))
+        for role, read in checks:
+            where = f"bench {role} (unit {self.map.units[role]})"
+            try:
+                read()
+            except DeviceError as exc:
+                raise DeviceError(f"{where}: {exc}", exc.code) from None
+            except LinkError as exc:
+                raise LinkError(f"{where}: {exc} (is the bench there, is the unit id right?)"
+                                ) from None
+
+    def close(self) -> None:
+        self.link.close()

@@ -1,0 +1,481 @@
+"""The bench plant behind pymodbus servers (Modbus TCP or RTU over a serial port).
+
+Three devices share one server, as on the real bench's RS-485 line or TCP gateway:
+unit ``units.relays`` (coils), ``units.meter`` (SDM630 input registers, float32 high word
+first), ``units.levels`` (level sensors, float32). Register maps come from the bench config.
+
+pymodbus 3.16's datastore (``SimDevice``) cannot give the exception codes a real device gives,
+so every function code is served by a small request class bound to :class:`BenchDevices`
+(registered through the server's documented ``custom_pdu`` hook):
+
+* FC05 with a value other than FF00/0000: pymodbus decodes any non-zero value as "on"; here
+  it is exception 3 (illegal data value), as the Modbus specification requires;
+* a quantity outside 1..max (meter: 80 registers, the SDM630's limit; other units: the
+  specification's 125 registers, 2000 coils) is exception 3, checked before the address as in
+  the specification's request-processing diagrams (pymodbus would raise in decode instead);
+* an address outside a device's map, or a read that splits a float, is exception 2;
+* a function code the unit does not have is exception 1;
+* an unknown unit: no answer (RTU: nobody on the line has that address) or exception 0x0B
+  (TCP: a gateway whose target did not respond), per ``emulator.unknown_unit``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import struct
+import threading
+import time
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+from pymodbus.constants import ExcCodes
+from pymodbus.exceptions import NoSuchIdException
+from pymodbus.pdu import ExceptionResponse, ModbusPDU
+from pymodbus.pdu.bit_message import (
+    ReadCoilsRequest,
+    ReadCoilsResponse,
+    ReadDiscreteInputsRequest,
+    WriteMultipleCoilsRequest,
+    WriteMultipleCoilsResponse,
+    WriteSingleCoilRequest,
+    WriteSingleCoilResponse,
+)
+from pymodbus.pdu.register_message import (
+    ReadHoldingRegistersRequest,
+    ReadInputRegistersRequest,
+    ReadInputRegistersResponse,
+    ReadWriteMultipleRegistersRequest,
+    WriteMultipleRegistersRequest,
+    WriteSingleRegisterRequest,
+)
+from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.simulator import SimData, SimDevice
+
+from emulators.bench_plant import METER_QUANTITIES, BenchPlant, Snapshot
+from hil.config import lookup
+from hil.errors import ConfigError, HilError
+from hil.loop import Task
+
+SOURCE = "bench config"
+SPEC_MAX_REGISTERS = 125   # Modbus spec, FC03/FC04
+SPEC_MAX_COILS = 2000      # Modbus spec, FC01
+SPEC_MAX_WRITE_COILS = 0x07B0  # Modbus spec, FC15
+COIL_ON, COIL_OFF = 0xFF00, 0x0000
+
+logging.getLogger("pymodbus").addHandler(logging.NullHandler())  # we report errors ourselves
+
+
+def register_map(config: Mapping[str, Any], key: str, known: tuple[str, ...] | None = None
+                 ) -> dict[str, int]:
+    """``{quantity: first register}`` of float32 values, checked: ints >= 0, no overlap."""
+    table = lookup(config, key, dict, source=SOURCE)
+    if not table:
+        raise ConfigError(f"{SOURCE}: [{key}] is empty")
+    taken: dict[int, str] = {}
+    out: dict[str, int] = {}
+    for name in table:
+        if known is not None and name not in known:
+            raise ConfigError(f"{SOURCE}: key '{key}.{name}' is not a quantity the meter "
+                              f"provides (known: {', '.join(known)})")
+        address = lookup(config, f"{key}.{name}", int, source=SOURCE)
+        if not 0 <= address <= 0xFFFE:
+            raise ConfigError(f"{SOURCE}: key '{key}.{name}' must be a register 0..65534, "
+                              f"got {address}")
+        for word in (address, address + 1):
+            if word in taken:
+                raise ConfigError(f"{SOURCE}: '{key}.{name}' (register {address:#06x}) "
+                                  f"overlaps '{key}.{taken[word]}'")
+            taken[word] = name
+        out[name] = address
+    return out
+
+
+class FloatBlock:
+    """A block of input registers holding float32 values (high word first) from a snapshot."""
+
+    def __init__(self, addresses: Mapping[str, int], first: int, end: int, max_count: int
+                 ) -> None:
+        for name, address in addresses.items():
+            if not first <= address or address + 2 > end or (address - first) % 2:
+                raise ConfigError(f"{SOURCE}: register {address:#06x} of {name} is outside the "
+                                  f"served block [{first:#06x}, {end:#06x}) or not on a float "
+                                  "boundary")
+        self.first, self.end, self.max_count = first, end, max_count
+        self._slots = {name: (address - first) // 2 for name, address in addresses.items()}
+        self._cache: tuple[Any, list[int]] = (None, [])
+
+    def words(self, values: Mapping[str, float], key: object) -> list[int]:
+        """All registers of the block for ``values``; recomputed only when ``key`` changes."""
+        if self._cache[0] is not key:
+            floats = np.zeros((self.end - self.first) // 2, dtype=">f4")
+            for name, slot in self._slots.items():
+                floats[slot] = values[name]
+            self._cache = (key, floats.view(">u2").tolist())
+        return self._cache[1]
+
+    def check(self, address: int, count: int) -> ExcCodes | None:
+        if not 1 <= count <= self.max_count:
+            return ExcCodes.ILLEGAL_VALUE
+        if address < self.first or address + count > self.end:
+            return ExcCodes.ILLEGAL_ADDRESS
+        if (address - self.first) % 2 or count % 2:  # a read must not split a float
+            return ExcCodes.ILLEGAL_ADDRESS
+        return None
+
+
+class BenchDevices:
+    """What each unit answers: the plant's coils and its latest :class:`Snapshot`."""
+
+    def __init__(self, plant: BenchPlant, config: Mapping[str, Any]) -> None:
+        self.plant = plant
+        self.units = {
+            role: lookup(config, f"units.{role}", int, source=SOURCE)
+            for role in ("relays", "meter", "levels")
+        }
+        for role, unit in self.units.items():
+            if not 1 <= unit <= 247:
+                raise ConfigError(f"{SOURCE}: key 'units.{role}' must be 1..247, got {unit}")
+        if len(set(self.units.values())) != 3:
+            raise ConfigError(f"{SOURCE}: [units] must give three different unit ids, "
+                              f"got {self.units}")
+        meter = register_map(config, "meter.registers", METER_QUANTITIES)
+        space = lookup(config, "emulator.meter_space", list, source=SOURCE)
+        if len(space) != 2 or not all(isinstance(x, int) for x in space):
+            raise ConfigError(f"{SOURCE}: key 'emulator.meter_space' must be [first, end], "
+                              f"got {space!r}")
+        max_count = lookup(config, "meter.max_registers_per_request", int, 80, source=SOURCE)
+        self.meter = FloatBlock(meter, space[0], space[1], max_count)
+        levels = register_map(config, "levels.registers")
+        missing = set(levels) - {r.name for r in plant.resources}
+        if missing:
+            raise ConfigError(f"{SOURCE}: [levels.registers] names {sorted(missing)} but the "
+                              f"plant has resources {[r.name for r in plant.resources]}")
+        first = min(levels.values())
+        self.levels = FloatBlock(levels, first, max(levels.values()) + 2, SPEC_MAX_REGISTERS)
+
+    def role(self, unit: int) -> str:
+        """The device at ``unit``; an unknown unit raises (pymodbus then answers per policy)."""
+        for role, known in self.units.items():
+            if unit == known:
+                return role
+        raise NoSuchIdException(f"no device at unit {unit}")
+
+    def read_coils(self, unit: int, address: int, count: int) -> list[bool] | ExcCodes:
+        if self.role(unit) != "relays":
+            return ExcCodes.ILLEGAL_FUNCTION
+        if not 1 <= count <= SPEC_MAX_COILS:
+            return ExcCodes.ILLEGAL_VALUE
+        coils = self.plant.coils()
+        if address + count > len(coils):
+            return ExcCodes.ILLEGAL_ADDRESS
+        return coils[address:address + count]
+
+    def write_coils(self, unit: int, address: int, values: list[bool]) -> ExcCodes | None:
+        if self.role(unit) != "relays":
+            return ExcCodes.ILLEGAL_FUNCTION
+        if address + len(values) > self.plant.n_coils:
+            return ExcCodes.ILLEGAL_ADDRESS
+        self.plant.set_coils(address, values)
+        return None
+
+    def read_input_registers(self, unit: int, address: int, count: int) -> list[int] | ExcCodes:
+        role = self.role(unit)
+        if role == "relays":
+            return ExcCodes.ILLEGAL_FUNCTION
+        block = self.meter if role == "meter" else self.levels
+        if error := block.check(address, count):
+            return error
+        snapshot: Snapshot = self.plant.snapshot  # one reference: one consistent step
+        values = snapshot.meter if role == "meter" else snapshot.levels
+        words = block.words(values, snapshot)
+        start = address - block.first
+        return words[start:start + count]
+
+    def unsupported(self, unit: int) -> ExcCodes:
+        self.role(unit)
+        return ExcCodes.ILLEGAL_FUNCTION
+
+
+def _exception(request: ModbusPDU, code: ExcCodes) -> ExceptionResponse:
+    return ExceptionResponse(request.function_code, code)
+
+
+def request_classes(devices: BenchDevices) -> list[type[ModbusPDU]]:
+    """Request classes for every function code, bound to ``devices``."""
+
+    class ReadCoils(ReadCoilsRequest):
+        def decode(self, data: bytes) -> None:  # quantity checked in datastore_update
+            self.address, self.count = struct.unpack(">HH", data[:4])
+
+        async def datastore_update(self, context: Any, device_id: int) -> ModbusPDU:
+            bits = devices.read_coils(device_id, self.address, self.count)
+            if isinstance(bits, ExcCodes):
+                return _exception(self, bits)
+            return ReadCoilsResponse(dev_id=device_id, transaction_id=self.transaction_id,
+                                     bits=bits)
+
+    class WriteSingleCoil(WriteSingleCoilRequest):
+        raw_value = 0
+
+        def decode(self, data: bytes) -> None:
+            self.address, self.raw_value = struct.unpack(">HH", data[:4])
+            self.bits = [self.raw_value == COIL_ON]
+
+        async def datastore_update(self, context: Any, device_id: int) -> ModbusPDU:
+            if devices.role(device_id) != "relays":
+                return _exception(self, ExcCodes.ILLEGAL_FUNCTION)
+            if self.raw_value not in (COIL_ON, COIL_OFF):
+                return _exception(self, ExcCodes.ILLEGAL_VALUE)
+            if error := devices.write_coils(device_id, self.address, list(self.bits)):
+                return _exception(self, error)
+            return WriteSingleCoilResponse(address=self.address, bits=list(self.bits),
+                                           dev_id=device_id, transaction_id=self.transaction_id)
+
+    class WriteMultipleCoils(WriteMultipleCoilsRequest):
+        async def datastore_update(self, context: Any, device_id: int) -> ModbusPDU:
+            if devices.role(device_id) != "relays":
+                return _exception(self, ExcCodes.ILLEGAL_FUNCTION)
+            consistent = (1 <= self.count <= SPEC_MAX_WRITE_COILS
+                          and self.byte_count == (self.count + 7) // 8
+                          and self.data_byte_count == self.byte_count)
+            if not consistent:
+                return _exception(self, ExcCodes.ILLEGAL_VALUE)
+            if error := devices.write_coils(device_id, self.address, list(self.bits)):
+                return _exception(self, error)
+            return WriteMultipleCoilsResponse(address=self.address, count=self.count,
+                                              dev_id=device_id,
+                                              transaction_id=self.transaction_id)
+
+    class ReadInputRegisters(ReadInputRegistersRequest):
+        def decode(self, data: bytes) -> None:  # quantity checked in datastore_update
+            self.address, self.count = struct.unpack(">HH", data[:4])
+
+        async def datastore_update(self, context: Any, device_id: int) -> ModbusPDU:
+            words = devices.read_input_registers(device_id, self.address, self.count)
+            if isinstance(words, ExcCodes):
+                return _exception(self, words)
+            return ReadInputRegistersResponse(dev_id=device_id,
+                                              transaction_id=self.transaction_id,
+                                              registers=words)
+
+    def unsupported(base: type[ModbusPDU]) -> type[ModbusPDU]:
+        async def datastore_update(self: ModbusPDU, context: Any, device_id: int) -> ModbusPDU:
+            return _exception(self, devices.unsupported(device_id))
+
+        return type(f"Unsupported{base.__name__}", (base,), {
+            "datastore_update": datastore_update})
+
+    return [
+        ReadCoils, WriteSingleCoil, WriteMultipleCoils, ReadInputRegisters,
+        *(unsupported(base) for base in (
+            ReadDiscreteInputsRequest, ReadHoldingRegistersRequest, WriteSingleRegisterRequest,
+            WriteMultipleRegistersRequest, ReadWriteMultipleRegistersRequest)),
+    ]
+
+
+class ServerThread:
+    """A pymodbus server with its own asyncio loop in a background thread."""
+
+    def __init__(self, devices: BenchDevices, unknown_unit: str) -> None:
+        self.devices = devices
+        self.unknown_unit = unknown_unit
+        self.address: tuple[str, int] | str | None = None
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self._started = threading.Event()
+        self._error: BaseException | None = None
+
+    def _silent(self, transport: str) -> bool:
+        if self.unknown_unit == "auto":
+            return transport == "rtu"
+        return self.unknown_unit == "silent"
+
+    def start_tcp(self, host: str, port: int) -> tuple[str, int]:
+        def make() -> ModbusTcpServer:
+            return ModbusTcpServer(
+                _placeholder_context(), address=(host, port),
+                ignore_missing_devices=self._silent("tcp"),
+                custom_pdu=request_classes(self.devices),
+            )
+
+        self._start(make, f"{host}:{port}", "address in use or not available")
+        assert isinstance(self.address, tuple)
+        return self.address
+
+    def start_serial(self, port: str, baudrate: int, parity: str, stopbits: int,
+                     bytesize: int) -> str:
+        def make() -> ModbusSerialServer:
+            return ModbusSerialServer(
+                _placeholder_context(), port=port, baudrate=baudrate, parity=parity,
+                stopbits=stopbits, bytesize=bytesize,
+                ignore_missing_devices=self._silent("rtu"),
+                custom_pdu=request_classes(self.devices),
+            )
+
+        self._start(make, port, "no such serial port, or it is busy or not a tty")
+        return port
+
+    def _start(self, make: Any, where: str, failure: str) -> None:
+        if self._thread is not None:
+            raise HilError("emulator server already started")
+        self._started.clear()
+        self._error = None
+        self._thread = threading.Thread(target=self._run, args=(make, failure),
+                                        name="bench-modbus", daemon=True)
+        self._thread.start()
+        self._started.wait()
+        if self._error is not None:
+            self._thread.join()
+            self._thread = None
+            raise HilError(f"bench emulator cannot listen on {where}: {self._error}")
+
+    def _run(self, make: Any, failure: str) -> None:
+        try:
+            asyncio.run(self._serve(make, failure))
+        except BaseException as exc:  # reported to the starting thread
+            self._error = exc
+            self._started.set()
+
+    async def _serve(self, make: Any, failure: str) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        server = make()
+        try:
+            await server.serve_forever(background=True)
+        except RuntimeError:  # pymodbus logs the OS error and raises this
+            raise OSError(failure) from None
+        transport = server.transport
+        sockets = getattr(transport, "sockets", None)
+        if sockets:
+            host, port = sockets[0].getsockname()[:2]
+            self.address = (host, port)
+        else:
+            self.address = server.comm_params.source_address[0]
+        self._started.set()
+        await self._stop.wait()
+        await server.shutdown()
+
+    def stop(self) -> None:
+        if self._thread is None:
+            return
+        if self._loop is not None and self._stop is not None:
+            self._loop.call_soon_threadsafe(self._stop.set)
+        self._thread.join(timeout=5)
+        self._thread = None
+
+
+def _placeholder_context() -> SimDevice:
+    """pymodbus wants a datastore; every function code is answered by our classes instead."""
+    return SimDevice(id=0, simdata=[SimData(0)])
+
+
+class PlantStepTask(Task):
+    """Lockstep: steps the plant until its time matches the loop's clock (put it first)."""
+
+    def __init__(self, emulator: EmulatedBench, name: str = "emulator") -> None:
+        super().__init__(name, 1)
+        self.emulator = emulator
+        self._t0_ns: int | None = None
+        self._k0 = 0
+
+    def read(self, t_ns: int) -> None:
+        plant = self.emulator.plant
+        if self._t0_ns is None:
+            self._t0_ns, self._k0 = t_ns, plant.k
+        target = self._k0 + round((t_ns - self._t0_ns) / 1e9 / plant.dt)
+        while plant.k < target:
+            plant.step()
+
+
+class EmulatedBench:
+    """Plant + Modbus server: the whole bench in-process.
+
+    ``serve_tcp()`` (127.0.0.1, port 0 = any free port) or ``serve_serial()`` starts the server
+    in a background thread. Then either ``step_task()`` (lockstep: the session's loop steps the
+    plant, and a driver reading after a step sees exactly that step's snapshot) or
+    ``run_realtime()`` (a thread steps the plant on the wall clock).
+    """
+
+    def __init__(self, config: Mapping[str, Any] | None = None, *, seed: int | None = None,
+                 disturbance: bool | None = None) -> None:
+        if config is None:
+            from hil.bench_io import load_bench_config
+
+            config = load_bench_config()
+        self.config = config
+        self.plant = BenchPlant(config, seed=seed)
+        if disturbance is not None:
+            self.plant.disturbance.enabled = disturbance
+        self.devices = BenchDevices(self.plant, config)
+        unknown = lookup(config, "emulator.unknown_unit", str, "auto", source=SOURCE)
+        if unknown not in ("auto", "exception", "silent"):
+            raise ConfigError(f"{SOURCE}: key 'emulator.unknown_unit' must be auto, exception or "
+                              f"silent, got {unknown!r}")
+        self._server = ServerThread(self.devices, unknown)
+        self.url = ""
+        self._realtime: threading.Thread | None = None
+        self._stop_realtime = threading.Event()
+
+    def serve_tcp(self, host: str = "127.0.0.1", port: int = 0) -> str:
+        """Listen on TCP; return the bus URL (with the port actually bound)."""
+        host, port = self._server.start_tcp(host, port)
+        self.url = f"modbus-tcp://{host}:{port}"
+        return self.url
+
+    def serve_serial(self, port: str, baudrate: int = 115200, parity: str = "N",
+                     stopbits: int = 1, bytesize: int = 8) -> str:
+        """Serve Modbus RTU on a serial port (a real one or one end of a pty pair)."""
+        self._server.start_serial(port, baudrate, parity, stopbits, bytesize)
+        self.url = f"modbus-rtu://{port}?baud={baudrate}&parity={parity}"
+        return self.url
+
+    @property
+    def port(self) -> int:
+        address = self._server.address
+        return address[1] if isinstance(address, tuple) else 0
+
+    def step(self, steps: int = 1) -> Snapshot:
+        """Lockstep by hand: advance the plant; a read after this returns this snapshot."""
+        for _ in range(steps):
+            self.plant.step()
+        return self.plant.snapshot
+
+    def step_task(self, name: str = "emulator") -> PlantStepTask:
+        """Lockstep in a loop: a task (add it first) stepping the plant to the loop's time."""
+        return PlantStepTask(self, name)
+
+    def run_realtime(self) -> None:
+        """Step the plant in a background thread, following the monotonic clock."""
+        if self._realtime is not None:
+            return
+        self._stop_realtime.clear()
+        self._realtime = threading.Thread(target=self._follow_wall_clock, name="bench-plant",
+                                          daemon=True)
+        self._realtime.start()
+
+    def _follow_wall_clock(self) -> None:
+        plant, dt = self.plant, self.plant.dt
+        t0, k0 = time.monotonic(), plant.k
+        while not self._stop_realtime.is_set():
+            target = k0 + math.floor((time.monotonic() - t0) / dt)
+            while plant.k < target:
+                plant.step()
+            next_at = t0 + (plant.k - k0 + 1) * dt
+            self._stop_realtime.wait(max(next_at - time.monotonic(), 0.0))
+
+    def stop(self) -> None:
+        self._stop_realtime.set()
+        if self._realtime is not None:
+            self._realtime.join(timeout=5)
+            self._realtime = None
+        self._server.stop()
+
+    def __enter__(self) -> EmulatedBench:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.stop()

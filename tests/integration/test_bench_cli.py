@@ -1,0 +1,103 @@
+"""``hil emulate bench`` as a standalone process: where it listens, real time, clean stops,
+one-line errors."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+
+from emulators.null_modem import NullModem
+
+pytestmark = pytest.mark.timeout(60)
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def hil(*args: str) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen([sys.executable, "-m", "hil.cli", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+
+
+def levels(client) -> list[float]:
+    regs = client.read_input_registers(0, count=4, device_id=3).registers
+    return client.convert_from_registers(regs, client.DATATYPE.FLOAT32)
+
+
+def test_tcp_emulator_runs_in_real_time_and_stops_on_ctrl_c():
+    proc = hil("emulate", "bench", "--tcp", "127.0.0.1:0")
+    try:
+        line = proc.stdout.readline()
+        match = re.search(r"listening on modbus-tcp://127\.0\.0\.1:(\d+) \(relays unit 1, "
+                          r"meter unit 2, levels unit 3\); Ctrl-C stops", line)
+        assert match, line
+        client = ModbusTcpClient("127.0.0.1", port=int(match.group(1)), timeout=1, retries=0)
+        assert client.connect()
+        assert not client.write_coil(2, True, device_id=1).isError()   # P1 refills q1
+        start = levels(client)[0]
+        time.sleep(0.6)
+        assert levels(client)[0] - start == pytest.approx(5.0 * 0.6, abs=1.0)  # 5 per second
+        client.close()
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=10)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0 and err == ""
+    assert re.search(r"bench emulator stopped after [\d.]+ s \(plant time [\d.]+ s\)", out)
+
+
+def test_serial_emulator_on_a_pty_stops_on_sigterm():
+    with NullModem() as modem:
+        proc = hil("emulate", "bench", "--serial", modem.ports[1], "--seed", "3")
+        try:
+            line = proc.stdout.readline()
+            assert f"listening on modbus-rtu://{modem.ports[1]}?baud=115200&parity=N" in line
+            client = ModbusSerialClient(modem.ports[0], baudrate=115200, timeout=0.5,
+                                        retries=0)
+            assert client.connect()
+            assert levels(client) == [55.0, 65.0]
+            assert client.read_coils(0, count=8, device_id=1).bits[:8] == [False] * 8
+            client.close()
+            proc.send_signal(signal.SIGTERM)
+            out, err = proc.communicate(timeout=10)
+        finally:
+            proc.kill()
+    assert proc.returncode == 0 and err == "" and "bench emulator stopped" in out
+
+
+@pytest.mark.parametrize(("args", "config", "why"), [
+    (["--tcp", "127.0.0.1:0"], '[relays.P1]\ncoil = "two"\n',
+     "key 'relays.P1.coil' must be int"),
+    (["--tcp", "127.0.0.1:0"], "[meter.registers]\nva_l1 = 0x0001\n", "overlaps"),
+    (["--tcp", "127.0.0.1:0"], "[units]\nmeter = 1\n", "three different unit ids"),
+    (["--tcp", "127.0.0.1:0"], "[relays\n", "invalid TOML"),
+    (["--serial", "/dev/no-such-port"], "", "cannot listen on /dev/no-such-port"),
+])
+def test_garbage_in_is_one_error_line(tmp_path, args, config, why):
+    path = tmp_path / "bad.toml"
+    path.write_text(config)
+    proc = hil("emulate", "bench", *args, "--config", str(path))
+    out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 2 and out == ""
+    assert err.startswith("hil: error: ") and err.count("\n") == 1 and why in err, err
+
+
+def test_busy_port_is_one_error_line():
+    first = hil("emulate", "bench", "--tcp", "127.0.0.1:0")
+    try:
+        port = re.search(r":(\d+) ", first.stdout.readline()).group(1)
+        second = hil("emulate", "bench", "--tcp", f"127.0.0.1:{port}")
+        _out, err = second.communicate(timeout=20)
+    finally:
+        first.kill()
+        first.wait()
+    assert second.returncode == 2 and err.count("\n") == 1
+    assert f"cannot listen on 127.0.0.1:{port}" in err
