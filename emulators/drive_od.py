@@ -1,0 +1,170 @@
+"""Object dictionary of the emulated CiA 402 drive (CiA 301 communication + CiA 402 profile).
+
+The dictionary is a ``canopen`` :class:`~canopen.objectdictionary.ObjectDictionary` (data types,
+access, limits, defaults); the drive node keeps the live values. The same dictionary serves an
+independent master (``canopen.BaseNode402``) as its description of the drive.
+
+Units (DESIGN.md): torque objects are per mille of the rated current 0x6075 (default 1000 mA, so
+one unit is one mA); positions are encoder increments (0x608F, default 2^20 per revolution);
+velocity is increments per second. Manufacturer objects: 0x2001 SYNC loss timeout [ms],
+0x2002 over-current trip level [mA], 0x2003 external disturbance torque [mA] (a test hook).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable
+from canopen.objectdictionary.datatypes import (
+    INTEGER8,
+    INTEGER16,
+    INTEGER32,
+    UNSIGNED8,
+    UNSIGNED16,
+    UNSIGNED32,
+    VISIBLE_STRING,
+)
+
+DEVICE_TYPE = 0x0002_0192  # CiA 402 profile, servo drive
+DEVICE_NAME = "hil CiA 402 drive emulator"
+SUPPORTED_MODES = 0x0000_0280  # bit 7: CSP (8), bit 9: CST (10)
+MODE_NONE, MODE_CSP, MODE_CST = 0, 8, 10
+PDO_NOT_VALID = 0x8000_0000
+RTR_NOT_ALLOWED = 0x4000_0000
+
+# default PDO layout (DESIGN.md): (communication index, mapping index, COB-ID base, entries)
+RPDO1 = (0x1400, 0x1600, 0x200, ((0x6040, 0, 16), (0x6071, 0, 16)))
+TPDO1 = (0x1800, 0x1A00, 0x180, ((0x6041, 0, 16), (0x6064, 0, 32)))
+TPDO2 = (0x1801, 0x1A01, 0x280, ((0x606C, 0, 32), (0x6077, 0, 16)))
+RPDOS = (RPDO1,)
+TPDOS = (TPDO1, TPDO2)
+
+
+def mapping_entry(index: int, subindex: int, bits: int) -> int:
+    """The UNSIGNED32 value of one PDO mapping entry."""
+    return (index << 16) | (subindex << 8) | bits
+
+
+@dataclass(frozen=True)
+class OdDefaults:
+    """Start-up values of the parameters a configuration may change."""
+
+    rated_current_ma: int = 1000
+    max_torque_permille: int = 1000
+    increments_per_rev: int = 1 << 20
+    heartbeat_ms: int = 0
+    sync_loss_timeout_ms: int = 100
+    overcurrent_trip_ma: int = 15_000
+    quick_stop_option: int = 2
+
+
+def _var(name: str, index: int, subindex: int, data_type: int, access: str, default: object,
+         *, mappable: bool = False, minimum: int | None = None,
+         maximum: int | None = None) -> ODVariable:
+    var = ODVariable(name, index, subindex)
+    var.data_type = data_type
+    var.access_type = access
+    var.default = default
+    var.pdo_mappable = mappable
+    var.min = minimum
+    var.max = maximum
+    return var
+
+
+def _record(name: str, index: int, members: list[ODVariable], array: bool = False):
+    record = ODArray(name, index) if array else ODRecord(name, index)
+    for member in members:
+        record.add_member(member)
+    return record
+
+
+def _pdo_objects(od: ObjectDictionary, node_id: int, pdo: tuple, tpdo: bool) -> None:
+    comm, mapping, base, entries = pdo
+    number = comm - (0x1800 if tpdo else 0x1400) + 1
+    kind = "TPDO" if tpdo else "RPDO"
+    cob_default = base + node_id + (RTR_NOT_ALLOWED if tpdo else 0)
+    comm_members = [
+        _var("Highest sub-index supported", comm, 0, UNSIGNED8, "const", 5 if tpdo else 2),
+        _var("COB-ID", comm, 1, UNSIGNED32, "rw", cob_default),
+        _var("Transmission type", comm, 2, UNSIGNED8, "rw", 1),
+    ]
+    if tpdo:
+        comm_members += [
+            _var("Inhibit time", comm, 3, UNSIGNED16, "rw", 0),
+            _var("Event timer", comm, 5, UNSIGNED16, "rw", 0),
+        ]
+    od.add_object(_record(f"{kind}{number} communication parameter", comm, comm_members))
+    map_members = [_var("Number of mapped objects", mapping, 0, UNSIGNED8, "rw", len(entries),
+                        minimum=0, maximum=8)]
+    for sub in range(1, 9):
+        value = mapping_entry(*entries[sub - 1]) if sub <= len(entries) else 0
+        map_members.append(_var(f"Mapped object {sub}", mapping, sub, UNSIGNED32, "rw", value))
+    od.add_object(_record(f"{kind}{number} mapping parameter", mapping, map_members))
+
+
+def build_object_dictionary(node_id: int, defaults: OdDefaults | None = None) -> ObjectDictionary:
+    """The drive's object dictionary for node ``node_id`` (1..127)."""
+    if not 1 <= node_id <= 127:
+        raise ValueError(f"CANopen node id must be 1..127, got {node_id}")
+    d = defaults or OdDefaults()
+    od = ObjectDictionary()
+    od.node_id = node_id
+    add = od.add_object
+    add(_var("Device type", 0x1000, 0, UNSIGNED32, "ro", DEVICE_TYPE))
+    add(_var("Error register", 0x1001, 0, UNSIGNED8, "ro", 0))
+    add(_var("COB-ID SYNC", 0x1005, 0, UNSIGNED32, "rw", 0x80))
+    add(_var("Communication cycle period", 0x1006, 0, UNSIGNED32, "rw", 0))
+    add(_var("Manufacturer device name", 0x1008, 0, VISIBLE_STRING, "const", DEVICE_NAME))
+    add(_var("COB-ID EMCY", 0x1014, 0, UNSIGNED32, "ro", 0x80 + node_id))
+    add(_record("Consumer heartbeat time", 0x1016, [
+        _var("Number of entries", 0x1016, 0, UNSIGNED8, "const", 1),
+        _var("Consumer heartbeat time 1", 0x1016, 1, UNSIGNED32, "rw", 0),
+    ], array=True))
+    add(_var("Producer heartbeat time", 0x1017, 0, UNSIGNED16, "rw", d.heartbeat_ms))
+    add(_record("Identity object", 0x1018, [
+        _var("Number of entries", 0x1018, 0, UNSIGNED8, "const", 4),
+        _var("Vendor-ID", 0x1018, 1, UNSIGNED32, "ro", 0),
+        _var("Product code", 0x1018, 2, UNSIGNED32, "ro", 0x402),
+        _var("Revision number", 0x1018, 3, UNSIGNED32, "ro", 1),
+        _var("Serial number", 0x1018, 4, UNSIGNED32, "ro", node_id),
+    ]))
+    for pdo in RPDOS:
+        _pdo_objects(od, node_id, pdo, tpdo=False)
+    for pdo in TPDOS:
+        _pdo_objects(od, node_id, pdo, tpdo=True)
+    add(_var("SYNC loss timeout", 0x2001, 0, UNSIGNED16, "rw", d.sync_loss_timeout_ms))
+    add(_var("Over-current trip level", 0x2002, 0, UNSIGNED16, "rw", d.overcurrent_trip_ma,
+             minimum=1))
+    add(_var("External disturbance torque", 0x2003, 0, INTEGER16, "rw", 0, mappable=True))
+    add(_var("Error code", 0x603F, 0, UNSIGNED16, "ro", 0))
+    add(_var("Controlword", 0x6040, 0, UNSIGNED16, "rw", 0, mappable=True))
+    add(_var("Statusword", 0x6041, 0, UNSIGNED16, "ro", 0, mappable=True))
+    add(_var("Quick stop option code", 0x605A, 0, INTEGER16, "rw", d.quick_stop_option))
+    add(_var("Modes of operation", 0x6060, 0, INTEGER8, "rw", MODE_NONE, mappable=True))
+    add(_var("Modes of operation display", 0x6061, 0, INTEGER8, "ro", MODE_NONE, mappable=True))
+    add(_var("Position actual value", 0x6064, 0, INTEGER32, "ro", 0, mappable=True))
+    add(_var("Velocity actual value", 0x606C, 0, INTEGER32, "ro", 0, mappable=True))
+    add(_var("Target torque", 0x6071, 0, INTEGER16, "rw", 0, mappable=True))
+    add(_var("Max torque", 0x6072, 0, UNSIGNED16, "rw", d.max_torque_permille, mappable=True))
+    add(_var("Motor rated current", 0x6075, 0, UNSIGNED32, "rw", d.rated_current_ma,
+             minimum=1, maximum=1_000_000))
+    add(_var("Torque actual value", 0x6077, 0, INTEGER16, "ro", 0, mappable=True))
+    add(_var("Target position", 0x607A, 0, INTEGER32, "rw", 0, mappable=True))
+    add(_record("Position encoder resolution", 0x608F, [
+        _var("Highest sub-index supported", 0x608F, 0, UNSIGNED8, "const", 2),
+        _var("Encoder increments", 0x608F, 1, UNSIGNED32, "ro", d.increments_per_rev),
+        _var("Motor revolutions", 0x608F, 2, UNSIGNED32, "ro", 1),
+    ]))
+    add(_var("Supported drive modes", 0x6502, 0, UNSIGNED32, "ro", SUPPORTED_MODES))
+    return od
+
+
+def iter_variables(od: ObjectDictionary):
+    """Every variable of ``od`` (sub-indices of records and arrays included)."""
+    for index in od:
+        obj = od[index]
+        if isinstance(obj, ODVariable):
+            yield obj
+        else:
+            for sub in obj:
+                yield obj[sub]

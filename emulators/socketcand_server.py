@@ -1,0 +1,328 @@
+"""A socketcand-protocol server (raw mode) on TCP, so CAN emulators are reached over the network.
+
+Protocol (linux-can/socketcand ``doc/protocol.md``): the server greets with ``< hi >``; the client
+opens a bus with ``< open can0 >`` (``< ok >``, or ``< error could not open bus >`` and the
+connection is closed), switches to raw mode with ``< rawmode >`` (``< ok >``), then sends frames
+as ``< send ID LEN B0 B1 ... >`` (hex) and receives every bus frame as
+``< frame ID SECS.USECS DATA >`` (DATA = the bytes as one hex string, ID of 3 hex digits for a
+standard id, 8 for an extended one). ``< echo >`` is echoed, ``< bcmmode >`` goes back to BCM
+mode (where frames are not forwarded); BCM jobs (add, update, subscribe...) are not supported and
+answer ``< error unknown command >`` as socketcand answers an unknown command. A malformed
+``send`` is ignored (socketcand only logs it).
+
+Bus semantics: a frame sent by one client goes to ``on_frame`` (the emulated node) and to every
+other client in raw mode; frames from the node (:meth:`broadcast`) go to every raw-mode client.
+
+One detail differs from socketcand on purpose: right after ``< rawmode >`` / ``< ok >`` the
+server holds frames for that client until the client sends its next command, or for
+``RAW_HOLD_S`` at most. python-can's client reads the ``< ok >`` with a single ``recv`` and
+compares it exactly, so a frame arriving in the same read would break its handshake.
+
+Everything runs in the thread that calls :meth:`serve` (a selector loop), including ``on_frame``
+and the periodic ``on_tick``: an emulated node needs no lock of its own.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import selectors
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import can
+
+from hil.errors import HilError
+
+log = logging.getLogger(__name__)
+
+RAW_HOLD_S = 0.2
+MAX_COMMAND_CHARS = 256
+MAX_OUTPUT_BYTES = 1 << 20  # a client that stops reading is dropped beyond this backlog
+
+
+@dataclass
+class _Client:
+    sock: socket.socket
+    peer: str
+    mode: str = "nobus"  # nobus -> bcm -> raw
+    inbuf: str = ""
+    outbuf: bytearray = field(default_factory=bytearray)
+    hold_until: float | None = None
+    held: list[bytes] = field(default_factory=list)
+
+
+def format_frame(msg: can.Message) -> bytes:
+    """``< frame ID SECS.USECS DATA >`` as socketcand writes it."""
+    can_id = f"{msg.arbitration_id:08X}" if msg.is_extended_id else f"{msg.arbitration_id:03X}"
+    stamp = msg.timestamp or time.time()
+    secs = int(stamp)
+    usecs = int((stamp - secs) * 1e6)
+    return f"< frame {can_id} {secs}.{usecs:06d} {bytes(msg.data).hex().upper()} >".encode()
+
+
+def parse_send(command: str) -> can.Message | None:
+    """A ``< send ID LEN B... >`` command as a message, or None when it is malformed."""
+    parts = command[1:-1].split()
+    if len(parts) < 3 or parts[0] != "send":
+        return None
+    id_text, len_text, byte_texts = parts[1], parts[2], parts[3:]
+    try:
+        can_id, length = int(id_text, 16), int(len_text, 16)
+        data = bytes(int(b, 16) for b in byte_texts)
+    except ValueError:
+        return None
+    extended = len(id_text) == 8
+    if length > 8 or length != len(data) or can_id > (0x1FFFFFFF if extended else 0x7FF):
+        return None
+    return can.Message(arbitration_id=can_id, data=data, is_extended_id=extended,
+                       timestamp=time.time())
+
+
+class SocketcandServer:
+    """Serves one emulated CAN bus named ``channel`` to any number of TCP clients."""
+
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 29536,
+        *,
+        channel: str = "can0",
+        on_frame: Callable[[can.Message], None] | None = None,
+        on_tick: Callable[[], None] | None = None,
+        tick_period_s: float = 0.001,
+    ) -> None:
+        self.channel = channel
+        self.on_frame = on_frame
+        self.on_tick = on_tick
+        self.tick_period_s = tick_period_s
+        self._listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            self._listener.bind((host, port))
+        except OSError as exc:
+            self._listener.close()
+            raise HilError(f"socketcand server cannot listen on {host}:{port}: {exc.strerror}"
+                           ) from None
+        self._listener.listen(8)
+        self._listener.setblocking(False)
+        self.address: tuple[str, int] = self._listener.getsockname()[:2]
+        self._selector = selectors.DefaultSelector()
+        self._selector.register(self._listener, selectors.EVENT_READ, None)
+        self._clients: dict[socket.socket, _Client] = {}
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # ------------------------------------------------------------------------- running
+    def serve(self, stop: threading.Event | None = None) -> None:
+        """Run the selector loop until ``stop`` (or :meth:`close`) is set."""
+        stop = stop or self._stop
+        next_tick = time.monotonic()
+        while not stop.is_set() and not self._stop.is_set():
+            timeout = max(0.0, next_tick - time.monotonic())
+            for key, mask in self._selector.select(timeout):
+                if key.data is None:
+                    self._accept()
+                else:
+                    client: _Client = key.data
+                    if mask & selectors.EVENT_READ:
+                        self._read(client)
+                    if mask & selectors.EVENT_WRITE and client.sock in self._clients:
+                        self._flush(client)
+            now = time.monotonic()
+            if now >= next_tick:
+                self._release_holds(now)
+                if self.on_tick is not None:
+                    self._call(self.on_tick)
+                next_tick = now + self.tick_period_s
+
+    def start(self) -> SocketcandServer:
+        """Serve in a background thread (in-process use: tests, demos)."""
+        self._thread = threading.Thread(target=self.serve, name="socketcand-server", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
+        for client in list(self._clients.values()):
+            self._drop(client, "server closing")
+        with contextlib.suppress(KeyError, ValueError):
+            self._selector.unregister(self._listener)
+        self._listener.close()
+        self._selector.close()
+
+    def __enter__(self) -> SocketcandServer:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    @staticmethod
+    def _call(hook: Callable[..., None], *args: object) -> None:
+        try:
+            hook(*args)
+        except Exception:  # the emulator's problem must not stop the bus
+            log.exception("socketcand: handler %r failed", hook)
+
+    @property
+    def client_count(self) -> int:
+        return len(self._clients)
+
+    # --------------------------------------------------------------------- connections
+    def _accept(self) -> None:
+        try:
+            sock, peer = self._listener.accept()
+        except (BlockingIOError, InterruptedError):
+            return
+        sock.setblocking(False)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        client = _Client(sock, f"{peer[0]}:{peer[1]}")
+        self._clients[sock] = client
+        self._selector.register(sock, selectors.EVENT_READ, client)
+        log.info("socketcand: client %s connected", client.peer)
+        self._write(client, b"< hi >")
+
+    def _drop(self, client: _Client, why: str) -> None:
+        if self._clients.pop(client.sock, None) is None:
+            return
+        log.info("socketcand: client %s dropped (%s)", client.peer, why)
+        with contextlib.suppress(KeyError, ValueError):
+            self._selector.unregister(client.sock)
+        client.sock.close()
+
+    def _read(self, client: _Client) -> None:
+        try:
+            chunk = client.sock.recv(4096)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:
+            self._drop(client, str(exc))
+            return
+        if not chunk:
+            self._drop(client, "closed by peer")
+            return
+        client.inbuf += chunk.decode("ascii", errors="replace")
+        self._parse(client)
+
+    def _parse(self, client: _Client) -> None:
+        buf = client.inbuf
+        while client.sock in self._clients:
+            start = buf.find("<")
+            if start < 0:
+                buf = ""
+                break
+            end = buf.find(">", start)
+            if end < 0:
+                if len(buf) - start > MAX_COMMAND_CHARS:
+                    log.warning("socketcand: %s sent an unterminated command", client.peer)
+                    buf = ""
+                else:
+                    buf = buf[start:]
+                break
+            self._command(client, buf[start:end + 1])
+            buf = buf[end + 1:]
+        client.inbuf = buf
+
+    # ------------------------------------------------------------------------ commands
+    def _command(self, client: _Client, command: str) -> None:
+        words = command[1:-1].split()
+        verb = words[0] if words else ""
+        if client.hold_until is not None:
+            self._release(client)
+        if client.mode == "nobus":
+            if verb == "open" and len(words) == 2:
+                if words[1] == self.channel:
+                    client.mode = "bcm"
+                    self._write(client, b"< ok >")
+                else:
+                    self._write(client, b"< error could not open bus >")
+                    self._drop(client, f"asked for unknown bus {words[1]!r}")
+            else:
+                self._write(client, b"< error unknown command >")
+            return
+        if verb == "send":
+            msg = parse_send(command)
+            if msg is None:
+                log.warning("socketcand: syntax error in send command from %s: %s",
+                            client.peer, command)
+                return
+            self._forward(msg, exclude=client)
+            if self.on_frame is not None:
+                self._call(self.on_frame, msg)
+        elif verb == "echo" and len(words) == 1:
+            self._write(client, b"< echo >")
+        elif verb == "rawmode" and len(words) == 1:
+            self._write(client, b"< ok >")
+            client.mode = "raw"
+            client.hold_until = time.monotonic() + RAW_HOLD_S
+        elif verb == "bcmmode" and len(words) == 1:
+            client.mode = "bcm"
+            self._write(client, b"< ok >")
+        else:
+            self._write(client, b"< error unknown command >")
+
+    # ------------------------------------------------------------------------- output
+    def broadcast(self, messages: list[can.Message]) -> None:
+        """Frames from the emulated node, to every client in raw mode."""
+        for msg in messages:
+            self._forward(msg, exclude=None)
+
+    def _forward(self, msg: can.Message, exclude: _Client | None) -> None:
+        if not self._clients:
+            return
+        text = format_frame(msg)
+        for client in list(self._clients.values()):
+            if client is exclude or client.mode != "raw":
+                continue
+            if client.hold_until is not None:
+                client.held.append(text)
+            else:
+                self._write(client, text)
+
+    def _release_holds(self, now: float) -> None:
+        for client in list(self._clients.values()):
+            if client.hold_until is not None and now >= client.hold_until:
+                self._release(client)
+
+    def _release(self, client: _Client) -> None:
+        client.hold_until = None
+        held, client.held = client.held, []
+        if held:
+            self._write(client, b"".join(held))
+
+    def _write(self, client: _Client, data: bytes) -> None:
+        if client.sock not in self._clients:
+            return
+        if client.outbuf:
+            client.outbuf += data
+        else:
+            try:
+                sent = client.sock.send(data)
+            except (BlockingIOError, InterruptedError):
+                sent = 0
+            except OSError as exc:
+                self._drop(client, str(exc))
+                return
+            if sent < len(data):
+                client.outbuf += data[sent:]
+                self._selector.modify(client.sock, selectors.EVENT_READ | selectors.EVENT_WRITE,
+                                      client)
+        if len(client.outbuf) > MAX_OUTPUT_BYTES:
+            self._drop(client, "not reading its frames")
+
+    def _flush(self, client: _Client) -> None:
+        try:
+            sent = client.sock.send(client.outbuf)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:
+            self._drop(client, str(exc))
+            return
+        del client.outbuf[:sent]
+        if not client.outbuf:
+            self._selector.modify(client.sock, selectors.EVENT_READ, client)

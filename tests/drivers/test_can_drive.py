@@ -1,0 +1,344 @@
+"""The CiA 402 master against the emulated drive (lockstep on a python-can virtual bus):
+configuration by SDO, physics through CAN, clamp, unwrapping, watchdogs, faults, EMCY events,
+safe stop, explicit recovery, and a drive that will not leave its state (canopen LocalNode)."""
+
+import math
+import struct
+import uuid
+
+import can
+import canopen
+import pytest
+
+from drivers.can_drive import (
+    DriveError,
+    DriveFaultError,
+    DriveLinkLostError,
+    DriveStateError,
+    SdoAbortError,
+    load_drive_config,
+    open_drive,
+)
+from emulators.drive_od import build_object_dictionary
+from hil.clock import SimClock
+from hil.errors import ConfigError
+from hil.loop import FunctionTask
+from hil.reader import read_session
+from hil.session import Session
+
+
+class Events:
+    """An on_event sink with the signature of Session.event."""
+
+    def __init__(self):
+        self.items = []
+
+    def __call__(self, kind, message, level="info", source="", **data):
+        self.items.append((kind, level, message, data))
+
+    def kinds(self):
+        return [kind for kind, *_ in self.items]
+
+
+def emulated(overrides=None, events=None):
+    return open_drive("emulated", load_drive_config(overrides=overrides)[0], on_event=events)
+
+
+def controlwords(frames, node_id=1):
+    return [struct.unpack_from("<H", m.data)[0] for m in frames
+            if m.arbitration_id == 0x200 + node_id]
+
+
+def drain(bus):
+    frames = []
+    while (msg := bus.recv(0)) is not None:
+        frames.append(msg)
+    return frames
+
+
+def test_start_configures_the_drive_by_sdo():
+    events = Events()
+    master = emulated({"master": {"current_limit_mA": 750.0, "drive_heartbeat_ms": 20}}, events)
+    feedback = master.start()
+    assert feedback.state == "OPERATION ENABLED" and feedback.position_deg == 0.0
+    read = master.sdo_read_int
+    for mapping, entries in ((0x1600, [0x60400010, 0x60710010]),
+                             (0x1A00, [0x60410010, 0x60640020]),
+                             (0x1A01, [0x606C0020, 0x60770010])):
+        assert read(mapping, 0, "<B") == 2
+        assert [read(mapping, sub) for sub in (1, 2)] == entries
+    assert read(0x1006) == 500
+    assert read(0x1017, 0, "<H") == 20
+    assert read(0x1016, 1) == (127 << 16) | 300
+    assert read(0x6061, 0, "<b") == 10
+    assert read(0x6072, 0, "<H") == 750
+    assert read(0x605A, 0, "<h") == 2
+    assert events.kinds()[:2] == ["drive.configured", "drive.enabled"]
+    assert events.items[0][3]["bus_budget"]["fits"] is True
+    master.close()
+
+
+def test_constant_current_through_can_gives_the_model_acceleration():
+    master = emulated()
+    master.start()
+    for _ in range(2000):  # 1 s at 100 mA
+        feedback = master.exchange(100.0)
+    assert feedback.fresh and feedback.cycle == 2000
+    assert feedback.t_ns == 1_000_000_000
+    acceleration_per_ma = 2.0 * feedback.position_deg / 1.0**2 / 100.0
+    assert acceleration_per_ma == pytest.approx(2.83, rel=0.01)
+    assert feedback.velocity_deg_s == pytest.approx(283.0, rel=0.02)
+    assert feedback.current_ma == 100.0 and feedback.command_ma == 100.0
+    master.close()
+
+
+@pytest.mark.parametrize("current", [1000.0, -1000.0])
+def test_multi_turn_position_is_unwrapped_by_the_master(current):
+    master = emulated()
+    master.start()
+    plant = master.emulator.node.plant
+    for _ in range(3000):  # 1.5 s at the limit: about 3200 deg, nine turns
+        feedback = master.exchange(current)
+        assert 0 <= feedback.position_increments < master.increments_per_rev
+    assert abs(feedback.position_deg) > 3000.0
+    assert math.copysign(1, feedback.position_deg) == math.copysign(1, current)
+    assert feedback.position_deg == pytest.approx(plant.position_deg, abs=360 / 2**20)
+    master.close()
+
+
+def test_commands_are_clamped_to_the_current_limit_in_the_driver():
+    master = emulated({"master": {"current_limit_mA": 400.0}})
+    master.start()
+    feedback = master.exchange(5000.0)
+    assert feedback.command_ma == 400.0 and feedback.current_ma == 400.0
+    assert master.emulator.node.plant.applied_current_ma == 400.0
+    feedback = master.exchange(-1e9)
+    assert feedback.command_ma == -400.0
+    assert master.stats.clamped_commands == 2
+    with pytest.raises(DriveError, match="non-finite"):
+        master.exchange(float("nan"))
+    master.close()
+
+
+def test_split_exchange_gives_the_same_trajectory_as_exchange():
+    one, two = emulated(), emulated()
+    one.start()
+    assert two.start() == two.receive_feedback()  # nothing sent yet: the start feedback
+    for k in range(300):
+        current = 300.0 * math.sin(k / 20)
+        a = one.exchange(current)
+        two.send_command(current)
+        b = two.receive_feedback()
+        assert a.position_deg == b.position_deg
+    one.close()
+    two.close()
+
+
+def test_safe_state_quick_stops_then_disables_and_is_idempotent():
+    events = Events()
+    master = emulated(events=events)
+    master.start()
+    observer = master.emulator.attach_bus()
+    for _ in range(400):
+        master.exchange(800.0)
+    drain(observer)
+    master.safe_state()
+    words = controlwords(drain(observer))
+    assert words[0] == 0x0002 and words[-1] == 0x0000  # quick stop ... then disable voltage
+    assert set(words) == {0x0002, 0x0000}
+    node = master.emulator.node
+    assert node.state == "SWITCH ON DISABLED"
+    assert abs(node.plant.velocity_deg_s) < 5.0  # it braked from ~1100 deg/s, not coasted
+    assert events.kinds()[-1] == "drive.safe_stop"
+    master.safe_state()
+    assert drain(observer) == []
+    with pytest.raises(DriveStateError, match="not enabled"):
+        master.exchange(0.0)
+    observer.shutdown()
+    master.close()
+
+
+def test_link_lost_when_tpdos_stop_latches_until_reset_fault():
+    events = Events()
+    master = emulated({"master": {"stale_cycles": 5}}, events)
+    master.start()
+    other = master.emulator.attach_bus()
+    for _ in range(10):
+        master.exchange(0.0)
+    other.send(can.Message(arbitration_id=0, data=[0x02, 1], is_extended_id=False))  # NMT stop
+    stale = []
+    with pytest.raises(DriveLinkLostError, match="no TPDO for 5 cycles"):
+        for _ in range(10):
+            stale.append(master.exchange(0.0))
+    assert len(stale) == 4 and not any(f.fresh for f in stale)
+    assert "drive.link_lost" in events.kinds()
+    with pytest.raises(DriveLinkLostError, match="latched: call reset_fault"):
+        master.exchange(0.0)
+    feedback = master.reset_fault()  # NMT pre-op (the node was STOPPED), fault reset, enable
+    assert feedback.state == "OPERATION ENABLED"
+    assert master.exchange(10.0).fresh
+    other.shutdown()
+    master.close()
+
+
+def test_drive_reboot_is_a_lost_link_and_needs_an_explicit_recovery():
+    events = Events()
+    master = emulated(events=events)
+    master.start()
+    other = master.emulator.attach_bus()
+    master.exchange(0.0)
+    other.send(can.Message(arbitration_id=0, data=[0x81, 1], is_extended_id=False))  # reset
+    with pytest.raises(DriveLinkLostError, match="restarted"):
+        master.exchange(0.0)
+    assert "drive.bootup" in events.kinds()
+    with pytest.raises(DriveLinkLostError):
+        master.exchange(0.0)
+    assert master.reset_fault().state == "OPERATION ENABLED"
+    assert master.exchange(0.0).fresh
+    other.shutdown()
+    master.close()
+
+
+def test_heartbeat_loss_faults_the_drive_and_the_master_reports_the_emcy():
+    events = Events()
+    # the master beats every second but the drive gives up after 20 ms of silence
+    master = emulated({"master": {"heartbeat_period_ms": 1000, "heartbeat_timeout_ms": 20}},
+                      events)
+    master.start()
+    assert ("drive.heartbeat_config", "warning") in [item[:2] for item in events.items]
+    with pytest.raises(DriveFaultError, match="0x8130") as error:
+        for _ in range(100):
+            master.exchange(0.0)
+    assert error.value.emcy_code == 0x8130
+    # heartbeat stamped at the first SYNC (0.5 ms); silent for more than 20 ms at SYNC 42
+    # (21 ms): the fault shows in the TPDO of the next SYNC
+    assert master.feedback.cycle == 43
+    emcy = [item for item in events.items if item[0] == "drive.emcy"]
+    assert emcy[0][1] == "error" and emcy[0][3]["code"] == 0x8130
+    assert "drive.fault" in events.kinds()
+    with pytest.raises(DriveFaultError, match="latched") as again:
+        master.exchange(0.0)
+    assert again.value.emcy_code == 0x8130
+    assert master.reset_fault().state == "OPERATION ENABLED"
+    assert "drive.fault_reset" in events.kinds()
+    master.close()
+
+
+def test_start_refuses_a_drive_in_fault_until_reset_fault():
+    master = emulated({"master": {"current_limit_mA": 20000.0}})
+    master.start()
+    with pytest.raises(DriveFaultError):
+        for _ in range(50):
+            master.exchange(16000.0)  # beyond the 15 A trip level of the emulator
+    master2 = open_drive("emulated")  # a second master, another emulator: unaffected
+    master2.close()
+    with pytest.raises(DriveFaultError, match=r"0x2310.*call reset_fault"):
+        master.start()
+    assert master.reset_fault().state == "OPERATION ENABLED"
+    master.close()
+
+
+def test_emcy_and_fault_are_recorded_as_session_events(tmp_path):
+    path = tmp_path / "drive.mcap"
+    session = Session(str(path), SimClock(), 500e-6, kind="servo", handle_signals=False)
+    master = emulated({"master": {"current_limit_mA": 20000.0}}, session.event)
+    master.start()
+    session.add_component(master)
+    currents = iter([100.0] * 20 + [16000.0] * 10)
+    session.add_task(FunctionTask("drive", write=lambda _c, _t: master.exchange(next(currents))))
+    with pytest.raises(DriveFaultError):
+        session.run(max_ticks=30)
+    session.close()
+    master.close()
+    events = [message for _, message in read_session(str(path)).topic("/events")]
+    kinds = [e["kind"] for e in events]
+    assert kinds.index("drive.enabled") < kinds.index("drive.emcy") < kinds.index("drive.fault")
+    emcy = events[kinds.index("drive.emcy")]
+    assert emcy["level"] == "error" and emcy["data"]["code"] == 0x2310
+    assert emcy["source"] == "drive1"
+
+
+def test_csp_mode_tracks_a_position_target():
+    master = emulated({"master": {"mode": "csp"}})
+    master.start()
+    assert master.sdo_read_int(0x1600, 2) == 0x607A0020
+    worst = 0.0
+    for k in range(4000):  # a smooth 1.5 s move of 400 deg (over a turn), then hold
+        target = 200.0 * (1.0 - math.cos(math.pi * min(k * 500e-6, 1.5) / 1.5))
+        feedback = master.exchange_position(target)
+        worst = max(worst, abs(feedback.position_deg - target))
+    assert worst < 1.0  # the drive's own loop with feed-forward follows closely
+    assert feedback.position_deg == pytest.approx(400.0, abs=0.01)
+    with pytest.raises(DriveStateError, match="mode 'cst'"):
+        master.send_command(0.0)
+    master.close()
+
+
+def test_a_drive_stuck_in_its_state_gives_an_error_naming_the_state():
+    """A canopen LocalNode serving a 402 dictionary answers SDO but has no state machine."""
+    channel = f"stuck-{uuid.uuid4().hex}"
+    network = canopen.Network()
+    network.connect(interface="virtual", channel=channel)
+    od = build_object_dictionary(1)
+    od[0x6041].default = 0x0250  # SWITCH ON DISABLED, forever
+    local = canopen.LocalNode(1, od)
+    network.add_node(local)
+
+    def mirror_mode(index, subindex, od, data):
+        if index == 0x6060:
+            local.data_store.setdefault(0x6061, {})[0] = bytes(data)
+
+    local.add_write_callback(mirror_mode)
+    config, _ = load_drive_config(overrides={"master": {"state_timeout_ms": 300}})
+    master = open_drive(f"virtual://{channel}", config)
+    try:
+        with pytest.raises(DriveStateError, match=r"stuck in SWITCH ON DISABLED \(statusword "
+                                                  r"0x0250\) waiting for READY TO SWITCH ON"):
+            master.start()
+    finally:
+        master.close()
+        network.disconnect()
+
+
+def test_sdo_refusals_name_the_object_and_the_abort_code():
+    master = emulated()
+    with pytest.raises(SdoAbortError, match=r"0x6060:00 = 3.*0x06090030") as error:
+        master.sdo_write(0x6060, 0, 3, "<b")
+    assert error.value.code == 0x06090030
+    assert master.sdo_read(0x1008).decode() == "hil CiA 402 drive emulator"  # segmented
+    master.close()
+
+
+@pytest.mark.parametrize(("where", "problem"), [
+    ("nowhere", ConfigError), ("socketcand://127.0.0.1", ConfigError),
+    ("socketcand://127.0.0.1:1", DriveLinkLostError),
+])
+def test_open_drive_rejects_bad_addresses_with_one_clear_error(where, problem):
+    with pytest.raises(problem):
+        open_drive(where)
+
+
+def test_bad_master_config_values_are_config_errors():
+    with pytest.raises(ConfigError, match=r"master\.mode"):
+        open_drive("emulated", load_drive_config(overrides={"master": {"mode": "velocity"}})[0])
+    with pytest.raises(ConfigError, match=r"unknown key 'master\.curent_limit_mA'"):
+        open_drive("emulated",
+                   load_drive_config(overrides={"master": {"curent_limit_mA": 10.0}})[0])
+    with pytest.raises(ConfigError, match=r"master\.current_limit_mA"):
+        open_drive("emulated",
+                   load_drive_config(overrides={"master": {"current_limit_mA": -1.0}})[0])
+
+
+def test_a_period_too_short_for_the_bus_is_warned_about():
+    events = Events()
+    master = emulated({"master": {"cycle_period_us": 250, "heartbeat_period_ms": 0}}, events)
+    assert not master.budget.fits
+    with pytest.raises(SdoAbortError):  # the emulated plant also refuses 250 us (T = 500 us)
+        master.start()
+    assert not [e for e in events.items if e[0] == "drive.bus_budget"]  # refused before
+    master2 = emulated({"bus": {"bitrate": 500_000}}, events)
+    master2.start()
+    warnings = [e for e in events.items if e[0] == "drive.bus_budget"]
+    assert warnings and warnings[0][1] == "warning" and "cannot fit" in warnings[0][2]
+    master.close()
+    master2.close()

@@ -1,0 +1,272 @@
+"""The drive tests again, over socketcand to a separate emulator process (``hil emulate drive``)
+on 127.0.0.1: the master reaches it with python-can's stock ``socketcand`` interface, exactly as
+it would reach a socketcand gateway in front of a real drive. Bounded: four emulator processes,
+generous time-outs, no timing figure asserted beyond "not before the configured time-out"."""
+
+import math
+import os
+import re
+import select
+import signal
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import can
+import canopen
+import pytest
+from canopen.profiles.p402 import State402
+
+from drivers.can_drive import (
+    DriveFaultError,
+    DriveLinkLostError,
+    load_drive_config,
+    open_drive,
+    state_of,
+)
+from emulators.drive_od import build_object_dictionary
+
+REPO = Path(__file__).resolve().parents[2]
+pytestmark = pytest.mark.timeout(120)
+
+MASTER = {  # generous for a loaded box; the fault tests shorten what they test
+    "rx_timeout_us": 500_000, "sdo_timeout_ms": 3000, "state_timeout_ms": 5000,
+    "heartbeat_timeout_ms": 5000, "stale_cycles": 20,
+}
+
+
+def start_emulator(tmp_path, name, port=0, **emulator):
+    config = tmp_path / f"{name}.toml"
+    config.write_text("[emulator]\n" + "".join(f"{k} = {v}\n" for k, v in emulator.items()))
+    env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "hil.cli", "emulate", "drive", "--socketcand",
+         f"127.0.0.1:{port}", "--node", "1", "--config", str(config)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    ready, _, _ = select.select([proc.stdout], [], [], 30)
+    line = proc.stdout.readline() if ready else ""
+    match = re.search(r"socketcand 127\.0\.0\.1:(\d+) ", line)
+    if not match:
+        proc.kill()
+        pytest.fail(f"emulator did not start: {line!r} {proc.stderr.read()!r}")
+    return proc, int(match.group(1))
+
+
+def stop_emulator(proc):
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGCONT)
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+    proc.stdout.close()
+    proc.stderr.close()
+
+
+def master_for(port, events=None, **overrides):
+    config, _ = load_drive_config(overrides={"master": {**MASTER, **overrides}})
+    return open_drive(f"socketcand://127.0.0.1:{port}", config, on_event=events)
+
+
+@pytest.fixture(scope="module")
+def emulator(tmp_path_factory):
+    proc, port = start_emulator(tmp_path_factory.mktemp("drive"), "relaxed",
+                                sync_loss_timeout_ms=5000)
+    yield port
+    stop_emulator(proc)
+
+
+SHUTDOWN, SWITCH_ON, ENABLE, DISABLE_VOLTAGE, QUICK_STOP = 0x06, 0x07, 0x0F, 0x00, 0x02
+CHART = [  # (controlword, state after the SYNC): every transition, as in the lockstep test
+    (DISABLE_VOLTAGE, "SWITCH ON DISABLED"), (SHUTDOWN, "READY TO SWITCH ON"),
+    (SWITCH_ON, "SWITCHED ON"), (ENABLE, "OPERATION ENABLED"), (SWITCH_ON, "SWITCHED ON"),
+    (SHUTDOWN, "READY TO SWITCH ON"), (DISABLE_VOLTAGE, "SWITCH ON DISABLED"),
+    (SHUTDOWN, "READY TO SWITCH ON"), (QUICK_STOP, "SWITCH ON DISABLED"),
+    (SHUTDOWN, "READY TO SWITCH ON"), (SWITCH_ON, "SWITCHED ON"),
+    (DISABLE_VOLTAGE, "SWITCH ON DISABLED"), (SHUTDOWN, "READY TO SWITCH ON"),
+    (SWITCH_ON, "SWITCHED ON"), (QUICK_STOP, "SWITCH ON DISABLED"),
+    (SHUTDOWN, "READY TO SWITCH ON"), (ENABLE, "OPERATION ENABLED"),
+    (SHUTDOWN, "READY TO SWITCH ON"), (SWITCH_ON, "SWITCHED ON"),
+    (ENABLE, "OPERATION ENABLED"), (QUICK_STOP, "QUICK STOP ACTIVE"),
+    (ENABLE, "OPERATION ENABLED"), (QUICK_STOP, "QUICK STOP ACTIVE"),
+    (DISABLE_VOLTAGE, "SWITCH ON DISABLED"),
+]
+
+
+def test_every_transition_of_the_chart_over_socketcand(emulator):
+    master = master_for(emulator, quick_stop_option=5)
+    try:
+        master.start()
+        for step, (controlword, state) in enumerate(CHART):
+            feedback = master.cycle(controlword)
+            mask, value = State402.SW_MASK[state]
+            assert feedback.fresh and feedback.statusword & mask == value, (step, state)
+            assert state_of(master.sdo_read_int(0x6041, 0, "<H")) == state
+        master.start()
+        master.exchange(0.0)
+        for _ in range(200):  # fault: over-current trips the drive; reset by bit 7
+            feedback = master.cycle(ENABLE, 16000)
+            if feedback.state == "FAULT":
+                break
+        assert feedback.state == "FAULT"
+        assert master.cycle(0x80).state == "SWITCH ON DISABLED"
+    finally:
+        master.close()
+
+
+def test_base_node_402_over_socketcand(emulator):
+    network = canopen.Network()
+    network.connect(interface="socketcand", host="127.0.0.1", port=emulator, channel="can0")
+    node = canopen.BaseNode402(1, build_object_dictionary(1))
+    for name in ("TIMEOUT_SWITCH_STATE_FINAL", "TIMEOUT_SWITCH_STATE_SINGLE",
+                 "TIMEOUT_CHECK_TPDO", "TIMEOUT_SWITCH_OP_MODE"):
+        setattr(node, name, 5.0)
+    network.add_node(node)
+    node.sdo.RESPONSE_TIMEOUT = 3.0
+    try:
+        node.nmt.state = "PRE-OPERATIONAL"
+        node.setup_402_state_machine(read_pdos=True)
+        node.nmt.state = "OPERATIONAL"
+        network.sync.start(0.005)
+        node.rpdo[1].start(0.005)
+        node.op_mode = "CYCLIC SYNCHRONOUS TORQUE"
+        node.state = "OPERATION ENABLED"
+        statusword = node.sdo[0x6041].raw
+        assert state_of(statusword) == "OPERATION ENABLED"
+        position = node.sdo[0x6064].raw
+        assert 0 <= position < 1 << 20
+        node.tpdo[1].wait_for_reception(5.0)
+        assert state_of(node.tpdo_values[0x6041]) == "OPERATION ENABLED"
+        node.state = "SWITCH ON DISABLED"
+    finally:
+        network.sync.stop()
+        network.disconnect()
+
+
+def test_open_loop_physics_over_socketcand(emulator):
+    master = master_for(emulator)
+    try:
+        start = master.start()
+        cycles, current = 1000, 200.0
+        for _ in range(cycles):
+            feedback = master.exchange(current)
+        assert feedback.fresh
+        t = cycles * 500e-6
+        moved = feedback.position_deg - start.position_deg - start.velocity_deg_s * t
+        assert 2.0 * moved / t**2 / current == pytest.approx(2.83, rel=0.02)
+        assert master.stats.stale == 0
+    finally:
+        master.close()
+
+
+def test_a_bus_name_the_gateway_does_not_serve_is_one_clear_error(emulator):
+    with pytest.raises(DriveLinkLostError, match="refused bus 'can9'"):
+        open_drive(f"socketcand://127.0.0.1:{emulator}/can9")
+
+
+def emcy_listener(port):
+    return can.Bus(interface="socketcand", host="127.0.0.1", port=port, channel="can0",
+                   can_filters=[{"can_id": 0x81, "can_mask": 0x7FF}])
+
+
+def wait_emcy(bus, code, timeout_s):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        msg = bus.recv(0.2)
+        if msg is not None and struct.unpack_from("<H", msg.data)[0] == code:
+            return msg
+    return None
+
+
+def test_sync_loss_then_heartbeat_loss_fault_the_drive_in_time(tmp_path):
+    proc, port = start_emulator(tmp_path, "strict", sync_loss_timeout_ms=500)
+    listener = emcy_listener(port)
+    events = []
+    master = master_for(port, lambda kind, message, **kw: events.append((kind, kw)),
+                        heartbeat_timeout_ms=3000)
+    try:
+        master.start()
+        for _ in range(50):
+            master.exchange(0.0)
+        last_sync = time.monotonic()  # no more SYNC (nor heartbeat) from here on
+        emcy = wait_emcy(listener, 0x8130, 5.0)
+        assert emcy is not None, "no EMCY 0x8130 after SYNC stopped"
+        assert time.monotonic() - last_sync >= 0.5
+        assert emcy.data[3] == 0x02  # cause: SYNC
+        with pytest.raises(DriveFaultError, match="0x8130"):
+            master.exchange(0.0)
+        assert ("drive.emcy", "error") in [(k, kw.get("level")) for k, kw in events]
+        master.reset_fault()
+        master.close()
+        # now the master's heartbeat stops while SYNC goes on: beat every 2 s, drive waits 300 ms
+        master = master_for(port, heartbeat_period_ms=2000, heartbeat_timeout_ms=300)
+        master.start()
+        first_beat = time.monotonic()
+        with pytest.raises(DriveFaultError, match="0x8130"):
+            while time.monotonic() - first_beat < 10.0:
+                master.exchange(0.0)
+        assert time.monotonic() - first_beat >= 0.3
+        emcy = wait_emcy(listener, 0x8130, 5.0)
+        assert emcy is not None and emcy.data[3] == 0x01  # cause: heartbeat
+    finally:
+        master.close()
+        listener.shutdown()
+        stop_emulator(proc)
+
+
+def test_master_declares_link_lost_when_tpdos_stop(tmp_path):
+    proc, port = start_emulator(tmp_path, "frozen", sync_loss_timeout_ms=5000)
+    events = []
+    master = master_for(port, lambda kind, message, **kw: events.append(kind),
+                        rx_timeout_us=50_000, stale_cycles=4)
+    try:
+        master.start()
+        for _ in range(20):
+            master.exchange(0.0)
+        proc.send_signal(signal.SIGSTOP)  # the drive stops answering, the TCP link stays
+        calls = 0
+        with pytest.raises(DriveLinkLostError, match="no TPDO for 4 cycles"):
+            while calls < 20:
+                calls += 1
+                master.exchange(0.0)
+        assert calls <= 4 and "drive.link_lost" in events
+        proc.send_signal(signal.SIGCONT)
+        with pytest.raises(DriveLinkLostError, match="latched"):
+            master.exchange(0.0)
+        assert master.reset_fault().state == "OPERATION ENABLED"
+        assert master.exchange(0.0).fresh
+    finally:
+        proc.send_signal(signal.SIGCONT)
+        master.close()
+        stop_emulator(proc)
+
+
+def test_restarted_emulator_is_used_again_only_after_reset_fault(tmp_path):
+    proc, port = start_emulator(tmp_path, "first", sync_loss_timeout_ms=5000)
+    master = master_for(port, rx_timeout_us=50_000, stale_cycles=4)
+    try:
+        master.start()
+        for _ in range(200):
+            feedback = master.exchange(300.0)
+        assert feedback.position_deg > 0
+        proc.kill()
+        proc.wait(10)
+        with pytest.raises(DriveLinkLostError):
+            for _ in range(20):
+                master.exchange(0.0)
+        stop_emulator(proc)
+        proc, _ = start_emulator(tmp_path, "second", port=port, sync_loss_timeout_ms=5000)
+        with pytest.raises(DriveLinkLostError, match="latched"):
+            master.exchange(0.0)  # the drive is back, but nobody said so
+        feedback = master.reset_fault()  # reconnects, configures, enables
+        assert feedback.state == "OPERATION ENABLED"
+        assert feedback.velocity_deg_s == 0.0  # a fresh drive: the old motion is gone
+        fresh = master.exchange(100.0)
+        assert fresh.fresh and math.isfinite(fresh.position_deg)
+    finally:
+        master.close()
+        stop_emulator(proc)
