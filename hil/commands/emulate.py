@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import signal
 import threading
 import time
+from collections.abc import Iterator
 
 from hil.commands.argtypes import host_port, positive_int
 
@@ -39,6 +41,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ed.set_defaults(handler=emulate_drive)
 
 
+@contextlib.contextmanager
+def _until_stopped() -> Iterator[threading.Event]:
+    """An event that SIGTERM sets; Ctrl-C ends the block quietly. Restores the SIGTERM handler."""
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        yield stop
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def emulate_bench(args: argparse.Namespace) -> int:
     """Serve the bench plant in real time until Ctrl-C or SIGTERM."""
     from emulators.bench_server import EmulatedBench
@@ -55,17 +70,13 @@ def emulate_bench(args: argparse.Namespace) -> int:
     units = emulator.devices.units
     print(f"hil: bench emulator listening on {url} (relays unit {units['relays']}, meter unit "
           f"{units['meter']}, levels unit {units['levels']}); Ctrl-C stops", flush=True)
-    stop = threading.Event()
-    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
     started = time.monotonic()
-    try:
-        while not stop.wait(0.2):
-            pass
-    except KeyboardInterrupt:
-        pass
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-        emulator.stop()
+    with _until_stopped() as stop:
+        try:
+            while not stop.wait(0.2):
+                pass
+        finally:
+            emulator.stop()
     print(f"hil: bench emulator stopped after {time.monotonic() - started:.1f} s "
           f"(plant time {emulator.plant.t_s:.2f} s)", flush=True)
     return 0
@@ -96,15 +107,11 @@ def emulate_drive(args: argparse.Namespace) -> int:
     bound_host, bound_port = server.address
     print(f"hil: drive emulator node {node.node_id} on socketcand {bound_host}:{bound_port} "
           f"(bus {emulator.channel}); Ctrl-C stops", flush=True)
-    stop = threading.Event()
-    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    try:
-        server.serve(stop)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-        server.close()
+    with _until_stopped() as stop:
+        try:
+            server.serve(stop)
+        finally:
+            server.close()
     print(f"hil: drive emulator stopped after {node.sync_count} SYNC "
           f"(plant time {node.plant.time_s:.3f} s)", flush=True)
     return 0
