@@ -21,6 +21,9 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/pip install --quiet -r benchmarks/requirements.txt
+	@grep -v '^#' benchmarks/optional-requirements.txt | awk '{print $$1}' | while read -r pkg; do \
+	  [ -n "$$pkg" ] && { $(BIN)/pip install --quiet "$$pkg" || echo "optional baseline $$pkg not installed: skipped"; }; \
+	done; true
 	@for script in benchmarks/*.py; do echo "== $$script"; $(BIN)/python $$script || exit 1; done
 
 lint: $(STAMP)
