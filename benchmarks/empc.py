@@ -11,7 +11,7 @@
    ~20-30 ns of it is the clock itself), next to the online QP (DaqpSolver: unconstrained
    fast path, else daqp) on the same θ in the same run. Targets (DESIGN.md): <= 10 us Python,
    <= 1 us C.
-3. ppopt (if installed, benchmarks/requirements.txt): region count and build time of its
+3. ppopt (if installed, benchmarks/optional-requirements.txt): region count and build time of its
    combinatorial mpQP algorithm on the same problem, and its optimiser against ours.
 
 The machine is shared: figures are noisy, run it alone when the numbers matter.
@@ -198,7 +198,7 @@ def ppopt_comparison(law) -> None:
         from ppopt.mp_solvers.solve_mpqp import mpqp_algorithm, solve_mpqp
         from ppopt.mpqp_program import MPQP_Program
     except ImportError:
-        print("   ppopt not installed (pip install -r benchmarks/requirements.txt): skipped")
+        print("   ppopt not installed (benchmarks/optional-requirements.txt): skipped")
         return
     problem = law.solution.problem.normalised()
     n = problem.n_params
