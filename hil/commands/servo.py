@@ -6,29 +6,51 @@ import argparse
 import json
 from typing import Any
 
-from hil.commands import not_yet_available
-from hil.commands.argtypes import positive_float, positive_int
+from hil.commands.argtypes import nonnegative_float, positive_float, positive_int
 from hil.errors import UsageError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     servo = subparsers.add_parser("servo", help="servo drive: closed-loop tracking runs")
     servo_sub = servo.add_subparsers(dest="servo_command", metavar="COMMAND", required=True)
-    srun = servo_sub.add_parser("run", help="run MPC, explicit MPC or PID against the drive")
-    srun.add_argument("--controller", choices=["mpc", "empc", "pid"], required=True)
-    srun.add_argument("--drive", default="emulated", help="emulated | socketcand://HOST:PORT")
+    srun = servo_sub.add_parser(
+        "run", help="run MPC, explicit MPC or PID against the drive",
+        description="Close the loop through the CiA 402 drive link at T = 500 us: read the "
+        "drive's feedback, step the controller, send the current command. Lockstep by default "
+        "(virtual time, as fast as the computer allows, deterministic); --realtime follows the "
+        "wall clock. Records /drive/command, /drive/feedback, /mpc/prediction and /events to "
+        "an MCAP session; prints the tracking KPIs.",
+    )
+    srun.add_argument("--controller", choices=["mpc", "empc", "pid"], required=True,
+                      help="trajectory MPC (online QP), explicit MPC, or cascaded PID + notch")
+    srun.add_argument("--drive", default="emulated",
+                      help="emulated (in-process CAN emulator) | socketcand://HOST:PORT")
     srun.add_argument("--node", type=positive_int, default=1, help="CANopen node id")
-    srun.add_argument("--ert", choices=["foh", "zoh"], default="foh")
+    srun.add_argument("--ert", choices=["foh", "zoh"], default="foh",
+                      help="extended reference trajectory: first- or zero-order hold")
     srun.add_argument("--ht", type=positive_int, default=8, help="trajectory horizon")
     srun.add_argument("--hu", type=positive_int, default=8, help="control horizon")
     srun.add_argument("--hp", type=positive_int, default=50, help="prediction horizon")
-    srun.add_argument("--umax", type=positive_float, default=1000.0, help="current limit [mA]")
-    srun.add_argument("--reference", default="sine:amplitude=2,frequency=10")
+    srun.add_argument("--umax", type=positive_float, default=1000.0,
+                      help="current limit [mA]: the controller's bounds and the driver's clamp")
+    srun.add_argument("--reference", default="sine:amplitude=2,frequency=10",
+                      help="sine:amplitude=A,frequency=F | trapezoid:stroke=S,speed=RPM | "
+                      "disturbance:torque=MA,start=S,end=S (Fig. 16: hold while a torque pulse "
+                      "pushes the axis; emulated drives) | hold:position=DEG")
     srun.add_argument("--duration", type=positive_float, default=2.0, help="[s]")
-    srun.add_argument("--realtime", action="store_true")
-    srun.add_argument("--out", metavar="F.mcap")
-    srun.add_argument("--json", action="store_true")
-    srun.set_defaults(handler=not_yet_available("hil servo run"))
+    srun.add_argument("--settle", type=nonnegative_float, default=0.0, metavar="S",
+                      help="KPIs ignore the first S seconds (start-up transient)")
+    srun.add_argument("--realtime", action="store_true",
+                      help="follow the wall clock (default: lockstep virtual time)")
+    srun.add_argument("--prediction-every", type=positive_int, metavar="N",
+                      help="record /mpc/prediction every N ticks (default: every tick in "
+                      "lockstep, every 10th in real time)")
+    srun.add_argument("--config", metavar="F.toml",
+                      help="drive config laid over the default (hil/configs/drive.toml)")
+    srun.add_argument("--out", metavar="F.mcap",
+                      help="session file (default: servo-CONTROLLER-DATE-TIME.mcap)")
+    srun.add_argument("--json", action="store_true", help="print the KPIs as JSON")
+    srun.set_defaults(handler=run_servo_command)
 
     figs = servo_sub.add_parser(
         "figures", help="regenerate the paper's Figs. 7-8 table (offline simulation)",
@@ -47,6 +69,51 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     figs.add_argument("--out", metavar="F.png", help="also draw the table to this PNG file")
     figs.add_argument("--json", action="store_true", help="print the table as JSON")
     figs.set_defaults(handler=run_figures)
+
+
+def run_servo_command(args: argparse.Namespace) -> int:
+    from hil.servo_run import ServoRunConfig, run_servo
+
+    config = ServoRunConfig(
+        controller=args.controller, drive=args.drive, node=args.node, ert=args.ert, ht=args.ht,
+        hu=args.hu, hp=args.hp, umax=args.umax, reference=args.reference,
+        duration_s=args.duration, realtime=args.realtime, out=args.out,
+        drive_config=args.config, settle_s=args.settle, prediction_every=args.prediction_every)
+    result = run_servo(config)
+    print(json.dumps(result.kpis, indent=2) if args.json else format_run(config, result.kpis))
+    return 0
+
+
+def _deg(value: float | None, digits: int = 4) -> str:
+    return "-" if value is None else f"{value:.{digits}f} deg"
+
+
+def format_run(config: Any, kpis: dict[str, Any]) -> str:
+    """The human summary of ``hil servo run``."""
+    pct = kpis["max_error_pct"]
+    step = kpis["step_us"]
+    lines = [
+        f"servo run: {config.describe_controller()}, {kpis['reference']}, "
+        f"|u| <= {kpis['umax_mA']:g} mA, drive {kpis['drive']}, clock {kpis['clock']}",
+        f"  ticks {kpis['ticks']} ({kpis['ticks'] * 500e-6:.3f} s) in {kpis['wall_s']:.2f} s "
+        f"wall ({kpis['realtime_factor']}x real time), stopped: {kpis['stop_reason']}",
+        f"  error{' after ' + format(kpis['settle_s'], 'g') + ' s' if kpis['settle_s'] else ''}"
+        f": max {_deg(kpis['max_error_deg'])}"
+        + (f" ({pct:.1f} % of the reference amplitude)" if pct is not None else "")
+        + f", rms {_deg(kpis['rms_error_deg'])}, cumulative "
+        f"{_deg(kpis['cumulative_error_deg'], 2)}",
+        f"  peak current {kpis['peak_current_mA'] or 0:.0f} mA, clamped by the driver "
+        f"{kpis['clamped_commands']}, stale feedback {kpis['stale_feedback']}",
+        f"  controller step median/p99/max {step['median']:.1f}/{step['p99']:.1f}/"
+        f"{step['max']:.1f} us, deadline misses {kpis['deadline_misses']}",
+    ]
+    if "solver_paths" in kpis:
+        lines.append("  solver paths " + ", ".join(f"{k} {v}" for k, v in
+                                                 kpis["solver_paths"].items()))
+    if "empc_fallbacks" in kpis:
+        lines.append(f"  explicit MPC fallbacks to the online QP: {kpis['empc_fallbacks']}")
+    lines.append(f"  session {kpis['mcap']}")
+    return "\n".join(lines)
 
 
 def run_figures(args: argparse.Namespace) -> int:
