@@ -252,10 +252,17 @@ class ExplicitLaw:
         }
 
 
+MAX_EXPLICIT_HU = 6  # 3^6 active sets: about a minute to build; H_u = 8 does not finish
+
+
 def build_explicit_law(config: MpcConfig, model: StateSpaceModel | None = None,
                        box: str | Mapping[str, Any] | ParameterBox | None = None,
                        ) -> ExplicitLaw:
     """Solve the mpQP of the MPC over the box and build the search tree of its controllers."""
+    if config.hu > MAX_EXPLICIT_HU:
+        raise ConfigError(
+            f"empc: H_u = {config.hu} is too large for an explicit solution (enumerated over "
+            f"3^H_u active sets); H_u <= {MAX_EXPLICIT_HU} is supported (the paper runs H_u = 3)")
     start = time.perf_counter()
     model = model or published_axis_model()
     qp = condense(config, model)

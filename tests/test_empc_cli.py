@@ -49,3 +49,11 @@ def test_bad_arguments_give_one_line_errors(tmp_path, capsys):
         assert main(["empc", "build", *args]) == 2
         err = capsys.readouterr().err
         assert err.startswith("hil: error: ") and message in err and err.count("\n") == 1
+
+
+def test_too_large_control_horizon_is_refused_before_any_work(capsys):
+    from hil.cli import main
+
+    assert main(["servo", "run", "--controller", "empc", "--ht", "8", "--hu", "8"]) == 2
+    err = capsys.readouterr().err
+    assert "H_u = 8 is too large" in err and err.count("\n") == 1

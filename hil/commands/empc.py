@@ -47,9 +47,6 @@ def run_build(args: argparse.Namespace) -> int:
     if args.export_c and not Path(args.export_c).resolve().parent.is_dir():
         raise UsageError(f"--export-c {args.export_c}: no such directory")
     hu = args.hu or args.ht
-    if max(args.ht, hu) > 6:
-        raise UsageError(f"--ht/--hu {max(args.ht, hu)}: the explicit solution is enumerated "
-                         "over 3^H_u active sets; H_u <= 6 (the paper's largest) is supported")
     config = MpcConfig(ht=args.ht, hu=hu, hp=args.hp, ert=args.ert, u_min=-args.umax,
                        u_max=args.umax)
     law = build_explicit_law(config, box=args.box)

@@ -28,8 +28,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     srun.add_argument("--node", type=positive_int, default=1, help="CANopen node id")
     srun.add_argument("--ert", choices=["foh", "zoh"], default="foh",
                       help="extended reference trajectory: first- or zero-order hold")
-    srun.add_argument("--ht", type=positive_int, default=8, help="trajectory horizon")
-    srun.add_argument("--hu", type=positive_int, default=8, help="control horizon")
+    srun.add_argument("--ht", type=positive_int,
+                      help="trajectory horizon (default 8; 3 for empc, as the paper's drive)")
+    srun.add_argument("--hu", type=positive_int,
+                      help="control horizon (default 8; 3 for empc, as the paper's drive)")
     srun.add_argument("--hp", type=positive_int, default=50, help="prediction horizon")
     srun.add_argument("--umax", type=positive_float, default=1000.0,
                       help="current limit [mA]: the controller's bounds and the driver's clamp")
@@ -74,9 +76,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run_servo_command(args: argparse.Namespace) -> int:
     from hil.servo_run import ServoRunConfig, run_servo
 
+    default_horizon = 3 if args.controller == "empc" else 8
     config = ServoRunConfig(
-        controller=args.controller, drive=args.drive, node=args.node, ert=args.ert, ht=args.ht,
-        hu=args.hu, hp=args.hp, umax=args.umax, reference=args.reference,
+        controller=args.controller, drive=args.drive, node=args.node, ert=args.ert,
+        ht=args.ht or default_horizon, hu=args.hu or default_horizon, hp=args.hp,
+        umax=args.umax, reference=args.reference,
         duration_s=args.duration, realtime=args.realtime, out=args.out,
         drive_config=args.config, settle_s=args.settle, prediction_every=args.prediction_every)
     result = run_servo(config)
