@@ -21,6 +21,10 @@ from typing import Any, Protocol
 from hil.clock import Clock
 from hil.stats import TimingHistogram
 
+# While a real-time loop runs, another thread holding the GIL is forced to hand it over after
+# this long (CPython's default is 5 ms: ten 2 kHz ticks lost behind the recorder's writer).
+REALTIME_SWITCH_INTERVAL_S = 1e-4
+
 
 class SafeStateful(Protocol):
     def safe_state(self) -> None: ...
@@ -214,7 +218,7 @@ class FixedRateLoop:
         previous_switch = sys.getswitchinterval()
         if self.clock.mode == "realtime":
             # a writer thread holding the GIL for the default 5 ms would wreck a 2 kHz loop
-            sys.setswitchinterval(min(previous_switch, 1e-4))
+            sys.setswitchinterval(min(previous_switch, REALTIME_SWITCH_INTERVAL_S))
         try:
             self._run_ticks(limit)
         except BaseException as exc:

@@ -21,7 +21,6 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 EVENTS_TOPIC = "/events"
-_YIELD_EVERY = 4  # messages serialised between two GIL hand-offs to the loop thread
 
 EVENT_SCHEMA: dict[str, Any] = {
     "type": "object",
@@ -186,9 +185,7 @@ class Recorder:
             )
             self._written += 1
             self._last_t_ns = t_ns
-            if self._written % _YIELD_EVERY == 0:
-                # hand the GIL to a waiting loop thread now instead of after the switch interval
-                os.sched_yield()
+            os.sched_yield()  # let a waiting loop thread take the GIL between two messages
 
     def _report_drops(self) -> None:
         for name, count in self.dropped().items():
