@@ -137,5 +137,6 @@ def plot_loop_timing(data: SessionData, out_png: str) -> None:
 
 def plot_session(data: SessionData, out_png: str) -> None:
     """Draw the session with its kind's plotter, or the loop timing when there is none."""
-    from hil import servo_report  # noqa: F401  (registers the "servo" plotter)
+    from hil import bench_report, servo_report  # noqa: F401  (register their plotters)
+
     PLOTTERS.get(session_kind(data), plot_loop_timing)(data, out_png)
