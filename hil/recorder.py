@@ -149,6 +149,10 @@ class Recorder:
         with self._lock:
             self._pending_setup.append(("attachment", (name, bytes(data), media_type, t_ns)))
 
+    def backlog(self) -> int:
+        """Messages queued and not yet written (a lockstep run can wait on this)."""
+        return len(self._queue)
+
     def dropped(self) -> dict[str, int]:
         return {name: t.dropped for name, t in self._topics.items() if t.dropped}
 
