@@ -96,8 +96,6 @@ class PrbsTask(Task):
         super().__init__("prbs", divisor)
         self.rig, self.prbs, self.recorded, self.log = rig, prbs, recorded, log
         self._progress = progress
-        self._recorder = session.recorder
-        self._lockstep = session.clock.mode == "sim"
         self._sample = 0
         self._previous = {name: False for name in recorded}
         self._topic = session.topic(TOPIC, {
@@ -156,16 +154,6 @@ class PrbsTask(Task):
             self._previous[name] = on
         self._topic.log(t_ns, message)
         self._progress(t_ns)
-        if self._lockstep:
-            self._wait_for_recorder()
-
-    def _wait_for_recorder(self) -> None:
-        """Lockstep outruns the MCAP writer (4 messages a sample): let it catch up rather
-        than drop samples, which would break the uniform sampling identification needs."""
-        recorder = self._recorder
-        if recorder.backlog() > recorder.queue_size // 4:
-            while recorder.backlog() > recorder.queue_size // 8:
-                time.sleep(0.005)
 
 
 def parse_relays(text: str) -> tuple[str, ...]:
@@ -213,7 +201,7 @@ def plan_experiment(opts: IdentifyOptions, config: dict[str, Any]
     return prbs, played, machining, holds
 
 
-def run_identify_experiment(opts: IdentifyOptions, stream: TextIO = sys.stderr
+def run_identify_experiment(opts: IdentifyOptions, stream: TextIO | None = None
                             ) -> dict[str, Any]:
     """Run one PRBS experiment; return its summary (``hil bench identify``)."""
     if not (opts.duration_s > 0 and math.isfinite(opts.duration_s)):
@@ -245,7 +233,7 @@ def run_identify_experiment(opts: IdentifyOptions, stream: TextIO = sys.stderr
     rig = None
     try:
         rig = attach_bench(session, config, opts.bench, play_sequence=bool(played))
-        progress = _progress_printer(session, rig, log, opts, stream)
+        progress = _progress_printer(session, rig, log, opts, stream or sys.stderr)
         session.add_task(PrbsTask(rig, prbs, recorded, session, log, progress,
                                   rig.sampler.divisor))
         session.run(duration_s=opts.duration_s)

@@ -2,7 +2,9 @@
 
 * Every topic is JSON with a JSON Schema (Foxglove opens it without a plug-in).
 * A bounded queue: when it is full the message is dropped and counted; the counts are written
-  to ``/events`` as soon as the writer catches up, and in the summary at close.
+  to ``/events`` as soon as the writer catches up, and in the summary at close. In lockstep
+  (``wait_when_full``) the producer waits for the writer instead: virtual time costs nothing,
+  and a lockstep run that outpaces the disk must not lose samples.
 * Chunks of ``chunk_size`` bytes (128 KiB default) and a flush at least every
   ``flush_interval_s``: a SIGKILLed process loses about one second of messages at most.
 """
@@ -76,6 +78,8 @@ class Topic:
         The message object must not be mutated afterwards.
         """
         rec = self._recorder
+        if len(rec._queue) >= rec.queue_size and rec.wait_when_full and not rec._closing:
+            rec._wait_for_room()
         if len(rec._queue) >= rec.queue_size or rec._closing:
             self.dropped += 1
             return False
@@ -94,9 +98,11 @@ class Recorder:
         chunk_size: int = 128 * 1024,
         flush_interval_s: float = 1.0,
         profile: str = "",
+        wait_when_full: bool = False,
     ) -> None:
         self.path = os.fspath(path)
         self.queue_size = queue_size
+        self.wait_when_full = wait_when_full
         self.flush_interval_s = flush_interval_s
         self._queue: deque[tuple[int, int, Any]] = deque()
         self._closing = False
@@ -149,9 +155,10 @@ class Recorder:
         with self._lock:
             self._pending_setup.append(("attachment", (name, bytes(data), media_type, t_ns)))
 
-    def backlog(self) -> int:
-        """Messages queued and not yet written (a lockstep run can wait on this)."""
-        return len(self._queue)
+    def _wait_for_room(self) -> None:
+        """Block the producer until the writer has drained half the queue (lockstep only)."""
+        while len(self._queue) > self.queue_size // 2 and self._thread.is_alive():
+            time.sleep(0.002)
 
     def dropped(self) -> dict[str, int]:
         return {name: t.dropped for name, t in self._topics.items() if t.dropped}

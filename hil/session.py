@@ -53,7 +53,7 @@ class Session:
         self.path = path
         self.clock = clock
         self.kind = kind
-        self.recorder = Recorder(path)
+        self.recorder = Recorder(path, wait_when_full=clock.mode == "sim")
         self.loop = FixedRateLoop(
             clock, base_period_s, recorder=self.recorder, on_event=self._loop_event,
             handle_signals=handle_signals,

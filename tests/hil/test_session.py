@@ -90,3 +90,16 @@ def test_full_queue_drops_are_counted_and_recorded_in_events(tmp_path):
     drops = [m for _, m in data.topic("/events") if m["kind"] == "recorder.dropped"]
     assert sum(m["data"]["dropped"] for m in drops) == topic.dropped
     assert json.loads(data.metadata["recorder"]["dropped"]) == {"/burst": topic.dropped}
+
+
+def test_lockstep_session_waits_for_the_writer_instead_of_dropping(tmp_path):
+    path = tmp_path / "w.mcap"
+    session = Session(str(path), SimClock(), 0.01, kind="test", handle_signals=False)
+    session.recorder.queue_size = 50  # far smaller than what one run produces at full speed
+    topic = session.topic("/burst", SCHEMA)
+    session.add_task(FunctionTask("log", 1, write=lambda c, t: [topic.log(t, {"k": k})
+                                                                for k in range(20)]))
+    session.run(max_ticks=300)
+    stats = session.close()
+    assert topic.dropped == 0 and stats.messages_dropped == {}
+    assert len(read_session(path).topic("/burst")) == 6000
