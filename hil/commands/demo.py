@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
@@ -27,10 +28,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from hil.servo_demo import format_servo_demo, run_servo_demo
+
     os.makedirs(args.out, exist_ok=True)
-    sections = [bench_demo(args.out)]
-    print("\n\n".join(sections))
+    progress("relay bench: EEC vs BC, 8 machine cycles over Modbus TCP (lockstep, ~30 s)")
+    print(bench_demo(args.out), flush=True)
+    progress("servo drive: MPC (FOH) vs PID through the emulated CiA 402 drive (~5 s)")
+    print("\n" + format_servo_demo(run_servo_demo(args.out, echo=None)), flush=True)
+    print(f"\nsessions (.mcap) and reports (.png) in {os.path.abspath(args.out)}; "
+          "'hil report FILE' summarises any of them")
     return 0
+
+
+def progress(message: str) -> None:
+    print(f"hil demo: {message} ...", file=sys.stderr, flush=True)
 
 
 def _bench_session(controller: str, path: str) -> dict[str, Any]:
