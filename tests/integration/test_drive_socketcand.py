@@ -4,13 +4,8 @@ it would reach a socketcand gateway in front of a real drive. Bounded: four emul
 generous time-outs, no timing figure asserted beyond "not before the configured time-out"."""
 
 import math
-import os
-import re
-import select
 import signal
 import struct
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -27,6 +22,7 @@ from drivers.can_drive import (
     state_of,
 )
 from emulators.drive_od import build_object_dictionary
+from tests.drive_processes import start_drive_emulator, stop_drive_emulator
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.timeout(120)
@@ -40,31 +36,7 @@ MASTER = {  # generous for a loaded box; the fault tests shorten what they test
 def start_emulator(tmp_path, name, port=0, **emulator):
     config = tmp_path / f"{name}.toml"
     config.write_text("[emulator]\n" + "".join(f"{k} = {v}\n" for k, v in emulator.items()))
-    env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "hil.cli", "emulate", "drive", "--socketcand",
-         f"127.0.0.1:{port}", "--node", "1", "--config", str(config)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    ready, _, _ = select.select([proc.stdout], [], [], 30)
-    line = proc.stdout.readline() if ready else ""
-    match = re.search(r"socketcand 127\.0\.0\.1:(\d+) ", line)
-    if not match:
-        proc.kill()
-        pytest.fail(f"emulator did not start: {line!r} {proc.stderr.read()!r}")
-    return proc, int(match.group(1))
-
-
-def stop_emulator(proc):
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGCONT)
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
-    proc.stdout.close()
-    proc.stderr.close()
+    return start_drive_emulator(config, port)
 
 
 def master_for(port, events=None, **overrides):
@@ -77,7 +49,7 @@ def emulator(tmp_path_factory):
     proc, port = start_emulator(tmp_path_factory.mktemp("drive"), "relaxed",
                                 sync_loss_timeout_ms=5000)
     yield port
-    stop_emulator(proc)
+    stop_drive_emulator(proc)
 
 
 SHUTDOWN, SWITCH_ON, ENABLE, DISABLE_VOLTAGE, QUICK_STOP = 0x06, 0x07, 0x0F, 0x00, 0x02
@@ -215,7 +187,7 @@ def test_sync_loss_then_heartbeat_loss_fault_the_drive_in_time(tmp_path):
     finally:
         master.close()
         listener.shutdown()
-        stop_emulator(proc)
+        stop_drive_emulator(proc)
 
 
 def test_master_declares_link_lost_when_tpdos_stop(tmp_path):
@@ -242,7 +214,7 @@ def test_master_declares_link_lost_when_tpdos_stop(tmp_path):
     finally:
         proc.send_signal(signal.SIGCONT)
         master.close()
-        stop_emulator(proc)
+        stop_drive_emulator(proc)
 
 
 def test_restarted_emulator_is_used_again_only_after_reset_fault(tmp_path):
@@ -258,7 +230,7 @@ def test_restarted_emulator_is_used_again_only_after_reset_fault(tmp_path):
         with pytest.raises(DriveLinkLostError):
             for _ in range(20):
                 master.exchange(0.0)
-        stop_emulator(proc)
+        stop_drive_emulator(proc)
         proc, _ = start_emulator(tmp_path, "second", port=port, sync_loss_timeout_ms=5000)
         with pytest.raises(DriveLinkLostError, match="latched"):
             master.exchange(0.0)  # the drive is back, but nobody said so
@@ -269,4 +241,4 @@ def test_restarted_emulator_is_used_again_only_after_reset_fault(tmp_path):
         assert fresh.fresh and math.isfinite(fresh.position_deg)
     finally:
         master.close()
-        stop_emulator(proc)
+        stop_drive_emulator(proc)

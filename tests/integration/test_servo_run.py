@@ -10,13 +10,7 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import re
-import select
-import signal
 import struct
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +22,7 @@ from drivers.can_drive import DriveFaultError
 from hil.cli import main
 from hil.reader import read_session
 from hil.servo_run import ServoRunConfig, make_controller, run_servo
+from tests.drive_processes import start_drive_emulator, stop_drive_emulator
 
 REPO = Path(__file__).resolve().parents[2]
 INCREMENT_DEG = 360.0 / 2**20  # the emulated encoder's resolution
@@ -225,39 +220,12 @@ def test_realtime_run_uses_the_split_read_write_path(tmp_path):
 
 
 # --------------------------------------------------------------------- socketcand emulator
-def start_emulator(config: Path) -> tuple[subprocess.Popen, int]:
-    env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "hil.cli", "emulate", "drive", "--socketcand", "127.0.0.1:0",
-         "--config", str(config)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    ready, _, _ = select.select([proc.stdout], [], [], 30)
-    line = proc.stdout.readline() if ready else ""
-    match = re.search(r"socketcand 127\.0\.0\.1:(\d+) ", line)
-    if not match:
-        proc.kill()
-        pytest.fail(f"emulator did not start: {line!r} {proc.stderr.read()!r}")
-    return proc, int(match.group(1))
-
-
-def stop_emulator(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
-    proc.stdout.close()
-    proc.stderr.close()
-
-
 def test_lockstep_run_over_socketcand_matches_the_in_process_drive(tmp_path, capsys):
     # generous watchdogs: a loaded box may stall the lockstep loop for a moment
     config = tmp_path / "drive.toml"
     config.write_text("[master]\nheartbeat_timeout_ms = 5000\nrx_timeout_us = 2000000\n"
                       "[emulator]\nsync_loss_timeout_ms = 5000\n")
-    proc, port = start_emulator(config)
+    proc, port = start_drive_emulator(config)
     try:
         out = tmp_path / "remote.mcap"
         assert main(["servo", "run", "--controller", "mpc", "--drive",
@@ -266,7 +234,7 @@ def test_lockstep_run_over_socketcand_matches_the_in_process_drive(tmp_path, cap
                      "--json"]) == 0
         remote = json.loads(capsys.readouterr().out)
     finally:
-        stop_emulator(proc)
+        stop_drive_emulator(proc)
     assert remote["ticks"] == 500 and remote["stale_feedback"] == 0
     local, _ = run(tmp_path, "local", controller="mpc", reference="sine:amplitude=2,frequency=1",
                    duration_s=0.25)

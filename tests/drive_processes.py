@@ -1,0 +1,45 @@
+"""Start and stop ``hil emulate drive`` processes on loopback for tests (bounded waits)."""
+
+from __future__ import annotations
+
+import os
+import re
+import select
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def start_drive_emulator(config: Path, port: int = 0) -> tuple[subprocess.Popen, int]:
+    """Run the drive emulator with ``config`` on 127.0.0.1:``port``; return it and its port."""
+    env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "hil.cli", "emulate", "drive", "--socketcand",
+         f"127.0.0.1:{port}", "--node", "1", "--config", str(config)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    ready, _, _ = select.select([proc.stdout], [], [], 30)
+    line = proc.stdout.readline() if ready else ""
+    match = re.search(r"socketcand 127\.0\.0\.1:(\d+) ", line)
+    if not match:
+        proc.kill()
+        pytest.fail(f"emulator did not start: {line!r} {proc.stderr.read()!r}")
+    return proc, int(match.group(1))
+
+
+def stop_drive_emulator(proc: subprocess.Popen) -> None:
+    """Stop it cleanly (resuming it first, in case a test froze it with SIGSTOP)."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGCONT)
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+    proc.stdout.close()
+    proc.stderr.close()
