@@ -22,6 +22,8 @@ from typing import Any
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
+from hil.errors import HilError
+
 EVENTS_TOPIC = "/events"
 
 EVENT_SCHEMA: dict[str, Any] = {
@@ -50,6 +52,10 @@ def _json_default(value: Any) -> Any:
 def encode_json(message: Any) -> bytes:
     """The one JSON encoding of recorded messages (compact, numpy-aware)."""
     return json.dumps(message, separators=(",", ":"), default=_json_default).encode()
+
+
+class RecorderError(HilError):
+    """The writer thread failed; what it wrote before is in the file, the rest was dropped."""
 
 
 @dataclass
@@ -113,6 +119,8 @@ class Recorder:
         self._reported_drops: dict[str, int] = {}
         self._written = 0
         self._chunks = 0
+        self._failure: Exception | None = None
+        self._stats: RecorderStats | None = None
         self._last_t_ns = 0
         directory = os.path.dirname(os.path.abspath(self.path))
         os.makedirs(directory, exist_ok=True)
@@ -190,6 +198,8 @@ class Recorder:
         queue, channel_ids, writer = self._queue, self._channel_ids, self._writer
         while queue:
             key, t_ns, message = queue.popleft()
+            if key not in channel_ids:  # registered after this cycle's setup: register it now
+                self._apply_setup()
             writer.add_message(
                 channel_id=channel_ids[key], log_time=t_ns, publish_time=t_ns,
                 data=encode_json(message), sequence=self._written,
@@ -214,6 +224,13 @@ class Recorder:
         self._chunks += 1
 
     def _run(self) -> None:
+        try:
+            self._write_until_closed()
+        except Exception as exc:  # surfaced by close(); from now on producers drop and count
+            self._failure = exc
+            self._closing = True
+
+    def _write_until_closed(self) -> None:
         last_flush = time.monotonic()
         while True:
             closing = self._closing
@@ -232,21 +249,30 @@ class Recorder:
     # -- lifecycle -------------------------------------------------------------------------
     def close(self) -> RecorderStats:
         """Write everything queued, the summary and the index; return what happened."""
-        if self._closing:
+        if self._stats is not None:
             return self._stats
         self._closing = True
         self._thread.join()
-        self._apply_setup()
-        self._drain()
-        drops = self.dropped()
-        if drops:
-            self._writer.add_metadata("recorder", {"dropped": json.dumps(drops)})
-        self._writer.finish()
-        self._file.close()
+        try:
+            if self._failure is None:
+                self._apply_setup()
+                self._drain()
+            drops = self.dropped()
+            if drops:
+                self._writer.add_metadata("recorder", {"dropped": json.dumps(drops)})
+            self._writer.finish()
+        finally:
+            self._file.close()
         self._stats = RecorderStats(
             messages_written=self._written, messages_dropped=drops,
             chunks_flushed=self._chunks, bytes_written=os.path.getsize(self.path),
         )
+        if self._failure is not None:
+            raise RecorderError(
+                f"{self.path}: recording stopped after {self._written} message(s): the writer "
+                f"failed with {type(self._failure).__name__}: {self._failure}; "
+                f"{sum(drops.values())} later message(s) were dropped"
+            ) from self._failure
         return self._stats
 
     def __enter__(self) -> Recorder:

@@ -1,12 +1,14 @@
 import json
+import time
 
 import numpy as np
+import pytest
 from mcap.reader import make_reader
 
 from hil.clock import SimClock
 from hil.loop import FunctionTask
 from hil.reader import read_session
-from hil.recorder import Recorder
+from hil.recorder import Recorder, RecorderError
 from hil.session import Session
 
 SCHEMA = {
@@ -103,3 +105,31 @@ def test_lockstep_session_waits_for_the_writer_instead_of_dropping(tmp_path):
     stats = session.close()
     assert topic.dropped == 0 and stats.messages_dropped == {}
     assert len(read_session(path).topic("/burst")) == 6000
+
+
+def test_topics_registered_while_the_writer_runs_are_never_lost(tmp_path):
+    # each topic is logged to right after registration, racing the writer's setup step
+    path = tmp_path / "race.mcap"
+    rec = Recorder(path)
+    for k in range(300):
+        rec.topic(f"/t{k}", SCHEMA).log(k, {"k": k})
+        if k % 50 == 0:
+            time.sleep(0.006)  # let the writer start cycles in between
+    stats = rec.close()
+    assert stats.messages_written == 300 and stats.messages_dropped == {}
+    data = read_session(path)
+    assert all(data.topic(f"/t{k}") == [(k, {"k": k})] for k in range(300))
+
+
+def test_a_failing_writer_is_reported_at_close_not_silent(tmp_path):
+    path = tmp_path / "fail.mcap"
+    rec = Recorder(path)
+    topic = rec.topic("/x", SCHEMA)
+    topic.log(1, {"k": 1})
+    topic.log(2, {"not json": object()})  # cannot be encoded: the writer fails on it
+    time.sleep(0.05)
+    topic.log(3, {"k": 3})
+    with pytest.raises(RecorderError, match=r"writer failed with TypeError"):
+        rec.close()
+    assert topic.dropped >= 1
+    assert read_session(path).topic("/x") == [(1, {"k": 1})]
