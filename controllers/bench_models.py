@@ -39,8 +39,11 @@ from hil.errors import ConfigError
 
 
 def _input_key(name: str) -> str:
-    """``/bench/relays:P1`` -> ``P1``; ``P1:start`` -> ``P1:start``; ``P1`` -> ``P1``."""
-    return name.split("relays:", 1)[-1]
+    """Model input name of a recorded field: ``/bench/relays:P1`` -> ``P1``; the switch-on
+    pulse as ``hil bench identify`` records it, ``/ident/relays:P1_start``, or ``P1:start``
+    -> ``P1:start``."""
+    key = name.split("relays:", 1)[-1]
+    return key.removesuffix("_start") + ":start" if key.endswith("_start") else key
 
 
 @dataclass(eq=False)

@@ -244,3 +244,20 @@ def test_shifted_plan_missing_production_at_the_end_is_repaired():
     good = milp.solve(prediction.free(BenchEstimate.at_rest(models)), off, np.zeros(2, int),
                       q0, 0.0).u.astype(float)
     assert np.array_equal(milp.repair(good, off, off, c_lo, c_hi), good)
+
+
+def test_models_identified_over_the_wire_load_with_their_pulse_inputs():
+    """`hil identify` names inputs after recorded fields (``/ident/relays:M1_start``)."""
+    import numpy as np
+
+    from controllers.bench_models import MachiningModel, to_linear_model
+    from controllers.bench_problem import load_problem
+    from hil.bench_io import load_bench_config
+
+    inputs = ["/ident/relays:M1", "/ident/relays:M1_start", "/ident/relays:M2",
+              "/ident/relays:M2_start"]
+    lin = to_linear_model(np.eye(1) * 0.5, np.ones((1, 4)), np.ones((1, 1)), np.zeros((1, 4)),
+                          0.01, inputs, np.zeros(4), np.zeros(1), name="wire")
+    assert lin.inputs == ("M1", "M1:start", "M2", "M2:start")
+    sequence = load_problem(load_bench_config()).sequence
+    assert MachiningModel.from_linear(lin, sequence).model is lin
