@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import json
 from collections.abc import Callable
 from typing import Any
@@ -135,8 +136,13 @@ def plot_loop_timing(data: SessionData, out_png: str) -> None:
     plt.close(fig)
 
 
+# Where each session kind's plotter lives; imported only when such a session is drawn.
+PLOTTER_MODULES = {"bench": "hil.bench_report", "servo": "hil.servo_report"}
+
+
 def plot_session(data: SessionData, out_png: str) -> None:
     """Draw the session with its kind's plotter, or the loop timing when there is none."""
-    from hil import bench_report, servo_report  # noqa: F401  (register their plotters)
-
-    PLOTTERS.get(session_kind(data), plot_loop_timing)(data, out_png)
+    kind = session_kind(data)
+    if kind in PLOTTER_MODULES:
+        importlib.import_module(PLOTTER_MODULES[kind])
+    PLOTTERS.get(kind, plot_loop_timing)(data, out_png)
