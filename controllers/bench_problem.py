@@ -115,31 +115,36 @@ class BenchProblem:
 
 
 def parse_sequence(config: Mapping[str, Any]) -> MachiningSequence:
+    """``[sequence]`` of the bench config: stages tiling ``[0, period_s)`` in order, each
+    naming relays of ``[relays]`` (the one parser of the table; the bridge plays it from it)."""
     period = lookup(config, "sequence.period_s", float, source=SOURCE)
-    if not period > 0:
-        raise ConfigError(f"{SOURCE}: key 'sequence.period_s' must be > 0, got {period}")
     raw = lookup(config, "sequence.stages", list, source=SOURCE)
+    known = lookup(config, "relays", dict, source=SOURCE)
+    if not period > 0 or not raw:
+        raise ConfigError(f"{SOURCE}: [sequence] needs period_s > 0 and at least one stage")
     stages: list[Stage] = []
-    relays: list[str] = []
-    expected = 0.0
-    for n, item in enumerate(raw):
-        key = f"sequence.stages[{n}]"
-        if not isinstance(item, Mapping):
-            raise ConfigError(f"{SOURCE}: {key} must be a table {{start_s, end_s, on}}")
-        start = lookup(item, "start_s", float, source=f"{SOURCE} {key}")
-        end = lookup(item, "end_s", float, source=f"{SOURCE} {key}")
-        on = lookup(item, "on", list, [], source=f"{SOURCE} {key}")
-        if abs(start - expected) > 1e-9 or not end > start:
-            raise ConfigError(f"{SOURCE}: stages must tile [0, period) in order; {key} is "
-                              f"[{start}, {end}), expected to start at {expected}")
-        if not all(isinstance(name, str) for name in on):
-            raise ConfigError(f"{SOURCE}: {key}.on must list relay names")
-        relays.extend(name for name in on if name not in relays)
+    expected_start = 0.0
+    for i, entry in enumerate(raw):
+        where = f"{SOURCE}: sequence.stages[{i}]"
+        if not isinstance(entry, Mapping):
+            raise ConfigError(f"{where} must be a table {{start_s, end_s, on}}")
+        start = lookup(entry, "start_s", float, source=where)
+        end = lookup(entry, "end_s", float, source=where)
+        on = lookup(entry, "on", list, source=where)
+        if abs(start - expected_start) > 1e-9 or not end > start:
+            raise ConfigError(f"{where}: stages must tile [0, period) in order: expected "
+                              f"start_s = {expected_start:g} < end_s, got {start:g}..{end:g}")
+        unknown = [n for n in on if n not in known]
+        if unknown:
+            raise ConfigError(f"{where}: unknown relay(s) {unknown} (relays: "
+                              f"{', '.join(known)})")
         stages.append(Stage(start, end, frozenset(on)))
-        expected = end
-    if not stages or abs(expected - period) > 1e-9:
-        raise ConfigError(f"{SOURCE}: stages must end at period_s = {period}, end at {expected}")
-    return MachiningSequence(period, tuple(stages), tuple(sorted(relays)))
+        expected_start = end
+    if abs(expected_start - period) > 1e-9:
+        raise ConfigError(f"{SOURCE}: sequence stages end at {expected_start:g} s, "
+                          f"not at period_s = {period:g} s")
+    relays = tuple(sorted(set().union(*(stage.on for stage in stages))))
+    return MachiningSequence(period, tuple(stages), relays)
 
 
 def parse_resources(config: Mapping[str, Any], sequence: MachiningSequence

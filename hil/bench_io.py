@@ -1,8 +1,8 @@
 """The bridge side of the relay bench: its config, the machining sequence, the loop tasks.
 
 * :func:`load_bench_config` - ``hil/configs/bench.toml`` with a user file laid over it.
-* :class:`MachiningSequence` - the table of ``[sequence]`` (pure; controllers may use it to
-  predict the machining load).
+* :class:`MachiningSequence` - ``[sequence]`` for the player: exact nanosecond lookups on the
+  table parsed by :func:`controllers.bench_problem.parse_sequence` (which the controllers use).
 * :class:`BenchSampler` - polls power (and levels) every sample, services the safety layer,
   publishes ``/bench/power``, ``/bench/levels``, ``/bench/relays``.
 * :class:`SequencePlayer` - drives M1/M2 from the table through the safety layer.
@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from controllers.bench_problem import Stage, parse_sequence
 from hil.config import deep_merge, load_toml, lookup, parse_toml
 from hil.errors import ConfigError
 from hil.loop import Task
@@ -47,15 +48,9 @@ def load_bench_config(path: str | None = None) -> dict[str, Any]:
     return config
 
 
-@dataclass(frozen=True)
-class Stage:
-    start_s: float
-    end_s: float
-    on: frozenset[str]
-
-
 class MachiningSequence:
-    """Periodic on/off table of the machining relays (``[sequence]``)."""
+    """The machining sequence as the bridge plays it: exact lookups in integer nanoseconds on
+    the table parsed by :func:`controllers.bench_problem.parse_sequence`."""
 
     def __init__(self, period_s: float, stages: list[Stage]) -> None:
         self.period_s = period_s
@@ -66,33 +61,8 @@ class MachiningSequence:
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any]) -> MachiningSequence:
-        period = lookup(config, "sequence.period_s", float, source=SOURCE)
-        raw = lookup(config, "sequence.stages", list, source=SOURCE)
-        relays = lookup(config, "relays", dict, source=SOURCE)
-        if not period > 0 or not raw:
-            raise ConfigError(f"{SOURCE}: [sequence] needs period_s > 0 and at least one stage")
-        stages: list[Stage] = []
-        expected_start = 0.0
-        for i, entry in enumerate(raw):
-            where = f"{SOURCE}: sequence.stages[{i}]"
-            if not isinstance(entry, dict):
-                raise ConfigError(f"{where} must be a table {{start_s, end_s, on}}")
-            start = lookup(entry, "start_s", float, source=where)
-            end = lookup(entry, "end_s", float, source=where)
-            on = lookup(entry, "on", list, source=where)
-            if abs(start - expected_start) > 1e-9 or not end > start:
-                raise ConfigError(f"{where}: stages must tile [0, period) in order: expected "
-                                  f"start_s = {expected_start:g} < end_s, got {start:g}..{end:g}")
-            unknown = [n for n in on if n not in relays]
-            if unknown:
-                raise ConfigError(f"{where}: unknown relay(s) {unknown} (relays: "
-                                  f"{', '.join(relays)})")
-            stages.append(Stage(start, end, frozenset(on)))
-            expected_start = end
-        if abs(expected_start - period) > 1e-9:
-            raise ConfigError(f"{SOURCE}: sequence stages end at {expected_start:g} s, "
-                              f"not at period_s = {period:g} s")
-        return cls(period, stages)
+        table = parse_sequence(config)
+        return cls(table.period_s, list(table.stages))
 
     def stage_at(self, t_ns: int) -> Stage:
         """The stage at ``t_ns`` after the sequence started (periodic)."""
