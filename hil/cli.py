@@ -10,6 +10,7 @@ from collections.abc import Sequence
 from hil import __version__
 from hil.commands import bench, demo, empc, emulate, identify, report, servo
 from hil.errors import HilError, NotYetAvailableError
+from hil.session import set_command_line
 
 COMMAND_MODULES = (demo, bench, servo, empc, identify, emulate, report)
 
@@ -32,6 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    set_command_line(["hil", *(sys.argv[1:] if argv is None else argv)])
     try:
         return int(args.handler(args) or 0)
     except NotYetAvailableError as exc:

@@ -105,7 +105,8 @@ def test_identify_json_prints_order_fit_matrices_and_writes_the_model_file(
     assert np.max(np.abs(est_markov - true_markov)) < 0.05 * np.max(np.abs(true_markov))
     # the command that regenerates the file is written into it, and does regenerate it
     assert model.command.startswith(f"hil identify {session_file} --input /bench/relays:P1 ")
-    assert "--order 3 --block-rows 15 --train-fraction 0.7" in model.command
+    assert model.block_rows_selection["method"] == "bic"  # not given: chosen, and spelled out
+    assert f"--order 3 --block-rows {model.block_rows} --train-fraction 0.7" in model.command
     again = tmp_path / "again.json"
     argv = model.command.split()[1:]
     argv[argv.index("--out") + 1] = str(again)

@@ -20,6 +20,8 @@ command that produced it; :func:`load_model_file` reads it back for the controll
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
 import math
 import os
 import re
@@ -32,10 +34,10 @@ from typing import Any
 import numpy as np
 
 from controllers.ident import (
+    BLOCK_ROW_CANDIDATES,
     DEFAULT_MAX_ORDER,
     IdentificationError,
     IdentifiedModel,
-    default_block_rows,
     dumps_model,
     identify,
     json_text,
@@ -80,8 +82,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help=f"highest order tried when --order is not given (default "
                    f"{DEFAULT_MAX_ORDER})")
     p.add_argument("--block-rows", type=positive_int,
-                   help="block rows of the Hankel matrices (default 15, more if the order "
-                   "needs them)")
+                   help="block rows of the Hankel matrices (default: the training-BIC best of "
+                   f"{', '.join(map(str, BLOCK_ROW_CANDIDATES))}, raised if the order needs "
+                   "more; the model file records the choice)")
     p.add_argument("--train-fraction", type=fraction, default=0.7,
                    help="leading part of the record used for estimation; the fit is "
                    "computed on the rest (default 0.7)")
@@ -117,17 +120,18 @@ def run(args: argparse.Namespace) -> int:
     out = args.out or str(Path(args.file).with_suffix(".model.json"))
     if os.path.abspath(out) == os.path.abspath(args.file):
         raise UsageError(f"--out {out} is the session file itself; choose another model file")
-    block_rows = args.block_rows or default_block_rows(args.order, len(outputs))
     try:
         model = identify(
             u, y, dt,
             inputs=tuple(s.text for s in inputs), outputs=tuple(s.text for s in outputs),
-            order=args.order, max_order=args.max_order, block_rows=block_rows,
+            order=args.order, max_order=args.max_order, block_rows=args.block_rows,
             train_fraction=args.train_fraction, detrend=args.detrend,
-            feedthrough=not args.no_feedthrough, command=regenerate_command(args, block_rows, out),
+            feedthrough=not args.no_feedthrough,
         )
     except IdentificationError as exc:
         raise UsageError(f"{args.file}: {exc}") from None
+    model = dataclasses.replace(model, command=regenerate_command(args, model.block_rows, out),
+                                experiment=experiment_command(data))
     save_model_file(out, model)
     if irregular:
         print(f"hil: warning: {irregular} of {len(y) - 1} sampling intervals of "
@@ -346,6 +350,20 @@ def regenerate_command(args: argparse.Namespace, block_rows: int, out: str) -> s
     return shlex.join(argv)
 
 
+def experiment_command(data: SessionData) -> str:
+    """The command line that recorded the session (``hil ...``), or "" if it is not known."""
+    try:
+        argv = json.loads(data.metadata.get("session", {}).get("argv", ""))
+    except ValueError:
+        return ""
+    if not isinstance(argv, list) or not argv:
+        return ""
+    argv = [str(arg) for arg in argv]
+    if os.path.basename(argv[0]) in ("hil", "__main__.py"):  # the console script, python -m hil
+        argv[0] = "hil"
+    return shlex.join(argv)
+
+
 def format_model(model: IdentifiedModel, out: str) -> str:
     """Human-readable summary: order, fit, singular values, matrices."""
     samples = model.samples
@@ -353,12 +371,15 @@ def format_model(model: IdentifiedModel, out: str) -> str:
         how = f"selected by BIC over orders 1-{len(model.order_selection.get('bic', {}))}"
     else:
         how = "given"
+    tried = model.block_rows_selection.get("bic", {})
+    rows_how = f"training BIC best of {', '.join(tried)}" if tried else "given"
     lines = [
         f"model file:   {out}",
         f"inputs:       {', '.join(model.inputs)}",
         f"outputs:      {', '.join(model.outputs)}",
         f"samples:      {samples.get('total')} (train {samples.get('train')}, held-out "
-        f"{samples.get('test')}), dt {model.dt:g} s, {model.block_rows} block rows",
+        f"{samples.get('test')}), dt {model.dt:g} s",
+        f"block rows:   {model.block_rows} ({rows_how})",
         f"order:        {model.order} ({how})",
         "singular values: " + " ".join(f"{s:.3g}" for s in model.singular_values[:12]),
         f"fit_pct:      {model.fit_pct:.2f} % on held-out data (simulated output)",
@@ -370,5 +391,7 @@ def format_model(model: IdentifiedModel, out: str) -> str:
         for name in ("A", "B", "C", "D", "K"):
             matrix = np.array2string(getattr(model, name), prefix="    ")
             lines.append(f"{name} = {matrix}")
+    if model.experiment:
+        lines.append(f"recorded by:     {model.experiment}")
     lines.append(f"regenerate with: {model.command}")
     return "\n".join(lines)

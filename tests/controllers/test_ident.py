@@ -286,6 +286,31 @@ def test_too_few_samples_for_the_block_rows_is_a_clear_error():
     assert model.block_rows == 5  # fewer block rows: enough samples again
 
 
+def slow_motor_data(seed: int, n: int = 6000):
+    """A plant whose transient outlasts 15 block rows (modes 50 ms, 200 ms, 600 ms at 10 ms)."""
+    rng = np.random.default_rng(seed)
+    poles = np.exp(-0.01 / np.array([0.05, 0.2, 0.6]))
+    gains = np.array([2000.0, 800.0, -1800.0])
+    A, B, C = np.diag(poles), np.ones((3, 1)), (gains * (1 - poles))[None, :]
+    u = relay_sequence(rng, n, 100, 400)[:, None]
+    return u, ident.simulate(A, B, C, np.zeros((1, 1)), u) + 20 * rng.normal(size=(n, 1))
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_block_rows_are_chosen_by_training_bic_when_not_given(seed):
+    u, y = slow_motor_data(seed)
+    auto = ident.identify(u, y, 0.01, order=3)
+    fixed = ident.identify(u, y, 0.01, order=3, block_rows=15)
+    tried = auto.block_rows_selection["bic"]
+    assert list(tried) == ["15", "30", "60"]
+    assert auto.block_rows == int(min(tried, key=tried.__getitem__)) > 15
+    assert auto.fit_pct > fixed.fit_pct + 0.2  # 15 rows (0.15 s) cut the 0.6 s mode short
+    assert fixed.block_rows_selection == {"method": "fixed"}
+    # a record too short for 60 rows tries the others only
+    short = ident.identify(u[:500], y[:500], 0.01, order=3)
+    assert list(short.block_rows_selection["bic"]) == ["15", "30"]
+
+
 def test_constant_input_is_a_clear_error():
     u, y = _bench_data()
     with pytest.raises(IdentificationError, match=r"input 'P1' is constant \(0\).*switch it"):

@@ -68,6 +68,9 @@ def test_prbs_experiment_then_identification(tmp_path, capsys):
     two_input = identify_json(capsys, argv[1:])
     assert two_input["order"] == 3
     assert two_input["fit_pct"] >= 90.0, two_input["fit_pct"]
+    # the model file names the experiment that recorded its data
+    assert two_input["experiment"] == (f"hil bench identify --relays P1 --duration 90 --seed 3 "
+                                       f"--progress 30 --out {session} --json")
 
     # the one-input form: a linear model of the relay alone cannot hold the inrush
     one_input = identify_json(capsys, [
