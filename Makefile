@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench lint clean
+.PHONY: demo test bench models lint clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -25,6 +25,9 @@ bench: $(STAMP)
 	  [ -n "$$pkg" ] && { $(BIN)/pip install --quiet "$$pkg" || echo "optional baseline $$pkg not installed: skipped"; }; \
 	done; true
 	@for script in benchmarks/*.py; do echo "== $$script"; $(BIN)/python $$script || exit 1; done
+
+models: $(STAMP)
+	PATH="$(CURDIR)/$(BIN):$$PATH" sh hil/configs/models/regenerate.sh
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
