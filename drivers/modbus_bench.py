@@ -10,7 +10,6 @@ a failure drops the TCP connection or flushes the serial input before trying aga
 from __future__ import annotations
 
 import logging
-import math
 import struct
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -21,6 +20,7 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from pymodbus.pdu import ModbusPDU
 
+from hil.bench_relays import RelaySpec, relay_specs
 from hil.config import lookup
 from hil.errors import ConfigError, HilError
 
@@ -208,14 +208,6 @@ def _first_line(exc: BaseException) -> str:
     return str(exc).strip().splitlines()[0] if str(exc).strip() else ""
 
 
-@dataclass(frozen=True)
-class RelaySpec:
-    name: str
-    coil: int
-    safe: bool
-    dwell_s: float
-
-
 def plan_reads(addresses: Mapping[str, int], max_count: int, max_gap: int
                ) -> list[tuple[int, int, list[tuple[str, int]]]]:
     """Group float32 registers into requests: ``(first, count, [(name, float index)])``.
@@ -260,21 +252,7 @@ class BenchMap:
         for role, unit in units.items():
             if not 1 <= unit <= 247:
                 raise ConfigError(f"{SOURCE}: key 'units.{role}' must be 1..247, got {unit}")
-        table = lookup(config, "relays", dict, source=SOURCE)
-        if not table:
-            raise ConfigError(f"{SOURCE}: [relays] is empty: name at least one relay")
-        relays: dict[str, RelaySpec] = {}
-        for name in table:
-            coil = lookup(config, f"relays.{name}.coil", int, source=SOURCE)
-            dwell = lookup(config, f"relays.{name}.dwell_s", float, 5.0, source=SOURCE)
-            if coil < 0 or not 0 <= dwell < math.inf:
-                raise ConfigError(f"{SOURCE}: relay {name}: coil must be >= 0 and dwell_s "
-                                  f"a finite number >= 0, got coil={coil}, dwell_s={dwell}")
-            clash = next((r.name for r in relays.values() if r.coil == coil), None)
-            if clash:
-                raise ConfigError(f"{SOURCE}: relays {clash} and {name} are both on coil {coil}")
-            relays[name] = RelaySpec(name, coil, lookup(
-                config, f"relays.{name}.safe", bool, False, source=SOURCE), dwell)
+        relays = relay_specs(config)
         max_count = lookup(config, "meter.max_registers_per_request", int, 80, source=SOURCE)
         if not 2 <= max_count <= 125:
             raise ConfigError(f"{SOURCE}: key 'meter.max_registers_per_request' must be 2..125, "

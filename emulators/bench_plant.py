@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from hil.bench_relays import relay_specs
 from hil.config import lookup
 from hil.errors import ConfigError
 
@@ -41,23 +42,6 @@ METER_QUANTITIES = (
     "avg_voltage", "avg_current", "sum_current", "total_w", "total_va", "total_var",
     "total_pf", "total_phase_angle", "frequency_hz", "import_kwh", "export_kwh",
 )
-
-
-def relay_coils(config: Mapping[str, Any]) -> dict[str, int]:
-    """``{relay name: coil}`` from ``[relays]``, checked: ints >= 0, no coil used twice."""
-    relays = lookup(config, "relays", dict, source=SOURCE)
-    if not relays:
-        raise ConfigError(f"{SOURCE}: [relays] is empty: name at least one relay")
-    coils: dict[str, int] = {}
-    for name in relays:
-        coil = lookup(config, f"relays.{name}.coil", int, source=SOURCE)
-        if coil < 0:
-            raise ConfigError(f"{SOURCE}: key 'relays.{name}.coil' must be >= 0, got {coil}")
-        other = next((n for n, c in coils.items() if c == coil), None)
-        if other is not None:
-            raise ConfigError(f"{SOURCE}: relays {other} and {name} are both on coil {coil}")
-        coils[name] = coil
-    return coils
 
 
 def _phase_weights(config: Mapping[str, Any], key: str) -> tuple[tuple[int, float], ...]:
@@ -335,7 +319,7 @@ class BenchPlant:
     def __init__(self, config: Mapping[str, Any], *, seed: int | None = None) -> None:
         self.dt = _positive(config, "plant.dt_s")
         n_coils = lookup(config, "emulator.coils", int, 8, source=SOURCE)
-        self.relays = relay_coils(config)
+        self.relays = {name: spec.coil for name, spec in relay_specs(config).items()}
         if max(self.relays.values()) >= n_coils:
             raise ConfigError(f"{SOURCE}: a relay uses coil {max(self.relays.values())} but the "
                               f"relay module has {n_coils} coils (emulator.coils)")

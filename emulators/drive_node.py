@@ -122,14 +122,15 @@ class DriveEmulatorConfig:
     """Everything the emulated drive needs; ``from_table`` reads the ``[emulator]`` TOML table."""
 
     node_id: int = 1
-    rated_current_ma: int = 1000
-    max_torque_permille: int = 1000
+    # the object dictionary's start-up values are the defaults (emulators/drive_od.py)
+    rated_current_ma: int = OdDefaults.rated_current_ma
+    max_torque_permille: int = OdDefaults.max_torque_permille
     current_limit_ma: float = 12_000.0
-    overcurrent_trip_ma: int = 15_000
-    increments_per_rev: int = 1 << 20
-    heartbeat_ms: int = 0
-    sync_loss_timeout_ms: int = 100
-    quick_stop_option: int = 2
+    overcurrent_trip_ma: int = OdDefaults.overcurrent_trip_ma
+    increments_per_rev: int = OdDefaults.increments_per_rev
+    heartbeat_ms: int = OdDefaults.heartbeat_ms
+    sync_loss_timeout_ms: int = OdDefaults.sync_loss_timeout_ms
+    quick_stop_option: int = OdDefaults.quick_stop_option
     quick_stop_timeout_ms: int = 3000
     standstill_deg_s: float = 2.0
     velocity_gain_ma_per_deg_s: float = 40.0
