@@ -41,9 +41,9 @@ from drivers.can_drive import CanDriveMaster, DriveMasterConfig, load_drive_conf
 from emulators.drive_node import BusRunner, DriveEmulatorConfig, DriveNode, bus_sender
 from emulators.drive_od import build_object_dictionary
 from emulators.drive_plant import AxisPlant
-from hil.clock import RealtimeClock
-from hil.config import deep_merge
-from hil.loop import FixedRateLoop, FunctionTask
+from hil.core.clock import RealtimeClock
+from hil.core.config import deep_merge
+from hil.core.loop import FixedRateLoop, FunctionTask
 
 PERIOD_S = 500e-6
 REPO = Path(__file__).resolve().parents[1]
@@ -131,7 +131,7 @@ def part1(cycles: int) -> None:
 def start_emulator(config_path: str) -> tuple[subprocess.Popen, int]:
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "hil.cli", "emulate", "drive", "--socketcand", "127.0.0.1:0",
+        [sys.executable, "-m", "hil", "emulate", "drive", "--socketcand", "127.0.0.1:0",
          "--config", config_path], stdout=subprocess.PIPE, text=True, env=env)
     ready, _, _ = select.select([proc.stdout], [], [], 30)
     line = proc.stdout.readline() if ready else ""

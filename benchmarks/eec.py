@@ -31,7 +31,7 @@ import numpy as np
 from controllers import eec as eec_module
 from controllers.bench_kpis import timing_summary
 from controllers.eec_cvxpy import solve_naive
-from hil.bench_run import BenchRunOptions, run_bench
+from hil.bench.run import BenchRunOptions, run_bench
 
 
 def closed_loop(hp_s: int, cycles: int, out: str) -> tuple[dict, list, eec_module.EECMilp]:

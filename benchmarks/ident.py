@@ -408,7 +408,7 @@ def print_bench(record: BenchRecord, va_sigma: float, rows: list[Row], timed: bo
 
 
 def emulated_section(has_sippy: bool) -> None:
-    from hil.bench_io import load_bench_config
+    from hil.bench.rig import load_bench_config
 
     config = load_bench_config()
     dt = float(config["plant"]["dt_s"])

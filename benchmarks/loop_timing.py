@@ -14,10 +14,10 @@ import time
 
 import numpy as np
 
-from hil.clock import RealtimeClock
-from hil.loop import FunctionTask
-from hil.session import Session
-from hil.stats import percentile_summary
+from hil.core.clock import RealtimeClock
+from hil.core.loop import FunctionTask
+from hil.core.session import Session
+from hil.core.stats import percentile_summary
 
 
 def plain_sleep_loop(rate_hz: float, duration_s: float) -> tuple[np.ndarray, int]:

@@ -29,12 +29,12 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.framer.rtu import FramerRTU
 
 from drivers.modbus_bench import ModbusLink, parse_bus_url
-from hil.bench_io import attach_bench, load_bench_config
-from hil.clock import RealtimeClock
-from hil.config import deep_merge
-from hil.loop import FunctionTask
-from hil.session import Session
-from hil.stats import percentile_summary
+from hil.bench.rig import attach_bench, load_bench_config
+from hil.core.clock import RealtimeClock
+from hil.core.config import deep_merge
+from hil.core.loop import FunctionTask
+from hil.core.session import Session
+from hil.core.stats import percentile_summary
 
 REPO = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
@@ -48,7 +48,7 @@ def spawn(*args: str) -> tuple[subprocess.Popen, str]:
 
 
 def emulator(*where: str) -> tuple[subprocess.Popen, str]:
-    proc, line = spawn("-m", "hil.cli", "emulate", "bench", *where)
+    proc, line = spawn("-m", "hil", "emulate", "bench", *where)
     match = re.search(r"listening on (\S+)", line)
     if not match:
         raise SystemExit(f"emulator did not start: {line!r}")
@@ -196,7 +196,7 @@ def sampling(url: str, duration_s: float, config: dict) -> tuple[dict, int, int,
 
 
 def _timing_messages(session: Session) -> list[dict]:
-    from hil.reader import read_session
+    from hil.core.reader import read_session
 
     return [m for _, m in read_session(session.path).topic("/loop/bench_io/timing")]
 

@@ -30,10 +30,10 @@ from controllers.mpc import MpcConfig, TrajectoryMpc
 from controllers.pid import CascadedPid
 from controllers.references import Sine
 from controllers.servo_sim import simulate
-from hil.clock import RealtimeClock
-from hil.loop import FunctionTask
-from hil.servo_run import ServoRunConfig, ServoRunResult, run_servo
-from hil.session import Session
+from hil.core.clock import RealtimeClock
+from hil.core.loop import FunctionTask
+from hil.core.session import Session
+from hil.servo.run import ServoRunConfig, ServoRunResult, run_servo
 
 TICK_TARGET_P99_US = 100.0
 LOCKSTEP_TARGET = 10.0

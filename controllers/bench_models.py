@@ -35,7 +35,7 @@ import numpy as np
 
 from controllers.bench_problem import MachiningSequence
 from controllers.ident import IdentificationError, loads_model
-from hil.errors import ConfigError
+from hil.core.errors import ConfigError
 
 
 def _input_key(name: str) -> str:

@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from hil.config import lookup
-from hil.errors import ConfigError
+from hil.core.config import lookup
+from hil.core.errors import ConfigError
 
 SOURCE = "bench config"
 

@@ -64,7 +64,7 @@ from controllers.mpqp import MpQP, MpqpSolution, solve_mpqp
 from controllers.references import Reference
 from controllers.servo_kalman import KalmanTuning
 from controllers.servo_model import StateSpaceModel, published_axis_model
-from hil.errors import ConfigError
+from hil.core.errors import ConfigError
 
 DEFAULT_HALF_WIDTHS = {"dx1": 10.0, "dx2": 3.0, "dx3": 0.06, "dx4": 0.06, "e": 180.0, "dr": 3.0}
 

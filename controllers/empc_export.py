@@ -23,7 +23,7 @@ import numpy as np
 
 from controllers.empc import ExplicitLaw
 from controllers.empc_tree import BOX_TOL
-from hil.errors import HilError
+from hil.core.errors import HilError
 
 
 def _num(x: float) -> str:

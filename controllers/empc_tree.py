@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.mpqp import LinearProgram
-from hil.errors import HilError
+from hil.core.errors import HilError
 
 NOT_FOUND = -1
 OUTSIDE_BOX = -2

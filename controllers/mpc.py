@@ -37,7 +37,7 @@ import scipy.linalg as sla
 from controllers.references import AngleUnwrapper, Reference
 from controllers.servo_kalman import KalmanTuning, SteadyStateKalman
 from controllers.servo_model import StateSpaceModel, published_axis_model
-from hil.errors import ConfigError, HilError
+from hil.core.errors import ConfigError, HilError
 
 FEASIBILITY_TOL = 1e-7  # constraint slack accepted on the unconstrained fast path [mA or deg]
 

@@ -32,7 +32,7 @@ import highspy
 import numpy as np
 import scipy.linalg as sla
 
-from hil.errors import ConfigError, HilError
+from hil.core.errors import ConfigError, HilError
 
 _INF = highspy.kHighsInf
 

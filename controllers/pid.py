@@ -32,7 +32,7 @@ import scipy.signal as signal
 
 from controllers.references import AngleUnwrapper, Reference, wrap180
 from controllers.servo_model import StateSpaceModel, published_axis_model
-from hil.errors import ConfigError
+from hil.core.errors import ConfigError
 
 RPM_PER_DEG_S = 60.0 / 360.0
 EQ16_NUMERATOR = (0.9352, -0.9352 * 1.9774, 0.9352)

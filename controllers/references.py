@@ -22,7 +22,7 @@ from typing import Protocol
 
 import numpy as np
 
-from hil.errors import UsageError
+from hil.core.errors import UsageError
 
 
 def wrap180(angle_deg: float) -> float:

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from hil.errors import ConfigError
+from hil.core.errors import ConfigError
 
 
 @dataclass(frozen=True)

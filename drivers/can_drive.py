@@ -44,8 +44,8 @@ from canopen.profiles.p402 import State402
 from canopen.sdo import SdoAbortedError
 
 from drivers.can_bus_time import BusBudget, cia402_cyclic_frames, cycle_budget
-from hil.config import deep_merge, load_toml, lookup, parse_toml
-from hil.errors import ConfigError, HilError
+from hil.core.config import deep_merge, load_toml, lookup, parse_toml
+from hil.core.errors import ConfigError, HilError
 
 MODES = {"cst": 10, "csp": 8}
 MODE_BITS = {10: 0x200, 8: 0x80}  # 0x6502 supported drive modes

@@ -20,9 +20,9 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from pymodbus.pdu import ModbusPDU
 
-from hil.bench_relays import RelaySpec, relay_specs
-from hil.config import lookup
-from hil.errors import ConfigError, HilError
+from hil.bench.relays import RelaySpec, relay_specs
+from hil.core.config import lookup
+from hil.core.errors import ConfigError, HilError
 
 SOURCE = "bench config"
 URL_FORMS = "modbus-tcp://HOST:PORT or modbus-rtu:///dev/X?baud=115200&parity=N"

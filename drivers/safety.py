@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from drivers.modbus_bench import DeviceError, LinkError, ModbusBenchDriver
-from hil.clock import Clock
-from hil.errors import HilError
+from hil.core.clock import Clock
+from hil.core.errors import HilError
 
 EventSink = Callable[..., None]  # (kind, message, level=..., source=..., **data), as Session.event
 

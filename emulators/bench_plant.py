@@ -26,9 +26,9 @@ from typing import Any
 
 import numpy as np
 
-from hil.bench_relays import relay_specs
-from hil.config import lookup
-from hil.errors import ConfigError
+from hil.bench.relays import relay_specs
+from hil.core.config import lookup
+from hil.core.errors import ConfigError
 
 PHASES = ("L1", "L2", "L3")
 SOURCE = "bench config"

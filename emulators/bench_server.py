@@ -55,9 +55,9 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import SimData, SimDevice
 
 from emulators.bench_plant import METER_QUANTITIES, BenchPlant, Snapshot
-from hil.config import lookup
-from hil.errors import ConfigError, HilError
-from hil.loop import Task
+from hil.core.config import lookup
+from hil.core.errors import ConfigError, HilError
+from hil.core.loop import Task
 
 SOURCE = "bench config"
 SPEC_MAX_REGISTERS = 125   # Modbus spec, FC03/FC04
@@ -403,7 +403,7 @@ class EmulatedBench:
     def __init__(self, config: Mapping[str, Any] | None = None, *, seed: int | None = None,
                  disturbance: bool | None = None) -> None:
         if config is None:
-            from hil.bench_io import load_bench_config
+            from hil.bench.rig import load_bench_config
 
             config = load_bench_config()
         self.config = config

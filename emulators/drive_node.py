@@ -62,8 +62,8 @@ from emulators.drive_od import (
     iter_variables,
 )
 from emulators.drive_plant import AxisPlant, Disturbance, Friction
-from hil.config import lookup
-from hil.errors import ConfigError
+from hil.core.config import lookup
+from hil.core.errors import ConfigError
 
 log = logging.getLogger(__name__)
 

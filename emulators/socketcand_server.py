@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import can
 
-from hil.errors import HilError
+from hil.core.errors import HilError
 
 log = logging.getLogger(__name__)
 

@@ -19,7 +19,7 @@ def start_drive_emulator(config: Path, port: int = 0) -> tuple[subprocess.Popen,
     """Run the drive emulator with ``config`` on 127.0.0.1:``port``; return it and its port."""
     env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "hil.cli", "emulate", "drive", "--socketcand",
+        [sys.executable, "-m", "hil", "emulate", "drive", "--socketcand",
          f"127.0.0.1:{port}", "--node", "1", "--config", str(config)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     ready, _, _ = select.select([proc.stdout], [], [], 30)

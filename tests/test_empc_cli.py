@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from hil.cli import main
+from hil.cli.main import main
 
 
 def test_build_prints_the_contract_keys_and_writes_c(tmp_path, capsys):
@@ -52,7 +52,7 @@ def test_bad_arguments_give_one_line_errors(tmp_path, capsys):
 
 
 def test_too_large_control_horizon_is_refused_before_any_work(capsys):
-    from hil.cli import main
+    from hil.cli.main import main
 
     assert main(["servo", "run", "--controller", "empc", "--ht", "8", "--hu", "8"]) == 2
     err = capsys.readouterr().err

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from controllers import ident
-from hil.cli import main
-from hil.clock import SimClock
-from hil.commands.identify import load_model_file, parse_signal
-from hil.errors import ConfigError, UsageError
-from hil.loop import FunctionTask
-from hil.session import Session
+from hil.cli.main import main
+from hil.core.clock import SimClock
+from hil.core.errors import ConfigError, UsageError
+from hil.core.identify import load_model_file, parse_signal
+from hil.core.loop import FunctionTask
+from hil.core.session import Session
 
 SCHEMA = {"type": "object", "title": "test.Message"}
 

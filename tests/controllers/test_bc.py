@@ -8,7 +8,7 @@ import numpy as np
 
 from controllers.bc import BasicController, hysteresis_rule
 from controllers.bench_problem import DwellClock, load_problem
-from hil.bench_io import load_bench_config
+from hil.bench.rig import load_bench_config
 
 
 def simulate_bc(cycles: int = 8, dwell_s: float = 5.0, q0: dict[str, float] | None = None):

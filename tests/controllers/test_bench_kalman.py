@@ -8,8 +8,8 @@ import pytest
 from controllers.bench_kalman import BenchKalman
 from controllers.bench_problem import load_problem
 from emulators.bench_plant import BenchPlant
-from hil.bench_io import load_bench_config
-from hil.bench_run import load_configs, load_models
+from hil.bench.rig import load_bench_config
+from hil.bench.run import load_configs, load_models
 
 
 def run_filter(disturbance: bool, seconds: float = 30.0):

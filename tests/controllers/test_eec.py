@@ -17,7 +17,7 @@ from controllers.bench_problem import BenchProblem, load_problem
 from controllers.eec import EEC, EECMilp, EECSettings, Observation
 from controllers.eec_cvxpy import CvxpyEEC, solve_naive
 from controllers.eec_prediction import BenchEstimate, BenchModels, HorizonPrediction
-from hil.bench_io import load_bench_config
+from hil.bench.rig import load_bench_config
 
 DT = 0.1  # model grid of the synthetic models: 10 samples per decision step
 
@@ -252,7 +252,7 @@ def test_models_identified_over_the_wire_load_with_their_pulse_inputs():
 
     from controllers.bench_models import MachiningModel, to_linear_model
     from controllers.bench_problem import load_problem
-    from hil.bench_io import load_bench_config
+    from hil.bench.rig import load_bench_config
 
     inputs = ["/ident/relays:M1", "/ident/relays:M1_start", "/ident/relays:M2",
               "/ident/relays:M2_start"]

@@ -15,7 +15,7 @@ from controllers.empc import (
 from controllers.mpc import MpcConfig, TrajectoryMpc
 from controllers.references import Modulo360, Ramp, Sine, Trapezoid, position_disturbance
 from controllers.servo_sim import simulate
-from hil.errors import ConfigError
+from hil.core.errors import ConfigError
 
 PAPER = MpcConfig(ht=3, hu=3, hp=50, ert="foh")
 

@@ -12,7 +12,7 @@ from controllers.empc import build_explicit_law, relative_map
 from controllers.empc_export import c_source, write_c
 from controllers.empc_tree import NOT_FOUND, OUTSIDE_BOX
 from controllers.mpc import MpcConfig
-from hil.errors import HilError
+from hil.core.errors import HilError
 from tests.controllers.test_mpqp import region_samples
 
 CASES = {

@@ -21,7 +21,7 @@ from controllers.references import Hold, Modulo360, Ramp, Sine
 from controllers.servo_kalman import KalmanTuning, SteadyStateKalman
 from controllers.servo_model import published_axis_model
 from controllers.servo_sim import rest_state, simulate
-from hil.errors import ConfigError, HilError
+from hil.core.errors import ConfigError, HilError
 
 MODEL = published_axis_model()
 

@@ -10,7 +10,7 @@ from scipy.optimize import linprog
 from controllers.empc import build_explicit_law, relative_map
 from controllers.mpc import DaqpSolver, MpcConfig
 from controllers.mpqp import MpQP, solve_mpqp
-from hil.errors import ConfigError
+from hil.core.errors import ConfigError
 
 PAPER = MpcConfig(ht=3, hu=3, hp=50, ert="foh")  # Q = 1e6, R = 1, |u| <= 1000 mA
 

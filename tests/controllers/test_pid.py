@@ -16,7 +16,7 @@ from controllers.pid import (
 from controllers.references import Hold, Modulo360, Ramp, Trapezoid
 from controllers.servo_model import published_axis_model
 from controllers.servo_sim import simulate
-from hil.errors import ConfigError
+from hil.core.errors import ConfigError
 
 MODEL = published_axis_model()
 

@@ -13,8 +13,8 @@ from controllers.pid import CascadedPid, PidConfig
 from controllers.references import Hold, Trapezoid, parse_scenario, position_disturbance
 from controllers.servo_model import published_axis_model
 from controllers.servo_sim import cycle_error, figure_table, rest_state, simulate
-from hil.cli import main
-from hil.errors import UsageError
+from hil.cli.main import main
+from hil.core.errors import UsageError
 
 MODEL = published_axis_model()
 

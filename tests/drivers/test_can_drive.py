@@ -20,11 +20,11 @@ from drivers.can_drive import (
     open_drive,
 )
 from emulators.drive_od import build_object_dictionary
-from hil.clock import SimClock
-from hil.errors import ConfigError
-from hil.loop import FunctionTask
-from hil.reader import read_session
-from hil.session import Session
+from hil.core.clock import SimClock
+from hil.core.errors import ConfigError
+from hil.core.loop import FunctionTask
+from hil.core.reader import read_session
+from hil.core.session import Session
 
 
 class Events:

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from emulators.bench_plant import BenchPlant
-from hil.bench_io import MachiningSequence, load_bench_config
-from hil.config import deep_merge
-from hil.errors import ConfigError
+from hil.bench.rig import MachiningSequence, load_bench_config
+from hil.core.config import deep_merge
+from hil.core.errors import ConfigError
 
 
 @pytest.fixture(scope="module")

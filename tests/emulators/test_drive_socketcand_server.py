@@ -9,7 +9,7 @@ import pytest
 
 from emulators.drive_node import DriveNode
 from emulators.socketcand_server import SocketcandServer, format_frame, parse_send
-from hil.errors import HilError
+from hil.core.errors import HilError
 
 
 @pytest.fixture

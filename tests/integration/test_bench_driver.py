@@ -17,9 +17,9 @@ from drivers.modbus_bench import (
 )
 from emulators.bench_server import EmulatedBench
 from emulators.null_modem import NullModem
-from hil.bench_io import load_bench_config
-from hil.config import deep_merge
-from hil.errors import ConfigError
+from hil.bench.rig import load_bench_config
+from hil.core.config import deep_merge
+from hil.core.errors import ConfigError
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -9,8 +9,8 @@ import shlex
 import numpy as np
 import pytest
 
-from hil.cli import main
-from hil.reader import read_session
+from hil.cli.main import main
+from hil.core.reader import read_session
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -18,7 +18,7 @@ from pymodbus.framer.rtu import FramerRTU
 
 from emulators.bench_server import EmulatedBench
 from emulators.null_modem import NullModem
-from hil.bench_io import load_bench_config
+from hil.bench.rig import load_bench_config
 
 pytestmark = pytest.mark.timeout(60)
 

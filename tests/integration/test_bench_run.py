@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from controllers.bench_kpis import transitions
-from hil.bench_run import BenchRunOptions, run_bench
-from hil.cli import main
-from hil.reader import read_session
-from hil.report import plot_session, summarize
+from hil.bench.run import BenchRunOptions, run_bench
+from hil.cli.main import main
+from hil.core.reader import read_session
+from hil.core.report import plot_session, summarize
 
 pytestmark = pytest.mark.timeout(120)
 

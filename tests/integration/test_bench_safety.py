@@ -16,12 +16,12 @@ import pytest
 from pymodbus.client import ModbusTcpClient
 
 from drivers.safety import DwellGuard, Watchdog
-from hil.bench_io import attach_bench, load_bench_config
-from hil.clock import RealtimeClock, SimClock
-from hil.config import deep_merge
-from hil.loop import FunctionTask
-from hil.reader import read_session
-from hil.session import Session
+from hil.bench.rig import attach_bench, load_bench_config
+from hil.core.clock import RealtimeClock, SimClock
+from hil.core.config import deep_merge
+from hil.core.loop import FunctionTask
+from hil.core.reader import read_session
+from hil.core.session import Session
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -108,7 +108,7 @@ def test_relays_go_to_their_safe_level_on_stop_and_on_error(tmp_path):
         session.close()
 
 
-EMULATOR = [sys.executable, "-m", "hil.cli", "emulate", "bench", "--tcp"]
+EMULATOR = [sys.executable, "-m", "hil", "emulate", "bench", "--tcp"]
 
 
 def start_emulator(port: int) -> tuple[subprocess.Popen, int]:

@@ -4,7 +4,7 @@ import socket
 
 import pytest
 
-from hil.cli import main
+from hil.cli.main import main
 
 
 def run(argv, capsys):

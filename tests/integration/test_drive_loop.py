@@ -11,8 +11,8 @@ pytestmark = pytest.mark.timeout(60)
 CHILD = """
 import struct
 from drivers.can_drive import open_drive
-from hil.clock import RealtimeClock
-from hil.loop import FixedRateLoop, FunctionTask
+from hil.core.clock import RealtimeClock
+from hil.core.loop import FixedRateLoop, FunctionTask
 
 master = open_drive("emulated")
 master.start()

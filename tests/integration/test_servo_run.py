@@ -19,9 +19,9 @@ import pytest
 from controllers.references import parse_scenario
 from controllers.servo_sim import simulate
 from drivers.can_drive import DriveFaultError
-from hil.cli import main
-from hil.reader import read_session
-from hil.servo_run import ServoRunConfig, make_controller, run_servo
+from hil.cli.main import main
+from hil.core.reader import read_session
+from hil.servo.run import ServoRunConfig, make_controller, run_servo
 from tests.drive_processes import start_drive_emulator, stop_drive_emulator
 
 REPO = Path(__file__).resolve().parents[2]
@@ -245,7 +245,7 @@ def test_lockstep_run_over_socketcand_matches_the_in_process_drive(tmp_path, cap
 
 
 def test_servo_demo_writes_sessions_and_plots_and_mpc_beats_pid(tmp_path):
-    from hil.servo_demo import run_servo_demo
+    from hil.servo.demo import run_servo_demo
 
     printed = []
     rows = run_servo_demo(tmp_path, echo=printed.append)

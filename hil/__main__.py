@@ -1,0 +1,7 @@
+"""``python -m hil``: the same as the ``hil`` command."""
+
+import sys
+
+from hil.cli.main import main
+
+sys.exit(main())

@@ -1,0 +1,1 @@
+"""The relay-bench application (energy paper): config, rig, run, identification, report."""

@@ -1,0 +1,117 @@
+"""The bench session plot (``hil report F.mcap --out F.png`` on a ``bench`` session).
+
+Four panels: the total apparent power with the machining profile (base load plus the rated
+power of the machining loads that are on, when the config describes them) and the contracted
+limit; the relay states; the resource levels with their bounds; the KPI table.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import numpy as np
+
+from hil.core.reader import SessionData
+from hil.core.report import kpis
+
+
+def _config(data: SessionData) -> dict[str, Any]:
+    raw = data.metadata.get("config", {}).get("json")
+    try:
+        return json.loads(raw) if raw else {}
+    except ValueError:
+        return {}
+
+
+def machining_profile(relays: dict[str, np.ndarray], bench: dict[str, Any]) -> np.ndarray | None:
+    """Nominal machining power: base load + rated VA of every machining load that is on."""
+    plant = bench.get("plant", {})
+    loads = plant.get("loads", {})
+    machining = {name for stage in bench.get("sequence", {}).get("stages", [])
+                 for name in stage.get("on", [])}
+    if "base" not in plant or not machining or not relays:
+        return None
+    n = len(next(iter(relays.values())))
+    profile = np.full(n, float(plant["base"].get("va", 0.0)))
+    for load in loads.values():
+        relay = load.get("relay")
+        if relay in machining and relay in relays:
+            profile += float(load.get("va", 0.0)) * relays[relay]
+    return profile
+
+
+def _seconds(stamps: np.ndarray, t0: int) -> np.ndarray:
+    return (stamps - t0) / 1e9
+
+
+def plot_bench(data: SessionData, out_png: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    config = _config(data)
+    bench = config.get("bench", {})
+    power = data.arrays("/bench/power")
+    relays = data.arrays("/bench/relays")
+    levels = data.arrays("/bench/levels")
+    stamps = [a["log_time_ns"] for a in (power, relays, levels) if a["log_time_ns"].size]
+    t0 = int(min(s[0] for s in stamps)) if stamps else 0
+    fig, axes = plt.subplots(4, 1, figsize=(12, 11),
+                             gridspec_kw={"height_ratios": [3, 1.4, 2, 1.6]})
+    axes[1].sharex(axes[0])
+    axes[2].sharex(axes[0])
+    ax = axes[0]
+    if "total_va" in power:
+        t = _seconds(power["log_time_ns"], t0)
+        ax.plot(t, power["total_va"], lw=0.6, color="tab:blue", label="total S (measured)")
+        relay_states = {k: relays[k].astype(float) for k in relays
+                        if k != "log_time_ns" and not k.endswith("_commanded")
+                        and k != "link_up"}
+        profile = machining_profile(relay_states, bench)
+        if profile is not None:
+            ax.step(_seconds(relays["log_time_ns"], t0), profile, where="post", lw=0.9,
+                    color="tab:gray", label="machining profile (nominal)")
+    limit = config.get("run", {}).get("eec", {}).get("limit_va")
+    if limit:
+        ax.axhline(limit, color="tab:red", lw=0.8, ls="--", label=f"contracted {limit:g} VA")
+    ax.set_ylabel("VA")
+    ax.set_title(f"{data.path}: total apparent power")
+    ax.legend(loc="upper right", fontsize=8)
+    ax = axes[1]
+    names = [k for k in relays if k not in ("log_time_ns", "link_up")
+             and not k.endswith("_commanded")]
+    if names:
+        t = _seconds(relays["log_time_ns"], t0)
+        for k, name in enumerate(names):
+            ax.step(t, relays[name] * 0.8 + k, where="post", lw=0.9, label=name)
+        ax.set_yticks(np.arange(len(names)) + 0.4, names)
+    ax.set_title("relays (on = raised)")
+    ax = axes[2]
+    resources = bench.get("plant", {}).get("resources", {})
+    if levels["log_time_ns"].size:
+        t = _seconds(levels["log_time_ns"], t0)
+        for name in [k for k in levels if k != "log_time_ns"]:
+            line = ax.plot(t, levels[name], lw=0.9, label=name)[0]
+            bounds = resources.get(name, {}).get("bounds")
+            if bounds:
+                for b in bounds:
+                    ax.axhline(b, color=line.get_color(), lw=0.6, ls=":")
+    ax.set_ylabel("level")
+    ax.set_xlabel("time [s]")
+    ax.set_title("resource levels q_j (dotted: bounds)")
+    ax.legend(loc="upper right", fontsize=8)
+    ax = axes[3]
+    ax.axis("off")
+    table = kpis(data)
+    rows = [[key, json.dumps(value) if isinstance(value, dict) else str(value)]
+            for key, value in table.items() if key != "mcap"]
+    if rows:
+        cell = ax.table(cellText=rows, colLabels=["KPI", "value"], loc="center",
+                        colWidths=[0.25, 0.7])
+        cell.auto_set_font_size(False)
+        cell.set_fontsize(8)
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,1 @@
+"""The ``hil`` command line: argparse only, one module per command group (``register``)."""

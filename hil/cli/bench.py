@@ -1,0 +1,141 @@
+"""``hil bench run`` / ``hil bench identify``: the relay bench."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from typing import Any
+
+from hil.bench.identify import (
+    MACHINING_MODES,
+    IdentifyOptions,
+    parse_relays,
+    run_identify_experiment,
+)
+from hil.cli.argtypes import nonnegative_float, positive_float, positive_int
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    bench = subparsers.add_parser("bench", help="relay bench: closed-loop runs, identification")
+    bench_sub = bench.add_subparsers(dest="bench_command", metavar="COMMAND", required=True)
+    run = bench_sub.add_parser(
+        "run", help="run EEC or BC against the bench",
+        description="Closed-loop run of the energy-efficiency controller (EEC, MILP receding "
+        "horizon) or the hysteresis baseline (BC) against the relay bench (the emulator over "
+        "Modbus TCP on loopback by default, lockstep unless --realtime). Records an MCAP "
+        "session and prints the KPIs. Defaults of the tuning flags come from "
+        "hil/configs/eec.toml and bench.toml.",
+    )
+    run.add_argument("--controller", choices=["eec", "bc"], required=True)
+    run.add_argument("--bench", default="emulated",
+                     help="emulated | modbus-tcp://HOST:PORT | modbus-rtu:///dev/X")
+    run.add_argument("--cycles", type=positive_int, default=8, help="machine cycles (T = 28 s)")
+    run.add_argument("--hp", type=positive_int, default=None,
+                     help="prediction horizon [s] (default 28)")
+    run.add_argument("--hs", type=positive_int, default=None,
+                     help="applied part of each plan [s] (default 1: receding horizon)")
+    run.add_argument("--gamma1", type=nonnegative_float, default=None,
+                     help="weight of energy J1 (default 0.9)")
+    run.add_argument("--gamma2", type=nonnegative_float, default=None,
+                     help="weight of peak J2 (default 0.1)")
+    run.add_argument("--dwell", type=positive_float, default=None,
+                     help="min on/off time of P1/P2 [s] (default 5), also in the safety layer")
+    run.add_argument("--terminal", choices=["none", "hold"], default=None,
+                     help="EEC terminal condition: none (the paper) or hold q_j(H_p) >= q_j(0) "
+                          "(default hold)")
+    run.add_argument("--disturbance", action="store_true",
+                     help="switch the emulator's unknown load on")
+    run.add_argument("--realtime", action="store_true",
+                     help="follow the wall clock (always so against a real bench)")
+    run.add_argument("--config", metavar="F.toml",
+                     help="TOML laid over hil/configs/bench.toml and eec.toml")
+    run.add_argument("--out", metavar="F.mcap", help="session file (default: a temp file)")
+    run.add_argument("--json", action="store_true", help="print KPIs as JSON")
+    run.set_defaults(handler=run_command)
+    ident = bench_sub.add_parser("identify", help="PRBS switching experiment for identification")
+    add_identify_arguments(ident)
+    ident.set_defaults(handler=identify_command)
+
+
+def run_command(args: argparse.Namespace) -> int:
+    from hil.bench.run import BenchRunOptions, run_bench
+
+    overrides = {"terminal": args.terminal} if args.terminal else {}
+    kpis = run_bench(BenchRunOptions(
+        controller=args.controller, bench=args.bench, cycles=args.cycles, hp_s=args.hp,
+        hs_s=args.hs, gamma1=args.gamma1, gamma2=args.gamma2, dwell_s=args.dwell,
+        disturbance=args.disturbance, realtime=args.realtime, out=args.out,
+        config_path=args.config, overrides=overrides,
+    ))
+    print(json.dumps(kpis, indent=2) if args.json else format_kpis(kpis))
+    return 0
+
+
+def format_kpis(kpis: dict[str, Any]) -> str:
+    """The KPI dictionary as aligned lines."""
+    lines = []
+    for key, value in kpis.items():
+        if isinstance(value, dict):
+            value = ", ".join(f"{k} {v}" for k, v in value.items())
+        lines.append(f"{key:<17} {value}")
+    return "\n".join(lines)
+
+
+def add_identify_arguments(parser: argparse.ArgumentParser) -> None:
+    """The flags of ``hil bench identify`` (an argparse parser)."""
+    parser.description = (
+        "Identification experiment: switch the chosen relays with seeded pseudo-random binary "
+        "sequences (every hold at least the relay's dwell, so the safety layer never defers a "
+        "switch) against the bench (the emulator over Modbus TCP on loopback by default, "
+        "lockstep unless --realtime), record the session (kind bench-identify: meter, levels, "
+        "relays and the written PRBS on /ident/relays) and print the 'hil identify' command "
+        "lines for the loads it excited.")
+    parser.add_argument("--relays", type=parse_relays, default=("P1", "P2"),
+                        help="relays switched by PRBS, comma-separated, or none (default P1,P2)")
+    parser.add_argument("--duration", type=positive_float, default=300.0, metavar="S",
+                        help="length of the experiment [s] (default 300)")
+    parser.add_argument("--min-hold", type=positive_float, default=None, metavar="S",
+                        help="bit length of the PRBS = shortest hold [s] (default: each relay's "
+                        "dwell; shorter than the dwell is refused)")
+    parser.add_argument("--seed", type=int, default=1, help="PRBS seed (default 1)")
+    parser.add_argument("--bench", default="emulated",
+                        help="emulated | modbus-tcp://HOST:PORT | modbus-rtu:///dev/X")
+    parser.add_argument("--machining", choices=MACHINING_MODES, default="off",
+                        help="M1/M2: play the machining sequence, switch them by PRBS too, or "
+                        "leave them off (default off)")
+    parser.add_argument("--output-quantity", default="va_l2", metavar="QUANTITY",
+                        help="meter quantity the printed commands identify (default va_l2; "
+                        "e.g. total_va)")
+    parser.add_argument("--progress", type=nonnegative_float, default=10.0, metavar="S",
+                        help="progress line on stderr every S seconds of experiment time "
+                        "(0 = none; default 10)")
+    parser.add_argument("--realtime", action="store_true",
+                        help="follow the wall clock (always so against a real bench)")
+    parser.add_argument("--config", metavar="F.toml", help="TOML laid over hil/configs/bench.toml")
+    parser.add_argument("--out", metavar="F.mcap", help="session file (default: a temp file)")
+    parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+
+def identify_command(args: argparse.Namespace) -> int:
+    """Handler of ``hil bench identify``."""
+    summary = run_identify_experiment(IdentifyOptions(
+        relays=args.relays, duration_s=args.duration, min_hold_s=args.min_hold, seed=args.seed,
+        bench=args.bench, machining=args.machining, meter_quantity=args.output_quantity,
+        realtime=args.realtime, out=args.out, config_path=args.config,
+        progress_s=args.progress,
+    ))
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    print(f"session:   {summary['mcap']}")
+    switches = ", ".join(f"{n} {c}" for n, c in summary["switches"].items()) or "none"
+    if summary["sequence_relays"]:
+        switches += f"; the machining sequence plays {', '.join(summary['sequence_relays'])}"
+    print(f"switches:  {switches}")
+    print(f"deferred:  {summary['deferred_requests']} (safety layer), failed writes "
+          f"{summary['failed_writes']}, missed meter polls {summary['missed_power']}")
+    print("identify with:")
+    for entry in summary["identify_commands"]:
+        print(f"  # {entry['target']}")
+        print(f"  {entry['command']}")
+    return 0

@@ -1,0 +1,117 @@
+"""``hil emulate bench|drive``: standalone emulator processes."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import signal
+import threading
+import time
+from collections.abc import Iterator
+
+from hil.cli.argtypes import host_port, positive_int
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    emulate = subparsers.add_parser("emulate", help="run an emulator as a standalone process")
+    emu_sub = emulate.add_subparsers(dest="emulate_command", metavar="DEVICE", required=True)
+    eb = emu_sub.add_parser("bench", help="relay bench over Modbus TCP or RTU")
+    where = eb.add_mutually_exclusive_group(required=True)
+    where.add_argument("--tcp", type=host_port, metavar="HOST:PORT",
+                       help="serve Modbus TCP here (port 0: any free port, printed)")
+    where.add_argument("--serial", metavar="PORT",
+                       help="serve Modbus RTU on this serial port, e.g. one end of a pty pair")
+    eb.add_argument("--baud", type=positive_int, default=115200, help="RTU baud rate")
+    eb.add_argument("--parity", choices=["N", "E", "O"], default="N", help="RTU parity")
+    eb.add_argument("--stopbits", type=int, choices=[1, 2], default=1, help="RTU stop bits")
+    eb.add_argument("--config", metavar="F.toml",
+                    help="bench config laid over the default (hil/configs/bench.toml)")
+    eb.add_argument("--seed", type=int, help="measurement noise seed (default: plant.seed)")
+    eb.add_argument("--disturbance", action="store_true",
+                    help="switch the unknown disturbance load on (plant.disturbance)")
+    eb.set_defaults(handler=emulate_bench)
+    ed = emu_sub.add_parser("drive", help="CiA 402 servo drive over socketcand")
+    ed.add_argument("--socketcand", type=host_port, metavar="HOST:PORT", required=True,
+                    help="serve the socketcand protocol here (port 0: any free port, printed)")
+    ed.add_argument("--node", type=positive_int, default=1, help="CANopen node id (1..127)")
+    ed.add_argument("--config", metavar="F.toml",
+                    help="drive config laid over the default (hil/configs/drive.toml); "
+                    "its [emulator] table is used")
+    ed.add_argument("--channel", help="bus name clients open (default: emulator.channel)")
+    ed.set_defaults(handler=emulate_drive)
+
+
+@contextlib.contextmanager
+def _until_stopped() -> Iterator[threading.Event]:
+    """An event that SIGTERM sets; Ctrl-C ends the block quietly. Restores the SIGTERM handler."""
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        yield stop
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def emulate_bench(args: argparse.Namespace) -> int:
+    """Serve the bench plant in real time until Ctrl-C or SIGTERM."""
+    from emulators.bench_server import EmulatedBench
+    from hil.bench.rig import load_bench_config
+
+    config = load_bench_config(args.config)
+    emulator = EmulatedBench(config, seed=args.seed, disturbance=args.disturbance or None)
+    if args.tcp is not None:
+        url = emulator.serve_tcp(*args.tcp)
+    else:
+        url = emulator.serve_serial(args.serial, baudrate=args.baud, parity=args.parity,
+                                    stopbits=args.stopbits)
+    emulator.run_realtime()
+    units = emulator.devices.units
+    print(f"hil: bench emulator listening on {url} (relays unit {units['relays']}, meter unit "
+          f"{units['meter']}, levels unit {units['levels']}); Ctrl-C stops", flush=True)
+    started = time.monotonic()
+    with _until_stopped() as stop:
+        try:
+            while not stop.wait(0.2):
+                pass
+        finally:
+            emulator.stop()
+    print(f"hil: bench emulator stopped after {time.monotonic() - started:.1f} s "
+          f"(plant time {emulator.plant.t_s:.2f} s)", flush=True)
+    return 0
+
+
+def emulate_drive(args: argparse.Namespace) -> int:
+    """Serve the emulated CiA 402 drive over socketcand in real time until Ctrl-C or SIGTERM."""
+    from drivers.can_drive import load_drive_config
+    from emulators.drive_node import DriveEmulatorConfig, DriveNode
+    from emulators.socketcand_server import SocketcandServer
+    from hil.core.config import deep_merge
+    from hil.core.errors import UsageError
+
+    if not 1 <= args.node <= 127:
+        raise UsageError(f"--node must be a CANopen node id 1..127, got {args.node}")
+    config, _ = load_drive_config(args.config)
+    source = args.config or "hil/configs/drive.toml"
+    overrides: dict[str, object] = {"node_id": args.node}
+    if args.channel is not None:
+        overrides["channel"] = args.channel
+    table = deep_merge(config.get("emulator", {}), overrides)
+    emulator = DriveEmulatorConfig.from_table(table, source)
+    host, port = args.socketcand
+    server = SocketcandServer(host, port, channel=emulator.channel)
+    node = DriveNode(emulator, send=server.broadcast)
+    server.on_frame, server.on_tick = node.handle, node.service
+    node.boot()
+    bound_host, bound_port = server.address
+    print(f"hil: drive emulator node {node.node_id} on socketcand {bound_host}:{bound_port} "
+          f"(bus {emulator.channel}); Ctrl-C stops", flush=True)
+    with _until_stopped() as stop:
+        try:
+            server.serve(stop)
+        finally:
+            server.close()
+    print(f"hil: drive emulator stopped after {node.sync_count} SYNC "
+          f"(plant time {node.plant.time_s:.3f} s)", flush=True)
+    return 0

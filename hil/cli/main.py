@@ -1,0 +1,48 @@
+"""The ``hil`` command line: parsing, dispatch, and one-line errors."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Sequence
+
+from hil import __version__
+from hil.cli import bench, demo, empc, emulate, identify, report, servo
+from hil.core.errors import HilError
+from hil.core.session import set_command_line
+
+COMMAND_MODULES = (demo, bench, servo, empc, identify, emulate, report)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="hil",
+        description="Hardware-in-the-loop bridge: run model-based controllers in a fixed-rate "
+        "loop against a Modbus relay bench or a CiA 402 servo drive (real or emulated) and "
+        "record every session to MCAP.",
+        epilog="Start with 'hil demo'. Every command has its own --help.",
+    )
+    parser.add_argument("--version", action="version", version=f"hil {__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for module in COMMAND_MODULES:
+        module.register(subparsers)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    set_command_line(["hil", *(sys.argv[1:] if argv is None else argv)])
+    try:
+        return int(args.handler(args) or 0)
+    except HilError as exc:
+        print(f"hil: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("hil: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # output piped into e.g. `head`, which stopped reading
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+

@@ -1,0 +1,142 @@
+"""Summaries and plots of recorded sessions (any session, truncated ones included)."""
+
+from __future__ import annotations
+
+import importlib.metadata
+import json
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from hil.core.reader import SessionData
+from hil.core.stats import percentile_summary
+
+# Plotters of the applications, keyed by the session kind recorded in the metadata. An
+# application (or a user's package) registers ``kind = "module:function"`` in this entry-point
+# group; the framework names none of them and imports one only when such a session is drawn.
+PLOTTER_GROUP = "hil.plotters"
+Plotter = Callable[[SessionData, str], None]
+
+
+def find_plotter(kind: str) -> Plotter | None:
+    """The plotter registered for sessions of ``kind``, or None."""
+    for entry in importlib.metadata.entry_points(group=PLOTTER_GROUP):
+        if entry.name == kind:
+            plotter: Plotter = entry.load()
+            return plotter
+    return None
+
+
+def loop_stats(data: SessionData) -> dict[str, Any]:
+    """Per-task timing from the ``/loop/<task>/timing`` topics (exact over what was recorded)."""
+    out: dict[str, Any] = {}
+    for topic in data.messages:
+        if not (topic.startswith("/loop/") and topic.endswith("/timing")):
+            continue
+        msgs = [m for _, m in data.topic(topic) if isinstance(m, dict)]
+        if not msgs:
+            continue
+        lateness = np.concatenate([np.asarray(m.get("lateness_us", []), float) for m in msgs])
+        compute = np.concatenate([np.asarray(m.get("compute_us", []), float) for m in msgs])
+        out[topic[len("/loop/"):-len("/timing")]] = {
+            "period_s": msgs[0].get("period_s"),
+            "runs": int(sum(m.get("runs", 0) for m in msgs)),
+            "missed": int(sum(m.get("missed", 0) for m in msgs)),
+            "overruns": int(sum(m.get("overruns", 0) for m in msgs)),
+            "lateness_us": percentile_summary(lateness),
+            "compute_us": percentile_summary(compute),
+        }
+    return out
+
+
+def session_kind(data: SessionData) -> str:
+    return data.metadata.get("session", {}).get("kind", "")
+
+
+def kpis(data: SessionData) -> dict[str, Any]:
+    raw = data.metadata.get("kpis", {}).get("json")
+    try:
+        return json.loads(raw) if raw else {}
+    except ValueError:
+        return {}
+
+
+def summarize(data: SessionData) -> dict[str, Any]:
+    """The ``hil report --json`` document."""
+    events = [m for _, m in data.topic("/events") if isinstance(m, dict)]
+    return {
+        "file": data.path,
+        "kind": session_kind(data),
+        "clock": data.metadata.get("session", {}).get("clock", ""),
+        "topics": data.topic_counts,
+        "duration_s": round(data.duration_s(), 6),
+        "recovered": data.recovered,
+        "lost_bytes": data.lost_bytes,
+        "loop": loop_stats(data),
+        "events": {
+            level: sum(1 for e in events if e.get("level") == level)
+            for level in ("info", "warning", "error")
+        },
+        "kpis": kpis(data),
+    }
+
+
+def format_summary(summary: dict[str, Any]) -> str:
+    """Human-readable text of :func:`summarize`."""
+    lines = [f"session  {summary['file']}"]
+    kind = summary["kind"] or "unknown kind"
+    lines.append(f"kind     {kind}, clock {summary['clock'] or '?'}, "
+                 f"duration {summary['duration_s']:.3f} s")
+    if summary["recovered"]:
+        lines.append(f"RECOVERED from a truncated file: {summary['lost_bytes']} byte(s) of its "
+                     "tail were unreadable and are lost")
+    lines.append("topics")
+    for topic, count in summary["topics"].items():
+        lines.append(f"  {topic:<32} {count:>9} msgs")
+    if summary["loop"]:
+        lines.append("loop timing           runs   missed  overruns   lateness p50/p99/max us"
+                     "   compute p50/p99/max us")
+        for task, s in summary["loop"].items():
+            lat, comp = s["lateness_us"], s["compute_us"]
+            lines.append(
+                f"  {task:<16} {s['runs']:>9} {s['missed']:>8} {s['overruns']:>9}   "
+                f"{lat['p50']:>8.1f}/{lat['p99']:.1f}/{lat['max']:.1f}"
+                f"   {comp['p50']:>8.1f}/{comp['p99']:.1f}/{comp['max']:.1f}"
+            )
+    ev = summary["events"]
+    lines.append(f"events   {ev['info']} info, {ev['warning']} warning, {ev['error']} error")
+    if summary["kpis"]:
+        lines.append("kpis")
+        for key, value in summary["kpis"].items():
+            lines.append(f"  {key:<24} {value}")
+    return "\n".join(lines)
+
+
+def plot_loop_timing(data: SessionData, out_png: str) -> None:
+    """Default plot: lateness and compute time of every loop task over the session."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tasks = [t for t in data.messages if t.startswith("/loop/")]
+    fig, axes = plt.subplots(max(1, len(tasks)), 1, figsize=(10, 2.6 * max(1, len(tasks))),
+                             squeeze=False)
+    for ax, topic in zip(axes[:, 0], tasks, strict=False):
+        msgs = data.topic(topic)
+        lateness = np.concatenate([np.asarray(m.get("lateness_us", []), float) for _, m in msgs])
+        compute = np.concatenate([np.asarray(m.get("compute_us", []), float) for _, m in msgs])
+        ax.plot(lateness, lw=0.6, label="lateness [us]")
+        ax.plot(compute, lw=0.6, label="compute [us]")
+        ax.set_title(topic)
+        ax.set_xlabel("run")
+        ax.legend(loc="upper right")
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)
+
+
+def plot_session(data: SessionData, out_png: str) -> None:
+    """Draw the session with its kind's plotter, or the loop timing when there is none."""
+    (find_plotter(session_kind(data)) or plot_loop_timing)(data, out_png)

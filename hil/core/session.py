@@ -1,0 +1,133 @@
+"""A session: one clock, one loop, one MCAP file with metadata, config attachment and events."""
+
+from __future__ import annotations
+
+import json
+import platform
+import sys
+import time
+from collections.abc import Iterable, Sequence
+from importlib import metadata as importlib_metadata
+from typing import Any
+
+from hil.core.clock import Clock
+from hil.core.loop import FixedRateLoop, Task
+from hil.core.recorder import Recorder, RecorderStats, Topic
+
+VERSIONED_PACKAGES = (
+    "hil", "numpy", "scipy", "pymodbus", "python-can", "canopen", "cvxpy", "highspy", "daqp",
+    "filterpy", "mcap", "pyserial",
+)
+
+
+_command_line: list[str] | None = None
+
+
+def set_command_line(argv: Sequence[str]) -> None:
+    """The command line sessions of this process record (``hil.cli.main`` sets it, so a call
+    of ``main([...])`` from Python records its own arguments, not the interpreter's)."""
+    global _command_line
+    _command_line = list(argv)
+
+
+def package_versions(names: Iterable[str] = VERSIONED_PACKAGES) -> dict[str, str]:
+    """Installed versions of the packages that shape a session's behaviour."""
+    versions = {"python": platform.python_version()}
+    for name in names:
+        try:
+            versions[name] = importlib_metadata.version(name)
+        except importlib_metadata.PackageNotFoundError:
+            versions[name] = "not installed"
+    return versions
+
+
+class Session:
+    """Owns the recorder and the loop of one run; use as a context manager.
+
+    ``config`` is recorded as a metadata record (JSON) and ``config_text`` (the file as the user
+    wrote it, TOML) as an attachment. ``kind`` names the scenario (``bench``, ``servo``...).
+    """
+
+    def __init__(
+        self,
+        path: str,
+        clock: Clock,
+        base_period_s: float,
+        *,
+        kind: str,
+        config: dict[str, Any] | None = None,
+        config_text: str | None = None,
+        config_name: str = "config.toml",
+        handle_signals: bool = True,
+    ) -> None:
+        self.path = path
+        self.clock = clock
+        self.kind = kind
+        self.recorder = Recorder(path, wait_when_full=clock.mode == "sim")
+        self.loop = FixedRateLoop(
+            clock, base_period_s, recorder=self.recorder, on_event=self._loop_event,
+            handle_signals=handle_signals,
+        )
+        self.recorder.metadata("session", {
+            "kind": kind,
+            "clock": clock.mode,
+            "base_period_s": repr(base_period_s),
+            "start_wall_time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "argv": json.dumps(_command_line if _command_line is not None else sys.argv),
+        })
+        self.recorder.metadata("versions", package_versions())
+        self.recorder.metadata("config", {"json": json.dumps(config or {}, default=str)})
+        if config_text is not None:
+            self.recorder.attachment(config_name, config_text.encode(), "application/toml")
+        self.recorder_stats: RecorderStats | None = None
+        self._closed = False
+
+    def topic(self, name: str, schema: dict[str, Any]) -> Topic:
+        return self.recorder.topic(name, schema)
+
+    def add_task(self, task: Task) -> Task:
+        return self.loop.add_task(task)
+
+    def add_component(self, component: Any) -> None:
+        self.loop.add_component(component)
+
+    def event(
+        self, kind: str, message: str, level: str = "info", source: str = "", **data: Any
+    ) -> None:
+        """Record an event stamped with the session clock."""
+        self.recorder.event(self.clock.time_ns(), kind, message, level, source, **data)
+
+    def _loop_event(self, kind: str, message: str, data: dict[str, Any]) -> None:
+        level = "warning" if kind.startswith("loop.overrun") else "error"
+        self.event(kind, message, level=level, source="loop", **data)
+
+    def run(self, duration_s: float | None = None, max_ticks: int | None = None) -> None:
+        """Run the loop; safe-state hooks run before this returns, whatever happens."""
+        self.event("session.start", f"{self.kind} session started", source="session")
+        try:
+            self.loop.run(duration_s=duration_s, max_ticks=max_ticks)
+        finally:
+            self.event(
+                "session.stop", f"stopped: {self.loop.stop_reason}", source="session",
+                reason=self.loop.stop_reason, ticks=self.loop.ticks,
+                skipped_ticks=self.loop.skipped_ticks,
+            )
+
+    def close(self, kpis: dict[str, Any] | None = None) -> RecorderStats:
+        """Write loop stats and KPIs as metadata and finish the file (summary + index)."""
+        if self._closed and self.recorder_stats is not None:
+            return self.recorder_stats
+        self._closed = True
+        self.recorder.metadata("loop", {
+            name: json.dumps(stats) for name, stats in self.loop.summary().items()
+        })
+        if kpis is not None:
+            self.recorder.metadata("kpis", {"json": json.dumps(kpis, default=str)})
+        self.recorder_stats = self.recorder.close()
+        return self.recorder_stats
+
+    def __enter__(self) -> Session:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()

@@ -1,0 +1,1 @@
+"""The servo-drive application (servo paper): config, rig, run, demo, report."""

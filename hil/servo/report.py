@@ -1,0 +1,138 @@
+"""``hil report --out F.png`` for servo sessions: tracking, error, current, prediction waterfall.
+
+The waterfall is drawn like the servo paper's Figs. 9-10: a thin line per recorded tick k for
+the predicted inputs û(k+i|k), i = 0..H_u-1, over the applied current (thick). It shows a
+window of ``WATERFALL_TICKS`` recorded predictions centred on the largest change of the
+commanded current after the first tenth of the session (past the start-up transient), where
+the predictions have something to show.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import numpy as np
+
+from hil.core.reader import SessionData
+from hil.core.report import kpis
+
+WATERFALL_TICKS = 100
+SAMPLE_PERIOD_S = 500e-6  # the servo scenario's base period (hil/servo/run.py)
+
+
+def _seconds(stamps_ns: np.ndarray, origin_ns: int) -> np.ndarray:
+    return (stamps_ns - origin_ns) / 1e9
+
+
+def _current_limit(data: SessionData) -> float | None:
+    limit = kpis(data).get("umax_mA")
+    if limit is None:
+        try:
+            config = json.loads(data.metadata.get("config", {}).get("json", "{}"))
+            limit = config.get("servo", {}).get("umax")
+        except ValueError:
+            return None
+    return float(limit) if limit is not None else None
+
+
+def waterfall_window(command_ma: np.ndarray, stamps_ns: np.ndarray,
+                     prediction_ns: np.ndarray, width: int = WATERFALL_TICKS) -> slice:
+    """The recorded predictions to draw: ``width`` of them around the largest |Δu|."""
+    if prediction_ns.size <= width or command_ma.size < 2:
+        return slice(0, prediction_ns.size)
+    skip = command_ma.size // 10  # not the start-up transient
+    jump = skip + int(np.argmax(np.abs(np.diff(command_ma[skip:])))) + 1
+    centre = int(np.searchsorted(prediction_ns, stamps_ns[jump]))
+    start = min(max(0, centre - width // 2), prediction_ns.size - width)
+    return slice(start, start + width)
+
+
+def plot_servo(data: SessionData, out_png: str) -> None:
+    """Reference and position, tracking error, commanded and measured current, and (MPC) the
+    waterfall of predicted inputs."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    command = data.arrays("/drive/command")
+    feedback = data.arrays("/drive/feedback")
+    prediction = data.arrays("/mpc/prediction")
+    stamps = command["log_time_ns"]
+    if stamps.size == 0:
+        fig, ax = plt.subplots(figsize=(8, 2))
+        ax.text(0.5, 0.5, "no /drive/command messages recorded", ha="center", va="center")
+        ax.set_axis_off()
+        fig.savefig(out_png, dpi=110)
+        plt.close(fig)
+        return
+    origin = int(stamps[0])
+    t = _seconds(stamps, origin)
+    has_prediction = "u_mA" in prediction and prediction["log_time_ns"].size > 0
+    rows = 4 if has_prediction else 3
+    fig, axes = plt.subplots(rows, 1, figsize=(10, 2.6 * rows), squeeze=False)
+    axes = axes[:, 0]
+    info = kpis(data)
+    title = f"servo session: {info.get('controller', '?')}, {info.get('reference', '')}"
+    fig.suptitle(title, fontsize=10)
+
+    reference, error = command["reference_deg"], command["error_deg"]
+    ax = axes[0]
+    ax.plot(t, reference, "k--", lw=1.0, label="reference")
+    ax.plot(t, reference + error, lw=1.0, label="position")
+    ax.set_ylabel("angle [deg]")
+    ax.set_title("tracking", fontsize=9)
+    ax.legend(loc="best", fontsize=8)
+
+    ax = axes[1]
+    ax.plot(t, error, lw=0.8)
+    ax.axhline(0.0, color="k", lw=0.5)
+    ax.set_ylabel("error [deg]")
+    ax.set_title("tracking error (position - reference)", fontsize=9)
+
+    ax = axes[2]
+    ax.plot(t, command["command_mA"], lw=0.9, label="commanded")
+    if feedback["log_time_ns"].size:
+        ax.plot(_seconds(feedback["log_time_ns"], origin), feedback["current_mA"], lw=0.7,
+                alpha=0.8, label="drive (torque actual)")
+    limit = _current_limit(data)
+    if limit is not None:
+        for sign in (1, -1):
+            ax.axhline(sign * limit, color="r", lw=0.6, ls=":")
+    ax.set_ylabel("current [mA]")
+    ax.set_title("motor current", fontsize=9)
+    ax.legend(loc="best", fontsize=8)
+
+    if has_prediction:
+        draw_waterfall(axes[3], command, prediction, origin)
+    axes[-1].set_xlabel("time [s]")
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)
+
+
+def draw_waterfall(ax: Any, command: dict[str, np.ndarray], prediction: dict[str, np.ndarray],
+                   origin: int) -> None:
+    """Thin lines: û(k+i|k) of each recorded tick in the window; thick: the applied current."""
+    stamps = prediction["log_time_ns"]
+    window = waterfall_window(command["command_mA"], command["log_time_ns"], stamps)
+    inputs = prediction["u_mA"][window]
+    starts = _seconds(stamps[window], origin)
+    if inputs.dtype == object or inputs.ndim != 2:  # ragged: one line per message
+        rows = [np.asarray(u, float) for u in inputs]
+    else:
+        rows = list(inputs)
+    for t0, u in zip(starts, rows, strict=True):
+        ax.plot(t0 + SAMPLE_PERIOD_S * np.arange(u.size), u, lw=0.5, color="tab:blue",
+                alpha=0.6)
+    t_cmd = _seconds(command["log_time_ns"], origin)
+    if starts.size:
+        horizon = max((u.size for u in rows), default=1) * SAMPLE_PERIOD_S
+        shown = (t_cmd >= starts[0]) & (t_cmd <= starts[-1] + horizon)
+        ax.plot(t_cmd[shown], command["command_mA"][shown], color="k", lw=2.0,
+                label="applied u(k)")
+        ax.plot([], [], lw=0.5, color="tab:blue", label="predicted û(k+i|k), i < H_u")
+        ax.legend(loc="best", fontsize=8)
+    ax.set_ylabel("current [mA]")
+    ax.set_title(f"MPC prediction waterfall ({len(rows)} recorded ticks)", fontsize=9)

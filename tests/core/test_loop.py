@@ -1,0 +1,152 @@
+import time
+
+import pytest
+
+from hil.core.clock import RealtimeClock, SimClock
+from hil.core.loop import FixedRateLoop, FunctionTask, Task
+
+
+class Recording(Task):
+    """Logs every phase with its time so order and schedule can be checked."""
+
+    def __init__(self, name, divisor, log):
+        super().__init__(name, divisor)
+        self.log = log
+        self.safe_calls = 0
+
+    def read(self, t_ns):
+        self.log.append((self.name, "read", t_ns))
+        return t_ns
+
+    def compute(self, measurement, t_ns):
+        self.log.append((self.name, "compute", t_ns))
+        return measurement + 1
+
+    def write(self, command, t_ns):
+        self.log.append((self.name, "write", command - 1))
+
+    def safe_state(self):
+        self.safe_calls += 1
+
+
+def run_sim(ticks):
+    log = []
+    tasks = [Recording("sample", 1, log), Recording("control", 100, log), Recording("odd", 7, log)]
+    loop = FixedRateLoop(SimClock(), 0.01, tasks, handle_signals=False)
+    loop.run(max_ticks=ticks)
+    return loop, log, tasks
+
+
+def test_sim_loop_runs_each_task_on_its_divisor_exactly():
+    loop, log, tasks = run_sim(1000)
+    runs = {t.name: t for t in tasks}
+    starts = {name: [t for n, phase, t in log if n == name and phase == "read"] for name in runs}
+    assert len(starts["sample"]) == 1000
+    assert len(starts["control"]) == 10
+    assert len(starts["odd"]) == 143  # ticks 0, 7, ..., 994
+    assert starts["control"] == [k * 1_000_000_000 for k in range(10)]
+    assert starts["odd"] == [k * 70_000_000 for k in range(143)]
+    assert loop.ticks == 1000 and loop.skipped_ticks == 0
+    assert all(t.safe_calls == 1 for t in tasks)
+
+
+def test_sim_loop_phases_run_read_compute_write_in_task_order():
+    _, log, _ = run_sim(1)
+    assert [(n, p) for n, p, _ in log] == [
+        ("sample", "read"), ("sample", "compute"), ("sample", "write"),
+        ("control", "read"), ("control", "compute"), ("control", "write"),
+        ("odd", "read"), ("odd", "compute"), ("odd", "write"),
+    ]
+    assert {t for _, _, t in log} == {0}  # write got the computed command for that tick
+
+
+def test_sim_loop_is_deterministic():
+    loop_a, log_a, _ = run_sim(500)
+    loop_b, log_b, _ = run_sim(500)
+    assert log_a == log_b
+    for name in ("sample", "control", "odd"):
+        a, b = loop_a.stats[name].summary(), loop_b.stats[name].summary()
+        for key in ("runs", "missed", "overruns", "measured_period_s", "lateness_us"):
+            assert a[key] == b[key]
+        assert a["lateness_us"]["max"] == 0
+    assert loop_a.stats["control"].measured_period_s() == pytest.approx(1.0, abs=1e-12)
+
+
+def test_realtime_overrun_is_skipped_and_counted_not_hidden():
+    starts = []
+
+    def read(t_ns):
+        starts.append(t_ns)
+        if len(starts) == 5:
+            time.sleep(0.0105)  # a 10.5 ms stall in a 2 ms loop: ticks 5..9 cannot happen
+
+    events = []
+    loop = FixedRateLoop(
+        RealtimeClock(), 0.002, [FunctionTask("fast", 1, read=read), FunctionTask("slow", 2)],
+        on_event=lambda kind, msg, data: events.append((kind, data)), handle_signals=False,
+    )
+    loop.run(max_ticks=40)
+    fast, slow = loop.stats["fast"], loop.stats["slow"]
+    assert loop.skipped_ticks >= 4
+    assert fast.runs + fast.missed == 40  # every scheduled run either ran or was counted missed
+    assert fast.missed == loop.skipped_ticks
+    assert slow.runs + slow.missed == 20
+    assert fast.overruns >= 1  # the stalled step took longer than its period
+    assert any(kind == "loop.overrun" for kind, _ in events)
+    # the schedule stays on its absolute grid: every run lands in its own period slot, in order,
+    # and never past the last scheduled slot (a drifting loop would run late slots past 39)
+    slots = [(t - loop.start_ns) // 2_000_000 for t in starts]
+    assert slots == sorted(set(slots))
+    assert slots[-1] <= 39
+    assert len(slots) + fast.missed == 40
+
+
+def test_exception_in_task_calls_every_safe_state_and_propagates():
+    log = []
+    good = Recording("good", 1, log)
+
+    def boom(_m, t_ns):
+        if t_ns >= 30_000_000:
+            raise RuntimeError("controller exploded")
+
+    component = Recording("driver", 1, [])
+    loop = FixedRateLoop(SimClock(), 0.01, [good, FunctionTask("bad", 1, compute=boom)],
+                         handle_signals=False)
+    loop.add_component(component)
+    with pytest.raises(RuntimeError, match="exploded"):
+        loop.run(max_ticks=100)
+    assert good.safe_calls == 1 and component.safe_calls == 1
+    assert loop.stop_reason.startswith("error: RuntimeError")
+
+
+def test_failing_safe_state_hook_does_not_stop_the_others():
+    class Broken(Task):
+        def safe_state(self):
+            raise OSError("bus gone")
+
+    ok = Recording("ok", 1, [])
+    events = []
+    loop = FixedRateLoop(SimClock(), 0.01, [ok, Broken("broken")], handle_signals=False,
+                         on_event=lambda kind, msg, data: events.append(kind))
+    loop.run(max_ticks=3)
+    assert ok.safe_calls == 1
+    assert "safe_state.failed" in events
+
+
+def test_stop_request_from_a_task_ends_the_loop_at_the_tick_boundary():
+    loop = FixedRateLoop(SimClock(), 0.01, [], handle_signals=False)
+    loop.add_task(FunctionTask("watch", 1, read=lambda t: t >= 50_000_000 and loop.stop("done")))
+    loop.run(max_ticks=1000)
+    assert loop.ticks == 6 and loop.stop_reason == "done"
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5])
+def test_bad_divisor_is_refused(bad):
+    with pytest.raises(ValueError, match="divisor"):
+        Task("x", bad)
+
+
+def test_duplicate_task_names_are_refused():
+    loop = FixedRateLoop(SimClock(), 0.01, [Task("a")], handle_signals=False)
+    with pytest.raises(ValueError, match="duplicate"):
+        loop.add_task(Task("a"))

@@ -1,0 +1,135 @@
+import json
+import time
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from hil.core.clock import SimClock
+from hil.core.loop import FunctionTask
+from hil.core.reader import read_session
+from hil.core.recorder import Recorder, RecorderError
+from hil.core.session import Session
+
+SCHEMA = {
+    "type": "object",
+    "title": "test.Sample",
+    "properties": {"k": {"type": "integer"}, "x": {"type": "number"}, "v": {"type": "array"}},
+}
+
+
+def test_logged_messages_read_back_identically_with_schemas_metadata_and_config(tmp_path):
+    path = tmp_path / "s.mcap"
+    config = {"bench": {"port": 5020, "relays": ["M1", "M2"]}}
+    session = Session(str(path), SimClock(), 0.01, kind="test", config=config,
+                      config_text="[bench]\nport = 5020\n", handle_signals=False)
+    samples = session.topic("/test/samples", SCHEMA)
+    nested = session.topic("/test/nested", {"type": "object", "title": "test.Nested"})
+    sent = []
+
+    def log(_cmd, t_ns):
+        k = len(sent)
+        msg = {"k": k, "x": k * 0.25 - 3.0, "v": [k, -k, 0.5]}
+        sent.append((t_ns, msg))
+        samples.log(t_ns, msg)
+        if k % 10 == 0:
+            nested.log(t_ns, {"plan": np.arange(3) * k, "ok": True, "name": f"n{k}", "none": None})
+
+    session.add_task(FunctionTask("log", 1, write=log))
+    session.run(max_ticks=250)
+    session.close(kpis={"J1_VA": 123.5})
+
+    data = read_session(path)
+    assert not data.recovered and data.lost_bytes == 0
+    assert data.topic("/test/samples") == sent
+    assert data.topic("/test/nested")[3] == (
+        300_000_000, {"plan": [0, 30, 60], "ok": True, "name": "n30", "none": None}
+    )
+    # every channel carries a JSON schema (Foxglove needs no plug-in)
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    for channel in summary.channels.values():
+        schema = summary.schemas[channel.schema_id]
+        assert channel.message_encoding == "json"
+        assert schema.encoding == "jsonschema" and json.loads(schema.data)["type"] == "object"
+    topics = {c.topic for c in summary.channels.values()}
+    assert {"/test/samples", "/test/nested", "/events", "/loop/log/timing"} <= topics
+    assert data.metadata["session"]["clock"] == "sim"
+    assert data.metadata["session"]["kind"] == "test"
+    assert json.loads(data.metadata["config"]["json"]) == config
+    assert "numpy" in data.metadata["versions"] and "mcap" in data.metadata["versions"]
+    assert data.attachments["config.toml"] == b"[bench]\nport = 5020\n"
+    assert json.loads(data.metadata["kpis"]["json"]) == {"J1_VA": 123.5}
+    kinds = [m["kind"] for _, m in data.topic("/events")]
+    assert kinds[0] == "session.start" and kinds[-1] == "session.stop"
+
+
+def test_topic_as_numpy_arrays(tmp_path):
+    path = tmp_path / "a.mcap"
+    with Recorder(path) as rec:
+        topic = rec.topic("/p", SCHEMA)
+        for k in range(50):
+            topic.log(k * 10_000_000, {"k": k, "x": k / 2, "v": [k, 2 * k]})
+    arrays = read_session(path).arrays("/p")
+    assert arrays["log_time_ns"].dtype == np.int64
+    np.testing.assert_array_equal(arrays["k"], np.arange(50))
+    np.testing.assert_allclose(arrays["x"], np.arange(50) / 2)
+    assert arrays["v"].shape == (50, 2) and arrays["v"][7].tolist() == [7, 14]
+
+
+def test_full_queue_drops_are_counted_and_recorded_in_events(tmp_path):
+    path = tmp_path / "d.mcap"
+    rec = Recorder(path, queue_size=5)
+    topic = rec.topic("/burst", SCHEMA)
+    accepted = sum(topic.log(k, {"k": k}) for k in range(2000))  # far faster than any writer
+    stats = rec.close()
+    data = read_session(path)
+    assert topic.dropped > 0
+    assert accepted + topic.dropped == 2000
+    assert len(data.topic("/burst")) == accepted
+    assert stats.messages_dropped == {"/burst": topic.dropped}
+    drops = [m for _, m in data.topic("/events") if m["kind"] == "recorder.dropped"]
+    assert sum(m["data"]["dropped"] for m in drops) == topic.dropped
+    assert json.loads(data.metadata["recorder"]["dropped"]) == {"/burst": topic.dropped}
+
+
+def test_lockstep_session_waits_for_the_writer_instead_of_dropping(tmp_path):
+    path = tmp_path / "w.mcap"
+    session = Session(str(path), SimClock(), 0.01, kind="test", handle_signals=False)
+    session.recorder.queue_size = 50  # far smaller than what one run produces at full speed
+    topic = session.topic("/burst", SCHEMA)
+    session.add_task(FunctionTask("log", 1, write=lambda c, t: [topic.log(t, {"k": k})
+                                                                for k in range(20)]))
+    session.run(max_ticks=300)
+    stats = session.close()
+    assert topic.dropped == 0 and stats.messages_dropped == {}
+    assert len(read_session(path).topic("/burst")) == 6000
+
+
+def test_topics_registered_while_the_writer_runs_are_never_lost(tmp_path):
+    # each topic is logged to right after registration, racing the writer's setup step
+    path = tmp_path / "race.mcap"
+    rec = Recorder(path)
+    for k in range(300):
+        rec.topic(f"/t{k}", SCHEMA).log(k, {"k": k})
+        if k % 50 == 0:
+            time.sleep(0.006)  # let the writer start cycles in between
+    stats = rec.close()
+    assert stats.messages_written == 300 and stats.messages_dropped == {}
+    data = read_session(path)
+    assert all(data.topic(f"/t{k}") == [(k, {"k": k})] for k in range(300))
+
+
+def test_a_failing_writer_is_reported_at_close_not_silent(tmp_path):
+    path = tmp_path / "fail.mcap"
+    rec = Recorder(path)
+    topic = rec.topic("/x", SCHEMA)
+    topic.log(1, {"k": 1})
+    topic.log(2, {"not json": object()})  # cannot be encoded: the writer fails on it
+    time.sleep(0.05)
+    topic.log(3, {"k": 3})
+    with pytest.raises(RecorderError, match=r"writer failed with TypeError"):
+        rec.close()
+    assert topic.dropped >= 1
+    assert read_session(path).topic("/x") == [(1, {"k": 1})]
