@@ -557,7 +557,7 @@ def _lq_factor(us: np.ndarray, ys: np.ndarray, i: int) -> np.ndarray:
             seg_u.transpose(0, 2, 1).reshape(stop - start, 2 * i * m),
             seg_y.transpose(0, 2, 1).reshape(stop - start, 2 * i * ny),
         ])
-        R = np.linalg.qr(np.vstack([R, block]), mode="r")
+        R = np.asarray(np.linalg.qr(np.vstack([R, block]), mode="r"))
     return R.T / math.sqrt(cols)
 
 

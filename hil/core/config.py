@@ -6,7 +6,7 @@ import copy
 import math
 import os
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, overload
 
 from hil.core.errors import ConfigError
 
@@ -136,25 +136,43 @@ class Table:
         if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):
             names = " or ".join(k.__name__ for k in kinds)
             raise self.error(name, f"must be {names}, got {type(value).__name__} {value!r}")
-        if kinds[0] is float and not isinstance(value, bool):
+        if kinds[0] is float and isinstance(value, int | float):
             return float(value)
         return value
 
+    @overload
+    def number(self, name: str, default: None, *, above: float | None = None,
+               at_least: float | None = None, at_most: float | None = None) -> float | None: ...
+
+    @overload
+    def number(self, name: str, default: float = ..., *, above: float | None = None,
+               at_least: float | None = None, at_most: float | None = None) -> float: ...
+
     def number(self, name: str, default: Any = _MISSING, *, above: float | None = None,
-               at_least: float | None = None, at_most: float | None = None) -> float:
-        """A finite float, optionally ``> above``, ``>= at_least``, ``<= at_most``."""
+               at_least: float | None = None, at_most: float | None = None) -> float | None:
+        """A finite float, optionally ``> above``, ``>= at_least``, ``<= at_most``; a None
+        default makes the key optional."""
         value = self.get(name, float, default)
         if value is None:
-            return value
+            return None
         _check_range(self, name, value, above, at_least, at_most)
         return float(value)
 
+    @overload
+    def integer(self, name: str, default: None, *, above: int | None = None,
+                at_least: int | None = None, at_most: int | None = None) -> int | None: ...
+
+    @overload
+    def integer(self, name: str, default: int = ..., *, above: int | None = None,
+                at_least: int | None = None, at_most: int | None = None) -> int: ...
+
     def integer(self, name: str, default: Any = _MISSING, *, above: int | None = None,
-                at_least: int | None = None, at_most: int | None = None) -> int:
-        """An int, optionally ``> above``, ``>= at_least``, ``<= at_most``."""
+                at_least: int | None = None, at_most: int | None = None) -> int | None:
+        """An int, optionally ``> above``, ``>= at_least``, ``<= at_most``; a None default
+        makes the key optional."""
         value = self.get(name, int, default)
         if value is None:
-            return value
+            return None
         _check_range(self, name, value, above, at_least, at_most)
         return int(value)
 

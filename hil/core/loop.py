@@ -342,7 +342,7 @@ class FixedRateLoop:
     def _install_signal_handlers(self) -> dict[int, Any]:
         if not self._handle_signals or threading.current_thread() is not threading.main_thread():
             return {}
-        previous = {}
+        previous: dict[int, Any] = {}
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.getsignal(sig)
             signal.signal(sig, self._on_signal)

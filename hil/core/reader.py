@@ -115,7 +115,7 @@ def read_session(path: str | os.PathLike[str]) -> SessionData:
     if complete_until == 0 and not finished:
         raise SessionFileError(f"{path}: not an MCAP session file ({data.error or 'empty'})")
     data.recovered = not finished
-    data.lost_bytes = max(0, size - complete_until) if not finished else 0
+    data.lost_bytes = size - complete_until if not finished else 0
     for topic, items in raw.items():
         items.sort(key=lambda item: item[0])
         data.messages[topic] = [(t, _decode(payload)) for t, payload in items]

@@ -56,7 +56,24 @@ def test_sigkill_loses_at_most_about_one_second(tmp_path, run_python):
     lost_messages = last_reported - len(ks)
     # flush every 1 s; allow 0.75 s more for a loaded 2-core machine
     assert lost_messages <= 1.75 * RATE_HZ, f"lost {lost_messages} messages"
-    assert data.lost_bytes >= 0
+    assert_lost_bytes_mark_the_readable_prefix(path, data, tmp_path)
+
+
+def assert_lost_bytes_mark_the_readable_prefix(path, data, tmp_path):
+    """Cut at ``size - lost_bytes`` the file reads the same with nothing lost; one byte
+    shorter, the last record read is incomplete and is lost."""
+    blob = path.read_bytes()
+    readable = len(blob) - data.lost_bytes
+    assert 0 < readable <= len(blob)
+    prefix = tmp_path / "prefix.mcap"
+    prefix.write_bytes(blob[:readable])
+    again = read_session(prefix)
+    assert again.lost_bytes == 0 and again.messages == data.messages
+    shorter = tmp_path / "shorter.mcap"
+    shorter.write_bytes(blob[:readable - 1])
+    cut = read_session(shorter)
+    assert cut.lost_bytes > 0
+    assert sum(map(len, cut.messages.values())) <= sum(map(len, data.messages.values()))
 
 
 def test_report_summarises_the_truncated_file(tmp_path, run_python, capsys):
