@@ -1,0 +1,136 @@
+"""Limits on a run's KPIs and the verdict they give, with a JUnit XML report for any CI.
+
+A limit is ``KPI<=VALUE`` or ``KPI>=VALUE`` (``<`` and ``>`` too). ``KPI`` is a key of the run's
+KPI dictionary, a nested one joined by dots (``solve_ms.p99``). In a config file::
+
+    [limits]
+    J2_VA = { max = 560.0 }
+    "step_us.p99" = { max = 100.0 }
+    rms_error_deg = { max = 0.05, min = 0.0 }
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+import re
+import xml.etree.ElementTree as ET
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from hil.core.config import Table
+from hil.core.errors import ConfigError, UsageError
+
+_OPERATORS: dict[str, Callable[[float, float], bool]] = {
+    "<=": operator.le, ">=": operator.ge, "<": operator.lt, ">": operator.gt,
+}
+_LIMIT = re.compile(r"^\s*([A-Za-z_][\w.\-]*)\s*(<=|>=|<|>)\s*(\S+)\s*$")
+
+
+@dataclass(frozen=True)
+class Limit:
+    """``kpi op value``, e.g. ``J2_VA <= 560``."""
+
+    kpi: str
+    op: str
+    value: float
+
+    def __str__(self) -> str:
+        return f"{self.kpi}{self.op}{self.value:g}"
+
+
+@dataclass(frozen=True)
+class LimitResult:
+    """One limit checked on a run: ``measured`` is None when the run has no such KPI."""
+
+    limit: Limit
+    measured: float | None
+    passed: bool
+
+    def describe(self) -> str:
+        """``J2_VA<=560: measured 604.1 (violated)``."""
+        if self.measured is None:
+            return f"{self.limit}: no KPI {self.limit.kpi!r} in this run (violated)"
+        verdict = "holds" if self.passed else "violated"
+        return f"{self.limit}: measured {self.measured:g} ({verdict})"
+
+
+def parse_limit(text: str) -> Limit:
+    """``'J2_VA<=560'`` -> Limit; a UsageError names the text and the expected form."""
+    match = _LIMIT.match(text)
+    if not match:
+        raise UsageError(f"--limit {text!r}: expected KPI<=VALUE or KPI>=VALUE, e.g. "
+                         "'J2_VA<=560'")
+    kpi, op, value_text = match.groups()
+    try:
+        value = float(value_text)
+    except ValueError:
+        raise UsageError(f"--limit {text!r}: {value_text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise UsageError(f"--limit {text!r}: the value must be finite")
+    return Limit(kpi, op, value)
+
+
+def limits_from_table(table: Table) -> list[Limit]:
+    """The ``[limits]`` table: ``KPI = { max = V, min = V }`` (either or both)."""
+    limits = []
+    for kpi in table.names():
+        bounds = table.table(kpi, required=True)
+        low, high = bounds.number("min", None), bounds.number("max", None)
+        bounds.done()
+        if low is None and high is None:
+            raise ConfigError(f"{table.source}: key '{table.key(kpi)}' needs min, max or both")
+        if low is not None:
+            limits.append(Limit(kpi, ">=", low))
+        if high is not None:
+            limits.append(Limit(kpi, "<=", high))
+    return limits
+
+
+def kpi_value(kpis: Mapping[str, Any], dotted: str) -> float | None:
+    """``kpis['solve_ms']['p99']`` for ``'solve_ms.p99'``; None when absent or not a number."""
+    node: Any = kpis
+    for part in dotted.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return None
+        node = node[part]
+    if isinstance(node, bool) or not isinstance(node, int | float):
+        return None
+    return float(node)
+
+
+def check_limits(limits: Sequence[Limit], kpis: Mapping[str, Any]) -> list[LimitResult]:
+    """Every limit against the run's KPIs. A missing KPI or a NaN violates its limit."""
+    results = []
+    for limit in limits:
+        measured = kpi_value(kpis, limit.kpi)
+        passed = measured is not None and not math.isnan(measured) and \
+            _OPERATORS[limit.op](measured, limit.value)
+        results.append(LimitResult(limit, measured, passed))
+    return results
+
+
+def junit_xml(results: Sequence[LimitResult], suite: str, *, duration_s: float = 0.0,
+              properties: Mapping[str, str] | None = None) -> bytes:
+    """A JUnit XML report: one test case per limit, a failure where it is violated."""
+    failures = sum(not r.passed for r in results)
+    root = ET.Element("testsuites", name="hil", tests=str(len(results)),
+                      failures=str(failures))
+    node = ET.SubElement(root, "testsuite", name=suite, tests=str(len(results)),
+                         failures=str(failures), errors="0", time=f"{duration_s:.3f}")
+    if properties:
+        props = ET.SubElement(node, "properties")
+        for key, value in properties.items():
+            ET.SubElement(props, "property", name=key, value=str(value))
+    for result in results:
+        case = ET.SubElement(node, "testcase", classname=suite, name=str(result.limit),
+                             time="0")
+        if not result.passed:
+            failure = ET.SubElement(case, "failure", message=result.describe(),
+                                    type="LimitViolated")
+            failure.text = result.describe()
+        else:
+            ET.SubElement(case, "system-out").text = result.describe()
+    ET.indent(root)
+    return ET.tostring(root, encoding="utf-8", xml_declaration=True)

@@ -1,0 +1,76 @@
+"""Loading a user's object from NAME, FILE.py:Class or package.module:Class."""
+
+import pytest
+
+from hil.core.errors import ConfigError
+from hil.core.params import merge_params, parse_param, parse_value
+from hil.core.plugins import load_object
+
+GROUP = "hil.test_plugins"
+
+
+def write_controller(path, body="class Threshold:\n    def __init__(self, params):\n"
+                                "        self.params = params\n"):
+    path.write_text(body)
+    return path
+
+
+def test_file_spec_relative_to_the_working_directory_and_absolute(tmp_path, monkeypatch):
+    write_controller(tmp_path / "mine.py")
+    monkeypatch.chdir(tmp_path)
+    relative = load_object("mine.py:Threshold", GROUP)
+    absolute = load_object(f"{tmp_path / 'mine.py'}:Threshold", GROUP)
+    assert relative.__name__ == "Threshold" and relative is absolute  # loaded once
+    assert relative({"on": 1}).params == {"on": 1}
+
+
+def test_module_spec(tmp_path, monkeypatch):
+    package = tmp_path / "labctl"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    write_controller(package / "ctl.py")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert load_object("labctl.ctl:Threshold", GROUP).__name__ == "Threshold"
+
+
+def test_entry_point_name(tmp_path, monkeypatch):
+    write_controller(tmp_path / "plugin_ctl.py")
+    info = tmp_path / "plugin_ctl-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: plugin-ctl\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text(f"[{GROUP}]\nthreshold = plugin_ctl:Threshold\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert load_object("threshold", GROUP).__name__ == "Threshold"
+    with pytest.raises(ConfigError, match=r"'thresold': no such name \(registered: threshold\)"):
+        load_object("thresold", GROUP)
+
+
+@pytest.mark.parametrize(("spec", "message"), [
+    ("nowhere.py:Threshold", r"'nowhere.py:Threshold': no such file 'nowhere.py'"),
+    ("mine.py:Missing", r"'mine.py:Missing': mine.py has no 'Missing' \(classes there: "
+                        r"Threshold\)"),
+    ("no_such_pkg.mod:X", r"'no_such_pkg.mod:X': no module named 'no_such_pkg.mod'"),
+    ("broken.py:X", r"'broken.py:X': importing it failed \(broken.py:2\): "
+                    r"ZeroDivisionError: division by zero"),
+    ("mine.py:", r"expected NAME, FILE.py:Class or package.module:Class"),
+    ("", r"an empty spec"),
+])
+def test_bad_specs_name_the_spec_and_the_reason(tmp_path, monkeypatch, spec, message):
+    write_controller(tmp_path / "mine.py")
+    (tmp_path / "broken.py").write_text("import math\nx = 1 / 0\n")
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match=message):
+        load_object(spec, GROUP)
+
+
+def test_params_parse_numbers_as_numbers():
+    assert parse_value("3") == 3 and isinstance(parse_value("3"), int)
+    assert parse_value("2.5") == 2.5 and parse_value("1e-3") == 0.001
+    assert parse_value("true") is True and parse_value("False") is False
+    assert parse_value("fast") == "fast" and parse_value("nan") == "nan"
+    assert parse_param("gain = 2") == ("gain", 2)
+    assert merge_params({"gain": 1, "mode": "a"}, ["gain=2", "limit=0.5"]) == \
+        {"gain": 2, "mode": "a", "limit": 0.5}
+    for bad in ("gain", "=3", "2x=1"):
+        with pytest.raises(Exception, match=r"expected KEY=VALUE"):
+            parse_param(bad)
