@@ -1,0 +1,77 @@
+"""``hil doctor`` and the real-time hardening steps, granted or refused, reported either way."""
+
+import gc
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hil.core.realtime import Hardening
+
+REPO = Path(__file__).resolve().parents[2]
+STEPS = ["sched_fifo", "cpu_affinity", "mlockall", "gc_freeze", "timer_slack"]
+
+
+def test_doctor_json_reports_both_rates_the_os_and_the_hardening():
+    out = subprocess.run([sys.executable, "-m", "hil", "doctor", "--duration", "0.3", "--json"],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    report = json.loads(out.stdout)
+    assert set(report["loops"]) == {"1000", "2000"}
+    for rate, row in report["loops"].items():
+        assert set(row) >= {"p50_us", "p99_us", "max_us", "missed_pct"}
+        assert 0 <= row["p50_us"] <= row["p99_us"] <= max(row["max_us"], row["p99_us"])
+        assert 0 <= row["missed_pct"] <= 100
+        assert row["ticks"] == pytest.approx(0.3 * int(rate), rel=0.05)
+    assert list(report["hardening"]) == STEPS
+    for key in ("cpus", "sched_fifo_max_priority", "memlock_limit_bytes", "timer_slack_ns",
+                "cpu_governor", "isolated_cpus", "python"):
+        assert key in report["os"]
+    assert "bare loop at 2000 Hz" in out.stderr  # progress on stderr, JSON alone on stdout
+
+
+def test_hardening_reports_every_step_and_restores_the_thread():
+    policy, affinity = os.sched_getscheduler(0), os.sched_getaffinity(0)
+    hardening = Hardening()
+    steps = hardening.apply()
+    try:
+        assert [s.name for s in steps] == STEPS
+        granted = {s.name: s.granted for s in steps}
+        if granted["sched_fifo"]:
+            assert os.sched_getscheduler(0) == os.SCHED_FIFO
+        if granted["cpu_affinity"]:
+            assert len(os.sched_getaffinity(0)) == 1
+        assert granted["gc_freeze"] and not gc.isenabled()
+        metadata = hardening.as_metadata()
+        assert all(v.startswith(("granted: ", "refused: ")) for v in metadata.values())
+    finally:
+        hardening.restore()
+    assert os.sched_getscheduler(0) == policy and os.sched_getaffinity(0) == affinity
+    assert gc.isenabled()
+
+
+REFUSED_CHILD = """
+import json, os, resource
+resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0))
+resource.setrlimit(resource.RLIMIT_MEMLOCK, (65536, 65536))
+from hil.core.realtime import Hardening  # imported first: root's files are not readable after
+if os.geteuid() == 0:
+    os.setgid(65534); os.setuid(65534)   # an unprivileged user: no CAP_SYS_NICE, CAP_IPC_LOCK
+h = Hardening()
+steps = h.apply()
+h.restore()
+print(json.dumps({s.name: [s.granted, s.detail] for s in steps}))
+"""
+
+
+def test_an_unprivileged_process_is_refused_and_told_why():
+    out = subprocess.run([sys.executable, "-c", REFUSED_CHILD], capture_output=True, text=True,
+                         timeout=60, cwd=REPO)
+    assert out.returncode == 0, out.stderr
+    steps = json.loads(out.stdout)
+    assert steps["sched_fifo"][0] is False and "refused" in steps["sched_fifo"][1]
+    assert steps["mlockall"][0] is False and "memlock limit 65536" in steps["mlockall"][1]
+    assert steps["gc_freeze"][0] is True
