@@ -1,0 +1,103 @@
+"""An emulator in its own process on loopback, as the hardware would be: ``hil emulate bench``
+or ``hil emulate drive`` on 127.0.0.1 and a free port, started and stopped from Python.
+
+Used by the Python API (:mod:`hil.api`) and the pytest fixtures (:mod:`hil.pytest_plugin`).
+Every wait is bounded; the process is stopped with SIGTERM (then SIGKILL) whatever happens.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import select
+import signal
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import IO
+
+from hil.core.errors import HilError
+
+_BENCH_URL = re.compile(r"listening on (modbus-tcp://\S+?)[ ,;]")
+_DRIVE_URL = re.compile(r"socketcand (\S+):(\d+)\b")
+
+
+class EmulatorProcess:
+    """A running ``hil emulate ...`` process; ``url`` is where a driver reaches it."""
+
+    def __init__(self, argv: list[str], what: str, timeout_s: float = 30.0) -> None:
+        self.what = what
+        self._stderr: IO[str] = tempfile.TemporaryFile("w+")  # noqa: SIM115 - closed by stop()
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "hil", "emulate", *argv], stdout=subprocess.PIPE,
+            stderr=self._stderr, stdin=subprocess.DEVNULL, text=True, env=env)
+        self.url = self._wait_for_url(timeout_s)
+
+    def _wait_for_url(self, timeout_s: float) -> str:
+        assert self.process.stdout is not None
+        ready, _, _ = select.select([self.process.stdout], [], [], timeout_s)
+        line = self.process.stdout.readline() if ready else ""
+        bench, drive = _BENCH_URL.search(line), _DRIVE_URL.search(line)
+        if bench:
+            return bench.group(1)
+        if drive:
+            return f"socketcand://{drive.group(1)}:{drive.group(2)}"
+        self.stop()
+        why = self.stderr_tail() or line.strip() or f"no answer within {timeout_s:g} s"
+        raise HilError(f"the {self.what} emulator did not start: {why}")
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    def stderr_tail(self, lines: int = 5) -> str:
+        """The last lines the emulator wrote to stderr (for error messages)."""
+        if self._stderr.closed:
+            return ""
+        self._stderr.seek(0)
+        return " | ".join(self._stderr.read().strip().splitlines()[-lines:])
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """SIGTERM (resuming a stopped process first), then SIGKILL; idempotent."""
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGCONT)
+            self.process.terminate()
+            try:
+                self.process.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(timeout_s)
+        if self.process.stdout is not None:
+            self.process.stdout.close()
+        self._stderr.close()
+
+    def __enter__(self) -> EmulatorProcess:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.stop()
+
+
+def start_bench_emulator(config: str | Path | None = None, *, seed: int | None = None,
+                         disturbance: bool = False, host: str = "127.0.0.1",
+                         timeout_s: float = 30.0) -> EmulatorProcess:
+    """The relay-bench emulator over Modbus TCP on ``host`` and a free port."""
+    argv = ["bench", "--tcp", f"{host}:0"]
+    if config is not None:
+        argv += ["--config", str(config)]
+    if seed is not None:
+        argv += ["--seed", str(seed)]
+    if disturbance:
+        argv.append("--disturbance")
+    return EmulatorProcess(argv, "bench", timeout_s)
+
+
+def start_drive_emulator(config: str | Path | None = None, *, node: int = 1,
+                         host: str = "127.0.0.1", timeout_s: float = 30.0) -> EmulatorProcess:
+    """The CiA 402 drive emulator over socketcand on ``host`` and a free port."""
+    argv = ["drive", "--socketcand", f"{host}:0", "--node", str(node)]
+    if config is not None:
+        argv += ["--config", str(config)]
+    return EmulatorProcess(argv, "drive", timeout_s)
