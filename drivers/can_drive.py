@@ -40,26 +40,42 @@ from typing import Any
 from urllib.parse import urlsplit
 
 import can
-from canopen.profiles.p402 import State402
 from canopen.sdo import SdoAbortedError
 
 from drivers.can_bus_time import BusBudget, cia402_cyclic_frames, cycle_budget
+from drivers.cia402 import (
+    CONTROLWORD,
+    CW_DISABLE_VOLTAGE,
+    CW_ENABLE_OPERATION,
+    CW_FAULT_RESET,
+    CW_QUICK_STOP,
+    CYCLIC_SYNCHRONOUS_POSITION,
+    CYCLIC_SYNCHRONOUS_TORQUE,
+    FAULT,
+    FAULT_REACTION_ACTIVE,
+    MODES,
+    NOT_READY_TO_SWITCH_ON,
+    OPERATION_ENABLED,
+    PDO_NOT_VALID,
+    QUICK_STOP_ACTIVE,
+    QUICK_STOP_OPTIONS,
+    STATUSWORD,
+    SUPPORTED_MODE_BITS,
+    SWITCH_ON_DISABLED,
+    TPDO1,
+    TPDO2,
+    TPDOS,
+    PdoMap,
+    enable_steps,
+    rpdo1_for,
+    state_of,
+)
 from hil.core.config import deep_merge, load_toml, lookup, parse_toml
 from hil.core.errors import ConfigError, HilError
 
-MODES = {"cst": 10, "csp": 8}
-MODE_BITS = {10: 0x200, 8: 0x80}  # 0x6502 supported drive modes
-CW_DISABLE_VOLTAGE, CW_QUICK_STOP, CW_SHUTDOWN = 0x0000, 0x0002, 0x0006
-CW_SWITCH_ON, CW_ENABLE_OPERATION, CW_FAULT_RESET = 0x0007, 0x000F, 0x0080
 NMT_START, NMT_PRE_OPERATIONAL = 0x01, 0x80
-PDO_NOT_VALID = 0x8000_0000
-OPERATION_ENABLED, FAULT, FAULT_REACTION = "OPERATION ENABLED", "FAULT", "FAULT REACTION ACTIVE"
-SWITCH_ON_DISABLED, QUICK_STOP_ACTIVE = "SWITCH ON DISABLED", "QUICK STOP ACTIVE"
-ENABLE_STEPS = (  # (controlword, state it leads to) from SWITCH ON DISABLED
-    (CW_SHUTDOWN, "READY TO SWITCH ON"),
-    (CW_SWITCH_ON, "SWITCHED ON"),
-    (CW_ENABLE_OPERATION, OPERATION_ENABLED),
-)
+CST, CSP = CYCLIC_SYNCHRONOUS_TORQUE, CYCLIC_SYNCHRONOUS_POSITION
+ENABLE_STEPS = enable_steps()  # (controlword, state it leads to) from SWITCH ON DISABLED
 EMCY_NAMES = {
     0x0000: "error reset", 0x1000: "generic error", 0x2310: "continuous over-current",
     0x3210: "DC link over-voltage", 0x4310: "drive over-temperature",
@@ -97,14 +113,6 @@ class SdoAbortError(DriveError):
     def __init__(self, message: str, code: int) -> None:
         super().__init__(message)
         self.code = code
-
-
-def state_of(statusword: int) -> str:
-    """The CiA 402 state a statusword reports, by canopen's ``State402`` masks."""
-    for state, (mask, value) in State402.SW_MASK.items():
-        if statusword & mask == value:
-            return state
-    return "UNKNOWN"
 
 
 # ------------------------------------------------------------------------------- config
@@ -203,7 +211,8 @@ class DriveMasterConfig:
             sdo_timeout_s=m("sdo_timeout_ms", int, 1000) / 1e3,
             state_timeout_s=m("state_timeout_ms", int, 2000) / 1e3,
             quick_stop_option=m("quick_stop_option", int, d.quick_stop_option,
-                                lambda v: v in (0, 1, 2, 5, 6), "one of 0, 1, 2, 5, 6"),
+                                lambda v: v in QUICK_STOP_OPTIONS,
+                                f"one of {', '.join(map(str, QUICK_STOP_OPTIONS))}"),
             quick_stop_timeout_s=m("quick_stop_timeout_ms", int, 3000) / 1e3,
             standstill_deg_s=m("standstill_deg_s", float, d.standstill_deg_s),
         )
@@ -274,8 +283,10 @@ class CanDriveMaster:
         self._period_ns = round(self.config.cycle_period_s * 1e9)
         self._rx_timeout_s = 0.0 if pump is not None else self.config.rx_timeout_s
         n = self.node_id
-        self._tpdo1, self._tpdo2, self._rpdo1 = 0x180 + n, 0x280 + n, 0x200 + n
-        self._rpdo_layout = struct.Struct("<Hh" if self.mode == 10 else "<Hi")
+        self._rpdo1_map = rpdo1_for(self.mode)
+        self._tpdo1, self._tpdo2 = TPDO1.cob_id(n), TPDO2.cob_id(n)
+        self._rpdo1 = self._rpdo1_map.cob_id(n)
+        self._rpdo_layout = struct.Struct("<Hh" if self.mode == CST else "<Hi")
         self._sync = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)
         self._heartbeat = can.Message(arbitration_id=0x700 + self.config.heartbeat_id,
                                       data=b"\x05", is_extended_id=False)
@@ -449,11 +460,14 @@ class CanDriveMaster:
     def _bus_budget(self) -> BusBudget:
         c = self.config
         heartbeats = [p / 1000 for p in (c.heartbeat_period_ms, c.drive_heartbeat_ms) if p]
-        frames = cia402_cyclic_frames(c.cycle_period_s, rpdo_bytes=self._rpdo_layout.size,
+        frames = cia402_cyclic_frames(c.cycle_period_s, rpdo_bytes=self._rpdo1_map.size_bytes,
+                                      tpdo_bytes=[pdo.size_bytes for pdo in TPDOS],
                                       heartbeat_periods_s=heartbeats)
         return cycle_budget(c.bitrate, c.cycle_period_s, frames)
 
-    def _map_pdo(self, comm: int, mapping: int, cob_id: int, entries: list[int]) -> None:
+    def _map_pdo(self, pdo: PdoMap) -> None:
+        comm, mapping, cob_id = pdo.comm, pdo.mapping, pdo.cob_id(self.node_id)
+        entries = pdo.mapping_values()
         self.sdo_write(comm, 1, cob_id | PDO_NOT_VALID)
         self.sdo_write(mapping, 0, 0, "<B")
         for sub, entry in enumerate(entries, start=1):
@@ -478,16 +492,14 @@ class CanDriveMaster:
         if device_type & 0xFFFF != 402:
             raise DriveError(f"node {n} is not a CiA 402 drive (device type 0x{device_type:08X})")
         supported = self.sdo_read_int(0x6502, 0)
-        if not supported & MODE_BITS[self.mode]:
+        if not supported & SUPPORTED_MODE_BITS[self.mode]:
             raise DriveError(f"drive node {n} does not support mode {c.mode.upper()} "
                              f"({self.mode}): 0x6502 = 0x{supported:08X}")
         self.nmt(NMT_PRE_OPERATIONAL)
         for comm in (0x1401, 0x1402, 0x1403, 0x1802, 0x1803):
             self._disable_pdo(comm)
-        target = 0x6071_0010 if self.mode == 10 else 0x607A_0020
-        self._map_pdo(0x1400, 0x1600, self._rpdo1, [0x6040_0010, target])
-        self._map_pdo(0x1800, 0x1A00, self._tpdo1, [0x6041_0010, 0x6064_0020])
-        self._map_pdo(0x1801, 0x1A01, self._tpdo2, [0x606C_0020, 0x6077_0010])
+        for pdo in (self._rpdo1_map, *TPDOS):
+            self._map_pdo(pdo)
         self.sdo_write(0x1006, 0, round(c.cycle_period_s * 1e6))
         self.sdo_write(0x1017, 0, c.drive_heartbeat_ms, "<H")
         consumer = (c.heartbeat_id << 16) | c.heartbeat_timeout_ms if c.heartbeat_period_ms else 0
@@ -509,7 +521,7 @@ class CanDriveMaster:
                               f"hold with a rated current of {self.rated_current_ma} mA")
         self.sdo_write(0x6072, 0, max_torque, "<H")
         self.sdo_write(0x605A, 0, c.quick_stop_option, "<h")
-        if self.mode == 8:
+        if self.mode == CSP:
             self.sdo_write(0x607A, 0, self.sdo_read_int(0x6064, 0, "<i"), "<i")
         else:
             self.sdo_write(0x6071, 0, 0, "<h")
@@ -527,7 +539,7 @@ class CanDriveMaster:
                         f"up after {c.heartbeat_timeout_ms} ms: it will fault", level="warning")
 
     def _statusword(self) -> int:
-        return self.sdo_read_int(0x6041, 0, "<H")
+        return self.sdo_read_int(STATUSWORD, 0, "<H")
 
     def _reach(self) -> int:
         """The statusword by SDO; a node in NMT STOPPED (no SDO) is sent to PRE-OPERATIONAL.
@@ -535,7 +547,7 @@ class CanDriveMaster:
         NMT is not sent first on purpose: a drive left enabled in OPERATIONAL may take leaving
         OPERATIONAL as a communication fault."""
         try:
-            return self.sdo_read_int(0x6041, 0, "<H", min(0.2, self.config.sdo_timeout_s))
+            return self.sdo_read_int(STATUSWORD, 0, "<H", min(0.2, self.config.sdo_timeout_s))
         except DriveLinkLostError:
             self.nmt(NMT_PRE_OPERATIONAL)
         return self._statusword()
@@ -571,18 +583,18 @@ class CanDriveMaster:
         n = self.node_id
         self._latched, self._enabled, self._rebooted = None, False, False
         state = state_of(self._reach())
-        if state in (FAULT, FAULT_REACTION):
+        if state in (FAULT, FAULT_REACTION_ACTIVE):
             code = self.sdo_read_int(0x603F, 0, "<H")
             name = EMCY_NAMES.get(code, "device specific")
             raise DriveFaultError(f"drive node {n} is in {state} (error code 0x{code:04X}, "
                                   f"{name}): call reset_fault()", code)
-        if state not in (SWITCH_ON_DISABLED, "NOT READY TO SWITCH ON"):
-            self.sdo_write(0x6040, 0, CW_DISABLE_VOLTAGE, "<H")  # left enabled by someone
+        if state not in (SWITCH_ON_DISABLED, NOT_READY_TO_SWITCH_ON):
+            self.sdo_write(CONTROLWORD, 0, CW_DISABLE_VOLTAGE, "<H")  # left enabled by someone
         self._wait_state(SWITCH_ON_DISABLED, "disable voltage")
         self._configure()
         self.nmt(NMT_START)
         for controlword, wanted in ENABLE_STEPS:
-            self.sdo_write(0x6040, 0, controlword, "<H")
+            self.sdo_write(CONTROLWORD, 0, controlword, "<H")
             self._wait_state(wanted, f"controlword 0x{controlword:04X}")
         self._enabled = True
         self._stale_run = 0
@@ -614,14 +626,14 @@ class CanDriveMaster:
         self._rebooted = False
         self._drain()
         state = state_of(self._reach())
-        if state == FAULT_REACTION:
+        if state == FAULT_REACTION_ACTIVE:
             self._wait_state(FAULT, "fault reaction")
             state = FAULT
         if state == FAULT:
-            self.sdo_write(0x6040, 0, CW_DISABLE_VOLTAGE, "<H")
-            self.sdo_write(0x6040, 0, CW_FAULT_RESET, "<H")
+            self.sdo_write(CONTROLWORD, 0, CW_DISABLE_VOLTAGE, "<H")
+            self.sdo_write(CONTROLWORD, 0, CW_FAULT_RESET, "<H")
             self._wait_state(SWITCH_ON_DISABLED, "fault reset")
-            self.sdo_write(0x6040, 0, CW_DISABLE_VOLTAGE, "<H")
+            self.sdo_write(CONTROLWORD, 0, CW_DISABLE_VOLTAGE, "<H")
             self._event("drive.fault_reset", f"drive node {self.node_id}: fault reset")
         return self.start()
 
@@ -728,7 +740,7 @@ class CanDriveMaster:
         if state == OPERATION_ENABLED or not feedback.fresh:
             return feedback
         n = self.node_id
-        if state in (FAULT, FAULT_REACTION):
+        if state in (FAULT, FAULT_REACTION_ACTIVE):
             code = self.last_emcy_code
             error: DriveError = DriveFaultError(
                 f"drive node {n} reports {state} (statusword 0x{feedback.statusword:04X}, last "
@@ -771,7 +783,7 @@ class CanDriveMaster:
     def send_command(self, current_ma: float) -> None:
         """CST: send the current command (clamped to the limit) and a SYNC."""
         self._check_latched()
-        if self.mode != 10:
+        if self.mode != CST:
             raise DriveStateError("send_command() needs mode 'cst'; use send_position()")
         self._send_cycle(CW_ENABLE_OPERATION, self._torque_units(current_ma))
 
@@ -781,7 +793,7 @@ class CanDriveMaster:
         On the wire the target is modulo one turn, like the position: the drive goes the short
         way round, so consecutive targets must differ by less than half a turn."""
         self._check_latched()
-        if self.mode != 8:
+        if self.mode != CSP:
             raise DriveStateError("send_position() needs mode 'csp'; use send_command()")
         if not math.isfinite(target_deg):
             raise DriveError(f"drive node {self.node_id}: refusing a non-finite position target")
@@ -849,7 +861,7 @@ class CanDriveMaster:
                         f"incomplete: {exc}", level="error")
 
     def _hold_target(self) -> int:
-        if self.mode == 8 and self.feedback is not None:
+        if self.mode == CSP and self.feedback is not None:
             return self.feedback.position_increments
         return 0
 

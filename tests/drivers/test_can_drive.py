@@ -19,6 +19,7 @@ from drivers.can_drive import (
     load_drive_config,
     open_drive,
 )
+from drivers.cia402 import RPDOS, TPDOS
 from emulators.drive_od import build_object_dictionary
 from hil.core.clock import SimClock
 from hil.core.errors import ConfigError
@@ -62,11 +63,9 @@ def test_start_configures_the_drive_by_sdo():
     feedback = master.start()
     assert feedback.state == "OPERATION ENABLED" and feedback.position_deg == 0.0
     read = master.sdo_read_int
-    for mapping, entries in ((0x1600, [0x60400010, 0x60710010]),
-                             (0x1A00, [0x60410010, 0x60640020]),
-                             (0x1A01, [0x606C0020, 0x60770010])):
-        assert read(mapping, 0, "<B") == 2
-        assert [read(mapping, sub) for sub in (1, 2)] == entries
+    for pdo in (*RPDOS, *TPDOS):
+        assert read(pdo.mapping, 0, "<B") == 2
+        assert [read(pdo.mapping, sub) for sub in (1, 2)] == pdo.mapping_values()
     assert read(0x1006) == 500
     assert read(0x1017, 0, "<H") == 20
     assert read(0x1016, 1) == (127 << 16) | 300
