@@ -20,8 +20,12 @@ drive into its safe state (quick stop, then disable voltage), emits an event and
 later cyclic call raises until :meth:`CanDriveMaster.reset_fault` recovers explicitly.
 EMCY frames become ``drive.emcy`` events through ``on_event`` (``Session.event`` fits).
 
-:func:`open_drive` builds a master for ``emulated`` (a lockstep emulator on a private python-can
-virtual bus), ``socketcand://HOST:PORT[/CHANNEL]`` or any python-can ``INTERFACE://CHANNEL``.
+The master is a :class:`hil.core.types.Device`: :meth:`~CanDriveMaster.open` (SDO, voltage
+disabled), :meth:`~CanDriveMaster.configure` (mode, PDO map, heartbeats, limits),
+:meth:`~CanDriveMaster.enable` (OPERATION ENABLED), :meth:`~CanDriveMaster.safe_state`,
+:meth:`~CanDriveMaster.close`. :func:`open_socketcand` and :func:`open_interface` build one for
+``socketcand://HOST:PORT[/CHANNEL]`` and any python-can ``INTERFACE://CHANNEL``; the CiA 402
+vocabulary (states, controlwords, PDO map) is :mod:`drivers.cia402`.
 """
 
 from __future__ import annotations
@@ -34,8 +38,6 @@ import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from importlib import resources
-from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -58,7 +60,6 @@ from drivers.cia402 import (
     OPERATION_ENABLED,
     PDO_NOT_VALID,
     QUICK_STOP_ACTIVE,
-    QUICK_STOP_OPTIONS,
     STATUSWORD,
     SUPPORTED_MODE_BITS,
     SWITCH_ON_DISABLED,
@@ -70,8 +71,8 @@ from drivers.cia402 import (
     rpdo1_for,
     state_of,
 )
-from hil.core.config import deep_merge, load_toml, lookup, parse_toml
 from hil.core.errors import ConfigError, HilError
+from hil.core.types import Device, EventSink, LinkWatchdog, no_event
 
 NMT_START, NMT_PRE_OPERATIONAL = 0x01, 0x80
 CST, CSP = CYCLIC_SYNCHRONOUS_TORQUE, CYCLIC_SYNCHRONOUS_POSITION
@@ -84,7 +85,6 @@ EMCY_NAMES = {
     0x8140: "recovered from bus-off", 0x8210: "PDO not processed (length error)",
     0x8220: "PDO length exceeded", 0x8240: "unexpected SYNC data length",
 }
-EventFn = Callable[..., None]
 
 
 class DriveError(HilError):
@@ -116,43 +116,10 @@ class SdoAbortError(DriveError):
 
 
 # ------------------------------------------------------------------------------- config
-def load_drive_config(path: str | Path | None = None,
-                      overrides: dict[str, Any] | None = None) -> tuple[dict[str, Any], str]:
-    """The package default ``hil/configs/drive.toml``, a user file laid over it, then
-    ``overrides`` (e.g. from command-line flags: ``{"master": {"current_limit_mA": 12000.0}}``).
-
-    Returns (merged config, the text of the user file or of the default)."""
-    text = resources.files("hil.configs").joinpath("drive.toml").read_text("utf-8")
-    config = parse_toml(text, "hil/configs/drive.toml")
-    if path is not None:
-        user, text = load_toml(path)
-        config = deep_merge(config, user)
-    return deep_merge(config, overrides or {}), text
-
-
-MASTER_KEYS = (
-    "node_id", "mode", "cycle_period_us", "current_limit_mA", "heartbeat_id",
-    "heartbeat_period_ms", "heartbeat_timeout_ms", "drive_heartbeat_ms", "stale_cycles",
-    "rx_timeout_us", "sdo_timeout_ms", "state_timeout_ms", "quick_stop_option",
-    "quick_stop_timeout_ms", "standstill_deg_s",
-)
-
-
-def reject_unknown_keys(config: dict[str, Any], table: str, known: tuple[str, ...],
-                        source: str) -> None:
-    """A misspelt key would silently fall back to its default: refuse it instead."""
-    values = config.get(table, {})
-    if not isinstance(values, dict):
-        raise ConfigError(f"{source}: '{table}' must be a table")
-    unknown = sorted(set(values) - set(known))
-    if unknown:
-        raise ConfigError(f"{source}: unknown key '{table}.{unknown[0]}' (known: "
-                          f"{', '.join(known)})")
-
-
 @dataclass(frozen=True)
 class DriveMasterConfig:
-    """The master's settings (``[master]`` and ``[bus]`` of drive.toml)."""
+    """The master's settings (``[master]`` and ``[bus]`` of drive.toml, read by
+    :mod:`hil.servo.config`)."""
 
     node_id: int = 1
     mode: str = "cst"
@@ -171,51 +138,6 @@ class DriveMasterConfig:
     quick_stop_option: int = 2
     quick_stop_timeout_s: float = 3.0
     standstill_deg_s: float = 2.0
-
-    @classmethod
-    def from_config(cls, config: dict[str, Any], source: str = "config") -> DriveMasterConfig:
-        d = cls()
-        reject_unknown_keys(config, "master", MASTER_KEYS, source)
-        reject_unknown_keys(config, "bus", ("bitrate", "channel"), source)
-
-        def get(key: str, kind: type, default: Any, ok: Callable[[Any], bool] = lambda _v: True,
-                what: str = "") -> Any:
-            value = lookup(config, key, kind, default, source)
-            if not ok(value):
-                raise ConfigError(f"{source}: key '{key}' must be {what}, got {value!r}")
-            return value
-
-        def m(key: str, kind: type, default: Any, ok: Callable[[Any], bool] = lambda v: v > 0,
-              what: str = "> 0") -> Any:
-            return get(f"master.{key}", kind, default, ok, what)
-
-        mode = m("mode", str, d.mode, lambda v: v in MODES, f"one of {sorted(MODES)}")
-        return cls(
-            node_id=m("node_id", int, d.node_id, lambda v: 1 <= v <= 127, "1..127"),
-            mode=mode,
-            cycle_period_s=m("cycle_period_us", int, 500) / 1e6,
-            bitrate=get("bus.bitrate", int, d.bitrate, lambda v: v > 0, "> 0"),
-            channel=get("bus.channel", str, d.channel, bool, "a bus name"),
-            current_limit_ma=m("current_limit_mA", float, d.current_limit_ma,
-                               lambda v: 0 < v <= 32_767, "in (0, 32767]"),
-            heartbeat_id=m("heartbeat_id", int, d.heartbeat_id, lambda v: 1 <= v <= 127,
-                           "1..127"),
-            heartbeat_period_ms=m("heartbeat_period_ms", int, d.heartbeat_period_ms,
-                                  lambda v: 0 <= v <= 0xFFFF, "0..65535"),
-            heartbeat_timeout_ms=m("heartbeat_timeout_ms", int, d.heartbeat_timeout_ms,
-                                   lambda v: 0 <= v <= 0xFFFF, "0..65535"),
-            drive_heartbeat_ms=m("drive_heartbeat_ms", int, d.drive_heartbeat_ms,
-                                 lambda v: 0 <= v <= 0xFFFF, "0..65535"),
-            stale_cycles=m("stale_cycles", int, d.stale_cycles),
-            rx_timeout_s=m("rx_timeout_us", int, 400) / 1e6,
-            sdo_timeout_s=m("sdo_timeout_ms", int, 1000) / 1e3,
-            state_timeout_s=m("state_timeout_ms", int, 2000) / 1e3,
-            quick_stop_option=m("quick_stop_option", int, d.quick_stop_option,
-                                lambda v: v in QUICK_STOP_OPTIONS,
-                                f"one of {', '.join(map(str, QUICK_STOP_OPTIONS))}"),
-            quick_stop_timeout_s=m("quick_stop_timeout_ms", int, 3000) / 1e3,
-            standstill_deg_s=m("standstill_deg_s", float, d.standstill_deg_s),
-        )
 
 
 # ------------------------------------------------------------------------------ feedback
@@ -255,24 +177,29 @@ class LinkStats:
 
 
 # -------------------------------------------------------------------------------- master
-class CanDriveMaster:
-    """CiA 402 master for one drive on a python-can bus. Call :meth:`start` first."""
+class CanDriveMaster(Device):
+    """CiA 402 master for one drive on a python-can bus (a :class:`~hil.core.types.Device`).
+
+    :meth:`start` (:meth:`open`, :meth:`configure`, :meth:`enable`) comes first. ``url`` names
+    the drive in events and errors (default: the bus's channel info)."""
 
     def __init__(
         self,
         bus: can.BusABC,
         config: DriveMasterConfig | None = None,
         *,
-        on_event: EventFn | None = None,
+        on_event: EventSink = no_event,
         timebase: str = "monotonic",
         pump: Callable[[], None] | None = None,
         bus_factory: Callable[[], can.BusABC] | None = None,
         closers: tuple[Callable[[], None], ...] = (),
+        url: str | None = None,
     ) -> None:
         if timebase not in ("monotonic", "cycles"):
             raise ValueError(f"timebase must be 'monotonic' or 'cycles', got {timebase!r}")
         self.config = config or DriveMasterConfig()
         self.bus = bus
+        self._url = url if url is not None else str(bus.channel_info)
         self.node_id = self.config.node_id
         self.mode = MODES[self.config.mode]
         self._on_event = on_event
@@ -297,7 +224,7 @@ class CanDriveMaster:
         self.last_emcy_code = 0
         self.feedback: Feedback | None = None
         self._cycle = 0
-        self._stale_run = 0
+        self.watchdog = LinkWatchdog(self.config.stale_cycles, "cycles without a TPDO")
         self._awaiting = False
         self._got = 0
         self._rx_statusword = self._rx_position = self._rx_velocity = self._rx_torque = 0
@@ -312,10 +239,18 @@ class CanDriveMaster:
         self._latched: DriveError | None = None
         self._closed = False
 
+    @property
+    def url(self) -> str:
+        return self._url
+
+    @property
+    def link_up(self) -> bool:
+        """False from a lost link (no TPDO, send error, reboot) until :meth:`reset_fault`."""
+        return not self.watchdog.lost and not isinstance(self._latched, DriveLinkLostError)
+
     # ----------------------------------------------------------------------- plumbing
     def _event(self, kind: str, message: str, level: str = "info", **data: Any) -> None:
-        if self._on_event is not None:
-            self._on_event(kind, message, level=level, source=f"drive{self.node_id}", **data)
+        self._on_event(kind, message, level=level, source=f"drive{self.node_id}", **data)
 
     def _now_ns(self) -> int:
         return self._cycle * self._period_ns if self._timebase == "cycles" else time.monotonic_ns()
@@ -486,7 +421,9 @@ class CanDriveMaster:
             if exc.code not in (0x0602_0000, 0x0609_0011):
                 raise
 
-    def _configure(self) -> None:
+    def configure(self) -> None:
+        """Write the run's settings by SDO: mode, PDO map, cycle period, heartbeats, limits.
+        The drive is in SWITCH ON DISABLED (after :meth:`open`)."""
         c, n = self.config, self.node_id
         device_type = self.sdo_read_int(0x1000, 0)
         if device_type & 0xFFFF != 402:
@@ -573,37 +510,49 @@ class CanDriveMaster:
                     f"{self.config.state_timeout_s:g} s")
             self._let_time_pass()
 
-    def start(self) -> Feedback:
-        """Configure the drive by SDO and walk it to OPERATION ENABLED; return its feedback.
+    def open(self) -> None:
+        """Reach the drive by SDO and leave it in SWITCH ON DISABLED (voltage disabled).
 
         A drive found in FAULT is left alone (DriveFaultError): clearing a fault is an explicit
         decision, :meth:`reset_fault`."""
         if self._closed:
             raise DriveError("the drive master is closed")
-        n = self.node_id
         self._latched, self._enabled, self._rebooted = None, False, False
         state = state_of(self._reach())
         if state in (FAULT, FAULT_REACTION_ACTIVE):
             code = self.sdo_read_int(0x603F, 0, "<H")
             name = EMCY_NAMES.get(code, "device specific")
-            raise DriveFaultError(f"drive node {n} is in {state} (error code 0x{code:04X}, "
-                                  f"{name}): call reset_fault()", code)
+            raise DriveFaultError(f"drive node {self.node_id} is in {state} (error code "
+                                  f"0x{code:04X}, {name}): call reset_fault()", code)
         if state not in (SWITCH_ON_DISABLED, NOT_READY_TO_SWITCH_ON):
             self.sdo_write(CONTROLWORD, 0, CW_DISABLE_VOLTAGE, "<H")  # left enabled by someone
         self._wait_state(SWITCH_ON_DISABLED, "disable voltage")
-        self._configure()
+
+    def enable(self) -> None:
+        """NMT start, then the controlwords to OPERATION ENABLED; ``feedback`` is then the
+        drive's, read by SDO. After :meth:`open` and :meth:`configure`."""
+        self._enable()
+
+    def _enable(self) -> Feedback:
+        n = self.node_id
         self.nmt(NMT_START)
         for controlword, wanted in ENABLE_STEPS:
             self.sdo_write(CONTROLWORD, 0, controlword, "<H")
             self._wait_state(wanted, f"controlword 0x{controlword:04X}")
         self._enabled = True
-        self._stale_run = 0
+        self.watchdog.success()
         self._next_heartbeat_ns = None
-        self.feedback = self._feedback_by_sdo()
-        position = self.feedback.position_deg
+        feedback = self.feedback = self._feedback_by_sdo()
+        position = feedback.position_deg
         self._event("drive.enabled", f"drive node {n} OPERATION ENABLED at {position:.4f} deg",
                     position_deg=position)
-        return self.feedback
+        return feedback
+
+    def start(self) -> Feedback:
+        """:meth:`open`, :meth:`configure`, :meth:`enable`; return the drive's feedback."""
+        self.open()
+        self.configure()
+        return self._enable()
 
     def _feedback_by_sdo(self) -> Feedback:
         self._rx_statusword = self._statusword()
@@ -618,9 +567,8 @@ class CanDriveMaster:
         if self._closed:
             raise DriveError("the drive master is closed")
         if isinstance(self._latched, DriveLinkLostError) and self._bus_factory is not None:
-            old, self.bus = self.bus, None
             with contextlib.suppress(Exception):  # the old connection is gone anyway
-                old.shutdown()
+                self.bus.shutdown()
             self.bus = self._bus_factory()
         self._latched = None
         self._rebooted = False
@@ -693,13 +641,13 @@ class CanDriveMaster:
             self._lose_link("the drive restarted (boot-up message)")
         if self._got == 3:
             stats.fresh += 1
-            self._stale_run = 0
+            self.watchdog.success()
             rtt_us = (time.perf_counter_ns() - self._sent_ns) / 1e3
             self.feedback = self._make_feedback(fresh=True, rtt_us=rtt_us)
         else:
             stats.stale += 1
-            self._stale_run += 1
-            stats.longest_stale_run = max(stats.longest_stale_run, self._stale_run)
+            lost = self.watchdog.failure()
+            stats.longest_stale_run = self.watchdog.longest_run
             previous = self.feedback
             if previous is None:
                 self.feedback = self._make_feedback(fresh=False, rtt_us=0.0)
@@ -708,8 +656,8 @@ class CanDriveMaster:
                     previous.position_deg, previous.velocity_deg_s, previous.current_ma,
                     previous.statusword, previous.position_increments, self._cycle,
                     self._now_ns(), False, 0.0, self._command_ma)
-            if self._stale_run >= self.config.stale_cycles:
-                self._lose_link(f"no TPDO for {self._stale_run} cycles")
+            if lost:
+                self._lose_link(f"no TPDO for {self.watchdog.run} cycles")
         return self.feedback
 
     def _make_feedback(self, fresh: bool, rtt_us: float) -> Feedback:
@@ -865,22 +813,16 @@ class CanDriveMaster:
             return self.feedback.position_increments
         return 0
 
-    def close(self) -> None:
-        """Safe stop, then release the bus and anything the master was built with."""
+    def disconnect(self) -> None:
+        """Release the bus and anything the master was built with (the emulator); idempotent.
+        :meth:`close` (safe stop, then this) is the usual way out."""
         if self._closed:
             return
-        self.safe_state()
         self._closed = True
-        if self.bus is not None:
-            self.bus.shutdown()
+        self._enabled = False
+        self.bus.shutdown()
         for closer in self._closers:
             closer()
-
-    def __enter__(self) -> CanDriveMaster:
-        return self
-
-    def __exit__(self, *_exc: object) -> None:
-        self.close()
 
 
 # ---------------------------------------------------------------------------- factories
@@ -893,62 +835,48 @@ def _check_reachable(host: str, port: int, timeout_s: float = 2.0) -> None:
         raise DriveLinkLostError(f"cannot reach socketcand at {host}:{port}: {reason}") from None
 
 
-def open_drive(
-    where: str = "emulated",
-    config: dict[str, Any] | None = None,
-    *,
-    on_event: EventFn | None = None,
-    source: str = "drive config",
-) -> CanDriveMaster:
-    """A master (not started) for ``emulated``, ``socketcand://HOST:PORT[/CHANNEL]`` or a
-    python-can ``INTERFACE://CHANNEL`` (``socketcan://can0``, ``pcan://PCAN_USBBUS1``...).
+def open_socketcand(url: str, config: DriveMasterConfig | None = None, *,
+                    on_event: EventSink = no_event) -> CanDriveMaster:
+    """A master (not started) reaching the drive through a socketcand gateway,
+    ``socketcand://HOST:PORT[/CHANNEL]`` (channel: ``config.channel`` if none)."""
+    config = config or DriveMasterConfig()
+    parts = urlsplit(url)
+    try:
+        host, port = parts.hostname, parts.port
+    except ValueError:
+        host, port = None, None
+    if parts.scheme != "socketcand" or not host or port is None:
+        raise ConfigError(f"drive '{url}': expected socketcand://HOST:PORT[/CHANNEL]")
+    channel = parts.path.strip("/") or config.channel
 
-    ``config`` is a full drive config (default: :func:`load_drive_config`). ``emulated`` runs
-    the drive emulator in lockstep on a private virtual bus; the master's ``emulator`` attribute
-    is that :class:`~emulators.drive_node.LockstepDrive`."""
-    if config is None:
-        config, _ = load_drive_config()
-    master_config = DriveMasterConfig.from_config(config, source)
-    if where == "emulated":
-        from emulators.drive_node import DriveEmulatorConfig, LockstepDrive
-
-        emulator_config = DriveEmulatorConfig.from_table(
-            deep_merge(config.get("emulator", {}), {"node_id": master_config.node_id}), source)
-        emulator = LockstepDrive(emulator_config)
-        master = CanDriveMaster(emulator.master_bus, master_config, on_event=on_event,
-                                timebase="cycles", pump=emulator.pump, closers=(emulator.close,))
-        master.emulator = emulator  # type: ignore[attr-defined]
-        return master
-    url = urlsplit(where)
-    if not url.scheme or not (url.netloc or url.path):
-        raise ConfigError(f"drive '{where}': expected emulated, socketcand://HOST:PORT or "
-                          f"INTERFACE://CHANNEL")
-    if url.scheme == "socketcand":
+    def connect() -> can.BusABC:
+        _check_reachable(host, port)
         try:
-            host, port = url.hostname, url.port
-        except ValueError:
-            host, port = None, None
-        if not host or port is None:
-            raise ConfigError(f"drive '{where}': expected socketcand://HOST:PORT[/CHANNEL]")
-        channel = url.path.strip("/") or master_config.channel
+            return can.Bus(interface="socketcand", host=host, port=port, channel=channel,
+                           tcp_tune=True)
+        except (can.CanError, OSError) as exc:
+            raise DriveLinkLostError(f"socketcand at {host}:{port} refused bus {channel!r}: "
+                                     f"{exc}") from None
 
-        def connect() -> can.BusABC:
-            _check_reachable(host, port)
-            try:
-                return can.Bus(interface="socketcand", host=host, port=port, channel=channel,
-                               tcp_tune=True)
-            except (can.CanError, OSError) as exc:
-                raise DriveLinkLostError(f"socketcand at {host}:{port} refused bus {channel!r}: "
-                                         f"{exc}") from None
+    return CanDriveMaster(connect(), config, on_event=on_event, bus_factory=connect, url=url)
 
-        return CanDriveMaster(connect(), master_config, on_event=on_event, bus_factory=connect)
-    channel = (url.netloc + url.path).strip("/")
+
+def open_interface(url: str, config: DriveMasterConfig | None = None, *,
+                   on_event: EventSink = no_event) -> CanDriveMaster:
+    """A master (not started) on a python-can interface, ``INTERFACE://CHANNEL``
+    (``socketcan://can0``, ``pcan://PCAN_USBBUS1``, ``virtual://name``...)."""
+    config = config or DriveMasterConfig()
+    parts = urlsplit(url)
+    interface, channel = parts.scheme, (parts.netloc + parts.path).strip("/")
+    if not interface or not channel:
+        raise ConfigError(f"drive '{url}': expected INTERFACE://CHANNEL")
+    bitrate = config.bitrate
 
     def open_bus() -> can.BusABC:
         try:
-            return can.Bus(interface=url.scheme, channel=channel, bitrate=master_config.bitrate)
+            return can.Bus(interface=interface, channel=channel, bitrate=bitrate)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
-            raise DriveLinkLostError(f"cannot open CAN interface {url.scheme!r} channel "
+            raise DriveLinkLostError(f"cannot open CAN interface {interface!r} channel "
                                      f"{channel!r}: {exc}") from None
 
-    return CanDriveMaster(open_bus(), master_config, on_event=on_event, bus_factory=open_bus)
+    return CanDriveMaster(open_bus(), config, on_event=on_event, bus_factory=open_bus, url=url)

@@ -35,13 +35,12 @@ velocity P loop); the halt bit (8) and modes other than 8 and 10 are not impleme
 from __future__ import annotations
 
 import logging
-import math
 import struct
 import threading
 import time
 import uuid
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
 import can
@@ -78,8 +77,6 @@ from drivers.cia402 import (
 )
 from emulators.drive_od import OdDefaults, build_object_dictionary, iter_variables
 from emulators.drive_plant import AxisPlant, Disturbance, Friction
-from hil.core.config import lookup
-from hil.core.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +122,8 @@ SendFn = Callable[[list[can.Message]], None]
 
 @dataclass(frozen=True)
 class DriveEmulatorConfig:
-    """Everything the emulated drive needs; ``from_table`` reads the ``[emulator]`` TOML table."""
+    """Everything the emulated drive needs (``[emulator]`` of drive.toml, read by
+    :mod:`hil.servo.config`)."""
 
     node_id: int = 1
     # the object dictionary's start-up values are the defaults (emulators/drive_od.py)
@@ -144,78 +142,6 @@ class DriveEmulatorConfig:
     channel: str = "can0"
     friction: Friction = field(default_factory=Friction)
     disturbance: Disturbance = field(default_factory=Disturbance)
-
-    @classmethod
-    def from_table(cls, table: dict[str, Any], source: str = "config") -> DriveEmulatorConfig:
-        d = cls()
-        known = [f.name.replace("_ma", "_mA") for f in fields(cls)]
-        unknown = sorted(set(table) - set(known))
-        for sub, names in (("friction", fields(Friction)), ("disturbance", fields(Disturbance))):
-            values = table.get(sub, {})
-            if not isinstance(values, dict):
-                raise ConfigError(f"{source}: 'emulator.{sub}' must be a table")
-            allowed = {f.name.replace("_ma", "_mA") for f in names}
-            unknown += [f"{sub}.{key}" for key in sorted(set(values) - allowed)]
-        if unknown:
-            raise ConfigError(f"{source}: unknown key 'emulator.{unknown[0]}'")
-
-        def get(key: str, kind: type | tuple, default: Any) -> Any:
-            return lookup({"emulator": table}, f"emulator.{key}", kind, default, source)
-
-        def checked(key: str, value: Any, ok: bool, what: str) -> Any:
-            if not ok:
-                raise ConfigError(f"{source}: key 'emulator.{key}' must be {what}, got {value!r}")
-            return value
-
-        def positive(key: str, kind: type, default: Any) -> Any:
-            value = get(key, kind, default)
-            return checked(key, value, value > 0, "> 0")
-
-        node_id = get("node_id", int, d.node_id)
-        checked("node_id", node_id, 1 <= node_id <= 127, "1..127")
-        qso = get("quick_stop_option", int, d.quick_stop_option)
-        checked("quick_stop_option", qso, qso in QUICK_STOP_OPTIONS, f"one of {QUICK_STOP_OPTIONS}")
-        increments = positive("increments_per_rev", int, d.increments_per_rev)
-        checked("increments_per_rev", increments, 2 <= increments < 2**31, "2..2^31-1")
-        trip = positive("overcurrent_trip_mA", int, d.overcurrent_trip_ma)
-        checked("overcurrent_trip_mA", trip, trip <= 0xFFFF, "<= 65535")
-        max_torque = get("max_torque_permille", int, d.max_torque_permille)
-        checked("max_torque_permille", max_torque, 0 <= max_torque <= 0xFFFF, "0..65535")
-        heartbeat = get("heartbeat_ms", int, d.heartbeat_ms)
-        checked("heartbeat_ms", heartbeat, 0 <= heartbeat <= 0xFFFF, "0..65535")
-        sync_loss = get("sync_loss_timeout_ms", int, d.sync_loss_timeout_ms)
-        checked("sync_loss_timeout_ms", sync_loss, 0 <= sync_loss <= 0xFFFF, "0..65535 (0 = off)")
-        friction = Friction(
-            viscous_ma_per_deg_s=get("friction.viscous_mA_per_deg_s", float, 0.0),
-            coulomb_ma=get("friction.coulomb_mA", float, 0.0),
-            coulomb_smoothing_deg_s=positive("friction.coulomb_smoothing_deg_s", float, 1.0),
-        )
-        disturbance = Disturbance(
-            constant_ma=get("disturbance.constant_mA", float, 0.0),
-            start_s=get("disturbance.start_s", float, 0.0),
-            end_s=get("disturbance.end_s", float, math.inf),
-            sine_ma=get("disturbance.sine_mA", float, 0.0),
-            sine_hz=get("disturbance.sine_hz", float, 0.0),
-        )
-        return cls(
-            node_id=node_id,
-            rated_current_ma=positive("rated_current_mA", int, d.rated_current_ma),
-            max_torque_permille=max_torque,
-            current_limit_ma=positive("current_limit_mA", float, d.current_limit_ma),
-            overcurrent_trip_ma=trip,
-            increments_per_rev=increments,
-            heartbeat_ms=heartbeat,
-            sync_loss_timeout_ms=sync_loss,
-            quick_stop_option=qso,
-            quick_stop_timeout_ms=positive("quick_stop_timeout_ms", int, d.quick_stop_timeout_ms),
-            standstill_deg_s=positive("standstill_deg_s", float, d.standstill_deg_s),
-            velocity_gain_ma_per_deg_s=positive("velocity_gain_mA_per_deg_s", float,
-                                                d.velocity_gain_ma_per_deg_s),
-            position_gain_per_s=positive("position_gain_per_s", float, d.position_gain_per_s),
-            channel=get("channel", str, d.channel),
-            friction=friction,
-            disturbance=disturbance,
-        )
 
     def od_defaults(self) -> OdDefaults:
         return OdDefaults(

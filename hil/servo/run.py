@@ -47,19 +47,14 @@ from controllers.mpc import MpcConfig, TrajectoryMpc
 from controllers.pid import CascadedPid, PidConfig
 from controllers.references import Scenario, Sine, Trapezoid, parse_scenario, wrap180
 from controllers.servo_model import SAMPLE_PERIOD_S
-from drivers.can_drive import (
-    CanDriveMaster,
-    Feedback,
-    SdoAbortError,
-    load_drive_config,
-    open_drive,
-)
+from drivers.can_drive import CanDriveMaster, Feedback, SdoAbortError
 from hil.core.clock import RealtimeClock, SimClock
-from hil.core.config import deep_merge, lookup
 from hil.core.errors import ConfigError, HilError, UsageError
 from hil.core.loop import Task
 from hil.core.session import Session
 from hil.core.stats import percentile_summary
+from hil.servo.config import DriveConfig, load_drive_config
+from hil.servo.rig import open_drive
 
 CONTROLLERS = ("mpc", "empc", "pid")
 PREDICTION_EVERY_REALTIME = 10  # 200 Hz of /mpc/prediction in real time (every tick in lockstep)
@@ -375,21 +370,21 @@ class ServoTask(Task):
 
 
 # ------------------------------------------------------------------------------------- run
-def drive_settings(config: ServoRunConfig) -> tuple[dict[str, Any], str]:
+def drive_settings(config: ServoRunConfig) -> DriveConfig:
     """The drive config of the run: default < ``drive_config`` file < flags < overrides."""
     flags = {"master": {"current_limit_mA": float(config.umax), "node_id": config.node}}
-    drive, text = load_drive_config(config.drive_config, overrides=flags)
-    drive = deep_merge(drive, config.drive_overrides)
-    source = config.drive_config or "drive config"
-    period_us = lookup(drive, "master.cycle_period_us", int, 500, source)
+    drive = load_drive_config(config.drive_config, overrides=flags)
+    if config.drive_overrides:
+        drive = drive.laid_over(config.drive_overrides)
+    period_us = round(drive.master.cycle_period_s * 1e6)
     if period_us * 1e-6 != SAMPLE_PERIOD_S:
-        raise ConfigError(f"{source}: master.cycle_period_us = {period_us}, but the servo "
+        raise ConfigError(f"{drive.source}: master.cycle_period_us = {period_us}, but the servo "
                           f"controllers are designed for T = {SAMPLE_PERIOD_S * 1e6:g} us")
     if not config.realtime and config.drive != "emulated":
-        timeout = lookup(drive, "master.rx_timeout_us", int, 400, source)
-        drive = deep_merge(drive, {"master": {
-            "rx_timeout_us": max(timeout, LOCKSTEP_RX_TIMEOUT_US)}})
-    return drive, text
+        timeout_us = round(drive.master.rx_timeout_s * 1e6)
+        drive = drive.laid_over({"master": {
+            "rx_timeout_us": max(timeout_us, LOCKSTEP_RX_TIMEOUT_US)}})
+    return drive
 
 
 def default_session_path(controller: str) -> str:
@@ -404,7 +399,7 @@ def run_servo(config: ServoRunConfig,
     session file is finished with the KPIs so far, and the error is raised with its path."""
     scenario = parse_scenario(config.reference)
     controller = make_controller(config, scenario)
-    drive, drive_text = drive_settings(config)
+    drive = drive_settings(config)
     path = config.out or default_session_path(config.controller)
     clock = RealtimeClock() if config.realtime else SimClock()
     sessions: list[Session] = []
@@ -414,12 +409,12 @@ def run_servo(config: ServoRunConfig,
             sessions[0].event(kind, message, **data)
 
     # the drive is opened first: an unreachable drive leaves no empty session file behind
-    master = open_drive(config.drive, drive, on_event=relay,
-                        source=config.drive_config or "drive config")
+    master = open_drive(config.drive, drive, on_event=relay)
     run_info = {k: v for k, v in asdict(config).items() if k != "drive_overrides"}
     try:
         session = Session(path, clock, SAMPLE_PERIOD_S, kind="servo",
-                          config={"servo": run_info, "drive": drive}, config_text=drive_text,
+                          config={"servo": run_info, "drive": drive.data},
+                          config_text=drive.text,
                           config_name="drive.toml")
     except BaseException:
         master.close()
@@ -429,7 +424,10 @@ def run_servo(config: ServoRunConfig,
     error: HilError | None = None
     wall = 0.0
     try:
-        first = master.start()
+        master.open()
+        master.configure()
+        master.enable()
+        first = master.receive_feedback()
         session.add_component(master)
         if scenario.disturbance is not None:
             check_disturbance_object(master)

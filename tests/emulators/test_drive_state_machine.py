@@ -7,8 +7,9 @@ import pytest
 from canopen.profiles.p402 import State402
 
 from drivers import cia402
-from drivers.can_drive import load_drive_config, open_drive
 from drivers.cia402 import FAULT, FAULT_REACTION_ACTIVE, state_of
+from hil.servo.config import load_drive_config
+from hil.servo.rig import open_drive
 
 SHUTDOWN, SWITCH_ON, ENABLE = cia402.CW_SHUTDOWN, cia402.CW_SWITCH_ON, cia402.CW_ENABLE_OPERATION
 DISABLE_VOLTAGE, QUICK_STOP = cia402.CW_DISABLE_VOLTAGE, cia402.CW_QUICK_STOP
@@ -18,7 +19,7 @@ SOD, RTSO, SO, OE, QSA = (cia402.SWITCH_ON_DISABLED, cia402.READY_TO_SWITCH_ON,
 
 
 def emulated_master(overrides=None):
-    return open_drive("emulated", load_drive_config(overrides=overrides)[0])
+    return open_drive("emulated", load_drive_config(overrides=overrides))
 
 
 def assert_state(master, feedback, state):

@@ -15,14 +15,12 @@ import pytest
 from canopen.profiles.p402 import State402
 
 from drivers import cia402
-from drivers.can_drive import (
-    DriveFaultError,
-    DriveLinkLostError,
-    load_drive_config,
-    open_drive,
-)
+from drivers.can_drive import DriveFaultError, DriveLinkLostError
 from drivers.cia402 import state_of
 from emulators.drive_od import build_object_dictionary
+from hil.core.types import no_event
+from hil.servo.config import load_drive_config
+from hil.servo.rig import open_drive
 from tests.drive_processes import start_drive_emulator, stop_drive_emulator
 
 REPO = Path(__file__).resolve().parents[2]
@@ -41,8 +39,8 @@ def start_emulator(tmp_path, name, port=0, **emulator):
 
 
 def master_for(port, events=None, **overrides):
-    config, _ = load_drive_config(overrides={"master": {**MASTER, **overrides}})
-    return open_drive(f"socketcand://127.0.0.1:{port}", config, on_event=events)
+    config = load_drive_config(overrides={"master": {**MASTER, **overrides}})
+    return open_drive(f"socketcand://127.0.0.1:{port}", config, on_event=events or no_event)
 
 
 @pytest.fixture(scope="module")
