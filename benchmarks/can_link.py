@@ -134,8 +134,10 @@ def start_emulator(config_path: str) -> tuple[subprocess.Popen, int]:
     proc = subprocess.Popen(
         [sys.executable, "-m", "hil", "emulate", "drive", "--socketcand", "127.0.0.1:0",
          "--config", config_path], stdout=subprocess.PIPE, text=True, env=env)
-    ready, _, _ = select.select([proc.stdout], [], [], 30)
-    line = proc.stdout.readline() if ready else ""
+    stdout = proc.stdout
+    assert stdout is not None  # stdout=PIPE
+    ready, _, _ = select.select([stdout], [], [], 30)
+    line = stdout.readline() if ready else ""
     match = re.search(r":(\d+) ", line)
     if not match:
         proc.kill()

@@ -187,6 +187,14 @@ def _frame(can_id: int, data: bytes) -> can.Message:
     return can.Message(arbitration_id=can_id, data=data, is_extended_id=False)
 
 
+def _pdo_struct(var: ODVariable) -> struct.Struct:
+    """The wire format of a variable in a PDO (fixed-size types only)."""
+    data_type = var.data_type
+    if data_type is None or data_type not in var.STRUCT_TYPES:
+        raise SdoAbortedError(ABORT_CANNOT_MAP)
+    return var.STRUCT_TYPES[data_type]
+
+
 def _wrap_degrees(delta_deg: float) -> float:
     """``delta_deg`` folded into [-180, 180)."""
     return (delta_deg + 180.0) % 360.0 - 180.0
@@ -409,6 +417,8 @@ class DriveNode:
         if len(data) * 8 != len(var):
             raise SdoAbortedError(ABORT_LENGTH)
         value = var.decode_raw(bytes(data))
+        if not isinstance(value, int):  # the emulator's writable objects are integers
+            raise SdoAbortedError(ABORT_READ_ONLY)
         if var.min is not None and value < var.min:
             raise SdoAbortedError(ABORT_VALUE_LOW)
         if var.max is not None and value > var.max:
@@ -429,8 +439,6 @@ class DriveNode:
             self._sync_cob_id = value & 0x7FF
         elif index == 0x1006:
             steps = self._steps_for_period(value)
-            if steps is None:
-                raise SdoAbortedError(ABORT_VALUE)
             self._values[key] = value
             self._steps_per_sync = steps
         elif index == 0x1016:
@@ -458,13 +466,14 @@ class DriveNode:
         else:
             self._values[key] = value
 
-    def _steps_for_period(self, period_us: int) -> int | None:
-        """Plant steps per SYNC for a communication cycle period (0 = not set: one step)."""
+    def _steps_for_period(self, period_us: int) -> int:
+        """Plant steps per SYNC for a communication cycle period (0 = not set: one step); a
+        period that is no multiple of the plant's is refused (SdoAbortedError)."""
         if period_us == 0:
             return 1
         period_ns = period_us * 1000
         if period_ns % self._plant_period_ns:
-            return None
+            raise SdoAbortedError(ABORT_VALUE)
         return period_ns // self._plant_period_ns
 
     # ------------------------------------------------------------------------------ PDOs
@@ -521,7 +530,7 @@ class DriveNode:
             index, subindex = entry >> 16, (entry >> 8) & 0xFF
             var = self._find_object(index, subindex)
             keys.append((index, subindex))
-            fmt += var.STRUCT_TYPES[var.data_type].format.lstrip("<")
+            fmt += _pdo_struct(var).format.lstrip("<")
         pdo.keys, pdo.layout = tuple(keys), struct.Struct(fmt)
 
     def _on_rpdo(self, pdo: _Pdo, data: bytes) -> None:

@@ -45,13 +45,13 @@ class OdDefaults:
     quick_stop_option: int = 2
 
 
-def _var(name: str, index: int, subindex: int, data_type: int, access: str, default: object,
+def _var(name: str, index: int, subindex: int, data_type: int, access: str, default: int | str,
          *, mappable: bool = False, minimum: int | None = None,
          maximum: int | None = None) -> ODVariable:
     var = ODVariable(name, index, subindex)
     var.data_type = data_type
     var.access_type = access
-    var.default = default
+    var.default = default  # type: ignore[assignment]  # canopen says int; strings have str
     var.pdo_mappable = mappable
     var.min = minimum
     var.max = maximum

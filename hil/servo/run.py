@@ -38,14 +38,22 @@ import time
 from array import array
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from controllers.base import ServoController
 from controllers.empc import ExplicitMpc
 from controllers.mpc import MpcConfig, TrajectoryMpc
 from controllers.pid import CascadedPid, PidConfig
-from controllers.references import Scenario, Sine, Trapezoid, parse_scenario, wrap180
+from controllers.references import (
+    Reference,
+    Scenario,
+    Sine,
+    Trapezoid,
+    parse_scenario,
+    wrap180,
+)
 from controllers.servo_model import SAMPLE_PERIOD_S
 from drivers.can_drive import CanDriveMaster, Feedback, SdoAbortError
 from hil.core.clock import RealtimeClock, SimClock
@@ -184,7 +192,15 @@ def reference_amplitude(scenario: Scenario) -> float | None:
     return None
 
 
-def make_controller(config: ServoRunConfig, scenario: Scenario) -> Any:
+@runtime_checkable
+class Predicting(Protocol):
+    """A controller that tells its predicted inputs and outputs (the MPCs), recorded to
+    ``/mpc/prediction``."""
+
+    def prediction(self) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+def make_controller(config: ServoRunConfig, scenario: Scenario) -> ServoController:
     """The controller of the run (pure: ``step(position_deg, t_s) -> mA``, ``reset()``)."""
     reference = scenario.reference
     if config.controller == "pid":
@@ -200,7 +216,7 @@ def make_controller(config: ServoRunConfig, scenario: Scenario) -> Any:
 class ReferenceSamples:
     """r(k T) for tick k, computed a block of ticks at a time (vectorised, constant memory)."""
 
-    def __init__(self, reference: Any, dt: float, block: int = 2048) -> None:
+    def __init__(self, reference: Reference, dt: float, block: int = 2048) -> None:
         self.reference, self.dt, self.block = reference, dt, block
         self._first = -1
         self._values = np.empty(0)
@@ -262,7 +278,7 @@ class TrackingStats:
 class ServoTask(Task):
     """read feedback -> controller step -> write command, recording every tick."""
 
-    def __init__(self, session: Session, master: CanDriveMaster, controller: Any,
+    def __init__(self, session: Session, master: CanDriveMaster, controller: ServoController,
                  scenario: Scenario, config: ServoRunConfig, first: Feedback) -> None:
         super().__init__("servo")
         self.session, self.master, self.controller = session, master, controller
@@ -276,11 +292,11 @@ class ServoTask(Task):
         self.stats = TrackingStats(config.settle_s)
         self.prediction_every = config.prediction_period
         self.hu = config.hu
-        self.predicts = hasattr(controller, "prediction")
+        self.predictor = controller if isinstance(controller, Predicting) else None
         self.commands = session.topic("/drive/command", COMMAND_SCHEMA)
         self.feedbacks = session.topic("/drive/feedback", FEEDBACK_SCHEMA)
         self.predictions = (session.topic("/mpc/prediction", PREDICTION_SCHEMA)
-                            if self.predicts else None)
+                            if self.predictor is not None else None)
         self._feedback = first
         self._disturbance_ma = 0
         self._tick = 0
@@ -305,8 +321,8 @@ class ServoTask(Task):
         if not feedback.fresh:
             self.stale += 1
         self.stats.add(t_s, error, u, compute_us)
-        message = {"t_s": t_s, "reference_deg": r, "error_deg": error, "command_mA": u,
-                   "compute_us": compute_us}
+        message: dict[str, Any] = {"t_s": t_s, "reference_deg": r, "error_deg": error,
+                                   "command_mA": u, "compute_us": compute_us}
         if self.scenario.disturbance is not None:
             message["disturbance_mA"] = self._disturbance_for(t_s)
         path = self._solver_path()
@@ -318,8 +334,9 @@ class ServoTask(Task):
             "statusword": feedback.statusword, "cycle": feedback.cycle,
             "fresh": feedback.fresh, "rtt_us": feedback.rtt_us})
         self.commands.log(t_ns, message)
-        if self.predictions is not None and n % self.prediction_every == 0:
-            u_pred, y_pred = self.controller.prediction()
+        if self.predictor is not None and self.predictions is not None \
+                and n % self.prediction_every == 0:
+            u_pred, y_pred = self.predictor.prediction()
             # rounded far below the wire's resolution (1 mA, 3.4e-4 deg): halves the JSON cost
             self.predictions.log(t_ns, {"t_s": t_s,
                                         "u_mA": np.round(u_pred[: self.hu], 3).tolist(),
@@ -503,8 +520,9 @@ def collect_kpis(config: ServoRunConfig, scenario: Scenario, session: Session,
             if task is not None else None
         if counts is not None:
             base["solver_paths"] = dict(counts)
-        if task is not None and hasattr(task.controller, "fallbacks"):
-            base["empc_fallbacks"] = int(task.controller.fallbacks)
+        fallbacks = getattr(task.controller, "fallbacks", None) if task is not None else None
+        if fallbacks is not None:
+            base["empc_fallbacks"] = int(fallbacks)
     if error is not None:
         base["error"] = str(error)
     return base
