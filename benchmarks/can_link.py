@@ -37,13 +37,14 @@ import can
 import canopen
 import numpy as np
 
-from drivers.can_drive import CanDriveMaster, DriveMasterConfig, load_drive_config, open_drive
+from drivers.can_drive import CanDriveMaster, DriveMasterConfig
 from emulators.drive_node import BusRunner, DriveEmulatorConfig, DriveNode, bus_sender
 from emulators.drive_od import build_object_dictionary
 from emulators.drive_plant import AxisPlant
 from hil.core.clock import RealtimeClock
-from hil.core.config import deep_merge
 from hil.core.loop import FixedRateLoop, FunctionTask
+from hil.servo.config import load_drive_config
+from hil.servo.rig import open_drive
 
 PERIOD_S = 500e-6
 REPO = Path(__file__).resolve().parents[1]
@@ -133,8 +134,10 @@ def start_emulator(config_path: str) -> tuple[subprocess.Popen, int]:
     proc = subprocess.Popen(
         [sys.executable, "-m", "hil", "emulate", "drive", "--socketcand", "127.0.0.1:0",
          "--config", config_path], stdout=subprocess.PIPE, text=True, env=env)
-    ready, _, _ = select.select([proc.stdout], [], [], 30)
-    line = proc.stdout.readline() if ready else ""
+    stdout = proc.stdout
+    assert stdout is not None  # stdout=PIPE
+    ready, _, _ = select.select([stdout], [], [], 30)
+    line = stdout.readline() if ready else ""
     match = re.search(r":(\d+) ", line)
     if not match:
         proc.kill()
@@ -198,7 +201,7 @@ def print_realtime(label: str, r: dict) -> None:
 
 
 def part2(realtime_s: float) -> None:
-    config, _ = load_drive_config(overrides={"master": {"sdo_timeout_ms": 3000,
+    config = load_drive_config(overrides={"master": {"sdo_timeout_ms": 3000,
                                                         "heartbeat_timeout_ms": 2000}})
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "drive.toml"
@@ -207,7 +210,7 @@ def part2(realtime_s: float) -> None:
         try:
             where = f"socketcand://127.0.0.1:{port}"
             print(f"2. socketcand to a separate emulator process (127.0.0.1:{port})")
-            relaxed = deep_merge(config, {"master": {"rx_timeout_us": 200_000}})
+            relaxed = config.laid_over({"master": {"rx_timeout_us": 200_000}})
             rate, rtt = run_lockstep(open_drive(where, relaxed), 4000)
             echo = echo_round_trip(port, 2000)
             print(f"   {'':44}{'cycles/s':>10}   {'rtt p50':>7} {'p99 us':>7}")

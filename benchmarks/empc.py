@@ -86,9 +86,9 @@ def sample_thetas(law, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray
     seen: list[np.ndarray] = []
 
     class Recording(TrajectoryMpc):
-        def step(self, position_deg: float, t: float) -> float:
+        def step(self, position_deg: float, t_s: float) -> float:
             seen.append(self._theta.copy())  # θ of the previous tick, fine for timing
-            return super().step(position_deg, t)
+            return super().step(position_deg, t_s)
 
     reference = Sine(2.0, 10.0)
     simulate(Recording(reference, cfg), reference, 1.0, current_limit_mA=cfg.u_max)

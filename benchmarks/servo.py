@@ -26,7 +26,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from controllers.mpc import MpcConfig, TrajectoryMpc
+from controllers.base import ServoController
+from controllers.mpc import DaqpSolver, MpcConfig, TrajectoryMpc
 from controllers.pid import CascadedPid
 from controllers.references import Sine
 from controllers.servo_sim import simulate
@@ -45,7 +46,7 @@ CASES = ((12000.0, "10 Hz, 12 A (unconstrained)"), (1000.0, "10 Hz, 1000 mA (sat
 class _Bare:
     """A controller that commands nothing: the plant-only baseline of the lockstep speed."""
 
-    def step(self, position_deg: float, t: float) -> float:
+    def step(self, position_deg: float, t_s: float) -> float:
         return 0.0
 
     def reset(self) -> None:
@@ -71,7 +72,9 @@ def tick_compute() -> float:
             simulate(fast, reference, 0.05, current_limit_mA=limit)  # warm-up
             run = simulate(fast, reference, 1.0, current_limit_mA=limit)
             f50, f99 = _us(run.compute_ns)
-            qp_share = fast.solver.counts["qp"] / max(1, sum(fast.solver.counts.values()))
+            assert isinstance(fast.solver, DaqpSolver)  # the default online solver
+            counts = fast.solver.counts
+            qp_share = counts["qp"] / max(1, sum(counts.values()))
             slow = TrajectoryMpc(reference, cfg, solver="cvxpy")
             ref_run = simulate(slow, reference, 0.1, current_limit_mA=limit)
             c50, c99 = _us(ref_run.compute_ns)
@@ -88,7 +91,7 @@ def lockstep() -> float:
     """Print simulated seconds per wall second; return the MPC H_u = 8 figure."""
     duration = 5.0
     reference = Sine(2.0, 10.0)
-    runs = {
+    runs: dict[str, ServoController] = {
         "plant only (baseline)": _Bare(),
         "cascaded PID": CascadedPid(reference, None),
         "MPC FOH H_t = H_u = 8": TrajectoryMpc(reference, MpcConfig(u_min=-12000.0,

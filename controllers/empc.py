@@ -59,7 +59,7 @@ from controllers.empc_tree import (
     TreeEvaluator,
     build_tree,
 )
-from controllers.mpc import CondensedQP, DaqpSolver, MpcConfig, TrajectoryMpc, condense
+from controllers.mpc import CondensedQP, MpcConfig, QpSolver, TrajectoryMpc, condense
 from controllers.mpqp import MpQP, MpqpSolution, solve_mpqp
 from controllers.references import Reference
 from controllers.servo_kalman import KalmanTuning
@@ -295,7 +295,7 @@ class ExplicitSolver:
     "explicit" or "fallback", ``last_reason`` "outside_box" or "no_region" after a fallback.
     """
 
-    def __init__(self, law: ExplicitLaw, online: DaqpSolver) -> None:
+    def __init__(self, law: ExplicitLaw, online: QpSolver) -> None:
         self.law = law
         self.online = online
         self._P = np.ascontiguousarray(law.P)
@@ -324,7 +324,7 @@ class ExplicitSolver:
 class ExplicitMpc(TrajectoryMpc):
     """:class:`TrajectoryMpc` with the explicit law in place of the online QP.
 
-    Same ``step(position_deg, t) -> mA``, ``reset()`` and ``prediction()``. Build it with the
+    Same ``step(position_deg, t_s) -> mA``, ``reset()`` and ``prediction()``. Build it with the
     same arguments as the online MPC plus ``box`` (see :func:`parameter_box`), or pass a
     prebuilt ``law`` (:func:`build_explicit_law`, for the same config and model) to skip the
     offline solve. Each tick solved online is counted in ``fallbacks``; entering and leaving
@@ -348,7 +348,8 @@ class ExplicitMpc(TrajectoryMpc):
             raise ConfigError("empc: the prebuilt explicit law is for another MPC config or "
                               "model")
         self.law = law
-        self.solver = ExplicitSolver(law, self.solver)
+        self.explicit = ExplicitSolver(law, self.solver)
+        self.solver = self.explicit
 
     def reset(self) -> None:
         super().reset()
@@ -356,30 +357,30 @@ class ExplicitMpc(TrajectoryMpc):
         self.fallbacks = 0
         self._fallback_ticks = 0
 
-    def step(self, position_deg: float, t: float) -> float:
-        u = super().step(position_deg, t)
-        solver = self.solver
+    def step(self, position_deg: float, t_s: float) -> float:
+        u = super().step(position_deg, t_s)
+        solver = self.explicit
         if solver.last_path == "fallback":
             self.fallbacks += 1
             if self._fallback_ticks == 0:
-                self.events.append(self._fallback_event(t, solver.last_reason))
+                self.events.append(self._fallback_event(t_s, solver.last_reason))
             self._fallback_ticks += 1
         elif self._fallback_ticks:
-            self.events.append({"t_s": t, "kind": "empc_resume", "level": "info",
+            self.events.append({"t_s": t_s, "kind": "empc_resume", "level": "info",
                                 "message": f"back in the explicit law after "
                                            f"{self._fallback_ticks} online ticks",
                                 "ticks": self._fallback_ticks})
             self._fallback_ticks = 0
         return u
 
-    def _fallback_event(self, t: float, reason: str) -> dict[str, Any]:
+    def _fallback_event(self, t_s: float, reason: str) -> dict[str, Any]:
         phi = self.law.phi(self._theta)
         box = self.law.box
         outside = {name: float(v) for name, v, lo, hi
                    in zip(box.names, phi, box.lower, box.upper, strict=True)
                    if not lo <= v <= hi}
         what = ", ".join(f"{k}={v:.4g}" for k, v in outside.items()) or "inside the box"
-        return {"t_s": t, "kind": "empc_fallback", "level": "warning", "reason": reason,
+        return {"t_s": t_s, "kind": "empc_fallback", "level": "warning", "reason": reason,
                 "message": f"explicit MPC: {reason.replace('_', ' ')} ({what}); "
                            "solving the QP online", "outside": outside}
 
@@ -389,7 +390,7 @@ class ExplicitMpc(TrajectoryMpc):
         return events
 
     def prediction(self) -> tuple[np.ndarray, np.ndarray]:
-        if self.solver.last_path == "explicit":
+        if self.explicit.last_path == "explicit":
             moves = self.law.moves(self._theta)
-            self._dU = moves if moves is not None else self.solver.online.solve(self._theta)
+            self._dU = moves if moves is not None else self.explicit.online.solve(self._theta)
         return super().prediction()

@@ -196,7 +196,7 @@ class SequentialSearch:
 
 
 class _Builder:
-    def __init__(self, regions: Sequence[Polyhedron], labels: Sequence[int],
+    def __init__(self, regions: Sequence[Polyhedron], labels: Sequence[int] | np.ndarray,
                  box: _Box, covered: bool) -> None:
         self.box = box
         self.covered = covered
@@ -254,6 +254,8 @@ class _Builder:
             rows = np.flatnonzero(undecided)
             if rows.size:
                 ext = self.lp.minima(At, bt, np.vstack([A_pl[rows], -A_pl[rows]]))
+                if ext is None:
+                    raise HilError("empc tree: a region is empty (inconsistent partition)")
                 low, high = ext[: rows.size], -ext[rows.size:]
                 sign[rows, i] = np.where(high <= b_pl[rows] + _INTERIOR_TOL, -1, np.where(
                     low >= b_pl[rows] - _INTERIOR_TOL, 1, 0))
@@ -301,7 +303,8 @@ class _Builder:
         right: list[int] = []
         label: list[int] = []
         # Breadth-first, so children always have larger indices than their parent.
-        queue = [(np.arange(len(self.regions_t)), np.zeros((0, n)), np.zeros(0), frozenset())]
+        queue: list[tuple[np.ndarray, np.ndarray, np.ndarray, frozenset[int]]] = [
+            (np.arange(len(self.regions_t)), np.zeros((0, n)), np.zeros(0), frozenset())]
         head = 0
         while head < len(queue):
             members, cell_A, cell_b, used = queue[head]
@@ -383,7 +386,8 @@ class _Builder:
         return best
 
 
-def build_tree(regions: Sequence[Polyhedron], labels: Sequence[int], lower: np.ndarray,
+def build_tree(regions: Sequence[Polyhedron], labels: Sequence[int] | np.ndarray,
+               lower: np.ndarray,
                upper: np.ndarray, covered: bool = False,
                candidates_per_node: int = 4) -> SearchTree:
     """The search tree of regions (with their law labels) in the box.

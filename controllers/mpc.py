@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Protocol
 
 import daqp
 import numpy as np
@@ -89,7 +89,9 @@ def reference_expansion(ht: int, hp: int, ert: str) -> np.ndarray:
 
 
 def _weights(value: float | Sequence[float], count: int, name: str, strict: bool) -> np.ndarray:
-    w = np.full(count, float(value)) if np.isscalar(value) else np.asarray(value, dtype=float)
+    w = np.asarray(value, dtype=float)
+    if w.ndim == 0:
+        w = np.full(count, float(w))
     if w.shape != (count,):
         raise ConfigError(f"mpc.{name}: expected a number or {count} numbers, got {w.size}")
     if np.any(~np.isfinite(w)) or np.any(w <= 0 if strict else w < 0):
@@ -213,6 +215,12 @@ def condense(config: MpcConfig, model: StateSpaceModel | None = None) -> Condens
     return CondensedQP(H=H, F=F, G=np.vstack(G_rows), W=np.concatenate(W_rows),
                        X=np.vstack(X_rows), Psi=Psi, Theta=Theta, ref_expansion=Tr, n_x=n_x,
                        output_rows=output_rows)
+
+
+class QpSolver(Protocol):
+    """What :class:`TrajectoryMpc` solves each tick with: θ -> ΔU (H_u moves)."""
+
+    def solve(self, theta: np.ndarray) -> np.ndarray: ...
 
 
 class DaqpSolver:
@@ -344,7 +352,8 @@ class CvxpyReferenceSolver:
 
 
 class TrajectoryMpc:
-    """The MPC controller: ``step(position_deg, t) -> current_mA`` once per tick.
+    """The MPC controller (a :class:`controllers.base.ServoController`):
+    ``step(position_deg, t_s) -> current_mA`` once per tick.
 
     Per tick: unwrap the measured position, correct the Kalman estimate, build θ from the
     estimate, the last current and the next H_t reference samples, solve, apply
@@ -362,7 +371,7 @@ class TrajectoryMpc:
         A, B, C = velocity_form(self.model)
         self.kalman = SteadyStateKalman(A, B, C, kalman)
         if solver == "daqp":
-            self.solver: DaqpSolver | CvxpyReferenceSolver = DaqpSolver(self.qp)
+            self.solver: QpSolver = DaqpSolver(self.qp)
         elif solver == "cvxpy":
             self.solver = CvxpyReferenceSolver(self.config, self.model)
         else:
@@ -393,8 +402,8 @@ class TrajectoryMpc:
                 window[1:] = first + np.cumsum((steps + 180.0) % 360.0 - 180.0)
         return window
 
-    def step(self, position_deg: float, t: float) -> float:
-        """Current command [mA] for the measured position [deg] at time ``t`` [s]."""
+    def step(self, position_deg: float, t_s: float) -> float:
+        """Current command [mA] for the measured position [deg] at time ``t_s`` [s]."""
         n_x = self.qp.n_x
         y = self._position.update(float(position_deg))
         if not self._started:
@@ -406,7 +415,7 @@ class TrajectoryMpc:
         theta = self._theta
         theta[:n_x] = x
         theta[n_x] = self._u
-        theta[n_x + 1:] = self.reference_window(t, near=y)
+        theta[n_x + 1:] = self.reference_window(t_s, near=y)
         self._dU = self.solver.solve(theta)
         u = min(max(self._u + float(self._dU[0]), self.config.u_min), self.config.u_max)
         self.kalman.predict(u - self._u)

@@ -292,9 +292,10 @@ class _Solver:
         GI = qp.G[inactive]
         A = np.vstack([GI @ K - qp.X[inactive], -L])  # primal feasibility, λ >= 0
         b = np.concatenate([qp.W[inactive] - GI @ k, l_])
-        A, b = _normalise_rows(A, b)
-        if A is None:
+        rows = _normalise_rows(A, b)
+        if rows is None:
             return None
+        A, b = rows
         centre, radius = self.lp.chebyshev(A, b)
         if radius <= self.radius_tol:
             if radius > 0:
@@ -327,13 +328,12 @@ class _Solver:
         return A_all[keep], b_all[keep], is_box[keep]
 
 
-def _normalise_rows(A: np.ndarray, b: np.ndarray,
-                    ) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
-    """Rows scaled to unit norm; rows 0't <= b dropped (None, None if such a row is violated)."""
+def _normalise_rows(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Rows scaled to unit norm; rows 0't <= b dropped (None if such a row is violated)."""
     norms = np.linalg.norm(A, axis=1)
     zero = norms <= 1e-12 * max(1.0, float(norms.max(initial=0.0)))
     if np.any(b[zero] < -1e-9):
-        return None, None
+        return None
     keep = ~zero
     return A[keep] / norms[keep, None], b[keep] / norms[keep]
 

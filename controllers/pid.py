@@ -108,7 +108,8 @@ class SecondOrderFilter:
 
 
 class CascadedPid:
-    """The incumbent drive controller: ``step(position_deg, t) -> current_mA``."""
+    """The incumbent drive controller (a :class:`controllers.base.ServoController`):
+    ``step(position_deg, t_s) -> current_mA``."""
 
     def __init__(self, reference: Reference, config: PidConfig | None = None,
                  model: StateSpaceModel | None = None) -> None:
@@ -136,15 +137,15 @@ class CascadedPid:
         if self.notch:
             self.notch.reset()
 
-    def step(self, position_deg: float, t: float) -> float:
+    def step(self, position_deg: float, t_s: float) -> float:
         c = self.config
         y = self._position.update(float(position_deg))
-        r = float(self.reference.position(np.array([t]))[0])
+        r = float(self.reference.position(np.array([t_s]))[0])
         velocity = 0.0 if self._last_y is None else (y - self._last_y) / self.dt * RPM_PER_DEG_S
         self._last_y = y
         v_ref = c.k_pos_rpm_per_deg * wrap180(r - y)
         if c.velocity_feedforward:
-            r_next = float(self.reference.position(np.array([t + self.dt]))[0])
+            r_next = float(self.reference.position(np.array([t_s + self.dt]))[0])
             v_ref += wrap180(r_next - r) / self.dt * RPM_PER_DEG_S
         e_v = v_ref - velocity
         k = 1000.0 * c.k_vel_a_per_rpm  # mA per rpm

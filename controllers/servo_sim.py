@@ -12,22 +12,15 @@ import math
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any
 
 import numpy as np
 
+from controllers.base import Resettable, ServoController
 from controllers.mpc import MpcConfig, TrajectoryMpc
 from controllers.pid import CascadedPid, PidConfig
 from controllers.references import Disturbance, Reference, Sine
 from controllers.servo_model import StateSpaceModel, published_axis_model
-
-
-class ServoController(Protocol):
-    """What the servo loop drives once per tick."""
-
-    def step(self, position_deg: float, t: float) -> float: ...
-
-    def reset(self) -> None: ...
 
 
 @dataclass
@@ -86,7 +79,8 @@ def simulate(controller: ServoController, reference: Reference, duration_s: floa
     position = np.empty(ticks)
     current = np.empty(ticks)
     compute_ns = np.empty(ticks, dtype=np.int64)
-    controller.reset()
+    if isinstance(controller, Resettable):
+        controller.reset()
     clock = time.perf_counter_ns
     wall0 = time.perf_counter()
     for k in range(ticks):
@@ -127,7 +121,7 @@ tracking needs more current than allowed (the MPCs saturate)."""
 
 
 def _case(frequency: float, limit: float, horizons: list[int], hp: int, q: float, r: float,
-          amplitude: float) -> dict:
+          amplitude: float) -> dict[str, Any]:
     """One panel of Figs. 7-8 (see :func:`figure_table`)."""
 
     def mpc(ert: str, ht: int) -> dict[str, float]:
@@ -139,12 +133,9 @@ def _case(frequency: float, limit: float, horizons: list[int], hp: int, q: float
         return cycle_error(lambda ref: CascadedPid(ref, cfg), frequency, amplitude, limit)
 
     setpoint = mpc("zoh", 1)
-    absolute = {
-        "pid": pid(False),
-        "pid_vff": pid(True),
-        "zoh": [setpoint if ht == 1 else mpc("zoh", ht) for ht in horizons],
-        "foh": [mpc("foh", ht) if ht >= 2 else None for ht in horizons],
-    }
+    pid_plain, pid_vff = pid(False), pid(True)
+    zoh = [setpoint if ht == 1 else mpc("zoh", ht) for ht in horizons]
+    foh = [mpc("foh", ht) if ht >= 2 else None for ht in horizons]
     base = setpoint["cumulative_error_deg"]
 
     def normalised(metrics: dict[str, float] | None) -> float | None:
@@ -155,17 +146,17 @@ def _case(frequency: float, limit: float, horizons: list[int], hp: int, q: float
         "current_limit_mA": limit,
         "horizons": horizons,
         "setpoint": setpoint,
-        "pid": normalised(absolute["pid"]),
-        "pid_vff": normalised(absolute["pid_vff"]),
-        "zoh": [normalised(m) for m in absolute["zoh"]],
-        "foh": [normalised(m) for m in absolute["foh"]],
-        "absolute": absolute,
+        "pid": normalised(pid_plain),
+        "pid_vff": normalised(pid_vff),
+        "zoh": [normalised(m) for m in zoh],
+        "foh": [normalised(m) for m in foh],
+        "absolute": {"pid": pid_plain, "pid_vff": pid_vff, "zoh": zoh, "foh": foh},
     }
 
 
 def figure_table(cases: Iterable[tuple[float, float]] = PAPER_CASES,
                  horizons: Iterable[int] = range(1, 9), hp: int = 50, q: float = 1e6,
-                 r: float = 1.0, amplitude: float = 2.0) -> list[dict]:
+                 r: float = 1.0, amplitude: float = 2.0) -> list[dict[str, Any]]:
     """Figs. 7-8: per (frequency, current limit) case, the cumulative |error| over one cycle
     for PID and for MPC with ZOH and FOH ERT at H_t = H_u = each horizon, normalised to MPC
     set-point tracking (ZOH, H_t = 1), as in the paper; FOH is undefined at H_t = 1 (None).

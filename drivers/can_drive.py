@@ -20,8 +20,12 @@ drive into its safe state (quick stop, then disable voltage), emits an event and
 later cyclic call raises until :meth:`CanDriveMaster.reset_fault` recovers explicitly.
 EMCY frames become ``drive.emcy`` events through ``on_event`` (``Session.event`` fits).
 
-:func:`open_drive` builds a master for ``emulated`` (a lockstep emulator on a private python-can
-virtual bus), ``socketcand://HOST:PORT[/CHANNEL]`` or any python-can ``INTERFACE://CHANNEL``.
+The master is a :class:`hil.core.types.Device`: :meth:`~CanDriveMaster.open` (SDO, voltage
+disabled), :meth:`~CanDriveMaster.configure` (mode, PDO map, heartbeats, limits),
+:meth:`~CanDriveMaster.enable` (OPERATION ENABLED), :meth:`~CanDriveMaster.safe_state`,
+:meth:`~CanDriveMaster.close`. :func:`open_socketcand` and :func:`open_interface` build one for
+``socketcand://HOST:PORT[/CHANNEL]`` and any python-can ``INTERFACE://CHANNEL``; the CiA 402
+vocabulary (states, controlwords, PDO map) is :mod:`drivers.cia402`.
 """
 
 from __future__ import annotations
@@ -34,32 +38,45 @@ import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from importlib import resources
-from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
 import can
-from canopen.profiles.p402 import State402
 from canopen.sdo import SdoAbortedError
 
 from drivers.can_bus_time import BusBudget, cia402_cyclic_frames, cycle_budget
-from hil.core.config import deep_merge, load_toml, lookup, parse_toml
-from hil.core.errors import ConfigError, HilError
-
-MODES = {"cst": 10, "csp": 8}
-MODE_BITS = {10: 0x200, 8: 0x80}  # 0x6502 supported drive modes
-CW_DISABLE_VOLTAGE, CW_QUICK_STOP, CW_SHUTDOWN = 0x0000, 0x0002, 0x0006
-CW_SWITCH_ON, CW_ENABLE_OPERATION, CW_FAULT_RESET = 0x0007, 0x000F, 0x0080
-NMT_START, NMT_PRE_OPERATIONAL = 0x01, 0x80
-PDO_NOT_VALID = 0x8000_0000
-OPERATION_ENABLED, FAULT, FAULT_REACTION = "OPERATION ENABLED", "FAULT", "FAULT REACTION ACTIVE"
-SWITCH_ON_DISABLED, QUICK_STOP_ACTIVE = "SWITCH ON DISABLED", "QUICK STOP ACTIVE"
-ENABLE_STEPS = (  # (controlword, state it leads to) from SWITCH ON DISABLED
-    (CW_SHUTDOWN, "READY TO SWITCH ON"),
-    (CW_SWITCH_ON, "SWITCHED ON"),
-    (CW_ENABLE_OPERATION, OPERATION_ENABLED),
+from drivers.cia402 import (
+    CONTROLWORD,
+    CW_DISABLE_VOLTAGE,
+    CW_ENABLE_OPERATION,
+    CW_FAULT_RESET,
+    CW_QUICK_STOP,
+    CYCLIC_SYNCHRONOUS_POSITION,
+    CYCLIC_SYNCHRONOUS_TORQUE,
+    FAULT,
+    FAULT_REACTION_ACTIVE,
+    MODES,
+    NOT_READY_TO_SWITCH_ON,
+    OPERATION_ENABLED,
+    PDO_NOT_VALID,
+    QUICK_STOP_ACTIVE,
+    STATUSWORD,
+    SUPPORTED_MODE_BITS,
+    SWITCH_ON_DISABLED,
+    TPDO1,
+    TPDO2,
+    TPDOS,
+    PdoMap,
+    enable_steps,
+    rpdo1_for,
+    state_of,
 )
+from hil.core.errors import ConfigError, HilError
+from hil.core.types import Device, EventSink, LinkWatchdog, no_event
+
+NMT_START, NMT_PRE_OPERATIONAL = 0x01, 0x80
+CST, CSP = CYCLIC_SYNCHRONOUS_TORQUE, CYCLIC_SYNCHRONOUS_POSITION
+ENABLE_STEPS = enable_steps()  # (controlword, state it leads to) from SWITCH ON DISABLED
 EMCY_NAMES = {
     0x0000: "error reset", 0x1000: "generic error", 0x2310: "continuous over-current",
     0x3210: "DC link over-voltage", 0x4310: "drive over-temperature",
@@ -68,7 +85,6 @@ EMCY_NAMES = {
     0x8140: "recovered from bus-off", 0x8210: "PDO not processed (length error)",
     0x8220: "PDO length exceeded", 0x8240: "unexpected SYNC data length",
 }
-EventFn = Callable[..., None]
 
 
 class DriveError(HilError):
@@ -99,52 +115,11 @@ class SdoAbortError(DriveError):
         self.code = code
 
 
-def state_of(statusword: int) -> str:
-    """The CiA 402 state a statusword reports, by canopen's ``State402`` masks."""
-    for state, (mask, value) in State402.SW_MASK.items():
-        if statusword & mask == value:
-            return state
-    return "UNKNOWN"
-
-
 # ------------------------------------------------------------------------------- config
-def load_drive_config(path: str | Path | None = None,
-                      overrides: dict[str, Any] | None = None) -> tuple[dict[str, Any], str]:
-    """The package default ``hil/configs/drive.toml``, a user file laid over it, then
-    ``overrides`` (e.g. from command-line flags: ``{"master": {"current_limit_mA": 12000.0}}``).
-
-    Returns (merged config, the text of the user file or of the default)."""
-    text = resources.files("hil.configs").joinpath("drive.toml").read_text("utf-8")
-    config = parse_toml(text, "hil/configs/drive.toml")
-    if path is not None:
-        user, text = load_toml(path)
-        config = deep_merge(config, user)
-    return deep_merge(config, overrides or {}), text
-
-
-MASTER_KEYS = (
-    "node_id", "mode", "cycle_period_us", "current_limit_mA", "heartbeat_id",
-    "heartbeat_period_ms", "heartbeat_timeout_ms", "drive_heartbeat_ms", "stale_cycles",
-    "rx_timeout_us", "sdo_timeout_ms", "state_timeout_ms", "quick_stop_option",
-    "quick_stop_timeout_ms", "standstill_deg_s",
-)
-
-
-def reject_unknown_keys(config: dict[str, Any], table: str, known: tuple[str, ...],
-                        source: str) -> None:
-    """A misspelt key would silently fall back to its default: refuse it instead."""
-    values = config.get(table, {})
-    if not isinstance(values, dict):
-        raise ConfigError(f"{source}: '{table}' must be a table")
-    unknown = sorted(set(values) - set(known))
-    if unknown:
-        raise ConfigError(f"{source}: unknown key '{table}.{unknown[0]}' (known: "
-                          f"{', '.join(known)})")
-
-
 @dataclass(frozen=True)
 class DriveMasterConfig:
-    """The master's settings (``[master]`` and ``[bus]`` of drive.toml)."""
+    """The master's settings (``[master]`` and ``[bus]`` of drive.toml, read by
+    :mod:`hil.servo.config`)."""
 
     node_id: int = 1
     mode: str = "cst"
@@ -163,50 +138,6 @@ class DriveMasterConfig:
     quick_stop_option: int = 2
     quick_stop_timeout_s: float = 3.0
     standstill_deg_s: float = 2.0
-
-    @classmethod
-    def from_config(cls, config: dict[str, Any], source: str = "config") -> DriveMasterConfig:
-        d = cls()
-        reject_unknown_keys(config, "master", MASTER_KEYS, source)
-        reject_unknown_keys(config, "bus", ("bitrate", "channel"), source)
-
-        def get(key: str, kind: type, default: Any, ok: Callable[[Any], bool] = lambda _v: True,
-                what: str = "") -> Any:
-            value = lookup(config, key, kind, default, source)
-            if not ok(value):
-                raise ConfigError(f"{source}: key '{key}' must be {what}, got {value!r}")
-            return value
-
-        def m(key: str, kind: type, default: Any, ok: Callable[[Any], bool] = lambda v: v > 0,
-              what: str = "> 0") -> Any:
-            return get(f"master.{key}", kind, default, ok, what)
-
-        mode = m("mode", str, d.mode, lambda v: v in MODES, f"one of {sorted(MODES)}")
-        return cls(
-            node_id=m("node_id", int, d.node_id, lambda v: 1 <= v <= 127, "1..127"),
-            mode=mode,
-            cycle_period_s=m("cycle_period_us", int, 500) / 1e6,
-            bitrate=get("bus.bitrate", int, d.bitrate, lambda v: v > 0, "> 0"),
-            channel=get("bus.channel", str, d.channel, bool, "a bus name"),
-            current_limit_ma=m("current_limit_mA", float, d.current_limit_ma,
-                               lambda v: 0 < v <= 32_767, "in (0, 32767]"),
-            heartbeat_id=m("heartbeat_id", int, d.heartbeat_id, lambda v: 1 <= v <= 127,
-                           "1..127"),
-            heartbeat_period_ms=m("heartbeat_period_ms", int, d.heartbeat_period_ms,
-                                  lambda v: 0 <= v <= 0xFFFF, "0..65535"),
-            heartbeat_timeout_ms=m("heartbeat_timeout_ms", int, d.heartbeat_timeout_ms,
-                                   lambda v: 0 <= v <= 0xFFFF, "0..65535"),
-            drive_heartbeat_ms=m("drive_heartbeat_ms", int, d.drive_heartbeat_ms,
-                                 lambda v: 0 <= v <= 0xFFFF, "0..65535"),
-            stale_cycles=m("stale_cycles", int, d.stale_cycles),
-            rx_timeout_s=m("rx_timeout_us", int, 400) / 1e6,
-            sdo_timeout_s=m("sdo_timeout_ms", int, 1000) / 1e3,
-            state_timeout_s=m("state_timeout_ms", int, 2000) / 1e3,
-            quick_stop_option=m("quick_stop_option", int, d.quick_stop_option,
-                                lambda v: v in (0, 1, 2, 5, 6), "one of 0, 1, 2, 5, 6"),
-            quick_stop_timeout_s=m("quick_stop_timeout_ms", int, 3000) / 1e3,
-            standstill_deg_s=m("standstill_deg_s", float, d.standstill_deg_s),
-        )
 
 
 # ------------------------------------------------------------------------------ feedback
@@ -246,24 +177,29 @@ class LinkStats:
 
 
 # -------------------------------------------------------------------------------- master
-class CanDriveMaster:
-    """CiA 402 master for one drive on a python-can bus. Call :meth:`start` first."""
+class CanDriveMaster(Device):
+    """CiA 402 master for one drive on a python-can bus (a :class:`~hil.core.types.Device`).
+
+    :meth:`start` (:meth:`open`, :meth:`configure`, :meth:`enable`) comes first. ``url`` names
+    the drive in events and errors (default: the bus's channel info)."""
 
     def __init__(
         self,
         bus: can.BusABC,
         config: DriveMasterConfig | None = None,
         *,
-        on_event: EventFn | None = None,
+        on_event: EventSink = no_event,
         timebase: str = "monotonic",
         pump: Callable[[], None] | None = None,
         bus_factory: Callable[[], can.BusABC] | None = None,
         closers: tuple[Callable[[], None], ...] = (),
+        url: str | None = None,
     ) -> None:
         if timebase not in ("monotonic", "cycles"):
             raise ValueError(f"timebase must be 'monotonic' or 'cycles', got {timebase!r}")
         self.config = config or DriveMasterConfig()
         self.bus = bus
+        self._url = url if url is not None else str(bus.channel_info)
         self.node_id = self.config.node_id
         self.mode = MODES[self.config.mode]
         self._on_event = on_event
@@ -274,8 +210,10 @@ class CanDriveMaster:
         self._period_ns = round(self.config.cycle_period_s * 1e9)
         self._rx_timeout_s = 0.0 if pump is not None else self.config.rx_timeout_s
         n = self.node_id
-        self._tpdo1, self._tpdo2, self._rpdo1 = 0x180 + n, 0x280 + n, 0x200 + n
-        self._rpdo_layout = struct.Struct("<Hh" if self.mode == 10 else "<Hi")
+        self._rpdo1_map = rpdo1_for(self.mode)
+        self._tpdo1, self._tpdo2 = TPDO1.cob_id(n), TPDO2.cob_id(n)
+        self._rpdo1 = self._rpdo1_map.cob_id(n)
+        self._rpdo_layout = struct.Struct("<Hh" if self.mode == CST else "<Hi")
         self._sync = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)
         self._heartbeat = can.Message(arbitration_id=0x700 + self.config.heartbeat_id,
                                       data=b"\x05", is_extended_id=False)
@@ -286,7 +224,7 @@ class CanDriveMaster:
         self.last_emcy_code = 0
         self.feedback: Feedback | None = None
         self._cycle = 0
-        self._stale_run = 0
+        self.watchdog = LinkWatchdog(self.config.stale_cycles, "cycles without a TPDO")
         self._awaiting = False
         self._got = 0
         self._rx_statusword = self._rx_position = self._rx_velocity = self._rx_torque = 0
@@ -301,10 +239,18 @@ class CanDriveMaster:
         self._latched: DriveError | None = None
         self._closed = False
 
+    @property
+    def url(self) -> str:
+        return self._url
+
+    @property
+    def link_up(self) -> bool:
+        """False from a lost link (no TPDO, send error, reboot) until :meth:`reset_fault`."""
+        return not self.watchdog.lost and not isinstance(self._latched, DriveLinkLostError)
+
     # ----------------------------------------------------------------------- plumbing
     def _event(self, kind: str, message: str, level: str = "info", **data: Any) -> None:
-        if self._on_event is not None:
-            self._on_event(kind, message, level=level, source=f"drive{self.node_id}", **data)
+        self._on_event(kind, message, level=level, source=f"drive{self.node_id}", **data)
 
     def _now_ns(self) -> int:
         return self._cycle * self._period_ns if self._timebase == "cycles" else time.monotonic_ns()
@@ -449,11 +395,14 @@ class CanDriveMaster:
     def _bus_budget(self) -> BusBudget:
         c = self.config
         heartbeats = [p / 1000 for p in (c.heartbeat_period_ms, c.drive_heartbeat_ms) if p]
-        frames = cia402_cyclic_frames(c.cycle_period_s, rpdo_bytes=self._rpdo_layout.size,
+        frames = cia402_cyclic_frames(c.cycle_period_s, rpdo_bytes=self._rpdo1_map.size_bytes,
+                                      tpdo_bytes=[pdo.size_bytes for pdo in TPDOS],
                                       heartbeat_periods_s=heartbeats)
         return cycle_budget(c.bitrate, c.cycle_period_s, frames)
 
-    def _map_pdo(self, comm: int, mapping: int, cob_id: int, entries: list[int]) -> None:
+    def _map_pdo(self, pdo: PdoMap) -> None:
+        comm, mapping, cob_id = pdo.comm, pdo.mapping, pdo.cob_id(self.node_id)
+        entries = pdo.mapping_values()
         self.sdo_write(comm, 1, cob_id | PDO_NOT_VALID)
         self.sdo_write(mapping, 0, 0, "<B")
         for sub, entry in enumerate(entries, start=1):
@@ -472,22 +421,22 @@ class CanDriveMaster:
             if exc.code not in (0x0602_0000, 0x0609_0011):
                 raise
 
-    def _configure(self) -> None:
+    def configure(self) -> None:
+        """Write the run's settings by SDO: mode, PDO map, cycle period, heartbeats, limits.
+        The drive is in SWITCH ON DISABLED (after :meth:`open`)."""
         c, n = self.config, self.node_id
         device_type = self.sdo_read_int(0x1000, 0)
         if device_type & 0xFFFF != 402:
             raise DriveError(f"node {n} is not a CiA 402 drive (device type 0x{device_type:08X})")
         supported = self.sdo_read_int(0x6502, 0)
-        if not supported & MODE_BITS[self.mode]:
+        if not supported & SUPPORTED_MODE_BITS[self.mode]:
             raise DriveError(f"drive node {n} does not support mode {c.mode.upper()} "
                              f"({self.mode}): 0x6502 = 0x{supported:08X}")
         self.nmt(NMT_PRE_OPERATIONAL)
         for comm in (0x1401, 0x1402, 0x1403, 0x1802, 0x1803):
             self._disable_pdo(comm)
-        target = 0x6071_0010 if self.mode == 10 else 0x607A_0020
-        self._map_pdo(0x1400, 0x1600, self._rpdo1, [0x6040_0010, target])
-        self._map_pdo(0x1800, 0x1A00, self._tpdo1, [0x6041_0010, 0x6064_0020])
-        self._map_pdo(0x1801, 0x1A01, self._tpdo2, [0x606C_0020, 0x6077_0010])
+        for pdo in (self._rpdo1_map, *TPDOS):
+            self._map_pdo(pdo)
         self.sdo_write(0x1006, 0, round(c.cycle_period_s * 1e6))
         self.sdo_write(0x1017, 0, c.drive_heartbeat_ms, "<H")
         consumer = (c.heartbeat_id << 16) | c.heartbeat_timeout_ms if c.heartbeat_period_ms else 0
@@ -509,7 +458,7 @@ class CanDriveMaster:
                               f"hold with a rated current of {self.rated_current_ma} mA")
         self.sdo_write(0x6072, 0, max_torque, "<H")
         self.sdo_write(0x605A, 0, c.quick_stop_option, "<h")
-        if self.mode == 8:
+        if self.mode == CSP:
             self.sdo_write(0x607A, 0, self.sdo_read_int(0x6064, 0, "<i"), "<i")
         else:
             self.sdo_write(0x6071, 0, 0, "<h")
@@ -527,7 +476,7 @@ class CanDriveMaster:
                         f"up after {c.heartbeat_timeout_ms} ms: it will fault", level="warning")
 
     def _statusword(self) -> int:
-        return self.sdo_read_int(0x6041, 0, "<H")
+        return self.sdo_read_int(STATUSWORD, 0, "<H")
 
     def _reach(self) -> int:
         """The statusword by SDO; a node in NMT STOPPED (no SDO) is sent to PRE-OPERATIONAL.
@@ -535,7 +484,7 @@ class CanDriveMaster:
         NMT is not sent first on purpose: a drive left enabled in OPERATIONAL may take leaving
         OPERATIONAL as a communication fault."""
         try:
-            return self.sdo_read_int(0x6041, 0, "<H", min(0.2, self.config.sdo_timeout_s))
+            return self.sdo_read_int(STATUSWORD, 0, "<H", min(0.2, self.config.sdo_timeout_s))
         except DriveLinkLostError:
             self.nmt(NMT_PRE_OPERATIONAL)
         return self._statusword()
@@ -561,37 +510,49 @@ class CanDriveMaster:
                     f"{self.config.state_timeout_s:g} s")
             self._let_time_pass()
 
-    def start(self) -> Feedback:
-        """Configure the drive by SDO and walk it to OPERATION ENABLED; return its feedback.
+    def open(self) -> None:
+        """Reach the drive by SDO and leave it in SWITCH ON DISABLED (voltage disabled).
 
         A drive found in FAULT is left alone (DriveFaultError): clearing a fault is an explicit
         decision, :meth:`reset_fault`."""
         if self._closed:
             raise DriveError("the drive master is closed")
-        n = self.node_id
         self._latched, self._enabled, self._rebooted = None, False, False
         state = state_of(self._reach())
-        if state in (FAULT, FAULT_REACTION):
+        if state in (FAULT, FAULT_REACTION_ACTIVE):
             code = self.sdo_read_int(0x603F, 0, "<H")
             name = EMCY_NAMES.get(code, "device specific")
-            raise DriveFaultError(f"drive node {n} is in {state} (error code 0x{code:04X}, "
-                                  f"{name}): call reset_fault()", code)
-        if state not in (SWITCH_ON_DISABLED, "NOT READY TO SWITCH ON"):
-            self.sdo_write(0x6040, 0, CW_DISABLE_VOLTAGE, "<H")  # left enabled by someone
+            raise DriveFaultError(f"drive node {self.node_id} is in {state} (error code "
+                                  f"0x{code:04X}, {name}): call reset_fault()", code)
+        if state not in (SWITCH_ON_DISABLED, NOT_READY_TO_SWITCH_ON):
+            self.sdo_write(CONTROLWORD, 0, CW_DISABLE_VOLTAGE, "<H")  # left enabled by someone
         self._wait_state(SWITCH_ON_DISABLED, "disable voltage")
-        self._configure()
+
+    def enable(self) -> None:
+        """NMT start, then the controlwords to OPERATION ENABLED; ``feedback`` is then the
+        drive's, read by SDO. After :meth:`open` and :meth:`configure`."""
+        self._enable()
+
+    def _enable(self) -> Feedback:
+        n = self.node_id
         self.nmt(NMT_START)
         for controlword, wanted in ENABLE_STEPS:
-            self.sdo_write(0x6040, 0, controlword, "<H")
+            self.sdo_write(CONTROLWORD, 0, controlword, "<H")
             self._wait_state(wanted, f"controlword 0x{controlword:04X}")
         self._enabled = True
-        self._stale_run = 0
+        self.watchdog.success()
         self._next_heartbeat_ns = None
-        self.feedback = self._feedback_by_sdo()
-        position = self.feedback.position_deg
+        feedback = self.feedback = self._feedback_by_sdo()
+        position = feedback.position_deg
         self._event("drive.enabled", f"drive node {n} OPERATION ENABLED at {position:.4f} deg",
                     position_deg=position)
-        return self.feedback
+        return feedback
+
+    def start(self) -> Feedback:
+        """:meth:`open`, :meth:`configure`, :meth:`enable`; return the drive's feedback."""
+        self.open()
+        self.configure()
+        return self._enable()
 
     def _feedback_by_sdo(self) -> Feedback:
         self._rx_statusword = self._statusword()
@@ -606,22 +567,21 @@ class CanDriveMaster:
         if self._closed:
             raise DriveError("the drive master is closed")
         if isinstance(self._latched, DriveLinkLostError) and self._bus_factory is not None:
-            old, self.bus = self.bus, None
             with contextlib.suppress(Exception):  # the old connection is gone anyway
-                old.shutdown()
+                self.bus.shutdown()
             self.bus = self._bus_factory()
         self._latched = None
         self._rebooted = False
         self._drain()
         state = state_of(self._reach())
-        if state == FAULT_REACTION:
+        if state == FAULT_REACTION_ACTIVE:
             self._wait_state(FAULT, "fault reaction")
             state = FAULT
         if state == FAULT:
-            self.sdo_write(0x6040, 0, CW_DISABLE_VOLTAGE, "<H")
-            self.sdo_write(0x6040, 0, CW_FAULT_RESET, "<H")
+            self.sdo_write(CONTROLWORD, 0, CW_DISABLE_VOLTAGE, "<H")
+            self.sdo_write(CONTROLWORD, 0, CW_FAULT_RESET, "<H")
             self._wait_state(SWITCH_ON_DISABLED, "fault reset")
-            self.sdo_write(0x6040, 0, CW_DISABLE_VOLTAGE, "<H")
+            self.sdo_write(CONTROLWORD, 0, CW_DISABLE_VOLTAGE, "<H")
             self._event("drive.fault_reset", f"drive node {self.node_id}: fault reset")
         return self.start()
 
@@ -681,13 +641,13 @@ class CanDriveMaster:
             self._lose_link("the drive restarted (boot-up message)")
         if self._got == 3:
             stats.fresh += 1
-            self._stale_run = 0
+            self.watchdog.success()
             rtt_us = (time.perf_counter_ns() - self._sent_ns) / 1e3
             self.feedback = self._make_feedback(fresh=True, rtt_us=rtt_us)
         else:
             stats.stale += 1
-            self._stale_run += 1
-            stats.longest_stale_run = max(stats.longest_stale_run, self._stale_run)
+            lost = self.watchdog.failure()
+            stats.longest_stale_run = self.watchdog.longest_run
             previous = self.feedback
             if previous is None:
                 self.feedback = self._make_feedback(fresh=False, rtt_us=0.0)
@@ -696,8 +656,8 @@ class CanDriveMaster:
                     previous.position_deg, previous.velocity_deg_s, previous.current_ma,
                     previous.statusword, previous.position_increments, self._cycle,
                     self._now_ns(), False, 0.0, self._command_ma)
-            if self._stale_run >= self.config.stale_cycles:
-                self._lose_link(f"no TPDO for {self._stale_run} cycles")
+            if lost:
+                self._lose_link(f"no TPDO for {self.watchdog.run} cycles")
         return self.feedback
 
     def _make_feedback(self, fresh: bool, rtt_us: float) -> Feedback:
@@ -728,7 +688,7 @@ class CanDriveMaster:
         if state == OPERATION_ENABLED or not feedback.fresh:
             return feedback
         n = self.node_id
-        if state in (FAULT, FAULT_REACTION):
+        if state in (FAULT, FAULT_REACTION_ACTIVE):
             code = self.last_emcy_code
             error: DriveError = DriveFaultError(
                 f"drive node {n} reports {state} (statusword 0x{feedback.statusword:04X}, last "
@@ -771,7 +731,7 @@ class CanDriveMaster:
     def send_command(self, current_ma: float) -> None:
         """CST: send the current command (clamped to the limit) and a SYNC."""
         self._check_latched()
-        if self.mode != 10:
+        if self.mode != CST:
             raise DriveStateError("send_command() needs mode 'cst'; use send_position()")
         self._send_cycle(CW_ENABLE_OPERATION, self._torque_units(current_ma))
 
@@ -781,7 +741,7 @@ class CanDriveMaster:
         On the wire the target is modulo one turn, like the position: the drive goes the short
         way round, so consecutive targets must differ by less than half a turn."""
         self._check_latched()
-        if self.mode != 8:
+        if self.mode != CSP:
             raise DriveStateError("send_position() needs mode 'csp'; use send_command()")
         if not math.isfinite(target_deg):
             raise DriveError(f"drive node {self.node_id}: refusing a non-finite position target")
@@ -849,26 +809,20 @@ class CanDriveMaster:
                         f"incomplete: {exc}", level="error")
 
     def _hold_target(self) -> int:
-        if self.mode == 8 and self.feedback is not None:
+        if self.mode == CSP and self.feedback is not None:
             return self.feedback.position_increments
         return 0
 
-    def close(self) -> None:
-        """Safe stop, then release the bus and anything the master was built with."""
+    def disconnect(self) -> None:
+        """Release the bus and anything the master was built with (the emulator); idempotent.
+        :meth:`close` (safe stop, then this) is the usual way out."""
         if self._closed:
             return
-        self.safe_state()
         self._closed = True
-        if self.bus is not None:
-            self.bus.shutdown()
+        self._enabled = False
+        self.bus.shutdown()
         for closer in self._closers:
             closer()
-
-    def __enter__(self) -> CanDriveMaster:
-        return self
-
-    def __exit__(self, *_exc: object) -> None:
-        self.close()
 
 
 # ---------------------------------------------------------------------------- factories
@@ -881,62 +835,48 @@ def _check_reachable(host: str, port: int, timeout_s: float = 2.0) -> None:
         raise DriveLinkLostError(f"cannot reach socketcand at {host}:{port}: {reason}") from None
 
 
-def open_drive(
-    where: str = "emulated",
-    config: dict[str, Any] | None = None,
-    *,
-    on_event: EventFn | None = None,
-    source: str = "drive config",
-) -> CanDriveMaster:
-    """A master (not started) for ``emulated``, ``socketcand://HOST:PORT[/CHANNEL]`` or a
-    python-can ``INTERFACE://CHANNEL`` (``socketcan://can0``, ``pcan://PCAN_USBBUS1``...).
+def open_socketcand(url: str, config: DriveMasterConfig | None = None, *,
+                    on_event: EventSink = no_event) -> CanDriveMaster:
+    """A master (not started) reaching the drive through a socketcand gateway,
+    ``socketcand://HOST:PORT[/CHANNEL]`` (channel: ``config.channel`` if none)."""
+    config = config or DriveMasterConfig()
+    parts = urlsplit(url)
+    try:
+        host, port = parts.hostname, parts.port
+    except ValueError:
+        host, port = None, None
+    if parts.scheme != "socketcand" or not host or port is None:
+        raise ConfigError(f"drive '{url}': expected socketcand://HOST:PORT[/CHANNEL]")
+    channel = parts.path.strip("/") or config.channel
 
-    ``config`` is a full drive config (default: :func:`load_drive_config`). ``emulated`` runs
-    the drive emulator in lockstep on a private virtual bus; the master's ``emulator`` attribute
-    is that :class:`~emulators.drive_node.LockstepDrive`."""
-    if config is None:
-        config, _ = load_drive_config()
-    master_config = DriveMasterConfig.from_config(config, source)
-    if where == "emulated":
-        from emulators.drive_node import DriveEmulatorConfig, LockstepDrive
-
-        emulator_config = DriveEmulatorConfig.from_table(
-            deep_merge(config.get("emulator", {}), {"node_id": master_config.node_id}), source)
-        emulator = LockstepDrive(emulator_config)
-        master = CanDriveMaster(emulator.master_bus, master_config, on_event=on_event,
-                                timebase="cycles", pump=emulator.pump, closers=(emulator.close,))
-        master.emulator = emulator  # type: ignore[attr-defined]
-        return master
-    url = urlsplit(where)
-    if not url.scheme or not (url.netloc or url.path):
-        raise ConfigError(f"drive '{where}': expected emulated, socketcand://HOST:PORT or "
-                          f"INTERFACE://CHANNEL")
-    if url.scheme == "socketcand":
+    def connect() -> can.BusABC:
+        _check_reachable(host, port)
         try:
-            host, port = url.hostname, url.port
-        except ValueError:
-            host, port = None, None
-        if not host or port is None:
-            raise ConfigError(f"drive '{where}': expected socketcand://HOST:PORT[/CHANNEL]")
-        channel = url.path.strip("/") or master_config.channel
+            return can.Bus(interface="socketcand", host=host, port=port, channel=channel,
+                           tcp_tune=True)
+        except (can.CanError, OSError) as exc:
+            raise DriveLinkLostError(f"socketcand at {host}:{port} refused bus {channel!r}: "
+                                     f"{exc}") from None
 
-        def connect() -> can.BusABC:
-            _check_reachable(host, port)
-            try:
-                return can.Bus(interface="socketcand", host=host, port=port, channel=channel,
-                               tcp_tune=True)
-            except (can.CanError, OSError) as exc:
-                raise DriveLinkLostError(f"socketcand at {host}:{port} refused bus {channel!r}: "
-                                         f"{exc}") from None
+    return CanDriveMaster(connect(), config, on_event=on_event, bus_factory=connect, url=url)
 
-        return CanDriveMaster(connect(), master_config, on_event=on_event, bus_factory=connect)
-    channel = (url.netloc + url.path).strip("/")
+
+def open_interface(url: str, config: DriveMasterConfig | None = None, *,
+                   on_event: EventSink = no_event) -> CanDriveMaster:
+    """A master (not started) on a python-can interface, ``INTERFACE://CHANNEL``
+    (``socketcan://can0``, ``pcan://PCAN_USBBUS1``, ``virtual://name``...)."""
+    config = config or DriveMasterConfig()
+    parts = urlsplit(url)
+    interface, channel = parts.scheme, (parts.netloc + parts.path).strip("/")
+    if not interface or not channel:
+        raise ConfigError(f"drive '{url}': expected INTERFACE://CHANNEL")
+    bitrate = config.bitrate
 
     def open_bus() -> can.BusABC:
         try:
-            return can.Bus(interface=url.scheme, channel=channel, bitrate=master_config.bitrate)
+            return can.Bus(interface=interface, channel=channel, bitrate=bitrate)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
-            raise DriveLinkLostError(f"cannot open CAN interface {url.scheme!r} channel "
+            raise DriveLinkLostError(f"cannot open CAN interface {interface!r} channel "
                                      f"{channel!r}: {exc}") from None
 
-    return CanDriveMaster(open_bus(), master_config, on_event=on_event, bus_factory=open_bus)
+    return CanDriveMaster(open_bus(), config, on_event=on_event, bus_factory=open_bus, url=url)

@@ -35,13 +35,12 @@ velocity P loop); the halt bit (8) and modes other than 8 and 10 are not impleme
 from __future__ import annotations
 
 import logging
-import math
 import struct
 import threading
 import time
 import uuid
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
 import can
@@ -50,40 +49,45 @@ from canopen.objectdictionary import ODVariable
 from canopen.objectdictionary.datatypes import VISIBLE_STRING
 from canopen.sdo import SdoAbortedError, SdoServer
 
-from emulators.drive_od import (
-    MODE_CSP,
-    MODE_CST,
-    MODE_NONE,
+from drivers.cia402 import (
+    CYCLIC_SYNCHRONOUS_POSITION,
+    CYCLIC_SYNCHRONOUS_TORQUE,
+    FAULT,
+    FAULT_REACTION_ACTIVE,
+    FAULT_RESET,
+    NO_MODE,
+    NOT_READY_TO_SWITCH_ON,
+    OPERATION_ENABLED,
     PDO_NOT_VALID,
+    QUICK_STOP_ACTIVE,
+    QUICK_STOP_OPTIONS,
+    QUICK_STOP_STAYS,
+    QUICK_STOP_THEN_DISABLED,
     RPDOS,
+    STATUSWORD_MASKS,
+    SW_FOLLOWS_COMMAND,
+    SW_INTERNAL_LIMIT,
+    SW_REMOTE,
+    SW_VOLTAGE_ENABLED,
+    SW_WARNING,
+    SWITCH_ON_DISABLED,
     TPDOS,
-    OdDefaults,
-    build_object_dictionary,
-    iter_variables,
+    TRANSITIONS,
+    command_of,
 )
+from emulators.drive_od import OdDefaults, build_object_dictionary, iter_variables
 from emulators.drive_plant import AxisPlant, Disturbance, Friction
-from hil.core.config import lookup
-from hil.core.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
 # NMT states as carried by heartbeat frames
 NMT_INITIALISING, NMT_STOPPED, NMT_OPERATIONAL, NMT_PRE_OPERATIONAL = 0x00, 0x04, 0x05, 0x7F
 
-# CiA 402 states (names as in canopen's State402) and the statusword each reports. Bit 9
-# (remote) is always set, bit 4 (voltage enabled) whenever the emulated DC link is up.
-NOT_READY, SWITCH_ON_DISABLED = "NOT READY TO SWITCH ON", "SWITCH ON DISABLED"
-READY_TO_SWITCH_ON, SWITCHED_ON = "READY TO SWITCH ON", "SWITCHED ON"
-OPERATION_ENABLED, QUICK_STOP_ACTIVE = "OPERATION ENABLED", "QUICK STOP ACTIVE"
-FAULT_REACTION_ACTIVE, FAULT = "FAULT REACTION ACTIVE", "FAULT"
-STATUSWORD = {
-    NOT_READY: 0x0000, SWITCH_ON_DISABLED: 0x0250, READY_TO_SWITCH_ON: 0x0231,
-    SWITCHED_ON: 0x0233, OPERATION_ENABLED: 0x0237, QUICK_STOP_ACTIVE: 0x0217,
-    FAULT_REACTION_ACTIVE: 0x021F, FAULT: 0x0218,
-}
-SW_INTERNAL_LIMIT = 0x0800
-SW_FOLLOWS_COMMAND = 0x1000
-SW_WARNING = 0x0080
+MODES = (NO_MODE, CYCLIC_SYNCHRONOUS_POSITION, CYCLIC_SYNCHRONOUS_TORQUE)  # what 0x6060 accepts
+# The statusword of each CiA 402 state: its bits of the profile, plus bit 9 (remote) always and
+# bit 4 (voltage enabled) whenever the emulated DC link is up (every state after power-on).
+STATUSWORD = {state: (value | SW_REMOTE | SW_VOLTAGE_ENABLED) if state != NOT_READY_TO_SWITCH_ON
+              else value for state, (_mask, value) in STATUSWORD_MASKS.items()}
 POWERED = (OPERATION_ENABLED, QUICK_STOP_ACTIVE, FAULT_REACTION_ACTIVE)
 
 # EMCY codes (CiA 301 / 402)
@@ -113,13 +117,13 @@ ABORT_VALUE = 0x0609_0030
 ABORT_VALUE_HIGH = 0x0609_0031
 ABORT_VALUE_LOW = 0x0609_0032
 
-QUICK_STOP_OPTIONS = (0, 1, 2, 5, 6)  # 0 disable, 1/2 ramp then SOD, 5/6 ramp and stay in QSA
 SendFn = Callable[[list[can.Message]], None]
 
 
 @dataclass(frozen=True)
 class DriveEmulatorConfig:
-    """Everything the emulated drive needs; ``from_table`` reads the ``[emulator]`` TOML table."""
+    """Everything the emulated drive needs (``[emulator]`` of drive.toml, read by
+    :mod:`hil.servo.config`)."""
 
     node_id: int = 1
     # the object dictionary's start-up values are the defaults (emulators/drive_od.py)
@@ -138,78 +142,6 @@ class DriveEmulatorConfig:
     channel: str = "can0"
     friction: Friction = field(default_factory=Friction)
     disturbance: Disturbance = field(default_factory=Disturbance)
-
-    @classmethod
-    def from_table(cls, table: dict[str, Any], source: str = "config") -> DriveEmulatorConfig:
-        d = cls()
-        known = [f.name.replace("_ma", "_mA") for f in fields(cls)]
-        unknown = sorted(set(table) - set(known))
-        for sub, names in (("friction", fields(Friction)), ("disturbance", fields(Disturbance))):
-            values = table.get(sub, {})
-            if not isinstance(values, dict):
-                raise ConfigError(f"{source}: 'emulator.{sub}' must be a table")
-            allowed = {f.name.replace("_ma", "_mA") for f in names}
-            unknown += [f"{sub}.{key}" for key in sorted(set(values) - allowed)]
-        if unknown:
-            raise ConfigError(f"{source}: unknown key 'emulator.{unknown[0]}'")
-
-        def get(key: str, kind: type | tuple, default: Any) -> Any:
-            return lookup({"emulator": table}, f"emulator.{key}", kind, default, source)
-
-        def checked(key: str, value: Any, ok: bool, what: str) -> Any:
-            if not ok:
-                raise ConfigError(f"{source}: key 'emulator.{key}' must be {what}, got {value!r}")
-            return value
-
-        def positive(key: str, kind: type, default: Any) -> Any:
-            value = get(key, kind, default)
-            return checked(key, value, value > 0, "> 0")
-
-        node_id = get("node_id", int, d.node_id)
-        checked("node_id", node_id, 1 <= node_id <= 127, "1..127")
-        qso = get("quick_stop_option", int, d.quick_stop_option)
-        checked("quick_stop_option", qso, qso in QUICK_STOP_OPTIONS, f"one of {QUICK_STOP_OPTIONS}")
-        increments = positive("increments_per_rev", int, d.increments_per_rev)
-        checked("increments_per_rev", increments, 2 <= increments < 2**31, "2..2^31-1")
-        trip = positive("overcurrent_trip_mA", int, d.overcurrent_trip_ma)
-        checked("overcurrent_trip_mA", trip, trip <= 0xFFFF, "<= 65535")
-        max_torque = get("max_torque_permille", int, d.max_torque_permille)
-        checked("max_torque_permille", max_torque, 0 <= max_torque <= 0xFFFF, "0..65535")
-        heartbeat = get("heartbeat_ms", int, d.heartbeat_ms)
-        checked("heartbeat_ms", heartbeat, 0 <= heartbeat <= 0xFFFF, "0..65535")
-        sync_loss = get("sync_loss_timeout_ms", int, d.sync_loss_timeout_ms)
-        checked("sync_loss_timeout_ms", sync_loss, 0 <= sync_loss <= 0xFFFF, "0..65535 (0 = off)")
-        friction = Friction(
-            viscous_ma_per_deg_s=get("friction.viscous_mA_per_deg_s", float, 0.0),
-            coulomb_ma=get("friction.coulomb_mA", float, 0.0),
-            coulomb_smoothing_deg_s=positive("friction.coulomb_smoothing_deg_s", float, 1.0),
-        )
-        disturbance = Disturbance(
-            constant_ma=get("disturbance.constant_mA", float, 0.0),
-            start_s=get("disturbance.start_s", float, 0.0),
-            end_s=get("disturbance.end_s", float, math.inf),
-            sine_ma=get("disturbance.sine_mA", float, 0.0),
-            sine_hz=get("disturbance.sine_hz", float, 0.0),
-        )
-        return cls(
-            node_id=node_id,
-            rated_current_ma=positive("rated_current_mA", int, d.rated_current_ma),
-            max_torque_permille=max_torque,
-            current_limit_ma=positive("current_limit_mA", float, d.current_limit_ma),
-            overcurrent_trip_ma=trip,
-            increments_per_rev=increments,
-            heartbeat_ms=heartbeat,
-            sync_loss_timeout_ms=sync_loss,
-            quick_stop_option=qso,
-            quick_stop_timeout_ms=positive("quick_stop_timeout_ms", int, d.quick_stop_timeout_ms),
-            standstill_deg_s=positive("standstill_deg_s", float, d.standstill_deg_s),
-            velocity_gain_ma_per_deg_s=positive("velocity_gain_mA_per_deg_s", float,
-                                                d.velocity_gain_ma_per_deg_s),
-            position_gain_per_s=positive("position_gain_per_s", float, d.position_gain_per_s),
-            channel=get("channel", str, d.channel),
-            friction=friction,
-            disturbance=disturbance,
-        )
 
     def od_defaults(self) -> OdDefaults:
         return OdDefaults(
@@ -255,6 +187,14 @@ def _frame(can_id: int, data: bytes) -> can.Message:
     return can.Message(arbitration_id=can_id, data=data, is_extended_id=False)
 
 
+def _pdo_struct(var: ODVariable) -> struct.Struct:
+    """The wire format of a variable in a PDO (fixed-size types only)."""
+    data_type = var.data_type
+    if data_type is None or data_type not in var.STRUCT_TYPES:
+        raise SdoAbortedError(ABORT_CANNOT_MAP)
+    return var.STRUCT_TYPES[data_type]
+
+
 def _wrap_degrees(delta_deg: float) -> float:
     """``delta_deg`` folded into [-180, 180)."""
     return (delta_deg + 180.0) % 360.0 - 180.0
@@ -286,8 +226,8 @@ class DriveNode:
         self.sdo.network = _SdoSender(self)  # type: ignore[assignment]
         self.sdo._index, self.sdo._subindex = 0, 0  # abort() needs them before any request
         self._values: dict[tuple[int, int], Any] = {}
-        self._pdos = [_Pdo(c, m, False) for c, m, _, _ in RPDOS] + \
-                     [_Pdo(c, m, True) for c, m, _, _ in TPDOS]
+        self._pdos = [_Pdo(p.comm, p.mapping, False) for p in RPDOS] + \
+                     [_Pdo(p.comm, p.mapping, True) for p in TPDOS]
         self._pdo_by_object = {}
         for pdo in self._pdos:
             self._pdo_by_object[pdo.comm] = pdo
@@ -306,7 +246,7 @@ class DriveNode:
         """Power-on / NMT reset node: parameters to defaults, state machine restarted."""
         for var in iter_variables(self.object_dictionary):
             self._values[(var.index, var.subindex)] = var.default
-        self.state = NOT_READY
+        self.state = NOT_READY_TO_SWITCH_ON
         self._controlword = 0
         self._pending_rpdo: dict[int, bytes] = {}
         self._ramp_start_ns: int | None = None
@@ -477,6 +417,8 @@ class DriveNode:
         if len(data) * 8 != len(var):
             raise SdoAbortedError(ABORT_LENGTH)
         value = var.decode_raw(bytes(data))
+        if not isinstance(value, int):  # the emulator's writable objects are integers
+            raise SdoAbortedError(ABORT_READ_ONLY)
         if var.min is not None and value < var.min:
             raise SdoAbortedError(ABORT_VALUE_LOW)
         if var.max is not None and value > var.max:
@@ -497,8 +439,6 @@ class DriveNode:
             self._sync_cob_id = value & 0x7FF
         elif index == 0x1006:
             steps = self._steps_for_period(value)
-            if steps is None:
-                raise SdoAbortedError(ABORT_VALUE)
             self._values[key] = value
             self._steps_per_sync = steps
         elif index == 0x1016:
@@ -514,7 +454,7 @@ class DriveNode:
                 raise SdoAbortedError(ABORT_VALUE)
             self._values[key] = value
         elif index == 0x6060:
-            if value not in (MODE_NONE, MODE_CSP, MODE_CST):
+            if value not in MODES:
                 raise SdoAbortedError(ABORT_VALUE)
             self._values[key] = value
             self._values[(0x6061, 0)] = value
@@ -526,13 +466,14 @@ class DriveNode:
         else:
             self._values[key] = value
 
-    def _steps_for_period(self, period_us: int) -> int | None:
-        """Plant steps per SYNC for a communication cycle period (0 = not set: one step)."""
+    def _steps_for_period(self, period_us: int) -> int:
+        """Plant steps per SYNC for a communication cycle period (0 = not set: one step); a
+        period that is no multiple of the plant's is refused (SdoAbortedError)."""
         if period_us == 0:
             return 1
         period_ns = period_us * 1000
         if period_ns % self._plant_period_ns:
-            return None
+            raise SdoAbortedError(ABORT_VALUE)
         return period_ns // self._plant_period_ns
 
     # ------------------------------------------------------------------------------ PDOs
@@ -589,7 +530,7 @@ class DriveNode:
             index, subindex = entry >> 16, (entry >> 8) & 0xFF
             var = self._find_object(index, subindex)
             keys.append((index, subindex))
-            fmt += var.STRUCT_TYPES[var.data_type].format.lstrip("<")
+            fmt += _pdo_struct(var).format.lstrip("<")
         pdo.keys, pdo.layout = tuple(keys), struct.Struct(fmt)
 
     def _on_rpdo(self, pdo: _Pdo, data: bytes) -> None:
@@ -616,7 +557,7 @@ class DriveNode:
         for key, value in zip(pdo.keys, pdo.layout.unpack(data), strict=True):
             if key == (0x6040, 0):
                 controlword = value  # applied after the targets of the same PDO
-            elif key == (0x6060, 0) and value not in (MODE_NONE, MODE_CSP, MODE_CST):
+            elif key == (0x6060, 0) and value not in MODES:
                 continue  # invalid mode in a PDO: ignored, the display keeps the active mode
             else:
                 try:
@@ -675,12 +616,12 @@ class DriveNode:
         limit = self._current_limit_ma()
         if self.state == OPERATION_ENABLED:
             mode = self._values[(0x6061, 0)]
-            if mode == MODE_CST:
+            if mode == CYCLIC_SYNCHRONOUS_TORQUE:
                 wanted = self._values[(0x6071, 0)] * self._values[(0x6075, 0)] / 1000.0
                 if abs(wanted) > self._values[(0x2002, 0)]:
                     self._fault(EMCY_OVERCURRENT, ERR_REG_CURRENT)
                     return self._motor_current()  # the fault reaction's current
-            elif mode == MODE_CSP:
+            elif mode == CYCLIC_SYNCHRONOUS_POSITION:
                 wanted = self._position_loop()
             else:
                 return 0.0, False
@@ -740,54 +681,22 @@ class DriveNode:
         self._refresh_actuals()
 
     def _apply_controlword(self, cw: int) -> None:
-        """One controlword write (SDO) or latch (RPDO on SYNC): CiA 402 transitions."""
+        """One controlword write (SDO) or latch (RPDO on SYNC): the transitions its command
+        makes from the current state (:data:`drivers.cia402.TRANSITIONS`)."""
         previous, self._controlword = self._controlword, cw
         self._values[(0x6040, 0)] = cw
-        state = self.state
-        if state == FAULT:
-            if cw & 0x80 and not previous & 0x80:  # transition 15: fault reset
+        command = command_of(cw, previous)
+        if command is None:
+            return
+        for number, state in TRANSITIONS.get((self.state, command), ()):
+            if number == 16 and self._values[(0x605A, 0)] not in QUICK_STOP_STAYS:
+                return
+            if command == FAULT_RESET:
                 self._clear_errors()
-                self._enter_state(SWITCH_ON_DISABLED)
-            return
-        if state in (FAULT_REACTION_ACTIVE, NOT_READY) or cw & 0x80:
-            return
-        disable_voltage = cw & 0x02 == 0
-        quick_stop = cw & 0x06 == 0x02
-        shutdown = cw & 0x07 == 0x06
-        switch_on = cw & 0x0F == 0x07  # also "disable operation"
-        enable = cw & 0x0F == 0x0F
-        if state == SWITCH_ON_DISABLED:
-            if shutdown:
-                self._enter_state(READY_TO_SWITCH_ON)  # 2
-        elif state == READY_TO_SWITCH_ON:
-            if disable_voltage or quick_stop:
-                self._enter_state(SWITCH_ON_DISABLED)  # 7
-            elif switch_on:
-                self._enter_state(SWITCHED_ON)  # 3
-            elif enable:
-                self._enter_state(SWITCHED_ON)  # 3 + 4
-                self._enter_state(OPERATION_ENABLED)
-        elif state == SWITCHED_ON:
-            if disable_voltage or quick_stop:
-                self._enter_state(SWITCH_ON_DISABLED)  # 10
-            elif shutdown:
-                self._enter_state(READY_TO_SWITCH_ON)  # 6
-            elif enable:
-                self._enter_state(OPERATION_ENABLED)  # 4
-        elif state == OPERATION_ENABLED:
-            if disable_voltage:
-                self._enter_state(SWITCH_ON_DISABLED)  # 9
-            elif quick_stop:
-                self._start_quick_stop()  # 11
-            elif shutdown:
-                self._enter_state(READY_TO_SWITCH_ON)  # 8
-            elif switch_on:
-                self._enter_state(SWITCHED_ON)  # 5
-        elif state == QUICK_STOP_ACTIVE:
-            if disable_voltage:
-                self._enter_state(SWITCH_ON_DISABLED)  # 12
-            elif enable and self._values[(0x605A, 0)] in (5, 6):
-                self._enter_state(OPERATION_ENABLED)  # 16
+            if state == QUICK_STOP_ACTIVE:
+                self._start_quick_stop()
+            else:
+                self._enter_state(state)
 
     def _start_quick_stop(self) -> None:
         self._enter_state(QUICK_STOP_ACTIVE)
@@ -803,7 +712,8 @@ class DriveNode:
         self._ramp_start_ns = None
         if self.state == FAULT_REACTION_ACTIVE:
             self._enter_state(FAULT)  # 14
-        elif self.state == QUICK_STOP_ACTIVE and self._values[(0x605A, 0)] in (1, 2):
+        elif self.state == QUICK_STOP_ACTIVE and \
+                self._values[(0x605A, 0)] in QUICK_STOP_THEN_DISABLED:
             self._enter_state(SWITCH_ON_DISABLED)  # 12
         self.plant.applied_current_ma = 0.0
 

@@ -25,25 +25,12 @@ from canopen.objectdictionary.datatypes import (
     VISIBLE_STRING,
 )
 
+from drivers.cia402 import NO_MODE, RPDOS, SUPPORTED_MODE_BITS, TPDOS, PdoMap
+
 DEVICE_TYPE = 0x0002_0192  # CiA 402 profile, servo drive
 DEVICE_NAME = "hil CiA 402 drive emulator"
-SUPPORTED_MODES = 0x0000_0280  # bit 7: CSP (8), bit 9: CST (10)
-MODE_NONE, MODE_CSP, MODE_CST = 0, 8, 10
-PDO_NOT_VALID = 0x8000_0000
+SUPPORTED_MODES = sum(SUPPORTED_MODE_BITS.values())  # CSP (8) and CST (10)
 RTR_NOT_ALLOWED = 0x4000_0000
-
-# default PDO layout (DESIGN.md): (communication index, mapping index, COB-ID base, entries)
-RPDO1 = (0x1400, 0x1600, 0x200, ((0x6040, 0, 16), (0x6071, 0, 16)))
-TPDO1 = (0x1800, 0x1A00, 0x180, ((0x6041, 0, 16), (0x6064, 0, 32)))
-TPDO2 = (0x1801, 0x1A01, 0x280, ((0x606C, 0, 32), (0x6077, 0, 16)))
-RPDOS = (RPDO1,)
-TPDOS = (TPDO1, TPDO2)
-
-
-def mapping_entry(index: int, subindex: int, bits: int) -> int:
-    """The UNSIGNED32 value of one PDO mapping entry."""
-    return (index << 16) | (subindex << 8) | bits
-
 
 @dataclass(frozen=True)
 class OdDefaults:
@@ -58,13 +45,13 @@ class OdDefaults:
     quick_stop_option: int = 2
 
 
-def _var(name: str, index: int, subindex: int, data_type: int, access: str, default: object,
+def _var(name: str, index: int, subindex: int, data_type: int, access: str, default: int | str,
          *, mappable: bool = False, minimum: int | None = None,
          maximum: int | None = None) -> ODVariable:
     var = ODVariable(name, index, subindex)
     var.data_type = data_type
     var.access_type = access
-    var.default = default
+    var.default = default  # type: ignore[assignment]  # canopen says int; strings have str
     var.pdo_mappable = mappable
     var.min = minimum
     var.max = maximum
@@ -78,11 +65,12 @@ def _record(name: str, index: int, members: list[ODVariable], array: bool = Fals
     return record
 
 
-def _pdo_objects(od: ObjectDictionary, node_id: int, pdo: tuple, tpdo: bool) -> None:
-    comm, mapping, base, entries = pdo
+def _pdo_objects(od: ObjectDictionary, node_id: int, pdo: PdoMap, tpdo: bool) -> None:
+    """The communication and mapping objects of one PDO, holding the default map."""
+    comm, mapping = pdo.comm, pdo.mapping
     number = comm - (0x1800 if tpdo else 0x1400) + 1
     kind = "TPDO" if tpdo else "RPDO"
-    cob_default = base + node_id + (RTR_NOT_ALLOWED if tpdo else 0)
+    cob_default = pdo.cob_id(node_id) + (RTR_NOT_ALLOWED if tpdo else 0)
     comm_members = [
         _var("Highest sub-index supported", comm, 0, UNSIGNED8, "const", 5 if tpdo else 2),
         _var("COB-ID", comm, 1, UNSIGNED32, "rw", cob_default),
@@ -94,10 +82,11 @@ def _pdo_objects(od: ObjectDictionary, node_id: int, pdo: tuple, tpdo: bool) -> 
             _var("Event timer", comm, 5, UNSIGNED16, "rw", 0),
         ]
     od.add_object(_record(f"{kind}{number} communication parameter", comm, comm_members))
+    entries = pdo.mapping_values()
     map_members = [_var("Number of mapped objects", mapping, 0, UNSIGNED8, "rw", len(entries),
                         minimum=0, maximum=8)]
     for sub in range(1, 9):
-        value = mapping_entry(*entries[sub - 1]) if sub <= len(entries) else 0
+        value = entries[sub - 1] if sub <= len(entries) else 0
         map_members.append(_var(f"Mapped object {sub}", mapping, sub, UNSIGNED32, "rw", value))
     od.add_object(_record(f"{kind}{number} mapping parameter", mapping, map_members))
 
@@ -140,8 +129,8 @@ def build_object_dictionary(node_id: int, defaults: OdDefaults | None = None) ->
     add(_var("Controlword", 0x6040, 0, UNSIGNED16, "rw", 0, mappable=True))
     add(_var("Statusword", 0x6041, 0, UNSIGNED16, "ro", 0, mappable=True))
     add(_var("Quick stop option code", 0x605A, 0, INTEGER16, "rw", d.quick_stop_option))
-    add(_var("Modes of operation", 0x6060, 0, INTEGER8, "rw", MODE_NONE, mappable=True))
-    add(_var("Modes of operation display", 0x6061, 0, INTEGER8, "ro", MODE_NONE, mappable=True))
+    add(_var("Modes of operation", 0x6060, 0, INTEGER8, "rw", NO_MODE, mappable=True))
+    add(_var("Modes of operation display", 0x6061, 0, INTEGER8, "ro", NO_MODE, mappable=True))
     add(_var("Position actual value", 0x6064, 0, INTEGER32, "ro", 0, mappable=True))
     add(_var("Velocity actual value", 0x606C, 0, INTEGER32, "ro", 0, mappable=True))
     add(_var("Target torque", 0x6071, 0, INTEGER16, "rw", 0, mappable=True))

@@ -84,21 +84,17 @@ def emulate_bench(args: argparse.Namespace) -> int:
 
 def emulate_drive(args: argparse.Namespace) -> int:
     """Serve the emulated CiA 402 drive over socketcand in real time until Ctrl-C or SIGTERM."""
-    from drivers.can_drive import load_drive_config
-    from emulators.drive_node import DriveEmulatorConfig, DriveNode
+    from emulators.drive_node import DriveNode
     from emulators.socketcand_server import SocketcandServer
-    from hil.core.config import deep_merge
     from hil.core.errors import UsageError
+    from hil.servo.config import load_drive_config
 
     if not 1 <= args.node <= 127:
         raise UsageError(f"--node must be a CANopen node id 1..127, got {args.node}")
-    config, _ = load_drive_config(args.config)
-    source = args.config or "hil/configs/drive.toml"
     overrides: dict[str, object] = {"node_id": args.node}
     if args.channel is not None:
         overrides["channel"] = args.channel
-    table = deep_merge(config.get("emulator", {}), overrides)
-    emulator = DriveEmulatorConfig.from_table(table, source)
+    emulator = load_drive_config(args.config, overrides={"emulator": overrides}).emulator
     host, port = args.socketcand
     server = SocketcandServer(host, port, channel=emulator.channel)
     node = DriveNode(emulator, send=server.broadcast)

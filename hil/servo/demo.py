@@ -35,14 +35,15 @@ def run_servo_demo(out_dir: str | Path,
     for frequency, limit in CASES:
         for controller in CONTROLLERS:
             name = f"servo-{controller}-{frequency:g}hz-{limit / 1000:g}a"
+            mcap = str(out / f"{name}.mcap")
             config = ServoRunConfig(
                 controller=controller, ert="foh", ht=8, hu=8, hp=50, umax=limit,
                 reference=f"sine:amplitude={AMPLITUDE_DEG:g},frequency={frequency:g}",
                 duration_s=SETTLE_S + 1.0 / frequency, settle_s=SETTLE_S,
-                out=str(out / f"{name}.mcap"))
+                out=mcap)
             kpis = run_servo(config).kpis
             png = out / f"{name}.png"
-            plot_session(read_session(config.out), str(png))
+            plot_session(read_session(mcap), str(png))
             rows.append({"frequency_hz": frequency, "umax_mA": limit, **kpis, "png": str(png)})
     if echo is not None:
         echo(format_servo_demo(rows))

@@ -14,11 +14,11 @@ from typing import Any
 
 import numpy as np
 
+from controllers.servo_model import SAMPLE_PERIOD_S
 from hil.core.reader import SessionData
 from hil.core.report import kpis
 
 WATERFALL_TICKS = 100
-SAMPLE_PERIOD_S = 500e-6  # the servo scenario's base period (hil/servo/run.py)
 
 
 def _seconds(stamps_ns: np.ndarray, origin_ns: int) -> np.ndarray:

@@ -38,28 +38,31 @@ import time
 from array import array
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from controllers.base import ServoController
 from controllers.empc import ExplicitMpc
 from controllers.mpc import MpcConfig, TrajectoryMpc
 from controllers.pid import CascadedPid, PidConfig
-from controllers.references import Scenario, Sine, Trapezoid, parse_scenario, wrap180
-from controllers.servo_model import SAMPLE_PERIOD_S
-from drivers.can_drive import (
-    CanDriveMaster,
-    Feedback,
-    SdoAbortError,
-    load_drive_config,
-    open_drive,
+from controllers.references import (
+    Reference,
+    Scenario,
+    Sine,
+    Trapezoid,
+    parse_scenario,
+    wrap180,
 )
+from controllers.servo_model import SAMPLE_PERIOD_S
+from drivers.can_drive import CanDriveMaster, Feedback, SdoAbortError
 from hil.core.clock import RealtimeClock, SimClock
-from hil.core.config import deep_merge, lookup
 from hil.core.errors import ConfigError, HilError, UsageError
 from hil.core.loop import Task
 from hil.core.session import Session
 from hil.core.stats import percentile_summary
+from hil.servo.config import DriveConfig, load_drive_config
+from hil.servo.rig import open_drive
 
 CONTROLLERS = ("mpc", "empc", "pid")
 PREDICTION_EVERY_REALTIME = 10  # 200 Hz of /mpc/prediction in real time (every tick in lockstep)
@@ -189,7 +192,15 @@ def reference_amplitude(scenario: Scenario) -> float | None:
     return None
 
 
-def make_controller(config: ServoRunConfig, scenario: Scenario) -> Any:
+@runtime_checkable
+class Predicting(Protocol):
+    """A controller that tells its predicted inputs and outputs (the MPCs), recorded to
+    ``/mpc/prediction``."""
+
+    def prediction(self) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+def make_controller(config: ServoRunConfig, scenario: Scenario) -> ServoController:
     """The controller of the run (pure: ``step(position_deg, t_s) -> mA``, ``reset()``)."""
     reference = scenario.reference
     if config.controller == "pid":
@@ -205,7 +216,7 @@ def make_controller(config: ServoRunConfig, scenario: Scenario) -> Any:
 class ReferenceSamples:
     """r(k T) for tick k, computed a block of ticks at a time (vectorised, constant memory)."""
 
-    def __init__(self, reference: Any, dt: float, block: int = 2048) -> None:
+    def __init__(self, reference: Reference, dt: float, block: int = 2048) -> None:
         self.reference, self.dt, self.block = reference, dt, block
         self._first = -1
         self._values = np.empty(0)
@@ -267,7 +278,7 @@ class TrackingStats:
 class ServoTask(Task):
     """read feedback -> controller step -> write command, recording every tick."""
 
-    def __init__(self, session: Session, master: CanDriveMaster, controller: Any,
+    def __init__(self, session: Session, master: CanDriveMaster, controller: ServoController,
                  scenario: Scenario, config: ServoRunConfig, first: Feedback) -> None:
         super().__init__("servo")
         self.session, self.master, self.controller = session, master, controller
@@ -281,11 +292,11 @@ class ServoTask(Task):
         self.stats = TrackingStats(config.settle_s)
         self.prediction_every = config.prediction_period
         self.hu = config.hu
-        self.predicts = hasattr(controller, "prediction")
+        self.predictor = controller if isinstance(controller, Predicting) else None
         self.commands = session.topic("/drive/command", COMMAND_SCHEMA)
         self.feedbacks = session.topic("/drive/feedback", FEEDBACK_SCHEMA)
         self.predictions = (session.topic("/mpc/prediction", PREDICTION_SCHEMA)
-                            if self.predicts else None)
+                            if self.predictor is not None else None)
         self._feedback = first
         self._disturbance_ma = 0
         self._tick = 0
@@ -310,8 +321,8 @@ class ServoTask(Task):
         if not feedback.fresh:
             self.stale += 1
         self.stats.add(t_s, error, u, compute_us)
-        message = {"t_s": t_s, "reference_deg": r, "error_deg": error, "command_mA": u,
-                   "compute_us": compute_us}
+        message: dict[str, Any] = {"t_s": t_s, "reference_deg": r, "error_deg": error,
+                                   "command_mA": u, "compute_us": compute_us}
         if self.scenario.disturbance is not None:
             message["disturbance_mA"] = self._disturbance_for(t_s)
         path = self._solver_path()
@@ -323,8 +334,9 @@ class ServoTask(Task):
             "statusword": feedback.statusword, "cycle": feedback.cycle,
             "fresh": feedback.fresh, "rtt_us": feedback.rtt_us})
         self.commands.log(t_ns, message)
-        if self.predictions is not None and n % self.prediction_every == 0:
-            u_pred, y_pred = self.controller.prediction()
+        if self.predictor is not None and self.predictions is not None \
+                and n % self.prediction_every == 0:
+            u_pred, y_pred = self.predictor.prediction()
             # rounded far below the wire's resolution (1 mA, 3.4e-4 deg): halves the JSON cost
             self.predictions.log(t_ns, {"t_s": t_s,
                                         "u_mA": np.round(u_pred[: self.hu], 3).tolist(),
@@ -375,21 +387,21 @@ class ServoTask(Task):
 
 
 # ------------------------------------------------------------------------------------- run
-def drive_settings(config: ServoRunConfig) -> tuple[dict[str, Any], str]:
+def drive_settings(config: ServoRunConfig) -> DriveConfig:
     """The drive config of the run: default < ``drive_config`` file < flags < overrides."""
     flags = {"master": {"current_limit_mA": float(config.umax), "node_id": config.node}}
-    drive, text = load_drive_config(config.drive_config, overrides=flags)
-    drive = deep_merge(drive, config.drive_overrides)
-    source = config.drive_config or "drive config"
-    period_us = lookup(drive, "master.cycle_period_us", int, 500, source)
+    drive = load_drive_config(config.drive_config, overrides=flags)
+    if config.drive_overrides:
+        drive = drive.laid_over(config.drive_overrides)
+    period_us = round(drive.master.cycle_period_s * 1e6)
     if period_us * 1e-6 != SAMPLE_PERIOD_S:
-        raise ConfigError(f"{source}: master.cycle_period_us = {period_us}, but the servo "
+        raise ConfigError(f"{drive.source}: master.cycle_period_us = {period_us}, but the servo "
                           f"controllers are designed for T = {SAMPLE_PERIOD_S * 1e6:g} us")
     if not config.realtime and config.drive != "emulated":
-        timeout = lookup(drive, "master.rx_timeout_us", int, 400, source)
-        drive = deep_merge(drive, {"master": {
-            "rx_timeout_us": max(timeout, LOCKSTEP_RX_TIMEOUT_US)}})
-    return drive, text
+        timeout_us = round(drive.master.rx_timeout_s * 1e6)
+        drive = drive.laid_over({"master": {
+            "rx_timeout_us": max(timeout_us, LOCKSTEP_RX_TIMEOUT_US)}})
+    return drive
 
 
 def default_session_path(controller: str) -> str:
@@ -404,7 +416,7 @@ def run_servo(config: ServoRunConfig,
     session file is finished with the KPIs so far, and the error is raised with its path."""
     scenario = parse_scenario(config.reference)
     controller = make_controller(config, scenario)
-    drive, drive_text = drive_settings(config)
+    drive = drive_settings(config)
     path = config.out or default_session_path(config.controller)
     clock = RealtimeClock() if config.realtime else SimClock()
     sessions: list[Session] = []
@@ -414,12 +426,12 @@ def run_servo(config: ServoRunConfig,
             sessions[0].event(kind, message, **data)
 
     # the drive is opened first: an unreachable drive leaves no empty session file behind
-    master = open_drive(config.drive, drive, on_event=relay,
-                        source=config.drive_config or "drive config")
+    master = open_drive(config.drive, drive, on_event=relay)
     run_info = {k: v for k, v in asdict(config).items() if k != "drive_overrides"}
     try:
         session = Session(path, clock, SAMPLE_PERIOD_S, kind="servo",
-                          config={"servo": run_info, "drive": drive}, config_text=drive_text,
+                          config={"servo": run_info, "drive": drive.data},
+                          config_text=drive.text,
                           config_name="drive.toml")
     except BaseException:
         master.close()
@@ -429,7 +441,10 @@ def run_servo(config: ServoRunConfig,
     error: HilError | None = None
     wall = 0.0
     try:
-        first = master.start()
+        master.open()
+        master.configure()
+        master.enable()
+        first = master.receive_feedback()
         session.add_component(master)
         if scenario.disturbance is not None:
             check_disturbance_object(master)
@@ -505,8 +520,9 @@ def collect_kpis(config: ServoRunConfig, scenario: Scenario, session: Session,
             if task is not None else None
         if counts is not None:
             base["solver_paths"] = dict(counts)
-        if task is not None and hasattr(task.controller, "fallbacks"):
-            base["empc_fallbacks"] = int(task.controller.fallbacks)
+        fallbacks = getattr(task.controller, "fallbacks", None) if task is not None else None
+        if fallbacks is not None:
+            base["empc_fallbacks"] = int(fallbacks)
     if error is not None:
         base["error"] = str(error)
     return base

@@ -16,15 +16,17 @@ from drivers.can_drive import (
     DriveLinkLostError,
     DriveStateError,
     SdoAbortError,
-    load_drive_config,
-    open_drive,
 )
+from drivers.cia402 import RPDOS, TPDOS
 from emulators.drive_od import build_object_dictionary
 from hil.core.clock import SimClock
 from hil.core.errors import ConfigError
 from hil.core.loop import FunctionTask
 from hil.core.reader import read_session
 from hil.core.session import Session
+from hil.core.types import no_event
+from hil.servo.config import load_drive_config
+from hil.servo.rig import open_drive
 
 
 class Events:
@@ -41,7 +43,8 @@ class Events:
 
 
 def emulated(overrides=None, events=None):
-    return open_drive("emulated", load_drive_config(overrides=overrides)[0], on_event=events)
+    return open_drive("emulated", load_drive_config(overrides=overrides),
+                      on_event=events or no_event)
 
 
 def controlwords(frames, node_id=1):
@@ -62,11 +65,9 @@ def test_start_configures_the_drive_by_sdo():
     feedback = master.start()
     assert feedback.state == "OPERATION ENABLED" and feedback.position_deg == 0.0
     read = master.sdo_read_int
-    for mapping, entries in ((0x1600, [0x60400010, 0x60710010]),
-                             (0x1A00, [0x60410010, 0x60640020]),
-                             (0x1A01, [0x606C0020, 0x60770010])):
-        assert read(mapping, 0, "<B") == 2
-        assert [read(mapping, sub) for sub in (1, 2)] == entries
+    for pdo in (*RPDOS, *TPDOS):
+        assert read(pdo.mapping, 0, "<B") == 2
+        assert [read(pdo.mapping, sub) for sub in (1, 2)] == pdo.mapping_values()
     assert read(0x1006) == 500
     assert read(0x1017, 0, "<H") == 20
     assert read(0x1016, 1) == (127 << 16) | 300
@@ -172,10 +173,12 @@ def test_link_lost_when_tpdos_stop_latches_until_reset_fault():
             stale.append(master.exchange(0.0))
     assert len(stale) == 4 and not any(f.fresh for f in stale)
     assert "drive.link_lost" in events.kinds()
+    assert not master.link_up and master.watchdog.losses == 1
+    assert master.stats.longest_stale_run == master.watchdog.longest_run == 5
     with pytest.raises(DriveLinkLostError, match="latched: call reset_fault"):
         master.exchange(0.0)
     feedback = master.reset_fault()  # NMT pre-op (the node was STOPPED), fault reset, enable
-    assert feedback.state == "OPERATION ENABLED"
+    assert feedback.state == "OPERATION ENABLED" and master.link_up
     assert master.exchange(10.0).fresh
     other.shutdown()
     master.close()
@@ -190,7 +193,7 @@ def test_drive_reboot_is_a_lost_link_and_needs_an_explicit_recovery():
     other.send(can.Message(arbitration_id=0, data=[0x81, 1], is_extended_id=False))  # reset
     with pytest.raises(DriveLinkLostError, match="restarted"):
         master.exchange(0.0)
-    assert "drive.bootup" in events.kinds()
+    assert "drive.bootup" in events.kinds() and not master.link_up
     with pytest.raises(DriveLinkLostError):
         master.exchange(0.0)
     assert master.reset_fault().state == "OPERATION ENABLED"
@@ -289,7 +292,7 @@ def test_a_drive_stuck_in_its_state_gives_an_error_naming_the_state():
             local.data_store.setdefault(0x6061, {})[0] = bytes(data)
 
     local.add_write_callback(mirror_mode)
-    config, _ = load_drive_config(overrides={"master": {"state_timeout_ms": 300}})
+    config = load_drive_config(overrides={"master": {"state_timeout_ms": 300}})
     master = open_drive(f"virtual://{channel}", config)
     try:
         with pytest.raises(DriveStateError, match=r"stuck in SWITCH ON DISABLED \(statusword "
@@ -320,13 +323,11 @@ def test_open_drive_rejects_bad_addresses_with_one_clear_error(where, problem):
 
 def test_bad_master_config_values_are_config_errors():
     with pytest.raises(ConfigError, match=r"master\.mode"):
-        open_drive("emulated", load_drive_config(overrides={"master": {"mode": "velocity"}})[0])
+        load_drive_config(overrides={"master": {"mode": "velocity"}})
     with pytest.raises(ConfigError, match=r"unknown key 'master\.curent_limit_mA'"):
-        open_drive("emulated",
-                   load_drive_config(overrides={"master": {"curent_limit_mA": 10.0}})[0])
+        load_drive_config(overrides={"master": {"curent_limit_mA": 10.0}})
     with pytest.raises(ConfigError, match=r"master\.current_limit_mA"):
-        open_drive("emulated",
-                   load_drive_config(overrides={"master": {"current_limit_mA": -1.0}})[0])
+        load_drive_config(overrides={"master": {"current_limit_mA": -1.0}})
 
 
 def test_a_period_too_short_for_the_bus_is_warned_about():

@@ -8,8 +8,8 @@ import time
 
 import can
 import pytest
-from canopen.profiles.p402 import State402
 
+from drivers.cia402 import STATUSWORD_MASKS, enable_steps
 from emulators.drive_node import (
     BusRunner,
     DriveEmulatorConfig,
@@ -79,7 +79,7 @@ def abort_code(response):
 
 
 def in_state(statusword, state):
-    mask, value = State402.SW_MASK[state]
+    mask, value = STATUSWORD_MASKS[state]
     return statusword & mask == value
 
 
@@ -87,7 +87,7 @@ def enable(w, mode=10):
     """NMT start, mode, then the controlword walk by SDO to OPERATION ENABLED."""
     w.write(0x6060, 0, mode, "<b")
     w.send(0x000, [0x01, 1])
-    for controlword in (0x06, 0x07, 0x0F):
+    for controlword, _state in enable_steps():
         w.write(0x6040, 0, controlword, "<H")
     assert in_state(w.statusword(), "OPERATION ENABLED")
 

@@ -6,15 +6,20 @@ is checked against canopen's ``State402`` masks (and again by SDO). Lockstep: de
 import pytest
 from canopen.profiles.p402 import State402
 
-from drivers.can_drive import load_drive_config, open_drive, state_of
+from drivers import cia402
+from drivers.cia402 import FAULT, FAULT_REACTION_ACTIVE, state_of
+from hil.servo.config import load_drive_config
+from hil.servo.rig import open_drive
 
-SHUTDOWN, SWITCH_ON, ENABLE, DISABLE_VOLTAGE, QUICK_STOP = 0x06, 0x07, 0x0F, 0x00, 0x02
-SOD, RTSO, SO, OE, QSA = ("SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON",
-                          "OPERATION ENABLED", "QUICK STOP ACTIVE")
+SHUTDOWN, SWITCH_ON, ENABLE = cia402.CW_SHUTDOWN, cia402.CW_SWITCH_ON, cia402.CW_ENABLE_OPERATION
+DISABLE_VOLTAGE, QUICK_STOP = cia402.CW_DISABLE_VOLTAGE, cia402.CW_QUICK_STOP
+FAULT_RESET = cia402.CW_FAULT_RESET
+SOD, RTSO, SO, OE, QSA = (cia402.SWITCH_ON_DISABLED, cia402.READY_TO_SWITCH_ON,
+                          cia402.SWITCHED_ON, cia402.OPERATION_ENABLED, cia402.QUICK_STOP_ACTIVE)
 
 
 def emulated_master(overrides=None):
-    return open_drive("emulated", load_drive_config(overrides=overrides)[0])
+    return open_drive("emulated", load_drive_config(overrides=overrides))
 
 
 def assert_state(master, feedback, state):
@@ -53,7 +58,7 @@ CHART = [
     (QUICK_STOP, QSA, 11),
     (DISABLE_VOLTAGE, SOD, 12),
     (ENABLE, SOD, 0),            # no transition from SWITCH ON DISABLED on enable
-    (0x80 | SHUTDOWN, SOD, 0),   # fault-reset bit outside FAULT: no command
+    (FAULT_RESET | SHUTDOWN, SOD, 0),   # fault-reset bit outside FAULT: no command
 ]
 
 
@@ -103,13 +108,13 @@ def test_fault_reaction_then_fault_then_reset_by_the_rising_edge_of_bit_7():
     for _ in range(200):
         master.exchange(1000.0)
     states = [master.cycle(ENABLE, 2000).state]  # 2000 mA > trip: transition 13
-    while states[-1] == "FAULT REACTION ACTIVE" and len(states) < 3000:
+    while states[-1] == FAULT_REACTION_ACTIVE and len(states) < 3000:
         states.append(master.cycle(ENABLE, 0).state)
-    assert states[0] == "FAULT REACTION ACTIVE" and len(states) > 10  # braking from ~560 deg/s
-    assert states[-1] == "FAULT"  # transition 14 at standstill
-    assert_state(master, master.cycle(ENABLE), "FAULT")  # enable does not leave FAULT
-    assert_state(master, master.cycle(0x80 | ENABLE), SOD)  # bit 7 rises: transition 15
-    assert_state(master, master.cycle(0x80 | ENABLE), SOD)  # held high: nothing more
+    assert states[0] == FAULT_REACTION_ACTIVE and len(states) > 10  # braking from ~560 deg/s
+    assert states[-1] == FAULT  # transition 14 at standstill
+    assert_state(master, master.cycle(ENABLE), FAULT)  # enable does not leave FAULT
+    assert_state(master, master.cycle(FAULT_RESET | ENABLE), SOD)  # bit 7 rises: transition 15
+    assert_state(master, master.cycle(FAULT_RESET | ENABLE), SOD)  # held high: nothing more
     master.close()
 
 

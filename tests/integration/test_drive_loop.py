@@ -10,7 +10,7 @@ pytestmark = pytest.mark.timeout(60)
 
 CHILD = """
 import struct
-from drivers.can_drive import open_drive
+from hil.servo.rig import open_drive
 from hil.core.clock import RealtimeClock
 from hil.core.loop import FixedRateLoop, FunctionTask
 

@@ -14,14 +14,13 @@ import canopen
 import pytest
 from canopen.profiles.p402 import State402
 
-from drivers.can_drive import (
-    DriveFaultError,
-    DriveLinkLostError,
-    load_drive_config,
-    open_drive,
-    state_of,
-)
+from drivers import cia402
+from drivers.can_drive import DriveFaultError, DriveLinkLostError
+from drivers.cia402 import state_of
 from emulators.drive_od import build_object_dictionary
+from hil.core.types import no_event
+from hil.servo.config import load_drive_config
+from hil.servo.rig import open_drive
 from tests.drive_processes import start_drive_emulator, stop_drive_emulator
 
 REPO = Path(__file__).resolve().parents[2]
@@ -40,8 +39,8 @@ def start_emulator(tmp_path, name, port=0, **emulator):
 
 
 def master_for(port, events=None, **overrides):
-    config, _ = load_drive_config(overrides={"master": {**MASTER, **overrides}})
-    return open_drive(f"socketcand://127.0.0.1:{port}", config, on_event=events)
+    config = load_drive_config(overrides={"master": {**MASTER, **overrides}})
+    return open_drive(f"socketcand://127.0.0.1:{port}", config, on_event=events or no_event)
 
 
 @pytest.fixture(scope="module")
@@ -52,20 +51,16 @@ def emulator(tmp_path_factory):
     stop_drive_emulator(proc)
 
 
-SHUTDOWN, SWITCH_ON, ENABLE, DISABLE_VOLTAGE, QUICK_STOP = 0x06, 0x07, 0x0F, 0x00, 0x02
+SHUTDOWN, SWITCH_ON, ENABLE = cia402.CW_SHUTDOWN, cia402.CW_SWITCH_ON, cia402.CW_ENABLE_OPERATION
+DISABLE_VOLTAGE, QUICK_STOP = cia402.CW_DISABLE_VOLTAGE, cia402.CW_QUICK_STOP
+SOD, RTSO, SO, OE, QSA = (cia402.SWITCH_ON_DISABLED, cia402.READY_TO_SWITCH_ON,
+                          cia402.SWITCHED_ON, cia402.OPERATION_ENABLED, cia402.QUICK_STOP_ACTIVE)
 CHART = [  # (controlword, state after the SYNC): every transition, as in the lockstep test
-    (DISABLE_VOLTAGE, "SWITCH ON DISABLED"), (SHUTDOWN, "READY TO SWITCH ON"),
-    (SWITCH_ON, "SWITCHED ON"), (ENABLE, "OPERATION ENABLED"), (SWITCH_ON, "SWITCHED ON"),
-    (SHUTDOWN, "READY TO SWITCH ON"), (DISABLE_VOLTAGE, "SWITCH ON DISABLED"),
-    (SHUTDOWN, "READY TO SWITCH ON"), (QUICK_STOP, "SWITCH ON DISABLED"),
-    (SHUTDOWN, "READY TO SWITCH ON"), (SWITCH_ON, "SWITCHED ON"),
-    (DISABLE_VOLTAGE, "SWITCH ON DISABLED"), (SHUTDOWN, "READY TO SWITCH ON"),
-    (SWITCH_ON, "SWITCHED ON"), (QUICK_STOP, "SWITCH ON DISABLED"),
-    (SHUTDOWN, "READY TO SWITCH ON"), (ENABLE, "OPERATION ENABLED"),
-    (SHUTDOWN, "READY TO SWITCH ON"), (SWITCH_ON, "SWITCHED ON"),
-    (ENABLE, "OPERATION ENABLED"), (QUICK_STOP, "QUICK STOP ACTIVE"),
-    (ENABLE, "OPERATION ENABLED"), (QUICK_STOP, "QUICK STOP ACTIVE"),
-    (DISABLE_VOLTAGE, "SWITCH ON DISABLED"),
+    (DISABLE_VOLTAGE, SOD), (SHUTDOWN, RTSO), (SWITCH_ON, SO), (ENABLE, OE), (SWITCH_ON, SO),
+    (SHUTDOWN, RTSO), (DISABLE_VOLTAGE, SOD), (SHUTDOWN, RTSO), (QUICK_STOP, SOD),
+    (SHUTDOWN, RTSO), (SWITCH_ON, SO), (DISABLE_VOLTAGE, SOD), (SHUTDOWN, RTSO), (SWITCH_ON, SO),
+    (QUICK_STOP, SOD), (SHUTDOWN, RTSO), (ENABLE, OE), (SHUTDOWN, RTSO), (SWITCH_ON, SO),
+    (ENABLE, OE), (QUICK_STOP, QSA), (ENABLE, OE), (QUICK_STOP, QSA), (DISABLE_VOLTAGE, SOD),
 ]
 
 
@@ -82,10 +77,10 @@ def test_every_transition_of_the_chart_over_socketcand(emulator):
         master.exchange(0.0)
         for _ in range(200):  # fault: over-current trips the drive; reset by bit 7
             feedback = master.cycle(ENABLE, 16000)
-            if feedback.state == "FAULT":
+            if feedback.state == cia402.FAULT:
                 break
-        assert feedback.state == "FAULT"
-        assert master.cycle(0x80).state == "SWITCH ON DISABLED"
+        assert feedback.state == cia402.FAULT
+        assert master.cycle(cia402.CW_FAULT_RESET).state == SOD
     finally:
         master.close()
 

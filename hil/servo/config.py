@@ -1,0 +1,150 @@
+"""``drive.toml`` parsed once, strictly, into the frozen settings of the master and the emulator.
+
+The packaged ``hil/configs/drive.toml`` holds every key with its default; a user file is laid
+over it table by table, then overrides (command-line flags, tests). Every key is read with its
+type and range through :class:`hil.core.config.Table`: an unknown key, a wrong type or a value
+out of range is one :class:`~hil.core.errors.ConfigError` naming the file and the dotted key.
+The driver (:class:`~drivers.can_drive.DriveMasterConfig`) and the emulator
+(:class:`~emulators.drive_node.DriveEmulatorConfig`) define their settings and never read TOML.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from importlib import resources
+from typing import Any
+
+from drivers.can_drive import DriveMasterConfig
+from drivers.cia402 import MODES, QUICK_STOP_OPTIONS
+from emulators.drive_node import DriveEmulatorConfig
+from emulators.drive_plant import Disturbance, Friction
+from hil.core.config import Table, deep_merge, load_toml, parse_toml
+
+DEFAULT_SOURCE = "hil/configs/drive.toml"
+SOURCE = "drive config"  # what errors name when no user file is given
+U16 = 0xFFFF
+
+
+@dataclass(frozen=True)
+class DriveConfig:
+    """drive.toml as read: the master's and the emulator's settings, and what a session
+    records of it (the merged tables and the text of the user's file, or of the default)."""
+
+    master: DriveMasterConfig
+    emulator: DriveEmulatorConfig
+    data: Mapping[str, Any]
+    text: str
+    source: str
+
+    def laid_over(self, overrides: Mapping[str, Any]) -> DriveConfig:
+        """These settings with ``overrides`` laid over them (checked again)."""
+        return parse_drive_config(deep_merge(self.data, overrides), self.source, self.text)
+
+
+def default_drive_text() -> str:
+    """The packaged default drive config (TOML text, with its comments)."""
+    return resources.files("hil.configs").joinpath("drive.toml").read_text("utf-8")
+
+
+def load_drive_config(path: str | os.PathLike[str] | None = None,
+                      overrides: Mapping[str, Any] | None = None) -> DriveConfig:
+    """The packaged default, the file at ``path`` laid over it, then ``overrides`` (e.g.
+    ``{"master": {"current_limit_mA": 12000.0}}``), parsed."""
+    text = default_drive_text()
+    data = parse_toml(text, DEFAULT_SOURCE)
+    if path is not None:
+        user, text = load_toml(path)
+        data = deep_merge(data, user)
+    source = os.fspath(path) if path is not None else SOURCE
+    return parse_drive_config(deep_merge(data, overrides or {}), source, text)
+
+
+def parse_drive_config(data: Mapping[str, Any], source: str, text: str = "") -> DriveConfig:
+    """Complete drive tables (the default's keys all present) -> :class:`DriveConfig`."""
+    root = Table(data, source)
+    master = _master(root.table("master", required=True), root.table("bus", required=True))
+    emulator = _emulator(root.table("emulator", required=True))
+    root.done()
+    return DriveConfig(master=master, emulator=emulator, data=data, text=text, source=source)
+
+
+def _quick_stop_option(table: Table) -> int:
+    option = table.integer("quick_stop_option")
+    if option not in QUICK_STOP_OPTIONS:
+        raise table.error("quick_stop_option", f"must be one of "
+                          f"{', '.join(map(str, QUICK_STOP_OPTIONS))}, got {option}")
+    return option
+
+
+def _master(m: Table, bus: Table) -> DriveMasterConfig:
+    """``[master]`` and ``[bus]``."""
+    channel = bus.string("channel")
+    if not channel:
+        raise bus.error("channel", "must be a bus name, got ''")
+    config = DriveMasterConfig(
+        node_id=m.integer("node_id", at_least=1, at_most=127),
+        mode=m.string("mode", choices=tuple(MODES)),
+        cycle_period_s=m.integer("cycle_period_us", above=0) / 1e6,
+        bitrate=bus.integer("bitrate", above=0),
+        channel=channel,
+        current_limit_ma=m.number("current_limit_mA", above=0, at_most=32_767),
+        heartbeat_id=m.integer("heartbeat_id", at_least=1, at_most=127),
+        heartbeat_period_ms=m.integer("heartbeat_period_ms", at_least=0, at_most=U16),
+        heartbeat_timeout_ms=m.integer("heartbeat_timeout_ms", at_least=0, at_most=U16),
+        drive_heartbeat_ms=m.integer("drive_heartbeat_ms", at_least=0, at_most=U16),
+        stale_cycles=m.integer("stale_cycles", above=0),
+        rx_timeout_s=m.integer("rx_timeout_us", above=0) / 1e6,
+        sdo_timeout_s=m.integer("sdo_timeout_ms", above=0) / 1e3,
+        state_timeout_s=m.integer("state_timeout_ms", above=0) / 1e3,
+        quick_stop_option=_quick_stop_option(m),
+        quick_stop_timeout_s=m.integer("quick_stop_timeout_ms", above=0) / 1e3,
+        standstill_deg_s=m.number("standstill_deg_s", above=0),
+    )
+    m.done()
+    bus.done()
+    return config
+
+
+def _or_inf(value: float | None) -> float:
+    return math.inf if value is None else value
+
+
+def _emulator(e: Table) -> DriveEmulatorConfig:
+    """``[emulator]`` with its ``friction`` and ``disturbance`` sub-tables."""
+    f, d = e.table("friction"), e.table("disturbance")
+    friction = Friction(
+        viscous_ma_per_deg_s=f.number("viscous_mA_per_deg_s"),
+        coulomb_ma=f.number("coulomb_mA"),
+        coulomb_smoothing_deg_s=f.number("coulomb_smoothing_deg_s", above=0),
+    )
+    disturbance = Disturbance(
+        constant_ma=d.number("constant_mA"),
+        start_s=d.number("start_s"),
+        end_s=_or_inf(d.number("end_s", None)),
+        sine_ma=d.number("sine_mA"),
+        sine_hz=d.number("sine_hz"),
+    )
+    config = DriveEmulatorConfig(
+        node_id=e.integer("node_id", at_least=1, at_most=127),
+        rated_current_ma=e.integer("rated_current_mA", above=0),
+        max_torque_permille=e.integer("max_torque_permille", at_least=0, at_most=U16),
+        current_limit_ma=e.number("current_limit_mA", above=0),
+        overcurrent_trip_ma=e.integer("overcurrent_trip_mA", above=0, at_most=U16),
+        increments_per_rev=e.integer("increments_per_rev", at_least=2, at_most=2**31 - 1),
+        heartbeat_ms=e.integer("heartbeat_ms", at_least=0, at_most=U16),
+        sync_loss_timeout_ms=e.integer("sync_loss_timeout_ms", at_least=0, at_most=U16),
+        quick_stop_option=_quick_stop_option(e),
+        quick_stop_timeout_ms=e.integer("quick_stop_timeout_ms", above=0),
+        standstill_deg_s=e.number("standstill_deg_s", above=0),
+        velocity_gain_ma_per_deg_s=e.number("velocity_gain_mA_per_deg_s", above=0),
+        position_gain_per_s=e.number("position_gain_per_s", above=0),
+        channel=e.string("channel"),
+        friction=friction,
+        disturbance=disturbance,
+    )
+    for table in (f, d, e):
+        table.done()
+    return config

@@ -1,0 +1,77 @@
+"""drive.toml parsed once (hil/servo/config.py): defaults, layering, and one error line naming
+the file and the key for an unknown key, a wrong type or a value out of range."""
+
+import math
+
+import pytest
+
+from drivers.can_drive import DriveMasterConfig
+from emulators.drive_node import DriveEmulatorConfig
+from hil.cli.main import main
+from hil.core.errors import ConfigError
+from hil.servo.config import default_drive_text, load_drive_config
+
+
+def write(tmp_path, text):
+    path = tmp_path / "my-drive.toml"
+    path.write_text(text)
+    return path
+
+
+def test_the_packaged_defaults_are_the_dataclasses_defaults():
+    drive = load_drive_config()
+    assert drive.master == DriveMasterConfig()
+    assert drive.emulator == DriveEmulatorConfig()
+    assert drive.emulator.disturbance.end_s == math.inf  # end_s omitted: no end
+    assert drive.text == default_drive_text() and drive.source == "drive config"
+
+
+def test_a_user_file_then_overrides_are_laid_over_the_default(tmp_path):
+    path = write(tmp_path, "[master]\ncurrent_limit_mA = 750.0\nrx_timeout_us = 800\n"
+                           "[emulator.disturbance]\nend_s = 2.5\n")
+    drive = load_drive_config(path, overrides={"master": {"current_limit_mA": 500}})
+    assert drive.master.current_limit_ma == 500.0 and drive.master.rx_timeout_s == 800e-6
+    assert drive.master.node_id == 1  # untouched keys keep the default
+    assert drive.emulator.disturbance.end_s == 2.5
+    assert drive.source == str(path) and drive.text == path.read_text()
+    assert drive.data["master"]["current_limit_mA"] == 500  # what the session records
+    again = drive.laid_over({"master": {"mode": "csp"}})
+    assert again.master.mode == "csp" and again.master.current_limit_ma == 500.0
+    with pytest.raises(ConfigError, match=rf"^{path}: key 'master\.mode'"):
+        drive.laid_over({"master": {"mode": "velocity"}})
+
+
+@pytest.mark.parametrize(("toml", "message"), [
+    ("[master]\nnode_idd = 2\n", "unknown key 'master.node_idd'"),
+    ("[emulator.friction]\nviscous = 1.0\n", "unknown key 'emulator.friction.viscous'"),
+    ("[masterr]\nnode_id = 2\n", "unknown key 'masterr'"),
+    ("[master]\nstale_cycles = 2.5\n", "key 'master.stale_cycles' must be int, got float 2.5"),
+    ("[bus]\nbitrate = true\n", "key 'bus.bitrate' must be int, got bool True"),
+    ("[emulator]\nchannel = 3\n", "key 'emulator.channel' must be str, got int 3"),
+    ("[master]\nnode_id = 128\n", "key 'master.node_id' must be <= 127, got 128"),
+    ("[master]\ncurrent_limit_mA = 0\n", "key 'master.current_limit_mA' must be > 0, got 0"),
+    ("[master]\nquick_stop_option = 3\n",
+     "key 'master.quick_stop_option' must be one of 0, 1, 2, 5, 6, got 3"),
+    ("[emulator.disturbance]\nend_s = inf\n",
+     "key 'emulator.disturbance.end_s' must be a finite number, got inf"),
+    ("[bus]\nchannel = \"\"\n", "key 'bus.channel' must be a bus name"),
+])
+def test_a_bad_key_is_one_error_naming_the_file_and_the_key(tmp_path, toml, message):
+    path = write(tmp_path, toml)
+    with pytest.raises(ConfigError) as error:
+        load_drive_config(path)
+    assert str(error.value).startswith(f"{path}: ")
+    assert message in str(error.value)
+    assert "\n" not in str(error.value)
+
+
+def test_servo_run_with_a_bad_config_prints_one_error_line_and_exits_2(tmp_path, capsys):
+    path = write(tmp_path, "[master]\nheartbeat_period_ms = -5\n")
+    out = tmp_path / "never.mcap"
+    code = main(["servo", "run", "--controller", "pid", "--config", str(path), "--out",
+                 str(out)])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err == (f"hil: error: {path}: key 'master.heartbeat_period_ms' must be >= 0, "
+                   "got -5\n")
+    assert not out.exists()
