@@ -29,7 +29,8 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.framer.rtu import FramerRTU
 
 from drivers.modbus_bench import ModbusLink, parse_bus_url
-from hil.bench.rig import attach_bench, load_bench_config
+from hil.bench.config import BenchConfig, load_bench_config, parse_bench_config
+from hil.bench.rig import attach_bench
 from hil.core.clock import RealtimeClock
 from hil.core.config import deep_merge
 from hil.core.loop import FunctionTask
@@ -180,10 +181,11 @@ def loop_only(duration_s: float) -> tuple[dict, int, int]:
         return stats.lateness.summary(), stats.runs, stats.missed
 
 
-def sampling(url: str, duration_s: float, config: dict) -> tuple[dict, int, int, int, int]:
+def sampling(url: str, duration_s: float, config: BenchConfig
+             ) -> tuple[dict, int, int, int, int]:
     with tempfile.TemporaryDirectory() as tmp:
-        session = Session(f"{tmp}/b.mcap", RealtimeClock(), 0.01, kind="bench", config=config,
-                          handle_signals=False)
+        session = Session(f"{tmp}/b.mcap", RealtimeClock(), 0.01, kind="bench",
+                          config=config.data, handle_signals=False)
         rig = attach_bench(session, config, url)
         session.run(duration_s=duration_s)
         rig.close()
@@ -222,8 +224,8 @@ def sampling_report(duration_s: float, rtu_s: float) -> None:
         stop(proc)
     modem, ports = null_modem(115200)
     proc, _ = emulator("--serial", ports[1])
-    small = deep_merge(config, {"meter": {"poll": ["va_l1", "va_l2", "va_l3"]},
-                                "sampling": {"levels_every": 10}})
+    small = parse_bench_config(deep_merge(config.data, {
+        "meter": {"poll": ["va_l1", "va_l2", "va_l3"]}, "sampling": {"levels_every": 10}}))
     try:
         lat, runs, missed, failed, late = sampling(f"modbus-rtu://{ports[0]}?baud=115200",
                                                    rtu_s, small)

@@ -6,20 +6,17 @@ import numpy as np
 import pytest
 
 from controllers.bench_kalman import BenchKalman
-from controllers.bench_problem import load_problem
 from emulators.bench_plant import BenchPlant
-from hil.bench.rig import load_bench_config
-from hil.bench.run import load_configs, load_models
+from hil.bench.config import load_configs
+from hil.bench.run import load_models
 
 
 def run_filter(disturbance: bool, seconds: float = 30.0):
     """Play the machining sequence and a P1/P2 schedule on the plant; filter its total VA."""
-    bench, eec, _ = load_configs(None)
-    problem = load_problem(bench)
+    bench, eec = load_configs(None)
+    problem = bench.problem
     kalman = BenchKalman(load_models(eec, problem))
-    config = load_bench_config()
-    config["plant"]["disturbance"]["enabled"] = disturbance
-    plant = BenchPlant(config)
+    plant = BenchPlant(bench.emulating(disturbance=disturbance).plant)
     seq = problem.sequence
     held = {name: False for name in ("M1", "M2", "P1", "P2")}
     d_hat, s_err = [], []
