@@ -6,7 +6,7 @@ import itertools
 
 import numpy as np
 
-from controllers.base import BenchObservation
+from controllers.base import BenchController, BenchObservation
 from controllers.bc import BasicController, hysteresis_rule
 from controllers.bench_problem import DwellClock
 from hil.bench.config import load_bench_config
@@ -62,3 +62,12 @@ def test_dwell_defers_a_needed_switch():
     high = {"q1": 149.0, "q2": 150.0}
     assert hysteresis_rule(problem, high, dwell, 17.0)["P1"] is True  # inside the dwell
     assert hysteresis_rule(problem, high, dwell, 20.0)["P1"] is False
+
+
+def test_bc_is_a_bench_controller_that_keeps_unlisted_relays_out():
+    problem = load_bench_config().problem
+    bc = BasicController(problem)
+    assert isinstance(bc, BenchController)
+    command = bc.decide(BenchObservation(0.0, {"q1": 50.0, "q2": 150.0},
+                                         {"P1": False, "P2": False}, 0.0))
+    assert command == {"P1": True, "P2": False}   # q1 at its bottom: refill; q2 fine

@@ -12,7 +12,7 @@ import itertools
 import numpy as np
 import pytest
 
-from controllers.base import BenchObservation
+from controllers.base import BenchController, BenchEstimator, BenchObservation
 from controllers.bench_models import DeviceModel, LinearModel, MachiningModel
 from controllers.bench_problem import BenchProblem
 from controllers.eec import EEC, EECMilp, EECSettings
@@ -261,3 +261,15 @@ def test_models_identified_over_the_wire_load_with_their_pulse_inputs():
     assert lin.inputs == ("M1", "M1:start", "M2", "M2:start")
     sequence = load_bench_config().problem.sequence
     assert MachiningModel.from_linear(lin, sequence).model is lin
+
+
+def test_eec_is_a_bench_controller_with_its_estimator():
+    problem = problem_with_dwell(5.0)
+    models = synthetic_models(problem)
+    eec = EEC(models, problem, EECSettings(hp_steps=8))
+    assert isinstance(eec, BenchController) and isinstance(eec.estimator, BenchEstimator)
+    est = BenchEstimate.at_rest(models)
+    obs = BenchObservation(0.0, {"q1": 30.0, "q2": 120.0}, {"P1": False, "P2": False}, 0.0, est)
+    assert eec.decide(obs) == {"P1": True, "P2": False}    # the fallback's answer, as a dict
+    with pytest.raises(TypeError, match="BenchEstimate"):
+        eec.decide(BenchObservation(1.0, {"q1": 55.0, "q2": 120.0}, {}, 0.0))

@@ -23,7 +23,7 @@ from hil.core.config import deep_merge
 from hil.core.loop import FunctionTask
 from hil.core.reader import read_session
 from hil.core.session import Session
-from hil.core.types import LinkWatchdog
+from hil.core.types import Device, LinkWatchdog
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -56,6 +56,24 @@ def lockstep_session(tmp_path, config, name="s.mcap"):
                       handle_signals=False)
     rig = attach_bench(session, config, "emulated", play_sequence=False)
     return session, rig
+
+
+def test_the_safe_bench_is_a_device_whose_link_is_its_watchdog(tmp_path):
+    session, rig = lockstep_session(tmp_path, CONFIG)
+    bench = rig.bench
+    assert isinstance(bench, Device)
+    assert bench.url.startswith("modbus-tcp://127.0.0.1:") and bench.link_up
+    assert [bench.watchdog.failure() for _ in range(5)][-1] is True   # bus.watchdog_polls = 5
+    assert not bench.link_up and bench.read_power() is None          # no polls while lost
+    bench.watchdog.success()
+    assert bench.link_up and bench.read_power() is not None
+    bench.set_relays({"P1": True})
+    assert rig.emulator.plant.coils()[P1_COIL] is True
+    bench.safe_state()
+    assert rig.emulator.plant.coils()[P1_COIL] is False
+    rig.close()
+    bench.close()  # idempotent: the link is already released
+    session.close()
 
 
 def test_a_chattering_controller_cannot_switch_a_relay_inside_its_dwell(tmp_path):
