@@ -408,7 +408,8 @@ class EECMilp:
             row_lo[self.row_trans[j * H]] = row_hi[self.row_trans[j * H]] = float(u_prev[j])
         sr, sc, sv = self.static_rows
         rr, cc, vv = [sr], [sc], [sv]
-        cut_lo: list[float] = []  # a relay that is off and must have produced by step t starts by step t
+        # a relay that is off and must have produced by step t starts by step t
+        cut_lo: list[float] = []
         for j in range(nd):
             need = np.nonzero(c_lo[j] >= 1)[0]
             if u_prev[j] < 0.5 and need.size:

@@ -238,8 +238,8 @@ class InductionMotor(Load):
         breakdown = float(grid[int(np.argmax(torques))])
         lo, hi = 1e-6, breakdown
         if self.electrical(hi)[2] <= self._load_torque(1.0 - hi):
-            raise ConfigError(f"plant: motor {self.name}: load torque exceeds the motor's "
-                              "breakdown torque, it would never reach speed")
+            raise ConfigError(f"key 'plant.loads.{self.name}': the load torque exceeds the "
+                              "motor's breakdown torque, it would never reach speed")
         for _ in range(100):
             mid = 0.5 * (lo + hi)
             if self.electrical(mid)[2] < self._load_torque(1.0 - mid):
@@ -320,7 +320,6 @@ class BenchPlant:
 
     def __init__(self, spec: PlantSpec, *, seed: int | None = None) -> None:
         """``seed``: measurement noise seed (default: the spec's)."""
-        self.spec = spec
         self.dt = spec.dt_s
         self.relays = dict(spec.relays)
         base = spec.base

@@ -80,17 +80,16 @@ class BenchConfig:
         controllers and the safety layer alike; None: as configured."""
         if dwell_s is None:
             return self
-        if not 0 <= dwell_s < math.inf:
+        dwell = float(dwell_s)
+        if not 0 <= dwell < math.inf:
             raise ConfigError(f"{self.source}: the dwell must be a finite number >= 0, got "
-                              f"{dwell_s:g}")
+                              f"{dwell:g}")
         peripherals = self.problem.peripherals
-        relays = {name: replace(spec, dwell_s=float(dwell_s)) if name in peripherals else spec
+        relays = {name: replace(spec, dwell_s=dwell) if name in peripherals else spec
                   for name, spec in self.map.relays.items()}
-        data = deep_merge(self.data, {"relays": {n: {"dwell_s": float(dwell_s)}
-                                                 for n in peripherals}})
-        return replace(self, data=data, map=replace(self.map, relays=relays),
-                       problem=replace(self.problem, dwell_s=dict.fromkeys(peripherals,
-                                                                           float(dwell_s))))
+        data = deep_merge(self.data, {"relays": {n: {"dwell_s": dwell} for n in peripherals}})
+        problem = replace(self.problem, dwell_s=dict.fromkeys(peripherals, dwell))
+        return replace(self, data=data, map=replace(self.map, relays=relays), problem=problem)
 
     def emulating(self, seed: int | None = None, disturbance: bool | None = None
                   ) -> BenchConfig:
@@ -270,11 +269,11 @@ def _poll(meter: Table, registers: Mapping[str, int]) -> list[str]:
     poll = meter.get("poll", list, None)
     if poll is None:
         return list(registers)
-    unknown = [q for q in poll if q not in registers]
+    unknown = [q for q in poll if not isinstance(q, str) or q not in registers]
     if unknown or not poll:
         raise meter.error("poll", f"must name registers of [meter.registers], unknown: "
                                   f"{unknown}")
-    return [str(q) for q in poll]
+    return list(poll)
 
 
 def _bus(table: Table) -> BusSettings:
@@ -319,7 +318,7 @@ def _sequence(table: Table, relays: Mapping[str, RelaySpec]) -> MachiningSequenc
         if abs(start - expected_start) > 1e-9 or not end > start:
             raise ConfigError(f"{where}: stages must tile [0, period) in order: expected "
                               f"start_s = {expected_start:g} < end_s, got {start:g}..{end:g}")
-        unknown = [n for n in on if n not in relays]
+        unknown = [n for n in on if not isinstance(n, str) or n not in relays]
         if unknown:
             raise ConfigError(f"{where}: unknown relay(s) {unknown} (relays: "
                               f"{', '.join(relays)})")
@@ -383,7 +382,7 @@ def _resources(table: Table, sequence: MachiningSequence, relays: Mapping[str, R
 
 def _phases(table: Table, key: str = "phases") -> tuple[str, ...]:
     phases = table.get(key, list, ["L2"])
-    if not phases or len(set(phases)) != len(phases) or not set(phases) <= set(PHASES):
+    if not phases or not all(p in PHASES for p in phases) or len(set(phases)) != len(phases):
         raise table.error(key, f"must list distinct phases among {list(PHASES)}, got {phases!r}")
     return tuple(phases)
 

@@ -35,8 +35,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
-from hil.bench.rig import BenchRig, attach_bench
-from hil.core.clock import RealtimeClock, SimClock
+from hil.bench.rig import BenchRig, attach_bench, session_clock
 from hil.core.errors import UsageError
 from hil.core.loop import Task
 from hil.core.session import Session
@@ -219,7 +218,7 @@ def run_identify_experiment(opts: IdentifyOptions, stream: TextIO | None = None
                          f"quantities: {', '.join(quantities)})")
     out = opts.out or os.path.join(tempfile.gettempdir(),
                                    f"hil-bench-identify-{int(time.time())}.mcap")
-    clock = RealtimeClock() if opts.realtime or opts.bench != "emulated" else SimClock()
+    clock = session_clock(opts.bench, opts.realtime)
     prbs = [PrbsRelay(name, max(1, math.ceil(holds[name] / sample_s - 1e-9)),
                       config.map.relays[name].dwell_s, np.random.default_rng([opts.seed, k]))
             for k, name in enumerate(prbs_names)]

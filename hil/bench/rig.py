@@ -4,7 +4,8 @@
   ``emulated``, and any scheme a package declares in the ``hil.bench_devices`` entry points).
   ``emulated`` is handled here only: the emulator in-process on 127.0.0.1 (a free port),
   stepped by the loop (:class:`PlantStepTask`) when the session clock is a SimClock, by the
-  wall clock otherwise, and the same Modbus driver talking to it.
+  wall clock otherwise, and the same Modbus driver talking to it; :func:`session_clock`
+  picks lockstep for it and the wall clock for a real bench.
 * :class:`SequenceSchedule` - the machining sequence as the player plays it: exact
   nanosecond lookups on the table of :class:`controllers.bench_problem.MachiningSequence`.
 * :class:`BenchSampler` - polls power (and levels) every sample, services the safety layer,
@@ -23,9 +24,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from controllers.bench_problem import MachiningSequence, Stage
+from hil.core.clock import Clock, RealtimeClock, SimClock
 from hil.core.errors import ConfigError
 from hil.core.loop import Task
-from hil.core.registry import SchemeRegistry
+from hil.core.registry import SchemeRegistry, scheme_of
 
 if TYPE_CHECKING:
     from drivers.safety import SafeBench
@@ -40,6 +42,17 @@ BENCH_DEVICES = SchemeRegistry("bench", {
     "modbus-rtu": ("hil.bench.rig", "open_modbus"),
     "emulated": ("hil.bench.rig", "open_emulated"),
 }, "hil.bench_devices")
+
+
+def is_emulated(url: str) -> bool:
+    """Whether ``url`` is the in-process emulator, the one bench that can run in lockstep."""
+    return scheme_of(url) == "emulated"
+
+
+def session_clock(url: str, realtime: bool = False) -> Clock:
+    """Lockstep (a SimClock) against the emulator unless ``realtime``; a real bench always
+    runs on the wall clock."""
+    return RealtimeClock() if realtime or not is_emulated(url) else SimClock()
 
 
 class SequenceSchedule:

@@ -41,8 +41,7 @@ from hil.bench.control import (
     TimedController,
     estimator_of,
 )
-from hil.bench.rig import SequencePlayer, attach_bench
-from hil.core.clock import RealtimeClock, SimClock
+from hil.bench.rig import SequencePlayer, attach_bench, is_emulated, session_clock
 from hil.core.errors import ConfigError, UsageError
 from hil.core.session import Session
 from hil.core.types import TimeSource
@@ -132,7 +131,7 @@ def run_bench(opts: BenchRunOptions) -> dict[str, Any]:
     """Run one closed-loop bench session; return the KPI dictionary (``hil bench run``)."""
     if opts.controller not in CONTROLLERS:
         raise UsageError(f"controller must be one of {CONTROLLERS}, got {opts.controller!r}")
-    if opts.disturbance and opts.bench != "emulated":
+    if opts.disturbance and not is_emulated(opts.bench):
         raise UsageError("--disturbance switches the emulator's unknown load on: it needs "
                          "--bench emulated")
     bench, eec = load_configs(opts.config_path, opts.overrides)
@@ -142,8 +141,7 @@ def run_bench(opts: BenchRunOptions) -> dict[str, Any]:
     out = opts.out or os.path.join(tempfile.gettempdir(),
                                    f"hil-bench-{opts.controller}-{int(time.time())}.mcap")
     models = load_models(eec, problem) if opts.controller == "eec" else None
-    # lockstep needs the emulator: a real bench always runs on the wall clock
-    clock = RealtimeClock() if opts.realtime or opts.bench != "emulated" else SimClock()
+    clock = session_clock(opts.bench, opts.realtime)
     merged = {"bench": bench.data, "controllers": eec.data,
               "run": {k: v for k, v in vars(opts).items() if k != "overrides"} |
               {"eec": vars(settings), "feedback": eec.eec.feedback}}
