@@ -25,6 +25,7 @@ import argparse
 import dataclasses
 import tempfile
 import time
+from unittest import mock
 
 import numpy as np
 
@@ -33,11 +34,14 @@ from controllers.bench_kpis import timing_summary
 from controllers.eec_cvxpy import solve_naive
 from hil.bench.run import BenchRunOptions, run_bench
 
+Instance = tuple[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float], float, str]
 
-def closed_loop(hp_s: int, cycles: int, out: str) -> tuple[dict, list, eec_module.EECMilp]:
+
+def closed_loop(hp_s: int, cycles: int, out: str
+                ) -> tuple[dict, list[Instance], eec_module.EECMilp]:
     """Run the EEC; return its KPIs, every solve's (inputs, ms, status) and the MILP."""
-    instances: list = []
-    milps: list = []
+    instances: list[Instance] = []
+    milps: list[eec_module.EECMilp] = []
     original = eec_module.EECMilp.solve
 
     def recording(self, free, u_prev, fixed, q0, t_s, warm_u=None, budget_s=None):
@@ -47,11 +51,8 @@ def closed_loop(hp_s: int, cycles: int, out: str) -> tuple[dict, list, eec_modul
         milps.append(self)
         return result
 
-    eec_module.EECMilp.solve = recording
-    try:
+    with mock.patch.object(eec_module.EECMilp, "solve", recording):
         kpis = run_bench(BenchRunOptions(controller="eec", cycles=cycles, hp_s=hp_s, out=out))
-    finally:
-        eec_module.EECMilp.solve = original
     return kpis, instances, milps[0]
 
 
@@ -91,7 +92,7 @@ def main() -> None:
               f"{fmt(timing_summary(exact_ms))}  every {args.exact_every}th decision"
               + (f"; {unproven} not proven in 20 s" if unproven else ""))
         picks = np.linspace(0, len(sample) - 1, min(args.naive, len(sample))).round().astype(int)
-        naive = [solve_naive(milp, *sample[k][0], time_limit_s=120.0) for k in picks]
+        naive = [solve_naive(milp, *sample[int(k)][0], time_limit_s=120.0) for k in picks]
         naive_ms = [r.solve_ms for r in naive]
         # the fast model's step peaks may overestimate by peak_overestimate_va (model tails)
         slack = (exact_milp.w2 + exact_milp.w_limit) * exact_milp.peak_overestimate_va

@@ -57,18 +57,21 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import contextlib  # noqa: E402 - BLAS threads must be set before numpy is imported
-import copy  # noqa: E402
 import io  # noqa: E402
 import statistics  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable, Iterator  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
+from dataclasses import dataclass, replace  # noqa: E402
 from functools import partial  # noqa: E402
-from typing import Any, TypeVar  # noqa: E402
+from typing import TYPE_CHECKING, Any, TypeVar  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 from controllers import ident  # noqa: E402
+
+if TYPE_CHECKING:
+    from emulators.bench_plant import PlantSpec
+    from hil.bench.config import BenchConfig
 
 SAMPLES = 4000
 REPEATS = 7
@@ -237,16 +240,14 @@ def switch_on_events(u: np.ndarray) -> np.ndarray:
     return ((u > 0.5) & (previous < 0.5)).astype(float)
 
 
-def with_meter_noise(config: dict[str, Any], va_sigma: float) -> dict[str, Any]:
-    """A copy of the bench config with the meter's VA noise set (voltage noise off at 0 VA)."""
-    noisy = copy.deepcopy(config)
-    noisy["plant"]["meter"]["va_sigma"] = va_sigma
-    if va_sigma == 0:
-        noisy["plant"]["meter"]["voltage_sigma_v"] = 0.0
-    return noisy
+def with_meter_noise(plant: PlantSpec, va_sigma: float) -> PlantSpec:
+    """The plant with the meter's VA noise set (voltage noise off at 0 VA)."""
+    voltage_sigma_v = 0.0 if va_sigma == 0 else plant.meter.voltage_sigma_v
+    return replace(plant, meter=replace(plant.meter, va_sigma=va_sigma,
+                                        voltage_sigma_v=voltage_sigma_v))
 
 
-def play(config: dict[str, Any], relays: dict[str, np.ndarray], seed: int) -> np.ndarray:
+def play(plant_spec: PlantSpec, relays: dict[str, np.ndarray], seed: int) -> np.ndarray:
     """The meter's output for ``relays`` (name -> 0/1 per sample) on a fresh plant.
 
     ``y[k]`` is the reading after k steps, ``u[k]`` the state written at tick k (acting from the
@@ -254,7 +255,7 @@ def play(config: dict[str, Any], relays: dict[str, np.ndarray], seed: int) -> np
     """
     from emulators.bench_plant import BenchPlant
 
-    plant = BenchPlant(config, seed=seed)
+    plant = BenchPlant(plant_spec, seed=seed)
     n = len(next(iter(relays.values())))
     y = np.empty(n)
     for k in range(n):
@@ -265,14 +266,14 @@ def play(config: dict[str, Any], relays: dict[str, np.ndarray], seed: int) -> np
     return y
 
 
-def bench_record(config: dict[str, Any], name: str, va_sigmas: tuple[float, ...]
+def bench_record(config: BenchConfig, name: str, va_sigmas: tuple[float, ...]
                  ) -> BenchRecord:
-    dt = float(config["plant"]["dt_s"])
+    dt = config.plant.dt_s
     n = round(BENCH_SECONDS / dt)
     seed = BENCH_SEEDS[name]
     relays = {
         relay: prbs(np.random.default_rng([seed, k]), n,
-                    max(1, round(float(config["relays"][relay]["dwell_s"]) / dt)))
+                    max(1, round(config.map.relays[relay].dwell_s / dt)))
         for k, relay in enumerate(BENCH_MODELS[name])
     }
     u = np.column_stack([s for relay in relays.values()
@@ -280,8 +281,9 @@ def bench_record(config: dict[str, Any], name: str, va_sigmas: tuple[float, ...]
     inputs = tuple(f for relay in relays for f in (relay, f"{relay}_start"))
     return BenchRecord(
         name=name, inputs=inputs, u=u,
-        y={sigma: play(with_meter_noise(config, sigma), relays, seed) for sigma in va_sigmas},
-        y_true=play(with_meter_noise(config, 0.0), relays, seed),
+        y={sigma: play(with_meter_noise(config.plant, sigma), relays, seed)
+           for sigma in va_sigmas},
+        y_true=play(with_meter_noise(config.plant, 0.0), relays, seed),
     )
 
 
@@ -408,11 +410,11 @@ def print_bench(record: BenchRecord, va_sigma: float, rows: list[Row], timed: bo
 
 
 def emulated_section(has_sippy: bool) -> None:
-    from hil.bench.rig import load_bench_config
+    from hil.bench.config import load_bench_config
 
     config = load_bench_config()
-    dt = float(config["plant"]["dt_s"])
-    default_sigma = float(config["plant"]["meter"]["va_sigma"])
+    dt = config.plant.dt_s
+    default_sigma = config.plant.meter.va_sigma
     sigmas = (default_sigma, SENSITIVITY_VA_SIGMA)
     print(f"\n== emulated bench: BenchPlant (default bench config) stepped directly, dt {dt:g} s,"
           f" {BENCH_SECONDS:g} s = {round(BENCH_SECONDS / dt)} samples per model "

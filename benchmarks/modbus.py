@@ -21,6 +21,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +30,8 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.framer.rtu import FramerRTU
 
 from drivers.modbus_bench import ModbusLink, parse_bus_url
-from hil.bench.rig import attach_bench, load_bench_config
+from hil.bench.config import BenchConfig, load_bench_config, parse_bench_config
+from hil.bench.rig import attach_bench
 from hil.core.clock import RealtimeClock
 from hil.core.config import deep_merge
 from hil.core.loop import FunctionTask
@@ -41,13 +43,14 @@ ENV = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
 METER_UNIT, FULL, SMALL = 2, 76, 6   # whole SDM630 map in one request; va_l1..va_l3
 
 
-def spawn(*args: str) -> tuple[subprocess.Popen, str]:
+def spawn(*args: str) -> tuple[subprocess.Popen[str], str]:
     proc = subprocess.Popen([sys.executable, *args], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, text=True, env=ENV)
+    assert proc.stdout is not None  # stdout=PIPE
     return proc, proc.stdout.readline().strip()
 
 
-def emulator(*where: str) -> tuple[subprocess.Popen, str]:
+def emulator(*where: str) -> tuple[subprocess.Popen[str], str]:
     proc, line = spawn("-m", "hil", "emulate", "bench", *where)
     match = re.search(r"listening on (\S+)", line)
     if not match:
@@ -55,7 +58,7 @@ def emulator(*where: str) -> tuple[subprocess.Popen, str]:
     return proc, match.group(1)
 
 
-def null_modem(baud: int | None) -> tuple[subprocess.Popen, list[str]]:
+def null_modem(baud: int | None) -> tuple[subprocess.Popen[str], list[str]]:
     """A pty pair in a helper process (its copy threads then do not share our GIL)."""
     code = ("import sys; from emulators.null_modem import NullModem\n"
             f"m = NullModem(baudrate={baud!r}); print(' '.join(m.ports), flush=True)\n"
@@ -64,7 +67,9 @@ def null_modem(baud: int | None) -> tuple[subprocess.Popen, list[str]]:
     return proc, line.split()
 
 
-def stop(proc: subprocess.Popen) -> None:
+def stop(proc: subprocess.Popen[str]) -> None:
+    if proc.stdin is not None:  # the null modem helper ends when its stdin closes
+        proc.stdin.close()
     proc.terminate()
     try:
         proc.wait(timeout=5)
@@ -147,25 +152,25 @@ def round_trips(n_tcp: int, n_rtu: int) -> None:
             if baud is None:
                 row(f"{kind}: raw frame ({FULL} regs) [baseline]",
                     time_calls(raw_rtu(ports[0], FULL), n_rtu))
-                client = ModbusSerialClient(ports[0], baudrate=115200, timeout=1, retries=0)
-                client.connect()
+                serial_client = ModbusSerialClient(ports[0], baudrate=115200, timeout=1,
+                                                   retries=0)
+                serial_client.connect()
                 row(f"{kind}: pymodbus client ({FULL} regs)", time_calls(
-                    lambda c=client: c.read_input_registers(0, count=FULL,
-                                                            device_id=METER_UNIT), n_rtu))
-                client.close()
+                    partial(serial_client.read_input_registers, 0, count=FULL,
+                            device_id=METER_UNIT), n_rtu))
+                serial_client.close()
             link = ModbusLink(parse_bus_url(f"modbus-rtu://{ports[0]}?baud=115200"),
                               timeout_s=0.2, attempts=2)
             for count in (FULL, SMALL):
                 n = n_rtu if baud is None else max(50, n_rtu // 5)
                 wire_us = (8 + 5 + 2 * count) * 10 / 115200 * 1e6
                 note = "" if baud is None else f"wire time of the frames {wire_us:.0f} us"
+                first = 0x12 if count == SMALL else 0
                 row(f"{kind}: hil driver ({count} regs)", time_calls(
-                    lambda c=count, lk=link: lk.read_floats(METER_UNIT, 0x12 if c == SMALL
-                                                            else 0, c), n), note)
+                    partial(link.read_floats, METER_UNIT, first, count), n), note)
             link.close()
         finally:
             stop(proc)
-            modem.stdin.close()
             stop(modem)
 
 
@@ -180,16 +185,17 @@ def loop_only(duration_s: float) -> tuple[dict, int, int]:
         return stats.lateness.summary(), stats.runs, stats.missed
 
 
-def sampling(url: str, duration_s: float, config: dict) -> tuple[dict, int, int, int, int]:
+def sampling(url: str, duration_s: float, config: BenchConfig
+             ) -> tuple[dict, int, int, int, int]:
     with tempfile.TemporaryDirectory() as tmp:
-        session = Session(f"{tmp}/b.mcap", RealtimeClock(), 0.01, kind="bench", config=config,
-                          handle_signals=False)
+        session = Session(f"{tmp}/b.mcap", RealtimeClock(), 0.01, kind="bench",
+                          config=config.data, handle_signals=False)
         rig = attach_bench(session, config, url)
         session.run(duration_s=duration_s)
         rig.close()
         session.close()
         stats = session.loop.stats["bench_io"]
-        late = sum(np.count_nonzero(np.asarray(m["lateness_us"]) > 5000)
+        late = sum(int(np.count_nonzero(np.asarray(m["lateness_us"]) > 5000))
                    for m in _timing_messages(session))
         return (stats.lateness.summary(), stats.runs, stats.missed,
                 rig.sampler.missed_power, late)
@@ -222,8 +228,8 @@ def sampling_report(duration_s: float, rtu_s: float) -> None:
         stop(proc)
     modem, ports = null_modem(115200)
     proc, _ = emulator("--serial", ports[1])
-    small = deep_merge(config, {"meter": {"poll": ["va_l1", "va_l2", "va_l3"]},
-                                "sampling": {"levels_every": 10}})
+    small = parse_bench_config(deep_merge(config.data, {
+        "meter": {"poll": ["va_l1", "va_l2", "va_l3"]}, "sampling": {"levels_every": 10}}))
     try:
         lat, runs, missed, failed, late = sampling(f"modbus-rtu://{ports[0]}?baud=115200",
                                                    rtu_s, small)
@@ -231,7 +237,6 @@ def sampling_report(duration_s: float, rtu_s: float) -> None:
              str(failed), str(late))
     finally:
         stop(proc)
-        modem.stdin.close()
         stop(modem)
     print("  missed = loop ticks skipped (the previous sample overran 10 ms); failed = polls "
           "without an answer; >5ms = samples started more than 5 ms late")

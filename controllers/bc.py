@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+from controllers.base import BenchObservation
 from controllers.bench_problem import BenchProblem, DwellClock
 
 
@@ -35,7 +36,8 @@ def hysteresis_rule(problem: BenchProblem, levels: Mapping[str, float],
 
 
 class BasicController:
-    """BC: :func:`hysteresis_rule` every step, with its own dwell bookkeeping."""
+    """BC: :func:`hysteresis_rule` every step, with its own dwell bookkeeping (a
+    :class:`~controllers.base.BenchController`)."""
 
     def __init__(self, problem: BenchProblem, step_s: float = 1.0,
                  initial: Mapping[str, bool] | None = None) -> None:
@@ -43,12 +45,12 @@ class BasicController:
         self.step_s = step_s
         self.dwell = DwellClock.start(problem.peripherals, initial)
 
-    def step(self, t_s: float, levels: Mapping[str, float], relays: Mapping[str, bool]
-             ) -> dict[str, bool]:
-        """Observe the measured relay states and levels at ``t_s``; return the command."""
+    def decide(self, obs: BenchObservation) -> dict[str, bool]:
+        """Observe the measured relay states and levels at ``obs.t_s``; return the command."""
+        t_s = obs.t_s
         for name in self.problem.peripherals:
-            self.dwell.update(name, bool(relays.get(name, self.dwell.state[name])), t_s)
-        command = hysteresis_rule(self.problem, levels, self.dwell, t_s, self.step_s)
+            self.dwell.update(name, bool(obs.relays.get(name, self.dwell.state[name])), t_s)
+        command = hysteresis_rule(self.problem, obs.levels, self.dwell, t_s, self.step_s)
         for name, on in command.items():
             self.dwell.update(name, on, t_s)
         return command

@@ -12,6 +12,10 @@ Timing: the reading of sample ``k`` reflects the relays latched during the step 
 to ``k``: :meth:`BenchKalman.advance` with those relay states, then
 :meth:`BenchKalman.correct` with the reading. Feedthrough (``D``) is ignored: a meter reading
 never depends on a relay written after it (identified bench models have ``D = 0``).
+
+:class:`BenchKalman` is a :class:`~controllers.base.BenchEstimator`: :meth:`~BenchKalman.update`
+does both steps from a :class:`~controllers.base.BenchSample`, and
+:meth:`~BenchKalman.estimate` is what the EEC predicts from.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 from scipy.linalg import block_diag
 
+from controllers.base import BenchSample
 from controllers.eec_prediction import BenchEstimate, BenchModels
 
 
@@ -61,6 +66,7 @@ class BenchKalman:
         self._device_prev = {n: False for n in self.names}
         self.sample = 0
         self.innovation = 0.0
+        self._started = False  # the first sample has no step before it
 
     def inputs(self, machining: Mapping[str, bool], devices: Mapping[str, bool]) -> np.ndarray:
         """The extended input vector for relay states held over one sample (and remember
@@ -88,6 +94,15 @@ class BenchKalman:
         self.kf.update(np.array([z]))
         self.innovation = float(np.ravel(self.kf.y)[0])
 
+    def update(self, sample: BenchSample) -> None:
+        """One sample: advance with the relays held since the previous one (not before the
+        first), then correct with the reading (not when the poll failed)."""
+        if self._started:
+            self.advance(sample.relays, sample.relays)
+        self._started = True
+        if sample.power_va is not None:
+            self.correct(sample.power_va)
+
     @property
     def disturbance_va(self) -> float:
         return float(self.kf.x[-1])
@@ -102,4 +117,5 @@ class BenchKalman:
         x = self.kf.x
         cuts = np.cumsum([0, *self.sizes])
         devices = {name: x[cuts[k + 1]:cuts[k + 2]].copy() for k, name in enumerate(self.names)}
-        return BenchEstimate(self.sample, x[:cuts[1]].copy(), devices, float(x[-1]))
+        return BenchEstimate(self.sample, x[:cuts[1]].copy(), devices, float(x[-1]),
+                             self.output_va, self.innovation)

@@ -6,9 +6,9 @@
   alpha_j [consumer on] + eta_j u_Pj(k) per second, with operating bounds;
 * the minimum on/off dwell of every peripheral relay.
 
-Read from the bench config (``[sequence]``, ``[plant.resources]``, ``[relays]``): the resource
-table sits under ``[plant]`` because the emulator integrates the same relation; on a real bench
-it is the process knowledge of Table I. Pure data, no I/O.
+Pure data, no I/O: :mod:`hil.bench.config` builds them from the bench config (``[sequence]``,
+``[plant.resources]``, ``[relays]``). The resource table sits under ``[plant]`` because the
+emulator integrates the same relation; on a real bench it is the process knowledge of Table I.
 """
 
 from __future__ import annotations
@@ -16,14 +16,8 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
-
-from hil.core.config import lookup
-from hil.core.errors import ConfigError
-
-SOURCE = "bench config"
 
 
 @dataclass(frozen=True)
@@ -112,85 +106,6 @@ class BenchProblem:
     def peripherals(self) -> tuple[str, ...]:
         """Relays the controllers switch (the suppliers of the resources), in resource order."""
         return tuple(r.supplier for r in self.resources)
-
-
-def parse_sequence(config: Mapping[str, Any]) -> MachiningSequence:
-    """``[sequence]`` of the bench config: stages tiling ``[0, period_s)`` in order, each
-    naming relays of ``[relays]`` (the one parser of the table; the bridge plays it from it)."""
-    period = lookup(config, "sequence.period_s", float, source=SOURCE)
-    raw = lookup(config, "sequence.stages", list, source=SOURCE)
-    known = lookup(config, "relays", dict, source=SOURCE)
-    if not period > 0 or not raw:
-        raise ConfigError(f"{SOURCE}: [sequence] needs period_s > 0 and at least one stage")
-    stages: list[Stage] = []
-    expected_start = 0.0
-    for i, entry in enumerate(raw):
-        where = f"{SOURCE}: sequence.stages[{i}]"
-        if not isinstance(entry, Mapping):
-            raise ConfigError(f"{where} must be a table {{start_s, end_s, on}}")
-        start = lookup(entry, "start_s", float, source=where)
-        end = lookup(entry, "end_s", float, source=where)
-        on = lookup(entry, "on", list, source=where)
-        if abs(start - expected_start) > 1e-9 or not end > start:
-            raise ConfigError(f"{where}: stages must tile [0, period) in order: expected "
-                              f"start_s = {expected_start:g} < end_s, got {start:g}..{end:g}")
-        unknown = [n for n in on if n not in known]
-        if unknown:
-            raise ConfigError(f"{where}: unknown relay(s) {unknown} (relays: "
-                              f"{', '.join(known)})")
-        stages.append(Stage(start, end, frozenset(on)))
-        expected_start = end
-    if abs(expected_start - period) > 1e-9:
-        raise ConfigError(f"{SOURCE}: sequence stages end at {expected_start:g} s, "
-                          f"not at period_s = {period:g} s")
-    relays = tuple(sorted(set().union(*(stage.on for stage in stages))))
-    return MachiningSequence(period, tuple(stages), relays)
-
-
-def parse_resources(config: Mapping[str, Any], sequence: MachiningSequence
-                    ) -> tuple[Resource, ...]:
-    table = lookup(config, "plant.resources", dict, source=SOURCE)
-    resources = []
-    for name in table:
-        key = f"plant.resources.{name}"
-        consumer = lookup(config, f"{key}.consumer", str, source=SOURCE)
-        supplier = lookup(config, f"{key}.supplier", str, source=SOURCE)
-        if consumer not in sequence.relays:
-            raise ConfigError(f"{SOURCE}: key '{key}.consumer' = {consumer!r} is not a relay of "
-                              f"the machining sequence ({', '.join(sequence.relays)})")
-        if supplier in sequence.relays:
-            raise ConfigError(f"{SOURCE}: key '{key}.supplier' = {supplier!r} is a machining "
-                              "relay; a supplier must be a peripheral")
-        bounds = lookup(config, f"{key}.bounds", list, source=SOURCE)
-        if len(bounds) != 2 or not all(isinstance(b, (int, float)) for b in bounds) or \
-                not bounds[0] < bounds[1]:
-            raise ConfigError(f"{SOURCE}: key '{key}.bounds' must be [low, high], got {bounds!r}")
-        eta = lookup(config, f"{key}.eta", float, source=SOURCE)
-        if not eta > 0:
-            raise ConfigError(f"{SOURCE}: key '{key}.eta' must be > 0, got {eta}")
-        resources.append(Resource(
-            name, consumer, supplier, lookup(config, f"{key}.alpha", float, source=SOURCE), eta,
-            float(bounds[0]), float(bounds[1]), lookup(config, f"{key}.q0", float, source=SOURCE),
-        ))
-    if not resources:
-        raise ConfigError(f"{SOURCE}: [plant.resources] is empty: the controllers need q_j")
-    suppliers = [r.supplier for r in resources]
-    if len(set(suppliers)) != len(suppliers):
-        raise ConfigError(f"{SOURCE}: each peripheral may supply one resource only")
-    return tuple(resources)
-
-
-def load_problem(config: Mapping[str, Any], dwell_s: float | None = None) -> BenchProblem:
-    """The :class:`BenchProblem` of a bench config; ``dwell_s`` overrides every dwell."""
-    sequence = parse_sequence(config)
-    resources = parse_resources(config, sequence)
-    dwell = {}
-    for r in resources:
-        value = lookup(config, f"relays.{r.supplier}.dwell_s", float, 5.0, source=SOURCE)
-        dwell[r.supplier] = float(dwell_s) if dwell_s is not None else value
-        if dwell[r.supplier] < 0:
-            raise ConfigError(f"{SOURCE}: dwell of {r.supplier} must be >= 0")
-    return BenchProblem(sequence, resources, dwell)
 
 
 @dataclass

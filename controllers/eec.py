@@ -51,19 +51,23 @@ import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import highspy
 import numpy as np
 
+from controllers.base import BenchObservation
 from controllers.bc import hysteresis_rule
+from controllers.bench_kalman import BenchKalman, KalmanSettings
 from controllers.bench_problem import BenchProblem, DwellClock
 from controllers.eec_prediction import BenchEstimate, BenchModels, HorizonPrediction
 
 INF = highspy.kHighsInf
+Index = TypeVar("Index", int, np.ndarray)  # one column (int) or many (array)
 TERMINALS = ("none", "hold")
 # HiGHS options, measured on closed-loop runs (benchmarks/eec.py): on these small models the
 # MIP presolve (probing) and the feasibility-jump heuristic cost more than they save
-SOLVER_OPTIONS: tuple[tuple[str, object], ...] = (
+SOLVER_OPTIONS: tuple[tuple[str, bool | int | float | str], ...] = (
     ("output_flag", False), ("threads", 1), ("presolve", "off"),
     ("mip_heuristic_run_feasibility_jump", False),
 )
@@ -93,16 +97,6 @@ class EECSettings:
             raise ValueError(f"terminal must be one of {TERMINALS}, got {self.terminal!r}")
         if self.gamma1 < 0 or self.gamma2 < 0 or self.gamma1 + self.gamma2 <= 0:
             raise ValueError("gamma1, gamma2 must be >= 0 and not both 0")
-
-
-@dataclass
-class Observation:
-    """What the EEC is told at a decision instant."""
-
-    t_s: float                 # time since the machining sequence's origin
-    levels: dict[str, float]   # q_j by resource name
-    relays: dict[str, bool]    # measured peripheral relay states
-    estimate: BenchEstimate    # model states (Kalman filter) at this instant
 
 
 @dataclass
@@ -183,16 +177,16 @@ class EECMilp:
     # per peripheral j four blocks of H columns: u (relay), s (start), d (stop), c (on-steps
     # so far: c_i = c_(i-1) + u_i, whose bounds carry the resource levels); then the level
     # binaries lambda_k of J2, whose number changes from solve to solve.
-    def col_u(self, j: int, i: int | np.ndarray) -> int | np.ndarray:
+    def col_u(self, j: int, i: Index) -> Index:
         return j * 4 * self.H + i
 
-    def col_s(self, j: int, i: int | np.ndarray) -> int | np.ndarray:
+    def col_s(self, j: int, i: Index) -> Index:
         return j * 4 * self.H + self.H + i
 
-    def col_d(self, j: int, i: int | np.ndarray) -> int | np.ndarray:
+    def col_d(self, j: int, i: Index) -> Index:
         return j * 4 * self.H + 2 * self.H + i
 
-    def col_c(self, j: int, i: int | np.ndarray) -> int | np.ndarray:
+    def col_c(self, j: int, i: Index) -> Index:
         return j * 4 * self.H + 3 * self.H + i
 
     # -- the fixed part --------------------------------------------------------------------
@@ -414,7 +408,8 @@ class EECMilp:
             row_lo[self.row_trans[j * H]] = row_hi[self.row_trans[j * H]] = float(u_prev[j])
         sr, sc, sv = self.static_rows
         rr, cc, vv = [sr], [sc], [sv]
-        cut_lo = []  # a relay that is off and must have produced by step t starts by step t
+        # a relay that is off and must have produced by step t starts by step t
+        cut_lo: list[float] = []
         for j in range(nd):
             need = np.nonzero(c_lo[j] >= 1)[0]
             if u_prev[j] < 0.5 and need.size:
@@ -582,12 +577,19 @@ class EECMilp:
 
 
 class EEC:
-    """The receding-horizon controller: observation in, relay command (and plan) out."""
+    """The receding-horizon controller: observation in, relay command (and plan) out.
+
+    A :class:`~controllers.base.BenchController` whose ``estimator`` (the Kalman filter of
+    :mod:`controllers.bench_kalman`) is fed every meter sample; its ``estimate()`` at the
+    decision instant is the ``obs.estimate`` of :meth:`decide` and :meth:`step`.
+    """
 
     def __init__(self, models: BenchModels, problem: BenchProblem, settings: EECSettings,
-                 initial: Mapping[str, bool] | None = None, feedback: bool = True) -> None:
+                 initial: Mapping[str, bool] | None = None, feedback: bool = True,
+                 kalman: KalmanSettings | None = None) -> None:
         """``feedback``: use the estimate's disturbance in the predictions (False: the
-        models alone, as an open-loop plan would)."""
+        models alone, as an open-loop plan would); ``kalman``: the estimator's noise levels."""
+        self.estimator = BenchKalman(models, kalman)
         self.problem = problem
         self.settings = settings
         spd = round(settings.step_s / models.dt)
@@ -604,7 +606,15 @@ class EEC:
         # first call of the cached model products outside the timed path
         self.prediction.free(BenchEstimate.at_rest(models))
 
-    def step(self, obs: Observation) -> Decision:
+    def decide(self, obs: BenchObservation) -> dict[str, bool]:
+        """The relay command for ``obs`` (:meth:`step` tells how it was decided)."""
+        return self.step(obs).relays
+
+    def step(self, obs: BenchObservation) -> Decision:
+        """Decide from ``obs``, whose ``estimate`` is a :class:`BenchEstimate`."""
+        if not isinstance(obs.estimate, BenchEstimate):
+            raise TypeError(f"the EEC decides from its estimator's BenchEstimate, got "
+                            f"{type(obs.estimate).__name__} in obs.estimate")
         names = self.problem.peripherals
         t = obs.t_s
         for name in names:

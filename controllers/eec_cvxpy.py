@@ -96,10 +96,11 @@ class CvxpyEEC:
             return ReferenceResult(f"error: {exc}", None, float("nan"), float("nan"),
                                    (time.perf_counter() - t0) * 1e3)
         ms = (time.perf_counter() - t0) * 1e3
-        if self.u.value is None:
+        u, z = self.u.value, self.z.value
+        if u is None or z is None:
             return ReferenceResult(self.problem.status, None, float("nan"), float("nan"), ms)
-        return ReferenceResult(self.problem.status, np.rint(self.u.value).astype(int),
-                               float(self.problem.value), float(self.z.value), ms)
+        return ReferenceResult(self.problem.status, np.rint(u).astype(int),
+                               float(self.problem.value), float(z), ms)
 
 
 def solve_naive(milp: EECMilp, free: np.ndarray, u_prev: np.ndarray, fixed_steps: np.ndarray,
@@ -142,7 +143,8 @@ def solve_naive(milp: EECMilp, free: np.ndarray, u_prev: np.ndarray, fixed_steps
         return ReferenceResult(f"error: {exc}", None, float("nan"), float("nan"),
                                (time.perf_counter() - t0) * 1e3)
     ms = (time.perf_counter() - t0) * 1e3
-    if u.value is None:
+    u_value, z_value = u.value, z.value
+    if u_value is None or z_value is None:
         return ReferenceResult(problem.status, None, float("nan"), float("nan"), ms)
-    return ReferenceResult(problem.status, np.rint(u.value).astype(int), float(problem.value),
-                           float(z.value), ms)
+    return ReferenceResult(problem.status, np.rint(u_value).astype(int), float(problem.value),
+                           float(z_value), ms)

@@ -45,12 +45,16 @@ class BenchEstimate:
 
     ``sample`` counts model samples since the machining sequence's origin; the states are
     those of sample ``sample`` (the latest meter reading), in the models' deviation coordinates.
+    ``output_va`` and ``innovation_va`` are the filter's diagnostics at that sample (recorded,
+    not used by the predictions).
     """
 
     sample: int
     x_machining: np.ndarray
     x_devices: dict[str, np.ndarray]
     disturbance_va: float = 0.0
+    output_va: float = 0.0
+    innovation_va: float = 0.0
 
     @classmethod
     def at_rest(cls, models: BenchModels, sample: int = 0) -> BenchEstimate:

@@ -1,6 +1,8 @@
 """Relay bench driver over Modbus TCP or RTU: relays (coils), power meter and level sensors.
 
 Moves bytes only: no dwell, no decisions (``drivers/safety.py`` wraps it for everyone else).
+It reads no configuration: :mod:`hil.bench.config` builds the :class:`BusSettings`,
+:class:`RelaySpec` and :class:`BenchMap` it is given.
 pymodbus clients run with ``retries=0``: its own retries re-send on a late reply and, on RTU
 where replies carry no transaction id, can take that late reply for the answer to the next
 request. :class:`ModbusLink` retries itself, checks every reply against its request, and after
@@ -13,18 +15,14 @@ import logging
 import struct
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
 from urllib.parse import parse_qsl, urlsplit
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from pymodbus.pdu import ModbusPDU
 
-from hil.bench.relays import RelaySpec, relay_specs
-from hil.core.config import lookup
 from hil.core.errors import ConfigError, HilError
 
-SOURCE = "bench config"
 URL_FORMS = "modbus-tcp://HOST:PORT or modbus-rtu:///dev/X?baud=115200&parity=N"
 EXCEPTION_NAMES = {
     1: "illegal function", 2: "illegal data address", 3: "illegal data value",
@@ -46,6 +44,27 @@ class DeviceError(HilError):
     def __init__(self, message: str, code: int) -> None:
         super().__init__(message)
         self.code = code
+
+
+@dataclass(frozen=True)
+class BusSettings:
+    """``[bus]``: where the bench is, how long a request may take, when the link is lost."""
+
+    url: str                     # modbus-tcp://HOST:PORT, modbus-rtu:///dev/X?..., emulated
+    timeout_s: float             # per request
+    attempts: int                # tries per request before the poll counts as failed
+    reconnect_interval_s: float  # while the link is lost, try to reconnect this often
+    watchdog_polls: int          # this many failed polls in a row: link lost
+
+
+@dataclass(frozen=True)
+class RelaySpec:
+    """One relay: its coil on the relay module, safe level and minimum on/off time."""
+
+    name: str
+    coil: int
+    safe: bool
+    dwell_s: float
 
 
 @dataclass(frozen=True)
@@ -114,8 +133,6 @@ class ModbusLink:
     """One Modbus master: explicit timeout per request, ``attempts`` tries, reply checks."""
 
     def __init__(self, spec: BusSpec, timeout_s: float, attempts: int) -> None:
-        if not timeout_s > 0 or attempts < 1:
-            raise ConfigError(f"{SOURCE}: bus.timeout_s must be > 0 and bus.attempts >= 1")
         self.spec = spec
         self.timeout_s = timeout_s
         self.attempts = attempts
@@ -230,7 +247,8 @@ def plan_reads(addresses: Mapping[str, int], max_count: int, max_gap: int
 
 @dataclass(frozen=True)
 class BenchMap:
-    """Units, relays and register maps of the bench (``bench.toml``), validated."""
+    """Unit ids (by role: relays, meter, levels), relays and the planned register reads
+    (:func:`plan_reads`) of the meter and the level sensors."""
 
     units: dict[str, int]
     relays: dict[str, RelaySpec]
@@ -244,50 +262,6 @@ class BenchMap:
     @property
     def level_names(self) -> list[str]:
         return [name for _, _, names in self.level_reads for name, _ in names]
-
-    @classmethod
-    def from_config(cls, config: Mapping[str, Any]) -> BenchMap:
-        units = {role: lookup(config, f"units.{role}", int, source=SOURCE)
-                 for role in ("relays", "meter", "levels")}
-        for role, unit in units.items():
-            if not 1 <= unit <= 247:
-                raise ConfigError(f"{SOURCE}: key 'units.{role}' must be 1..247, got {unit}")
-        relays = relay_specs(config)
-        max_count = lookup(config, "meter.max_registers_per_request", int, 80, source=SOURCE)
-        if not 2 <= max_count <= 125:
-            raise ConfigError(f"{SOURCE}: key 'meter.max_registers_per_request' must be 2..125, "
-                              f"got {max_count}")
-        max_gap = lookup(config, "meter.max_gap_registers", int, 8, source=SOURCE)
-        meter = _float_map(config, "meter.registers")
-        poll = lookup(config, "meter.poll", list, list(meter), source=SOURCE)
-        unknown = [q for q in poll if q not in meter]
-        if unknown or not poll:
-            raise ConfigError(f"{SOURCE}: key 'meter.poll' must name registers of "
-                              f"[meter.registers], unknown: {unknown}")
-        levels = _float_map(config, "levels.registers")
-        return cls(
-            units, relays,
-            plan_reads({q: meter[q] for q in poll}, max_count, max_gap),
-            plan_reads(levels, max_count, max_gap),
-        )
-
-
-def _float_map(config: Mapping[str, Any], key: str) -> dict[str, int]:
-    table = lookup(config, key, dict, source=SOURCE)
-    if not table:
-        raise ConfigError(f"{SOURCE}: [{key}] is empty")
-    out: dict[str, int] = {}
-    for name in table:
-        address = lookup(config, f"{key}.{name}", int, source=SOURCE)
-        if not 0 <= address <= 0xFFFE:
-            raise ConfigError(f"{SOURCE}: key '{key}.{name}' must be a register 0..65534, "
-                              f"got {address}")
-        clash = next((n for n, a in out.items() if abs(a - address) < 2), None)
-        if clash:
-            raise ConfigError(f"{SOURCE}: '{key}.{name}' (register {address:#06x}) overlaps "
-                              f"'{key}.{clash}' (float32 values take two registers)")
-        out[name] = address
-    return out
 
 
 class ModbusBenchDriver:

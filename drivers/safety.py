@@ -6,12 +6,16 @@
   recorded as an event, later ones are counted.
 * Safe level: on stop, on error and on link loss every relay is driven to its ``safe`` level,
   whatever its dwell (a safety action is not chatter).
-* Watchdog: ``watchdog_polls`` failed polls in a row declare the link lost (event, safe
-  level); the link is then retried every ``reconnect_interval_s``; on reconnection every relay
-  is driven to its safe level first and the controllers start again from there.
+* Watchdog (a :class:`~hil.core.types.LinkWatchdog`): ``watchdog_polls`` failed polls in a
+  row declare the link lost (event, safe level); the link is then retried every
+  ``reconnect_interval_s``; on reconnection every relay is driven to its safe level first and
+  the controllers start again from there.
 
-Time is the loop clock's (``clock.time_ns()``): dwell and reconnection pacing run in
-simulated time in lockstep and in wall time in real time.
+Time is the loop clock's (a :class:`~hil.core.types.TimeSource`): dwell and reconnection
+pacing run in simulated time in lockstep and in wall time in real time.
+
+:class:`SafeBench` is a :class:`~hil.core.types.Device`: ``open()`` probes every unit and
+drives the relays to their safe levels, ``close()`` does the safe state and releases the link.
 """
 
 from __future__ import annotations
@@ -23,14 +27,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from drivers.modbus_bench import DeviceError, LinkError, ModbusBenchDriver
-from hil.core.clock import Clock
 from hil.core.errors import HilError
-
-EventSink = Callable[..., None]  # (kind, message, level=..., source=..., **data), as Session.event
-
-
-def _no_event(kind: str, message: str, **data: Any) -> None:
-    return None
+from hil.core.types import Device, EventSink, LinkWatchdog, TimeSource, no_event
 
 
 class DwellGuard:
@@ -69,29 +67,6 @@ class DwellGuard:
             self.last_change_s[name] = t_s
 
 
-class Watchdog:
-    """Counts failed polls in a row; ``limit`` of them make the link lost."""
-
-    def __init__(self, limit: int) -> None:
-        if limit < 1:
-            raise HilError("watchdog limit must be >= 1")
-        self.limit = limit
-        self.failures = 0
-        self.lost = False
-
-    def failure(self) -> bool:
-        """Count one failure; True exactly when this one declares the link lost."""
-        self.failures += 1
-        if not self.lost and self.failures >= self.limit:
-            self.lost = True
-            return True
-        return False
-
-    def success(self) -> None:
-        self.failures = 0
-        self.lost = False
-
-
 @dataclass
 class SafetyStats:
     polls: int = 0
@@ -105,7 +80,7 @@ class SafetyStats:
     per_relay_switches: dict[str, int] = field(default_factory=dict)
 
 
-class SafeBench:
+class SafeBench(Device):
     """The bench as tasks and controllers see it: readings, and relays through the guard.
 
     ``read_power()`` / ``read_levels()`` return None on a failed poll (the watchdog counts
@@ -114,17 +89,17 @@ class SafeBench:
     drives every relay to its safe level; register the bench as a loop component.
     """
 
-    def __init__(self, driver: ModbusBenchDriver, clock: Clock, *,
+    def __init__(self, driver: ModbusBenchDriver, clock: TimeSource, *,
                  on_event: EventSink | None = None, watchdog_polls: int = 5,
                  reconnect_interval_s: float = 0.5) -> None:
         self._driver = driver
         self._clock = clock
-        self._event = on_event or _no_event
+        self._event = on_event or no_event
         relays = driver.map.relays
         self.relay_names = list(relays)
         self.safe_levels = {name: r.safe for name, r in relays.items()}
         self._guard = DwellGuard({n: r.dwell_s for n, r in relays.items()}, self.safe_levels)
-        self._watchdog = Watchdog(watchdog_polls)
+        self.watchdog = LinkWatchdog(watchdog_polls, "failed polls")
         self.reconnect_interval_s = reconnect_interval_s
         self._next_reconnect_s = -math.inf
         self._connections_seen = 0
@@ -132,10 +107,6 @@ class SafeBench:
         self.stats = SafetyStats(per_relay_switches={n: 0 for n in relays})
 
     # -- state -----------------------------------------------------------------------------
-    @property
-    def link_up(self) -> bool:
-        return not self._watchdog.lost
-
     @property
     def url(self) -> str:
         return self._driver.link.spec.url
@@ -175,24 +146,24 @@ class SafeBench:
         return self._poll(self._driver.read_levels)
 
     def _poll(self, read: Callable[[], dict[str, float]]) -> dict[str, float] | None:
-        if self._watchdog.lost:
+        if self.watchdog.lost:
             return None
         self.stats.polls += 1
         try:
             values = read()
         except LinkError as exc:
             self.stats.failed_polls += 1
-            if self._watchdog.failure():
+            if self.watchdog.failure():
                 self._link_lost(str(exc))
             return None
-        self._watchdog.success()
+        self.watchdog.success()
         self._check_reconnected()
         return values
 
     def _link_lost(self, reason: str) -> None:
         self.stats.link_losses += 1
         t_s = self._now_s(None)
-        self._emit("link.lost", f"bench link lost after {self._watchdog.failures} failed polls: "
+        self._emit("link.lost", f"bench link lost after {self.watchdog.run} failed polls: "
                    f"{reason}", level="error", url=self.url, reason=reason)
         self._guard.pending.clear()
         with contextlib.suppress(HilError):  # best effort: the relay module may still hear us
@@ -233,7 +204,7 @@ class SafeBench:
             if name not in self._guard.state:
                 raise HilError(f"unknown relay {name!r} (relays: {', '.join(self.relay_names)})")
             on = bool(on)
-            if self._watchdog.lost:
+            if self.watchdog.lost:
                 self.stats.refused_requests += 1
                 out[name] = "refused"
                 continue
@@ -264,7 +235,7 @@ class SafeBench:
             self.stats.failed_writes += 1
             self._emit("relay.write_failed", f"relay {name} {'on' if on else 'off'}: {exc}",
                        level="error", relay=name, requested=on)
-            if isinstance(exc, LinkError) and self._watchdog.failure():
+            if isinstance(exc, LinkError) and self.watchdog.failure():
                 self._link_lost(str(exc))
             return "failed"
         self._guard.applied(name, on, t_s)
@@ -276,7 +247,7 @@ class SafeBench:
     def service(self, t_ns: int | None = None) -> None:
         """Once per sample: apply deferred changes that are due; retry a lost link."""
         t_s = self._now_s(t_ns)
-        if self._watchdog.lost:
+        if self.watchdog.lost:
             if t_s >= self._next_reconnect_s:
                 self._try_reconnect(t_s)
             return
@@ -295,7 +266,7 @@ class SafeBench:
             link.close()
             return
         self._connections_seen = link.connections
-        self._watchdog.success()
+        self.watchdog.success()
         self.stats.reconnections += 1
         self._emit("link.restored", f"bench link restored ({self.url}); relays at their safe "
                    "levels", url=self.url)
@@ -315,7 +286,7 @@ class SafeBench:
 
     def safe_state(self) -> None:
         """Every relay to its safe level (ignores dwell). Idempotent; raises when it cannot."""
-        if self._watchdog.lost:  # one more try: the bench may be back
+        if self.watchdog.lost:  # one more try: the bench may be back
             self._driver.link.close()
             if not self._driver.link.connect():
                 self._emit("safe_state.unreachable", "relays not driven to their safe level: "
@@ -324,10 +295,6 @@ class SafeBench:
         self._drive_safe(self._now_s(None), reason="safe state")
         self._emit("bench.safe", "relays at their safe levels")
 
-    def close(self) -> None:
-        """Safe state (best effort), then close the link."""
-        try:
-            with contextlib.suppress(HilError):
-                self.safe_state()
-        finally:
-            self._driver.close()
+    def disconnect(self) -> None:
+        """Close the link (the driver's socket or serial port)."""
+        self._driver.close()

@@ -2,7 +2,8 @@
 resource levels. Pure computation (no I/O, no clock): :meth:`BenchPlant.step` advances it one
 ``dt`` (0.01 s) with the relay states it had at the start of the step.
 
-Loads (``[plant.*]`` of ``hil/configs/bench.toml``, which documents every choice):
+Loads (``[plant.*]`` of ``hil/configs/bench.toml``, which documents every choice; the plant is
+built from a :class:`PlantSpec` that :mod:`hil.bench.config` reads from it):
 
 * a constant base load, always on;
 * first-order loads (the heater M1, the UPS M2): S follows its target with ``tau_on_s`` /
@@ -20,18 +21,14 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
-from hil.bench.relays import relay_specs
-from hil.core.config import lookup
 from hil.core.errors import ConfigError
 
 PHASES = ("L1", "L2", "L3")
-SOURCE = "bench config"
 
 #: Every meter quantity the plant computes (names used by ``[meter.registers]``).
 METER_QUANTITIES = (
@@ -42,39 +39,118 @@ METER_QUANTITIES = (
     "avg_voltage", "avg_current", "sum_current", "total_w", "total_va", "total_var",
     "total_pf", "total_phase_angle", "frequency_hz", "import_kwh", "export_kwh",
 )
+MODELS = ("first_order", "induction_motor")
 
 
-def _phase_weights(config: Mapping[str, Any], key: str) -> tuple[tuple[int, float], ...]:
-    phases = lookup(config, key, list, ["L2"], source=SOURCE)
-    if not phases or len(set(phases)) != len(phases) or not set(phases) <= set(PHASES):
-        raise ConfigError(
-            f"{SOURCE}: key '{key}' must list distinct phases among {list(PHASES)}, got {phases!r}"
-        )
+# -- what the plant is built from (``[plant]`` of the bench config, read by hil.bench.config) --
+
+
+@dataclass(frozen=True)
+class ConstantLoadSpec:
+    """The machine's idle load, always on (``[plant.base]``)."""
+
+    va: float
+    pf: float
+    phases: tuple[str, ...]   # the load is spread over these phases equally
+
+
+@dataclass(frozen=True)
+class FirstOrderLoadSpec:
+    """A load behind a relay whose S follows its target with separate time constants."""
+
+    name: str
+    relay: str
+    va: float
+    pf: float
+    tau_on_s: float
+    tau_off_s: float
+    phases: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class MotorCircuit:
+    """Per-unit equivalent circuit of an induction motor: stator r1 + j x1, magnetising j xm,
+    rotor r2 / s + j x2."""
+
+    r1: float
+    x1: float
+    xm: float
+    r2: float
+    x2: float
+
+
+@dataclass(frozen=True)
+class MotorSpec:
+    """An induction motor behind a relay; its load torque is ``t0 + t2 w^2`` (pu)."""
+
+    name: str
+    relay: str
+    va: float                 # steady apparent power
+    inertia_h_s: float
+    circuit: MotorCircuit
+    t0: float
+    t2: float
+    phases: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class DisturbanceSpec:
+    """The unknown load: on during ``windows`` (plant time), repeated every ``period_s``
+    (0 = not repeated)."""
+
+    enabled: bool
+    va: float
+    pf: float
+    tau_s: float
+    phases: tuple[str, ...]
+    period_s: float
+    windows: tuple[tuple[float, float], ...]
+
+
+@dataclass(frozen=True)
+class MeterSpec:
+    """The three-phase meter: voltage, noise, frequency, starting energy."""
+
+    voltage_v: float
+    voltage_sigma_v: float
+    va_sigma: float
+    frequency_hz: float
+    import_kwh: float
+
+
+@dataclass(frozen=True)
+class ResourceSpec:
+    """Resource q: consumed while relay ``consumer`` is on, refilled while ``supplier`` is."""
+
+    name: str
+    consumer: str
+    supplier: str
+    alpha: float
+    eta: float
+    q0: float
+    bounds: tuple[float, float]   # operating range: the controllers' constraint
+    limits: tuple[float, float]   # physical range (empty, full): the plant clamps to it
+    sigma: float                  # sensor noise
+
+
+@dataclass(frozen=True)
+class PlantSpec:
+    """Everything the plant is made of."""
+
+    dt_s: float
+    seed: int
+    coils: int                    # size of the relay module
+    relays: dict[str, int]        # relay name -> coil
+    meter: MeterSpec
+    base: ConstantLoadSpec
+    loads: tuple[FirstOrderLoadSpec | MotorSpec, ...]
+    disturbance: DisturbanceSpec
+    resources: tuple[ResourceSpec, ...]
+
+
+def _phase_weights(phases: Sequence[str]) -> tuple[tuple[int, float], ...]:
     share = 1.0 / len(phases)
     return tuple((PHASES.index(p), share) for p in phases)
-
-
-def _positive(config: Mapping[str, Any], key: str, default: Any = ...) -> float:
-    value = lookup(config, key, float, default, source=SOURCE)
-    if not value > 0 or not math.isfinite(value):
-        raise ConfigError(f"{SOURCE}: key '{key}' must be a positive number, got {value!r}")
-    return value
-
-
-def _power_factor(config: Mapping[str, Any], key: str, default: Any = ...) -> float:
-    pf = lookup(config, key, float, default, source=SOURCE)
-    if not 0.0 < pf <= 1.0:
-        raise ConfigError(f"{SOURCE}: key '{key}' must be in (0, 1], got {pf!r}")
-    return pf
-
-
-def _relay_of(config: Mapping[str, Any], key: str, coils: Mapping[str, int]) -> int:
-    name = lookup(config, key, str, source=SOURCE)
-    if name not in coils:
-        raise ConfigError(
-            f"{SOURCE}: key '{key}' names relay {name!r}, not in [relays] ({', '.join(coils)})"
-        )
-    return coils[name]
 
 
 class Load:
@@ -125,14 +201,13 @@ class InductionMotor(Load):
     state draws exactly ``rated_va``.
     """
 
-    def __init__(self, name: str, coil: int, rated_va: float, inertia_h_s: float,
-                 circuit: Mapping[str, float], load_torque: Mapping[str, float],
-                 weights: tuple[tuple[int, float], ...]) -> None:
-        super().__init__(name, coil, weights)
-        self.r1, self.x1 = circuit["r1"], circuit["x1"]
-        self.xm, self.r2, self.x2 = circuit["xm"], circuit["r2"], circuit["x2"]
-        self.t0, self.t2 = load_torque["t0"], load_torque["t2"]
-        self.inertia_h_s = inertia_h_s
+    def __init__(self, spec: MotorSpec, coil: int) -> None:
+        super().__init__(spec.name, coil, _phase_weights(spec.phases))
+        c = spec.circuit
+        self.r1, self.x1, self.xm, self.r2, self.x2 = c.r1, c.x1, c.xm, c.r2, c.x2
+        self.t0, self.t2 = spec.t0, spec.t2
+        self.inertia_h_s = spec.inertia_h_s
+        rated_va = spec.va
         self.speed = 0.0
         self.steady_slip = self._steady_slip()
         current, self.steady_pf, _ = self.electrical(self.steady_slip)
@@ -163,8 +238,8 @@ class InductionMotor(Load):
         breakdown = float(grid[int(np.argmax(torques))])
         lo, hi = 1e-6, breakdown
         if self.electrical(hi)[2] <= self._load_torque(1.0 - hi):
-            raise ConfigError(f"{SOURCE}: motor {self.name}: load torque exceeds the motor's "
-                              "breakdown torque, it would never reach speed")
+            raise ConfigError(f"key 'plant.loads.{self.name}': the load torque exceeds the "
+                              "motor's breakdown torque, it would never reach speed")
         for _ in range(100):
             mid = 0.5 * (lo + hi)
             if self.electrical(mid)[2] < self._load_torque(1.0 - mid):
@@ -187,11 +262,10 @@ class InductionMotor(Load):
 class ScheduledLoad(FirstOrderLoad):
     """The unknown disturbance: a first-order load switched by a time schedule, not a relay."""
 
-    def __init__(self, name: str, va: float, pf: float, tau_s: float, period_s: float,
-                 windows: Sequence[tuple[float, float]], enabled: bool,
-                 weights: tuple[tuple[int, float], ...]) -> None:
-        super().__init__(name, None, va, pf, tau_s, tau_s, weights)
-        self.period_s, self.windows, self.enabled = period_s, tuple(windows), enabled
+    def __init__(self, spec: DisturbanceSpec) -> None:
+        super().__init__("disturbance", None, spec.va, spec.pf, spec.tau_s, spec.tau_s,
+                         _phase_weights(spec.phases))
+        self.period_s, self.windows, self.enabled = spec.period_s, spec.windows, spec.enabled
 
     def scheduled_on(self, t_s: float) -> bool:
         if not self.enabled:
@@ -201,8 +275,9 @@ class ScheduledLoad(FirstOrderLoad):
 
 
 @dataclass
-class Resource:
-    """Level q of a resource: consumed while ``consumer`` is on, refilled while ``supplier`` is."""
+class ResourceTank:
+    """Level q of a resource as it evolves: consumed while coil ``consumer`` is on, refilled
+    while coil ``supplier`` is."""
 
     name: str
     consumer: int
@@ -229,84 +304,11 @@ class Snapshot:
     levels: dict[str, float]
 
 
-def _build_loads(config: Mapping[str, Any], coils: Mapping[str, int]) -> list[Load]:
-    loads: list[Load] = [ConstantLoad(
-        "base", _positive(config, "plant.base.va"), _power_factor(config, "plant.base.pf"),
-        _phase_weights(config, "plant.base.phases"),
-    )]
-    for name in lookup(config, "plant.loads", dict, {}, source=SOURCE):
-        key = f"plant.loads.{name}"
-        coil = _relay_of(config, f"{key}.relay", coils)
-        weights = _phase_weights(config, f"{key}.phases")
-        model = lookup(config, f"{key}.model", str, source=SOURCE)
-        if model == "first_order":
-            loads.append(FirstOrderLoad(
-                name, coil, _positive(config, f"{key}.va"), _power_factor(config, f"{key}.pf"),
-                _positive(config, f"{key}.tau_on_s"), _positive(config, f"{key}.tau_off_s"),
-                weights,
-            ))
-        elif model == "induction_motor":
-            circuit = {p: _positive(config, f"{key}.circuit.{p}")
-                       for p in ("r1", "x1", "xm", "r2", "x2")}
-            torque = {p: _positive(config, f"{key}.load_torque.{p}") for p in ("t0", "t2")}
-            loads.append(InductionMotor(
-                name, coil, _positive(config, f"{key}.va"),
-                _positive(config, f"{key}.inertia_h_s"), circuit, torque, weights,
-            ))
-        else:
-            raise ConfigError(f"{SOURCE}: key '{key}.model' must be 'first_order' or "
-                              f"'induction_motor', got {model!r}")
-    return loads
-
-
-def _build_disturbance(config: Mapping[str, Any]) -> ScheduledLoad:
-    key = "plant.disturbance"
-    windows = lookup(config, f"{key}.windows", list, [], source=SOURCE)
-    parsed = []
-    for window in windows:
-        ok = (isinstance(window, list) and len(window) == 2
-              and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in window)
-              and 0 <= window[0] < window[1])
-        if not ok:
-            raise ConfigError(f"{SOURCE}: key '{key}.windows' must hold [start_s, end_s] pairs "
-                              f"with 0 <= start < end, got {window!r}")
-        parsed.append((float(window[0]), float(window[1])))
-    period = lookup(config, f"{key}.period_s", float, 0.0, source=SOURCE)
-    if period < 0:
-        raise ConfigError(f"{SOURCE}: key '{key}.period_s' must be >= 0, got {period}")
-    return ScheduledLoad(
-        "disturbance", _positive(config, f"{key}.va", 70.0),
-        _power_factor(config, f"{key}.pf", 0.8),
-        _positive(config, f"{key}.tau_s", 0.05), period, parsed,
-        lookup(config, f"{key}.enabled", bool, False, source=SOURCE),
-        _phase_weights(config, f"{key}.phases"),
-    )
-
-
-def _build_resources(config: Mapping[str, Any], coils: Mapping[str, int]) -> list[Resource]:
-    resources = []
-    for name in lookup(config, "plant.resources", dict, {}, source=SOURCE):
-        key = f"plant.resources.{name}"
-        pairs = {}
-        for pair in ("bounds", "limits"):
-            value = lookup(config, f"{key}.{pair}", list, source=SOURCE)
-            if (len(value) != 2 or not all(isinstance(x, (int, float)) for x in value)
-                    or not value[0] < value[1]):
-                raise ConfigError(f"{SOURCE}: key '{key}.{pair}' must be [low, high] with "
-                                  f"low < high, got {value!r}")
-            pairs[pair] = (float(value[0]), float(value[1]))
-        q0 = lookup(config, f"{key}.q0", float, source=SOURCE)
-        sigma = lookup(config, f"{key}.sigma", float, 0.0, source=SOURCE)
-        if sigma < 0:
-            raise ConfigError(f"{SOURCE}: key '{key}.sigma' must be >= 0, got {sigma}")
-        resources.append(Resource(
-            name, _relay_of(config, f"{key}.consumer", coils),
-            _relay_of(config, f"{key}.supplier", coils),
-            lookup(config, f"{key}.alpha", float, source=SOURCE),
-            lookup(config, f"{key}.eta", float, source=SOURCE),
-            q0, pairs["bounds"], pairs["limits"], sigma,
-        ))
-    return resources
+def _build_load(spec: FirstOrderLoadSpec | MotorSpec, coil: int) -> Load:
+    if isinstance(spec, MotorSpec):
+        return InductionMotor(spec, coil)
+    return FirstOrderLoad(spec.name, coil, spec.va, spec.pf, spec.tau_on_s, spec.tau_off_s,
+                          _phase_weights(spec.phases))
 
 
 class BenchPlant:
@@ -316,30 +318,29 @@ class BenchPlant:
     latched at the start of each step, so a write acts from the next step on.
     """
 
-    def __init__(self, config: Mapping[str, Any], *, seed: int | None = None) -> None:
-        self.dt = _positive(config, "plant.dt_s")
-        n_coils = lookup(config, "emulator.coils", int, 8, source=SOURCE)
-        self.relays = {name: spec.coil for name, spec in relay_specs(config).items()}
-        if max(self.relays.values()) >= n_coils:
-            raise ConfigError(f"{SOURCE}: a relay uses coil {max(self.relays.values())} but the "
-                              f"relay module has {n_coils} coils (emulator.coils)")
-        self.loads = _build_loads(config, self.relays)
-        self.disturbance = _build_disturbance(config)
-        self.resources = _build_resources(config, self.relays)
-        self.voltage_v = _positive(config, "plant.meter.voltage_v")
-        self.voltage_sigma_v = lookup(config, "plant.meter.voltage_sigma_v", float, 0.0,
-                                      source=SOURCE)
-        self.va_sigma = lookup(config, "plant.meter.va_sigma", float, 0.0, source=SOURCE)
-        if self.voltage_sigma_v < 0 or self.va_sigma < 0:
-            raise ConfigError(f"{SOURCE}: noise sigmas in [plant.meter] must be >= 0")
-        self.frequency_hz = _positive(config, "plant.meter.frequency_hz")
-        self.import_kwh = lookup(config, "plant.meter.import_kwh", float, 0.0, source=SOURCE)
-        if seed is None:
-            seed = lookup(config, "plant.seed", int, 0, source=SOURCE)
-        self._rng = np.random.default_rng(seed)
+    def __init__(self, spec: PlantSpec, *, seed: int | None = None) -> None:
+        """``seed``: measurement noise seed (default: the spec's)."""
+        self.dt = spec.dt_s
+        self.relays = dict(spec.relays)
+        base = spec.base
+        self.loads: list[Load] = [
+            ConstantLoad("base", base.va, base.pf, _phase_weights(base.phases)),
+            *(_build_load(load, self.relays[load.relay]) for load in spec.loads),
+        ]
+        self.disturbance = ScheduledLoad(spec.disturbance)
+        self.resources = [
+            ResourceTank(r.name, self.relays[r.consumer], self.relays[r.supplier], r.alpha, r.eta,
+                         r.q0, r.bounds, r.limits, r.sigma)
+            for r in spec.resources
+        ]
+        meter = spec.meter
+        self.voltage_v, self.voltage_sigma_v = meter.voltage_v, meter.voltage_sigma_v
+        self.va_sigma, self.frequency_hz = meter.va_sigma, meter.frequency_hz
+        self.import_kwh = meter.import_kwh
+        self._rng = np.random.default_rng(spec.seed if seed is None else seed)
         self._lock = threading.Lock()
-        self._coils = [False] * n_coils
-        self._applied = [False] * n_coils
+        self._coils = [False] * spec.coils
+        self._applied = [False] * spec.coils
         self.coil_log: list[tuple[int, int, bool]] = []  # (step that first used it, coil, on)
         self.k = 0
         self.snapshot = self._measure()
@@ -420,7 +421,11 @@ class BenchPlant:
             m[f"power_w_{phase}"], m[f"va_{phase}"], m[f"var_{phase}"] = p, s, q
             m[f"pf_{phase}"] = pf
             m[f"phase_angle_{phase}"] = math.degrees(math.acos(pf))
-            volts.append(v), amps.append(i_a), watts.append(p), vas.append(s), vars_.append(q)
+            volts.append(v)
+            amps.append(i_a)
+            watts.append(p)
+            vas.append(s)
+            vars_.append(q)
         m["avg_voltage"] = sum(volts) / 3.0
         m["avg_current"] = sum(amps) / 3.0
         m["sum_current"] = sum(amps)

@@ -2,7 +2,8 @@
 
 Three devices share one server, as on the real bench's RS-485 line or TCP gateway:
 unit ``units.relays`` (coils), ``units.meter`` (SDM630 input registers, float32 high word
-first), ``units.levels`` (level sensors, float32). Register maps come from the bench config.
+first), ``units.levels`` (level sensors, float32). Units and register maps come in a
+:class:`ServerSettings` (:mod:`hil.bench.config` reads them from the bench config).
 
 pymodbus 3.16's datastore (``SimDevice``) cannot give the exception codes a real device gives,
 so every function code is served by a small request class bound to :class:`BenchDevices`
@@ -28,6 +29,7 @@ import struct
 import threading
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -54,12 +56,9 @@ from pymodbus.pdu.register_message import (
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import SimData, SimDevice
 
-from emulators.bench_plant import METER_QUANTITIES, BenchPlant, Snapshot
-from hil.core.config import lookup
-from hil.core.errors import ConfigError, HilError
-from hil.core.loop import Task
+from emulators.bench_plant import BenchPlant, PlantSpec, Snapshot
+from hil.core.errors import HilError
 
-SOURCE = "bench config"
 SPEC_MAX_REGISTERS = 125   # Modbus spec, FC03/FC04
 SPEC_MAX_COILS = 2000      # Modbus spec, FC01
 SPEC_MAX_WRITE_COILS = 0x07B0  # Modbus spec, FC15
@@ -68,29 +67,20 @@ COIL_ON, COIL_OFF = 0xFF00, 0x0000
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())  # we report errors ourselves
 
 
-def register_map(config: Mapping[str, Any], key: str, known: tuple[str, ...] | None = None
-                 ) -> dict[str, int]:
-    """``{quantity: first register}`` of float32 values, checked: ints >= 0, no overlap."""
-    table = lookup(config, key, dict, source=SOURCE)
-    if not table:
-        raise ConfigError(f"{SOURCE}: [{key}] is empty")
-    taken: dict[int, str] = {}
-    out: dict[str, int] = {}
-    for name in table:
-        if known is not None and name not in known:
-            raise ConfigError(f"{SOURCE}: key '{key}.{name}' is not a quantity the meter "
-                              f"provides (known: {', '.join(known)})")
-        address = lookup(config, f"{key}.{name}", int, source=SOURCE)
-        if not 0 <= address <= 0xFFFE:
-            raise ConfigError(f"{SOURCE}: key '{key}.{name}' must be a register 0..65534, "
-                              f"got {address}")
-        for word in (address, address + 1):
-            if word in taken:
-                raise ConfigError(f"{SOURCE}: '{key}.{name}' (register {address:#06x}) "
-                                  f"overlaps '{key}.{taken[word]}'")
-            taken[word] = name
-        out[name] = address
-    return out
+UNKNOWN_UNIT_POLICIES = ("auto", "exception", "silent")
+
+
+@dataclass(frozen=True)
+class ServerSettings:
+    """What the Modbus server serves (``[units]``, the register maps and ``[emulator]`` of the
+    bench config, read by :mod:`hil.bench.config`)."""
+
+    units: dict[str, int]            # role (relays, meter, levels) -> unit id
+    meter_registers: dict[str, int]  # quantity -> first register (float32)
+    meter_space: tuple[int, int]     # the meter's served FC04 block [first, end)
+    max_meter_registers: int         # the meter's limit per request (SDM630: 80)
+    level_registers: dict[str, int]  # resource -> first register (float32)
+    unknown_unit: str                # one of UNKNOWN_UNIT_POLICIES
 
 
 class FloatBlock:
@@ -98,11 +88,6 @@ class FloatBlock:
 
     def __init__(self, addresses: Mapping[str, int], first: int, end: int, max_count: int
                  ) -> None:
-        for name, address in addresses.items():
-            if not first <= address or address + 2 > end or (address - first) % 2:
-                raise ConfigError(f"{SOURCE}: register {address:#06x} of {name} is outside the "
-                                  f"served block [{first:#06x}, {end:#06x}) or not on a float "
-                                  "boundary")
         self.first, self.end, self.max_count = first, end, max_count
         self._slots = {name: (address - first) // 2 for name, address in addresses.items()}
         self._cache: tuple[Any, list[int]] = (None, [])
@@ -129,32 +114,15 @@ class FloatBlock:
 class BenchDevices:
     """What each unit answers: the plant's coils and its latest :class:`Snapshot`."""
 
-    def __init__(self, plant: BenchPlant, config: Mapping[str, Any]) -> None:
+    def __init__(self, plant: BenchPlant, settings: ServerSettings) -> None:
         self.plant = plant
-        self.units = {
-            role: lookup(config, f"units.{role}", int, source=SOURCE)
-            for role in ("relays", "meter", "levels")
-        }
-        for role, unit in self.units.items():
-            if not 1 <= unit <= 247:
-                raise ConfigError(f"{SOURCE}: key 'units.{role}' must be 1..247, got {unit}")
-        if len(set(self.units.values())) != 3:
-            raise ConfigError(f"{SOURCE}: [units] must give three different unit ids, "
-                              f"got {self.units}")
-        meter = register_map(config, "meter.registers", METER_QUANTITIES)
-        space = lookup(config, "emulator.meter_space", list, source=SOURCE)
-        if len(space) != 2 or not all(isinstance(x, int) for x in space):
-            raise ConfigError(f"{SOURCE}: key 'emulator.meter_space' must be [first, end], "
-                              f"got {space!r}")
-        max_count = lookup(config, "meter.max_registers_per_request", int, 80, source=SOURCE)
-        self.meter = FloatBlock(meter, space[0], space[1], max_count)
-        levels = register_map(config, "levels.registers")
-        missing = set(levels) - {r.name for r in plant.resources}
-        if missing:
-            raise ConfigError(f"{SOURCE}: [levels.registers] names {sorted(missing)} but the "
-                              f"plant has resources {[r.name for r in plant.resources]}")
-        first = min(levels.values())
-        self.levels = FloatBlock(levels, first, max(levels.values()) + 2, SPEC_MAX_REGISTERS)
+        self.units = dict(settings.units)
+        first, end = settings.meter_space
+        self.meter = FloatBlock(settings.meter_registers, first, end,
+                                settings.max_meter_registers)
+        levels = settings.level_registers
+        self.levels = FloatBlock(levels, min(levels.values()), max(levels.values()) + 2,
+                                 SPEC_MAX_REGISTERS)
 
     def role(self, unit: int) -> str:
         """The device at ``unit``; an unknown unit raises (pymodbus then answers per policy)."""
@@ -373,49 +341,19 @@ def _placeholder_context() -> SimDevice:
     return SimDevice(id=0, simdata=[SimData(0)])
 
 
-class PlantStepTask(Task):
-    """Lockstep: steps the plant until its time matches the loop's clock (put it first)."""
-
-    def __init__(self, emulator: EmulatedBench, name: str = "emulator") -> None:
-        super().__init__(name, 1)
-        self.emulator = emulator
-        self._t0_ns: int | None = None
-        self._k0 = 0
-
-    def read(self, t_ns: int) -> None:
-        plant = self.emulator.plant
-        if self._t0_ns is None:
-            self._t0_ns, self._k0 = t_ns, plant.k
-        target = self._k0 + round((t_ns - self._t0_ns) / 1e9 / plant.dt)
-        while plant.k < target:
-            plant.step()
-
-
 class EmulatedBench:
     """Plant + Modbus server: the whole bench in-process.
 
     ``serve_tcp()`` (127.0.0.1, port 0 = any free port) or ``serve_serial()`` starts the server
-    in a background thread. Then either ``step_task()`` (lockstep: the session's loop steps the
-    plant, and a driver reading after a step sees exactly that step's snapshot) or
+    in a background thread. Then either :meth:`step` (lockstep: whoever owns the clock steps
+    the plant, and a driver reading after a step sees exactly that step's snapshot) or
     ``run_realtime()`` (a thread steps the plant on the wall clock).
     """
 
-    def __init__(self, config: Mapping[str, Any] | None = None, *, seed: int | None = None,
-                 disturbance: bool | None = None) -> None:
-        if config is None:
-            from hil.bench.rig import load_bench_config
-
-            config = load_bench_config()
-        self.config = config
-        self.plant = BenchPlant(config, seed=seed)
-        if disturbance is not None:
-            self.plant.disturbance.enabled = disturbance
-        self.devices = BenchDevices(self.plant, config)
-        unknown = lookup(config, "emulator.unknown_unit", str, "auto", source=SOURCE)
-        if unknown not in ("auto", "exception", "silent"):
-            raise ConfigError(f"{SOURCE}: key 'emulator.unknown_unit' must be auto, exception or "
-                              f"silent, got {unknown!r}")
-        self._server = ServerThread(self.devices, unknown)
+    def __init__(self, plant: PlantSpec, server: ServerSettings) -> None:
+        self.plant = BenchPlant(plant)
+        self.devices = BenchDevices(self.plant, server)
+        self._server = ServerThread(self.devices, server.unknown_unit)
         self.url = ""
         self._realtime: threading.Thread | None = None
         self._stop_realtime = threading.Event()
@@ -439,14 +377,10 @@ class EmulatedBench:
         return address[1] if isinstance(address, tuple) else 0
 
     def step(self, steps: int = 1) -> Snapshot:
-        """Lockstep by hand: advance the plant; a read after this returns this snapshot."""
+        """Lockstep: advance the plant; a read after this returns this snapshot."""
         for _ in range(steps):
             self.plant.step()
         return self.plant.snapshot
-
-    def step_task(self, name: str = "emulator") -> PlantStepTask:
-        """Lockstep in a loop: a task (add it first) stepping the plant to the loop's time."""
-        return PlantStepTask(self, name)
 
     def run_realtime(self) -> None:
         """Step the plant in a background thread, following the monotonic clock."""

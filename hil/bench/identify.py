@@ -31,20 +31,20 @@ import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
-from hil.bench.rig import attach_bench, default_bench_config_text, load_bench_config
-from hil.core.clock import RealtimeClock, SimClock
-from hil.core.config import lookup
+from hil.bench.rig import BenchRig, attach_bench, session_clock
 from hil.core.errors import UsageError
 from hil.core.loop import Task
 from hil.core.session import Session
 
+if TYPE_CHECKING:
+    from hil.bench.config import BenchConfig
+
 MACHINING_MODES = ("sequence", "prbs", "off")
 TOPIC = "/ident/relays"
-SOURCE = "bench config"
 
 
 @dataclass
@@ -91,7 +91,7 @@ class ExperimentLog:
 class PrbsTask(Task):
     """Switches the PRBS relays and records every experiment relay as written this tick."""
 
-    def __init__(self, rig: Any, prbs: list[PrbsRelay], recorded: list[str], session: Session,
+    def __init__(self, rig: BenchRig, prbs: list[PrbsRelay], recorded: list[str], session: Session,
                  log: ExperimentLog, progress: Callable[[int], None], divisor: int) -> None:
         super().__init__("prbs", divisor)
         self.rig, self.prbs, self.recorded, self.log = rig, prbs, recorded, log
@@ -167,17 +167,15 @@ def parse_relays(text: str) -> tuple[str, ...]:
     return names
 
 
-def plan_experiment(opts: IdentifyOptions, config: dict[str, Any]
+def plan_experiment(opts: IdentifyOptions, config: BenchConfig
                     ) -> tuple[list[str], list[str], list[str], dict[str, float]]:
     """(PRBS relays, relays the sequence plays, machining relays, min hold per PRBS relay);
     bad options -> UsageError."""
-    from hil.bench.rig import MachiningSequence
-
     if opts.machining not in MACHINING_MODES:
         raise UsageError(f"--machining must be one of {', '.join(MACHINING_MODES)}, "
                          f"got {opts.machining!r}")
-    relays = lookup(config, "relays", dict, source=SOURCE)
-    machining = MachiningSequence.from_config(config).relays
+    relays = config.map.relays
+    machining = list(config.problem.sequence.relays)
     unknown = [n for n in opts.relays if n not in relays]
     if unknown:
         raise UsageError(f"--relays: unknown relay(s) {', '.join(unknown)} (relays of the "
@@ -191,7 +189,7 @@ def plan_experiment(opts: IdentifyOptions, config: dict[str, Any]
         raise UsageError("nothing to switch: name --relays or use --machining sequence|prbs")
     holds: dict[str, float] = {}
     for name in prbs:
-        dwell = lookup(relays[name], "dwell_s", float, source=f"{SOURCE}: relays.{name}")
+        dwell = relays[name].dwell_s
         hold = dwell if opts.min_hold_s is None else opts.min_hold_s
         if hold < dwell:
             raise UsageError(f"--min-hold {opts.min_hold_s:g} s is shorter than the dwell of "
@@ -204,31 +202,31 @@ def plan_experiment(opts: IdentifyOptions, config: dict[str, Any]
 def run_identify_experiment(opts: IdentifyOptions, stream: TextIO | None = None
                             ) -> dict[str, Any]:
     """Run one PRBS experiment; return its summary (``hil bench identify``)."""
+    # here, not at the top: the command line imports this module, and reading a bench config
+    # imports the driver and the emulator (pymodbus)
+    from hil.bench.config import default_text, load_bench_config
+
     if not (opts.duration_s > 0 and math.isfinite(opts.duration_s)):
         raise UsageError(f"--duration must be a positive number of seconds, got "
                          f"{opts.duration_s:g}")
     config = load_bench_config(opts.config_path)
     prbs_names, played, machining, holds = plan_experiment(opts, config)
-    sample_s = lookup(config, "sampling.period_s", float, source=SOURCE)
-    from drivers.modbus_bench import BenchMap
-
-    quantities = BenchMap.from_config(config).meter_quantities
+    sample_s = config.sampling.period_s
+    quantities = config.map.meter_quantities
     if opts.meter_quantity not in quantities:
         raise UsageError(f"--output-quantity {opts.meter_quantity!r} is not polled (meter "
                          f"quantities: {', '.join(quantities)})")
     out = opts.out or os.path.join(tempfile.gettempdir(),
                                    f"hil-bench-identify-{int(time.time())}.mcap")
-    clock = RealtimeClock() if opts.realtime or opts.bench != "emulated" else SimClock()
+    clock = session_clock(opts.bench, opts.realtime)
     prbs = [PrbsRelay(name, max(1, math.ceil(holds[name] / sample_s - 1e-9)),
-                      lookup(config, f"relays.{name}.dwell_s", float, source=SOURCE),
-                      np.random.default_rng([opts.seed, k]))
+                      config.map.relays[name].dwell_s, np.random.default_rng([opts.seed, k]))
             for k, name in enumerate(prbs_names)]
     recorded = prbs_names + played
-    run = vars(opts) | {"prbs": prbs_names, "sequence": played,
-                                                     "min_hold_s": holds}
-    text = "\n".join(filter(None, [default_bench_config_text(), _user_text(opts.config_path)]))
+    run = vars(opts) | {"prbs": prbs_names, "sequence": played, "min_hold_s": holds}
+    text = "\n".join(filter(None, [default_text("bench.toml"), config.user_text]))
     session = Session(out, clock, sample_s, kind="bench-identify",
-                      config={"bench": config, "run": run}, config_text=text)
+                      config={"bench": config.data, "run": run}, config_text=text)
     log = ExperimentLog()
     rig = None
     try:
@@ -258,25 +256,20 @@ def run_identify_experiment(opts: IdentifyOptions, stream: TextIO | None = None
     return summary
 
 
-def _user_text(path: str | None) -> str:
-    if path is None:
-        return ""
-    with open(path, encoding="utf-8") as f:
-        return f.read()
-
-
-def _progress_printer(session: Session, rig: Any, log: ExperimentLog, opts: IdentifyOptions,
-                      stream: TextIO) -> Callable[[int], None]:
+def _progress_printer(session: Session, rig: BenchRig, log: ExperimentLog,
+                      opts: IdentifyOptions, stream: TextIO) -> Callable[[int], None]:
     every_ns = round(opts.progress_s * 1e9)
-    state = {"t0": None, "next": every_ns}
+    t0_ns: int | None = None
+    next_ns = every_ns
 
     def progress(t_ns: int) -> None:
-        if state["t0"] is None:
-            state["t0"] = t_ns
-        elapsed = t_ns - state["t0"]
-        if every_ns <= 0 or elapsed < state["next"]:
+        nonlocal t0_ns, next_ns
+        if t0_ns is None:
+            t0_ns = t_ns
+        elapsed = t_ns - t0_ns
+        if every_ns <= 0 or elapsed < next_ns:
             return
-        state["next"] += every_ns
+        next_ns += every_ns
         power = rig.sampler.latest_power or {}
         value = power.get(opts.meter_quantity, math.nan)
         switches = sum(log.switches.values())

@@ -1,68 +1,70 @@
-"""The bridge side of the relay bench: its config, the machining sequence, the loop tasks.
+"""The bridge side of the relay bench: how a bench is reached, the loop tasks around it.
 
-* :func:`load_bench_config` - ``hil/configs/bench.toml`` with a user file laid over it.
-* :class:`MachiningSequence` - ``[sequence]`` for the player: exact nanosecond lookups on the
-  table parsed by :func:`controllers.bench_problem.parse_sequence` (which the controllers use).
+* :data:`BENCH_DEVICES` - bench URL scheme -> factory (``modbus-tcp``, ``modbus-rtu``,
+  ``emulated``, and any scheme a package declares in the ``hil.bench_devices`` entry points).
+  ``emulated`` is handled here only: the emulator in-process on 127.0.0.1 (a free port),
+  stepped by the loop (:class:`PlantStepTask`) when the session clock is a SimClock, by the
+  wall clock otherwise, and the same Modbus driver talking to it; :func:`session_clock`
+  picks lockstep for it and the wall clock for a real bench.
+* :class:`SequenceSchedule` - the machining sequence as the player plays it: exact
+  nanosecond lookups on the table of :class:`controllers.bench_problem.MachiningSequence`.
 * :class:`BenchSampler` - polls power (and levels) every sample, services the safety layer,
   publishes ``/bench/power``, ``/bench/levels``, ``/bench/relays``.
 * :class:`SequencePlayer` - drives M1/M2 from the table through the safety layer.
-* :func:`attach_bench` - all of it wired into a :class:`~hil.core.session.Session`, against the
-  emulator (in-process, lockstep or real time) or a real bench URL. Add controller tasks after
-  it: tasks run in the order added, so a controller sees this tick's sample.
+* :func:`attach_bench` - all of it wired into a :class:`~hil.core.session.Session`. Add
+  controller tasks after it: tasks run in the order added, so a controller sees this tick's
+  sample.
 """
 
 from __future__ import annotations
 
-import importlib.resources
-from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from controllers.bench_problem import Stage, parse_sequence
-from hil.core.config import deep_merge, load_toml, lookup, parse_toml
+from controllers.bench_problem import MachiningSequence, Stage
+from hil.core.clock import Clock, RealtimeClock, SimClock
 from hil.core.errors import ConfigError
 from hil.core.loop import Task
+from hil.core.registry import SchemeRegistry, scheme_of
 
 if TYPE_CHECKING:
     from drivers.safety import SafeBench
     from emulators.bench_server import EmulatedBench
-    from hil.core.clock import Clock
+    from hil.bench.config import BenchConfig
     from hil.core.session import Session
 
-SOURCE = "bench config"
+#: How the bench application opens a bench URL: ``factory(url, config, session)`` returns an
+#: :class:`OpenedBench` (modules imported only when a URL with their scheme is opened).
+BENCH_DEVICES = SchemeRegistry("bench", {
+    "modbus-tcp": ("hil.bench.rig", "open_modbus"),
+    "modbus-rtu": ("hil.bench.rig", "open_modbus"),
+    "emulated": ("hil.bench.rig", "open_emulated"),
+}, "hil.bench_devices")
 
 
-def default_bench_config_text() -> str:
-    """The packaged default bench config (TOML text, with its comments)."""
-    return importlib.resources.files("hil.configs").joinpath("bench.toml").read_text("utf-8")
+def is_emulated(url: str) -> bool:
+    """Whether ``url`` is the in-process emulator, the one bench that can run in lockstep."""
+    return scheme_of(url) == "emulated"
 
 
-def load_bench_config(path: str | None = None) -> dict[str, Any]:
-    """The default bench config, with the file at ``path`` (if any) laid over it."""
-    config = parse_toml(default_bench_config_text(), "hil/configs/bench.toml")
-    if path is not None:
-        user, _text = load_toml(path)
-        config = deep_merge(config, user)
-    return config
+def session_clock(url: str, realtime: bool = False) -> Clock:
+    """Lockstep (a SimClock) against the emulator unless ``realtime``; a real bench always
+    runs on the wall clock."""
+    return RealtimeClock() if realtime or not is_emulated(url) else SimClock()
 
 
-class MachiningSequence:
-    """The machining sequence as the bridge plays it: exact lookups in integer nanoseconds on
-    the table parsed by :func:`controllers.bench_problem.parse_sequence`."""
+class SequenceSchedule:
+    """The machining sequence as the player plays it: exact lookups in integer nanoseconds
+    on the stages of a :class:`~controllers.bench_problem.MachiningSequence`."""
 
-    def __init__(self, period_s: float, stages: list[Stage]) -> None:
-        self.period_s = period_s
-        self.stages = stages
-        self.relays = sorted(set().union(*(s.on for s in stages)))
-        self._period_ns = round(period_s * 1e9)
-        self._starts_ns = [round(s.start_s * 1e9) for s in stages]
-
-    @classmethod
-    def from_config(cls, config: Mapping[str, Any]) -> MachiningSequence:
-        table = parse_sequence(config)
-        return cls(table.period_s, list(table.stages))
+    def __init__(self, sequence: MachiningSequence) -> None:
+        self.period_s = sequence.period_s
+        self.stages = list(sequence.stages)
+        self.relays = list(sequence.relays)
+        self._period_ns = round(self.period_s * 1e9)
+        self._starts_ns = [round(s.start_s * 1e9) for s in self.stages]
 
     def stage_at(self, t_ns: int) -> Stage:
         """The stage at ``t_ns`` after the sequence started (periodic)."""
@@ -98,9 +100,6 @@ class BenchSampler(Task):
                  quantities: list[str], levels: list[str], levels_every: int = 1,
                  readback_every: int = 100, divisor: int = 1, name: str = "bench_io") -> None:
         super().__init__(name, divisor)
-        if levels_every < 1 or readback_every < 0:
-            raise ConfigError(f"{SOURCE}: sampling.levels_every must be >= 1 and "
-                              "sampling.relays_readback_every >= 0")
         self.bench = bench
         self.levels_every, self.readback_every = levels_every, readback_every
         self.latest_power: dict[str, float] | None = None
@@ -164,7 +163,7 @@ class BenchSampler(Task):
 class SequencePlayer(Task):
     """Plays the machining sequence on its relays from the first tick on (``t0_ns``)."""
 
-    def __init__(self, bench: SafeBench, sequence: MachiningSequence, *, divisor: int = 1,
+    def __init__(self, bench: SafeBench, sequence: SequenceSchedule, *, divisor: int = 1,
                  name: str = "sequence") -> None:
         super().__init__(name, divisor)
         self.bench, self.sequence = bench, sequence
@@ -190,26 +189,80 @@ class SequencePlayer(Task):
             self.bench.set_relays(command, t_ns)
 
 
-def open_bench(url: str, config: Mapping[str, Any], clock: Clock, on_event: Any = None
-               ) -> SafeBench:
-    """Driver + safety layer for the bench at ``url``, opened (relays at safe levels)."""
-    from drivers.modbus_bench import BenchMap, ModbusBenchDriver, ModbusLink, parse_bus_url
+class PlantStepTask(Task):
+    """Lockstep: steps the emulated plant until its time matches the loop's clock (first task)."""
+
+    def __init__(self, emulator: EmulatedBench, name: str = "emulator") -> None:
+        super().__init__(name, 1)
+        self.emulator = emulator
+        self._t0_ns: int | None = None
+        self._k0 = 0
+
+    def read(self, t_ns: int) -> None:
+        plant = self.emulator.plant
+        if self._t0_ns is None:
+            self._t0_ns, self._k0 = t_ns, plant.k
+        target = self._k0 + round((t_ns - self._t0_ns) / 1e9 / plant.dt)
+        while plant.k < target:
+            self.emulator.step()
+
+
+@dataclass
+class OpenedBench:
+    """What a bench factory returns: the safety layer, opened (relays at their safe levels),
+    and the emulator behind it, if any, to stop after the run."""
+
+    bench: SafeBench
+    emulator: EmulatedBench | None = None
+
+
+def safe_bench(url: str, config: BenchConfig, session: Session) -> SafeBench:
+    """Modbus driver + safety layer for the bench at ``url``, opened."""
+    from drivers.modbus_bench import ModbusBenchDriver, ModbusLink, parse_bus_url
     from drivers.safety import SafeBench
 
-    link = ModbusLink(parse_bus_url(url), lookup(config, "bus.timeout_s", float, source=SOURCE),
-                      lookup(config, "bus.attempts", int, source=SOURCE))
-    driver = ModbusBenchDriver(link, BenchMap.from_config(config))
-    bench = SafeBench(
-        driver, clock, on_event=on_event,
-        watchdog_polls=lookup(config, "bus.watchdog_polls", int, source=SOURCE),
-        reconnect_interval_s=lookup(config, "bus.reconnect_interval_s", float, source=SOURCE),
-    )
+    bus = config.bus
+    driver = ModbusBenchDriver(ModbusLink(parse_bus_url(url), bus.timeout_s, bus.attempts),
+                               config.map)
+    bench = SafeBench(driver, session.clock, on_event=session.event,
+                      watchdog_polls=bus.watchdog_polls,
+                      reconnect_interval_s=bus.reconnect_interval_s)
     try:
         bench.open()
     except BaseException:
         driver.close()
         raise
     return bench
+
+
+def open_modbus(url: str, config: BenchConfig, session: Session) -> OpenedBench:
+    """Factory of ``modbus-tcp://HOST:PORT`` and ``modbus-rtu:///dev/X?...``."""
+    return OpenedBench(safe_bench(url, config, session))
+
+
+def make_emulator(config: BenchConfig) -> EmulatedBench:
+    """The emulated bench of ``config`` (not serving yet), once the config is checked for it."""
+    from emulators.bench_server import EmulatedBench
+    from hil.bench.config import check_emulation
+
+    check_emulation(config)
+    return EmulatedBench(config.plant, config.server)
+
+
+def open_emulated(url: str, config: BenchConfig, session: Session) -> OpenedBench:
+    """Factory of ``emulated``: the emulator on 127.0.0.1 (a free port), stepped by the loop
+    in lockstep (SimClock) or following the wall clock, behind the Modbus driver."""
+    emulator = make_emulator(config)
+    tcp_url = emulator.serve_tcp()
+    if session.clock.mode == "sim":
+        session.add_task(PlantStepTask(emulator))
+    else:
+        emulator.run_realtime()
+    try:
+        return OpenedBench(safe_bench(tcp_url, config, session), emulator)
+    except BaseException:
+        emulator.stop()
+        raise
 
 
 @dataclass
@@ -219,9 +272,9 @@ class BenchRig:
     bench: SafeBench
     sampler: BenchSampler
     player: SequencePlayer | None
-    sequence: MachiningSequence
+    sequence: SequenceSchedule
     emulator: EmulatedBench | None
-    config: dict[str, Any]
+    config: BenchConfig
 
     def close(self) -> None:
         """After the run (the loop already drove the relays safe): close link, stop emulator."""
@@ -232,55 +285,35 @@ class BenchRig:
                 self.emulator.stop()
 
 
-def attach_bench(session: Session, config: Mapping[str, Any], target: str | None = None, *,
+def attach_bench(session: Session, config: BenchConfig, target: str | None = None, *,
                  play_sequence: bool = True, seed: int | None = None,
                  disturbance: bool | None = None) -> BenchRig:
     """Wire the bench into ``session``: [emulator step (lockstep)], sampler, sequence player.
 
-    ``target``: ``"emulated"`` (an in-process emulator on 127.0.0.1, a free port; stepped by
-    the loop when the session clock is a SimClock, by the wall clock otherwise) or a bus URL;
-    default ``bus.url`` of the config. The bench is a session component: its relays go to
-    their safe levels when the loop stops, whatever the reason.
+    ``target``: a bench URL opened through :data:`BENCH_DEVICES` (``emulated``, a Modbus URL);
+    default ``bus.url`` of the config. ``seed`` and ``disturbance`` override the emulated
+    plant's. The bench is a session component: its relays go to their safe levels when the
+    loop stops, whatever the reason.
     """
-    config = dict(config)
-    sequence = MachiningSequence.from_config(config)
-    period = lookup(config, "sampling.period_s", float, source=SOURCE)
+    period = config.sampling.period_s
     base_s = session.loop.base_period_ns / 1e9
     divisor = round(period / base_s)
     if divisor < 1 or abs(divisor * base_s - period) > 1e-9:
-        raise ConfigError(f"{SOURCE}: sampling.period_s = {period:g} s is not a multiple of the "
-                          f"loop's base period {base_s:g} s")
-    target = target or lookup(config, "bus.url", str, source=SOURCE)
-    emulator = None
-    url = target
-    if target == "emulated":
-        from emulators.bench_server import EmulatedBench
-
-        emulator = EmulatedBench(config, seed=seed, disturbance=disturbance)
-        url = emulator.serve_tcp()
-        if session.clock.mode == "sim":
-            session.add_task(emulator.step_task())
-        else:
-            emulator.run_realtime()
-    try:
-        bench = open_bench(url, config, session.clock, session.event)
-    except BaseException:
-        if emulator is not None:
-            emulator.stop()
-        raise
-    from drivers.modbus_bench import BenchMap
-
-    bench_map = BenchMap.from_config(config)
+        raise ConfigError(f"{config.source}: sampling.period_s = {period:g} s is not a multiple "
+                          f"of the loop's base period {base_s:g} s")
+    url = target or config.bus.url
+    opened: OpenedBench = BENCH_DEVICES.open(url, config.emulating(seed, disturbance), session)
+    bench, bench_map = opened.bench, config.map
     sampler = BenchSampler(
         bench, session, quantities=bench_map.meter_quantities, levels=bench_map.level_names,
-        levels_every=lookup(config, "sampling.levels_every", int, 1, source=SOURCE),
-        readback_every=lookup(config, "sampling.relays_readback_every", int, 100, source=SOURCE),
-        divisor=divisor,
+        levels_every=config.sampling.levels_every,
+        readback_every=config.sampling.relays_readback_every, divisor=divisor,
     )
     session.add_task(sampler)
+    sequence = SequenceSchedule(config.problem.sequence)
     player = None
     if play_sequence:
         player = SequencePlayer(bench, sequence, divisor=divisor)
         session.add_task(player)
     session.add_component(bench)
-    return BenchRig(bench, sampler, player, sequence, emulator, config)
+    return BenchRig(bench, sampler, player, sequence, opened.emulator, config)

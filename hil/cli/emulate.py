@@ -56,11 +56,11 @@ def _until_stopped() -> Iterator[threading.Event]:
 
 def emulate_bench(args: argparse.Namespace) -> int:
     """Serve the bench plant in real time until Ctrl-C or SIGTERM."""
-    from emulators.bench_server import EmulatedBench
-    from hil.bench.rig import load_bench_config
+    from hil.bench.config import load_bench_config
+    from hil.bench.rig import make_emulator
 
     config = load_bench_config(args.config)
-    emulator = EmulatedBench(config, seed=args.seed, disturbance=args.disturbance or None)
+    emulator = make_emulator(config.emulating(args.seed, args.disturbance or None))
     if args.tcp is not None:
         url = emulator.serve_tcp(*args.tcp)
     else:

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from hil.bench.rig import MachiningSequence, attach_bench, load_bench_config
+from hil.bench.config import load_bench_config, parse_bench_config
+from hil.bench.rig import SequenceSchedule, attach_bench
 from hil.core.clock import SimClock
-from hil.core.config import deep_merge
 from hil.core.errors import ConfigError
 from hil.core.reader import read_session
 from hil.core.session import Session
@@ -20,16 +20,16 @@ def test_user_config_is_laid_over_the_default(tmp_path):
     path = tmp_path / "mine.toml"
     path.write_text('[bus]\nurl = "modbus-rtu:///dev/ttyUSB0?baud=9600&parity=E"\n'
                     "[relays.P1]\ndwell_s = 10.0\n")
-    config = load_bench_config(str(path))
+    config = load_bench_config(str(path)).data
     assert config["bus"]["url"].startswith("modbus-rtu:///dev/ttyUSB0")
     assert config["relays"]["P1"] == {"coil": 2, "safe": False, "dwell_s": 10.0}
-    assert config["bus"]["timeout_s"] == CONFIG["bus"]["timeout_s"]
+    assert config["bus"]["timeout_s"] == CONFIG.data["bus"]["timeout_s"]
     with pytest.raises(ConfigError, match="config file not found"):
         load_bench_config(str(tmp_path / "missing.toml"))
 
 
 def test_sequence_states_at_stage_boundaries():
-    sequence = MachiningSequence.from_config(CONFIG)
+    sequence = SequenceSchedule(CONFIG.problem.sequence)
     at = {t: sequence.states_at(round(t * 1e9)) for t in (0, 3.99, 4, 10, 14, 17, 21, 25, 28)}
     assert at[3.99] == {"M1": False, "M2": False} and at[4] == {"M1": True, "M2": False}
     assert at[10] == at[21] == {"M1": True, "M2": True}
@@ -45,15 +45,15 @@ def test_sequence_states_at_stage_boundaries():
     ([{"start_s": 0.0, "end_s": 28.0}], "missing key 'on'"),
 ])
 def test_bad_sequence_is_one_clear_error(stages, why):
-    config = {**CONFIG, "sequence": {"period_s": 28.0, "stages": stages}}
+    config = {**CONFIG.data, "sequence": {"period_s": 28.0, "stages": stages}}
     with pytest.raises(ConfigError) as err:
-        MachiningSequence.from_config(config)
+        parse_bench_config(config)
     assert why in str(err.value) and "\n" not in str(err.value)
 
 
 def test_player_and_sampler_in_lockstep(tmp_path):
-    session = Session(str(tmp_path / "b.mcap"), SimClock(), 0.01, kind="bench", config=CONFIG,
-                      handle_signals=False)
+    session = Session(str(tmp_path / "b.mcap"), SimClock(), 0.01, kind="bench",
+                      config=CONFIG.data, handle_signals=False)
     rig = attach_bench(session, CONFIG, "emulated")
     session.run(duration_s=30.0)
     rig.close()
@@ -88,5 +88,5 @@ def test_sampling_period_must_fit_the_loop(tmp_path):
     session = Session(str(tmp_path / "x.mcap"), SimClock(), 0.003, kind="bench",
                       handle_signals=False)
     with pytest.raises(ConfigError, match="not a multiple of the loop's base period"):
-        attach_bench(session, deep_merge(CONFIG, {}), "emulated")
+        attach_bench(session, CONFIG, "emulated")
     session.close()

@@ -6,20 +6,21 @@ import itertools
 
 import numpy as np
 
+from controllers.base import BenchController, BenchObservation
 from controllers.bc import BasicController, hysteresis_rule
-from controllers.bench_problem import DwellClock, load_problem
-from hil.bench.rig import load_bench_config
+from controllers.bench_problem import DwellClock
+from hil.bench.config import load_bench_config
 
 
 def simulate_bc(cycles: int = 8, dwell_s: float = 5.0, q0: dict[str, float] | None = None):
     """Closed loop of BC with eq. (10) integrated per second; returns levels and relays."""
-    problem = load_problem(load_bench_config(), dwell_s)
+    problem = load_bench_config().with_dwell(dwell_s).problem
     bc = BasicController(problem)
     levels = dict(q0 or {r.name: r.q0 for r in problem.resources})
     relays = {n: False for n in problem.peripherals}
     history = []
     for t in range(int(cycles * problem.sequence.period_s)):
-        relays = bc.step(float(t), levels, relays)
+        relays = bc.decide(BenchObservation(float(t), levels, relays, 0.0))
         history.append((t, dict(levels), dict(relays)))
         for r in problem.resources:
             used = problem.sequence.on_fraction(r.consumer, t, t + 1)
@@ -51,7 +52,7 @@ def test_switches_on_at_the_bottom_and_off_at_the_top():
 
 
 def test_dwell_defers_a_needed_switch():
-    problem = load_problem(load_bench_config(), 5.0)
+    problem = load_bench_config().with_dwell(5.0).problem
     dwell = DwellClock.start(problem.peripherals, {"P1": True, "P2": False})
     dwell.update("P1", False, 10.0)  # switched off at t = 10 s
     low = {"q1": 50.0, "q2": 150.0}
@@ -61,3 +62,12 @@ def test_dwell_defers_a_needed_switch():
     high = {"q1": 149.0, "q2": 150.0}
     assert hysteresis_rule(problem, high, dwell, 17.0)["P1"] is True  # inside the dwell
     assert hysteresis_rule(problem, high, dwell, 20.0)["P1"] is False
+
+
+def test_bc_is_a_bench_controller_that_keeps_unlisted_relays_out():
+    problem = load_bench_config().problem
+    bc = BasicController(problem)
+    assert isinstance(bc, BenchController)
+    command = bc.decide(BenchObservation(0.0, {"q1": 50.0, "q2": 150.0},
+                                         {"P1": False, "P2": False}, 0.0))
+    assert command == {"P1": True, "P2": False}   # q1 at its bottom: refill; q2 fine

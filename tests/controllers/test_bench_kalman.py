@@ -5,21 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from controllers.base import BenchSample
 from controllers.bench_kalman import BenchKalman
-from controllers.bench_problem import load_problem
 from emulators.bench_plant import BenchPlant
-from hil.bench.rig import load_bench_config
-from hil.bench.run import load_configs, load_models
+from hil.bench.config import load_configs
+from hil.bench.run import load_models
 
 
 def run_filter(disturbance: bool, seconds: float = 30.0):
     """Play the machining sequence and a P1/P2 schedule on the plant; filter its total VA."""
-    bench, eec, _ = load_configs(None)
-    problem = load_problem(bench)
+    bench, eec = load_configs(None)
+    problem = bench.problem
     kalman = BenchKalman(load_models(eec, problem))
-    config = load_bench_config()
-    config["plant"]["disturbance"]["enabled"] = disturbance
-    plant = BenchPlant(config)
+    plant = BenchPlant(bench.emulating(disturbance=disturbance).plant)
     seq = problem.sequence
     held = {name: False for name in ("M1", "M2", "P1", "P2")}
     d_hat, s_err = [], []
@@ -54,3 +52,23 @@ def test_disturbance_state_finds_the_unknown_load():
     assert d_hat[(t > 6.0) & (t < 8.0)].mean() == pytest.approx(0.0, abs=5.0)
     assert d_hat[(t > 10.0) & (t < 20.0)].mean() == pytest.approx(70.0, abs=5.0)
     assert d_hat[(t > 24.0) & (t < 28.0)].mean() == pytest.approx(0.0, abs=5.0)
+
+
+def test_update_is_advance_then_correct_and_skips_failed_polls():
+    bench, eec = load_configs(None)
+    models = load_models(eec, bench.problem)
+    by_hand, by_samples = BenchKalman(models), BenchKalman(models)
+    readings = [40.0, 41.0, None, 300.0, 298.0]   # None: a failed poll
+    relays = [{"M1": False, "P1": False}, {"M1": True, "P1": False}, {"M1": True, "P1": True},
+              {"M1": True, "P1": True}, {"M1": False, "P1": True}]
+    for k, (va, held) in enumerate(zip(readings, relays, strict=True)):
+        if k:
+            by_hand.advance(held, held)
+        if va is not None:
+            by_hand.correct(va)
+        by_samples.update(BenchSample(k * 0.01, va, held))
+    hand, samples = by_hand.estimate(), by_samples.estimate()
+    assert samples.sample == hand.sample == 4
+    assert np.array_equal(samples.x_machining, hand.x_machining)
+    assert samples.disturbance_va == hand.disturbance_va
+    assert samples.output_va == by_hand.output_va and samples.innovation_va == by_hand.innovation

@@ -12,12 +12,13 @@ import itertools
 import numpy as np
 import pytest
 
+from controllers.base import BenchController, BenchEstimator, BenchObservation
 from controllers.bench_models import DeviceModel, LinearModel, MachiningModel
-from controllers.bench_problem import BenchProblem, load_problem
-from controllers.eec import EEC, EECMilp, EECSettings, Observation
+from controllers.bench_problem import BenchProblem
+from controllers.eec import EEC, EECMilp, EECSettings
 from controllers.eec_cvxpy import CvxpyEEC, solve_naive
 from controllers.eec_prediction import BenchEstimate, BenchModels, HorizonPrediction
-from hil.bench.rig import load_bench_config
+from hil.bench.config import load_bench_config
 
 DT = 0.1  # model grid of the synthetic models: 10 samples per decision step
 
@@ -41,7 +42,7 @@ def synthetic_models(problem: BenchProblem) -> BenchModels:
 
 
 def problem_with_dwell(dwell_s: float) -> BenchProblem:
-    return load_problem(load_bench_config(), dwell_s)
+    return load_bench_config().with_dwell(dwell_s).problem
 
 
 def q_trajectory(problem: BenchProblem, milp: EECMilp, q0: np.ndarray, t_s: float,
@@ -174,7 +175,7 @@ def test_highs_model_equals_the_cvxpy_reference(t_s, q0, u_prev):
 
 def eec_step(eec: EEC, models: BenchModels, t: float, levels: dict[str, float]):
     est = BenchEstimate.at_rest(models, round(t / models.dt))
-    return eec.step(Observation(t, levels, dict(eec.dwell.state), est))
+    return eec.step(BenchObservation(t, levels, dict(eec.dwell.state), 0.0, est))
 
 
 def test_failed_solve_falls_back_to_the_hysteresis_rule():
@@ -251,13 +252,24 @@ def test_models_identified_over_the_wire_load_with_their_pulse_inputs():
     import numpy as np
 
     from controllers.bench_models import MachiningModel, to_linear_model
-    from controllers.bench_problem import load_problem
-    from hil.bench.rig import load_bench_config
+    from hil.bench.config import load_bench_config
 
     inputs = ["/ident/relays:M1", "/ident/relays:M1_start", "/ident/relays:M2",
               "/ident/relays:M2_start"]
     lin = to_linear_model(np.eye(1) * 0.5, np.ones((1, 4)), np.ones((1, 1)), np.zeros((1, 4)),
                           0.01, inputs, np.zeros(4), np.zeros(1), name="wire")
     assert lin.inputs == ("M1", "M1:start", "M2", "M2:start")
-    sequence = load_problem(load_bench_config()).sequence
+    sequence = load_bench_config().problem.sequence
     assert MachiningModel.from_linear(lin, sequence).model is lin
+
+
+def test_eec_is_a_bench_controller_with_its_estimator():
+    problem = problem_with_dwell(5.0)
+    models = synthetic_models(problem)
+    eec = EEC(models, problem, EECSettings(hp_steps=8))
+    assert isinstance(eec, BenchController) and isinstance(eec.estimator, BenchEstimator)
+    est = BenchEstimate.at_rest(models)
+    obs = BenchObservation(0.0, {"q1": 30.0, "q2": 120.0}, {"P1": False, "P2": False}, 0.0, est)
+    assert eec.decide(obs) == {"P1": True, "P2": False}    # the fallback's answer, as a dict
+    with pytest.raises(TypeError, match="BenchEstimate"):
+        eec.decide(BenchObservation(1.0, {"q1": 55.0, "q2": 120.0}, {}, 0.0))

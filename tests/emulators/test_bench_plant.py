@@ -8,8 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from emulators.bench_plant import BenchPlant
-from hil.bench.rig import MachiningSequence, load_bench_config
+from emulators.bench_plant import BenchPlant, PlantSpec
+from hil.bench.config import check_emulation, load_bench_config, parse_bench_config
+from hil.bench.rig import SequenceSchedule
 from hil.core.config import deep_merge
 from hil.core.errors import ConfigError
 
@@ -17,6 +18,13 @@ from hil.core.errors import ConfigError
 @pytest.fixture(scope="module")
 def config():
     return load_bench_config()
+
+
+def plant_spec(data: dict) -> PlantSpec:
+    """The plant of a bench config given as TOML data, checked as an emulator checks it."""
+    config = parse_bench_config(data)
+    check_emulation(config)
+    return config.plant
 
 
 def run(plant: BenchPlant, seconds: float) -> list[dict[str, float]]:
@@ -30,7 +38,7 @@ def run(plant: BenchPlant, seconds: float) -> list[dict[str, float]]:
 
 @pytest.mark.parametrize(("motor", "steady_va"), [("P1", 110.0), ("P2", 80.0)])
 def test_motor_inrush_then_steady_level(config, motor, steady_va):
-    plant = BenchPlant(config)
+    plant = BenchPlant(config.plant)
     plant.set_relay(motor, True)
     va = np.array([x[motor] for x in run(plant, 3.0)])
     assert va[0] == va.max()                              # the peak is the first sample
@@ -44,7 +52,7 @@ def test_motor_inrush_then_steady_level(config, motor, steady_va):
 
 
 def test_motor_switch_off_has_no_dip_and_coasts(config):
-    plant = BenchPlant(config)
+    plant = BenchPlant(config.plant)
     motor = next(ld for ld in plant.loads if ld.name == "P1")
     plant.set_relay("P1", True)
     cold_peak = max(x["P1"] for x in run(plant, 2.0))
@@ -62,7 +70,7 @@ def test_motor_switch_off_has_no_dip_and_coasts(config):
 
 @pytest.mark.parametrize(("load", "tau_s", "rated"), [("M1", 0.05, 230.0), ("M2", 0.4, 140.0)])
 def test_first_order_machining_loads(config, load, tau_s, rated):
-    plant = BenchPlant(config)
+    plant = BenchPlant(config.plant)
     plant.set_relay(load, True)
     va = np.array([x[load] for x in run(plant, 10 * tau_s)])
     k_tau = round(tau_s / plant.dt) - 1
@@ -73,7 +81,7 @@ def test_first_order_machining_loads(config, load, tau_s, rated):
 @pytest.mark.parametrize(("consumer", "supplier"), [(False, False), (True, False),
                                                     (False, True), (True, True)])
 def test_levels_follow_table_one_exactly(config, consumer, supplier):
-    plant = BenchPlant(config)
+    plant = BenchPlant(config.plant)
     table = {"q1": ("M1", "P1", -3.0, 5.0, 55.0), "q2": ("M2", "P2", -5.0, 7.0, 65.0)}
     for m, p, *_ in table.values():
         plant.set_relay(m, consumer)
@@ -90,7 +98,7 @@ def test_levels_follow_table_one_exactly(config, consumer, supplier):
 
 
 def test_levels_leave_the_bounds_but_not_the_tank(config):
-    plant = BenchPlant(config)
+    plant = BenchPlant(config.plant)
     plant.set_relay("M1", True)                           # consume q1, never refill
     run(plant, 5.0)
     assert plant.snapshot.levels["q1"] == pytest.approx(40.0)  # below the 50 bound: not enforced
@@ -99,12 +107,12 @@ def test_levels_leave_the_bounds_but_not_the_tank(config):
 
 
 def test_machining_sequence_period_28_s(config):
-    sequence = MachiningSequence.from_config(config)
+    sequence = SequenceSchedule(config.problem.sequence)
     assert sequence.period_s == 28.0 and sequence.relays == ["M1", "M2"]
     profile = sequence.profile(0.01)
     assert profile["M1"].sum() * 0.01 == pytest.approx(14.0)
     assert profile["M2"].sum() * 0.01 == pytest.approx(14.0)
-    plant = BenchPlant(config)
+    plant = BenchPlant(config.plant)
     total = []
     for k in range(2 * 2800):
         for name, on in sequence.states_at(round(k * 1e7)).items():
@@ -124,7 +132,7 @@ def test_machining_sequence_period_28_s(config):
 
 
 def test_meter_is_consistent_with_the_loads(config):
-    plant = BenchPlant(config)
+    plant = BenchPlant(config.plant)
     for name in ("M1", "M2", "P1"):
         plant.set_relay(name, True)
     run(plant, 3.0)
@@ -149,7 +157,7 @@ def test_meter_is_consistent_with_the_loads(config):
 
 
 def test_noise_is_seeded(config):
-    a, b, c = BenchPlant(config), BenchPlant(config), BenchPlant(config, seed=99)
+    a, b, c = BenchPlant(config.plant), BenchPlant(config.plant), BenchPlant(config.plant, seed=99)
     for plant in (a, b, c):
         plant.set_relay("M1", True)
         run(plant, 0.5)
@@ -158,9 +166,10 @@ def test_noise_is_seeded(config):
 
 
 def test_disturbance_follows_its_schedule_only_when_enabled(config):
-    off = BenchPlant(config)
+    off = BenchPlant(config.plant)
     assert [x["disturbance"] for x in run(off, 12.0)][-1] == 0.0
-    on = BenchPlant(deep_merge(config, {"plant": {"disturbance": {"enabled": True}}}))
+    enabled = {"plant": {"disturbance": {"enabled": True}}}
+    on = BenchPlant(plant_spec(deep_merge(config.data, enabled)))
     va = np.array([x["disturbance"] for x in run(on, 70.0)])
     assert va[700] == 0.0                                   # 7 s: before the 8-20 s window
     assert va[1500] == pytest.approx(70.0)                  # 15 s: inside
@@ -182,5 +191,5 @@ def test_disturbance_follows_its_schedule_only_when_enabled(config):
 ])
 def test_wrong_plant_config_is_one_clear_error(config, override, message):
     with pytest.raises(ConfigError) as err:
-        BenchPlant(deep_merge(config, override))
+        BenchPlant(plant_spec(deep_merge(config.data, override)))
     assert message in str(err.value) and "\n" not in str(err.value)

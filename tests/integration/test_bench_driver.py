@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from drivers.modbus_bench import (
-    BenchMap,
     DeviceError,
     LinkError,
     ModbusBenchDriver,
@@ -15,9 +14,9 @@ from drivers.modbus_bench import (
     parse_bus_url,
     plan_reads,
 )
-from emulators.bench_server import EmulatedBench
 from emulators.null_modem import NullModem
-from hil.bench.rig import load_bench_config
+from hil.bench.config import load_bench_config, parse_bench_config
+from hil.bench.rig import make_emulator
 from hil.core.config import deep_merge
 from hil.core.errors import ConfigError
 
@@ -68,12 +67,12 @@ def test_malformed_urls_are_one_clear_error(url, why):
 ])
 def test_wrong_map_in_the_config_is_one_clear_error(override, why):
     with pytest.raises(ConfigError) as err:
-        BenchMap.from_config(deep_merge(CONFIG, override))
+        parse_bench_config(deep_merge(CONFIG.data, override))
     assert why in str(err.value) and "\n" not in str(err.value)
 
 
 def test_reads_are_planned_within_the_meter_limit():
-    full = BenchMap.from_config(CONFIG)
+    full = CONFIG.map
     assert [(first, count) for first, count, _ in full.meter_reads] == [(0, 76)]
     few = plan_reads({"a": 0x00, "b": 0x02, "c": 0x38, "d": 0x3A}, max_count=80, max_gap=8)
     assert [(first, count) for first, count, _ in few] == [(0x00, 4), (0x38, 4)]
@@ -83,7 +82,7 @@ def test_reads_are_planned_within_the_meter_limit():
 
 @pytest.fixture(params=["tcp", "rtu"])
 def rig(request):
-    emulator = EmulatedBench(CONFIG)
+    emulator = make_emulator(CONFIG)
     modem = None
     if request.param == "tcp":
         url = emulator.serve_tcp()
@@ -92,7 +91,7 @@ def rig(request):
         emulator.serve_serial(modem.ports[1])
         url = f"modbus-rtu://{modem.ports[0]}?baud=115200"
     link = ModbusLink(parse_bus_url(url), timeout_s=0.2, attempts=2)
-    driver = ModbusBenchDriver(link, BenchMap.from_config(CONFIG))
+    driver = ModbusBenchDriver(link, CONFIG.map)
     yield emulator, driver
     driver.close()
     emulator.stop()
@@ -123,11 +122,11 @@ def test_relay_writes_are_verified_and_reach_the_plant(rig):
 
 
 def test_unknown_unit_over_tcp_is_one_clear_error():
-    config = deep_merge(CONFIG, {"units": {"meter": 9}})
-    with EmulatedBench(CONFIG) as emulator:
+    bench_map = parse_bench_config(deep_merge(CONFIG.data, {"units": {"meter": 9}})).map
+    with make_emulator(CONFIG) as emulator:
         emulator.serve_tcp()
         driver = ModbusBenchDriver(ModbusLink(parse_bus_url(emulator.url), 0.1, 1),
-                                   BenchMap.from_config(config))
+                                   bench_map)
         with pytest.raises(LinkError) as err:  # 0x0B: a gateway's "no answer", like RTU silence
             driver.probe()
         driver.close()
@@ -144,11 +143,11 @@ def test_a_device_exception_is_not_retried(rig):
 
 
 def test_unknown_unit_over_rtu_is_a_clear_timeout():
-    config = deep_merge(CONFIG, {"units": {"levels": 7}})
-    with NullModem() as modem, EmulatedBench(CONFIG) as emulator:
+    bench_map = parse_bench_config(deep_merge(CONFIG.data, {"units": {"levels": 7}})).map
+    with NullModem() as modem, make_emulator(CONFIG) as emulator:
         emulator.serve_serial(modem.ports[1])
         link = ModbusLink(parse_bus_url(f"modbus-rtu://{modem.ports[0]}"), 0.1, 2)
-        driver = ModbusBenchDriver(link, BenchMap.from_config(config))
+        driver = ModbusBenchDriver(link, bench_map)
         with pytest.raises(LinkError) as err:
             driver.probe()
         driver.close()
@@ -158,13 +157,13 @@ def test_unknown_unit_over_rtu_is_a_clear_timeout():
 
 
 def test_the_driver_retries_across_a_server_restart():
-    with EmulatedBench(CONFIG) as first:
+    with make_emulator(CONFIG) as first:
         first.serve_tcp()
         port = first.port
         link = ModbusLink(parse_bus_url(first.url), timeout_s=0.2, attempts=2)
-        driver = ModbusBenchDriver(link, BenchMap.from_config(CONFIG))
+        driver = ModbusBenchDriver(link, CONFIG.map)
         assert driver.read_levels() == {"q1": 55.0, "q2": 65.0}
-    with EmulatedBench(CONFIG) as second:
+    with make_emulator(CONFIG) as second:
         second.serve_tcp(port=port)
         second.plant.set_relay("P1", True)
         for _ in range(100):

@@ -16,14 +16,14 @@ import serial
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.framer.rtu import FramerRTU
 
-from emulators.bench_server import EmulatedBench
 from emulators.null_modem import NullModem
-from hil.bench.rig import load_bench_config
+from hil.bench.config import load_bench_config
+from hil.bench.rig import make_emulator
 
 pytestmark = pytest.mark.timeout(60)
 
 CONFIG = load_bench_config()
-METER = CONFIG["meter"]["registers"]
+METER = CONFIG.data["meter"]["registers"]
 RESERVED = (0x002C, 0x0032, 0x0036, 0x003A, 0x0040, 0x0044)  # SDM630 words with no quantity
 
 
@@ -32,7 +32,7 @@ class Bus:
 
     def __init__(self, kind: str) -> None:
         self.kind = kind
-        self.emulator = EmulatedBench(CONFIG)
+        self.emulator = make_emulator(CONFIG)
         self.modem = None
         if kind == "tcp":
             self.emulator.serve_tcp()
@@ -186,7 +186,7 @@ def test_unknown_unit(bus):
 
 
 def test_rtu_emulator_answers_only_its_units_on_a_shared_line():
-    with NullModem() as modem, EmulatedBench(CONFIG) as emulator:
+    with NullModem() as modem, make_emulator(CONFIG) as emulator:
         emulator.serve_serial(modem.ports[1])
         with serial.Serial(modem.ports[0], 115200, timeout=0.2) as port:
             frame = bytes([3, 4, 0, 0, 0, 4])

@@ -15,19 +15,21 @@ from pathlib import Path
 import pytest
 from pymodbus.client import ModbusTcpClient
 
-from drivers.safety import DwellGuard, Watchdog
-from hil.bench.rig import attach_bench, load_bench_config
+from drivers.safety import DwellGuard
+from hil.bench.config import load_bench_config, parse_bench_config
+from hil.bench.rig import attach_bench
 from hil.core.clock import RealtimeClock, SimClock
 from hil.core.config import deep_merge
 from hil.core.loop import FunctionTask
 from hil.core.reader import read_session
 from hil.core.session import Session
+from hil.core.types import Device, LinkWatchdog
 
 pytestmark = pytest.mark.timeout(90)
 
 REPO = Path(__file__).resolve().parents[2]
 CONFIG = load_bench_config()
-P1_COIL = CONFIG["relays"]["P1"]["coil"]
+P1_COIL = CONFIG.map.relays["P1"].coil
 
 
 def test_dwell_guard_defers_and_cancels():
@@ -43,17 +45,35 @@ def test_dwell_guard_defers_and_cancels():
 
 
 def test_watchdog_declares_loss_once_after_n_failures():
-    dog = Watchdog(3)
+    dog = LinkWatchdog(3)
     assert [dog.failure() for _ in range(5)] == [False, False, True, False, False]
     dog.success()
-    assert not dog.lost and dog.failures == 0
+    assert not dog.lost and dog.run == 0
 
 
 def lockstep_session(tmp_path, config, name="s.mcap"):
-    session = Session(str(tmp_path / name), SimClock(), 0.01, kind="bench", config=config,
+    session = Session(str(tmp_path / name), SimClock(), 0.01, kind="bench", config=config.data,
                       handle_signals=False)
     rig = attach_bench(session, config, "emulated", play_sequence=False)
     return session, rig
+
+
+def test_the_safe_bench_is_a_device_whose_link_is_its_watchdog(tmp_path):
+    session, rig = lockstep_session(tmp_path, CONFIG)
+    bench = rig.bench
+    assert isinstance(bench, Device)
+    assert bench.url.startswith("modbus-tcp://127.0.0.1:") and bench.link_up
+    assert [bench.watchdog.failure() for _ in range(5)][-1] is True   # bus.watchdog_polls = 5
+    assert not bench.link_up and bench.read_power() is None          # no polls while lost
+    bench.watchdog.success()
+    assert bench.link_up and bench.read_power() is not None
+    bench.set_relays({"P1": True})
+    assert rig.emulator.plant.coils()[P1_COIL] is True
+    bench.safe_state()
+    assert rig.emulator.plant.coils()[P1_COIL] is False
+    rig.close()
+    bench.close()  # idempotent: the link is already released
+    session.close()
 
 
 def test_a_chattering_controller_cannot_switch_a_relay_inside_its_dwell(tmp_path):
@@ -86,7 +106,7 @@ def test_a_chattering_controller_cannot_switch_a_relay_inside_its_dwell(tmp_path
 
 
 def test_relays_go_to_their_safe_level_on_stop_and_on_error(tmp_path):
-    config = deep_merge(CONFIG, {"relays": {"P2": {"safe": True}}})
+    config = parse_bench_config(deep_merge(CONFIG.data, {"relays": {"P2": {"safe": True}}}))
     for case in ("stop", "error"):
         session, rig = lockstep_session(tmp_path, config, f"{case}.mcap")
         plant = rig.emulator.plant
@@ -122,12 +142,13 @@ def start_emulator(port: int) -> tuple[subprocess.Popen, int]:
 
 
 def test_killing_the_emulator_loses_the_link_and_restarting_reconnects(tmp_path):
-    config = deep_merge(CONFIG, {"relays": {"P1": {"dwell_s": 0.5}},
-                                 "bus": {"timeout_s": 0.1, "reconnect_interval_s": 0.2}})
+    config = parse_bench_config(deep_merge(CONFIG.data, {
+        "relays": {"P1": {"dwell_s": 0.5}},
+        "bus": {"timeout_s": 0.1, "reconnect_interval_s": 0.2}}))
     first, port = start_emulator(0)
     processes = [first]
     session = Session(str(tmp_path / "kill.mcap"), RealtimeClock(), 0.01, kind="bench",
-                      config=config)
+                      config=config.data)
     rig = attach_bench(session, config, f"modbus-tcp://127.0.0.1:{port}")
     session.add_task(FunctionTask(
         "controller", 10, compute=lambda _m, t: rig.bench.set_relays({"P1": True}, t)))

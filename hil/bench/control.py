@@ -1,0 +1,253 @@
+"""A bench controller in the loop: what it is told, when it decides, what is recorded.
+
+* :class:`Observer` (every sample) - logs the reading for the KPIs and feeds the controller's
+  estimator (:class:`~controllers.base.BenchEstimator`, the EEC's Kalman filter), in the loop
+  thread;
+* :class:`ControllerTask` (every decision step) - takes a
+  :class:`~controllers.base.BenchObservation` at the decision instant, in the loop thread (the
+  estimator's ``estimate()`` included), asks any :class:`~controllers.base.BenchController`,
+  and sends its answer through the safety layer;
+* :class:`RecordedEEC` and :class:`TimedController` - the built-in controllers as a run uses
+  them: the EEC's estimates, plans and fallbacks go to ``/eec/estimate``, ``/eec/plan`` and
+  ``/events``; every decision's time goes to the KPIs.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from controllers.base import BenchController, BenchEstimator, BenchObservation, BenchSample
+from hil.core.loop import Task
+
+if TYPE_CHECKING:
+    from controllers.bench_problem import BenchProblem
+    from controllers.eec import EEC
+    from hil.bench.rig import BenchRig
+    from hil.core.session import Session
+
+PLAN_SCHEMA: dict[str, Any] = {
+    "type": "object", "title": "hil.EECPlan",
+    "description": "One MILP solve of the EEC: the relay plan over the horizon (1 value per "
+                   "step), the predicted levels and power, solver status and time",
+    "properties": {
+        "t_s": {"type": "number", "description": "decision time since the sequence start"},
+        "status": {"type": "string"},
+        "solve_ms": {"type": "number"},
+        "objective": {"type": "number"},
+        "peak_va": {"type": "number", "description": "predicted highest total VA"},
+        "energy_vas": {"type": "number", "description": "predicted area over the horizon"},
+        "rows": {"type": "integer", "description": "J2 pattern rows after pruning"},
+        "u": {"type": "object", "description": "relay plan per peripheral (0/1 per step)"},
+        "q": {"type": "object", "description": "predicted level per resource (H+1 values)"},
+        "power_va": {"type": "array", "items": {"type": "number"},
+                     "description": "predicted highest total VA in each step"},
+    },
+}
+ESTIMATE_SCHEMA: dict[str, Any] = {
+    "type": "object", "title": "hil.BenchEstimate",
+    "description": "Kalman filter of the total VA at the decision instants",
+    "properties": {"disturbance_va": {"type": "number"}, "output_va": {"type": "number"},
+                   "innovation_va": {"type": "number"}},
+}
+
+
+@dataclass
+class RunLog:
+    """What the loop saw, kept for the KPIs (one entry per good sample)."""
+
+    t: list[float] = field(default_factory=list)
+    s: list[float] = field(default_factory=list)
+    relays_t: list[float] = field(default_factory=list)
+    relays: dict[str, list[bool]] = field(default_factory=dict)
+    levels_t: list[float] = field(default_factory=list)
+    levels: dict[str, list[float]] = field(default_factory=dict)
+    solve_ms: list[float] = field(default_factory=list)
+    fallbacks: int = 0
+    solver_limits: int = 0
+
+
+def estimator_of(controller: BenchController) -> BenchEstimator | None:
+    """The controller's ``estimator`` attribute, if it has one."""
+    estimator = getattr(controller, "estimator", None)
+    return estimator if isinstance(estimator, BenchEstimator) else None
+
+
+class Observer(Task):
+    """Every sample: log the reading for the KPIs and feed the estimator (if any) the relays
+    held during the last step and this reading (placed before the sequence player)."""
+
+    def __init__(self, rig: BenchRig, names: list[str], log: RunLog,
+                 clock_origin: Callable[[], int], estimator: BenchEstimator | None) -> None:
+        super().__init__("estimator", 1)
+        self.rig, self.names, self.log = rig, names, log
+        self.estimator = estimator
+        self._origin = clock_origin
+        self._last_power: Any = None
+        self._last_levels: Any = None
+
+    def read(self, t_ns: int) -> None:
+        sampler, bench = self.rig.sampler, self.rig.bench
+        t = (t_ns - self._origin()) / 1e9
+        relays = bench.relays()
+        power = sampler.latest_power  # a new dict for every good poll
+        total_va = power["total_va"] if power is not None and power is not self._last_power \
+            else None
+        self._last_power = power
+        log = self.log
+        log.relays_t.append(t)
+        for name in self.names:
+            log.relays.setdefault(name, []).append(relays[name])
+        if total_va is not None:
+            log.t.append(t)
+            log.s.append(total_va)
+        levels = sampler.latest_levels
+        if levels is not None and levels is not self._last_levels:
+            self._last_levels = levels
+            log.levels_t.append(t)
+            for name, value in levels.items():
+                log.levels.setdefault(name, []).append(value)
+        if self.estimator is not None:
+            self.estimator.update(BenchSample(t, total_va, relays))
+
+
+class ControllerTask(Task):
+    """Once per decision step: an observation in, the peripherals' relays out through the
+    safety layer.
+
+    Lockstep: the decision is computed in the tick of the decision instant. Real time
+    (``asynchronous``): the decision runs in a worker thread (HiGHS releases the GIL) so the
+    loop keeps sampling at 100 Hz; its command is applied ``apply_delay_s`` after the
+    decision instant, or when it is ready if later. The fixed delay keeps the spacing of
+    the switches equal to the decision spacing, so the safety layer's dwell agrees with the
+    controller's. A decision instant that finds the previous decision still running is
+    skipped (counted in ``skipped``). The observation, the estimate included, is always taken
+    in the loop thread at the decision instant.
+    """
+
+    def __init__(self, step_ticks: int, tick_ns: int, rig: BenchRig,
+                 peripherals: tuple[str, ...], controller: BenchController,
+                 origin: Callable[[], int], *, asynchronous: bool = False,
+                 apply_delay_s: float = 0.1) -> None:
+        super().__init__("controller", 1 if asynchronous else step_ticks)
+        self._step_ns = step_ticks * tick_ns
+        self.rig, self.peripherals, self.controller = rig, peripherals, controller
+        self.estimator = estimator_of(controller)
+        self._origin = origin
+        self.asynchronous = asynchronous
+        self.apply_delay_s = apply_delay_s
+        self.skipped = 0
+        self._last_step = -1
+        self._pending: tuple[Future[Mapping[str, bool]], int] | None = None
+        self._executor = ThreadPoolExecutor(1, "eec") if asynchronous else None
+
+    def _observe(self, t_ns: int) -> BenchObservation | None:
+        levels = self.rig.sampler.latest_levels
+        if levels is None or not self.rig.bench.link_up:
+            return None  # nothing to decide on: the safety layer holds the relays
+        relays = self.rig.bench.relays()
+        power = self.rig.sampler.latest_power
+        return BenchObservation(
+            round((t_ns - self._origin()) / 1e9, 9), dict(levels),
+            {n: relays[n] for n in self.peripherals},
+            power["total_va"] if power is not None else math.nan,
+            self.estimator.estimate() if self.estimator is not None else None)
+
+    def read(self, t_ns: int) -> Any:
+        if not self.asynchronous:
+            return self._observe(t_ns)
+        step = (t_ns - self._origin()) // self._step_ns
+        if step > self._last_step:  # a decision instant (the first tick of a step)
+            self._last_step = step
+            if self._pending is not None:
+                self.skipped += 1
+            else:
+                obs = self._observe(t_ns)
+                if obs is not None and self._executor is not None:
+                    due = t_ns + round(self.apply_delay_s * 1e9)
+                    self._pending = (self._executor.submit(self.controller.decide, obs), due)
+        if self._pending is not None and t_ns >= self._pending[1] and self._pending[0].done():
+            future, _ = self._pending
+            self._pending = None
+            return future.result()
+        return None
+
+    def compute(self, measurement: Any, t_ns: int) -> Mapping[str, bool] | None:
+        if isinstance(measurement, BenchObservation):
+            return self.controller.decide(measurement)
+        return measurement
+
+    def write(self, command: Mapping[str, bool] | None, t_ns: int) -> None:
+        if command:
+            current = self.rig.bench.commanded()
+            changes = {n: on for n, on in command.items() if current[n] != on}
+            if changes:
+                self.rig.bench.set_relays(changes, t_ns)
+
+    def safe_state(self) -> None:
+        if self._executor is not None:
+            self._executor.shutdown(wait=True)
+            self._pending = None
+
+
+class RecordedEEC:
+    """The EEC as a run uses it (a :class:`~controllers.base.BenchController`): each decision
+    records the estimate it started from (``/eec/estimate``), its plan (``/eec/plan``), its
+    fallbacks and solver trouble (``/events``) and its solve time (KPIs)."""
+
+    def __init__(self, eec: EEC, session: Session, problem: BenchProblem, log: RunLog,
+                 origin: Callable[[], int]) -> None:
+        self.eec, self.session, self.problem, self.log = eec, session, problem, log
+        self.estimator = eec.estimator
+        self.origin = origin
+        self.plan_topic = session.topic("/eec/plan", PLAN_SCHEMA)
+        self.estimate_topic = session.topic("/eec/estimate", ESTIMATE_SCHEMA)
+
+    def decide(self, obs: BenchObservation) -> dict[str, bool]:
+        # recorded at the decision instant: obs.t_s counts whole ns from the sequence origin
+        t, t_ns = obs.t_s, self.origin() + round(obs.t_s * 1e9)
+        estimate = obs.estimate
+        self.estimate_topic.log(t_ns, {"disturbance_va": estimate.disturbance_va,
+                                       "output_va": estimate.output_va,
+                                       "innovation_va": estimate.innovation_va})
+        decision = self.eec.step(obs)
+        log = self.log
+        if decision.solve is not None:
+            log.solve_ms.append(decision.solve.solve_ms)
+            log.solver_limits += decision.solve.status == "time_limit"
+        for kind, message in decision.events:
+            self.session.event(kind, message, level="warning", source="eec", t_s=t,
+                               status=decision.solve.status if decision.solve else "")
+            log.fallbacks += kind == "eec.fallback"
+        plan = decision.plan
+        if plan is not None:
+            self.plan_topic.log(t_ns, {
+                "t_s": plan.t_s, "status": plan.status, "solve_ms": plan.solve_ms,
+                "objective": plan.objective, "peak_va": plan.peak_va,
+                "energy_vas": plan.energy_vas, "rows": plan.rows,
+                "u": {n: plan.u[j].tolist() for j, n in enumerate(self.problem.peripherals)},
+                "q": {r.name: np.round(plan.q[j], 3).tolist()
+                      for j, r in enumerate(self.problem.resources)},
+                "power_va": np.round(plan.power_va, 2).tolist(),
+            })
+        return decision.relays
+
+
+class TimedController:
+    """Any bench controller, with the time of each decision kept for the KPIs."""
+
+    def __init__(self, controller: BenchController, log: RunLog) -> None:
+        self.controller, self.log = controller, log
+        self.estimator = estimator_of(controller)
+
+    def decide(self, obs: BenchObservation) -> Mapping[str, bool]:
+        t0 = time.perf_counter()
+        command = self.controller.decide(obs)
+        self.log.solve_ms.append((time.perf_counter() - t0) * 1e3)
+        return command
