@@ -7,6 +7,7 @@ Every wait is bounded; the process is stopped with SIGTERM (then SIGKILL) whatev
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import select
@@ -44,8 +45,15 @@ class EmulatorProcess:
             return bench.group(1)
         if drive:
             return f"socketcand://{drive.group(1)}:{drive.group(2)}"
+        exited = False
+        if ready and not line:  # stdout closed: the process is ending, let it write its error
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self.process.wait(5)
+            exited = self.process.poll() is not None
+        why = self.stderr_tail() or line.strip() or (
+            f"it exited with status {self.process.returncode}" if exited
+            else f"no answer within {timeout_s:g} s")
         self.stop()
-        why = self.stderr_tail() or line.strip() or f"no answer within {timeout_s:g} s"
         raise HilError(f"the {self.what} emulator did not start: {why}")
 
     @property

@@ -48,31 +48,6 @@ def deep_merge(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[str
     return merged
 
 
-def lookup(config: Mapping[str, Any], dotted_key: str, kind: type | tuple[type, ...],
-           default: Any = ..., source: str = "config") -> Any:
-    """``config['a']['b']`` for ``'a.b'``, checked against ``kind``; errors name the key.
-
-    ``bool`` is never accepted where a number is expected (TOML ``true`` is not 1).
-    """
-    node: Any = config
-    for part in dotted_key.split("."):
-        if not isinstance(node, Mapping) or part not in node:
-            if default is not ...:
-                return default
-            raise ConfigError(f"{source}: missing key '{dotted_key}'")
-        node = node[part]
-    kinds = kind if isinstance(kind, tuple) else (kind,)
-    if float in kinds and int not in kinds:
-        kinds = (*kinds, int)
-    ok = isinstance(node, kinds) and not (isinstance(node, bool) and bool not in kinds)
-    if not ok:
-        names = " or ".join(k.__name__ for k in kinds)
-        raise ConfigError(
-            f"{source}: key '{dotted_key}' must be {names}, got {type(node).__name__} {node!r}"
-        )
-    return float(node) if kinds[0] is float and not isinstance(node, bool) else node
-
-
 _MISSING: Any = object()
 
 
