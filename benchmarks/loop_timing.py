@@ -41,7 +41,11 @@ def hil_loop(rate_hz: float, duration_s: float, record: bool) -> tuple[dict, int
                           handle_signals=False)
         if record:
             topic = session.topic("/tick", {"type": "object", "title": "Tick"})
-            task = FunctionTask("tick", 1, write=lambda c, t: topic.log(t, {"t": t, "v": 1.5}))
+
+            def write(_command: object, t: int) -> None:
+                topic.log(t, {"t": t, "v": 1.5})
+
+            task = FunctionTask("tick", 1, write=write)
         else:
             task = FunctionTask("tick", 1)
         session.add_task(task)

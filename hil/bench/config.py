@@ -43,6 +43,7 @@ from emulators.bench_plant import (
 from emulators.bench_server import UNKNOWN_UNIT_POLICIES, ServerSettings
 from hil.core.config import Table, deep_merge, load_toml, parse_toml
 from hil.core.errors import ConfigError
+from hil.core.verdict import RUN_TABLES, RunTables, read_run_tables
 
 SOURCE = "bench config"
 EEC_SOURCE = "eec config"
@@ -74,6 +75,7 @@ class BenchConfig:
     problem: BenchProblem        # sequence, resources, dwell: what the controllers know
     plant: PlantSpec             # the emulator's plant
     server: ServerSettings       # the emulator's Modbus server
+    run: RunTables               # [controller] params and [limits] of a run
 
     def with_dwell(self, dwell_s: float | None) -> BenchConfig:
         """Every peripheral's dwell set to ``dwell_s`` (``hil bench run --dwell``) for the
@@ -207,11 +209,12 @@ def parse_bench_config(data: Mapping[str, Any], source: str = SOURCE, user_text:
                             level_registers,
                             emulator.string("unknown_unit", "auto", choices=UNKNOWN_UNIT_POLICIES))
     emulator.done()
+    run = read_run_tables(top)
     for name in EEC_TABLES:  # one user file may hold the EEC's tables too
         top.raw(name, None)
     top.done()
     return BenchConfig(source, dict(data), user_text, bus, bench_map, sampling, problem, plant,
-                       server)
+                       server, run)
 
 
 def _relays(table: Table) -> dict[str, RelaySpec]:
@@ -517,7 +520,7 @@ def parse_eec_config(data: Mapping[str, Any], source: str, peripherals: tuple[st
     models_table = top.table("models", required=True)
     models = {name: models_table.string(name) for name in ("machining", *peripherals)}
     models_table.done()
-    for name in BENCH_TABLES:  # one user file may hold the bench's tables too
+    for name in (*BENCH_TABLES, *RUN_TABLES):  # one file may hold the bench's tables too
         top.raw(name, None)
     top.done()
     return EecConfig(source, dict(data), eec, kalman, models)

@@ -7,15 +7,15 @@
   :class:`~controllers.base.BenchObservation` at the decision instant, in the loop thread (the
   estimator's ``estimate()`` included), asks any :class:`~controllers.base.BenchController`,
   and sends its answer through the safety layer;
-* :class:`RecordedEEC` and :class:`TimedController` - the built-in controllers as a run uses
-  them: the EEC's estimates, plans and fallbacks go to ``/eec/estimate``, ``/eec/plan`` and
-  ``/events``; every decision's time goes to the KPIs.
+* :class:`GuardedController` - any controller as the loop calls it: timed, held to a budget,
+  its answer checked; :class:`RecordedEEC` - the EEC, whose estimates, plans and fallbacks go
+  to ``/eec/estimate``, ``/eec/plan`` and ``/events``;
+* :class:`BenchContext` - what a controller factory may ask for besides its params.
 """
 
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -24,11 +24,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from controllers.base import BenchController, BenchEstimator, BenchObservation, BenchSample
+from hil.core.errors import ControllerError
+from hil.core.guard import guarded_call
 from hil.core.loop import Task
+from hil.core.types import EventSink
+from hil.core.verdict import SignalWatch
 
 if TYPE_CHECKING:
     from controllers.bench_problem import BenchProblem
     from controllers.eec import EEC
+    from hil.bench.config import EecConfig
     from hil.bench.rig import BenchRig
     from hil.core.session import Session
 
@@ -68,9 +73,11 @@ class RunLog:
     relays: dict[str, list[bool]] = field(default_factory=dict)
     levels_t: list[float] = field(default_factory=list)
     levels: dict[str, list[float]] = field(default_factory=dict)
-    solve_ms: list[float] = field(default_factory=list)
+    solve_ms: list[float] = field(default_factory=list)   # the solver's own time (EEC)
+    decide_ms: list[float] = field(default_factory=list)  # every decide() call, wall time
     fallbacks: int = 0
     solver_limits: int = 0
+    solver_reports: bool = False  # solve_ms holds a solver's times (else decide_ms is used)
 
 
 def estimator_of(controller: BenchController) -> BenchEstimator | None:
@@ -204,6 +211,7 @@ class RecordedEEC:
     def __init__(self, eec: EEC, session: Session, problem: BenchProblem, log: RunLog,
                  origin: Callable[[], int]) -> None:
         self.eec, self.session, self.problem, self.log = eec, session, problem, log
+        log.solver_reports = True
         self.estimator = eec.estimator
         self.origin = origin
         self.plan_topic = session.topic("/eec/plan", PLAN_SCHEMA)
@@ -239,15 +247,90 @@ class RecordedEEC:
         return decision.relays
 
 
-class TimedController:
-    """Any bench controller, with the time of each decision kept for the KPIs."""
+class GuardedController:
+    """Any bench controller as the loop calls it: every ``decide()`` timed for the KPIs and
+    held to its time budget, its answer checked (a mapping of peripheral relay names to
+    booleans). An exception, a wrong answer or a late one is a
+    :class:`~hil.core.errors.ControllerError`, recorded on ``/events``; the loop then stops
+    with every relay at its safe level."""
 
-    def __init__(self, controller: BenchController, log: RunLog) -> None:
-        self.controller, self.log = controller, log
+    def __init__(self, controller: BenchController, label: str, peripherals: tuple[str, ...],
+                 log: RunLog, event: EventSink, budget_s: float | None) -> None:
+        self.controller, self.label, self.peripherals = controller, label, peripherals
+        self.log, self.event, self.budget_s = log, event, budget_s
         self.estimator = estimator_of(controller)
 
-    def decide(self, obs: BenchObservation) -> Mapping[str, bool]:
-        t0 = time.perf_counter()
-        command = self.controller.decide(obs)
-        self.log.solve_ms.append((time.perf_counter() - t0) * 1e3)
+    def decide(self, obs: BenchObservation) -> dict[str, bool]:
+        try:
+            answer, elapsed = guarded_call(self.label, "decide", self.controller.decide, obs,
+                                           budget_s=self.budget_s)
+            command = relay_command(answer, self.peripherals, self.label)
+        except ControllerError as exc:
+            self.event("controller.error", str(exc), level="error", source="controller",
+                       t_s=obs.t_s)
+            raise
+        self.log.decide_ms.append(elapsed * 1e3)
         return command
+
+
+def relay_command(answer: Any, peripherals: tuple[str, ...], label: str) -> dict[str, bool]:
+    """A controller's answer as ``{relay: bool}``; anything else is a ControllerError."""
+    if not isinstance(answer, Mapping):
+        raise ControllerError(f"controller {label!r}: decide() must return a mapping of relay "
+                              f"names to booleans, e.g. {{'P1': True}}, got "
+                              f"{type(answer).__name__} {answer!r:.60}")
+    command = {}
+    for name, on in answer.items():
+        if name not in peripherals:
+            raise ControllerError(f"controller {label!r}: decide() named relay {name!r}; it may "
+                                  f"switch only {', '.join(peripherals)}")
+        if not isinstance(on, bool | np.bool_) and on not in (0, 1):
+            raise ControllerError(f"controller {label!r}: decide() gave {name!r} the value "
+                                  f"{on!r}; expected True or False")
+        command[name] = bool(on)
+    return command
+
+
+@dataclass(frozen=True)
+class BenchContext:
+    """What a run gives a controller factory that takes a ``context`` argument.
+
+    For any controller: ``problem`` (machining sequence, resources with Table I's rates and
+    bounds, dwell), ``step_s`` (the decision step) and ``session``, whose
+    ``topic(name, json_schema).log(t_ns, message)`` and ``event(kind, message, **data)``
+    record a controller's own signals beside the run's. The rest serves the built-ins.
+    """
+
+    problem: BenchProblem
+    step_s: float
+    session: Session
+    log: RunLog
+    origin: Callable[[], int]
+    eec_config: Callable[[Mapping[str, Any]], EecConfig]  # eec.toml with params over [eec]
+    flags: Mapping[str, Any]                              # hil bench run's EEC flags
+
+
+class SignalLimits(Task):
+    """Every sample: the per-tick limits (``--limit 'total_va<=900'``) on the meter's
+    quantities and the levels. The first violation is recorded on ``/events`` and stops the
+    loop; the relays then go to their safe levels."""
+
+    def __init__(self, rig: BenchRig, watch: SignalWatch, session: Session) -> None:
+        super().__init__("limits", rig.sampler.divisor)
+        self.rig, self.watch, self.session = rig, watch, session
+        self._last: tuple[Any, Any] = (None, None)
+
+    def read(self, t_ns: int) -> None:
+        power, levels = self.rig.sampler.latest_power, self.rig.sampler.latest_levels
+        values: dict[str, float] = {}
+        if power is not None and power is not self._last[0]:
+            values.update(power)
+        if levels is not None and levels is not self._last[1]:
+            values.update(levels)
+        self._last = (power, levels)
+        violation = self.watch.check(values)
+        if violation is not None:
+            message = f"limit violated, run stopped: {violation.describe()}"
+            self.session.event("limit.abort", message, level="error", source="limits",
+                               limit=str(violation.limit), measured=violation.measured)
+            self.session.loop.stop(f"limit {violation.limit}")

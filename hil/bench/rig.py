@@ -28,6 +28,7 @@ from hil.core.clock import Clock, RealtimeClock, SimClock
 from hil.core.errors import ConfigError
 from hil.core.loop import Task
 from hil.core.registry import SchemeRegistry, scheme_of
+from hil.core.types import EventSink, TimeSource, no_event
 
 if TYPE_CHECKING:
     from drivers.safety import SafeBench
@@ -216,15 +217,17 @@ class OpenedBench:
     emulator: EmulatedBench | None = None
 
 
-def safe_bench(url: str, config: BenchConfig, session: Session) -> SafeBench:
-    """Modbus driver + safety layer for the bench at ``url``, opened."""
+def safe_bench(url: str, config: BenchConfig, clock: TimeSource,
+               on_event: EventSink = no_event) -> SafeBench:
+    """Modbus driver + safety layer for the bench at ``url``, opened (relays at their safe
+    levels); ``clock`` paces the dwell, ``on_event`` records what happens."""
     from drivers.modbus_bench import ModbusBenchDriver, ModbusLink, parse_bus_url
     from drivers.safety import SafeBench
 
     bus = config.bus
     driver = ModbusBenchDriver(ModbusLink(parse_bus_url(url), bus.timeout_s, bus.attempts),
                                config.map)
-    bench = SafeBench(driver, session.clock, on_event=session.event,
+    bench = SafeBench(driver, clock, on_event=on_event,
                       watchdog_polls=bus.watchdog_polls,
                       reconnect_interval_s=bus.reconnect_interval_s)
     try:
@@ -237,7 +240,7 @@ def safe_bench(url: str, config: BenchConfig, session: Session) -> SafeBench:
 
 def open_modbus(url: str, config: BenchConfig, session: Session) -> OpenedBench:
     """Factory of ``modbus-tcp://HOST:PORT`` and ``modbus-rtu:///dev/X?...``."""
-    return OpenedBench(safe_bench(url, config, session))
+    return OpenedBench(safe_bench(url, config, session.clock, session.event))
 
 
 def make_emulator(config: BenchConfig) -> EmulatedBench:
@@ -259,7 +262,7 @@ def open_emulated(url: str, config: BenchConfig, session: Session) -> OpenedBenc
     else:
         emulator.run_realtime()
     try:
-        return OpenedBench(safe_bench(tcp_url, config, session), emulator)
+        return OpenedBench(safe_bench(tcp_url, config, session.clock, session.event), emulator)
     except BaseException:
         emulator.stop()
         raise

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import time
 from typing import Any
 
 from hil.bench.identify import (
@@ -13,20 +14,25 @@ from hil.bench.identify import (
     run_identify_experiment,
 )
 from hil.cli.argtypes import nonnegative_float, positive_float, positive_int
+from hil.cli.verdict import add_controller_arguments, finish, params_of
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     bench = subparsers.add_parser("bench", help="relay bench: closed-loop runs, identification")
     bench_sub = bench.add_subparsers(dest="bench_command", metavar="COMMAND", required=True)
     run = bench_sub.add_parser(
-        "run", help="run EEC or BC against the bench",
-        description="Closed-loop run of the energy-efficiency controller (EEC, MILP receding "
-        "horizon) or the hysteresis baseline (BC) against the relay bench (the emulator over "
-        "Modbus TCP on loopback by default, lockstep unless --realtime). Records an MCAP "
-        "session and prints the KPIs. Defaults of the tuning flags come from "
-        "hil/configs/eec.toml and bench.toml.",
+        "run", help="run a controller (EEC, BC or your own) against the bench",
+        description="Closed-loop run of a bench controller against the relay bench (the "
+        "emulator over Modbus TCP on loopback by default, lockstep unless --realtime): the "
+        "energy-efficiency controller (eec, MILP receding horizon), the hysteresis baseline "
+        "(bc), or your own class with decide(obs) -> {relay: bool}, built as Class(params). "
+        "Relays always go through the safety layer (dwell, safe levels). Records an MCAP "
+        "session and prints the KPIs; with --limit, the verdict is the exit status (0 all "
+        "hold, 1 one is violated, 2 usage or configuration error). Defaults of the tuning "
+        "flags come from hil/configs/eec.toml and bench.toml.",
     )
-    run.add_argument("--controller", choices=["eec", "bc"], required=True)
+    add_controller_arguments(run, "eec, bc", "total_va or any meter quantity polled, and the "
+                             "levels q1, q2")
     run.add_argument("--bench", default="emulated",
                      help="emulated | modbus-tcp://HOST:PORT | modbus-rtu:///dev/X")
     run.add_argument("--cycles", type=positive_int, default=8, help="machine cycles (T = 28 s)")
@@ -61,20 +67,27 @@ def run_command(args: argparse.Namespace) -> int:
     from hil.bench.run import BenchRunOptions, run_bench
 
     overrides = {"terminal": args.terminal} if args.terminal else {}
+    start = time.perf_counter()
     kpis = run_bench(BenchRunOptions(
-        controller=args.controller, bench=args.bench, cycles=args.cycles, hp_s=args.hp,
-        hs_s=args.hs, gamma1=args.gamma1, gamma2=args.gamma2, dwell_s=args.dwell,
-        disturbance=args.disturbance, realtime=args.realtime, out=args.out,
-        config_path=args.config, overrides=overrides,
+        controller=args.controller, params=params_of(args), bench=args.bench,
+        cycles=args.cycles, hp_s=args.hp, hs_s=args.hs, gamma1=args.gamma1,
+        gamma2=args.gamma2, dwell_s=args.dwell, disturbance=args.disturbance,
+        realtime=args.realtime, out=args.out, config_path=args.config, overrides=overrides,
+        limits=tuple(args.limit), controller_budget_s=args.controller_budget,
     ))
     print(json.dumps(kpis, indent=2) if args.json else format_kpis(kpis))
-    return 0
+    return finish(kpis, args, f"hil bench run {kpis['controller']}",
+                  time.perf_counter() - start)
 
 
 def format_kpis(kpis: dict[str, Any]) -> str:
     """The KPI dictionary as aligned lines."""
     lines = []
     for key, value in kpis.items():
+        if key == "limits":
+            lines += [f"{'limit':<17} {row['limit']}: measured {row['measured']} "
+                      f"({'holds' if row['passed'] else 'VIOLATED'})" for row in value]
+            continue
         if isinstance(value, dict):
             value = ", ".join(f"{k} {v}" for k, v in value.items())
         lines.append(f"{key:<17} {value}")

@@ -7,6 +7,7 @@ import json
 from typing import Any
 
 from hil.cli.argtypes import nonnegative_float, positive_float, positive_int
+from hil.cli.verdict import add_controller_arguments, finish, params_of
 from hil.core.errors import UsageError
 
 
@@ -14,15 +15,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     servo = subparsers.add_parser("servo", help="servo drive: closed-loop tracking runs")
     servo_sub = servo.add_subparsers(dest="servo_command", metavar="COMMAND", required=True)
     srun = servo_sub.add_parser(
-        "run", help="run MPC, explicit MPC or PID against the drive",
+        "run", help="run a controller (MPC, explicit MPC, PID or your own) against the drive",
         description="Close the loop through the CiA 402 drive link at T = 500 us: read the "
         "drive's feedback, step the controller, send the current command. Lockstep by default "
         "(virtual time, as fast as the computer allows, deterministic); --realtime follows the "
         "wall clock. Records /drive/command, /drive/feedback, /mpc/prediction and /events to "
-        "an MCAP session; prints the tracking KPIs.",
+        "an MCAP session; prints the tracking KPIs. The controller is a built-in (mpc: "
+        "trajectory MPC with an online QP, empc: explicit MPC, pid: cascaded PID + notch) or "
+        "your own class with step(position_deg, t_s) -> current_mA, built as "
+        "Class(reference, params); its currents are clamped by the driver whatever it asks. "
+        "With --limit, the verdict is the exit status (0 all hold, 1 one is violated, 2 "
+        "usage or configuration error).",
     )
-    srun.add_argument("--controller", choices=["mpc", "empc", "pid"], required=True,
-                      help="trajectory MPC (online QP), explicit MPC, or cascaded PID + notch")
+    add_controller_arguments(srun, "mpc, empc, pid", "abs_error_deg, abs_command_mA, "
+                             "abs_velocity_deg_s, position_deg")
     srun.add_argument("--drive", default="emulated",
                       help="emulated (in-process CAN emulator) | socketcand://HOST:PORT")
     srun.add_argument("--node", type=positive_int, default=1, help="CANopen node id")
@@ -78,14 +84,17 @@ def run_servo_command(args: argparse.Namespace) -> int:
 
     default_horizon = 3 if args.controller == "empc" else 8
     config = ServoRunConfig(
-        controller=args.controller, drive=args.drive, node=args.node, ert=args.ert,
+        controller=args.controller, params=params_of(args),
+        limits=tuple(args.limit), controller_budget_s=args.controller_budget,
+        drive=args.drive, node=args.node, ert=args.ert,
         ht=args.ht or default_horizon, hu=args.hu or default_horizon, hp=args.hp,
         umax=args.umax, reference=args.reference,
         duration_s=args.duration, realtime=args.realtime, out=args.out,
         drive_config=args.config, settle_s=args.settle, prediction_every=args.prediction_every)
     result = run_servo(config)
     print(json.dumps(result.kpis, indent=2) if args.json else format_run(config, result.kpis))
-    return 0
+    return finish(result.kpis, args, f"hil servo run {result.kpis['controller']}",
+                  result.kpis["wall_s"])
 
 
 def _deg(value: float | None, digits: int = 4) -> str:
@@ -116,6 +125,9 @@ def format_run(config: Any, kpis: dict[str, Any]) -> str:
                                                  kpis["solver_paths"].items()))
     if "empc_fallbacks" in kpis:
         lines.append(f"  explicit MPC fallbacks to the online QP: {kpis['empc_fallbacks']}")
+    for row in kpis.get("limits", []):
+        lines.append(f"  limit {row['limit']}: measured {row['measured']} "
+                     f"({'holds' if row['passed'] else 'VIOLATED'})")
     lines.append(f"  session {kpis['mcap']}")
     return "\n".join(lines)
 

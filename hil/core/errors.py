@@ -16,3 +16,8 @@ class UsageError(HilError):
 class SessionFileError(HilError):
     """A session file cannot be read (missing, not MCAP, nothing recoverable)."""
 
+
+
+class ControllerError(HilError):
+    """A controller raised, returned something that is not a command, or took too long; the
+    run stops with the hardware in its safe state."""

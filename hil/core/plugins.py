@@ -16,12 +16,14 @@ from __future__ import annotations
 import importlib
 import importlib.metadata
 import importlib.util
+import inspect
 import sys
-import traceback
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from hil.core.errors import ConfigError
+from hil.core.errors import ConfigError, HilError
+from hil.core.guard import describe_exception
 
 
 def registered_names(group: str) -> list[str]:
@@ -30,10 +32,7 @@ def registered_names(group: str) -> list[str]:
 
 
 def _import_failure(spec: str, exc: BaseException) -> ConfigError:
-    """The spec and the last line of where its import failed (file:line: error)."""
-    frames = traceback.extract_tb(exc.__traceback__)
-    where = f" ({Path(frames[-1].filename).name}:{frames[-1].lineno})" if frames else ""
-    return ConfigError(f"{spec!r}: importing it failed{where}: {type(exc).__name__}: {exc}")
+    return ConfigError(f"{spec!r}: importing it failed: {describe_exception(exc)}")
 
 
 def _load_file(spec: str, file_part: str) -> Any:
@@ -98,3 +97,82 @@ def load_object(spec: str, group: str) -> Any:
                         isinstance(getattr(module, n), type))
         raise ConfigError(f"{spec!r}: {location} has no {attribute!r} (classes there: "
                           f"{', '.join(public) or 'none'})") from None
+
+
+CONTROLLER_GROUP = "hil.controllers"
+_OTHER_METHOD = {"decide": ("step", "servo"), "step": ("decide", "bench")}
+
+
+def controller_label(spec: str | Callable[..., Any]) -> str:
+    """How a controller is named in KPIs, events and errors: the spec, or module:Class."""
+    if isinstance(spec, str):
+        return spec
+    return f"{getattr(spec, '__module__', '?')}:{getattr(spec, '__qualname__', repr(spec))}"
+
+
+def _check_method(obj: Any, method: str, application: str, label: str) -> None:
+    if callable(getattr(obj, method, None)):
+        return
+    other, other_app = _OTHER_METHOD.get(method, ("", ""))
+    hint = (f"; it has {other}(): a {other_app} controller" if other and
+            callable(getattr(obj, other, None)) else "")
+    raise ConfigError(f"controller {label!r} has no {method}() method: not a {application} "
+                      f"controller{hint}")
+
+
+def _accepts_context(factory: Callable[..., Any]) -> bool:
+    try:
+        return "context" in inspect.signature(factory).parameters
+    except (TypeError, ValueError):  # builtins without a signature
+        return False
+
+
+_SHAPES = {"bench": "Class(params)", "servo": "Class(reference, params)"}
+
+
+def _check_call_shape(factory: Callable[..., Any], args: tuple[Any, ...],
+                      kwargs: dict[str, Any], label: str, application: str) -> None:
+    """A factory that cannot take the application's arguments is named, with its signature."""
+    try:
+        signature = inspect.signature(factory)
+    except (TypeError, ValueError):
+        return
+    try:
+        signature.bind(*args, **kwargs)
+    except TypeError:
+        names = ", ".join(signature.parameters)
+        raise ConfigError(f"controller {label!r} is built as {label.rpartition(':')[2]}"
+                          f"({names}), but a {application} controller is built as "
+                          f"{_SHAPES.get(application, '?')}") from None
+
+
+def controller_factory(spec: str | Callable[..., Any], *args: Any, method: str,
+                       application: str) -> tuple[Callable[..., Any], str]:
+    """The factory named by ``spec`` (a spec string or a class/factory), checked before
+    anything is built: it can be called with ``args`` (and ``context=``, if it takes one), and
+    a class has ``method``. Returns (factory, label)."""
+    label = controller_label(spec)
+    factory = load_object(spec, CONTROLLER_GROUP) if isinstance(spec, str) else spec
+    if not callable(factory):
+        raise ConfigError(f"controller {label!r} is a {type(factory).__name__}, not a class")
+    if isinstance(factory, type):
+        _check_method(factory, method, application, label)
+    kwargs = {"context": None} if _accepts_context(factory) else {}
+    _check_call_shape(factory, args, kwargs, label, application)
+    return factory, label
+
+
+def build_controller(factory: Callable[..., Any], label: str, *args: Any, method: str,
+                     application: str, context: Any = None) -> Any:
+    """``factory(*args)`` (with ``context=context`` when it takes one); the result must have
+    ``method``. A failure is a ConfigError naming the controller and the reason."""
+    kwargs = {"context": context} if _accepts_context(factory) else {}
+    try:
+        controller = factory(*args, **kwargs)
+    except HilError:
+        raise
+    except Exception as exc:
+        raise ConfigError(f"controller {label!r}: building it failed: "
+                          f"{describe_exception(exc)}") from None
+    _check_method(controller, method, application, label)
+    return controller

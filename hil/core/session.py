@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import platform
 import sys
 import time
@@ -125,6 +127,12 @@ class Session:
             self.recorder.metadata("kpis", {"json": json.dumps(kpis, default=str)})
         self.recorder_stats = self.recorder.close()
         return self.recorder_stats
+
+    def discard(self) -> None:
+        """Close the file and delete it: for a run that failed before its loop started."""
+        self.close()
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(self.path)
 
     def __enter__(self) -> Session:
         return self

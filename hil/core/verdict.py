@@ -134,3 +134,79 @@ def junit_xml(results: Sequence[LimitResult], suite: str, *, duration_s: float =
             ET.SubElement(case, "system-out").text = result.describe()
     ET.indent(root)
     return ET.tostring(root, encoding="utf-8", xml_declaration=True)
+
+
+RUN_TABLES = ("controller", "limits")
+
+
+@dataclass(frozen=True)
+class RunTables:
+    """The tables of a config file that belong to a run rather than to a device:
+    ``[controller]`` (the params of the controller) and ``[limits]``."""
+
+    params: Mapping[str, Any]
+    limits: tuple[Limit, ...]
+
+
+def read_run_tables(top: Table) -> RunTables:
+    """``[controller]`` (any keys: the controller checks them) and ``[limits]`` of ``top``."""
+    params = top.table("controller")
+    values = {name: params.raw(name) for name in params.names()}
+    return RunTables(values, tuple(limits_from_table(top.table("limits"))))
+
+
+class SignalWatch:
+    """Limits on per-tick signals (a run's ``power_va``, ``abs_error_deg``...): every sample is
+    checked, the worst value of each signal is kept, and the first violation is reported so the
+    run can stop at once, its outputs in their safe state."""
+
+    def __init__(self, limits: Sequence[Limit]) -> None:
+        self.limits = tuple(limits)
+        self.worst: dict[Limit, float] = {}
+        self.violation: LimitResult | None = None
+
+    def check(self, values: Mapping[str, float]) -> LimitResult | None:
+        """The first violation among ``values`` (signal -> value), once; None otherwise."""
+        found = None
+        for limit in self.limits:
+            value = values.get(limit.kpi)
+            if value is None:
+                continue
+            worst = self.worst.get(limit)
+            upper = limit.op in ("<=", "<")
+            if worst is None or (value > worst if upper else value < worst) or math.isnan(value):
+                self.worst[limit] = value
+            if found is None and self.violation is None and \
+                    not _OPERATORS[limit.op](value, limit.value):
+                found = self.violation = LimitResult(limit, value, False)
+        return found
+
+    def results(self) -> list[LimitResult]:
+        """Each limit with the worst value seen (None: the signal never came)."""
+        out = []
+        for limit in self.limits:
+            worst = self.worst.get(limit)
+            passed = worst is not None and not math.isnan(worst) and \
+                _OPERATORS[limit.op](worst, limit.value)
+            out.append(LimitResult(limit, worst, passed))
+        return out
+
+
+def split_limits(limits: Sequence[Limit], signals: Sequence[str]
+                 ) -> tuple[list[Limit], list[Limit]]:
+    """(limits on the run's KPIs, limits on its per-tick ``signals``)."""
+    names = set(signals)
+    return ([lim for lim in limits if lim.kpi not in names],
+            [lim for lim in limits if lim.kpi in names])
+
+
+def verdict(kpis: Mapping[str, Any], kpi_limits: Sequence[Limit], watch: SignalWatch | None
+            ) -> dict[str, Any]:
+    """``{"passed": bool, "limits": [...]}`` for a run's KPI document (empty without limits)."""
+    results = [*(watch.results() if watch is not None else []),
+               *check_limits(kpi_limits, kpis)]
+    if not results:
+        return {}
+    return {"passed": all(r.passed for r in results),
+            "limits": [{"limit": str(r.limit), "measured": r.measured, "passed": r.passed}
+                       for r in results]}

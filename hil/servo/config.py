@@ -22,6 +22,7 @@ from drivers.cia402 import MODES, QUICK_STOP_OPTIONS
 from emulators.drive_node import DriveEmulatorConfig
 from emulators.drive_plant import Disturbance, Friction
 from hil.core.config import Table, deep_merge, load_toml, parse_toml
+from hil.core.verdict import RunTables, read_run_tables
 
 DEFAULT_SOURCE = "hil/configs/drive.toml"
 SOURCE = "drive config"  # what errors name when no user file is given
@@ -38,6 +39,7 @@ class DriveConfig:
     data: Mapping[str, Any]
     text: str
     source: str
+    run: RunTables               # [controller] params and [limits] of a run
 
     def laid_over(self, overrides: Mapping[str, Any]) -> DriveConfig:
         """These settings with ``overrides`` laid over them (checked again)."""
@@ -67,8 +69,10 @@ def parse_drive_config(data: Mapping[str, Any], source: str, text: str = "") -> 
     root = Table(data, source)
     master = _master(root.table("master", required=True), root.table("bus", required=True))
     emulator = _emulator(root.table("emulator", required=True))
+    run = read_run_tables(root)
     root.done()
-    return DriveConfig(master=master, emulator=emulator, data=data, text=text, source=source)
+    return DriveConfig(master=master, emulator=emulator, data=data, text=text, source=source,
+                       run=run)
 
 
 def _quick_stop_option(table: Table) -> int:

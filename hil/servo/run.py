@@ -36,16 +36,15 @@ from __future__ import annotations
 import math
 import time
 from array import array
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Protocol, cast, runtime_checkable
 
 import numpy as np
 
 from controllers.base import ServoController
 from controllers.empc import ExplicitMpc
-from controllers.mpc import MpcConfig, TrajectoryMpc
-from controllers.pid import CascadedPid, PidConfig
+from controllers.mpc import TrajectoryMpc
 from controllers.references import (
     Reference,
     Scenario,
@@ -57,14 +56,23 @@ from controllers.references import (
 from controllers.servo_model import SAMPLE_PERIOD_S
 from drivers.can_drive import CanDriveMaster, Feedback, SdoAbortError
 from hil.core.clock import RealtimeClock, SimClock
-from hil.core.errors import ConfigError, HilError, UsageError
+from hil.core.errors import ConfigError, ControllerError, HilError, UsageError
+from hil.core.guard import guarded_call
 from hil.core.loop import Task
+from hil.core.plugins import build_controller, controller_factory, controller_label
 from hil.core.session import Session
 from hil.core.stats import percentile_summary
+from hil.core.verdict import Limit, SignalWatch, split_limits, verdict
+from hil.servo.builtin import ServoContext
 from hil.servo.config import DriveConfig, load_drive_config
 from hil.servo.rig import open_drive
 
-CONTROLLERS = ("mpc", "empc", "pid")
+# a step longer than this stops the run: far beyond any real controller's step (the MPC takes
+# ~50 us), and long enough that a stall of the machine (a collector pass, a preempted VM) does
+# not pass for a hung controller; the loop counts the ticks a slow step costs in real time
+STEP_BUDGET_S = 0.25
+# per-tick signals a --limit may name (magnitudes, except the position)
+SIGNALS = ("abs_error_deg", "abs_command_mA", "abs_velocity_deg_s", "position_deg")
 PREDICTION_EVERY_REALTIME = 10  # 200 Hz of /mpc/prediction in real time (every tick in lockstep)
 LOCKSTEP_RX_TIMEOUT_US = 100_000  # lockstep over a real bus: wait for the TPDOs, no deadline
 DISTURBANCE_OBJECT = 0x2003  # the emulated drive's external disturbance torque [mA], INTEGER16
@@ -126,7 +134,8 @@ class ServoRunConfig:
     ticks in real time.
     """
 
-    controller: str
+    controller: str | Callable[..., Any]
+    params: dict[str, Any] = field(default_factory=dict)
     drive: str = "emulated"
     node: int = 1
     ert: str = "foh"
@@ -142,11 +151,10 @@ class ServoRunConfig:
     settle_s: float = 0.0
     prediction_every: int | None = None
     drive_overrides: dict[str, Any] = field(default_factory=dict)
+    limits: tuple[Limit, ...] = ()
+    controller_budget_s: float | None = None  # per step; None: STEP_BUDGET_S
 
     def __post_init__(self) -> None:
-        if self.controller not in CONTROLLERS:
-            raise UsageError(f"--controller must be one of {', '.join(CONTROLLERS)}, got "
-                             f"{self.controller!r}")
         for name, flag in (("umax", "--umax"), ("duration_s", "--duration")):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
@@ -165,11 +173,17 @@ class ServoRunConfig:
             return self.prediction_every
         return PREDICTION_EVERY_REALTIME if self.realtime else 1
 
+    @property
+    def label(self) -> str:
+        return controller_label(self.controller)
+
     def describe_controller(self) -> str:
         if self.controller == "pid":
             return "pid (cascaded P/PI + notch, Table I)"
-        return (f"{self.controller} ({self.ert.upper()}, H_t = {self.ht}, H_u = {self.hu}, "
-                f"H_p = {self.hp})")
+        if self.controller in ("mpc", "empc"):
+            return (f"{self.controller} ({self.ert.upper()}, H_t = {self.ht}, H_u = {self.hu}, "
+                    f"H_p = {self.hp})")
+        return self.label
 
 
 @dataclass
@@ -200,16 +214,17 @@ class Predicting(Protocol):
     def prediction(self) -> tuple[np.ndarray, np.ndarray]: ...
 
 
-def make_controller(config: ServoRunConfig, scenario: Scenario) -> ServoController:
-    """The controller of the run (pure: ``step(position_deg, t_s) -> mA``, ``reset()``)."""
-    reference = scenario.reference
-    if config.controller == "pid":
-        return CascadedPid(reference, PidConfig(u_max=config.umax))
-    mpc_config = MpcConfig(ht=config.ht, hu=config.hu, hp=config.hp, ert=config.ert,
-                           u_min=-config.umax, u_max=config.umax)
-    if config.controller == "mpc":
-        return TrajectoryMpc(reference, mpc_config)
-    return ExplicitMpc(reference, mpc_config)
+def make_controller(config: ServoRunConfig, scenario: Scenario, session: Any = None,
+                    params: Mapping[str, Any] | None = None) -> ServoController:
+    """The controller of the run, built from its spec as ``factory(reference, params)``
+    (``context=`` too when the factory takes it)."""
+    context = ServoContext(config.ht, config.hu, config.hp, config.ert, config.umax, session)
+    values = dict(config.params if params is None else params)
+    factory, label = controller_factory(config.controller, scenario.reference, values,
+                                        method="step", application="servo")
+    return cast(ServoController, build_controller(factory, label, scenario.reference, values,
+                                                  method="step", application="servo",
+                                                  context=context))
 
 
 # ------------------------------------------------------------------------------- KPIs
@@ -279,7 +294,8 @@ class ServoTask(Task):
     """read feedback -> controller step -> write command, recording every tick."""
 
     def __init__(self, session: Session, master: CanDriveMaster, controller: ServoController,
-                 scenario: Scenario, config: ServoRunConfig, first: Feedback) -> None:
+                 scenario: Scenario, config: ServoRunConfig, first: Feedback,
+                 watch: SignalWatch | None = None) -> None:
         super().__init__("servo")
         self.session, self.master, self.controller = session, master, controller
         self.scenario = scenario
@@ -291,7 +307,10 @@ class ServoTask(Task):
         self.reference = ReferenceSamples(scenario.reference, self.dt)
         self.stats = TrackingStats(config.settle_s)
         self.prediction_every = config.prediction_period
-        self.hu = config.hu
+        self.label = config.label
+        self.budget_s = config.controller_budget_s or STEP_BUDGET_S
+        self.watch = watch if watch is not None and watch.limits else None
+        self.hu = getattr(getattr(controller, "config", None), "hu", None)
         self.predictor = controller if isinstance(controller, Predicting) else None
         self.commands = session.topic("/drive/command", COMMAND_SCHEMA)
         self.feedbacks = session.topic("/drive/feedback", FEEDBACK_SCHEMA)
@@ -313,9 +332,7 @@ class ServoTask(Task):
         t_s = n * self.dt
         self._tick, self._t_s = n, t_s
         position = feedback.position_deg
-        c0 = time.perf_counter_ns()
-        u = self.controller.step(position % 360.0, t_s)
-        compute_us = (time.perf_counter_ns() - c0) / 1e3
+        u, compute_us = self._step(position % 360.0, t_s)
         r = self.reference(n)
         error = wrap180(position - r)
         if not feedback.fresh:
@@ -334,6 +351,8 @@ class ServoTask(Task):
             "statusword": feedback.statusword, "cycle": feedback.cycle,
             "fresh": feedback.fresh, "rtt_us": feedback.rtt_us})
         self.commands.log(t_ns, message)
+        if self.watch is not None:
+            self._check_limits(error, u, feedback)
         if self.predictor is not None and self.predictions is not None \
                 and n % self.prediction_every == 0:
             u_pred, y_pred = self.predictor.prediction()
@@ -354,6 +373,35 @@ class ServoTask(Task):
             self._feedback = self.master.exchange(command)
 
     # -- helpers -----------------------------------------------------------------------
+    def _step(self, position: float, t_s: float) -> tuple[float, float]:
+        """The controller's command and its compute time [us]; a raise, a command that is not
+        a finite number or a step over budget is a ControllerError (on ``/events`` too)."""
+        try:
+            u, elapsed = guarded_call(self.label, "step", self.controller.step, position, t_s,
+                                      budget_s=self.budget_s)
+            if isinstance(u, bool) or not isinstance(u, int | float | np.number) \
+                    or not math.isfinite(u):
+                raise ControllerError(f"controller {self.label!r}: step() must return a finite "
+                                      f"current in mA, got {type(u).__name__} {u!r:.60}")
+        except ControllerError as exc:
+            self.session.event("controller.error", str(exc), level="error",
+                               source="controller", t_s=t_s)
+            raise
+        return float(u), elapsed * 1e6
+
+    def _check_limits(self, error: float, command: float, feedback: Feedback) -> None:
+        assert self.watch is not None
+        violation = self.watch.check({"abs_error_deg": abs(error),
+                                      "abs_command_mA": abs(command),
+                                      "abs_velocity_deg_s": abs(feedback.velocity_deg_s),
+                                      "position_deg": feedback.position_deg})
+        if violation is not None:
+            self.session.event("limit.abort", f"limit violated, run stopped: "
+                               f"{violation.describe()}", level="error", source="limits",
+                               limit=str(violation.limit), measured=violation.measured,
+                               t_s=self._t_s)
+            self.loop.stop(f"limit {violation.limit}")
+
     def _disturbance_for(self, t_s: float) -> int:
         return round(self.scenario.disturbance(t_s)) if self.scenario.disturbance else 0
 
@@ -415,9 +463,14 @@ def run_servo(config: ServoRunConfig,
     Drive errors (fault, link lost) stop the loop; the drive is put in its safe state, the
     session file is finished with the KPIs so far, and the error is raised with its path."""
     scenario = parse_scenario(config.reference)
-    controller = make_controller(config, scenario)
     drive = drive_settings(config)
-    path = config.out or default_session_path(config.controller)
+    params = {**drive.run.params, **config.params}
+    # checked before the session starts: a spec that cannot load leaves no file behind
+    controller_factory(config.controller, scenario.reference, params, method="step",
+                       application="servo")
+    kpi_limits, signal_limits = split_limits([*drive.run.limits, *config.limits], SIGNALS)
+    watch = SignalWatch(signal_limits)
+    path = config.out or default_session_path(config.label.rpartition(":")[2])
     clock = RealtimeClock() if config.realtime else SimClock()
     sessions: list[Session] = []
 
@@ -427,7 +480,10 @@ def run_servo(config: ServoRunConfig,
 
     # the drive is opened first: an unreachable drive leaves no empty session file behind
     master = open_drive(config.drive, drive, on_event=relay)
-    run_info = {k: v for k, v in asdict(config).items() if k != "drive_overrides"}
+    run_info = {k: v for k, v in asdict(config).items()
+                if k not in ("drive_overrides", "limits", "controller", "params")}
+    run_info |= {"controller": config.label, "params": params,
+                 "limits": [str(lim) for lim in (*kpi_limits, *signal_limits)]}
     try:
         session = Session(path, clock, SAMPLE_PERIOD_S, kind="servo",
                           config={"servo": run_info, "drive": drive.data},
@@ -437,6 +493,12 @@ def run_servo(config: ServoRunConfig,
         master.close()
         raise
     sessions.append(session)
+    try:
+        controller = make_controller(config, scenario, session, params)
+    except BaseException:  # nothing ran: no session file is left behind
+        master.close()
+        session.discard()
+        raise
     task: ServoTask | None = None
     error: HilError | None = None
     wall = 0.0
@@ -448,7 +510,7 @@ def run_servo(config: ServoRunConfig,
         session.add_component(master)
         if scenario.disturbance is not None:
             check_disturbance_object(master)
-        task = ServoTask(session, master, controller, scenario, config, first)
+        task = ServoTask(session, master, controller, scenario, config, first, watch)
         session.add_task(task)
         if on_started is not None:
             on_started(master)
@@ -464,6 +526,7 @@ def run_servo(config: ServoRunConfig,
             master.close()
         finally:
             kpis = collect_kpis(config, scenario, session, master, task, wall, path, error)
+            kpis.update(verdict(kpis, kpi_limits, watch))
             session.close(kpis=kpis)
     if error is not None:
         error.args = (f"{error} (session recorded to {path})",)
@@ -485,7 +548,7 @@ def collect_kpis(config: ServoRunConfig, scenario: Scenario, session: Session,
                  master: CanDriveMaster, task: ServoTask | None, wall_s: float,
                  path: str, error: HilError | None) -> dict[str, Any]:
     """The ``--json`` document: DESIGN.md's keys first, then context."""
-    base: dict[str, Any] = {"controller": config.controller}
+    base: dict[str, Any] = {"controller": config.label}
     if task is not None:
         tracking = task.stats.kpis(reference_amplitude(scenario))
     else:
@@ -514,13 +577,14 @@ def collect_kpis(config: ServoRunConfig, scenario: Scenario, session: Session,
         "realtime_factor": round(simulated / wall_s, 2) if wall_s > 0 else None,
         "stop_reason": loop.stop_reason,
     })
-    if config.controller != "pid":
-        base.update({"ert": config.ert, "ht": config.ht, "hu": config.hu, "hp": config.hp})
-        counts = getattr(getattr(task.controller, "solver", None), "counts", None) \
-            if task is not None else None
+    mpc = task.controller if task is not None else None
+    if isinstance(mpc, TrajectoryMpc | ExplicitMpc):
+        base.update({"ert": mpc.config.ert, "ht": mpc.config.ht, "hu": mpc.config.hu,
+                     "hp": mpc.config.hp})
+        counts = getattr(getattr(mpc, "solver", None), "counts", None)
         if counts is not None:
             base["solver_paths"] = dict(counts)
-        fallbacks = getattr(task.controller, "fallbacks", None) if task is not None else None
+        fallbacks = getattr(mpc, "fallbacks", None)
         if fallbacks is not None:
             base["empc_fallbacks"] = int(fallbacks)
     if error is not None:

@@ -8,8 +8,8 @@ import pytest
 from controllers.base import BenchSample
 from controllers.bench_kalman import BenchKalman
 from emulators.bench_plant import BenchPlant
+from hil.bench.builtin import load_models
 from hil.bench.config import load_configs
-from hil.bench.run import load_models
 
 
 def run_filter(disturbance: bool, seconds: float = 30.0):

@@ -71,7 +71,8 @@ def test_bad_session_files_give_one_line_errors(argv, message, tmp_path, capsys)
     "argv",
     [
         ["bench", "run", "--controller", "eec", "--cycles", "0"],
-        ["bench", "run", "--controller", "xyz"],
+        ["bench", "run", "--controller", "eec", "--limit", "J2_VA=5"],
+        ["servo", "run", "--controller", "pid", "--param", "gain"],
         ["emulate", "drive", "--socketcand", "localhost:99999"],
         ["nosuchcommand"],
     ],
@@ -82,3 +83,19 @@ def test_bad_arguments_exit_2_with_a_usage_line(argv, capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert "error:" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["bench", "run", "--controller", "xyz"], "'xyz': no such name (registered: bc, eec"),
+    (["servo", "run", "--controller", "eec"], "a servo controller is built as "
+                                              "Class(reference, params)"),
+    (["servo", "run", "--controller", "mpc", "--param", "hx=3"],
+     "unknown key 'hx' (known here: ert, hp, ht, hu, umax)"),
+])
+def test_bad_controller_specs_exit_2_with_one_line_and_no_session(argv, message, capsys,
+                                                                  tmp_path):
+    out = tmp_path / "x.mcap"
+    assert main([*argv, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("hil: error: ") and "\n" not in err and message in err, err
+    assert not out.exists()

@@ -1,0 +1,134 @@
+"""The Python API of hil: the same things as the command line, from a script or a test.
+
+::
+
+    from hil import api
+
+    kpis = api.run_bench(MyBenchController, {"on_below": 75}, cycles=1)   # lockstep emulator
+    kpis = api.run_servo("pid", duration_s=1.0, limits=["rms_error_deg<=0.5"])
+    with api.start_drive_emulator() as emulator:        # its own process, a free port
+        kpis = api.run_servo(MyServoController, drive=emulator.url, duration_s=0.5)
+    with api.open_bench("modbus-tcp://192.168.0.50:502") as bench:
+        bench.read_power(); bench.set_relays({"P1": True})
+
+``run_bench`` and ``run_servo`` return the KPI dictionary of ``hil bench|servo run --json``
+(``mcap`` is the session file); with ``limits`` it also has ``passed`` and ``limits``. A
+controller is a class (or factory) or a spec string (``"eec"``, ``"my_ctl.py:Threshold"``,
+``"package.module:Class"``). Errors are :class:`~hil.core.errors.HilError` with a one-line
+message; a controller that raises, answers wrongly or overruns its budget ends the run with a
+:class:`~hil.core.errors.ControllerError`, the hardware in its safe state.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import fields
+from typing import Any
+
+from drivers.can_drive import CanDriveMaster
+from drivers.safety import SafeBench
+from hil.core.errors import UsageError
+from hil.core.types import EventSink, no_event
+from hil.core.verdict import Limit, parse_limit
+from hil.emulator_process import EmulatorProcess, start_bench_emulator, start_drive_emulator
+
+__all__ = ["EmulatorProcess", "open_bench", "open_drive", "run_bench", "run_servo",
+           "start_bench_emulator", "start_drive_emulator"]
+
+Controller = str | Callable[..., Any]
+
+
+def _limits(limits: Iterable[str | Limit]) -> tuple[Limit, ...]:
+    return tuple(lim if isinstance(lim, Limit) else parse_limit(lim) for lim in limits)
+
+
+def _check_options(options: Mapping[str, Any], known: Iterable[str], what: str) -> None:
+    unknown = sorted(set(options) - set(known))
+    if unknown:
+        raise UsageError(f"{what}: unknown option {unknown[0]!r} (known: "
+                         f"{', '.join(sorted(known))})")
+
+
+def run_bench(controller: Controller, params: Mapping[str, Any] | None = None, *,
+              bench: str = "emulated", cycles: int = 1, limits: Iterable[str | Limit] = (),
+              **options: Any) -> dict[str, Any]:
+    """One closed-loop bench run (``hil bench run``); ``options`` are the other fields of
+    :class:`hil.bench.run.BenchRunOptions` (``out``, ``realtime``, ``config_path``,
+    ``dwell_s``, ``seed``, ``disturbance``, ``controller_budget_s``...)."""
+    from hil.bench.run import BenchRunOptions
+    from hil.bench.run import run_bench as run
+
+    _check_options(options, {f.name for f in fields(BenchRunOptions)}, "run_bench")
+    return run(BenchRunOptions(controller=controller, params=dict(params or {}), bench=bench,
+                               cycles=cycles, limits=_limits(limits), **options))
+
+
+def run_servo(controller: Controller, params: Mapping[str, Any] | None = None, *,
+              drive: str = "emulated", reference: str = "sine:amplitude=2,frequency=1",
+              duration_s: float = 1.0, limits: Iterable[str | Limit] = (),
+              **options: Any) -> dict[str, Any]:
+    """One closed-loop servo run (``hil servo run``), lockstep unless ``realtime=True``;
+    ``options`` are the other fields of :class:`hil.servo.run.ServoRunConfig` (``out``,
+    ``umax``, ``settle_s``, ``drive_config``, ``controller_budget_s``...)."""
+    from hil.servo.run import ServoRunConfig
+    from hil.servo.run import run_servo as run
+
+    _check_options(options, {f.name for f in fields(ServoRunConfig)}, "run_servo")
+    config = ServoRunConfig(controller=controller, params=dict(params or {}), drive=drive,
+                            reference=reference, duration_s=duration_s,
+                            limits=_limits(limits), **options)
+    return run(config).kpis
+
+
+class _MonotonicTime:
+    """The time a device paces its dwell and reconnections by, outside a session."""
+
+    @staticmethod
+    def time_ns() -> int:
+        return time.monotonic_ns()
+
+
+@contextlib.contextmanager
+def open_bench(url: str = "emulated", config_path: str | None = None, *,
+               on_event: EventSink = no_event) -> Iterator[SafeBench]:
+    """The relay bench at ``url`` behind its safety layer, relays at their safe levels; closed
+    (relays safe, link released) on exit. ``emulated`` serves the emulator in this process on
+    a free loopback port, following the wall clock, for the time of the block."""
+    from hil.bench.config import load_bench_config
+    from hil.bench.rig import is_emulated, make_emulator, safe_bench
+
+    config = load_bench_config(config_path)
+    emulator = None
+    if is_emulated(url):
+        emulator = make_emulator(config)
+        url = emulator.serve_tcp()
+        emulator.run_realtime()
+    try:
+        bench = safe_bench(url, config, _MonotonicTime(), on_event)
+        try:
+            yield bench
+        finally:
+            bench.close()
+    finally:
+        if emulator is not None:
+            emulator.stop()
+
+
+@contextlib.contextmanager
+def open_drive(url: str = "emulated", config_path: str | None = None, *,
+               on_event: EventSink = no_event) -> Iterator[CanDriveMaster]:
+    """The CiA 402 drive at ``url``, opened and configured (not enabled: call ``enable()``);
+    quick-stopped, disabled and released on exit. ``emulated`` is the drive emulator in
+    lockstep on a private bus: it moves one period per exchange."""
+    from hil.servo.config import load_drive_config
+    from hil.servo.rig import open_drive as open_master
+
+    master = open_master(url, load_drive_config(config_path), on_event=on_event)
+    try:
+        master.open()
+        master.configure()
+        yield master
+    finally:
+        master.close()

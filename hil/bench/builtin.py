@@ -1,0 +1,88 @@
+"""The built-in bench controllers, built the way a user's are: registered in the entry-point
+group ``hil.controllers`` (``eec``, ``bc``) as factories ``(params, context)``.
+
+* ``eec`` - the energy-efficiency controller (MILP receding horizon) with its Kalman filter;
+  ``params`` are ``[eec]`` keys of eec.toml (``hp_s``, ``gamma1``, ``time_limit_s``...), laid
+  over the config and the command line's flags and checked as strictly;
+* ``bc`` - the hysteresis baseline; it takes no params.
+"""
+
+from __future__ import annotations
+
+import importlib.resources
+import os
+from collections.abc import Mapping
+from typing import Any
+
+from controllers.bc import BasicController
+from controllers.bench_models import DeviceModel, MachiningModel, load_linear_model
+from controllers.bench_problem import BenchProblem
+from controllers.eec import EEC, EECSettings
+from controllers.eec_prediction import BenchModels
+from hil.bench.config import EecConfig, EecTable
+from hil.bench.control import BenchContext, RecordedEEC
+from hil.core.errors import ConfigError, UsageError
+
+
+def eec(params: Mapping[str, Any], context: BenchContext) -> RecordedEEC:
+    """The EEC of a run, recording its estimates, plans and fallbacks."""
+    config = context.eec_config(params)
+    problem = context.problem
+    settings = eec_settings(config.eec, context.flags)
+    models = load_models(config, problem)
+    controller = EEC(models, problem, settings, feedback=config.eec.feedback,
+                     kalman=config.kalman)
+    return RecordedEEC(controller, context.session, problem, context.log, context.origin)
+
+
+def bc(params: Mapping[str, Any], context: BenchContext) -> BasicController:
+    """The hysteresis baseline (the paper's BC)."""
+    if params:
+        raise ConfigError(f"controller 'bc' takes no params, got {', '.join(params)}")
+    return BasicController(context.problem, context.step_s)
+
+
+def eec_settings(table: EecTable, flags: Mapping[str, Any]) -> EECSettings:
+    """The EEC's settings: ``[eec]`` with the command line's flags (``hp_s``, ``hs_s``,
+    ``gamma1``, ``gamma2``; None: not given) laid over it."""
+    def pick(name: str) -> Any:
+        value = flags.get(name)
+        return getattr(table, name) if value is None else value
+
+    step = table.step_s
+    try:
+        return EECSettings(
+            hp_steps=round(pick("hp_s") / step), hs_steps=round(pick("hs_s") / step),
+            step_s=step, gamma1=pick("gamma1"), gamma2=pick("gamma2"),
+            terminal=table.terminal, limit_va=table.limit_va,
+            limit_weight=table.limit_weight, peak_resolution_va=table.peak_resolution_va,
+            time_limit_s=table.time_limit_s, mip_rel_gap=table.mip_rel_gap,
+        )
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def model_path(name: str, eec: EecConfig, key: str) -> str:
+    """A model file: absolute, relative to the working directory, or next to eec.toml."""
+    if os.path.isabs(name) or os.path.exists(name):
+        return name
+    packaged = importlib.resources.files("hil.configs").joinpath(name)
+    if packaged.is_file():
+        return str(packaged)
+    raise ConfigError(f"{eec.source}: key '{key}': model file {name!r} not found (working "
+                      "directory or hil/configs)")
+
+
+def load_models(eec: EecConfig, problem: BenchProblem) -> BenchModels:
+    """The EEC's load models from the files ``[models]`` names."""
+    machining = load_linear_model(
+        model_path(eec.models["machining"], eec, "models.machining"), "machining")
+    devices = {}
+    for name in problem.peripherals:
+        path = model_path(eec.models[name], eec, f"models.{name}")
+        devices[name] = DeviceModel.from_linear(load_linear_model(path, name))
+    models = BenchModels(MachiningModel.from_linear(machining, problem.sequence), devices)
+    dts = {machining.dt, *(d.dt for d in devices.values())}
+    if len(dts) != 1:
+        raise ConfigError(f"{eec.source}: every model must have the same dt, got {sorted(dts)}")
+    return models

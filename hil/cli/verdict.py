@@ -1,0 +1,76 @@
+"""The flags every run command shares for plug-in controllers and verdicts: ``--param``,
+``--limit``, ``--junit``, ``--controller-budget``; and the exit status of a verdict."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from hil.cli.argtypes import positive_float
+from hil.core.errors import UsageError
+from hil.core.params import parse_param
+from hil.core.verdict import LimitResult, junit_xml, parse_limit
+
+SPEC_HELP = ("the controller: a built-in name ({builtins}), FILE.py:Class, "
+             "package.module:Class, or a name an installed package registers in the "
+             "'hil.controllers' entry points")
+
+
+def _limit(text: str) -> Any:
+    try:
+        return parse_limit(text)
+    except UsageError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix(f"--limit {text!r}: ")) from None
+
+
+def _param(text: str) -> tuple[str, Any]:
+    try:
+        return parse_param(text)
+    except UsageError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix(f"--param {text!r}: ")) from None
+
+
+def add_controller_arguments(parser: argparse.ArgumentParser, builtins: str,
+                             signals: str) -> None:
+    """``--controller SPEC`` and the flags that go with a plug-in controller and a verdict."""
+    parser.add_argument("--controller", required=True, metavar="SPEC",
+                        help=SPEC_HELP.format(builtins=builtins))
+    parser.add_argument("--param", action="append", type=_param, default=[],
+                        metavar="KEY=VALUE", help="a parameter of the controller (repeat; "
+                        "numbers are parsed as numbers), laid over the config's [controller]")
+    parser.add_argument("--controller-budget", type=positive_float, metavar="S",
+                        help="longest time one call of the controller may take before the run "
+                        "stops to the safe state")
+    parser.add_argument("--limit", action="append", type=_limit, default=[],
+                        metavar="'KPI<=V'", help="a limit the run must hold (repeat; also a "
+                        "[limits] table): KPI<=V or KPI>=V on a KPI of --json (nested keys "
+                        f"joined by '.'), or on a per-tick signal ({signals}), which stops the "
+                        "run to the safe state at once when crossed. Exit status 1 when one "
+                        "is violated")
+    parser.add_argument("--junit", metavar="F.xml",
+                        help="write a JUnit XML report: one test case per limit")
+
+
+def params_of(args: argparse.Namespace) -> dict[str, Any]:
+    return dict(args.param)
+
+
+def finish(kpis: Mapping[str, Any], args: argparse.Namespace, suite: str,
+           duration_s: float) -> int:
+    """Write the JUnit report, name every violated limit on stderr; the exit status."""
+    results = [LimitResult(parse_limit(row["limit"]), row["measured"], row["passed"])
+               for row in kpis.get("limits", [])]
+    if args.junit:
+        path = Path(args.junit)
+        try:
+            path.write_bytes(junit_xml(results, suite, duration_s=duration_s,
+                                       properties={"mcap": str(kpis.get("mcap", ""))}))
+        except OSError as exc:
+            raise UsageError(f"--junit {args.junit}: cannot write it: {exc.strerror}") from None
+    failed = [r for r in results if not r.passed]
+    for result in failed:
+        print(f"hil: limit violated: {result.describe()}", file=sys.stderr)
+    return 1 if failed else 0

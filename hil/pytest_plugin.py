@@ -1,0 +1,202 @@
+"""pytest fixtures that put a relay bench and a servo drive under your tests: hil's emulators,
+each in its own process on a free 127.0.0.1 port, or your hardware with ``--hil-bench URL`` /
+``--hil-drive URL``. Installed with hil (entry point ``pytest11``): nothing to import.
+
+::
+
+    def test_my_controller_keeps_the_peak_down(hil_bench):
+        kpis = hil_bench.run(MyBenchController, {"on_below": 75}, cycles=1)
+        assert kpis["J2_VA"] < 650
+
+    def test_my_pd_tracks(hil_drive):
+        kpis = hil_drive.run(MyServoController, {"kp": 300}, duration_s=0.5)
+        assert kpis["rms_error_deg"] < 0.5
+
+Each run's session file is kept under the test's ``tmp_path`` and its path is printed when the
+test fails. After every test the fixture checks that the hardware was left in its safe state
+(relays at their safe levels, the drive not in OPERATION ENABLED) and fails the test if not.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Generator, Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from drivers.can_drive import CanDriveMaster
+from drivers.cia402 import OPERATION_ENABLED, state_of
+from drivers.safety import SafeBench
+from hil import api
+from hil.emulator_process import EmulatorProcess
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    group = parser.getgroup("hil", "hardware-in-the-loop fixtures (hil_bench, hil_drive)")
+    group.addoption("--hil-bench", metavar="URL", default=None,
+                    help="run hil_bench tests against this relay bench (modbus-tcp://H:P, "
+                    "modbus-rtu:///dev/X) instead of the emulator")
+    group.addoption("--hil-drive", metavar="URL", default=None,
+                    help="run hil_drive tests against this drive (socketcand://H:P, "
+                    "socketcan://can0...) instead of the emulator")
+
+
+class BenchUnderTest:
+    """The relay bench of one test.
+
+    * ``url`` - where it is (``modbus-tcp://127.0.0.1:PORT`` for the emulator);
+    * ``run(controller, params=None, cycles=1, **options)`` - ``hil bench run``'s KPIs. Against
+      the emulator the run is lockstep (deterministic, faster than real time) on an emulator
+      of its own; pass ``realtime=True`` to run on the wall clock against ``url``. Against
+      hardware it always follows the wall clock;
+    * ``driver`` - the bench behind its safety layer, connected, relays at their safe levels;
+    * ``sessions`` - the session files of the runs.
+    """
+
+    def __init__(self, url: str, emulated: bool, directory: Path) -> None:
+        self.url, self.emulated, self.directory = url, emulated, directory
+        self.sessions: list[str] = []
+        self._stack = contextlib.ExitStack()
+        self._driver: SafeBench | None = None
+
+    @property
+    def driver(self) -> SafeBench:
+        if self._driver is None:
+            self._driver = self._stack.enter_context(api.open_bench(self.url))
+        return self._driver
+
+    def run(self, controller: api.Controller, params: Mapping[str, Any] | None = None,
+            cycles: int = 1, **options: Any) -> dict[str, Any]:
+        realtime = bool(options.pop("realtime", False)) or not self.emulated
+        options.setdefault("out", str(self.directory / f"bench-{len(self.sessions) + 1}.mcap"))
+        self.sessions.append(options["out"])
+        target = self.url if realtime else "emulated"
+        return api.run_bench(controller, params, bench=target, cycles=cycles,
+                             realtime=realtime, **options)
+
+    def close(self) -> None:
+        self._stack.close()
+        self._driver = None
+
+    def unsafe_relays(self) -> list[str]:
+        """Relays not at their safe level, read straight from the relay module."""
+        from drivers.modbus_bench import ModbusBenchDriver, ModbusLink, parse_bus_url
+        from hil.bench.config import load_bench_config
+
+        config = load_bench_config()
+        driver = ModbusBenchDriver(ModbusLink(parse_bus_url(self.url), config.bus.timeout_s,
+                                              config.bus.attempts), config.map)
+        try:
+            actual = driver.read_relays()
+        finally:
+            driver.close()
+        return [name for name, spec in config.map.relays.items() if actual[name] != spec.safe]
+
+
+class DriveUnderTest:
+    """The servo drive of one test.
+
+    * ``url`` - where it is (``socketcand://127.0.0.1:PORT`` for the emulator);
+    * ``run(controller, params=None, reference=..., duration_s=1.0, **options)`` -
+      ``hil servo run``'s KPIs, lockstep over the wire unless ``realtime=True``;
+    * ``master`` - the CiA 402 master, opened and configured (not enabled); it is closed
+      before a ``run`` (one master per bus);
+    * ``sessions`` - the session files of the runs.
+    """
+
+    def __init__(self, url: str, directory: Path) -> None:
+        self.url, self.directory = url, directory
+        self.sessions: list[str] = []
+        self._stack = contextlib.ExitStack()
+        self._master: CanDriveMaster | None = None
+
+    @property
+    def master(self) -> CanDriveMaster:
+        if self._master is None:
+            self._master = self._stack.enter_context(api.open_drive(self.url))
+        return self._master
+
+    def run(self, controller: api.Controller, params: Mapping[str, Any] | None = None,
+            reference: str = "sine:amplitude=2,frequency=1", duration_s: float = 1.0,
+            **options: Any) -> dict[str, Any]:
+        self.close()
+        options.setdefault("out", str(self.directory / f"servo-{len(self.sessions) + 1}.mcap"))
+        self.sessions.append(options["out"])
+        return api.run_servo(controller, params, drive=self.url, reference=reference,
+                             duration_s=duration_s, **options)
+
+    def close(self) -> None:
+        self._stack.close()
+        self._master = None
+
+    def state(self) -> str:
+        """The drive's CiA 402 state, read by SDO without changing anything."""
+        from hil.servo.config import load_drive_config
+        from hil.servo.rig import open_drive
+
+        master = open_drive(self.url, load_drive_config())
+        try:
+            return state_of(master.sdo_read_int(0x6041, 0, "<H"))
+        finally:
+            master.disconnect()
+
+
+@contextlib.contextmanager
+def _emulator_or(url: str | None, start: Any) -> Iterator[tuple[str, bool]]:
+    if url is not None:
+        yield url, False
+        return
+    emulator: EmulatorProcess = start()
+    try:
+        yield emulator.url, True
+    finally:
+        emulator.stop()
+
+
+@pytest.fixture
+def hil_bench(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[BenchUnderTest]:
+    """A relay bench for this test: the emulator in its own process, or ``--hil-bench URL``."""
+    with _emulator_or(request.config.getoption("hil_bench"), api.start_bench_emulator) as (
+            url, emulated):
+        bench = BenchUnderTest(url, emulated, tmp_path)
+        try:
+            yield bench
+        finally:
+            bench.close()
+        unsafe = bench.unsafe_relays()
+        if unsafe:
+            pytest.fail(f"hil_bench: relays {', '.join(unsafe)} were left off their safe "
+                        f"level at {url}")
+
+
+@pytest.fixture
+def hil_drive(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[DriveUnderTest]:
+    """A servo drive for this test: the emulator in its own process, or ``--hil-drive URL``."""
+    with _emulator_or(request.config.getoption("hil_drive"), api.start_drive_emulator) as (
+            url, _emulated):
+        drive = DriveUnderTest(url, tmp_path)
+        try:
+            yield drive
+        finally:
+            drive.close()
+        state = drive.state()
+        if state == OPERATION_ENABLED:
+            pytest.fail(f"hil_drive: the drive at {url} was left in {state}")
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]
+                               ) -> Generator[None, Any, None]:
+    """A failed test that ran sessions names their files."""
+    outcome = yield
+    report = outcome.get_result()
+    if not report.failed:
+        return
+    funcargs = getattr(item, "funcargs", {})
+    paths = [path for name in ("hil_bench", "hil_drive")
+             if isinstance(funcargs.get(name), BenchUnderTest | DriveUnderTest)
+             for path in funcargs[name].sessions]
+    if paths:
+        report.sections.append(("hil sessions", "\n".join(paths)))
