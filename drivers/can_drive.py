@@ -836,9 +836,11 @@ def _check_reachable(host: str, port: int, timeout_s: float = 2.0) -> None:
 
 
 def open_socketcand(url: str, config: DriveMasterConfig | None = None, *,
-                    on_event: EventSink = no_event) -> CanDriveMaster:
+                    on_event: EventSink = no_event,
+                    closers: tuple[Callable[[], None], ...] = ()) -> CanDriveMaster:
     """A master (not started) reaching the drive through a socketcand gateway,
-    ``socketcand://HOST:PORT[/CHANNEL]`` (channel: ``config.channel`` if none)."""
+    ``socketcand://HOST:PORT[/CHANNEL]`` (channel: ``config.channel`` if none); ``closers``
+    run when the master disconnects."""
     config = config or DriveMasterConfig()
     parts = urlsplit(url)
     try:
@@ -858,7 +860,8 @@ def open_socketcand(url: str, config: DriveMasterConfig | None = None, *,
             raise DriveLinkLostError(f"socketcand at {host}:{port} refused bus {channel!r}: "
                                      f"{exc}") from None
 
-    return CanDriveMaster(connect(), config, on_event=on_event, bus_factory=connect, url=url)
+    return CanDriveMaster(connect(), config, on_event=on_event, bus_factory=connect, url=url,
+                          closers=closers)
 
 
 def open_interface(url: str, config: DriveMasterConfig | None = None, *,

@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -35,6 +36,7 @@ if TYPE_CHECKING:
     from emulators.bench_server import EmulatedBench
     from hil.bench.config import BenchConfig
     from hil.core.session import Session
+    from hil.emulator_process import EmulatorProcess
 
 #: How the bench application opens a bench URL: ``factory(url, config, session)`` returns an
 #: :class:`OpenedBench` (modules imported only when a URL with their scheme is opened).
@@ -214,7 +216,7 @@ class OpenedBench:
     and the emulator behind it, if any, to stop after the run."""
 
     bench: SafeBench
-    emulator: EmulatedBench | None = None
+    emulator: EmulatedBench | EmulatorProcess | None = None
 
 
 def safe_bench(url: str, config: BenchConfig, clock: TimeSource,
@@ -253,18 +255,38 @@ def make_emulator(config: BenchConfig) -> EmulatedBench:
 
 
 def open_emulated(url: str, config: BenchConfig, session: Session) -> OpenedBench:
-    """Factory of ``emulated``: the emulator on 127.0.0.1 (a free port), stepped by the loop
-    in lockstep (SimClock) or following the wall clock, behind the Modbus driver."""
+    """Factory of ``emulated``. Lockstep (SimClock): the emulator in this process on
+    127.0.0.1 (a free port), its plant stepped by the loop. Real time: the emulator in a
+    process of its own, as the hardware would be, so the loop process measures only its own
+    cost; it reads the same config file (``config.source``) with the plant's seed and
+    disturbance switch."""
+    if session.clock.mode != "sim":
+        return _emulator_process(config, session)
     emulator = make_emulator(config)
     tcp_url = emulator.serve_tcp()
-    if session.clock.mode == "sim":
-        session.add_task(PlantStepTask(emulator))
-    else:
-        emulator.run_realtime()
+    session.add_task(PlantStepTask(emulator))
     try:
         return OpenedBench(safe_bench(tcp_url, config, session.clock, session.event), emulator)
     except BaseException:
         emulator.stop()
+        raise
+
+
+def _emulator_process(config: BenchConfig, session: Session) -> OpenedBench:
+    from hil.bench.config import check_emulation
+    from hil.emulator_process import start_bench_emulator
+
+    check_emulation(config)
+    path = config.source if os.path.isfile(config.source) else None
+    process = start_bench_emulator(path, seed=config.plant.seed,
+                                   disturbance=config.plant.disturbance.enabled)
+    session.event("emulator.process", f"bench emulator in process {process.pid} at "
+                  f"{process.url}", source="bench", pid=process.pid, url=process.url)
+    try:
+        return OpenedBench(safe_bench(process.url, config, session.clock, session.event),
+                           process)
+    except BaseException:
+        process.stop()
         raise
 
 
@@ -276,7 +298,7 @@ class BenchRig:
     sampler: BenchSampler
     player: SequencePlayer | None
     sequence: SequenceSchedule
-    emulator: EmulatedBench | None
+    emulator: EmulatedBench | EmulatorProcess | None  # in this process (lockstep) or its own
     config: BenchConfig
 
     def close(self) -> None:

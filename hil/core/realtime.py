@@ -16,6 +16,7 @@ Steps (all Linux; elsewhere each is refused with the reason):
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import gc
@@ -116,6 +117,18 @@ def advice(report: dict[str, Any], steps: list[Step]) -> list[str]:
     if report["cpus"] < 2:
         lines.append("one CPU: the loop shares it with the recorder and every other process")
     return lines
+
+
+def ordinary_thread() -> None:
+    """Make the calling thread an ordinary one again: SCHED_OTHER on every usable core. For a
+    thread started from a hardened loop thread (which it would otherwise inherit), e.g. as a
+    ``ThreadPoolExecutor`` initializer."""
+    if hasattr(os, "SCHED_OTHER"):
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    if hasattr(os, "sched_setaffinity"):
+        with contextlib.suppress(OSError):
+            os.sched_setaffinity(0, range(os.cpu_count() or 1))
 
 
 class Hardening:

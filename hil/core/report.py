@@ -74,6 +74,7 @@ def summarize(data: SessionData) -> dict[str, Any]:
         "recovered": data.recovered,
         "lost_bytes": data.lost_bytes,
         "loop": loop_stats(data),
+        "realtime": data.metadata.get("realtime", {}),
         "events": {
             level: sum(1 for e in events if e.get("level") == level)
             for level in ("info", "warning", "error")
@@ -104,6 +105,10 @@ def format_summary(summary: dict[str, Any]) -> str:
                 f"{lat['p50']:>8.1f}/{lat['p99']:.1f}/{lat['max']:.1f}"
                 f"   {comp['p50']:>8.1f}/{comp['p99']:.1f}/{comp['max']:.1f}"
             )
+    if summary["realtime"]:
+        lines.append("real-time hardening")
+        for step, outcome in summary["realtime"].items():
+            lines.append(f"  {step:<16} {outcome}")
     ev = summary["events"]
     lines.append(f"events   {ev['info']} info, {ev['warning']} warning, {ev['error']} error")
     if summary["kpis"]:

@@ -14,6 +14,7 @@ from typing import Any
 
 from hil.core.clock import Clock
 from hil.core.loop import FixedRateLoop, Task
+from hil.core.realtime import Hardening
 from hil.core.recorder import Recorder, RecorderStats, Topic
 
 VERSIONED_PACKAGES = (
@@ -61,8 +62,12 @@ class Session:
         config_text: str | None = None,
         config_name: str = "config.toml",
         handle_signals: bool = True,
+        harden: bool | None = None,
     ) -> None:
         self.path = path
+        # real-time hardening of the loop thread (hil.core.realtime); default: in real time
+        self.harden = clock.mode == "realtime" if harden is None else harden
+        self.hardening: dict[str, str] = {}
         self.clock = clock
         self.kind = kind
         self.recorder = Recorder(path, wait_when_full=clock.mode == "sim")
@@ -106,14 +111,30 @@ class Session:
     def run(self, duration_s: float | None = None, max_ticks: int | None = None) -> None:
         """Run the loop; safe-state hooks run before this returns, whatever happens."""
         self.event("session.start", f"{self.kind} session started", source="session")
+        hardening = Hardening() if self.harden else None
+        if hardening is not None:
+            hardening.apply()
+            self._record_hardening(hardening)
         try:
             self.loop.run(duration_s=duration_s, max_ticks=max_ticks)
         finally:
+            if hardening is not None:
+                hardening.restore()
             self.event(
                 "session.stop", f"stopped: {self.loop.stop_reason}", source="session",
                 reason=self.loop.stop_reason, ticks=self.loop.ticks,
                 skipped_ticks=self.loop.skipped_ticks,
             )
+
+    def _record_hardening(self, hardening: Hardening) -> None:
+        """Each step, granted or refused: metadata ``realtime`` and one event."""
+        self.hardening = hardening.as_metadata()
+        self.recorder.metadata("realtime", self.hardening)
+        refused = [s.name for s in hardening.steps if not s.granted]
+        self.event("realtime.hardening", "real-time hardening: " + "; ".join(
+            f"{name} {value}" for name, value in self.hardening.items()),
+            level="warning" if refused else "info", source="session",
+            granted=[s.name for s in hardening.steps if s.granted], refused=refused)
 
     def close(self, kpis: dict[str, Any] | None = None) -> RecorderStats:
         """Write loop stats and KPIs as metadata and finish the file (summary + index)."""

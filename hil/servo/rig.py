@@ -14,6 +14,7 @@ A drive factory is called as ``factory(url, drive_config, on_event=sink)`` and r
 
 from __future__ import annotations
 
+import os
 from dataclasses import replace
 
 from can.interfaces import VALID_INTERFACES
@@ -21,7 +22,7 @@ from can.interfaces import VALID_INTERFACES
 from drivers.can_drive import CanDriveMaster, DriveMasterConfig, open_interface, open_socketcand
 from emulators.drive_node import DriveEmulatorConfig, LockstepDrive
 from hil.core.errors import ConfigError
-from hil.core.registry import Factory, SchemeRegistry
+from hil.core.registry import Factory, SchemeRegistry, scheme_of
 from hil.core.types import EventSink, no_event
 from hil.servo.config import DriveConfig, load_drive_config
 
@@ -73,12 +74,35 @@ DRIVES = SchemeRegistry(
 
 
 def open_drive(url: str = "emulated", drive: DriveConfig | None = None, *,
-               on_event: EventSink = no_event) -> CanDriveMaster:
+               on_event: EventSink = no_event, realtime: bool = False) -> CanDriveMaster:
     """A master (not started) for the drive at ``url``, with ``drive`` (default: the packaged
-    drive.toml). An unknown scheme is a ConfigError naming the known ones."""
+    drive.toml). An unknown scheme is a ConfigError naming the known ones.
+
+    ``emulated`` with ``realtime``: the drive emulator in a process of its own on loopback, as
+    the hardware would be (the loop process then measures only its own cost), reading the same
+    config file; the process stops when the master disconnects."""
+    drive = drive or load_drive_config()
+    if realtime and scheme_of(url) == "emulated":
+        return emulator_process_drive(drive, on_event)
     try:
         factory = DRIVES.factory(url)
     except ConfigError as exc:
         raise ConfigError(f"{exc}; {EXPECTED}") from None
-    master: CanDriveMaster = factory(url, drive or load_drive_config(), on_event=on_event)
+    master: CanDriveMaster = factory(url, drive, on_event=on_event)
     return master
+
+
+def emulator_process_drive(drive: DriveConfig, on_event: EventSink) -> CanDriveMaster:
+    """A master on socketcand to ``hil emulate drive`` started for it (node id of the master)."""
+    from hil.emulator_process import start_drive_emulator
+
+    path = drive.source if os.path.isfile(drive.source) else None
+    process = start_drive_emulator(path, node=drive.master.node_id)
+    on_event("emulator.process", f"drive emulator in process {process.pid} at {process.url}",
+             source="drive", pid=process.pid, url=process.url)
+    try:
+        return open_socketcand(process.url, drive.master, on_event=on_event,
+                               closers=(process.stop,))
+    except BaseException:
+        process.stop()
+        raise

@@ -473,13 +473,16 @@ def run_servo(config: ServoRunConfig,
     path = config.out or default_session_path(config.label.rpartition(":")[2])
     clock = RealtimeClock() if config.realtime else SimClock()
     sessions: list[Session] = []
+    early: list[tuple[str, str, dict[str, Any]]] = []  # events from before the session
 
     def relay(kind: str, message: str, **data: Any) -> None:
         if sessions:
             sessions[0].event(kind, message, **data)
+        else:
+            early.append((kind, message, data))
 
     # the drive is opened first: an unreachable drive leaves no empty session file behind
-    master = open_drive(config.drive, drive, on_event=relay)
+    master = open_drive(config.drive, drive, on_event=relay, realtime=config.realtime)
     run_info = {k: v for k, v in asdict(config).items()
                 if k not in ("drive_overrides", "limits", "controller", "params")}
     run_info |= {"controller": config.label, "params": params,
@@ -493,6 +496,8 @@ def run_servo(config: ServoRunConfig,
         master.close()
         raise
     sessions.append(session)
+    for kind, message, data in early:
+        session.event(kind, message, **data)
     try:
         controller = make_controller(config, scenario, session, params)
     except BaseException:  # nothing ran: no session file is left behind

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 
 from hil.bench.config import load_bench_config, parse_bench_config
@@ -90,3 +92,24 @@ def test_sampling_period_must_fit_the_loop(tmp_path):
     with pytest.raises(ConfigError, match="not a multiple of the loop's base period"):
         attach_bench(session, CONFIG, "emulated")
     session.close()
+
+
+def test_a_realtime_emulated_bench_runs_in_a_process_of_its_own(tmp_path):
+    from hil.core.clock import RealtimeClock
+    from hil.emulator_process import EmulatorProcess
+
+    config = load_bench_config()
+    session = Session(str(tmp_path / "rt.mcap"), RealtimeClock(), 0.01, kind="bench",
+                      handle_signals=False)
+    rig = attach_bench(session, config, "emulated")
+    try:
+        assert isinstance(rig.emulator, EmulatorProcess)
+        assert rig.emulator.pid != os.getpid() and rig.emulator.process.poll() is None
+        session.run(duration_s=0.5)
+        assert rig.sampler.samples >= 40 and rig.sampler.latest_power is not None
+    finally:
+        rig.close()
+        session.close()
+    assert rig.emulator.process.poll() is not None  # stopped with the rig
+    events = [m for _, m in read_session(tmp_path / "rt.mcap").topic("/events")]
+    assert any(e["kind"] == "emulator.process" for e in events)

@@ -75,3 +75,51 @@ def test_an_unprivileged_process_is_refused_and_told_why():
     assert steps["sched_fifo"][0] is False and "refused" in steps["sched_fifo"][1]
     assert steps["mlockall"][0] is False and "memlock limit 65536" in steps["mlockall"][1]
     assert steps["gc_freeze"][0] is True
+
+
+def test_a_realtime_session_records_every_hardening_step_and_a_lockstep_one_none(tmp_path):
+    from hil.core.clock import RealtimeClock, SimClock
+    from hil.core.loop import FunctionTask
+    from hil.core.reader import read_session
+    from hil.core.session import Session
+
+    seen = {}
+
+    def probe(_cmd, _t):  # inside the loop: what the hardening did to the loop thread
+        seen.setdefault("fifo", os.sched_getscheduler(0) == os.SCHED_FIFO)
+        seen.setdefault("gc", gc.isenabled())
+
+    for name, clock in (("rt", RealtimeClock()), ("sim", SimClock())):
+        session = Session(str(tmp_path / f"{name}.mcap"), clock, 0.001, kind="test",
+                          handle_signals=False)
+        session.add_task(FunctionTask("probe", 1, write=probe))
+        session.run(max_ticks=50)
+        session.close()
+        if name == "rt":
+            assert gc.isenabled() and os.sched_getscheduler(0) != os.SCHED_FIFO  # restored
+            inside = dict(seen)
+            seen.clear()
+    realtime = read_session(tmp_path / "rt.mcap")
+    steps = realtime.metadata["realtime"]
+    assert list(steps) == STEPS
+    assert all(v.startswith(("granted: ", "refused: ")) for v in steps.values())
+    assert inside["gc"] is False
+    assert inside["fifo"] == steps["sched_fifo"].startswith("granted")
+    event = next(m for _, m in realtime.topic("/events") if m["kind"] == "realtime.hardening")
+    assert set(event["data"]["granted"]) | set(event["data"]["refused"]) == set(STEPS)
+    lockstep = read_session(tmp_path / "sim.mcap")
+    assert "realtime" not in lockstep.metadata and seen["gc"] is True
+
+
+def test_hil_report_json_shows_the_loop_figures_and_what_was_granted(tmp_path):
+    path = tmp_path / "rt.mcap"
+    run = subprocess.run([sys.executable, "-m", "hil", "servo", "run", "--controller", "pid",
+                          "--realtime", "--duration", "0.3", "--out", str(path)],
+                         capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert run.returncode in (0, 2), run.stderr  # a starved emulator may end it early
+    report = json.loads(subprocess.run([sys.executable, "-m", "hil", "report", str(path),
+                                        "--json"], capture_output=True, text=True,
+                                       timeout=60, cwd=REPO).stdout)
+    assert report["loop"]["servo"]["runs"] > 0
+    assert set(report["loop"]["servo"]["lateness_us"]) >= {"p50", "p99", "max"}
+    assert list(report["realtime"]) == STEPS
