@@ -1,0 +1,95 @@
+"""The real-time path (issue 14): a full servo session next to the bare loop, in one run.
+
+1. the bare 2 kHz loop as ``hil doctor`` runs it (hardened, no I/O): the baseline;
+2. a 10 s real-time servo session: MPC FOH H_t = H_u = 8, the drive emulator in a process of
+   its own over socketcand, every topic recorded;
+3. the same session in lockstep through the CAN link (in-process emulated drive): x real time;
+4. a real-time bench session at 100 Hz over Modbus TCP to the emulator in its own process.
+
+Targets (docs/ARCHITECTURE.md, performance): 2 skipped <= 1.5x the bare loop's share and its
+lateness p99 <= 100 us; 3 >= 10x real time; 4 skips no tick. The machine is shared: figures
+are noisy, run it on a quiet box for figures worth quoting.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+from hil.bench.run import BenchRunOptions, run_bench
+from hil.core.doctor import measure_loop
+from hil.core.reader import read_session
+from hil.core.realtime import Hardening
+from hil.servo.run import ServoRunConfig, run_servo
+
+
+def bare_loop(seconds: float) -> dict[str, float]:
+    hardening = Hardening()
+    hardening.apply()
+    try:
+        return measure_loop(2000, seconds)
+    finally:
+        hardening.restore()
+
+
+def servo_session(tmp: Path, seconds: float, realtime: bool) -> dict[str, float]:
+    out = tmp / f"servo-{'rt' if realtime else 'lockstep'}.mcap"
+    # the watchdog of a loaded 2-core box: stale feedback is counted, not fatal, here
+    result = run_servo(ServoRunConfig(
+        controller="mpc", ert="foh", ht=8, hu=8, duration_s=seconds, realtime=realtime,
+        out=str(out), drive_overrides={"master": {"stale_cycles": 100_000}}))
+    loop = result.loop["servo"]
+    scheduled = loop["runs"] + loop["missed"]
+    return {"missed_pct": 100.0 * loop["missed"] / scheduled, "p99_us":
+            loop["lateness_us"]["p99"], "factor": result.kpis["realtime_factor"] or 0.0,
+            "stale": result.kpis["stale_feedback"]}
+
+
+def bench_session(tmp: Path, cycles: int) -> dict[str, float]:
+    out = tmp / "bench-rt.mcap"
+    run_bench(BenchRunOptions(controller="bc", cycles=cycles, realtime=True, out=str(out)))
+    sampler = json.loads(read_session(out).metadata["loop"]["bench_io"])
+    return {"missed": sampler["missed"], "runs": sampler["runs"],
+            "p99_us": sampler["lateness_us"]["p99"]}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--seconds", type=float, default=10.0, help="servo runs [s]")
+    parser.add_argument("--bench-cycles", type=int, default=2, help="bench run, 28 s each")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        bare = bare_loop(args.seconds)
+        rt = servo_session(tmp, args.seconds, realtime=True)
+        lockstep = servo_session(tmp, args.seconds, realtime=False)
+        bench = bench_session(tmp, args.bench_cycles)
+    ratio = rt["missed_pct"] / bare["missed_pct"] if bare["missed_pct"] else float("inf")
+    print(f"{'run':<52} {'skipped %':>9} {'p99 us':>8}")
+    print(f"{'bare 2 kHz loop, hardened (hil doctor) [baseline]':<52} "
+          f"{bare['missed_pct']:>9.3f} {bare['p99_us']:>8.1f}")
+    print(f"{'real-time servo, MPC, drive emulator process':<52} {rt['missed_pct']:>9.3f} "
+          f"{rt['p99_us']:>8.1f}   {ratio:.1f}x the bare loop's skips, stale feedback "
+          f"{rt['stale']:.0f}")
+    print(f"lockstep servo through the CAN link, MPC, recorded: {lockstep['factor']:.1f}x real "
+          "time")
+    print(f"real-time bench, 100 Hz over Modbus TCP to the emulator process, "
+          f"{args.bench_cycles * 28} s: {bench['missed']:.0f} of "
+          f"{bench['runs'] + bench['missed']:.0f} ticks skipped, sampler p99 "
+          f"{bench['p99_us']:.0f} us")
+    print("targets")
+    print(f"   servo skipped <= 1.5x bare ({ratio:.1f}x): "
+          f"{'met' if ratio <= 1.5 else 'MISSED'}; p99 <= 100 us ({rt['p99_us']:.0f}): "
+          f"{'met' if rt['p99_us'] <= 100 else 'MISSED'}")
+    print(f"   lockstep >= 10x ({lockstep['factor']:.1f}x): "
+          f"{'met' if lockstep['factor'] >= 10 else 'MISSED'}")
+    print(f"   bench skips no tick ({bench['missed']:.0f}): "
+          f"{'met' if bench['missed'] == 0 else 'MISSED'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
