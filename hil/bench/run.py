@@ -71,7 +71,7 @@ class BenchRunOptions:
     config_path: str | None = None
     seed: int | None = None
     limits: tuple[Limit, ...] = ()
-    controller_budget_s: float | None = None  # per decision; None: the decision step
+    controller_budget_s: float | None = None  # per decision; None: the step in real time
     overrides: dict[str, Any] = field(default_factory=dict)  # [eec] keys (benchmarks, demo)
 
     def flags(self) -> dict[str, Any]:
@@ -133,7 +133,7 @@ def run_bench(opts: BenchRunOptions) -> dict[str, Any]:
         session.discard()
         raise
     guarded = GuardedController(controller, label, problem.peripherals, log, session.event,
-                                opts.controller_budget_s or step_s)
+                                controller_budget(opts.controller_budget_s, step_s, clock))
     try:
         _run(session, opts, bench, guarded, step_s, log, origin, watch)
     except HilError as exc:
@@ -148,6 +148,14 @@ def run_bench(opts: BenchRunOptions) -> dict[str, Any]:
     kpis.update(verdict(kpis, kpi_limits, watch))
     session.close(kpis=kpis)
     return kpis
+
+
+def controller_budget(given: float | None, step_s: float, clock: TimeSource) -> float | None:
+    """The time one decision may take: as given; else, in real time, the decision step. In
+    lockstep a slow decision costs no virtual time, so none unless given."""
+    if given is not None:
+        return given
+    return step_s if getattr(clock, "mode", "") == "realtime" else None
 
 
 def session_name(label: str) -> str:

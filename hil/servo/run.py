@@ -152,7 +152,7 @@ class ServoRunConfig:
     prediction_every: int | None = None
     drive_overrides: dict[str, Any] = field(default_factory=dict)
     limits: tuple[Limit, ...] = ()
-    controller_budget_s: float | None = None  # per step; None: STEP_BUDGET_S
+    controller_budget_s: float | None = None  # per step; None: STEP_BUDGET_S in real time
 
     def __post_init__(self) -> None:
         for name, flag in (("umax", "--umax"), ("duration_s", "--duration")):
@@ -308,7 +308,8 @@ class ServoTask(Task):
         self.stats = TrackingStats(config.settle_s)
         self.prediction_every = config.prediction_period
         self.label = config.label
-        self.budget_s = config.controller_budget_s or STEP_BUDGET_S
+        # in lockstep a slow step costs no virtual time: no budget unless one is given
+        self.budget_s = config.controller_budget_s or (STEP_BUDGET_S if self.split else None)
         self.watch = watch if watch is not None and watch.limits else None
         self.hu = getattr(getattr(controller, "config", None), "hu", None)
         self.predictor = controller if isinstance(controller, Predicting) else None
