@@ -731,4 +731,4 @@ class EEC:
             q[j] = q0[j] + np.concatenate([[0.0], np.cumsum(rates)])
         return Plan(t, result.u, q, power.max(axis=1), float(power.max()),
                     float(power.sum() * self.prediction.dt), result.objective, result.status,
-                    result.solve_ms, result.rows)
+                    result.solve_ms, result.rows, result.gap, result.nodes, result.bound)
