@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import highspy
 import numpy as np
 import pytest
 
@@ -36,6 +37,9 @@ def setup():
 
 
 def solvers(prediction, problem, settings, **changes):
+    # the MILP runs HiGHS with threads = 1: a scheduler another test started with more
+    # threads would make its run fail ("Not Set")
+    highspy.Highs.resetGlobalScheduler(True)
     dp = EECMilp(prediction, problem, dataclasses.replace(settings, solver="dp",
                                                           time_limit_s=60.0, **changes))
     milp = EECMilp(prediction, problem, dataclasses.replace(
