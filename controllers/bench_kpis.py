@@ -10,7 +10,8 @@
   overlaps below it cost nothing in the objective: reported, not hidden).
 * ``dwell_violations``: relay changes closer than the dwell to the previous change of the same
   relay; ``level_violations``: excursions of a level outside its bounds; ``switches``: relay
-  changes per peripheral; ``over_limit_s``: time above the contracted power limit.
+  changes per peripheral; ``starts_per_hour``: switch-ons per peripheral per hour of run
+  (relay wear, motor starts); ``over_limit_s``: time above the contracted power limit.
 """
 
 from __future__ import annotations
@@ -26,6 +27,12 @@ def transitions(on: np.ndarray) -> np.ndarray:
     """Indices where a 0/1 series changes (the index of the first sample of the new state)."""
     on = np.asarray(on).astype(bool)
     return np.nonzero(on[1:] != on[:-1])[0] + 1
+
+
+def switch_ons(on: np.ndarray) -> int:
+    """Off-to-on changes of a 0/1 series (one more if it starts on)."""
+    on = np.asarray(on).astype(bool)
+    return int(np.sum(on[1:] & ~on[:-1]) + (1 if on.size and on[0] else 0))
 
 
 def dwell_violations(t_s: np.ndarray, on: np.ndarray, dwell_s: float, tol_s: float) -> int:
@@ -80,6 +87,9 @@ def bench_kpis(problem: BenchProblem, *, t_s: np.ndarray, s_va: np.ndarray,
         "switches": {n: int(transitions(on[n]).size + (1 if on[n].size and on[n][0] else 0))
                      for n in names},
     }
+    hours = max(float(relays_t_s[-1] - relays_t_s[0]), 1e-9) / 3600.0 if relays_t_s.size else 0.0
+    kpis["starts_per_hour"] = {n: round(switch_ons(on[n]) / hours, 1) if hours else 0.0
+                               for n in names}
     if limit_va is not None:
         kpis["over_limit_s"] = round(float(np.sum(dt[s_va > limit_va])), 2)
     return kpis

@@ -39,9 +39,12 @@ formulation, the reference of the tests):
   as the starting solution.
 
 Solve time: the LP relaxation stays weak when the plan must trade peak against energy (it
-spreads fractional "thin" runs over the horizon), so some solves need branching. Each decision
-gets a solver budget (``time_limit_s``); at the limit the best plan found is used (status
-``time_limit`` in the plan).
+spreads fractional "thin" runs over the horizon), so HiGHS proves some instants only after
+0.3-0.7 s of root cuts and branching. With two peripherals the default ``solver = "dp"``
+(:mod:`controllers.eec_dp`) finds the same optimum exactly by dynamic programming over the
+relay schedules under a few peak caps, the repaired previous plan as incumbent; the MILP stays
+as the general formulation and the reference. ``time_limit_s`` is a safety net: at the limit
+the best plan found is used (status ``time_limit``, its gap recorded).
 """
 
 from __future__ import annotations
@@ -60,11 +63,13 @@ from controllers.base import BenchObservation
 from controllers.bc import hysteresis_rule
 from controllers.bench_kalman import BenchKalman, KalmanSettings
 from controllers.bench_problem import BenchProblem, DwellClock
+from controllers.eec_dp import DeviceGraph, ScheduleDP
 from controllers.eec_prediction import BenchEstimate, BenchModels, HorizonPrediction
 
 INF = highspy.kHighsInf
 Index = TypeVar("Index", int, np.ndarray)  # one column (int) or many (array)
 TERMINALS = ("none", "hold")
+SOLVERS = ("dp", "milp")
 # HiGHS options, measured on closed-loop runs (benchmarks/eec.py): on these small models the
 # MIP presolve (probing) and the feasibility-jump heuristic cost more than they save
 SOLVER_OPTIONS: tuple[tuple[str, bool | int | float | str], ...] = (
@@ -82,12 +87,14 @@ class EECSettings:
     step_s: float = 1.0
     gamma1: float = 0.9
     gamma2: float = 0.1
+    gamma3: float = 0.0        # cost of one switch-on (relay wear), in units of J
     terminal: str = "hold"
     limit_va: float | None = None
     limit_weight: float = 10.0
     peak_resolution_va: float = 1.0
     time_limit_s: float = 1.0
     mip_rel_gap: float = 1e-4
+    solver: str = "dp"         # "dp": exact schedule DP (2 peripherals); "milp": HiGHS
 
     def __post_init__(self) -> None:
         if self.hp_steps < 1 or self.hs_steps < 1 or self.hs_steps > self.hp_steps:
@@ -97,6 +104,10 @@ class EECSettings:
             raise ValueError(f"terminal must be one of {TERMINALS}, got {self.terminal!r}")
         if self.gamma1 < 0 or self.gamma2 < 0 or self.gamma1 + self.gamma2 <= 0:
             raise ValueError("gamma1, gamma2 must be >= 0 and not both 0")
+        if self.gamma3 < 0:
+            raise ValueError(f"gamma3 must be >= 0, got {self.gamma3}")
+        if self.solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
 
 
 @dataclass
@@ -109,6 +120,9 @@ class SolveResult:
     rows: int                  # J2 pattern rows
     warm_start: bool
     levels: int = 0            # J2 level binaries
+    gap: float = 0.0           # relative MIP gap at the end (0: proven optimal)
+    nodes: int = 0             # branch-and-bound nodes (MILP) or peak caps solved (DP)
+    bound: float = math.nan    # proven lower bound of the objective
 
 
 @dataclass
@@ -125,6 +139,9 @@ class Plan:
     status: str
     solve_ms: float
     rows: int
+    gap: float = 0.0
+    nodes: int = 0
+    bound: float = math.nan
 
 
 @dataclass
@@ -165,9 +182,13 @@ class EECMilp:
             np.clip(self.dwell_steps[j] - (self.H - idx), 0, None) * settings.step_s
             * prediction.models.devices[name].steady_va
             for j, name in enumerate(problem.peripherals)])
+        # what one switch-on costs: its energy and the relay wear (gamma3)
+        self.start_cost = self.w1 * self.area_s + settings.gamma3
         self.Gu, self.Gs = prediction.dense()
         self._prepare_patterns()
         self._build_static()
+        self.dp = ScheduleDP([DeviceGraph(self.H, L, L) for L in self.dwell_steps]) \
+            if self.nd == 2 and settings.solver == "dp" else None
         self.highs = highspy.Highs()
         self.highs.silent()
         for option, value in (*SOLVER_OPTIONS, ("mip_rel_gap", float(settings.mip_rel_gap))):
@@ -235,7 +256,7 @@ class EECMilp:
         for j in range(nd):
             idx = np.arange(H)
             cost[self.col_u(j, idx)] = self.w1 * self.area_u[j]
-            cost[self.col_s(j, idx)] = self.w1 * self.area_s[j]
+            cost[self.col_s(j, idx)] = self.start_cost[j]
             integer[self.col_u(j, idx)] = True
             upper[self.col_c(j, idx)] = idx + 1
         self.static_cost, self.static_upper, self.static_integer = cost, upper, integer
@@ -342,6 +363,10 @@ class EECMilp:
                                (time.perf_counter() - t0) * 1e3, 0, False)
         table = self.peak_table(free)
         z0, levels, pattern = self.level_rows(table)
+        budget = self.settings.time_limit_s if budget_s is None else budget_s
+        if self.dp is not None:
+            return self._solve_dp(t0, table, z0, levels, u_prev, fixed_steps, c_lo, c_hi,
+                                  warm_u, budget)
         K = levels.size
         self._pass(*self._columns(u_prev, fixed_steps, c_lo, c_hi, z0, levels),
                    *self._rows(u_prev, c_lo, K, pattern))
@@ -355,7 +380,6 @@ class EECMilp:
                 h.setSolution(x.size, np.arange(x.size, dtype=np.int32), x)
                 warm = True
         # per run (highspy 1.15 restarts the clock at every run; older 1.x did not)
-        budget = self.settings.time_limit_s if budget_s is None else budget_s
         h.setOptionValue("time_limit", float(budget))
         h.run()
         status = h.getModelStatus()
@@ -375,7 +399,44 @@ class EECMilp:
         peak = z0 + float(np.dot(np.rint(col[self.n_static_cols:]), steps))
         # the full J (eq. 4 plus the limit term), without the constant machining area
         objective = float(info.objective_function_value) + self.peak_cost(z0)
-        return SolveResult(name, u.astype(int), objective, peak, solve_ms, len(pattern), warm, K)
+        return SolveResult(name, u.astype(int), objective, peak, solve_ms, len(pattern), warm, K,
+                           gap=float(info.mip_gap), nodes=int(info.mip_node_count),
+                           bound=float(info.mip_dual_bound) + self.peak_cost(z0))
+
+    def _solve_dp(self, t0: float, table: np.ndarray, z0: float, levels: np.ndarray,
+                  u_prev: np.ndarray, fixed_steps: np.ndarray, c_lo: np.ndarray,
+                  c_hi: np.ndarray, warm_u: np.ndarray | None, budget: float) -> SolveResult:
+        """The same optimum by the schedule DP (:mod:`controllers.eec_dp`); the repaired
+        previous plan is the incumbent, ``budget`` a safety net (status ``time_limit``)."""
+        assert self.dp is not None
+        incumbent, best = None, math.inf
+        if warm_u is not None:
+            incumbent = self.repair(np.asarray(warm_u, float), u_prev, fixed_steps, c_lo, c_hi,
+                                    table)
+            if incumbent is not None:
+                best = float(self.costs(incumbent, 0, incumbent[:1], u_prev, table)[0])
+        costs = [np.stack([np.zeros(self.H), self.w1 * self.area_u[j],
+                           self.w1 * self.area_u[j] + self.start_cost[j]], axis=1)
+                 for j in range(self.nd)]
+        layers = [g.layers(g.initial(u_prev[j], fixed_steps[j]), c_lo[j], c_hi[j])
+                  for j, g in enumerate(self.dp.graphs)]
+        found, bound = self.dp.solve(layers, costs, table, z0, levels, self.peak_cost, best,
+                                     t0 + budget)
+        target = found.objective(self.peak_cost, best)
+        proven = bound >= target or math.isclose(bound, target, rel_tol=1e-12)
+        if found.u is not None:
+            u, objective = found.u, found.energy_cost + self.peak_cost(found.peak)
+        elif incumbent is not None:
+            u, objective = incumbent.astype(int), best
+        else:
+            return SolveResult("infeasible" if proven else "time_limit", None, math.nan,
+                               math.nan, (time.perf_counter() - t0) * 1e3, 0, False,
+                               nodes=found.caps, bound=bound)
+        peak = max(z0, float(table[np.arange(self.H), self.states_of(u, u_prev)].max()))
+        gap = 0.0 if proven else (objective - bound) / max(abs(objective), 1e-12)
+        return SolveResult("optimal" if proven else "time_limit", u, objective, peak,
+                           (time.perf_counter() - t0) * 1e3, 0, incumbent is not None,
+                           levels.size, gap=gap, nodes=found.caps, bound=min(bound, objective))
 
     def _columns(self, u_prev: np.ndarray, fixed_steps: np.ndarray, c_lo: np.ndarray,
                  c_hi: np.ndarray, z0: float, levels: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -527,15 +588,15 @@ class EECMilp:
         """Objective of plan ``u`` with peripheral j's part replaced by each of ``rows``."""
         prev = np.concatenate([np.full((rows.shape[0], 1), u_prev[j]), rows[:, :-1]], axis=1)
         starts = np.clip(rows - prev, 0, None)
-        cost = self.w1 * (rows @ self.area_u[j] + starts @ self.area_s[j])
+        cost = self.w1 * (rows @ self.area_u[j]) + starts @ self.start_cost[j]
         others = np.zeros(self.H, dtype=int)
         weights = 3 ** np.arange(self.nd - 1, -1, -1)
         for k in range(self.nd):
             if k != j:
                 others += self.device_states(u[k], u_prev[k]) * weights[k]
                 others_prev = np.concatenate([[u_prev[k]], u[k, :-1]])
-                cost += self.w1 * (u[k] @ self.area_u[k]
-                                   + np.clip(u[k] - others_prev, 0, None) @ self.area_s[k])
+                cost += self.w1 * (u[k] @ self.area_u[k]) \
+                    + np.clip(u[k] - others_prev, 0, None) @ self.start_cost[k]
         state = np.where(rows > 0.5, np.where(prev < 0.5, 2, 1), 0)
         combos = others[None, :] + state * weights[j]
         peaks = table[np.arange(self.H)[None, :], combos].max(axis=1)
@@ -673,4 +734,4 @@ class EEC:
             q[j] = q0[j] + np.concatenate([[0.0], np.cumsum(rates)])
         return Plan(t, result.u, q, power.max(axis=1), float(power.max()),
                     float(power.sum() * self.prediction.dt), result.objective, result.status,
-                    result.solve_ms, result.rows)
+                    result.solve_ms, result.rows, result.gap, result.nodes, result.bound)

@@ -66,7 +66,7 @@ class CvxpyEEC:
             c = cp.cumsum(u[j])
             cons += [c >= self.c_lo[j], c <= self.c_hi[j]]
             power = power + milp.Gu[j] @ u[j] + milp.Gs[j] @ s[j]
-            cost = cost + milp.w1 * (milp.area_u[j] @ u[j] + milp.area_s[j] @ s[j])
+            cost = cost + milp.w1 * (milp.area_u[j] @ u[j]) + milp.start_cost[j] @ s[j]
         cons.append(z >= power)
         cost = cost + milp.w2 * z
         if milp.settings.limit_va is not None:
@@ -131,7 +131,7 @@ def solve_naive(milp: EECMilp, free: np.ndarray, u_prev: np.ndarray, fixed_steps
         if milp.settings.terminal == "hold":
             cons.append(q[H - 1] >= min(res.q0, res.q_max - res.eta * milp.settings.step_s))
         power = power + milp.Gu[j] @ u[j] + milp.Gs[j] @ s
-        cost = cost + milp.w1 * (milp.area_u[j] @ u[j] + milp.area_s[j] @ s)
+        cost = cost + milp.w1 * (milp.area_u[j] @ u[j]) + milp.start_cost[j] @ s
     cons.append(z >= power)
     cost = cost + milp.w2 * z
     if milp.settings.limit_va is not None:

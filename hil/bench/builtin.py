@@ -53,10 +53,10 @@ def eec_settings(table: EecTable, flags: Mapping[str, Any]) -> EECSettings:
     try:
         return EECSettings(
             hp_steps=round(pick("hp_s") / step), hs_steps=round(pick("hs_s") / step),
-            step_s=step, gamma1=pick("gamma1"), gamma2=pick("gamma2"),
+            step_s=step, gamma1=pick("gamma1"), gamma2=pick("gamma2"), gamma3=table.gamma3,
             terminal=table.terminal, limit_va=table.limit_va,
             limit_weight=table.limit_weight, peak_resolution_va=table.peak_resolution_va,
-            time_limit_s=table.time_limit_s, mip_rel_gap=table.mip_rel_gap,
+            time_limit_s=table.time_limit_s, mip_rel_gap=table.mip_rel_gap, solver=table.solver,
         )
     except ValueError as exc:
         raise UsageError(str(exc)) from None

@@ -25,7 +25,7 @@ from typing import Any
 
 from controllers.bench_kalman import KalmanSettings
 from controllers.bench_problem import BenchProblem, MachiningSequence, Resource, Stage
-from controllers.eec import TERMINALS
+from controllers.eec import SOLVERS, TERMINALS
 from drivers.modbus_bench import BenchMap, BusSettings, RelaySpec, plan_reads
 from emulators.bench_plant import (
     METER_QUANTITIES,
@@ -114,6 +114,7 @@ class EecTable:
     step_s: float
     gamma1: float
     gamma2: float
+    gamma3: float
     terminal: str
     limit_va: float | None       # None: no contracted power term (limit_weight = 0)
     limit_weight: float
@@ -121,6 +122,7 @@ class EecTable:
     peak_resolution_va: float
     time_limit_s: float
     mip_rel_gap: float
+    solver: str
 
 
 @dataclass(frozen=True)
@@ -538,6 +540,7 @@ def _eec(table: Table) -> EecTable:
         step_s=table.number("step_s", 1.0, above=0),
         gamma1=table.number("gamma1", at_least=0),
         gamma2=table.number("gamma2", at_least=0),
+        gamma3=table.number("gamma3", 0.0, at_least=0),
         terminal=table.string("terminal", "hold", choices=TERMINALS),
         limit_va=limit if weight > 0 else None,
         limit_weight=weight,
@@ -545,6 +548,7 @@ def _eec(table: Table) -> EecTable:
         peak_resolution_va=table.number("peak_resolution_va", 1.0, at_least=0),
         time_limit_s=table.number("time_limit_s", 0.5, above=0),
         mip_rel_gap=table.number("mip_rel_gap", 1e-4, at_least=0),
+        solver=table.string("solver", "dp", choices=SOLVERS),
     )
     table.done()
     return eec

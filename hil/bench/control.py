@@ -43,8 +43,12 @@ PLAN_SCHEMA: dict[str, Any] = {
                    "step), the predicted levels and power, solver status and time",
     "properties": {
         "t_s": {"type": "number", "description": "decision time since the sequence start"},
-        "status": {"type": "string"},
+        "status": {"type": "string", "description": "optimal, time_limit, ..."},
         "solve_ms": {"type": "number"},
+        "gap": {"type": "number", "description": "relative gap to the bound (0: proven)"},
+        "nodes": {"type": "integer",
+                  "description": "MILP branch-and-bound nodes, or DP peak caps solved"},
+        "bound": {"type": "number", "description": "proven lower bound of the objective"},
         "objective": {"type": "number"},
         "peak_va": {"type": "number", "description": "predicted highest total VA"},
         "energy_vas": {"type": "number", "description": "predicted area over the horizon"},
@@ -77,6 +81,7 @@ class RunLog:
     decide_ms: list[float] = field(default_factory=list)  # every decide() call, wall time
     fallbacks: int = 0
     solver_limits: int = 0
+    max_gap: float = 0.0          # largest relative gap of a solve (0: every one proven)
     solver_reports: bool = False  # solve_ms holds a solver's times (else decide_ms is used)
 
 
@@ -229,6 +234,8 @@ class RecordedEEC:
         if decision.solve is not None:
             log.solve_ms.append(decision.solve.solve_ms)
             log.solver_limits += decision.solve.status == "time_limit"
+            if math.isfinite(decision.solve.gap):
+                log.max_gap = max(log.max_gap, decision.solve.gap)
         for kind, message in decision.events:
             self.session.event(kind, message, level="warning", source="eec", t_s=t,
                                status=decision.solve.status if decision.solve else "")
@@ -237,6 +244,7 @@ class RecordedEEC:
         if plan is not None:
             self.plan_topic.log(t_ns, {
                 "t_s": plan.t_s, "status": plan.status, "solve_ms": plan.solve_ms,
+                "gap": plan.gap, "nodes": plan.nodes, "bound": plan.bound,
                 "objective": plan.objective, "peak_va": plan.peak_va,
                 "energy_vas": plan.energy_vas, "rows": plan.rows,
                 "u": {n: plan.u[j].tolist() for j, n in enumerate(self.problem.peripherals)},

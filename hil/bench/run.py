@@ -202,5 +202,6 @@ def kpis_of(log: RunLog, problem: BenchProblem, opts: BenchRunOptions, label: st
     solve_ms = log.solve_ms if log.solver_reports else log.decide_ms
     return {"controller": label, "cycles": opts.cycles, **kpis,
             "solve_ms": timing_summary(solve_ms), "solves_at_limit": log.solver_limits,
+            "max_gap": log.max_gap,
             "fallbacks": log.fallbacks, "mcap": out}
 
