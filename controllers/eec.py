@@ -65,6 +65,7 @@ from controllers.bench_kalman import BenchKalman, KalmanSettings
 from controllers.bench_problem import BenchProblem, DwellClock
 from controllers.eec_dp import DeviceGraph, ScheduleDP
 from controllers.eec_prediction import BenchEstimate, BenchModels, HorizonPrediction
+from controllers.highs import silent_highs
 
 INF = highspy.kHighsInf
 Index = TypeVar("Index", int, np.ndarray)  # one column (int) or many (array)
@@ -189,8 +190,7 @@ class EECMilp:
         self._build_static()
         self.dp = ScheduleDP([DeviceGraph(self.H, L, L) for L in self.dwell_steps]) \
             if self.nd == 2 and settings.solver == "dp" else None
-        self.highs = highspy.Highs()
-        self.highs.silent()
+        self.highs = silent_highs()
         for option, value in (*SOLVER_OPTIONS, ("mip_rel_gap", float(settings.mip_rel_gap))):
             self.highs.setOptionValue(option, value)
 

@@ -32,6 +32,7 @@ import highspy
 import numpy as np
 import scipy.linalg as sla
 
+from controllers.highs import silent_highs
 from hil.core.errors import ConfigError, HilError
 
 _INF = highspy.kHighsInf
@@ -41,8 +42,7 @@ class LinearProgram:
     """A reusable highspy instance for the small dense LPs of the mpQP and the search tree."""
 
     def __init__(self) -> None:
-        self._highs = highspy.Highs()
-        self._highs.setOptionValue("output_flag", False)
+        self._highs = silent_highs()
         self.count = 0
 
     def solve(self, c: np.ndarray, A: np.ndarray, b: np.ndarray,

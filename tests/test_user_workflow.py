@@ -135,3 +135,13 @@ def test_hil_bench_option_points_the_fixture_at_a_given_bench(tmp_path, monkeypa
         monkeypatch.setenv("BENCH_URL", bench.url)
         out = run_pytest(folder, "test_given.py", "--hil-bench", bench.url)
     assert out.returncode == 0, out.stdout[-2000:]
+
+
+def test_json_output_of_an_eec_run_is_json_alone(tmp_path):
+    """A script reads --json from stdout: nothing else may be printed there (the MILP solver's
+    banner included)."""
+    run = hil(tmp_path, "bench", "run", "--controller", "eec", "--cycles", "1", "--out",
+              "e.mcap", "--json", timeout=300)
+    assert run.returncode == 0, run.stderr
+    kpis = json.loads(run.stdout)
+    assert kpis["controller"] == "eec" and kpis["solves_at_limit"] == 0
