@@ -1,4 +1,4 @@
-"""EEC MILP solve time per decision for H_p = T, 1.5T, 2T, next to the naive baseline.
+"""EEC solve time per decision for H_p = T, 1.5T, 2T, next to the naive baseline.
 
 For each horizon: one closed-loop lockstep run of the EEC against the emulated bench over
 Modbus TCP (3 machine cycles, as the paper's Table II: T_s = 3T) with the default solver
@@ -7,8 +7,8 @@ Printed per horizon:
 
 * ``budget``: the solve times of that run (median, p99, max) and how many solves stopped at
   the budget with the best plan found;
-* ``exact``: a subsample of the same instances re-solved to proven optimality (budget 20 s),
-  with the same fast HiGHS model;
+* ``exact``: a subsample of the same instances re-solved to proven optimality (budget 20 s)
+  by the schedule DP and by the HiGHS MILP;
 * ``naive``: a smaller subsample solved by the straightforward cvxpy formulation rebuilt for
   every decision (:func:`controllers.eec_cvxpy.solve_naive`, HiGHS through cvxpy), the
   baseline; its objective is checked against the exact one;
@@ -78,19 +78,21 @@ def main() -> None:
             wall = time.perf_counter() - t0
         budget_ms = [ms for _, ms, _ in instances]
         at_limit = sum(status == "time_limit" for _, _, status in instances)
-        budget = milp.settings.time_limit_s
-        print(f"{hp:<5} {f'HiGHS, budget {budget * 1e3:g} ms (closed loop)':<32} "
+        budget, method = milp.settings.time_limit_s, milp.settings.solver.upper()
+        print(f"{hp:<5} {f'{method}, budget {budget * 1e3:g} ms (closed loop)':<32} "
               f"{len(budget_ms):>4} {fmt(timing_summary(budget_ms))}  {at_limit} stopped at "
               f"the budget; run {wall:.0f} s wall")
-        exact_milp = eec_module.EECMilp(milp.p, milp.problem,
-                                        dataclasses.replace(milp.settings, time_limit_s=20.0))
         sample = instances[::args.exact_every]
-        exact = [exact_milp.solve(*inputs) for inputs, _, _ in sample]
-        exact_ms = [r.solve_ms for r in exact]
-        unproven = sum(r.status != "optimal" for r in exact)
-        print(f"{'':<5} {'HiGHS, exact (same instances)':<32} {len(exact_ms):>4} "
-              f"{fmt(timing_summary(exact_ms))}  every {args.exact_every}th decision"
-              + (f"; {unproven} not proven in 20 s" if unproven else ""))
+        for solver in ("dp", "milp"):  # the schedule DP and the HiGHS MILP, no budget to speak of
+            exact_milp = eec_module.EECMilp(milp.p, milp.problem, dataclasses.replace(
+                milp.settings, time_limit_s=20.0, solver=solver))
+            exact = [exact_milp.solve(*inputs) for inputs, _, _ in sample]
+            exact_ms = [r.solve_ms for r in exact]
+            unproven = sum(r.status != "optimal" for r in exact)
+            print(f"{'':<5} {f'{solver.upper()}, exact (same instances)':<32} "
+                  f"{len(exact_ms):>4} {fmt(timing_summary(exact_ms))}  every "
+                  f"{args.exact_every}th decision"
+                  + (f"; {unproven} not proven in 20 s" if unproven else ""))
         picks = np.linspace(0, len(sample) - 1, min(args.naive, len(sample))).round().astype(int)
         naive = [solve_naive(milp, *sample[int(k)][0], time_limit_s=120.0) for k in picks]
         naive_ms = [r.solve_ms for r in naive]
