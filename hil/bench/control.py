@@ -27,6 +27,7 @@ from controllers.base import BenchController, BenchEstimator, BenchObservation, 
 from hil.core.errors import ControllerError
 from hil.core.guard import guarded_call
 from hil.core.loop import Task
+from hil.core.realtime import ordinary_thread
 from hil.core.types import EventSink
 from hil.core.verdict import SignalWatch
 
@@ -157,7 +158,9 @@ class ControllerTask(Task):
         self.skipped = 0
         self._last_step = -1
         self._pending: tuple[Future[Mapping[str, bool]], int] | None = None
-        self._executor = ThreadPoolExecutor(1, "eec") if asynchronous else None
+        # started from the (hardened) loop thread: its worker must not inherit FIFO and the core
+        self._executor = (ThreadPoolExecutor(1, "eec", initializer=ordinary_thread)
+                          if asynchronous else None)
 
     def _observe(self, t_ns: int) -> BenchObservation | None:
         levels = self.rig.sampler.latest_levels

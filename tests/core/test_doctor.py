@@ -123,3 +123,25 @@ def test_hil_report_json_shows_the_loop_figures_and_what_was_granted(tmp_path):
     assert report["loop"]["servo"]["runs"] > 0
     assert set(report["loop"]["servo"]["lateness_us"]) >= {"p50", "p99", "max"}
     assert list(report["realtime"]) == STEPS
+
+
+def test_a_worker_started_from_the_hardened_loop_thread_is_an_ordinary_thread():
+    from concurrent.futures import ThreadPoolExecutor
+
+    from hil.core.realtime import ordinary_thread
+
+    def policy_and_cores():
+        return os.sched_getscheduler(0), len(os.sched_getaffinity(0))
+
+    hardening = Hardening()
+    steps = {s.name: s.granted for s in hardening.apply()}
+    try:
+        with ThreadPoolExecutor(1) as plain, ThreadPoolExecutor(1,
+                                                                initializer=ordinary_thread) as ok:
+            inherited, reset = plain.submit(policy_and_cores).result(), \
+                ok.submit(policy_and_cores).result()
+    finally:
+        hardening.restore()
+    if steps["sched_fifo"]:
+        assert inherited[0] == os.SCHED_FIFO  # what the initializer is for
+    assert reset[0] == os.SCHED_OTHER and reset[1] == len(os.sched_getaffinity(0))
