@@ -42,7 +42,7 @@ from hil.bench.control import (
 )
 from hil.bench.rig import SequencePlayer, attach_bench, is_emulated, session_clock
 from hil.core.errors import ConfigError, HilError, UsageError
-from hil.core.plugins import build_controller, controller_factory
+from hil.core.plugins import build_controller, controller_factory, controller_short_name
 from hil.core.session import Session
 from hil.core.types import TimeSource
 from hil.core.verdict import Limit, SignalWatch, split_limits, verdict
@@ -110,7 +110,7 @@ def run_bench(opts: BenchRunOptions) -> dict[str, Any]:
     factory, label = controller_factory(opts.controller, params, method="decide",
                                         application="bench")
     out = opts.out or os.path.join(tempfile.gettempdir(),
-                                   f"hil-bench-{session_name(label)}-{int(time.time())}.mcap")
+                                   f"hil-bench-{controller_short_name(label)}-{int(time.time())}.mcap")
     clock = session_clock(opts.bench, opts.realtime)
     run_info = {k: v for k, v in vars(opts).items() if k not in ("overrides", "limits")}
     merged = {"bench": bench.data, "controllers": eec.data,
@@ -156,11 +156,6 @@ def controller_budget(given: float | None, step_s: float, clock: TimeSource) -> 
     if given is not None:
         return given
     return step_s if getattr(clock, "mode", "") == "realtime" else None
-
-
-def session_name(label: str) -> str:
-    """A controller label fit for a file name (``my_ctl.py:Threshold`` -> ``Threshold``)."""
-    return label.rpartition(":")[2] or label
 
 
 def _run(session: Session, opts: BenchRunOptions, bench: BenchConfig,

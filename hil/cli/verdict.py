@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -19,18 +19,20 @@ SPEC_HELP = ("the controller: a built-in name ({builtins}), FILE.py:Class, "
              "'hil.controllers' entry points")
 
 
-def _limit(text: str) -> Any:
-    try:
-        return parse_limit(text)
-    except UsageError as exc:
-        raise argparse.ArgumentTypeError(str(exc).removeprefix(f"--limit {text!r}: ")) from None
+def _argument(parse: Callable[[str], Any], flag: str) -> Callable[[str], Any]:
+    """``parse`` as an argparse type: its UsageError becomes argparse's one-line error."""
+    def convert(text: str) -> Any:
+        try:
+            return parse(text)
+        except UsageError as exc:
+            raise argparse.ArgumentTypeError(
+                str(exc).removeprefix(f"{flag} {text!r}: ")) from None
+
+    return convert
 
 
-def _param(text: str) -> tuple[str, Any]:
-    try:
-        return parse_param(text)
-    except UsageError as exc:
-        raise argparse.ArgumentTypeError(str(exc).removeprefix(f"--param {text!r}: ")) from None
+_limit = _argument(parse_limit, "--limit")
+_param = _argument(parse_param, "--param")
 
 
 def add_controller_arguments(parser: argparse.ArgumentParser, builtins: str,

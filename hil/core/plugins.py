@@ -110,6 +110,12 @@ def controller_label(spec: str | Callable[..., Any]) -> str:
     return f"{getattr(spec, '__module__', '?')}:{getattr(spec, '__qualname__', repr(spec))}"
 
 
+def controller_short_name(label: str) -> str:
+    """The class or built-in name of a label (``my_ctl.py:Threshold`` -> ``Threshold``), for
+    file names and messages."""
+    return label.rpartition(":")[2] or label
+
+
 def _check_method(obj: Any, method: str, application: str, label: str) -> None:
     if callable(getattr(obj, method, None)):
         return
@@ -141,7 +147,7 @@ def _check_call_shape(factory: Callable[..., Any], args: tuple[Any, ...],
         signature.bind(*args, **kwargs)
     except TypeError:
         names = ", ".join(signature.parameters)
-        raise ConfigError(f"controller {label!r} is built as {label.rpartition(':')[2]}"
+        raise ConfigError(f"controller {label!r} is built as {controller_short_name(label)}"
                           f"({names}), but a {application} controller is built as "
                           f"{_SHAPES.get(application, '?')}") from None
 

@@ -59,7 +59,12 @@ from hil.core.clock import RealtimeClock, SimClock
 from hil.core.errors import ConfigError, ControllerError, HilError, UsageError
 from hil.core.guard import guarded_call
 from hil.core.loop import Task
-from hil.core.plugins import build_controller, controller_factory, controller_label
+from hil.core.plugins import (
+    build_controller,
+    controller_factory,
+    controller_label,
+    controller_short_name,
+)
 from hil.core.session import Session
 from hil.core.stats import percentile_summary
 from hil.core.verdict import Limit, SignalWatch, split_limits, verdict
@@ -215,13 +220,16 @@ class Predicting(Protocol):
 
 
 def make_controller(config: ServoRunConfig, scenario: Scenario, session: Any = None,
-                    params: Mapping[str, Any] | None = None) -> ServoController:
+                    params: Mapping[str, Any] | None = None,
+                    factory: Callable[..., Any] | None = None) -> ServoController:
     """The controller of the run, built from its spec as ``factory(reference, params)``
-    (``context=`` too when the factory takes it)."""
+    (``context=`` too when the factory takes it); ``factory``: already loaded and checked."""
     context = ServoContext(config.ht, config.hu, config.hp, config.ert, config.umax, session)
     values = dict(config.params if params is None else params)
-    factory, label = controller_factory(config.controller, scenario.reference, values,
-                                        method="step", application="servo")
+    label = config.label
+    if factory is None:
+        factory, label = controller_factory(config.controller, scenario.reference, values,
+                                            method="step", application="servo")
     return cast(ServoController, build_controller(factory, label, scenario.reference, values,
                                                   method="step", application="servo",
                                                   context=context))
@@ -467,11 +475,11 @@ def run_servo(config: ServoRunConfig,
     drive = drive_settings(config)
     params = {**drive.run.params, **config.params}
     # checked before the session starts: a spec that cannot load leaves no file behind
-    controller_factory(config.controller, scenario.reference, params, method="step",
-                       application="servo")
+    factory, _ = controller_factory(config.controller, scenario.reference, params,
+                                    method="step", application="servo")
     kpi_limits, signal_limits = split_limits([*drive.run.limits, *config.limits], SIGNALS)
     watch = SignalWatch(signal_limits)
-    path = config.out or default_session_path(config.label.rpartition(":")[2])
+    path = config.out or default_session_path(controller_short_name(config.label))
     clock = RealtimeClock() if config.realtime else SimClock()
     sessions: list[Session] = []
     early: list[tuple[str, str, dict[str, Any]]] = []  # events from before the session
@@ -500,7 +508,7 @@ def run_servo(config: ServoRunConfig,
     for kind, message, data in early:
         session.event(kind, message, **data)
     try:
-        controller = make_controller(config, scenario, session, params)
+        controller = make_controller(config, scenario, session, params, factory)
     except BaseException:  # nothing ran: no session file is left behind
         master.close()
         session.discard()
