@@ -241,6 +241,7 @@ class FixedRateLoop:
         next_window = self._window_ticks
         perf = time.perf_counter_ns
         realtime = clock.mode == "realtime"  # in lockstep, slow compute costs no virtual time
+        recorder = self._recorder
         while not self._stop.is_set() and (limit is None or n < limit):
             deadline = t0 + n * period
             late_by = clock.wait_until(deadline)
@@ -271,6 +272,8 @@ class FixedRateLoop:
                 stats.runs += 1
             n += 1
             self.ticks = n
+            if recorder is not None:
+                recorder.flush_if_due()
             if n >= next_window:
                 self._publish_windows(final=False)
                 next_window = (n // self._window_ticks + 1) * self._window_ticks
