@@ -37,7 +37,7 @@ class _LeveledZstd:
 
 def use_zstd_level(level: int = ZSTD_LEVEL) -> None:
     """Make this process's MCAP writers compress chunks at ``level`` (the writer process)."""
-    mcap.writer.zstandard = _LeveledZstd(level)  # type: ignore[attr-defined]
+    mcap.writer.zstandard = _LeveledZstd(level)  # type: ignore[assignment]
 
 
 def series_file(path: str, index: int) -> str:
@@ -110,7 +110,7 @@ class McapSeries:
         for key in self._channels:  # every file lists every topic, with messages or not
             self._register(key)
 
-    def _finish_file(self, extra_metadata: list[tuple[str, dict[str, str]]] = ()) -> None:
+    def _finish_file(self, extra_metadata: tuple[tuple[str, dict[str, str]], ...] = ()) -> None:
         assert self._writer is not None and self._file is not None
         for name, data in extra_metadata:
             self._writer.add_metadata(name, data)
@@ -184,7 +184,7 @@ class McapSeries:
     def close(self, final_metadata: dict[str, dict[str, str]] | None = None) -> SeriesStats:
         """Finish the current file; ``final_metadata`` goes into it (the last of the series)."""
         if self._writer is not None:
-            self._finish_file(list((final_metadata or {}).items()))
+            self._finish_file(tuple((final_metadata or {}).items()))
         return self.stats
 
 

@@ -11,6 +11,7 @@ the walk goes on with the next record. What could not be read is returned as
 from __future__ import annotations
 
 import io
+import mmap
 import struct
 import zlib
 from collections.abc import Callable, Iterator
@@ -32,6 +33,7 @@ from mcap.records import (
 )
 from mcap.stream_reader import breakup_chunk
 
+Buffer = bytes | memoryview | mmap.mmap
 MAGIC = b"\x89MCAP0\r\n"
 _HEAD = struct.Struct("<BQ")
 CHUNK_OPCODE = 0x06
@@ -97,7 +99,7 @@ def _chunk_times(content: bytes) -> tuple[int, int] | None:
     return (start, end) if start <= end else None
 
 
-def walk(data: bytes | memoryview, state: Walk) -> Iterator[Any]:
+def walk(data: Buffer, state: Walk) -> Iterator[Any]:
     """Yield every readable record of an MCAP file's bytes (chunks opened), in file order."""
     if bytes(data[:len(MAGIC)]) != MAGIC:
         raise ValueError("not an MCAP session file (bad magic)")
@@ -165,7 +167,7 @@ def walk(data: bytes | memoryview, state: Walk) -> Iterator[Any]:
         pos = end
 
 
-def _check_summary(data: bytes | memoryview, footer_pos: int, footer: Footer, state: Walk) -> None:
+def _check_summary(data: Buffer, footer_pos: int, footer: Footer, state: Walk) -> None:
     """The footer's CRC covers the summary section and its own first two fields."""
     start = footer.summary_start
     if not footer.summary_crc or not start or start > footer_pos:

@@ -102,7 +102,8 @@ def test_lockstep_session_waits_for_the_writer_instead_of_dropping(tmp_path):
     session.recorder.batch_size = 1  # hand over every message ...
     session.recorder.max_backlog_bytes = 1  # ... and never hold a backlog: the pipe fills
     topic = session.topic("/burst", SCHEMA)
-    session.add_task(FunctionTask("log", 1, write=lambda c, t: [topic.log(t, {"k": k, "pad": "x" * 2000})
+    pad = "x" * 2000
+    session.add_task(FunctionTask("log", 1, write=lambda c, t: [topic.log(t, {"k": k, "pad": pad})
                                                                 for k in range(20)]))
     session.run(max_ticks=300)
     stats = session.close()
