@@ -202,5 +202,5 @@ def kpis_of(log: RunLog, problem: BenchProblem, opts: BenchRunOptions, label: st
     return {"controller": label, "cycles": opts.cycles, **kpis,
             "solve_ms": timing_summary(solve_ms), "solves_at_limit": log.solver_limits,
             "max_gap": log.max_gap,
-            "fallbacks": log.fallbacks, "mcap": out}
+            "fallbacks": log.fallbacks, "mcap": opts.recording.first_file(out)}
 

@@ -141,8 +141,8 @@ TIMING_SCHEMA: dict[str, Any] = {
         "runs": {"type": "integer"},
         "missed": {"type": "integer", "description": "scheduled runs skipped in this window"},
         "overruns": {"type": "integer", "description": "steps longer than the task period"},
-        "lateness_us": {"type": "array", "items": {"type": "number"}},
-        "compute_us": {"type": "array", "items": {"type": "number"}},
+        "lateness_us": {"type": "array", "items": {"type": "number", "x-cdr": "float32"}},
+        "compute_us": {"type": "array", "items": {"type": "number", "x-cdr": "float32"}},
     },
 }
 
@@ -193,7 +193,7 @@ class FixedRateLoop:
         self.stats[task.name] = TaskStats(task.name, task.divisor * self.base_period_ns / 1e9)
         if self._recorder is not None:
             self._timing_topics[task.name] = self._recorder.topic(
-                f"/loop/{task.name}/timing", TIMING_SCHEMA
+                f"/loop/{task.name}/timing", TIMING_SCHEMA, high_rate=True
             )
         return task
 

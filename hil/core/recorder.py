@@ -34,6 +34,7 @@ from typing import Any
 
 from hil.core.cdr import CdrError, fields_of
 from hil.core.errors import HilError
+from hil.core.mcap_series import series_file
 from hil.core.record_stream import FrameDecoder, encode_frame
 
 EVENTS_TOPIC = "/events"
@@ -89,6 +90,15 @@ class RecordingOptions:
                             ("split size", self.split_size_mb)):
             if value is not None and not value > 0:
                 raise HilError(f"{name} must be > 0, got {value!r}")
+
+    @property
+    def split(self) -> bool:
+        return self.split_duration_s is not None or self.split_size_mb is not None
+
+    def first_file(self, path: str) -> str:
+        """The file a session at ``path`` starts with (``OUT_000.mcap`` when split); any
+        reader of hil takes it for the whole series."""
+        return series_file(path, 0) if self.split else path
 
 
 class Topic:

@@ -584,7 +584,7 @@ def collect_kpis(config: ServoRunConfig, scenario: Scenario, session: Session,
     base["deadline_misses"] = (loop.skipped_ticks + task.late_writes
                                if task is not None and config.realtime else 0)
     base["ticks"] = ticks
-    base["mcap"] = path
+    base["mcap"] = config.recording.first_file(path)
     simulated = ticks * SAMPLE_PERIOD_S
     base.update({
         "reference": config.reference,

@@ -45,12 +45,16 @@ def test_logged_messages_read_back_identically_with_schemas_metadata_and_config(
     assert data.topic("/test/nested")[3] == (
         300_000_000, {"plan": [0, 30, 60], "ok": True, "name": "n30", "none": None}
     )
-    # every channel carries a JSON schema (Foxglove needs no plug-in)
+    # every channel carries a schema Foxglove decodes without a plug-in: JSON with a JSON
+    # Schema, or (the high-rate loop timing) CDR with a ros2msg schema
     with open(path, "rb") as f:
         summary = make_reader(f).get_summary()
     assert summary is not None
     for channel in summary.channels.values():
         schema = summary.schemas[channel.schema_id]
+        if channel.topic == "/loop/log/timing":
+            assert (channel.message_encoding, schema.encoding) == ("cdr", "ros2msg")
+            continue
         assert channel.message_encoding == "json"
         assert schema.encoding == "jsonschema" and json.loads(schema.data)["type"] == "object"
     topics = {c.topic for c in summary.channels.values()}
