@@ -162,6 +162,7 @@ class Recorder:
         self._last_flush = time.monotonic()
         self._last_t_ns = 0
         self._writer_gone = ""
+        self._ready = False
         self._stats: RecorderStats | None = None
         self._process = self._start_writer({
             "path": self.path, "chunk_size": chunk_size, "flush_interval_s": flush_interval_s,
@@ -188,6 +189,31 @@ class Recorder:
     @property
     def writer_pid(self) -> int:
         return self._process.pid
+
+    def wait_ready(self, timeout_s: float = WRITER_START_TIMEOUT_S) -> None:
+        """Wait until the writer process has started (imports done, file open), so that its
+        start-up does not compete with the first ticks of a real-time loop."""
+        if self._ready:
+            return
+        assert self._process.stdout is not None
+        fd = self._process.stdout.fileno()
+        deadline = time.monotonic() + timeout_s
+        line = b""
+        while not line.endswith(b"\n"):
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not select.select([fd], [], [], remaining)[0]:
+                self._process.kill()
+                raise RecorderError(f"{self.path}: the writer process did not start within "
+                                    f"{timeout_s:g} s")
+            chunk = os.read(fd, 64 - len(line))
+            if not chunk:
+                break
+            line += chunk
+        if line != b"ready\n":
+            self._process.kill()
+            raise RecorderError(f"{self.path}: the writer process failed to start "
+                                f"({line.decode(errors='replace').strip() or 'no output'})")
+        self._ready = True
 
     # -- producer side -------------------------------------------------------------------
     def topic(self, name: str, schema: dict[str, Any], *, encoding: str | None = None,
@@ -332,7 +358,8 @@ class Recorder:
         return self._stats
 
     def _writer_report(self) -> bytes:
-        """The writer's standard output until it exits (killed after a generous timeout)."""
+        """The writer's standard output until it exits (killed after a generous timeout);
+        its last line is the JSON report."""
         assert self._process.stdout is not None
         fd = self._process.stdout.fileno()
         deadline = time.monotonic() + WRITER_CLOSE_TIMEOUT_S

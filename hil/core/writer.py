@@ -37,6 +37,7 @@ from hil.core.record_stream import FrameDecoder
 
 EVENTS_KEY = 0  # the recorder registers /events first
 READ_BYTES = 1 << 20
+WRITER_NICENESS = 10  # a backlog absorbs a late writer; a late emulator or loop is a fault
 
 
 def _json_default(value: Any) -> Any:
@@ -122,13 +123,16 @@ class SessionWriter:
         return {"recorder": recorder} if recorder else {}
 
 
-def run(options: dict[str, Any], fd: int = 0) -> dict[str, Any]:
-    """Write the session read from ``fd`` until ``close`` or end of file; return statistics."""
+def run(options: dict[str, Any], fd: int = 0, ready: Callable[[], None] = lambda: None
+        ) -> dict[str, Any]:
+    """Write the session read from ``fd`` until ``close`` or end of file; return statistics.
+    ``ready`` is called once the file is open, before the first read."""
     series = McapSeries(
         options["path"], chunk_size=int(options.get("chunk_size", DEFAULT_CHUNK_BYTES)),
         split_duration_s=options.get("split_duration_s"),
         split_size_mb=options.get("split_size_mb"), profile=options.get("profile", ""),
     )
+    ready()
     writer = SessionWriter(series)
     decoder = FrameDecoder()
     flush_interval = float(options.get("flush_interval_s", 1.0))
@@ -163,8 +167,15 @@ def run(options: dict[str, Any], fd: int = 0) -> dict[str, Any]:
 def main() -> int:
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
+    with contextlib.suppress(OSError):  # the loop, the drive and its emulator come first
+        os.nice(WRITER_NICENESS)
     use_zstd_level()
-    result = run(json.loads(sys.argv[1]))
+    import numpy  # noqa: F401 - unpickling numpy messages needs it: import it before 'ready'
+
+    def ready() -> None:
+        print("ready", flush=True)
+
+    result = run(json.loads(sys.argv[1]), ready=ready)
     with contextlib.suppress(OSError):  # nobody listens any more: the loop process is gone
         print(json.dumps(result), flush=True)
     return 1 if result["error"] else 0
