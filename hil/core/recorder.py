@@ -168,6 +168,9 @@ class Recorder:
             "path": self.path, "chunk_size": chunk_size, "flush_interval_s": flush_interval_s,
             "profile": profile, "split_duration_s": self.options.split_duration_s,
             "split_size_mb": self.options.split_size_mb,
+            # in real time a late writer costs a backlog, a late emulator a fault; in lockstep
+            # the loop waits for the writer, so it must not be held back
+            "yield_cpu": not wait_when_full,
         })
         assert self._process.stdin is not None
         self._fd = self._process.stdin.fileno()

@@ -167,15 +167,17 @@ def run(options: dict[str, Any], fd: int = 0, ready: Callable[[], None] = lambda
 def main() -> int:
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
-    with contextlib.suppress(OSError):  # the loop, the drive and its emulator come first
-        os.nice(WRITER_NICENESS)
+    options = json.loads(sys.argv[1])
+    if options.get("yield_cpu"):  # real time: the loop, the drive and its emulator come first
+        with contextlib.suppress(OSError):
+            os.nice(WRITER_NICENESS)
     use_zstd_level()
     import numpy  # noqa: F401 - unpickling numpy messages needs it: import it before 'ready'
 
     def ready() -> None:
         print("ready", flush=True)
 
-    result = run(json.loads(sys.argv[1]), ready=ready)
+    result = run(options, ready=ready)
     with contextlib.suppress(OSError):  # nobody listens any more: the loop process is gone
         print(json.dumps(result), flush=True)
     return 1 if result["error"] else 0
