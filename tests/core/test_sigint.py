@@ -26,9 +26,13 @@ class Driver:
 session = Session({path!r}, RealtimeClock(), 0.001, kind="test")
 topic = session.topic("/tick", {{"type": "object", "title": "Tick"}})
 session.add_task(Relay("relay", 10))
-session.add_task(FunctionTask("sample", 1, write=lambda c, t: topic.log(t, {{"t": t}})))
+def sample(_command, t):
+    if topic.log(t, {{"t": t}}) and not sample.announced:
+        sample.announced = print("running", flush=True) or True  # the loop is ticking
+
+sample.announced = False
+session.add_task(FunctionTask("sample", 1, write=sample))
 session.add_component(Driver())
-print("running", flush=True)
 session.run(duration_s=60)
 session.close()
 print("closed", flush=True)
