@@ -75,3 +75,19 @@ def test_servo_run_with_a_bad_config_prints_one_error_line_and_exits_2(tmp_path,
     assert err == (f"hil: error: {path}: key 'master.heartbeat_period_ms' must be >= 0, "
                    "got -5\n")
     assert not out.exists()
+
+
+def test_mpc_prediction_is_decimated_in_real_time_and_in_long_lockstep_runs():
+    from hil.servo.run import (
+        PREDICTION_EVERY_REALTIME,
+        PREDICTION_EVERY_TICK_UP_TO_S,
+        ServoRunConfig,
+    )
+
+    def every(**kw):
+        return ServoRunConfig(controller="mpc", **kw).prediction_period
+
+    assert every(duration_s=PREDICTION_EVERY_TICK_UP_TO_S) == 1  # a short lockstep run: all
+    assert every(duration_s=PREDICTION_EVERY_TICK_UP_TO_S + 1) == PREDICTION_EVERY_REALTIME
+    assert every(duration_s=2, realtime=True) == PREDICTION_EVERY_REALTIME
+    assert every(duration_s=3600, prediction_every=1) == 1  # asked for: every tick
