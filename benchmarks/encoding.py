@@ -1,0 +1,102 @@
+"""Session-file size by encoding (issue 19): bytes per servo tick and per bench day.
+
+One lockstep servo run (PID, default 10 s) and one lockstep bench run (BC, 2 cycles) are
+recorded; their messages are then re-recorded with only the topics measured, once as JSON
+(the baseline, as every topic was before) and once with the default compact encoding (CDR with
+a ros2msg schema), so both figures come from the same messages in the same run. Bytes are
+whole-file bytes minus an empty session's, so chunk compression, MCAP record overhead and the
+message indexes (16 B per message, which Foxglove's reader requires) are all counted.
+
+Targets: servo /drive/command + /drive/feedback <= 32 B per tick; bench <= 1 GB per 24 h.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+from hil.bench.run import BenchRunOptions, run_bench
+from hil.core.reader import SessionData, read_session
+from hil.core.recorder import Recorder, RecordingOptions
+from hil.servo.run import COMMAND_SCHEMA, FEEDBACK_SCHEMA, ServoRunConfig, run_servo
+
+
+def rerecord(data: SessionData, topics: dict[str, dict], path: Path, encoding: str) -> int:
+    """Bytes taken by ``topics`` of ``data`` written again with ``encoding``."""
+    empty = path.with_suffix(".empty.mcap")
+    Recorder(empty).close()
+    recorder = Recorder(path, wait_when_full=True)
+    handles = {name: recorder.topic(name, schema, encoding=encoding)
+               for name, schema in topics.items()}
+    merged = sorted((t, name, m) for name in topics for t, m in data.topic(name))
+    for t, name, message in merged:
+        handles[name].log(t, message)
+    recorder.close()
+    return os.path.getsize(path) - os.path.getsize(empty)
+
+
+def bench_schemas(data: SessionData) -> dict[str, dict]:
+    """The bench topics' JSON Schemas, rebuilt with their x-cdr hints as the run declares."""
+    schemas = {}
+    for name in ("/bench/power", "/bench/levels"):  # SDM630 registers: float32 on the wire
+        schemas[name] = {"type": "object", "title": name, "properties": {
+            f: {"type": "number", "x-cdr": "float32"} for f in data.topic(name)[0][1]}}
+    relays = list(data.topic("/bench/relays")[0][1])
+    schemas["/bench/relays"] = {"type": "object", "title": "hil.BenchRelays", "properties": {
+        f: {"type": "integer", "x-cdr": "uint8"} for f in relays}}
+    return schemas
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--seconds", type=float, default=10.0, help="servo run [s]")
+    parser.add_argument("--cycles", type=int, default=2, help="bench run, 28 s each")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        as_json = RecordingOptions(high_rate_encoding="json")  # the source: full precision
+        run_servo(ServoRunConfig(controller="pid", duration_s=args.seconds,
+                                 out=str(tmp / "servo.mcap"), recording=as_json))
+        servo = read_session(tmp / "servo.mcap")
+        ticks = len(servo.topic("/drive/feedback"))
+        drive = {"/drive/command": COMMAND_SCHEMA, "/drive/feedback": FEEDBACK_SCHEMA}
+        servo_bytes = {enc: rerecord(servo, drive, tmp / f"servo-{enc}.mcap", enc)
+                       for enc in ("json", "cdr")}
+
+        run_bench(BenchRunOptions(controller="bc", cycles=args.cycles,
+                                  out=str(tmp / "bench-default.mcap")))
+        whole = os.path.getsize(tmp / "bench-default.mcap")
+        run_bench(BenchRunOptions(controller="bc", cycles=args.cycles,
+                                  out=str(tmp / "bench.mcap"), recording=as_json))
+        bench = read_session(tmp / "bench.mcap")
+        schemas = bench_schemas(bench)
+        bench_bytes = {enc: rerecord(bench, schemas, tmp / f"bench-{enc}.mcap", enc)
+                       for enc in ("json", "cdr")}
+        hours = bench.duration_s() / 3600
+    print(f"servo, PID, {args.seconds:g} s lockstep: {ticks} ticks of /drive/command + "
+          "/drive/feedback")
+    for enc, size in servo_bytes.items():
+        print(f"   {enc:<5} {size / ticks:7.1f} B/tick   {size / ticks * 2000 * 86400 / 1e9:6.2f} "
+              f"GB/day at 2 kHz{'   (baseline)' if enc == 'json' else ''}")
+    print(f"   cdr is {servo_bytes['cdr'] / servo_bytes['json']:.2f}x the JSON size; message "
+          "indexes alone are 32 B/tick (2 messages x 16 B)")
+    print(f"bench, BC, {args.cycles} cycles lockstep: /bench/power + /bench/levels + "
+          "/bench/relays at 100 Hz")
+    for enc, size in bench_bytes.items():
+        print(f"   {enc:<5} {size / hours / 1e6:7.1f} MB/h  {size / hours * 24 / 1e9:6.2f} GB/day"
+              f"{'   (baseline)' if enc == 'json' else ''}")
+    print(f"   whole session file as recorded (every topic, defaults): "
+          f"{whole / hours * 24 / 1e9:.2f} GB/day")
+    print("targets")
+    per_tick = servo_bytes["cdr"] / ticks
+    per_day = whole / hours * 24 / 1e9
+    print(f"   servo <= 32 B/tick ({per_tick:.1f}): {'met' if per_tick <= 32 else 'MISSED'}")
+    print(f"   bench <= 1 GB/day ({per_day:.2f}): {'met' if per_day <= 1 else 'MISSED'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
