@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import IO
 
 from hil.core.errors import HilError
+from hil.core.realtime import forget_helper_process, register_helper_process
 
 _BENCH_URL = re.compile(r"listening on (modbus-tcp://\S+?)[ ,;]")
 _DRIVE_URL = re.compile(r"socketcand (\S+):(\d+)\b")
@@ -34,6 +35,7 @@ class EmulatorProcess:
         self.process = subprocess.Popen(
             [sys.executable, "-m", "hil", "emulate", *argv], stdout=subprocess.PIPE,
             stderr=self._stderr, stdin=subprocess.DEVNULL, text=True, env=env)
+        register_helper_process(self.process.pid)  # real-time hardening keeps it off the loop
         self.url = self._wait_for_url(timeout_s)
 
     def _wait_for_url(self, timeout_s: float) -> str:
@@ -69,6 +71,7 @@ class EmulatorProcess:
 
     def stop(self, timeout_s: float = 10.0) -> None:
         """SIGTERM (resuming a stopped process first), then SIGKILL; idempotent."""
+        forget_helper_process(self.process.pid)
         if self.process.poll() is None:
             self.process.send_signal(signal.SIGCONT)
             self.process.terminate()

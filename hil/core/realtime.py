@@ -119,6 +119,40 @@ def advice(report: dict[str, Any], steps: list[Step]) -> list[str]:
     return lines
 
 
+_HELPER_PIDS: set[int] = set()
+
+
+def register_helper_process(pid: int) -> None:
+    """A process that serves this run (an emulator standing in for hardware): hardening keeps
+    it off the loop's core. :func:`forget_helper_process` when it stops."""
+    _HELPER_PIDS.add(pid)
+
+
+def forget_helper_process(pid: int) -> None:
+    _HELPER_PIDS.discard(pid)
+
+
+def keep_process_off_cpu(pid: int, cpu: int) -> bool:
+    """Move every thread of process ``pid`` off ``cpu`` (threads it starts later inherit the
+    affinity of the thread that starts them). False when it could not be done."""
+    if not hasattr(os, "sched_setaffinity"):
+        return False
+    try:
+        tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+    except OSError:
+        tids = [pid]
+    moved = False
+    for tid in tids:
+        try:
+            others = os.sched_getaffinity(tid) - {cpu}
+            if others:
+                os.sched_setaffinity(tid, others)
+                moved = True
+        except OSError:  # the thread ended meanwhile, or we may not touch it
+            continue
+    return moved
+
+
 def ordinary_thread() -> None:
     """Make the calling thread an ordinary one again: SCHED_OTHER on every usable core. For a
     thread started from a hardened loop thread (which it would otherwise inherit), e.g. as a
@@ -181,7 +215,9 @@ class Hardening:
             self._saved_affinity = None
             return Step("cpu_affinity", False, f"refused: {exc.strerror or exc}")
         self.pinned_cpu = core
-        return Step("cpu_affinity", True, f"loop thread on CPU {core} of {usable}")
+        moved = [pid for pid in sorted(_HELPER_PIDS) if keep_process_off_cpu(pid, core)]
+        helpers = f"; helper process(es) {moved} kept off it" if moved else ""
+        return Step("cpu_affinity", True, f"loop thread on CPU {core} of {usable}{helpers}")
 
     def _mlockall(self) -> Step:
         libc = _libc()

@@ -35,6 +35,7 @@ from typing import Any
 from hil.core.cdr import CdrError, fields_of
 from hil.core.errors import HilError
 from hil.core.mcap_series import series_file
+from hil.core.realtime import keep_process_off_cpu
 from hil.core.record_stream import FrameDecoder, encode_frame
 
 EVENTS_TOPIC = "/events"
@@ -269,13 +270,8 @@ class Recorder:
         return {name: t.dropped for name, t in self._topics.items() if t.dropped}
 
     def keep_off_cpu(self, cpu: int) -> None:
-        """Move the writer process off ``cpu`` (the hardened loop thread's core)."""
-        if not hasattr(os, "sched_setaffinity"):
-            return
-        with contextlib.suppress(OSError):
-            others = os.sched_getaffinity(self._process.pid) - {cpu}
-            if others:
-                os.sched_setaffinity(self._process.pid, others)
+        """Move the writer process, every thread of it, off ``cpu`` (the loop's core)."""
+        keep_process_off_cpu(self._process.pid, cpu)
 
     # -- hand-over -----------------------------------------------------------------------
     def flush_if_due(self) -> None:

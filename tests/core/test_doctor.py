@@ -145,3 +145,31 @@ def test_a_worker_started_from_the_hardened_loop_thread_is_an_ordinary_thread():
     if steps["sched_fifo"]:
         assert inherited[0] == os.SCHED_FIFO  # what the initializer is for
     assert reset[0] == os.SCHED_OTHER and reset[1] == len(os.sched_getaffinity(0))
+
+
+def test_hardening_keeps_helper_processes_and_the_writer_off_the_loops_core(tmp_path):
+    from hil.core.realtime import forget_helper_process, register_helper_process
+    from hil.core.recorder import Recorder
+
+    usable = sorted(os.sched_getaffinity(0))
+    helper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    recorder = Recorder(tmp_path / "w.mcap")
+    register_helper_process(helper.pid)
+    hardening = Hardening()
+    try:
+        steps = {s.name: s for s in hardening.apply()}
+        if len(usable) < 2:  # nothing to pin to: the step says so
+            assert not steps["cpu_affinity"].granted
+            return
+        core = hardening.pinned_cpu
+        assert steps["cpu_affinity"].granted and core is not None
+        assert f"helper process(es) [{helper.pid}] kept off it" in steps["cpu_affinity"].detail
+        assert core not in os.sched_getaffinity(helper.pid)
+        recorder.keep_off_cpu(core)
+        assert core not in os.sched_getaffinity(recorder.writer_pid)
+    finally:
+        hardening.restore()
+        forget_helper_process(helper.pid)
+        helper.kill()
+        helper.wait()
+        recorder.close()
