@@ -26,7 +26,7 @@ def without_timing(kpis: dict) -> dict:
 
 
 def sweep_json(capsys, argv: list[str]) -> tuple[int, dict]:
-    status = main(argv + ["--json"])
+    status = main([*argv, "--json"])
     captured = capsys.readouterr()
     return status, json.loads(captured.out)
 
