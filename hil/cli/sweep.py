@@ -16,7 +16,7 @@ from hil.cli.argtypes import positive_int
 from hil.core.errors import UsageError
 from hil.core.registry import scheme_of
 from hil.sweep.config import load_sweep_table
-from hil.sweep.engine import Engine
+from hil.sweep.engine import Engine, check_address
 from hil.sweep.space import Space, expand
 from hil.sweep.sweep import Sweep, format_sweep, run_sweep
 
@@ -113,6 +113,8 @@ def sweep_command(args: argparse.Namespace) -> int:
     engine = Engine(workers=args.workers or (table.workers if table else None),
                     address=args.address or (table.address if table else None),
                     serial=args.serial)
+    if engine.address and not engine.serial:
+        check_address(engine.address)
     refuse_parallel_hardware(kind, base, grid, engine)
     _absolute_paths(base)
     out = Path(args.out or time.strftime(f"sweep-{kind}-%Y%m%d-%H%M%S")).absolute()

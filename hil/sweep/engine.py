@@ -78,15 +78,26 @@ def start_ray(ray: ModuleType, workers: int | None, address: str | None) -> bool
     quiet: dict[str, Any] = {"logging_level": logging.ERROR, "log_to_driver": False,
                              "runtime_env": {"env_vars": SINGLE_THREADED}}
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    if address is None:
+        ray.init(num_cpus=workers or os.cpu_count() or 1, include_dashboard=False,
+                 _node_ip_address="127.0.0.1", **quiet)
+        return True
+    check_address(address)
     try:
-        if address:
-            ray.init(address=address, **quiet)
-        else:
-            ray.init(num_cpus=workers or os.cpu_count() or 1, include_dashboard=False,
-                     _node_ip_address="127.0.0.1", **quiet)
-    except ConnectionError as exc:
-        raise UsageError(f"--address {address}: cannot reach the Ray cluster: {exc}") from None
+        ray.init(address=address, **quiet)
+    except (ConnectionError, ValueError) as exc:  # no cluster; no ray[client] for ray://
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise UsageError(f"--address {address}: cannot join the Ray cluster: {reason}") from None
     return True
+
+
+def check_address(address: str) -> None:
+    """``auto`` or ``ray://HOST:PORT``, else a one-line error."""
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if address == "auto" or (address.startswith("ray://") and sep and host and port.isdigit()):
+        return
+    raise UsageError(f"--address {address}: expected auto (the cluster this machine is part "
+                     "of) or ray://HOST:PORT")
 
 
 def run_on_ray(ray: ModuleType, function: Callable[[Job], Row], jobs: Sequence[Job],

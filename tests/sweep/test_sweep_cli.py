@@ -43,6 +43,10 @@ def error_of(capsys, argv: list[str]) -> str:
      "hil: error: --grid 'ert=foh,hold': ert=hold: expected one of foh, zoh"),
     (["sweep", "servo", "--controller", "pid", "--random", "3", "umax=900:100"],
      "hil: error: --random 'umax=900:100': lo must not exceed hi"),
+    (["sweep", "servo", "--controller", "pid", "--grid", "umax=500,900", "--address",
+      "10.0.0.1:6379"],
+     "hil: error: --address 10.0.0.1:6379: expected auto (the cluster this machine is part "
+     "of) or ray://HOST:PORT"),
     (["sweep", "servo", "--controller", "pid"],
      "hil: error: nothing to sweep: give --grid, --random or a [sweep] table"),
 ])
