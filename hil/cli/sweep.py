@@ -22,6 +22,8 @@ from hil.sweep.sweep import Sweep, format_sweep, run_sweep
 
 RUN_ARGUMENTS: dict[str, Callable[[argparse.ArgumentParser], None]] = {
     "bench": bench.add_run_arguments, "servo": servo.add_run_arguments}
+RUN_OPTIONS: dict[str, Callable[[argparse.Namespace], Any]] = {
+    "bench": bench.run_options, "servo": servo.run_config}
 URL_KEY = {"bench": "bench", "servo": "drive"}   # the run flag naming the device
 SWEEP_DESTS = ("grid", "random", "sweep_config", "seed", "out", "workers", "address",
                "resume", "json", "serial", "handler", "command", "sweep_kind")
@@ -120,7 +122,8 @@ def sweep_command(args: argparse.Namespace) -> int:
     out = Path(args.out or time.strftime(f"sweep-{kind}-%Y%m%d-%H%M%S")).absolute()
     if args.resume and not args.out:
         raise UsageError("--resume needs the --out folder of the sweep to resume")
-    result = run_sweep(Sweep(kind, base, keys, tuple(trials), out, engine, args.resume))
+    result = run_sweep(Sweep(kind, RUN_OPTIONS[kind], base, keys, tuple(trials), out, engine,
+                             args.resume))
     print(json.dumps(result, indent=2, default=str) if args.json
           else format_sweep(result, kind, keys))
     return 0 if all(t["status"] == "ok" for t in result["trials"]) else 1

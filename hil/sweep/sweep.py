@@ -3,8 +3,9 @@ with a progress bar, keep each row as it comes, then write ``results.csv`` and `
 
 from __future__ import annotations
 
+import argparse
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
@@ -20,9 +21,11 @@ from hil.sweep.trial import TrialJob, run_trial
 
 @dataclass(frozen=True)
 class Sweep:
-    """``trials`` of one run kind over the run flags ``base``, into folder ``out``."""
+    """``trials`` of one run kind over the run flags ``base`` (made into the run's options by
+    ``build``), into folder ``out``."""
 
     kind: str
+    build: Callable[[argparse.Namespace], Any]
     base: dict[str, Any]
     keys: tuple[str, ...]
     trials: tuple[Trial, ...]
@@ -45,7 +48,7 @@ def run_sweep(sweep: Sweep, stream: TextIO | None = None) -> dict[str, Any]:
         if done is not None:
             rows[trial.name] = {**done, "resumed": True}
         else:
-            jobs.append(TrialJob(sweep.kind, sweep.base, trial.name, trial.params,
+            jobs.append(TrialJob(sweep.kind, sweep.build, sweep.base, trial.name, trial.params,
                                  str(sweep.out / f"{trial.name}.mcap")))
     progress = Progress(len(sweep.trials), stream, skipped=len(rows))
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,9 +17,11 @@ KINDS = ("bench", "servo")
 
 @dataclass(frozen=True)
 class TrialJob:
-    """Everything a worker needs: the run kind, the run's parsed flags, the swept values."""
+    """Everything a worker needs: the run kind, the run's parsed flags and how to make the
+    run's options of them (the command line's own function), the swept values."""
 
     kind: str
+    build: Callable[[argparse.Namespace], Any]   # flags -> BenchRunOptions | ServoRunConfig
     base: dict[str, Any]   # vars() of the parsed run flags
     name: str
     params: dict[str, Any]
@@ -45,7 +47,9 @@ def run_trial(job: TrialJob) -> dict[str, Any]:
     start = time.perf_counter()
     row: dict[str, Any] = {"name": job.name, "params": job.params, "mcap": job.mcap}
     try:
-        kpis = execute(job.kind, namespace_of(job.base, job.params), job.mcap)
+        args = namespace_of(job.base, job.params)
+        args.out = job.mcap
+        kpis = execute(job.kind, job.build(args))
     except HilError as exc:
         row.update(status="failed", error=str(exc), kpis={})
     except Exception as exc:  # a trial's bug must not stop the sweep: it is recorded
@@ -56,15 +60,12 @@ def run_trial(job: TrialJob) -> dict[str, Any]:
     return row
 
 
-def execute(kind: str, args: argparse.Namespace, mcap: str) -> dict[str, Any]:
-    """One ``hil bench|servo run`` from its parsed flags, recorded to ``mcap``; its KPIs."""
-    args.out = mcap
+def execute(kind: str, options: Any) -> dict[str, Any]:
+    """One ``hil bench|servo run`` of its options; its KPIs."""
     if kind == "bench":
         from hil.bench.run import run_bench
-        from hil.cli.bench import run_options
 
-        return run_bench(run_options(args))
-    from hil.cli.servo import run_config
+        return dict(run_bench(options))
     from hil.servo.run import run_servo
 
-    return run_servo(run_config(args)).kpis
+    return dict(run_servo(options).kpis)
