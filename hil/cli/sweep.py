@@ -15,9 +15,9 @@ from hil.cli import bench, servo
 from hil.cli.argtypes import positive_int
 from hil.core.errors import UsageError
 from hil.core.registry import scheme_of
-from hil.sweep.config import load_sweep_table
+from hil.sweep.config import SweepTable, load_sweep_table
 from hil.sweep.engine import Engine, check_address
-from hil.sweep.space import Space, expand
+from hil.sweep.space import Range, Space, Trial, expand
 from hil.sweep.sweep import Sweep, format_sweep, run_sweep
 
 RUN_ARGUMENTS: dict[str, Callable[[argparse.ArgumentParser], None]] = {
@@ -79,45 +79,15 @@ def add_sweep_arguments(parser: argparse.ArgumentParser) -> None:
 
 def sweep_command(args: argparse.Namespace) -> int:
     kind = args.sweep_kind
-    run_parser = argparse.ArgumentParser(add_help=False)
-    RUN_ARGUMENTS[kind](run_parser)
-    space = Space(run_parser)
     table = load_sweep_table(args.sweep_config) if args.sweep_config else None
-    grid: dict[str, list[Any]] = {}
-    ranges = []
-    count, seed = 0, 0
-    if table is not None:
-        for key, values in table.grid.items():
-            name = space.canonical(key, f"{args.sweep_config}: [sweep.grid]")
-            grid[name] = [space.convert(name, _toml_text(v), f"{args.sweep_config}: "
-                                        f"[sweep.grid] {key}") for v in values]
-        ranges = [space.range_entry(f"{key}={_toml_text(lo)}:{_toml_text(hi)}",
-                                    f"{args.sweep_config}: [sweep.random]")
-                  for key, (lo, hi) in table.ranges.items()]
-        count, seed = table.random_trials, table.seed or 0
-    for text in args.grid:
-        key, values = space.grid_entry(text)
-        grid[key] = values
-    if args.random:
-        count = _count(args.random[0])
-        if len(args.random) < 2:
-            raise UsageError("--random N KEY=lo:hi: give at least one KEY=lo:hi")
-        flag_ranges = [space.range_entry(text) for text in args.random[1:]]
-        ranges = [r for r in ranges if r.key not in {f.key for f in flag_ranges}] + flag_ranges
-    if args.seed is not None:
-        seed = args.seed
-    samples = space.sample(ranges, count, seed) if ranges else []
-    trials = expand(grid, samples)
-    keys = tuple(dict.fromkeys([*grid, *(r.key for r in ranges)]))
-    if not keys:
-        raise UsageError("nothing to sweep: give --grid, --random or a [sweep] table")
+    trials, keys = space_of(args, kind, table)
     base = {k: v for k, v in vars(args).items() if k not in SWEEP_DESTS}
     engine = Engine(workers=args.workers or (table.workers if table else None),
                     address=args.address or (table.address if table else None),
                     serial=args.serial)
     if engine.address and not engine.serial:
         check_address(engine.address)
-    refuse_parallel_hardware(kind, base, grid, engine)
+    refuse_parallel_hardware(kind, base, trials, engine)
     _absolute_paths(base)
     out = Path(args.out or time.strftime(f"sweep-{kind}-%Y%m%d-%H%M%S")).absolute()
     if args.resume and not args.out:
@@ -129,12 +99,45 @@ def sweep_command(args: argparse.Namespace) -> int:
     return 0 if all(t["status"] == "ok" for t in result["trials"]) else 1
 
 
-def refuse_parallel_hardware(kind: str, base: dict[str, Any], grid: dict[str, list[Any]],
+def space_of(args: argparse.Namespace, kind: str,
+             table: SweepTable | None) -> tuple[list[Trial], tuple[str, ...]]:
+    """The trials of the ``[sweep]`` table with the flags laid over it, and the swept keys."""
+    run_parser = argparse.ArgumentParser(add_help=False)
+    RUN_ARGUMENTS[kind](run_parser)
+    space = Space(run_parser)
+    grid: dict[str, list[Any]] = {}
+    ranges: list[Range] = []
+    count, seed = 0, 0
+    if table is not None:
+        where = f"{args.sweep_config}: [sweep.grid]"
+        for key, values in table.grid.items():
+            name = space.canonical(key, where)
+            grid[name] = [space.convert(name, _toml_text(v), f"{where} {key}") for v in values]
+        ranges = [space.range_entry(f"{key}={_toml_text(lo)}:{_toml_text(hi)}",
+                                    f"{args.sweep_config}: [sweep.random]")
+                  for key, (lo, hi) in table.ranges.items()]
+        count, seed = table.random_trials, table.seed or 0
+    grid.update(space.grid_entry(text) for text in args.grid)
+    if args.random:
+        count = _count(args.random[0])
+        if len(args.random) < 2:
+            raise UsageError("--random N KEY=lo:hi: give at least one KEY=lo:hi")
+        flag_ranges = [space.range_entry(text) for text in args.random[1:]]
+        ranges = [r for r in ranges if r.key not in {f.key for f in flag_ranges}] + flag_ranges
+    if args.seed is not None:
+        seed = args.seed
+    keys = tuple(dict.fromkeys([*grid, *(r.key for r in ranges)]))
+    if not keys:
+        raise UsageError("nothing to sweep: give --grid, --random or a [sweep] table")
+    return expand(grid, space.sample(ranges, count, seed) if ranges else []), keys
+
+
+def refuse_parallel_hardware(kind: str, base: dict[str, Any], trials: list[Trial],
                              engine: Engine) -> None:
     """A real bench or drive is one device: its trials run one after another (--serial)."""
     key = URL_KEY[kind]
-    urls = grid.get(key, [base[key]])
-    real = [u for u in urls if scheme_of(str(u)) != "emulated"]
+    urls = dict.fromkeys(str(t.params.get(key, base[key])) for t in trials)
+    real = [u for u in urls if scheme_of(u) != "emulated"]
     if real and not engine.serial:
         raise UsageError(f"--{key} {real[0]} is not emulated: a real device cannot run trials "
                          "in parallel; add --serial to run them one after another")
