@@ -21,6 +21,8 @@ class Progress:
         self.ran = 0
         if skipped:
             self._line(f"{skipped} trial(s) already done (--resume)")
+        if self.tty:
+            self._draw()
 
     def update(self, row: dict[str, Any]) -> None:
         """One trial finished."""
@@ -31,14 +33,17 @@ class Progress:
         if row["status"] == "failed":
             status += f" ({row.get('error', '')})"
         if self.tty:
-            filled = round(BAR_WIDTH * self.done / max(self.total, 1))
-            bar = "#" * filled + "." * (BAR_WIDTH - filled)
-            self.stream.write(f"\r\x1b[2K[{bar}] {self.summary()}")
             if row["status"] == "failed":
-                self.stream.write(f"\n{status}\n")
-            self.stream.flush()
+                self.stream.write(f"\r\x1b[2K{status}\n")
+            self._draw()
         else:
             self._line(f"{self.summary()}; {status}")
+
+    def _draw(self) -> None:
+        filled = round(BAR_WIDTH * self.done / max(self.total, 1))
+        bar = "#" * filled + "." * (BAR_WIDTH - filled)
+        self.stream.write(f"\r\x1b[2K[{bar}] {self.summary()}")
+        self.stream.flush()
 
     def summary(self) -> str:
         return f"{self.done}/{self.total} trials, {self.failed} failed, ETA {self.eta()}"

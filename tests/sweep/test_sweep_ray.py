@@ -91,9 +91,12 @@ def test_a_random_sweep_of_a_plugin_parameter_is_seeded(local_ray, tmp_path, cap
 def test_a_failing_trial_is_recorded_and_resume_reruns_only_what_is_missing(
         local_ray, tmp_path, capsys):
     out = tmp_path / "fail"
-    status, result = sweep_json(capsys, [*SERVO, "--controller", GAIN, "--grid",
-                                         "param.gain=200,-1", "--out", str(out)])
-    assert status == 1
+    assert main([*SERVO, "--controller", GAIN, "--grid", "param.gain=200,-1", "--out",
+                 str(out), "--json"]) == 1
+    captured = capsys.readouterr()
+    result = json.loads(captured.out)
+    progress = captured.err.splitlines()   # not a terminal: one plain line per trial
+    assert len(progress) == 2 and progress[-1].startswith("hil sweep: 2/2 trials, 1 failed")
     rows = {t["params"]["param.gain"]: t for t in result["trials"]}
     assert rows[200]["status"] == "ok" and rows[200]["kpis"]["ticks"] > 0
     assert rows[-1]["status"] == "failed" and "gain must be >= 0, got -1" in rows[-1]["error"]
