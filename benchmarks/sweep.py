@@ -1,7 +1,7 @@
 """Sweep benchmark (issue 17): an 8-trial servo sweep on a local Ray against the same trials
 one after another in this process, measured in the same run.
 
-1. Sequential baseline: the 8 trials (MPC FOH/ZOH x 4 current limits, 2.5 s of a 1 Hz sine in
+1. Sequential baseline: the 8 trials (MPC FOH/ZOH x 4 current limits, 3 s of a 1 Hz sine in
    lockstep each, recorded to MCAP) run in this process one after another, after one warm-up
    run so the baseline pays no imports.
 2. Local Ray start-up: ``ray.init`` for the sweep (one worker per core, loopback, quiet) until
@@ -33,7 +33,7 @@ from hil.sweep.space import expand
 from hil.sweep.trial import TrialJob, run_trial
 
 TARGET_SPEEDUP = 1.7
-RUN = ["--controller", "mpc", "--duration", "2.5", "--reference",
+RUN = ["--controller", "mpc", "--duration", "3", "--reference",
        "sine:amplitude=2,frequency=1"]
 GRID = {"umax": [800.0, 1000.0, 1200.0, 1500.0], "ert": ["zoh", "foh"]}
 
@@ -82,7 +82,7 @@ def main() -> int:
         ray.shutdown()
 
     speedup = sequential / on_ray
-    print(f"sweep: 8 servo trials (MPC, 2.5 s lockstep each), {workers} core(s)")
+    print(f"sweep: 8 servo trials (MPC, 3 s lockstep each), {workers} core(s)")
     print(f"  in sequence, in-process      {sequential:7.2f} s  ({sequential / 8:.2f} s/trial)")
     print(f"  local Ray start-up           {startup:7.2f} s")
     print(f"  on local Ray, {workers} workers      {on_ray:7.2f} s  -> {speedup:.2f}x "
