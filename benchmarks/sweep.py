@@ -12,6 +12,9 @@ one after another in this process, measured in the same run.
 4. Per-trial overhead: one trial as a Ray task on a warm worker (submit -> result) against
    the same trial in this process, median of 3.
 
+Also printed: how many trials Ray kept in flight on average, and the load average, since on a
+shared machine other processes take the cores the workers need.
+
 The machine is shared: figures are noisy, run it alone when the numbers matter.
 """
 
@@ -54,6 +57,7 @@ def timed(function, *args):  # type: ignore[no-untyped-def]
 
 def main() -> int:
     workers = os.cpu_count() or 1
+    load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
         jobs = jobs_in(out)
@@ -82,6 +86,7 @@ def main() -> int:
         ray.shutdown()
 
     speedup = sequential / on_ray
+    busy = sum(r["trial_s"] for r in ray_rows) / on_ray
     print(f"sweep: 8 servo trials (MPC, 3 s lockstep each), {workers} core(s)")
     print(f"  in sequence, in-process      {sequential:7.2f} s  ({sequential / 8:.2f} s/trial)")
     print(f"  local Ray start-up           {startup:7.2f} s")
@@ -92,7 +97,10 @@ def main() -> int:
     print(f"  per-trial overhead (Ray task on a warm worker vs in-process, median of 3): "
           f"{statistics.median(overheads) * 1e3:+.0f} ms "
           f"({statistics.median(remote_times):.2f} s vs {statistics.median(local_times):.2f} s)")
+    print(f"  trials in flight on Ray (sum of trial times / wall): {busy:.2f} of {workers}")
     print(f"  KPIs identical to the in-process runs: {same}")
+    print(f"  load average before / after: {load_before:.1f} / {os.getloadavg()[0]:.1f} "
+          f"(other processes on the {workers} cores slow the parallel run most)")
     return 0
 
 
