@@ -12,8 +12,6 @@ from typing import Any
 from hil.core.errors import HilError
 from hil.sweep.space import PARAM_PREFIX
 
-KINDS = ("bench", "servo")
-
 
 @dataclass(frozen=True)
 class TrialJob:
