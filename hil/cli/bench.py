@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from typing import Any
+from dataclasses import replace
+from typing import TYPE_CHECKING, Any
 
 from hil.bench.identify import (
     MACHINING_MODES,
@@ -15,7 +16,10 @@ from hil.bench.identify import (
 )
 from hil.cli.argtypes import nonnegative_float, positive_float, positive_int
 from hil.cli.recording import add_recording_arguments, recording_options
-from hil.cli.verdict import add_controller_arguments, finish, params_of
+from hil.cli.verdict import add_controller_arguments, add_junit_argument, finish, params_of
+
+if TYPE_CHECKING:
+    from hil.bench.run import BenchRunOptions
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -32,30 +36,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "hold, 1 one is violated, 2 usage or configuration error). Defaults of the tuning "
         "flags come from hil/configs/eec.toml and bench.toml.",
     )
-    add_controller_arguments(run, "eec, bc", "total_va or any meter quantity polled, and the "
-                             "levels q1, q2")
-    run.add_argument("--bench", default="emulated",
-                     help="emulated | modbus-tcp://HOST:PORT | modbus-rtu:///dev/X")
-    run.add_argument("--cycles", type=positive_int, default=8, help="machine cycles (T = 28 s)")
-    run.add_argument("--hp", type=positive_int, default=None,
-                     help="prediction horizon [s] (default 28)")
-    run.add_argument("--hs", type=positive_int, default=None,
-                     help="applied part of each plan [s] (default 1: receding horizon)")
-    run.add_argument("--gamma1", type=nonnegative_float, default=None,
-                     help="weight of energy J1 (default 0.9)")
-    run.add_argument("--gamma2", type=nonnegative_float, default=None,
-                     help="weight of peak J2 (default 0.1)")
-    run.add_argument("--dwell", type=positive_float, default=None,
-                     help="min on/off time of P1/P2 [s] (default 5), also in the safety layer")
-    run.add_argument("--terminal", choices=["none", "hold"], default=None,
-                     help="EEC terminal condition: none (the paper) or hold q_j(H_p) >= q_j(0) "
-                          "(default hold)")
-    run.add_argument("--disturbance", action="store_true",
-                     help="switch the emulator's unknown load on")
-    run.add_argument("--realtime", action="store_true",
-                     help="follow the wall clock (always so against a real bench)")
-    run.add_argument("--config", metavar="F.toml",
-                     help="TOML laid over hil/configs/bench.toml and eec.toml")
+    add_run_arguments(run)
+    add_junit_argument(run)
     run.add_argument("--out", metavar="F.mcap", help="session file (default: a temp file)")
     run.add_argument("--json", action="store_true", help="print KPIs as JSON")
     add_recording_arguments(run)
@@ -65,19 +47,54 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ident.set_defaults(handler=identify_command)
 
 
-def run_command(args: argparse.Namespace) -> int:
-    from hil.bench.run import BenchRunOptions, run_bench
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    """The flags of ``hil bench run`` that make up the experiment (shared with ``hil sweep
+    bench``): the controller, its tuning, the bench and the verdict."""
+    add_controller_arguments(parser, "eec, bc", "total_va or any meter quantity polled, and the "
+                             "levels q1, q2")
+    parser.add_argument("--bench", default="emulated",
+                        help="emulated | modbus-tcp://HOST:PORT | modbus-rtu:///dev/X")
+    parser.add_argument("--cycles", type=positive_int, default=8, help="machine cycles (T = 28 s)")
+    parser.add_argument("--hp", type=positive_int, default=None,
+                        help="prediction horizon [s] (default 28)")
+    parser.add_argument("--hs", type=positive_int, default=None,
+                        help="applied part of each plan [s] (default 1: receding horizon)")
+    parser.add_argument("--gamma1", type=nonnegative_float, default=None,
+                        help="weight of energy J1 (default 0.9)")
+    parser.add_argument("--gamma2", type=nonnegative_float, default=None,
+                        help="weight of peak J2 (default 0.1)")
+    parser.add_argument("--dwell", type=positive_float, default=None,
+                        help="min on/off time of P1/P2 [s] (default 5), also in the safety layer")
+    parser.add_argument("--terminal", choices=["none", "hold"], default=None,
+                        help="EEC terminal condition: none (the paper) or hold q_j(H_p) >= q_j(0) "
+                        "(default hold)")
+    parser.add_argument("--disturbance", action="store_true",
+                        help="switch the emulator's unknown load on")
+    parser.add_argument("--realtime", action="store_true",
+                        help="follow the wall clock (always so against a real bench)")
+    parser.add_argument("--config", metavar="F.toml",
+                        help="TOML laid over hil/configs/bench.toml and eec.toml")
+
+
+def run_options(args: argparse.Namespace) -> BenchRunOptions:
+    """The :class:`BenchRunOptions` of parsed :func:`add_run_arguments` flags (and ``out``)."""
+    from hil.bench.run import BenchRunOptions
 
     overrides = {"terminal": args.terminal} if args.terminal else {}
-    start = time.perf_counter()
-    kpis = run_bench(BenchRunOptions(
+    return BenchRunOptions(
         controller=args.controller, params=params_of(args), bench=args.bench,
         cycles=args.cycles, hp_s=args.hp, hs_s=args.hs, gamma1=args.gamma1,
         gamma2=args.gamma2, dwell_s=args.dwell, disturbance=args.disturbance,
         realtime=args.realtime, out=args.out, config_path=args.config, overrides=overrides,
         limits=tuple(args.limit), controller_budget_s=args.controller_budget,
-        recording=recording_options(args),
-    ))
+    )
+
+
+def run_command(args: argparse.Namespace) -> int:
+    from hil.bench.run import run_bench
+
+    start = time.perf_counter()
+    kpis = run_bench(replace(run_options(args), recording=recording_options(args)))
     print(json.dumps(kpis, indent=2) if args.json else format_kpis(kpis))
     return finish(kpis, args, f"hil bench run {kpis['controller']}",
                   time.perf_counter() - start)

@@ -4,12 +4,16 @@ from __future__ import annotations
 
 import argparse
 import json
-from typing import Any
+from dataclasses import replace
+from typing import TYPE_CHECKING, Any
 
 from hil.cli.argtypes import nonnegative_float, positive_float, positive_int
 from hil.cli.recording import add_recording_arguments, recording_options
-from hil.cli.verdict import add_controller_arguments, finish, params_of
+from hil.cli.verdict import add_controller_arguments, add_junit_argument, finish, params_of
 from hil.core.errors import UsageError
+
+if TYPE_CHECKING:
+    from hil.servo.run import ServoRunConfig
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -28,34 +32,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "With --limit, the verdict is the exit status (0 all hold, 1 one is violated, 2 "
         "usage or configuration error).",
     )
-    add_controller_arguments(srun, "mpc, empc, pid", "abs_error_deg, abs_command_mA, "
-                             "abs_velocity_deg_s, position_deg")
-    srun.add_argument("--drive", default="emulated",
-                      help="emulated (in-process CAN emulator) | socketcand://HOST:PORT")
-    srun.add_argument("--node", type=positive_int, default=1, help="CANopen node id")
-    srun.add_argument("--ert", choices=["foh", "zoh"], default="foh",
-                      help="extended reference trajectory: first- or zero-order hold")
-    srun.add_argument("--ht", type=positive_int,
-                      help="trajectory horizon (default 8; 3 for empc, as the paper's drive)")
-    srun.add_argument("--hu", type=positive_int,
-                      help="control horizon (default 8; 3 for empc, as the paper's drive)")
-    srun.add_argument("--hp", type=positive_int, default=50, help="prediction horizon")
-    srun.add_argument("--umax", type=positive_float, default=1000.0,
-                      help="current limit [mA]: the controller's bounds and the driver's clamp")
-    srun.add_argument("--reference", default="sine:amplitude=2,frequency=10",
-                      help="sine:amplitude=A,frequency=F | trapezoid:stroke=S,speed=RPM | "
-                      "disturbance:torque=MA,start=S,end=S (Fig. 16: hold while a torque pulse "
-                      "pushes the axis; emulated drives) | hold:position=DEG")
-    srun.add_argument("--duration", type=positive_float, default=2.0, help="[s]")
-    srun.add_argument("--settle", type=nonnegative_float, default=0.0, metavar="S",
-                      help="KPIs ignore the first S seconds (start-up transient)")
-    srun.add_argument("--realtime", action="store_true",
-                      help="follow the wall clock (default: lockstep virtual time)")
-    srun.add_argument("--prediction-every", type=positive_int, metavar="N",
-                      help="record /mpc/prediction every N ticks (default: every tick in "
-                      "lockstep, every 10th in real time)")
-    srun.add_argument("--config", metavar="F.toml",
-                      help="drive config laid over the default (hil/configs/drive.toml)")
+    add_run_arguments(srun)
+    add_junit_argument(srun)
     srun.add_argument("--out", metavar="F.mcap",
                       help="session file (default: servo-CONTROLLER-DATE-TIME.mcap)")
     srun.add_argument("--json", action="store_true", help="print the KPIs as JSON")
@@ -78,22 +56,66 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     figs.add_argument("--amplitude", type=positive_float, default=2.0, help="sine amplitude [deg]")
     figs.add_argument("--out", metavar="F.png", help="also draw the table to this PNG file")
     figs.add_argument("--json", action="store_true", help="print the table as JSON")
+    figs.add_argument("--workers", type=positive_int, default=1,
+                      help="points simulated at once: 1 (default) in this process, more as a "
+                      "sweep on a local Ray (pip install 'hil[sweep]')")
+    figs.add_argument("--address", metavar="ADDR",
+                      help="run the points on this Ray cluster (auto or ray://HOST:PORT)")
     figs.set_defaults(handler=run_figures)
 
 
-def run_servo_command(args: argparse.Namespace) -> int:
-    from hil.servo.run import ServoRunConfig, run_servo
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    """The flags of ``hil servo run`` that make up the experiment (shared with ``hil sweep
+    servo``): the controller, its tuning, the drive, the reference and the verdict."""
+    add_controller_arguments(parser, "mpc, empc, pid", "abs_error_deg, abs_command_mA, "
+                             "abs_velocity_deg_s, position_deg")
+    parser.add_argument("--drive", default="emulated",
+                        help="emulated (in-process CAN emulator) | socketcand://HOST:PORT")
+    parser.add_argument("--node", type=positive_int, default=1, help="CANopen node id")
+    parser.add_argument("--ert", choices=["foh", "zoh"], default="foh",
+                        help="extended reference trajectory: first- or zero-order hold")
+    parser.add_argument("--ht", type=positive_int,
+                        help="trajectory horizon (default 8; 3 for empc, as the paper's drive)")
+    parser.add_argument("--hu", type=positive_int,
+                        help="control horizon (default 8; 3 for empc, as the paper's drive)")
+    parser.add_argument("--hp", type=positive_int, default=50, help="prediction horizon")
+    parser.add_argument("--umax", type=positive_float, default=1000.0,
+                        help="current limit [mA]: the controller's bounds and the driver's clamp")
+    parser.add_argument("--reference", default="sine:amplitude=2,frequency=10",
+                        help="sine:amplitude=A,frequency=F | trapezoid:stroke=S,speed=RPM | "
+                        "disturbance:torque=MA,start=S,end=S (Fig. 16: hold while a torque pulse "
+                        "pushes the axis; emulated drives) | hold:position=DEG")
+    parser.add_argument("--duration", type=positive_float, default=2.0, help="[s]")
+    parser.add_argument("--settle", type=nonnegative_float, default=0.0, metavar="S",
+                        help="KPIs ignore the first S seconds (start-up transient)")
+    parser.add_argument("--realtime", action="store_true",
+                        help="follow the wall clock (default: lockstep virtual time)")
+    parser.add_argument("--prediction-every", type=positive_int, metavar="N",
+                        help="record /mpc/prediction every N ticks (default: every tick in "
+                        "lockstep, every 10th in real time)")
+    parser.add_argument("--config", metavar="F.toml",
+                        help="drive config laid over the default (hil/configs/drive.toml)")
+
+
+def run_config(args: argparse.Namespace) -> ServoRunConfig:
+    """The :class:`ServoRunConfig` of parsed :func:`add_run_arguments` flags (and ``out``)."""
+    from hil.servo.run import ServoRunConfig
 
     default_horizon = 3 if args.controller == "empc" else 8
-    config = ServoRunConfig(
+    return ServoRunConfig(
         controller=args.controller, params=params_of(args),
         limits=tuple(args.limit), controller_budget_s=args.controller_budget,
         drive=args.drive, node=args.node, ert=args.ert,
         ht=args.ht or default_horizon, hu=args.hu or default_horizon, hp=args.hp,
         umax=args.umax, reference=args.reference,
         duration_s=args.duration, realtime=args.realtime, out=args.out,
-        drive_config=args.config, settle_s=args.settle, prediction_every=args.prediction_every,
-        recording=recording_options(args))
+        drive_config=args.config, settle_s=args.settle, prediction_every=args.prediction_every)
+
+
+def run_servo_command(args: argparse.Namespace) -> int:
+    from hil.servo.run import run_servo
+
+    config = replace(run_config(args), recording=recording_options(args))
     result = run_servo(config)
     print(json.dumps(result.kpis, indent=2) if args.json else format_run(config, result.kpis))
     return finish(result.kpis, args, f"hil servo run {result.kpis['controller']}",
@@ -136,12 +158,16 @@ def format_run(config: Any, kpis: dict[str, Any]) -> str:
 
 
 def run_figures(args: argparse.Namespace) -> int:
-    from controllers.servo_sim import figure_table
+    """``hil servo figures``: the preset sweep of :func:`hil.servo.demo.run_figures_sweep`."""
+    from hil.servo.demo import run_figures_sweep
+    from hil.sweep.engine import Engine
 
     if args.max_ht > args.hp:
         raise UsageError(f"--max-ht ({args.max_ht}) must not exceed --hp ({args.hp})")
-    table = figure_table(horizons=range(1, args.max_ht + 1), hp=args.hp, q=args.q, r=args.r,
-                         amplitude=args.amplitude)
+    engine = Engine(workers=args.workers, address=args.address,
+                    serial=args.workers == 1 and not args.address)
+    table = run_figures_sweep(range(1, args.max_ht + 1), args.hp, args.q, args.r,
+                              args.amplitude, engine)
     result = {"amplitude_deg": args.amplitude, "hp": args.hp, "q": args.q, "r": args.r,
               "cases": table}
     if args.out:

@@ -52,6 +52,10 @@ def add_controller_arguments(parser: argparse.ArgumentParser, builtins: str,
                         f"joined by '.'), or on a per-tick signal ({signals}), which stops the "
                         "run to the safe state at once when crossed. Exit status 1 when one "
                         "is violated")
+
+
+def add_junit_argument(parser: argparse.ArgumentParser) -> None:
+    """``--junit F.xml`` of a single run."""
     parser.add_argument("--junit", metavar="F.xml",
                         help="write a JUnit XML report: one test case per limit")
 

@@ -11,13 +11,22 @@ as in the Figs. 7-8 table), so the cumulative error is the paper's per-cycle met
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
+from controllers.base import ServoController
+from controllers.mpc import MpcConfig, TrajectoryMpc
+from controllers.pid import CascadedPid, PidConfig
+from controllers.references import Reference
+from controllers.servo_sim import PAPER_CASES, cycle_error
+from hil.core.errors import HilError
 from hil.core.reader import read_session
 from hil.core.report import plot_session
 from hil.servo.run import ServoRunConfig, run_servo
+from hil.sweep.engine import Engine
+from hil.sweep.space import Trial, named
 
 SETTLE_S = 0.5
 CASES = ((1.0, 1000.0), (10.0, 12000.0))  # (sine frequency [Hz], current limit [mA])
@@ -68,3 +77,82 @@ def format_servo_demo(rows: list[dict[str, Any]]) -> str:
             f"{row['step_us']['p99']:>12.1f}{row['realtime_factor']:>12.1f}")
     lines.append("sessions: " + ", ".join(Path(r["mcap"]).name for r in rows) + " (+ .png)")
     return "\n".join(lines)
+
+
+# -- hil servo figures: the Figs. 7-8 table as a preset sweep ----------------------------------
+
+
+def figure_trials(horizons: Sequence[int], hp: int, q: float, r: float, amplitude: float,
+                  cases: Iterable[tuple[float, float]] = PAPER_CASES) -> list[Trial]:
+    """The points of the Figs. 7-8 table: per case, MPC ZOH at every H_t (H_t = 1 is the
+    set-point MPC the table is normalised to), MPC FOH from H_t = 2, PID with and without
+    velocity feed-forward."""
+    points = []
+    for frequency, limit in cases:
+        case = {"frequency_hz": frequency, "current_limit_mA": limit, "hp": hp, "q": q,
+                "r": r, "amplitude_deg": amplitude}
+        points += [{**case, "controller": "mpc", "ert": "zoh", "ht": ht} for ht in horizons]
+        points += [{**case, "controller": "mpc", "ert": "foh", "ht": ht}
+                   for ht in horizons if ht >= 2]
+        points += [{**case, "controller": "pid", "vff": vff} for vff in (False, True)]
+    return named(points)
+
+
+def run_figure_trial(trial: Trial) -> dict[str, Any]:
+    """One point of the table, simulated offline: its cycle metrics as the row's KPIs."""
+    p = trial.params
+    limit = p["current_limit_mA"]
+    make: Callable[[Reference], ServoController]
+    if p["controller"] == "mpc":
+        mpc = MpcConfig(ht=p["ht"], hu=p["ht"], hp=p["hp"], ert=p["ert"], q=p["q"], r=p["r"],
+                        u_min=-limit, u_max=limit)
+        make = partial(TrajectoryMpc, config=mpc)
+    else:
+        make = partial(CascadedPid, config=PidConfig(u_max=limit, velocity_feedforward=p["vff"]))
+    kpis = cycle_error(make, p["frequency_hz"], p["amplitude_deg"], limit)
+    return {"name": trial.name, "params": p, "status": "ok", "kpis": kpis}
+
+
+def figure_table_of(rows: Sequence[Mapping[str, Any]],
+                    horizons: Sequence[int]) -> list[dict[str, Any]]:
+    """The rows of :func:`figure_trials` as the table of
+    :func:`controllers.servo_sim.figure_table` (same keys, same numbers)."""
+    cases: dict[tuple[float, float], dict[tuple[Any, ...], Any]] = {}
+    for row in rows:
+        p = row["params"]
+        entry = cases.setdefault((p["frequency_hz"], p["current_limit_mA"]), {})
+        key = (p["controller"], p.get("ert", p.get("vff")), p.get("ht"))
+        entry[key] = row["kpis"]
+    table = []
+    for (frequency, limit), entry in cases.items():
+        setpoint = entry[("mpc", "zoh", 1)] if 1 in horizons else None
+        zoh = [entry[("mpc", "zoh", ht)] for ht in horizons]
+        foh = [entry[("mpc", "foh", ht)] if ht >= 2 else None for ht in horizons]
+        pid_plain, pid_vff = entry[("pid", False, None)], entry[("pid", True, None)]
+        base = setpoint["cumulative_error_deg"] if setpoint else None
+
+        def normalised(metrics: Mapping[str, float] | None, base: float | None = base
+                       ) -> float | None:
+            return None if metrics is None or base is None else (
+                metrics["cumulative_error_deg"] / base)
+
+        table.append({
+            "frequency_hz": frequency, "current_limit_mA": limit, "horizons": list(horizons),
+            "setpoint": setpoint, "pid": normalised(pid_plain), "pid_vff": normalised(pid_vff),
+            "zoh": [normalised(m) for m in zoh], "foh": [normalised(m) for m in foh],
+            "absolute": {"pid": pid_plain, "pid_vff": pid_vff, "zoh": zoh, "foh": foh},
+        })
+    return table
+
+
+def run_figures_sweep(horizons: Sequence[int], hp: int, q: float, r: float, amplitude: float,
+                      engine: Engine) -> list[dict[str, Any]]:
+    """``hil servo figures``: the table's points as a sweep on ``engine`` (one after another
+    in this process, or Ray tasks); the table. A failed point is an error."""
+    trials = figure_trials(horizons, hp, q, r, amplitude)
+    rows: dict[str, dict[str, Any]] = {}
+    engine.run(run_figure_trial, trials, lambda row: rows.__setitem__(row["name"], row))
+    failed = [row for row in rows.values() if row["status"] != "ok"]
+    if failed:
+        raise HilError(f"figures: point {failed[0]['name']} failed: {failed[0].get('error')}")
+    return figure_table_of([rows[t.name] for t in trials], horizons)

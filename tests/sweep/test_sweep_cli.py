@@ -1,0 +1,126 @@
+"""``hil sweep`` without Ray: the one-line errors, a real drive swept one trial after another
+(--serial), the error when Ray is not installed, and the parts (space, names, Pareto front)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+
+import pytest
+
+from hil import api
+from hil.cli.main import main
+from hil.cli.servo import add_run_arguments
+from hil.sweep.plot import pareto_front
+from hil.sweep.space import Space, expand
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def error_of(capsys, argv: list[str]) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err
+    return err
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["sweep", "bench", "--controller", "bc", "--bench", "modbus-tcp://127.0.0.1:5020",
+      "--grid", "dwell=5,8"],
+     "hil: error: --bench modbus-tcp://127.0.0.1:5020 is not emulated: a real device cannot "
+     "run trials in parallel; add --serial to run them one after another"),
+    (["sweep", "servo", "--controller", "pid", "--grid",
+      "drive=emulated,socketcand://127.0.0.1:29536"],
+     "hil: error: --drive socketcand://127.0.0.1:29536 is not emulated: a real device cannot "
+     "run trials in parallel; add --serial to run them one after another"),
+    (["sweep", "servo", "--controller", "pid", "--grid", "speed=1,2"],
+     "hil: error: --grid 'speed=1,2': unknown key 'speed'"),
+    (["sweep", "servo", "--controller", "pid", "--grid", "ht=4,zero"],
+     "hil: error: --grid 'ht=4,zero': ht=zero: expected a positive integer, got 'zero'"),
+    (["sweep", "servo", "--controller", "pid", "--grid", "ert=foh,hold"],
+     "hil: error: --grid 'ert=foh,hold': ert=hold: expected one of foh, zoh"),
+    (["sweep", "servo", "--controller", "pid", "--random", "3", "umax=900:100"],
+     "hil: error: --random 'umax=900:100': lo must not exceed hi"),
+    (["sweep", "servo", "--controller", "pid", "--grid", "umax=500,900", "--address",
+      "10.0.0.1:6379"],
+     "hil: error: --address 10.0.0.1:6379: expected auto (the cluster this machine is part "
+     "of) or ray://HOST:PORT"),
+    (["sweep", "servo", "--controller", "pid"],
+     "hil: error: nothing to sweep: give --grid, --random or a [sweep] table"),
+])
+def test_bad_sweeps_are_refused_in_one_line(capsys, argv, message):
+    assert error_of(capsys, argv).startswith(message)
+
+
+def test_a_sweep_table_with_an_unknown_key_is_refused(capsys, tmp_path):
+    plan = tmp_path / "plan.toml"
+    plan.write_text("[sweep]\nworker = 2\n")
+    assert error_of(capsys, ["sweep", "servo", "--controller", "pid", "--sweep-config",
+                             str(plan)]) == (
+        f"hil: error: {plan}: unknown key 'sweep.worker' (known here: address, grid, random, "
+        "seed, workers)")
+
+
+def test_a_real_drive_is_swept_one_trial_after_another_with_serial(capsys, tmp_path):
+    with api.start_drive_emulator() as emulator:   # its own process, socketcand on loopback
+        status = main(["sweep", "servo", "--controller", "pid", "--drive", emulator.url,
+                       "--duration", "0.3", "--grid", "umax=500,900", "--serial",
+                       "--out", str(tmp_path), "--json"])
+    result = json.loads(capsys.readouterr().out)
+    assert status == 0
+    assert result["engine"] == "serial" and result["workers"] == 1
+    assert [t["status"] for t in result["trials"]] == ["ok", "ok"]
+    assert all(t["kpis"]["drive"].startswith("socketcand://") and t["kpis"]["ticks"] > 100
+               for t in result["trials"])
+
+
+def test_without_ray_the_sweep_names_the_extra_to_install(tmp_path):
+    code = ("import sys; sys.modules['ray'] = None\n"   # `import ray` now raises ImportError
+            "from hil.cli.main import main\n"
+            "sys.exit(main(['sweep', 'servo', '--controller', 'pid', '--grid', 'umax=500,900',"
+            f" '--out', {str(tmp_path)!r}]))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == ("hil: error: sweeps run on Ray, which is not installed: "
+                                   "pip install 'hil[sweep]'")
+
+
+def servo_space() -> Space:
+    parser = argparse.ArgumentParser()
+    add_run_arguments(parser)
+    return Space(parser)
+
+
+def test_the_grid_is_the_cartesian_product_named_by_its_parameters():
+    space = servo_space()
+    grid = dict([space.grid_entry("ht=2,4"), space.grid_entry("ert=zoh,foh"),
+                 space.grid_entry("reference=sine:amplitude=1,frequency=2;hold:position=0")])
+    trials = expand(grid)
+    assert len(trials) == 8
+    assert trials[0].params == {"ht": 2, "ert": "zoh",
+                                "reference": "sine:amplitude=1,frequency=2"}
+    assert trials[0].name == "ht-2_ert-zoh_reference-sine_amplitude=1_frequency=2"
+    assert len({t.name for t in trials}) == 8
+
+
+def test_random_points_are_seeded_and_combined_with_the_grid():
+    space = servo_space()
+    ranges = [space.range_entry("umax=100:2000"), space.range_entry("param.kp=0.5:2.5")]
+    samples = space.sample(ranges, 4, seed=3)
+    assert samples == space.sample(ranges, 4, seed=3) != space.sample(ranges, 4, seed=4)
+    assert all(100 <= s["umax"] <= 2000 and 0.5 <= s["param.kp"] <= 2.5 for s in samples)
+    trials = expand(dict([space.grid_entry("ert=zoh,foh")]), samples)
+    assert len(trials) == 8 and trials[0].params["ert"] == "zoh"
+
+
+def test_names_that_clash_after_cleaning_get_a_suffix():
+    trials = expand({"reference": ["a b", "a_b"]})
+    assert [t.name for t in trials] == ["reference-a_b", "reference-a_b-2"]
+
+
+def test_the_pareto_front_keeps_the_points_nothing_beats_on_both():
+    points = [(3.0, 1.0), (1.0, 3.0), (2.0, 2.0), (2.5, 2.5), (1.0, 4.0)]
+    assert pareto_front(points) == [1, 2, 0]
