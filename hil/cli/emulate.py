@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import signal
-import threading
 import time
 from collections.abc import Iterator
 
@@ -41,10 +40,33 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ed.set_defaults(handler=emulate_drive)
 
 
+class StopFlag:
+    """A stop request a signal handler may set: a plain store, no lock. (``Event.set()`` in a
+    handler takes the lock the interrupted ``Event.wait()`` may hold: two SIGTERMs a few ms
+    apart once hung ``hil emulate bench`` for minutes.) ``is_set``/``wait`` poll it."""
+
+    POLL_S = 0.05
+
+    def __init__(self) -> None:
+        self.requested = False
+
+    def set(self) -> None:
+        self.requested = True
+
+    def is_set(self) -> bool:
+        return self.requested
+
+    def wait(self, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while not self.requested and time.monotonic() < deadline:
+            time.sleep(min(self.POLL_S, max(deadline - time.monotonic(), 0.0)))
+        return self.requested
+
+
 @contextlib.contextmanager
-def _until_stopped() -> Iterator[threading.Event]:
-    """An event that SIGTERM sets; Ctrl-C ends the block quietly. Restores the SIGTERM handler."""
-    stop = threading.Event()
+def _until_stopped() -> Iterator[StopFlag]:
+    """A flag that SIGTERM sets; Ctrl-C ends the block quietly. Restores the SIGTERM handler."""
+    stop = StopFlag()
     previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
         yield stop

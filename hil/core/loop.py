@@ -178,6 +178,7 @@ class FixedRateLoop:
         self._window_ticks = max(1, round(stats_window_s * 1e9 / self.base_period_ns))
         self._handle_signals = handle_signals
         self._stop = threading.Event()
+        self._signalled = False  # set by the signal handler: a plain store, nothing that locks
         self.stop_reason: str | None = None
         self.ticks = 0
         self.skipped_ticks = 0
@@ -241,7 +242,7 @@ class FixedRateLoop:
         next_window = self._window_ticks
         perf = time.perf_counter_ns
         realtime = clock.mode == "realtime"  # in lockstep, slow compute costs no virtual time
-        while not self._stop.is_set() and (limit is None or n < limit):
+        while not (self._signalled or self._stop.is_set()) and (limit is None or n < limit):
             deadline = t0 + n * period
             late_by = clock.wait_until(deadline)
             if late_by >= period:  # woke up in a later slot: skip to it, count what was lost
@@ -349,7 +350,11 @@ class FixedRateLoop:
         return previous
 
     def _on_signal(self, signum: int, _frame: Any) -> None:
-        self.stop(f"signal {signal.Signals(signum).name}")
+        """Plain stores only: ``Event.set()`` takes a lock the interrupted code may hold (two
+        signals a few ms apart would then deadlock the main thread)."""
+        if self.stop_reason is None:
+            self.stop_reason = f"signal {signal.Signals(signum).name}"
+        self._signalled = True
 
     @staticmethod
     def _restore_signal_handlers(previous: dict[int, Any]) -> None:
