@@ -19,6 +19,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -193,13 +194,18 @@ class SequencePlayer(Task):
 
 
 class PlantStepTask(Task):
-    """Lockstep: steps the emulated plant until its time matches the loop's clock (first task)."""
+    """Lockstep: steps the emulated plant until its time matches the loop's clock (first task),
+    and records every fault the emulator injected as a ``fault.injected`` event (the
+    emulator's side of the story: what the bridge detects is recorded by the bridge)."""
 
-    def __init__(self, emulator: EmulatedBench, name: str = "emulator") -> None:
+    def __init__(self, emulator: EmulatedBench, name: str = "emulator",
+                 on_event: EventSink = no_event) -> None:
         super().__init__(name, 1)
         self.emulator = emulator
+        self.on_event = on_event
         self._t0_ns: int | None = None
         self._k0 = 0
+        self._reported = 0
 
     def read(self, t_ns: int) -> None:
         plant = self.emulator.plant
@@ -208,6 +214,13 @@ class PlantStepTask(Task):
         target = self._k0 + round((t_ns - self._t0_ns) / 1e9 / plant.dt)
         while plant.k < target:
             self.emulator.step()
+        events = self.emulator.faults.events
+        while self._reported < len(events):
+            event = events[self._reported]
+            self._reported += 1
+            self.on_event("fault.injected", f"emulator: {event['fault']} injected at plant "
+                          f"t={event['t_s']:.2f} s", level="warning", source="emulator",
+                          **event)
 
 
 @dataclass
@@ -245,13 +258,15 @@ def open_modbus(url: str, config: BenchConfig, session: Session) -> OpenedBench:
     return OpenedBench(safe_bench(url, config, session.clock, session.event))
 
 
-def make_emulator(config: BenchConfig) -> EmulatedBench:
-    """The emulated bench of ``config`` (not serving yet), once the config is checked for it."""
+def make_emulator(config: BenchConfig, on_fault: Callable[[str], None] | None = None
+                  ) -> EmulatedBench:
+    """The emulated bench of ``config`` (not serving yet), once the config is checked for it;
+    it plays ``config.faults`` and tells ``on_fault`` of each one as it starts."""
     from emulators.bench_server import EmulatedBench
     from hil.bench.config import check_emulation
 
     check_emulation(config)
-    return EmulatedBench(config.plant, config.server)
+    return EmulatedBench(config.plant, config.server, config.faults, on_fault)
 
 
 def open_emulated(url: str, config: BenchConfig, session: Session) -> OpenedBench:
@@ -264,7 +279,7 @@ def open_emulated(url: str, config: BenchConfig, session: Session) -> OpenedBenc
         return _emulator_process(config, session)
     emulator = make_emulator(config)
     tcp_url = emulator.serve_tcp()
-    session.add_task(PlantStepTask(emulator))
+    session.add_task(PlantStepTask(emulator, on_event=session.event))
     try:
         return OpenedBench(safe_bench(tcp_url, config, session.clock, session.event), emulator)
     except BaseException:

@@ -7,8 +7,20 @@ import contextlib
 import signal
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 
+from emulators.faults import (
+    FORM,
+    KINDS,
+    Fault,
+    for_emulator,
+    parse_fault,
+    parse_faults_table,
+    print_event,
+)
 from hil.cli.argtypes import host_port, positive_int
+from hil.core.config import load_toml
+from hil.core.errors import ConfigError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -28,6 +40,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     eb.add_argument("--seed", type=int, help="measurement noise seed (default: plant.seed)")
     eb.add_argument("--disturbance", action="store_true",
                     help="switch the unknown disturbance load on (plant.disturbance)")
+    _add_fault_arguments(eb, "bench", "delay@2-4:ms=300, drop@5-8, weld@3:relay=P1")
     eb.set_defaults(handler=emulate_bench)
     ed = emu_sub.add_parser("drive", help="CiA 402 servo drive over socketcand")
     ed.add_argument("--socketcand", type=host_port, metavar="HOST:PORT", required=True,
@@ -37,7 +50,41 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     help="drive config laid over the default (hil/configs/drive.toml); "
                     "its [emulator] table is used")
     ed.add_argument("--channel", help="bus name clients open (default: emulator.channel)")
+    _add_fault_arguments(ed, "drive", "emcy@2:code=0x2310, no_heartbeat@1-3")
     ed.set_defaults(handler=emulate_drive)
+
+
+def _fault(text: str) -> Fault:
+    try:
+        return parse_fault(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix(f"--fault {text!r}: ")
+                                         ) from None
+
+
+def _add_fault_arguments(parser: argparse.ArgumentParser, emulator: str, example: str) -> None:
+    kinds = ", ".join(k for k, (where, _) in KINDS.items() if where == emulator)
+    parser.add_argument("--fault", action="append", type=_fault, default=[], metavar="SPEC",
+                        help=f"inject a fault (repeat): {FORM}, seconds since the emulator "
+                        f"started, e.g. {example}. Kinds: {kinds}. Each is reported on "
+                        "stderr as 'hil: fault: ...' when it starts")
+    parser.add_argument("--faults", metavar="F.toml",
+                        help="a file whose [faults] table (schedule = [...]) lists faults")
+
+
+def faults_of(args: argparse.Namespace, emulator: str, configured: tuple[Fault, ...] = ()
+              ) -> list[Fault]:
+    """The faults of ``--faults F.toml`` and ``--fault`` (after ``configured``), checked."""
+    faults = list(configured)
+    if args.faults:
+        data, _text = load_toml(args.faults)
+        unknown = set(data) - {"faults"}
+        if unknown:
+            raise ConfigError(f"{args.faults}: unknown table {sorted(unknown)[0]!r} "
+                              "(a faults file has only [faults])")
+        faults += parse_faults_table(data.get("faults", {}), args.faults)
+    faults += args.fault
+    return for_emulator(faults, emulator, "--fault")
 
 
 class StopFlag:
@@ -82,7 +129,8 @@ def emulate_bench(args: argparse.Namespace) -> int:
     from hil.bench.rig import make_emulator
 
     config = load_bench_config(args.config)
-    emulator = make_emulator(config.emulating(args.seed, args.disturbance or None))
+    config = replace(config, faults=tuple(faults_of(args, "bench", config.faults)))
+    emulator = make_emulator(config.emulating(args.seed, args.disturbance or None), print_event)
     if args.tcp is not None:
         url = emulator.serve_tcp(*args.tcp)
     else:
@@ -119,7 +167,8 @@ def emulate_drive(args: argparse.Namespace) -> int:
     emulator = load_drive_config(args.config, overrides={"emulator": overrides}).emulator
     host, port = args.socketcand
     server = SocketcandServer(host, port, channel=emulator.channel)
-    node = DriveNode(emulator, send=server.broadcast)
+    node = DriveNode(emulator, send=server.broadcast, faults=faults_of(args, "drive"),
+                     on_fault=print_event)
     server.on_frame, server.on_tick = node.handle, node.service
     node.boot()
     bound_host, bound_port = server.address
