@@ -201,9 +201,9 @@ class StaleReadings:
         if run == self.polls:
             self.episodes += 1
             device = key.split(".")[0]
-            self.on_event(f"{device}.stale", f"{key} reads {value!r} unchanged for "
-                          f"{self.polls + 1} polls: the sensor looks frozen", level="error",
-                          source="bench", reading=key)
+            self.on_event(f"{device}.stale", f"{key} unchanged for {self.polls + 1} polls: "
+                          "the sensor looks frozen", level="error", source="bench",
+                          reading=key)
 
 
 class LinkMonitor(Task):
@@ -297,7 +297,7 @@ class PlantStepTask(Task):
             self._reported += 1
             self.on_event("fault.injected", f"emulator: {event['fault']} injected at plant "
                           f"t={event['t_s']:.2f} s", level="warning", source="emulator",
-                          **event)
+                          fault=event["fault"], plant_t_s=event["t_s"])
 
 
 @dataclass
