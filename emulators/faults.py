@@ -140,7 +140,8 @@ def make_fault(kind: str, start_s: Any, end_s: Any, params: Mapping[str, Any], w
             if default is None:
                 raise ConfigError(f"{what}: {kind} needs {name}= ({description})")
             out[name] = default
-    return Fault(kind, float(start_s), float(end_s), out)
+    ordered = {name: out[name] for name in known}  # one spelling per fault, whatever the order
+    return Fault(kind, float(start_s), float(end_s), ordered)
 
 
 def parse_fault(text: str, what: str = "--fault") -> Fault:

@@ -112,7 +112,9 @@ class StopFlag:
 
 @contextlib.contextmanager
 def _until_stopped() -> Iterator[StopFlag]:
-    """A flag that SIGTERM sets; Ctrl-C ends the block quietly. Restores the SIGTERM handler."""
+    """A flag that SIGTERM sets; Ctrl-C ends the block quietly. Restores the SIGTERM handler,
+    except after a SIGTERM: the process is on its way out, and a second SIGTERM a few ms later
+    (a supervisor's retry) is ignored instead of killing it in the middle of its exit."""
     stop = StopFlag()
     previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
@@ -120,7 +122,7 @@ def _until_stopped() -> Iterator[StopFlag]:
     except KeyboardInterrupt:
         pass
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN if stop.requested else previous)
 
 
 def emulate_bench(args: argparse.Namespace) -> int:
@@ -138,17 +140,18 @@ def emulate_bench(args: argparse.Namespace) -> int:
                                     stopbits=args.stopbits)
     emulator.run_realtime()
     units = emulator.devices.units
-    print(f"hil: bench emulator listening on {url} (relays unit {units['relays']}, meter unit "
-          f"{units['meter']}, levels unit {units['levels']}); Ctrl-C stops", flush=True)
     started = time.monotonic()
-    with _until_stopped() as stop:
+    with _until_stopped() as stop:  # before the ready line: a SIGTERM after it is handled
         try:
+            print(f"hil: bench emulator listening on {url} (relays unit {units['relays']}, "
+                  f"meter unit {units['meter']}, levels unit {units['levels']}); Ctrl-C stops",
+                  flush=True)
             while not stop.wait(0.2):
                 pass
         finally:
             emulator.stop()
-    print(f"hil: bench emulator stopped after {time.monotonic() - started:.1f} s "
-          f"(plant time {emulator.plant.t_s:.2f} s)", flush=True)
+        print(f"hil: bench emulator stopped after {time.monotonic() - started:.1f} s "
+              f"(plant time {emulator.plant.t_s:.2f} s)", flush=True)
     return 0
 
 
@@ -172,13 +175,13 @@ def emulate_drive(args: argparse.Namespace) -> int:
     server.on_frame, server.on_tick = node.handle, node.service
     node.boot()
     bound_host, bound_port = server.address
-    print(f"hil: drive emulator node {node.node_id} on socketcand {bound_host}:{bound_port} "
-          f"(bus {emulator.channel}); Ctrl-C stops", flush=True)
-    with _until_stopped() as stop:
+    with _until_stopped() as stop:  # before the ready line: a SIGTERM after it is handled
         try:
+            print(f"hil: drive emulator node {node.node_id} on socketcand {bound_host}:"
+                  f"{bound_port} (bus {emulator.channel}); Ctrl-C stops", flush=True)
             server.serve(stop)
         finally:
             server.close()
-    print(f"hil: drive emulator stopped after {node.sync_count} SYNC "
-          f"(plant time {node.plant.time_s:.3f} s)", flush=True)
+        print(f"hil: drive emulator stopped after {node.sync_count} SYNC "
+              f"(plant time {node.plant.time_s:.3f} s)", flush=True)
     return 0

@@ -227,9 +227,11 @@ class FixedRateLoop:
             raise
         finally:
             sys.setswitchinterval(previous_switch)
-            self._restore_signal_handlers(previous_handlers)
-            self.safe_state_all()
-            self._publish_windows(final=True)
+            try:  # a signal during the safe state is one more stop request, not a kill
+                self.safe_state_all()
+                self._publish_windows(final=True)
+            finally:
+                self._restore_signal_handlers(previous_handlers)
             if self.stop_reason is None:
                 self.stop_reason = "completed"
 
@@ -356,7 +358,11 @@ class FixedRateLoop:
             self.stop_reason = f"signal {signal.Signals(signum).name}"
         self._signalled = True
 
-    @staticmethod
-    def _restore_signal_handlers(previous: dict[int, Any]) -> None:
+    def _restore_signal_handlers(self, previous: dict[int, Any]) -> None:
+        """The handlers from before :meth:`run`; after a signal stopped the loop, a SIGTERM
+        that would kill the process is ignored instead: the process is on its way out, and a
+        repeat (a supervisor's retry, ms later) must not cut off its session file."""
         for sig, handler in previous.items():
+            if self._signalled and sig == signal.SIGTERM and handler == signal.SIG_DFL:
+                handler = signal.SIG_IGN
             signal.signal(sig, handler)
