@@ -66,6 +66,7 @@ from pymodbus.pdu.register_message import (
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import SimData, SimDevice
+from pymodbus.transport import CommType
 
 from emulators.bench_plant import BenchPlant, PlantSpec, Snapshot
 from emulators.faults import Fault, FaultSchedule, for_emulator
@@ -355,7 +356,8 @@ class FaultyHandler(ServerRequestHandler):
             await asyncio.sleep(fault.params["ms"] / 1000)
         for fault in self._active("close", unit):
             self.faults.hit(fault)
-            self.transport.close()
+            if self.comm_params.comm_type != CommType.SERIAL:  # a serial line has no connection
+                self.transport.close()
             return
         for fault in self._active("drop", unit):
             if self.faults.hit(fault) % fault.params["every"] == 0:
