@@ -104,6 +104,8 @@ class SafeBench(Device):
         self.reconnect_interval_s = reconnect_interval_s
         self._next_reconnect_s = -math.inf
         self._connections_seen = 0
+        self._retries_reported = 0
+        self._next_retry_report_s = -math.inf
         self._deferral_reported: set[str] = set()
         self.stats = SafetyStats(per_relay_switches={n: 0 for n in relays})
 
@@ -164,7 +166,23 @@ class SafeBench(Device):
             return None
         self.watchdog.success()
         self._check_reconnected()
+        self._report_retries()
         return values
+
+    def _report_retries(self) -> None:
+        """A request that needed more than one try is not lost, but it is news: one
+        ``link.retried`` event per second at most, with the count since the last one."""
+        retries = self._driver.link.retries
+        if retries == self._retries_reported:
+            return
+        t_s = self._now_s(None)
+        if t_s < self._next_retry_report_s:
+            return
+        self._emit("link.retried", f"{retries - self._retries_reported} Modbus request(s) "
+                   "answered only on a later attempt or not at all", level="warning",
+                   retries=retries - self._retries_reported)
+        self._retries_reported = retries
+        self._next_retry_report_s = t_s + 1.0
 
     def _link_lost(self, reason: str) -> None:
         self.stats.link_losses += 1

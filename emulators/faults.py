@@ -19,6 +19,7 @@ import math
 import re
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -208,7 +209,8 @@ class FaultSchedule:
     """The faults of one emulator against its clock ``now()`` (seconds).
 
     :meth:`active` gives the faults of a kind in effect now and records each the first time
-    (``events``: dicts with ``t_s``, ``fault``, ``kind``, ``count``); :meth:`hit` counts what
+    (``events``: dicts with ``t_s``, ``fault``, ``kind`` and ``unix_s``, the wall clock, to
+    line it up with a session's time stamps); :meth:`hit` counts what
     one did (answers dropped, TPDOs delayed...). Thread-safe.
     """
 
@@ -241,9 +243,11 @@ class FaultSchedule:
             if id(fault) in self._started:
                 return
             self._started.add(id(fault))
-            self.events.append({"t_s": t_s, "fault": str(fault), "kind": fault.kind})
+            unix_s = time.time()
+            self.events.append({"t_s": t_s, "fault": str(fault), "kind": fault.kind,
+                                "unix_s": unix_s})
         if self.on_event is not None:
-            self.on_event(f"{fault} injected at t={t_s:.3f} s")
+            self.on_event(f"{fault} injected at t={t_s:.3f} s (unix time {unix_s:.3f})")
 
     def hit(self, fault: Fault) -> int:
         """Count one action of ``fault``; return the count (1 for the first)."""

@@ -59,7 +59,7 @@ def test_a_disturbed_run_detects_every_fault_and_completes(tmp_path, capsys):
     assert status == 3 and kpis["stop_reason"] == "completed"
     faults = kpis["faults"]
     assert events.count("fault.injected") == len(schedule)
-    assert faults["retries"] > 0                            # drop, close: retried
+    assert faults["retries"] > 0 and "link.retried" in events  # drop, close: retried
     assert "meter.stale" in events and faults["stale_readings"] >= 1        # freeze
     assert "relay.stuck" in events and faults["stuck_relays"] >= 1          # weld
     # close (every request for 0.02 s) and busy (0.2 s): lost, then restored after 0.5 s

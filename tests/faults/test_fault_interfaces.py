@@ -61,9 +61,11 @@ def test_a_fault_is_recorded_once_when_it_starts():
     assert len(schedule.active("drop")) == 1 and len(schedule.active("drop")) == 1
     now[0] = 2.0
     assert schedule.active("drop") == []
+    unix_s = schedule.events[0].pop("unix_s")
+    assert abs(unix_s - time.time()) < 5
     assert schedule.events == [{"t_s": 1.5, "fault": "drop@1-2:every=1,unit=0",
                                 "kind": "drop"}]
-    assert lines == ["drop@1-2:every=1,unit=0 injected at t=1.500 s"]
+    assert lines == [f"drop@1-2:every=1,unit=0 injected at t=1.500 s (unix time {unix_s:.3f})"]
 
 
 def test_the_bench_config_faults_table_is_strict(tmp_path):
