@@ -65,7 +65,7 @@ class BusSettings:
     attempts: int                # tries per request before the poll counts as failed
     reconnect_interval_s: float  # while the link is lost, try to reconnect this often
     watchdog_polls: int          # this many failed polls in a row: link lost
-    give_up_s: float = 5.0       # a run stops when the link stays lost this long (0: never)
+    give_up_s: float = 30.0      # a run stops when the link stays lost this long (0: never)
 
 
 @dataclass(frozen=True)

@@ -291,7 +291,7 @@ def _bus(table: Table) -> BusSettings:
         attempts=table.integer("attempts", at_least=1),
         reconnect_interval_s=table.number("reconnect_interval_s", above=0),
         watchdog_polls=table.integer("watchdog_polls", at_least=1),
-        give_up_s=table.number("give_up_s", 5.0, at_least=0),
+        give_up_s=table.number("give_up_s", 30.0, at_least=0),
     )
     table.done()
     return bus

@@ -26,7 +26,8 @@ CONFIG = load_bench_config()
 
 def bench_run(tmp_path, capsys, schedule, *flags):
     config = tmp_path / "faults.toml"
-    config.write_text("[faults]\nschedule = " + json.dumps(schedule) + "\n")
+    config.write_text("[bus]\ngive_up_s = 5.0\n[faults]\nschedule = " + json.dumps(schedule)
+                      + "\n")
     out = tmp_path / "run.mcap"
     status = main(["bench", "run", "--controller", "bc", "--cycles", "1", "--config",
                    str(config), "--out", str(out), "--json", *flags])
