@@ -113,3 +113,21 @@ def test_a_frame_with_a_protocol_id_is_discarded_and_the_next_answered(raw):
     raw.sock.sendall(bad + good)
     reply = raw.reply(1.0)
     assert reply is not None and reply[:2] == bytes([1, 1])
+
+
+@pytest.mark.parametrize("code", [3, 8, 100])
+def test_a_missing_function_over_rtu_is_exception_1_with_a_good_crc(code):
+    import serial
+    from pymodbus.framer.rtu import FramerRTU
+
+    from emulators.null_modem import NullModem
+
+    with NullModem() as modem, make_emulator(
+            load_bench_config(None).emulating(None, None)) as emulator:
+        emulator.serve_serial(modem.ports[1])
+        with serial.Serial(modem.ports[0], 115200, timeout=0.5) as port:
+            frame = bytes([2, code, 0, 0, 0, 2])
+            port.write(frame + FramerRTU.compute_CRC(frame).to_bytes(2, "big"))
+            reply = port.read(5)
+    assert reply[:3] == bytes([2, code | 0x80, 1])
+    assert FramerRTU.check_CRC(reply[:3], int.from_bytes(reply[3:5], "big"))
