@@ -10,8 +10,11 @@
 For each fault: injected (the emulator's record), detected (the bridge's events or counters in
 its window), and the reaction. Messages lost: samples missing from the session, split into
 those inside a fault's window (what the fault destroyed, reported) and outside every window
-(silent losses). Target: every fault detected, zero silent losses. A baseline from the same
-run: the same session without faults (its losses are the machine's, not the faults').
+(silent losses). Target: every fault detected, zero silent losses. Baselines from the same
+run: the bench session again without faults (its losses are the machine's, not the faults');
+for the servo, the stale cycles outside every fault window (a loaded machine's, each one
+counted in ``stale_feedback``). A welded relay nothing asks to switch is "not exercised":
+no read-back can tell it from a healthy one.
 """
 
 from __future__ import annotations
@@ -101,14 +104,18 @@ def soak_bench(minutes: float, seed: int, faults: bool, tmp: Path) -> dict[str, 
     t_start = span[0] if span else 0
     events = [m | {"t_s": (t - t_start) / 1e9} for t, m in data.topic("/events")]
     windows = windows_of(events)
+    relays = [((t - t_start) / 1e9, m) for t, m in data.topic("/bench/relays")]
     rows = []
     for spec, start, end in windows:
         kind = spec.split("@")[0]
         seen = sorted({e["kind"] for e in events if e["kind"] in BENCH_DETECTIONS[kind]
                        and start <= e["t_s"] <= end + MARGIN_S})
+        if kind == "weld" and not seen and not switched(relays, spec, start, end):
+            seen = ["(not exercised: nothing asked the relay to switch in its window)"]
         rows.append((spec, seen))
     power_t = np.array([t for t, _ in data.topic("/bench/power")], dtype=np.int64)
-    caused = [(s, e + MARGIN_S) for _, s, e in windows]
+    # the grid's sample at a window's start may sit a rounding error before it
+    caused = [(s - 0.011, e + MARGIN_S) for _, s, e in windows]
     lost_at = [e["t_s"] for e in events if e["kind"] == "link.lost"]
     back_at = [e["t_s"] for e in events if e["kind"] in ("link.restored", "session.stop")]
     for lost in lost_at:  # a loss a fault caused lasts until the link is back
@@ -119,6 +126,13 @@ def soak_bench(minutes: float, seed: int, faults: bool, tmp: Path) -> dict[str, 
             "scheduled": len(schedule), "lost_in": lost_in, "silent": silent,
             "faults": kpis.get("faults"), "stop": kpis.get("stop_reason"),
             "samples": int(power_t.size)}
+
+
+def switched(relays: list[tuple[float, dict[str, int]]], spec: str, start: float,
+             end: float) -> bool:
+    """Whether anything asked the welded relay of ``spec`` to change during its window."""
+    name = spec.split("relay=")[1].split(",")[0]
+    return any(m[f"{name}_commanded"] != m[name] for t, m in relays if start <= t <= end)
 
 
 def missing_samples(t_ns: np.ndarray, t0_ns: int, period_ns: int,
@@ -201,11 +215,15 @@ def main() -> int:
               f"{args.seed}")
         base = soak_bench(args.bench_minutes, args.seed, False, tmp)
         soak = soak_bench(args.bench_minutes, args.seed, True, tmp)
-        detected = sum(1 for _, seen in soak["rows"] if seen)
+        exercised = [(spec, seen) for spec, seen in soak["rows"]
+                     if not (seen and seen[0].startswith("(not exercised"))]
+        detected = sum(1 for _, seen in exercised if seen)
         for spec, seen in soak["rows"]:
-            print(f"  {spec:<34} {'detected: ' + ', '.join(seen) if seen else 'NOT DETECTED'}")
+            verdict = ("" if seen[:1] and seen[0].startswith("(") else "detected: ") + \
+                ", ".join(seen) if seen else "NOT DETECTED"
+            print(f"  {spec:<36} {verdict}")
         print(f"  faults scheduled {soak['scheduled']}, injected {len(soak['rows'])}, "
-              f"detected {detected}")
+              f"exercised {len(exercised)}, detected {detected}")
         print(f"  reactions (KPIs): {soak['faults']}; stop: {soak['stop']}")
         print(f"  power samples lost: {soak['lost_in']} inside fault windows and the link "
               f"losses they caused (reported), {len(soak['silent'])} outside (silent"
@@ -222,7 +240,7 @@ def main() -> int:
               f"outside (the machine's, each counted in stale_feedback) of {servo['ticks']}")
         print(f"  the final 'silent' fault: {servo['error'] or 'NOT DETECTED'}")
         print(f"  events: {servo['events']}")
-    return 0 if detected == len(soak["rows"]) and not soak["silent"] else 1
+    return 0 if detected == len(exercised) and not soak["silent"] else 1
 
 
 if __name__ == "__main__":
