@@ -148,10 +148,10 @@ def emulate_bench(args: argparse.Namespace) -> int:
                   flush=True)
             while not stop.wait(0.2):
                 pass
-        finally:
+        finally:  # Ctrl-C (KeyboardInterrupt, ended quietly by _until_stopped) too
             emulator.stop()
-        print(f"hil: bench emulator stopped after {time.monotonic() - started:.1f} s "
-              f"(plant time {emulator.plant.t_s:.2f} s)", flush=True)
+            print(f"hil: bench emulator stopped after {time.monotonic() - started:.1f} s "
+                  f"(plant time {emulator.plant.t_s:.2f} s)", flush=True)
     return 0
 
 
@@ -180,8 +180,8 @@ def emulate_drive(args: argparse.Namespace) -> int:
             print(f"hil: drive emulator node {node.node_id} on socketcand {bound_host}:"
                   f"{bound_port} (bus {emulator.channel}); Ctrl-C stops", flush=True)
             server.serve(stop)
-        finally:
+        finally:  # Ctrl-C (KeyboardInterrupt, ended quietly by _until_stopped) too
             server.close()
-        print(f"hil: drive emulator stopped after {node.sync_count} SYNC "
-              f"(plant time {node.plant.time_s:.3f} s)", flush=True)
+            print(f"hil: drive emulator stopped after {node.sync_count} SYNC "
+                  f"(plant time {node.plant.time_s:.3f} s)", flush=True)
     return 0
