@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import logging
 import math
 import socket
 import struct
@@ -85,6 +86,11 @@ EMCY_NAMES = {
     0x8140: "recovered from bus-off", 0x8210: "PDO not processed (length error)",
     0x8220: "PDO length exceeded", 0x8240: "unexpected SYNC data length",
 }
+
+# python-can logs warnings (e.g. socketcand's "Got incomplete message => waiting for more
+# data") that Python's last-resort handler would print on stderr; the driver reports what
+# matters as events and errors. A user's own logging configuration still sees them.
+logging.getLogger("can").addHandler(logging.NullHandler())
 
 
 class DriveError(HilError):
@@ -208,6 +214,8 @@ class CanDriveMaster(Device):
         self._bus_factory = bus_factory
         self._closers = closers
         self._period_ns = round(self.config.cycle_period_s * 1e9)
+        #: the drive's heartbeat is missed after 3 periods (CiA 301 consumers allow 1.5-3)
+        self._heartbeat_timeout_ns = 3 * self.config.drive_heartbeat_ms * 1_000_000
         self._rx_timeout_s = 0.0 if pump is not None else self.config.rx_timeout_s
         n = self.node_id
         self._rpdo1_map = rpdo1_for(self.mode)
@@ -235,6 +243,7 @@ class CanDriveMaster(Device):
         self._last_raw: int | None = None
         self._sdo_inbox: list[bytes] = []
         self._rebooted = False
+        self._drive_heartbeat_ns = 0  # the drive's last heartbeat (master time base)
         self._enabled = False
         self._latched: DriveError | None = None
         self._closed = False
@@ -261,7 +270,7 @@ class CanDriveMaster(Device):
                 self.bus.send(msg)
         except (can.CanError, OSError) as exc:
             raise DriveLinkLostError(f"drive node {self.node_id}: cannot send on "
-                                     f"{self.bus.channel_info}: {exc}") from None
+                                     f"{self.bus.channel_info}: {one_line(exc)}") from None
         if self._pump is not None:
             self._pump()
 
@@ -288,10 +297,12 @@ class CanDriveMaster(Device):
             self._sdo_inbox.append(bytes(data))
         elif can_id == 0x80 + n:
             self._on_emcy(bytes(data))
-        elif can_id == 0x700 + n and len(data) >= 1 and data[0] == 0x00 and self._enabled:
-            self._rebooted = True
-            self._event("drive.bootup", f"drive node {n} sent a boot-up message: it restarted",
-                        level="error")
+        elif can_id == 0x700 + n and len(data) >= 1:
+            self._drive_heartbeat_ns = self._now_ns()
+            if data[0] == 0x00 and self._enabled:
+                self._rebooted = True
+                self._event("drive.bootup", f"drive node {n} sent a boot-up message: it "
+                            "restarted", level="error")
 
     def _drain(self) -> None:
         """Frames already waiting (late TPDOs, EMCY, heartbeats) before a new SYNC."""
@@ -301,7 +312,7 @@ class CanDriveMaster(Device):
                 self._dispatch(msg, late=True)
         except (can.CanError, OSError) as exc:
             raise DriveLinkLostError(f"drive node {self.node_id}: cannot read "
-                                     f"{self.bus.channel_info}: {exc}") from None
+                                     f"{self.bus.channel_info}: {one_line(exc)}") from None
 
     def _on_emcy(self, data: bytes) -> None:
         if len(data) < 3:
@@ -347,7 +358,7 @@ class CanDriveMaster(Device):
                 msg = self.bus.recv(min(remaining, 0.05))
             except (can.CanError, OSError) as exc:
                 raise DriveLinkLostError(f"drive node {self.node_id}: cannot read "
-                                         f"{self.bus.channel_info}: {exc}") from None
+                                         f"{self.bus.channel_info}: {one_line(exc)}") from None
             if msg is not None:
                 self._dispatch(msg, late=True)
 
@@ -542,6 +553,7 @@ class CanDriveMaster(Device):
         self._enabled = True
         self.watchdog.success()
         self._next_heartbeat_ns = None
+        self._drive_heartbeat_ns = self._now_ns()  # the heartbeat is watched from here on
         feedback = self.feedback = self._feedback_by_sdo()
         position = feedback.position_deg
         self._event("drive.enabled", f"drive node {n} OPERATION ENABLED at {position:.4f} deg",
@@ -598,7 +610,7 @@ class CanDriveMaster(Device):
         try:
             self._drain()
         except DriveLinkLostError as exc:
-            self._lose_link(str(exc))
+            self._lose_link(one_line(exc))
         rpdo = self._frame(self._rpdo1, self._rpdo_layout.pack(controlword, target))
         now = self._now_ns()
         frames = [rpdo, self._sync]
@@ -613,7 +625,7 @@ class CanDriveMaster(Device):
             self._send(*frames)
         except DriveLinkLostError as exc:
             self._awaiting = False
-            self._lose_link(str(exc))
+            self._lose_link(one_line(exc))
         self._cycle += 1
 
     def _receive(self) -> Feedback:
@@ -633,12 +645,16 @@ class CanDriveMaster(Device):
                     break
         except (can.CanError, OSError) as exc:
             self._awaiting = False
-            self._lose_link(f"cannot read {self.bus.channel_info}: {exc}")
+            self._lose_link(f"cannot read {self.bus.channel_info}: {one_line(exc)}")
         self._awaiting = False
         stats = self.stats
         stats.cycles += 1
         if self._rebooted:
             self._lose_link("the drive restarted (boot-up message)")
+        silent_ns = self._now_ns() - self._drive_heartbeat_ns
+        if self.config.drive_heartbeat_ms and silent_ns > self._heartbeat_timeout_ns:
+            self._lose_link(f"no heartbeat for {silent_ns / 1e6:.0f} ms (it beats every "
+                            f"{self.config.drive_heartbeat_ms} ms)")
         if self._got == 3:
             stats.fresh += 1
             self.watchdog.success()
@@ -802,11 +818,16 @@ class CanDriveMaster(Device):
                     next_tick += c.cycle_period_s
                     time.sleep(max(0.0, next_tick - time.monotonic()))
             state = self.cycle(CW_DISABLE_VOLTAGE, self._hold_target()).state
+            if state == OPERATION_ENABLED:  # it ignored both: only its SYNC watchdog is left
+                self._event("drive.safe_stop_failed", f"drive node {self.node_id} ignored quick "
+                            "stop and disable voltage: still OPERATION ENABLED; no more SYNC, "
+                            "so its SYNC watchdog must fault it", level="error", state=state)
+                return
             self._event("drive.safe_stop", f"drive node {self.node_id} stopped: {state}",
                         state=state)
         except DriveError as exc:
             self._event("drive.safe_stop_failed", f"drive node {self.node_id}: safe stop "
-                        f"incomplete: {exc}", level="error")
+                        f"incomplete: {one_line(exc)}", level="error")
 
     def _hold_target(self) -> int:
         if self.mode == CSP and self.feedback is not None:
@@ -823,6 +844,13 @@ class CanDriveMaster(Device):
         self.bus.shutdown()
         for closer in self._closers:
             closer()
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception's message on one line: python-can's socketcand interface appends
+    ``traceback.format_exc()`` to its errors, which is cut off here."""
+    text = str(exc).split("Traceback (most recent call last)")[0].strip()
+    return " ".join(text.splitlines()[0].split()) if text else type(exc).__name__
 
 
 # ---------------------------------------------------------------------------- factories
@@ -858,7 +886,7 @@ def open_socketcand(url: str, config: DriveMasterConfig | None = None, *,
                            tcp_tune=True)
         except (can.CanError, OSError) as exc:
             raise DriveLinkLostError(f"socketcand at {host}:{port} refused bus {channel!r}: "
-                                     f"{exc}") from None
+                                     f"{one_line(exc)}") from None
 
     return CanDriveMaster(connect(), config, on_event=on_event, bus_factory=connect, url=url,
                           closers=closers)
@@ -880,6 +908,6 @@ def open_interface(url: str, config: DriveMasterConfig | None = None, *,
             return can.Bus(interface=interface, channel=channel, bitrate=bitrate)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
             raise DriveLinkLostError(f"cannot open CAN interface {interface!r} channel "
-                                     f"{channel!r}: {exc}") from None
+                                     f"{channel!r}: {one_line(exc)}") from None
 
     return CanDriveMaster(open_bus(), config, on_event=on_event, bus_factory=open_bus, url=url)

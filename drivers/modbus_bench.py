@@ -29,13 +29,23 @@ EXCEPTION_NAMES = {
     4: "server device failure", 5: "acknowledge", 6: "server device busy",
     10: "gateway path unavailable", 11: "gateway target device failed to respond",
 }
-GATEWAY_CODES = (10, 11)  # the gateway answered for a device that did not: worth a retry
+#: worth a retry: the device failed or was busy (4, 5, 6), or a gateway answered for a device
+#: that did not (10, 11). Any other exception says the request itself is wrong.
+TRANSIENT_CODES = (4, 5, 6, 10, 11)
 
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())  # we report errors ourselves
 
 
 class LinkError(HilError):
     """No valid answer (timeout, connection refused or lost, garbled reply) after all tries."""
+
+
+class RelayStuckError(HilError):
+    """A verified write read back the other state: the relay does not follow its coil."""
+
+    def __init__(self, message: str, relay: str, actual: bool) -> None:
+        super().__init__(message)
+        self.relay, self.actual = relay, actual
 
 
 class DeviceError(HilError):
@@ -55,6 +65,7 @@ class BusSettings:
     attempts: int                # tries per request before the poll counts as failed
     reconnect_interval_s: float  # while the link is lost, try to reconnect this often
     watchdog_polls: int          # this many failed polls in a row: link lost
+    give_up_s: float = 30.0      # a run stops when the link stays lost this long (0: never)
 
 
 @dataclass(frozen=True)
@@ -137,6 +148,7 @@ class ModbusLink:
         self.timeout_s = timeout_s
         self.attempts = attempts
         self.connections = 0  # successful (re)connections so far
+        self.retries = 0      # attempts that failed and were tried again (or given up)
         if spec.kind == "tcp":
             self.client: ModbusTcpClient | ModbusSerialClient = ModbusTcpClient(
                 spec.host, port=spec.port, timeout=timeout_s, retries=0)
@@ -178,17 +190,20 @@ class ModbusLink:
                 reply = call()
             except (ModbusException, OSError, ValueError) as exc:
                 reason = _first_line(exc) or type(exc).__name__
+                self.retries += 1
                 self._reset()
                 continue
             if reply.isError():
                 code = int(getattr(reply, "exception_code", 0))
                 name = EXCEPTION_NAMES.get(code, "unknown exception")
-                if code in GATEWAY_CODES:
+                if code in TRANSIENT_CODES:
+                    self.retries += 1
                     reason = f"exception {code:#04x} ({name})"
                     continue
                 raise DeviceError(f"{what}: device answered exception {code:#04x} ({name})", code)
             if not check(reply):
                 reason = "reply does not match the request"
+                self.retries += 1
                 self._reset()
                 continue
             return reply
@@ -295,12 +310,13 @@ class ModbusBenchDriver:
         return {name: bits[r.coil - self._coil_first] for name, r in self.map.relays.items()}
 
     def write_relay(self, name: str, on: bool) -> dict[str, bool]:
-        """Switch one relay, read every relay back; raise LinkError when the coil disagrees."""
+        """Switch one relay, read every relay back; raise RelayStuckError when it disagrees."""
         self.link.write_coil(self.map.units["relays"], self.map.relays[name].coil, on)
         states = self.read_relays()
         if states[name] != on:
-            raise LinkError(f"relay {name}: wrote {'on' if on else 'off'}, read back "
-                            f"{'on' if states[name] else 'off'}")
+            raise RelayStuckError(f"relay {name}: wrote {'on' if on else 'off'}, read back "
+                                  f"{'on' if states[name] else 'off'} (does not follow its "
+                                  "coil: welded or stuck?)", name, states[name])
         return states
 
     def probe(self) -> None:

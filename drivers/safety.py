@@ -26,7 +26,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from drivers.modbus_bench import DeviceError, LinkError, ModbusBenchDriver
+from drivers.modbus_bench import DeviceError, LinkError, ModbusBenchDriver, RelayStuckError
 from hil.core.errors import HilError
 from hil.core.types import Device, EventSink, LinkWatchdog, TimeSource, no_event
 
@@ -77,6 +77,7 @@ class SafetyStats:
     deferred_requests: int = 0
     refused_requests: int = 0
     failed_writes: int = 0
+    stuck_relays: int = 0  # verified writes the relay did not follow
     per_relay_switches: dict[str, int] = field(default_factory=dict)
 
 
@@ -103,6 +104,8 @@ class SafeBench(Device):
         self.reconnect_interval_s = reconnect_interval_s
         self._next_reconnect_s = -math.inf
         self._connections_seen = 0
+        self._retries_reported = 0
+        self._next_retry_report_s = -math.inf
         self._deferral_reported: set[str] = set()
         self.stats = SafetyStats(per_relay_switches={n: 0 for n in relays})
 
@@ -110,6 +113,11 @@ class SafeBench(Device):
     @property
     def url(self) -> str:
         return self._driver.link.spec.url
+
+    @property
+    def retries(self) -> int:
+        """Modbus requests tried again so far (timeouts, dropped or garbled answers)."""
+        return self._driver.link.retries
 
     def relays(self) -> dict[str, bool]:
         """Last known actual relay states (verified writes and read-backs)."""
@@ -158,7 +166,23 @@ class SafeBench(Device):
             return None
         self.watchdog.success()
         self._check_reconnected()
+        self._report_retries()
         return values
+
+    def _report_retries(self) -> None:
+        """A request that needed more than one try is not lost, but it is news: one
+        ``link.retried`` event per second at most, with the count since the last one."""
+        retries = self._driver.link.retries
+        if retries == self._retries_reported:
+            return
+        t_s = self._now_s(None)
+        if t_s < self._next_retry_report_s:
+            return
+        self._emit("link.retried", f"{retries - self._retries_reported} Modbus request(s) "
+                   "answered only on a later attempt or not at all", level="warning",
+                   retries=retries - self._retries_reported)
+        self._retries_reported = retries
+        self._next_retry_report_s = t_s + 1.0
 
     def _link_lost(self, reason: str) -> None:
         self.stats.link_losses += 1
@@ -197,7 +221,8 @@ class SafeBench(Device):
     def set_relays(self, changes: Mapping[str, bool], t_ns: int | None = None
                    ) -> dict[str, str]:
         """Ask for relay states; each answer is 'unchanged', 'switched', 'deferred',
-        'refused' (link lost) or 'failed' (the write or its verification failed)."""
+        'refused' (link lost), 'failed' (the write failed) or 'stuck' (written, but the
+        read-back says the relay did not follow: an event ``relay.stuck``)."""
         t_s = self._now_s(t_ns)
         out: dict[str, str] = {}
         for name, on in changes.items():
@@ -231,6 +256,12 @@ class SafeBench(Device):
     def _switch(self, name: str, on: bool, t_s: float) -> str:
         try:
             self._driver.write_relay(name, on)
+        except RelayStuckError as exc:  # the link works: the relay does not
+            self.stats.stuck_relays += 1
+            self._emit("relay.stuck", str(exc), level="error", relay=name, requested=on,
+                       actual=exc.actual)
+            self._guard.applied(name, exc.actual, t_s)
+            return "stuck"
         except (LinkError, DeviceError) as exc:
             self.stats.failed_writes += 1
             self._emit("relay.write_failed", f"relay {name} {'on' if on else 'off'}: {exc}",

@@ -343,6 +343,7 @@ class BenchPlant:
         self._applied = [False] * spec.coils
         self.coil_log: list[tuple[int, int, bool]] = []  # (step that first used it, coil, on)
         self.k = 0
+        self.extra_va = 0.0  # a load step injected by a fault (pf 1, on the base load's phases)
         self.snapshot = self._measure()
 
     # -- inputs ----------------------------------------------------------------------------
@@ -401,6 +402,10 @@ class BenchPlant:
             for phase, share in load.weights:
                 va[phase] += load.va * share
                 watts[phase] += load.va * load.pf * share
+        if self.extra_va:
+            for phase, share in self.loads[0].weights:
+                va[phase] += self.extra_va * share
+                watts[phase] += self.extra_va * share
         return va, watts
 
     # -- sensors ---------------------------------------------------------------------------

@@ -17,7 +17,16 @@ so every function code is served by a small request class bound to :class:`Bench
 * an address outside a device's map, or a read that splits a float, is exception 2;
 * a function code the unit does not have is exception 1;
 * an unknown unit: no answer (RTU: nobody on the line has that address) or exception 0x0B
-  (TCP: a gateway whose target did not respond), per ``emulator.unknown_unit``.
+  (TCP: a gateway whose target did not respond), per ``emulator.unknown_unit``;
+* every other function code 1..127 (pymodbus answers some itself, e.g. FC08 diagnostics, and
+  answers an unknown one with function byte 0x80) is exception 1 with function byte FC|0x80;
+  a request too short for its function is exception 3;
+* a Modbus TCP frame with a non-zero protocol id is discarded whole (pymodbus would keep it in
+  its buffer and answer nothing on that connection again); the next frame is answered.
+
+Faults (:mod:`emulators.faults`) are played here: the Modbus kinds in :class:`FaultyHandler`
+(delay, drop, exception, close, corrupt_crc), the plant kinds in :class:`BenchDevices`
+(freeze, weld) and :class:`EmulatedBench` (load_step), all on the plant's clock.
 """
 
 from __future__ import annotations
@@ -35,6 +44,7 @@ from typing import Any
 import numpy as np
 from pymodbus.constants import ExcCodes
 from pymodbus.exceptions import NoSuchIdException
+from pymodbus.framer.socket import FramerSocket
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
 from pymodbus.pdu.bit_message import (
     ReadCoilsRequest,
@@ -54,10 +64,13 @@ from pymodbus.pdu.register_message import (
     WriteSingleRegisterRequest,
 )
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import SimData, SimDevice
+from pymodbus.transport import CommType
 
 from emulators.bench_plant import BenchPlant, PlantSpec, Snapshot
-from hil.core.errors import HilError
+from emulators.faults import Fault, FaultSchedule, for_emulator
+from hil.core.errors import ConfigError, HilError
 
 SPEC_MAX_REGISTERS = 125   # Modbus spec, FC03/FC04
 SPEC_MAX_COILS = 2000      # Modbus spec, FC01
@@ -68,6 +81,9 @@ logging.getLogger("pymodbus").addHandler(logging.NullHandler())  # we report err
 
 
 UNKNOWN_UNIT_POLICIES = ("auto", "exception", "silent")
+#: the function codes each device has, as its real counterpart: a relay module reads (FC01)
+#: and writes (FC05, FC15) coils; the SDM630 meter and the level sensors read input registers
+FUNCTIONS = {"relays": (1, 5, 15), "meter": (4,), "levels": (4,)}
 
 
 @dataclass(frozen=True)
@@ -112,10 +128,14 @@ class FloatBlock:
 
 
 class BenchDevices:
-    """What each unit answers: the plant's coils and its latest :class:`Snapshot`."""
+    """What each unit answers: the plant's coils and its latest :class:`Snapshot` (or the one
+    a ``freeze`` fault holds; a ``weld`` fault keeps a coil where it is)."""
 
-    def __init__(self, plant: BenchPlant, settings: ServerSettings) -> None:
+    def __init__(self, plant: BenchPlant, settings: ServerSettings,
+                 faults: FaultSchedule | None = None) -> None:
         self.plant = plant
+        self.faults = faults or FaultSchedule([], lambda: plant.t_s)
+        self._frozen: dict[str, Snapshot] = {}
         self.units = dict(settings.units)
         first, end = settings.meter_space
         self.meter = FloatBlock(settings.meter_registers, first, end,
@@ -146,6 +166,14 @@ class BenchDevices:
             return ExcCodes.ILLEGAL_FUNCTION
         if address + len(values) > self.plant.n_coils:
             return ExcCodes.ILLEGAL_ADDRESS
+        welds = self.faults.active("weld")
+        if welds:
+            welded = {self.plant.relays[f.params["relay"]] for f in welds}
+            coils = self.plant.coils()
+            values = [coils[address + i] if address + i in welded else v
+                      for i, v in enumerate(values)]
+            for fault in welds:
+                self.faults.hit(fault)
         self.plant.set_coils(address, values)
         return None
 
@@ -156,15 +184,29 @@ class BenchDevices:
         block = self.meter if role == "meter" else self.levels
         if error := block.check(address, count):
             return error
-        snapshot: Snapshot = self.plant.snapshot  # one reference: one consistent step
+        snapshot: Snapshot = self._snapshot(role)  # one reference: one consistent step
         values = snapshot.meter if role == "meter" else snapshot.levels
         words = block.words(values, snapshot)
         start = address - block.first
         return words[start:start + count]
 
+    def _snapshot(self, role: str) -> Snapshot:
+        freezes = [f for f in self.faults.active("freeze") if f.params["device"] == role]
+        if not freezes:
+            self._frozen.pop(role, None)
+            return self.plant.snapshot
+        self.faults.hit(freezes[0])
+        return self._frozen.setdefault(role, self.plant.snapshot)
+
     def unsupported(self, unit: int) -> ExcCodes:
         self.role(unit)
         return ExcCodes.ILLEGAL_FUNCTION
+
+    def malformed(self, unit: int, function_code: int) -> ExcCodes:
+        """A request too short for its function: 3, or 1 if the unit lacks the function."""
+        if function_code not in FUNCTIONS[self.role(unit)]:
+            return ExcCodes.ILLEGAL_FUNCTION
+        return ExcCodes.ILLEGAL_VALUE
 
 
 def _exception(request: ModbusPDU, code: ExcCodes) -> ExceptionResponse:
@@ -172,27 +214,49 @@ def _exception(request: ModbusPDU, code: ExcCodes) -> ExceptionResponse:
 
 
 def request_classes(devices: BenchDevices) -> list[type[ModbusPDU]]:
-    """Request classes for every function code, bound to ``devices``."""
+    """Request classes for every function code 1..127, bound to ``devices``."""
 
-    class ReadCoils(ReadCoilsRequest):
-        def decode(self, data: bytes) -> None:  # quantity checked in datastore_update
-            self.address, self.count = struct.unpack(">HH", data[:4])
+    class Checked(ModbusPDU):
+        """A request whose body may be too short: then exception 3, not pymodbus's 0x80."""
+
+        malformed = False
+
+        def decode(self, data: bytes) -> None:
+            try:
+                self.decode_body(data)
+            except (struct.error, IndexError, ValueError):
+                self.malformed = True
+
+        def decode_body(self, data: bytes) -> None:
+            super().decode(data)
 
         async def datastore_update(self, context: Any, device_id: int) -> ModbusPDU:
+            if self.malformed:
+                return _exception(self, devices.malformed(device_id, self.function_code))
+            return await self.answer(device_id)
+
+        async def answer(self, device_id: int) -> ModbusPDU:
+            raise NotImplementedError
+
+    class ReadCoils(Checked, ReadCoilsRequest):
+        def decode_body(self, data: bytes) -> None:  # quantity checked in answer
+            self.address, self.count = struct.unpack(">HH", data[:4])
+
+        async def answer(self, device_id: int) -> ModbusPDU:
             bits = devices.read_coils(device_id, self.address, self.count)
             if isinstance(bits, ExcCodes):
                 return _exception(self, bits)
             return ReadCoilsResponse(dev_id=device_id, transaction_id=self.transaction_id,
                                      bits=bits)
 
-    class WriteSingleCoil(WriteSingleCoilRequest):
+    class WriteSingleCoil(Checked, WriteSingleCoilRequest):
         raw_value = 0
 
-        def decode(self, data: bytes) -> None:
+        def decode_body(self, data: bytes) -> None:
             self.address, self.raw_value = struct.unpack(">HH", data[:4])
             self.bits = [self.raw_value == COIL_ON]
 
-        async def datastore_update(self, context: Any, device_id: int) -> ModbusPDU:
+        async def answer(self, device_id: int) -> ModbusPDU:
             if devices.role(device_id) != "relays":
                 return _exception(self, ExcCodes.ILLEGAL_FUNCTION)
             if self.raw_value not in (COIL_ON, COIL_OFF):
@@ -202,8 +266,8 @@ def request_classes(devices: BenchDevices) -> list[type[ModbusPDU]]:
             return WriteSingleCoilResponse(address=self.address, bits=list(self.bits),
                                            dev_id=device_id, transaction_id=self.transaction_id)
 
-    class WriteMultipleCoils(WriteMultipleCoilsRequest):
-        async def datastore_update(self, context: Any, device_id: int) -> ModbusPDU:
+    class WriteMultipleCoils(Checked, WriteMultipleCoilsRequest):
+        async def answer(self, device_id: int) -> ModbusPDU:
             if devices.role(device_id) != "relays":
                 return _exception(self, ExcCodes.ILLEGAL_FUNCTION)
             consistent = (1 <= self.count <= SPEC_MAX_WRITE_COILS
@@ -217,11 +281,11 @@ def request_classes(devices: BenchDevices) -> list[type[ModbusPDU]]:
                                               dev_id=device_id,
                                               transaction_id=self.transaction_id)
 
-    class ReadInputRegisters(ReadInputRegistersRequest):
-        def decode(self, data: bytes) -> None:  # quantity checked in datastore_update
+    class ReadInputRegisters(Checked, ReadInputRegistersRequest):
+        def decode_body(self, data: bytes) -> None:  # quantity checked in answer
             self.address, self.count = struct.unpack(">HH", data[:4])
 
-        async def datastore_update(self, context: Any, device_id: int) -> ModbusPDU:
+        async def answer(self, device_id: int) -> ModbusPDU:
             words = devices.read_input_registers(device_id, self.address, self.count)
             if isinstance(words, ExcCodes):
                 return _exception(self, words)
@@ -229,19 +293,122 @@ def request_classes(devices: BenchDevices) -> list[type[ModbusPDU]]:
                                               transaction_id=self.transaction_id,
                                               registers=words)
 
-    def unsupported(base: type[ModbusPDU]) -> type[ModbusPDU]:
-        async def datastore_update(self: ModbusPDU, context: Any, device_id: int) -> ModbusPDU:
-            return _exception(self, devices.unsupported(device_id))
+    served: list[type[ModbusPDU]] = [ReadCoils, WriteSingleCoil, WriteMultipleCoils,
+                                     ReadInputRegisters]
+    bases: dict[int, type[ModbusPDU]] = {base.function_code: base for base in (
+        ReadDiscreteInputsRequest, ReadHoldingRegistersRequest, WriteSingleRegisterRequest,
+        WriteMultipleRegistersRequest, ReadWriteMultipleRegistersRequest)}
+    taken = {cls.function_code for cls in served}
+    return [*served, *(_unsupported(devices, code, bases.get(code))
+                       for code in range(1, 128) if code not in taken)]
 
-        return type(f"Unsupported{base.__name__}", (base,), {
-            "datastore_update": datastore_update})
 
-    return [
-        ReadCoils, WriteSingleCoil, WriteMultipleCoils, ReadInputRegisters,
-        *(unsupported(base) for base in (
-            ReadDiscreteInputsRequest, ReadHoldingRegistersRequest, WriteSingleRegisterRequest,
-            WriteMultipleRegistersRequest, ReadWriteMultipleRegistersRequest)),
-    ]
+def _unsupported(devices: BenchDevices, code: int, base: type[ModbusPDU] | None
+                 ) -> type[ModbusPDU]:
+    """Function ``code``, which no unit has: exception 1 (an unknown unit: no answer/0x0B).
+    pymodbus's own class, where it has one, keeps its RTU frame size; any other code is taken
+    as the common 8-byte RTU request."""
+
+    def decode(self: ModbusPDU, data: bytes) -> None:
+        return None
+
+    async def datastore_update(self: ModbusPDU, context: Any, device_id: int) -> ModbusPDU:
+        return _exception(self, devices.unsupported(device_id))
+
+    namespace: dict[str, Any] = {"function_code": code, "sub_function_code": -1,
+                                 "decode": decode, "datastore_update": datastore_update}
+    if base is None:
+        namespace["rtu_frame_size"] = 8
+    return type(f"Unsupported{code}", (base or ModbusPDU,), namespace)
+
+
+class DiscardingSocketFramer(FramerSocket):
+    """Modbus TCP framing that drops a whole frame with a non-zero protocol id (pymodbus keeps
+    it at the head of its buffer, and the connection answers nothing after it)."""
+
+    def decode(self, data: bytes) -> tuple[int, int, int, bytes]:
+        skipped = 0
+        while len(data) - skipped >= self.MIN_SIZE and int.from_bytes(
+                data[skipped + 2:skipped + 4], "big"):
+            size = int.from_bytes(data[skipped + 4:skipped + 6], "big") + 6
+            if len(data) - skipped < size:
+                break
+            skipped += size
+        if skipped == 0:
+            return super().decode(data)
+        used, dev_id, tid, frame = super().decode(data[skipped:])
+        return skipped + used, dev_id, tid, frame
+
+
+class FaultyHandler(ServerRequestHandler):
+    """One client connection; plays the Modbus faults of the schedule on every request."""
+
+    faults: FaultSchedule
+
+    async def handle_request(self) -> None:
+        request = self.last_pdu
+        if request is None:
+            return
+        unit = request.dev_id
+        self._corrupt = False
+        for fault in self._active("delay", unit):
+            self.faults.hit(fault)
+            await asyncio.sleep(fault.params["ms"] / 1000)
+        for fault in self._active("close", unit):
+            self.faults.hit(fault)
+            if self.comm_params.comm_type != CommType.SERIAL:  # a serial line has no connection
+                self.transport.close()
+            return
+        for fault in self._active("drop", unit):
+            if self.faults.hit(fault) % fault.params["every"] == 0:
+                return
+        for fault in self._active("exception", unit):
+            self.faults.hit(fault)
+            response = ExceptionResponse(request.function_code, fault.params["code"])
+            response.transaction_id, response.dev_id = request.transaction_id, unit
+            self.server_send(response, self.last_addr)
+            return
+        for fault in self._active("corrupt_crc", unit):
+            self.faults.hit(fault)
+            self._corrupt = True
+        self.last_pdu = request  # a delay may have let another request in
+        await super().handle_request()
+
+    def _active(self, kind: str, unit: int) -> list[Fault]:
+        return [f for f in self.faults.active(kind) if f.params["unit"] in (0, unit)]
+
+    def pdu_send(self, pdu: ModbusPDU, addr: tuple | None = None) -> None:
+        if not getattr(self, "_corrupt", False):
+            super().pdu_send(pdu, addr)
+            return
+        packet = bytearray(self.framer.buildFrame(pdu))
+        packet[-1] ^= 0xFF  # RTU: the CRC's last byte; TCP: the last data byte
+        self.low_level_send(bytes(packet), addr=addr)
+
+
+def _with_faults(server_class: type[Any]) -> type[Any]:
+    class Server(server_class):  # type: ignore[misc, valid-type]
+        """A pymodbus server whose connections play ``faults``."""
+
+        def __init__(self, *args: Any, faults: FaultSchedule, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs)
+            self.faults = faults
+            framer: type[Any] = self.framer  # type: ignore[has-type]
+            if framer is FramerSocket:
+                self.framer = DiscardingSocketFramer
+
+        def callback_new_connection(self) -> ServerRequestHandler:
+            handler = FaultyHandler(self, self.trace_packet, self.trace_pdu,
+                                    self.trace_connect)
+            handler.faults = self.faults
+            return handler
+
+    Server.__name__ = f"Faulty{server_class.__name__}"
+    return Server
+
+
+FaultyTcpServer = _with_faults(ModbusTcpServer)
+FaultySerialServer = _with_faults(ModbusSerialServer)
 
 
 class ServerThread:
@@ -264,8 +431,8 @@ class ServerThread:
 
     def start_tcp(self, host: str, port: int) -> tuple[str, int]:
         def make() -> ModbusTcpServer:
-            return ModbusTcpServer(
-                _placeholder_context(), address=(host, port),
+            return FaultyTcpServer(
+                _placeholder_context(), address=(host, port), faults=self.devices.faults,
                 ignore_missing_devices=self._silent("tcp"),
                 custom_pdu=request_classes(self.devices),
             )
@@ -277,8 +444,9 @@ class ServerThread:
     def start_serial(self, port: str, baudrate: int, parity: str, stopbits: int,
                      bytesize: int) -> str:
         def make() -> ModbusSerialServer:
-            return ModbusSerialServer(
+            return FaultySerialServer(
                 _placeholder_context(), port=port, baudrate=baudrate, parity=parity,
+                faults=self.devices.faults,
                 stopbits=stopbits, bytesize=bytesize,
                 ignore_missing_devices=self._silent("rtu"),
                 custom_pdu=request_classes(self.devices),
@@ -350,9 +518,19 @@ class EmulatedBench:
     ``run_realtime()`` (a thread steps the plant on the wall clock).
     """
 
-    def __init__(self, plant: PlantSpec, server: ServerSettings) -> None:
+    def __init__(self, plant: PlantSpec, server: ServerSettings,
+                 faults: list[Fault] | tuple[Fault, ...] = (),
+                 on_fault: Any = None) -> None:
         self.plant = BenchPlant(plant)
-        self.devices = BenchDevices(self.plant, server)
+        faults = for_emulator(faults, "bench")
+        relays = set(self.plant.relays)
+        for fault in faults:
+            if fault.kind == "weld" and fault.params["relay"] not in relays:
+                raise ConfigError(f"fault {str(fault)!r}: no relay {fault.params['relay']!r} "
+                                  f"(relays: {', '.join(sorted(relays))})")
+        #: the faults played, on the plant's clock; ``faults.events`` records each
+        self.faults = FaultSchedule(faults, lambda: self.plant.t_s, on_fault)
+        self.devices = BenchDevices(self.plant, server, self.faults)
         self._server = ServerThread(self.devices, server.unknown_unit)
         self.url = ""
         self._realtime: threading.Thread | None = None
@@ -379,8 +557,14 @@ class EmulatedBench:
     def step(self, steps: int = 1) -> Snapshot:
         """Lockstep: advance the plant; a read after this returns this snapshot."""
         for _ in range(steps):
-            self.plant.step()
+            self._step_plant()
         return self.plant.snapshot
+
+    def _step_plant(self) -> None:
+        if self.faults:
+            steps = self.faults.active("load_step")
+            self.plant.extra_va = sum(f.params["va"] for f in steps)
+        self.plant.step()
 
     def run_realtime(self) -> None:
         """Step the plant in a background thread, following the monotonic clock."""
@@ -397,7 +581,7 @@ class EmulatedBench:
         while not self._stop_realtime.is_set():
             target = k0 + math.floor((time.monotonic() - t0) / dt)
             while plant.k < target:
-                plant.step()
+                self._step_plant()
             next_at = t0 + (plant.k - k0 + 1) * dt
             self._stop_realtime.wait(max(next_at - time.monotonic(), 0.0))
 

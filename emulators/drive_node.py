@@ -39,7 +39,7 @@ import struct
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -77,6 +77,7 @@ from drivers.cia402 import (
 from emulators.direct_bus import DirectChannel
 from emulators.drive_od import OdDefaults, build_object_dictionary, iter_variables
 from emulators.drive_plant import AxisPlant, Disturbance, Friction
+from emulators.faults import Fault, FaultSchedule, for_emulator
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +101,13 @@ EMCY_PDO_LENGTH = 0x8210
 EMCY_PDO_TOO_LONG = 0x8220
 EMCY_SYNC_LENGTH = 0x8240
 ERR_REG_GENERIC, ERR_REG_CURRENT, ERR_REG_COMMUNICATION = 0x01, 0x02, 0x10
+ERR_REG_VOLTAGE, ERR_REG_TEMPERATURE = 0x04, 0x08
+
+
+def error_register_bit(code: int) -> int:
+    """The error register (0x1001) bit of an EMCY code's class (CiA 301, table 48)."""
+    return {0x2: ERR_REG_CURRENT, 0x3: ERR_REG_VOLTAGE, 0x4: ERR_REG_TEMPERATURE,
+            0x8: ERR_REG_COMMUNICATION}.get(code >> 12, ERR_REG_GENERIC)
 # manufacturer byte 3 of an EMCY 0x8130: which watchdog fired
 CAUSE_HEARTBEAT, CAUSE_SYNC = 0x01, 0x02
 
@@ -211,6 +219,8 @@ class DriveNode:
         send: SendFn,
         plant: AxisPlant | None = None,
         timebase: str = "monotonic",
+        faults: Iterable[Fault] = (),
+        on_fault: Callable[[str], None] | None = None,
     ) -> None:
         if timebase not in ("monotonic", "sync"):
             raise ValueError(f"timebase must be 'monotonic' or 'sync', got {timebase!r}")
@@ -236,6 +246,11 @@ class DriveNode:
         self._sync_time_ns = 0
         self.internal_errors = 0
         self.nmt_state = NMT_INITIALISING
+        self._t0_ns = self._now()
+        #: the faults played, in seconds of the node's time since it was created
+        self.faults = FaultSchedule(for_emulator(faults, "drive"),
+                                    lambda: (self._now() - self._t0_ns) / 1e9, on_fault)
+        self._delayed: list[tuple[int, list[can.Message]]] = []
         self._reset_application()
 
     # ---------------------------------------------------------------- life cycle and time
@@ -282,6 +297,9 @@ class DriveNode:
 
     # ---------------------------------------------------------------------- transport
     def _send(self, messages: list[can.Message]) -> None:
+        for fault in self.faults.active("silent"):
+            self.faults.hit(fault)
+            return
         try:
             self._send_fn(messages)
         except Exception as exc:  # a vanished client or a closed bus must not kill the node
@@ -291,6 +309,8 @@ class DriveNode:
     def handle(self, msg: can.Message) -> None:
         """Process one received frame; never raises."""
         with self.lock:
+            if self.faults and self.faults.active("silent"):
+                return  # bus-off: it hears nothing either
             try:
                 self._dispatch(msg)
             except Exception:  # a bug must not take the drive down: report it as an EMCY
@@ -577,6 +597,14 @@ class DriveNode:
                 pdo.counter = 0
                 values = [self._values[key] for key in pdo.keys]
                 frames.append(_frame(pdo.cob_id, pdo.layout.pack(*values)))
+        if frames and self.faults:
+            for fault in self.faults.active("drop_tpdo"):
+                if self.faults.hit(fault) % fault.params["every"] == 0:
+                    return
+            for fault in self.faults.active("delay_tpdo"):
+                self.faults.hit(fault)
+                self._delayed.append((self._now() + round(fault.params["ms"] * 1e6), frames))
+                return
         if frames:
             self._send(frames)
 
@@ -683,6 +711,9 @@ class DriveNode:
     def _apply_controlword(self, cw: int) -> None:
         """One controlword write (SDO) or latch (RPDO on SYNC): the transitions its command
         makes from the current state (:data:`drivers.cia402.TRANSITIONS`)."""
+        for fault in self.faults.active("ignore_controlword"):
+            self.faults.hit(fault)
+            return
         previous, self._controlword = self._controlword, cw
         self._values[(0x6040, 0)] = cw
         command = command_of(cw, previous)
@@ -757,9 +788,12 @@ class DriveNode:
     def _service(self, now: int) -> None:
         if self.nmt_state == NMT_INITIALISING:
             return
+        if self.faults:
+            self._service_faults(now)
         period_ms = self._values[(0x1017, 0)]
         if period_ms and (self._hb_next_ns is None or now >= self._hb_next_ns):
-            self._send([_frame(0x700 + self.node_id, bytes([self.nmt_state]))])
+            if not self.faults.active("no_heartbeat"):
+                self._send([_frame(0x700 + self.node_id, bytes([self.nmt_state]))])
             late = self._hb_next_ns is None or now - self._hb_next_ns > period_ms * 1_000_000
             base = now if late else self._hb_next_ns
             self._hb_next_ns = base + period_ms * 1_000_000
@@ -774,6 +808,14 @@ class DriveNode:
         if self._ramp_start_ns is not None and \
                 now - self._ramp_start_ns > self.config.quick_stop_timeout_ms * 1_000_000:
             self._ramp_finished()
+
+    def _service_faults(self, now: int) -> None:
+        """Delayed TPDOs that are due; an ``emcy`` fault raises its EMCY and FAULT once."""
+        while self._delayed and self._delayed[0][0] <= now:
+            self._send(self._delayed.pop(0)[1])
+        for fault in self.faults.active("emcy"):
+            if self.faults.hit(fault) == 1:
+                self._fault(fault.params["code"], error_register_bit(fault.params["code"]))
 
     def _communication_lost(self, cause: int) -> None:
         if self.state in (OPERATION_ENABLED, QUICK_STOP_ACTIVE):

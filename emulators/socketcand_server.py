@@ -32,6 +32,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import can
 
@@ -41,6 +42,12 @@ log = logging.getLogger(__name__)
 
 RAW_HOLD_S = 0.2
 MAX_COMMAND_CHARS = 256
+class StopRequest(Protocol):
+    """Anything with ``is_set()``: a threading.Event, or a flag a signal handler sets."""
+
+    def is_set(self) -> bool: ...
+
+
 MAX_OUTPUT_BYTES = 1 << 20  # a client that stops reading is dropped beyond this backlog
 
 
@@ -117,7 +124,7 @@ class SocketcandServer:
         self._thread: threading.Thread | None = None
 
     # ------------------------------------------------------------------------- running
-    def serve(self, stop: threading.Event | None = None) -> None:
+    def serve(self, stop: StopRequest | None = None) -> None:
         """Run the selector loop until ``stop`` (or :meth:`close`) is set."""
         stop = stop or self._stop
         next_tick = time.monotonic()

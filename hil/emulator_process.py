@@ -15,14 +15,17 @@ import signal
 import subprocess
 import sys
 import tempfile
+from collections.abc import Iterable
 from pathlib import Path
 from typing import IO
 
+from emulators.faults import Fault, parse_fault
 from hil.core.errors import HilError
 from hil.core.realtime import forget_helper_process, register_helper_process
 
 _BENCH_URL = re.compile(r"listening on (modbus-tcp://\S+?)[ ,;]")
 _DRIVE_URL = re.compile(r"socketcand (\S+):(\d+)\b")
+FAULT_PREFIX = "hil: fault: "
 
 
 class EmulatorProcess:
@@ -30,6 +33,7 @@ class EmulatorProcess:
 
     def __init__(self, argv: list[str], what: str, timeout_s: float = 30.0) -> None:
         self.what = what
+        self._faults_seen: list[str] = []
         self._stderr: IO[str] = tempfile.TemporaryFile("w+")  # noqa: SIM115 - closed by stop()
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         self.process = subprocess.Popen(
@@ -69,6 +73,16 @@ class EmulatorProcess:
         self._stderr.seek(0)
         return " | ".join(self._stderr.read().strip().splitlines()[-lines:])
 
+    def fault_events(self) -> list[str]:
+        """The faults the emulator reported injecting so far (its ``hil: fault:`` lines)."""
+        if self._stderr.closed:
+            return list(self._faults_seen)
+        self._stderr.seek(0)
+        self._faults_seen = [line.removeprefix(FAULT_PREFIX).strip()
+                             for line in self._stderr.read().splitlines()
+                             if line.startswith(FAULT_PREFIX)]
+        return list(self._faults_seen)
+
     def stop(self, timeout_s: float = 10.0) -> None:
         """SIGTERM (resuming a stopped process first), then SIGKILL; idempotent."""
         forget_helper_process(self.process.pid)
@@ -82,6 +96,8 @@ class EmulatorProcess:
                 self.process.wait(timeout_s)
         if self.process.stdout is not None:
             self.process.stdout.close()
+        if not self._stderr.closed:
+            self.fault_events()
         self._stderr.close()
 
     def __enter__(self) -> EmulatorProcess:
@@ -91,11 +107,23 @@ class EmulatorProcess:
         self.stop()
 
 
+def _fault_flags(faults: Iterable[str | Fault]) -> list[str]:
+    flags = []
+    for fault in faults:
+        text = str(fault)
+        parse_fault(text, "fault")  # a bad one is refused here, not in the child's stderr
+        flags += ["--fault", text]
+    return flags
+
+
 def start_bench_emulator(config: str | Path | None = None, *, seed: int | None = None,
                          disturbance: bool = False, host: str = "127.0.0.1",
+                         faults: Iterable[str | Fault] = (),
                          timeout_s: float = 30.0) -> EmulatorProcess:
-    """The relay-bench emulator over Modbus TCP on ``host`` and a free port."""
-    argv = ["bench", "--tcp", f"{host}:0"]
+    """The relay-bench emulator over Modbus TCP on ``host`` and a free port; ``faults``
+    (``KIND@START[-END][:KEY=VALUE,...]`` or :class:`~emulators.faults.Fault`) are played on
+    its plant clock, seconds after it starts."""
+    argv = ["bench", "--tcp", f"{host}:0", *_fault_flags(faults)]
     if config is not None:
         argv += ["--config", str(config)]
     if seed is not None:
@@ -106,9 +134,11 @@ def start_bench_emulator(config: str | Path | None = None, *, seed: int | None =
 
 
 def start_drive_emulator(config: str | Path | None = None, *, node: int = 1,
-                         host: str = "127.0.0.1", timeout_s: float = 30.0) -> EmulatorProcess:
-    """The CiA 402 drive emulator over socketcand on ``host`` and a free port."""
-    argv = ["drive", "--socketcand", f"{host}:0", "--node", str(node)]
+                         host: str = "127.0.0.1", faults: Iterable[str | Fault] = (),
+                         timeout_s: float = 30.0) -> EmulatorProcess:
+    """The CiA 402 drive emulator over socketcand on ``host`` and a free port; ``faults`` as
+    for :func:`start_bench_emulator`, seconds after it starts."""
+    argv = ["drive", "--socketcand", f"{host}:0", "--node", str(node), *_fault_flags(faults)]
     if config is not None:
         argv += ["--config", str(config)]
     return EmulatorProcess(argv, "drive", timeout_s)

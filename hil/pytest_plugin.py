@@ -12,6 +12,10 @@ each in its own process on a free 127.0.0.1 port, or your hardware with ``--hil-
         kpis = hil_drive.run(MyServoController, {"kp": 300}, duration_s=0.5)
         assert kpis["rms_error_deg"] < 0.5
 
+Faults on purpose: ``@pytest.mark.hil_faults("drop@1-2", "weld@0:relay=P1")`` makes the
+fixture's emulator play those faults (``KIND@START[-END][:KEY=VALUE,...]``, seconds after it
+starts; see docs/FAULTS.md); ``hil_bench.emulator.fault_events()`` lists what it injected.
+
 Each run's session file is kept under the test's ``tmp_path`` and its path is printed when the
 test fails. After every test the fixture checks that the hardware was left in its safe state
 (relays at their safe levels, the drive not in OPERATION ENABLED) and fails the test if not.
@@ -31,6 +35,11 @@ from drivers.cia402 import OPERATION_ENABLED, state_of
 from drivers.safety import SafeBench
 from hil import api
 from hil.emulator_process import EmulatorProcess
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "hil_faults(*specs): faults the hil_bench / hil_drive "
+                            "emulator plays (KIND@START[-END][:KEY=VALUE,...])")
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -57,6 +66,7 @@ class BenchUnderTest:
 
     def __init__(self, url: str, emulated: bool, directory: Path) -> None:
         self.url, self.emulated, self.directory = url, emulated, directory
+        self.emulator: EmulatorProcess | None = None  # the emulator process, if it is one
         self.sessions: list[str] = []
         self._stack = contextlib.ExitStack()
         self._driver: SafeBench | None = None
@@ -108,6 +118,7 @@ class DriveUnderTest:
 
     def __init__(self, url: str, directory: Path) -> None:
         self.url, self.directory = url, directory
+        self.emulator: EmulatorProcess | None = None  # the emulator process, if it is one
         self.sessions: list[str] = []
         self._stack = contextlib.ExitStack()
         self._master: CanDriveMaster | None = None
@@ -144,13 +155,19 @@ class DriveUnderTest:
 
 
 @contextlib.contextmanager
-def _emulator_or(url: str | None, start: Any) -> Iterator[tuple[str, bool]]:
+def _emulator_or(request: pytest.FixtureRequest, option: str, start: Any
+                 ) -> Iterator[tuple[str, EmulatorProcess | None]]:
+    url = request.config.getoption(option)
+    faults = [spec for mark in request.node.iter_markers("hil_faults") for spec in mark.args]
     if url is not None:
-        yield url, False
+        if faults:
+            flag = "--" + option.replace("_", "-")
+            pytest.fail(f"hil_faults: faults are played by the emulator, not by {flag} {url}")
+        yield url, None
         return
-    emulator: EmulatorProcess = start()
+    emulator: EmulatorProcess = start(faults=faults)
     try:
-        yield emulator.url, True
+        yield emulator.url, emulator
     finally:
         emulator.stop()
 
@@ -158,9 +175,9 @@ def _emulator_or(url: str | None, start: Any) -> Iterator[tuple[str, bool]]:
 @pytest.fixture
 def hil_bench(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[BenchUnderTest]:
     """A relay bench for this test: the emulator in its own process, or ``--hil-bench URL``."""
-    with _emulator_or(request.config.getoption("hil_bench"), api.start_bench_emulator) as (
-            url, emulated):
-        bench = BenchUnderTest(url, emulated, tmp_path)
+    with _emulator_or(request, "hil_bench", api.start_bench_emulator) as (url, emulator):
+        bench = BenchUnderTest(url, emulator is not None, tmp_path)
+        bench.emulator = emulator
         try:
             yield bench
         finally:
@@ -174,9 +191,9 @@ def hil_bench(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[BenchU
 @pytest.fixture
 def hil_drive(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[DriveUnderTest]:
     """A servo drive for this test: the emulator in its own process, or ``--hil-drive URL``."""
-    with _emulator_or(request.config.getoption("hil_drive"), api.start_drive_emulator) as (
-            url, _emulated):
+    with _emulator_or(request, "hil_drive", api.start_drive_emulator) as (url, emulator):
         drive = DriveUnderTest(url, tmp_path)
+        drive.emulator = emulator
         try:
             yield drive
         finally:

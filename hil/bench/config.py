@@ -41,6 +41,7 @@ from emulators.bench_plant import (
     ResourceSpec,
 )
 from emulators.bench_server import UNKNOWN_UNIT_POLICIES, ServerSettings
+from emulators.faults import Fault, for_emulator, parse_faults_table
 from hil.core.config import Table, deep_merge, load_toml, parse_toml
 from hil.core.errors import ConfigError
 from hil.core.verdict import RUN_TABLES, RunTables, read_run_tables
@@ -48,7 +49,7 @@ from hil.core.verdict import RUN_TABLES, RunTables, read_run_tables
 SOURCE = "bench config"
 EEC_SOURCE = "eec config"
 BENCH_TABLES = ("bus", "units", "relays", "meter", "levels", "sampling", "sequence", "emulator",
-                "plant")
+                "plant", "faults")
 EEC_TABLES = ("eec", "kalman", "models")
 UNIT_ROLES = ("relays", "meter", "levels")
 
@@ -76,6 +77,7 @@ class BenchConfig:
     plant: PlantSpec             # the emulator's plant
     server: ServerSettings       # the emulator's Modbus server
     run: RunTables               # [controller] params and [limits] of a run
+    faults: tuple[Fault, ...] = ()  # [faults]: what the emulator does wrong, and when
 
     def with_dwell(self, dwell_s: float | None) -> BenchConfig:
         """Every peripheral's dwell set to ``dwell_s`` (``hil bench run --dwell``) for the
@@ -212,11 +214,12 @@ def parse_bench_config(data: Mapping[str, Any], source: str = SOURCE, user_text:
                             emulator.string("unknown_unit", "auto", choices=UNKNOWN_UNIT_POLICIES))
     emulator.done()
     run = read_run_tables(top)
+    faults = tuple(parse_faults_table(top.raw("faults", {}), source))
     for name in EEC_TABLES:  # one user file may hold the EEC's tables too
         top.raw(name, None)
     top.done()
     return BenchConfig(source, dict(data), user_text, bus, bench_map, sampling, problem, plant,
-                       server, run)
+                       server, run, tuple(for_emulator(faults, "bench", f"{source}: faults")))
 
 
 def _relays(table: Table) -> dict[str, RelaySpec]:
@@ -288,6 +291,7 @@ def _bus(table: Table) -> BusSettings:
         attempts=table.integer("attempts", at_least=1),
         reconnect_interval_s=table.number("reconnect_interval_s", above=0),
         watchdog_polls=table.integer("watchdog_polls", at_least=1),
+        give_up_s=table.number("give_up_s", 30.0, at_least=0),
     )
     table.done()
     return bus

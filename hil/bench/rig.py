@@ -19,6 +19,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -30,6 +31,9 @@ from hil.core.errors import ConfigError
 from hil.core.loop import Task
 from hil.core.registry import SchemeRegistry, scheme_of
 from hil.core.types import EventSink, TimeSource, no_event
+
+#: polls in a row with a frozen reading before it is reported (0.5 s at 100 Hz)
+STALE_POLLS = 50
 
 if TYPE_CHECKING:
     from drivers.safety import SafeBench
@@ -102,9 +106,11 @@ class BenchSampler(Task):
 
     def __init__(self, bench: SafeBench, session: Session | None = None, *,
                  quantities: list[str], levels: list[str], levels_every: int = 1,
-                 readback_every: int = 100, divisor: int = 1, name: str = "bench_io") -> None:
+                 readback_every: int = 100, divisor: int = 1, name: str = "bench_io",
+                 stale: StaleReadings | None = None) -> None:
         super().__init__(name, divisor)
         self.bench = bench
+        self.stale = stale
         self.levels_every, self.readback_every = levels_every, readback_every
         self.latest_power: dict[str, float] | None = None
         self.latest_levels: dict[str, float] | None = None
@@ -148,6 +154,8 @@ class BenchSampler(Task):
 
     def write(self, command: Any, t_ns: int) -> None:
         power, levels = command
+        if self.stale is not None:
+            self.stale.check(power, levels, self.bench.relays(), t_ns)
         if power is not None:
             self.latest_power = power
         if levels is not None:
@@ -164,6 +172,76 @@ class BenchSampler(Task):
         message.update({f"{name}_commanded": int(on) for name, on in commanded.items()})
         message["link_up"] = int(self.bench.link_up)
         relays_topic.log(t_ns, message)
+
+
+class StaleReadings:
+    """Frozen sensors: the meter's registers bit-identical for ``polls`` polls in a row (its
+    noise never repeats), or a level unchanged that long while its consumer or supplier
+    relay is on (a known non-zero rate). One event per episode (``meter.stale``,
+    ``levels.stale``, error); ``episodes`` counts them."""
+
+    def __init__(self, polls: int, rates: dict[str, tuple[str, float, str, float]],
+                 on_event: EventSink = no_event) -> None:
+        self.polls, self.rates, self.on_event = polls, rates, on_event
+        self.episodes = 0
+        self._last: dict[str, Any] = {}
+        self._runs: dict[str, int] = {}
+
+    def check(self, power: dict[str, float] | None, levels: dict[str, float] | None,
+              relays: dict[str, bool], t_ns: int) -> None:
+        if power is not None:
+            self._same("meter", tuple(power.values()), True, t_ns)
+        if levels is not None:
+            for name, value in levels.items():
+                consumer, alpha, supplier, eta = self.rates.get(name, ("", 0.0, "", 0.0))
+                rate = alpha * relays.get(consumer, False) + eta * relays.get(supplier, False)
+                self._same(f"levels.{name}", value, rate != 0, t_ns)
+
+    def _same(self, key: str, value: Any, should_move: bool, t_ns: int) -> None:
+        same = should_move and self._last.get(key) == value
+        self._last[key] = value
+        run = self._runs[key] = self._runs.get(key, 0) + 1 if same else 0
+        if run == self.polls:
+            self.episodes += 1
+            device = key.split(".")[0]
+            self.on_event(f"{device}.stale", f"{key} unchanged for {self.polls + 1} polls: "
+                          "the sensor looks frozen", level="error", source="bench",
+                          reading=key)
+
+
+class LinkMonitor(Task):
+    """Every sample: the intervals the bench link was declared lost (``down``, clock ns) and
+    the run's end when it stays lost ``give_up_s`` (event ``link.gave_up``, loop stopped with
+    reason ``link lost``; the relays go to their safe level as at every stop)."""
+
+    def __init__(self, bench: SafeBench, session: Session, give_up_s: float, divisor: int = 1,
+                 name: str = "link") -> None:
+        super().__init__(name, divisor)
+        self.bench, self.session = bench, session
+        self.give_up_ns = round(give_up_s * 1e9)
+        self.down: list[list[int | None]] = []  # [lost at, restored at or None]
+        self.gave_up = False
+
+    def read(self, t_ns: int) -> None:
+        up = self.bench.link_up
+        if not up and (not self.down or self.down[-1][1] is not None):
+            self.down.append([t_ns, None])
+        elif up and self.down and self.down[-1][1] is None:
+            self.down[-1][1] = t_ns
+        if up or not self.give_up_ns or self.gave_up:
+            return
+        lost_at = self.down[-1][0]
+        assert lost_at is not None
+        if t_ns - lost_at >= self.give_up_ns:
+            self.gave_up = True
+            seconds = self.give_up_ns / 1e9
+            self.session.event("link.gave_up", f"bench link lost for {seconds:g} s "
+                               "(bus.give_up_s): the run stops", level="error", source="bench")
+            self.session.loop.stop(f"link lost for {seconds:g} s")
+
+    def intervals(self, end_ns: int) -> list[tuple[int, int]]:
+        """The lost intervals, an open one closed at ``end_ns``."""
+        return [(a, b if b is not None else end_ns) for a, b in self.down if a is not None]
 
 
 class SequencePlayer(Task):
@@ -196,13 +274,18 @@ class SequencePlayer(Task):
 
 
 class PlantStepTask(Task):
-    """Lockstep: steps the emulated plant until its time matches the loop's clock (first task)."""
+    """Lockstep: steps the emulated plant until its time matches the loop's clock (first task),
+    and records every fault the emulator injected as a ``fault.injected`` event (the
+    emulator's side of the story: what the bridge detects is recorded by the bridge)."""
 
-    def __init__(self, emulator: EmulatedBench, name: str = "emulator") -> None:
+    def __init__(self, emulator: EmulatedBench, name: str = "emulator",
+                 on_event: EventSink = no_event) -> None:
         super().__init__(name, 1)
         self.emulator = emulator
+        self.on_event = on_event
         self._t0_ns: int | None = None
         self._k0 = 0
+        self._reported = 0
 
     def read(self, t_ns: int) -> None:
         plant = self.emulator.plant
@@ -211,6 +294,13 @@ class PlantStepTask(Task):
         target = self._k0 + round((t_ns - self._t0_ns) / 1e9 / plant.dt)
         while plant.k < target:
             self.emulator.step()
+        events = self.emulator.faults.events
+        while self._reported < len(events):
+            event = events[self._reported]
+            self._reported += 1
+            self.on_event("fault.injected", f"emulator: {event['fault']} injected at plant "
+                          f"t={event['t_s']:.2f} s", level="warning", source="emulator",
+                          fault=event["fault"], plant_t_s=event["t_s"])
 
 
 @dataclass
@@ -248,13 +338,15 @@ def open_modbus(url: str, config: BenchConfig, session: Session) -> OpenedBench:
     return OpenedBench(safe_bench(url, config, session.clock, session.event))
 
 
-def make_emulator(config: BenchConfig) -> EmulatedBench:
-    """The emulated bench of ``config`` (not serving yet), once the config is checked for it."""
+def make_emulator(config: BenchConfig, on_fault: Callable[[str], None] | None = None
+                  ) -> EmulatedBench:
+    """The emulated bench of ``config`` (not serving yet), once the config is checked for it;
+    it plays ``config.faults`` and tells ``on_fault`` of each one as it starts."""
     from emulators.bench_server import EmulatedBench
     from hil.bench.config import check_emulation
 
     check_emulation(config)
-    return EmulatedBench(config.plant, config.server)
+    return EmulatedBench(config.plant, config.server, config.faults, on_fault)
 
 
 def open_emulated(url: str, config: BenchConfig, session: Session) -> OpenedBench:
@@ -267,7 +359,7 @@ def open_emulated(url: str, config: BenchConfig, session: Session) -> OpenedBenc
         return _emulator_process(config, session)
     emulator = make_emulator(config)
     tcp_url = emulator.serve_tcp()
-    session.add_task(PlantStepTask(emulator))
+    session.add_task(PlantStepTask(emulator, on_event=session.event))
     try:
         return OpenedBench(safe_bench(tcp_url, config, session.clock, session.event), emulator)
     except BaseException:
@@ -299,6 +391,7 @@ class BenchRig:
 
     bench: SafeBench
     sampler: BenchSampler
+    link: LinkMonitor
     player: SequencePlayer | None
     sequence: SequenceSchedule
     emulator: EmulatedBench | EmulatorProcess | None  # in this process (lockstep) or its own
@@ -332,16 +425,21 @@ def attach_bench(session: Session, config: BenchConfig, target: str | None = Non
     url = target or config.bus.url
     opened: OpenedBench = BENCH_DEVICES.open(url, config.emulating(seed, disturbance), session)
     bench, bench_map = opened.bench, config.map
+    rates = {r.name: (r.consumer, r.alpha, r.supplier, r.eta)
+             for r in config.problem.resources}
     sampler = BenchSampler(
         bench, session, quantities=bench_map.meter_quantities, levels=bench_map.level_names,
         levels_every=config.sampling.levels_every,
         readback_every=config.sampling.relays_readback_every, divisor=divisor,
+        stale=StaleReadings(STALE_POLLS, rates, session.event),
     )
     session.add_task(sampler)
+    link = LinkMonitor(bench, session, config.bus.give_up_s, divisor)
+    session.add_task(link)
     sequence = SequenceSchedule(config.problem.sequence)
     player = None
     if play_sequence:
         player = SequencePlayer(bench, sequence, divisor=divisor)
         session.add_task(player)
     session.add_component(bench)
-    return BenchRig(bench, sampler, player, sequence, opened.emulator, config)
+    return BenchRig(bench, sampler, link, player, sequence, opened.emulator, config)

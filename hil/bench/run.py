@@ -30,6 +30,7 @@ import numpy as np
 from controllers.base import BenchController
 from controllers.bench_kpis import bench_kpis, timing_summary
 from controllers.bench_problem import BenchProblem
+from drivers.modbus_bench import RelaySpec
 from hil.bench.config import BenchConfig, default_text, load_configs
 from hil.bench.control import (
     BenchContext,
@@ -40,7 +41,7 @@ from hil.bench.control import (
     SignalLimits,
     estimator_of,
 )
-from hil.bench.rig import SequencePlayer, attach_bench, is_emulated, session_clock
+from hil.bench.rig import BenchRig, SequencePlayer, attach_bench, is_emulated, session_clock
 from hil.core.errors import ConfigError, HilError, UsageError
 from hil.core.plugins import build_controller, controller_factory, controller_short_name
 from hil.core.recorder import RecordingOptions
@@ -139,7 +140,7 @@ def run_bench(opts: BenchRunOptions) -> dict[str, Any]:
     guarded = GuardedController(controller, label, problem.peripherals, log, session.event,
                                 controller_budget(opts.controller_budget_s, step_s, clock))
     try:
-        _run(session, opts, bench, guarded, step_s, log, origin, watch)
+        link = _run(session, opts, bench, guarded, step_s, log, origin, watch)
     except HilError as exc:
         session.close()
         exc.args = (f"{exc} (session recorded to {out})",)
@@ -147,8 +148,11 @@ def run_bench(opts: BenchRunOptions) -> dict[str, Any]:
     except BaseException:
         session.close()
         raise
+    lost = [((a - origin()) / 1e9, (b - origin()) / 1e9) for a, b in link.lost]
+    exclude_lost_link(log, lost, link.gave_up, bench.map.relays)
     kpis = kpis_of(log, problem, opts, label, eec.eec.limit_va, out)
     kpis["stop_reason"] = session.loop.stop_reason
+    kpis.update(link.kpis)
     kpis.update(verdict(kpis, kpi_limits, watch))
     session.close(kpis=kpis)
     return kpis
@@ -162,9 +166,54 @@ def controller_budget(given: float | None, step_s: float, clock: TimeSource) -> 
     return step_s if getattr(clock, "mode", "") == "realtime" else None
 
 
+@dataclass
+class LinkReport:
+    """How the bench link fared: the lost intervals (clock ns), whether the run gave up on
+    it, and the fault KPIs (``faults``, ``disturbed``)."""
+
+    lost: list[tuple[int, int]]
+    gave_up: bool
+    kpis: dict[str, Any]
+
+
+def link_report(rig: BenchRig, end_ns: int) -> LinkReport:
+    lost = rig.link.intervals(end_ns)
+    stats = rig.bench.stats
+    faults = {
+        "link_losses": stats.link_losses, "reconnections": stats.reconnections,
+        "link_down_s": round(sum(b - a for a, b in lost) / 1e9, 2),
+        "failed_polls": stats.failed_polls, "retries": rig.bench.retries,
+        "failed_writes": stats.failed_writes, "stuck_relays": stats.stuck_relays,
+        "stale_readings": rig.sampler.stale.episodes if rig.sampler.stale else 0,
+    }
+    disturbed = any(faults[k] for k in ("link_losses", "failed_polls", "failed_writes",
+                                        "stuck_relays", "stale_readings"))
+    return LinkReport(lost, rig.link.gave_up, {"faults": faults, "disturbed": disturbed})
+
+
+def exclude_lost_link(log: RunLog, lost: list[tuple[float, float]], gave_up: bool,
+                      relays: dict[str, RelaySpec]) -> None:
+    """While the link was lost the relay states are unknown: the relay samples of a lost
+    interval count at the safe level the safety layer drove them to, and after a loss the run
+    gave up on, they are dropped (the KPIs end where the bench was last heard)."""
+    if not lost:
+        return
+    t = np.array(log.relays_t)
+    if gave_up:
+        keep = int(np.searchsorted(t, lost[-1][0], side="left"))
+        del log.relays_t[keep:]
+        for values in log.relays.values():
+            del values[keep:]
+        lost = lost[:-1]
+    for start, end in lost:
+        first, last = np.searchsorted(t, [start, end], side="left")
+        for name, values in log.relays.items():
+            values[first:last] = [relays[name].safe] * (last - first)
+
+
 def _run(session: Session, opts: BenchRunOptions, bench: BenchConfig,
          controller: BenchController, step_s: float, log: RunLog, origin: SequenceOrigin,
-         watch: SignalWatch) -> None:
+         watch: SignalWatch) -> LinkReport:
     rig = None
     try:
         rig = attach_bench(session, bench, opts.bench, play_sequence=False,
@@ -182,6 +231,7 @@ def _run(session: Session, opts: BenchRunOptions, bench: BenchConfig,
             problem.peripherals, controller, origin,
             asynchronous=session.clock.mode == "realtime"))
         session.run(duration_s=opts.cycles * problem.sequence.period_s)
+        return link_report(rig, session.clock.time_ns())
     finally:
         if rig is not None:
             rig.close()

@@ -33,7 +33,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(bc), or your own class with decide(obs) -> {relay: bool}, built as Class(params). "
         "Relays always go through the safety layer (dwell, safe levels). Records an MCAP "
         "session and prints the KPIs; with --limit, the verdict is the exit status (0 all "
-        "hold, 1 one is violated, 2 usage or configuration error). Defaults of the tuning "
+        "hold, 1 one is violated, 2 usage or configuration error, 3 completed with faults: "
+        "the bench misbehaved, see docs/FAULTS.md). Defaults of the tuning "
         "flags come from hil/configs/eec.toml and bench.toml.",
     )
     add_run_arguments(run)

@@ -5,11 +5,22 @@ from __future__ import annotations
 import argparse
 import contextlib
 import signal
-import threading
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 
+from emulators.faults import (
+    FORM,
+    KINDS,
+    Fault,
+    for_emulator,
+    parse_fault,
+    parse_faults_table,
+    print_event,
+)
 from hil.cli.argtypes import host_port, positive_int
+from hil.core.config import load_toml
+from hil.core.errors import ConfigError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -29,6 +40,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     eb.add_argument("--seed", type=int, help="measurement noise seed (default: plant.seed)")
     eb.add_argument("--disturbance", action="store_true",
                     help="switch the unknown disturbance load on (plant.disturbance)")
+    _add_fault_arguments(eb, "bench", "delay@2-4:ms=300, drop@5-8, weld@3:relay=P1")
     eb.set_defaults(handler=emulate_bench)
     ed = emu_sub.add_parser("drive", help="CiA 402 servo drive over socketcand")
     ed.add_argument("--socketcand", type=host_port, metavar="HOST:PORT", required=True,
@@ -38,20 +50,79 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     help="drive config laid over the default (hil/configs/drive.toml); "
                     "its [emulator] table is used")
     ed.add_argument("--channel", help="bus name clients open (default: emulator.channel)")
+    _add_fault_arguments(ed, "drive", "emcy@2:code=0x2310, no_heartbeat@1-3")
     ed.set_defaults(handler=emulate_drive)
 
 
+def _fault(text: str) -> Fault:
+    try:
+        return parse_fault(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix(f"--fault {text!r}: ")
+                                         ) from None
+
+
+def _add_fault_arguments(parser: argparse.ArgumentParser, emulator: str, example: str) -> None:
+    kinds = ", ".join(k for k, (where, _) in KINDS.items() if where == emulator)
+    parser.add_argument("--fault", action="append", type=_fault, default=[], metavar="SPEC",
+                        help=f"inject a fault (repeat): {FORM}, seconds since the emulator "
+                        f"started, e.g. {example}. Kinds: {kinds}. Each is reported on "
+                        "stderr as 'hil: fault: ...' when it starts")
+    parser.add_argument("--faults", metavar="F.toml",
+                        help="a file whose [faults] table (schedule = [...]) lists faults")
+
+
+def faults_of(args: argparse.Namespace, emulator: str, configured: tuple[Fault, ...] = ()
+              ) -> list[Fault]:
+    """The faults of ``--faults F.toml`` and ``--fault`` (after ``configured``), checked."""
+    faults = list(configured)
+    if args.faults:
+        data, _text = load_toml(args.faults)
+        unknown = set(data) - {"faults"}
+        if unknown:
+            raise ConfigError(f"{args.faults}: unknown table {sorted(unknown)[0]!r} "
+                              "(a faults file has only [faults])")
+        faults += parse_faults_table(data.get("faults", {}), args.faults)
+    faults += args.fault
+    return for_emulator(faults, emulator, "--fault")
+
+
+class StopFlag:
+    """A stop request a signal handler may set: a plain store, no lock. (``Event.set()`` in a
+    handler takes the lock the interrupted ``Event.wait()`` may hold: two SIGTERMs a few ms
+    apart once hung ``hil emulate bench`` for minutes.) ``is_set``/``wait`` poll it."""
+
+    POLL_S = 0.05
+
+    def __init__(self) -> None:
+        self.requested = False
+
+    def set(self) -> None:
+        self.requested = True
+
+    def is_set(self) -> bool:
+        return self.requested
+
+    def wait(self, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while not self.requested and time.monotonic() < deadline:
+            time.sleep(min(self.POLL_S, max(deadline - time.monotonic(), 0.0)))
+        return self.requested
+
+
 @contextlib.contextmanager
-def _until_stopped() -> Iterator[threading.Event]:
-    """An event that SIGTERM sets; Ctrl-C ends the block quietly. Restores the SIGTERM handler."""
-    stop = threading.Event()
+def _until_stopped() -> Iterator[StopFlag]:
+    """A flag that SIGTERM sets; Ctrl-C ends the block quietly. Restores the SIGTERM handler,
+    except after a SIGTERM: the process is on its way out, and a second SIGTERM a few ms later
+    (a supervisor's retry) is ignored instead of killing it in the middle of its exit."""
+    stop = StopFlag()
     previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
         yield stop
     except KeyboardInterrupt:
         pass
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN if stop.requested else previous)
 
 
 def emulate_bench(args: argparse.Namespace) -> int:
@@ -60,7 +131,8 @@ def emulate_bench(args: argparse.Namespace) -> int:
     from hil.bench.rig import make_emulator
 
     config = load_bench_config(args.config)
-    emulator = make_emulator(config.emulating(args.seed, args.disturbance or None))
+    config = replace(config, faults=tuple(faults_of(args, "bench", config.faults)))
+    emulator = make_emulator(config.emulating(args.seed, args.disturbance or None), print_event)
     if args.tcp is not None:
         url = emulator.serve_tcp(*args.tcp)
     else:
@@ -68,17 +140,18 @@ def emulate_bench(args: argparse.Namespace) -> int:
                                     stopbits=args.stopbits)
     emulator.run_realtime()
     units = emulator.devices.units
-    print(f"hil: bench emulator listening on {url} (relays unit {units['relays']}, meter unit "
-          f"{units['meter']}, levels unit {units['levels']}); Ctrl-C stops", flush=True)
     started = time.monotonic()
-    with _until_stopped() as stop:
+    with _until_stopped() as stop:  # before the ready line: a SIGTERM after it is handled
         try:
+            print(f"hil: bench emulator listening on {url} (relays unit {units['relays']}, "
+                  f"meter unit {units['meter']}, levels unit {units['levels']}); Ctrl-C stops",
+                  flush=True)
             while not stop.wait(0.2):
                 pass
-        finally:
+        finally:  # Ctrl-C (KeyboardInterrupt, ended quietly by _until_stopped) too
             emulator.stop()
-    print(f"hil: bench emulator stopped after {time.monotonic() - started:.1f} s "
-          f"(plant time {emulator.plant.t_s:.2f} s)", flush=True)
+            print(f"hil: bench emulator stopped after {time.monotonic() - started:.1f} s "
+                  f"(plant time {emulator.plant.t_s:.2f} s)", flush=True)
     return 0
 
 
@@ -97,17 +170,18 @@ def emulate_drive(args: argparse.Namespace) -> int:
     emulator = load_drive_config(args.config, overrides={"emulator": overrides}).emulator
     host, port = args.socketcand
     server = SocketcandServer(host, port, channel=emulator.channel)
-    node = DriveNode(emulator, send=server.broadcast)
+    node = DriveNode(emulator, send=server.broadcast, faults=faults_of(args, "drive"),
+                     on_fault=print_event)
     server.on_frame, server.on_tick = node.handle, node.service
     node.boot()
     bound_host, bound_port = server.address
-    print(f"hil: drive emulator node {node.node_id} on socketcand {bound_host}:{bound_port} "
-          f"(bus {emulator.channel}); Ctrl-C stops", flush=True)
-    with _until_stopped() as stop:
+    with _until_stopped() as stop:  # before the ready line: a SIGTERM after it is handled
         try:
+            print(f"hil: drive emulator node {node.node_id} on socketcand {bound_host}:"
+                  f"{bound_port} (bus {emulator.channel}); Ctrl-C stops", flush=True)
             server.serve(stop)
-        finally:
+        finally:  # Ctrl-C (KeyboardInterrupt, ended quietly by _until_stopped) too
             server.close()
-    print(f"hil: drive emulator stopped after {node.sync_count} SYNC "
-          f"(plant time {node.plant.time_s:.3f} s)", flush=True)
+            print(f"hil: drive emulator stopped after {node.sync_count} SYNC "
+                  f"(plant time {node.plant.time_s:.3f} s)", flush=True)
     return 0

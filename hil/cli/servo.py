@@ -30,7 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "your own class with step(position_deg, t_s) -> current_mA, built as "
         "Class(reference, params); its currents are clamped by the driver whatever it asks. "
         "With --limit, the verdict is the exit status (0 all hold, 1 one is violated, 2 "
-        "usage or configuration error).",
+        "usage or configuration error, 3 completed with faults: stale feedback or an EMCY).",
     )
     add_run_arguments(srun)
     add_junit_argument(srun)

@@ -64,9 +64,22 @@ def params_of(args: argparse.Namespace) -> dict[str, Any]:
     return dict(args.param)
 
 
+#: exit status of a run that completed (no limit violated) but whose hardware misbehaved
+EXIT_DISTURBED = 3
+
+
+def disturbance_line(kpis: Mapping[str, Any]) -> str:
+    """One line naming what disturbed the run (``faults`` KPIs that are not zero)."""
+    faults = kpis.get("faults", {})
+    seen = ", ".join(f"{name} {value}" for name, value in faults.items() if value)
+    return (f"hil: run disturbed ({kpis.get('stop_reason', 'completed')}): {seen or 'faults'}; "
+            "the KPIs exclude what the bench did not report")
+
+
 def finish(kpis: Mapping[str, Any], args: argparse.Namespace, suite: str,
            duration_s: float) -> int:
-    """Write the JUnit report, name every violated limit on stderr; the exit status."""
+    """Write the JUnit report, name every violated limit and a disturbance on stderr; the
+    exit status: 1 a limit violated, else 3 the run was disturbed (``disturbed``), else 0."""
     results = [LimitResult(parse_limit(row["limit"]), row["measured"], row["passed"])
                for row in kpis.get("limits", [])]
     if args.junit:
@@ -79,4 +92,8 @@ def finish(kpis: Mapping[str, Any], args: argparse.Namespace, suite: str,
     failed = [r for r in results if not r.passed]
     for result in failed:
         print(f"hil: limit violated: {result.describe()}", file=sys.stderr)
-    return 1 if failed else 0
+    if kpis.get("disturbed"):
+        print(disturbance_line(kpis), file=sys.stderr)
+    if failed:
+        return 1
+    return EXIT_DISTURBED if kpis.get("disturbed") else 0

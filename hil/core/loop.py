@@ -178,6 +178,7 @@ class FixedRateLoop:
         self._window_ticks = max(1, round(stats_window_s * 1e9 / self.base_period_ns))
         self._handle_signals = handle_signals
         self._stop = threading.Event()
+        self._signalled = False  # set by the signal handler: a plain store, nothing that locks
         self.stop_reason: str | None = None
         self.ticks = 0
         self.skipped_ticks = 0
@@ -226,9 +227,11 @@ class FixedRateLoop:
             raise
         finally:
             sys.setswitchinterval(previous_switch)
-            self._restore_signal_handlers(previous_handlers)
-            self.safe_state_all()
-            self._publish_windows(final=True)
+            try:  # a signal during the safe state is one more stop request, not a kill
+                self.safe_state_all()
+                self._publish_windows(final=True)
+            finally:
+                self._restore_signal_handlers(previous_handlers)
             if self.stop_reason is None:
                 self.stop_reason = "completed"
 
@@ -242,7 +245,7 @@ class FixedRateLoop:
         perf = time.perf_counter_ns
         realtime = clock.mode == "realtime"  # in lockstep, slow compute costs no virtual time
         recorder = self._recorder
-        while not self._stop.is_set() and (limit is None or n < limit):
+        while not (self._signalled or self._stop.is_set()) and (limit is None or n < limit):
             deadline = t0 + n * period
             late_by = clock.wait_until(deadline)
             if late_by >= period:  # woke up in a later slot: skip to it, count what was lost
@@ -352,9 +355,17 @@ class FixedRateLoop:
         return previous
 
     def _on_signal(self, signum: int, _frame: Any) -> None:
-        self.stop(f"signal {signal.Signals(signum).name}")
+        """Plain stores only: ``Event.set()`` takes a lock the interrupted code may hold (two
+        signals a few ms apart would then deadlock the main thread)."""
+        if self.stop_reason is None:
+            self.stop_reason = f"signal {signal.Signals(signum).name}"
+        self._signalled = True
 
-    @staticmethod
-    def _restore_signal_handlers(previous: dict[int, Any]) -> None:
+    def _restore_signal_handlers(self, previous: dict[int, Any]) -> None:
+        """The handlers from before :meth:`run`; after a signal stopped the loop, a SIGTERM
+        that would kill the process is ignored instead: the process is on its way out, and a
+        repeat (a supervisor's retry, ms later) must not cut off its session file."""
         for sig, handler in previous.items():
+            if self._signalled and sig == signal.SIGTERM and handler == signal.SIG_DFL:
+                handler = signal.SIG_IGN
             signal.signal(sig, handler)

@@ -609,6 +609,10 @@ def collect_kpis(config: ServoRunConfig, scenario: Scenario, session: Session,
         fallbacks = getattr(mpc, "fallbacks", None)
         if fallbacks is not None:
             base["empc_fallbacks"] = int(fallbacks)
+    faults = {"stale_feedback": base["stale_feedback"], "late_frames": master.stats.late_frames,
+              "emcy": master.stats.emcy}
+    base["faults"] = faults
+    base["disturbed"] = bool(faults["stale_feedback"] or faults["emcy"])
     if error is not None:
         base["error"] = str(error)
     return base

@@ -1,0 +1,136 @@
+"""Bench faults injected by the emulator, over the real wire, and the bridge's reactions.
+
+Run level: ``hil bench run`` in lockstep against the in-process emulator over Modbus TCP on
+127.0.0.1, its faults from the config's ``[faults]`` table. Link level: the driver against
+the emulator over TCP and over RTU on a real pty pair.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+
+from drivers.modbus_bench import LinkError, ModbusBenchDriver, ModbusLink, parse_bus_url
+from drivers.safety import SafeBench
+from emulators.bench_server import EmulatedBench
+from emulators.faults import parse_fault
+from emulators.null_modem import NullModem
+from hil.bench.config import load_bench_config
+from hil.cli.main import main
+from hil.core.reader import read_session
+
+CONFIG = load_bench_config()
+
+
+def bench_run(tmp_path, capsys, schedule, *flags):
+    config = tmp_path / "faults.toml"
+    config.write_text("[bus]\ngive_up_s = 5.0\n[faults]\nschedule = " + json.dumps(schedule)
+                      + "\n")
+    out = tmp_path / "run.mcap"
+    status = main(["bench", "run", "--controller", "bc", "--cycles", "1", "--config",
+                   str(config), "--out", str(out), "--json", *flags])
+    captured = capsys.readouterr()
+    kpis = json.loads(captured.out) if captured.out.strip().startswith("{") else {}
+    events = [m["kind"] for _, m in read_session(out).topic("/events")]
+    return status, kpis, events, captured.err
+
+
+def test_link_lost_for_good_stops_the_run_with_faults(tmp_path, capsys):
+    status, kpis, events, err = bench_run(tmp_path, capsys, ["drop@10"])
+    assert status == 3
+    assert kpis["stop_reason"] == "link lost for 5 s"
+    assert kpis["disturbed"] and kpis["faults"]["link_losses"] == 1
+    assert kpis["faults"]["link_down_s"] == pytest.approx(5.0, abs=0.02)
+    # the dead period is not counted as relays on: at most the 10 s before the loss
+    assert kpis["overlap_s"] <= 10.0
+    for kind in ("fault.injected", "link.lost", "link.gave_up", "session.stop"):
+        assert kind in events
+    lines = err.strip().splitlines()
+    assert lines == [line for line in lines if line.startswith("hil: ")]
+    assert any(line.startswith("hil: run disturbed (link lost for 5 s): link_losses 1")
+               for line in lines)
+
+
+def test_a_disturbed_run_detects_every_fault_and_completes(tmp_path, capsys):
+    schedule = ["drop@3-3.2:every=2", "close@4-4.02", "freeze@6-8:device=meter",
+                "weld@0:relay=P2", "exception@12-12.2:code=6", "load_step@20-21:va=100"]
+    status, kpis, events, _err = bench_run(tmp_path, capsys, schedule)
+    assert status == 3 and kpis["stop_reason"] == "completed"
+    faults = kpis["faults"]
+    assert events.count("fault.injected") == len(schedule)
+    assert faults["retries"] > 0 and "link.retried" in events  # drop, close: retried
+    assert "meter.stale" in events and faults["stale_readings"] >= 1        # freeze
+    assert "relay.stuck" in events and faults["stuck_relays"] >= 1          # weld
+    # close (every request for 0.02 s) and busy (0.2 s): lost, then restored after 0.5 s
+    assert faults["link_losses"] == faults["reconnections"] == 2
+    assert events.index("link.lost") < events.index("link.restored")
+
+
+def test_a_load_step_over_a_signal_limit_stops_the_run(tmp_path, capsys):
+    status, kpis, events, err = bench_run(tmp_path, capsys, ["load_step@2:va=900"],
+                                          "--limit", "total_va<=1200")
+    assert status == 1
+    assert "limit violated" in err and "total_va" in err
+    assert kpis["stop_reason"].startswith("limit")
+    assert "fault.injected" in events
+
+
+def test_a_request_error_ends_the_run_with_one_line(tmp_path, capsys):
+    status, _kpis, _events, err = bench_run(tmp_path, capsys, ["exception@2:code=2,unit=2"])
+    assert status == 2
+    assert err.count("\n") == 1 and err.startswith("hil: error: ")
+    assert "exception 0x02 (illegal data address)" in err
+
+
+def driver_for(url, timeout_s=0.1, attempts=2):
+    return ModbusBenchDriver(ModbusLink(parse_bus_url(url), timeout_s, attempts), CONFIG.map)
+
+
+def emulator_with(*specs):
+    return EmulatedBench(CONFIG.plant, CONFIG.server, [parse_fault(s) for s in specs])
+
+
+def test_a_late_answer_is_a_timeout_and_a_prompt_one_is_not():
+    with emulator_with("delay@0:ms=300,unit=2", "delay@0:ms=30,unit=3") as emulator:
+        driver = driver_for(emulator.serve_tcp())
+        t0 = time.monotonic()
+        assert driver.read_levels()["q1"] == pytest.approx(55.0)
+        assert time.monotonic() - t0 >= 0.03
+        with pytest.raises(LinkError, match="after 2 attempt"):
+            driver.read_power()
+        assert driver.link.retries == 2
+        assert emulator.faults.hits == {"delay@0:ms=300.0,unit=2": 2,
+                                        "delay@0:ms=30.0,unit=3": 1}
+        driver.close()
+
+
+def test_a_corrupt_crc_is_refused_and_retried_over_rtu():
+    with NullModem() as modem, emulator_with("corrupt_crc@0-1") as emulator:
+        emulator.serve_serial(modem.ports[1])
+        driver = driver_for(f"modbus-rtu://{modem.ports[0]}?baud=115200", timeout_s=0.2)
+        with pytest.raises(LinkError):
+            driver.read_levels()
+        assert driver.link.retries == 2
+        emulator.step(100)  # plant time 1 s: the window is over
+        assert driver.read_levels()["q1"] == pytest.approx(55.0)
+        driver.close()
+
+
+def test_a_welded_relay_is_caught_by_the_read_back():
+    with emulator_with("weld@0:relay=P1") as emulator:
+        events = []
+        bench = SafeBench(driver_for(emulator.serve_tcp()), _Clock(),
+                          on_event=lambda kind, *a, **k: events.append(kind))
+        bench.open()
+        assert bench.set_relays({"P1": True}) == {"P1": "stuck"}
+        assert bench.relays()["P1"] is False and events[-1] == "relay.stuck"
+        assert bench.link_up  # a stuck relay is not a lost link
+        assert bench.set_relays({"P2": True}) == {"P2": "switched"}
+        bench.close()
+
+
+class _Clock:
+    def time_ns(self) -> int:
+        return time.monotonic_ns()
