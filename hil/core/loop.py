@@ -221,6 +221,9 @@ class FixedRateLoop:
             # a writer thread holding the GIL for the default 5 ms would wreck a 2 kHz loop
             sys.setswitchinterval(min(previous_switch, REALTIME_SWITCH_INTERVAL_S))
         try:
+            wait_ready = getattr(self._recorder, "wait_ready", None)
+            if wait_ready is not None:  # a recorder's writer process: started before tick 0
+                wait_ready()
             self._run_ticks(limit)
         except BaseException as exc:
             self.stop(f"error: {type(exc).__name__}: {exc}")

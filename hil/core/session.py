@@ -113,7 +113,6 @@ class Session:
 
     def run(self, duration_s: float | None = None, max_ticks: int | None = None) -> None:
         """Run the loop; safe-state hooks run before this returns, whatever happens."""
-        self.recorder.wait_ready()  # its start-up must not compete with the first ticks
         self.event("session.start", f"{self.kind} session started", source="session")
         hardening = Hardening() if self.harden else None
         if hardening is not None:

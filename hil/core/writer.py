@@ -177,7 +177,8 @@ def main() -> int:
     use_zstd_level()
 
     def ready() -> None:
-        print("ready", flush=True)
+        with contextlib.suppress(OSError):  # the loop process may be gone already
+            print("ready", flush=True)
 
     result = run(options, ready=ready)
     with contextlib.suppress(OSError):  # nobody listens any more: the loop process is gone
