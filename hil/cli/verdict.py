@@ -73,7 +73,7 @@ def disturbance_line(kpis: Mapping[str, Any]) -> str:
     faults = kpis.get("faults", {})
     seen = ", ".join(f"{name} {value}" for name, value in faults.items() if value)
     return (f"hil: run disturbed ({kpis.get('stop_reason', 'completed')}): {seen or 'faults'}; "
-            "the KPIs exclude what the bench did not report")
+            "the KPIs exclude what the hardware did not report")
 
 
 def finish(kpis: Mapping[str, Any], args: argparse.Namespace, suite: str,

@@ -116,7 +116,7 @@ def test_hil_report_json_shows_the_loop_figures_and_what_was_granted(tmp_path):
     run = subprocess.run([sys.executable, "-m", "hil", "servo", "run", "--controller", "pid",
                           "--realtime", "--duration", "0.3", "--out", str(path)],
                          capture_output=True, text=True, timeout=120, cwd=REPO)
-    assert run.returncode in (0, 2), run.stderr  # a starved emulator may end it early
+    assert run.returncode in (0, 2, 3), run.stderr  # a starved emulator: ended early, or disturbed
     report = json.loads(subprocess.run([sys.executable, "-m", "hil", "report", str(path),
                                         "--json"], capture_output=True, text=True,
                                        timeout=60, cwd=REPO).stdout)
