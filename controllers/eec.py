@@ -186,6 +186,7 @@ class EECMilp:
         # what one switch-on costs: its energy and the relay wear (gamma3)
         self.start_cost = self.w1 * self.area_s + settings.gamma3
         self.Gu, self.Gs = prediction.dense()
+        self._consumption: dict[tuple[str, float], np.ndarray] = {}
         self._prepare_patterns()
         self._build_static()
         self.dp = ScheduleDP([DeviceGraph(self.H, L, L) for L in self.dwell_steps]) \
@@ -348,8 +349,14 @@ class EECMilp:
     def consumption(self, relay: str, t_s: float) -> np.ndarray:
         """Seconds the consumer ``relay`` is on in each step of the horizon from ``t_s``."""
         step, seq = self.settings.step_s, self.problem.sequence
-        return np.array([seq.on_fraction(relay, t_s + i * step, t_s + (i + 1) * step)
-                         for i in range(self.H)]) * step
+        key = (relay, round(t_s % seq.period_s, 9))  # the sequence is periodic
+        if key not in self._consumption:
+            if len(self._consumption) > 4096:
+                self._consumption.clear()
+            self._consumption[key] = np.array([
+                seq.on_fraction(relay, t_s + i * step, t_s + (i + 1) * step)
+                for i in range(self.H)]) * step
+        return self._consumption[key]
 
     def solve(self, free: np.ndarray, u_prev: np.ndarray, fixed_steps: np.ndarray,
               q0: np.ndarray, t_s: float, warm_u: np.ndarray | None = None,

@@ -96,7 +96,7 @@ class ScheduleDP:
     are computed for.
     """
 
-    def __init__(self, graphs: Sequence[DeviceGraph], caps: int = 8) -> None:
+    def __init__(self, graphs: Sequence[DeviceGraph], caps: int = 4) -> None:
         self.graphs = list(graphs)
         self.caps = caps
         nd = len(self.graphs)
@@ -109,6 +109,7 @@ class ScheduleDP:
         self.cls = np.concatenate([g.succ_cls for g in self.graphs])
         self.device = np.repeat(np.arange(nd), [g.n for g in self.graphs])
         self.counter = np.concatenate([g.c for g in self.graphs])
+        self.strides = (N + 1) ** np.arange(nd - 1, -1, -1)              # of a joint state key
 
     def cost_to_go(self, costs: np.ndarray, c_lo: np.ndarray, c_hi: np.ndarray) -> np.ndarray:
         """(M, H + 1, N + 1): for each of M class-cost tables ``costs`` (M, nd, H, 3), inf
@@ -122,21 +123,23 @@ class ScheduleDP:
         outside = np.zeros((H, N + 1))
         outside[:, :N][(self.counter < c_lo[self.device].T)
                        | (self.counter > c_hi[self.device].T)] = np.inf
-        # per step, the cost of each state's two edges: class costs flattened (M, H, nd * 3)
+        # the cost of each state's two edges in every step: (M, H, N) each
         flat = costs.reshape(M, -1, H, 3).transpose(0, 2, 1, 3).reshape(M, H, -1)
         index = self.device[:, None] * 3 + self.cls                     # (N, 2)
+        keep_cost, switch_cost = flat[:, :, index[:, 0]], flat[:, :, index[:, 1]]
+        keep_dst, switch_dst = self.dst[:, 0], self.dst[:, 1]
         for i in range(H, 0, -1):
             h[:, i] += outside[i - 1]
-            nxt, cost = h[:, i], flat[:, i - 1]
-            np.minimum(cost[:, index[:, 0]] + nxt[:, self.dst[:, 0]],
-                       cost[:, index[:, 1]] + nxt[:, self.dst[:, 1]], out=h[:, i - 1, :N])
+            nxt = h[:, i]
+            np.minimum(keep_cost[:, i - 1] + nxt.take(keep_dst, axis=1),
+                       switch_cost[:, i - 1] + nxt.take(switch_dst, axis=1), out=h[:, i - 1, :N])
         return h
 
     def trace(self, h: np.ndarray, costs: np.ndarray, starts: np.ndarray,
               prefer: np.ndarray | None = None) -> np.ndarray:
         """(M, nd, H): the least-cost plan of each table of :meth:`cost_to_go`; with
-        ``prefer`` (nd, H), the plan that follows it as long as the bounds can still be kept
-        from there (then the least-cost step back to it)."""
+        ``prefer`` (M, nd, H; -1 = no preference), the plan that follows it as long as the
+        bounds can still be kept from there (then the least-cost step back to it)."""
         M, nd = h.shape[0], len(self.graphs)
         m = np.arange(M)[:, None, None]
         j = np.arange(nd)[None, :, None]
@@ -145,11 +148,12 @@ class ScheduleDP:
         for i in range(self.H):
             cls, dst = self.cls[s], self.dst[s]                          # (M, nd, 2)
             cand = costs[m, j, i, cls] + h[m, i + 1, dst]
-            if prefer is not None:  # any step away from the preferred plan costs 1e12 more
-                cand = cand + 1e12 * ((cls != OFF) != prefer[None, :, i, None])
-            e = (cand[..., 1] < cand[..., 0])[..., None].astype(np.intp)
-            u[:, :, i] = np.take_along_axis(cls, e, axis=2)[..., 0] != OFF
-            s = np.take_along_axis(dst, e, axis=2)[..., 0]
+            if prefer is not None:  # a step away from the preferred plan costs 1e12 more
+                cand += 1e12 * (((cls != OFF) != prefer[:, :, i, None])
+                                & (prefer[:, :, i, None] >= 0))
+            second = cand[..., 1] < cand[..., 0]
+            u[:, :, i] = np.where(second, cls[..., 1], cls[..., 0]) != OFF
+            s = np.where(second, dst[..., 1], dst[..., 0])
         return u
 
     def objectives(self, plans: np.ndarray, u_prev: np.ndarray, costs: np.ndarray,
@@ -183,19 +187,11 @@ class ScheduleDP:
         starts = self.offsets[:-1] + np.array(
             [g.initial(u_prev[j], fixed[j]) for j, g in enumerate(graphs)])
         z0 = float(table[:, 0].max())
-        # the incumbent: the previous plan (``prefer``) kept as far as it stays feasible,
-        # else the least-energy plans
-        h = self.cost_to_go(costs[None], c_lo, c_hi)
-        if not np.isfinite(h[0, 0, starts]).all():
-            return DPResult(None, math.inf, math.inf, False, 0)
-        best_u = self.trace(h, costs[None], starts,
-                            None if prefer is None else np.asarray(prefer) > 0.5)[0]
-        best = float(self.objectives(best_u[None], u_prev, costs, table, z0, peak_cost)[0])
-        # caps: the levels from z0 to the incumbent's peak. A better plan peaking higher
-        # must save energy; the unconstrained bound covers it.
+        # caps: the levels from z0 to the previous plan's peak (all levels without one). A
+        # better plan peaking higher must save energy: the unconstrained bound covers it.
         steps = np.arange(H)
-        top = float(table[steps, np.einsum("j,jh->h", self.weights, self._classes(
-            best_u, u_prev))].max())
+        top = float(table.max()) if prefer is None else float(
+            table[steps, self.weights @ self._classes(prefer, u_prev)].max())
         levels = np.unique(table[(table >= z0) & (table <= top)])
         caps = levels[np.unique(np.linspace(0, levels.size - 1, min(self.caps, levels.size))
                                 .round().astype(int))] if levels.size else levels
@@ -203,23 +199,29 @@ class ScheduleDP:
         grid = table.reshape((H,) + (3,) * nd)
         least = np.stack([grid.min(axis=tuple(1 + k for k in range(nd) if k != j))
                           for j in range(nd)])                          # (nd, H, 3)
-        tables = np.where(least[None] <= caps[:, None, None, None] + 1e-9, costs[None],
-                          np.inf)
-        hs = np.concatenate([self.cost_to_go(tables, c_lo, c_hi), h])  # (M + 1, H + 1, N + 1)
-        tables = np.concatenate([tables, costs[None]])
-        # each cap's own least-energy plans put together: more incumbents
-        ok = np.isfinite(hs[:, 0, starts]).all(axis=1)
-        candidates = self.trace(hs[ok], tables[ok], starts)
+        tables = np.concatenate([np.where(least[None] <= caps[:, None, None, None] + 1e-9,
+                                          costs[None], np.inf), costs[None]])
+        hs = self.cost_to_go(tables, c_lo, c_hi)                      # (M + 1, H + 1, N + 1)
+        if not np.isfinite(hs[-1, 0, starts]).all():
+            return DPResult(None, math.inf, math.inf, False, 0)
+        # incumbents: each cap's own least-energy plans put together, and the previous plan
+        # kept as far as it stays feasible
+        rows = np.flatnonzero(np.isfinite(hs[:, 0, starts]).all(axis=1))
+        wish = np.full((rows.size, nd, H), -1)
+        if prefer is not None:
+            rows = np.append(rows, rows[-1])
+            wish = np.concatenate([wish, (np.asarray(prefer) > 0.5)[None].astype(int)])
+        candidates = self.trace(hs[rows], tables[rows], starts, wish)
         values = self.objectives(candidates, u_prev, costs, table, z0, peak_cost)
         k = int(np.argmin(values))
-        if values[k] < best:
-            best_u, best = candidates[k], float(values[k])
+        best_u, best = candidates[k], float(values[k])
         tol = 1e-10 * max(1.0, abs(best))
         # the least peak cost of a plan in cap k's bucket (above cap k - 1)
         floor_pc = peak_cost(np.concatenate([[z0], caps])).reshape((-1,) + (1,) * (nd + 1))
         peak_costs = peak_cost(table)                                   # (H, 3^nd)
         # the frontier: joint states (K, nd), peak cost so far, energy so far
         S = starts[None, :]
+        hs_t = np.ascontiguousarray(hs.transpose(1, 0, 2))              # (H + 1, M + 1, N + 1)
         pc = peak_cost(np.array([z0]))
         g = np.zeros(1)
         trail: list[tuple[np.ndarray, np.ndarray]] = []  # per step: parent, combination
@@ -230,30 +232,28 @@ class ScheduleDP:
             if time.perf_counter() > deadline:
                 return DPResult(best_u, best, float(min(best, lower)), False, expanded)
             K = S.shape[0]
-            shape = (K,) + (2,) * nd
             gn = g.reshape((K,) + (1,) * nd)
             combo: np.ndarray | int = 0
             key: np.ndarray | int = 0
             rest: np.ndarray | float = 0.0
-            dsts = []
+            D, C = self.dst[S], self.cls[S]                               # (K, nd, 2)
+            R = hs_t[i + 1][:, D]                                         # (M + 1, K, nd, 2)
             for j in range(nd):
                 axes = (K,) + (1,) * j + (2,) + (1,) * (nd - 1 - j)
-                d = self.dst[S[:, j]].reshape(axes)
-                c = self.cls[S[:, j]].reshape(axes)
-                dsts.append(d)
+                c = C[:, j].reshape(axes)
                 gn = gn + costs[j, i][c]
                 combo = combo + c * self.weights[j]
-                key = key * (self.N + 1) + d
-                rest = rest + hs[:, i + 1][:, d]                        # (M + 1, K, 2, ...)
+                key = key * (self.N + 1) + D[:, j].reshape(axes)
+                rest = rest + R[:, :, j].reshape((-1, *axes))
             pcn = np.maximum(pc.reshape((K,) + (1,) * nd), peak_costs[i][combo])
             lb = gn + (rest + np.maximum(pcn, floor_pc)).min(axis=0)
             keep = np.flatnonzero(lb < best - tol)
             if keep.size == 0:  # nothing can beat the incumbent: it is optimal
                 return DPResult(best_u, best, best, False, expanded)
             lower = float(lb.ravel()[keep].min())
-            keys = np.broadcast_to(key, shape).ravel()[keep]
-            gk = np.broadcast_to(gn, shape).ravel()[keep]
-            pk = np.broadcast_to(pcn, shape).ravel()[keep]
+            keys = np.asarray(key).ravel()[keep]
+            gk = np.asarray(gn).ravel()[keep]
+            pk = pcn.ravel()[keep]
             order = np.lexsort((gk, pk, keys))
             ks, gs = keys[order], gk[order]
             first = np.empty(ks.size, dtype=bool)
@@ -266,11 +266,10 @@ class ScheduleDP:
             front = first.copy()
             front[1:] |= shifted[1:] < np.minimum.accumulate(shifted)[:-1] - tol
             chosen = order[front]
-            pick = keep[chosen]
-            S = np.stack([np.broadcast_to(d, shape).ravel()[pick] for d in dsts], axis=1)
+            S = (ks[front][:, None] // self.strides) % (self.N + 1)
             pc, g = pk[chosen], gk[chosen]
-            trail.append((pick // B, np.broadcast_to(combo, shape).ravel()[pick]))
-            expanded += pick.size
+            trail.append((keep[chosen] // B, np.asarray(combo).ravel()[keep[chosen]]))
+            expanded += chosen.size
         total = g + pc
         k = int(np.argmin(total))
         value = float(total[k])
