@@ -7,32 +7,35 @@ switch-on) adds up over the steps, and the peak (J2) is the highest of the step 
 path through the product of the peripherals' state graphs (state of one peripheral after step
 i: relay on/off, steps of dwell still to keep, on-steps so far - the level bounds are bounds
 on that counter), and its objective is the path's energy plus ``peak_cost`` of the highest
-step peak along it. The search runs forward over that product with the peak so far as part of
-the state, and keeps it small:
+step peak along it. The search runs forward over that product, one step at a time, with the
+peak cost so far in the state, and keeps it small:
 
-* **bound pruning** (branch and bound in DP form): a partial plan is dropped when its energy
-  so far, plus each peripheral's least energy to the horizon end on its own (an exact
-  backward DP per peripheral, no peak coupling), plus ``peak_cost`` of its peak so far, is not
-  below the incumbent. The incumbent is the better of the previous decision's plan (shifted by
-  one step and repaired: the sequence is periodic, so it is usually optimal or close) and the
-  peripherals' own least-energy plans put together (always feasible: nothing but the peak
-  couples them).
-* **dominance**: of two partial plans in the same joint state, one with no higher peak and no
-  higher energy makes the other useless; only the Pareto front of (peak, energy) is kept.
+* **bound pruning** (branch and bound in DP form): a partial plan is dropped when no
+  completion can beat the incumbent. Its bound is the energy so far plus, for the peak
+  bucket a completion may end in (between two of a few peak caps), each peripheral's least
+  energy to the horizon end on its own under that cap, plus the bucket's least peak cost
+  (the least over the buckets). The cost-to-go tables come from one backward DP over the
+  disjoint union of the peripherals' graphs for all caps at once.
+* **dominance**: of two partial plans in the same joint state, one with no higher peak cost
+  and no higher energy makes the other useless; only the Pareto front is kept.
+* **incumbent**: the best of the previous decision's plan (shifted by one step, kept as far
+  as it stays feasible: the machining sequence is periodic, so it is usually optimal or
+  close), each cap's own least-energy plans put together (feasible: nothing but the peak
+  couples the peripherals), and a narrow beam search (the same search keeping the 32 partial
+  plans of least bound per step), which finds the optimum or a near one in a few ms.
 
 What survives the last step is every plan strictly better than the incumbent; the best of
-them (or the incumbent when none is left) is the optimum, proven. Each step is a handful of
-numpy operations on the surviving partial plans (typically a few hundred), and when the
-incumbent is already optimal the search usually empties within a few steps.
+them (or the incumbent when none is left) is the optimum, proven. Each step is a few dozen
+numpy operations on the surviving partial plans (tens to a few thousand).
 
-Why not the MILP: its LP relaxation spreads fractional runs over the horizon, so HiGHS proves
-optimality by root cuts and branching (0.1-0.7 s on the hard instants of a run). An earlier
-version of this module solved the joint DP densely under a few peak caps (~150 x 150 joint
-states a step, 20-60 ms a decision); the per-peripheral bounds make most of those states
-provably useless. The result is exactly the MILP's optimum (same step peaks, same costs):
+Why this and not the MILP: its LP relaxation spreads fractional runs over the horizon, so
+HiGHS proves optimality by root cuts and branching (0.1-0.7 s on the hard instants of a run,
+seconds at H_p = 2T). An earlier version of this module solved the joint DP densely (~150 x
+150 joint states a step) under a few peak caps, 20-60 ms a decision; the bounds and the beam
+incumbent make most joint states provably useless. A compiled inner loop was not needed.
+The result is exactly the MILP's optimum (same step peaks, same costs):
 ``tests/controllers/test_eec_dp.py`` checks it on recorded decision instants. Any number of
-peripherals works (the expansion is 2 successors per peripheral and step), but the product
-state space grows with each one.
+peripherals works (2 successors per peripheral and step), but the state space multiplies.
 """
 
 from __future__ import annotations
@@ -83,7 +86,6 @@ class DPResult:
     u: np.ndarray | None    # devices x H (0/1): the best plan known, None if there is none
     objective: float        # its objective (energy + peak cost; inf when none)
     bound: float            # proven lower bound of the optimum (= objective when proven)
-    searched: bool          # the plan came out of the search (not an incumbent)
     expanded: int           # partial plans kept over all steps (the size of the search)
 
 
@@ -93,12 +95,12 @@ class ScheduleDP:
     The peripherals' graphs are joined into one disjoint union (state ids offset per
     peripheral, sentinel ``N``), so that the per-peripheral bounds of every peripheral and
     every peak cap come out of one backward pass. ``caps``: how many peak caps the bounds
-    are computed for.
+    are computed for; ``beam``: width of the heuristic search run first for an incumbent.
     """
 
-    def __init__(self, graphs: Sequence[DeviceGraph], caps: int = 4) -> None:
+    def __init__(self, graphs: Sequence[DeviceGraph], caps: int = 4, beam: int = 32) -> None:
         self.graphs = list(graphs)
-        self.caps = caps
+        self.caps, self.beam = caps, beam
         nd = len(self.graphs)
         self.H = self.graphs[0].H
         self.weights = 3 ** np.arange(nd - 1, -1, -1)
@@ -203,7 +205,7 @@ class ScheduleDP:
                                           costs[None], np.inf), costs[None]])
         hs = self.cost_to_go(tables, c_lo, c_hi)                      # (M + 1, H + 1, N + 1)
         if not np.isfinite(hs[-1, 0, starts]).all():
-            return DPResult(None, math.inf, math.inf, False, 0)
+            return DPResult(None, math.inf, math.inf, 0)
         # incumbents: each cap's own least-energy plans put together, and the previous plan
         # kept as far as it stays feasible
         rows = np.flatnonzero(np.isfinite(hs[:, 0, starts]).all(axis=1))
@@ -215,42 +217,84 @@ class ScheduleDP:
         values = self.objectives(candidates, u_prev, costs, table, z0, peak_cost)
         k = int(np.argmin(values))
         best_u, best = candidates[k], float(values[k])
-        tol = 1e-10 * max(1.0, abs(best))
         # the least peak cost of a plan in cap k's bucket (above cap k - 1)
         floor_pc = peak_cost(np.concatenate([[z0], caps])).reshape((-1,) + (1,) * (nd + 1))
-        peak_costs = peak_cost(table)                                   # (H, 3^nd)
-        # the frontier: joint states (K, nd), peak cost so far, energy so far
-        S = starts[None, :]
-        hs_t = np.ascontiguousarray(hs.transpose(1, 0, 2))              # (H + 1, M + 1, N + 1)
-        pc = peak_cost(np.array([z0]))
+        search = Search(self, starts, costs, np.ascontiguousarray(hs.transpose(1, 0, 2)),
+                        floor_pc, peak_cost(table), float(peak_cost(np.array(z0))),
+                        1e-10 * max(1.0, abs(best)))
+        # a narrow beam first: a good incumbent makes the exact search small
+        u, value, _, expanded = search.run(best, self.beam, deadline)
+        if u is not None:
+            best_u, best = u, value
+        u, value, bound, more = search.run(best, None, deadline)
+        if u is not None:
+            return DPResult(u, value, bound, expanded + more)
+        return DPResult(best_u, best, min(best, bound), expanded + more)
+
+    @staticmethod
+    def _classes(u: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
+        """(nd, H) local state class of each step of plan ``u``."""
+        on = np.asarray(u) > 0.5
+        prev = np.concatenate([np.asarray(u_prev)[:, None] > 0.5, on[:, :-1]], axis=1)
+        return np.where(on, np.where(prev, ON, START), OFF)
+
+
+@dataclass
+class Search:
+    """The forward search of :meth:`ScheduleDP.solve` over one horizon.
+
+    ``hs`` (H + 1, M + 1, N + 1): the per-peripheral cost-to-go of each peak cap (the last
+    one without a cap), ``floor_pc`` (M + 1, 1, ...): the least peak cost of a plan whose
+    peak is above the previous cap, ``peak_costs`` (H, 3^nd): the peak cost of each step
+    peak, ``pc0``: that of z0, ``tol``: the improvement that counts."""
+
+    dp: ScheduleDP
+    starts: np.ndarray
+    costs: np.ndarray
+    hs: np.ndarray
+    floor_pc: np.ndarray
+    peak_costs: np.ndarray
+    pc0: float
+    tol: float
+
+    def run(self, best: float, beam: int | None, deadline: float
+            ) -> tuple[np.ndarray | None, float, float, int]:
+        """(plan, objective, bound, expanded): the best plan below ``best`` (None if there
+        is none) and a lower bound of any plan below ``best`` (``best`` when the search is
+        complete). With ``beam``, only that many partial plans (least bound first) are
+        kept per step: a heuristic, proving nothing (bound -inf)."""
+        dp, costs, nd = self.dp, self.costs, len(self.dp.graphs)
+        H, N, B = dp.H, dp.N, 2 ** nd
+        S = self.starts[None, :]
+        pc = np.array([self.pc0])
         g = np.zeros(1)
         trail: list[tuple[np.ndarray, np.ndarray]] = []  # per step: parent, combination
-        B = 2 ** nd
         expanded = 0
-        lower = -math.inf
+        # before any step: the least over the caps of the own cost-to-go plus peak cost
+        lower = float((self.hs[0][:, self.starts].sum(axis=1) + self.floor_pc.ravel()).min())
         for i in range(H):
             if time.perf_counter() > deadline:
-                return DPResult(best_u, best, float(min(best, lower)), False, expanded)
+                return None, best, lower if beam is None else -math.inf, expanded
             K = S.shape[0]
             gn = g.reshape((K,) + (1,) * nd)
             combo: np.ndarray | int = 0
             key: np.ndarray | int = 0
             rest: np.ndarray | float = 0.0
-            D, C = self.dst[S], self.cls[S]                               # (K, nd, 2)
-            R = hs_t[i + 1][:, D]                                         # (M + 1, K, nd, 2)
+            D, C = dp.dst[S], dp.cls[S]                                   # (K, nd, 2)
+            R = self.hs[i + 1][:, D]                                      # (M + 1, K, nd, 2)
             for j in range(nd):
                 axes = (K,) + (1,) * j + (2,) + (1,) * (nd - 1 - j)
                 c = C[:, j].reshape(axes)
                 gn = gn + costs[j, i][c]
-                combo = combo + c * self.weights[j]
-                key = key * (self.N + 1) + D[:, j].reshape(axes)
+                combo = combo + c * dp.weights[j]
+                key = key * (N + 1) + D[:, j].reshape(axes)
                 rest = rest + R[:, :, j].reshape((-1, *axes))
-            pcn = np.maximum(pc.reshape((K,) + (1,) * nd), peak_costs[i][combo])
-            lb = gn + (rest + np.maximum(pcn, floor_pc)).min(axis=0)
-            keep = np.flatnonzero(lb < best - tol)
-            if keep.size == 0:  # nothing can beat the incumbent: it is optimal
-                return DPResult(best_u, best, best, False, expanded)
-            lower = float(lb.ravel()[keep].min())
+            pcn = np.maximum(pc.reshape((K,) + (1,) * nd), self.peak_costs[i][combo])
+            lb = (gn + (rest + np.maximum(pcn, self.floor_pc)).min(axis=0)).ravel()
+            keep = np.flatnonzero(lb < best - self.tol)
+            if keep.size == 0:  # nothing left can beat ``best``
+                return None, best, best if beam is None else -math.inf, expanded
+            lower = float(lb[keep].min()) if beam is None else -math.inf
             keys = np.asarray(key).ravel()[keep]
             gk = np.asarray(gn).ravel()[keep]
             pk = pcn.ravel()[keep]
@@ -264,27 +308,22 @@ class ScheduleDP:
             # state (the shift by group keeps the running minimum within the group)
             shifted = gs - (np.cumsum(first) - 1) * (float(gs.max() - gs.min()) + 1.0)
             front = first.copy()
-            front[1:] |= shifted[1:] < np.minimum.accumulate(shifted)[:-1] - tol
+            front[1:] |= shifted[1:] < np.minimum.accumulate(shifted)[:-1] - self.tol
             chosen = order[front]
-            S = (ks[front][:, None] // self.strides) % (self.N + 1)
+            if beam is not None and chosen.size > beam:
+                chosen = chosen[np.argpartition(lb[keep[chosen]], beam)[:beam]]
+            S = (keys[chosen][:, None] // dp.strides) % (N + 1)
             pc, g = pk[chosen], gk[chosen]
             trail.append((keep[chosen] // B, np.asarray(combo).ravel()[keep[chosen]]))
             expanded += chosen.size
         total = g + pc
         k = int(np.argmin(total))
         value = float(total[k])
-        if not value < best - tol:
-            return DPResult(best_u, best, best, False, expanded)
+        if not value < best - self.tol:
+            return None, best, best if beam is None else -math.inf, expanded
         u = np.zeros((nd, H), dtype=int)
         for i in range(H - 1, -1, -1):
             parent, combos = trail[i]
-            u[:, i] = (combos[k] // self.weights) % 3 != OFF
+            u[:, i] = (combos[k] // dp.weights) % 3 != OFF
             k = int(parent[k])
-        return DPResult(u, value, value, True, expanded)
-
-    @staticmethod
-    def _classes(u: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
-        """(nd, H) local state class of each step of plan ``u``."""
-        on = np.asarray(u) > 0.5
-        prev = np.concatenate([np.asarray(u_prev)[:, None] > 0.5, on[:, :-1]], axis=1)
-        return np.where(on, np.where(prev, ON, START), OFF)
+        return u, value, value if beam is None else -math.inf, expanded
