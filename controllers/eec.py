@@ -40,11 +40,13 @@ formulation, the reference of the tests):
 
 Solve time: the LP relaxation stays weak when the plan must trade peak against energy (it
 spreads fractional "thin" runs over the horizon), so HiGHS proves some instants only after
-0.3-0.7 s of root cuts and branching. With two peripherals the default ``solver = "dp"``
-(:mod:`controllers.eec_dp`) finds the same optimum exactly by dynamic programming over the
-relay schedules under a few peak caps, the repaired previous plan as incumbent; the MILP stays
-as the general formulation and the reference. ``time_limit_s`` is a safety net: at the limit
-the best plan found is used (status ``time_limit``, its gap recorded).
+0.3-0.7 s of root cuts and branching. The default ``solver = "dp"`` (:mod:`controllers.eec_dp`)
+finds the same optimum exactly by a pruned dynamic program over the relay schedules (bounds
+from per-peripheral cost-to-go under a few peak caps, dominance, the previous plan and a beam
+search as incumbents), in a few ms at H_p = T; the MILP stays as the general formulation
+and the reference. ``time_limit_s`` is a safety net: at the limit the best plan found is used
+(status ``time_limit``, its gap recorded). ``nodes`` of a DP solve counts the partial plans
+its searches kept.
 """
 
 from __future__ import annotations
@@ -122,7 +124,7 @@ class SolveResult:
     warm_start: bool
     levels: int = 0            # J2 level binaries
     gap: float = 0.0           # relative MIP gap at the end (0: proven optimal)
-    nodes: int = 0             # branch-and-bound nodes (MILP) or peak caps solved (DP)
+    nodes: int = 0             # branch-and-bound nodes (MILP) or partial plans kept (DP)
     bound: float = math.nan    # proven lower bound of the objective
 
 
