@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib.metadata
 import json
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -17,6 +17,18 @@ from hil.core.stats import percentile_summary
 # group; the framework names none of them and imports one only when such a session is drawn.
 PLOTTER_GROUP = "hil.plotters"
 Plotter = Callable[[SessionData, str], None]
+# Kind-specific sections of ``hil report`` (text and ``--json``), the same way: ``kind =
+# "module:Object"``, the object having ``key`` (its JSON key), ``section(data) -> dict`` (empty
+# when the session has nothing to show) and ``lines(section) -> list[str]`` (its text).
+SUMMARY_GROUP = "hil.summaries"
+
+
+class KindSummary(Protocol):
+    key: str
+
+    def section(self, data: SessionData) -> dict[str, Any]: ...
+
+    def lines(self, section: dict[str, Any]) -> list[str]: ...
 
 
 def find_plotter(kind: str) -> Plotter | None:
@@ -25,6 +37,15 @@ def find_plotter(kind: str) -> Plotter | None:
         if entry.name == kind:
             plotter: Plotter = entry.load()
             return plotter
+    return None
+
+
+def find_summary(kind: str) -> KindSummary | None:
+    """The report section registered for sessions of ``kind``, or None."""
+    for entry in importlib.metadata.entry_points(group=SUMMARY_GROUP):
+        if entry.name == kind:
+            summary: KindSummary = entry.load()
+            return summary
     return None
 
 
@@ -65,7 +86,7 @@ def kpis(data: SessionData) -> dict[str, Any]:
 def summarize(data: SessionData) -> dict[str, Any]:
     """The ``hil report --json`` document."""
     events = [m for _, m in data.topic("/events") if isinstance(m, dict)]
-    return {
+    summary = {
         "file": data.path,
         "kind": session_kind(data),
         "clock": data.metadata.get("session", {}).get("clock", ""),
@@ -81,6 +102,10 @@ def summarize(data: SessionData) -> dict[str, Any]:
         },
         "kpis": kpis(data),
     }
+    extra = find_summary(session_kind(data))
+    if extra is not None and (section := extra.section(data)):
+        summary[extra.key] = section
+    return summary
 
 
 def format_summary(summary: dict[str, Any]) -> str:
@@ -115,6 +140,9 @@ def format_summary(summary: dict[str, Any]) -> str:
         lines.append("kpis")
         for key, value in summary["kpis"].items():
             lines.append(f"  {key:<24} {value}")
+    extra = find_summary(summary["kind"])
+    if extra is not None and extra.key in summary:
+        lines.extend(extra.lines(summary[extra.key]))
     return "\n".join(lines)
 
 
