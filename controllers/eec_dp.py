@@ -44,6 +44,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -95,12 +96,14 @@ class ScheduleDP:
     The peripherals' graphs are joined into one disjoint union (state ids offset per
     peripheral, sentinel ``N``), so that the per-peripheral bounds of every peripheral and
     every peak cap come out of one backward pass. ``caps``: how many peak caps the bounds
-    are computed for; ``beam``: width of the heuristic search run first for an incumbent.
+    are computed for; ``beam``: width of the heuristic search run for a better incumbent when
+    the exact search grows beyond ``give_up`` partial plans in a step.
     """
 
-    def __init__(self, graphs: Sequence[DeviceGraph], caps: int = 4, beam: int = 32) -> None:
+    def __init__(self, graphs: Sequence[DeviceGraph], caps: int = 4, beam: int = 32,
+                 give_up: int = 1000) -> None:
         self.graphs = list(graphs)
-        self.caps, self.beam = caps, beam
+        self.caps, self.beam, self.give_up = caps, beam, give_up
         nd = len(self.graphs)
         self.H = self.graphs[0].H
         self.weights = 3 ** np.arange(nd - 1, -1, -1)
@@ -222,14 +225,19 @@ class ScheduleDP:
         search = Search(self, starts, costs, np.ascontiguousarray(hs.transpose(1, 0, 2)),
                         floor_pc, peak_cost(table), float(peak_cost(np.array(z0))),
                         1e-10 * max(1.0, abs(best)))
-        # a narrow beam first: a good incumbent makes the exact search small
-        u, value, _, expanded = search.run(best, self.beam, deadline)
-        if u is not None:
-            best_u, best = u, value
-        u, value, bound, more = search.run(best, None, deadline)
-        if u is not None:
-            return DPResult(u, value, bound, expanded + more)
-        return DPResult(best_u, best, min(best, bound), expanded + more)
+        # the exact search; if it grows large, a narrow beam first for a better incumbent
+        # (which makes the exact search small), then the exact search again
+        found = search.run(best, None, deadline, self.give_up)
+        expanded = found.expanded
+        if not found.complete and time.perf_counter() <= deadline:
+            beam = search.run(best, self.beam, deadline)
+            if beam.u is not None:
+                best_u, best = beam.u, beam.value
+            found = search.run(best, None, deadline)
+            expanded += beam.expanded + found.expanded
+        if found.u is not None:
+            return DPResult(found.u, found.value, found.bound, expanded)
+        return DPResult(best_u, best, min(best, found.bound), expanded)
 
     @staticmethod
     def _classes(u: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
@@ -237,6 +245,16 @@ class ScheduleDP:
         on = np.asarray(u) > 0.5
         prev = np.concatenate([np.asarray(u_prev)[:, None] > 0.5, on[:, :-1]], axis=1)
         return np.where(on, np.where(prev, ON, START), OFF)
+
+
+class Outcome(NamedTuple):
+    """One run of :class:`Search`."""
+
+    u: np.ndarray | None    # the best plan below the threshold, or None
+    value: float            # its objective, or the threshold
+    bound: float            # lower bound of any plan below the threshold
+    expanded: int           # partial plans kept
+    complete: bool = False  # the search ran to its end (else: deadline or give_up)
 
 
 @dataclass
@@ -257,12 +275,13 @@ class Search:
     pc0: float
     tol: float
 
-    def run(self, best: float, beam: int | None, deadline: float
-            ) -> tuple[np.ndarray | None, float, float, int]:
-        """(plan, objective, bound, expanded): the best plan below ``best`` (None if there
-        is none) and a lower bound of any plan below ``best`` (``best`` when the search is
-        complete). With ``beam``, only that many partial plans (least bound first) are
-        kept per step: a heuristic, proving nothing (bound -inf)."""
+    def run(self, best: float, beam: int | None, deadline: float,
+            give_up: int | None = None) -> Outcome:
+        """The best plan below ``best`` (None if there is none) and a lower bound of any plan
+        below ``best`` (``best`` when the search is complete). With ``beam``, only that many
+        partial plans (least bound first) are kept per step: a heuristic, proving nothing
+        (bound -inf). With ``give_up``, the search stops (incomplete) when a step keeps more
+        partial plans than that."""
         dp, costs, nd = self.dp, self.costs, len(self.dp.graphs)
         H, N, B = dp.H, dp.N, 2 ** nd
         S = self.starts[None, :]
@@ -274,7 +293,7 @@ class Search:
         lower = float((self.hs[0][:, self.starts].sum(axis=1) + self.floor_pc.ravel()).min())
         for i in range(H):
             if time.perf_counter() > deadline:
-                return None, best, lower if beam is None else -math.inf, expanded
+                return Outcome(None, best, lower if beam is None else -math.inf, expanded)
             K = S.shape[0]
             gn = g.reshape((K,) + (1,) * nd)
             combo: np.ndarray | int = 0
@@ -293,7 +312,7 @@ class Search:
             lb = (gn + (rest + np.maximum(pcn, self.floor_pc)).min(axis=0)).ravel()
             keep = np.flatnonzero(lb < best - self.tol)
             if keep.size == 0:  # nothing left can beat ``best``
-                return None, best, best if beam is None else -math.inf, expanded
+                return Outcome(None, best, best if beam is None else -math.inf, expanded, True)
             lower = float(lb[keep].min()) if beam is None else -math.inf
             keys = np.asarray(key).ravel()[keep]
             gk = np.asarray(gn).ravel()[keep]
@@ -312,6 +331,8 @@ class Search:
             chosen = order[front]
             if beam is not None and chosen.size > beam:
                 chosen = chosen[np.argpartition(lb[keep[chosen]], beam)[:beam]]
+            if give_up is not None and chosen.size > give_up:
+                return Outcome(None, best, lower, expanded)
             S = (keys[chosen][:, None] // dp.strides) % (N + 1)
             pc, g = pk[chosen], gk[chosen]
             trail.append((keep[chosen] // B, np.asarray(combo).ravel()[keep[chosen]]))
@@ -320,10 +341,10 @@ class Search:
         k = int(np.argmin(total))
         value = float(total[k])
         if not value < best - self.tol:
-            return None, best, best if beam is None else -math.inf, expanded
+            return Outcome(None, best, best if beam is None else -math.inf, expanded, True)
         u = np.zeros((nd, H), dtype=int)
         for i in range(H - 1, -1, -1):
             parent, combos = trail[i]
             u[:, i] = (combos[k] // dp.weights) % 3 != OFF
             k = int(parent[k])
-        return u, value, value if beam is None else -math.inf, expanded
+        return Outcome(u, value, value if beam is None else -math.inf, expanded, True)
