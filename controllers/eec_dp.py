@@ -101,7 +101,7 @@ class ScheduleDP:
     """
 
     def __init__(self, graphs: Sequence[DeviceGraph], caps: int = 4, beam: int = 32,
-                 give_up: int = 1000) -> None:
+                 give_up: int = 200) -> None:
         self.graphs = list(graphs)
         self.caps, self.beam, self.give_up = caps, beam, give_up
         nd = len(self.graphs)
