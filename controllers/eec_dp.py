@@ -21,8 +21,10 @@ peak cost so far in the state, and keeps it small:
 * **incumbent**: the best of the previous decision's plan (shifted by one step, kept as far
   as it stays feasible: the machining sequence is periodic, so it is usually optimal or
   close), each cap's own least-energy plans put together (feasible: nothing but the peak
-  couples the peripherals), and a narrow beam search (the same search keeping the 32 partial
-  plans of least bound per step), which finds the optimum or a near one in a few ms.
+  couples the peripherals), and, when the exact search grows past 200 partial plans in a
+  step, a narrow beam search (the same search keeping the 32 partial plans of least bound
+  per step), which finds the optimum or a near one in a few ms; the exact search then
+  starts again from it.
 
 What survives the last step is every plan strictly better than the incumbent; the best of
 them (or the incumbent when none is left) is the optimum, proven. Each step is a few dozen
