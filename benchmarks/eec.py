@@ -122,19 +122,19 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="fewer cycles and instances")
     parser.add_argument("--cycles", type=int, help="machine cycles at H_p = T (default 8)")
     parser.add_argument("--cycles-2t", type=int, help="machine cycles at H_p = 2T (default 3)")
-    parser.add_argument("--sweep-cycles", type=int, help="cycles per gamma3 run (default 2)")
+    parser.add_argument("--sweep-cycles", type=int, help="cycles per gamma3 run (default 3)")
     parser.add_argument("--exact-every", type=int, default=8,
                         help="re-solve every Nth instance by the MILP")
     parser.add_argument("--naive", type=int, help="instances per horizon for the naive "
                         "cvxpy baseline (default 2)")
     parser.add_argument("--naive-limit", type=float, default=60.0,
                         help="time limit of a naive cvxpy solve [s]")
-    parser.add_argument("--gamma3", type=float, nargs="+", default=[0.0, 0.01, 0.05],
+    parser.add_argument("--gamma3", type=float, nargs="+", default=[0.0, 0.02, 0.1, 1.0],
                         help="costs per switch-on of the trade-off table")
     args = parser.parse_args()
     cycles = args.cycles or (3 if args.quick else 8)
     cycles_2t = args.cycles_2t or (2 if args.quick else 3)
-    sweep_cycles = args.sweep_cycles or (1 if args.quick else 2)
+    sweep_cycles = args.sweep_cycles or (1 if args.quick else 3)
     naive = args.naive if args.naive is not None else (1 if args.quick else 2)
     t_start = time.perf_counter()
 

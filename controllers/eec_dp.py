@@ -215,12 +215,12 @@ class ScheduleDP:
         # kept as far as it stays feasible
         rows = np.flatnonzero(np.isfinite(hs[:, 0, starts]).all(axis=1))
         wish = np.full((rows.size, nd, H), -1)
-        if prefer is not None:
-            rows = np.append(rows, rows[-1])
-            wish = np.concatenate([wish, (np.asarray(prefer) > 0.5)[None].astype(int)])
+        if prefer is not None:  # first: of equally good plans, the previous one is kept
+            rows = np.append(rows[-1], rows)
+            wish = np.concatenate([(np.asarray(prefer) > 0.5)[None].astype(int), wish])
         candidates = self.trace(hs[rows], tables[rows], starts, wish)
         values = self.objectives(candidates, u_prev, costs, table, z0, peak_cost)
-        k = int(np.argmin(values))
+        k = int(np.flatnonzero(values <= values.min() + 1e-12 * max(1.0, abs(values.min())))[0])
         best_u, best = candidates[k], float(values[k])
         # the least peak cost of a plan in cap k's bucket (above cap k - 1)
         floor_pc = peak_cost(np.concatenate([[z0], caps])).reshape((-1,) + (1,) * (nd + 1))
