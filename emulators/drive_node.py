@@ -44,7 +44,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import can
-from can.interfaces.virtual import VirtualBus
 from canopen.objectdictionary import ODVariable
 from canopen.objectdictionary.datatypes import VISIBLE_STRING
 from canopen.sdo import SdoAbortedError, SdoServer
@@ -75,6 +74,7 @@ from drivers.cia402 import (
     TRANSITIONS,
     command_of,
 )
+from emulators.direct_bus import DirectChannel
 from emulators.drive_od import OdDefaults, build_object_dictionary, iter_variables
 from emulators.drive_plant import AxisPlant, Disturbance, Friction
 
@@ -834,24 +834,9 @@ class BusRunner:
         self.stop()
 
 
-class SharedFrameVirtualBus(VirtualBus):
-    """python-can's ``virtual`` bus without the deep copy of every frame for every receiver.
-
-    The stock bus copies each message per receiver, which is half the cost of a lockstep cycle.
-    Here the receivers share the sent object (stamped with the send time): fine as long as
-    nobody mutates a frame after sending it, which neither the master nor the node does.
-    """
-
-    def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        self._check_if_open()
-        msg.timestamp = time.time()
-        for bus_queue in self.channel:
-            if bus_queue is not self.queue:
-                bus_queue.put(msg, timeout=timeout)
-
-
 class LockstepDrive:
-    """An emulated drive on a private ``virtual`` channel, pumped by the master (no threads).
+    """An emulated drive on a private in-process channel (:mod:`emulators.direct_bus`), pumped
+    by the master (no threads).
 
     ``master_bus`` is the bus a master uses; after each transmission the master calls
     :meth:`pump`, which hands every pending frame to the node and runs its time service. The
@@ -860,16 +845,16 @@ class LockstepDrive:
 
     def __init__(self, config: DriveEmulatorConfig | None = None,
                  plant: AxisPlant | None = None) -> None:
-        self.channel = f"hil-drive-{uuid.uuid4().hex}"
-        self._node_bus = SharedFrameVirtualBus(channel=self.channel)
-        self.master_bus = SharedFrameVirtualBus(channel=self.channel)
+        self.channel = DirectChannel(f"hil-drive-{uuid.uuid4().hex}")
+        self._node_bus = self.channel.attach()
+        self.master_bus = self.channel.attach()
         self.node = DriveNode(config, send=bus_sender(self._node_bus), plant=plant,
                               timebase="sync")
         self.node.boot()
 
     def attach_bus(self) -> can.BusABC:
         """One more bus on the same channel (an observer or a second master)."""
-        return can.Bus(interface="virtual", channel=self.channel)
+        return self.channel.attach()
 
     def pump(self) -> None:
         """Deliver every frame waiting for the node, then run its time service."""

@@ -145,3 +145,35 @@ def test_json_output_of_an_eec_run_is_json_alone(tmp_path):
     assert run.returncode == 0, run.stderr
     kpis = json.loads(run.stdout)
     assert kpis["controller"] == "eec" and kpis["solves_at_limit"] == 0
+
+
+def test_a_split_servo_session_is_one_session_to_report(tmp_path):
+    """--split-duration writes a numbered series; report takes its name, first file or folder;
+    the drive topics are CDR by default and JSON with --encoding json."""
+    folder = tmp_path / "lab"
+    (folder / "runs").mkdir(parents=True)
+    out = hil(folder, "servo", "run", "--controller", "pid", "--duration", "2",
+              "--split-duration", "0.5", "--out", "runs/long.mcap", "--json")
+    assert out.returncode == 0, out.stderr
+    kpis = json.loads(out.stdout)
+    assert kpis["mcap"] == "runs/long_000.mcap"
+    names = sorted(p.name for p in (folder / "runs").iterdir())
+    assert names == [f"long_{i:03d}.mcap" for i in range(len(names))] and len(names) >= 4
+    reports = []
+    for spelled in ("runs/long.mcap", "runs/long_000.mcap", "runs"):
+        report = hil(folder, "report", spelled, "--json")
+        assert report.returncode == 0, report.stderr
+        reports.append(json.loads(report.stdout))
+    assert all(r["topics"] == reports[0]["topics"] for r in reports)
+    assert reports[0]["topics"]["/drive/feedback"] == kpis["ticks"] == 4000
+    assert len(reports[0]["files"]) == len(names) and reports[0]["damage"] == []
+    assert reports[0]["encodings"]["/drive/feedback"] == "cdr"
+    assert reports[0]["encodings"]["/events"] == "json"
+
+    plain = hil(folder, "servo", "run", "--controller", "pid", "--duration", "0.5",
+                "--encoding", "json", "--out", "plain.mcap")
+    assert plain.returncode == 0, plain.stderr
+    report = json.loads(hil(folder, "report", "plain.mcap", "--json").stdout)
+    assert report["encodings"]["/drive/feedback"] == "json"
+    bad = hil(folder, "servo", "run", "--controller", "pid", "--split-size", "0")
+    assert bad.returncode == 2 and "--split-size" in bad.stderr

@@ -89,7 +89,8 @@ class SequenceSchedule:
 
 def _number_schema(title: str, description: str, names: list[str]) -> dict[str, Any]:
     return {"type": "object", "title": title, "description": description,
-            "properties": {name: {"type": "number"} for name in names}}
+            # SDM630 registers are IEEE 754 float32: float32 on the wire loses nothing
+            "properties": {name: {"type": "number", "x-cdr": "float32"} for name in names}}
 
 
 class BenchSampler(Task):
@@ -113,16 +114,18 @@ class BenchSampler(Task):
             relay_fields = [*bench.relay_names, *(f"{n}_commanded" for n in bench.relay_names)]
             self._topics = (
                 session.topic("/bench/power", _number_schema(
-                    "hil.BenchPower", "Power meter (SDM630 registers) of the bench", quantities)),
+                    "hil.BenchPower", "Power meter (SDM630 registers) of the bench", quantities),
+                    high_rate=True),
                 session.topic("/bench/levels", _number_schema(
-                    "hil.BenchLevels", "Resource levels q_j of the bench", levels)),
+                    "hil.BenchLevels", "Resource levels q_j of the bench", levels),
+                    high_rate=True),
                 session.topic("/bench/relays", {
                     "type": "object", "title": "hil.BenchRelays",
                     "description": "Relay states (1 = on): actual (verified) and commanded "
                                    "(including changes deferred by the dwell); link_up 0/1",
-                    "properties": {f: {"type": "integer", "enum": [0, 1]}
+                    "properties": {f: {"type": "integer", "enum": [0, 1], "x-cdr": "uint8"}
                                    for f in [*relay_fields, "link_up"]},
-                }),
+                }, high_rate=True),
             )
 
     def read(self, t_ns: int) -> tuple[dict[str, float] | None, dict[str, float] | None]:

@@ -22,7 +22,7 @@ import os
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
@@ -43,6 +43,7 @@ from hil.bench.control import (
 from hil.bench.rig import SequencePlayer, attach_bench, is_emulated, session_clock
 from hil.core.errors import ConfigError, HilError, UsageError
 from hil.core.plugins import build_controller, controller_factory, controller_short_name
+from hil.core.recorder import RecordingOptions
 from hil.core.session import Session
 from hil.core.types import TimeSource
 from hil.core.verdict import Limit, SignalWatch, split_limits, verdict
@@ -73,6 +74,7 @@ class BenchRunOptions:
     limits: tuple[Limit, ...] = ()
     controller_budget_s: float | None = None  # per decision; None: the step in real time
     overrides: dict[str, Any] = field(default_factory=dict)  # [eec] keys (benchmarks, demo)
+    recording: RecordingOptions = field(default_factory=RecordingOptions)
 
     def flags(self) -> dict[str, Any]:
         """The EEC's flags (``--hp``, ``--hs``, ``--gamma1``, ``--gamma2``)."""
@@ -112,14 +114,16 @@ def run_bench(opts: BenchRunOptions) -> dict[str, Any]:
     out = opts.out or os.path.join(tempfile.gettempdir(),
                                    f"hil-bench-{controller_short_name(label)}-{int(time.time())}.mcap")
     clock = session_clock(opts.bench, opts.realtime)
-    run_info = {k: v for k, v in vars(opts).items() if k not in ("overrides", "limits")}
+    run_info = {k: v for k, v in vars(opts).items()
+                if k not in ("overrides", "limits", "recording")}
+    run_info["recording"] = asdict(opts.recording)
     merged = {"bench": bench.data, "controllers": eec.data,
               "run": run_info | {"controller": label, "params": params,
                                  "limits": [str(lim) for lim in (*kpi_limits, *signal_limits)]}}
     text = "\n".join(filter(None, [default_text("bench.toml"), default_text("eec.toml"),
                                    bench.user_text]))
     session = Session(out, clock, bench.sampling.period_s, kind="bench", config=merged,
-                      config_text=text)
+                      config_text=text, recording=opts.recording)
     log = RunLog()
     origin = SequenceOrigin(clock)
     watch = SignalWatch(signal_limits)
@@ -198,5 +202,5 @@ def kpis_of(log: RunLog, problem: BenchProblem, opts: BenchRunOptions, label: st
     return {"controller": label, "cycles": opts.cycles, **kpis,
             "solve_ms": timing_summary(solve_ms), "solves_at_limit": log.solver_limits,
             "max_gap": log.max_gap,
-            "fallbacks": log.fallbacks, "mcap": out}
+            "fallbacks": log.fallbacks, "mcap": opts.recording.first_file(out)}
 

@@ -14,6 +14,7 @@ from hil.bench.identify import (
     run_identify_experiment,
 )
 from hil.cli.argtypes import nonnegative_float, positive_float, positive_int
+from hil.cli.recording import add_recording_arguments, recording_options
 from hil.cli.verdict import add_controller_arguments, finish, params_of
 
 
@@ -57,6 +58,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                      help="TOML laid over hil/configs/bench.toml and eec.toml")
     run.add_argument("--out", metavar="F.mcap", help="session file (default: a temp file)")
     run.add_argument("--json", action="store_true", help="print KPIs as JSON")
+    add_recording_arguments(run)
     run.set_defaults(handler=run_command)
     ident = bench_sub.add_parser("identify", help="PRBS switching experiment for identification")
     add_identify_arguments(ident)
@@ -74,6 +76,7 @@ def run_command(args: argparse.Namespace) -> int:
         gamma2=args.gamma2, dwell_s=args.dwell, disturbance=args.disturbance,
         realtime=args.realtime, out=args.out, config_path=args.config, overrides=overrides,
         limits=tuple(args.limit), controller_budget_s=args.controller_budget,
+        recording=recording_options(args),
     ))
     print(json.dumps(kpis, indent=2) if args.json else format_kpis(kpis))
     return finish(kpis, args, f"hil bench run {kpis['controller']}",

@@ -7,6 +7,7 @@ import json
 from typing import Any
 
 from hil.cli.argtypes import nonnegative_float, positive_float, positive_int
+from hil.cli.recording import add_recording_arguments, recording_options
 from hil.cli.verdict import add_controller_arguments, finish, params_of
 from hil.core.errors import UsageError
 
@@ -58,6 +59,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     srun.add_argument("--out", metavar="F.mcap",
                       help="session file (default: servo-CONTROLLER-DATE-TIME.mcap)")
     srun.add_argument("--json", action="store_true", help="print the KPIs as JSON")
+    add_recording_arguments(srun)
     srun.set_defaults(handler=run_servo_command)
 
     figs = servo_sub.add_parser(
@@ -90,7 +92,8 @@ def run_servo_command(args: argparse.Namespace) -> int:
         ht=args.ht or default_horizon, hu=args.hu or default_horizon, hp=args.hp,
         umax=args.umax, reference=args.reference,
         duration_s=args.duration, realtime=args.realtime, out=args.out,
-        drive_config=args.config, settle_s=args.settle, prediction_every=args.prediction_every)
+        drive_config=args.config, settle_s=args.settle, prediction_every=args.prediction_every,
+        recording=recording_options(args))
     result = run_servo(config)
     print(json.dumps(result.kpis, indent=2) if args.json else format_run(config, result.kpis))
     return finish(result.kpis, args, f"hil servo run {result.kpis['controller']}",

@@ -141,8 +141,8 @@ TIMING_SCHEMA: dict[str, Any] = {
         "runs": {"type": "integer"},
         "missed": {"type": "integer", "description": "scheduled runs skipped in this window"},
         "overruns": {"type": "integer", "description": "steps longer than the task period"},
-        "lateness_us": {"type": "array", "items": {"type": "number"}},
-        "compute_us": {"type": "array", "items": {"type": "number"}},
+        "lateness_us": {"type": "array", "items": {"type": "number", "x-cdr": "float32"}},
+        "compute_us": {"type": "array", "items": {"type": "number", "x-cdr": "float32"}},
     },
 }
 
@@ -193,7 +193,7 @@ class FixedRateLoop:
         self.stats[task.name] = TaskStats(task.name, task.divisor * self.base_period_ns / 1e9)
         if self._recorder is not None:
             self._timing_topics[task.name] = self._recorder.topic(
-                f"/loop/{task.name}/timing", TIMING_SCHEMA
+                f"/loop/{task.name}/timing", TIMING_SCHEMA, high_rate=True
             )
         return task
 
@@ -241,6 +241,7 @@ class FixedRateLoop:
         next_window = self._window_ticks
         perf = time.perf_counter_ns
         realtime = clock.mode == "realtime"  # in lockstep, slow compute costs no virtual time
+        recorder = self._recorder
         while not self._stop.is_set() and (limit is None or n < limit):
             deadline = t0 + n * period
             late_by = clock.wait_until(deadline)
@@ -271,6 +272,8 @@ class FixedRateLoop:
                 stats.runs += 1
             n += 1
             self.ticks = n
+            if recorder is not None:
+                recorder.flush_if_due()
             if n >= next_window:
                 self._publish_windows(final=False)
                 next_window = (n // self._window_ticks + 1) * self._window_ticks

@@ -1,39 +1,61 @@
-"""Read a session file, finished or truncated (e.g. after SIGKILL or a power cut).
+"""Read a session: one MCAP file or a split series, finished, truncated or damaged.
 
-The stock indexed reader needs the summary at the end of the file and raises on a truncated
-one. :func:`read_session` walks the file record by record instead (``StreamReader``) and keeps
-every complete chunk; ``recovered`` tells whether the file had to be salvaged and
-``lost_bytes`` how much of its tail was unreadable.
+:func:`read_session` walks each file record by record (:mod:`hil.core.mcap_walk`), checks
+chunk CRCs, keeps every readable message, and says what it could not read: ``damage`` lists
+each unreadable part (truncated tail, damaged chunk, damaged summary) with its offset, bytes
+and, where the file's indexes tell, the messages lost. ``recovered`` is true when a file was
+not finished (no footer: the writer was killed) or anything was damaged.
+
+Messages are decoded by their channel's encoding: ``json``, or ``cdr`` with a ``ros2msg``
+schema (:mod:`hil.core.cdr`). A split series (``<stem>_000.mcap``, ``<stem>_001.mcap``...) is
+read as one session from its folder, its first file or its unsplit name.
 """
 
 from __future__ import annotations
 
+import glob
 import json
+import mmap
 import os
+import re
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from mcap.exceptions import McapError
-from mcap.records import Attachment, Channel, Footer, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Attachment, Channel, Message, Metadata, Schema
 
+from hil.core.cdr import CdrDecoder, CdrError, parse_ros2msg
 from hil.core.errors import SessionFileError
+from hil.core.mcap_walk import Damage, Walk, walk
+
+_SERIES = re.compile(r"^(?P<stem>.*)_(?P<index>\d{3,})\.mcap$")
 
 
 @dataclass
 class SessionData:
-    """Everything readable from one session file, messages decoded from JSON."""
+    """Everything readable from one session (file or series), messages decoded."""
 
     path: str
     messages: dict[str, list[tuple[int, Any]]] = field(default_factory=dict)
     schemas: dict[str, dict[str, Any]] = field(default_factory=dict)
+    encodings: dict[str, str] = field(default_factory=dict)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     attachments: dict[str, bytes] = field(default_factory=dict)
+    files: list[str] = field(default_factory=list)
+    damage: list[Damage] = field(default_factory=list)
     recovered: bool = False
     lost_bytes: int = 0
     error: str = ""
+
+    @property
+    def lost_messages(self) -> int | None:
+        """Messages known lost to damage; None when some damage does not say how many."""
+        counts = [d.messages for d in self.damage if d.kind in ("chunk", "truncated")]
+        if any(c is None for c in counts):
+            return None
+        return sum(c for c in counts if c is not None)
 
     @property
     def topic_counts(self) -> dict[str, int]:
@@ -77,60 +99,136 @@ class SessionData:
         return out
 
 
-def read_session(path: str | os.PathLike[str]) -> SessionData:
-    """Read every complete record of ``path``; never raises on a truncated tail."""
+def session_files(path: str | os.PathLike[str]) -> list[str]:
+    """The file(s) of the session at ``path``: a file, a split series, or a folder of one."""
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise SessionFileError(f"{path}: no such session file")
-    size = os.path.getsize(path)
-    data = SessionData(path=path)
-    schemas: dict[int, dict[str, Any]] = {}
-    channels: dict[int, tuple[str, int]] = {}
+    if os.path.isdir(path):
+        files = sorted(glob.glob(os.path.join(glob.escape(path), "*.mcap")))
+        if not files:
+            raise SessionFileError(f"{path}: no .mcap session file in this folder")
+        stems = {m.group("stem") for f in files if (m := _SERIES.match(f))}
+        if len(stems) > 1 or (stems and len(files) != sum(1 for f in files if _SERIES.match(f))):
+            raise SessionFileError(f"{path}: holds more than one session; name one file")
+        return files
+    match = _SERIES.match(path)
+    if match and os.path.isfile(path):
+        return _series(match.group("stem")) or [path]
+    if os.path.isfile(path):
+        return [path]
+    stem, _ = os.path.splitext(path)
+    series = _series(stem)
+    if series:
+        return series
+    raise SessionFileError(f"{path}: no such session file")
+
+
+def _series(stem: str) -> list[str]:
+    files = []
+    index = 0
+    while os.path.isfile(name := f"{stem}_{index:03d}.mcap"):
+        files.append(name)
+        index += 1
+    return files
+
+
+def read_session(path: str | os.PathLike[str]) -> SessionData:
+    """Read every readable record of the session at ``path``; never raises on damage."""
+    files = session_files(path)
+    data = SessionData(path=os.fspath(path), files=files)
     raw: dict[str, list[tuple[int, bytes]]] = defaultdict(list)
-    complete_until = 0
-    finished = False
-    with open(path, "rb") as f:
+    decoders: dict[str, Callable[[bytes], Any]] = {}
+    for name in files:
+        _read_file(name, data, raw, decoders)
+    for topic, items in raw.items():
+        items.sort(key=lambda item: item[0])
+        decode = decoders.get(topic, _decode_json)
+        data.messages[topic] = [(t, decode(payload)) for t, payload in items]
+    return data
+
+
+def _read_file(path: str, data: SessionData, raw: dict[str, list[tuple[int, bytes]]],
+               decoders: dict[str, Callable[[bytes], Any]]) -> None:
+    size = os.path.getsize(path)
+    if size == 0:
+        raise SessionFileError(f"{path}: not an MCAP session file (empty)")
+    state = Walk()
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, str] = {}
+    seen = 0
+    with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as view:
         try:
-            for record in StreamReader(f, record_size_limit=size + 1).records:
+            for record in walk(view, state):
                 if isinstance(record, Schema):
-                    schemas[record.id] = _parse_schema(record)
+                    schemas[record.id] = record
                 elif isinstance(record, Channel):
-                    channels[record.id] = (record.topic, record.schema_id)
-                    data.schemas.setdefault(record.topic, schemas.get(record.schema_id, {}))
+                    channels[record.id] = record.topic
+                    if record.topic not in decoders:
+                        _register(data, decoders, record, schemas.get(record.schema_id))
                     raw.setdefault(record.topic, [])
                 elif isinstance(record, Message):
-                    topic = channels.get(record.channel_id, (f"<channel {record.channel_id}>",))[0]
+                    topic = channels.get(record.channel_id, f"<channel {record.channel_id}>")
                     raw[topic].append((record.log_time, record.data))
+                    seen += 1
                 elif isinstance(record, Metadata):
                     data.metadata[record.name] = dict(record.metadata)
                 elif isinstance(record, Attachment):
                     data.attachments[record.name] = bytes(record.data)
-                elif isinstance(record, Footer):
-                    finished = True
-                complete_until = f.tell()
-        except (McapError, EOFError, ValueError, OSError) as exc:
-            data.error = f"{type(exc).__name__}: {exc}".strip(": ")
-        except Exception as exc:  # corrupt chunk payloads raise from zstd/struct internals
-            data.error = f"{type(exc).__name__}: {exc}"
-    if complete_until == 0 and not finished:
-        raise SessionFileError(f"{path}: not an MCAP session file ({data.error or 'empty'})")
-    data.recovered = not finished
-    data.lost_bytes = size - complete_until if not finished else 0
-    for topic, items in raw.items():
-        items.sort(key=lambda item: item[0])
-        data.messages[topic] = [(t, _decode(payload)) for t, payload in items]
-    return data
+        except ValueError as exc:
+            raise SessionFileError(f"{path}: {exc}") from None
+    _account(path, data, state, seen)
 
 
-def _parse_schema(record: Schema) -> dict[str, Any]:
-    try:
-        return json.loads(record.data) if record.encoding == "jsonschema" else {}
-    except ValueError:
-        return {}
+def _account(path: str, data: SessionData, state: Walk, seen: int) -> None:
+    """Fold one file's damage into the session; count truncated messages where knowable."""
+    stats = state.statistics
+    for damage in state.damage:
+        if damage.kind == "truncated" and stats is not None:
+            damage.messages = max(0, stats.message_count - seen)
+        damage.reason = f"{os.path.basename(path)}: {damage.reason}" if damage.reason else \
+            os.path.basename(path)
+    data.damage.extend(state.damage)
+    data.lost_bytes += sum(d.bytes for d in state.damage)
+    if not state.finished or state.damage:
+        data.recovered = True
+        data.error = data.error or "; ".join(d.reason for d in state.damage) or \
+            f"{os.path.basename(path)}: not finished (no footer)"
 
 
-def _decode(payload: bytes) -> Any:
+def _register(data: SessionData, decoders: dict[str, Callable[[bytes], Any]],
+              channel: Channel, schema: Schema | None) -> None:
+    topic = channel.topic
+    data.encodings[topic] = channel.message_encoding
+    if schema is not None and schema.encoding == "jsonschema":
+        try:
+            data.schemas[topic] = json.loads(schema.data)
+        except ValueError:
+            data.schemas[topic] = {}
+    elif schema is not None and schema.encoding == "ros2msg":
+        data.schemas[topic] = {"ros2msg": schema.data.decode(errors="replace")}
+    if channel.message_encoding == "cdr" and schema is not None:
+        try:
+            decoders[topic] = _guarded(CdrDecoder(parse_ros2msg(schema.data.decode())).decode)
+        except (CdrError, UnicodeDecodeError):
+            decoders[topic] = _undecodable
+    elif channel.message_encoding != "json":
+        decoders[topic] = _undecodable
+
+
+def _guarded(decode: Callable[[bytes], Any]) -> Callable[[bytes], Any]:
+    def safe(payload: bytes) -> Any:
+        try:
+            return decode(payload)
+        except (CdrError, ValueError, IndexError):  # struct.error is a ValueError
+            return {"_undecodable": len(payload)}
+    return safe
+
+
+def _decode_json(payload: bytes) -> Any:
     try:
         return json.loads(payload)
     except ValueError:
         return {"_undecodable": len(payload)}
+
+
+def _undecodable(payload: bytes) -> Any:
+    return {"_undecodable": len(payload)}

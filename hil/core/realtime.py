@@ -144,6 +144,7 @@ class Hardening:
         self.steps: list[Step] = []
         self._saved_policy: tuple[int, int] | None = None
         self._saved_affinity: set[int] | None = None
+        self.pinned_cpu: int | None = None  # the loop thread's core, once pinned
         self._saved_slack: int | None = None
         self._gc_was_enabled = False
 
@@ -179,6 +180,7 @@ class Hardening:
         except OSError as exc:
             self._saved_affinity = None
             return Step("cpu_affinity", False, f"refused: {exc.strerror or exc}")
+        self.pinned_cpu = core
         return Step("cpu_affinity", True, f"loop thread on CPU {core} of {usable}")
 
     def _mlockall(self) -> Step:

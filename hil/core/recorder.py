@@ -1,30 +1,47 @@
-"""MCAP recorder: the loop thread only enqueues, a writer thread serialises and writes.
+"""MCAP recorder, loop side: producers only queue; a writer *process* encodes and writes.
 
-* Every topic is JSON with a JSON Schema (Foxglove opens it without a plug-in).
-* A bounded queue: when it is full the message is dropped and counted; the counts are written
-  to ``/events`` as soon as the writer catches up, and in the summary at close. In lockstep
-  (``wait_when_full``) the producer waits for the writer instead: virtual time costs nothing,
-  and a lockstep run that outpaces the disk must not lose samples.
-* Chunks of ``chunk_size`` bytes (128 KiB default) and a flush at least every
-  ``flush_interval_s``: a SIGKILLed process loses about one second of messages at most.
+* :meth:`Topic.log` appends ``(channel, t_ns, message)`` to a queue: the whole cost on the
+  loop thread. :meth:`Recorder.flush` (the loop calls it once per tick, at most every
+  ``flush_every_s`` of wall time) pickles the queue as one frame and writes it, without
+  blocking, to a pipe read by the writer process (:mod:`hil.core.writer`). JSON or CDR
+  encoding, zstd compression and file I/O happen there, off this interpreter's GIL.
+* Back-pressure: what the pipe does not take waits in a backlog of at most
+  ``max_backlog_bytes``; beyond it messages are dropped at :meth:`Topic.log` and counted per
+  topic, and the counts reach ``/events`` (``recorder.dropped``) and the file's ``recorder``
+  metadata. In lockstep (``wait_when_full``) the producer waits for the writer instead:
+  virtual time costs nothing, and a lockstep run must not lose samples.
+* Crash safety: the writer closes a chunk at least every ``flush_interval_s`` and finishes
+  the file when the pipe ends, so a SIGKILL of the loop process loses only what was not yet
+  handed over (at most ``flush_every_s`` plus one unflushed chunk), and the file is indexed.
+* Encodings: ``json`` (JSON Schema) by default; ``cdr`` (ros2msg schema, see
+  :mod:`hil.core.cdr`) for flat high-rate topics.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
+import select
+import subprocess
+import sys
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-from mcap.writer import CompressionType, Writer
-
+from hil.core.cdr import CdrError, fields_of
 from hil.core.errors import HilError
+from hil.core.mcap_series import series_file
+from hil.core.record_stream import FrameDecoder, encode_frame
 
 EVENTS_TOPIC = "/events"
+ENCODINGS = ("json", "cdr")
+PIPE_BYTES = 1 << 20          # asked of the kernel for the pipe (Linux caps it at pipe-max-size)
+WRITER_START_TIMEOUT_S = 30.0
+WRITER_CLOSE_TIMEOUT_S = 120.0
 
 EVENT_SCHEMA: dict[str, Any] = {
     "type": "object",
@@ -41,21 +58,8 @@ EVENT_SCHEMA: dict[str, Any] = {
 }
 
 
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"cannot record a {type(value).__name__} as JSON")
-
-
-def encode_json(message: Any) -> bytes:
-    """The one JSON encoding of recorded messages (compact, numpy-aware)."""
-    return json.dumps(message, separators=(",", ":"), default=_json_default).encode()
-
-
 class RecorderError(HilError):
-    """The writer thread failed; what it wrote before is in the file, the rest was dropped."""
+    """The writer process failed; what it wrote before is in the file, the rest was dropped."""
 
 
 @dataclass
@@ -64,85 +68,182 @@ class RecorderStats:
     messages_dropped: dict[str, int]
     chunks_flushed: int
     bytes_written: int
+    files: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class RecordingOptions:
+    """How a session is written: per-topic encodings and file splitting."""
+
+    high_rate_encoding: str = "cdr"       # for topics registered with ``high_rate=True``
+    topic_encodings: dict[str, str] = field(default_factory=dict)  # explicit, by topic name
+    split_duration_s: float | None = None
+    split_size_mb: float | None = None
+
+    def __post_init__(self) -> None:
+        for name, encoding in [("high-rate topics", self.high_rate_encoding),
+                               *self.topic_encodings.items()]:
+            if encoding not in ENCODINGS:
+                raise HilError(f"encoding of {name}: {encoding!r} is not one of "
+                               f"{', '.join(ENCODINGS)}")
+        for name, value in (("split duration", self.split_duration_s),
+                            ("split size", self.split_size_mb)):
+            if value is not None and not value > 0:
+                raise HilError(f"{name} must be > 0, got {value!r}")
+
+    @property
+    def split(self) -> bool:
+        return self.split_duration_s is not None or self.split_size_mb is not None
+
+    def first_file(self, path: str) -> str:
+        """The file a session at ``path`` starts with (``OUT_000.mcap`` when split); any
+        reader of hil takes it for the whole series."""
+        return series_file(path, 0) if self.split else path
 
 
 class Topic:
     """A registered channel; :meth:`log` is the loop thread's whole cost of recording."""
 
-    __slots__ = ("_recorder", "channel_key", "dropped", "name")
+    __slots__ = ("_recorder", "channel_key", "dropped", "encoding", "name")
 
-    def __init__(self, recorder: Recorder, name: str, channel_key: int) -> None:
+    def __init__(self, recorder: Recorder, name: str, channel_key: int, encoding: str) -> None:
         self._recorder = recorder
         self.name = name
         self.channel_key = channel_key
+        self.encoding = encoding
         self.dropped = 0
 
     def log(self, t_ns: int, message: Any) -> bool:
-        """Hand ``message`` (JSON-able; numpy allowed) stamped ``t_ns`` to the writer.
+        """Queue ``message`` (JSON-able; numpy allowed) stamped ``t_ns`` for the writer.
 
-        Returns False when the queue was full and the message was dropped (and counted).
+        Returns False when it was dropped (backlog full, or the recorder closed) and counted.
         The message object must not be mutated afterwards.
         """
         rec = self._recorder
-        if len(rec._queue) >= rec.queue_size and rec.wait_when_full and not rec._closing:
-            rec._wait_for_room()
-        if len(rec._queue) >= rec.queue_size or rec._closing:
+        if rec._refusing:
             self.dropped += 1
             return False
         rec._queue.append((self.channel_key, t_ns, message))
+        if len(rec._queue) >= rec.batch_size:
+            rec.flush()
         return True
 
 
 class Recorder:
-    """Writes one MCAP file from any number of producer threads."""
+    """Writes one MCAP session (file or split series) through a writer process."""
 
     def __init__(
         self,
         path: str | os.PathLike[str],
         *,
-        queue_size: int = 200_000,
-        chunk_size: int = 128 * 1024,
+        chunk_size: int = 1 << 20,
         flush_interval_s: float = 1.0,
+        flush_every_s: float = 0.005,
+        batch_size: int = 512,
+        max_backlog_bytes: int = 64 << 20,
         profile: str = "",
         wait_when_full: bool = False,
+        options: RecordingOptions | None = None,
     ) -> None:
         self.path = os.fspath(path)
-        self.queue_size = queue_size
+        self.options = options or RecordingOptions()
         self.wait_when_full = wait_when_full
-        self.flush_interval_s = flush_interval_s
-        self._queue: deque[tuple[int, int, Any]] = deque()
-        self._closing = False
-        self._lock = threading.Lock()
-        self._pending_setup: list[tuple[str, tuple[Any, ...]]] = []
+        self.flush_every_s = flush_every_s
+        self.batch_size = batch_size
+        self.max_backlog_bytes = max_backlog_bytes
+        self._queue: deque[tuple[Any, ...]] = deque()
+        self._backlog = bytearray()
+        self._refusing = False
+        self._closed = False
+        self._flush_lock = threading.Lock()
+        self._topic_lock = threading.Lock()
         self._topics: dict[str, Topic] = {}
-        self._channel_ids: dict[int, int] = {}
         self._reported_drops: dict[str, int] = {}
-        self._written = 0
-        self._chunks = 0
-        self._failure: Exception | None = None
-        self._stats: RecorderStats | None = None
+        self._last_flush = time.monotonic()
         self._last_t_ns = 0
-        directory = os.path.dirname(os.path.abspath(self.path))
-        os.makedirs(directory, exist_ok=True)
-        self._file = open(self.path, "wb")  # noqa: SIM115 - closed by close()
-        self._writer = Writer(
-            self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD
-        )
-        self._writer.start(profile=profile, library="hil")
+        self._writer_gone = ""
+        self._ready = False
+        self._stats: RecorderStats | None = None
+        self._process = self._start_writer({
+            "path": self.path, "chunk_size": chunk_size, "flush_interval_s": flush_interval_s,
+            "profile": profile, "split_duration_s": self.options.split_duration_s,
+            "split_size_mb": self.options.split_size_mb,
+        })
+        assert self._process.stdin is not None
+        self._fd = self._process.stdin.fileno()
+        with contextlib.suppress(OSError):  # a bigger pipe absorbs a slow writer for longer
+            fcntl.fcntl(self._fd, fcntl.F_SETPIPE_SZ, PIPE_BYTES)
+        os.set_blocking(self._fd, False)
         self.events = self.topic(EVENTS_TOPIC, EVENT_SCHEMA)
-        self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
-        self._thread.start()
+
+    @staticmethod
+    def _start_writer(options: dict[str, Any]) -> subprocess.Popen[bytes]:
+        root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [root, env.get("PYTHONPATH")]))
+        return subprocess.Popen(
+            [sys.executable, "-m", "hil.core.writer", json.dumps(options)],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, start_new_session=True,
+        )
+
+    @property
+    def writer_pid(self) -> int:
+        return self._process.pid
+
+    def wait_ready(self, timeout_s: float = WRITER_START_TIMEOUT_S) -> None:
+        """Wait until the writer process has started (imports done, file open), so that its
+        start-up does not compete with the first ticks of a real-time loop."""
+        if self._ready:
+            return
+        assert self._process.stdout is not None
+        fd = self._process.stdout.fileno()
+        deadline = time.monotonic() + timeout_s
+        line = b""
+        while not line.endswith(b"\n"):
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not select.select([fd], [], [], remaining)[0]:
+                self._process.kill()
+                raise RecorderError(f"{self.path}: the writer process did not start within "
+                                    f"{timeout_s:g} s")
+            chunk = os.read(fd, 64 - len(line))
+            if not chunk:
+                break
+            line += chunk
+        if line != b"ready\n":
+            self._process.kill()
+            raise RecorderError(f"{self.path}: the writer process failed to start "
+                                f"({line.decode(errors='replace').strip() or 'no output'})")
+        self._ready = True
 
     # -- producer side -------------------------------------------------------------------
-    def topic(self, name: str, schema: dict[str, Any]) -> Topic:
-        """Register (or get) a JSON topic with its JSON Schema."""
-        with self._lock:
+    def topic(self, name: str, schema: dict[str, Any], *, encoding: str | None = None,
+              high_rate: bool = False) -> Topic:
+        """Register (or get) a topic with its JSON Schema.
+
+        ``encoding``: ``json`` or ``cdr``; by default the session's choice for the topic
+        (``RecordingOptions.topic_encodings``), else its high-rate encoding when
+        ``high_rate``, else JSON. A topic that CDR cannot express stays JSON unless CDR was
+        asked for by name.
+        """
+        with self._topic_lock:
             existing = self._topics.get(name)
             if existing is not None:
                 return existing
-            topic = Topic(self, name, len(self._topics))
+            chosen = encoding or self.options.topic_encodings.get(name) or (
+                self.options.high_rate_encoding if high_rate else "json")
+            if chosen not in ENCODINGS:
+                raise HilError(f"topic {name}: encoding {chosen!r} is not one of "
+                               f"{', '.join(ENCODINGS)}")
+            if chosen == "cdr":
+                try:
+                    fields_of(schema)
+                except CdrError as exc:
+                    if encoding or name in self.options.topic_encodings:
+                        raise HilError(f"topic {name}: cannot be recorded as CDR: {exc}") from None
+                    chosen = "json"
+            topic = Topic(self, name, len(self._topics), chosen)
             self._topics[name] = topic
-            self._pending_setup.append(("topic", (topic.channel_key, name, schema)))
+            self._queue.append(("topic", topic.channel_key, name, schema, chosen))
             return topic
 
     def event(
@@ -155,125 +256,137 @@ class Recorder:
 
     def metadata(self, name: str, data: dict[str, str]) -> None:
         """Add a metadata record (string to string map)."""
-        with self._lock:
-            self._pending_setup.append(("metadata", (name, dict(data))))
+        self._queue.append(("metadata", name, dict(data)))
 
     def attachment(self, name: str, data: bytes, media_type: str, t_ns: int = 0) -> None:
         """Attach a file (e.g. the configuration)."""
-        with self._lock:
-            self._pending_setup.append(("attachment", (name, bytes(data), media_type, t_ns)))
-
-    def _wait_for_room(self) -> None:
-        """Block the producer until the writer has drained half the queue (lockstep only)."""
-        while len(self._queue) > self.queue_size // 2 and self._thread.is_alive():
-            time.sleep(0.002)
+        self._queue.append(("attachment", name, bytes(data), media_type, t_ns))
 
     def dropped(self) -> dict[str, int]:
         return {name: t.dropped for name, t in self._topics.items() if t.dropped}
 
-    # -- writer side ---------------------------------------------------------------------
-    def _apply_setup(self) -> None:
-        with self._lock:
-            pending, self._pending_setup = self._pending_setup, []
-        for kind, args in pending:
-            if kind == "topic":
-                key, name, schema = args
-                schema_id = self._writer.register_schema(
-                    name=schema.get("title", name), encoding="jsonschema",
-                    data=json.dumps(schema).encode(),
-                )
-                self._channel_ids[key] = self._writer.register_channel(
-                    topic=name, message_encoding="json", schema_id=schema_id
-                )
-            elif kind == "metadata":
-                self._writer.add_metadata(*args)
-            else:
-                name, data, media_type, t_ns = args
-                self._writer.add_attachment(
-                    create_time=time.time_ns(), log_time=t_ns, name=name, data=data,
-                    media_type=media_type,
-                )
+    def keep_off_cpu(self, cpu: int) -> None:
+        """Move the writer process off ``cpu`` (the hardened loop thread's core)."""
+        if not hasattr(os, "sched_setaffinity"):
+            return
+        with contextlib.suppress(OSError):
+            others = os.sched_getaffinity(self._process.pid) - {cpu}
+            if others:
+                os.sched_setaffinity(self._process.pid, others)
 
-    def _drain(self) -> None:
-        queue, channel_ids, writer = self._queue, self._channel_ids, self._writer
-        while queue:
-            key, t_ns, message = queue.popleft()
-            if key not in channel_ids:  # registered after this cycle's setup: register it now
-                self._apply_setup()
-            writer.add_message(
-                channel_id=channel_ids[key], log_time=t_ns, publish_time=t_ns,
-                data=encode_json(message), sequence=self._written,
-            )
-            self._written += 1
-            self._last_t_ns = t_ns
-            os.sched_yield()  # let a waiting loop thread take the GIL between two messages
+    # -- hand-over -----------------------------------------------------------------------
+    def flush_if_due(self) -> None:
+        """The loop's per-tick call: hand the queue over every ``flush_every_s`` at most."""
+        if self._queue and time.monotonic() - self._last_flush >= self.flush_every_s:
+            self.flush()
 
-    def _report_drops(self) -> None:
-        for name, count in self.dropped().items():
-            before = self._reported_drops.get(name, 0)
-            if count > before:
-                self._reported_drops[name] = count
-                self._queue.append((self.events.channel_key, self._last_t_ns, {
-                    "level": "warning", "source": "recorder", "kind": "recorder.dropped",
-                    "message": f"{count - before} message(s) on {name} dropped (queue full)",
-                    "data": {"topic": name, "dropped": count - before, "total": count},
-                }))
+    def flush(self) -> None:
+        """Hand everything queued to the writer process (waits only in lockstep)."""
+        with self._flush_lock:
+            self._last_flush = time.monotonic()
+            queue = self._queue
+            records = [queue.popleft() for _ in range(len(queue))]
+            if records:
+                last = records[-1]
+                if isinstance(last[0], int):
+                    self._last_t_ns = last[1]
+                self._add_drop_report(records)
+                if self._writer_gone:
+                    self._count_lost(records)
+                else:
+                    self._backlog += encode_frame(records)
+            self._send(block=self.wait_when_full)
 
-    def _flush(self) -> None:
-        self._writer.flush()
-        self._chunks += 1
+    def _add_drop_report(self, records: list[tuple[Any, ...]]) -> None:
+        dropped = self.dropped()
+        if dropped != self._reported_drops:
+            self._reported_drops = dropped
+            records.append(("drops", self._last_t_ns, dropped))
 
-    def _run(self) -> None:
-        try:
-            self._write_until_closed()
-        except Exception as exc:  # surfaced by close(); from now on producers drop and count
-            self._failure = exc
-            self._closing = True
+    def _send(self, block: bool) -> None:
+        backlog = self._backlog
+        while backlog and not self._writer_gone:
+            try:
+                written = os.write(self._fd, backlog)
+            except BlockingIOError:
+                written = 0
+            except OSError as exc:  # BrokenPipeError: the writer process died
+                self._writer_gone = f"the writer process is gone ({exc.strerror or exc})"
+                self._count_lost([r for records in FrameDecoder().feed(bytes(backlog))
+                                  for r in records])
+                backlog.clear()
+                break
+            del backlog[:written]
+            if written == 0:
+                if not block:
+                    break
+                select.select([], [self._fd], [], 0.1)
+        self._refusing = self._closed or bool(self._writer_gone) or (
+            len(backlog) > self.max_backlog_bytes)
 
-    def _write_until_closed(self) -> None:
-        last_flush = time.monotonic()
-        while True:
-            closing = self._closing
-            self._apply_setup()
-            self._drain()
-            self._report_drops()
-            self._drain()
-            now = time.monotonic()
-            if now - last_flush >= self.flush_interval_s:
-                self._flush()
-                last_flush = now
-            if closing and not self._queue:
-                return
-            time.sleep(0.005)
+    def _count_lost(self, records: list[tuple[Any, ...]]) -> None:
+        by_key = {t.channel_key: t for t in self._topics.values()}
+        for record in records:
+            if isinstance(record[0], int) and record[0] in by_key:
+                by_key[record[0]].dropped += 1
 
     # -- lifecycle -------------------------------------------------------------------------
     def close(self) -> RecorderStats:
-        """Write everything queued, the summary and the index; return what happened."""
+        """Hand over everything queued, let the writer finish the file; return what happened."""
         if self._stats is not None:
             return self._stats
-        self._closing = True
-        self._thread.join()
-        try:
-            if self._failure is None:
-                self._apply_setup()
-                self._drain()
-            drops = self.dropped()
-            if drops:
-                self._writer.add_metadata("recorder", {"dropped": json.dumps(drops)})
-            self._writer.finish()
-        finally:
-            self._file.close()
+        self._queue.append(("close",))
+        self.flush()
+        self._send(block=True)
+        self._closed = self._refusing = True
+        assert self._process.stdin is not None
+        with contextlib.suppress(OSError):
+            self._process.stdin.close()
+        result = self._parse_result(self._writer_report())
+        drops = self.dropped()
         self._stats = RecorderStats(
-            messages_written=self._written, messages_dropped=drops,
-            chunks_flushed=self._chunks, bytes_written=os.path.getsize(self.path),
+            messages_written=int(result.get("messages_written", 0)), messages_dropped=drops,
+            chunks_flushed=int(result.get("chunks_flushed", 0)),
+            bytes_written=int(result.get("bytes_written", 0)),
+            files=list(result.get("files", [])),
         )
-        if self._failure is not None:
+        failure = result.get("error") or self._writer_gone
+        if failure:
             raise RecorderError(
-                f"{self.path}: recording stopped after {self._written} message(s): the writer "
-                f"failed with {type(self._failure).__name__}: {self._failure}; "
-                f"{sum(drops.values())} later message(s) were dropped"
-            ) from self._failure
+                f"{self.path}: recording stopped after {self._stats.messages_written} "
+                f"message(s): {failure}; {sum(drops.values())} later message(s) were dropped")
         return self._stats
+
+    def _writer_report(self) -> bytes:
+        """The writer's standard output until it exits (killed after a generous timeout);
+        its last line is the JSON report."""
+        assert self._process.stdout is not None
+        fd = self._process.stdout.fileno()
+        deadline = time.monotonic() + WRITER_CLOSE_TIMEOUT_S
+        out = bytearray()
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not select.select([fd], [], [], remaining)[0]:
+                self._process.kill()
+                break
+            chunk = os.read(fd, 1 << 16)
+            if not chunk:
+                break
+            out += chunk
+        self._process.wait()
+        self._process.stdout.close()
+        return bytes(out)
+
+    def _parse_result(self, out: bytes) -> dict[str, Any]:
+        lines = out.decode(errors="replace").strip().splitlines()
+        try:
+            result = json.loads(lines[-1]) if lines else {}
+        except ValueError:
+            result = {}
+        if not result:
+            code = self._process.returncode
+            result = {"error": f"the writer process exited with status {code} and no report"}
+        return dict(result)
 
     def __enter__(self) -> Recorder:
         return self

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import json
+import os
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -92,8 +93,14 @@ def summarize(data: SessionData) -> dict[str, Any]:
         "clock": data.metadata.get("session", {}).get("clock", ""),
         "topics": data.topic_counts,
         "duration_s": round(data.duration_s(), 6),
+        "files": data.files,
+        "encodings": dict(sorted(data.encodings.items())),
         "recovered": data.recovered,
         "lost_bytes": data.lost_bytes,
+        "lost_messages": data.lost_messages,
+        "damage": [d.as_dict() for d in data.damage],
+        "ended": data.metadata.get("recorder", {}).get("ended", ""),
+        "dropped": json.loads(data.metadata.get("recorder", {}).get("dropped", "{}")),
         "loop": loop_stats(data),
         "realtime": data.metadata.get("realtime", {}),
         "events": {
@@ -114,9 +121,16 @@ def format_summary(summary: dict[str, Any]) -> str:
     kind = summary["kind"] or "unknown kind"
     lines.append(f"kind     {kind}, clock {summary['clock'] or '?'}, "
                  f"duration {summary['duration_s']:.3f} s")
-    if summary["recovered"]:
-        lines.append(f"RECOVERED from a truncated file: {summary['lost_bytes']} byte(s) of its "
-                     "tail were unreadable and are lost")
+    if len(summary["files"]) > 1:
+        lines.append(f"files    {len(summary['files'])} (split series): "
+                     f"{os.path.basename(summary['files'][0])} ... "
+                     f"{os.path.basename(summary['files'][-1])}")
+    lines.extend(_damage_lines(summary))
+    if summary["ended"]:
+        lines.append(f"ENDED ABNORMALLY: {summary['ended']}")
+    if summary["dropped"]:
+        lines.append("DROPPED by the recorder: " + ", ".join(
+            f"{topic} {count}" for topic, count in summary["dropped"].items()))
     lines.append("topics")
     for topic, count in summary["topics"].items():
         lines.append(f"  {topic:<32} {count:>9} msgs")
@@ -144,6 +158,22 @@ def format_summary(summary: dict[str, Any]) -> str:
     if extra is not None and extra.key in summary:
         lines.extend(extra.lines(summary[extra.key]))
     return "\n".join(lines)
+
+
+def _damage_lines(summary: dict[str, Any]) -> list[str]:
+    if not summary["damage"]:
+        return ["RECOVERED: the file was not finished"] if summary["recovered"] else []
+    lost = summary["lost_messages"]
+    lines = [f"DAMAGED: {summary['lost_bytes']} byte(s) unreadable, "
+             f"{'an unknown number of' if lost is None else lost} message(s) lost"]
+    for d in summary["damage"]:
+        where = f"from byte {d['offset']}"
+        if "start_ns" in d:
+            where += f", log time {d['start_ns'] / 1e9:.3f}..{d['end_ns'] / 1e9:.3f} s"
+        count = f"{d['messages']} message(s)" if "messages" in d else "messages unknown"
+        lines.append(f"  {d['kind']:<10} {d['bytes']} byte(s) {where}: {count}"
+                     + (f" ({d['reason']})" if d.get("reason") else ""))
+    return lines
 
 
 def plot_loop_timing(data: SessionData, out_png: str) -> None:

@@ -15,7 +15,7 @@ from typing import Any
 from hil.core.clock import Clock
 from hil.core.loop import FixedRateLoop, Task
 from hil.core.realtime import Hardening
-from hil.core.recorder import Recorder, RecorderStats, Topic
+from hil.core.recorder import Recorder, RecorderStats, RecordingOptions, Topic
 
 VERSIONED_PACKAGES = (
     "hil", "numpy", "scipy", "pymodbus", "python-can", "canopen", "cvxpy", "highspy", "daqp",
@@ -63,6 +63,7 @@ class Session:
         config_name: str = "config.toml",
         handle_signals: bool = True,
         harden: bool | None = None,
+        recording: RecordingOptions | None = None,
     ) -> None:
         self.path = path
         # real-time hardening of the loop thread (hil.core.realtime); default: in real time
@@ -70,7 +71,7 @@ class Session:
         self.hardening: dict[str, str] = {}
         self.clock = clock
         self.kind = kind
-        self.recorder = Recorder(path, wait_when_full=clock.mode == "sim")
+        self.recorder = Recorder(path, wait_when_full=clock.mode == "sim", options=recording)
         self.loop = FixedRateLoop(
             clock, base_period_s, recorder=self.recorder, on_event=self._loop_event,
             handle_signals=handle_signals,
@@ -89,8 +90,10 @@ class Session:
         self.recorder_stats: RecorderStats | None = None
         self._closed = False
 
-    def topic(self, name: str, schema: dict[str, Any]) -> Topic:
-        return self.recorder.topic(name, schema)
+    def topic(self, name: str, schema: dict[str, Any], *, encoding: str | None = None,
+              high_rate: bool = False) -> Topic:
+        """Register a topic (see :meth:`hil.core.recorder.Recorder.topic` for encodings)."""
+        return self.recorder.topic(name, schema, encoding=encoding, high_rate=high_rate)
 
     def add_task(self, task: Task) -> Task:
         return self.loop.add_task(task)
@@ -110,10 +113,13 @@ class Session:
 
     def run(self, duration_s: float | None = None, max_ticks: int | None = None) -> None:
         """Run the loop; safe-state hooks run before this returns, whatever happens."""
+        self.recorder.wait_ready()  # its start-up must not compete with the first ticks
         self.event("session.start", f"{self.kind} session started", source="session")
         hardening = Hardening() if self.harden else None
         if hardening is not None:
             hardening.apply()
+            if hardening.pinned_cpu is not None:
+                self.recorder.keep_off_cpu(hardening.pinned_cpu)
             self._record_hardening(hardening)
         try:
             self.loop.run(duration_s=duration_s, max_ticks=max_ticks)

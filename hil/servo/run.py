@@ -65,6 +65,7 @@ from hil.core.plugins import (
     controller_label,
     controller_short_name,
 )
+from hil.core.recorder import RecordingOptions
 from hil.core.session import Session
 from hil.core.stats import percentile_summary
 from hil.core.verdict import Limit, SignalWatch, split_limits, verdict
@@ -78,7 +79,8 @@ from hil.servo.rig import open_drive
 STEP_BUDGET_S = 0.25
 # per-tick signals a --limit may name (magnitudes, except the position)
 SIGNALS = ("abs_error_deg", "abs_command_mA", "abs_velocity_deg_s", "position_deg")
-PREDICTION_EVERY_REALTIME = 10  # 200 Hz of /mpc/prediction in real time (every tick in lockstep)
+PREDICTION_EVERY_REALTIME = 10  # 200 Hz of /mpc/prediction in real time and in long runs
+PREDICTION_EVERY_TICK_UP_TO_S = 60.0  # lockstep runs up to this long record it every tick
 LOCKSTEP_RX_TIMEOUT_US = 100_000  # lockstep over a real bus: wait for the TPDOs, no deadline
 DISTURBANCE_OBJECT = 0x2003  # the emulated drive's external disturbance torque [mA], INTEGER16
 
@@ -90,12 +92,13 @@ COMMAND_SCHEMA: dict[str, Any] = {
     "properties": {
         "t_s": {"type": "number", "description": "tick time on the schedule grid [s]"},
         "reference_deg": {"type": "number"},
-        "error_deg": {"type": "number"},
-        "command_mA": {"type": "number", "description": "controller output, before the "
-                       "driver's clamp"},
-        "disturbance_mA": {"type": "number", "description": "scenario disturbance torque "
-                           "injected this tick (0x2003)"},
-        "compute_us": {"type": "number", "description": "controller step time"},
+        "error_deg": {"type": "number", "x-cdr": "float32"},
+        "command_mA": {"type": "number", "x-cdr": "float32",
+                       "description": "controller output, before the driver's clamp"},
+        "disturbance_mA": {"type": "number", "x-cdr": "float32", "description": "scenario "
+                           "disturbance torque injected this tick (0x2003)"},
+        "compute_us": {"type": "number", "x-cdr": "float32",
+                       "description": "controller step time"},
         "path": {"type": "string", "description": "MPC solver path: unconstrained, qp, "
                  "explicit or fallback"},
     },
@@ -106,14 +109,17 @@ FEEDBACK_SCHEMA: dict[str, Any] = {
     "description": "What the drive reported for tick k (TPDO1 + TPDO2 of the previous SYNC).",
     "properties": {
         "position_deg": {"type": "number", "description": "multi-turn, unwrapped by the master"},
-        "velocity_deg_s": {"type": "number"},
-        "current_mA": {"type": "number", "description": "torque actual (0x6077) as current"},
-        "command_mA": {"type": "number", "description": "current commanded on the wire in the "
-                       "cycle that produced this feedback (after the driver's clamp)"},
-        "statusword": {"type": "integer"},
-        "cycle": {"type": "integer"},
+        "velocity_deg_s": {"type": "number", "x-cdr": "float32"},
+        "current_mA": {"type": "number", "x-cdr": "float32",
+                       "description": "torque actual (0x6077) as current"},
+        "command_mA": {"type": "number", "x-cdr": "float32", "description": "current "
+                       "commanded on the wire in the cycle that produced this feedback (after "
+                       "the driver's clamp)"},
+        "statusword": {"type": "integer", "x-cdr": "uint16"},
+        "cycle": {"type": "integer", "x-cdr": "uint32"},
         "fresh": {"type": "boolean", "description": "false: the TPDOs were late, values repeat"},
-        "rtt_us": {"type": "number", "description": "SYNC sent -> both TPDOs received"},
+        "rtt_us": {"type": "number", "x-cdr": "float32",
+                   "description": "SYNC sent -> both TPDOs received"},
     },
 }
 PREDICTION_SCHEMA: dict[str, Any] = {
@@ -123,8 +129,8 @@ PREDICTION_SCHEMA: dict[str, Any] = {
                    "y(k+i|k), i = 1..H_p, one sample period apart (continuous angle frame).",
     "properties": {
         "t_s": {"type": "number"},
-        "u_mA": {"type": "array", "items": {"type": "number"}},
-        "y_deg": {"type": "array", "items": {"type": "number"}},
+        "u_mA": {"type": "array", "items": {"type": "number", "x-cdr": "float32"}},
+        "y_deg": {"type": "array", "items": {"type": "number", "x-cdr": "float32"}},
     },
 }
 
@@ -158,6 +164,7 @@ class ServoRunConfig:
     drive_overrides: dict[str, Any] = field(default_factory=dict)
     limits: tuple[Limit, ...] = ()
     controller_budget_s: float | None = None  # per step; None: STEP_BUDGET_S in real time
+    recording: RecordingOptions = field(default_factory=RecordingOptions)
 
     def __post_init__(self) -> None:
         for name, flag in (("umax", "--umax"), ("duration_s", "--duration")):
@@ -176,7 +183,8 @@ class ServoRunConfig:
     def prediction_period(self) -> int:
         if self.prediction_every is not None:
             return self.prediction_every
-        return PREDICTION_EVERY_REALTIME if self.realtime else 1
+        long_run = self.duration_s > PREDICTION_EVERY_TICK_UP_TO_S
+        return PREDICTION_EVERY_REALTIME if self.realtime or long_run else 1
 
     @property
     def label(self) -> str:
@@ -321,9 +329,9 @@ class ServoTask(Task):
         self.watch = watch if watch is not None and watch.limits else None
         self.hu = getattr(getattr(controller, "config", None), "hu", None)
         self.predictor = controller if isinstance(controller, Predicting) else None
-        self.commands = session.topic("/drive/command", COMMAND_SCHEMA)
-        self.feedbacks = session.topic("/drive/feedback", FEEDBACK_SCHEMA)
-        self.predictions = (session.topic("/mpc/prediction", PREDICTION_SCHEMA)
+        self.commands = session.topic("/drive/command", COMMAND_SCHEMA, high_rate=True)
+        self.feedbacks = session.topic("/drive/feedback", FEEDBACK_SCHEMA, high_rate=True)
+        self.predictions = (session.topic("/mpc/prediction", PREDICTION_SCHEMA, high_rate=True)
                             if self.predictor is not None else None)
         self._feedback = first
         self._disturbance_ma = 0
@@ -500,7 +508,7 @@ def run_servo(config: ServoRunConfig,
         session = Session(path, clock, SAMPLE_PERIOD_S, kind="servo",
                           config={"servo": run_info, "drive": drive.data},
                           config_text=drive.text,
-                          config_name="drive.toml")
+                          config_name="drive.toml", recording=config.recording)
     except BaseException:
         master.close()
         raise
@@ -576,7 +584,7 @@ def collect_kpis(config: ServoRunConfig, scenario: Scenario, session: Session,
     base["deadline_misses"] = (loop.skipped_ticks + task.late_writes
                                if task is not None and config.realtime else 0)
     base["ticks"] = ticks
-    base["mcap"] = path
+    base["mcap"] = config.recording.first_file(path)
     simulated = ticks * SAMPLE_PERIOD_S
     base.update({
         "reference": config.reference,

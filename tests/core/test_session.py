@@ -45,12 +45,16 @@ def test_logged_messages_read_back_identically_with_schemas_metadata_and_config(
     assert data.topic("/test/nested")[3] == (
         300_000_000, {"plan": [0, 30, 60], "ok": True, "name": "n30", "none": None}
     )
-    # every channel carries a JSON schema (Foxglove needs no plug-in)
+    # every channel carries a schema Foxglove decodes without a plug-in: JSON with a JSON
+    # Schema, or (the high-rate loop timing) CDR with a ros2msg schema
     with open(path, "rb") as f:
         summary = make_reader(f).get_summary()
     assert summary is not None
     for channel in summary.channels.values():
         schema = summary.schemas[channel.schema_id]
+        if channel.topic == "/loop/log/timing":
+            assert (channel.message_encoding, schema.encoding) == ("cdr", "ros2msg")
+            continue
         assert channel.message_encoding == "json"
         assert schema.encoding == "jsonschema" and json.loads(schema.data)["type"] == "object"
     topics = {c.topic for c in summary.channels.values()}
@@ -80,9 +84,11 @@ def test_topic_as_numpy_arrays(tmp_path):
 
 def test_full_queue_drops_are_counted_and_recorded_in_events(tmp_path):
     path = tmp_path / "d.mcap"
-    rec = Recorder(path, queue_size=5)
+    # hand over every message, and refuse any while a byte waits: the 1 MiB pipe holds about
+    # 100 of these 10 kB messages, so most of a burst this fast must be dropped and counted
+    rec = Recorder(path, batch_size=1, max_backlog_bytes=1)
     topic = rec.topic("/burst", SCHEMA)
-    accepted = sum(topic.log(k, {"k": k}) for k in range(2000))  # far faster than any writer
+    accepted = sum(topic.log(k, {"k": k, "pad": "x" * 10_000}) for k in range(2000))
     stats = rec.close()
     data = read_session(path)
     assert topic.dropped > 0
@@ -97,9 +103,11 @@ def test_full_queue_drops_are_counted_and_recorded_in_events(tmp_path):
 def test_lockstep_session_waits_for_the_writer_instead_of_dropping(tmp_path):
     path = tmp_path / "w.mcap"
     session = Session(str(path), SimClock(), 0.01, kind="test", handle_signals=False)
-    session.recorder.queue_size = 50  # far smaller than what one run produces at full speed
+    session.recorder.batch_size = 1  # hand over every message ...
+    session.recorder.max_backlog_bytes = 1  # ... and never hold a backlog: the pipe fills
     topic = session.topic("/burst", SCHEMA)
-    session.add_task(FunctionTask("log", 1, write=lambda c, t: [topic.log(t, {"k": k})
+    pad = "x" * 2000
+    session.add_task(FunctionTask("log", 1, write=lambda c, t: [topic.log(t, {"k": k, "pad": pad})
                                                                 for k in range(20)]))
     session.run(max_ticks=300)
     stats = session.close()
@@ -127,9 +135,12 @@ def test_a_failing_writer_is_reported_at_close_not_silent(tmp_path):
     topic = rec.topic("/x", SCHEMA)
     topic.log(1, {"k": 1})
     topic.log(2, {"not json": object()})  # cannot be encoded: the writer fails on it
-    time.sleep(0.05)
-    topic.log(3, {"k": 3})
-    with pytest.raises(RecorderError, match=r"writer failed with TypeError"):
+    rec.flush()
+    deadline = time.monotonic() + 10
+    while rec._process.poll() is None and time.monotonic() < deadline:  # the writer gives up
+        time.sleep(0.01)
+    topic.log(3, {"k": 3})  # handed to a writer that is gone: lost, and counted
+    with pytest.raises(RecorderError, match=r"TypeError: cannot record a object as JSON"):
         rec.close()
     assert topic.dropped >= 1
     assert read_session(path).topic("/x") == [(1, {"k": 1})]

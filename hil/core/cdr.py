@@ -1,0 +1,218 @@
+"""Compact binary encoding of flat topics: CDR messages with a ``ros2msg`` schema.
+
+Foxglove (and any ROS 2 tool) decodes ``cdr`` messages described by a ``ros2msg`` schema
+without a plug-in, so a high-rate topic can leave JSON without leaving the ecosystem.
+
+The schema is derived from the topic's JSON Schema, field by field in declaration order:
+
+=====================  ==============================================================
+JSON Schema            ros2msg type
+=====================  ==============================================================
+``number``             ``float64``
+``integer``            ``int64``
+``boolean``            ``bool``
+``string``             ``string``
+array of the above     ``float64[]`` ... (unbounded sequence)
+=====================  ==============================================================
+
+A property may narrow its wire type with the ``x-cdr`` keyword (``"x-cdr": "float32"``,
+``"uint16"``...): JSON Schema ignores unknown keywords, so the same schema still describes the
+JSON encoding. A missing field is written as 0, false, "" or an empty sequence; fields that
+the schema does not name are not written. Only flat objects qualify:
+:func:`cdr_compatible` says whether a schema does.
+
+Encoding is little-endian XCDR1 (encapsulation ``00 01 00 00``); alignment is relative to the
+first byte after the encapsulation header, as ROS 2 and Foxglove expect.
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+from dataclasses import dataclass
+from typing import Any
+
+ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR_LE
+
+# ros2msg primitive -> (struct code, size = alignment)
+PRIMITIVES: dict[str, tuple[str, int]] = {
+    "bool": ("?", 1), "byte": ("B", 1), "uint8": ("B", 1), "int8": ("b", 1),
+    "int16": ("h", 2), "uint16": ("H", 2), "int32": ("i", 4), "uint32": ("I", 4),
+    "int64": ("q", 8), "uint64": ("Q", 8), "float32": ("f", 4), "float64": ("d", 8),
+}
+_JSON_TO_ROS = {"number": "float64", "integer": "int64", "boolean": "bool", "string": "string"}
+_DEFAULTS = {"bool": False, "string": ""}
+_ROS_NAME = re.compile(r"[^a-z0-9_]+|_{2,}")
+
+
+class CdrError(ValueError):
+    """A schema or message that the flat CDR encoding cannot express."""
+
+
+@dataclass(frozen=True)
+class Field:
+    name: str            # the JSON name (the key of decoded messages)
+    type: str            # a key of PRIMITIVES or "string"
+    sequence: bool = False
+
+    @property
+    def ros_name(self) -> str:
+        """ROS 2 allows lower-case field names only: ``current_mA`` is ``current_ma``."""
+        return _ROS_NAME.sub("_", self.name.lower()).strip("_") or "field"
+
+
+def _field_type(name: str, prop: dict[str, Any]) -> Field:
+    if prop.get("type") == "array":
+        items = prop.get("items", {})
+        inner = _field_type(name, items if isinstance(items, dict) else {})
+        if inner.sequence:
+            raise CdrError(f"field {name!r}: nested arrays have no flat CDR encoding")
+        return Field(name, inner.type, sequence=True)
+    wire = prop.get("x-cdr") or _JSON_TO_ROS.get(str(prop.get("type")))
+    if wire is None or (wire not in PRIMITIVES and wire != "string"):
+        raise CdrError(f"field {name!r}: type {prop.get('type')!r} has no flat CDR encoding")
+    return Field(name, wire)
+
+
+def fields_of(schema: dict[str, Any]) -> list[Field]:
+    """The CDR fields of a flat JSON Schema object, in declaration order."""
+    properties = schema.get("properties")
+    if schema.get("type") != "object" or not isinstance(properties, dict) or not properties:
+        raise CdrError("only a JSON Schema object with properties has a flat CDR encoding")
+    fields = [_field_type(name, prop) for name, prop in properties.items()]
+    ros_names = [f.ros_name for f in fields]
+    if len(set(ros_names)) != len(ros_names):
+        raise CdrError(f"fields {[f.name for f in fields]} collide once lower-cased for ROS 2")
+    return fields
+
+
+def cdr_compatible(schema: dict[str, Any]) -> bool:
+    try:
+        fields_of(schema)
+    except CdrError:
+        return False
+    return True
+
+
+def ros2msg_text(fields: list[Field]) -> str:
+    """The ``ros2msg`` definition of ``fields``: one ``type name`` line each, with the JSON
+    name in a comment where ROS 2's lower-case rule changed it (``current_ma  # current_mA``)."""
+    return "".join(
+        f"{f.type}{'[]' if f.sequence else ''} {f.ros_name}"
+        f"{'  # ' + f.name if f.ros_name != f.name else ''}\n" for f in fields)
+
+
+def parse_ros2msg(text: str) -> list[Field]:
+    """Read back a flat ``ros2msg`` definition written by :func:`ros2msg_text` (a trailing
+    comment names the JSON field; constants are not supported)."""
+    fields = []
+    for raw in text.splitlines():
+        line, _, comment = raw.partition("#")
+        line = line.strip()
+        if not line:
+            continue
+        parts = line.split()
+        if len(parts) != 2 or "=" in line:
+            raise CdrError(f"ros2msg line {line!r}: expected 'type name'")
+        kind, name = parts
+        sequence = kind.endswith("[]")
+        kind = kind.removesuffix("[]")
+        if kind not in PRIMITIVES and kind != "string":
+            raise CdrError(f"ros2msg field {name!r}: type {kind!r} is not a flat primitive")
+        json_name = comment.strip()
+        fields.append(Field(json_name if json_name.lower() == name else name, kind, sequence))
+    return fields
+
+
+def _pad(buf: bytearray, align: int) -> None:
+    offset = (len(buf) - 4) % align
+    if offset:
+        buf.extend(b"\x00" * (align - offset))
+
+
+def _put_string(buf: bytearray, value: str) -> None:
+    data = value.encode()
+    _pad(buf, 4)
+    buf.extend(struct.pack("<I", len(data) + 1))
+    buf.extend(data)
+    buf.append(0)
+
+
+class CdrEncoder:
+    """Encodes dicts to CDR for one fixed list of fields."""
+
+    def __init__(self, fields: list[Field]) -> None:
+        self.fields = fields
+
+    def encode(self, message: dict[str, Any]) -> bytes:
+        buf = bytearray(ENCAPSULATION)
+        for f in self.fields:
+            value = message.get(f.name)
+            if f.sequence:
+                items = [] if value is None else list(value)
+                _pad(buf, 4)
+                buf.extend(struct.pack("<I", len(items)))
+                for item in items:
+                    self._put(buf, f, item)
+            else:
+                self._put(buf, f, value)
+        return bytes(buf)
+
+    @staticmethod
+    def _put(buf: bytearray, f: Field, value: Any) -> None:
+        if f.type == "string":
+            _put_string(buf, "" if value is None else str(value))
+            return
+        code, size = PRIMITIVES[f.type]
+        if value is None:
+            value = _DEFAULTS.get(f.type, 0)
+        elif code not in "fd?":
+            value = int(value)
+        _pad(buf, size)
+        try:
+            buf.extend(struct.pack("<" + code, value))
+        except struct.error as exc:
+            raise CdrError(f"field {f.name!r}: {value!r} does not fit {f.type}") from exc
+
+
+class CdrDecoder:
+    """Decodes CDR payloads of one fixed list of fields back to dicts."""
+
+    def __init__(self, fields: list[Field]) -> None:
+        self.fields = fields
+
+    def decode(self, payload: bytes) -> dict[str, Any]:
+        if payload[:2] != ENCAPSULATION[:2]:
+            raise CdrError("not little-endian CDR (encapsulation header)")
+        view = memoryview(payload)
+        pos = 4
+        out: dict[str, Any] = {}
+        for f in self.fields:
+            if f.sequence:
+                pos = _align(pos, 4)
+                (count,) = struct.unpack_from("<I", view, pos)
+                pos += 4
+                items = []
+                for _ in range(count):
+                    item, pos = self._get(view, pos, f)
+                    items.append(item)
+                out[f.name] = items
+            else:
+                out[f.name], pos = self._get(view, pos, f)
+        return out
+
+    @staticmethod
+    def _get(view: memoryview, pos: int, f: Field) -> tuple[Any, int]:
+        if f.type == "string":
+            pos = _align(pos, 4)
+            (length,) = struct.unpack_from("<I", view, pos)
+            start = pos + 4
+            return bytes(view[start:start + max(length - 1, 0)]).decode(), start + length
+        code, size = PRIMITIVES[f.type]
+        pos = _align(pos, size)
+        return struct.unpack_from("<" + code, view, pos)[0], pos + size
+
+
+def _align(pos: int, align: int) -> int:
+    offset = (pos - 4) % align
+    return pos + (align - offset if offset else 0)

@@ -1,0 +1,194 @@
+"""One session written as an MCAP file, or as a numbered series of them (splitting).
+
+Without splitting the session is the one file at ``path``. With ``split_duration_s`` or
+``split_size_mb`` it is ``<stem>_000.mcap``, ``<stem>_001.mcap``... beside ``path``, in the
+way of rosbag2's ``--max-bag-duration`` / ``--max-bag-size``: every file is complete and
+indexed on its own and carries the session's metadata and attachments (the configuration),
+so any one of them opens alone; :func:`hil.core.reader.read_session` reads the series as one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from typing import IO, Any
+
+import mcap.writer
+import zstandard
+from mcap.writer import CompressionType, Writer
+
+SPLIT_CHECK_EVERY = 256  # messages between two size checks
+ZSTD_LEVEL = 9  # 12 MB/s on this data, about 12 % smaller than mcap's fixed level 3
+DEFAULT_CHUNK_BYTES = 1 << 20  # larger chunks compress better; the 1 s flush bounds them
+
+
+class _LeveledZstd:
+    """mcap's writer calls ``zstandard.compress(data)`` at the library's default level and
+    offers no option for another; this stands in for the module inside the writer process."""
+
+    def __init__(self, level: int) -> None:
+        self._compressor = zstandard.ZstdCompressor(level=level)
+
+    def compress(self, data: bytes) -> bytes:
+        return self._compressor.compress(data)
+
+
+def use_zstd_level(level: int = ZSTD_LEVEL) -> None:
+    """Make this process's MCAP writers compress chunks at ``level`` (the writer process)."""
+    mcap.writer.zstandard = _LeveledZstd(level)  # type: ignore[assignment]
+
+
+def series_file(path: str, index: int) -> str:
+    """The name of file ``index`` of the split series of ``path``."""
+    stem, ext = os.path.splitext(path)
+    return f"{stem}_{index:03d}{ext or '.mcap'}"
+
+
+@dataclass
+class ChannelSpec:
+    topic: str
+    message_encoding: str
+    schema_name: str
+    schema_encoding: str
+    schema_data: bytes
+
+
+@dataclass
+class SeriesStats:
+    messages_written: int = 0
+    chunks_flushed: int = 0
+    bytes_written: int = 0
+    files: list[str] = field(default_factory=list)
+
+
+class McapSeries:
+    """Writes channels, messages, metadata and attachments; rolls files over when asked."""
+
+    def __init__(
+        self,
+        path: str,
+        *,
+        chunk_size: int = DEFAULT_CHUNK_BYTES,
+        split_duration_s: float | None = None,
+        split_size_mb: float | None = None,
+        profile: str = "",
+    ) -> None:
+        self.path = path
+        self.chunk_size = chunk_size
+        self.split = split_duration_s is not None or split_size_mb is not None
+        self.split_ns = round(split_duration_s * 1e9) if split_duration_s else None
+        self.split_bytes = round(split_size_mb * 1e6) if split_size_mb else None
+        self.profile = profile
+        self.stats = SeriesStats()
+        self._channels: dict[int, ChannelSpec] = {}
+        self._metadata: list[tuple[str, dict[str, str]]] = []
+        self._attachments: list[tuple[str, bytes, str, int]] = []
+        self._file: IO[bytes] | None = None
+        self._writer: Writer | None = None
+        self._file_channels: dict[int, int] = {}
+        self._file_first_ns: int | None = None
+        self._since_check = 0
+        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+        self._open(0)
+
+    # -- files -----------------------------------------------------------------------------
+    def _open(self, index: int) -> None:
+        name = series_file(self.path, index) if self.split else self.path
+        self._file = open(name, "wb")  # noqa: SIM115 - closed by _finish_file()
+        self._writer = Writer(self._file, chunk_size=self.chunk_size,
+                              compression=CompressionType.ZSTD)
+        self._writer.start(profile=self.profile, library="hil")
+        self._file_channels = {}
+        self._file_first_ns = None
+        self.stats.files.append(name)
+        for name_, data in self._metadata:
+            self._writer.add_metadata(name_, data)
+        for attachment in self._attachments:
+            self._write_attachment(*attachment)
+        for key in self._channels:  # every file lists every topic, with messages or not
+            self._register(key)
+
+    def _finish_file(self, extra_metadata: tuple[tuple[str, dict[str, str]], ...] = ()) -> None:
+        assert self._writer is not None and self._file is not None
+        for name, data in extra_metadata:
+            self._writer.add_metadata(name, data)
+        self._writer.finish()
+        self.stats.bytes_written += self._file.tell()
+        self._file.close()
+        self._writer = None
+        self._file = None
+
+    def _maybe_roll(self, t_ns: int) -> None:
+        if self._file_first_ns is None:
+            self._file_first_ns = t_ns
+            return
+        due = self.split_ns is not None and t_ns - self._file_first_ns >= self.split_ns
+        if not due and self.split_bytes is not None:
+            self._since_check += 1
+            if self._since_check >= SPLIT_CHECK_EVERY:
+                self._since_check = 0
+                assert self._file is not None
+                due = self._file.tell() >= self.split_bytes
+        if due:
+            self._finish_file()
+            self._open(len(self.stats.files))
+            self._file_first_ns = t_ns
+
+    # -- records ---------------------------------------------------------------------------
+    def add_channel(self, key: int, spec: ChannelSpec) -> None:
+        self._channels[key] = spec
+        self._register(key)
+
+    def add_message(self, key: int, t_ns: int, payload: bytes) -> None:
+        if self.split:
+            self._maybe_roll(t_ns)
+        writer = self._writer
+        assert writer is not None
+        writer.add_message(channel_id=self._file_channels[key], log_time=t_ns, publish_time=t_ns,
+                           data=payload, sequence=self.stats.messages_written)
+        self.stats.messages_written += 1
+
+    def _register(self, key: int) -> int:
+        spec = self._channels[key]
+        assert self._writer is not None
+        schema_id = self._writer.register_schema(
+            name=spec.schema_name, encoding=spec.schema_encoding, data=spec.schema_data)
+        channel_id = self._writer.register_channel(
+            topic=spec.topic, message_encoding=spec.message_encoding, schema_id=schema_id)
+        self._file_channels[key] = channel_id
+        return channel_id
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """Written now, and again at the head of every later file of the series."""
+        self._metadata.append((name, data))
+        assert self._writer is not None
+        self._writer.add_metadata(name, data)
+
+    def add_attachment(self, name: str, data: bytes, media_type: str, t_ns: int) -> None:
+        self._attachments.append((name, data, media_type, t_ns))
+        self._write_attachment(name, data, media_type, t_ns)
+
+    def _write_attachment(self, name: str, data: bytes, media_type: str, t_ns: int) -> None:
+        assert self._writer is not None
+        self._writer.add_attachment(create_time=time.time_ns(), log_time=t_ns, name=name,
+                                    data=data, media_type=media_type)
+
+    def flush(self) -> None:
+        """Close the chunk in progress and push it to the file (bounds what a crash loses)."""
+        assert self._writer is not None
+        self._writer.flush()
+        self.stats.chunks_flushed += 1
+
+    def close(self, final_metadata: dict[str, dict[str, str]] | None = None) -> SeriesStats:
+        """Finish the current file; ``final_metadata`` goes into it (the last of the series)."""
+        if self._writer is not None:
+            self._finish_file(tuple((final_metadata or {}).items()))
+        return self.stats
+
+
+def json_schema_channel(topic: str, schema: dict[str, Any]) -> ChannelSpec:
+    """A JSON channel described by its JSON Schema (Foxglove's native pairing)."""
+    return ChannelSpec(topic, "json", str(schema.get("title", topic)), "jsonschema",
+                       json.dumps(schema).encode())

@@ -1,0 +1,61 @@
+"""The byte stream from a session's loop process to its writer process.
+
+The loop process batches records and writes each batch as one frame to a pipe: a 4-byte
+little-endian length, then the pickled list of records. A record is either a message,
+``(channel_key, log_time_ns, message)``, or a control tuple whose first item is a string:
+
+* ``("topic", key, name, json_schema, encoding)``: register a channel (``json`` or ``cdr``);
+* ``("metadata", name, {str: str})`` and ``("attachment", name, data, media_type, t_ns)``;
+* ``("drops", t_ns, {topic: total_dropped})``: the loop dropped messages (backlog full);
+* ``("close",)``: the session ended normally; write the summary and stop.
+
+The stream is ordered, so a topic is always registered before its first message. When the
+loop process dies, the pipe's end of file tells the writer to finish the file all the same.
+"""
+
+from __future__ import annotations
+
+import pickle
+import struct
+from collections.abc import Iterator
+from typing import Any
+
+_LENGTH = struct.Struct("<I")
+MAX_FRAME_BYTES = 1 << 30
+
+
+def encode_frame(records: list[Any]) -> bytes:
+    """One frame holding ``records`` in order."""
+    payload = pickle.dumps(records, protocol=pickle.HIGHEST_PROTOCOL)
+    return _LENGTH.pack(len(payload)) + payload
+
+
+class FrameDecoder:
+    """Reassembles frames from arbitrary chunks of the stream."""
+
+    def __init__(self) -> None:
+        self._buffer = bytearray()
+
+    def feed(self, data: bytes) -> Iterator[list[Any]]:
+        """Append ``data``; yield the record lists of every frame now complete."""
+        self._buffer.extend(data)
+        buffer = self._buffer
+        start = 0
+        try:
+            while len(buffer) - start >= _LENGTH.size:
+                (length,) = _LENGTH.unpack_from(buffer, start)
+                if length > MAX_FRAME_BYTES:
+                    raise ValueError(f"record stream out of step: frame of {length} bytes")
+                end = start + _LENGTH.size + length
+                if len(buffer) < end:
+                    break
+                records = pickle.loads(buffer[start + _LENGTH.size:end])
+                start = end
+                yield records
+        finally:
+            del buffer[:start]
+
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes of an incomplete frame (lost if the stream ends now)."""
+        return len(self._buffer)

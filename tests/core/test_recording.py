@@ -1,0 +1,196 @@
+"""Compact (CDR) topics and split session files, written by the writer process and read back
+by hil's reader, by mcap's stock indexed reader and by a third-party ROS 2 CDR decoder."""
+
+import math
+import os
+import signal
+import time
+
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+
+from hil.core.errors import HilError
+from hil.core.reader import read_session, session_files
+from hil.core.recorder import Recorder, RecordingOptions
+
+FLAT = {
+    "type": "object",
+    "title": "hil.Everything",
+    "properties": {
+        "t_s": {"type": "number"},
+        "narrow": {"type": "number", "x-cdr": "float32"},
+        "count": {"type": "integer"},
+        "word": {"type": "integer", "x-cdr": "uint16"},
+        "small": {"type": "integer", "x-cdr": "int8"},
+        "ok": {"type": "boolean"},
+        "path": {"type": "string"},
+        "samples_mA": {"type": "array", "items": {"type": "number"}},
+        "counts": {"type": "array", "items": {"type": "integer", "x-cdr": "int32"}},
+    },
+}
+NESTED = {"type": "object", "title": "N", "properties": {"data": {"type": "object"}}}
+
+
+def _message(k: int) -> dict:
+    return {"t_s": k * 0.0005, "narrow": k / 3, "count": k * 1_000_003, "word": k % 65536,
+            "small": (k % 200) - 100, "ok": k % 2 == 0, "path": "qp" * (k % 3),
+            "samples_mA": [k * 0.1, -k * 0.2][: k % 3], "counts": list(range(k % 4))}
+
+
+def test_cdr_round_trip_through_the_writer_process(tmp_path):
+    path = tmp_path / "cdr.mcap"
+    rec = Recorder(path, wait_when_full=True)
+    topic = rec.topic("/flat", FLAT, encoding="cdr")
+    sent = [_message(k) for k in range(3000)]
+    for k, message in enumerate(sent):
+        topic.log(k * 500_000, message)
+    rec.close()
+
+    data = read_session(path)
+    assert data.encodings["/flat"] == "cdr" and "ros2msg" in data.schemas["/flat"]
+    got = [m for _, m in data.topic("/flat")]
+    assert len(got) == len(sent)
+    for want, have in zip(sent, got, strict=True):
+        assert set(have) == set(FLAT["properties"])
+        assert have["narrow"] == pytest.approx(want["narrow"], rel=1e-7)  # float32
+        assert {k: v for k, v in have.items() if k != "narrow"} == \
+            {k: v for k, v in want.items() if k != "narrow"}
+
+    # a third-party ROS 2 decoder reads the same values (field names lower-cased for ROS 2)
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        decoded = [d for _, _, _, d in reader.iter_decoded_messages(topics=["/flat"])]
+    assert len(decoded) == len(sent)
+    for want, have in zip(got, decoded, strict=True):
+        assert have.samples_ma == want["samples_mA"] and have.path == want["path"]
+        assert have.word == want["word"] and have.small == want["small"]
+        assert math.isclose(have.narrow, want["narrow"])
+
+
+def test_missing_fields_are_written_as_zero_and_extra_fields_are_not(tmp_path):
+    path = tmp_path / "partial.mcap"
+    with Recorder(path) as rec:
+        rec.topic("/flat", FLAT, encoding="cdr").log(1, {"count": 7, "not_in_schema": 1})
+    [(_, message)] = read_session(path).topic("/flat")
+    assert message["count"] == 7 and message["t_s"] == 0.0 and message["path"] == ""
+    assert message["samples_mA"] == [] and "not_in_schema" not in message
+
+
+def test_encoding_choice_per_topic(tmp_path):
+    options = RecordingOptions(high_rate_encoding="cdr", topic_encodings={"/slow": "cdr",
+                                                                          "/fast2": "json"})
+    path = tmp_path / "choice.mcap"
+    with Recorder(path, options=options) as rec:
+        for name, high_rate in (("/fast", True), ("/fast2", True), ("/slow", False),
+                                ("/plain", False), ("/nested", True)):
+            schema = NESTED if name == "/nested" else FLAT
+            rec.topic(name, schema, high_rate=high_rate).log(1, {"t_s": 1.0})
+    encodings = read_session(path).encodings
+    assert encodings == {"/events": "json", "/fast": "cdr", "/fast2": "json", "/slow": "cdr",
+                         "/plain": "json", "/nested": "json"}  # nested: no flat CDR, so JSON
+
+
+def test_cdr_for_a_nested_topic_by_name_and_unknown_encodings_are_refused(tmp_path):
+    with Recorder(tmp_path / "r.mcap") as rec:
+        with pytest.raises(HilError, match="/nested: cannot be recorded as CDR"):
+            rec.topic("/nested", NESTED, encoding="cdr")
+        with pytest.raises(HilError, match="'xml' is not one of json, cdr"):
+            rec.topic("/x", FLAT, encoding="xml")
+    with pytest.raises(HilError, match="split duration must be > 0"):
+        RecordingOptions(split_duration_s=0)
+
+
+def _record_split(path, options, seconds: float, rate_hz: int = 1000):
+    rec = Recorder(path, options=options, wait_when_full=True)
+    rec.metadata("session", {"kind": "test"})
+    rec.attachment("config.toml", b"a = 1\n", "application/toml")
+    topic = rec.topic("/seq", FLAT, high_rate=True)
+    for k in range(int(seconds * rate_hz)):
+        topic.log(k * 1_000_000_000 // rate_hz, {"count": k, "path": "x" * 30})
+    rec.metadata("kpis", {"json": "{\"done\": true}"})
+    return rec.close()
+
+
+def test_split_by_duration_writes_complete_files_read_back_as_one_session(tmp_path):
+    path = tmp_path / "run.mcap"
+    stats = _record_split(path, RecordingOptions(split_duration_s=1.0), seconds=3.5)
+    names = [os.path.basename(f) for f in stats.files]
+    assert names == ["run_000.mcap", "run_001.mcap", "run_002.mcap", "run_003.mcap"]
+    assert not path.exists()
+    for name in stats.files:  # each file complete, indexed, with metadata and config
+        with open(name, "rb") as f:
+            reader = make_reader(f)
+            times = [m.log_time for _, _, m in reader.iter_messages(topics=["/seq"])]
+            assert times and times[-1] - times[0] < 1_000_000_000
+            assert {m.name for m in reader.iter_metadata()} >= {"session"}
+            assert [a.name for a in reader.iter_attachments()] == ["config.toml"]
+    for spelled in (path, stats.files[0], tmp_path):  # the unsplit name, the first file, folder
+        data = read_session(spelled)
+        assert [m["count"] for _, m in data.topic("/seq")] == list(range(3500))
+        assert data.metadata["kpis"] == {"json": "{\"done\": true}"}
+        assert data.files == stats.files and not data.recovered
+
+
+def test_split_by_size(tmp_path):
+    path = tmp_path / "big.mcap"
+    stats = _record_split(path, RecordingOptions(split_size_mb=0.05), seconds=20, rate_hz=2000)
+    assert len(stats.files) >= 3
+    sizes = [os.path.getsize(f) for f in stats.files]
+    assert max(sizes[:-1]) < 0.05e6 + (1 << 20)  # rolled at the first check past the size
+    assert len(read_session(path).topic("/seq")) == 40_000
+
+
+CHILD = """
+import time
+from hil.core.recorder import Recorder, RecordingOptions
+rec = Recorder({path!r}, options=RecordingOptions(split_duration_s=0.5))
+print("writer", rec.writer_pid, flush=True)
+topic = rec.topic("/seq", {{"type": "object", "title": "Seq",
+                            "properties": {{"k": {{"type": "integer"}}}}}}, high_rate=True)
+t0 = time.monotonic()
+k = 0
+while True:
+    target = t0 + k / 2000
+    while time.monotonic() < target:
+        time.sleep(0.0002)
+    topic.log(int((target - t0) * 1e9), {{"k": k}})
+    rec.flush_if_due()
+    if k % 200 == 0:
+        print(k, flush=True)
+    k += 1
+"""
+
+
+def test_sigkill_during_a_split_run_keeps_every_file(tmp_path, run_python):
+    path = tmp_path / "kill.mcap"
+    child = run_python(CHILD.format(path=str(path)))
+    try:
+        head = child.stdout.readline().split()
+        assert head[0] == "writer", child.stderr.read()
+        last = 0
+        start = time.monotonic()
+        while time.monotonic() - start < 2.2:
+            line = child.stdout.readline()
+            assert line, child.stderr.read()
+            last = int(line)
+        os.kill(child.pid, signal.SIGKILL)
+    finally:
+        child.kill()
+        child.wait(timeout=10)
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        try:
+            os.kill(int(head[1]), 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.02)
+    files = session_files(path)
+    assert len(files) >= 4
+    for name in files:  # every file of the series finished and indexed, the last one too
+        with open(name, "rb") as f:
+            assert sum(1 for _ in make_reader(f).iter_messages()) > 0
+    data = read_session(path)
+    ks = [m["k"] for _, m in data.topic("/seq")]
+    assert ks == list(range(len(ks))) and last - len(ks) <= 100  # at most 50 ms lost
+    assert not data.recovered and "without closing" in data.metadata["recorder"]["ended"]
