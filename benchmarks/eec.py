@@ -1,22 +1,25 @@
-"""EEC solve time per decision for H_p = T, 1.5T, 2T, next to the naive baseline.
+"""EEC solve time per decision (issue 18 targets), next to the naive baseline, and the relay
+wear trade-off of gamma3.
 
-For each horizon: one closed-loop lockstep run of the EEC against the emulated bench over
-Modbus TCP (3 machine cycles, as the paper's Table II: T_s = 3T) with the default solver
-budget (``time_limit_s`` of hil/configs/eec.toml); every decision's MILP instance is kept.
-Printed per horizon:
+Closed-loop lockstep runs of the EEC against the emulated bench over Modbus TCP, default
+config (solver ``dp``, budget ``time_limit_s`` of hil/configs/eec.toml), every decision's
+instance kept; and of the hysteresis baseline (BC) under the same conditions. Printed:
 
-* ``budget``: the solve times of that run (median, p99, max) and how many solves stopped at
-  the budget with the best plan found;
-* ``exact``: a subsample of the same instances re-solved to proven optimality (budget 20 s)
-  by the schedule DP and by the HiGHS MILP;
-* ``naive``: a smaller subsample solved by the straightforward cvxpy formulation rebuilt for
-  every decision (:func:`controllers.eec_cvxpy.solve_naive`, HiGHS through cvxpy), the
-  baseline; its objective is checked against the exact one;
-* a Table II-like summary: J1, J2 of each closed-loop run and the median solve time (paper:
-  J1 3.34e4 / 3.44e4 / 3.41e4 VA, J2 585.7 / 605.8 / 624.8 VA, t_c 1.74 / 4.81 / 24.61 s).
+1. the target table: H_p = T (28 s), ``--cycles`` machine cycles, nominal and with the
+   emulator's disturbance: solve median, p99, max, solves stopped at the budget, J2 and J2
+   against BC; H_p = 2T with ``--cycles-2t`` cycles: median, p99, at the budget;
+2. the same instances re-solved by each method with no budget to speak of (20 s): the
+   schedule DP, the HiGHS MILP (every ``--exact-every``-th instance) and the naive cvxpy
+   formulation rebuilt for every decision (:func:`controllers.eec_cvxpy.solve_naive`, the
+   baseline; ``--naive`` instances, ``--naive-limit`` seconds each), with how many
+   objectives agree with the DP's;
+3. the gamma3 trade-off: runs of ``--sweep-cycles`` cycles for a few costs per switch-on:
+   energy per cycle (J1 / cycles), peak J2, starts per hour of each peripheral.
 
-Targets (DESIGN.md): H_p = T median <= 20 ms, max <= 100 ms; H_p = 2T median <= 100 ms.
-The machine is shared: figures are noisy, run it on a quiet box for figures worth quoting.
+Targets: H_p = T median <= 20 ms, p99 <= 100 ms, none at the budget, J2 the same as the
+exact MILP; H_p = 2T median <= 100 ms, none at the budget. The machine is shared: figures
+are noisy, run it on a quiet box for figures worth quoting. ``--quick``: fewer cycles and
+instances (about 3 minutes instead of 6-7).
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import argparse
 import dataclasses
 import tempfile
 import time
+from typing import Any
 from unittest import mock
 
 import numpy as np
@@ -34,88 +38,161 @@ from controllers.bench_kpis import timing_summary
 from controllers.eec_cvxpy import solve_naive
 from hil.bench.run import BenchRunOptions, run_bench
 
-Instance = tuple[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float], float, str]
+DP, MILP, NAIVE = ("DP (schedule DP, default)", "MILP (HiGHS)",
+                   "naive cvxpy, rebuilt per decision")
+Inputs = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]
 
 
-def closed_loop(hp_s: int, cycles: int, out: str
-                ) -> tuple[dict, list[Instance], eec_module.EECMilp]:
-    """Run the EEC; return its KPIs, every solve's (inputs, ms, status) and the MILP."""
-    instances: list[Instance] = []
+@dataclasses.dataclass
+class Run:
+    kpis: dict[str, Any]
+    inputs: list[Inputs]          # every solve's instance
+    solve_ms: list[float]
+    milp: eec_module.EECMilp | None
+    wall_s: float
+
+
+def closed_loop(controller: str, cycles: int, hp_s: int | None = None,
+                disturbance: bool = False, overrides: dict[str, Any] | None = None) -> Run:
+    """One run; for the EEC every solve's inputs and time are kept."""
+    inputs: list[Inputs] = []
+    solve_ms: list[float] = []
     milps: list[eec_module.EECMilp] = []
     original = eec_module.EECMilp.solve
 
     def recording(self, free, u_prev, fixed, q0, t_s, warm_u=None, budget_s=None):
         result = original(self, free, u_prev, fixed, q0, t_s, warm_u, budget_s)
-        instances.append(((free.copy(), u_prev.copy(), fixed.copy(), q0.copy(), t_s),
-                          result.solve_ms, result.status))
+        inputs.append((free.copy(), u_prev.copy(), fixed.copy(), q0.copy(), t_s))
+        solve_ms.append(result.solve_ms)
         milps.append(self)
         return result
 
-    with mock.patch.object(eec_module.EECMilp, "solve", recording):
-        kpis = run_bench(BenchRunOptions(controller="eec", cycles=cycles, hp_s=hp_s, out=out))
-    return kpis, instances, milps[0]
+    t0 = time.perf_counter()
+    with mock.patch.object(eec_module.EECMilp, "solve", recording), \
+            tempfile.TemporaryDirectory() as tmp:
+        kpis = run_bench(BenchRunOptions(controller=controller, cycles=cycles, hp_s=hp_s,
+                                         disturbance=disturbance, out=f"{tmp}/run.mcap",
+                                         overrides=overrides or {}))
+    return Run(kpis, inputs, solve_ms, milps[0] if milps else None,
+               time.perf_counter() - t0)
 
 
 def fmt(summary: dict) -> str:
-    return f"{summary['median']:>9.1f} {summary['p99']:>9.1f} {summary['max']:>9.1f}"
+    return f"{summary['median']:>8.1f} {summary['p99']:>8.1f} {summary['max']:>8.1f}"
+
+
+def exact_table(label: str, run: Run, every: int, naive: int, naive_limit_s: float
+                ) -> dict[str, float]:
+    """Re-solve the run's instances by each method without a budget; print and return the
+    medians."""
+    assert run.milp is not None
+    base = run.milp
+    solvers = {s: eec_module.EECMilp(base.p, base.problem, dataclasses.replace(
+        base.settings, time_limit_s=20.0, solver=s)) for s in ("dp", "milp")}
+    dp = [solvers["dp"].solve(*x) for x in run.inputs]
+    sample = list(range(0, len(run.inputs), every))
+    milp = [solvers["milp"].solve(*run.inputs[k]) for k in sample]
+    picks = [int(k) for k in np.linspace(0, len(run.inputs) - 1, naive).round()] if naive \
+        else []
+    cvx = [solve_naive(base, *run.inputs[k], time_limit_s=naive_limit_s)  # type: ignore[misc]
+           for k in picks]
+    # the fast model's step peaks may overestimate by peak_overestimate_va (model tails)
+    slack = (base.w2 + base.w_limit) * base.peak_overestimate_va
+    medians = {}
+    rows: list[tuple[str, list[Any], Any]] = [(DP, dp, range(len(dp))), (MILP, milp, sample),
+                                             (NAIVE, cvx, picks)]
+    for name, results, idx in rows:
+        if not results:
+            continue
+        ms = [r.solve_ms for r in results]
+        agree = sum(abs(r.objective - dp[k].objective) <= 1e-6 * abs(dp[k].objective) + (
+            slack if results is cvx else 0.0) for r, k in zip(results, idx, strict=True))
+        unproven = sum(r.status != "optimal" for r in results)
+        limit = naive_limit_s if results is cvx else 20.0
+        s = timing_summary(ms)
+        medians[name] = s["median"]
+        print(f"  {label:<10} {name:<36} {len(ms):>4} {fmt(s)}  objective = DP's on "
+              f"{agree}/{len(ms)}" + (f"; {unproven} stopped at its {limit:g} s limit"
+                                      if unproven else ""))
+    return medians
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cycles", type=int, default=3, help="machine cycles per run")
+    parser.add_argument("--quick", action="store_true", help="fewer cycles and instances")
+    parser.add_argument("--cycles", type=int, help="machine cycles at H_p = T (default 8)")
+    parser.add_argument("--cycles-2t", type=int, help="machine cycles at H_p = 2T (default 3)")
+    parser.add_argument("--sweep-cycles", type=int, help="cycles per gamma3 run (default 3)")
     parser.add_argument("--exact-every", type=int, default=8,
-                        help="re-solve every Nth instance to optimality")
-    parser.add_argument("--naive", type=int, default=4,
-                        help="instances per horizon for the naive cvxpy baseline")
+                        help="re-solve every Nth instance by the MILP")
+    parser.add_argument("--naive", type=int, help="instances per horizon for the naive "
+                        "cvxpy baseline (default 2)")
+    parser.add_argument("--naive-limit", type=float, default=60.0,
+                        help="time limit of a naive cvxpy solve [s]")
+    parser.add_argument("--gamma3", type=float, nargs="+", default=[0.0, 0.02, 0.1, 1.0],
+                        help="costs per switch-on of the trade-off table")
     args = parser.parse_args()
-    rows = []
-    print(f"{'H_p':<5} {'solver':<32} {'n':>4} {'median ms':>9} {'p99 ms':>9} {'max ms':>9}"
-          "  notes")
-    for hp in (28, 42, 56):
-        with tempfile.TemporaryDirectory() as tmp:
-            t0 = time.perf_counter()
-            kpis, instances, milp = closed_loop(hp, args.cycles, f"{tmp}/eec.mcap")
-            wall = time.perf_counter() - t0
-        budget_ms = [ms for _, ms, _ in instances]
-        at_limit = sum(status == "time_limit" for _, _, status in instances)
-        budget, method = milp.settings.time_limit_s, milp.settings.solver.upper()
-        print(f"{hp:<5} {f'{method}, budget {budget * 1e3:g} ms (closed loop)':<32} "
-              f"{len(budget_ms):>4} {fmt(timing_summary(budget_ms))}  {at_limit} stopped at "
-              f"the budget; run {wall:.0f} s wall")
-        sample = instances[::args.exact_every]
-        for solver in ("dp", "milp"):  # the schedule DP and the HiGHS MILP, no budget to speak of
-            exact_milp = eec_module.EECMilp(milp.p, milp.problem, dataclasses.replace(
-                milp.settings, time_limit_s=20.0, solver=solver))
-            exact = [exact_milp.solve(*inputs) for inputs, _, _ in sample]
-            exact_ms = [r.solve_ms for r in exact]
-            unproven = sum(r.status != "optimal" for r in exact)
-            print(f"{'':<5} {f'{solver.upper()}, exact (same instances)':<32} "
-                  f"{len(exact_ms):>4} {fmt(timing_summary(exact_ms))}  every "
-                  f"{args.exact_every}th decision"
-                  + (f"; {unproven} not proven in 20 s" if unproven else ""))
-        picks = np.linspace(0, len(sample) - 1, min(args.naive, len(sample))).round().astype(int)
-        naive = [solve_naive(milp, *sample[int(k)][0], time_limit_s=120.0) for k in picks]
-        naive_ms = [r.solve_ms for r in naive]
-        # the fast model's step peaks may overestimate by peak_overestimate_va (model tails)
-        slack = (exact_milp.w2 + exact_milp.w_limit) * exact_milp.peak_overestimate_va
-        agree = sum(-1e-9 <= exact[k].objective - r.objective
-                    <= 1e-6 * abs(r.objective) + slack
-                    for r, k in zip(naive, picks, strict=True))
-        print(f"{'':<5} {'cvxpy naive, rebuilt per decision':<32} {len(naive_ms):>4} "
-              f"{fmt(timing_summary(naive_ms))}  baseline; objective agrees on "
-              f"{agree}/{len(naive)}")
-        rows.append((hp, kpis["J1_VA"], kpis["J2_VA"], timing_summary(budget_ms)["median"],
-                     timing_summary(exact_ms)["median"], timing_summary(naive_ms)["median"]))
-    print()
-    print(f"Table II-like ({args.cycles} cycles, closed loop, H_s = 1 s, default budget)")
-    print(f"{'':<22}" + "".join(f"{f'H_p = {hp} s':>14}" for hp, *_ in rows))
-    for label, k, unit in (("J1 [VA s]", 1, "{:>14.4g}"), ("J2 [VA]", 2, "{:>14.1f}"),
-                           ("t_c budget [ms]", 3, "{:>14.1f}"),
-                           ("t_c exact [ms]", 4, "{:>14.1f}"),
-                           ("t_c naive [ms]", 5, "{:>14.0f}")):
-        print(f"{label:<22}" + "".join(unit.format(row[k]) for row in rows))
-    print("paper (T_s = 3T, CPLEX): J1 3.3416e4 3.4418e4 3.4050e4, J2 585.69 605.76 624.79, "
-          "t_c 1.74 s 4.81 s 24.61 s")
+    cycles = args.cycles or (3 if args.quick else 8)
+    cycles_2t = args.cycles_2t or (2 if args.quick else 3)
+    sweep_cycles = args.sweep_cycles or (1 if args.quick else 3)
+    naive = args.naive if args.naive is not None else (1 if args.quick else 2)
+    t_start = time.perf_counter()
+
+    runs: dict[Any, Run] = {}
+    for case, disturbed in (("nominal", False), ("disturbed", True)):
+        runs[case, "bc"] = closed_loop("bc", cycles, disturbance=disturbed)
+        runs[case, "eec"] = closed_loop("eec", cycles, hp_s=28, disturbance=disturbed)
+    runs["2T"] = closed_loop("eec", cycles_2t, hp_s=56)
+    eec_run = runs["nominal", "eec"]
+    assert eec_run.milp is not None
+    budget_ms = eec_run.milp.settings.time_limit_s * 1e3
+
+    print(f"1. Targets (closed loop, default config: solver "
+          f"{eec_run.milp.settings.solver.upper()}, budget {budget_ms:g} ms)")
+    print(f"  {'case':<24} {'n':>4} {'median':>8} {'p99':>8} {'max':>8}  at limit  "
+          f"{'J2 [VA]':>8}  {'J2 BC':>8}  J2 vs BC   targets")
+    for case in ("nominal", "disturbed"):
+        run, bc = runs[case, "eec"], runs[case, "bc"]
+        j2, j2_bc = run.kpis["J2_VA"], bc.kpis["J2_VA"]
+        print(f"  {f'H_p = T, {case}, {cycles} cyc':<24} {len(run.solve_ms):>4} "
+              f"{fmt(timing_summary(run.solve_ms))}  {run.kpis['solves_at_limit']:>8}  "
+              f"{j2:>8.1f}  {j2_bc:>8.1f}  {100 * (j2 / j2_bc - 1):>+7.1f} %   "
+              "median <= 20, p99 <= 100, 0 at limit")
+    run = runs["2T"]
+    print(f"  {f'H_p = 2T, {cycles_2t} cyc':<24} {len(run.solve_ms):>4} "
+          f"{fmt(timing_summary(run.solve_ms))}  {run.kpis['solves_at_limit']:>8}  "
+          f"{run.kpis['J2_VA']:>8.1f}  {'':>8}  {'':>9}   median <= 100, 0 at limit")
+    print("  (ms; max_gap " + ", ".join(
+        f"{k if isinstance(k, str) else '/'.join(k)} {r.kpis['max_gap']:.3g}"
+        for k, r in runs.items() if r.milp is not None) + ")")
+
+    print("\n2. The same instances, each method without a budget (20 s): ms median, p99, max")
+    print(f"  {'H_p':<10} {'method':<36} {'n':>4} {'median':>8} {'p99':>8} {'max':>8}")
+    speedups = []
+    for label, key in (("T", ("nominal", "eec")), ("2T", "2T")):
+        medians = exact_table(label, runs[key], args.exact_every, naive, args.naive_limit)
+        naive_ms = medians.get(NAIVE)
+        if naive_ms:
+            speedups.append(f"H_p = {label}: DP {naive_ms / medians[DP]:.0f}x, "
+                            f"MILP {naive_ms / medians[MILP]:.0f}x")
+    if speedups:
+        print("  median speed-up over the naive baseline: " + "; ".join(speedups))
+
+    print(f"\n3. Relay wear: gamma3 (cost per switch-on, units of J), H_p = T, nominal, "
+          f"{sweep_cycles} cycles")
+    print(f"  {'gamma3':>8} {'J1/cycle [VA s]':>16} {'J2 [VA]':>8} {'starts/h P1':>12} "
+          f"{'starts/h P2':>12} {'solve median ms':>16}")
+    bc = closed_loop("bc", sweep_cycles)
+    for gamma3 in args.gamma3:
+        run = closed_loop("eec", sweep_cycles, hp_s=28, overrides={"gamma3": gamma3})
+        k = run.kpis
+        print(f"  {gamma3:>8g} {k['SEC_VA']:>16.1f} {k['J2_VA']:>8.1f} "
+              f"{k['starts_per_hour']['P1']:>12.1f} {k['starts_per_hour']['P2']:>12.1f} "
+              f"{timing_summary(run.solve_ms)['median']:>16.1f}")
+    k = bc.kpis
+    print(f"  {'BC':>8} {k['SEC_VA']:>16.1f} {k['J2_VA']:>8.1f} "
+          f"{k['starts_per_hour']['P1']:>12.1f} {k['starts_per_hour']['P2']:>12.1f}")
+    print(f"\ntotal {time.perf_counter() - t_start:.0f} s")
 
 
 if __name__ == "__main__":

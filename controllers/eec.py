@@ -40,11 +40,13 @@ formulation, the reference of the tests):
 
 Solve time: the LP relaxation stays weak when the plan must trade peak against energy (it
 spreads fractional "thin" runs over the horizon), so HiGHS proves some instants only after
-0.3-0.7 s of root cuts and branching. With two peripherals the default ``solver = "dp"``
-(:mod:`controllers.eec_dp`) finds the same optimum exactly by dynamic programming over the
-relay schedules under a few peak caps, the repaired previous plan as incumbent; the MILP stays
-as the general formulation and the reference. ``time_limit_s`` is a safety net: at the limit
-the best plan found is used (status ``time_limit``, its gap recorded).
+0.3-0.7 s of root cuts and branching. The default ``solver = "dp"`` (:mod:`controllers.eec_dp`)
+finds the same optimum exactly by a pruned dynamic program over the relay schedules (bounds
+from per-peripheral cost-to-go under a few peak caps, dominance, the previous plan and a beam
+search as incumbents), in a few ms at H_p = T; the MILP stays as the general formulation
+and the reference. ``time_limit_s`` is a safety net: at the limit the best plan found is used
+(status ``time_limit``, its gap recorded). ``nodes`` of a DP solve counts the partial plans
+its searches kept.
 """
 
 from __future__ import annotations
@@ -122,7 +124,7 @@ class SolveResult:
     warm_start: bool
     levels: int = 0            # J2 level binaries
     gap: float = 0.0           # relative MIP gap at the end (0: proven optimal)
-    nodes: int = 0             # branch-and-bound nodes (MILP) or peak caps solved (DP)
+    nodes: int = 0             # branch-and-bound nodes (MILP) or partial plans kept (DP)
     bound: float = math.nan    # proven lower bound of the objective
 
 
@@ -186,10 +188,15 @@ class EECMilp:
         # what one switch-on costs: its energy and the relay wear (gamma3)
         self.start_cost = self.w1 * self.area_s + settings.gamma3
         self.Gu, self.Gs = prediction.dense()
+        self._consumption: dict[tuple[str, float], np.ndarray] = {}
         self._prepare_patterns()
         self._build_static()
         self.dp = ScheduleDP([DeviceGraph(self.H, L, L) for L in self.dwell_steps]) \
-            if self.nd == 2 and settings.solver == "dp" else None
+            if settings.solver == "dp" else None
+        # (peripherals, H, 3): the cost of each step spent off, on, starting
+        self.class_costs = np.stack([np.stack([np.zeros(self.H), self.w1 * self.area_u[j],
+                                               self.w1 * self.area_u[j] + self.start_cost[j]],
+                                              axis=1) for j in range(self.nd)])
         self.highs = silent_highs()
         for option, value in (*SOLVER_OPTIONS, ("mip_rel_gap", float(settings.mip_rel_gap))):
             self.highs.setOptionValue(option, value)
@@ -344,8 +351,14 @@ class EECMilp:
     def consumption(self, relay: str, t_s: float) -> np.ndarray:
         """Seconds the consumer ``relay`` is on in each step of the horizon from ``t_s``."""
         step, seq = self.settings.step_s, self.problem.sequence
-        return np.array([seq.on_fraction(relay, t_s + i * step, t_s + (i + 1) * step)
-                         for i in range(self.H)]) * step
+        key = (relay, round(t_s % seq.period_s, 9))  # the sequence is periodic
+        if key not in self._consumption:
+            if len(self._consumption) > 4096:
+                self._consumption.clear()
+            self._consumption[key] = np.array([
+                seq.on_fraction(relay, t_s + i * step, t_s + (i + 1) * step)
+                for i in range(self.H)]) * step
+        return self._consumption[key]
 
     def solve(self, free: np.ndarray, u_prev: np.ndarray, fixed_steps: np.ndarray,
               q0: np.ndarray, t_s: float, warm_u: np.ndarray | None = None,
@@ -362,11 +375,10 @@ class EECMilp:
             return SolveResult("infeasible", None, math.nan, math.nan,
                                (time.perf_counter() - t0) * 1e3, 0, False)
         table = self.peak_table(free)
-        z0, levels, pattern = self.level_rows(table)
         budget = self.settings.time_limit_s if budget_s is None else budget_s
         if self.dp is not None:
-            return self._solve_dp(t0, table, z0, levels, u_prev, fixed_steps, c_lo, c_hi,
-                                  warm_u, budget)
+            return self._solve_dp(t0, table, u_prev, fixed_steps, c_lo, c_hi, warm_u, budget)
+        z0, levels, pattern = self.level_rows(table)
         K = levels.size
         self._pass(*self._columns(u_prev, fixed_steps, c_lo, c_hi, z0, levels),
                    *self._rows(u_prev, c_lo, K, pattern))
@@ -403,40 +415,26 @@ class EECMilp:
                            gap=float(info.mip_gap), nodes=int(info.mip_node_count),
                            bound=float(info.mip_dual_bound) + self.peak_cost(z0))
 
-    def _solve_dp(self, t0: float, table: np.ndarray, z0: float, levels: np.ndarray,
-                  u_prev: np.ndarray, fixed_steps: np.ndarray, c_lo: np.ndarray,
-                  c_hi: np.ndarray, warm_u: np.ndarray | None, budget: float) -> SolveResult:
-        """The same optimum by the schedule DP (:mod:`controllers.eec_dp`); the repaired
-        previous plan is the incumbent, ``budget`` a safety net (status ``time_limit``)."""
+    def _solve_dp(self, t0: float, table: np.ndarray, u_prev: np.ndarray,
+                  fixed_steps: np.ndarray, c_lo: np.ndarray, c_hi: np.ndarray,
+                  warm_u: np.ndarray | None, budget: float) -> SolveResult:
+        """The same optimum by the schedule DP (:mod:`controllers.eec_dp`); the previous plan
+        (made feasible) is an incumbent, ``budget`` a safety net (status ``time_limit``)."""
         assert self.dp is not None
-        incumbent, best = None, math.inf
-        if warm_u is not None:
-            incumbent = self.repair(np.asarray(warm_u, float), u_prev, fixed_steps, c_lo, c_hi,
-                                    table)
-            if incumbent is not None:
-                best = float(self.costs(incumbent, 0, incumbent[:1], u_prev, table)[0])
-        costs = [np.stack([np.zeros(self.H), self.w1 * self.area_u[j],
-                           self.w1 * self.area_u[j] + self.start_cost[j]], axis=1)
-                 for j in range(self.nd)]
-        layers = [g.layers(g.initial(u_prev[j], fixed_steps[j]), c_lo[j], c_hi[j])
-                  for j, g in enumerate(self.dp.graphs)]
-        found, bound = self.dp.solve(layers, costs, table, z0, levels, self.peak_cost, best,
-                                     t0 + budget)
-        target = found.objective(self.peak_cost, best)
-        proven = bound >= target or math.isclose(bound, target, rel_tol=1e-12)
-        if found.u is not None:
-            u, objective = found.u, found.energy_cost + self.peak_cost(found.peak)
-        elif incumbent is not None:
-            u, objective = incumbent.astype(int), best
-        else:
-            return SolveResult("infeasible" if proven else "time_limit", None, math.nan,
-                               math.nan, (time.perf_counter() - t0) * 1e3, 0, False,
-                               nodes=found.caps, bound=bound)
+        z0 = float(table[:, 0].max())
+        found = self.dp.solve(u_prev, fixed_steps, self.class_costs, c_lo, c_hi, table,
+                              self.peak_costs, warm_u, t0 + budget)
+        solve_ms = (time.perf_counter() - t0) * 1e3
+        proven = found.bound >= found.objective
+        if found.u is None:
+            return SolveResult("infeasible", None, math.nan, math.nan, solve_ms, 0, False)
+        u = found.u.astype(int)
         peak = max(z0, float(table[np.arange(self.H), self.states_of(u, u_prev)].max()))
-        gap = 0.0 if proven else (objective - bound) / max(abs(objective), 1e-12)
-        return SolveResult("optimal" if proven else "time_limit", u, objective, peak,
-                           (time.perf_counter() - t0) * 1e3, 0, incumbent is not None,
-                           levels.size, gap=gap, nodes=found.caps, bound=min(bound, objective))
+        gap = 0.0 if proven else (found.objective - found.bound) / max(abs(found.objective),
+                                                                       1e-12)
+        return SolveResult("optimal" if proven else "time_limit", u, found.objective, peak,
+                           solve_ms, 0, warm_u is not None, gap=gap, nodes=found.expanded,
+                           bound=found.bound)
 
     def _columns(self, u_prev: np.ndarray, fixed_steps: np.ndarray, c_lo: np.ndarray,
                  c_hi: np.ndarray, z0: float, levels: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -506,6 +504,13 @@ class EECMilp:
         row_lo = np.concatenate([row_lo, np.full(n1 - n0 + len(pattern), -INF)])
         row_hi = np.concatenate([row_hi, np.zeros(n1 - n0), np.array(p_hi)])
         return row_lo, row_hi, np.concatenate(rr), np.concatenate(cc), np.concatenate(vv)
+
+    def peak_costs(self, peaks: np.ndarray) -> np.ndarray:
+        """:meth:`peak_cost` of each of ``peaks``."""
+        cost = self.w2 * peaks
+        if self.settings.limit_va is not None:
+            cost = cost + self.w_limit * np.maximum(0.0, peaks - float(self.settings.limit_va))
+        return cost
 
     def peak_cost(self, peak: float) -> float:
         """w2 * peak plus the limit term for ``peak``."""

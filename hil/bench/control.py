@@ -48,7 +48,7 @@ PLAN_SCHEMA: dict[str, Any] = {
         "solve_ms": {"type": "number"},
         "gap": {"type": "number", "description": "relative gap to the bound (0: proven)"},
         "nodes": {"type": "integer",
-                  "description": "MILP branch-and-bound nodes, or DP peak caps solved"},
+                  "description": "MILP branch-and-bound nodes, or DP partial plans kept"},
         "bound": {"type": "number", "description": "proven lower bound of the objective"},
         "objective": {"type": "number"},
         "peak_va": {"type": "number", "description": "predicted highest total VA"},

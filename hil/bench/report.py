@@ -1,19 +1,76 @@
-"""The bench session plot (``hil report F.mcap --out F.png`` on a ``bench`` session).
+"""The bench session's part of ``hil report``.
 
-Four panels: the total apparent power with the machining profile (base load plus the rated
-power of the machining loads that are on, when the config describes them) and the contracted
-limit; the relay states; the resource levels with their bounds; the KPI table.
+* the plot (``--out F.png``), four panels: the total apparent power with the machining profile
+  (base load plus the rated power of the machining loads that are on, when the config
+  describes them) and the contracted limit; the relay states; the resource levels with their
+  bounds; the KPI table;
+* the distribution of the EEC's solve times (from every ``/eec/plan`` message, so truncated
+  sessions too): percentiles, a histogram, the solve statuses and the largest gap; JSON key
+  ``solve_times``.
 """
 
 from __future__ import annotations
 
 import json
+import math
+from collections import Counter
 from typing import Any
 
 import numpy as np
 
 from hil.core.reader import SessionData
 from hil.core.report import kpis
+
+SOLVE_EDGES_MS = (0.0, 5.0, 10.0, 20.0, 50.0, 100.0, 250.0, 500.0, 1000.0)
+
+
+class SolveTimes:
+    """The ``solve_times`` section of ``hil report`` (entry point ``hil.summaries``)."""
+
+    key = "solve_times"
+
+    def section(self, data: SessionData) -> dict[str, Any]:
+        """Percentiles (ms), histogram, statuses and the largest gap of the recorded plans
+        (empty without any)."""
+        plans = [m for _, m in data.topic("/eec/plan")
+                 if isinstance(m, dict) and isinstance(m.get("solve_ms"), (int, float))]
+        if not plans:
+            return {}
+        ms = np.array([float(m["solve_ms"]) for m in plans])
+        counts = np.bincount(np.searchsorted(SOLVE_EDGES_MS, ms, side="right") - 1,
+                             minlength=len(SOLVE_EDGES_MS))
+        tops = [*SOLVE_EDGES_MS[1:], None]
+        gaps = [float(m["gap"]) for m in plans
+                if isinstance(m.get("gap"), (int, float)) and math.isfinite(m["gap"])]
+        return {
+            "count": int(ms.size),
+            "ms": {"min": round(float(ms.min()), 3), "p50": round(float(np.median(ms)), 3),
+                   "p90": round(float(np.percentile(ms, 90)), 3),
+                   "p99": round(float(np.percentile(ms, 99)), 3),
+                   "max": round(float(ms.max()), 3), "mean": round(float(ms.mean()), 3)},
+            "histogram": [{"from_ms": lo, "to_ms": hi, "count": int(n)}
+                          for lo, hi, n in zip(SOLVE_EDGES_MS, tops, counts, strict=True)],
+            "status": dict(sorted(Counter(str(m.get("status", "")) for m in plans).items())),
+            "max_gap": max(gaps, default=0.0),
+        }
+
+    def lines(self, section: dict[str, Any]) -> list[str]:
+        """The section as text: a percentile line, a bar per histogram bin, the statuses."""
+        ms = section["ms"]
+        out = [f"solve times ({section['count']} plans, /eec/plan)   p50 {ms['p50']:.1f}  "
+               f"p90 {ms['p90']:.1f}  p99 {ms['p99']:.1f}  max {ms['max']:.1f} ms"]
+        most = max(b["count"] for b in section["histogram"]) or 1
+        for b in section["histogram"]:
+            label = (f"{b['from_ms']:g}-{b['to_ms']:g} ms" if b["to_ms"] is not None
+                     else f">= {b['from_ms']:g} ms")
+            bar = "#" * math.ceil(40 * b["count"] / most)
+            out.append(f"  {label:<14} {b['count']:>6}  {bar}")
+        statuses = ", ".join(f"{n} {s}" for s, n in section["status"].items())
+        out.append(f"  status: {statuses}; largest gap {section['max_gap']:.3g}")
+        return out
+
+
+SOLVE_TIMES = SolveTimes()
 
 
 def _config(data: SessionData) -> dict[str, Any]:

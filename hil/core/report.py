@@ -6,7 +6,7 @@ import importlib.metadata
 import json
 import os
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -18,6 +18,18 @@ from hil.core.stats import percentile_summary
 # group; the framework names none of them and imports one only when such a session is drawn.
 PLOTTER_GROUP = "hil.plotters"
 Plotter = Callable[[SessionData, str], None]
+# Kind-specific sections of ``hil report`` (text and ``--json``), the same way: ``kind =
+# "module:Object"``, the object having ``key`` (its JSON key), ``section(data) -> dict`` (empty
+# when the session has nothing to show) and ``lines(section) -> list[str]`` (its text).
+SUMMARY_GROUP = "hil.summaries"
+
+
+class KindSummary(Protocol):
+    key: str
+
+    def section(self, data: SessionData) -> dict[str, Any]: ...
+
+    def lines(self, section: dict[str, Any]) -> list[str]: ...
 
 
 def find_plotter(kind: str) -> Plotter | None:
@@ -26,6 +38,15 @@ def find_plotter(kind: str) -> Plotter | None:
         if entry.name == kind:
             plotter: Plotter = entry.load()
             return plotter
+    return None
+
+
+def find_summary(kind: str) -> KindSummary | None:
+    """The report section registered for sessions of ``kind``, or None."""
+    for entry in importlib.metadata.entry_points(group=SUMMARY_GROUP):
+        if entry.name == kind:
+            summary: KindSummary = entry.load()
+            return summary
     return None
 
 
@@ -66,7 +87,7 @@ def kpis(data: SessionData) -> dict[str, Any]:
 def summarize(data: SessionData) -> dict[str, Any]:
     """The ``hil report --json`` document."""
     events = [m for _, m in data.topic("/events") if isinstance(m, dict)]
-    return {
+    summary = {
         "file": data.path,
         "kind": session_kind(data),
         "clock": data.metadata.get("session", {}).get("clock", ""),
@@ -88,6 +109,10 @@ def summarize(data: SessionData) -> dict[str, Any]:
         },
         "kpis": kpis(data),
     }
+    extra = find_summary(session_kind(data))
+    if extra is not None and (section := extra.section(data)):
+        summary[extra.key] = section
+    return summary
 
 
 def format_summary(summary: dict[str, Any]) -> str:
@@ -129,6 +154,9 @@ def format_summary(summary: dict[str, Any]) -> str:
         lines.append("kpis")
         for key, value in summary["kpis"].items():
             lines.append(f"  {key:<24} {value}")
+    extra = find_summary(summary["kind"])
+    if extra is not None and extra.key in summary:
+        lines.extend(extra.lines(summary[extra.key]))
     return "\n".join(lines)
 
 

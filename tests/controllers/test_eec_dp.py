@@ -70,18 +70,38 @@ def bounds(milp, q0, t_s):
     return np.maximum(lo, 0.0), np.minimum(hi, np.arange(milp.H) + 1.0)
 
 
+def switch_ons(u, u_prev):
+    prev = np.concatenate([u_prev[:, None], u[:, :-1]], axis=1)
+    return int(np.sum((u > 0.5) & (prev < 0.5)))
+
+
 def test_switch_on_cost_reduces_starts(setup):
     prediction, problem, settings, instants = setup
     starts = []
-    for gamma3 in (0.0, 1.0):
+    for gamma3 in (0.0, 0.02):
         dp, _ = solvers(prediction, problem, settings, gamma3=gamma3)
-        total = 0
-        for free, u_prev, fixed, q0, t_s, _ in instants:
-            u = dp.solve(free, u_prev, fixed, q0, t_s).u
-            prev = np.concatenate([u_prev[:, None], u[:, :-1]], axis=1)
-            total += int(np.sum((u > 0) & (prev < 0.5)))
-        starts.append(total)
-    assert starts[1] <= starts[0]
+        starts.append(sum(switch_ons(dp.solve(free, u_prev, fixed, q0, t_s).u, u_prev)
+                          for free, u_prev, fixed, q0, t_s, _ in instants))
+    assert starts[1] < starts[0]
+
+
+def test_gamma3_only_adds_its_cost_per_switch_on(setup):
+    """gamma3 = 0 is the paper's J: the objective is w1 J1 + the peak cost, nothing else; a
+    positive gamma3 adds gamma3 per switch-on of the same plan."""
+    prediction, problem, settings, instants = setup
+    paper, _ = solvers(prediction, problem, settings, gamma3=0.0)
+    wear, _ = solvers(prediction, problem, settings, gamma3=0.05)
+    for free, u_prev, fixed, q0, t_s, _ in instants:
+        result = paper.solve(free, u_prev, fixed, q0, t_s)
+        u = result.u.astype(float)
+        prev = np.concatenate([u_prev[:, None], u[:, :-1]], axis=1)
+        starts = np.clip(u - prev, 0, None)
+        energy = sum(paper.area_u[j] @ u[j] + paper.area_s[j] @ starts[j] for j in range(2))
+        assert result.objective == pytest.approx(
+            paper.w1 * energy + paper.peak_cost(result.peak_va), rel=1e-9)
+        table = wear.peak_table(free)
+        assert wear.costs(u, 0, u[:1], u_prev, table)[0] == pytest.approx(
+            result.objective + 0.05 * switch_ons(u, u_prev), rel=1e-9)
 
 
 def test_budget_is_a_safety_net(setup):
