@@ -25,11 +25,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-
 from controllers.base import BenchController
-from controllers.bench_kpis import bench_kpis, timing_summary
-from controllers.bench_problem import BenchProblem
+from controllers.bench_kpis import BenchKpis
 from hil.bench.config import BenchConfig, default_text, load_configs
 from hil.bench.control import (
     BenchContext,
@@ -120,7 +117,8 @@ def run_bench(opts: BenchRunOptions) -> dict[str, Any]:
                                    bench.user_text]))
     session = Session(out, clock, bench.sampling.period_s, kind="bench", config=merged,
                       config_text=text)
-    log = RunLog()
+    log = RunLog(BenchKpis(problem, sample_period_s=bench.sampling.period_s,
+                           limit_va=eec.eec.limit_va))
     origin = SequenceOrigin(clock)
     watch = SignalWatch(signal_limits)
     context = BenchContext(
@@ -143,7 +141,7 @@ def run_bench(opts: BenchRunOptions) -> dict[str, Any]:
     except BaseException:
         session.close()
         raise
-    kpis = kpis_of(log, problem, opts, label, eec.eec.limit_va, out)
+    kpis = kpis_of(log, opts, label, out)
     kpis["stop_reason"] = session.loop.stop_reason
     kpis.update(verdict(kpis, kpi_limits, watch))
     session.close(kpis=kpis)
@@ -168,8 +166,7 @@ def _run(session: Session, opts: BenchRunOptions, bench: BenchConfig,
         player = origin.player = SequencePlayer(rig.bench, rig.sequence,
                                                 divisor=rig.sampler.divisor)
         problem = bench.problem
-        session.add_task(Observer(rig, list(problem.peripherals), log, origin,
-                                  estimator_of(controller)))
+        session.add_task(Observer(rig, log, origin, estimator_of(controller)))
         session.add_task(player)
         if watch.limits:
             session.add_task(SignalLimits(rig, watch, session))
@@ -183,20 +180,13 @@ def _run(session: Session, opts: BenchRunOptions, bench: BenchConfig,
             rig.close()
 
 
-def kpis_of(log: RunLog, problem: BenchProblem, opts: BenchRunOptions, label: str,
-            limit_va: float | None, out: str) -> dict[str, Any]:
-    if not log.t or not log.levels_t:
+def kpis_of(log: RunLog, opts: BenchRunOptions, label: str, out: str) -> dict[str, Any]:
+    if not log.kpis.power_samples or not log.kpis.level_samples:
         raise ConfigError("the run recorded no meter or level samples: nothing to evaluate")
-    kpis = bench_kpis(
-        problem, t_s=np.array(log.t), s_va=np.array(log.s),
-        relays={n: np.array(v) for n, v in log.relays.items()},
-        relays_t_s=np.array(log.relays_t),
-        levels={n: np.array(v) for n, v in log.levels.items()},
-        levels_t_s=np.array(log.levels_t), cycles=opts.cycles, limit_va=limit_va,
-    )
-    solve_ms = log.solve_ms if log.solver_reports else log.decide_ms
-    return {"controller": label, "cycles": opts.cycles, **kpis,
-            "solve_ms": timing_summary(solve_ms), "solves_at_limit": log.solver_limits,
+    times = log.solve_ms if log.solver_reports else log.decide_ms
+    solve_ms = {"median": round(times.percentile(50), 3), "p99": round(times.percentile(99), 3),
+                "max": round(times.max_us, 3)}
+    return {"controller": label, "cycles": opts.cycles, **log.kpis.kpis(opts.cycles),
+            "solve_ms": solve_ms, "solves_at_limit": log.solver_limits,
             "max_gap": log.max_gap,
             "fallbacks": log.fallbacks, "mcap": out}
-
