@@ -31,12 +31,11 @@ class TimingHistogram:
     """Durations (any non-negative unit, us by convention): exact count, sum, min, max;
     percentiles within ``RELATIVE_ACCURACY`` from ``BUCKETS`` fixed counters."""
 
-    __slots__ = ("_bins", "_n_pending", "_pending", "_sum", "count", "max_us", "min_us")
+    __slots__ = ("_bins", "_pending", "_sum", "count", "max_us", "min_us")
 
     def __init__(self) -> None:
         self._bins = np.zeros(BUCKETS, dtype=np.int64)
-        self._pending = np.empty(_FLUSH)
-        self._n_pending = 0
+        self._pending: list[float] = []  # at most _FLUSH samples not yet binned
         self._sum = 0.0
         self.count = 0
         self.max_us = 0.0
@@ -48,15 +47,14 @@ class TimingHistogram:
         if not math.isfinite(value):
             return
         v = value if value > 0.0 else 0.0
-        self._pending[self._n_pending] = v
-        self._n_pending += 1
+        self._pending.append(v)
         self.count += 1
         self._sum += v
         if v > self.max_us:
             self.max_us = v
         if v < self.min_us:
             self.min_us = v
-        if self._n_pending == _FLUSH:
+        if len(self._pending) == _FLUSH:
             self._flush()
 
     def add_many(self, samples_us: list[float] | np.ndarray) -> None:
@@ -72,10 +70,10 @@ class TimingHistogram:
         self.min_us = min(self.min_us, float(values.min()))
 
     def _flush(self) -> None:
-        if self._n_pending:
-            pending = bucket_of(self._pending[: self._n_pending])
+        if self._pending:
+            pending = bucket_of(np.asarray(self._pending))
             self._bins += np.bincount(pending, minlength=BUCKETS)
-            self._n_pending = 0
+            self._pending.clear()
 
     def percentile(self, q: float) -> float:
         """The q-th percentile (0-100), linearly interpolated between the two nearest ranks
