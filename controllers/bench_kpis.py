@@ -1,4 +1,4 @@
-"""KPIs of a bench run (energy paper, sections II and V), from the recorded signals.
+"""KPIs of a bench run (energy paper, sections II and V), accumulated sample by sample.
 
 * ``J1_VA``: the paper's J1, the area under the measured total apparent power over the run
   (VA s; the paper's tables write "VA"). ``energy_VAs`` is the same area under its physical
@@ -12,6 +12,10 @@
   relay; ``level_violations``: excursions of a level outside its bounds; ``switches``: relay
   changes per peripheral; ``starts_per_hour``: switch-ons per peripheral per hour of run
   (relay wear, motor starts); ``over_limit_s``: time above the contracted power limit.
+
+Every KPI is a running sum, count or maximum (:class:`BenchKpis`), so a run of any length
+keeps the same few numbers; a sample's duration is the time to the next sample (the last one
+lasts as long as the one before it).
 """
 
 from __future__ import annotations
@@ -29,70 +33,154 @@ def transitions(on: np.ndarray) -> np.ndarray:
     return np.nonzero(on[1:] != on[:-1])[0] + 1
 
 
-def switch_ons(on: np.ndarray) -> int:
-    """Off-to-on changes of a 0/1 series (one more if it starts on)."""
-    on = np.asarray(on).astype(bool)
-    return int(np.sum(on[1:] & ~on[:-1]) + (1 if on.size and on[0] else 0))
+class _Held:
+    """A series of samples, each held until the next: running sums of value x duration."""
+
+    __slots__ = ("count", "first_t", "last_dt", "last_t")
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.first_t = self.last_t = self.last_dt = 0.0
+
+    def step(self, t_s: float) -> float:
+        """Register a sample at ``t_s``; return how long the previous one lasted (0: first)."""
+        dt = t_s - self.last_t if self.count else 0.0
+        if self.count == 0:
+            self.first_t = t_s
+        else:
+            self.last_dt = dt
+        self.count += 1
+        self.last_t = t_s
+        return dt
 
 
-def dwell_violations(t_s: np.ndarray, on: np.ndarray, dwell_s: float, tol_s: float) -> int:
-    """Changes of one relay that came less than ``dwell_s - tol_s`` after its previous one."""
-    changes = t_s[transitions(on)]
-    return int(np.sum(np.diff(changes) < dwell_s - tol_s))
+class _RelayCount:
+    """One relay's changes: switches, switch-ons and changes closer than the dwell."""
+
+    __slots__ = ("changes", "dwell_violations", "first_on", "last_change_t", "on", "ons")
+
+    def __init__(self) -> None:
+        self.on: bool | None = None
+        self.first_on = False
+        self.changes = self.ons = self.dwell_violations = 0
+        self.last_change_t: float | None = None
+
+    def sample(self, t_s: float, on: bool, min_spacing_s: float) -> None:
+        if self.on is None:
+            self.on = self.first_on = on
+            self.ons = int(on)
+            return
+        if on == self.on:
+            return
+        self.on = on
+        self.changes += 1
+        self.ons += on
+        if self.last_change_t is not None and t_s - self.last_change_t < min_spacing_s:
+            self.dwell_violations += 1
+        self.last_change_t = t_s
 
 
-def excursions(q: np.ndarray, low: float, high: float) -> int:
-    """How many times the level left ``[low, high]``."""
-    outside = (np.asarray(q) < low) | (np.asarray(q) > high)
-    return int(outside[0]) + int(np.sum(outside[1:] & ~outside[:-1]))
+class BenchKpis:
+    """A bench run's KPIs in constant memory: feed every good meter sample to :meth:`power`,
+    the relays of every sample to :meth:`relays`, every good level reading to :meth:`levels`,
+    then ask :meth:`kpis`. ``sample_period_s`` sets the one-second window of ``peak_VA``."""
 
+    def __init__(self, problem: BenchProblem, *, sample_period_s: float,
+                 limit_va: float | None = None, dwell_tol_s: float = 0.005) -> None:
+        self.problem, self.limit_va, self.dwell_tol_s = problem, limit_va, dwell_tol_s
+        self._power, self._relays_t = _Held(), _Held()
+        self._energy = self._over_limit = self._overlap = 0.0
+        self._s_last = self._s_max = 0.0
+        self._window = np.zeros(max(1, round(1.0 / sample_period_s)))  # last 1 s of samples
+        self._window_sum = self._window_peak = 0.0
+        self._both_on = False
+        self._relay = {n: _RelayCount() for n in problem.peripherals}
+        self._outside: dict[str, bool] = {}
+        self._excursions = {r.name: 0 for r in problem.resources}
+        self._bounds = {r.name: (r.q_min, r.q_max) for r in problem.resources}
+        self.level_samples = 0
 
-def one_second_peak(t_s: np.ndarray, s: np.ndarray) -> float:
-    """Highest mean of ``s`` over any window of 1 s (samples evenly spaced)."""
-    if s.size < 2:
-        return float(s.max()) if s.size else 0.0
-    dt = float(np.median(np.diff(t_s)))
-    n = max(1, round(1.0 / dt))
-    if s.size < n:
-        return float(s.mean())
-    c = np.concatenate([[0.0], np.cumsum(s)])
-    return float(np.max((c[n:] - c[:-n]) / n))
+    @property
+    def power_samples(self) -> int:
+        return self._power.count
 
+    def power(self, t_s: float, s_va: float) -> None:
+        """A good meter sample: total apparent power ``s_va`` at ``t_s``."""
+        previous = self._s_last
+        dt = self._power.step(t_s)
+        self._energy += previous * dt
+        if self.limit_va is not None and previous > self.limit_va:
+            self._over_limit += dt
+        self._s_last = s_va
+        n = self._power.count
+        self._s_max = s_va if n == 1 else max(self._s_max, s_va)
+        window = self._window
+        slot = (n - 1) % window.size
+        if slot == 0:  # once per window: a fresh sum, so rounding errors do not pile up
+            self._window_sum = float(window[1:].sum())
+        else:
+            self._window_sum -= window[slot]
+        window[slot] = s_va
+        self._window_sum += s_va
+        if n >= window.size:
+            self._window_peak = max(self._window_peak, self._window_sum / window.size)
 
-def bench_kpis(problem: BenchProblem, *, t_s: np.ndarray, s_va: np.ndarray,
-               relays: Mapping[str, np.ndarray], relays_t_s: np.ndarray,
-               levels: Mapping[str, np.ndarray], levels_t_s: np.ndarray, cycles: float,
-               limit_va: float | None = None, dwell_tol_s: float = 0.005) -> dict[str, object]:
-    """The KPI dictionary of a run (signals as recorded; times in seconds)."""
-    t_s, s_va = np.asarray(t_s, float), np.asarray(s_va, float)
-    dt = np.diff(t_s, append=t_s[-1] + (t_s[-1] - t_s[-2] if t_s.size > 1 else 0.0))
-    energy = float(np.sum(s_va * dt))
-    names = problem.peripherals
-    on = {n: np.asarray(relays[n]).astype(bool) for n in names}
-    rdt = np.diff(relays_t_s, append=relays_t_s[-1] + (relays_t_s[-1] - relays_t_s[-2]
-                                                       if relays_t_s.size > 1 else 0.0))
-    both = np.logical_and.reduce([on[n] for n in names]) if len(names) > 1 else \
-        np.zeros_like(rdt, dtype=bool)
-    kpis: dict[str, object] = {
-        "J1_VA": round(energy, 1),
-        "J2_VA": round(float(s_va.max()), 2),
-        "SEC_VA": round(energy / cycles, 1) if cycles else None,
-        "peak_VA": round(one_second_peak(t_s, s_va), 2),
-        "energy_VAs": round(energy, 1),
-        "overlap_s": round(float(np.sum(rdt[both])), 2),
-        "dwell_violations": sum(dwell_violations(relays_t_s, on[n], problem.dwell_s[n],
-                                                 dwell_tol_s) for n in names),
-        "level_violations": sum(excursions(levels[r.name], r.q_min, r.q_max)
-                                for r in problem.resources),
-        "switches": {n: int(transitions(on[n]).size + (1 if on[n].size and on[n][0] else 0))
-                     for n in names},
-    }
-    hours = max(float(relays_t_s[-1] - relays_t_s[0]), 1e-9) / 3600.0 if relays_t_s.size else 0.0
-    kpis["starts_per_hour"] = {n: round(switch_ons(on[n]) / hours, 1) if hours else 0.0
-                               for n in names}
-    if limit_va is not None:
-        kpis["over_limit_s"] = round(float(np.sum(dt[s_va > limit_va])), 2)
-    return kpis
+    def relays(self, t_s: float, on: Mapping[str, bool]) -> None:
+        """The relays of one sample at ``t_s`` (every peripheral named)."""
+        dt = self._relays_t.step(t_s)
+        if self._both_on:
+            self._overlap += dt
+        names = self.problem.peripherals
+        self._both_on = len(names) > 1 and all(on[n] for n in names)
+        for name in names:
+            self._relay[name].sample(t_s, bool(on[name]),
+                                     self.problem.dwell_s[name] - self.dwell_tol_s)
+
+    def levels(self, t_s: float, levels: Mapping[str, float]) -> None:
+        """A good reading of the resource levels at ``t_s``."""
+        self.level_samples += 1
+        for name, (low, high) in self._bounds.items():
+            if name not in levels:
+                continue
+            q = levels[name]
+            outside = q < low or q > high
+            if outside and not self._outside.get(name, False):
+                self._excursions[name] += 1
+            self._outside[name] = outside
+
+    def kpis(self, cycles: float) -> dict[str, object]:
+        """The KPI dictionary of the run so far (needs at least one meter sample)."""
+        if self._power.count == 0:
+            raise ValueError("no meter sample: no bench KPIs")
+        last_dt = self._power.last_dt
+        energy = self._energy + self._s_last * last_dt
+        names = self.problem.peripherals
+        relays_last_dt = self._relays_t.last_dt
+        overlap = self._overlap + (relays_last_dt if self._both_on else 0.0)
+        window = self._window
+        n = self._power.count
+        peak = (self._s_max if n < 2 else
+                self._window_peak if n >= window.size else float(window[:n].mean()))
+        kpis: dict[str, object] = {
+            "J1_VA": round(energy, 1),
+            "J2_VA": round(self._s_max, 2),
+            "SEC_VA": round(energy / cycles, 1) if cycles else None,
+            "peak_VA": round(peak, 2),
+            "energy_VAs": round(energy, 1),
+            "overlap_s": round(overlap, 2),
+            "dwell_violations": sum(self._relay[n].dwell_violations for n in names),
+            "level_violations": sum(self._excursions.values()),
+            "switches": {n: self._relay[n].changes + int(self._relay[n].first_on)
+                         for n in names},
+        }
+        held = self._relays_t
+        hours = max(held.last_t - held.first_t, 1e-9) / 3600.0 if held.count else 0.0
+        kpis["starts_per_hour"] = {n: round(self._relay[n].ons / hours, 1) if hours else 0.0
+                                   for n in names}
+        if self.limit_va is not None:
+            over = self._over_limit + (last_dt if self._s_last > self.limit_va else 0.0)
+            kpis["over_limit_s"] = round(over, 2)
+        return kpis
 
 
 def timing_summary(samples_ms: Sequence[float]) -> dict[str, float]:

@@ -21,12 +21,15 @@ from __future__ import annotations
 
 import math
 import threading
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from hil.core.errors import ConfigError
+
+COIL_LOG_LENGTH = 4096
 
 PHASES = ("L1", "L2", "L3")
 
@@ -341,7 +344,9 @@ class BenchPlant:
         self._lock = threading.Lock()
         self._coils = [False] * spec.coils
         self._applied = [False] * spec.coils
-        self.coil_log: list[tuple[int, int, bool]] = []  # (step that first used it, coil, on)
+        # (step that first used it, coil, on): the latest COIL_LOG_LENGTH changes (a day-long
+        # run must not keep every one)
+        self.coil_log: deque[tuple[int, int, bool]] = deque(maxlen=COIL_LOG_LENGTH)
         self.k = 0
         self.extra_va = 0.0  # a load step injected by a fault (pf 1, on the base load's phases)
         self.snapshot = self._measure()

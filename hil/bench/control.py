@@ -24,10 +24,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from controllers.base import BenchController, BenchEstimator, BenchObservation, BenchSample
+from controllers.bench_kpis import BenchKpis
 from hil.core.errors import ControllerError
 from hil.core.guard import guarded_call
 from hil.core.loop import Task
 from hil.core.realtime import ordinary_thread
+from hil.core.stats import TimingHistogram
 from hil.core.types import EventSink
 from hil.core.verdict import SignalWatch
 
@@ -70,16 +72,12 @@ ESTIMATE_SCHEMA: dict[str, Any] = {
 
 @dataclass
 class RunLog:
-    """What the loop saw, kept for the KPIs (one entry per good sample)."""
+    """What the loop saw, reduced as it goes: the KPIs' running accumulators and histograms of
+    the decision times (constant memory, whatever the length of the run)."""
 
-    t: list[float] = field(default_factory=list)
-    s: list[float] = field(default_factory=list)
-    relays_t: list[float] = field(default_factory=list)
-    relays: dict[str, list[bool]] = field(default_factory=dict)
-    levels_t: list[float] = field(default_factory=list)
-    levels: dict[str, list[float]] = field(default_factory=dict)
-    solve_ms: list[float] = field(default_factory=list)   # the solver's own time (EEC)
-    decide_ms: list[float] = field(default_factory=list)  # every decide() call, wall time
+    kpis: BenchKpis
+    solve_ms: TimingHistogram = field(default_factory=TimingHistogram)  # the solver's (EEC)
+    decide_ms: TimingHistogram = field(default_factory=TimingHistogram)  # every decide() call
     fallbacks: int = 0
     solver_limits: int = 0
     max_gap: float = 0.0          # largest relative gap of a solve (0: every one proven)
@@ -93,41 +91,61 @@ def estimator_of(controller: BenchController) -> BenchEstimator | None:
 
 
 class Observer(Task):
-    """Every sample: log the reading for the KPIs and feed the estimator (if any) the relays
+    """Every sample: add the reading to the KPIs and feed the estimator (if any) the relays
     held during the last step and this reading (placed before the sequence player)."""
 
-    def __init__(self, rig: BenchRig, names: list[str], log: RunLog,
-                 clock_origin: Callable[[], int], estimator: BenchEstimator | None) -> None:
+    def __init__(self, rig: BenchRig, log: RunLog, clock_origin: Callable[[], int],
+                 estimator: BenchEstimator | None) -> None:
         super().__init__("estimator", 1)
-        self.rig, self.names, self.log = rig, names, log
+        self.rig, self.log = rig, log
         self.estimator = estimator
         self._origin = clock_origin
         self._last_power: Any = None
         self._last_levels: Any = None
+        # relay samples of a lost link, held until it is restored (then counted at the safe
+        # level the safety layer drove them to) or given up on (then dropped: the KPIs end
+        # where the bench was last heard); at most give_up_s of samples
+        self._held: list[float] = []
+        self._may_give_up = rig.link.give_up_ns > 0
 
     def read(self, t_ns: int) -> None:
         sampler, bench = self.rig.sampler, self.rig.bench
         t = (t_ns - self._origin()) / 1e9
-        relays = bench.relays()
         power = sampler.latest_power  # a new dict for every good poll
         total_va = power["total_va"] if power is not None and power is not self._last_power \
             else None
         self._last_power = power
-        log = self.log
-        log.relays_t.append(t)
-        for name in self.names:
-            log.relays.setdefault(name, []).append(relays[name])
+        kpis = self.log.kpis
+        if bench.link_up:
+            self._release_held()
+            relays = bench.relays()
+            kpis.relays(t, relays)
+        else:  # the relays' real state is unknown: they were driven to their safe level
+            relays = dict(bench.safe_levels)
+            if self._may_give_up:
+                self._held.append(t)
+            else:
+                kpis.relays(t, relays)
         if total_va is not None:
-            log.t.append(t)
-            log.s.append(total_va)
+            kpis.power(t, total_va)
         levels = sampler.latest_levels
         if levels is not None and levels is not self._last_levels:
             self._last_levels = levels
-            log.levels_t.append(t)
-            for name, value in levels.items():
-                log.levels.setdefault(name, []).append(value)
+            kpis.levels(t, levels)
         if self.estimator is not None:
             self.estimator.update(BenchSample(t, total_va, relays))
+
+    def _release_held(self) -> None:
+        safe = self.rig.bench.safe_levels
+        for t in self._held:
+            self.log.kpis.relays(t, safe)
+        self._held.clear()
+
+    def finish(self, gave_up: bool) -> None:
+        """After the run: a loss the run gave up on is dropped, one it ended in is counted."""
+        if gave_up:
+            self._held.clear()
+        self._release_held()
 
 
 class ControllerTask(Task):
@@ -235,7 +253,7 @@ class RecordedEEC:
         decision = self.eec.step(obs)
         log = self.log
         if decision.solve is not None:
-            log.solve_ms.append(decision.solve.solve_ms)
+            log.solve_ms.add(decision.solve.solve_ms)
             log.solver_limits += decision.solve.status == "time_limit"
             if math.isfinite(decision.solve.gap):
                 log.max_gap = max(log.max_gap, decision.solve.gap)
@@ -280,7 +298,7 @@ class GuardedController:
             self.event("controller.error", str(exc), level="error", source="controller",
                        t_s=obs.t_s)
             raise
-        self.log.decide_ms.append(elapsed * 1e3)
+        self.log.decide_ms.add(elapsed * 1e3)
         return command
 
 

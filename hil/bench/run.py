@@ -25,12 +25,8 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-import numpy as np
-
 from controllers.base import BenchController
-from controllers.bench_kpis import bench_kpis, timing_summary
-from controllers.bench_problem import BenchProblem
-from drivers.modbus_bench import RelaySpec
+from controllers.bench_kpis import BenchKpis
 from hil.bench.config import BenchConfig, default_text, load_configs
 from hil.bench.control import (
     BenchContext,
@@ -125,7 +121,8 @@ def run_bench(opts: BenchRunOptions) -> dict[str, Any]:
                                    bench.user_text]))
     session = Session(out, clock, bench.sampling.period_s, kind="bench", config=merged,
                       config_text=text, recording=opts.recording)
-    log = RunLog()
+    log = RunLog(BenchKpis(problem, sample_period_s=bench.sampling.period_s,
+                           limit_va=eec.eec.limit_va))
     origin = SequenceOrigin(clock)
     watch = SignalWatch(signal_limits)
     context = BenchContext(
@@ -148,9 +145,7 @@ def run_bench(opts: BenchRunOptions) -> dict[str, Any]:
     except BaseException:
         session.close()
         raise
-    lost = [((a - origin()) / 1e9, (b - origin()) / 1e9) for a, b in link.lost]
-    exclude_lost_link(log, lost, link.gave_up, bench.map.relays)
-    kpis = kpis_of(log, problem, opts, label, eec.eec.limit_va, out)
+    kpis = kpis_of(log, opts, label, out)
     kpis["stop_reason"] = session.loop.stop_reason
     kpis.update(link.kpis)
     kpis.update(verdict(kpis, kpi_limits, watch))
@@ -191,26 +186,6 @@ def link_report(rig: BenchRig, end_ns: int) -> LinkReport:
     return LinkReport(lost, rig.link.gave_up, {"faults": faults, "disturbed": disturbed})
 
 
-def exclude_lost_link(log: RunLog, lost: list[tuple[float, float]], gave_up: bool,
-                      relays: dict[str, RelaySpec]) -> None:
-    """While the link was lost the relay states are unknown: the relay samples of a lost
-    interval count at the safe level the safety layer drove them to, and after a loss the run
-    gave up on, they are dropped (the KPIs end where the bench was last heard)."""
-    if not lost:
-        return
-    t = np.array(log.relays_t)
-    if gave_up:
-        keep = int(np.searchsorted(t, lost[-1][0], side="left"))
-        del log.relays_t[keep:]
-        for values in log.relays.values():
-            del values[keep:]
-        lost = lost[:-1]
-    for start, end in lost:
-        first, last = np.searchsorted(t, [start, end], side="left")
-        for name, values in log.relays.items():
-            values[first:last] = [relays[name].safe] * (last - first)
-
-
 def _run(session: Session, opts: BenchRunOptions, bench: BenchConfig,
          controller: BenchController, step_s: float, log: RunLog, origin: SequenceOrigin,
          watch: SignalWatch) -> LinkReport:
@@ -221,8 +196,8 @@ def _run(session: Session, opts: BenchRunOptions, bench: BenchConfig,
         player = origin.player = SequencePlayer(rig.bench, rig.sequence,
                                                 divisor=rig.sampler.divisor)
         problem = bench.problem
-        session.add_task(Observer(rig, list(problem.peripherals), log, origin,
-                                  estimator_of(controller)))
+        observer = Observer(rig, log, origin, estimator_of(controller))
+        session.add_task(observer)
         session.add_task(player)
         if watch.limits:
             session.add_task(SignalLimits(rig, watch, session))
@@ -231,26 +206,21 @@ def _run(session: Session, opts: BenchRunOptions, bench: BenchConfig,
             problem.peripherals, controller, origin,
             asynchronous=session.clock.mode == "realtime"))
         session.run(duration_s=opts.cycles * problem.sequence.period_s)
+        observer.finish(rig.link.gave_up)
         return link_report(rig, session.clock.time_ns())
     finally:
         if rig is not None:
             rig.close()
 
 
-def kpis_of(log: RunLog, problem: BenchProblem, opts: BenchRunOptions, label: str,
-            limit_va: float | None, out: str) -> dict[str, Any]:
-    if not log.t or not log.levels_t:
+def kpis_of(log: RunLog, opts: BenchRunOptions, label: str, out: str) -> dict[str, Any]:
+    if not log.kpis.power_samples or not log.kpis.level_samples:
         raise ConfigError("the run recorded no meter or level samples: nothing to evaluate")
-    kpis = bench_kpis(
-        problem, t_s=np.array(log.t), s_va=np.array(log.s),
-        relays={n: np.array(v) for n, v in log.relays.items()},
-        relays_t_s=np.array(log.relays_t),
-        levels={n: np.array(v) for n, v in log.levels.items()},
-        levels_t_s=np.array(log.levels_t), cycles=opts.cycles, limit_va=limit_va,
-    )
-    solve_ms = log.solve_ms if log.solver_reports else log.decide_ms
-    return {"controller": label, "cycles": opts.cycles, **kpis,
-            "solve_ms": timing_summary(solve_ms), "solves_at_limit": log.solver_limits,
+    times = log.solve_ms if log.solver_reports else log.decide_ms
+    solve_ms = {"median": round(times.percentile(50), 3), "p99": round(times.percentile(99), 3),
+                "max": round(times.max_us, 3)}
+    return {"controller": label, "cycles": opts.cycles, **log.kpis.kpis(opts.cycles),
+            "solve_ms": solve_ms, "solves_at_limit": log.solver_limits,
             "max_gap": log.max_gap,
             "fallbacks": log.fallbacks, "mcap": opts.recording.first_file(out)}
 

@@ -1,53 +1,123 @@
-"""Constant-memory timing statistics: exact count/max, percentiles to 1 us from a histogram."""
+"""Constant-memory statistics of durations: a log-bucket (HDR-style) histogram.
+
+:class:`TimingHistogram` keeps a fixed array of ``BUCKETS`` counters, whatever the number of
+samples: count, sum, min and max are exact; a percentile is within ``RELATIVE_ACCURACY``
+(1 %) of the exact one for values from ``LOWEST`` (0.01) to ``HIGHEST`` (1e9, in the caller's
+unit: 1e9 us is about 17 min); below ``LOWEST`` the error is at most ``LOWEST``.
+"""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-_MAX_BIN_US = 100_000  # 100 ms; slower samples land in the last bin (their exact max is kept)
+RELATIVE_ACCURACY = 0.01
+LOWEST = 1e-2
+HIGHEST = 1e9
+# bucket i >= 1 holds [LOWEST g^(i-1), LOWEST g^i); its representative 2 g L / (1 + g) is
+# within (g - 1) / (g + 1) of every value in it: g = (1 + a) / (1 - a) gives exactly a
+_GROWTH = (1 + RELATIVE_ACCURACY) / (1 - RELATIVE_ACCURACY)
+_LOG_GROWTH = math.log(_GROWTH)
+BUCKETS = math.ceil(math.log(HIGHEST / LOWEST) / _LOG_GROWTH) + 2  # + below LOWEST, + above
+_REPRESENTATIVE = np.concatenate([
+    [0.0],
+    LOWEST * _GROWTH ** np.arange(BUCKETS - 1) * 2 * _GROWTH / (1 + _GROWTH),
+])
+_FLUSH = 1024  # single samples are buffered and binned as a batch (vectorised)
 
 
 class TimingHistogram:
-    """Collects durations in microseconds; p50/p99 resolved to 1 us, max exact."""
+    """Durations (any non-negative unit, us by convention): exact count, sum, min, max;
+    percentiles within ``RELATIVE_ACCURACY`` from ``BUCKETS`` fixed counters."""
+
+    __slots__ = ("_bins", "_pending", "_sum", "count", "max_us", "min_us")
 
     def __init__(self) -> None:
-        self._bins = np.zeros(_MAX_BIN_US + 1, dtype=np.int64)
+        self._bins = np.zeros(BUCKETS, dtype=np.int64)
+        self._pending: list[float] = []  # at most _FLUSH samples not yet binned
+        self._sum = 0.0
         self.count = 0
         self.max_us = 0.0
-        self._sum_us = 0.0
+        self.min_us = math.inf
+
+    def add(self, value: float) -> None:
+        """One sample (negative counts as 0, NaN and infinities are ignored); binned with the
+        next batch of ``_FLUSH``."""
+        if not math.isfinite(value):
+            return
+        v = value if value > 0.0 else 0.0
+        self._pending.append(v)
+        self.count += 1
+        self._sum += v
+        if v > self.max_us:
+            self.max_us = v
+        if v < self.min_us:
+            self.min_us = v
+        if len(self._pending) == _FLUSH:
+            self._flush()
 
     def add_many(self, samples_us: list[float] | np.ndarray) -> None:
-        if len(samples_us) == 0:
-            return
+        """A batch of samples (negative values count as 0, NaN and infinities are ignored)."""
         values = np.asarray(samples_us, dtype=np.float64)
-        idx = np.clip(values, 0, _MAX_BIN_US).astype(np.int64)
-        counts = np.bincount(idx)
-        self._bins[: counts.size] += counts
+        values = np.maximum(values[np.isfinite(values)], 0.0)
+        if values.size == 0:
+            return
+        self._bins += np.bincount(bucket_of(values), minlength=BUCKETS)
         self.count += values.size
+        self._sum += float(values.sum())
         self.max_us = max(self.max_us, float(values.max()))
-        self._sum_us += float(values.sum())
+        self.min_us = min(self.min_us, float(values.min()))
+
+    def _flush(self) -> None:
+        if self._pending:
+            pending = bucket_of(np.asarray(self._pending))
+            self._bins += np.bincount(pending, minlength=BUCKETS)
+            self._pending.clear()
 
     def percentile(self, q: float) -> float:
-        """The q-th percentile (0-100) in us, 0.0 when empty."""
+        """The q-th percentile (0-100), linearly interpolated between the two nearest ranks
+        as ``numpy.percentile`` does; 0.0 when empty."""
+        self._flush()
         if self.count == 0:
             return 0.0
-        rank = int(np.ceil(q / 100.0 * self.count))
-        return float(np.searchsorted(np.cumsum(self._bins), max(rank, 1)))
+        h = (self.count - 1) * min(max(q, 0.0), 100.0) / 100.0
+        below = math.floor(h)
+        lower, upper = self._value_at_rank(below), self._value_at_rank(min(below + 1,
+                                                                            self.count - 1))
+        return lower + (h - below) * (upper - lower)
+
+    def _value_at_rank(self, rank: int) -> float:
+        """The estimate of the ``rank``-th smallest sample (0-based), within [min, max]."""
+        if rank == 0:
+            return self.min_us
+        if rank == self.count - 1:
+            return self.max_us
+        bucket = int(np.searchsorted(np.cumsum(self._bins), rank, side="right"))
+        return min(max(float(_REPRESENTATIVE[bucket]), self.min_us), self.max_us)
 
     def mean(self) -> float:
-        return self._sum_us / self.count if self.count else 0.0
+        return self._sum / self.count if self.count else 0.0
 
     def summary(self) -> dict[str, float]:
+        """p50, p99 (within the stated accuracy), exact max and mean, rounded to 3 decimals."""
         return {
-            "p50": self.percentile(50),
-            "p99": self.percentile(99),
+            "p50": round(self.percentile(50), 3),
+            "p99": round(self.percentile(99), 3),
             "max": round(self.max_us, 3),
             "mean": round(self.mean(), 3),
         }
 
 
+def bucket_of(values: np.ndarray) -> np.ndarray:
+    """The bucket index of each value (0: below ``LOWEST``; the last: ``HIGHEST`` and above)."""
+    with np.errstate(divide="ignore"):
+        idx = np.floor(np.log(values / LOWEST) / _LOG_GROWTH) + 1
+    return np.clip(np.nan_to_num(idx, nan=0.0, neginf=0.0), 0, BUCKETS - 1).astype(np.int64)
+
+
 def percentile_summary(samples_us: np.ndarray) -> dict[str, float]:
-    """Median, p99 and max of an array of durations (us); zeros when empty."""
+    """Median, p99 and max of an array of durations (us), exact; zeros when empty."""
     if samples_us.size == 0:
         return {"p50": 0.0, "p99": 0.0, "max": 0.0, "mean": 0.0}
     p50, p99 = np.percentile(samples_us, [50, 99])

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import math
 import time
-from array import array
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any, Protocol, cast, runtime_checkable
@@ -67,7 +66,7 @@ from hil.core.plugins import (
 )
 from hil.core.recorder import RecordingOptions
 from hil.core.session import Session
-from hil.core.stats import percentile_summary
+from hil.core.stats import TimingHistogram
 from hil.core.verdict import Limit, SignalWatch, split_limits, verdict
 from hil.servo.builtin import ServoContext
 from hil.servo.config import DriveConfig, load_drive_config
@@ -262,8 +261,9 @@ class ReferenceSamples:
 
 
 class TrackingStats:
-    """The run's KPIs, accumulated tick by tick: error and current over the ticks from
-    ``settle_s`` on, controller compute time over all ticks (a compact array of doubles)."""
+    """The run's KPIs, accumulated tick by tick in constant memory: error and current over the
+    ticks from ``settle_s`` on (exact running sums and maxima), controller compute time over
+    all ticks (a log-bucket histogram: percentiles within 1 %, max exact)."""
 
     def __init__(self, settle_s: float) -> None:
         self.settle_s = settle_s - 1e-12
@@ -273,11 +273,11 @@ class TrackingStats:
         self.sum_error = 0.0
         self.sum_squares = 0.0
         self.peak_current = 0.0
-        self.compute_us = array("d")
+        self.compute_us = TimingHistogram()
 
     def add(self, t_s: float, error_deg: float, command_ma: float, compute_us: float) -> None:
         self.ticks += 1
-        self.compute_us.append(compute_us)
+        self.compute_us.add(compute_us)
         if t_s >= self.settle_s:
             e = abs(error_deg)
             self.counted += 1
@@ -299,7 +299,7 @@ class TrackingStats:
         else:
             kpis = {"max_error_deg": None, "max_error_pct": None, "rms_error_deg": None,
                     "cumulative_error_deg": None}
-        step = percentile_summary(np.frombuffer(self.compute_us, dtype=float))
+        step = self.compute_us.summary()
         kpis["step_us"] = {"median": step["p50"], "p99": step["p99"], "max": step["max"]}
         kpis["peak_current_mA"] = self.peak_current if self.counted else None
         return kpis

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from emulators.bench_plant import BenchPlant, PlantSpec
+from emulators.bench_plant import COIL_LOG_LENGTH, BenchPlant, PlantSpec
 from hil.bench.config import check_emulation, load_bench_config, parse_bench_config
 from hil.bench.rig import SequenceSchedule
 from hil.core.config import deep_merge
@@ -193,3 +193,14 @@ def test_wrong_plant_config_is_one_clear_error(config, override, message):
     with pytest.raises(ConfigError) as err:
         BenchPlant(plant_spec(deep_merge(config.data, override)))
     assert message in str(err.value) and "\n" not in str(err.value)
+
+
+def test_coil_log_keeps_only_the_latest_changes(config):
+    plant = BenchPlant(config.plant)
+    changes = COIL_LOG_LENGTH + 500
+    for k in range(changes):
+        plant.set_coils(0, [k % 2 == 0])
+        plant.step()
+    assert len(plant.coil_log) == COIL_LOG_LENGTH  # a day-long run keeps a bounded history
+    assert plant.coil_log[-1] == (changes - 1, 0, (changes - 1) % 2 == 0)
+    assert plant.coil_log[0] == (500, 0, True)

@@ -1,0 +1,174 @@
+"""Endurance (issue 19, memory part): does a long session keep its memory constant?
+
+Two lockstep sessions, each in a child process of its own:
+
+* servo: ``hil servo run --controller mpc`` (sine 2 deg / 10 Hz, emulated drive over CAN,
+  /mpc/prediction every 10th tick as in real time), default 3 simulated minutes;
+* bench: ``hil bench run --controller eec`` (emulated Modbus bench), default 64 machine
+  cycles (about 30 simulated minutes).
+
+The child reads its resident set size (/proc/self/statm) at every whole simulated minute,
+when the loop publishes its timing window. Printed per session: RSS after the first
+simulated minute and its growth after it (target: <= 5 MB over the whole soak), bytes of the
+session file per simulated hour, the messages waiting in the recorder's queue at each minute
+(in lockstep it holds up to 100,000 before the loop waits for the writer), and the loop's
+lateness and compute p99 per simulated minute from the session's /loop/*/timing topics
+(lockstep: lateness is 0 by construction; compute shows whether a step slows down as the run
+ages). ``--baseline-code DIR`` runs the same children on another checkout (e.g. ``git
+archive`` of main) in the same run, for the before figures. ``--hours H`` sets both sessions
+to H simulated hours; ``--full`` is the issue's soak: 1 h servo, 24 h bench (hours of wall
+time).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+CODE_ENV = "HIL_ENDURANCE_CODE"  # the checkout a child imports hil from
+sys.path.insert(0, os.environ.get(CODE_ENV, str(ROOT)))
+
+GROWTH_TARGET_MB = 5.0
+MACHINE_CYCLE_S = 28.0  # the bench's default sequence period (hil/configs/bench.toml)
+PAGE = os.sysconf("SC_PAGE_SIZE")
+
+
+def rss_bytes() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * PAGE
+
+
+# ------------------------------------------------------------------------------- the child
+def child(kind: str, seconds: float, out: str) -> None:
+    """Run one session, printing one JSON line: RSS at each whole simulated minute."""
+    from hil.core.loop import FixedRateLoop
+
+    assert Path(sys.modules["hil"].__file__ or "").resolve().is_relative_to(
+        Path(os.environ.get(CODE_ENV, ROOT)).resolve()), "hil imported from the wrong checkout"
+    samples: list[tuple[int, int]] = []  # (RSS bytes, messages waiting in the recorder)
+    publish = FixedRateLoop._publish_windows
+
+    # instrumentation of this benchmark only: the loop publishes its timing window once per
+    # simulated second, which is where a whole simulated minute is noticed
+    def publish_and_sample(loop: FixedRateLoop, final: bool) -> None:
+        publish(loop, final)
+        minute = loop.ticks * loop.base_period_ns // 60_000_000_000
+        queue = getattr(getattr(loop, "_recorder", None), "_queue", ())
+        while len(samples) < minute:
+            samples.append((rss_bytes(), len(queue)))
+
+    FixedRateLoop._publish_windows = publish_and_sample  # type: ignore[method-assign]
+    start = time.perf_counter()
+    if kind == "servo":
+        from hil.servo.run import ServoRunConfig, run_servo
+        run_servo(ServoRunConfig("mpc", duration_s=seconds, out=out, prediction_every=10))
+    else:
+        from hil.bench.run import BenchRunOptions, run_bench
+        run_bench(BenchRunOptions(controller="eec", cycles=max(1, round(seconds
+                                                                      / MACHINE_CYCLE_S)),
+                                  out=out))
+    print(json.dumps({"rss": samples, "wall_s": time.perf_counter() - start,
+                      "final_rss": rss_bytes()}))
+
+
+# ------------------------------------------------------------------------------ the parent
+def run_child(kind: str, seconds: float, code: Path, out: str) -> dict:
+    env = {**os.environ, CODE_ENV: str(code)}
+    done = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child", kind,
+                           "--seconds", str(seconds), "--out", out],
+                          env=env, cwd=code, capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        raise SystemExit(f"{kind} child failed:\n{done.stderr[-2000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def timing_per_minute(path: str) -> tuple[list[float], list[float]]:
+    """Lateness and compute p99 [us] per simulated minute, over every task of the loop."""
+    from mcap.reader import make_reader  # indexed read of the timing topics only
+
+    lateness: dict[int, list[np.ndarray]] = {}
+    compute: dict[int, list[np.ndarray]] = {}
+    start = None  # the first window ends one window (1 s) after the loop started
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        topics = [c.topic for c in reader.get_summary().channels.values()
+                  if c.topic.startswith("/loop/") and c.topic.endswith("/timing")]
+        for _, _, message in reader.iter_messages(topics=topics, log_time_order=True):
+            start = message.log_time - 1_000_000_000 if start is None else start
+            minute = max(0, message.log_time - start - 1) // 60_000_000_000
+            window = json.loads(message.data)
+            lateness.setdefault(minute, []).append(np.asarray(window["lateness_us"], float))
+            compute.setdefault(minute, []).append(np.asarray(window["compute_us"], float))
+
+    def p99(per: dict[int, list[np.ndarray]]) -> list[float]:
+        return [float(np.percentile(np.concatenate(per[m]), 99)) for m in sorted(per)
+                if sum(a.size for a in per[m])]
+    return p99(lateness), p99(compute)
+
+
+def soak(kind: str, seconds: float, code: Path, label: str) -> float:
+    with tempfile.TemporaryDirectory() as tmp:
+        out = os.path.join(tmp, f"{kind}.mcap")
+        result = run_child(kind, seconds, code, out)
+        size = os.path.getsize(out)
+        lateness, compute = timing_per_minute(out)
+    rss = np.asarray([r for r, _ in result["rss"]], float) / 1e6
+    queued = [q for _, q in result["rss"]]
+    growth = float(rss[1:].max() - rss[0]) if rss.size > 1 else 0.0
+    print(f"  {label:<6} {kind}: {seconds / 60:.0f} simulated min in {result['wall_s']:.0f} s; "
+          f"RSS after minute 1 {rss[0]:.1f} MB, growth after it {growth:+.2f} MB "
+          f"(target <= {GROWTH_TARGET_MB:g} MB: {'ok' if growth <= GROWTH_TARGET_MB else 'MISSED'})"
+          f"; session file {size / 1e6:.1f} MB = {size / (seconds / 3600) / 1e9:.2f} GB/h")
+    step = max(1, rss.size // 12)
+    print("         RSS per minute [MB]: "
+          + " ".join(f"{m + 1}:{v:.1f}" for m, v in list(enumerate(rss))[::step]))
+    print("         messages queued in the recorder: "
+          + " ".join(f"{q}" for q in queued[::step]))
+    print("         lateness p99 per minute [us]: "
+          + " ".join(f"{v:.0f}" for v in lateness[::step]))
+    print("         compute p99 per minute [us]: "
+          + " ".join(f"{v:.0f}" for v in compute[::step]))
+    return growth
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--hours", type=float, help="simulated hours of both sessions")
+    parser.add_argument("--full", action="store_true", help="1 h servo and 24 h bench")
+    parser.add_argument("--baseline-code", type=Path,
+                        help="another checkout to run the same sessions on, for comparison")
+    parser.add_argument("--child", choices=("servo", "bench"), help=argparse.SUPPRESS)
+    parser.add_argument("--seconds", type=float, help=argparse.SUPPRESS)
+    parser.add_argument("--out", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:
+        child(args.child, args.seconds, args.out)
+        return 0
+    lengths = {"servo": 3 * 60.0, "bench": 64 * MACHINE_CYCLE_S}
+    if args.full:
+        lengths = {"servo": 3600.0, "bench": 24 * 3600.0}
+    if args.hours:
+        lengths = dict.fromkeys(lengths, args.hours * 3600.0)
+    print("Endurance: RSS sampled every simulated minute (lockstep sessions)")
+    growths = []
+    for kind, seconds in lengths.items():
+        if args.baseline_code is not None:
+            soak(kind, seconds, args.baseline_code.resolve(), "before")
+        growths.append(soak(kind, seconds, ROOT, "now"))
+    worst = max(growths)
+    print(f"  worst RSS growth after the first minute: {worst:.2f} MB "
+          f"(target <= {GROWTH_TARGET_MB:g} MB)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
