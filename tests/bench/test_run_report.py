@@ -53,7 +53,8 @@ def test_report_shows_the_distribution_of_solve_times(tmp_path, capsys):
     assert section["count"] == solve_ms.size == 28
     assert section["ms"]["p50"] == pytest.approx(np.median(solve_ms), abs=1e-3)
     assert section["ms"]["max"] == pytest.approx(solve_ms.max(), abs=1e-3)
-    assert section["ms"]["p50"] == pytest.approx(kpis["solve_ms"]["median"], abs=1e-3)
+    # the run's KPI comes from the streaming histogram: within its stated 1 %
+    assert section["ms"]["p50"] == pytest.approx(kpis["solve_ms"]["median"], rel=0.01)
     bins = section["histogram"]
     assert sum(b["count"] for b in bins) == solve_ms.size
     for b in bins:  # every bin holds exactly the recorded times in its range
