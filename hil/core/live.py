@@ -25,8 +25,10 @@ import json
 import logging
 import math
 import socket
+import threading
+import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 from hil.core.errors import UsageError
 
@@ -135,6 +137,19 @@ class _QueueFullCounter(logging.Handler):
             self.count += 1
 
 
+class _Subscriptions:
+    """The SDK's server listener: notes that some client subscribed to something."""
+
+    def __init__(self) -> None:
+        self.first = threading.Event()
+
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        self.first.set()
+
+    def on_unsubscribe(self, client: Any, channel: Any) -> None:
+        pass
+
+
 class LiveSink:
     """A Foxglove WebSocket server for one session's topics (its own SDK context)."""
 
@@ -148,8 +163,10 @@ class LiveSink:
         self._context = foxglove.Context()
         self._counter = _QueueFullCounter()
         logging.getLogger("foxglove").addHandler(self._counter)
+        self._subscriptions = _Subscriptions()
         self.server = foxglove.start_server(name=name, host=host, port=port,
-                                            context=self._context, message_backlog_size=backlog)
+                                            context=self._context, message_backlog_size=backlog,
+                                            server_listener=cast(Any, self._subscriptions))
         self.host = host
         self.port = int(self.server.port)
         self._by_key: dict[Any, _Topic] = {}
@@ -160,6 +177,14 @@ class LiveSink:
     def url(self) -> str:
         host = f"[{self.host}]" if ":" in self.host else self.host
         return f"ws://{host}:{self.port}"
+
+    def wait_for_subscriber(self, timeout_s: float, grace_s: float = 0.3) -> bool:
+        """Wait until a client subscribes (then ``grace_s`` more, for the rest of its
+        subscriptions); False after ``timeout_s`` without one."""
+        if not self._subscriptions.first.wait(timeout_s):
+            return False
+        time.sleep(grace_s)
+        return True
 
     def add_topic(self, key: Any, name: str, schema: dict[str, Any]) -> None:
         """Advertise ``name`` with (the live form of) its JSON Schema; ``key`` logs to it."""

@@ -44,6 +44,7 @@ class FoxgloveClient:
         self.channels: dict[int, dict[str, Any]] = {}   # channel id -> advertised channel
         self.subscriptions: dict[int, str] = {}         # subscription id -> topic
         self.messages: dict[str, list[tuple[int, Any]]] = {}
+        self.closed = False
 
     def close(self) -> None:
         self.ws.close()
@@ -58,6 +59,7 @@ class FoxgloveClient:
         except TimeoutError:
             return False
         except Exception:  # the connection closed (the session ended)
+            self.closed = True
             return False
         if isinstance(frame, str):
             message = json.loads(frame)
@@ -81,9 +83,9 @@ class FoxgloveClient:
         deadline = time.monotonic() + timeout_s
         while not condition():
             remaining = deadline - time.monotonic()
-            if remaining <= 0 or not self.pump(min(remaining, 0.5)) and self.ws.state.name \
-                    == "CLOSED":
+            if remaining <= 0 or self.closed:
                 return bool(condition())
+            self.pump(min(remaining, 0.5))
         return True
 
     def subscribe(self, topics: list[str]) -> None:
