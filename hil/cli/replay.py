@@ -32,7 +32,7 @@ def run_replay(args: argparse.Namespace) -> int:
     from hil.core.errors import UsageError
     from hil.core.live import LiveSink, parse_address
     from hil.core.reader import read_session
-    from hil.core.replay import replay
+    from hil.core.replay import advertise, replay
 
     if args.live is None:
         raise UsageError("replay needs --live [HOST:]PORT (where to serve the session)")
@@ -47,6 +47,7 @@ def run_replay(args: argparse.Namespace) -> int:
     print(f"hil: live view on {sink.url} (Foxglove: Open connection > Foxglove WebSocket)",
           file=sys.stderr, flush=True)
     try:
+        advertise(data, sink)
         if args.wait is not None and not sink.wait_for_subscriber(args.wait):
             print(f"hil: no client subscribed within {args.wait:g} s; replaying anyway",
                   file=sys.stderr)

@@ -25,6 +25,7 @@ import json
 import logging
 import math
 import socket
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -125,16 +126,38 @@ class LiveStats:
     failed: int = 0
 
 
-class _QueueFullCounter(logging.Handler):
-    """Counts the SDK's (throttled) notices that a client's outbox was full and dropped."""
+class _SdkLog(logging.Handler):
+    """The SDK's log (forwarded from Rust): counts its throttled notices that a client's
+    outbox was full and dropped messages; prints its warnings and errors on stderr."""
 
     def __init__(self) -> None:
         super().__init__(logging.INFO)
-        self.count = 0
+        self.queue_full = 0
 
     def emit(self, record: logging.LogRecord) -> None:
-        if "outbox for client" in record.getMessage():
-            self.count += 1
+        text = record.getMessage()
+        if "outbox for client" in text:
+            self.queue_full += 1
+        elif record.levelno >= logging.WARNING:
+            print(f"hil: live view: {text}", file=sys.stderr, flush=True)
+
+
+def _sdk_log() -> _SdkLog:
+    """The one handler of the SDK's log in this process (installed before its first sink)."""
+    global _SDK_LOG
+    if _SDK_LOG is None:
+        import foxglove
+
+        _SDK_LOG = _SdkLog()
+        logger = logging.getLogger("foxglove")
+        logger.addHandler(_SDK_LOG)
+        logger.setLevel(logging.INFO)
+        logger.propagate = False  # INFO chatter (connections) stays off the user's terminal
+        foxglove.set_log_level("INFO")
+    return _SDK_LOG
+
+
+_SDK_LOG: _SdkLog | None = None
 
 
 class _Subscriptions:
@@ -161,8 +184,8 @@ class LiveSink:
         self._foxglove = foxglove
         self.rates = dict(rates or {})
         self._context = foxglove.Context()
-        self._counter = _QueueFullCounter()
-        logging.getLogger("foxglove").addHandler(self._counter)
+        self._log = _sdk_log()
+        self._queue_full_before = self._log.queue_full
         self._subscriptions = _Subscriptions()
         self.server = foxglove.start_server(name=name, host=host, port=port,
                                             context=self._context, message_backlog_size=backlog,
@@ -222,15 +245,19 @@ class LiveSink:
     def stats(self) -> LiveStats:
         sent = {t.channel.topic(): t.sent for t in self._by_key.values() if t.sent}
         decimated = {t.channel.topic(): t.decimated for t in self._by_key.values() if t.decimated}
-        return LiveStats(sent, decimated, self._counter.count, self._failed)
+        return LiveStats(sent, decimated, self._log.queue_full - self._queue_full_before,
+                         self._failed)
 
-    def close(self) -> None:
-        """Stop serving (clients see the connection close)."""
+    def close(self, timeout_s: float = 1.0) -> None:
+        """Stop serving (clients see the connection close). The SDK's stop waits for every
+        client to take its close frame, which a stalled client never does: this waits at most
+        ``timeout_s`` and leaves the rest to the process's exit."""
         if self._closed:
             return
         self._closed = True
-        self.server.stop()
-        logging.getLogger("foxglove").removeHandler(self._counter)
+        stopper = threading.Thread(target=self.server.stop, name="live-stop", daemon=True)
+        stopper.start()
+        stopper.join(timeout_s)
 
 
 def _plain(value: Any) -> Any:

@@ -8,7 +8,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
-from hil.core.cdr import parse_ros2msg
+from hil.core.cdr import CdrError, parse_ros2msg
 from hil.core.live import LiveSink
 from hil.core.reader import SessionData
 
@@ -20,8 +20,12 @@ def json_schema_of(topic: str, schema: dict[str, Any]) -> dict[str, Any]:
     from the ros2msg fields for CDR topics (the file keeps only those)."""
     if "ros2msg" not in schema:
         return schema
+    try:
+        fields = parse_ros2msg(schema["ros2msg"])
+    except CdrError:
+        return {}
     properties: dict[str, Any] = {}
-    for field in parse_ros2msg(schema["ros2msg"]):
+    for field in fields:
         kind = _JSON_TYPES.get(field.type) or (
             "number" if field.type.startswith("float") else "integer")
         prop: dict[str, Any] = {"type": kind}
@@ -39,15 +43,22 @@ class ReplayStats:
 
 def merged(data: SessionData) -> Iterator[tuple[int, str, Any]]:
     """Every message of the session in log-time order: ``(t_ns, topic, message)``."""
-    streams = [((t, topic, m) for t, m in msgs) for topic, msgs in data.messages.items()]
+    def stream(topic: str, msgs: list[tuple[int, Any]]) -> Iterator[tuple[int, str, Any]]:
+        return ((t, topic, m) for t, m in msgs)
+
+    streams = [stream(topic, msgs) for topic, msgs in data.messages.items()]
     return heapq.merge(*streams, key=lambda item: item[0])
+
+
+def advertise(data: SessionData, sink: LiveSink) -> None:
+    """Advertise every topic of ``data`` on ``sink`` (keyed by topic name)."""
+    for topic in sorted(data.messages):
+        sink.add_topic(topic, topic, json_schema_of(topic, data.schemas.get(topic, {})))
 
 
 def replay(data: SessionData, sink: LiveSink, speed: float = 1.0,
            stop: Callable[[], bool] = lambda: False) -> ReplayStats:
-    """Serve ``data`` on ``sink`` at ``speed`` x real time (0: as fast as possible)."""
-    for topic in sorted(data.messages):
-        sink.add_topic(topic, topic, json_schema_of(topic, data.schemas.get(topic, {})))
+    """Serve ``data`` (advertised) on ``sink`` at ``speed`` x real time (0: at once)."""
     start = time.monotonic()
     first = last = None
     count = 0

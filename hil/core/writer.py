@@ -186,11 +186,13 @@ def run(options: dict[str, Any], fd: int = 0, ready: Callable[[], None] = lambda
         writer.event(writer.last_t_ns, "recorder.stream_cut",
                      f"the loop process ended in the middle of a batch ({cut} bytes lost)",
                      bytes=cut)
-    stats = series.close(writer.final_metadata(cut, error))
-    live_stats: dict[str, Any] = {}
-    if live is not None:
+    metadata = writer.final_metadata(cut, error)
+    live_stats = dataclasses.asdict(live.stats()) if live is not None else {}
+    if live_stats:
+        metadata["live"] = {key: json.dumps(value) for key, value in live_stats.items()}
+    stats = series.close(metadata)
+    if live is not None:  # after the file: a stalled client may hold the server's stop
         live.close()
-        live_stats = dataclasses.asdict(live.stats())
     return {"messages_written": stats.messages_written, "chunks_flushed": stats.chunks_flushed,
             "bytes_written": stats.bytes_written, "files": stats.files,
             "dropped": writer.dropped, "closed": writer.closed, "error": error,
