@@ -8,13 +8,13 @@ import shutil
 import socket
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import pytest
 
 from hil.cli.main import main
 from hil.core.clock import RealtimeClock
+from hil.core.live import flatten
 from hil.core.loop import FunctionTask
 from hil.core.reader import read_session
 from hil.core.recorder import RecordingOptions
@@ -201,7 +201,6 @@ def test_layouts_are_shipped_and_name_topics_and_fields_of_real_sessions(
     assert len(data.files) > 1
     fields = {topic: set(msgs[0][1]) for topic, msgs in data.messages.items()}
     for name in ("/drive/command", "/drive/feedback", "/mpc/prediction", "/loop/servo/timing"):
-        from hil.core.live import flatten
         fields[name] = set(flatten(data.topic(name)[0][1]))
     paths = [p["value"] for cfg in servo["configById"].values() for p in cfg.get("paths", [])]
     assert len(paths) >= 8
@@ -219,4 +218,3 @@ def test_layouts_are_shipped_and_name_topics_and_fields_of_real_sessions(
             else:
                 stack += [node["first"], node["second"]]
         assert sorted(leaves) == sorted(panels)
-    shutil.rmtree(tmp_path, ignore_errors=True)
