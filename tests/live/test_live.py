@@ -218,3 +218,26 @@ def test_layouts_are_shipped_and_name_topics_and_fields_of_real_sessions(
             else:
                 stack += [node["first"], node["second"]]
         assert sorted(leaves) == sorted(panels)
+
+
+@pytest.mark.parametrize(("device", "where", "topic", "field"), [
+    ("drive", "--socketcand", "/emulator/drive", "position_deg"),
+    ("bench", "--tcp", "/bench/power", "total_va"),
+])
+def test_emulators_serve_their_state_live(device: str, where: str, topic: str,
+                                          field: str) -> None:
+    port = free_port()
+    emulator = start_hil("emulate", device, where, "127.0.0.1:0", "--live", str(port))
+    try:
+        client = FoxgloveClient(f"ws://127.0.0.1:{port}", timeout_s=CONNECT_S,
+                                alive=emulator.poll)
+        assert client.wait_for(lambda: {topic, "/events"} <= set(client.topics()), 10)
+        assert_json_schemas(client, [topic, "/events"])
+        client.subscribe([topic])
+        assert client.wait_for(lambda: len(client.messages.get(topic, [])) >= 3, 10)
+        client.close()
+    finally:
+        emulator.terminate()
+        _, stderr = emulator.communicate(timeout=30)
+    assert f"ws://127.0.0.1:{port}" in stderr
+    assert isinstance(client.messages[topic][-1][1][field], float)
