@@ -241,3 +241,15 @@ def test_emulators_serve_their_state_live(device: str, where: str, topic: str,
         _, stderr = emulator.communicate(timeout=30)
     assert f"ws://127.0.0.1:{port}" in stderr
     assert isinstance(client.messages[topic][-1][1][field], float)
+
+
+def test_demo_live_takes_two_ports_and_says_which_is_taken(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        busy = taken.getsockname()[1]
+        # the EEC (and later the servo) sessions on PORT, the BC session beside it on PORT + 1
+        assert main(["demo", "--out", str(tmp_path), "--live", str(busy - 1)]) == 2
+    assert f"cannot serve on 127.0.0.1:{busy}" in capsys.readouterr().err
+    assert not list(tmp_path.glob("*.mcap"))
