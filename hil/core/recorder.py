@@ -75,7 +75,8 @@ class RecorderStats:
 
 @dataclass(frozen=True)
 class RecordingOptions:
-    """How a session is written: per-topic encodings and file splitting."""
+    """How a session is written: per-topic encodings, file splitting, and the live view
+    (``live``: serve the topics at ``[HOST:]PORT``, see :mod:`hil.core.live`)."""
 
     high_rate_encoding: str = "cdr"       # for topics registered with ``high_rate=True``
     topic_encodings: dict[str, str] = field(default_factory=dict)  # explicit, by topic name

@@ -67,7 +67,7 @@ def test_realtime_servo_run_serves_its_topics_with_json_schemas_decimated(
     tolerant.write_text("[master]\nstale_cycles = 100000\n")
     port = free_port()
     out = tmp_path / "servo.mcap"
-    run = start_hil("servo", "run", "--controller", "pid", "--realtime", "--duration", "3",
+    run = start_hil("servo", "run", "--controller", "pid", "--realtime", "--duration", "2",
                     "--config", str(tolerant), "--live", str(port), "--out", str(out), "--json")
     try:
         client = FoxgloveClient(f"ws://127.0.0.1:{port}", timeout_s=CONNECT_S, alive=run.poll)
