@@ -43,7 +43,8 @@ WATCHER = """
 import sys
 from tests.live.foxglove_client import FoxgloveClient
 client = FoxgloveClient(f"ws://127.0.0.1:{sys.argv[1]}", timeout_s=120)
-client.wait_for(lambda: "/drive/feedback" in client.topics(), 60)
+topics = {"/drive/command", "/drive/feedback", "/loop/servo/timing", "/events"}
+client.wait_for(lambda: topics <= set(client.topics()), 60)
 client.subscribe(sorted(client.topics()))
 client.wait_for(lambda: client.closed, 3600)
 print(sum(len(m) for m in client.messages.values()))
