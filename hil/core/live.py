@@ -211,11 +211,15 @@ class LiveSink:
 
     def add_topic(self, key: Any, name: str, schema: dict[str, Any]) -> None:
         """Advertise ``name`` with (the live form of) its JSON Schema; ``key`` logs to it."""
-        data = json.dumps(live_schema(schema)).encode()
-        channel = self._foxglove.Channel(
-            name, message_encoding="json", context=self._context,
-            schema=self._foxglove.Schema(name=str(schema.get("title", name)),
-                                         encoding="jsonschema", data=data))
+        try:
+            data = json.dumps(live_schema(schema)).encode()
+            channel = self._foxglove.Channel(
+                name, message_encoding="json", context=self._context,
+                schema=self._foxglove.Schema(name=str(schema.get("title", name)),
+                                             encoding="jsonschema", data=data))
+        except Exception:  # a topic the live view cannot serve never costs the recording
+            self._failed += 1
+            return
         hz = 0.0 if name in NEVER_DECIMATED else self.rates.get(name, DEFAULT_RATE_HZ)
         self._by_key[key] = _Topic(channel, round(1e9 / hz) if hz > 0 else 0)
 
