@@ -12,6 +12,9 @@ import sys
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
+from hil.cli.recording import add_live_arguments, live_address
+from hil.core.recorder import RecordingOptions
+
 BENCH_COLUMNS = ("J1_VA", "J2_VA", "SEC_VA", "peak_VA", "overlap_s", "dwell_violations",
                  "level_violations")
 
@@ -24,17 +27,35 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "vs PID on a 2 deg sine. Writes MCAP files and PNG reports, prints comparison tables.",
     )
     demo.add_argument("--out", default="out", metavar="DIR", help="output folder (default: out)")
+    add_live_arguments(demo)
     demo.set_defaults(handler=run)
+
+
+def live_ports(args: argparse.Namespace) -> tuple[str | None, str | None]:
+    """``--live HOST:PORT`` of the demo: the EEC session and the servo sessions (one after the
+    other: Foxglove reconnects) on PORT, the BC session (beside the EEC's) on PORT + 1."""
+    address = live_address(args)
+    if address is None or args.live[1] == 0:
+        return address, address
+    host, port = args.live
+    args.live = (host, port + 1)
+    return address, live_address(args)
 
 
 def run(args: argparse.Namespace) -> int:
     from hil.servo.demo import format_servo_demo, run_servo_demo
 
     os.makedirs(args.out, exist_ok=True)
+    first, second = live_ports(args)
+    rates = dict(args.live_rate)
     progress("relay bench: EEC vs BC, 8 machine cycles over Modbus TCP (lockstep, ~30 s)")
-    print(bench_demo(args.out), flush=True)
+    print(bench_demo(args.out, {"eec": RecordingOptions(live=first, live_rates=rates),
+                                "bc": RecordingOptions(live=second, live_rates=rates)}),
+          flush=True)
     progress("servo drive: MPC (FOH) vs PID through the emulated CiA 402 drive (~5 s)")
-    print("\n" + format_servo_demo(run_servo_demo(args.out, echo=None)), flush=True)
+    servo = run_servo_demo(args.out, echo=None,
+                           recording=RecordingOptions(live=first, live_rates=rates))
+    print("\n" + format_servo_demo(servo), flush=True)
     print(f"\nsessions (.mcap) and reports (.png) in {os.path.abspath(args.out)}; "
           "'hil report FILE' summarises any of them")
     return 0
@@ -44,23 +65,26 @@ def progress(message: str) -> None:
     print(f"hil demo: {message} ...", file=sys.stderr, flush=True)
 
 
-def _bench_session(controller: str, path: str) -> dict[str, Any]:
+def _bench_session(controller: str, path: str, recording: RecordingOptions) -> dict[str, Any]:
     """One 8-cycle run against the emulated bench, plus its report PNG (a worker process)."""
     from hil.bench.run import BenchRunOptions, run_bench
     from hil.core.reader import read_session
     from hil.core.report import plot_session
 
-    kpis = run_bench(BenchRunOptions(controller=controller, cycles=8, out=path))
+    kpis = run_bench(BenchRunOptions(controller=controller, cycles=8, out=path,
+                                     recording=recording))
     png = os.path.splitext(path)[0] + ".png"
     plot_session(read_session(path), png)
     return {**kpis, "png": png}
 
 
-def bench_demo(out_dir: str) -> str:
+def bench_demo(out_dir: str, recording: dict[str, RecordingOptions] | None = None) -> str:
     """EEC and BC side by side (two processes: the machine has two cores)."""
     paths = {c: os.path.join(out_dir, f"bench_{c}.mcap") for c in ("eec", "bc")}
+    options = recording or {}
     with ProcessPoolExecutor(max_workers=2) as pool:
-        futures = {c: pool.submit(_bench_session, c, p) for c, p in paths.items()}
+        futures = {c: pool.submit(_bench_session, c, p, options.get(c, RecordingOptions()))
+                   for c, p in paths.items()}
         rows = {c: f.result() for c, f in futures.items()}
     return format_bench(rows)
 

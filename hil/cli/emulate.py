@@ -5,9 +5,12 @@ from __future__ import annotations
 import argparse
 import contextlib
 import signal
+import sys
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import replace
+from typing import Any
 
 from emulators.faults import (
     FORM,
@@ -19,8 +22,12 @@ from emulators.faults import (
     print_event,
 )
 from hil.cli.argtypes import host_port, positive_int
+from hil.cli.recording import add_live_arguments, live_address
 from hil.core.config import load_toml
 from hil.core.errors import ConfigError
+
+BENCH_LIVE_HZ = 10.0   # the emulators' state on --live: a modest rate, off their serving thread
+DRIVE_LIVE_HZ = 50.0
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -41,6 +48,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     eb.add_argument("--disturbance", action="store_true",
                     help="switch the unknown disturbance load on (plant.disturbance)")
     _add_fault_arguments(eb, "bench", "delay@2-4:ms=300, drop@5-8, weld@3:relay=P1")
+    add_live_arguments(eb, rates=False)
     eb.set_defaults(handler=emulate_bench)
     ed = emu_sub.add_parser("drive", help="CiA 402 servo drive over socketcand")
     ed.add_argument("--socketcand", type=host_port, metavar="HOST:PORT", required=True,
@@ -51,6 +59,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "its [emulator] table is used")
     ed.add_argument("--channel", help="bus name clients open (default: emulator.channel)")
     _add_fault_arguments(ed, "drive", "emcy@2:code=0x2310, no_heartbeat@1-3")
+    add_live_arguments(ed, rates=False)
     ed.set_defaults(handler=emulate_drive)
 
 
@@ -110,6 +119,54 @@ class StopFlag:
         return self.requested
 
 
+def _number_schema(title: str, sample: dict[str, Any]) -> dict[str, Any]:
+    kinds = {bool: "integer", int: "integer", float: "number", str: "string"}
+    return {"type": "object", "title": title, "properties": {
+        name: {"type": kinds.get(type(value), "number")} for name, value in sample.items()}}
+
+
+@contextlib.contextmanager
+def _live_state(args: argparse.Namespace, topics: dict[str, tuple[str, Callable[[], dict]]],
+                hz: float) -> Iterator[None]:
+    """With ``--live``: serve ``topics`` (name -> (schema title, sampler)) every ``1/hz`` s of
+    wall time from a thread, and ``/events`` at start and stop; without it, nothing."""
+    address = live_address(args)
+    if address is None:
+        yield
+        return
+    from hil.core.live import LiveSink, parse_address
+    from hil.core.recorder import EVENT_SCHEMA
+
+    sink = LiveSink(*parse_address(address), rates={name: 0 for name in topics})
+    sink.add_topic("/events", "/events", EVENT_SCHEMA)
+    for name, (title, sample) in topics.items():
+        sink.add_topic(name, name, _number_schema(title, sample()))
+    print(f"hil: live view on {sink.url} (Foxglove: Open connection > Foxglove WebSocket)",
+          file=sys.stderr, flush=True)
+    stop = threading.Event()
+
+    def event(kind: str, message: str) -> None:
+        sink.log("/events", time.time_ns(), {"level": "info", "source": "emulator",
+                                             "kind": kind, "message": message, "data": {}})
+
+    def publish() -> None:
+        event("emulator.start", "emulator serving")
+        while not stop.wait(1.0 / hz):
+            now = time.time_ns()
+            for name, (_, sample) in topics.items():
+                sink.log(name, now, sample())
+
+    publisher = threading.Thread(target=publish, name="live-state", daemon=True)
+    publisher.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        publisher.join()
+        event("emulator.stop", "emulator stopped")
+        sink.close()
+
+
 @contextlib.contextmanager
 def _until_stopped() -> Iterator[StopFlag]:
     """A flag that SIGTERM sets; Ctrl-C ends the block quietly. Restores the SIGTERM handler,
@@ -141,7 +198,21 @@ def emulate_bench(args: argparse.Namespace) -> int:
     emulator.run_realtime()
     units = emulator.devices.units
     started = time.monotonic()
-    with _until_stopped() as stop:  # before the ready line: a SIGTERM after it is handled
+    plant = emulator.plant
+
+    def coils() -> dict[str, Any]:
+        return {f"coil_{i}": int(on) for i, on in enumerate(plant.coils())}
+
+    def meter() -> dict[str, Any]:
+        return {"t_s": plant.t_s, **plant.snapshot.meter}
+
+    def levels() -> dict[str, Any]:
+        return dict(plant.snapshot.levels)
+
+    state = {"/bench/power": ("hil.BenchPower", meter), "/bench/levels": ("hil.BenchLevels",
+             levels), "/emulator/coils": ("hil.EmulatorCoils", coils)}
+    # the stop flag is set before the ready line: a SIGTERM after it is handled
+    with _until_stopped() as stop, _live_state(args, state, BENCH_LIVE_HZ):
         try:
             print(f"hil: bench emulator listening on {url} (relays unit {units['relays']}, "
                   f"meter unit {units['meter']}, levels unit {units['levels']}); Ctrl-C stops",
@@ -175,7 +246,16 @@ def emulate_drive(args: argparse.Namespace) -> int:
     server.on_frame, server.on_tick = node.handle, node.service
     node.boot()
     bound_host, bound_port = server.address
-    with _until_stopped() as stop:  # before the ready line: a SIGTERM after it is handled
+    plant = node.plant
+
+    def drive() -> dict[str, Any]:
+        return {"t_s": plant.time_s, "position_deg": plant.position_deg,
+                "velocity_deg_s": plant.velocity_deg_s, "current_mA": plant.applied_current_ma,
+                "statusword": node.statusword, "sync_count": node.sync_count}
+
+    state = {"/emulator/drive": ("hil.EmulatorDrive", drive)}
+    # the stop flag is set before the ready line: a SIGTERM after it is handled
+    with _until_stopped() as stop, _live_state(args, state, DRIVE_LIVE_HZ):
         try:
             print(f"hil: drive emulator node {node.node_id} on socketcand {bound_host}:"
                   f"{bound_port} (bus {emulator.channel}); Ctrl-C stops", flush=True)

@@ -8,11 +8,24 @@ import sys
 from collections.abc import Sequence
 
 from hil import __version__
-from hil.cli import bench, demo, doctor, empc, emulate, identify, report, servo, sweep
+from hil.cli import (
+    bench,
+    demo,
+    doctor,
+    empc,
+    emulate,
+    identify,
+    layout,
+    replay,
+    report,
+    servo,
+    sweep,
+)
 from hil.core.errors import HilError
 from hil.core.session import set_command_line
 
-COMMAND_MODULES = (demo, bench, servo, sweep, empc, identify, emulate, report, doctor)
+COMMAND_MODULES = (demo, bench, servo, sweep, empc, identify, emulate, report, replay, layout,
+                   doctor)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,11 +1,17 @@
-"""The session-file flags shared by every command that records: encodings and splitting."""
+"""The session flags shared by every command that records: encodings, splitting, live view."""
 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
+from typing import TypeVar
 
 from hil.cli.argtypes import positive_float
+from hil.core.errors import UsageError
+from hil.core.live import DEFAULT_RATE_HZ, check_bindable, parse_address, parse_rate
 from hil.core.recorder import ENCODINGS, RecordingOptions
+
+T = TypeVar("T")
 
 
 def topic_encoding(text: str) -> tuple[str, str]:
@@ -17,8 +23,43 @@ def topic_encoding(text: str) -> tuple[str, str]:
     return topic, encoding
 
 
+def _argparse_type(parse: Callable[[str], T]) -> Callable[[str], T]:
+    """A ``hil.core.live`` parser as an argparse type (its UsageError as argparse's error)."""
+    def convert(text: str) -> T:
+        try:
+            return parse(text)
+        except UsageError as exc:
+            raise argparse.ArgumentTypeError(str(exc).partition(": ")[2]) from None
+    return convert
+
+
+def add_live_arguments(parser: argparse.ArgumentParser, *, rates: bool = True) -> None:
+    """``--live [HOST:]PORT`` and (``rates``) ``--live-rate /TOPIC=HZ``."""
+    group = parser.add_argument_group(
+        "live view", "Serve the session's topics over the Foxglove WebSocket protocol while it "
+        "runs (Foxglove: Open connection > Foxglove WebSocket; PlotJuggler: Foxglove "
+        "WebSocket client), beside the file, from the writer process.")
+    group.add_argument("--live", type=_argparse_type(parse_address), metavar="[HOST:]PORT",
+                       help="serve here (host 127.0.0.1 unless given; the URL is printed)")
+    if rates:
+        group.add_argument("--live-rate", type=_argparse_type(parse_rate), action="append",
+                           default=[], metavar="/TOPIC=HZ",
+                           help=f"messages per second of session time served on TOPIC "
+                           f"(default {DEFAULT_RATE_HZ:g}; 0: every one; /events: every one)")
+
+
+def live_address(args: argparse.Namespace) -> str | None:
+    """``--live`` as ``HOST:PORT``, checked to be free now (a one-line error otherwise)."""
+    if getattr(args, "live", None) is None:
+        return None
+    host, port = args.live
+    check_bindable(host, port)
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
 def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--encoding``, ``--topic-encoding``, ``--split-duration`` and ``--split-size``."""
+    """``--encoding``, ``--topic-encoding``, ``--split-duration``, ``--split-size``, and the
+    live view's ``--live`` and ``--live-rate``."""
     group = parser.add_argument_group(
         "session file", "How the session is written. High-rate topics (the 2 kHz drive topics "
         "and the MPC prediction) are CDR with a ros2msg schema by default, about a third of "
@@ -32,10 +73,12 @@ def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
                        "OUT_001.mcap ... (each complete and indexed; read as one session)")
     group.add_argument("--split-size", type=positive_float, metavar="MB",
                        help="start a new file when the current one reaches MB megabytes")
+    add_live_arguments(parser)
 
 
 def recording_options(args: argparse.Namespace) -> RecordingOptions:
     """The :class:`RecordingOptions` of parsed flags."""
     return RecordingOptions(
         high_rate_encoding=args.encoding, topic_encodings=dict(args.topic_encoding),
-        split_duration_s=args.split_duration, split_size_mb=args.split_size)
+        split_duration_s=args.split_duration, split_size_mb=args.split_size,
+        live=live_address(args), live_rates=dict(args.live_rate))

@@ -34,6 +34,7 @@ from typing import Any
 
 from hil.core.cdr import CdrError, fields_of
 from hil.core.errors import HilError
+from hil.core.live import parse_address
 from hil.core.mcap_series import series_file
 from hil.core.realtime import keep_process_off_cpu
 from hil.core.record_stream import FrameDecoder, encode_frame
@@ -74,12 +75,15 @@ class RecorderStats:
 
 @dataclass(frozen=True)
 class RecordingOptions:
-    """How a session is written: per-topic encodings and file splitting."""
+    """How a session is written: per-topic encodings, file splitting, and the live view
+    (``live``: serve the topics at ``[HOST:]PORT``, see :mod:`hil.core.live`)."""
 
     high_rate_encoding: str = "cdr"       # for topics registered with ``high_rate=True``
     topic_encodings: dict[str, str] = field(default_factory=dict)  # explicit, by topic name
     split_duration_s: float | None = None
     split_size_mb: float | None = None
+    live: str | None = None                # "[HOST:]PORT": serve the topics live (hil.core.live)
+    live_rates: dict[str, float] = field(default_factory=dict)  # topic -> Hz (0: every message)
 
     def __post_init__(self) -> None:
         for name, encoding in [("high-rate topics", self.high_rate_encoding),
@@ -91,6 +95,11 @@ class RecordingOptions:
                             ("split size", self.split_size_mb)):
             if value is not None and not value > 0:
                 raise HilError(f"{name} must be > 0, got {value!r}")
+        if self.live is not None:
+            parse_address(self.live)
+        for topic, hz in self.live_rates.items():
+            if not hz >= 0:
+                raise HilError(f"live rate of {topic} must be >= 0 Hz, got {hz!r}")
 
     @property
     def split(self) -> bool:
@@ -172,6 +181,7 @@ class Recorder:
             # in real time a late writer costs a backlog, a late emulator a fault; in lockstep
             # the loop waits for the writer, so it must not be held back
             "yield_cpu": not wait_when_full,
+            "live": self.options.live, "live_rates": self.options.live_rates,
         })
         assert self._process.stdin is not None
         self._fd = self._process.stdin.fileno()

@@ -16,6 +16,7 @@ signal to the run's process group lets the loop process drain into it before the
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import select
@@ -26,6 +27,7 @@ from collections.abc import Callable
 from typing import Any
 
 from hil.core.cdr import CdrEncoder, fields_of, ros2msg_text
+from hil.core.live import LiveSink, parse_address
 from hil.core.mcap_series import (
     DEFAULT_CHUNK_BYTES,
     ChannelSpec,
@@ -64,10 +66,11 @@ def channel_for(name: str, schema: dict[str, Any], encoding: str
 
 
 class SessionWriter:
-    """Applies records of the stream to a :class:`McapSeries`."""
+    """Applies records of the stream to a :class:`McapSeries` (and a live view, if any)."""
 
-    def __init__(self, series: McapSeries) -> None:
+    def __init__(self, series: McapSeries, live: LiveSink | None = None) -> None:
         self.series = series
+        self.live = live
         self.encoders: dict[int, Callable[[Any], bytes]] = {}
         self.dropped: dict[str, int] = {}
         self.closed = False
@@ -79,10 +82,14 @@ class SessionWriter:
             _, t_ns, message = record
             self.series.add_message(kind, t_ns, self.encoders[kind](message))
             self.last_t_ns = t_ns
+            if self.live is not None:
+                self.live.log(kind, t_ns, message)
         elif kind == "topic":
             _, key, name, schema, encoding = record
             spec, self.encoders[key] = channel_for(name, schema, encoding)
             self.series.add_channel(key, spec)
+            if self.live is not None:
+                self.live.add_topic(key, name, schema)
         elif kind == "metadata":
             self.series.add_metadata(record[1], record[2])
         elif kind == "attachment":
@@ -106,9 +113,11 @@ class SessionWriter:
 
     def event(self, t_ns: int, kind: str, message: str, **data: Any) -> None:
         if EVENTS_KEY in self.encoders:
-            self.series.add_message(EVENTS_KEY, t_ns, encode_json({
-                "level": "warning", "source": "recorder", "kind": kind, "message": message,
-                "data": data}))
+            event = {"level": "warning", "source": "recorder", "kind": kind, "message": message,
+                     "data": data}
+            self.series.add_message(EVENTS_KEY, t_ns, encode_json(event))
+            if self.live is not None:
+                self.live.log(EVENTS_KEY, t_ns, event)
 
     def final_metadata(self, cut_bytes: int, error: str) -> dict[str, dict[str, str]]:
         recorder: dict[str, str] = {}
@@ -123,6 +132,24 @@ class SessionWriter:
         return {"recorder": recorder} if recorder else {}
 
 
+def start_live(options: dict[str, Any]) -> LiveSink | None:
+    """The session's live view when ``options["live"]`` asks for one; its URL on stderr.
+
+    A live view that cannot start is reported on stderr and left out: the file comes first.
+    """
+    if not options.get("live"):
+        return None
+    try:
+        host, port = parse_address(options["live"])
+        live = LiveSink(host, port, rates=options.get("live_rates") or {})
+    except Exception as exc:  # any failure of the server must not cost the recording
+        print(f"hil: warning: live view off: {exc}", file=sys.stderr, flush=True)
+        return None
+    print(f"hil: live view on {live.url} (Foxglove: Open connection > Foxglove WebSocket)",
+          file=sys.stderr, flush=True)
+    return live
+
+
 def run(options: dict[str, Any], fd: int = 0, ready: Callable[[], None] = lambda: None
         ) -> dict[str, Any]:
     """Write the session read from ``fd`` until ``close`` or end of file; return statistics.
@@ -132,8 +159,9 @@ def run(options: dict[str, Any], fd: int = 0, ready: Callable[[], None] = lambda
         split_duration_s=options.get("split_duration_s"),
         split_size_mb=options.get("split_size_mb"), profile=options.get("profile", ""),
     )
+    live = start_live(options)  # serving before the loop starts
     ready()
-    writer = SessionWriter(series)
+    writer = SessionWriter(series, live)
     decoder = FrameDecoder()
     flush_interval = float(options.get("flush_interval_s", 1.0))
     next_flush = time.monotonic() + flush_interval
@@ -158,10 +186,17 @@ def run(options: dict[str, Any], fd: int = 0, ready: Callable[[], None] = lambda
         writer.event(writer.last_t_ns, "recorder.stream_cut",
                      f"the loop process ended in the middle of a batch ({cut} bytes lost)",
                      bytes=cut)
-    stats = series.close(writer.final_metadata(cut, error))
+    metadata = writer.final_metadata(cut, error)
+    live_stats = dataclasses.asdict(live.stats()) if live is not None else {}
+    if live_stats:
+        metadata["live"] = {key: json.dumps(value) for key, value in live_stats.items()}
+    stats = series.close(metadata)
+    if live is not None:  # after the file: a stalled client may hold the server's stop
+        live.close()
     return {"messages_written": stats.messages_written, "chunks_flushed": stats.chunks_flushed,
             "bytes_written": stats.bytes_written, "files": stats.files,
-            "dropped": writer.dropped, "closed": writer.closed, "error": error}
+            "dropped": writer.dropped, "closed": writer.closed, "error": error,
+            "live": live_stats}
 
 
 def main() -> int:

@@ -23,6 +23,7 @@ from controllers.references import Reference
 from controllers.servo_sim import PAPER_CASES, cycle_error
 from hil.core.errors import HilError
 from hil.core.reader import read_session
+from hil.core.recorder import RecordingOptions
 from hil.core.report import plot_session
 from hil.servo.run import ServoRunConfig, run_servo
 from hil.sweep.engine import Engine
@@ -34,8 +35,8 @@ CONTROLLERS = ("mpc", "pid")
 AMPLITUDE_DEG = 2.0
 
 
-def run_servo_demo(out_dir: str | Path,
-                   echo: Callable[[str], None] | None = print) -> list[dict[str, Any]]:
+def run_servo_demo(out_dir: str | Path, echo: Callable[[str], None] | None = print,
+                   recording: RecordingOptions | None = None) -> list[dict[str, Any]]:
     """Run the four sessions into ``out_dir`` (MCAP + PNG each); return one row per run and,
     unless ``echo`` is None, print the comparison table with it."""
     out = Path(out_dir)
@@ -49,7 +50,7 @@ def run_servo_demo(out_dir: str | Path,
                 controller=controller, ert="foh", ht=8, hu=8, hp=50, umax=limit,
                 reference=f"sine:amplitude={AMPLITUDE_DEG:g},frequency={frequency:g}",
                 duration_s=SETTLE_S + 1.0 / frequency, settle_s=SETTLE_S,
-                out=mcap)
+                out=mcap, recording=recording or RecordingOptions())
             kpis = run_servo(config).kpis
             png = out / f"{name}.png"
             plot_session(read_session(mcap), str(png))

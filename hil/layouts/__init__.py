@@ -1,0 +1,1 @@
+"""Foxglove layouts of the live view and of recorded sessions (``hil layout``)."""

@@ -1,0 +1,175 @@
+"""A minimal Foxglove WebSocket protocol (v1) client for the tests, on the `websockets` package.
+
+The foxglove-sdk server accepts the subprotocol ``foxglove.sdk.v1`` only (its handshake refuses
+a client that offers ``foxglove.websocket.v1`` alone, HTTP 400); the messages are those of the
+Foxglove WebSocket protocol spec, v1. The client offers both names, as the Foxglove app does.
+
+Text frames are JSON (``serverInfo``, ``advertise``, ``status``...); the client subscribes with
+a ``subscribe`` JSON message and receives binary ``messageData`` frames: opcode 1, a uint32
+subscription id, a uint64 log time (little endian), then the payload (JSON here).
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import socket
+import struct
+import time
+from collections.abc import Callable
+from typing import Any
+
+from websockets.sync.client import ClientConnection, connect
+
+SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+MESSAGE_DATA = 1
+_HEADER = struct.Struct("<BIQ")
+
+
+def connect_when_up(url: str, timeout_s: float = 10.0,
+                    alive: Callable[[], int | None] = lambda: None) -> ClientConnection:
+    """Connect with the Foxglove subprotocol, retrying until the server listens (or the
+    server's process has exited: ``alive()`` returns its exit status, like ``Popen.poll``)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        status = alive()
+        if status is not None:
+            raise ConnectionError(f"the server's process exited with status {status}")
+        try:
+            return connect(url, subprotocols=SUBPROTOCOLS, open_timeout=2, max_size=None,
+                           legacy=True)
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
+
+
+class FoxgloveClient:
+    """Collects advertised channels and received messages of one connection."""
+
+    def __init__(self, url: str, timeout_s: float = 10.0,
+                 alive: Callable[[], int | None] = lambda: None) -> None:
+        self.ws = connect_when_up(url, timeout_s, alive)
+        self.server_info: dict[str, Any] = {}
+        self.channels: dict[int, dict[str, Any]] = {}   # channel id -> advertised channel
+        self.subscriptions: dict[int, str] = {}         # subscription id -> topic
+        self.messages: dict[str, list[tuple[int, Any]]] = {}
+        self.closed = False
+
+    def close(self) -> None:
+        self.ws.close()
+
+    def topics(self) -> dict[str, dict[str, Any]]:
+        return {c["topic"]: c for c in self.channels.values()}
+
+    def pump(self, timeout_s: float) -> bool:
+        """Handle one frame; False when none came within ``timeout_s`` or the server closed."""
+        try:
+            frame = self.ws.recv(timeout=timeout_s)
+        except TimeoutError:
+            return False
+        except Exception:  # the connection closed (the session ended)
+            self.closed = True
+            return False
+        if isinstance(frame, str):
+            message = json.loads(frame)
+            if message["op"] == "serverInfo":
+                self.server_info = message
+            elif message["op"] == "advertise":
+                self.channels.update({c["id"]: c for c in message["channels"]})
+            elif message["op"] == "unadvertise":
+                for cid in message["channelIds"]:
+                    self.channels.pop(cid, None)
+            return True
+        opcode, sub_id, log_time = _HEADER.unpack_from(frame)
+        if opcode == MESSAGE_DATA:
+            topic = self.subscriptions[sub_id]
+            payload = json.loads(bytes(frame[_HEADER.size:]))
+            self.messages.setdefault(topic, []).append((log_time, payload))
+        return True
+
+    def wait_for(self, condition: Any, timeout_s: float) -> bool:
+        """Pump frames until ``condition()`` holds or ``timeout_s`` passes."""
+        deadline = time.monotonic() + timeout_s
+        while not condition():
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or self.closed:
+                return bool(condition())
+            self.pump(min(remaining, 0.5))
+        return True
+
+    def subscribe(self, topics: list[str]) -> None:
+        """Subscribe to the advertised channels of ``topics``."""
+        by_topic = {c["topic"]: cid for cid, c in self.channels.items()}
+        subs = []
+        for topic in topics:
+            sub_id = len(self.subscriptions) + 1
+            self.subscriptions[sub_id] = topic
+            subs.append({"id": sub_id, "channelId": by_topic[topic]})
+        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+
+
+def _read_frame(sock: socket.socket) -> tuple[int, bytes]:
+    """One unmasked server frame: (opcode, payload)."""
+    def exactly(n: int) -> bytes:
+        data = b""
+        while len(data) < n:
+            chunk = sock.recv(n - len(data))
+            if not chunk:
+                raise ConnectionError("the server closed the connection")
+            data += chunk
+        return data
+    first, second = exactly(2)
+    length = second & 0x7F
+    if length == 126:
+        (length,) = struct.unpack(">H", exactly(2))
+    elif length == 127:
+        (length,) = struct.unpack(">Q", exactly(8))
+    return first & 0x0F, exactly(length)
+
+
+def stalled_client(host: str, port: int, topics: list[str], timeout_s: float = 10.0
+                   ) -> socket.socket:
+    """A client that connects, subscribes to ``topics`` and then never reads again.
+
+    A raw socket with a 4 KiB receive buffer, so the server's queue for it fills fast.
+    The caller closes the returned socket.
+    """
+    deadline = time.monotonic() + timeout_s
+    while True:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        sock.settimeout(max(0.1, deadline - time.monotonic()))
+        try:
+            sock.connect((host, port))
+            break
+        except OSError:
+            sock.close()
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
+    key = base64.b64encode(os.urandom(16)).decode()
+    sock.sendall((f"GET / HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\n"
+                  f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
+                  f"Sec-WebSocket-Version: 13\r\nSec-WebSocket-Protocol: {SUBPROTOCOLS[0]}"
+                  "\r\n\r\n").encode())
+    response = b""
+    while b"\r\n\r\n" not in response:
+        response += sock.recv(1)
+    if b" 101 " not in response.split(b"\r\n")[0]:
+        raise ConnectionError(f"handshake refused: {response[:80]!r}")
+    channels: dict[str, int] = {}
+    while not set(topics) <= set(channels):
+        opcode, payload = _read_frame(sock)
+        if opcode == 1:
+            message = json.loads(payload)
+            if message.get("op") == "advertise":
+                channels.update({c["topic"]: c["id"] for c in message["channels"]})
+    subscribe = json.dumps({"op": "subscribe", "subscriptions": [
+        {"id": i + 1, "channelId": channels[t]} for i, t in enumerate(topics)]}).encode()
+    mask = os.urandom(4)
+    header = bytes([0x81]) + (bytes([0x80 | len(subscribe)]) if len(subscribe) < 126 else
+                              bytes([0x80 | 126]) + struct.pack(">H", len(subscribe)))
+    sock.sendall(header + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(subscribe)))
+    return sock
