@@ -30,8 +30,11 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+
+from hil.core.cdr import CdrDecoder, parse_ros2msg
 
 ROOT = Path(__file__).resolve().parents[1]
 CODE_ENV = "HIL_ENDURANCE_CODE"  # the checkout a child imports hil from
@@ -102,10 +105,16 @@ def timing_per_minute(path: str) -> tuple[list[float], list[float]]:
         reader = make_reader(f)
         topics = [c.topic for c in reader.get_summary().channels.values()
                   if c.topic.startswith("/loop/") and c.topic.endswith("/timing")]
-        for _, _, message in reader.iter_messages(topics=topics, log_time_order=True):
+        decoders: dict[int, Any] = {}
+        for schema, channel, message in reader.iter_messages(topics=topics,
+                                                              log_time_order=True):
             start = message.log_time - 1_000_000_000 if start is None else start
             minute = max(0, message.log_time - start - 1) // 60_000_000_000
-            window = json.loads(message.data)
+            if channel.id not in decoders:  # JSON, or CDR with a ros2msg schema (the default)
+                decoders[channel.id] = (
+                    CdrDecoder(parse_ros2msg(schema.data.decode())).decode
+                    if channel.message_encoding == "cdr" and schema is not None else json.loads)
+            window = decoders[channel.id](message.data)
             lateness.setdefault(minute, []).append(np.asarray(window["lateness_us"], float))
             compute.setdefault(minute, []).append(np.asarray(window["compute_us"], float))
 
