@@ -31,6 +31,14 @@ def registered_names(group: str) -> list[str]:
     return sorted({ep.name for ep in importlib.metadata.entry_points(group=group)})
 
 
+def registered(group: str, name: str) -> Any | None:
+    """The object installed packages register as ``name`` in ``group`` (loaded), or None."""
+    for entry in importlib.metadata.entry_points(group=group):
+        if entry.name == name:
+            return entry.load()
+    return None
+
+
 def _import_failure(spec: str, exc: BaseException) -> ConfigError:
     return ConfigError(f"{spec!r}: importing it failed: {describe_exception(exc)}")
 
@@ -77,12 +85,12 @@ def load_object(spec: str, group: str) -> Any:
         raise ConfigError("an empty spec: give NAME, FILE.py:Class or package.module:Class")
     location, sep, attribute = spec.rpartition(":")
     if not sep:
-        for entry in importlib.metadata.entry_points(group=group):
-            if entry.name == spec:
-                try:
-                    return entry.load()
-                except Exception as exc:
-                    raise _import_failure(spec, exc) from None
+        try:
+            found = registered(group, spec)
+        except Exception as exc:
+            raise _import_failure(spec, exc) from None
+        if found is not None:
+            return found
         known = ", ".join(registered_names(group)) or "none"
         raise ConfigError(f"{spec!r}: no such name (registered: {known}); a file or module "
                           "is named FILE.py:Class or package.module:Class")

@@ -209,25 +209,33 @@ class Recorder:
         start-up does not compete with the first ticks of a real-time loop."""
         if self._ready:
             return
-        assert self._process.stdout is not None
-        fd = self._process.stdout.fileno()
-        deadline = time.monotonic() + timeout_s
-        line = b""
-        while not line.endswith(b"\n"):
-            remaining = deadline - time.monotonic()
-            if remaining <= 0 or not select.select([fd], [], [], remaining)[0]:
-                self._process.kill()
-                raise RecorderError(f"{self.path}: the writer process did not start within "
-                                    f"{timeout_s:g} s")
-            chunk = os.read(fd, 64 - len(line))
-            if not chunk:
-                break
-            line += chunk
+        line, timed_out = self._read_writer(timeout_s, line=True)
+        if timed_out:
+            raise RecorderError(f"{self.path}: the writer process did not start within "
+                                f"{timeout_s:g} s")
         if line != b"ready\n":
             self._process.kill()
             raise RecorderError(f"{self.path}: the writer process failed to start "
                                 f"({line.decode(errors='replace').strip() or 'no output'})")
         self._ready = True
+
+    def _read_writer(self, timeout_s: float, *, line: bool) -> tuple[bytes, bool]:
+        """The writer's standard output up to a newline (``line``) or to its end, and whether
+        ``timeout_s`` ran out first (the writer is then killed)."""
+        assert self._process.stdout is not None
+        fd = self._process.stdout.fileno()
+        deadline = time.monotonic() + timeout_s
+        out = bytearray()
+        while not (line and out.endswith(b"\n")):
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not select.select([fd], [], [], remaining)[0]:
+                self._process.kill()
+                return bytes(out), True
+            chunk = os.read(fd, 64 if line else 1 << 16)
+            if not chunk:
+                break
+            out += chunk
+        return bytes(out), False
 
     # -- producer side -------------------------------------------------------------------
     def topic(self, name: str, schema: dict[str, Any], *, encoding: str | None = None,
@@ -369,22 +377,11 @@ class Recorder:
     def _writer_report(self) -> bytes:
         """The writer's standard output until it exits (killed after a generous timeout);
         its last line is the JSON report."""
-        assert self._process.stdout is not None
-        fd = self._process.stdout.fileno()
-        deadline = time.monotonic() + WRITER_CLOSE_TIMEOUT_S
-        out = bytearray()
-        while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0 or not select.select([fd], [], [], remaining)[0]:
-                self._process.kill()
-                break
-            chunk = os.read(fd, 1 << 16)
-            if not chunk:
-                break
-            out += chunk
+        out, _timed_out = self._read_writer(WRITER_CLOSE_TIMEOUT_S, line=False)
         self._process.wait()
+        assert self._process.stdout is not None
         self._process.stdout.close()
-        return bytes(out)
+        return out
 
     def _parse_result(self, out: bytes) -> dict[str, Any]:
         lines = out.decode(errors="replace").strip().splitlines()

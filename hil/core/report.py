@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.metadata
 import json
 import os
 from collections.abc import Callable
@@ -10,6 +9,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from hil.core.plugins import registered
 from hil.core.reader import SessionData
 from hil.core.stats import percentile_summary
 
@@ -34,20 +34,14 @@ class KindSummary(Protocol):
 
 def find_plotter(kind: str) -> Plotter | None:
     """The plotter registered for sessions of ``kind``, or None."""
-    for entry in importlib.metadata.entry_points(group=PLOTTER_GROUP):
-        if entry.name == kind:
-            plotter: Plotter = entry.load()
-            return plotter
-    return None
+    plotter: Plotter | None = registered(PLOTTER_GROUP, kind)
+    return plotter
 
 
 def find_summary(kind: str) -> KindSummary | None:
     """The report section registered for sessions of ``kind``, or None."""
-    for entry in importlib.metadata.entry_points(group=SUMMARY_GROUP):
-        if entry.name == kind:
-            summary: KindSummary = entry.load()
-            return summary
-    return None
+    summary: KindSummary | None = registered(SUMMARY_GROUP, kind)
+    return summary
 
 
 def loop_stats(data: SessionData) -> dict[str, Any]:
