@@ -17,13 +17,18 @@ import argparse
 import json
 import sys
 import tempfile
+import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from hil.bench.run import BenchRunOptions, run_bench
 from hil.core.doctor import measure_loop
 from hil.core.reader import read_session
 from hil.core.realtime import Hardening
-from hil.servo.run import ServoRunConfig, run_servo
+from hil.servo.run import ServoRunConfig, ServoTask, run_servo
 
 
 def bare_loop(seconds: float) -> dict[str, float]:
@@ -35,17 +40,55 @@ def bare_loop(seconds: float) -> dict[str, float]:
         hardening.restore()
 
 
-def servo_session(tmp: Path, seconds: float, realtime: bool) -> dict[str, float]:
+class PhaseTimes:
+    """Where a servo tick goes: the time of ServoTask.read, .compute and .write, per tick
+    (measurement only: the methods are wrapped for this one run, then restored)."""
+
+    PHASES = ("read", "compute", "write")
+
+    def __init__(self) -> None:
+        self.us: dict[str, list[float]] = {name: [] for name in self.PHASES}
+        self._saved = {name: getattr(ServoTask, name) for name in self.PHASES}
+
+    def __enter__(self) -> PhaseTimes:
+        for name in self.PHASES:
+            setattr(ServoTask, name, self._timed(name, self._saved[name]))
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        for name, method in self._saved.items():
+            setattr(ServoTask, name, method)
+
+    def _timed(self, name: str, method: Callable[..., Any]) -> Callable[..., Any]:
+        samples, clock = self.us[name], time.perf_counter_ns
+
+        def timed(*args: Any) -> Any:
+            start = clock()
+            result = method(*args)
+            samples.append((clock() - start) / 1e3)
+            return result
+
+        return timed
+
+    def percentiles(self) -> dict[str, list[float]]:
+        return {name: [float(np.percentile(v, q)) for q in (50, 90, 99)] if v else []
+                for name, v in self.us.items()}
+
+
+def servo_session(tmp: Path, seconds: float, realtime: bool) -> dict[str, Any]:
     out = tmp / f"servo-{'rt' if realtime else 'lockstep'}.mcap"
     # the watchdog of a loaded 2-core box: stale feedback is counted, not fatal, here
-    result = run_servo(ServoRunConfig(
-        controller="mpc", ert="foh", ht=8, hu=8, duration_s=seconds, realtime=realtime,
-        out=str(out), drive_overrides={"master": {"stale_cycles": 100_000}}))
+    with PhaseTimes() as phases:
+        result = run_servo(ServoRunConfig(
+            controller="mpc", ert="foh", ht=8, hu=8, duration_s=seconds, realtime=realtime,
+            out=str(out), drive_overrides={"master": {"stale_cycles": 100_000}}))
     loop = result.loop["servo"]
     scheduled = loop["runs"] + loop["missed"]
     return {"missed_pct": 100.0 * loop["missed"] / scheduled, "p99_us":
-            loop["lateness_us"]["p99"], "factor": result.kpis["realtime_factor"] or 0.0,
-            "stale": result.kpis["stale_feedback"]}
+            loop["lateness_us"]["p99"], "p50_us": loop["lateness_us"]["p50"],
+            "factor": result.kpis["realtime_factor"] or 0.0,
+            "stale": result.kpis["stale_feedback"], "ticks": result.kpis["ticks"],
+            "step_us": result.kpis["step_us"]["median"], "phases": phases.percentiles()}
 
 
 def bench_session(tmp: Path, cycles: int) -> dict[str, float]:
@@ -74,8 +117,16 @@ def main() -> int:
     print(f"{'real-time servo, MPC, drive emulator process':<52} {rt['missed_pct']:>9.3f} "
           f"{rt['p99_us']:>8.1f}   {ratio:.1f}x the bare loop's skips, stale feedback "
           f"{rt['stale']:.0f}")
+    print(f"   lateness p50 {rt['p50_us']:.1f} us; stale feedback {rt['stale']:.0f} of "
+          f"{rt['ticks']:.0f} ticks ({100 * rt['stale'] / max(1, rt['ticks']):.1f} %: the "
+          "TPDOs not back within rx_timeout of their SYNC)")
+    print("   tick breakdown [us]        p50      p90      p99")
+    for name, values in rt["phases"].items():
+        if values:
+            print(f"   {name:<24}" + "".join(f"{v:>9.1f}" for v in values))
     print(f"lockstep servo through the CAN link, MPC, recorded: {lockstep['factor']:.1f}x real "
-          "time")
+          f"time (MPC step median {lockstep['step_us']:.0f} us: at most "
+          f"{1e6 * 500e-6 / max(lockstep['step_us'], 1e-9):.1f}x with nothing else in the tick)")
     print(f"real-time bench, 100 Hz over Modbus TCP to the emulator process, "
           f"{args.bench_cycles * 28} s: {bench['missed']:.0f} of "
           f"{bench['runs'] + bench['missed']:.0f} ticks skipped, sampler p99 "

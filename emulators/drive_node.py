@@ -104,6 +104,9 @@ ERR_REG_GENERIC, ERR_REG_CURRENT, ERR_REG_COMMUNICATION = 0x01, 0x02, 0x10
 ERR_REG_VOLTAGE, ERR_REG_TEMPERATURE = 0x04, 0x08
 
 
+SYNC_POLL_PERIODS = 100  # SYNCs are expected until this many cycles passed without one
+
+
 def error_register_bit(code: int) -> int:
     """The error register (0x1001) bit of an EMCY code's class (CiA 301, table 48)."""
     return {0x2: ERR_REG_CURRENT, 0x3: ERR_REG_VOLTAGE, 0x4: ERR_REG_TEMPERATURE,
@@ -282,6 +285,19 @@ class DriveNode:
         self._hb_last_ns = 0
         self._sync_armed = False
         self._sync_last_ns = 0
+
+    def next_sync_ns(self, now_ns: int) -> int | None:
+        """When the next SYNC is due, on the grid of the communication cycle (0x1006) from the
+        last one received (the slot after, once half a period has passed without it); None
+        when no cyclic SYNC is going on. A real-time runner polls the bus around that time:
+        a real drive answers a SYNC within microseconds, a process woken up from a blocking
+        wait may take hundreds."""
+        period_ns = self._values[(0x1006, 0)] * 1000
+        last = self._sync_last_ns
+        if not period_ns or not last or now_ns - last > SYNC_POLL_PERIODS * period_ns:
+            return None
+        late = now_ns - last - period_ns - period_ns // 2
+        return last + period_ns * (1 + max(0, late // period_ns + 1))
 
     def boot(self) -> None:
         """Power on: NOT READY TO SWITCH ON -> SWITCH ON DISABLED, boot-up message, PRE-OP."""

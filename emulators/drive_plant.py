@@ -90,14 +90,18 @@ class AxisPlant:
         self.friction = friction or Friction()
         self.disturbance = disturbance or Disturbance()
         self.extra_disturbance_ma = 0.0  # set at run time (e.g. through the drive's 0x2003)
-        self._A = np.asarray(self.model.A, dtype=float)
-        self._B = np.asarray(self.model.B, dtype=float)[:, 0]
-        self._C = np.asarray(self.model.C, dtype=float)[0]
+        A = np.asarray(self.model.A, dtype=float)
+        B = np.asarray(self.model.B, dtype=float)[:, :1]
+        C = np.asarray(self.model.C, dtype=float)[:1]
+        n = A.shape[0]
+        # one product per period: [x(k+1); y(k+1)] = [[A, B], [C A, C B]] [x(k); u(k)]
+        self._step_matrix = np.block([[A, B], [C @ A, C @ B]])
+        self._n = n
         self.reset()
 
     def reset(self) -> None:
         """Back to rest at position 0, time 0."""
-        self._x = np.zeros(self.model.n_states)
+        self._xu = np.zeros(self.model.n_states + 1)  # state, then the input of the period
         self.steps = 0
         self.position_deg = 0.0
         self.velocity_deg_s = 0.0
@@ -117,11 +121,12 @@ class AxisPlant:
         limit = self.current_limit_ma
         applied = min(max(float(current_ma), -limit), limit) if math.isfinite(current_ma) else 0.0
         self.applied_current_ma = applied
-        A, B, C = self._A, self._B, self._C
+        M, xu, n = self._step_matrix, self._xu, self._n
         for _ in range(periods):
-            u = applied - self.load_current_ma()
-            self._x = A @ self._x + B * u
-            position = float(C @ self._x)
+            xu[n] = applied - self.load_current_ma()
+            z = M @ xu
+            xu[:n] = z[:n]
+            position = float(z[n])
             self.velocity_deg_s = (position - self.position_deg) / self.dt
             self.position_deg = position
             self.steps += 1

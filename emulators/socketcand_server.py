@@ -19,13 +19,18 @@ server holds frames for that client until the client sends its next command, or 
 compares it exactly, so a frame arriving in the same read would break its handshake.
 
 Everything runs in the thread that calls :meth:`serve` (a selector loop), including ``on_frame``
-and the periodic ``on_tick``: an emulated node needs no lock of its own.
+and the periodic ``on_tick``: an emulated node needs no lock of its own. With ``next_frame_ns``
+(the node tells when its next cyclic frame, the SYNC, is due) the loop polls the sockets from
+``poll_margin_s`` before that time until the frame comes, instead of sleeping in ``select``:
+a sleeping process is woken up 50 us to several hundred us after the data arrives (more on a
+virtual machine), where a drive answers a SYNC within microseconds.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import selectors
 import socket
 import threading
@@ -41,6 +46,7 @@ from hil.core.errors import HilError
 log = logging.getLogger(__name__)
 
 RAW_HOLD_S = 0.2
+POLL_MARGIN_S = 300e-6  # polled from this long before due: a timed wake-up is ~60 us late here
 MAX_COMMAND_CHARS = 256
 class StopRequest(Protocol):
     """Anything with ``is_set()``: a threading.Event, or a flag a signal handler sets."""
@@ -79,7 +85,7 @@ def parse_send(command: str) -> can.Message | None:
     id_text, len_text, byte_texts = parts[1], parts[2], parts[3:]
     try:
         can_id, length = int(id_text, 16), int(len_text, 16)
-        data = bytes(int(b, 16) for b in byte_texts)
+        data = bytes([int(b, 16) for b in byte_texts])
     except ValueError:
         return None
     extended = len(id_text) == 8
@@ -101,11 +107,15 @@ class SocketcandServer:
         on_frame: Callable[[can.Message], None] | None = None,
         on_tick: Callable[[], None] | None = None,
         tick_period_s: float = 0.001,
+        next_frame_ns: Callable[[int], int | None] | None = None,
+        poll_margin_s: float = POLL_MARGIN_S,
     ) -> None:
         self.channel = channel
         self.on_frame = on_frame
         self.on_tick = on_tick
         self.tick_period_s = tick_period_s
+        self.next_frame_ns = next_frame_ns
+        self.poll_margin_ns = round(poll_margin_s * 1e9)
         self._listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
@@ -130,6 +140,8 @@ class SocketcandServer:
         next_tick = time.monotonic()
         while not stop.is_set() and not self._stop.is_set():
             timeout = max(0.0, next_tick - time.monotonic())
+            if self.next_frame_ns is not None:
+                timeout = min(timeout, self._until_polling())
             for key, mask in self._selector.select(timeout):
                 if key.data is None:
                     self._accept()
@@ -145,6 +157,15 @@ class SocketcandServer:
                 if self.on_tick is not None:
                     self._call(self.on_tick)
                 next_tick = now + self.tick_period_s
+
+    def _until_polling(self) -> float:
+        """Seconds until the bus is polled for the next expected frame (0: poll now)."""
+        assert self.next_frame_ns is not None
+        now = time.monotonic_ns()
+        due = self.next_frame_ns(now)
+        if due is None:
+            return math.inf
+        return max(0.0, (due - self.poll_margin_ns - now) / 1e9)
 
     def start(self) -> SocketcandServer:
         """Serve in a background thread (in-process use: tests, demos)."""
@@ -275,14 +296,17 @@ class SocketcandServer:
 
     # ------------------------------------------------------------------------- output
     def broadcast(self, messages: list[can.Message]) -> None:
-        """Frames from the emulated node, to every client in raw mode."""
-        for msg in messages:
-            self._forward(msg, exclude=None)
+        """Frames from the emulated node, to every client in raw mode (one write per client:
+        a TPDO pair reaches the master in one TCP segment)."""
+        if self._clients and messages:
+            self._forward_text(b"".join(format_frame(msg) for msg in messages), exclude=None)
 
     def _forward(self, msg: can.Message, exclude: _Client | None) -> None:
-        if not self._clients:
-            return
-        text = format_frame(msg)
+        """A client's frame to the other raw-mode clients (formatted only if there is one)."""
+        if any(c is not exclude and c.mode == "raw" for c in self._clients.values()):
+            self._forward_text(format_frame(msg), exclude)
+
+    def _forward_text(self, text: bytes, exclude: _Client | None) -> None:
         for client in list(self._clients.values()):
             if client is exclude or client.mode != "raw":
                 continue

@@ -244,6 +244,7 @@ def emulate_drive(args: argparse.Namespace) -> int:
     node = DriveNode(emulator, send=server.broadcast, faults=faults_of(args, "drive"),
                      on_fault=print_event)
     server.on_frame, server.on_tick = node.handle, node.service
+    server.next_frame_ns = node.next_sync_ns
     node.boot()
     bound_host, bound_port = server.address
     plant = node.plant

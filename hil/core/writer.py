@@ -39,7 +39,7 @@ from hil.core.record_stream import FrameDecoder
 
 EVENTS_KEY = 0  # the recorder registers /events first
 READ_BYTES = 1 << 20
-WRITER_NICENESS = 10  # a backlog absorbs a late writer; a late emulator or loop is a fault
+WRITER_NICENESS = 10  # where SCHED_IDLE is refused
 
 
 def _json_default(value: Any) -> Any:
@@ -199,13 +199,23 @@ def run(options: dict[str, Any], fd: int = 0, ready: Callable[[], None] = lambda
             "live": live_stats}
 
 
+def yield_cpu() -> None:
+    """Run only when the CPU has nothing else to do (SCHED_IDLE): an emulator woken up on
+    this CPU then always preempts the writer at once; a backlog absorbs a late writer. Where
+    SCHED_IDLE is refused, nice 10."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError):
+        with contextlib.suppress(OSError):
+            os.nice(WRITER_NICENESS)
+
+
 def main() -> int:
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
     options = json.loads(sys.argv[1])
     if options.get("yield_cpu"):  # real time: the loop, the drive and its emulator come first
-        with contextlib.suppress(OSError):
-            os.nice(WRITER_NICENESS)
+        yield_cpu()
         # unpickling a numpy message imports numpy (0.1-0.2 s of CPU): in real time, do it
         # before 'ready' rather than beside the first ticks
         import numpy  # noqa: F401

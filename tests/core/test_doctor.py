@@ -173,3 +173,22 @@ def test_hardening_keeps_helper_processes_and_the_writer_off_the_loops_core(tmp_
         helper.kill()
         helper.wait()
         recorder.close()
+
+
+def test_a_real_time_writer_process_yields_its_cpu_to_everything_else(tmp_path):
+    """Real time (the producer never waits): the writer runs under SCHED_IDLE, so an emulator
+    woken up on its core preempts it at once; where SCHED_IDLE is refused, at nice >= 10."""
+    from hil.core.recorder import Recorder
+
+    recorder = Recorder(tmp_path / "rt.mcap", wait_when_full=False)
+    lockstep = Recorder(tmp_path / "lockstep.mcap", wait_when_full=True)
+    try:
+        recorder.wait_ready()
+        lockstep.wait_ready()
+        policy = os.sched_getscheduler(recorder.writer_pid)
+        assert policy == os.SCHED_IDLE or os.getpriority(os.PRIO_PROCESS,
+                                                         recorder.writer_pid) >= 10
+        assert os.sched_getscheduler(lockstep.writer_pid) == os.SCHED_OTHER
+    finally:
+        recorder.close()
+        lockstep.close()

@@ -349,3 +349,20 @@ def test_disturbance_object_pushes_the_axis(wire):
         wire.send(0x201, struct.pack("<Hh", 0x0F, 0))
         wire.send(0x080)
     assert wire.node.plant.velocity_deg_s == pytest.approx(-2.83 * 200 * 0.1, rel=0.05)
+
+
+def test_the_next_sync_is_expected_on_the_grid_of_the_communication_cycle(wire):
+    node, period = wire.node, 500_000
+    assert node.next_sync_ns(0) is None  # no SYNC yet: nothing to poll for
+    wire.write(0x1006, 0, 500, "<I")  # the master's communication cycle period [us]
+    enable(wire)
+    for _ in range(3):
+        wire.send(0x080)
+    last = 3 * period  # lockstep: the node's clock is its SYNC count
+    assert node.next_sync_ns(last + 100_000) == last + period
+    assert node.next_sync_ns(last + 700_000) == last + period  # late, still awaited
+    assert node.next_sync_ns(last + 800_000) == last + 2 * period  # given up: the next slot
+    assert node.next_sync_ns(last + 1_300_000) == last + 3 * period
+    assert node.next_sync_ns(last + 101 * period) is None  # the SYNCs stopped
+    wire.write(0x1006, 0, 0, "<I")  # no communication cycle configured
+    assert node.next_sync_ns(last + 100_000) is None

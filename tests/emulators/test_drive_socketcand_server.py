@@ -154,3 +154,31 @@ def test_format_and_parse_are_inverse_for_standard_and_extended_ids():
 def test_a_busy_port_is_one_clear_error(server):
     with pytest.raises(HilError, match=r"cannot listen on 127\.0\.0\.1:\d+"):
         SocketcandServer("127.0.0.1", server.address[1], channel="can0").close()
+
+
+def test_polling_for_an_expected_frame_serves_the_same_bus():
+    """With ``next_frame_ns`` the loop polls instead of sleeping from the margin before the
+    frame is due; the bus works the same (here a frame is always due: it polls throughout)."""
+    frames = []
+    srv = SocketcandServer("127.0.0.1", 0, on_frame=frames.append,
+                           next_frame_ns=lambda now: now, poll_margin_s=150e-6).start()
+    try:
+        assert srv._until_polling() == 0.0
+        srv.next_frame_ns = lambda now: now + 1_000_000
+        assert 0.0 < srv._until_polling() <= 850e-6
+        srv.next_frame_ns = lambda now: None
+        assert srv._until_polling() == float("inf")
+        srv.next_frame_ns = lambda now: now
+        bus = can.Bus(interface="socketcand", host="127.0.0.1", port=srv.address[1],
+                      channel="can0")
+        try:
+            bus.send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))
+            assert wait_for(lambda: len(frames) == 1)
+            srv.broadcast([can.Message(arbitration_id=0x181, data=b"\x01",
+                                       is_extended_id=False)])
+            reply = bus.recv(2.0)
+            assert reply is not None and reply.arbitration_id == 0x181
+        finally:
+            bus.shutdown()
+    finally:
+        srv.close()

@@ -5,6 +5,7 @@ generous time-outs, no timing figure asserted beyond "not before the configured 
 
 import math
 import signal
+import socket
 import struct
 import time
 from pathlib import Path
@@ -131,8 +132,17 @@ def test_open_loop_physics_over_socketcand(emulator):
 
 
 def test_a_bus_name_the_gateway_does_not_serve_is_one_clear_error(emulator):
-    with pytest.raises(DriveLinkLostError, match="refused bus 'can9'"):
+    with pytest.raises(DriveLinkLostError, match=r"bus 'can9'.*could not open bus"):
         open_drive(f"socketcand://127.0.0.1:{emulator}/can9")
+
+
+def test_an_address_nobody_listens_on_is_one_clear_error():
+    with socket.socket() as probe:  # a port that was free a moment ago
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    with pytest.raises(DriveLinkLostError, match=f"cannot connect to socketcand at "
+                                                 f"127.0.0.1:{port}"):
+        open_drive(f"socketcand://127.0.0.1:{port}/can0")
 
 
 def emcy_listener(port):
