@@ -75,13 +75,26 @@ class PhaseTimes:
                 for name, v in self.us.items()}
 
 
-def servo_session(tmp: Path, seconds: float, realtime: bool) -> dict[str, Any]:
+class ZeroCurrent:
+    """A controller that costs nothing (0 mA every tick): the floor of a lockstep tick, i.e.
+    the link, the emulated drive, the loop and the recording."""
+
+    def __init__(self, reference: Any, params: Any) -> None:
+        pass
+
+    def step(self, position_deg: float, t_s: float) -> float:
+        return 0.0
+
+
+def servo_session(tmp: Path, seconds: float, realtime: bool,
+                  controller: Any = "mpc") -> dict[str, Any]:
     out = tmp / f"servo-{'rt' if realtime else 'lockstep'}.mcap"
     # the watchdog of a loaded 2-core box: stale feedback is counted, not fatal, here
     with PhaseTimes() as phases:
         result = run_servo(ServoRunConfig(
-            controller="mpc", ert="foh", ht=8, hu=8, duration_s=seconds, realtime=realtime,
-            out=str(out), drive_overrides={"master": {"stale_cycles": 100_000}}))
+            controller=controller, ert="foh", ht=8, hu=8, duration_s=seconds,
+            realtime=realtime, out=str(out),
+            drive_overrides={"master": {"stale_cycles": 100_000}}))
     loop = result.loop["servo"]
     scheduled = loop["runs"] + loop["missed"]
     return {"missed_pct": 100.0 * loop["missed"] / scheduled, "p99_us":
@@ -109,6 +122,7 @@ def main() -> int:
         bare = bare_loop(args.seconds)
         rt = servo_session(tmp, args.seconds, realtime=True)
         lockstep = servo_session(tmp, args.seconds, realtime=False)
+        floor = servo_session(tmp, args.seconds, realtime=False, controller=ZeroCurrent)
         bench = bench_session(tmp, args.bench_cycles)
     ratio = rt["missed_pct"] / bare["missed_pct"] if bare["missed_pct"] else float("inf")
     print(f"{'run':<52} {'skipped %':>9} {'p99 us':>8}")
@@ -127,6 +141,11 @@ def main() -> int:
     print(f"lockstep servo through the CAN link, MPC, recorded: {lockstep['factor']:.1f}x real "
           f"time (MPC step median {lockstep['step_us']:.0f} us: at most "
           f"{1e6 * 500e-6 / max(lockstep['step_us'], 1e-9):.1f}x with nothing else in the tick)")
+    print(f"   the same with a controller that costs nothing (0 mA): {floor['factor']:.1f}x, "
+          "the floor of the link, the emulated drive, the loop and the recording")
+    for name, values in floor["phases"].items():
+        if values:
+            print(f"   {name:<24}" + "".join(f"{v:>9.1f}" for v in values))
     print(f"real-time bench, 100 Hz over Modbus TCP to the emulator process, "
           f"{args.bench_cycles * 28} s: {bench['missed']:.0f} of "
           f"{bench['runs'] + bench['missed']:.0f} ticks skipped, sampler p99 "

@@ -17,11 +17,11 @@ so a skipped tick also freezes the plant for one period (a real drive holds its 
 
 Recorded per tick: ``/drive/command`` (reference, command, error, controller compute time,
 solver path), ``/drive/feedback`` (what the drive reported) and ``/mpc/prediction`` (the
-predicted inputs û(0..H_u-1|k) and outputs ŷ(1..H_p|k), for waterfall plots). JSON costs the
-writer thread ~4 us per drive message and ~27 us per prediction (58 floats), measured: in
-lockstep every tick is recorded; in real time the prediction is recorded every
-``PREDICTION_EVERY_REALTIME``-th tick by default (200 Hz), so the writer thread, which shares
-the GIL with the loop, stays around 2 % of a core. Faults and fallbacks go to ``/events``.
+predicted inputs û(0..H_u-1|k) and outputs ŷ(1..H_p|k), for waterfall plots). The loop only
+queues them (the writer process encodes); in lockstep runs up to
+``PREDICTION_EVERY_TICK_UP_TO_S`` the prediction is recorded every tick, otherwise every
+``PREDICTION_EVERY_REALTIME``-th tick by default (200 Hz). Faults and fallbacks go to
+``/events``.
 
 KPIs (``session.close(kpis=...)`` and the ``--json`` document) are taken over the ticks from
 ``settle_s`` on: the error is position - reference wrapped to ±180 deg; ``max_error_pct`` is
@@ -373,10 +373,8 @@ class ServoTask(Task):
         if self.predictor is not None and self.predictions is not None \
                 and n % self.prediction_every == 0:
             u_pred, y_pred = self.predictor.prediction()
-            # rounded far below the wire's resolution (1 mA, 3.4e-4 deg): halves the JSON cost
-            self.predictions.log(t_ns, {"t_s": t_s,
-                                        "u_mA": np.round(u_pred[: self.hu], 3).tolist(),
-                                        "y_deg": np.round(y_pred, 6).tolist()})
+            # the arrays as they are: the writer process converts them (CDR float32 by default)
+            self.predictions.log(t_ns, {"t_s": t_s, "u_mA": u_pred[: self.hu], "y_deg": y_pred})
         return u
 
     def write(self, command: float, t_ns: int) -> None:
