@@ -889,9 +889,8 @@ def open_socketcand(url: str, config: DriveMasterConfig | None = None, *,
     def connect() -> can.BusABC:
         try:
             return SocketcandBus(channel, host, port)
-        except can.CanError as exc:
-            raise DriveLinkLostError(f"socketcand at {host}:{port}, bus {channel!r}: "
-                                     f"{one_line(exc)}") from None
+        except can.CanError as exc:  # its message names the gateway and the bus
+            raise DriveLinkLostError(one_line(exc)) from None
 
     return CanDriveMaster(connect(), config, on_event=on_event, bus_factory=connect, url=url,
                           closers=closers)

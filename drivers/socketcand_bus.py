@@ -101,20 +101,22 @@ class SocketcandBus(can.BusABC):
             if command is not None:
                 if command != wanted:
                     raise can.CanInitializationError(
-                        f"socketcand {what}: expected {wanted.decode()}, got "
+                        f"{self.channel_info}, {what}: expected {wanted.decode()}, got "
                         f"{command.decode('ascii', 'replace')}")
                 return
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                raise can.CanInitializationError(f"socketcand {what}: no answer")
+                raise can.CanInitializationError(f"{self.channel_info}, {what}: no answer")
             self._sock.settimeout(remaining)
             try:
                 chunk = self._sock.recv(4096)
             except OSError as exc:
                 raise can.CanInitializationError(
-                    f"socketcand {what}: {exc.strerror or type(exc).__name__}") from None
+                    f"{self.channel_info}, {what}: {exc.strerror or type(exc).__name__}"
+                ) from None
             if not chunk:
-                raise can.CanInitializationError(f"socketcand {what}: connection closed")
+                raise can.CanInitializationError(f"{self.channel_info}, {what}: connection "
+                                                 "closed")
             self._inbuf += chunk
 
     def _next_command(self) -> bytes | None:
