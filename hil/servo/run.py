@@ -307,7 +307,7 @@ class TrackingStats:
 
 # ------------------------------------------------------------------------------------ task
 class ServoTask(Task):
-    """read feedback -> controller step -> write command, recording every tick."""
+    """read feedback -> controller step -> write command, then record the tick."""
 
     def __init__(self, session: Session, master: CanDriveMaster, controller: ServoController,
                  scenario: Scenario, config: ServoRunConfig, first: Feedback,
@@ -337,6 +337,8 @@ class ServoTask(Task):
         self._disturbance_ma = 0
         self._tick = 0
         self._t_s = 0.0
+        self._input = first
+        self._compute_us = 0.0
         self._last_path = ""
         self.late_writes = 0
         self.stale = 0
@@ -345,18 +347,39 @@ class ServoTask(Task):
         return self.master.receive_feedback() if self.split else self._feedback
 
     def compute(self, feedback: Feedback, t_ns: int) -> float:
+        """The controller's step only: the tick is recorded after the command has left."""
         n = (t_ns - self.loop.start_ns) // self.period_ns
-        t_s = n * self.dt
-        self._tick, self._t_s = n, t_s
+        self._tick, self._t_s = n, n * self.dt
+        self._input = feedback
+        u, self._compute_us = self._step(feedback.position_deg % 360.0, self._t_s)
+        return u
+
+    def write(self, command: float, t_ns: int) -> None:
+        """Send the command (RPDO + SYNC), then record the tick: in real time the drive's
+        answer travels while the tick is logged, checked and the loop sleeps."""
+        if self.scenario.disturbance is not None:
+            self._inject_disturbance(self._disturbance_for(self._t_s))
+        if self.split:
+            self.master.send_command(command)
+            if self.clock.time_ns() > self.loop.start_ns + (self._tick + 1) * self.period_ns:
+                self.late_writes += 1
+            self._record(command, t_ns)
+        else:
+            # lockstep: the exchange returns the next tick's feedback; record this one first
+            self._record(command, t_ns)
+            self._feedback = self.master.exchange(command)
+
+    def _record(self, u: float, t_ns: int) -> None:
+        """KPIs, /drive/feedback, /drive/command, limits and the MPC prediction of this tick."""
+        feedback, n, t_s = self._input, self._tick, self._t_s
         position = feedback.position_deg
-        u, compute_us = self._step(position % 360.0, t_s)
         r = self.reference(n)
         error = wrap180(position - r)
         if not feedback.fresh:
             self.stale += 1
-        self.stats.add(t_s, error, u, compute_us)
+        self.stats.add(t_s, error, u, self._compute_us)
         message: dict[str, Any] = {"t_s": t_s, "reference_deg": r, "error_deg": error,
-                                   "command_mA": u, "compute_us": compute_us}
+                                   "command_mA": u, "compute_us": self._compute_us}
         if self.scenario.disturbance is not None:
             message["disturbance_mA"] = self._disturbance_for(t_s)
         path = self._solver_path()
@@ -375,17 +398,6 @@ class ServoTask(Task):
             u_pred, y_pred = self.predictor.prediction()
             # the arrays as they are: the writer process converts them (CDR float32 by default)
             self.predictions.log(t_ns, {"t_s": t_s, "u_mA": u_pred[: self.hu], "y_deg": y_pred})
-        return u
-
-    def write(self, command: float, t_ns: int) -> None:
-        if self.scenario.disturbance is not None:
-            self._inject_disturbance(self._disturbance_for(self._t_s))
-        if self.split:
-            self.master.send_command(command)
-            if self.clock.time_ns() > self.loop.start_ns + (self._tick + 1) * self.period_ns:
-                self.late_writes += 1
-        else:
-            self._feedback = self.master.exchange(command)
 
     # -- helpers -----------------------------------------------------------------------
     def _step(self, position: float, t_s: float) -> tuple[float, float]:
