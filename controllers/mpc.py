@@ -217,6 +217,9 @@ def condense(config: MpcConfig, model: StateSpaceModel | None = None) -> Condens
                        output_rows=output_rows)
 
 
+REFERENCE_BLOCK = 1024  # reference samples evaluated at once (vectorised), ticks
+
+
 class QpSolver(Protocol):
     """What :class:`TrajectoryMpc` solves each tick with: θ -> ΔU (H_u moves)."""
 
@@ -234,9 +237,13 @@ class DaqpSolver:
     def __init__(self, qp: CondensedQP) -> None:
         self.qp = qp
         chol = sla.cho_factor(qp.H)
-        self._K = -sla.cho_solve(chol, qp.F.T)  # unconstrained optimum ΔU = K θ
-        self._Ft = np.ascontiguousarray(qp.F.T)
-        self._G, self._W, self._X = qp.G, qp.W, qp.X
+        K = -sla.cho_solve(chol, qp.F.T)  # unconstrained optimum ΔU = K θ
+        # one product per tick gives the unconstrained ΔU, the constraints' θ part and the
+        # linear cost term: [K; X; F'] θ
+        self._stacked = np.ascontiguousarray(np.vstack([K, qp.X, qp.F.T]))
+        self._rows = (K.shape[0], K.shape[0] + qp.X.shape[0])
+        self._G, self._W = qp.G, qp.W
+        self._W_tol = qp.W + FEASIBILITY_TOL
         self._model = self._setup(qp.G)
         n_in = qp.G.shape[0] - qp.output_rows
         self._fallback = self._setup(qp.G[:n_in]) if qp.output_rows else None
@@ -256,13 +263,14 @@ class DaqpSolver:
 
     def solve(self, theta: np.ndarray) -> np.ndarray:
         """ΔU (H_u moves) minimising (9) subject to (13) for parameter vector ``theta``."""
-        dU = self._K @ theta
-        bound = self._W + self._X @ theta
-        if np.all(self._G @ dU <= bound + FEASIBILITY_TOL):
+        z = self._stacked @ theta
+        hu, n_bound = self._rows
+        dU, x_part, f = z[:hu], z[hu:n_bound], z[n_bound:]
+        if (self._G @ dU <= self._W_tol + x_part).all():
             self.last_path = "unconstrained"
             self.counts["unconstrained"] += 1
             return dU
-        f = self._Ft @ theta
+        bound = self._W + x_part
         x = self._solve_qp(self._model, f, bound)
         if x is not None:
             self.last_path = "qp"
@@ -380,6 +388,8 @@ class TrajectoryMpc:
         self._ref_anchor = AngleUnwrapper()
         self._theta = np.zeros(self.qp.n_theta)
         self._offsets = self.dt * np.arange(1, self.config.ht + 1)
+        self._block_first = -1
+        self._block = np.empty(0)
         self.reset()
 
     def reset(self) -> None:
@@ -391,9 +401,23 @@ class TrajectoryMpc:
         self._dU = np.zeros(self.config.hu)
         self._theta[:] = 0.0
 
+    def _reference_ahead(self, t: float) -> np.ndarray:
+        """r(t + i T), i = 1..H_t. On the sample grid (t = k T, as the loop calls) the samples
+        come from a block of ``REFERENCE_BLOCK`` ticks evaluated at once."""
+        k = round(t / self.dt)
+        if abs(k * self.dt - t) > 1e-9 * max(1.0, abs(t)):
+            return np.asarray(self.reference.position(t + self._offsets), dtype=float)
+        first = k - k % REFERENCE_BLOCK
+        if first != self._block_first:
+            ticks = first + 1 + np.arange(REFERENCE_BLOCK + self.config.ht)
+            self._block = np.asarray(self.reference.position(ticks * self.dt), dtype=float)
+            self._block_first = first
+        i = k - first
+        return self._block[i:i + self.config.ht]
+
     def reference_window(self, t: float, near: float) -> np.ndarray:
         """r(1..H_t|k) as continuous angles, anchored within ±180 deg of ``near`` at first."""
-        raw = self.reference.position(t + self._offsets)
+        raw = self._reference_ahead(t)
         first = self._ref_anchor.update(float(raw[0]), near=near)
         window = raw + (first - float(raw[0]))
         if raw.size > 1:

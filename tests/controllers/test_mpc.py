@@ -7,6 +7,7 @@ import pytest
 import scipy.linalg as sla
 
 from controllers.mpc import (
+    REFERENCE_BLOCK,
     CvxpyReferenceSolver,
     DaqpSolver,
     MpcConfig,
@@ -260,3 +261,18 @@ def test_prediction_starts_with_the_applied_command():
     assert u_pred.shape == (50,) and y_pred.shape == (50,)
     assert u_pred[0] == pytest.approx(u)
     assert np.all(u_pred[4:] == u_pred[3])  # Δu = 0 beyond H_u
+
+
+def test_reference_samples_from_the_block_equal_direct_evaluation():
+    """On the sample grid the window comes from a block evaluated at once (across a block
+    boundary too); off the grid it is evaluated directly: the same values either way."""
+    reference = Sine(amplitude=2.0, frequency=10.0)
+    mpc = TrajectoryMpc(reference, MpcConfig(ht=8, hu=8))
+    dt = mpc.dt
+    for k in (0, 5, REFERENCE_BLOCK - 3, REFERENCE_BLOCK, 3 * REFERENCE_BLOCK + 17):
+        t = k * dt
+        direct = reference.position(t + dt * np.arange(1, 9))
+        np.testing.assert_allclose(mpc._reference_ahead(t), direct, rtol=0, atol=1e-12)
+    off_grid = 0.3 * dt + 7 * dt
+    np.testing.assert_allclose(mpc._reference_ahead(off_grid),
+                               reference.position(off_grid + dt * np.arange(1, 9)), atol=0)
