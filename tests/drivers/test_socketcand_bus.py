@@ -11,16 +11,11 @@ import can
 import pytest
 
 from drivers.socketcand_bus import SocketcandBus, format_send, parse_reply
-from emulators.socketcand_server import SocketcandServer
 
 
 @pytest.fixture
-def server():
-    frames = []
-    srv = SocketcandServer("127.0.0.1", 0, on_frame=frames.append).start()
-    srv.received = frames
-    yield srv
-    srv.close()
+def server(socketcand_server):
+    return socketcand_server
 
 
 def wait_for(predicate, timeout=5.0):

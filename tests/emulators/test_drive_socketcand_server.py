@@ -13,12 +13,8 @@ from hil.core.errors import HilError
 
 
 @pytest.fixture
-def server():
-    frames = []
-    srv = SocketcandServer("127.0.0.1", 0, on_frame=frames.append).start()
-    srv.received = frames
-    yield srv
-    srv.close()
+def server(socketcand_server):
+    return socketcand_server
 
 
 def connect(srv):
