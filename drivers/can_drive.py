@@ -205,11 +205,7 @@ class CanDriveMaster(Device):
         if timebase not in ("monotonic", "cycles"):
             raise ValueError(f"timebase must be 'monotonic' or 'cycles', got {timebase!r}")
         self.config = config or DriveMasterConfig()
-        self.bus = bus
-        #: a bus that puts several frames in one transmission (SocketcandBus) gets a cycle's
-        #: frames in one call
-        self._send_many: Callable[[list[can.Message]], None] | None = getattr(
-            bus, "send_many", None)
+        self._use_bus(bus)
         self._url = url if url is not None else str(bus.channel_info)
         self.node_id = self.config.node_id
         self.mode = MODES[self.config.mode]
@@ -263,6 +259,13 @@ class CanDriveMaster(Device):
         return not self.watchdog.lost and not isinstance(self._latched, DriveLinkLostError)
 
     # ----------------------------------------------------------------------- plumbing
+    def _use_bus(self, bus: can.BusABC) -> None:
+        """Talk through ``bus`` from now on; a bus that puts several frames in one
+        transmission (``send_many``, e.g. SocketcandBus) gets a cycle's frames in one call."""
+        self.bus = bus
+        self._send_many: Callable[[list[can.Message]], None] | None = getattr(
+            bus, "send_many", None)
+
     def _event(self, kind: str, message: str, level: str = "info", **data: Any) -> None:
         self._on_event(kind, message, level=level, source=f"drive{self.node_id}", **data)
 
@@ -589,8 +592,7 @@ class CanDriveMaster(Device):
         if isinstance(self._latched, DriveLinkLostError) and self._bus_factory is not None:
             with contextlib.suppress(Exception):  # the old connection is gone anyway
                 self.bus.shutdown()
-            self.bus = self._bus_factory()
-            self._send_many = getattr(self.bus, "send_many", None)
+            self._use_bus(self._bus_factory())
         self._latched = None
         self._rebooted = False
         self._drain()

@@ -161,18 +161,15 @@ class SocketcandBus(can.BusABC):
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         frames = self._frames
-        if frames:
-            return frames.popleft(), False
-        if self._read_available() or frames:
-            return (frames.popleft() if frames else None), False
-        if timeout is not None and timeout <= 0:
-            return None, False
-        try:
-            ready, _, _ = select.select([self._sock], [], [], timeout)
-        except (OSError, ValueError) as exc:
-            raise can.CanOperationError(f"{self.channel_info}: receive failed: {exc}") from None
-        if ready:
-            self._read_available()
+        if not frames and not self._read_available() and (timeout is None or timeout > 0):
+            # nothing was waiting: sleep until something comes or the time is up
+            try:
+                ready, _, _ = select.select([self._sock], [], [], timeout)
+            except (OSError, ValueError) as exc:
+                raise can.CanOperationError(f"{self.channel_info}: receive failed: {exc}"
+                                            ) from None
+            if ready:
+                self._read_available()
         return (frames.popleft() if frames else None), False
 
     def _read_available(self) -> bool:
