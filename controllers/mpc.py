@@ -359,6 +359,15 @@ class CvxpyReferenceSolver:
         return np.asarray(self._dU.value, dtype=float)
 
 
+def prediction_map(qp: CondensedQP, config: MpcConfig) -> np.ndarray:
+    """M with [û(0..H_p-1|k); ŷ(1..H_p|k)] = M [x̂(k|k); u(k-1); ΔU]: the inputs are u(k-1)
+    plus the moves so far (held after H_u), the outputs Ψ x̂ + Θ ΔU."""
+    n_x, hp, hu = qp.n_x, config.hp, config.hu
+    moves = np.tril(np.ones((hp, hu)))  # row i sums the moves 0..min(i, H_u - 1)
+    return np.block([[np.zeros((hp, n_x)), np.ones((hp, 1)), moves],
+                     [qp.Psi, np.zeros((hp, 1)), qp.Theta]])
+
+
 class TrajectoryMpc:
     """The MPC controller (a :class:`controllers.base.ServoController`):
     ``step(position_deg, t_s) -> current_mA`` once per tick.
@@ -390,6 +399,8 @@ class TrajectoryMpc:
         self._offsets = self.dt * np.arange(1, self.config.ht + 1)
         self._block_first = -1
         self._block = np.empty(0)
+        self._prediction_matrix = prediction_map(self.qp, self.config)
+        self._prediction_input = np.empty(self._prediction_matrix.shape[1])
         self.reset()
 
     def reset(self) -> None:
@@ -449,10 +460,9 @@ class TrajectoryMpc:
     def prediction(self) -> tuple[np.ndarray, np.ndarray]:
         """Predicted inputs û(0..H_p-1|k) [mA] and outputs ŷ(1..H_p|k) [deg, continuous frame]
         of the last step (for waterfall plots like Figs. 9-10)."""
-        n_x = self.qp.n_x
-        u_prev = self._theta[n_x]
-        u = np.empty(self.config.hp)
-        u[: self.config.hu] = u_prev + np.cumsum(self._dU)
-        u[self.config.hu:] = u[self.config.hu - 1]
-        y = self.qp.Psi @ self._theta[:n_x] + self.qp.Theta @ self._dU
-        return u, y
+        n_x, hp = self.qp.n_x, self.config.hp
+        given = self._prediction_input
+        given[: n_x + 1] = self._theta[: n_x + 1]
+        given[n_x + 1:] = self._dU
+        z = self._prediction_matrix @ given
+        return z[:hp], z[hp:]

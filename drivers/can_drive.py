@@ -45,6 +45,7 @@ import can
 from canopen.sdo import SdoAbortedError
 
 from drivers.can_bus_time import BusBudget, cia402_cyclic_frames, cycle_budget
+from drivers.can_frames import Frame, frames_of
 from drivers.cia402 import (
     CONTROLWORD,
     CW_DISABLE_VOLTAGE,
@@ -223,9 +224,8 @@ class CanDriveMaster(Device):
         self._tpdo1, self._tpdo2 = TPDO1.cob_id(n), TPDO2.cob_id(n)
         self._rpdo1 = self._rpdo1_map.cob_id(n)
         self._rpdo_layout = struct.Struct("<Hh" if self.mode == CST else "<Hi")
-        self._sync = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)
-        self._heartbeat = can.Message(arbitration_id=0x700 + self.config.heartbeat_id,
-                                      data=b"\x05", is_extended_id=False)
+        self._sync: Frame = (0x80, b"")
+        self._heartbeat: Frame = (0x700 + self.config.heartbeat_id, b"\x05")
         self.stats = LinkStats()
         self.budget = self._bus_budget()
         self.rated_current_ma = 1000.0
@@ -260,11 +260,12 @@ class CanDriveMaster(Device):
 
     # ----------------------------------------------------------------------- plumbing
     def _use_bus(self, bus: can.BusABC) -> None:
-        """Talk through ``bus`` from now on; a bus that puts several frames in one
-        transmission (``send_many``, e.g. SocketcandBus) gets a cycle's frames in one call."""
+        """Talk through ``bus`` from now on, in :data:`~drivers.can_frames.Frame` tuples: a
+        bus that carries them natively (SocketcandBus: a cycle's frames in one TCP write; the
+        lockstep DirectBus) without a :class:`can.Message` per frame."""
         self.bus = bus
-        self._send_many: Callable[[list[can.Message]], None] | None = getattr(
-            bus, "send_many", None)
+        frames = frames_of(bus)
+        self._send_frames, self._recv_frame = frames.send_frames, frames.recv_frame
 
     def _event(self, kind: str, message: str, level: str = "info", **data: Any) -> None:
         self._on_event(kind, message, level=level, source=f"drive{self.node_id}", **data)
@@ -272,26 +273,17 @@ class CanDriveMaster(Device):
     def _now_ns(self) -> int:
         return self._cycle * self._period_ns if self._timebase == "cycles" else time.monotonic_ns()
 
-    def _send(self, *messages: can.Message) -> None:
+    def _send(self, *frames: Frame) -> None:
         try:
-            if self._send_many is not None and len(messages) > 1:
-                self._send_many(list(messages))
-            else:
-                for msg in messages:
-                    self.bus.send(msg)
+            self._send_frames(list(frames))
         except (can.CanError, OSError) as exc:
             raise DriveLinkLostError(f"drive node {self.node_id}: cannot send on "
                                      f"{self.bus.channel_info}: {one_line(exc)}") from None
         if self._pump is not None:
             self._pump()
 
-    def _frame(self, can_id: int, data: bytes) -> can.Message:
-        return can.Message(arbitration_id=can_id, data=data, is_extended_id=False)
-
-    def _dispatch(self, msg: can.Message, late: bool = False) -> None:
-        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
-            return
-        can_id, data = msg.arbitration_id, msg.data
+    def _dispatch(self, frame: Frame, late: bool = False) -> None:
+        can_id, data = frame
         n = self.node_id
         if can_id == self._tpdo1 or can_id == self._tpdo2:
             if len(data) < 6:
@@ -305,9 +297,9 @@ class CanDriveMaster(Device):
                 self._rx_velocity, self._rx_torque = struct.unpack_from("<ih", data)
                 self._got |= 2
         elif can_id == 0x580 + n:
-            self._sdo_inbox.append(bytes(data))
+            self._sdo_inbox.append(data)
         elif can_id == 0x80 + n:
-            self._on_emcy(bytes(data))
+            self._on_emcy(data)
         elif can_id == 0x700 + n and len(data) >= 1:
             self._drive_heartbeat_ns = self._now_ns()
             if data[0] == 0x00 and self._enabled:
@@ -317,10 +309,10 @@ class CanDriveMaster(Device):
 
     def _drain(self) -> None:
         """Frames already waiting (late TPDOs, EMCY, heartbeats) before a new SYNC."""
-        recv = self.bus.recv
+        recv = self._recv_frame
         try:
-            while (msg := recv(0)) is not None:
-                self._dispatch(msg, late=True)
+            while (frame := recv(0)) is not None:
+                self._dispatch(frame, late=True)
         except (can.CanError, OSError) as exc:
             raise DriveLinkLostError(f"drive node {self.node_id}: cannot read "
                                      f"{self.bus.channel_info}: {one_line(exc)}") from None
@@ -346,7 +338,7 @@ class CanDriveMaster(Device):
              timeout_s: float | None = None) -> bytes:
         timeout_s = self.config.sdo_timeout_s if timeout_s is None else timeout_s
         self._sdo_inbox.clear()
-        self._send(self._frame(0x600 + self.node_id, request))
+        self._send((0x600 + self.node_id, request))
         deadline = time.monotonic() + timeout_s
         while True:
             while self._sdo_inbox:
@@ -366,12 +358,12 @@ class CanDriveMaster(Device):
                     f"drive node {self.node_id} did not answer SDO {what} within "
                     f"{timeout_s:g} s on {self.bus.channel_info}")
             try:
-                msg = self.bus.recv(min(remaining, 0.05))
+                frame = self._recv_frame(min(remaining, 0.05))
             except (can.CanError, OSError) as exc:
                 raise DriveLinkLostError(f"drive node {self.node_id}: cannot read "
                                          f"{self.bus.channel_info}: {one_line(exc)}") from None
-            if msg is not None:
-                self._dispatch(msg, late=True)
+            if frame is not None:
+                self._dispatch(frame, late=True)
 
     def sdo_read(self, index: int, subindex: int = 0, timeout_s: float | None = None) -> bytes:
         """Upload one object (expedited or segmented); returns its raw bytes."""
@@ -411,7 +403,7 @@ class CanDriveMaster(Device):
         self._sdo(request, f"write 0x{index:04X}:{subindex:02X} = {value}")
 
     def nmt(self, command: int) -> None:
-        self._send(self._frame(0x000, bytes([command, self.node_id])))
+        self._send((0x000, bytes([command, self.node_id])))
 
     # ----------------------------------------------------------------- configuration
     def _bus_budget(self) -> BusBudget:
@@ -623,7 +615,7 @@ class CanDriveMaster(Device):
                 self._drain()
             except DriveLinkLostError as exc:
                 self._lose_link(one_line(exc))
-        rpdo = self._frame(self._rpdo1, self._rpdo_layout.pack(controlword, target))
+        rpdo = (self._rpdo1, self._rpdo_layout.pack(controlword, target))
         now = self._now_ns()
         frames = [rpdo, self._sync]
         period_ms = self.config.heartbeat_period_ms
@@ -648,7 +640,7 @@ class CanDriveMaster(Device):
         # measured from the SYNC, as drive.toml documents it: in the split form the TPDOs have
         # travelled while the loop slept, and a late pair costs the tick only what is left
         deadline_ns = self._sent_ns + self._rx_timeout_ns
-        recv = self.bus.recv
+        recv = self._recv_frame
         clock = time.perf_counter_ns
         # a wait of a cycle or so is spent polling: a thread blocked in select() is woken up
         # 50 us to several hundred us after the frame arrives (more on a virtual machine)
@@ -656,9 +648,9 @@ class CanDriveMaster(Device):
         try:
             while self._got != 3:
                 remaining = (deadline_ns - clock()) / 1e9
-                msg = recv(0.0 if poll else max(0.0, remaining))
-                if msg is not None:
-                    self._dispatch(msg)
+                frame = recv(0.0 if poll else max(0.0, remaining))
+                if frame is not None:
+                    self._dispatch(frame)
                 elif remaining <= 0:
                     break
         except (can.CanError, OSError) as exc:
@@ -745,7 +737,7 @@ class CanDriveMaster(Device):
             self._enabled = False
             for controlword in (CW_QUICK_STOP, CW_DISABLE_VOLTAGE):
                 try:
-                    self._send(self._frame(self._rpdo1, self._rpdo_layout.pack(controlword, 0)),
+                    self._send((self._rpdo1, self._rpdo_layout.pack(controlword, 0)),
                                self._sync)
                 except DriveError:
                     break

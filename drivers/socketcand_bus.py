@@ -3,15 +3,17 @@
 python-can ships a socketcand interface; this one speaks the same protocol
 (linux-can/socketcand ``doc/protocol.md``) with the cost of a cycle in mind:
 
-* :meth:`SocketcandBus.send_many` puts several frames (RPDO, SYNC, heartbeat) in one TCP write:
-  one system call, one wake-up of the gateway, where python-can's client makes a ``sendall``
-  and a ``setsockopt`` per frame;
-* a read is one non-blocking ``recv`` of everything waiting, parsed as bytes; ``select`` runs
-  only when nothing is buffered and the caller is willing to wait;
+* :meth:`SocketcandBus.send_frames` puts several frames (RPDO, SYNC, heartbeat) in one TCP
+  write: one system call, one wake-up of the gateway, where python-can's client makes a
+  ``sendall`` and a ``setsockopt`` per frame;
+* a read is one non-blocking ``recv`` of everything waiting; ``select`` runs only when
+  nothing is buffered and the caller is willing to wait;
+* :meth:`SocketcandBus.recv_frame` parses a reply straight into a
+  :data:`~drivers.can_frames.Frame` tuple, without a :class:`can.Message`;
 * frames the gateway sends in the same read as the handshake's ``< ok >`` (the real daemon
   does) are kept, not taken for a broken handshake.
 
-It is a :class:`can.BusABC`, so anything written for python-can buses works with it.
+It is a :class:`can.BusABC` too, so anything written for python-can buses works with it.
 """
 
 from __future__ import annotations
@@ -24,17 +26,35 @@ from typing import Any
 
 import can
 
+from drivers.can_frames import Frame
+
 HANDSHAKE_TIMEOUT_S = 2.0
 MAX_COMMAND_BYTES = 256  # no socketcand command is longer; a longer one is garbage
 
 
 def format_send(msg: can.Message) -> bytes:
     """``< send ID LEN B0 B1 ... >`` for one frame (ID: 3 hex digits, 8 when extended)."""
-    can_id = (f"{msg.arbitration_id & 0x1FFFFFFF:08X}" if msg.is_extended_id
-              else f"{msg.arbitration_id & 0x7FF:03X}")
-    data = bytes(msg.data[: msg.dlc])
-    body = " ".join(f"{b:02X}" for b in data)
-    return f"< send {can_id} {len(data):X} {body} >".encode("ascii")
+    if msg.is_extended_id:
+        return send_text(msg.arbitration_id & 0x1FFFFFFF, bytes(msg.data[: msg.dlc]), 8)
+    return send_text(msg.arbitration_id & 0x7FF, bytes(msg.data[: msg.dlc]))
+
+
+def send_text(can_id: int, data: bytes, id_digits: int = 3) -> bytes:
+    """``< send ID LEN B0 B1 ... >`` for an identifier and its data."""
+    return b"< send %0*X %X %s >" % (id_digits, can_id, len(data), data.hex(" ").upper().encode())
+
+
+def parse_frame(command: bytes) -> Frame | None:
+    """An 11-bit ``< frame ID SECS.USECS DATA >`` as a frame; None for any other reply."""
+    words = command[1:-1].split()
+    if len(words) < 3 or words[0] != b"frame" or len(words[1]) == 8:
+        return None
+    try:
+        can_id = int(words[1], 16)
+        data = bytes.fromhex(b"".join(words[3:]).decode("ascii"))
+    except ValueError:
+        return None
+    return (can_id, data) if can_id <= 0x7FF and len(data) <= 8 else None
 
 
 def parse_reply(command: bytes, channel: str) -> can.Message | None:
@@ -70,7 +90,7 @@ class SocketcandBus(can.BusABC):
         self.channel = channel
         self.channel_info = f"socketcand {channel}@{host}:{port}"
         self._inbuf = bytearray()
-        self._frames: deque[can.Message] = deque()
+        self._replies: deque[bytes] = deque()  # complete commands, parsed when read
         try:
             self._sock = socket.create_connection((host, port), timeout=timeout_s)
         except OSError as exc:
@@ -84,6 +104,7 @@ class SocketcandBus(can.BusABC):
             self._sock.close()
             raise
         self._sock.setblocking(False)
+        self._split_replies()  # what came in the same read as the last ``< ok >``
         super().__init__(channel=channel, **kwargs)
 
     # ----------------------------------------------------------------------- handshake
@@ -141,9 +162,9 @@ class SocketcandBus(can.BusABC):
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self._write(format_send(msg))
 
-    def send_many(self, messages: list[can.Message]) -> None:
-        """Several frames in one TCP write (they reach the bus in this order)."""
-        self._write(b"".join(format_send(msg) for msg in messages))
+    def send_frames(self, frames: list[Frame]) -> None:
+        """Several 11-bit frames in one TCP write (they reach the bus in this order)."""
+        self._write(b"".join(send_text(can_id, data) for can_id, data in frames))
 
     def _write(self, data: bytes) -> None:
         try:
@@ -160,8 +181,22 @@ class SocketcandBus(can.BusABC):
             raise can.CanOperationError(f"{self.channel_info}: send failed: {exc}") from None
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        frames = self._frames
-        if not frames and not self._read_available() and (timeout is None or timeout > 0):
+        command = self._next_reply(timeout)
+        return (None if command is None else parse_reply(command, self.channel)), False
+
+    def recv_frame(self, timeout: float | None = None) -> Frame | None:
+        """The next 11-bit data frame within ``timeout`` s (None: wait for one), or None;
+        other replies (error and 29-bit frames) are skipped."""
+        while (command := self._next_reply(timeout)) is not None:
+            frame = parse_frame(command)
+            if frame is not None:
+                return frame
+        return None
+
+    def _next_reply(self, timeout: float | None) -> bytes | None:
+        """The next complete reply, waiting up to ``timeout`` s when none is buffered."""
+        replies = self._replies
+        if not replies and not self._read_available() and (timeout is None or timeout > 0):
             # nothing was waiting: sleep until something comes or the time is up
             try:
                 ready, _, _ = select.select([self._sock], [], [], timeout)
@@ -170,10 +205,10 @@ class SocketcandBus(can.BusABC):
                                             ) from None
             if ready:
                 self._read_available()
-        return (frames.popleft() if frames else None), False
+        return replies.popleft() if replies else None
 
     def _read_available(self) -> bool:
-        """Read whatever the socket holds and parse the complete frames; True if it read."""
+        """Read whatever the socket holds and split off the complete replies; True if it read."""
         try:
             chunk = self._sock.recv(65536)
         except (BlockingIOError, InterruptedError):
@@ -183,12 +218,12 @@ class SocketcandBus(can.BusABC):
         if not chunk:
             raise can.CanOperationError(f"{self.channel_info}: the gateway closed the connection")
         self._inbuf += chunk
-        channel = self.channel
-        while (command := self._next_command()) is not None:
-            msg = parse_reply(command, channel)
-            if msg is not None:
-                self._frames.append(msg)
+        self._split_replies()
         return True
+
+    def _split_replies(self) -> None:
+        while (command := self._next_command()) is not None:
+            self._replies.append(command)
 
     def shutdown(self) -> None:
         super().shutdown()

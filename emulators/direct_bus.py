@@ -3,9 +3,13 @@
 python-can's ``virtual`` bus hands frames over through ``queue.Queue`` (a lock, a condition
 and a timed wait per frame) and stamps each one with the wall clock. In lockstep the master
 and the emulated node run in one thread, one after the other, so none of that is needed:
-:class:`DirectChannel` keeps one inbox (a ``deque``) per attached bus, ``send`` appends the
-frame to every other inbox, and ``recv`` pops from its own without ever waiting. A frame is
-shared by its receivers, not copied; nobody mutates a frame after sending it.
+:class:`DirectChannel` keeps one inbox (a ``deque``) per attached bus, a send appends the
+frame to every other inbox, and a receive pops from its own without ever waiting.
+
+Frames travel as :data:`~drivers.can_frames.Frame` tuples ``(id, data)``: the master and the
+node exchange them through ``send_frames`` / ``recv_frame`` without building a
+:class:`can.Message`. A :class:`DirectBus` is also a python-can bus (``send`` / ``recv``), for
+observers and other masters on the channel.
 """
 
 from __future__ import annotations
@@ -15,13 +19,15 @@ from typing import Any
 
 import can
 
+from drivers.can_frames import Frame, from_message, to_message
+
 
 class DirectChannel:
     """The buses attached to one in-process channel."""
 
     def __init__(self, name: str = "direct") -> None:
         self.name = name
-        self.inboxes: list[deque[can.Message]] = []
+        self.inboxes: list[deque[Frame]] = []
 
     def attach(self) -> DirectBus:
         """A new bus on this channel; it receives what every other bus sends from now on."""
@@ -29,23 +35,34 @@ class DirectChannel:
 
 
 class DirectBus(can.BusABC):
-    """One bus of a :class:`DirectChannel` (a python-can bus; ``recv`` never blocks)."""
+    """One bus of a :class:`DirectChannel` (a python-can bus; receiving never blocks)."""
 
     def __init__(self, channel: DirectChannel, **kwargs: Any) -> None:
         self._channel = channel
-        self._inbox: deque[can.Message] = deque()
+        self._inbox: deque[Frame] = deque()
         channel.inboxes.append(self._inbox)
         super().__init__(channel=channel.name, **kwargs)
         self.channel_info = f"direct channel {channel.name}"
 
-    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+    def send_frames(self, frames: list[Frame]) -> None:
+        """``frames``, in order, to every other bus of the channel."""
         for inbox in self._channel.inboxes:
             if inbox is not self._inbox:
-                inbox.append(msg)
+                inbox.extend(frames)
 
-    def recv(self, timeout: float | None = None) -> can.Message | None:
+    def recv_frame(self, timeout: float | None = None) -> Frame | None:
+        """The oldest frame waiting, or None (never waits: in lockstep nothing else runs)."""
         inbox = self._inbox
         return inbox.popleft() if inbox else None
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        frame = from_message(msg)
+        if frame is not None:
+            self.send_frames([frame])
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        frame = self.recv_frame()
+        return None if frame is None else to_message(frame)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         return self.recv(), False

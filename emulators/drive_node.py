@@ -1,13 +1,15 @@
 """A CiA 402 servo drive emulated on a CAN bus: NMT, SDO server, PDOs, heartbeat, EMCY, faults.
 
-The node is transport-agnostic: frames come in through :meth:`DriveNode.handle`, time-driven work
-(heartbeat production, watchdogs, ramp time-outs) runs in :meth:`DriveNode.service`, and frames go
-out through a ``send(list_of_messages)`` callable. Two ways to run it:
+The node is transport-agnostic: frames (:data:`~drivers.can_frames.Frame`, ``(id, data)``)
+come in through :meth:`DriveNode.handle_frame` (:meth:`DriveNode.handle` for a python-can
+message), time-driven work (heartbeat production, watchdogs, ramp time-outs) runs in
+:meth:`DriveNode.service`, and frames go out through a ``send(list_of_frames)`` callable. Two
+ways to run it:
 
 * :class:`BusRunner` - a thread that reads a python-can bus (any interface) in real time;
-* :class:`LockstepDrive` - the node on a private python-can ``virtual`` channel, pumped
-  synchronously by the master after each transmission. There the node's clock is the SYNC
-  count (``timebase="sync"``): the master's SYNC is the plant's clock and a run is deterministic.
+* :class:`LockstepDrive` - the node on a private in-process channel, pumped synchronously by
+  the master after each transmission. There the node's clock is the SYNC count
+  (``timebase="sync"``): the master's SYNC is the plant's clock and a run is deterministic.
 
 (``hil emulate drive`` wires the node straight to a
 :class:`~emulators.socketcand_server.SocketcandServer`, in real time.)
@@ -48,6 +50,7 @@ from canopen.objectdictionary import ODVariable
 from canopen.objectdictionary.datatypes import VISIBLE_STRING
 from canopen.sdo import SdoAbortedError, SdoServer
 
+from drivers.can_frames import Frame, frames_of, from_message
 from drivers.cia402 import (
     CYCLIC_SYNCHRONOUS_POSITION,
     CYCLIC_SYNCHRONOUS_TORQUE,
@@ -128,7 +131,7 @@ ABORT_VALUE = 0x0609_0030
 ABORT_VALUE_HIGH = 0x0609_0031
 ABORT_VALUE_LOW = 0x0609_0032
 
-SendFn = Callable[[list[can.Message]], None]
+SendFn = Callable[[list[Frame]], None]
 
 
 @dataclass(frozen=True)
@@ -191,11 +194,7 @@ class _SdoSender:
         self._node = node
 
     def send_message(self, can_id: int, data: bytes) -> None:
-        self._node._send([_frame(can_id, bytes(data))])
-
-
-def _frame(can_id: int, data: bytes) -> can.Message:
-    return can.Message(arbitration_id=can_id, data=data, is_extended_id=False)
+        self._node._send([(can_id, bytes(data))])
 
 
 def _pdo_struct(var: ODVariable) -> struct.Struct:
@@ -253,7 +252,7 @@ class DriveNode:
         #: the faults played, in seconds of the node's time since it was created
         self.faults = FaultSchedule(for_emulator(faults, "drive"),
                                     lambda: (self._now() - self._t0_ns) / 1e9, on_fault)
-        self._delayed: list[tuple[int, list[can.Message]]] = []
+        self._delayed: list[tuple[int, list[Frame]]] = []
         self._reset_application()
 
     # ---------------------------------------------------------------- life cycle and time
@@ -307,37 +306,42 @@ class DriveNode:
 
     def _enter_pre_operational_after_boot(self) -> None:
         self.nmt_state = NMT_INITIALISING
-        self._send([_frame(0x700 + self.node_id, b"\x00")])  # boot-up
+        self._send([(0x700 + self.node_id, b"\x00")])  # boot-up
         self.nmt_state = NMT_PRE_OPERATIONAL
         self._hb_next_ns = None
 
     # ---------------------------------------------------------------------- transport
-    def _send(self, messages: list[can.Message]) -> None:
+    def _send(self, frames: list[Frame]) -> None:
         for fault in self.faults.active("silent"):
             self.faults.hit(fault)
             return
         try:
-            self._send_fn(messages)
+            self._send_fn(frames)
         except Exception as exc:  # a vanished client or a closed bus must not kill the node
             log.debug("drive node %d: send failed: %s", self.node_id, exc)
 
     # ------------------------------------------------------------------ frame dispatch
     def handle(self, msg: can.Message) -> None:
-        """Process one received frame; never raises."""
+        """Process one python-can message (error, remote, 29-bit and FD frames are not for
+        this node); never raises."""
+        frame = from_message(msg)
+        if frame is not None:
+            self.handle_frame(*frame)
+
+    def handle_frame(self, can_id: int, data: bytes) -> None:
+        """Process one received 11-bit data frame; never raises."""
         with self.lock:
             if self.faults and self.faults.active("silent"):
                 return  # bus-off: it hears nothing either
             try:
-                self._dispatch(msg)
+                self._dispatch(can_id, data)
             except Exception:  # a bug must not take the drive down: report it as an EMCY
                 self.internal_errors += 1
-                log.exception("drive node %d: internal error on frame %s", self.node_id, msg)
+                log.exception("drive node %d: internal error on frame 0x%03X %s",
+                              self.node_id, can_id, data.hex())
                 self._emcy(EMCY_SOFTWARE, ERR_REG_GENERIC)
 
-    def _dispatch(self, msg: can.Message) -> None:
-        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id or msg.is_fd:
-            return
-        can_id, data = msg.arbitration_id, bytes(msg.data[: msg.dlc])
+    def _dispatch(self, can_id: int, data: bytes) -> None:
         n = self.node_id
         if can_id == 0x000:
             self._on_nmt(data)
@@ -612,7 +616,7 @@ class DriveNode:
             if pdo.counter >= pdo.trans_type:
                 pdo.counter = 0
                 values = [self._values[key] for key in pdo.keys]
-                frames.append(_frame(pdo.cob_id, pdo.layout.pack(*values)))
+                frames.append((pdo.cob_id, pdo.layout.pack(*values)))
         if frames and self.faults:
             for fault in self.faults.active("drop_tpdo"):
                 if self.faults.hit(fault) % fault.params["every"] == 0:
@@ -789,7 +793,7 @@ class DriveNode:
         if self.nmt_state not in (NMT_PRE_OPERATIONAL, NMT_OPERATIONAL):
             return  # EMCY is not allowed in STOPPED
         payload = struct.pack("<HB", code, self._values[(0x1001, 0)]) + manufacturer.ljust(5, b"\0")
-        self._send([_frame(0x80 + self.node_id, payload[:8])])
+        self._send([(0x80 + self.node_id, payload[:8])])
 
     # -------------------------------------------------------------------- time service
     def service(self) -> None:
@@ -809,7 +813,7 @@ class DriveNode:
         period_ms = self._values[(0x1017, 0)]
         if period_ms and (self._hb_next_ns is None or now >= self._hb_next_ns):
             if not self.faults.active("no_heartbeat"):
-                self._send([_frame(0x700 + self.node_id, bytes([self.nmt_state]))])
+                self._send([(0x700 + self.node_id, bytes([self.nmt_state]))])
             late = self._hb_next_ns is None or now - self._hb_next_ns > period_ms * 1_000_000
             base = now if late else self._hb_next_ns
             self._hb_next_ns = base + period_ms * 1_000_000
@@ -843,13 +847,8 @@ class DriveNode:
 
 
 def bus_sender(bus: can.BusABC) -> SendFn:
-    """A node ``send`` function writing each frame to a python-can bus."""
-
-    def send(messages: list[can.Message]) -> None:
-        for msg in messages:
-            bus.send(msg)
-
-    return send
+    """A node ``send`` function writing to a python-can bus."""
+    return frames_of(bus).send_frames
 
 
 class BusRunner:
@@ -869,13 +868,14 @@ class BusRunner:
 
     def _run(self) -> None:
         next_service = time.monotonic()
+        recv = frames_of(self.bus).recv_frame
         while not self._stop.is_set():
             try:
-                msg = self.bus.recv(timeout=max(0.0, next_service - time.monotonic()))
+                frame = recv(max(0.0, next_service - time.monotonic()))
             except can.CanError:
                 break  # the bus is gone
-            if msg is not None:
-                self.node.handle(msg)
+            if frame is not None:
+                self.node.handle_frame(*frame)
             if time.monotonic() >= next_service:
                 self.node.service()
                 next_service = time.monotonic() + self._period
@@ -906,7 +906,7 @@ class LockstepDrive:
         self.channel = DirectChannel(f"hil-drive-{uuid.uuid4().hex}")
         self._node_bus = self.channel.attach()
         self.master_bus = self.channel.attach()
-        self.node = DriveNode(config, send=bus_sender(self._node_bus), plant=plant,
+        self.node = DriveNode(config, send=self._node_bus.send_frames, plant=plant,
                               timebase="sync")
         self.node.boot()
 
@@ -916,9 +916,9 @@ class LockstepDrive:
 
     def pump(self) -> None:
         """Deliver every frame waiting for the node, then run its time service."""
-        recv, handle = self._node_bus.recv, self.node.handle
-        while (msg := recv(0)) is not None:
-            handle(msg)
+        recv, handle = self._node_bus.recv_frame, self.node.handle_frame
+        while (frame := recv()) is not None:
+            handle(*frame)
         self.node.service()
 
     def close(self) -> None:

@@ -41,6 +41,7 @@ from typing import Protocol
 
 import can
 
+from drivers.can_frames import Frame
 from hil.core.errors import HilError
 
 log = logging.getLogger(__name__)
@@ -70,11 +71,16 @@ class _Client:
 
 def format_frame(msg: can.Message) -> bytes:
     """``< frame ID SECS.USECS DATA >`` as socketcand writes it."""
-    can_id = f"{msg.arbitration_id:08X}" if msg.is_extended_id else f"{msg.arbitration_id:03X}"
-    stamp = msg.timestamp or time.time()
+    return frame_text(msg.arbitration_id, bytes(msg.data), msg.timestamp or time.time(),
+                      8 if msg.is_extended_id else 3)
+
+
+def frame_text(can_id: int, data: bytes, stamp: float, id_digits: int = 3) -> bytes:
+    """``< frame ID SECS.USECS DATA >`` of a frame received at ``stamp`` (epoch seconds)."""
     secs = int(stamp)
     usecs = int((stamp - secs) * 1e6)
-    return f"< frame {can_id} {secs}.{usecs:06d} {bytes(msg.data).hex().upper()} >".encode()
+    return b"< frame %0*X %d.%06d %s >" % (id_digits, can_id, secs, usecs,
+                                            data.hex().upper().encode())
 
 
 def parse_send(command: str) -> can.Message | None:
@@ -295,11 +301,13 @@ class SocketcandServer:
             self._write(client, b"< error unknown command >")
 
     # ------------------------------------------------------------------------- output
-    def broadcast(self, messages: list[can.Message]) -> None:
-        """Frames from the emulated node, to every client in raw mode (one write per client:
-        a TPDO pair reaches the master in one TCP segment)."""
-        if self._clients and messages:
-            self._forward_text(b"".join(format_frame(msg) for msg in messages), exclude=None)
+    def broadcast(self, frames: list[Frame]) -> None:
+        """Frames from the emulated node (11-bit, stamped now), to every client in raw mode
+        (one write per client: a TPDO pair reaches the master in one TCP segment)."""
+        if self._clients and frames:
+            stamp = time.time()
+            self._forward_text(b"".join(frame_text(can_id, data, stamp)
+                                        for can_id, data in frames), exclude=None)
 
     def _forward(self, msg: can.Message, exclude: _Client | None) -> None:
         """A client's frame to the other raw-mode clients (formatted only if there is one)."""

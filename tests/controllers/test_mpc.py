@@ -261,6 +261,11 @@ def test_prediction_starts_with_the_applied_command():
     assert u_pred.shape == (50,) and y_pred.shape == (50,)
     assert u_pred[0] == pytest.approx(u)
     assert np.all(u_pred[4:] == u_pred[3])  # Δu = 0 beyond H_u
+    # the definitions: û = u(k-1) + the moves so far, ŷ = Ψ x̂(k|k) + Θ ΔU
+    n_x, theta, moves = mpc.qp.n_x, mpc._theta, mpc._dU
+    np.testing.assert_allclose(u_pred[:4], theta[n_x] + np.cumsum(moves), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(y_pred, mpc.qp.Psi @ theta[:n_x] + mpc.qp.Theta @ moves,
+                               rtol=1e-12, atol=1e-9)
 
 
 def test_reference_samples_from_the_block_equal_direct_evaluation():

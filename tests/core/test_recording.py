@@ -194,3 +194,28 @@ def test_sigkill_during_a_split_run_keeps_every_file(tmp_path, run_python):
     ks = [m["k"] for _, m in data.topic("/seq")]
     assert ks == list(range(len(ks))) and last - len(ks) <= 100  # at most 50 ms lost
     assert not data.recovered and "without closing" in data.metadata["recorder"]["ended"]
+
+
+def test_numpy_arrays_in_messages_arrive_as_their_values(tmp_path):
+    """Arrays cross to the writer process as raw bytes: strided views, int and float32
+    arrays, 0-d values and object arrays come out as the values they held, in JSON and CDR."""
+    import numpy as np
+
+    path = tmp_path / "arrays.mcap"
+    rec = Recorder(path, wait_when_full=True)
+    flat = rec.topic("/flat", FLAT, encoding="cdr")
+    free = rec.topic("/free", {"type": "object"})
+    samples = np.arange(12.0) * 0.25
+    flat.log(1, {"t_s": np.float64(0.5), "samples_mA": samples[::3],
+                 "counts": np.array([3, -4], dtype=np.int16)})
+    free.log(2, {"grid": np.arange(6, dtype=np.float32).reshape(2, 3) / 4,
+                 "mixed": np.array([1, "a"], dtype=object), "scalar": np.array(7)})
+    rec.close()
+
+    data = read_session(path)
+    [(_, cdr)] = list(data.topic("/flat"))
+    assert cdr["samples_mA"] == [0.0, 0.75, 1.5, 2.25] and cdr["counts"] == [3, -4]
+    assert cdr["t_s"] == 0.5
+    [(_, free_message)] = list(data.topic("/free"))
+    assert free_message == {"grid": [[0.0, 0.25, 0.5], [0.75, 1.0, 1.25]],
+                            "mixed": [1, "a"], "scalar": 7}

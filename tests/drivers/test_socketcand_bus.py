@@ -10,7 +10,13 @@ import time
 import can
 import pytest
 
-from drivers.socketcand_bus import SocketcandBus, format_send, parse_reply
+from drivers.socketcand_bus import (
+    SocketcandBus,
+    format_send,
+    parse_frame,
+    parse_reply,
+    send_text,
+)
 
 
 @pytest.fixture
@@ -32,21 +38,35 @@ def frame(can_id, data=b"", extended=False):
 def test_frames_both_ways_and_several_in_one_write(server):
     bus = SocketcandBus("can0", *server.address)
     try:
-        bus.send_many([frame(0x201, b"\x0f\x00\xe8\x03"), frame(0x80),
-                       frame(0x1ABCDEF0, b"\x01\xf1", extended=True)])
+        bus.send_frames([(0x201, b"\x0f\x00\xe8\x03"), (0x80, b"")])
+        bus.send(frame(0x1ABCDEF0, b"\x01\xf1", extended=True))
         assert wait_for(lambda: len(server.received) == 3)
         got = server.received
         assert [m.arbitration_id for m in got] == [0x201, 0x80, 0x1ABCDEF0]
         assert bytes(got[0].data) == b"\x0f\x00\xe8\x03" and got[1].dlc == 0
         assert got[2].is_extended_id and bytes(got[2].data) == b"\x01\xf1"
-        server.broadcast([frame(0x181, b"\x37\x06\x00\x00\x10\x00"), frame(0x281, b"\x01")])
+        server.broadcast([(0x181, b"\x37\x06\x00\x00\x10\x00"), (0x281, b"\x01"),
+                          (0x182, b"")])
         first, second = bus.recv(2.0), bus.recv(2.0)
         assert (first.arbitration_id, bytes(first.data)) == (0x181, b"\x37\x06\x00\x00\x10\x00")
         assert (second.arbitration_id, bytes(second.data)) == (0x281, b"\x01")
         assert first.is_rx and first.channel == "can0" and not first.is_extended_id
-        assert bus.recv(0) is None  # nothing more: returns at once
+        assert bus.recv_frame(2.0) == (0x182, b"")  # the same stream, as a tuple
+        assert bus.recv(0) is None and bus.recv_frame(0) is None  # nothing more: at once
     finally:
         bus.shutdown()
+
+
+def test_recv_frame_skips_error_and_29_bit_frames():
+    port, thread = scripted_gateway([b"< error 20000004 1.0 >< frame 1ABCDEF0 1.0 01 >"
+                                     b"< frame 281 1.5 0A0B >"])
+    bus = SocketcandBus("can0", "127.0.0.1", port)
+    try:
+        assert bus.recv_frame(2.0) == (0x281, b"\x0a\x0b")
+        assert bus.recv_frame(0) is None
+    finally:
+        bus.shutdown()
+        thread.join(5)
 
 
 def test_a_bus_the_gateway_does_not_serve_fails_the_handshake(server):
@@ -119,6 +139,12 @@ def test_a_connection_closed_by_the_gateway_is_an_operation_error():
 def test_wire_format_of_one_frame_and_garbage_replies():
     assert format_send(frame(0x80)) == b"< send 080 0  >"
     assert format_send(frame(0x601, b"\x40\x00\x10")) == b"< send 601 3 40 00 10 >"
+    assert send_text(0x181, b"\x01\xab") == b"< send 181 2 01 AB >"
+    assert parse_frame(b"< frame 181 1.0 01AB >") == (0x181, b"\x01\xab")
+    assert parse_frame(b"< frame 00000181 1.0 01 >") is None  # 29-bit, even if small
+    assert parse_frame(b"< frame 181 1.0 000102030405060708 >") is None  # 9 bytes
+    assert parse_frame(b"< error 20000004 1.0 >") is None
+    assert parse_frame(b"< frame 1g1 1.0 >") is None
     assert parse_reply(b"< ok >", "can0") is None
     assert parse_reply(b"< frame 18x 1.0 00 >", "can0") is None
     assert parse_reply(b"< frame 181 1.0 000102030405060708 >", "can0") is None  # 9 bytes

@@ -1,0 +1,54 @@
+"""Frames as (id, data) tuples: the adapter over any python-can bus (a real ``virtual`` bus
+pair here) and the in-process lockstep channel carry the same frames in the same order."""
+
+import uuid
+
+import can
+
+from drivers.can_frames import FrameBus, MessageFrames, frames_of
+from emulators.direct_bus import DirectChannel
+
+
+def virtual_pair():
+    channel = f"frames-{uuid.uuid4().hex}"
+    return (can.Bus(interface="virtual", channel=channel),
+            can.Bus(interface="virtual", channel=channel))
+
+
+def test_a_python_can_bus_gets_an_adapter_that_drops_what_cia_301_never_sends():
+    sender, receiver = virtual_pair()
+    try:
+        frames = frames_of(receiver)
+        assert isinstance(frames, MessageFrames)
+        for msg in (can.Message(arbitration_id=0x181, is_error_frame=True),
+                    can.Message(arbitration_id=0x1ABCDEF0, data=b"\x01", is_extended_id=True),
+                    can.Message(arbitration_id=0x181, is_remote_frame=True, dlc=2,
+                                is_extended_id=False),
+                    can.Message(arbitration_id=0x181, data=b"\x01\x02", is_extended_id=False)):
+            sender.send(msg)
+        assert frames.recv_frame(1.0) == (0x181, b"\x01\x02")
+        assert frames.recv_frame(0) is None
+        frames_of(sender).send_frames([(0x80, b""), (0x201, b"\x0f\x00")])
+        first, second = receiver.recv(1.0), receiver.recv(1.0)
+        assert (first.arbitration_id, first.dlc, first.is_extended_id) == (0x80, 0, False)
+        assert (second.arbitration_id, bytes(second.data)) == (0x201, b"\x0f\x00")
+    finally:
+        sender.shutdown()
+        receiver.shutdown()
+
+
+def test_the_direct_channel_carries_tuples_and_python_can_messages_alike():
+    channel = DirectChannel()
+    master, node, observer = channel.attach(), channel.attach(), channel.attach()
+    assert frames_of(master) is master and isinstance(master, FrameBus)
+    master.send_frames([(0x201, b"\x0f\x00"), (0x80, b"")])
+    assert [node.recv_frame(), node.recv_frame(), node.recv_frame()] == \
+        [(0x201, b"\x0f\x00"), (0x80, b""), None]
+    seen = [observer.recv(0), observer.recv(0)]  # an observer reads python-can messages
+    assert [(m.arbitration_id, bytes(m.data)) for m in seen] == [(0x201, b"\x0f\x00"), (0x80, b"")]
+    assert master.recv_frame() is None  # a bus never hears itself
+    observer.send(can.Message(arbitration_id=0x1ABCDEF0, is_extended_id=True))  # not CiA 301
+    observer.send(can.Message(arbitration_id=0x701, data=b"\x05", is_extended_id=False))
+    assert node.recv_frame() == (0x701, b"\x05") and node.recv_frame() is None
+    for bus in (master, node, observer):
+        bus.shutdown()
