@@ -273,9 +273,9 @@ class CanDriveMaster(Device):
     def _now_ns(self) -> int:
         return self._cycle * self._period_ns if self._timebase == "cycles" else time.monotonic_ns()
 
-    def _send(self, *frames: Frame) -> None:
+    def _send(self, frames: list[Frame]) -> None:
         try:
-            self._send_frames(list(frames))
+            self._send_frames(frames)
         except (can.CanError, OSError) as exc:
             raise DriveLinkLostError(f"drive node {self.node_id}: cannot send on "
                                      f"{self.bus.channel_info}: {one_line(exc)}") from None
@@ -338,7 +338,7 @@ class CanDriveMaster(Device):
              timeout_s: float | None = None) -> bytes:
         timeout_s = self.config.sdo_timeout_s if timeout_s is None else timeout_s
         self._sdo_inbox.clear()
-        self._send((0x600 + self.node_id, request))
+        self._send([(0x600 + self.node_id, request)])
         deadline = time.monotonic() + timeout_s
         while True:
             while self._sdo_inbox:
@@ -403,7 +403,7 @@ class CanDriveMaster(Device):
         self._sdo(request, f"write 0x{index:04X}:{subindex:02X} = {value}")
 
     def nmt(self, command: int) -> None:
-        self._send((0x000, bytes([command, self.node_id])))
+        self._send([(0x000, bytes([command, self.node_id]))])
 
     # ----------------------------------------------------------------- configuration
     def _bus_budget(self) -> BusBudget:
@@ -508,7 +508,7 @@ class CanDriveMaster(Device):
         if self._pump is None:
             time.sleep(0.002)
             return
-        self._send(self._sync)
+        self._send([self._sync])
         self._cycle += 1
 
     def _wait_state(self, wanted: str, why: str) -> int:
@@ -626,7 +626,7 @@ class CanDriveMaster(Device):
         self._awaiting = True
         self._sent_ns = time.perf_counter_ns()
         try:
-            self._send(*frames)
+            self._send(frames)
         except DriveLinkLostError as exc:
             self._awaiting = False
             self._lose_link(one_line(exc))
@@ -737,8 +737,8 @@ class CanDriveMaster(Device):
             self._enabled = False
             for controlword in (CW_QUICK_STOP, CW_DISABLE_VOLTAGE):
                 try:
-                    self._send((self._rpdo1, self._rpdo_layout.pack(controlword, 0)),
-                               self._sync)
+                    self._send([(self._rpdo1, self._rpdo_layout.pack(controlword, 0)),
+                                self._sync])
                 except DriveError:
                     break
         raise error
