@@ -38,9 +38,9 @@ import canopen
 import numpy as np
 
 from drivers.can_drive import CanDriveMaster, DriveMasterConfig
-from emulators.drive_node import BusRunner, DriveEmulatorConfig, DriveNode, bus_sender
-from emulators.drive_od import build_object_dictionary
-from emulators.drive_plant import AxisPlant
+from emulators.drive.node import BusRunner, DriveEmulatorConfig, DriveNode, bus_sender
+from emulators.drive.od import build_object_dictionary
+from emulators.drive.plant import AxisPlant
 from hil.core.clock import RealtimeClock
 from hil.core.loop import FixedRateLoop, FunctionTask
 from hil.servo.config import load_drive_config

@@ -1,7 +1,7 @@
 """Explicit MPC benchmark (issue 8): build time, evaluation time, and ppopt as a cross-check.
 
 1. Build (mpQP + search tree) for FOH, H_p = 50, |u| <= 1000 mA, H_t = H_u = 3 (the paper's
-   EMPC of Figs. 14/16) and 4, default box (controllers/empc.py). Paper: 25 regions,
+   EMPC of Figs. 14/16) and 4, default box (controllers/servo/empc.py). Paper: 25 regions,
    11 controllers, 127 nodes, depth 7 for H_t = H_u = 3.
 2. Evaluation of Δu(0|k) from θ for H_t = H_u = 3, per call, on θ from a closed-loop run of
    the online MPC (2 deg, 10 Hz sine at 1000 mA: saturated, several controllers) and θ
@@ -30,12 +30,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from controllers.empc import ExplicitSolver, build_explicit_law, relative_map
-from controllers.empc_export import write_c
-from controllers.empc_tree import Polyhedron, SequentialSearch
-from controllers.mpc import DaqpSolver, MpcConfig, TrajectoryMpc
-from controllers.references import Sine
-from controllers.servo_sim import simulate
+from controllers.servo.empc import ExplicitSolver, build_explicit_law, relative_map
+from controllers.servo.empc_export import write_c
+from controllers.servo.empc_tree import Polyhedron, SequentialSearch
+from controllers.servo.mpc import DaqpSolver, MpcConfig, TrajectoryMpc
+from controllers.servo.references import Sine
+from controllers.servo.sim import simulate
 
 PY_TARGET_US = 10.0
 C_TARGET_US = 1.0

@@ -29,7 +29,7 @@ import serial
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.framer.rtu import FramerRTU
 
-from drivers.modbus_bench import ModbusLink, parse_bus_url
+from drivers.bench.modbus import ModbusLink, parse_bus_url
 from hil.bench.config import BenchConfig, load_bench_config, parse_bench_config
 from hil.bench.rig import attach_bench
 from hil.core.clock import RealtimeClock

@@ -27,10 +27,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from controllers.base import ServoController
-from controllers.mpc import DaqpSolver, MpcConfig, TrajectoryMpc
-from controllers.pid import CascadedPid
-from controllers.references import Sine
-from controllers.servo_sim import simulate
+from controllers.servo.mpc import DaqpSolver, MpcConfig, TrajectoryMpc
+from controllers.servo.pid import CascadedPid
+from controllers.servo.references import Sine
+from controllers.servo.sim import simulate
 from hil.core.clock import RealtimeClock
 from hil.core.loop import FunctionTask
 from hil.core.session import Session

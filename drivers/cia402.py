@@ -2,7 +2,7 @@
 chart's transitions, modes of operation and the default PDO map.
 
 Written once, in the style of ``canopen.profiles.p402``, and read by the master
-(:mod:`drivers.can_drive`), the emulated drive (:mod:`emulators.drive_node`, whose state machine
+(:mod:`drivers.can_drive`), the emulated drive (:mod:`emulators.drive.node`, whose state machine
 walks :data:`TRANSITIONS`) and the tests (``tests/drivers/test_cia402.py`` checks the tables
 against canopen's ``State402``). Transition numbers are those of the CiA 402 state chart.
 """

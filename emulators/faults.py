@@ -7,8 +7,8 @@ emulator stops), e.g. ``drop@5-8``, ``delay@0-2:ms=300``, ``emcy@1:code=0x2310``
 Everything is checked when parsed; a bad fault is one :class:`~hil.core.errors.ConfigError`
 line naming it.
 
-The bench emulator (:mod:`emulators.bench_server`) plays the Modbus and plant kinds, the drive
-emulator (:mod:`emulators.drive_node`) the CAN kinds; each asks :meth:`FaultSchedule.active`
+The bench emulator (:mod:`emulators.bench.server`) plays the Modbus and plant kinds, the drive
+emulator (:mod:`emulators.drive.node`) the CAN kinds; each asks :meth:`FaultSchedule.active`
 while it serves, and the schedule records every fault the first time it takes effect
 (:attr:`FaultSchedule.events`, and one ``hil: fault: ...`` line through ``on_event``).
 """

@@ -27,8 +27,8 @@ from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import fields
 from typing import Any
 
+from drivers.bench.safe_bench import SafeBench
 from drivers.can_drive import CanDriveMaster
-from drivers.safety import SafeBench
 from hil.core.errors import UsageError
 from hil.core.types import EventSink, no_event
 from hil.core.verdict import Limit, parse_limit

@@ -30,9 +30,9 @@ from typing import Any
 
 import pytest
 
+from drivers.bench.safe_bench import SafeBench
 from drivers.can_drive import CanDriveMaster
 from drivers.cia402 import OPERATION_ENABLED, state_of
-from drivers.safety import SafeBench
 from hil import api
 from hil.emulator_process import EmulatorProcess
 
@@ -92,7 +92,7 @@ class BenchUnderTest:
 
     def unsafe_relays(self) -> list[str]:
         """Relays not at their safe level, read straight from the relay module."""
-        from drivers.modbus_bench import ModbusBenchDriver, ModbusLink, parse_bus_url
+        from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
         from hil.bench.config import load_bench_config
 
         config = load_bench_config()

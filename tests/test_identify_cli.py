@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controllers import ident
+from controllers.ident import n4sid as ident
 from hil.cli.main import main
 from hil.core.clock import SimClock
 from hil.core.errors import ConfigError, UsageError

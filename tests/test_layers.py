@@ -5,7 +5,9 @@
 * drivers/ and emulators/ import from hil only those two modules; drivers never import
   emulators;
 * hil.core names no application (hil.bench, hil.servo, hil.cli) and no driver or emulator;
-  hil.bench and hil.servo do not import each other; only the command line imports hil.cli;
+  only the command line imports hil.cli;
+* the two applications stay apart in every layer: hil.bench and hil.servo, controllers.bench
+  and controllers.servo, emulators.bench and emulators.drive do not import each other;
 * no import cycles anywhere, imports inside functions and under TYPE_CHECKING included.
 
 The checker is tested on small made-up trees first, so a rule that can never fail is caught.
@@ -22,6 +24,9 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("hil", "drivers", "controllers", "emulators")
 SHARED_TYPES = {"hil.core.errors", "hil.core.types"}
 NUMERIC = {"numpy", "scipy", "cvxpy", "highspy", "daqp", "filterpy", "threadpoolctl"}
+# each layer's bench part and servo part: neither imports the other
+APPLICATIONS = (("hil.bench", "hil.servo"), ("controllers.bench", "controllers.servo"),
+                ("emulators.bench", "emulators.drive"))
 
 
 def module_files(root: Path) -> dict[str, Path]:
@@ -88,8 +93,9 @@ def violations(graph: dict[str, set[str]]) -> list[str]:
                 if root in ("drivers", "emulators") or any(
                         is_under(name, app) for app in ("hil.bench", "hil.servo", "hil.cli")):
                     why = "hil.core names no application, driver or emulator"
-            elif (is_under(module, "hil.bench") and is_under(name, "hil.servo")) or \
-                    (is_under(module, "hil.servo") and is_under(name, "hil.bench")):
+            if why is None and any(
+                    (is_under(module, a) and is_under(name, b)) or
+                    (is_under(module, b) and is_under(name, a)) for a, b in APPLICATIONS):
                 why = "the bench and servo applications do not import each other"
             if why is None and is_under(name, "hil.cli") and not (
                     is_under(module, "hil.cli") or module == "hil.__main__"):
@@ -164,6 +170,12 @@ def test_checker_catches_wrong_way_imports(tmp_path):
         "drivers/__init__.py": "", "drivers/d.py": "from emulators import e\n"
                                                  "from hil.core import errors\n",
         "emulators/__init__.py": "", "emulators/e.py": "from hil.core.loop import Task\n",
+        "controllers/bench/__init__.py": "", "controllers/servo/__init__.py": "",
+        "controllers/bench/eec.py": "from controllers.servo import mpc\n",
+        "controllers/servo/mpc.py": "import numpy\n",
+        "emulators/drive/__init__.py": "", "emulators/bench/__init__.py": "",
+        "emulators/drive/node.py": "def f():\n    import emulators.bench.plant\n",
+        "emulators/bench/plant.py": "",
     })
     found = "\n".join(violations(import_graph(tmp_path)))
     assert "hil.core.loop imports hil.bench.rig" in found          # inside a function
@@ -174,6 +186,8 @@ def test_checker_catches_wrong_way_imports(tmp_path):
     assert "emulators.e imports hil.core.loop" in found
     assert "drivers.d imports hil.core.errors" not in found         # `from pkg import module`
     assert "controllers.c imports socket" not in found              # standard library
+    assert "controllers.bench.eec imports controllers.servo.mpc" in found
+    assert "emulators.drive.node imports emulators.bench.plant" in found
 
 
 def test_checker_finds_cycles_through_functions(tmp_path):

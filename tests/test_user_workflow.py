@@ -99,7 +99,7 @@ def test_a_violated_limit_exits_1_with_a_junit_failure_and_a_loose_one_exits_0(t
 
 
 LEAVES_A_RELAY_ON = '''
-from drivers.modbus_bench import ModbusBenchDriver, ModbusLink, parse_bus_url
+from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 from hil.bench.config import load_bench_config
 
 def test_switches_p1_behind_the_safety_layers_back(hil_bench):

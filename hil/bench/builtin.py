@@ -14,11 +14,11 @@ import os
 from collections.abc import Mapping
 from typing import Any
 
-from controllers.bc import BasicController
-from controllers.bench_models import DeviceModel, MachiningModel, load_linear_model
-from controllers.bench_problem import BenchProblem
-from controllers.eec import EEC, EECSettings
-from controllers.eec_prediction import BenchModels
+from controllers.bench.bc import BasicController
+from controllers.bench.eec import EEC, EECSettings
+from controllers.bench.models import DeviceModel, MachiningModel, load_linear_model
+from controllers.bench.prediction import BenchModels
+from controllers.bench.problem import BenchProblem
 from hil.bench.config import EecConfig, EecTable
 from hil.bench.control import BenchContext, RecordedEEC
 from hil.core.errors import ConfigError, UsageError

@@ -23,11 +23,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
-from controllers.bench_kalman import KalmanSettings
-from controllers.bench_problem import BenchProblem, MachiningSequence, Resource, Stage
-from controllers.eec import SOLVERS, TERMINALS
-from drivers.modbus_bench import BenchMap, BusSettings, RelaySpec, plan_reads
-from emulators.bench_plant import (
+from controllers.bench.eec import SOLVERS, TERMINALS
+from controllers.bench.kalman import KalmanSettings
+from controllers.bench.problem import BenchProblem, MachiningSequence, Resource, Stage
+from drivers.bench.modbus import BenchMap, BusSettings, RelaySpec, plan_reads
+from emulators.bench.plant import (
     METER_QUANTITIES,
     MODELS,
     PHASES,
@@ -40,7 +40,7 @@ from emulators.bench_plant import (
     PlantSpec,
     ResourceSpec,
 )
-from emulators.bench_server import UNKNOWN_UNIT_POLICIES, ServerSettings
+from emulators.bench.server import UNKNOWN_UNIT_POLICIES, ServerSettings
 from emulators.faults import Fault, for_emulator, parse_faults_table
 from hil.core.config import Table, deep_merge, load_toml, parse_toml
 from hil.core.errors import ConfigError

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from controllers.base import BenchController, BenchEstimator, BenchObservation, BenchSample
-from controllers.bench_kpis import BenchKpis
+from hil.bench.kpis import BenchKpis
 from hil.core.errors import ControllerError
 from hil.core.guard import guarded_call
 from hil.core.loop import Task
@@ -34,8 +34,8 @@ from hil.core.types import EventSink
 from hil.core.verdict import SignalWatch
 
 if TYPE_CHECKING:
-    from controllers.bench_problem import BenchProblem
-    from controllers.eec import EEC
+    from controllers.bench.eec import EEC
+    from controllers.bench.problem import BenchProblem
     from hil.bench.config import EecConfig
     from hil.bench.rig import BenchRig
     from hil.core.session import Session

@@ -18,7 +18,7 @@ does), so a well-formed experiment has no deferred request; deferrals are counte
 state *written at this tick* (``P1``) and the switch-on event (``P1_start``, 1 at the tick the
 relay was switched on). The plant latches a write for its next step, so the meter reading
 logged at the same tick does not yet see it: models from these inputs have D = 0
-(``--no-feedthrough``), the convention of :mod:`controllers.bench_models`.
+(``--no-feedthrough``), the convention of :mod:`controllers.bench.models`.
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@
   wall clock otherwise, and the same Modbus driver talking to it; :func:`session_clock`
   picks lockstep for it and the wall clock for a real bench.
 * :class:`SequenceSchedule` - the machining sequence as the player plays it: exact
-  nanosecond lookups on the table of :class:`controllers.bench_problem.MachiningSequence`.
+  nanosecond lookups on the table of :class:`controllers.bench.problem.MachiningSequence`.
 * :class:`BenchSampler` - polls power (and levels) every sample, services the safety layer,
   publishes ``/bench/power``, ``/bench/levels``, ``/bench/relays``.
 * :class:`SequencePlayer` - drives M1/M2 from the table through the safety layer.
@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from controllers.bench_problem import MachiningSequence, Stage
+from controllers.bench.problem import MachiningSequence, Stage
 from hil.core.clock import Clock, RealtimeClock, SimClock
 from hil.core.errors import ConfigError
 from hil.core.loop import Task
@@ -36,8 +36,8 @@ from hil.core.types import EventSink, TimeSource, no_event
 STALE_POLLS = 50
 
 if TYPE_CHECKING:
-    from drivers.safety import SafeBench
-    from emulators.bench_server import EmulatedBench
+    from drivers.bench.safe_bench import SafeBench
+    from emulators.bench.server import EmulatedBench
     from hil.bench.config import BenchConfig
     from hil.core.session import Session
     from hil.emulator_process import EmulatorProcess
@@ -64,7 +64,7 @@ def session_clock(url: str, realtime: bool = False) -> Clock:
 
 class SequenceSchedule:
     """The machining sequence as the player plays it: exact lookups in integer nanoseconds
-    on the stages of a :class:`~controllers.bench_problem.MachiningSequence`."""
+    on the stages of a :class:`~controllers.bench.problem.MachiningSequence`."""
 
     def __init__(self, sequence: MachiningSequence) -> None:
         self.period_s = sequence.period_s
@@ -316,8 +316,8 @@ def safe_bench(url: str, config: BenchConfig, clock: TimeSource,
                on_event: EventSink = no_event) -> SafeBench:
     """Modbus driver + safety layer for the bench at ``url``, opened (relays at their safe
     levels); ``clock`` paces the dwell, ``on_event`` records what happens."""
-    from drivers.modbus_bench import ModbusBenchDriver, ModbusLink, parse_bus_url
-    from drivers.safety import SafeBench
+    from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
+    from drivers.bench.safe_bench import SafeBench
 
     bus = config.bus
     driver = ModbusBenchDriver(ModbusLink(parse_bus_url(url), bus.timeout_s, bus.attempts),
@@ -342,7 +342,7 @@ def make_emulator(config: BenchConfig, on_fault: Callable[[str], None] | None = 
                   ) -> EmulatedBench:
     """The emulated bench of ``config`` (not serving yet), once the config is checked for it;
     it plays ``config.faults`` and tells ``on_fault`` of each one as it starts."""
-    from emulators.bench_server import EmulatedBench
+    from emulators.bench.server import EmulatedBench
     from hil.bench.config import check_emulation
 
     check_emulation(config)

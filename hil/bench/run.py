@@ -12,7 +12,7 @@ Loop (base period 0.01 s, tasks in this order every tick):
    :mod:`controllers.base`) decides P1/P2 through the safety layer; the EEC's plan goes to
    ``/eec/plan``, fallbacks and solver trouble to ``/events``.
 
-Tasks 3, 5 and 6 are :mod:`hil.bench.control`'s. KPIs (:mod:`controllers.bench_kpis`) are
+Tasks 3, 5 and 6 are :mod:`hil.bench.control`'s. KPIs (:mod:`hil.bench.kpis`) are
 computed from the samples the loop saw and stored in the session (``hil report`` prints them).
 """
 
@@ -26,7 +26,6 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from controllers.base import BenchController
-from controllers.bench_kpis import BenchKpis
 from hil.bench.config import BenchConfig, default_text, load_configs
 from hil.bench.control import (
     BenchContext,
@@ -37,6 +36,7 @@ from hil.bench.control import (
     SignalLimits,
     estimator_of,
 )
+from hil.bench.kpis import BenchKpis
 from hil.bench.rig import BenchRig, SequencePlayer, attach_bench, is_emulated, session_clock
 from hil.core.errors import ConfigError, HilError, UsageError
 from hil.core.plugins import build_controller, controller_factory, controller_short_name

@@ -9,7 +9,8 @@ from pathlib import Path
 from hil.cli.argtypes import positive_float, positive_int
 from hil.core.errors import UsageError
 
-BOX_HELP = ("box of the relative parameters (controllers/empc.py explains them): comma-separated "
+BOX_HELP = ("box of the relative parameters (controllers/servo/empc.py explains them): "
+            "comma-separated "
             "NAME=HALF (symmetric) or NAME=LO:HI with NAME one of dx1..dx4 (state increments "
             "per tick), u (previous current, mA), e (r(1|k) - y, deg), dr or dr2..drHt "
             "(reference steps, deg per tick), plus scale=F to multiply the defaults, e.g. "
@@ -40,9 +41,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_build(args: argparse.Namespace) -> int:
-    from controllers.empc import build_explicit_law
-    from controllers.empc_export import write_c
-    from controllers.mpc import MpcConfig
+    from controllers.servo.empc import build_explicit_law
+    from controllers.servo.empc_export import write_c
+    from controllers.servo.mpc import MpcConfig
 
     if args.export_c and not Path(args.export_c).resolve().parent.is_dir():
         raise UsageError(f"--export-c {args.export_c}: no such directory")

@@ -228,7 +228,7 @@ def emulate_bench(args: argparse.Namespace) -> int:
 
 def emulate_drive(args: argparse.Namespace) -> int:
     """Serve the emulated CiA 402 drive over socketcand in real time until Ctrl-C or SIGTERM."""
-    from emulators.drive_node import DriveNode
+    from emulators.drive.node import DriveNode
     from emulators.socketcand_server import SocketcandServer
     from hil.core.errors import UsageError
     from hil.servo.config import load_drive_config

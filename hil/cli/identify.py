@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from controllers.ident import (
+from controllers.ident.n4sid import (
     BLOCK_ROW_CANDIDATES,
     DEFAULT_MAX_ORDER,
     IdentificationError,

@@ -12,10 +12,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from controllers.empc import ExplicitMpc
-from controllers.mpc import MpcConfig, TrajectoryMpc
-from controllers.pid import CascadedPid, PidConfig
-from controllers.references import Reference
+from controllers.servo.empc import ExplicitMpc
+from controllers.servo.mpc import MpcConfig, TrajectoryMpc
+from controllers.servo.pid import CascadedPid, PidConfig
+from controllers.servo.references import Reference
 from hil.core.config import Table
 
 

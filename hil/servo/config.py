@@ -5,7 +5,7 @@ over it table by table, then overrides (command-line flags, tests). Every key is
 type and range through :class:`hil.core.config.Table`: an unknown key, a wrong type or a value
 out of range is one :class:`~hil.core.errors.ConfigError` naming the file and the dotted key.
 The driver (:class:`~drivers.can_drive.DriveMasterConfig`) and the emulator
-(:class:`~emulators.drive_node.DriveEmulatorConfig`) define their settings and never read TOML.
+(:class:`~emulators.drive.node.DriveEmulatorConfig`) define their settings and never read TOML.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ from typing import Any
 
 from drivers.can_drive import DriveMasterConfig
 from drivers.cia402 import MODES, QUICK_STOP_OPTIONS
-from emulators.drive_node import DriveEmulatorConfig
-from emulators.drive_plant import Disturbance, Friction
+from emulators.drive.node import DriveEmulatorConfig
+from emulators.drive.plant import Disturbance, Friction
 from hil.core.config import Table, deep_merge, load_toml, parse_toml
 from hil.core.verdict import RunTables, read_run_tables
 

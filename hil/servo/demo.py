@@ -17,10 +17,10 @@ from pathlib import Path
 from typing import Any
 
 from controllers.base import ServoController
-from controllers.mpc import MpcConfig, TrajectoryMpc
-from controllers.pid import CascadedPid, PidConfig
-from controllers.references import Reference
-from controllers.servo_sim import PAPER_CASES, cycle_error
+from controllers.servo.mpc import MpcConfig, TrajectoryMpc
+from controllers.servo.pid import CascadedPid, PidConfig
+from controllers.servo.references import Reference
+from controllers.servo.sim import PAPER_CASES, cycle_error
 from hil.core.errors import HilError
 from hil.core.reader import read_session
 from hil.core.recorder import RecordingOptions
@@ -117,7 +117,7 @@ def run_figure_trial(trial: Trial) -> dict[str, Any]:
 def figure_table_of(rows: Sequence[Mapping[str, Any]],
                     horizons: Sequence[int]) -> list[dict[str, Any]]:
     """The rows of :func:`figure_trials` as the table of
-    :func:`controllers.servo_sim.figure_table` (same keys, same numbers)."""
+    :func:`controllers.servo.sim.figure_table` (same keys, same numbers)."""
     cases: dict[tuple[float, float], dict[tuple[Any, ...], Any]] = {}
     for row in rows:
         p = row["params"]

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.servo_model import SAMPLE_PERIOD_S
+from controllers.servo.model import SAMPLE_PERIOD_S
 from hil.core.reader import SessionData
 from hil.core.report import kpis
 

@@ -20,7 +20,7 @@ from dataclasses import replace
 from can.interfaces import VALID_INTERFACES
 
 from drivers.can_drive import CanDriveMaster, DriveMasterConfig, open_interface, open_socketcand
-from emulators.drive_node import DriveEmulatorConfig, LockstepDrive
+from emulators.drive.node import DriveEmulatorConfig, LockstepDrive
 from hil.core.errors import ConfigError
 from hil.core.registry import Factory, SchemeRegistry, scheme_of
 from hil.core.types import EventSink, no_event
@@ -31,7 +31,7 @@ EXPECTED = "expected emulated, socketcand://HOST:PORT or INTERFACE://CHANNEL (py
 
 class EmulatedDrive(CanDriveMaster):
     """A master whose drive is the emulator (``emulator``, a
-    :class:`~emulators.drive_node.LockstepDrive`) on a private virtual bus, in lockstep. The
+    :class:`~emulators.drive.node.LockstepDrive`) on a private virtual bus, in lockstep. The
     emulated node takes the master's node id."""
 
     def __init__(self, master: DriveMasterConfig, emulator: DriveEmulatorConfig, *,

@@ -42,9 +42,10 @@ from typing import Any, Protocol, cast, runtime_checkable
 import numpy as np
 
 from controllers.base import ServoController
-from controllers.empc import ExplicitMpc
-from controllers.mpc import TrajectoryMpc
-from controllers.references import (
+from controllers.servo.empc import ExplicitMpc
+from controllers.servo.model import SAMPLE_PERIOD_S
+from controllers.servo.mpc import TrajectoryMpc
+from controllers.servo.references import (
     Reference,
     Scenario,
     Sine,
@@ -52,7 +53,6 @@ from controllers.references import (
     parse_scenario,
     wrap180,
 )
-from controllers.servo_model import SAMPLE_PERIOD_S
 from drivers.can_drive import CanDriveMaster, Feedback, SdoAbortError
 from hil.core.clock import RealtimeClock, SimClock
 from hil.core.errors import ConfigError, ControllerError, HilError, UsageError

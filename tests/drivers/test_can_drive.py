@@ -18,7 +18,7 @@ from drivers.can_drive import (
     SdoAbortError,
 )
 from drivers.cia402 import RPDOS, TPDOS
-from emulators.drive_od import build_object_dictionary
+from emulators.drive.od import build_object_dictionary
 from hil.core.clock import SimClock
 from hil.core.errors import ConfigError
 from hil.core.loop import FunctionTask

@@ -12,9 +12,9 @@ import time
 
 import pytest
 
-from drivers.modbus_bench import LinkError, ModbusBenchDriver, ModbusLink, parse_bus_url
-from drivers.safety import SafeBench
-from emulators.bench_server import EmulatedBench
+from drivers.bench.modbus import LinkError, ModbusBenchDriver, ModbusLink, parse_bus_url
+from drivers.bench.safe_bench import SafeBench
+from emulators.bench.server import EmulatedBench
 from emulators.faults import parse_fault
 from emulators.null_modem import NullModem
 from hil.bench.config import load_bench_config

@@ -16,7 +16,7 @@ import pytest
 
 from drivers.can_drive import DriveFaultError, DriveLinkLostError
 from drivers.cia402 import FAULT, OPERATION_ENABLED, state_of
-from emulators.drive_node import DriveNode
+from emulators.drive.node import DriveNode
 from emulators.faults import parse_fault
 from emulators.socketcand_server import SocketcandServer
 from hil.servo.config import load_drive_config

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from drivers.modbus_bench import LinkError, ModbusBenchDriver, ModbusLink, parse_bus_url
+from drivers.bench.modbus import LinkError, ModbusBenchDriver, ModbusLink, parse_bus_url
 from emulators.faults import FaultSchedule, parse_fault
 from hil import api
 from hil.bench.config import load_bench_config

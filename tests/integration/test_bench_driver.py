@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.modbus_bench import (
+from drivers.bench.modbus import (
     DeviceError,
     LinkError,
     ModbusBenchDriver,

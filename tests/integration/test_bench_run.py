@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from controllers.bench_kpis import transitions
+from hil.bench.kpis import transitions
 from hil.bench.run import BenchRunOptions, run_bench
 from hil.cli.main import main
 from hil.core.reader import read_session

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from pymodbus.client import ModbusTcpClient
 
-from drivers.safety import DwellGuard
+from drivers.bench.safe_bench import DwellGuard
 from hil.bench.config import load_bench_config, parse_bench_config
 from hil.bench.rig import attach_bench
 from hil.core.clock import RealtimeClock, SimClock

@@ -18,7 +18,7 @@ from canopen.profiles.p402 import State402
 from drivers import cia402
 from drivers.can_drive import DriveFaultError, DriveLinkLostError
 from drivers.cia402 import state_of
-from emulators.drive_od import build_object_dictionary
+from emulators.drive.od import build_object_dictionary
 from hil.core.types import no_event
 from hil.servo.config import load_drive_config
 from hil.servo.rig import open_drive

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controllers.references import parse_scenario
-from controllers.servo_sim import simulate
+from controllers.servo.references import parse_scenario
+from controllers.servo.sim import simulate
 from drivers.can_drive import DriveFaultError
 from hil.cli.main import main
 from hil.core.reader import read_session

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from controllers.servo_sim import figure_table
+from controllers.servo.sim import figure_table
 from hil.cli.main import main
 
 HERE = Path(__file__).resolve().parent

@@ -1,0 +1,2 @@
+"""Controllers of the relay bench (energy paper): EEC, BC, their models, problem, Kalman
+filter."""

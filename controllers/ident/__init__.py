@@ -1,0 +1,1 @@
+"""System identification (N4SID), shared by the applications."""

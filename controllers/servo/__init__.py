@@ -1,0 +1,2 @@
+"""Controllers of the servo axis (servo paper): MPC, explicit MPC, PID, Kalman filter,
+references, model."""

@@ -1,0 +1,158 @@
+"""Cascaded PID baseline of the servo paper (Fig. 12, Table I, eq. 16).
+
+Position P (K_pos, rpm per deg of error) -> velocity PI (K_vel, A per rpm; integral time T_i)
+-> notch on the current reference -> current limit. Velocity is the backward difference of the
+measured position. Anti-windup: the PI output is clamped to the current limit and the
+integrator stops whenever the clamp is active and the error would drive it further.
+
+Reading of eq. (16). Taken literally at T = 500 us, 0.9352(z²-1.9774z+1)/(z²-1.8492z+0.8651)
+notches 48 Hz, not the ~440 Hz resonance, has DC gain 1.33, and makes the cascade with the
+Table I gains unstable (closed-loop pole |z| = 1.03 at 37 Hz). But it has exactly the form of
+the standard second-order notch b = g[1, -2cos w0, 1], a = [1, -2g cos w0, 2g-1] with
+g = 1/(1 + tan(bw/2)): g = 0.9352 and cos w0 = 0.9887 reproduce a1 = -1.8492, and only a2
+(printed 0.8651, the formula gives 0.8704) breaks the unit DC gain. Its zeros at w0 = 0.1505
+rad sit at 440 Hz for a sample period of about 54 us, the rate of a drive's current loop, where
+the paper says the filter lives ("Filters" in the current controller). So the notch is read as
+that filter: centred on the model's resonance (computed from A_p, 439.8 Hz), quality factor
+w0/bw = 1.09 as printed, unit DC gain, discretised at 500 us. With it the Table I gains are
+stable on the printed model (largest closed-loop pole |z| = 0.989), and they are kept. (With
+no notch at all this discretisation is only just stable: a 487 Hz pole at |z| = 0.998.)
+
+Table I gives no feed-forward, so none is used by default (``velocity_feedforward`` adds the
+reference's rate to the velocity set-point for comparison).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.signal as signal
+
+from controllers.servo.model import StateSpaceModel, published_axis_model
+from controllers.servo.references import AngleUnwrapper, Reference, wrap180
+from hil.core.errors import ConfigError
+
+RPM_PER_DEG_S = 60.0 / 360.0
+EQ16_NUMERATOR = (0.9352, -0.9352 * 1.9774, 0.9352)
+EQ16_DENOMINATOR = (1.0, -1.8492, 0.8651)
+EQ16_QUALITY = math.acos(1.9774 / 2) / (2 * math.atan(1 / 0.9352 - 1))  # w0 / bw = 1.09
+
+
+def resonance_hz(model: StateSpaceModel) -> float:
+    """Frequency of the model's lightly damped complex mode (the highest-frequency one)."""
+    angles = np.abs(np.angle(np.linalg.eigvals(model.A)))
+    return float(angles.max() / (2 * math.pi * model.dt))
+
+
+def notch_coefficients(center_hz: float, quality: float, dt: float) -> tuple[np.ndarray,
+                                                                             np.ndarray]:
+    """Second-order notch (unit DC gain, zeros on the unit circle at ``center_hz``)."""
+    if not 0 < center_hz < 0.5 / dt:
+        raise ConfigError(f"pid: notch centre {center_hz} Hz must be in (0, {0.5 / dt:g}) Hz")
+    if not quality > 0:
+        raise ConfigError(f"pid: notch quality factor must be > 0, got {quality}")
+    b, a = signal.iirnotch(center_hz, quality, fs=1.0 / dt)
+    return np.asarray(b, float), np.asarray(a, float)
+
+
+NOTCH_READINGS = ("resonance", "eq16", "none")
+
+
+@dataclass(frozen=True)
+class PidConfig:
+    """Table I gains, the notch and the current limit [mA].
+
+    ``notch``: "resonance" (default, the reading above: centre ``notch_hz``, or the model's
+    resonance when None, quality ``notch_quality``), "eq16" (the printed coefficients used
+    literally at 500 us, unstable) or "none".
+    """
+
+    k_pos_rpm_per_deg: float = 3.6111
+    k_vel_a_per_rpm: float = 0.4444
+    ti_s: float = 2000e-6
+    notch: str = "resonance"
+    notch_hz: float | None = None
+    notch_quality: float = EQ16_QUALITY
+    u_max: float = 1000.0
+    velocity_feedforward: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("k_pos_rpm_per_deg", "k_vel_a_per_rpm", "ti_s", "u_max"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"pid.{name} must be > 0, got {getattr(self, name)}")
+        if self.notch not in NOTCH_READINGS:
+            raise ConfigError(f"pid.notch must be one of {', '.join(NOTCH_READINGS)}, "
+                              f"got {self.notch!r}")
+
+
+class SecondOrderFilter:
+    """y = (b0 + b1 z⁻¹ + b2 z⁻²)/(1 + a1 z⁻¹ + a2 z⁻²) u, direct form II transposed."""
+
+    def __init__(self, b: np.ndarray, a: np.ndarray) -> None:
+        b = np.asarray(b, float) / a[0]
+        a = np.asarray(a, float) / a[0]
+        self.b0, self.b1, self.b2 = (float(v) for v in b)
+        self.a1, self.a2 = float(a[1]), float(a[2])
+        self.reset()
+
+    def reset(self) -> None:
+        self._s1 = self._s2 = 0.0
+
+    def __call__(self, u: float) -> float:
+        y = self.b0 * u + self._s1
+        self._s1 = self.b1 * u - self.a1 * y + self._s2
+        self._s2 = self.b2 * u - self.a2 * y
+        return y
+
+
+class CascadedPid:
+    """The incumbent drive controller (a :class:`controllers.base.ServoController`):
+    ``step(position_deg, t_s) -> current_mA``."""
+
+    def __init__(self, reference: Reference, config: PidConfig | None = None,
+                 model: StateSpaceModel | None = None) -> None:
+        self.config = config or PidConfig()
+        self.model = model or published_axis_model()
+        self.reference = reference
+        self.dt = self.model.dt
+        self.notch = self._make_notch()
+        self._position = AngleUnwrapper()
+        self.reset()
+
+    def _make_notch(self) -> SecondOrderFilter | None:
+        c = self.config
+        if c.notch == "none":
+            return None
+        if c.notch == "eq16":
+            return SecondOrderFilter(np.array(EQ16_NUMERATOR), np.array(EQ16_DENOMINATOR))
+        center = resonance_hz(self.model) if c.notch_hz is None else c.notch_hz
+        return SecondOrderFilter(*notch_coefficients(center, c.notch_quality, self.dt))
+
+    def reset(self) -> None:
+        self._position.reset()
+        self._last_y: float | None = None
+        self._integral = 0.0  # in rpm (multiplied by K_vel at the output)
+        if self.notch:
+            self.notch.reset()
+
+    def step(self, position_deg: float, t_s: float) -> float:
+        c = self.config
+        y = self._position.update(float(position_deg))
+        r = float(self.reference.position(np.array([t_s]))[0])
+        velocity = 0.0 if self._last_y is None else (y - self._last_y) / self.dt * RPM_PER_DEG_S
+        self._last_y = y
+        v_ref = c.k_pos_rpm_per_deg * wrap180(r - y)
+        if c.velocity_feedforward:
+            r_next = float(self.reference.position(np.array([t_s + self.dt]))[0])
+            v_ref += wrap180(r_next - r) / self.dt * RPM_PER_DEG_S
+        e_v = v_ref - velocity
+        k = 1000.0 * c.k_vel_a_per_rpm  # mA per rpm
+        raw = k * (e_v + self._integral)
+        command = min(max(raw, -c.u_max), c.u_max)
+        if command == raw or (raw > 0) != (e_v > 0):  # anti-windup: conditional integration
+            self._integral += self.dt / c.ti_s * e_v
+        if self.notch:
+            command = self.notch(command)
+        return min(max(command, -c.u_max), c.u_max)

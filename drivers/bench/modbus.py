@@ -1,0 +1,338 @@
+"""Relay bench driver over Modbus TCP or RTU: relays (coils), power meter and level sensors.
+
+Moves bytes only: no dwell, no decisions (``drivers/bench/safe_bench.py`` wraps it for everyone
+else).
+It reads no configuration: :mod:`hil.bench.config` builds the :class:`BusSettings`,
+:class:`RelaySpec` and :class:`BenchMap` it is given.
+pymodbus clients run with ``retries=0``: its own retries re-send on a late reply and, on RTU
+where replies carry no transaction id, can take that late reply for the answer to the next
+request. :class:`ModbusLink` retries itself, checks every reply against its request, and after
+a failure drops the TCP connection or flushes the serial input before trying again.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from urllib.parse import parse_qsl, urlsplit
+
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.exceptions import ModbusException
+from pymodbus.pdu import ModbusPDU
+
+from hil.core.errors import ConfigError, HilError
+
+URL_FORMS = "modbus-tcp://HOST:PORT or modbus-rtu:///dev/X?baud=115200&parity=N"
+EXCEPTION_NAMES = {
+    1: "illegal function", 2: "illegal data address", 3: "illegal data value",
+    4: "server device failure", 5: "acknowledge", 6: "server device busy",
+    10: "gateway path unavailable", 11: "gateway target device failed to respond",
+}
+#: worth a retry: the device failed or was busy (4, 5, 6), or a gateway answered for a device
+#: that did not (10, 11). Any other exception says the request itself is wrong.
+TRANSIENT_CODES = (4, 5, 6, 10, 11)
+
+logging.getLogger("pymodbus").addHandler(logging.NullHandler())  # we report errors ourselves
+
+
+class LinkError(HilError):
+    """No valid answer (timeout, connection refused or lost, garbled reply) after all tries."""
+
+
+class RelayStuckError(HilError):
+    """A verified write read back the other state: the relay does not follow its coil."""
+
+    def __init__(self, message: str, relay: str, actual: bool) -> None:
+        super().__init__(message)
+        self.relay, self.actual = relay, actual
+
+
+class DeviceError(HilError):
+    """The device answered with a Modbus exception: the request itself is wrong."""
+
+    def __init__(self, message: str, code: int) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass(frozen=True)
+class BusSettings:
+    """``[bus]``: where the bench is, how long a request may take, when the link is lost."""
+
+    url: str                     # modbus-tcp://HOST:PORT, modbus-rtu:///dev/X?..., emulated
+    timeout_s: float             # per request
+    attempts: int                # tries per request before the poll counts as failed
+    reconnect_interval_s: float  # while the link is lost, try to reconnect this often
+    watchdog_polls: int          # this many failed polls in a row: link lost
+    give_up_s: float = 30.0      # a run stops when the link stays lost this long (0: never)
+
+
+@dataclass(frozen=True)
+class RelaySpec:
+    """One relay: its coil on the relay module, safe level and minimum on/off time."""
+
+    name: str
+    coil: int
+    safe: bool
+    dwell_s: float
+
+
+@dataclass(frozen=True)
+class BusSpec:
+    """Where the bench is: a TCP endpoint or a serial line."""
+
+    kind: str  # "tcp" | "rtu"
+    host: str = ""
+    port: int = 0
+    device: str = ""
+    baudrate: int = 115200
+    parity: str = "N"
+    stopbits: int = 1
+    bytesize: int = 8
+
+    @property
+    def url(self) -> str:
+        if self.kind == "tcp":
+            return f"modbus-tcp://{self.host}:{self.port}"
+        return f"modbus-rtu://{self.device}?baud={self.baudrate}&parity={self.parity}"
+
+
+def parse_bus_url(url: str) -> BusSpec:
+    """``modbus-tcp://HOST:PORT`` or ``modbus-rtu:///dev/X?baud=..&parity=..&stopbits=..``."""
+
+    def bad(why: str) -> ConfigError:
+        return ConfigError(f"bus URL {url!r}: {why} (expected {URL_FORMS})")
+
+    if not isinstance(url, str):
+        raise ConfigError(f"bus URL must be a string like {URL_FORMS}, got {url!r}")
+    parts = urlsplit(url)
+    if parts.scheme == "modbus-tcp":
+        if parts.path not in ("", "/") or parts.query or parts.fragment:
+            raise bad("a TCP URL has no path or query")
+        try:
+            host, port = parts.hostname, parts.port
+        except ValueError as exc:
+            raise bad(f"bad port ({exc})") from None
+        if not host:
+            raise bad("no host")
+        if port is None or port == 0:
+            raise bad("no port")
+        return BusSpec("tcp", host=host, port=port)
+    if parts.scheme == "modbus-rtu":
+        if parts.netloc or not parts.path.startswith("/") or len(parts.path) < 2:
+            raise bad("an RTU URL names a device path, e.g. modbus-rtu:///dev/ttyUSB0")
+        options = {"baud": "115200", "parity": "N", "stopbits": "1", "bytesize": "8"}
+        for key, value in parse_qsl(parts.query, keep_blank_values=True, strict_parsing=False):
+            if key not in options:
+                raise bad(f"unknown option {key!r} (known: {', '.join(options)})")
+            options[key] = value
+        try:
+            baud, stopbits, bytesize = (int(options[k]) for k in ("baud", "stopbits", "bytesize"))
+        except ValueError:
+            raise bad("baud, stopbits and bytesize must be integers") from None
+        parity = options["parity"].upper()
+        if baud <= 0 or parity not in ("N", "E", "O") or stopbits not in (1, 2) \
+                or bytesize not in (7, 8):
+            raise bad("baud > 0, parity N|E|O, stopbits 1|2, bytesize 7|8")
+        return BusSpec("rtu", device=parts.path, baudrate=baud, parity=parity,
+                       stopbits=stopbits, bytesize=bytesize)
+    raise bad(f"unknown scheme {parts.scheme!r}" if parts.scheme else "not a URL")
+
+
+class ModbusLink:
+    """One Modbus master: explicit timeout per request, ``attempts`` tries, reply checks."""
+
+    def __init__(self, spec: BusSpec, timeout_s: float, attempts: int) -> None:
+        self.spec = spec
+        self.timeout_s = timeout_s
+        self.attempts = attempts
+        self.connections = 0  # successful (re)connections so far
+        self.retries = 0      # attempts that failed and were tried again (or given up)
+        if spec.kind == "tcp":
+            self.client: ModbusTcpClient | ModbusSerialClient = ModbusTcpClient(
+                spec.host, port=spec.port, timeout=timeout_s, retries=0)
+        else:
+            self.client = ModbusSerialClient(
+                spec.device, baudrate=spec.baudrate, parity=spec.parity,
+                stopbits=spec.stopbits, bytesize=spec.bytesize, timeout=timeout_s, retries=0)
+
+    def connect(self) -> bool:
+        if self.client.connected:
+            return True
+        if self.client.connect():
+            self.connections += 1
+            return True
+        return False
+
+    def close(self) -> None:
+        self.client.close()
+
+    def _reset(self) -> None:
+        """After a failed exchange: no stale bytes may be taken for the next reply."""
+        if self.spec.kind == "tcp":
+            self.client.close()
+        elif self.client.connected:
+            try:
+                self.client.socket.reset_input_buffer()  # type: ignore[union-attr]
+            except OSError:
+                self.client.close()
+
+    def execute(self, what: str, call: Callable[[], ModbusPDU],
+                check: Callable[[ModbusPDU], bool]) -> ModbusPDU:
+        """Run ``call`` until ``check`` accepts a reply; exceptions from the device raise."""
+        reason = ""
+        for _ in range(self.attempts):
+            if not self.connect():
+                reason = f"cannot connect to {self.spec.url}"
+                continue
+            try:
+                reply = call()
+            except (ModbusException, OSError, ValueError) as exc:
+                reason = _first_line(exc) or type(exc).__name__
+                self.retries += 1
+                self._reset()
+                continue
+            if reply.isError():
+                code = int(getattr(reply, "exception_code", 0))
+                name = EXCEPTION_NAMES.get(code, "unknown exception")
+                if code in TRANSIENT_CODES:
+                    self.retries += 1
+                    reason = f"exception {code:#04x} ({name})"
+                    continue
+                raise DeviceError(f"{what}: device answered exception {code:#04x} ({name})", code)
+            if not check(reply):
+                reason = "reply does not match the request"
+                self.retries += 1
+                self._reset()
+                continue
+            return reply
+        raise LinkError(f"{what}: no valid answer from {self.spec.url} after "
+                        f"{self.attempts} attempt(s): {reason}")
+
+    def read_coils(self, unit: int, address: int, count: int) -> list[bool]:
+        reply = self.execute(
+            f"read coils {address}..{address + count - 1} of unit {unit}",
+            lambda: self.client.read_coils(address, count=count, device_id=unit),
+            lambda r: r.function_code == 1 and len(r.bits) >= count,
+        )
+        return list(reply.bits[:count])
+
+    def write_coil(self, unit: int, address: int, on: bool) -> None:
+        self.execute(
+            f"write coil {address} of unit {unit}",
+            lambda: self.client.write_coil(address, on, device_id=unit),
+            lambda r: r.function_code == 5 and r.address == address and bool(r.bits[0]) == on,
+        )
+
+    def read_floats(self, unit: int, address: int, count: int) -> list[float]:
+        """``count`` registers from ``address`` (FC04) as float32, high word first."""
+        reply = self.execute(
+            f"read input registers {address:#06x}+{count} of unit {unit}",
+            lambda: self.client.read_input_registers(address, count=count, device_id=unit),
+            lambda r: r.function_code == 4 and len(r.registers) == count,
+        )
+        words = reply.registers
+        return list(struct.unpack(f">{count // 2}f", struct.pack(f">{count}H", *words)))
+
+
+def _first_line(exc: BaseException) -> str:
+    return str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+
+
+def plan_reads(addresses: Mapping[str, int], max_count: int, max_gap: int
+               ) -> list[tuple[int, int, list[tuple[str, int]]]]:
+    """Group float32 registers into requests: ``(first, count, [(name, float index)])``.
+
+    Neighbours join one request while it stays within ``max_count`` registers and skips at
+    most ``max_gap`` registers between two wanted floats.
+    """
+    reads: list[tuple[int, int, list[tuple[str, int]]]] = []
+    for name, address in sorted(addresses.items(), key=lambda item: item[1]):
+        if reads:
+            first, count, names = reads[-1]
+            gap = address - (first + count)
+            if 0 <= gap <= max_gap and address + 2 - first <= max_count and gap % 2 == 0:
+                names.append((name, (address - first) // 2))
+                reads[-1] = (first, address + 2 - first, names)
+                continue
+        reads.append((address, 2, [(name, 0)]))
+    return reads
+
+
+@dataclass(frozen=True)
+class BenchMap:
+    """Unit ids (by role: relays, meter, levels), relays and the planned register reads
+    (:func:`plan_reads`) of the meter and the level sensors."""
+
+    units: dict[str, int]
+    relays: dict[str, RelaySpec]
+    meter_reads: list[tuple[int, int, list[tuple[str, int]]]]
+    level_reads: list[tuple[int, int, list[tuple[str, int]]]]
+
+    @property
+    def meter_quantities(self) -> list[str]:
+        return [name for _, _, names in self.meter_reads for name, _ in names]
+
+    @property
+    def level_names(self) -> list[str]:
+        return [name for _, _, names in self.level_reads for name, _ in names]
+
+
+class ModbusBenchDriver:
+    """The bench's devices over one :class:`ModbusLink`. No dwell, no safety: see safety.py."""
+
+    def __init__(self, link: ModbusLink, bench_map: BenchMap) -> None:
+        self.link = link
+        self.map = bench_map
+        coils = [r.coil for r in bench_map.relays.values()]
+        self._coil_first, self._coil_count = min(coils), max(coils) - min(coils) + 1
+
+    def _read_block(self, unit: int, reads: list[tuple[int, int, list[tuple[str, int]]]]
+                    ) -> dict[str, float]:
+        out: dict[str, float] = {}
+        for first, count, names in reads:
+            floats = self.link.read_floats(unit, first, count)
+            for name, index in names:
+                out[name] = floats[index]
+        return out
+
+    def read_power(self) -> dict[str, float]:
+        """Every polled meter quantity (``meter.poll``) of one moment."""
+        return self._read_block(self.map.units["meter"], self.map.meter_reads)
+
+    def read_levels(self) -> dict[str, float]:
+        return self._read_block(self.map.units["levels"], self.map.level_reads)
+
+    def read_relays(self) -> dict[str, bool]:
+        bits = self.link.read_coils(self.map.units["relays"], self._coil_first,
+                                    self._coil_count)
+        return {name: bits[r.coil - self._coil_first] for name, r in self.map.relays.items()}
+
+    def write_relay(self, name: str, on: bool) -> dict[str, bool]:
+        """Switch one relay, read every relay back; raise RelayStuckError when it disagrees."""
+        self.link.write_coil(self.map.units["relays"], self.map.relays[name].coil, on)
+        states = self.read_relays()
+        if states[name] != on:
+            raise RelayStuckError(f"relay {name}: wrote {'on' if on else 'off'}, read back "
+                                  f"{'on' if states[name] else 'off'} (does not follow its "
+                                  "coil: welded or stuck?)", name, states[name])
+        return states
+
+    def probe(self) -> None:
+        """One request to every unit; the first failure raises an error naming the unit."""
+        checks = (("relays", self.read_relays), ("meter", self.read_power),
+                  ("levels", self.read_levels))
+        for role, read in checks:
+            where = f"bench {role} (unit {self.map.units[role]})"
+            try:
+                read()
+            except DeviceError as exc:
+                raise DeviceError(f"{where}: {exc}", exc.code) from None
+            except LinkError as exc:
+                raise LinkError(f"{where}: {exc} (is the bench there, is the unit id right?)"
+                                ) from None
+
+    def close(self) -> None:
+        self.link.close()

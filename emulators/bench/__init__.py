@@ -1,0 +1,1 @@
+"""The relay bench emulated: plant and Modbus server."""

@@ -1,0 +1,142 @@
+"""The servo axis behind the emulated drive: a discrete state-space model plus the physical extras.
+
+Default model: the servo paper's headstock axis (``controllers.servo.model.published_axis_model``),
+T = 500 us, input q-axis current [mA], output motor position [deg]. Around the linear model:
+
+* the amplifier's current limit (the applied current saturates at ``current_limit_ma``);
+* optional friction, as an equivalent current opposing the motion: viscous ``b * v`` and
+  Coulomb ``Fc * tanh(v / v_smooth)`` (the smoothing avoids chatter at standstill in a discrete
+  simulation; below ``v_smooth`` it acts like a viscous term of ``Fc / v_smooth``, which must
+  stay moderate: from about 300 mA per deg/s it rings with the published model's resonance);
+* an optional external torque disturbance, as an equivalent current: a constant (step or pulse)
+  plus a sine over a time window, and a value that can be set at run time (the drive maps it to
+  an object, 0x2003, so a scenario can inject it over the wire).
+
+Position is kept continuous in degrees (multi-turn); the encoder reports it modulo one revolution
+in increments, like the paper's direct-drive rotary axis. The master unwraps it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from controllers.servo.model import StateSpaceModel, published_axis_model
+
+DEFAULT_INCREMENTS_PER_REV = 1 << 20
+
+
+@dataclass(frozen=True)
+class Friction:
+    """Friction as an equivalent motor current [mA]; all zero (off) by default."""
+
+    viscous_ma_per_deg_s: float = 0.0
+    coulomb_ma: float = 0.0
+    coulomb_smoothing_deg_s: float = 1.0
+
+    def current_ma(self, velocity_deg_s: float) -> float:
+        friction = self.viscous_ma_per_deg_s * velocity_deg_s
+        if self.coulomb_ma:
+            friction += self.coulomb_ma * math.tanh(velocity_deg_s / self.coulomb_smoothing_deg_s)
+        return friction
+
+
+@dataclass(frozen=True)
+class Disturbance:
+    """External load torque as an equivalent current [mA]: ``constant_ma`` plus
+    ``sine_ma * sin(2 pi sine_hz (t - start_s))`` while ``start_s <= t < end_s`` (a step, a
+    pulse, or a vibration). Off by default."""
+
+    constant_ma: float = 0.0
+    start_s: float = 0.0
+    end_s: float = math.inf
+    sine_ma: float = 0.0
+    sine_hz: float = 0.0
+
+    def current_ma(self, t_s: float) -> float:
+        if not self.start_s <= t_s < self.end_s:
+            return 0.0
+        value = self.constant_ma
+        if self.sine_ma and self.sine_hz:
+            value += self.sine_ma * math.sin(2.0 * math.pi * self.sine_hz * (t_s - self.start_s))
+        return value
+
+
+class AxisPlant:
+    """The axis, advanced one model period at a time by :meth:`step`."""
+
+    def __init__(
+        self,
+        model: StateSpaceModel | None = None,
+        *,
+        current_limit_ma: float = 12_000.0,
+        increments_per_rev: int = DEFAULT_INCREMENTS_PER_REV,
+        friction: Friction | None = None,
+        disturbance: Disturbance | None = None,
+    ) -> None:
+        self.model = model if model is not None else published_axis_model()
+        if self.model.B.shape[1] != 1 or self.model.C.shape[0] != 1:
+            raise ValueError("the axis model must have one input (mA) and one output (deg)")
+        if not current_limit_ma > 0:
+            raise ValueError(f"current limit must be > 0 mA, got {current_limit_ma!r}")
+        if int(increments_per_rev) != increments_per_rev or not 2 <= increments_per_rev < 2**31:
+            raise ValueError(f"increments per revolution must be in 2..2^31-1, got "
+                             f"{increments_per_rev!r}")
+        self.dt = float(self.model.dt)
+        self.current_limit_ma = float(current_limit_ma)
+        self.increments_per_rev = int(increments_per_rev)
+        self.friction = friction or Friction()
+        self.disturbance = disturbance or Disturbance()
+        self.extra_disturbance_ma = 0.0  # set at run time (e.g. through the drive's 0x2003)
+        A = np.asarray(self.model.A, dtype=float)
+        B = np.asarray(self.model.B, dtype=float)[:, :1]
+        C = np.asarray(self.model.C, dtype=float)[:1]
+        n = A.shape[0]
+        # one product per period: [x(k+1); y(k+1)] = [[A, B], [C A, C B]] [x(k); u(k)]
+        self._step_matrix = np.block([[A, B], [C @ A, C @ B]])
+        self._n = n
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to rest at position 0, time 0."""
+        self._xu = np.zeros(self.model.n_states + 1)  # state, then the input of the period
+        self.steps = 0
+        self.position_deg = 0.0
+        self.velocity_deg_s = 0.0
+        self.applied_current_ma = 0.0
+
+    @property
+    def time_s(self) -> float:
+        return self.steps * self.dt
+
+    def load_current_ma(self) -> float:
+        """Friction and disturbance right now, as a current opposing the motor [mA]."""
+        return (self.friction.current_ma(self.velocity_deg_s)
+                - self.disturbance.current_ma(self.time_s) - self.extra_disturbance_ma)
+
+    def step(self, current_ma: float, periods: int = 1) -> None:
+        """Apply ``current_ma`` (saturated at the current limit) for ``periods`` model periods."""
+        limit = self.current_limit_ma
+        applied = min(max(float(current_ma), -limit), limit) if math.isfinite(current_ma) else 0.0
+        self.applied_current_ma = applied
+        M, xu, n = self._step_matrix, self._xu, self._n
+        for _ in range(periods):
+            xu[n] = applied - self.load_current_ma()
+            z = M @ xu
+            xu[:n] = z[:n]
+            position = float(z[n])
+            self.velocity_deg_s = (position - self.position_deg) / self.dt
+            self.position_deg = position
+            self.steps += 1
+
+    def position_increments(self) -> int:
+        """Encoder reading: position in increments modulo one revolution, in [0, increments)."""
+        return math.floor(self.position_deg / 360.0 * self.increments_per_rev) \
+            % self.increments_per_rev
+
+    def velocity_increments_s(self) -> int:
+        """Velocity in increments per second (the drive's 0x606C unit), clamped to int32."""
+        value = round(self.velocity_deg_s / 360.0 * self.increments_per_rev)
+        return max(-(2**31), min(2**31 - 1, value))

@@ -1,0 +1,183 @@
+"""The socketcand-protocol server: handshake, raw mode, frames both ways, several clients, bad
+input. Real TCP sockets on 127.0.0.1 and python-can's stock ``socketcand`` client."""
+
+import re
+import socket
+import time
+
+import can
+import pytest
+
+from emulators.drive.node import DriveNode
+from emulators.socketcand_server import SocketcandServer, format_frame, parse_send
+from hil.core.errors import HilError
+
+
+@pytest.fixture
+def server(socketcand_server):
+    return socketcand_server
+
+
+def connect(srv):
+    sock = socket.create_connection(srv.address, timeout=5)
+    sock.settimeout(5)
+    return sock
+
+
+def read_until(sock, text, timeout=5.0):
+    data, deadline = b"", time.monotonic() + timeout
+    while text.encode() not in data and time.monotonic() < deadline:
+        try:
+            chunk = sock.recv(4096)
+        except TimeoutError:
+            break
+        if not chunk:
+            break
+        data += chunk
+    return data.decode()
+
+
+def wait_for(predicate, timeout=5.0):
+    deadline = time.monotonic() + timeout
+    while not predicate() and time.monotonic() < deadline:
+        time.sleep(0.005)
+    return predicate()
+
+
+def test_handshake_and_frames_in_the_socketcand_wire_format(server):
+    sock = connect(server)
+    assert read_until(sock, "< hi >") == "< hi >"
+    sock.sendall(b"< open can0 >")
+    assert read_until(sock, "< ok >") == "< ok >"
+    sock.sendall(b"< rawmode >")
+    assert read_until(sock, "< ok >") == "< ok >"
+    sock.sendall(b"< echo >")
+    assert read_until(sock, "< echo >") == "< echo >"
+    sock.sendall(b"< send 601 8 40 0 10 0 0 0 0 0 >< send 1ABCDEF0 2 1 f1 >< send 080 0 >")
+    assert wait_for(lambda: len(server.received) == 3)
+    first, second, third = server.received
+    assert (first.arbitration_id, bytes(first.data), first.is_extended_id) == \
+        (0x601, bytes([0x40, 0, 0x10, 0, 0, 0, 0, 0]), False)
+    assert (second.arbitration_id, bytes(second.data), second.is_extended_id) == \
+        (0x1ABCDEF0, b"\x01\xf1", True)
+    assert third.dlc == 0
+    before = time.time()
+    server.broadcast([(0x181, b"\x37\x02\x10")])
+    text = read_until(sock, ">")
+    match = re.fullmatch(r"< frame 181 (\d+\.\d{6}) 370210 >", text)
+    assert match is not None, text
+    assert before - 1e-6 <= float(match.group(1)) <= time.time()  # stamped when sent
+    sock.close()
+
+
+def test_unknown_bus_is_refused_and_the_connection_closed(server):
+    sock = connect(server)
+    read_until(sock, "< hi >")
+    sock.sendall(b"< open can7 >")
+    assert read_until(sock, ">") == "< error could not open bus >"
+    assert sock.recv(100) == b""  # closed by the server
+    sock.close()
+
+
+def test_bad_commands_are_answered_or_ignored_never_fatal(server):
+    sock = connect(server)
+    read_until(sock, "< hi >")
+    sock.sendall(b"< rawmode >")  # before open
+    assert read_until(sock, ">") == "< error unknown command >"
+    sock.sendall(b"< open can0 >< rawmode >")
+    assert read_until(sock, "< ok >< ok >").count("< ok >") == 2
+    sock.sendall(b"< subscribe 0 0 123 >")  # BCM job: not supported
+    assert read_until(sock, ">") == "< error unknown command >"
+    sock.sendall(b"garbage< send 123 3 1 2 >< send 800 0 >< send 12 9 >< send xyz 1 1 >"
+                 b"< send 123 1 1ff >" + b"x" * 300 + b"< send 7 1 aa >")
+    assert wait_for(lambda: len(server.received) == 1)
+    assert server.received[0].arbitration_id == 0x7 and bytes(server.received[0].data) == b"\xaa"
+    sock.sendall(b"< echo >")
+    assert read_until(sock, "< echo >") == "< echo >"
+    sock.close()
+
+
+def test_frames_go_to_the_other_clients_in_raw_mode_only(server):
+    a, b, bcm = connect(server), connect(server), connect(server)
+    for sock in (a, b, bcm):
+        read_until(sock, "< hi >")
+        sock.sendall(b"< open can0 >")
+        read_until(sock, "< ok >")
+    for sock in (a, b):
+        sock.sendall(b"< rawmode >")
+        read_until(sock, "< ok >")
+    b.sendall(b"< echo >")  # releases the post-handshake hold at once
+    read_until(b, "< echo >")
+    a.sendall(b"< send 222 1 5 >")
+    frame = read_until(b, ">")
+    assert frame.startswith("< frame 222 ") and frame.endswith(" 05 >")
+    bcm.settimeout(0.3)
+    assert read_until(bcm, ">", timeout=0.3) == ""  # BCM mode: no frames
+    a.settimeout(0.3)
+    assert read_until(a, ">", timeout=0.3) == ""  # not echoed to its sender
+    for sock in (a, b, bcm):
+        sock.close()
+    assert wait_for(lambda: server.client_count == 0)
+
+
+def test_python_can_socketcand_client_reaches_an_emulated_drive():
+    srv = SocketcandServer("127.0.0.1", 0)
+    node = DriveNode(send=srv.broadcast)
+    srv.on_frame, srv.on_tick = node.handle, node.service
+    node.boot()
+    srv.start()
+    host, port = srv.address
+    bus = can.Bus(interface="socketcand", host=host, port=port, channel="can0")
+    try:
+        bus.send(can.Message(arbitration_id=0x601, data=[0x40, 0x00, 0x10, 0, 0, 0, 0, 0],
+                             is_extended_id=False))
+        answer = bus.recv(5.0)
+        assert answer is not None and answer.arbitration_id == 0x581
+        assert bytes(answer.data) == bytes([0x43, 0x00, 0x10, 0x00, 0x92, 0x01, 0x02, 0x00])
+    finally:
+        bus.shutdown()
+        srv.close()
+
+
+def test_format_and_parse_are_inverse_for_standard_and_extended_ids():
+    for can_id, extended, data in ((0x7FF, False, b""), (0x1FFFFFFF, True, bytes(range(8)))):
+        msg = can.Message(arbitration_id=can_id, data=data, is_extended_id=extended,
+                          timestamp=1.0)
+        text = format_frame(msg).decode()
+        id_text = text.split()[2]
+        command = f"< send {id_text} {len(data):X} {' '.join(f'{b:x}' for b in data)} >"
+        parsed = parse_send(command)
+        assert (parsed.arbitration_id, parsed.is_extended_id, bytes(parsed.data)) == \
+            (can_id, extended, data)
+
+
+def test_a_busy_port_is_one_clear_error(server):
+    with pytest.raises(HilError, match=r"cannot listen on 127\.0\.0\.1:\d+"):
+        SocketcandServer("127.0.0.1", server.address[1], channel="can0").close()
+
+
+def test_polling_for_an_expected_frame_serves_the_same_bus():
+    """With ``next_frame_ns`` the loop polls instead of sleeping from the margin before the
+    frame is due; the bus works the same (here a frame is always due: it polls throughout)."""
+    frames = []
+    srv = SocketcandServer("127.0.0.1", 0, on_frame=frames.append,
+                           next_frame_ns=lambda now: now, poll_margin_s=150e-6).start()
+    try:
+        assert srv._until_polling() == 0.0
+        srv.next_frame_ns = lambda now: now + 1_000_000
+        assert 0.0 < srv._until_polling() <= 850e-6
+        srv.next_frame_ns = lambda now: None
+        assert srv._until_polling() == float("inf")
+        srv.next_frame_ns = lambda now: now
+        bus = can.Bus(interface="socketcand", host="127.0.0.1", port=srv.address[1],
+                      channel="can0")
+        try:
+            bus.send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))
+            assert wait_for(lambda: len(frames) == 1)
+            srv.broadcast([(0x181, b"\x01")])
+            reply = bus.recv(2.0)
+            assert reply is not None and reply.arbitration_id == 0x181
+        finally:
+            bus.shutdown()
+    finally:
+        srv.close()
