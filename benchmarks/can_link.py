@@ -174,10 +174,9 @@ def realtime_run(master: CanDriveMaster, seconds: float, split: bool) -> dict:
 
     if split:
         task = FunctionTask("link", read=lambda t: master.receive_feedback(),
-                            compute=lambda fb, t: command(t),
-                            write=lambda cmd, t: master.send_command(cmd))
+                            write=lambda t: master.send_command(command(t)))
     else:
-        task = FunctionTask("link", write=lambda _c, t: rtt.append(master.exchange(
+        task = FunctionTask("link", write=lambda t: rtt.append(master.exchange(
             command(t)).rtt_us))
     loop.add_task(task)
     stale_before = master.stats.stale

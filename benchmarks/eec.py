@@ -72,7 +72,7 @@ def closed_loop(controller: str, cycles: int, hp_s: int | None = None,
             tempfile.TemporaryDirectory() as tmp:
         kpis = run_bench(BenchRunOptions(controller=controller, cycles=cycles, hp_s=hp_s,
                                          disturbance=disturbance, out=f"{tmp}/run.mcap",
-                                         overrides=overrides or {}))
+                                         overrides=overrides or {})).kpis
     return Run(kpis, inputs, solve_ms, milps[0] if milps else None,
                time.perf_counter() - t0)
 

@@ -21,7 +21,7 @@ from pathlib import Path
 from hil.bench.run import BenchRunOptions, run_bench
 from hil.core.reader import SessionData, read_session
 from hil.core.recorder import Recorder, RecordingOptions
-from hil.servo.run import COMMAND_SCHEMA, FEEDBACK_SCHEMA, ServoRunConfig, run_servo
+from hil.servo.run import COMMAND_SCHEMA, FEEDBACK_SCHEMA, ServoRunOptions, run_servo
 
 
 def rerecord(data: SessionData, topics: dict[str, dict], path: Path, encoding: str) -> int:
@@ -58,7 +58,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         as_json = RecordingOptions(high_rate_encoding="json")  # the source: full precision
-        run_servo(ServoRunConfig(controller="pid", duration_s=args.seconds,
+        run_servo(ServoRunOptions(controller="pid", duration_s=args.seconds,
                                  out=str(tmp / "servo.mcap"), recording=as_json))
         servo = read_session(tmp / "servo.mcap")
         ticks = len(servo.topic("/drive/feedback"))

@@ -72,8 +72,8 @@ def child(kind: str, seconds: float, out: str) -> None:
     FixedRateLoop._publish_windows = publish_and_sample  # type: ignore[method-assign]
     start = time.perf_counter()
     if kind == "servo":
-        from hil.servo.run import ServoRunConfig, run_servo
-        run_servo(ServoRunConfig("mpc", duration_s=seconds, out=out, prediction_every=10))
+        from hil.servo.run import ServoRunOptions, run_servo
+        run_servo(ServoRunOptions("mpc", duration_s=seconds, out=out, prediction_every=10))
     else:
         from hil.bench.run import BenchRunOptions, run_bench
         run_bench(BenchRunOptions(controller="eec", cycles=max(1, round(seconds
@@ -116,7 +116,11 @@ def timing_per_minute(path: str) -> tuple[list[float], list[float]]:
                     if channel.message_encoding == "cdr" and schema is not None else json.loads)
             window = decoders[channel.id](message.data)
             lateness.setdefault(minute, []).append(np.asarray(window["lateness_us"], float))
-            compute.setdefault(minute, []).append(np.asarray(window["compute_us"], float))
+            # a run's whole step: the sum of its phases (sessions before phases: compute_us)
+            phases = [np.asarray(window.get(f"{p}_us", []), float)
+                      for p in ("read", "compute", "write", "record")]
+            phases = [a for a in phases if a.size] or [np.empty(0)]
+            compute.setdefault(minute, []).append(np.sum(phases, axis=0))
 
     def p99(per: dict[int, list[np.ndarray]]) -> list[float]:
         return [float(np.percentile(np.concatenate(per[m]), 99)) for m in sorted(per)

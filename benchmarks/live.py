@@ -24,7 +24,7 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hil.core.recorder import RecordingOptions
-from hil.servo.run import ServoRunConfig, run_servo
+from hil.servo.run import ServoRunOptions, run_servo
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -58,7 +58,7 @@ def run_once(tmp: str, name: str, duration_s: float, live: bool) -> dict[str, An
     if live:
         watcher = subprocess.Popen([sys.executable, "-c", WATCHER, str(port)], cwd=REPO,
                                    stdout=subprocess.PIPE, text=True)
-    config = ServoRunConfig(
+    config = ServoRunOptions(
         controller="mpc", out=f"{tmp}/{name}.mcap", duration_s=duration_s, realtime=True,
         reference="sine:amplitude=2,frequency=10", umax=12000.0, drive_overrides=TOLERANT,
         recording=RecordingOptions(live=f"127.0.0.1:{port}" if live else None))

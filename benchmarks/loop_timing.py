@@ -42,7 +42,7 @@ def hil_loop(rate_hz: float, duration_s: float, record: bool) -> tuple[dict, int
         if record:
             topic = session.topic("/tick", {"type": "object", "title": "Tick"})
 
-            def write(_command: object, t: int) -> None:
+            def write(t: int) -> None:
                 topic.log(t, {"t": t, "v": 1.5})
 
             task = FunctionTask("tick", 1, write=write)

@@ -18,8 +18,6 @@ import argparse
 import json
 import sys
 import tempfile
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +27,7 @@ from hil.bench.run import BenchRunOptions, run_bench
 from hil.core.doctor import measure_loop
 from hil.core.reader import read_session
 from hil.core.realtime import Hardening
-from hil.servo.run import ServoRunConfig, ServoTask, run_servo
+from hil.servo.run import ServoRunOptions, run_servo
 
 
 def bare_loop(seconds: float) -> dict[str, float]:
@@ -39,41 +37,6 @@ def bare_loop(seconds: float) -> dict[str, float]:
         return measure_loop(2000, seconds)
     finally:
         hardening.restore()
-
-
-class PhaseTimes:
-    """Where a servo tick goes: the time of ServoTask.read, .compute and .write, per tick
-    (measurement only: the methods are wrapped for this one run, then restored)."""
-
-    PHASES = ("read", "compute", "write")
-
-    def __init__(self) -> None:
-        self.us: dict[str, list[float]] = {name: [] for name in self.PHASES}
-        self._saved = {name: getattr(ServoTask, name) for name in self.PHASES}
-
-    def __enter__(self) -> PhaseTimes:
-        for name in self.PHASES:
-            setattr(ServoTask, name, self._timed(name, self._saved[name]))
-        return self
-
-    def __exit__(self, *_exc: object) -> None:
-        for name, method in self._saved.items():
-            setattr(ServoTask, name, method)
-
-    def _timed(self, name: str, method: Callable[..., Any]) -> Callable[..., Any]:
-        samples, clock = self.us[name], time.perf_counter_ns
-
-        def timed(*args: Any) -> Any:
-            start = clock()
-            result = method(*args)
-            samples.append((clock() - start) / 1e3)
-            return result
-
-        return timed
-
-    def percentiles(self) -> dict[str, list[float]]:
-        return {name: [float(np.percentile(v, q)) for q in (50, 90, 99)] if v else []
-                for name, v in self.us.items()}
 
 
 class ZeroCurrent:
@@ -91,18 +54,23 @@ def servo_session(tmp: Path, seconds: float, realtime: bool,
                   controller: Any = "mpc") -> dict[str, Any]:
     out = tmp / f"servo-{'rt' if realtime else 'lockstep'}.mcap"
     # the watchdog of a loaded 2-core box: stale feedback is counted, not fatal, here
-    with PhaseTimes() as phases:
-        result = run_servo(ServoRunConfig(
-            controller=controller, ert="foh", ht=8, hu=8, duration_s=seconds,
-            realtime=realtime, out=str(out),
-            drive_overrides={"master": {"stale_cycles": 100_000}}))
+    result = run_servo(ServoRunOptions(
+        controller=controller, ert="foh", ht=8, hu=8, duration_s=seconds,
+        realtime=realtime, out=str(out),
+        drive_overrides={"master": {"stale_cycles": 100_000}}))
     loop = result.loop["servo"]
+    # the loop times each phase of the tick: p50 / p90 / p99 from its timing topic
+    timing = [m for _, m in read_session(out).topic("/loop/servo/timing")]
+    phases = {phase: [float(np.percentile(v, q)) for q in (50, 90, 99)] if len(v) else []
+              for phase in ("read", "compute", "write", "record")
+              for v in [np.concatenate([np.asarray(m.get(f"{phase}_us", []), float)
+                                        for m in timing] or [np.empty(0)])]}
     scheduled = loop["runs"] + loop["missed"]
     return {"missed_pct": 100.0 * loop["missed"] / scheduled, "p99_us":
             loop["lateness_us"]["p99"], "p50_us": loop["lateness_us"]["p50"],
             "factor": result.kpis["realtime_factor"] or 0.0,
             "stale": result.kpis["stale_feedback"], "ticks": result.kpis["ticks"],
-            "step_us": result.kpis["step_us"]["median"], "phases": phases.percentiles()}
+            "step_us": result.kpis["step_us"]["median"], "phases": phases}
 
 
 def bench_session(tmp: Path, cycles: int) -> dict[str, float]:

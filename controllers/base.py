@@ -16,11 +16,21 @@ Servo drive (servo paper), stepped every tick (500 us)::
 Controllers compute; they never touch I/O or a clock. What they ask for goes through the
 drivers' safety layers (relay dwell and safe levels, the drive's current clamp), which no
 controller can bypass.
+
+Everything else a run reads from a controller is an optional capability declared here, checked
+with ``isinstance`` (the built-ins have them; a user's controller may):
+
+* bench: :class:`Estimating` (an estimator fed every sample);
+* servo: :class:`Predicting` (recorded to ``/mpc/prediction``), a ``solver`` with a
+  :class:`SolverReport` (the path of each step, counted), :class:`ReportsEvents` (events the
+  controller raised, recorded to ``/events``), :class:`CountsFallbacks`, and a ``config``
+  with :class:`MpcHorizons` (recorded with the KPIs);
+* both: :class:`Resettable`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
@@ -57,6 +67,20 @@ class BenchEstimator(Protocol):
 
 
 @runtime_checkable
+class Estimating(Protocol):
+    """A bench controller with an ``estimator`` (a :class:`BenchEstimator`) that the run feeds
+    every sample."""
+
+    estimator: Any
+
+
+def estimator_of(controller: object) -> BenchEstimator | None:
+    """The controller's estimator, if it has one that is a :class:`BenchEstimator`."""
+    estimator = controller.estimator if isinstance(controller, Estimating) else None
+    return estimator if isinstance(estimator, BenchEstimator) else None
+
+
+@runtime_checkable
 class BenchController(Protocol):
     """Decides the peripheral relays from an observation: ``{"P1": True, ...}``. Relays it
     leaves out keep their state."""
@@ -76,3 +100,58 @@ class Resettable(Protocol):
     """A controller with state to clear before a run (optional part of the contracts)."""
 
     def reset(self) -> None: ...
+
+
+@runtime_checkable
+class Predicting(Protocol):
+    """A servo controller that tells its predicted inputs u(k+i|k) [mA] and outputs
+    y(k+i|k) [deg] after each step (the MPCs): recorded to ``/mpc/prediction``."""
+
+    def prediction(self) -> tuple[Any, Any]: ...
+
+
+@runtime_checkable
+class SolverReport(Protocol):
+    """A controller's ``solver``: the path of the last step (``unconstrained``, ``qp``,
+    ``explicit``, ``fallback``...) and how often each path was taken."""
+
+    last_path: str
+    counts: Mapping[str, int]
+
+
+def solver_of(controller: object) -> SolverReport | None:
+    """The controller's ``solver`` report, if it has one."""
+    solver = getattr(controller, "solver", None)
+    return solver if isinstance(solver, SolverReport) else None
+
+
+@runtime_checkable
+class ReportsEvents(Protocol):
+    """A controller that raises events (the explicit MPC's fallbacks): each a mapping with
+    ``kind``, ``message``, optionally ``level`` and data, taken once."""
+
+    def pop_events(self) -> Sequence[Mapping[str, Any]]: ...
+
+
+@runtime_checkable
+class CountsFallbacks(Protocol):
+    """A controller that counts the steps it fell back to a slower or safer path."""
+
+    fallbacks: int
+
+
+@runtime_checkable
+class MpcHorizons(Protocol):
+    """The horizons of a model-predictive controller, as its ``config`` holds them: extended
+    reference (``foh`` | ``zoh``), trajectory, control and prediction horizons."""
+
+    ert: str
+    ht: int
+    hu: int
+    hp: int
+
+
+def horizons_of(controller: object) -> MpcHorizons | None:
+    """The controller's MPC horizons (its ``config``), if it has them."""
+    config = getattr(controller, "config", None)
+    return config if isinstance(config, MpcHorizons) else None

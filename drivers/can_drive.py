@@ -307,6 +307,17 @@ class CanDriveMaster(Device):
                 self._event("drive.bootup", f"drive node {n} sent a boot-up message: it "
                             "restarted", level="error")
 
+    def _take_waiting(self) -> None:
+        """The frames already here for the cycle still awaited (without waiting for more)."""
+        recv = self._recv_frame
+        try:
+            while self._got != 3 and (frame := recv(0)) is not None:
+                self._dispatch(frame)
+        except (can.CanError, OSError) as exc:
+            raise DriveLinkLostError(f"drive node {self.node_id}: cannot read "
+                                     f"{self.bus.channel_info}: {one_line(exc)}") from None
+        self._awaiting = False
+
     def _drain(self) -> None:
         """Frames already waiting (late TPDOs, EMCY, heartbeats) before a new SYNC."""
         recv = self._recv_frame
@@ -610,11 +621,13 @@ class CanDriveMaster(Device):
             raise DriveStateError(f"drive node {self.node_id} is not enabled: call start()")
 
     def _send_cycle(self, controlword: int, target: int) -> None:
-        if self._got != 3:  # the last pair is missing: what comes of it now is late
-            try:
+        try:
+            if self._awaiting:  # the last cycle's answer was never asked for: what came is its
+                self._take_waiting()
+            if self._got != 3:  # the last pair is missing: what comes of it now is late
                 self._drain()
-            except DriveLinkLostError as exc:
-                self._lose_link(one_line(exc))
+        except DriveLinkLostError as exc:
+            self._lose_link(one_line(exc))
         rpdo = (self._rpdo1, self._rpdo_layout.pack(controlword, target))
         now = self._now_ns()
         frames = [rpdo, self._sync]

@@ -62,7 +62,7 @@ def run_bench(controller: Controller, params: Mapping[str, Any] | None = None, *
 
     _check_options(options, {f.name for f in fields(BenchRunOptions)}, "run_bench")
     return run(BenchRunOptions(controller=controller, params=dict(params or {}), bench=bench,
-                               cycles=cycles, limits=_limits(limits), **options))
+                               cycles=cycles, limits=_limits(limits), **options)).kpis
 
 
 def run_servo(controller: Controller, params: Mapping[str, Any] | None = None, *,
@@ -70,16 +70,15 @@ def run_servo(controller: Controller, params: Mapping[str, Any] | None = None, *
               duration_s: float = 1.0, limits: Iterable[str | Limit] = (),
               **options: Any) -> dict[str, Any]:
     """One closed-loop servo run (``hil servo run``), lockstep unless ``realtime=True``;
-    ``options`` are the other fields of :class:`hil.servo.run.ServoRunConfig` (``out``,
+    ``options`` are the other fields of :class:`hil.servo.run.ServoRunOptions` (``out``,
     ``umax``, ``settle_s``, ``drive_config``, ``controller_budget_s``...)."""
-    from hil.servo.run import ServoRunConfig
+    from hil.servo.run import ServoRunOptions
     from hil.servo.run import run_servo as run
 
-    _check_options(options, {f.name for f in fields(ServoRunConfig)}, "run_servo")
-    config = ServoRunConfig(controller=controller, params=dict(params or {}), drive=drive,
-                            reference=reference, duration_s=duration_s,
-                            limits=_limits(limits), **options)
-    return run(config).kpis
+    _check_options(options, {f.name for f in fields(ServoRunOptions)}, "run_servo")
+    return run(ServoRunOptions(controller=controller, params=dict(params or {}), drive=drive,
+                               reference=reference, duration_s=duration_s,
+                               limits=_limits(limits), **options)).kpis
 
 
 class _MonotonicTime:

@@ -40,7 +40,7 @@ def record(
     power = session.topic("/bench/power", SCHEMA)
     state = {"x": np.zeros(3), "u": 0.0, "hold": 20, "k": 0}
 
-    def step(_command, t_ns):
+    def step(t_ns):
         if state["hold"] == 0:
             state["u"] = 1.0 - state["u"]
             state["hold"] = int(rng.integers(30, 150))

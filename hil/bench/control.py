@@ -1,12 +1,12 @@
 """A bench controller in the loop: what it is told, when it decides, what is recorded.
 
-* :class:`Observer` (every sample) - logs the reading for the KPIs and feeds the controller's
-  estimator (:class:`~controllers.base.BenchEstimator`, the EEC's Kalman filter), in the loop
-  thread;
+* :class:`Observer` (every sample) - takes the reading (read), feeds the controller's
+  estimator (:class:`~controllers.base.BenchEstimator`, the EEC's Kalman filter) in the loop
+  thread (compute) and adds the reading to the KPIs (record);
 * :class:`ControllerTask` (every decision step) - takes a
   :class:`~controllers.base.BenchObservation` at the decision instant, in the loop thread (the
-  estimator's ``estimate()`` included), asks any :class:`~controllers.base.BenchController`,
-  and sends its answer through the safety layer;
+  estimator's ``estimate()`` included), asks any :class:`~controllers.base.BenchController`
+  (compute), and sends its answer through the safety layer (write);
 * :class:`GuardedController` - any controller as the loop calls it: timed, held to a budget,
   its answer checked; :class:`RecordedEEC` - the EEC, whose estimates, plans and fallbacks go
   to ``/eec/estimate``, ``/eec/plan`` and ``/events``;
@@ -23,7 +23,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from controllers.base import BenchController, BenchEstimator, BenchObservation, BenchSample
+from controllers.base import (
+    BenchController,
+    BenchEstimator,
+    BenchObservation,
+    BenchSample,
+    estimator_of,
+)
 from hil.bench.kpis import BenchKpis
 from hil.core.errors import ControllerError
 from hil.core.guard import guarded_call
@@ -84,15 +90,10 @@ class RunLog:
     solver_reports: bool = False  # solve_ms holds a solver's times (else decide_ms is used)
 
 
-def estimator_of(controller: BenchController) -> BenchEstimator | None:
-    """The controller's ``estimator`` attribute, if it has one."""
-    estimator = getattr(controller, "estimator", None)
-    return estimator if isinstance(estimator, BenchEstimator) else None
-
-
 class Observer(Task):
-    """Every sample: add the reading to the KPIs and feed the estimator (if any) the relays
-    held during the last step and this reading (placed before the sequence player)."""
+    """Every sample: the reading as the sampler took it (read), the controller's estimator fed
+    the relays held during the last step and this reading (compute), the reading added to the
+    KPIs (record)."""
 
     def __init__(self, rig: BenchRig, log: RunLog, clock_origin: Callable[[], int],
                  estimator: BenchEstimator | None) -> None:
@@ -107,6 +108,8 @@ class Observer(Task):
         # where the bench was last heard); at most give_up_s of samples
         self._held: list[float] = []
         self._may_give_up = rig.link.give_up_ns > 0
+        # this sample: time, total VA (None: no new reading), relays, link up, new levels
+        self._sample: tuple[float, float | None, dict[str, bool], bool, Any] | None = None
 
     def read(self, t_ns: int) -> None:
         sampler, bench = self.rig.sampler, self.rig.bench
@@ -115,25 +118,36 @@ class Observer(Task):
         total_va = power["total_va"] if power is not None and power is not self._last_power \
             else None
         self._last_power = power
+        link_up = bench.link_up
+        # the relays' real state is unknown while the link is lost: driven to their safe level
+        relays = bench.relays() if link_up else dict(bench.safe_levels)
+        levels = sampler.latest_levels
+        new_levels = levels if levels is not None and levels is not self._last_levels else None
+        if new_levels is not None:
+            self._last_levels = new_levels
+        self._sample = (t, total_va, relays, link_up, new_levels)
+
+    def compute(self, t_ns: int) -> None:
+        if self.estimator is not None and self._sample is not None:
+            t, total_va, relays, _, _ = self._sample
+            self.estimator.update(BenchSample(t, total_va, relays))
+
+    def record(self, t_ns: int) -> None:
+        if self._sample is None:
+            return
+        t, total_va, relays, link_up, levels = self._sample
         kpis = self.log.kpis
-        if bench.link_up:
+        if link_up:
             self._release_held()
-            relays = bench.relays()
             kpis.relays(t, relays)
-        else:  # the relays' real state is unknown: they were driven to their safe level
-            relays = dict(bench.safe_levels)
-            if self._may_give_up:
-                self._held.append(t)
-            else:
-                kpis.relays(t, relays)
+        elif self._may_give_up:
+            self._held.append(t)
+        else:
+            kpis.relays(t, relays)
         if total_va is not None:
             kpis.power(t, total_va)
-        levels = sampler.latest_levels
-        if levels is not None and levels is not self._last_levels:
-            self._last_levels = levels
+        if levels is not None:
             kpis.levels(t, levels)
-        if self.estimator is not None:
-            self.estimator.update(BenchSample(t, total_va, relays))
 
     def _release_held(self) -> None:
         safe = self.rig.bench.safe_levels
@@ -176,6 +190,7 @@ class ControllerTask(Task):
         self.skipped = 0
         self._last_step = -1
         self._pending: tuple[Future[Mapping[str, bool]], int] | None = None
+        self._command: Mapping[str, bool] | None = None  # this tick's decision, to write
         # started from the (hardened) loop thread: its worker must not inherit FIFO and the core
         self._executor = (ThreadPoolExecutor(1, "eec", initializer=ordinary_thread)
                           if asynchronous else None)
@@ -192,9 +207,15 @@ class ControllerTask(Task):
             power["total_va"] if power is not None else math.nan,
             self.estimator.estimate() if self.estimator is not None else None)
 
-    def read(self, t_ns: int) -> Any:
+    def compute(self, t_ns: int) -> None:
+        """Lockstep: decide on this tick's observation. Real time: start a decision at a
+        decision instant, and take one that is done and due."""
+        self._command = None
         if not self.asynchronous:
-            return self._observe(t_ns)
+            obs = self._observe(t_ns)
+            if obs is not None:
+                self._command = self.controller.decide(obs)
+            return
         step = (t_ns - self._origin()) // self._step_ns
         if step > self._last_step:  # a decision instant (the first tick of a step)
             self._last_step = step
@@ -208,15 +229,10 @@ class ControllerTask(Task):
         if self._pending is not None and t_ns >= self._pending[1] and self._pending[0].done():
             future, _ = self._pending
             self._pending = None
-            return future.result()
-        return None
+            self._command = future.result()
 
-    def compute(self, measurement: Any, t_ns: int) -> Mapping[str, bool] | None:
-        if isinstance(measurement, BenchObservation):
-            return self.controller.decide(measurement)
-        return measurement
-
-    def write(self, command: Mapping[str, bool] | None, t_ns: int) -> None:
+    def write(self, t_ns: int) -> None:
+        command = self._command
         if command:
             current = self.rig.bench.commanded()
             changes = {n: on for n, on in command.items() if current[n] != on}
@@ -340,7 +356,7 @@ class BenchContext:
 
 
 class SignalLimits(Task):
-    """Every sample: the per-tick limits (``--limit 'total_va<=900'``) on the meter's
+    """Every sample (record phase): the per-tick limits (``--limit 'total_va<=900'``) on the meter's
     quantities and the levels. The first violation is recorded on ``/events`` and stops the
     loop; the relays then go to their safe levels."""
 
@@ -349,7 +365,7 @@ class SignalLimits(Task):
         self.rig, self.watch, self.session = rig, watch, session
         self._last: tuple[Any, Any] = (None, None)
 
-    def read(self, t_ns: int) -> None:
+    def record(self, t_ns: int) -> None:
         power, levels = self.rig.sampler.latest_power, self.rig.sampler.latest_levels
         values: dict[str, float] = {}
         if power is not None and power is not self._last[0]:

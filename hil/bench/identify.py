@@ -97,6 +97,7 @@ class PrbsTask(Task):
         self.rig, self.prbs, self.recorded, self.log = rig, prbs, recorded, log
         self._progress = progress
         self._sample = 0
+        self._changes: dict[str, bool] = {}
         self._previous = {name: False for name in recorded}
         self._topic = session.topic(TOPIC, {
             "type": "object", "title": "hil.IdentRelays",
@@ -107,12 +108,10 @@ class PrbsTask(Task):
                            for name in recorded for f in (name, f"{name}_start")},
         })
 
-    def read(self, t_ns: int) -> int:
+    def compute(self, t_ns: int) -> None:
+        """The PRBS bits of this sample, and the relays whose dwell lets them switch now."""
         sample = self._sample
         self._sample += 1
-        return sample
-
-    def compute(self, sample: int, t_ns: int) -> dict[str, bool]:
         changes: dict[str, bool] = {}
         for relay in self.prbs:
             if sample >= relay.next_bit:
@@ -123,7 +122,7 @@ class PrbsTask(Task):
                     changes[relay.name] = relay.state
                 else:
                     self.log.late_ticks += 1
-        return changes
+        self._changes = changes
 
     @staticmethod
     def _dwell_over(relay: PrbsRelay, t_ns: int) -> bool:
@@ -132,8 +131,8 @@ class PrbsTask(Task):
             return True
         return t_ns / 1e9 >= relay.last_switch_ns / 1e9 + relay.dwell_s
 
-    def write(self, changes: dict[str, bool], t_ns: int) -> None:
-        bench = self.rig.bench
+    def write(self, t_ns: int) -> None:
+        bench, changes = self.rig.bench, self._changes
         if changes and bench.link_up:
             for name, outcome in bench.set_relays(changes, t_ns).items():
                 if outcome == "switched":
@@ -145,7 +144,10 @@ class PrbsTask(Task):
                     self.log.deferred += 1
                 elif outcome in ("failed", "refused"):
                     self.log.failed += 1
-        written = bench.commanded()
+
+    def record(self, t_ns: int) -> None:
+        """``/ident/relays``: the relays as written at this tick, and their switch-ons."""
+        written = self.rig.bench.commanded()
         message: dict[str, int] = {}
         for name in self.recorded:
             on = written[name]

@@ -8,12 +8,14 @@
   picks lockstep for it and the wall clock for a real bench.
 * :class:`SequenceSchedule` - the machining sequence as the player plays it: exact
   nanosecond lookups on the table of :class:`controllers.bench.problem.MachiningSequence`.
-* :class:`BenchSampler` - polls power (and levels) every sample, services the safety layer,
-  publishes ``/bench/power``, ``/bench/levels``, ``/bench/relays``.
+* :class:`BenchSampler` - polls power (and levels) every sample and services the safety
+  layer (read phase), records ``/bench/power``, ``/bench/levels``, ``/bench/relays`` (record
+  phase).
 * :class:`SequencePlayer` - drives M1/M2 from the table through the safety layer.
-* :func:`attach_bench` - all of it wired into a :class:`~hil.core.session.Session`. Add
-  controller tasks after it: tasks run in the order added, so a controller sees this tick's
-  sample.
+* :func:`open_bench_device` opens a bench URL (before its session exists);
+  :func:`attach_rig` wires it into a :class:`~hil.core.session.Session`: the rig's tasks come
+  first in every phase (plant step, sampler, link monitor, player), so a controller added
+  after them sees this tick's sample. :func:`attach_bench` does both.
 """
 
 from __future__ import annotations
@@ -115,6 +117,8 @@ class BenchSampler(Task):
         self.latest_power: dict[str, float] | None = None
         self.latest_levels: dict[str, float] | None = None
         self.samples = self.missed_power = self.missed_levels = 0
+        # this sample as read: power, levels, actual and commanded relays, link up
+        self._sample: tuple[Any, Any, dict[str, bool], dict[str, bool], bool] | None = None
         self._topics = None
         if session is not None:
             relay_fields = [*bench.relay_names, *(f"{n}_commanded" for n in bench.relay_names)]
@@ -134,7 +138,9 @@ class BenchSampler(Task):
                 }, high_rate=True),
             )
 
-    def read(self, t_ns: int) -> tuple[dict[str, float] | None, dict[str, float] | None]:
+    def read(self, t_ns: int) -> None:
+        """Service the safety layer, poll the meter (and levels), check for frozen sensors;
+        keep the relays' states as they were read, for the record."""
         n = self.samples
         self.samples += 1
         bench = self.bench
@@ -147,30 +153,28 @@ class BenchSampler(Task):
             self.missed_power += 1
         if levels is None and n % self.levels_every == 0:
             self.missed_levels += 1
-        return power, levels
-
-    def compute(self, measurement: Any, t_ns: int) -> Any:
-        return measurement
-
-    def write(self, command: Any, t_ns: int) -> None:
-        power, levels = command
+        relays = bench.relays()
         if self.stale is not None:
-            self.stale.check(power, levels, self.bench.relays(), t_ns)
+            self.stale.check(power, levels, relays, t_ns)
         if power is not None:
             self.latest_power = power
         if levels is not None:
             self.latest_levels = levels
-        if self._topics is None:
+        self._sample = (power, levels, relays, bench.commanded(), bench.link_up)
+
+    def record(self, t_ns: int) -> None:
+        """``/bench/power``, ``/bench/levels`` and ``/bench/relays`` of this sample."""
+        if self._topics is None or self._sample is None:
             return
+        power, levels, actual, commanded, link_up = self._sample
         power_topic, levels_topic, relays_topic = self._topics
         if power is not None:
             power_topic.log(t_ns, power)
         if levels is not None:
             levels_topic.log(t_ns, levels)
-        actual, commanded = self.bench.relays(), self.bench.commanded()
         message: dict[str, int] = {name: int(on) for name, on in actual.items()}
         message.update({f"{name}_commanded": int(on) for name, on in commanded.items()})
-        message["link_up"] = int(self.bench.link_up)
+        message["link_up"] = int(link_up)
         relays_topic.log(t_ns, message)
 
 
@@ -252,6 +256,7 @@ class SequencePlayer(Task):
         super().__init__(name, divisor)
         self.bench, self.sequence = bench, sequence
         self.t0_ns: int | None = None
+        self._changes: dict[str, bool] = {}
 
     def phase_s(self, t_ns: int) -> float:
         """Time into the current machine cycle (0 before the first tick)."""
@@ -259,18 +264,30 @@ class SequencePlayer(Task):
             return 0.0
         return ((t_ns - self.t0_ns) % round(self.sequence.period_s * 1e9)) / 1e9
 
-    def read(self, t_ns: int) -> dict[str, bool]:
+    def compute(self, t_ns: int) -> None:
+        """The relays whose state in the table differs from what is commanded."""
         if self.t0_ns is None:
             self.t0_ns = t_ns
-        return self.sequence.states_at(t_ns - self.t0_ns)
-
-    def compute(self, measurement: dict[str, bool], t_ns: int) -> dict[str, bool]:
+        states = self.sequence.states_at(t_ns - self.t0_ns)
         commanded = self.bench.commanded()
-        return {name: on for name, on in measurement.items() if commanded[name] != on}
+        self._changes = {name: on for name, on in states.items() if commanded[name] != on}
 
-    def write(self, command: dict[str, bool], t_ns: int) -> None:
-        if command and self.bench.link_up:
-            self.bench.set_relays(command, t_ns)
+    def write(self, t_ns: int) -> None:
+        if self._changes and self.bench.link_up:
+            self.bench.set_relays(self._changes, t_ns)
+
+
+class SequenceOrigin:
+    """Clock time of the machining sequence's start, which every ``t_s`` counts from: the
+    player's first tick (the clock's time until then)."""
+
+    def __init__(self, clock: TimeSource) -> None:
+        self.clock = clock
+        self.player: SequencePlayer | None = None
+
+    def __call__(self) -> int:
+        t0 = self.player.t0_ns if self.player is not None else None
+        return t0 if t0 is not None else self.clock.time_ns()
 
 
 class PlantStepTask(Task):
@@ -306,10 +323,20 @@ class PlantStepTask(Task):
 @dataclass
 class OpenedBench:
     """What a bench factory returns: the safety layer, opened (relays at their safe levels),
-    and the emulator behind it, if any, to stop after the run."""
+    the emulator behind it, if any, to stop after the run, and in lockstep the task that
+    steps the emulator's plant (the rig makes it the first task)."""
 
     bench: SafeBench
     emulator: EmulatedBench | EmulatorProcess | None = None
+    plant_task: PlantStepTask | None = None
+
+    def close(self) -> None:
+        """Close the link (relays safe, best effort), then stop the emulator."""
+        try:
+            self.bench.close()
+        finally:
+            if self.emulator is not None:
+                self.emulator.stop()
 
 
 def safe_bench(url: str, config: BenchConfig, clock: TimeSource,
@@ -333,9 +360,10 @@ def safe_bench(url: str, config: BenchConfig, clock: TimeSource,
     return bench
 
 
-def open_modbus(url: str, config: BenchConfig, session: Session) -> OpenedBench:
+def open_modbus(url: str, config: BenchConfig, clock: Clock, on_event: EventSink
+                ) -> OpenedBench:
     """Factory of ``modbus-tcp://HOST:PORT`` and ``modbus-rtu:///dev/X?...``."""
-    return OpenedBench(safe_bench(url, config, session.clock, session.event))
+    return OpenedBench(safe_bench(url, config, clock, on_event))
 
 
 def make_emulator(config: BenchConfig, on_fault: Callable[[str], None] | None = None
@@ -349,25 +377,26 @@ def make_emulator(config: BenchConfig, on_fault: Callable[[str], None] | None = 
     return EmulatedBench(config.plant, config.server, config.faults, on_fault)
 
 
-def open_emulated(url: str, config: BenchConfig, session: Session) -> OpenedBench:
+def open_emulated(url: str, config: BenchConfig, clock: Clock, on_event: EventSink
+                  ) -> OpenedBench:
     """Factory of ``emulated``. Lockstep (SimClock): the emulator in this process on
     127.0.0.1 (a free port), its plant stepped by the loop. Real time: the emulator in a
     process of its own, as the hardware would be, so the loop process measures only its own
     cost; it reads the same config file (``config.source``) with the plant's seed and
     disturbance switch."""
-    if session.clock.mode != "sim":
-        return _emulator_process(config, session)
+    if clock.mode != "sim":
+        return _emulator_process(config, clock, on_event)
     emulator = make_emulator(config)
     tcp_url = emulator.serve_tcp()
-    session.add_task(PlantStepTask(emulator, on_event=session.event))
     try:
-        return OpenedBench(safe_bench(tcp_url, config, session.clock, session.event), emulator)
+        return OpenedBench(safe_bench(tcp_url, config, clock, on_event), emulator,
+                           PlantStepTask(emulator, on_event=on_event))
     except BaseException:
         emulator.stop()
         raise
 
 
-def _emulator_process(config: BenchConfig, session: Session) -> OpenedBench:
+def _emulator_process(config: BenchConfig, clock: Clock, on_event: EventSink) -> OpenedBench:
     from hil.bench.config import check_emulation
     from hil.emulator_process import start_bench_emulator
 
@@ -375,56 +404,60 @@ def _emulator_process(config: BenchConfig, session: Session) -> OpenedBench:
     path = config.source if os.path.isfile(config.source) else None
     process = start_bench_emulator(path, seed=config.plant.seed,
                                    disturbance=config.plant.disturbance.enabled)
-    session.event("emulator.process", f"bench emulator in process {process.pid} at "
-                  f"{process.url}", source="bench", pid=process.pid, url=process.url)
+    on_event("emulator.process", f"bench emulator in process {process.pid} at {process.url}",
+             source="bench", pid=process.pid, url=process.url)
     try:
-        return OpenedBench(safe_bench(process.url, config, session.clock, session.event),
-                           process)
+        return OpenedBench(safe_bench(process.url, config, clock, on_event), process)
     except BaseException:
         process.stop()
         raise
 
 
+def open_bench_device(url: str, config: BenchConfig, clock: Clock,
+                      on_event: EventSink = no_event) -> OpenedBench:
+    """The bench at ``url`` through :data:`BENCH_DEVICES`, opened (relays at their safe
+    levels); ``clock`` paces it (and steps an emulator in lockstep)."""
+    opened: OpenedBench = BENCH_DEVICES.open(url, config, clock, on_event)
+    return opened
+
+
 @dataclass
 class BenchRig:
-    """A bench attached to a session: the safe facade, the tasks, the emulator if any."""
+    """A bench attached to a session: the opened device, its tasks, the sequence."""
 
-    bench: SafeBench
+    device: OpenedBench
     sampler: BenchSampler
     link: LinkMonitor
     player: SequencePlayer | None
     sequence: SequenceSchedule
-    emulator: EmulatedBench | EmulatorProcess | None  # in this process (lockstep) or its own
     config: BenchConfig
+
+    @property
+    def bench(self) -> SafeBench:
+        return self.device.bench
+
+    @property
+    def emulator(self) -> EmulatedBench | EmulatorProcess | None:
+        return self.device.emulator
 
     def close(self) -> None:
         """After the run (the loop already drove the relays safe): close link, stop emulator."""
-        try:
-            self.bench.close()
-        finally:
-            if self.emulator is not None:
-                self.emulator.stop()
+        self.device.close()
 
 
-def attach_bench(session: Session, config: BenchConfig, target: str | None = None, *,
-                 play_sequence: bool = True, seed: int | None = None,
-                 disturbance: bool | None = None) -> BenchRig:
-    """Wire the bench into ``session``: [emulator step (lockstep)], sampler, sequence player.
-
-    ``target``: a bench URL opened through :data:`BENCH_DEVICES` (``emulated``, a Modbus URL);
-    default ``bus.url`` of the config. ``seed`` and ``disturbance`` override the emulated
-    plant's. The bench is a session component: its relays go to their safe levels when the
-    loop stops, whatever the reason.
-    """
+def attach_rig(session: Session, config: BenchConfig, device: OpenedBench, *,
+               play_sequence: bool = True) -> BenchRig:
+    """Wire an opened bench into ``session``: its tasks, first in every phase, in this order:
+    [plant step (lockstep emulator)], sampler, link monitor, [sequence player]. The bench is a
+    session component: its relays go to their safe levels when the loop stops, whatever the
+    reason."""
     period = config.sampling.period_s
     base_s = session.loop.base_period_ns / 1e9
     divisor = round(period / base_s)
     if divisor < 1 or abs(divisor * base_s - period) > 1e-9:
         raise ConfigError(f"{config.source}: sampling.period_s = {period:g} s is not a multiple "
                           f"of the loop's base period {base_s:g} s")
-    url = target or config.bus.url
-    opened: OpenedBench = BENCH_DEVICES.open(url, config.emulating(seed, disturbance), session)
-    bench, bench_map = opened.bench, config.map
+    bench, bench_map = device.bench, config.map
     rates = {r.name: (r.consumer, r.alpha, r.supplier, r.eta)
              for r in config.problem.resources}
     sampler = BenchSampler(
@@ -433,13 +466,25 @@ def attach_bench(session: Session, config: BenchConfig, target: str | None = Non
         readback_every=config.sampling.relays_readback_every, divisor=divisor,
         stale=StaleReadings(STALE_POLLS, rates, session.event),
     )
-    session.add_task(sampler)
     link = LinkMonitor(bench, session, config.bus.give_up_s, divisor)
-    session.add_task(link)
     sequence = SequenceSchedule(config.problem.sequence)
-    player = None
-    if play_sequence:
-        player = SequencePlayer(bench, sequence, divisor=divisor)
-        session.add_task(player)
+    player = SequencePlayer(bench, sequence, divisor=divisor) if play_sequence else None
+    for task in (device.plant_task, sampler, link, player):
+        if task is not None:
+            session.add_task(task)
     session.add_component(bench)
-    return BenchRig(bench, sampler, link, player, sequence, opened.emulator, config)
+    return BenchRig(device, sampler, link, player, sequence, config)
+
+
+def attach_bench(session: Session, config: BenchConfig, target: str | None = None, *,
+                 play_sequence: bool = True, seed: int | None = None,
+                 disturbance: bool | None = None) -> BenchRig:
+    """Open the bench at ``target`` (default ``bus.url`` of the config) and
+    :func:`attach_rig` it; ``seed`` and ``disturbance`` override the emulated plant's."""
+    device = open_bench_device(target or config.bus.url, config.emulating(seed, disturbance),
+                               session.clock, session.event)
+    try:
+        return attach_rig(session, config, device, play_sequence=play_sequence)
+    except BaseException:
+        device.close()
+        raise

@@ -1,32 +1,29 @@
 """``hil bench run``: a controller closing the loop on the relay bench, recorded to MCAP.
 
-Loop (base period 0.01 s, tasks in this order every tick):
+:class:`BenchExperiment` is the bench's part of the run pipeline (:mod:`hil.core.run`). The loop
+(base period 0.01 s) runs, in each phase, the tasks in this order:
 
-1. [lockstep emulator] plant step, 2. sampler (meter and levels, safety service; publishes
-   ``/bench/power``, ``/bench/levels``, ``/bench/relays``) - both from :func:`attach_bench`;
-3. ``estimator`` (100 Hz): logs the sample for the KPIs and feeds the controller's estimator
-   (the EEC's Kalman filter) the relays held during the last step and this reading;
-4. ``sequence``: the machining sequence player (M1/M2);
-5. ``limits`` (100 Hz, only with per-tick limits): stops the run at the first violation;
-6. ``controller`` (every 100 ticks = 1 s): the controller (EEC, BC or a user's, see
+1. [lockstep emulator] plant step, the sampler (meter and levels, safety service; it records
+   ``/bench/power``, ``/bench/levels``, ``/bench/relays``), the link monitor and the sequence
+   player (M1/M2) - the rig's tasks (:mod:`hil.bench.rig`);
+2. ``estimator`` (100 Hz): the sample for the KPIs and the controller's estimator (the EEC's
+   Kalman filter), fed the relays held during the last step and this reading;
+3. ``limits`` (100 Hz, only with per-tick limits): stops the run at the first violation;
+4. ``controller`` (every 100 ticks = 1 s): the controller (EEC, BC or a user's, see
    :mod:`controllers.base`) decides P1/P2 through the safety layer; the EEC's plan goes to
    ``/eec/plan``, fallbacks and solver trouble to ``/events``.
 
-Tasks 3, 5 and 6 are :mod:`hil.bench.control`'s. KPIs (:mod:`hil.bench.kpis`) are
-computed from the samples the loop saw and stored in the session (``hil report`` prints them).
+Tasks 2-4 are :mod:`hil.bench.control`'s. KPIs (:mod:`hil.bench.kpis`) are computed from the
+samples the loop saw and stored in the session (``hil report`` prints them).
 """
 
 from __future__ import annotations
 
-import os
-import tempfile
-import time
-from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
-from controllers.base import BenchController
-from hil.bench.config import BenchConfig, default_text, load_configs
+from hil.bench.config import EecConfig, default_text, load_configs
 from hil.bench.control import (
     BenchContext,
     ControllerTask,
@@ -34,28 +31,50 @@ from hil.bench.control import (
     Observer,
     RunLog,
     SignalLimits,
-    estimator_of,
 )
 from hil.bench.kpis import BenchKpis
-from hil.bench.rig import BenchRig, SequencePlayer, attach_bench, is_emulated, session_clock
+from hil.bench.rig import (
+    BenchRig,
+    OpenedBench,
+    SequenceOrigin,
+    attach_rig,
+    is_emulated,
+    open_bench_device,
+    session_clock,
+)
+from hil.core.clock import Clock
 from hil.core.errors import ConfigError, HilError, UsageError
+from hil.core.loop import Task
 from hil.core.plugins import build_controller, controller_factory, controller_short_name
 from hil.core.recorder import RecordingOptions
+from hil.core.run import (
+    EventBuffer,
+    Experiment,
+    RunPlan,
+    RunResult,
+    controller_budget,
+    default_session_path,
+    run_experiment,
+)
 from hil.core.session import Session
-from hil.core.types import TimeSource
-from hil.core.verdict import Limit, SignalWatch, split_limits, verdict
+from hil.core.verdict import Limit, SignalWatch, split_limits
+
+#: ``hil bench run``'s flags (argparse dests) -> the option they set, where the names differ
+FLAG_OPTIONS = {"hp": "hp_s", "hs": "hs_s", "dwell": "dwell_s", "config": "config_path",
+                "limit": "limits", "param": "params", "controller_budget": "controller_budget_s"}
 
 
-@dataclass
+@dataclass(frozen=True)
 class BenchRunOptions:
     """Everything ``hil bench run`` can set (CLI flags); None = the config's value.
 
     ``controller`` is a spec (``eec``, ``bc``, ``FILE.py:Class``, ``package.module:Class``, a
     name registered in ``hil.controllers``) or a class; ``params`` are laid over the config's
-    ``[controller]`` table; ``limits`` are added to its ``[limits]``."""
+    ``[controller]`` table; ``limits`` are added to its ``[limits]``; ``overrides`` are
+    ``[eec]`` keys (benchmarks, the demo, ``--terminal``)."""
 
     controller: str | Callable[..., Any] = "eec"
-    params: dict[str, Any] = field(default_factory=dict)
+    params: Mapping[str, Any] = field(default_factory=dict)
     bench: str = "emulated"
     cycles: int = 8
     hp_s: int | None = None
@@ -70,95 +89,146 @@ class BenchRunOptions:
     seed: int | None = None
     limits: tuple[Limit, ...] = ()
     controller_budget_s: float | None = None  # per decision; None: the step in real time
-    overrides: dict[str, Any] = field(default_factory=dict)  # [eec] keys (benchmarks, demo)
+    overrides: Mapping[str, Any] = field(default_factory=dict)
     recording: RecordingOptions = field(default_factory=RecordingOptions)
+
+    @classmethod
+    def from_flags(cls, flags: Mapping[str, Any]) -> BenchRunOptions:
+        """The options of ``hil bench run``'s flags as a dict (argparse dests; a sweep's swept
+        values laid over them); flags that are not run options (``json``, ``junit``...) are
+        ignored. ``terminal`` sets the ``[eec]`` key of that name."""
+        known = {f.name for f in fields(cls)}
+        values: dict[str, Any] = {}
+        for flag, value in flags.items():
+            name = FLAG_OPTIONS.get(flag, flag)
+            if name in known and name != "overrides":
+                values[name] = value
+        values["params"] = dict(values.get("params", {}))
+        values["limits"] = tuple(values.get("limits", ()))
+        overrides = dict(flags.get("overrides", {}))
+        if flags.get("terminal"):
+            overrides["terminal"] = flags["terminal"]
+        return cls(**values, overrides=overrides)
 
     def flags(self) -> dict[str, Any]:
         """The EEC's flags (``--hp``, ``--hs``, ``--gamma1``, ``--gamma2``)."""
         return {"hp_s": self.hp_s, "hs_s": self.hs_s, "gamma1": self.gamma1,
                 "gamma2": self.gamma2}
 
-
-class SequenceOrigin:
-    """Clock time of the machining sequence's start, which every ``t_s`` counts from: the
-    player's first tick (the clock's time until then)."""
-
-    def __init__(self, clock: TimeSource) -> None:
-        self.clock = clock
-        self.player: SequencePlayer | None = None
-
-    def __call__(self) -> int:
-        t0 = self.player.t0_ns if self.player is not None else None
-        return t0 if t0 is not None else self.clock.time_ns()
+    def record(self) -> dict[str, Any]:
+        """The options as the session's ``run`` metadata records them."""
+        info = {f.name: getattr(self, f.name) for f in fields(self)
+                if f.name not in ("overrides", "limits", "recording")}
+        info["params"] = dict(self.params)
+        info["recording"] = asdict(self.recording)
+        return info
 
 
-def run_bench(opts: BenchRunOptions) -> dict[str, Any]:
-    """Run one closed-loop bench session; return the KPI dictionary (``hil bench run``)."""
-    if opts.disturbance and not is_emulated(opts.bench):
-        raise UsageError("--disturbance switches the emulator's unknown load on: it needs "
-                         "--bench emulated")
-    bench, eec = load_configs(opts.config_path, opts.overrides)
-    bench = bench.with_dwell(opts.dwell_s)  # the safety layer enforces the controllers' dwell
-    problem = bench.problem
-    step_s = eec.eec.step_s
-    params = {**bench.run.params, **opts.params}
-    kpi_limits, signal_limits = split_limits(
-        [*bench.run.limits, *opts.limits],
-        [*bench.map.meter_quantities, *bench.map.level_names])
-    # checked before the session starts: a spec that cannot load leaves no file behind
-    factory, label = controller_factory(opts.controller, params, method="decide",
-                                        application="bench")
-    out = opts.out or os.path.join(tempfile.gettempdir(),
-                                   f"hil-bench-{controller_short_name(label)}-{int(time.time())}.mcap")
-    clock = session_clock(opts.bench, opts.realtime)
-    run_info = {k: v for k, v in vars(opts).items()
-                if k not in ("overrides", "limits", "recording")}
-    run_info["recording"] = asdict(opts.recording)
-    merged = {"bench": bench.data, "controllers": eec.data,
-              "run": run_info | {"controller": label, "params": params,
-                                 "limits": [str(lim) for lim in (*kpi_limits, *signal_limits)]}}
-    text = "\n".join(filter(None, [default_text("bench.toml"), default_text("eec.toml"),
-                                   bench.user_text]))
-    session = Session(out, clock, bench.sampling.period_s, kind="bench", config=merged,
-                      config_text=text, recording=opts.recording)
-    log = RunLog(BenchKpis(problem, sample_period_s=bench.sampling.period_s,
-                           limit_va=eec.eec.limit_va))
-    origin = SequenceOrigin(clock)
-    watch = SignalWatch(signal_limits)
-    context = BenchContext(
-        problem, step_s, session, log, origin,
-        lambda p: load_configs(opts.config_path, {**opts.overrides, **p})[1], opts.flags())
-    try:
-        controller = build_controller(factory, label, params, method="decide",
+def run_bench(opts: BenchRunOptions) -> RunResult:
+    """Run one closed-loop bench session (``hil bench run``)."""
+    return run_experiment(BenchExperiment(opts))
+
+
+class BenchExperiment(Experiment):
+    """``hil bench run`` as the run pipeline drives it."""
+
+    def __init__(self, opts: BenchRunOptions) -> None:
+        self.opts = opts
+        self.device: OpenedBench | None = None
+        self.rig: BenchRig | None = None
+        self.observer: Observer | None = None
+        self.controller: GuardedController | None = None
+
+    def plan(self) -> RunPlan:
+        opts = self.opts
+        if opts.disturbance and not is_emulated(opts.bench):
+            raise UsageError("--disturbance switches the emulator's unknown load on: it needs "
+                             "--bench emulated")
+        bench, eec = load_configs(opts.config_path, opts.overrides)
+        # the safety layer enforces the controllers' dwell
+        self.bench = bench = bench.with_dwell(opts.dwell_s)
+        self.eec = eec
+        self.step_s = eec.eec.step_s
+        self.params = {**bench.run.params, **opts.params}
+        kpi_limits, signal_limits = split_limits(
+            [*bench.run.limits, *opts.limits],
+            [*bench.map.meter_quantities, *bench.map.level_names])
+        # checked before anything is opened: a spec that cannot load leaves no file behind
+        self.factory, self.label = controller_factory(opts.controller, self.params,
+                                                      method="decide", application="bench")
+        self.watch = SignalWatch(signal_limits)
+        self.clock = session_clock(opts.bench, opts.realtime)
+        out = opts.out or default_session_path("bench", controller_short_name(self.label))
+        self.out = out
+        run_info = opts.record() | {
+            "controller": self.label, "params": self.params,
+            "limits": [str(lim) for lim in (*kpi_limits, *signal_limits)]}
+        text = "\n".join(filter(None, [default_text("bench.toml"), default_text("eec.toml"),
+                                       bench.user_text]))
+        return RunPlan(
+            kind="bench", label=self.label, session_path=out, clock=self.clock,
+            base_period_s=bench.sampling.period_s,
+            duration_s=opts.cycles * bench.problem.sequence.period_s,
+            kpi_limits=tuple(kpi_limits), watch=self.watch,
+            config={"bench": bench.data, "controllers": eec.data, "run": run_info},
+            config_text=text, recording=opts.recording)
+
+    def open_devices(self, clock: Clock, on_event: EventBuffer) -> None:
+        opts = self.opts
+        self.device = open_bench_device(
+            opts.bench, self.bench.emulating(opts.seed, opts.disturbance or None), clock,
+            on_event)
+
+    def build_controller(self, session: Session) -> None:
+        opts, bench = self.opts, self.bench
+        problem = bench.problem
+        self.log = RunLog(BenchKpis(problem, sample_period_s=bench.sampling.period_s,
+                                    limit_va=self.eec.eec.limit_va))
+        self.origin = SequenceOrigin(session.clock)
+        context = BenchContext(problem, self.step_s, session, self.log, self.origin,
+                               self._eec_config, opts.flags())
+        controller = build_controller(self.factory, self.label, self.params, method="decide",
                                       application="bench", context=context)
-    except BaseException:  # nothing ran: no session file is left behind
-        session.discard()
-        raise
-    guarded = GuardedController(controller, label, problem.peripherals, log, session.event,
-                                controller_budget(opts.controller_budget_s, step_s, clock))
-    try:
-        link = _run(session, opts, bench, guarded, step_s, log, origin, watch)
-    except HilError as exc:
-        session.close()
-        exc.args = (f"{exc} (session recorded to {out})",)
-        raise
-    except BaseException:
-        session.close()
-        raise
-    kpis = kpis_of(log, opts, label, out)
-    kpis["stop_reason"] = session.loop.stop_reason
-    kpis.update(link.kpis)
-    kpis.update(verdict(kpis, kpi_limits, watch))
-    session.close(kpis=kpis)
-    return kpis
+        budget = controller_budget(opts.controller_budget_s,
+                                   session.clock.mode == "realtime", self.step_s)
+        self.controller = GuardedController(controller, self.label, problem.peripherals,
+                                            self.log, session.event, budget)
 
+    def _eec_config(self, params: Mapping[str, Any]) -> EecConfig:
+        """eec.toml with a controller's ``params`` laid over its ``[eec]`` table."""
+        return load_configs(self.opts.config_path, {**self.opts.overrides, **params})[1]
 
-def controller_budget(given: float | None, step_s: float, clock: TimeSource) -> float | None:
-    """The time one decision may take: as given; else, in real time, the decision step. In
-    lockstep a slow decision costs no virtual time, so none unless given."""
-    if given is not None:
-        return given
-    return step_s if getattr(clock, "mode", "") == "realtime" else None
+    def start(self, session: Session) -> None:
+        assert self.device is not None and self.controller is not None
+        rig = self.rig = attach_rig(session, self.bench, self.device, play_sequence=True)
+        self.origin.player = rig.player
+        self.observer = Observer(rig, self.log, self.origin, self.controller.estimator)
+        tasks: list[Task] = [self.observer]
+        if self.watch.limits:
+            tasks.append(SignalLimits(rig, self.watch, session))
+        tasks.append(ControllerTask(
+            round(self.step_s / self.bench.sampling.period_s), session.loop.base_period_ns,
+            rig, self.bench.problem.peripherals, self.controller, self.origin,
+            asynchronous=session.clock.mode == "realtime"))
+        for task in tasks:
+            session.add_task(task)
+
+    def finish(self, session: Session) -> None:
+        assert self.observer is not None and self.rig is not None
+        self.observer.finish(self.rig.link.gave_up)
+
+    def close_devices(self) -> None:
+        if self.rig is not None:
+            self.rig.close()
+        elif self.device is not None:
+            self.device.close()
+
+    def kpis(self, session: Session, wall_s: float, error: HilError | None) -> dict[str, Any]:
+        kpis = kpis_of(self.log, self.opts, self.label, self.out)
+        kpis["stop_reason"] = session.loop.stop_reason
+        if self.rig is not None:
+            kpis.update(link_report(self.rig, session.clock.time_ns()).kpis)
+        return kpis
 
 
 @dataclass
@@ -184,33 +254,6 @@ def link_report(rig: BenchRig, end_ns: int) -> LinkReport:
     disturbed = any(faults[k] for k in ("link_losses", "failed_polls", "failed_writes",
                                         "stuck_relays", "stale_readings"))
     return LinkReport(lost, rig.link.gave_up, {"faults": faults, "disturbed": disturbed})
-
-
-def _run(session: Session, opts: BenchRunOptions, bench: BenchConfig,
-         controller: BenchController, step_s: float, log: RunLog, origin: SequenceOrigin,
-         watch: SignalWatch) -> LinkReport:
-    rig = None
-    try:
-        rig = attach_bench(session, bench, opts.bench, play_sequence=False,
-                           seed=opts.seed, disturbance=opts.disturbance or None)
-        player = origin.player = SequencePlayer(rig.bench, rig.sequence,
-                                                divisor=rig.sampler.divisor)
-        problem = bench.problem
-        observer = Observer(rig, log, origin, estimator_of(controller))
-        session.add_task(observer)
-        session.add_task(player)
-        if watch.limits:
-            session.add_task(SignalLimits(rig, watch, session))
-        session.add_task(ControllerTask(
-            round(step_s / bench.sampling.period_s), session.loop.base_period_ns, rig,
-            problem.peripherals, controller, origin,
-            asynchronous=session.clock.mode == "realtime"))
-        session.run(duration_s=opts.cycles * problem.sequence.period_s)
-        observer.finish(rig.link.gave_up)
-        return link_report(rig, session.clock.time_ns())
-    finally:
-        if rig is not None:
-            rig.close()
 
 
 def kpis_of(log: RunLog, opts: BenchRunOptions, label: str, out: str) -> dict[str, Any]:

@@ -16,7 +16,7 @@ from hil.bench.identify import (
 )
 from hil.cli.argtypes import nonnegative_float, positive_float, positive_int
 from hil.cli.recording import add_recording_arguments, recording_options
-from hil.cli.verdict import add_controller_arguments, add_junit_argument, finish, params_of
+from hil.cli.verdict import add_controller_arguments, add_junit_argument, finish
 
 if TYPE_CHECKING:
     from hil.bench.run import BenchRunOptions
@@ -39,7 +39,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_run_arguments(run)
     add_junit_argument(run)
-    run.add_argument("--out", metavar="F.mcap", help="session file (default: a temp file)")
+    run.add_argument("--out", metavar="F.mcap", help="session file (default: "
+                     "sessions/bench-CONTROLLER-DATE-TIME.mcap)")
     run.add_argument("--json", action="store_true", help="print KPIs as JSON")
     add_recording_arguments(run)
     run.set_defaults(handler=run_command)
@@ -78,24 +79,18 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_options(args: argparse.Namespace) -> BenchRunOptions:
-    """The :class:`BenchRunOptions` of parsed :func:`add_run_arguments` flags (and ``out``)."""
+    """The :class:`BenchRunOptions` of parsed :func:`add_run_arguments` flags (``--out`` and
+    the recording flags included)."""
     from hil.bench.run import BenchRunOptions
 
-    overrides = {"terminal": args.terminal} if args.terminal else {}
-    return BenchRunOptions(
-        controller=args.controller, params=params_of(args), bench=args.bench,
-        cycles=args.cycles, hp_s=args.hp, hs_s=args.hs, gamma1=args.gamma1,
-        gamma2=args.gamma2, dwell_s=args.dwell, disturbance=args.disturbance,
-        realtime=args.realtime, out=args.out, config_path=args.config, overrides=overrides,
-        limits=tuple(args.limit), controller_budget_s=args.controller_budget,
-    )
+    return replace(BenchRunOptions.from_flags(vars(args)), recording=recording_options(args))
 
 
 def run_command(args: argparse.Namespace) -> int:
     from hil.bench.run import run_bench
 
     start = time.perf_counter()
-    kpis = run_bench(replace(run_options(args), recording=recording_options(args)))
+    kpis = run_bench(run_options(args)).kpis
     print(json.dumps(kpis, indent=2) if args.json else format_kpis(kpis))
     return finish(kpis, args, f"hil bench run {kpis['controller']}",
                   time.perf_counter() - start)

@@ -72,7 +72,7 @@ def _bench_session(controller: str, path: str, recording: RecordingOptions) -> d
     from hil.core.report import plot_session
 
     kpis = run_bench(BenchRunOptions(controller=controller, cycles=8, out=path,
-                                     recording=recording))
+                                     recording=recording)).kpis
     png = os.path.splitext(path)[0] + ".png"
     plot_session(read_session(path), png)
     return {**kpis, "png": png}

@@ -9,11 +9,11 @@ from typing import TYPE_CHECKING, Any
 
 from hil.cli.argtypes import nonnegative_float, positive_float, positive_int
 from hil.cli.recording import add_recording_arguments, recording_options
-from hil.cli.verdict import add_controller_arguments, add_junit_argument, finish, params_of
+from hil.cli.verdict import add_controller_arguments, add_junit_argument, finish
 from hil.core.errors import UsageError
 
 if TYPE_CHECKING:
-    from hil.servo.run import ServoRunConfig
+    from hil.servo.run import ServoRunOptions
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -35,7 +35,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_run_arguments(srun)
     add_junit_argument(srun)
     srun.add_argument("--out", metavar="F.mcap",
-                      help="session file (default: servo-CONTROLLER-DATE-TIME.mcap)")
+                      help="session file (default: sessions/servo-CONTROLLER-DATE-TIME.mcap)")
     srun.add_argument("--json", action="store_true", help="print the KPIs as JSON")
     add_recording_arguments(srun)
     srun.set_defaults(handler=run_servo_command)
@@ -97,29 +97,22 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         help="drive config laid over the default (hil/configs/drive.toml)")
 
 
-def run_config(args: argparse.Namespace) -> ServoRunConfig:
-    """The :class:`ServoRunConfig` of parsed :func:`add_run_arguments` flags (and ``out``)."""
-    from hil.servo.run import ServoRunConfig
+def run_options(args: argparse.Namespace) -> ServoRunOptions:
+    """The :class:`ServoRunOptions` of parsed :func:`add_run_arguments` flags (``--out`` and
+    the recording flags included)."""
+    from hil.servo.run import ServoRunOptions
 
-    default_horizon = 3 if args.controller == "empc" else 8
-    return ServoRunConfig(
-        controller=args.controller, params=params_of(args),
-        limits=tuple(args.limit), controller_budget_s=args.controller_budget,
-        drive=args.drive, node=args.node, ert=args.ert,
-        ht=args.ht or default_horizon, hu=args.hu or default_horizon, hp=args.hp,
-        umax=args.umax, reference=args.reference,
-        duration_s=args.duration, realtime=args.realtime, out=args.out,
-        drive_config=args.config, settle_s=args.settle, prediction_every=args.prediction_every)
+    return replace(ServoRunOptions.from_flags(vars(args)), recording=recording_options(args))
 
 
 def run_servo_command(args: argparse.Namespace) -> int:
     from hil.servo.run import run_servo
 
-    config = replace(run_config(args), recording=recording_options(args))
-    result = run_servo(config)
-    print(json.dumps(result.kpis, indent=2) if args.json else format_run(config, result.kpis))
-    return finish(result.kpis, args, f"hil servo run {result.kpis['controller']}",
-                  result.kpis["wall_s"])
+    options = run_options(args)
+    result = run_servo(options)
+    kpis = result.kpis
+    print(json.dumps(kpis, indent=2) if args.json else format_run(options, kpis))
+    return finish(kpis, args, f"hil servo run {kpis['controller']}", kpis["wall_s"])
 
 
 def _deg(value: float | None, digits: int = 4) -> str:

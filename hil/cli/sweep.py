@@ -18,12 +18,10 @@ from hil.core.registry import scheme_of
 from hil.sweep.config import SweepTable, load_sweep_table
 from hil.sweep.engine import Engine, check_address
 from hil.sweep.space import Range, Space, Trial, expand
-from hil.sweep.sweep import Sweep, format_sweep, run_sweep
+from hil.sweep.sweep import Sweep, check_trials, format_sweep, run_sweep
 
 RUN_ARGUMENTS: dict[str, Callable[[argparse.ArgumentParser], None]] = {
     "bench": bench.add_run_arguments, "servo": servo.add_run_arguments}
-RUN_OPTIONS: dict[str, Callable[[argparse.Namespace], Any]] = {
-    "bench": bench.run_options, "servo": servo.run_config}
 URL_KEY = {"bench": "bench", "servo": "drive"}   # the run flag naming the device
 SWEEP_DESTS = ("grid", "random", "sweep_config", "seed", "out", "workers", "address",
                "resume", "json", "serial", "handler", "command", "sweep_kind")
@@ -92,8 +90,9 @@ def sweep_command(args: argparse.Namespace) -> int:
     out = Path(args.out or time.strftime(f"sweep-{kind}-%Y%m%d-%H%M%S")).absolute()
     if args.resume and not args.out:
         raise UsageError("--resume needs the --out folder of the sweep to resume")
-    result = run_sweep(Sweep(kind, RUN_OPTIONS[kind], base, keys, tuple(trials), out, engine,
-                             args.resume))
+    sweep = Sweep(kind, base, keys, tuple(trials), out, engine, args.resume)
+    check_trials(sweep)
+    result = run_sweep(sweep)
     print(json.dumps(result, indent=2, default=str) if args.json
           else format_sweep(result, kind, keys))
     return 0 if all(t["status"] == "ok" for t in result["trials"]) else 1

@@ -7,7 +7,7 @@ as JSON with their JSON Schema), through the Foxglove SDK's WebSocket server, wh
 and PlotJuggler connect to.
 
 * **Flattening.** For every top-level array of numbers ``x`` (the loop timing's
-  ``lateness_us`` and ``compute_us``, the MPC prediction, the EEC's plan power) the live message
+  ``lateness_us`` and the phase times, the MPC prediction, the EEC's plan power) the live message
   also carries ``x_min``, ``x_max`` and ``x_mean``: scalars that a plot draws over time, where
   the array itself would be drawn as one series per message. The arrays stay (index-mode plots).
 * **Decimation** by log time, per topic: at most :data:`DEFAULT_RATE_HZ` messages per second of

@@ -1,11 +1,20 @@
-"""FixedRateLoop: one base period, tasks running every ``divisor`` ticks, read -> compute -> write.
+"""FixedRateLoop: one base period, tasks every ``divisor`` ticks, each tick in four phases.
+
+Each tick runs the **read** phase of every task that is due (devices in), then every
+**compute** (controllers), every **write** (devices out), every **record** (topics, KPIs,
+limits): ros2_control's read -> update -> write, plus recording. A task takes part in the
+phases it overrides; what one phase leaves for the next stays on the task (or on an object
+the tasks share), so data flows one way: the feedback read in tick k is computed on and
+written in tick k. Each phase of each task is timed under its own name (``read_us``,
+``compute_us``, ``write_us``, ``record_us``); ``step_us`` is their sum.
 
 Overrun policy: when the loop wakes up one or more whole base periods after a tick's deadline,
 the ticks whose slots have passed are skipped and counted (per task, as ``missed``); the
-schedule stays on its absolute grid, so the loop never drifts. In real time, a task whose step
-takes longer than its own period is counted in ``overruns`` (in lockstep, compute time is
-reported but costs no virtual time). SIGINT/SIGTERM stop the loop at the next tick boundary;
-every component's ``safe_state()`` runs before :meth:`FixedRateLoop.run` returns, also on errors.
+schedule stays on its absolute grid, so the loop never drifts. In real time, a task whose
+phases take longer than its own period is counted in ``overruns`` (in lockstep, compute time
+is reported but costs no virtual time). SIGINT/SIGTERM stop the loop at the next tick
+boundary; every component's ``safe_state()`` runs before :meth:`FixedRateLoop.run` returns,
+also on errors.
 """
 
 from __future__ import annotations
@@ -25,16 +34,21 @@ from hil.core.stats import TimingHistogram
 # this long (CPython's default is 5 ms: ten 2 kHz ticks lost behind the recorder's writer).
 REALTIME_SWITCH_INTERVAL_S = 1e-4
 
+#: the phases of a tick, in the order they run
+PHASES = ("read", "compute", "write", "record")
+
 
 class SafeStateful(Protocol):
     def safe_state(self) -> None: ...
 
 
 class Task:
-    """One job of the loop. Subclass and override the three phases (all optional).
+    """One job of the loop. Subclass and override the phases it takes part in (all optional).
 
-    ``read`` returns a measurement, ``compute`` turns it into a command, ``write`` applies it.
-    ``safe_state`` puts whatever this task drives into its safe state; it must be idempotent.
+    ``read`` takes in what a device reports, ``compute`` runs a controller, ``write`` sends
+    to a device, ``record`` logs the tick (topics, KPIs, per-tick limits). Every phase gets
+    the tick's start time (clock ns). ``safe_state`` puts whatever this task drives into its
+    safe state; it must be idempotent.
     """
 
     def __init__(self, name: str, divisor: int = 1) -> None:
@@ -45,13 +59,21 @@ class Task:
         self.name = name
         self.divisor = int(divisor)
 
-    def read(self, t_ns: int) -> Any:
+    @property
+    def phases(self) -> tuple[str, ...]:
+        """The phases this task takes part in: those its class overrides."""
+        return tuple(p for p in PHASES if getattr(type(self), p) is not getattr(Task, p))
+
+    def read(self, t_ns: int) -> None:
         return None
 
-    def compute(self, measurement: Any, t_ns: int) -> Any:
+    def compute(self, t_ns: int) -> None:
         return None
 
-    def write(self, command: Any, t_ns: int) -> None:
+    def write(self, t_ns: int) -> None:
+        return None
+
+    def record(self, t_ns: int) -> None:
         return None
 
     def safe_state(self) -> None:
@@ -59,29 +81,43 @@ class Task:
 
 
 class FunctionTask(Task):
-    """A task made of plain callables, for small jobs and tests."""
+    """A task made of plain callables ``f(t_ns)``, one per phase, for small jobs and tests."""
 
     def __init__(
         self,
         name: str,
         divisor: int = 1,
-        read: Callable[[int], Any] | None = None,
-        compute: Callable[[Any, int], Any] | None = None,
-        write: Callable[[Any, int], None] | None = None,
+        *,
+        read: Callable[[int], None] | None = None,
+        compute: Callable[[int], None] | None = None,
+        write: Callable[[int], None] | None = None,
+        record: Callable[[int], None] | None = None,
         safe_state: Callable[[], None] | None = None,
     ) -> None:
         super().__init__(name, divisor)
-        self._read, self._compute, self._write, self._safe = read, compute, write, safe_state
+        self._calls = {"read": read, "compute": compute, "write": write, "record": record}
+        self._safe = safe_state
 
-    def read(self, t_ns: int) -> Any:
-        return self._read(t_ns) if self._read else None
+    @property
+    def phases(self) -> tuple[str, ...]:
+        return tuple(p for p in PHASES if self._calls[p] is not None)
 
-    def compute(self, measurement: Any, t_ns: int) -> Any:
-        return self._compute(measurement, t_ns) if self._compute else measurement
+    def read(self, t_ns: int) -> None:
+        self._run("read", t_ns)
 
-    def write(self, command: Any, t_ns: int) -> None:
-        if self._write:
-            self._write(command, t_ns)
+    def compute(self, t_ns: int) -> None:
+        self._run("compute", t_ns)
+
+    def write(self, t_ns: int) -> None:
+        self._run("write", t_ns)
+
+    def record(self, t_ns: int) -> None:
+        self._run("record", t_ns)
+
+    def _run(self, phase: str, t_ns: int) -> None:
+        call = self._calls[phase]
+        if call is not None:
+            call(t_ns)
 
     def safe_state(self) -> None:
         if self._safe:
@@ -90,17 +126,22 @@ class FunctionTask(Task):
 
 @dataclass
 class TaskStats:
-    """Timing of one task over a whole run (lateness and compute in us)."""
+    """Timing of one task over a whole run (lateness and phase times in us)."""
 
     name: str
     period_s: float
+    phases: tuple[str, ...] = ()
     runs: int = 0
     missed: int = 0
     overruns: int = 0
     lateness: TimingHistogram = field(default_factory=TimingHistogram)
-    compute: TimingHistogram = field(default_factory=TimingHistogram)
+    step: TimingHistogram = field(default_factory=TimingHistogram)
+    phase_times: dict[str, TimingHistogram] = field(default_factory=dict)
     first_start_ns: int | None = None
     last_start_ns: int | None = None
+
+    def __post_init__(self) -> None:
+        self.phase_times = {phase: TimingHistogram() for phase in self.phases}
 
     def measured_period_s(self) -> float:
         if self.runs < 2 or self.first_start_ns is None or self.last_start_ns is None:
@@ -108,41 +149,52 @@ class TaskStats:
         return (self.last_start_ns - self.first_start_ns) / (self.runs - 1) / 1e9
 
     def summary(self) -> dict[str, Any]:
-        return {
+        """Counts, lateness, ``step_us`` (all phases) and ``<phase>_us`` of each phase run."""
+        summary: dict[str, Any] = {
             "period_s": self.period_s,
             "measured_period_s": round(self.measured_period_s(), 9),
             "runs": self.runs,
             "missed": self.missed,
             "overruns": self.overruns,
             "lateness_us": self.lateness.summary(),
-            "compute_us": self.compute.summary(),
+            "step_us": self.step.summary(),
         }
+        for phase, histogram in self.phase_times.items():
+            summary[f"{phase}_us"] = histogram.summary()
+        return summary
 
 
 class _Window:
     """Samples of one task since the last timing record (handed to the recorder as-is)."""
 
-    __slots__ = ("compute_us", "lateness_us", "missed", "overruns")
+    __slots__ = ("lateness_us", "missed", "overruns", "phase_us", "step_us")
 
     def __init__(self) -> None:
         self.lateness_us: list[float] = []
-        self.compute_us: list[float] = []
+        self.step_us: list[float] = []
+        self.phase_us: dict[str, list[float]] = {phase: [] for phase in PHASES}
         self.missed = 0
         self.overruns = 0
 
 
+_TIMES = {"type": "array", "items": {"type": "number", "x-cdr": "float32"}}
 TIMING_SCHEMA: dict[str, Any] = {
     "type": "object",
     "title": "hil.LoopTiming",
-    "description": "Per-task timing of the fixed-rate loop over one window (about 1 s).",
+    "description": "Per-task timing of the fixed-rate loop over one window (about 1 s): "
+                   "lateness of each run and the time of each phase the task takes part in "
+                   "(empty for the others).",
     "properties": {
         "task": {"type": "string"},
         "period_s": {"type": "number"},
         "runs": {"type": "integer"},
         "missed": {"type": "integer", "description": "scheduled runs skipped in this window"},
-        "overruns": {"type": "integer", "description": "steps longer than the task period"},
-        "lateness_us": {"type": "array", "items": {"type": "number", "x-cdr": "float32"}},
-        "compute_us": {"type": "array", "items": {"type": "number", "x-cdr": "float32"}},
+        "overruns": {"type": "integer", "description": "runs longer than the task period"},
+        "lateness_us": _TIMES,
+        "read_us": _TIMES,
+        "compute_us": _TIMES,
+        "write_us": _TIMES,
+        "record_us": _TIMES,
     },
 }
 
@@ -191,7 +243,8 @@ class FixedRateLoop:
         if task.name in self.stats:
             raise ValueError(f"duplicate task name {task.name!r}")
         self.tasks.append(task)
-        self.stats[task.name] = TaskStats(task.name, task.divisor * self.base_period_ns / 1e9)
+        self.stats[task.name] = TaskStats(task.name, task.divisor * self.base_period_ns / 1e9,
+                                          task.phases)
         if self._recorder is not None:
             self._timing_topics[task.name] = self._recorder.topic(
                 f"/loop/{task.name}/timing", TIMING_SCHEMA, high_rate=True
@@ -240,8 +293,11 @@ class FixedRateLoop:
 
     def _run_ticks(self, limit: int | None) -> None:
         clock, period = self.clock, self.base_period_ns
-        windows = {t.name: _Window() for t in self.tasks}
+        tasks = self.tasks
+        windows = {t.name: _Window() for t in tasks}
         self._windows = windows
+        schedule = self._schedule(windows)
+        spent = [0] * len(tasks)  # ns each task spent in this tick's phases
         t0 = self.start_ns = clock.start()
         n = 0
         next_window = self._window_ticks
@@ -260,18 +316,27 @@ class FixedRateLoop:
                 if limit is not None and n >= limit:
                     break
                 deadline = t0 + n * period
-            for task in self.tasks:
+            start = clock.time_ns()
+            for phase in schedule:
+                for index, divisor, method, samples in phase:
+                    if n % divisor:
+                        continue
+                    c0 = perf()
+                    method(start)
+                    elapsed = perf() - c0
+                    samples.append(elapsed / 1e3)
+                    spent[index] += elapsed
+            lateness_us = (start - deadline) / 1e3
+            for index, task in enumerate(tasks):
                 if n % task.divisor:
                     continue
-                stats, window = self.stats[task.name], windows[task.name]
-                start = clock.time_ns()
-                c0 = perf()
-                task.write(task.compute(task.read(start), start), start)
-                compute_ns = perf() - c0
-                window.lateness_us.append((start - deadline) / 1e3)
-                window.compute_us.append(compute_ns / 1e3)
-                if realtime and compute_ns > task.divisor * period:
+                window = windows[task.name]
+                window.lateness_us.append(lateness_us)
+                window.step_us.append(spent[index] / 1e3)
+                if realtime and spent[index] > task.divisor * period:
                     window.overruns += 1
+                spent[index] = 0
+                stats = self.stats[task.name]
                 if stats.first_start_ns is None:
                     stats.first_start_ns = start
                 stats.last_start_ns = start
@@ -282,7 +347,16 @@ class FixedRateLoop:
                 recorder.flush_if_due()
             if n >= next_window:
                 self._publish_windows(final=False)
+                schedule = self._schedule(windows)  # the new windows' sample lists
                 next_window = (n // self._window_ticks + 1) * self._window_ticks
+
+    def _schedule(self, windows: dict[str, _Window]
+                  ) -> list[list[tuple[int, int, Callable[[int], None], list[float]]]]:
+        """Per phase, in order: ``(task index, divisor, bound phase method, samples)`` of every
+        task taking part in it, in the order the tasks were added."""
+        return [[(index, task.divisor, getattr(task, phase), windows[task.name].phase_us[phase])
+                 for index, task in enumerate(self.tasks) if phase in task.phases]
+                for phase in PHASES]
 
     def _count_skipped(self, first: int, count: int, windows: dict[str, _Window]) -> None:
         """Ticks ``first .. first + count - 1`` will not run: count each task's lost runs."""
@@ -311,23 +385,24 @@ class FixedRateLoop:
                 continue
             stats = self.stats[task.name]
             stats.lateness.add_many(window.lateness_us)
-            stats.compute.add_many(window.compute_us)
+            stats.step.add_many(window.step_us)
+            for phase, histogram in stats.phase_times.items():
+                histogram.add_many(window.phase_us[phase])
             stats.missed += window.missed
             stats.overruns += window.overruns
             topic = self._timing_topics.get(task.name)
             if topic is not None:
-                topic.log(
-                    t_ns,
-                    {
-                        "task": task.name,
-                        "period_s": stats.period_s,
-                        "runs": len(window.lateness_us),
-                        "missed": window.missed,
-                        "overruns": window.overruns,
-                        "lateness_us": window.lateness_us,
-                        "compute_us": window.compute_us,
-                    },
-                )
+                message: dict[str, Any] = {
+                    "task": task.name,
+                    "period_s": stats.period_s,
+                    "runs": len(window.lateness_us),
+                    "missed": window.missed,
+                    "overruns": window.overruns,
+                    "lateness_us": window.lateness_us,
+                }
+                for phase in PHASES:
+                    message[f"{phase}_us"] = window.phase_us[phase]
+                topic.log(t_ns, message)
             windows[task.name] = _Window()
 
     def safe_state_all(self) -> list[str]:

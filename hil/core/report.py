@@ -9,6 +9,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from hil.core.loop import PHASES
 from hil.core.plugins import registered
 from hil.core.reader import SessionData
 from hil.core.stats import percentile_summary
@@ -45,7 +46,10 @@ def find_summary(kind: str) -> KindSummary | None:
 
 
 def loop_stats(data: SessionData) -> dict[str, Any]:
-    """Per-task timing from the ``/loop/<task>/timing`` topics (exact over what was recorded)."""
+    """Per-task timing from the ``/loop/<task>/timing`` topics (exact over what was recorded):
+    lateness, ``step_us`` (the task's whole run) and ``<phase>_us`` for each phase it took part
+    in. A session recorded before the loop had phases timed the whole run as ``compute_us``:
+    it reports as ``step_us``."""
     out: dict[str, Any] = {}
     for topic in data.messages:
         if not (topic.startswith("/loop/") and topic.endswith("/timing")):
@@ -53,17 +57,28 @@ def loop_stats(data: SessionData) -> dict[str, Any]:
         msgs = [m for _, m in data.topic(topic) if isinstance(m, dict)]
         if not msgs:
             continue
-        lateness = np.concatenate([np.asarray(m.get("lateness_us", []), float) for m in msgs])
-        compute = np.concatenate([np.asarray(m.get("compute_us", []), float) for m in msgs])
-        out[topic[len("/loop/"):-len("/timing")]] = {
+        stats: dict[str, Any] = {
             "period_s": msgs[0].get("period_s"),
             "runs": int(sum(m.get("runs", 0) for m in msgs)),
             "missed": int(sum(m.get("missed", 0) for m in msgs)),
             "overruns": int(sum(m.get("overruns", 0) for m in msgs)),
-            "lateness_us": percentile_summary(lateness),
-            "compute_us": percentile_summary(compute),
+            "lateness_us": percentile_summary(_samples(msgs, "lateness_us")),
         }
+        if not any(f"{phase}_us" in msgs[0] for phase in PHASES if phase != "compute"):
+            stats["step_us"] = percentile_summary(_samples(msgs, "compute_us"))
+        else:
+            phases = {phase: _samples(msgs, f"{phase}_us") for phase in PHASES}
+            taken = {phase: v for phase, v in phases.items() if v.size}
+            step = np.sum(list(taken.values()), axis=0) if taken else np.empty(0)
+            stats["step_us"] = percentile_summary(np.asarray(step, float))
+            stats.update({f"{phase}_us": percentile_summary(v) for phase, v in taken.items()})
+        out[topic[len("/loop/"):-len("/timing")]] = stats
     return out
+
+
+def _samples(messages: list[dict[str, Any]], key: str) -> np.ndarray:
+    return np.concatenate([np.asarray(m.get(key, []), float) for m in messages] or
+                          [np.empty(0)])
 
 
 def session_kind(data: SessionData) -> str:
@@ -130,14 +145,18 @@ def format_summary(summary: dict[str, Any]) -> str:
         lines.append(f"  {topic:<32} {count:>9} msgs")
     if summary["loop"]:
         lines.append("loop timing           runs   missed  overruns   lateness p50/p99/max us"
-                     "   compute p50/p99/max us")
+                     "   step p50/p99/max us")
         for task, s in summary["loop"].items():
-            lat, comp = s["lateness_us"], s["compute_us"]
+            lat, step = s["lateness_us"], s["step_us"]
             lines.append(
                 f"  {task:<16} {s['runs']:>9} {s['missed']:>8} {s['overruns']:>9}   "
                 f"{lat['p50']:>8.1f}/{lat['p99']:.1f}/{lat['max']:.1f}"
-                f"   {comp['p50']:>8.1f}/{comp['p99']:.1f}/{comp['max']:.1f}"
+                f"   {step['p50']:>8.1f}/{step['p99']:.1f}/{step['max']:.1f}"
             )
+            phases = [f"{phase} {s[f'{phase}_us']['p50']:.1f}/{s[f'{phase}_us']['p99']:.1f}"
+                      for phase in PHASES if f"{phase}_us" in s]
+            if phases:
+                lines.append(f"  {'':<16} phases p50/p99 us: " + ", ".join(phases))
     if summary["realtime"]:
         lines.append("real-time hardening")
         for step, outcome in summary["realtime"].items():
@@ -182,10 +201,12 @@ def plot_loop_timing(data: SessionData, out_png: str) -> None:
                              squeeze=False)
     for ax, topic in zip(axes[:, 0], tasks, strict=False):
         msgs = data.topic(topic)
-        lateness = np.concatenate([np.asarray(m.get("lateness_us", []), float) for _, m in msgs])
-        compute = np.concatenate([np.asarray(m.get("compute_us", []), float) for _, m in msgs])
-        ax.plot(lateness, lw=0.6, label="lateness [us]")
-        ax.plot(compute, lw=0.6, label="compute [us]")
+        messages = [m for _, m in msgs]
+        ax.plot(_samples(messages, "lateness_us"), lw=0.6, label="lateness [us]")
+        for phase in PHASES:
+            samples = _samples(messages, f"{phase}_us")
+            if samples.size:
+                ax.plot(samples, lw=0.6, label=f"{phase} [us]")
         ax.set_title(topic)
         ax.set_xlabel("run")
         ax.legend(loc="upper right")

@@ -25,7 +25,7 @@ from hil.core.errors import HilError
 from hil.core.reader import read_session
 from hil.core.recorder import RecordingOptions
 from hil.core.report import plot_session
-from hil.servo.run import ServoRunConfig, run_servo
+from hil.servo.run import ServoRunOptions, run_servo
 from hil.sweep.engine import Engine
 from hil.sweep.space import Trial, named
 
@@ -46,7 +46,7 @@ def run_servo_demo(out_dir: str | Path, echo: Callable[[str], None] | None = pri
         for controller in CONTROLLERS:
             name = f"servo-{controller}-{frequency:g}hz-{limit / 1000:g}a"
             mcap = str(out / f"{name}.mcap")
-            config = ServoRunConfig(
+            config = ServoRunOptions(
                 controller=controller, ert="foh", ht=8, hu=8, hp=50, umax=limit,
                 reference=f"sine:amplitude={AMPLITUDE_DEG:g},frequency={frequency:g}",
                 duration_s=SETTLE_S + 1.0 / frequency, settle_s=SETTLE_S,

@@ -3,29 +3,27 @@ with a progress bar, keep each row as it comes, then write ``results.csv`` and `
 
 from __future__ import annotations
 
-import argparse
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
-from hil.core.errors import UsageError
+from hil.core.errors import HilError, UsageError
 from hil.sweep.engine import Engine
 from hil.sweep.plot import plot_sweep
 from hil.sweep.progress import Progress
 from hil.sweep.results import finished_row, save_row, summary, write_csv
 from hil.sweep.space import Trial
-from hil.sweep.trial import TrialJob, run_trial
+from hil.sweep.trial import TrialJob, experiment_of, run_trial
 
 
 @dataclass(frozen=True)
 class Sweep:
-    """``trials`` of one run kind over the run flags ``base`` (made into the run's options by
-    ``build``), into folder ``out``."""
+    """``trials`` of one run kind over the run flags ``base`` (argparse dests), into folder
+    ``out``."""
 
     kind: str
-    build: Callable[[argparse.Namespace], Any]
     base: dict[str, Any]
     keys: tuple[str, ...]
     trials: tuple[Trial, ...]
@@ -48,8 +46,7 @@ def run_sweep(sweep: Sweep, stream: TextIO | None = None) -> dict[str, Any]:
         if done is not None:
             rows[trial.name] = {**done, "resumed": True}
         else:
-            jobs.append(TrialJob(sweep.kind, sweep.build, sweep.base, trial.name, trial.params,
-                                 str(sweep.out / f"{trial.name}.mcap")))
+            jobs.append(job_of(sweep, trial))
     progress = Progress(len(sweep.trials), stream, skipped=len(rows))
 
     def on_done(row: dict[str, Any]) -> None:
@@ -69,6 +66,24 @@ def run_sweep(sweep: Sweep, stream: TextIO | None = None) -> dict[str, Any]:
     png = sweep.out / "sweep.png"
     result["png"] = str(png) if plot_sweep(sweep.kind, ordered, sweep.keys, str(png)) else None
     return result
+
+
+def job_of(sweep: Sweep, trial: Trial) -> TrialJob:
+    """The job that runs ``trial`` into its own file in the sweep's folder."""
+    return TrialJob(sweep.kind, sweep.base, trial.name, trial.params,
+                    str(sweep.out / f"{trial.name}.mcap"))
+
+
+def check_trials(sweep: Sweep) -> None:
+    """Every trial's run planned before anything starts (the controller spec loaded, configs
+    and values checked, as ``hil bench|servo run`` does first): the first bad one is a usage
+    error naming the trial, before Ray or any device is touched."""
+    for trial in sweep.trials:
+        try:
+            experiment_of(job_of(sweep, trial)).plan()
+        except HilError as exc:
+            where = f"trial {trial.name}: " if trial.params else ""
+            raise UsageError(f"{where}{exc}") from None
 
 
 def format_sweep(result: Mapping[str, Any], kind: str, keys: Sequence[str]) -> str:

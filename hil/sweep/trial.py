@@ -3,40 +3,51 @@ in lockstep into its own MCAP file. Runs in a Ray worker or in this process alik
 
 from __future__ import annotations
 
-import argparse
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 from hil.core.errors import HilError
+from hil.core.run import Experiment, run_experiment
 from hil.sweep.space import PARAM_PREFIX
 
 
 @dataclass(frozen=True)
 class TrialJob:
-    """Everything a worker needs: the run kind, the run's parsed flags and how to make the
-    run's options of them (the command line's own function), the swept values."""
+    """Everything a worker needs: the run kind, the run's flags (argparse dests, as ``hil
+    bench|servo run`` would parse them), the swept values and the trial's session file."""
 
     kind: str
-    build: Callable[[argparse.Namespace], Any]   # flags -> BenchRunOptions | ServoRunConfig
-    base: dict[str, Any]   # vars() of the parsed run flags
+    flags: dict[str, Any]
     name: str
     params: dict[str, Any]
     mcap: str
 
 
-def namespace_of(base: Mapping[str, Any], params: Mapping[str, Any]) -> argparse.Namespace:
+def flags_of(base: Mapping[str, Any], params: Mapping[str, Any]) -> dict[str, Any]:
     """The run's flags with ``params`` laid over them (``param.NAME`` over ``--param``)."""
-    args = argparse.Namespace(**base)
-    controller_params = dict(args.param)
+    flags = dict(base)
+    controller_params = dict(flags.get("param", []))
     for key, value in params.items():
         if key.startswith(PARAM_PREFIX):
             controller_params[key[len(PARAM_PREFIX):]] = value
         else:
-            setattr(args, key, value)
-    args.param = list(controller_params.items())
-    return args
+            flags[key] = value
+    flags["param"] = list(controller_params.items())
+    return flags
+
+
+def experiment_of(job: TrialJob) -> Experiment:
+    """The trial's run, made from its flags as the command line makes one."""
+    flags = flags_of(job.flags, job.params) | {"out": job.mcap}
+    if job.kind == "bench":
+        from hil.bench.run import BenchExperiment, BenchRunOptions
+
+        return BenchExperiment(BenchRunOptions.from_flags(flags))
+    from hil.servo.run import ServoExperiment, ServoRunOptions
+
+    return ServoExperiment(ServoRunOptions.from_flags(flags))
 
 
 def run_trial(job: TrialJob) -> dict[str, Any]:
@@ -45,25 +56,13 @@ def run_trial(job: TrialJob) -> dict[str, Any]:
     start = time.perf_counter()
     row: dict[str, Any] = {"name": job.name, "params": job.params, "mcap": job.mcap}
     try:
-        args = namespace_of(job.base, job.params)
-        args.out = job.mcap
-        kpis = execute(job.kind, job.build(args))
+        result = run_experiment(experiment_of(job))
     except HilError as exc:
         row.update(status="failed", error=str(exc), kpis={})
     except Exception as exc:  # a trial's bug must not stop the sweep: it is recorded
         row.update(status="failed", error=f"{type(exc).__name__}: {exc}", kpis={})
     else:
-        row.update(status="violated" if kpis.get("passed") is False else "ok", kpis=kpis)
+        row.update(status="violated" if result.passed is False else "ok",
+                   kpis=dict(result.kpis))
     row["trial_s"] = time.perf_counter() - start
     return row
-
-
-def execute(kind: str, options: Any) -> dict[str, Any]:
-    """One ``hil bench|servo run`` of its options; its KPIs."""
-    if kind == "bench":
-        from hil.bench.run import run_bench
-
-        return dict(run_bench(options))
-    from hil.servo.run import run_servo
-
-    return dict(run_servo(options).kpis)

@@ -15,7 +15,7 @@ def session_file(tmp_path):
     path = tmp_path / "run.mcap"
     session = Session(str(path), SimClock(), 0.01, kind="test", handle_signals=False)
     topic = session.topic("/x", {"type": "object", "title": "X"})
-    session.add_task(FunctionTask("sample", 1, write=lambda c, t: topic.log(t, {"t": t})))
+    session.add_task(FunctionTask("sample", 1, write=lambda t: topic.log(t, {"t": t})))
     session.add_task(FunctionTask("control", 100))
     session.run(duration_s=5)
     session.close(kpis={"peak_VA": 600.5})

@@ -85,7 +85,7 @@ def test_a_realtime_session_records_every_hardening_step_and_a_lockstep_one_none
 
     seen = {}
 
-    def probe(_cmd, _t):  # inside the loop: what the hardening did to the loop thread
+    def probe(_t):  # inside the loop: what the hardening did to the loop thread
         seen.setdefault("fifo", os.sched_getscheduler(0) == os.SCHED_FIFO)
         seen.setdefault("gc", gc.isenabled())
 

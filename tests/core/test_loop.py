@@ -7,23 +7,28 @@ from hil.core.loop import FixedRateLoop, FunctionTask, Task
 
 
 class Recording(Task):
-    """Logs every phase with its time so order and schedule can be checked."""
+    """Logs every phase with its time so order and schedule can be checked; what read took in
+    goes through compute to write on the task itself."""
 
     def __init__(self, name, divisor, log):
         super().__init__(name, divisor)
         self.log = log
         self.safe_calls = 0
+        self.value = None
 
     def read(self, t_ns):
         self.log.append((self.name, "read", t_ns))
-        return t_ns
+        self.value = t_ns
 
-    def compute(self, measurement, t_ns):
+    def compute(self, t_ns):
         self.log.append((self.name, "compute", t_ns))
-        return measurement + 1
+        self.value += 1
 
-    def write(self, command, t_ns):
-        self.log.append((self.name, "write", command - 1))
+    def write(self, t_ns):
+        self.log.append((self.name, "write", self.value - 1))
+
+    def record(self, t_ns):
+        self.log.append((self.name, "record", t_ns))
 
     def safe_state(self):
         self.safe_calls += 1
@@ -50,14 +55,57 @@ def test_sim_loop_runs_each_task_on_its_divisor_exactly():
     assert all(t.safe_calls == 1 for t in tasks)
 
 
-def test_sim_loop_phases_run_read_compute_write_in_task_order():
+def test_each_phase_runs_for_every_task_before_the_next_phase():
     _, log, _ = run_sim(1)
     assert [(n, p) for n, p, _ in log] == [
-        ("sample", "read"), ("sample", "compute"), ("sample", "write"),
-        ("control", "read"), ("control", "compute"), ("control", "write"),
-        ("odd", "read"), ("odd", "compute"), ("odd", "write"),
+        ("sample", "read"), ("control", "read"), ("odd", "read"),
+        ("sample", "compute"), ("control", "compute"), ("odd", "compute"),
+        ("sample", "write"), ("control", "write"), ("odd", "write"),
+        ("sample", "record"), ("control", "record"), ("odd", "record"),
     ]
-    assert {t for _, _, t in log} == {0}  # write got the computed command for that tick
+    assert {t for _, _, t in log} == {0}  # write got what compute made of this tick's read
+
+
+def test_a_task_takes_part_only_in_the_phases_it_defines_and_each_is_timed():
+    class ReadOnly(Task):
+        def read(self, t_ns):
+            sum(range(100))
+
+    calls = []
+    tasks = [ReadOnly("sensor"), FunctionTask("ctl", 2, compute=calls.append),
+             Recording("all", 1, [])]
+    assert tasks[0].phases == ("read",) and tasks[1].phases == ("compute",)
+    assert tasks[2].phases == ("read", "compute", "write", "record")
+    loop = FixedRateLoop(SimClock(), 0.01, tasks, handle_signals=False)
+    loop.run(max_ticks=10)
+    assert calls == [k * 20_000_000 for k in range(5)]
+    summary = loop.summary()
+    assert set(summary["sensor"]) >= {"read_us", "step_us"}
+    assert "compute_us" not in summary["sensor"] and "read_us" not in summary["ctl"]
+    assert summary["ctl"]["runs"] == 5 and summary["sensor"]["runs"] == 10
+    for phase in ("read", "compute", "write", "record"):
+        assert summary["all"][f"{phase}_us"]["max"] > 0
+    # the step is the sum of the phases: never less than the longest one
+    assert summary["all"]["step_us"]["max"] >= summary["all"]["read_us"]["max"]
+
+
+def test_timing_records_hold_each_phase_under_its_own_name(tmp_path):
+    from hil.core.reader import read_session
+    from hil.core.session import Session
+
+    session = Session(str(tmp_path / "t.mcap"), SimClock(), 0.01, kind="test",
+                      handle_signals=False)
+    session.add_task(Recording("both", 1, []))
+    session.add_task(FunctionTask("writer", 1, write=lambda t: None))
+    session.run(max_ticks=150)
+    session.close()
+    messages = [m for _, m in read_session(str(tmp_path / "t.mcap")).topic("/loop/both/timing")]
+    assert sum(m["runs"] for m in messages) == 150
+    for phase in ("read", "compute", "write", "record"):
+        assert sum(len(m[f"{phase}_us"]) for m in messages) == 150
+    writer = [m for _, m in read_session(str(tmp_path / "t.mcap")).topic("/loop/writer/timing")]
+    assert sum(len(m["write_us"]) for m in writer) == 150
+    assert all(len(m["read_us"]) == 0 for m in writer)
 
 
 def test_sim_loop_is_deterministic():
@@ -105,7 +153,7 @@ def test_exception_in_task_calls_every_safe_state_and_propagates():
     log = []
     good = Recording("good", 1, log)
 
-    def boom(_m, t_ns):
+    def boom(t_ns):
         if t_ns >= 30_000_000:
             raise RuntimeError("controller exploded")
 

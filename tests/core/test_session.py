@@ -27,7 +27,7 @@ def test_logged_messages_read_back_identically_with_schemas_metadata_and_config(
     nested = session.topic("/test/nested", {"type": "object", "title": "test.Nested"})
     sent = []
 
-    def log(_cmd, t_ns):
+    def log(t_ns):
         k = len(sent)
         msg = {"k": k, "x": k * 0.25 - 3.0, "v": [k, -k, 0.5]}
         sent.append((t_ns, msg))
@@ -107,7 +107,7 @@ def test_lockstep_session_waits_for_the_writer_instead_of_dropping(tmp_path):
     session.recorder.max_backlog_bytes = 1  # ... and never hold a backlog: the pipe fills
     topic = session.topic("/burst", SCHEMA)
     pad = "x" * 2000
-    session.add_task(FunctionTask("log", 1, write=lambda c, t: [topic.log(t, {"k": k, "pad": pad})
+    session.add_task(FunctionTask("log", 1, write=lambda t: [topic.log(t, {"k": k, "pad": pad})
                                                                 for k in range(20)]))
     session.run(max_ticks=300)
     stats = session.close()

@@ -26,7 +26,7 @@ class Driver:
 session = Session({path!r}, RealtimeClock(), 0.001, kind="test")
 topic = session.topic("/tick", {{"type": "object", "title": "Tick"}})
 session.add_task(Relay("relay", 10))
-def sample(_command, t):
+def sample(t):
     if topic.log(t, {{"t": t}}) and not sample.announced:
         sample.announced = print("running", flush=True) or True  # the loop is ticking
 

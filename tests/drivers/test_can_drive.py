@@ -248,7 +248,7 @@ def test_emcy_and_fault_are_recorded_as_session_events(tmp_path):
     master.start()
     session.add_component(master)
     currents = iter([100.0] * 20 + [16000.0] * 10)
-    session.add_task(FunctionTask("drive", write=lambda _c, _t: master.exchange(next(currents))))
+    session.add_task(FunctionTask("drive", write=lambda _t: master.exchange(next(currents))))
     with pytest.raises(DriveFaultError):
         session.run(max_ticks=30)
     session.close()

@@ -30,7 +30,7 @@ def relay_series(data, name):
 def test_eec_closed_loop_over_modbus_keeps_every_constraint(tmp_path):
     out = str(tmp_path / "eec.mcap")
     kpis = run_bench(BenchRunOptions(controller="eec", cycles=2, out=out,
-                                     overrides={"time_limit_s": 0.2}))
+                                     overrides={"time_limit_s": 0.2})).kpis
     assert kpis["dwell_violations"] == 0 and kpis["level_violations"] == 0
     assert kpis["fallbacks"] == 0
     data = read_session(out)
@@ -61,7 +61,7 @@ def test_infeasible_start_falls_back_to_hysteresis_without_crashing(tmp_path):
     out = str(tmp_path / "low.mcap")
     kpis = run_bench(BenchRunOptions(controller="eec", cycles=1, out=out,
                                      config_path=str(config),
-                                     overrides={"time_limit_s": 0.2}))
+                                     overrides={"time_limit_s": 0.2})).kpis
     assert kpis["fallbacks"] >= 1
     assert kpis["dwell_violations"] == 0
     data = read_session(out)

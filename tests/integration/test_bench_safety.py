@@ -81,7 +81,7 @@ def test_a_chattering_controller_cannot_switch_a_relay_inside_its_dwell(tmp_path
     state = {"on": False}
     answers = []
 
-    def toggle(_meas, t_ns):
+    def toggle(t_ns):
         state["on"] = not state["on"]
         answers.append(rig.bench.set_relays({"P1": state["on"]}, t_ns)["P1"])
 
@@ -111,7 +111,7 @@ def test_relays_go_to_their_safe_level_on_stop_and_on_error(tmp_path):
         session, rig = lockstep_session(tmp_path, config, f"{case}.mcap")
         plant = rig.emulator.plant
 
-        def drive(_meas, t_ns, case=case, rig=rig):
+        def drive(t_ns, case=case, rig=rig):
             rig.bench.set_relays({"P1": True, "P2": False, "M1": True}, t_ns)
             if case == "error" and t_ns > 2e9:
                 raise RuntimeError("controller bug")
@@ -151,7 +151,7 @@ def test_killing_the_emulator_loses_the_link_and_restarting_reconnects(tmp_path)
                       config=config.data)
     rig = attach_bench(session, config, f"modbus-tcp://127.0.0.1:{port}")
     session.add_task(FunctionTask(
-        "controller", 10, compute=lambda _m, t: rig.bench.set_relays({"P1": True}, t)))
+        "controller", 10, compute=lambda t: rig.bench.set_relays({"P1": True}, t)))
     timeline: dict[str, float] = {}
 
     def operator():

@@ -19,7 +19,7 @@ master.start()
 observer = master.emulator.attach_bus()
 loop = FixedRateLoop(RealtimeClock(), 0.0005)
 loop.add_component(master)
-loop.add_task(FunctionTask("drive", write=lambda command, t: master.exchange(300.0)))
+loop.add_task(FunctionTask("drive", write=lambda t: master.exchange(300.0)))
 print("running", flush=True)
 loop.run(duration_s=60)
 words = []

@@ -21,7 +21,7 @@ from controllers.servo.sim import simulate
 from drivers.can_drive import DriveFaultError
 from hil.cli.main import main
 from hil.core.reader import read_session
-from hil.servo.run import ServoRunConfig, make_controller, run_servo
+from hil.servo.run import ServoRunOptions, make_controller, run_servo
 from tests.drive_processes import start_drive_emulator, stop_drive_emulator
 
 REPO = Path(__file__).resolve().parents[2]
@@ -32,9 +32,9 @@ pytestmark = pytest.mark.timeout(120)
 
 
 def run(tmp_path: Path, name: str, on_started=None, **settings) -> tuple[dict, object]:
-    result = run_servo(ServoRunConfig(out=str(tmp_path / f"{name}.mcap"), **settings),
+    result = run_servo(ServoRunOptions(out=str(tmp_path / f"{name}.mcap"), **settings),
                        on_started=on_started)
-    return result.kpis, read_session(result.path)
+    return result.kpis, read_session(result.session_path)
 
 
 @pytest.mark.parametrize("controller", ["mpc", "pid"])
@@ -103,7 +103,7 @@ def test_the_loop_through_can_reproduces_the_offline_simulation(tmp_path, contro
     """Same model, same controller: through CAN the trajectory matches servo_sim.simulate up to
     the wire's quantisation (1 mA, one encoder increment). A delay of one tick more would be
     off by ~0.08 deg on the sine, a disturbance of the wrong sign by ~47 deg in Fig. 16."""
-    config = ServoRunConfig(controller=controller, reference=reference, umax=umax,
+    config = ServoRunOptions(controller=controller, reference=reference, umax=umax,
                             duration_s=1.0, out=str(tmp_path / "can.mcap"))
     run_servo(config)
     position = read_session(config.out).arrays("/drive/feedback")["position_deg"]
@@ -177,7 +177,7 @@ def test_a_drive_fault_stops_the_run_and_the_session_keeps_it(tmp_path):
     """The emulated drive trips at 500 mA; the MPC asks for more at once: the master raises,
     the loop stops, and the finished session file holds the fault and the KPIs so far."""
     out = tmp_path / "fault.mcap"
-    config = ServoRunConfig(controller="mpc", umax=1000.0, duration_s=1.0, out=str(out),
+    config = ServoRunOptions(controller="mpc", umax=1000.0, duration_s=1.0, out=str(out),
                             drive_overrides={"emulator": {"overcurrent_trip_mA": 500}})
     with pytest.raises(DriveFaultError, match=r"EMCY 0x2310.*session recorded to .*fault.mcap"):
         run_servo(config)

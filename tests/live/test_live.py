@@ -139,7 +139,7 @@ def _run_ticks(path: Path, port: int, with_stalled_client: bool) -> tuple[int, i
     topic = session.topic("/tick", {"type": "object", "title": "Tick", "properties": {
         "v": {"type": "array", "items": {"type": "number"}}}})
     payload = {"v": [0.123456789] * 300}
-    session.add_task(FunctionTask("tick", 1, write=lambda _c, t: topic.log(t, payload)))
+    session.add_task(FunctionTask("tick", 1, write=lambda t: topic.log(t, payload)))
     sock = None
     if with_stalled_client:
         session.recorder.flush()  # hand the topics to the writer, which advertises them

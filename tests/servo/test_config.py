@@ -81,11 +81,11 @@ def test_mpc_prediction_is_decimated_in_real_time_and_in_long_lockstep_runs():
     from hil.servo.run import (
         PREDICTION_EVERY_REALTIME,
         PREDICTION_EVERY_TICK_UP_TO_S,
-        ServoRunConfig,
+        ServoRunOptions,
     )
 
     def every(**kw):
-        return ServoRunConfig(controller="mpc", **kw).prediction_period
+        return ServoRunOptions(controller="mpc", **kw).prediction_period
 
     assert every(duration_s=PREDICTION_EVERY_TICK_UP_TO_S) == 1  # a short lockstep run: all
     assert every(duration_s=PREDICTION_EVERY_TICK_UP_TO_S + 1) == PREDICTION_EVERY_REALTIME

@@ -1,0 +1,223 @@
+"""One run pipeline for every application: plan -> devices -> session -> controller -> loop ->
+KPIs -> verdict -> result.
+
+An application describes one run as an :class:`Experiment` (``hil.bench.run``,
+``hil.servo.run``); :func:`run_experiment` drives every run the same way, from the command
+line, the Python API, the sweep and the pytest fixtures alike:
+
+1. ``plan()`` - everything decided before anything is opened: configs parsed, the controller
+   spec loaded and checked, limits split into KPI limits and per-tick signal limits, the clock,
+   the session file. A bad value ends here, with no device touched and no file left.
+2. ``open_devices(clock, on_event)`` - reach the hardware (or start its emulator) and leave it
+   in its safe state. Events go to a buffer until the session exists. An unreachable device
+   leaves no session file behind.
+3. The session is created (the file, its metadata and config attachment).
+4. ``build_controller(session)`` - the controller, guarded. If it cannot be built, the file is
+   discarded: nothing ran.
+5. ``start(session)`` - enable the devices and add the loop's tasks; then the loop runs.
+   A :class:`~hil.core.errors.HilError` (a fault, a lost link, a controller error) stops it;
+   the loop has put every device in its safe state.
+6. ``finish(session)``, ``close_devices()``, ``kpis(...)``, the verdict of the limits, the file
+   finished with the KPIs. An error is raised again with the session's path in its message.
+
+The result is a :class:`RunResult`. Rules every run shares live here too: where a session goes
+by default (:func:`default_session_path`) and how long one controller call may take
+(:func:`controller_budget`).
+"""
+
+from __future__ import annotations
+
+import abc
+import os
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from hil.core.clock import Clock
+from hil.core.errors import HilError
+from hil.core.recorder import RecordingOptions
+from hil.core.session import Session
+from hil.core.verdict import Limit, SignalWatch, verdict
+
+#: the folder (under the working folder) where a run's session goes unless ``--out`` says
+SESSIONS_FOLDER = "sessions"
+
+
+@dataclass(frozen=True)
+class RunPlan:
+    """What a run is, decided before anything is opened."""
+
+    kind: str                      # the session's kind: "bench", "servo"
+    label: str                     # the controller, as the KPIs name it
+    session_path: str
+    clock: Clock
+    base_period_s: float
+    duration_s: float
+    kpi_limits: tuple[Limit, ...]  # checked on the KPIs when the run ends
+    watch: SignalWatch             # limits on per-tick signals, checked in the loop
+    config: Mapping[str, Any]      # the session's config metadata (JSON)
+    config_text: str | None = None  # the config as the user wrote it (an attachment)
+    config_name: str = "config.toml"
+    recording: RecordingOptions = field(default_factory=RecordingOptions)
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """What a run gives back: the KPI document (``--json``, the verdict's keys included), the
+    verdict alone (``{}`` without limits), the session's first file, why the loop stopped and
+    the loop's timing per task."""
+
+    kpis: dict[str, Any]
+    verdict: dict[str, Any]
+    session_path: str
+    stop_reason: str
+    loop: dict[str, Any]
+
+    @property
+    def passed(self) -> bool | None:
+        """True: every limit holds; False: one is violated; None: the run had no limits."""
+        return self.verdict.get("passed")
+
+
+class EventBuffer:
+    """An event sink (:data:`hil.core.types.EventSink`) for devices opened before their
+    session: events are held, then replayed into the session once it exists."""
+
+    def __init__(self) -> None:
+        self._held: list[tuple[str, str, dict[str, Any]]] = []
+        self._session: Session | None = None
+
+    def __call__(self, kind: str, message: str, **data: Any) -> None:
+        if self._session is not None:
+            self._session.event(kind, message, **data)
+        else:
+            self._held.append((kind, message, data))
+
+    def attach(self, session: Session) -> None:
+        """From now on, events go to ``session``; the held ones first."""
+        self._session = session
+        for kind, message, data in self._held:
+            session.event(kind, message, **data)
+        self._held.clear()
+
+
+class Experiment(abc.ABC):
+    """One run of an application, as :func:`run_experiment` drives it (see the module)."""
+
+    @abc.abstractmethod
+    def plan(self) -> RunPlan:
+        """Check and decide everything that needs no I/O; raise a HilError on bad input."""
+
+    @abc.abstractmethod
+    def open_devices(self, clock: Clock, on_event: EventBuffer) -> None:
+        """Reach the devices (or start their emulators), outputs in their safe state."""
+
+    @abc.abstractmethod
+    def build_controller(self, session: Session) -> None:
+        """Build the controller (guarded): a failure leaves no session file."""
+
+    @abc.abstractmethod
+    def start(self, session: Session) -> None:
+        """Enable the devices and add the loop's tasks and safe-state components."""
+
+    def finish(self, session: Session) -> None:
+        """After a loop that ended without error, before the devices close. Default: none."""
+        return None
+
+    @abc.abstractmethod
+    def close_devices(self) -> None:
+        """Release the devices (the loop already put them in their safe state); idempotent."""
+
+    @abc.abstractmethod
+    def kpis(self, session: Session, wall_s: float, error: HilError | None) -> dict[str, Any]:
+        """The run's KPI document so far (``--json``), ``stop_reason`` included."""
+
+
+def run_experiment(experiment: Experiment) -> RunResult:
+    """Run ``experiment`` through the pipeline (see the module); its :class:`RunResult`.
+
+    A HilError that stopped the loop is raised again after the session file is finished with
+    the KPIs so far, its message ending with the session's path."""
+    plan = experiment.plan()
+    events = EventBuffer()
+    experiment.open_devices(plan.clock, events)
+    try:
+        session = Session(plan.session_path, plan.clock, plan.base_period_s, kind=plan.kind,
+                          config=dict(plan.config), config_text=plan.config_text,
+                          config_name=plan.config_name, recording=plan.recording)
+    except BaseException:
+        experiment.close_devices()
+        raise
+    events.attach(session)
+    try:
+        experiment.build_controller(session)
+    except BaseException:  # nothing ran: no session file is left behind
+        experiment.close_devices()
+        session.discard()
+        raise
+    error: HilError | None = None
+    wall_s = 0.0
+    kpis: dict[str, Any] = {}
+    outcome: dict[str, Any] = {}
+    try:
+        experiment.start(session)
+        begin = time.perf_counter()
+        try:
+            session.run(duration_s=plan.duration_s)
+        finally:
+            wall_s = time.perf_counter() - begin
+        experiment.finish(session)
+    except HilError as exc:
+        error = exc
+    finally:
+        try:
+            experiment.close_devices()
+        finally:
+            try:
+                kpis = _kpis(experiment, session, wall_s, error)
+                outcome = verdict(kpis, plan.kpi_limits, plan.watch)
+                kpis.update(outcome)
+            finally:
+                session.close(kpis=kpis or None)
+    stop_reason = session.loop.stop_reason or "completed"
+    if error is not None:
+        error.args = (f"{error} (session recorded to {plan.session_path})",)
+        raise error
+    return RunResult(kpis, outcome, plan.recording.first_file(plan.session_path), stop_reason,
+                     session.loop.summary())
+
+
+def _kpis(experiment: Experiment, session: Session, wall_s: float,
+          error: HilError | None) -> dict[str, Any]:
+    """The experiment's KPIs; after an error, what can be had (the error is what matters)."""
+    try:
+        kpis = experiment.kpis(session, wall_s, error)
+    except HilError:
+        if error is None:
+            raise
+        kpis = {}
+    kpis.setdefault("stop_reason", session.loop.stop_reason)
+    if error is not None:
+        kpis["error"] = str(error)
+    return kpis
+
+
+def default_session_path(kind: str, controller: str, folder: str = SESSIONS_FOLDER) -> str:
+    """``sessions/KIND-CONTROLLER-YYYYmmdd-HHMMSS.mcap`` under the working folder (``-2``,
+    ``-3``... when that name is taken)."""
+    stem = os.path.join(folder, f"{kind}-{controller}-{time.strftime('%Y%m%d-%H%M%S')}")
+    path, n = f"{stem}.mcap", 1
+    while os.path.exists(path):
+        n += 1
+        path = f"{stem}-{n}.mcap"
+    return path
+
+
+def controller_budget(given: float | None, realtime: bool, default_s: float) -> float | None:
+    """The time one controller call may take: as given; else, in real time, the
+    application's ``default_s``. In lockstep a slow call costs no virtual time: no budget
+    unless one is given."""
+    if given is not None:
+        return given
+    return default_s if realtime else None

@@ -1,0 +1,199 @@
+"""The servo tick: one loop task at the base period T = 500 us, in the loop's four phases.
+
+* **read** - ``master.receive_feedback()``: the TPDOs of the SYNC the previous tick sent. In
+  real time they travelled while the loop slept; in lockstep the emulated drive answered the
+  SYNC at once on the in-process bus, so they are waiting. One form for both clocks.
+* **compute** - the controller's ``step(y_k, t_k)`` gives u_k (guarded, timed).
+* **write** - ``master.send_command(u_k)``: RPDO + SYNC. The drive applies u_k on that SYNC
+  and its TPDOs report y_{k+1}, exactly the offline simulation's ``x(k+1) = A x(k) + B u(k)``.
+* **record** - ``/drive/command``, ``/drive/feedback``, ``/mpc/prediction``, the KPIs and the
+  per-tick limits, after the command has left (in real time the drive's answer travels while
+  the tick is logged).
+
+The controller's time is the tick's slot on the schedule grid (k T), in real time too: a
+skipped tick skips its reference sample. With the emulated drive the plant only moves on SYNC,
+so a skipped tick also freezes the plant for one period (a real drive holds its last command).
+In lockstep runs up to ``PREDICTION_EVERY_TICK_UP_TO_S`` the prediction is recorded every
+tick, otherwise every ``PREDICTION_EVERY_REALTIME``-th tick by default (200 Hz).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from controllers.base import (
+    Predicting,
+    ReportsEvents,
+    ServoController,
+    horizons_of,
+    solver_of,
+)
+from controllers.servo.references import Scenario, wrap180
+from drivers.can_drive import CanDriveMaster, Feedback
+from hil.core.errors import ControllerError
+from hil.core.guard import guarded_call
+from hil.core.loop import Task
+from hil.core.session import Session
+from hil.core.verdict import SignalWatch
+from hil.servo.topics import COMMAND_SCHEMA, FEEDBACK_SCHEMA, PREDICTION_SCHEMA
+from hil.servo.tracking import ReferenceSamples, TrackingStats
+
+PREDICTION_EVERY_REALTIME = 10  # 200 Hz of /mpc/prediction in real time and in long runs
+PREDICTION_EVERY_TICK_UP_TO_S = 60.0  # lockstep runs up to this long record it every tick
+DISTURBANCE_OBJECT = 0x2003  # the emulated drive's external disturbance torque [mA], INTEGER16
+
+
+class ServoTask(Task):
+    """read feedback -> controller step -> write command -> record the tick."""
+
+    def __init__(self, session: Session, master: CanDriveMaster, controller: ServoController,
+                 scenario: Scenario, *, label: str, settle_s: float, prediction_every: int,
+                 budget_s: float | None, watch: SignalWatch | None = None) -> None:
+        super().__init__("servo")
+        self.session, self.master, self.controller = session, master, controller
+        self.scenario = scenario
+        self.loop = session.loop
+        self.clock = session.clock
+        self.realtime = session.clock.mode == "realtime"
+        self.period_ns = self.loop.base_period_ns
+        self.dt = self.period_ns / 1e9
+        self.reference = ReferenceSamples(scenario.reference, self.dt)
+        self.stats = TrackingStats(settle_s)
+        self.prediction_every = prediction_every
+        self.label = label
+        self.budget_s = budget_s
+        self.watch = watch if watch is not None and watch.limits else None
+        horizons = horizons_of(controller)
+        self.hu = horizons.hu if horizons is not None else None
+        self.solver = solver_of(controller)
+        self.predictor = controller if isinstance(controller, Predicting) else None
+        self.commands = session.topic("/drive/command", COMMAND_SCHEMA, high_rate=True)
+        self.feedbacks = session.topic("/drive/feedback", FEEDBACK_SCHEMA, high_rate=True)
+        self.predictions = (session.topic("/mpc/prediction", PREDICTION_SCHEMA, high_rate=True)
+                            if self.predictor is not None else None)
+        self._disturbance_ma = 0
+        self._last_path = ""
+        # this tick: its number and time, the feedback read, the command and its compute time
+        self._tick = 0
+        self._t_s = 0.0
+        self._feedback: Feedback | None = None
+        self._command = 0.0
+        self._compute_us = 0.0
+        self.late_writes = 0
+        self.stale = 0
+
+    def read(self, t_ns: int) -> None:
+        self._feedback = self.master.receive_feedback()
+
+    def compute(self, t_ns: int) -> None:
+        """The controller's step only: the tick is recorded after the command has left."""
+        assert self._feedback is not None
+        n = (t_ns - self.loop.start_ns) // self.period_ns
+        self._tick, self._t_s = n, n * self.dt
+        self._command, self._compute_us = self._step(self._feedback.position_deg % 360.0,
+                                                     self._t_s)
+
+    def write(self, t_ns: int) -> None:
+        """RPDO + SYNC (and the scenario's disturbance torque, applied from that SYNC on)."""
+        if self.scenario.disturbance is not None:
+            self._inject_disturbance(self._disturbance_for(self._t_s))
+        self.master.send_command(self._command)
+        if self.realtime and \
+                self.clock.time_ns() > self.loop.start_ns + (self._tick + 1) * self.period_ns:
+            self.late_writes += 1
+
+    def record(self, t_ns: int) -> None:
+        """KPIs, /drive/feedback, /drive/command, limits and the MPC prediction of this tick."""
+        feedback, n, t_s, u = self._feedback, self._tick, self._t_s, self._command
+        assert feedback is not None
+        position = feedback.position_deg
+        r = self.reference(n)
+        error = wrap180(position - r)
+        if not feedback.fresh:
+            self.stale += 1
+        self.stats.add(t_s, error, u, self._compute_us)
+        message: dict[str, Any] = {"t_s": t_s, "reference_deg": r, "error_deg": error,
+                                   "command_mA": u, "compute_us": self._compute_us}
+        if self.scenario.disturbance is not None:
+            message["disturbance_mA"] = self._disturbance_for(t_s)
+        path = self._solver_path()
+        if path:
+            message["path"] = path
+        self.feedbacks.log(t_ns, {
+            "position_deg": position, "velocity_deg_s": feedback.velocity_deg_s,
+            "current_mA": feedback.current_ma, "command_mA": feedback.command_ma,
+            "statusword": feedback.statusword, "cycle": feedback.cycle,
+            "fresh": feedback.fresh, "rtt_us": feedback.rtt_us})
+        self.commands.log(t_ns, message)
+        if self.watch is not None:
+            self._check_limits(error, u, feedback)
+        if self.predictor is not None and self.predictions is not None \
+                and n % self.prediction_every == 0:
+            u_pred, y_pred = self.predictor.prediction()
+            # the arrays as they are: the writer process converts them (CDR float32 by default)
+            self.predictions.log(t_ns, {"t_s": t_s, "u_mA": u_pred[: self.hu], "y_deg": y_pred})
+
+    # -- helpers -----------------------------------------------------------------------
+    def _step(self, position: float, t_s: float) -> tuple[float, float]:
+        """The controller's command and its compute time [us]; a raise, a command that is not
+        a finite number or a step over budget is a ControllerError (on ``/events`` too)."""
+        try:
+            u, elapsed = guarded_call(self.label, "step", self.controller.step, position, t_s,
+                                      budget_s=self.budget_s)
+            if isinstance(u, bool) or not isinstance(u, int | float | np.number) \
+                    or not math.isfinite(u):
+                raise ControllerError(f"controller {self.label!r}: step() must return a finite "
+                                      f"current in mA, got {type(u).__name__} {u!r:.60}")
+        except ControllerError as exc:
+            self.session.event("controller.error", str(exc), level="error",
+                               source="controller", t_s=t_s)
+            raise
+        return float(u), elapsed * 1e6
+
+    def _check_limits(self, error: float, command: float, feedback: Feedback) -> None:
+        assert self.watch is not None
+        violation = self.watch.check({"abs_error_deg": abs(error),
+                                      "abs_command_mA": abs(command),
+                                      "abs_velocity_deg_s": abs(feedback.velocity_deg_s),
+                                      "position_deg": feedback.position_deg})
+        if violation is not None:
+            self.session.event("limit.abort", f"limit violated, run stopped: "
+                               f"{violation.describe()}", level="error", source="limits",
+                               limit=str(violation.limit), measured=violation.measured,
+                               t_s=self._t_s)
+            self.loop.stop(f"limit {violation.limit}")
+
+    def _disturbance_for(self, t_s: float) -> int:
+        return round(self.scenario.disturbance(t_s)) if self.scenario.disturbance else 0
+
+    def _inject_disturbance(self, value: int) -> None:
+        """Scenario torque through the emulated drive's 0x2003 (by SDO, only on a change):
+        applied from the next SYNC on, i.e. while u(k) is, as in the offline simulation."""
+        if value == self._disturbance_ma:
+            return
+        self.master.sdo_write(DISTURBANCE_OBJECT, 0, value, "<h")
+        self._disturbance_ma = value
+        self.session.event("servo.disturbance", f"disturbance torque {value} mA",
+                           source="scenario", torque_mA=value, t_s=self._t_s)
+
+    def _solver_path(self) -> str:
+        """This tick's solver path (MPCs); the explicit MPC's fallback events, or the online
+        MPC's first fallback of a run of them, on ``/events``."""
+        controller = self.controller
+        path = self.solver.last_path if self.solver is not None else ""
+        if isinstance(controller, ReportsEvents):  # the explicit MPC reports its fallbacks
+            for event in controller.pop_events():
+                event = dict(event)
+                kind, message = event.pop("kind"), event.pop("message")
+                level = event.pop("level", "warning")
+                self.session.event(f"empc.{kind.removeprefix('empc_')}", message, level=level,
+                                   source="empc", **event)
+        elif path == "fallback" and self._last_path != "fallback":
+            self.session.event("mpc.fallback", "MPC: the QP had no solution (infeasible "
+                               "constraints): solved without the output constraints or held "
+                               "the input", level="warning", source="mpc", t_s=self._t_s)
+        self._last_path = path
+        return path
