@@ -17,8 +17,8 @@ ways to run it:
 Cyclic path (raw frames, never the ``canopen`` PDO machinery): an RPDO is stored on reception;
 on SYNC the node latches it (controlword and targets), advances the plant one communication
 cycle (0x1006 / plant period steps, at least one), and sends the TPDOs whose transmission type
-counter expires. SDO goes through ``canopen``'s SDO server protocol code against this node's own
-object access functions, so every value an SDO reads is the one the last TPDO carried.
+counter expires. SDO goes through the node's own SDO server (:mod:`emulators.drive.sdo`)
+against its object access functions, so every value an SDO reads is the one the last TPDO carried.
 
 Faults: heartbeat-consumer time-out or SYNC loss while the power stage is enabled -> EMCY
 0x8130; commanded current above the trip level -> EMCY 0x2310; either starts the fault reaction
@@ -48,9 +48,22 @@ from typing import Any
 import can
 from canopen.objectdictionary import ODVariable
 from canopen.objectdictionary.datatypes import VISIBLE_STRING
-from canopen.sdo import SdoAbortedError, SdoServer
 
 from drivers.can_frames import Frame, frames_of, from_message
+from drivers.cia301 import (
+    ABORT_CANNOT_MAP,
+    ABORT_LENGTH,
+    ABORT_NO_OBJECT,
+    ABORT_NO_SUBINDEX,
+    ABORT_PDO_TOO_LONG,
+    ABORT_READ_ONLY,
+    ABORT_UNSUPPORTED,
+    ABORT_VALUE,
+    ABORT_VALUE_HIGH,
+    ABORT_VALUE_LOW,
+    ABORT_WRITE_ONLY,
+    SDO_RESPONSE_BASE,
+)
 from drivers.cia402 import (
     CYCLIC_SYNCHRONOUS_POSITION,
     CYCLIC_SYNCHRONOUS_TORQUE,
@@ -80,6 +93,7 @@ from drivers.cia402 import (
 from emulators.direct_bus import DirectChannel
 from emulators.drive.od import OdDefaults, build_object_dictionary, iter_variables
 from emulators.drive.plant import AxisPlant, Disturbance, Friction
+from emulators.drive.sdo import SdoAbortError, SdoServer
 from emulators.faults import Fault, FaultSchedule, for_emulator
 
 log = logging.getLogger(__name__)
@@ -116,20 +130,6 @@ def error_register_bit(code: int) -> int:
             0x8: ERR_REG_COMMUNICATION}.get(code >> 12, ERR_REG_GENERIC)
 # manufacturer byte 3 of an EMCY 0x8130: which watchdog fired
 CAUSE_HEARTBEAT, CAUSE_SYNC = 0x01, 0x02
-
-# SDO abort codes (CiA 301)
-ABORT_COMMAND = 0x0504_0001
-ABORT_UNSUPPORTED = 0x0601_0000
-ABORT_WRITE_ONLY = 0x0601_0001
-ABORT_READ_ONLY = 0x0601_0002
-ABORT_NO_OBJECT = 0x0602_0000
-ABORT_CANNOT_MAP = 0x0604_0041
-ABORT_PDO_TOO_LONG = 0x0604_0042
-ABORT_LENGTH = 0x0607_0010
-ABORT_NO_SUBINDEX = 0x0609_0011
-ABORT_VALUE = 0x0609_0030
-ABORT_VALUE_HIGH = 0x0609_0031
-ABORT_VALUE_LOW = 0x0609_0032
 
 SendFn = Callable[[list[Frame]], None]
 
@@ -187,21 +187,11 @@ class _Pdo:
     length_error: bool = False
 
 
-class _SdoSender:
-    """What canopen's SdoServer calls to answer: one frame out through the node's transport."""
-
-    def __init__(self, node: DriveNode) -> None:
-        self._node = node
-
-    def send_message(self, can_id: int, data: bytes) -> None:
-        self._node._send([(can_id, bytes(data))])
-
-
 def _pdo_struct(var: ODVariable) -> struct.Struct:
     """The wire format of a variable in a PDO (fixed-size types only)."""
     data_type = var.data_type
     if data_type is None or data_type not in var.STRUCT_TYPES:
-        raise SdoAbortedError(ABORT_CANNOT_MAP)
+        raise SdoAbortError(ABORT_CANNOT_MAP)
     return var.STRUCT_TYPES[data_type]
 
 
@@ -234,9 +224,9 @@ class DriveNode:
         self._send_fn = send
         self._timebase = timebase
         self._plant_period_ns = round(self.plant.dt * 1e9)
-        self.sdo = SdoServer(0x600 + self.node_id, 0x580 + self.node_id, self)
-        self.sdo.network = _SdoSender(self)  # type: ignore[assignment]
-        self.sdo._index, self.sdo._subindex = 0, 0  # abort() needs them before any request
+        sdo_response_id = SDO_RESPONSE_BASE + self.node_id
+        self.sdo = SdoServer(self.get_data, self.set_data,
+                             lambda data: self._send([(sdo_response_id, data)]))
         self._values: dict[tuple[int, int], Any] = {}
         self._pdos = [_Pdo(p.comm, p.mapping, False) for p in RPDOS] + \
                      [_Pdo(p.comm, p.mapping, True) for p in TPDOS]
@@ -352,7 +342,7 @@ class DriveNode:
         elif can_id == self._sync_cob_id:
             self._on_sync(data)
         elif can_id == 0x600 + n:
-            self._on_sdo(data)
+            self.sdo.handle(data)
         else:
             for pdo in self._pdos:
                 if not pdo.transmit and pdo.valid and pdo.cob_id == can_id:
@@ -414,67 +404,53 @@ class DriveNode:
             self._emcy(EMCY_RESET, 0)
 
     # ------------------------------------------------------------------------------ SDO
-    def _on_sdo(self, data: bytes) -> None:
-        if len(data) != 8:  # SDO frames are always 8 bytes
-            index = int.from_bytes(data[1:3], "little") if len(data) >= 3 else 0
-            subindex = data[3] if len(data) >= 4 else 0
-            self.sdo._index, self.sdo._subindex = index, subindex
-            self.sdo.abort(ABORT_COMMAND)
-            return
-        ccs = data[0] & 0xE0
-        if ccs in (0x00, 0x60) and self.sdo._buffer is None:  # segment without a transfer
-            self.sdo.abort(ABORT_COMMAND)
-            return
-        self.sdo.on_request(0x600 + self.node_id, bytearray(data), 0.0)
-
     def _find_object(self, index: int, subindex: int) -> ODVariable:
         if index not in self.object_dictionary:
-            raise SdoAbortedError(ABORT_NO_OBJECT)
+            raise SdoAbortError(ABORT_NO_OBJECT)
         obj = self.object_dictionary[index]
         if isinstance(obj, ODVariable):
             if subindex != 0:
-                raise SdoAbortedError(ABORT_NO_SUBINDEX)
+                raise SdoAbortError(ABORT_NO_SUBINDEX)
             return obj
         if subindex not in obj.subindices:
-            raise SdoAbortedError(ABORT_NO_SUBINDEX)
+            raise SdoAbortError(ABORT_NO_SUBINDEX)
         return obj.subindices[subindex]
 
-    def get_data(self, index: int, subindex: int, check_readable: bool = False) -> bytes:
-        """SDO upload (called by canopen's SdoServer)."""
+    def get_data(self, index: int, subindex: int) -> bytes:
+        """SDO upload (the SDO server's read)."""
         var = self._find_object(index, subindex)
-        if check_readable and not var.readable:
-            raise SdoAbortedError(ABORT_WRITE_ONLY)
+        if not var.readable:
+            raise SdoAbortError(ABORT_WRITE_ONLY)
         return var.encode_raw(self._values[(index, subindex)])
 
-    def set_data(self, index: int, subindex: int, data: bytes, check_writable: bool = False
-                 ) -> None:
-        """SDO download (called by canopen's SdoServer): type, range and state checks."""
+    def set_data(self, index: int, subindex: int, data: bytes) -> None:
+        """SDO download (the SDO server's write): type, range and state checks."""
         var = self._find_object(index, subindex)
-        if check_writable and not var.writable:
-            raise SdoAbortedError(ABORT_READ_ONLY)
+        if not var.writable:
+            raise SdoAbortError(ABORT_READ_ONLY)
         if var.data_type == VISIBLE_STRING:
-            raise SdoAbortedError(ABORT_READ_ONLY)
+            raise SdoAbortError(ABORT_READ_ONLY)
         if len(data) * 8 != len(var):
-            raise SdoAbortedError(ABORT_LENGTH)
+            raise SdoAbortError(ABORT_LENGTH)
         value = var.decode_raw(bytes(data))
         if not isinstance(value, int):  # the emulator's writable objects are integers
-            raise SdoAbortedError(ABORT_READ_ONLY)
+            raise SdoAbortError(ABORT_READ_ONLY)
         if var.min is not None and value < var.min:
-            raise SdoAbortedError(ABORT_VALUE_LOW)
+            raise SdoAbortError(ABORT_VALUE_LOW)
         if var.max is not None and value > var.max:
-            raise SdoAbortedError(ABORT_VALUE_HIGH)
+            raise SdoAbortError(ABORT_VALUE_HIGH)
         self._write(index, subindex, value)
 
     # ------------------------------------------------------------- object write effects
     def _write(self, index: int, subindex: int, value: int) -> None:
-        """Validate and apply one write (SDO); raises SdoAbortedError with the CiA code."""
+        """Validate and apply one write (SDO); raises SdoAbortError with the CiA code."""
         key = (index, subindex)
         if index in self._pdo_by_object:
             self._write_pdo_parameter(self._pdo_by_object[index], index, subindex, value)
             return
         if index == 0x1005:
             if value & 0x6000_0000 or value & 0x7FF == 0:  # we do not produce SYNC, 11-bit only
-                raise SdoAbortedError(ABORT_VALUE)
+                raise SdoAbortError(ABORT_VALUE)
             self._values[key] = value
             self._sync_cob_id = value & 0x7FF
         elif index == 0x1006:
@@ -483,7 +459,7 @@ class DriveNode:
             self._steps_per_sync = steps
         elif index == 0x1016:
             if value & 0xFF80_0000 or (value >> 16) == self.node_id:
-                raise SdoAbortedError(ABORT_VALUE)
+                raise SdoAbortError(ABORT_VALUE)
             self._values[key] = value
             self._hb_consumer_armed = False
         elif index == 0x1017:
@@ -491,11 +467,11 @@ class DriveNode:
             self._hb_next_ns = None
         elif index == 0x605A:
             if value not in QUICK_STOP_OPTIONS:
-                raise SdoAbortedError(ABORT_VALUE)
+                raise SdoAbortError(ABORT_VALUE)
             self._values[key] = value
         elif index == 0x6060:
             if value not in MODES:
-                raise SdoAbortedError(ABORT_VALUE)
+                raise SdoAbortError(ABORT_VALUE)
             self._values[key] = value
             self._values[(0x6061, 0)] = value
         elif index == 0x6040:
@@ -508,12 +484,12 @@ class DriveNode:
 
     def _steps_for_period(self, period_us: int) -> int:
         """Plant steps per SYNC for a communication cycle period (0 = not set: one step); a
-        period that is no multiple of the plant's is refused (SdoAbortedError)."""
+        period that is no multiple of the plant's is refused (SdoAbortError)."""
         if period_us == 0:
             return 1
         period_ns = period_us * 1000
         if period_ns % self._plant_period_ns:
-            raise SdoAbortedError(ABORT_VALUE)
+            raise SdoAbortError(ABORT_VALUE)
         return period_ns // self._plant_period_ns
 
     # ------------------------------------------------------------------------------ PDOs
@@ -522,23 +498,23 @@ class DriveNode:
         if index == pdo.comm:
             if subindex == 1:
                 if value & 0x2000_0000 or value & 0x7FF == 0:
-                    raise SdoAbortedError(ABORT_VALUE)  # 29-bit ids are not supported here
+                    raise SdoAbortError(ABORT_VALUE)  # 29-bit ids are not supported here
                 old = self._values[key]
                 both_valid = not (old | value) & PDO_NOT_VALID
                 if both_valid and (old & 0x7FF) != (value & 0x7FF):
-                    raise SdoAbortedError(ABORT_VALUE)  # invalidate before changing the id
+                    raise SdoAbortError(ABORT_VALUE)  # invalidate before changing the id
             elif subindex == 2:
                 allowed = range(1, 241) if pdo.transmit else [*range(241), 254, 255]
                 if value not in allowed:
-                    raise SdoAbortedError(ABORT_VALUE)
+                    raise SdoAbortError(ABORT_VALUE)
             self._values[key] = value
         else:
             if not self._values[(pdo.comm, 1)] & PDO_NOT_VALID:
-                raise SdoAbortedError(ABORT_UNSUPPORTED)  # mapping of a valid PDO is frozen
+                raise SdoAbortError(ABORT_UNSUPPORTED)  # mapping of a valid PDO is frozen
             if subindex == 0:
                 self._check_mapping(pdo, [self._values[(index, s)] for s in range(1, value + 1)])
             elif self._values[(index, 0)] != 0:
-                raise SdoAbortedError(ABORT_UNSUPPORTED)  # disable the mapping first
+                raise SdoAbortError(ABORT_UNSUPPORTED)  # disable the mapping first
             elif value:  # 0 clears an unused entry
                 self._check_mapping(pdo, [value])
             self._values[key] = value
@@ -550,14 +526,14 @@ class DriveNode:
             index, subindex, size = entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF
             try:
                 var = self._find_object(index, subindex)
-            except SdoAbortedError:
-                raise SdoAbortedError(ABORT_NO_OBJECT) from None
+            except SdoAbortError:
+                raise SdoAbortError(ABORT_NO_OBJECT) from None
             usable = var.readable if pdo.transmit else var.writable
             if not var.pdo_mappable or not usable or size != len(var):
-                raise SdoAbortedError(ABORT_CANNOT_MAP)
+                raise SdoAbortError(ABORT_CANNOT_MAP)
             bits += size
         if bits > 64:
-            raise SdoAbortedError(ABORT_PDO_TOO_LONG)
+            raise SdoAbortError(ABORT_PDO_TOO_LONG)
 
     def _compile_pdo(self, pdo: _Pdo) -> None:
         cob = self._values[(pdo.comm, 1)]
@@ -602,7 +578,7 @@ class DriveNode:
             else:
                 try:
                     self._write(key[0], key[1], value)
-                except SdoAbortedError:
+                except SdoAbortError:
                     continue  # a value the object refuses: ignored like an invalid mode
         if controlword is not None:
             self._apply_controlword(controlword)
