@@ -15,29 +15,11 @@ import time
 from dataclasses import dataclass, field
 from typing import IO, Any
 
-import mcap.writer
-import zstandard
-from mcap.writer import CompressionType, Writer
+from hil.core.mcap_writer import McapWriter
 
 SPLIT_CHECK_EVERY = 256  # messages between two size checks
-ZSTD_LEVEL = 9  # 12 MB/s on this data, about 12 % smaller than mcap's fixed level 3
+ZSTD_LEVEL = 9  # 12 MB/s on this data, about 12 % smaller than zstandard's default level 3
 DEFAULT_CHUNK_BYTES = 1 << 20  # larger chunks compress better; the 1 s flush bounds them
-
-
-class _LeveledZstd:
-    """mcap's writer calls ``zstandard.compress(data)`` at the library's default level and
-    offers no option for another; this stands in for the module inside the writer process."""
-
-    def __init__(self, level: int) -> None:
-        self._compressor = zstandard.ZstdCompressor(level=level)
-
-    def compress(self, data: bytes) -> bytes:
-        return self._compressor.compress(data)
-
-
-def use_zstd_level(level: int = ZSTD_LEVEL) -> None:
-    """Make this process's MCAP writers compress chunks at ``level`` (the writer process)."""
-    mcap.writer.zstandard = _LeveledZstd(level)  # type: ignore[assignment]
 
 
 def series_file(path: str, index: int) -> str:
@@ -71,12 +53,14 @@ class McapSeries:
         path: str,
         *,
         chunk_size: int = DEFAULT_CHUNK_BYTES,
+        zstd_level: int = ZSTD_LEVEL,
         split_duration_s: float | None = None,
         split_size_mb: float | None = None,
         profile: str = "",
     ) -> None:
         self.path = path
         self.chunk_size = chunk_size
+        self.zstd_level = zstd_level
         self.split = split_duration_s is not None or split_size_mb is not None
         self.split_ns = round(split_duration_s * 1e9) if split_duration_s else None
         self.split_bytes = round(split_size_mb * 1e6) if split_size_mb else None
@@ -86,7 +70,7 @@ class McapSeries:
         self._metadata: list[tuple[str, dict[str, str]]] = []
         self._attachments: list[tuple[str, bytes, str, int]] = []
         self._file: IO[bytes] | None = None
-        self._writer: Writer | None = None
+        self._writer: McapWriter | None = None
         self._file_channels: dict[int, int] = {}
         self._file_first_ns: int | None = None
         self._since_check = 0
@@ -97,8 +81,8 @@ class McapSeries:
     def _open(self, index: int) -> None:
         name = series_file(self.path, index) if self.split else self.path
         self._file = open(name, "wb")  # noqa: SIM115 - closed by _finish_file()
-        self._writer = Writer(self._file, chunk_size=self.chunk_size,
-                              compression=CompressionType.ZSTD)
+        self._writer = McapWriter(self._file, chunk_size=self.chunk_size,
+                                  zstd_level=self.zstd_level)
         self._writer.start(profile=self.profile, library="hil")
         self._file_channels = {}
         self._file_first_ns = None

@@ -33,7 +33,6 @@ from hil.core.mcap_series import (
     ChannelSpec,
     McapSeries,
     json_schema_channel,
-    use_zstd_level,
 )
 from hil.core.record_stream import FrameDecoder
 
@@ -219,7 +218,6 @@ def main() -> int:
         # unpickling a numpy message imports numpy (0.1-0.2 s of CPU): in real time, do it
         # before 'ready' rather than beside the first ticks
         import numpy  # noqa: F401
-    use_zstd_level()
 
     def ready() -> None:
         with contextlib.suppress(OSError):  # the loop process may be gone already

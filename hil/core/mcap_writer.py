@@ -1,0 +1,201 @@
+"""An indexed, chunked MCAP writer whose zstd level is an option.
+
+mcap's own ``Writer`` compresses chunks at zstandard's default level and offers no option for
+another. This writer builds the same file from the mcap package's public record classes
+(``mcap.records``, ``mcap.data_stream.RecordBuilder``): a header; schemas, channels and
+messages in zstd chunks, each followed by its message indexes; metadata and attachments
+between chunks; then the summary (schemas, channels, statistics, chunk, attachment and
+metadata indexes, summary offsets), the footer with the summary CRC, and the magic. Readers
+that need the indexes (Foxglove's) read it as they read mcap's own files.
+
+The methods are those of ``mcap.writer.Writer`` that a session uses: ``start``,
+``register_schema``, ``register_channel``, ``add_message``, ``add_metadata``,
+``add_attachment``, ``flush`` (close the chunk in progress) and ``finish``.
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections import defaultdict
+from typing import IO
+
+import zstandard
+from mcap.data_stream import RecordBuilder
+from mcap.opcode import Opcode
+from mcap.records import (
+    Attachment,
+    AttachmentIndex,
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    Message,
+    MessageIndex,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+    SummaryOffset,
+)
+
+MAGIC = b"\x89MCAP0\r\n"  # MCAP specification, "Magic"
+DEFAULT_CHUNK_BYTES = 1 << 20
+
+
+class McapWriter:
+    """Writes one MCAP file to ``stream``; chunks are zstd-compressed at ``zstd_level``."""
+
+    def __init__(self, stream: IO[bytes], *, chunk_size: int = DEFAULT_CHUNK_BYTES,
+                 zstd_level: int = 3) -> None:
+        self._stream = stream
+        self._chunk_size = chunk_size
+        self._compressor = zstandard.ZstdCompressor(level=zstd_level)
+        self._out = RecordBuilder()    # records outside chunks, written out at once
+        self._chunk = RecordBuilder()  # the records of the chunk in progress
+        self._chunk_indexes: dict[int, MessageIndex] = {}
+        self._chunk_messages = 0
+        self._chunk_start_ns = self._chunk_end_ns = 0
+        self._schemas: dict[int, Schema] = {}
+        self._channels: dict[int, Channel] = {}
+        self._chunk_index_records: list[ChunkIndex] = []
+        self._attachment_indexes: list[AttachmentIndex] = []
+        self._metadata_indexes: list[MetadataIndex] = []
+        self._statistics = Statistics(
+            message_count=0, schema_count=0, channel_count=0, attachment_count=0,
+            metadata_count=0, chunk_count=0, message_start_time=0, message_end_time=0,
+            channel_message_counts=defaultdict(int))
+
+    # -- the file -----------------------------------------------------------------------
+    def start(self, profile: str = "", library: str = "hil") -> None:
+        self._stream.write(MAGIC)
+        Header(profile=profile, library=library).write(self._out)
+        self._write_out()
+
+    def finish(self) -> None:
+        """The last chunk, the data end, the summary, the footer and the magic."""
+        self._finish_chunk()
+        DataEnd(data_section_crc=0).write(self._out)
+        self._write_out()
+        summary_start = self._stream.tell()
+        summary = RecordBuilder()
+        offsets: list[SummaryOffset] = []
+
+        def group(opcode: Opcode, records: list) -> None:  # type: ignore[type-arg]
+            start = summary.count
+            for record in records:
+                record.write(summary)
+            offsets.append(SummaryOffset(group_opcode=opcode, group_start=summary_start + start,
+                                         group_length=summary.count - start))
+
+        group(Opcode.SCHEMA, list(self._schemas.values()))
+        group(Opcode.CHANNEL, list(self._channels.values()))
+        group(Opcode.STATISTICS, [self._statistics])
+        group(Opcode.CHUNK_INDEX, self._chunk_index_records)
+        group(Opcode.ATTACHMENT_INDEX, self._attachment_indexes)
+        group(Opcode.METADATA_INDEX, self._metadata_indexes)
+        offsets_start = summary_start + summary.count
+        for offset in offsets:
+            offset.write(summary)
+        data = summary.end()
+        self._stream.write(data)
+        footer = RecordBuilder()
+        Footer(summary_start=summary_start, summary_offset_start=offsets_start,
+               summary_crc=0).write(footer)
+        head = footer.end()[:-4]  # the footer up to its CRC: the CRC covers it too
+        self._stream.write(head + zlib.crc32(head, zlib.crc32(data)).to_bytes(4, "little"))
+        self._stream.write(MAGIC)
+
+    # -- records ------------------------------------------------------------------------
+    def register_schema(self, name: str, encoding: str, data: bytes) -> int:
+        schema = Schema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=data)
+        self._schemas[schema.id] = schema
+        self._statistics.schema_count += 1
+        schema.write(self._chunk)
+        return schema.id
+
+    def register_channel(self, topic: str, message_encoding: str, schema_id: int) -> int:
+        channel = Channel(id=len(self._channels) + 1, topic=topic,
+                          message_encoding=message_encoding, schema_id=schema_id, metadata={})
+        self._channels[channel.id] = channel
+        self._statistics.channel_count += 1
+        channel.write(self._chunk)
+        return channel.id
+
+    def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int,
+                    sequence: int = 0) -> None:
+        stats = self._statistics
+        if stats.message_count == 0 or log_time < stats.message_start_time:
+            stats.message_start_time = log_time
+        stats.message_end_time = max(stats.message_end_time, log_time)
+        stats.channel_message_counts[channel_id] += 1
+        stats.message_count += 1
+        if self._chunk_messages == 0 or log_time < self._chunk_start_ns:
+            self._chunk_start_ns = log_time
+        self._chunk_end_ns = max(self._chunk_end_ns, log_time)
+        self._chunk_messages += 1
+        index = self._chunk_indexes.get(channel_id)
+        if index is None:
+            index = self._chunk_indexes[channel_id] = MessageIndex(channel_id=channel_id,
+                                                                   records=[])
+        index.records.append((log_time, self._chunk.count))
+        Message(channel_id=channel_id, sequence=sequence, log_time=log_time,
+                publish_time=publish_time, data=data).write(self._chunk)
+        if self._chunk.count > self._chunk_size:
+            self._finish_chunk()
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        offset = self._stream.tell() + self._out.count
+        Metadata(name=name, metadata=data).write(self._out)
+        self._metadata_indexes.append(MetadataIndex(offset=offset,
+                                                    length=self._out.count, name=name))
+        self._statistics.metadata_count += 1
+        self._write_out()
+
+    def add_attachment(self, create_time: int, log_time: int, name: str, media_type: str,
+                       data: bytes) -> None:
+        offset = self._stream.tell() + self._out.count
+        Attachment(create_time=create_time, log_time=log_time, name=name,
+                   media_type=media_type, data=data).write(self._out)
+        self._attachment_indexes.append(AttachmentIndex(
+            offset=offset, length=self._out.count, create_time=create_time, log_time=log_time,
+            data_size=len(data), name=name, media_type=media_type))
+        self._statistics.attachment_count += 1
+        self._write_out()
+
+    def flush(self) -> None:
+        """Finish the chunk in progress (if it holds a message) and push it to the stream."""
+        self._finish_chunk()
+        self._stream.flush()
+
+    # -- chunks -------------------------------------------------------------------------
+    def _finish_chunk(self) -> None:
+        if self._chunk_messages == 0:
+            return
+        records = self._chunk.end()
+        compressed = self._compressor.compress(records)
+        start = self._stream.tell()
+        Chunk(message_start_time=self._chunk_start_ns, message_end_time=self._chunk_end_ns,
+              uncompressed_size=len(records), uncompressed_crc=zlib.crc32(records),
+              compression="zstd", data=compressed).write(self._out)
+        chunk_length = self._out.count
+        index_start = start + chunk_length
+        offsets = {}
+        for channel_id, index in self._chunk_indexes.items():
+            offsets[channel_id] = start + self._out.count
+            index.write(self._out)
+        self._chunk_index_records.append(ChunkIndex(
+            message_start_time=self._chunk_start_ns, message_end_time=self._chunk_end_ns,
+            chunk_start_offset=start, chunk_length=chunk_length,
+            message_index_offsets=offsets,
+            message_index_length=start + self._out.count - index_start, compression="zstd",
+            compressed_size=len(compressed), uncompressed_size=len(records)))
+        self._statistics.chunk_count += 1
+        self._write_out()
+        self._chunk_indexes = {}
+        self._chunk_messages = 0
+        self._chunk_start_ns = self._chunk_end_ns = 0
+
+    def _write_out(self) -> None:
+        self._stream.write(self._out.end())

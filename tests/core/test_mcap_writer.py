@@ -1,0 +1,85 @@
+"""hil's MCAP writer (zstd level as an option) writes what mcap's own writer writes at
+zstandard's default level, byte for byte, and compresses every chunk at the level it is given."""
+
+import io
+import json
+
+import pytest
+import zstandard
+from mcap.reader import make_reader
+from mcap.records import Chunk
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from hil.core.mcap_writer import McapWriter
+from hil.core.reader import read_session
+
+
+def write_session(writer):
+    """The same records into any writer with mcap's Writer methods: two topics, metadata and
+    an attachment in the middle, a flush (a chunk closed early), more messages."""
+    writer.start(profile="", library="hil test")
+    writer.add_metadata("session", {"kind": "test"})
+    schema = writer.register_schema(name="T", encoding="jsonschema", data=b'{"type":"object"}')
+    a = writer.register_channel(topic="/a", message_encoding="json", schema_id=schema)
+    b = writer.register_channel(topic="/b", message_encoding="json", schema_id=schema)
+    for k in range(3000):
+        payload = json.dumps({"k": k, "v": [k * 0.5] * (k % 7)}).encode()
+        writer.add_message(channel_id=a if k % 3 else b, log_time=1000 * k, data=payload,
+                           publish_time=1000 * k, sequence=k)
+        if k == 1200:
+            writer.flush()
+            writer.add_attachment(create_time=5, log_time=6, name="config.toml",
+                                  media_type="application/toml", data=b"[x]\ny = 1\n")
+            writer.add_metadata("mid", {"k": str(k)})
+    writer.finish()
+
+
+def ours(level, chunk_size=64 * 1024):
+    stream = io.BytesIO()
+    write_session(McapWriter(stream, chunk_size=chunk_size, zstd_level=level))
+    return stream.getvalue()
+
+
+def chunks(data):
+    return [r for r in StreamReader(io.BytesIO(data), emit_chunks=True).records
+            if isinstance(r, Chunk)]
+
+
+def test_at_zstandards_default_level_the_file_is_mcaps_own_byte_for_byte():
+    theirs = io.BytesIO()
+    write_session(Writer(theirs, chunk_size=64 * 1024, compression=CompressionType.ZSTD))
+    assert ours(3) == theirs.getvalue()
+
+
+@pytest.mark.parametrize("level", [1, 9, 19])
+def test_every_chunk_is_compressed_at_the_level_given(level):
+    found = chunks(ours(level))
+    assert len(found) >= 3  # the flush closed one early
+    compressor = zstandard.ZstdCompressor(level=level)
+    for chunk in found:
+        assert chunk.compression == "zstd"
+        assert compressor.compress(zstandard.decompress(chunk.data)) == chunk.data
+
+
+def test_a_higher_level_gives_a_smaller_file_with_the_same_messages():
+    fast, small = ours(1), ours(19)
+    assert len(small) < len(fast)
+    for data in (fast, small):
+        reader = make_reader(io.BytesIO(data))
+        summary = reader.get_summary()
+        assert summary.statistics.message_count == 3000
+        assert dict(summary.statistics.channel_message_counts) == {1: 2000, 2: 1000}
+        assert len(summary.chunk_indexes) == summary.statistics.chunk_count
+        messages = [(c.topic, m.log_time) for _, c, m in reader.iter_messages()]
+        assert len(messages) == 3000 and messages[5] == ("/a", 5000)
+        assert [a.name for a in reader.iter_attachments()] == ["config.toml"]
+        assert [m.name for m in reader.iter_metadata()] == ["session", "mid"]
+
+
+def test_hils_reader_finds_the_file_intact(tmp_path):
+    path = tmp_path / "s.mcap"
+    path.write_bytes(ours(9))
+    data = read_session(str(path))
+    assert not data.recovered
+    assert data.topic_counts == {"/a": 2000, "/b": 1000}
