@@ -37,7 +37,7 @@ import can
 import canopen
 import numpy as np
 
-from drivers.can_drive import CanDriveMaster, DriveMasterConfig
+from drivers.canopen import CanDriveMaster, DriveMasterConfig
 from emulators.drive.node import BusRunner, DriveEmulatorConfig, DriveNode, bus_sender
 from emulators.drive.od import build_object_dictionary
 from emulators.drive.plant import AxisPlant

@@ -2,7 +2,7 @@
 chart's transitions, modes of operation and the default PDO map.
 
 Written once, in the style of ``canopen.profiles.p402``, and read by the master
-(:mod:`drivers.can_drive`), the emulated drive (:mod:`emulators.drive.node`, whose state machine
+(:mod:`drivers.canopen`), the emulated drive (:mod:`emulators.drive.node`, whose state machine
 walks :data:`TRANSITIONS`) and the tests (``tests/drivers/test_cia402.py`` checks the tables
 against canopen's ``State402``). Transition numbers are those of the CiA 402 state chart.
 """
@@ -171,13 +171,24 @@ SUPPORTED_MODE_BITS: dict[int, int] = {  # the bit of each mode in 0x6502 (suppo
 }
 
 # ---------------------------------------------------------------------------- objects
+ERROR_CODE = 0x603F
 CONTROLWORD = 0x6040
 STATUSWORD = 0x6041
+QUICK_STOP_OPTION = 0x605A
+MODES_OF_OPERATION = 0x6060
+MODES_DISPLAY = 0x6061
 POSITION_ACTUAL = 0x6064
 VELOCITY_ACTUAL = 0x606C
 TARGET_TORQUE = 0x6071
+MAX_TORQUE = 0x6072
+RATED_CURRENT = 0x6075
 TORQUE_ACTUAL = 0x6077
 TARGET_POSITION = 0x607A
+POLARITY = 0x607E               # bit 7: position, bit 6: velocity (and torque) reversed
+ENCODER_RESOLUTION = 0x608F     # 1: increments, 2: motor revolutions
+GEAR_RATIO = 0x6091             # 1: motor revolutions, 2: shaft revolutions
+SUPPORTED_MODES = 0x6502
+POLARITY_POSITION, POLARITY_VELOCITY = 0x80, 0x40
 
 # -------------------------------------------------------------------- default PDO map
 PDO_NOT_VALID = 0x8000_0000  # CiA 301: bit 31 of a PDO's COB-ID

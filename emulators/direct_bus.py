@@ -15,6 +15,7 @@ observers and other masters on the channel.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
 import can
@@ -29,16 +30,20 @@ class DirectChannel:
         self.name = name
         self.inboxes: list[deque[Frame]] = []
 
-    def attach(self) -> DirectBus:
-        """A new bus on this channel; it receives what every other bus sends from now on."""
-        return DirectBus(self)
+    def attach(self, on_send: Callable[[], None] | None = None) -> DirectBus:
+        """A new bus on this channel; it receives what every other bus sends from now on.
+        ``on_send`` runs after each of its transmissions (a lockstep rig runs the emulated
+        node there, so a cycle is function calls)."""
+        return DirectBus(self, on_send=on_send)
 
 
 class DirectBus(can.BusABC):
     """One bus of a :class:`DirectChannel` (a python-can bus; receiving never blocks)."""
 
-    def __init__(self, channel: DirectChannel, **kwargs: Any) -> None:
+    def __init__(self, channel: DirectChannel, *, on_send: Callable[[], None] | None = None,
+                 **kwargs: Any) -> None:
         self._channel = channel
+        self._on_send = on_send
         self._inbox: deque[Frame] = deque()
         channel.inboxes.append(self._inbox)
         super().__init__(channel=channel.name, **kwargs)
@@ -49,6 +54,8 @@ class DirectBus(can.BusABC):
         for inbox in self._channel.inboxes:
             if inbox is not self._inbox:
                 inbox.extend(frames)
+        if self._on_send is not None:
+            self._on_send()
 
     def recv_frame(self, timeout: float | None = None) -> Frame | None:
         """The oldest frame waiting, or None (never waits: in lockstep nothing else runs)."""

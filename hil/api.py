@@ -28,7 +28,7 @@ from dataclasses import fields
 from typing import Any
 
 from drivers.bench.safe_bench import SafeBench
-from drivers.can_drive import CanDriveMaster
+from drivers.canopen import CanDriveMaster
 from hil.core.errors import UsageError
 from hil.core.types import EventSink, no_event
 from hil.core.verdict import Limit, parse_limit

@@ -31,7 +31,7 @@ from typing import Any
 import pytest
 
 from drivers.bench.safe_bench import SafeBench
-from drivers.can_drive import CanDriveMaster
+from drivers.canopen import CanDriveMaster
 from drivers.cia402 import OPERATION_ENABLED, state_of
 from hil import api
 from hil.emulator_process import EmulatorProcess

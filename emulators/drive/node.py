@@ -37,6 +37,7 @@ velocity P loop); the halt bit (8) and modes other than 8 and 10 are not impleme
 from __future__ import annotations
 
 import logging
+import math
 import struct
 import threading
 import time
@@ -63,6 +64,7 @@ from drivers.cia301 import (
     ABORT_VALUE_LOW,
     ABORT_WRITE_ONLY,
     SDO_RESPONSE_BASE,
+    SYNC_COB_ID,
 )
 from drivers.cia402 import (
     CYCLIC_SYNCHRONOUS_POSITION,
@@ -246,6 +248,16 @@ class DriveNode:
         self._reset_application()
 
     # ---------------------------------------------------------------- life cycle and time
+    @property
+    def sync_time_ns(self) -> int:
+        """The time its SYNCs have made: one communication cycle each."""
+        return self._sync_time_ns
+
+    @property
+    def cycle_period_ns(self) -> int:
+        """The communication cycle: 0x1006, or the plant's period before it is set."""
+        return self._steps_per_sync * self._plant_period_ns
+
     def _now(self) -> int:
         return self._sync_time_ns if self._timebase == "sync" else time.monotonic_ns()
 
@@ -869,19 +881,22 @@ class BusRunner:
 
 
 class LockstepDrive:
-    """An emulated drive on a private in-process channel (:mod:`emulators.direct_bus`), pumped
-    by the master (no threads).
+    """An emulated drive on a private in-process channel (:mod:`emulators.direct_bus`), run
+    synchronously: every transmission on :attr:`master_bus` hands the pending frames to the
+    node and runs its time service before the send returns (no threads).
 
-    ``master_bus`` is the bus a master uses; after each transmission the master calls
-    :meth:`pump`, which hands every pending frame to the node and runs its time service. The
-    node's clock is its SYNC count, so the run is deterministic and as fast as the CPU allows.
+    The node's clock is its SYNC count, so the run is deterministic and as fast as the CPU
+    allows. The drive is also the master's clock in lockstep (:meth:`time_ns`, :meth:`sleep`):
+    time passes for it when SYNCs come, so a master waiting for a state lets time pass by
+    sending SYNCs.
     """
 
     def __init__(self, config: DriveEmulatorConfig | None = None,
                  plant: AxisPlant | None = None) -> None:
         self.channel = DirectChannel(f"hil-drive-{uuid.uuid4().hex}")
         self._node_bus = self.channel.attach()
-        self.master_bus = self.channel.attach()
+        self.master_bus = self.channel.attach(on_send=self.pump)
+        self._time_bus = self.channel.attach(on_send=self.pump)
         self.node = DriveNode(config, send=self._node_bus.send_frames, plant=plant,
                               timebase="sync")
         self.node.boot()
@@ -897,7 +912,16 @@ class LockstepDrive:
             handle(*frame)
         self.node.service()
 
-    def close(self) -> None:
-        self._node_bus.shutdown()
-        self.master_bus.shutdown()
+    def time_ns(self) -> int:
+        """The drive's time: its SYNCs so far, one communication cycle each."""
+        return self.node.sync_time_ns
 
+    def sleep(self, seconds: float) -> None:
+        """Let ``seconds`` of the drive's time pass: one SYNC per communication cycle."""
+        period_ns = self.node.cycle_period_ns
+        for _ in range(max(1, math.ceil(seconds * 1e9 / period_ns))):
+            self._time_bus.send_frames([(SYNC_COB_ID, b"")])
+
+    def close(self) -> None:
+        for bus in (self._node_bus, self.master_bus, self._time_bus):
+            bus.shutdown()

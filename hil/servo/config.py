@@ -4,7 +4,8 @@ The packaged ``hil/configs/drive.toml`` holds every key with its default; a user
 over it table by table, then overrides (command-line flags, tests). Every key is read with its
 type and range through :class:`hil.core.config.Table`: an unknown key, a wrong type or a value
 out of range is one :class:`~hil.core.errors.ConfigError` naming the file and the dotted key.
-The driver (:class:`~drivers.can_drive.DriveMasterConfig`) and the emulator
+The driver (:class:`~drivers.canopen.config.DriveMasterConfig`, the bus as a
+:class:`~drivers.canopen.bus.CanBusSpec`) and the emulator
 (:class:`~emulators.drive.node.DriveEmulatorConfig`) define their settings and never read TOML.
 """
 
@@ -17,7 +18,8 @@ from dataclasses import dataclass
 from importlib import resources
 from typing import Any
 
-from drivers.can_drive import DriveMasterConfig
+from drivers.canopen.bus import SOCKETCAND, CanBusSpec
+from drivers.canopen.config import DriveMasterConfig
 from drivers.cia402 import MODES, QUICK_STOP_OPTIONS
 from emulators.drive.node import DriveEmulatorConfig
 from emulators.drive.plant import Disturbance, Friction
@@ -27,6 +29,7 @@ from hil.core.verdict import RunTables, read_run_tables
 DEFAULT_SOURCE = "hil/configs/drive.toml"
 SOURCE = "drive config"  # what errors name when no user file is given
 U16 = 0xFFFF
+EMULATED = "emulated"
 
 
 @dataclass(frozen=True)
@@ -36,10 +39,16 @@ class DriveConfig:
 
     master: DriveMasterConfig
     emulator: DriveEmulatorConfig
+    bus: CanBusSpec | None       # [bus]: the drive's bus; None: the emulated drive
     data: Mapping[str, Any]
     text: str
     source: str
     run: RunTables               # [controller] params and [limits] of a run
+
+    @property
+    def bus_url(self) -> str:
+        """``[bus]`` as a drive URL (``emulated`` for the emulated drive)."""
+        return self.bus.url if self.bus is not None else EMULATED
 
     def laid_over(self, overrides: Mapping[str, Any]) -> DriveConfig:
         """These settings with ``overrides`` laid over them (checked again)."""
@@ -67,12 +76,37 @@ def load_drive_config(path: str | os.PathLike[str] | None = None,
 def parse_drive_config(data: Mapping[str, Any], source: str, text: str = "") -> DriveConfig:
     """Complete drive tables (the default's keys all present) -> :class:`DriveConfig`."""
     root = Table(data, source)
-    master = _master(root.table("master", required=True), root.table("bus", required=True))
+    bus_table = root.table("bus", required=True)
+    bus = _bus(bus_table)
+    master = _master(root.table("master", required=True), bus_table)
     emulator = _emulator(root.table("emulator", required=True))
     run = read_run_tables(root)
     root.done()
-    return DriveConfig(master=master, emulator=emulator, data=data, text=text, source=source,
-                       run=run)
+    return DriveConfig(master=master, emulator=emulator, bus=bus, data=data, text=text,
+                       source=source, run=run)
+
+
+def _bus(bus: Table) -> CanBusSpec | None:
+    """``[bus]``: ``interface`` (``emulated``, ``socketcand`` or a python-can interface),
+    ``channel`` and ``options`` (keyword arguments of ``can.Bus``; socketcand: host, port)."""
+    from can.interfaces import VALID_INTERFACES
+
+    interface = bus.string("interface")
+    table = bus.table("options")
+    if interface == EMULATED:
+        if table.names():
+            raise table.error(table.names()[0], "is an option of a CAN interface; "
+                              "interface = 'emulated' takes none")
+        return None
+    if interface not in VALID_INTERFACES:
+        raise bus.error("interface", f"must be 'emulated' or a python-can interface "
+                        f"({', '.join(sorted(VALID_INTERFACES))}), got {interface!r}")
+    options = {name: table.raw(name) for name in table.names()}
+    table.done()
+    if interface == SOCKETCAND and not ({"host", "port"} <= set(options)):
+        raise bus.error("options", "socketcand needs host and port, e.g. "
+                        "options = { host = '192.168.0.60', port = 29536 }")
+    return CanBusSpec(interface, bus.string("channel"), options)
 
 
 def _quick_stop_option(table: Table) -> int:
@@ -106,6 +140,7 @@ def _master(m: Table, bus: Table) -> DriveMasterConfig:
         quick_stop_option=_quick_stop_option(m),
         quick_stop_timeout_s=m.integer("quick_stop_timeout_ms", above=0) / 1e3,
         standstill_deg_s=m.number("standstill_deg_s", above=0),
+        eds=m.string("eds") or None,
     )
     m.done()
     bus.done()

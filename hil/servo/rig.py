@@ -1,98 +1,128 @@
 """How the servo application reaches its drive: the drive URL schemes, and the emulated drive
 wired in lockstep (the driver knows nothing of the emulator).
 
-* ``emulated`` - :class:`EmulatedDrive`, the drive emulator on a private python-can virtual bus,
-  pumped by the master after each transmission: the SYNC count is the plant's clock, so a run is
-  deterministic and as fast as the CPU allows;
+* ``emulated`` - :class:`EmulatedDrive`, the drive emulator on a private in-process channel
+  that runs the node whenever the master transmits; the emulator is also the master's clock
+  (its SYNC count), so a run is deterministic and as fast as the CPU allows;
 * ``socketcand://HOST:PORT[/CHANNEL]`` - a socketcand gateway (or ``hil emulate drive``);
-* ``INTERFACE://CHANNEL`` - any python-can interface (``socketcan://can0``, ``pcan://...``);
+* ``INTERFACE://CHANNEL[?key=value&...]`` - any python-can interface (``socketcan://can0``,
+  ``slcan:///dev/ttyACM0?bitrate=1000000``, ``gs_usb://0``, ``pcan://PCAN_USBBUS1``,
+  ``udp_multicast://239.0.0.1?port=43113``, ``virtual://bench``...);
+* no URL: the ``[bus]`` table of drive.toml;
 * installed packages add schemes through the ``hil.drive_devices`` entry points.
 
-A drive factory is called as ``factory(url, drive_config, on_event=sink)`` and returns a
-:class:`~drivers.can_drive.CanDriveMaster` (not started).
+A drive factory is called as ``factory(url, drive_config, on_event=sink, trace=trace)`` and
+returns a :class:`~drivers.canopen.master.CanDriveMaster` (not started). ``trace`` is a
+``--can-log`` file (:class:`~drivers.canopen.can_log.CanLog`) or None.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import replace
 
+import can
 from can.interfaces import VALID_INTERFACES
 
-from drivers.can_drive import CanDriveMaster, DriveMasterConfig, open_interface, open_socketcand
+from drivers.canopen.bus import URL_FORMS, open_can_bus, parse_can_url
+from drivers.canopen.can_log import CanLog
+from drivers.canopen.config import DriveMasterConfig
+from drivers.canopen.link import CanLink, FrameTrace
+from drivers.canopen.master import CanDriveMaster
 from emulators.drive.node import DriveEmulatorConfig, LockstepDrive
 from hil.core.errors import ConfigError
 from hil.core.registry import Factory, SchemeRegistry, scheme_of
 from hil.core.types import EventSink, no_event
-from hil.servo.config import DriveConfig, load_drive_config
+from hil.servo.config import EMULATED, DriveConfig, load_drive_config
 
-EXPECTED = "expected emulated, socketcand://HOST:PORT or INTERFACE://CHANNEL (python-can)"
+EXPECTED = f"expected emulated, {URL_FORMS}"
 
 
 class EmulatedDrive(CanDriveMaster):
     """A master whose drive is the emulator (``emulator``, a
-    :class:`~emulators.drive.node.LockstepDrive`) on a private virtual bus, in lockstep. The
-    emulated node takes the master's node id."""
+    :class:`~emulators.drive.node.LockstepDrive`) on a private channel, in lockstep; the
+    emulator is its clock. The emulated node takes the master's node id."""
 
     def __init__(self, master: DriveMasterConfig, emulator: DriveEmulatorConfig, *,
-                 on_event: EventSink = no_event) -> None:
+                 on_event: EventSink = no_event, trace: FrameTrace | None = None,
+                 closers: tuple[Callable[[], None], ...] = ()) -> None:
         self.emulator = LockstepDrive(replace(emulator, node_id=master.node_id))
-        super().__init__(self.emulator.master_bus, master, on_event=on_event, timebase="cycles",
-                         pump=self.emulator.pump, closers=(self.emulator.close,),
-                         url="emulated")
+        super().__init__(CanLink(self.emulator.master_bus, trace=trace), master,
+                         on_event=on_event, clock=self.emulator,
+                         closers=(self.emulator.close, *closers), url=EMULATED)
 
 
-def emulated_drive(url: str, drive: DriveConfig, *,
-                   on_event: EventSink = no_event) -> EmulatedDrive:
+def emulated_drive(url: str, drive: DriveConfig, *, on_event: EventSink = no_event,
+                   trace: FrameTrace | None = None) -> EmulatedDrive:
     """``emulated``: the drive emulator in lockstep, with drive.toml's ``[emulator]``."""
-    return EmulatedDrive(drive.master, drive.emulator, on_event=on_event)
+    return EmulatedDrive(drive.master, drive.emulator, on_event=on_event, trace=trace,
+                         closers=_closing(trace))
 
 
-def socketcand_drive(url: str, drive: DriveConfig, *,
-                     on_event: EventSink = no_event) -> CanDriveMaster:
-    """``socketcand://HOST:PORT[/CHANNEL]``."""
-    return open_socketcand(url, drive.master, on_event=on_event)
+def can_drive(url: str, drive: DriveConfig, *, on_event: EventSink = no_event,
+              trace: FrameTrace | None = None,
+              closers: tuple[Callable[[], None], ...] = ()) -> CanDriveMaster:
+    """``socketcand://...`` and every python-can ``INTERFACE://CHANNEL[?k=v]``."""
+    spec = parse_can_url(url, drive.master.channel)
+
+    def reopen() -> can.BusABC:
+        return open_can_bus(spec, drive.master.bitrate)
+
+    return CanDriveMaster(CanLink(reopen(), reopen=reopen, trace=trace), drive.master,
+                          on_event=on_event, url=url, closers=(*closers, *_closing(trace)))
 
 
-def interface_drive(url: str, drive: DriveConfig, *,
-                    on_event: EventSink = no_event) -> CanDriveMaster:
-    """``INTERFACE://CHANNEL`` for a python-can interface."""
-    return open_interface(url, drive.master, on_event=on_event)
+def _closing(trace: FrameTrace | None) -> tuple[Callable[[], None], ...]:
+    close = getattr(trace, "close", None)
+    return (close,) if close is not None else ()
 
 
 def _python_can_interface(scheme: str) -> Factory | None:
-    return interface_drive if scheme in VALID_INTERFACES else None
+    return can_drive if scheme in VALID_INTERFACES else None
 
 
 DRIVES = SchemeRegistry(
     "drive",
-    {"emulated": ("hil.servo.rig", "emulated_drive"),
-     "socketcand": ("hil.servo.rig", "socketcand_drive")},
+    {EMULATED: ("hil.servo.rig", "emulated_drive"),
+     "socketcand": ("hil.servo.rig", "can_drive")},
     "hil.drive_devices",
     fallback=_python_can_interface,
 )
 
 
-def open_drive(url: str = "emulated", drive: DriveConfig | None = None, *,
-               on_event: EventSink = no_event, realtime: bool = False) -> CanDriveMaster:
-    """A master (not started) for the drive at ``url``, with ``drive`` (default: the packaged
-    drive.toml). An unknown scheme is a ConfigError naming the known ones.
+def open_drive(url: str | None = None, drive: DriveConfig | None = None, *,
+               on_event: EventSink = no_event, realtime: bool = False,
+               can_log: str | None = None) -> CanDriveMaster:
+    """A master (not started) for the drive at ``url`` (None: drive.toml's ``[bus]``), with
+    ``drive`` (default: the packaged drive.toml). An unknown scheme is a ConfigError naming
+    the forms; ``can_log`` writes every frame to that file (python-can's formats).
 
     ``emulated`` with ``realtime``: the drive emulator in a process of its own on loopback, as
     the hardware would be (the loop process then measures only its own cost), reading the same
     config file; the process stops when the master disconnects."""
     drive = drive or load_drive_config()
-    if realtime and scheme_of(url) == "emulated":
-        return emulator_process_drive(drive, on_event)
+    url = url or drive.bus_url
     try:
         factory = DRIVES.factory(url)
     except ConfigError as exc:
         raise ConfigError(f"{exc}; {EXPECTED}") from None
-    master: CanDriveMaster = factory(url, drive, on_event=on_event)
-    return master
+    trace = CanLog(can_log, drive.master.channel) if can_log else None
+    try:
+        if realtime and scheme_of(url) == EMULATED:
+            return emulator_process_drive(drive, on_event, trace)
+        # a plug-in factory that writes no --can-log is not asked to
+        extra = {"trace": trace} if trace is not None else {}
+        master: CanDriveMaster = factory(url, drive, on_event=on_event, **extra)
+        return master
+    except BaseException:
+        if trace is not None:
+            trace.close()
+        raise
 
 
-def emulator_process_drive(drive: DriveConfig, on_event: EventSink) -> CanDriveMaster:
+def emulator_process_drive(drive: DriveConfig, on_event: EventSink,
+                           trace: FrameTrace | None) -> CanDriveMaster:
     """A master on socketcand to ``hil emulate drive`` started for it (node id of the master)."""
     from hil.emulator_process import start_drive_emulator
 
@@ -101,8 +131,8 @@ def emulator_process_drive(drive: DriveConfig, on_event: EventSink) -> CanDriveM
     on_event("emulator.process", f"drive emulator in process {process.pid} at {process.url}",
              source="drive", pid=process.pid, url=process.url)
     try:
-        return open_socketcand(process.url, drive.master, on_event=on_event,
-                               closers=(process.stop,))
+        return can_drive(process.url, drive, on_event=on_event, trace=trace,
+                         closers=(process.stop,))
     except BaseException:
         process.stop()
         raise

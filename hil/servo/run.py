@@ -23,7 +23,7 @@ from typing import Any, cast
 from controllers.base import CountsFallbacks, ServoController, horizons_of, solver_of
 from controllers.servo.model import SAMPLE_PERIOD_S
 from controllers.servo.references import Scenario, parse_scenario
-from drivers.can_drive import CanDriveMaster, SdoAbortError
+from drivers.canopen import CanDriveMaster, SdoAbortError
 from hil.core.clock import Clock, RealtimeClock, SimClock
 from hil.core.errors import ConfigError, HilError, UsageError
 from hil.core.plugins import (

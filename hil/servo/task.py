@@ -32,7 +32,7 @@ from controllers.base import (
     solver_of,
 )
 from controllers.servo.references import Scenario, wrap180
-from drivers.can_drive import CanDriveMaster, Feedback
+from drivers.canopen import CanDriveMaster, Feedback
 from hil.core.errors import ControllerError
 from hil.core.guard import guarded_call
 from hil.core.loop import Task
@@ -170,11 +170,12 @@ class ServoTask(Task):
         return round(self.scenario.disturbance(t_s)) if self.scenario.disturbance else 0
 
     def _inject_disturbance(self, value: int) -> None:
-        """Scenario torque through the emulated drive's 0x2003 (by SDO, only on a change):
-        applied from the next SYNC on, i.e. while u(k) is, as in the offline simulation."""
+        """Scenario torque through the emulated drive's 0x2003 (an SDO download queued for
+        this cycle's frames, ahead of its SYNC; only on a change): applied from that SYNC on,
+        i.e. while u(k) is, as in the offline simulation. No SDO round trip in the cycle."""
         if value == self._disturbance_ma:
             return
-        self.master.sdo_write(DISTURBANCE_OBJECT, 0, value, "<h")
+        self.master.queue_sdo_write(DISTURBANCE_OBJECT, 0, value, "<h")
         self._disturbance_ma = value
         self.session.event("servo.disturbance", f"disturbance torque {value} mA",
                            source="scenario", torque_mA=value, t_s=self._t_s)

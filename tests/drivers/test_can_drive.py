@@ -10,7 +10,7 @@ import can
 import canopen
 import pytest
 
-from drivers.can_drive import (
+from drivers.canopen import (
     DriveError,
     DriveFaultError,
     DriveLinkLostError,
@@ -235,7 +235,7 @@ def test_start_refuses_a_drive_in_fault_until_reset_fault():
             master.exchange(16000.0)  # beyond the 15 A trip level of the emulator
     master2 = open_drive("emulated")  # a second master, another emulator: unaffected
     master2.close()
-    with pytest.raises(DriveFaultError, match=r"0x2310.*call reset_fault"):
+    with pytest.raises(DriveFaultError, match=r"0x2310.*hil drive reset"):
         master.start()
     assert master.reset_fault().state == "OPERATION ENABLED"
     master.close()

@@ -14,7 +14,7 @@ from dataclasses import replace
 
 import pytest
 
-from drivers.can_drive import DriveFaultError, DriveLinkLostError
+from drivers.canopen import DriveFaultError, DriveLinkLostError
 from drivers.cia402 import FAULT, OPERATION_ENABLED, state_of
 from emulators.drive.node import DriveNode
 from emulators.faults import parse_fault

@@ -16,7 +16,7 @@ import pytest
 from canopen.profiles.p402 import State402
 
 from drivers import cia402
-from drivers.can_drive import DriveFaultError, DriveLinkLostError
+from drivers.canopen import DriveFaultError, DriveLinkLostError
 from drivers.cia402 import state_of
 from emulators.drive.od import build_object_dictionary
 from hil.core.types import no_event

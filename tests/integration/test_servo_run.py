@@ -18,7 +18,7 @@ import pytest
 
 from controllers.servo.references import parse_scenario
 from controllers.servo.sim import simulate
-from drivers.can_drive import DriveFaultError
+from drivers.canopen import DriveFaultError
 from hil.cli.main import main
 from hil.core.reader import read_session
 from hil.servo.run import ServoRunOptions, make_controller, run_servo

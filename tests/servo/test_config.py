@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from drivers.can_drive import DriveMasterConfig
+from drivers.canopen import DriveMasterConfig
 from emulators.drive.node import DriveEmulatorConfig
 from hil.cli.main import main
 from hil.core.errors import ConfigError

@@ -1,17 +1,18 @@
-"""Opening drives by URL (hil/servo/rig.py): the scheme registry, python-can interfaces as the
-fallback, and the emulated drive wired in by the application, not by the driver."""
+"""Opening drives by URL (hil/servo/rig.py, drivers/canopen/bus.py): the scheme registry, every
+python-can interface by its own name (``_`` included), channels that are device paths, typed
+options, the [bus] table, and the emulated drive wired in by the application, not the driver."""
 
 import pytest
 
-from drivers.can_drive import CanDriveMaster, DriveLinkLostError
+from drivers.canopen import CanBusSpec, CanDriveMaster, DriveLinkLostError, parse_can_url
 from hil.core.errors import ConfigError
 from hil.core.types import Device
 from hil.servo.config import load_drive_config
-from hil.servo.rig import DRIVES, EmulatedDrive, interface_drive, open_drive, socketcand_drive
+from hil.servo.rig import DRIVES, EmulatedDrive, can_drive, emulated_drive, open_drive
 
 
 @pytest.mark.parametrize("url", ["nowhere", "modbus-tcp://127.0.0.1:5020", "can0"])
-def test_an_unknown_scheme_is_a_config_error_listing_the_known_ones(url):
+def test_an_unknown_scheme_is_a_config_error_listing_the_forms(url):
     with pytest.raises(ConfigError) as error:
         open_drive(url)
     message = str(error.value)
@@ -20,10 +21,50 @@ def test_an_unknown_scheme_is_a_config_error_listing_the_known_ones(url):
 
 
 def test_schemes_resolve_to_their_factories():
-    assert DRIVES.factory("socketcand://127.0.0.1:29536/can0") is socketcand_drive
-    for url in ("virtual://bus", "pcan://PCAN_USBBUS1", "socketcan://can0"):
-        assert DRIVES.factory(url) is interface_drive  # any python-can interface
+    assert DRIVES.factory("emulated") is emulated_drive
+    for url in ("socketcand://127.0.0.1:29536/can0", "virtual://bus", "pcan://PCAN_USBBUS1",
+                "socketcan://can0", "udp_multicast://239.0.0.1", "gs_usb://0",
+                "slcan:///dev/ttyACM0"):
+        assert DRIVES.factory(url) is can_drive  # any python-can interface
     assert {"emulated", "socketcand"} <= set(DRIVES.schemes())
+
+
+@pytest.mark.parametrize(("url", "spec"), [
+    ("socketcan://can0", CanBusSpec("socketcan", "can0")),
+    ("slcan:///dev/ttyACM0?bitrate=1000000",
+     CanBusSpec("slcan", "/dev/ttyACM0", {"bitrate": 1000000})),
+    ("serial:///dev/ttyUSB0", CanBusSpec("serial", "/dev/ttyUSB0")),
+    ("gs_usb://0", CanBusSpec("gs_usb", "0")),
+    ("udp_multicast://239.0.0.1?port=43113&ttl=0",
+     CanBusSpec("udp_multicast", "239.0.0.1", {"port": 43113, "ttl": 0})),
+    ("pcan://PCAN_USBBUS1?fd=true&f_clock_mhz=80&data_bitrate=2e6",
+     CanBusSpec("pcan", "PCAN_USBBUS1", {"fd": True, "f_clock_mhz": 80,
+                                         "data_bitrate": 2e6})),
+    ("kvaser://0", CanBusSpec("kvaser", "0")),
+    ("virtual://bench", CanBusSpec("virtual", "bench")),
+    ("socketcand://10.0.0.5:29536/vcan1",
+     CanBusSpec("socketcand", "vcan1", {"host": "10.0.0.5", "port": 29536})),
+    ("socketcand://10.0.0.5:29536", CanBusSpec("socketcand", "can0",
+                                               {"host": "10.0.0.5", "port": 29536})),
+])
+def test_url_forms_give_interface_channel_and_typed_options(url, spec):
+    parsed = parse_can_url(url)
+    assert parsed == spec
+    assert parse_can_url(parsed.url) == spec  # and back
+
+
+@pytest.mark.parametrize(("url", "problem"), [
+    ("can_bus://0", "unknown scheme 'can_bus'.*python-can's: canalystii"),
+    ("virtual://", "no channel"),
+    ("virtual://x?bitrate", "key=value"),
+    ("virtual://x?port=1&port=2", "'port' given twice"),
+    ("virtual://x?channel=y", "the URL's own part"),
+    ("socketcand://nowhere", "expected socketcand://HOST:PORT"),
+])
+def test_bad_urls_are_one_line_naming_the_problem(url, problem):
+    with pytest.raises(ConfigError, match=problem) as error:
+        open_drive(url)
+    assert "\n" not in str(error.value)
 
 
 def test_the_emulated_drive_is_a_device_on_the_masters_node_id():
@@ -39,13 +80,40 @@ def test_the_emulated_drive_is_a_device_on_the_masters_node_id():
     master.close()  # idempotent
 
 
-def test_a_python_can_interface_url_opens_a_master_on_that_bus():
-    master = open_drive("virtual://rig-test")
+@pytest.mark.parametrize("url", ["virtual://rig-test", "udp_multicast://239.0.0.1?port=43199"])
+def test_a_python_can_interface_url_opens_a_master_on_that_bus(url):
+    master = open_drive(url)
     try:
-        assert type(master) is CanDriveMaster and master.url == "virtual://rig-test"
+        assert type(master) is CanDriveMaster and master.url == url
     finally:
         master.close()
-    with pytest.raises(ConfigError, match="expected INTERFACE://CHANNEL"):
-        open_drive("virtual://")
-    with pytest.raises(DriveLinkLostError, match="cannot open CAN interface 'pcan'"):
+
+
+def test_an_interface_that_cannot_open_is_one_line_with_python_cans_reason():
+    with pytest.raises(DriveLinkLostError) as error:
         open_drive("pcan://PCAN_USBBUS1")
+    message = str(error.value)
+    assert message.startswith("cannot open CAN interface 'pcan' channel 'PCAN_USBBUS1': ")
+    assert "\n" not in message and len(message) > 60
+
+
+def test_the_bus_table_is_the_same_url_in_a_config_file(tmp_path):
+    config = tmp_path / "drive.toml"
+    config.write_text('[bus]\ninterface = "udp_multicast"\nchannel = "239.0.0.1"\n'
+                      '[bus.options]\nport = 43198\n')
+    drive = load_drive_config(config)
+    assert drive.bus == CanBusSpec("udp_multicast", "239.0.0.1", {"port": 43198})
+    assert drive.bus_url == "udp_multicast://239.0.0.1?port=43198"
+    master = open_drive(None, drive)
+    try:
+        assert master.url == drive.bus_url
+    finally:
+        master.close()
+    assert load_drive_config().bus is None  # the default: the emulated drive
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[bus]\ninterface = "canbus"\n')
+    with pytest.raises(ConfigError, match="bus.interface"):
+        load_drive_config(bad)
+    bad.write_text('[bus]\ninterface = "socketcand"\n')
+    with pytest.raises(ConfigError, match="needs host and port"):
+        load_drive_config(bad)

@@ -1,0 +1,31 @@
+"""The master's settings (``[master]`` and ``[bus]`` of drive.toml, read by
+:mod:`hil.servo.config`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class DriveMasterConfig:
+    """How the master drives one node. ``eds``: the drive's own EDS or DCF, checked before the
+    drive is configured (:mod:`drivers.canopen.eds`); None: the objects are checked by SDO."""
+
+    node_id: int = 1
+    mode: str = "cst"
+    cycle_period_s: float = 500e-6
+    bitrate: int = 1_000_000
+    channel: str = "can0"
+    current_limit_ma: float = 1000.0
+    heartbeat_id: int = 127
+    heartbeat_period_ms: int = 50
+    heartbeat_timeout_ms: int = 300
+    drive_heartbeat_ms: int = 100
+    stale_cycles: int = 20
+    rx_timeout_s: float = 400e-6
+    sdo_timeout_s: float = 1.0
+    state_timeout_s: float = 2.0
+    quick_stop_option: int = 2
+    quick_stop_timeout_s: float = 3.0
+    standstill_deg_s: float = 2.0
+    eds: str | None = None

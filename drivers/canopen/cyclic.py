@@ -1,0 +1,264 @@
+"""The cyclic exchange (the hot path): RPDO + SYNC (+ the master's heartbeat, + a queued SDO
+download) in one transmission, then the TPDO pair that answers that SYNC.
+
+Every feedback is bound to its SYNC:
+
+* before each SYNC, every frame already waiting is taken: TPDOs there answer an older SYNC
+  whose wait is over - they are late (``late_frames``) and discarded;
+* after the SYNC, the first TPDO1 and the first TPDO2 that arrive before the deadline
+  (``rx_timeout`` after the SYNC) make the feedback; one TPDO of this cycle is never combined
+  with one of another, and a pair that misses the deadline is never used for a later cycle:
+  the feedback is then stale (the last values again, ``fresh`` False);
+* where the drive echoes the SYNC counter (``sync_echo``: an object holding the counter of the
+  SYNC it answers, mapped as the last byte of both TPDOs; the SYNC counter on through 0x1019),
+  a TPDO whose echo is not this SYNC's counter is late wherever it arrives. Without an echo, a
+  late pair that arrives after the next SYNC but before that SYNC's own answer cannot be told
+  from it: it can stand in for that one cycle, and is then found out (late) at the next SYNC.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from drivers.can_frames import Frame
+from drivers.canopen.errors import DriveError, DriveLinkLostError
+from drivers.canopen.link import CanLink
+from drivers.canopen.nmt import HeartbeatProducer
+from drivers.canopen.scaling import DriveScaling
+from drivers.cia301 import SYNC_COB_ID
+from drivers.cia402 import PdoMap, state_of
+from hil.core.types import LinkWatchdog
+
+POLL_WAIT_MAX_NS = 2_000_000  # TPDO waits up to this long poll the bus instead of blocking
+SYNC_COUNTER_OVERFLOW = 240   # 0x1019: the SYNC counter runs 1..240 when the echo is on
+
+
+@dataclass(frozen=True, slots=True)
+class Feedback:
+    """What the drive reported for one cycle (``fresh`` False: the TPDOs did not arrive in
+    time and the values are the previous cycle's)."""
+
+    position_deg: float       # multi-turn, unwrapped by the master
+    velocity_deg_s: float
+    current_ma: float         # torque actual, as motor current
+    statusword: int
+    position_increments: int  # as on the wire: modulo one revolution
+    cycle: int                # SYNC count of this master
+    t_ns: int                 # master time on reception
+    fresh: bool
+    rtt_us: float             # SYNC sent -> both TPDOs received (wall clock)
+    command_ma: float         # the current the cycle commanded (after the clamp)
+
+    @property
+    def state(self) -> str:
+        return state_of(self.statusword)
+
+
+@dataclass
+class LinkStats:
+    """Counters of the cyclic link since the master was built."""
+
+    cycles: int = 0
+    fresh: int = 0
+    stale: int = 0
+    longest_stale_run: int = 0
+    late_frames: int = 0
+    malformed_frames: int = 0
+    clamped_commands: int = 0
+    emcy: int = 0
+
+
+class CyclicExchange:
+    """One node's cyclic PDO traffic over ``link``. Frames that are not its TPDOs go to
+    ``other`` (SDO answers, EMCY, heartbeats) as they come."""
+
+    def __init__(self, link: CanLink, node_id: int, rpdo: PdoMap, tpdo1: PdoMap,
+                 tpdo2: PdoMap, *, rx_timeout_s: float, watchdog: LinkWatchdog,
+                 heartbeat: HeartbeatProducer, now_ns: Callable[[], int],
+                 other: Callable[[Frame], None]) -> None:
+        self.link = link
+        self.node_id = node_id
+        self.stats = LinkStats()
+        self.watchdog = watchdog
+        self.heartbeat = heartbeat
+        self._now_ns = now_ns
+        self._other = other
+        self._rx_timeout_ns = round(rx_timeout_s * 1e9)
+        self._rpdo_id = rpdo.cob_id(node_id)
+        # the controlword (UNSIGNED16), then the mode's target (INTEGER16 torque, INTEGER32
+        # position)
+        target_bits = rpdo.entries[1][2]
+        self._rpdo_layout = struct.Struct("<H" + ("h" if target_bits == 16 else "i"))
+        self._tpdo1_id, self._tpdo2_id = tpdo1.cob_id(node_id), tpdo2.cob_id(node_id)
+        self.scaling = DriveScaling()
+        self.echo = False          # TPDOs carry the SYNC counter as their last byte
+        self.sync_counter = 0      # the counter of the last SYNC sent (echo on)
+        self.feedback: Feedback | None = None
+        self.extra_frames: Callable[[], list[Frame]] = list  # a queued SDO download, if any
+        self.cycle = 0
+        self._awaiting = False
+        self._got = 0
+        self._rx: list[int] = [0, 0, 0, 0]  # statusword, position, velocity, torque
+        self._sent_ns = 0
+        self._command_ma = 0.0
+        self._turns = 0
+        self._last_raw: int | None = None
+
+    # -- set-up ---------------------------------------------------------------------------
+    def start(self, feedback_raw: tuple[int, int, int, int]) -> Feedback:
+        """Enabled: the first feedback from values read by SDO (statusword, position,
+        velocity, torque); the master's heartbeat and the watchdog start afresh."""
+        self._rx = list(feedback_raw)
+        self._awaiting = False
+        self.heartbeat.restart()
+        self.watchdog.success()
+        self.feedback = self._make_feedback(fresh=True, rtt_us=0.0)
+        return self.feedback
+
+    @property
+    def awaiting(self) -> bool:
+        """A cycle was sent whose answer has not been read."""
+        return self._awaiting
+
+    # -- one cycle ---------------------------------------------------------------------------
+    def send(self, controlword: int, target: int, command_ma: float = 0.0) -> None:
+        """Take what is waiting (older answers: late), then RPDO + SYNC in one transmission."""
+        self._take_waiting()
+        # a queued SDO download first: the drive takes it before it latches this cycle
+        frames: list[Frame] = self.extra_frames()
+        frames.append((self._rpdo_id, self._rpdo_layout.pack(controlword, target)))
+        if self.echo:
+            self.sync_counter = self.sync_counter % SYNC_COUNTER_OVERFLOW + 1
+            frames.append((SYNC_COB_ID, bytes([self.sync_counter])))
+        else:
+            frames.append((SYNC_COB_ID, b""))
+        if self.heartbeat.due():
+            frames.append(self.heartbeat.frame)
+        self._command_ma = command_ma
+        self._got = 0
+        self._awaiting = True
+        self._sent_ns = time.perf_counter_ns()
+        self.link.send(frames)
+        self.cycle += 1
+
+    def receive(self) -> Feedback:
+        """The TPDO pair of the last SYNC, waiting at most until ``rx_timeout`` after it;
+        without a cycle sent since the last call, the last feedback again."""
+        if not self._awaiting:
+            if self.feedback is None:
+                raise DriveError("no feedback yet: enable the drive first")
+            return self.feedback
+        # measured from the SYNC: in the split form the TPDOs have travelled while the loop
+        # slept, and a late pair costs the tick only what is left of the wait
+        deadline_ns = self._sent_ns + self._rx_timeout_ns
+        recv, dispatch = self.link.recv, self._dispatch
+        clock = time.perf_counter_ns
+        # a wait of a cycle or so is spent polling: a thread blocked in select() is woken up
+        # 50 us to several hundred us after the frame arrives (more on a virtual machine)
+        poll = self._rx_timeout_ns <= POLL_WAIT_MAX_NS
+        try:
+            while self._got != 3:
+                remaining = (deadline_ns - clock()) / 1e9
+                frame = recv(0.0 if poll else max(0.0, remaining))
+                if frame is not None:
+                    dispatch(frame)
+                elif remaining <= 0:
+                    break
+        finally:
+            self._awaiting = False
+        stats = self.stats
+        stats.cycles += 1
+        if self._got == 3:
+            stats.fresh += 1
+            self.watchdog.success()
+            rtt_us = (time.perf_counter_ns() - self._sent_ns) / 1e3
+            self.feedback = self._make_feedback(fresh=True, rtt_us=rtt_us)
+            return self.feedback
+        stats.stale += 1
+        lost = self.watchdog.failure()
+        stats.longest_stale_run = self.watchdog.longest_run
+        previous = self.feedback
+        if previous is None:
+            self.feedback = self._make_feedback(fresh=False, rtt_us=0.0)
+        else:
+            self.feedback = Feedback(
+                previous.position_deg, previous.velocity_deg_s, previous.current_ma,
+                previous.statusword, previous.position_increments, self.cycle,
+                self._now_ns(), False, 0.0, self._command_ma)
+        if lost:
+            raise DriveLinkLostError(f"no TPDO for {self.watchdog.run} cycles")
+        return self.feedback
+
+    def send_now(self, controlwords: list[int]) -> None:
+        """RPDO (each controlword, target 0) + SYNC, at once, no bookkeeping, as far as the
+        link lets it: the best effort of a master that lost its link."""
+        sync: Frame = (SYNC_COB_ID, b"")
+        for word in controlwords:
+            try:
+                self.link.send([(self._rpdo_id, self._rpdo_layout.pack(word, 0)), sync])
+            except DriveError:
+                return
+
+    def drain(self) -> None:
+        """Every frame already here, taken as late (before a recovery)."""
+        self._awaiting = False
+        recv, dispatch = self.link.recv, self._dispatch
+        while (frame := recv(0)) is not None:
+            dispatch(frame)
+
+    def _take_waiting(self) -> None:
+        """Every frame already here, before the next SYNC. TPDOs among them answer an older
+        SYNC: late, unless they are the answer to the last cycle that nobody asked for."""
+        recv, dispatch = self.link.recv, self._dispatch
+        while (frame := recv(0)) is not None:
+            dispatch(frame)
+        self._awaiting = False
+
+    def _dispatch(self, frame: Frame) -> None:
+        can_id, data = frame
+        if can_id == self._tpdo1_id:
+            index = 0
+        elif can_id == self._tpdo2_id:
+            index = 1
+        else:
+            self._other(frame)
+            return
+        bit = 1 << index
+        if len(data) < (7 if self.echo else 6):
+            self.stats.malformed_frames += 1
+        elif not self._awaiting or self._got & bit or \
+                (self.echo and data[6] != self.sync_counter):
+            self.stats.late_frames += 1
+        else:
+            if index == 0:
+                self._rx[0], self._rx[1] = struct.unpack_from("<Hi", data)
+            else:
+                self._rx[2], self._rx[3] = struct.unpack_from("<ih", data)
+            self._got |= bit
+
+    def _make_feedback(self, fresh: bool, rtt_us: float) -> Feedback:
+        statusword, raw, velocity, torque = self._rx
+        scaling = self.scaling
+        turn = scaling.counts_per_turn
+        if self._last_raw is not None:
+            step = raw - self._last_raw
+            if step > turn // 2:
+                self._turns -= 1
+            elif step < -(turn // 2):
+                self._turns += 1
+        self._last_raw = raw
+        return Feedback(
+            position_deg=scaling.degrees(self._turns * turn + raw),
+            velocity_deg_s=scaling.degrees(velocity),
+            current_ma=scaling.milliamps(torque),
+            statusword=statusword,
+            position_increments=raw,
+            cycle=self.cycle,
+            t_ns=self._now_ns(),
+            fresh=fresh,
+            rtt_us=rtt_us,
+            command_ma=self._command_ma,
+        )

@@ -1,0 +1,42 @@
+"""What goes wrong between the master and a drive, one class per kind (all HilErrors: one line
+each)."""
+
+from __future__ import annotations
+
+from drivers.cia301 import abort_text
+from hil.core.errors import HilError
+
+
+class DriveError(HilError):
+    """The drive or the link to it is not in a state to be commanded."""
+
+
+class DriveFaultError(DriveError):
+    """The drive reports FAULT; ``emcy_code`` is its last error code (0 if unknown)."""
+
+    def __init__(self, message: str, emcy_code: int = 0) -> None:
+        super().__init__(message)
+        self.emcy_code = emcy_code
+
+
+class DriveLinkLostError(DriveError):
+    """No answer from the drive (TPDO watchdog, SDO time-out, bus error, reboot)."""
+
+
+class DriveStateError(DriveError):
+    """The CiA 402 state machine is not where it should be (stuck, or left OPERATION ENABLED)."""
+
+
+class SdoAbortError(DriveError):
+    """The drive refused an SDO request; ``code`` is the CiA 301 abort code."""
+
+    def __init__(self, message: str, code: int) -> None:
+        super().__init__(f"{message}: {abort_text(code)}")
+        self.code = code
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception's message on one line: python-can's socketcand interface appends
+    ``traceback.format_exc()`` to its errors, which is cut off here."""
+    text = str(exc).split("Traceback (most recent call last)")[0].strip()
+    return " ".join(text.splitlines()[0].split()) if text else type(exc).__name__

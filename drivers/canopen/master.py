@@ -1,0 +1,554 @@
+"""The CiA 402 master: one drive on one bus, composed of the CiA 301 services.
+
+Everything happens in the caller's thread (no ``Notifier``, whose thread dies silently when a
+listener raises). Use from a loop task split over two phases, which lets the TPDOs travel
+while the loop sleeps::
+
+    feedback = master.receive_feedback()            # read: the previous SYNC's TPDOs
+    master.send_command(current_mA)                 # write: RPDO + SYNC
+
+or in one call (``exchange``) for commissioning and tests. Either way ``feedback`` reflects
+the command of the previous cycle applied for one period (``x(k+1) = A x(k) + B u(k)``).
+Safety lives here, not in the controller: commands are clamped to ``current_limit_mA``; no
+TPDO for ``stale_cycles`` cycles, a send error, a silent heartbeat or a drive reboot -> link
+lost; a FAULT or any state other than OPERATION ENABLED -> error. Each of these puts the drive
+into its safe state (quick stop, then disable voltage), emits an event and latches: every
+later cyclic call raises until :meth:`CanDriveMaster.reset_fault` recovers explicitly. EMCY
+frames become ``drive.emcy`` events through ``on_event`` (``Session.event`` fits).
+
+The master is a :class:`hil.core.types.Device`: :meth:`~CanDriveMaster.open` (SDO, voltage
+disabled), :meth:`~CanDriveMaster.configure` (the drive's description and scaling, mode, PDO
+map, heartbeats, limits), :meth:`~CanDriveMaster.enable` (OPERATION ENABLED),
+:meth:`~CanDriveMaster.safe_state`, :meth:`~CanDriveMaster.close`. Its time is a
+:class:`~drivers.canopen.state.MasterClock` (the monotonic clock unless a rig gives another).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import struct
+import time
+from collections.abc import Callable
+from typing import Any, NoReturn
+
+from drivers.can_bus_time import BusBudget, cia402_cyclic_frames, cycle_budget
+from drivers.can_frames import Frame
+from drivers.canopen.config import DriveMasterConfig
+from drivers.canopen.cyclic import CyclicExchange, Feedback, LinkStats
+from drivers.canopen.eds import DriveDescription, required_objects
+from drivers.canopen.errors import (
+    DriveError,
+    DriveFaultError,
+    DriveLinkLostError,
+    DriveStateError,
+)
+from drivers.canopen.link import CanLink
+from drivers.canopen.nmt import HeartbeatProducer, HeartbeatWatch, Nmt
+from drivers.canopen.pdo import PdoConfigurator
+from drivers.canopen.scaling import DriveScaling, read_scaling
+from drivers.canopen.sdo import SdoClient
+from drivers.canopen.state import MasterClock, StateControl
+from drivers.cia301 import (
+    CONSUMER_HEARTBEAT,
+    CYCLE_PERIOD,
+    DEVICE_TYPE,
+    EMCY_BASE,
+    NMT_ENTER_PRE_OPERATIONAL,
+    NMT_START,
+    PRODUCER_HEARTBEAT,
+    RPDO_COMM_BASE,
+    TPDO_COMM_BASE,
+    emcy_text,
+)
+from drivers.cia402 import (
+    CW_DISABLE_VOLTAGE,
+    CW_ENABLE_OPERATION,
+    CW_QUICK_STOP,
+    CYCLIC_SYNCHRONOUS_POSITION,
+    CYCLIC_SYNCHRONOUS_TORQUE,
+    ERROR_CODE,
+    FAULT,
+    FAULT_REACTION_ACTIVE,
+    MAX_TORQUE,
+    MODES,
+    MODES_DISPLAY,
+    MODES_OF_OPERATION,
+    NOT_READY_TO_SWITCH_ON,
+    OPERATION_ENABLED,
+    POSITION_ACTUAL,
+    QUICK_STOP_ACTIVE,
+    QUICK_STOP_OPTION,
+    SUPPORTED_MODE_BITS,
+    SUPPORTED_MODES,
+    SWITCH_ON_DISABLED,
+    TARGET_POSITION,
+    TARGET_TORQUE,
+    TORQUE_ACTUAL,
+    TPDO1,
+    TPDO2,
+    TPDOS,
+    VELOCITY_ACTUAL,
+    rpdo1_for,
+    state_of,
+)
+from hil.core.errors import ConfigError
+from hil.core.types import Device, EventSink, LinkWatchdog, no_event
+
+CST, CSP = CYCLIC_SYNCHRONOUS_TORQUE, CYCLIC_SYNCHRONOUS_POSITION
+CIA402_DEVICE_TYPE = 402
+# PDOs the master does not use, invalidated where the drive has them (RPDO2-4, TPDO3-4)
+UNUSED_PDOS = (RPDO_COMM_BASE + 1, RPDO_COMM_BASE + 2, RPDO_COMM_BASE + 3,
+               TPDO_COMM_BASE + 2, TPDO_COMM_BASE + 3)
+
+
+class MonotonicClock:
+    """The master's time on real hardware: the monotonic clock, and a real sleep."""
+
+    @staticmethod
+    def time_ns() -> int:
+        return time.monotonic_ns()
+
+    @staticmethod
+    def sleep(seconds: float) -> None:
+        time.sleep(seconds)
+
+
+class CanDriveMaster(Device):
+    """CiA 402 master for one drive on a :class:`~drivers.canopen.link.CanLink` (a
+    :class:`~hil.core.types.Device`). :meth:`start` (:meth:`open`, :meth:`configure`,
+    :meth:`enable`) comes first. ``url`` names the drive in events and errors."""
+
+    def __init__(self, link: CanLink, config: DriveMasterConfig | None = None, *,
+                 on_event: EventSink = no_event, clock: MasterClock | None = None,
+                 closers: tuple[Callable[[], None], ...] = (), url: str | None = None) -> None:
+        self.config = config = config or DriveMasterConfig()
+        self.link = link
+        self._url = url if url is not None else link.name
+        self.node_id = n = config.node_id
+        self.mode = MODES[config.mode]
+        self.clock: MasterClock = clock or MonotonicClock()
+        self._on_event = on_event
+        self._closers = closers
+        self.watchdog = LinkWatchdog(config.stale_cycles, "cycles without a TPDO")
+        self.sdo = SdoClient(link, n, config.sdo_timeout_s, self._other_frame)
+        self.nmt = Nmt(link, n)
+        self.heartbeat_watch = HeartbeatWatch(n, config.drive_heartbeat_ms, self.clock.time_ns)
+        self._rpdo1_map = rpdo1_for(self.mode)
+        self.cyclic = CyclicExchange(
+            link, n, self._rpdo1_map, TPDO1, TPDO2, rx_timeout_s=config.rx_timeout_s,
+            watchdog=self.watchdog,
+            heartbeat=HeartbeatProducer(config.heartbeat_id, config.heartbeat_period_ms,
+                                        self.clock.time_ns),
+            now_ns=self.clock.time_ns, other=self._other_frame)
+        self.cyclic.extra_frames = self.sdo.next_frames
+        self.states = StateControl(self.sdo, self.nmt, self.clock, config.state_timeout_s,
+                                   config.sdo_timeout_s)
+        self.budget = self._bus_budget()
+        self.description: DriveDescription | None = None
+        self.last_emcy_code = 0
+        self._enabled = False
+        self._latched: DriveError | None = None
+        self._closed = False
+
+    # -- what the master knows -------------------------------------------------------------
+    @property
+    def url(self) -> str:
+        return self._url
+
+    @property
+    def link_up(self) -> bool:
+        """False from a lost link (no TPDO, send error, reboot) until :meth:`reset_fault`."""
+        return not self.watchdog.lost and not isinstance(self._latched, DriveLinkLostError)
+
+    @property
+    def stats(self) -> LinkStats:
+        return self.cyclic.stats
+
+    @property
+    def feedback(self) -> Feedback | None:
+        return self.cyclic.feedback
+
+    @property
+    def scaling(self) -> DriveScaling:
+        """The drive's units, as read at :meth:`configure`."""
+        return self.cyclic.scaling
+
+    @property
+    def increments_per_rev(self) -> int:
+        return self.scaling.increments_per_rev
+
+    @property
+    def rated_current_ma(self) -> float:
+        return self.scaling.rated_current_ma
+
+    def describe(self) -> dict[str, Any]:
+        """What the session records of the drive: node, mode, scaling, description."""
+        return {"url": self.url, "node_id": self.node_id, "mode": self.config.mode,
+                "scaling": self.scaling.describe(),
+                "eds": self.description.describe() if self.description else None}
+
+    def _event(self, kind: str, message: str, level: str = "info", **data: Any) -> None:
+        self._on_event(kind, message, level=level, source=f"drive{self.node_id}", **data)
+
+    # -- frames that are not the cyclic TPDOs ------------------------------------------------
+    def _other_frame(self, frame: Frame) -> None:
+        can_id, data = frame
+        if can_id == self.sdo.response_id:
+            self.sdo.on_response(data)
+        elif can_id == EMCY_BASE + self.node_id:
+            self._on_emcy(data)
+        elif can_id == self.heartbeat_watch.cob_id and \
+                self.heartbeat_watch.on_frame(data, watching=self._enabled):
+            self._event("drive.bootup", f"drive node {self.node_id} sent a boot-up message: "
+                        "it restarted", level="error")
+
+    def _on_emcy(self, data: bytes) -> None:
+        if len(data) < 3:
+            self.stats.malformed_frames += 1
+            return
+        code, register = struct.unpack_from("<HB", data)
+        extra = data[3:8].hex()
+        self.stats.emcy += 1
+        if code:
+            self.last_emcy_code = code
+        self._event("drive.emcy",
+                    f"drive node {self.node_id} EMCY {emcy_text(code)}, error register "
+                    f"0x{register:02X}" + (f", data {extra}" if extra.strip("0") else ""),
+                    level="info" if code == 0 else "error", code=code, register=register,
+                    data_hex=extra)
+
+    # -- SDO and NMT for everyone ---------------------------------------------------------------
+    def sdo_read(self, index: int, subindex: int = 0, timeout_s: float | None = None) -> bytes:
+        """Upload one object (expedited or segmented); returns its raw bytes."""
+        return self.sdo.read(index, subindex, timeout_s)
+
+    def sdo_read_int(self, index: int, subindex: int = 0, fmt: str = "<I",
+                     timeout_s: float | None = None) -> int:
+        return self.sdo.read_int(index, subindex, fmt, timeout_s)
+
+    def sdo_write(self, index: int, subindex: int, value: int, fmt: str = "<I") -> None:
+        """Expedited download of one value packed with ``fmt`` (1 to 4 bytes); blocking."""
+        self.sdo.write(index, subindex, value, fmt)
+
+    def queue_sdo_write(self, index: int, subindex: int, value: int, fmt: str = "<I") -> None:
+        """A download sent with the next cycle's frames, its answer taken by the cyclic
+        receive: no SDO round trip inside a cycle. A refusal is raised by the next
+        :meth:`receive_feedback`."""
+        self.sdo.queue_write(index, subindex, value, fmt)
+
+    def nmt_command(self, command: int) -> None:
+        self.nmt.command(command)
+
+    # -- configuration --------------------------------------------------------------------------
+    def _bus_budget(self) -> BusBudget:
+        c = self.config
+        heartbeats = [p / 1000 for p in (c.heartbeat_period_ms, c.drive_heartbeat_ms) if p]
+        frames = cia402_cyclic_frames(c.cycle_period_s, rpdo_bytes=self._rpdo1_map.size_bytes,
+                                      tpdo_bytes=[pdo.size_bytes for pdo in TPDOS],
+                                      heartbeat_periods_s=heartbeats)
+        return cycle_budget(c.bitrate, c.cycle_period_s, frames)
+
+    def configure(self) -> None:
+        """Check the drive against what hil needs (its EDS, else by SDO), read its scaling,
+        then write the run's settings by SDO: mode, PDO map, cycle period, heartbeats, limits.
+        The drive is in SWITCH ON DISABLED (after :meth:`open`)."""
+        c, n, sdo = self.config, self.node_id, self.sdo
+        device_type = sdo.read_int(DEVICE_TYPE, 0)
+        if device_type & 0xFFFF != CIA402_DEVICE_TYPE:
+            raise DriveError(f"node {n} is not a CiA 402 drive (device type 0x{device_type:08X})")
+        if c.eds:
+            from drivers.canopen.eds import load_description
+
+            self.description = load_description(c.eds, n, required_objects(self.mode))
+        supported = sdo.read_int(SUPPORTED_MODES, 0)
+        if not supported & SUPPORTED_MODE_BITS[self.mode]:
+            raise DriveError(f"drive node {n} does not support mode {c.mode.upper()} "
+                             f"({self.mode}): 0x6502 = 0x{supported:08X}")
+        scaling = read_scaling(sdo)
+        self.nmt.command(NMT_ENTER_PRE_OPERATIONAL)
+        pdos = PdoConfigurator(sdo, n)
+        for comm in UNUSED_PDOS:
+            pdos.disable(comm)
+        for pdo in (self._rpdo1_map, *TPDOS):
+            pdos.map(pdo)
+        sdo.write(CYCLE_PERIOD, 0, round(c.cycle_period_s * 1e6))
+        sdo.write(PRODUCER_HEARTBEAT, 0, c.drive_heartbeat_ms, "<H")
+        consumer = (c.heartbeat_id << 16) | c.heartbeat_timeout_ms if c.heartbeat_period_ms else 0
+        sdo.write(CONSUMER_HEARTBEAT, 1, consumer)
+        sdo.write(MODES_OF_OPERATION, 0, self.mode, "<b")
+        shown = sdo.read_int(MODES_DISPLAY, 0, "<b")
+        if shown != self.mode:
+            raise DriveStateError(f"drive node {n} shows mode {shown} after 0x6060 = {self.mode}")
+        self.cyclic.scaling = scaling
+        max_torque = math.ceil(c.current_limit_ma * 1000.0 / scaling.rated_current_ma)
+        if max_torque > 0xFFFF:
+            raise ConfigError(f"current_limit_mA {c.current_limit_ma} is beyond what 0x6072 can "
+                              f"hold with a rated current of {scaling.rated_current_ma} mA")
+        sdo.write(MAX_TORQUE, 0, max_torque, "<H")
+        sdo.write(QUICK_STOP_OPTION, 0, c.quick_stop_option, "<h")
+        if self.mode == CSP:
+            sdo.write(TARGET_POSITION, 0, sdo.read_int(POSITION_ACTUAL, 0, "<i"), "<i")
+        else:
+            sdo.write(TARGET_TORQUE, 0, 0, "<h")
+        self._event("drive.configured",
+                    f"drive node {n}: {c.mode.upper()} at {c.cycle_period_s * 1e6:g} us, "
+                    f"limit {c.current_limit_ma:g} mA, {scaling.increments_per_rev} "
+                    f"increments/rev, rated {scaling.rated_current_ma:g} mA",
+                    mode=c.mode, period_us=c.cycle_period_s * 1e6,
+                    rated_current_mA=scaling.rated_current_ma,
+                    increments_per_rev=scaling.increments_per_rev,
+                    scaling=scaling.describe(), bus_budget=self.budget.summary())
+        for warning in self.budget.warnings:
+            self._event("drive.bus_budget", warning, level="warning")
+        if c.heartbeat_period_ms and c.heartbeat_period_ms >= c.heartbeat_timeout_ms:
+            self._event("drive.heartbeat_config",
+                        f"master heartbeat every {c.heartbeat_period_ms} ms but the drive gives "
+                        f"up after {c.heartbeat_timeout_ms} ms: it will fault", level="warning")
+
+    # -- life cycle -----------------------------------------------------------------------------
+    def open(self) -> None:
+        """Reach the drive by SDO and leave it in SWITCH ON DISABLED (voltage disabled).
+
+        A drive found in FAULT is left alone (DriveFaultError): clearing a fault is an explicit
+        decision, :meth:`reset_fault`."""
+        if self._closed:
+            raise DriveError("the drive master is closed")
+        self._latched, self._enabled = None, False
+        self.heartbeat_watch.rebooted = False
+        state = state_of(self.states.reach())
+        if state in (FAULT, FAULT_REACTION_ACTIVE):
+            code = self.sdo.read_int(ERROR_CODE, 0, "<H")
+            raise DriveFaultError(f"drive node {self.node_id} is in {state} (error code "
+                                  f"{emcy_text(code)}): clear it with `hil drive reset`, "
+                                  "--reset-fault on a run, or reset_fault()", code)
+        if state not in (SWITCH_ON_DISABLED, NOT_READY_TO_SWITCH_ON):
+            self.states.controlword(CW_DISABLE_VOLTAGE)  # left enabled by someone
+        self.states.wait_state(SWITCH_ON_DISABLED, "disable voltage")
+
+    def enable(self) -> None:
+        """NMT start, then the controlwords to OPERATION ENABLED; ``feedback`` is then the
+        drive's, read by SDO. After :meth:`open` and :meth:`configure`."""
+        self._enable()
+
+    def _enable(self) -> Feedback:
+        n = self.node_id
+        self.nmt.command(NMT_START)
+        self.states.enable()
+        self._enabled = True
+        self.heartbeat_watch.restart()  # the heartbeat is watched from here on
+        read = self.sdo.read_int
+        feedback = self.cyclic.start((self.states.statusword(), read(POSITION_ACTUAL, 0, "<i"),
+                                      read(VELOCITY_ACTUAL, 0, "<i"),
+                                      read(TORQUE_ACTUAL, 0, "<h")))
+        self._event("drive.enabled", f"drive node {n} OPERATION ENABLED at "
+                    f"{feedback.position_deg:.4f} deg", position_deg=feedback.position_deg)
+        return feedback
+
+    def start(self) -> Feedback:
+        """:meth:`open`, :meth:`configure`, :meth:`enable`; return the drive's feedback."""
+        self.open()
+        self.configure()
+        return self._enable()
+
+    def clear_fault(self) -> None:
+        """Leave a drive FAULT through the CiA 402 fault reset (the rising edge of controlword
+        bit 7), after a fault reaction has ended; the drive is then in SWITCH ON DISABLED."""
+        if self._closed:
+            raise DriveError("the drive master is closed")
+        if isinstance(self._latched, DriveLinkLostError):
+            self.link.reconnect()
+        self._latched = None
+        self.heartbeat_watch.rebooted = False
+        self.cyclic.drain()
+        state = state_of(self.states.reach())
+        if state == FAULT_REACTION_ACTIVE:
+            self.states.wait_state(FAULT, "fault reaction")
+            state = FAULT
+        if state == FAULT:
+            self.states.reset_fault()
+            self._event("drive.fault_reset", f"drive node {self.node_id}: fault reset")
+
+    def reset_fault(self) -> Feedback:
+        """Explicit recovery: reconnect if the link was lost, clear a drive FAULT, then
+        :meth:`start` again."""
+        self.clear_fault()
+        return self.start()
+
+    # -- the cyclic path ---------------------------------------------------------------------------
+    def _check_latched(self) -> None:
+        if self._latched is not None:
+            error = copy.copy(self._latched)  # same type and data, a note on the message
+            error.args = (f"{self._latched} (latched: call reset_fault())",)
+            raise error
+        if not self._enabled:
+            raise DriveStateError(f"drive node {self.node_id} is not enabled: call start()")
+
+    def _send_cycle(self, controlword: int, target: int, command_ma: float = 0.0) -> None:
+        try:
+            self.cyclic.send(controlword, target, command_ma)
+        except DriveLinkLostError as exc:
+            self._lose_link(str(exc))
+
+    def _receive(self) -> Feedback:
+        if not self.cyclic.awaiting:  # no cycle since the last read: the same feedback again
+            return self.cyclic.receive()
+        try:
+            feedback = self.cyclic.receive()
+        except DriveLinkLostError as exc:
+            self._lose_link(str(exc))
+        if self.heartbeat_watch.rebooted:
+            self._lose_link("the drive restarted (boot-up message)")
+        silent_ns = self.heartbeat_watch.silent_ns() if self._enabled else None
+        if silent_ns is not None:
+            self._lose_link(f"no heartbeat for {silent_ns / 1e6:.0f} ms (it beats every "
+                            f"{self.config.drive_heartbeat_ms} ms)")
+        error = self.sdo.take_error()
+        if error is not None:
+            self._latched = error
+            raise error
+        return feedback
+
+    def _check_operation(self, feedback: Feedback) -> Feedback:
+        state = feedback.state
+        if state == OPERATION_ENABLED or not feedback.fresh:
+            return feedback
+        n = self.node_id
+        if state in (FAULT, FAULT_REACTION_ACTIVE):
+            code = self.last_emcy_code
+            error: DriveError = DriveFaultError(
+                f"drive node {n} reports {state} (statusword 0x{feedback.statusword:04X}, last "
+                f"EMCY {emcy_text(code)})", code)
+            self._event("drive.fault", str(error), level="error", code=code)
+            self._enabled = False
+        else:
+            error = DriveStateError(f"drive node {n} left OPERATION ENABLED: now {state} "
+                                    f"(statusword 0x{feedback.statusword:04X})")
+            self._event("drive.state", str(error), level="error", state=state)
+            self.safe_state()
+        self._latched = error
+        raise error
+
+    def _lose_link(self, reason: str) -> NoReturn:
+        reason = reason.removeprefix(f"drive node {self.node_id}: ")
+        error = DriveLinkLostError(f"drive node {self.node_id} link lost: {reason}")
+        self._latched = error
+        self._event("drive.link_lost", str(error), level="error", cycle=self.cyclic.cycle)
+        if self._enabled:  # best effort, without waiting: quick stop, then disable voltage
+            self._enabled = False
+            self.cyclic.send_now([CW_QUICK_STOP, CW_DISABLE_VOLTAGE])
+        raise error
+
+    def _torque_units(self, current_ma: float) -> tuple[int, float]:
+        if not math.isfinite(current_ma):
+            raise DriveError(f"drive node {self.node_id}: refusing a non-finite current "
+                             f"command ({current_ma!r})")
+        limit = self.config.current_limit_ma
+        clamped = min(max(current_ma, -limit), limit)
+        if clamped != current_ma:
+            self.stats.clamped_commands += 1
+        return round(clamped * 1000.0 / self.scaling.rated_current_ma), clamped
+
+    def send_command(self, current_ma: float) -> None:
+        """CST: send the current command (clamped to the limit) and a SYNC."""
+        self._check_latched()
+        if self.mode != CST:
+            raise DriveStateError("send_command() needs mode 'cst'; use send_position()")
+        units, clamped = self._torque_units(current_ma)
+        self._send_cycle(CW_ENABLE_OPERATION, units, clamped)
+
+    def send_position(self, target_deg: float) -> None:
+        """CSP: send the position target (multi-turn degrees) and a SYNC.
+
+        On the wire the target is modulo one turn, like the position: the drive goes the short
+        way round, so consecutive targets must differ by less than half a turn."""
+        self._check_latched()
+        if self.mode != CSP:
+            raise DriveStateError("send_position() needs mode 'csp'; use send_command()")
+        if not math.isfinite(target_deg):
+            raise DriveError(f"drive node {self.node_id}: refusing a non-finite position target")
+        turn = self.scaling.counts_per_turn
+        self._send_cycle(CW_ENABLE_OPERATION, self.scaling.counts(target_deg) % turn)
+
+    def receive_feedback(self) -> Feedback:
+        """The TPDOs of the last SYNC (waits until ``rx_timeout`` after that SYNC); raises on
+        fault or loss.
+
+        Without a cycle sent since the last call it returns the last feedback again (the one
+        of :meth:`start` before the first cycle)."""
+        self._check_latched()
+        return self._check_operation(self._receive())
+
+    def exchange(self, current_ma: float) -> Feedback:
+        """One CST cycle: command, SYNC, feedback."""
+        self.send_command(current_ma)
+        return self.receive_feedback()
+
+    def exchange_position(self, target_deg: float) -> Feedback:
+        """One CSP cycle: position target, SYNC, feedback."""
+        self.send_position(target_deg)
+        return self.receive_feedback()
+
+    def cycle(self, controlword: int, target: int = 0) -> Feedback:
+        """One raw cycle with any controlword and raw target (for commissioning and tests).
+
+        No state check; the TPDO watchdog still applies."""
+        if self._latched is not None:
+            self._check_latched()
+        self._send_cycle(controlword, target)
+        return self._receive()
+
+    # -- stops ------------------------------------------------------------------------------------
+    def safe_state(self) -> None:
+        """Quick stop (cyclic, until standstill or the time-out), then disable voltage.
+
+        Idempotent and silent: failures become a ``drive.safe_stop_failed`` event."""
+        if self._closed or not self._enabled:
+            return
+        self._enabled = False
+        c = self.config
+        try:
+            cycles = max(1, math.ceil(c.quick_stop_timeout_s / c.cycle_period_s))
+            state = "UNKNOWN"
+            hold = self._hold_target()
+            period_ns = round(c.cycle_period_s * 1e9)
+            next_ns = self.clock.time_ns()
+            for _ in range(cycles):
+                feedback = self.cycle(CW_QUICK_STOP, hold)
+                state = feedback.state
+                if feedback.fresh and (state in (SWITCH_ON_DISABLED, FAULT) or (
+                        state == QUICK_STOP_ACTIVE
+                        and abs(feedback.velocity_deg_s) < c.standstill_deg_s)):
+                    break
+                # one cycle per period (in lockstep each SYNC is a period of the clock)
+                next_ns += period_ns
+                wait_ns = next_ns - self.clock.time_ns()
+                if wait_ns > 0:
+                    self.clock.sleep(wait_ns / 1e9)
+            state = self.cycle(CW_DISABLE_VOLTAGE, hold).state
+            if state == OPERATION_ENABLED:  # it ignored both: only its SYNC watchdog is left
+                self._event("drive.safe_stop_failed", f"drive node {self.node_id} ignored quick "
+                            "stop and disable voltage: still OPERATION ENABLED; no more SYNC, "
+                            "so its SYNC watchdog must fault it", level="error", state=state)
+                return
+            self._event("drive.safe_stop", f"drive node {self.node_id} stopped: {state}",
+                        state=state)
+        except DriveError as exc:
+            self._event("drive.safe_stop_failed", f"drive node {self.node_id}: safe stop "
+                        f"incomplete: {exc}", level="error")
+
+    def _hold_target(self) -> int:
+        if self.mode == CSP and self.feedback is not None:
+            return self.feedback.position_increments
+        return 0
+
+    def disconnect(self) -> None:
+        """Release the bus and anything the master was built with (an emulator process);
+        idempotent. :meth:`close` (safe stop, then this) is the usual way out."""
+        if self._closed:
+            return
+        self._closed = True
+        self._enabled = False
+        self.link.shutdown()
+        for closer in self._closers:
+            closer()
