@@ -112,7 +112,7 @@ def test_the_bus_table_is_the_same_url_in_a_config_file(tmp_path):
     assert load_drive_config().bus is None  # the default: the emulated drive
     bad = tmp_path / "bad.toml"
     bad.write_text('[bus]\ninterface = "canbus"\n')
-    with pytest.raises(ConfigError, match="bus.interface"):
+    with pytest.raises(ConfigError, match=r"bus\.interface"):
         load_drive_config(bad)
     bad.write_text('[bus]\ninterface = "socketcand"\n')
     with pytest.raises(ConfigError, match="needs host and port"):
