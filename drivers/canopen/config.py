@@ -9,7 +9,10 @@ from dataclasses import dataclass
 @dataclass(frozen=True)
 class DriveMasterConfig:
     """How the master drives one node. ``eds``: the drive's own EDS or DCF, checked before the
-    drive is configured (:mod:`drivers.canopen.eds`); None: the objects are checked by SDO."""
+    drive is configured (:mod:`drivers.canopen.eds`); None: the objects are checked by SDO.
+    ``sync_echo``: the drive's object (index, sub-index; UNSIGNED8) that holds the counter of
+    the SYNC its TPDOs answer; the master then turns the SYNC counter on (0x1019) and maps it
+    as the last byte of both TPDOs, so every TPDO is bound to its SYNC exactly."""
 
     node_id: int = 1
     mode: str = "cst"
@@ -29,3 +32,4 @@ class DriveMasterConfig:
     quick_stop_timeout_s: float = 3.0
     standstill_deg_s: float = 2.0
     eds: str | None = None
+    sync_echo: tuple[int, int] | None = None

@@ -33,7 +33,7 @@ from drivers.cia402 import PdoMap, state_of
 from hil.core.types import LinkWatchdog
 
 POLL_WAIT_MAX_NS = 2_000_000  # TPDO waits up to this long poll the bus instead of blocking
-SYNC_COUNTER_OVERFLOW = 240   # 0x1019: the SYNC counter runs 1..240 when the echo is on
+SYNC_COUNTER_MAX = 240  # 0x1019 written when the echo is on: the SYNC counter runs 1..240
 
 
 @dataclass(frozen=True, slots=True)
@@ -125,13 +125,16 @@ class CyclicExchange:
 
     # -- one cycle ---------------------------------------------------------------------------
     def send(self, controlword: int, target: int, command_ma: float = 0.0) -> None:
-        """Take what is waiting (older answers: late), then RPDO + SYNC in one transmission."""
+        """The last cycle's answer, if nobody read it (its deadline kept); what else waits
+        (older answers: late); then RPDO + SYNC in one transmission."""
+        if self._awaiting:
+            self.receive()
         self._take_waiting()
         # a queued SDO download first: the drive takes it before it latches this cycle
         frames: list[Frame] = self.extra_frames()
         frames.append((self._rpdo_id, self._rpdo_layout.pack(controlword, target)))
         if self.echo:
-            self.sync_counter = self.sync_counter % SYNC_COUNTER_OVERFLOW + 1
+            self.sync_counter = self.sync_counter % SYNC_COUNTER_MAX + 1
             frames.append((SYNC_COB_ID, bytes([self.sync_counter])))
         else:
             frames.append((SYNC_COB_ID, b""))
@@ -205,17 +208,13 @@ class CyclicExchange:
     def drain(self) -> None:
         """Every frame already here, taken as late (before a recovery)."""
         self._awaiting = False
-        recv, dispatch = self.link.recv, self._dispatch
-        while (frame := recv(0)) is not None:
-            dispatch(frame)
+        self._take_waiting()
 
     def _take_waiting(self) -> None:
-        """Every frame already here, before the next SYNC. TPDOs among them answer an older
-        SYNC: late, unless they are the answer to the last cycle that nobody asked for."""
+        """Every frame already here, before the next SYNC: TPDOs among them are late."""
         recv, dispatch = self.link.recv, self._dispatch
         while (frame := recv(0)) is not None:
             dispatch(frame)
-        self._awaiting = False
 
     def _dispatch(self, frame: Frame) -> None:
         can_id, data = frame

@@ -30,12 +30,13 @@ import math
 import struct
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any, NoReturn
 
 from drivers.can_bus_time import BusBudget, cia402_cyclic_frames, cycle_budget
 from drivers.can_frames import Frame
 from drivers.canopen.config import DriveMasterConfig
-from drivers.canopen.cyclic import CyclicExchange, Feedback, LinkStats
+from drivers.canopen.cyclic import SYNC_COUNTER_MAX, CyclicExchange, Feedback, LinkStats
 from drivers.canopen.eds import DriveDescription, required_objects
 from drivers.canopen.errors import (
     DriveError,
@@ -58,6 +59,7 @@ from drivers.cia301 import (
     NMT_START,
     PRODUCER_HEARTBEAT,
     RPDO_COMM_BASE,
+    SYNC_COUNTER_OVERFLOW,
     TPDO_COMM_BASE,
     emcy_text,
 )
@@ -87,8 +89,8 @@ from drivers.cia402 import (
     TORQUE_ACTUAL,
     TPDO1,
     TPDO2,
-    TPDOS,
     VELOCITY_ACTUAL,
+    PdoMap,
     rpdo1_for,
     state_of,
 )
@@ -100,6 +102,16 @@ CIA402_DEVICE_TYPE = 402
 # PDOs the master does not use, invalidated where the drive has them (RPDO2-4, TPDO3-4)
 UNUSED_PDOS = (RPDO_COMM_BASE + 1, RPDO_COMM_BASE + 2, RPDO_COMM_BASE + 3,
                TPDO_COMM_BASE + 2, TPDO_COMM_BASE + 3)
+
+
+def tpdo_maps(sync_echo: tuple[int, int] | None) -> tuple[PdoMap, PdoMap]:
+    """TPDO1 and TPDO2 as the master maps them: the profile's, each with the drive's SYNC
+    counter echo as its last byte when there is one."""
+    if sync_echo is None:
+        return TPDO1, TPDO2
+    echo = (*sync_echo, 8)
+    return (replace(TPDO1, entries=(*TPDO1.entries, echo)),
+            replace(TPDO2, entries=(*TPDO2.entries, echo)))
 
 
 class MonotonicClock:
@@ -135,8 +147,9 @@ class CanDriveMaster(Device):
         self.nmt = Nmt(link, n)
         self.heartbeat_watch = HeartbeatWatch(n, config.drive_heartbeat_ms, self.clock.time_ns)
         self._rpdo1_map = rpdo1_for(self.mode)
+        self._tpdo_maps = tpdo_maps(config.sync_echo)
         self.cyclic = CyclicExchange(
-            link, n, self._rpdo1_map, TPDO1, TPDO2, rx_timeout_s=config.rx_timeout_s,
+            link, n, self._rpdo1_map, *self._tpdo_maps, rx_timeout_s=config.rx_timeout_s,
             watchdog=self.watchdog,
             heartbeat=HeartbeatProducer(config.heartbeat_id, config.heartbeat_period_ms,
                                         self.clock.time_ns),
@@ -209,8 +222,8 @@ class CanDriveMaster(Device):
             return
         code, register = struct.unpack_from("<HB", data)
         extra = data[3:8].hex()
-        self.stats.emcy += 1
-        if code:
+        if code:  # 0x0000 "error reset" reports the end of an error, not one
+            self.stats.emcy += 1
             self.last_emcy_code = code
         self._event("drive.emcy",
                     f"drive node {self.node_id} EMCY {emcy_text(code)}, error register "
@@ -245,33 +258,33 @@ class CanDriveMaster(Device):
         c = self.config
         heartbeats = [p / 1000 for p in (c.heartbeat_period_ms, c.drive_heartbeat_ms) if p]
         frames = cia402_cyclic_frames(c.cycle_period_s, rpdo_bytes=self._rpdo1_map.size_bytes,
-                                      tpdo_bytes=[pdo.size_bytes for pdo in TPDOS],
+                                      tpdo_bytes=[pdo.size_bytes for pdo in self._tpdo_maps],
                                       heartbeat_periods_s=heartbeats)
         return cycle_budget(c.bitrate, c.cycle_period_s, frames)
 
     def configure(self) -> None:
-        """Check the drive against what hil needs (its EDS, else by SDO), read its scaling,
-        then write the run's settings by SDO: mode, PDO map, cycle period, heartbeats, limits.
+        """Check the drive (device type, modes), read its scaling, then write the run's
+        settings by SDO: mode, PDO map, cycle period, heartbeats, limits.
         The drive is in SWITCH ON DISABLED (after :meth:`open`)."""
         c, n, sdo = self.config, self.node_id, self.sdo
         device_type = sdo.read_int(DEVICE_TYPE, 0)
         if device_type & 0xFFFF != CIA402_DEVICE_TYPE:
             raise DriveError(f"node {n} is not a CiA 402 drive (device type 0x{device_type:08X})")
-        if c.eds:
-            from drivers.canopen.eds import load_description
-
-            self.description = load_description(c.eds, n, required_objects(self.mode))
         supported = sdo.read_int(SUPPORTED_MODES, 0)
         if not supported & SUPPORTED_MODE_BITS[self.mode]:
             raise DriveError(f"drive node {n} does not support mode {c.mode.upper()} "
                              f"({self.mode}): 0x6502 = 0x{supported:08X}")
         scaling = read_scaling(sdo)
         self.nmt.command(NMT_ENTER_PRE_OPERATIONAL)
+        if c.sync_echo is not None:  # CiA 301: 0x1019 changes only while 0x1006 is 0
+            sdo.write(CYCLE_PERIOD, 0, 0)
+            sdo.write(SYNC_COUNTER_OVERFLOW, 0, SYNC_COUNTER_MAX, "<B")
         pdos = PdoConfigurator(sdo, n)
         for comm in UNUSED_PDOS:
             pdos.disable(comm)
-        for pdo in (self._rpdo1_map, *TPDOS):
+        for pdo in (self._rpdo1_map, *self._tpdo_maps):
             pdos.map(pdo)
+        self.cyclic.echo = c.sync_echo is not None
         sdo.write(CYCLE_PERIOD, 0, round(c.cycle_period_s * 1e6))
         sdo.write(PRODUCER_HEARTBEAT, 0, c.drive_heartbeat_ms, "<H")
         consumer = (c.heartbeat_id << 16) | c.heartbeat_timeout_ms if c.heartbeat_period_ms else 0
@@ -308,12 +321,18 @@ class CanDriveMaster(Device):
 
     # -- life cycle -----------------------------------------------------------------------------
     def open(self) -> None:
-        """Reach the drive by SDO and leave it in SWITCH ON DISABLED (voltage disabled).
+        """Check the drive's EDS (``eds``: every object hil uses, before anything is written),
+        reach the drive by SDO and leave it in SWITCH ON DISABLED (voltage disabled).
 
         A drive found in FAULT is left alone (DriveFaultError): clearing a fault is an explicit
         decision, :meth:`reset_fault`."""
         if self._closed:
             raise DriveError("the drive master is closed")
+        if self.config.eds and self.description is None:  # before anything is written
+            from drivers.canopen.eds import load_description
+
+            self.description = load_description(self.config.eds, self.node_id,
+                                                 required_objects(self.mode))
         self._latched, self._enabled = None, False
         self.heartbeat_watch.rebooted = False
         state = state_of(self.states.reach())

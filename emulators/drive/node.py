@@ -53,6 +53,7 @@ from canopen.objectdictionary.datatypes import VISIBLE_STRING
 from drivers.can_frames import Frame, frames_of, from_message
 from drivers.cia301 import (
     ABORT_CANNOT_MAP,
+    ABORT_DEVICE_STATE,
     ABORT_LENGTH,
     ABORT_NO_OBJECT,
     ABORT_NO_SUBINDEX,
@@ -63,8 +64,10 @@ from drivers.cia301 import (
     ABORT_VALUE_HIGH,
     ABORT_VALUE_LOW,
     ABORT_WRITE_ONLY,
+    CYCLE_PERIOD,
     SDO_RESPONSE_BASE,
     SYNC_COB_ID,
+    SYNC_COUNTER_OVERFLOW,
 )
 from drivers.cia402 import (
     CYCLIC_SYNCHRONOUS_POSITION,
@@ -123,6 +126,7 @@ ERR_REG_GENERIC, ERR_REG_CURRENT, ERR_REG_COMMUNICATION = 0x01, 0x02, 0x10
 ERR_REG_VOLTAGE, ERR_REG_TEMPERATURE = 0x04, 0x08
 
 
+SYNC_ECHO = 0x2004  # the counter of the SYNC the TPDOs answer (manufacturer object)
 SYNC_POLL_PERIODS = 100  # SYNCs are expected until this many cycles passed without one
 
 
@@ -465,6 +469,10 @@ class DriveNode:
                 raise SdoAbortError(ABORT_VALUE)
             self._values[key] = value
             self._sync_cob_id = value & 0x7FF
+        elif index == SYNC_COUNTER_OVERFLOW:
+            if self._values[(CYCLE_PERIOD, 0)] != 0 or value == 1:
+                raise SdoAbortError(ABORT_DEVICE_STATE if value != 1 else ABORT_VALUE)
+            self._values[key] = value
         elif index == 0x1006:
             steps = self._steps_for_period(value)
             self._values[key] = value
@@ -613,7 +621,9 @@ class DriveNode:
                 self.faults.hit(fault)
                 self._delayed.append((self._now() + round(fault.params["ms"] * 1e6), frames))
                 return
-        if frames:
+        if frames and self._delayed:  # one output queue: held answers go out first
+            self._delayed.append((self._delayed[-1][0], frames))
+        elif frames:
             self._send(frames)
 
     # ----------------------------------------------------------------------------- SYNC
@@ -621,6 +631,8 @@ class DriveNode:
         if len(data) > 1:
             self._emcy(EMCY_SYNC_LENGTH, ERR_REG_COMMUNICATION, raise_register=False)
             return
+        if data and self._values[(SYNC_COUNTER_OVERFLOW, 0)]:  # the SYNC counter is on
+            self._values[(SYNC_ECHO, 0)] = data[0]
         operational = self.nmt_state == NMT_OPERATIONAL
         if operational and self._pending_rpdo:
             for pdo in self._pdos:

@@ -7,7 +7,9 @@ independent master (``canopen.BaseNode402``) as its description of the drive.
 Units (DESIGN.md): torque objects are per mille of the rated current 0x6075 (default 1000 mA, so
 one unit is one mA); positions are encoder increments (0x608F, default 2^20 per revolution);
 velocity is increments per second. Manufacturer objects: 0x2001 SYNC loss timeout [ms],
-0x2002 over-current trip level [mA], 0x2003 external disturbance torque [mA] (a test hook).
+0x2002 over-current trip level [mA], 0x2003 external disturbance torque [mA] (a test hook),
+0x2004 the counter of the SYNC the TPDOs answer (with the SYNC counter on: 0x1019 > 0), which a
+master maps to bind every TPDO to its SYNC.
 """
 
 from __future__ import annotations
@@ -110,6 +112,8 @@ def build_object_dictionary(node_id: int, defaults: OdDefaults | None = None) ->
         _var("Consumer heartbeat time 1", 0x1016, 1, UNSIGNED32, "rw", 0),
     ], array=True))
     add(_var("Producer heartbeat time", 0x1017, 0, UNSIGNED16, "rw", d.heartbeat_ms))
+    add(_var("Synchronous counter overflow value", 0x1019, 0, UNSIGNED8, "rw", 0,
+             maximum=240))
     add(_record("Identity object", 0x1018, [
         _var("Number of entries", 0x1018, 0, UNSIGNED8, "const", 4),
         _var("Vendor-ID", 0x1018, 1, UNSIGNED32, "ro", 0),
@@ -125,6 +129,7 @@ def build_object_dictionary(node_id: int, defaults: OdDefaults | None = None) ->
     add(_var("Over-current trip level", 0x2002, 0, UNSIGNED16, "rw", d.overcurrent_trip_ma,
              minimum=1))
     add(_var("External disturbance torque", 0x2003, 0, INTEGER16, "rw", 0, mappable=True))
+    add(_var("SYNC counter echo", 0x2004, 0, UNSIGNED8, "ro", 0, mappable=True))
     add(_var("Error code", 0x603F, 0, UNSIGNED16, "ro", 0))
     add(_var("Controlword", 0x6040, 0, UNSIGNED16, "rw", 0, mappable=True))
     add(_var("Statusword", 0x6041, 0, UNSIGNED16, "ro", 0, mappable=True))

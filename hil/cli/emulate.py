@@ -51,8 +51,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_live_arguments(eb, rates=False)
     eb.set_defaults(handler=emulate_bench)
     ed = emu_sub.add_parser("drive", help="CiA 402 servo drive over socketcand")
-    ed.add_argument("--socketcand", type=host_port, metavar="HOST:PORT", required=True,
+    ed.add_argument("--socketcand", type=host_port, metavar="HOST:PORT",
                     help="serve the socketcand protocol here (port 0: any free port, printed)")
+    ed.add_argument("--write-eds", metavar="F.eds",
+                    help="write the emulated drive's object dictionary as an EDS file (for "
+                    "canopen's import_od, CANopen tools, `[master] eds`) and exit")
+    ed.add_argument("--can-log", metavar="F.blf|F.asc|F.trc|F.log",
+                    help="write every CAN frame the emulator receives and sends to this file "
+                    "(python-can's can.Logger; the suffix picks the format)")
     ed.add_argument("--node", type=positive_int, default=1, help="CANopen node id (1..127)")
     ed.add_argument("--config", metavar="F.toml",
                     help="drive config laid over the default (hil/configs/drive.toml); "
@@ -239,11 +245,23 @@ def emulate_drive(args: argparse.Namespace) -> int:
     if args.channel is not None:
         overrides["channel"] = args.channel
     emulator = load_drive_config(args.config, overrides={"emulator": overrides}).emulator
+    if args.write_eds:
+        return write_eds(emulator, args.write_eds)
+    if args.socketcand is None:
+        raise UsageError("hil emulate drive needs --socketcand HOST:PORT (or --write-eds F)")
     host, port = args.socketcand
     server = SocketcandServer(host, port, channel=emulator.channel)
-    node = DriveNode(emulator, send=server.broadcast, faults=faults_of(args, "drive"),
+    send: Callable[[list[Any]], None] = server.broadcast
+    trace = None
+    if args.can_log:
+        from drivers.canopen.can_log import CanLog
+
+        trace = CanLog(args.can_log, emulator.channel)
+        send = _traced_send(server.broadcast, trace)
+    node = DriveNode(emulator, send=send, faults=faults_of(args, "drive"),
                      on_fault=print_event)
-    server.on_frame, server.on_tick = node.handle, node.service
+    on_frame = node.handle if trace is None else _traced_handle(node.handle, trace)
+    server.on_frame, server.on_tick = on_frame, node.service
     server.next_frame_ns = node.next_sync_ns
     node.boot()
     bound_host, bound_port = server.address
@@ -263,6 +281,47 @@ def emulate_drive(args: argparse.Namespace) -> int:
             server.serve(stop)
         finally:  # Ctrl-C (KeyboardInterrupt, ended quietly by _until_stopped) too
             server.close()
+            if trace is not None:
+                trace.close()
             print(f"hil: drive emulator stopped after {node.sync_count} SYNC "
                   f"(plant time {node.plant.time_s:.3f} s)", flush=True)
+    return 0
+
+
+def _traced_send(send: Callable[[list], None], trace: Any) -> Callable[[list], None]:
+    def traced(frames: list) -> None:
+        send(frames)
+        trace.sent(frames)
+
+    return traced
+
+
+def _traced_handle(handle: Callable[[Any], None], trace: Any) -> Callable[[Any], None]:
+    from drivers.can_frames import from_message
+
+    def traced(msg: Any) -> None:
+        frame = from_message(msg)
+        if frame is not None:
+            trace.received(frame)
+        handle(msg)
+
+    return traced
+
+
+def write_eds(emulator: Any, path: str) -> int:
+    """``hil emulate drive --write-eds F``: the emulator's object dictionary as an EDS."""
+    import canopen
+
+    from emulators.drive.od import build_object_dictionary
+    from hil.core.errors import UsageError
+
+    od = build_object_dictionary(emulator.node_id, emulator.od_defaults())
+    od.device_information.vendor_name = "hil"
+    od.device_information.product_name = "hil CiA 402 drive emulator"
+    try:
+        canopen.export_od(od, path, doc_type="eds")
+    except OSError as exc:
+        raise UsageError(f"--write-eds {path}: cannot write it: {exc.strerror}") from None
+    print(f"hil: wrote the emulated drive's object dictionary (node {emulator.node_id}) to "
+          f"{path}", flush=True)
     return 0

@@ -12,6 +12,7 @@ from hil.cli import (
     bench,
     demo,
     doctor,
+    drive,
     empc,
     emulate,
     identify,
@@ -24,8 +25,8 @@ from hil.cli import (
 from hil.core.errors import HilError
 from hil.core.session import set_command_line
 
-COMMAND_MODULES = (demo, bench, servo, sweep, empc, identify, emulate, report, replay, layout,
-                   doctor)
+COMMAND_MODULES = (demo, bench, servo, drive, sweep, empc, identify, emulate, report, replay,
+                   layout, doctor)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -69,8 +69,22 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     servo``): the controller, its tuning, the drive, the reference and the verdict."""
     add_controller_arguments(parser, "mpc, empc, pid", "abs_error_deg, abs_command_mA, "
                              "abs_velocity_deg_s, position_deg")
-    parser.add_argument("--drive", default="emulated",
-                        help="emulated (in-process CAN emulator) | socketcand://HOST:PORT")
+    parser.add_argument("--drive", metavar="URL",
+                        help="where the drive is (default: drive.toml's [bus], emulated): "
+                        "emulated (hil's emulator: in this process in lockstep, in a process "
+                        "of its own with --realtime) | socketcand://HOST:PORT[/CHANNEL] | "
+                        "INTERFACE://CHANNEL[?key=value&...] for any python-can interface, "
+                        "e.g. socketcan://can0, pcan://PCAN_USBBUS1, kvaser://0, gs_usb://0, "
+                        "slcan:///dev/ttyACM0?bitrate=1000000, serial:///dev/ttyUSB0, "
+                        "udp_multicast://239.0.0.1?port=43113, virtual://NAME (query keys are "
+                        "keyword arguments of python-can's can.Bus)")
+    parser.add_argument("--can-log", metavar="F.blf|F.asc|F.trc|F.log",
+                        help="write every CAN frame of the run to this file (python-can's "
+                        "can.Logger; the suffix picks the format: opens in can.player, "
+                        "can.viewer, Vector and PEAK tools)")
+    parser.add_argument("--reset-fault", action="store_true",
+                        help="clear a drive left in FAULT (CiA 402 fault reset) before "
+                        "enabling it")
     parser.add_argument("--node", type=positive_int, default=1, help="CANopen node id")
     parser.add_argument("--ert", choices=["foh", "zoh"], default="foh",
                         help="extended reference trajectory: first- or zero-order hold")

@@ -135,11 +135,21 @@ def refuse_parallel_hardware(kind: str, base: dict[str, Any], trials: list[Trial
                              engine: Engine) -> None:
     """A real bench or drive is one device: its trials run one after another (--serial)."""
     key = URL_KEY[kind]
-    urls = dict.fromkeys(str(t.params.get(key, base[key])) for t in trials)
+    urls = dict.fromkeys(str(t.params.get(key, base[key]) or _configured_url(kind, base))
+                         for t in trials)
     real = [u for u in urls if scheme_of(u) != "emulated"]
     if real and not engine.serial:
         raise UsageError(f"--{key} {real[0]} is not emulated: a real device cannot run trials "
                          "in parallel; add --serial to run them one after another")
+
+
+def _configured_url(kind: str, base: dict[str, Any]) -> str:
+    """The device a run takes when its flags name none: the drive of drive.toml's [bus]."""
+    if kind != "servo":
+        return "emulated"
+    from hil.servo.config import load_drive_config
+
+    return load_drive_config(base.get("config")).bus_url
 
 
 def _absolute_paths(base: dict[str, Any]) -> None:

@@ -141,10 +141,27 @@ def _master(m: Table, bus: Table) -> DriveMasterConfig:
         quick_stop_timeout_s=m.integer("quick_stop_timeout_ms", above=0) / 1e3,
         standstill_deg_s=m.number("standstill_deg_s", above=0),
         eds=m.string("eds") or None,
+        sync_echo=_object_address(m, "sync_echo"),
     )
     m.done()
     bus.done()
     return config
+
+
+def _object_address(table: Table, name: str) -> tuple[int, int] | None:
+    """``"0x2004"`` or ``"0x2004:0"`` -> (0x2004, 0); ``""`` -> None."""
+    text = table.string(name).strip()
+    if not text:
+        return None
+    index, _, sub = text.partition(":")
+    try:
+        address = int(index, 0), int(sub or "0", 0)
+    except ValueError:
+        address = (-1, -1)
+    if not (0x1000 <= address[0] <= 0xFFFF and 0 <= address[1] <= 0xFF):
+        raise table.error(name, f"must be an object as INDEX[:SUBINDEX], e.g. '0x2004:0', "
+                          f"got {text!r}")
+    return address
 
 
 def _or_inf(value: float | None) -> float:

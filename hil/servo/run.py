@@ -15,6 +15,7 @@ time, ticks the loop skipped plus ticks whose command left after the next tick's
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, fields
@@ -45,7 +46,7 @@ from hil.core.run import (
 from hil.core.session import Session
 from hil.core.verdict import Limit, SignalWatch, split_limits
 from hil.servo.builtin import ServoContext
-from hil.servo.config import DriveConfig, load_drive_config
+from hil.servo.config import EMULATED, DriveConfig, load_drive_config
 from hil.servo.rig import open_drive
 from hil.servo.task import (
     DISTURBANCE_OBJECT,
@@ -82,7 +83,7 @@ class ServoRunOptions:
 
     controller: str | Callable[..., Any]
     params: Mapping[str, Any] = field(default_factory=dict)
-    drive: str = "emulated"
+    drive: str | None = "emulated"   # a drive URL; None: drive.toml's [bus]
     node: int = 1
     ert: str = "foh"
     ht: int = 8
@@ -100,6 +101,8 @@ class ServoRunOptions:
     limits: tuple[Limit, ...] = ()
     controller_budget_s: float | None = None  # per step; None: STEP_BUDGET_S in real time
     recording: RecordingOptions = field(default_factory=RecordingOptions)
+    can_log: str | None = None       # every CAN frame to this file (python-can's formats)
+    reset_fault: bool = False        # clear a drive FAULT (CiA 402 fault reset) before enabling
 
     def __post_init__(self) -> None:
         for name, flag in (("umax", "--umax"), ("duration_s", "--duration")):
@@ -222,9 +225,12 @@ class ServoExperiment(Experiment):
 
     def open_devices(self, clock: Clock, on_event: EventBuffer) -> None:
         """The drive master, its bus reached and the drive in a known state (not enabled)."""
-        master = open_drive(self.options.drive, self.drive, on_event=on_event,
-                            realtime=self.options.realtime)
+        options = self.options
+        master = open_drive(options.drive, self.drive, on_event=on_event,
+                            realtime=options.realtime, can_log=options.can_log)
         try:
+            if options.reset_fault:
+                master.clear_fault()
             master.open()
         except BaseException:
             master.close()
@@ -239,6 +245,7 @@ class ServoExperiment(Experiment):
         master, options = self.master, self.options
         assert master is not None
         master.configure()
+        session.recorder.metadata("drive", {"json": json.dumps(master.describe())})
         master.enable()
         session.add_component(master)
         if self.scenario.disturbance is not None:
@@ -280,7 +287,7 @@ class ServoExperiment(Experiment):
         simulated = ticks * SAMPLE_PERIOD_S
         base.update({
             "reference": options.reference,
-            "drive": options.drive,
+            "drive": master.url,
             "clock": session.clock.mode,
             "umax_mA": options.umax,
             "settle_s": options.settle_s,
@@ -318,7 +325,7 @@ def drive_settings(options: ServoRunOptions) -> DriveConfig:
     if period_us * 1e-6 != SAMPLE_PERIOD_S:
         raise ConfigError(f"{drive.source}: master.cycle_period_us = {period_us}, but the servo "
                           f"controllers are designed for T = {SAMPLE_PERIOD_S * 1e6:g} us")
-    if not options.realtime and options.drive != "emulated":
+    if not options.realtime and (options.drive or drive.bus_url) != EMULATED:
         timeout_us = round(drive.master.rx_timeout_s * 1e6)
         drive = drive.laid_over({"master": {
             "rx_timeout_us": max(timeout_us, LOCKSTEP_RX_TIMEOUT_US)}})

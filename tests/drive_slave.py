@@ -1,0 +1,297 @@
+"""A CiA 402 drive hil did not write: canopen's ``LocalNode`` with an object dictionary of its
+own, different from hil's emulator where a real drive would be: a 17-bit encoder, a rated
+current of 2 A, CST only, all four PDOs valid at power-on, no RPDO2-4/TPDO3-4 at all, and the
+CiA 301 remapping rules enforced (a valid PDO's COB-ID and mapping cannot change; a mapping
+entry must name a mappable object of the right size). Its SYNC counter echo is object 0x2100.
+
+SDO, NMT and the heartbeat producer are canopen's; this module adds what a LocalNode does not
+do: the cyclic path (RPDO latched on SYNC, a simple axis advanced one period, the TPDOs of the
+current maps sent), and the CiA 402 state machine after canopen's ``State402`` tables. Every
+TPDO pair it sends is logged with the number of the SYNC it answers (1 = the first SYNC after
+NMT start), so a test can hold the master's feedback against it.
+
+``stall_at`` / ``stall_ms``: at that SYNC the slave's frame handling stops for that long (a
+drive that falls behind), then answers what queued up, in order: its answer to that SYNC, and
+the ones after it, come late.
+
+Run alone (another process): ``python tests/drive_slave.py URL NODE LOG.json [--stall-at N
+--stall-ms MS]``; it serves until SIGTERM, then writes its log.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import struct
+import sys
+import threading
+import time
+from typing import Any
+
+import canopen
+from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable
+from canopen.objectdictionary import datatypes as dt
+from canopen.profiles.p402 import State402
+from canopen.sdo import SdoAbortedError
+
+INCREMENTS = 1 << 17
+RATED_MA = 2000
+ECHO = 0x2100
+SUPPORTED = 0x0200  # CST only
+PERIOD_S = 500e-6
+GAIN_DEG_S2_PER_MA = 400.0  # axis acceleration per mA (a plain inertia)
+
+RPDO1 = [(0x6040, 0, 16), (0x6071, 0, 16)]
+TPDO1 = [(0x6041, 0, 16), (0x6064, 0, 32)]
+TPDO2 = [(0x606C, 0, 32), (0x6077, 0, 16)]
+
+
+def _var(name: str, index: int, sub: int, kind: int, access: str, default: Any = 0,
+         mappable: bool = False) -> ODVariable:
+    var = ODVariable(name, index, sub)
+    var.data_type, var.access_type, var.default, var.pdo_mappable = kind, access, default, mappable
+    return var
+
+
+def _record(od: ObjectDictionary, name: str, index: int, members: list[ODVariable],
+            array: bool = False) -> None:
+    record = ODArray(name, index) if array else ODRecord(name, index)
+    for member in members:
+        record.add_member(member)
+    od.add_object(record)
+
+
+def _pdo(od: ObjectDictionary, comm: int, mapping: int, cob: int, entries: list) -> None:
+    _record(od, f"PDO {comm:04X}", comm, [
+        _var("count", comm, 0, dt.UNSIGNED8, "const", 2),
+        _var("COB-ID", comm, 1, dt.UNSIGNED32, "rw", cob),
+        _var("type", comm, 2, dt.UNSIGNED8, "rw", 1)])
+    _record(od, f"map {mapping:04X}", mapping, [
+        _var("count", mapping, 0, dt.UNSIGNED8, "rw", len(entries)),
+        *(_var(f"entry {k}", mapping, k, dt.UNSIGNED32, "rw",
+               i << 16 | s << 8 | b) for k, (i, s, b) in enumerate(entries, 1)),
+        *(_var(f"entry {k}", mapping, k, dt.UNSIGNED32, "rw", 0)
+          for k in range(len(entries) + 1, 5))])
+
+
+def dictionary(node_id: int) -> ObjectDictionary:
+    od = ObjectDictionary()
+    od.node_id = node_id
+    add = od.add_object
+    add(_var("Device type", 0x1000, 0, dt.UNSIGNED32, "ro", 0x0002_0192))
+    add(_var("Error register", 0x1001, 0, dt.UNSIGNED8, "ro", 0))
+    add(_var("Communication cycle period", 0x1006, 0, dt.UNSIGNED32, "rw", 0))
+    add(_var("Device name", 0x1008, 0, dt.VISIBLE_STRING, "const", "independent 402 slave"))
+    _record(od, "Consumer heartbeat", 0x1016, [
+        _var("count", 0x1016, 0, dt.UNSIGNED8, "const", 1),
+        _var("time 1", 0x1016, 1, dt.UNSIGNED32, "rw", 0)], array=True)
+    add(_var("Producer heartbeat time", 0x1017, 0, dt.UNSIGNED16, "rw", 0))
+    _record(od, "Identity", 0x1018, [
+        _var("count", 0x1018, 0, dt.UNSIGNED8, "const", 4),
+        _var("Vendor-ID", 0x1018, 1, dt.UNSIGNED32, "ro", 0x00C0FFEE),
+        _var("Product code", 0x1018, 2, dt.UNSIGNED32, "ro", 17),
+        _var("Revision", 0x1018, 3, dt.UNSIGNED32, "ro", 3),
+        _var("Serial", 0x1018, 4, dt.UNSIGNED32, "ro", 4711)])
+    add(_var("Synchronous counter overflow value", 0x1019, 0, dt.UNSIGNED8, "rw", 0))
+    _pdo(od, 0x1400, 0x1600, 0x200 + node_id, RPDO1)
+    _pdo(od, 0x1800, 0x1A00, 0x180 + node_id, TPDO1)
+    _pdo(od, 0x1801, 0x1A01, 0x280 + node_id, TPDO2)
+    add(_var("SYNC counter of this answer", ECHO, 0, dt.UNSIGNED8, "ro", 0, True))
+    add(_var("Error code", 0x603F, 0, dt.UNSIGNED16, "ro", 0))
+    add(_var("Controlword", 0x6040, 0, dt.UNSIGNED16, "rw", 0, True))
+    add(_var("Statusword", 0x6041, 0, dt.UNSIGNED16, "ro", 0, True))
+    add(_var("Quick stop option", 0x605A, 0, dt.INTEGER16, "rw", 2))
+    add(_var("Modes of operation", 0x6060, 0, dt.INTEGER8, "rw", 0))
+    add(_var("Modes of operation display", 0x6061, 0, dt.INTEGER8, "ro", 0))
+    add(_var("Position actual", 0x6064, 0, dt.INTEGER32, "ro", 0, True))
+    add(_var("Velocity actual", 0x606C, 0, dt.INTEGER32, "ro", 0, True))
+    add(_var("Target torque", 0x6071, 0, dt.INTEGER16, "rw", 0, True))
+    add(_var("Max torque", 0x6072, 0, dt.UNSIGNED16, "rw", 1000))
+    add(_var("Rated current", 0x6075, 0, dt.UNSIGNED32, "ro", RATED_MA))
+    add(_var("Torque actual", 0x6077, 0, dt.INTEGER16, "ro", 0, True))
+    _record(od, "Position encoder resolution", 0x608F, [
+        _var("count", 0x608F, 0, dt.UNSIGNED8, "const", 2),
+        _var("increments", 0x608F, 1, dt.UNSIGNED32, "ro", INCREMENTS),
+        _var("motor revolutions", 0x608F, 2, dt.UNSIGNED32, "ro", 1)])
+    add(_var("Supported drive modes", 0x6502, 0, dt.UNSIGNED32, "ro", SUPPORTED))
+    return od
+
+
+class IndependentSlave:
+    """The drive on ``network`` (a connected canopen Network) as node ``node_id``."""
+
+    def __init__(self, network: canopen.Network, node_id: int = 3, *,
+                 stall_at: int | None = None, stall_ms: float = 150.0) -> None:
+        self.network, self.node_id = network, node_id
+        self.stall_at, self.stall_ms = stall_at, stall_ms
+        self.node = canopen.LocalNode(node_id, dictionary(node_id))
+        self.od = self.node.object_dictionary
+        self.node.add_write_callback(self._on_write)
+        self.node.add_read_callback(self._on_read)
+        network.add_node(self.node)
+        network.subscribe(0x080, self._on_sync)
+        network.subscribe(0x000, self._on_nmt)
+        self.state = "SWITCH ON DISABLED"
+        self.position = 0.0      # degrees, multi-turn
+        self.velocity = 0.0      # degrees per second
+        self.current_ma = 0.0
+        self.controlword = 0
+        self.latched: bytes | None = None
+        self.syncs = 0           # SYNCs since NMT start
+        self.log: list[dict[str, Any]] = []
+        self.lock = threading.Lock()
+        self.node.nmt.state = "PRE-OPERATIONAL"
+
+    # -- values --------------------------------------------------------------------------
+    def value(self, index: int, sub: int = 0) -> int:
+        return int(self.od[index].decode_raw(self.node.get_data(index, sub))
+                   if sub == 0 and not hasattr(self.od[index], "subindices") else
+                   self.od[index][sub].decode_raw(self.node.get_data(index, sub)))
+
+    def _live(self, index: int) -> int | None:
+        if index == 0x6041:
+            _mask, word = State402.SW_MASK[self.state]
+            return word | 0x0200 | (0x0010 if self.state != "NOT READY TO SWITCH ON" else 0)
+        if index == 0x6064:
+            return round(self.position / 360.0 * INCREMENTS) % INCREMENTS
+        if index == 0x606C:
+            return round(self.velocity / 360.0 * INCREMENTS)
+        if index == 0x6077:
+            return round(self.current_ma * 1000 / RATED_MA)
+        if index == 0x6061:
+            return self.value(0x6060)
+        return None
+
+    def _on_read(self, index: int, subindex: int, od: Any) -> int | None:
+        return self._live(index)
+
+    # -- CiA 301 rules for PDO parameters, CiA 402 for the controlword ----------------------
+    def _on_write(self, index: int, subindex: int, od: Any, data: bytes) -> None:
+        if index in (0x1400, 0x1800, 0x1801) and subindex == 1:
+            old, new = self.value(index, 1), int.from_bytes(data, "little")
+            if not (old | new) & 0x8000_0000 and (old & 0x7FF) != (new & 0x7FF):
+                raise SdoAbortedError(0x0609_0030)  # invalidate before changing the COB-ID
+        if index in (0x1600, 0x1A00, 0x1A01):
+            comm = {0x1600: 0x1400, 0x1A00: 0x1800, 0x1A01: 0x1801}[index]
+            if not self.value(comm, 1) & 0x8000_0000:
+                raise SdoAbortedError(0x0601_0000)  # the mapping of a valid PDO is frozen
+            value = int.from_bytes(data, "little")
+            if subindex and value:
+                target, sub, bits = value >> 16, (value >> 8) & 0xFF, value & 0xFF
+                if target not in self.od:
+                    raise SdoAbortedError(0x0602_0000)
+                obj = self.od[target]
+                var = obj[sub] if hasattr(obj, "subindices") else obj
+                if not var.pdo_mappable or len(var) != bits:
+                    raise SdoAbortedError(0x0604_0041)
+        if index == 0x6060 and int.from_bytes(data, "little", signed=True) not in (0, 10):
+            raise SdoAbortedError(0x0609_0030)
+        if index == 0x6040:
+            self._controlword(int.from_bytes(data, "little"))
+
+    def _controlword(self, word: int) -> None:
+        previous, self.controlword = self.controlword, word
+        state = self.state
+        if word & 0x80 and not previous & 0x80:
+            if state == "FAULT":
+                self.state = "SWITCH ON DISABLED"
+            return
+        if not word & 0x02:                              # disable voltage
+            self.state = "SWITCH ON DISABLED"
+        elif not word & 0x04:                            # quick stop
+            self.state = "QUICK STOP ACTIVE" if state == "OPERATION ENABLED" else \
+                "SWITCH ON DISABLED"
+        elif word & 0x0F == 0x06:                        # shutdown
+            if state in ("SWITCH ON DISABLED", "SWITCHED ON", "OPERATION ENABLED"):
+                self.state = "READY TO SWITCH ON"
+        elif word & 0x0F == 0x07:                        # switch on (or disable operation)
+            if state in ("READY TO SWITCH ON", "OPERATION ENABLED"):
+                self.state = "SWITCHED ON"
+        elif word & 0x0F == 0x0F and state in ("SWITCHED ON", "READY TO SWITCH ON"):
+            self.state = "OPERATION ENABLED"
+
+    # -- NMT and the cyclic path ----------------------------------------------------------
+    def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if len(data) == 2 and data[1] in (0, self.node_id) and data[0] == 0x01:
+            self.syncs = 0
+
+    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if self.node.nmt.state != "OPERATIONAL":
+            return
+        with self.lock:
+            self.syncs += 1
+            if self.stall_at is not None and self.syncs == self.stall_at:
+                time.sleep(self.stall_ms / 1000)  # falls behind: what comes queues up
+            if self.latched is not None:
+                word, torque = struct.unpack("<Hh", self.latched)
+                self._controlword(word)
+                self.node.set_data(0x6071, 0, struct.pack("<h", torque))
+            if self.state == "OPERATION ENABLED":
+                torque = self.value(0x6071)
+                self.current_ma = torque * RATED_MA / 1000
+            else:
+                self.current_ma = 0.0
+                if self.state == "QUICK STOP ACTIVE":
+                    self.velocity *= 0.5
+                    if abs(self.velocity) < 1.0:
+                        self.velocity = 0.0
+                        self.state = "SWITCH ON DISABLED"
+            self.velocity += GAIN_DEG_S2_PER_MA * self.current_ma * PERIOD_S
+            self.position += self.velocity * PERIOD_S
+            if data and self.value(0x1019):
+                self.node.set_data(ECHO, 0, bytes([data[0]]))
+            self._send_tpdos()
+
+    def _send_tpdos(self) -> None:
+        sent = {}
+        for comm, mapping in ((0x1800, 0x1A00), (0x1801, 0x1A01)):
+            cob = self.value(comm, 1)
+            if cob & 0x8000_0000:
+                continue
+            payload = b""
+            for sub in range(1, self.value(mapping, 0) + 1):
+                entry = self.value(mapping, sub)
+                index, bits = entry >> 16, entry & 0xFF
+                live = self._live(index)
+                raw = self.node.get_data(index, (entry >> 8) & 0xFF) if live is None else \
+                    live.to_bytes(bits // 8, "little", signed=index != 0x6041)
+                payload += raw
+            self.network.send_message(cob & 0x7FF, payload)
+            sent[comm] = payload.hex()
+        self.log.append({"sync": self.syncs, "tpdo1": sent.get(0x1800),
+                         "tpdo2": sent.get(0x1801), "position_deg": self.position,
+                         "state": self.state})
+
+    def on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if self.node.nmt.state == "OPERATIONAL" and len(data) >= 4:
+            self.latched = bytes(data[:4])
+
+
+def serve(url: str, node_id: int, stall_at: int | None = None,
+          stall_ms: float = 150.0) -> tuple[canopen.Network, IndependentSlave]:
+    """The slave on the bus at ``url`` (``INTERFACE://CHANNEL?key=value``), serving."""
+    from drivers.canopen.bus import open_can_bus, parse_can_url
+
+    network = canopen.Network(open_can_bus(parse_can_url(url)))
+    network.connect()
+    slave = IndependentSlave(network, node_id, stall_at=stall_at, stall_ms=stall_ms)
+    network.subscribe(0x200 + node_id, slave.on_rpdo)
+    return network, slave
+
+
+def main(argv: list[str]) -> None:
+    url, node_id, log_path = argv[0], int(argv[1]), argv[2]
+    stall_at = int(argv[argv.index("--stall-at") + 1]) if "--stall-at" in argv else None
+    stall_ms = float(argv[argv.index("--stall-ms") + 1]) if "--stall-ms" in argv else 150.0
+    network, slave = serve(url, node_id, stall_at, stall_ms)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    print("serving", flush=True)
+    stop.wait()
+    network.disconnect()
+    with open(log_path, "w") as f:
+        json.dump(slave.log, f)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
