@@ -37,7 +37,7 @@ import can
 import canopen
 import numpy as np
 
-from drivers.canopen import CanDriveMaster, DriveMasterConfig
+from drivers.canopen import CanDriveMaster, CanLink, DriveMasterConfig
 from emulators.drive.node import BusRunner, DriveEmulatorConfig, DriveNode, bus_sender
 from emulators.drive.od import build_object_dictionary
 from emulators.drive.plant import AxisPlant
@@ -69,20 +69,38 @@ def run_lockstep(master: CanDriveMaster, cycles: int) -> tuple[float, np.ndarray
     return cycles / elapsed, rtt
 
 
+class PumpedVirtualBus:
+    """The stock python-can virtual bus for the master, with the emulated node run after each
+    transmission (what the lockstep rig's in-process channel does, without it)."""
+
+    def __init__(self, channel: str, node_bus: can.BusABC, node: DriveNode) -> None:
+        self.bus = can.Bus(interface="virtual", channel=channel)
+        self.channel_info = self.bus.channel_info
+        self._node_bus, self._node = node_bus, node
+
+    def send_frames(self, frames: list) -> None:
+        for can_id, data in frames:
+            self.bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
+        while (msg := self._node_bus.recv(0)) is not None:
+            self._node.handle(msg)
+        self._node.service()
+
+    def recv_frame(self, timeout: float | None = None) -> tuple[int, bytes] | None:
+        msg = self.bus.recv(0)
+        return None if msg is None else (msg.arbitration_id, bytes(msg.data))
+
+    def shutdown(self) -> None:
+        self.bus.shutdown()
+        self._node_bus.shutdown()
+
+
 def stock_virtual_master() -> CanDriveMaster:
     channel = f"bench-{uuid.uuid4().hex}"
     node_bus = can.Bus(interface="virtual", channel=channel)
-    master_bus = can.Bus(interface="virtual", channel=channel)
     node = DriveNode(DriveEmulatorConfig(), send=bus_sender(node_bus), timebase="sync")
     node.boot()
-
-    def pump() -> None:
-        while (msg := node_bus.recv(0)) is not None:
-            node.handle(msg)
-        node.service()
-
-    return CanDriveMaster(master_bus, DriveMasterConfig(), timebase="cycles", pump=pump,
-                          closers=(node_bus.shutdown,))
+    return CanDriveMaster(CanLink(PumpedVirtualBus(channel, node_bus, node)),  # type: ignore[arg-type]
+                          DriveMasterConfig())
 
 
 def plant_alone(steps: int) -> float:

@@ -95,11 +95,16 @@ class Fault:
 
     def __str__(self) -> str:
         end = "" if math.isinf(self.end_s) else f"-{self.end_s:g}"
-        extra = ",".join(f"{k}={v}" for k, v in self.params.items())
+        extra = ",".join(f"{k}=0x{v:04X}" if (self.kind, k) in HEX_PARAMS else f"{k}={v}"
+                         for k, v in self.params.items())
         return f"{self.kind}@{self.start_s:g}{end}" + (f":{extra}" if extra else "")
 
     def covers(self, t_s: float) -> bool:
         return self.start_s <= t_s < self.end_s
+
+
+#: parameters written in hex, as the standards write them (CiA 301 EMCY codes)
+HEX_PARAMS = {("emcy", "code")}
 
 
 def _number(text: str, kind: type, what: str) -> Any:

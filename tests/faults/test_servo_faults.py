@@ -29,7 +29,7 @@ def test_an_emcy_during_a_run_over_socketcand_ends_it_with_one_line(tmp_path, ca
     assert status == 2
     assert err.count("\n") == 1 and err.startswith("hil: error: drive node 1 reports FAULT")
     assert "0x4310" in err and "Traceback" not in err
-    assert injected and injected[0].startswith("emcy@8:code=17168 injected at t=")
+    assert injected and injected[0].startswith("emcy@8:code=0x4310 injected at t=")
     events = read_session(out).topic("/events")
     emcy = [m for _, m in events if m["kind"] == "drive.emcy"]
     assert emcy and emcy[0]["data"]["code"] == 0x4310
