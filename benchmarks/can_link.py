@@ -38,9 +38,11 @@ import canopen
 import numpy as np
 
 from drivers.canopen import CanDriveMaster, CanLink, DriveMasterConfig
-from emulators.drive.node import BusRunner, DriveEmulatorConfig, DriveNode, bus_sender
+from emulators.drive.config import DriveEmulatorConfig
+from emulators.drive.node import DriveNode
 from emulators.drive.od import build_object_dictionary
 from emulators.drive.plant import AxisPlant
+from emulators.drive.runners import BusRunner, bus_sender
 from hil.core.clock import RealtimeClock
 from hil.core.loop import FixedRateLoop, FunctionTask
 from hil.servo.config import load_drive_config

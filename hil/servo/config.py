@@ -21,7 +21,7 @@ from typing import Any
 from drivers.canopen.bus import SOCKETCAND, CanBusSpec
 from drivers.canopen.config import DriveMasterConfig
 from drivers.cia402 import MODES, QUICK_STOP_OPTIONS
-from emulators.drive.node import DriveEmulatorConfig
+from emulators.drive.config import DriveEmulatorConfig
 from emulators.drive.plant import Disturbance, Friction
 from hil.core.config import Table, deep_merge, load_toml, parse_toml
 from hil.core.verdict import RunTables, read_run_tables

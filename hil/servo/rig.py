@@ -30,7 +30,8 @@ from drivers.canopen.can_log import CanLog
 from drivers.canopen.config import DriveMasterConfig
 from drivers.canopen.link import CanLink, FrameTrace
 from drivers.canopen.master import CanDriveMaster
-from emulators.drive.node import DriveEmulatorConfig, LockstepDrive
+from emulators.drive.config import DriveEmulatorConfig
+from emulators.drive.runners import LockstepDrive
 from hil.core.errors import ConfigError
 from hil.core.registry import Factory, SchemeRegistry, scheme_of
 from hil.core.types import EventSink, no_event

@@ -10,8 +10,10 @@ import can
 import canopen
 import pytest
 
-from emulators.drive.node import BusRunner, DriveEmulatorConfig, DriveNode, bus_sender
+from emulators.drive.config import DriveEmulatorConfig
+from emulators.drive.node import DriveNode
 from emulators.drive.od import build_object_dictionary
+from emulators.drive.runners import BusRunner, bus_sender
 
 
 def walk_to_operation_enabled(network: canopen.Network) -> canopen.BaseNode402:

@@ -10,14 +10,10 @@ import can
 import pytest
 
 from drivers.cia402 import STATUSWORD_MASKS, enable_steps
-from emulators.drive.node import (
-    BusRunner,
-    DriveEmulatorConfig,
-    DriveNode,
-    LockstepDrive,
-    bus_sender,
-)
+from emulators.drive.config import DriveEmulatorConfig
+from emulators.drive.node import DriveNode
 from emulators.drive.od import build_object_dictionary, iter_variables
+from emulators.drive.runners import BusRunner, LockstepDrive, bus_sender
 
 
 class Wire:

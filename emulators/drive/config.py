@@ -1,0 +1,46 @@
+"""What the emulated drive is given (``[emulator]`` of drive.toml, read by
+:mod:`hil.servo.config`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from emulators.drive.od import OdDefaults
+from emulators.drive.plant import AxisPlant, Disturbance, Friction
+
+
+@dataclass(frozen=True)
+class DriveEmulatorConfig:
+    """Everything the emulated drive needs (``[emulator]`` of drive.toml, read by
+    :mod:`hil.servo.config`)."""
+
+    node_id: int = 1
+    # the object dictionary's start-up values are the defaults (emulators/drive/od.py)
+    rated_current_ma: int = OdDefaults.rated_current_ma
+    max_torque_permille: int = OdDefaults.max_torque_permille
+    current_limit_ma: float = 12_000.0
+    overcurrent_trip_ma: int = OdDefaults.overcurrent_trip_ma
+    increments_per_rev: int = OdDefaults.increments_per_rev
+    heartbeat_ms: int = OdDefaults.heartbeat_ms
+    sync_loss_timeout_ms: int = OdDefaults.sync_loss_timeout_ms
+    quick_stop_option: int = OdDefaults.quick_stop_option
+    quick_stop_timeout_ms: int = 3000
+    standstill_deg_s: float = 2.0
+    velocity_gain_ma_per_deg_s: float = 40.0
+    position_gain_per_s: float = 20.0
+    channel: str = "can0"
+    friction: Friction = field(default_factory=Friction)
+    disturbance: Disturbance = field(default_factory=Disturbance)
+
+    def od_defaults(self) -> OdDefaults:
+        return OdDefaults(
+            rated_current_ma=self.rated_current_ma, max_torque_permille=self.max_torque_permille,
+            increments_per_rev=self.increments_per_rev, heartbeat_ms=self.heartbeat_ms,
+            sync_loss_timeout_ms=self.sync_loss_timeout_ms,
+            overcurrent_trip_ma=self.overcurrent_trip_ma, quick_stop_option=self.quick_stop_option,
+        )
+
+    def make_plant(self) -> AxisPlant:
+        return AxisPlant(current_limit_ma=self.current_limit_ma,
+                         increments_per_rev=self.increments_per_rev,
+                         friction=self.friction, disturbance=self.disturbance)

@@ -1,0 +1,79 @@
+"""The emulated drive's objects: its dictionary (types, access, limits, defaults) and the live
+values, with the checks an SDO access gets (CiA 301 abort codes)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from canopen.objectdictionary import ObjectDictionary, ODVariable
+from canopen.objectdictionary.datatypes import VISIBLE_STRING
+
+from drivers.cia301 import (
+    ABORT_LENGTH,
+    ABORT_NO_OBJECT,
+    ABORT_NO_SUBINDEX,
+    ABORT_READ_ONLY,
+    ABORT_VALUE_HIGH,
+    ABORT_VALUE_LOW,
+    ABORT_WRITE_ONLY,
+)
+from emulators.drive.od import iter_variables
+from emulators.drive.sdo import SdoAbortError
+
+Key = tuple[int, int]
+
+
+class ObjectStore:
+    """The dictionary ``od`` and the live ``values`` by ``(index, subindex)``."""
+
+    def __init__(self, od: ObjectDictionary) -> None:
+        self.od = od
+        self.values: dict[Key, Any] = {}
+
+    def reset(self, where: Callable[[ODVariable], bool] = lambda var: True) -> None:
+        """The objects ``where`` selects back to their defaults."""
+        for var in iter_variables(self.od):
+            if where(var):
+                self.values[(var.index, var.subindex)] = var.default
+
+    def find(self, index: int, subindex: int) -> ODVariable:
+        """The object, or an SdoAbortError (no object, no sub-index)."""
+        if index not in self.od:
+            raise SdoAbortError(ABORT_NO_OBJECT)
+        obj = self.od[index]
+        if isinstance(obj, ODVariable):
+            if subindex != 0:
+                raise SdoAbortError(ABORT_NO_SUBINDEX)
+            return obj
+        if subindex not in obj.subindices:
+            raise SdoAbortError(ABORT_NO_SUBINDEX)
+        var: ODVariable = obj.subindices[subindex]
+        return var
+
+    def read(self, index: int, subindex: int) -> bytes:
+        """An SDO upload: the value's bytes."""
+        var = self.find(index, subindex)
+        if not var.readable:
+            raise SdoAbortError(ABORT_WRITE_ONLY)
+        data: bytes = var.encode_raw(self.values[(index, subindex)])
+        return data
+
+    def decode_download(self, index: int, subindex: int, data: bytes) -> int:
+        """An SDO download's value, checked for access, size, type and range (not stored:
+        what writing means is the node's)."""
+        var = self.find(index, subindex)
+        if not var.writable:
+            raise SdoAbortError(ABORT_READ_ONLY)
+        if var.data_type == VISIBLE_STRING:
+            raise SdoAbortError(ABORT_READ_ONLY)
+        if len(data) * 8 != len(var):
+            raise SdoAbortError(ABORT_LENGTH)
+        value = var.decode_raw(bytes(data))
+        if not isinstance(value, int):  # the emulator's writable objects are integers
+            raise SdoAbortError(ABORT_READ_ONLY)
+        if var.min is not None and value < var.min:
+            raise SdoAbortError(ABORT_VALUE_LOW)
+        if var.max is not None and value > var.max:
+            raise SdoAbortError(ABORT_VALUE_HIGH)
+        return value

@@ -1,0 +1,191 @@
+"""The emulated drive's PDOs (CiA 301 7.2.2): each PDO compiled from its communication and
+mapping objects whenever one of them changes, the rules for changing them (a valid PDO's
+COB-ID and mapping are frozen; a mapping entry must name a mappable object of its size, at
+most 64 bits in all), received RPDO data checked for length and held for the next SYNC, and
+the TPDO frames of a SYNC."""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+
+from canopen.objectdictionary import ODVariable
+
+from drivers.can_frames import Frame
+from drivers.cia301 import (
+    ABORT_CANNOT_MAP,
+    ABORT_NO_OBJECT,
+    ABORT_PDO_TOO_LONG,
+    ABORT_UNSUPPORTED,
+    ABORT_VALUE,
+    EMCY_PDO_LENGTH,
+    EMCY_PDO_TOO_LONG,
+)
+from drivers.cia402 import PDO_NOT_VALID, RPDOS, TPDOS
+from emulators.drive.objects import Key, ObjectStore
+from emulators.drive.sdo import SdoAbortError
+
+EXTENDED_ID = 0x2000_0000  # COB-ID bit 29: a 29-bit identifier (not supported here)
+MAX_PDO_BITS = 64
+LAST_SYNCHRONOUS_TYPE = 240
+
+
+@dataclass
+class Pdo:
+    """Compiled view of one PDO (rebuilt whenever its communication or mapping object
+    changes)."""
+
+    comm: int
+    mapping: int
+    transmit: bool
+    cob_id: int = 0
+    valid: bool = False
+    trans_type: int = 1
+    keys: tuple[Key, ...] = ()
+    layout: struct.Struct = field(default_factory=lambda: struct.Struct("<"))
+    counter: int = 0
+    length_error: bool = False
+
+
+def pdo_struct(var: ODVariable) -> struct.Struct:
+    """The wire format of a variable in a PDO (fixed-size types only)."""
+    data_type = var.data_type
+    if data_type is None or data_type not in var.STRUCT_TYPES:
+        raise SdoAbortError(ABORT_CANNOT_MAP)
+    layout: struct.Struct = var.STRUCT_TYPES[data_type]
+    return layout
+
+
+class PdoTable:
+    """The drive's RPDOs and TPDOs over its ``objects``."""
+
+    def __init__(self, objects: ObjectStore) -> None:
+        self.objects = objects
+        self.pdos = [Pdo(p.comm, p.mapping, False) for p in RPDOS] + \
+            [Pdo(p.comm, p.mapping, True) for p in TPDOS]
+        self.by_object: dict[int, Pdo] = {}
+        for pdo in self.pdos:
+            self.by_object[pdo.comm] = pdo
+            self.by_object[pdo.mapping] = pdo
+        self.pending: dict[int, bytes] = {}  # RPDO data held for the next SYNC
+
+    def compile_all(self) -> None:
+        for pdo in self.pdos:
+            self.compile(pdo)
+
+    def compile(self, pdo: Pdo) -> None:
+        values = self.objects.values
+        cob = values[(pdo.comm, 1)]
+        pdo.cob_id = cob & 0x7FF
+        pdo.valid = not cob & PDO_NOT_VALID
+        pdo.trans_type = values[(pdo.comm, 2)]
+        keys, fmt = [], "<"
+        for sub in range(1, values[(pdo.mapping, 0)] + 1):
+            entry = values[(pdo.mapping, sub)]
+            index, subindex = entry >> 16, (entry >> 8) & 0xFF
+            var = self.objects.find(index, subindex)
+            keys.append((index, subindex))
+            fmt += pdo_struct(var).format.lstrip("<")
+        pdo.keys, pdo.layout = tuple(keys), struct.Struct(fmt)
+
+    # -- writes to the PDO objects (SDO) ----------------------------------------------------
+    def write(self, pdo: Pdo, index: int, subindex: int, value: int) -> None:
+        """One write to ``pdo``'s communication or mapping object, under CiA 301's rules."""
+        values = self.objects.values
+        key = (index, subindex)
+        if index == pdo.comm:
+            if subindex == 1:
+                if value & EXTENDED_ID or value & 0x7FF == 0:
+                    raise SdoAbortError(ABORT_VALUE)  # 29-bit ids are not supported here
+                old = values[key]
+                both_valid = not (old | value) & PDO_NOT_VALID
+                if both_valid and (old & 0x7FF) != (value & 0x7FF):
+                    raise SdoAbortError(ABORT_VALUE)  # invalidate before changing the id
+            elif subindex == 2:
+                allowed = range(1, LAST_SYNCHRONOUS_TYPE + 1) if pdo.transmit else \
+                    [*range(LAST_SYNCHRONOUS_TYPE + 1), 254, 255]
+                if value not in allowed:
+                    raise SdoAbortError(ABORT_VALUE)
+            values[key] = value
+        else:
+            if not values[(pdo.comm, 1)] & PDO_NOT_VALID:
+                raise SdoAbortError(ABORT_UNSUPPORTED)  # mapping of a valid PDO is frozen
+            if subindex == 0:
+                self._check_mapping(pdo, [values[(index, s)] for s in range(1, value + 1)])
+            elif values[(index, 0)] != 0:
+                raise SdoAbortError(ABORT_UNSUPPORTED)  # disable the mapping first
+            elif value:  # 0 clears an unused entry
+                self._check_mapping(pdo, [value])
+            values[key] = value
+        self.compile(pdo)
+
+    def _check_mapping(self, pdo: Pdo, entries: list[int]) -> None:
+        bits = 0
+        for entry in entries:
+            index, subindex, size = entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF
+            try:
+                var = self.objects.find(index, subindex)
+            except SdoAbortError:
+                raise SdoAbortError(ABORT_NO_OBJECT) from None
+            usable = var.readable if pdo.transmit else var.writable
+            if not var.pdo_mappable or not usable or size != len(var):
+                raise SdoAbortError(ABORT_CANNOT_MAP)
+            bits += size
+        if bits > MAX_PDO_BITS:
+            raise SdoAbortError(ABORT_PDO_TOO_LONG)
+
+    # -- the cyclic path ------------------------------------------------------------------
+    def receiver(self, can_id: int) -> Pdo | None:
+        """The valid RPDO with this COB-ID, if any."""
+        for pdo in self.pdos:
+            if not pdo.transmit and pdo.valid and pdo.cob_id == can_id:
+                return pdo
+        return None
+
+    def receive(self, pdo: Pdo, data: bytes) -> tuple[bytes | None, int]:
+        """RPDO data: (the data to apply now, or None when it is held for the next SYNC or
+        refused; the EMCY code of a length error, reported once per episode, or 0)."""
+        size = pdo.layout.size
+        emcy = 0
+        if len(data) < size:
+            if not pdo.length_error:
+                pdo.length_error = True
+                emcy = EMCY_PDO_LENGTH
+            return None, emcy
+        if len(data) > size and not pdo.length_error:
+            pdo.length_error = True
+            emcy = EMCY_PDO_TOO_LONG
+        elif len(data) == size:
+            pdo.length_error = False
+        if pdo.trans_type <= LAST_SYNCHRONOUS_TYPE:
+            self.pending[pdo.comm] = data[:size]  # latched on the next SYNC
+            return None, emcy
+        return data[:size], emcy
+
+    def latched(self) -> list[tuple[Pdo, bytes]]:
+        """The RPDO data held for this SYNC, in PDO order (then forgotten)."""
+        out = []
+        for pdo in self.pdos:
+            data = self.pending.pop(pdo.comm, None)
+            if data is not None:
+                out.append((pdo, data))
+        return out
+
+    def restart(self) -> None:
+        """Entering OPERATIONAL: nothing held, the transmission counters from zero."""
+        self.pending.clear()
+        for pdo in self.pdos:
+            pdo.counter = 0
+
+    def tpdo_frames(self) -> list[Frame]:
+        """The TPDOs this SYNC sends (each valid one whose transmission type is due)."""
+        values = self.objects.values
+        frames = []
+        for pdo in self.pdos:
+            if not pdo.transmit or not pdo.valid:
+                continue
+            pdo.counter += 1
+            if pdo.counter >= pdo.trans_type:
+                pdo.counter = 0
+                frames.append((pdo.cob_id, pdo.layout.pack(*[values[key] for key in pdo.keys])))
+        return frames

@@ -1,0 +1,116 @@
+"""Ways to run an emulated drive node: on a python-can bus in real time (:class:`BusRunner`,
+a thread), or in lockstep on a private in-process channel (:class:`LockstepDrive`), where the
+node runs whenever the master transmits and its SYNC count is the clock.
+
+(``hil emulate drive`` wires the node straight to a
+:class:`~emulators.socketcand_server.SocketcandServer`, in real time.)
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+import uuid
+
+import can
+
+from drivers.can_frames import frames_of
+from drivers.cia301 import SYNC_COB_ID
+from emulators.direct_bus import DirectChannel
+from emulators.drive.config import DriveEmulatorConfig
+from emulators.drive.node import DriveNode, SendFn
+from emulators.drive.plant import AxisPlant
+
+
+def bus_sender(bus: can.BusABC) -> SendFn:
+    """A node ``send`` function writing to a python-can bus."""
+    return frames_of(bus).send_frames
+
+
+class BusRunner:
+    """Runs a :class:`DriveNode` on a python-can bus in a background thread (real time)."""
+
+    def __init__(self, node: DriveNode, bus: can.BusABC, service_period_s: float = 0.001) -> None:
+        self.node, self.bus = node, bus
+        self._period = service_period_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"drive-node-{node.node_id}",
+                                        daemon=True)
+
+    def start(self) -> BusRunner:
+        self.node.boot()
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        next_service = time.monotonic()
+        recv = frames_of(self.bus).recv_frame
+        while not self._stop.is_set():
+            try:
+                frame = recv(max(0.0, next_service - time.monotonic()))
+            except can.CanError:
+                break  # the bus is gone
+            if frame is not None:
+                self.node.handle_frame(*frame)
+            if time.monotonic() >= next_service:
+                self.node.service()
+                next_service = time.monotonic() + self._period
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+
+    def __enter__(self) -> BusRunner:
+        return self.start()
+
+    def __exit__(self, *_exc: object) -> None:
+        self.stop()
+
+
+class LockstepDrive:
+    """An emulated drive on a private in-process channel (:mod:`emulators.direct_bus`), run
+    synchronously: every transmission on :attr:`master_bus` hands the pending frames to the
+    node and runs its time service before the send returns (no threads).
+
+    The node's clock is its SYNC count, so the run is deterministic and as fast as the CPU
+    allows. The drive is also the master's clock in lockstep (:meth:`time_ns`, :meth:`sleep`):
+    time passes for it when SYNCs come, so a master waiting for a state lets time pass by
+    sending SYNCs.
+    """
+
+    def __init__(self, config: DriveEmulatorConfig | None = None,
+                 plant: AxisPlant | None = None) -> None:
+        self.channel = DirectChannel(f"hil-drive-{uuid.uuid4().hex}")
+        self._node_bus = self.channel.attach()
+        self.master_bus = self.channel.attach(on_send=self.pump)
+        self._time_bus = self.channel.attach(on_send=self.pump)
+        self.node = DriveNode(config, send=self._node_bus.send_frames, plant=plant,
+                              timebase="sync")
+        self.node.boot()
+
+    def attach_bus(self) -> can.BusABC:
+        """One more bus on the same channel (an observer or a second master)."""
+        return self.channel.attach()
+
+    def pump(self) -> None:
+        """Deliver every frame waiting for the node, then run its time service."""
+        recv, handle = self._node_bus.recv_frame, self.node.handle_frame
+        while (frame := recv()) is not None:
+            handle(*frame)
+        self.node.service()
+
+    def time_ns(self) -> int:
+        """The drive's time: its SYNCs so far, one communication cycle each."""
+        return self.node.sync_time_ns
+
+    def sleep(self, seconds: float) -> None:
+        """Let ``seconds`` of the drive's time pass: one SYNC per communication cycle."""
+        period_ns = self.node.cycle_period_ns
+        for _ in range(max(1, math.ceil(seconds * 1e9 / period_ns))):
+            self._time_bus.send_frames([(SYNC_COB_ID, b"")])
+
+    def close(self) -> None:
+        for bus in (self._node_bus, self.master_bus, self._time_bus):
+            bus.shutdown()
