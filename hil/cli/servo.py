@@ -82,6 +82,12 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write every CAN frame of the run to this file (python-can's "
                         "can.Logger; the suffix picks the format: opens in can.player, "
                         "can.viewer, Vector and PEAK tools)")
+    parser.add_argument("--safety", action="append", type=_safety_setting, default=[],
+                        metavar="KEY=VALUE",
+                        help="override one safety limit of drive.toml's [safety] for this run "
+                        "(repeat): following_error_deg, following_error_ms, position_min_deg, "
+                        "position_max_deg, velocity_max_deg_s, stale_share_max, "
+                        "stale_window_ms, enabled (false: none)")
     parser.add_argument("--reset-fault", action="store_true",
                         help="clear a drive left in FAULT (CiA 402 fault reset) before "
                         "enabling it")
@@ -109,6 +115,17 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "lockstep, every 10th in real time)")
     parser.add_argument("--config", metavar="F.toml",
                         help="drive config laid over the default (hil/configs/drive.toml)")
+
+
+def _safety_setting(text: str) -> tuple[str, Any]:
+    """``KEY=VALUE`` of ``--safety`` (the value parsed as a number or a boolean)."""
+    from hil.core.params import parse_value
+
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip():
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, e.g. following_error_deg=60, "
+                                         f"got {text!r}")
+    return key.strip(), parse_value(value.strip())
 
 
 def run_options(args: argparse.Namespace) -> ServoRunOptions:

@@ -25,6 +25,7 @@ from emulators.drive.config import DriveEmulatorConfig
 from emulators.drive.plant import Disturbance, Friction
 from hil.core.config import Table, deep_merge, load_toml, parse_toml
 from hil.core.verdict import RunTables, read_run_tables
+from hil.servo.safety import ServoSafety
 
 DEFAULT_SOURCE = "hil/configs/drive.toml"
 SOURCE = "drive config"  # what errors name when no user file is given
@@ -40,6 +41,7 @@ class DriveConfig:
     master: DriveMasterConfig
     emulator: DriveEmulatorConfig
     bus: CanBusSpec | None       # [bus]: the drive's bus; None: the emulated drive
+    safety: ServoSafety          # [safety]: the run's safety limits
     data: Mapping[str, Any]
     text: str
     source: str
@@ -80,10 +82,30 @@ def parse_drive_config(data: Mapping[str, Any], source: str, text: str = "") -> 
     bus = _bus(bus_table)
     master = _master(root.table("master", required=True), bus_table)
     emulator = _emulator(root.table("emulator", required=True))
+    safety = _safety(root.table("safety", required=True))
     run = read_run_tables(root)
     root.done()
-    return DriveConfig(master=master, emulator=emulator, bus=bus, data=data, text=text,
-                       source=source, run=run)
+    return DriveConfig(master=master, emulator=emulator, bus=bus, safety=safety, data=data,
+                       text=text, source=source, run=run)
+
+
+def _safety(s: Table) -> ServoSafety:
+    """``[safety]``: every limit positive, the position range ordered."""
+    safety = ServoSafety(
+        enabled=s.boolean("enabled"),
+        following_error_deg=s.number("following_error_deg", above=0),
+        following_error_ms=s.number("following_error_ms", at_least=0, at_most=60_000),
+        position_min_deg=s.number("position_min_deg"),
+        position_max_deg=s.number("position_max_deg"),
+        velocity_max_deg_s=s.number("velocity_max_deg_s", above=0),
+        stale_share_max=s.number("stale_share_max", at_least=0, at_most=1),
+        stale_window_ms=s.number("stale_window_ms", above=0, at_most=60_000),
+    )
+    if not safety.position_min_deg < safety.position_max_deg:
+        raise s.error("position_max_deg", f"must be above position_min_deg "
+                      f"({safety.position_min_deg:g}), got {safety.position_max_deg:g}")
+    s.done()
+    return safety
 
 
 def _bus(bus: Table) -> CanBusSpec | None:

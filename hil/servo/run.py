@@ -48,6 +48,7 @@ from hil.core.verdict import Limit, SignalWatch, split_limits
 from hil.servo.builtin import ServoContext
 from hil.servo.config import EMULATED, DriveConfig, load_drive_config
 from hil.servo.rig import open_drive
+from hil.servo.safety import SafetyMonitor, SafetyStopError
 from hil.servo.task import (
     DISTURBANCE_OBJECT,
     PREDICTION_EVERY_REALTIME,
@@ -131,6 +132,11 @@ class ServoRunOptions:
                 values[name] = value
         values["params"] = dict(values.get("params", {}))
         values["limits"] = tuple(values.get("limits", ()))
+        safety = dict(flags.get("safety") or [])
+        if safety:  # --safety KEY=VALUE: laid over drive.toml's [safety], checked as strictly
+            overrides = dict(values.get("drive_overrides", {}))
+            overrides["safety"] = {**overrides.get("safety", {}), **safety}
+            values["drive_overrides"] = overrides
         default_horizon = 3 if values.get("controller") == "empc" else 8
         for horizon in ("ht", "hu"):
             values.setdefault(horizon, default_horizon)
@@ -255,10 +261,15 @@ class ServoExperiment(Experiment):
             settle_s=options.settle_s, prediction_every=options.prediction_period,
             budget_s=controller_budget(options.controller_budget_s, options.realtime,
                                        STEP_BUDGET_S),
-            watch=self.watch)
+            safety=SafetyMonitor(self.drive.safety, SAMPLE_PERIOD_S), watch=self.watch)
         session.add_task(self.task)
         if self.on_started is not None:
             self.on_started(master)
+
+    def finish(self, session: Session) -> None:
+        """A safety stop ends the run as an error (the drive is already in its safe state)."""
+        if self.task is not None and self.task.safety.stopped is not None:
+            raise SafetyStopError(self.task.safety.stopped)
 
     def close_devices(self) -> None:
         if self.master is not None:

@@ -38,6 +38,7 @@ from hil.core.guard import guarded_call
 from hil.core.loop import Task
 from hil.core.session import Session
 from hil.core.verdict import SignalWatch
+from hil.servo.safety import SafetyMonitor
 from hil.servo.topics import COMMAND_SCHEMA, FEEDBACK_SCHEMA, PREDICTION_SCHEMA
 from hil.servo.tracking import ReferenceSamples, TrackingStats
 
@@ -51,7 +52,8 @@ class ServoTask(Task):
 
     def __init__(self, session: Session, master: CanDriveMaster, controller: ServoController,
                  scenario: Scenario, *, label: str, settle_s: float, prediction_every: int,
-                 budget_s: float | None, watch: SignalWatch | None = None) -> None:
+                 budget_s: float | None, safety: SafetyMonitor,
+                 watch: SignalWatch | None = None) -> None:
         super().__init__("servo")
         self.session, self.master, self.controller = session, master, controller
         self.scenario = scenario
@@ -66,6 +68,7 @@ class ServoTask(Task):
         self.label = label
         self.budget_s = budget_s
         self.watch = watch if watch is not None and watch.limits else None
+        self.safety = safety
         horizons = horizons_of(controller)
         self.hu = horizons.hu if horizons is not None else None
         self.solver = solver_of(controller)
@@ -128,6 +131,10 @@ class ServoTask(Task):
             "statusword": feedback.statusword, "cycle": feedback.cycle,
             "fresh": feedback.fresh, "rtt_us": feedback.rtt_us})
         self.commands.log(t_ns, message)
+        stop = self.safety.check(t_s, error, position, feedback.velocity_deg_s, feedback.fresh)
+        if stop is not None:
+            self.session.event("safety.stop", stop, level="error", source="safety", t_s=t_s)
+            self.loop.stop(stop)
         if self.watch is not None:
             self._check_limits(error, u, feedback)
         if self.predictor is not None and self.predictions is not None \

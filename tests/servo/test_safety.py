@@ -1,0 +1,107 @@
+"""The servo run's safety limits, on by default: the built-in controllers never reach them in
+the papers' scenarios; a runaway controller is stopped within 50 ms of the breach, the drive
+quick-stopped and disabled, the limit named on one line, exit status 2; each limit can be
+moved for a run (--safety KEY=VALUE) and all of them switched off."""
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hil import api
+from hil.core.errors import HilError
+from hil.core.reader import read_session
+from hil.servo.run import ServoRunOptions, run_servo
+
+ROOT = Path(__file__).resolve().parents[2]
+RUNAWAY = textwrap.dedent("""
+    class Runaway:
+        '''Full current, whatever the axis does: a wrong controller.'''
+        def __init__(self, reference, params):
+            self.current = float(params.get("current", 1000.0))
+        def step(self, position_deg, t_s):
+            return self.current
+""")
+
+
+@pytest.mark.parametrize(("controller", "reference", "seconds"), [
+    ("mpc", "sine:amplitude=2,frequency=10", 0.5),
+    ("pid", "sine:amplitude=2,frequency=10", 0.5),
+    ("pid", "disturbance:torque=1200,start=0.1,end=0.35", 0.6),
+    ("mpc", "disturbance:torque=1200,start=0.1,end=0.35", 0.6),
+    ("pid", "trapezoid:stroke=270,speed=60", 1.6),
+])
+def test_built_in_controllers_never_reach_the_default_limits(tmp_path, controller, reference,
+                                                            seconds):
+    kpis = api.run_servo(controller, reference=reference, duration_s=seconds,
+                         out=str(tmp_path / "run.mcap"))
+    assert kpis["stop_reason"] == "completed"
+
+
+def runaway_file(tmp_path):
+    path = tmp_path / "runaway.py"
+    path.write_text(RUNAWAY)
+    return f"{path}:Runaway"
+
+
+def test_a_runaway_is_stopped_within_50_ms_of_the_breach_and_the_drive_is_safe(tmp_path):
+    out = tmp_path / "runaway.mcap"
+    options = ServoRunOptions(controller=runaway_file(tmp_path), reference="hold:position=0",
+                              duration_s=5.0, out=str(out))
+    stopped = []
+    with pytest.raises(HilError) as error:
+        run_servo(options, on_started=lambda master: stopped.append(master))
+    message = str(error.value)
+    assert "safety stop at t=" in message and "following error" in message
+    assert "beyond 45 deg for more than 10 ms" in message and "\n" not in message
+    assert stopped[0].emulator.node.state == "SWITCH ON DISABLED"
+    data = read_session(str(out))
+    command = data.arrays("/drive/command")
+    breach = command["t_s"][np.argmax(np.abs(command["error_deg"]) > 45.0)]
+    assert command["t_s"][-1] - breach <= 0.050
+    events = [m for _, m in data.topic("/events")]
+    assert [e["kind"] for e in events].count("safety.stop") == 1
+    assert any(e["kind"] == "drive.safe_stop" for e in events)
+
+
+@pytest.mark.parametrize(("safety", "named"), [
+    ({"following_error_deg": 1e6, "velocity_max_deg_s": 100.0}, "velocity"),
+    ({"following_error_deg": 1e6, "position_max_deg": 5.0}, "position"),
+])
+def test_each_limit_can_be_moved_for_a_run_and_stops_on_its_own(tmp_path, safety, named):
+    with pytest.raises(HilError, match=f"safety stop at t=.*: {named}"):
+        api.run_servo(runaway_file(tmp_path), reference="hold:position=0", duration_s=5.0,
+                      drive_overrides={"safety": safety}, out=str(tmp_path / "x.mcap"))
+
+
+def test_driving_blind_is_stopped_by_the_stale_share(tmp_path):
+    config = tmp_path / "drive.toml"
+    config.write_text("[master]\nstale_cycles = 100000\n"
+                      "[emulator]\nsync_loss_timeout_ms = 5000\n")
+    with (api.start_drive_emulator(config, faults=["drop_tpdo@0.3"]) as emulator,
+          pytest.raises(HilError, match="cycles without fresh feedback")):
+        api.run_servo("pid", drive=emulator.url, realtime=True, duration_s=5.0,
+                      drive_config=str(config), out=str(tmp_path / "blind.mcap"))
+
+
+def test_from_the_command_line_exit_2_and_the_limits_can_be_switched_off(tmp_path):
+    spec = runaway_file(tmp_path)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+
+    def hil(*args):
+        return subprocess.run([sys.executable, "-m", "hil", "servo", "run", "--controller",
+                               spec, "--reference", "hold:position=0", *args], cwd=tmp_path,
+                              env=env, capture_output=True, text=True, timeout=120)
+
+    stopped = hil("--duration", "3", "--out", "a.mcap")
+    assert stopped.returncode == 2
+    [line] = stopped.stderr.strip().splitlines()
+    assert line.startswith("hil: error: safety stop at t=") and "a.mcap" in line
+    free = hil("--duration", "0.3", "--safety", "enabled=false", "--json", "--out", "b.mcap")
+    assert free.returncode == 0, free.stderr
+    bad = hil("--duration", "0.3", "--safety", "following_error_dg=3", "--out", "c.mcap")
+    assert bad.returncode == 2 and "safety.following_error_dg" in bad.stderr
