@@ -20,7 +20,7 @@ from __future__ import annotations
 import importlib.resources
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from controllers.bench.eec import SOLVERS, TERMINALS
@@ -42,14 +42,15 @@ from emulators.bench.plant import (
 )
 from emulators.bench.server import UNKNOWN_UNIT_POLICIES, ServerSettings
 from emulators.faults import Fault, for_emulator, parse_faults_table
+from hil.bench.safety import BenchSafety
 from hil.core.config import Table, deep_merge, load_toml, parse_toml
 from hil.core.errors import ConfigError
 from hil.core.verdict import RUN_TABLES, RunTables, read_run_tables
 
 SOURCE = "bench config"
 EEC_SOURCE = "eec config"
-BENCH_TABLES = ("bus", "units", "relays", "meter", "levels", "sampling", "sequence", "emulator",
-                "plant", "faults")
+BENCH_TABLES = ("bus", "units", "relays", "meter", "levels", "sampling", "sequence", "safety",
+                "emulator", "plant", "faults")
 EEC_TABLES = ("eec", "kalman", "models")
 UNIT_ROLES = ("relays", "meter", "levels")
 
@@ -77,6 +78,7 @@ class BenchConfig:
     plant: PlantSpec             # the emulator's plant
     server: ServerSettings       # the emulator's Modbus server
     run: RunTables               # [controller] params and [limits] of a run
+    safety: BenchSafety = field(default_factory=BenchSafety)  # [safety]: the run's limits
     faults: tuple[Fault, ...] = ()  # [faults]: what the emulator does wrong, and when
 
     def with_dwell(self, dwell_s: float | None) -> BenchConfig:
@@ -94,6 +96,15 @@ class BenchConfig:
         data = deep_merge(self.data, {"relays": {n: {"dwell_s": dwell} for n in peripherals}})
         problem = replace(self.problem, dwell_s=dict.fromkeys(peripherals, dwell))
         return replace(self, data=data, map=replace(self.map, relays=relays), problem=problem)
+
+    def with_safety(self, overrides: Mapping[str, Any]) -> BenchConfig:
+        """``[safety]`` with ``overrides`` (``hil bench run --safety KEY=VALUE``) laid over it,
+        checked as strictly as the file."""
+        if not overrides:
+            return self
+        data = deep_merge(self.data, {"safety": dict(overrides)})
+        safety = _safety(Table(data["safety"], f"{self.source} (--safety)", "safety"))
+        return replace(self, data=data, safety=safety)
 
     def emulating(self, seed: int | None = None, disturbance: bool | None = None
                   ) -> BenchConfig:
@@ -202,6 +213,7 @@ def parse_bench_config(data: Mapping[str, Any], source: str = SOURCE, user_text:
     bus = _bus(top.table("bus", required=True))
     sampling = _sampling(top.table("sampling", required=True))
     sequence = _sequence(top.table("sequence", required=True), relays)
+    safety = _safety(top.table("safety", required=True))
     plant_table = top.table("plant", required=True)
     resources = _resources(plant_table.table("resources", required=True), sequence, relays)
     problem = BenchProblem(sequence, tuple(
@@ -219,7 +231,8 @@ def parse_bench_config(data: Mapping[str, Any], source: str = SOURCE, user_text:
         top.raw(name, None)
     top.done()
     return BenchConfig(source, dict(data), user_text, bus, bench_map, sampling, problem, plant,
-                       server, run, tuple(for_emulator(faults, "bench", f"{source}: faults")))
+                       server, run, safety,
+                       tuple(for_emulator(faults, "bench", f"{source}: faults")))
 
 
 def _relays(table: Table) -> dict[str, RelaySpec]:
@@ -305,6 +318,22 @@ def _sampling(table: Table) -> SamplingSettings:
     )
     table.done()
     return sampling
+
+
+def _safety(s: Table) -> BenchSafety:
+    """``[safety]``: positive limits, the level range ordered."""
+    safety = BenchSafety(
+        enabled=s.boolean("enabled"),
+        max_total_va=s.number("max_total_va", above=0),
+        max_total_va_ms=s.number("max_total_va_ms", at_least=0, at_most=60_000),
+        level_min=s.number("level_min"),
+        level_max=s.number("level_max"),
+    )
+    if not safety.level_min < safety.level_max:
+        raise s.error("level_max", f"must be above level_min ({safety.level_min:g}), got "
+                      f"{safety.level_max:g}")
+    s.done()
+    return safety
 
 
 def _sequence(table: Table, relays: Mapping[str, RelaySpec]) -> MachiningSequence:

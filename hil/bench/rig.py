@@ -20,6 +20,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -113,6 +114,7 @@ class BenchSampler(Task):
         super().__init__(name, divisor)
         self.bench = bench
         self.stale = stale
+        self.bad = BadReadings(session.event if session is not None else no_event)
         self.levels_every, self.readback_every = levels_every, readback_every
         self.latest_power: dict[str, float] | None = None
         self.latest_levels: dict[str, float] | None = None
@@ -149,6 +151,10 @@ class BenchSampler(Task):
         levels = bench.read_levels() if n % self.levels_every == 0 else None
         if self.readback_every and n % self.readback_every == 0 and bench.link_up:
             bench.readback(t_ns)
+        if power is not None:
+            power = self.bad.screen("meter", power, t_ns)
+        if levels is not None:
+            levels = self.bad.screen("levels", levels, t_ns)
         if power is None:
             self.missed_power += 1
         if levels is None and n % self.levels_every == 0:
@@ -176,6 +182,36 @@ class BenchSampler(Task):
         message.update({f"{name}_commanded": int(on) for name, on in commanded.items()})
         message["link_up"] = int(link_up)
         relays_topic.log(t_ns, message)
+
+
+class BadReadings:
+    """Readings no sensor can give: a non-finite value (NaN, inf: a float32 register holding
+    garbage). Such a reading is a fault: dropped like a failed poll (never published, never
+    in the KPIs; the controller keeps the last good one), counted in ``readings``, one
+    ``meter.bad_reading`` / ``levels.bad_reading`` event (error) per episode."""
+
+    def __init__(self, on_event: EventSink = no_event) -> None:
+        self.on_event = on_event
+        self.readings = 0
+        self.episodes = 0
+        self._bad: dict[str, bool] = {}
+
+    def screen(self, device: str, values: dict[str, float], t_ns: int
+               ) -> dict[str, float] | None:
+        """``values``, or None when one of them is not finite."""
+        bad = {name: value for name, value in values.items() if not math.isfinite(value)}
+        was_bad = self._bad.get(device, False)
+        self._bad[device] = bool(bad)
+        if not bad:
+            return values
+        self.readings += 1
+        if not was_bad:
+            self.episodes += 1
+            self.on_event(f"{device}.bad_reading", f"{device} reading not finite "
+                          f"({', '.join(f'{k} = {v}' for k, v in bad.items())}): dropped "
+                          "until the readings are finite again", level="error", source="bench",
+                          values={k: str(v) for k, v in bad.items()})
+        return None
 
 
 class StaleReadings:

@@ -42,8 +42,9 @@ from hil.bench.rig import (
     open_bench_device,
     session_clock,
 )
+from hil.bench.safety import BenchSafetyTask
 from hil.core.clock import Clock
-from hil.core.errors import ConfigError, HilError, UsageError
+from hil.core.errors import ConfigError, HilError, SafetyStopError, UsageError
 from hil.core.loop import Task
 from hil.core.plugins import build_controller, controller_factory, controller_short_name
 from hil.core.recorder import RecordingOptions
@@ -88,6 +89,7 @@ class BenchRunOptions:
     config_path: str | None = None
     seed: int | None = None
     limits: tuple[Limit, ...] = ()
+    safety: Mapping[str, Any] = field(default_factory=dict)  # [safety] keys for this run
     controller_budget_s: float | None = None  # per decision; None: the step in real time
     overrides: Mapping[str, Any] = field(default_factory=dict)
     recording: RecordingOptions = field(default_factory=RecordingOptions)
@@ -105,6 +107,7 @@ class BenchRunOptions:
                 values[name] = value
         values["params"] = dict(values.get("params", {}))
         values["limits"] = tuple(values.get("limits", ()))
+        values["safety"] = dict(values.get("safety") or {})
         overrides = dict(flags.get("overrides", {}))
         if flags.get("terminal"):
             overrides["terminal"] = flags["terminal"]
@@ -120,6 +123,7 @@ class BenchRunOptions:
         info = {f.name: getattr(self, f.name) for f in fields(self)
                 if f.name not in ("overrides", "limits", "recording")}
         info["params"] = dict(self.params)
+        info["safety"] = dict(self.safety)
         info["recording"] = asdict(self.recording)
         return info
 
@@ -138,6 +142,7 @@ class BenchExperiment(Experiment):
         self.rig: BenchRig | None = None
         self.observer: Observer | None = None
         self.controller: GuardedController | None = None
+        self.safety: BenchSafetyTask | None = None
 
     def plan(self) -> RunPlan:
         opts = self.opts
@@ -146,7 +151,7 @@ class BenchExperiment(Experiment):
                              "--bench emulated")
         bench, eec = load_configs(opts.config_path, opts.overrides)
         # the safety layer enforces the controllers' dwell
-        self.bench = bench = bench.with_dwell(opts.dwell_s)
+        self.bench = bench = bench.with_dwell(opts.dwell_s).with_safety(opts.safety)
         self.eec = eec
         self.step_s = eec.eec.step_s
         self.params = {**bench.run.params, **opts.params}
@@ -206,6 +211,9 @@ class BenchExperiment(Experiment):
         tasks: list[Task] = [self.observer]
         if self.watch.limits:
             tasks.append(SignalLimits(rig, self.watch, session))
+        self.safety = BenchSafetyTask(self.bench.safety, rig.sampler, session,
+                                      self.bench.sampling.period_s, self.origin)
+        tasks.append(self.safety)
         tasks.append(ControllerTask(
             round(self.step_s / self.bench.sampling.period_s), session.loop.base_period_ns,
             rig, self.bench.problem.peripherals, self.controller, self.origin,
@@ -216,6 +224,8 @@ class BenchExperiment(Experiment):
     def finish(self, session: Session) -> None:
         assert self.observer is not None and self.rig is not None
         self.observer.finish(self.rig.link.gave_up)
+        if self.safety is not None and self.safety.stopped is not None:
+            raise SafetyStopError(self.safety.stopped)
 
     def close_devices(self) -> None:
         if self.rig is not None:
@@ -250,9 +260,10 @@ def link_report(rig: BenchRig, end_ns: int) -> LinkReport:
         "failed_polls": stats.failed_polls, "retries": rig.bench.retries,
         "failed_writes": stats.failed_writes, "stuck_relays": stats.stuck_relays,
         "stale_readings": rig.sampler.stale.episodes if rig.sampler.stale else 0,
+        "bad_readings": rig.sampler.bad.readings,
     }
     disturbed = any(faults[k] for k in ("link_losses", "failed_polls", "failed_writes",
-                                        "stuck_relays", "stale_readings"))
+                                        "stuck_relays", "stale_readings", "bad_readings"))
     return LinkReport(lost, rig.link.gave_up, {"faults": faults, "disturbed": disturbed})
 
 

@@ -48,3 +48,13 @@ def host_port(text: str) -> tuple[str, int]:
     if not 0 <= port <= 65535:
         raise argparse.ArgumentTypeError(f"port {port} out of range 0-65535 in {text!r}")
     return host, port
+
+
+def key_value(text: str) -> tuple[str, object]:
+    """``KEY=VALUE`` (e.g. of ``--safety``), the value parsed as a number or a boolean."""
+    from hil.core.params import parse_value
+
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip():
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    return key.strip(), parse_value(value.strip())

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
@@ -14,7 +13,8 @@ from hil.bench.identify import (
     parse_relays,
     run_identify_experiment,
 )
-from hil.cli.argtypes import nonnegative_float, positive_float, positive_int
+from hil.cli.argtypes import key_value, nonnegative_float, positive_float, positive_int
+from hil.cli.output import json_text
 from hil.cli.recording import add_recording_arguments, recording_options
 from hil.cli.verdict import add_controller_arguments, add_junit_argument, finish
 
@@ -76,6 +76,11 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         help="follow the wall clock (always so against a real bench)")
     parser.add_argument("--config", metavar="F.toml",
                         help="TOML laid over hil/configs/bench.toml and eec.toml")
+    parser.add_argument("--safety", action="append", type=key_value, default=[],
+                        metavar="KEY=VALUE",
+                        help="override one safety limit of bench.toml's [safety] for this run "
+                        "(repeat): max_total_va, max_total_va_ms, level_min, level_max, "
+                        "enabled (false: none)")
 
 
 def run_options(args: argparse.Namespace) -> BenchRunOptions:
@@ -91,7 +96,7 @@ def run_command(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     kpis = run_bench(run_options(args)).kpis
-    print(json.dumps(kpis, indent=2) if args.json else format_kpis(kpis))
+    print(json_text(kpis) if args.json else format_kpis(kpis))
     return finish(kpis, args, f"hil bench run {kpis['controller']}",
                   time.perf_counter() - start)
 
@@ -154,7 +159,7 @@ def identify_command(args: argparse.Namespace) -> int:
         progress_s=args.progress,
     ))
     if args.json:
-        print(json.dumps(summary, indent=2))
+        print(json_text(summary))
         return 0
     print(f"session:   {summary['mcap']}")
     switches = ", ".join(f"{n} {c}" for n, c in summary["switches"].items()) or "none"

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 from hil.cli.argtypes import positive_float
+from hil.cli.output import json_text
 from hil.core.doctor import format_doctor, run_doctor
 
 
@@ -26,5 +26,5 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     result = run_doctor(args.duration, progress=lambda line: print(line, file=sys.stderr,
                                                                      flush=True))
-    print(json.dumps(result, indent=2) if args.json else format_doctor(result))
+    print(json_text(result) if args.json else format_doctor(result))
     return 0

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from hil.cli.argtypes import positive_float, positive_int
+from hil.cli.output import json_text
 from hil.core.errors import UsageError
 
 BOX_HELP = ("box of the relative parameters (controllers/servo/empc.py explains them): "
@@ -55,7 +55,7 @@ def run_build(args: argparse.Namespace) -> int:
     if args.export_c:
         result["c_file"] = str(write_c(law, args.export_c))
     if args.json:
-        print(json.dumps(result, indent=2))
+        print(json_text(result))
         return 0
     print(f"explicit MPC  H_t = {config.ht}, H_u = {config.hu}, H_p = {config.hp}, "
           f"{config.ert.upper()}, |u| <= {args.umax:g} mA")

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import json
 
+from hil.cli.output import json_text
 from hil.core.reader import read_session
 from hil.core.report import format_summary, plot_session, summarize
 
@@ -29,5 +29,5 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         plot_session(data, args.out)
         summary["png"] = args.out
-    print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
+    print(json_text(summary) if args.json else format_summary(summary))
     return 0

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
-from hil.cli.argtypes import nonnegative_float, positive_float, positive_int
+from hil.cli.argtypes import key_value, nonnegative_float, positive_float, positive_int
+from hil.cli.output import json_text
 from hil.cli.recording import add_recording_arguments, recording_options
 from hil.cli.verdict import add_controller_arguments, add_junit_argument, finish
 from hil.core.errors import UsageError
@@ -82,7 +82,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write every CAN frame of the run to this file (python-can's "
                         "can.Logger; the suffix picks the format: opens in can.player, "
                         "can.viewer, Vector and PEAK tools)")
-    parser.add_argument("--safety", action="append", type=_safety_setting, default=[],
+    parser.add_argument("--safety", action="append", type=key_value, default=[],
                         metavar="KEY=VALUE",
                         help="override one safety limit of drive.toml's [safety] for this run "
                         "(repeat): following_error_deg, following_error_ms, position_min_deg, "
@@ -117,17 +117,6 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         help="drive config laid over the default (hil/configs/drive.toml)")
 
 
-def _safety_setting(text: str) -> tuple[str, Any]:
-    """``KEY=VALUE`` of ``--safety`` (the value parsed as a number or a boolean)."""
-    from hil.core.params import parse_value
-
-    key, sep, value = text.partition("=")
-    if not sep or not key.strip():
-        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, e.g. following_error_deg=60, "
-                                         f"got {text!r}")
-    return key.strip(), parse_value(value.strip())
-
-
 def run_options(args: argparse.Namespace) -> ServoRunOptions:
     """The :class:`ServoRunOptions` of parsed :func:`add_run_arguments` flags (``--out`` and
     the recording flags included)."""
@@ -142,7 +131,7 @@ def run_servo_command(args: argparse.Namespace) -> int:
     options = run_options(args)
     result = run_servo(options)
     kpis = result.kpis
-    print(json.dumps(kpis, indent=2) if args.json else format_run(options, kpis))
+    print(json_text(kpis) if args.json else format_run(options, kpis))
     return finish(kpis, args, f"hil servo run {kpis['controller']}", kpis["wall_s"])
 
 
@@ -197,7 +186,7 @@ def run_figures(args: argparse.Namespace) -> int:
     if args.out:
         plot_figures(table, args.out)
         result["png"] = args.out
-    print(json.dumps(result, indent=2) if args.json else format_figures(result))
+    print(json_text(result) if args.json else format_figures(result))
     return 0
 
 

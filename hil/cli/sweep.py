@@ -4,7 +4,6 @@ options, on Ray (a local one or a cluster), into one folder of sessions and a re
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from collections.abc import Callable
@@ -13,6 +12,7 @@ from typing import Any
 
 from hil.cli import bench, servo
 from hil.cli.argtypes import positive_int
+from hil.cli.output import json_text
 from hil.core.errors import UsageError
 from hil.core.registry import scheme_of
 from hil.sweep.config import SweepTable, load_sweep_table
@@ -93,7 +93,7 @@ def sweep_command(args: argparse.Namespace) -> int:
     sweep = Sweep(kind, base, keys, tuple(trials), out, engine, args.resume)
     check_trials(sweep)
     result = run_sweep(sweep)
-    print(json.dumps(result, indent=2, default=str) if args.json
+    print(json_text(result) if args.json
           else format_sweep(result, kind, keys))
     return 0 if all(t["status"] == "ok" for t in result["trials"]) else 1
 

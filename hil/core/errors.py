@@ -17,6 +17,14 @@ class SessionFileError(HilError):
     """A session file cannot be read (missing, not MCAP, nothing recoverable)."""
 
 
+class SafetyStopError(HilError):
+    """A safety limit stopped the run; the hardware was put in its safe state first (exit 2)."""
+
+
+class RecordingError(HilError):
+    """The session cannot be recorded (disk full, writer gone, a write error): the run stops
+    the hardware safely; the message names the cause and how much was recorded (exit 2)."""
+
 
 class ControllerError(HilError):
     """A controller raised, returned something that is not a command, or took too long; the

@@ -55,7 +55,7 @@ _READERS: dict[int, Callable[[ReadDataStream, int], Any]] = {
 class Damage:
     """A part of the file that could not be read."""
 
-    kind: str                 # "truncated", "chunk", "record" or "summary"
+    kind: str                 # "truncated", "chunk", "record", "summary" or "trailing"
     offset: int               # byte offset in the file where it starts
     bytes: int                # bytes that could not be read
     messages: int | None = None  # messages lost, when the file says how many
@@ -159,12 +159,26 @@ def walk(data: Buffer, state: Walk) -> Iterator[Any]:
                 state.statistics = record
             elif isinstance(record, Footer):
                 _check_summary(data, pos, record, state)
+                _check_end(data, end, state)
                 state.finished = True
                 yield record
                 return
             elif record is not None:
                 yield record
         pos = end
+
+
+def _check_end(data: Buffer, footer_end: int, state: Walk) -> None:
+    """After the footer comes the closing magic and nothing else: bytes beyond it are another
+    write mixed into the file (two runs on one file), never part of this session."""
+    size = len(data)
+    if bytes(data[footer_end:footer_end + len(MAGIC)]) != MAGIC or \
+            size != footer_end + len(MAGIC):
+        extra = size - footer_end - len(MAGIC)
+        state.damage.append(Damage(
+            "trailing", footer_end, size - footer_end,
+            reason=f"{extra} byte(s) after the end of the session" if extra > 0
+            else "the closing magic after the footer is missing"))
 
 
 def _check_summary(data: Buffer, footer_pos: int, footer: Footer, state: Walk) -> None:

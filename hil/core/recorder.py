@@ -24,6 +24,7 @@ import fcntl
 import json
 import os
 import select
+import signal
 import subprocess
 import sys
 import threading
@@ -33,7 +34,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hil.core.cdr import CdrError, fields_of
-from hil.core.errors import HilError
+from hil.core.errors import HilError, RecordingError
 from hil.core.live import parse_address
 from hil.core.mcap_series import series_file
 from hil.core.realtime import keep_process_off_cpu
@@ -44,6 +45,7 @@ ENCODINGS = ("json", "cdr")
 PIPE_BYTES = 1 << 20          # asked of the kernel for the pipe (Linux caps it at pipe-max-size)
 WRITER_START_TIMEOUT_S = 30.0
 WRITER_CLOSE_TIMEOUT_S = 120.0
+WRITER_CHECK_EVERY_S = 0.1    # how often the loop looks whether the writer process still runs
 
 EVENT_SCHEMA: dict[str, Any] = {
     "type": "object",
@@ -58,10 +60,6 @@ EVENT_SCHEMA: dict[str, Any] = {
     },
     "required": ["level", "kind", "message"],
 }
-
-
-class RecorderError(HilError):
-    """The writer process failed; what it wrote before is in the file, the rest was dropped."""
 
 
 @dataclass
@@ -172,6 +170,9 @@ class Recorder:
         self._last_flush = time.monotonic()
         self._last_t_ns = 0
         self._writer_gone = ""
+        self._report: dict[str, Any] | None = None  # the writer's last word, once it ended
+        self._failure_raised = False
+        self._next_check = 0.0
         self._ready = False
         self._stats: RecorderStats | None = None
         self._process = self._start_writer({
@@ -211,11 +212,11 @@ class Recorder:
             return
         line, timed_out = self._read_writer(timeout_s, line=True)
         if timed_out:
-            raise RecorderError(f"{self.path}: the writer process did not start within "
+            raise RecordingError(f"{self.path}: the writer process did not start within "
                                 f"{timeout_s:g} s")
         if line != b"ready\n":
             self._process.kill()
-            raise RecorderError(f"{self.path}: the writer process failed to start "
+            raise RecordingError(f"{self.path}: the writer process failed to start "
                                 f"({line.decode(errors='replace').strip() or 'no output'})")
         self._ready = True
 
@@ -293,9 +294,34 @@ class Recorder:
 
     # -- hand-over -----------------------------------------------------------------------
     def flush_if_due(self) -> None:
-        """The loop's per-tick call: hand the queue over every ``flush_every_s`` at most."""
-        if self._queue and time.monotonic() - self._last_flush >= self.flush_every_s:
+        """The loop's per-tick call: hand the queue over every ``flush_every_s`` at most.
+
+        Raises :class:`RecordingError` (once) when the writer process has failed or is gone:
+        the session is no longer recorded, so the run must stop."""
+        now = time.monotonic()
+        if self._queue and now - self._last_flush >= self.flush_every_s:
             self.flush()
+        if now >= self._next_check and not self._writer_gone:
+            self._next_check = now + WRITER_CHECK_EVERY_S
+            if self._process.poll() is not None:
+                self._writer_gone = "the writer process ended"
+        if self._writer_gone and not self._failure_raised:
+            self._failure_raised = True
+            raise RecordingError(f"recording failed: {self.failure}: the run stopped")
+
+    @property
+    def failure(self) -> str | None:
+        """Why the session is no longer recorded (None: it is): the writer's own reason
+        (``No space left on device``...) once it has ended, else how it ended."""
+        if not self._writer_gone:
+            return None
+        if self._stats is None and self._report is None:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self._process.wait(timeout=1.0)
+            if self._process.returncode is not None:
+                self._report = self._parse_result(self._writer_report())
+        report = self._report or {}
+        return str(report.get("error") or self._writer_gone)
 
     def flush(self) -> None:
         """Hand everything queued to the writer process (waits only in lockstep)."""
@@ -349,7 +375,10 @@ class Recorder:
 
     # -- lifecycle -------------------------------------------------------------------------
     def close(self) -> RecorderStats:
-        """Hand over everything queued, let the writer finish the file; return what happened."""
+        """Hand over everything queued, let the writer finish the file; return what happened.
+
+        Raises :class:`RecordingError` when the writer failed: the message names the cause and
+        how many messages the file holds (counted in the file, the true count)."""
         if self._stats is not None:
             return self._stats
         self._queue.append(("close",))
@@ -359,7 +388,9 @@ class Recorder:
         assert self._process.stdin is not None
         with contextlib.suppress(OSError):
             self._process.stdin.close()
-        result = self._parse_result(self._writer_report())
+        if self._report is None:
+            self._report = self._parse_result(self._writer_report())
+        result = self._report
         drops = self.dropped()
         self._stats = RecorderStats(
             messages_written=int(result.get("messages_written", 0)), messages_dropped=drops,
@@ -367,13 +398,14 @@ class Recorder:
             bytes_written=int(result.get("bytes_written", 0)),
             files=list(result.get("files", [])),
         )
-        failure = result.get("error") or self._writer_gone
-        if failure:
-            raise RecorderError(
-                f"{self.path}: recording stopped after {self._stats.messages_written} "
-                f"message(s): {failure}; {sum(drops.values())} later message(s) were dropped")
+        if result.get("error") or self._writer_gone:
+            failure = result.get("error") or self.failure
+            lost = sum(drops.values())
+            raise RecordingError(
+                f"recording failed: {failure}; {recorded_messages(self.path, self.options)} "
+                f"message(s) recorded in {self.options.first_file(self.path)}"
+                + (f", {lost} later message(s) lost" if lost else ""))
         return self._stats
-
     def _writer_report(self) -> bytes:
         """The writer's standard output until it exits (killed after a generous timeout);
         its last line is the JSON report."""
@@ -391,7 +423,9 @@ class Recorder:
             result = {}
         if not result:
             code = self._process.returncode
-            result = {"error": f"the writer process exited with status {code} and no report"}
+            result = {"error": f"the writer process was killed ({signal.Signals(-code).name})"
+                      if code is not None and code < 0 else
+                      f"the writer process exited with status {code} and no report"}
         return dict(result)
 
     def __enter__(self) -> Recorder:
@@ -399,3 +433,14 @@ class Recorder:
 
     def __exit__(self, *_exc: object) -> None:
         self.close()
+
+
+def recorded_messages(path: str, options: RecordingOptions) -> int:
+    """How many messages the session at ``path`` holds, counted by reading it (a file its
+    writer could not finish included)."""
+    from hil.core.reader import read_session
+
+    try:
+        return sum(read_session(options.first_file(path)).topic_counts.values())
+    except HilError:
+        return 0

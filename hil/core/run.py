@@ -36,6 +36,7 @@ from typing import Any
 
 from hil.core.clock import Clock
 from hil.core.errors import HilError
+from hil.core.output import claim_output
 from hil.core.recorder import RecordingOptions
 from hil.core.session import Session
 from hil.core.verdict import Limit, SignalWatch, verdict
@@ -140,14 +141,22 @@ def run_experiment(experiment: Experiment) -> RunResult:
     A HilError that stopped the loop is raised again after the session file is finished with
     the KPIs so far, its message ending with the session's path."""
     plan = experiment.plan()
+    # the file is checked and locked before any device is reached
+    output = claim_output(plan.recording.first_file(plan.session_path))
     events = EventBuffer()
-    experiment.open_devices(plan.clock, events)
+    try:
+        experiment.open_devices(plan.clock, events)
+    except BaseException:
+        output.abandon()
+        raise
     try:
         session = Session(plan.session_path, plan.clock, plan.base_period_s, kind=plan.kind,
                           config=dict(plan.config), config_text=plan.config_text,
-                          config_name=plan.config_name, recording=plan.recording)
+                          config_name=plan.config_name, recording=plan.recording,
+                          output=output)
     except BaseException:
         experiment.close_devices()
+        output.abandon()
         raise
     events.attach(session)
     try:

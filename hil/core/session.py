@@ -14,6 +14,7 @@ from typing import Any
 
 from hil.core.clock import Clock
 from hil.core.loop import FixedRateLoop, Task
+from hil.core.output import OutputClaim, claim_output
 from hil.core.realtime import Hardening
 from hil.core.recorder import Recorder, RecorderStats, RecordingOptions, Topic
 
@@ -64,8 +65,12 @@ class Session:
         handle_signals: bool = True,
         harden: bool | None = None,
         recording: RecordingOptions | None = None,
+        output: OutputClaim | None = None,
     ) -> None:
         self.path = path
+        recording = recording or RecordingOptions()
+        # the file, checked and locked for this session (run_experiment claims it earlier)
+        self.output = output or claim_output(recording.first_file(path))
         # real-time hardening of the loop thread (hil.core.realtime); default: in real time
         self.harden = clock.mode == "realtime" if harden is None else harden
         self.hardening: dict[str, str] = {}
@@ -151,7 +156,10 @@ class Session:
         })
         if kpis is not None:
             self.recorder.metadata("kpis", {"json": json.dumps(kpis, default=str)})
-        self.recorder_stats = self.recorder.close()
+        try:
+            self.recorder_stats = self.recorder.close()
+        finally:
+            self.output.release()
         return self.recorder_stats
 
     def discard(self) -> None:

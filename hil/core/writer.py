@@ -149,15 +149,28 @@ def start_live(options: dict[str, Any]) -> LiveSink | None:
     return live
 
 
+def describe_failure(exc: BaseException) -> str:
+    """A writer failure in one line: an OS error by its reason and file (``No space left on
+    device``, ``File too large``), anything else by its type and message."""
+    if isinstance(exc, OSError) and exc.strerror:
+        return f"{exc.strerror}" + (f" ({exc.filename})" if exc.filename else "")
+    return f"{type(exc).__name__}: {exc}"
+
+
 def run(options: dict[str, Any], fd: int = 0, ready: Callable[[], None] = lambda: None
         ) -> dict[str, Any]:
     """Write the session read from ``fd`` until ``close`` or end of file; return statistics.
-    ``ready`` is called once the file is open, before the first read."""
-    series = McapSeries(
-        options["path"], chunk_size=int(options.get("chunk_size", DEFAULT_CHUNK_BYTES)),
-        split_duration_s=options.get("split_duration_s"),
-        split_size_mb=options.get("split_size_mb"), profile=options.get("profile", ""),
-    )
+    ``ready`` is called once the file is open, before the first read. A failure (the file
+    cannot be opened or written, a message cannot be encoded) ends the writing: what was
+    written stays in the file and the statistics name the failure (``error``)."""
+    try:
+        series = McapSeries(
+            options["path"], chunk_size=int(options.get("chunk_size", DEFAULT_CHUNK_BYTES)),
+            split_duration_s=options.get("split_duration_s"),
+            split_size_mb=options.get("split_size_mb"), profile=options.get("profile", ""),
+        )
+    except Exception as exc:
+        return {"messages_written": 0, "error": describe_failure(exc), "closed": False}
     live = start_live(options)  # serving before the loop starts
     ready()
     writer = SessionWriter(series, live)
@@ -179,7 +192,7 @@ def run(options: dict[str, Any], fd: int = 0, ready: Callable[[], None] = lambda
                 series.flush()
                 next_flush = time.monotonic() + flush_interval
     except Exception as exc:  # reported in the file and to the loop process
-        error = f"{type(exc).__name__}: {exc}"
+        error = describe_failure(exc)
     cut = decoder.pending_bytes
     if cut and not error:
         writer.event(writer.last_t_ns, "recorder.stream_cut",
@@ -189,7 +202,11 @@ def run(options: dict[str, Any], fd: int = 0, ready: Callable[[], None] = lambda
     live_stats = dataclasses.asdict(live.stats()) if live is not None else {}
     if live_stats:
         metadata["live"] = {key: json.dumps(value) for key, value in live_stats.items()}
-    stats = series.close(metadata)
+    try:
+        stats = series.close(metadata)
+    except Exception as exc:  # the disk is full, say: what is in the file stays readable
+        error = error or describe_failure(exc)
+        stats = series.stats
     if live is not None:  # after the file: a stalled client may hold the server's stop
         live.close()
     return {"messages_written": stats.messages_written, "chunks_flushed": stats.chunks_flushed,
@@ -223,7 +240,10 @@ def main() -> int:
         with contextlib.suppress(OSError):  # the loop process may be gone already
             print("ready", flush=True)
 
-    result = run(options, ready=ready)
+    try:
+        result = run(options, ready=ready)
+    except BaseException as exc:  # never a traceback: the loop process reports the failure
+        result = {"messages_written": 0, "error": describe_failure(exc), "closed": False}
     with contextlib.suppress(OSError):  # nobody listens any more: the loop process is gone
         print(json.dumps(result), flush=True)
     return 1 if result["error"] else 0

@@ -26,7 +26,7 @@ from controllers.servo.model import SAMPLE_PERIOD_S
 from controllers.servo.references import Scenario, parse_scenario
 from drivers.canopen import CanDriveMaster, SdoAbortError
 from hil.core.clock import Clock, RealtimeClock, SimClock
-from hil.core.errors import ConfigError, HilError, UsageError
+from hil.core.errors import ConfigError, HilError, SafetyStopError, UsageError
 from hil.core.plugins import (
     build_controller,
     controller_factory,
@@ -48,7 +48,7 @@ from hil.core.verdict import Limit, SignalWatch, split_limits
 from hil.servo.builtin import ServoContext
 from hil.servo.config import EMULATED, DriveConfig, load_drive_config
 from hil.servo.rig import open_drive
-from hil.servo.safety import SafetyMonitor, SafetyStopError
+from hil.servo.safety import SafetyMonitor
 from hil.servo.task import (
     DISTURBANCE_OBJECT,
     PREDICTION_EVERY_REALTIME,

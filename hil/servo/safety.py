@@ -25,12 +25,6 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
-from hil.core.errors import HilError
-
-
-class SafetyStopError(HilError):
-    """A safety limit stopped the run (the drive was put in its safe state)."""
-
 
 @dataclass(frozen=True)
 class ServoSafety:

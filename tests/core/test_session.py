@@ -6,9 +6,10 @@ import pytest
 from mcap.reader import make_reader
 
 from hil.core.clock import SimClock
+from hil.core.errors import RecordingError
 from hil.core.loop import FunctionTask
 from hil.core.reader import read_session
-from hil.core.recorder import Recorder, RecorderError
+from hil.core.recorder import Recorder
 from hil.core.session import Session
 
 SCHEMA = {
@@ -140,7 +141,7 @@ def test_a_failing_writer_is_reported_at_close_not_silent(tmp_path):
     while rec._process.poll() is None and time.monotonic() < deadline:  # the writer gives up
         time.sleep(0.01)
     topic.log(3, {"k": 3})  # handed to a writer that is gone: lost, and counted
-    with pytest.raises(RecorderError, match=r"TypeError: cannot record a object as JSON"):
+    with pytest.raises(RecordingError, match=r"TypeError: cannot record a object as JSON"):
         rec.close()
     assert topic.dropped >= 1
     assert read_session(path).topic("/x") == [(1, {"k": 1})]

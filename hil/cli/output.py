@@ -1,0 +1,23 @@
+"""What the commands print as JSON: always valid JSON (RFC 8259 has no NaN nor Infinity)."""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+
+def finite(value: Any) -> Any:
+    """``value`` with every non-finite float (NaN, inf) replaced by None, recursively."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: finite(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite(item) for item in value]
+    return value
+
+
+def json_text(value: Any) -> str:
+    """``value`` as indented JSON, non-finite numbers as null, other objects as text."""
+    return json.dumps(finite(value), indent=2, default=str, allow_nan=False)

@@ -1,0 +1,163 @@
+"""The recorder is part of the safety chain, tried from outside through the real file system:
+a full disk (RLIMIT_FSIZE: the kernel refuses to grow the file) or a killed writer stops the
+run within about a second, every relay of the bench at its safe level, exit 2, one line naming
+the cause and the true count of what was recorded; an output path that cannot be written
+refuses before any device is reached; two runs on one file never mix; a file with bytes after
+its end is not called intact. The bench is pymodbus's own server (tests/pymodbus_bench.py)."""
+
+import json
+import os
+import re
+import resource
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
+from hil.bench.config import load_bench_config
+from hil.core.reader import read_session
+from tests.pymodbus_bench import PymodbusBench
+
+pytestmark = pytest.mark.timeout(120)
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIG = load_bench_config()
+SHORT = textwrap.dedent("""
+    [sequence]
+    period_s = 4.0
+    stages = [{ start_s = 0.0, end_s = 2.0, on = [] },
+              { start_s = 2.0, end_s = 4.0, on = ["M1", "M2"] }]
+""")
+ENV = dict(os.environ, PYTHONPATH=str(ROOT))
+
+
+def bench_run(bench, out, *extra, cycles=10, config_dir=None, **popen):
+    config = Path(config_dir or Path(out).parent) / "short.toml"
+    config.write_text(SHORT)
+    return subprocess.Popen(
+        [sys.executable, "-m", "hil", "bench", "run", "--controller", "bc", "--bench",
+         bench.url, "--cycles", str(cycles), "--config", str(config), "--out", str(out),
+         *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV, **popen)
+
+
+def relays_of(url):
+    driver = ModbusBenchDriver(ModbusLink(parse_bus_url(url), 0.5, 2), CONFIG.map)
+    try:
+        return driver.read_relays()
+    finally:
+        driver.close()
+
+
+def recorded(path):
+    return sum(read_session(str(path)).topic_counts.values())
+
+
+def check_failure_line(stderr, out, cause):
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, stderr
+    match = re.fullmatch(rf"hil: error: recording failed: {cause}.*; (\d+) message\(s\) "
+                         rf"recorded in {re.escape(str(out))}.*", lines[0])
+    assert match, lines[0]
+    assert "Traceback" not in stderr
+    return int(match.group(1))
+
+
+def small_file_limit():
+    resource.setrlimit(resource.RLIMIT_FSIZE, (48_000, 48_000))
+
+
+def test_a_full_disk_stops_the_run_safely_with_the_true_count(tmp_path):
+    out = tmp_path / "full.mcap"
+    with PymodbusBench(CONFIG) as bench:
+        start = time.monotonic()
+        run = bench_run(bench, out, preexec_fn=small_file_limit)
+        _, stderr = run.communicate(timeout=60)
+        elapsed = time.monotonic() - start
+        assert run.returncode == 2, stderr
+        assert not any(relays_of(bench.url).values())
+    count = check_failure_line(stderr, out, "File too large")
+    assert count == recorded(out) and count > 100
+    assert elapsed < 20  # the run was asked for 40 s; the file filled up within a few
+
+
+def test_a_killed_writer_stops_the_run_within_a_second(tmp_path):
+    out = tmp_path / "killed.mcap"
+    with PymodbusBench(CONFIG) as bench:
+        run = bench_run(bench, out)
+        writer = None
+        deadline = time.monotonic() + 30
+        while writer is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+            for pid in os.listdir("/proc"):
+                if pid.isdigit():
+                    try:
+                        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+                    except OSError:
+                        continue
+                    if b"hil.core.writer" in cmdline and str(out).encode() in cmdline:
+                        writer = int(pid)
+        assert writer is not None
+        while bench.meter_reads < 200:  # 2 s into the run
+            time.sleep(0.05)
+        os.kill(writer, signal.SIGKILL)
+        killed = time.monotonic()
+        reads_at_kill = bench.meter_reads
+        _, stderr = run.communicate(timeout=30)
+        assert run.returncode == 2, stderr
+        # the loop stopped polling within ~1 s of the kill (100 polls a second)
+        assert bench.meter_reads - reads_at_kill < 150, bench.meter_reads - reads_at_kill
+        assert not any(relays_of(bench.url).values())
+        assert time.monotonic() - killed < 10
+    count = check_failure_line(stderr, out, r"the writer process was killed \(SIGKILL\)")
+    assert count == recorded(out) and count > 0
+
+
+@pytest.mark.parametrize(("out", "why"), [
+    ("{tmp}", "is a folder"),
+    ("{tmp}/a_file/x.mcap", "a_file is a file, not a folder"),
+    ("/proc/hil-test/x.mcap", "cannot create its folder /proc/hil-test: "),
+])
+def test_an_unwritable_output_refuses_before_the_bench_is_reached(tmp_path, out, why):
+    (tmp_path / "a_file").write_text("not a folder")
+    with PymodbusBench(CONFIG) as bench:
+        run = bench_run(bench, out.format(tmp=tmp_path), config_dir=tmp_path)
+        _, stderr = run.communicate(timeout=30)
+        assert run.returncode == 2
+        assert bench.meter_reads == 0 and not any(relays_of(bench.url).values())
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and re.search(why, lines[0]), stderr
+
+
+def test_two_runs_on_one_file_the_second_refuses_and_nothing_mixes(tmp_path):
+    out = tmp_path / "one.mcap"
+    with PymodbusBench(CONFIG) as bench:
+        first = bench_run(bench, out, cycles=1)
+        while bench.meter_reads < 50:
+            time.sleep(0.05)
+        second = bench_run(bench, out, cycles=1)
+        _, stderr = second.communicate(timeout=30)
+        assert second.returncode == 2
+        assert f"session file {out} is being written by another run" in stderr
+        assert first.wait(timeout=30) == 0, first.stderr.read()
+    data = read_session(str(out))
+    assert not data.recovered and not data.damage
+    assert data.duration_s() == pytest.approx(4.0, abs=0.3)
+
+
+def test_bytes_after_the_end_of_a_session_are_damage_not_intact(tmp_path):
+    out = tmp_path / "s.mcap"
+    with PymodbusBench(CONFIG) as bench:
+        assert bench_run(bench, out, cycles=1).wait(timeout=30) == 0
+    with open(out, "ab") as file:
+        file.write(b"\x89MCAP0\r\n" + bytes(100))  # another writer's start, mixed in
+    report = subprocess.run([sys.executable, "-m", "hil", "report", str(out), "--json"],
+                            capture_output=True, text=True, env=ENV, timeout=60, check=False)
+    summary = json.loads(report.stdout)
+    assert summary["recovered"] is True
+    assert [d["kind"] for d in summary["damage"]] == ["trailing"]
+    assert "108 byte(s) after the end of the session" in summary["damage"][0]["reason"]
