@@ -30,6 +30,8 @@ from drivers.can_frames import Frame
 
 HANDSHAKE_TIMEOUT_S = 2.0
 MAX_COMMAND_BYTES = 256  # no socketcand command is longer; a longer one is garbage
+MAX_SKIPPED_REPLIES = 2000  # replies in a row that are not frames: the gateway is broken
+MAX_JUNK_BYTES = 1 << 16    # bytes in a row that hold no reply at all: the same
 
 
 def format_send(msg: can.Message) -> bytes:
@@ -91,6 +93,8 @@ class SocketcandBus(can.BusABC):
         self.channel_info = f"socketcand {channel}@{host}:{port}"
         self._inbuf = bytearray()
         self._replies: deque[bytes] = deque()  # complete commands, parsed when read
+        self._skipped = 0   # replies in a row that were not frames
+        self._junk = 0      # bytes read in a row without a complete reply
         try:
             self._sock = socket.create_connection((host, port), timeout=timeout_s)
         except OSError as exc:
@@ -186,12 +190,28 @@ class SocketcandBus(can.BusABC):
 
     def recv_frame(self, timeout: float | None = None) -> Frame | None:
         """The next 11-bit data frame within ``timeout`` s (None: wait for one), or None;
-        other replies (error and 29-bit frames) are skipped."""
-        while (command := self._next_reply(timeout)) is not None:
+        other replies (error and 29-bit frames) are skipped. The deadline is absolute:
+        replies that are not frames do not extend it, and :data:`MAX_SKIPPED_REPLIES` of them
+        in a row (a gateway flooding errors or junk) raise :class:`can.CanOperationError`."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        remaining = timeout
+        while (command := self._next_reply(remaining)) is not None:
             frame = parse_frame(command)
             if frame is not None:
+                self._skipped = 0
                 return frame
+            self._skip(command)
+            if deadline is not None:
+                remaining = max(0.0, deadline - time.monotonic())
         return None
+
+    def _skip(self, command: bytes) -> None:
+        self._skipped += 1
+        if self._skipped >= MAX_SKIPPED_REPLIES:
+            self._skipped = 0
+            raise can.CanOperationError(
+                f"{self.channel_info}: the gateway sent {MAX_SKIPPED_REPLIES} replies in a row "
+                f"that are not frames (last: {command[:60].decode('ascii', 'replace')})")
 
     def _next_reply(self, timeout: float | None) -> bytes | None:
         """The next complete reply, waiting up to ``timeout`` s when none is buffered."""
@@ -218,7 +238,14 @@ class SocketcandBus(can.BusABC):
         if not chunk:
             raise can.CanOperationError(f"{self.channel_info}: the gateway closed the connection")
         self._inbuf += chunk
+        before = len(self._replies)
         self._split_replies()
+        self._junk = 0 if len(self._replies) > before else self._junk + len(chunk)
+        if self._junk > MAX_JUNK_BYTES:
+            self._junk = 0
+            raise can.CanOperationError(
+                f"{self.channel_info}: the gateway sent {MAX_JUNK_BYTES} bytes in a row that "
+                "hold no socketcand reply")
         return True
 
     def _split_replies(self) -> None:

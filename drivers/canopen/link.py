@@ -47,7 +47,7 @@ class CanLink:
         try:
             self._send_frames(frames)
         except (can.CanError, OSError) as exc:
-            raise DriveLinkLostError(f"cannot send on {self.name}: {one_line(exc)}") from None
+            raise DriveLinkLostError(f"cannot send on {self.name}: {self._detail(exc)}") from None
         if self.trace is not None:
             self.trace.sent(frames)
 
@@ -56,10 +56,15 @@ class CanLink:
         try:
             frame = self._recv_frame(timeout)
         except (can.CanError, OSError) as exc:
-            raise DriveLinkLostError(f"cannot read {self.name}: {one_line(exc)}") from None
+            raise DriveLinkLostError(f"cannot read {self.name}: {self._detail(exc)}") from None
         if frame is not None and self.trace is not None:
             self.trace.received(frame)
         return frame
+
+    def _detail(self, exc: BaseException) -> str:
+        """The bus error's message without the bus name it may start with (ours names it)."""
+        detail = one_line(exc)
+        return detail.removeprefix(f"{self.name}: ")
 
     def reconnect(self) -> None:
         """The bus built again (after a lost link), when the master was given the way."""
