@@ -78,6 +78,7 @@ class SafetyStats:
     refused_requests: int = 0
     failed_writes: int = 0
     stuck_relays: int = 0  # verified writes the relay did not follow
+    foreign_changes: int = 0  # relays found switched with no write of ours since last read
     per_relay_switches: dict[str, int] = field(default_factory=dict)
 
 
@@ -108,6 +109,9 @@ class SafeBench(Device):
         self._next_retry_report_s = -math.inf
         self._deferral_reported: set[str] = set()
         self.stats = SafetyStats(per_relay_switches={n: 0 for n in relays})
+        # each relay as last read with no write of ours since (None: unknown), to tell a
+        # relay switched by someone else (another Modbus master) from one that did not follow
+        self._seen: dict[str, bool | None] = dict.fromkeys(relays)
 
     # -- state -----------------------------------------------------------------------------
     @property
@@ -190,6 +194,7 @@ class SafeBench(Device):
         self._emit("link.lost", f"bench link lost after {self.watchdog.run} failed polls: "
                    f"{reason}", level="error", url=self.url, reason=reason)
         self._guard.pending.clear()
+        self._seen = dict.fromkeys(self._seen)
         with contextlib.suppress(HilError):  # best effort: the relay module may still hear us
             self._drive_safe(t_s, reason="link lost")
         self._driver.link.close()
@@ -200,15 +205,26 @@ class SafeBench(Device):
         connections = self._driver.link.connections
         if connections != self._connections_seen:
             self._connections_seen = connections
+            self._seen = dict.fromkeys(self._seen)  # the device may have restarted
             self.readback()
 
     def readback(self, t_ns: int | None = None) -> dict[str, bool] | None:
-        """Read every relay; adopt what the module says and record any disagreement."""
+        """Read every relay; adopt what the module says and record any disagreement. A relay
+        that changed since it was last read, with no write of this bench in between, was
+        switched by someone else: event ``relay.foreign_change``, ``stats.foreign_changes``."""
         try:
             actual = self._driver.read_relays()
         except LinkError:
             return None
         t_s = self._now_s(t_ns)
+        for name, on in actual.items():
+            seen = self._seen[name]
+            if seen is not None and seen != on:
+                self.stats.foreign_changes += 1
+                self._emit("relay.foreign_change", f"relay {name} switched "
+                           f"{'on' if on else 'off'} with no write of this run: another "
+                           "master on the bench?", level="error", relay=name, actual=on)
+            self._seen[name] = on
         for name, on in actual.items():
             if self._guard.state[name] != on:
                 self._emit("relay.mismatch", f"relay {name} reads {'on' if on else 'off'}, "
@@ -261,15 +277,18 @@ class SafeBench(Device):
             self._emit("relay.stuck", str(exc), level="error", relay=name, requested=on,
                        actual=exc.actual)
             self._guard.applied(name, exc.actual, t_s)
+            self._seen[name] = exc.actual
             return "stuck"
         except (LinkError, DeviceError) as exc:
             self.stats.failed_writes += 1
             self._emit("relay.write_failed", f"relay {name} {'on' if on else 'off'}: {exc}",
                        level="error", relay=name, requested=on)
+            self._seen[name] = None
             if isinstance(exc, LinkError) and self.watchdog.failure():
                 self._link_lost(str(exc))
             return "failed"
         self._guard.applied(name, on, t_s)
+        self._seen[name] = on
         self._deferral_reported.discard(name)
         self.stats.switches += 1
         self.stats.per_relay_switches[name] += 1
@@ -304,6 +323,7 @@ class SafeBench(Device):
 
     def _drive_safe(self, t_s: float, reason: str) -> None:
         """Every relay to its safe level regardless of dwell, then verify all of them."""
+        self._seen = dict.fromkeys(self._seen)
         for name, level in self.safe_levels.items():
             self._driver.link.write_coil(self._driver.map.units["relays"],
                                          self._driver.map.relays[name].coil, level)
@@ -313,6 +333,7 @@ class SafeBench(Device):
             raise LinkError(f"relays {wrong} did not reach their safe level ({reason})")
         for name, on in actual.items():
             self._guard.applied(name, on, t_s)
+        self._seen = dict(actual)
         self._guard.pending.clear()
 
     def safe_state(self) -> None:

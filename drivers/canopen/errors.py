@@ -23,6 +23,10 @@ class DriveLinkLostError(DriveError):
     """No answer from the drive (TPDO watchdog, SDO time-out, bus error, reboot)."""
 
 
+class BusSharedError(DriveError):
+    """Another master drives the bus (a SYNC, NMT command or heartbeat this one did not send)."""
+
+
 class DriveStateError(DriveError):
     """The CiA 402 state machine is not where it should be (stuck, or left OPERATION ENABLED)."""
 

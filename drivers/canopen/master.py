@@ -39,6 +39,7 @@ from drivers.canopen.config import DriveMasterConfig
 from drivers.canopen.cyclic import SYNC_COUNTER_MAX, CyclicExchange, Feedback, LinkStats
 from drivers.canopen.eds import DriveDescription, required_objects
 from drivers.canopen.errors import (
+    BusSharedError,
     DriveError,
     DriveFaultError,
     DriveLinkLostError,
@@ -55,10 +56,13 @@ from drivers.cia301 import (
     CYCLE_PERIOD,
     DEVICE_TYPE,
     EMCY_BASE,
+    HEARTBEAT_BASE,
+    NMT_COB_ID,
     NMT_ENTER_PRE_OPERATIONAL,
     NMT_START,
     PRODUCER_HEARTBEAT,
     RPDO_COMM_BASE,
+    SYNC_COB_ID,
     SYNC_COUNTER_OVERFLOW,
     TPDO_COMM_BASE,
     emcy_text,
@@ -162,6 +166,7 @@ class CanDriveMaster(Device):
         self.last_emcy_code = 0
         self._enabled = False
         self._latched: DriveError | None = None
+        self.foreign: str | None = None  # another master heard on the bus: the run stops
         self._closed = False
 
     # -- what the master knows -------------------------------------------------------------
@@ -207,7 +212,9 @@ class CanDriveMaster(Device):
     # -- frames that are not the cyclic TPDOs ------------------------------------------------
     def _other_frame(self, frame: Frame) -> None:
         can_id, data = frame
-        if can_id == self.sdo.response_id:
+        if can_id in (SYNC_COB_ID, NMT_COB_ID, HEARTBEAT_BASE + self.config.heartbeat_id):
+            self._foreign_frame(can_id)
+        elif can_id == self.sdo.response_id:
             self.sdo.on_response(data)
         elif can_id == EMCY_BASE + self.node_id:
             self._on_emcy(data)
@@ -215,6 +222,17 @@ class CanDriveMaster(Device):
                 self.heartbeat_watch.on_frame(data, watching=self._enabled):
             self._event("drive.bootup", f"drive node {self.node_id} sent a boot-up message: "
                         "it restarted", level="error")
+
+    def _foreign_frame(self, can_id: int) -> None:
+        """A SYNC, an NMT command or a heartbeat with this master's id that this master did
+        not send: another master drives the bus (it would fight this one for the drive)."""
+        if self.foreign is not None:
+            return
+        what = {SYNC_COB_ID: "a SYNC", NMT_COB_ID: "an NMT command"}.get(
+            can_id, f"a heartbeat with this master's node id {self.config.heartbeat_id}")
+        self.foreign = (f"another master on {self.url}: {what} (0x{can_id:03X}) this master "
+                        "did not send; one master per bus")
+        self._event("bus.foreign_master", self.foreign, level="error", cob_id=can_id)
 
     def _on_emcy(self, data: bytes) -> None:
         if len(data) < 3:
@@ -423,6 +441,8 @@ class CanDriveMaster(Device):
             self._lose_link(f"no heartbeat for {silent_ns / 1e6:.0f} ms (it beats every "
                             f"{self.config.drive_heartbeat_ms} ms)")
         error = self.sdo.take_error()
+        if error is None and self.foreign is not None:
+            error = BusSharedError(self.foreign)
         if error is not None:
             self._latched = error
             raise error

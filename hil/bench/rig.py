@@ -252,7 +252,8 @@ class StaleReadings:
 class LinkMonitor(Task):
     """Every sample: the intervals the bench link was declared lost (``down``, clock ns) and
     the run's end when it stays lost ``give_up_s`` (event ``link.gave_up``, loop stopped with
-    reason ``link lost``; the relays go to their safe level as at every stop)."""
+    reason ``link lost``; the relays go to their safe level as at every stop), or as soon as
+    a relay is found switched by someone else (``foreign``: event ``bench.foreign_master``)."""
 
     def __init__(self, bench: SafeBench, session: Session, give_up_s: float, divisor: int = 1,
                  name: str = "link") -> None:
@@ -261,8 +262,15 @@ class LinkMonitor(Task):
         self.give_up_ns = round(give_up_s * 1e9)
         self.down: list[list[int | None]] = []  # [lost at, restored at or None]
         self.gave_up = False
+        self.foreign: str | None = None  # another master seen on the bench: the run stops
 
     def read(self, t_ns: int) -> None:
+        if self.bench.stats.foreign_changes and self.foreign is None:
+            self.foreign = ("a relay switched with no write of this run: another master is "
+                            f"driving the bench at {self.bench.url}; the run stopped")
+            self.session.event("bench.foreign_master", self.foreign, level="error",
+                               source="bench")
+            self.session.loop.stop("another master on the bench")
         up = self.bench.link_up
         if not up and (not self.down or self.down[-1][1] is not None):
             self.down.append([t_ns, None])

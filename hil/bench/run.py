@@ -44,7 +44,13 @@ from hil.bench.rig import (
 )
 from hil.bench.safety import BenchSafetyTask
 from hil.core.clock import Clock
-from hil.core.errors import ConfigError, HilError, SafetyStopError, UsageError
+from hil.core.errors import (
+    ConfigError,
+    ForeignMasterError,
+    HilError,
+    SafetyStopError,
+    UsageError,
+)
 from hil.core.loop import Task
 from hil.core.plugins import build_controller, controller_factory, controller_short_name
 from hil.core.recorder import RecordingOptions
@@ -176,7 +182,8 @@ class BenchExperiment(Experiment):
             duration_s=opts.cycles * bench.problem.sequence.period_s,
             kpi_limits=tuple(kpi_limits), watch=self.watch,
             config={"bench": bench.data, "controllers": eec.data, "run": run_info},
-            config_text=text, recording=opts.recording)
+            config_text=text, recording=opts.recording,
+            devices=() if is_emulated(opts.bench) else (("bench", opts.bench),))
 
     def open_devices(self, clock: Clock, on_event: EventBuffer) -> None:
         opts = self.opts
@@ -226,6 +233,8 @@ class BenchExperiment(Experiment):
         self.observer.finish(self.rig.link.gave_up)
         if self.safety is not None and self.safety.stopped is not None:
             raise SafetyStopError(self.safety.stopped)
+        if self.rig.link.foreign is not None:
+            raise ForeignMasterError(self.rig.link.foreign)
 
     def close_devices(self) -> None:
         if self.rig is not None:

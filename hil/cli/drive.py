@@ -4,6 +4,7 @@ FAULT): the first commands on a new drive."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 from typing import Any
 
@@ -54,14 +55,22 @@ def _master(url: str, config: str | None, node: int | None) -> Any:
     return open_drive(url, load_drive_config(config, overrides=overrides))
 
 
+def _bus_lock(url: str) -> contextlib.AbstractContextManager[Any]:
+    """The bus locked for this command, as a run locks it (an emulated drive is our own)."""
+    from hil.core.device_lock import lock_device
+
+    return contextlib.nullcontext() if url == "emulated" else lock_device(url, "drive bus")
+
+
 def scan_command(args: argparse.Namespace) -> int:
     from drivers.canopen.scan import scan
 
-    master = _master(args.url, args.config, None)
-    try:
-        reports = scan(master.link, args.node, master.config.mode)
-    finally:
-        master.disconnect()
+    with _bus_lock(args.url):
+        master = _master(args.url, args.config, None)
+        try:
+            reports = scan(master.link, args.node, master.config.mode)
+        finally:
+            master.disconnect()
     if args.json:
         print(json.dumps({"url": args.url, "mode": master.config.mode,
                           "nodes": [r.as_dict() for r in reports]}, indent=2))
@@ -97,13 +106,14 @@ def format_scan(url: str, mode: str, reports: list[Any]) -> str:
 def reset_command(args: argparse.Namespace) -> int:
     from drivers.cia402 import state_of
 
-    master = _master(args.url, args.config, args.node)
-    try:
-        before = state_of(master.states.reach())
-        master.clear_fault()
-        after = state_of(master.states.statusword())
-    finally:
-        master.disconnect()
+    with _bus_lock(args.url):
+        master = _master(args.url, args.config, args.node)
+        try:
+            before = state_of(master.states.reach())
+            master.clear_fault()
+            after = state_of(master.states.statusword())
+        finally:
+            master.disconnect()
     if before == after:
         print(f"drive node {args.node}: {after}, nothing to reset")
     else:

@@ -26,6 +26,11 @@ class RecordingError(HilError):
     the hardware safely; the message names the cause and how much was recorded (exit 2)."""
 
 
+class ForeignMasterError(HilError):
+    """Another master drives the same hardware (found on the wire, or by the device lock):
+    the run refuses or stops, outputs in their safe state (exit 2)."""
+
+
 class ControllerError(HilError):
     """A controller raised, returned something that is not a command, or took too long; the
     run stops with the hardware in its safe state."""

@@ -35,8 +35,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hil.core.clock import Clock
+from hil.core.device_lock import DeviceLock, lock_device
 from hil.core.errors import HilError
-from hil.core.output import claim_output
+from hil.core.output import OutputClaim, claim_output
 from hil.core.recorder import RecordingOptions
 from hil.core.session import Session
 from hil.core.verdict import Limit, SignalWatch, verdict
@@ -61,6 +62,7 @@ class RunPlan:
     config_text: str | None = None  # the config as the user wrote it (an attachment)
     config_name: str = "config.toml"
     recording: RecordingOptions = field(default_factory=RecordingOptions)
+    devices: tuple[tuple[str, str], ...] = ()  # (what, URL) of each device locked for the run
 
 
 @dataclass(frozen=True)
@@ -141,8 +143,22 @@ def run_experiment(experiment: Experiment) -> RunResult:
     A HilError that stopped the loop is raised again after the session file is finished with
     the KPIs so far, its message ending with the session's path."""
     plan = experiment.plan()
-    # the file is checked and locked before any device is reached
+    # the file is checked and locked before any device is reached, and each device locked
     output = claim_output(plan.recording.first_file(plan.session_path))
+    locks: list[DeviceLock] = []
+    try:
+        locks.extend(lock_device(url, what) for what, url in plan.devices)
+    except BaseException:
+        output.abandon()
+        raise
+    try:
+        return _run_locked(experiment, plan, output)
+    finally:
+        for lock in locks:
+            lock.release()
+
+
+def _run_locked(experiment: Experiment, plan: RunPlan, output: OutputClaim) -> RunResult:
     events = EventBuffer()
     try:
         experiment.open_devices(plan.clock, events)

@@ -34,6 +34,7 @@ from hil.core.plugins import (
     controller_short_name,
 )
 from hil.core.recorder import RecordingOptions
+from hil.core.registry import scheme_of
 from hil.core.run import (
     EventBuffer,
     Experiment,
@@ -227,7 +228,13 @@ class ServoExperiment(Experiment):
             base_period_s=SAMPLE_PERIOD_S, duration_s=options.duration_s,
             kpi_limits=tuple(kpi_limits), watch=self.watch,
             config={"servo": run_info, "drive": drive.data}, config_text=drive.text,
-            config_name="drive.toml", recording=options.recording)
+            config_name="drive.toml", recording=options.recording,
+            devices=self._devices())
+
+    def _devices(self) -> tuple[tuple[str, str], ...]:
+        """The drive's bus, locked for the run (an emulated drive is the run's own)."""
+        url = self.options.drive or self.drive.bus_url
+        return () if scheme_of(url) == EMULATED else (("drive bus", url),)
 
     def open_devices(self, clock: Clock, on_event: EventBuffer) -> None:
         """The drive master, its bus reached and the drive in a known state (not enabled)."""
