@@ -18,7 +18,6 @@ the packaged defaults, the user's file when there is one) and the dotted key.
 from __future__ import annotations
 
 import importlib.resources
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -45,6 +44,7 @@ from emulators.faults import Fault, for_emulator, parse_faults_table
 from hil.bench.safety import BenchSafety
 from hil.core.config import Table, deep_merge, load_toml, parse_toml
 from hil.core.errors import ConfigError
+from hil.core.ranges import MAX_DURATION_S, MAX_DWELL_S, MAX_EEC_HORIZON_S
 from hil.core.verdict import RUN_TABLES, RunTables, read_run_tables
 
 SOURCE = "bench config"
@@ -87,9 +87,8 @@ class BenchConfig:
         if dwell_s is None:
             return self
         dwell = float(dwell_s)
-        if not 0 <= dwell < math.inf:
-            raise ConfigError(f"{self.source}: the dwell must be a finite number >= 0, got "
-                              f"{dwell:g}")
+        if not 0 <= dwell <= MAX_DWELL_S:
+            raise ConfigError(f"--dwell {dwell:g} s: must be 0..{MAX_DWELL_S:g} s")
         peripherals = self.problem.peripherals
         relays = {name: replace(spec, dwell_s=dwell) if name in peripherals else spec
                   for name, spec in self.map.relays.items()}
@@ -213,6 +212,7 @@ def parse_bench_config(data: Mapping[str, Any], source: str = SOURCE, user_text:
     bus = _bus(top.table("bus", required=True))
     sampling = _sampling(top.table("sampling", required=True))
     sequence = _sequence(top.table("sequence", required=True), relays)
+    _check_sequence_dwell(sequence, relays, source)
     safety = _safety(top.table("safety", required=True))
     plant_table = top.table("plant", required=True)
     resources = _resources(plant_table.table("resources", required=True), sequence, relays)
@@ -244,7 +244,7 @@ def _relays(table: Table) -> dict[str, RelaySpec]:
         coil = relay.integer("coil")
         if coil < 0:
             raise relay.error("coil", f"is {coil}: a coil must be >= 0")
-        dwell = relay.number("dwell_s", 5.0, at_least=0)
+        dwell = relay.number("dwell_s", 5.0, at_least=0, at_most=MAX_DWELL_S)
         clash = next((r.name for r in relays.values() if r.coil == coil), None)
         if clash:
             raise ConfigError(f"{table.source}: relays {clash} and {name} are both on coil {coil}")
@@ -312,7 +312,7 @@ def _bus(table: Table) -> BusSettings:
 
 def _sampling(table: Table) -> SamplingSettings:
     sampling = SamplingSettings(
-        period_s=table.number("period_s", above=0),
+        period_s=table.number("period_s", at_least=1e-3, at_most=60.0),
         levels_every=table.integer("levels_every", 1, at_least=1),
         relays_readback_every=table.integer("relays_readback_every", 100, at_least=0),
     )
@@ -338,7 +338,7 @@ def _safety(s: Table) -> BenchSafety:
 
 def _sequence(table: Table, relays: Mapping[str, RelaySpec]) -> MachiningSequence:
     """Stages tiling ``[0, period_s)`` in order, each naming relays of ``[relays]``."""
-    period = table.number("period_s", above=0)
+    period = table.number("period_s", above=0, at_most=MAX_DURATION_S)
     raw = table.get("stages", list)
     if not raw:
         raise table.error("stages", "must list at least one stage")
@@ -367,6 +367,33 @@ def _sequence(table: Table, relays: Mapping[str, RelaySpec]) -> MachiningSequenc
                           f"not at period_s = {period:g} s")
     names = tuple(sorted(set().union(*(stage.on for stage in stages))))
     return MachiningSequence(period, tuple(stages), names)
+
+
+def _check_sequence_dwell(sequence: MachiningSequence, relays: Mapping[str, RelaySpec],
+                          source: str) -> None:
+    """A relay the sequence plays must be able to follow it: its dwell shorter than the
+    shortest time the sequence holds it on or off (the safety layer would defer the rest)."""
+    for name in sequence.relays:
+        holds = _holds(sequence, name)
+        if relays[name].dwell_s >= min(holds):
+            raise ConfigError(
+                f"{source}: relays.{name}.dwell_s = {relays[name].dwell_s:g} s is not shorter "
+                f"than the shortest time the sequence holds {name} on or off ({min(holds):g} "
+                "s): the relay could not follow the sequence")
+
+
+def _holds(sequence: MachiningSequence, name: str) -> list[float]:
+    """How long the (periodic) sequence holds relay ``name`` in each state, in turn."""
+    runs: list[list[Any]] = []  # [state, seconds]
+    for stage in sequence.stages:
+        on = name in stage.on
+        if runs and runs[-1][0] == on:
+            runs[-1][1] += stage.end_s - stage.start_s
+        else:
+            runs.append([on, stage.end_s - stage.start_s])
+    if len(runs) > 1 and runs[0][0] == runs[-1][0]:  # the period wraps around
+        runs[0][1] += runs.pop()[1]
+    return [seconds for _, seconds in runs]
 
 
 def _relay(table: Table, key: str, relays: Mapping[str, RelaySpec]) -> str:
@@ -568,7 +595,7 @@ def _eec(table: Table) -> EecTable:
         raise ConfigError(f"{table.source}: missing key 'eec.limit_va' (needed while "
                           "eec.limit_weight > 0)")
     eec = EecTable(
-        hp_s=table.number("hp_s", above=0),
+        hp_s=table.number("hp_s", above=0, at_most=MAX_EEC_HORIZON_S),
         hs_s=table.number("hs_s", above=0),
         step_s=table.number("step_s", 1.0, above=0),
         gamma1=table.number("gamma1", at_least=0),
@@ -579,7 +606,7 @@ def _eec(table: Table) -> EecTable:
         limit_weight=weight,
         feedback=table.boolean("feedback", True),
         peak_resolution_va=table.number("peak_resolution_va", 1.0, at_least=0),
-        time_limit_s=table.number("time_limit_s", 0.5, above=0),
+        time_limit_s=table.number("time_limit_s", 0.5, above=0, at_most=3600),
         mip_rel_gap=table.number("mip_rel_gap", 1e-4, at_least=0),
         solver=table.string("solver", "dp", choices=SOLVERS),
     )

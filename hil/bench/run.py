@@ -53,6 +53,7 @@ from hil.core.errors import (
 )
 from hil.core.loop import Task
 from hil.core.plugins import build_controller, controller_factory, controller_short_name
+from hil.core.ranges import MAX_DURATION_S, MAX_EEC_HORIZON_S, check_at_most
 from hil.core.recorder import RecordingOptions
 from hil.core.run import (
     EventBuffer,
@@ -155,7 +156,14 @@ class BenchExperiment(Experiment):
         if opts.disturbance and not is_emulated(opts.bench):
             raise UsageError("--disturbance switches the emulator's unknown load on: it needs "
                              "--bench emulated")
+        if opts.hp_s is not None:
+            check_at_most(opts.hp_s, MAX_EEC_HORIZON_S, "--hp", "the EEC's MILP grows with "
+                          "the horizon (a decision would take far longer than its step)")
         bench, eec = load_configs(opts.config_path, opts.overrides)
+        seconds = opts.cycles * bench.problem.sequence.period_s
+        if seconds > MAX_DURATION_S:
+            raise UsageError(f"--cycles {opts.cycles}: {seconds:g} s is longer than a run can "
+                             f"be ({MAX_DURATION_S:g} s, about {MAX_DURATION_S / 86400:.1f} days)")
         # the safety layer enforces the controllers' dwell
         self.bench = bench = bench.with_dwell(opts.dwell_s).with_safety(opts.safety)
         self.eec = eec

@@ -16,12 +16,48 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib  # type: ignore[no-redef]
 
 
+#: what a config may be: no hil config comes near either bound
+MAX_CONFIG_BYTES = 4 << 20
+MAX_CONFIG_DEPTH = 16
+
+
 def parse_toml(text: str, source: str) -> dict[str, Any]:
-    """Parse TOML text; a syntax error becomes a ConfigError naming ``source`` and the line."""
+    """Parse TOML text; a syntax error becomes a ConfigError naming ``source`` and the line,
+    and so does a text no config can be (larger than :data:`MAX_CONFIG_BYTES`, tables or
+    arrays nested deeper than :data:`MAX_CONFIG_DEPTH`), before it costs a recursion or
+    memory error."""
+    if len(text) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{source}: {len(text)} characters: larger than any config "
+                          f"({MAX_CONFIG_BYTES >> 20} MiB at most)")
     try:
-        return tomllib.loads(text)
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{source}: invalid TOML: {exc}") from None
+    except (RecursionError, MemoryError):
+        raise ConfigError(f"{source}: nested too deeply to be a config (at most "
+                          f"{MAX_CONFIG_DEPTH} levels)") from None
+    if _depth(data) > MAX_CONFIG_DEPTH:
+        raise ConfigError(f"{source}: nested too deeply to be a config (at most "
+                          f"{MAX_CONFIG_DEPTH} levels)")
+    return data
+
+
+def _depth(value: Any) -> int:
+    """How deep tables and arrays nest in ``value`` (counted without recursion)."""
+    deepest, stack = 0, [(value, 0)]
+    while stack:
+        item, level = stack.pop()
+        if isinstance(item, dict):
+            children: Any = item.values()
+        elif isinstance(item, list):
+            children = item
+        else:
+            continue
+        deepest = max(deepest, level + 1)
+        if deepest > MAX_CONFIG_DEPTH:
+            return deepest
+        stack.extend((child, level + 1) for child in children)
+    return deepest
 
 
 def load_toml(path: str | os.PathLike[str]) -> tuple[dict[str, Any], str]:

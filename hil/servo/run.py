@@ -33,6 +33,7 @@ from hil.core.plugins import (
     controller_label,
     controller_short_name,
 )
+from hil.core.ranges import MAX_MPC_HORIZON, check_at_most, check_duration
 from hil.core.recorder import RecordingOptions
 from hil.core.registry import scheme_of
 from hil.core.run import (
@@ -107,10 +108,13 @@ class ServoRunOptions:
     reset_fault: bool = False        # clear a drive FAULT (CiA 402 fault reset) before enabling
 
     def __post_init__(self) -> None:
-        for name, flag in (("umax", "--umax"), ("duration_s", "--duration")):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise UsageError(f"{flag} must be a positive finite number, got {value!r}")
+        if not (isinstance(self.umax, (int, float)) and math.isfinite(self.umax)
+                and self.umax > 0):
+            raise UsageError(f"--umax must be a positive finite number, got {self.umax!r}")
+        check_duration(self.duration_s, "--duration", SAMPLE_PERIOD_S)
+        for flag, horizon in (("--ht", self.ht), ("--hu", self.hu), ("--hp", self.hp)):
+            check_at_most(horizon, MAX_MPC_HORIZON, flag, "the MPC's matrices grow with the "
+                          "horizon (a step would take far longer than a 500 us period)")
         if not 0 <= self.settle_s < self.duration_s:
             raise UsageError(f"--settle ({self.settle_s:g} s) must be >= 0 and shorter than "
                              f"--duration ({self.duration_s:g} s)")
