@@ -2,7 +2,8 @@
 or ``hil emulate drive`` on 127.0.0.1 and a free port, started and stopped from Python.
 
 Used by the Python API (:mod:`hil.api`) and the pytest fixtures (:mod:`hil.pytest_plugin`).
-Every wait is bounded; the process is stopped with SIGTERM (then SIGKILL) whatever happens.
+Every wait is bounded; the process is stopped with SIGTERM (then SIGKILL) whatever happens,
+and dies with the process that started it even when that one is SIGKILLed.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from typing import IO
 
 from emulators.faults import Fault, parse_fault
 from hil.core.errors import HilError
+from hil.core.lifeline import lifeline_env
 from hil.core.realtime import forget_helper_process, register_helper_process
 
 _BENCH_URL = re.compile(r"listening on (modbus-tcp://\S+?)[ ,;]")
@@ -35,10 +37,13 @@ class EmulatorProcess:
         self.what = what
         self._faults_seen: list[str] = []
         self._stderr: IO[str] = tempfile.TemporaryFile("w+")  # noqa: SIM115 - closed by stop()
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        # it dies with this process, even SIGKILLed (hil.core.lifeline); in a session of its
+        # own, so a Ctrl-C at the terminal reaches the run, which stops it in order
+        env = lifeline_env({**os.environ, "PYTHONUNBUFFERED": "1"})
         self.process = subprocess.Popen(
             [sys.executable, "-m", "hil", "emulate", *argv], stdout=subprocess.PIPE,
-            stderr=self._stderr, stdin=subprocess.DEVNULL, text=True, env=env)
+            stderr=self._stderr, stdin=subprocess.DEVNULL, text=True, env=env,
+            start_new_session=True)
         register_helper_process(self.process.pid)  # real-time hardening keeps it off the loop
         self.url = self._wait_for_url(timeout_s)
 

@@ -9,6 +9,7 @@ from drivers.canopen.bus import CanBusSpec, open_can_bus, parse_can_url
 from drivers.canopen.config import DriveMasterConfig
 from drivers.canopen.cyclic import Feedback, LinkStats
 from drivers.canopen.errors import (
+    BusSharedError,
     DriveError,
     DriveFaultError,
     DriveLinkLostError,
@@ -18,6 +19,6 @@ from drivers.canopen.errors import (
 from drivers.canopen.link import CanLink
 from drivers.canopen.master import CanDriveMaster
 
-__all__ = ["CanBusSpec", "CanDriveMaster", "CanLink", "DriveError", "DriveFaultError",
-           "DriveLinkLostError", "DriveMasterConfig", "DriveStateError", "Feedback",
-           "LinkStats", "SdoAbortError", "open_can_bus", "parse_can_url"]
+__all__ = ["BusSharedError", "CanBusSpec", "CanDriveMaster", "CanLink", "DriveError",
+           "DriveFaultError", "DriveLinkLostError", "DriveMasterConfig", "DriveStateError",
+           "Feedback", "LinkStats", "SdoAbortError", "open_can_bus", "parse_can_url"]

@@ -25,6 +25,7 @@ from hil.cli.argtypes import host_port, positive_int
 from hil.cli.recording import add_live_arguments, live_address
 from hil.core.config import load_toml
 from hil.core.errors import ConfigError
+from hil.core.lifeline import die_with_parent
 
 BENCH_LIVE_HZ = 10.0   # the emulators' state on --live: a modest rate, off their serving thread
 DRIVE_LIVE_HZ = 50.0
@@ -190,6 +191,7 @@ def _until_stopped() -> Iterator[StopFlag]:
 
 def emulate_bench(args: argparse.Namespace) -> int:
     """Serve the bench plant in real time until Ctrl-C or SIGTERM."""
+    die_with_parent()
     from hil.bench.config import load_bench_config
     from hil.bench.rig import make_emulator
 
@@ -234,6 +236,7 @@ def emulate_bench(args: argparse.Namespace) -> int:
 
 def emulate_drive(args: argparse.Namespace) -> int:
     """Serve the emulated CiA 402 drive over socketcand in real time until Ctrl-C or SIGTERM."""
+    die_with_parent()
     from emulators.drive.node import DriveNode
     from emulators.socketcand_server import SocketcandServer
     from hil.core.errors import UsageError

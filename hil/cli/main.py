@@ -22,7 +22,7 @@ from hil.cli import (
     servo,
     sweep,
 )
-from hil.core.errors import HilError
+from hil.core.errors import HilError, RunInterruptedError
 from hil.core.session import set_command_line
 
 COMMAND_MODULES = (demo, bench, servo, drive, sweep, empc, identify, emulate, report, replay,
@@ -50,6 +50,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     set_command_line(["hil", *(sys.argv[1:] if argv is None else argv)])
     try:
         return int(args.handler(args) or 0)
+    except RunInterruptedError as exc:
+        print(f"hil: {exc}", file=sys.stderr)
+        return exc.exit_status
     except HilError as exc:
         print(f"hil: error: {exc}", file=sys.stderr)
         return 2

@@ -29,8 +29,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "trajectory MPC with an online QP, empc: explicit MPC, pid: cascaded PID + notch) or "
         "your own class with step(position_deg, t_s) -> current_mA, built as "
         "Class(reference, params); its currents are clamped by the driver whatever it asks. "
-        "With --limit, the verdict is the exit status (0 all hold, 1 one is violated, 2 "
-        "usage or configuration error, 3 completed with faults: stale feedback or an EMCY).",
+        "Safety limits (drive.toml [safety], --safety) are on by default. Exit status: 0 "
+        "completed (every --limit holds), 1 a --limit is violated, 2 the run could not start "
+        "or was stopped (bad flag or config, the drive faulted after an EMCY, a safety limit, "
+        "lost link, recording failed, another master), 3 completed with faults (stale "
+        "feedback, an EMCY the drive rode through), 130 interrupted.",
     )
     add_run_arguments(srun)
     add_junit_argument(srun)

@@ -31,6 +31,16 @@ class ForeignMasterError(HilError):
     the run refuses or stops, outputs in their safe state (exit 2)."""
 
 
+class RunInterruptedError(HilError):
+    """A signal (Ctrl-C, SIGTERM) stopped the run; the hardware is in its safe state and the
+    session finished with the KPIs so far. ``exit_status`` is 128 + the signal's number
+    (130 for Ctrl-C, 143 for SIGTERM), as a shell reports a process a signal ended."""
+
+    def __init__(self, message: str, exit_status: int) -> None:
+        super().__init__(message)
+        self.exit_status = exit_status
+
+
 class ControllerError(HilError):
     """A controller raised, returned something that is not a command, or took too long; the
     run stops with the hardware in its safe state."""

@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import re
 import socket
 import sys
 import threading
@@ -124,22 +125,34 @@ class LiveStats:
     decimated: dict[str, int] = field(default_factory=dict)
     client_queue_full: int = 0
     failed: int = 0
+    client_errors: dict[str, int] = field(default_factory=dict)  # reason -> count
 
 
 class _SdkLog(logging.Handler):
     """The SDK's log (forwarded from Rust): counts its throttled notices that a client's
-    outbox was full and dropped messages; prints its warnings and errors on stderr."""
+    outbox was full and dropped messages, and its warnings and errors per reason (the text
+    without addresses and numbers); prints the first of each reason on stderr, once."""
 
     def __init__(self) -> None:
         super().__init__(logging.INFO)
         self.queue_full = 0
+        self.errors: dict[str, int] = {}
 
     def emit(self, record: logging.LogRecord) -> None:
         text = record.getMessage()
         if "outbox for client" in text:
             self.queue_full += 1
         elif record.levelno >= logging.WARNING:
-            print(f"hil: live view: {text}", file=sys.stderr, flush=True)
+            reason = _reason(text)
+            self.errors[reason] = self.errors.get(reason, 0) + 1
+            if self.errors[reason] == 1:
+                print(f"hil: live view: {text} (more like it are only counted: the session's "
+                      "'live' metadata)", file=sys.stderr, flush=True)
+
+
+def _reason(text: str) -> str:
+    """A log line without what differs between clients: addresses, ports, ids, numbers."""
+    return re.sub(r"\d+", "N", re.sub(r"\[?[0-9a-fA-F:.]+\]?:\d+", "ADDRESS", text))[:120]
 
 
 def _sdk_log() -> _SdkLog:
@@ -186,6 +199,7 @@ class LiveSink:
         self._context = foxglove.Context()
         self._log = _sdk_log()
         self._queue_full_before = self._log.queue_full
+        self._errors_before = dict(self._log.errors)
         self._subscriptions = _Subscriptions()
         self.server = foxglove.start_server(name=name, host=host, port=port,
                                             context=self._context, message_backlog_size=backlog,
@@ -249,8 +263,11 @@ class LiveSink:
     def stats(self) -> LiveStats:
         sent = {t.channel.topic(): t.sent for t in self._by_key.values() if t.sent}
         decimated = {t.channel.topic(): t.decimated for t in self._by_key.values() if t.decimated}
+        errors = {reason: count - self._errors_before.get(reason, 0)
+                  for reason, count in self._log.errors.items()
+                  if count > self._errors_before.get(reason, 0)}
         return LiveStats(sent, decimated, self._log.queue_full - self._queue_full_before,
-                         self._failed)
+                         self._failed, errors)
 
     def close(self, timeout_s: float = 1.0) -> None:
         """Stop serving (clients see the connection close). The SDK's stop waits for every

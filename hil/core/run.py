@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import abc
 import os
+import signal
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -36,7 +37,7 @@ from typing import Any
 
 from hil.core.clock import Clock
 from hil.core.device_lock import DeviceLock, lock_device
-from hil.core.errors import HilError
+from hil.core.errors import HilError, RunInterruptedError
 from hil.core.output import OutputClaim, claim_output
 from hil.core.recorder import RecordingOptions
 from hil.core.session import Session
@@ -206,6 +207,12 @@ def _run_locked(experiment: Experiment, plan: RunPlan, output: OutputClaim) -> R
             finally:
                 session.close(kpis=kpis or None)
     stop_reason = session.loop.stop_reason or "completed"
+    if error is None and stop_reason.startswith("signal "):
+        name = stop_reason.removeprefix("signal ")
+        error = RunInterruptedError(
+            f"interrupted by {name} after {session.loop.ticks} tick(s): the hardware is in its "
+            "safe state, the KPIs so far are in the session",
+            128 + getattr(signal.Signals, name, signal.SIGINT).value)
     if error is not None:
         error.args = (f"{error} (session recorded to {plan.session_path})",)
         raise error

@@ -3,6 +3,7 @@ configuration by SDO, physics through CAN, clamp, unwrapping, watchdogs, faults,
 safe stop, explicit recovery, and a drive that will not leave its state (canopen LocalNode)."""
 
 import math
+import re
 import struct
 import uuid
 
@@ -11,6 +12,7 @@ import canopen
 import pytest
 
 from drivers.canopen import (
+    BusSharedError,
     DriveError,
     DriveFaultError,
     DriveLinkLostError,
@@ -163,10 +165,11 @@ def test_link_lost_when_tpdos_stop_latches_until_reset_fault():
     events = Events()
     master = emulated({"master": {"stale_cycles": 5}}, events)
     master.start()
-    other = master.emulator.attach_bus()
     for _ in range(10):
         master.exchange(0.0)
-    other.send(can.Message(arbitration_id=0, data=[0x02, 1], is_extended_id=False))  # NMT stop
+    # the node stops on its own (handed an NMT stop directly: on the bus, an NMT command the
+    # master did not send would be another master, which stops the run for that reason)
+    master.emulator.node.handle_frame(0x000, bytes([0x02, 1]))
     stale = []
     with pytest.raises(DriveLinkLostError, match="no TPDO for 5 cycles"):
         for _ in range(10):
@@ -180,7 +183,6 @@ def test_link_lost_when_tpdos_stop_latches_until_reset_fault():
     feedback = master.reset_fault()  # NMT pre-op (the node was STOPPED), fault reset, enable
     assert feedback.state == "OPERATION ENABLED" and master.link_up
     assert master.exchange(10.0).fresh
-    other.shutdown()
     master.close()
 
 
@@ -188,9 +190,8 @@ def test_drive_reboot_is_a_lost_link_and_needs_an_explicit_recovery():
     events = Events()
     master = emulated(events=events)
     master.start()
-    other = master.emulator.attach_bus()
     master.exchange(0.0)
-    other.send(can.Message(arbitration_id=0, data=[0x81, 1], is_extended_id=False))  # reset
+    master.emulator.node.handle_frame(0x000, bytes([0x81, 1]))  # the node resets on its own
     with pytest.raises(DriveLinkLostError, match="restarted"):
         master.exchange(0.0)
     assert "drive.bootup" in events.kinds() and not master.link_up
@@ -198,7 +199,6 @@ def test_drive_reboot_is_a_lost_link_and_needs_an_explicit_recovery():
         master.exchange(0.0)
     assert master.reset_fault().state == "OPERATION ENABLED"
     assert master.exchange(0.0).fresh
-    other.shutdown()
     master.close()
 
 
@@ -343,3 +343,25 @@ def test_a_period_too_short_for_the_bus_is_warned_about():
     assert warnings and warnings[0][1] == "warning" and "cannot fit" in warnings[0][2]
     master.close()
     master2.close()
+
+
+@pytest.mark.parametrize(("cob_id", "data", "what"), [
+    (0x000, [0x02, 1], "an NMT command (0x000)"),
+    (0x080, [], "a SYNC (0x080)"),
+    (0x77F, [0x05], "a heartbeat with this master's node id 127 (0x77F)"),
+])
+def test_another_master_on_the_bus_stops_the_exchange(cob_id, data, what):
+    events = Events()
+    master = emulated(events=events)
+    master.start()
+    other = master.emulator.attach_bus()  # a second master on the same bus
+    try:
+        master.exchange(0.0)
+        other.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+        with pytest.raises(BusSharedError, match=f"another master on .*: {re.escape(what)}"):
+            for _ in range(3):
+                master.exchange(0.0)
+        assert "bus.foreign_master" in events.kinds()
+    finally:
+        other.shutdown()
+        master.close()

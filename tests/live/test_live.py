@@ -6,6 +6,7 @@ import json
 import os
 import shutil
 import socket
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -253,3 +254,37 @@ def test_demo_live_takes_two_ports_and_says_which_is_taken(
         assert main(["demo", "--out", str(tmp_path), "--live", str(busy - 1)]) == 2
     assert f"cannot serve on 127.0.0.1:{busy}" in capsys.readouterr().err
     assert not list(tmp_path.glob("*.mcap"))
+
+
+def _reset_after_subscribing(url: str) -> None:
+    """A client that connects, subscribes to everything, then drops the TCP connection with
+    a reset (as a browser tab killed mid-stream does)."""
+    client = FoxgloveClient(url, CONNECT_S)
+    client.subscribe(list(client.topics()))
+    sock = client.ws.socket
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    sock.close()
+
+
+def test_clients_that_come_and_go_cost_one_stderr_line_per_reason(tmp_path: Path) -> None:
+    port = free_port()
+    out = tmp_path / "churn.mcap"
+    config = tmp_path / "short.toml"  # a 4 s machining cycle
+    config.write_text('[sequence]\nperiod_s = 4.0\nstages = [{ start_s = 0.0, end_s = 2.0, '
+                      'on = [] }, { start_s = 2.0, end_s = 4.0, on = ["M1", "M2"] }]\n')
+    run = start_hil("bench", "run", "--controller", "bc", "--realtime", "--cycles", "2",
+                    "--config", str(config), "--live", str(port), "--out", str(out))
+    try:
+        for _ in range(30):
+            _reset_after_subscribing(f"ws://127.0.0.1:{port}")
+        _, stderr = run.communicate(timeout=60)
+    finally:
+        if run.poll() is None:
+            run.kill()
+    assert run.returncode == 0, stderr
+    lines = [line for line in stderr.splitlines() if line.startswith("hil: live view: ")
+             and "live view on" not in line]
+    live = read_session(str(out)).metadata.get("live", {})
+    errors = json.loads(live.get("client_errors", "{}"))
+    assert len(lines) == len(errors) <= 3, stderr
+    assert sum(errors.values()) >= len(lines)
