@@ -7,6 +7,8 @@ Bus errors become :class:`~drivers.canopen.errors.DriveLinkLostError` naming the
 from __future__ import annotations
 
 import contextlib
+import time
+from collections import deque
 from collections.abc import Callable
 from typing import Protocol
 
@@ -14,6 +16,11 @@ import can
 
 from drivers.can_frames import Frame, frames_of
 from drivers.canopen.errors import DriveLinkLostError, one_line
+
+OWN_ECHO_WINDOW_NS = 100_000_000  # a bus that echoes does so within milliseconds
+OWN_FRAMES_KEPT = 256
+#: python-can buses that hand a sender its own frames back (multicast loopback)
+ECHOING_BUS_MODULES = ("can.interfaces.udp_multicast",)
 
 
 class FrameTrace(Protocol):
@@ -31,10 +38,16 @@ class CanLink:
                  trace: FrameTrace | None = None) -> None:
         self.reopen = reopen
         self.trace = trace
+        # frames of the watched ids this master sent lately, (monotonic ns, id, data), on a
+        # bus that hands a sender its own frames back (``echoes``): they must not pass for
+        # another master's
+        self.watched_ids: frozenset[int] = frozenset()
+        self._own: deque[tuple[int, int, bytes]] = deque(maxlen=OWN_FRAMES_KEPT)
         self._use(bus)
 
     def _use(self, bus: can.BusABC) -> None:
         self.bus = bus
+        self.echoes = type(bus).__module__.startswith(ECHOING_BUS_MODULES)
         frames = frames_of(bus)
         self._send_frames, self._recv_frame = frames.send_frames, frames.recv_frame
 
@@ -48,8 +61,28 @@ class CanLink:
             self._send_frames(frames)
         except (can.CanError, OSError) as exc:
             raise DriveLinkLostError(f"cannot send on {self.name}: {self._detail(exc)}") from None
+        if self.echoes and self.watched_ids:
+            now = time.monotonic_ns()
+            self._own.extend((now, can_id, bytes(data)) for can_id, data in frames
+                             if can_id in self.watched_ids)
         if self.trace is not None:
             self.trace.sent(frames)
+
+    def own_echo(self, frame: Frame) -> bool:
+        """Whether ``frame`` (of a watched id) is one this master sent in the last
+        :data:`OWN_ECHO_WINDOW_NS`, handed back by a bus that echoes (each sent frame
+        matches once); on other buses, never."""
+        if not self.echoes:
+            return False
+        own, horizon = self._own, time.monotonic_ns() - OWN_ECHO_WINDOW_NS
+        while own and own[0][0] < horizon:
+            own.popleft()
+        can_id, data = frame
+        for entry in own:
+            if entry[1] == can_id and entry[2] == bytes(data):
+                own.remove(entry)
+                return True
+        return False
 
     def recv(self, timeout: float | None) -> Frame | None:
         """The next frame within ``timeout`` seconds (0: only one already here), or None."""
@@ -63,8 +96,7 @@ class CanLink:
 
     def _detail(self, exc: BaseException) -> str:
         """The bus error's message without the bus name it may start with (ours names it)."""
-        detail = one_line(exc)
-        return detail.removeprefix(f"{self.name}: ")
+        return one_line(exc).removeprefix(f"{self.name}: ")
 
     def reconnect(self) -> None:
         """The bus built again (after a lost link), when the master was given the way."""

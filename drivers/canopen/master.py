@@ -140,6 +140,9 @@ class CanDriveMaster(Device):
                  closers: tuple[Callable[[], None], ...] = (), url: str | None = None) -> None:
         self.config = config = config or DriveMasterConfig()
         self.link = link
+        # frames only a master sends: heard from anyone else, another master drives the bus
+        link.watched_ids = frozenset(
+            (SYNC_COB_ID, NMT_COB_ID, HEARTBEAT_BASE + config.heartbeat_id))
         self._url = url if url is not None else link.name
         self.node_id = n = config.node_id
         self.mode = MODES[config.mode]
@@ -212,8 +215,9 @@ class CanDriveMaster(Device):
     # -- frames that are not the cyclic TPDOs ------------------------------------------------
     def _other_frame(self, frame: Frame) -> None:
         can_id, data = frame
-        if can_id in (SYNC_COB_ID, NMT_COB_ID, HEARTBEAT_BASE + self.config.heartbeat_id):
-            self._foreign_frame(can_id)
+        if can_id in self.link.watched_ids:
+            if not self.link.own_echo(frame):
+                self._foreign_frame(can_id)
         elif can_id == self.sdo.response_id:
             self.sdo.on_response(data)
         elif can_id == EMCY_BASE + self.node_id:

@@ -17,13 +17,20 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from hil.core.loop import Task
 
 if TYPE_CHECKING:
-    from hil.bench.rig import BenchSampler
     from hil.core.session import Session
+
+
+class Readings(Protocol):
+    """What the check reads: the sampler's latest good readings (a new dict per poll)."""
+
+    divisor: int
+    latest_power: dict[str, float] | None
+    latest_levels: dict[str, float] | None
 
 
 
@@ -42,7 +49,7 @@ class BenchSafetyTask(Task):
     """Every sample (record phase): the limits of :class:`BenchSafety` on the sampler's new
     reading; ``stopped`` holds the first one crossed, as one line."""
 
-    def __init__(self, limits: BenchSafety, sampler: BenchSampler, session: Session,
+    def __init__(self, limits: BenchSafety, sampler: Readings, session: Session,
                  period_s: float, clock_origin: Callable[[], int]) -> None:
         super().__init__("safety", sampler.divisor)
         self.limits, self.sampler, self.session = limits, sampler, session

@@ -39,7 +39,7 @@ def one_line_error(call, *args) -> str:
 @pytest.mark.parametrize(("text", "key", "why"), [
     ("[relays.P1]\ndwel_s = 2.0\n", "relays.P1.dwel_s", "unknown key"),
     ("[sampling]\nperiod_s = \"fast\"\n", "sampling.period_s", "must be float or int"),
-    ("[sampling]\nperiod_s = 0\n", "sampling.period_s", "must be > 0, got 0"),
+    ("[sampling]\nperiod_s = 0\n", "sampling.period_s", "must be >= 0.001, got 0"),
     ("[sampling]\nlevels_every = 0\n", "sampling.levels_every", "must be >= 1"),
     ("[relays.M1]\ndwell_s = -1.0\n", "relays.M1.dwell_s", "must be >= 0"),
     ("[relays.M1]\ncoil = -1\n", "relays.M1.coil", "a coil must be >= 0"),
@@ -130,4 +130,4 @@ def test_the_cli_prints_one_error_line_for_a_bad_config_file(tmp_path, capsys, c
     assert main([*command, "--config", path]) == 2
     out, err = capsys.readouterr()
     assert out == ""
-    assert err == f"hil: error: {path}: key 'sampling.period_s' must be > 0, got 0\n"
+    assert err == f"hil: error: {path}: key 'sampling.period_s' must be >= 0.001, got 0\n"

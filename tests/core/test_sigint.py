@@ -1,11 +1,19 @@
 """SIGINT to a running loop process: safe-state hooks run and the file is finished and indexed."""
 
+import json
+import os
 import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
+import pytest
 from mcap.reader import make_reader
 
 from hil.core.reader import read_session
+
+ROOT = Path(__file__).resolve().parents[2]
 
 CHILD = """
 import sys
@@ -60,3 +68,31 @@ def test_sigint_runs_safe_state_hooks_and_finishes_the_file(tmp_path, run_python
     assert len(data.topic("/tick")) > 200
     stop = [m for _, m in data.topic("/events") if m["kind"] == "session.stop"]
     assert stop and stop[0]["data"]["reason"] == "signal SIGINT"
+
+
+@pytest.mark.parametrize(("sig", "status"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_signalled_run_says_so_and_exits_128_plus_the_signal(tmp_path, sig, status):
+    """A lockstep run stopped by Ctrl-C (or SIGTERM) is not a completed run: its KPIs are in the
+    finished session, the exit status is the shell's for a signal, one line says so."""
+    out = tmp_path / "stopped.mcap"
+    run = subprocess.Popen([sys.executable, "-m", "hil", "servo", "run", "--controller", "pid",
+                            "--duration", "1000", "--out", str(out), "--json"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    try:
+        deadline = time.monotonic() + 30
+        while (not out.exists() or out.stat().st_size < 100_000) and \
+                time.monotonic() < deadline:
+            time.sleep(0.1)
+        run.send_signal(sig)
+        stdout, stderr = run.communicate(timeout=30)
+    finally:
+        run.kill()
+    assert run.returncode == status
+    assert stdout == ""  # no KPI document that looks complete
+    lines = stderr.strip().splitlines()
+    name = signal.Signals(sig).name
+    assert len(lines) == 1 and lines[0].startswith(f"hil: interrupted by {name} after "), stderr
+    data = read_session(out)
+    assert not data.recovered and "kpis" in data.metadata
+    assert json.loads(data.metadata["kpis"]["json"])["stop_reason"] == f"signal {name}"

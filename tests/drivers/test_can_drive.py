@@ -357,9 +357,9 @@ def test_another_master_on_the_bus_stops_the_exchange(cob_id, data, what):
     other = master.emulator.attach_bus()  # a second master on the same bus
     try:
         master.exchange(0.0)
-        other.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
         with pytest.raises(BusSharedError, match=f"another master on .*: {re.escape(what)}"):
             for _ in range(3):
+                other.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
                 master.exchange(0.0)
         assert "bus.foreign_master" in events.kinds()
     finally:
