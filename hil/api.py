@@ -33,6 +33,7 @@ from hil.core.errors import UsageError
 from hil.core.types import EventSink, no_event
 from hil.core.verdict import Limit, parse_limit
 from hil.emulator_process import EmulatorProcess, start_bench_emulator, start_drive_emulator
+from hil.servo.defaults import DEFAULT_REFERENCE
 
 __all__ = ["EmulatorProcess", "open_bench", "open_drive", "run_bench", "run_servo",
            "start_bench_emulator", "start_drive_emulator"]
@@ -66,7 +67,7 @@ def run_bench(controller: Controller, params: Mapping[str, Any] | None = None, *
 
 
 def run_servo(controller: Controller, params: Mapping[str, Any] | None = None, *,
-              drive: str = "emulated", reference: str = "sine:amplitude=2,frequency=1",
+              drive: str = "emulated", reference: str = DEFAULT_REFERENCE,
               duration_s: float = 1.0, limits: Iterable[str | Limit] = (),
               **options: Any) -> dict[str, Any]:
     """One closed-loop servo run (``hil servo run``), lockstep unless ``realtime=True``;

@@ -482,12 +482,17 @@ class CanDriveMaster(Device):
             self.cyclic.send_now([CW_QUICK_STOP, CW_DISABLE_VOLTAGE])
         raise error
 
+    def applied_current(self, current_ma: float) -> float:
+        """The current the drive is sent for a request of ``current_ma``: clamped to
+        ``current_limit_mA``."""
+        limit = self.config.current_limit_ma
+        return min(max(current_ma, -limit), limit)
+
     def _torque_units(self, current_ma: float) -> tuple[int, float]:
         if not math.isfinite(current_ma):
             raise DriveError(f"drive node {self.node_id}: refusing a non-finite current "
                              f"command ({current_ma!r})")
-        limit = self.config.current_limit_ma
-        clamped = min(max(current_ma, -limit), limit)
+        clamped = self.applied_current(current_ma)
         if clamped != current_ma:
             self.stats.clamped_commands += 1
         return round(clamped * 1000.0 / self.scaling.rated_current_ma), clamped

@@ -27,8 +27,6 @@ import math
 import os
 import shlex
 import sys
-import tempfile
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, TextIO
@@ -38,6 +36,7 @@ import numpy as np
 from hil.bench.rig import BenchRig, attach_bench, session_clock
 from hil.core.errors import UsageError
 from hil.core.loop import Task
+from hil.core.run import default_session_path
 from hil.core.session import Session
 
 if TYPE_CHECKING:
@@ -218,8 +217,7 @@ def run_identify_experiment(opts: IdentifyOptions, stream: TextIO | None = None
     if opts.meter_quantity not in quantities:
         raise UsageError(f"--output-quantity {opts.meter_quantity!r} is not polled (meter "
                          f"quantities: {', '.join(quantities)})")
-    out = opts.out or os.path.join(tempfile.gettempdir(),
-                                   f"hil-bench-identify-{int(time.time())}.mcap")
+    out = opts.out or default_session_path("bench", "identify")
     clock = session_clock(opts.bench, opts.realtime)
     prbs = [PrbsRelay(name, max(1, math.ceil(holds[name] / sample_s - 1e-9)),
                       config.map.relays[name].dwell_s, np.random.default_rng([opts.seed, k]))

@@ -67,6 +67,11 @@ from hil.core.run import (
 from hil.core.session import Session
 from hil.core.verdict import Limit, SignalWatch, split_limits
 
+#: the KPIs of ``hil bench run`` a limit may name (groups by their name)
+KPI_NAMES = ("J1_VA", "J2_VA", "SEC_VA", "energy_VAs", "peak_VA", "over_limit_s", "overlap_s",
+             "level_violations", "dwell_violations", "switches", "starts_per_hour", "solve_ms",
+             "solves_at_limit", "max_gap", "fallbacks", "faults")
+
 #: ``hil bench run``'s flags (argparse dests) -> the option they set, where the names differ
 FLAG_OPTIONS = {"hp": "hp_s", "hs": "hs_s", "dwell": "dwell_s", "config": "config_path",
                 "limit": "limits", "param": "params", "controller_budget": "controller_budget_s"}
@@ -171,7 +176,7 @@ class BenchExperiment(Experiment):
         self.params = {**bench.run.params, **opts.params}
         kpi_limits, signal_limits = split_limits(
             [*bench.run.limits, *opts.limits],
-            [*bench.map.meter_quantities, *bench.map.level_names])
+            [*bench.map.meter_quantities, *bench.map.level_names], KPI_NAMES)
         # checked before anything is opened: a spec that cannot load leaves no file behind
         self.factory, self.label = controller_factory(opts.controller, self.params,
                                                       method="decide", application="bench")

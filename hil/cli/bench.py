@@ -13,7 +13,7 @@ from hil.bench.identify import (
     parse_relays,
     run_identify_experiment,
 )
-from hil.cli.argtypes import key_value, nonnegative_float, positive_float, positive_int
+from hil.cli.argtypes import key_value, nonnegative_float, output_file, positive_float, positive_int
 from hil.cli.output import json_text
 from hil.cli.recording import add_recording_arguments, recording_options
 from hil.cli.verdict import add_controller_arguments, add_junit_argument, finish
@@ -39,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_run_arguments(run)
     add_junit_argument(run)
-    run.add_argument("--out", metavar="F.mcap", help="session file (default: "
+    run.add_argument("--out", metavar="F.mcap", type=output_file, help="session file (default: "
                      "sessions/bench-CONTROLLER-DATE-TIME.mcap)")
     run.add_argument("--json", action="store_true", help="print KPIs as JSON")
     add_recording_arguments(run)
@@ -146,7 +146,8 @@ def add_identify_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--realtime", action="store_true",
                         help="follow the wall clock (always so against a real bench)")
     parser.add_argument("--config", metavar="F.toml", help="TOML laid over hil/configs/bench.toml")
-    parser.add_argument("--out", metavar="F.mcap", help="session file (default: a temp file)")
+    parser.add_argument("--out", metavar="F.mcap", type=output_file,
+                        help="session file (default: sessions/bench-identify-DATE-TIME.mcap)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 

@@ -19,7 +19,7 @@ from controllers.ident.n4sid import (
     identify,
     json_text,
 )
-from hil.cli.argtypes import positive_int
+from hil.cli.argtypes import output_file, positive_int
 from hil.core.errors import UsageError
 from hil.core.identify import (
     IRREGULAR_TOLERANCE,
@@ -64,7 +64,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--detrend", action="store_true",
                    help="remove the training means (stored as offsets in the model)")
     p.add_argument("--no-feedthrough", action="store_true", help="force D = 0")
-    p.add_argument("--out", metavar="MODEL.json",
+    p.add_argument("--out", metavar="MODEL.json", type=output_file,
                    help="model file (default: next to the session, F.model.json)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.set_defaults(handler=run)

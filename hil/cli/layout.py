@@ -6,6 +6,8 @@ import argparse
 import shutil
 from importlib import resources
 
+from hil.cli.argtypes import output_file
+
 LAYOUTS = {
     "bench": ("bench.json", "total VA against the limit, relays, levels q_j, the EEC's plan"),
     "servo": ("servo.json", "reference and position, error, current and its limits, the MPC "
@@ -20,7 +22,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "Import from file...), or write a copy with --out. "
         + "; ".join(f"{name}: {what}" for name, (_, what) in LAYOUTS.items()) + ".")
     parser.add_argument("kind", choices=sorted(LAYOUTS), help="which session the layout shows")
-    parser.add_argument("--out", metavar="F.json", help="write the layout here")
+    parser.add_argument("--out", metavar="F.json", type=output_file, help="write the layout here")
     parser.set_defaults(handler=run_layout)
 
 

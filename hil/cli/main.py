@@ -15,6 +15,7 @@ from hil.cli import (
     drive,
     empc,
     emulate,
+    export,
     identify,
     layout,
     replay,
@@ -25,8 +26,8 @@ from hil.cli import (
 from hil.core.errors import HilError, RunInterruptedError
 from hil.core.session import set_command_line
 
-COMMAND_MODULES = (demo, bench, servo, drive, sweep, empc, identify, emulate, report, replay,
-                   layout, doctor)
+COMMAND_MODULES = (demo, bench, servo, drive, sweep, empc, identify, emulate, report, export,
+                   replay, layout, doctor)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -6,11 +6,12 @@ import argparse
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
-from hil.cli.argtypes import key_value, nonnegative_float, positive_float, positive_int
+from hil.cli.argtypes import key_value, nonnegative_float, output_file, positive_float, positive_int
 from hil.cli.output import json_text
 from hil.cli.recording import add_recording_arguments, recording_options
 from hil.cli.verdict import add_controller_arguments, add_junit_argument, finish
 from hil.core.errors import UsageError
+from hil.servo.defaults import DEFAULT_REFERENCE
 
 if TYPE_CHECKING:
     from hil.servo.run import ServoRunOptions
@@ -37,7 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_run_arguments(srun)
     add_junit_argument(srun)
-    srun.add_argument("--out", metavar="F.mcap",
+    srun.add_argument("--out", metavar="F.mcap", type=output_file,
                       help="session file (default: sessions/servo-CONTROLLER-DATE-TIME.mcap)")
     srun.add_argument("--json", action="store_true", help="print the KPIs as JSON")
     add_recording_arguments(srun)
@@ -57,7 +58,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     figs.add_argument("--q", type=positive_float, default=1e6, help="output weight Q(i)")
     figs.add_argument("--r", type=positive_float, default=1.0, help="input-move weight R(i)")
     figs.add_argument("--amplitude", type=positive_float, default=2.0, help="sine amplitude [deg]")
-    figs.add_argument("--out", metavar="F.png", help="also draw the table to this PNG file")
+    figs.add_argument("--out", metavar="F.png", type=output_file,
+                      help="also draw the table to this PNG file")
     figs.add_argument("--json", action="store_true", help="print the table as JSON")
     figs.add_argument("--workers", type=positive_int, default=1,
                       help="points simulated at once: 1 (default) in this process, more as a "
@@ -81,7 +83,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "slcan:///dev/ttyACM0?bitrate=1000000, serial:///dev/ttyUSB0, "
                         "udp_multicast://239.0.0.1?port=43113, virtual://NAME (query keys are "
                         "keyword arguments of python-can's can.Bus)")
-    parser.add_argument("--can-log", metavar="F.blf|F.asc|F.trc|F.log",
+    parser.add_argument("--can-log", metavar="F.blf|F.asc|F.trc|F.log", type=output_file,
                         help="write every CAN frame of the run to this file (python-can's "
                         "can.Logger; the suffix picks the format: opens in can.player, "
                         "can.viewer, Vector and PEAK tools)")
@@ -104,8 +106,12 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--hp", type=positive_int, default=50, help="prediction horizon")
     parser.add_argument("--umax", type=positive_float, default=1000.0,
                         help="current limit [mA]: the controller's bounds and the driver's clamp")
-    parser.add_argument("--reference", default="sine:amplitude=2,frequency=10",
-                        help="sine:amplitude=A,frequency=F | trapezoid:stroke=S,speed=RPM | "
+    parser.add_argument("--reference", default=DEFAULT_REFERENCE,
+                        help="default: the paper's 1 Hz sine of 2 deg (its Fig. 7 case), which "
+                        "the built-in controllers track within a few percent; the 10 Hz case "
+                        "(Fig. 8, sine:amplitude=2,frequency=10) asks the emulated axis for more "
+                        "than its 1000 mA allow. "
+                        "sine:amplitude=A,frequency=F | trapezoid:stroke=S,speed=RPM | "
                         "disturbance:torque=MA,start=S,end=S (Fig. 16: hold while a torque pulse "
                         "pushes the axis; emulated drives) | hold:position=DEG")
     parser.add_argument("--duration", type=positive_float, default=2.0, help="[s]")
@@ -156,8 +162,9 @@ def format_run(config: Any, kpis: dict[str, Any]) -> str:
         + (f" ({pct:.1f} % of the reference amplitude)" if pct is not None else "")
         + f", rms {_deg(kpis['rms_error_deg'])}, cumulative "
         f"{_deg(kpis['cumulative_error_deg'], 2)}",
-        f"  peak current {kpis['peak_current_mA'] or 0:.0f} mA, clamped by the driver "
-        f"{kpis['clamped_commands']}, stale feedback {kpis['stale_feedback']}",
+        f"  peak current sent {kpis['peak_current_mA'] or 0:.0f} mA (requested "
+        f"{kpis['peak_requested_mA'] or 0:.0f} mA; clamped by the driver "
+        f"{kpis['clamped_commands']} times), stale feedback {kpis['stale_feedback']}",
         f"  controller step median/p99/max {step['median']:.1f}/{step['p99']:.1f}/"
         f"{step['max']:.1f} us, deadline misses {kpis['deadline_misses']}",
     ]

@@ -9,7 +9,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from hil.cli.argtypes import positive_float
+from hil.cli.argtypes import output_file, positive_float
 from hil.core.errors import UsageError
 from hil.core.params import parse_param
 from hil.core.verdict import LimitResult, junit_xml, parse_limit
@@ -56,7 +56,7 @@ def add_controller_arguments(parser: argparse.ArgumentParser, builtins: str,
 
 def add_junit_argument(parser: argparse.ArgumentParser) -> None:
     """``--junit F.xml`` of a single run."""
-    parser.add_argument("--junit", metavar="F.xml",
+    parser.add_argument("--junit", metavar="F.xml", type=output_file,
                         help="write a JUnit XML report: one test case per limit")
 
 

@@ -192,10 +192,20 @@ class SignalWatch:
         return out
 
 
-def split_limits(limits: Sequence[Limit], signals: Sequence[str]
-                 ) -> tuple[list[Limit], list[Limit]]:
-    """(limits on the run's KPIs, limits on its per-tick ``signals``)."""
+def split_limits(limits: Sequence[Limit], signals: Sequence[str],
+                 kpis: Sequence[str] | None = None) -> tuple[list[Limit], list[Limit]]:
+    """(limits on the run's KPIs, limits on its per-tick ``signals``). With ``kpis`` (the
+    application's KPI names; a nested one is named by its group, e.g. ``faults``), a limit on
+    a name that is neither is a :class:`UsageError` listing both, before the run."""
     names = set(signals)
+    if kpis is not None:
+        known = set(kpis)
+        for lim in limits:
+            if lim.kpi not in names and lim.kpi.split(".")[0] not in known:
+                raise UsageError(
+                    f"limit '{lim}': no KPI or signal '{lim.kpi}'; KPIs: {', '.join(kpis)} "
+                    f"(groups as GROUP.KEY, e.g. faults.emcy); per-tick signals: "
+                    f"{', '.join(signals)}")
     return ([lim for lim in limits if lim.kpi not in names],
             [lim for lim in limits if lim.kpi in names])
 

@@ -49,6 +49,7 @@ from hil.core.session import Session
 from hil.core.verdict import Limit, SignalWatch, split_limits
 from hil.servo.builtin import ServoContext
 from hil.servo.config import EMULATED, DriveConfig, load_drive_config
+from hil.servo.defaults import DEFAULT_REFERENCE
 from hil.servo.rig import open_drive
 from hil.servo.safety import SafetyMonitor
 from hil.servo.task import (
@@ -68,6 +69,12 @@ SIGNALS = ("abs_error_deg", "abs_command_mA", "abs_velocity_deg_s", "position_de
 # lockstep over a real bus: wait this long for the TPDOs (a lockstep run never ends a cycle
 # early; a drive that does not answer within it is a lost link)
 LOCKSTEP_RX_TIMEOUT_US = 100_000
+
+#: the KPIs of ``hil servo run`` a limit may name (groups by their name)
+KPI_NAMES = ("max_error_deg", "max_error_pct", "rms_error_deg", "cumulative_error_deg",
+             "step_us", "peak_current_mA", "peak_requested_mA", "deadline_misses", "ticks",
+             "stale_feedback", "clamped_commands", "wall_s", "realtime_factor", "solver_paths",
+             "empc_fallbacks", "faults")
 
 #: ``hil servo run``'s flags (argparse dests) -> the option they set, where the names differ
 FLAG_OPTIONS = {"duration": "duration_s", "config": "drive_config", "settle": "settle_s",
@@ -93,7 +100,7 @@ class ServoRunOptions:
     hu: int = 8
     hp: int = 50
     umax: float = 1000.0
-    reference: str = "sine:amplitude=2,frequency=10"
+    reference: str = DEFAULT_REFERENCE
     duration_s: float = 2.0
     realtime: bool = False
     out: str | None = None
@@ -219,7 +226,7 @@ class ServoExperiment(Experiment):
         self.factory, _ = controller_factory(options.controller, self.scenario.reference,
                                              self.params, method="step", application="servo")
         kpi_limits, signal_limits = split_limits([*drive.run.limits, *options.limits],
-                                                 SIGNALS)
+                                                 SIGNALS, KPI_NAMES)
         self.watch = SignalWatch(signal_limits)
         self.out = options.out or default_session_path(
             "servo", controller_short_name(options.label))
@@ -297,8 +304,9 @@ class ServoExperiment(Experiment):
             tracking = {"max_error_deg": None, "max_error_pct": None, "rms_error_deg": None,
                         "cumulative_error_deg": None,
                         "step_us": {"median": 0.0, "p99": 0.0, "max": 0.0},
-                        "peak_current_mA": None}
+                        "peak_current_mA": None, "peak_requested_mA": None}
         peak = tracking.pop("peak_current_mA")
+        requested = tracking.pop("peak_requested_mA")
         base.update(tracking)
         loop = session.loop
         ticks = task.stats.ticks if task is not None else 0
@@ -313,7 +321,8 @@ class ServoExperiment(Experiment):
             "clock": session.clock.mode,
             "umax_mA": options.umax,
             "settle_s": options.settle_s,
-            "peak_current_mA": peak,
+            "peak_current_mA": peak,          # sent to the drive, after the clamp
+            "peak_requested_mA": requested,   # the controller's request
             "stale_feedback": task.stale if task is not None else 0,
             "clamped_commands": master.stats.clamped_commands,
             "wall_s": round(wall_s, 4),

@@ -117,7 +117,9 @@ class ServoTask(Task):
         error = wrap180(position - r)
         if not feedback.fresh:
             self.stale += 1
-        self.stats.add(t_s, error, u, self._compute_us)
+        # the current the drive is sent; the request stays on /drive/command
+        applied = self.master.applied_current(u) if math.isfinite(u) else u
+        self.stats.add(t_s, error, applied, self._compute_us, requested_ma=u)
         message: dict[str, Any] = {"t_s": t_s, "reference_deg": r, "error_deg": error,
                                    "command_mA": u, "compute_us": self._compute_us}
         if self.scenario.disturbance is not None:
@@ -136,7 +138,7 @@ class ServoTask(Task):
             self.session.event("safety.stop", stop, level="error", source="safety", t_s=t_s)
             self.loop.stop(stop)
         if self.watch is not None:
-            self._check_limits(error, u, feedback)
+            self._check_limits(error, applied, feedback)
         if self.predictor is not None and self.predictions is not None \
                 and n % self.prediction_every == 0:
             u_pred, y_pred = self.predictor.prediction()

@@ -57,10 +57,14 @@ class TrackingStats:
         self.max_error = 0.0
         self.sum_error = 0.0
         self.sum_squares = 0.0
-        self.peak_current = 0.0
+        self.peak_current = 0.0    # the current the drive was sent (after the clamp)
+        self.peak_requested = 0.0  # the controller's request
         self.compute_us = TimingHistogram()
 
-    def add(self, t_s: float, error_deg: float, command_ma: float, compute_us: float) -> None:
+    def add(self, t_s: float, error_deg: float, command_ma: float, compute_us: float,
+            requested_ma: float | None = None) -> None:
+        """One tick: ``command_ma`` is the current the drive was sent, ``requested_ma`` the
+        controller's request (the same when not given)."""
         self.ticks += 1
         self.compute_us.add(compute_us)
         if t_s >= self.settle_s:
@@ -72,6 +76,9 @@ class TrackingStats:
                 self.max_error = e
             if abs(command_ma) > self.peak_current:
                 self.peak_current = abs(command_ma)
+            requested = abs(command_ma if requested_ma is None else requested_ma)
+            if requested > self.peak_requested:
+                self.peak_requested = requested
 
     def kpis(self, amplitude: float | None) -> dict[str, Any]:
         if self.counted:
@@ -87,4 +94,5 @@ class TrackingStats:
         step = self.compute_us.summary()
         kpis["step_us"] = {"median": step["p50"], "p99": step["p99"], "max": step["max"]}
         kpis["peak_current_mA"] = self.peak_current if self.counted else None
+        kpis["peak_requested_mA"] = self.peak_requested if self.counted else None
         return kpis

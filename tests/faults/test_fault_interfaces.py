@@ -133,21 +133,20 @@ def test_the_marker_gives_the_fixture_emulator_its_faults(hil_bench):
 ])
 def test_two_sigterms_a_few_ms_apart_stop_the_emulator(argv):
     env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
-    if True:
-        process = subprocess.Popen([sys.executable, "-m", "hil", "emulate", *argv],
-                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                   env=env)
-        try:
-            assert process.stdout.readline().startswith("hil: ")  # ready
-            process.send_signal(signal.SIGTERM)
-            time.sleep(0.002)
-            process.send_signal(signal.SIGTERM)
-            assert process.wait(timeout=15) == 0
-            assert "emulator stopped" in process.stdout.read()
-        finally:
-            if process.poll() is None:
-                process.kill()
-                process.wait()
+    process = subprocess.Popen([sys.executable, "-m", "hil", "emulate", *argv],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env=env)
+    try:
+        assert process.stdout.readline().startswith("hil: ")  # ready
+        process.send_signal(signal.SIGTERM)
+        time.sleep(0.002)
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=15) == 0
+        assert "emulator stopped" in process.stdout.read()
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
 
 
 LOOP_CHILD = """
@@ -156,8 +155,13 @@ from hil.core.loop import FunctionTask
 from hil.core.session import Session
 
 session = Session({path!r}, RealtimeClock(), 0.001, kind="test")
-session.add_task(FunctionTask("sample", 1))
-print("running", flush=True)
+
+def announce(t):  # from the first tick: the loop's signal handlers are in place
+    if not announce.done:
+        announce.done = print("running", flush=True) or True
+
+announce.done = False
+session.add_task(FunctionTask("sample", 1, write=announce))
 session.run(duration_s=60)
 session.close()
 print("closed", flush=True)
@@ -171,7 +175,6 @@ def test_two_sigterms_a_few_ms_apart_stop_a_loop_cleanly(tmp_path, run_python):
     child = run_python(LOOP_CHILD.format(path=str(path)))
     try:
         assert child.stdout.readline().strip() == "running"
-        time.sleep(0.3)
         child.send_signal(signal.SIGTERM)
         time.sleep(0.002)
         child.send_signal(signal.SIGTERM)

@@ -98,9 +98,15 @@ def test_another_master_switching_a_relay_stops_the_run(tmp_path):
 
 def test_a_second_run_on_the_same_drive_bus_refuses_and_a_foreign_sync_stops_the_first(
         tmp_path):
-    with api.start_drive_emulator() as emulator:
+    # a loaded machine may starve the real-time run: generous watchdogs keep it going until
+    # the foreign master stops it (what this test is about)
+    config = tmp_path / "drive.toml"
+    config.write_text("[master]\nheartbeat_timeout_ms = 5000\nstale_cycles = 100000\n"
+                      "[emulator]\nsync_loss_timeout_ms = 5000\n[safety]\nenabled = false\n")
+    with api.start_drive_emulator(config) as emulator:
         first = hil("servo", "run", "--controller", "pid", "--drive", emulator.url,
-                    "--realtime", "--duration", "20", "--out", str(tmp_path / "first.mcap"))
+                    "--config", str(config), "--realtime", "--duration", "20",
+                    "--out", str(tmp_path / "first.mcap"))
         deadline = time.monotonic() + 30
         while not (tmp_path / "first.mcap").exists() and time.monotonic() < deadline:
             time.sleep(0.05)

@@ -1,0 +1,80 @@
+"""``hil export``: one topic of a session to CSV (a spreadsheet, pandas) or JSON lines."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import sys
+from typing import Any
+
+from hil.cli.argtypes import output_file
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "export", help="write one topic of a session as CSV or JSON lines",
+        description="Write the messages of one topic: one row per message, t_s (seconds from "
+        "the session's start) and log_time_ns first, then one column per field (a list field "
+        "becomes FIELD.0, FIELD.1, ...; a nested object FIELD.KEY). Works on split series and "
+        "damaged files (what could be read). pandas: pd.read_csv(F).",
+    )
+    p.add_argument("file", help="session file (.mcap; the first file of a split series)")
+    p.add_argument("--topic", required=True, metavar="TOPIC", help="the topic, e.g. "
+                   "/bench/power, /drive/feedback, /events")
+    form = p.add_mutually_exclusive_group()
+    form.add_argument("--csv", action="store_true", help="CSV (the default)")
+    form.add_argument("--jsonl", action="store_true", help="JSON lines, as 'hil report --topic'")
+    p.add_argument("--out", metavar="F", type=output_file,
+                   help="write here (default: standard output)")
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from hil.cli.report import topic_lines
+    from hil.core.reader import read_session
+
+    data = read_session(args.file)
+    if args.jsonl:
+        text = "".join(line + "\n" for line in topic_lines(data, args.topic))
+    else:
+        text = csv_text(data, args.topic)
+    if args.out:
+        with open(args.out, "w", encoding="utf-8", newline="") as file:
+            file.write(text)
+        print(f"{args.topic}: {text.count(chr(10)) - (0 if args.jsonl else 1)} row(s) to "
+              f"{args.out}", file=sys.stderr)
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
+def csv_text(data: Any, topic: str) -> str:
+    """The topic as CSV text (header, then a row per message)."""
+    import json
+
+    from hil.cli.report import topic_lines
+
+    rows = [_flatten(json.loads(line)) for line in topic_lines(data, topic)]
+    columns: list[str] = []
+    for row in rows:
+        columns.extend(key for key in row if key not in columns)
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=columns, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    return out.getvalue()
+
+
+def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(value, dict):
+        flat: dict[str, Any] = {}
+        for key, item in value.items():
+            flat.update(_flatten(item, f"{prefix}{key}."))
+        return flat
+    if isinstance(value, list):
+        flat = {}
+        for index, item in enumerate(value):
+            flat.update(_flatten(item, f"{prefix}{index}."))
+        return flat
+    return {prefix[:-1]: value}

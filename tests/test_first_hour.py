@@ -1,0 +1,114 @@
+"""What a new user meets in the first hour, tried from a folder outside the repository with
+the ``hil`` command: limits that name no KPI are refused before the run, current limits apply
+to the current the drive is sent, output paths follow one rule, Ctrl-C is exit 130."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.timeout(120)
+
+
+def hil(cwd, *args, timeout=90):
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.run([sys.executable, "-m", "hil", *args], cwd=cwd, capture_output=True,
+                          text=True, env=env, timeout=timeout, check=False)
+
+
+@pytest.mark.parametrize(("argv", "name"), [
+    (["servo", "run", "--controller", "pid", "--limit", "rms_err<=0.5"], "rms_err"),
+    (["bench", "run", "--controller", "bc", "--limit", "J1<=5"], "J1"),
+    (["servo", "run", "--controller", "pid", "--limit", "fault.emcy<=0"], "fault.emcy"),
+])
+def test_a_limit_on_no_kpi_is_refused_before_the_run(tmp_path, argv, name):
+    start = time.monotonic()
+    done = hil(tmp_path, *argv)
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"no KPI or signal '{name}'; KPIs: " in lines[0]
+    assert "per-tick signals: " in lines[0]
+    assert not (tmp_path / "sessions").exists()  # nothing ran
+    assert time.monotonic() - start < 30
+
+
+PUSHY = textwrap.dedent("""
+    class Pushy:
+        '''The README's PdPosition with a stiffer P: asks for more current than the drive
+        may take whenever the reference runs ahead.'''
+        def __init__(self, reference, params):
+            self.reference, self.last = reference, None
+        def step(self, position_deg, t_s):
+            error = (float(self.reference.position(t_s)) - position_deg + 180.0) % 360.0 - 180.0
+            rate = 0.0 if self.last is None else (error - self.last[1]) / (t_s - self.last[0])
+            self.last = (t_s, error)
+            return 900.0 * error + 6.0 * rate
+""")
+
+
+def test_current_limits_and_the_peak_are_on_the_current_the_drive_is_sent(tmp_path):
+    (tmp_path / "pushy.py").write_text(PUSHY)
+    done = hil(tmp_path, "servo", "run", "--controller", "pushy.py:Pushy", "--duration", "0.5",
+               "--limit", "abs_command_mA<=1000", "--out", "pushy.mcap", "--json")
+    assert done.returncode == 0, done.stderr
+    kpis = json.loads(done.stdout)
+    assert kpis["peak_current_mA"] == 1000.0 < kpis["peak_requested_mA"]
+    assert kpis["clamped_commands"] > 0 and kpis["passed"] is True
+
+
+def test_output_paths_follow_one_rule(tmp_path):
+    session = tmp_path / "s.mcap"
+    assert hil(tmp_path, "servo", "run", "--controller", "pid", "--duration", "0.05",
+               "--out", str(session)).returncode == 0
+    # missing folders are created, for every output
+    done = hil(tmp_path, "report", str(session), "--out", "plots/new/s.png")
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "plots" / "new" / "s.png").stat().st_size > 0
+    done = hil(tmp_path, "servo", "run", "--controller", "pid", "--duration", "0.05",
+               "--junit", "reports/junit.xml", "--limit", "ticks>=1", "--out", "runs/a.mcap")
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "reports" / "junit.xml").exists() and (tmp_path / "runs/a.mcap").exists()
+    # an output that cannot be written is refused before anything runs: no session left
+    (tmp_path / "blocker").write_text("a file, not a folder")
+    for flag, value in (("--junit", "blocker/j.xml"), ("--out", "blocker/b.mcap"),
+                        ("--out", ".")):
+        done = hil(tmp_path, "servo", "run", "--controller", "pid", "--duration", "0.05",
+                   flag, value)
+        assert done.returncode == 2, (flag, value, done.stderr)
+        assert f"argument {flag}: " in done.stderr and "Traceback" not in done.stderr
+    done = hil(tmp_path, "report", str(session), "--out", "blocker/x.png")
+    assert done.returncode == 2 and "blocker is a file, not a folder" in done.stderr
+    # a default session goes to ./sessions/, for the bench as for the servo
+    done = hil(tmp_path, "servo", "run", "--controller", "pid", "--duration", "0.05")
+    assert done.returncode == 0
+    assert len(list((tmp_path / "sessions").glob("servo-pid-*.mcap"))) == 1
+
+
+def test_reading_a_session_events_messages_and_csv(tmp_path):
+    import csv
+
+    session = tmp_path / "s.mcap"
+    assert hil(tmp_path, "servo", "run", "--controller", "pid", "--duration", "0.05",
+               "--out", str(session)).returncode == 0
+    events = hil(tmp_path, "report", str(session), "--events")
+    assert events.returncode == 0
+    kinds = [line.split()[2] for line in events.stdout.splitlines()]
+    assert kinds[0] == "drive.configured" and "session.stop" in kinds
+    lines = hil(tmp_path, "report", str(session), "--topic", "/drive/feedback").stdout
+    rows = [json.loads(line) for line in lines.splitlines()]
+    assert len(rows) == 100 and rows[1]["t_s"] == 0.0005 and "position_deg" in rows[1]
+    done = hil(tmp_path, "export", str(session), "--topic", "/drive/feedback",
+               "--out", "csv/feedback.csv")
+    assert done.returncode == 0 and "100 row(s)" in done.stderr
+    with open(tmp_path / "csv" / "feedback.csv", newline="") as file:
+        table = list(csv.DictReader(file))
+    assert len(table) == 100
+    assert [float(r["position_deg"]) for r in table] == [r["position_deg"] for r in rows]
+    wrong = hil(tmp_path, "export", str(session), "--topic", "/drive/feedbak")
+    assert wrong.returncode == 2 and "topics: /drive/command, /drive/feedback" in wrong.stderr
