@@ -55,6 +55,7 @@ PUSHY = textwrap.dedent("""
 def test_current_limits_and_the_peak_are_on_the_current_the_drive_is_sent(tmp_path):
     (tmp_path / "pushy.py").write_text(PUSHY)
     done = hil(tmp_path, "servo", "run", "--controller", "pushy.py:Pushy", "--duration", "0.5",
+               "--reference", "sine:amplitude=2,frequency=10",  # the paper's fast case
                "--limit", "abs_command_mA<=1000", "--out", "pushy.mcap", "--json")
     assert done.returncode == 0, done.stderr
     kpis = json.loads(done.stdout)
@@ -112,3 +113,48 @@ def test_reading_a_session_events_messages_and_csv(tmp_path):
     assert [float(r["position_deg"]) for r in table] == [r["position_deg"] for r in rows]
     wrong = hil(tmp_path, "export", str(session), "--topic", "/drive/feedbak")
     assert wrong.returncode == 2 and "topics: /drive/command, /drive/feedback" in wrong.stderr
+
+
+def test_the_command_line_starts_without_the_numerical_stack():
+    """`hil --help` stays fast because building the parser imports no numpy, scipy, cvxpy,
+    Ray or the recorder (each command imports what it needs when it runs)."""
+    code = ("import sys, hil.cli.main as m; m.build_parser(); "
+            "print(sorted(k for k in ('numpy', 'scipy', 'cvxpy', 'ray', 'matplotlib', "
+            "'hil.core.recorder', 'hil.core.session') if k in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=60, check=True)
+    assert done.stdout.strip() == "[]"
+
+
+def _stderr_on_a_terminal(cwd, *args):
+    """Run ``hil ARGS`` with its stderr on a pseudo-terminal; what it wrote there."""
+    import pty
+    import select
+
+    master, slave = pty.openpty()
+    run = subprocess.Popen([sys.executable, "-m", "hil", *args], cwd=cwd, stderr=slave,
+                           stdout=subprocess.DEVNULL, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    os.close(slave)
+    seen = b""
+    try:
+        while select.select([master], [], [], 60)[0]:
+            try:
+                chunk = os.read(master, 4096)
+            except OSError:  # the terminal's other end closed: the run is over
+                break
+            if not chunk:
+                break
+            seen += chunk
+    finally:
+        os.close(master)
+        assert run.wait(timeout=60) == 0
+    return seen.decode()
+
+
+def test_a_long_run_shows_progress_on_a_terminal_only(tmp_path):
+    run = ("servo", "run", "--controller", "pid", "--duration", "20", "--out", "p.mcap")
+    shown = _stderr_on_a_terminal(tmp_path, *run)
+    assert "\rservo pid: " in shown and " of 20 s (" in shown and shown.endswith("\r\x1b[K")
+    assert _stderr_on_a_terminal(tmp_path, *run, "--quiet") == ""
+    piped = hil(tmp_path, *run)
+    assert piped.returncode == 0 and piped.stderr == ""

@@ -57,15 +57,12 @@ import numpy as np
 from scipy import linalg
 from threadpoolctl import threadpool_limits
 
+from controllers.ident.defaults import BLOCK_ROW_CANDIDATES, DEFAULT_MAX_ORDER
+
 MODEL_FORMAT = "hil.ident.state-space"
 MODEL_FORMAT_VERSION = 1
 WEIGHTINGS = ("n4sid", "moesp", "cva")
 DEFAULT_BLOCK_ROWS = 15
-# identify() without block_rows tries these and keeps the one whose model has the lowest BIC on
-# the training data. The past window i*dt must span the slowest transient: 15 rows (0.15 s at
-# 10 ms) cut the bench motors' ~0.5 s spin-up short (fit 94.8 % vs 96.1 % with 60 rows on P2).
-BLOCK_ROW_CANDIDATES = (15, 30, 60)
-DEFAULT_MAX_ORDER = 8
 
 _RANK_RTOL = 1e-10  # singular values below this (relative) count as zero
 _ERROR_FLOOR = 1e-20  # relative mean squared error treated as exact (round-off level)

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
+from hil.bench.identify_options import MACHINING_MODES, IdentifyOptions
 from hil.bench.rig import BenchRig, attach_bench, session_clock
 from hil.core.errors import UsageError
 from hil.core.loop import Task
@@ -42,25 +43,7 @@ from hil.core.session import Session
 if TYPE_CHECKING:
     from hil.bench.config import BenchConfig
 
-MACHINING_MODES = ("sequence", "prbs", "off")
 TOPIC = "/ident/relays"
-
-
-@dataclass
-class IdentifyOptions:
-    """Everything ``hil bench identify`` can set (CLI flags); None = the config's value."""
-
-    relays: tuple[str, ...] = ("P1", "P2")
-    duration_s: float = 300.0
-    min_hold_s: float | None = None
-    seed: int = 1
-    bench: str = "emulated"
-    machining: str = "off"
-    meter_quantity: str = "va_l2"
-    realtime: bool = False
-    out: str | None = None
-    config_path: str | None = None
-    progress_s: float = 10.0
 
 
 @dataclass
@@ -155,17 +138,6 @@ class PrbsTask(Task):
             self._previous[name] = on
         self._topic.log(t_ns, message)
         self._progress(t_ns)
-
-
-def parse_relays(text: str) -> tuple[str, ...]:
-    """``P1,P2`` -> ("P1", "P2"); ``none`` or empty -> ()."""
-    if text.strip().lower() in ("", "none"):
-        return ()
-    names = tuple(n.strip() for n in text.split(","))
-    if any(not n for n in names) or len(set(names)) != len(names):
-        raise UsageError(f"--relays {text!r}: expected distinct relay names separated by ','"
-                         ", e.g. P1,P2")
-    return names
 
 
 def plan_experiment(opts: IdentifyOptions, config: BenchConfig

@@ -105,6 +105,7 @@ class BenchRunOptions:
     controller_budget_s: float | None = None  # per decision; None: the step in real time
     overrides: Mapping[str, Any] = field(default_factory=dict)
     recording: RecordingOptions = field(default_factory=RecordingOptions)
+    quiet: bool = False              # no progress line on the terminal
 
     @classmethod
     def from_flags(cls, flags: Mapping[str, Any]) -> BenchRunOptions:
@@ -196,7 +197,8 @@ class BenchExperiment(Experiment):
             kpi_limits=tuple(kpi_limits), watch=self.watch,
             config={"bench": bench.data, "controllers": eec.data, "run": run_info},
             config_text=text, recording=opts.recording,
-            devices=() if is_emulated(opts.bench) else (("bench", opts.bench),))
+            devices=() if is_emulated(opts.bench) else (("bench", opts.bench),),
+            quiet=opts.quiet)
 
     def open_devices(self, clock: Clock, on_event: EventBuffer) -> None:
         opts = self.opts

@@ -7,12 +7,7 @@ import time
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
-from hil.bench.identify import (
-    MACHINING_MODES,
-    IdentifyOptions,
-    parse_relays,
-    run_identify_experiment,
-)
+from hil.bench.identify_options import MACHINING_MODES, IdentifyOptions, parse_relays
 from hil.cli.argtypes import key_value, nonnegative_float, output_file, positive_float, positive_int
 from hil.cli.output import json_text
 from hil.cli.recording import add_recording_arguments, recording_options
@@ -76,6 +71,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         help="follow the wall clock (always so against a real bench)")
     parser.add_argument("--config", metavar="F.toml",
                         help="TOML laid over hil/configs/bench.toml and eec.toml")
+    parser.add_argument("--quiet", action="store_true",
+                        help="no progress line on the terminal (there is none when stderr is "
+                        "not a terminal)")
     parser.add_argument("--safety", action="append", type=key_value, default=[],
                         metavar="KEY=VALUE",
                         help="override one safety limit of bench.toml's [safety] for this run "
@@ -153,6 +151,8 @@ def add_identify_arguments(parser: argparse.ArgumentParser) -> None:
 
 def identify_command(args: argparse.Namespace) -> int:
     """Handler of ``hil bench identify``."""
+    from hil.bench.identify import run_identify_experiment
+
     summary = run_identify_experiment(IdentifyOptions(
         relays=args.relays, duration_s=args.duration, min_hold_s=args.min_hold, seed=args.seed,
         bench=args.bench, machining=args.machining, meter_quantity=args.output_quantity,

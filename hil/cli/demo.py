@@ -13,7 +13,7 @@ from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 from hil.cli.recording import add_live_arguments, live_address
-from hil.core.recorder import RecordingOptions
+from hil.core.recording_options import RecordingOptions
 
 BENCH_COLUMNS = ("J1_VA", "J2_VA", "SEC_VA", "peak_VA", "overlap_s", "dwell_violations",
                  "level_violations")

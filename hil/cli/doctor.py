@@ -7,7 +7,6 @@ import sys
 
 from hil.cli.argtypes import positive_float
 from hil.cli.output import json_text
-from hil.core.doctor import format_doctor, run_doctor
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -24,6 +23,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from hil.core.doctor import format_doctor, run_doctor
+
     result = run_doctor(args.duration, progress=lambda line: print(line, file=sys.stderr,
                                                                      flush=True))
     print(json_text(result) if args.json else format_doctor(result))

@@ -8,28 +8,14 @@ import os
 import shlex
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from controllers.ident.n4sid import (
-    BLOCK_ROW_CANDIDATES,
-    DEFAULT_MAX_ORDER,
-    IdentificationError,
-    IdentifiedModel,
-    identify,
-    json_text,
-)
+from controllers.ident.defaults import BLOCK_ROW_CANDIDATES, DEFAULT_MAX_ORDER
 from hil.cli.argtypes import output_file, positive_int
 from hil.core.errors import UsageError
-from hil.core.identify import (
-    IRREGULAR_TOLERANCE,
-    aligned_signals,
-    describe_signals,
-    experiment_command,
-    parse_signal,
-    save_model_file,
-)
-from hil.core.reader import read_session
+
+if TYPE_CHECKING:
+    from controllers.ident.n4sid import IdentifiedModel
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -81,6 +67,17 @@ def fraction(text: str) -> float:
 
 
 def run(args: argparse.Namespace) -> int:
+    from controllers.ident.n4sid import IdentificationError, identify, json_text
+    from hil.core.identify import (
+        IRREGULAR_TOLERANCE,
+        aligned_signals,
+        describe_signals,
+        experiment_command,
+        parse_signal,
+        save_model_file,
+    )
+    from hil.core.reader import read_session
+
     data = read_session(args.file)
     if not args.inputs or not args.outputs:
         raise UsageError(
@@ -140,6 +137,8 @@ def regenerate_command(args: argparse.Namespace, block_rows: int, out: str) -> s
 
 def format_model(model: IdentifiedModel, out: str) -> str:
     """Human-readable summary: order, fit, singular values, matrices."""
+    import numpy as np
+
     samples = model.samples
     if model.order_selection.get("method") == "bic":
         how = f"selected by BIC over orders 1-{len(model.order_selection.get('bic', {}))}"

@@ -6,6 +6,7 @@ import argparse
 import os
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 from hil import __version__
 from hil.cli import (
@@ -24,14 +25,21 @@ from hil.cli import (
     sweep,
 )
 from hil.core.errors import HilError, RunInterruptedError
-from hil.core.session import set_command_line
 
 COMMAND_MODULES = (demo, bench, servo, drive, sweep, empc, identify, emulate, report, export,
                    replay, layout, doctor)
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its errors on one line (the command, the problem, where the help is)
+    instead of the whole usage block; the subcommands' parsers are of this class too."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="hil",
         description="Hardware-in-the-loop bridge: run model-based controllers in a fixed-rate "
         "loop against a Modbus relay bench or a CiA 402 servo drive (real or emulated) and "
@@ -48,6 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    from hil.core.session import set_command_line
+
     set_command_line(["hil", *(sys.argv[1:] if argv is None else argv)])
     try:
         return int(args.handler(args) or 0)

@@ -119,6 +119,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         help="KPIs ignore the first S seconds (start-up transient)")
     parser.add_argument("--realtime", action="store_true",
                         help="follow the wall clock (default: lockstep virtual time)")
+    parser.add_argument("--quiet", action="store_true",
+                        help="no progress line on the terminal (there is none when stderr is "
+                        "not a terminal)")
     parser.add_argument("--prediction-every", type=positive_int, metavar="N",
                         help="record /mpc/prediction every N ticks (default: every tick in "
                         "lockstep, every 10th in real time)")

@@ -8,17 +8,17 @@ import os
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hil.cli import bench, servo
 from hil.cli.argtypes import positive_int
 from hil.cli.output import json_text
 from hil.core.errors import UsageError
-from hil.core.registry import scheme_of
-from hil.sweep.config import SweepTable, load_sweep_table
-from hil.sweep.engine import Engine, check_address
-from hil.sweep.space import Range, Space, Trial, expand
-from hil.sweep.sweep import Sweep, check_trials, format_sweep, run_sweep
+
+if TYPE_CHECKING:  # the sweep machinery (Ray, the runs) is imported when a sweep runs
+    from hil.sweep.config import SweepTable
+    from hil.sweep.engine import Engine
+    from hil.sweep.space import Trial
 
 RUN_ARGUMENTS: dict[str, Callable[[argparse.ArgumentParser], None]] = {
     "bench": bench.add_run_arguments, "servo": servo.add_run_arguments}
@@ -76,6 +76,10 @@ def add_sweep_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def sweep_command(args: argparse.Namespace) -> int:
+    from hil.sweep.config import load_sweep_table
+    from hil.sweep.engine import Engine, check_address
+    from hil.sweep.sweep import Sweep, check_trials, format_sweep, run_sweep
+
     kind = args.sweep_kind
     table = load_sweep_table(args.sweep_config) if args.sweep_config else None
     trials, keys = space_of(args, kind, table)
@@ -101,6 +105,8 @@ def sweep_command(args: argparse.Namespace) -> int:
 def space_of(args: argparse.Namespace, kind: str,
              table: SweepTable | None) -> tuple[list[Trial], tuple[str, ...]]:
     """The trials of the ``[sweep]`` table with the flags laid over it, and the swept keys."""
+    from hil.sweep.space import Range, Space, expand
+
     run_parser = argparse.ArgumentParser(add_help=False)
     RUN_ARGUMENTS[kind](run_parser)
     space = Space(run_parser)
@@ -134,6 +140,8 @@ def space_of(args: argparse.Namespace, kind: str,
 def refuse_parallel_hardware(kind: str, base: dict[str, Any], trials: list[Trial],
                              engine: Engine) -> None:
     """A real bench or drive is one device: its trials run one after another (--serial)."""
+    from hil.core.registry import scheme_of
+
     key = URL_KEY[kind]
     urls = dict.fromkeys(str(t.params.get(key, base[key]) or _configured_url(kind, base))
                          for t in trials)

@@ -35,13 +35,11 @@ from typing import Any
 
 from hil.core.cdr import CdrError, fields_of
 from hil.core.errors import HilError, RecordingError
-from hil.core.live import parse_address
-from hil.core.mcap_series import series_file
 from hil.core.realtime import keep_process_off_cpu
 from hil.core.record_stream import FrameDecoder, encode_frame
+from hil.core.recording_options import ENCODINGS, RecordingOptions
 
 EVENTS_TOPIC = "/events"
-ENCODINGS = ("json", "cdr")
 PIPE_BYTES = 1 << 20          # asked of the kernel for the pipe (Linux caps it at pipe-max-size)
 WRITER_START_TIMEOUT_S = 30.0
 WRITER_CLOSE_TIMEOUT_S = 120.0
@@ -69,44 +67,6 @@ class RecorderStats:
     chunks_flushed: int
     bytes_written: int
     files: list[str] = field(default_factory=list)
-
-
-@dataclass(frozen=True)
-class RecordingOptions:
-    """How a session is written: per-topic encodings, file splitting, and the live view
-    (``live``: serve the topics at ``[HOST:]PORT``, see :mod:`hil.core.live`)."""
-
-    high_rate_encoding: str = "cdr"       # for topics registered with ``high_rate=True``
-    topic_encodings: dict[str, str] = field(default_factory=dict)  # explicit, by topic name
-    split_duration_s: float | None = None
-    split_size_mb: float | None = None
-    live: str | None = None                # "[HOST:]PORT": serve the topics live (hil.core.live)
-    live_rates: dict[str, float] = field(default_factory=dict)  # topic -> Hz (0: every message)
-
-    def __post_init__(self) -> None:
-        for name, encoding in [("high-rate topics", self.high_rate_encoding),
-                               *self.topic_encodings.items()]:
-            if encoding not in ENCODINGS:
-                raise HilError(f"encoding of {name}: {encoding!r} is not one of "
-                               f"{', '.join(ENCODINGS)}")
-        for name, value in (("split duration", self.split_duration_s),
-                            ("split size", self.split_size_mb)):
-            if value is not None and not value > 0:
-                raise HilError(f"{name} must be > 0, got {value!r}")
-        if self.live is not None:
-            parse_address(self.live)
-        for topic, hz in self.live_rates.items():
-            if not hz >= 0:
-                raise HilError(f"live rate of {topic} must be >= 0 Hz, got {hz!r}")
-
-    @property
-    def split(self) -> bool:
-        return self.split_duration_s is not None or self.split_size_mb is not None
-
-    def first_file(self, path: str) -> str:
-        """The file a session at ``path`` starts with (``OUT_000.mcap`` when split); any
-        reader of hil takes it for the whole series."""
-        return series_file(path, 0) if self.split else path
 
 
 class Topic:

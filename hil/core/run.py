@@ -39,6 +39,7 @@ from hil.core.clock import Clock
 from hil.core.device_lock import DeviceLock, lock_device
 from hil.core.errors import HilError, RunInterruptedError
 from hil.core.output import OutputClaim, claim_output
+from hil.core.progress import ProgressLine, wants_progress
 from hil.core.recorder import RecordingOptions
 from hil.core.session import Session
 from hil.core.verdict import Limit, SignalWatch, verdict
@@ -64,6 +65,7 @@ class RunPlan:
     config_name: str = "config.toml"
     recording: RecordingOptions = field(default_factory=RecordingOptions)
     devices: tuple[tuple[str, str], ...] = ()  # (what, URL) of each device locked for the run
+    quiet: bool = False            # no progress line on the terminal
 
 
 @dataclass(frozen=True)
@@ -186,13 +188,20 @@ def _run_locked(experiment: Experiment, plan: RunPlan, output: OutputClaim) -> R
     wall_s = 0.0
     kpis: dict[str, Any] = {}
     outcome: dict[str, Any] = {}
+    progress = None
     try:
         experiment.start(session)
+        if wants_progress(plan.quiet):
+            progress = ProgressLine(f"{plan.kind} {plan.label}", plan.duration_s,
+                                    max(1, round(0.1 / plan.base_period_s)))
+            session.add_task(progress)
         begin = time.perf_counter()
         try:
             session.run(duration_s=plan.duration_s)
         finally:
             wall_s = time.perf_counter() - begin
+            if progress is not None:
+                progress.clear()
         experiment.finish(session)
     except HilError as exc:
         error = exc

@@ -111,6 +111,7 @@ class ServoRunOptions:
     limits: tuple[Limit, ...] = ()
     controller_budget_s: float | None = None  # per step; None: STEP_BUDGET_S in real time
     recording: RecordingOptions = field(default_factory=RecordingOptions)
+    quiet: bool = False              # no progress line on the terminal
     can_log: str | None = None       # every CAN frame to this file (python-can's formats)
     reset_fault: bool = False        # clear a drive FAULT (CiA 402 fault reset) before enabling
 
@@ -240,7 +241,7 @@ class ServoExperiment(Experiment):
             kpi_limits=tuple(kpi_limits), watch=self.watch,
             config={"servo": run_info, "drive": drive.data}, config_text=drive.text,
             config_name="drive.toml", recording=options.recording,
-            devices=self._devices())
+            devices=self._devices(), quiet=options.quiet)
 
     def _devices(self) -> tuple[tuple[str, str], ...]:
         """The drive's bus, locked for the run (an emulated drive is the run's own)."""

@@ -19,7 +19,9 @@ from pathlib import Path
 import pytest
 
 from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
+from hil import api
 from hil.bench.config import load_bench_config
+from hil.core.output import OutputError
 from hil.core.reader import read_session
 from tests.pymodbus_bench import PymodbusBench
 
@@ -120,17 +122,22 @@ def test_a_killed_writer_stops_the_run_within_a_second(tmp_path):
 @pytest.mark.parametrize(("out", "why"), [
     ("{tmp}", "is a folder"),
     ("{tmp}/a_file/x.mcap", "a_file is a file, not a folder"),
-    ("/proc/hil-test/x.mcap", "cannot create its folder /proc/hil-test: "),
+    ("/proc/hil-test/x.mcap", "cannot create (the|its) folder /proc/hil-test: "),
 ])
 def test_an_unwritable_output_refuses_before_the_bench_is_reached(tmp_path, out, why):
     (tmp_path / "a_file").write_text("not a folder")
+    path = out.format(tmp=tmp_path)
     with PymodbusBench(CONFIG) as bench:
-        run = bench_run(bench, out.format(tmp=tmp_path), config_dir=tmp_path)
+        run = bench_run(bench, path, config_dir=tmp_path)
         _, stderr = run.communicate(timeout=30)
         assert run.returncode == 2
+        # the Python API checks the same before it opens the bench
+        with pytest.raises(OutputError, match=why):
+            api.run_bench("bc", bench=bench.url, out=path, realtime=True)
         assert bench.meter_reads == 0 and not any(relays_of(bench.url).values())
     lines = stderr.strip().splitlines()
     assert len(lines) == 1 and re.search(why, lines[0]), stderr
+    assert lines[0].startswith("hil bench run: error: argument --out: ")
 
 
 def test_two_runs_on_one_file_the_second_refuses_and_nothing_mixes(tmp_path):

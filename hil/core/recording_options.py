@@ -1,0 +1,51 @@
+"""How a session is recorded, as a run's options say it (``--encoding``, ``--split-*``,
+``--live``): a light module of its own, so the command line builds its options without
+importing the recorder's machinery."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from hil.core.errors import HilError
+from hil.core.live import parse_address
+from hil.core.mcap_series import series_file
+
+ENCODINGS = ("json", "cdr")
+
+
+@dataclass(frozen=True)
+class RecordingOptions:
+    """How a session is written: per-topic encodings, file splitting, and the live view
+    (``live``: serve the topics at ``[HOST:]PORT``, see :mod:`hil.core.live`)."""
+
+    high_rate_encoding: str = "cdr"       # for topics registered with ``high_rate=True``
+    topic_encodings: dict[str, str] = field(default_factory=dict)  # explicit, by topic name
+    split_duration_s: float | None = None
+    split_size_mb: float | None = None
+    live: str | None = None                # "[HOST:]PORT": serve the topics live (hil.core.live)
+    live_rates: dict[str, float] = field(default_factory=dict)  # topic -> Hz (0: every message)
+
+    def __post_init__(self) -> None:
+        for name, encoding in [("high-rate topics", self.high_rate_encoding),
+                               *self.topic_encodings.items()]:
+            if encoding not in ENCODINGS:
+                raise HilError(f"encoding of {name}: {encoding!r} is not one of "
+                               f"{', '.join(ENCODINGS)}")
+        for name, value in (("split duration", self.split_duration_s),
+                            ("split size", self.split_size_mb)):
+            if value is not None and not value > 0:
+                raise HilError(f"{name} must be > 0, got {value!r}")
+        if self.live is not None:
+            parse_address(self.live)
+        for topic, hz in self.live_rates.items():
+            if not hz >= 0:
+                raise HilError(f"live rate of {topic} must be >= 0 Hz, got {hz!r}")
+
+    @property
+    def split(self) -> bool:
+        return self.split_duration_s is not None or self.split_size_mb is not None
+
+    def first_file(self, path: str) -> str:
+        """The file a session at ``path`` starts with (``OUT_000.mcap`` when split); any
+        reader of hil takes it for the whole series."""
+        return series_file(path, 0) if self.split else path
