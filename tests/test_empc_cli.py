@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from hil.cli.main import main
+
+pytestmark = [pytest.mark.slow]
 
 
 def test_build_prints_the_contract_keys_and_writes_c(tmp_path, capsys):

@@ -7,6 +7,8 @@ import pytest
 from hil.core.errors import HilError
 from hil.emulator_process import start_bench_emulator, start_drive_emulator
 
+pytestmark = [pytest.mark.slow]
+
 
 def test_bench_and_drive_emulators_listen_on_loopback_and_stop():
     with start_bench_emulator(seed=3) as bench, start_drive_emulator() as drive:

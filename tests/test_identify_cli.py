@@ -17,6 +17,8 @@ from hil.core.identify import load_model_file, parse_signal
 from hil.core.loop import FunctionTask
 from hil.core.session import Session
 
+pytestmark = [pytest.mark.slow]
+
 SCHEMA = {"type": "object", "title": "test.Message"}
 
 

@@ -10,6 +10,10 @@ import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import pytest
+
+pytestmark = [pytest.mark.slow]
+
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 

@@ -244,9 +244,10 @@ class ServoExperiment(Experiment):
             devices=self._devices(), quiet=options.quiet)
 
     def _devices(self) -> tuple[tuple[str, str], ...]:
-        """The drive's bus, locked for the run (an emulated drive is the run's own)."""
+        """The drive's bus, locked for the run (an emulated drive is the run's own, and
+        python-can's ``virtual`` bus lives inside one process)."""
         url = self.options.drive or self.drive.bus_url
-        return () if scheme_of(url) == EMULATED else (("drive bus", url),)
+        return () if scheme_of(url) in (EMULATED, "virtual") else (("drive bus", url),)
 
     def open_devices(self, clock: Clock, on_event: EventBuffer) -> None:
         """The drive master, its bus reached and the drive in a known state (not enabled)."""

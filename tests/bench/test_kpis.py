@@ -72,6 +72,7 @@ def problem():
     return load_configs()[0].problem
 
 
+@pytest.mark.slow
 def test_recorded_session_gives_the_whole_run_values(tmp_path, problem):
     out = str(tmp_path / "bc.mcap")
     run_bench(BenchRunOptions(controller="bc", cycles=1, out=out))
@@ -108,6 +109,7 @@ def test_dwell_level_and_short_run_edge_cases(problem):
     assert expected["dwell_violations"] >= 3 and expected["level_violations"] == 4
 
 
+@pytest.mark.slow
 def test_accumulators_do_not_grow_with_samples(problem):
     kpis = BenchKpis(problem, sample_period_s=0.01, limit_va=500.0)
     names = problem.peripherals

@@ -53,6 +53,7 @@ def test_bad_sequence_is_one_clear_error(stages, why):
     assert why in str(err.value) and "\n" not in str(err.value)
 
 
+@pytest.mark.slow
 def test_player_and_sampler_in_lockstep(tmp_path):
     session = Session(str(tmp_path / "b.mcap"), SimClock(), 0.01, kind="bench",
                       config=CONFIG.data, handle_signals=False)
@@ -94,6 +95,7 @@ def test_sampling_period_must_fit_the_loop(tmp_path):
     session.close()
 
 
+@pytest.mark.slow
 def test_a_realtime_emulated_bench_runs_in_a_process_of_its_own(tmp_path):
     from hil.core.clock import RealtimeClock
     from hil.emulator_process import EmulatorProcess

@@ -12,7 +12,7 @@ import pytest
 from hil.cli.main import main
 from hil.core.reader import read_session
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
 
 
 def run(tmp_path, capsys, controller: str) -> tuple[dict, str]:

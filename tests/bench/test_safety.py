@@ -23,7 +23,7 @@ from hil.core.errors import ConfigError, SafetyStopError
 from hil.core.reader import read_session
 from tests.pymodbus_bench import PymodbusBench
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = load_bench_config()

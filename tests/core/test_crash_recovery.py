@@ -13,6 +13,8 @@ from hil.cli.main import main
 from hil.core.reader import read_session
 from hil.core.recorder import Recorder
 
+pytestmark = [pytest.mark.slow]
+
 RATE_HZ = 2000
 SCHEMA = {"type": "object", "title": "Seq"}
 

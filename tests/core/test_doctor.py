@@ -11,6 +11,8 @@ import pytest
 
 from hil.core.realtime import Hardening
 
+pytestmark = [pytest.mark.slow]
+
 REPO = Path(__file__).resolve().parents[2]
 STEPS = ["sched_fifo", "cpu_affinity", "mlockall", "gc_freeze", "timer_slack"]
 
@@ -77,6 +79,7 @@ def test_an_unprivileged_process_is_refused_and_told_why():
     assert steps["gc_freeze"][0] is True
 
 
+@pytest.mark.realtime
 def test_a_realtime_session_records_every_hardening_step_and_a_lockstep_one_none(tmp_path):
     from hil.core.clock import RealtimeClock, SimClock
     from hil.core.loop import FunctionTask
@@ -111,6 +114,7 @@ def test_a_realtime_session_records_every_hardening_step_and_a_lockstep_one_none
     assert "realtime" not in lockstep.metadata and seen["gc"] is True
 
 
+@pytest.mark.realtime
 def test_hil_report_json_shows_the_loop_figures_and_what_was_granted(tmp_path):
     path = tmp_path / "rt.mcap"
     run = subprocess.run([sys.executable, "-m", "hil", "servo", "run", "--controller", "pid",

@@ -120,6 +120,7 @@ def test_sim_loop_is_deterministic():
     assert loop_a.stats["control"].measured_period_s() == pytest.approx(1.0, abs=1e-12)
 
 
+@pytest.mark.realtime
 def test_realtime_overrun_is_skipped_and_counted_not_hidden():
     starts = []
 

@@ -132,6 +132,7 @@ def test_split_by_duration_writes_complete_files_read_back_as_one_session(tmp_pa
         assert data.files == stats.files and not data.recovered
 
 
+@pytest.mark.slow
 def test_split_by_size(tmp_path):
     path = tmp_path / "big.mcap"
     stats = _record_split(path, RecordingOptions(split_size_mb=0.05), seconds=20, rate_hz=2000)
@@ -162,6 +163,7 @@ while True:
 """
 
 
+@pytest.mark.slow
 def test_sigkill_during_a_split_run_keeps_every_file(tmp_path, run_python):
     path = tmp_path / "kill.mcap"
     child = run_python(CHILD.format(path=str(path)))

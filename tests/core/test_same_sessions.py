@@ -15,6 +15,8 @@ import pytest
 
 from tests.session_digest import EXPERIMENTS, record
 
+pytestmark = [pytest.mark.slow]
+
 REFERENCE = json.loads((Path(__file__).parents[1] / "data" / "session_digests.json").read_text())
 
 

@@ -13,6 +13,8 @@ from mcap.reader import make_reader
 
 from hil.core.reader import read_session
 
+pytestmark = [pytest.mark.slow, pytest.mark.realtime]
+
 ROOT = Path(__file__).resolve().parents[2]
 
 CHILD = """

@@ -49,6 +49,7 @@ def test_percentiles_of_a_recorded_servo_session_are_within_one_percent(tmp_path
                                           abs=2e-3)
 
 
+@pytest.mark.realtime
 def test_percentiles_of_a_real_time_loop_lateness_are_within_one_percent(tmp_path):
     out = str(tmp_path / "loop.mcap")
     session = Session(out, RealtimeClock(), 1e-3, kind="test")

@@ -25,7 +25,7 @@ from hil.core.output import OutputError
 from hil.core.reader import read_session
 from tests.pymodbus_bench import PymodbusBench
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = load_bench_config()

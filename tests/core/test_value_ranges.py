@@ -12,6 +12,8 @@ import pytest
 
 from hil.cli.main import main
 
+pytestmark = [pytest.mark.slow]
+
 ROOT = Path(__file__).resolve().parents[2]
 SERVO = ["servo", "run", "--controller", "pid"]
 BENCH = ["bench", "run", "--controller", "bc"]

@@ -21,6 +21,8 @@ from hil.bench.config import load_bench_config
 from hil.cli.main import main
 from hil.core.reader import read_session
 
+pytestmark = [pytest.mark.slow]
+
 CONFIG = load_bench_config()
 
 

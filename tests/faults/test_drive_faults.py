@@ -22,7 +22,7 @@ from emulators.socketcand_server import SocketcandServer
 from hil.servo.config import load_drive_config
 from hil.servo.rig import open_drive
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
 AFTER_S = 1.0
 # a TPDO wait of 5 ms after each SYNC and relaxed drive watchdogs: on a loaded machine only the
 # injected fault trips them

@@ -21,7 +21,7 @@ from hil.cli.main import main
 from hil.core.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
 
 
 def test_a_fault_spec_is_parsed_with_its_defaults():
@@ -168,6 +168,7 @@ print("closed", flush=True)
 """
 
 
+@pytest.mark.realtime
 def test_two_sigterms_a_few_ms_apart_stop_a_loop_cleanly(tmp_path, run_python):
     from hil.core.reader import read_session
 

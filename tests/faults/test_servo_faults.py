@@ -10,9 +10,10 @@ from hil import api
 from hil.cli.main import main
 from hil.core.reader import read_session
 
-pytestmark = pytest.mark.timeout(90)
+pytestmark = [pytest.mark.timeout(90), pytest.mark.slow]
 
 
+@pytest.mark.realtime
 def test_an_emcy_during_a_run_over_socketcand_ends_it_with_one_line(tmp_path, capsys):
     config = tmp_path / "drive.toml"
     # generous watchdogs: on a loaded machine only the injected fault may end the run

@@ -16,7 +16,7 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
 from emulators.null_modem import NullModem
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -20,7 +20,7 @@ from hil.bench.rig import make_emulator
 from hil.core.config import deep_merge
 from hil.core.errors import ConfigError
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
 
 CONFIG = load_bench_config()
 

@@ -12,7 +12,7 @@ import pytest
 from hil.cli.main import main
 from hil.core.reader import read_session
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
 
 DWELL_P1_S = 5.0  # hil/configs/bench.toml
 

@@ -20,7 +20,7 @@ from emulators.null_modem import NullModem
 from hil.bench.config import load_bench_config
 from hil.bench.rig import make_emulator
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
 
 CONFIG = load_bench_config()
 METER = CONFIG.data["meter"]["registers"]

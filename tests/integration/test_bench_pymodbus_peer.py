@@ -18,6 +18,8 @@ from pymodbus.server import ModbusTcpServer
 from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 from hil.bench.config import load_bench_config
 
+pytestmark = [pytest.mark.slow]
+
 CONFIG = load_bench_config(None)
 
 

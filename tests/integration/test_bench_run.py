@@ -14,7 +14,7 @@ from hil.cli.main import main
 from hil.core.reader import read_session
 from hil.core.report import plot_session, summarize
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
 
 DESIGN_KEYS = {"controller", "cycles", "J1_VA", "J2_VA", "SEC_VA", "peak_VA", "energy_VAs",
                "overlap_s", "dwell_violations", "level_violations", "switches", "solve_ms",

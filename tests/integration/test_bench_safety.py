@@ -25,7 +25,7 @@ from hil.core.reader import read_session
 from hil.core.session import Session
 from hil.core.types import Device, LinkWatchdog
 
-pytestmark = pytest.mark.timeout(90)
+pytestmark = [pytest.mark.timeout(90), pytest.mark.slow]
 
 REPO = Path(__file__).resolve().parents[2]
 CONFIG = load_bench_config()

@@ -6,6 +6,8 @@ import pytest
 
 from hil.cli.main import main
 
+pytestmark = [pytest.mark.slow]
+
 
 def run(argv, capsys):
     code = main(argv)

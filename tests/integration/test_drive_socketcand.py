@@ -25,7 +25,7 @@ from hil.servo.rig import open_drive
 from tests.drive_processes import start_drive_emulator, stop_drive_emulator
 
 REPO = Path(__file__).resolve().parents[2]
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
 
 MASTER = {  # generous for a loaded box; the fault tests shorten what they test
     "rx_timeout_us": 500_000, "sdo_timeout_ms": 3000, "state_timeout_ms": 5000,

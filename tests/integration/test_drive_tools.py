@@ -22,6 +22,8 @@ from hil.core.reader import read_session
 from hil.servo.run import ServoRunOptions, run_servo
 from tests.drive_slave import dictionary, serve
 
+pytestmark = [pytest.mark.slow]
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -174,6 +176,7 @@ def test_can_log_writes_every_frame_in_a_format_python_can_reads(tmp_path, suffi
     assert any(m.arbitration_id == 0x601 for m in frames)  # the SDO configuration too
 
 
+@pytest.mark.realtime
 def test_late_tpdos_of_the_emulator_in_real_time_are_never_fresh(tmp_path):
     """The emulator holds its TPDOs 60 ms at 0.5 s (then the ones behind them, in order);
     with the SYNC counter echo every fresh feedback is, on the wire trace, the TPDO pair that

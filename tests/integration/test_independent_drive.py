@@ -19,6 +19,8 @@ from hil.core.reader import read_session
 from hil.servo.run import ServoRunOptions, run_servo
 from tests.drive_slave import INCREMENTS, RATED_MA, serve
 
+pytestmark = [pytest.mark.slow]
+
 ROOT = Path(__file__).resolve().parents[2]
 NODE = 3
 

@@ -13,7 +13,7 @@ import pytest
 
 from hil.core.reader import read_session
 
-pytestmark = pytest.mark.timeout(90)
+pytestmark = [pytest.mark.timeout(90), pytest.mark.slow, pytest.mark.realtime]
 ROOT = Path(__file__).resolve().parents[2]
 
 

@@ -22,7 +22,7 @@ from hil.bench.config import load_bench_config
 from hil.core.reader import read_session
 from tests.pymodbus_bench import PymodbusBench
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = load_bench_config()
@@ -96,6 +96,7 @@ def test_another_master_switching_a_relay_stops_the_run(tmp_path):
     assert "relay.foreign_change" in kinds and "bench.foreign_master" in kinds
 
 
+@pytest.mark.realtime
 def test_a_second_run_on_the_same_drive_bus_refuses_and_a_foreign_sync_stops_the_first(
         tmp_path):
     # a loaded machine may starve the real-time run: generous watchdogs keep it going until

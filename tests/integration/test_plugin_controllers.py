@@ -7,6 +7,8 @@ from hil import api
 from hil.core.errors import ConfigError, ControllerError
 from hil.core.reader import read_session
 
+pytestmark = [pytest.mark.slow]
+
 
 class AlwaysOn:
     """Asks for both peripherals, always."""

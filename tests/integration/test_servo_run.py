@@ -28,7 +28,7 @@ REPO = Path(__file__).resolve().parents[2]
 INCREMENT_DEG = 360.0 / 2**20  # the emulated encoder's resolution
 DESIGN_KEYS = {"controller", "max_error_deg", "max_error_pct", "rms_error_deg",
                "cumulative_error_deg", "step_us", "deadline_misses", "ticks", "mcap"}
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
 
 
 def run(tmp_path: Path, name: str, on_started=None, **settings) -> tuple[dict, object]:
@@ -205,6 +205,7 @@ def test_bad_values_give_one_clear_line(tmp_path, capsys, argv, message):
     assert not out.exists()
 
 
+@pytest.mark.realtime
 def test_realtime_run_uses_the_split_read_write_path_and_an_emulator_process(tmp_path):
     # what is checked is the split path, not this shared machine's timing: a late TPDO only
     # counts as stale feedback here instead of ending the run (nor tripping the stale-share

@@ -22,6 +22,8 @@ from hil.core.recorder import RecordingOptions
 from hil.core.session import Session
 from tests.live.foxglove_client import FoxgloveClient, stalled_client
 
+pytestmark = [pytest.mark.slow]
+
 REPO = Path(__file__).resolve().parents[2]
 CONNECT_S = 60.0  # a process start on this shared 2-core machine can take 10 s and more
 SERVO_TOPICS = ["/drive/command", "/drive/feedback", "/mpc/prediction", "/events",
@@ -60,6 +62,7 @@ def servo_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
+@pytest.mark.realtime
 def test_realtime_servo_run_serves_its_topics_with_json_schemas_decimated(
         tmp_path: Path) -> None:
     # what is checked is the live view, not this shared machine's timing: a late TPDO only
@@ -157,6 +160,7 @@ def _run_ticks(path: Path, port: int, with_stalled_client: bool) -> tuple[int, i
     return stats.missed, stats.runs + stats.missed, data.metadata.get("live", {})
 
 
+@pytest.mark.realtime
 def test_a_stalled_client_does_not_slow_the_loop_or_the_file(tmp_path: Path) -> None:
     alone_missed, alone_ticks, alone_live = _run_ticks(tmp_path / "a.mcap", free_port(), False)
     stalled_missed, stalled_ticks, stalled_live = _run_ticks(tmp_path / "b.mcap", free_port(),

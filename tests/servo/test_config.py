@@ -77,6 +77,7 @@ def test_servo_run_with_a_bad_config_prints_one_error_line_and_exits_2(tmp_path,
     assert not out.exists()
 
 
+@pytest.mark.realtime
 def test_mpc_prediction_is_decimated_in_real_time_and_in_long_lockstep_runs():
     from hil.servo.run import (
         PREDICTION_EVERY_REALTIME,

@@ -17,6 +17,8 @@ from hil.core.errors import HilError
 from hil.core.reader import read_session
 from hil.servo.run import ServoRunOptions, run_servo
 
+pytestmark = [pytest.mark.slow]
+
 ROOT = Path(__file__).resolve().parents[2]
 RUNAWAY = textwrap.dedent("""
     class Runaway:
@@ -78,6 +80,7 @@ def test_each_limit_can_be_moved_for_a_run_and_stops_on_its_own(tmp_path, safety
                       drive_overrides={"safety": safety}, out=str(tmp_path / "x.mcap"))
 
 
+@pytest.mark.realtime
 def test_driving_blind_is_stopped_by_the_stale_share(tmp_path):
     config = tmp_path / "drive.toml"
     config.write_text("[master]\nstale_cycles = 100000\n"

@@ -16,7 +16,7 @@ from hil.cli.servo import add_run_arguments
 from hil.sweep.plot import pareto_front
 from hil.sweep.space import Space, expand
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
 
 
 def error_of(capsys, argv: list[str]) -> str:

@@ -18,7 +18,7 @@ GAIN = f"{HERE / 'gain_controller.py'}:Gain"
 TIMING = {"step_us", "wall_s", "realtime_factor", "mcap"}   # wall-clock figures, file name
 SERVO = ["sweep", "servo", "--duration", "0.6", "--reference", "sine:amplitude=2,frequency=2"]
 
-pytestmark = pytest.mark.timeout(180)
+pytestmark = [pytest.mark.timeout(180), pytest.mark.slow]
 
 
 def without_timing(kpis: dict) -> dict:

@@ -48,6 +48,7 @@ def solvers(prediction, problem, settings, **changes):
 
 
 @pytest.mark.parametrize("gamma3", [0.0, 0.02])
+@pytest.mark.slow
 def test_dp_objective_equals_the_exact_milp(setup, gamma3):
     prediction, problem, settings, instants = setup
     dp, milp = solvers(prediction, problem, settings, gamma3=gamma3)

@@ -30,6 +30,7 @@ def law():
     (Trapezoid(), 1.2),  # Fig. 14: 270 deg at 60 rpm
     (Modulo360(Ramp(720.0, 350.0)), 0.2),  # crosses 360 -> 0 repeatedly
 ])
+@pytest.mark.slow
 def test_closed_loop_equals_the_online_mpc(law, reference, duration):
     online = simulate(TrajectoryMpc(reference, PAPER), reference, duration)
     explicit_mpc = ExplicitMpc(reference, PAPER, law=law)
@@ -50,6 +51,7 @@ def test_saturated_run_uses_several_controllers(law):
     assert 0 in used and len(used) >= 3
 
 
+@pytest.mark.slow
 def test_outside_the_box_falls_back_to_the_online_qp_and_reports_it():
     """Fig. 16 push (about 23 deg of error) with a box of |e| <= 5 deg: the ticks beyond the
     box are solved online (same currents as the online MPC), counted, and reported once on

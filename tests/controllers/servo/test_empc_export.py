@@ -15,6 +15,8 @@ from controllers.servo.mpc import MpcConfig
 from hil.core.errors import HilError
 from tests.controllers.servo.test_mpqp import region_samples
 
+pytestmark = [pytest.mark.slow]  # compiles the exported C
+
 CASES = {
     "paper": MpcConfig(ht=3, hu=3, hp=50, ert="foh"),
     "zoh_12A": MpcConfig(ht=2, hu=2, hp=30, ert="zoh", u_min=-12000.0, u_max=12000.0),

@@ -19,6 +19,8 @@ from controllers.servo.mpc import MpcConfig
 from controllers.servo.mpqp import solve_mpqp
 from tests.controllers.servo.test_mpqp import box_samples, double_integrator, region_samples
 
+pytestmark = [pytest.mark.slow]  # builds explicit MPC trees: seconds each
+
 
 def polyhedra(solution):
     return [Polyhedron(r.A, r.b, r.boundary) for r in solution.regions]

@@ -32,6 +32,7 @@ def test_foh_beats_zoh_beats_setpoint_tracking_at_ht8(frequency, limit):
     assert cumulative["foh"] < cumulative["zoh"] < cumulative["setpoint"], cumulative
 
 
+@pytest.mark.slow
 def test_figs_7_8_trends_at_1hz_and_at_the_rated_current_for_10hz():
     table = figure_table(cases=((1.0, 1000.0), (10.0, 12000.0)))
     for case in table:
@@ -95,6 +96,7 @@ def test_bad_reference_spec_is_one_clear_error(spec, match):
         parse_scenario(spec)
 
 
+@pytest.mark.slow
 def test_figures_command_prints_the_table_and_draws_it(tmp_path, capsys):
     png = tmp_path / "figs.png"
     assert main(["servo", "figures", "--max-ht", "2", "--json", "--out", str(png)]) == 0
