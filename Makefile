@@ -19,7 +19,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/mypy
-	$(BIN)/pytest -q -n 2 --dist loadfile -m "not realtime"
+	$(BIN)/pytest -q -n 2 --dist worksteal -m "not realtime"
 	$(BIN)/pytest -q -m realtime
 
 # what a developer runs before every change (under a minute): no processes, Ray or long runs
