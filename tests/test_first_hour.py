@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 import time
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
@@ -72,9 +73,14 @@ def test_output_paths_follow_one_rule(tmp_path):
     assert done.returncode == 0, done.stderr
     assert (tmp_path / "plots" / "new" / "s.png").stat().st_size > 0
     done = hil(tmp_path, "servo", "run", "--controller", "pid", "--duration", "0.05",
-               "--junit", "reports/junit.xml", "--limit", "ticks>=1", "--out", "runs/a.mcap")
+               "--junit", "reports/junit.xml", "--limit", "rms_error_deg<=5", "--out",
+               "runs/a.mcap")
     assert done.returncode == 0, done.stderr
-    assert (tmp_path / "reports" / "junit.xml").exists() and (tmp_path / "runs/a.mcap").exists()
+    assert (tmp_path / "runs/a.mcap").exists()
+    case = ET.parse(tmp_path / "reports" / "junit.xml").find(".//testcase")
+    assert float(case.get("time")) > 0  # the run's duration, each limit judged on all of it
+    properties = {p.get("name"): p.get("value") for p in case.iter("property")}
+    assert properties["unit"] == "deg" and float(properties["measured"]) < 5
     # an output that cannot be written is refused before anything runs: no session left
     (tmp_path / "blocker").write_text("a file, not a folder")
     for flag, value in (("--junit", "blocker/j.xml"), ("--out", "blocker/b.mcap"),

@@ -98,6 +98,22 @@ def machining_profile(relays: dict[str, np.ndarray], bench: dict[str, Any]) -> n
     return profile
 
 
+def _flat(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested KPIs (``faults``, ``switches``...) as ``group.key`` rows, one value each."""
+    rows: dict[str, Any] = {}
+    for key, value in table.items():
+        if isinstance(value, dict):
+            rows.update(_flat(value, f"{prefix}{key}."))
+        elif isinstance(value, list):
+            rows[f"{prefix}{key}"] = "; ".join(
+                f"{item.get('limit')}: {item.get('measured')} "
+                f"({'holds' if item.get('passed') else 'VIOLATED'})"
+                if isinstance(item, dict) else str(item) for item in value)
+        else:
+            rows[f"{prefix}{key}"] = value
+    return rows
+
+
 def _seconds(stamps: np.ndarray, t0: int) -> np.ndarray:
     return (stamps - t0) / 1e9
 
@@ -115,8 +131,10 @@ def plot_bench(data: SessionData, out_png: str) -> None:
     levels = data.arrays("/bench/levels")
     stamps = [a["log_time_ns"] for a in (power, relays, levels) if a["log_time_ns"].size]
     t0 = int(min(s[0] for s in stamps)) if stamps else 0
-    fig, axes = plt.subplots(4, 1, figsize=(12, 11),
-                             gridspec_kw={"height_ratios": [3, 1.4, 2, 1.6]})
+    rows = [[key, str(value)] for key, value in _flat(kpis(data)).items() if key != "mcap"]
+    table_height = 0.19 * (len(rows) + 1)  # inches: one line of 8 pt text per KPI
+    fig, axes = plt.subplots(4, 1, figsize=(12, 8.5 + table_height),
+                             gridspec_kw={"height_ratios": [3, 1.4, 2, table_height]})
     axes[1].sharex(axes[0])
     axes[2].sharex(axes[0])
     ax = axes[0]
@@ -130,7 +148,7 @@ def plot_bench(data: SessionData, out_png: str) -> None:
         if profile is not None:
             ax.step(_seconds(relays["log_time_ns"], t0), profile, where="post", lw=0.9,
                     color="tab:gray", label="machining profile (nominal)")
-    limit = config.get("run", {}).get("eec", {}).get("limit_va")
+    limit = config.get("controllers", {}).get("eec", {}).get("limit_va")
     if limit:
         ax.axhline(limit, color="tab:red", lw=0.8, ls="--", label=f"contracted {limit:g} VA")
     ax.set_ylabel("VA")
@@ -161,14 +179,12 @@ def plot_bench(data: SessionData, out_png: str) -> None:
     ax.legend(loc="upper right", fontsize=8)
     ax = axes[3]
     ax.axis("off")
-    table = kpis(data)
-    rows = [[key, json.dumps(value) if isinstance(value, dict) else str(value)]
-            for key, value in table.items() if key != "mcap"]
     if rows:
-        cell = ax.table(cellText=rows, colLabels=["KPI", "value"], loc="center",
-                        colWidths=[0.25, 0.7])
+        cell = ax.table(cellText=rows, colLabels=["KPI", "value"], loc="upper center",
+                        colWidths=[0.3, 0.65], cellLoc="left")
         cell.auto_set_font_size(False)
         cell.set_fontsize(8)
-    fig.tight_layout()
+        cell.scale(1, 1.0)
+    fig.tight_layout(h_pad=1.0)
     fig.savefig(out_png, dpi=110)
     plt.close(fig)

@@ -241,6 +241,7 @@ def plot_figures(table: list[dict[str, Any]], out_png: str) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     fig, axes = plt.subplots(1, len(table), figsize=(4.6 * len(table), 3.8), squeeze=False)
     for ax, case in zip(axes[0], table, strict=True):
@@ -252,6 +253,7 @@ def plot_figures(table: list[dict[str, Any]], out_png: str) -> None:
         ax.axhline(case["pid_vff"], color="gray", ls=":", label="PID + vel. FF (not in paper)")
         ax.set_yscale("log")
         ax.set_xlabel("trajectory horizon H_t = H_u")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # a horizon is a whole count
         ax.set_title(f"{case['frequency_hz']:g} Hz, |u| <= {case['current_limit_mA']:g} mA")
         ax.grid(True, which="both", alpha=0.3)
     axes[0, 0].set_ylabel("normalised cumulative error")

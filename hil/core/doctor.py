@@ -16,6 +16,12 @@ from hil.core.loop import FixedRateLoop, FunctionTask
 from hil.core.realtime import Hardening, advice, machine_report
 
 RATES_HZ = (1000, 2000)
+#: what a 2 kHz servo session needs of the bare loop (its period is 500 us): no tick skipped,
+#: lateness p99 within a fifth of the period (the tick's own work, read-compute-write, takes
+#: ~100 us at p99 with the MPC) and never a whole period late
+SERVO_RATE_HZ = 2000
+MAX_P99_US = 100.0
+MAX_LATE_US = 500.0
 
 
 def measure_loop(rate_hz: int, duration_s: float) -> dict[str, float]:
@@ -48,7 +54,28 @@ def run_doctor(duration_s: float, rates_hz: Sequence[int] = RATES_HZ,
     report = machine_report()
     return {"loops": loops, "os": report,
             "hardening": {s.name: {"granted": s.granted, "detail": s.detail} for s in steps},
-            "advice": advice(report, steps)}
+            "advice": advice(report, steps), "verdict": verdict(loops)}
+
+
+def verdict(loops: dict[str, dict[str, float]]) -> dict[str, Any]:
+    """Whether this machine is fit for the 2 kHz servo loop in real time, and why (the bare
+    loop against :data:`MAX_P99_US`, :data:`MAX_LATE_US` and no skipped tick)."""
+    row = loops.get(str(SERVO_RATE_HZ))
+    if row is None:
+        return {"fit_for_2khz": None, "because": f"the {SERVO_RATE_HZ} Hz loop was not run"}
+    problems = []
+    if row["missed_pct"] > 0:
+        problems.append(f"{row['missed_pct']:g} % of the ticks were skipped")
+    if row["p99_us"] > MAX_P99_US:
+        problems.append(f"lateness p99 {row['p99_us']:.0f} us > {MAX_P99_US:.0f} us")
+    if row["max_us"] > MAX_LATE_US:
+        problems.append(f"lateness max {row['max_us']:.0f} us > {MAX_LATE_US:.0f} us "
+                        "(a whole period)")
+    if problems:
+        return {"fit_for_2khz": False, "because": "; ".join(problems)}
+    return {"fit_for_2khz": True,
+            "because": f"lateness p99 {row['p99_us']:.0f} us <= {MAX_P99_US:.0f} us, max "
+                       f"{row['max_us']:.0f} us <= {MAX_LATE_US:.0f} us, no tick skipped"}
 
 
 def format_doctor(result: dict[str, Any]) -> str:
@@ -70,4 +97,9 @@ def format_doctor(result: dict[str, Any]) -> str:
         lines.append("")
         lines.append("to do better:")
         lines += [f"  - {line}" for line in result["advice"]]
+    fit = result["verdict"]["fit_for_2khz"]
+    lines.append("")
+    lines.append(f"fit for the 2 kHz servo loop in real time: "
+                 f"{'yes' if fit else 'no' if fit is False else 'unknown'}, because "
+                 f"{result['verdict']['because']}")
     return "\n".join(lines)

@@ -124,8 +124,12 @@ def junit_xml(results: Sequence[LimitResult], suite: str, *, duration_s: float =
         for key, value in properties.items():
             ET.SubElement(props, "property", name=key, value=str(value))
     for result in results:
+        # each limit is judged on the whole run: the run's time is each case's time
         case = ET.SubElement(node, "testcase", classname=suite, name=str(result.limit),
-                             time="0")
+                             time=f"{duration_s:.3f}")
+        props = ET.SubElement(case, "properties")
+        ET.SubElement(props, "property", name="measured", value=str(result.measured))
+        ET.SubElement(props, "property", name="unit", value=unit_of(result.limit.kpi))
         if not result.passed:
             failure = ET.SubElement(case, "failure", message=result.describe(),
                                     type="LimitViolated")
@@ -134,6 +138,18 @@ def junit_xml(results: Sequence[LimitResult], suite: str, *, duration_s: float =
             ET.SubElement(case, "system-out").text = result.describe()
     ET.indent(root)
     return ET.tostring(root, encoding="utf-8", xml_declaration=True)
+
+
+#: units by the ending of a KPI or signal name (hil names carry their unit)
+UNITS = (("_VAs", "VA·s"), ("_VA", "VA"), ("_mA", "mA"), ("_deg_s", "deg/s"), ("_deg", "deg"),
+         ("_pct", "%"), ("_ms", "ms"), ("_us", "us"), ("_s", "s"))
+
+
+def unit_of(name: str) -> str:
+    """The unit of a KPI or signal from its name (``rms_error_deg`` -> deg; '' if none)."""
+    last = name.split(".")[0] if "." in name and name.split(".")[-1] in (
+        "median", "p99", "max") else name.split(".")[-1]
+    return next((unit for ending, unit in UNITS if last.endswith(ending)), "")
 
 
 RUN_TABLES = ("controller", "limits")

@@ -48,7 +48,7 @@ def _bench(plt: Any, rows: Sequence[Mapping[str, Any]]) -> Any:
     for i in front:
         ax.annotate(rows[i]["name"], points[i], fontsize=7, xytext=(4, 4),
                     textcoords="offset points")
-    ax.set_xlabel("energy J1 [VA]")
+    ax.set_xlabel("energy J1 [VA·s]")
     ax.set_ylabel("peak J2 [VA]")
     ax.set_title(f"bench sweep: {len(rows)} trials")
     ax.grid(True, alpha=0.3)

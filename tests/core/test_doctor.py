@@ -196,3 +196,18 @@ def test_a_real_time_writer_process_yields_its_cpu_to_everything_else(tmp_path):
     finally:
         recorder.close()
         lockstep.close()
+
+
+@pytest.mark.parametrize(("row", "fit", "because"), [
+    ({"p50_us": 8.0, "p99_us": 40.0, "max_us": 180.0, "missed_pct": 0.0}, True,
+     "lateness p99 40 us <= 100 us, max 180 us <= 500 us, no tick skipped"),
+    ({"p50_us": 8.0, "p99_us": 140.0, "max_us": 180.0, "missed_pct": 0.0}, False,
+     "lateness p99 140 us > 100 us"),
+    ({"p50_us": 8.0, "p99_us": 40.0, "max_us": 2600.0, "missed_pct": 0.2}, False,
+     "0.2 % of the ticks were skipped; lateness max 2600 us > 500 us (a whole period)"),
+])
+def test_the_verdict_names_what_a_2khz_loop_needs(row, fit, because):
+    from hil.core.doctor import verdict
+
+    assert verdict({"1000": row, "2000": row}) == {"fit_for_2khz": fit, "because": because}
+    assert verdict({"1000": row})["fit_for_2khz"] is None

@@ -49,6 +49,14 @@ def error_of(capsys, argv: list[str]) -> str:
      "of) or ray://HOST:PORT"),
     (["sweep", "servo", "--controller", "pid"],
      "hil: error: nothing to sweep: give --grid, --random or a [sweep] table"),
+    # every trial is planned before Ray starts: a controller that cannot load, a limit on
+    # no KPI, a value out of range are usage errors, not 2 failed trials of 2
+    (["sweep", "servo", "--controller", "nothere.py:Pd", "--grid", "umax=500,900"],
+     "hil: error: trial umax-500: 'nothere.py:Pd': no such file 'nothere.py'"),
+    (["sweep", "servo", "--controller", "pid", "--grid", "umax=500,900", "--limit",
+      "rms_err<=1"], "hil: error: trial umax-500: limit 'rms_err<=1': no KPI or signal"),
+    (["sweep", "servo", "--controller", "pid", "--grid", "duration=1,1e12"],
+     "hil: error: trial duration-1e+12: --duration 1e+12 s is longer than a run can be"),
 ])
 def test_bad_sweeps_are_refused_in_one_line(capsys, argv, message):
     assert error_of(capsys, argv).startswith(message)
