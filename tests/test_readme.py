@@ -1,0 +1,91 @@
+"""The README's code, run as a user would, from a folder outside the repository: its Python
+blocks (the controllers file, the API tour, the pytest example), its `hil` commands checked
+against the parser (every flag it shows exists) and the limit examples run for the exit status
+the README promises. A README that drifts from the code fails here."""
+
+import os
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hil.cli.main import build_parser
+
+pytestmark = [pytest.mark.timeout(240), pytest.mark.slow]
+
+ROOT = Path(__file__).resolve().parents[1]
+README = (ROOT / "README.md").read_text()
+ENV = dict(os.environ, PYTHONPATH=str(ROOT))
+
+
+def blocks(language):
+    return re.findall(rf"^```{language}\n(.*?)^```", README, re.M | re.S)
+
+
+def hil_commands():
+    """Every `hil ...` command of the sh blocks, continuation lines joined."""
+    commands = []
+    for block in blocks("sh"):
+        for line in block.replace("\\\n", " ").splitlines():
+            line = " ".join(line.split("  #")[0].split())
+            if line.startswith("hil "):
+                commands.append(line)
+    return commands
+
+
+@pytest.fixture
+def user_folder(tmp_path):
+    """A folder of the user's: the README's controllers file in it, nothing of the repo."""
+    (tmp_path / "my_controllers.py").write_text(blocks("python")[0])
+    return tmp_path
+
+
+def test_every_hil_command_of_the_readme_parses():
+    commands = hil_commands()
+    assert len(commands) >= 10
+    parser = build_parser()
+    for command in commands:
+        argv = [a if "*" not in a else "x.mcap" for a in shlex.split(command)[1:]]
+        if "--help" in argv:
+            continue  # prints and exits 0 by design
+        try:
+            parser.parse_args(argv)
+        except SystemExit:
+            pytest.fail(f"README command does not parse: {command}")
+
+
+@pytest.mark.parametrize(("command", "status"), [
+    ("hil servo run --controller pid --limit 'rms_error_deg<=0.5' --limit "
+     "'abs_command_mA<=1000' --junit servo.xml", 0),
+    ("hil servo run --controller pid --limit 'max_error_deg<=0.1'", 1),
+    ("hil servo run --controller my_controllers.py:PdPosition --param kp=400 "
+     "--reference sine:amplitude=2,frequency=1 --duration 2", 0),
+])
+def test_the_readme_commands_give_the_status_it_says(user_folder, command, status):
+    assert command in hil_commands()
+    done = subprocess.run([sys.executable, "-m", "hil", *shlex.split(command)[1:]],
+                          cwd=user_folder, capture_output=True, text=True, env=ENV,
+                          timeout=120, check=False)
+    assert done.returncode == status, done.stderr
+
+
+def test_the_api_tour_runs(user_folder):
+    script = "from my_controllers import PdPosition, ThresholdRelays\n" + blocks("python")[1]
+    (user_folder / "tour.py").write_text(script)
+    done = subprocess.run([sys.executable, "tour.py"], cwd=user_folder, capture_output=True,
+                          text=True, env=ENV, timeout=180, check=False)
+    assert done.returncode == 0, done.stderr
+    rms, passed, mcap = done.stdout.splitlines()[0].split()
+    assert float(rms) < 0.5 and passed == "True" and Path(user_folder, mcap).exists()
+
+
+def test_the_pytest_example_passes_with_the_installed_plugin(user_folder):
+    (user_folder / "test_mine.py").write_text(blocks("python")[2])
+    done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                           "test_mine.py"], cwd=user_folder, capture_output=True, text=True,
+                          env=ENV, timeout=180, check=False)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "2 passed" in done.stdout
