@@ -26,7 +26,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "bench over Modbus TCP on loopback, EEC vs BC for 8 machine cycles; drive over CAN, MPC "
         "vs PID on a 2 deg sine. Writes MCAP files and PNG reports, prints comparison tables.",
     )
-    demo.add_argument("--out", default="out", metavar="DIR", help="output folder (default: out)")
+    demo.add_argument("--out", default="sessions", metavar="DIR",
+                      help="output folder (default: sessions, where every run records)")
     add_live_arguments(demo)
     demo.set_defaults(handler=run)
 
@@ -57,7 +58,8 @@ def run(args: argparse.Namespace) -> int:
                            recording=RecordingOptions(live=first, live_rates=rates))
     print("\n" + format_servo_demo(servo), flush=True)
     print(f"\nsessions (.mcap) and reports (.png) in {os.path.abspath(args.out)}; "
-          "'hil report FILE' summarises any of them")
+          f"'hil report {os.path.join(args.out, 'bench_eec.mcap')}' summarises one (with "
+          "'. .venv/bin/activate' first, or as .venv/bin/hil, after make demo)")
     return 0
 
 
