@@ -4,20 +4,61 @@ sensors (high word first), on 127.0.0.1 in a thread of the test process.
 
 The meter's total VA and the levels move a little with every read (a real meter's noise), so
 hil's frozen-sensor check stays quiet; ``meter_override(n)`` may replace the total VA of the
-n-th meter read (e.g. NaN), to play a meter serving garbage for a while."""
+n-th meter read (e.g. NaN), to play a meter serving garbage for a while.
+
+Beside it, what the tests that run ``hil bench run`` against it share: a 4 s machining cycle
+(:func:`short_config`, so a real-time run is short), the run as a process of its own
+(:func:`start_bench_run`) and the events of a session (:func:`session_events`)."""
 
 from __future__ import annotations
 
 import asyncio
+import os
 import socket
 import struct
+import subprocess
+import sys
 import threading
 from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 from hil.bench.config import BenchConfig
+from hil.core.reader import read_session
+
+ROOT = Path(__file__).resolve().parents[1]
+SHORT_SEQUENCE = """
+[sequence]
+period_s = 4.0
+stages = [{ start_s = 0.0, end_s = 2.0, on = [] },
+          { start_s = 2.0, end_s = 4.0, on = ["M1", "M2"] }]
+"""
+
+
+def short_config(folder: Path) -> Path:
+    """A bench config with a 4 s machining cycle, written in ``folder``."""
+    path = Path(folder) / "short.toml"
+    path.write_text(SHORT_SEQUENCE)
+    return path
+
+
+def start_bench_run(url: str, out: Path | str, config: Path, *extra: str, cycles: int = 1,
+                    **popen: Any) -> subprocess.Popen[str]:
+    """``hil bench run --controller bc`` against ``url``, in a process of its own."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "hil", "bench", "run", "--controller", "bc", "--bench", url,
+         "--cycles", str(cycles), "--config", str(config), "--out", str(out), *extra],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env=dict(os.environ, PYTHONPATH=str(ROOT)), **popen)
+
+
+def session_events(path: Path | str) -> list[dict[str, Any]]:
+    """The ``/events`` of a session file."""
+    return [event for _, event in read_session(str(path)).topic("/events")]
 
 
 def float_words(value: float) -> list[int]:
@@ -101,6 +142,15 @@ class PymodbusBench:
         self._thread.start()
         assert self._ready.wait(5), "pymodbus server did not start"
         return self
+
+    def relays(self) -> dict[str, bool]:
+        """The relays as the module reads them now (through hil's Modbus driver)."""
+        driver = ModbusBenchDriver(ModbusLink(parse_bus_url(self.url), 0.5, 2),
+                                   self.config.map)
+        try:
+            return driver.read_relays()
+        finally:
+            driver.close()
 
     def __exit__(self, *exc: object) -> None:
         assert self._server is not None

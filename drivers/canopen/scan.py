@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import struct
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from drivers.can_frames import Frame
 from drivers.canopen.errors import DriveError, DriveLinkLostError, SdoAbortError
 from drivers.canopen.link import CanLink
 from drivers.canopen.sdo import SdoClient
@@ -77,18 +79,23 @@ class NodeReport:
         return asdict(self) | {"drivable": self.drivable}
 
 
+def frames_within(link: CanLink, seconds: float) -> Iterator[Frame]:
+    """Every frame heard in the next ``seconds`` (an absolute deadline)."""
+    end = time.monotonic() + seconds
+    while (remaining := end - time.monotonic()) > 0:
+        frame = link.recv(remaining)
+        if frame is None:
+            return
+        yield frame
+
+
 def discover(link: CanLink, deadline_s: float = DISCOVER_S) -> list[int]:
     """The nodes that answer an SDO read of 0x1000 (the request sent to every node id at
     once; answers collected for ``deadline_s``)."""
     request = struct.pack("<BHB", SDO_INITIATE_UPLOAD, DEVICE_TYPE, 0) + bytes(4)
     link.send([(SDO_REQUEST_BASE + n, request) for n in range(1, MAX_NODE_ID + 1)])
     found: set[int] = set()
-    end = time.monotonic() + deadline_s
-    while (remaining := end - time.monotonic()) > 0:
-        frame = link.recv(remaining)
-        if frame is None:
-            break
-        can_id, data = frame
+    for can_id, data in frames_within(link, deadline_s):
         node = can_id - SDO_RESPONSE_BASE
         if 1 <= node <= MAX_NODE_ID and len(data) == 8 and data[1:4] == request[1:4]:
             found.add(node)
@@ -98,12 +105,7 @@ def discover(link: CanLink, deadline_s: float = DISCOVER_S) -> list[int]:
 def heartbeats(link: CanLink, listen_s: float = HEARTBEAT_S) -> dict[int, str]:
     """The NMT state each node's heartbeat carries, heard within ``listen_s``."""
     states: dict[int, str] = {}
-    end = time.monotonic() + listen_s
-    while (remaining := end - time.monotonic()) > 0:
-        frame = link.recv(remaining)
-        if frame is None:
-            break
-        can_id, data = frame
+    for can_id, data in frames_within(link, listen_s):
         node = can_id - HEARTBEAT_BASE
         if 1 <= node <= MAX_NODE_ID and data:
             states[node] = NMT_STATE_NAMES.get(data[0] & 0x7F, f"0x{data[0]:02X}")

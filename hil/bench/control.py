@@ -101,8 +101,6 @@ class Observer(Task):
         self.rig, self.log = rig, log
         self.estimator = estimator
         self._origin = clock_origin
-        self._last_power: Any = None
-        self._last_levels: Any = None
         # relay samples of a lost link, held until it is restored (then counted at the safe
         # level the safety layer drove them to) or given up on (then dropped: the KPIs end
         # where the bench was last heard); at most give_up_s of samples
@@ -114,18 +112,12 @@ class Observer(Task):
     def read(self, t_ns: int) -> None:
         sampler, bench = self.rig.sampler, self.rig.bench
         t = (t_ns - self._origin()) / 1e9
-        power = sampler.latest_power  # a new dict for every good poll
-        total_va = power["total_va"] if power is not None and power is not self._last_power \
-            else None
-        self._last_power = power
+        power = sampler.fresh_power
+        total_va = power["total_va"] if power is not None else None
         link_up = bench.link_up
         # the relays' real state is unknown while the link is lost: driven to their safe level
         relays = bench.relays() if link_up else dict(bench.safe_levels)
-        levels = sampler.latest_levels
-        new_levels = levels if levels is not None and levels is not self._last_levels else None
-        if new_levels is not None:
-            self._last_levels = new_levels
-        self._sample = (t, total_va, relays, link_up, new_levels)
+        self._sample = (t, total_va, relays, link_up, sampler.fresh_levels)
 
     def compute(self, t_ns: int) -> None:
         if self.estimator is not None and self._sample is not None:
@@ -363,16 +355,11 @@ class SignalLimits(Task):
     def __init__(self, rig: BenchRig, watch: SignalWatch, session: Session) -> None:
         super().__init__("limits", rig.sampler.divisor)
         self.rig, self.watch, self.session = rig, watch, session
-        self._last: tuple[Any, Any] = (None, None)
 
     def record(self, t_ns: int) -> None:
-        power, levels = self.rig.sampler.latest_power, self.rig.sampler.latest_levels
-        values: dict[str, float] = {}
-        if power is not None and power is not self._last[0]:
-            values.update(power)
-        if levels is not None and levels is not self._last[1]:
-            values.update(levels)
-        self._last = (power, levels)
+        sampler = self.rig.sampler
+        values: dict[str, float] = {**(sampler.fresh_power or {}),
+                                    **(sampler.fresh_levels or {})}
         violation = self.watch.check(values)
         if violation is not None:
             message = f"limit violated, run stopped: {violation.describe()}"

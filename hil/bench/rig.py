@@ -104,7 +104,9 @@ class BenchSampler(Task):
     """Every sample: service the safety layer, poll the meter (and levels), publish.
 
     A failed poll publishes nothing for that sample and is counted (``missed_power``); the
-    latest good values stay in ``latest_power`` / ``latest_levels`` for controllers.
+    latest good values stay in ``latest_power`` / ``latest_levels`` for controllers, this
+    sample's in ``fresh_power`` / ``fresh_levels`` (None when it brought none) for the tasks
+    that look at each reading once.
     """
 
     def __init__(self, bench: SafeBench, session: Session | None = None, *,
@@ -118,6 +120,9 @@ class BenchSampler(Task):
         self.levels_every, self.readback_every = levels_every, readback_every
         self.latest_power: dict[str, float] | None = None
         self.latest_levels: dict[str, float] | None = None
+        # this sample's good readings (None: failed, bad or not polled this sample)
+        self.fresh_power: dict[str, float] | None = None
+        self.fresh_levels: dict[str, float] | None = None
         self.samples = self.missed_power = self.missed_levels = 0
         # this sample as read: power, levels, actual and commanded relays, link up
         self._sample: tuple[Any, Any, dict[str, bool], dict[str, bool], bool] | None = None
@@ -162,6 +167,7 @@ class BenchSampler(Task):
         relays = bench.relays()
         if self.stale is not None:
             self.stale.check(power, levels, relays, t_ns)
+        self.fresh_power, self.fresh_levels = power, levels
         if power is not None:
             self.latest_power = power
         if levels is not None:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Protocol
 
 from hil.core.loop import Task
 
@@ -26,11 +26,11 @@ if TYPE_CHECKING:
 
 
 class Readings(Protocol):
-    """What the check reads: the sampler's latest good readings (a new dict per poll)."""
+    """What the check reads: the sampler's readings of this sample (None: none came)."""
 
     divisor: int
-    latest_power: dict[str, float] | None
-    latest_levels: dict[str, float] | None
+    fresh_power: dict[str, float] | None
+    fresh_levels: dict[str, float] | None
 
 
 
@@ -56,17 +56,12 @@ class BenchSafetyTask(Task):
         self._origin = clock_origin
         self._window_samples = max(1, round(limits.max_total_va_ms / 1000 / period_s))
         self._over = 0
-        self._last: tuple[Any, Any] = (None, None)
         self.stopped: str | None = None
 
     def record(self, t_ns: int) -> None:
         if not self.limits.enabled or self.stopped is not None:
             return
-        power, levels = self.sampler.latest_power, self.sampler.latest_levels
-        new_power = power if power is not None and power is not self._last[0] else None
-        new_levels = levels if levels is not None and levels is not self._last[1] else None
-        self._last = (power, levels)
-        found = self._check(new_power, new_levels)
+        found = self._check(self.sampler.fresh_power, self.sampler.fresh_levels)
         if found is not None:
             t_s = (t_ns - self._origin()) / 1e9
             self.stopped = f"safety stop at t={t_s:.2f} s: {found}"

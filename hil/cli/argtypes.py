@@ -63,23 +63,11 @@ def key_value(text: str) -> tuple[str, object]:
 def output_file(text: str) -> str:
     """A file a command will write: its missing folders are created here, at parsing, so a
     path that cannot be written is refused before anything runs or any hardware is reached."""
-    import os
+    from hil.core.output import output_problem
 
     if not text:
         raise argparse.ArgumentTypeError("expected a file name, got ''")
-    if os.path.isdir(text):
-        raise argparse.ArgumentTypeError(f"{text} is a folder: give a file name in it")
-    folder = os.path.dirname(os.path.abspath(text))
-    existing = folder
-    while not os.path.exists(existing):
-        existing = os.path.dirname(existing)
-    if not os.path.isdir(existing):
-        raise argparse.ArgumentTypeError(f"{text}: {existing} is a file, not a folder")
-    try:
-        os.makedirs(folder, exist_ok=True)
-    except OSError as exc:
-        raise argparse.ArgumentTypeError(f"{text}: cannot create the folder {folder}: "
-                                         f"{exc.strerror}") from None
-    if not os.access(folder, os.W_OK):
-        raise argparse.ArgumentTypeError(f"{text}: the folder {folder} is not writable")
+    problem = output_problem(text)
+    if problem is not None:
+        raise argparse.ArgumentTypeError(problem)
     return text

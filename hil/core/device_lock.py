@@ -14,12 +14,12 @@ reveal: see :class:`drivers.bench.safe_bench.SafeBench` (relays switched by some
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import hashlib
 import os
 import tempfile
 
 from hil.core.errors import ForeignMasterError, HilError
+from hil.core.output import open_locked
 
 LOCK_DIR_ENV = "HIL_LOCK_DIR"
 
@@ -62,19 +62,16 @@ def lock_device(url: str, what: str = "device") -> DeviceLock:
     name = hashlib.sha256(key.encode()).hexdigest()[:24] + ".lock"
     path = os.path.join(lock_folder(), name)
     try:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+        fd = open_locked(path, os.O_RDWR, 0o666)
     except OSError as exc:
         raise HilError(f"cannot lock {what} {url}: {path}: {exc.strerror}") from None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    if fd is None:
         holder = ""
-        with contextlib.suppress(OSError):
-            holder = os.pread(fd, 200, 0).decode(errors="replace").split("\n")[0]
-        os.close(fd)
-        raise ForeignMasterError(
-            f"{what} {url} is in use by another hil run ({holder or 'unknown process'}): one "
-            "master at a time") from None
+        with contextlib.suppress(OSError), open(path, encoding="utf-8",
+                                                 errors="replace") as file:
+            holder = file.readline().strip()
+        raise ForeignMasterError(f"{what} {url} is in use by another hil run "
+                                 f"({holder or 'unknown process'}): one master at a time")
     os.ftruncate(fd, 0)
     os.pwrite(fd, f"pid {os.getpid()}\n{url}\n".encode(), 0)
     return DeviceLock(url, fd)

@@ -42,32 +42,53 @@ class OutputClaim:
         self.release()
 
 
-def claim_output(path: str) -> OutputClaim:
-    """Check that ``path`` can be written and lock it for this run; a clear
-    :class:`OutputError` otherwise."""
+def output_problem(path: str) -> str | None:
+    """Why a file cannot be written at ``path`` (None: it can): its missing folders are
+    created here; a path that is a folder, lies below a file or in a folder that cannot be
+    created or written is named. The command line's ``output_file`` and :func:`claim_output`
+    both ask this."""
+    if os.path.isdir(path):
+        return f"{path} is a folder: give a file name in it"
     folder = os.path.dirname(os.path.abspath(path))
     existing = folder
     while not os.path.exists(existing):
         existing = os.path.dirname(existing)
     if not os.path.isdir(existing):
-        raise OutputError(f"session file {path}: {existing} is a file, not a folder")
+        return f"{path}: {existing} is a file, not a folder"
     try:
         os.makedirs(folder, exist_ok=True)
     except OSError as exc:
-        raise OutputError(f"session file {path}: cannot create its folder {folder}: "
-                          f"{exc.strerror}") from None
-    if os.path.isdir(path):
-        raise OutputError(f"session file {path}: is a folder; give a file name, e.g. "
-                          f"{os.path.join(path, 'run.mcap')}")
-    created = not os.path.exists(path)
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC, 0o644)
-    except OSError as exc:
-        raise OutputError(f"session file {path}: cannot write it: {exc.strerror}") from None
+        return f"{path}: cannot create the folder {folder}: {exc.strerror}"
+    if not os.access(folder, os.W_OK):
+        return f"{path}: the folder {folder} is not writable"
+    return None
+
+
+def open_locked(path: str, flags: int, mode: int) -> int | None:
+    """``path`` opened (``O_CREAT`` and ``O_CLOEXEC`` added) and locked exclusively without
+    waiting: its descriptor, or None when another process holds the lock. The lock goes with
+    the descriptor, and with the process however it ends."""
+    fd = os.open(path, flags | os.O_CREAT | os.O_CLOEXEC, mode)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
         os.close(fd)
+        return None
+    return fd
+
+
+def claim_output(path: str) -> OutputClaim:
+    """Check that ``path`` can be written and lock it for this run; a clear
+    :class:`OutputError` otherwise."""
+    problem = output_problem(path)
+    if problem is not None:
+        raise OutputError(f"session file {problem}")
+    created = not os.path.exists(path)
+    try:
+        fd = open_locked(path, os.O_WRONLY, 0o644)
+    except OSError as exc:
+        raise OutputError(f"session file {path}: cannot write it: {exc.strerror}") from None
+    if fd is None:
         raise OutputError(f"session file {path} is being written by another run: give this "
-                          "run another --out") from None
+                          "run another --out")
     return OutputClaim(path, fd, created)

@@ -10,32 +10,22 @@ import os
 import re
 import subprocess
 import sys
-import textwrap
 import time
 from pathlib import Path
 
 import pytest
 
-from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 from hil import api
 from hil.bench.config import load_bench_config
 from hil.core.errors import ConfigError, SafetyStopError
 from hil.core.reader import read_session
-from tests.pymodbus_bench import PymodbusBench
+from tests.pymodbus_bench import PymodbusBench, session_events, short_config
 
 pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = load_bench_config()
 # a 4 s machining cycle, so that a real-time run is short
-SHORT = textwrap.dedent("""
-    [sequence]
-    period_s = 4.0
-    stages = [{ start_s = 0.0, end_s = 2.0, on = [] },
-              { start_s = 2.0, end_s = 4.0, on = ["M1", "M2"] }]
-""")
-
-
 def hil(*args, timeout=60):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     start = time.monotonic()
@@ -44,21 +34,8 @@ def hil(*args, timeout=60):
     return done, time.monotonic() - start
 
 
-def events(path):
-    return [event for _, event in read_session(str(path)).topic("/events")]
-
-
-def relays_of(url):
-    driver = ModbusBenchDriver(ModbusLink(parse_bus_url(url), 0.5, 2), CONFIG.map)
-    try:
-        return driver.read_relays()
-    finally:
-        driver.close()
-
-
 def test_power_above_the_ceiling_stops_the_run_with_the_relays_safe(tmp_path):
-    config = tmp_path / "short.toml"
-    config.write_text(SHORT)
+    config = short_config(tmp_path)
     out = tmp_path / "over.mcap"
     with PymodbusBench(CONFIG, total_va=1500.0) as bench:
         done, _ = hil("bench", "run", "--controller", "bc", "--bench", bench.url, "--cycles",
@@ -67,8 +44,8 @@ def test_power_above_the_ceiling_stops_the_run_with_the_relays_safe(tmp_path):
         lines = done.stderr.strip().splitlines()
         assert len(lines) == 1 and "safety stop at t=" in lines[0]
         assert re.search(r"total_va 150\d\.\d VA above 1200 VA for more than 500 ms", lines[0])
-        assert not any(relays_of(bench.url).values())       # every relay at its safe level
-    stop = [e for e in events(out) if e["kind"] == "safety.stop"]
+        assert not any(bench.relays().values())       # every relay at its safe level
+    stop = [e for e in session_events(out) if e["kind"] == "safety.stop"]
     assert len(stop) == 1 and float(stop[0]["message"].split("t=")[1].split()[0]) < 1.0
     power = read_session(str(out)).topic("/bench/power")
     assert 50 <= len(power) <= 100                           # stopped after ~0.5 s, recorded
@@ -78,7 +55,7 @@ def test_a_level_outside_its_physical_range_stops_the_run(tmp_path):
     with pytest.raises(SafetyStopError, match=r"level q1 = 55.00 outside its physical range "
                                               r"\[56, 250\]"):
         api.run_bench("bc", safety={"level_min": 56}, out=str(tmp_path / "low.mcap"))
-    stop = [e for e in events(tmp_path / "low.mcap") if e["kind"] == "safety.stop"]
+    stop = [e for e in session_events(tmp_path / "low.mcap") if e["kind"] == "safety.stop"]
     assert len(stop) == 1
 
 
@@ -100,8 +77,7 @@ def test_a_wrong_safety_override_is_one_line_before_the_run(tmp_path, key, value
 
 
 def test_non_finite_readings_are_faults_out_of_the_kpis(tmp_path):
-    config = tmp_path / "short.toml"
-    config.write_text(SHORT)
+    config = short_config(tmp_path)
     out = tmp_path / "nan.mcap"
 
     def garbage(read):  # reads 101..150: NaN, then inf; the rest are good
@@ -117,7 +93,7 @@ def test_non_finite_readings_are_faults_out_of_the_kpis(tmp_path):
     assert "RuntimeWarning" not in done.stderr
     assert [line for line in done.stderr.splitlines() if line] == [
         line for line in done.stderr.splitlines() if line.startswith("hil: run disturbed")]
-    bad = [e for e in events(out) if e["kind"] == "meter.bad_reading"]
+    bad = [e for e in session_events(out) if e["kind"] == "meter.bad_reading"]
     assert len(bad) == 1 and "total_va = nan" in bad[0]["message"]
     totals = [m["total_va"] for _, m in read_session(str(out)).topic("/bench/power")]
     assert all(math.isfinite(v) for v in totals) and len(totals) >= 300

@@ -12,47 +12,27 @@ import resource
 import signal
 import subprocess
 import sys
-import textwrap
 import time
 from pathlib import Path
 
 import pytest
 
-from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 from hil import api
 from hil.bench.config import load_bench_config
 from hil.core.output import OutputError
 from hil.core.reader import read_session
-from tests.pymodbus_bench import PymodbusBench
+from tests.pymodbus_bench import PymodbusBench, short_config, start_bench_run
 
 pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = load_bench_config()
-SHORT = textwrap.dedent("""
-    [sequence]
-    period_s = 4.0
-    stages = [{ start_s = 0.0, end_s = 2.0, on = [] },
-              { start_s = 2.0, end_s = 4.0, on = ["M1", "M2"] }]
-""")
 ENV = dict(os.environ, PYTHONPATH=str(ROOT))
 
 
 def bench_run(bench, out, *extra, cycles=10, config_dir=None, **popen):
-    config = Path(config_dir or Path(out).parent) / "short.toml"
-    config.write_text(SHORT)
-    return subprocess.Popen(
-        [sys.executable, "-m", "hil", "bench", "run", "--controller", "bc", "--bench",
-         bench.url, "--cycles", str(cycles), "--config", str(config), "--out", str(out),
-         *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV, **popen)
-
-
-def relays_of(url):
-    driver = ModbusBenchDriver(ModbusLink(parse_bus_url(url), 0.5, 2), CONFIG.map)
-    try:
-        return driver.read_relays()
-    finally:
-        driver.close()
+    config = short_config(config_dir or Path(out).parent)
+    return start_bench_run(bench.url, out, config, *extra, cycles=cycles, **popen)
 
 
 def recorded(path):
@@ -81,7 +61,7 @@ def test_a_full_disk_stops_the_run_safely_with_the_true_count(tmp_path):
         _, stderr = run.communicate(timeout=60)
         elapsed = time.monotonic() - start
         assert run.returncode == 2, stderr
-        assert not any(relays_of(bench.url).values())
+        assert not any(bench.relays().values())
     count = check_failure_line(stderr, out, "File too large")
     assert count == recorded(out) and count > 100
     assert elapsed < 20  # the run was asked for 40 s; the file filled up within a few
@@ -113,7 +93,7 @@ def test_a_killed_writer_stops_the_run_within_a_second(tmp_path):
         assert run.returncode == 2, stderr
         # the loop stopped polling within ~1 s of the kill (100 polls a second)
         assert bench.meter_reads - reads_at_kill < 150, bench.meter_reads - reads_at_kill
-        assert not any(relays_of(bench.url).values())
+        assert not any(bench.relays().values())
         assert time.monotonic() - killed < 10
     count = check_failure_line(stderr, out, r"the writer process was killed \(SIGKILL\)")
     assert count == recorded(out) and count > 0
@@ -134,7 +114,7 @@ def test_an_unwritable_output_refuses_before_the_bench_is_reached(tmp_path, out,
         # the Python API checks the same before it opens the bench
         with pytest.raises(OutputError, match=why):
             api.run_bench("bc", bench=bench.url, out=path, realtime=True)
-        assert bench.meter_reads == 0 and not any(relays_of(bench.url).values())
+        assert bench.meter_reads == 0 and not any(bench.relays().values())
     lines = stderr.strip().splitlines()
     assert len(lines) == 1 and re.search(why, lines[0]), stderr
     assert lines[0].startswith("hil bench run: error: argument --out: ")

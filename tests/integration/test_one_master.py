@@ -8,7 +8,6 @@ gateway, the foreign master a plain socketcand client."""
 import os
 import subprocess
 import sys
-import textwrap
 import threading
 import time
 from pathlib import Path
@@ -19,20 +18,18 @@ from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 from drivers.socketcand_bus import SocketcandBus
 from hil import api
 from hil.bench.config import load_bench_config
-from hil.core.reader import read_session
-from tests.pymodbus_bench import PymodbusBench
+from tests.pymodbus_bench import (
+    PymodbusBench,
+    session_events,
+    short_config,
+    start_bench_run,
+)
 
 pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = load_bench_config()
 ENV = dict(os.environ, PYTHONPATH=str(ROOT))
-SHORT = textwrap.dedent("""
-    [sequence]
-    period_s = 4.0
-    stages = [{ start_s = 0.0, end_s = 2.0, on = [] },
-              { start_s = 2.0, end_s = 4.0, on = ["M1", "M2"] }]
-""")
 
 
 def hil(*args):
@@ -41,18 +38,12 @@ def hil(*args):
 
 
 def bench_run(bench, tmp_path, name, cycles=1):
-    config = tmp_path / "short.toml"
-    config.write_text(SHORT)
-    return hil("bench", "run", "--controller", "bc", "--bench", bench.url, "--cycles",
-               str(cycles), "--config", str(config), "--out", str(tmp_path / f"{name}.mcap"))
+    return start_bench_run(bench.url, tmp_path / f"{name}.mcap", short_config(tmp_path),
+                           cycles=cycles)
 
 
 def driver_of(url):
     return ModbusBenchDriver(ModbusLink(parse_bus_url(url), 0.5, 2), CONFIG.map)
-
-
-def events(path):
-    return [event for _, event in read_session(str(path)).topic("/events")]
 
 
 def test_a_second_run_on_the_same_bench_refuses_at_once(tmp_path):
@@ -91,8 +82,8 @@ def test_another_master_switching_a_relay_stops_the_run(tmp_path):
         lines = stderr.strip().splitlines()
         assert len(lines) == 1 and "another master is driving the bench" in lines[0], stderr
         assert stopped_after < 5
-        assert not any(driver_of(bench.url).read_relays().values())  # all at the safe level
-    kinds = [e["kind"] for e in events(tmp_path / "shared.mcap")]
+        assert not any(bench.relays().values())  # all at the safe level
+    kinds = [e["kind"] for e in session_events(tmp_path / "shared.mcap")]
     assert "relay.foreign_change" in kinds and "bench.foreign_master" in kinds
 
 
@@ -142,5 +133,5 @@ def test_a_second_run_on_the_same_drive_bus_refuses_and_a_foreign_sync_stops_the
     lines = stderr.strip().splitlines()
     assert len(lines) == 1 and "another master on" in lines[0] and "a SYNC (0x080)" in lines[0]
     assert stopped_after < 5
-    kinds = [e["kind"] for e in events(tmp_path / "first.mcap")]
+    kinds = [e["kind"] for e in session_events(tmp_path / "first.mcap")]
     assert "bus.foreign_master" in kinds

@@ -21,6 +21,7 @@ from hil.core.reader import read_session
 from hil.core.recorder import RecordingOptions
 from hil.core.session import Session
 from tests.live.foxglove_client import FoxgloveClient, stalled_client
+from tests.pymodbus_bench import short_config
 
 pytestmark = [pytest.mark.slow]
 
@@ -273,9 +274,7 @@ def _reset_after_subscribing(url: str) -> None:
 def test_clients_that_come_and_go_cost_one_stderr_line_per_reason(tmp_path: Path) -> None:
     port = free_port()
     out = tmp_path / "churn.mcap"
-    config = tmp_path / "short.toml"  # a 4 s machining cycle
-    config.write_text('[sequence]\nperiod_s = 4.0\nstages = [{ start_s = 0.0, end_s = 2.0, '
-                      'on = [] }, { start_s = 2.0, end_s = 4.0, on = ["M1", "M2"] }]\n')
+    config = short_config(tmp_path)  # a 4 s machining cycle
     run = start_hil("bench", "run", "--controller", "bc", "--realtime", "--cycles", "2",
                     "--config", str(config), "--live", str(port), "--out", str(out))
     try:
