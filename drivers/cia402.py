@@ -10,6 +10,7 @@ against canopen's ``State402``). Transition numbers are those of the CiA 402 sta
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 # -------------------------------------------------------------------------------- states
 NOT_READY_TO_SWITCH_ON = "NOT READY TO SWITCH ON"
@@ -41,6 +42,7 @@ SW_FOLLOWS_COMMAND = 0x1000  # cyclic synchronous modes: the drive follows the c
 UNKNOWN_STATE = "UNKNOWN"
 
 
+@lru_cache(maxsize=1024)  # read every cycle; a drive shows a handful of statuswords
 def state_of(statusword: int) -> str:
     """The state a statusword reports (``UNKNOWN`` if none matches)."""
     for state, (mask, value) in STATUSWORD_MASKS.items():
@@ -83,6 +85,7 @@ CONTROLWORD_MASKS: dict[str, tuple[int, int]] = {
 }
 
 
+@lru_cache(maxsize=1024)  # the drive reads one every cycle; few distinct pairs occur
 def command_of(controlword: int, previous: int = 0) -> str | None:
     """The command a controlword gives after ``previous``: FAULT RESET on a rising edge of bit
     7, none while bit 7 stays high, else the one command whose bits match."""

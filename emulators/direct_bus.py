@@ -30,22 +30,25 @@ class DirectChannel:
         self.name = name
         self.inboxes: list[deque[Frame]] = []
 
-    def attach(self, on_send: Callable[[], None] | None = None) -> DirectBus:
-        """A new bus on this channel; it receives what every other bus sends from now on.
+    def attach(self, on_send: Callable[[], None] | None = None, *,
+               listen: bool = True) -> DirectBus:
+        """A new bus on this channel; it receives what every other bus sends from now on
+        (unless not ``listen``: a bus that only sends keeps no inbox, which would only grow).
         ``on_send`` runs after each of its transmissions (a lockstep rig runs the emulated
         node there, so a cycle is function calls)."""
-        return DirectBus(self, on_send=on_send)
+        return DirectBus(self, on_send=on_send, listen=listen)
 
 
 class DirectBus(can.BusABC):
     """One bus of a :class:`DirectChannel` (a python-can bus; receiving never blocks)."""
 
     def __init__(self, channel: DirectChannel, *, on_send: Callable[[], None] | None = None,
-                 **kwargs: Any) -> None:
+                 listen: bool = True, **kwargs: Any) -> None:
         self._channel = channel
         self._on_send = on_send
         self._inbox: deque[Frame] = deque()
-        channel.inboxes.append(self._inbox)
+        if listen:
+            channel.inboxes.append(self._inbox)
         super().__init__(channel=channel.name, **kwargs)
         self.channel_info = f"direct channel {channel.name}"
 

@@ -87,17 +87,22 @@ class SteadyStateKalman:
         self._prior = np.array(x0, dtype=float)
         self.x = self._prior.copy()
 
-    def update(self, y: float) -> np.ndarray:
-        """Correct the prior with measurement ``y``; returns the posterior x̂(k|k) (a view)."""
+    def update(self, y: float, out: np.ndarray | None = None) -> np.ndarray:
+        """Correct the prior with measurement ``y``; returns the posterior x̂(k|k) (a view),
+        also written to ``out`` when given (the MPC's θ)."""
         prior = self._prior
         innovation = y - float(self.C @ prior)
         np.multiply(self.gain, innovation, out=self.x)
         self.x += prior
+        if out is not None:
+            out[:] = self.x
         return self.x
 
     def predict(self, du: float) -> None:
         """Propagate the posterior one tick with the applied input change ``du``."""
-        self._prior = self.A @ self.x + self.B * du
+        prior = self._prior
+        np.matmul(self.A, self.x, out=prior)
+        prior += self.B * du
 
     def observer_poles(self) -> np.ndarray:
         """Eigenvalues of the estimation error dynamics A - A K C (all inside the unit circle)."""

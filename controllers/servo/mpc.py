@@ -244,6 +244,9 @@ class DaqpSolver:
         self._rows = (K.shape[0], K.shape[0] + qp.X.shape[0])
         self._G, self._W = qp.G, qp.W
         self._W_tol = qp.W + FEASIBILITY_TOL
+        rows = qp.G.shape[0]
+        self._lhs, self._rhs = np.empty(rows), np.empty(rows)
+        self._holds = np.empty(rows, dtype=bool)
         self._model = self._setup(qp.G)
         n_in = qp.G.shape[0] - qp.output_rows
         self._fallback = self._setup(qp.G[:n_in]) if qp.output_rows else None
@@ -266,7 +269,12 @@ class DaqpSolver:
         z = self._stacked @ theta
         hu, n_bound = self._rows
         dU, x_part, f = z[:hu], z[hu:n_bound], z[n_bound:]
-        if (self._G @ dU <= self._W_tol + x_part).all():
+        # G ΔU <= W + X θ (+ tolerance): ufuncs into buffers, no temporaries
+        lhs, rhs, holds = self._lhs, self._rhs, self._holds
+        np.matmul(self._G, dU, out=lhs)
+        np.add(self._W_tol, x_part, out=rhs)
+        np.less_equal(lhs, rhs, out=holds)
+        if np.logical_and.reduce(holds):
             self.last_path = "unconstrained"
             self.counts["unconstrained"] += 1
             return dU
@@ -412,29 +420,45 @@ class TrajectoryMpc:
         self._dU = np.zeros(self.config.hu)
         self._theta[:] = 0.0
 
-    def _reference_ahead(self, t: float) -> np.ndarray:
-        """r(t + i T), i = 1..H_t. On the sample grid (t = k T, as the loop calls) the samples
-        come from a block of ``REFERENCE_BLOCK`` ticks evaluated at once."""
+    def _reference_ahead(self, t: float) -> tuple[np.ndarray, bool]:
+        """r(t + i T), i = 1..H_t, and whether they wrap 360 -> 0 (a step of 180 deg or more).
+        On the sample grid (t = k T, as the loop calls) both come from a block of
+        ``REFERENCE_BLOCK`` ticks evaluated at once."""
         k = round(t / self.dt)
         if abs(k * self.dt - t) > 1e-9 * max(1.0, abs(t)):
-            return np.asarray(self.reference.position(t + self._offsets), dtype=float)
+            raw = np.asarray(self.reference.position(t + self._offsets), dtype=float)
+            return raw, bool(raw.size > 1 and np.abs(raw[1:] - raw[:-1]).max() >= 180.0)
         first = k - k % REFERENCE_BLOCK
         if first != self._block_first:
-            ticks = first + 1 + np.arange(REFERENCE_BLOCK + self.config.ht)
-            self._block = np.asarray(self.reference.position(ticks * self.dt), dtype=float)
-            self._block_first = first
+            self._load_block(first)
         i = k - first
-        return self._block[i:i + self.config.ht]
+        return self._block[i:i + self.config.ht], bool(self._wraps[i])
+
+    def _load_block(self, first: int) -> None:
+        """The reference samples of ticks ``first + 1 ..`` and, for each window start in
+        them, whether that window wraps 360 -> 0 (a step of 180 deg or more in it)."""
+        ht = self.config.ht
+        ticks = first + 1 + np.arange(REFERENCE_BLOCK + ht)
+        self._block = np.asarray(self.reference.position(ticks * self.dt), dtype=float)
+        self._block_first = first
+        big = np.abs(self._block[1:] - self._block[:-1]) >= 180.0
+        ends = np.concatenate([[0], np.cumsum(big)])  # big steps before each sample
+        starts = np.arange(REFERENCE_BLOCK)
+        self._wraps = ends[starts + ht - 1] > ends[starts]
 
     def reference_window(self, t: float, near: float) -> np.ndarray:
         """r(1..H_t|k) as continuous angles, anchored within ±180 deg of ``near`` at first."""
-        raw = self._reference_ahead(t)
-        first = self._ref_anchor.update(float(raw[0]), near=near)
-        window = raw + (first - float(raw[0]))
-        if raw.size > 1:
+        return self._window_into(np.empty(self.config.ht), t, near)
+
+    def _window_into(self, window: np.ndarray, t: float, near: float) -> np.ndarray:
+        """:meth:`reference_window` written into ``window`` (the tick's θ, no new array)."""
+        raw, wraps = self._reference_ahead(t)
+        raw0 = float(raw[0])
+        first = self._ref_anchor.update(raw0, near=near)
+        np.add(raw, first - raw0, out=window)
+        if wraps:  # the window itself wraps 360 -> 0
             steps = raw[1:] - raw[:-1]
-            if np.abs(steps).max() >= 180.0:  # the window itself wraps 360 -> 0
-                window[1:] = first + np.cumsum((steps + 180.0) % 360.0 - 180.0)
+            window[1:] = first + np.cumsum((steps + 180.0) % 360.0 - 180.0)
         return window
 
     def step(self, position_deg: float, t_s: float) -> float:
@@ -446,11 +470,10 @@ class TrajectoryMpc:
             x0[-1] = y
             self.kalman.reset(x0)
             self._started = True
-        x = self.kalman.update(y)
         theta = self._theta
-        theta[:n_x] = x
+        self.kalman.update(y, out=theta[:n_x])
         theta[n_x] = self._u
-        theta[n_x + 1:] = self.reference_window(t_s, near=y)
+        self._window_into(theta[n_x + 1:], t_s, near=y)
         self._dU = self.solver.solve(theta)
         u = min(max(self._u + float(self._dU[0]), self.config.u_min), self.config.u_max)
         self.kalman.predict(u - self._u)

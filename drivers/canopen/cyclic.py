@@ -22,6 +22,7 @@ import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 from drivers.can_frames import Frame
 from drivers.canopen.errors import DriveError, DriveLinkLostError
@@ -36,10 +37,10 @@ POLL_WAIT_MAX_NS = 2_000_000  # TPDO waits up to this long poll the bus instead 
 SYNC_COUNTER_MAX = 240  # 0x1019 written when the echo is on: the SYNC counter runs 1..240
 
 
-@dataclass(frozen=True, slots=True)
-class Feedback:
+class Feedback(NamedTuple):
     """What the drive reported for one cycle (``fresh`` False: the TPDOs did not arrive in
-    time and the values are the previous cycle's)."""
+    time and the values are the previous cycle's). A named tuple: built every cycle, and a
+    frozen dataclass costs several times as much to build."""
 
     position_deg: float       # multi-turn, unwrapped by the master
     velocity_deg_s: float
@@ -159,17 +160,24 @@ class CyclicExchange:
         deadline_ns = self._sent_ns + self._rx_timeout_ns
         recv, dispatch = self.link.recv, self._dispatch
         clock = time.perf_counter_ns
-        # a wait of a cycle or so is spent polling: a thread blocked in select() is woken up
-        # 50 us to several hundred us after the frame arrives (more on a virtual machine)
-        poll = self._rx_timeout_ns <= POLL_WAIT_MAX_NS
         try:
-            while self._got != 3:
-                remaining = (deadline_ns - clock()) / 1e9
-                frame = recv(0.0 if poll else max(0.0, remaining))
-                if frame is not None:
-                    dispatch(frame)
-                elif remaining <= 0:
-                    break
+            # a wait of a cycle or so is spent polling: a thread blocked in select() is woken
+            # up 50 us to several hundred us after the frame arrives (more on a virtual machine)
+            if self._rx_timeout_ns <= POLL_WAIT_MAX_NS:
+                while self._got != 3:
+                    frame = recv(0.0)
+                    if frame is not None:
+                        dispatch(frame)
+                    elif clock() >= deadline_ns:
+                        break
+            else:
+                while self._got != 3:
+                    remaining = (deadline_ns - clock()) / 1e9
+                    frame = recv(max(0.0, remaining))
+                    if frame is not None:
+                        dispatch(frame)
+                    elif remaining <= 0:
+                        break
         finally:
             self._awaiting = False
         stats = self.stats
@@ -249,15 +257,6 @@ class CyclicExchange:
             elif step < -(turn // 2):
                 self._turns += 1
         self._last_raw = raw
-        return Feedback(
-            position_deg=scaling.degrees(self._turns * turn + raw),
-            velocity_deg_s=scaling.degrees(velocity),
-            current_ma=scaling.milliamps(torque),
-            statusword=statusword,
-            position_increments=raw,
-            cycle=self.cycle,
-            t_ns=self._now_ns(),
-            fresh=fresh,
-            rtt_us=rtt_us,
-            command_ma=self._command_ma,
-        )
+        return Feedback(scaling.degrees(self._turns * turn + raw), scaling.degrees(velocity),
+                        scaling.milliamps(torque), statusword, raw, self.cycle, self._now_ns(),
+                        fresh, rtt_us, self._command_ma)

@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from functools import cached_property
 from typing import Any
 
 from drivers.canopen.errors import DriveError, SdoAbortError
@@ -28,12 +29,12 @@ class DriveScaling:
     rated_current_ma: float = 1000.0    # 0x6075
     polarity: int = 0                   # 0x607E
 
-    @property
+    @cached_property  # read every cycle; the scaling never changes once read
     def counts_per_turn(self) -> int:
         """0x6064 counts in one turn of the axis."""
         return self.increments_per_rev * self.motor_revolutions // self.shaft_revolutions
 
-    @property
+    @cached_property
     def degrees_per_count(self) -> float:
         return 360.0 / self.counts_per_turn
 

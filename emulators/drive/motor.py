@@ -25,6 +25,8 @@ from emulators.drive.plant import AxisPlant
 from emulators.drive.states import DriveStates
 
 OVERCURRENT_TRIP = 0x2002  # the emulator's trip level [mA] (manufacturer object)
+RATED_KEY, MAX_TORQUE_KEY, MODE_KEY = (RATED_CURRENT, 0), (MAX_TORQUE, 0), (MODES_DISPLAY, 0)
+TORQUE_KEY, TRIP_KEY = (TARGET_TORQUE, 0), (OVERCURRENT_TRIP, 0)
 
 
 def wrap_degrees(delta_deg: float) -> float:
@@ -45,18 +47,18 @@ class MotorLoops:
         self.last_target_deg = None
 
     def current_limit_ma(self) -> float:
-        rated = self.values[(RATED_CURRENT, 0)]
-        return min(self.values[(MAX_TORQUE, 0)] * rated / 1000.0, self.plant.current_limit_ma)
+        rated = self.values[RATED_KEY]
+        return min(self.values[MAX_TORQUE_KEY] * rated / 1000.0, self.plant.current_limit_ma)
 
     def current(self, cycle_s: float) -> tuple[float, bool]:
         """The current the drive applies this cycle and whether it had to limit it."""
         values, states = self.values, self.states
         limit = self.current_limit_ma()
         if states.state == OPERATION_ENABLED:
-            mode = values[(MODES_DISPLAY, 0)]
+            mode = values[MODE_KEY]
             if mode == CYCLIC_SYNCHRONOUS_TORQUE:
-                wanted = values[(TARGET_TORQUE, 0)] * values[(RATED_CURRENT, 0)] / 1000.0
-                if abs(wanted) > values[(OVERCURRENT_TRIP, 0)]:
+                wanted = values[TORQUE_KEY] * values[RATED_KEY] / 1000.0
+                if abs(wanted) > values[TRIP_KEY]:
                     states.fault(EMCY_OVERCURRENT, ERR_REG_CURRENT)
                     return self.current(cycle_s)  # the fault reaction's current
             elif mode == CYCLIC_SYNCHRONOUS_POSITION:

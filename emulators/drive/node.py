@@ -116,6 +116,16 @@ SYNC_POLL_PERIODS = 100     # SYNCs are expected until this many cycles passed w
 CAUSE_HEARTBEAT, CAUSE_SYNC = 0x01, 0x02
 EXTENDED_OR_PRODUCER = 0x6000_0000  # COB-ID SYNC: bit 30 (we would produce), bit 29 (29-bit)
 NODE_ID_MASK = 0xFF80_0000           # consumer heartbeat: bits above the node id
+# objects whose writing means more than storing the value (:meth:`DriveNode._write`)
+WRITE_EFFECTS = frozenset({SYNC_COB_ID_OBJECT, SYNC_COUNTER_OVERFLOW, CYCLE_PERIOD,
+                           CONSUMER_HEARTBEAT, PRODUCER_HEARTBEAT, QUICK_STOP_OPTION,
+                           MODES_OF_OPERATION, CONTROLWORD, DISTURBANCE})
+
+# the objects the cyclic path reads and writes, as keys of the value store
+CONTROLWORD_KEY, MODE_KEY = (CONTROLWORD, 0), (MODES_OF_OPERATION, 0)
+POSITION_KEY, VELOCITY_KEY = (POSITION_ACTUAL, 0), (VELOCITY_ACTUAL, 0)
+TORQUE_KEY, STATUSWORD_KEY, RATED_KEY = (TORQUE_ACTUAL, 0), (STATUSWORD, 0), (RATED_CURRENT, 0)
+SYNC_OVERFLOW_KEY, SYNC_ECHO_KEY = (SYNC_COUNTER_OVERFLOW, 0), (SYNC_ECHO, 0)
 
 SendFn = Callable[[list[Frame]], None]
 
@@ -144,7 +154,7 @@ class DriveNode:
         self._values = self.objects.values
         self.lock = threading.RLock()
         self._send_fn = send
-        self._timebase = timebase
+        self._sync_timebase = timebase == "sync"  # time is the SYNCs so far (lockstep)
         self._plant_period_ns = round(self.plant.dt * 1e9)
         sdo_response_id = SDO_RESPONSE_BASE + self.node_id
         self.sdo = SdoServer(self.objects.read, self._download,
@@ -185,7 +195,7 @@ class DriveNode:
         return self._steps_per_sync * self._plant_period_ns
 
     def _now(self) -> int:
-        return self._sync_time_ns if self._timebase == "sync" else time.monotonic_ns()
+        return self._sync_time_ns if self._sync_timebase else time.monotonic_ns()
 
     def _reset_application(self) -> None:
         """Power-on / NMT reset node: parameters to defaults, state machine restarted."""
@@ -241,9 +251,10 @@ class DriveNode:
 
     # ---------------------------------------------------------------------- transport
     def _send(self, frames: list[Frame]) -> None:
-        for fault in self.faults.active("silent"):
-            self.faults.hit(fault)
-            return
+        if self.faults:
+            for fault in self.faults.active("silent"):
+                self.faults.hit(fault)
+                return
         try:
             self._send_fn(frames)
         except Exception as exc:  # a vanished client or a closed bus must not kill the node
@@ -346,6 +357,9 @@ class DriveNode:
         code."""
         key = (index, subindex)
         values = self._values
+        if index not in WRITE_EFFECTS and index not in self.pdos.by_object:  # a plain value
+            values[key] = value
+            return
         pdo = self.pdos.by_object.get(index)
         if pdo is not None:
             self.pdos.write(pdo, index, subindex, value)
@@ -399,9 +413,10 @@ class DriveNode:
         return period_ns // self._plant_period_ns
 
     def _apply_controlword(self, cw: int) -> None:
-        for fault in self.faults.active("ignore_controlword"):
-            self.faults.hit(fault)
-            return
+        if self.faults:
+            for fault in self.faults.active("ignore_controlword"):
+                self.faults.hit(fault)
+                return
         self.states.apply_controlword(cw)
 
     # ------------------------------------------------------------------------------ PDOs
@@ -417,9 +432,9 @@ class DriveNode:
     def _apply_rpdo(self, pdo: Pdo, data: bytes) -> None:
         controlword = None
         for key, value in zip(pdo.keys, pdo.layout.unpack(data), strict=True):
-            if key == (CONTROLWORD, 0):
+            if key == CONTROLWORD_KEY:
                 controlword = value  # applied after the targets of the same PDO
-            elif key == (MODES_OF_OPERATION, 0) and value not in MODES:
+            elif key == MODE_KEY and value not in MODES:
                 continue  # invalid mode in a PDO: ignored, the display keeps the active mode
             else:
                 try:
@@ -449,8 +464,8 @@ class DriveNode:
         if len(data) > 1:
             self._emcy(EMCY_SYNC_LENGTH, ERR_REG_COMMUNICATION, raise_register=False)
             return
-        if data and self._values[(SYNC_COUNTER_OVERFLOW, 0)]:  # the SYNC counter is on
-            self._values[(SYNC_ECHO, 0)] = data[0]
+        if data and self._values[SYNC_OVERFLOW_KEY]:  # the SYNC counter is on
+            self._values[SYNC_ECHO_KEY] = data[0]
         operational = self.nmt_state == NMT_OPERATIONAL
         if operational and self.pdos.pending:
             for pdo, latched in self.pdos.latched():
@@ -473,11 +488,11 @@ class DriveNode:
 
     def _refresh_actuals(self) -> None:
         values, plant = self._values, self.plant
-        values[(POSITION_ACTUAL, 0)] = plant.position_increments()
-        values[(VELOCITY_ACTUAL, 0)] = plant.velocity_increments_s()
-        torque = round(plant.applied_current_ma * 1000.0 / values[(RATED_CURRENT, 0)])
-        values[(TORQUE_ACTUAL, 0)] = max(-32768, min(32767, torque))
-        values[(STATUSWORD, 0)] = self.states.statusword
+        values[POSITION_KEY] = plant.position_increments()
+        values[VELOCITY_KEY] = plant.velocity_increments_s()
+        torque = round(plant.applied_current_ma * 1000.0 / values[RATED_KEY])
+        values[TORQUE_KEY] = max(-32768, min(32767, torque))
+        values[STATUSWORD_KEY] = self.states.statusword
 
     # ----------------------------------------------------------------------------- EMCY
     def _emcy(self, code: int, register: int, manufacturer: bytes = b"",

@@ -68,6 +68,9 @@ class PdoTable:
             self.by_object[pdo.comm] = pdo
             self.by_object[pdo.mapping] = pdo
         self.pending: dict[int, bytes] = {}  # RPDO data held for the next SYNC
+        # the cyclic path's views, rebuilt whenever a PDO is compiled
+        self._receivers: dict[int, Pdo] = {}  # the valid RPDOs by COB-ID (the first one wins)
+        self._transmitters: list[Pdo] = []    # the valid TPDOs, in order
 
     def compile_all(self) -> None:
         for pdo in self.pdos:
@@ -87,6 +90,11 @@ class PdoTable:
             keys.append((index, subindex))
             fmt += pdo_struct(var).format.lstrip("<")
         pdo.keys, pdo.layout = tuple(keys), struct.Struct(fmt)
+        self._receivers = {}
+        for each in self.pdos:
+            if not each.transmit and each.valid:
+                self._receivers.setdefault(each.cob_id, each)
+        self._transmitters = [each for each in self.pdos if each.transmit and each.valid]
 
     # -- writes to the PDO objects (SDO) ----------------------------------------------------
     def write(self, pdo: Pdo, index: int, subindex: int, value: int) -> None:
@@ -137,10 +145,7 @@ class PdoTable:
     # -- the cyclic path ------------------------------------------------------------------
     def receiver(self, can_id: int) -> Pdo | None:
         """The valid RPDO with this COB-ID, if any."""
-        for pdo in self.pdos:
-            if not pdo.transmit and pdo.valid and pdo.cob_id == can_id:
-                return pdo
-        return None
+        return self._receivers.get(can_id)
 
     def receive(self, pdo: Pdo, data: bytes) -> tuple[bytes | None, int]:
         """RPDO data: (the data to apply now, or None when it is held for the next SYNC or
@@ -164,11 +169,9 @@ class PdoTable:
 
     def latched(self) -> list[tuple[Pdo, bytes]]:
         """The RPDO data held for this SYNC, in PDO order (then forgotten)."""
-        out = []
-        for pdo in self.pdos:
-            data = self.pending.pop(pdo.comm, None)
-            if data is not None:
-                out.append((pdo, data))
+        pending, by_object = self.pending, self.by_object
+        out = [(by_object[comm], pending[comm]) for comm in sorted(pending)]
+        pending.clear()
         return out
 
     def restart(self) -> None:
@@ -181,11 +184,9 @@ class PdoTable:
         """The TPDOs this SYNC sends (each valid one whose transmission type is due)."""
         values = self.objects.values
         frames = []
-        for pdo in self.pdos:
-            if not pdo.transmit or not pdo.valid:
-                continue
+        for pdo in self._transmitters:
             pdo.counter += 1
             if pdo.counter >= pdo.trans_type:
                 pdo.counter = 0
-                frames.append((pdo.cob_id, pdo.layout.pack(*[values[key] for key in pdo.keys])))
+                frames.append((pdo.cob_id, pdo.layout.pack(*map(values.__getitem__, pdo.keys))))
         return frames

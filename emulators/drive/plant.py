@@ -97,11 +97,16 @@ class AxisPlant:
         # one product per period: [x(k+1); y(k+1)] = [[A, B], [C A, C B]] [x(k); u(k)]
         self._step_matrix = np.block([[A, B], [C @ A, C @ B]])
         self._n = n
+        f, d = self.friction, self.disturbance
+        # friction or a configured disturbance: the load is computed every period
+        self._configured_load = bool(f.viscous_ma_per_deg_s or f.coulomb_ma
+                                     or d.constant_ma or (d.sine_ma and d.sine_hz))
         self.reset()
 
     def reset(self) -> None:
         """Back to rest at position 0, time 0."""
         self._xu = np.zeros(self.model.n_states + 1)  # state, then the input of the period
+        self._next = np.zeros_like(self._xu)  # the product's buffer: x(k+1), then y(k+1)
         self.steps = 0
         self.position_deg = 0.0
         self.velocity_deg_s = 0.0
@@ -121,15 +126,17 @@ class AxisPlant:
         limit = self.current_limit_ma
         applied = min(max(float(current_ma), -limit), limit) if math.isfinite(current_ma) else 0.0
         self.applied_current_ma = applied
-        M, xu, n = self._step_matrix, self._xu, self._n
+        M, xu, z, n = self._step_matrix, self._xu, self._next, self._n
         for _ in range(periods):
-            xu[n] = applied - self.load_current_ma()
-            z = M @ xu
-            xu[:n] = z[:n]
+            loaded = self._configured_load or self.extra_disturbance_ma
+            xu[n] = applied - self.load_current_ma() if loaded else applied
+            np.matmul(M, xu, out=z)
             position = float(z[n])
+            xu, z = z, xu  # x(k+1) is where the product put it; its last entry takes u(k+1)
             self.velocity_deg_s = (position - self.position_deg) / self.dt
             self.position_deg = position
             self.steps += 1
+        self._xu, self._next = xu, z
 
     def position_increments(self) -> int:
         """Encoder reading: position in increments modulo one revolution, in [0, increments)."""

@@ -85,7 +85,7 @@ class LockstepDrive:
         self.channel = DirectChannel(f"hil-drive-{uuid.uuid4().hex}")
         self._node_bus = self.channel.attach()
         self.master_bus = self.channel.attach(on_send=self.pump)
-        self._time_bus = self.channel.attach(on_send=self.pump)
+        self._time_bus = self.channel.attach(on_send=self.pump, listen=False)  # SYNCs only
         self.node = DriveNode(config, send=self._node_bus.send_frames, plant=plant,
                               timebase="sync")
         self.node.boot()

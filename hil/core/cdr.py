@@ -139,12 +139,60 @@ def _put_string(buf: bytearray, value: str) -> None:
 
 
 class CdrEncoder:
-    """Encodes dicts to CDR for one fixed list of fields."""
+    """Encodes dicts to CDR for one fixed list of fields.
+
+    The leading run of fixed-size fields (their offsets are known in advance) is one
+    precompiled ``struct`` with the alignment padding in it, and each numeric sequence one
+    ``struct`` call: the writer process encodes a servo tick's topics several times faster
+    than field by field, and the bytes are the same (:meth:`encode_by_field`, the plain
+    definition, is what the tests compare it with and what names a value that does not fit).
+    """
 
     def __init__(self, fields: list[Field]) -> None:
         self.fields = fields
+        fmt, offset, lead = "<", 0, 0
+        for f in fields:
+            if f.sequence or f.type == "string":
+                break
+            code, size = PRIMITIVES[f.type]
+            pad = -offset % size
+            fmt += "x" * pad + code
+            offset += pad + size
+            lead += 1
+        self._head = struct.Struct(fmt)
+        self._head_fields = [(f.name, f.type, PRIMITIVES[f.type][0] not in "fd?")
+                             for f in fields[:lead]]
+        self._tail = fields[lead:]
 
     def encode(self, message: dict[str, Any]) -> bytes:
+        values = []
+        for name, kind, integral in self._head_fields:
+            value = message.get(name)
+            if value is None:
+                value = _DEFAULTS.get(kind, 0)
+            elif integral:
+                value = int(value)
+            values.append(value)
+        try:
+            buf = bytearray(ENCAPSULATION) + self._head.pack(*values)
+            for f in self._tail:
+                value = message.get(f.name)
+                if f.sequence and f.type != "string":
+                    self._put_numbers(buf, f, value)
+                elif f.sequence:
+                    items = [] if value is None else list(value)
+                    _pad(buf, 4)
+                    buf.extend(struct.pack("<I", len(items)))
+                    for item in items:
+                        self._put(buf, f, item)
+                else:
+                    self._put(buf, f, value)
+        except (struct.error, CdrError):
+            return self.encode_by_field(message)  # raises, naming the field
+        return bytes(buf)
+
+    def encode_by_field(self, message: dict[str, Any]) -> bytes:
+        """The same bytes as :meth:`encode`, written field by field and item by item."""
         buf = bytearray(ENCAPSULATION)
         for f in self.fields:
             value = message.get(f.name)
@@ -157,6 +205,22 @@ class CdrEncoder:
             else:
                 self._put(buf, f, value)
         return bytes(buf)
+
+    @staticmethod
+    def _put_numbers(buf: bytearray, f: Field, value: Any) -> None:
+        """A numeric sequence: its count, then every item in one ``struct`` call."""
+        if value is None:
+            items: list[Any] = []
+        else:  # numpy arrays as Python numbers in one call
+            items = value.tolist() if hasattr(value, "tolist") else list(value)
+        code, size = PRIMITIVES[f.type]
+        _pad(buf, 4)
+        buf.extend(struct.pack("<I", len(items)))
+        if items:
+            if code not in "fd?":
+                items = [int(item) for item in items]
+            _pad(buf, size)
+            buf.extend(struct.pack(f"<{len(items)}{code}", *items))
 
     @staticmethod
     def _put(buf: bytearray, f: Field, value: Any) -> None:

@@ -234,6 +234,7 @@ class FixedRateLoop:
         self.stop_reason: str | None = None
         self.ticks = 0
         self.skipped_ticks = 0
+        self.ticking_s = 0.0  # wall time from the first tick to the end of the last
         self.start_ns = 0  # clock time of tick 0's deadline: the origin of the schedule grid
         for task in tasks:
             self.add_task(task)
@@ -277,7 +278,11 @@ class FixedRateLoop:
             wait_ready = getattr(self._recorder, "wait_ready", None)
             if wait_ready is not None:  # a recorder's writer process: started before tick 0
                 wait_ready()
-            self._run_ticks(limit)
+            began = time.perf_counter()
+            try:
+                self._run_ticks(limit)
+            finally:
+                self.ticking_s = time.perf_counter() - began
         except BaseException as exc:
             self.stop(f"error: {type(exc).__name__}: {exc}")
             raise
@@ -296,7 +301,7 @@ class FixedRateLoop:
         tasks = self.tasks
         windows = {t.name: _Window() for t in tasks}
         self._windows = windows
-        schedule = self._schedule(windows)
+        schedule, slots = self._schedule(windows), self._slots(windows)
         spent = [0] * len(tasks)  # ns each task spent in this tick's phases
         t0 = self.start_ns = clock.start()
         n = 0
@@ -317,26 +322,23 @@ class FixedRateLoop:
                     break
                 deadline = t0 + n * period
             start = clock.time_ns()
-            for phase in schedule:
-                for index, divisor, method, samples in phase:
-                    if n % divisor:
-                        continue
-                    c0 = perf()
-                    method(start)
-                    elapsed = perf() - c0
-                    samples.append(elapsed / 1e3)
-                    spent[index] += elapsed
-            lateness_us = (start - deadline) / 1e3
-            for index, task in enumerate(tasks):
-                if n % task.divisor:
+            for index, divisor, method, samples in schedule:
+                if n % divisor:
                     continue
-                window = windows[task.name]
+                c0 = perf()
+                method(start)
+                elapsed = perf() - c0
+                samples.append(elapsed / 1e3)
+                spent[index] += elapsed
+            lateness_us = (start - deadline) / 1e3
+            for index, divisor, window, stats in slots:
+                if n % divisor:
+                    continue
                 window.lateness_us.append(lateness_us)
                 window.step_us.append(spent[index] / 1e3)
-                if realtime and spent[index] > task.divisor * period:
+                if realtime and spent[index] > divisor * period:
                     window.overruns += 1
                 spent[index] = 0
-                stats = self.stats[task.name]
                 if stats.first_start_ns is None:
                     stats.first_start_ns = start
                 stats.last_start_ns = start
@@ -347,16 +349,22 @@ class FixedRateLoop:
                 recorder.flush_if_due()
             if n >= next_window:
                 self._publish_windows(final=False)
-                schedule = self._schedule(windows)  # the new windows' sample lists
+                # the new windows and their sample lists
+                schedule, slots = self._schedule(windows), self._slots(windows)
                 next_window = (n // self._window_ticks + 1) * self._window_ticks
 
     def _schedule(self, windows: dict[str, _Window]
-                  ) -> list[list[tuple[int, int, Callable[[int], None], list[float]]]]:
-        """Per phase, in order: ``(task index, divisor, bound phase method, samples)`` of every
-        task taking part in it, in the order the tasks were added."""
-        return [[(index, task.divisor, getattr(task, phase), windows[task.name].phase_us[phase])
-                 for index, task in enumerate(self.tasks) if phase in task.phases]
-                for phase in PHASES]
+                  ) -> list[tuple[int, int, Callable[[int], None], list[float]]]:
+        """Every phase method of a tick, in order (phase by phase, then in the order the
+        tasks were added): ``(task index, divisor, bound phase method, samples)``."""
+        return [(index, task.divisor, getattr(task, phase), windows[task.name].phase_us[phase])
+                for phase in PHASES
+                for index, task in enumerate(self.tasks) if phase in task.phases]
+
+    def _slots(self, windows: dict[str, _Window]) -> list[tuple[int, int, _Window, TaskStats]]:
+        """Per task: ``(index, divisor, its window, its stats)``, for the end of a tick."""
+        return [(index, task.divisor, windows[task.name], self.stats[task.name])
+                for index, task in enumerate(self.tasks)]
 
     def _count_skipped(self, first: int, count: int, windows: dict[str, _Window]) -> None:
         """Ticks ``first .. first + count - 1`` will not run: count each task's lost runs."""

@@ -84,6 +84,10 @@ class Topic:
     def log(self, t_ns: int, message: Any) -> bool:
         """Queue ``message`` (JSON-able; numpy allowed) stamped ``t_ns`` for the writer.
 
+        ``message`` is a dict, or a packed row: a tuple of the values of the schema's
+        properties in their order, None for one the message leaves out (cheaper to build and
+        to hand over; the writer turns it into the same dict, so the file is the same).
+
         Returns False when it was dropped (backlog full, or the recorder closed) and counted.
         The message object must not be mutated afterwards.
         """

@@ -71,6 +71,7 @@ class SessionWriter:
         self.series = series
         self.live = live
         self.encoders: dict[int, Callable[[Any], bytes]] = {}
+        self.row_names: dict[int, tuple[str, ...]] = {}  # a topic's fields, for packed rows
         self.dropped: dict[str, int] = {}
         self.closed = False
         self.last_t_ns = 0
@@ -79,6 +80,8 @@ class SessionWriter:
         kind = record[0]
         if isinstance(kind, int):
             _, t_ns, message = record
+            if type(message) is tuple:  # a packed row: the schema's properties in order
+                message = self._row_message(kind, message)
             self.series.add_message(kind, t_ns, self.encoders[kind](message))
             self.last_t_ns = t_ns
             if self.live is not None:
@@ -86,6 +89,7 @@ class SessionWriter:
         elif kind == "topic":
             _, key, name, schema, encoding = record
             spec, self.encoders[key] = channel_for(name, schema, encoding)
+            self.row_names[key] = tuple(schema.get("properties") or ())
             self.series.add_channel(key, spec)
             if self.live is not None:
                 self.live.add_topic(key, name, schema)
@@ -99,6 +103,13 @@ class SessionWriter:
             self.closed = True
         else:
             raise ValueError(f"unknown record {kind!r} in the record stream")
+
+    def _row_message(self, key: int, row: tuple[Any, ...]) -> dict[str, Any]:
+        names = self.row_names[key]
+        if len(row) != len(names):
+            raise ValueError(f"a row of {len(row)} value(s) for a topic of {len(names)} "
+                             f"field(s) ({', '.join(names)})")
+        return {name: value for name, value in zip(names, row, strict=True) if value is not None}
 
     def _report_drops(self, t_ns: int, totals: dict[str, int]) -> None:
         for topic, total in totals.items():

@@ -328,7 +328,9 @@ class ServoExperiment(Experiment):
             "stale_feedback": task.stale if task is not None else 0,
             "clamped_commands": master.stats.clamped_commands,
             "wall_s": round(wall_s, 4),
-            "realtime_factor": round(simulated / wall_s, 2) if wall_s > 0 else None,
+            # while ticking: the writer's start and the safe stop are not the loop's pace
+            "realtime_factor": round(simulated / loop.ticking_s, 2) if loop.ticking_s > 0
+            else None,
             "stop_reason": loop.stop_reason,
         })
         controller = task.controller if task is not None else None

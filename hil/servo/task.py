@@ -20,7 +20,6 @@ tick, otherwise every ``PREDICTION_EVERY_REALTIME``-th tick by default (200 Hz).
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 
@@ -73,6 +72,8 @@ class ServoTask(Task):
         self.hu = horizons.hu if horizons is not None else None
         self.solver = solver_of(controller)
         self.predictor = controller if isinstance(controller, Predicting) else None
+        # decided once: a runtime-checkable Protocol's isinstance costs microseconds a tick
+        self.event_source = controller if isinstance(controller, ReportsEvents) else None
         self.commands = session.topic("/drive/command", COMMAND_SCHEMA, high_rate=True)
         self.feedbacks = session.topic("/drive/feedback", FEEDBACK_SCHEMA, high_rate=True)
         self.predictions = (session.topic("/mpc/prediction", PREDICTION_SCHEMA, high_rate=True)
@@ -120,19 +121,14 @@ class ServoTask(Task):
         # the current the drive is sent; the request stays on /drive/command
         applied = self.master.applied_current(u) if math.isfinite(u) else u
         self.stats.add(t_s, error, applied, self._compute_us, requested_ma=u)
-        message: dict[str, Any] = {"t_s": t_s, "reference_deg": r, "error_deg": error,
-                                   "command_mA": u, "compute_us": self._compute_us}
-        if self.scenario.disturbance is not None:
-            message["disturbance_mA"] = self._disturbance_for(t_s)
+        disturbance = self._disturbance_for(t_s) if self.scenario.disturbance is not None \
+            else None
         path = self._solver_path()
-        if path:
-            message["path"] = path
-        self.feedbacks.log(t_ns, {
-            "position_deg": position, "velocity_deg_s": feedback.velocity_deg_s,
-            "current_mA": feedback.current_ma, "command_mA": feedback.command_ma,
-            "statusword": feedback.statusword, "cycle": feedback.cycle,
-            "fresh": feedback.fresh, "rtt_us": feedback.rtt_us})
-        self.commands.log(t_ns, message)
+        # packed rows, in the order of FEEDBACK_SCHEMA and COMMAND_SCHEMA (None: left out)
+        self.feedbacks.log(t_ns, (position, feedback.velocity_deg_s, feedback.current_ma,
+                                  feedback.command_ma, feedback.statusword, feedback.cycle,
+                                  feedback.fresh, feedback.rtt_us))
+        self.commands.log(t_ns, (t_s, r, error, u, disturbance, self._compute_us, path or None))
         stop = self.safety.check(t_s, error, position, feedback.velocity_deg_s, feedback.fresh)
         if stop is not None:
             self.session.event("safety.stop", stop, level="error", source="safety", t_s=t_s)
@@ -143,7 +139,8 @@ class ServoTask(Task):
                 and n % self.prediction_every == 0:
             u_pred, y_pred = self.predictor.prediction()
             # the arrays as they are: the writer process converts them (CDR float32 by default)
-            self.predictions.log(t_ns, {"t_s": t_s, "u_mA": u_pred[: self.hu], "y_deg": y_pred})
+            # as lists: cheaper to hand over than arrays, the same numbers on the wire
+            self.predictions.log(t_ns, (t_s, u_pred[: self.hu].tolist(), y_pred.tolist()))
 
     # -- helpers -----------------------------------------------------------------------
     def _step(self, position: float, t_s: float) -> tuple[float, float]:
@@ -192,10 +189,9 @@ class ServoTask(Task):
     def _solver_path(self) -> str:
         """This tick's solver path (MPCs); the explicit MPC's fallback events, or the online
         MPC's first fallback of a run of them, on ``/events``."""
-        controller = self.controller
         path = self.solver.last_path if self.solver is not None else ""
-        if isinstance(controller, ReportsEvents):  # the explicit MPC reports its fallbacks
-            for event in controller.pop_events():
+        if self.event_source is not None:  # the explicit MPC reports its fallbacks
+            for event in self.event_source.pop_events():
                 event = dict(event)
                 kind, message = event.pop("kind"), event.pop("message")
                 level = event.pop("level", "warning")

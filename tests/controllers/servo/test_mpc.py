@@ -270,14 +270,24 @@ def test_prediction_starts_with_the_applied_command():
 
 def test_reference_samples_from_the_block_equal_direct_evaluation():
     """On the sample grid the window comes from a block evaluated at once (across a block
-    boundary too); off the grid it is evaluated directly: the same values either way."""
-    reference = Sine(amplitude=2.0, frequency=10.0)
-    mpc = TrajectoryMpc(reference, MpcConfig(ht=8, hu=8))
-    dt = mpc.dt
-    for k in (0, 5, REFERENCE_BLOCK - 3, REFERENCE_BLOCK, 3 * REFERENCE_BLOCK + 17):
-        t = k * dt
-        direct = reference.position(t + dt * np.arange(1, 9))
-        np.testing.assert_allclose(mpc._reference_ahead(t), direct, rtol=0, atol=1e-12)
-    off_grid = 0.3 * dt + 7 * dt
-    np.testing.assert_allclose(mpc._reference_ahead(off_grid),
-                               reference.position(off_grid + dt * np.arange(1, 9)), atol=0)
+    boundary too), with whether it wraps 360 -> 0 worked out for the block; off the grid both
+    are evaluated directly: the same values and the same answer either way."""
+    for reference in (Sine(amplitude=2.0, frequency=10.0), Modulo360(Ramp(speed_deg_s=9000.0))):
+        mpc = TrajectoryMpc(reference, MpcConfig(ht=8, hu=8))
+        dt = mpc.dt
+        wrapped = 0
+        for k in (0, 5, REFERENCE_BLOCK - 3, REFERENCE_BLOCK, 3 * REFERENCE_BLOCK + 17,
+                  *range(70, 90)):
+            t = k * dt
+            direct = reference.position(t + dt * np.arange(1, 9))
+            raw, wraps = mpc._reference_ahead(t)
+            # equal, or a whole turn apart right at the wrap of the modulo reference
+            np.testing.assert_allclose((raw - direct + 180.0) % 360.0 - 180.0, 0.0, atol=1e-9)
+            assert wraps == (np.abs(np.diff(raw)).max() >= 180.0)
+            wrapped += wraps
+        assert (wrapped > 0) == isinstance(reference, Modulo360)
+        off_grid = 0.3 * dt + 7 * dt
+        raw, wraps = mpc._reference_ahead(off_grid)
+        np.testing.assert_allclose(raw, reference.position(off_grid + dt * np.arange(1, 9)),
+                                   atol=0)
+        assert not wraps

@@ -362,3 +362,20 @@ def test_the_next_sync_is_expected_on_the_grid_of_the_communication_cycle(wire):
     assert node.next_sync_ns(last + 101 * period) is None  # the SYNCs stopped
     wire.write(0x1006, 0, 0, "<I")  # no communication cycle configured
     assert node.next_sync_ns(last + 100_000) is None
+
+
+def test_a_long_lockstep_run_keeps_no_frame_anywhere_it_is_not_read():
+    """Every frame on the lockstep channel is read by the side it is for; the time bus only
+    sends SYNCs and keeps no inbox, so nothing piles up over a long run (memory stays flat)."""
+    from hil.servo.rig import open_drive
+
+    master = open_drive("emulated", None)
+    master.start()
+    for _ in range(2000):
+        master.exchange(5.0)
+    inboxes = master.emulator.channel.inboxes
+    assert len(inboxes) == 2  # the node's and the master's
+    # the node's is empty; the master's holds at most what came after the last TPDO pair
+    # (a heartbeat), taken before the next SYNC
+    assert len(inboxes[0]) == 0 and len(inboxes[1]) <= 2
+    master.close()
