@@ -24,7 +24,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
 from scipy.linalg import block_diag
 
 from controllers.base import BenchSample
@@ -52,6 +51,10 @@ class BenchKalman:
         self.sizes = [p.order for p in parts]
         n_x = sum(self.sizes) + 1
         n_u = sum(len(p.inputs) for p in parts)
+        # imported here: filterpy imports scipy.stats, a second or more of every process
+        # start that builds no estimator (the baseline controller, emulators, reports)
+        from filterpy.kalman import KalmanFilter
+
         kf = KalmanFilter(dim_x=n_x, dim_z=1, dim_u=n_u)
         kf.F = block_diag(*[p.A for p in parts], np.eye(1))
         kf.B = np.vstack([block_diag(*[p.B for p in parts]), np.zeros((1, n_u))])

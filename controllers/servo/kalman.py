@@ -20,11 +20,14 @@ would cost most of the 500 us budget.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
 
 from hil.core.errors import ConfigError
+
+if TYPE_CHECKING:
+    from filterpy.kalman import KalmanFilter
 
 
 @dataclass(frozen=True)
@@ -61,6 +64,10 @@ class SteadyStateKalman:
         self._prior = np.zeros(n)
 
     def _converged_filter(self) -> KalmanFilter:
+        # imported here: filterpy imports scipy.stats, a second or more of every process
+        # start that builds no MPC (PID runs, emulators, reports)
+        from filterpy.kalman import KalmanFilter
+
         n = self.A.shape[0]
         t = self.tuning
         kf = KalmanFilter(dim_x=n, dim_z=1, dim_u=1)

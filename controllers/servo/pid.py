@@ -28,7 +28,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.signal as signal
 
 from controllers.servo.model import StateSpaceModel, published_axis_model
 from controllers.servo.references import AngleUnwrapper, Reference, wrap180
@@ -53,7 +52,10 @@ def notch_coefficients(center_hz: float, quality: float, dt: float) -> tuple[np.
         raise ConfigError(f"pid: notch centre {center_hz} Hz must be in (0, {0.5 / dt:g}) Hz")
     if not quality > 0:
         raise ConfigError(f"pid: notch quality factor must be > 0, got {quality}")
-    b, a = signal.iirnotch(center_hz, quality, fs=1.0 / dt)
+    # imported here: scipy.signal imports scipy.stats, a second of every process start
+    from scipy.signal import iirnotch
+
+    b, a = iirnotch(center_hz, quality, fs=1.0 / dt)
     return np.asarray(b, float), np.asarray(a, float)
 
 

@@ -1,0 +1,167 @@
+"""The lockstep tick (issue 28): how fast a servo session runs through the CAN link, and where
+each tick's time goes.
+
+1. Lockstep servo sessions through the CAN link (the master's frames, the emulated CiA 402
+   node's object dictionary and plant, in-process), every topic recorded: MPC FOH
+   H_t = H_u = 8, H_p = 50, and a controller that costs nothing (0 mA). The factor is
+   simulated time over the time the loop ticked (the writer's start and the safe stop are
+   not the loop's pace); the median of ``--repeat`` alternated runs.
+2. The tick broken down from the session's own timing topic (p50 per tick): CAN receive
+   (``read``), the controller (``compute``), CAN send + the emulated node and plant
+   (``write``), the tick's recording and KPIs (``record``), and the loop itself (the rest).
+3. The recorder's cost on the loop per tick: the three servo messages of a tick queued and
+   handed to a real writer process, as packed rows (what a run does) against the same
+   messages as dicts (before issue 28), in the same run.
+4. One CAN cycle alone (RPDO + SYNC, TPDO pair back) and the emulated node's share of it.
+
+Targets (issue 28): MPC >= 10x real time, 0 mA >= 25x, recorder <= 5 us per tick. The machine
+is shared: figures drift up to 2x between minutes; use ``--repeat 3`` or more.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil.core.reader import read_session
+from hil.core.recorder import Recorder
+from hil.servo.rig import open_drive
+from hil.servo.run import ServoRunOptions, run_servo
+from hil.servo.topics import COMMAND_SCHEMA, FEEDBACK_SCHEMA, PREDICTION_SCHEMA
+
+PERIOD_S = 500e-6
+PHASES = ("read", "compute", "write", "record")
+
+
+class ZeroCurrent:
+    """A controller that costs nothing (0 mA every tick): the floor of a lockstep tick."""
+
+    def __init__(self, reference: Any, params: Any) -> None:
+        pass
+
+    def step(self, position_deg: float, t_s: float) -> float:
+        return 0.0
+
+
+def session(tmp: Path, seconds: float, controller: Any) -> dict[str, Any]:
+    """One lockstep run, fully recorded: its factor and the tick's phases (p50, us)."""
+    out = tmp / "lockstep.mcap"
+    result = run_servo(ServoRunOptions(controller=controller, ert="foh", ht=8, hu=8,
+                                       duration_s=seconds, realtime=False, out=str(out)))
+    ticks = result.kpis["ticks"]
+    factor = float(result.kpis["realtime_factor"])
+    timing = [m for _, m in read_session(out).topic("/loop/servo/timing")]
+    phases = {phase: float(np.median(np.concatenate(
+        [np.asarray(m[f"{phase}_us"], float) for m in timing]))) for phase in PHASES}
+    per_tick_us = 1e6 * ticks * PERIOD_S / factor / ticks
+    phases["loop"] = per_tick_us - sum(phases.values())
+    out.unlink()
+    return {"factor": factor, "per_tick_us": per_tick_us, "phases": phases}
+
+
+def recorder_cost(tmp: Path, ticks: int, rows: bool) -> float:
+    """Per tick [us]: a tick's three servo messages queued and handed over to the writer."""
+    rec = Recorder(tmp / f"recorder-{'rows' if rows else 'dicts'}.mcap", wait_when_full=True)
+    commands = rec.topic("/drive/command", COMMAND_SCHEMA, high_rate=True)
+    feedbacks = rec.topic("/drive/feedback", FEEDBACK_SCHEMA, high_rate=True)
+    predictions = rec.topic("/mpc/prediction", PREDICTION_SCHEMA, high_rate=True)
+    rec.wait_ready()
+    u_pred, y_pred = np.linspace(-5, 5, 50), np.linspace(0, 2, 50)
+    begin = time.perf_counter()
+    for k in range(ticks):
+        t_ns, t_s, x = k * 500_000, k * PERIOD_S, k * 1e-3
+        if rows:
+            feedbacks.log(t_ns, (x, 2.0 * x, 3.0, 4.0, 0x1637, k, True, 33.0))
+            commands.log(t_ns, (t_s, x, 0.01 * x, 4.0, None, 20.0, "unconstrained"))
+            predictions.log(t_ns, (t_s, u_pred[:8].tolist(), y_pred.tolist()))
+        else:
+            feedbacks.log(t_ns, {"position_deg": x, "velocity_deg_s": 2.0 * x,
+                                 "current_mA": 3.0, "command_mA": 4.0, "statusword": 0x1637,
+                                 "cycle": k, "fresh": True, "rtt_us": 33.0})
+            commands.log(t_ns, {"t_s": t_s, "reference_deg": x, "error_deg": 0.01 * x,
+                                "command_mA": 4.0, "compute_us": 20.0,
+                                "path": "unconstrained"})
+            predictions.log(t_ns, {"t_s": t_s, "u_mA": u_pred[:8], "y_deg": y_pred})
+        rec.flush_if_due()
+    elapsed = time.perf_counter() - begin
+    rec.close()
+    return 1e6 * elapsed / ticks
+
+
+def can_cycle(cycles: int) -> tuple[float, float]:
+    """One exchange through the master and the lockstep node [us], and the node's part."""
+    master = open_drive("emulated", None)
+    master.start()
+    emulator = master.emulator
+    pump, spent = emulator.pump, [0]
+
+    def timed_pump() -> None:
+        begin = time.perf_counter_ns()
+        pump()
+        spent[0] += time.perf_counter_ns() - begin
+
+    emulator.master_bus._on_send = timed_pump
+    best = (float("inf"), 0.0)
+    for _ in range(10):
+        spent[0] = 0
+        begin = time.perf_counter_ns()
+        for _ in range(cycles // 10):
+            master.exchange(10.0)
+        total = (time.perf_counter_ns() - begin) / (cycles // 10) / 1e3
+        best = min(best, (total, spent[0] / (cycles // 10) / 1e3))
+    master.close()
+    return best
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float, default=5.0, help="simulated time per run [s]")
+    parser.add_argument("--repeat", type=int, default=3, help="runs of each kind, alternated")
+    args = parser.parse_args()
+    if args.repeat < 1 or not args.seconds > 0:
+        parser.error("--repeat must be >= 1 and --seconds > 0")
+    runs: dict[str, list[dict[str, Any]]] = {"mpc": [], "zero": []}
+    costs: dict[str, list[float]] = {"rows": [], "dicts": []}
+    with tempfile.TemporaryDirectory() as name:
+        tmp = Path(name)
+        for i in range(args.repeat):
+            print(f"run {i + 1} of {args.repeat}...", file=sys.stderr)
+            runs["mpc"].append(session(tmp, args.seconds, "mpc"))
+            runs["zero"].append(session(tmp, args.seconds, ZeroCurrent))
+            for form in ("dicts", "rows"):
+                costs[form].append(recorder_cost(tmp, 20_000, rows=form == "rows"))
+    cycle_us, node_us = can_cycle(20_000)
+
+    print(f"lockstep servo through the CAN link, {args.seconds:g} s, fully recorded "
+          f"(median of {args.repeat})")
+    print(f"{'controller':<28}{'x real time':>12}{'us/tick':>9}" +
+          "".join(f"{p:>9}" for p in (*PHASES, "loop")))
+    medians = {}
+    for kind, label in (("mpc", "MPC FOH Ht=Hu=8 Hp=50"), ("zero", "0 mA (costs nothing)")):
+        run = sorted(runs[kind], key=lambda r: r["factor"])[(args.repeat - 1) // 2]
+        medians[kind] = run["factor"]
+        print(f"{label:<28}{run['factor']:>12.2f}{run['per_tick_us']:>9.1f}" +
+              "".join(f"{run['phases'][p]:>9.1f}" for p in (*PHASES, "loop")))
+    rows, dicts = statistics.median(costs["rows"]), statistics.median(costs["dicts"])
+    print(f"recorder per tick (3 messages, handed to the writer process): rows {rows:.2f} us, "
+          f"dicts {dicts:.2f} us [baseline] ({dicts / rows:.1f}x)")
+    print(f"one CAN cycle (master + emulated node + plant): {cycle_us:.1f} us, of which the "
+          f"node {node_us:.1f} us")
+    print("targets")
+    for label, value, bar in (("MPC >= 10x", medians["mpc"], 10.0),
+                              ("0 mA >= 25x", medians["zero"], 25.0)):
+        print(f"   {label} ({value:.1f}x): {'met' if value >= bar else 'MISSED'}")
+    print(f"   recorder <= 5 us per tick ({rows:.2f} us): {'met' if rows <= 5 else 'MISSED'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
