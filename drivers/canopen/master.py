@@ -403,8 +403,10 @@ class CanDriveMaster(Device):
         self.heartbeat_watch.rebooted = False
         self.cyclic.drain()
         state = state_of(self.states.reach())
-        if state == FAULT_REACTION_ACTIVE:
-            self.states.wait_state(FAULT, "fault reaction")
+        if state == FAULT_REACTION_ACTIVE:  # braking: as long as a quick stop may take
+            c = self.config
+            self.states.wait_state(FAULT, "fault reaction",
+                                   timeout_s=c.quick_stop_timeout_s + c.state_timeout_s)
             state = FAULT
         if state == FAULT:
             self.states.reset_fault()

@@ -63,11 +63,11 @@ class StateControl:
             self.nmt.command(NMT_ENTER_PRE_OPERATIONAL)
         return self.statusword()
 
-    def wait_state(self, wanted: str, why: str) -> int:
-        """Poll the statusword until the drive is in ``wanted`` (DriveStateError after the
-        state time-out, naming where it is stuck)."""
+    def wait_state(self, wanted: str, why: str, timeout_s: float | None = None) -> int:
+        """Poll the statusword until the drive is in ``wanted`` (DriveStateError after
+        ``timeout_s``, by default the state time-out, naming where it is stuck)."""
         start = self.clock.time_ns()
-        deadline_s = self.state_timeout_s
+        deadline_s = self.state_timeout_s if timeout_s is None else timeout_s
         while True:
             statusword = self.statusword()
             if state_of(statusword) == wanted:
@@ -76,7 +76,7 @@ class StateControl:
                 raise DriveStateError(
                     f"drive node {self.node_id} stuck in {state_of(statusword)} (statusword "
                     f"0x{statusword:04X}) waiting for {wanted} ({why}) after "
-                    f"{self.state_timeout_s:g} s")
+                    f"{deadline_s:g} s")
             self.clock.sleep(0.002)
 
     def enable(self, on_step: Callable[[], None] | None = None) -> None:
