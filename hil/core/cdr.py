@@ -160,14 +160,18 @@ class CdrEncoder:
             offset += pad + size
             lead += 1
         self._head = struct.Struct(fmt)
-        self._head_fields = [(f.name, f.type, PRIMITIVES[f.type][0] not in "fd?")
-                             for f in fields[:lead]]
+        self._head_types = [(f.type, PRIMITIVES[f.type][0] not in "fd?") for f in fields[:lead]]
+        self._lead = lead
         self._tail = fields[lead:]
+        self._names = [f.name for f in fields]
 
     def encode(self, message: dict[str, Any]) -> bytes:
+        return self.encode_row(tuple(map(message.get, self._names)))
+
+    def encode_row(self, row: tuple[Any, ...]) -> bytes:
+        """A message given as the values of the fields in order (None: left out)."""
         values = []
-        for name, kind, integral in self._head_fields:
-            value = message.get(name)
+        for (kind, integral), value in zip(self._head_types, row, strict=False):  # the head
             if value is None:
                 value = _DEFAULTS.get(kind, 0)
             elif integral:
@@ -175,8 +179,7 @@ class CdrEncoder:
             values.append(value)
         try:
             buf = bytearray(ENCAPSULATION) + self._head.pack(*values)
-            for f in self._tail:
-                value = message.get(f.name)
+            for f, value in zip(self._tail, row[self._lead:], strict=True):
                 if f.sequence and f.type != "string":
                     self._put_numbers(buf, f, value)
                 elif f.sequence:
@@ -187,8 +190,8 @@ class CdrEncoder:
                         self._put(buf, f, item)
                 else:
                     self._put(buf, f, value)
-        except (struct.error, CdrError):
-            return self.encode_by_field(message)  # raises, naming the field
+        except (struct.error, CdrError):  # raises, naming the field
+            return self.encode_by_field(dict(zip(self._names, row, strict=True)))
         return bytes(buf)
 
     def encode_by_field(self, message: dict[str, Any]) -> bytes:

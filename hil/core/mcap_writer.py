@@ -15,6 +15,7 @@ The methods are those of ``mcap.writer.Writer`` that a session uses: ``start``,
 
 from __future__ import annotations
 
+import struct
 import zlib
 from collections import defaultdict
 from typing import IO
@@ -31,7 +32,6 @@ from mcap.records import (
     DataEnd,
     Footer,
     Header,
-    Message,
     MessageIndex,
     Metadata,
     MetadataIndex,
@@ -41,6 +41,10 @@ from mcap.records import (
 )
 
 MAGIC = b"\x89MCAP0\r\n"  # MCAP specification, "Magic"
+# a Message record up to its data: opcode, record length, channel id, sequence, log time,
+# publish time (mcap's Message.write, in one call: the writer's busiest record)
+MESSAGE_HEAD = struct.Struct("<BQHIQQ")
+MESSAGE_FIELDS_BYTES = MESSAGE_HEAD.size - 9
 DEFAULT_CHUNK_BYTES = 1 << 20
 
 
@@ -139,10 +143,12 @@ class McapWriter:
         if index is None:
             index = self._chunk_indexes[channel_id] = MessageIndex(channel_id=channel_id,
                                                                    records=[])
-        index.records.append((log_time, self._chunk.count))
-        Message(channel_id=channel_id, sequence=sequence, log_time=log_time,
-                publish_time=publish_time, data=data).write(self._chunk)
-        if self._chunk.count > self._chunk_size:
+        chunk = self._chunk
+        index.records.append((log_time, chunk.count))
+        chunk.write(MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS_BYTES + len(data),
+                                      channel_id, sequence, log_time, publish_time))
+        chunk.write(data)
+        if chunk.count > self._chunk_size:
             self._finish_chunk()
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:

@@ -52,16 +52,38 @@ def encode_json(message: Any) -> bytes:
     return json.dumps(message, separators=(",", ":"), default=_json_default).encode()
 
 
+@dataclasses.dataclass(frozen=True)
+class TopicEncoding:
+    """How a topic's messages become bytes: as dicts, or as packed rows (the values of the
+    schema's properties in order, None where a message leaves a field out)."""
+
+    names: tuple[str, ...]
+    encode: Callable[[Any], bytes]
+    encode_row: Callable[[tuple[Any, ...]], bytes]
+
+    def row_message(self, row: tuple[Any, ...]) -> dict[str, Any]:
+        """The dict a row stands for."""
+        return {name: value for name, value in zip(self.names, row, strict=True)
+                if value is not None}
+
+
 def channel_for(name: str, schema: dict[str, Any], encoding: str
-                ) -> tuple[ChannelSpec, Callable[[Any], bytes]]:
-    """The MCAP channel of a topic and the function that encodes its messages."""
+                ) -> tuple[ChannelSpec, TopicEncoding]:
+    """The MCAP channel of a topic and how its messages are encoded."""
+    names = tuple(schema.get("properties") or ())
     if encoding == "cdr":
         fields = fields_of(schema)
         title = str(schema.get("title", name.strip("/").replace("/", "_")))
         spec = ChannelSpec(name, "cdr", title.replace(".", "/msg/", 1) if "." in title
                            else f"hil/msg/{title}", "ros2msg", ros2msg_text(fields).encode())
-        return spec, CdrEncoder(fields).encode
-    return json_schema_channel(name, schema), encode_json
+        encoder = CdrEncoder(fields)
+        return spec, TopicEncoding(names, encoder.encode, encoder.encode_row)
+
+    def json_row(row: tuple[Any, ...]) -> bytes:
+        return encode_json(as_json.row_message(row))
+
+    as_json = TopicEncoding(names, encode_json, json_row)
+    return json_schema_channel(name, schema), as_json
 
 
 class SessionWriter:
@@ -70,8 +92,7 @@ class SessionWriter:
     def __init__(self, series: McapSeries, live: LiveSink | None = None) -> None:
         self.series = series
         self.live = live
-        self.encoders: dict[int, Callable[[Any], bytes]] = {}
-        self.row_names: dict[int, tuple[str, ...]] = {}  # a topic's fields, for packed rows
+        self.encodings: dict[int, TopicEncoding] = {}
         self.dropped: dict[str, int] = {}
         self.closed = False
         self.last_t_ns = 0
@@ -80,16 +101,24 @@ class SessionWriter:
         kind = record[0]
         if isinstance(kind, int):
             _, t_ns, message = record
+            encoding = self.encodings[kind]
             if type(message) is tuple:  # a packed row: the schema's properties in order
-                message = self._row_message(kind, message)
-            self.series.add_message(kind, t_ns, self.encoders[kind](message))
+                if len(message) != len(encoding.names):
+                    raise ValueError(f"a row of {len(message)} value(s) for a topic of "
+                                     f"{len(encoding.names)} field(s) "
+                                     f"({', '.join(encoding.names)})")
+                data = encoding.encode_row(message)
+                if self.live is not None:
+                    message = encoding.row_message(message)
+            else:
+                data = encoding.encode(message)
+            self.series.add_message(kind, t_ns, data)
             self.last_t_ns = t_ns
             if self.live is not None:
                 self.live.log(kind, t_ns, message)
         elif kind == "topic":
-            _, key, name, schema, encoding = record
-            spec, self.encoders[key] = channel_for(name, schema, encoding)
-            self.row_names[key] = tuple(schema.get("properties") or ())
+            _, key, name, schema, encoding_name = record
+            spec, self.encodings[key] = channel_for(name, schema, encoding_name)
             self.series.add_channel(key, spec)
             if self.live is not None:
                 self.live.add_topic(key, name, schema)
@@ -104,13 +133,6 @@ class SessionWriter:
         else:
             raise ValueError(f"unknown record {kind!r} in the record stream")
 
-    def _row_message(self, key: int, row: tuple[Any, ...]) -> dict[str, Any]:
-        names = self.row_names[key]
-        if len(row) != len(names):
-            raise ValueError(f"a row of {len(row)} value(s) for a topic of {len(names)} "
-                             f"field(s) ({', '.join(names)})")
-        return {name: value for name, value in zip(names, row, strict=True) if value is not None}
-
     def _report_drops(self, t_ns: int, totals: dict[str, int]) -> None:
         for topic, total in totals.items():
             new = total - self.dropped.get(topic, 0)
@@ -122,7 +144,7 @@ class SessionWriter:
                        topic=topic, dropped=new, total=total)
 
     def event(self, t_ns: int, kind: str, message: str, **data: Any) -> None:
-        if EVENTS_KEY in self.encoders:
+        if EVENTS_KEY in self.encodings:
             event = {"level": "warning", "source": "recorder", "kind": kind, "message": message,
                      "data": data}
             self.series.add_message(EVENTS_KEY, t_ns, encode_json(event))
