@@ -141,6 +141,11 @@ def test_runs_that_build_no_estimator_import_no_scipy_stats():
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=60, check=True)
     assert done.stdout.strip() == "[]"
+    # every recorded run starts a writer process: it imports numpy only for an array
+    code = "import sys, hil.core.writer; print('numpy' in sys.modules)"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=60, check=True)
+    assert done.stdout.strip() == "False"
 
 
 def _stderr_on_a_terminal(cwd, *args):

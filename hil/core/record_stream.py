@@ -23,9 +23,11 @@ import io
 import pickle
 import struct
 from collections.abc import Iterator
-from typing import Any
+from functools import cache
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+if TYPE_CHECKING:
+    import numpy as np
 
 _LENGTH = struct.Struct("<I")
 MAX_FRAME_BYTES = 1 << 30
@@ -33,6 +35,8 @@ MAX_FRAME_BYTES = 1 << 30
 
 def array_from_bytes(data: bytes, dtype: str, shape: tuple[int, ...]) -> np.ndarray:
     """The array :func:`_reduce_array` took apart (read-only: it shares ``data``)."""
+    import numpy as np  # here: the writer process starts without numpy until an array comes
+
     return np.frombuffer(data, dtype=dtype).reshape(shape)
 
 
@@ -42,8 +46,12 @@ def _reduce_array(array: np.ndarray) -> str | tuple[Any, ...]:
     return array_from_bytes, (array.tobytes(), array.dtype.str, array.shape)
 
 
-#: how the records' objects are pickled: plain numpy arrays (exact type) as bytes
-_DISPATCH: dict[type, Any] = {**copyreg.dispatch_table, np.ndarray: _reduce_array}
+@cache
+def _dispatch_table() -> dict[type, Any]:
+    """How the records' objects are pickled: plain numpy arrays (exact type) as bytes."""
+    import numpy as np
+
+    return {**copyreg.dispatch_table, np.ndarray: _reduce_array}
 
 
 def encode_frame(records: list[Any]) -> bytes:
@@ -51,7 +59,7 @@ def encode_frame(records: list[Any]) -> bytes:
     buffer = io.BytesIO()
     buffer.write(b"\0" * _LENGTH.size)
     pickler = pickle.Pickler(buffer, protocol=pickle.HIGHEST_PROTOCOL)
-    pickler.dispatch_table = _DISPATCH
+    pickler.dispatch_table = _dispatch_table()
     pickler.dump(records)
     frame = buffer.getbuffer()
     _LENGTH.pack_into(frame, 0, len(frame) - _LENGTH.size)
