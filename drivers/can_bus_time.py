@@ -107,18 +107,101 @@ def cycle_budget(bitrate: int, period_s: float, frames: Iterable[FrameLoad]) -> 
     return BusBudget(bitrate, period_us, nominal_us, worst_us, frames, tuple(warnings))
 
 
-def cia402_cyclic_frames(
-    period_s: float,
-    *,
-    rpdo_bytes: int = 4,
-    tpdo_bytes: Iterable[int] = (6, 6),
-    heartbeat_periods_s: Iterable[float] = (),
-) -> list[FrameLoad]:
-    """The frames of one drive's cyclic exchange: SYNC, the RPDO, the TPDOs, plus heartbeats
-    (one byte each, averaged over the cycle)."""
-    frames = [FrameLoad("SYNC", 0), FrameLoad("RPDO1", rpdo_bytes)]
-    frames += [FrameLoad(f"TPDO{i}", n) for i, n in enumerate(tpdo_bytes, start=1)]
-    for i, hb_period in enumerate(heartbeat_periods_s, start=1):
-        if hb_period > 0:
-            frames.append(FrameLoad(f"heartbeat{i}", 1, per_cycle=period_s / hb_period))
+@dataclass(frozen=True)
+class AxisTraffic:
+    """One axis' share of a bus cycle: its RPDO, its TPDOs and its heartbeat (0: none)."""
+
+    name: str
+    rpdo_bytes: int = 4
+    tpdo_bytes: tuple[int, ...] = (6, 6)
+    heartbeat_period_s: float = 0.1
+
+    def frames(self, period_s: float) -> list[FrameLoad]:
+        frames = [FrameLoad(f"{self.name} RPDO1", self.rpdo_bytes)]
+        frames += [FrameLoad(f"{self.name} TPDO{i}", n)
+                   for i, n in enumerate(self.tpdo_bytes, start=1)]
+        if self.heartbeat_period_s > 0:
+            frames.append(FrameLoad(f"{self.name} heartbeat", 1,
+                                    per_cycle=period_s / self.heartbeat_period_s))
+        return frames
+
+
+@dataclass(frozen=True)
+class BusPlan:
+    """Several axes on one bus, one SYNC per cycle: the budget, and where the limits are
+    (worst-case bit stuffing): ``max_axes`` axes like the first fit this period, and these
+    axes fit periods from ``min_period_us`` on."""
+
+    budget: BusBudget
+    axes: tuple[AxisTraffic, ...]
+    max_axes: int
+    min_period_us: float
+
+    @property
+    def fits(self) -> bool:
+        return self.budget.fits
+
+    def problem(self) -> str | None:
+        """Why the plan does not fit, with the numbers and the ways out (None: it fits)."""
+        if self.fits:
+            return None
+        b, n = self.budget, len(self.axes)
+        stuffing = ("even without bit stuffing" if b.nominal_us > b.period_us else
+                    f"with worst-case bit stuffing ({b.nominal_us:.0f} us without)")
+        ways = [f"a period of at least {self.min_period_us:.0f} us "
+                f"({1e6 / self.min_period_us:.0f} Hz)"]
+        if self.max_axes >= 1:
+            buses = -(-n // self.max_axes)
+            fit = "fits" if self.max_axes == 1 else "fit"
+            ways.append(f"{buses} buses ({_axes(self.max_axes)} per bus {fit} this period)")
+        else:
+            ways.append("another bus does not help: one axis alone does not fit this period")
+        ways.append("fewer mapped objects (the TPDOs carry "
+                    f"{sum(sum(a.tpdo_bytes) for a in self.axes)} bytes per cycle)")
+        return (f"{_axes(n)} need{'s' if n == 1 else ''} {b.worst_us:.0f} us of bus time per "
+                f"cycle at "
+                f"{b.bitrate} bit/s {stuffing}: more than the {b.period_us:.0f} us period; "
+                f"options: {'; '.join(ways)}")
+
+    def summary(self) -> dict[str, float | int | bool | list[str] | None]:
+        return {**self.budget.summary(), "axes": len(self.axes), "max_axes": self.max_axes,
+                "min_period_us": round(self.min_period_us, 1), "problem": self.problem()}
+
+
+def _axes(n: int) -> str:
+    return "1 axis" if n == 1 else f"{n} axes"
+
+
+def bus_frames(period_s: float, axes: Iterable[AxisTraffic],
+               master_heartbeat_s: float = 0.0) -> list[FrameLoad]:
+    """One cycle of a bus: one SYNC, then every axis' frames, then the master's heartbeat."""
+    frames = [FrameLoad("SYNC", 0)]
+    for axis in axes:
+        frames += axis.frames(period_s)
+    if master_heartbeat_s > 0:
+        frames.append(FrameLoad("master heartbeat", 1, per_cycle=period_s / master_heartbeat_s))
     return frames
+
+
+def plan_bus(bitrate: int, period_s: float, axes: Iterable[AxisTraffic],
+             master_heartbeat_s: float = 0.0) -> BusPlan:
+    """The plan of ``axes`` sharing one bus at ``bitrate``, cycled every ``period_s``."""
+    axes = tuple(axes)
+    if not axes:
+        raise ValueError("a bus plan needs at least one axis")
+    budget = cycle_budget(bitrate, period_s, bus_frames(period_s, axes, master_heartbeat_s))
+    us_per_bit = 1e6 / bitrate
+
+    def worst_us(frames: list[FrameLoad]) -> float:
+        return us_per_bit * sum(f.per_cycle * frame_bits(f.data_bytes, worst_case=True)
+                                for f in frames)
+
+    # heartbeats take a share per cycle proportional to the period: worst(T) = fixed + r T
+    fixed = worst_us([f for f in bus_frames(period_s, axes, master_heartbeat_s)
+                      if "heartbeat" not in f.name])
+    rate = (worst_us(bus_frames(period_s, axes, master_heartbeat_s)) - fixed) / (period_s * 1e6)
+    min_period_us = fixed / (1.0 - rate) if rate < 1.0 else float("inf")
+    shared = worst_us(bus_frames(period_s, [], master_heartbeat_s))
+    per_axis = worst_us(axes[0].frames(period_s))
+    max_axes = max(0, int((budget.period_us - shared) // per_axis))
+    return BusPlan(budget, axes, max_axes, min_period_us)

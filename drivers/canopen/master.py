@@ -33,7 +33,7 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import Any, NoReturn
 
-from drivers.can_bus_time import BusBudget, cia402_cyclic_frames, cycle_budget
+from drivers.can_bus_time import AxisTraffic, BusBudget, plan_bus
 from drivers.can_frames import Frame
 from drivers.canopen.config import DriveMasterConfig
 from drivers.canopen.cyclic import SYNC_COUNTER_MAX, CyclicExchange, Feedback, LinkStats
@@ -116,6 +116,13 @@ def tpdo_maps(sync_echo: tuple[int, int] | None) -> tuple[PdoMap, PdoMap]:
     echo = (*sync_echo, 8)
     return (replace(TPDO1, entries=(*TPDO1.entries, echo)),
             replace(TPDO2, entries=(*TPDO2.entries, echo)))
+
+
+def axis_traffic(config: DriveMasterConfig, name: str = "axis") -> AxisTraffic:
+    """What one node driven with ``config`` puts on the bus each cycle (for bus plans)."""
+    return AxisTraffic(name, rpdo1_for(MODES[config.mode]).size_bytes,
+                       tuple(pdo.size_bytes for pdo in tpdo_maps(config.sync_echo)),
+                       config.drive_heartbeat_ms / 1e3)
 
 
 class MonotonicClock:
@@ -278,11 +285,8 @@ class CanDriveMaster(Device):
     # -- configuration --------------------------------------------------------------------------
     def _bus_budget(self) -> BusBudget:
         c = self.config
-        heartbeats = [p / 1000 for p in (c.heartbeat_period_ms, c.drive_heartbeat_ms) if p]
-        frames = cia402_cyclic_frames(c.cycle_period_s, rpdo_bytes=self._rpdo1_map.size_bytes,
-                                      tpdo_bytes=[pdo.size_bytes for pdo in self._tpdo_maps],
-                                      heartbeat_periods_s=heartbeats)
-        return cycle_budget(c.bitrate, c.cycle_period_s, frames)
+        return plan_bus(c.bitrate, c.cycle_period_s, [axis_traffic(c)],
+                        master_heartbeat_s=c.heartbeat_period_ms / 1e3).budget
 
     def configure(self) -> None:
         """Check the drive (device type, modes), read its scaling, then write the run's

@@ -1,5 +1,5 @@
-"""``hil drive scan`` (what is on the bus, read-only) and ``hil drive reset`` (clear a drive's
-FAULT): the first commands on a new drive."""
+"""``hil drive scan`` (what is on the bus, read-only), ``hil drive reset`` (clear a drive's
+FAULT) and ``hil drive plan`` (whether N axes fit one bus): the first commands on a new drive."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import contextlib
 import json
 from typing import Any
 
-from hil.cli.argtypes import positive_int
+from hil.cli.argtypes import positive_float, positive_int
 
 URL_HELP = ("the bus: socketcand://HOST:PORT[/CHANNEL] | INTERFACE://CHANNEL[?key=value&...] "
             "for any python-can interface (socketcan://can0, pcan://PCAN_USBBUS1, gs_usb://0, "
@@ -45,6 +45,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     reset.add_argument("--config", metavar="F.toml",
                        help="drive config laid over the default (hil/configs/drive.toml)")
     reset.set_defaults(handler=reset_command)
+    plan = sub.add_parser(
+        "plan", help="whether N axes fit one CAN bus at a cycle rate (no bus needed)",
+        description="The bus time of one cycle with N axes on one bus - one SYNC, each "
+        "axis' RPDO and TPDOs as the master maps them in its mode, the drives' and the "
+        "master's heartbeats - with worst-case bit stuffing, against the cycle period; where "
+        "the limits are (the axes that fit this period, the shortest period for these axes) "
+        "and, when it does not fit, the ways out. Exit status 0: it fits; 1: it does not.")
+    plan.add_argument("--axes", type=positive_int, default=1, help="axes on the bus (1)")
+    plan.add_argument("--rate-hz", type=positive_float, metavar="HZ",
+                      help="cycle rate (default: the config's cycle period, 2000 Hz)")
+    plan.add_argument("--bitrate", type=positive_int, metavar="BIT/S",
+                      help="bus bitrate (default: the config's, 1000000)")
+    plan.add_argument("--config", metavar="F.toml",
+                      help="drive config laid over the default: its [master] mode, heartbeats, "
+                      "sync_echo and [bus] bitrate")
+    plan.add_argument("--json", action="store_true", help="print the plan as JSON")
+    plan.set_defaults(handler=plan_command)
 
 
 def _master(url: str, config: str | None, node: int | None) -> Any:
@@ -119,3 +136,44 @@ def reset_command(args: argparse.Namespace) -> int:
     else:
         print(f"drive node {args.node}: {before} -> {after}")
     return 0
+
+
+def plan_command(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from drivers.can_bus_time import plan_bus
+    from drivers.canopen.master import axis_traffic
+    from hil.servo.config import load_drive_config
+
+    master = load_drive_config(args.config).master
+    if args.rate_hz:
+        master = replace(master, cycle_period_s=1.0 / args.rate_hz)
+    if args.bitrate:
+        master = replace(master, bitrate=args.bitrate)
+    plan = plan_bus(master.bitrate, master.cycle_period_s,
+                    [axis_traffic(master, f"axis {i}") for i in range(1, args.axes + 1)],
+                    master_heartbeat_s=master.heartbeat_period_ms / 1e3)
+    if args.json:
+        print(json.dumps({"mode": master.mode, **plan.summary()}, indent=2))
+    else:
+        print(format_plan(master.mode, plan))
+    return 0 if plan.fits else 1
+
+
+def format_plan(mode: str, plan: Any) -> str:
+    b = plan.budget
+    axis = plan.axes[0]
+    lines = [
+        f"{len(plan.axes)} {'axis' if len(plan.axes) == 1 else 'axes'} in {mode.upper()} on "
+        f"one bus at {b.bitrate} bit/s, "
+        f"cycle {b.period_us:.0f} us ({1e6 / b.period_us:.0f} Hz): one SYNC, per axis an "
+        f"RPDO of {axis.rpdo_bytes} bytes and TPDOs of "
+        f"{' + '.join(str(n) for n in axis.tpdo_bytes)} bytes, heartbeats",
+        f"  bus time per cycle {b.nominal_us:.0f} us without bit stuffing, {b.worst_us:.0f} us "
+        f"with the worst case: {100 * b.load_worst:.0f} % of the period",
+        f"  at this period at most {plan.max_axes} such "
+        f"{'axis fits' if plan.max_axes == 1 else 'axes fit'}; these fit from "
+        f"{plan.min_period_us:.0f} us ({1e6 / plan.min_period_us:.0f} Hz) on",
+        "  fits" if plan.fits else f"  does not fit: {plan.problem()}",
+    ]
+    return "\n".join(lines)

@@ -211,3 +211,25 @@ def test_late_tpdos_of_the_emulator_in_real_time_are_never_fresh(tmp_path):
             fresh += 1
     # every fresh feedback was checked (the first is read by SDO at enable)
     assert fresh == kpis["ticks"] - kpis["stale_feedback"] - 1 > 0
+
+
+def test_plan_says_whether_axes_fit_one_bus_and_the_ways_out(tmp_path):
+    fits = hil("drive", "plan", cwd=tmp_path)
+    assert fits.returncode == 0, fits.stderr
+    assert "1 axis in CST" in fits.stdout and "2000 Hz" in fits.stdout
+    assert fits.stdout.rstrip().endswith("fits")
+    three = hil("drive", "plan", "--axes", "3", "--rate-hz", "1000", "--json", cwd=tmp_path)
+    assert three.returncode == 1
+    plan = json.loads(three.stdout)
+    assert plan["axes"] == 3 and not plan["fits"] and plan["max_axes"] == 2
+    assert plan["worst_us"] > 1000 > plan["nominal_us"]
+    assert "a period of at least 1033 us" in plan["problem"] and "2 buses" in plan["problem"]
+    # the config's mapping counts: the SYNC echo adds a byte to each TPDO
+    config = tmp_path / "drive.toml"
+    config.write_text('[master]\nsync_echo = "0x2004:0"\n')
+    echo = json.loads(hil("drive", "plan", "--config", str(config), "--json",
+                          cwd=tmp_path).stdout)
+    plain = json.loads(hil("drive", "plan", "--json", cwd=tmp_path).stdout)
+    assert echo["worst_us"] > plain["worst_us"]
+    bad = hil("drive", "plan", "--axes", "0", cwd=tmp_path)
+    assert bad.returncode == 2 and "--axes" in bad.stderr and "Traceback" not in bad.stderr
