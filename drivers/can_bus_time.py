@@ -159,11 +159,10 @@ class BusPlan:
         ways.append("fewer mapped objects (the TPDOs carry "
                     f"{sum(sum(a.tpdo_bytes) for a in self.axes)} bytes per cycle)")
         return (f"{_axes(n)} need{'s' if n == 1 else ''} {b.worst_us:.0f} us of bus time per "
-                f"cycle at "
-                f"{b.bitrate} bit/s {stuffing}: more than the {b.period_us:.0f} us period; "
-                f"options: {'; '.join(ways)}")
+                f"cycle at {b.bitrate} bit/s {stuffing}: more than the {b.period_us:.0f} us "
+                f"period; options: {'; '.join(ways)}")
 
-    def summary(self) -> dict[str, float | int | bool | list[str] | None]:
+    def summary(self) -> dict[str, float | int | bool | list[str] | str | None]:
         return {**self.budget.summary(), "axes": len(self.axes), "max_axes": self.max_axes,
                 "min_period_us": round(self.min_period_us, 1), "problem": self.problem()}
 
