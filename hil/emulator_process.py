@@ -138,12 +138,15 @@ def start_bench_emulator(config: str | Path | None = None, *, seed: int | None =
     return EmulatorProcess(argv, "bench", timeout_s)
 
 
-def start_drive_emulator(config: str | Path | None = None, *, node: int = 1,
+def start_drive_emulator(config: str | Path | None = None, *, node: int | Iterable[int] = 1,
                          host: str = "127.0.0.1", faults: Iterable[str | Fault] = (),
                          timeout_s: float = 30.0) -> EmulatorProcess:
-    """The CiA 402 drive emulator over socketcand on ``host`` and a free port; ``faults`` as
-    for :func:`start_bench_emulator`, seconds after it starts."""
-    argv = ["drive", "--socketcand", f"{host}:0", "--node", str(node), *_fault_flags(faults)]
+    """The CiA 402 drive emulator over socketcand on ``host`` and a free port (``node``: its
+    node id, or several, one drive and axis each, on the one bus); ``faults`` as for
+    :func:`start_bench_emulator`, seconds after it starts (each drive plays them)."""
+    nodes = [node] if isinstance(node, int) else list(node)
+    argv = ["drive", "--socketcand", f"{host}:0",
+            *[arg for n in nodes for arg in ("--node", str(n))], *_fault_flags(faults)]
     if config is not None:
         argv += ["--config", str(config)]
     return EmulatorProcess(argv, "drive", timeout_s)

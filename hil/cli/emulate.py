@@ -60,7 +60,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ed.add_argument("--can-log", metavar="F.blf|F.asc|F.trc|F.log",
                     help="write every CAN frame the emulator receives and sends to this file "
                     "(python-can's can.Logger; the suffix picks the format)")
-    ed.add_argument("--node", type=positive_int, default=1, help="CANopen node id (1..127)")
+    ed.add_argument("--node", type=positive_int, action="append",
+                    help="CANopen node id (1..127; default 1); repeat for several drives on "
+                    "the bus, each with its own axis: --node 1 --node 2 --node 3")
     ed.add_argument("--config", metavar="F.toml",
                     help="drive config laid over the default (hil/configs/drive.toml); "
                     "its [emulator] table is used")
@@ -242,9 +244,14 @@ def emulate_drive(args: argparse.Namespace) -> int:
     from hil.core.errors import UsageError
     from hil.servo.config import load_drive_config
 
-    if not 1 <= args.node <= 127:
-        raise UsageError(f"--node must be a CANopen node id 1..127, got {args.node}")
-    overrides: dict[str, object] = {"node_id": args.node}
+    nodes_ids = args.node or [1]
+    for node_id in nodes_ids:
+        if not 1 <= node_id <= 127:
+            raise UsageError(f"--node must be a CANopen node id 1..127, got {node_id}")
+    if len(set(nodes_ids)) != len(nodes_ids):
+        raise UsageError(f"--node given twice: {', '.join(map(str, nodes_ids))} (one drive per "
+                         "node id on a bus)")
+    overrides: dict[str, object] = {"node_id": nodes_ids[0]}
     if args.channel is not None:
         overrides["channel"] = args.channel
     emulator = load_drive_config(args.config, overrides={"emulator": overrides}).emulator
@@ -261,34 +268,53 @@ def emulate_drive(args: argparse.Namespace) -> int:
 
         trace = CanLog(args.can_log, emulator.channel)
         send = _traced_send(server.broadcast, trace)
-    node = DriveNode(emulator, send=send, faults=faults_of(args, "drive"),
-                     on_fault=print_event)
-    on_frame = node.handle if trace is None else _traced_handle(node.handle, trace)
-    server.on_frame, server.on_tick = on_frame, node.service
-    server.next_frame_ns = node.next_sync_ns
-    node.boot()
+    # one drive per node id, each with its own axis, all hearing every frame of the bus
+    nodes = [DriveNode(replace(emulator, node_id=node_id), send=send,
+                       faults=faults_of(args, "drive"), on_fault=print_event)
+             for node_id in nodes_ids]
+
+    def handle(msg: Any) -> None:
+        for node in nodes:
+            node.handle(msg)
+
+    def service() -> None:
+        for node in nodes:
+            node.service()
+
+    server.on_frame = handle if trace is None else _traced_handle(handle, trace)
+    server.on_tick = service
+    server.next_frame_ns = nodes[0].next_sync_ns  # one SYNC for them all
+    for node in nodes:
+        node.boot()
     bound_host, bound_port = server.address
-    plant = node.plant
-
-    def drive() -> dict[str, Any]:
-        return {"t_s": plant.time_s, "position_deg": plant.position_deg,
-                "velocity_deg_s": plant.velocity_deg_s, "current_mA": plant.applied_current_ma,
-                "statusword": node.statusword, "sync_count": node.sync_count}
-
-    state = {"/emulator/drive": ("hil.EmulatorDrive", drive)}
+    state = {("/emulator/drive" if len(nodes) == 1 else f"/emulator/drive/{node.node_id}"):
+             ("hil.EmulatorDrive", _drive_state(node)) for node in nodes}
+    ids = ", ".join(str(node.node_id) for node in nodes)
     # the stop flag is set before the ready line: a SIGTERM after it is handled
     with _until_stopped() as stop, _live_state(args, state, DRIVE_LIVE_HZ):
         try:
-            print(f"hil: drive emulator node {node.node_id} on socketcand {bound_host}:"
-                  f"{bound_port} (bus {emulator.channel}); Ctrl-C stops", flush=True)
+            print(f"hil: drive emulator node{'s' if len(nodes) > 1 else ''} {ids} on socketcand "
+                  f"{bound_host}:{bound_port} (bus {emulator.channel}); Ctrl-C stops", flush=True)
             server.serve(stop)
         finally:  # Ctrl-C (KeyboardInterrupt, ended quietly by _until_stopped) too
             server.close()
             if trace is not None:
                 trace.close()
-            print(f"hil: drive emulator stopped after {node.sync_count} SYNC "
-                  f"(plant time {node.plant.time_s:.3f} s)", flush=True)
+            print(f"hil: drive emulator stopped after {nodes[0].sync_count} SYNC "
+                  f"(plant time {nodes[0].plant.time_s:.3f} s)", flush=True)
     return 0
+
+
+def _drive_state(node: Any) -> Callable[[], dict[str, Any]]:
+    """The live view's sample of one emulated drive."""
+    plant = node.plant
+
+    def sample() -> dict[str, Any]:
+        return {"t_s": plant.time_s, "position_deg": plant.position_deg,
+                "velocity_deg_s": plant.velocity_deg_s, "current_mA": plant.applied_current_ma,
+                "statusword": node.statusword, "sync_count": node.sync_count}
+
+    return sample
 
 
 def _traced_send(send: Callable[[list], None], trace: Any) -> Callable[[list], None]:

@@ -247,3 +247,50 @@ def test_restarted_emulator_is_used_again_only_after_reset_fault(tmp_path):
     finally:
         master.close()
         stop_drive_emulator(proc)
+
+
+def test_several_drives_on_one_bus_each_move_their_own_axis():
+    """``hil emulate drive --node 1 --node 2``: two drives on one socketcand bus, driven by
+    canopen's own master (one SYNC for both): each answers as its node and moves its axis with
+    its own torque, the other way for node 2."""
+    from hil import api
+
+    with api.start_drive_emulator(node=[1, 2]) as emulator:
+        host, port = emulator.url.removeprefix("socketcand://").split(":")
+        network = canopen.Network()
+        network.connect(interface="socketcand", host=host, port=int(port), channel="can0")
+        nodes = {}
+        try:
+            for node_id, torque in ((1, 300), (2, -300)):
+                node = canopen.BaseNode402(node_id, build_object_dictionary(node_id))
+                for name in ("TIMEOUT_SWITCH_STATE_FINAL", "TIMEOUT_SWITCH_STATE_SINGLE",
+                             "TIMEOUT_CHECK_TPDO", "TIMEOUT_SWITCH_OP_MODE"):
+                    setattr(node, name, 5.0)
+                network.add_node(node)
+                node.sdo.RESPONSE_TIMEOUT = 3.0
+                node.nmt.state = "PRE-OPERATIONAL"
+                node.setup_402_state_machine(read_pdos=True)
+                assert node.sdo[0x1018][4].raw is not None  # its own SDO server answers
+                nodes[node_id] = (node, torque)
+            network.sync.start(0.005)
+            for node, _ in nodes.values():
+                node.nmt.state = "OPERATIONAL"
+                node.rpdo[1]["Target torque"].raw = 0
+                node.rpdo[1].start(0.005)
+                node.op_mode = "CYCLIC SYNCHRONOUS TORQUE"
+                node.state = "OPERATION ENABLED"
+            start = {n: node.sdo[0x6064].raw for n, (node, _) in nodes.items()}
+            for node, torque in nodes.values():
+                node.rpdo[1]["Target torque"].raw = torque
+            deadline, moved = time.monotonic() + 10.0, {1: 0, 2: 0}
+            while min(abs(m) for m in moved.values()) < 500 and time.monotonic() < deadline:
+                time.sleep(0.05)  # the plant moves one step per SYNC, however slow they come
+                moved = {n: (node.sdo[0x6064].raw - start[n] + (1 << 19)) % (1 << 20)
+                         - (1 << 19) for n, (node, _) in nodes.items()}
+            for node, _ in nodes.values():
+                node.rpdo[1]["Target torque"].raw = 0
+                node.state = "SWITCH ON DISABLED"
+        finally:
+            network.sync.stop()
+            network.disconnect()
+    assert moved[1] >= 500 and moved[2] <= -500, moved
