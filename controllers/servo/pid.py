@@ -52,11 +52,16 @@ def notch_coefficients(center_hz: float, quality: float, dt: float) -> tuple[np.
         raise ConfigError(f"pid: notch centre {center_hz} Hz must be in (0, {0.5 / dt:g}) Hz")
     if not quality > 0:
         raise ConfigError(f"pid: notch quality factor must be > 0, got {quality}")
-    # imported here: scipy.signal imports scipy.stats, a second of every process start
-    from scipy.signal import iirnotch
-
-    b, a = iirnotch(center_hz, quality, fs=1.0 / dt)
-    return np.asarray(b, float), np.asarray(a, float)
+    # scipy.signal.iirnotch's design (Orfanidis 11.3, -3 dB bandwidth), written out: importing
+    # scipy.signal takes two seconds (its array-API layer parses every docstring), which
+    # every PID run paid; the test holds the two to each other
+    w0 = 2 * float(center_hz) / (1.0 / dt)
+    bw = w0 / float(quality)
+    bw, w0 = bw * math.pi, w0 * math.pi
+    gain = 1.0 / (1.0 + math.tan(bw / 2.0))
+    b = gain * np.asarray([1.0, -2.0 * math.cos(w0), 1.0])
+    a = np.asarray([1.0, -2.0 * gain * math.cos(w0), 2.0 * gain - 1.0])
+    return b, a
 
 
 NOTCH_READINGS = ("resonance", "eq16", "none")

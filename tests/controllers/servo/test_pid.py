@@ -43,6 +43,20 @@ def test_resonance_notch_has_unit_dc_gain_and_a_zero_on_the_resonance():
     assert np.all(np.abs(np.roots(a)) < 1.0)
 
 
+@pytest.mark.parametrize("center_hz, quality, dt", [
+    (None, None, None), (60.0, 30.0, 1 / 200), (1234.5, 0.7, 50e-6), (10.0, 100.0, 1e-3)])
+def test_the_notch_is_scipys_iirnotch(center_hz, quality, dt):
+    """Written out to spare every run scipy.signal's import; the same filter as scipy's."""
+    from scipy.signal import iirnotch
+
+    if center_hz is None:
+        center_hz, quality, dt = resonance_hz(MODEL), PidConfig().notch_quality, MODEL.dt
+    b, a = notch_coefficients(center_hz, quality, dt)
+    want_b, want_a = iirnotch(center_hz, quality, fs=1.0 / dt)
+    np.testing.assert_allclose(b, want_b, rtol=1e-14, atol=0)
+    np.testing.assert_allclose(a, want_a, rtol=1e-14, atol=1e-15)
+
+
 def _free_response(notch: str) -> np.ndarray:
     """|error| of the unsaturated loop released 1 deg away from its set-point."""
     pid = CascadedPid(Hold(0.0), PidConfig(notch=notch, u_max=1e12))
