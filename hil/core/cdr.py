@@ -182,14 +182,8 @@ class CdrEncoder:
             for f, value in zip(self._tail, row[self._lead:], strict=True):
                 if f.sequence and f.type != "string":
                     self._put_numbers(buf, f, value)
-                elif f.sequence:
-                    items = [] if value is None else list(value)
-                    _pad(buf, 4)
-                    buf.extend(struct.pack("<I", len(items)))
-                    for item in items:
-                        self._put(buf, f, item)
                 else:
-                    self._put(buf, f, value)
+                    self._put_field(buf, f, value)
         except (struct.error, CdrError):  # raises, naming the field
             return self.encode_by_field(dict(zip(self._names, row, strict=True)))
         return bytes(buf)
@@ -198,16 +192,19 @@ class CdrEncoder:
         """The same bytes as :meth:`encode`, written field by field and item by item."""
         buf = bytearray(ENCAPSULATION)
         for f in self.fields:
-            value = message.get(f.name)
-            if f.sequence:
-                items = [] if value is None else list(value)
-                _pad(buf, 4)
-                buf.extend(struct.pack("<I", len(items)))
-                for item in items:
-                    self._put(buf, f, item)
-            else:
-                self._put(buf, f, value)
+            self._put_field(buf, f, message.get(f.name))
         return bytes(buf)
+
+    def _put_field(self, buf: bytearray, f: Field, value: Any) -> None:
+        """One field, a sequence item by item."""
+        if not f.sequence:
+            self._put(buf, f, value)
+            return
+        items = [] if value is None else list(value)
+        _pad(buf, 4)
+        buf.extend(struct.pack("<I", len(items)))
+        for item in items:
+            self._put(buf, f, item)
 
     @staticmethod
     def _put_numbers(buf: bytearray, f: Field, value: Any) -> None:

@@ -18,10 +18,10 @@ from canopen.profiles.p402 import State402
 from drivers import cia402
 from drivers.canopen import DriveFaultError, DriveLinkLostError
 from drivers.cia402 import state_of
-from emulators.drive.od import build_object_dictionary
 from hil.core.types import no_event
 from hil.servo.config import load_drive_config
 from hil.servo.rig import open_drive
+from tests.canopen_peer import add_402_node
 from tests.drive_processes import start_drive_emulator, stop_drive_emulator
 
 REPO = Path(__file__).resolve().parents[2]
@@ -89,15 +89,8 @@ def test_every_transition_of_the_chart_over_socketcand(emulator):
 def test_base_node_402_over_socketcand(emulator):
     network = canopen.Network()
     network.connect(interface="socketcand", host="127.0.0.1", port=emulator, channel="can0")
-    node = canopen.BaseNode402(1, build_object_dictionary(1))
-    for name in ("TIMEOUT_SWITCH_STATE_FINAL", "TIMEOUT_SWITCH_STATE_SINGLE",
-                 "TIMEOUT_CHECK_TPDO", "TIMEOUT_SWITCH_OP_MODE"):
-        setattr(node, name, 5.0)
-    network.add_node(node)
-    node.sdo.RESPONSE_TIMEOUT = 3.0
     try:
-        node.nmt.state = "PRE-OPERATIONAL"
-        node.setup_402_state_machine(read_pdos=True)
+        node = add_402_node(network, 1)
         node.nmt.state = "OPERATIONAL"
         network.sync.start(0.005)
         node.rpdo[1].start(0.005)
@@ -262,14 +255,7 @@ def test_several_drives_on_one_bus_each_move_their_own_axis():
         nodes = {}
         try:
             for node_id, torque in ((1, 300), (2, -300)):
-                node = canopen.BaseNode402(node_id, build_object_dictionary(node_id))
-                for name in ("TIMEOUT_SWITCH_STATE_FINAL", "TIMEOUT_SWITCH_STATE_SINGLE",
-                             "TIMEOUT_CHECK_TPDO", "TIMEOUT_SWITCH_OP_MODE"):
-                    setattr(node, name, 5.0)
-                network.add_node(node)
-                node.sdo.RESPONSE_TIMEOUT = 3.0
-                node.nmt.state = "PRE-OPERATIONAL"
-                node.setup_402_state_machine(read_pdos=True)
+                node = add_402_node(network, node_id)
                 assert node.sdo[0x1018][4].raw is not None  # its own SDO server answers
                 nodes[node_id] = (node, torque)
             network.sync.start(0.005)

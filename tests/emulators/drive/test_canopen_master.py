@@ -12,20 +12,13 @@ import pytest
 
 from emulators.drive.config import DriveEmulatorConfig
 from emulators.drive.node import DriveNode
-from emulators.drive.od import build_object_dictionary
 from emulators.drive.runners import BusRunner, bus_sender
+from tests.canopen_peer import add_402_node
 
 
 def walk_to_operation_enabled(network: canopen.Network) -> canopen.BaseNode402:
     """The canopen way: PRE-OP, read PDO maps, OPERATIONAL, SYNC + RPDO, mode, state."""
-    node = canopen.BaseNode402(1, build_object_dictionary(1))
-    for name in ("TIMEOUT_SWITCH_STATE_FINAL", "TIMEOUT_SWITCH_STATE_SINGLE",
-                 "TIMEOUT_CHECK_TPDO", "TIMEOUT_SWITCH_OP_MODE"):
-        setattr(node, name, 5.0)
-    network.add_node(node)
-    node.sdo.RESPONSE_TIMEOUT = 2.0
-    node.nmt.state = "PRE-OPERATIONAL"
-    node.setup_402_state_machine(read_pdos=True)
+    node = add_402_node(network, 1, sdo_timeout_s=2.0)
     assert node.tpdo[1].cob_id == 0x181 and node.rpdo[1].cob_id == 0x201
     assert [v.index for v in node.tpdo[1]] == [0x6041, 0x6064]
     node.nmt.state = "OPERATIONAL"
