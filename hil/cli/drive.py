@@ -17,7 +17,8 @@ URL_HELP = ("the bus: socketcand://HOST:PORT[/CHANNEL] | INTERFACE://CHANNEL[?ke
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    drive = subparsers.add_parser("drive", help="CANopen drives on a bus: scan, fault reset")
+    drive = subparsers.add_parser("drive", help="CANopen drives on a bus: scan, fault reset, "
+                                  "bus plan")
     sub = drive.add_subparsers(dest="drive_command", metavar="COMMAND", required=True)
     scan = sub.add_parser(
         "scan", help="list the nodes of a bus and what hil can drive (read-only)",
@@ -52,7 +53,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "master's heartbeats - with worst-case bit stuffing, against the cycle period; where "
         "the limits are (the axes that fit this period, the shortest period for these axes) "
         "and, when it does not fit, the ways out. Exit status 0: it fits; 1: it does not.")
-    plan.add_argument("--axes", type=positive_int, default=1, help="axes on the bus (1)")
+    plan.add_argument("--axes", type=positive_int, default=1, metavar="N",
+                      help="axes on the bus (1)")
     plan.add_argument("--rate-hz", type=positive_float, metavar="HZ",
                       help="cycle rate (default: the config's cycle period, 2000 Hz)")
     plan.add_argument("--bitrate", type=positive_int, metavar="BIT/S",
