@@ -44,6 +44,7 @@ from hil.servo.tracking import ReferenceSamples, TrackingStats
 PREDICTION_EVERY_REALTIME = 10  # 200 Hz of /mpc/prediction in real time and in long runs
 PREDICTION_EVERY_TICK_UP_TO_S = 60.0  # lockstep runs up to this long record it every tick
 DISTURBANCE_OBJECT = 0x2003  # the emulated drive's external disturbance torque [mA], INTEGER16
+NUMBERS = (int, float, np.number)  # what a step may return (built once: checked every tick)
 
 
 class ServoTask(Task):
@@ -149,7 +150,7 @@ class ServoTask(Task):
         try:
             u, elapsed = guarded_call(self.label, "step", self.controller.step, position, t_s,
                                       budget_s=self.budget_s)
-            if isinstance(u, bool) or not isinstance(u, int | float | np.number) \
+            if isinstance(u, bool) or not isinstance(u, NUMBERS) \
                     or not math.isfinite(u):
                 raise ControllerError(f"controller {self.label!r}: step() must return a finite "
                                       f"current in mA, got {type(u).__name__} {u!r:.60}")
