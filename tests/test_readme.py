@@ -8,6 +8,7 @@ import re
 import shlex
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import pytest
@@ -22,7 +23,11 @@ ENV = dict(os.environ, PYTHONPATH=str(ROOT))
 
 
 def blocks(language):
-    return re.findall(rf"^```{language}\n(.*?)^```", README, re.M | re.S)
+    """The README's code blocks in ``language``, in order (those indented in a list too)."""
+    found = re.findall(rf"^( *)```{language}\n(.*?)^ *```", README, re.M | re.S)
+    return [textwrap.dedent("".join(line.removeprefix(indent) for line in
+                                    block.splitlines(keepends=True)))
+            for indent, block in found]
 
 
 def hil_commands():
@@ -80,6 +85,15 @@ def test_the_api_tour_runs(user_folder):
     assert done.returncode == 0, done.stderr
     rms, passed, mcap = done.stdout.splitlines()[0].split()
     assert float(rms) < 0.5 and passed == "True" and Path(user_folder, mcap).exists()
+
+
+def test_the_several_axes_example_moves_each_axis_its_own_way(user_folder):
+    (user_folder / "axes.py").write_text(blocks("python")[3])
+    done = subprocess.run([sys.executable, "axes.py"], cwd=user_folder, capture_output=True,
+                          text=True, env=ENV, timeout=180, check=False)
+    assert done.returncode == 0, done.stderr
+    x, y = map(float, done.stdout.split())
+    assert x > 0.5 and y < -0.5
 
 
 def test_the_pytest_example_passes_with_the_installed_plugin(user_folder):

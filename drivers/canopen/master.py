@@ -29,7 +29,7 @@ import copy
 import math
 import struct
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any, NoReturn
 
@@ -557,39 +557,12 @@ class CanDriveMaster(Device):
         """Quick stop (cyclic, until standstill or the time-out), then disable voltage.
 
         Idempotent and silent: failures become a ``drive.safe_stop_failed`` event."""
-        if self._closed or not self._enabled:
-            return
-        self._enabled = False
-        c = self.config
-        try:
-            cycles = max(1, math.ceil(c.quick_stop_timeout_s / c.cycle_period_s))
-            state = "UNKNOWN"
-            hold = self._hold_target()
-            period_ns = round(c.cycle_period_s * 1e9)
-            next_ns = self.clock.time_ns()
-            for _ in range(cycles):
-                feedback = self.cycle(CW_QUICK_STOP, hold)
-                state = feedback.state
-                if feedback.fresh and (state in (SWITCH_ON_DISABLED, FAULT) or (
-                        state == QUICK_STOP_ACTIVE
-                        and abs(feedback.velocity_deg_s) < c.standstill_deg_s)):
-                    break
-                # one cycle per period (in lockstep each SYNC is a period of the clock)
-                next_ns += period_ns
-                wait_ns = next_ns - self.clock.time_ns()
-                if wait_ns > 0:
-                    self.clock.sleep(wait_ns / 1e9)
-            state = self.cycle(CW_DISABLE_VOLTAGE, hold).state
-            if state == OPERATION_ENABLED:  # it ignored both: only its SYNC watchdog is left
-                self._event("drive.safe_stop_failed", f"drive node {self.node_id} ignored quick "
-                            "stop and disable voltage: still OPERATION ENABLED; no more SYNC, "
-                            "so its SYNC watchdog must fault it", level="error", state=state)
-                return
-            self._event("drive.safe_stop", f"drive node {self.node_id} stopped: {state}",
-                        state=state)
-        except DriveError as exc:
-            self._event("drive.safe_stop_failed", f"drive node {self.node_id}: safe stop "
-                        f"incomplete: {exc}", level="error")
+        stop_together([self])
+
+    @property
+    def enabled(self) -> bool:
+        """Enabled by :meth:`start` and not stopped since (its safe stop is still to come)."""
+        return self._enabled and not self._closed
 
     def _hold_target(self) -> int:
         if self.mode == CSP and self.feedback is not None:
@@ -606,3 +579,58 @@ class CanDriveMaster(Device):
         self.link.shutdown()
         for closer in self._closers:
             closer()
+
+
+def stop_together(masters: Sequence[CanDriveMaster],
+                  end_cycle: Callable[[], None] = lambda: None) -> None:
+    """Quick stop on every enabled drive of ``masters`` in the same cycles, until all stand
+    (or the quick-stop time-out), then disable voltage, in one cycle too. ``end_cycle`` puts a
+    cycle's frames on the bus once every master has sent its own (several drives on one
+    :class:`~drivers.canopen.axes.AxisBus`; one drive sends at once). Silent: failures
+    become ``drive.safe_stop_failed`` events."""
+    active = [m for m in masters if m.enabled]
+    if not active:
+        return
+    for master in active:
+        master._enabled = False
+    c = active[0].config
+    holds = [master._hold_target() for master in active]
+
+    def cycle(controlword: int) -> list[Feedback]:
+        for master, hold in zip(active, holds, strict=True):
+            if master._latched is not None:
+                master._check_latched()
+            master._send_cycle(controlword, hold)
+        end_cycle()
+        return [master._receive() for master in active]
+
+    try:
+        period_ns = round(c.cycle_period_s * 1e9)
+        clock = active[0].clock
+        next_ns = clock.time_ns()
+        for _ in range(max(1, math.ceil(c.quick_stop_timeout_s / c.cycle_period_s))):
+            feedbacks = cycle(CW_QUICK_STOP)
+            if all(f.fresh and (f.state in (SWITCH_ON_DISABLED, FAULT) or (
+                    f.state == QUICK_STOP_ACTIVE
+                    and abs(f.velocity_deg_s) < m.config.standstill_deg_s))
+                   for f, m in zip(feedbacks, active, strict=True)):
+                break
+            # one cycle per period (in lockstep each SYNC is a period of the clock)
+            next_ns += period_ns
+            wait_ns = next_ns - clock.time_ns()
+            if wait_ns > 0:
+                clock.sleep(wait_ns / 1e9)
+        states = [f.state for f in cycle(CW_DISABLE_VOLTAGE)]
+    except DriveError as exc:
+        for master in active:
+            master._event("drive.safe_stop_failed", f"drive node {master.node_id}: safe stop "
+                          f"incomplete: {exc}", level="error")
+        return
+    for master, state in zip(active, states, strict=True):
+        if state == OPERATION_ENABLED:  # it ignored both: only its SYNC watchdog is left
+            master._event("drive.safe_stop_failed", f"drive node {master.node_id} ignored "
+                          "quick stop and disable voltage: still OPERATION ENABLED; no more "
+                          "SYNC, so its SYNC watchdog must fault it", level="error", state=state)
+        else:
+            master._event("drive.safe_stop", f"drive node {master.node_id} stopped: {state}",
+                          state=state)

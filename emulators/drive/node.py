@@ -116,6 +116,7 @@ SYNC_POLL_PERIODS = 100     # SYNCs are expected until this many cycles passed w
 CAUSE_HEARTBEAT, CAUSE_SYNC = 0x01, 0x02
 EXTENDED_OR_PRODUCER = 0x6000_0000  # COB-ID SYNC: bit 30 (we would produce), bit 29 (29-bit)
 NODE_ID_MASK = 0xFF80_0000           # consumer heartbeat: bits above the node id
+PDO_IDS_FIRST, PDO_IDS_LAST = 0x180, 0x57F  # the default PDO COB-IDs of every node
 # objects whose writing means more than storing the value (:meth:`DriveNode._write`)
 WRITE_EFFECTS = frozenset({SYNC_COB_ID_OBJECT, SYNC_COUNTER_OVERFLOW, CYCLE_PERIOD,
                            CONSUMER_HEARTBEAT, PRODUCER_HEARTBEAT, QUICK_STOP_OPTION,
@@ -270,6 +271,9 @@ class DriveNode:
 
     def handle_frame(self, can_id: int, data: bytes) -> None:
         """Process one received 11-bit data frame; never raises."""
+        if PDO_IDS_FIRST <= can_id <= PDO_IDS_LAST and can_id != self._sync_cob_id and \
+                self.pdos.receiver(can_id) is None:
+            return  # another node's PDO (several drives on a bus hear each other's): nothing
         with self.lock:
             if self.faults and self.faults.active("silent"):
                 return  # bus-off: it hears nothing either

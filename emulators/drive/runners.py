@@ -12,6 +12,8 @@ import math
 import threading
 import time
 import uuid
+from collections.abc import Sequence
+from dataclasses import replace
 
 import can
 
@@ -72,7 +74,9 @@ class BusRunner:
 class LockstepDrive:
     """An emulated drive on a private in-process channel (:mod:`emulators.direct_bus`), run
     synchronously: every transmission on :attr:`master_bus` hands the pending frames to the
-    node and runs its time service before the send returns (no threads).
+    node and runs its time service before the send returns (no threads). ``node_ids``: several
+    drives on the channel instead, one axis each (``config``'s, each with its node id), all
+    hearing every frame; :attr:`node` is the first.
 
     The node's clock is its SYNC count, so the run is deterministic and as fast as the CPU
     allows. The drive is also the master's clock in lockstep (:meth:`time_ns`, :meth:`sleep`):
@@ -81,25 +85,38 @@ class LockstepDrive:
     """
 
     def __init__(self, config: DriveEmulatorConfig | None = None,
-                 plant: AxisPlant | None = None) -> None:
+                 plant: AxisPlant | None = None, *,
+                 node_ids: Sequence[int] | None = None) -> None:
         self.channel = DirectChannel(f"hil-drive-{uuid.uuid4().hex}")
-        self._node_bus = self.channel.attach()
+        config = config or DriveEmulatorConfig()
+        if node_ids is None:
+            ids = [config.node_id]
+        elif plant is not None:
+            raise ValueError("one plant cannot be several drives' axis")
+        else:
+            ids = list(node_ids)
+        self._node_buses = [self.channel.attach() for _ in ids]
         self.master_bus = self.channel.attach(on_send=self.pump)
         self._time_bus = self.channel.attach(on_send=self.pump, listen=False)  # SYNCs only
-        self.node = DriveNode(config, send=self._node_bus.send_frames, plant=plant,
-                              timebase="sync")
-        self.node.boot()
+        self.nodes = [DriveNode(replace(config, node_id=node_id), send=bus.send_frames,
+                               plant=plant, timebase="sync")
+                      for node_id, bus in zip(ids, self._node_buses, strict=True)]
+        self.node = self.nodes[0]
+        for node in self.nodes:
+            node.boot()
 
     def attach_bus(self) -> can.BusABC:
         """One more bus on the same channel (an observer or a second master)."""
         return self.channel.attach()
 
     def pump(self) -> None:
-        """Deliver every frame waiting for the node, then run its time service."""
-        recv, handle = self._node_bus.recv_frame, self.node.handle_frame
-        while (frame := recv()) is not None:
-            handle(*frame)
-        self.node.service()
+        """Deliver every frame waiting for the nodes, then run their time service."""
+        for bus, node in zip(self._node_buses, self.nodes, strict=True):
+            recv, handle = bus.recv_frame, node.handle_frame
+            while (frame := recv()) is not None:
+                handle(*frame)
+        for node in self.nodes:
+            node.service()
 
     def time_ns(self) -> int:
         """The drive's time: its SYNCs so far, one communication cycle each."""
@@ -112,5 +129,5 @@ class LockstepDrive:
             self._time_bus.send_frames([(SYNC_COB_ID, b"")])
 
     def close(self) -> None:
-        for bus in (self._node_bus, self.master_bus, self._time_bus):
+        for bus in (*self._node_buses, self.master_bus, self._time_bus):
             bus.shutdown()

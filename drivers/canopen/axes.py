@@ -1,0 +1,209 @@
+"""Several drives on one bus, cycled together: one SYNC per cycle, every RPDO of the cycle on
+the bus before it, each drive's TPDOs handed to its own master.
+
+:class:`AxisBus` sits between one :class:`~drivers.canopen.link.CanLink` and one
+:class:`~drivers.canopen.master.CanDriveMaster` per drive: each master talks to a
+:class:`NodeLink` (the ``CanLink`` interface) and stays what it is for one drive. The bus
+
+* routes every received frame to the master of the node its COB-ID names (EMCY, TPDOs, SDO
+  answers, heartbeats carry the node id in their low 7 bits); NMT, SYNC, the master's own
+  heartbeat id and frames of nodes it does not drive go to every master (each ignores what is
+  not its own, and each watches for another master on the bus);
+* passes every transmission through while the drives are set up (NMT, SDO), and once
+  :meth:`AxisBus.cycle_together` is on, holds each master's cycle (a queued SDO download, the
+  RPDO) until :meth:`AxisBus.end_cycle`, which puts them all on the bus in one transmission,
+  axis by axis, followed by one SYNC and one heartbeat of the master (every master's are the
+  same frames: the first one's is sent, so a SYNC counter is the first master's).
+
+:class:`AxisGroup` drives the group: start every axis, then the cyclic exchange, and stop them
+together - quick stop on every axis in the same cycles until all stand, then disable voltage,
+in one cycle too.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Sequence
+
+from drivers.can_frames import Frame
+from drivers.canopen.cyclic import Feedback
+from drivers.canopen.errors import DriveError
+from drivers.canopen.link import CanLink
+from drivers.canopen.master import CanDriveMaster, stop_together
+from drivers.cia301 import HEARTBEAT_BASE, NMT_COB_ID, SYNC_COB_ID
+
+NODE_ID_BITS = 0x7F
+
+
+class NodeLink:
+    """One master's view of an :class:`AxisBus`: the :class:`CanLink` interface."""
+
+    def __init__(self, bus: AxisBus, node_id: int) -> None:
+        self._bus = bus
+        self.node_id = node_id
+        self.watched_ids: frozenset[int] = frozenset()
+        self.inbox: deque[Frame] = deque()
+
+    @property
+    def name(self) -> str:
+        return self._bus.link.name
+
+    @property
+    def echoes(self) -> bool:
+        return self._bus.link.echoes
+
+    def send(self, frames: list[Frame]) -> None:
+        self._bus.send(self, frames)
+
+    def recv(self, timeout: float | None) -> Frame | None:
+        return self._bus.recv(self, timeout)
+
+    def own_echo(self, frame: Frame) -> bool:
+        """Echoes of the group's own frames never reach a master (the bus drops them)."""
+        return False
+
+    def reconnect(self) -> None:
+        self._bus.link.reconnect()
+
+    def shutdown(self) -> None:
+        self._bus.release(self)
+
+
+class AxisBus:
+    """Several masters on one :class:`CanLink`: frames routed by node, cycles sent together."""
+
+    def __init__(self, link: CanLink, node_ids: Sequence[int], *,
+                 master_heartbeat_id: int = 127) -> None:
+        if len(set(node_ids)) != len(node_ids) or not node_ids:
+            raise DriveError(f"an axis bus needs distinct node ids, got {list(node_ids)}")
+        self.link = link
+        self.nodes = [NodeLink(self, node_id) for node_id in node_ids]
+        self._by_id = {node.node_id: node for node in self.nodes}
+        self._broadcast = {NMT_COB_ID, SYNC_COB_ID, HEARTBEAT_BASE + master_heartbeat_id}
+        self._heartbeat_id = HEARTBEAT_BASE + master_heartbeat_id
+        self.together = False
+        self._held: list[Frame] = []
+        self._sync: list[Frame] = []
+        self._open = len(self.nodes)
+        self.cycles = 0  # cycles put on the bus together (one SYNC each)
+
+    def node_link(self, node_id: int) -> NodeLink:
+        return self._by_id[node_id]
+
+    def cycle_together(self, on: bool = True) -> None:
+        """From now on (``on``) hold the masters' cycles until :meth:`end_cycle`."""
+        self.together = on
+        self._held, self._sync = [], []
+
+    # -- sending ------------------------------------------------------------------------------
+    def send(self, node: NodeLink, frames: list[Frame]) -> None:
+        if not self.together:
+            self._watch()
+            self.link.send(frames)
+            return
+        for frame in frames:
+            if frame[0] == SYNC_COB_ID or frame[0] == self._heartbeat_id:
+                if not any(held[0] == frame[0] for held in self._sync):
+                    self._sync.append(frame)
+            else:
+                self._held.append(frame)
+
+    def end_cycle(self) -> None:
+        """Every frame the masters sent for this cycle, in their order, then one SYNC (and
+        one heartbeat of the master, when one was due), in one transmission."""
+        out = self._held + sorted(self._sync, key=lambda frame: frame[0] != SYNC_COB_ID)
+        self._held, self._sync = [], []
+        if out:
+            self._watch()
+            self.link.send(out)
+            self.cycles += 1
+
+    def _watch(self) -> None:
+        """The frames only a master sends are watched for echoes on buses that echo."""
+        watched = frozenset().union(*(node.watched_ids for node in self.nodes))
+        if watched != self.link.watched_ids:
+            self.link.watched_ids = watched
+
+    # -- receiving ----------------------------------------------------------------------------
+    def recv(self, node: NodeLink, timeout: float | None) -> Frame | None:
+        """``node``'s next frame, reading the bus (and routing what is for others) for at most
+        ``timeout`` seconds (0: only what is already here)."""
+        if node.inbox:
+            return node.inbox.popleft()
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            frame = self.link.recv(remaining)
+            if frame is None:
+                return None
+            self._route(frame)
+            if node.inbox:
+                return node.inbox.popleft()
+            if deadline is not None and time.monotonic() >= deadline:
+                return None
+
+    def _route(self, frame: Frame) -> None:
+        can_id = frame[0]
+        if can_id in self.link.watched_ids and self.link.own_echo(frame):
+            return  # the group's own SYNC / NMT / heartbeat, handed back by an echoing bus
+        owner = self._by_id.get(can_id & NODE_ID_BITS)
+        if owner is not None and can_id not in self._broadcast:
+            owner.inbox.append(frame)
+        else:
+            for node in self.nodes:
+                node.inbox.append(frame)
+
+    def release(self, node: NodeLink) -> None:
+        """A master is done with its link; the bus closes with the last one."""
+        self._open -= 1
+        if self._open == 0:
+            self.link.shutdown()
+
+
+class AxisGroup:
+    """The masters of several drives on one :class:`AxisBus` (each
+    :class:`CanDriveMaster` built on its node's :class:`NodeLink`), started, cycled and
+    stopped together."""
+
+    def __init__(self, bus: AxisBus, masters: Sequence[CanDriveMaster]) -> None:
+        self.bus = bus
+        self.masters = list(masters)
+
+    def start(self) -> list[Feedback]:
+        """Every drive set up, then every drive enabled, then the cycles sent together."""
+        self.bus.cycle_together(False)
+        for master in self.masters:
+            master.open()
+            master.configure()
+        for master in self.masters:
+            master.enable()
+        self.bus.cycle_together(True)
+        return [master.receive_feedback() for master in self.masters]
+
+    def send_currents(self, currents_ma: Sequence[float]) -> None:
+        """One cycle: each axis' current (CST), then the one SYNC."""
+        for master, current in zip(self.masters, currents_ma, strict=True):
+            master.send_command(current)
+        self.bus.end_cycle()
+
+    def receive(self) -> list[Feedback]:
+        """Each axis' TPDOs of the last SYNC."""
+        return [master.receive_feedback() for master in self.masters]
+
+    def safe_state(self) -> None:
+        """Quick stop on every axis in the same cycles until all stand, then disable voltage
+        in one cycle (:func:`~drivers.canopen.master.stop_together`); silent."""
+        if self.bus.together:
+            stop_together(self.masters, self.bus.end_cycle)
+        else:  # still setting up: one drive after the other
+            for master in self.masters:
+                master.safe_state()
+
+    def close(self) -> None:
+        """Stop together, then release every master (and the bus with the last)."""
+        try:
+            self.safe_state()
+        finally:
+            for master in self.masters:
+                master.disconnect()
