@@ -160,6 +160,50 @@ Disturbance = Callable[[float], float]
 
 
 @dataclass(frozen=True)
+class CircleAxis:
+    """One axis of a circle of ``radius`` [deg] run at ``feed`` [deg/s] along the path from
+    the origin, counter-clockwise: axis 0 is ``R (cos wt - 1)``, axis 1 ``R sin wt``
+    (w = feed / R), so both start at rest position 0, the centre at (-R, 0)."""
+
+    radius: float
+    feed: float
+    axis: int
+
+    def position(self, t: np.ndarray) -> np.ndarray:
+        w = self.feed / self.radius
+        t = np.asarray(t, dtype=float)
+        if self.axis == 0:
+            return self.radius * (np.cos(w * t) - 1.0)
+        return self.radius * np.sin(w * t)
+
+
+def contour_error(x_deg: np.ndarray, y_deg: np.ndarray, radius: float) -> np.ndarray:
+    """Distance of the points (x, y) from the circle of :class:`CircleAxis` (signed: > 0
+    outside), the error a circular test (ISO 230-4) measures."""
+    return np.hypot(np.asarray(x_deg) + radius, np.asarray(y_deg)) - radius
+
+
+def parse_circle(spec: str) -> tuple[float, float] | None:
+    """``circle:radius=R,feed=F`` -> (R, F) [deg, deg/s]; None for any other reference."""
+    kind, _, params = spec.partition(":")
+    if kind != "circle":
+        return None
+    values = {"radius": 2.0, "feed": 20.0}
+    for item in filter(None, (p.strip() for p in params.split(","))):
+        key, eq, text = item.partition("=")
+        if not eq or key not in values:
+            raise UsageError(f"reference {spec!r}: bad parameter {item!r} (allowed: feed, "
+                             "radius)")
+        try:
+            values[key] = float(text)
+        except ValueError:
+            raise UsageError(f"reference {spec!r}: {key} must be a number, got {text!r}") from None
+        if not (math.isfinite(values[key]) and values[key] > 0):
+            raise UsageError(f"reference {spec!r}: {key} must be a positive number")
+    return values["radius"], values["feed"]
+
+
+@dataclass(frozen=True)
 class Scenario:
     """What the axis is asked to do (reference) and what pushes it (disturbance, mA or None)."""
 

@@ -26,7 +26,7 @@ from typing import NamedTuple
 
 from drivers.can_frames import Frame
 from drivers.canopen.errors import DriveError, DriveLinkLostError
-from drivers.canopen.link import CanLink
+from drivers.canopen.link import Link
 from drivers.canopen.nmt import HeartbeatProducer
 from drivers.canopen.scaling import DriveScaling
 from drivers.cia301 import SYNC_COB_ID
@@ -76,7 +76,7 @@ class CyclicExchange:
     """One node's cyclic PDO traffic over ``link``. Frames that are not its TPDOs go to
     ``other`` (SDO answers, EMCY, heartbeats) as they come."""
 
-    def __init__(self, link: CanLink, node_id: int, rpdo: PdoMap, tpdo1: PdoMap,
+    def __init__(self, link: Link, node_id: int, rpdo: PdoMap, tpdo1: PdoMap,
                  tpdo2: PdoMap, *, rx_timeout_s: float, watchdog: LinkWatchdog,
                  heartbeat: HeartbeatProducer, now_ns: Callable[[], int],
                  other: Callable[[Frame], None]) -> None:

@@ -31,6 +31,26 @@ class FrameTrace(Protocol):
     def received(self, frame: Frame) -> None: ...
 
 
+class Link(Protocol):
+    """What a master needs of its bus: :class:`CanLink` (the bus itself), or one node's share
+    of a bus several masters use (:class:`~drivers.canopen.axes.NodeLink`)."""
+
+    watched_ids: frozenset[int]
+
+    @property
+    def name(self) -> str: ...
+
+    def send(self, frames: list[Frame]) -> None: ...
+
+    def recv(self, timeout: float | None) -> Frame | None: ...
+
+    def own_echo(self, frame: Frame) -> bool: ...
+
+    def reconnect(self) -> None: ...
+
+    def shutdown(self) -> None: ...
+
+
 class CanLink:
     """One bus as the master uses it; ``reopen`` builds the bus again after a lost link."""
 

@@ -45,7 +45,7 @@ from drivers.canopen.errors import (
     DriveLinkLostError,
     DriveStateError,
 )
-from drivers.canopen.link import CanLink
+from drivers.canopen.link import Link
 from drivers.canopen.nmt import HeartbeatProducer, HeartbeatWatch, Nmt
 from drivers.canopen.pdo import PdoConfigurator
 from drivers.canopen.scaling import DriveScaling, read_scaling
@@ -142,7 +142,7 @@ class CanDriveMaster(Device):
     :class:`~hil.core.types.Device`). :meth:`start` (:meth:`open`, :meth:`configure`,
     :meth:`enable`) comes first. ``url`` names the drive in events and errors."""
 
-    def __init__(self, link: CanLink, config: DriveMasterConfig | None = None, *,
+    def __init__(self, link: Link, config: DriveMasterConfig | None = None, *,
                  on_event: EventSink = no_event, clock: MasterClock | None = None,
                  closers: tuple[Callable[[], None], ...] = (), url: str | None = None) -> None:
         self.config = config = config or DriveMasterConfig()

@@ -7,14 +7,14 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from drivers.can_frames import Frame
-from drivers.canopen.link import CanLink
+from drivers.canopen.link import Link
 from drivers.cia301 import HEARTBEAT_BASE, NMT_BOOT_UP, NMT_COB_ID, NMT_OPERATIONAL
 
 
 class Nmt:
     """NMT commands to one node, over ``link``."""
 
-    def __init__(self, link: CanLink, node_id: int) -> None:
+    def __init__(self, link: Link, node_id: int) -> None:
         self.link, self.node_id = link, node_id
 
     def command(self, command: int) -> None:

@@ -15,7 +15,7 @@ from typing import Any
 
 from drivers.can_frames import Frame
 from drivers.canopen.errors import DriveError, DriveLinkLostError, SdoAbortError
-from drivers.canopen.link import CanLink
+from drivers.canopen.link import Link
 from drivers.canopen.sdo import SdoClient
 from drivers.cia301 import (
     DEVICE_NAME,
@@ -79,7 +79,7 @@ class NodeReport:
         return asdict(self) | {"drivable": self.drivable}
 
 
-def frames_within(link: CanLink, seconds: float) -> Iterator[Frame]:
+def frames_within(link: Link, seconds: float) -> Iterator[Frame]:
     """Every frame heard in the next ``seconds`` (an absolute deadline)."""
     end = time.monotonic() + seconds
     while (remaining := end - time.monotonic()) > 0:
@@ -89,7 +89,7 @@ def frames_within(link: CanLink, seconds: float) -> Iterator[Frame]:
         yield frame
 
 
-def discover(link: CanLink, deadline_s: float = DISCOVER_S) -> list[int]:
+def discover(link: Link, deadline_s: float = DISCOVER_S) -> list[int]:
     """The nodes that answer an SDO read of 0x1000 (the request sent to every node id at
     once; answers collected for ``deadline_s``)."""
     request = struct.pack("<BHB", SDO_INITIATE_UPLOAD, DEVICE_TYPE, 0) + bytes(4)
@@ -102,7 +102,7 @@ def discover(link: CanLink, deadline_s: float = DISCOVER_S) -> list[int]:
     return sorted(found)
 
 
-def heartbeats(link: CanLink, listen_s: float = HEARTBEAT_S) -> dict[int, str]:
+def heartbeats(link: Link, listen_s: float = HEARTBEAT_S) -> dict[int, str]:
     """The NMT state each node's heartbeat carries, heard within ``listen_s``."""
     states: dict[int, str] = {}
     for can_id, data in frames_within(link, listen_s):
@@ -119,7 +119,7 @@ def _optional(read: Any, *args: Any) -> Any:
         return None
 
 
-def inspect(link: CanLink, node_id: int, mode: str = "cst") -> NodeReport:
+def inspect(link: Link, node_id: int, mode: str = "cst") -> NodeReport:
     """Everything :mod:`drivers.canopen.scan` reads of one node, and whether hil can drive it
     in ``mode`` (``cst`` or ``csp``)."""
     sdo = SdoClient(link, node_id, READ_TIMEOUT_S, lambda frame: None)
@@ -181,7 +181,7 @@ def _problems(report: NodeReport, sdo: SdoClient, mode: str) -> list[str]:
     return problems
 
 
-def scan(link: CanLink, nodes: list[int] | None = None, mode: str = "cst"
+def scan(link: Link, nodes: list[int] | None = None, mode: str = "cst"
          ) -> list[NodeReport]:
     """The nodes of ``link`` (``nodes``: these only), each inspected; a node that does not
     answer at all is reported as such."""

@@ -17,7 +17,7 @@ from collections.abc import Callable
 
 from drivers.can_frames import Frame
 from drivers.canopen.errors import DriveError, DriveLinkLostError, SdoAbortError
-from drivers.canopen.link import CanLink
+from drivers.canopen.link import Link
 from drivers.cia301 import (
     SDO_ABORT,
     SDO_COMMAND_MASK,
@@ -49,7 +49,7 @@ def download_request(index: int, subindex: int, value: int, fmt: str) -> bytes:
 class SdoClient:
     """The SDO channel to node ``node_id`` over ``link``."""
 
-    def __init__(self, link: CanLink, node_id: int, timeout_s: float,
+    def __init__(self, link: Link, node_id: int, timeout_s: float,
                  other: Callable[[Frame], None]) -> None:
         self.link, self.node_id, self.timeout_s = link, node_id, timeout_s
         self._other = other

@@ -41,6 +41,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     srun.add_argument("--out", metavar="F.mcap", type=output_file,
                       help="session file (default: sessions/servo-CONTROLLER-DATE-TIME.mcap)")
     srun.add_argument("--json", action="store_true", help="print the KPIs as JSON")
+    srun.add_argument("--axes", metavar="NAME=NODE,...",
+                      help="several axes on one bus, one drive each, one SYNC per tick "
+                      "(x=1,y=2): the controller runs on every axis with its reference; "
+                      "--reference circle:radius=R,feed=F is a circular test on two axes "
+                      "(R deg, F deg/s along the path; KPIs: the contour error); topics "
+                      "/axis/NAME/..., KPIs per axis; a stop stops every axis in the same "
+                      "cycles")
     add_recording_arguments(srun)
     srun.set_defaults(handler=run_servo_command)
 
@@ -113,7 +120,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "than its 1000 mA allow. "
                         "sine:amplitude=A,frequency=F | trapezoid:stroke=S,speed=RPM | "
                         "disturbance:torque=MA,start=S,end=S (Fig. 16: hold while a torque pulse "
-                        "pushes the axis; emulated drives) | hold:position=DEG")
+                        "pushes the axis; emulated drives) | hold:position=DEG | "
+                        "circle:radius=DEG,feed=DEG_PER_S (with --axes: a circular test on "
+                        "two axes)")
     parser.add_argument("--duration", type=positive_float, default=2.0, help="[s]")
     parser.add_argument("--settle", type=nonnegative_float, default=0.0, metavar="S",
                         help="KPIs ignore the first S seconds (start-up transient)")
@@ -141,10 +150,37 @@ def run_servo_command(args: argparse.Namespace) -> int:
     from hil.servo.run import run_servo
 
     options = run_options(args)
-    result = run_servo(options)
-    kpis = result.kpis
-    print(json_text(kpis) if args.json else format_run(options, kpis))
+    if args.axes:
+        from hil.core.run import run_experiment
+        from hil.servo.axes_run import AxesExperiment, parse_axes
+
+        kpis = run_experiment(AxesExperiment(options, parse_axes(args.axes))).kpis
+        print(json_text(kpis) if args.json else format_axes_run(options, kpis))
+    else:
+        kpis = run_servo(options).kpis
+        print(json_text(kpis) if args.json else format_run(options, kpis))
     return finish(kpis, args, f"hil servo run {kpis['controller']}", kpis["wall_s"])
+
+
+def format_axes_run(config: Any, kpis: dict[str, Any]) -> str:
+    """The human summary of ``hil servo run --axes``."""
+    lines = [f"servo run on {len(kpis['axes'])} axes: {config.describe_controller()}, "
+             f"{kpis['reference']}, drive {kpis['drive']}, clock {kpis['clock']}",
+             f"  ticks {kpis['ticks']} ({kpis['ticks'] * 500e-6:.3f} s), "
+             f"{kpis['sync_cycles']} SYNC, in {kpis['wall_s']:.2f} s wall "
+             f"({kpis['realtime_factor']}x real time), stopped: {kpis['stop_reason']}"]
+    for name, axis in kpis["axes"].items():
+        lines.append(f"  axis {name} (node {axis['node']}): error max "
+                     f"{_deg(axis['max_error_deg'])}, rms {_deg(axis['rms_error_deg'])}; peak "
+                     f"current {axis['peak_current_mA'] or 0:.0f} mA; stale feedback "
+                     f"{axis['stale_feedback']}")
+    contour = kpis.get("contour")
+    if contour:
+        lines.append(f"  contour error (circle of {contour['radius_deg']:g} deg): max "
+                     f"{_deg(contour['max_contour_error_deg'])}, rms "
+                     f"{_deg(contour['rms_contour_error_deg'])}")
+    lines.append(f"  session {kpis['mcap']}")
+    return "\n".join(lines)
 
 
 def _deg(value: float | None, digits: int = 4) -> str:

@@ -218,9 +218,13 @@ class ServoExperiment(Experiment):
         self.master: CanDriveMaster | None = None
         self.task: ServoTask | None = None
 
+    def parse_reference(self) -> Scenario:
+        """The run's scenario, from ``--reference``."""
+        return parse_scenario(self.options.reference)
+
     def plan(self) -> RunPlan:
         options = self.options
-        self.scenario = parse_scenario(options.reference)
+        self.scenario = self.parse_reference()
         self.drive = drive = drive_settings(options)
         self.params = {**drive.run.params, **options.params}
         # checked before anything is opened: a spec that cannot load leaves no file behind

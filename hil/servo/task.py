@@ -53,8 +53,8 @@ class ServoTask(Task):
     def __init__(self, session: Session, master: CanDriveMaster, controller: ServoController,
                  scenario: Scenario, *, label: str, settle_s: float, prediction_every: int,
                  budget_s: float | None, safety: SafetyMonitor,
-                 watch: SignalWatch | None = None) -> None:
-        super().__init__("servo")
+                 watch: SignalWatch | None = None, axis: str | None = None) -> None:
+        super().__init__("servo" if axis is None else f"servo-{axis}")
         self.session, self.master, self.controller = session, master, controller
         self.scenario = scenario
         self.loop = session.loop
@@ -75,9 +75,11 @@ class ServoTask(Task):
         self.predictor = controller if isinstance(controller, Predicting) else None
         # decided once: a runtime-checkable Protocol's isinstance costs microseconds a tick
         self.event_source = controller if isinstance(controller, ReportsEvents) else None
-        self.commands = session.topic("/drive/command", COMMAND_SCHEMA, high_rate=True)
-        self.feedbacks = session.topic("/drive/feedback", FEEDBACK_SCHEMA, high_rate=True)
-        self.predictions = (session.topic("/mpc/prediction", PREDICTION_SCHEMA, high_rate=True)
+        # one axis: /drive/command, /drive/feedback, /mpc/prediction; several: /axis/NAME/...
+        drive, mpc = ("/drive", "/mpc") if axis is None else (f"/axis/{axis}",) * 2
+        self.commands = session.topic(f"{drive}/command", COMMAND_SCHEMA, high_rate=True)
+        self.feedbacks = session.topic(f"{drive}/feedback", FEEDBACK_SCHEMA, high_rate=True)
+        self.predictions = (session.topic(f"{mpc}/prediction", PREDICTION_SCHEMA, high_rate=True)
                             if self.predictor is not None else None)
         self._disturbance_ma = 0
         self._last_path = ""
@@ -89,6 +91,17 @@ class ServoTask(Task):
         self._compute_us = 0.0
         self.late_writes = 0
         self.stale = 0
+
+    @property
+    def feedback(self) -> Feedback:
+        """This tick's feedback (after the read phase)."""
+        assert self._feedback is not None
+        return self._feedback
+
+    @property
+    def t_s(self) -> float:
+        """This tick's time on the schedule grid [s] (after the compute phase)."""
+        return self._t_s
 
     def read(self, t_ns: int) -> None:
         self._feedback = self.master.receive_feedback()

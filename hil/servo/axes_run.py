@@ -1,0 +1,261 @@
+"""``hil servo run --axes x=1,y=2``: several axes on one bus, one SYNC per tick.
+
+Each axis is one drive (its node id) with its own master on one
+:class:`~drivers.canopen.axes.AxisBus`, its own controller (the run's, built once per axis
+with that axis' reference) and its own servo task (topics ``/axis/NAME/command``,
+``/axis/NAME/feedback``, ``/axis/NAME/prediction``). The tick's phases run axis by axis, and a
+bus task comes last: its write puts every axis' RPDO and one SYNC on the bus, its record logs
+the contour error of a path (``/path/contour``). A stop of any kind (a safety limit, a fault,
+Ctrl-C) stops every axis in the same cycles (:func:`~drivers.canopen.master.stop_together`).
+
+References: ``--reference`` as for one axis (every axis the same), or the path
+``circle:radius=R,feed=F`` for two axes (a circular test, ISO 230-4: R in degrees of each
+axis, F in degrees per second along the path).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from controllers.servo.model import SAMPLE_PERIOD_S
+from controllers.servo.references import CircleAxis, Scenario, contour_error, parse_circle
+from drivers.canopen import CanDriveMaster, CanLink, open_can_bus, parse_can_url
+from drivers.canopen.axes import AxisBus, AxisGroup
+from emulators.drive.runners import LockstepDrive
+from hil.core.clock import Clock
+from hil.core.errors import HilError, SafetyStopError, UsageError
+from hil.core.loop import Task
+from hil.core.run import EventBuffer, RunPlan, controller_budget
+from hil.core.session import Session
+from hil.servo.config import EMULATED
+from hil.servo.run import STEP_BUDGET_S, ServoExperiment, ServoRunOptions, make_controller
+from hil.servo.safety import SafetyMonitor
+from hil.servo.task import ServoTask
+from hil.servo.tracking import reference_amplitude
+
+AXIS_NAME = re.compile(r"[a-z][a-z0-9_]{0,15}")
+CONTOUR_SCHEMA: dict[str, Any] = {
+    "type": "object",
+    "title": "hil.Contour",
+    "description": "A path's contour error: distance of the axes' measured point from the "
+                   "path (> 0 outside a circle).",
+    "properties": {
+        "t_s": {"type": "number"},
+        "x_deg": {"type": "number"},
+        "y_deg": {"type": "number"},
+        "contour_error_deg": {"type": "number", "x-cdr": "float32"},
+    },
+}
+
+
+@dataclass(frozen=True)
+class AxisSpec:
+    """One axis of a run: its name (topics, KPIs) and its drive's node id."""
+
+    name: str
+    node: int
+
+
+def parse_axes(text: str) -> tuple[AxisSpec, ...]:
+    """``x=1,y=2`` -> the axes, in order; a clear error for anything else."""
+    axes = []
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        name, eq, node = item.partition("=")
+        if not eq or not AXIS_NAME.fullmatch(name) or not node.isdigit() or \
+                not 1 <= int(node) <= 127:
+            raise UsageError(f"--axes {text!r}: {item!r} is not NAME=NODE (a lower-case name, "
+                             "a CANopen node id 1..127), e.g. --axes x=1,y=2")
+        axes.append(AxisSpec(name, int(node)))
+    if len(axes) < 2:
+        raise UsageError(f"--axes {text!r}: name two axes or more (one axis: --node)")
+    for what, values in (("name", [a.name for a in axes]), ("node", [a.node for a in axes])):
+        if len(set(values)) != len(values):
+            raise UsageError(f"--axes {text!r}: a {what} given twice")
+    return tuple(axes)
+
+
+class BusCycle(Task):
+    """Last in the tick: the cycle on the bus (every axis' RPDO, one SYNC), then the path's
+    contour error."""
+
+    def __init__(self, session: Session, bus: AxisBus, tasks: list[ServoTask],
+                 radius: float | None, settle_s: float) -> None:
+        super().__init__("bus")
+        self.bus, self.tasks, self.radius = bus, tasks, radius
+        self.settle_s = settle_s
+        self.topic = session.topic("/path/contour", CONTOUR_SCHEMA, high_rate=True) \
+            if radius is not None else None
+        self.max_error = 0.0
+        self.sum_squares = 0.0
+        self.counted = 0
+        self.cycles = 0  # cycles put on the bus while ticking
+
+    def write(self, t_ns: int) -> None:
+        self.bus.end_cycle()
+        self.cycles += 1
+
+    def record(self, t_ns: int) -> None:
+        if self.topic is None or self.radius is None:
+            return
+        x_task, y_task = self.tasks[0], self.tasks[1]
+        x, y = x_task.feedback.position_deg, y_task.feedback.position_deg
+        error = float(contour_error(np.array(x), np.array(y), self.radius))
+        t_s = x_task.t_s
+        self.topic.log(t_ns, (t_s, x, y, error))
+        if t_s >= self.settle_s - 1e-12:
+            self.counted += 1
+            self.sum_squares += error * error
+            self.max_error = max(self.max_error, abs(error))
+
+    def kpis(self) -> dict[str, Any]:
+        return {"radius_deg": self.radius,
+                "max_contour_error_deg": self.max_error if self.counted else None,
+                "rms_contour_error_deg": math.sqrt(self.sum_squares / self.counted)
+                if self.counted else None}
+
+
+class AxesExperiment(ServoExperiment):
+    """``hil servo run --axes``: the single-axis run's plan, several drives and tasks."""
+
+    def __init__(self, options: ServoRunOptions, axes: tuple[AxisSpec, ...]) -> None:
+        super().__init__(options)
+        self.axes = axes
+        self.group: AxisGroup | None = None
+        self.emulator: LockstepDrive | None = None
+        self.tasks: list[ServoTask] = []
+        self.bus_task: BusCycle | None = None
+
+    def parse_reference(self) -> Scenario:
+        """Every axis' scenario: a circle's axis each, or ``--reference`` for all; the
+        first axis' is the run's."""
+        options = self.options
+        circle = parse_circle(options.reference)
+        self.radius = circle[0] if circle is not None else None
+        if circle is None:
+            self.scenarios = [super().parse_reference()] * len(self.axes)
+        elif len(self.axes) != 2:
+            raise UsageError(f"--reference {options.reference}: a circle needs two axes, "
+                             f"--axes names {len(self.axes)}")
+        else:
+            self.scenarios = [Scenario(CircleAxis(circle[0], circle[1], i)) for i in range(2)]
+        return self.scenarios[0]
+
+    def plan(self) -> RunPlan:
+        options = self.options
+        if options.limits:
+            raise UsageError("--limit is not available with --axes yet (the KPIs are per axis)")
+        if options.can_log:
+            raise UsageError("--can-log is not available with --axes yet")
+        plan = super().plan()
+        if options.realtime and (options.drive or self.drive.bus_url) == EMULATED:
+            raise UsageError("--realtime --axes needs a bus: start the emulated drives with "
+                             "`hil emulate drive --socketcand 127.0.0.1:0 --node 1 --node 2` "
+                             "and pass its URL as --drive")
+        plan.config["servo"]["axes"] = [{"name": a.name, "node": a.node} for a in self.axes]
+        return replace(plan, label=f"{plan.label} on {len(self.axes)} axes")
+
+    def open_devices(self, clock: Clock, on_event: EventBuffer) -> None:
+        options, drive = self.options, self.drive
+        nodes = [axis.node for axis in self.axes]
+        url = options.drive or drive.bus_url
+        if url == EMULATED:
+            self.emulator = LockstepDrive(drive.emulator, node_ids=nodes)
+            link = CanLink(self.emulator.master_bus)
+        else:
+            spec = parse_can_url(url, drive.master.channel)
+            link = CanLink(open_can_bus(spec, drive.master.bitrate))
+        bus = AxisBus(link, nodes, master_heartbeat_id=drive.master.heartbeat_id)
+        masters = [CanDriveMaster(bus.node_link(axis.node),
+                                  replace(drive.master, node_id=axis.node), on_event=on_event,
+                                  clock=self.emulator, url=f"{url} axis {axis.name}")
+                   for axis in self.axes]
+        self.group = AxisGroup(bus, masters)
+        try:
+            for master in masters:
+                if options.reset_fault:
+                    master.clear_fault()
+                master.open()
+        except BaseException:
+            self.close_devices()
+            raise
+
+    def build_controller(self, session: Session) -> None:
+        self.controllers = [make_controller(self.options, scenario, session, self.params,
+                                            self.factory) for scenario in self.scenarios]
+
+    def start(self, session: Session) -> None:
+        group, options = self.group, self.options
+        assert group is not None
+        for master in group.masters:
+            master.configure()
+        session.recorder.metadata("drive", {"json": json.dumps(
+            {axis.name: master.describe() for axis, master in zip(self.axes, group.masters,
+                                                                  strict=True)})})
+        for master in group.masters:
+            master.enable()
+        group.bus.cycle_together(True)
+        session.add_component(group)
+        budget = controller_budget(options.controller_budget_s, options.realtime,
+                                   STEP_BUDGET_S)
+        for axis, master, controller, scenario in zip(self.axes, group.masters,
+                                                      self.controllers, self.scenarios,
+                                                      strict=True):
+            task = ServoTask(session, master, controller, scenario, label=options.label,
+                             settle_s=options.settle_s,
+                             prediction_every=options.prediction_period, budget_s=budget,
+                             safety=SafetyMonitor(self.drive.safety, SAMPLE_PERIOD_S),
+                             watch=self.watch, axis=axis.name)
+            self.tasks.append(task)
+            session.add_task(task)
+        self.bus_task = BusCycle(session, group.bus, self.tasks, self.radius, options.settle_s)
+        session.add_task(self.bus_task)
+
+    def finish(self, session: Session) -> None:
+        for task in self.tasks:
+            if task.safety.stopped is not None:
+                raise SafetyStopError(task.safety.stopped)
+
+    def close_devices(self) -> None:
+        if self.group is not None:
+            self.group.close()
+            self.group = None
+        if self.emulator is not None:
+            self.emulator.close()
+            self.emulator = None
+
+    def kpis(self, session: Session, wall_s: float, error: HilError | None) -> dict[str, Any]:
+        options, loop = self.options, session.loop
+        ticks = self.tasks[0].stats.ticks if self.tasks else 0
+        axes = {}
+        for axis, task in zip(self.axes, self.tasks, strict=True):
+            tracking = task.stats.kpis(reference_amplitude(task.scenario))
+            master = task.master
+            tracking.update({"node": axis.node, "stale_feedback": task.stale,
+                             "clamped_commands": master.stats.clamped_commands,
+                             "late_frames": master.stats.late_frames,
+                             "emcy": master.stats.emcy})
+            axes[axis.name] = tracking
+        kpis: dict[str, Any] = {
+            "controller": options.label, "axes": axes, "ticks": ticks,
+            "mcap": options.recording.first_file(self.out), "reference": options.reference,
+            "drive": options.drive or self.drive.bus_url, "clock": session.clock.mode,
+            "umax_mA": options.umax, "settle_s": options.settle_s,
+            "sync_cycles": self.bus_task.cycles if self.bus_task is not None else 0,
+            "wall_s": round(wall_s, 4),
+            "realtime_factor": round(ticks * SAMPLE_PERIOD_S / loop.ticking_s, 2)
+            if loop.ticking_s > 0 else None,
+            "stop_reason": loop.stop_reason}
+        if self.bus_task is not None and self.radius is not None:
+            kpis["contour"] = self.bus_task.kpis()
+        stale = sum(a["stale_feedback"] for a in axes.values())
+        emcy = sum(a["emcy"] for a in axes.values())
+        kpis["faults"] = {"stale_feedback": stale, "emcy": emcy,
+                          "late_frames": sum(a["late_frames"] for a in axes.values())}
+        kpis["disturbed"] = bool(stale or emcy)
+        return kpis

@@ -1,0 +1,108 @@
+"""``hil servo run --axes``: several axes on one bus, from the command line as a user runs
+it; a circular test on two emulated axes, one SYNC per tick for all, a stop for all."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hil.core.reader import read_session
+
+pytestmark = [pytest.mark.slow]
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def hil(cwd, *args):
+    return subprocess.run([sys.executable, "-m", "hil", *args], cwd=cwd, capture_output=True,
+                          text=True, env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=180)
+
+
+def test_a_circular_test_on_two_axes_reports_each_axis_and_the_contour_error(tmp_path):
+    done = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller", "mpc",
+               "--reference", "circle:radius=2,feed=20", "--duration", "0.5", "--settle",
+               "0.1", "--out", "circle.mcap", "--json")
+    assert done.returncode == 0, done.stderr
+    kpis = json.loads(done.stdout)
+    assert set(kpis["axes"]) == {"x", "y"} and kpis["ticks"] == 1000
+    assert kpis["sync_cycles"] == 1000  # one SYNC a tick for both axes
+    for axis in kpis["axes"].values():
+        assert axis["max_error_deg"] < 0.05 and axis["stale_feedback"] == 0
+    contour = kpis["contour"]
+    assert contour["radius_deg"] == 2.0 and 0 < contour["max_contour_error_deg"] < 0.05
+    data = read_session(tmp_path / "circle.mcap")
+    x = [m for _, m in data.topic("/axis/x/feedback")]
+    y = [m for _, m in data.topic("/axis/y/feedback")]
+    assert len(x) == len(y) == 1000
+    assert [m["cycle"] for m in x] == [m["cycle"] for m in y]  # the same SYNC, tick by tick
+    # the axes drew the circle: the recorded points lie on it, as /path/contour says
+    points = np.array([(m["position_deg"], n["position_deg"]) for m, n in zip(x, y,
+                                                                              strict=True)])
+    radius = np.hypot(points[200:, 0] + 2.0, points[200:, 1])
+    assert np.abs(radius - 2.0).max() < 0.05
+    contour_topic = [m for _, m in data.topic("/path/contour")]
+    assert len(contour_topic) == 1000
+    assert max(abs(m["contour_error_deg"]) for m in contour_topic[200:]) == \
+        pytest.approx(contour["max_contour_error_deg"], rel=1e-5)
+    # the human summary names each axis and the contour error
+    text = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller", "pid",
+               "--reference", "circle:radius=2,feed=20", "--duration", "0.2", "--out",
+               "pid.mcap")
+    assert text.returncode == 0, text.stderr
+    assert "axis x (node 1)" in text.stdout and "axis y (node 2)" in text.stdout
+    assert "contour error (circle of 2 deg)" in text.stdout
+
+
+def test_a_safety_stop_on_one_axis_stops_every_axis(tmp_path):
+    done = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2,z=3", "--controller", "pid",
+               "--reference", "sine:amplitude=20,frequency=1", "--duration", "1",
+               "--safety", "following_error_deg=1", "--out", "stop.mcap")
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "safety stop" in done.stderr and "following error" in done.stderr
+    events = [m for _, m in read_session(tmp_path / "stop.mcap").topic("/events")]
+    stopped = sorted(m["source"] for m in events if m["kind"] == "drive.safe_stop")
+    assert stopped == ["drive1", "drive2", "drive3"]  # every axis, not only the one that tripped
+    assert all(m["data"]["state"] == "SWITCH ON DISABLED" for m in events
+               if m["kind"] == "drive.safe_stop")
+
+
+@pytest.mark.parametrize("args, problem", [
+    (["--axes", "x=1"], "name two axes or more"),
+    (["--axes", "x=1,x=2"], "a name given twice"),
+    (["--axes", "x=1,y=1"], "a node given twice"),
+    (["--axes", "X=1,y=200"], "is not NAME=NODE"),
+    (["--axes", "x=1,y=2,z=3", "--reference", "circle:radius=2"], "a circle needs two axes"),
+    (["--axes", "x=1,y=2", "--reference", "circle:radius=-1"], "radius must be a positive"),
+    (["--axes", "x=1,y=2", "--limit", "max_error_deg<=1"], "--limit is not available"),
+    (["--axes", "x=1,y=2", "--realtime"], "--realtime --axes needs a bus"),
+])
+def test_bad_axes_are_one_line_before_anything_runs(tmp_path, args, problem):
+    done = hil(tmp_path, "servo", "run", "--controller", "pid", "--out", "bad.mcap", *args)
+    assert done.returncode == 2 and problem in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr and not (tmp_path / "bad.mcap").exists()
+
+
+@pytest.mark.realtime
+def test_two_axes_in_real_time_over_socketcand_to_the_emulator_process(tmp_path):
+    """The emulated drives in a process of their own (hil emulate drive --node 1 --node 2),
+    2 kHz in real time: both axes recorded tick by tick on the same SYNCs. Stale feedback on
+    a loaded machine makes it exit 3 (disturbed), not 2."""
+    from hil import api
+
+    with api.start_drive_emulator(node=[1, 2]) as drive:
+        done = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller", "pid",
+                   "--reference", "circle:radius=2,feed=20", "--duration", "0.5",
+                   "--realtime", "--drive", drive.url, "--out", "rt.mcap", "--json")
+    assert done.returncode in (0, 3), done.stderr
+    kpis = json.loads(done.stdout)
+    assert kpis["clock"] == "realtime" and kpis["sync_cycles"] == kpis["ticks"] > 900
+    data = read_session(tmp_path / "rt.mcap")
+    cycles = {name: [m["cycle"] for _, m in data.topic(f"/axis/{name}/feedback")]
+              for name in ("x", "y")}
+    assert cycles["x"] == cycles["y"] and len(cycles["x"]) == kpis["ticks"]
