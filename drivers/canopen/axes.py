@@ -34,6 +34,7 @@ from drivers.canopen.master import CanDriveMaster, stop_together
 from drivers.cia301 import HEARTBEAT_BASE, NMT_COB_ID, SYNC_COB_ID
 
 NODE_ID_BITS = 0x7F
+TPDO_IDS_FIRST, TPDO_IDS_LAST = 0x181, 0x4FF  # TPDO1-4 of nodes 1-127, default COB-IDs
 
 
 class NodeLink:
@@ -92,9 +93,17 @@ class AxisBus:
         return self._by_id[node_id]
 
     def cycle_together(self, on: bool = True) -> None:
-        """From now on (``on``) hold the masters' cycles until :meth:`end_cycle`."""
+        """From now on (``on``) hold the masters' cycles until :meth:`end_cycle`. The TPDOs
+        still waiting then answer the set-up's SYNCs (a drive enabled while the next one was
+        set up), no cycle's: they are dropped."""
         self.together = on
         self._held, self._sync = [], []
+        if on:
+            while (frame := self.link.recv(0)) is not None:
+                self._route(frame)
+            for node in self.nodes:
+                node.inbox = deque(frame for frame in node.inbox
+                                   if not TPDO_IDS_FIRST <= frame[0] <= TPDO_IDS_LAST)
 
     # -- sending ------------------------------------------------------------------------------
     def send(self, node: NodeLink, frames: list[Frame]) -> None:

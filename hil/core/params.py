@@ -28,11 +28,14 @@ def parse_value(text: str) -> ParamValue:
 
 
 def parse_param(text: str) -> tuple[str, ParamValue]:
-    """``'gain=2.5'`` -> ("gain", 2.5); a UsageError names a malformed one."""
+    """``'gain=2.5'`` -> ("gain", 2.5), ``'y.gain=2'`` (axis y's, with ``--axes``) ->
+    ("y.gain", 2); a UsageError names a malformed one."""
     key, sep, value = text.partition("=")
     key = key.strip()
-    if not sep or not key.isidentifier():
-        raise UsageError(f"--param {text!r}: expected KEY=VALUE with KEY a name, e.g. gain=2.5")
+    parts = key.split(".")
+    if not sep or len(parts) > 2 or not all(part.isidentifier() for part in parts):
+        raise UsageError(f"--param {text!r}: expected KEY=VALUE with KEY a name, e.g. "
+                         "gain=2.5 (AXIS.KEY with --axes)")
     return key, parse_value(value.strip())
 
 

@@ -10,7 +10,8 @@ Ctrl-C) stops every axis in the same cycles (:func:`~drivers.canopen.master.stop
 
 References: ``--reference`` as for one axis (every axis the same), or the path
 ``circle:radius=R,feed=F`` for two axes (a circular test, ISO 230-4: R in degrees of each
-axis, F in degrees per second along the path).
+axis, F in degrees per second along the path). Parameters: ``--param KEY=V`` for every axis,
+``--param NAME.KEY=V`` for axis NAME (a gain mismatch between axes, say).
 """
 
 from __future__ import annotations
@@ -148,6 +149,12 @@ class AxesExperiment(ServoExperiment):
 
     def plan(self) -> RunPlan:
         options = self.options
+        names = [axis.name for axis in self.axes]
+        for key in options.params:
+            axis, dot, _ = key.partition(".")
+            if dot and axis not in names:
+                raise UsageError(f"--param {key}: no axis {axis!r} (the axes: "
+                                 f"{', '.join(names)}); NAME.KEY=VALUE sets KEY for axis NAME")
         if options.limits:
             raise UsageError("--limit is not available with --axes yet (the KPIs are per axis)")
         if options.can_log:
@@ -186,8 +193,17 @@ class AxesExperiment(ServoExperiment):
             raise
 
     def build_controller(self, session: Session) -> None:
-        self.controllers = [make_controller(self.options, scenario, session, self.params,
-                                            self.factory) for scenario in self.scenarios]
+        """One controller per axis, with that axis' reference and parameters: the common
+        ones, and ``NAME.KEY`` laid over them for axis NAME."""
+        self.controllers = [
+            make_controller(self.options, scenario, session, self.axis_params(axis.name),
+                            self.factory)
+            for axis, scenario in zip(self.axes, self.scenarios, strict=True)]
+
+    def axis_params(self, name: str) -> dict[str, Any]:
+        common = {k: v for k, v in self.params.items() if "." not in k}
+        return common | {k.partition(".")[2]: v for k, v in self.params.items()
+                         if k.startswith(f"{name}.")}
 
     def start(self, session: Session) -> None:
         group, options = self.group, self.options

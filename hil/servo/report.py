@@ -56,6 +56,10 @@ def plot_servo(data: SessionData, out_png: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    axes_names = axis_names(data)
+    if axes_names:
+        plot_axes(data, axes_names, out_png)
+        return
     command = data.arrays("/drive/command")
     feedback = data.arrays("/drive/feedback")
     prediction = data.arrays("/mpc/prediction")
@@ -136,3 +140,62 @@ def draw_waterfall(ax: Any, command: dict[str, np.ndarray], prediction: dict[str
         ax.legend(loc="best", fontsize=8)
     ax.set_ylabel("current [mA]")
     ax.set_title(f"MPC prediction waterfall ({len(rows)} recorded ticks)", fontsize=9)
+
+
+def axis_names(data: SessionData) -> list[str]:
+    """The axes of a session recorded with ``--axes`` (their ``/axis/NAME/command``), in
+    order; none for a single-axis session."""
+    return [name.split("/")[2] for name in sorted(data.topic_counts)
+            if name.startswith("/axis/") and name.endswith("/command")]
+
+
+def plot_axes(data: SessionData, names: list[str], out_png: str) -> None:
+    """Several axes: each axis' tracking error and current over time, and for a path the
+    measured X-Y points against the path and the contour error."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    contour = data.arrays("/path/contour")
+    has_path = contour["log_time_ns"].size > 0
+    fig, axes = plt.subplots(2 + has_path, 1, figsize=(10, 2.8 * (2 + has_path)),
+                             squeeze=False)
+    axes = axes[:, 0]
+    info = kpis(data)
+    fig.suptitle(f"servo session on {len(names)} axes: {info.get('controller', '?')}, "
+                 f"{info.get('reference', '')}", fontsize=10)
+    origin: int | None = None
+    for name in names:
+        command = data.arrays(f"/axis/{name}/command")
+        if command["log_time_ns"].size == 0:
+            continue
+        origin = int(command["log_time_ns"][0]) if origin is None else origin
+        t = _seconds(command["log_time_ns"], origin)
+        axes[0].plot(t, command["error_deg"], lw=0.8, label=f"axis {name}")
+        axes[1].plot(t, command["command_mA"], lw=0.8, label=f"axis {name}")
+    axes[0].set_ylabel("error [deg]")
+    axes[0].set_title("tracking error per axis (position - reference)", fontsize=9)
+    axes[1].set_ylabel("current [mA]")
+    axes[1].set_title("commanded current per axis", fontsize=9)
+    for ax in axes[:2]:
+        ax.legend(loc="best", fontsize=8)
+    axes[1].set_xlabel("time [s]")
+    if has_path:
+        ax = axes[2]
+        radius = float(info.get("contour", {}).get("radius_deg") or 0.0)
+        x, y = contour["x_deg"], contour["y_deg"]
+        if radius:
+            angle = np.linspace(0.0, 2.0 * np.pi, 361)
+            ax.plot(radius * (np.cos(angle) - 1.0), radius * np.sin(angle), "k--", lw=0.8,
+                    label="path")
+        ax.plot(x, y, lw=0.9, label=f"measured ({names[0]}, {names[1]})")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlabel(f"axis {names[0]} [deg]")
+        ax.set_ylabel(f"axis {names[1]} [deg]")
+        error = contour["contour_error_deg"]
+        ax.set_title(f"X-Y: contour error max {np.abs(error).max():.4f} deg", fontsize=9)
+        ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)

@@ -69,8 +69,9 @@ def test_params_parse_numbers_as_numbers():
     assert parse_value("true") is True and parse_value("False") is False
     assert parse_value("fast") == "fast" and parse_value("nan") == "nan"
     assert parse_param("gain = 2") == ("gain", 2)
+    assert parse_param("y.gain=3") == ("y.gain", 3)  # axis y's, with --axes
     assert merge_params({"gain": 1, "mode": "a"}, ["gain=2", "limit=0.5"]) == \
         {"gain": 2, "mode": "a", "limit": 0.5}
-    for bad in ("gain", "=3", "2x=1"):
+    for bad in ("gain", "=3", "2x=1", "a.b.c=1", "y.=1", ".g=1"):
         with pytest.raises(Exception, match=r"expected KEY=VALUE"):
             parse_param(bad)

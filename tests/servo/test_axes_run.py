@@ -34,6 +34,7 @@ def test_a_circular_test_on_two_axes_reports_each_axis_and_the_contour_error(tmp
     assert kpis["sync_cycles"] == 1000  # one SYNC a tick for both axes
     for axis in kpis["axes"].values():
         assert axis["max_error_deg"] < 0.05 and axis["stale_feedback"] == 0
+        assert axis["late_frames"] == 0  # the set-up's TPDOs are no cycle's answer
     contour = kpis["contour"]
     assert contour["radius_deg"] == 2.0 and 0 < contour["max_contour_error_deg"] < 0.05
     data = read_session(tmp_path / "circle.mcap")
@@ -57,6 +58,49 @@ def test_a_circular_test_on_two_axes_reports_each_axis_and_the_contour_error(tmp
     assert text.returncode == 0, text.stderr
     assert "axis x (node 1)" in text.stdout and "axis y (node 2)" in text.stdout
     assert "contour error (circle of 2 deg)" in text.stdout
+
+
+PD_CONTROLLER = """
+class PdPosition:
+    def __init__(self, reference, params):
+        self.reference = reference
+        self.kp, self.kd = float(params.get("kp", 300.0)), float(params.get("kd", 6.0))
+        self.last = None
+
+    def step(self, position_deg, t_s):
+        error = (float(self.reference.position(t_s)) - position_deg + 180.0) % 360.0 - 180.0
+        rate = 0.0 if self.last is None else (error - self.last[1]) / (t_s - self.last[0])
+        self.last = (t_s, error)
+        return self.kp * error + self.kd * rate
+"""
+
+
+def _contour(tmp_path, name, *params):
+    done = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller",
+               "pd.py:PdPosition", *params, "--reference", "circle:radius=2,feed=20",
+               "--duration", "1.2", "--out", f"{name}.mcap", "--quiet")
+    assert done.returncode == 0, done.stderr
+    rows = [m for _, m in read_session(tmp_path / f"{name}.mcap").topic("/path/contour")]
+    return np.array([m["contour_error_deg"] for m in rows[800:]])  # after a settling turn
+
+
+def test_a_gain_mismatch_between_axes_shows_as_an_ellipse(tmp_path):
+    """The same gains on both axes lag both alike: the circle shrinks, evenly all round.
+    A lower gain on y lags y more: the path becomes an ellipse, its contour error swings
+    twice per turn. --param y.kp sets axis y's gain only."""
+    (tmp_path / "pd.py").write_text(PD_CONTROLLER)
+    matched = _contour(tmp_path, "matched", "--param", "kp=300")
+    mismatched = _contour(tmp_path, "mismatched", "--param", "kp=300", "--param", "y.kp=100")
+    swing_matched = matched.max() - matched.min()
+    swing_mismatched = mismatched.max() - mismatched.min()
+    assert swing_mismatched > 5 * swing_matched, (swing_matched, swing_mismatched)
+    # twice per turn: the swing's dominant frequency is twice the path's (20 deg/s on 2 deg)
+    spectrum = np.abs(np.fft.rfft(mismatched - mismatched.mean()))
+    frequencies = np.fft.rfftfreq(mismatched.size, 500e-6)
+    assert frequencies[np.argmax(spectrum)] == pytest.approx(2 * 10 / (2 * np.pi), rel=0.35)
+    wrong = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller",
+                "pd.py:PdPosition", "--param", "z.kp=1", "--out", "z.mcap")
+    assert wrong.returncode == 2 and "no axis 'z'" in wrong.stderr
 
 
 def test_a_safety_stop_on_one_axis_stops_every_axis(tmp_path):
