@@ -150,15 +150,10 @@ def run_servo_command(args: argparse.Namespace) -> int:
     from hil.servo.run import run_servo
 
     options = run_options(args)
-    if args.axes:
-        from hil.core.run import run_experiment
-        from hil.servo.axes_run import AxesExperiment, parse_axes
-
-        kpis = run_experiment(AxesExperiment(options, parse_axes(args.axes))).kpis
-        print(json_text(kpis) if args.json else format_axes_run(options, kpis))
-    else:
-        kpis = run_servo(options).kpis
-        print(json_text(kpis) if args.json else format_run(options, kpis))
+    kpis = run_servo(options).kpis
+    several = "axes" in kpis
+    print(json_text(kpis) if args.json else
+          format_axes_run(options, kpis) if several else format_run(options, kpis))
     return finish(kpis, args, f"hil servo run {kpis['controller']}", kpis["wall_s"])
 
 

@@ -18,8 +18,7 @@ from __future__ import annotations
 
 import json
 import math
-import re
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -34,13 +33,12 @@ from hil.core.errors import HilError, SafetyStopError, UsageError
 from hil.core.loop import Task
 from hil.core.run import EventBuffer, RunPlan, controller_budget
 from hil.core.session import Session
-from hil.servo.config import EMULATED
+from hil.servo.config import AXIS_NAME, EMULATED, AxisSpec, check_axes
 from hil.servo.run import STEP_BUDGET_S, ServoExperiment, ServoRunOptions, make_controller
 from hil.servo.safety import SafetyMonitor
 from hil.servo.task import ServoTask
 from hil.servo.tracking import reference_amplitude
 
-AXIS_NAME = re.compile(r"[a-z][a-z0-9_]{0,15}")
 CONTOUR_SCHEMA: dict[str, Any] = {
     "type": "object",
     "title": "hil.Contour",
@@ -55,14 +53,6 @@ CONTOUR_SCHEMA: dict[str, Any] = {
 }
 
 
-@dataclass(frozen=True)
-class AxisSpec:
-    """One axis of a run: its name (topics, KPIs) and its drive's node id."""
-
-    name: str
-    node: int
-
-
 def parse_axes(text: str) -> tuple[AxisSpec, ...]:
     """``x=1,y=2`` -> the axes, in order; a clear error for anything else."""
     axes = []
@@ -73,12 +63,7 @@ def parse_axes(text: str) -> tuple[AxisSpec, ...]:
             raise UsageError(f"--axes {text!r}: {item!r} is not NAME=NODE (a lower-case name, "
                              "a CANopen node id 1..127), e.g. --axes x=1,y=2")
         axes.append(AxisSpec(name, int(node)))
-    if len(axes) < 2:
-        raise UsageError(f"--axes {text!r}: name two axes or more (one axis: --node)")
-    for what, values in (("name", [a.name for a in axes]), ("node", [a.node for a in axes])):
-        if len(set(values)) != len(values):
-            raise UsageError(f"--axes {text!r}: a {what} given twice")
-    return tuple(axes)
+    return check_axes(tuple(axes), f"--axes {text!r}")
 
 
 class BusCycle(Task):

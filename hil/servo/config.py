@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from importlib import resources
@@ -24,13 +25,33 @@ from drivers.cia402 import MODES, QUICK_STOP_OPTIONS
 from emulators.drive.config import DriveEmulatorConfig
 from emulators.drive.plant import Disturbance, Friction
 from hil.core.config import Table, deep_merge, load_toml, parse_toml
+from hil.core.errors import ConfigError
 from hil.core.verdict import RunTables, read_run_tables
 from hil.servo.safety import ServoSafety
 
+AXIS_NAME = re.compile(r"[a-z][a-z0-9_]{0,15}")
 DEFAULT_SOURCE = "hil/configs/drive.toml"
 SOURCE = "drive config"  # what errors name when no user file is given
 U16 = 0xFFFF
 EMULATED = "emulated"
+
+
+@dataclass(frozen=True)
+class AxisSpec:
+    """One axis of a run on several axes: its name (topics, KPIs) and its drive's node id."""
+
+    name: str
+    node: int
+
+
+def check_axes(axes: tuple[AxisSpec, ...], where: str) -> tuple[AxisSpec, ...]:
+    """Two axes or more, names and node ids each once (ConfigError naming ``where``)."""
+    if len(axes) < 2:
+        raise ConfigError(f"{where}: name two axes or more (one axis: the master's node_id)")
+    for what, values in (("name", [a.name for a in axes]), ("node", [a.node for a in axes])):
+        if len(set(values)) != len(values):
+            raise ConfigError(f"{where}: a {what} given twice")
+    return axes
 
 
 @dataclass(frozen=True)
@@ -46,6 +67,7 @@ class DriveConfig:
     text: str
     source: str
     run: RunTables               # [controller] params and [limits] of a run
+    axes: tuple[AxisSpec, ...] = ()  # [[axis]]: several axes on the bus (none: one)
 
     @property
     def bus_url(self) -> str:
@@ -84,9 +106,26 @@ def parse_drive_config(data: Mapping[str, Any], source: str, text: str = "") -> 
     emulator = _emulator(root.table("emulator", required=True))
     safety = _safety(root.table("safety", required=True))
     run = read_run_tables(root)
+    axes = _axes(root)
     root.done()
     return DriveConfig(master=master, emulator=emulator, bus=bus, safety=safety, data=data,
-                       text=text, source=source, run=run)
+                       text=text, source=source, run=run, axes=axes)
+
+
+def _axes(root: Table) -> tuple[AxisSpec, ...]:
+    """``[[axis]]`` tables: ``name`` and ``node`` each."""
+    tables = root.raw("axis", [])
+    if not isinstance(tables, list):
+        raise root.error("axis", "must be an array of tables ([[axis]])")
+    axes = []
+    for i, data in enumerate(tables):
+        table = Table(data, root.source, f"axis[{i}]")
+        name = table.string("name")
+        if not AXIS_NAME.fullmatch(name):
+            raise table.error("name", f"must be a lower-case name (a-z, 0-9, _), got {name!r}")
+        axes.append(AxisSpec(name, table.integer("node", at_least=1, at_most=127)))
+        table.done()
+    return check_axes(tuple(axes), f"{root.source}: [[axis]]") if axes else ()
 
 
 def _safety(s: Table) -> ServoSafety:

@@ -114,6 +114,7 @@ class ServoRunOptions:
     quiet: bool = False              # no progress line on the terminal
     can_log: str | None = None       # every CAN frame to this file (python-can's formats)
     reset_fault: bool = False        # clear a drive FAULT (CiA 402 fault reset) before enabling
+    axes: str | None = None          # NAME=NODE,...: several axes (else drive.toml's [[axis]])
 
     def __post_init__(self) -> None:
         if not (isinstance(self.umax, (int, float)) and math.isfinite(self.umax)
@@ -201,10 +202,17 @@ def make_controller(options: ServoRunOptions, scenario: Scenario, session: Any =
 
 def run_servo(options: ServoRunOptions,
               on_started: Callable[[CanDriveMaster], None] | None = None) -> RunResult:
-    """Run one servo session; ``on_started(master)`` is called once the drive is enabled.
+    """Run one servo session; ``on_started(master)`` is called once the drive is enabled
+    (one axis). Several axes (``options.axes``, else drive.toml's ``[[axis]]``) run as
+    :class:`~hil.servo.axes_run.AxesExperiment`.
 
     Drive errors (fault, link lost) stop the loop; the drive is put in its safe state, the
     session file is finished with the KPIs so far, and the error is raised with its path."""
+    if options.axes or drive_settings(options).axes:
+        from hil.servo.axes_run import AxesExperiment, parse_axes
+
+        axes = parse_axes(options.axes) if options.axes else drive_settings(options).axes
+        return run_experiment(AxesExperiment(options, axes))
     return run_experiment(ServoExperiment(options, on_started))
 
 
