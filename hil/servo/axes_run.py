@@ -107,7 +107,13 @@ class BusCycle(Task):
 
 
 class AxesExperiment(ServoExperiment):
-    """``hil servo run --axes``: the single-axis run's plan, several drives and tasks."""
+    """``hil servo run --axes``: the single-axis run's plan, several drives and tasks. A
+    ``--limit`` names a KPI of an axis (``axes.x.max_error_deg``), of the path
+    (``contour.max_contour_error_deg``) or of the run; a per-tick signal limit holds on every
+    axis."""
+
+    kpi_names = ("axes", "contour", "ticks", "sync_cycles", "wall_s", "realtime_factor",
+                 "faults")
 
     def __init__(self, options: ServoRunOptions, axes: tuple[AxisSpec, ...]) -> None:
         super().__init__(options)
@@ -140,8 +146,6 @@ class AxesExperiment(ServoExperiment):
             if dot and axis not in names:
                 raise UsageError(f"--param {key}: no axis {axis!r} (the axes: "
                                  f"{', '.join(names)}); NAME.KEY=VALUE sets KEY for axis NAME")
-        if options.limits:
-            raise UsageError("--limit is not available with --axes yet (the KPIs are per axis)")
         if options.can_log:
             raise UsageError("--can-log is not available with --axes yet")
         plan = super().plan()

@@ -219,6 +219,8 @@ def run_servo(options: ServoRunOptions,
 class ServoExperiment(Experiment):
     """``hil servo run`` as the run pipeline drives it."""
 
+    kpi_names: tuple[str, ...] = KPI_NAMES  # what a --limit may name
+
     def __init__(self, options: ServoRunOptions,
                  on_started: Callable[[CanDriveMaster], None] | None = None) -> None:
         self.options = options
@@ -239,7 +241,7 @@ class ServoExperiment(Experiment):
         self.factory, _ = controller_factory(options.controller, self.scenario.reference,
                                              self.params, method="step", application="servo")
         kpi_limits, signal_limits = split_limits([*drive.run.limits, *options.limits],
-                                                 SIGNALS, KPI_NAMES)
+                                                 SIGNALS, self.kpi_names)
         self.watch = SignalWatch(signal_limits)
         self.out = options.out or default_session_path(
             "servo", controller_short_name(options.label))

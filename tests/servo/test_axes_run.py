@@ -116,6 +116,18 @@ def test_a_safety_stop_on_one_axis_stops_every_axis(tmp_path):
                if m["kind"] == "drive.safe_stop")
 
 
+def test_limits_name_an_axis_or_the_path(tmp_path):
+    run = ("servo", "run", "--axes", "x=1,y=2", "--controller", "mpc", "--reference",
+           "circle:radius=2,feed=20", "--duration", "0.3", "--out", "lim.mcap", "--json")
+    holds = hil(tmp_path, *run, "--limit", "contour.max_contour_error_deg<=0.05",
+                "--limit", "abs_error_deg<=0.2")  # a per-tick signal: on every axis
+    assert holds.returncode == 0, holds.stderr
+    assert json.loads(holds.stdout)["passed"] is True
+    violated = hil(tmp_path, *run, "--limit", "axes.y.max_error_deg<=0.0001")
+    assert violated.returncode == 1
+    assert "limit violated: axes.y.max_error_deg<=0.0001" in violated.stderr
+
+
 def test_axes_from_the_drive_config(tmp_path):
     config = tmp_path / "axes.toml"
     config.write_text('[[axis]]\nname = "x"\nnode = 1\n\n[[axis]]\nname = "c"\nnode = 5\n')
@@ -142,7 +154,7 @@ def test_axes_from_the_drive_config(tmp_path):
     (["--axes", "X=1,y=200"], "is not NAME=NODE"),
     (["--axes", "x=1,y=2,z=3", "--reference", "circle:radius=2"], "a circle needs two axes"),
     (["--axes", "x=1,y=2", "--reference", "circle:radius=-1"], "radius must be a positive"),
-    (["--axes", "x=1,y=2", "--limit", "max_error_deg<=1"], "--limit is not available"),
+    (["--axes", "x=1,y=2", "--limit", "max_error_deg<=1"], "KPIs: axes, contour"),
     (["--axes", "x=1,y=2", "--realtime"], "--realtime --axes needs a bus"),
 ])
 def test_bad_axes_are_one_line_before_anything_runs(tmp_path, args, problem):
