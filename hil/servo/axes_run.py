@@ -29,8 +29,9 @@ from drivers.canopen import CanDriveMaster, CanLink, open_can_bus, parse_can_url
 from drivers.canopen.axes import AxisBus, AxisGroup
 from emulators.drive.runners import LockstepDrive
 from hil.core.clock import Clock
-from hil.core.errors import HilError, SafetyStopError, UsageError
+from hil.core.errors import ControllerError, HilError, SafetyStopError, UsageError
 from hil.core.loop import Task
+from hil.core.plugins import build_controller
 from hil.core.run import EventBuffer, RunPlan, controller_budget
 from hil.core.session import Session
 from hil.servo.config import AXIS_NAME, EMULATED, AxisSpec, check_axes
@@ -64,6 +65,31 @@ def parse_axes(text: str) -> tuple[AxisSpec, ...]:
                              "a CANopen node id 1..127), e.g. --axes x=1,y=2")
         axes.append(AxisSpec(name, int(node)))
     return check_axes(tuple(axes), f"--axes {text!r}")
+
+
+class AxisShare:
+    """One axis' view of a multi-axis controller (``multi_axis = True``, built as
+    ``Class(references, params)``, ``step(positions_deg: np.ndarray, t_s) -> currents_mA``):
+    the first axis stepped in a tick steps the controller with every axis' position (all
+    read by then), the others take their share of that tick's currents."""
+
+    def __init__(self, whole: Any, index: int, tasks: list[ServoTask], label: str) -> None:
+        self.whole, self.index, self.tasks, self.label = whole, index, tasks, label
+        self._t_s: float | None = None
+        self._currents = np.zeros(0)
+
+    def step(self, position_deg: float, t_s: float) -> float:
+        shared = self.tasks[0].controller
+        assert isinstance(shared, AxisShare)
+        if shared._t_s != t_s:  # the first axis of this tick steps the controller
+            positions = np.array([task.feedback.position_deg % 360.0 for task in self.tasks])
+            currents = np.asarray(self.whole.step(positions, t_s), dtype=float)
+            if currents.shape != positions.shape:
+                raise ControllerError(
+                    f"controller {self.label!r}: a multi-axis step() must return one current "
+                    f"per axis ({positions.size}), got shape {currents.shape}")
+            shared._t_s, shared._currents = t_s, currents
+        return float(shared._currents[self.index])
 
 
 class BusCycle(Task):
@@ -182,8 +208,16 @@ class AxesExperiment(ServoExperiment):
             raise
 
     def build_controller(self, session: Session) -> None:
-        """One controller per axis, with that axis' reference and parameters: the common
-        ones, and ``NAME.KEY`` laid over them for axis NAME."""
+        """One controller per axis, with that axis' reference and parameters (the common
+        ones, and ``NAME.KEY`` laid over them for axis NAME); a multi-axis controller
+        (``multi_axis = True``) once, with every axis' reference, shared by the axes."""
+        if getattr(self.factory, "multi_axis", False):
+            references = [scenario.reference for scenario in self.scenarios]
+            whole = build_controller(self.factory, self.options.label, references,
+                                     dict(self.params), method="step", application="servo")
+            self.controllers: list[Any] = [AxisShare(whole, i, self.tasks, self.options.label)
+                                           for i in range(len(self.axes))]
+            return
         self.controllers = [
             make_controller(self.options, scenario, session, self.axis_params(axis.name),
                             self.factory)

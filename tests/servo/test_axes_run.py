@@ -186,3 +186,40 @@ def test_two_axes_in_real_time_over_socketcand_to_the_emulator_process(tmp_path)
     cycles = {name: [m["cycle"] for _, m in data.topic(f"/axis/{name}/feedback")]
               for name in ("x", "y")}
     assert cycles["x"] == cycles["y"] and len(cycles["x"]) == kpis["ticks"]
+
+
+class CoupledPd:
+    """A multi-axis controller: every axis' position at once, every axis' current at once."""
+
+    multi_axis = True
+    calls = 0
+
+    def __init__(self, references, params):
+        self.references = references
+        self.kp = float(params.get("kp", 300.0))
+
+    def step(self, positions_deg, t_s):
+        CoupledPd.calls += 1
+        assert positions_deg.shape == (len(self.references),)
+        wanted = np.array([float(r.position(t_s)) for r in self.references])
+        return self.kp * ((wanted - positions_deg + 180.0) % 360.0 - 180.0)
+
+
+class WrongShape(CoupledPd):
+    def step(self, positions_deg, t_s):
+        return [0.0]
+
+
+def test_a_multi_axis_controller_is_stepped_once_a_tick_with_every_axis(tmp_path):
+    from hil import api
+    from hil.core.errors import ControllerError
+
+    CoupledPd.calls = 0
+    kpis = api.run_servo(CoupledPd, {"kp": 300}, axes="x=1,y=2",
+                         reference="circle:radius=2,feed=20", duration_s=0.3,
+                         out=str(tmp_path / "coupled.mcap"))
+    assert CoupledPd.calls == kpis["ticks"] == 600  # once a tick, not once per axis
+    assert kpis["stop_reason"] == "completed" and kpis["contour"]["max_contour_error_deg"] < 2.0
+    with pytest.raises(ControllerError, match=r"one current per axis \(2\), got shape \(1,\)"):
+        api.run_servo(WrongShape, axes="x=1,y=2", duration_s=0.01,
+                      out=str(tmp_path / "wrong.mcap"))
