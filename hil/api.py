@@ -72,9 +72,10 @@ def run_servo(controller: Controller, params: Mapping[str, Any] | None = None, *
               **options: Any) -> dict[str, Any]:
     """One closed-loop servo run (``hil servo run``), lockstep unless ``realtime=True``;
     ``options`` are the other fields of :class:`hil.servo.run.ServoRunOptions` (``out``,
-    ``umax``, ``settle_s``, ``drive_config``, ``controller_budget_s``...)."""
+    ``umax``, ``settle_s``, ``drive_config``, ``controller_budget_s``, ``axes="x=1,y=2"``
+    for several axes...)."""
+    from hil.servo.axes_run import run_any as run
     from hil.servo.run import ServoRunOptions
-    from hil.servo.run import run_servo as run
 
     _check_options(options, {f.name for f in fields(ServoRunOptions)}, "run_servo")
     return run(ServoRunOptions(controller=controller, params=dict(params or {}), drive=drive,

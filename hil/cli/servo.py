@@ -147,10 +147,10 @@ def run_options(args: argparse.Namespace) -> ServoRunOptions:
 
 
 def run_servo_command(args: argparse.Namespace) -> int:
-    from hil.servo.run import run_servo
+    from hil.servo.axes_run import run_any
 
     options = run_options(args)
-    kpis = run_servo(options).kpis
+    kpis = run_any(options).kpis
     several = "axes" in kpis
     print(json_text(kpis) if args.json else
           format_axes_run(options, kpis) if several else format_run(options, kpis))

@@ -25,17 +25,26 @@ import numpy as np
 
 from controllers.servo.model import SAMPLE_PERIOD_S
 from controllers.servo.references import CircleAxis, Scenario, contour_error, parse_circle
+from drivers.can_bus_time import plan_bus
 from drivers.canopen import CanDriveMaster, CanLink, open_can_bus, parse_can_url
 from drivers.canopen.axes import AxisBus, AxisGroup
+from drivers.canopen.master import axis_traffic
 from emulators.drive.runners import LockstepDrive
 from hil.core.clock import Clock
 from hil.core.errors import ControllerError, HilError, SafetyStopError, UsageError
 from hil.core.loop import Task
 from hil.core.plugins import build_controller
-from hil.core.run import EventBuffer, RunPlan, controller_budget
+from hil.core.run import EventBuffer, RunPlan, RunResult, controller_budget, run_experiment
 from hil.core.session import Session
 from hil.servo.config import AXIS_NAME, EMULATED, AxisSpec, check_axes
-from hil.servo.run import STEP_BUDGET_S, ServoExperiment, ServoRunOptions, make_controller
+from hil.servo.run import (
+    STEP_BUDGET_S,
+    ServoExperiment,
+    ServoRunOptions,
+    drive_settings,
+    make_controller,
+    run_servo,
+)
 from hil.servo.safety import SafetyMonitor
 from hil.servo.task import ServoTask
 from hil.servo.tracking import reference_amplitude
@@ -175,7 +184,15 @@ class AxesExperiment(ServoExperiment):
         if options.can_log:
             raise UsageError("--can-log is not available with --axes yet")
         plan = super().plan()
-        if options.realtime and (options.drive or self.drive.bus_url) == EMULATED:
+        url = options.drive or self.drive.bus_url
+        master = self.drive.master
+        self.bus_plan = plan_bus(master.bitrate, master.cycle_period_s,
+                                 [axis_traffic(master, axis.name) for axis in self.axes],
+                                 master_heartbeat_s=master.heartbeat_period_ms / 1e3)
+        if not self.bus_plan.fits and url != EMULATED:  # the in-process bus has no bitrate
+            raise UsageError(f"the bus plan does not fit ({url}): {self.bus_plan.problem()} "
+                             "(see 'hil drive plan')")
+        if options.realtime and url == EMULATED:
             raise UsageError("--realtime --axes needs a bus: start the emulated drives with "
                              "`hil emulate drive --socketcand 127.0.0.1:0 --node 1 --node 2` "
                              "and pass its URL as --drive")
@@ -240,6 +257,10 @@ class AxesExperiment(ServoExperiment):
             master.enable()
         group.bus.cycle_together(True)
         session.add_component(group)
+        session.recorder.metadata("bus_plan", {"json": json.dumps(self.bus_plan.summary())})
+        if not self.bus_plan.fits:
+            session.event("bus.plan", f"on a real bus this would not fit: "
+                          f"{self.bus_plan.problem()}", level="warning", source="bus")
         budget = controller_budget(options.controller_budget_s, options.realtime,
                                    STEP_BUDGET_S)
         for axis, master, controller, scenario in zip(self.axes, group.masters,
@@ -298,3 +319,13 @@ class AxesExperiment(ServoExperiment):
                           "late_frames": sum(a["late_frames"] for a in axes.values())}
         kpis["disturbed"] = bool(stale or emcy)
         return kpis
+
+
+def run_any(options: ServoRunOptions) -> RunResult:
+    """A servo session on one axis (:func:`hil.servo.run.run_servo`), or on several when
+    ``options.axes`` or the drive config's ``[[axis]]`` name them."""
+    configured = drive_settings(options).axes
+    if not options.axes and not configured:
+        return run_servo(options)
+    axes = parse_axes(options.axes) if options.axes else configured
+    return run_experiment(AxesExperiment(options, axes))

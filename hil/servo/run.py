@@ -202,17 +202,16 @@ def make_controller(options: ServoRunOptions, scenario: Scenario, session: Any =
 
 def run_servo(options: ServoRunOptions,
               on_started: Callable[[CanDriveMaster], None] | None = None) -> RunResult:
-    """Run one servo session; ``on_started(master)`` is called once the drive is enabled
-    (one axis). Several axes (``options.axes``, else drive.toml's ``[[axis]]``) run as
-    :class:`~hil.servo.axes_run.AxesExperiment`.
+    """Run one servo session on one axis; ``on_started(master)`` is called once the drive is
+    enabled. (:func:`hil.servo.axes_run.run_any`, what ``hil servo run`` and
+    :func:`hil.api.run_servo` call, runs several axes too.)
 
     Drive errors (fault, link lost) stop the loop; the drive is put in its safe state, the
     session file is finished with the KPIs so far, and the error is raised with its path."""
     if options.axes or drive_settings(options).axes:
-        from hil.servo.axes_run import AxesExperiment, parse_axes
-
-        axes = parse_axes(options.axes) if options.axes else drive_settings(options).axes
-        return run_experiment(AxesExperiment(options, axes))
+        raise UsageError("several axes (--axes or [[axis]]) run through "
+                         "hil.servo.axes_run.run_any (as hil servo run and hil.api.run_servo "
+                         "do), not run_servo")
     return run_experiment(ServoExperiment(options, on_started))
 
 

@@ -47,6 +47,11 @@ def test_a_circular_test_on_two_axes_reports_each_axis_and_the_contour_error(tmp
                                                                               strict=True)])
     radius = np.hypot(points[200:, 0] + 2.0, points[200:, 1])
     assert np.abs(radius - 2.0).max() < 0.05
+    # two axes do not fit 2 kHz on a real 1 Mbit/s bus: said once (the emulated one has no
+    # bitrate), with the plan in the metadata
+    warnings = [m for _, m in data.topic("/events") if m["kind"] == "bus.plan"]
+    assert len(warnings) == 1 and "2 axes need" in warnings[0]["message"]
+    assert json.loads(data.metadata["bus_plan"]["json"])["axes"] == 2
     contour_topic = [m for _, m in data.topic("/path/contour")]
     assert len(contour_topic) == 1000
     assert max(abs(m["contour_error_deg"]) for m in contour_topic[200:]) == \
@@ -156,6 +161,7 @@ def test_axes_from_the_drive_config(tmp_path):
     (["--axes", "x=1,y=2", "--reference", "circle:radius=-1"], "radius must be a positive"),
     (["--axes", "x=1,y=2", "--limit", "max_error_deg<=1"], "KPIs: axes, contour"),
     (["--axes", "x=1,y=2", "--realtime"], "--realtime --axes needs a bus"),
+    (["--axes", "x=1,y=2", "--drive", "virtual://plan"], "the bus plan does not fit"),
 ])
 def test_bad_axes_are_one_line_before_anything_runs(tmp_path, args, problem):
     done = hil(tmp_path, "servo", "run", "--controller", "pid", "--out", "bad.mcap", *args)
@@ -168,12 +174,14 @@ def test_two_axes_in_real_time_over_socketcand_to_the_emulator_process(tmp_path)
     """The emulated drives in a process of their own (hil emulate drive --node 1 --node 2),
     2 kHz in real time: both axes recorded tick by tick on the same SYNCs. Two emulated drives
     in Python on a shared 2-core machine miss many 400 us deadlines (two axes do not fit
-    2 kHz on a real 1 Mbit/s bus either): the link and the stale-share limit are made
-    patient, so what is checked is the plumbing, and stale feedback makes it exit 3."""
+    2 kHz on a real 1 Mbit/s bus either: the plan is made for 2 Mbit/s, which a TCP link to
+    an emulator has): the link and the stale-share limit are made patient, so what is checked
+    is the plumbing, and stale feedback makes it exit 3."""
     from hil import api
 
     config = tmp_path / "patient.toml"
-    config.write_text("[master]\nstale_cycles = 100000\n[safety]\nenabled = false\n")
+    config.write_text("[bus]\nbitrate = 2000000\n[master]\nstale_cycles = 100000\n"
+                      "[safety]\nenabled = false\n")
     with api.start_drive_emulator(node=[1, 2]) as drive:
         done = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller", "pid",
                    "--reference", "circle:radius=2,feed=20", "--duration", "0.5",
