@@ -15,15 +15,10 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/hil demo
 
-# hil's own modules compiled once: every process the suite starts (hil commands, emulators,
-# writers) would otherwise compile them again where PYTHONDONTWRITEBYTECODE is set
-BYTECODE := $(BIN)/python -m compileall -q -j 0 hil drivers emulators controllers > /dev/null
-
 # the whole suite: everything but the 1-2 kHz wall-clock tests on both cores, then those alone
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/mypy
-	$(BYTECODE)
 	$(BIN)/pytest -q -n 2 --dist worksteal -m "not realtime"
 	$(BIN)/pytest -q -m realtime
 
@@ -31,7 +26,6 @@ test: $(STAMP)
 check: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/mypy
-	$(BYTECODE)
 	$(BIN)/pytest -q -n 2 -m "not slow and not realtime" tests
 
 bench: $(STAMP)

@@ -95,7 +95,7 @@ def recorder_cost(tmp: Path, ticks: int, rows: bool) -> float:
         rec.flush_if_due()
     elapsed = time.perf_counter() - begin
     stats = rec.close()
-    assert not stats.messages_dropped and stats.messages_written == 3 * ticks + 0, stats
+    assert not stats.messages_dropped and stats.messages_written == 3 * ticks, stats
     return 1e6 * elapsed / ticks
 
 

@@ -446,12 +446,9 @@ class TrajectoryMpc:
         starts = np.arange(REFERENCE_BLOCK)
         self._wraps = ends[starts + ht - 1] > ends[starts]
 
-    def reference_window(self, t: float, near: float) -> np.ndarray:
-        """r(1..H_t|k) as continuous angles, anchored within ±180 deg of ``near`` at first."""
-        return self._window_into(np.empty(self.config.ht), t, near)
-
-    def _window_into(self, window: np.ndarray, t: float, near: float) -> np.ndarray:
-        """:meth:`reference_window` written into ``window`` (the tick's θ, no new array)."""
+    def reference_window(self, window: np.ndarray, t: float, near: float) -> np.ndarray:
+        """r(1..H_t|k) as continuous angles, anchored within ±180 deg of ``near`` at first,
+        written into ``window`` (the tick's θ: no new array)."""
         raw, wraps = self._reference_ahead(t)
         raw0 = float(raw[0])
         first = self._ref_anchor.update(raw0, near=near)
@@ -473,7 +470,7 @@ class TrajectoryMpc:
         theta = self._theta
         self.kalman.update(y, out=theta[:n_x])
         theta[n_x] = self._u
-        self._window_into(theta[n_x + 1:], t_s, near=y)
+        self.reference_window(theta[n_x + 1:], t_s, near=y)
         self._dU = self.solver.solve(theta)
         u = min(max(self._u + float(self._dU[0]), self.config.u_min), self.config.u_max)
         self.kalman.predict(u - self._u)

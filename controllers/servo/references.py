@@ -177,10 +177,11 @@ class CircleAxis:
         return self.radius * np.sin(w * t)
 
 
-def contour_error(x_deg: np.ndarray, y_deg: np.ndarray, radius: float) -> np.ndarray:
+def contour_error(x_deg: float | np.ndarray, y_deg: float | np.ndarray,
+                  radius: float) -> float | np.ndarray:
     """Distance of the points (x, y) from the circle of :class:`CircleAxis` (signed: > 0
     outside), the error a circular test (ISO 230-4) measures."""
-    return np.hypot(np.asarray(x_deg) + radius, np.asarray(y_deg)) - radius
+    return np.hypot(np.add(x_deg, radius), y_deg) - radius
 
 
 def parse_circle(spec: str) -> tuple[float, float] | None:

@@ -43,16 +43,24 @@ class NodeLink:
     def __init__(self, bus: AxisBus, node_id: int) -> None:
         self._bus = bus
         self.node_id = node_id
-        self.watched_ids: frozenset[int] = frozenset()
+        self._watched: frozenset[int] = frozenset()
         self.inbox: deque[Frame] = deque()
+
+    @property
+    def watched_ids(self) -> frozenset[int]:
+        return self._watched
+
+    @watched_ids.setter
+    def watched_ids(self, ids: frozenset[int]) -> None:
+        """The master's own ids (set once, when it is built): the bus watches them all."""
+        self._watched = ids
+        self._bus.link.watched_ids = frozenset().union(*(n.watched_ids for n in
+                                                         self._bus.nodes if n is not self),
+                                                       ids)
 
     @property
     def name(self) -> str:
         return self._bus.link.name
-
-    @property
-    def echoes(self) -> bool:
-        return self._bus.link.echoes
 
     def send(self, frames: list[Frame]) -> None:
         self._bus.send(self, frames)
@@ -85,7 +93,7 @@ class AxisBus:
         self._heartbeat_id = HEARTBEAT_BASE + master_heartbeat_id
         self.together = False
         self._held: list[Frame] = []
-        self._sync: list[Frame] = []
+        self._sync: dict[int, Frame] = {}  # this cycle's SYNC and master heartbeat (the first)
         self._open = len(self.nodes)
         self.cycles = 0  # cycles put on the bus together (one SYNC each)
 
@@ -97,7 +105,7 @@ class AxisBus:
         still waiting then answer the set-up's SYNCs (a drive enabled while the next one was
         set up), no cycle's: they are dropped."""
         self.together = on
-        self._held, self._sync = [], []
+        self._held, self._sync = [], {}
         if on:
             while (frame := self.link.recv(0)) is not None:
                 self._route(frame)
@@ -108,31 +116,22 @@ class AxisBus:
     # -- sending ------------------------------------------------------------------------------
     def send(self, node: NodeLink, frames: list[Frame]) -> None:
         if not self.together:
-            self._watch()
             self.link.send(frames)
             return
         for frame in frames:
             if frame[0] == SYNC_COB_ID or frame[0] == self._heartbeat_id:
-                if not any(held[0] == frame[0] for held in self._sync):
-                    self._sync.append(frame)
+                self._sync.setdefault(frame[0], frame)
             else:
                 self._held.append(frame)
 
     def end_cycle(self) -> None:
         """Every frame the masters sent for this cycle, in their order, then one SYNC (and
         one heartbeat of the master, when one was due), in one transmission."""
-        out = self._held + sorted(self._sync, key=lambda frame: frame[0] != SYNC_COB_ID)
-        self._held, self._sync = [], []
+        out = self._held + sorted(self._sync.values(), key=lambda f: f[0] != SYNC_COB_ID)
+        self._held, self._sync = [], {}
         if out:
-            self._watch()
             self.link.send(out)
             self.cycles += 1
-
-    def _watch(self) -> None:
-        """The frames only a master sends are watched for echoes on buses that echo."""
-        watched = frozenset().union(*(node.watched_ids for node in self.nodes))
-        if watched != self.link.watched_ids:
-            self.link.watched_ids = watched
 
     # -- receiving ----------------------------------------------------------------------------
     def recv(self, node: NodeLink, timeout: float | None) -> Frame | None:

@@ -54,17 +54,22 @@ def encode_json(message: Any) -> bytes:
 
 @dataclasses.dataclass(frozen=True)
 class TopicEncoding:
-    """How a topic's messages become bytes: as dicts, or as packed rows (the values of the
-    schema's properties in order, None where a message leaves a field out)."""
+    """How a topic's messages become bytes: as dicts (``encode``), or as packed rows (the
+    values of the schema's properties in order, None where a message leaves a field out):
+    CDR encodes a row as it is (``cdr_row``), JSON the dict the row stands for."""
 
     names: tuple[str, ...]
     encode: Callable[[Any], bytes]
-    encode_row: Callable[[tuple[Any, ...]], bytes]
+    cdr_row: Callable[[tuple[Any, ...]], bytes] | None = None
 
     def row_message(self, row: tuple[Any, ...]) -> dict[str, Any]:
         """The dict a row stands for."""
         return {name: value for name, value in zip(self.names, row, strict=True)
                 if value is not None}
+
+    def encode_row(self, row: tuple[Any, ...]) -> bytes:
+        return self.cdr_row(row) if self.cdr_row is not None else \
+            self.encode(self.row_message(row))
 
 
 def channel_for(name: str, schema: dict[str, Any], encoding: str
@@ -78,12 +83,7 @@ def channel_for(name: str, schema: dict[str, Any], encoding: str
                            else f"hil/msg/{title}", "ros2msg", ros2msg_text(fields).encode())
         encoder = CdrEncoder(fields)
         return spec, TopicEncoding(names, encoder.encode, encoder.encode_row)
-
-    def json_row(row: tuple[Any, ...]) -> bytes:
-        return encode_json(as_json.row_message(row))
-
-    as_json = TopicEncoding(names, encode_json, json_row)
-    return json_schema_channel(name, schema), as_json
+    return json_schema_channel(name, schema), TopicEncoding(names, encode_json)
 
 
 class SessionWriter:

@@ -76,29 +76,36 @@ def parse_axes(text: str) -> tuple[AxisSpec, ...]:
     return check_axes(tuple(axes), f"--axes {text!r}")
 
 
-class AxisShare:
-    """One axis' view of a multi-axis controller (``multi_axis = True``, built as
-    ``Class(references, params)``, ``step(positions_deg: np.ndarray, t_s) -> currents_mA``):
-    the first axis stepped in a tick steps the controller with every axis' position (all
-    read by then), the others take their share of that tick's currents."""
+class SharedStep:
+    """A multi-axis controller (``multi_axis = True``, built as ``Class(references,
+    params)``, ``step(positions_deg: np.ndarray, t_s) -> currents_mA``) stepped once a tick
+    with every axis' position (all read by then), its currents kept for the axes' tasks."""
 
-    def __init__(self, whole: Any, index: int, tasks: list[ServoTask], label: str) -> None:
-        self.whole, self.index, self.tasks, self.label = whole, index, tasks, label
+    def __init__(self, whole: Any, tasks: list[ServoTask], label: str) -> None:
+        self.whole, self.tasks, self.label = whole, tasks, label
         self._t_s: float | None = None
         self._currents = np.zeros(0)
 
-    def step(self, position_deg: float, t_s: float) -> float:
-        shared = self.tasks[0].controller
-        assert isinstance(shared, AxisShare)
-        if shared._t_s != t_s:  # the first axis of this tick steps the controller
+    def currents(self, t_s: float) -> np.ndarray:
+        if self._t_s != t_s:  # the first axis of this tick steps the controller
             positions = np.array([task.feedback.position_deg % 360.0 for task in self.tasks])
             currents = np.asarray(self.whole.step(positions, t_s), dtype=float)
             if currents.shape != positions.shape:
                 raise ControllerError(
                     f"controller {self.label!r}: a multi-axis step() must return one current "
                     f"per axis ({positions.size}), got shape {currents.shape}")
-            shared._t_s, shared._currents = t_s, currents
-        return float(shared._currents[self.index])
+            self._t_s, self._currents = t_s, currents
+        return self._currents
+
+
+class AxisShare:
+    """One axis' view of a :class:`SharedStep`: the servo contract for its task."""
+
+    def __init__(self, shared: SharedStep, index: int) -> None:
+        self.shared, self.index = shared, index
+
+    def step(self, position_deg: float, t_s: float) -> float:
+        return float(self.shared.currents(t_s)[self.index])
 
 
 class BusCycle(Task):
@@ -126,7 +133,7 @@ class BusCycle(Task):
             return
         x_task, y_task = self.tasks[0], self.tasks[1]
         x, y = x_task.feedback.position_deg, y_task.feedback.position_deg
-        error = float(contour_error(np.array(x), np.array(y), self.radius))
+        error = float(contour_error(x, y, self.radius))
         t_s = x_task.t_s
         self.topic.log(t_ns, (t_s, x, y, error))
         if t_s >= self.settle_s - 1e-12:
@@ -232,8 +239,8 @@ class AxesExperiment(ServoExperiment):
             references = [scenario.reference for scenario in self.scenarios]
             whole = build_controller(self.factory, self.options.label, references,
                                      dict(self.params), method="step", application="servo")
-            self.controllers: list[Any] = [AxisShare(whole, i, self.tasks, self.options.label)
-                                           for i in range(len(self.axes))]
+            shared = SharedStep(whole, self.tasks, self.options.label)
+            self.controllers: list[Any] = [AxisShare(shared, i) for i in range(len(self.axes))]
             return
         self.controllers = [
             make_controller(self.options, scenario, session, self.axis_params(axis.name),
