@@ -136,20 +136,25 @@ class AxisBus:
     # -- receiving ----------------------------------------------------------------------------
     def recv(self, node: NodeLink, timeout: float | None) -> Frame | None:
         """``node``'s next frame, reading the bus (and routing what is for others) for at most
-        ``timeout`` seconds (0: only what is already here)."""
+        ``timeout`` seconds (0: only what is already here). Frames already received are all
+        routed before the time-out counts: another drive's frame ahead of this one's never
+        makes this one late."""
         if node.inbox:
             return node.inbox.popleft()
         deadline = None if timeout is None else time.monotonic() + timeout
+        link = self.link
         while True:
-            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-            frame = self.link.recv(remaining)
+            frame = link.recv(0)
             if frame is None:
-                return None
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    return None
+                frame = link.recv(remaining)
+                if frame is None:
+                    return None
             self._route(frame)
             if node.inbox:
                 return node.inbox.popleft()
-            if deadline is not None and time.monotonic() >= deadline:
-                return None
 
     def _route(self, frame: Frame) -> None:
         can_id = frame[0]

@@ -136,3 +136,20 @@ def test_two_independent_slaves_share_one_sync_and_answer_their_own_master():
     assert counts == [200, 200]  # one SYNC per cycle, heard by both
     assert [f.statusword & 0x6F for f in feedbacks] == [0x27, 0x27]  # both OPERATION ENABLED
     assert states == [SWITCH_ON_DISABLED, SWITCH_ON_DISABLED]
+
+
+def test_a_frame_already_received_is_found_behind_another_drives_frames():
+    """The bus routes every frame already here before a time-out counts: a master polling
+    (time-out 0) finds its TPDO behind another drive's heartbeat, not a stale cycle (a run
+    under load once counted its stop's answers late this way)."""
+    emulator = LockstepDrive(node_ids=(1, 2))
+    bus = AxisBus(CanLink(emulator.master_bus), (1, 2))
+    while emulator.master_bus.recv_frame() is not None:
+        pass  # the boot-up messages
+    node_bus = emulator.attach_bus()
+    node_bus.send_frames([(0x702, b"\x05"), (0x282, bytes(6)), (0x181, b"\x37\x02\0\0\0\0")])
+    assert bus.recv(bus.node_link(1), 0.0) == (0x181, b"\x37\x02\0\0\0\0")
+    assert bus.recv(bus.node_link(2), 0.0) == (0x702, b"\x05")  # routed on the way
+    assert bus.recv(bus.node_link(1), 0.0) is None  # nothing else is node 1's
+    node_bus.shutdown()
+    emulator.close()
