@@ -134,10 +134,12 @@ def test_the_command_line_starts_without_the_numerical_stack():
 
 def test_runs_that_build_no_estimator_import_no_scipy_stats():
     """A run's modules import filterpy and scipy.signal (each pulls in scipy.stats, about a
-    second of every process start) only when a controller needs them: a PID servo run or a
-    baseline bench run does not wait for them."""
-    code = ("import sys, hil.servo.run, hil.bench.run; print(sorted(k for k in ('filterpy', "
-            "'scipy.stats', 'scipy.signal', 'cvxpy') if k in sys.modules))")
+    second of every process start), scipy.linalg, HiGHS and daqp (half a second together)
+    only when a controller needs them: a PID servo run or a baseline bench run does not wait
+    for them."""
+    code = ("import sys, hil.servo.run, hil.servo.axes_run, hil.bench.run; print(sorted(k for k "
+            "in ('filterpy', 'scipy.stats', 'scipy.signal', 'scipy.linalg', 'highspy', 'daqp', "
+            "'cvxpy') if k in sys.modules))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=60, check=True)
     assert done.stdout.strip() == "[]"

@@ -63,6 +63,7 @@ import numpy as np
 
 from controllers.base import BenchObservation
 from controllers.bench.bc import hysteresis_rule
+from controllers.bench.eec_choices import SOLVERS, TERMINALS
 from controllers.bench.eec_dp import DeviceGraph, ScheduleDP
 from controllers.bench.kalman import BenchKalman, KalmanSettings
 from controllers.bench.prediction import BenchEstimate, BenchModels, HorizonPrediction
@@ -71,8 +72,6 @@ from controllers.highs import silent_highs
 
 INF = highspy.kHighsInf
 Index = TypeVar("Index", int, np.ndarray)  # one column (int) or many (array)
-TERMINALS = ("none", "hold")
-SOLVERS = ("dp", "milp")
 # HiGHS options, measured on closed-loop runs (benchmarks/eec.py): on these small models the
 # MIP presolve (probing) and the feasibility-jump heuristic cost more than they save
 SOLVER_OPTIONS: tuple[tuple[str, bool | int | float | str], ...] = (

@@ -24,7 +24,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import block_diag
 
 from controllers.base import BenchSample
 from controllers.bench.prediction import BenchEstimate, BenchModels
@@ -54,6 +53,7 @@ class BenchKalman:
         # imported here: filterpy imports scipy.stats, a second or more of every process
         # start that builds no estimator (the baseline controller, emulators, reports)
         from filterpy.kalman import KalmanFilter
+        from scipy.linalg import block_diag
 
         kf = KalmanFilter(dim_x=n_x, dim_z=1, dim_u=n_u)
         kf.F = block_diag(*[p.A for p in parts], np.eye(1))

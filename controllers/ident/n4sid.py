@@ -54,7 +54,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import linalg
 from threadpoolctl import threadpool_limits
 
 from controllers.ident.defaults import BLOCK_ROW_CANDIDATES, DEFAULT_MAX_ORDER
@@ -677,6 +676,8 @@ def _kalman_gain(
     """Steady-state Kalman gain of the innovation form (scaled units, R relative to 1)."""
     ny = C.shape[0]
     R_reg = R + _RANK_RTOL * np.eye(ny)  # noise-free data: R = 0 would make the gain undefined
+    from scipy import linalg  # here: scipy.linalg is a fifth of a second of every process start
+
     try:
         P = linalg.solve_discrete_are(A.T, C.T, Q, R_reg, s=S)
     except (np.linalg.LinAlgError, ValueError):

@@ -12,10 +12,9 @@ from __future__ import annotations
 import importlib.resources
 import os
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from controllers.bench.bc import BasicController
-from controllers.bench.eec import EEC, EECSettings
 from controllers.bench.models import DeviceModel, MachiningModel, load_linear_model
 from controllers.bench.prediction import BenchModels
 from controllers.bench.problem import BenchProblem
@@ -23,9 +22,14 @@ from hil.bench.config import EecConfig, EecTable
 from hil.bench.control import BenchContext, RecordedEEC
 from hil.core.errors import ConfigError, UsageError
 
+if TYPE_CHECKING:  # the EEC is imported when built: it brings HiGHS and scipy
+    from controllers.bench.eec import EECSettings
+
 
 def eec(params: Mapping[str, Any], context: BenchContext) -> RecordedEEC:
     """The EEC of a run, recording its estimates, plans and fallbacks."""
+    from controllers.bench.eec import EEC
+
     config = context.eec_config(params)
     problem = context.problem
     settings = eec_settings(config.eec, context.flags)
@@ -48,6 +52,8 @@ def eec_settings(table: EecTable, flags: Mapping[str, Any]) -> EECSettings:
     def pick(name: str) -> Any:
         value = flags.get(name)
         return getattr(table, name) if value is None else value
+
+    from controllers.bench.eec import EECSettings
 
     step = table.step_s
     try:

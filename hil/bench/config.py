@@ -22,7 +22,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-from controllers.bench.eec import SOLVERS, TERMINALS
+from controllers.bench.eec_choices import SOLVERS, TERMINALS
 from controllers.bench.kalman import KalmanSettings
 from controllers.bench.problem import BenchProblem, MachiningSequence, Resource, Stage
 from drivers.bench.modbus import BenchMap, BusSettings, RelaySpec, plan_reads

@@ -10,13 +10,15 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from controllers.servo.empc import ExplicitMpc
-from controllers.servo.mpc import MpcConfig, TrajectoryMpc
 from controllers.servo.pid import CascadedPid, PidConfig
 from controllers.servo.references import Reference
 from hil.core.config import Table
+
+if TYPE_CHECKING:  # the MPCs are imported when built: they bring scipy, daqp and HiGHS
+    from controllers.servo.empc import ExplicitMpc
+    from controllers.servo.mpc import MpcConfig, TrajectoryMpc
 
 
 @dataclass(frozen=True)
@@ -40,12 +42,16 @@ def _params(params: Mapping[str, Any], name: str) -> Table:
 def mpc(reference: Reference, params: Mapping[str, Any], context: ServoContext
         ) -> TrajectoryMpc:
     """The trajectory-tracking MPC (online QP)."""
+    from controllers.servo.mpc import TrajectoryMpc
+
     return TrajectoryMpc(reference, mpc_config(params, context, "mpc"))
 
 
 def empc(reference: Reference, params: Mapping[str, Any], context: ServoContext
          ) -> ExplicitMpc:
     """The explicit MPC (regions searched through a binary tree)."""
+    from controllers.servo.empc import ExplicitMpc
+
     return ExplicitMpc(reference, mpc_config(params, context, "empc"))
 
 
@@ -60,6 +66,8 @@ def pid(reference: Reference, params: Mapping[str, Any], context: ServoContext
 
 def mpc_config(params: Mapping[str, Any], context: ServoContext, name: str) -> MpcConfig:
     """The MPC's settings: the run's flags with ``params`` laid over them."""
+    from controllers.servo.mpc import MpcConfig
+
     table = _params(params, name)
     umax = table.number("umax", context.umax, above=0)
     config = MpcConfig(ht=table.integer("ht", context.ht, at_least=1),
