@@ -178,11 +178,17 @@ def _stderr_on_a_terminal(cwd, *args):
 def test_a_long_run_shows_progress_on_a_terminal_only(tmp_path):
     from tests.pymodbus_bench import short_config
 
-    # a real-time run of one 4 s machining cycle: 4 s of wall time on any machine
-    run = ("bench", "run", "--controller", "bc", "--cycles", "1", "--config",
-           str(short_config(tmp_path)), "--out", "p.mcap")
+    # a real-time run of one 2 s machining cycle (2 s of wall time on any machine): the line
+    # is rewritten every second
+    config = short_config(tmp_path)
+    config.write_text(config.read_text().replace("period_s = 4.0", "period_s = 2.0")
+                      .replace("end_s = 2.0", "end_s = 1.0")
+                      .replace("start_s = 2.0, end_s = 4.0", "start_s = 1.0, end_s = 2.0")
+                      + "[relays.M1]\ndwell_s = 0.5\n[relays.M2]\ndwell_s = 0.5\n")
+    run = ("bench", "run", "--controller", "bc", "--cycles", "1", "--config", str(config),
+           "--out", "p.mcap")
     shown = _stderr_on_a_terminal(tmp_path, *run, "--realtime")
-    assert "\rbench bc: " in shown and " of 4 s (" in shown and shown.endswith("\r\x1b[K")
+    assert "\rbench bc: " in shown and " of 2 s (" in shown and shown.endswith("\r\x1b[K")
     assert _stderr_on_a_terminal(tmp_path, *run, "--realtime", "--quiet") == ""
     piped = hil(tmp_path, *run)
     assert piped.returncode == 0 and piped.stderr == ""
