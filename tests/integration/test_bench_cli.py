@@ -21,10 +21,17 @@ pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
 REPO = Path(__file__).resolve().parents[2]
 
 
+# ``python -m hil`` as a shell starts it in the foreground, Ctrl-C not ignored: a suite run as
+# a background job (``make test &``) ignores SIGINT, and its children would inherit that
+AT_A_TERMINAL = ("import runpy, signal, sys; signal.signal(signal.SIGINT, "
+                 "signal.default_int_handler); sys.argv[0] = 'hil'; "
+                 "runpy.run_module('hil', run_name='__main__')")
+
+
 def hil(*args: str) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
-    return subprocess.Popen([sys.executable, "-m", "hil", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env)
+    return subprocess.Popen([sys.executable, "-c", AT_A_TERMINAL, *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
 
 
 def levels(client) -> list[float]:
