@@ -214,7 +214,8 @@ class CyclicExchange:
                 return
 
     def drain(self) -> None:
-        """Every frame already here, taken as late (before a recovery)."""
+        """Every frame already here, read now (TPDOs among them are late): before a recovery,
+        or before the drive's heartbeat is judged silent."""
         self._awaiting = False
         self._take_waiting()
 

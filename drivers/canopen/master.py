@@ -447,6 +447,12 @@ class CanDriveMaster(Device):
         if self.heartbeat_watch.rebooted:
             self._lose_link("the drive restarted (boot-up message)")
         silent_ns = self.heartbeat_watch.silent_ns() if self._enabled else None
+        if silent_ns is not None:  # unless a heartbeat already here says otherwise: the frames
+            try:                   # behind this cycle's TPDOs are read before the silence counts
+                self.cyclic.drain()
+            except DriveLinkLostError as exc:
+                self._lose_link(str(exc))
+            silent_ns = self.heartbeat_watch.silent_ns()
         if silent_ns is not None:
             self._lose_link(f"no heartbeat for {silent_ns / 1e6:.0f} ms (it beats every "
                             f"{self.config.drive_heartbeat_ms} ms)")

@@ -5,6 +5,7 @@ safe stop, explicit recovery, and a drive that will not leave its state (canopen
 import math
 import re
 import struct
+import time
 import uuid
 
 import can
@@ -365,3 +366,36 @@ def test_another_master_on_the_bus_stops_the_exchange(cob_id, data, what):
     finally:
         other.shutdown()
         master.close()
+
+
+@pytest.mark.realtime  # the drive's thread must beat on time while the master waits
+def test_a_held_up_master_reads_the_heartbeats_waiting_before_it_calls_the_drive_silent():
+    """The master's process held up for longer than the drive's heartbeat watch (a loaded
+    machine, a slow writer in lockstep): the drive beat all along, its heartbeats wait behind
+    the cycle's TPDOs, and the master reads them before it calls the drive silent. The drive
+    runs on the wall clock in a thread of its own (python-can virtual bus), patient with the
+    master's silence, so only the master's watch is tested."""
+    from emulators.drive.config import DriveEmulatorConfig
+    from emulators.drive.node import DriveNode
+    from emulators.drive.runners import BusRunner, bus_sender
+
+    channel = f"held-up-{uuid.uuid4().hex}"
+    node_bus = can.Bus(interface="virtual", channel=channel)
+    runner = BusRunner(DriveNode(DriveEmulatorConfig(sync_loss_timeout_ms=5000),
+                                 send=bus_sender(node_bus)), node_bus).start()
+    config = load_drive_config(overrides={"master": {
+        "heartbeat_timeout_ms": 5000, "drive_heartbeat_ms": 100,  # watched for 300 ms
+        "rx_timeout_us": 100_000, "stale_cycles": 1000}})
+    master = open_drive(f"virtual://{channel}", config)
+    try:
+        master.start()
+        for _ in range(5):
+            assert master.exchange(0.0).fresh
+        master.send_command(0.0)  # the TPDOs come at once, the heartbeats behind them
+        time.sleep(0.6)  # held up: twice the watch, the drive beating all along
+        assert master.receive_feedback().fresh and master.link_up
+        assert master.exchange(0.0).fresh
+    finally:
+        master.close()
+        runner.stop()
+        node_bus.shutdown()
