@@ -289,5 +289,5 @@ def test_clients_that_come_and_go_cost_one_stderr_line_per_reason(tmp_path: Path
              and "live view on" not in line]
     live = read_session(str(out)).metadata.get("live", {})
     errors = json.loads(live.get("client_errors", "{}"))
-    assert len(lines) == len(errors) <= 3, stderr
-    assert sum(errors.values()) >= len(lines)
+    # one line per reason, whatever reasons the load brings (3 or 4 seen): repeats are counted
+    assert len(lines) == len(errors) < sum(errors.values()), stderr
