@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test check bench models lint clean bytecode
+.PHONY: demo test check bench models lint clean
 
 # uv installs the same packages as pip in seconds instead of a minute; pip is the fallback.
 # Compiled to bytecode at install, as pip does: with PYTHONDONTWRITEBYTECODE set, every process
@@ -16,18 +16,13 @@ $(STAMP): pyproject.toml
 	  || $(BIN)/pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
-# hil's own modules as bytecode, once: where PYTHONDONTWRITEBYTECODE is set, every process would
-# compile them again (a PID run's process: 0.50 s, 0.39 s with them compiled)
-bytecode: $(STAMP)
-	@$(BIN)/python -m compileall -q -j 0 hil controllers drivers emulators > /dev/null
-
-demo: bytecode
+demo: $(STAMP)
 	$(BIN)/hil demo
 
 # the whole suite: everything but the 1-2 kHz wall-clock tests on both cores, then those alone.
 # Not more workers, nor mypy beside them: 3 workers with mypy ran the tests in 175-230 s instead
 # of 225 s, but some tests of emulator processes on the wall clock failed under that load
-test: bytecode
+test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/mypy
 	$(BIN)/pytest -q -n 2 --dist worksteal -m "not realtime"
