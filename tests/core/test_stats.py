@@ -43,7 +43,9 @@ def test_percentiles_of_a_recorded_servo_session_are_within_one_percent(tmp_path
     assert_within_accuracy(batch, compute)
     # the run's own KPIs come from the same estimator
     step = result.kpis["step_us"]
-    assert step["max"] == round(compute.max(), 3)
+    # the KPI is rounded to 3 decimals, the recording is float32 (its step is 0.008 us at a
+    # stall of 77 ms, seen once on a loaded machine): equal up to the coarser of the two
+    assert step["max"] == pytest.approx(compute.max(), abs=5e-4, rel=2.0**-23)
     for key, q in (("median", 50), ("p99", 99)):
         assert step[key] == pytest.approx(np.percentile(compute, q), rel=RELATIVE_ACCURACY,
                                           abs=2e-3)
