@@ -2,6 +2,7 @@
 the ``hil`` command: limits that name no KPI are refused before the run, current limits apply
 to the current the drive is sent, output paths follow one rule, Ctrl-C is exit 130."""
 
+import ast
 import json
 import os
 import subprocess
@@ -121,15 +122,20 @@ def test_reading_a_session_events_messages_and_csv(tmp_path):
     assert wrong.returncode == 2 and "topics: /drive/command, /drive/feedback" in wrong.stderr
 
 
+def imported(statement: str, *modules: str) -> list[str]:
+    """Which of ``modules`` a fresh interpreter has imported after ``statement``."""
+    code = f"import sys; {statement}; print(sorted(k for k in {modules!r} if k in sys.modules))"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=60, check=True)
+    return ast.literal_eval(done.stdout.strip())
+
+
 def test_the_command_line_starts_without_the_numerical_stack():
     """`hil --help` stays fast because building the parser imports no numpy, scipy, cvxpy,
     Ray or the recorder (each command imports what it needs when it runs)."""
-    code = ("import sys, hil.cli.main as m; m.build_parser(); "
-            "print(sorted(k for k in ('numpy', 'scipy', 'cvxpy', 'ray', 'matplotlib', "
-            "'hil.core.recorder', 'hil.core.session') if k in sys.modules))")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=60, check=True)
-    assert done.stdout.strip() == "[]"
+    assert imported("import hil.cli.main as m; m.build_parser()",
+                    "numpy", "scipy", "cvxpy", "ray", "matplotlib", "hil.core.recorder",
+                    "hil.core.session") == []
 
 
 def test_runs_that_build_no_estimator_import_no_scipy_stats():
@@ -137,17 +143,11 @@ def test_runs_that_build_no_estimator_import_no_scipy_stats():
     second of every process start), scipy.linalg, HiGHS and daqp (half a second together)
     only when a controller needs them: a PID servo run or a baseline bench run does not wait
     for them."""
-    code = ("import sys, hil.servo.run, hil.servo.axes_run, hil.bench.run; print(sorted(k for k "
-            "in ('filterpy', 'scipy.stats', 'scipy.signal', 'scipy.linalg', 'highspy', 'daqp', "
-            "'cvxpy') if k in sys.modules))")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=60, check=True)
-    assert done.stdout.strip() == "[]"
+    assert imported("import hil.servo.run, hil.servo.axes_run, hil.bench.run",
+                    "filterpy", "scipy.stats", "scipy.signal", "scipy.linalg", "highspy",
+                    "daqp", "cvxpy") == []
     # every recorded run starts a writer process: it imports numpy only for an array
-    code = "import sys, hil.core.writer; print('numpy' in sys.modules)"
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=60, check=True)
-    assert done.stdout.strip() == "False"
+    assert imported("import hil.core.writer", "numpy") == []
 
 
 def _stderr_on_a_terminal(cwd, *args):

@@ -43,6 +43,7 @@ from hil.servo.run import (
     ServoRunOptions,
     drive_settings,
     make_controller,
+    realtime_factor,
     run_servo,
 )
 from hil.servo.safety import SafetyMonitor
@@ -315,8 +316,7 @@ class AxesExperiment(ServoExperiment):
             "umax_mA": options.umax, "settle_s": options.settle_s,
             "sync_cycles": self.bus_task.cycles if self.bus_task is not None else 0,
             "wall_s": round(wall_s, 4),
-            "realtime_factor": round(ticks * SAMPLE_PERIOD_S / loop.ticking_s, 2)
-            if loop.ticking_s > 0 else None,
+            "realtime_factor": realtime_factor(ticks, loop),
             "stop_reason": loop.stop_reason}
         if self.bus_task is not None and self.radius is not None:
             kpis["contour"] = self.bus_task.kpis()

@@ -27,6 +27,7 @@ from controllers.servo.references import Scenario, parse_scenario
 from drivers.canopen import CanDriveMaster, SdoAbortError
 from hil.core.clock import Clock, RealtimeClock, SimClock
 from hil.core.errors import ConfigError, HilError, SafetyStopError, UsageError
+from hil.core.loop import FixedRateLoop
 from hil.core.plugins import (
     build_controller,
     controller_factory,
@@ -329,7 +330,6 @@ class ServoExperiment(Experiment):
                                    if task is not None and options.realtime else 0)
         base["ticks"] = ticks
         base["mcap"] = options.recording.first_file(self.out)
-        simulated = ticks * SAMPLE_PERIOD_S
         base.update({
             "reference": options.reference,
             "drive": master.url,
@@ -341,9 +341,7 @@ class ServoExperiment(Experiment):
             "stale_feedback": task.stale if task is not None else 0,
             "clamped_commands": master.stats.clamped_commands,
             "wall_s": round(wall_s, 4),
-            # while ticking: the writer's start and the safe stop are not the loop's pace
-            "realtime_factor": round(simulated / loop.ticking_s, 2) if loop.ticking_s > 0
-            else None,
+            "realtime_factor": realtime_factor(ticks, loop),
             "stop_reason": loop.stop_reason,
         })
         controller = task.controller if task is not None else None
@@ -361,6 +359,14 @@ class ServoExperiment(Experiment):
         base["faults"] = faults
         base["disturbed"] = bool(faults["stale_feedback"] or faults["emcy"])
         return base
+
+
+def realtime_factor(ticks: int, loop: FixedRateLoop) -> float | None:
+    """Simulated time over the wall time the loop spent ticking (the writer's start and the
+    safe stop are not the loop's pace); None before a tick."""
+    if loop.ticking_s <= 0:
+        return None
+    return round(ticks * SAMPLE_PERIOD_S / loop.ticking_s, 2)
 
 
 def drive_settings(options: ServoRunOptions) -> DriveConfig:

@@ -152,8 +152,8 @@ class ServoTask(Task):
         if self.predictor is not None and self.predictions is not None \
                 and n % self.prediction_every == 0:
             u_pred, y_pred = self.predictor.prediction()
-            # the arrays as they are: the writer process converts them (CDR float32 by default)
-            # as lists: cheaper to hand over than arrays, the same numbers on the wire
+            # as lists: cheaper to hand over than arrays; the writer process encodes them
+            # (CDR float32 by default)
             self.predictions.log(t_ns, (t_s, u_pred[: self.hu].tolist(), y_pred.tolist()))
 
     # -- helpers -----------------------------------------------------------------------
