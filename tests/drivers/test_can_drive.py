@@ -7,6 +7,7 @@ import re
 import struct
 import time
 import uuid
+from collections.abc import Callable
 
 import can
 import canopen
@@ -368,25 +369,46 @@ def test_another_master_on_the_bus_stops_the_exchange(cob_id, data, what):
         master.close()
 
 
-@pytest.mark.realtime  # the drive's thread must beat on time while the master waits
-def test_a_held_up_master_reads_the_heartbeats_waiting_before_it_calls_the_drive_silent():
-    """The master's process held up for longer than the drive's heartbeat watch (a loaded
-    machine, a slow writer in lockstep): the drive beat all along, its heartbeats wait behind
-    the cycle's TPDOs, and the master reads them before it calls the drive silent. The drive
-    runs on the wall clock in a thread of its own (python-can virtual bus), patient with the
-    master's silence, so only the master's watch is tested."""
+def _hils_drive(url: str) -> tuple[int, Callable[[], None]]:
+    """hil's emulated drive on the wall clock in a thread (patient with the master's silence)."""
     from emulators.drive.config import DriveEmulatorConfig
     from emulators.drive.node import DriveNode
     from emulators.drive.runners import BusRunner, bus_sender
 
-    channel = f"held-up-{uuid.uuid4().hex}"
-    node_bus = can.Bus(interface="virtual", channel=channel)
+    node_bus = can.Bus(interface="virtual", channel=url.removeprefix("virtual://"))
     runner = BusRunner(DriveNode(DriveEmulatorConfig(sync_loss_timeout_ms=5000),
                                  send=bus_sender(node_bus)), node_bus).start()
+
+    def stop() -> None:
+        runner.stop()
+        node_bus.shutdown()
+
+    return 1, stop
+
+
+def _independent_drive(url: str) -> tuple[int, Callable[[], None]]:
+    """A CiA 402 slave hil did not write (canopen's LocalNode, its heartbeat canopen's)."""
+    from tests.drive_slave import serve
+
+    network, _ = serve(url, 3)
+    return 3, network.disconnect
+
+
+@pytest.mark.realtime  # the drive must beat on time while the master waits
+@pytest.mark.parametrize("drive", [_hils_drive, _independent_drive], ids=["hil", "independent"])
+def test_a_held_up_master_reads_the_heartbeats_waiting_before_it_calls_the_drive_silent(drive):
+    """The master's process held up for longer than the drive's heartbeat watch (a loaded
+    machine, a slow writer in lockstep): the drive beat all along, its heartbeats wait behind
+    the cycle's TPDOs, and the master reads them before it calls the drive silent. The drive
+    beats on the wall clock (python-can virtual bus) and ignores the master's silence, so only
+    the master's watch is tested."""
+    url = f"virtual://held-up-{uuid.uuid4().hex}"
+    node_id, stop = drive(url)
     config = load_drive_config(overrides={"master": {
-        "heartbeat_timeout_ms": 5000, "drive_heartbeat_ms": 100,  # watched for 300 ms
+        "node_id": node_id, "heartbeat_timeout_ms": 5000,
+        "drive_heartbeat_ms": 100,  # watched for 300 ms
         "rx_timeout_us": 100_000, "stale_cycles": 1000}})
-    master = open_drive(f"virtual://{channel}", config)
+    master = open_drive(url, config)
     try:
         master.start()
         for _ in range(5):
@@ -397,5 +419,4 @@ def test_a_held_up_master_reads_the_heartbeats_waiting_before_it_calls_the_drive
         assert master.exchange(0.0).fresh
     finally:
         master.close()
-        runner.stop()
-        node_bus.shutdown()
+        stop()
