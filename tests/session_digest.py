@@ -11,10 +11,15 @@ Left out, because they measure the computer and not the experiment:
 * metadata (versions, start time, command line);
 * the port of an emulator on loopback, which the system picks (``127.0.0.1:PORT``).
 
-``python tests/session_digest.py record OUT.json`` runs the reference experiments through
-``hil.api`` and writes their digests: the code of any checkout can be recorded this way and
-compared with another's (``tests/core/test_same_sessions.py`` compares with
+``python tests/session_digest.py record OUT.json [NAME ...]`` runs the reference experiments
+(or the named ones) through ``hil.api`` and writes their digests: the code of any checkout can be
+recorded this way and compared with another's (``tests/core/test_same_sessions.py`` compares with
 ``tests/data/session_digests.json``).
+
+The floats depend on the kernel OpenBLAS picks for the CPU: its AVX-512 kernel (``SkylakeX``)
+sums a small matrix product in another order than its AVX2 kernel (``Haswell``), and the last
+bits differ. The reference was recorded with ``REFERENCE_BLAS_KERNEL``; ``OPENBLAS_CORETYPE``
+set before numpy loads picks that kernel on a CPU that has another.
 """
 
 from __future__ import annotations
@@ -31,6 +36,8 @@ from typing import Any
 LOOPBACK_PORT = re.compile(r"127\.0\.0\.1:\d+")
 WALL_CLOCK_FIELDS = {"compute_us", "rtt_us", "solve_ms"}
 WALL_CLOCK_KPIS = {"wall_s", "realtime_factor", "step_us", "solve_ms", "mcap"}
+#: OpenBLAS's kernel when tests/data/session_digests.json was recorded (threadpoolctl's name)
+REFERENCE_BLAS_KERNEL = "Haswell"
 
 #: name -> (function of hil.api, its arguments): short lockstep runs of both applications
 EXPERIMENTS: dict[str, tuple[str, dict[str, Any]]] = {
@@ -101,8 +108,19 @@ def record(folder: str, names: list[str] | None = None) -> dict[str, Any]:
     return results
 
 
+def blas_kernel() -> str | None:
+    """The kernel OpenBLAS picked for this CPU (``Haswell``, ``SkylakeX``...), None without it."""
+    import numpy  # noqa: F401  (loads OpenBLAS)
+    from threadpoolctl import threadpool_info
+
+    kernels = [lib.get("architecture") for lib in threadpool_info()
+               if lib.get("internal_api") == "openblas"]
+    return kernels[0] if kernels else None
+
+
 if __name__ == "__main__":
-    if len(sys.argv) != 3 or sys.argv[1] != "record":
-        sys.exit("usage: python tests/session_digest.py record OUT.json")
+    if len(sys.argv) < 3 or sys.argv[1] != "record":
+        sys.exit("usage: python tests/session_digest.py record OUT.json [NAME ...]")
     with tempfile.TemporaryDirectory() as tmp:
-        Path(sys.argv[2]).write_text(json.dumps(record(tmp), indent=1, sort_keys=True) + "\n")
+        digests = record(tmp, sys.argv[3:] or None)
+        Path(sys.argv[2]).write_text(json.dumps(digests, indent=1, sort_keys=True) + "\n")

@@ -6,14 +6,21 @@ disturbance on the servo, limits included) give, bit for bit, the messages and K
 on purpose: the servo runs' ``drive.configured`` event carries the drive's scaling (issue 25);
 the bench runs' ``faults`` KPI counts ``bad_readings`` (issue 26, 0 here) and the servo runs
 have ``peak_requested_mA`` (issue 27: equal to ``peak_current_mA``, nothing clamped); every other
-message and every KPI is still the one of 0377251."""
+message and every KPI is still the one of 0377251.
+
+The reference holds for OpenBLAS's AVX2 kernel (``REFERENCE_BLAS_KERNEL``): on a CPU where
+OpenBLAS picks another (AVX-512 on recent Intel and AMD CPUs), the runs are made in a child
+process that asks OpenBLAS for the reference's kernel."""
 
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
-from tests.session_digest import EXPERIMENTS, record
+from tests.session_digest import EXPERIMENTS, REFERENCE_BLAS_KERNEL, blas_kernel, record
 
 pytestmark = [pytest.mark.slow]
 
@@ -22,7 +29,7 @@ REFERENCE = json.loads((Path(__file__).parents[1] / "data" / "session_digests.js
 
 @pytest.mark.parametrize("name", sorted(EXPERIMENTS))
 def test_a_lockstep_run_records_what_it_recorded_before(tmp_path, name):
-    now = record(str(tmp_path), [name])[name]
+    now = record_with_reference_kernel(tmp_path, name)
     before = REFERENCE[name]
     assert now["kpis"] == before["kpis"]
     assert now["topics"] == before["topics"]
@@ -40,3 +47,37 @@ def test_the_digest_sees_a_changed_message(tmp_path):
     assert a["/drive/command"]["count"] == b["/drive/command"]["count"] == 100
     assert a["/drive/command"]["sha256"] != b["/drive/command"]["sha256"]
     assert a == session_digest(out_a)  # and the same file gives the same digest
+
+
+def record_with_reference_kernel(tmp_path: Path, name: str) -> dict:
+    """The experiment's digests with OpenBLAS's reference kernel: here if this process has it,
+    else in a child process told to use it (a CPU without AVX2 cannot: the test is skipped)."""
+    if blas_kernel() == REFERENCE_BLAS_KERNEL:
+        return record(str(tmp_path), [name])[name]
+    skip_without_avx2()
+    out = tmp_path / "digests.json"
+    root = Path(__file__).parents[2]
+    env = {**os.environ, "OPENBLAS_CORETYPE": REFERENCE_BLAS_KERNEL,
+           "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
+    subprocess.run([sys.executable, str(root / "tests" / "session_digest.py"), "record", str(out),
+                    name], env=env, check=True, timeout=120)
+    return json.loads(out.read_text())[name]
+
+
+def test_the_reference_kernel_can_be_asked_for(tmp_path):
+    """The child process really runs on the reference's kernel (else the comparison above
+    would test nothing on a CPU with another one)."""
+    skip_without_avx2()
+    root = Path(__file__).parents[2]
+    env = {**os.environ, "OPENBLAS_CORETYPE": REFERENCE_BLAS_KERNEL, "PYTHONPATH": str(root)}
+    code = "from tests.session_digest import blas_kernel; print(blas_kernel())"
+    kernel = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                            text=True, check=True, timeout=60).stdout.strip()
+    assert kernel == REFERENCE_BLAS_KERNEL
+
+
+def skip_without_avx2() -> None:
+    flags = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").exists() else ""
+    if not {"avx2", "fma"} <= set(flags.split()):
+        pytest.skip(f"the reference digests need OpenBLAS's {REFERENCE_BLAS_KERNEL} kernel "
+                    f"(AVX2 and FMA), which this CPU has not (OpenBLAS: {blas_kernel()})")
