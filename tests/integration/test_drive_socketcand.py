@@ -160,9 +160,12 @@ def test_sync_loss_then_heartbeat_loss_fault_the_drive_in_time(tmp_path):
                         heartbeat_timeout_ms=3000)
     try:
         master.start()
-        for _ in range(50):
+        for _ in range(49):
             master.exchange(0.0)
-        last_sync = time.monotonic()  # no more SYNC (nor heartbeat) from here on
+        # taken before the last SYNC goes out: the drive's watch starts when it gets it, which a
+        # loaded machine may delay past the moment the exchange returns (0.499 s seen)
+        last_sync = time.monotonic()
+        master.exchange(0.0)  # no more SYNC (nor heartbeat) from here on
         emcy = wait_emcy(listener, 0x8130, 5.0)
         assert emcy is not None, "no EMCY 0x8130 after SYNC stopped"
         assert time.monotonic() - last_sync >= 0.5
@@ -174,8 +177,8 @@ def test_sync_loss_then_heartbeat_loss_fault_the_drive_in_time(tmp_path):
         master.close()
         # now the master's heartbeat stops while SYNC goes on: beat every 2 s, drive waits 300 ms
         master = master_for(port, heartbeat_period_ms=2000, heartbeat_timeout_ms=300)
+        first_beat = time.monotonic()  # before the first heartbeat goes out, as above
         master.start()
-        first_beat = time.monotonic()
         with pytest.raises(DriveFaultError, match="0x8130"):
             while time.monotonic() - first_beat < 10.0:
                 master.exchange(0.0)

@@ -292,8 +292,8 @@ def test_sync_loss_faults_a_real_time_node_within_its_timeout():
             send(0x601, struct.pack("<BHBH", 0x2B, 0x6040, 0, controlword) + bytes(2))
         for _ in range(20):
             send(0x201, struct.pack("<Hh", 0x0F, 0))
+            last_sync = time.monotonic()  # the node sees the SYNC later, never earlier
             send(0x080)
-            last_sync = time.monotonic()  # the node sees it later, never earlier
             time.sleep(0.002)
         deadline = last_sync + 5.0
         emcy = None
