@@ -25,6 +25,10 @@ from tests.session_digest import EXPERIMENTS, REFERENCE_BLAS_KERNEL, blas_kernel
 pytestmark = [pytest.mark.slow]
 
 REFERENCE = json.loads((Path(__file__).parents[1] / "data" / "session_digests.json").read_text())
+ROOT = Path(__file__).parents[2]
+#: a child process's environment: OpenBLAS's reference kernel, the repository importable
+REFERENCE_KERNEL_ENV = {**os.environ, "OPENBLAS_CORETYPE": REFERENCE_BLAS_KERNEL,
+                        "PYTHONPATH": str(ROOT)}
 
 
 @pytest.mark.parametrize("name", sorted(EXPERIMENTS))
@@ -56,11 +60,8 @@ def record_with_reference_kernel(tmp_path: Path, name: str) -> dict:
         return record(str(tmp_path), [name])[name]
     skip_without_avx2()
     out = tmp_path / "digests.json"
-    root = Path(__file__).parents[2]
-    env = {**os.environ, "OPENBLAS_CORETYPE": REFERENCE_BLAS_KERNEL,
-           "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
-    subprocess.run([sys.executable, str(root / "tests" / "session_digest.py"), "record", str(out),
-                    name], env=env, check=True, timeout=120)
+    subprocess.run([sys.executable, str(ROOT / "tests" / "session_digest.py"), "record", str(out),
+                    name], env=REFERENCE_KERNEL_ENV, check=True, timeout=120)
     return json.loads(out.read_text())[name]
 
 
@@ -68,11 +69,9 @@ def test_the_reference_kernel_can_be_asked_for(tmp_path):
     """The child process really runs on the reference's kernel (else the comparison above
     would test nothing on a CPU with another one)."""
     skip_without_avx2()
-    root = Path(__file__).parents[2]
-    env = {**os.environ, "OPENBLAS_CORETYPE": REFERENCE_BLAS_KERNEL, "PYTHONPATH": str(root)}
     code = "from tests.session_digest import blas_kernel; print(blas_kernel())"
-    kernel = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
-                            text=True, check=True, timeout=60).stdout.strip()
+    kernel = subprocess.run([sys.executable, "-c", code], env=REFERENCE_KERNEL_ENV,
+                            capture_output=True, text=True, check=True, timeout=60).stdout.strip()
     assert kernel == REFERENCE_BLAS_KERNEL
 
 
