@@ -108,7 +108,11 @@ def test_a_realtime_emulated_bench_runs_in_a_process_of_its_own(tmp_path):
         assert isinstance(rig.emulator, EmulatorProcess)
         assert rig.emulator.pid != os.getpid() and rig.emulator.process.poll() is None
         session.run(duration_s=0.5)
-        assert rig.sampler.samples >= 40 and rig.sampler.latest_power is not None
+        # every tick the loop ran polled the process's meter; how many ticks a loaded machine
+        # lets it run is the realtime tests' matter (13 of 50 seen beside mypy and 3 workers)
+        stats = session.loop.stats["bench_io"]
+        assert rig.sampler.samples == stats.runs >= 1 and stats.runs + stats.missed >= 49
+        assert rig.sampler.latest_power is not None
     finally:
         rig.close()
         session.close()
