@@ -39,6 +39,7 @@ import numpy as np
 
 from drivers.canopen import CanDriveMaster, CanLink, DriveMasterConfig
 from drivers.canopen.errors import DriveError
+from drivers.cia301 import SYNC_COB_ID
 from emulators.drive.config import DriveEmulatorConfig
 from emulators.drive.node import DriveNode
 from emulators.drive.od import build_object_dictionary
@@ -110,7 +111,7 @@ class NodeTime:
 
     def sleep(self, seconds: float) -> None:
         for _ in range(max(1, math.ceil(seconds * 1e9 / self._node.cycle_period_ns))):
-            self._node.handle(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
+            self._node.handle(can.Message(arbitration_id=SYNC_COB_ID, is_extended_id=False))
             self._node.service()
 
 
@@ -218,16 +219,16 @@ def realtime_run(master: CanDriveMaster, seconds: float, split: bool) -> dict:
             command(t)).rtt_us))
     loop.add_task(task)
     stale_before = master.stats.stale
-    lost = None
+    lost: DriveError | None = None
     try:
         loop.run(duration_s=seconds)
     except DriveError as error:  # a stall of the shared machine (link lost): a figure, not a crash
-        lost = f"stopped after {len(rtt) or loop.summary()['link']['runs']} ticks: {error}"
+        lost = error
     stats = loop.summary()["link"]
     result = {
         "runs": stats["runs"], "skipped": stats["missed"], "overruns": stats["overruns"],
         "lateness": stats["lateness_us"], "stale": master.stats.stale - stale_before,
-        "rtt": np.asarray(rtt), "lost": lost,
+        "rtt": np.asarray(rtt), "lost": lost and f"stopped after {stats['runs']} ticks: {lost}",
     }
     master.close()
     return result
