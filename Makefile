@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test check bench models lint clean
+.PHONY: demo test check bench models docs lint clean
 
 # uv installs the same packages as pip in seconds instead of a minute; pip is the fallback.
 # Not compiled to bytecode at install (12.8 s against 1.4 s): the first process that imports a
@@ -51,6 +51,10 @@ bench: $(STAMP)
 
 models: $(STAMP)
 	PATH="$(CURDIR)/$(BIN):$$PATH" sh hil/configs/models/regenerate.sh
+
+# docs/CONFIGURATION.md from the code that reads the configuration (a test compares them)
+docs: $(STAMP)
+	$(BIN)/python -m hil.cli.config_reference > docs/CONFIGURATION.md
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -23,7 +23,9 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from hil.core.config import deep_merge
 from hil.core.recorder import RecordingOptions
+from hil.servo.demo import drive_for
 from hil.servo.run import ServoRunOptions, run_servo
 
 REPO = Path(__file__).resolve().parents[1]
@@ -60,7 +62,8 @@ def run_once(tmp: str, name: str, duration_s: float, live: bool) -> dict[str, An
                                    stdout=subprocess.PIPE, text=True)
     config = ServoRunOptions(
         controller="mpc", out=f"{tmp}/{name}.mcap", duration_s=duration_s, realtime=True,
-        reference="sine:amplitude=2,frequency=10", umax=12000.0, drive_overrides=TOLERANT,
+        reference="sine:amplitude=2,frequency=10",
+        drive_overrides=deep_merge(drive_for(12000.0), TOLERANT),
         recording=RecordingOptions(live=f"127.0.0.1:{port}" if live else None))
     result = run_servo(config)
     received = "-"

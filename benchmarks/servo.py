@@ -35,6 +35,7 @@ from hil.core.clock import RealtimeClock
 from hil.core.loop import FunctionTask
 from hil.core.run import RunResult
 from hil.core.session import Session
+from hil.servo.demo import drive_for
 from hil.servo.run import ServoRunOptions, run_servo
 
 TICK_TARGET_P99_US = 100.0
@@ -123,7 +124,8 @@ def _bare_realtime_loop(duration_s: float) -> tuple[dict, int, int]:
 
 def _servo_run(tmp: str, name: str, **settings: object) -> RunResult:
     config = ServoRunOptions(out=f"{tmp}/{name}.mcap", reference="sine:amplitude=2,frequency=10",
-                            umax=12000.0, **settings)  # type: ignore[arg-type]
+                            drive_overrides=drive_for(12000.0),  # the motor's rated 12 A
+                            **settings)  # type: ignore[arg-type]
     return run_servo(config)
 
 

@@ -7,11 +7,16 @@ Relay bench (energy paper), decided once per decision step (1 s by default)::
     class MyBenchController:
         def decide(self, obs: BenchObservation) -> Mapping[str, bool]: ...
 
-Servo drive (servo paper), stepped every tick (500 us)::
+Servo drive (servo paper), stepped every tick (500 us, or the cycle period it says)::
 
     class MyServoController:
+        position_input = "wrapped"                                      # optional, see below
+        cycle_periods_us = (500, 1000)                                  # optional, see below
         def step(self, position_deg: float, t_s: float) -> float: ...   # current [mA]
         def reset(self) -> None: ...                                    # optional
+
+``position_deg`` is what the controller's :class:`PositionInput` says: the spindle's angle in
+[0, 360) by default, or the multi-turn position.
 
 Controllers compute; they never touch I/O or a clock. What they ask for goes through the
 drivers' safety layers (relay dwell and safe levels, the drive's current clamp), which no
@@ -21,7 +26,9 @@ Everything else a run reads from a controller is an optional capability declared
 with ``isinstance`` (the built-ins have them; a user's controller may):
 
 * bench: :class:`Estimating` (an estimator fed every sample);
-* servo: :class:`Predicting` (recorded to ``/mpc/prediction``), a ``solver`` with a
+* servo: :class:`CyclePeriods` (the cycle periods it runs at, declared by its factory),
+  :class:`PositionInput` (wrapped or multi-turn positions), :class:`Predicting`
+  (recorded to ``/mpc/prediction``), a ``solver`` with a
   :class:`SolverReport` (the path of each step, counted), :class:`ReportsEvents` (events the
   controller raised, recorded to ``/events``), :class:`CountsFallbacks`, and a ``config``
   with :class:`MpcHorizons` (recorded with the KPIs);
@@ -30,9 +37,11 @@ with ``isinstance`` (the built-ins have them; a user's controller may):
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Container, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Protocol, TypeVar, runtime_checkable
+
+from hil.core.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -93,6 +102,100 @@ class ServoController(Protocol):
     """Called once per tick with the measured position; returns the current command [mA]."""
 
     def step(self, position_deg: float, t_s: float) -> float: ...
+
+
+#: the cycle period of a servo controller that does not say it runs at others [us]
+DEFAULT_PERIOD_US = 500
+
+
+@runtime_checkable
+class CyclePeriods(Protocol):
+    """A servo controller's factory - its class, or a factory function marked with
+    :func:`runs_at` - that says the cycle periods (``master.cycle_period_us``) it runs at, as
+    ``cycle_periods_us``: any container of whole microseconds, e.g. ``(500, 1000)`` or
+    ``range(500, 10_001, 500)`` (the multiples of 500 us up to 10 ms). Without it a controller
+    runs at :data:`DEFAULT_PERIOD_US` only (whatever its design period, hil cannot know it).
+    A factory that takes a ``context`` argument is told the run's period as
+    ``context.period_s``; ``step``'s ``t_s`` advances by it too."""
+
+    cycle_periods_us: Container[int]
+
+
+Factory = TypeVar("Factory", bound=Callable[..., Any])
+
+
+def runs_at(periods_us: Container[int]) -> Callable[[Factory], Factory]:
+    """Mark a factory function with the cycle periods its controllers run at
+    (:class:`CyclePeriods`; a class says it with a class attribute)."""
+    def mark(factory: Factory) -> Factory:
+        factory.cycle_periods_us = periods_us  # type: ignore[attr-defined]
+        return factory
+    return mark
+
+
+def cycle_periods_of(factory: object) -> Container[int]:
+    """The periods ``factory``'s controllers run at [us]: its ``cycle_periods_us``, else
+    :data:`DEFAULT_PERIOD_US` only."""
+    return factory.cycle_periods_us if isinstance(factory, CyclePeriods) \
+        else (DEFAULT_PERIOD_US,)
+
+
+def check_cycle_period(factory: object, label: str, period_us: int) -> None:
+    """A ConfigError naming the controller when it does not run at ``period_us``."""
+    periods = cycle_periods_of(factory)
+    if period_us in periods:
+        return
+    if not isinstance(factory, CyclePeriods):
+        raise ConfigError(f"controller {label!r} does not say it runs at a cycle period of "
+                          f"{period_us} us (master.cycle_period_us): a controller without "
+                          f"cycle_periods_us runs at {DEFAULT_PERIOD_US} us only")
+    raise ConfigError(f"controller {label!r} does not run at a cycle period of {period_us} us "
+                      f"(master.cycle_period_us): it runs at {describe_periods(periods)}")
+
+
+def describe_periods(periods: Container[int]) -> str:
+    """``(500,)`` -> ``500 us``; ``range(500, 10001, 500)`` -> ``multiples of 500 us up to
+    10000 us``."""
+    if isinstance(periods, range) and len(periods) > 1:
+        start, step, last = periods.start, periods.step, periods[-1]
+        if start == step:
+            return f"multiples of {step} us up to {last} us"
+        return f"{start} to {last} us in steps of {step} us"
+    if isinstance(periods, (tuple, list, set, frozenset, range)):
+        return ", ".join(f"{p} us" for p in sorted(periods)) or "no period"
+    return f"the periods of its cycle_periods_us ({periods!r})"
+
+
+#: the positions a servo controller may ask for (:class:`PositionInput`)
+WRAPPED, UNWRAPPED = "wrapped", "unwrapped"
+
+
+@runtime_checkable
+class PositionInput(Protocol):
+    """A servo controller that says which position its ``step`` is given, as its
+    ``position_input`` (a class attribute will do):
+
+    * ``"wrapped"`` (also the default, without the attribute): the spindle's angle,
+      ``position % 360`` in [0, 360), as the papers' controllers take it (they unwrap it
+      themselves and follow the reference's nearest turn);
+    * ``"unwrapped"``: the multi-turn position the master counts (turns included, in the frame
+      of the run's reference: the same numbers as ``/drive/feedback``'s ``position_deg``).
+
+    A multi-axis controller (``multi_axis = True``) says it for every axis' position."""
+
+    position_input: str
+
+
+def position_input_of(controller: object, label: str = "") -> str:
+    """:data:`WRAPPED` or :data:`UNWRAPPED`: the controller's ``position_input``, wrapped
+    when it has none; any other value is a ConfigError naming the two (and ``label``)."""
+    value = controller.position_input if isinstance(controller, PositionInput) else WRAPPED
+    if value not in (WRAPPED, UNWRAPPED):
+        named = f"controller {label!r}: " if label else ""
+        raise ConfigError(f"{named}position_input = {value!r}: a servo controller takes "
+                          f"{WRAPPED!r} (position % 360, the default) or {UNWRAPPED!r} "
+                          "(multi-turn) positions")
+    return str(value)
 
 
 @runtime_checkable

@@ -5,19 +5,36 @@ SOF 1 + identifier 11 + RTR 1 + IDE 1 + r0 1 + DLC 4 + data 8n + CRC 15 + CRC de
 ACK 2 + EOF 7 + intermission 3 = 47 + 8n bits (extended 29-bit identifier: 67 + 8n).
 Bit stuffing adds one bit after five equal bits in SOF..CRC (34 + 8n bits standard, 54 + 8n
 extended): none in the best case, at most floor((34 + 8n - 1) / 4) in the worst case.
+So at 1 Mbit/s an 8-byte frame takes 111 us without stuffing and up to 135 us with it.
 
-So at 1 Mbit/s an 8-byte frame takes 111 us without stuffing (DESIGN.md's "about 111 us" is this
-nominal figure, intermission included) and up to 135 us with worst-case stuffing. Typical data
-stuffs a few bits; both bounds are reported and a period is judged against both:
+**One figure, the worst case.** A cycle is judged and reported by its *worst-case bus time*:
+every frame of the cycle with all the stuff bits it can take (heartbeats at their average
+share per cycle). The rule: the worst-case bus time must not exceed the cycle period, with no
+margin on top. Why this figure: it is the bound the wire cannot exceed whatever the data, so a
+cycle within it is always on the bus before the next SYNC is due (a cycle that spills over
+delays that SYNC, and with it every drive's sampling instant). Why no more margin: real data
+stuffs only a few bits per frame (one CST axis at 1 Mbit/s: 317 us without any stuffing against
+the 381 us of the worst case), and that difference is the room left for what the plan does not
+count (an SDO download, an EMCY). The figure without stuffing is a best case no cycle is sure
+of; it is not reported.
 
-* nominal time > period: the cycle cannot fit at all;
-* worst-case time > period: it fits only if the data happens to stuff little.
+Classic CAN's bit rate is at most 1 Mbit/s (:data:`CLASSIC_CAN_MAX_BITRATE`); a CAN FD bus
+takes more (hil's frames on it are still classic ones, counted here at the bus's bit rate).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+
+#: the highest bit rate of classic CAN (ISO 11898-1), bit/s
+CLASSIC_CAN_MAX_BITRATE = 1_000_000
+#: the highest bit rate hil takes for a CAN FD bus (its data phase; transceivers stop at
+#: 8 Mbit/s), bit/s
+CAN_FD_MAX_BITRATE = 8_000_000
+#: how the one figure is worked out, as outputs say it
+WORST_CASE = "worst case: every frame with all the stuff bits it can take"
 
 
 @dataclass(frozen=True)
@@ -49,9 +66,16 @@ def frame_bits(data_bytes: int, *, extended: bool = False, worst_case: bool = Fa
     return bits
 
 
+def max_bitrate(fd: bool) -> int:
+    """The highest bit rate of a bus, bit/s: classic CAN's, or CAN FD's (``fd``)."""
+    return CAN_FD_MAX_BITRATE if fd else CLASSIC_CAN_MAX_BITRATE
+
+
 @dataclass(frozen=True)
 class BusBudget:
-    """Bus time per cycle against the cycle period (times in microseconds)."""
+    """Bus time per cycle against the cycle period (times in microseconds): ``worst_us`` is
+    the figure a cycle is judged by (see the module), ``nominal_us`` the same frames without
+    any stuff bit (kept in the drive's record, never judged by)."""
 
     bitrate: int
     period_us: float
@@ -62,7 +86,7 @@ class BusBudget:
 
     @property
     def fits(self) -> bool:
-        """True when even worst-case bit stuffing leaves the cycle within the period."""
+        """True when the worst-case bus time is within the period."""
         return self.worst_us <= self.period_us
 
     @property
@@ -74,6 +98,7 @@ class BusBudget:
         return self.worst_us / self.period_us
 
     def summary(self) -> dict[str, float | int | bool | list[str]]:
+        """The record of ``drive.configured``: both bounds, ``fits`` judged by the worst."""
         return {
             "bitrate": self.bitrate, "period_us": self.period_us,
             "nominal_us": round(self.nominal_us, 1), "worst_us": round(self.worst_us, 1),
@@ -83,7 +108,8 @@ class BusBudget:
 
 
 def cycle_budget(bitrate: int, period_s: float, frames: Iterable[FrameLoad]) -> BusBudget:
-    """Bus time of ``frames`` per cycle at ``bitrate`` against ``period_s``, with warnings."""
+    """Bus time of ``frames`` per cycle at ``bitrate`` against ``period_s``, with a warning
+    when the worst case does not fit."""
     if bitrate <= 0:
         raise ValueError(f"bitrate must be > 0 bit/s, got {bitrate}")
     if not period_s > 0:
@@ -95,15 +121,10 @@ def cycle_budget(bitrate: int, period_s: float, frames: Iterable[FrameLoad]) -> 
                 for f in frames)
     nominal_us, worst_us, period_us = nominal * us_per_bit, worst * us_per_bit, period_s * 1e6
     warnings = []
-    if nominal_us > period_us:
+    if worst_us > period_us:
         warnings.append(
-            f"the cyclic CAN traffic needs {nominal_us:.0f} us per cycle at {bitrate} bit/s even "
-            f"without bit stuffing: it cannot fit a {period_us:.0f} us period")
-    elif worst_us > period_us:
-        warnings.append(
-            f"the cyclic CAN traffic needs {nominal_us:.0f}-{worst_us:.0f} us per cycle at "
-            f"{bitrate} bit/s (no / worst-case bit stuffing): a {period_us:.0f} us period fits "
-            f"only if the data stuffs little")
+            f"the cyclic CAN traffic needs {worst_us:.0f} us per cycle at {bitrate} bit/s "
+            f"({WORST_CASE}): more than the {period_us:.0f} us period")
     return BusBudget(bitrate, period_us, nominal_us, worst_us, frames, tuple(warnings))
 
 
@@ -129,42 +150,60 @@ class AxisTraffic:
 @dataclass(frozen=True)
 class BusPlan:
     """Several axes on one bus, one SYNC per cycle: the budget, and where the limits are
-    (worst-case bit stuffing): ``max_axes`` axes like the first fit this period, and these
-    axes fit periods from ``min_period_us`` on."""
+    (by the worst-case bus time): ``max_axes`` axes like the first fit this period, these
+    axes fit periods from ``min_period_us`` on, and ``lean_us``, their bus time with fewer
+    mapped objects (``lean_how`` says how; None: nothing left to drop)."""
 
     budget: BusBudget
     axes: tuple[AxisTraffic, ...]
     max_axes: int
     min_period_us: float
+    lean_us: float | None = None
+    lean_how: str = ""
 
     @property
     def fits(self) -> bool:
         return self.budget.fits
 
-    def problem(self) -> str | None:
-        """Why the plan does not fit, with the numbers and the ways out (None: it fits)."""
+    @property
+    def bus_time_us(self) -> float:
+        """The one figure: the worst-case bus time of a cycle."""
+        return self.budget.worst_us
+
+    def problem(self, period_note: str = "") -> str | None:
+        """Why the plan does not fit, with the figure and every way out, each as the setting
+        that takes it (None: it fits); ``period_note``: said of the longer cycle (which of
+        them the controller runs at)."""
         if self.fits:
             return None
         b, n = self.budget, len(self.axes)
-        stuffing = ("even without bit stuffing" if b.nominal_us > b.period_us else
-                    f"with worst-case bit stuffing ({b.nominal_us:.0f} us without)")
-        ways = [f"a period of at least {self.min_period_us:.0f} us "
-                f"({1e6 / self.min_period_us:.0f} Hz)"]
+        ways = [f"a longer cycle: master.cycle_period_us >= {math.ceil(self.min_period_us)} "
+                f"({1e6 / self.min_period_us:.0f} Hz or slower{period_note})"]
         if self.max_axes >= 1:
             buses = -(-n // self.max_axes)
             fit = "fits" if self.max_axes == 1 else "fit"
-            ways.append(f"{buses} buses ({_axes(self.max_axes)} per bus {fit} this period)")
+            ways.append(f"{buses} buses, {_axes(self.max_axes)} per bus ({fit} this period: "
+                        "--axes x=1,y=2@URL or [[axis]] bus = URL)")
         else:
             ways.append("another bus does not help: one axis alone does not fit this period")
-        ways.append("fewer mapped objects (the TPDOs carry "
-                    f"{sum(sum(a.tpdo_bytes) for a in self.axes)} bytes per cycle)")
+        if self.lean_us is not None:
+            enough = "fits" if self.lean_us <= b.period_us else "not enough alone"
+            ways.append(f"fewer mapped objects: {self.lean_how}: {self.lean_us:.0f} us, "
+                        f"{enough}")
         return (f"{_axes(n)} need{'s' if n == 1 else ''} {b.worst_us:.0f} us of bus time per "
-                f"cycle at {b.bitrate} bit/s {stuffing}: more than the {b.period_us:.0f} us "
-                f"period; options: {'; '.join(ways)}")
+                f"cycle at {b.bitrate} bit/s ({WORST_CASE}): more than the "
+                f"{b.period_us:.0f} us period; ways out: {'; '.join(ways)}")
 
-    def summary(self) -> dict[str, float | int | bool | list[str] | str | None]:
-        return {**self.budget.summary(), "axes": len(self.axes), "max_axes": self.max_axes,
-                "min_period_us": round(self.min_period_us, 1), "problem": self.problem()}
+    def summary(self) -> dict[str, float | int | bool | str | None]:
+        """The plan as ``hil drive plan --json`` prints it and a run records it (``bus_plan``):
+        the one figure, ``bus_time_us``, and how it is worked out, ``bus_time``."""
+        b = self.budget
+        return {"bitrate": b.bitrate, "period_us": b.period_us,
+                "bus_time_us": round(b.worst_us, 1), "bus_time": WORST_CASE,
+                "load": round(b.load_worst, 3), "fits": self.fits, "axes": len(self.axes),
+                "max_axes": self.max_axes, "min_period_us": round(self.min_period_us, 1),
+                "lean_us": None if self.lean_us is None else round(self.lean_us, 1),
+                "problem": self.problem()}
 
 
 def _axes(n: int) -> str:
@@ -183,8 +222,11 @@ def bus_frames(period_s: float, axes: Iterable[AxisTraffic],
 
 
 def plan_bus(bitrate: int, period_s: float, axes: Iterable[AxisTraffic],
-             master_heartbeat_s: float = 0.0) -> BusPlan:
-    """The plan of ``axes`` sharing one bus at ``bitrate``, cycled every ``period_s``."""
+             master_heartbeat_s: float = 0.0, lean: Iterable[AxisTraffic] = (),
+             lean_how: str = "") -> BusPlan:
+    """The plan of ``axes`` sharing one bus at ``bitrate``, cycled every ``period_s``;
+    ``lean``: the same axes with fewer mapped objects (``lean_how``: the setting that maps
+    them so), for the ways out."""
     axes = tuple(axes)
     if not axes:
         raise ValueError("a bus plan needs at least one axis")
@@ -203,4 +245,6 @@ def plan_bus(bitrate: int, period_s: float, axes: Iterable[AxisTraffic],
     shared = worst_us(bus_frames(period_s, [], master_heartbeat_s))
     per_axis = worst_us(axes[0].frames(period_s))
     max_axes = max(0, int((budget.period_us - shared) // per_axis))
-    return BusPlan(budget, axes, max_axes, min_period_us)
+    lean = tuple(lean)
+    lean_us = worst_us(bus_frames(period_s, lean, master_heartbeat_s)) if lean else None
+    return BusPlan(budget, axes, max_axes, min_period_us, lean_us, lean_how)

@@ -184,6 +184,7 @@ POSITION_ACTUAL = 0x6064
 VELOCITY_ACTUAL = 0x606C
 TARGET_TORQUE = 0x6071
 MAX_TORQUE = 0x6072
+MAX_CURRENT = 0x6073
 RATED_CURRENT = 0x6075
 TORQUE_ACTUAL = 0x6077
 TARGET_POSITION = 0x607A
@@ -235,6 +236,12 @@ TPDO1 = PdoMap(0x1800, 0x1A00, 0x180, ((STATUSWORD, 0, 16), (POSITION_ACTUAL, 0,
 TPDO2 = PdoMap(0x1801, 0x1A01, 0x280, ((VELOCITY_ACTUAL, 0, 32), (TORQUE_ACTUAL, 0, 16)))
 RPDOS = (RPDO1,)
 TPDOS = (TPDO1, TPDO2)
+# one 8-byte TPDO per cycle instead of two (a busy bus): what Feedback needs but the velocity,
+# which the master then derives from the position, cycle by cycle
+TPDO1_ALONE = PdoMap(0x1800, 0x1A00, 0x180, ((STATUSWORD, 0, 16), (POSITION_ACTUAL, 0, 32),
+                                             (TORQUE_ACTUAL, 0, 16)))
+#: ``[master] tpdo_layout``: the TPDOs each cycle's feedback comes in
+TPDO_LAYOUTS: dict[str, tuple[PdoMap, ...]] = {"two": TPDOS, "one": (TPDO1_ALONE,)}
 
 
 def rpdo1_for(mode: int) -> PdoMap:

@@ -53,7 +53,7 @@ def _check_options(options: Mapping[str, Any], known: Iterable[str], what: str) 
 
 
 def run_bench(controller: Controller, params: Mapping[str, Any] | None = None, *,
-              bench: str = "emulated", cycles: int = 1, limits: Iterable[str | Limit] = (),
+              bench: str | None = None, cycles: int = 1, limits: Iterable[str | Limit] = (),
               **options: Any) -> dict[str, Any]:
     """One closed-loop bench run (``hil bench run``); ``options`` are the other fields of
     :class:`hil.bench.run.BenchRunOptions` (``out``, ``realtime``, ``config_path``,
@@ -67,10 +67,11 @@ def run_bench(controller: Controller, params: Mapping[str, Any] | None = None, *
 
 
 def run_servo(controller: Controller, params: Mapping[str, Any] | None = None, *,
-              drive: str = "emulated", reference: str = DEFAULT_REFERENCE,
+              drive: str | None = None, reference: str = DEFAULT_REFERENCE,
               duration_s: float = 1.0, limits: Iterable[str | Limit] = (),
               **options: Any) -> dict[str, Any]:
-    """One closed-loop servo run (``hil servo run``), lockstep unless ``realtime=True``;
+    """One closed-loop servo run (``hil servo run``), lockstep unless ``realtime=True``, on
+    the drive at ``drive`` (None: the config's ``[bus]``, by default the emulated drive);
     ``options`` are the other fields of :class:`hil.servo.run.ServoRunOptions` (``out``,
     ``umax``, ``settle_s``, ``drive_config``, ``controller_budget_s``, ``axes="x=1,y=2"``
     for several axes...)."""
@@ -92,15 +93,17 @@ class _MonotonicTime:
 
 
 @contextlib.contextmanager
-def open_bench(url: str = "emulated", config_path: str | None = None, *,
+def open_bench(url: str | None = None, config_path: str | None = None, *,
                on_event: EventSink = no_event) -> Iterator[SafeBench]:
-    """The relay bench at ``url`` behind its safety layer, relays at their safe levels; closed
-    (relays safe, link released) on exit. ``emulated`` serves the emulator in this process on
-    a free loopback port, following the wall clock, for the time of the block."""
+    """The relay bench at ``url`` (None: the config's ``[bus] url``) behind its safety layer,
+    relays at their safe levels; closed (relays safe, link released) on exit. ``emulated``
+    serves the emulator in this process on a free loopback port, following the wall clock, for
+    the time of the block."""
     from hil.bench.config import load_bench_config
     from hil.bench.rig import is_emulated, make_emulator, safe_bench
 
     config = load_bench_config(config_path)
+    url = url or config.bus.url
     emulator = None
     if is_emulated(url):
         emulator = make_emulator(config)
@@ -118,11 +121,11 @@ def open_bench(url: str = "emulated", config_path: str | None = None, *,
 
 
 @contextlib.contextmanager
-def open_drive(url: str = "emulated", config_path: str | None = None, *,
+def open_drive(url: str | None = None, config_path: str | None = None, *,
                on_event: EventSink = no_event) -> Iterator[CanDriveMaster]:
-    """The CiA 402 drive at ``url``, opened and configured (not enabled: call ``enable()``);
-    quick-stopped, disabled and released on exit. ``emulated`` is the drive emulator in
-    lockstep on a private bus: it moves one period per exchange."""
+    """The CiA 402 drive at ``url`` (None: the config's ``[bus]``), opened and configured (not
+    enabled: call ``enable()``); quick-stopped, disabled and released on exit. ``emulated``
+    is the drive emulator in lockstep on a private bus: it moves one period per exchange."""
     from hil.servo.config import load_drive_config
     from hil.servo.rig import open_drive as open_master
 

@@ -16,9 +16,11 @@ import signal
 import subprocess
 import sys
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
+
+import tomli_w
 
 from emulators.faults import Fault, parse_fault
 from hil.core.errors import HilError
@@ -121,32 +123,51 @@ def _fault_flags(faults: Iterable[str | Fault]) -> list[str]:
     return flags
 
 
+@contextlib.contextmanager
+def _config_file(config: str | Path | None, tables: Mapping[str, Any] | None
+                 ) -> Iterator[str | None]:
+    """The config a process reads: ``config``, or ``tables`` (a run's effective tables, its
+    flags laid in) written to a temporary file for as long as the process starts."""
+    if tables is None:
+        yield None if config is None else str(config)
+        return
+    if config is not None:
+        raise HilError("give an emulator process a config file or tables, not both")
+    with tempfile.NamedTemporaryFile("wb", prefix="hil-config-", suffix=".toml") as file:
+        file.write(tomli_w.dumps(dict(tables)).encode())
+        file.flush()
+        yield file.name
+
+
 def start_bench_emulator(config: str | Path | None = None, *, seed: int | None = None,
                          disturbance: bool = False, host: str = "127.0.0.1",
-                         faults: Iterable[str | Fault] = (),
-                         timeout_s: float = 30.0) -> EmulatorProcess:
+                         faults: Iterable[str | Fault] = (), timeout_s: float = 30.0,
+                         tables: Mapping[str, Any] | None = None) -> EmulatorProcess:
     """The relay-bench emulator over Modbus TCP on ``host`` and a free port; ``faults``
     (``KIND@START[-END][:KEY=VALUE,...]`` or :class:`~emulators.faults.Fault`) are played on
-    its plant clock, seconds after it starts."""
+    its plant clock, seconds after it starts. Its config: the file ``config``, or ``tables``
+    (the effective tables of a run)."""
     argv = ["bench", "--tcp", f"{host}:0", *_fault_flags(faults)]
-    if config is not None:
-        argv += ["--config", str(config)]
     if seed is not None:
         argv += ["--seed", str(seed)]
     if disturbance:
         argv.append("--disturbance")
-    return EmulatorProcess(argv, "bench", timeout_s)
+    with _config_file(config, tables) as path:
+        return EmulatorProcess([*argv, *(["--config", path] if path else [])], "bench",
+                               timeout_s)
 
 
 def start_drive_emulator(config: str | Path | None = None, *, node: int | Iterable[int] = 1,
                          host: str = "127.0.0.1", faults: Iterable[str | Fault] = (),
-                         timeout_s: float = 30.0) -> EmulatorProcess:
+                         timeout_s: float = 30.0,
+                         tables: Mapping[str, Any] | None = None) -> EmulatorProcess:
     """The CiA 402 drive emulator over socketcand on ``host`` and a free port (``node``: its
     node id, or several, one drive and axis each, on the one bus); ``faults`` as for
-    :func:`start_bench_emulator`, seconds after it starts (each drive plays them)."""
+    :func:`start_bench_emulator`, seconds after it starts (each drive plays them). Its
+    config: the file ``config``, or ``tables`` (the effective tables of a run)."""
     nodes = [node] if isinstance(node, int) else list(node)
     argv = ["drive", "--socketcand", f"{host}:0",
             *[arg for n in nodes for arg in ("--node", str(n))], *_fault_flags(faults)]
-    if config is not None:
-        argv += ["--config", str(config)]
-    return EmulatorProcess(argv, "drive", timeout_s)
+    with _config_file(config, tables) as path:
+        return EmulatorProcess([*argv, *(["--config", path] if path else [])], "drive",
+                               timeout_s)

@@ -17,14 +17,18 @@ fixture's emulator play those faults (``KIND@START[-END][:KEY=VALUE,...]``, seco
 starts; see docs/FAULTS.md); ``hil_bench.emulator.fault_events()`` lists what it injected.
 
 Each run's session file is kept under the test's ``tmp_path`` and its path is printed when the
-test fails. After every test the fixture checks that the hardware was left in its safe state
-(relays at their safe levels, the drive not in OPERATION ENABLED) and fails the test if not.
+test fails; each run's KPIs and session go to the test's properties (``pytest --junitxml``),
+named by the session (``servo-1.rms_error_deg``, ``servo-1.mcap``). A hil error that ends a
+test (a drive fault, a safety stop...) fails it with its one line, not a traceback
+(``--fulltrace`` shows it). After every test the fixture checks that the hardware was left in
+its safe state (relays at their safe levels, the drive not in OPERATION ENABLED) and fails the
+test if not.
 """
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Generator, Iterator, Mapping
+from collections.abc import Callable, Generator, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +38,12 @@ from drivers.bench.safe_bench import SafeBench
 from drivers.canopen import CanDriveMaster
 from drivers.cia402 import OPERATION_ENABLED, state_of
 from hil import api
+from hil.core.errors import HilError
+from hil.core.verdict import kpi_properties
 from hil.emulator_process import EmulatorProcess
+
+#: where a run's KPIs go: ``(name, value)`` pairs, a test's ``user_properties``
+Record = Callable[[tuple[str, object]], None]
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -64,10 +73,12 @@ class BenchUnderTest:
     * ``sessions`` - the session files of the runs.
     """
 
-    def __init__(self, url: str, emulated: bool, directory: Path) -> None:
+    def __init__(self, url: str, emulated: bool, directory: Path,
+                 record: Record) -> None:
         self.url, self.emulated, self.directory = url, emulated, directory
         self.emulator: EmulatorProcess | None = None  # the emulator process, if it is one
         self.sessions: list[str] = []
+        self._record = record
         self._stack = contextlib.ExitStack()
         self._driver: SafeBench | None = None
 
@@ -83,8 +94,8 @@ class BenchUnderTest:
         options.setdefault("out", str(self.directory / f"bench-{len(self.sessions) + 1}.mcap"))
         self.sessions.append(options["out"])
         target = self.url if realtime else "emulated"
-        return api.run_bench(controller, params, bench=target, cycles=cycles,
-                             realtime=realtime, **options)
+        return run_recorded(self._record, options["out"], lambda: api.run_bench(
+            controller, params, bench=target, cycles=cycles, realtime=realtime, **options))
 
     def close(self) -> None:
         self._stack.close()
@@ -110,16 +121,23 @@ class DriveUnderTest:
 
     * ``url`` - where it is (``socketcand://127.0.0.1:PORT`` for the emulator);
     * ``run(controller, params=None, reference=..., duration_s=1.0, **options)`` -
-      ``hil servo run``'s KPIs, lockstep over the wire unless ``realtime=True``;
+      ``hil servo run``'s KPIs (``options``: :class:`hil.servo.run.ServoRunOptions`). Against
+      the emulator the run is lockstep over the wire, against ``--hil-drive`` on the wall clock
+      (``realtime=`` says otherwise). Each run starts where the axis stands: the drive is
+      enabled at its position and the reference is relative to it (``from_here=True``;
+      ``from_here=False``: the reference's own angles). A drive in FAULT stays so and the run
+      fails; ``reset_fault=True`` clears it (CiA 402 fault reset) before enabling;
     * ``master`` - the CiA 402 master, opened and configured (not enabled); it is closed
       before a ``run`` (one master per bus);
     * ``sessions`` - the session files of the runs.
     """
 
-    def __init__(self, url: str, directory: Path) -> None:
-        self.url, self.directory = url, directory
+    def __init__(self, url: str, emulated: bool, directory: Path,
+                 record: Record) -> None:
+        self.url, self.emulated, self.directory = url, emulated, directory
         self.emulator: EmulatorProcess | None = None  # the emulator process, if it is one
         self.sessions: list[str] = []
+        self._record = record
         self._stack = contextlib.ExitStack()
         self._master: CanDriveMaster | None = None
 
@@ -134,9 +152,12 @@ class DriveUnderTest:
             **options: Any) -> dict[str, Any]:
         self.close()
         options.setdefault("out", str(self.directory / f"servo-{len(self.sessions) + 1}.mcap"))
+        options.setdefault("realtime", not self.emulated)
+        options.setdefault("from_here", True)
         self.sessions.append(options["out"])
-        return api.run_servo(controller, params, drive=self.url, reference=reference,
-                             duration_s=duration_s, **options)
+        return run_recorded(self._record, options["out"], lambda: api.run_servo(
+            controller, params, drive=self.url, reference=reference, duration_s=duration_s,
+            **options))
 
     def close(self) -> None:
         self._stack.close()
@@ -152,6 +173,26 @@ class DriveUnderTest:
             return state_of(master.sdo_read_int(0x6041, 0, "<H"))
         finally:
             master.disconnect()
+
+
+def run_recorded(record: Record, session: str, run: Callable[[], dict[str, Any]]
+                 ) -> dict[str, Any]:
+    """``run()``'s KPIs, recorded as properties named by its ``session`` file
+    (``servo-1.rms_error_deg``); a HilError that ends the run records the KPIs so far
+    (``status``, ``error``) and goes on."""
+    try:
+        kpis = run()
+    except HilError as exc:
+        if exc.result is not None:
+            _record_kpis(record, session, exc.result.kpis)
+        raise
+    _record_kpis(record, session, kpis)
+    return kpis
+
+
+def _record_kpis(record: Record, session: str, kpis: dict[str, Any]) -> None:
+    for name, value in kpi_properties(kpis, f"{Path(session).stem}.").items():
+        record((name, value))
 
 
 @contextlib.contextmanager
@@ -176,7 +217,8 @@ def _emulator_or(request: pytest.FixtureRequest, option: str, start: Any
 def hil_bench(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[BenchUnderTest]:
     """A relay bench for this test: the emulator in its own process, or ``--hil-bench URL``."""
     with _emulator_or(request, "hil_bench", api.start_bench_emulator) as (url, emulator):
-        bench = BenchUnderTest(url, emulator is not None, tmp_path)
+        bench = BenchUnderTest(url, emulator is not None, tmp_path,
+                               request.node.user_properties.append)
         bench.emulator = emulator
         try:
             yield bench
@@ -192,7 +234,8 @@ def hil_bench(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[BenchU
 def hil_drive(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[DriveUnderTest]:
     """A servo drive for this test: the emulator in its own process, or ``--hil-drive URL``."""
     with _emulator_or(request, "hil_drive", api.start_drive_emulator) as (url, emulator):
-        drive = DriveUnderTest(url, tmp_path)
+        drive = DriveUnderTest(url, emulator is not None, tmp_path,
+                               request.node.user_properties.append)
         drive.emulator = emulator
         try:
             yield drive
@@ -206,14 +249,20 @@ def hil_drive(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[DriveU
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]
                                ) -> Generator[None, Any, None]:
-    """A failed test that ran sessions names their files."""
+    """A failed test that uses the fixtures names its session files; a HilError that failed
+    it is its one line (without ``--fulltrace``)."""
     outcome = yield
     report = outcome.get_result()
     if not report.failed:
         return
     funcargs = getattr(item, "funcargs", {})
-    paths = [path for name in ("hil_bench", "hil_drive")
-             if isinstance(funcargs.get(name), BenchUnderTest | DriveUnderTest)
-             for path in funcargs[name].sessions]
+    under_test = [funcargs[name] for name in ("hil_bench", "hil_drive")
+                  if isinstance(funcargs.get(name), BenchUnderTest | DriveUnderTest)]
+    if not under_test:
+        return
+    if call.excinfo is not None and call.excinfo.errisinstance(HilError) \
+            and not item.config.getoption("fulltrace", False):
+        report.longrepr = f"{call.excinfo.typename}: {call.excinfo.value}"
+    paths = [path for fixture in under_test for path in fixture.sessions]
     if paths:
         report.sections.append(("hil sessions", "\n".join(paths)))

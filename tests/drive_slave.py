@@ -10,12 +10,13 @@ current maps sent), and the CiA 402 state machine after canopen's ``State402`` t
 TPDO pair it sends is logged with the number of the SYNC it answers (1 = the first SYNC after
 NMT start), so a test can hold the master's feedback against it.
 
-``stall_at`` / ``stall_ms``: at that SYNC the slave's frame handling stops for that long (a
-drive that falls behind), then answers what queued up, in order: its answer to that SYNC, and
-the ones after it, come late.
+``behind_at``: the slave falls one cycle behind at that SYNC: it holds its answer to it back
+until the next SYNC comes, then sends it just before that SYNC's own answer. However late the
+master waits, that answer lands after the next SYNC: what a drive that fell behind does, with
+nothing left to timing.
 
-Run alone (another process): ``python tests/drive_slave.py URL NODE LOG.json [--stall-at N
---stall-ms MS]``; it serves until SIGTERM, then writes its log.
+Run alone (another process): ``python tests/drive_slave.py URL NODE LOG.json [--behind-at N]``;
+it serves until SIGTERM, then writes its log.
 """
 
 from __future__ import annotations
@@ -25,7 +26,6 @@ import signal
 import struct
 import sys
 import threading
-import time
 from typing import Any
 
 import canopen
@@ -74,7 +74,9 @@ def _pdo(od: ObjectDictionary, comm: int, mapping: int, cob: int, entries: list)
           for k in range(len(entries) + 1, 5))])
 
 
-def dictionary(node_id: int) -> ObjectDictionary:
+def dictionary(node_id: int, max_current_permille: int | None = None) -> ObjectDictionary:
+    """The slave's object dictionary; with ``max_current_permille``, a 0x6073 max current of
+    its own (per mille of the rated current)."""
     od = ObjectDictionary()
     od.node_id = node_id
     add = od.add_object
@@ -107,6 +109,8 @@ def dictionary(node_id: int) -> ObjectDictionary:
     add(_var("Velocity actual", 0x606C, 0, dt.INTEGER32, "ro", 0, True))
     add(_var("Target torque", 0x6071, 0, dt.INTEGER16, "rw", 0, True))
     add(_var("Max torque", 0x6072, 0, dt.UNSIGNED16, "rw", 1000))
+    if max_current_permille is not None:
+        add(_var("Max current", 0x6073, 0, dt.UNSIGNED16, "ro", max_current_permille))
     add(_var("Rated current", 0x6075, 0, dt.UNSIGNED32, "ro", RATED_MA))
     add(_var("Torque actual", 0x6077, 0, dt.INTEGER16, "ro", 0, True))
     _record(od, "Position encoder resolution", 0x608F, [
@@ -121,10 +125,12 @@ class IndependentSlave:
     """The drive on ``network`` (a connected canopen Network) as node ``node_id``."""
 
     def __init__(self, network: canopen.Network, node_id: int = 3, *,
-                 stall_at: int | None = None, stall_ms: float = 150.0) -> None:
+                 behind_at: int | None = None,
+                 max_current_permille: int | None = None) -> None:
         self.network, self.node_id = network, node_id
-        self.stall_at, self.stall_ms = stall_at, stall_ms
-        self.node = canopen.LocalNode(node_id, dictionary(node_id))
+        self.behind_at = behind_at
+        self.held: list[tuple[int, bytes]] = []  # an answer held back (behind_at)
+        self.node = canopen.LocalNode(node_id, dictionary(node_id, max_current_permille))
         self.od = self.node.object_dictionary
         self.node.add_write_callback(self._on_write)
         self.node.add_read_callback(self._on_read)
@@ -139,6 +145,7 @@ class IndependentSlave:
         self.latched: bytes | None = None
         self.syncs = 0           # SYNCs since NMT start
         self.log: list[dict[str, Any]] = []
+        self.writes: list[tuple[int, int, bytes]] = []  # every SDO download, in order
         self.lock = threading.Lock()
         self.node.nmt.state = "PRE-OPERATIONAL"
 
@@ -162,11 +169,19 @@ class IndependentSlave:
             return self.value(0x6060)
         return None
 
+    def torque_limit(self) -> int:
+        """The torque it applies at most, per mille: its max torque, and max current if any."""
+        limits = [self.value(0x6072)]
+        if 0x6073 in self.od:
+            limits.append(self.value(0x6073))
+        return min(limits)
+
     def _on_read(self, index: int, subindex: int, od: Any) -> int | None:
         return self._live(index)
 
     # -- CiA 301 rules for PDO parameters, CiA 402 for the controlword ----------------------
     def _on_write(self, index: int, subindex: int, od: Any, data: bytes) -> None:
+        self.writes.append((index, subindex, bytes(data)))
         if index in (0x1400, 0x1800, 0x1801) and subindex == 1:
             old, new = self.value(index, 1), int.from_bytes(data, "little")
             if not (old | new) & 0x8000_0000 and (old & 0x7FF) != (new & 0x7FF):
@@ -220,14 +235,16 @@ class IndependentSlave:
             return
         with self.lock:
             self.syncs += 1
-            if self.stall_at is not None and self.syncs == self.stall_at:
-                time.sleep(self.stall_ms / 1000)  # falls behind: what comes queues up
+            for cob, payload in self.held:  # the answer it fell behind with, late
+                self.network.send_message(cob, payload)
+            self.held = []
             if self.latched is not None:
                 word, torque = struct.unpack("<Hh", self.latched)
                 self._controlword(word)
                 self.node.set_data(0x6071, 0, struct.pack("<h", torque))
-            if self.state == "OPERATION ENABLED":
-                torque = self.value(0x6071)
+            if self.state == "OPERATION ENABLED":  # as a drive does: within its own limits
+                limit = self.torque_limit()
+                torque = max(-limit, min(limit, self.value(0x6071)))
                 self.current_ma = torque * RATED_MA / 1000
             else:
                 self.current_ma = 0.0
@@ -244,6 +261,7 @@ class IndependentSlave:
 
     def _send_tpdos(self) -> None:
         sent = {}
+        behind = self.syncs == self.behind_at
         for comm, mapping in ((0x1800, 0x1A00), (0x1801, 0x1A01)):
             cob = self.value(comm, 1)
             if cob & 0x8000_0000:
@@ -256,7 +274,10 @@ class IndependentSlave:
                 raw = self.node.get_data(index, (entry >> 8) & 0xFF) if live is None else \
                     live.to_bytes(bits // 8, "little", signed=index != 0x6041)
                 payload += raw
-            self.network.send_message(cob & 0x7FF, payload)
+            if behind:
+                self.held.append((cob & 0x7FF, payload))
+            else:
+                self.network.send_message(cob & 0x7FF, payload)
             sent[comm] = payload.hex()
         self.log.append({"sync": self.syncs, "tpdo1": sent.get(0x1800),
                          "tpdo2": sent.get(0x1801), "position_deg": self.position,
@@ -267,23 +288,23 @@ class IndependentSlave:
             self.latched = bytes(data[:4])
 
 
-def serve(url: str, node_id: int, stall_at: int | None = None,
-          stall_ms: float = 150.0) -> tuple[canopen.Network, IndependentSlave]:
+def serve(url: str, node_id: int, behind_at: int | None = None,
+          max_current_permille: int | None = None) -> tuple[canopen.Network, IndependentSlave]:
     """The slave on the bus at ``url`` (``INTERFACE://CHANNEL?key=value``), serving."""
     from drivers.canopen.bus import open_can_bus, parse_can_url
 
     network = canopen.Network(open_can_bus(parse_can_url(url)))
     network.connect()
-    slave = IndependentSlave(network, node_id, stall_at=stall_at, stall_ms=stall_ms)
+    slave = IndependentSlave(network, node_id, behind_at=behind_at,
+                             max_current_permille=max_current_permille)
     network.subscribe(0x200 + node_id, slave.on_rpdo)
     return network, slave
 
 
 def main(argv: list[str]) -> None:
     url, node_id, log_path = argv[0], int(argv[1]), argv[2]
-    stall_at = int(argv[argv.index("--stall-at") + 1]) if "--stall-at" in argv else None
-    stall_ms = float(argv[argv.index("--stall-ms") + 1]) if "--stall-ms" in argv else 150.0
-    network, slave = serve(url, node_id, stall_at, stall_ms)
+    behind_at = int(argv[argv.index("--behind-at") + 1]) if "--behind-at" in argv else None
+    network, slave = serve(url, node_id, behind_at)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     print("serving", flush=True)

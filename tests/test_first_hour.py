@@ -107,7 +107,7 @@ def test_reading_a_session_events_messages_and_csv(tmp_path):
     events = hil(tmp_path, "report", str(session), "--events")
     assert events.returncode == 0
     kinds = [line.split()[2] for line in events.stdout.splitlines()]
-    assert kinds[0] == "drive.configured" and "session.stop" in kinds
+    assert kinds[:2] == ["drive.current_limit", "drive.configured"] and "session.stop" in kinds
     lines = hil(tmp_path, "report", str(session), "--topic", "/drive/feedback").stdout
     rows = [json.loads(line) for line in lines.splitlines()]
     assert len(rows) == 100 and rows[1]["t_s"] == 0.0005 and "position_deg" in rows[1]

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from hil import api
+
 pytestmark = [pytest.mark.slow]
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -30,10 +32,11 @@ def user_env():
     return {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
 
 
-def run_pytest(folder, *args):
+def run_pytest(folder, *args, env=None):
     return subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                           "--rootdir", str(folder), *args], cwd=folder, env=user_env(),
-                          capture_output=True, text=True, timeout=300)
+                           "--rootdir", str(folder), *args], cwd=folder,
+                          env={**user_env(), **(env or {})}, capture_output=True, text=True,
+                          timeout=300)
 
 
 def hil(folder, *args, timeout=120):
@@ -43,9 +46,19 @@ def hil(folder, *args, timeout=120):
 
 def test_users_tests_pass_with_plain_pytest_and_the_installed_plugin(tmp_path):
     folder = user_folder(tmp_path)
-    out = run_pytest(folder, str(folder))
+    out = run_pytest(folder, str(folder), "--junitxml", "results.xml")
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
     assert "3 passed" in out.stdout
+    # each run's KPIs are the test case's properties; the emulators' runs are lockstep
+    cases = {case.get("name"): {p.get("name"): p.get("value") for p in case.iter("property")}
+             for case in ET.parse(folder / "results.xml").getroot().iter("testcase")}
+    servo = cases["test_pd_tracks_a_slow_sine_through_the_drive"]
+    assert servo["servo-1.clock"] == "sim" and servo["servo-1.status"] == "completed"
+    assert servo["servo-1.passed"] == "true" and float(servo["servo-1.rms_error_deg"]) < 0.5
+    bench = cases["test_threshold_relays_keep_the_levels_in_range"]
+    assert bench["bench-1.level_violations"] == "0" and bench["bench-1.status"] == "completed"
+    assert bench["bench-1.mcap"].endswith("bench-1.mcap")
+    assert cases["test_the_bench_driver_switches_a_relay_and_reads_power"] == {}  # no run
 
 
 def test_a_failing_user_test_names_its_session_files(tmp_path):
@@ -99,7 +112,105 @@ def test_a_violated_limit_exits_1_with_a_junit_failure_and_a_loose_one_exits_0(t
                 "--junit", "loose.xml")
     assert loose.returncode == 0, loose.stderr
     suite = ET.parse(folder / "loose.xml").getroot().find("testsuite")
-    assert suite is not None and suite.get("tests") == "2" and suite.get("failures") == "0"
+    assert suite is not None and suite.get("tests") == "3" and suite.get("failures") == "0"
+    assert [case.get("name") for case in suite.findall("testcase")] == [
+        "rms_error_deg<=1", "ticks>=1000", "run"]
+
+
+# generous watchdogs: on a loaded machine a wall-clock run over socketcand may miss many
+# cycles; only what these tests look at may end a run
+LOADED_MACHINE_DRIVE = """
+[master]
+stale_cycles = 100000
+heartbeat_timeout_ms = 5000
+rx_timeout_us = 5000
+[emulator]
+sync_loss_timeout_ms = 5000
+[safety]
+stale_share_max = 1.0
+"""
+
+RUNS_ON_THE_GIVEN_DRIVE = '''
+import os
+
+from hil.core.reader import read_session
+from my_controllers import PdPosition
+
+CONFIG = os.environ["DRIVE_CONFIG"]
+GAINS = {"kp": 300, "kd": 6}
+
+
+def test_moves_the_axis_away(hil_drive):
+    kpis = hil_drive.run(PdPosition, GAINS, duration_s=0.5, drive_config=CONFIG,
+                         reference="trapezoid:stroke=90,speed=30,acceleration=2000")
+    assert kpis["clock"] == "realtime" and kpis["stop_reason"] == "completed"
+
+
+def test_starts_where_the_axis_stands(hil_drive):
+    kpis = hil_drive.run(PdPosition, GAINS, duration_s=0.3, drive_config=CONFIG,
+                         reference="sine:amplitude=2,frequency=1")
+    assert kpis["clock"] == "realtime" and kpis["stop_reason"] == "completed"
+    start = read_session(hil_drive.sessions[0]).arrays("/drive/feedback")["position_deg"][0]
+    print(f"started at {start:.3f} deg, max error {kpis['max_error_deg']:.3f} deg")
+    assert 45 < start % 360 < 315  # far from 0: a run from 0 would have been stopped
+    assert kpis["max_error_deg"] < 20
+'''
+
+FAULTED_DRIVE = '''
+from my_controllers import PdPosition
+
+
+def test_a_faulted_drive_fails_the_test(hil_drive):
+    hil_drive.run(PdPosition, duration_s=0.2)
+
+
+def test_a_fault_is_reset_when_asked(hil_drive):
+    kpis = hil_drive.run(PdPosition, duration_s=0.2, reset_fault=True)
+    assert kpis["ticks"] > 0
+'''
+
+
+@pytest.mark.realtime
+def test_hil_drive_option_runs_on_the_wall_clock_from_where_the_axis_stands(tmp_path):
+    """``--hil-drive URL``: each test's runs follow the wall clock, start where the axis
+    stands (the first test leaves it about 70 deg away), and put their KPIs in --junitxml."""
+    folder = user_folder(tmp_path)
+    (folder / "test_given_drive.py").write_text(RUNS_ON_THE_GIVEN_DRIVE)
+    config = folder / "drive.toml"
+    config.write_text(LOADED_MACHINE_DRIVE)
+    with api.start_drive_emulator(str(config)) as drive:
+        out = run_pytest(folder, "test_given_drive.py", "-s", "--hil-drive", drive.url,
+                         "--junitxml", "results.xml", env={"DRIVE_CONFIG": str(config)})
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
+    cases = {case.get("name"): {p.get("name"): p.get("value") for p in case.iter("property")}
+             for case in ET.parse(folder / "results.xml").getroot().iter("testcase")}
+    for name in ("test_moves_the_axis_away", "test_starts_where_the_axis_stands"):
+        properties = cases[name]
+        assert properties["servo-1.clock"] == "realtime", properties
+        assert properties["servo-1.status"] in ("completed", "disturbed")
+        assert properties["servo-1.mcap"].endswith("servo-1.mcap")
+        assert float(properties["servo-1.rms_error_deg"]) >= 0
+        assert properties["servo-1.drive"] == drive.url
+
+
+@pytest.mark.realtime
+def test_a_faulted_drive_fails_its_test_with_one_line_and_is_reset_only_when_asked(tmp_path):
+    folder = user_folder(tmp_path)
+    (folder / "test_faulted.py").write_text(FAULTED_DRIVE)
+    config = folder / "drive.toml"
+    config.write_text(LOADED_MACHINE_DRIVE)
+    with api.start_drive_emulator(str(config), faults=["emcy@0:code=0x2310"]) as drive:
+        out = run_pytest(folder, "test_faulted.py", "--hil-drive", drive.url,
+                         "--junitxml", "results.xml")
+    assert out.returncode == 1, out.stdout[-3000:]
+    assert "1 failed, 1 passed" in out.stdout
+    section = out.stdout.split("test_a_faulted_drive_fails_the_test _")[1].splitlines()
+    # the failure is the error's one line (no frames of hil's code), then the sessions
+    assert section[1].startswith("DriveFaultError: drive node 1 is in FAULT"), section[:4]
+    assert "0x2310" in section[1] and "hil sessions" in section[2]
+    assert "Traceback" not in out.stdout and "drivers/canopen" not in out.stdout
+    failure = ET.parse(folder / "results.xml").getroot().find(".//testcase/failure")
+    assert failure is not None and failure.get("message", "").startswith("DriveFaultError: ")
 
 
 LEAVES_A_RELAY_ON = '''

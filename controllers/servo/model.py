@@ -4,6 +4,11 @@ Discrete time, T = 500 us; input: q-axis motor current [mA]; output: motor posit
 The printed A_p has a double pole at z = 1 (rigid body, no friction after rounding) and a
 lightly damped mode near 440 Hz. This is the nominal model the controllers are designed on and
 the emulator's default plant; a different axis is a different instance, not an edit here.
+
+The paper publishes no continuous-time model, so another cycle period is a whole multiple N of
+500 us (:data:`MODEL_PERIODS_US`): :func:`axis_model` steps the printed model N times with the
+current held (A^N, (A^(N-1) + ... + A + I) B), exactly what the emulated drive does between two
+SYNCs of that period - no continuous-time model is guessed from the rounded coefficients.
 """
 
 from __future__ import annotations
@@ -13,6 +18,10 @@ from dataclasses import dataclass
 import numpy as np
 
 SAMPLE_PERIOD_S = 500e-6
+#: the cycle periods the model is given at [us]: the multiples of its 500 us up to 10 ms
+#: (100 Hz; the PID's velocity loop and the MPC's horizon are meant for a servo loop, not
+#: slower)
+MODEL_PERIODS_US = range(500, 10_001, 500)
 
 
 @dataclass(frozen=True)
@@ -42,3 +51,23 @@ def published_axis_model() -> StateSpaceModel:
     C = np.array([[0.0, 0.0, 5.7e1, 0.0]])
     D = np.zeros((1, 1))
     return StateSpaceModel(A=A, B=B, C=C, D=D, dt=SAMPLE_PERIOD_S)
+
+
+def resampled(model: StateSpaceModel, period_s: float) -> StateSpaceModel:
+    """``model`` sampled every ``period_s``, a whole multiple N of its own period, the input
+    held over the N steps: A^N and (A^(N-1) + ... + A + I) B (C and D unchanged)."""
+    steps = round(period_s / model.dt)
+    if steps < 1 or abs(steps * model.dt - period_s) > 1e-9 * period_s:
+        raise ValueError(f"a period of {period_s * 1e6:g} us is no whole multiple of the "
+                         f"model's {model.dt * 1e6:g} us")
+    A, B = np.eye(model.n_states), np.zeros_like(model.B)
+    for _ in range(steps):  # B_N = A B_(N-1) + B, A_N = A A_(N-1)
+        A, B = model.A @ A, model.A @ B + model.B
+    return StateSpaceModel(A=A, B=B, C=model.C, D=model.D, dt=steps * model.dt)
+
+
+def axis_model(period_s: float = SAMPLE_PERIOD_S) -> StateSpaceModel:
+    """The published axis at a cycle period of ``period_s`` (a multiple of 500 us): the
+    printed model itself at 500 us."""
+    model = published_axis_model()
+    return model if period_s == SAMPLE_PERIOD_S else resampled(model, period_s)

@@ -8,6 +8,10 @@ modulo axis. The axis is a direct-drive rotary axis working modulo 360 deg (pape
 III-A): :func:`wrap180` and :class:`AngleUnwrapper` turn wrapped positions back into continuous
 ones, assuming less than 180 deg of motion between two samples (60 000 rpm at 500 us).
 
+A run places its reference where the axis starts (:class:`PlacedReference`): on the turn
+nearest the start position (the reference is an angle of the spindle), or, relative to the
+start, at the start position itself.
+
 Scenarios pair a reference with an optional disturbance torque on the plant input (in mA of
 q-axis current): the position-disturbance experiment of Fig. 16 holds a set-point while a
 torque larger than the current limit pushes the axis away and is then released.
@@ -142,6 +146,41 @@ class Modulo360:
 
     def position(self, t: np.ndarray) -> np.ndarray:
         return np.mod(self.inner.position(t), 360.0)
+
+
+class PlacedReference:
+    """A run's reference, placed where the axis starts: ``inner`` + ``offset_deg``, the
+    offset fixed by :meth:`place` with the position the drive was enabled at (p0), before
+    the first step:
+
+    * by default the reference is an angle of the spindle (the papers' axis): it runs on the
+      turn nearest p0, ``offset_deg = 360 k`` with ``k = round((p0 - r(0)) / 360)``;
+    * ``relative`` (``from_here``): the reference is a motion from where the axis stands,
+      ``offset_deg = p0`` (r'(t) = p0 + r(t)).
+
+    Sampled before it is placed (a controller that reads its reference when it is built, not
+    in ``step``), it raises: the start position is not known yet."""
+
+    def __init__(self, inner: Reference, *, relative: bool = False) -> None:
+        self.inner = inner
+        self.relative = relative
+        self.offset_deg: float | None = None
+
+    def place(self, start_deg: float) -> float:
+        """Fix the offset for an axis that starts at ``start_deg`` (multi-turn); returns it."""
+        if self.relative:
+            self.offset_deg = float(start_deg)
+        else:
+            r0 = float(np.asarray(self.inner.position(np.array([0.0])), dtype=float)[0])
+            self.offset_deg = 360.0 * round((start_deg - r0) / 360.0)
+        return self.offset_deg
+
+    def position(self, t: np.ndarray) -> np.ndarray:
+        if self.offset_deg is None:
+            raise UsageError("the run's reference is placed where the axis starts, when the "
+                             "drive is enabled: a controller samples it in step(), not when "
+                             "it is built")
+        return self.inner.position(t) + self.offset_deg
 
 
 @dataclass(frozen=True)

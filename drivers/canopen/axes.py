@@ -214,9 +214,12 @@ class AxisGroup:
                 master.safe_state()
 
     def close(self) -> None:
-        """Stop together, then release every master (and the bus with the last)."""
+        """Stop together, then release every master (and the bus with the last); their
+        frames go straight to the bus again first (a master puts its drive's settings back
+        by SDO on its way out)."""
         try:
             self.safe_state()
         finally:
+            self.bus.cycle_together(False)
             for master in self.masters:
                 master.disconnect()

@@ -12,7 +12,10 @@ class DriveMasterConfig:
     drive is configured (:mod:`drivers.canopen.eds`); None: the objects are checked by SDO.
     ``sync_echo``: the drive's object (index, sub-index; UNSIGNED8) that holds the counter of
     the SYNC its TPDOs answer; the master then turns the SYNC counter on (0x1019) and maps it
-    as the last byte of both TPDOs, so every TPDO is bound to its SYNC exactly."""
+    as the last byte of both TPDOs, so every TPDO is bound to its SYNC exactly.
+    ``tpdo_layout``: ``"two"`` TPDOs a cycle (statusword and position; velocity and torque),
+    or ``"one"`` (statusword, position and torque in 8 bytes; the velocity derived from the
+    position: :data:`drivers.cia402.TPDO_LAYOUTS`)."""
 
     node_id: int = 1
     mode: str = "cst"
@@ -33,3 +36,4 @@ class DriveMasterConfig:
     standstill_deg_s: float = 2.0
     eds: str | None = None
     sync_echo: tuple[int, int] | None = None
+    tpdo_layout: str = "two"

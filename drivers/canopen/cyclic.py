@@ -1,26 +1,32 @@
 """The cyclic exchange (the hot path): RPDO + SYNC (+ the master's heartbeat, + a queued SDO
-download) in one transmission, then the TPDO pair that answers that SYNC.
+download) in one transmission, then the TPDOs that answer that SYNC.
+
+The TPDOs are the master's layout (:data:`drivers.cia402.TPDO_LAYOUTS`): TPDO1 (statusword,
+position) and TPDO2 (velocity, torque), or TPDO1 alone (statusword, position, torque), each
+decoded by the objects it maps. Without a velocity on the wire, the velocity is the position's
+change since the last fresh feedback over the cycles between (a backward difference).
 
 Every feedback is bound to its SYNC:
 
 * before each SYNC, every frame already waiting is taken: TPDOs there answer an older SYNC
   whose wait is over - they are late (``late_frames``) and discarded;
-* after the SYNC, the first TPDO1 and the first TPDO2 that arrive before the deadline
-  (``rx_timeout`` after the SYNC) make the feedback; one TPDO of this cycle is never combined
-  with one of another, and a pair that misses the deadline is never used for a later cycle:
-  the feedback is then stale (the last values again, ``fresh`` False);
+* after the SYNC, the first of each TPDO that arrive before the deadline (``rx_timeout`` after
+  the SYNC) make the feedback; one TPDO of this cycle is never combined with one of another,
+  and TPDOs that miss the deadline are never used for a later cycle: the feedback is then
+  stale (the last values again, ``fresh`` False);
 * where the drive echoes the SYNC counter (``sync_echo``: an object holding the counter of the
-  SYNC it answers, mapped as the last byte of both TPDOs; the SYNC counter on through 0x1019),
-  a TPDO whose echo is not this SYNC's counter is late wherever it arrives. Without an echo, a
-  late pair that arrives after the next SYNC but before that SYNC's own answer cannot be told
-  from it: it can stand in for that one cycle, and is then found out (late) at the next SYNC.
+  SYNC it answers, mapped as the last byte of every TPDO; the SYNC counter on through 0x1019),
+  a TPDO whose echo is not this SYNC's counter is late wherever it arrives. Without an echo,
+  late TPDOs that arrive after the next SYNC but before that SYNC's own answer cannot be told
+  from it: they can stand in for that one cycle, and are then found out (late) at the next
+  SYNC.
 """
 
 from __future__ import annotations
 
 import struct
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -30,11 +36,46 @@ from drivers.canopen.link import Link
 from drivers.canopen.nmt import HeartbeatProducer
 from drivers.canopen.scaling import DriveScaling
 from drivers.cia301 import SYNC_COB_ID
-from drivers.cia402 import PdoMap, state_of
+from drivers.cia402 import (
+    POSITION_ACTUAL,
+    STATUSWORD,
+    TORQUE_ACTUAL,
+    VELOCITY_ACTUAL,
+    PdoMap,
+    state_of,
+)
 from hil.core.types import LinkWatchdog
 
 POLL_WAIT_MAX_NS = 2_000_000  # TPDO waits up to this long poll the bus instead of blocking
 SYNC_COUNTER_MAX = 240  # 0x1019 written when the echo is on: the SYNC counter runs 1..240
+# the feedback objects a TPDO carries: their slot in the raw feedback and their wire format
+FEEDBACK_OBJECTS = {STATUSWORD: (0, "H"), POSITION_ACTUAL: (1, "i"), VELOCITY_ACTUAL: (2, "i"),
+                    TORQUE_ACTUAL: (3, "h")}
+FEEDBACK_NAMES = ("statusword", "position", "velocity", "torque")  # by slot
+VELOCITY_SLOT = 2  # the one a master can do without: derived from the position
+
+
+class TpdoDecoder(NamedTuple):
+    """How one TPDO's data becomes feedback: its bit among the cycle's TPDOs, the layout of its
+    feedback objects (first in the PDO; a SYNC counter echo, if any, follows them) and the
+    slot of each in the raw feedback."""
+
+    bit: int
+    layout: struct.Struct
+    slots: tuple[int, ...]
+
+
+def tpdo_decoder(pdo: PdoMap, index: int) -> TpdoDecoder:
+    """The decoder of ``pdo``, the ``index``-th TPDO of the layout: its feedback objects
+    first, then at most one byte (the SYNC counter echo)."""
+    feedback = [entry for entry in pdo.entries if entry[0] in FEEDBACK_OBJECTS]
+    if list(pdo.entries[:len(feedback)]) != feedback or \
+            [bits for _, _, bits in pdo.entries[len(feedback):]] not in ([], [8]):
+        raise ValueError(f"TPDO 0x{pdo.comm:04X}: feedback objects first, then at most the "
+                         "SYNC counter echo byte")
+    return TpdoDecoder(1 << index,
+                       struct.Struct("<" + "".join(FEEDBACK_OBJECTS[i][1] for i, _, _ in feedback)),
+                       tuple(FEEDBACK_OBJECTS[i][0] for i, _, _ in feedback))
 
 
 class Feedback(NamedTuple):
@@ -76,8 +117,8 @@ class CyclicExchange:
     """One node's cyclic PDO traffic over ``link``. Frames that are not its TPDOs go to
     ``other`` (SDO answers, EMCY, heartbeats) as they come."""
 
-    def __init__(self, link: Link, node_id: int, rpdo: PdoMap, tpdo1: PdoMap,
-                 tpdo2: PdoMap, *, rx_timeout_s: float, watchdog: LinkWatchdog,
+    def __init__(self, link: Link, node_id: int, rpdo: PdoMap, tpdos: Sequence[PdoMap], *,
+                 rx_timeout_s: float, period_s: float, watchdog: LinkWatchdog,
                  heartbeat: HeartbeatProducer, now_ns: Callable[[], int],
                  other: Callable[[Frame], None]) -> None:
         self.link = link
@@ -93,7 +134,18 @@ class CyclicExchange:
         # position)
         target_bits = rpdo.entries[1][2]
         self._rpdo_layout = struct.Struct("<H" + ("h" if target_bits == 16 else "i"))
-        self._tpdo1_id, self._tpdo2_id = tpdo1.cob_id(node_id), tpdo2.cob_id(node_id)
+        self._decoders = {pdo.cob_id(node_id): tpdo_decoder(pdo, i)
+                          for i, pdo in enumerate(tpdos)}
+        self._all = (1 << len(tpdos)) - 1  # every TPDO of the cycle received
+        slots = {slot for decoder in self._decoders.values() for slot in decoder.slots}
+        missing = [name for slot, name in enumerate(FEEDBACK_NAMES)
+                   if slot not in slots and name != "velocity"]
+        if missing:
+            raise ValueError(f"the TPDOs carry no {' and no '.join(missing)}: a feedback needs "
+                             "the statusword, the position and the torque")
+        self._derive_velocity = VELOCITY_SLOT not in slots
+        self._period_s = period_s
+        self._last_fresh: tuple[float, int] | None = None  # position, cycle (derived velocity)
         self.scaling = DriveScaling()
         self.echo = False          # TPDOs carry the SYNC counter as their last byte
         self.sync_counter = 0      # the counter of the last SYNC sent (echo on)
@@ -113,6 +165,7 @@ class CyclicExchange:
         """Enabled: the first feedback from values read by SDO (statusword, position,
         velocity, torque); the master's heartbeat and the watchdog start afresh."""
         self._rx = list(feedback_raw)
+        self._last_fresh = None  # the velocity read by SDO is this feedback's
         self._awaiting = False
         self.heartbeat.restart()
         self.watchdog.success()
@@ -163,15 +216,16 @@ class CyclicExchange:
         try:
             # a wait of a cycle or so is spent polling: a thread blocked in select() is woken
             # up 50 us to several hundred us after the frame arrives (more on a virtual machine)
+            every = self._all
             if self._rx_timeout_ns <= POLL_WAIT_MAX_NS:
-                while self._got != 3:
+                while self._got != every:
                     frame = recv(0.0)
                     if frame is not None:
                         dispatch(frame)
                     elif clock() >= deadline_ns:
                         break
             else:
-                while self._got != 3:
+                while self._got != every:
                     remaining = (deadline_ns - clock()) / 1e9
                     frame = recv(max(0.0, remaining))
                     if frame is not None:
@@ -182,7 +236,7 @@ class CyclicExchange:
             self._awaiting = False
         stats = self.stats
         stats.cycles += 1
-        if self._got == 3:
+        if self._got == self._all:
             stats.fresh += 1
             self.watchdog.success()
             rtt_us = (time.perf_counter_ns() - self._sent_ns) / 1e3
@@ -227,24 +281,21 @@ class CyclicExchange:
 
     def _dispatch(self, frame: Frame) -> None:
         can_id, data = frame
-        if can_id == self._tpdo1_id:
-            index = 0
-        elif can_id == self._tpdo2_id:
-            index = 1
-        else:
+        decoder = self._decoders.get(can_id)
+        if decoder is None:
             self._other(frame)
             return
-        bit = 1 << index
-        if len(data) < (7 if self.echo else 6):
+        bit, layout, slots = decoder
+        size = layout.size
+        if len(data) < size + self.echo:
             self.stats.malformed_frames += 1
         elif not self._awaiting or self._got & bit or \
-                (self.echo and data[6] != self.sync_counter):
+                (self.echo and data[size] != self.sync_counter):
             self.stats.late_frames += 1
         else:
-            if index == 0:
-                self._rx[0], self._rx[1] = struct.unpack_from("<Hi", data)
-            else:
-                self._rx[2], self._rx[3] = struct.unpack_from("<ih", data)
+            rx = self._rx
+            for slot, value in zip(slots, layout.unpack_from(data), strict=True):
+                rx[slot] = value
             self._got |= bit
 
     def _make_feedback(self, fresh: bool, rtt_us: float) -> Feedback:
@@ -258,6 +309,13 @@ class CyclicExchange:
             elif step < -(turn // 2):
                 self._turns += 1
         self._last_raw = raw
-        return Feedback(scaling.degrees(self._turns * turn + raw), scaling.degrees(velocity),
-                        scaling.milliamps(torque), statusword, raw, self.cycle, self._now_ns(),
-                        fresh, rtt_us, self._command_ma)
+        position_deg = scaling.degrees(self._turns * turn + raw)
+        velocity_deg_s = scaling.degrees(velocity)
+        if self._derive_velocity and fresh:
+            before = self._last_fresh
+            if before is not None and self.cycle > before[1]:
+                velocity_deg_s = (position_deg - before[0]) / (
+                    (self.cycle - before[1]) * self._period_s)
+            self._last_fresh = (position_deg, self.cycle)
+        return Feedback(position_deg, velocity_deg_s, scaling.milliamps(torque), statusword,
+                        raw, self.cycle, self._now_ns(), fresh, rtt_us, self._command_ma)

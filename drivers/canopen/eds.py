@@ -9,7 +9,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
-from drivers.canopen.errors import DriveError
+from drivers.canopen.errors import DriveError, one_line
 from drivers.cia301 import (
     CONSUMER_HEARTBEAT,
     CYCLE_PERIOD,
@@ -133,15 +133,26 @@ def check(od: Any, needs: Iterable[Need]) -> list[str]:
             f"{need.why}" for need in needs if (problem := _problem(od, need)) is not None]
 
 
-def load_description(path: str, node_id: int, needs: Iterable[Need]) -> DriveDescription:
-    """The drive's EDS/DCF at ``path`` checked against ``needs``; the first unmet need is a
-    DriveError naming the object, before the drive is configured or enabled."""
+def import_description(path: str, node_id: int) -> Any:
+    """The object dictionary of the EDS/DCF at ``path`` for node ``node_id`` (canopen's
+    ``import_od``); a file it cannot read is a DriveError naming it."""
+    import configparser
+
     import canopen
 
     try:
-        od = canopen.import_od(path, node_id)
-    except (OSError, ValueError, KeyError) as exc:
-        raise DriveError(f"drive node {node_id}: cannot read its EDS {path}: {exc}") from None
+        return canopen.import_od(path, node_id)
+    except (OSError, ValueError, KeyError, configparser.Error) as exc:
+        raise DriveError(f"cannot read its EDS {path}: {one_line(exc)}") from None
+
+
+def load_description(path: str, node_id: int, needs: Iterable[Need]) -> DriveDescription:
+    """The drive's EDS/DCF at ``path`` checked against ``needs``; the first unmet need is a
+    DriveError naming the object, before the drive is configured or enabled."""
+    try:
+        od = import_description(path, node_id)
+    except DriveError as exc:
+        raise DriveError(f"drive node {node_id}: {exc}") from None
     problems = check(od, needs)
     if problems:
         more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""

@@ -33,9 +33,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any, NoReturn
 
-from drivers.can_bus_time import AxisTraffic, BusBudget, plan_bus
+from drivers.can_bus_time import AxisTraffic, BusBudget, BusPlan, plan_bus
 from drivers.can_frames import Frame
 from drivers.canopen.config import DriveMasterConfig
+from drivers.canopen.current_limit import CurrentLimit, read_current_limit
 from drivers.canopen.cyclic import SYNC_COUNTER_MAX, CyclicExchange, Feedback, LinkStats
 from drivers.canopen.eds import DriveDescription, required_objects
 from drivers.canopen.errors import (
@@ -91,38 +92,73 @@ from drivers.cia402 import (
     TARGET_POSITION,
     TARGET_TORQUE,
     TORQUE_ACTUAL,
-    TPDO1,
-    TPDO2,
+    TPDO_LAYOUTS,
     VELOCITY_ACTUAL,
     PdoMap,
     rpdo1_for,
     state_of,
 )
-from hil.core.errors import ConfigError
 from hil.core.types import Device, EventSink, LinkWatchdog, no_event
 
 CST, CSP = CYCLIC_SYNCHRONOUS_TORQUE, CYCLIC_SYNCHRONOUS_POSITION
 CIA402_DEVICE_TYPE = 402
-# PDOs the master does not use, invalidated where the drive has them (RPDO2-4, TPDO3-4)
-UNUSED_PDOS = (RPDO_COMM_BASE + 1, RPDO_COMM_BASE + 2, RPDO_COMM_BASE + 3,
-               TPDO_COMM_BASE + 2, TPDO_COMM_BASE + 3)
+# PDOs the master never uses (RPDO2-4), and the TPDOs 1-4 (which it uses depends on the layout)
+RPDO_UNUSED = (RPDO_COMM_BASE + 1, RPDO_COMM_BASE + 2, RPDO_COMM_BASE + 3)
+TPDO_COMMS = tuple(TPDO_COMM_BASE + i for i in range(4))
 
 
-def tpdo_maps(sync_echo: tuple[int, int] | None) -> tuple[PdoMap, PdoMap]:
-    """TPDO1 and TPDO2 as the master maps them: the profile's, each with the drive's SYNC
-    counter echo as its last byte when there is one."""
+def tpdo_maps(sync_echo: tuple[int, int] | None, layout: str = "two") -> tuple[PdoMap, ...]:
+    """The TPDOs as the master maps them: the ``layout``'s (:data:`TPDO_LAYOUTS`), each with
+    the drive's SYNC counter echo as its last byte when there is one."""
+    if layout not in TPDO_LAYOUTS:
+        raise ValueError(f"tpdo_layout must be one of {', '.join(TPDO_LAYOUTS)}, got {layout!r}")
+    maps = TPDO_LAYOUTS[layout]
     if sync_echo is None:
-        return TPDO1, TPDO2
+        return maps
     echo = (*sync_echo, 8)
-    return (replace(TPDO1, entries=(*TPDO1.entries, echo)),
-            replace(TPDO2, entries=(*TPDO2.entries, echo)))
+    echoed = tuple(replace(pdo, entries=(*pdo.entries, echo)) for pdo in maps)
+    if any(pdo.size_bytes > 8 for pdo in echoed):
+        raise ValueError(f"tpdo_layout {layout!r} fills its 8 bytes: no room for the "
+                         "sync_echo byte")
+    return echoed
 
 
-def axis_traffic(config: DriveMasterConfig, name: str = "axis") -> AxisTraffic:
-    """What one node driven with ``config`` puts on the bus each cycle (for bus plans)."""
+def unused_pdos(tpdos: Sequence[PdoMap]) -> tuple[int, ...]:
+    """The communication objects of the PDOs the master does not use (RPDO2-4 and the TPDOs
+    of 1-4 not in ``tpdos``), invalidated where the drive has them."""
+    used = {pdo.comm for pdo in tpdos}
+    return (*RPDO_UNUSED, *(comm for comm in TPDO_COMMS if comm not in used))
+
+
+def axis_traffic(config: DriveMasterConfig, name: str = "axis",
+                 layout: str | None = None) -> AxisTraffic:
+    """What one node driven with ``config`` puts on the bus each cycle (for bus plans); with
+    ``layout``, as if its ``tpdo_layout`` were that one."""
+    maps = tpdo_maps(config.sync_echo, layout or config.tpdo_layout)
     return AxisTraffic(name, rpdo1_for(MODES[config.mode]).size_bytes,
-                       tuple(pdo.size_bytes for pdo in tpdo_maps(config.sync_echo)),
-                       config.drive_heartbeat_ms / 1e3)
+                       tuple(pdo.size_bytes for pdo in maps), config.drive_heartbeat_ms / 1e3)
+
+
+LEAN_LAYOUT = ('master.tpdo_layout = "one" (statusword, position and torque in one 8-byte '
+               'TPDO per axis, the velocity derived from the position)')
+
+
+def plan_axes(config: DriveMasterConfig, names: Sequence[str],
+              bitrate: int | None = None) -> BusPlan:
+    """The bus plan of the axes ``names`` on one bus, each driven with ``config``, at
+    ``bitrate`` (default: the config's): what ``hil drive plan`` prints and what a run on
+    several axes is held to, one figure for both. Its ways out name the one-TPDO layout while
+    the config maps two."""
+    lean: list[AxisTraffic] = []
+    how = LEAN_LAYOUT
+    if config.tpdo_layout != "one":
+        if config.sync_echo is not None:  # the echo byte does not fit the one 8-byte TPDO
+            how += ' and sync_echo = ""'
+        lean = [axis_traffic(replace(config, sync_echo=None), name, "one") for name in names]
+    return plan_bus(bitrate or config.bitrate, config.cycle_period_s,
+                    [axis_traffic(config, name) for name in names],
+                    master_heartbeat_s=config.heartbeat_period_ms / 1e3, lean=lean,
+                    lean_how=how)
 
 
 class MonotonicClock:
@@ -161,9 +197,10 @@ class CanDriveMaster(Device):
         self.nmt = Nmt(link, n)
         self.heartbeat_watch = HeartbeatWatch(n, config.drive_heartbeat_ms, self.clock.time_ns)
         self._rpdo1_map = rpdo1_for(self.mode)
-        self._tpdo_maps = tpdo_maps(config.sync_echo)
+        self._tpdo_maps = tpdo_maps(config.sync_echo, config.tpdo_layout)
         self.cyclic = CyclicExchange(
-            link, n, self._rpdo1_map, *self._tpdo_maps, rx_timeout_s=config.rx_timeout_s,
+            link, n, self._rpdo1_map, self._tpdo_maps, rx_timeout_s=config.rx_timeout_s,
+            period_s=config.cycle_period_s,
             watchdog=self.watchdog,
             heartbeat=HeartbeatProducer(config.heartbeat_id, config.heartbeat_period_ms,
                                         self.clock.time_ns),
@@ -173,10 +210,14 @@ class CanDriveMaster(Device):
                                    config.sdo_timeout_s)
         self.budget = self._bus_budget()
         self.description: DriveDescription | None = None
+        self._limit: CurrentLimit | None = None   # read at open()
+        self._max_torque_written = False
         self.last_emcy_code = 0
         self._enabled = False
         self._latched: DriveError | None = None
         self.foreign: str | None = None  # another master heard on the bus: the run stops
+        # told each cycle of a safe stop (quick stop, disable voltage): what the drive reported
+        self.on_stop_cycle: Callable[[Feedback], None] | None = None
         self._closed = False
 
     # -- what the master knows -------------------------------------------------------------
@@ -211,9 +252,10 @@ class CanDriveMaster(Device):
         return self.scaling.rated_current_ma
 
     def describe(self) -> dict[str, Any]:
-        """What the session records of the drive: node, mode, scaling, description."""
+        """What the session records of the drive: node, mode, scaling, current limit,
+        description."""
         return {"url": self.url, "node_id": self.node_id, "mode": self.config.mode,
-                "scaling": self.scaling.describe(),
+                "scaling": self.scaling.describe(), "current_limit": self.limit.describe(),
                 "eds": self.description.describe() if self.description else None}
 
     def _event(self, kind: str, message: str, level: str = "info", **data: Any) -> None:
@@ -284,9 +326,7 @@ class CanDriveMaster(Device):
 
     # -- configuration --------------------------------------------------------------------------
     def _bus_budget(self) -> BusBudget:
-        c = self.config
-        return plan_bus(c.bitrate, c.cycle_period_s, [axis_traffic(c)],
-                        master_heartbeat_s=c.heartbeat_period_ms / 1e3).budget
+        return plan_axes(self.config, ["axis"]).budget
 
     def configure(self) -> None:
         """Check the drive (device type, modes), read its scaling, then write the run's
@@ -300,13 +340,14 @@ class CanDriveMaster(Device):
         if not supported & SUPPORTED_MODE_BITS[self.mode]:
             raise DriveError(f"drive node {n} does not support mode {c.mode.upper()} "
                              f"({self.mode}): 0x6502 = 0x{supported:08X}")
-        scaling = read_scaling(sdo)
+        scaling = self.scaling
+        limit = self.limit
         self.nmt.command(NMT_ENTER_PRE_OPERATIONAL)
         if c.sync_echo is not None:  # CiA 301: 0x1019 changes only while 0x1006 is 0
             sdo.write(CYCLE_PERIOD, 0, 0)
             sdo.write(SYNC_COUNTER_OVERFLOW, 0, SYNC_COUNTER_MAX, "<B")
         pdos = PdoConfigurator(sdo, n)
-        for comm in UNUSED_PDOS:
+        for comm in unused_pdos(self._tpdo_maps):
             pdos.disable(comm)
         for pdo in (self._rpdo1_map, *self._tpdo_maps):
             pdos.map(pdo)
@@ -319,12 +360,8 @@ class CanDriveMaster(Device):
         shown = sdo.read_int(MODES_DISPLAY, 0, "<b")
         if shown != self.mode:
             raise DriveStateError(f"drive node {n} shows mode {shown} after 0x6060 = {self.mode}")
-        self.cyclic.scaling = scaling
-        max_torque = math.ceil(c.current_limit_ma * 1000.0 / scaling.rated_current_ma)
-        if max_torque > 0xFFFF:
-            raise ConfigError(f"current_limit_mA {c.current_limit_ma} is beyond what 0x6072 can "
-                              f"hold with a rated current of {scaling.rated_current_ma} mA")
-        sdo.write(MAX_TORQUE, 0, max_torque, "<H")
+        sdo.write(MAX_TORQUE, 0, self._max_torque_units(), "<H")
+        self._max_torque_written = True
         sdo.write(QUICK_STOP_OPTION, 0, c.quick_stop_option, "<h")
         if self.mode == CSP:
             sdo.write(TARGET_POSITION, 0, sdo.read_int(POSITION_ACTUAL, 0, "<i"), "<i")
@@ -332,9 +369,10 @@ class CanDriveMaster(Device):
             sdo.write(TARGET_TORQUE, 0, 0, "<h")
         self._event("drive.configured",
                     f"drive node {n}: {c.mode.upper()} at {c.cycle_period_s * 1e6:g} us, "
-                    f"limit {c.current_limit_ma:g} mA, {scaling.increments_per_rev} "
+                    f"limit {limit.applied_ma:g} mA, {scaling.increments_per_rev} "
                     f"increments/rev, rated {scaling.rated_current_ma:g} mA",
                     mode=c.mode, period_us=c.cycle_period_s * 1e6,
+                    current_limit=limit.describe(),
                     rated_current_mA=scaling.rated_current_ma,
                     increments_per_rev=scaling.increments_per_rev,
                     scaling=scaling.describe(), bus_budget=self.budget.summary())
@@ -370,6 +408,23 @@ class CanDriveMaster(Device):
         if state not in (SWITCH_ON_DISABLED, NOT_READY_TO_SWITCH_ON):
             self.states.controlword(CW_DISABLE_VOLTAGE)  # left enabled by someone
         self.states.wait_state(SWITCH_ON_DISABLED, "disable voltage")
+        self._read_units_and_limits()
+
+    def _read_units_and_limits(self) -> None:
+        """The drive's scaling and its current limits (read only): what :meth:`configure`
+        writes by, and the current a controller may be given before then."""
+        if self._limit is not None:  # read once: 0x6072 may hold this master's own value since
+            return
+        scaling = read_scaling(self.sdo)
+        limit = read_current_limit(self.sdo, scaling, self.config.current_limit_ma)
+        unit = scaling.rated_current_ma / 1000.0
+        if limit.applied_ma < unit:
+            raise DriveError(f"drive node {self.node_id}: current limit {limit.text()}: below "
+                             f"one torque unit of this drive ({unit:g} mA, per mille of its "
+                             f"rated {scaling.rated_current_ma:g} mA): nothing could be sent")
+        self.cyclic.scaling, self._limit = scaling, limit
+        self._event("drive.current_limit", f"drive node {self.node_id}: current limit "
+                    f"{limit.text()}", **limit.describe())
 
     def enable(self) -> None:
         """NMT start, then the controlwords to OPERATION ENABLED; ``feedback`` is then the
@@ -494,10 +549,24 @@ class CanDriveMaster(Device):
             self.cyclic.send_now([CW_QUICK_STOP, CW_DISABLE_VOLTAGE])
         raise error
 
+    @property
+    def limit(self) -> CurrentLimit:
+        """The current limit chain, as read at :meth:`open`."""
+        if self._limit is None:
+            raise DriveStateError(f"drive node {self.node_id}: its limits are read at open()")
+        return self._limit
+
+    @property
+    def current_limit_ma(self) -> float:
+        """What every command is clamped to: the smallest of the run's limit and the drive's
+        0x6073 / 0x6072 (the run's alone before :meth:`open`)."""
+        return self._limit.applied_ma if self._limit is not None \
+            else self.config.current_limit_ma
+
     def applied_current(self, current_ma: float) -> float:
         """The current the drive is sent for a request of ``current_ma``: clamped to
-        ``current_limit_mA``."""
-        limit = self.config.current_limit_ma
+        :attr:`current_limit_ma`."""
+        limit = self.current_limit_ma
         return min(max(current_ma, -limit), limit)
 
     def _torque_units(self, current_ma: float) -> tuple[int, float]:
@@ -570,6 +639,20 @@ class CanDriveMaster(Device):
         """Enabled by :meth:`start` and not stopped since (its safe stop is still to come)."""
         return self._enabled and not self._closed
 
+    def _stop_cycle_done(self, feedback: Feedback) -> None:
+        """Hand a stop cycle's feedback to ``on_stop_cycle``: one that raises is told no more
+        (an event says so), and the stop goes on."""
+        observer = self.on_stop_cycle
+        if observer is None:
+            return
+        try:
+            observer(feedback)
+        except Exception as exc:
+            self.on_stop_cycle = None
+            self._event("drive.stop_observer_failed", f"drive node {self.node_id}: the stop's "
+                        f"observer failed ({type(exc).__name__}: {exc}); the stop goes on",
+                        level="warning")
+
     def _hold_target(self) -> int:
         if self.mode == CSP and self.feedback is not None:
             return self.feedback.position_increments
@@ -580,6 +663,7 @@ class CanDriveMaster(Device):
         idempotent. :meth:`close` (safe stop, then this) is the usual way out."""
         if self._closed:
             return
+        self._restore_max_torque()
         self._closed = True
         self._enabled = False
         self.link.shutdown()
@@ -587,13 +671,40 @@ class CanDriveMaster(Device):
             closer()
 
 
+    def _max_torque_units(self) -> int:
+        """0x6072 for this session: the applied limit rounded up to a torque unit, never above
+        what the drive held."""
+        limit, rated = self.limit, self.scaling.rated_current_ma
+        units = math.ceil(limit.applied_ma * 1000.0 / rated - 1e-9)
+        if limit.max_torque_found is not None:
+            units = min(units, limit.max_torque_found)
+        if units > 0xFFFF:
+            raise DriveError(f"drive node {self.node_id}: current limit {limit.applied_ma:g} mA "
+                             f"is beyond what 0x6072 can hold with a rated current of {rated:g} "
+                             "mA")
+        return units
+
+    def _restore_max_torque(self) -> None:
+        """0x6072 back to the drive's own value, over a link still up (best effort)."""
+        found = self._limit.max_torque_found if self._limit is not None else None
+        if not self._max_torque_written or found is None or not self.link_up:
+            return
+        self._max_torque_written = False
+        try:
+            self.sdo.write(MAX_TORQUE, 0, found, "<H")
+        except DriveError as exc:
+            self._event("drive.limit_restore_failed", f"drive node {self.node_id}: its max "
+                        f"torque 0x6072 stays at this run's limit: {exc}", level="warning")
+
+
 def stop_together(masters: Sequence[CanDriveMaster],
                   end_cycle: Callable[[], None] = lambda: None) -> None:
     """Quick stop on every enabled drive of ``masters`` in the same cycles, until all stand
     (or the quick-stop time-out), then disable voltage, in one cycle too. ``end_cycle`` puts a
     cycle's frames on the bus once every master has sent its own (several drives on one
-    :class:`~drivers.canopen.axes.AxisBus`; one drive sends at once). Silent: failures
-    become ``drive.safe_stop_failed`` events."""
+    :class:`~drivers.canopen.axes.AxisBus`; one drive sends at once). Each cycle's feedback
+    goes to each master's ``on_stop_cycle`` (when set). Silent: failures become
+    ``drive.safe_stop_failed`` events."""
     active = [m for m in masters if m.enabled]
     if not active:
         return
@@ -608,7 +719,10 @@ def stop_together(masters: Sequence[CanDriveMaster],
                 master._check_latched()
             master._send_cycle(controlword, hold)
         end_cycle()
-        return [master._receive() for master in active]
+        feedbacks = [master._receive() for master in active]
+        for master, feedback in zip(active, feedbacks, strict=True):
+            master._stop_cycle_done(feedback)
+        return feedbacks
 
     try:
         period_ns = round(c.cycle_period_s * 1e9)

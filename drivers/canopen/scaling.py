@@ -57,13 +57,19 @@ class DriveScaling:
         return asdict(self) | {"counts_per_turn": self.counts_per_turn}
 
 
-def _optional(sdo: SdoClient, index: int, subindex: int, fmt: str, default: int) -> int:
+def optional_object(sdo: SdoClient, index: int, subindex: int, fmt: str) -> int | None:
+    """An object the drive may not have (CiA 402 makes it optional): None when it has not."""
     try:
         return sdo.read_int(index, subindex, fmt)
     except SdoAbortError as exc:
         if exc.code in (ABORT_NO_OBJECT, ABORT_NO_SUBINDEX):
-            return default
+            return None
         raise
+
+
+def _optional(sdo: SdoClient, index: int, subindex: int, fmt: str, default: int) -> int:
+    value = optional_object(sdo, index, subindex, fmt)
+    return default if value is None else value
 
 
 def read_scaling(sdo: SdoClient) -> DriveScaling:

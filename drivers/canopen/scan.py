@@ -1,21 +1,29 @@
 """What is on a CAN bus, read without changing anything (``hil drive scan``), in the spirit of
 canopen's network scan: the nodes that answer an SDO read of 0x1000, and for each its NMT
-state (its heartbeat, if it produces one), identity, device type, error register and history,
-supported modes, the current PDO maps and heartbeat period, and whether hil can drive it as
-configured (and if not, why). Only SDO uploads are sent: no NMT command, no SYNC, no write.
+state (its heartbeat, if it produces one), CiA 402 state (0x6041) and error code (0x603F), its
+position (0x6064 in degrees, scaled by the drive's own 0x608F / 0x6091 as the master scales
+it), identity, device type, error register and history, supported modes by name, the current
+PDO maps and heartbeat period, optionally the drive's EDS checked for every object hil uses,
+and whether hil can drive it as configured (and if not, why). Only SDO uploads are sent: no
+NMT command, no SYNC, no write.
 """
 
 from __future__ import annotations
 
+import re
 import struct
 import time
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from canopen.profiles.p402 import OperationMode
+
 from drivers.can_frames import Frame
+from drivers.canopen.eds import check, import_description, required_objects
 from drivers.canopen.errors import DriveError, DriveLinkLostError, SdoAbortError
 from drivers.canopen.link import Link
+from drivers.canopen.scaling import read_scaling
 from drivers.canopen.sdo import SdoClient
 from drivers.cia301 import (
     DEVICE_NAME,
@@ -36,47 +44,119 @@ from drivers.cia301 import (
     TPDO_MAP_BASE,
     emcy_text,
 )
-from drivers.cia402 import ENCODER_RESOLUTION, MODES, PDO_NOT_VALID, SUPPORTED_MODE_BITS
+from drivers.cia402 import (
+    ERROR_CODE,
+    FAULT,
+    FAULT_REACTION_ACTIVE,
+    MODES,
+    OPERATION_ENABLED,
+    PDO_NOT_VALID,
+    POSITION_ACTUAL,
+    QUICK_STOP_ACTIVE,
+    STATUSWORD,
+    SUPPORTED_MODE_BITS,
+    SUPPORTED_MODES,
+    UNKNOWN_STATE,
+    state_of,
+)
 
 DISCOVER_S = 0.3     # how long answers to the broadcast of SDO requests are collected
 HEARTBEAT_S = 1.2    # how long heartbeats are listened to for the NMT states
-READ_TIMEOUT_S = 0.3
+READ_TIMEOUT_S = 1.0  # one SDO read, as a run's default: a late answer is no silent node
 PDOS = 4             # PDOs 1..4 of each direction
+UNKNOWN_NMT = "unknown (no heartbeat)"
+
+# CiA 402's short names of the modes of operation, by code (canopen's OperationMode codes;
+# the bit of each in 0x6502 is canopen's OperationMode.SUPPORTED)
+MODE_SHORT_NAMES = {
+    OperationMode.PROFILED_POSITION: "PP", OperationMode.VELOCITY: "VL",
+    OperationMode.PROFILED_VELOCITY: "PV", OperationMode.PROFILED_TORQUE: "TQ",
+    OperationMode.HOMING: "HM", OperationMode.INTERPOLATED_POSITION: "IP",
+    OperationMode.CYCLIC_SYNCHRONOUS_POSITION: "CSP",
+    OperationMode.CYCLIC_SYNCHRONOUS_VELOCITY: "CSV",
+    OperationMode.CYCLIC_SYNCHRONOUS_TORQUE: "CST",
+}
+
+
+def mode_names(supported: int) -> list[str]:
+    """The modes a 0x6502 value names (``["CSP", "CST"]``); a set bit no mode has is named
+    ``bit N``."""
+    names, known = [], 0
+    for code, short in MODE_SHORT_NAMES.items():
+        bit = OperationMode.SUPPORTED[OperationMode.CODE2NAME[code]]
+        known |= bit
+        if supported & bit:
+            names.append(short)
+    return names + [f"bit {b}" for b in range(32) if supported & ~known & (1 << b)]
 
 
 @dataclass
 class PdoReport:
-    """One PDO as the node has it configured now."""
+    """One PDO as the node has it configured now; ``entries``: its mapping values."""
 
     name: str
     cob_id: int
     valid: bool
     transmission: int
-    mapped: list[str]
+    entries: list[int] = field(default_factory=list)
+
+    @property
+    def mapped(self) -> list[str]:
+        return [f"0x{e >> 16:04X}:{(e >> 8) & 0xFF} ({e & 0xFF} bits)" for e in self.entries]
+
+    def maps(self, index: int, subindex: int) -> bool:
+        """Whether this PDO carries object ``index:subindex``."""
+        return any(e >> 16 == index and (e >> 8) & 0xFF == subindex for e in self.entries)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "cob_id": self.cob_id, "valid": self.valid,
+                "transmission": self.transmission, "mapped": self.mapped}
 
 
 @dataclass
 class NodeReport:
-    """One node as the scan found it; ``problems``: why hil cannot drive it as configured."""
+    """One node as the scan found it; ``problems``: why hil cannot drive it as configured,
+    ``notes``: what a run would do first."""
 
     node_id: int
-    nmt_state: str = "unknown (no heartbeat)"
+    mode: str = "cst"
+    nmt_state: str = UNKNOWN_NMT
+    state: str | None = None             # CiA 402 state of the statusword
+    statusword: int | None = None
+    error_code: int | None = None        # 0x603F
+    error_text: str | None = None
+    position_counts: int | None = None   # 0x6064
+    position_deg: float | None = None
+    scaling: dict[str, Any] | None = None
     device_type: int | None = None
     device_name: str | None = None
     identity: dict[str, int] = field(default_factory=dict)
     error_register: int | None = None
     error_history: list[str] = field(default_factory=list)
     supported_modes: int | None = None
+    modes: list[str] = field(default_factory=list)
     heartbeat_ms: int | None = None
     pdos: list[PdoReport] = field(default_factory=list)
+    eds: dict[str, Any] | None = None    # {"path", "problems"} when checked against an EDS
     problems: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
     @property
     def drivable(self) -> bool:
         return not self.problems
 
+    @property
+    def verdict(self) -> str:
+        """``can drive: yes, in CST`` or ``can drive: no, <every reason>``."""
+        if self.problems:
+            return "can drive: no, " + "; ".join(self.problems)
+        return f"can drive: yes, in {self.mode.upper()}" + "".join(
+            f"; {note}" for note in self.notes)
+
     def as_dict(self) -> dict[str, Any]:
-        return asdict(self) | {"drivable": self.drivable}
+        data = asdict(self)
+        data["pdos"] = [pdo.as_dict() for pdo in self.pdos]
+        return data | {"drivable": self.drivable, "verdict": self.verdict}
 
 
 def frames_within(link: Link, seconds: float) -> Iterator[Frame]:
@@ -102,13 +182,18 @@ def discover(link: Link, deadline_s: float = DISCOVER_S) -> list[int]:
     return sorted(found)
 
 
+def nmt_state_name(data: bytes) -> str:
+    """The NMT state a heartbeat's byte carries."""
+    return NMT_STATE_NAMES.get(data[0] & 0x7F, f"0x{data[0]:02X}")
+
+
 def heartbeats(link: Link, listen_s: float = HEARTBEAT_S) -> dict[int, str]:
     """The NMT state each node's heartbeat carries, heard within ``listen_s``."""
     states: dict[int, str] = {}
     for can_id, data in frames_within(link, listen_s):
         node = can_id - HEARTBEAT_BASE
         if 1 <= node <= MAX_NODE_ID and data:
-            states[node] = NMT_STATE_NAMES.get(data[0] & 0x7F, f"0x{data[0]:02X}")
+            states[node] = nmt_state_name(data)
     return states
 
 
@@ -119,12 +204,32 @@ def _optional(read: Any, *args: Any) -> Any:
         return None
 
 
-def inspect(link: Link, node_id: int, mode: str = "cst") -> NodeReport:
+def read_pdos(sdo: SdoClient) -> list[PdoReport]:
+    """The PDOs 1..4 of each direction the node has, as configured now."""
+    read = sdo.read_int
+    pdos = []
+    for direction, comm_base, map_base in (("RPDO", RPDO_COMM_BASE, RPDO_MAP_BASE),
+                                           ("TPDO", TPDO_COMM_BASE, TPDO_MAP_BASE)):
+        for k in range(PDOS):
+            cob = _optional(read, comm_base + k, 1)
+            if cob is None:
+                continue
+            count = _optional(read, map_base + k, 0, "<B") or 0
+            entries = [_optional(read, map_base + k, sub) for sub in range(1, count + 1)]
+            pdos.append(PdoReport(
+                f"{direction}{k + 1}", cob & 0x7FF, not cob & PDO_NOT_VALID,
+                _optional(read, comm_base + k, 2, "<B") or 0,
+                [e for e in entries if e is not None]))
+    return pdos
+
+
+def inspect(link: Link, node_id: int, mode: str = "cst", eds: str | None = None
+            ) -> NodeReport:
     """Everything :mod:`drivers.canopen.scan` reads of one node, and whether hil can drive it
-    in ``mode`` (``cst`` or ``csp``)."""
+    in ``mode`` (``cst`` or ``csp``), its EDS at ``eds`` checked too when given."""
     sdo = SdoClient(link, node_id, READ_TIMEOUT_S, lambda frame: None)
     read = sdo.read_int
-    report = NodeReport(node_id)
+    report = NodeReport(node_id, mode)
     report.device_type = read(DEVICE_TYPE, 0)
     raw_name = _optional(sdo.read, DEVICE_NAME, 0)
     report.device_name = raw_name.decode("latin-1").rstrip("\0") if raw_name else None
@@ -138,41 +243,93 @@ def inspect(link: Link, node_id: int, mode: str = "cst") -> NodeReport:
         entry = _optional(read, ERROR_HISTORY, sub)
         if entry is not None:
             report.error_history.append(emcy_text(entry & 0xFFFF))
-    report.supported_modes = _optional(read, 0x6502, 0)
+    report.supported_modes = _optional(read, SUPPORTED_MODES, 0)
+    if report.supported_modes is not None:
+        report.modes = mode_names(report.supported_modes)
     report.heartbeat_ms = _optional(read, PRODUCER_HEARTBEAT, 0, "<H")
-    for direction, comm_base, map_base in (("RPDO", RPDO_COMM_BASE, RPDO_MAP_BASE),
-                                           ("TPDO", TPDO_COMM_BASE, TPDO_MAP_BASE)):
-        for k in range(PDOS):
-            cob = _optional(read, comm_base + k, 1)
-            if cob is None:
-                continue
-            entries = [_optional(read, map_base + k, sub)
-                       for sub in range(1, (_optional(read, map_base + k, 0, "<B") or 0) + 1)]
-            report.pdos.append(PdoReport(
-                f"{direction}{k + 1}", cob & 0x7FF, not cob & PDO_NOT_VALID,
-                _optional(read, comm_base + k, 2, "<B") or 0,
-                [f"0x{e >> 16:04X}:{(e >> 8) & 0xFF} ({e & 0xFF} bits)"
-                 for e in entries if e is not None]))
-    report.problems = _problems(report, sdo, mode)
+    report.pdos = read_pdos(sdo)
+    _read_state(report, sdo)
+    _read_position(report, sdo)
+    if eds is not None:
+        _check_eds(report, eds)
+    report.problems = _state_problems(report) + _problems(report, sdo) + report.problems
+    report.notes = _state_notes(report)
     return report
 
 
-def _problems(report: NodeReport, sdo: SdoClient, mode: str) -> list[str]:
+def _read_state(report: NodeReport, sdo: SdoClient) -> None:
+    """The CiA 402 state (0x6041) and the error code (0x603F)."""
+    report.statusword = _optional(sdo.read_int, STATUSWORD, 0, "<H")
+    if report.statusword is not None:
+        report.state = state_of(report.statusword)
+    report.error_code = _optional(sdo.read_int, ERROR_CODE, 0, "<H")
+    if report.error_code is not None:
+        report.error_text = emcy_text(report.error_code) if report.error_code else "none"
+
+
+def _read_position(report: NodeReport, sdo: SdoClient) -> None:
+    """0x6064 in degrees of the axis, by the drive's own scaling (as the master reads it)."""
+    try:
+        scaling = read_scaling(sdo)
+    except DriveError as exc:  # no or unusable 0x608F / 0x6075: the master would stop too
+        reason = re.sub(rf"^drive node {report.node_id}:? ", "", str(exc))
+        report.problems.append(f"its position and current cannot be scaled: {reason}")
+        return
+    report.scaling = scaling.describe()
+    report.position_counts = _optional(sdo.read_int, POSITION_ACTUAL, 0, "<i")
+    if report.position_counts is not None:
+        report.position_deg = scaling.degrees(report.position_counts)
+
+
+def _check_eds(report: NodeReport, path: str) -> None:
+    """The EDS at ``path`` against every object hil reads, writes or maps in the mode, and
+    against the drive's identity (an EDS of another product describes another drive)."""
+    od = import_description(path, report.node_id)
+    problems = check(od, required_objects(MODES[report.mode]))
+    info = od.device_information
+    for key, described in (("vendor_id", info.vendor_number),
+                           ("product_code", info.product_number)):
+        actual = report.identity.get(key)
+        if described is not None and actual is not None and described != actual:
+            problems.append(f"is for {key.replace('_', ' ')} 0x{described:X}, the drive "
+                            f"says 0x{actual:X} (0x1018)")
+    report.eds = {"path": path, "problems": problems}
+    report.problems += [f"EDS {path}: {problem}" for problem in problems]
+
+
+def _state_problems(report: NodeReport) -> list[str]:
+    """What its CiA 402 state stands in the way of: a fault to clear first."""
+    state = report.state
+    if state in (FAULT, FAULT_REACTION_ACTIVE):
+        code = f" ({report.error_text})" if report.error_code else ""
+        return [f"in {state}{code}, `hil drive reset` clears it"]
+    if state == UNKNOWN_STATE:
+        return [f"statusword 0x{report.statusword:04X} is no CiA 402 state"]
+    return []
+
+
+def _state_notes(report: NodeReport) -> list[str]:
+    """What a run does first because of its CiA 402 state: an enabled drive is disabled."""
+    if report.state in (OPERATION_ENABLED, QUICK_STOP_ACTIVE):
+        return [f"it is in {report.state} now (another master?): a run disables voltage first"]
+    return []
+
+
+def _problems(report: NodeReport, sdo: SdoClient) -> list[str]:
     problems = []
+    mode = report.mode
     if report.device_type is not None and report.device_type & 0xFFFF != 402:
         problems.append(f"not a CiA 402 drive (device type 0x{report.device_type:08X})")
     bit = SUPPORTED_MODE_BITS[MODES[mode]]
     if report.supported_modes is None:
         problems.append("no 0x6502 (supported modes)")
     elif not report.supported_modes & bit:
-        problems.append(f"mode {mode.upper()} not supported (0x6502 = "
+        problems.append(f"mode {mode.upper()} not supported (it supports "
+                        f"{', '.join(report.modes) or 'none'}: 0x6502 = "
                         f"0x{report.supported_modes:08X})")
-    increments = _optional(sdo.read_int, ENCODER_RESOLUTION, 1)
-    if not increments:
-        problems.append("no encoder resolution 0x608F: positions cannot be scaled")
-    for index, what in ((0x6075, "rated current"), (0x6040, "controlword"),
-                        (0x6041, "statusword"), (0x6064, "position actual"),
-                        (0x606C, "velocity actual"), (0x6077, "torque actual"),
+    for index, what in ((0x6040, "controlword"), (STATUSWORD, "statusword"),
+                        (POSITION_ACTUAL, "position actual"), (0x606C, "velocity actual"),
+                        (0x6077, "torque actual"),
                         (0x6071 if mode == "cst" else 0x607A, "the mode's target")):
         try:
             sdo.read(index, 0)
@@ -181,20 +338,20 @@ def _problems(report: NodeReport, sdo: SdoClient, mode: str) -> list[str]:
     return problems
 
 
-def scan(link: Link, nodes: list[int] | None = None, mode: str = "cst"
-         ) -> list[NodeReport]:
-    """The nodes of ``link`` (``nodes``: these only), each inspected; a node that does not
-    answer at all is reported as such."""
+def scan(link: Link, nodes: list[int] | None = None, mode: str = "cst",
+         eds: str | None = None) -> list[NodeReport]:
+    """The nodes of ``link`` (``nodes``: these only), each inspected (against the EDS at
+    ``eds`` too); a node that does not answer at all is reported as such."""
     found = discover(link) if nodes is None else nodes
     states = heartbeats(link) if found else {}
     reports = []
     for node in found:
         try:
-            report = inspect(link, node, mode)
+            report = inspect(link, node, mode, eds)
         except DriveLinkLostError:
-            report = NodeReport(node, problems=["does not answer SDO"])
-        except DriveError as exc:
-            report = NodeReport(node, problems=[str(exc)])
+            report = NodeReport(node, mode, problems=["does not answer SDO"])
+        except DriveError as exc:  # an answer that makes no sense (wrong size, bad command)
+            report = NodeReport(node, mode, problems=[str(exc)])
         if node in states:
             report.nmt_state = states[node]
         reports.append(report)

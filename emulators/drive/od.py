@@ -27,6 +27,7 @@ from canopen.objectdictionary.datatypes import (
     VISIBLE_STRING,
 )
 
+from drivers.cia301 import SDO_REQUEST_BASE, SDO_RESPONSE_BASE
 from drivers.cia402 import NO_MODE, RPDOS, SUPPORTED_MODE_BITS, TPDOS, PdoMap
 
 DEVICE_TYPE = 0x0002_0192  # CiA 402 profile, servo drive
@@ -114,6 +115,11 @@ def build_object_dictionary(node_id: int, defaults: OdDefaults | None = None) ->
     add(_var("Producer heartbeat time", 0x1017, 0, UNSIGNED16, "rw", d.heartbeat_ms))
     add(_var("Synchronous counter overflow value", 0x1019, 0, UNSIGNED8, "rw", 0,
              maximum=240))
+    add(_record("SDO server parameter", 0x1200, [
+        _var("Highest sub-index supported", 0x1200, 0, UNSIGNED8, "const", 2),
+        _var("COB-ID client to server", 0x1200, 1, UNSIGNED32, "ro", SDO_REQUEST_BASE + node_id),
+        _var("COB-ID server to client", 0x1200, 2, UNSIGNED32, "ro", SDO_RESPONSE_BASE + node_id),
+    ]))
     add(_record("Identity object", 0x1018, [
         _var("Number of entries", 0x1018, 0, UNSIGNED8, "const", 4),
         _var("Vendor-ID", 0x1018, 1, UNSIGNED32, "ro", 0),

@@ -2,14 +2,13 @@
 group ``hil.controllers`` (``eec``, ``bc``) as factories ``(params, context)``.
 
 * ``eec`` - the energy-efficiency controller (MILP receding horizon) with its Kalman filter;
-  ``params`` are ``[eec]`` keys of eec.toml (``hp_s``, ``gamma1``, ``time_limit_s``...), laid
-  over the config and the command line's flags and checked as strictly;
+  ``params`` are ``[eec]`` keys of eec.toml (``hp_s``, ``gamma1``, ``time_limit_s``...), which
+  the run has laid over the config's ``[eec]``, under the flags (:mod:`hil.bench.settings`);
 * ``bc`` - the hysteresis baseline; it takes no params.
 """
 
 from __future__ import annotations
 
-import importlib.resources
 import os
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
@@ -30,9 +29,9 @@ def eec(params: Mapping[str, Any], context: BenchContext) -> RecordedEEC:
     """The EEC of a run, recording its estimates, plans and fallbacks."""
     from controllers.bench.eec import EEC
 
-    config = context.eec_config(params)
+    config = context.eec
     problem = context.problem
-    settings = eec_settings(config.eec, context.flags)
+    settings = eec_settings(config.eec)
     models = load_models(config, problem)
     controller = EEC(models, problem, settings, feedback=config.eec.feedback,
                      kalman=config.kalman)
@@ -46,20 +45,15 @@ def bc(params: Mapping[str, Any], context: BenchContext) -> BasicController:
     return BasicController(context.problem, context.step_s)
 
 
-def eec_settings(table: EecTable, flags: Mapping[str, Any]) -> EECSettings:
-    """The EEC's settings: ``[eec]`` with the command line's flags (``hp_s``, ``hs_s``,
-    ``gamma1``, ``gamma2``; None: not given) laid over it."""
-    def pick(name: str) -> Any:
-        value = flags.get(name)
-        return getattr(table, name) if value is None else value
-
+def eec_settings(table: EecTable) -> EECSettings:
+    """The EEC's settings of its ``[eec]`` table."""
     from controllers.bench.eec import EECSettings
 
     step = table.step_s
     try:
         return EECSettings(
-            hp_steps=round(pick("hp_s") / step), hs_steps=round(pick("hs_s") / step),
-            step_s=step, gamma1=pick("gamma1"), gamma2=pick("gamma2"), gamma3=table.gamma3,
+            hp_steps=round(table.hp_s / step), hs_steps=round(table.hs_s / step),
+            step_s=step, gamma1=table.gamma1, gamma2=table.gamma2, gamma3=table.gamma3,
             terminal=table.terminal, limit_va=table.limit_va,
             limit_weight=table.limit_weight, peak_resolution_va=table.peak_resolution_va,
             time_limit_s=table.time_limit_s, mip_rel_gap=table.mip_rel_gap, solver=table.solver,
@@ -69,14 +63,11 @@ def eec_settings(table: EecTable, flags: Mapping[str, Any]) -> EECSettings:
 
 
 def model_path(name: str, eec: EecConfig, key: str) -> str:
-    """A model file: absolute, relative to the working directory, or next to eec.toml."""
-    if os.path.isabs(name) or os.path.exists(name):
+    """A model file (the config resolved it from the folder of the file that names it)."""
+    if os.path.isfile(name):
         return name
-    packaged = importlib.resources.files("hil.configs").joinpath(name)
-    if packaged.is_file():
-        return str(packaged)
-    raise ConfigError(f"{eec.source}: key '{key}': model file {name!r} not found (working "
-                      "directory or hil/configs)")
+    raise ConfigError(f"{eec.source}: key '{key}': model file {name!r} not found (a relative "
+                      "path is read from the folder of the config file that names it)")
 
 
 def load_models(eec: EecConfig, problem: BenchProblem) -> BenchModels:

@@ -18,6 +18,7 @@ the packaged defaults, the user's file when there is one) and the dotted key.
 from __future__ import annotations
 
 import importlib.resources
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -45,6 +46,7 @@ from hil.bench.safety import BenchSafety
 from hil.core.config import Table, deep_merge, load_toml, parse_toml
 from hil.core.errors import ConfigError
 from hil.core.ranges import MAX_DURATION_S, MAX_DWELL_S, MAX_EEC_HORIZON_S
+from hil.core.settings import KeyRead, Layer, Layered, Setting, effective, lay
 from hil.core.verdict import RUN_TABLES, RunTables, read_run_tables
 
 SOURCE = "bench config"
@@ -80,6 +82,12 @@ class BenchConfig:
     run: RunTables               # [controller] params and [limits] of a run
     safety: BenchSafety = field(default_factory=BenchSafety)  # [safety]: the run's limits
     faults: tuple[Fault, ...] = ()  # [faults]: what the emulator does wrong, and when
+    layered: Layered | None = None  # the layers it was laid from
+    reads: tuple[KeyRead, ...] = ()  # every key as read, in reading order
+
+    def settings(self) -> list[Setting]:
+        """Every key as it runs, with its origin."""
+        return effective(self.reads, self.layered or lay([Layer(self.source, self.data)]))
 
     def with_dwell(self, dwell_s: float | None) -> BenchConfig:
         """Every peripheral's dwell set to ``dwell_s`` (``hil bench run --dwell``) for the
@@ -95,15 +103,6 @@ class BenchConfig:
         data = deep_merge(self.data, {"relays": {n: {"dwell_s": dwell} for n in peripherals}})
         problem = replace(self.problem, dwell_s=dict.fromkeys(peripherals, dwell))
         return replace(self, data=data, map=replace(self.map, relays=relays), problem=problem)
-
-    def with_safety(self, overrides: Mapping[str, Any]) -> BenchConfig:
-        """``[safety]`` with ``overrides`` (``hil bench run --safety KEY=VALUE``) laid over it,
-        checked as strictly as the file."""
-        if not overrides:
-            return self
-        data = deep_merge(self.data, {"safety": dict(overrides)})
-        safety = _safety(Table(data["safety"], f"{self.source} (--safety)", "safety"))
-        return replace(self, data=data, safety=safety)
 
     def emulating(self, seed: int | None = None, disturbance: bool | None = None
                   ) -> BenchConfig:
@@ -146,6 +145,7 @@ class EecConfig:
     eec: EecTable
     kalman: KalmanSettings
     models: dict[str, str]       # "machining" and each peripheral -> model file
+    reads: tuple[KeyRead, ...] = ()  # every key as read, in reading order
 
 
 # -- loading -------------------------------------------------------------------------------------
@@ -160,24 +160,40 @@ def _default(name: str) -> dict[str, Any]:
     return parse_toml(default_text(name), f"hil/configs/{name}")
 
 
-def _user_file(path: str | None) -> tuple[dict[str, Any], str]:
-    return load_toml(path) if path is not None else ({}, "")
+def config_layers(path: str | None = None) -> tuple[list[Layer], str]:
+    """The packaged bench.toml and eec.toml and the user's file at ``path`` over both (one file
+    may hold tables of both), as layers; and the user's text (``''`` without a file)."""
+    packaged = str(importlib.resources.files("hil.configs"))
+    layers = [Layer(f"hil/configs/{name}", _default(name), folder=packaged)
+              for name in ("bench.toml", "eec.toml")]
+    if path is None:
+        return layers, ""
+    user, text = load_toml(path)
+    return [*layers, Layer(f"--config {path}", user,
+                           folder=os.path.dirname(os.path.abspath(path)))], text
 
 
 def load_bench_config(path: str | None = None) -> BenchConfig:
     """The default bench config with the file at ``path`` (if any) laid over it, read."""
-    user, text = _user_file(path)
-    return parse_bench_config(deep_merge(_default("bench.toml"), user), path or SOURCE, text)
+    layers, text = config_layers(path)
+    return parse_bench_config(lay(layers), path or SOURCE, text)
 
 
 def load_configs(path: str | None = None, eec_overrides: Mapping[str, Any] | None = None
                  ) -> tuple[BenchConfig, EecConfig]:
     """The bench and the EEC config with the file at ``path`` (if any) laid over both;
     ``eec_overrides``: ``[eec]`` keys set by a program (benchmarks, tests)."""
-    user, text = _user_file(path)
-    bench = parse_bench_config(deep_merge(_default("bench.toml"), user), path or SOURCE, text)
-    eec = parse_eec_config(deep_merge(_default("eec.toml"), user), path or EEC_SOURCE,
-                           bench.problem.peripherals, eec_overrides)
+    layers, text = config_layers(path)
+    if eec_overrides:
+        layers.append(Layer("overrides", {"eec": dict(eec_overrides)}))
+    return parse_configs(lay(layers), path, text)
+
+
+def parse_configs(layered: Layered, path: str | None, text: str
+                  ) -> tuple[BenchConfig, EecConfig]:
+    """The bench and the EEC config of ``layered`` (``path``: the user's file, if any)."""
+    bench = parse_bench_config(layered, path or SOURCE, text)
+    eec = parse_eec_config(layered, path or EEC_SOURCE, bench.problem.peripherals)
     step, period = eec.eec.step_s, bench.sampling.period_s
     divisor = round(step / period)
     if divisor < 1 or abs(divisor * period - step) > 1e-9:
@@ -189,10 +205,13 @@ def load_configs(path: str | None = None, eec_overrides: Mapping[str, Any] | Non
 # -- bench.toml ----------------------------------------------------------------------------------
 
 
-def parse_bench_config(data: Mapping[str, Any], source: str = SOURCE, user_text: str = ""
-                       ) -> BenchConfig:
-    """Read a whole (merged) bench config; the first problem found raises."""
-    top = Table(data, source)
+def parse_bench_config(tables: Mapping[str, Any] | Layered, source: str = SOURCE,
+                       user_text: str = "") -> BenchConfig:
+    """Read a whole (merged) bench config, as tables or layers; the first problem found
+    raises."""
+    layered = tables if isinstance(tables, Layered) else lay([Layer(source, tables)])
+    data = {name: value for name, value in layered.data.items() if name not in EEC_TABLES}
+    top = Table(layered.data, source, layered=layered)
     relays = _relays(top.table("relays", required=True))
     units = _units(top.table("units", required=True))
     meter = top.table("meter", required=True)
@@ -226,13 +245,18 @@ def parse_bench_config(data: Mapping[str, Any], source: str = SOURCE, user_text:
                             emulator.string("unknown_unit", "auto", choices=UNKNOWN_UNIT_POLICIES))
     emulator.done()
     run = read_run_tables(top)
-    faults = tuple(parse_faults_table(top.raw("faults", {}), source))
+    faults_table = top.table("faults")
+    schedule = faults_table.array("schedule", [], "faults KIND@START[-END][:KEY=VALUE,...] or "
+                                  "inline tables (docs/FAULTS.md)")
+    faults_table.done()
+    faults = tuple(parse_faults_table({"schedule": schedule}, source))
     for name in EEC_TABLES:  # one user file may hold the EEC's tables too
         top.raw(name, None)
     top.done()
-    return BenchConfig(source, dict(data), user_text, bus, bench_map, sampling, problem, plant,
+    return BenchConfig(source, data, user_text, bus, bench_map, sampling, problem, plant,
                        server, run, safety,
-                       tuple(for_emulator(faults, "bench", f"{source}: faults")))
+                       tuple(for_emulator(faults, "bench", f"{source}: faults")), layered,
+                       tuple(top.reads))
 
 
 def _relays(table: Table) -> dict[str, RelaySpec]:
@@ -287,7 +311,7 @@ def _registers(table: Table) -> dict[str, int]:
 
 
 def _poll(meter: Table, registers: Mapping[str, int]) -> list[str]:
-    poll = meter.get("poll", list, None)
+    poll = meter.array("poll", None, "names of [meter.registers]")
     if poll is None:
         return list(registers)
     unknown = [q for q in poll if not isinstance(q, str) or q not in registers]
@@ -339,7 +363,7 @@ def _safety(s: Table) -> BenchSafety:
 def _sequence(table: Table, relays: Mapping[str, RelaySpec]) -> MachiningSequence:
     """Stages tiling ``[0, period_s)`` in order, each naming relays of ``[relays]``."""
     period = table.number("period_s", above=0, at_most=MAX_DURATION_S)
-    raw = table.get("stages", list)
+    raw = table.array("stages", rule="stages {start_s, end_s, on} tiling [0, period_s)")
     if not raw:
         raise table.error("stages", "must list at least one stage")
     table.done()
@@ -404,7 +428,7 @@ def _relay(table: Table, key: str, relays: Mapping[str, RelaySpec]) -> str:
 
 
 def _pair(table: Table, key: str) -> tuple[float, float]:
-    value = table.get(key, list)
+    value = table.array(key, rule="[low, high], low < high")
     ok = (len(value) == 2 and all(_is_number(x) for x in value) and value[0] < value[1])
     if not ok:
         raise table.error(key, f"must be [low, high] with low < high, got {value!r}")
@@ -446,17 +470,16 @@ def _resources(table: Table, sequence: MachiningSequence, relays: Mapping[str, R
 
 
 def _phases(table: Table, key: str = "phases") -> tuple[str, ...]:
-    phases = table.get(key, list, ["L2"])
+    phases = table.array(key, ["L2"], f"distinct phases among {', '.join(PHASES)}")
     if not phases or not all(p in PHASES for p in phases) or len(set(phases)) != len(phases):
         raise table.error(key, f"must list distinct phases among {list(PHASES)}, got {phases!r}")
     return tuple(phases)
 
 
 def _power_factor(table: Table, key: str, default: float | None = None) -> float:
-    pf = table.number(key) if default is None else table.number(key, default)
-    if not 0.0 < pf <= 1.0:
-        raise table.error(key, f"must be in (0, 1], got {pf!r}")
-    return pf
+    if default is None:
+        return table.number(key, above=0.0, at_most=1.0)
+    return table.number(key, default, above=0.0, at_most=1.0)
 
 
 def _plant(table: Table, coils: int, relays: Mapping[str, RelaySpec],
@@ -510,7 +533,7 @@ def _load(table: Table, name: str, relays: Mapping[str, RelaySpec]
 
 def _disturbance(table: Table) -> DisturbanceSpec:
     windows = []
-    for window in table.get("windows", list, []):
+    for window in table.array("windows", [], "[start_s, end_s] pairs"):
         ok = (isinstance(window, list) and len(window) == 2
               and all(_is_number(x) for x in window) and 0 <= window[0] < window[1])
         if not ok:
@@ -527,7 +550,7 @@ def _disturbance(table: Table) -> DisturbanceSpec:
 
 
 def _meter_space(table: Table) -> tuple[int, int]:
-    space = table.get("meter_space", list)
+    space = table.array("meter_space", rule="[first, end], 0 <= first < end")
     if len(space) != 2 or not all(isinstance(x, int) and not isinstance(x, bool) for x in space) \
             or not 0 <= space[0] < space[1]:
         raise table.error("meter_space", f"must be [first, end] with 0 <= first < end, got "
@@ -564,11 +587,13 @@ def check_emulation(config: BenchConfig) -> None:
 # -- eec.toml ------------------------------------------------------------------------------------
 
 
-def parse_eec_config(data: Mapping[str, Any], source: str, peripherals: tuple[str, ...],
-                     overrides: Mapping[str, Any] | None = None) -> EecConfig:
-    """Read a whole (merged) EEC config; ``overrides`` are laid over ``[eec]`` first (they are
-    not part of ``data``, which is recorded as read)."""
-    top = Table({**data, "eec": deep_merge(data.get("eec", {}), overrides or {})}, source)
+def parse_eec_config(tables: Mapping[str, Any] | Layered, source: str,
+                     peripherals: tuple[str, ...]) -> EecConfig:
+    """Read a whole (merged) EEC config, as tables or layers; model files are found from the
+    folder of the file that names them (the packaged ones next to eec.toml)."""
+    layered = tables if isinstance(tables, Layered) else lay([Layer(source, tables)])
+    data = {name: value for name, value in layered.data.items() if name in EEC_TABLES}
+    top = Table(layered.data, source, layered=layered)
     eec = _eec(top.table("eec", required=True))
     kalman_table = top.table("kalman")
     defaults = KalmanSettings()
@@ -580,12 +605,12 @@ def parse_eec_config(data: Mapping[str, Any], source: str, peripherals: tuple[st
     )
     kalman_table.done()
     models_table = top.table("models", required=True)
-    models = {name: models_table.string(name) for name in ("machining", *peripherals)}
+    models = {name: models_table.file_path(name) for name in ("machining", *peripherals)}
     models_table.done()
     for name in (*BENCH_TABLES, *RUN_TABLES):  # one file may hold the bench's tables too
         top.raw(name, None)
     top.done()
-    return EecConfig(source, dict(data), eec, kalman, models)
+    return EecConfig(source, data, eec, kalman, models, tuple(top.reads))
 
 
 def _eec(table: Table) -> EecTable:

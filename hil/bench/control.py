@@ -343,8 +343,7 @@ class BenchContext:
     session: Session
     log: RunLog
     origin: Callable[[], int]
-    eec_config: Callable[[Mapping[str, Any]], EecConfig]  # eec.toml with params over [eec]
-    flags: Mapping[str, Any]                              # hil bench run's EEC flags
+    eec: EecConfig               # eec.toml as the run resolved it (flags and params laid in)
 
 
 class SignalLimits(Task):

@@ -21,7 +21,6 @@
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -451,9 +450,8 @@ def _emulator_process(config: BenchConfig, clock: Clock, on_event: EventSink) ->
     from hil.emulator_process import start_bench_emulator
 
     check_emulation(config)
-    path = config.source if os.path.isfile(config.source) else None
-    process = start_bench_emulator(path, seed=config.plant.seed,
-                                   disturbance=config.plant.disturbance.enabled)
+    # the run's effective tables, every layer in (seed, disturbance...): what it was given
+    process = start_bench_emulator(tables=config.data)
     on_event("emulator.process", f"bench emulator in process {process.pid} at {process.url}",
              source="bench", pid=process.pid, url=process.url)
     try:

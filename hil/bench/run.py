@@ -19,11 +19,10 @@ samples the loop saw and stored in the session (``hil report`` prints them).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass
 from typing import Any
 
-from hil.bench.config import EecConfig, default_text, load_configs
+from hil.bench.config import default_text
 from hil.bench.control import (
     BenchContext,
     ControllerTask,
@@ -33,6 +32,7 @@ from hil.bench.control import (
     SignalLimits,
 )
 from hil.bench.kpis import BenchKpis
+from hil.bench.options import BenchRunOptions
 from hil.bench.rig import (
     BenchRig,
     OpenedBench,
@@ -43,6 +43,7 @@ from hil.bench.rig import (
     session_clock,
 )
 from hil.bench.safety import BenchSafetyTask
+from hil.bench.settings import resolve_bench
 from hil.core.clock import Clock
 from hil.core.errors import (
     ConfigError,
@@ -52,9 +53,9 @@ from hil.core.errors import (
     UsageError,
 )
 from hil.core.loop import Task
+from hil.core.notice import warn
 from hil.core.plugins import build_controller, controller_factory, controller_short_name
 from hil.core.ranges import MAX_DURATION_S, MAX_EEC_HORIZON_S, check_at_most
-from hil.core.recorder import RecordingOptions
 from hil.core.run import (
     EventBuffer,
     Experiment,
@@ -65,81 +66,13 @@ from hil.core.run import (
     run_experiment,
 )
 from hil.core.session import Session
-from hil.core.verdict import Limit, SignalWatch, split_limits
+from hil.core.settings import settings_json
+from hil.core.verdict import SignalWatch, split_limits
 
 #: the KPIs of ``hil bench run`` a limit may name (groups by their name)
 KPI_NAMES = ("J1_VA", "J2_VA", "SEC_VA", "energy_VAs", "peak_VA", "over_limit_s", "overlap_s",
              "level_violations", "dwell_violations", "switches", "starts_per_hour", "solve_ms",
              "solves_at_limit", "max_gap", "fallbacks", "faults")
-
-#: ``hil bench run``'s flags (argparse dests) -> the option they set, where the names differ
-FLAG_OPTIONS = {"hp": "hp_s", "hs": "hs_s", "dwell": "dwell_s", "config": "config_path",
-                "limit": "limits", "param": "params", "controller_budget": "controller_budget_s"}
-
-
-@dataclass(frozen=True)
-class BenchRunOptions:
-    """Everything ``hil bench run`` can set (CLI flags); None = the config's value.
-
-    ``controller`` is a spec (``eec``, ``bc``, ``FILE.py:Class``, ``package.module:Class``, a
-    name registered in ``hil.controllers``) or a class; ``params`` are laid over the config's
-    ``[controller]`` table; ``limits`` are added to its ``[limits]``; ``overrides`` are
-    ``[eec]`` keys (benchmarks, the demo, ``--terminal``)."""
-
-    controller: str | Callable[..., Any] = "eec"
-    params: Mapping[str, Any] = field(default_factory=dict)
-    bench: str = "emulated"
-    cycles: int = 8
-    hp_s: int | None = None
-    hs_s: int | None = None
-    gamma1: float | None = None
-    gamma2: float | None = None
-    dwell_s: float | None = None
-    disturbance: bool = False
-    realtime: bool = False
-    out: str | None = None
-    config_path: str | None = None
-    seed: int | None = None
-    limits: tuple[Limit, ...] = ()
-    safety: Mapping[str, Any] = field(default_factory=dict)  # [safety] keys for this run
-    controller_budget_s: float | None = None  # per decision; None: the step in real time
-    overrides: Mapping[str, Any] = field(default_factory=dict)
-    recording: RecordingOptions = field(default_factory=RecordingOptions)
-    quiet: bool = False              # no progress line on the terminal
-
-    @classmethod
-    def from_flags(cls, flags: Mapping[str, Any]) -> BenchRunOptions:
-        """The options of ``hil bench run``'s flags as a dict (argparse dests; a sweep's swept
-        values laid over them); flags that are not run options (``json``, ``junit``...) are
-        ignored. ``terminal`` sets the ``[eec]`` key of that name."""
-        known = {f.name for f in fields(cls)}
-        values: dict[str, Any] = {}
-        for flag, value in flags.items():
-            name = FLAG_OPTIONS.get(flag, flag)
-            if name in known and name != "overrides":
-                values[name] = value
-        values["params"] = dict(values.get("params", {}))
-        values["limits"] = tuple(values.get("limits", ()))
-        values["safety"] = dict(values.get("safety") or {})
-        overrides = dict(flags.get("overrides", {}))
-        if flags.get("terminal"):
-            overrides["terminal"] = flags["terminal"]
-        return cls(**values, overrides=overrides)
-
-    def flags(self) -> dict[str, Any]:
-        """The EEC's flags (``--hp``, ``--hs``, ``--gamma1``, ``--gamma2``)."""
-        return {"hp_s": self.hp_s, "hs_s": self.hs_s, "gamma1": self.gamma1,
-                "gamma2": self.gamma2}
-
-    def record(self) -> dict[str, Any]:
-        """The options as the session's ``run`` metadata records them."""
-        info = {f.name: getattr(self, f.name) for f in fields(self)
-                if f.name not in ("overrides", "limits", "recording")}
-        info["params"] = dict(self.params)
-        info["safety"] = dict(self.safety)
-        info["recording"] = asdict(self.recording)
-        return info
-
 
 def run_bench(opts: BenchRunOptions) -> RunResult:
     """Run one closed-loop bench session (``hil bench run``)."""
@@ -159,20 +92,20 @@ class BenchExperiment(Experiment):
 
     def plan(self) -> RunPlan:
         opts = self.opts
-        if opts.disturbance and not is_emulated(opts.bench):
-            raise UsageError("--disturbance switches the emulator's unknown load on: it needs "
-                             "--bench emulated")
         if opts.hp_s is not None:
             check_at_most(opts.hp_s, MAX_EEC_HORIZON_S, "--hp", "the EEC's MILP grows with "
                           "the horizon (a decision would take far longer than its step)")
-        bench, eec = load_configs(opts.config_path, opts.overrides)
+        self.settings = settings = resolve_bench(opts)
+        self.url = url = settings.url
+        if opts.disturbance and not is_emulated(url):
+            raise UsageError("--disturbance switches the emulator's unknown load on: it needs "
+                             "the emulated bench")
+        bench, eec = settings.bench, settings.eec
         seconds = opts.cycles * bench.problem.sequence.period_s
         if seconds > MAX_DURATION_S:
             raise UsageError(f"--cycles {opts.cycles}: {seconds:g} s is longer than a run can "
                              f"be ({MAX_DURATION_S:g} s, about {MAX_DURATION_S / 86400:.1f} days)")
-        # the safety layer enforces the controllers' dwell
-        self.bench = bench = bench.with_dwell(opts.dwell_s).with_safety(opts.safety)
-        self.eec = eec
+        self.bench, self.eec = bench, eec
         self.step_s = eec.eec.step_s
         self.params = {**bench.run.params, **opts.params}
         kpi_limits, signal_limits = split_limits(
@@ -182,7 +115,7 @@ class BenchExperiment(Experiment):
         self.factory, self.label = controller_factory(opts.controller, self.params,
                                                       method="decide", application="bench")
         self.watch = SignalWatch(signal_limits)
-        self.clock = session_clock(opts.bench, opts.realtime)
+        self.clock = session_clock(url, opts.realtime)
         out = opts.out or default_session_path("bench", controller_short_name(self.label))
         self.out = out
         run_info = opts.record() | {
@@ -195,16 +128,17 @@ class BenchExperiment(Experiment):
             base_period_s=bench.sampling.period_s,
             duration_s=opts.cycles * bench.problem.sequence.period_s,
             kpi_limits=tuple(kpi_limits), watch=self.watch,
-            config={"bench": bench.data, "controllers": eec.data, "run": run_info},
+            config={"bench": bench.data, "controllers": eec.data, "run": run_info,
+                    "settings": settings_json(settings.settings())},
             config_text=text, recording=opts.recording,
-            devices=() if is_emulated(opts.bench) else (("bench", opts.bench),),
+            devices=() if is_emulated(url) else (("bench", url),),
             quiet=opts.quiet)
 
     def open_devices(self, clock: Clock, on_event: EventBuffer) -> None:
-        opts = self.opts
-        self.device = open_bench_device(
-            opts.bench, self.bench.emulating(opts.seed, opts.disturbance or None), clock,
-            on_event)
+        for kind, message in self.settings.notices:
+            warn(message)
+            on_event(kind, message, level="warning", source="settings")
+        self.device = open_bench_device(self.url, self.bench, clock, on_event)
 
     def build_controller(self, session: Session) -> None:
         opts, bench = self.opts, self.bench
@@ -213,17 +147,13 @@ class BenchExperiment(Experiment):
                                     limit_va=self.eec.eec.limit_va))
         self.origin = SequenceOrigin(session.clock)
         context = BenchContext(problem, self.step_s, session, self.log, self.origin,
-                               self._eec_config, opts.flags())
+                               self.eec)
         controller = build_controller(self.factory, self.label, self.params, method="decide",
                                       application="bench", context=context)
         budget = controller_budget(opts.controller_budget_s,
                                    session.clock.mode == "realtime", self.step_s)
         self.controller = GuardedController(controller, self.label, problem.peripherals,
                                             self.log, session.event, budget)
-
-    def _eec_config(self, params: Mapping[str, Any]) -> EecConfig:
-        """eec.toml with a controller's ``params`` laid over its ``[eec]`` table."""
-        return load_configs(self.opts.config_path, {**self.opts.overrides, **params})[1]
 
     def start(self, session: Session) -> None:
         assert self.device is not None and self.controller is not None

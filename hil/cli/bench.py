@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import time
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
@@ -11,6 +10,7 @@ from hil.bench.identify_options import MACHINING_MODES, IdentifyOptions, parse_r
 from hil.cli.argtypes import key_value, nonnegative_float, output_file, positive_float, positive_int
 from hil.cli.output import json_text
 from hil.cli.recording import add_recording_arguments, recording_options
+from hil.cli.units import seconds
 from hil.cli.verdict import add_controller_arguments, add_junit_argument, finish
 
 if TYPE_CHECKING:
@@ -37,6 +37,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     run.add_argument("--out", metavar="F.mcap", type=output_file, help="session file (default: "
                      "sessions/bench-CONTROLLER-DATE-TIME.mcap)")
     run.add_argument("--json", action="store_true", help="print KPIs as JSON")
+    run.add_argument("--print-config", action="store_true",
+                     help="print every setting as the run would use it, with where it came "
+                     "from (built-in default, hil/configs/bench.toml or eec.toml, --config, a "
+                     "flag), and exit without running; with --json as JSON")
     add_recording_arguments(run)
     run.set_defaults(handler=run_command)
     ident = bench_sub.add_parser("identify", help="PRBS switching experiment for identification")
@@ -49,24 +53,29 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     bench``): the controller, its tuning, the bench and the verdict."""
     add_controller_arguments(parser, "eec, bc", "total_va or any meter quantity polled, and the "
                              "levels q1, q2")
-    parser.add_argument("--bench", default="emulated",
-                        help="emulated | modbus-tcp://HOST:PORT | modbus-rtu:///dev/X")
-    parser.add_argument("--cycles", type=positive_int, default=8, help="machine cycles (T = 28 s)")
-    parser.add_argument("--hp", type=positive_int, default=None,
-                        help="prediction horizon [s] (default 28)")
-    parser.add_argument("--hs", type=positive_int, default=None,
-                        help="applied part of each plan [s] (default 1: receding horizon)")
-    parser.add_argument("--gamma1", type=nonnegative_float, default=None,
-                        help="weight of energy J1 (default 0.9)")
-    parser.add_argument("--gamma2", type=nonnegative_float, default=None,
-                        help="weight of peak J2 (default 0.1)")
-    parser.add_argument("--dwell", type=positive_float, default=None,
-                        help="min on/off time of P1/P2 [s] (default 5), also in the safety layer")
-    parser.add_argument("--terminal", choices=["none", "hold"], default=None,
+    parser.add_argument("--bench", metavar="URL",
+                        help="where the bench is (default: bench.toml's [bus] url, emulated): "
+                        "emulated | modbus-tcp://HOST:PORT | modbus-rtu:///dev/X")
+    parser.add_argument("--cycles", type=positive_int,
+                        help="machine cycles (T = 28 s each; default 8)")
+    parser.add_argument("--hp", type=positive_int, metavar="S",
+                        help="prediction horizon [s] (eec.hp_s, default 28)")
+    parser.add_argument("--hs", type=positive_int, metavar="S",
+                        help="applied part of each plan [s] (eec.hs_s, default 1: receding "
+                        "horizon)")
+    parser.add_argument("--gamma1", type=nonnegative_float,
+                        help="weight of energy J1 (eec.gamma1, default 0.9)")
+    parser.add_argument("--gamma2", type=nonnegative_float,
+                        help="weight of peak J2 (eec.gamma2, default 0.1)")
+    parser.add_argument("--dwell", type=seconds, metavar="S",
+                        help="min on/off time of P1/P2 [s] (relays.P*.dwell_s, default 5), also "
+                        "in the safety layer: may lengthen it, shorten it only with "
+                        "--allow-looser-safety")
+    parser.add_argument("--terminal", choices=["none", "hold"],
                         help="EEC terminal condition: none (the paper) or hold q_j(H_p) >= q_j(0) "
-                        "(default hold)")
+                        "(eec.terminal, default hold)")
     parser.add_argument("--disturbance", action="store_true",
-                        help="switch the emulator's unknown load on")
+                        help="switch the emulator's unknown load on (plant.disturbance.enabled)")
     parser.add_argument("--realtime", action="store_true",
                         help="follow the wall clock (always so against a real bench)")
     parser.add_argument("--config", metavar="F.toml",
@@ -76,27 +85,42 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "not a terminal)")
     parser.add_argument("--safety", action="append", type=key_value, default=[],
                         metavar="KEY=VALUE",
-                        help="override one safety limit of bench.toml's [safety] for this run "
+                        help="tighten one safety limit of bench.toml's [safety] for this run "
                         "(repeat): max_total_va, max_total_va_ms, level_min, level_max, "
-                        "enabled (false: none)")
+                        "enabled; a looser value needs --allow-looser-safety")
+    parser.add_argument("--allow-looser-safety", action="store_true",
+                        help="let --safety and --dwell loosen a limit of the config (recorded "
+                        "as a warning in the session)")
 
 
-def run_options(args: argparse.Namespace) -> BenchRunOptions:
+def run_options(args: argparse.Namespace, need_controller: bool = True) -> BenchRunOptions:
     """The :class:`BenchRunOptions` of parsed :func:`add_run_arguments` flags (``--out`` and
     the recording flags included)."""
     from hil.bench.run import BenchRunOptions
 
-    return replace(BenchRunOptions.from_flags(vars(args)), recording=recording_options(args))
+    options = BenchRunOptions.from_flags(vars(args), need_controller=need_controller)
+    return replace(options, recording=recording_options(args))
+
+
+def print_config(args: argparse.Namespace) -> int:
+    """``hil bench run --print-config``: every setting as the run would use it, and its origin;
+    nothing is opened."""
+    from hil.bench.settings import resolve_bench
+    from hil.core.settings import format_settings, settings_json
+
+    settings = resolve_bench(run_options(args, need_controller=False)).settings()
+    print(json_text(settings_json(settings)) if args.json
+          else format_settings("hil bench run", settings))
+    return 0
 
 
 def run_command(args: argparse.Namespace) -> int:
     from hil.bench.run import run_bench
 
-    start = time.perf_counter()
-    kpis = run_bench(run_options(args)).kpis
-    print(json_text(kpis) if args.json else format_kpis(kpis))
-    return finish(kpis, args, f"hil bench run {kpis['controller']}",
-                  time.perf_counter() - start)
+    if args.print_config:
+        return print_config(args)
+    return finish(args, "hil bench run", lambda: run_options(args), run_bench,
+                  lambda _options, kpis: format_kpis(kpis))
 
 
 def format_kpis(kpis: dict[str, Any]) -> str:

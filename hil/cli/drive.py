@@ -1,5 +1,6 @@
-"""``hil drive scan`` (what is on the bus, read-only), ``hil drive reset`` (clear a drive's
-FAULT) and ``hil drive plan`` (whether N axes fit one bus): the first commands on a new drive."""
+"""``hil drive scan`` (what is on the bus, read-only), ``hil drive sdo read|write`` (one
+object by SDO), ``hil drive reset`` (clear a drive's FAULT) and ``hil drive plan`` (whether N
+axes fit one bus): the first commands on a new drive."""
 
 from __future__ import annotations
 
@@ -21,20 +22,30 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                   "bus plan")
     sub = drive.add_subparsers(dest="drive_command", metavar="COMMAND", required=True)
     scan = sub.add_parser(
-        "scan", help="list the nodes of a bus and what hil can drive (read-only)",
+        "scan", help="list the nodes of a bus, their state and whether hil can drive them "
+        "(read-only)",
         description="Read, without changing anything (SDO uploads only: no NMT, no SYNC, no "
         "write), what is on a CAN bus: with no --node, the nodes that answer an SDO read of "
-        "0x1000; for each its NMT state (from its heartbeat), identity (0x1018), device type "
-        "(0x1000), name (0x1008), error register and history (0x1001, 0x1003), supported "
-        "modes (0x6502), the current PDO maps and heartbeat period, and whether hil can drive "
-        "it in the configured mode, and if not, why.")
+        "0x1000; for each its NMT state (from its heartbeat), CiA 402 state (0x6041) and error "
+        "code (0x603F, named), position (0x6064 in degrees, scaled by the drive's own 0x608F "
+        "and 0x6091 as a run scales it), identity (0x1018), device type (0x1000), name "
+        "(0x1008), error register and history (0x1001, 0x1003), supported modes by name "
+        "(0x6502), the current PDO maps and heartbeat period; with --eds, the drive's EDS "
+        "checked for every object hil reads, writes or maps; and a verdict: whether hil can "
+        "drive it in the configured mode, and if not, every reason (a FAULT names its code "
+        "and `hil drive reset`). Exit status 0: nodes found; 1: none answered.")
     scan.add_argument("url", metavar="URL", help=URL_HELP)
     scan.add_argument("--node", type=positive_int, action="append",
                       help="inspect this node only (repeat for several)")
     scan.add_argument("--config", metavar="F.toml",
                       help="drive config laid over the default (its [master] mode and [bus])")
+    scan.add_argument("--eds", metavar="F.eds",
+                      help="the drive's EDS or DCF: check every object hil reads, writes or "
+                      "maps in the mode (exists, hil's size, readable, writable, "
+                      "PDO-mappable as hil needs) and its vendor and product against 0x1018")
     scan.add_argument("--json", action="store_true", help="print the report as JSON")
     scan.set_defaults(handler=scan_command)
+    _register_sdo(sub)
     reset = sub.add_parser(
         "reset", help="clear a drive's FAULT (CiA 402 fault reset)",
         description="Bring a drive left in FAULT to SWITCH ON DISABLED through the CiA 402 "
@@ -49,21 +60,154 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     plan = sub.add_parser(
         "plan", help="whether N axes fit one CAN bus at a cycle rate (no bus needed)",
         description="The bus time of one cycle with N axes on one bus - one SYNC, each "
-        "axis' RPDO and TPDOs as the master maps them in its mode, the drives' and the "
-        "master's heartbeats - with worst-case bit stuffing, against the cycle period; where "
-        "the limits are (the axes that fit this period, the shortest period for these axes) "
-        "and, when it does not fit, the ways out. Exit status 0: it fits; 1: it does not.")
+        "axis' RPDO and TPDOs as the master maps them in its mode and TPDO layout, the "
+        "drives' and the master's heartbeats - in its worst case (every frame with all the "
+        "stuff bits it can take), which must not exceed the cycle period; where the limits are "
+        "(the axes that fit this period, the shortest period for these axes) and, when it "
+        "does not fit, the ways out, each as the setting that takes it. A run on several "
+        "axes is held to the same figure. Exit status 0: it fits; 1: it does not.")
     plan.add_argument("--axes", type=positive_int, default=1, metavar="N",
                       help="axes on the bus (1)")
     plan.add_argument("--rate-hz", type=positive_float, metavar="HZ",
-                      help="cycle rate (default: the config's cycle period, 2000 Hz)")
+                      help="cycle rate (default: the config's master.cycle_period_us, 2000 Hz)")
     plan.add_argument("--bitrate", type=positive_int, metavar="BIT/S",
-                      help="bus bitrate (default: the config's, 1000000)")
+                      help="bus bitrate (default: the config's, 1000000); above 1000000 only "
+                      "on a CAN FD bus (fd = true in the config's [bus.options])")
+    plan.add_argument("--tpdo-layout", choices=("two", "one"),
+                      help="the TPDOs per axis (default: the config's master.tpdo_layout, "
+                      "two): two (6 + 6 bytes) or one (8 bytes, no velocity)")
     plan.add_argument("--config", metavar="F.toml",
-                      help="drive config laid over the default: its [master] mode, heartbeats, "
-                      "sync_echo and [bus] bitrate")
+                      help="drive config laid over the default: its [master] mode, "
+                      "cycle_period_us, tpdo_layout, heartbeats, sync_echo and [bus] bitrate "
+                      "and options")
     plan.add_argument("--json", action="store_true", help="print the plan as JSON")
     plan.set_defaults(handler=plan_command)
+
+
+def _register_sdo(sub: argparse._SubParsersAction) -> None:
+    sdo = sub.add_parser(
+        "sdo", help="read or write one object of a drive by SDO",
+        description="Read or write one object of a drive by SDO, typed by the drive's EDS "
+        "(--eds) or by --type (which wins). A read without a type prints the bytes and, for "
+        "1, 2, 4 or 8 bytes, the unsigned value. A write sends 1, 2 or 4 bytes (an expedited "
+        "download) and is refused when a valid PDO carries the object while the drive is "
+        "operational (NMT OPERATIONAL by its heartbeat, or OPERATION ENABLED by 0x6041). An "
+        "SDO abort is one line with its CiA 301 code and text (exit 2). Takes the bus lock, "
+        "as a run does.")
+    ops = sdo.add_subparsers(dest="sdo_command", metavar="read|write", required=True)
+    read = ops.add_parser(
+        "read", help="upload one object",
+        description="Upload one object (nothing is written) and print it as its type says "
+        "(--type, else the EDS's); without a type, its bytes and, for 1, 2, 4 or 8 of them, "
+        "the unsigned value.")
+    write = ops.add_parser(
+        "write", help="download one value to one object",
+        description="Download one value (1, 2 or 4 bytes: an expedited SDO download) to one "
+        "object, encoded as its type says (--type, else the EDS's). Refused in one line when "
+        "a valid PDO carries the object while the drive is operational (NMT OPERATIONAL by "
+        "its heartbeat, or OPERATION ENABLED by 0x6041).")
+    for parser in (read, write):
+        parser.add_argument("url", metavar="URL", help=URL_HELP)
+        parser.add_argument("object", metavar="INDEX[:SUB]", type=_object,
+                            help="the object: INDEX in hex (0x6041 or 6041), SUB decimal or "
+                            "0x-hex (default 0), e.g. 0x1018:1")
+    write.add_argument("value", metavar="VALUE",
+                       help="the value: an integer (decimal, 0x-hex, negative), a number for "
+                       "REAL32, 0/1/true/false for BOOLEAN")
+    for parser in (read, write):
+        parser.add_argument("--node", type=positive_int, default=1,
+                            help="CANopen node id (1)")
+        parser.add_argument("--type", type=_data_type, metavar="T",
+                            help="the object's data type: u8, u16, u32, u64, i8, i16, i32, "
+                            "i64, f32, f64, bool, str, or the CiA 301 names BOOLEAN, "
+                            "INTEGER8..64, UNSIGNED8..64, REAL32, REAL64, VISIBLE_STRING, "
+                            "OCTET_STRING (any case)")
+        parser.add_argument("--eds", metavar="F.eds",
+                            help="the drive's EDS or DCF, for the object's data type")
+    read.add_argument("--json", action="store_true",
+                      help="print node, object, index, subindex, type, size, hex, value")
+    read.set_defaults(handler=sdo_read_command)
+    write.set_defaults(handler=sdo_write_command)
+
+
+def _object(text: str) -> tuple[int, int]:
+    from drivers.canopen.sdo_tool import parse_object
+
+    try:
+        return parse_object(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _data_type(text: str) -> int:
+    from drivers.canopen.sdo_tool import parse_type
+
+    try:
+        return parse_type(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _sdo_type(args: argparse.Namespace) -> int | None:
+    """The object's data type: --type, else the EDS's, else None."""
+    from drivers.canopen.sdo_tool import eds_type
+
+    if args.type is not None:
+        return int(args.type)
+    if args.eds:
+        return eds_type(args.eds, args.node, *args.object)
+    return None
+
+
+def _sdo_client(master: Any) -> Any:
+    """An SDO client of the master's node on its bus that ignores every other frame (the tool
+    runs no cyclic exchange to hand them to)."""
+    from drivers.canopen.sdo import SdoClient
+
+    return SdoClient(master.link, master.node_id, master.config.sdo_timeout_s,
+                     lambda frame: None)
+
+
+def sdo_read_command(args: argparse.Namespace) -> int:
+    from drivers.canopen.sdo_tool import read_object
+
+    data_type = _sdo_type(args)
+    index, subindex = args.object
+    with _bus_lock(args.url):
+        master = _master(args.url, None, args.node)
+        try:
+            value = read_object(_sdo_client(master), index, subindex, data_type)
+        finally:
+            master.disconnect()
+    print(json.dumps(value.as_dict()) if args.json else value.describe())
+    return 0
+
+
+def sdo_write_command(args: argparse.Namespace) -> int:
+    from drivers.canopen.sdo_tool import (
+        TYPE_NAMES,
+        download_format,
+        encode,
+        object_name,
+        write_object,
+    )
+    from hil.core.errors import UsageError
+
+    data_type = _sdo_type(args)
+    if data_type is None:
+        raise UsageError("hil drive sdo write needs the object's type: --type T or --eds F.eds")
+    raw = encode(args.value, data_type)
+    download_format(raw)  # a value too long is said before the bus is touched
+    index, subindex = args.object
+    with _bus_lock(args.url):
+        master = _master(args.url, None, args.node)
+        try:
+            write_object(master.link, _sdo_client(master), index, subindex, raw)
+        finally:
+            master.disconnect()
+    print(f"node {args.node} {object_name(*args.object)} {TYPE_NAMES[data_type]} = "
+          f"{args.value}: written")
+    return 0
 
 
 def _master(url: str, config: str | None, node: int | None) -> Any:
@@ -82,12 +226,15 @@ def _bus_lock(url: str) -> contextlib.AbstractContextManager[Any]:
 
 
 def scan_command(args: argparse.Namespace) -> int:
+    from drivers.canopen.eds import import_description
     from drivers.canopen.scan import scan
 
+    if args.eds:  # an unreadable file is said before the bus is touched
+        import_description(args.eds, args.node[0] if args.node else 1)
     with _bus_lock(args.url):
         master = _master(args.url, args.config, None)
         try:
-            reports = scan(master.link, args.node, master.config.mode)
+            reports = scan(master.link, args.node, master.config.mode, args.eds)
         finally:
             master.disconnect()
     if args.json:
@@ -101,25 +248,48 @@ def scan_command(args: argparse.Namespace) -> int:
 def format_scan(url: str, mode: str, reports: list[Any]) -> str:
     if not reports:
         return f"{url}: no node answered"
-    lines = [f"{url}: {len(reports)} node(s)"]
+    lines = [f"{url}: {len(reports)} node(s), checked for {mode.upper()}"]
     for r in reports:
         identity = ", ".join(f"{k} 0x{v:X}" for k, v in r.identity.items()) or "-"
         device = f"0x{r.device_type:08X}" if r.device_type is not None else "-"
+        modes = "-" if r.supported_modes is None else \
+            f"{', '.join(r.modes) or 'none'} (0x6502 = 0x{r.supported_modes:08X})"
         lines += [
             f"node {r.node_id}: {r.device_name or 'unnamed'}, NMT {r.nmt_state}",
+            f"  CiA 402 state {_state(r)}, error code {r.error_text or '-'}",
+            f"  position {_position(r)}",
             f"  device type {device}, identity {identity}",
             f"  error register {'-' if r.error_register is None else hex(r.error_register)}, "
             f"history {', '.join(r.error_history) or 'empty'}",
-            f"  supported modes "
-            f"{'-' if r.supported_modes is None else hex(r.supported_modes)}, heartbeat "
+            f"  supported modes {modes}, heartbeat "
             f"{'-' if r.heartbeat_ms is None else str(r.heartbeat_ms) + ' ms'}",
         ]
         for pdo in r.pdos:
             lines.append(f"  {pdo.name} 0x{pdo.cob_id:03X} {'valid' if pdo.valid else 'off'}"
                          f", type {pdo.transmission}: {', '.join(pdo.mapped) or 'nothing mapped'}")
-        lines.append(f"  hil can drive it in {mode.upper()}: " + (
-            "yes" if r.drivable else "no: " + "; ".join(r.problems)))
+        if r.eds is not None:
+            problems = r.eds["problems"]
+            lines.append(f"  EDS {r.eds['path']}: " + (
+                f"{len(problems)} problem(s), below" if problems else
+                "every object hil reads, writes or maps is there as hil needs it"))
+        lines.append(f"  {r.verdict}")
     return "\n".join(lines)
+
+
+def _state(report: Any) -> str:
+    if report.state is None:
+        return "-"
+    return f"{report.state} (statusword 0x{report.statusword:04X})"
+
+
+def _position(report: Any) -> str:
+    if report.position_deg is None:
+        return "-"
+    s = report.scaling
+    gear = f"gear {s['motor_revolutions']}:{s['shaft_revolutions']}"
+    return (f"{report.position_deg:.3f} deg (0x6064 = {report.position_counts} counts, "
+            f"{s['counts_per_turn']} per turn: 0x608F {s['increments_per_rev']} "
+            f"increments/rev, {gear})")
 
 
 def reset_command(args: argparse.Namespace) -> int:
@@ -143,36 +313,46 @@ def reset_command(args: argparse.Namespace) -> int:
 def plan_command(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from drivers.can_bus_time import plan_bus
-    from drivers.canopen.master import axis_traffic
-    from hil.servo.config import load_drive_config
+    from drivers.canopen.master import plan_axes
+    from hil.core.errors import UsageError
+    from hil.servo.config import check_bitrate, load_drive_config
 
-    master = load_drive_config(args.config).master
+    drive = load_drive_config(args.config)
+    master = drive.master
     if args.rate_hz:
         master = replace(master, cycle_period_s=1.0 / args.rate_hz)
     if args.bitrate:
+        fd = bool(drive.bus is not None and drive.bus.options.get("fd"))
+        check_bitrate(args.bitrate, fd, "--bitrate")
         master = replace(master, bitrate=args.bitrate)
-    plan = plan_bus(master.bitrate, master.cycle_period_s,
-                    [axis_traffic(master, f"axis {i}") for i in range(1, args.axes + 1)],
-                    master_heartbeat_s=master.heartbeat_period_ms / 1e3)
+    if args.tpdo_layout:
+        master = replace(master, tpdo_layout=args.tpdo_layout)
+        if args.tpdo_layout == "one" and master.sync_echo is not None:
+            raise UsageError("--tpdo-layout one fills its 8 bytes: no room for the config's "
+                             "master.sync_echo (set it to \"\")")
+    plan = plan_axes(master, [f"axis {i}" for i in range(1, args.axes + 1)])
     if args.json:
-        print(json.dumps({"mode": master.mode, **plan.summary()}, indent=2))
+        print(json.dumps({"mode": master.mode, "tpdo_layout": master.tpdo_layout,
+                          **plan.summary()}, indent=2))
     else:
         print(format_plan(master.mode, plan))
     return 0 if plan.fits else 1
 
 
 def format_plan(mode: str, plan: Any) -> str:
+    from drivers.can_bus_time import WORST_CASE
+
     b = plan.budget
     axis = plan.axes[0]
+    tpdos = " + ".join(str(n) for n in axis.tpdo_bytes)
     lines = [
         f"{len(plan.axes)} {'axis' if len(plan.axes) == 1 else 'axes'} in {mode.upper()} on "
         f"one bus at {b.bitrate} bit/s, "
         f"cycle {b.period_us:.0f} us ({1e6 / b.period_us:.0f} Hz): one SYNC, per axis an "
-        f"RPDO of {axis.rpdo_bytes} bytes and TPDOs of "
-        f"{' + '.join(str(n) for n in axis.tpdo_bytes)} bytes, heartbeats",
-        f"  bus time per cycle {b.nominal_us:.0f} us without bit stuffing, {b.worst_us:.0f} us "
-        f"with the worst case: {100 * b.load_worst:.0f} % of the period",
+        f"RPDO of {axis.rpdo_bytes} bytes and {'TPDOs' if len(axis.tpdo_bytes) > 1 else 'a TPDO'}"
+        f" of {tpdos} bytes, heartbeats",
+        f"  bus time per cycle {plan.bus_time_us:.0f} us ({WORST_CASE}): "
+        f"{100 * b.load_worst:.0f} % of the period, which it must not exceed",
         f"  at this period at most {plan.max_axes} such "
         f"{'axis fits' if plan.max_axes == 1 else 'axes fit'}; these fit from "
         f"{plan.min_period_us:.0f} us ({1e6 / plan.min_period_us:.0f} Hz) on",

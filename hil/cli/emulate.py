@@ -338,19 +338,15 @@ def _traced_handle(handle: Callable[[Any], None], trace: Any) -> Callable[[Any],
 
 
 def write_eds(emulator: Any, path: str) -> int:
-    """``hil emulate drive --write-eds F``: the emulator's object dictionary as an EDS."""
-    import canopen
-
-    from emulators.drive.od import build_object_dictionary
+    """``hil emulate drive --write-eds F``: the emulator's object dictionary as an EDS, its
+    COB-IDs relative to the node id (``$NODEID+0x180``), its bit rates claimed."""
+    from emulators.drive.eds import write_eds as write_emulator_eds
     from hil.core.errors import UsageError
 
-    od = build_object_dictionary(emulator.node_id, emulator.od_defaults())
-    od.device_information.vendor_name = "hil"
-    od.device_information.product_name = "hil CiA 402 drive emulator"
     try:
-        canopen.export_od(od, path, doc_type="eds")
+        write_emulator_eds(path, emulator.node_id, emulator.od_defaults())
     except OSError as exc:
         raise UsageError(f"--write-eds {path}: cannot write it: {exc.strerror}") from None
-    print(f"hil: wrote the emulated drive's object dictionary (node {emulator.node_id}) to "
-          f"{path}", flush=True)
+    print(f"hil: wrote the emulated drive's object dictionary (node {emulator.node_id}, "
+          f"COB-IDs relative to $NODEID) to {path}", flush=True)
     return 0

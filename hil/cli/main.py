@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import difflib
 import os
 import sys
 from collections.abc import Sequence
@@ -53,9 +54,38 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _leaf_parser(parser: argparse.ArgumentParser, args: argparse.Namespace
+                 ) -> argparse.ArgumentParser:
+    """The (sub)command parser that ``args`` came through."""
+    while True:
+        choices = [action for action in parser._actions
+                   if isinstance(action, argparse._SubParsersAction)]
+        name = getattr(args, choices[0].dest, None) if choices else None
+        if name is None:
+            return parser
+        parser = choices[0].choices[name]
+
+
+def parse_arguments(parser: argparse.ArgumentParser, argv: Sequence[str] | None
+                    ) -> argparse.Namespace:
+    """``argv`` parsed; an unknown flag is refused naming the closest flag of its command."""
+    args, extras = parser.parse_known_args(argv)
+    if extras:
+        leaf = _leaf_parser(parser, args)
+        flags = [flag for flag in leaf._option_string_actions if flag.startswith("--")]
+        hints = []
+        for extra in extras:
+            close = difflib.get_close_matches(extra.partition("=")[0], flags, n=1)
+            if extra.startswith("-") and close:
+                hints.append(f"{extra}: did you mean {close[0]}?")
+        leaf.error(f"unrecognized arguments: {' '.join(extras)}"
+                   + (f" ({'; '.join(hints)})" if hints else ""))
+    return args
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parse_arguments(parser, argv)
     from hil.core.session import set_command_line
 
     set_command_line(["hil", *(sys.argv[1:] if argv is None else argv)])

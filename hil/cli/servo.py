@@ -6,12 +6,12 @@ import argparse
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
-from hil.cli.argtypes import key_value, nonnegative_float, output_file, positive_float, positive_int
+from hil.cli.argtypes import key_value, output_file, positive_float, positive_int
 from hil.cli.output import json_text
 from hil.cli.recording import add_recording_arguments, recording_options
+from hil.cli.units import milliamps, seconds, seconds_or_zero
 from hil.cli.verdict import add_controller_arguments, add_junit_argument, finish
 from hil.core.errors import UsageError
-from hil.servo.defaults import DEFAULT_REFERENCE
 
 if TYPE_CHECKING:
     from hil.servo.run import ServoRunOptions
@@ -22,7 +22,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     servo_sub = servo.add_subparsers(dest="servo_command", metavar="COMMAND", required=True)
     srun = servo_sub.add_parser(
         "run", help="run a controller (MPC, explicit MPC, PID or your own) against the drive",
-        description="Close the loop through the CiA 402 drive link at T = 500 us: read the "
+        description="Close the loop through the CiA 402 drive link at T = master.cycle_period_us "
+        "(500 us, the published axis model's, unless configured): read the "
         "drive's feedback, step the controller, send the current command. Lockstep by default "
         "(virtual time, as fast as the computer allows, deterministic); --realtime follows the "
         "wall clock. Records /drive/command, /drive/feedback, /mpc/prediction and /events to "
@@ -41,6 +42,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     srun.add_argument("--out", metavar="F.mcap", type=output_file,
                       help="session file (default: sessions/servo-CONTROLLER-DATE-TIME.mcap)")
     srun.add_argument("--json", action="store_true", help="print the KPIs as JSON")
+    srun.add_argument("--print-config", action="store_true",
+                      help="print every setting as the run would use it, with where it came "
+                      "from (built-in default, hil/configs/drive.toml, --config, a flag), and "
+                      "exit without running; with --json as JSON")
     srun.add_argument("--axes", metavar="NAME=NODE,...",
                       help="several axes on one bus, one drive each, one SYNC per tick "
                       "(x=1,y=2): the controller runs on every axis with its reference; "
@@ -96,24 +101,41 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "can.viewer, Vector and PEAK tools)")
     parser.add_argument("--safety", action="append", type=key_value, default=[],
                         metavar="KEY=VALUE",
-                        help="override one safety limit of drive.toml's [safety] for this run "
+                        help="tighten one safety limit of drive.toml's [safety] for this run "
                         "(repeat): following_error_deg, following_error_ms, position_min_deg, "
                         "position_max_deg, velocity_max_deg_s, stale_share_max, "
-                        "stale_window_ms, enabled (false: none)")
+                        "stale_window_ms, enabled; a looser value needs "
+                        "--allow-looser-safety")
+    parser.add_argument("--allow-looser-safety", action="store_true",
+                        help="let --safety loosen a limit of the config (recorded as a "
+                        "warning in the session)")
     parser.add_argument("--reset-fault", action="store_true",
                         help="clear a drive left in FAULT (CiA 402 fault reset) before "
                         "enabling it")
-    parser.add_argument("--node", type=positive_int, default=1, help="CANopen node id")
-    parser.add_argument("--ert", choices=["foh", "zoh"], default="foh",
-                        help="extended reference trajectory: first- or zero-order hold")
+    parser.add_argument("--node", type=positive_int,
+                        help="the drive's CANopen node id (default: [master] node_id, 1)")
+    parser.add_argument("--eds", metavar="F.eds",
+                        help="the drive's EDS or DCF: every object hil uses is checked in it "
+                        "before the drive is configured (default: [master] eds)")
+    parser.add_argument("--ert", choices=["foh", "zoh"],
+                        help="extended reference trajectory: first- or zero-order hold "
+                        "(default foh)")
     parser.add_argument("--ht", type=positive_int,
-                        help="trajectory horizon (default 8; 3 for empc, as the paper's drive)")
+                        help="trajectory horizon [ticks] (default 8; 3 for empc, as the "
+                        "paper's drive)")
     parser.add_argument("--hu", type=positive_int,
-                        help="control horizon (default 8; 3 for empc, as the paper's drive)")
-    parser.add_argument("--hp", type=positive_int, default=50, help="prediction horizon")
-    parser.add_argument("--umax", type=positive_float, default=1000.0,
-                        help="current limit [mA]: the controller's bounds and the driver's clamp")
-    parser.add_argument("--reference", default=DEFAULT_REFERENCE,
+                        help="control horizon [ticks] (default 8; 3 for empc, as the paper's "
+                        "drive)")
+    parser.add_argument("--hp", type=positive_int, help="prediction horizon [ticks] "
+                        "(default 50)")
+    parser.add_argument("--umax", type=milliamps, metavar="MA",
+                        help="current limit [mA]: the controller's bounds and the driver's "
+                        "clamp (default: [master] current_limit_mA, 1000); may lower the "
+                        "configured limit, not raise it without --allow-higher-current")
+    parser.add_argument("--allow-higher-current", action="store_true",
+                        help="let --umax raise the configured current limit (recorded as a "
+                        "warning in the session)")
+    parser.add_argument("--reference",
                         help="default: the paper's 1 Hz sine of 2 deg (its Fig. 7 case), which "
                         "the built-in controllers track within a few percent; the 10 Hz case "
                         "(Fig. 8, sine:amplitude=2,frequency=10) asks the emulated axis for more "
@@ -123,9 +145,14 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "pushes the axis; emulated drives) | hold:position=DEG | "
                         "circle:radius=DEG,feed=DEG_PER_S (with --axes: a circular test on "
                         "two axes)")
-    parser.add_argument("--duration", type=positive_float, default=2.0, help="[s]")
-    parser.add_argument("--settle", type=nonnegative_float, default=0.0, metavar="S",
-                        help="KPIs ignore the first S seconds (start-up transient)")
+    parser.add_argument("--from-here", action="store_true",
+                        help="the reference is relative to where the axis stands when the run "
+                        "starts (default: an angle of the spindle, on the turn nearest it)")
+    parser.add_argument("--duration", type=seconds, metavar="S",
+                        help="length of the run [s] (default 2)")
+    parser.add_argument("--settle", type=seconds_or_zero, metavar="S",
+                        help="KPIs ignore the first S seconds [s] (start-up transient; "
+                        "default 0)")
     parser.add_argument("--realtime", action="store_true",
                         help="follow the wall clock (default: lockstep virtual time)")
     parser.add_argument("--quiet", action="store_true",
@@ -138,30 +165,45 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         help="drive config laid over the default (hil/configs/drive.toml)")
 
 
-def run_options(args: argparse.Namespace) -> ServoRunOptions:
+def run_options(args: argparse.Namespace, need_controller: bool = True) -> ServoRunOptions:
     """The :class:`ServoRunOptions` of parsed :func:`add_run_arguments` flags (``--out`` and
     the recording flags included)."""
     from hil.servo.run import ServoRunOptions
 
-    return replace(ServoRunOptions.from_flags(vars(args)), recording=recording_options(args))
+    options = ServoRunOptions.from_flags(vars(args), need_controller=need_controller)
+    return replace(options, recording=recording_options(args))
+
+
+def print_config(args: argparse.Namespace) -> int:
+    """``hil servo run --print-config``: every setting as the run would use it, and its origin;
+    nothing is opened."""
+    from hil.core.settings import format_settings, settings_json
+    from hil.servo.settings import resolve_servo
+
+    settings = resolve_servo(run_options(args, need_controller=False)).settings()
+    print(json_text(settings_json(settings)) if args.json
+          else format_settings("hil servo run", settings))
+    return 0
 
 
 def run_servo_command(args: argparse.Namespace) -> int:
     from hil.servo.axes_run import run_any
 
-    options = run_options(args)
-    kpis = run_any(options).kpis
-    several = "axes" in kpis
-    print(json_text(kpis) if args.json else
-          format_axes_run(options, kpis) if several else format_run(options, kpis))
-    return finish(kpis, args, f"hil servo run {kpis['controller']}", kpis["wall_s"])
+    if args.print_config:
+        return print_config(args)
+
+    def summary(options: ServoRunOptions, kpis: dict[str, Any]) -> str:
+        several = "axes" in kpis
+        return format_axes_run(options, kpis) if several else format_run(options, kpis)
+
+    return finish(args, "hil servo run", lambda: run_options(args), run_any, summary)
 
 
 def format_axes_run(config: Any, kpis: dict[str, Any]) -> str:
     """The human summary of ``hil servo run --axes``."""
     lines = [f"servo run on {len(kpis['axes'])} axes: {config.describe_controller()}, "
              f"{kpis['reference']}, drive {kpis['drive']}, clock {kpis['clock']}",
-             f"  ticks {kpis['ticks']} ({kpis['ticks'] * 500e-6:.3f} s), "
+             f"  ticks {kpis['ticks']} ({kpis['ticks'] * kpis['cycle_period_us'] * 1e-6:.3f} s), "
              f"{kpis['sync_cycles']} SYNC, in {kpis['wall_s']:.2f} s wall "
              f"({kpis['realtime_factor']}x real time), stopped: {kpis['stop_reason']}"]
     for name, axis in kpis["axes"].items():
@@ -189,7 +231,8 @@ def format_run(config: Any, kpis: dict[str, Any]) -> str:
     lines = [
         f"servo run: {config.describe_controller()}, {kpis['reference']}, "
         f"|u| <= {kpis['umax_mA']:g} mA, drive {kpis['drive']}, clock {kpis['clock']}",
-        f"  ticks {kpis['ticks']} ({kpis['ticks'] * 500e-6:.3f} s) in {kpis['wall_s']:.2f} s "
+        f"  ticks {kpis['ticks']} ({kpis['ticks'] * kpis['cycle_period_us'] * 1e-6:.3f} s) in "
+        f"{kpis['wall_s']:.2f} s "
         f"wall ({kpis['realtime_factor']}x real time), stopped: {kpis['stop_reason']}",
         f"  error{' after ' + format(kpis['settle_s'], 'g') + ' s' if kpis['settle_s'] else ''}"
         f": max {_deg(kpis['max_error_deg'])}"

@@ -1,18 +1,33 @@
 """The flags every run command shares for plug-in controllers and verdicts: ``--param``,
-``--limit``, ``--junit``, ``--controller-budget``; and the exit status of a verdict."""
+``--limit``, ``--junit``, ``--controller-budget``; and the shared end of a run command: its
+report (``--json``, ``--junit``) for every outcome and its exit status."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from hil.cli.argtypes import output_file, positive_float
-from hil.core.errors import UsageError
+from hil.cli.output import json_text
+from hil.core.errors import HilError, UsageError
 from hil.core.params import parse_param
-from hil.core.verdict import LimitResult, junit_xml, parse_limit
+from hil.core.verdict import (
+    LimitResult,
+    RunCase,
+    junit_xml,
+    kpi_properties,
+    parse_limit,
+    run_status,
+)
+
+if TYPE_CHECKING:
+    from hil.core.run import RunResult
+
+Options = TypeVar("Options")
 
 SPEC_HELP = ("the controller: a built-in name ({builtins}), FILE.py:Class, "
              "package.module:Class, or a name an installed package registers in the "
@@ -38,7 +53,7 @@ _param = _argument(parse_param, "--param")
 def add_controller_arguments(parser: argparse.ArgumentParser, builtins: str,
                              signals: str) -> None:
     """``--controller SPEC`` and the flags that go with a plug-in controller and a verdict."""
-    parser.add_argument("--controller", required=True, metavar="SPEC",
+    parser.add_argument("--controller", metavar="SPEC",
                         help=SPEC_HELP.format(builtins=builtins))
     parser.add_argument("--param", action="append", type=_param, default=[],
                         metavar="KEY=VALUE", help="a parameter of the controller (repeat; "
@@ -57,7 +72,10 @@ def add_controller_arguments(parser: argparse.ArgumentParser, builtins: str,
 def add_junit_argument(parser: argparse.ArgumentParser) -> None:
     """``--junit F.xml`` of a single run."""
     parser.add_argument("--junit", metavar="F.xml", type=output_file,
-                        help="write a JUnit XML report: one test case per limit")
+                        help="write a JUnit XML report, whatever the run's outcome: one test "
+                        "case per limit (a failure where violated) and the test case 'run' (an "
+                        "error when it was stopped, failed or interrupted); the KPIs and the "
+                        "session as properties")
 
 
 def params_of(args: argparse.Namespace) -> dict[str, Any]:
@@ -76,24 +94,80 @@ def disturbance_line(kpis: Mapping[str, Any]) -> str:
             "the KPIs exclude what the hardware did not report")
 
 
-def finish(kpis: Mapping[str, Any], args: argparse.Namespace, suite: str,
-           duration_s: float) -> int:
-    """Write the JUnit report, name every violated limit and a disturbance on stderr; the
-    exit status: 1 a limit violated, else 3 the run was disturbed (``disturbed``), else 0."""
-    results = [LimitResult(parse_limit(row["limit"]), row["measured"], row["passed"])
-               for row in kpis.get("limits", [])]
-    if args.junit:
-        path = Path(args.junit)
-        try:
-            path.write_bytes(junit_xml(results, suite, duration_s=duration_s,
-                                       properties={"mcap": str(kpis.get("mcap", ""))}))
-        except OSError as exc:
-            raise UsageError(f"--junit {args.junit}: cannot write it: {exc.strerror}") from None
+def finish(args: argparse.Namespace, command: str, options: Callable[[], Options],
+           run: Callable[[Options], RunResult],
+           summary: Callable[[Options, dict[str, Any]], str]) -> int:
+    """Run ``run(options())`` and report it, whatever its outcome: the KPIs on stdout
+    (``--json``, else ``summary``), the JUnit report (``--junit``), every violated limit and a
+    disturbance on stderr; the exit status: 1 a limit violated, else 3 the run was disturbed,
+    else 0. A run that ended in an error (a safety stop, a fault, a lost link, Ctrl-C...) still
+    prints ``--json`` (the KPIs so far, ``status``, ``error``) and writes ``--junit``; then the
+    error is raised again for its one line and exit status."""
+    started = time.perf_counter()
+    try:
+        made = options()
+        kpis = run(made).kpis
+    except (HilError, KeyboardInterrupt) as exc:
+        _report_error(exc, args, command, time.perf_counter() - started)
+        raise
+    print(json_text(kpis) if args.json else summary(made, kpis))
+    results = limit_results(kpis)
+    disturbed = bool(kpis.get("disturbed"))
+    write_junit(args, kpis, f"{command} {kpis['controller']}", time.perf_counter() - started,
+                results, RunCase(disturbance_line(kpis).removeprefix("hil: "), "RunDisturbed")
+                if disturbed else RunCase(_ending(kpis)))
     failed = [r for r in results if not r.passed]
     for result in failed:
         print(f"hil: limit violated: {result.describe()}", file=sys.stderr)
-    if kpis.get("disturbed"):
+    if disturbed:
         print(disturbance_line(kpis), file=sys.stderr)
     if failed:
         return 1
-    return EXIT_DISTURBED if kpis.get("disturbed") else 0
+    return EXIT_DISTURBED if disturbed else 0
+
+
+def _ending(kpis: Mapping[str, Any]) -> str:
+    """How a run without error ended: ``completed``, ``violated: stopped by limit ...``."""
+    reason = kpis.get("stop_reason")
+    if reason in (None, "completed"):
+        return str(kpis["status"])
+    return f"{kpis['status']}: stopped by {reason}"
+
+
+def _report_error(exc: HilError | KeyboardInterrupt, args: argparse.Namespace, command: str,
+                  duration_s: float) -> None:
+    """``--json`` and ``--junit`` of a run an error ended: its KPIs so far, or (the error came
+    before the run) the error alone. A report that cannot be written is one more line."""
+    result = exc.result if isinstance(exc, HilError) else None
+    if result is not None:
+        kpis = result.kpis
+    else:
+        kpis = {"controller": getattr(args, "controller", None), "mcap": None,
+                "stop_reason": None, "status": run_status({}, exc),
+                "error": str(exc) or "interrupted"}
+    if args.json:
+        print(json_text(kpis))
+    try:
+        write_junit(args, kpis, f"{command} {kpis['controller']}", duration_s,
+                    limit_results(kpis), RunCase(str(exc) or "interrupted", type(exc).__name__))
+    except UsageError as failure:
+        print(f"hil: error: {failure}", file=sys.stderr)
+
+
+def limit_results(kpis: Mapping[str, Any]) -> list[LimitResult]:
+    """The ``limits`` rows of a KPI document as results."""
+    return [LimitResult(parse_limit(row["limit"]), row["measured"], row["passed"])
+            for row in kpis.get("limits", [])]
+
+
+def write_junit(args: argparse.Namespace, kpis: Mapping[str, Any], suite: str,
+                duration_s: float, results: list[LimitResult], run: RunCase) -> None:
+    """``--junit``: the limits and the run as test cases, the KPIs as properties."""
+    if not args.junit:
+        return
+    path = Path(args.junit)
+    try:
+        path.write_bytes(junit_xml(results, suite, duration_s=duration_s,
+                                   properties=kpi_properties(kpis), run=run))
+    except OSError as exc:
+        raise UsageError(f"--junit {args.junit}: cannot write it: {exc.strerror}") from None

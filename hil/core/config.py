@@ -9,6 +9,7 @@ from collections.abc import Mapping
 from typing import Any, overload
 
 from hil.core.errors import ConfigError
+from hil.core.settings import KeyRead, Layered
 
 try:
     import tomllib
@@ -101,22 +102,33 @@ class Table:
         t.done()
     """
 
-    def __init__(self, data: Mapping[str, Any], source: str, path: str = "") -> None:
+    def __init__(self, data: Mapping[str, Any], source: str, path: str = "",
+                 reads: list[KeyRead] | None = None, layered: Layered | None = None) -> None:
         if not isinstance(data, Mapping):
             where = f"'{path}'" if path else "the file"
             raise ConfigError(f"{source}: {where} must be a table, got {type(data).__name__}")
         self.data = data
         self.source = source
         self.path = path
+        self.reads: list[KeyRead] = [] if reads is None else reads  # shared with sub-tables
+        self.layered = layered  # who set each key: a flag is named in errors, paths resolved
         self._read: set[str] = set()
+
+    def _note(self, name: str, value: Any, kind: str, rule: str = "") -> None:
+        self.reads.append(KeyRead(self.key(name), value, kind, rule, name not in self.data))
 
     def key(self, name: str) -> str:
         """The dotted key of ``name`` in this table, as errors name it."""
         return f"{self.path}.{name}" if self.path else name
 
     def error(self, name: str, problem: str) -> ConfigError:
-        """A ConfigError about key ``name``: ``"<source>: key 'a.b' <problem>"``."""
-        return ConfigError(f"{self.source}: key '{self.key(name)}' {problem}")
+        """A ConfigError about key ``name``: ``"<source>: key 'a.b' <problem>"``, the source
+        being the flag that set the key when a flag did."""
+        key = self.key(name)
+        origin = self.layered.origin(key) if self.layered is not None else ""
+        source = origin if origin.startswith("-") and not origin.startswith("--config ") \
+            else self.source
+        return ConfigError(f"{source}: key '{key}' {problem}")
 
     def __contains__(self, name: str) -> bool:
         return name in self.data
@@ -134,6 +146,12 @@ class Table:
             return default
         return self.data[name]
 
+    def value(self, name: str, default: Any = _MISSING, kind: str = "any") -> Any:
+        """The value of ``name`` unchecked here (its reader checks it), recorded as read."""
+        value = self.raw(name, default)
+        self._note(name, value, kind)
+        return value
+
     def get(self, name: str, kind: type | tuple[type, ...], default: Any = _MISSING) -> Any:
         """``name`` checked against ``kind`` (``bool`` never passes for a number; an int
         passes for a float and is converted)."""
@@ -145,8 +163,9 @@ class Table:
         if float in kinds and int not in kinds:
             kinds = (*kinds, int)
         if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):
-            names = " or ".join(k.__name__ for k in kinds)
-            raise self.error(name, f"must be {names}, got {type(value).__name__} {value!r}")
+            asked = kind if isinstance(kind, tuple) else (kind,)
+            names = " or ".join(_KIND_NAMES.get(k, k.__name__) for k in asked)
+            raise self.error(name, f"must be {names}, got {_describe(value)}")
         if kinds[0] is float and isinstance(value, int | float):
             return float(value)
         return value
@@ -164,6 +183,7 @@ class Table:
         """A finite float, optionally ``> above``, ``>= at_least``, ``<= at_most``; a None
         default makes the key optional."""
         value = self.get(name, float, default)
+        self._note(name, value, "number", _rule(above, at_least, at_most))
         if value is None:
             return None
         _check_range(self, name, value, above, at_least, at_most)
@@ -171,39 +191,71 @@ class Table:
 
     @overload
     def integer(self, name: str, default: None, *, above: int | None = None,
-                at_least: int | None = None, at_most: int | None = None) -> int | None: ...
+                at_least: int | None = None, at_most: int | None = None,
+                choices: tuple[int, ...] | None = None) -> int | None: ...
 
     @overload
     def integer(self, name: str, default: int = ..., *, above: int | None = None,
-                at_least: int | None = None, at_most: int | None = None) -> int: ...
+                at_least: int | None = None, at_most: int | None = None,
+                choices: tuple[int, ...] | None = None) -> int: ...
 
     def integer(self, name: str, default: Any = _MISSING, *, above: int | None = None,
-                at_least: int | None = None, at_most: int | None = None) -> int | None:
-        """An int, optionally ``> above``, ``>= at_least``, ``<= at_most``; a None default
-        makes the key optional."""
+                at_least: int | None = None, at_most: int | None = None,
+                choices: tuple[int, ...] | None = None) -> int | None:
+        """An int, optionally ``> above``, ``>= at_least``, ``<= at_most`` or one of
+        ``choices``; a None default makes the key optional."""
         value = self.get(name, int, default)
+        rule = f"one of {', '.join(map(str, choices))}" if choices else ""
+        self._note(name, value, "integer", rule or _rule(above, at_least, at_most))
         if value is None:
             return None
         _check_range(self, name, value, above, at_least, at_most)
+        if choices is not None and value not in choices:
+            raise self.error(name, f"must be one of {', '.join(map(str, choices))}, got {value}")
         return int(value)
 
     def string(self, name: str, default: Any = _MISSING, *,
                choices: tuple[str, ...] | None = None) -> str:
         """A string, optionally one of ``choices``."""
         value = self.get(name, str, default)
+        self._note(name, value, "string", f"one of {', '.join(choices)}" if choices else "")
         if choices is not None and value not in choices:
             raise self.error(name, f"must be one of {', '.join(choices)}, got {value!r}")
         return str(value)
 
+    def file_path(self, name: str, default: Any = _MISSING) -> str:
+        """A file's path (``''``: none), relative to the folder of the config file that set
+        it (a flag's: the working folder); recorded as resolved."""
+        value = self.get(name, str, default)
+        if value and self.layered is not None:
+            value = self.layered.path(self.key(name), value)
+        self._note(name, value, "path")
+        return str(value)
+
     def boolean(self, name: str, default: Any = _MISSING) -> bool:
-        return bool(self.get(name, bool, default))
+        value = bool(self.get(name, bool, default))
+        self._note(name, value, "boolean")
+        return value
+
+    @overload
+    def array(self, name: str, default: None, rule: str = "") -> list[Any] | None: ...
+
+    @overload
+    def array(self, name: str, default: list[Any] = ..., rule: str = "") -> list[Any]: ...
+
+    def array(self, name: str, default: Any = _MISSING, rule: str = "") -> list[Any] | None:
+        """An array (its items checked by the caller), recorded with ``rule``; a None default
+        makes the key optional."""
+        value = self.get(name, list, default)
+        self._note(name, value, "array", rule)
+        return None if value is None else list(value)
 
     def table(self, name: str, *, required: bool = False) -> Table:
         """The sub-table ``name`` (an empty one when absent, unless ``required``)."""
         value = self.raw(name, _MISSING if required else {})
         if not isinstance(value, Mapping):
-            raise self.error(name, f"must be a table, got {type(value).__name__} {value!r}")
-        return Table(value, self.source, self.key(name))
+            raise self.error(name, f"must be a table, got {_describe(value)}")
+        return Table(value, self.source, self.key(name), self.reads, self.layered)
 
     def done(self) -> None:
         """Refuse every key of this table that was not read."""
@@ -214,13 +266,57 @@ class Table:
                               f"(known here: {known})")
 
 
+_KIND_NAMES = {float: "a number", int: "an integer", str: "a string",
+               bool: "a boolean (true or false)", list: "an array", dict: "a table"}
+
+
+def _describe(value: Any) -> str:
+    """A value as an error shows it, with its TOML kind: ``a string '300'``."""
+    if isinstance(value, bool):
+        return f"a boolean {str(value).lower()}"
+    for kind, text in ((int, "an integer"), (float, "a number"), (str, "a string"),
+                       (list, "an array"), (Mapping, "a table")):
+        if isinstance(value, kind):
+            return f"{text} {value!r:.60}"
+    return f"{type(value).__name__} {value!r:.60}"
+
+
+def _number(value: float) -> str:
+    """A bound or a value as a person reads it: integers whole (``1000000``, not ``1e+06``)."""
+    return str(value) if isinstance(value, int) else f"{value:g}"
+
+
+def _rule(above: float | None, at_least: float | None, at_most: float | None) -> str:
+    """The range a number is held to, as the reference shows it (``> 0, <= 32767``)."""
+    parts = [f"{op} {_number(bound)}" for op, bound in ((">", above), (">=", at_least),
+                                                         ("<=", at_most)) if bound is not None]
+    return ", ".join(parts)
+
+
+#: a key's unit, by the end of its name (the longest match wins)
+UNIT_SUFFIXES = (("_mA_per_deg_s", "mA/(deg/s)"), ("_deg_s", "deg/s"), ("_per_s", "1/s"),
+                 ("_permille", "per mille"), ("_mA", "mA"), ("_ms", "ms"), ("_us", "us"),
+                 ("_s", "s"), ("_deg", "deg"), ("_va", "VA"), ("_VA", "VA"), ("_hz", "Hz"),
+                 ("_v", "V"), ("_kwh", "kWh"), ("bitrate", "bit/s"))
+
+
+def unit_of(key: str) -> str:
+    """The unit of a key, from the end of its name (``current_limit_mA`` -> ``mA``); ``''``
+    for a key without one."""
+    name = key.rpartition(".")[2]
+    return next((unit for suffix, unit in UNIT_SUFFIXES if name.endswith(suffix)), "")
+
+
 def _check_range(table: Table, name: str, value: float, above: float | None,
                  at_least: float | None, at_most: float | None) -> None:
+    unit = unit_of(name)
+    unit = f" {unit}" if unit else ""
     if not math.isfinite(value):
         raise table.error(name, f"must be a finite number, got {value!r}")
+    got = f"got {_number(value)}{unit}"
     if above is not None and not value > above:
-        raise table.error(name, f"must be > {above:g}, got {value:g}")
+        raise table.error(name, f"must be > {_number(above)}{unit}, {got}")
     if at_least is not None and not value >= at_least:
-        raise table.error(name, f"must be >= {at_least:g}, got {value:g}")
+        raise table.error(name, f"must be >= {_number(at_least)}{unit}, {got}")
     if at_most is not None and not value <= at_most:
-        raise table.error(name, f"must be <= {at_most:g}, got {value:g}")
+        raise table.error(name, f"must be <= {_number(at_most)}{unit}, {got}")

@@ -1,8 +1,16 @@
 """Errors that reach the user as one clear line (the CLI prints them without a traceback)."""
 
+from __future__ import annotations
+
+from typing import Any
+
 
 class HilError(Exception):
-    """Base of every error hil reports to the user by message alone."""
+    """Base of every error hil reports to the user by message alone. ``result``: what the run
+    this error ended did so far (its KPIs, ``status`` and session), for its report; None when
+    the error came before a run started."""
+
+    result: Any = None  # a hil.core.run.RunResult (typed loosely: errors import nothing)
 
 
 class ConfigError(HilError):

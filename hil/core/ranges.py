@@ -38,3 +38,14 @@ def check_at_most(value: float, limit: float, flag: str, why: str) -> None:
     """``value`` of ``flag`` no larger than ``limit`` (``why``: what the limit protects)."""
     if value > limit:
         raise UsageError(f"{flag} {value:g} is above {limit:g}: {why}")
+
+
+def check_milliamps(value: float, flag: str) -> None:
+    """A current limit in mA: finite and at least 1 mA (below it nothing is sent; a value
+    below 1 is most likely amperes)."""
+    if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value)
+                                       and value > 0):
+        raise UsageError(f"{flag} must be a positive finite current in mA, got {value!r}")
+    if value < 1:
+        raise UsageError(f"{flag} {value:g} mA is below 1 mA: the current is in mA "
+                         f"({value:g} A would be {flag} {value * 1000:g})")

@@ -5,6 +5,7 @@ importing the recorder's machinery."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 from hil.core.errors import HilError
 from hil.core.live import parse_address
@@ -17,6 +18,12 @@ ENCODINGS = ("json", "cdr")
 class RecordingOptions:
     """How a session is written: per-topic encodings, file splitting, and the live view
     (``live``: serve the topics at ``[HOST:]PORT``, see :mod:`hil.core.live`)."""
+
+    #: the command-line flag of each field
+    FLAGS: ClassVar[dict[str, str]] = {
+        "high_rate_encoding": "--encoding", "topic_encodings": "--topic-encoding",
+        "split_duration_s": "--split-duration", "split_size_mb": "--split-size",
+        "live": "--live", "live_rates": "--live-rate"}
 
     high_rate_encoding: str = "cdr"       # for topics registered with ``high_rate=True``
     topic_encodings: dict[str, str] = field(default_factory=dict)  # explicit, by topic name

@@ -17,8 +17,11 @@ line, the Python API, the sweep and the pytest fixtures alike:
 5. ``start(session)`` - enable the devices and add the loop's tasks; then the loop runs.
    A :class:`~hil.core.errors.HilError` (a fault, a lost link, a controller error) stops it;
    the loop has put every device in its safe state.
-6. ``finish(session)``, ``close_devices()``, ``kpis(...)``, the verdict of the limits, the file
-   finished with the KPIs. An error is raised again with the session's path in its message.
+6. ``finish(session)``, ``close_devices()``, ``kpis(...)``, the verdict of the limits, the
+   run's ``status`` (:data:`hil.core.verdict.STATUSES`), the file finished with the KPIs. An
+   error (a Ctrl-C outside the loop becomes a :class:`RunInterruptedError`) is raised again
+   with the session's path in its message and the :class:`RunResult` so far as its
+   ``result``, for the run's report.
 
 The result is a :class:`RunResult`. Rules every run shares live here too: where a session goes
 by default (:func:`default_session_path`) and how long one controller call may take
@@ -42,7 +45,7 @@ from hil.core.output import OutputClaim, claim_output
 from hil.core.progress import ProgressLine, wants_progress
 from hil.core.recorder import RecordingOptions
 from hil.core.session import Session
-from hil.core.verdict import Limit, SignalWatch, verdict
+from hil.core.verdict import Limit, SignalWatch, run_status, verdict
 
 #: the folder (under the working folder) where a run's session goes unless ``--out`` says
 SESSIONS_FOLDER = "sessions"
@@ -144,7 +147,8 @@ def run_experiment(experiment: Experiment) -> RunResult:
     """Run ``experiment`` through the pipeline (see the module); its :class:`RunResult`.
 
     A HilError that stopped the loop is raised again after the session file is finished with
-    the KPIs so far, its message ending with the session's path."""
+    the KPIs so far, its message ending with the session's path, its ``result`` the
+    :class:`RunResult` so far."""
     plan = experiment.plan()
     # the file is checked and locked before any device is reached, and each device locked
     output = claim_output(plan.recording.first_file(plan.session_path))
@@ -205,39 +209,56 @@ def _run_locked(experiment: Experiment, plan: RunPlan, output: OutputClaim) -> R
         experiment.finish(session)
     except HilError as exc:
         error = exc
+    except KeyboardInterrupt:  # outside the loop (enabling, finishing): the loop takes its own
+        error = _interrupted("SIGINT", session.loop.ticks)
     finally:
         try:
             experiment.close_devices()
         finally:
             try:
-                kpis = _kpis(experiment, session, wall_s, error)
+                error = error or _signal_error(session)
+                kpis = _kpis(experiment, plan, session, wall_s, error)
                 outcome = verdict(kpis, plan.kpi_limits, plan.watch)
                 kpis.update(outcome)
+                kpis["status"] = run_status(kpis, error)
             finally:
                 session.close(kpis=kpis or None)
-    stop_reason = session.loop.stop_reason or "completed"
-    if error is None and stop_reason.startswith("signal "):
-        name = stop_reason.removeprefix("signal ")
-        error = RunInterruptedError(
-            f"interrupted by {name} after {session.loop.ticks} tick(s): the hardware is in its "
-            "safe state, the KPIs so far are in the session",
-            128 + getattr(signal.Signals, name, signal.SIGINT).value)
+    result = RunResult(kpis, outcome, plan.recording.first_file(plan.session_path),
+                       session.loop.stop_reason or "completed", session.loop.summary())
     if error is not None:
         error.args = (f"{error} (session recorded to {plan.session_path})",)
+        error.result = result
         raise error
-    return RunResult(kpis, outcome, plan.recording.first_file(plan.session_path), stop_reason,
-                     session.loop.summary())
+    return result
 
 
-def _kpis(experiment: Experiment, session: Session, wall_s: float,
+def _signal_error(session: Session) -> RunInterruptedError | None:
+    """The error of a loop a signal (Ctrl-C, SIGTERM) stopped; None for any other end."""
+    stop_reason = session.loop.stop_reason or ""
+    if not stop_reason.startswith("signal "):
+        return None
+    return _interrupted(stop_reason.removeprefix("signal "), session.loop.ticks)
+
+
+def _interrupted(name: str, ticks: int) -> RunInterruptedError:
+    """A run stopped by the signal ``name``; its exit status is the shell's for it."""
+    return RunInterruptedError(
+        f"interrupted by {name} after {ticks} tick(s): the hardware is in its safe state, the "
+        "KPIs so far are in the session", 128 + getattr(signal.Signals, name, signal.SIGINT).value)
+
+
+def _kpis(experiment: Experiment, plan: RunPlan, session: Session, wall_s: float,
           error: HilError | None) -> dict[str, Any]:
-    """The experiment's KPIs; after an error, what can be had (the error is what matters)."""
+    """The experiment's KPIs; after an error, what can be had (the error is what matters),
+    with the controller, the session and the error line at least."""
     try:
         kpis = experiment.kpis(session, wall_s, error)
     except HilError:
         if error is None:
             raise
         kpis = {}
+    kpis.setdefault("controller", plan.label)
+    kpis.setdefault("mcap", plan.recording.first_file(plan.session_path))
     kpis.setdefault("stop_reason", session.loop.stop_reason)
     if error is not None:
         kpis["error"] = str(error)

@@ -1,4 +1,5 @@
-"""Limits on a run's KPIs and the verdict they give, with a JUnit XML report for any CI.
+"""Limits on a run's KPIs, the verdict they give and the run's ``status``, with a JUnit XML
+report for any CI.
 
 A limit is ``KPI<=VALUE`` or ``KPI>=VALUE`` (``<`` and ``>`` too). ``KPI`` is a key of the run's
 KPI dictionary, a nested one joined by dots (``solve_ms.p99``). In a config file::
@@ -11,6 +12,7 @@ KPI dictionary, a nested one joined by dots (``solve_ms.p99``). In a config file
 
 from __future__ import annotations
 
+import json
 import math
 import operator
 import re
@@ -20,7 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from hil.core.config import Table
-from hil.core.errors import ConfigError, UsageError
+from hil.core.errors import ConfigError, RunInterruptedError, SafetyStopError, UsageError
 
 _OPERATORS: dict[str, Callable[[float, float], bool]] = {
     "<=": operator.le, ">=": operator.ge, "<": operator.lt, ">": operator.gt,
@@ -111,14 +113,62 @@ def check_limits(limits: Sequence[Limit], kpis: Mapping[str, Any]) -> list[Limit
     return results
 
 
+#: what became of a run (the ``status`` KPI), with the exit status of ``hil bench|servo run``:
+#: completed 0, violated 1 (a limit), disturbed 3 (the hardware misbehaved), stopped 2 (a
+#: safety limit), failed 2 (a fault, a lost link, a controller error...), interrupted 130/143
+STATUSES = ("completed", "violated", "disturbed", "stopped", "failed", "interrupted")
+
+
+def run_status(kpis: Mapping[str, Any], error: BaseException | None) -> str:
+    """The run's ``status`` (one of :data:`STATUSES`): stopped by a signal, by a safety
+    limit or by another error; else a limit violated, the hardware misbehaved, or neither."""
+    if isinstance(error, RunInterruptedError | KeyboardInterrupt):
+        return "interrupted"
+    if isinstance(error, SafetyStopError):
+        return "stopped"
+    if error is not None:
+        return "failed"
+    if kpis.get("passed") is False:
+        return "violated"
+    return "disturbed" if kpis.get("disturbed") else "completed"
+
+
+def kpi_properties(kpis: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
+    """The KPI document as flat ``name -> text`` properties (nested keys joined by '.', the
+    ``limits`` rows left out: they are test cases); text as-is, anything else as JSON."""
+    flat: dict[str, str] = {}
+    for key, value in kpis.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            flat.update(kpi_properties(value, f"{name}."))
+        elif not (key == "limits" and not prefix):
+            flat[name] = value if isinstance(value, str) else json.dumps(value, default=str)
+    return flat
+
+
+@dataclass(frozen=True)
+class RunCase:
+    """The run itself as a JUnit test case: an ``<error>`` of type ``error_type`` (the error's
+    class, ``RunDisturbed``...) with ``message``, or passed (``message`` as its output)."""
+
+    message: str
+    error_type: str | None = None
+
+
 def junit_xml(results: Sequence[LimitResult], suite: str, *, duration_s: float = 0.0,
-              properties: Mapping[str, str] | None = None) -> bytes:
-    """A JUnit XML report: one test case per limit, a failure where it is violated."""
+              properties: Mapping[str, str] | None = None, run: RunCase | None = None) -> bytes:
+    """A JUnit XML report (``testsuites/testsuite/testcase``, as GitLab and Jenkins read it):
+    one test case per limit, a ``<failure>`` where it is violated; then, with ``run``, the
+    test case ``run``, an ``<error>`` when the run did not end well. ``properties`` (the KPIs,
+    the session) go on the suite."""
     failures = sum(not r.passed for r in results)
-    root = ET.Element("testsuites", name="hil", tests=str(len(results)),
-                      failures=str(failures))
-    node = ET.SubElement(root, "testsuite", name=suite, tests=str(len(results)),
-                         failures=str(failures), errors="0", time=f"{duration_s:.3f}")
+    errors = int(run is not None and run.error_type is not None)
+    tests = len(results) + int(run is not None)
+    root = ET.Element("testsuites", name="hil", tests=str(tests), failures=str(failures),
+                      errors=str(errors), time=f"{duration_s:.3f}")
+    node = ET.SubElement(root, "testsuite", name=suite, tests=str(tests),
+                         failures=str(failures), errors=str(errors), skipped="0",
+                         time=f"{duration_s:.3f}")
     if properties:
         props = ET.SubElement(node, "properties")
         for key, value in properties.items():
@@ -136,6 +186,14 @@ def junit_xml(results: Sequence[LimitResult], suite: str, *, duration_s: float =
             failure.text = result.describe()
         else:
             ET.SubElement(case, "system-out").text = result.describe()
+    if run is not None:
+        case = ET.SubElement(node, "testcase", classname=suite, name="run",
+                             time=f"{duration_s:.3f}")
+        if run.error_type is not None:
+            error = ET.SubElement(case, "error", message=run.message, type=run.error_type)
+            error.text = run.message
+        else:
+            ET.SubElement(case, "system-out").text = run.message
     ET.indent(root)
     return ET.tostring(root, encoding="utf-8", xml_declaration=True)
 
@@ -167,7 +225,7 @@ class RunTables:
 def read_run_tables(top: Table) -> RunTables:
     """``[controller]`` (any keys: the controller checks them) and ``[limits]`` of ``top``."""
     params = top.table("controller")
-    values = {name: params.raw(name) for name in params.names()}
+    values = {name: params.value(name) for name in params.names()}
     return RunTables(values, tuple(limits_from_table(top.table("limits"))))
 
 

@@ -3,7 +3,13 @@ group ``hil.controllers`` (``mpc``, ``empc``, ``pid``) as factories
 ``(reference, params, context)``.
 
 Params (default: ``hil servo run``'s flags): ``ht``, ``hu``, ``hp`` (horizons), ``ert``
-(``foh`` | ``zoh``) for the MPCs, and ``umax`` [mA] for all three.
+(``foh`` | ``zoh``) for the MPCs, ``ti_us`` (the velocity PI's integral time, Table I's
+2000 us) for the PID, and ``umax`` [mA] for all three.
+
+Cycle periods (:func:`controllers.base.runs_at`): the PID and the MPC run at every multiple of
+500 us up to 10 ms (their model is the published axis stepped that many times; the PID refuses
+a period at which its loop is unstable, naming a ``ti_us`` that holds it); the explicit MPC at
+500 us only (its regions are built offline for it).
 """
 
 from __future__ import annotations
@@ -12,7 +18,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from controllers.servo.pid import CascadedPid, PidConfig
+from controllers.base import runs_at
+from controllers.servo.model import MODEL_PERIODS_US, SAMPLE_PERIOD_S, axis_model
+from controllers.servo.pid import CascadedPid, PidConfig, check_stable
 from controllers.servo.references import Reference
 from hil.core.config import Table
 
@@ -24,8 +32,9 @@ if TYPE_CHECKING:  # the MPCs are imported when built: they bring scipy, daqp an
 @dataclass(frozen=True)
 class ServoContext:
     """What a run gives a controller factory that takes a ``context`` argument: the run's
-    flags (horizons, current limit) and the session, whose ``topic(name, json_schema)`` and
-    ``event(kind, message, **data)`` record a controller's own signals."""
+    flags (horizons, current limit), the session, whose ``topic(name, json_schema)`` and
+    ``event(kind, message, **data)`` record a controller's own signals, and the cycle period
+    its ``step`` is called at [s]."""
 
     ht: int
     hu: int
@@ -33,20 +42,24 @@ class ServoContext:
     ert: str
     umax: float
     session: Any
+    period_s: float = SAMPLE_PERIOD_S
 
 
 def _params(params: Mapping[str, Any], name: str) -> Table:
     return Table(params, f"controller {name!r} params")
 
 
+@runs_at(MODEL_PERIODS_US)
 def mpc(reference: Reference, params: Mapping[str, Any], context: ServoContext
         ) -> TrajectoryMpc:
-    """The trajectory-tracking MPC (online QP)."""
+    """The trajectory-tracking MPC (online QP), its prediction model at the run's period."""
     from controllers.servo.mpc import TrajectoryMpc
 
-    return TrajectoryMpc(reference, mpc_config(params, context, "mpc"))
+    return TrajectoryMpc(reference, mpc_config(params, context, "mpc"),
+                         axis_model(context.period_s))
 
 
+@runs_at((500,))
 def empc(reference: Reference, params: Mapping[str, Any], context: ServoContext
          ) -> ExplicitMpc:
     """The explicit MPC (regions searched through a binary tree)."""
@@ -55,13 +68,19 @@ def empc(reference: Reference, params: Mapping[str, Any], context: ServoContext
     return ExplicitMpc(reference, mpc_config(params, context, "empc"))
 
 
+@runs_at(MODEL_PERIODS_US)
 def pid(reference: Reference, params: Mapping[str, Any], context: ServoContext
         ) -> CascadedPid:
-    """The cascaded P/PI + notch baseline."""
+    """The cascaded P/PI + notch baseline, discretised at the run's period (refused where its
+    loop would be unstable)."""
     table = _params(params, "pid")
     umax = table.number("umax", context.umax, above=0)
+    ti_us = table.number("ti_us", PidConfig.ti_s * 1e6, above=0)
     table.done()
-    return CascadedPid(reference, PidConfig(u_max=umax))
+    config = PidConfig(u_max=umax, ti_s=ti_us / 1e6)
+    model = axis_model(context.period_s)
+    check_stable(config, model)
+    return CascadedPid(reference, config, model)
 
 
 def mpc_config(params: Mapping[str, Any], context: ServoContext, name: str) -> MpcConfig:

@@ -15,17 +15,22 @@ import math
 import os
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from importlib import resources
 from typing import Any
 
-from drivers.canopen.bus import SOCKETCAND, CanBusSpec
+from can.interfaces import VALID_INTERFACES
+
+from drivers.can_bus_time import CAN_FD_MAX_BITRATE, CLASSIC_CAN_MAX_BITRATE, max_bitrate
+from drivers.canopen.bus import SOCKETCAND, CanBusSpec, parse_can_url
 from drivers.canopen.config import DriveMasterConfig
-from drivers.cia402 import MODES, QUICK_STOP_OPTIONS
+from drivers.cia402 import MODES, QUICK_STOP_OPTIONS, TPDO_LAYOUTS
 from emulators.drive.config import DriveEmulatorConfig
 from emulators.drive.plant import Disturbance, Friction
-from hil.core.config import Table, deep_merge, load_toml, parse_toml
-from hil.core.errors import ConfigError
+from hil.core.config import Table, load_toml, parse_toml
+from hil.core.errors import ConfigError, UsageError
+from hil.core.registry import scheme_of
+from hil.core.settings import KeyRead, Layer, Layered, Setting, effective, lay
 from hil.core.verdict import RunTables, read_run_tables
 from hil.servo.safety import ServoSafety
 
@@ -38,45 +43,92 @@ EMULATED = "emulated"
 
 @dataclass(frozen=True)
 class AxisSpec:
-    """One axis of a run on several axes: its name (topics, KPIs) and its drive's node id."""
+    """One axis of a run on several axes: its name (topics, KPIs), its drive's node id, and
+    its own current limit (None: the master's; the smaller of the two holds)."""
 
     name: str
     node: int
+    current_limit_ma: float | None = None
+    bus: str = ""  # its bus's URL ("": the run's, --drive or [bus])
+
+    def master(self, master: DriveMasterConfig) -> DriveMasterConfig:
+        """``master`` for this axis' drive: its node id, its current limit if tighter."""
+        limit = master.current_limit_ma if self.current_limit_ma is None \
+            else min(master.current_limit_ma, self.current_limit_ma)
+        return replace(master, node_id=self.node, current_limit_ma=limit)
 
 
 def check_axes(axes: tuple[AxisSpec, ...], where: str) -> tuple[AxisSpec, ...]:
-    """Two axes or more, names and node ids each once (ConfigError naming ``where``)."""
+    """Two axes or more, names each once, node ids each once on a bus (ConfigError naming
+    ``where``)."""
     if len(axes) < 2:
         raise ConfigError(f"{where}: name two axes or more (one axis: the master's node_id)")
-    for what, values in (("name", [a.name for a in axes]), ("node", [a.node for a in axes])):
-        if len(set(values)) != len(values):
-            raise ConfigError(f"{where}: a {what} given twice")
+    names = [a.name for a in axes]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"{where}: a name given twice")
+    nodes = [(a.bus, a.node) for a in axes]
+    for bus, node in nodes:
+        if nodes.count((bus, node)) > 1:
+            raise ConfigError(f"{where}: a node given twice on {bus or 'one bus'} "
+                              f"(node {node})")
     return axes
+
+
+def bitrate_problem(bitrate: int, fd: bool) -> str | None:
+    """Why a bus cannot run at ``bitrate`` bit/s (``fd``: a CAN FD bus); None: it can."""
+    if bitrate <= max_bitrate(fd):
+        return None
+    if fd:
+        return f"CAN FD stops at {CAN_FD_MAX_BITRATE} bit/s"
+    return (f"classic CAN stops at {CLASSIC_CAN_MAX_BITRATE} bit/s (1 Mbit/s); above it only "
+            "on a CAN FD bus: fd = true in [bus.options] (or ?fd=true in a bus URL)")
+
+
+def check_bitrate(bitrate: int, fd: bool, what: str) -> None:
+    """``bitrate`` bit/s on a bus (``fd``: CAN FD) given by ``what`` (a flag, a URL): a
+    UsageError naming it and the unit when the bus cannot run at it."""
+    problem = bitrate_problem(bitrate, fd)
+    if problem is not None:
+        raise UsageError(f"{what} {bitrate} bit/s: {problem}")
 
 
 @dataclass(frozen=True)
 class DriveConfig:
     """drive.toml as read: the master's and the emulator's settings, and what a session
-    records of it (the merged tables and the text of the user's file, or of the default)."""
+    records of it (the layers it was laid from, the text of the user's file, or of the
+    default, and every key as read)."""
 
     master: DriveMasterConfig
     emulator: DriveEmulatorConfig
     bus: CanBusSpec | None       # [bus]: the drive's bus; None: the emulated drive
     safety: ServoSafety          # [safety]: the run's safety limits
-    data: Mapping[str, Any]
+    layered: Layered             # the layers and the merged tables
     text: str
     source: str
     run: RunTables               # [controller] params and [limits] of a run
     axes: tuple[AxisSpec, ...] = ()  # [[axis]]: several axes on the bus (none: one)
+    reads: tuple[KeyRead, ...] = ()  # every key as read, in reading order
+
+    @property
+    def data(self) -> dict[str, Any]:
+        """The merged tables (what a session records as the drive config)."""
+        return self.layered.data
 
     @property
     def bus_url(self) -> str:
         """``[bus]`` as a drive URL (``emulated`` for the emulated drive)."""
         return self.bus.url if self.bus is not None else EMULATED
 
-    def laid_over(self, overrides: Mapping[str, Any]) -> DriveConfig:
-        """These settings with ``overrides`` laid over them (checked again)."""
-        return parse_drive_config(deep_merge(self.data, overrides), self.source, self.text)
+    def settings(self) -> list[Setting]:
+        """Every key as it runs, with its origin."""
+        return effective(self.reads, self.layered)
+
+    def laid_over(self, overrides: Mapping[str, Any], origin: str = "overrides",
+                  whole: tuple[str, ...] = ()) -> DriveConfig:
+        """These settings with ``overrides`` laid over them as a layer named ``origin``
+        (checked again)."""
+        layered = self.layered.with_layer(Layer(origin, overrides, whole))
+        return parse_drive_config(layered, self.source, self.text)
 
 
 def default_drive_text() -> str:
@@ -84,48 +136,78 @@ def default_drive_text() -> str:
     return resources.files("hil.configs").joinpath("drive.toml").read_text("utf-8")
 
 
-def load_drive_config(path: str | os.PathLike[str] | None = None,
-                      overrides: Mapping[str, Any] | None = None) -> DriveConfig:
-    """The packaged default, the file at ``path`` laid over it, then ``overrides`` (e.g.
-    ``{"master": {"current_limit_mA": 12000.0}}``), parsed."""
+def drive_layers(path: str | os.PathLike[str] | None = None) -> tuple[list[Layer], str]:
+    """The packaged default and the user's file at ``path`` over it, as layers; and the text a
+    session attaches (the user's file, else the default)."""
     text = default_drive_text()
-    data = parse_toml(text, DEFAULT_SOURCE)
+    packaged = str(resources.files("hil.configs"))
+    layers = [Layer(DEFAULT_SOURCE, parse_toml(text, DEFAULT_SOURCE), folder=packaged)]
     if path is not None:
         user, text = load_toml(path)
-        data = deep_merge(data, user)
+        path = os.fspath(path)
+        layers.append(Layer(f"--config {path}", user,
+                            folder=os.path.dirname(os.path.abspath(path))))
+    return layers, text
+
+
+def load_drive_config(path: str | os.PathLike[str] | None = None,
+                      overrides: Mapping[str, Any] | None = None,
+                      origin: str = "overrides") -> DriveConfig:
+    """The packaged default, the file at ``path`` laid over it, then ``overrides`` (e.g.
+    ``{"master": {"current_limit_mA": 12000.0}}``, a layer named ``origin``), parsed."""
+    layers, text = drive_layers(path)
+    if overrides:
+        layers.append(Layer(origin, overrides))
     source = os.fspath(path) if path is not None else SOURCE
-    return parse_drive_config(deep_merge(data, overrides or {}), source, text)
+    return parse_drive_config(lay(layers), source, text)
 
 
-def parse_drive_config(data: Mapping[str, Any], source: str, text: str = "") -> DriveConfig:
+def parse_drive_config(layered: Layered, source: str, text: str = "") -> DriveConfig:
     """Complete drive tables (the default's keys all present) -> :class:`DriveConfig`."""
-    root = Table(data, source)
+    root = Table(layered.data, source, layered=layered)
     bus_table = root.table("bus", required=True)
     bus = _bus(bus_table)
-    master = _master(root.table("master", required=True), bus_table)
+    fd = bus is not None and bus.options.get("fd") is True
+    master = _master(root.table("master", required=True), bus_table, fd)
     emulator = _emulator(root.table("emulator", required=True))
     safety = _safety(root.table("safety", required=True))
     run = read_run_tables(root)
     axes = _axes(root)
     root.done()
-    return DriveConfig(master=master, emulator=emulator, bus=bus, safety=safety, data=data,
-                       text=text, source=source, run=run, axes=axes)
+    return DriveConfig(master=master, emulator=emulator, bus=bus, safety=safety,
+                       layered=layered, text=text, source=source, run=run, axes=axes,
+                       reads=tuple(root.reads))
 
 
 def _axes(root: Table) -> tuple[AxisSpec, ...]:
-    """``[[axis]]`` tables: ``name`` and ``node`` each."""
-    tables = root.raw("axis", [])
+    """``[[axis]]`` tables: ``name`` and ``node`` each, optionally ``current_limit_mA`` and
+    ``bus`` (its bus's URL; "": the run's)."""
+    tables = root.value("axis", [], kind="array of tables")
     if not isinstance(tables, list):
         raise root.error("axis", "must be an array of tables ([[axis]])")
     axes = []
     for i, data in enumerate(tables):
-        table = Table(data, root.source, f"axis[{i}]")
+        table = Table(data, root.source, f"axis[{i}]", root.reads, root.layered)
         name = table.string("name")
         if not AXIS_NAME.fullmatch(name):
             raise table.error("name", f"must be a lower-case name (a-z, 0-9, _), got {name!r}")
-        axes.append(AxisSpec(name, table.integer("node", at_least=1, at_most=127)))
+        axes.append(AxisSpec(name, table.integer("node", at_least=1, at_most=127),
+                             table.number("current_limit_mA", None, above=0, at_most=32_767),
+                             _axis_bus(table)))
         table.done()
     return check_axes(tuple(axes), f"{root.source}: [[axis]]") if axes else ()
+
+
+def _axis_bus(table: Table) -> str:
+    """An axis' ``bus``: "" (the run's), ``emulated`` or a bus URL, checked as a run opens
+    it (a plug-in's scheme is its own to check)."""
+    url = table.string("bus", "").strip()
+    if url and scheme_of(url) in VALID_INTERFACES:
+        try:
+            parse_can_url(url)
+        except ConfigError as exc:
+            raise table.error("bus", f"is not a bus URL: {exc}") from None
+    return url
 
 
 def _safety(s: Table) -> ServoSafety:
@@ -150,8 +232,6 @@ def _safety(s: Table) -> ServoSafety:
 def _bus(bus: Table) -> CanBusSpec | None:
     """``[bus]``: ``interface`` (``emulated``, ``socketcand`` or a python-can interface),
     ``channel`` and ``options`` (keyword arguments of ``can.Bus``; socketcand: host, port)."""
-    from can.interfaces import VALID_INTERFACES
-
     interface = bus.string("interface")
     table = bus.table("options")
     if interface == EMULATED:
@@ -162,7 +242,7 @@ def _bus(bus: Table) -> CanBusSpec | None:
     if interface not in VALID_INTERFACES:
         raise bus.error("interface", f"must be 'emulated' or a python-can interface "
                         f"({', '.join(sorted(VALID_INTERFACES))}), got {interface!r}")
-    options = {name: table.raw(name) for name in table.names()}
+    options = {name: table.value(name) for name in table.names()}
     table.done()
     if interface == SOCKETCAND and not ({"host", "port"} <= set(options)):
         raise bus.error("options", "socketcand needs host and port, e.g. "
@@ -171,15 +251,31 @@ def _bus(bus: Table) -> CanBusSpec | None:
 
 
 def _quick_stop_option(table: Table) -> int:
-    option = table.integer("quick_stop_option")
-    if option not in QUICK_STOP_OPTIONS:
-        raise table.error("quick_stop_option", f"must be one of "
-                          f"{', '.join(map(str, QUICK_STOP_OPTIONS))}, got {option}")
-    return option
+    return table.integer("quick_stop_option", choices=tuple(QUICK_STOP_OPTIONS))
 
 
-def _master(m: Table, bus: Table) -> DriveMasterConfig:
-    """``[master]`` and ``[bus]``."""
+def _bitrate(bus: Table, fd: bool) -> int:
+    """``[bus] bitrate``: classic CAN's 1 Mbit/s at most, CAN FD's above (``fd``)."""
+    value = bus.data.get("bitrate")
+    if isinstance(value, int) and not isinstance(value, bool):
+        problem = bitrate_problem(value, fd)
+        if problem is not None:  # said with the way out, before the range check's words
+            raise bus.error("bitrate", f"is {value} bit/s: {problem}")
+    return bus.integer("bitrate", above=0, at_most=max_bitrate(fd))
+
+
+def _tpdo_layout(m: Table, sync_echo: tuple[int, int] | None) -> str:
+    """``[master] tpdo_layout``: the one-TPDO layout fills its 8 bytes, so no echo with it."""
+    layout = m.string("tpdo_layout", choices=tuple(TPDO_LAYOUTS))
+    if layout == "one" and sync_echo is not None:
+        raise m.error("tpdo_layout", "= 'one' fills its TPDO's 8 bytes (statusword, position, "
+                      "torque): no room for sync_echo; set sync_echo = '' or tpdo_layout = "
+                      "'two'")
+    return layout
+
+
+def _master(m: Table, bus: Table, fd: bool = False) -> DriveMasterConfig:
+    """``[master]`` and ``[bus]`` (``fd``: its options make it a CAN FD bus)."""
     channel = bus.string("channel")
     if not channel:
         raise bus.error("channel", "must be a bus name, got ''")
@@ -187,7 +283,7 @@ def _master(m: Table, bus: Table) -> DriveMasterConfig:
         node_id=m.integer("node_id", at_least=1, at_most=127),
         mode=m.string("mode", choices=tuple(MODES)),
         cycle_period_s=m.integer("cycle_period_us", above=0) / 1e6,
-        bitrate=bus.integer("bitrate", above=0),
+        bitrate=_bitrate(bus, fd),
         channel=channel,
         current_limit_ma=m.number("current_limit_mA", above=0, at_most=32_767),
         heartbeat_id=m.integer("heartbeat_id", at_least=1, at_most=127),
@@ -201,8 +297,9 @@ def _master(m: Table, bus: Table) -> DriveMasterConfig:
         quick_stop_option=_quick_stop_option(m),
         quick_stop_timeout_s=m.integer("quick_stop_timeout_ms", above=0) / 1e3,
         standstill_deg_s=m.number("standstill_deg_s", above=0),
-        eds=m.string("eds") or None,
-        sync_echo=_object_address(m, "sync_echo"),
+        eds=m.file_path("eds") or None,
+        sync_echo=(echo := _object_address(m, "sync_echo")),
+        tpdo_layout=_tpdo_layout(m, echo),
     )
     m.done()
     bus.done()

@@ -35,6 +35,14 @@ CONTROLLERS = ("mpc", "pid")
 AMPLITUDE_DEG = 2.0
 
 
+def drive_for(limit_ma: float) -> dict[str, Any]:
+    """The drive configured for a case's current (the paper's rated 12 A at 10 Hz): the
+    master's limit, and the emulated drive's own max torque 0x6072 (per mille of its rated
+    1000 mA), which no master goes above."""
+    return {"master": {"current_limit_mA": limit_ma},
+            "emulator": {"max_torque_permille": max(1000, round(limit_ma))}}
+
+
 def run_servo_demo(out_dir: str | Path, echo: Callable[[str], None] | None = print,
                    recording: RecordingOptions | None = None) -> list[dict[str, Any]]:
     """Run the four sessions into ``out_dir`` (MCAP + PNG each); return one row per run and,
@@ -47,7 +55,8 @@ def run_servo_demo(out_dir: str | Path, echo: Callable[[str], None] | None = pri
             name = f"servo-{controller}-{frequency:g}hz-{limit / 1000:g}a"
             mcap = str(out / f"{name}.mcap")
             config = ServoRunOptions(
-                controller=controller, ert="foh", ht=8, hu=8, hp=50, umax=limit,
+                controller=controller, ert="foh", ht=8, hu=8, hp=50,
+                drive_overrides=drive_for(limit),
                 reference=f"sine:amplitude={AMPLITUDE_DEG:g},frequency={frequency:g}",
                 duration_s=SETTLE_S + 1.0 / frequency, settle_s=SETTLE_S,
                 out=mcap, recording=recording or RecordingOptions())

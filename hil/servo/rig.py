@@ -18,7 +18,6 @@ returns a :class:`~drivers.canopen.master.CanDriveMaster` (not started). ``trace
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -127,8 +126,8 @@ def emulator_process_drive(drive: DriveConfig, on_event: EventSink,
     """A master on socketcand to ``hil emulate drive`` started for it (node id of the master)."""
     from hil.emulator_process import start_drive_emulator
 
-    path = drive.source if os.path.isfile(drive.source) else None
-    process = start_drive_emulator(path, node=drive.master.node_id)
+    # the run's effective tables, every layer in: what the run was configured with
+    process = start_drive_emulator(node=drive.master.node_id, tables=drive.data)
     on_event("emulator.process", f"drive emulator in process {process.pid} at {process.url}",
              source="drive", pid=process.pid, url=process.url)
     try:

@@ -3,7 +3,8 @@ link, as the run pipeline (:mod:`hil.core.run`) drives it.
 
 :class:`ServoExperiment` opens the drive (the emulator in lockstep by default), builds the
 controller, enables the drive and runs one :class:`~hil.servo.task.ServoTask` at the base
-period T = 500 us (the published axis model's). Recorded per tick: ``/drive/command``
+period T = ``master.cycle_period_us`` (500 us by default, the published axis model's; the
+controller must run at it). Recorded per tick: ``/drive/command``
 (reference, command, error, controller compute time, solver path), ``/drive/feedback`` (what
 the drive reported) and ``/mpc/prediction``; faults and fallbacks go to ``/events``.
 
@@ -16,26 +17,27 @@ time, ticks the loop skipped plus ticks whose command left after the next tick's
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Callable, Mapping
-from dataclasses import asdict, dataclass, field, fields
 from typing import Any, cast
 
-from controllers.base import CountsFallbacks, ServoController, horizons_of, solver_of
-from controllers.servo.model import SAMPLE_PERIOD_S
-from controllers.servo.references import Scenario, parse_scenario
+from controllers.base import (
+    CountsFallbacks,
+    ServoController,
+    horizons_of,
+    position_input_of,
+    solver_of,
+)
+from controllers.servo.references import PlacedReference, Reference, Scenario, parse_scenario
 from drivers.canopen import CanDriveMaster, SdoAbortError
 from hil.core.clock import Clock, RealtimeClock, SimClock
-from hil.core.errors import ConfigError, HilError, SafetyStopError, UsageError
+from hil.core.errors import HilError, SafetyStopError, UsageError
 from hil.core.loop import FixedRateLoop
+from hil.core.notice import warn
 from hil.core.plugins import (
     build_controller,
     controller_factory,
-    controller_label,
     controller_short_name,
 )
-from hil.core.ranges import MAX_MPC_HORIZON, check_at_most, check_duration
-from hil.core.recorder import RecordingOptions
 from hil.core.registry import scheme_of
 from hil.core.run import (
     EventBuffer,
@@ -47,16 +49,16 @@ from hil.core.run import (
     run_experiment,
 )
 from hil.core.session import Session
-from hil.core.verdict import Limit, SignalWatch, split_limits
+from hil.core.settings import settings_json
+from hil.core.verdict import SignalWatch, split_limits
 from hil.servo.builtin import ServoContext
-from hil.servo.config import EMULATED, DriveConfig, load_drive_config
-from hil.servo.defaults import DEFAULT_REFERENCE
+from hil.servo.config import EMULATED
+from hil.servo.options import ServoRunOptions
 from hil.servo.rig import open_drive
 from hil.servo.safety import SafetyMonitor
+from hil.servo.settings import check_controller_period, resolve_servo
 from hil.servo.task import (
     DISTURBANCE_OBJECT,
-    PREDICTION_EVERY_REALTIME,
-    PREDICTION_EVERY_TICK_UP_TO_S,
     ServoTask,
 )
 from hil.servo.tracking import reference_amplitude
@@ -67,9 +69,6 @@ from hil.servo.tracking import reference_amplitude
 STEP_BUDGET_S = 0.25
 # per-tick signals a --limit may name (magnitudes, except the position)
 SIGNALS = ("abs_error_deg", "abs_command_mA", "abs_velocity_deg_s", "position_deg")
-# lockstep over a real bus: wait this long for the TPDOs (a lockstep run never ends a cycle
-# early; a drive that does not answer within it is a lost link)
-LOCKSTEP_RX_TIMEOUT_US = 100_000
 
 #: the KPIs of ``hil servo run`` a limit may name (groups by their name)
 KPI_NAMES = ("max_error_deg", "max_error_pct", "rms_error_deg", "cumulative_error_deg",
@@ -77,128 +76,34 @@ KPI_NAMES = ("max_error_deg", "max_error_pct", "rms_error_deg", "cumulative_erro
              "stale_feedback", "clamped_commands", "wall_s", "realtime_factor", "solver_paths",
              "empc_fallbacks", "faults")
 
-#: ``hil servo run``'s flags (argparse dests) -> the option they set, where the names differ
-FLAG_OPTIONS = {"duration": "duration_s", "config": "drive_config", "settle": "settle_s",
-                "limit": "limits", "param": "params", "controller_budget": "controller_budget_s"}
-
-
-@dataclass(frozen=True)
-class ServoRunOptions:
-    """Everything a servo run is made of (the flags of ``hil servo run``).
-
-    ``drive_config`` is a drive TOML laid over ``hil/configs/drive.toml``; ``drive_overrides``
-    is laid over the result last (after ``umax`` and ``node``), for tests and scripts.
-    ``prediction_every`` None means every tick in lockstep, ``PREDICTION_EVERY_REALTIME``
-    ticks in real time.
-    """
-
-    controller: str | Callable[..., Any]
-    params: Mapping[str, Any] = field(default_factory=dict)
-    drive: str | None = "emulated"   # a drive URL; None: drive.toml's [bus]
-    node: int = 1
-    ert: str = "foh"
-    ht: int = 8
-    hu: int = 8
-    hp: int = 50
-    umax: float = 1000.0
-    reference: str = DEFAULT_REFERENCE
-    duration_s: float = 2.0
-    realtime: bool = False
-    out: str | None = None
-    drive_config: str | None = None
-    settle_s: float = 0.0
-    prediction_every: int | None = None
-    drive_overrides: Mapping[str, Any] = field(default_factory=dict)
-    limits: tuple[Limit, ...] = ()
-    controller_budget_s: float | None = None  # per step; None: STEP_BUDGET_S in real time
-    recording: RecordingOptions = field(default_factory=RecordingOptions)
-    quiet: bool = False              # no progress line on the terminal
-    can_log: str | None = None       # every CAN frame to this file (python-can's formats)
-    reset_fault: bool = False        # clear a drive FAULT (CiA 402 fault reset) before enabling
-    axes: str | None = None          # NAME=NODE,...: several axes (else drive.toml's [[axis]])
-
-    def __post_init__(self) -> None:
-        if not (isinstance(self.umax, (int, float)) and math.isfinite(self.umax)
-                and self.umax > 0):
-            raise UsageError(f"--umax must be a positive finite number, got {self.umax!r}")
-        check_duration(self.duration_s, "--duration", SAMPLE_PERIOD_S)
-        for flag, horizon in (("--ht", self.ht), ("--hu", self.hu), ("--hp", self.hp)):
-            check_at_most(horizon, MAX_MPC_HORIZON, flag, "the MPC's matrices grow with the "
-                          "horizon (a step would take far longer than a 500 us period)")
-        if not 0 <= self.settle_s < self.duration_s:
-            raise UsageError(f"--settle ({self.settle_s:g} s) must be >= 0 and shorter than "
-                             f"--duration ({self.duration_s:g} s)")
-        if self.prediction_every is not None and self.prediction_every < 1:
-            raise UsageError(f"--prediction-every must be >= 1, got {self.prediction_every}")
-        if not 1 <= self.node <= 127:
-            raise UsageError(f"--node must be a CANopen node id 1..127, got {self.node}")
-
-    @classmethod
-    def from_flags(cls, flags: Mapping[str, Any]) -> ServoRunOptions:
-        """The options of ``hil servo run``'s flags as a dict (argparse dests; a sweep's swept
-        values laid over them); flags that are not run options (``json``, ``junit``...) are
-        ignored. The horizons ``ht`` and ``hu`` default to 8, to 3 for ``empc`` (the paper's
-        drive)."""
-        known = {f.name for f in fields(cls)}
-        values: dict[str, Any] = {}
-        for flag, value in flags.items():
-            name = FLAG_OPTIONS.get(flag, flag)
-            if name in known and value is not None:
-                values[name] = value
-        values["params"] = dict(values.get("params", {}))
-        values["limits"] = tuple(values.get("limits", ()))
-        safety = dict(flags.get("safety") or [])
-        if safety:  # --safety KEY=VALUE: laid over drive.toml's [safety], checked as strictly
-            overrides = dict(values.get("drive_overrides", {}))
-            overrides["safety"] = {**overrides.get("safety", {}), **safety}
-            values["drive_overrides"] = overrides
-        default_horizon = 3 if values.get("controller") == "empc" else 8
-        for horizon in ("ht", "hu"):
-            values.setdefault(horizon, default_horizon)
-        return cls(**values)
-
-    @property
-    def prediction_period(self) -> int:
-        if self.prediction_every is not None:
-            return self.prediction_every
-        long_run = self.duration_s > PREDICTION_EVERY_TICK_UP_TO_S
-        return PREDICTION_EVERY_REALTIME if self.realtime or long_run else 1
-
-    @property
-    def label(self) -> str:
-        return controller_label(self.controller)
-
-    def describe_controller(self) -> str:
-        if self.controller == "pid":
-            return "pid (cascaded P/PI + notch, Table I)"
-        if self.controller in ("mpc", "empc"):
-            return (f"{self.controller} ({self.ert.upper()}, H_t = {self.ht}, H_u = {self.hu}, "
-                    f"H_p = {self.hp})")
-        return self.label
-
-    def record(self) -> dict[str, Any]:
-        """The options as the session's ``servo`` metadata records them."""
-        info = asdict(self)
-        for name in ("drive_overrides", "limits", "controller", "params"):
-            info.pop(name)
-        return info
-
-
 def make_controller(options: ServoRunOptions, scenario: Scenario, session: Any = None,
                     params: Mapping[str, Any] | None = None,
-                    factory: Callable[..., Any] | None = None) -> ServoController:
+                    factory: Callable[..., Any] | None = None,
+                    umax_ma: float | None = None, *,
+                    reference: Reference | None = None,
+                    period_s: float | None = None) -> ServoController:
     """The controller of the run, built from its spec as ``factory(reference, params)``
-    (``context=`` too when the factory takes it); ``factory``: already loaded and checked."""
-    context = ServoContext(options.ht, options.hu, options.hp, options.ert, options.umax,
-                           session)
+    (``context=`` too when the factory takes it); ``factory``: already loaded and checked;
+    ``umax_ma``: its current bound (default: the run's, as :func:`resolve_servo` gives it);
+    ``reference``: the run's (placed where the axis starts), else the scenario's;
+    ``period_s``: the cycle period it is stepped at (default: the run's). A
+    ``position_input`` other than wrapped or unwrapped is a ConfigError naming it."""
+    if umax_ma is None or period_s is None:
+        settings = resolve_servo(options)
+        umax_ma = settings.umax_ma if umax_ma is None else umax_ma
+        period_s = settings.drive.master.cycle_period_s if period_s is None else period_s
+    context = ServoContext(options.ht, options.hu, options.hp, options.ert, umax_ma, session,
+                           period_s)
     values = dict(options.params if params is None else params)
     label = options.label
     if factory is None:
         factory, label = controller_factory(options.controller, scenario.reference, values,
                                             method="step", application="servo")
-    return cast(ServoController, build_controller(factory, label, scenario.reference, values,
-                                                  method="step", application="servo",
-                                                  context=context))
+    controller = build_controller(factory, label, scenario.reference if reference is None
+                                  else reference, values, method="step",
+                                  application="servo", context=context)
+    position_input_of(controller, label)
+    return cast(ServoController, controller)
 
 
 def run_servo(options: ServoRunOptions,
@@ -209,7 +114,7 @@ def run_servo(options: ServoRunOptions,
 
     Drive errors (fault, link lost) stop the loop; the drive is put in its safe state, the
     session file is finished with the KPIs so far, and the error is raised with its path."""
-    if options.axes or drive_settings(options).axes:
+    if options.axes or resolve_servo(options).drive.axes:
         raise UsageError("several axes (--axes or [[axis]]) run through "
                          "hil.servo.axes_run.run_any (as hil servo run and hil.api.run_servo "
                          "do), not run_servo")
@@ -227,6 +132,7 @@ class ServoExperiment(Experiment):
         self.on_started = on_started
         self.master: CanDriveMaster | None = None
         self.task: ServoTask | None = None
+        self.umax_ma: float | None = None  # the controller's bound, once the drive is open
 
     def parse_reference(self) -> Scenario:
         """The run's scenario, from ``--reference``."""
@@ -235,11 +141,15 @@ class ServoExperiment(Experiment):
     def plan(self) -> RunPlan:
         options = self.options
         self.scenario = self.parse_reference()
-        self.drive = drive = drive_settings(options)
+        self.settings = resolve_servo(options)
+        self.drive = drive = self.settings.drive
+        self.drive_url = self.settings.drive_url
         self.params = {**drive.run.params, **options.params}
         # checked before anything is opened: a spec that cannot load leaves no file behind
         self.factory, _ = controller_factory(options.controller, self.scenario.reference,
                                              self.params, method="step", application="servo")
+        check_controller_period(self.factory, options.label, drive)
+        self.period_s = drive.master.cycle_period_s
         kpi_limits, signal_limits = split_limits([*drive.run.limits, *options.limits],
                                                  SIGNALS, self.kpi_names)
         self.watch = SignalWatch(signal_limits)
@@ -251,22 +161,27 @@ class ServoExperiment(Experiment):
         return RunPlan(
             kind="servo", label=options.label, session_path=self.out,
             clock=RealtimeClock() if options.realtime else SimClock(),
-            base_period_s=SAMPLE_PERIOD_S, duration_s=options.duration_s,
+            base_period_s=self.period_s, duration_s=options.duration_s,
             kpi_limits=tuple(kpi_limits), watch=self.watch,
-            config={"servo": run_info, "drive": drive.data}, config_text=drive.text,
+            config={"servo": run_info, "drive": drive.data,
+                    "settings": settings_json(self.settings.settings())},
+            config_text=drive.text,
             config_name="drive.toml", recording=options.recording,
             devices=self._devices(), quiet=options.quiet)
 
     def _devices(self) -> tuple[tuple[str, str], ...]:
         """The drive's bus, locked for the run (an emulated drive is the run's own, and
         python-can's ``virtual`` bus lives inside one process)."""
-        url = self.options.drive or self.drive.bus_url
+        url = self.drive_url
         return () if scheme_of(url) in (EMULATED, "virtual") else (("drive bus", url),)
 
     def open_devices(self, clock: Clock, on_event: EventBuffer) -> None:
         """The drive master, its bus reached and the drive in a known state (not enabled)."""
         options = self.options
-        master = open_drive(options.drive, self.drive, on_event=on_event,
+        for kind, message in self.settings.notices:
+            warn(message)
+            on_event(kind, message, level="warning", source="settings")
+        master = open_drive(self.drive_url, self.drive, on_event=on_event,
                             realtime=options.realtime, can_log=options.can_log)
         try:
             if options.reset_fault:
@@ -278,8 +193,15 @@ class ServoExperiment(Experiment):
         self.master = master
 
     def build_controller(self, session: Session) -> None:
+        """The controller, built with the run's reference: placed where the axis stands when
+        the drive is enabled (the servo task places it, before the first step)."""
+        self.reference = PlacedReference(self.scenario.reference,
+                                         relative=self.options.from_here)
+        assert self.master is not None
+        self.umax_ma = min(self.settings.umax_ma, self.master.current_limit_ma)
         self.controller = make_controller(self.options, self.scenario, session, self.params,
-                                          self.factory)
+                                          self.factory, self.umax_ma, reference=self.reference,
+                                          period_s=self.period_s)
 
     def start(self, session: Session) -> None:
         master, options = self.master, self.options
@@ -291,11 +213,12 @@ class ServoExperiment(Experiment):
         if self.scenario.disturbance is not None:
             check_disturbance_object(master)
         self.task = ServoTask(
-            session, master, self.controller, self.scenario, label=options.label,
+            session, master, self.controller, self.scenario, reference=self.reference,
+            label=options.label,
             settle_s=options.settle_s, prediction_every=options.prediction_period,
             budget_s=controller_budget(options.controller_budget_s, options.realtime,
                                        STEP_BUDGET_S),
-            safety=SafetyMonitor(self.drive.safety, SAMPLE_PERIOD_S), watch=self.watch)
+            safety=SafetyMonitor(self.drive.safety, self.period_s), watch=self.watch)
         session.add_task(self.task)
         if self.on_started is not None:
             self.on_started(master)
@@ -329,12 +252,14 @@ class ServoExperiment(Experiment):
         base["deadline_misses"] = (loop.skipped_ticks + task.late_writes
                                    if task is not None and options.realtime else 0)
         base["ticks"] = ticks
+        base["cycle_period_us"] = round(self.period_s * 1e6)
         base["mcap"] = options.recording.first_file(self.out)
         base.update({
             "reference": options.reference,
             "drive": master.url,
             "clock": session.clock.mode,
-            "umax_mA": options.umax,
+            "umax_mA": self.umax_ma if self.umax_ma is not None else self.settings.umax_ma,
+            "current_limit_mA": master.current_limit_ma,  # the smallest of the chain
             "settle_s": options.settle_s,
             "peak_current_mA": peak,          # sent to the drive, after the clamp
             "peak_requested_mA": requested,   # the controller's request
@@ -366,24 +291,7 @@ def realtime_factor(ticks: int, loop: FixedRateLoop) -> float | None:
     safe stop are not the loop's pace); None before a tick."""
     if loop.ticking_s <= 0:
         return None
-    return round(ticks * SAMPLE_PERIOD_S / loop.ticking_s, 2)
-
-
-def drive_settings(options: ServoRunOptions) -> DriveConfig:
-    """The drive config of the run: default < ``drive_config`` file < flags < overrides."""
-    flags = {"master": {"current_limit_mA": float(options.umax), "node_id": options.node}}
-    drive = load_drive_config(options.drive_config, overrides=flags)
-    if options.drive_overrides:
-        drive = drive.laid_over(options.drive_overrides)
-    period_us = round(drive.master.cycle_period_s * 1e6)
-    if period_us * 1e-6 != SAMPLE_PERIOD_S:
-        raise ConfigError(f"{drive.source}: master.cycle_period_us = {period_us}, but the servo "
-                          f"controllers are designed for T = {SAMPLE_PERIOD_S * 1e6:g} us")
-    if not options.realtime and (options.drive or drive.bus_url) != EMULATED:
-        timeout_us = round(drive.master.rx_timeout_s * 1e6)
-        drive = drive.laid_over({"master": {
-            "rx_timeout_us": max(timeout_us, LOCKSTEP_RX_TIMEOUT_US)}})
-    return drive
+    return round(ticks * (loop.base_period_ns / 1e9) / loop.ticking_s, 2)
 
 
 def check_disturbance_object(master: CanDriveMaster) -> None:

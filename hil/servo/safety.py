@@ -7,7 +7,8 @@ drive quick-stopped and disabled, the limit named in a ``safety.stop`` event and
 error the run ends with:
 
 * following error: ``|position - reference|`` beyond ``following_error_deg`` for longer than
-  ``following_error_ms``;
+  ``following_error_ms``, both multi-turn (the reference placed where the axis started), so a
+  window of any size holds, half a turn or more too;
 * position outside ``[position_min_deg, position_max_deg]`` (multi-turn);
 * ``|velocity|`` above ``velocity_max_deg_s``;
 * more than ``stale_share_max`` of the cycles of the last ``stale_window_ms`` without fresh

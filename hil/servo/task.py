@@ -1,4 +1,5 @@
-"""The servo tick: one loop task at the base period T = 500 us, in the loop's four phases.
+"""The servo tick: one loop task at the base period T (`master.cycle_period_us`, 500 us by
+default), in the loop's four phases.
 
 * **read** - ``master.receive_feedback()``: the TPDOs of the SYNC the previous tick sent. In
   real time they travelled while the loop slept; in lockstep the emulated drive answered the
@@ -9,6 +10,14 @@
 * **record** - ``/drive/command``, ``/drive/feedback``, ``/mpc/prediction``, the KPIs and the
   per-tick limits, after the command has left (in real time the drive's answer travels while
   the tick is logged).
+
+The reference is placed where the axis stands when the task is built (the drive enabled,
+before the first step: :class:`~controllers.servo.references.PlacedReference`), and the
+error the KPIs, the safety net and the limits see is multi-turn: position - reference, turns
+included. The controller is given the position its contract asks for
+(:func:`~controllers.base.position_input_of`): ``position % 360`` by default, or multi-turn.
+After the ticks, each cycle of the drive's safe stop (quick stop until the axis stands, then
+disable voltage) is recorded on ``/drive/stop``.
 
 The controller's time is the tick's slot on the schedule grid (k T), in real time too: a
 skipped tick skips its reference sample. With the emulated drive the plant only moves on SYNC,
@@ -24,13 +33,15 @@ import math
 import numpy as np
 
 from controllers.base import (
+    UNWRAPPED,
     Predicting,
     ReportsEvents,
     ServoController,
     horizons_of,
+    position_input_of,
     solver_of,
 )
-from controllers.servo.references import Scenario, wrap180
+from controllers.servo.references import PlacedReference, Scenario
 from drivers.canopen import CanDriveMaster, Feedback
 from hil.core.errors import ControllerError
 from hil.core.guard import guarded_call
@@ -38,7 +49,7 @@ from hil.core.loop import Task
 from hil.core.session import Session
 from hil.core.verdict import SignalWatch
 from hil.servo.safety import SafetyMonitor
-from hil.servo.topics import COMMAND_SCHEMA, FEEDBACK_SCHEMA, PREDICTION_SCHEMA
+from hil.servo.topics import COMMAND_SCHEMA, FEEDBACK_SCHEMA, PREDICTION_SCHEMA, STOP_SCHEMA
 from hil.servo.tracking import ReferenceSamples, TrackingStats
 
 PREDICTION_EVERY_REALTIME = 10  # 200 Hz of /mpc/prediction in real time and in long runs
@@ -48,12 +59,16 @@ NUMBERS = (int, float, np.number)  # what a step may return (built once: checked
 
 
 class ServoTask(Task):
-    """read feedback -> controller step -> write command -> record the tick."""
+    """read feedback -> controller step -> write command -> record the tick.
+
+    Built once the drive is enabled: it places ``reference`` (the controller's) where the
+    axis stands, and records the drive's safe stop."""
 
     def __init__(self, session: Session, master: CanDriveMaster, controller: ServoController,
-                 scenario: Scenario, *, label: str, settle_s: float, prediction_every: int,
-                 budget_s: float | None, safety: SafetyMonitor,
-                 watch: SignalWatch | None = None, axis: str | None = None) -> None:
+                 scenario: Scenario, *, reference: PlacedReference, label: str,
+                 settle_s: float, prediction_every: int, budget_s: float | None,
+                 safety: SafetyMonitor, watch: SignalWatch | None = None,
+                 axis: str | None = None) -> None:
         super().__init__("servo" if axis is None else f"servo-{axis}")
         self.session, self.master, self.controller = session, master, controller
         self.scenario = scenario
@@ -62,7 +77,9 @@ class ServoTask(Task):
         self.realtime = session.clock.mode == "realtime"
         self.period_ns = self.loop.base_period_ns
         self.dt = self.period_ns / 1e9
-        self.reference = ReferenceSamples(scenario.reference, self.dt)
+        self.reference_offset_deg = self._place(reference, axis)
+        self.reference = ReferenceSamples(reference, self.dt)
+        self.unwrapped = position_input_of(controller) == UNWRAPPED
         self.stats = TrackingStats(settle_s)
         self.prediction_every = prediction_every
         self.label = label
@@ -81,6 +98,9 @@ class ServoTask(Task):
         self.feedbacks = session.topic(f"{drive}/feedback", FEEDBACK_SCHEMA, high_rate=True)
         self.predictions = (session.topic(f"{mpc}/prediction", PREDICTION_SCHEMA, high_rate=True)
                             if self.predictor is not None else None)
+        self.stops = session.topic(f"{drive}/stop", STOP_SCHEMA, high_rate=True)
+        self._stop_ns = 0
+        master.on_stop_cycle = self._record_stop_cycle
         self._disturbance_ma = 0
         self._last_path = ""
         # this tick: its number and time, the feedback read, the command and its compute time
@@ -111,8 +131,9 @@ class ServoTask(Task):
         assert self._feedback is not None
         n = (t_ns - self.loop.start_ns) // self.period_ns
         self._tick, self._t_s = n, n * self.dt
-        self._command, self._compute_us = self._step(self._feedback.position_deg % 360.0,
-                                                     self._t_s)
+        position = self._feedback.position_deg
+        self._command, self._compute_us = self._step(
+            position if self.unwrapped else position % 360.0, self._t_s)
 
     def write(self, t_ns: int) -> None:
         """RPDO + SYNC (and the scenario's disturbance torque, applied from that SYNC on)."""
@@ -129,7 +150,7 @@ class ServoTask(Task):
         assert feedback is not None
         position = feedback.position_deg
         r = self.reference(n)
-        error = wrap180(position - r)
+        error = position - r
         if not feedback.fresh:
             self.stale += 1
         # the current the drive is sent; the request stays on /drive/command
@@ -157,6 +178,28 @@ class ServoTask(Task):
             self.predictions.log(t_ns, (t_s, u_pred[: self.hu].tolist(), y_pred.tolist()))
 
     # -- helpers -----------------------------------------------------------------------
+    def _place(self, reference: PlacedReference, axis: str | None) -> float:
+        """The reference placed where the axis stands now (the feedback of the enable), before
+        the first step; where and how in the session's ``reference`` metadata. Returns the
+        reference's offset [deg]."""
+        start = self.master.feedback
+        assert start is not None, "the servo task is built once the drive is enabled"
+        offset = reference.place(start.position_deg)
+        self.session.recorder.metadata("reference" if axis is None else f"reference/{axis}", {
+            "start_deg": repr(start.position_deg), "offset_deg": repr(offset),
+            "placed": "from here" if reference.relative else "on the nearest turn"})
+        return offset
+
+    def _record_stop_cycle(self, feedback: Feedback) -> None:
+        """One cycle of the drive's safe stop, on ``/drive/stop``: stamped with the session
+        clock in real time; in lockstep, where that clock stands still after the last tick,
+        one period (the drive's SYNC) after the tick or the cycle before."""
+        now = self.clock.time_ns()
+        self._stop_ns = now if self.realtime else max(now, self._stop_ns) + self.period_ns
+        self.stops.log(self._stop_ns, (feedback.position_deg, feedback.velocity_deg_s,
+                                       feedback.current_ma, feedback.statusword,
+                                       feedback.cycle, feedback.fresh))
+
     def _step(self, position: float, t_s: float) -> tuple[float, float]:
         """The controller's command and its compute time [us]; a raise, a command that is not
         a finite number or a step over budget is a ControllerError (on ``/events`` too)."""

@@ -1,5 +1,6 @@
-"""The servo run's topics: what each message of ``/drive/command``, ``/drive/feedback`` and
-``/mpc/prediction`` holds, as JSON Schemas (recorded as CDR: :mod:`hil.core.cdr`)."""
+"""The servo run's topics: what each message of ``/drive/command``, ``/drive/feedback``,
+``/drive/stop`` and ``/mpc/prediction`` holds, as JSON Schemas (recorded as CDR:
+:mod:`hil.core.cdr`)."""
 
 from __future__ import annotations
 
@@ -8,11 +9,12 @@ from typing import Any
 COMMAND_SCHEMA: dict[str, Any] = {
     "type": "object",
     "title": "hil.ServoCommand",
-    "description": "One controller tick: reference r(k), error y(k) - r(k) (wrapped to ±180 "
-                   "deg), commanded current u(k), controller compute time.",
+    "description": "One controller tick: reference r(k), error y(k) - r(k) (multi-turn), "
+                   "commanded current u(k), controller compute time.",
     "properties": {
         "t_s": {"type": "number", "description": "tick time on the schedule grid [s]"},
-        "reference_deg": {"type": "number"},
+        "reference_deg": {"type": "number", "description": "placed where the axis started "
+                          "(multi-turn, as the position)"},
         "error_deg": {"type": "number", "x-cdr": "float32"},
         "command_mA": {"type": "number", "x-cdr": "float32",
                        "description": "controller output, before the driver's clamp"},
@@ -42,6 +44,16 @@ FEEDBACK_SCHEMA: dict[str, Any] = {
         "rtt_us": {"type": "number", "x-cdr": "float32",
                    "description": "SYNC sent -> both TPDOs received"},
     },
+}
+STOP_SCHEMA: dict[str, Any] = {
+    "type": "object",
+    "title": "hil.DriveStop",
+    "description": "What the drive reported in each cycle of its safe stop after the run's "
+                   "ticks: quick stop until the axis stands (or the quick-stop time-out), "
+                   "then disable voltage.",
+    "properties": {name: FEEDBACK_SCHEMA["properties"][name]
+                   for name in ("position_deg", "velocity_deg_s", "current_mA", "statusword",
+                                "cycle", "fresh")},
 }
 PREDICTION_SCHEMA: dict[str, Any] = {
     "type": "object",

@@ -1,8 +1,10 @@
 """What a servo run measures: the reference sampled on the tick grid and the tracking KPIs,
 accumulated tick by tick in constant memory.
 
-KPIs are taken over the ticks from ``settle_s`` on: the error is position - reference wrapped
-to ±180 deg; ``max_error_pct`` is relative to the sine's amplitude or the trapezoid's stroke
+KPIs are taken over the ticks from ``settle_s`` on: the error is the multi-turn position
+(as the master counts it) minus the reference placed where the axis started
+(:class:`~controllers.servo.references.PlacedReference`), turns included, so a runaway's whole
+error shows; ``max_error_pct`` is relative to the sine's amplitude or the trapezoid's stroke
 (None for a hold); ``step_us`` is the controller's compute time (Kalman + MPC, or PID) per
 tick.
 """

@@ -9,7 +9,7 @@
     "param.gain" = [1, 2]
     [sweep.random]          # trials = N, KEY = [lo, hi]
     trials = 4
-    umax = [500, 2000]
+    umax = [300, 1000]
 
 Flags given on the command line win over the file.
 """

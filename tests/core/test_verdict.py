@@ -5,8 +5,24 @@ import xml.etree.ElementTree as ET
 import pytest
 
 from hil.core.config import Table, parse_toml
-from hil.core.errors import ConfigError, UsageError
-from hil.core.verdict import Limit, check_limits, junit_xml, limits_from_table, parse_limit
+from hil.core.errors import (
+    ConfigError,
+    ControllerError,
+    RunInterruptedError,
+    SafetyStopError,
+    UsageError,
+)
+from hil.core.verdict import (
+    STATUSES,
+    Limit,
+    RunCase,
+    check_limits,
+    junit_xml,
+    kpi_properties,
+    limits_from_table,
+    parse_limit,
+    run_status,
+)
 
 KPIS = {"J2_VA": 523.5, "switches": 12, "solve_ms": {"median": 40.0, "p99": 71.7},
         "controller": "eec", "nan_kpi": float("nan")}
@@ -51,9 +67,58 @@ def test_junit_has_one_case_per_limit_and_marks_failures():
                                    properties={"mcap": "/tmp/x.mcap"}))
     suite = root.find("testsuite")
     assert suite is not None and suite.get("tests") == "2" and suite.get("failures") == "1"
+    assert suite.get("errors") == "0"
     cases = suite.findall("testcase")
     assert [c.get("name") for c in cases] == ["J2_VA<=560", "J2_VA<=500"]
     assert cases[0].find("failure") is None
     failure = cases[1].find("failure")
     assert failure is not None and "measured 523.5" in failure.get("message", "")
     assert suite.find("properties/property").get("value") == "/tmp/x.mcap"
+
+
+def test_junit_run_case_is_an_error_naming_its_cause_or_passes():
+    results = check_limits([parse_limit("J2_VA<=560")], KPIS)
+    stopped = ET.fromstring(junit_xml(results, "hil bench run eec", run=RunCase(
+        "safety stop at t=2 s: total_va 1300 VA", "SafetyStopError")))
+    assert stopped.tag == "testsuites" and stopped.get("errors") == "1"
+    suite = stopped.find("testsuite")
+    assert suite is not None
+    assert (suite.get("tests"), suite.get("failures"), suite.get("errors")) == ("2", "0", "1")
+    run = suite.findall("testcase")[-1]
+    assert run.get("name") == "run" and run.get("classname") == "hil bench run eec"
+    error = run.find("error")
+    assert error is not None and error.get("type") == "SafetyStopError"
+    assert error.get("message") == error.text == "safety stop at t=2 s: total_va 1300 VA"
+    completed = ET.fromstring(junit_xml([], "hil servo run pid", run=RunCase("completed")))
+    suite = completed.find("testsuite")
+    assert suite is not None and (suite.get("tests"), suite.get("errors")) == ("1", "0")
+    case = suite.find("testcase")
+    assert case is not None and list(case) and case[0].tag == "system-out"
+    assert case[0].text == "completed"
+
+
+def test_kpis_become_flat_properties_nested_keys_joined_by_dots():
+    kpis = {**KPIS, "mcap": "s.mcap", "stop_reason": None, "disturbed": False,
+            "limits": [{"limit": "J2_VA<=560", "measured": 523.5, "passed": True}],
+            "faults": {"emcy": 0, "link": {"losses": 2}}}
+    properties = kpi_properties(kpis)
+    assert properties["solve_ms.p99"] == "71.7" and properties["J2_VA"] == "523.5"
+    assert properties["faults.link.losses"] == "2" and properties["controller"] == "eec"
+    assert properties["mcap"] == "s.mcap" and properties["stop_reason"] == "null"
+    assert properties["disturbed"] == "false" and properties["nan_kpi"] == "NaN"
+    assert "limits" not in properties  # the limits are test cases of their own
+    assert kpi_properties({"ticks": 3}, "servo-1.") == {"servo-1.ticks": "3"}
+
+
+@pytest.mark.parametrize(("kpis", "error", "status"), [
+    ({}, None, "completed"),
+    ({"passed": True, "disturbed": True}, None, "disturbed"),
+    ({"passed": False, "disturbed": True}, None, "violated"),
+    ({"passed": False}, SafetyStopError("safety stop"), "stopped"),
+    ({}, ControllerError("controller 'x' raised"), "failed"),
+    ({}, RunInterruptedError("interrupted by SIGTERM", 143), "interrupted"),
+    ({}, KeyboardInterrupt(), "interrupted"),
+])
+def test_the_status_of_a_run(kpis, error, status):
+    assert run_status(kpis, error) == status
+    assert status in STATUSES

@@ -78,8 +78,10 @@ def test_start_configures_the_drive_by_sdo():
     assert read(0x6061, 0, "<b") == 10
     assert read(0x6072, 0, "<H") == 750
     assert read(0x605A, 0, "<h") == 2
-    assert events.kinds()[:2] == ["drive.configured", "drive.enabled"]
-    assert events.items[0][3]["bus_budget"]["fits"] is True
+    assert events.kinds()[:3] == ["drive.current_limit", "drive.configured", "drive.enabled"]
+    assert events.items[0][3] == {"applied_mA": 750.0, "run_mA": 750.0,
+                                  "drive_max_current_mA": None, "drive_max_torque_mA": 1000.0}
+    assert events.items[1][3]["bus_budget"]["fits"] is True
     master.close()
 
 
@@ -230,7 +232,8 @@ def test_heartbeat_loss_faults_the_drive_and_the_master_reports_the_emcy():
 
 
 def test_start_refuses_a_drive_in_fault_until_reset_fault():
-    master = emulated({"master": {"current_limit_mA": 20000.0}})
+    master = emulated({"master": {"current_limit_mA": 20000.0},
+                       "emulator": {"max_torque_permille": 20000}})
     master.start()
     with pytest.raises(DriveFaultError):
         for _ in range(50):
@@ -246,7 +249,8 @@ def test_start_refuses_a_drive_in_fault_until_reset_fault():
 def test_emcy_and_fault_are_recorded_as_session_events(tmp_path):
     path = tmp_path / "drive.mcap"
     session = Session(str(path), SimClock(), 500e-6, kind="servo", handle_signals=False)
-    master = emulated({"master": {"current_limit_mA": 20000.0}}, session.event)
+    master = emulated({"master": {"current_limit_mA": 20000.0},
+                       "emulator": {"max_torque_permille": 20000}}, session.event)
     master.start()
     session.add_component(master)
     currents = iter([100.0] * 20 + [16000.0] * 10)
@@ -342,7 +346,8 @@ def test_a_period_too_short_for_the_bus_is_warned_about():
     master2 = emulated({"bus": {"bitrate": 500_000}}, events)
     master2.start()
     warnings = [e for e in events.items if e[0] == "drive.bus_budget"]
-    assert warnings and warnings[0][1] == "warning" and "cannot fit" in warnings[0][2]
+    assert warnings and warnings[0][1] == "warning" and "more than the 500 us period" in \
+        warnings[0][2]
     master.close()
     master2.close()
 

@@ -74,7 +74,7 @@ def test_the_bench_config_faults_table_is_strict(tmp_path):
     assert [str(f) for f in load_bench_config(str(path)).faults] == [
         "weld@1:relay=P1", "drop@2:every=1,unit=0"]
     for text, message in [
-        ('[faults]\nschedul = []\n', "unknown key faults.schedul"),
+        ('[faults]\nschedul = []\n', "unknown key 'faults.schedul'"),
         ('[faults]\nschedule = ["emcy@1"]\n', "a drive emulator fault, not one the bench"),
         ('[faults]\nschedule = [{kind = "drop"}]\n', "faults.schedule[0]: needs kind and start_s"),
     ]:

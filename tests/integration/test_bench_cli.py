@@ -87,7 +87,7 @@ def test_serial_emulator_on_a_pty_stops_on_sigterm():
 
 @pytest.mark.parametrize(("args", "config", "why"), [
     (["--tcp", "127.0.0.1:0"], '[relays.P1]\ncoil = "two"\n',
-     "key 'relays.P1.coil' must be int"),
+     "key 'relays.P1.coil' must be an integer"),
     (["--tcp", "127.0.0.1:0"], "[meter.registers]\nva_l1 = 0x0001\n", "overlaps"),
     (["--tcp", "127.0.0.1:0"], "[units]\nmeter = 1\n", "three different unit ids"),
     (["--tcp", "127.0.0.1:0"], "[relays\n", "invalid TOML"),

@@ -58,12 +58,12 @@ def test_malformed_urls_are_one_clear_error(url, why):
 @pytest.mark.parametrize(("override", "why"), [
     ({"relays": {"P2": {"coil": 2}}}, "relays P1 and P2 are both on coil 2"),
     ({"relays": {"M1": {"coil": -1}}}, "coil must be >= 0"),
-    ({"relays": {"M1": {"dwell_s": "long"}}}, "key 'relays.M1.dwell_s' must be float"),
+    ({"relays": {"M1": {"dwell_s": "long"}}}, "key 'relays.M1.dwell_s' must be a number"),
     ({"units": {"meter": 300}}, "key 'units.meter' must be 1..247"),
     ({"meter": {"registers": {"va_l1": 0x0001}}}, "overlaps"),
     ({"meter": {"poll": ["va_l9"]}}, "unknown: ['va_l9']"),
     ({"meter": {"max_registers_per_request": 500}}, "must be 2..125"),
-    ({"levels": {"registers": {"q1": "zero"}}}, "key 'levels.registers.q1' must be int"),
+    ({"levels": {"registers": {"q1": "zero"}}}, "key 'levels.registers.q1' must be an integer"),
 ])
 def test_wrong_map_in_the_config_is_one_clear_error(override, why):
     with pytest.raises(ConfigError) as err:

@@ -21,6 +21,7 @@ from controllers.servo.sim import simulate
 from drivers.canopen import DriveFaultError
 from hil.cli.main import main
 from hil.core.reader import read_session
+from hil.servo.demo import drive_for
 from hil.servo.run import ServoRunOptions, make_controller, run_servo
 from tests.drive_processes import start_drive_emulator, stop_drive_emulator
 
@@ -66,21 +67,31 @@ def decode_wire(observer) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(targets, float), np.asarray(actuals, float)
 
 
+class Alternating:
+    """Asks for +-5000 mA, a sign every 10 ms: far beyond any limit, on purpose."""
+
+    def __init__(self, reference, params):
+        pass
+
+    def step(self, position_deg, t_s):
+        return 5000.0 if int(t_s / 0.01) % 2 == 0 else -5000.0
+
+
 @pytest.mark.parametrize("driver_limit", [1000.0, 600.0])
 def test_the_current_limit_is_never_exceeded_on_the_wire(tmp_path, driver_limit):
-    """A 10 Hz sine needs ~2.8 A: the MPC (bounds +-1000 mA) saturates. With a lower limit in
-    the driver, its clamp is what keeps the wire within the limit."""
-    observers = []
+    """A controller that asks for 5 A: the driver's clamp keeps the wire within the limit,
+    and the drive's max torque 0x6072 holds it for the run (its own value back after)."""
+    observers, max_torque = [], []
 
     def attach(master):
         observers.append(master.emulator.attach_bus())
-        observers.append(master.emulator.node)
+        max_torque.append(master.emulator.node._values[(0x6072, 0)])
 
     overrides = {"master": {"current_limit_mA": driver_limit}}
-    kpis, data = run(tmp_path, "limit", on_started=attach, controller="mpc", umax=1000.0,
+    kpis, data = run(tmp_path, "limit", on_started=attach, controller=Alternating,
                      reference="sine:amplitude=2,frequency=10", duration_s=0.5,
                      drive_overrides=overrides)
-    observer, node = observers
+    [observer] = observers
     try:
         targets, actuals = decode_wire(observer)
     finally:
@@ -88,10 +99,10 @@ def test_the_current_limit_is_never_exceeded_on_the_wire(tmp_path, driver_limit)
     assert targets.size >= 1000 and actuals.size >= 1000
     assert np.abs(targets).max() == driver_limit  # reached: the limit was tested...
     assert np.abs(actuals).max() <= driver_limit  # ...and never exceeded, sent or applied
-    assert node._values[(0x6072, 0)] == driver_limit  # the drive's own max torque (per mille)
+    assert max_torque == [driver_limit]  # the drive's own max torque (per mille) in the run
     assert np.abs(data.arrays("/drive/feedback")["command_mA"]).max() <= driver_limit
-    assert np.abs(data.arrays("/drive/command")["command_mA"]).max() == pytest.approx(1000.0)
-    assert (kpis["clamped_commands"] > 0) == (driver_limit < 1000.0)
+    assert np.abs(data.arrays("/drive/command")["command_mA"]).max() == 5000.0
+    assert kpis["clamped_commands"] == 1000 and kpis["current_limit_mA"] == driver_limit
 
 
 @pytest.mark.parametrize(("controller", "reference", "umax", "tolerance_deg"), [
@@ -104,7 +115,9 @@ def test_the_loop_through_can_reproduces_the_offline_simulation(tmp_path, contro
     the wire's quantisation (1 mA, one encoder increment). A delay of one tick more would be
     off by ~0.08 deg on the sine, a disturbance of the wrong sign by ~47 deg in Fig. 16."""
     config = ServoRunOptions(controller=controller, reference=reference, umax=umax,
-                            duration_s=1.0, out=str(tmp_path / "can.mcap"))
+                            duration_s=1.0, out=str(tmp_path / "can.mcap"),
+                            drive_overrides=drive_for(umax),  # 12 A: the motor's rated
+                            allow_higher_current=umax > 1000.0)
     run_servo(config)
     position = read_session(config.out).arrays("/drive/feedback")["position_deg"]
     scenario = parse_scenario(reference)
@@ -119,9 +132,12 @@ def test_the_loop_through_can_reproduces_the_offline_simulation(tmp_path, contro
 
 def test_cli_json_keys_mcap_topics_and_report(tmp_path, capsys):
     out = tmp_path / "cli.mcap"
+    twelve_amps = tmp_path / "drive.toml"  # the paper's motor: rated 12 A, its drive allows it
+    twelve_amps.write_text("[master]\ncurrent_limit_mA = 12000\n"
+                           "[emulator]\nmax_torque_permille = 12000\n")
     code = main(["servo", "run", "--controller", "mpc", "--ht", "4", "--hu", "4", "--duration",
-                 "0.2", "--reference", "sine:amplitude=2,frequency=10", "--umax", "12000",
-                 "--out", str(out), "--json"])
+                 "0.2", "--reference", "sine:amplitude=2,frequency=10", "--config",
+                 str(twelve_amps), "--out", str(out), "--json"])
     assert code == 0
     kpis = json.loads(capsys.readouterr().out)
     assert set(kpis) >= DESIGN_KEYS

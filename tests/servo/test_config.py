@@ -45,11 +45,12 @@ def test_a_user_file_then_overrides_are_laid_over_the_default(tmp_path):
     ("[master]\nnode_idd = 2\n", "unknown key 'master.node_idd'"),
     ("[emulator.friction]\nviscous = 1.0\n", "unknown key 'emulator.friction.viscous'"),
     ("[masterr]\nnode_id = 2\n", "unknown key 'masterr'"),
-    ("[master]\nstale_cycles = 2.5\n", "key 'master.stale_cycles' must be int, got float 2.5"),
-    ("[bus]\nbitrate = true\n", "key 'bus.bitrate' must be int, got bool True"),
-    ("[emulator]\nchannel = 3\n", "key 'emulator.channel' must be str, got int 3"),
+    ("[master]\nstale_cycles = 2.5\n",
+     "key 'master.stale_cycles' must be an integer, got a number 2.5"),
+    ("[bus]\nbitrate = true\n", "key 'bus.bitrate' must be an integer, got a boolean true"),
+    ("[emulator]\nchannel = 3\n", "key 'emulator.channel' must be a string, got an integer 3"),
     ("[master]\nnode_id = 128\n", "key 'master.node_id' must be <= 127, got 128"),
-    ("[master]\ncurrent_limit_mA = 0\n", "key 'master.current_limit_mA' must be > 0, got 0"),
+    ("[master]\ncurrent_limit_mA = 0\n", "key 'master.current_limit_mA' must be > 0 mA, got 0 mA"),
     ("[master]\nquick_stop_option = 3\n",
      "key 'master.quick_stop_option' must be one of 0, 1, 2, 5, 6, got 3"),
     ("[emulator.disturbance]\nend_s = inf\n",
@@ -72,18 +73,15 @@ def test_servo_run_with_a_bad_config_prints_one_error_line_and_exits_2(tmp_path,
                  str(out)])
     err = capsys.readouterr().err
     assert code == 2
-    assert err == (f"hil: error: {path}: key 'master.heartbeat_period_ms' must be >= 0, "
-                   "got -5\n")
+    assert err == (f"hil: error: {path}: key 'master.heartbeat_period_ms' must be >= 0 ms, "
+                   "got -5 ms\n")
     assert not out.exists()
 
 
 @pytest.mark.realtime
 def test_mpc_prediction_is_decimated_in_real_time_and_in_long_lockstep_runs():
-    from hil.servo.run import (
-        PREDICTION_EVERY_REALTIME,
-        PREDICTION_EVERY_TICK_UP_TO_S,
-        ServoRunOptions,
-    )
+    from hil.servo.options import ServoRunOptions
+    from hil.servo.task import PREDICTION_EVERY_REALTIME, PREDICTION_EVERY_TICK_UP_TO_S
 
     def every(**kw):
         return ServoRunOptions(controller="mpc", **kw).prediction_period

@@ -104,7 +104,12 @@ def test_from_the_command_line_exit_2_and_the_limits_can_be_switched_off(tmp_pat
     assert stopped.returncode == 2
     [line] = stopped.stderr.strip().splitlines()
     assert line.startswith("hil: error: safety stop at t=") and "a.mcap" in line
-    free = hil("--duration", "0.3", "--safety", "enabled=false", "--json", "--out", "b.mcap")
+    loose = hil("--duration", "0.3", "--safety", "enabled=false", "--out", "b.mcap")
+    assert loose.returncode == 2 and "--allow-looser-safety" in loose.stderr  # never silently
+    free = hil("--duration", "0.3", "--safety", "enabled=false", "--allow-looser-safety",
+               "--json", "--out", "b.mcap")
     assert free.returncode == 0, free.stderr
+    assert "hil: warning: safety limits loosened by --safety: enabled true -> false" \
+        in free.stderr
     bad = hil("--duration", "0.3", "--safety", "following_error_dg=3", "--out", "c.mcap")
     assert bad.returncode == 2 and "safety.following_error_dg" in bad.stderr

@@ -35,13 +35,13 @@ def test_a_grid_sweep_runs_the_product_on_ray_and_matches_a_lone_run(local_ray, 
                                                                      capsys):
     out = tmp_path / "grid"
     status, result = sweep_json(capsys, [*SERVO, "--controller", "pid", "--grid",
-                                         "umax=200,1500", "--grid", "ert=zoh,foh",
+                                         "umax=200,800", "--grid", "ert=zoh,foh",
                                          "--out", str(out)])
     assert status == 0
     assert result["engine"] == "ray" and result["workers"] == 2 and result["wall_s"] > 0
     trials = result["trials"]
     assert sorted((t["params"]["umax"], t["params"]["ert"]) for t in trials) == [
-        (200.0, "foh"), (200.0, "zoh"), (1500.0, "foh"), (1500.0, "zoh")]
+        (200.0, "foh"), (200.0, "zoh"), (800.0, "foh"), (800.0, "zoh")]
     for trial in trials:
         assert trial["status"] == "ok"
         assert Path(trial["mcap"]) == out / f"umax-{trial['params']['umax']:g}_ert-"\
@@ -50,7 +50,7 @@ def test_a_grid_sweep_runs_the_product_on_ray_and_matches_a_lone_run(local_ray, 
         assert trial["kpis"]["umax_mA"] == trial["params"]["umax"]
     # the current limit binds: a tighter one gives a smaller peak current
     peaks = {t["params"]["umax"]: t["kpis"]["peak_current_mA"] for t in trials}
-    assert peaks[200.0] <= 200.0 < peaks[1500.0]
+    assert peaks[200.0] <= 200.0 < peaks[800.0]
     with (out / "results.csv").open() as f:
         table = list(csv.DictReader(f))
     assert [r["trial"] for r in table] == [t["name"] for t in trials]

@@ -25,7 +25,7 @@ DATA = Path(__file__).parents[2] / "data" / "eec_instants.npz"
 def setup():
     bench, eec = load_configs(None, {})
     problem = bench.problem
-    settings = eec_settings(eec.eec, {})
+    settings = eec_settings(eec.eec)
     models = load_models(eec, problem)
     prediction = HorizonPrediction(models, problem, settings.hp_steps,
                                    round(settings.step_s / models.dt))

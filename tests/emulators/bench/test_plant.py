@@ -181,9 +181,9 @@ def test_disturbance_follows_its_schedule_only_when_enabled(config):
 
 @pytest.mark.parametrize(("override", "message"), [
     ({"relays": {"P2": {"coil": 2}}}, "relays P1 and P2 are both on coil 2"),
-    ({"relays": {"P1": {"coil": "two"}}}, "key 'relays.P1.coil' must be int"),
+    ({"relays": {"P1": {"coil": "two"}}}, "key 'relays.P1.coil' must be an integer"),
     ({"plant": {"loads": {"P1": {"relay": "P9"}}}}, "names relay 'P9', not in [relays]"),
-    ({"plant": {"loads": {"M2": {"pf": 1.5}}}}, "key 'plant.loads.M2.pf' must be in (0, 1]"),
+    ({"plant": {"loads": {"M2": {"pf": 1.5}}}}, "key 'plant.loads.M2.pf' must be <= 1, got 1.5"),
     ({"plant": {"base": {"phases": ["L4"]}}}, "key 'plant.base.phases' must list distinct"),
     ({"plant": {"loads": {"M1": {"model": "magic"}}}}, "key 'plant.loads.M1.model' must be"),
     ({"relays": {"P1": {"coil": 9}}}, "relay module has 8 coils"),

@@ -1,0 +1,228 @@
+"""A servo run's settings, resolved in one place, in one order for every key:
+
+    built-in defaults < hil/configs/drive.toml < the user's --config < flags
+
+Flags that set a key of drive.toml are layers over the files (``--node`` is
+``master.node_id``, ``--eds`` is ``master.eds``, ``--safety K=V`` is ``safety.K``, ``--umax`` is
+``master.current_limit_mA``); ``--drive URL`` names the bus instead of ``[bus]``. What the run
+uses comes from :class:`ServoSettings` only, so what ``--print-config`` shows is what runs.
+
+Limits only tighten from a flag: ``--umax`` above the configured current limit needs
+``--allow-higher-current``, a ``--safety`` value looser than the configured one needs
+``--allow-looser-safety``; either is then recorded as a warning (:attr:`ServoSettings.notices`).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+from can.interfaces import VALID_INTERFACES
+
+from controllers.base import check_cycle_period
+from controllers.servo.model import SAMPLE_PERIOD_S
+from drivers.canopen.bus import parse_can_url
+from hil.core.errors import ConfigError, UsageError
+from hil.core.registry import scheme_of
+from hil.core.settings import (
+    LOWER,
+    SWITCH,
+    UPPER,
+    Layer,
+    Setting,
+    lay,
+    loosened,
+    option_settings,
+)
+from hil.servo.config import (
+    EMULATED,
+    SOURCE,
+    DriveConfig,
+    check_bitrate,
+    drive_layers,
+    parse_drive_config,
+)
+from hil.servo.options import ServoRunOptions, flag_of
+
+#: the keys of drive.toml a flag sets (a ``*`` stands for any name), for the reference and
+#: --help; the layers themselves are built by :func:`resolve_servo`
+FLAG_KEYS = {"bus.interface": "--drive", "bus.channel": "--drive", "bus.options": "--drive",
+             "bus.options.*": "--drive", "master.node_id": "--node",
+             "master.current_limit_mA": "--umax", "master.eds": "--eds",
+             "safety.*": "--safety KEY=VALUE"}
+#: how each safety limit of ``[safety]`` tightens
+SAFETY_DIRECTIONS = {"enabled": SWITCH, "following_error_deg": UPPER,
+                     "following_error_ms": UPPER, "position_min_deg": LOWER,
+                     "position_max_deg": UPPER, "velocity_max_deg_s": UPPER,
+                     "stale_share_max": UPPER, "stale_window_ms": UPPER}
+#: lockstep over a real bus: the drive is given this long to answer a SYNC (a lockstep run
+#: never ends a cycle early; a drive that does not answer within it is a lost link)
+LOCKSTEP_RX_TIMEOUT_US = 100_000
+LOCKSTEP_RX_ORIGIN = "lockstep over a bus (a drive is given at least 100 ms to answer)"
+#: the options that land on a key of drive.toml (shown there), or are not the user's (a
+#: program's overrides, the config file itself: the origins name it)
+NOT_SETTINGS = ("drive_overrides", "drive_config", "drive", "node", "eds", "safety")
+
+
+@dataclass(frozen=True)
+class ServoSettings:
+    """Everything a servo run uses, resolved: the options, the drive config with the flags laid
+    in, where the drive is, the controller's current bound, and the warnings a loosened limit
+    gives (event kind, message)."""
+
+    options: ServoRunOptions
+    drive: DriveConfig
+    drive_url: str
+    drive_url_origin: str
+    umax_ma: float
+    notices: tuple[tuple[str, str], ...] = ()
+
+    def settings(self) -> list[Setting]:
+        """Every setting as it runs, with its origin: the run's options, then drive.toml's
+        keys (``bus.url``: where the drive is)."""
+        options = self.options
+        every = options.prediction_period
+        defaults = ServoRunOptions.from_flags({"controller": options.controller or None},
+                                              need_controller=False)
+        resolved = {
+            "umax": (self.umax_ma, self._umax_origin()),
+            "prediction_every": (every, "default" if options.prediction_every is None
+                                 else "--prediction-every"),
+            "controller": (options.controller or None,
+                           "--controller" if options.controller else "not given")}
+        return [*option_settings(options, defaults, resolved, NOT_SETTINGS, flag_of),
+                Setting("bus.url", self.drive_url, self.drive_url_origin, "string"),
+                *self._drive_settings()]
+
+    def _umax_origin(self) -> str:
+        return "--umax" if self.options.umax is not None else \
+            self.drive.layered.origin("master.current_limit_mA")
+
+    def _drive_settings(self) -> list[Setting]:
+        settings = self.drive.settings()
+        if self.drive_url_origin != "--drive":
+            return settings
+        unused = " (unused: --drive names the bus)"
+        return [Setting(s.key, s.value, s.origin + unused, s.kind, s.rule)
+                if s.key.split(".")[:2] in (["bus", "interface"], ["bus", "channel"],
+                                            ["bus", "options"]) else s
+                for s in settings]
+
+
+def resolve_servo(options: ServoRunOptions) -> ServoSettings:
+    """The settings of a servo run (see the module); a UsageError names a flag that would
+    loosen a limit without being allowed to, a ConfigError a bad key."""
+    layers, text = drive_layers(options.drive_config)
+    source = os.fspath(options.drive_config) if options.drive_config is not None else SOURCE
+    configured = parse_drive_config(lay(layers), source, text)
+    flags = _flag_layers(options)
+    drive = parse_drive_config(lay([*layers, *flags]), source, text)
+    notices = [*_current_limit(options, configured), *_safety(options, configured, drive)]
+    if options.umax is not None:
+        drive = drive.laid_over({"master": {"current_limit_mA": float(options.umax)}}, "--umax")
+    if options.drive_overrides:  # a program's, last of all (tests, scripts, the demo)
+        drive = drive.laid_over(options.drive_overrides, "drive_overrides")
+    url = options.drive or drive.bus_url
+    url_origin = "--drive" if options.drive else drive.layered.origin("bus.interface")
+    buses = run_buses(options, drive, url)
+    for bus in buses:
+        check_emulated_period(drive, bus)
+        bus_bitrate(bus, drive)
+    if not options.realtime and buses != {EMULATED}:
+        timeout_us = round(drive.master.rx_timeout_s * 1e6)
+        if timeout_us < LOCKSTEP_RX_TIMEOUT_US:
+            drive = drive.laid_over({"master": {"rx_timeout_us": LOCKSTEP_RX_TIMEOUT_US}},
+                                    LOCKSTEP_RX_ORIGIN)
+    return ServoSettings(options, drive, url, url_origin, drive.master.current_limit_ma,
+                         tuple(notices))
+
+
+def run_buses(options: ServoRunOptions, drive: DriveConfig, url: str) -> set[str]:
+    """The buses a run drives: ``url`` (``--drive`` or ``[bus]``), unless every axis names
+    its own (``--axes NAME=NODE@URL``, ``[[axis]] bus``), and those."""
+    if options.axes:
+        named = [part.partition("@")[2].strip() for part in options.axes.split(",")
+                 if part.strip()]
+    else:
+        named = [axis.bus for axis in drive.axes] or [""]
+    return {bus or url for bus in named}
+
+
+def check_emulated_period(drive: DriveConfig, url: str) -> None:
+    """The emulated drive steps its axis every 500 us: its cycle period (SYNC, 0x1006) must be
+    a whole multiple of it (ConfigError naming the key and the unit)."""
+    if scheme_of(url) != EMULATED:
+        return
+    period_us = round(drive.master.cycle_period_s * 1e6)
+    step_us = round(SAMPLE_PERIOD_S * 1e6)
+    if period_us % step_us:
+        raise ConfigError(f"{drive.source}: key 'master.cycle_period_us' is {period_us} us: the "
+                          f"emulated drive steps its axis every {step_us} us, so its cycle "
+                          f"period is a multiple of {step_us} us ({step_us}, {2 * step_us}...)")
+
+
+def check_controller_period(factory: object, label: str, drive: DriveConfig) -> None:
+    """The controller runs at ``master.cycle_period_us`` (what its factory's
+    ``cycle_periods_us`` says: :func:`controllers.base.check_cycle_period`), else one
+    ConfigError naming it."""
+    check_cycle_period(factory, label, round(drive.master.cycle_period_s * 1e6))
+
+
+def bus_bitrate(url: str, drive: DriveConfig) -> int:
+    """The bit rate of the bus at ``url`` [bit/s]: the URL's own ``bitrate`` option (as the
+    bus is opened with it), else ``[bus] bitrate``; a URL's above classic CAN's without
+    ``fd=true`` is a UsageError naming the URL."""
+    if scheme_of(url) not in VALID_INTERFACES:  # emulated, a plug-in's scheme
+        return drive.master.bitrate
+    options = parse_can_url(url, drive.master.channel).options
+    bitrate = options.get("bitrate")
+    if not isinstance(bitrate, int) or isinstance(bitrate, bool):
+        return drive.master.bitrate
+    check_bitrate(bitrate, options.get("fd") is True, f"{url}: bitrate")
+    return bitrate
+
+
+def _flag_layers(options: ServoRunOptions) -> list[Layer]:
+    """The flags that set keys of drive.toml (``--umax`` comes after the tightening check)."""
+    layers = []
+    if options.node is not None:
+        layers.append(Layer("--node", {"master": {"node_id": options.node}}))
+    if options.eds is not None:
+        layers.append(Layer("--eds", {"master": {"eds": options.eds}}))
+    if options.safety:
+        layers.append(Layer("--safety", {"safety": dict(options.safety)}))
+    return layers
+
+
+def _current_limit(options: ServoRunOptions, configured: DriveConfig
+                   ) -> list[tuple[str, str]]:
+    """``--umax`` may lower the configured current limit; raising it needs
+    ``--allow-higher-current`` (then a warning)."""
+    limit = configured.master.current_limit_ma
+    if options.umax is None or options.umax <= limit:
+        return []
+    origin = configured.layered.origin("master.current_limit_mA")
+    if not options.allow_higher_current:
+        raise UsageError(f"--umax {options.umax:g} mA is above the configured current limit "
+                         f"(master.current_limit_mA = {limit:g} mA, {origin}): a flag may lower "
+                         "it, not raise it; --allow-higher-current raises it (recorded)")
+    return [("current.limit_raised", f"--umax {options.umax:g} mA raises the configured "
+             f"current limit of {limit:g} mA ({origin}): --allow-higher-current")]
+
+
+def _safety(options: ServoRunOptions, configured: DriveConfig, drive: DriveConfig
+            ) -> list[tuple[str, str]]:
+    """``--safety`` may tighten ``[safety]``; loosening needs ``--allow-looser-safety``."""
+    if not options.safety:
+        return []
+    before, after = configured.layered.data["safety"], drive.layered.data["safety"]
+    looser = loosened(before, {k: after[k] for k in options.safety if k in after},
+                      SAFETY_DIRECTIONS)
+    if not looser:
+        return []
+    if not options.allow_looser_safety:
+        raise UsageError(f"--safety {looser[0]}: looser than the configured safety limit; a "
+                         "flag may tighten a limit, not loosen it (set it in the --config file, "
+                         "or add --allow-looser-safety, recorded)")
+    return [("safety.loosened", f"safety limits loosened by --safety: {', '.join(looser)} "
+             "(--allow-looser-safety)")]
