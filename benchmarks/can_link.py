@@ -13,7 +13,7 @@
    next to the transport's own round trip (socketcand ``< echo >`` ping-pong) and the same
    2 kHz loop against the lockstep emulator in-process (the loop without the TCP link).
 
-Targets (DESIGN.md): 2 kHz lateness p99 <= 50 us, misses <= 0.1 %. The machine is shared and
+Targets (the project's): 2 kHz lateness p99 <= 50 us, misses <= 0.1 %. The machine is shared and
 has two cores for everything (this process and the emulator process included): the figures
 are noisy, run it alone when they matter.
 """
@@ -118,7 +118,7 @@ class NodeTime:
 def stock_virtual_master() -> CanDriveMaster:
     channel = f"bench-{uuid.uuid4().hex}"
     node_bus = can.Bus(interface="virtual", channel=channel)
-    node = DriveNode(DriveEmulatorConfig(), send=bus_sender(node_bus), timebase="sync")
+    node = DriveNode(DriveEmulatorConfig(), send=bus_sender(node_bus), clock="sync")
     node.boot()
     return CanDriveMaster(CanLink(PumpedVirtualBus(channel, node_bus, node)),  # type: ignore[arg-type]
                           DriveMasterConfig(), clock=NodeTime(node))

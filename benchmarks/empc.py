@@ -9,7 +9,7 @@
    descent, law), Python sequential search over the regions, the exported C through ctypes
    (per call, ctypes overhead included) and timed inside C (clock_gettime around each call,
    ~20-30 ns of it is the clock itself), next to the online QP (DaqpSolver: unconstrained
-   fast path, else daqp) on the same θ in the same run. Targets (DESIGN.md): <= 10 us Python,
+   fast path, else daqp) on the same θ in the same run. Targets (the project's): <= 10 us Python,
    <= 1 us C.
 3. ppopt (if installed, benchmarks/optional-requirements.txt): region count and build time of its
    combinatorial mpQP algorithm on the same problem, and its optimiser against ours.

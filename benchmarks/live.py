@@ -1,45 +1,51 @@
-"""Live view cost (issue 16): a real-time servo session with ``--live`` and one connected
-Foxglove client, next to the same session without the live view, in the same run.
+"""Live view cost (issues 16 and 38): real-time servo sessions with ``--live`` and clients, next
+to the same session without the live view, in the same run.
 
-Each pair runs MPC FOH H_t = H_u = 8 on the emulated drive at 2 kHz in real time, recording as
-usual; the "live" run also serves every topic over WebSocket (defaults: 100 Hz per topic) to a
-real client subscribed to all of them (the `websockets` package, in its own process, as
-Foxglove would be). The runs alternate (off, on, off, on...) so that drift in the shared
-machine's load hits both. Printed: the loop's lateness p50/p99/max, skipped ticks and their
-share, and what the client received. The live view runs in the writer process: the loop figures
-should match within noise. A late TPDO counts as stale feedback, and a late master heartbeat
-does not fault the drive, instead of ending the run (the figures of interest are the loop's,
-not this shared machine's CAN timing).
+Each session is ``hil servo run --controller mpc --realtime`` (MPC FOH at 2 kHz, the drive
+emulator in a process of its own, as ``--realtime`` starts it) in a process of its own, while
+this process watches it from ``/proc``. Two kinds of clients, each in a process of its own on
+the `websockets` package, as Foxglove would be:
+
+* default: one client subscribed to every topic for the whole run;
+* ``--churn N``: N clients that connect, subscribe to everything, read for ``--hold`` seconds
+  and disconnect, over and over (browser tabs coming and going).
+
+The runs alternate (off, on, off, on...) so that drift in the shared machine's load hits both.
+Printed per run: the loop's lateness p50/p99/max and skipped ticks, the stale feedback and the
+side that was late (``hil report``'s feedback section), how the run ended, and where the CPU
+went: the loop process, the drive emulator (with the time it waited for a CPU), the writer
+split into the recording (its Python thread) and the live server (the SDK's threads), and the
+clients. The default runs keep the watchdogs off the machine's CAN timing (a late TPDO is
+counted, a late heartbeat does not fault the drive); ``--churn`` runs as shipped, safety net
+and watchdogs on, so that whether they complete is part of the figures.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import socket
 import subprocess
 import sys
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any
+
+import tomli_w
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hil.core.config import deep_merge
-from hil.core.recorder import RecordingOptions
+from hil.core.reader import read_session
 from hil.servo.demo import drive_for
-from hil.servo.run import ServoRunOptions, run_servo
+from hil.servo.report import FEEDBACK_TIMING
 
 REPO = Path(__file__).resolve().parents[1]
-
 TOLERANT = {"master": {"stale_cycles": 100_000, "heartbeat_timeout_ms": 0}}
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
-
+TICKS_PER_S = os.sysconf("SC_CLK_TCK")
+LIVE_SERVER_THREADS = ("tokio-rt-worker",)  # the Foxglove SDK's server runtime
 
 WATCHER = """
 import sys
@@ -52,60 +58,223 @@ client.wait_for(lambda: client.closed, 3600)
 print(sum(len(m) for m in client.messages.values()))
 """
 
+CHURN = """
+import sys, threading, time
+from tests.live.foxglove_client import FoxgloveClient
+url, clients, hold = f"ws://127.0.0.1:{sys.argv[1]}", int(sys.argv[2]), float(sys.argv[3])
+done, failed, messages = [0], [0], [0]
 
-def run_once(tmp: str, name: str, duration_s: float, live: bool) -> dict[str, Any]:
-    """One real-time session; with ``live``, a client process watches it."""
-    port = _free_port()
-    watcher = None
+def come_and_go():
+    while True:
+        try:
+            client = FoxgloveClient(url, 120)
+            client.wait_for(lambda: bool(client.topics()), 10)
+            client.subscribe(sorted(client.topics()))
+            until = time.monotonic() + hold
+            while time.monotonic() < until and client.pump(0.05):
+                pass
+            messages[0] += sum(len(m) for m in client.messages.values())
+            client.close()
+            done[0] += 1
+        except Exception:
+            failed[0] += 1
+            time.sleep(0.1)
+
+for _ in range(clients):
+    threading.Thread(target=come_and_go, daemon=True).start()
+sys.stdin.read()  # until the benchmark closes it
+print(f"{done[0]} {failed[0]} {messages[0]}", flush=True)
+"""
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+class ProcessCpu:
+    """CPU time and run-queue wait [s] of every thread of a process tree from the start of
+    the session (its writer process appears: the emulator is up and hardened, the start-up's
+    imports are over) to :meth:`stop`, sampled from /proc by a thread of this process."""
+
+    def __init__(self, roots: list[int]) -> None:
+        self.roots = roots
+        self.threads: dict[tuple[int, int], tuple[str, str, float, float]] = {}
+        self.before: dict[tuple[int, int], tuple[float, float]] = {}  # at the session's start
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+        self._thread.start()
+
+    def stop(self) -> dict[str, dict[str, float]]:
+        """``{process role: {"cpu_s", "wait_s"}}``; the writer split into ``recording`` and
+        ``live server``."""
+        self._stop.set()
+        self._thread.join()
+        roles: dict[str, dict[str, float]] = {}
+        for key, (role, comm, cpu, wait) in self.threads.items():
+            cpu_before, wait_before = self.before.get(key, (0.0, 0.0))
+            cpu, wait = cpu - cpu_before, wait - wait_before
+            if role == "writer":
+                role = "writer: live server" if comm in LIVE_SERVER_THREADS else \
+                    "writer: recording"
+            row = roles.setdefault(role, {"cpu_s": 0.0, "wait_s": 0.0})
+            row["cpu_s"] += cpu
+            row["wait_s"] += wait
+        return roles
+
+    def _sample(self) -> None:
+        while not self._stop.wait(0.2):
+            started = bool(self.before)
+            for pid in self._tree():
+                role = _role(pid)
+                for tid, comm, cpu, wait in _threads(pid):
+                    self.threads[(pid, tid)] = (role, comm, cpu, wait)
+            if not started and any(role == "writer" for role, *_ in self.threads.values()):
+                self.before = {key: (cpu, wait) for key, (_, _, cpu, wait)
+                               in self.threads.items()}
+
+    def _tree(self) -> list[int]:
+        found, todo = [], list(self.roots)
+        while todo:
+            pid = todo.pop()
+            found.append(pid)
+            todo += _children(pid)
+        return found
+
+
+def _read(path: str) -> str:
+    try:
+        return Path(path).read_text()
+    except OSError:
+        return ""
+
+
+def _children(pid: int) -> list[int]:
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return []
+    return [int(c) for t in tasks for c in _read(f"/proc/{pid}/task/{t}/children").split()]
+
+
+def _role(pid: int) -> str:
+    command = _read(f"/proc/{pid}/cmdline").replace("\0", " ")
+    for needle, role in (("hil.core.writer", "writer"), ("emulate drive", "drive emulator"),
+                         ("servo run", "loop process"), ("foxglove_client", "clients")):
+        if needle in command:
+            return role
+    return "other"
+
+
+def _threads(pid: int) -> list[tuple[int, str, float, float]]:
+    rows: list[tuple[int, str, float, float]] = []
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return rows
+    for tid in tids:
+        base = f"/proc/{pid}/task/{tid}"
+        stat, sched = _read(f"{base}/stat"), _read(f"{base}/schedstat").split()
+        if not stat or len(sched) < 2:
+            continue
+        fields = stat.rsplit(")", 1)[1].split()
+        cpu = (int(fields[11]) + int(fields[12])) / TICKS_PER_S
+        rows.append((int(tid), _read(f"{base}/comm").strip(), cpu, int(sched[1]) / 1e9))
+    return rows
+
+
+def run_once(tmp: str, name: str, duration_s: float, live: bool, churn: int,
+             hold_s: float) -> dict[str, Any]:
+    """One real-time session in a process of its own, with its clients if ``live``."""
+    port, out = _free_port(), f"{tmp}/{name}.mcap"
+    drive = drive_for(12000.0) if churn else deep_merge(drive_for(12000.0), TOLERANT)
+    config = Path(tmp) / f"{name}.toml"
+    config.write_bytes(tomli_w.dumps(drive).encode())
+    run = subprocess.Popen(
+        [sys.executable, "-m", "hil", "servo", "run", "--controller", "mpc", "--realtime",
+         "--reference", "sine:amplitude=2,frequency=10", "--duration", str(duration_s),
+         "--config", str(config), "--out", out, "--json", "--quiet",
+         *(["--live", str(port)] if live else [])],
+        cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    clients = None
     if live:
-        watcher = subprocess.Popen([sys.executable, "-c", WATCHER, str(port)], cwd=REPO,
-                                   stdout=subprocess.PIPE, text=True)
-    config = ServoRunOptions(
-        controller="mpc", out=f"{tmp}/{name}.mcap", duration_s=duration_s, realtime=True,
-        reference="sine:amplitude=2,frequency=10",
-        drive_overrides=deep_merge(drive_for(12000.0), TOLERANT),
-        recording=RecordingOptions(live=f"127.0.0.1:{port}" if live else None))
-    result = run_servo(config)
+        script, args = (CHURN, [str(churn), str(hold_s)]) if churn else (WATCHER, [])
+        clients = subprocess.Popen([sys.executable, "-c", script, str(port), *args], cwd=REPO,
+                                   stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    cpu = ProcessCpu([run.pid, *([clients.pid] if clients else [])])
+    stdout, stderr = run.communicate()
     received = "-"
-    if watcher is not None:
-        out, _ = watcher.communicate(timeout=60)
-        received = out.strip() or "none"
-    stats = result.loop["servo"]
-    total = stats["runs"] + stats["missed"]
-    return {"lateness": stats["lateness_us"], "missed": stats["missed"], "total": total,
-            "received": received}
+    if clients is not None:
+        if churn:
+            received, _ = clients.communicate("", timeout=60)
+        else:
+            received, _ = clients.communicate(timeout=60)
+        received = received.strip() or "none"
+    roles = cpu.stop()
+    kpis = json.loads(stdout) if stdout.strip() else {}
+    session = read_session(out)
+    loop = json.loads(session.metadata.get("loop", {}).get("servo", "{}"))
+    feedback = FEEDBACK_TIMING.section(session).get("/drive/feedback", {})
+    return {"loop": loop, "kpis": kpis, "feedback": feedback, "cpu": roles,
+            "received": received, "error": stderr.strip().splitlines()[-1:] if
+            run.returncode not in (0, 3) else []}
+
+
+def print_run(label: str, row: dict[str, Any], churn: int) -> None:
+    loop, feedback = row["loop"], row["feedback"]
+    lateness = loop.get("lateness_us", {})
+    runs, missed = loop.get("runs", 0), loop.get("missed", 0)
+    print(f"{label}: loop lateness p50/p99/max {lateness.get('p50', 0):.1f}/"
+          f"{lateness.get('p99', 0):.1f}/{lateness.get('max', 0):.1f} us, skipped {missed} "
+          f"({100 * missed / max(1, runs + missed):.3f} %); ended: "
+          f"{row['kpis'].get('stop_reason', 'no KPIs')} {' '.join(row['error'])}")
+    if feedback:
+        print(f"   stale feedback {feedback['stale']} of {feedback['cycles']} "
+              f"({100 * feedback['stale_share']:.2f} %), late side {feedback['late_side']}, "
+              f"worst {feedback['worst_window']['window_ms']:g} ms window "
+              f"{feedback['worst_window']['stale']} of {feedback['worst_window']['cycles']}")
+    if churn and row["received"] != "-":
+        done, failed, messages = row["received"].split()
+        print(f"   clients: {done} connections done, {failed} failed, {messages} messages")
+    elif row["received"] != "-":
+        print(f"   client: {row['received']} messages")
+    print("   CPU [s]: " + ", ".join(
+        f"{role} {v['cpu_s']:.2f} (waited {v['wait_s']:.2f})"
+        for role, v in sorted(row["cpu"].items())))
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--duration", type=float, default=10.0, help="seconds per run")
     parser.add_argument("--pairs", type=int, default=2, help="off/on pairs")
+    parser.add_argument("--churn", type=int, default=0, metavar="N",
+                        help="N clients coming and going instead of one watching throughout")
+    parser.add_argument("--hold", type=float, default=0.3, metavar="S",
+                        help="with --churn: seconds each connection reads before it closes")
     args = parser.parse_args()
+    clients = f"{args.churn} clients coming and going" if args.churn else "1 client"
     print(f"real-time servo, MPC FOH H_t = H_u = 8 at 2 kHz, {args.duration:g} s per run, "
-          f"{args.pairs} pair(s), alternating")
+          f"{args.pairs} pair(s), alternating: no live view / --live + {clients}")
     rows: dict[bool, list[dict[str, Any]]] = {False: [], True: []}
     with tempfile.TemporaryDirectory() as tmp:
         for pair in range(args.pairs):
             for live in (False, True):
-                rows[live].append(run_once(tmp, f"r{pair}{int(live)}", args.duration, live))
-    print(f"{'run':<34}{'lateness p50 us':>16}{'p99 us':>9}{'max us':>10}{'skipped':>9}"
-          f"{'skipped %':>10}{'client msgs':>12}")
-    for live in (False, True):
-        for i, row in enumerate(rows[live]):
-            lat = row["lateness"]
-            label = f"{'--live + 1 client' if live else 'no live view (baseline)'} #{i + 1}"
-            got = row["received"]
-            print(f"{label:<34}{lat['p50']:>16.1f}{lat['p99']:>9.1f}{lat['max']:>10.1f}"
-                  f"{row['missed']:>9}{100 * row['missed'] / row['total']:>10.3f}{got:>12}")
+                row = run_once(tmp, f"r{pair}{int(live)}", args.duration, live, args.churn,
+                               args.hold)
+                rows[live].append(row)
+                print_run(f"{'--live + ' + clients if live else 'no live view'} #{pair + 1}",
+                          row, args.churn)
     for live in (False, True):
         runs = rows[live]
-        p99 = sum(r["lateness"]["p99"] for r in runs) / len(runs)
-        skipped = 100 * sum(r["missed"] for r in runs) / sum(r["total"] for r in runs)
-        rows[live] = [{"p99": p99, "skipped": skipped}]
-    off, on = rows[False][0], rows[True][0]
-    print(f"mean of runs: lateness p99 {off['p99']:.1f} us without, {on['p99']:.1f} us with "
-          f"(ratio {on['p99'] / off['p99'] if off['p99'] else float('inf'):.2f}); skipped "
-          f"{off['skipped']:.3f} % without, {on['skipped']:.3f} % with")
+        p99 = sum(r["loop"].get("lateness_us", {}).get("p99", 0) for r in runs) / len(runs)
+        total = sum(r["loop"].get("runs", 0) + r["loop"].get("missed", 0) for r in runs)
+        skipped = 100 * sum(r["loop"].get("missed", 0) for r in runs) / max(1, total)
+        stale = sum(r["feedback"].get("stale", 0) for r in runs)
+        cycles = sum(r["feedback"].get("cycles", 0) for r in runs)
+        print(f"mean {'with' if live else 'without'} the live view: lateness p99 {p99:.1f} us, "
+              f"skipped {skipped:.3f} %, stale feedback {100 * stale / max(1, cycles):.3f} %")
 
 
 if __name__ == "__main__":

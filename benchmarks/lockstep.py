@@ -21,6 +21,7 @@ is shared: figures drift up to 2x between minutes; use ``--repeat 3`` or more.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import statistics
 import sys
 import tempfile
@@ -30,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from hil.api import start_drive_emulator
 from hil.core.reader import read_session
 from hil.core.recorder import Recorder
 from hil.servo.rig import open_drive
@@ -50,11 +52,16 @@ class ZeroCurrent:
         return 0.0
 
 
-def session(tmp: Path, seconds: float, controller: Any) -> dict[str, Any]:
-    """One lockstep run, fully recorded: its factor and the tick's phases (p50, us)."""
+def session(tmp: Path, seconds: float, controller: Any, wire: bool = False) -> dict[str, Any]:
+    """One lockstep run, fully recorded: its factor and the tick's phases (p50, us). With
+    ``wire``: the emulator in a process of its own, over socketcand on loopback, on the
+    master's SYNC time (the emulator in this process otherwise)."""
     out = tmp / "lockstep.mcap"
-    result = run_servo(ServoRunOptions(controller=controller, ert="foh", ht=8, hu=8,
-                                       duration_s=seconds, realtime=False, out=str(out)))
+    with contextlib.ExitStack() as stack:
+        drive = stack.enter_context(start_drive_emulator()).url if wire else None
+        result = run_servo(ServoRunOptions(controller=controller, ert="foh", ht=8, hu=8,
+                                           duration_s=seconds, realtime=False, out=str(out),
+                                           drive=drive))
     ticks = result.kpis["ticks"]
     factor = float(result.kpis["realtime_factor"])
     timing = [m for _, m in read_session(out).topic("/loop/servo/timing")]
@@ -132,7 +139,8 @@ def main() -> int:
     args = parser.parse_args()
     if args.repeat < 1 or not args.seconds > 0:
         parser.error("--repeat must be >= 1 and --seconds > 0")
-    runs: dict[str, list[dict[str, Any]]] = {"mpc": [], "zero": []}
+    runs: dict[str, list[dict[str, Any]]] = {"mpc": [], "zero": [], "mpc-wire": [],
+                                             "zero-wire": []}
     costs: dict[str, list[float]] = {"rows": [], "dicts": []}
     with tempfile.TemporaryDirectory() as name:
         tmp = Path(name)
@@ -140,6 +148,8 @@ def main() -> int:
             print(f"run {i + 1} of {args.repeat}...", file=sys.stderr)
             runs["mpc"].append(session(tmp, args.seconds, "mpc"))
             runs["zero"].append(session(tmp, args.seconds, ZeroCurrent))
+            runs["mpc-wire"].append(session(tmp, args.seconds, "mpc", wire=True))
+            runs["zero-wire"].append(session(tmp, args.seconds, ZeroCurrent, wire=True))
             for form in ("dicts", "rows"):
                 costs[form].append(recorder_cost(tmp, 20_000, rows=form == "rows"))
     cycle_us, node_us = can_cycle(20_000)
@@ -149,11 +159,18 @@ def main() -> int:
     print(f"{'controller':<28}{'x real time':>12}{'us/tick':>9}" +
           "".join(f"{p:>9}" for p in (*PHASES, "loop")))
     medians = {}
-    for kind, label in (("mpc", "MPC FOH Ht=Hu=8 Hp=50"), ("zero", "0 mA (costs nothing)")):
+    for kind, label in (("mpc", "MPC FOH Ht=Hu=8 Hp=50"), ("zero", "0 mA (costs nothing)"),
+                        ("mpc-wire", "MPC, over socketcand"),
+                        ("zero-wire", "0 mA, over socketcand")):
         run = sorted(runs[kind], key=lambda r: r["factor"])[(args.repeat - 1) // 2]
         medians[kind] = run["factor"]
         print(f"{label:<28}{run['factor']:>12.2f}{run['per_tick_us']:>9.1f}" +
               "".join(f"{run['phases'][p]:>9.1f}" for p in (*PHASES, "loop")))
+    for kind in ("mpc", "zero"):
+        print(f"over the wire (the emulator in another process, on the master's SYNC time) "
+              f"against in process, {kind}: {medians[kind + '-wire']:.2f}x against "
+              f"{medians[kind]:.2f}x real time ({medians[kind] / medians[kind + '-wire']:.1f} "
+              "times slower)")
     rows, dicts = statistics.median(costs["rows"]), statistics.median(costs["dicts"])
     print(f"recorder per tick (3 messages, handed to the writer process): rows {rows:.2f} us, "
           f"dicts {dicts:.2f} us [baseline] ({dicts / rows:.1f}x)")

@@ -2,7 +2,7 @@
 
 Both loops use absolute deadlines and measure lateness the same way (wake-up minus deadline).
 A third run per rate records one message per tick to an MCAP session, to show what the
-recorder's writer thread costs the loop. Targets (DESIGN.md): 2 kHz p99 <= 50 us, misses <=
+recorder's writer thread costs the loop. Targets (the project's): 2 kHz p99 <= 50 us, misses <=
 0.1 %. The machine is shared: run it on a quiet box for figures worth quoting.
 """
 

@@ -5,7 +5,7 @@ Round trips: each transport's figure is printed next to a baseline measured in t
 (a hand-made frame on a raw socket or serial port; for a paced RTU line, the wire time of the
 frames). Sampling: a real-time session at 100 Hz polls the meter and the levels for
 ``--duration`` s against the TCP emulator, next to the same loop without I/O, then briefly
-over a paced RTU line. Target (DESIGN.md): TCP poll p99 <= 2 ms. The machine is shared:
+over a paced RTU line. Target (the project's): TCP poll p99 <= 2 ms. The machine is shared:
 figures are noisy, run it on a quiet box for figures worth quoting.
 """
 

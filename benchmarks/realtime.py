@@ -6,10 +6,12 @@
 3. the same session in lockstep through the CAN link (in-process emulated drive): x real time;
 4. a real-time bench session at 100 Hz over Modbus TCP to the emulator in its own process.
 
-Targets (docs/ARCHITECTURE.md, performance): 2 skipped <= 1.5x the bare loop's share and its
-lateness p99 <= 100 us; 3 >= 10x real time; 4 skips no tick. The machine is shared: figures
-are noisy, run it on a quiet box for figures worth quoting, with ``--repeat 3`` or more: the
-targets are then checked on the medians of alternated pairs.
+Targets (docs/ARCHITECTURE.md, performance): 2 skipped <= 1.5x the bare loop's share plus
+0.05 points and its lateness p99 <= 100 us; 3 >= 10x real time; 4 skips no tick. The machine
+is shared: figures are noisy, run it on a quiet box for figures worth quoting, with
+``--repeat 3`` or more: the targets are then checked on the medians of alternated pairs.
+For 2 it also prints the stale feedback, the side that was late (``hil report``'s feedback
+section) and what the drive emulator's process was granted (``realtime.emulator``).
 """
 
 from __future__ import annotations
@@ -27,7 +29,12 @@ from hil.bench.run import BenchRunOptions, run_bench
 from hil.core.doctor import measure_loop
 from hil.core.reader import read_session
 from hil.core.realtime import Hardening
+from hil.servo.report import FEEDBACK_TIMING
 from hil.servo.run import ServoRunOptions, run_servo
+
+SKIPPED_RATIO_MAX = 1.5     # the servo loop's skipped share against the bare loop's...
+SKIPPED_POINTS_MAX = 0.05   # ...plus this many percentage points
+LATENESS_P99_MAX_US = 100.0
 
 
 def bare_loop(seconds: float) -> dict[str, float]:
@@ -60,7 +67,9 @@ def servo_session(tmp: Path, seconds: float, realtime: bool,
         drive_overrides={"master": {"stale_cycles": 100_000}}))
     loop = result.loop["servo"]
     # the loop times each phase of the tick: p50 / p90 / p99 from its timing topic
-    timing = [m for _, m in read_session(out).topic("/loop/servo/timing")]
+    session = read_session(out)
+    timing = [m for _, m in session.topic("/loop/servo/timing")]
+    feedback = FEEDBACK_TIMING.section(session).get("/drive/feedback", {})
     phases = {phase: [float(np.percentile(v, q)) for q in (50, 90, 99)] if len(v) else []
               for phase in ("read", "compute", "write", "record")
               for v in [np.concatenate([np.asarray(m.get(f"{phase}_us", []), float)
@@ -70,7 +79,9 @@ def servo_session(tmp: Path, seconds: float, realtime: bool,
             loop["lateness_us"]["p99"], "p50_us": loop["lateness_us"]["p50"],
             "factor": result.kpis["realtime_factor"] or 0.0,
             "stale": result.kpis["stale_feedback"], "ticks": result.kpis["ticks"],
-            "step_us": result.kpis["step_us"]["median"], "phases": phases}
+            "step_us": result.kpis["step_us"]["median"], "phases": phases,
+            "late_side": feedback.get("late_side", "-"),
+            "emulator": session.metadata.get("realtime.emulator", {})}
 
 
 def bench_session(tmp: Path, cycles: int) -> dict[str, float]:
@@ -112,15 +123,19 @@ def main() -> int:
               f"{bare_run['missed_pct']:>9.3f} {bare_run['p99_us']:>8.1f}")
         print(f"{'real-time servo, MPC, drive emulator process':<52} "
               f"{rt_run['missed_pct']:>9.3f} {rt_run['p99_us']:>8.1f}   stale feedback "
-              f"{rt_run['stale']:.0f} of {rt_run['ticks']:.0f} ticks")
+              f"{rt_run['stale']:.0f} of {rt_run['ticks']:.0f} ticks, late side "
+              f"{rt_run['late_side']}")
     bare = median_run(bares, "missed_pct")
     rt = median_run(rts, "missed_pct")
     p99 = median_run(rts, "p99_us")["p99_us"]
     ratio = rt["missed_pct"] / bare["missed_pct"] if bare["missed_pct"] else float("inf")
+    allowed = SKIPPED_RATIO_MAX * bare["missed_pct"] + SKIPPED_POINTS_MAX
     print(f"median of {args.repeat}: servo skipped {rt['missed_pct']:.3f} % = {ratio:.1f}x the "
           f"bare loop's {bare['missed_pct']:.3f} %; lateness p99 {p99:.1f} us, p50 "
           f"{rt['p50_us']:.1f} us; stale feedback {100 * rt['stale'] / max(1, rt['ticks']):.1f} "
           "% (TPDOs not back within rx_timeout of their SYNC)")
+    print("   the drive emulator's process: " + "; ".join(
+        f"{step} {outcome}" for step, outcome in rt["emulator"].items()))
     print("   tick breakdown of that run [us] p50      p90      p99   (write: send, then record)")
     for name, values in rt["phases"].items():
         if values:
@@ -138,9 +153,11 @@ def main() -> int:
           f"{bench['runs'] + bench['missed']:.0f} ticks skipped, sampler p99 "
           f"{bench['p99_us']:.0f} us")
     print("targets")
-    print(f"   servo skipped <= 1.5x bare ({ratio:.1f}x): "
-          f"{'met' if ratio <= 1.5 else 'MISSED'}; p99 <= 100 us ({p99:.0f}): "
-          f"{'met' if p99 <= 100 else 'MISSED'}")
+    print(f"   servo skipped <= {SKIPPED_RATIO_MAX:g}x bare + {SKIPPED_POINTS_MAX:g} points "
+          f"({rt['missed_pct']:.3f} % against {allowed:.3f} %, {ratio:.1f}x): "
+          f"{'met' if rt['missed_pct'] <= allowed else 'MISSED'}; p99 <= "
+          f"{LATENESS_P99_MAX_US:g} us ({p99:.0f}): "
+          f"{'met' if p99 <= LATENESS_P99_MAX_US else 'MISSED'}")
     print(f"   lockstep >= 10x ({lockstep['factor']:.1f}x): "
           f"{'met' if lockstep['factor'] >= 10 else 'MISSED'}")
     print(f"   bench skips no tick ({bench['missed']:.0f}): "

@@ -2,7 +2,7 @@
 process) and sustained throughput, vs writing directly.
 
 Baseline: what a loop would pay writing each message itself (json.dumps + mcap add_message on
-the calling thread). Targets (DESIGN.md): <= 5 us per message on the loop thread, >= 50k msg/s.
+the calling thread). Targets (the project's): <= 5 us per message on the loop thread, >= 50k msg/s.
 The hand-over runs every 4 messages here, as a 2 kHz servo tick logs about that many.
 """
 

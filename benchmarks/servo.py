@@ -4,7 +4,7 @@
    H_t = H_u = 3, 6, 8 (FOH, H_p = 50), fast solver (unconstrained fast path + daqp) next to
    the cvxpy reference formulation measured in the same run, on closed-loop runs of a 2 deg
    sine: 10 Hz at the rated 12 A (constraints inactive) and 10 Hz at 1000 mA (saturated, the
-   QP solver works every tick). Target (DESIGN.md): H_u = 8 p99 <= 100 us.
+   QP solver works every tick). Target (the project's): H_u = 8 p99 <= 100 us.
 2. Lockstep speed of the offline closed loop (controller + plant model, no I/O) over real
    time, MPC H_t = H_u = 8 next to the PID and the bare plant. Target: >= 10x real time.
 3. Through the CiA 402 link to the emulated drive (python-can virtual bus, session recorded):

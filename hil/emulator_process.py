@@ -22,10 +22,16 @@ from typing import IO, Any
 
 import tomli_w
 
+from drivers.bench.clock_protocol import CLOCKS as BENCH_CLOCKS
 from emulators.faults import Fault, parse_fault
 from hil.core.errors import HilError
 from hil.core.lifeline import lifeline_env
-from hil.core.realtime import forget_helper_process, register_helper_process
+from hil.core.realtime import (
+    forget_helper_process,
+    parse_step_lines,
+    register_helper_process,
+    report_helper_hardening,
+)
 
 _BENCH_URL = re.compile(r"listening on (modbus-tcp://\S+?)[ ,;]")
 _DRIVE_URL = re.compile(r"socketcand (\S+):(\d+)\b")
@@ -37,6 +43,7 @@ class EmulatorProcess:
 
     def __init__(self, argv: list[str], what: str, timeout_s: float = 30.0) -> None:
         self.what = what
+        self.hardening: dict[str, str] = {}  # what it was granted, when started with --harden
         self._faults_seen: list[str] = []
         self._stderr: IO[str] = tempfile.TemporaryFile("w+")  # noqa: SIM115 - closed by stop()
         # it dies with this process, even SIGKILLed (hil.core.lifeline); in a session of its
@@ -79,6 +86,13 @@ class EmulatorProcess:
             return ""
         self._stderr.seek(0)
         return " | ".join(self._stderr.read().strip().splitlines()[-lines:])
+
+    def stderr_lines(self) -> list[str]:
+        """Every line the emulator wrote to stderr so far."""
+        if self._stderr.closed:
+            return []
+        self._stderr.seek(0)
+        return self._stderr.read().splitlines()
 
     def fault_events(self) -> list[str]:
         """The faults the emulator reported injecting so far (its ``hil: fault:`` lines)."""
@@ -142,12 +156,19 @@ def _config_file(config: str | Path | None, tables: Mapping[str, Any] | None
 def start_bench_emulator(config: str | Path | None = None, *, seed: int | None = None,
                          disturbance: bool = False, host: str = "127.0.0.1",
                          faults: Iterable[str | Fault] = (), timeout_s: float = 30.0,
-                         tables: Mapping[str, Any] | None = None) -> EmulatorProcess:
+                         tables: Mapping[str, Any] | None = None,
+                         clock: str = "auto") -> EmulatorProcess:
     """The relay-bench emulator over Modbus TCP on ``host`` and a free port; ``faults``
     (``KIND@START[-END][:KEY=VALUE,...]`` or :class:`~emulators.faults.Fault`) are played on
-    its plant clock, seconds after it starts. Its config: the file ``config``, or ``tables``
-    (the effective tables of a run)."""
-    argv = ["bench", "--tcp", f"{host}:0", *_fault_flags(faults)]
+    its plant clock, seconds after it starts (or after a lockstep master's session starts).
+    Its config: the file ``config``, or ``tables`` (the effective tables of a run). ``clock``:
+    what its plant's time follows (``hil emulate bench --clock``): ``auto`` (the wall clock
+    until a lockstep run takes the time, as ``run_bench(bench=url)`` does), ``wall`` or
+    ``master``; a master taking or letting go of it is a ``hil: clock:`` line on its stderr
+    (:meth:`EmulatorProcess.stderr_tail`)."""
+    if clock not in BENCH_CLOCKS:
+        raise HilError(f"clock must be one of {', '.join(BENCH_CLOCKS)}, got {clock!r}")
+    argv = ["bench", "--tcp", f"{host}:0", "--clock", clock, *_fault_flags(faults)]
     if seed is not None:
         argv += ["--seed", str(seed)]
     if disturbance:
@@ -160,14 +181,25 @@ def start_bench_emulator(config: str | Path | None = None, *, seed: int | None =
 def start_drive_emulator(config: str | Path | None = None, *, node: int | Iterable[int] = 1,
                          host: str = "127.0.0.1", faults: Iterable[str | Fault] = (),
                          timeout_s: float = 30.0,
-                         tables: Mapping[str, Any] | None = None) -> EmulatorProcess:
+                         tables: Mapping[str, Any] | None = None,
+                         harden: bool = False, clock: str = "auto") -> EmulatorProcess:
     """The CiA 402 drive emulator over socketcand on ``host`` and a free port (``node``: its
     node id, or several, one drive and axis each, on the one bus); ``faults`` as for
     :func:`start_bench_emulator`, seconds after it starts (each drive plays them). Its
-    config: the file ``config``, or ``tables`` (the effective tables of a run)."""
+    config: the file ``config``, or ``tables`` (the effective tables of a run). ``harden``:
+    it serves as a real-time process where the OS allows (``--harden``); what it was granted
+    is its ``hardening`` (``{step: "granted: ..." | "refused: ..."}``), which the next
+    real-time session of this process records as ``realtime.emulator`` metadata. ``clock``:
+    ``auto`` (its own, until a lockstep master asks for its SYNC time), ``sync`` or ``wall``
+    (``hil emulate drive --clock``)."""
     nodes = [node] if isinstance(node, int) else list(node)
-    argv = ["drive", "--socketcand", f"{host}:0",
-            *[arg for n in nodes for arg in ("--node", str(n))], *_fault_flags(faults)]
+    argv = ["drive", "--socketcand", f"{host}:0", "--clock", clock,
+            *[arg for n in nodes for arg in ("--node", str(n))], *_fault_flags(faults),
+            *(["--harden"] if harden else [])]
     with _config_file(config, tables) as path:
-        return EmulatorProcess([*argv, *(["--config", path] if path else [])], "drive",
-                               timeout_s)
+        process = EmulatorProcess([*argv, *(["--config", path] if path else [])], "drive",
+                                  timeout_s)
+    if harden:  # reported on stderr before its ready line
+        process.hardening = parse_step_lines(process.stderr_lines())
+        report_helper_hardening(process.pid, process.hardening)
+    return process

@@ -65,11 +65,13 @@ class BenchUnderTest:
     """The relay bench of one test.
 
     * ``url`` - where it is (``modbus-tcp://127.0.0.1:PORT`` for the emulator);
-    * ``run(controller, params=None, cycles=1, **options)`` - ``hil bench run``'s KPIs. Against
-      the emulator the run is lockstep (deterministic, faster than real time) on an emulator
-      of its own; pass ``realtime=True`` to run on the wall clock against ``url``. Against
-      hardware it always follows the wall clock;
-    * ``driver`` - the bench behind its safety layer, connected, relays at their safe levels;
+    * ``run(controller, params=None, cycles=1, **options)`` - ``hil bench run``'s KPIs against
+      ``url``. Against the emulator the run is lockstep over the wire (deterministic, faster
+      than real time): the emulator's plant starts again from t = 0 and follows the run's
+      time; ``realtime=True`` runs it on the wall clock. Against ``--hil-bench`` it follows
+      the wall clock (``realtime=False`` asks for lockstep, which only hil's emulator takes);
+    * ``driver`` - the bench behind its safety layer, connected, relays at their safe levels,
+      on the wall clock (the emulator's own between runs);
     * ``sessions`` - the session files of the runs.
     """
 
@@ -90,12 +92,11 @@ class BenchUnderTest:
 
     def run(self, controller: api.Controller, params: Mapping[str, Any] | None = None,
             cycles: int = 1, **options: Any) -> dict[str, Any]:
-        realtime = bool(options.pop("realtime", False)) or not self.emulated
+        realtime = bool(options.pop("realtime", not self.emulated))
         options.setdefault("out", str(self.directory / f"bench-{len(self.sessions) + 1}.mcap"))
         self.sessions.append(options["out"])
-        target = self.url if realtime else "emulated"
         return run_recorded(self._record, options["out"], lambda: api.run_bench(
-            controller, params, bench=target, cycles=cycles, realtime=realtime, **options))
+            controller, params, bench=self.url, cycles=cycles, realtime=realtime, **options))
 
     def close(self) -> None:
         self._stack.close()

@@ -1,4 +1,4 @@
-"""``hil empc build``: the figures, the JSON keys of DESIGN.md, the C file, one-line errors."""
+"""``hil empc build``: the figures, the documented JSON keys, the C file, one-line errors."""
 
 from __future__ import annotations
 

@@ -8,19 +8,29 @@ pymodbus clients run with ``retries=0``: its own retries re-send on a late reply
 where replies carry no transaction id, can take that late reply for the answer to the next
 request. :class:`ModbusLink` retries itself, checks every reply against its request, and after
 a failure drops the TCP connection or flushes the serial input before trying again.
+
+Lockstep over the wire (:meth:`ModbusLink.hold_on`), the peer follows the master's time and may
+be paused (a busy machine, a debugger): every request may then take up to a generous
+wall-clock bound, and one left unanswered that long means the peer is gone: that request and
+every later one fail at once (:class:`PeerGoneError`), so a run against a dead peer ends
+instead of hanging.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import socket
 import struct
-from collections.abc import Callable, Mapping
+import time
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from urllib.parse import parse_qsl, urlsplit
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from pymodbus.pdu import ModbusPDU
+from pymodbus.pdu.mei_message import ReadDeviceInformationResponse
 
 from hil.core.errors import ConfigError, HilError
 
@@ -39,6 +49,11 @@ logging.getLogger("pymodbus").addHandler(logging.NullHandler())  # we report err
 
 class LinkError(HilError):
     """No valid answer (timeout, connection refused or lost, garbled reply) after all tries."""
+
+
+class PeerGoneError(LinkError):
+    """Lockstep over the wire: the peer left a request unanswered for the whole wall-clock bound
+    (or cannot be reached): it is gone (stopped, killed, or paused longer than the bound)."""
 
 
 class RelayStuckError(HilError):
@@ -67,6 +82,7 @@ class BusSettings:
     reconnect_interval_s: float  # while the link is lost, try to reconnect this often
     watchdog_polls: int          # this many failed polls in a row: link lost
     give_up_s: float = 30.0      # a run stops when the link stays lost this long (0: never)
+    lockstep_timeout_s: float = 10.0  # lockstep over the wire: per request; beyond it, gone
 
 
 @dataclass(frozen=True)
@@ -150,6 +166,8 @@ class ModbusLink:
         self.attempts = attempts
         self.connections = 0  # successful (re)connections so far
         self.retries = 0      # attempts that failed and were tried again (or given up)
+        self.bound_s: float | None = None  # lockstep over the wire: the wall-clock bound
+        self.gone: str | None = None  # lockstep: why the peer is gone; None while it is not
         if spec.kind == "tcp":
             self.client: ModbusTcpClient | ModbusSerialClient = ModbusTcpClient(
                 spec.host, port=spec.port, timeout=timeout_s, retries=0)
@@ -158,11 +176,44 @@ class ModbusLink:
                 spec.device, baudrate=spec.baudrate, parity=spec.parity,
                 stopbits=spec.stopbits, bytesize=spec.bytesize, timeout=timeout_s, retries=0)
 
+    def hold_on(self, bound_s: float) -> None:
+        """Lockstep over the wire from now on: every request may take up to ``bound_s`` of wall
+        time (the peer may be paused); a request unanswered that long means the peer is gone."""
+        self.bound_s = bound_s
+        self._wait(bound_s)
+
+    @contextlib.contextmanager
+    def patient(self, timeout_s: float, attempts: int = 1) -> Iterator[None]:
+        """Requests inside the block wait up to ``timeout_s`` each, ``attempts`` tries."""
+        before = self.timeout_s, self.attempts
+        self._wait(timeout_s)
+        self.attempts = attempts
+        try:
+            yield
+        finally:
+            self._wait(before[0])
+            self.attempts = before[1]
+
+    def _wait(self, timeout_s: float) -> None:
+        self.timeout_s = timeout_s
+        # pymodbus waits for a reply by both: the client's socket and its transaction's deadline
+        self.client.comm_params.timeout_connect = timeout_s
+        self.client.transaction.comm_params.timeout_connect = timeout_s
+        port = getattr(self.client, "socket", None)
+        if self.spec.kind == "rtu" and port is not None:
+            port.timeout = port.write_timeout = timeout_s
+
     def connect(self) -> bool:
+        if self.gone is not None:
+            return False
         if self.client.connected:
             return True
         if self.client.connect():
             self.connections += 1
+            if self.spec.kind == "tcp":  # a request posted ahead of the next must not wait
+                with contextlib.suppress(OSError):
+                    self.client.socket.setsockopt(  # type: ignore[union-attr]
+                        socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             return True
         return False
 
@@ -182,17 +233,24 @@ class ModbusLink:
     def execute(self, what: str, call: Callable[[], ModbusPDU],
                 check: Callable[[ModbusPDU], bool]) -> ModbusPDU:
         """Run ``call`` until ``check`` accepts a reply; exceptions from the device raise."""
+        if self.gone is not None:
+            raise PeerGoneError(f"{what}: {self.gone}: the peer is gone")
         reason = ""
         for _ in range(self.attempts):
             if not self.connect():
                 reason = f"cannot connect to {self.spec.url}"
                 continue
+            asked = time.monotonic()
             try:
                 reply = call()
             except (ModbusException, OSError, ValueError) as exc:
                 reason = _first_line(exc) or type(exc).__name__
                 self.retries += 1
                 self._reset()
+                if self.bound_s is not None and time.monotonic() - asked >= self.bound_s:
+                    self.gone = (f"no answer from {self.spec.url} within {self.bound_s:g} s "
+                                 "(bus.lockstep_timeout_s)")
+                    raise PeerGoneError(f"{what}: {self.gone}: the peer is gone") from None
                 continue
             if reply.isError():
                 code = int(getattr(reply, "exception_code", 0))
@@ -208,6 +266,9 @@ class ModbusLink:
                 self._reset()
                 continue
             return reply
+        if self.bound_s is not None and reason.startswith("cannot connect"):
+            self.gone = reason
+            raise PeerGoneError(f"{what}: {self.gone}: the peer is gone")
         raise LinkError(f"{what}: no valid answer from {self.spec.url} after "
                         f"{self.attempts} attempt(s): {reason}")
 
@@ -235,6 +296,60 @@ class ModbusLink:
         )
         words = reply.registers
         return list(struct.unpack(f">{count // 2}f", struct.pack(f">{count}H", *words)))
+
+    def read_registers(self, unit: int, address: int, count: int) -> list[int]:
+        """``count`` holding registers from ``address`` (FC03)."""
+        reply = self.execute(
+            f"read holding registers {address}+{count} of unit {unit}",
+            lambda: self.client.read_holding_registers(address, count=count, device_id=unit),
+            lambda r: r.function_code == 3 and len(r.registers) == count,
+        )
+        return list(reply.registers)
+
+    def write_register(self, unit: int, address: int, value: int) -> None:
+        """One holding register (FC06)."""
+        self.execute(
+            f"write register {address} of unit {unit}",
+            lambda: self.client.write_register(address, value, device_id=unit),
+            lambda r: r.function_code == 6 and r.address == address,
+        )
+
+    def write_registers(self, unit: int, address: int, values: list[int]) -> None:
+        """Holding registers from ``address`` (FC16)."""
+        self.execute(
+            f"write registers {address}+{len(values)} of unit {unit}",
+            lambda: self.client.write_registers(address, values, device_id=unit),
+            lambda r: r.function_code == 16 and r.address == address,
+        )
+
+    def post_registers(self, unit: int, address: int, values: list[int]) -> bool:
+        """FC16 sent without waiting for its answer, so the request after it goes in the same
+        breath (Modbus TCP only: a server answers a connection's requests in order, and
+        pymodbus passes over this answer, of another unit or transaction, when it reads the
+        next one). False when it was not sent (RTU, no connection): write it with
+        :meth:`write_registers`. Its answer is never checked: follow it with a written one
+        now and then."""
+        if self.spec.kind != "tcp" or self.gone is not None or not self.connect():
+            return False
+        try:
+            self.client.write_registers(address, values, device_id=unit,
+                                        no_response_expected=True)
+        except (ModbusException, OSError):
+            self._reset()
+            return False
+        return True
+
+    def read_identification(self, unit: int) -> dict[int, bytes]:
+        """The basic device identification objects of ``unit`` (FC43/MEI 14, read code 1):
+        ``{object id: value}`` (0 VendorName, 1 ProductCode, 2 MajorMinorRevision)."""
+        reply = self.execute(
+            f"read device identification of unit {unit}",
+            lambda: self.client.read_device_information(read_code=1, device_id=unit),
+            lambda r: isinstance(r, ReadDeviceInformationResponse),
+        )
+        assert isinstance(reply, ReadDeviceInformationResponse)
+        return {int(k): v if isinstance(v, bytes) else b"".join(v)
+                for k, v in reply.information.items()}
 
 
 def _first_line(exc: BaseException) -> str:

@@ -188,11 +188,20 @@ class SafeBench(Device):
         self._retries_reported = retries
         self._next_retry_report_s = t_s + 1.0
 
-    def _link_lost(self, reason: str) -> None:
+    def lose_link(self, reason: str) -> None:
+        """The link is lost now, whatever the watchdog counted so far (lockstep over the wire:
+        the emulator is gone); as a loss the watchdog declares."""
+        if self.watchdog.lost:
+            return
+        self.watchdog.lost = True
+        self.watchdog.losses += 1
+        self._link_lost(reason, f"bench link lost: {reason}")
+
+    def _link_lost(self, reason: str, message: str = "") -> None:
         self.stats.link_losses += 1
         t_s = self._now_s(None)
-        self._emit("link.lost", f"bench link lost after {self.watchdog.run} failed polls: "
-                   f"{reason}", level="error", url=self.url, reason=reason)
+        self._emit("link.lost", message or f"bench link lost after {self.watchdog.run} failed "
+                   f"polls: {reason}", level="error", url=self.url, reason=reason)
         self._guard.pending.clear()
         self._seen = dict.fromkeys(self._seen)
         with contextlib.suppress(HilError):  # best effort: the relay module may still hear us

@@ -62,6 +62,11 @@ class NodeLink:
     def name(self) -> str:
         return self._bus.link.name
 
+    @property
+    def syncs_sent(self) -> int:
+        """The SYNCs of the bus: one a cycle for every axis."""
+        return self._bus.link.syncs_sent
+
     def send(self, frames: list[Frame]) -> None:
         self._bus.send(self, frames)
 

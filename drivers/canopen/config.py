@@ -15,7 +15,9 @@ class DriveMasterConfig:
     as the last byte of both TPDOs, so every TPDO is bound to its SYNC exactly.
     ``tpdo_layout``: ``"two"`` TPDOs a cycle (statusword and position; velocity and torque),
     or ``"one"`` (statusword, position and torque in 8 bytes; the velocity derived from the
-    position: :data:`drivers.cia402.TPDO_LAYOUTS`)."""
+    position: :data:`drivers.cia402.TPDO_LAYOUTS`). ``lockstep_timeout_s``: in lockstep over a
+    bus, how long (wall clock) the master waits for the drive's answer to a SYNC or an SDO
+    request before it calls the drive gone."""
 
     node_id: int = 1
     mode: str = "cst"
@@ -37,3 +39,8 @@ class DriveMasterConfig:
     eds: str | None = None
     sync_echo: tuple[int, int] | None = None
     tpdo_layout: str = "two"
+    lockstep_timeout_s: float = 10.0
+    #: lockstep over a bus: every wait is ``rx_timeout_s`` of wall time (the drive keeps the
+    #: master's time, or is paused), and a drive that sends nothing at all for a whole wait
+    #: is gone (DriveGoneError), not merely late
+    lockstep: bool = False

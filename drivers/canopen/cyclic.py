@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 from drivers.can_frames import Frame
-from drivers.canopen.errors import DriveError, DriveLinkLostError
+from drivers.canopen.errors import DriveError, DriveGoneError, DriveLinkLostError
 from drivers.canopen.link import Link
 from drivers.canopen.nmt import HeartbeatProducer
 from drivers.canopen.scaling import DriveScaling
@@ -119,6 +119,7 @@ class CyclicExchange:
 
     def __init__(self, link: Link, node_id: int, rpdo: PdoMap, tpdos: Sequence[PdoMap], *,
                  rx_timeout_s: float, period_s: float, watchdog: LinkWatchdog,
+                 silence_is_gone: bool = False,
                  heartbeat: HeartbeatProducer, now_ns: Callable[[], int],
                  other: Callable[[Frame], None]) -> None:
         self.link = link
@@ -129,6 +130,9 @@ class CyclicExchange:
         self._now_ns = now_ns
         self._other = other
         self._rx_timeout_ns = round(rx_timeout_s * 1e9)
+        # lockstep over a bus: a wait with no frame at all is not a late drive but a gone one
+        self._silence_is_gone = silence_is_gone
+        self._heard = False  # a frame came since the last SYNC
         self._rpdo_id = rpdo.cob_id(node_id)
         # the controlword (UNSIGNED16), then the mode's target (INTEGER16 torque, INTEGER32
         # position)
@@ -196,6 +200,7 @@ class CyclicExchange:
             frames.append(self.heartbeat.frame)
         self._command_ma = command_ma
         self._got = 0
+        self._heard = False
         self._awaiting = True
         self._sent_ns = time.perf_counter_ns()
         self.link.send(frames)
@@ -213,25 +218,22 @@ class CyclicExchange:
         deadline_ns = self._sent_ns + self._rx_timeout_ns
         recv, dispatch = self.link.recv, self._dispatch
         clock = time.perf_counter_ns
+        # the first POLL_WAIT_MAX_NS after the SYNC are spent polling (a real-time wait, all
+        # of it; a lockstep one, its start): a thread blocked in select() is woken up 50 us to
+        # several hundred us after the frame arrives (more on a virtual machine); then it
+        # blocks. Past the deadline, what is already here is still read: a master held up
+        # (a busy machine) must not call an answer that came in time late.
+        poll_until = min(deadline_ns, self._sent_ns + POLL_WAIT_MAX_NS)
         try:
-            # a wait of a cycle or so is spent polling: a thread blocked in select() is woken
-            # up 50 us to several hundred us after the frame arrives (more on a virtual machine)
             every = self._all
-            if self._rx_timeout_ns <= POLL_WAIT_MAX_NS:
-                while self._got != every:
-                    frame = recv(0.0)
-                    if frame is not None:
-                        dispatch(frame)
-                    elif clock() >= deadline_ns:
-                        break
-            else:
-                while self._got != every:
-                    remaining = (deadline_ns - clock()) / 1e9
-                    frame = recv(max(0.0, remaining))
-                    if frame is not None:
-                        dispatch(frame)
-                    elif remaining <= 0:
-                        break
+            while self._got != every:
+                now = clock()
+                over = now >= deadline_ns
+                frame = recv(0.0 if over or now < poll_until else (deadline_ns - now) / 1e9)
+                if frame is not None:
+                    dispatch(frame)
+                elif over:
+                    break
         finally:
             self._awaiting = False
         stats = self.stats
@@ -242,6 +244,11 @@ class CyclicExchange:
             rtt_us = (time.perf_counter_ns() - self._sent_ns) / 1e3
             self.feedback = self._make_feedback(fresh=True, rtt_us=rtt_us)
             return self.feedback
+        if self._silence_is_gone and not self._heard:
+            raise DriveGoneError(
+                f"nothing on the bus for {self._rx_timeout_ns / 1e9:g} s of wall time after "
+                f"SYNC {self.cycle} (lockstep waits that long: master.lockstep_timeout_ms): "
+                "the drive is gone (stopped, disconnected, or paused for longer)")
         stats.stale += 1
         lost = self.watchdog.failure()
         stats.longest_stale_run = self.watchdog.longest_run
@@ -280,6 +287,7 @@ class CyclicExchange:
             dispatch(frame)
 
     def _dispatch(self, frame: Frame) -> None:
+        self._heard = True
         can_id, data = frame
         decoder = self._decoders.get(can_id)
         if decoder is None:

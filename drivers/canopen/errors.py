@@ -23,6 +23,14 @@ class DriveLinkLostError(DriveError):
     """No answer from the drive (TPDO watchdog, SDO time-out, bus error, reboot)."""
 
 
+class DriveGoneError(DriveLinkLostError):
+    """In lockstep, the drive gave no sign of life for the whole wall-clock bound of a cycle:
+    it is gone (stopped, disconnected, or paused for longer than the bound). A disturbed run,
+    not a failed one: exit status 3."""
+
+    exit_status = 3
+
+
 class BusSharedError(DriveError):
     """Another master drives the bus (a SYNC, NMT command or heartbeat this one did not send)."""
 

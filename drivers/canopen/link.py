@@ -7,7 +7,6 @@ Bus errors become :class:`~drivers.canopen.errors.DriveLinkLostError` naming the
 from __future__ import annotations
 
 import contextlib
-import time
 from collections import deque
 from collections.abc import Callable
 from typing import Protocol
@@ -16,8 +15,8 @@ import can
 
 from drivers.can_frames import Frame, frames_of
 from drivers.canopen.errors import DriveLinkLostError, one_line
+from drivers.cia301 import SYNC_COB_ID
 
-OWN_ECHO_WINDOW_NS = 100_000_000  # a bus that echoes does so within milliseconds
 OWN_FRAMES_KEPT = 256
 #: python-can buses that hand a sender its own frames back (multicast loopback)
 ECHOING_BUS_MODULES = ("can.interfaces.udp_multicast",)
@@ -40,6 +39,9 @@ class Link(Protocol):
     @property
     def name(self) -> str: ...
 
+    @property
+    def syncs_sent(self) -> int: ...
+
     def send(self, frames: list[Frame]) -> None: ...
 
     def recv(self, timeout: float | None) -> Frame | None: ...
@@ -58,11 +60,12 @@ class CanLink:
                  trace: FrameTrace | None = None) -> None:
         self.reopen = reopen
         self.trace = trace
-        # frames of the watched ids this master sent lately, (monotonic ns, id, data), on a
-        # bus that hands a sender its own frames back (``echoes``): they must not pass for
-        # another master's
+        # frames of the watched ids this master sent whose echo has not come back yet, (id,
+        # data), on a bus that hands a sender its own frames back (``echoes``): they must not
+        # pass for another master's
         self.watched_ids: frozenset[int] = frozenset()
-        self._own: deque[tuple[int, int, bytes]] = deque(maxlen=OWN_FRAMES_KEPT)
+        self._own: deque[tuple[int, bytes]] = deque(maxlen=OWN_FRAMES_KEPT)
+        self.syncs_sent = 0  # SYNCs this link put on the bus: a lockstep master's time
         self._use(bus)
 
     def _use(self, bus: can.BusABC) -> None:
@@ -81,27 +84,25 @@ class CanLink:
             self._send_frames(frames)
         except (can.CanError, OSError) as exc:
             raise DriveLinkLostError(f"cannot send on {self.name}: {self._detail(exc)}") from None
+        for can_id, _ in frames:
+            if can_id == SYNC_COB_ID:
+                self.syncs_sent += 1
         if self.echoes and self.watched_ids:
-            now = time.monotonic_ns()
-            self._own.extend((now, can_id, bytes(data)) for can_id, data in frames
+            self._own.extend((can_id, bytes(data)) for can_id, data in frames
                              if can_id in self.watched_ids)
         if self.trace is not None:
             self.trace.sent(frames)
 
     def own_echo(self, frame: Frame) -> bool:
-        """Whether ``frame`` (of a watched id) is one this master sent in the last
-        :data:`OWN_ECHO_WINDOW_NS`, handed back by a bus that echoes (each sent frame
-        matches once); on other buses, never."""
+        """Whether ``frame`` (of a watched id) is one this master sent, handed back by a bus
+        that echoes: each frame sent matches one echo, however late the master reads it (a
+        busy machine), and a frame beyond them is another master's; on other buses, never."""
         if not self.echoes:
             return False
-        own, horizon = self._own, time.monotonic_ns() - OWN_ECHO_WINDOW_NS
-        while own and own[0][0] < horizon:
-            own.popleft()
-        can_id, data = frame
-        for entry in own:
-            if entry[1] == can_id and entry[2] == bytes(data):
-                own.remove(entry)
-                return True
+        entry = (frame[0], bytes(frame[1]))
+        if entry in self._own:
+            self._own.remove(entry)
+            return True
         return False
 
     def recv(self, timeout: float | None) -> Frame | None:

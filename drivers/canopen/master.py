@@ -28,13 +28,13 @@ from __future__ import annotations
 import copy
 import math
 import struct
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any, NoReturn
 
 from drivers.can_bus_time import AxisTraffic, BusBudget, BusPlan, plan_bus
 from drivers.can_frames import Frame
+from drivers.canopen.clocks import ClockSwitch, MonotonicClock
 from drivers.canopen.config import DriveMasterConfig
 from drivers.canopen.current_limit import CurrentLimit, read_current_limit
 from drivers.canopen.cyclic import SYNC_COUNTER_MAX, CyclicExchange, Feedback, LinkStats
@@ -161,18 +161,6 @@ def plan_axes(config: DriveMasterConfig, names: Sequence[str],
                     lean_how=how)
 
 
-class MonotonicClock:
-    """The master's time on real hardware: the monotonic clock, and a real sleep."""
-
-    @staticmethod
-    def time_ns() -> int:
-        return time.monotonic_ns()
-
-    @staticmethod
-    def sleep(seconds: float) -> None:
-        time.sleep(seconds)
-
-
 class CanDriveMaster(Device):
     """CiA 402 master for one drive on a :class:`~drivers.canopen.link.CanLink` (a
     :class:`~hil.core.types.Device`). :meth:`start` (:meth:`open`, :meth:`configure`,
@@ -189,29 +177,32 @@ class CanDriveMaster(Device):
         self._url = url if url is not None else link.name
         self.node_id = n = config.node_id
         self.mode = MODES[config.mode]
-        self.clock: MasterClock = clock or MonotonicClock()
+        self._clock = ClockSwitch(clock or MonotonicClock())
         self._on_event = on_event
         self._closers = closers
         self.watchdog = LinkWatchdog(config.stale_cycles, "cycles without a TPDO")
-        self.sdo = SdoClient(link, n, config.sdo_timeout_s, self._other_frame)
+        self.sdo = SdoClient(link, n, config.sdo_timeout_s, self._other_frame,
+                             silence_is_gone=config.lockstep)
         self.nmt = Nmt(link, n)
-        self.heartbeat_watch = HeartbeatWatch(n, config.drive_heartbeat_ms, self.clock.time_ns)
+        self.heartbeat_watch = HeartbeatWatch(n, config.drive_heartbeat_ms, self._clock.time_ns)
         self._rpdo1_map = rpdo1_for(self.mode)
         self._tpdo_maps = tpdo_maps(config.sync_echo, config.tpdo_layout)
         self.cyclic = CyclicExchange(
             link, n, self._rpdo1_map, self._tpdo_maps, rx_timeout_s=config.rx_timeout_s,
+            silence_is_gone=config.lockstep,
             period_s=config.cycle_period_s,
             watchdog=self.watchdog,
             heartbeat=HeartbeatProducer(config.heartbeat_id, config.heartbeat_period_ms,
-                                        self.clock.time_ns),
-            now_ns=self.clock.time_ns, other=self._other_frame)
+                                        self._clock.time_ns),
+            now_ns=self._clock.time_ns, other=self._other_frame)
         self.cyclic.extra_frames = self.sdo.next_frames
-        self.states = StateControl(self.sdo, self.nmt, self.clock, config.state_timeout_s,
+        self.states = StateControl(self.sdo, self.nmt, self._clock, config.state_timeout_s,
                                    config.sdo_timeout_s)
         self.budget = self._bus_budget()
         self.description: DriveDescription | None = None
         self._limit: CurrentLimit | None = None   # read at open()
         self._max_torque_written = False
+        self._releases: list[Callable[[], None]] = []
         self.last_emcy_code = 0
         self._enabled = False
         self._latched: DriveError | None = None
@@ -224,6 +215,21 @@ class CanDriveMaster(Device):
     @property
     def url(self) -> str:
         return self._url
+
+    @property
+    def clock(self) -> MasterClock:
+        """The time the master goes by (its watchdogs, heartbeats, state waits)."""
+        return self._clock.clock
+
+    @clock.setter
+    def clock(self, clock: MasterClock) -> None:
+        self._clock.clock = clock
+
+    def on_release(self, release: Callable[[], None]) -> None:
+        """``release`` runs when the master lets the drive go (:meth:`disconnect`), over a link
+        still up, before the bus is released: a setting of this run put back. A
+        :class:`DriveError` it raises becomes a ``drive.release_failed`` event."""
+        self._releases.append(release)
 
     @property
     def link_up(self) -> bool:
@@ -498,7 +504,7 @@ class CanDriveMaster(Device):
         try:
             feedback = self.cyclic.receive()
         except DriveLinkLostError as exc:
-            self._lose_link(str(exc))
+            self._lose_link(str(exc), type(exc))
         if self.heartbeat_watch.rebooted:
             self._lose_link("the drive restarted (boot-up message)")
         silent_ns = self.heartbeat_watch.silent_ns() if self._enabled else None
@@ -539,9 +545,10 @@ class CanDriveMaster(Device):
         self._latched = error
         raise error
 
-    def _lose_link(self, reason: str) -> NoReturn:
+    def _lose_link(self, reason: str, kind: type[DriveLinkLostError] = DriveLinkLostError
+                   ) -> NoReturn:
         reason = reason.removeprefix(f"drive node {self.node_id}: ")
-        error = DriveLinkLostError(f"drive node {self.node_id} link lost: {reason}")
+        error = kind(f"drive node {self.node_id} link lost: {reason}")
         self._latched = error
         self._event("drive.link_lost", str(error), level="error", cycle=self.cyclic.cycle)
         if self._enabled:  # best effort, without waiting: quick stop, then disable voltage
@@ -664,12 +671,25 @@ class CanDriveMaster(Device):
         if self._closed:
             return
         self._restore_max_torque()
+        self._release_settings()
         self._closed = True
         self._enabled = False
         self.link.shutdown()
         for closer in self._closers:
             closer()
 
+
+    def _release_settings(self) -> None:
+        """The :meth:`on_release` callbacks, over a link still up (best effort)."""
+        releases, self._releases = self._releases, []
+        for release in releases:
+            if not self.link_up:
+                return
+            try:
+                release()
+            except DriveError as exc:
+                self._event("drive.release_failed", f"drive node {self.node_id}: a setting of "
+                            f"this run stays on the drive: {exc}", level="warning")
 
     def _max_torque_units(self) -> int:
         """0x6072 for this session: the applied limit rounded up to a torque unit, never above

@@ -16,7 +16,7 @@ from collections import deque
 from collections.abc import Callable
 
 from drivers.can_frames import Frame
-from drivers.canopen.errors import DriveError, DriveLinkLostError, SdoAbortError
+from drivers.canopen.errors import DriveError, DriveGoneError, DriveLinkLostError, SdoAbortError
 from drivers.canopen.link import Link
 from drivers.cia301 import (
     SDO_ABORT,
@@ -50,8 +50,10 @@ class SdoClient:
     """The SDO channel to node ``node_id`` over ``link``."""
 
     def __init__(self, link: Link, node_id: int, timeout_s: float,
-                 other: Callable[[Frame], None]) -> None:
+                 other: Callable[[Frame], None], *, silence_is_gone: bool = False) -> None:
         self.link, self.node_id, self.timeout_s = link, node_id, timeout_s
+        # lockstep over a bus: the time-out is the generous wall-clock bound of a gone drive
+        self._unanswered = DriveGoneError if silence_is_gone else DriveLinkLostError
         self._other = other
         self._request_id = SDO_REQUEST_BASE + node_id
         self.response_id = SDO_RESPONSE_BASE + node_id
@@ -107,7 +109,7 @@ class SdoClient:
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                raise DriveLinkLostError(
+                raise self._unanswered(
                     f"drive node {self.node_id} did not answer SDO {what} within "
                     f"{timeout_s:g} s on {self.link.name}")
             frame = self.link.recv(min(remaining, WAIT_SLICE_S))

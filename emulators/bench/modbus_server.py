@@ -11,9 +11,18 @@ exception, close, corrupt_crc) independent of any Modbus library's internals.
 * TCP: one thread accepts, one thread per connection answers its requests in order. A frame
   with a protocol id other than 0 is discarded whole; the next one is answered.
 * RTU: one thread reads the serial line. A request's length follows from its function code
-  (FC15/FC16/FC23 carry a byte count; unknown codes are taken as the common 8-byte request);
+  (FC15/FC16/FC23 carry a byte count, FC43 is read device identification; unknown codes are
+  taken as the common 8-byte request);
   a frame with a bad CRC is dropped a byte at a time until the line resynchronises. Only the
   units on the line answer (a request for another unit is silence, as on RS-485).
+
+A :class:`ServedClock` (``clock``) answers its own unit before any fault is played: the
+emulator's time, which a lockstep master may hold (:mod:`emulators.bench.timekeeper`). While
+a master holds it, time passes only when the master says, so a wait means nothing: a delay
+shorter than the master's request timeout is answered at once, and where the emulator would
+leave the master waiting (a dropped answer, a longer delay, an unknown unit, and over RTU a
+closed link or a corrupt frame) it answers exception 0x0B at once, as a Modbus gateway whose
+device did not answer in time. A silence then only ever means a paused or dead emulator.
 """
 
 from __future__ import annotations
@@ -24,7 +33,7 @@ import struct
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 from emulators.faults import Fault, FaultSchedule
 
@@ -39,6 +48,25 @@ Answer = Callable[[int, bytes], "bytes | None"]  # (unit, request PDU) -> respon
 
 class UnknownUnitError(LookupError):
     """No device on the line has this unit id."""
+
+
+class ServedClock(Protocol):
+    """The emulator's clock as the server serves it (:mod:`emulators.bench.timekeeper`)."""
+
+    unit: int  # the unit id it answers
+
+    def answer(self, pdu: bytes, peer: object) -> bytes:
+        """The response PDU to a request for the clock's unit from ``peer`` (a connection)."""
+        ...
+
+    def closed(self, peer: object) -> None:
+        """``peer``'s connection ended."""
+        ...
+
+    @property
+    def master_timeout_s(self) -> float | None:
+        """While a lockstep master holds the time: its request timeout; else None."""
+        ...
 
 
 def exception_pdu(function_code: int, code: int) -> bytes:
@@ -66,6 +94,8 @@ def rtu_request_size(head: bytes) -> int | None:
         return None if len(head) < 11 else 13 + head[10]
     if code in (7, 11, 12, 17):  # no data
         return 4
+    if code == 43:  # MEI type 14, read device id code, object id
+        return 7
     return 8  # the common request: 4 bytes of data
 
 
@@ -87,6 +117,8 @@ class ModbusServer:
         self._connections: set[socket.socket] = set()
         self._lock = threading.Lock()
         self._serial: Any = None
+        self.transport = ""  # "tcp" | "rtu", once started
+        self.clock: ServedClock | None = None  # answers its own unit, ahead of any fault
 
     # -- starting and stopping --------------------------------------------------------------
     def start_tcp(self, host: str, port: int) -> tuple[str, int]:
@@ -98,6 +130,7 @@ class ModbusServer:
             listener.close()
             raise
         listener.listen(8)
+        self.transport = "tcp"
         listener.settimeout(0.1)
         self._listener = listener
         bound = listener.getsockname()
@@ -112,6 +145,7 @@ class ModbusServer:
         self._serial = serial.Serial(port, baudrate, parity=parity, stopbits=stopbits,
                                      bytesize=bytesize, timeout=0.05)
         self.address = port
+        self.transport = "rtu"
         self._spawn(self._serve_rtu, "bench-modbus-rtu")
         return port
 
@@ -136,31 +170,46 @@ class ModbusServer:
         thread.start()
 
     # -- requests ---------------------------------------------------------------------------
-    def respond(self, unit: int, pdu: bytes) -> tuple[bytes | None, bool, bool]:
+    def respond(self, unit: int, pdu: bytes, peer: object = None
+                ) -> tuple[bytes | None, bool, bool]:
         """(the response PDU or None, whether to corrupt its frame, whether to close the
-        connection) for one request, after the faults of the schedule."""
+        connection) for one request from ``peer``, after the faults of the schedule."""
+        clock = self.clock
+        if clock is not None and unit == clock.unit:
+            return clock.answer(pdu, peer), False, False
+        patience = clock.master_timeout_s if clock is not None else None
+        rtu = self.transport == "rtu"
+        no_answer = exception_pdu(pdu[0], GATEWAY_TARGET_FAILED)
         for fault in self._active("delay", unit):
             self.faults.hit(fault)
-            time.sleep(fault.params["ms"] / 1000)
+            late_s = fault.params["ms"] / 1000
+            if patience is None:
+                time.sleep(late_s)
+            elif late_s >= patience:
+                return no_answer, False, False
         for fault in self._active("close", unit):
             self.faults.hit(fault)
+            if patience is not None and rtu:
+                return no_answer, False, False
             return None, False, True
         for fault in self._active("drop", unit):
             if self.faults.hit(fault) % fault.params["every"] == 0:
-                return None, False, False
+                return (None if patience is None else no_answer), False, False
         for fault in self._active("exception", unit):
             self.faults.hit(fault)
             return exception_pdu(pdu[0], fault.params["code"]), False, False
         corrupt = False
         for fault in self._active("corrupt_crc", unit):
             self.faults.hit(fault)
+            if patience is not None and rtu:
+                return no_answer, False, False
             corrupt = True
         try:
             return self._answer(unit, pdu), corrupt, False
         except UnknownUnitError:
-            if self.silent_unknown:
+            if self.silent_unknown and patience is None:
                 return None, False, False
-            return exception_pdu(pdu[0], GATEWAY_TARGET_FAILED), corrupt, False
+            return no_answer, corrupt, False
 
     def _active(self, kind: str, unit: int) -> list[Fault]:
         return [f for f in self.faults.active(kind) if f.params["unit"] in (0, unit)]
@@ -195,7 +244,7 @@ class ModbusServer:
                     pdu, buffer = buffer[7:6 + length], buffer[6 + length:]
                     if protocol != 0 or not pdu:
                         continue  # not Modbus: discarded whole
-                    response, corrupt, close = self.respond(unit, pdu)
+                    response, corrupt, close = self.respond(unit, pdu, connection)
                     if close:
                         return
                     if response is not None:
@@ -209,6 +258,8 @@ class ModbusServer:
             with self._lock:
                 self._connections.discard(connection)
             connection.close()
+            if self.clock is not None:
+                self.clock.closed(connection)
 
     # -- RTU --------------------------------------------------------------------------------
     def _serve_rtu(self) -> None:
@@ -230,7 +281,7 @@ class ModbusServer:
                     continue
                 buffer = buffer[size:]
                 unit, pdu = frame[0], frame[1:-2]
-                response, corrupt, _ = self.respond(unit, pdu)
+                response, corrupt, _ = self.respond(unit, pdu, port)
                 if response is not None:
                     reply = bytes([unit]) + response
                     reply += crc16(reply)

@@ -18,7 +18,12 @@ server of :mod:`emulators.bench.modbus_server` carries it over the wire:
 * a request too short for its function is exception 3 (1 if the unit lacks the function);
 * an unknown unit: no answer (RTU: nobody on the line has that address) or exception 0x0B
   (TCP: a gateway whose target did not respond), per ``emulator.unknown_unit``;
-* a Modbus TCP frame with a non-zero protocol id is discarded whole; the next is answered.
+* a Modbus TCP frame with a non-zero protocol id is discarded whole; the next is answered;
+* every device answers Read Device Identification (FC 0x2B / MEI 0x0E) as hil's emulator
+  (:mod:`drivers.bench.clock_protocol`), so a master can tell it from a real bench.
+
+With :meth:`EmulatedBench.follow`, its time follows the wall clock or a lockstep master
+(:mod:`emulators.bench.timekeeper`, which also answers the clock's unit).
 
 Faults (:mod:`emulators.faults`) are played by the server (delay, drop, exception, close,
 corrupt_crc), by :class:`BenchDevices` (freeze, weld) and :class:`EmulatedBench`
@@ -27,16 +32,14 @@ corrupt_crc), by :class:`BenchDevices` (freeze, weld) and :class:`EmulatedBench`
 
 from __future__ import annotations
 
-import math
 import struct
-import threading
-import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from drivers.bench.clock_protocol import PRODUCT_CODE, PRODUCT_NAME, REVISION, VENDOR
 from emulators.bench.modbus_server import (
     ILLEGAL_ADDRESS,
     ILLEGAL_FUNCTION,
@@ -46,6 +49,7 @@ from emulators.bench.modbus_server import (
     exception_pdu,
 )
 from emulators.bench.plant import BenchPlant, PlantSpec, Snapshot
+from emulators.bench.timekeeper import Timekeeper
 from emulators.faults import Fault, FaultSchedule, for_emulator
 from hil.core.errors import ConfigError, HilError
 
@@ -56,8 +60,14 @@ COIL_ON, COIL_OFF = 0xFF00, 0x0000
 
 UNKNOWN_UNIT_POLICIES = ("auto", "exception", "silent")
 #: the function codes each device has, as its real counterpart: a relay module reads (FC01)
-#: and writes (FC05, FC15) coils; the SDM630 meter and the level sensors read input registers
-FUNCTIONS = {"relays": (1, 5, 15), "meter": (4,), "levels": (4,)}
+#: and writes (FC05, FC15) coils; the SDM630 meter and the level sensors read input registers;
+#: each identifies itself (FC43)
+FUNCTIONS = {"relays": (1, 5, 15, 43), "meter": (4, 43), "levels": (4, 43)}
+IDENTIFICATION = 0x2B  # FC43, "encapsulated interface transport"
+READ_DEVICE_ID = 0x0E  # its MEI type "read device identification"
+#: the models the devices name (identification object 5, ModelName)
+MODELS = {"relays": "relay module", "meter": "power meter (SDM630 layout)",
+          "levels": "level sensors"}
 
 
 @dataclass(frozen=True)
@@ -172,6 +182,31 @@ class BenchDevices:
         self.faults.hit(freezes[0])
         return self._frozen.setdefault(role, self.plant.snapshot)
 
+    def identification(self, unit: int, body: bytes) -> bytes:
+        """FC43 / MEI 0x0E: VendorName, ProductCode, MajorMinorRevision (basic) and
+        ProductName, ModelName (regular), streamed (read codes 1-3) or one (code 4)."""
+        role = self.role(unit)
+        if len(body) < 3:
+            return exception_pdu(IDENTIFICATION, ILLEGAL_VALUE)
+        mei, code, first = body[0], body[1], body[2]
+        if mei != READ_DEVICE_ID:
+            return exception_pdu(IDENTIFICATION, ILLEGAL_FUNCTION)
+        if not 1 <= code <= 4:
+            return exception_pdu(IDENTIFICATION, ILLEGAL_VALUE)
+        objects = {0: VENDOR, 1: PRODUCT_CODE, 2: REVISION, 4: PRODUCT_NAME, 5: MODELS[role]}
+        if code == 4:
+            if first not in objects:
+                return exception_pdu(IDENTIFICATION, ILLEGAL_ADDRESS)
+            chosen = [first]
+        else:
+            last = 2 if code == 1 else 0x7F
+            ids = [i for i in sorted(objects) if i <= last]
+            chosen = [i for i in ids if i >= first] if first in ids else ids
+        values = {i: objects[i].encode() for i in chosen}
+        data = b"".join(bytes([i, len(value)]) + value for i, value in values.items())
+        # conformity 0x82: regular identification, stream and individual access
+        return bytes([IDENTIFICATION, READ_DEVICE_ID, code, 0x82, 0, 0, len(chosen)]) + data
+
     def unsupported(self, unit: int) -> int:
         self.role(unit)
         return ILLEGAL_FUNCTION
@@ -186,6 +221,8 @@ class BenchDevices:
         """The response PDU to a request PDU for ``unit`` (an exception response where a real
         device gives one); an unknown unit raises :class:`UnknownUnitError`."""
         code, body = pdu[0], pdu[1:]
+        if code == IDENTIFICATION:
+            return self.identification(unit, body)
         if code not in (1, 4, 5, 15):
             return exception_pdu(code, self.unsupported(unit))
         if len(body) < (5 if code == 15 else 4):
@@ -223,29 +260,30 @@ class EmulatedBench:
     """Plant + Modbus server: the whole bench in-process.
 
     ``serve_tcp()`` (127.0.0.1, port 0 = any free port) or ``serve_serial()`` starts the server
-    in a background thread. Then either :meth:`step` (lockstep: whoever owns the clock steps
-    the plant, and a driver reading after a step sees exactly that step's snapshot) or
-    ``run_realtime()`` (a thread steps the plant on the wall clock).
+    in a background thread. Then either :meth:`step` (lockstep in this process: whoever owns
+    the clock steps the plant, and a driver reading after a step sees exactly that step's
+    snapshot), :meth:`follow` (a thread steps the plant on the wall clock, and a lockstep
+    master on the wire may take its time) or ``run_realtime()`` (the wall clock only).
     """
 
     def __init__(self, plant: PlantSpec, server: ServerSettings,
                  faults: list[Fault] | tuple[Fault, ...] = (),
                  on_fault: Any = None) -> None:
+        self._spec, self._settings, self._on_fault = plant, server, on_fault
         self.plant = BenchPlant(plant)
-        faults = for_emulator(faults, "bench")
+        self._faults = for_emulator(faults, "bench")
         relays = set(self.plant.relays)
-        for fault in faults:
+        for fault in self._faults:
             if fault.kind == "weld" and fault.params["relay"] not in relays:
                 raise ConfigError(f"fault {str(fault)!r}: no relay {fault.params['relay']!r} "
                                   f"(relays: {', '.join(sorted(relays))})")
         #: the faults played, on the plant's clock; ``faults.events`` records each
-        self.faults = FaultSchedule(faults, lambda: self.plant.t_s, on_fault)
+        self.faults = FaultSchedule(self._faults, lambda: self.plant.t_s, on_fault)
         self.devices = BenchDevices(self.plant, server, self.faults)
         self._unknown_unit = server.unknown_unit
         self._server: ModbusServer | None = None
         self.url = ""
-        self._realtime: threading.Thread | None = None
-        self._stop_realtime = threading.Event()
+        self.timekeeper: Timekeeper | None = None
 
     def serve_tcp(self, host: str = "127.0.0.1", port: int = 0) -> str:
         """Listen on TCP; return the bus URL (with the port actually bound)."""
@@ -277,7 +315,21 @@ class EmulatedBench:
             raise HilError("emulator server already started")
         silent = self._unknown_unit == "silent" or (self._unknown_unit == "auto"
                                                     and transport == "rtu")
-        return ModbusServer(self.devices.answer, self.faults, silent_unknown=silent)
+        server = ModbusServer(self._answer, self.faults, silent_unknown=silent)
+        server.clock = self.timekeeper
+        return server
+
+    def _answer(self, unit: int, pdu: bytes) -> bytes:
+        return self.devices.answer(unit, pdu)  # the devices of the plant now (see restart)
+
+    def restart(self) -> None:
+        """The plant and its fault schedule as they were built (a lockstep session's start):
+        t = 0, initial levels, every coil off, the noise from its seed's start."""
+        self.plant = BenchPlant(self._spec)
+        self.faults = FaultSchedule(self._faults, lambda: self.plant.t_s, self._on_fault)
+        self.devices = BenchDevices(self.plant, self._settings, self.faults)
+        if self._server is not None:
+            self._server.faults = self.faults
 
     @property
     def port(self) -> int:
@@ -296,30 +348,27 @@ class EmulatedBench:
             self.plant.extra_va = sum(f.params["va"] for f in steps)
         self.plant.step()
 
+    def follow(self, clock: str, on_change: Callable[[str], None] | None = None
+               ) -> Timekeeper:
+        """Step the plant from a background thread: on the wall clock, or on a lockstep
+        master's time when one on the wire takes it (``clock``: one of
+        :data:`~drivers.bench.clock_protocol.CLOCKS`, as ``hil emulate bench --clock``;
+        ``on_change`` hears a line each time a master takes the time or lets go)."""
+        if self.timekeeper is None:
+            self.timekeeper = Timekeeper(self, clock, on_change)
+            if self._server is not None:
+                self._server.clock = self.timekeeper
+            self.timekeeper.start()
+        return self.timekeeper
+
     def run_realtime(self) -> None:
         """Step the plant in a background thread, following the monotonic clock."""
-        if self._realtime is not None:
-            return
-        self._stop_realtime.clear()
-        self._realtime = threading.Thread(target=self._follow_wall_clock, name="bench-plant",
-                                          daemon=True)
-        self._realtime.start()
-
-    def _follow_wall_clock(self) -> None:
-        plant, dt = self.plant, self.plant.dt
-        t0, k0 = time.monotonic(), plant.k
-        while not self._stop_realtime.is_set():
-            target = k0 + math.floor((time.monotonic() - t0) / dt)
-            while plant.k < target:
-                self._step_plant()
-            next_at = t0 + (plant.k - k0 + 1) * dt
-            self._stop_realtime.wait(max(next_at - time.monotonic(), 0.0))
+        self.follow("wall")
 
     def stop(self) -> None:
-        self._stop_realtime.set()
-        if self._realtime is not None:
-            self._realtime.join(timeout=5)
-            self._realtime = None
+        if self.timekeeper is not None:
+            self.timekeeper.stop()
+            self.timekeeper = None
         if self._server is not None:
             self._server.stop()
             self._server = None

@@ -103,6 +103,7 @@ from emulators.drive.pdo import Pdo, PdoTable
 from emulators.drive.plant import AxisPlant
 from emulators.drive.sdo import SdoAbortError, SdoServer
 from emulators.drive.states import POWERED, DriveStates
+from emulators.drive.timebase import CLOCKS, TIME_BASE
 from emulators.faults import Fault, FaultSchedule, for_emulator
 
 log = logging.getLogger(__name__)
@@ -120,7 +121,7 @@ PDO_IDS_FIRST, PDO_IDS_LAST = 0x180, 0x57F  # the default PDO COB-IDs of every n
 # objects whose writing means more than storing the value (:meth:`DriveNode._write`)
 WRITE_EFFECTS = frozenset({SYNC_COB_ID_OBJECT, SYNC_COUNTER_OVERFLOW, CYCLE_PERIOD,
                            CONSUMER_HEARTBEAT, PRODUCER_HEARTBEAT, QUICK_STOP_OPTION,
-                           MODES_OF_OPERATION, CONTROLWORD, DISTURBANCE})
+                           MODES_OF_OPERATION, CONTROLWORD, DISTURBANCE, TIME_BASE})
 
 # the objects the cyclic path reads and writes, as keys of the value store
 CONTROLWORD_KEY, MODE_KEY = (CONTROLWORD, 0), (MODES_OF_OPERATION, 0)
@@ -141,12 +142,12 @@ class DriveNode:
         *,
         send: SendFn,
         plant: AxisPlant | None = None,
-        timebase: str = "monotonic",
+        clock: str = "auto",
         faults: Iterable[Fault] = (),
         on_fault: Callable[[str], None] | None = None,
     ) -> None:
-        if timebase not in ("monotonic", "sync"):
-            raise ValueError(f"timebase must be 'monotonic' or 'sync', got {timebase!r}")
+        if clock not in CLOCKS:
+            raise ValueError(f"clock must be one of {', '.join(CLOCKS)}, got {clock!r}")
         self.config = config = config or DriveEmulatorConfig()
         self.node_id = config.node_id
         self.plant = plant if plant is not None else config.make_plant()
@@ -155,7 +156,14 @@ class DriveNode:
         self._values = self.objects.values
         self.lock = threading.RLock()
         self._send_fn = send
-        self._sync_timebase = timebase == "sync"  # time is the SYNCs so far (lockstep)
+        # time: the wall clock, or the SYNCs so far (a lockstep master's time, from
+        # _sync_origin_ns on); "auto" follows what a master asks for in 0x2005
+        self.clock = clock
+        self._sync_timebase = clock == "sync"
+        self._sync_origin_ns = 0
+        self._gone_after_ns = 0     # SYNC time given up after this much wall time unheard
+        self._heard_ns = time.monotonic_ns()  # wall time of the last frame
+        self._hb_next_ns: int | None = None     # when the next heartbeat is due
         self._plant_period_ns = round(self.plant.dt * 1e9)
         sdo_response_id = SDO_RESPONSE_BASE + self.node_id
         self.sdo = SdoServer(self.objects.read, self._download,
@@ -196,10 +204,42 @@ class DriveNode:
         return self._steps_per_sync * self._plant_period_ns
 
     def _now(self) -> int:
-        return self._sync_time_ns if self._sync_timebase else time.monotonic_ns()
+        if self._sync_timebase:
+            return self._sync_origin_ns + self._sync_time_ns
+        return time.monotonic_ns()
+
+    @property
+    def on_master_time(self) -> bool:
+        """Whether the node's time is the master's SYNCs (lockstep) rather than its own."""
+        return self._sync_timebase
+
+    def _take_master_time(self, bound_ms: int) -> None:
+        """0x2005 = N: from now on time is the master's SYNCs (continuing from the time it
+        is now), given up after ``bound_ms`` of wall time with no frame at all; 0: own clock."""
+        if self.clock == "wall" and bound_ms:
+            raise SdoAbortError(ABORT_DEVICE_STATE)  # keeps its own clock: the master is told
+        if self.clock == "sync" and not bound_ms:
+            raise SdoAbortError(ABORT_DEVICE_STATE)  # on SYNC time from power-on, for good
+        if bound_ms and not self._sync_timebase:
+            self._sync_origin_ns = time.monotonic_ns() - self._sync_time_ns
+            self._sync_timebase = True
+        elif not bound_ms and self._sync_timebase:
+            self._own_clock_again()
+        self._gone_after_ns = bound_ms * 1_000_000
+
+    def _own_clock_again(self) -> None:
+        """Back on the wall clock: every timer starts afresh from now."""
+        self._sync_timebase = False
+        self._gone_after_ns = 0
+        now = time.monotonic_ns()
+        self._hb_next_ns = None
+        self._hb_last_ns = self._sync_last_ns = now
 
     def _reset_application(self) -> None:
-        """Power-on / NMT reset node: parameters to defaults, state machine restarted."""
+        """Power-on / NMT reset node: parameters to defaults, state machine restarted (and,
+        ``auto``, the drive's own clock again)."""
+        if self.clock == "auto" and self._sync_timebase:
+            self._own_clock_again()
         self.objects.reset()
         self.states.reset()
         self.motor.forget()
@@ -212,7 +252,7 @@ class DriveNode:
         self.pdos.compile_all()
         self._sync_cob_id = self._values[(SYNC_COB_ID_OBJECT, 0)] & 0x7FF
         self._steps_per_sync = self._steps_for_period(self._values[(CYCLE_PERIOD, 0)])
-        self._hb_next_ns: int | None = None
+        self._hb_next_ns = None
         self._hb_consumer_armed = False
         self._hb_last_ns = 0
         self._sync_armed = False
@@ -271,6 +311,7 @@ class DriveNode:
 
     def handle_frame(self, can_id: int, data: bytes) -> None:
         """Process one received 11-bit data frame; never raises."""
+        self._heard_ns = time.monotonic_ns()
         if PDO_IDS_FIRST <= can_id <= PDO_IDS_LAST and can_id != self._sync_cob_id and \
                 self.pdos.receiver(can_id) is None:
             return  # another node's PDO (several drives on a bus hear each other's): nothing
@@ -294,6 +335,8 @@ class DriveNode:
             return  # only NMT and heartbeats are served in STOPPED
         elif can_id == self._sync_cob_id:
             self._on_sync(data)
+            if self._sync_timebase:  # time moved on: what is due now, in the SYNC's order
+                self._service(self._now())
         elif can_id == SDO_REQUEST_BASE + self.node_id:
             self.sdo.handle(data)
         else:
@@ -403,6 +446,9 @@ class DriveNode:
         elif index == DISTURBANCE:
             values[key] = value
             self.plant.extra_disturbance_ma = float(value)
+        elif index == TIME_BASE:
+            self._take_master_time(value)
+            values[key] = value
         else:
             values[key] = value
 
@@ -523,6 +569,9 @@ class DriveNode:
     def _service(self, now: int) -> None:
         if self.nmt_state == NMT_BOOT_UP:
             return
+        if self._gone_after_ns and time.monotonic_ns() - self._heard_ns > self._gone_after_ns:
+            self._master_gone()
+            now = self._now()
         if self.faults:
             self._service_faults(now)
         period_ms = self._values[(PRODUCER_HEARTBEAT, 0)]
@@ -552,6 +601,18 @@ class DriveNode:
         for fault in self.faults.active("emcy"):
             if self.faults.hit(fault) == 1:
                 self.states.fault(fault.params["code"], error_register_bit(fault.params["code"]))
+
+    def _master_gone(self) -> None:
+        """The lockstep master went silent for longer than it said it could be: its time
+        stops here. Driving, the drive reacts as to a SYNC loss; then it keeps its own clock
+        (``auto``; ``sync`` stays on SYNC time)."""
+        self._gone_after_ns = 0
+        if self.state in (OPERATION_ENABLED, QUICK_STOP_ACTIVE):
+            self._sync_armed = False
+            self._communication_lost(CAUSE_SYNC)
+        if self.clock == "auto":
+            self._values[(TIME_BASE, 0)] = 0
+            self._own_clock_again()
 
     def _communication_lost(self, cause: int) -> None:
         if self.state in (OPERATION_ENABLED, QUICK_STOP_ACTIVE):

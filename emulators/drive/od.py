@@ -4,12 +4,15 @@ The dictionary is a ``canopen`` :class:`~canopen.objectdictionary.ObjectDictiona
 access, limits, defaults); the drive node keeps the live values. The same dictionary serves an
 independent master (``canopen.BaseNode402``) as its description of the drive.
 
-Units (DESIGN.md): torque objects are per mille of the rated current 0x6075 (default 1000 mA, so
+Units: torque objects are per mille of the rated current 0x6075 (default 1000 mA, so
 one unit is one mA); positions are encoder increments (0x608F, default 2^20 per revolution);
 velocity is increments per second. Manufacturer objects: 0x2001 SYNC loss timeout [ms],
 0x2002 over-current trip level [mA], 0x2003 external disturbance torque [mA] (a test hook),
 0x2004 the counter of the SYNC the TPDOs answer (with the SYNC counter on: 0x1019 > 0), which a
-master maps to bind every TPDO to its SYNC.
+master maps to bind every TPDO to its SYNC; 0x2005 the time base: 0 the drive's own clock, N > 0
+the master's (SYNC time: time passes only with SYNCs, one communication cycle each), given up
+after N ms of wall time without a frame (a lockstep master asks for it:
+:mod:`emulators.drive.node`).
 """
 
 from __future__ import annotations
@@ -136,6 +139,7 @@ def build_object_dictionary(node_id: int, defaults: OdDefaults | None = None) ->
              minimum=1))
     add(_var("External disturbance torque", 0x2003, 0, INTEGER16, "rw", 0, mappable=True))
     add(_var("SYNC counter echo", 0x2004, 0, UNSIGNED8, "ro", 0, mappable=True))
+    add(_var("Time base", 0x2005, 0, UNSIGNED32, "rw", 0))
     add(_var("Error code", 0x603F, 0, UNSIGNED16, "ro", 0))
     add(_var("Controlword", 0x6040, 0, UNSIGNED16, "rw", 0, mappable=True))
     add(_var("Statusword", 0x6041, 0, UNSIGNED16, "ro", 0, mappable=True))

@@ -99,7 +99,7 @@ class LockstepDrive:
         self.master_bus = self.channel.attach(on_send=self.pump)
         self._time_bus = self.channel.attach(on_send=self.pump, listen=False)  # SYNCs only
         self.nodes = [DriveNode(replace(config, node_id=node_id), send=bus.send_frames,
-                               plant=plant, timebase="sync")
+                               plant=plant, clock="sync")
                       for node_id, bus in zip(ids, self._node_buses, strict=True)]
         self.node = self.nodes[0]
         for node in self.nodes:

@@ -329,6 +329,7 @@ def _bus(table: Table) -> BusSettings:
         reconnect_interval_s=table.number("reconnect_interval_s", above=0),
         watchdog_polls=table.integer("watchdog_polls", at_least=1),
         give_up_s=table.number("give_up_s", 30.0, at_least=0),
+        lockstep_timeout_s=table.number("lockstep_timeout_s", 10.0, above=0),
     )
     table.done()
     return bus

@@ -9,6 +9,7 @@ from typing import Any
 
 from hil.core.errors import UsageError
 from hil.core.recording_options import RecordingOptions
+from hil.core.settings import given_options
 from hil.core.verdict import Limit
 
 #: ``hil bench run``'s flags (argparse dests) -> the option they set, where the names differ
@@ -61,12 +62,7 @@ class BenchRunOptions:
         """The options of ``hil bench run``'s flags as a dict (argparse dests; a sweep's swept
         values laid over them); flags that are not run options (``json``, ``junit``...) are
         ignored, and so are flags not given (None)."""
-        known = {f.name for f in fields(cls)}
-        values: dict[str, Any] = {}
-        for flag, value in flags.items():
-            name = FLAG_OPTIONS.get(flag, flag)
-            if name in known and value is not None:
-                values[name] = value
+        values = given_options(flags, (f.name for f in fields(cls)), FLAG_OPTIONS)
         if need_controller and "controller" not in values:
             raise UsageError("--controller is required: eec, bc, FILE.py:Class, "
                              "package.module:Class or a registered name")

@@ -3,9 +3,13 @@
 * :data:`BENCH_DEVICES` - bench URL scheme -> factory (``modbus-tcp``, ``modbus-rtu``,
   ``emulated``, and any scheme a package declares in the ``hil.bench_devices`` entry points).
   ``emulated`` is handled here only: the emulator in-process on 127.0.0.1 (a free port),
-  stepped by the loop (:class:`PlantStepTask`) when the session clock is a SimClock, by the
-  wall clock otherwise, and the same Modbus driver talking to it; :func:`session_clock`
-  picks lockstep for it and the wall clock for a real bench.
+  stepped by the loop (:class:`~hil.bench.emulator_time.PlantStepTask`) when the session
+  clock is a SimClock, by the wall clock otherwise, and the same Modbus driver talking to it.
+  A Modbus URL asked to run in lockstep (a SimClock) is: when hil's emulator answers there
+  (its device identification), it is given the run's time over the wire
+  (:mod:`hil.bench.emulator_time`); any other device runs on the wall clock (the
+  :class:`OpenedBench`'s ``clock``). :func:`planned_clock` is what a run asks for,
+  :func:`session_clock` what a session made before the bench is opened gets.
 * :class:`SequenceSchedule` - the machining sequence as the player plays it: exact
   nanosecond lookups on the table of :class:`controllers.bench.problem.MachiningSequence`.
 * :class:`BenchSampler` - polls power (and levels) every sample and services the safety
@@ -28,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from controllers.bench.problem import MachiningSequence, Stage
+from hil.bench.emulator_time import PlantStepTask, WirePlantClock, lockstep_over_the_wire
 from hil.core.clock import Clock, RealtimeClock, SimClock
 from hil.core.errors import ConfigError
 from hil.core.loop import Task
@@ -38,6 +43,8 @@ from hil.core.types import EventSink, TimeSource, no_event
 STALE_POLLS = 50
 
 if TYPE_CHECKING:
+    from drivers.bench.emulator_clock import Identity
+    from drivers.bench.modbus import ModbusBenchDriver
     from drivers.bench.safe_bench import SafeBench
     from emulators.bench.server import EmulatedBench
     from hil.bench.config import BenchConfig
@@ -54,14 +61,20 @@ BENCH_DEVICES = SchemeRegistry("bench", {
 
 
 def is_emulated(url: str) -> bool:
-    """Whether ``url`` is the in-process emulator, the one bench that can run in lockstep."""
+    """Whether ``url`` is the in-process emulator."""
     return scheme_of(url) == "emulated"
 
 
 def session_clock(url: str, realtime: bool = False) -> Clock:
-    """Lockstep (a SimClock) against the emulator unless ``realtime``; a real bench always
-    runs on the wall clock."""
+    """For a session made before its bench is opened: lockstep (a SimClock) against the
+    in-process emulator unless ``realtime``; any bench URL on the wall clock."""
     return RealtimeClock() if realtime or not is_emulated(url) else SimClock()
+
+
+def planned_clock(realtime: bool) -> Clock:
+    """What a run asks for: the wall clock with ``realtime``, else lockstep, which a bench URL
+    keeps only where hil's emulator answers (:func:`open_modbus`: ``OpenedBench.clock``)."""
+    return RealtimeClock() if realtime else SimClock()
 
 
 class SequenceSchedule:
@@ -257,13 +270,17 @@ class StaleReadings:
 class LinkMonitor(Task):
     """Every sample: the intervals the bench link was declared lost (``down``, clock ns) and
     the run's end when it stays lost ``give_up_s`` (event ``link.gave_up``, loop stopped with
-    reason ``link lost``; the relays go to their safe level as at every stop), or as soon as
-    a relay is found switched by someone else (``foreign``: event ``bench.foreign_master``)."""
+    reason ``link lost``; the relays go to their safe level as at every stop), at once when
+    ``peer_gone`` says the emulator the run is in lockstep with is gone (the link lost and
+    given up on in the same sample), or as soon as a relay is found switched by someone else
+    (``foreign``: event ``bench.foreign_master``)."""
 
     def __init__(self, bench: SafeBench, session: Session, give_up_s: float, divisor: int = 1,
-                 name: str = "link") -> None:
+                 name: str = "link", peer_gone: Callable[[], str | None] = lambda: None
+                 ) -> None:
         super().__init__(name, divisor)
         self.bench, self.session = bench, session
+        self.peer_gone = peer_gone
         self.give_up_ns = round(give_up_s * 1e9)
         self.down: list[list[int | None]] = []  # [lost at, restored at or None]
         self.gave_up = False
@@ -276,21 +293,33 @@ class LinkMonitor(Task):
             self.session.event("bench.foreign_master", self.foreign, level="error",
                                source="bench")
             self.session.loop.stop("another master on the bench")
+        gone = self.peer_gone()
+        if gone is not None and not self.gave_up:
+            self.bench.lose_link(gone)
         up = self.bench.link_up
         if not up and (not self.down or self.down[-1][1] is not None):
             self.down.append([t_ns, None])
         elif up and self.down and self.down[-1][1] is None:
             self.down[-1][1] = t_ns
-        if up or not self.give_up_ns or self.gave_up:
+        if self.gave_up:
+            return
+        if gone is not None:
+            self._give_up(f"bench link lost: the bench emulator is gone ({gone}): the run stops",
+                          f"link lost: the bench emulator is gone ({gone})")
+            return
+        if up or not self.give_up_ns:
             return
         lost_at = self.down[-1][0]
         assert lost_at is not None
         if t_ns - lost_at >= self.give_up_ns:
-            self.gave_up = True
             seconds = self.give_up_ns / 1e9
-            self.session.event("link.gave_up", f"bench link lost for {seconds:g} s "
-                               "(bus.give_up_s): the run stops", level="error", source="bench")
-            self.session.loop.stop(f"link lost for {seconds:g} s")
+            self._give_up(f"bench link lost for {seconds:g} s (bus.give_up_s): the run stops",
+                          f"link lost for {seconds:g} s")
+
+    def _give_up(self, message: str, reason: str) -> None:
+        self.gave_up = True
+        self.session.event("link.gave_up", message, level="error", source="bench")
+        self.session.loop.stop(reason)
 
     def intervals(self, end_ns: int) -> list[tuple[int, int]]:
         """The lost intervals, an open one closed at ``end_ns``."""
@@ -339,65 +368,64 @@ class SequenceOrigin:
         return t0 if t0 is not None else self.clock.time_ns()
 
 
-class PlantStepTask(Task):
-    """Lockstep: steps the emulated plant until its time matches the loop's clock (first task),
-    and records every fault the emulator injected as a ``fault.injected`` event (the
-    emulator's side of the story: what the bridge detects is recorded by the bridge)."""
-
-    def __init__(self, emulator: EmulatedBench, name: str = "emulator",
-                 on_event: EventSink = no_event) -> None:
-        super().__init__(name, 1)
-        self.emulator = emulator
-        self.on_event = on_event
-        self._t0_ns: int | None = None
-        self._k0 = 0
-        self._reported = 0
-
-    def read(self, t_ns: int) -> None:
-        plant = self.emulator.plant
-        if self._t0_ns is None:
-            self._t0_ns, self._k0 = t_ns, plant.k
-        target = self._k0 + round((t_ns - self._t0_ns) / 1e9 / plant.dt)
-        while plant.k < target:
-            self.emulator.step()
-        events = self.emulator.faults.events
-        while self._reported < len(events):
-            event = events[self._reported]
-            self._reported += 1
-            self.on_event("fault.injected", f"emulator: {event['fault']} injected at plant "
-                          f"t={event['t_s']:.2f} s", level="warning", source="emulator",
-                          fault=event["fault"], plant_t_s=event["t_s"])
-
-
 @dataclass
 class OpenedBench:
     """What a bench factory returns: the safety layer, opened (relays at their safe levels),
-    the emulator behind it, if any, to stop after the run, and in lockstep the task that
-    steps the emulator's plant (the rig makes it the first task)."""
+    the emulator behind it, if any, to stop after the run, in lockstep the task that steps the
+    emulator's plant (the rig makes it the first task), the clock the run goes by when it is
+    not the one it was opened with (a bench URL asked for lockstep runs on the wall clock
+    unless hil's emulator answers there), and the device's identification, if it gave one."""
 
     bench: SafeBench
     emulator: EmulatedBench | EmulatorProcess | None = None
-    plant_task: PlantStepTask | None = None
+    plant_task: PlantStepTask | WirePlantClock | None = None
+    clock: Clock | None = None
+    identity: Identity | None = None
+
+    def peer_gone(self) -> str | None:
+        """Lockstep over the wire: why the emulator is gone; None while it answers (and for
+        any other bench)."""
+        task = self.plant_task
+        return task.gone if isinstance(task, WirePlantClock) else None
+
+    def describe(self) -> dict[str, str]:
+        """The session's ``bench`` metadata: where the bench is, what it said it is, whose
+        time it follows."""
+        wire = isinstance(self.plant_task, WirePlantClock)
+        return {"url": self.bench.url,
+                "identity": str(self.identity) if self.identity is not None else "",
+                "time": ("the run's (lockstep over the wire)" if wire
+                         else "the run's (in process)" if self.plant_task is not None
+                         else "its own")}
 
     def close(self) -> None:
-        """Close the link (relays safe, best effort), then stop the emulator."""
+        """Close the link (relays safe, best effort), let go of an emulator's time (the
+        relays went safe on it), then stop the emulator."""
         try:
             self.bench.close()
+            if isinstance(self.plant_task, WirePlantClock):
+                self.plant_task.clock.release()
         finally:
             if self.emulator is not None:
                 self.emulator.stop()
 
 
-def safe_bench(url: str, config: BenchConfig, clock: TimeSource,
-               on_event: EventSink = no_event) -> SafeBench:
-    """Modbus driver + safety layer for the bench at ``url``, opened (relays at their safe
-    levels); ``clock`` paces the dwell, ``on_event`` records what happens."""
+def modbus_driver(url: str, config: BenchConfig) -> ModbusBenchDriver:
+    """The Modbus driver of the bench at ``url`` (not connected yet)."""
     from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
+
+    bus = config.bus
+    return ModbusBenchDriver(ModbusLink(parse_bus_url(url), bus.timeout_s, bus.attempts),
+                             config.map)
+
+
+def open_safe(driver: ModbusBenchDriver, config: BenchConfig, clock: TimeSource,
+              on_event: EventSink = no_event) -> SafeBench:
+    """The safety layer over ``driver``, opened (relays at their safe levels); ``clock``
+    paces the dwell, ``on_event`` records what happens. The driver is closed on failure."""
     from drivers.bench.safe_bench import SafeBench
 
     bus = config.bus
-    driver = ModbusBenchDriver(ModbusLink(parse_bus_url(url), bus.timeout_s, bus.attempts),
-                               config.map)
     bench = SafeBench(driver, clock, on_event=on_event,
                       watchdog_polls=bus.watchdog_polls,
                       reconnect_interval_s=bus.reconnect_interval_s)
@@ -409,10 +437,30 @@ def safe_bench(url: str, config: BenchConfig, clock: TimeSource,
     return bench
 
 
+def safe_bench(url: str, config: BenchConfig, clock: TimeSource,
+               on_event: EventSink = no_event) -> SafeBench:
+    """Modbus driver + safety layer for the bench at ``url``, opened (relays at their safe
+    levels); ``clock`` paces the dwell, ``on_event`` records what happens."""
+    return open_safe(modbus_driver(url, config), config, clock, on_event)
+
+
 def open_modbus(url: str, config: BenchConfig, clock: Clock, on_event: EventSink
                 ) -> OpenedBench:
-    """Factory of ``modbus-tcp://HOST:PORT`` and ``modbus-rtu:///dev/X?...``."""
-    return OpenedBench(safe_bench(url, config, clock, on_event))
+    """Factory of ``modbus-tcp://HOST:PORT`` and ``modbus-rtu:///dev/X?...``. Asked for
+    lockstep (a SimClock), it keeps it only where hil's emulator takes the run's time
+    (:func:`lockstep_over_the_wire`); else the run follows the wall clock."""
+    driver = modbus_driver(url, config)
+    try:
+        identity = plant_task = None
+        if clock.mode == "sim":
+            identity, plant_task = lockstep_over_the_wire(driver, config, on_event)
+            if plant_task is None:
+                clock = RealtimeClock()
+        bench = open_safe(driver, config, clock, on_event)
+    except BaseException:
+        driver.close()
+        raise
+    return OpenedBench(bench, plant_task=plant_task, clock=clock, identity=identity)
 
 
 def make_emulator(config: BenchConfig, on_fault: Callable[[str], None] | None = None
@@ -496,9 +544,13 @@ class BenchRig:
 def attach_rig(session: Session, config: BenchConfig, device: OpenedBench, *,
                play_sequence: bool = True) -> BenchRig:
     """Wire an opened bench into ``session``: its tasks, first in every phase, in this order:
-    [plant step (lockstep emulator)], sampler, link monitor, [sequence player]. The bench is a
-    session component: its relays go to their safe levels when the loop stops, whatever the
-    reason."""
+    [plant step or time over the wire (lockstep emulator)], sampler, link monitor, [sequence
+    player]. The bench is a session component: its relays go to their safe levels when the
+    loop stops, whatever the reason. The session must run on the device's clock."""
+    if device.clock is not None and device.clock is not session.clock:
+        raise ConfigError(f"the bench at {device.bench.url} runs on the {device.clock.mode} "
+                          f"clock, not on this session's {session.clock.mode} clock (lockstep "
+                          "over the wire needs hil's emulator there)")
     period = config.sampling.period_s
     base_s = session.loop.base_period_ns / 1e9
     divisor = round(period / base_s)
@@ -514,9 +566,12 @@ def attach_rig(session: Session, config: BenchConfig, device: OpenedBench, *,
         readback_every=config.sampling.relays_readback_every, divisor=divisor,
         stale=StaleReadings(STALE_POLLS, rates, session.event),
     )
-    link = LinkMonitor(bench, session, config.bus.give_up_s, divisor)
+    link = LinkMonitor(bench, session, config.bus.give_up_s, divisor,
+                       peer_gone=device.peer_gone)
     sequence = SequenceSchedule(config.problem.sequence)
     player = SequencePlayer(bench, sequence, divisor=divisor) if play_sequence else None
+    if isinstance(device.plant_task, WirePlantClock):
+        device.plant_task.period_ns = session.loop.base_period_ns
     for task in (device.plant_task, sampler, link, player):
         if task is not None:
             session.add_task(task)

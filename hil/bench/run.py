@@ -40,7 +40,7 @@ from hil.bench.rig import (
     attach_rig,
     is_emulated,
     open_bench_device,
-    session_clock,
+    planned_clock,
 )
 from hil.bench.safety import BenchSafetyTask
 from hil.bench.settings import resolve_bench
@@ -115,7 +115,8 @@ class BenchExperiment(Experiment):
         self.factory, self.label = controller_factory(opts.controller, self.params,
                                                       method="decide", application="bench")
         self.watch = SignalWatch(signal_limits)
-        self.clock = session_clock(url, opts.realtime)
+        # lockstep unless --realtime; a bench URL keeps it only where hil's emulator answers
+        self.clock = planned_clock(opts.realtime)
         out = opts.out or default_session_path("bench", controller_short_name(self.label))
         self.out = out
         run_info = opts.record() | {
@@ -140,6 +141,9 @@ class BenchExperiment(Experiment):
             on_event(kind, message, level="warning", source="settings")
         self.device = open_bench_device(self.url, self.bench, clock, on_event)
 
+    def session_clock(self, planned: Clock) -> Clock:
+        return (self.device.clock if self.device is not None else None) or planned
+
     def build_controller(self, session: Session) -> None:
         opts, bench = self.opts, self.bench
         problem = bench.problem
@@ -158,6 +162,7 @@ class BenchExperiment(Experiment):
     def start(self, session: Session) -> None:
         assert self.device is not None and self.controller is not None
         rig = self.rig = attach_rig(session, self.bench, self.device, play_sequence=True)
+        session.recorder.metadata("bench", self.device.describe())
         self.origin.player = rig.player
         self.observer = Observer(rig, self.log, self.origin, self.controller.estimator)
         tasks: list[Task] = [self.observer]
@@ -190,6 +195,11 @@ class BenchExperiment(Experiment):
     def kpis(self, session: Session, wall_s: float, error: HilError | None) -> dict[str, Any]:
         kpis = kpis_of(self.log, self.opts, self.label, self.out)
         kpis["stop_reason"] = session.loop.stop_reason
+        loop = session.loop
+        kpis["wall_s"] = round(wall_s, 4)
+        # simulated time over the time the loop ticked (None before a tick)
+        kpis["realtime_factor"] = (round(loop.ticks * loop.base_period_ns / 1e9 / loop.ticking_s,
+                                         2) if loop.ticking_s > 0 else None)
         if self.rig is not None:
             kpis.update(link_report(self.rig, session.clock.time_ns()).kpis)
         return kpis

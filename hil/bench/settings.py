@@ -23,7 +23,6 @@ from typing import Any
 
 from hil.bench.config import BenchConfig, EecConfig, config_layers, parse_configs
 from hil.bench.options import BenchRunOptions, flag_of
-from hil.core.errors import UsageError
 from hil.core.settings import (
     LOWER,
     SWITCH,
@@ -34,6 +33,7 @@ from hil.core.settings import (
     lay,
     loosened,
     option_settings,
+    tightened_only,
 )
 
 #: the keys a flag sets (a ``*`` stands for any name; ``--dwell`` sets the peripherals'), for
@@ -134,15 +134,8 @@ def _loosened(options: BenchRunOptions, configured: BenchConfig, bench: BenchCon
     if options.dwell_s is not None:
         dwell = _dwell(bench)
         looser += loosened(_dwell(configured), dwell, dict.fromkeys(dwell, LOWER))
-    if not looser:
-        return []
-    flag = "--dwell" if looser[0].startswith("relays.") else "--safety"
-    if not options.allow_looser_safety:
-        raise UsageError(f"{flag} {looser[0]}: looser than the configured safety limit; a flag "
-                         "may tighten a limit, not loosen it (set it in the --config file, or "
-                         "add --allow-looser-safety, recorded)")
-    return [("safety.loosened", f"safety limits loosened by flags: {', '.join(looser)} "
-             "(--allow-looser-safety)")]
+    flag = "--dwell" if looser and looser[0].startswith("relays.") else "--safety"
+    return tightened_only(looser, flag, options.allow_looser_safety)
 
 
 def _dwell(bench: BenchConfig) -> Mapping[str, Any]:

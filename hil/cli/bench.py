@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Any
 
 from hil.bench.identify_options import MACHINING_MODES, IdentifyOptions, parse_relays
 from hil.cli.argtypes import key_value, nonnegative_float, output_file, positive_float, positive_int
-from hil.cli.output import json_text
+from hil.cli.output import json_text, print_settings
 from hil.cli.recording import add_recording_arguments, recording_options
 from hil.cli.units import seconds
 from hil.cli.verdict import add_controller_arguments, add_junit_argument, finish
@@ -106,12 +106,9 @@ def print_config(args: argparse.Namespace) -> int:
     """``hil bench run --print-config``: every setting as the run would use it, and its origin;
     nothing is opened."""
     from hil.bench.settings import resolve_bench
-    from hil.core.settings import format_settings, settings_json
 
     settings = resolve_bench(run_options(args, need_controller=False)).settings()
-    print(json_text(settings_json(settings)) if args.json
-          else format_settings("hil bench run", settings))
-    return 0
+    return print_settings("hil bench run", settings, args.json)
 
 
 def run_command(args: argparse.Namespace) -> int:

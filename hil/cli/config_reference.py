@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 from collections.abc import Iterable, Mapping, Sequence
+from importlib import resources
 from typing import Any
 
 from hil.core.config import unit_of
@@ -127,7 +129,10 @@ def _value(setting: Setting) -> str:
 def _default(setting: Setting) -> str:
     if setting.value is None:
         return "(none)"
-    text = json.dumps(setting.value)
+    value = setting.value
+    if setting.kind == "path" and isinstance(value, str):  # as the packaged file writes it
+        value = value.removeprefix(str(resources.files("hil.configs")) + os.sep)
+    text = json.dumps(value)
     text = f"`{text}`" if len(text) <= 40 else f"`{text[:37]}...`"
     return f"e.g. {text}" if setting.origin == EXAMPLE else text
 
@@ -196,8 +201,6 @@ def _run_parser(command: str) -> argparse.ArgumentParser:
 
 def _section(title: str, files: Iterable[str], settings: Sequence[Setting],
              flags: Mapping[str, str], command: str) -> list[str]:
-    from importlib import resources
-
     comments: dict[str, str] = {}
     for name in files:
         comments.update(toml_comments(

@@ -12,6 +12,8 @@ from collections.abc import Callable, Iterator
 from dataclasses import replace
 from typing import Any
 
+from drivers.bench.clock_protocol import CLOCKS as BENCH_CLOCKS
+from emulators.drive.timebase import CLOCKS
 from emulators.faults import (
     FORM,
     KINDS,
@@ -48,6 +50,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     eb.add_argument("--seed", type=int, help="measurement noise seed (default: plant.seed)")
     eb.add_argument("--disturbance", action="store_true",
                     help="switch the unknown disturbance load on (plant.disturbance)")
+    eb.add_argument("--clock", choices=BENCH_CLOCKS, default="auto",
+                    help="the plant's time: auto (default: the wall clock, until a lockstep "
+                    "master takes the time, as `hil bench run` without --realtime does, and "
+                    "again when it lets go or closes its connection), wall (the wall clock "
+                    "always: a lockstep master is refused, and says so in one line), master "
+                    "(a master's time only: the plant waits for one). A master's session "
+                    "starts the plant and its faults again from t = 0")
     _add_fault_arguments(eb, "bench", "delay@2-4:ms=300, drop@5-8, weld@3:relay=P1")
     add_live_arguments(eb, rates=False)
     eb.set_defaults(handler=emulate_bench)
@@ -67,6 +76,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     help="drive config laid over the default (hil/configs/drive.toml); "
                     "its [emulator] table is used")
     ed.add_argument("--channel", help="bus name clients open (default: emulator.channel)")
+    ed.add_argument("--harden", action="store_true",
+                    help="serve as a real-time process where the OS allows (as `hil doctor` "
+                    "reports): SCHED_FIFO below hil's loop, a core apart from the loop's, "
+                    "locked memory; each step granted or refused is printed on stderr as "
+                    "'hil: real-time: STEP granted|refused: ...' (hil servo run --realtime "
+                    "asks for it)")
+    ed.add_argument("--clock", choices=CLOCKS, default="auto",
+                    help="the drives' time: auto (default: their own wall clock, until a "
+                    "lockstep master asks for its SYNC time, as `hil servo run` does, and "
+                    "again when it lets go or stays silent for longer than it said), sync (the "
+                    "SYNCs' time from power-on: time passes only when SYNCs come), wall (their "
+                    "own clock always: a lockstep master is told so and watches them on the "
+                    "wall clock)")
     _add_fault_arguments(ed, "drive", "emcy@2:code=0x2310, no_heartbeat@1-3")
     add_live_arguments(ed, rates=False)
     ed.set_defaults(handler=emulate_drive)
@@ -192,7 +214,8 @@ def _until_stopped() -> Iterator[StopFlag]:
 
 
 def emulate_bench(args: argparse.Namespace) -> int:
-    """Serve the bench plant in real time until Ctrl-C or SIGTERM."""
+    """Serve the bench plant until Ctrl-C or SIGTERM, on the wall clock or a lockstep master's
+    time (``--clock``); a master taking or letting go of the time is a line on stderr."""
     die_with_parent()
     from hil.bench.config import load_bench_config
     from hil.bench.rig import make_emulator
@@ -205,19 +228,20 @@ def emulate_bench(args: argparse.Namespace) -> int:
     else:
         url = emulator.serve_serial(args.serial, baudrate=args.baud, parity=args.parity,
                                     stopbits=args.stopbits)
-    emulator.run_realtime()
+    emulator.follow(args.clock, lambda line: print(f"hil: clock: {line}", file=sys.stderr,
+                                                   flush=True))
     units = emulator.devices.units
     started = time.monotonic()
-    plant = emulator.plant
 
+    # the plant of now: a lockstep master's session starts a new one
     def coils() -> dict[str, Any]:
-        return {f"coil_{i}": int(on) for i, on in enumerate(plant.coils())}
+        return {f"coil_{i}": int(on) for i, on in enumerate(emulator.plant.coils())}
 
     def meter() -> dict[str, Any]:
-        return {"t_s": plant.t_s, **plant.snapshot.meter}
+        return {"t_s": emulator.plant.t_s, **emulator.plant.snapshot.meter}
 
     def levels() -> dict[str, Any]:
-        return dict(plant.snapshot.levels)
+        return dict(emulator.plant.snapshot.levels)
 
     state = {"/bench/power": ("hil.BenchPower", meter), "/bench/levels": ("hil.BenchLevels",
              levels), "/emulator/coils": ("hil.EmulatorCoils", coils)}
@@ -269,7 +293,7 @@ def emulate_drive(args: argparse.Namespace) -> int:
         trace = CanLog(args.can_log, emulator.channel)
         send = _traced_send(server.broadcast, trace)
     # one drive per node id, each with its own axis, all hearing every frame of the bus
-    nodes = [DriveNode(replace(emulator, node_id=node_id), send=send,
+    nodes = [DriveNode(replace(emulator, node_id=node_id), send=send, clock=args.clock,
                        faults=faults_of(args, "drive"), on_fault=print_event)
              for node_id in nodes_ids]
 
@@ -293,8 +317,11 @@ def emulate_drive(args: argparse.Namespace) -> int:
     # the stop flag is set before the ready line: a SIGTERM after it is handled
     with _until_stopped() as stop, _live_state(args, state, DRIVE_LIVE_HZ):
         try:
+            if args.harden:  # the serving thread only, reported before the ready line
+                _harden_serving_thread()
             print(f"hil: drive emulator node{'s' if len(nodes) > 1 else ''} {ids} on socketcand "
-                  f"{bound_host}:{bound_port} (bus {emulator.channel}); Ctrl-C stops", flush=True)
+                  f"{bound_host}:{bound_port} (bus {emulator.channel}, clock {args.clock}); "
+                  "Ctrl-C stops", flush=True)
             server.serve(stop)
         finally:  # Ctrl-C (KeyboardInterrupt, ended quietly by _until_stopped) too
             server.close()
@@ -303,6 +330,17 @@ def emulate_drive(args: argparse.Namespace) -> int:
             print(f"hil: drive emulator stopped after {nodes[0].sync_count} SYNC "
                   f"(plant time {nodes[0].plant.time_s:.3f} s)", flush=True)
     return 0
+
+
+def _harden_serving_thread() -> None:
+    """``--harden``: the calling thread as a helper of a real-time loop, each step on stderr;
+    another thread of this process (--live, --can-log) holds the GIL 0.1 ms at most, not 5."""
+    from hil.core.loop import REALTIME_SWITCH_INTERVAL_S
+    from hil.core.realtime import Hardening, step_line
+
+    sys.setswitchinterval(REALTIME_SWITCH_INTERVAL_S)
+    for step in Hardening.for_helper().apply():
+        print(step_line(step), file=sys.stderr, flush=True)
 
 
 def _drive_state(node: Any) -> Callable[[], dict[str, Any]]:

@@ -96,7 +96,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return exc.exit_status
     except HilError as exc:
         print(f"hil: error: {exc}", file=sys.stderr)
-        return 2
+        return exc.exit_status
     except KeyboardInterrupt:
         print("hil: interrupted", file=sys.stderr)
         return 130

@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import json
 import math
-from typing import Any
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from hil.core.settings import Setting
 
 
 def finite(value: Any) -> Any:
@@ -21,3 +25,12 @@ def finite(value: Any) -> Any:
 def json_text(value: Any) -> str:
     """``value`` as indented JSON, non-finite numbers as null, other objects as text."""
     return json.dumps(finite(value), indent=2, default=str, allow_nan=False)
+
+
+def print_settings(title: str, settings: Sequence[Setting], as_json: bool) -> int:
+    """``--print-config``: every setting as a run would use it and its origin (JSON:
+    ``{key: {"value", "origin"}}``); the exit status, 0."""
+    from hil.core.settings import format_settings, settings_json
+
+    print(json_text(settings_json(settings)) if as_json else format_settings(title, settings))
+    return 0

@@ -7,7 +7,7 @@ from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from hil.cli.argtypes import key_value, output_file, positive_float, positive_int
-from hil.cli.output import json_text
+from hil.cli.output import json_text, print_settings
 from hil.cli.recording import add_recording_arguments, recording_options
 from hil.cli.units import milliamps, seconds, seconds_or_zero
 from hil.cli.verdict import add_controller_arguments, add_junit_argument, finish
@@ -177,13 +177,10 @@ def run_options(args: argparse.Namespace, need_controller: bool = True) -> Servo
 def print_config(args: argparse.Namespace) -> int:
     """``hil servo run --print-config``: every setting as the run would use it, and its origin;
     nothing is opened."""
-    from hil.core.settings import format_settings, settings_json
     from hil.servo.settings import resolve_servo
 
     settings = resolve_servo(run_options(args, need_controller=False)).settings()
-    print(json_text(settings_json(settings)) if args.json
-          else format_settings("hil servo run", settings))
-    return 0
+    return print_settings("hil servo run", settings, args.json)
 
 
 def run_servo_command(args: argparse.Namespace) -> int:

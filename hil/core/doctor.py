@@ -4,16 +4,20 @@ latency-test and cyclictest.
 The bare fixed-rate loop (no device, no recording) runs at 1 kHz and 2 kHz under the same
 hardening a ``--realtime`` session gets; its lateness (wake-up minus deadline) and the share of
 ticks it had to skip are what any real-time session on this machine can hope for at best.
+It also reports what a drive emulator standing in for hardware would be granted (the helper
+hardening of ``hil emulate drive --harden``, which a ``--realtime`` run against ``emulated``
+asks for), tried on a thread of its own.
 """
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Sequence
 from typing import Any
 
 from hil.core.clock import RealtimeClock
 from hil.core.loop import FixedRateLoop, FunctionTask
-from hil.core.realtime import Hardening, advice, machine_report
+from hil.core.realtime import Hardening, Step, advice, machine_report
 
 RATES_HZ = (1000, 2000)
 #: what a 2 kHz servo session needs of the bare loop (its period is 500 us): no tick skipped,
@@ -54,7 +58,25 @@ def run_doctor(duration_s: float, rates_hz: Sequence[int] = RATES_HZ,
     report = machine_report()
     return {"loops": loops, "os": report,
             "hardening": {s.name: {"granted": s.granted, "detail": s.detail} for s in steps},
+            "emulator_hardening": {s.name: {"granted": s.granted, "detail": s.detail}
+                                   for s in helper_steps()},
             "advice": advice(report, steps), "verdict": verdict(loops)}
+
+
+def helper_steps() -> list[Step]:
+    """What an emulator's serving thread would be granted (:meth:`Hardening.for_helper`),
+    tried on a thread started for it and undone."""
+    steps: list[Step] = []
+
+    def attempt() -> None:
+        helper = Hardening.for_helper()
+        steps.extend(helper.apply())
+        helper.restore()
+
+    thread = threading.Thread(target=attempt, name="doctor-helper")
+    thread.start()
+    thread.join()
+    return steps
 
 
 def verdict(loops: dict[str, dict[str, float]]) -> dict[str, Any]:
@@ -87,6 +109,12 @@ def format_doctor(result: dict[str, Any]) -> str:
     lines.append("")
     lines.append("hardening (as under --realtime):")
     for name, step in result["hardening"].items():
+        lines.append(f"  {name:<13} {'granted' if step['granted'] else 'REFUSED'}: "
+                     f"{step['detail']}")
+    lines.append("")
+    lines.append("hardening of a drive emulator (hil emulate drive --harden, as --realtime "
+                 "starts it):")
+    for name, step in result["emulator_hardening"].items():
         lines.append(f"  {name:<13} {'granted' if step['granted'] else 'REFUSED'}: "
                      f"{step['detail']}")
     lines.append("")

@@ -11,6 +11,7 @@ class HilError(Exception):
     the error came before a run started."""
 
     result: Any = None  # a hil.core.run.RunResult (typed loosely: errors import nothing)
+    exit_status = 2     # what the command line exits with after this error's one line
 
 
 class ConfigError(HilError):

@@ -12,6 +12,15 @@ Steps (all Linux; elsewhere each is refused with the reason):
 * ``mlockall`` - current and future memory locked, through ctypes (no page faults mid-loop);
 * ``gc_freeze`` - ``gc.collect()`` then ``gc.freeze()``, and the collector held off for the run;
 * ``timer_slack`` - the thread's timer slack set to 1 ns (``prctl``), so sleeps end on time.
+
+A helper process that stands in for hardware (``hil emulate drive --harden``, started for a
+``--realtime`` run against ``emulated``) takes the same steps as a *helper*
+(:meth:`Hardening.for_helper`): SCHED_FIFO at :data:`HELPER_PRIORITY` (below the loop's; not
+taken on a single usable CPU, where it would starve the loop's recording), pinned to the core
+before the loop's (:func:`helper_cpu`), its collector frozen but kept on (it serves for as
+long as it is asked). It reports each step on a line of its stderr
+(:func:`step_line`); the run records them as ``realtime.emulator`` metadata
+(:func:`report_helper_hardening`, :func:`helper_metadata`).
 """
 
 from __future__ import annotations
@@ -24,7 +33,7 @@ import os
 import platform
 import resource
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +41,10 @@ PR_SET_TIMERSLACK = 29
 PR_GET_TIMERSLACK = 30
 MCL_CURRENT, MCL_FUTURE = 1, 2
 DEFAULT_PRIORITY = 80  # below the kernel's threaded IRQs (50) would starve the NIC; above is usual
+#: an emulator standing in for hardware: real time too, below the loop (on one CPU the loop wins)
+HELPER_PRIORITY = DEFAULT_PRIORITY - 10
+#: the prefix of a helper's lines that report its hardening steps (on its stderr)
+STEP_PREFIX = "hil: real-time: "
 
 
 @dataclass(frozen=True)
@@ -119,17 +132,70 @@ def advice(report: dict[str, Any], steps: list[Step]) -> list[str]:
     return lines
 
 
-_HELPER_PIDS: set[int] = set()
+def loop_cpu(usable: list[int]) -> int | None:
+    """The core a hardened loop thread takes: the last usable one (None: fewer than two)."""
+    return usable[-1] if len(usable) >= 2 else None
 
 
-def register_helper_process(pid: int) -> None:
+def helper_cpu(usable: list[int]) -> int | None:
+    """The core a hardened helper (an emulator) takes: the one before the loop's, so that the
+    two never compete (None: fewer than two usable cores)."""
+    return usable[-2] if len(usable) >= 2 else None
+
+
+@dataclass
+class HelperProcess:
+    """A process that serves the run (an emulator standing in for hardware) and, once it
+    reported them, its hardening steps (``{step: "granted: ..." | "refused: ..."}``)."""
+
+    pid: int
+    name: str
+    steps: dict[str, str] = field(default_factory=dict)
+
+
+_HELPERS: dict[int, HelperProcess] = {}
+
+
+def register_helper_process(pid: int, name: str = "emulator") -> None:
     """A process that serves this run (an emulator standing in for hardware): hardening keeps
     it off the loop's core. :func:`forget_helper_process` when it stops."""
-    _HELPER_PIDS.add(pid)
+    _HELPERS.setdefault(pid, HelperProcess(pid, name))
+
+
+def report_helper_hardening(pid: int, steps: dict[str, str]) -> None:
+    """What a registered helper process was granted (its :func:`parse_step_lines`), recorded
+    by the next real-time session as ``realtime.<name>`` metadata."""
+    helper = _HELPERS.get(pid)
+    if helper is not None:
+        helper.steps = dict(steps)
 
 
 def forget_helper_process(pid: int) -> None:
-    _HELPER_PIDS.discard(pid)
+    _HELPERS.pop(pid, None)
+
+
+def helper_metadata() -> dict[str, dict[str, str]]:
+    """``{"realtime.<name>": {"pid": ..., step: outcome}}`` of every helper that reported its
+    hardening: the session's metadata records beside the loop's ``realtime``."""
+    return {f"realtime.{helper.name}": {"pid": str(helper.pid), **helper.steps}
+            for helper in _HELPERS.values() if helper.steps}
+
+
+def step_line(step: Step) -> str:
+    """One hardening step as a helper reports it: ``hil: real-time: NAME granted: DETAIL``."""
+    return f"{STEP_PREFIX}{step.name} {'granted' if step.granted else 'refused'}: {step.detail}"
+
+
+def parse_step_lines(lines: list[str]) -> dict[str, str]:
+    """``{step: "granted: ..." | "refused: ..."}`` from a helper's :func:`step_line` lines
+    (other lines are skipped)."""
+    steps = {}
+    for line in lines:
+        if line.startswith(STEP_PREFIX):
+            name, _, outcome = line.removeprefix(STEP_PREFIX).strip().partition(" ")
+            if outcome.startswith(("granted: ", "refused: ")):
+                steps[name] = outcome
+    return steps
 
 
 def keep_process_off_cpu(pid: int, cpu: int) -> bool:
@@ -170,17 +236,28 @@ class Hardening:
 
     ``apply()`` returns every step, granted or refused; ``restore()`` puts the scheduler, the
     affinity, the collector and the timer slack back (mlockall stays until the process ends).
+    A loop (the default) takes the last core and keeps the registered helper processes off it,
+    and holds the collector off; a helper (:meth:`for_helper`) takes the core before it and
+    keeps its collector on.
     """
 
-    def __init__(self, priority: int = DEFAULT_PRIORITY, pin: bool = True) -> None:
+    def __init__(self, priority: int = DEFAULT_PRIORITY, pin: bool = True, *,
+                 helper: bool = False) -> None:
         self.priority = priority
         self.pin = pin
+        self.helper = helper
         self.steps: list[Step] = []
         self._saved_policy: tuple[int, int] | None = None
         self._saved_affinity: set[int] | None = None
-        self.pinned_cpu: int | None = None  # the loop thread's core, once pinned
+        self.pinned_cpu: int | None = None  # the thread's core, once pinned
         self._saved_slack: int | None = None
         self._gc_was_enabled = False
+
+    @classmethod
+    def for_helper(cls) -> Hardening:
+        """The hardening of a process standing in for hardware (an emulator): real time below
+        the loop, on a core apart from the loop's."""
+        return cls(HELPER_PRIORITY, helper=True)
 
     def apply(self) -> list[Step]:
         self.steps = [self._fifo(), self._affinity(), self._mlockall(), self._gc(),
@@ -190,6 +267,9 @@ class Hardening:
     def _fifo(self) -> Step:
         if not hasattr(os, "SCHED_FIFO"):
             return Step("sched_fifo", False, "not available on this platform")
+        usable = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+        if self.helper and helper_cpu(usable) is None:  # it would starve the loop's recording
+            return Step("sched_fifo", False, f"not taken: only CPU {usable} usable, the loop's")
         try:
             self._saved_policy = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
             priority = min(self.priority, os.sched_get_priority_max(os.SCHED_FIFO))
@@ -205,9 +285,9 @@ class Hardening:
         if not hasattr(os, "sched_setaffinity"):
             return Step("cpu_affinity", False, "not available on this platform")
         usable = sorted(os.sched_getaffinity(0))
-        if len(usable) < 2:
+        core = (helper_cpu if self.helper else loop_cpu)(usable)
+        if core is None:
             return Step("cpu_affinity", False, f"only CPU {usable} usable: nothing to pin to")
-        core = usable[-1]
         try:
             self._saved_affinity = set(usable)
             os.sched_setaffinity(0, {core})
@@ -215,7 +295,10 @@ class Hardening:
             self._saved_affinity = None
             return Step("cpu_affinity", False, f"refused: {exc.strerror or exc}")
         self.pinned_cpu = core
-        moved = [pid for pid in sorted(_HELPER_PIDS) if keep_process_off_cpu(pid, core)]
+        if self.helper:
+            return Step("cpu_affinity", True, f"on CPU {core} of {usable}, apart from the "
+                        f"loop's CPU {loop_cpu(usable)}")
+        moved = [pid for pid in sorted(_HELPERS) if keep_process_off_cpu(pid, core)]
         helpers = f"; helper process(es) {moved} kept off it" if moved else ""
         return Step("cpu_affinity", True, f"loop thread on CPU {core} of {usable}{helpers}")
 
@@ -233,6 +316,9 @@ class Hardening:
         self._gc_was_enabled = gc.isenabled()
         gc.collect()
         gc.freeze()
+        if self.helper:  # it serves for as long as it is asked: cycles must still be freed
+            return Step("gc_freeze", True, f"collected, {gc.get_freeze_count()} objects "
+                        "frozen, collector on (it scans only what came later)")
         gc.disable()
         return Step("gc_freeze", True, f"collected, {gc.get_freeze_count()} objects frozen, "
                     "collector off during the run")

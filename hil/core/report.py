@@ -81,6 +81,14 @@ def _samples(messages: list[dict[str, Any]], key: str) -> np.ndarray:
                           [np.empty(0)])
 
 
+def realtime_helpers(data: SessionData) -> dict[str, dict[str, str]]:
+    """What each process standing in for hardware (an emulator) was granted: the session's
+    ``realtime.<helper>`` metadata, by helper (``{"emulator": {"pid": ..., step: ...}}``)."""
+    return {name.removeprefix("realtime."): dict(record)
+            for name, record in sorted(data.metadata.items())
+            if name.startswith("realtime.")}
+
+
 def session_kind(data: SessionData) -> str:
     return data.metadata.get("session", {}).get("kind", "")
 
@@ -112,6 +120,7 @@ def summarize(data: SessionData) -> dict[str, Any]:
         "dropped": json.loads(data.metadata.get("recorder", {}).get("dropped", "{}")),
         "loop": loop_stats(data),
         "realtime": data.metadata.get("realtime", {}),
+        "realtime_helpers": realtime_helpers(data),
         "events": {
             level: sum(1 for e in events if e.get("level") == level)
             for level in ("info", "warning", "error")
@@ -160,6 +169,11 @@ def format_summary(summary: dict[str, Any]) -> str:
     if summary["realtime"]:
         lines.append("real-time hardening")
         for step, outcome in summary["realtime"].items():
+            lines.append(f"  {step:<16} {outcome}")
+    for helper, steps in summary["realtime_helpers"].items():
+        steps = dict(steps)
+        lines.append(f"real-time hardening of the {helper} (process {steps.pop('pid', '?')})")
+        for step, outcome in steps.items():
             lines.append(f"  {step:<16} {outcome}")
     ev = summary["events"]
     lines.append(f"events   {ev['info']} info, {ev['warning']} warning, {ev['error']} error")

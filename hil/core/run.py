@@ -122,6 +122,12 @@ class Experiment(abc.ABC):
     def open_devices(self, clock: Clock, on_event: EventBuffer) -> None:
         """Reach the devices (or start their emulators), outputs in their safe state."""
 
+    def session_clock(self, planned: Clock) -> Clock:
+        """The clock the session runs on, asked once the devices are open: ``planned`` unless
+        opening them decided otherwise (a bench URL keeps lockstep only where hil's emulator
+        answers). Default: ``planned``."""
+        return planned
+
     @abc.abstractmethod
     def build_controller(self, session: Session) -> None:
         """Build the controller (guarded): a failure leaves no session file."""
@@ -173,7 +179,8 @@ def _run_locked(experiment: Experiment, plan: RunPlan, output: OutputClaim) -> R
         output.abandon()
         raise
     try:
-        session = Session(plan.session_path, plan.clock, plan.base_period_s, kind=plan.kind,
+        session = Session(plan.session_path, experiment.session_clock(plan.clock),
+                          plan.base_period_s, kind=plan.kind,
                           config=dict(plan.config), config_text=plan.config_text,
                           config_name=plan.config_name, recording=plan.recording,
                           output=output)

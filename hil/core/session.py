@@ -15,7 +15,7 @@ from typing import Any
 from hil.core.clock import Clock
 from hil.core.loop import FixedRateLoop, Task
 from hil.core.output import OutputClaim, claim_output
-from hil.core.realtime import Hardening
+from hil.core.realtime import Hardening, helper_metadata
 from hil.core.recorder import Recorder, RecorderStats, RecordingOptions, Topic
 
 VERSIONED_PACKAGES = (
@@ -140,6 +140,8 @@ class Session:
         """Each step, granted or refused: metadata ``realtime`` and one event."""
         self.hardening = hardening.as_metadata()
         self.recorder.metadata("realtime", self.hardening)
+        for name, steps in helper_metadata().items():  # emulators standing in for hardware
+            self.recorder.metadata(name, steps)
         refused = [s.name for s in hardening.steps if not s.granted]
         self.event("realtime.hardening", "real-time hardening: " + "; ".join(
             f"{name} {value}" for name, value in self.hardening.items()),

@@ -23,6 +23,8 @@ from dataclasses import dataclass, fields, is_dataclass
 from functools import partial
 from typing import Any
 
+from hil.core.errors import UsageError
+
 #: the origin of a key no layer set: the reading code's own default
 BUILT_IN = "built-in default"
 
@@ -249,6 +251,32 @@ def loosened(before: Mapping[str, Any], after: Mapping[str, Any],
         if looser:
             found.append(f"{key} {_text(old)} -> {_text(new)}")
     return found
+
+
+def tightened_only(looser: Sequence[str], flag: str, allowed: bool
+                   ) -> list[tuple[str, str]]:
+    """A flag's limits that would be ``looser`` than the configured ones: refused (a
+    UsageError naming the first) unless ``allowed`` (``--allow-looser-safety``); then the
+    warning notice the run records and prints."""
+    if not looser:
+        return []
+    if not allowed:
+        raise UsageError(f"{flag} {looser[0]}: looser than the configured safety limit; a flag "
+                         "may tighten a limit, not loosen it (set it in the --config file, or "
+                         "add --allow-looser-safety, recorded)")
+    return [("safety.loosened", f"safety limits loosened by {flag}: {', '.join(looser)} "
+             "(--allow-looser-safety)")]
+
+
+def given_options(flags: Mapping[str, Any], known: Iterable[str],
+                  renames: Mapping[str, str]) -> dict[str, Any]:
+    """The options among ``flags`` (argparse dests, a sweep's values laid over them): each
+    under its option name (``renames``: flag -> option where they differ); flags that are no
+    option, and flags not given (None), left out."""
+    names = set(known)
+    given = {renames.get(flag, flag): value for flag, value in flags.items()}
+    return {name: value for name, value in given.items()
+            if name in names and value is not None}
 
 
 def _text(value: Any) -> str:

@@ -126,8 +126,8 @@ def run_status(kpis: Mapping[str, Any], error: BaseException | None) -> str:
         return "interrupted"
     if isinstance(error, SafetyStopError):
         return "stopped"
-    if error is not None:
-        return "failed"
+    if error is not None:  # the hardware gone (exit 3) is a disturbed run, not a failed one
+        return "disturbed" if getattr(error, "exit_status", 2) == 3 else "failed"
     if kpis.get("passed") is False:
         return "violated"
     return "disturbed" if kpis.get("disturbed") else "completed"

@@ -54,6 +54,7 @@ from hil.core.registry import scheme_of
 from hil.core.run import EventBuffer, RunPlan, RunResult, controller_budget, run_experiment
 from hil.core.session import Session
 from hil.servo.config import AXIS_NAME, EMULATED, AxisSpec, DriveConfig, check_axes
+from hil.servo.rig import share_lockstep_time
 from hil.servo.run import (
     STEP_BUDGET_S,
     ServoExperiment,
@@ -347,6 +348,8 @@ class AxesExperiment(ServoExperiment):
             self.groups = AxisGroups(groups)
             self.masters = [masters[axis.name] for axis in self.axes]  # the run's order
             for master in self.masters:
+                if master.config.lockstep:  # over a bus: one clock on both sides of the wire
+                    share_lockstep_time(master, on_event)
                 if options.reset_fault:
                     master.clear_fault()
                 master.open()

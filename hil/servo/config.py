@@ -300,6 +300,8 @@ def _master(m: Table, bus: Table, fd: bool = False) -> DriveMasterConfig:
         eds=m.file_path("eds") or None,
         sync_echo=(echo := _object_address(m, "sync_echo")),
         tpdo_layout=_tpdo_layout(m, echo),
+        lockstep_timeout_s=m.integer("lockstep_timeout_ms", at_least=10, at_most=3_600_000)
+        / 1e3,
     )
     m.done()
     bus.done()

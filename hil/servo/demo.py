@@ -1,6 +1,7 @@
 """The servo half of ``hil demo``: MPC (FOH) vs PID on a 2 deg sine through the emulated CAN drive.
 
-Two cases (DESIGN.md): 1 Hz at the paper's 1000 mA limit, and 10 Hz at the motor's rated 12 A
+Two cases (the servo paper's Figs. 7-8): 1 Hz at the paper's 1000 mA limit, and 10 Hz at the
+motor's rated 12 A
 (2 deg at 10 Hz needs about 2.8 A, so at 1000 mA every controller saturates and the paper's
 absolute figures cannot be reproduced from its printed model; see ``hil servo figures``). MPC:
 FOH ERT, H_t = H_u = 8, H_p = 50, Q = 1e6, R = 1; PID: Table I with the notch on the

@@ -12,6 +12,7 @@ from hil.core.errors import UsageError
 from hil.core.plugins import controller_label
 from hil.core.ranges import MAX_MPC_HORIZON, check_at_most, check_duration, check_milliamps
 from hil.core.recording_options import RecordingOptions
+from hil.core.settings import given_options
 from hil.core.verdict import Limit
 from hil.servo.defaults import DEFAULT_REFERENCE
 from hil.servo.task import PREDICTION_EVERY_REALTIME, PREDICTION_EVERY_TICK_UP_TO_S
@@ -87,12 +88,7 @@ class ServoRunOptions:
         values laid over them); flags that are not run options (``json``, ``junit``...) are
         ignored, and so are flags not given (None). The horizons ``ht`` and ``hu`` default to
         8, to 3 for ``empc`` (the paper's drive)."""
-        known = {f.name for f in fields(cls)}
-        values: dict[str, Any] = {}
-        for flag, value in flags.items():
-            name = FLAG_OPTIONS.get(flag, flag)
-            if name in known and value is not None:
-                values[name] = value
+        values = given_options(flags, (f.name for f in fields(cls)), FLAG_OPTIONS)
         if "controller" not in values:
             if need_controller:
                 raise UsageError(f"--controller is required: {CONTROLLER_FORMS}")

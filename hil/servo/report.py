@@ -1,4 +1,13 @@
-"""``hil report --out F.png`` for servo sessions: tracking, error, current, prediction waterfall.
+"""``hil report`` for servo sessions: the feedback section (who was late when feedback was
+stale) and the plot (``--out F.png``): tracking, error, current, prediction waterfall.
+
+The feedback section (:class:`FeedbackTiming`, JSON key ``feedback``), per axis: the cycles
+without fresh feedback and their share, the longest run of them, the SYNC-to-reply time of
+the fresh ones, the loop's lateness, and which side was late (:func:`~hil.servo.safety.
+judge_stale`) over the whole session and over its worst safety window (``stale_window_ms``,
+the window the safety net counts in). A tick's lateness is taken from its stamps (the tick's
+start against the schedule grid, the least late tick as the grid's origin), so a recording
+that dropped messages is judged on what it kept.
 
 The waterfall is drawn like the servo paper's Figs. 9-10: a thin line per recorded tick k for
 the predicted inputs û(k+i|k), i = 0..H_u-1, over the applied current (thick). It shows a
@@ -17,8 +26,140 @@ import numpy as np
 from controllers.servo.model import SAMPLE_PERIOD_S
 from hil.core.reader import SessionData
 from hil.core.report import kpis
+from hil.servo.safety import ServoSafety, judge_stale
 
 WATERFALL_TICKS = 100
+
+
+class FeedbackTiming:
+    """The ``feedback`` section of ``hil report`` (entry point ``hil.summaries``)."""
+
+    key = "feedback"
+
+    def section(self, data: SessionData) -> dict[str, Any]:
+        """Per feedback topic (``/drive/feedback``, ``/axis/NAME/feedback``): stale cycles,
+        reply times, the loop's lateness and the late side (empty without feedback)."""
+        period_s = float(data.metadata.get("session", {}).get("base_period_s", 0) or 0)
+        window_ms = _stale_window_ms(data)
+        info = kpis(data)
+        out = {}
+        for topic, late_frames in _feedback_topics(data, info):
+            row = feedback_timing(data, topic, period_s, window_ms)
+            if row:
+                if late_frames is not None:
+                    row["late_frames"] = late_frames
+                out[topic] = row
+        return out
+
+    def lines(self, section: dict[str, Any]) -> list[str]:
+        """Per topic: the stale share and who was late, then the worst window."""
+        out = []
+        for topic, row in section.items():
+            rtt = row["rtt_us"]
+            out.append(f"feedback {topic}: {row['stale']} of {row['cycles']} cycles stale "
+                       f"({100 * row['stale_share']:.2f} %, longest run "
+                       f"{row['longest_stale_run']}); SYNC to reply read p50/p99/max "
+                       f"{rtt['p50']:.0f}/{rtt['p99']:.0f}/{rtt['max']:.0f} us"
+                       + (f"; {row['late_frames']} late frames" if "late_frames" in row
+                          else ""))
+            out.append(f"  late side: {row['late_side']}: {row['verdict']}")
+            worst = row["worst_window"]
+            if worst["stale"]:
+                out.append(f"  worst {worst['window_ms']:g} ms window, from t={worst['t_s']:.3f} "
+                           f"s: {worst['stale']} of {worst['cycles']} cycles stale, late side "
+                           f"{worst['late_side']}: {worst['verdict']}")
+        return out
+
+
+FEEDBACK_TIMING = FeedbackTiming()
+
+
+def _stale_window_ms(data: SessionData) -> float:
+    """The safety net's stale window of the session (its drive config), else the default."""
+    try:
+        config = json.loads(data.metadata.get("config", {}).get("json", "{}"))
+        return float(config["drive"]["safety"]["stale_window_ms"])
+    except (ValueError, KeyError, TypeError):
+        return ServoSafety().stale_window_ms
+
+
+def _feedback_topics(data: SessionData, info: dict[str, Any]
+                     ) -> list[tuple[str, int | None]]:
+    """The session's feedback topics, each with the late frames its KPIs counted (if any)."""
+    names = axis_names(data)
+    if not names:
+        late = info.get("faults", {}).get("late_frames") if isinstance(info.get("faults"),
+                                                                       dict) else None
+        return [("/drive/feedback", late)]
+    axes = info.get("axes", {}) if isinstance(info.get("axes"), dict) else {}
+    return [(f"/axis/{name}/feedback", axes.get(name, {}).get("late_frames")) for name in names]
+
+
+def feedback_timing(data: SessionData, topic: str, period_s: float,
+                    window_ms: float) -> dict[str, Any]:
+    """The feedback section of one topic (empty without feedback, or without the commands
+    that give each tick its slot on the schedule grid)."""
+    feedback = data.arrays(topic)
+    command = data.arrays(topic.removesuffix("/feedback") + "/command")
+    if feedback["log_time_ns"].size == 0 or command["log_time_ns"].size == 0 or period_s <= 0:
+        return {}
+    # each tick's slot: the t_s of the /drive/command stamped with the same tick start
+    order = np.argsort(command["log_time_ns"], kind="stable")
+    command_ns = command["log_time_ns"][order].astype(np.int64)
+    feedback_ns = feedback["log_time_ns"].astype(np.int64)
+    at = np.minimum(np.searchsorted(command_ns, feedback_ns), command_ns.size - 1)
+    keep = command_ns[at] == feedback_ns
+    if not keep.any():
+        return {}
+    stamps = feedback_ns[keep]
+    slots = np.rint(command["t_s"][order][at[keep]] / period_s).astype(np.int64)
+    period_ns = round(period_s * 1e9)
+    offsets = stamps - slots * period_ns
+    late_us = (offsets - offsets.min()) / 1e3
+    stale = ~feedback["fresh"][keep].astype(bool)
+    rtt = feedback["rtt_us"][keep].astype(float)
+    fresh_rtt = rtt[~stale]
+    whole = judge_stale(stale, late_us, rtt, period_s, slots)
+    return {
+        "cycles": int(stale.size), "stale": int(stale.sum()),
+        "stale_share": round(float(stale.mean()), 6),
+        "longest_stale_run": _longest_run(stale),
+        "rtt_us": _percentiles(fresh_rtt),
+        "loop_lateness_us": _percentiles(late_us),
+        "skipped_ticks": _skipped(slots),
+        "late_side": whole.side, "verdict": whole.describe(),
+        "worst_window": _worst_window(stale, late_us, rtt, slots, period_s, window_ms),
+    }
+
+
+def _percentiles(values: np.ndarray) -> dict[str, float]:
+    if values.size == 0:
+        return {"p50": 0.0, "p99": 0.0, "max": 0.0}
+    return {"p50": round(float(np.percentile(values, 50)), 1),
+            "p99": round(float(np.percentile(values, 99)), 1),
+            "max": round(float(values.max()), 1)}
+
+
+def _skipped(slots: np.ndarray) -> int:
+    return int(slots[-1] - slots[0] + 1 - slots.size) if slots.size else 0
+
+
+def _longest_run(flags: np.ndarray) -> int:
+    edges = np.diff(np.concatenate(([0], flags.astype(np.int8), [0])))
+    return int((np.flatnonzero(edges < 0) - np.flatnonzero(edges > 0)).max(initial=0))
+
+
+def _worst_window(stale: np.ndarray, late_us: np.ndarray, rtt: np.ndarray, slots: np.ndarray,
+                  period_s: float, window_ms: float) -> dict[str, Any]:
+    """The safety net's window (``window_ms`` of cycles) with the most stale cycles, judged."""
+    size = min(stale.size, max(1, round(window_ms / 1000 / period_s)))
+    counts = np.convolve(stale.astype(np.int64), np.ones(size, np.int64), "valid")
+    start = int(np.argmax(counts))
+    part = slice(start, start + size)
+    verdict = judge_stale(stale[part], late_us[part], rtt[part], period_s, slots[part])
+    return {"window_ms": window_ms, "t_s": round(float(slots[start] * period_s), 4),
+            "cycles": size, "stale": int(counts[start]), "late_side": verdict.side,
+            "verdict": verdict.describe()}
 
 
 def _seconds(stamps_ns: np.ndarray, origin_ns: int) -> np.ndarray:

@@ -26,11 +26,14 @@ from can.interfaces import VALID_INTERFACES
 
 from drivers.canopen.bus import URL_FORMS, open_can_bus, parse_can_url
 from drivers.canopen.can_log import CanLog
+from drivers.canopen.clocks import SyncClock
 from drivers.canopen.config import DriveMasterConfig
+from drivers.canopen.errors import SdoAbortError
 from drivers.canopen.link import CanLink, FrameTrace
 from drivers.canopen.master import CanDriveMaster
 from emulators.drive.config import DriveEmulatorConfig
 from emulators.drive.runners import LockstepDrive
+from emulators.drive.timebase import TIME_BASE
 from hil.core.errors import ConfigError
 from hil.core.registry import Factory, SchemeRegistry, scheme_of
 from hil.core.types import EventSink, no_event
@@ -123,16 +126,47 @@ def open_drive(url: str | None = None, drive: DriveConfig | None = None, *,
 
 def emulator_process_drive(drive: DriveConfig, on_event: EventSink,
                            trace: FrameTrace | None) -> CanDriveMaster:
-    """A master on socketcand to ``hil emulate drive`` started for it (node id of the master)."""
+    """A master on socketcand to ``hil emulate drive --harden`` started for it (node id of the
+    master)."""
     from hil.emulator_process import start_drive_emulator
 
-    # the run's effective tables, every layer in: what the run was configured with
-    process = start_drive_emulator(node=drive.master.node_id, tables=drive.data)
-    on_event("emulator.process", f"drive emulator in process {process.pid} at {process.url}",
-             source="drive", pid=process.pid, url=process.url)
+    # the run's effective tables, every layer in: what the run was configured with; hardened
+    # as the loop is, so that the rig's side is not what runs late (its steps: the session's
+    # realtime.emulator metadata)
+    process = start_drive_emulator(node=drive.master.node_id, tables=drive.data, harden=True)
+    granted = ", ".join(f"{step} {outcome.split(':')[0]}"
+                        for step, outcome in process.hardening.items())
+    on_event("emulator.process", f"drive emulator in process {process.pid} at {process.url} "
+             f"(real-time: {granted or 'not reported'})", source="drive", pid=process.pid,
+             url=process.url, hardening=process.hardening)
     try:
         return can_drive(process.url, drive, on_event=on_event, trace=trace,
                          closers=(process.stop,))
     except BaseException:
         process.stop()
         raise
+
+
+def share_lockstep_time(master: CanDriveMaster, on_event: EventSink = no_event) -> bool:
+    """Lockstep over a bus: ask the drive to keep the master's time (hil's emulator's
+    manufacturer object 0x2005 ``Time base``: its SYNCs' time, given up after
+    ``lockstep_timeout_ms`` of wall time without a frame). When it does, the master goes by its
+    SYNCs too (:class:`~drivers.canopen.clocks.SyncClock`): one clock on both sides of the
+    wire, which no pause can fault; the drive's own clock again when the master lets it go.
+    A drive that keeps its own clock (real hardware, ``hil emulate drive --clock wall``) is
+    watched on the wall clock, as in real time. Whether it does: the return value, and a
+    ``drive.clock`` event."""
+    n, bound_ms = master.node_id, round(master.config.lockstep_timeout_s * 1e3)
+    try:
+        master.sdo_write(TIME_BASE, 0, bound_ms, "<I")
+    except SdoAbortError as exc:
+        on_event("drive.clock", f"drive node {n} keeps its own clock ({exc}): lockstep "
+                 "watches it on the wall clock, where a pause on either side can fault it",
+                 level="warning", source=f"drive{n}", shared=False)
+        return False
+    master.clock = SyncClock(master.link, master.config.cycle_period_s)
+    master.on_release(lambda: master.sdo_write(TIME_BASE, 0, 0, "<I"))
+    on_event("drive.clock", f"drive node {n} keeps the master's time: its SYNCs (a drive "
+             f"silent for {bound_ms} ms of wall time is gone)", source=f"drive{n}",
+             shared=True, bound_ms=bound_ms)
+    return True

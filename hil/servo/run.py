@@ -54,7 +54,7 @@ from hil.core.verdict import SignalWatch, split_limits
 from hil.servo.builtin import ServoContext
 from hil.servo.config import EMULATED
 from hil.servo.options import ServoRunOptions
-from hil.servo.rig import open_drive
+from hil.servo.rig import open_drive, share_lockstep_time
 from hil.servo.safety import SafetyMonitor
 from hil.servo.settings import check_controller_period, resolve_servo
 from hil.servo.task import (
@@ -184,6 +184,8 @@ class ServoExperiment(Experiment):
         master = open_drive(self.drive_url, self.drive, on_event=on_event,
                             realtime=options.realtime, can_log=options.can_log)
         try:
+            if self.drive.master.lockstep:  # over a bus: one clock on both sides of the wire
+                share_lockstep_time(master, on_event)
             if options.reset_fault:
                 master.clear_fault()
             master.open()
@@ -233,7 +235,7 @@ class ServoExperiment(Experiment):
             self.master.close()
 
     def kpis(self, session: Session, wall_s: float, error: HilError | None) -> dict[str, Any]:
-        """The ``--json`` document: DESIGN.md's keys first, then context."""
+        """The ``--json`` document: the keys the README documents first, then context."""
         options, task, master = self.options, self.task, self.master
         assert master is not None
         base: dict[str, Any] = {"controller": options.label}

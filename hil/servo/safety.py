@@ -12,7 +12,9 @@ error the run ends with:
 * position outside ``[position_min_deg, position_max_deg]`` (multi-turn);
 * ``|velocity|`` above ``velocity_max_deg_s``;
 * more than ``stale_share_max`` of the cycles of the last ``stale_window_ms`` without fresh
-  feedback (the controller is driving blind).
+  feedback (the controller is driving blind). The message names the side that was late
+  (:func:`judge_stale`): the drive, whose replies were not back when the loop read them, or
+  the loop, which did not keep its schedule for those ticks; with the figures of both.
 
 The defaults leave the built-in controllers every scenario of the papers (the largest
 following error of a built-in is ~24 deg, in the disturbance scenario of Fig. 16; the fastest
@@ -25,6 +27,16 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+#: a tick of the loop was late when it started more than this share of the period after its
+#: slot (``hil doctor``'s 100 us lateness p99 at 2 kHz) or after skipped ticks
+LOOP_ON_TIME_SHARE = 0.2
+#: the loop is the late side when more than this share of the ticks of the stale cycles was late
+LOOP_LATE_TICKS_SHARE = 0.01
+
 
 
 @dataclass(frozen=True)
@@ -41,21 +53,95 @@ class ServoSafety:
     stale_window_ms: float = 200.0
 
 
+@dataclass(frozen=True)
+class StaleVerdict:
+    """Which side was late over cycles without fresh feedback, and the figures of both.
+
+    The master reads a cycle's replies no earlier than ``rx_timeout`` after its SYNC, so a
+    stale cycle is a reply the drive did not have back in that time: the drive is late, unless
+    the loop did not keep its schedule for those ticks (more than
+    :data:`LOOP_LATE_TICKS_SHARE` of them late, see :data:`LOOP_ON_TIME_SHARE`): its SYNCs then
+    left off the grid the drive expects them on, and the loop is named first."""
+
+    stale: int                   # cycles without fresh feedback
+    cycles: int                  # cycles looked at
+    ticks: int                   # the ticks that sent the stale cycles' SYNC or read them
+    late_ticks: int              # those of them that were late
+    skipped: int                 # ticks the loop skipped just before them
+    period_us: float
+    loop_p99_us: float           # lateness of those ticks
+    loop_max_us: float
+    rtt_p99_us: float | None     # SYNC to both TPDOs read, of the fresh cycles (None: none)
+
+    @property
+    def side(self) -> str:
+        """``drive`` or ``loop`` (the side that was late), ``none`` without stale cycles."""
+        if not self.stale:
+            return "none"
+        return "loop" if self.late_ticks > LOOP_LATE_TICKS_SHARE * self.ticks else "drive"
+
+    def describe(self) -> str:
+        """The verdict in one clause, e.g. ``the drive was late (...); the loop was on time
+        (...)``."""
+        replies = (f"{self.stale} replies not back when the loop read them"
+                   + (f", the {self.cycles - self.stale} in time: SYNC to reply read p99 "
+                      f"{self.rtt_p99_us:.0f} us" if self.rtt_p99_us is not None else ""))
+        schedule = (f"{self.late_ticks} of the {self.ticks} ticks that sent or read them "
+                    f"started over {LOOP_ON_TIME_SHARE * self.period_us:.0f} us late"
+                    + (f" or after skipped ticks ({self.skipped})" if self.skipped else "")
+                    + f", lateness p99 {self.loop_p99_us:.0f} us, max {self.loop_max_us:.0f} us")
+        if self.side == "loop":
+            return f"the loop was late ({schedule}); the drive: {replies}"
+        if self.side == "drive":
+            return f"the drive was late ({replies}); the loop was on time ({schedule})"
+        return "no stale cycle"
+
+
+def judge_stale(stale: npt.ArrayLike, late_us: npt.ArrayLike, rtt_us: npt.ArrayLike,
+                period_s: float, ticks: npt.ArrayLike | None = None) -> StaleVerdict:
+    """The :class:`StaleVerdict` of a run of cycles: per cycle whether it was stale, the
+    loop's lateness of its tick [us], its ``rtt_us`` (fresh cycles) and its tick number
+    (``ticks``; default: no tick skipped). A stale cycle's tick reads the reply and the tick
+    run before it sent the SYNC: both count, late when they started more than
+    :data:`LOOP_ON_TIME_SHARE` of the period after their slot or right after skipped ticks."""
+    flags = np.asarray(stale, bool)
+    late = np.asarray(late_us, float)
+    rtt = np.asarray(rtt_us, float)[~flags]
+    numbers = np.arange(flags.size) if ticks is None else np.asarray(ticks, np.int64)
+    gaps = (np.diff(numbers, prepend=numbers[:1]) - 1).clip(min=0)
+    stale_at = np.flatnonzero(flags)
+    involved = np.union1d(stale_at, np.maximum(stale_at - 1, 0)).astype(np.int64)
+    lateness, skipped = late[involved], gaps[involved]
+    late_ticks = (lateness > LOOP_ON_TIME_SHARE * period_s * 1e6) | (skipped > 0)
+    return StaleVerdict(
+        stale=int(stale_at.size), cycles=int(flags.size), ticks=int(involved.size),
+        late_ticks=int(late_ticks.sum()), skipped=int(skipped.sum()),
+        period_us=period_s * 1e6,
+        loop_p99_us=float(np.percentile(lateness, 99)) if involved.size else 0.0,
+        loop_max_us=float(lateness.max()) if involved.size else 0.0,
+        rtt_p99_us=float(np.percentile(rtt, 99)) if rtt.size else None)
+
+
 class SafetyMonitor:
     """The limits checked tick by tick; :meth:`check` names the first one crossed, once."""
 
     def __init__(self, limits: ServoSafety, period_s: float) -> None:
         self.limits = limits
+        self.period_s = period_s
         self._window_ticks = max(1, round(limits.following_error_ms / 1000 / period_s))
         self._stale_ticks = max(1, round(limits.stale_window_ms / 1000 / period_s))
         self._beyond = 0                     # ticks in a row beyond the following-error window
-        self._stale: deque[bool] = deque(maxlen=self._stale_ticks)
+        # the cycles of the stale window: (stale, loop lateness [us], rtt [us], tick number)
+        self._cycles: deque[tuple[bool, float, float, int]] = deque(maxlen=self._stale_ticks)
         self._stale_count = 0
         self.stopped: str | None = None      # what stopped the run
+        self.verdict: StaleVerdict | None = None  # who was late, when the stale share stopped it
 
     def check(self, t_s: float, error_deg: float, position_deg: float, velocity_deg_s: float,
-              fresh: bool) -> str | None:
-        """The limit this tick crosses, as one line (None: all hold, or already stopped)."""
+              fresh: bool, *, rtt_us: float = 0.0, late_us: float = 0.0) -> str | None:
+        """The limit this tick crosses, as one line (None: all hold, or already stopped).
+        ``rtt_us``: the feedback's SYNC-to-reply time; ``late_us``: the loop's lateness of
+        this tick (both for naming the late side of a stale-share stop)."""
         limits = self.limits
         if not limits.enabled or self.stopped is not None:
             return None
@@ -77,15 +163,21 @@ class SafetyMonitor:
                      f"{limits.velocity_max_deg_s:g} deg/s")
         if found is None and not math.isfinite(position_deg + velocity_deg_s):
             found = f"non-finite feedback (position {position_deg}, velocity {velocity_deg_s})"
-        if len(self._stale) == self._stale.maxlen and self._stale[0]:
+        cycles = self._cycles
+        if len(cycles) == cycles.maxlen and cycles[0][0]:
             self._stale_count -= 1
-        self._stale.append(not fresh)
+        cycles.append((not fresh, late_us, rtt_us, round(t_s / self.period_s)))
         self._stale_count += not fresh
-        if found is None and len(self._stale) == self._stale.maxlen and \
+        if found is None and len(cycles) == cycles.maxlen and \
                 self._stale_count > limits.stale_share_max * self._stale_ticks:
+            self.verdict = self._judge()
             found = (f"{self._stale_count} of the last {self._stale_ticks} cycles without fresh "
                      f"feedback (more than {limits.stale_share_max:.0%} in "
-                     f"{limits.stale_window_ms:g} ms)")
+                     f"{limits.stale_window_ms:g} ms): {self.verdict.describe()}")
         if found is not None:
             self.stopped = f"safety stop at t={t_s:.4f} s: {found}"
         return self.stopped
+
+    def _judge(self) -> StaleVerdict:
+        stale, late, rtt, ticks = zip(*self._cycles, strict=True)
+        return judge_stale(stale, late, rtt, self.period_s, ticks)

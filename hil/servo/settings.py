@@ -15,7 +15,7 @@ Limits only tighten from a flag: ``--umax`` above the configured current limit n
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from can.interfaces import VALID_INTERFACES
 
@@ -33,6 +33,7 @@ from hil.core.settings import (
     lay,
     loosened,
     option_settings,
+    tightened_only,
 )
 from hil.servo.config import (
     EMULATED,
@@ -55,10 +56,8 @@ SAFETY_DIRECTIONS = {"enabled": SWITCH, "following_error_deg": UPPER,
                      "following_error_ms": UPPER, "position_min_deg": LOWER,
                      "position_max_deg": UPPER, "velocity_max_deg_s": UPPER,
                      "stale_share_max": UPPER, "stale_window_ms": UPPER}
-#: lockstep over a real bus: the drive is given this long to answer a SYNC (a lockstep run
-#: never ends a cycle early; a drive that does not answer within it is a lost link)
-LOCKSTEP_RX_TIMEOUT_US = 100_000
-LOCKSTEP_RX_ORIGIN = "lockstep over a bus (a drive is given at least 100 ms to answer)"
+#: the origin of the waits lockstep over a bus sets (from master.lockstep_timeout_ms)
+LOCKSTEP_ORIGIN = "lockstep over a bus: master.lockstep_timeout_ms"
 #: the options that land on a key of drive.toml (shown there), or are not the user's (a
 #: program's overrides, the config file itself: the origins name it)
 NOT_SETTINGS = ("drive_overrides", "drive_config", "drive", "node", "eds", "safety")
@@ -129,12 +128,21 @@ def resolve_servo(options: ServoRunOptions) -> ServoSettings:
         check_emulated_period(drive, bus)
         bus_bitrate(bus, drive)
     if not options.realtime and buses != {EMULATED}:
-        timeout_us = round(drive.master.rx_timeout_s * 1e6)
-        if timeout_us < LOCKSTEP_RX_TIMEOUT_US:
-            drive = drive.laid_over({"master": {"rx_timeout_us": LOCKSTEP_RX_TIMEOUT_US}},
-                                    LOCKSTEP_RX_ORIGIN)
+        drive = lockstep_over_a_bus(drive)
     return ServoSettings(options, drive, url, url_origin, drive.master.current_limit_ma,
                          tuple(notices))
+
+
+def lockstep_over_a_bus(drive: DriveConfig) -> DriveConfig:
+    """Lockstep over a bus: the master waits ``lockstep_timeout_ms`` of wall time for every
+    answer (a SYNC's TPDOs, an SDO reply); a drive silent for all of it is gone."""
+    master = drive.master
+    timeout_ms = round(master.lockstep_timeout_s * 1e3)
+    drive = drive.laid_over({"master": {
+        "rx_timeout_us": max(round(master.rx_timeout_s * 1e6), timeout_ms * 1000),
+        "sdo_timeout_ms": max(round(master.sdo_timeout_s * 1e3), timeout_ms)}},
+        LOCKSTEP_ORIGIN)
+    return replace(drive, master=replace(drive.master, lockstep=True))
 
 
 def run_buses(options: ServoRunOptions, drive: DriveConfig, url: str) -> set[str]:
@@ -218,11 +226,4 @@ def _safety(options: ServoRunOptions, configured: DriveConfig, drive: DriveConfi
     before, after = configured.layered.data["safety"], drive.layered.data["safety"]
     looser = loosened(before, {k: after[k] for k in options.safety if k in after},
                       SAFETY_DIRECTIONS)
-    if not looser:
-        return []
-    if not options.allow_looser_safety:
-        raise UsageError(f"--safety {looser[0]}: looser than the configured safety limit; a "
-                         "flag may tighten a limit, not loosen it (set it in the --config file, "
-                         "or add --allow-looser-safety, recorded)")
-    return [("safety.loosened", f"safety limits loosened by --safety: {', '.join(looser)} "
-             "(--allow-looser-safety)")]
+    return tightened_only(looser, "--safety", options.allow_looser_safety)

@@ -164,7 +164,9 @@ class ServoTask(Task):
                                   feedback.command_ma, feedback.statusword, feedback.cycle,
                                   feedback.fresh, feedback.rtt_us))
         self.commands.log(t_ns, (t_s, r, error, u, disturbance, self._compute_us, path or None))
-        stop = self.safety.check(t_s, error, position, feedback.velocity_deg_s, feedback.fresh)
+        stop = self.safety.check(t_s, error, position, feedback.velocity_deg_s, feedback.fresh,
+                                 rtt_us=feedback.rtt_us, late_us=(t_ns - self.loop.start_ns
+                                                                  - n * self.period_ns) / 1e3)
         if stop is not None:
             self.session.event("safety.stop", stop, level="error", source="safety", t_s=t_s)
             self.loop.stop(stop)

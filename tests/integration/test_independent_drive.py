@@ -81,7 +81,7 @@ def test_a_slave_that_falls_behind_never_gives_an_old_answer_as_fresh(tmp_path):
     is stale, and every fresh feedback is the one its SYNC got."""
     url = f"virtual://independent-{uuid.uuid4().hex}"
     network, slave = serve(url, NODE, behind_at=200)
-    echoed = '[master]\nsync_echo = "0x2100:0"\n'
+    echoed = '[master]\nsync_echo = "0x2100:0"\nlockstep_timeout_ms = 300\n'
     try:
         result = session(tmp_path, url, "late", echoed)
     finally:

@@ -1,0 +1,146 @@
+"""The bench emulator's identification and clock unit, asked by pymodbus's own client (a master
+hil did not write) over Modbus TCP on 127.0.0.1: the registers of
+drivers/bench/clock_protocol.py, the exceptions, one master at a time."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from pymodbus.client import ModbusTcpClient
+
+from hil.bench.config import load_bench_config
+from hil.bench.rig import make_emulator
+
+pytestmark = [pytest.mark.slow]
+
+CLOCK = 248
+
+
+@pytest.fixture
+def emulator():
+    bench = make_emulator(load_bench_config())
+    bench.serve_tcp()
+    bench.follow("auto")
+    try:
+        yield bench
+    finally:
+        bench.stop()
+
+
+def client_of(emulator) -> ModbusTcpClient:
+    client = ModbusTcpClient("127.0.0.1", port=emulator.port, timeout=2, retries=0)
+    assert client.connect()
+    return client
+
+
+def plant_ns(client: ModbusTcpClient) -> int:
+    words = client.read_holding_registers(0, count=4, device_id=CLOCK).registers
+    return (words[0] << 48) | (words[1] << 32) | (words[2] << 16) | words[3]
+
+
+def test_every_device_identifies_itself_as_hils_emulator(emulator):
+    client = client_of(emulator)
+    try:
+        basic = client.read_device_information(read_code=1, device_id=2)
+        assert basic.information == {0: b"hil", 1: b"hil-bench-emulator", 2: b"1.0"}
+        regular = client.read_device_information(read_code=2, device_id=1)
+        assert regular.information[4] == b"hil relay bench emulator"
+        assert regular.information[5] == b"relay module"
+        one = client.read_device_information(read_code=4, object_id=5, device_id=3)
+        assert one.information == {5: b"level sensors"}
+        missing = client.read_device_information(read_code=4, object_id=3, device_id=3)
+        assert missing.isError() and missing.exception_code == 2
+    finally:
+        client.close()
+
+
+def test_a_master_takes_the_time_steps_the_plant_and_lets_go(emulator):
+    client = client_of(emulator)
+    try:
+        assert client.read_holding_registers(4, count=1, device_id=CLOCK).registers == [0]
+        assert not client.write_register(4, 100, device_id=CLOCK).isError()  # takes it
+        assert plant_ns(client) == 0 and emulator.plant.k == 0  # started again
+        t_ns = 1_230_000_000
+        words = [(t_ns >> s) & 0xFFFF for s in (48, 32, 16, 0)]
+        assert not client.write_registers(0, words, device_id=CLOCK).isError()
+        assert plant_ns(client) == t_ns and emulator.plant.k == 123
+        time.sleep(0.1)  # the wall clock moves nothing meanwhile
+        assert emulator.plant.k == 123
+        assert client.read_holding_registers(4, count=1, device_id=CLOCK).registers == [1]
+        assert not client.write_register(4, 0, device_id=CLOCK).isError()  # lets go
+        assert client.read_holding_registers(4, count=1, device_id=CLOCK).registers == [0]
+    finally:
+        client.close()
+
+
+def test_one_master_at_a_time_and_the_clocks_registers_only(emulator):
+    first, second = client_of(emulator), client_of(emulator)
+    try:
+        assert not first.write_register(4, 100, device_id=CLOCK).isError()
+        busy = second.write_register(4, 100, device_id=CLOCK)
+        assert busy.isError() and busy.exception_code == 6
+        assert second.write_register(4, 0, device_id=CLOCK).exception_code == 6
+        assert first.write_register(3, 1, device_id=CLOCK).exception_code == 2
+        assert first.write_registers(0, [0, 0], device_id=CLOCK).exception_code == 2
+        assert first.read_holding_registers(4, count=2, device_id=CLOCK).exception_code == 2
+        assert first.read_coils(0, count=1, device_id=CLOCK).exception_code == 1
+        assert second.read_coils(0, count=4, device_id=1).bits[:4] == [False] * 4  # devices
+    finally:
+        first.close()
+        second.close()
+
+
+def test_a_master_that_closes_its_connection_keeps_the_time_for_a_second(emulator):
+    client = client_of(emulator)
+    assert not client.write_register(4, 100, device_id=CLOCK).isError()
+    client.close()
+    again = client_of(emulator)
+    try:
+        assert again.read_holding_registers(4, count=1, device_id=CLOCK).registers == [1]
+        assert emulator.plant.k == 0  # held: no wall-clock step
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and emulator.plant.k == 0:
+            time.sleep(0.05)
+        assert emulator.plant.k > 0  # gone for longer than the grace: back on the wall clock
+        assert again.read_holding_registers(4, count=1, device_id=CLOCK).registers == [0]
+    finally:
+        again.close()
+
+
+def test_an_emulator_on_its_wall_clock_refuses_the_time():
+    bench = make_emulator(load_bench_config())
+    bench.serve_tcp()
+    lines: list[str] = []
+    bench.follow("wall", lines.append)
+    client = client_of(bench)
+    try:
+        refused = client.write_register(4, 100, device_id=CLOCK)
+        assert refused.isError() and refused.exception_code == 1
+        assert lines == [f"a lockstep master at 127.0.0.1:{client.socket.getsockname()[1]} "
+                         "asked for the plant's time: refused (--clock wall)"]
+    finally:
+        client.close()
+        bench.stop()
+
+
+def test_a_device_that_gives_no_identity_is_none_and_costs_no_retry():
+    """The master's question (drivers/bench/emulator_clock.py): no answer at all (a drop
+    fault, the emulator on its wall clock) is None, after one patient try, and the bench's
+    retry count is left as it was."""
+    from drivers.bench.emulator_clock import identify
+    from drivers.bench.modbus import ModbusLink, parse_bus_url
+    from emulators.bench.server import EmulatedBench
+    from emulators.faults import parse_fault
+
+    config = load_bench_config()
+    bench = EmulatedBench(config.plant, config.server, [parse_fault("drop@0:unit=1")])
+    link = ModbusLink(parse_bus_url(bench.serve_tcp()), 0.1, 2)
+    bench.run_realtime()
+    try:
+        assert identify(link, 1, 0.3) is None
+        assert link.retries == 0 and (link.timeout_s, link.attempts) == (0.1, 2)
+        assert str(identify(link, 2, 0.3)) == "hil hil-bench-emulator 1.0"
+    finally:
+        link.close()
+        bench.stop()

@@ -1,0 +1,199 @@
+"""One clock per lockstep run, on both sides of the wire: a lockstep master over socketcand
+asks hil's drive emulator for its SYNC time (0x2005), and both then go by the master's SYNCs.
+The session is the one the emulator in process records; a pause of either process is no time
+at all; a drive silent for longer than the documented wall-clock bound is gone (one line, exit
+3); a drive that keeps its own clock is watched on the wall clock, and says so."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from drivers.canopen.errors import DriveFaultError, DriveGoneError
+from hil import api
+from hil.core.reader import read_session
+from hil.servo.run import ServoRunOptions, run_servo
+from tests.session_digest import kpi_digest, session_digest
+
+pytestmark = [pytest.mark.slow]
+
+PID = {"controller": "pid", "reference": "sine:amplitude=2,frequency=1"}
+DATA_TOPICS = ("/drive/command", "/drive/feedback", "/drive/stop", "/mpc/prediction")
+
+
+def same_session(a: str, b: str) -> None:
+    """Every data topic bit for bit (``/events`` says how the clock was shared, and where)."""
+    first, second = session_digest(a), session_digest(b)
+    for topic in DATA_TOPICS:
+        assert first.get(topic) == second.get(topic), topic
+
+
+def same_kpis(a: dict, b: dict) -> None:
+    """Every KPI but the drive's URL and the wall-clock ones."""
+    first, second = kpi_digest(a), kpi_digest(b)
+    first.pop("drive"), second.pop("drive")
+    assert first == second
+
+
+def clock_events(path: str) -> list[dict]:
+    return [m for _, m in read_session(path).topic("/events") if m["kind"] == "drive.clock"]
+
+
+def pause(pid: int, after_s: float, for_s: float) -> threading.Thread:
+    """SIGSTOP ``pid`` after ``after_s``, SIGCONT ``for_s`` later, in a thread of its own."""
+    def run() -> None:
+        time.sleep(after_s)
+        os.kill(pid, signal.SIGSTOP)
+        time.sleep(for_s)
+        os.kill(pid, signal.SIGCONT)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread
+
+
+@pytest.mark.parametrize("controller", ["pid", "mpc"])
+def test_a_lockstep_session_over_the_wire_is_the_one_in_process(tmp_path, controller):
+    options = {**PID, "controller": controller, "duration_s": 0.5}
+    alone = api.run_servo(**options, out=str(tmp_path / "in-process.mcap"))
+    with api.start_drive_emulator() as drive:
+        wire = api.run_servo(**options, drive=drive.url, out=str(tmp_path / "wire.mcap"))
+    same_session(alone["mcap"], wire["mcap"])
+    same_kpis(alone, wire)
+    [event] = clock_events(wire["mcap"])
+    assert event["data"]["shared"] is True and event["data"]["bound_ms"] == 10_000
+
+
+def test_a_paused_emulator_is_no_time_at_all(tmp_path):
+    """SIGSTOP of the emulator process for 1 s mid-run: the master waits, nothing faults, and
+    the session is the unpaused one's."""
+    options = {**PID, "duration_s": 3.0}
+    alone = api.run_servo(**options, out=str(tmp_path / "in-process.mcap"))
+    with api.start_drive_emulator() as drive:
+        threads = []
+        paused = run_servo(ServoRunOptions(**options, drive=drive.url,
+                                           out=str(tmp_path / "paused.mcap")),
+                           on_started=lambda _m: threads.append(pause(drive.pid, 0.2, 1.0)))
+        threads[0].join()
+    assert paused.stop_reason == "completed"
+    same_session(alone["mcap"], paused.session_path)
+    same_kpis(alone, paused.kpis)
+
+
+def hil(cwd: Path, *argv: str) -> subprocess.Popen[str]:
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    return subprocess.Popen([sys.executable, "-m", "hil", *argv], cwd=cwd, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def test_a_paused_master_is_no_time_at_all(tmp_path):
+    """`hil servo run` itself stopped for 1 s mid-run (a debugger, a busy machine): the drive
+    on the master's time sees no time pass; the session is the unpaused one's (each against
+    an emulator of its own: one run leaves the axis where the next one starts)."""
+    argv = ["servo", "run", "--controller", "pid", "--duration", "5", "--json"]
+    with api.start_drive_emulator() as drive:
+        quiet = hil(tmp_path, *argv, "--drive", drive.url, "--out", "quiet.mcap")
+        out, err = quiet.communicate(timeout=120)
+    assert quiet.returncode == 0, err
+    with api.start_drive_emulator() as drive:
+        run = hil(tmp_path, *argv, "--drive", drive.url, "--out", "paused.mcap")
+        session = tmp_path / "paused.mcap"
+        deadline = time.monotonic() + 60
+        while not session.exists() and time.monotonic() < deadline:  # the run is starting
+            time.sleep(0.01)
+        pause(run.pid, 0.5, 1.0).join()
+        paused_out, err = run.communicate(timeout=120)
+    assert run.returncode == 0, err
+    same_session(str(tmp_path / "quiet.mcap"), str(session))
+    same_kpis(json.loads(out), json.loads(paused_out))
+
+
+def test_a_drive_silent_beyond_the_bound_is_gone(tmp_path):
+    """Stopped mid-run for longer than master.lockstep_timeout_ms: the run ends, the session
+    finished with what it ran, a disturbed run (exit status 3)."""
+    with api.start_drive_emulator() as drive:
+        stopped = []
+        with pytest.raises(DriveGoneError) as gone:
+            run_servo(ServoRunOptions(**PID, duration_s=10.0, drive=drive.url,
+                                      drive_overrides={"master": {"lockstep_timeout_ms": 500}},
+                                      out=str(tmp_path / "gone.mcap")),
+                      on_started=lambda _m: (os.kill(drive.pid, signal.SIGSTOP),
+                                             stopped.append(True)))
+        if stopped:
+            os.kill(drive.pid, signal.SIGCONT)
+    error = gone.value
+    assert error.exit_status == 3 and "nothing on the bus for 0.5 s of wall time" in str(error)
+    assert error.result.kpis["status"] == "disturbed"
+    assert read_session(str(tmp_path / "gone.mcap")).topic_counts["/drive/feedback"] > 0
+
+
+def test_a_drive_gone_silent_is_one_line_and_exit_3_from_the_command_line(tmp_path):
+    """The emulator falls silent (its 'silent' fault: bus-off, 3 s into its time) while a
+    lockstep run waits on it: one line after the bound, exit status 3, the report disturbed."""
+    config = tmp_path / "drive.toml"
+    config.write_text("[master]\nlockstep_timeout_ms = 500\n")
+    with api.start_drive_emulator(faults=["silent@3"]) as drive:
+        run = hil(tmp_path, "servo", "run", "--controller", "pid", "--drive", drive.url,
+                  "--config", str(config), "--duration", "60", "--json", "--out", "gone.mcap")
+        out, err = run.communicate(timeout=120)
+    assert run.returncode == 3, err
+    [line] = err.strip().splitlines()
+    assert line.startswith("hil: error: drive node 1 ")
+    assert "nothing on the bus for 0.5 s of wall time" in line or "did not answer SDO" in line
+    assert json.loads(out)["status"] == "disturbed"
+
+
+def test_a_master_silent_beyond_its_bound_finds_the_drive_protected(tmp_path):
+    """The other way round: a lockstep master silent for longer than it told the drive (0x2005)
+    leaves it on its own clock, which reacts as to a SYNC loss: a fault, EMCY 0x8130."""
+    with api.start_drive_emulator() as drive:
+        with pytest.raises(DriveFaultError, match="0x8130"):
+            run_servo(ServoRunOptions(**PID, duration_s=1.0, drive=drive.url,
+                                      drive_overrides={"master": {"lockstep_timeout_ms": 300}},
+                                      out=str(tmp_path / "left.mcap")),
+                      on_started=lambda _m: time.sleep(1.5))  # enabled, then silent
+        scan = subprocess.run([sys.executable, "-m", "hil", "drive", "scan", drive.url,
+                               "--json"], cwd=tmp_path, capture_output=True, text=True,
+                              timeout=60)
+    [node] = json.loads(scan.stdout)["nodes"]
+    assert node["state"] == "FAULT" and node["error_code"] == 0x8130
+
+
+def test_a_drive_on_its_own_clock_is_watched_on_the_wall_clock(tmp_path):
+    with api.start_drive_emulator(clock="wall") as drive:
+        kpis = api.run_servo(**PID, duration_s=0.3, drive=drive.url,
+                             out=str(tmp_path / "wall.mcap"))
+    [event] = clock_events(kpis["mcap"])
+    assert event["level"] == "warning" and event["data"]["shared"] is False
+    assert "keeps its own clock" in event["message"] and kpis["ticks"] == 600
+
+
+def test_an_emulator_on_sync_time_from_power_on_serves_a_lockstep_run(tmp_path):
+    options = {**PID, "duration_s": 0.5}
+    alone = api.run_servo(**options, out=str(tmp_path / "in-process.mcap"))
+    with api.start_drive_emulator(clock="sync") as drive:
+        wire = api.run_servo(**options, drive=drive.url, out=str(tmp_path / "sync.mcap"))
+    same_session(alone["mcap"], wire["mcap"])
+    assert clock_events(wire["mcap"])[0]["data"]["shared"] is True
+
+
+def test_hil_emulate_drive_says_its_clock_and_refuses_another(tmp_path):
+    bad = subprocess.run([sys.executable, "-m", "hil", "emulate", "drive", "--socketcand",
+                          "127.0.0.1:0", "--clock", "mains"], capture_output=True, text=True,
+                         timeout=60)
+    assert bad.returncode == 2 and "invalid choice: 'mains'" in bad.stderr
+    served = hil(tmp_path, "emulate", "drive", "--socketcand", "127.0.0.1:0", "--clock", "wall")
+    try:
+        assert served.stdout is not None
+        assert "(bus can0, clock wall)" in served.stdout.readline()
+    finally:
+        served.terminate()
+        served.communicate(timeout=30)
