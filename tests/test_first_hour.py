@@ -1,6 +1,8 @@
 """What a new user meets in the first hour, tried from a folder outside the repository with
 the ``hil`` command: limits that name no KPI are refused before the run, current limits apply
-to the current the drive is sent, output paths follow one rule, Ctrl-C is exit 130."""
+to the current the drive is sent, output paths follow one rule, Ctrl-C is exit 130. Each
+command is tried as a ``hil`` process; more cases of it run the command line in this process
+(:func:`hil_here`), from the same folder."""
 
 import ast
 import json
@@ -14,6 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.cli import hil_here
+
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
 
@@ -24,14 +28,20 @@ def hil(cwd, *args, timeout=90):
                           text=True, env=env, timeout=timeout, check=False)
 
 
-@pytest.mark.parametrize(("argv", "name"), [
-    (["servo", "run", "--controller", "pid", "--limit", "rms_err<=0.5"], "rms_err"),
-    (["bench", "run", "--controller", "bc", "--limit", "J1<=5"], "J1"),
-    (["servo", "run", "--controller", "pid", "--limit", "fault.emcy<=0"], "fault.emcy"),
+@pytest.mark.parametrize(("argv", "name", "outside"), [
+    (["servo", "run", "--controller", "pid", "--limit", "rms_err<=0.5"], "rms_err", True),
+    (["bench", "run", "--controller", "bc", "--limit", "J1<=5"], "J1", False),
+    (["servo", "run", "--controller", "pid", "--limit", "fault.emcy<=0"], "fault.emcy", False),
 ])
-def test_a_limit_on_no_kpi_is_refused_before_the_run(tmp_path, argv, name):
+def test_a_limit_on_no_kpi_is_refused_before_the_run(tmp_path, capfd, monkeypatch, argv, name,
+                                                     outside):
+    """The first case from a ``hil`` process, the others in this one."""
     start = time.monotonic()
-    done = hil(tmp_path, *argv)
+    if outside:
+        done = hil(tmp_path, *argv)
+    else:
+        monkeypatch.chdir(tmp_path)
+        done = hil_here(capfd, *argv)
     assert done.returncode == 2
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and f"no KPI or signal '{name}'; KPIs: " in lines[0]
@@ -65,7 +75,7 @@ def test_current_limits_and_the_peak_are_on_the_current_the_drive_is_sent(tmp_pa
     assert kpis["clamped_commands"] > 0 and kpis["passed"] is True
 
 
-def test_output_paths_follow_one_rule(tmp_path):
+def test_output_paths_follow_one_rule(tmp_path, capfd, monkeypatch):
     session = tmp_path / "s.mcap"
     assert hil(tmp_path, "servo", "run", "--controller", "pid", "--duration", "0.05",
                "--out", str(session)).returncode == 0
@@ -73,9 +83,10 @@ def test_output_paths_follow_one_rule(tmp_path):
     done = hil(tmp_path, "report", str(session), "--out", "plots/new/s.png")
     assert done.returncode == 0, done.stderr
     assert (tmp_path / "plots" / "new" / "s.png").stat().st_size > 0
-    done = hil(tmp_path, "servo", "run", "--controller", "pid", "--duration", "0.05",
-               "--junit", "reports/junit.xml", "--limit", "rms_error_deg<=5", "--out",
-               "runs/a.mcap")
+    monkeypatch.chdir(tmp_path)  # the other cases in this process, from the same folder
+    done = hil_here(capfd, "servo", "run", "--controller", "pid", "--duration", "0.05",
+                    "--junit", "reports/junit.xml", "--limit", "rms_error_deg<=5", "--out",
+                    "runs/a.mcap")
     assert done.returncode == 0, done.stderr
     assert (tmp_path / "runs/a.mcap").exists()
     case = ET.parse(tmp_path / "reports" / "junit.xml").find(".//testcase")
@@ -86,24 +97,25 @@ def test_output_paths_follow_one_rule(tmp_path):
     (tmp_path / "blocker").write_text("a file, not a folder")
     for flag, value in (("--junit", "blocker/j.xml"), ("--out", "blocker/b.mcap"),
                         ("--out", ".")):
-        done = hil(tmp_path, "servo", "run", "--controller", "pid", "--duration", "0.05",
-                   flag, value)
+        done = hil_here(capfd, "servo", "run", "--controller", "pid", "--duration", "0.05",
+                        flag, value)
         assert done.returncode == 2, (flag, value, done.stderr)
         assert f"argument {flag}: " in done.stderr and "Traceback" not in done.stderr
-    done = hil(tmp_path, "report", str(session), "--out", "blocker/x.png")
+    done = hil_here(capfd, "report", str(session), "--out", "blocker/x.png")
     assert done.returncode == 2 and "blocker is a file, not a folder" in done.stderr
     # a default session goes to ./sessions/, for the bench as for the servo
-    done = hil(tmp_path, "servo", "run", "--controller", "pid", "--duration", "0.05")
+    done = hil_here(capfd, "servo", "run", "--controller", "pid", "--duration", "0.05")
     assert done.returncode == 0
     assert len(list((tmp_path / "sessions").glob("servo-pid-*.mcap"))) == 1
 
 
-def test_reading_a_session_events_messages_and_csv(tmp_path):
+def test_reading_a_session_events_messages_and_csv(tmp_path, capfd, monkeypatch):
     import csv
 
+    monkeypatch.chdir(tmp_path)
     session = tmp_path / "s.mcap"
-    assert hil(tmp_path, "servo", "run", "--controller", "pid", "--duration", "0.05",
-               "--out", str(session)).returncode == 0
+    assert hil_here(capfd, "servo", "run", "--controller", "pid", "--duration", "0.05",
+                    "--out", str(session)).returncode == 0
     events = hil(tmp_path, "report", str(session), "--events")
     assert events.returncode == 0
     kinds = [line.split()[2] for line in events.stdout.splitlines()]
@@ -118,7 +130,7 @@ def test_reading_a_session_events_messages_and_csv(tmp_path):
         table = list(csv.DictReader(file))
     assert len(table) == 100
     assert [float(r["position_deg"]) for r in table] == [r["position_deg"] for r in rows]
-    wrong = hil(tmp_path, "export", str(session), "--topic", "/drive/feedbak")
+    wrong = hil_here(capfd, "export", str(session), "--topic", "/drive/feedbak")
     assert wrong.returncode == 2 and "topics: /drive/command, /drive/feedback" in wrong.stderr
 
 

@@ -1,6 +1,8 @@
 """What a user does, from a folder outside the repository: their own controllers in their own
 file, run through the command line with FILE.py:Class and --param, and their own tests using
-the hil_bench and hil_drive fixtures with a plain ``python -m pytest``."""
+the hil_bench and hil_drive fixtures with a plain ``python -m pytest``. A user's controller
+runs as ``hil`` processes; more cases (other params, limits, a report's other spellings) run the
+command line in this process (:func:`hil_here`), from the same folder."""
 
 import json
 import os
@@ -13,6 +15,8 @@ from pathlib import Path
 import pytest
 
 from hil import api
+from tests.cli import hil_here
+from tests.pymodbus_bench import short_config
 
 pytestmark = [pytest.mark.slow]
 
@@ -44,11 +48,36 @@ def hil(folder, *args, timeout=120):
                           capture_output=True, text=True, timeout=timeout)
 
 
+def failure_section(stdout, test):
+    """What ``pytest -q`` printed about ``test``'s failure: from its header to the next one."""
+    after = stdout.split(f"_ {test} _", 1)[1]
+    return after.split("\n_", 1)[0]
+
+
+#: the hil_bench fixture's runs against its own emulator go over the wire on the run's time
+OVER_THE_WIRE = '''
+from hil.core.reader import read_session
+
+
+def test_runs_in_lockstep_on_the_fixtures_own_emulator(hil_bench):
+    assert hil_bench.driver.read_levels()["q1"] > 0     # on the wall clock, before
+    kpis = hil_bench.run("bc", cycles=1)
+    assert kpis["status"] == "completed"
+    metadata = read_session(hil_bench.sessions[0]).metadata
+    assert metadata["session"]["clock"] == "sim"
+    assert metadata["bench"]["url"] == hil_bench.url
+    assert "let go at plant time 28.00 s" in hil_bench.emulator.stderr_tail()
+    assert hil_bench.driver.read_levels()["q1"] > 0     # and after
+'''
+
+
 def test_users_tests_pass_with_plain_pytest_and_the_installed_plugin(tmp_path):
+    """The examples' tests, and one more that looks at how the fixture's runs go."""
     folder = user_folder(tmp_path)
+    (folder / "test_over_the_wire.py").write_text(OVER_THE_WIRE)
     out = run_pytest(folder, str(folder), "--junitxml", "results.xml")
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
-    assert "3 passed" in out.stdout
+    assert "4 passed" in out.stdout
     # each run's KPIs are the test case's properties; the emulators' runs are lockstep
     cases = {case.get("name"): {p.get("name"): p.get("value") for p in case.iter("property")}
              for case in ET.parse(folder / "results.xml").getroot().iter("testcase")}
@@ -61,22 +90,44 @@ def test_users_tests_pass_with_plain_pytest_and_the_installed_plugin(tmp_path):
     assert cases["test_the_bench_driver_switches_a_relay_and_reads_power"] == {}  # no run
 
 
-def test_a_failing_user_test_names_its_session_files(tmp_path):
+LEAVES_A_RELAY_ON = '''
+from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
+from hil.bench.config import load_bench_config
+
+def test_switches_p1_behind_the_safety_layers_back(hil_bench):
+    config = load_bench_config()
+    driver = ModbusBenchDriver(ModbusLink(parse_bus_url(hil_bench.url), 0.5, 2), config.map)
+    driver.write_relay("P1", True)
+    driver.close()
+'''
+
+
+def test_a_failing_user_test_names_its_session_files_and_an_unsafe_bench_fails_its_test(
+        tmp_path):
+    """Two failures in one pytest run: a test whose assertion fails names its session files;
+    the fixture's teardown fails a test that leaves the bench unsafe."""
     folder = user_folder(tmp_path)
     (folder / "test_fails.py").write_text(
         "from my_controllers import PdPosition\n\n"
         "def test_too_strict(hil_drive):\n"
         "    kpis = hil_drive.run(PdPosition, duration_s=0.2)\n"
         "    assert kpis['rms_error_deg'] < 1e-9\n")
-    out = run_pytest(folder, "test_fails.py")
+    (folder / "test_unsafe.py").write_text(LEAVES_A_RELAY_ON)
+    out = run_pytest(folder, "test_fails.py", "test_unsafe.py")
     assert out.returncode == 1
-    assert "hil sessions" in out.stdout and "servo-1.mcap" in out.stdout
+    strict = failure_section(out.stdout, "test_too_strict")
+    assert "hil sessions" in strict and "servo-1.mcap" in strict
+    unsafe = failure_section(out.stdout,
+                             "ERROR at teardown of test_switches_p1_behind_the_safety_layers_back")
+    assert "relays P1 were left off their safe level" in unsafe
 
 
 def test_users_controllers_run_through_the_cli_with_params(tmp_path):
     folder = user_folder(tmp_path)
+    # a 4 s machining cycle: what runs is the user's class with its params, not a long cycle
     bench = hil(folder, "bench", "run", "--controller", "my_controllers.py:ThresholdRelays",
-                "--param", "on_below=75", "--cycles", "1", "--out", "b.mcap", "--json")
+                "--param", "on_below=75", "--cycles", "1", "--config", str(short_config(folder)),
+                "--out", "b.mcap", "--json")
     assert bench.returncode == 0, bench.stderr
     kpis = json.loads(bench.stdout)
     assert kpis["controller"] == "my_controllers.py:ThresholdRelays"
@@ -89,27 +140,31 @@ def test_users_controllers_run_through_the_cli_with_params(tmp_path):
     assert json.loads(servo.stdout)["rms_error_deg"] < 0.5
 
 
-def test_params_change_what_the_users_controller_does(tmp_path):
+def test_params_change_what_the_users_controller_does(tmp_path, capfd, monkeypatch):
     folder = user_folder(tmp_path)
-    runs = [json.loads(hil(folder, "servo", "run", "--controller",
-                           "my_controllers.py:PdPosition", "--param", f"kp={kp}", "--duration",
-                           "0.5", "--reference", "sine:amplitude=2,frequency=1",
-                           "--json").stdout) for kp in (50, 400)]
+    monkeypatch.chdir(folder)
+    runs = [json.loads(hil_here(capfd, "servo", "run", "--controller",
+                                "my_controllers.py:PdPosition", "--param", f"kp={kp}",
+                                "--duration", "0.5", "--reference",
+                                "sine:amplitude=2,frequency=1", "--json").stdout)
+            for kp in (50, 400)]
     assert runs[1]["rms_error_deg"] < runs[0]["rms_error_deg"] / 2  # stiffer gain, less error
 
 
-def test_a_violated_limit_exits_1_with_a_junit_failure_and_a_loose_one_exits_0(tmp_path):
+def test_a_violated_limit_exits_1_with_a_junit_failure_and_a_loose_one_exits_0(tmp_path, capfd,
+                                                                            monkeypatch):
     folder = user_folder(tmp_path)
+    monkeypatch.chdir(folder)
     args = ["servo", "run", "--controller", "my_controllers.py:PdPosition", "--duration", "0.5",
             "--reference", "sine:amplitude=2,frequency=1"]
-    strict = hil(folder, *args, "--limit", "rms_error_deg<=0.001", "--junit", "strict.xml")
+    strict = hil_here(capfd, *args, "--limit", "rms_error_deg<=0.001", "--junit", "strict.xml")
     assert strict.returncode == 1
     assert "hil: limit violated: rms_error_deg<=0.001: measured" in strict.stderr
     suite = ET.parse(folder / "strict.xml").getroot().find("testsuite")
     assert suite is not None and suite.get("failures") == "1"
     assert suite.find("testcase/failure") is not None
-    loose = hil(folder, *args, "--limit", "rms_error_deg<=1", "--limit", "ticks>=1000",
-                "--junit", "loose.xml")
+    loose = hil_here(capfd, *args, "--limit", "rms_error_deg<=1", "--limit", "ticks>=1000",
+                     "--junit", "loose.xml")
     assert loose.returncode == 0, loose.stderr
     suite = ET.parse(folder / "loose.xml").getroot().find("testsuite")
     assert suite is not None and suite.get("tests") == "3" and suite.get("failures") == "0"
@@ -213,17 +268,6 @@ def test_a_faulted_drive_fails_its_test_with_one_line_and_is_reset_only_when_ask
     assert failure is not None and failure.get("message", "").startswith("DriveFaultError: ")
 
 
-LEAVES_A_RELAY_ON = '''
-from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
-from hil.bench.config import load_bench_config
-
-def test_switches_p1_behind_the_safety_layers_back(hil_bench):
-    config = load_bench_config()
-    driver = ModbusBenchDriver(ModbusLink(parse_bus_url(hil_bench.url), 0.5, 2), config.map)
-    driver.write_relay("P1", True)
-    driver.close()
-'''
-
 USES_THE_GIVEN_BENCH = '''
 import os
 
@@ -231,14 +275,6 @@ def test_points_at_the_given_bench(hil_bench):
     assert hil_bench.url == os.environ["BENCH_URL"] and not hil_bench.emulated
     assert hil_bench.driver.read_levels()["q1"] > 0
 '''
-
-
-def test_teardown_fails_a_test_that_leaves_the_bench_unsafe(tmp_path):
-    folder = user_folder(tmp_path)
-    (folder / "test_unsafe.py").write_text(LEAVES_A_RELAY_ON)
-    out = run_pytest(folder, "test_unsafe.py")
-    assert out.returncode == 1
-    assert "relays P1 were left off their safe level" in out.stdout
 
 
 def test_hil_bench_option_points_the_fixture_at_a_given_bench(tmp_path, monkeypatch):
@@ -252,17 +288,7 @@ def test_hil_bench_option_points_the_fixture_at_a_given_bench(tmp_path, monkeypa
     assert out.returncode == 0, out.stdout[-2000:]
 
 
-def test_json_output_of_an_eec_run_is_json_alone(tmp_path):
-    """A script reads --json from stdout: nothing else may be printed there (the MILP solver's
-    banner included)."""
-    run = hil(tmp_path, "bench", "run", "--controller", "eec", "--cycles", "1", "--out",
-              "e.mcap", "--json", timeout=300)
-    assert run.returncode == 0, run.stderr
-    kpis = json.loads(run.stdout)
-    assert kpis["controller"] == "eec" and kpis["solves_at_limit"] == 0
-
-
-def test_a_split_servo_session_is_one_session_to_report(tmp_path):
+def test_a_split_servo_session_is_one_session_to_report(tmp_path, capfd, monkeypatch):
     """--split-duration writes a numbered series; report takes its name, first file or folder;
     the drive topics are CDR by default and JSON with --encoding json."""
     folder = tmp_path / "lab"
@@ -275,8 +301,10 @@ def test_a_split_servo_session_is_one_session_to_report(tmp_path):
     names = sorted(p.name for p in (folder / "runs").iterdir())
     assert names == [f"long_{i:03d}.mcap" for i in range(len(names))] and len(names) >= 4
     reports = []
+    monkeypatch.chdir(folder)  # the name from a hil process, the other spellings here
     for spelled in ("runs/long.mcap", "runs/long_000.mcap", "runs"):
-        report = hil(folder, "report", spelled, "--json")
+        report = (hil(folder, "report", spelled, "--json") if spelled == "runs/long.mcap"
+                  else hil_here(capfd, "report", spelled, "--json"))
         assert report.returncode == 0, report.stderr
         reports.append(json.loads(report.stdout))
     assert all(r["topics"] == reports[0]["topics"] for r in reports)
@@ -288,7 +316,7 @@ def test_a_split_servo_session_is_one_session_to_report(tmp_path):
     plain = hil(folder, "servo", "run", "--controller", "pid", "--duration", "0.5",
                 "--encoding", "json", "--out", "plain.mcap")
     assert plain.returncode == 0, plain.stderr
-    report = json.loads(hil(folder, "report", "plain.mcap", "--json").stdout)
+    report = json.loads(hil_here(capfd, "report", "plain.mcap", "--json").stdout)
     assert report["encodings"]["/drive/feedback"] == "json"
     bad = hil(folder, "servo", "run", "--controller", "pid", "--split-size", "0")
     assert bad.returncode == 2 and "--split-size" in bad.stderr

@@ -218,12 +218,12 @@ class CyclicExchange:
         deadline_ns = self._sent_ns + self._rx_timeout_ns
         recv, dispatch = self.link.recv, self._dispatch
         clock = time.perf_counter_ns
-        # the first POLL_WAIT_MAX_NS after the SYNC are spent polling (a real-time wait, all
-        # of it; a lockstep one, its start): a thread blocked in select() is woken up 50 us to
-        # several hundred us after the frame arrives (more on a virtual machine); then it
-        # blocks. Past the deadline, what is already here is still read: a master held up
-        # (a busy machine) must not call an answer that came in time late.
-        poll_until = min(deadline_ns, self._sent_ns + POLL_WAIT_MAX_NS)
+        # a wait of a cycle or so is spent polling: a thread blocked in select() is woken up
+        # 50 us to several hundred us after the frame arrives (more on a virtual machine); a
+        # longer one (lockstep over a bus) blocks, leaving the CPU to the drive's process.
+        # Past the deadline, what is already here is still read: a master held up (a busy
+        # machine) must not call an answer that came in time late.
+        poll_until = deadline_ns if self._rx_timeout_ns <= POLL_WAIT_MAX_NS else self._sent_ns
         try:
             every = self._all
             while self._got != every:

@@ -300,13 +300,14 @@ class CanDriveMaster(Device):
         code, register = struct.unpack_from("<HB", data)
         extra = data[3:8].hex()
         if code:  # 0x0000 "error reset" reports the end of an error, not one
-            self.stats.emcy += 1
             self.last_emcy_code = code
+            if self._enabled:  # one from before this master drove it is history, not a fault
+                self.stats.emcy += 1  # of this run (it is still an event)
         self._event("drive.emcy",
                     f"drive node {self.node_id} EMCY {emcy_text(code)}, error register "
                     f"0x{register:02X}" + (f", data {extra}" if extra.strip("0") else ""),
-                    level="info" if code == 0 else "error", code=code, register=register,
-                    data_hex=extra)
+                    level="info" if code == 0 or not self._enabled else "error", code=code,
+                    register=register, data_hex=extra, while_driving=self._enabled)
 
     # -- SDO and NMT for everyone ---------------------------------------------------------------
     def sdo_read(self, index: int, subindex: int = 0, timeout_s: float | None = None) -> bytes:

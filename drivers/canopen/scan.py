@@ -61,7 +61,7 @@ from drivers.cia402 import (
 )
 
 DISCOVER_S = 0.3     # how long answers to the broadcast of SDO requests are collected
-HEARTBEAT_S = 1.2    # how long heartbeats are listened to for the NMT states
+HEARTBEAT_S = 1.2    # how long heartbeats are listened to for the NMT states, at most
 READ_TIMEOUT_S = 1.0  # one SDO read, as a run's default: a late answer is no silent node
 PDOS = 4             # PDOs 1..4 of each direction
 UNKNOWN_NMT = "unknown (no heartbeat)"
@@ -180,6 +180,21 @@ def discover(link: Link, deadline_s: float = DISCOVER_S) -> list[int]:
         if 1 <= node <= MAX_NODE_ID and len(data) == 8 and data[1:4] == request[1:4]:
             found.add(node)
     return sorted(found)
+
+
+def heartbeat_window(link: Link, nodes: list[int]) -> float:
+    """How long to listen for the heartbeats of ``nodes``: two and a half periods of the
+    slowest producer (0x1017), at most :data:`HEARTBEAT_S`; none when no node produces one
+    (a node that does not say listened for the whole window)."""
+    longest = 0.0
+    for node in nodes:
+        try:
+            period_ms = SdoClient(link, node, READ_TIMEOUT_S, lambda frame: None).read_int(
+                PRODUCER_HEARTBEAT, 0, "<H")
+        except DriveError:
+            return HEARTBEAT_S
+        longest = max(longest, period_ms / 1e3)
+    return min(HEARTBEAT_S, 2.5 * longest)
 
 
 def nmt_state_name(data: bytes) -> str:
@@ -343,7 +358,7 @@ def scan(link: Link, nodes: list[int] | None = None, mode: str = "cst",
     """The nodes of ``link`` (``nodes``: these only), each inspected (against the EDS at
     ``eds`` too); a node that does not answer at all is reported as such."""
     found = discover(link) if nodes is None else nodes
-    states = heartbeats(link) if found else {}
+    states = heartbeats(link, heartbeat_window(link, found)) if found else {}
     reports = []
     for node in found:
         try:

@@ -2,7 +2,9 @@
 repository): the plan and the refusal give one figure, every way out the plan names can be
 taken (a longer cycle, one TPDO per axis, a second bus: each run against `hil emulate drive`
 processes on socketcand), the warning of the emulated bus is on the terminal, and a bit rate
-classic CAN cannot carry is refused unless the bus is CAN FD."""
+classic CAN cannot carry is refused unless the bus is CAN FD. Each command and flag runs from
+outside at least once; its other cases run ``main`` in this process, in the same folder
+(``hil_here``: the same exit status and output, without a second of interpreter start)."""
 
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ import pytest
 
 from hil import api
 from hil.core.reader import read_session
+from tests.cli import hil_here as in_process
 
 ROOT = Path(__file__).resolve().parents[2]
 FIGURE = "(worst case: every frame with all the stuff bits it can take)"
@@ -26,34 +29,44 @@ def hil(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
                           text=True, env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=300)
 
 
+def hil_here(cwd, capsys, *args):
+    """``hil ARGS`` run by ``main`` in this process from ``cwd``, as :func:`hil` reports it."""
+    return in_process(capsys, *args, cwd=cwd)
+
+
 def config(folder: Path, name: str, text: str) -> str:
     path = folder / name
     path.write_text(text)
     return str(path)
 
 
-@pytest.mark.parametrize("drive_toml, axes", [
-    ("", 2),                                          # 2 axes at 2 kHz: 706 us
-    ('[master]\ntpdo_layout = "one"\n', 2),           # one TPDO each: 516 us
-    ("[bus]\nbitrate = 500000\n", 2),                 # half the bit rate: twice the time
-    ("[master]\ncycle_period_us = 1000\n", 3),        # 3 axes at 1 kHz: 1033 us
+@pytest.mark.parametrize("drive_toml, axes, outside", [
+    ("", 2, True),                                      # 2 axes at 2 kHz: 706 us
+    ('[master]\ntpdo_layout = "one"\n', 2, False),      # one TPDO each: 516 us
+    ("[bus]\nbitrate = 500000\n", 2, False),            # half the bit rate: twice the time
+    ("[master]\ncycle_period_us = 1000\n", 3, False),   # 3 axes at 1 kHz: 1033 us
 ])
-def test_the_plan_and_the_refusal_give_one_figure(tmp_path, drive_toml, axes):
+def test_the_plan_and_the_refusal_give_one_figure(tmp_path, capsys, drive_toml, axes, outside):
+    """The first case from outside (``outside``), the others in this process."""
+
+    def hil_as_set(*args: str) -> subprocess.CompletedProcess[str]:
+        return hil(tmp_path, *args) if outside else hil_here(tmp_path, capsys, *args)
+
     path = config(tmp_path, "drive.toml", drive_toml)
-    planned = hil(tmp_path, "drive", "plan", "--axes", str(axes), "--config", path, "--json")
+    planned = hil_as_set("drive", "plan", "--axes", str(axes), "--config", path, "--json")
     assert planned.returncode == 1, planned.stderr
     plan = json.loads(planned.stdout)
     assert plan["bus_time"] == FIGURE[1:-1] and plan["bus_time_us"] > plan["period_us"]
     names = ",".join(f"{name}={node}" for node, name in enumerate("xyz"[:axes], start=1))
-    refused = hil(tmp_path, "servo", "run", "--axes", names, "--controller", "mpc",
-                  "--config", path, "--drive", "virtual://one-figure", "--out", "no.mcap")
+    refused = hil_as_set("servo", "run", "--axes", names, "--controller", "mpc",
+                         "--config", path, "--drive", "virtual://one-figure", "--out", "no.mcap")
     assert refused.returncode == 2 and not (tmp_path / "no.mcap").exists()
     figure = f"{axes} axes need {plan['bus_time_us']:.0f} us of bus time per cycle"
     said = plan["problem"].partition("; ways out")[0]
     assert said.startswith(figure) and FIGURE in said
     assert refused.stderr.startswith(f"hil: error: the bus plan does not fit "
                                      f"(virtual://one-figure): {said}; ways out: ")
-    text = hil(tmp_path, "drive", "plan", "--axes", str(axes), "--config", path)
+    text = hil_as_set("drive", "plan", "--axes", str(axes), "--config", path)
     assert f"bus time per cycle {plan['bus_time_us']:.0f} us {FIGURE}" in text.stdout
     assert f"does not fit: {said}" in text.stdout
 
@@ -71,7 +84,7 @@ def test_the_emulated_bus_warns_on_the_terminal(tmp_path):
     assert [f"hil: warning: {m['message']}" for m in events] == warning
 
 
-def test_empc_at_1000_us_is_refused_naming_it(tmp_path):
+def test_empc_at_1000_us_is_refused_naming_it(tmp_path, capsys):
     path = config(tmp_path, "slow.toml", "[master]\ncycle_period_us = 1000\n")
     done = hil(tmp_path, "servo", "run", "--controller", "empc", "--config", path, "--out",
                "empc.mcap")
@@ -79,16 +92,19 @@ def test_empc_at_1000_us_is_refused_naming_it(tmp_path):
     assert done.stderr == ("hil: error: controller 'empc' does not run at a cycle period of "
                            "1000 us (master.cycle_period_us): it runs at 500 us\n")
     odd = config(tmp_path, "odd.toml", "[master]\ncycle_period_us = 750\n")
-    done = hil(tmp_path, "servo", "run", "--controller", "mpc", "--config", odd, "--out",
-               "odd.mcap")
+    done = hil_here(tmp_path, capsys, "servo", "run", "--controller", "mpc", "--config", odd,
+                    "--out", "odd.mcap")
     assert done.returncode == 2
     assert "key 'master.cycle_period_us' is 750 us: the emulated drive steps its axis every " \
            "500 us" in done.stderr
 
 
-def test_a_bitrate_above_1_mbit_is_refused_unless_the_bus_is_can_fd(tmp_path):
+def test_a_bitrate_above_1_mbit_is_refused_unless_the_bus_is_can_fd(tmp_path, capsys):
+    def here(*args: str) -> subprocess.CompletedProcess[str]:
+        return hil_here(tmp_path, capsys, *args)
+
     classic = config(tmp_path, "classic.toml", "[bus]\nbitrate = 2000000\n")
-    refused = hil(tmp_path, "servo", "run", "--print-config", "--config", classic)
+    refused = here("servo", "run", "--print-config", "--config", classic)
     assert refused.returncode == 2
     assert refused.stderr == (
         f"hil: error: {classic}: key 'bus.bitrate' is 2000000 bit/s: classic CAN stops at "
@@ -98,21 +114,20 @@ def test_a_bitrate_above_1_mbit_is_refused_unless_the_bus_is_can_fd(tmp_path):
     assert flag.returncode == 2
     assert flag.stderr.startswith("hil: error: --bitrate 2000000 bit/s: classic CAN stops at "
                                   "1000000 bit/s")
-    url = hil(tmp_path, "servo", "run", "--print-config", "--drive",
-              "virtual://fast?bitrate=2000000")
+    url = here("servo", "run", "--print-config", "--drive", "virtual://fast?bitrate=2000000")
     assert url.returncode == 2
     assert "virtual://fast?bitrate=2000000: bitrate 2000000 bit/s: classic CAN" in url.stderr
     fd = config(tmp_path, "fd.toml", '[bus]\ninterface = "virtual"\nchannel = "fd"\n'
                 "bitrate = 2000000\n[bus.options]\nfd = true\n")
-    accepted = hil(tmp_path, "servo", "run", "--print-config", "--json", "--config", fd)
+    accepted = here("servo", "run", "--print-config", "--json", "--config", fd)
     assert accepted.returncode == 0, accepted.stderr
     assert json.loads(accepted.stdout)["bus.bitrate"]["value"] == 2_000_000
-    planned = hil(tmp_path, "drive", "plan", "--axes", "2", "--config", fd, "--json")
+    planned = here("drive", "plan", "--axes", "2", "--config", fd, "--json")
     assert planned.returncode == 0  # 2 axes fit 2 kHz at 2 Mbit/s
     assert json.loads(planned.stdout)["bitrate"] == 2_000_000
 
 
-def test_an_axis_on_a_bus_of_its_own_in_the_drive_config(tmp_path):
+def test_an_axis_on_a_bus_of_its_own_in_the_drive_config(tmp_path, capsys):
     axes = '[[axis]]\nname = "x"\nnode = 1\n\n[[axis]]\nname = "y"\nnode = 1\n'
     path = config(tmp_path, "axes.toml", axes + 'bus = "socketcand://127.0.0.1:29536"\n')
     shown = hil(tmp_path, "servo", "run", "--print-config", "--json", "--config", path)
@@ -123,13 +138,16 @@ def test_an_axis_on_a_bus_of_its_own_in_the_drive_config(tmp_path):
                           (axes + 'bus = "socketcan://"\n',
                            "key 'axis[1].bus' is not a bus URL: drive 'socketcan://': no "
                            "channel")):
-        bad = hil(tmp_path, "servo", "run", "--print-config", "--config",
-                  config(tmp_path, "bad.toml", body))
+        bad = hil_here(tmp_path, capsys, "servo", "run", "--print-config", "--config",
+                       config(tmp_path, "bad.toml", body))
         assert bad.returncode == 2 and problem in bad.stderr, bad.stderr
 
 
-def axes_run(tmp_path: Path, out: str, *args: str) -> dict:
-    done = hil(tmp_path, "servo", "run", *args, "--duration", "0.5", "--out", out, "--json")
+def axes_run(tmp_path: Path, out: str, *args: str,
+             capsys: pytest.CaptureFixture[str] | None = None) -> dict:
+    """The KPIs of a 0.5 s run: from outside, or in this process given ``capsys``."""
+    argv = ("servo", "run", *args, "--duration", "0.5", "--out", out, "--json")
+    done = hil(tmp_path, *argv) if capsys is None else hil_here(tmp_path, capsys, *argv)
     assert done.returncode == 0, done.stderr
     return json.loads(done.stdout)
 
@@ -143,15 +161,17 @@ def tracking(kpis: dict, names: tuple[str, ...], ticks: int, bound_deg: float) -
 
 
 @pytest.mark.slow
-def test_a_longer_cycle_with_pid_takes_two_axes_onto_one_bus(tmp_path):
+def test_a_longer_cycle_with_pid_takes_two_axes_onto_one_bus(tmp_path, capsys):
     slow = config(tmp_path, "slow.toml", "[master]\ncycle_period_us = 1000\n")
     with api.start_drive_emulator(node=[1, 2]) as drive:
-        refused = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller", "pid",
-                      "--drive", drive.url, "--out", "no.mcap")
-        unstable = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller", "pid",
-                       "--drive", drive.url, "--config", slow, "--out", "no.mcap")
+        refused = hil_here(tmp_path, capsys, "servo", "run", "--axes", "x=1,y=2", "--controller",
+                           "pid", "--drive", drive.url, "--out", "no.mcap")
+        unstable = hil_here(tmp_path, capsys, "servo", "run", "--axes", "x=1,y=2",
+                            "--controller", "pid", "--drive", drive.url, "--config", slow,
+                            "--out", "no.mcap")
         kpis = axes_run(tmp_path, "slow.mcap", "--axes", "x=1,y=2", "--controller", "pid",
-                        "--param", "ti_us=8000", "--drive", drive.url, "--config", slow)
+                        "--param", "ti_us=8000", "--drive", drive.url, "--config", slow,
+                        capsys=capsys)
     assert refused.returncode == 2
     assert "master.cycle_period_us >= 707 (1415 Hz or slower; controller 'pid' runs at " \
            "1000 us)" in refused.stderr
@@ -163,14 +183,15 @@ def test_a_longer_cycle_with_pid_takes_two_axes_onto_one_bus(tmp_path):
 
 
 @pytest.mark.slow
-def test_one_tpdo_per_axis_takes_three_axes_onto_one_bus_at_1_khz(tmp_path):
+def test_one_tpdo_per_axis_takes_three_axes_onto_one_bus_at_1_khz(tmp_path, capsys):
     two = config(tmp_path, "two.toml", "[master]\ncycle_period_us = 1000\n")
     one = config(tmp_path, "one.toml", '[master]\ncycle_period_us = 1000\ntpdo_layout = "one"\n')
     with api.start_drive_emulator(node=[1, 2, 3]) as drive:
-        refused = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2,z=3", "--controller", "mpc",
-                      "--drive", drive.url, "--config", two, "--out", "no.mcap")
+        refused = hil_here(tmp_path, capsys, "servo", "run", "--axes", "x=1,y=2,z=3",
+                           "--controller", "mpc", "--drive", drive.url, "--config", two,
+                           "--out", "no.mcap")
         kpis = axes_run(tmp_path, "one.mcap", "--axes", "x=1,y=2,z=3", "--controller", "mpc",
-                        "--drive", drive.url, "--config", one)
+                        "--drive", drive.url, "--config", one, capsys=capsys)
     assert refused.returncode == 2
     assert 'master.tpdo_layout = "one"' in refused.stderr and "748 us, fits" in refused.stderr
     tracking(kpis, ("x", "y", "z"), 500, 0.1)

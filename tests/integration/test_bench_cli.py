@@ -1,5 +1,6 @@
 """``hil emulate bench`` as a standalone process: where it listens, real time, clean stops,
-one-line errors."""
+one-line errors (one from a ``hil`` process, the others from the command line run in this
+process: :func:`hil_here`)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import pytest
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
 from emulators.null_modem import NullModem
+from tests.cli import hil_here
 
 pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
 
@@ -85,31 +87,36 @@ def test_serial_emulator_on_a_pty_stops_on_sigterm():
     assert proc.returncode == 0 and err == "" and "bench emulator stopped" in out
 
 
-@pytest.mark.parametrize(("args", "config", "why"), [
+@pytest.mark.parametrize(("args", "config", "why", "outside"), [
     (["--tcp", "127.0.0.1:0"], '[relays.P1]\ncoil = "two"\n',
-     "key 'relays.P1.coil' must be an integer"),
-    (["--tcp", "127.0.0.1:0"], "[meter.registers]\nva_l1 = 0x0001\n", "overlaps"),
-    (["--tcp", "127.0.0.1:0"], "[units]\nmeter = 1\n", "three different unit ids"),
-    (["--tcp", "127.0.0.1:0"], "[relays\n", "invalid TOML"),
-    (["--serial", "/dev/no-such-port"], "", "cannot listen on /dev/no-such-port"),
+     "key 'relays.P1.coil' must be an integer", True),
+    (["--tcp", "127.0.0.1:0"], "[meter.registers]\nva_l1 = 0x0001\n", "overlaps", False),
+    (["--tcp", "127.0.0.1:0"], "[units]\nmeter = 1\n", "three different unit ids", False),
+    (["--tcp", "127.0.0.1:0"], "[relays\n", "invalid TOML", False),
+    (["--serial", "/dev/no-such-port"], "", "cannot listen on /dev/no-such-port", False),
 ])
-def test_garbage_in_is_one_error_line(tmp_path, args, config, why):
+def test_garbage_in_is_one_error_line(tmp_path, capfd, args, config, why, outside):
     path = tmp_path / "bad.toml"
     path.write_text(config)
-    proc = hil("emulate", "bench", *args, "--config", str(path))
-    out, err = proc.communicate(timeout=20)
-    assert proc.returncode == 2 and out == ""
+    if outside:
+        proc = hil("emulate", "bench", *args, "--config", str(path))
+        out, err = proc.communicate(timeout=20)
+        status = proc.returncode
+    else:
+        done = hil_here(capfd, "emulate", "bench", *args, "--config", str(path))
+        status, out, err = done.returncode, done.stdout, done.stderr
+    assert status == 2 and out == ""
     assert err.startswith("hil: error: ") and err.count("\n") == 1 and why in err, err
 
 
-def test_busy_port_is_one_error_line():
+def test_busy_port_is_one_error_line(capfd):
     first = hil("emulate", "bench", "--tcp", "127.0.0.1:0")
     try:
         port = re.search(r":(\d+) ", first.stdout.readline()).group(1)
-        second = hil("emulate", "bench", "--tcp", f"127.0.0.1:{port}")
-        _out, err = second.communicate(timeout=20)
+        done = hil_here(capfd, "emulate", "bench", "--tcp", f"127.0.0.1:{port}")
+        status, err = done.returncode, done.stderr
     finally:
         first.kill()
         first.wait()
-    assert second.returncode == 2 and err.count("\n") == 1
+    assert status == 2 and err.count("\n") == 1
     assert f"cannot listen on 127.0.0.1:{port}" in err

@@ -13,6 +13,7 @@ from hil.bench.run import BenchRunOptions, run_bench
 from hil.cli.main import main
 from hil.core.reader import read_session
 from hil.core.report import plot_session, summarize
+from tests.pymodbus_bench import short_config
 
 pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
 
@@ -76,9 +77,10 @@ def test_infeasible_start_falls_back_to_hysteresis_without_crashing(tmp_path):
 
 
 def test_cli_prints_the_design_json_keys(tmp_path, capsys):
+    """A 4 s machining cycle: the keys and the plot, not the cycle, are what is looked at."""
     out = str(tmp_path / "bc.mcap")
     assert main(["bench", "run", "--controller", "bc", "--cycles", "1", "--json",
-                 "--out", out]) == 0
+                 "--config", str(short_config(tmp_path)), "--out", out]) == 0
     kpis = json.loads(capsys.readouterr().out)
     assert set(kpis) >= DESIGN_KEYS
     assert kpis["controller"] == "bc"

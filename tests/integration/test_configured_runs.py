@@ -1,7 +1,9 @@
 """What the user configures is what runs, run for real: the drive a ``[bus]`` table names, a
 current limit that only tightens (the config's, a flag's, the drive's own 0x6073 / 0x6072), and
 the warning a raised limit leaves. Against hil's emulator over socketcand and against a
-CiA 402 slave hil did not write (canopen's LocalNode, tests/drive_slave.py)."""
+CiA 402 slave hil did not write (canopen's LocalNode, tests/drive_slave.py). Each setting is
+run once from a ``hil`` process; more cases of it (other values, the errors) run the command
+line in this process (:func:`hil_here`), from the same folder."""
 
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ import pytest
 
 from hil import api
 from hil.core.reader import read_session
+from tests.cli import hil_here
 from tests.drive_slave import RATED_MA, serve
 
 pytestmark = [pytest.mark.slow]
@@ -34,7 +37,7 @@ def events(path: str, kind: str) -> list[dict]:
     return [m for _, m in read_session(path).topic("/events") if m["kind"] == kind]
 
 
-def test_a_bus_in_the_config_file_is_the_drive_that_runs(tmp_path):
+def test_a_bus_in_the_config_file_is_the_drive_that_runs(tmp_path, capfd, monkeypatch):
     """[bus] naming a socketcand gateway, no --drive: the run reaches that drive, in lockstep
     over the wire; a gateway nobody serves is a one-line error, never the emulator."""
     with api.start_drive_emulator() as drive:
@@ -51,16 +54,18 @@ def test_a_bus_in_the_config_file_is_the_drive_that_runs(tmp_path):
     nobody = tmp_path / "nobody.toml"
     nobody.write_text('[bus]\ninterface = "socketcand"\n[bus.options]\nhost = "127.0.0.1"\n'
                       "port = 1\n")
+    monkeypatch.chdir(tmp_path)
     for realtime in ([], ["--realtime"]):
-        run = hil(tmp_path, "servo", "run", "--controller", "pid", "--config", str(nobody),
-                  "--duration", "0.2", "--out", "none.mcap", *realtime)
+        run = hil_here(capfd, "servo", "run", "--controller", "pid", "--config", str(nobody),
+                       "--duration", "0.2", "--out", "none.mcap", *realtime)
         assert run.returncode == 2
         assert run.stderr == ("hil: error: cannot connect to socketcand at 127.0.0.1:1: "
                               "Connection refused\n")
         assert not (tmp_path / "none.mcap").exists()
 
 
-def test_the_config_current_limit_holds_and_a_flag_only_lowers_it(tmp_path):
+def test_the_config_current_limit_holds_and_a_flag_only_lowers_it(tmp_path, capfd,
+                                                                  monkeypatch):
     config = tmp_path / "drive.toml"
     config.write_text("[master]\ncurrent_limit_mA = 300\n")
     base = ["servo", "run", "--controller", "pid", "--config", str(config), "--reference",
@@ -71,9 +76,10 @@ def test_the_config_current_limit_holds_and_a_flag_only_lowers_it(tmp_path):
     assert kpis["umax_mA"] == 300 and kpis["current_limit_mA"] == 300
     # the controller's bounds are the limit too: it asks for no more than it may have
     assert kpis["peak_current_mA"] == 300 and kpis["peak_requested_mA"] == 300
-    lower = json.loads(hil(tmp_path, *base, "--umax", "200", "--out", "lower.mcap").stdout)
+    monkeypatch.chdir(tmp_path)
+    lower = json.loads(hil_here(capfd, *base, "--umax", "200", "--out", "lower.mcap").stdout)
     assert lower["current_limit_mA"] == 200 and lower["peak_current_mA"] == 200
-    refused = hil(tmp_path, *base, "--umax", "500", "--out", "refused.mcap")
+    refused = hil_here(capfd, *base, "--umax", "500", "--out", "refused.mcap")
     assert refused.returncode == 2 and json.loads(refused.stdout)["status"] == "failed"
     assert refused.stderr == (
         f"hil: error: --umax 500 mA is above the configured current limit "
@@ -95,11 +101,12 @@ def test_the_config_current_limit_holds_and_a_flag_only_lowers_it(tmp_path):
     ("[master]\ncurrent_limit_mA = 0.3\n",
      "drive node 1: current limit 0.3 mA, the smallest of the run's 0.3 mA"),
 ])
-def test_a_current_limit_that_cannot_hold_is_refused(tmp_path, text, named):
+def test_a_current_limit_that_cannot_hold_is_refused(tmp_path, capfd, monkeypatch, text, named):
+    monkeypatch.chdir(tmp_path)
     config = tmp_path / "drive.toml"
     config.write_text(text)
-    run = hil(tmp_path, "servo", "run", "--controller", "pid", "--config", str(config),
-              "--duration", "0.1", "--out", "x.mcap")
+    run = hil_here(capfd, "servo", "run", "--controller", "pid", "--config", str(config),
+                   "--duration", "0.1", "--out", "x.mcap")
     assert run.returncode == 2 and named in run.stderr and len(run.stderr.splitlines()) == 1
 
 
@@ -164,19 +171,28 @@ def test_print_config_from_outside_shows_every_setting_and_runs_nothing(tmp_path
     assert text.returncode == 0 and "hp_s = 14" in text.stdout and "# --hp" in text.stdout
 
 
-@pytest.mark.parametrize(("argv", "line"), [
+@pytest.mark.parametrize(("argv", "line", "outside"), [
     (["--controler", "pid"], "hil servo run: error: unrecognized arguments: --controler pid "
-     "(--controler: did you mean --controller?) (see 'hil servo run --help')"),
+     "(--controler: did you mean --controller?) (see 'hil servo run --help')", True),
     (["--controller", "pid", "--umax", "0.3"], "hil servo run: error: argument --umax: 0.3 mA "
-     "is below 1 mA: the value is in mA (0.3 A would be 300 mA) (see 'hil servo run --help')"),
+     "is below 1 mA: the value is in mA (0.3 A would be 300 mA) (see 'hil servo run --help')",
+     False),
     (["--controller", "pid", "--duration", "10ms"], "hil servo run: error: argument "
      "--duration: takes a number of seconds, without its unit: '10ms' is 0.01 (write 0.01) "
-     "(see 'hil servo run --help')"),
+     "(see 'hil servo run --help')", False),
     (["--controller", "pid", "--umax", "2A"], "hil servo run: error: argument --umax: takes a "
-     "number of mA, without its unit: '2A' is 2000 (write 2000) (see 'hil servo run --help')"),
+     "number of mA, without its unit: '2A' is 2000 (write 2000) (see 'hil servo run --help')",
+     False),
 ])
-def test_a_typo_or_another_unit_is_one_line_that_says_what_was_meant(tmp_path, argv, line):
-    run = hil(tmp_path, "servo", "run", *argv, "--out", "never.mcap")
+def test_a_typo_or_another_unit_is_one_line_that_says_what_was_meant(tmp_path, capfd,
+                                                                     monkeypatch, argv, line,
+                                                                     outside):
+    """The parser's refusals: one from a ``hil`` process, the others in this one."""
+    if outside:
+        run = hil(tmp_path, "servo", "run", *argv, "--out", "never.mcap")
+    else:
+        monkeypatch.chdir(tmp_path)
+        run = hil_here(capfd, "servo", "run", *argv, "--out", "never.mcap")
     assert run.returncode == 2 and run.stderr == line + "\n"
     assert not (tmp_path / "never.mcap").exists()
 

@@ -2,7 +2,10 @@
 repository), against hil's emulator (a fault injected, an axis moved by a run) and against a
 drive hil did not write (tests/drive_slave.py: canopen's LocalNode, 17-bit encoder, 2 A rated,
 CST only) on ``udp_multicast`` from this process; and ``hil emulate drive --write-eds``'s file
-read back by canopen at two node ids, against the emulator serving at the second."""
+read back by canopen at two node ids, against the emulator serving at the second.
+
+Each command and flag runs from outside at least once; its other cases run ``main`` in this
+process (``hil_here``: the same exit status and output, without a second of interpreter start)."""
 
 import configparser
 import json
@@ -20,6 +23,7 @@ from emulators.drive.eds import BIT_RATES
 from hil import api
 from hil.core.device_lock import LOCK_DIR_ENV, lock_device
 from hil.core.reader import read_session
+from tests.cli import hil_here as in_process
 from tests.drive_slave import INCREMENTS, RATED_MA, dictionary, serve
 
 pytestmark = [pytest.mark.slow]
@@ -32,6 +36,11 @@ def hil(*args, cwd):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     return subprocess.run([sys.executable, "-m", "hil", *map(str, args)], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=120)
+
+
+def hil_here(*args, cwd, capsys):
+    """``hil ARGS`` run by ``main`` in this process, as :func:`hil` reports it."""
+    return in_process(capsys, *args, cwd=cwd)
 
 
 def one_error_line(result):
@@ -50,8 +59,11 @@ def free_udp_port():
 
 
 @pytest.fixture
-def slave():
-    """The independent drive as node 3 on a udp_multicast bus of its own; yields (url, slave)."""
+def slave(monkeypatch):
+    """The independent drive as node 3 on a udp_multicast bus of its own; yields (url, slave).
+    Its network's notifier polls the bus every 0.1 s, not canopen's 1 s: disconnecting waits
+    out one poll."""
+    monkeypatch.setattr(canopen.Network, "NOTIFIER_CYCLE", 0.1)
     url = f"udp_multicast://239.0.0.1?port={free_udp_port()}"
     network, node = serve(url, NODE)
     try:
@@ -78,13 +90,14 @@ def wait_for_fault(emulator, timeout_s=30.0):
 
 
 # -- scan -----------------------------------------------------------------------------------
-def test_scan_of_a_faulted_drive_says_it_cannot_drive_it_and_names_the_fault(tmp_path):
+def test_scan_of_a_faulted_drive_says_it_cannot_drive_it_and_names_the_fault(tmp_path, capsys):
     with api.start_drive_emulator(faults=["emcy@0:code=0x8130"]) as emulator:
         wait_for_fault(emulator)
         table = hil("drive", "scan", emulator.url, cwd=tmp_path)
-        faulted = hil("drive", "scan", emulator.url, "--json", cwd=tmp_path)
-        assert hil("drive", "reset", emulator.url, cwd=tmp_path).returncode == 0
-        cleared = hil("drive", "scan", emulator.url, "--json", cwd=tmp_path)
+        faulted = hil_here("drive", "scan", emulator.url, "--json", cwd=tmp_path, capsys=capsys)
+        assert hil_here("drive", "reset", emulator.url, cwd=tmp_path,
+                        capsys=capsys).returncode == 0
+        cleared = hil_here("drive", "scan", emulator.url, "--json", cwd=tmp_path, capsys=capsys)
     assert table.returncode == 0, table.stderr
     assert "CiA 402 state FAULT (statusword 0x" in table.stdout
     assert "error code 0x8130 heartbeat or life guard error" in table.stdout
@@ -99,12 +112,12 @@ def test_scan_of_a_faulted_drive_says_it_cannot_drive_it_and_names_the_fault(tmp
     assert node["verdict"] == "can drive: yes, in CST"
 
 
-def test_scan_of_a_healthy_drive_names_its_modes_and_where_the_axis_stands(tmp_path):
+def test_scan_of_a_healthy_drive_names_its_modes_and_where_the_axis_stands(tmp_path, capsys):
     with api.start_drive_emulator() as emulator:
         api.run_servo("pid", drive=emulator.url, duration_s=0.5,
                       reference="hold:position=40", out=str(tmp_path / "hold.mcap"))
-        table = hil("drive", "scan", emulator.url, cwd=tmp_path)
-        report = hil("drive", "scan", emulator.url, "--json", cwd=tmp_path)
+        table = hil_here("drive", "scan", emulator.url, cwd=tmp_path, capsys=capsys)
+        report = hil_here("drive", "scan", emulator.url, "--json", cwd=tmp_path, capsys=capsys)
     last = [m for _, m in read_session(str(tmp_path / "hold.mcap")).topic("/drive/feedback")][-1]
     [node] = json.loads(report.stdout)["nodes"]
     assert node["modes"] == ["CSP", "CST"] and node["supported_modes"] == 0x280
@@ -117,10 +130,11 @@ def test_scan_of_a_healthy_drive_names_its_modes_and_where_the_axis_stands(tmp_p
     assert "can drive: yes, in CST" in table.stdout
 
 
-def test_scan_of_a_drive_hil_did_not_write_scales_by_its_own_encoder(tmp_path, slave):
+def test_scan_of_a_drive_hil_did_not_write_scales_by_its_own_encoder(tmp_path, slave, capsys):
     url, drive = slave
     drive.position = 123.4  # degrees: 0x6064 counts of its 17-bit encoder
-    report = hil("drive", "scan", url, "--node", NODE, "--json", cwd=tmp_path)
+    report = hil_here("drive", "scan", url, "--node", NODE, "--json", cwd=tmp_path,
+                      capsys=capsys)
     config = tmp_path / "csp.toml"
     config.write_text('[master]\nmode = "csp"\n')
     csp = hil("drive", "scan", url, "--node", NODE, "--config", config, cwd=tmp_path)
@@ -135,21 +149,23 @@ def test_scan_of_a_drive_hil_did_not_write_scales_by_its_own_encoder(tmp_path, s
         in csp.stdout
 
 
-def test_scan_with_an_eds_that_lacks_an_object_hil_needs_reports_it(tmp_path, slave):
+def test_scan_with_an_eds_that_lacks_an_object_hil_needs_reports_it(tmp_path, slave, capsys):
     url, _drive = slave
 
     def drop_torque_actual(od):
         del od[0x6077]
 
-    complete = hil("drive", "scan", url, "--node", NODE, "--eds", slave_eds(tmp_path), "--json",
-                   cwd=tmp_path)
+    def here(*args):
+        return hil_here(*args, cwd=tmp_path, capsys=capsys)
+
+    complete = here("drive", "scan", url, "--node", NODE, "--eds", slave_eds(tmp_path), "--json")
     lacking = slave_eds(tmp_path, drop_torque_actual, "lacking")
     table = hil("drive", "scan", url, "--node", NODE, "--eds", lacking, cwd=tmp_path)
-    report = hil("drive", "scan", url, "--node", NODE, "--eds", lacking, "--json", cwd=tmp_path)
+    report = here("drive", "scan", url, "--node", NODE, "--eds", lacking, "--json")
     emulators = tmp_path / "emulator.eds"
-    assert hil("emulate", "drive", "--write-eds", emulators, cwd=tmp_path).returncode == 0
-    other = hil("drive", "scan", url, "--node", NODE, "--eds", emulators, "--json", cwd=tmp_path)
-    missing = hil("drive", "scan", url, "--eds", tmp_path / "none.eds", cwd=tmp_path)
+    assert here("emulate", "drive", "--write-eds", emulators).returncode == 0
+    other = here("drive", "scan", url, "--node", NODE, "--eds", emulators, "--json")
+    missing = here("drive", "scan", url, "--eds", tmp_path / "none.eds")
     [node] = json.loads(complete.stdout)["nodes"]
     assert node["eds"]["problems"] == [] and node["drivable"] is True
     [node] = json.loads(report.stdout)["nodes"]
@@ -164,18 +180,19 @@ def test_scan_with_an_eds_that_lacks_an_object_hil_needs_reports_it(tmp_path, sl
 
 
 # -- sdo ------------------------------------------------------------------------------------
-def test_sdo_write_then_read_round_trip_on_a_drive_hil_did_not_write(tmp_path, slave):
+def test_sdo_write_then_read_round_trip_on_a_drive_hil_did_not_write(tmp_path, slave, capsys):
     url, drive = slave
     eds = slave_eds(tmp_path)
     written = hil("drive", "sdo", "write", url, "0x6072", "777", "--node", NODE, "--eds", eds,
                   cwd=tmp_path)
     typed = hil("drive", "sdo", "read", url, "0x6072", "--node", NODE, "--eds", eds, "--json",
                 cwd=tmp_path)
-    raw = hil("drive", "sdo", "read", url, "6072:0", "--node", NODE, cwd=tmp_path)
-    signed = hil("drive", "sdo", "write", url, "0x605A", "-1", "--node", NODE, "--type",
-                 "INTEGER16", cwd=tmp_path)
-    name = hil("drive", "sdo", "read", url, "0x1008", "--node", NODE, "--type", "str",
-               cwd=tmp_path)
+    raw = hil_here("drive", "sdo", "read", url, "6072:0", "--node", NODE, cwd=tmp_path,
+                   capsys=capsys)
+    signed = hil_here("drive", "sdo", "write", url, "0x605A", "-1", "--node", NODE, "--type",
+                      "INTEGER16", cwd=tmp_path, capsys=capsys)
+    name = hil_here("drive", "sdo", "read", url, "0x1008", "--node", NODE, "--type", "str",
+                    cwd=tmp_path, capsys=capsys)
     assert written.returncode == 0, written.stderr
     assert written.stdout.strip() == "node 3 0x6072:0 UNSIGNED16 = 777: written"
     assert drive.value(0x6072) == 777  # the slave holds it
@@ -187,26 +204,31 @@ def test_sdo_write_then_read_round_trip_on_a_drive_hil_did_not_write(tmp_path, s
     assert name.stdout.strip() == "node 3 0x1008:0 VISIBLE_STRING = 'independent 402 slave'"
 
 
-def test_a_write_to_a_pdo_mapped_object_of_an_operational_drive_is_refused(tmp_path, slave):
+def test_a_write_to_a_pdo_mapped_object_of_an_operational_drive_is_refused(tmp_path, slave,
+                                                                           capsys):
     url, drive = slave
     eds = slave_eds(tmp_path)
-    assert hil("drive", "sdo", "write", url, "0x1017", "200", "--node", NODE, "--eds", eds,
-               cwd=tmp_path).returncode == 0  # its heartbeat on: the NMT state is heard
+
+    def here(*args):
+        return hil_here(*args, cwd=tmp_path, capsys=capsys)
+
+    assert here("drive", "sdo", "write", url, "0x1017", "200", "--node", NODE, "--eds",
+                eds).returncode == 0  # its heartbeat on: the NMT state is heard
     drive.node.nmt.state = "OPERATIONAL"
     by_heartbeat = hil("drive", "sdo", "write", url, "0x6071", "100", "--node", NODE,
                        "--type", "i16", cwd=tmp_path)
-    unmapped = hil("drive", "sdo", "write", url, "0x6072", "500", "--node", NODE,
-                   "--type", "u16", cwd=tmp_path)
-    assert hil("drive", "sdo", "write", url, "0x1017", "0", "--node", NODE, "--type", "u16",
-               cwd=tmp_path).returncode == 0  # no heartbeat now: the statusword says it
+    unmapped = here("drive", "sdo", "write", url, "0x6072", "500", "--node", NODE,
+                    "--type", "u16")
+    assert here("drive", "sdo", "write", url, "0x1017", "0", "--node", NODE, "--type",
+                "u16").returncode == 0  # no heartbeat now: the statusword says it
     drive.node.nmt.state = "PRE-OPERATIONAL"
     drive.state = "OPERATION ENABLED"
-    by_statusword = hil("drive", "sdo", "write", url, "0x6040", "0x0F", "--node", NODE,
-                        "--eds", eds, cwd=tmp_path)
-    enabled = hil("drive", "scan", url, "--node", NODE, "--json", cwd=tmp_path)
+    by_statusword = here("drive", "sdo", "write", url, "0x6040", "0x0F", "--node", NODE,
+                         "--eds", eds)
+    enabled = here("drive", "scan", url, "--node", NODE, "--json")
     drive.state = "SWITCH ON DISABLED"
-    allowed = hil("drive", "sdo", "write", url, "0x6071", "100", "--node", NODE,
-                  "--type", "i16", cwd=tmp_path)
+    allowed = here("drive", "sdo", "write", url, "0x6071", "100", "--node", NODE,
+                   "--type", "i16")
     line = one_error_line(by_heartbeat)
     assert "not written: 0x6071:0 is mapped in RPDO1 and the drive is NMT OPERATIONAL (its " \
         "heartbeat)" in line
@@ -220,18 +242,22 @@ def test_a_write_to_a_pdo_mapped_object_of_an_operational_drive_is_refused(tmp_p
                                "(another master?): a run disables voltage first")
 
 
-def test_sdo_aborts_and_bad_input_are_one_line(tmp_path, slave):
+def test_sdo_aborts_and_bad_input_are_one_line(tmp_path, slave, capsys):
     url, _drive = slave
-    no_object = hil("drive", "sdo", "read", url, "0x2222", "--node", NODE, cwd=tmp_path)
-    read_only = hil("drive", "sdo", "write", url, "0x6041", "1", "--node", NODE, "--type", "u16",
-                    cwd=tmp_path)
-    too_big = hil("drive", "sdo", "write", url, "0x6072", "70000", "--node", NODE, "--type",
-                  "u16", cwd=tmp_path)
+
+    def here(*args):
+        return hil_here(*args, cwd=tmp_path, capsys=capsys)
+
+    no_object = here("drive", "sdo", "read", url, "0x2222", "--node", NODE)
+    read_only = here("drive", "sdo", "write", url, "0x6041", "1", "--node", NODE, "--type",
+                     "u16")
+    too_big = here("drive", "sdo", "write", url, "0x6072", "70000", "--node", NODE, "--type",
+                   "u16")
     wrong_size = hil("drive", "sdo", "read", url, "0x6064", "--node", NODE, "--type", "u16",
                      cwd=tmp_path)
-    untyped = hil("drive", "sdo", "write", url, "0x6072", "1", "--node", NODE, cwd=tmp_path)
-    bad_type = hil("drive", "sdo", "read", url, "0x6072", "--type", "u12", cwd=tmp_path)
-    bad_object = hil("drive", "sdo", "read", url, "0x6072:x", cwd=tmp_path)
+    untyped = here("drive", "sdo", "write", url, "0x6072", "1", "--node", NODE)
+    bad_type = here("drive", "sdo", "read", url, "0x6072", "--type", "u12")
+    bad_object = here("drive", "sdo", "read", url, "0x6072:x")
     assert one_error_line(no_object).endswith(
         "drive node 3 refused SDO read 0x2222:00: 0x06020000 object does not exist in the "
         "object dictionary")
@@ -243,19 +269,21 @@ def test_sdo_aborts_and_bad_input_are_one_line(tmp_path, slave):
     assert "expected INDEX[:SUB]" in bad_object.stderr and bad_object.returncode == 2
 
 
-def test_sdo_takes_the_bus_lock_as_scan_does(tmp_path, slave, monkeypatch):
+def test_sdo_takes_the_bus_lock_as_scan_does(tmp_path, slave, monkeypatch, capsys):
     url, _drive = slave
     monkeypatch.setenv(LOCK_DIR_ENV, str(tmp_path / "locks"))
     with lock_device(url, "drive bus"):
         held = hil("drive", "sdo", "read", url, "0x6041", "--node", NODE, cwd=tmp_path)
-    free = hil("drive", "sdo", "read", url, "0x6041", "--node", NODE, cwd=tmp_path)
+    free = hil_here("drive", "sdo", "read", url, "0x6041", "--node", NODE, cwd=tmp_path,
+                    capsys=capsys)
     assert f"drive bus {url} is in use by another hil run (pid {os.getpid()})" in \
         one_error_line(held)
     assert free.returncode == 0, free.stderr
 
 
 # -- the emulator's EDS ----------------------------------------------------------------------
-def test_the_written_eds_gives_every_node_its_own_cob_ids_and_claims_the_bit_rates(tmp_path):
+def test_the_written_eds_gives_every_node_its_own_cob_ids_and_claims_the_bit_rates(tmp_path,
+                                                                                  capsys):
     eds = tmp_path / "drive.eds"
     assert hil("emulate", "drive", "--write-eds", eds, cwd=tmp_path).returncode == 0
     cob_ids = {}
@@ -277,8 +305,8 @@ def test_the_written_eds_gives_every_node_its_own_cob_ids_and_claims_the_bit_rat
     with api.start_drive_emulator(node=5) as emulator:
         for index, sub in ((0x1014, 0), (0x1200, 1), (0x1200, 2), (0x1400, 1), (0x1800, 1),
                            (0x1801, 1), (0x1018, 4)):
-            read = hil("drive", "sdo", "read", emulator.url, f"0x{index:04X}:{sub}", "--node",
-                       5, "--eds", eds, "--json", cwd=tmp_path)
+            read = hil_here("drive", "sdo", "read", emulator.url, f"0x{index:04X}:{sub}",
+                            "--node", 5, "--eds", eds, "--json", cwd=tmp_path, capsys=capsys)
             assert read.returncode == 0, read.stderr
             expected = od5.get_variable(index, sub).default
             assert json.loads(read.stdout)["value"] == expected, (hex(index), sub)

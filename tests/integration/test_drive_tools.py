@@ -1,7 +1,9 @@
 """The drive side's tools, from outside as a user runs them: ``hil drive scan`` against the
 emulator and against a drive hil did not write, ``hil drive reset`` and ``--reset-fault``,
 the drive's EDS checked before anything is enabled, ``--can-log`` files python-can reads
-back, and the emulator's late TPDOs in real time bound to their SYNC through the wire trace."""
+back, and the emulator's late TPDOs in real time bound to their SYNC through the wire trace.
+Each command and flag runs from outside at least once; its other cases run ``main`` in this
+process (``hil_here``: the same exit status and output, without a second of interpreter start)."""
 
 import json
 import os
@@ -20,6 +22,7 @@ from drivers.canopen import DriveError
 from hil import api
 from hil.core.reader import read_session
 from hil.servo.run import ServoRunOptions, run_servo
+from tests.cli import hil_here as in_process
 from tests.drive_slave import dictionary, serve
 
 pytestmark = [pytest.mark.slow]
@@ -33,10 +36,16 @@ def hil(*args, cwd):
                           capture_output=True, text=True, timeout=120)
 
 
-def test_scan_of_the_emulator_from_outside_lists_the_node_and_says_hil_can_drive_it(tmp_path):
+def hil_here(*args, cwd, capsys):
+    """``hil ARGS`` run by ``main`` in this process, as :func:`hil` reports it."""
+    return in_process(capsys, *args, cwd=cwd)
+
+
+def test_scan_of_the_emulator_from_outside_lists_the_node_and_says_hil_can_drive_it(tmp_path,
+                                                                                   capsys):
     with api.start_drive_emulator() as emulator:
         out = hil("drive", "scan", emulator.url, "--json", cwd=tmp_path)
-        table = hil("drive", "scan", emulator.url, cwd=tmp_path)
+        table = hil_here("drive", "scan", emulator.url, cwd=tmp_path, capsys=capsys)
     assert out.returncode == 0, out.stderr
     [node] = json.loads(out.stdout)["nodes"]
     assert node["node_id"] == 1 and node["device_type"] == 0x0002_0192
@@ -47,6 +56,14 @@ def test_scan_of_the_emulator_from_outside_lists_the_node_and_says_hil_can_drive
     assert "can drive: yes, in CST" in table.stdout
 
 
+@pytest.fixture
+def quick_disconnect(monkeypatch):
+    """canopen's notifiers poll the bus every 0.1 s, not 1 s: a slave's disconnect waits out
+    one poll."""
+    monkeypatch.setattr(canopen.Network, "NOTIFIER_CYCLE", 0.1)
+
+
+@pytest.mark.usefixtures("quick_disconnect")
 def test_scan_of_an_independent_drive_names_what_it_lacks_for_csp():
     from drivers.canopen.link import CanLink
     from drivers.canopen.scan import scan
@@ -69,7 +86,7 @@ def test_scan_of_an_independent_drive_names_what_it_lacks_for_csp():
     assert any("0x607A" in p for p in csp.problems)
 
 
-def test_reset_clears_a_fault_left_behind_and_a_run_can_reset_it_too(tmp_path):
+def test_reset_clears_a_fault_left_behind_and_a_run_can_reset_it_too(tmp_path, capsys):
     strong = tmp_path / "strong.toml"  # a drive whose own limit lets 20 A through
     strong.write_text("[emulator]\nmax_torque_permille = 20000\n")
     with api.start_drive_emulator(strong) as emulator:
@@ -78,15 +95,17 @@ def test_reset_clears_a_fault_left_behind_and_a_run_can_reset_it_too(tmp_path):
                           drive_overrides={"master": {"current_limit_mA": 20000.0}},
                           params={"umax": 20000.0}, reference="hold:position=170",
                           out=str(tmp_path / "fault.mcap"))
-        refused = hil("servo", "run", "--controller", "pid", "--drive", emulator.url,
-                      "--duration", "0.1", "--out", "again.mcap", cwd=tmp_path)
+        refused = hil_here("servo", "run", "--controller", "pid", "--drive", emulator.url,
+                           "--duration", "0.1", "--out", "again.mcap", cwd=tmp_path,
+                           capsys=capsys)
         assert refused.returncode == 2
         assert "0x2310" in refused.stderr and "hil drive reset" in refused.stderr
         reset = hil("drive", "reset", emulator.url, cwd=tmp_path)
         assert reset.returncode == 0, reset.stderr
         # the fault reaction may still be braking: the reset waits for it to end
         assert re.search(r"node 1: FAULT( REACTION ACTIVE)? -> SWITCH ON DISABLED", reset.stdout)
-        assert "nothing to reset" in hil("drive", "reset", emulator.url, cwd=tmp_path).stdout
+        assert "nothing to reset" in hil_here("drive", "reset", emulator.url, cwd=tmp_path,
+                                              capsys=capsys).stdout
         # a run with --reset-fault after another fault
         with pytest.raises(DriveError):
             api.run_servo("pid", drive=emulator.url, duration_s=0.2,
@@ -129,6 +148,7 @@ def _unmappable(od):
     (_resize, "0x6071 is 32 bits, hil packs 16"),
     (_unmappable, "0x6064 is not PDO-mappable: hil needs it readable and TPDO-mappable"),
 ])
+@pytest.mark.usefixtures("quick_disconnect")
 def test_an_eds_that_lacks_what_hil_needs_stops_before_anything_is_enabled(tmp_path, change,
                                                                           message):
     eds = write_eds(tmp_path, "drive", change)
@@ -155,9 +175,10 @@ def test_an_eds_that_lacks_what_hil_needs_stops_before_anything_is_enabled(tmp_p
     assert not (tmp_path / "x.mcap").exists()
 
 
-def test_the_emulators_own_eds_passes_the_check(tmp_path):
+def test_the_emulators_own_eds_passes_the_check(tmp_path, capsys):
     eds = tmp_path / "emulator.eds"
-    assert hil("emulate", "drive", "--write-eds", str(eds), cwd=tmp_path).returncode == 0
+    assert hil_here("emulate", "drive", "--write-eds", str(eds), cwd=tmp_path,
+                    capsys=capsys).returncode == 0
     result = api.run_servo("pid", drive_overrides={"master": {"eds": str(eds)}},
                            duration_s=0.1, out=str(tmp_path / "eds.mcap"))
     assert result["ticks"] == 200
@@ -215,8 +236,11 @@ def test_late_tpdos_of_the_emulator_in_real_time_are_never_fresh(tmp_path):
     assert fresh == kpis["ticks"] - kpis["stale_feedback"] - 1 > 0
 
 
-def test_plan_says_whether_axes_fit_one_bus_and_the_ways_out(tmp_path):
-    fits = hil("drive", "plan", cwd=tmp_path)
+def test_plan_says_whether_axes_fit_one_bus_and_the_ways_out(tmp_path, capsys):
+    def here(*args):
+        return hil_here(*args, cwd=tmp_path, capsys=capsys)
+
+    fits = here("drive", "plan")
     assert fits.returncode == 0, fits.stderr
     assert "1 axis in CST" in fits.stdout and "2000 Hz" in fits.stdout
     assert fits.stdout.rstrip().endswith("fits")
@@ -229,9 +253,8 @@ def test_plan_says_whether_axes_fit_one_bus_and_the_ways_out(tmp_path):
     # the config's mapping counts: the SYNC echo adds a byte to each TPDO
     config = tmp_path / "drive.toml"
     config.write_text('[master]\nsync_echo = "0x2004:0"\n')
-    echo = json.loads(hil("drive", "plan", "--config", str(config), "--json",
-                          cwd=tmp_path).stdout)
-    plain = json.loads(hil("drive", "plan", "--json", cwd=tmp_path).stdout)
+    echo = json.loads(here("drive", "plan", "--config", str(config), "--json").stdout)
+    plain = json.loads(here("drive", "plan", "--json").stdout)
     assert echo["bus_time_us"] > plain["bus_time_us"]
-    bad = hil("drive", "plan", "--axes", "0", cwd=tmp_path)
+    bad = here("drive", "plan", "--axes", "0")
     assert bad.returncode == 2 and "--axes" in bad.stderr and "Traceback" not in bad.stderr

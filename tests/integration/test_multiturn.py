@@ -6,7 +6,9 @@ safe stop after the ticks is in the session (``/drive/stop``).
 ``hil servo run`` runs in a subprocess from a folder outside the repository; the Python API
 where the contract is a Python one (a controller's ``position_input``, ``from_here``). The
 runaway pushes a constant 800 mA: about 210 deg of error after 0.43 s, at about 970 deg/s
-(under the default velocity limit, so the following error is what stops it)."""
+(under the default velocity limit, so the following error is what stops it). Each flag runs
+from outside at least once; its other cases run ``main`` in this process, in the same folder
+(``hil_here``: the same exit status and output, without a second of interpreter start)."""
 
 from __future__ import annotations
 
@@ -24,6 +26,7 @@ from drivers.cia402 import QUICK_STOP_ACTIVE, SWITCH_ON_DISABLED, state_of
 from hil import api
 from hil.core.errors import ConfigError, HilError
 from hil.core.reader import read_session
+from tests.cli import hil_here as in_process
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
@@ -94,20 +97,39 @@ def hil(folder: Path, *args: str) -> subprocess.CompletedProcess[str]:
                           text=True, timeout=120)
 
 
-def runaway(folder: Path, config: str, *args: str) -> subprocess.CompletedProcess[str]:
-    """The runaway from rest at 0 deg, holding 0, its [safety] in a --config file."""
+def hil_here(folder, capsys, *args):
+    """``hil ARGS`` run by ``main`` in this process from ``folder``, as :func:`hil` reports it."""
+    return in_process(capsys, *args, cwd=folder)
+
+
+def runaway(folder: Path, config: str, *args: str,
+            capsys: pytest.CaptureFixture[str] | None = None
+            ) -> subprocess.CompletedProcess[str]:
+    """The runaway from rest at 0 deg, holding 0, its [safety] in a --config file: from
+    outside, or in this process given ``capsys``."""
     (folder / "drive.toml").write_text(config)
-    return hil(folder, "servo", "run", "--controller", "mine.py:Runaway", "--reference",
-               "hold:position=0", "--config", "drive.toml", *args)
+    argv = ("servo", "run", "--controller", "mine.py:Runaway", "--reference",
+            "hold:position=0", "--config", "drive.toml", *args)
+    return hil(folder, *argv) if capsys is None else hil_here(folder, capsys, *argv)
+
+
+@pytest.fixture(scope="module")
+def stopped_runaway(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess[str]]:
+    """The runaway stopped by a 200 deg window, run once for the tests that read it: its
+    folder (the session ``runaway.mcap``) and the finished command."""
+    folder = tmp_path_factory.mktemp("runaway")
+    (folder / "mine.py").write_text(CONTROLLERS)
+    done = runaway(folder, "[safety]\nfollowing_error_deg = 200.0\n", "--duration", "3",
+                   "--out", "runaway.mcap")
+    return folder, done
 
 
 def kpis_of(path: Path) -> dict:
     return json.loads(read_session(path).metadata["kpis"]["json"])
 
 
-def test_a_runaway_past_half_a_turn_is_stopped_by_a_200_deg_window(folder):
-    done = runaway(folder, "[safety]\nfollowing_error_deg = 200.0\n", "--duration", "3",
-                   "--out", "runaway.mcap")
+def test_a_runaway_past_half_a_turn_is_stopped_by_a_200_deg_window(stopped_runaway):
+    folder, done = stopped_runaway
     assert done.returncode == 2, done.stderr
     [line] = done.stderr.strip().splitlines()
     assert line.startswith("hil: error: safety stop at t=")
@@ -118,10 +140,9 @@ def test_a_runaway_past_half_a_turn_is_stopped_by_a_200_deg_window(folder):
     assert kpis["max_error_deg"] > 200.0 and kpis["ticks"] < 6000  # stopped, not completed
 
 
-def test_the_stop_after_a_safety_stop_is_recorded_until_the_axis_stands(folder):
-    runaway(folder, "[safety]\nfollowing_error_deg = 200.0\n", "--duration", "3", "--out",
-            "stop.mcap")
-    data = read_session(folder / "stop.mcap")
+def test_the_stop_after_a_safety_stop_is_recorded_until_the_axis_stands(stopped_runaway):
+    folder, _ = stopped_runaway
+    data = read_session(folder / "runaway.mcap")
     last_tick_ns, last = data.topic("/drive/feedback")[-1]
     stop = data.topic("/drive/stop")
     times = [t for t, _ in stop]
@@ -136,13 +157,13 @@ def test_the_stop_after_a_safety_stop_is_recorded_until_the_axis_stands(folder):
     assert abs(final["velocity_deg_s"]) < 2.5  # ...braked to standstill, then disabled
     assert final["position_deg"] > first["position_deg"] + 20.0
     # and the command line reads it
-    shown = hil(folder, "report", "stop.mcap", "--topic", "/drive/stop")
+    shown = hil(folder, "report", "runaway.mcap", "--topic", "/drive/stop")
     assert shown.returncode == 0, shown.stderr
     lines = [json.loads(line) for line in shown.stdout.splitlines()]
     assert [m["cycle"] for m in lines] == [m["cycle"] for _, m in stop]
 
 
-def test_a_limit_of_200_deg_on_the_error_is_violated_by_a_runaway(folder):
+def test_a_limit_of_200_deg_on_the_error_is_violated_by_a_runaway(folder, capsys):
     free = "[safety]\nenabled = false\n"
     kpi = runaway(folder, free, "--duration", "0.6", "--limit", "max_error_deg<=200",
                   "--out", "kpi.mcap")
@@ -150,7 +171,7 @@ def test_a_limit_of_200_deg_on_the_error_is_violated_by_a_runaway(folder):
     assert "limit violated: max_error_deg<=200" in kpi.stderr
     assert kpis_of(folder / "kpi.mcap")["max_error_deg"] > 300.0
     tick = runaway(folder, free, "--duration", "0.6", "--limit", "abs_error_deg<=200",
-                   "--out", "tick.mcap")
+                   "--out", "tick.mcap", capsys=capsys)
     assert tick.returncode == 1, tick.stderr
     assert "limit violated: abs_error_deg<=200" in tick.stderr
     command = read_session(folder / "tick.mcap").arrays("/drive/command")
@@ -161,7 +182,8 @@ def test_the_reference_runs_on_the_turn_nearest_the_start_and_from_here_from_the
         folder):
     """Two runs on one emulator process: the first leaves the axis near 270 deg. Holding 0
     from there, the nearest turn is 360: 90 deg away, stopped at once. From here, the sine
-    starts where the axis stands and is tracked."""
+    starts where the axis stands and is tracked (0.25 s of it: its start is what is
+    checked)."""
     with api.start_drive_emulator() as drive:
         first = api.run_servo("pid", drive=drive.url, reference="trapezoid:stroke=270",
                               duration_s=1.2, out=str(folder / "first.mcap"))
@@ -172,7 +194,7 @@ def test_the_reference_runs_on_the_turn_nearest_the_start_and_from_here_from_the
         leaked = read_session(folder / "leaked.mcap")
         assert leaked.arrays("/drive/command")["reference_deg"][0] == 360.0
         here = api.run_servo("pid", drive=drive.url, reference="sine:amplitude=2,frequency=1",
-                             duration_s=0.5, from_here=True, out=str(folder / "here.mcap"))
+                             duration_s=0.25, from_here=True, out=str(folder / "here.mcap"))
     assert here["stop_reason"] == "completed" and here["max_error_deg"] < 1.0
     data = read_session(folder / "here.mcap")
     start = data.arrays("/drive/feedback")["position_deg"][0]
@@ -183,7 +205,8 @@ def test_the_reference_runs_on_the_turn_nearest_the_start_and_from_here_from_the
 
 
 def test_from_here_on_two_axes_runs_the_circle_from_where_they_stand(folder):
-    # two axes fit one 1 Mbit/s bus at 1 kHz (the PID's integral time made long enough for it)
+    # two axes fit one 1 Mbit/s bus at 1 kHz (the PID's integral time made long enough for it);
+    # 0.2 s of the circle: its start is what is checked
     config = folder / "two.toml"
     config.write_text("[master]\ncycle_period_us = 1000\n")
     with api.start_drive_emulator(node=[1, 2]) as drive:
@@ -193,7 +216,7 @@ def test_from_here_on_two_axes_runs_the_circle_from_where_they_stand(folder):
                       out=str(folder / "away.mcap"))
         kpis = api.run_servo("mpc", drive=drive.url, axes="x=1,y=2", from_here=True,
                              drive_config=str(config), reference="circle:radius=2,feed=20",
-                             duration_s=0.5, out=str(folder / "circle.mcap"))
+                             duration_s=0.2, out=str(folder / "circle.mcap"))
     assert kpis["stop_reason"] == "completed"
     assert kpis["contour"]["max_contour_error_deg"] < 2.0
     assert all(axis["max_error_deg"] < 2.0 for axis in kpis["axes"].values())
@@ -238,13 +261,20 @@ def test_a_multi_axis_controller_asking_for_unwrapped_positions_gets_the_turns(f
         assert np.array_equal(seen[:, i], feedback) and feedback.max() > 700.0
 
 
-def test_a_bad_position_input_or_a_reference_read_when_built_is_one_clear_line(folder):
-    for name, message in (("Misspelt", "position_input = 'unwraped': a servo controller takes "
-                                       "'wrapped'"),
-                          ("SamplesWhenBuilt", "a controller samples it in step(), not when "
-                                               "it is built")):
-        done = hil(folder, "servo", "run", "--controller", f"mine.py:{name}", "--duration",
-                   "0.1", "--out", f"{name}.mcap")
+def test_a_bad_position_input_or_a_reference_read_when_built_is_one_clear_line(folder,
+                                                                                capsys):
+    def outside(*args: str) -> subprocess.CompletedProcess[str]:
+        return hil(folder, *args)
+
+    def here(*args: str) -> subprocess.CompletedProcess[str]:
+        return hil_here(folder, capsys, *args)
+
+    for name, message, run in (("Misspelt", "position_input = 'unwraped': a servo controller "
+                                            "takes 'wrapped'", outside),
+                               ("SamplesWhenBuilt", "a controller samples it in step(), not "
+                                                    "when it is built", here)):
+        done = run("servo", "run", "--controller", f"mine.py:{name}", "--duration", "0.1",
+                   "--out", f"{name}.mcap")
         assert done.returncode == 2
         [line] = done.stderr.strip().splitlines()
         assert line.startswith("hil: error: ") and message in line

@@ -1,7 +1,9 @@
 """A report for every outcome: ``hil servo run`` and ``hil bench run``, from a folder outside
 the repository, print ``--json`` and write ``--junit`` when a limit, a safety stop, a fault,
 Ctrl-C or a bad controller ends the run, with the exit status and the one error line as
-documented (README "Limits and a verdict")."""
+documented (README "Limits and a verdict"). Each kind of report is read once from a ``hil``
+process; more cases of the same command run the command line in this process
+(:func:`hil_here`), from the same folder."""
 
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ import pytest
 
 from hil import api
 from hil.core.reader import read_session
+from tests.cli import hil_here
 
 pytestmark = [pytest.mark.timeout(180), pytest.mark.slow]
 
@@ -98,13 +101,14 @@ def test_a_per_tick_limit_that_stops_a_servo_run_is_a_failure_case(tmp_path):
     assert float(properties["step_us.p99"]) == kpis["step_us"]["p99"]
 
 
-def test_a_safety_stop_of_a_servo_run_is_reported(tmp_path):
+def test_a_safety_stop_of_a_servo_run_is_reported(tmp_path, capfd, monkeypatch):
+    monkeypatch.chdir(tmp_path)
     (tmp_path / "runaway.py").write_text(RUNAWAY)
     (tmp_path / "tight.toml").write_text(
         "[safety]\nfollowing_error_deg = 5.0\nfollowing_error_ms = 5.0\n")
-    done = hil(tmp_path, "servo", "run", "--controller", "runaway.py:Runaway", "--config",
-               "tight.toml", "--duration", "2", "--out", "s.mcap", "--json", "--junit",
-               "report.xml")
+    done = hil_here(capfd, "servo", "run", "--controller", "runaway.py:Runaway", "--config",
+                    "tight.toml", "--duration", "2", "--out", "s.mcap", "--json", "--junit",
+                    "report.xml")
     assert done.returncode == 2
     line = one_error_line(done, "hil: error: safety stop at t=")
     kpis, suite, properties = report(tmp_path, done)
@@ -119,11 +123,11 @@ def test_a_safety_stop_of_a_servo_run_is_reported(tmp_path):
 
 
 def test_a_drive_fault_during_a_servo_run_is_reported(tmp_path):
-    # 6 s after the emulator starts: after the run enabled the drive (about 1 s; the run is
-    # lockstep over the wire and would go on far longer than that)
-    with api.start_drive_emulator(faults=["emcy@6:code=0x2310"]) as emulator:
+    # an emulator on SYNC time from power-on counts the run's time: the fault comes 0.5 s into
+    # the run (long after it enabled the drive), however late the run starts
+    with api.start_drive_emulator(faults=["emcy@0.5:code=0x2310"], clock="sync") as emulator:
         done = hil(tmp_path, "servo", "run", "--controller", "pid", "--drive", emulator.url,
-                   "--duration", "600", "--out", "s.mcap", "--json", "--junit",
+                   "--duration", "2", "--out", "s.mcap", "--json", "--junit",
                    "report.xml")
     assert done.returncode == 2
     line = one_error_line(done, "hil: error: drive node 1 reports FAULT")
@@ -137,7 +141,7 @@ def test_a_drive_fault_during_a_servo_run_is_reported(tmp_path):
         kpis["faults"]["emcy"])
 
 
-def test_a_bench_safety_stop_and_a_bench_fault_are_reported(tmp_path):
+def test_a_bench_safety_stop_and_a_bench_fault_are_reported(tmp_path, capfd, monkeypatch):
     (tmp_path / "tight.toml").write_text("[safety]\nmax_total_va = 100.0\n"
                                          "max_total_va_ms = 100.0\n")
     done = hil(tmp_path, "bench", "run", "--controller", "bc", "--cycles", "1", "--config",
@@ -151,8 +155,9 @@ def test_a_bench_safety_stop_and_a_bench_fault_are_reported(tmp_path):
     assert properties["faults.link_losses"] == "0"
 
     (tmp_path / "faults.toml").write_text('[faults]\nschedule = ["exception@2:code=2,unit=2"]\n')
-    done = hil(tmp_path, "bench", "run", "--controller", "bc", "--cycles", "1", "--config",
-               "faults.toml", "--out", "f.mcap", "--json", "--junit", "fault.xml")
+    monkeypatch.chdir(tmp_path)
+    done = hil_here(capfd, "bench", "run", "--controller", "bc", "--cycles", "1", "--config",
+                    "faults.toml", "--out", "f.mcap", "--json", "--junit", "fault.xml")
     assert done.returncode == 2
     line = one_error_line(done, "hil: error: ")
     assert "exception 0x02 (illegal data address)" in line
@@ -202,9 +207,10 @@ def test_ctrl_c_gives_the_report_of_an_interrupted_run(tmp_path, command):
     assert properties["status"] == "interrupted"
 
 
-def test_a_run_that_cannot_start_still_writes_its_report(tmp_path):
-    done = hil(tmp_path, "servo", "run", "--controller", "missing.py:Nope", "--json",
-               "--junit", "report.xml")
+def test_a_run_that_cannot_start_still_writes_its_report(tmp_path, capfd, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    done = hil_here(capfd, "servo", "run", "--controller", "missing.py:Nope", "--json",
+                    "--junit", "report.xml")
     assert done.returncode == 2
     line = one_error_line(done, "hil: error: ")
     assert "no such file 'missing.py'" in line

@@ -37,8 +37,9 @@ def connect_when_up(url: str, timeout_s: float = 10.0,
         if status is not None:
             raise ConnectionError(f"the server's process exited with status {status}")
         try:
+            # no keep-alive pings, and a bounded close: a closing client would wait for either
             return connect(url, subprotocols=SUBPROTOCOLS, open_timeout=2, max_size=None,
-                           legacy=True)
+                           legacy=True, ping_interval=None, close_timeout=1)
         except OSError:
             if time.monotonic() > deadline:
                 raise

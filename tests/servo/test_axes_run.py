@@ -1,5 +1,7 @@
 """``hil servo run --axes``: several axes on one bus, from the command line as a user runs
-it; a circular test on two emulated axes, one SYNC per tick for all, a stop for all."""
+it; a circular test on two emulated axes, one SYNC per tick for all, a stop for all. Each
+flag runs from outside at least once; its other cases run ``main`` in this process, in the same
+folder (``hil_here``: the same exit status and output, without a second of interpreter start)."""
 
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ import numpy as np
 import pytest
 
 from hil.core.reader import read_session
+from tests.cli import hil_here as in_process
 
 pytestmark = [pytest.mark.slow]
 
@@ -24,7 +27,12 @@ def hil(cwd, *args):
                           text=True, env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=180)
 
 
-def test_a_circular_test_on_two_axes_reports_each_axis_and_the_contour_error(tmp_path):
+def hil_here(cwd, capsys, *args):
+    """``hil ARGS`` run by ``main`` in this process from ``cwd``, as :func:`hil` reports it."""
+    return in_process(capsys, *args, cwd=cwd)
+
+
+def test_a_circular_test_on_two_axes_reports_each_axis_and_the_contour_error(tmp_path, capsys):
     done = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller", "mpc",
                "--reference", "circle:radius=2,feed=20", "--duration", "0.5", "--settle",
                "0.1", "--out", "circle.mcap", "--json")
@@ -59,9 +67,9 @@ def test_a_circular_test_on_two_axes_reports_each_axis_and_the_contour_error(tmp
     assert max(abs(m["contour_error_deg"]) for m in contour_topic[200:]) == \
         pytest.approx(contour["max_contour_error_deg"], rel=1e-5)
     # the human summary names each axis and the contour error
-    text = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller", "pid",
-               "--reference", "circle:radius=2,feed=20", "--duration", "0.2", "--out",
-               "pid.mcap")
+    text = hil_here(tmp_path, capsys, "servo", "run", "--axes", "x=1,y=2", "--controller", "pid",
+                    "--reference", "circle:radius=2,feed=20", "--duration", "0.2", "--out",
+                    "pid.mcap")
     assert text.returncode == 0, text.stderr
     assert "axis x (node 1)" in text.stdout and "axis y (node 2)" in text.stdout
     assert "contour error (circle of 2 deg)" in text.stdout
@@ -82,21 +90,24 @@ class PdPosition:
 """
 
 
-def _contour(tmp_path, name, *params):
-    done = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller",
-               "pd.py:PdPosition", *params, "--reference", "circle:radius=2,feed=20",
-               "--duration", "1.2", "--out", f"{name}.mcap", "--quiet")
+def _contour(tmp_path, name, *params, capsys=None):
+    """The contour error after a settling turn: from outside, or in this process given
+    ``capsys``."""
+    argv = ("servo", "run", "--axes", "x=1,y=2", "--controller", "pd.py:PdPosition", *params,
+            "--reference", "circle:radius=2,feed=20", "--duration", "1.2", "--out",
+            f"{name}.mcap", "--quiet")
+    done = hil(tmp_path, *argv) if capsys is None else hil_here(tmp_path, capsys, *argv)
     assert done.returncode == 0, done.stderr
     rows = [m for _, m in read_session(tmp_path / f"{name}.mcap").topic("/path/contour")]
     return np.array([m["contour_error_deg"] for m in rows[800:]])  # after a settling turn
 
 
-def test_a_gain_mismatch_between_axes_shows_as_an_ellipse(tmp_path):
+def test_a_gain_mismatch_between_axes_shows_as_an_ellipse(tmp_path, capsys):
     """The same gains on both axes lag both alike: the circle shrinks, evenly all round.
     A lower gain on y lags y more: the path becomes an ellipse, its contour error swings
     twice per turn. --param y.kp sets axis y's gain only."""
     (tmp_path / "pd.py").write_text(PD_CONTROLLER)
-    matched = _contour(tmp_path, "matched", "--param", "kp=300")
+    matched = _contour(tmp_path, "matched", "--param", "kp=300", capsys=capsys)
     mismatched = _contour(tmp_path, "mismatched", "--param", "kp=300", "--param", "y.kp=100")
     swing_matched = matched.max() - matched.min()
     swing_mismatched = mismatched.max() - mismatched.min()
@@ -105,15 +116,15 @@ def test_a_gain_mismatch_between_axes_shows_as_an_ellipse(tmp_path):
     spectrum = np.abs(np.fft.rfft(mismatched - mismatched.mean()))
     frequencies = np.fft.rfftfreq(mismatched.size, 500e-6)
     assert frequencies[np.argmax(spectrum)] == pytest.approx(2 * 10 / (2 * np.pi), rel=0.35)
-    wrong = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller",
-                "pd.py:PdPosition", "--param", "z.kp=1", "--out", "z.mcap")
+    wrong = hil_here(tmp_path, capsys, "servo", "run", "--axes", "x=1,y=2", "--controller",
+                     "pd.py:PdPosition", "--param", "z.kp=1", "--out", "z.mcap")
     assert wrong.returncode == 2 and "no axis 'z'" in wrong.stderr
 
 
-def test_a_safety_stop_on_one_axis_stops_every_axis(tmp_path):
-    done = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2,z=3", "--controller", "pid",
-               "--reference", "sine:amplitude=20,frequency=1", "--duration", "1",
-               "--safety", "following_error_deg=1", "--out", "stop.mcap")
+def test_a_safety_stop_on_one_axis_stops_every_axis(tmp_path, capsys):
+    done = hil_here(tmp_path, capsys, "servo", "run", "--axes", "x=1,y=2,z=3", "--controller",
+                    "pid", "--reference", "sine:amplitude=20,frequency=1", "--duration", "1",
+                    "--safety", "following_error_deg=1", "--out", "stop.mcap")
     assert done.returncode == 2, done.stdout + done.stderr
     assert "safety stop" in done.stderr and "following error" in done.stderr
     events = [m for _, m in read_session(tmp_path / "stop.mcap").topic("/events")]
@@ -123,19 +134,19 @@ def test_a_safety_stop_on_one_axis_stops_every_axis(tmp_path):
                if m["kind"] == "drive.safe_stop")
 
 
-def test_limits_name_an_axis_or_the_path(tmp_path):
+def test_limits_name_an_axis_or_the_path(tmp_path, capsys):
     run = ("servo", "run", "--axes", "x=1,y=2", "--controller", "mpc", "--reference",
-           "circle:radius=2,feed=20", "--duration", "0.3", "--out", "lim.mcap", "--json")
+           "circle:radius=2,feed=20", "--duration", "0.15", "--out", "lim.mcap", "--json")
     holds = hil(tmp_path, *run, "--limit", "contour.max_contour_error_deg<=0.05",
                 "--limit", "abs_error_deg<=0.2")  # a per-tick signal: on every axis
     assert holds.returncode == 0, holds.stderr
     assert json.loads(holds.stdout)["passed"] is True
-    violated = hil(tmp_path, *run, "--limit", "axes.y.max_error_deg<=0.0001")
+    violated = hil_here(tmp_path, capsys, *run, "--limit", "axes.y.max_error_deg<=0.0001")
     assert violated.returncode == 1
     assert "limit violated: axes.y.max_error_deg<=0.0001" in violated.stderr
 
 
-def test_axes_from_the_drive_config(tmp_path):
+def test_axes_from_the_drive_config(tmp_path, capsys):
     config = tmp_path / "axes.toml"
     config.write_text('[[axis]]\nname = "x"\nnode = 1\n\n[[axis]]\nname = "c"\nnode = 5\n')
     done = hil(tmp_path, "servo", "run", "--config", str(config), "--controller", "pid",
@@ -149,24 +160,28 @@ def test_axes_from_the_drive_config(tmp_path):
                            "unknown key 'axis[0].speed'"),
                           ('[[axis]]\nname = "x"\nnode = 1\n', "name two axes or more")):
         config.write_text(body)
-        bad = hil(tmp_path, "servo", "run", "--config", str(config), "--controller", "pid",
-                  "--out", "bad.mcap")
+        bad = hil_here(tmp_path, capsys, "servo", "run", "--config", str(config),
+                       "--controller", "pid", "--out", "bad.mcap")
         assert bad.returncode == 2 and problem in bad.stderr, bad.stderr
 
 
-@pytest.mark.parametrize("args, problem", [
-    (["--axes", "x=1"], "name two axes or more"),
-    (["--axes", "x=1,x=2"], "a name given twice"),
-    (["--axes", "x=1,y=1"], "a node given twice"),
-    (["--axes", "X=1,y=200"], "is not NAME=NODE"),
-    (["--axes", "x=1,y=2,z=3", "--reference", "circle:radius=2"], "a circle needs two axes"),
-    (["--axes", "x=1,y=2", "--reference", "circle:radius=-1"], "radius must be a positive"),
-    (["--axes", "x=1,y=2", "--limit", "max_error_deg<=1"], "KPIs: axes, contour"),
-    (["--axes", "x=1,y=2", "--realtime"], "--realtime --axes needs a bus"),
-    (["--axes", "x=1,y=2", "--drive", "virtual://plan"], "the bus plan does not fit"),
+@pytest.mark.parametrize("args, problem, outside", [
+    (["--axes", "x=1"], "name two axes or more", True),
+    (["--axes", "x=1,x=2"], "a name given twice", False),
+    (["--axes", "x=1,y=1"], "a node given twice", False),
+    (["--axes", "X=1,y=200"], "is not NAME=NODE", False),
+    (["--axes", "x=1,y=2,z=3", "--reference", "circle:radius=2"], "a circle needs two axes",
+     False),
+    (["--axes", "x=1,y=2", "--reference", "circle:radius=-1"], "radius must be a positive",
+     False),
+    (["--axes", "x=1,y=2", "--limit", "max_error_deg<=1"], "KPIs: axes, contour", False),
+    (["--axes", "x=1,y=2", "--realtime"], "--realtime --axes needs a bus", False),
+    (["--axes", "x=1,y=2", "--drive", "virtual://plan"], "the bus plan does not fit", False),
 ])
-def test_bad_axes_are_one_line_before_anything_runs(tmp_path, args, problem):
-    done = hil(tmp_path, "servo", "run", "--controller", "pid", "--out", "bad.mcap", *args)
+def test_bad_axes_are_one_line_before_anything_runs(tmp_path, capsys, args, problem, outside):
+    """The first case from outside (``outside``), the others in this process."""
+    argv = ("servo", "run", "--controller", "pid", "--out", "bad.mcap", *args)
+    done = hil(tmp_path, *argv) if outside else hil_here(tmp_path, capsys, *argv)
     assert done.returncode == 2 and problem in done.stderr, done.stderr
     assert "Traceback" not in done.stderr and not (tmp_path / "bad.mcap").exists()
 
@@ -226,9 +241,9 @@ def test_a_multi_axis_controller_is_stepped_once_a_tick_with_every_axis(tmp_path
 
     CoupledPd.calls = 0
     kpis = api.run_servo(CoupledPd, {"kp": 300}, axes="x=1,y=2",
-                         reference="circle:radius=2,feed=20", duration_s=0.3,
+                         reference="circle:radius=2,feed=20", duration_s=0.1,
                          out=str(tmp_path / "coupled.mcap"))
-    assert CoupledPd.calls == kpis["ticks"] == 600  # once a tick, not once per axis
+    assert CoupledPd.calls == kpis["ticks"] == 200  # once a tick, not once per axis
     assert kpis["stop_reason"] == "completed" and kpis["contour"]["max_contour_error_deg"] < 2.0
     with pytest.raises(ControllerError, match=r"one current per axis \(2\), got shape \(1,\)"):
         api.run_servo(WrongShape, axes="x=1,y=2", duration_s=0.01,

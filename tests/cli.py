@@ -1,0 +1,33 @@
+"""``hil`` run by ``main`` in the test's own process: the cheap way to check a variant of a
+command that another test already runs from outside, in a subprocess (a process start costs
+about a second of CPU; the suite starts hundreds)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from hil.cli.main import main
+
+
+def hil_here(capture: Any, *args: Any, cwd: str | os.PathLike[str] | None = None
+             ) -> subprocess.CompletedProcess[str]:
+    """``hil ARGS`` run in this process (from ``cwd``, else the current folder), reported as
+    :func:`subprocess.run` reports a process: its exit status (an argument the parser refused
+    included) and what it printed to ``capture`` (pytest's ``capsys``, or ``capfd``, which also
+    holds what the session writer process printed)."""
+    argv = [str(arg) for arg in args]
+    capture.readouterr()
+    with pytest.MonkeyPatch.context() as patch:
+        if cwd is not None:
+            patch.chdir(Path(cwd))
+        try:
+            status = main(argv)
+        except SystemExit as exit_:  # the parser refused an argument
+            status = int(exit_.code or 0)
+    out, err = capture.readouterr()
+    return subprocess.CompletedProcess(["hil", *argv], status, out, err)
