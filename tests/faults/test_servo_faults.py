@@ -20,8 +20,8 @@ def test_an_emcy_during_a_run_over_socketcand_ends_it_with_one_line(tmp_path, ca
     config.write_text("[master]\nstale_cycles = 100000\nheartbeat_timeout_ms = 5000\n"
                       "rx_timeout_us = 5000\n[emulator]\nsync_loss_timeout_ms = 5000\n")
     out = tmp_path / "servo.mcap"
-    # 5 s after the emulator starts: after the run enabled the drive (it takes about 1 s)
-    with api.start_drive_emulator(config, faults=["emcy@5:code=0x4310"]) as emulator:
+    # 3 s after the emulator starts: after the run enabled the drive (it takes about 1 s)
+    with api.start_drive_emulator(config, faults=["emcy@3:code=0x4310"]) as emulator:
         status = main(["servo", "run", "--controller", "pid", "--drive", emulator.url,
                        "--config", str(config), "--duration", "60", "--realtime",
                        "--reference", "hold:position=0", "--out", str(out)])
@@ -30,7 +30,7 @@ def test_an_emcy_during_a_run_over_socketcand_ends_it_with_one_line(tmp_path, ca
     assert status == 2
     assert err.count("\n") == 1 and err.startswith("hil: error: drive node 1 reports FAULT")
     assert "0x4310" in err and "Traceback" not in err
-    assert injected and injected[0].startswith("emcy@5:code=0x4310 injected at t=")
+    assert injected and injected[0].startswith("emcy@3:code=0x4310 injected at t=")
     events = read_session(out).topic("/events")
     emcy = [m for _, m in events if m["kind"] == "drive.emcy"]
     assert emcy and emcy[0]["data"]["code"] == 0x4310

@@ -20,37 +20,34 @@ from hil import api
 from hil.servo.run import ServoRunOptions, run_servo
 from tests.busy import busy_machine, busy_now
 from tests.session_digest import EXPERIMENTS, kpi_digest, session_digest
+from tests.test_readme import blocks
 
 pytestmark = [pytest.mark.slow]
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 ROUNDS = 10
-TEN_ROUNDS = f"""import pytest
-
-import test_my_controllers as readme
 
 
-@pytest.mark.parametrize("round", range({ROUNDS}))
-def test_the_bench_example(round, hil_bench):
-    readme.test_threshold_relays_keep_the_levels_in_range(hil_bench)
+def ten_rounds(example: str) -> str:
+    """The README's example, its tests run :data:`ROUNDS` times each."""
+    body = example.replace("\ndef test_", "\n@pytest.mark.parametrize('round', range("
+                           f"{ROUNDS}))\ndef test_").replace("(hil_bench)", "(round, hil_bench)")
+    return "import pytest\n" + body.replace("(hil_drive)", "(round, hil_drive)")
 
 
-@pytest.mark.parametrize("round", range({ROUNDS}))
-def test_the_drive_example(round, hil_drive):
-    readme.test_pd_tracks_a_slow_sine_through_the_drive(hil_drive)
-"""
-
-
-def test_the_readme_fixture_examples_pass_ten_times_in_a_row_under_load(tmp_path):
+def test_the_readme_fixture_example_passes_ten_times_in_a_row_under_load(tmp_path):
+    """The README's `hil_bench` / `hil_drive` example, as a user copies it, ten times over,
+    both cores busy all along (its only run in the suite: tests/test_readme.py leaves it here)."""
     folder = tmp_path / "my_lab"
     folder.mkdir()
-    for name in ("my_controllers.py", "test_my_controllers.py"):
-        shutil.copy(EXAMPLES / name, folder / name)
-    (folder / "test_ten_rounds.py").write_text(TEN_ROUNDS)
+    shutil.copy(EXAMPLES / "my_controllers.py", folder / "my_controllers.py")
+    example = blocks("python")[2]
+    assert "def test_threshold_relays_keep_the_levels_in_range(hil_bench)" in example
+    (folder / "test_readme_example.py").write_text(ten_rounds(example))
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # a user's shell
     with busy_machine() as spinning:
         run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                              "--rootdir", str(folder), "test_ten_rounds.py"], cwd=folder,
+                              "--rootdir", str(folder), "test_readme_example.py"], cwd=folder,
                              env=env, capture_output=True, text=True, timeout=600)
         loaded = busy_now(spinning)
     assert loaded, "the machine was not kept busy all along"
