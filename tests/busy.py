@@ -8,7 +8,8 @@ on a loaded machine, not only on a quiet one.
         ...  # both cores are busy while this runs
 
 The processes are killed when the block ends; each also stops by itself after ``bound_s``
-(a test killed mid-way leaves nothing spinning).
+(a test killed mid-way leaves nothing spinning). ``python tests/busy.py SECONDS`` keeps the
+machine busy that long, e.g. beside a whole ``make test``.
 """
 
 from __future__ import annotations
@@ -54,3 +55,11 @@ def busy_now(pids: list[int]) -> bool:
         if state != "R":
             return False
     return True
+
+
+if __name__ == "__main__":  # python tests/busy.py SECONDS: a busy machine while something runs
+    import time
+
+    seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 600.0
+    with busy_machine(bound_s=seconds):
+        time.sleep(seconds)

@@ -39,14 +39,8 @@ def socketcand_server():
     server.close()
 
 
-#: the longest single test (about 40 s), started first for the same reason as Ray's
-LONGEST = "test_the_readme_fixture_example_passes_ten_times_in_a_row_under_load"
-
-
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Ray's tests first, then the longest one: Ray takes 10-25 s to start, and a worker that
-    starts it (or a long test) late keeps the others waiting at the end of the suite (the
-    not-realtime tests: 218 s in the order of the files, 191 s with Ray's first, 209 s with
-    every slow test first as well)."""
-    items.sort(key=lambda item: ("local_ray" not in getattr(item, "fixturenames", ()),
-                                 item.name != LONGEST))
+    """Ray's tests first: Ray takes 10-25 s to start, and a worker that starts it late keeps the
+    other one waiting at the end of the suite (the not-realtime tests: 218 s in the order of the
+    files, 191 s with Ray's first, 209 s with every slow test first as well)."""
+    items.sort(key=lambda item: "local_ray" not in getattr(item, "fixturenames", ()))

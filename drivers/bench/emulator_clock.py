@@ -113,10 +113,9 @@ class EmulatorClock:
         return self.link.read_registers(CLOCK_UNIT, CONTROL_REGISTER, 1)[0]
 
     def release(self) -> None:
-        """Let go of the emulator's time (best effort: a gone peer has let go already), on a
-        connection of its own if the link was closed, closed after."""
-        try:
-            with contextlib.suppress(HilError):
-                self.link.write_register(CLOCK_UNIT, CONTROL_REGISTER, 0)
-        finally:
-            self.link.close()
+        """Let go of the emulator's time (best effort: a gone peer has let go already). On the
+        link's own connection while it is open: a new one could reach the emulator before it
+        saw the old one close, and be refused as another master (the emulator then lets go
+        when its grace after the close runs out)."""
+        with contextlib.suppress(HilError):
+            self.link.write_register(CLOCK_UNIT, CONTROL_REGISTER, 0)

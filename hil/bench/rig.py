@@ -399,12 +399,12 @@ class OpenedBench:
                          else "its own")}
 
     def close(self) -> None:
-        """Close the link (relays safe, best effort), let go of an emulator's time (the
-        relays went safe on it), then stop the emulator."""
+        """Let go of an emulator's time (the relays went safe on it) before the link closes,
+        close the link (relays safe, best effort), then stop the emulator."""
         try:
-            self.bench.close()
             if isinstance(self.plant_task, WirePlantClock):
                 self.plant_task.clock.release()
+            self.bench.close()
         finally:
             if self.emulator is not None:
                 self.emulator.stop()
