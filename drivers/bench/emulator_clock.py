@@ -116,6 +116,10 @@ class EmulatorClock:
         """Let go of the emulator's time (best effort: a gone peer has let go already). On the
         link's own connection while it is open: a new one could reach the emulator before it
         saw the old one close, and be refused as another master (the emulator then lets go
-        when its grace after the close runs out)."""
-        with contextlib.suppress(HilError):
-            self.link.write_register(CLOCK_UNIT, CONTROL_REGISTER, 0)
+        when its grace after the close runs out). The link's requests wait its own timeout
+        after: the emulator keeps the wall clock again."""
+        try:
+            with contextlib.suppress(HilError):
+                self.link.write_register(CLOCK_UNIT, CONTROL_REGISTER, 0)
+        finally:
+            self.link.let_go()

@@ -162,7 +162,7 @@ class ModbusLink:
 
     def __init__(self, spec: BusSpec, timeout_s: float, attempts: int) -> None:
         self.spec = spec
-        self.timeout_s = timeout_s
+        self.timeout_s = self.request_timeout_s = timeout_s
         self.attempts = attempts
         self.connections = 0  # successful (re)connections so far
         self.retries = 0      # attempts that failed and were tried again (or given up)
@@ -181,6 +181,12 @@ class ModbusLink:
         time (the peer may be paused); a request unanswered that long means the peer is gone."""
         self.bound_s = bound_s
         self._wait(bound_s)
+
+    def let_go(self) -> None:
+        """Lockstep over the wire is over: requests wait the link's own timeout again (the
+        peer keeps the wall clock now; a silent one is silent, not paused)."""
+        self.bound_s = None
+        self._wait(self.request_timeout_s)
 
     @contextlib.contextmanager
     def patient(self, timeout_s: float, attempts: int = 1) -> Iterator[None]:
