@@ -134,7 +134,7 @@ def test_replay_of_a_truncated_session_serves_the_recorded_messages(
 
 
 def _run_ticks(path: Path, port: int, with_stalled_client: bool) -> tuple[int, int, dict]:
-    """3 s at 1 kHz, each tick a 3.6 kB message served live (10 MB in all: more than the
+    """1.5 s at 1 kHz, each tick a 7.2 kB message served live (10.8 MB in all: more than the
     kernel's buffers and the SDK's queue for a stalled client hold).
 
     Returns the skipped ticks, the ticks and the file's ``live`` metadata."""
@@ -143,14 +143,14 @@ def _run_ticks(path: Path, port: int, with_stalled_client: bool) -> tuple[int, i
                                                  live_rates={"/tick": 0}))
     topic = session.topic("/tick", {"type": "object", "title": "Tick", "properties": {
         "v": {"type": "array", "items": {"type": "number"}}}})
-    payload = {"v": [0.123456789] * 300}
+    payload = {"v": [0.123456789] * 600}
     session.add_task(FunctionTask("tick", 1, write=lambda t: topic.log(t, payload)))
     sock = None
     if with_stalled_client:
         session.recorder.flush()  # hand the topics to the writer, which advertises them
         sock = stalled_client("127.0.0.1", port, ["/tick", "/loop/tick/timing"], CONNECT_S)
     try:
-        session.run(duration_s=3.0)
+        session.run(duration_s=1.5)
     finally:
         session.close()
         if sock is not None:
