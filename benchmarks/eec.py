@@ -33,7 +33,7 @@ from unittest import mock
 
 import numpy as np
 
-from controllers import eec as eec_module
+from controllers.bench import eec as eec_module
 from controllers.bench.eec_cvxpy import solve_naive
 from hil.bench.kpis import timing_summary
 from hil.bench.run import BenchRunOptions, run_bench

@@ -91,7 +91,7 @@ def sample_thetas(law, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray
             return super().step(position_deg, t_s)
 
     reference = Sine(2.0, 10.0)
-    simulate(Recording(reference, cfg), reference, 1.0, current_limit_mA=cfg.u_max)
+    simulate(Recording(reference, cfg), reference, 1.0, current_limit_ma=cfg.u_max)
     closed_loop = np.array(seen[10:])
     _, S = relative_map(law.qp, cfg.ht)
     phi = law.box.lower + (law.box.upper - law.box.lower) * rng.random((2000, law.P.shape[0]))

@@ -21,7 +21,8 @@ from pathlib import Path
 from hil.bench.run import BenchRunOptions, run_bench
 from hil.core.reader import SessionData, read_session
 from hil.core.recorder import Recorder, RecordingOptions
-from hil.servo.run import COMMAND_SCHEMA, FEEDBACK_SCHEMA, ServoRunOptions, run_servo
+from hil.servo.run import ServoRunOptions, run_servo
+from hil.servo.topics import COMMAND_SCHEMA, FEEDBACK_SCHEMA
 
 
 def rerecord(data: SessionData, topics: dict[str, dict], path: Path, encoding: str) -> int:

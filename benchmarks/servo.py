@@ -71,14 +71,14 @@ def tick_compute() -> float:
         for hu in (3, 6, 8):
             cfg = MpcConfig(ht=hu, hu=hu, hp=50, ert="foh", u_min=-limit, u_max=limit)
             fast = TrajectoryMpc(reference, cfg)
-            simulate(fast, reference, 0.05, current_limit_mA=limit)  # warm-up
-            run = simulate(fast, reference, 1.0, current_limit_mA=limit)
+            simulate(fast, reference, 0.05, current_limit_ma=limit)  # warm-up
+            run = simulate(fast, reference, 1.0, current_limit_ma=limit)
             f50, f99 = _us(run.compute_ns)
             assert isinstance(fast.solver, DaqpSolver)  # the default online solver
             counts = fast.solver.counts
             qp_share = counts["qp"] / max(1, sum(counts.values()))
             slow = TrajectoryMpc(reference, cfg, solver="cvxpy")
-            ref_run = simulate(slow, reference, 0.1, current_limit_mA=limit)
+            ref_run = simulate(slow, reference, 0.1, current_limit_ma=limit)
             c50, c99 = _us(ref_run.compute_ns)
             gap = np.abs(run.current[: ref_run.current.size] - ref_run.current).max()
             print(f"   {label:<30}{hu:>4}  {f50:>9.1f}{f99:>9.1f}   {qp_share:>7.0%}"
@@ -104,7 +104,7 @@ def lockstep() -> float:
     speed = 0.0
     for name, controller in runs.items():
         start = time.perf_counter()
-        simulate(controller, reference, duration, current_limit_mA=12000.0)
+        simulate(controller, reference, duration, current_limit_ma=12000.0)
         speed = duration / (time.perf_counter() - start)
         print(f"   {name:<28} {speed:>7.1f}x real time")
     return speed

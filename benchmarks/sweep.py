@@ -32,7 +32,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from hil.cli.servo import add_run_arguments, run_config
+from hil.cli.servo import add_run_arguments
 from hil.sweep.engine import Engine, import_ray, start_ray
 from hil.sweep.space import expand
 from hil.sweep.trial import TrialJob, run_trial
@@ -47,7 +47,7 @@ def jobs_in(out: Path) -> list[TrialJob]:
     parser = argparse.ArgumentParser()
     add_run_arguments(parser)
     base = vars(parser.parse_args(RUN))
-    return [TrialJob("servo", run_config, base, t.name, t.params, str(out / f"{t.name}.mcap"))
+    return [TrialJob("servo", base, t.name, t.params, str(out / f"{t.name}.mcap"))
             for t in expand(GRID)]
 
 

@@ -4,6 +4,7 @@ to the current the drive is sent, output paths follow one rule, Ctrl-C is exit 1
 command is tried as a ``hil`` process; more cases of it run the command line in this process
 (:func:`hil_here`), from the same folder."""
 
+import argparse
 import ast
 import json
 import os
@@ -148,6 +149,26 @@ def test_the_command_line_starts_without_the_numerical_stack():
     assert imported("import hil.cli.main as m; m.build_parser()",
                     "numpy", "scipy", "cvxpy", "ray", "matplotlib", "hil.core.recorder",
                     "hil.core.session") == []
+
+
+def test_every_command_is_handled_by_a_function_named_for_it():
+    """One way to name a command's handler (``NAME_command``), so that the next engineer finds
+    what ``hil X Y`` runs by its name."""
+    from hil.cli.main import build_parser
+
+    def handlers(parser: argparse.ArgumentParser, path: str) -> dict[str, str]:
+        found = {}
+        handler = parser.get_default("handler")
+        if handler is not None:
+            found[path] = handler.__name__
+        for action in parser._subparsers._group_actions if parser._subparsers else ():
+            for name, sub in action.choices.items():
+                found.update(handlers(sub, f"{path} {name}"))
+        return found
+
+    named = handlers(build_parser(), "hil")
+    assert len(named) >= 20  # every command has its handler
+    assert [path for path, name in named.items() if not name.endswith("_command")] == []
 
 
 def test_runs_that_build_no_estimator_import_no_scipy_stats():

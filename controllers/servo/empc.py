@@ -228,10 +228,6 @@ class ExplicitLaw:
         """All H_u optimal moves from the region containing θ (sequential search), or None."""
         return self.solution.optimiser(self.P @ theta)
 
-    def theta_law(self, controller: int) -> tuple[np.ndarray, float]:
-        """(M_i, m_i) of eq. (15): Δu(0|k) = M_i θ + m_i, in the paper's θ."""
-        return self.gains[controller] @ self.P, float(self.offsets[controller])
-
     def summary(self) -> dict[str, Any]:
         """The figures ``hil empc build`` prints."""
         c = self.config

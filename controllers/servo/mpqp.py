@@ -214,10 +214,6 @@ class MpqpSolution:
         worst = qp.W + qp.X @ qp.centre - np.abs(qp.X) @ qp.half_width
         return bool(np.all(worst >= 0) and self.stats.get("slivers", 0) == 0)
 
-    def locate(self, p: np.ndarray, tol: float = 1e-9) -> list[int]:
-        """Indices of every region containing ``p`` (sequential search)."""
-        return [i for i, r in enumerate(self.regions) if r.contains(p, tol)]
-
     def optimiser(self, p: np.ndarray, tol: float = 1e-9) -> np.ndarray | None:
         """z*(p) from the first region containing ``p``, None outside every region."""
         for region in self.regions:

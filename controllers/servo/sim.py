@@ -64,7 +64,7 @@ def rest_state(model: StateSpaceModel, position_deg: float) -> np.ndarray:
 
 
 def simulate(controller: ServoController, reference: Reference, duration_s: float,
-             model: StateSpaceModel | None = None, current_limit_mA: float = 1000.0,
+             model: StateSpaceModel | None = None, current_limit_ma: float = 1000.0,
              disturbance: Disturbance | None = None, start_deg: float | None = None,
              wrap: bool = True) -> SimResult:
     """Run ``controller`` against the model for ``duration_s``; the axis starts at rest at
@@ -90,7 +90,7 @@ def simulate(controller: ServoController, reference: Reference, duration_s: floa
         t0 = clock()
         u = controller.step(y % 360.0 if wrap else y, tk)
         compute_ns[k] = clock() - t0
-        u = min(max(u, -current_limit_mA), current_limit_mA)
+        u = min(max(u, -current_limit_ma), current_limit_ma)
         current[k] = u
         if disturbance is not None:
             u += disturbance(tk)
@@ -104,13 +104,13 @@ WARMUP_S = 0.5  # settle before the measured cycle (covers the PID's slow integr
 
 
 def cycle_error(make: Callable[[Reference], ServoController], frequency: float,
-                amplitude: float, current_limit_mA: float) -> dict[str, float]:
+                amplitude: float, current_limit_ma: float) -> dict[str, float]:
     """Metrics over one complete sine cycle after ``WARMUP_S`` (rounded up to whole cycles)."""
     period = 1.0 / frequency
     warmup = math.ceil(WARMUP_S / period - 1e-9) * period
     reference = Sine(amplitude, frequency)
     result = simulate(make(reference), reference, warmup + period,
-                      current_limit_mA=current_limit_mA)
+                      current_limit_ma=current_limit_ma)
     return result.metrics(warmup, warmup + period)
 
 

@@ -13,7 +13,7 @@ Safety lives here, not in the controller: commands are clamped to ``current_limi
 TPDO for ``stale_cycles`` cycles, a send error, a silent heartbeat or a drive reboot -> link
 lost; a FAULT or any state other than OPERATION ENABLED -> error. Each of these puts the drive
 into its safe state (quick stop, then disable voltage), emits an event and latches: every
-later cyclic call raises until :meth:`CanDriveMaster.reset_fault` recovers explicitly. EMCY
+later cyclic call raises until :meth:`CanDriveMaster.recover` recovers explicitly. EMCY
 frames become ``drive.emcy`` events through ``on_event`` (``Session.event`` fits).
 
 The master is a :class:`hil.core.types.Device`: :meth:`~CanDriveMaster.open` (SDO, voltage
@@ -233,7 +233,7 @@ class CanDriveMaster(Device):
 
     @property
     def link_up(self) -> bool:
-        """False from a lost link (no TPDO, send error, reboot) until :meth:`reset_fault`."""
+        """False from a lost link (no TPDO, send error, reboot) until :meth:`recover`."""
         return not self.watchdog.lost and not isinstance(self._latched, DriveLinkLostError)
 
     @property
@@ -328,9 +328,6 @@ class CanDriveMaster(Device):
         :meth:`receive_feedback`."""
         self.sdo.queue_write(index, subindex, value, fmt)
 
-    def nmt_command(self, command: int) -> None:
-        self.nmt.command(command)
-
     # -- configuration --------------------------------------------------------------------------
     def _bus_budget(self) -> BusBudget:
         return plan_axes(self.config, ["axis"]).budget
@@ -396,7 +393,7 @@ class CanDriveMaster(Device):
         reach the drive by SDO and leave it in SWITCH ON DISABLED (voltage disabled).
 
         A drive found in FAULT is left alone (DriveFaultError): clearing a fault is an explicit
-        decision, :meth:`reset_fault`."""
+        decision, :meth:`recover`."""
         if self._closed:
             raise DriveError("the drive master is closed")
         if self.config.eds and self.description is None:  # before anything is written
@@ -411,7 +408,7 @@ class CanDriveMaster(Device):
             code = self.sdo.read_int(ERROR_CODE, 0, "<H")
             raise DriveFaultError(f"drive node {self.node_id} is in {state} (error code "
                                   f"{emcy_text(code)}): clear it with `hil drive reset`, "
-                                  "--reset-fault on a run, or reset_fault()", code)
+                                  "--reset-fault on a run, or recover()", code)
         if state not in (SWITCH_ON_DISABLED, NOT_READY_TO_SWITCH_ON):
             self.states.controlword(CW_DISABLE_VOLTAGE)  # left enabled by someone
         self.states.wait_state(SWITCH_ON_DISABLED, "disable voltage")
@@ -458,7 +455,7 @@ class CanDriveMaster(Device):
         self.configure()
         return self._enable()
 
-    def clear_fault(self) -> None:
+    def fault_reset(self) -> None:
         """Leave a drive FAULT through the CiA 402 fault reset (the rising edge of controlword
         bit 7), after a fault reaction has ended; the drive is then in SWITCH ON DISABLED."""
         if self._closed:
@@ -475,20 +472,20 @@ class CanDriveMaster(Device):
                                    timeout_s=c.quick_stop_timeout_s + c.state_timeout_s)
             state = FAULT
         if state == FAULT:
-            self.states.reset_fault()
+            self.states.fault_reset()
             self._event("drive.fault_reset", f"drive node {self.node_id}: fault reset")
 
-    def reset_fault(self) -> Feedback:
+    def recover(self) -> Feedback:
         """Explicit recovery: reconnect if the link was lost, clear a drive FAULT, then
         :meth:`start` again."""
-        self.clear_fault()
+        self.fault_reset()
         return self.start()
 
     # -- the cyclic path ---------------------------------------------------------------------------
     def _check_latched(self) -> None:
         if self._latched is not None:
             error = copy.copy(self._latched)  # same type and data, a note on the message
-            error.args = (f"{self._latched} (latched: call reset_fault())",)
+            error.args = (f"{self._latched} (latched: call recover())",)
             raise error
         if not self._enabled:
             raise DriveStateError(f"drive node {self.node_id} is not enabled: call start()")

@@ -85,7 +85,7 @@ class StateControl:
             self.controlword(word)
             self.wait_state(wanted, f"controlword 0x{word:04X}")
 
-    def reset_fault(self) -> None:
+    def fault_reset(self) -> None:
         """FAULT -> SWITCH ON DISABLED: disable voltage, then the rising edge of bit 7."""
         self.controlword(CW_DISABLE_VOLTAGE)
         self.controlword(CW_FAULT_RESET)

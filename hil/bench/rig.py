@@ -336,12 +336,6 @@ class SequencePlayer(Task):
         self.t0_ns: int | None = None
         self._changes: dict[str, bool] = {}
 
-    def phase_s(self, t_ns: int) -> float:
-        """Time into the current machine cycle (0 before the first tick)."""
-        if self.t0_ns is None:
-            return 0.0
-        return ((t_ns - self.t0_ns) % round(self.sequence.period_s * 1e9)) / 1e9
-
     def compute(self, t_ns: int) -> None:
         """The relays whose state in the table differs from what is commanded."""
         if self.t0_ns is None:

@@ -1,7 +1,7 @@
 """``hil demo``: EEC vs BC and MPC vs PID against the built-in emulators.
 
 Each half is a function that runs its sessions into the output folder and returns the text
-it prints; :func:`run` prints the halves one after the other.
+it prints; :func:`demo_command` prints the halves one after the other.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     demo.add_argument("--out", default="sessions", metavar="DIR",
                       help="output folder (default: sessions, where every run records)")
     add_live_arguments(demo)
-    demo.set_defaults(handler=run)
+    demo.set_defaults(handler=demo_command)
 
 
 def live_ports(args: argparse.Namespace) -> tuple[str | None, str | None]:
@@ -43,7 +43,7 @@ def live_ports(args: argparse.Namespace) -> tuple[str | None, str | None]:
     return address, live_address(args)
 
 
-def run(args: argparse.Namespace) -> int:
+def demo_command(args: argparse.Namespace) -> int:
     from hil.servo.demo import format_servo_demo, run_servo_demo
 
     os.makedirs(args.out, exist_ok=True)

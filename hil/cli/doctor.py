@@ -19,10 +19,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=positive_float, default=5.0, metavar="S",
                    help="seconds per rate (default 5)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
-    p.set_defaults(handler=run)
+    p.set_defaults(handler=doctor_command)
 
 
-def run(args: argparse.Namespace) -> int:
+def doctor_command(args: argparse.Namespace) -> int:
     from hil.core.doctor import format_doctor, run_doctor
 
     result = run_doctor(args.duration, progress=lambda line: print(line, file=sys.stderr,

@@ -299,7 +299,7 @@ def reset_command(args: argparse.Namespace) -> int:
         master = _master(args.url, args.config, args.node)
         try:
             before = state_of(master.states.reach())
-            master.clear_fault()
+            master.fault_reset()
             after = state_of(master.states.statusword())
         finally:
             master.disconnect()

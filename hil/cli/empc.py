@@ -37,10 +37,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     build.add_argument("--box", help=BOX_HELP)
     build.add_argument("--json", action="store_true", help="print the figures as JSON")
     build.add_argument("--export-c", metavar="F.c", help="write the law as C99 source")
-    build.set_defaults(handler=run_build)
+    build.set_defaults(handler=build_command)
 
 
-def run_build(args: argparse.Namespace) -> int:
+def build_command(args: argparse.Namespace) -> int:
     from controllers.servo.empc import build_explicit_law
     from controllers.servo.empc_export import write_c
     from controllers.servo.mpc import MpcConfig

@@ -59,7 +59,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "starts the plant and its faults again from t = 0")
     _add_fault_arguments(eb, "bench", "delay@2-4:ms=300, drop@5-8, weld@3:relay=P1")
     add_live_arguments(eb, rates=False)
-    eb.set_defaults(handler=emulate_bench)
+    eb.set_defaults(handler=emulate_bench_command)
     ed = emu_sub.add_parser("drive", help="CiA 402 servo drive over socketcand")
     ed.add_argument("--socketcand", type=host_port, metavar="HOST:PORT",
                     help="serve the socketcand protocol here (port 0: any free port, printed)")
@@ -91,7 +91,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "wall clock)")
     _add_fault_arguments(ed, "drive", "emcy@2:code=0x2310, no_heartbeat@1-3")
     add_live_arguments(ed, rates=False)
-    ed.set_defaults(handler=emulate_drive)
+    ed.set_defaults(handler=emulate_drive_command)
 
 
 def _fault(text: str) -> Fault:
@@ -213,7 +213,7 @@ def _until_stopped() -> Iterator[StopFlag]:
         signal.signal(signal.SIGTERM, signal.SIG_IGN if stop.requested else previous)
 
 
-def emulate_bench(args: argparse.Namespace) -> int:
+def emulate_bench_command(args: argparse.Namespace) -> int:
     """Serve the bench plant until Ctrl-C or SIGTERM, on the wall clock or a lockstep master's
     time (``--clock``); a master taking or letting go of the time is a line on stderr."""
     die_with_parent()
@@ -260,7 +260,7 @@ def emulate_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def emulate_drive(args: argparse.Namespace) -> int:
+def emulate_drive_command(args: argparse.Namespace) -> int:
     """Serve the emulated CiA 402 drive over socketcand in real time until Ctrl-C or SIGTERM."""
     die_with_parent()
     from emulators.drive.node import DriveNode

@@ -27,10 +27,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     form.add_argument("--jsonl", action="store_true", help="JSON lines, as 'hil report --topic'")
     p.add_argument("--out", metavar="F", type=output_file,
                    help="write here (default: standard output)")
-    p.set_defaults(handler=run)
+    p.set_defaults(handler=export_command)
 
 
-def run(args: argparse.Namespace) -> int:
+def export_command(args: argparse.Namespace) -> int:
     from hil.cli.report import topic_lines
     from hil.core.reader import read_session
 

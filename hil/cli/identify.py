@@ -53,7 +53,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", metavar="MODEL.json", type=output_file,
                    help="model file (default: next to the session, F.model.json)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
-    p.set_defaults(handler=run)
+    p.set_defaults(handler=identify_command)
 
 
 def fraction(text: str) -> float:
@@ -66,7 +66,7 @@ def fraction(text: str) -> float:
     return value
 
 
-def run(args: argparse.Namespace) -> int:
+def identify_command(args: argparse.Namespace) -> int:
     from controllers.ident.n4sid import IdentificationError, identify, json_text
     from hil.core.identify import (
         IRREGULAR_TOLERANCE,

@@ -23,7 +23,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         + "; ".join(f"{name}: {what}" for name, (_, what) in LAYOUTS.items()) + ".")
     parser.add_argument("kind", choices=sorted(LAYOUTS), help="which session the layout shows")
     parser.add_argument("--out", metavar="F.json", type=output_file, help="write the layout here")
-    parser.set_defaults(handler=run_layout)
+    parser.set_defaults(handler=layout_command)
 
 
 def layout_path(kind: str) -> str:
@@ -31,7 +31,7 @@ def layout_path(kind: str) -> str:
     return str(resources.files("hil.layouts").joinpath(LAYOUTS[kind][0]))
 
 
-def run_layout(args: argparse.Namespace) -> int:
+def layout_command(args: argparse.Namespace) -> int:
     path = layout_path(args.kind)
     if args.out:
         try:

@@ -25,10 +25,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--wait", type=positive_float, metavar="S",
                         help="wait up to S seconds for a client to subscribe before streaming")
     add_live_arguments(parser)
-    parser.set_defaults(handler=run_replay)
+    parser.set_defaults(handler=replay_command)
 
 
-def run_replay(args: argparse.Namespace) -> int:
+def replay_command(args: argparse.Namespace) -> int:
     from hil.core.errors import UsageError
     from hil.core.live import LiveSink, parse_address
     from hil.core.reader import read_session

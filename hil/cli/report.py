@@ -32,10 +32,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--topic", metavar="TOPIC",
                    help="print every message of TOPIC as one JSON line "
                    "({\"t_s\": ..., \"log_time_ns\": ..., fields...})")
-    p.set_defaults(handler=run)
+    p.set_defaults(handler=report_command)
 
 
-def run(args: argparse.Namespace) -> int:
+def report_command(args: argparse.Namespace) -> int:
     from hil.core.reader import read_session
     from hil.core.report import format_summary, plot_session, summarize
 

@@ -54,7 +54,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       "/axis/NAME/..., KPIs per axis; a stop stops every axis in the same "
                       "cycles")
     add_recording_arguments(srun)
-    srun.set_defaults(handler=run_servo_command)
+    srun.set_defaults(handler=run_command)
 
     figs = servo_sub.add_parser(
         "figures", help="regenerate the paper's Figs. 7-8 table (offline simulation)",
@@ -78,7 +78,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       "sweep on a local Ray (pip install 'hil[sweep]')")
     figs.add_argument("--address", metavar="ADDR",
                       help="run the points on this Ray cluster (auto or ray://HOST:PORT)")
-    figs.set_defaults(handler=run_figures)
+    figs.set_defaults(handler=figures_command)
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
@@ -183,7 +183,7 @@ def print_config(args: argparse.Namespace) -> int:
     return print_settings("hil servo run", settings, args.json)
 
 
-def run_servo_command(args: argparse.Namespace) -> int:
+def run_command(args: argparse.Namespace) -> int:
     from hil.servo.axes_run import run_any
 
     if args.print_config:
@@ -254,7 +254,7 @@ def format_run(config: Any, kpis: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def run_figures(args: argparse.Namespace) -> int:
+def figures_command(args: argparse.Namespace) -> int:
     """``hil servo figures``: the preset sweep of :func:`hil.servo.demo.run_figures_sweep`."""
     from hil.servo.demo import run_figures_sweep
     from hil.sweep.engine import Engine

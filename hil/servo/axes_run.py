@@ -351,7 +351,7 @@ class AxesExperiment(ServoExperiment):
                 if master.config.lockstep:  # over a bus: one clock on both sides of the wire
                     share_lockstep_time(master, on_event)
                 if options.reset_fault:
-                    master.clear_fault()
+                    master.fault_reset()
                 master.open()
         except BaseException:
             if self.groups is None:

@@ -187,7 +187,7 @@ class ServoExperiment(Experiment):
             if self.drive.master.lockstep:  # over a bus: one clock on both sides of the wire
                 share_lockstep_time(master, on_event)
             if options.reset_fault:
-                master.clear_fault()
+                master.fault_reset()
             master.open()
         except BaseException:
             master.close()

@@ -34,8 +34,9 @@ import numpy.typing as npt
 #: a tick of the loop was late when it started more than this share of the period after its
 #: slot (``hil doctor``'s 100 us lateness p99 at 2 kHz) or after skipped ticks
 LOOP_ON_TIME_SHARE = 0.2
-#: the loop is the late side when more than this share of the ticks of the stale cycles was late
-LOOP_LATE_TICKS_SHARE = 0.01
+#: the loop is the late side when at least this share of the stale cycles had a late tick
+#: (the one that sent its SYNC or the one that read it)
+LOOP_STALE_SHARE = 0.5
 
 
 
@@ -58,15 +59,17 @@ class StaleVerdict:
     """Which side was late over cycles without fresh feedback, and the figures of both.
 
     The master reads a cycle's replies no earlier than ``rx_timeout`` after its SYNC, so a
-    stale cycle is a reply the drive did not have back in that time: the drive is late, unless
-    the loop did not keep its schedule for those ticks (more than
-    :data:`LOOP_LATE_TICKS_SHARE` of them late, see :data:`LOOP_ON_TIME_SHARE`): its SYNCs then
-    left off the grid the drive expects them on, and the loop is named first."""
+    stale cycle is a reply the drive did not have back in that time: the drive's, unless the
+    tick that sent its SYNC or the one that read it was late (see :data:`LOOP_ON_TIME_SHARE`):
+    its SYNC then left off the grid the drive expects it on, and the cycle is the loop's. The
+    loop is named when at least :data:`LOOP_STALE_SHARE` of the stale cycles are its own: a
+    drive silent for 200 cycles is the drive, whatever two or three late ticks among them."""
 
     stale: int                   # cycles without fresh feedback
     cycles: int                  # cycles looked at
     ticks: int                   # the ticks that sent the stale cycles' SYNC or read them
     late_ticks: int              # those of them that were late
+    loop_stale: int              # stale cycles with a late tick (the loop's own)
     skipped: int                 # ticks the loop skipped just before them
     period_us: float
     loop_p99_us: float           # lateness of those ticks
@@ -78,7 +81,7 @@ class StaleVerdict:
         """``drive`` or ``loop`` (the side that was late), ``none`` without stale cycles."""
         if not self.stale:
             return "none"
-        return "loop" if self.late_ticks > LOOP_LATE_TICKS_SHARE * self.ticks else "drive"
+        return "loop" if self.loop_stale >= LOOP_STALE_SHARE * self.stale else "drive"
 
     def describe(self) -> str:
         """The verdict in one clause, e.g. ``the drive was late (...); the loop was on time
@@ -89,6 +92,7 @@ class StaleVerdict:
         schedule = (f"{self.late_ticks} of the {self.ticks} ticks that sent or read them "
                     f"started over {LOOP_ON_TIME_SHARE * self.period_us:.0f} us late"
                     + (f" or after skipped ticks ({self.skipped})" if self.skipped else "")
+                    + f", {self.loop_stale} stale cycles after a late tick"
                     + f", lateness p99 {self.loop_p99_us:.0f} us, max {self.loop_max_us:.0f} us")
         if self.side == "loop":
             return f"the loop was late ({schedule}); the drive: {replies}"
@@ -113,9 +117,12 @@ def judge_stale(stale: npt.ArrayLike, late_us: npt.ArrayLike, rtt_us: npt.ArrayL
     involved = np.union1d(stale_at, np.maximum(stale_at - 1, 0)).astype(np.int64)
     lateness, skipped = late[involved], gaps[involved]
     late_ticks = (lateness > LOOP_ON_TIME_SHARE * period_s * 1e6) | (skipped > 0)
+    tick_late = (late > LOOP_ON_TIME_SHARE * period_s * 1e6) | (gaps > 0)
+    loop_stale = tick_late[stale_at] | tick_late[np.maximum(stale_at - 1, 0)]
     return StaleVerdict(
         stale=int(stale_at.size), cycles=int(flags.size), ticks=int(involved.size),
-        late_ticks=int(late_ticks.sum()), skipped=int(skipped.sum()),
+        late_ticks=int(late_ticks.sum()), loop_stale=int(loop_stale.sum()),
+        skipped=int(skipped.sum()),
         period_us=period_s * 1e6,
         loop_p99_us=float(np.percentile(lateness, 99)) if involved.size else 0.0,
         loop_max_us=float(lateness.max()) if involved.size else 0.0,

@@ -165,7 +165,7 @@ def test_safe_state_quick_stops_then_disables_and_is_idempotent():
     master.close()
 
 
-def test_link_lost_when_tpdos_stop_latches_until_reset_fault():
+def test_link_lost_when_tpdos_stop_latches_until_recover():
     events = Events()
     master = emulated({"master": {"stale_cycles": 5}}, events)
     master.start()
@@ -182,9 +182,9 @@ def test_link_lost_when_tpdos_stop_latches_until_reset_fault():
     assert "drive.link_lost" in events.kinds()
     assert not master.link_up and master.watchdog.losses == 1
     assert master.stats.longest_stale_run == master.watchdog.longest_run == 5
-    with pytest.raises(DriveLinkLostError, match="latched: call reset_fault"):
+    with pytest.raises(DriveLinkLostError, match="latched: call recover"):
         master.exchange(0.0)
-    feedback = master.reset_fault()  # NMT pre-op (the node was STOPPED), fault reset, enable
+    feedback = master.recover()  # NMT pre-op (the node was STOPPED), fault reset, enable
     assert feedback.state == "OPERATION ENABLED" and master.link_up
     assert master.exchange(10.0).fresh
     master.close()
@@ -201,7 +201,7 @@ def test_drive_reboot_is_a_lost_link_and_needs_an_explicit_recovery():
     assert "drive.bootup" in events.kinds() and not master.link_up
     with pytest.raises(DriveLinkLostError):
         master.exchange(0.0)
-    assert master.reset_fault().state == "OPERATION ENABLED"
+    assert master.recover().state == "OPERATION ENABLED"
     assert master.exchange(0.0).fresh
     master.close()
 
@@ -226,12 +226,12 @@ def test_heartbeat_loss_faults_the_drive_and_the_master_reports_the_emcy():
     with pytest.raises(DriveFaultError, match="latched") as again:
         master.exchange(0.0)
     assert again.value.emcy_code == 0x8130
-    assert master.reset_fault().state == "OPERATION ENABLED"
+    assert master.recover().state == "OPERATION ENABLED"
     assert "drive.fault_reset" in events.kinds()
     master.close()
 
 
-def test_start_refuses_a_drive_in_fault_until_reset_fault():
+def test_start_refuses_a_drive_in_fault_until_recover():
     master = emulated({"master": {"current_limit_mA": 20000.0},
                        "emulator": {"max_torque_permille": 20000}})
     master.start()
@@ -242,7 +242,7 @@ def test_start_refuses_a_drive_in_fault_until_reset_fault():
     master2.close()
     with pytest.raises(DriveFaultError, match=r"0x2310.*hil drive reset"):
         master.start()
-    assert master.reset_fault().state == "OPERATION ENABLED"
+    assert master.recover().state == "OPERATION ENABLED"
     master.close()
 
 

@@ -173,7 +173,7 @@ def test_sync_loss_then_heartbeat_loss_fault_the_drive_in_time(tmp_path):
         with pytest.raises(DriveFaultError, match="0x8130"):
             master.exchange(0.0)
         assert ("drive.emcy", "error") in [(k, kw.get("level")) for k, kw in events]
-        master.reset_fault()
+        master.recover()
         master.close()
         # now the master's heartbeat stops while SYNC goes on: beat every 2 s, drive waits 300 ms
         master = master_for(port, heartbeat_period_ms=2000, heartbeat_timeout_ms=300)
@@ -210,7 +210,7 @@ def test_master_declares_link_lost_when_tpdos_stop(tmp_path):
         proc.send_signal(signal.SIGCONT)
         with pytest.raises(DriveLinkLostError, match="latched"):
             master.exchange(0.0)
-        assert master.reset_fault().state == "OPERATION ENABLED"
+        assert master.recover().state == "OPERATION ENABLED"
         assert master.exchange(0.0).fresh
     finally:
         proc.send_signal(signal.SIGCONT)
@@ -218,7 +218,7 @@ def test_master_declares_link_lost_when_tpdos_stop(tmp_path):
         stop_drive_emulator(proc)
 
 
-def test_restarted_emulator_is_used_again_only_after_reset_fault(tmp_path):
+def test_restarted_emulator_is_used_again_only_after_recover(tmp_path):
     proc, port = start_emulator(tmp_path, "first", sync_loss_timeout_ms=5000)
     master = master_for(port, rx_timeout_us=50_000, stale_cycles=4)
     try:
@@ -235,7 +235,7 @@ def test_restarted_emulator_is_used_again_only_after_reset_fault(tmp_path):
         proc, _ = start_emulator(tmp_path, "second", port=port, sync_loss_timeout_ms=5000)
         with pytest.raises(DriveLinkLostError, match="latched"):
             master.exchange(0.0)  # the drive is back, but nobody said so
-        feedback = master.reset_fault()  # reconnects, configures, enables
+        feedback = master.recover()  # reconnects, configures, enables
         assert feedback.state == "OPERATION ENABLED"
         assert feedback.velocity_deg_s == 0.0  # a fresh drive: the old motion is gone
         fresh = master.exchange(100.0)

@@ -6,11 +6,8 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
-import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -55,6 +52,23 @@ def test_a_stale_share_stop_names_the_loop_when_its_ticks_were_late():
     assert monitor.stopped is not None and ": the loop was late (" in monitor.stopped
     assert "lateness p99 300 us" in monitor.stopped and "; the drive: " in monitor.stopped
     assert monitor.verdict is not None and monitor.verdict.side == "loop"
+
+
+def test_a_drive_silent_for_many_cycles_is_the_drive_whatever_a_few_late_ticks():
+    """A paused drive: 200 cycles in a row stale, while the loop had three late ticks among
+    them (a busy machine): the cycles are the drive's."""
+    monitor = SafetyMonitor(ServoSafety(), PERIOD_S)
+    tripped = None
+    for k in range(1000):
+        late = 300.0 if k in (700, 750, 800) else 3.0
+        if monitor.check(k * PERIOD_S, 0.0, 0.0, 0.0, k < 600, rtt_us=450.0,
+                         late_us=late) is not None:
+            tripped = k
+            break
+    assert tripped == 800  # the 201st stale cycle in a row
+    assert monitor.verdict is not None and monitor.verdict.side == "drive"
+    assert monitor.verdict.late_ticks == 3 and monitor.verdict.loop_stale == 5
+    assert "the drive was late (201 replies" in (monitor.stopped or "")
 
 
 def test_naming_the_side_leaves_the_net_exactly_as_strict():
@@ -103,21 +117,20 @@ def test_an_emulator_paused_mid_run_is_named_as_the_late_side(tmp_path):
                       "[emulator]\nsync_loss_timeout_ms = 5000\n")
     out = tmp_path / "paused.mcap"
 
+    pausers: list[subprocess.Popen[bytes]] = []
+
     def pause(_master: object) -> None:
+        # from a process of its own: a thread of the loop's process would take the loop's GIL
+        # to send the signals, and make its ticks late
         pid = _emulator_pid()
-
-        def stop_and_go() -> None:
-            time.sleep(0.5)
-            os.kill(pid, signal.SIGSTOP)
-            time.sleep(0.4)
-            os.kill(pid, signal.SIGCONT)
-
-        threading.Thread(target=stop_and_go, daemon=True).start()
+        pausers.append(subprocess.Popen(
+            ["sh", "-c", f"sleep 0.5; kill -STOP {pid}; sleep 0.4; kill -CONT {pid}"]))
 
     options = ServoRunOptions(controller="pid", realtime=True, duration_s=5.0, out=str(out),
                               drive_config=str(config))
     with pytest.raises(HilError) as stopped:
         run_servo(options, on_started=pause)
+    pausers[0].wait(timeout=30)
     message = str(stopped.value)
     assert "cycles without fresh feedback" in message and "\n" not in message
     assert ": the drive was late (" in message and "the loop was on time" in message

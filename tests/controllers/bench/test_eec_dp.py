@@ -112,4 +112,6 @@ def test_budget_is_a_safety_net(setup):
     result = dp.solve(free, u_prev, fixed, q0, t_s, warm)
     # out of time at once: the repaired previous plan is kept, not proven
     assert result.status == "time_limit" and result.u is not None
-    assert result.gap >= 0.0
+    # not proven: the gap is what is left between the plan and the bound
+    assert result.gap == pytest.approx((result.objective - result.bound) / abs(result.objective))
+    assert result.gap > 0.0

@@ -46,9 +46,9 @@ def test_the_pids_closed_loop_pole_decides_whether_it_tracks():
     assert closed_loop_pole(table_i, model) > 1.0 > closed_loop_pole(patient, model)
     # the same verdict from a simulation with the current unlimited
     runaway = simulate(CascadedPid(reference, table_i, model), reference, 1.0, model=model,
-                       current_limit_mA=1e12)
+                       current_limit_ma=1e12)
     holds = simulate(CascadedPid(reference, patient, model), reference, 1.0, model=model,
-                     current_limit_mA=1e12)
+                     current_limit_ma=1e12)
     assert runaway.metrics(0.5)["max_error_deg"] > 10.0
     assert holds.metrics(0.5)["max_error_deg"] < 1.0
 

@@ -226,7 +226,7 @@ def test_integral_action_removes_a_constant_disturbance_torque():
 def test_command_never_leaves_the_current_limit():
     ref = Sine(2.0, 10.0)
     mpc = TrajectoryMpc(ref, MpcConfig(u_min=-1000.0, u_max=1000.0))
-    run = simulate(mpc, ref, 0.3, current_limit_mA=1e9)  # the plant would accept more
+    run = simulate(mpc, ref, 0.3, current_limit_ma=1e9)  # the plant would accept more
     assert np.abs(run.current).max() <= 1000.0 + 1e-6
     assert mpc.solver.counts["qp"] > 0  # the constraints were active
 

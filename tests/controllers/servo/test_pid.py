@@ -60,7 +60,7 @@ def test_the_notch_is_scipys_iirnotch(center_hz, quality, dt):
 def _free_response(notch: str) -> np.ndarray:
     """|error| of the unsaturated loop released 1 deg away from its set-point."""
     pid = CascadedPid(Hold(0.0), PidConfig(notch=notch, u_max=1e12))
-    run = simulate(pid, Hold(0.0), 2.0, current_limit_mA=1e12, start_deg=1.0, wrap=False)
+    run = simulate(pid, Hold(0.0), 2.0, current_limit_ma=1e12, start_deg=1.0, wrap=False)
     return np.abs(run.position)
 
 
@@ -82,7 +82,7 @@ def test_anti_windup_keeps_a_saturated_step_sane():
 
 def test_command_stays_within_the_current_limit():
     pid = CascadedPid(Trapezoid(acceleration=5000.0), PidConfig(u_max=800.0))
-    run = simulate(pid, Trapezoid(acceleration=5000.0), 1.0, current_limit_mA=1e9)
+    run = simulate(pid, Trapezoid(acceleration=5000.0), 1.0, current_limit_ma=1e9)
     assert np.abs(run.current).max() <= 800.0
 
 

@@ -68,7 +68,7 @@ def test_rest_state_stays_at_rest():
 
 def test_drive_clips_what_the_controller_asks():
     pid = CascadedPid(Hold(30.0), PidConfig(u_max=5000.0))
-    run = simulate(pid, Hold(30.0), 0.1, current_limit_mA=1000.0, start_deg=0.0)
+    run = simulate(pid, Hold(30.0), 0.1, current_limit_ma=1000.0, start_deg=0.0)
     assert np.abs(run.current).max() == pytest.approx(1000.0)
 
 
