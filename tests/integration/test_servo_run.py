@@ -122,7 +122,7 @@ def test_the_loop_through_can_reproduces_the_offline_simulation(tmp_path, contro
     position = read_session(config.out).arrays("/drive/feedback")["position_deg"]
     scenario = parse_scenario(reference)
     offline = simulate(make_controller(config, scenario), scenario.reference, 1.0,
-                       current_limit_mA=umax, disturbance=scenario.disturbance)
+                       current_limit_ma=umax, disturbance=scenario.disturbance)
     assert position.size == offline.position.size == 2000
     assert np.abs(position - offline.position).max() <= tolerance_deg
     if scenario.disturbance is not None:
