@@ -97,4 +97,11 @@ def test_non_finite_readings_are_faults_out_of_the_kpis(tmp_path):
     bad = [e for e in session_events(out) if e["kind"] == "meter.bad_reading"]
     assert len(bad) == 1 and "total_va = nan" in bad[0]["message"]
     totals = [m["total_va"] for _, m in read_session(str(out)).topic("/bench/power")]
-    assert all(math.isfinite(v) for v in totals) and len(totals) >= 300
+    assert all(math.isfinite(v) for v in totals)
+    # every good answer recorded: all the meter gave but the probe at open and the 50 bad ones,
+    # less what the run did not take (late, retried); on the wall clock, a loaded machine
+    # polls fewer times than 400, so the count is the meter's, not the sequence's
+    faults = kpis["faults"]
+    good = bench.meter_reads - 1 - 50
+    assert good - faults["failed_polls"] - faults["retries"] <= len(totals) <= good
+    assert len(totals) > 100  # the good answers after the bad ones too (reads 151 on)
