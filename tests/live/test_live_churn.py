@@ -12,7 +12,7 @@ import threading
 from pathlib import Path
 
 import pytest
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, WebSocketException
 
 from hil.core.reader import read_session
 from tests.live.foxglove_client import FoxgloveClient
@@ -44,8 +44,10 @@ def come_and_go(url: str, until: threading.Event, done: list[int]) -> None:
         try:
             client = FoxgloveClient(url, timeout_s=2,  # no retries once the run is over
                                     alive=lambda: 0 if until.is_set() else None)
-        except OSError:
-            until.wait(0.05)  # not serving yet, or no more: a little later
+        except (OSError, WebSocketException):
+            # not serving yet, or no more, or the server closed it during the handshake (the
+            # session ending): a little later
+            until.wait(0.05)
             continue
         try:
             client.wait_for(lambda c=client: bool(c.topics()) or until.is_set(), 1)
