@@ -234,7 +234,7 @@ def test_hil_drive_option_runs_on_the_wall_clock_from_where_the_axis_stands(tmp_
     (folder / "test_given_drive.py").write_text(RUNS_ON_THE_GIVEN_DRIVE)
     config = folder / "drive.toml"
     config.write_text(LOADED_MACHINE_DRIVE)
-    with api.start_drive_emulator(str(config)) as drive:
+    with api.start_drive_emulator(str(config), harden=True) as drive:
         out = run_pytest(folder, "test_given_drive.py", "-s", "--hil-drive", drive.url,
                          "--junitxml", "results.xml", env={"DRIVE_CONFIG": str(config)})
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
@@ -255,7 +255,8 @@ def test_a_faulted_drive_fails_its_test_with_one_line_and_is_reset_only_when_ask
     (folder / "test_faulted.py").write_text(FAULTED_DRIVE)
     config = folder / "drive.toml"
     config.write_text(LOADED_MACHINE_DRIVE)
-    with api.start_drive_emulator(str(config), faults=["emcy@0:code=0x2310"]) as drive:
+    with api.start_drive_emulator(str(config), faults=["emcy@0:code=0x2310"],
+                                  harden=True) as drive:
         out = run_pytest(folder, "test_faulted.py", "--hil-drive", drive.url,
                          "--junitxml", "results.xml")
     assert out.returncode == 1, out.stdout[-3000:]

@@ -21,7 +21,8 @@ def test_an_emcy_during_a_run_over_socketcand_ends_it_with_one_line(tmp_path, ca
                       "rx_timeout_us = 5000\n[emulator]\nsync_loss_timeout_ms = 5000\n")
     out = tmp_path / "servo.mcap"
     # 3 s after the emulator starts: after the run enabled the drive (it takes about 1 s)
-    with api.start_drive_emulator(config, faults=["emcy@3:code=0x4310"]) as emulator:
+    with api.start_drive_emulator(config, faults=["emcy@3:code=0x4310"],
+                                  harden=True) as emulator:
         status = main(["servo", "run", "--controller", "pid", "--drive", emulator.url,
                        "--config", str(config), "--duration", "60", "--realtime",
                        "--reference", "hold:position=0", "--out", str(out)])

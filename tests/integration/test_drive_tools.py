@@ -211,7 +211,8 @@ def test_late_tpdos_of_the_emulator_in_real_time_are_never_fresh(tmp_path):
                       '[emulator]\nsync_loss_timeout_ms = 5000\n'
                       '[safety]\nenabled = false\n')
     log = tmp_path / "wire.asc"
-    with api.start_drive_emulator(config, faults=["delay_tpdo@0.5-0.6:ms=60"]) as emulator:
+    with api.start_drive_emulator(config, faults=["delay_tpdo@0.5-0.6:ms=60"],
+                                  harden=True) as emulator:
         kpis = api.run_servo("pid", drive=emulator.url, realtime=True, duration_s=1.5,
                              drive_config=str(config), can_log=str(log),
                              out=str(tmp_path / "late.mcap"))

@@ -95,7 +95,7 @@ def test_a_second_run_on_the_same_drive_bus_refuses_and_a_foreign_sync_stops_the
     config = tmp_path / "drive.toml"
     config.write_text("[master]\nheartbeat_timeout_ms = 5000\nstale_cycles = 100000\n"
                       "[emulator]\nsync_loss_timeout_ms = 5000\n[safety]\nenabled = false\n")
-    with api.start_drive_emulator(config) as emulator:
+    with api.start_drive_emulator(config, harden=True) as emulator:
         first = hil("servo", "run", "--controller", "pid", "--drive", emulator.url,
                     "--config", str(config), "--realtime", "--duration", "20",
                     "--out", str(tmp_path / "first.mcap"))

@@ -199,7 +199,7 @@ def test_two_axes_in_real_time_over_socketcand_to_the_emulator_process(tmp_path)
     config = tmp_path / "patient.toml"
     config.write_text("[master]\ncycle_period_us = 1000\nstale_cycles = 100000\n"
                       "[safety]\nenabled = false\n")
-    with api.start_drive_emulator(node=[1, 2]) as drive:
+    with api.start_drive_emulator(node=[1, 2], harden=True) as drive:
         done = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller", "pid",
                    "--param", "ti_us=8000", "--reference", "circle:radius=2,feed=20",
                    "--duration", "0.5", "--realtime", "--drive", drive.url, "--config",

@@ -85,7 +85,7 @@ def test_driving_blind_is_stopped_by_the_stale_share(tmp_path):
     config = tmp_path / "drive.toml"
     config.write_text("[master]\nstale_cycles = 100000\n"
                       "[emulator]\nsync_loss_timeout_ms = 5000\n")
-    with (api.start_drive_emulator(config, faults=["drop_tpdo@0.3"]) as emulator,
+    with (api.start_drive_emulator(config, faults=["drop_tpdo@0.3"], harden=True) as emulator,
           pytest.raises(HilError, match="cycles without fresh feedback")):
         api.run_servo("pid", drive=emulator.url, realtime=True, duration_s=5.0,
                       drive_config=str(config), out=str(tmp_path / "blind.mcap"))
