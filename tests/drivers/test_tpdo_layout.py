@@ -83,7 +83,10 @@ def test_a_slave_hil_did_not_write_is_remapped_to_one_tpdo():
     assert mapping == [3, 0x60410010, 0x60640020, 0x60770010]
     assert tpdo2 & 0x8000_0000 and logged["tpdo2"] is None  # invalid: never sent
     assert len(bytes.fromhex(logged["tpdo1"])) == 8
-    assert feedback.fresh and master.stats.stale == 0
+    # a thread on a busy machine may answer a cycle past the 50 ms: that cycle is then stale
+    # and its answer counted late, never taken for fresh (the wall clock, not the mapping)
+    assert feedback.fresh and master.stats.stale == master.stats.late_frames
+    assert master.stats.malformed_frames == 0
     assert feedback.position_deg == pytest.approx(position, abs=360 / INCREMENTS)
     # the slave moves 500 us per SYNC: its velocity is the position's change per cycle
     assert velocity > 1000.0
