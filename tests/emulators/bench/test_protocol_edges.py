@@ -11,6 +11,9 @@ import pytest
 from hil.bench.config import load_bench_config
 from hil.bench.rig import make_emulator
 
+#: how long an answer the test expects may take: it returns as soon as it is there, and a busy
+#: machine may hold the emulator's thread for a while (what is tested is the answer, not when)
+ANSWER_S = 30.0
 REAL_FUNCTIONS = {1: (1, 5, 15), 2: (4,), 3: (4,)}  # relays, meter, levels (bench.toml [units])
 
 
@@ -21,7 +24,7 @@ class RawTcp:
         self.sock = socket.create_connection(("127.0.0.1", port), timeout=2)
         self.tid = 0
 
-    def ask(self, unit: int, pdu: bytes, protocol: int = 0, wait_s: float = 1.0
+    def ask(self, unit: int, pdu: bytes, protocol: int = 0, wait_s: float = ANSWER_S
             ) -> bytes | None:
         self.tid += 1
         self.sock.sendall(struct.pack(">HHHB", self.tid, protocol, len(pdu) + 1, unit) + pdu)
@@ -111,7 +114,7 @@ def test_a_frame_with_a_protocol_id_is_discarded_and_the_next_answered(raw):
     raw.tid += 1
     good = struct.pack(">HHHB", raw.tid, 0, 6, 1) + struct.pack(">BHH", 1, 0, 8)
     raw.sock.sendall(bad + good)
-    reply = raw.reply(1.0)
+    reply = raw.reply(ANSWER_S)
     assert reply is not None and reply[:2] == bytes([1, 1])
 
 
@@ -125,7 +128,7 @@ def test_a_missing_function_over_rtu_is_exception_1_with_a_good_crc(code):
     with NullModem() as modem, make_emulator(
             load_bench_config(None).emulating(None, None)) as emulator:
         emulator.serve_serial(modem.ports[1])
-        with serial.Serial(modem.ports[0], 115200, timeout=0.5) as port:
+        with serial.Serial(modem.ports[0], 115200, timeout=ANSWER_S) as port:
             frame = bytes([2, code, 0, 0, 0, 2])
             port.write(frame + FramerRTU.compute_CRC(frame).to_bytes(2, "big"))
             reply = port.read(5)
