@@ -74,7 +74,7 @@ def test_serial_emulator_on_a_pty_stops_on_sigterm():
         try:
             line = proc.stdout.readline()
             assert f"listening on modbus-rtu://{modem.ports[1]}?baud=115200&parity=N" in line
-            client = ModbusSerialClient(modem.ports[0], baudrate=115200, timeout=0.5,
+            client = ModbusSerialClient(modem.ports[0], baudrate=115200, timeout=10,
                                         retries=0)
             assert client.connect()
             assert levels(client) == [55.0, 65.0]
