@@ -32,21 +32,24 @@ from hil.bench.config import BenchConfig
 from hil.core.reader import read_session
 
 ROOT = Path(__file__).resolve().parents[1]
-SHORT_SEQUENCE = """
-# a loaded machine (the suite on both cores) may answer a poll late: not what these runs test
-[bus]
-timeout_s = 1.0
-[sequence]
-period_s = 4.0
-stages = [{ start_s = 0.0, end_s = 2.0, on = [] },
-          { start_s = 2.0, end_s = 4.0, on = ["M1", "M2"] }]
-"""
+#: how long an answer a test expects may take: a read returns as soon as it is there, and a
+#: busy machine may hold the emulator's thread for a while (what is tested is the answer)
+ANSWER_S = 30.0
 
 
-def short_config(folder: Path) -> Path:
-    """A bench config with a 4 s machining cycle and a patient poll, written in ``folder``."""
+def short_config(folder: Path, period_s: float = 4.0, dwell_s: float | None = None) -> Path:
+    """A bench config written in ``folder``: a ``period_s`` machining cycle (M1 and M2 on for
+    its second half; ``dwell_s``: their minimum on/off time, for a cycle shorter than the
+    default's) and a patient poll (a loaded machine may answer late: not what these runs
+    test)."""
+    half = period_s / 2
+    text = (f"[bus]\ntimeout_s = 1.0\n[sequence]\nperiod_s = {period_s}\n"
+            f"stages = [{{ start_s = 0.0, end_s = {half}, on = [] }},\n"
+            f"          {{ start_s = {half}, end_s = {period_s}, on = [\"M1\", \"M2\"] }}]\n")
+    if dwell_s is not None:
+        text += "".join(f"[relays.{relay}]\ndwell_s = {dwell_s}\n" for relay in ("M1", "M2"))
     path = Path(folder) / "short.toml"
-    path.write_text(SHORT_SEQUENCE)
+    path.write_text(text)
     return path
 
 

@@ -116,8 +116,8 @@ def judge_stale(stale: npt.ArrayLike, late_us: npt.ArrayLike, rtt_us: npt.ArrayL
     stale_at = np.flatnonzero(flags)
     involved = np.union1d(stale_at, np.maximum(stale_at - 1, 0)).astype(np.int64)
     lateness, skipped = late[involved], gaps[involved]
-    late_ticks = (lateness > LOOP_ON_TIME_SHARE * period_s * 1e6) | (skipped > 0)
     tick_late = (late > LOOP_ON_TIME_SHARE * period_s * 1e6) | (gaps > 0)
+    late_ticks = tick_late[involved]
     loop_stale = tick_late[stale_at] | tick_late[np.maximum(stale_at - 1, 0)]
     return StaleVerdict(
         stale=int(stale_at.size), cycles=int(flags.size), ticks=int(involved.size),

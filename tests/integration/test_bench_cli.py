@@ -17,6 +17,7 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
 from emulators.null_modem import NullModem
 from tests.cli import hil_here
+from tests.pymodbus_bench import ANSWER_S
 
 pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
 
@@ -74,7 +75,7 @@ def test_serial_emulator_on_a_pty_stops_on_sigterm():
         try:
             line = proc.stdout.readline()
             assert f"listening on modbus-rtu://{modem.ports[1]}?baud=115200&parity=N" in line
-            client = ModbusSerialClient(modem.ports[0], baudrate=115200, timeout=10,
+            client = ModbusSerialClient(modem.ports[0], baudrate=115200, timeout=ANSWER_S,
                                         retries=0)
             assert client.connect()
             assert levels(client) == [55.0, 65.0]

@@ -29,7 +29,7 @@ from pymodbus.client import ModbusTcpClient
 from emulators.null_modem import NullModem
 from hil.bench.config import load_bench_config
 from hil.core.reader import read_session
-from tests.pymodbus_bench import PymodbusBench
+from tests.pymodbus_bench import PymodbusBench, short_config
 from tests.session_digest import (
     EXPERIMENTS,
     LOOPBACK_PORT,
@@ -50,22 +50,6 @@ REFERENCE_KERNEL = {"avx2", "fma"} <= set(_CPU.split())
 #: reference digests where the CPU has it
 ENV = {**{k: v for k, v in os.environ.items() if k != "PYTHONPATH"},
        **({"OPENBLAS_CORETYPE": REFERENCE_BLAS_KERNEL} if REFERENCE_KERNEL else {})}
-#: a 2 s machining cycle (M1 and M2 on for its second half) with a patient poll, for the runs
-#: whose length is not what they test (a loaded machine may answer a poll late)
-TWO_SECOND_CYCLE = """
-[bus]
-timeout_s = 1.0
-[sequence]
-period_s = 2.0
-stages = [{ start_s = 0.0, end_s = 1.0, on = [] },
-          { start_s = 1.0, end_s = 2.0, on = ["M1", "M2"] }]
-[relays.M1]
-dwell_s = 0.5
-[relays.M2]
-dwell_s = 0.5
-"""
-
-
 def hil(folder: Path, *args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "hil", *args], cwd=folder, env=ENV,
                           capture_output=True, text=True, timeout=timeout)
@@ -74,13 +58,6 @@ def hil(folder: Path, *args: str, timeout: float = 300) -> subprocess.CompletedP
 def skip_without_avx2() -> None:
     if not REFERENCE_KERNEL:
         pytest.skip(f"the reference digests need OpenBLAS's {REFERENCE_BLAS_KERNEL} kernel")
-
-
-def two_second_cycle(folder: Path) -> Path:
-    """:data:`TWO_SECOND_CYCLE` as a config file in ``folder``."""
-    path = folder / "two_seconds.toml"
-    path.write_text(TWO_SECOND_CYCLE)
-    return path
 
 
 class Emulator:
@@ -275,7 +252,7 @@ def test_a_modbus_server_hil_did_not_write_is_not_taken_for_the_emulator(tmp_pat
     """pymodbus's own server answers Read Device Identification with an identity that is not
     hil's: the run (no --realtime) follows the wall clock, as against any real bench (a 2 s
     cycle)."""
-    config = two_second_cycle(tmp_path)
+    config = short_config(tmp_path, period_s=2.0, dwell_s=0.5)
     with PymodbusBench(load_bench_config(str(config))) as peer:
         run = hil(tmp_path, "bench", "run", "--controller", "bc", "--cycles", "1", "--bench",
                   peer.url, "--config", str(config), "--out", "peer.mcap")
@@ -287,7 +264,7 @@ def test_a_modbus_server_hil_did_not_write_is_not_taken_for_the_emulator(tmp_pat
 
 def test_an_emulator_on_its_wall_clock_refuses_a_lockstep_run_in_one_line(tmp_path):
     """The run is then on the wall clock, as against a real bench (a 2 s cycle)."""
-    config = two_second_cycle(tmp_path)
+    config = short_config(tmp_path, period_s=2.0, dwell_s=0.5)
     with Emulator(tmp_path, "--tcp", "127.0.0.1:0", "--clock", "wall") as emulator:
         run = hil(tmp_path, "bench", "run", "--controller", "bc", "--cycles", "1", "--bench",
                   emulator.url, "--config", str(config), "--out", "wall.mcap")
@@ -307,7 +284,7 @@ def test_an_emulator_on_its_wall_clock_refuses_a_lockstep_run_in_one_line(tmp_pa
 
 def test_an_emulator_on_master_time_waits_for_a_master_before_and_after(tmp_path):
     """A 2 s cycle: the plant stays where the run left it."""
-    config = two_second_cycle(tmp_path)
+    config = short_config(tmp_path, period_s=2.0, dwell_s=0.5)
     with Emulator(tmp_path, "--tcp", "127.0.0.1:0", "--clock", "master") as emulator:
         time.sleep(0.3)  # what the wall clock would have stepped
         assert emulator.clock() == (0.0, WAITING_FOR_MASTER)
@@ -327,7 +304,7 @@ def test_lockstep_over_rtu_records_the_in_process_session(tmp_path):
     """Over Modbus RTU (a pty pair) too; the sessions differ only by the bench URL in the
     events. A 2 s cycle: pymodbus' serial client polls its port every millisecond, so a
     lockstep RTU run goes about as fast as real time."""
-    config = str(two_second_cycle(tmp_path))
+    config = str(short_config(tmp_path, period_s=2.0, dwell_s=0.5))
     inside = hil(tmp_path, "bench", "run", *SHORT_RUN, "--config", config, "--out", "in.mcap")
     assert inside.returncode == 0, inside.stderr
     with NullModem() as modem, Emulator(tmp_path, "--serial", modem.ports[1], "--config",

@@ -19,11 +19,9 @@ from pymodbus.framer.rtu import FramerRTU
 from emulators.null_modem import NullModem
 from hil.bench.config import load_bench_config
 from hil.bench.rig import make_emulator
+from tests.pymodbus_bench import ANSWER_S
 
 pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
-#: how long an answer the test expects may take: it returns as soon as it is there, and a busy
-#: machine may hold the emulator's thread for a while (what is tested is the answer, not when)
-ANSWER_S = 10.0
 
 CONFIG = load_bench_config()
 METER = CONFIG.data["meter"]["registers"]
