@@ -127,9 +127,7 @@ class Timekeeper:
         if self._wall is None:
             self._wall = (now, plant.k)
         t0, k0 = self._wall
-        target = k0 + math.floor((now - t0) / plant.dt)
-        while plant.k < target:
-            self.bench.step()
+        self.bench.step(max(0, k0 + math.floor((now - t0) / plant.dt) - plant.k))
         return max(t0 + (plant.k - k0 + 1) * plant.dt - time.monotonic(), 0.0)
 
     # -- the master's time ------------------------------------------------------------------
@@ -215,9 +213,7 @@ class Timekeeper:
                 return error
             self._held, self._owner, self._orphaned_at = True, peer, None
             plant = self.bench.plant
-            target = self._k0 + round(t_ns / 1e9 / plant.dt)
-            while plant.k < target:
-                self.bench.step()
+            self.bench.step(max(0, self._k0 + round(t_ns / 1e9 / plant.dt) - plant.k))
         return None
 
     def closed(self, peer: object) -> None:
