@@ -37,16 +37,16 @@ import can
 import canopen
 import numpy as np
 
-from drivers.canopen import CanDriveMaster, CanLink, DriveMasterConfig
-from drivers.canopen.errors import DriveError
-from drivers.cia301 import SYNC_COB_ID
-from emulators.drive.config import DriveEmulatorConfig
-from emulators.drive.node import DriveNode
-from emulators.drive.od import build_object_dictionary
-from emulators.drive.plant import AxisPlant
-from emulators.drive.runners import BusRunner, bus_sender
 from hil.core.clock import RealtimeClock
 from hil.core.loop import FixedRateLoop, FunctionTask
+from hil.drivers.canopen import CanDriveMaster, CanLink, DriveMasterConfig
+from hil.drivers.canopen.errors import DriveError
+from hil.emulators.drive.config import DriveEmulatorConfig
+from hil.emulators.drive.node import DriveNode
+from hil.emulators.drive.od import build_object_dictionary
+from hil.emulators.drive.plant import AxisPlant
+from hil.emulators.drive.runners import BusRunner, bus_sender
+from hil.protocols.cia301 import SYNC_COB_ID
 from hil.servo.config import load_drive_config
 from hil.servo.rig import open_drive
 

@@ -10,7 +10,7 @@ instance kept; and of the hysteresis baseline (BC) under the same conditions. Pr
    against BC; H_p = 2T with ``--cycles-2t`` cycles: median, p99, at the budget;
 2. the same instances re-solved by each method with no budget to speak of (20 s): the
    schedule DP, the HiGHS MILP (every ``--exact-every``-th instance) and the naive cvxpy
-   formulation rebuilt for every decision (:func:`controllers.bench.eec_cvxpy.solve_naive`, the
+   formulation rebuilt for every decision (:func:`hil.controllers.bench.eec_cvxpy.solve_naive`, the
    baseline; ``--naive`` instances, ``--naive-limit`` seconds each), with how many
    objectives agree with the DP's;
 3. the gamma3 trade-off: runs of ``--sweep-cycles`` cycles for a few costs per switch-on:
@@ -33,10 +33,10 @@ from unittest import mock
 
 import numpy as np
 
-from controllers.bench import eec as eec_module
-from controllers.bench.eec_cvxpy import solve_naive
 from hil.bench.kpis import timing_summary
 from hil.bench.run import BenchRunOptions, run_bench
+from hil.controllers.bench import eec as eec_module
+from hil.controllers.bench.eec_cvxpy import solve_naive
 
 DP, MILP, NAIVE = ("DP (schedule DP, default)", "MILP (HiGHS)",
                    "naive cvxpy, rebuilt per decision")

@@ -30,12 +30,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from controllers.servo.empc import ExplicitSolver, build_explicit_law, relative_map
-from controllers.servo.empc_export import write_c
-from controllers.servo.empc_tree import Polyhedron, SequentialSearch
-from controllers.servo.mpc import DaqpSolver, MpcConfig, TrajectoryMpc
-from controllers.servo.references import Sine
-from controllers.servo.sim import simulate
+from hil.controllers.servo.empc import ExplicitSolver, build_explicit_law, relative_map
+from hil.controllers.servo.empc_export import write_c
+from hil.controllers.servo.empc_tree import Polyhedron, SequentialSearch
+from hil.controllers.servo.mpc import DaqpSolver, MpcConfig, TrajectoryMpc
+from hil.controllers.servo.references import Sine
+from hil.controllers.servo.sim import simulate
 
 PY_TARGET_US = 10.0
 C_TARGET_US = 1.0

@@ -1,4 +1,4 @@
-"""N4SID: held-out fit and identification time of hil's ``controllers.ident.n4sid`` against the
+"""N4SID: held-out fit and identification time of hil's ``hil.controllers.ident.n4sid`` against the
 ``nfoursid`` package and SIPPY (``sippy-unipi``, if installed), on the same data. Two sections.
 
 1. Synthetic plant: a relay-switched 3rd-order plant like the bench's motors (apparent power
@@ -12,7 +12,7 @@
 
 2. Emulated bench (the issue's target: "fit at least the paper's figures (97.61 % P1, 99.07 % P2,
    99.86 % machining) on the emulated bench with its noise, and faster than nfoursid"): the
-   emulator's plant (``emulators.bench.plant.BenchPlant``, default bench config) stepped
+   emulator's plant (``hil.emulators.bench.plant.BenchPlant``, default bench config) stepped
    directly, without Modbus: ``hil bench identify`` runs the emulator in lockstep, where the
    wire only carries the same relay states and meter readings, so it adds nothing to the data.
    Per model 600 s at 0.01 s (60000 samples), 70 % train / 30 % held out (``hil identify``'s
@@ -67,11 +67,11 @@ from typing import TYPE_CHECKING, Any, TypeVar  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from controllers.ident import n4sid as ident  # noqa: E402
+from hil.controllers.ident import n4sid as ident  # noqa: E402
 
 if TYPE_CHECKING:
-    from emulators.bench.plant import PlantSpec
     from hil.bench.config import BenchConfig
+    from hil.emulators.bench.plant import PlantSpec
 
 SAMPLES = 4000
 REPEATS = 7
@@ -253,7 +253,7 @@ def play(plant_spec: PlantSpec, relays: dict[str, np.ndarray], seed: int) -> np.
     ``y[k]`` is the reading after k steps, ``u[k]`` the state written at tick k (acting from the
     next step), as in a lockstep session.
     """
-    from emulators.bench.plant import BenchPlant
+    from hil.emulators.bench.plant import BenchPlant
 
     plant = BenchPlant(plant_spec, seed=seed)
     n = len(next(iter(relays.values())))

@@ -29,7 +29,6 @@ import serial
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.framer.rtu import FramerRTU
 
-from drivers.bench.modbus import ModbusLink, parse_bus_url
 from hil.bench.config import BenchConfig, load_bench_config, parse_bench_config
 from hil.bench.rig import attach_bench
 from hil.core.clock import RealtimeClock
@@ -37,6 +36,7 @@ from hil.core.config import deep_merge
 from hil.core.loop import FunctionTask
 from hil.core.session import Session
 from hil.core.stats import percentile_summary
+from hil.drivers.bench.modbus import ModbusLink, parse_bus_url
 
 REPO = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
@@ -60,7 +60,7 @@ def emulator(*where: str) -> tuple[subprocess.Popen[str], str]:
 
 def null_modem(baud: int | None) -> tuple[subprocess.Popen[str], list[str]]:
     """A pty pair in a helper process (its copy threads then do not share our GIL)."""
-    code = ("import sys; from emulators.null_modem import NullModem\n"
+    code = ("import sys; from hil.emulators.null_modem import NullModem\n"
             f"m = NullModem(baudrate={baud!r}); print(' '.join(m.ports), flush=True)\n"
             "sys.stdin.read(); m.close()")
     proc, line = spawn("-c", code)

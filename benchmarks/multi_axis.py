@@ -21,10 +21,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from drivers.canopen import CanDriveMaster, CanLink, DriveMasterConfig
-from drivers.canopen.axes import AxisBus, AxisGroup
-from emulators.drive.runners import LockstepDrive
 from hil.core.run import run_experiment
+from hil.drivers.canopen import CanDriveMaster, CanLink, DriveMasterConfig
+from hil.drivers.canopen.axes import AxisBus, AxisGroup
+from hil.emulators.drive.runners import LockstepDrive
 from hil.servo.axes_run import AxesExperiment, AxisSpec
 from hil.servo.rig import open_drive
 from hil.servo.run import ServoExperiment, ServoRunOptions

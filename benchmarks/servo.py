@@ -26,11 +26,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from controllers.base import ServoController
-from controllers.servo.mpc import DaqpSolver, MpcConfig, TrajectoryMpc
-from controllers.servo.pid import CascadedPid
-from controllers.servo.references import Sine
-from controllers.servo.sim import simulate
+from hil.controllers.base import ServoController
+from hil.controllers.servo.mpc import DaqpSolver, MpcConfig, TrajectoryMpc
+from hil.controllers.servo.pid import CascadedPid
+from hil.controllers.servo.references import Sine
+from hil.controllers.servo.sim import simulate
 from hil.core.clock import RealtimeClock
 from hil.core.loop import FunctionTask
 from hil.core.run import RunResult

@@ -41,7 +41,7 @@ from collections.abc import Callable, Container, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar, runtime_checkable
 
-from hil.core.errors import ConfigError
+from hil.controllers.errors import ControllerSetupError
 
 
 @dataclass(frozen=True)
@@ -141,16 +141,18 @@ def cycle_periods_of(factory: object) -> Container[int]:
 
 
 def check_cycle_period(factory: object, label: str, period_us: int) -> None:
-    """A ConfigError naming the controller when it does not run at ``period_us``."""
+    """A ControllerSetupError naming the controller when it does not run at ``period_us``."""
     periods = cycle_periods_of(factory)
     if period_us in periods:
         return
     if not isinstance(factory, CyclePeriods):
-        raise ConfigError(f"controller {label!r} does not say it runs at a cycle period of "
-                          f"{period_us} us (master.cycle_period_us): a controller without "
-                          f"cycle_periods_us runs at {DEFAULT_PERIOD_US} us only")
-    raise ConfigError(f"controller {label!r} does not run at a cycle period of {period_us} us "
-                      f"(master.cycle_period_us): it runs at {describe_periods(periods)}")
+        raise ControllerSetupError(
+            f"controller {label!r} does not say it runs at a cycle period of "
+   f"{period_us} us (master.cycle_period_us): a controller without "
+   f"cycle_periods_us runs at {DEFAULT_PERIOD_US} us only")
+    raise ControllerSetupError(
+        f"controller {label!r} does not run at a cycle period of {period_us} us "
+f"(master.cycle_period_us): it runs at {describe_periods(periods)}")
 
 
 def describe_periods(periods: Container[int]) -> str:
@@ -188,11 +190,11 @@ class PositionInput(Protocol):
 
 def position_input_of(controller: object, label: str = "") -> str:
     """:data:`WRAPPED` or :data:`UNWRAPPED`: the controller's ``position_input``, wrapped
-    when it has none; any other value is a ConfigError naming the two (and ``label``)."""
+    when it has none; any other value is a ControllerSetupError naming the two (and ``label``)."""
     value = controller.position_input if isinstance(controller, PositionInput) else WRAPPED
     if value not in (WRAPPED, UNWRAPPED):
         named = f"controller {label!r}: " if label else ""
-        raise ConfigError(f"{named}position_input = {value!r}: a servo controller takes "
+        raise ControllerSetupError(f"{named}position_input = {value!r}: a servo controller takes "
                           f"{WRAPPED!r} (position % 360, the default) or {UNWRAPPED!r} "
                           "(multi-turn) positions")
     return str(value)

@@ -9,7 +9,7 @@ python-can ships a socketcand interface; this one speaks the same protocol
 * a read is one non-blocking ``recv`` of everything waiting; ``select`` runs only when
   nothing is buffered and the caller is willing to wait;
 * :meth:`SocketcandBus.recv_frame` parses a reply straight into a
-  :data:`~drivers.can_frames.Frame` tuple, without a :class:`can.Message`;
+  :data:`~hil.protocols.can_frames.Frame` tuple, without a :class:`can.Message`;
 * frames the gateway sends in the same read as the handshake's ``< ok >`` (the real daemon
   does) are kept, not taken for a broken handshake.
 
@@ -26,7 +26,7 @@ from typing import Any
 
 import can
 
-from drivers.can_frames import Frame
+from hil.protocols.can_frames import Frame
 
 HANDSHAKE_TIMEOUT_S = 2.0
 MAX_COMMAND_BYTES = 256  # no socketcand command is longer; a longer one is garbage

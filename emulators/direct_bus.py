@@ -6,7 +6,7 @@ and the emulated node run in one thread, one after the other, so none of that is
 :class:`DirectChannel` keeps one inbox (a ``deque``) per attached bus, a send appends the
 frame to every other inbox, and a receive pops from its own without ever waiting.
 
-Frames travel as :data:`~drivers.can_frames.Frame` tuples ``(id, data)``: the master and the
+Frames travel as :data:`~hil.protocols.can_frames.Frame` tuples ``(id, data)``: the master and the
 node exchange them through ``send_frames`` / ``recv_frame`` without building a
 :class:`can.Message`. A :class:`DirectBus` is also a python-can bus (``send`` / ``recv``), for
 observers and other masters on the channel.
@@ -20,7 +20,7 @@ from typing import Any
 
 import can
 
-from drivers.can_frames import Frame, from_message, to_message
+from hil.protocols.can_frames import Frame, from_message, to_message
 
 
 class DirectChannel:

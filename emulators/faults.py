@@ -4,11 +4,12 @@ One fault is ``KIND@START[-END][:KEY=VALUE,...]`` (seconds of emulator time; no 
 emulator stops), e.g. ``drop@5-8``, ``delay@0-2:ms=300``, ``emcy@1:code=0x2310``,
 ``weld@3:relay=P1``. The same fields come from a ``[faults]`` table
 (``schedule = ["drop@5-8", {kind = "delay", start_s = 0, end_s = 2, ms = 300}]``).
-Everything is checked when parsed; a bad fault is one :class:`~hil.core.errors.ConfigError`
+Everything is checked when parsed; a bad fault is one
+:class:`~hil.emulators.errors.EmulatorSetupError`
 line naming it.
 
-The bench emulator (:mod:`emulators.bench.server`) plays the Modbus and plant kinds, the drive
-emulator (:mod:`emulators.drive.node`) the CAN kinds; each asks :meth:`FaultSchedule.active`
+The bench emulator (:mod:`hil.emulators.bench.server`) plays the Modbus and plant kinds, the drive
+emulator (:mod:`hil.emulators.drive.node`) the CAN kinds; each asks :meth:`FaultSchedule.active`
 while it serves, and the schedule records every fault the first time it takes effect
 (:attr:`FaultSchedule.events`, and one ``hil: fault: ...`` line through ``on_event``).
 """
@@ -24,7 +25,7 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from hil.core.errors import ConfigError
+from hil.emulators.errors import EmulatorSetupError
 
 # kind -> (emulator, {param: (type, default or None = required, check, description)})
 _Param = tuple[type, Any, Callable[[Any], bool], str]
@@ -111,27 +112,28 @@ def _number(text: str, kind: type, what: str) -> Any:
     try:
         return int(text, 0) if kind is int else float(text)
     except ValueError:
-        raise ConfigError(f"{what}: {text!r} is not {'an integer' if kind is int else 'a number'}"
-                          ) from None
+        raise EmulatorSetupError(
+            f"{what}: {text!r} is not {'an integer' if kind is int else 'a number'}"
+     ) from None
 
 
 def make_fault(kind: str, start_s: Any, end_s: Any, params: Mapping[str, Any], what: str
                ) -> Fault:
     """A checked :class:`Fault`; ``what`` names it in errors (a flag, a file and key)."""
     if kind not in KINDS:
-        raise ConfigError(f"{what}: unknown fault kind {kind!r} (kinds: {', '.join(KINDS)})")
+        raise EmulatorSetupError(f"{what}: unknown fault kind {kind!r} (kinds: {', '.join(KINDS)})")
     for name, value in (("start", start_s), ("end", end_s)):
         if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value) \
                 or value < 0:
-            raise ConfigError(f"{what}: {name} time must be a number >= 0 s, got {value!r}")
+            raise EmulatorSetupError(f"{what}: {name} time must be a number >= 0 s, got {value!r}")
     if not end_s > start_s:
-        raise ConfigError(f"{what}: the window ends ({end_s:g} s) before it starts "
+        raise EmulatorSetupError(f"{what}: the window ends ({end_s:g} s) before it starts "
                           f"({start_s:g} s)")
     known = KINDS[kind][1]
     out: dict[str, Any] = {}
     for name, value in params.items():
         if name not in known:
-            raise ConfigError(f"{what}: {kind} has no parameter {name!r} "
+            raise EmulatorSetupError(f"{what}: {kind} has no parameter {name!r} "
                               f"(parameters: {', '.join(known) or 'none'})")
         expected, _default, check, description = known[name]
         if isinstance(value, str) and expected is not str:
@@ -139,12 +141,12 @@ def make_fault(kind: str, start_s: Any, end_s: Any, params: Mapping[str, Any], w
         if expected is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
         if not isinstance(value, expected) or isinstance(value, bool) or not check(value):
-            raise ConfigError(f"{what}: {name} = {value!r} is not valid ({description})")
+            raise EmulatorSetupError(f"{what}: {name} = {value!r} is not valid ({description})")
         out[name] = value
     for name, (_type, default, _check, description) in known.items():
         if name not in out:
             if default is None:
-                raise ConfigError(f"{what}: {kind} needs {name}= ({description})")
+                raise EmulatorSetupError(f"{what}: {kind} needs {name}= ({description})")
             out[name] = default
     ordered = {name: out[name] for name in known}  # one spelling per fault, whatever the order
     return Fault(kind, float(start_s), float(end_s), ordered)
@@ -154,7 +156,7 @@ def parse_fault(text: str, what: str = "--fault") -> Fault:
     """``KIND@START[-END][:KEY=VALUE,...]`` -> :class:`Fault`."""
     match = _SPEC.match(text.strip()) if isinstance(text, str) else None
     if match is None:
-        raise ConfigError(f"{what} {text!r}: expected {FORM}, e.g. drop@5-8 or "
+        raise EmulatorSetupError(f"{what} {text!r}: expected {FORM}, e.g. drop@5-8 or "
                           "delay@0:ms=300")
     what = f"{what} {text!r}"
     start = _number(match["start"], float, what)
@@ -163,7 +165,7 @@ def parse_fault(text: str, what: str = "--fault") -> Fault:
     for item in filter(None, (match["params"] or "").split(",")):
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
-            raise ConfigError(f"{what}: parameter {item!r} is not KEY=VALUE")
+            raise EmulatorSetupError(f"{what}: parameter {item!r} is not KEY=VALUE")
         params[key.strip()] = value.strip()
     return make_fault(match["kind"], start, end, params, what)
 
@@ -171,14 +173,14 @@ def parse_fault(text: str, what: str = "--fault") -> Fault:
 def parse_faults_table(table: Any, source: str) -> list[Fault]:
     """A ``[faults]`` table (``schedule = [...]`` of strings or inline tables)."""
     if not isinstance(table, Mapping):
-        raise ConfigError(f"{source}: 'faults' must be a table")
+        raise EmulatorSetupError(f"{source}: 'faults' must be a table")
     unknown = set(table) - {"schedule"}
     if unknown:
-        raise ConfigError(f"{source}: unknown key faults.{sorted(unknown)[0]} "
+        raise EmulatorSetupError(f"{source}: unknown key faults.{sorted(unknown)[0]} "
                           "(known: schedule)")
     schedule = table.get("schedule", [])
     if not isinstance(schedule, list):
-        raise ConfigError(f"{source}: faults.schedule must be a list")
+        raise EmulatorSetupError(f"{source}: faults.schedule must be a list")
     faults = []
     for i, item in enumerate(schedule):
         what = f"{source}: faults.schedule[{i}]"
@@ -187,11 +189,11 @@ def parse_faults_table(table: Any, source: str) -> list[Fault]:
         elif isinstance(item, Mapping):
             params = {k: v for k, v in item.items() if k not in ("kind", "start_s", "end_s")}
             if "kind" not in item or "start_s" not in item:
-                raise ConfigError(f"{what}: needs kind and start_s")
+                raise EmulatorSetupError(f"{what}: needs kind and start_s")
             faults.append(make_fault(str(item["kind"]), item["start_s"],
                                      item.get("end_s", math.inf), params, what))
         else:
-            raise ConfigError(f"{what}: expected {FORM} or an inline table")
+            raise EmulatorSetupError(f"{what}: expected {FORM} or an inline table")
     return faults
 
 
@@ -200,8 +202,9 @@ def for_emulator(faults: Iterable[Fault], emulator: str, what: str = "fault") ->
     out = list(faults)
     for fault in out:
         if fault.emulator != emulator:
-            raise ConfigError(f"{what} {str(fault)!r}: a {fault.emulator} emulator fault, not "
-                              f"one the {emulator} emulator plays")
+            raise EmulatorSetupError(
+                f"{what} {str(fault)!r}: a {fault.emulator} emulator fault, not "
+         f"one the {emulator} emulator plays")
     return out
 
 

@@ -41,8 +41,8 @@ from typing import Protocol
 
 import can
 
-from drivers.can_frames import Frame
-from hil.core.errors import HilError
+from hil.emulators.errors import EmulatorError
+from hil.protocols.can_frames import Frame
 
 log = logging.getLogger(__name__)
 
@@ -128,7 +128,7 @@ class SocketcandServer:
             self._listener.bind((host, port))
         except OSError as exc:
             self._listener.close()
-            raise HilError(f"socketcand server cannot listen on {host}:{port}: {exc.strerror}"
+            raise EmulatorError(f"socketcand server cannot listen on {host}:{port}: {exc.strerror}"
                            ) from None
         self._listener.listen(8)
         self._listener.setblocking(False)

@@ -14,9 +14,9 @@
 ``run_bench`` and ``run_servo`` return the KPI dictionary of ``hil bench|servo run --json``
 (``mcap`` is the session file); with ``limits`` it also has ``passed`` and ``limits``. A
 controller is a class (or factory) or a spec string (``"eec"``, ``"my_ctl.py:Threshold"``,
-``"package.module:Class"``). Errors are :class:`~hil.core.errors.HilError` with a one-line
+``"package.module:Class"``). Errors are :class:`~hil.errors.HilError` with a one-line
 message; a controller that raises, answers wrongly or overruns its budget ends the run with a
-:class:`~hil.core.errors.ControllerError`, the hardware in its safe state.
+:class:`~hil.errors.ControllerError`, the hardware in its safe state.
 """
 
 from __future__ import annotations
@@ -27,12 +27,12 @@ from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import fields
 from typing import Any
 
-from drivers.bench.safe_bench import SafeBench
-from drivers.canopen import CanDriveMaster
-from hil.core.errors import UsageError
-from hil.core.types import EventSink, no_event
+from hil.contracts import EventSink, no_event
 from hil.core.verdict import Limit, parse_limit
+from hil.drivers.bench.safe_bench import SafeBench
+from hil.drivers.canopen import CanDriveMaster
 from hil.emulator_process import EmulatorProcess, start_bench_emulator, start_drive_emulator
+from hil.errors import UsageError
 from hil.servo.defaults import DEFAULT_REFERENCE
 
 __all__ = ["EmulatorProcess", "open_bench", "open_drive", "run_bench", "run_servo",

@@ -22,9 +22,6 @@ from typing import IO, Any
 
 import tomli_w
 
-from drivers.bench.clock_protocol import CLOCKS as BENCH_CLOCKS
-from emulators.faults import Fault, parse_fault
-from hil.core.errors import HilError
 from hil.core.lifeline import lifeline_env
 from hil.core.realtime import (
     forget_helper_process,
@@ -32,6 +29,9 @@ from hil.core.realtime import (
     register_helper_process,
     report_helper_hardening,
 )
+from hil.emulators.faults import Fault, parse_fault
+from hil.errors import HilError
+from hil.protocols.bench_clock import CLOCKS as BENCH_CLOCKS
 
 _BENCH_URL = re.compile(r"listening on (modbus-tcp://\S+?)[ ,;]")
 _DRIVE_URL = re.compile(r"socketcand (\S+):(\d+)\b")
@@ -159,7 +159,7 @@ def start_bench_emulator(config: str | Path | None = None, *, seed: int | None =
                          tables: Mapping[str, Any] | None = None,
                          clock: str = "auto") -> EmulatorProcess:
     """The relay-bench emulator over Modbus TCP on ``host`` and a free port; ``faults``
-    (``KIND@START[-END][:KEY=VALUE,...]`` or :class:`~emulators.faults.Fault`) are played on
+    (``KIND@START[-END][:KEY=VALUE,...]`` or :class:`~hil.emulators.faults.Fault`) are played on
     its plant clock, seconds after it starts (or after a lockstep master's session starts).
     Its config: the file ``config``, or ``tables`` (the effective tables of a run). ``clock``:
     what its plant's time follows (``hil emulate bench --clock``): ``auto`` (the wall clock

@@ -34,13 +34,13 @@ from typing import Any
 
 import pytest
 
-from drivers.bench.safe_bench import SafeBench
-from drivers.canopen import CanDriveMaster
-from drivers.cia402 import OPERATION_ENABLED, state_of
 from hil import api
-from hil.core.errors import HilError
 from hil.core.verdict import kpi_properties
+from hil.drivers.bench.safe_bench import SafeBench
+from hil.drivers.canopen import CanDriveMaster
 from hil.emulator_process import EmulatorProcess
+from hil.errors import HilError
+from hil.protocols.cia402 import OPERATION_ENABLED, state_of
 
 #: where a run's KPIs go: ``(name, value)`` pairs, a test's ``user_properties``
 Record = Callable[[tuple[str, object]], None]
@@ -104,8 +104,8 @@ class BenchUnderTest:
 
     def unsafe_relays(self) -> list[str]:
         """Relays not at their safe level, read straight from the relay module."""
-        from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
         from hil.bench.config import load_bench_config
+        from hil.drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 
         config = load_bench_config()
         driver = ModbusBenchDriver(ModbusLink(parse_bus_url(self.url), config.bus.timeout_s,

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import canopen
 
-from emulators.drive.od import build_object_dictionary
+from hil.emulators.drive.od import build_object_dictionary
 
 CANOPEN_TIMEOUTS = ("TIMEOUT_SWITCH_STATE_FINAL", "TIMEOUT_SWITCH_STATE_SINGLE",
                     "TIMEOUT_CHECK_TPDO", "TIMEOUT_SWITCH_OP_MODE")

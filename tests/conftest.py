@@ -30,7 +30,7 @@ def run_python():
 def socketcand_server():
     """A socketcand server on 127.0.0.1 (any free port) that keeps the frames it receives in
     ``.received``."""
-    from emulators.socketcand_server import SocketcandServer
+    from hil.emulators.socketcand_server import SocketcandServer
 
     frames: list = []
     server = SocketcandServer("127.0.0.1", 0, on_frame=frames.append).start()

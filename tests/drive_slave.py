@@ -291,7 +291,7 @@ class IndependentSlave:
 def serve(url: str, node_id: int, behind_at: int | None = None,
           max_current_permille: int | None = None) -> tuple[canopen.Network, IndependentSlave]:
     """The slave on the bus at ``url`` (``INTERFACE://CHANNEL?key=value``), serving."""
-    from drivers.canopen.bus import open_can_bus, parse_can_url
+    from hil.drivers.canopen.bus import open_can_bus, parse_can_url
 
     network = canopen.Network(open_can_bus(parse_can_url(url)))
     network.connect()

@@ -27,9 +27,9 @@ from typing import Any
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 from hil.bench.config import BenchConfig
 from hil.core.reader import read_session
+from hil.drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 
 ROOT = Path(__file__).resolve().parents[1]
 #: how long an answer a test expects may take: a read returns as soon as it is there, and a

@@ -4,8 +4,8 @@ import socket
 
 import pytest
 
-from hil.core.errors import HilError
 from hil.emulator_process import start_bench_emulator, start_drive_emulator
+from hil.errors import HilError
 
 pytestmark = [pytest.mark.slow]
 

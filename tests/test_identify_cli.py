@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controllers.ident import n4sid as ident
 from hil.cli.main import main
+from hil.controllers.ident import n4sid as ident
 from hil.core.clock import SimClock
-from hil.core.errors import ConfigError, UsageError
 from hil.core.identify import load_model_file, parse_signal
 from hil.core.loop import FunctionTask
 from hil.core.session import Session
+from hil.errors import ConfigError, UsageError
 
 pytestmark = [pytest.mark.slow]
 

@@ -92,7 +92,7 @@ def test_users_tests_pass_with_plain_pytest_and_the_installed_plugin(tmp_path):
 
 
 LEAVES_A_RELAY_ON = '''
-from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
+from hil.drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 from hil.bench.config import load_bench_config
 
 def test_switches_p1_behind_the_safety_layers_back(hil_bench):

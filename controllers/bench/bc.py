@@ -12,8 +12,8 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from controllers.base import BenchObservation
-from controllers.bench.problem import BenchProblem, DwellClock
+from hil.controllers.base import BenchObservation
+from hil.controllers.bench.problem import BenchProblem, DwellClock
 
 
 def hysteresis_rule(problem: BenchProblem, levels: Mapping[str, float],
@@ -37,7 +37,7 @@ def hysteresis_rule(problem: BenchProblem, levels: Mapping[str, float],
 
 class BasicController:
     """BC: :func:`hysteresis_rule` every step, with its own dwell bookkeeping (a
-    :class:`~controllers.base.BenchController`)."""
+    :class:`~hil.controllers.base.BenchController`)."""
 
     def __init__(self, problem: BenchProblem, step_s: float = 1.0,
                  initial: Mapping[str, bool] | None = None) -> None:

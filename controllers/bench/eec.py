@@ -4,7 +4,7 @@ Every decision step (1 s) it chooses the on/off plan of the peripherals over ``H
 minimising ``J = gamma1 n1 J1 + gamma2 n2 J2`` (eq. 4): J1 the area under the predicted total
 apparent power, J2 its highest point, subject to the resource relations and bounds (eq. 10,
 Table I), the minimum on/off dwell (including the dwell already running) and the power models
-(:mod:`controllers.bench.prediction`, 0.01 s grid: the inrush is resolved inside each step). It
+(:mod:`hil.controllers.bench.prediction`, 0.01 s grid: the inrush is resolved inside each step). It
 applies the first step (``H_s = 1``) or the whole plan (``H_s = H_p``). Beyond the paper:
 
 * a terminal condition ``q_j(H_p) >= q_j(0)`` (``terminal = "hold"``; ``q_j(0)`` the level of
@@ -19,7 +19,7 @@ applies the first step (``H_s = 1``) or the whole plan (``H_s = H_p``). Beyond t
   plan against the limit.
 * an infeasible or failed solve falls back to the hysteresis rule for that step.
 
-Formulation (HiGHS through highspy; :mod:`controllers.bench.eec_cvxpy` holds the direct cvxpy
+Formulation (HiGHS through highspy; :mod:`hil.controllers.bench.eec_cvxpy` holds the direct cvxpy
 formulation, the reference of the tests):
 
 * per peripheral j and step i: ``u`` (binary), start ``s`` and stop ``d`` (continuous in
@@ -41,7 +41,7 @@ formulation, the reference of the tests):
 Solve time: the LP relaxation stays weak when the plan must trade peak against energy (it
 spreads fractional "thin" runs over the horizon), so HiGHS proves some instants only after
 0.3-0.7 s of root cuts and branching. The default ``solver = "dp"``
-(:mod:`controllers.bench.eec_dp`) finds the same optimum exactly by a pruned dynamic program
+(:mod:`hil.controllers.bench.eec_dp`) finds the same optimum exactly by a pruned dynamic program
 over the relay schedules (bounds from per-peripheral cost-to-go under a few peak caps,
 dominance, the previous plan and a beam search as incumbents), in a few ms at H_p = T; the
 MILP stays as the general formulation and the reference. ``time_limit_s`` is a safety net:
@@ -61,14 +61,14 @@ from typing import TypeVar
 import highspy
 import numpy as np
 
-from controllers.base import BenchObservation
-from controllers.bench.bc import hysteresis_rule
-from controllers.bench.eec_choices import SOLVERS, TERMINALS
-from controllers.bench.eec_dp import DeviceGraph, ScheduleDP
-from controllers.bench.kalman import BenchKalman, KalmanSettings
-from controllers.bench.prediction import BenchEstimate, BenchModels, HorizonPrediction
-from controllers.bench.problem import BenchProblem, DwellClock
-from controllers.highs import silent_highs
+from hil.controllers.base import BenchObservation
+from hil.controllers.bench.bc import hysteresis_rule
+from hil.controllers.bench.eec_choices import SOLVERS, TERMINALS
+from hil.controllers.bench.eec_dp import DeviceGraph, ScheduleDP
+from hil.controllers.bench.kalman import BenchKalman, KalmanSettings
+from hil.controllers.bench.prediction import BenchEstimate, BenchModels, HorizonPrediction
+from hil.controllers.bench.problem import BenchProblem, DwellClock
+from hil.controllers.highs import silent_highs
 
 INF = highspy.kHighsInf
 Index = TypeVar("Index", int, np.ndarray)  # one column (int) or many (array)
@@ -417,8 +417,9 @@ class EECMilp:
     def _solve_dp(self, t0: float, table: np.ndarray, u_prev: np.ndarray,
                   fixed_steps: np.ndarray, c_lo: np.ndarray, c_hi: np.ndarray,
                   warm_u: np.ndarray | None, budget: float) -> SolveResult:
-        """The same optimum by the schedule DP (:mod:`controllers.bench.eec_dp`); the previous plan
-        (made feasible) is an incumbent, ``budget`` a safety net (status ``time_limit``)."""
+        """The same optimum by the schedule DP (:mod:`~hil.controllers.bench.eec_dp`);
+        the previous plan (made feasible) is an incumbent, ``budget`` a safety net (status
+        ``time_limit``)."""
         assert self.dp is not None
         z0 = float(table[:, 0].max())
         found = self.dp.solve(u_prev, fixed_steps, self.class_costs, c_lo, c_hi, table,
@@ -644,8 +645,8 @@ class EECMilp:
 class EEC:
     """The receding-horizon controller: observation in, relay command (and plan) out.
 
-    A :class:`~controllers.base.BenchController` whose ``estimator`` (the Kalman filter of
-    :mod:`controllers.bench.kalman`) is fed every meter sample; its ``estimate()`` at the
+    A :class:`~hil.controllers.base.BenchController` whose ``estimator`` (the Kalman filter of
+    :mod:`hil.controllers.bench.kalman`) is fed every meter sample; its ``estimate()`` at the
     decision instant is the ``obs.estimate`` of :meth:`decide` and :meth:`step`.
     """
 

@@ -1,6 +1,6 @@
 """The EEC's MILP written with cvxpy: the reference for tests and the naive baseline.
 
-Same problem as :class:`controllers.bench.eec.EECMilp` (same predictions, J1 coefficients,
+Same problem as :class:`hil.controllers.bench.eec.EECMilp` (same predictions, J1 coefficients,
 weights, level bounds), written the direct way: the total power on every fine-grid sample,
 ``z >= S(r)`` for all of them, ``e >= z - limit``. Two uses:
 
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import cvxpy as cp
 import numpy as np
 
-from controllers.bench.eec import EECMilp
+from hil.controllers.bench.eec import EECMilp
 
 
 @dataclass

@@ -13,8 +13,8 @@ to ``k``: :meth:`BenchKalman.advance` with those relay states, then
 :meth:`BenchKalman.correct` with the reading. Feedthrough (``D``) is ignored: a meter reading
 never depends on a relay written after it (identified bench models have ``D = 0``).
 
-:class:`BenchKalman` is a :class:`~controllers.base.BenchEstimator`: :meth:`~BenchKalman.update`
-does both steps from a :class:`~controllers.base.BenchSample`, and
+:class:`BenchKalman` is a :class:`~hil.controllers.base.BenchEstimator`: :meth:`~BenchKalman.update`
+does both steps from a :class:`~hil.controllers.base.BenchSample`, and
 :meth:`~BenchKalman.estimate` is what the EEC predicts from.
 """
 
@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.base import BenchSample
-from controllers.bench.prediction import BenchEstimate, BenchModels
+from hil.controllers.base import BenchSample
+from hil.controllers.bench.prediction import BenchEstimate, BenchModels
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """Power models of the bench's loads (energy paper, section III-A and eq. 9), ready for
 prediction and estimation.
 
-Models are discrete state-space files written by :mod:`controllers.ident.n4sid` (N4SID; format
+Models are discrete state-space files written by :mod:`hil.controllers.ident.n4sid` (N4SID; format
 ``hil.ident.state-space``): ``x(k+1) = A x(k) + B (u(k) - u_offset)``, ``y(k) = C x(k) +
 D (u(k) - u_offset) + y_offset``, sampled every ``dt`` (0.01 s). Sample ``k`` of the output is
 the meter reading after ``k`` plant steps; ``u(k)`` is the relay state written at that tick and
@@ -33,9 +33,9 @@ from functools import cached_property
 
 import numpy as np
 
-from controllers.bench.problem import MachiningSequence
-from controllers.ident.n4sid import IdentificationError, loads_model
-from hil.core.errors import ConfigError
+from hil.controllers.bench.problem import MachiningSequence
+from hil.controllers.errors import ControllerSetupError
+from hil.controllers.ident.n4sid import IdentificationError, loads_model
 
 
 def _input_key(name: str) -> str:
@@ -101,17 +101,17 @@ class LinearModel:
 
 
 def load_linear_model(path: str | os.PathLike[str], name: str = "") -> LinearModel:
-    """Read a model file (``controllers.ident.n4sid`` format) as a :class:`LinearModel`."""
+    """Read a model file (``hil.controllers.ident.n4sid`` format) as a :class:`LinearModel`."""
     path = os.fspath(path)
     try:
         with open(path, encoding="utf-8") as f:
             model = loads_model(f.read())
     except FileNotFoundError:
-        raise ConfigError(f"model file {path} not found") from None
+        raise ControllerSetupError(f"model file {path} not found") from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"model file {path}: cannot read: {exc}") from None
+        raise ControllerSetupError(f"model file {path}: cannot read: {exc}") from None
     except IdentificationError as exc:
-        raise ConfigError(f"model file {path}: {exc}") from None
+        raise ControllerSetupError(f"model file {path}: {exc}") from None
     return to_linear_model(model.A, model.B, model.C, model.D, model.dt, model.inputs,
                            model.u_offset, model.y_offset, name or os.path.basename(path), path)
 
@@ -124,7 +124,7 @@ def to_linear_model(A: np.ndarray, B: np.ndarray, C: np.ndarray, D: np.ndarray, 
     C, D = np.atleast_2d(np.asarray(C, float)), np.atleast_2d(np.asarray(D, float))
     n = A.shape[0]
     if np.max(np.abs(np.linalg.eigvals(A)), initial=0.0) >= 1.0:
-        raise ConfigError(f"{source}: model is not stable (|eig(A)| >= 1): cannot predict")
+        raise ControllerSetupError(f"{source}: model is not stable (|eig(A)| >= 1): cannot predict")
     u0 = np.asarray(u_offset, float).reshape(-1)
     # rest state: x = A x + B (0 - u0)
     x_rest = np.linalg.solve(np.eye(n) - A, B @ (-u0)) if n else np.zeros(0)
@@ -144,13 +144,14 @@ class DeviceModel:
         if len(lin.inputs) == 2:
             starts = [k for k, name in enumerate(lin.inputs) if name.endswith("start")]
             if len(starts) != 1:
-                raise ConfigError(f"model {lin.name}: a two-input device model needs one input "
-                                  f"named '...start' (the switch-on event), got {lin.inputs}")
+                raise ControllerSetupError(
+                    f"model {lin.name}: a two-input device model needs one input "
+           f"named '...start' (the switch-on event), got {lin.inputs}")
             order = [1 - starts[0], starts[0]]
             return cls(LinearModel(lin.A, lin.B[:, order], lin.C, lin.D[order], lin.dt,
                                    tuple(lin.inputs[k] for k in order), 0.0, lin.name))
         if len(lin.inputs) != 1:
-            raise ConfigError(f"model {lin.name}: a device model has 1 input (relay) or 2 "
+            raise ControllerSetupError(f"model {lin.name}: a device model has 1 input (relay) or 2 "
                               f"(relay, start), got {len(lin.inputs)}")
         return cls(switch_on_form(lin))
 
@@ -210,8 +211,9 @@ class MachiningModel:
         allowed = set(sequence.relays) | {f"{r}:start" for r in sequence.relays}
         bad = [name for name in lin.inputs if name not in allowed]
         if bad or not set(sequence.relays) <= set(lin.inputs):
-            raise ConfigError(f"model {lin.name}: inputs {lin.inputs} must be the machining "
-                              f"relays {sequence.relays} (and optionally RELAY:start)")
+            raise ControllerSetupError(
+                f"model {lin.name}: inputs {lin.inputs} must be the machining "
+       f"relays {sequence.relays} (and optionally RELAY:start)")
         return cls(lin, sequence)
 
     def inputs_at(self, relays: np.ndarray, previous: np.ndarray) -> np.ndarray:
@@ -230,7 +232,7 @@ class MachiningModel:
     def samples_per_period(self) -> int:
         n = round(self.sequence.period_s / self.model.dt)
         if abs(n * self.model.dt - self.sequence.period_s) > 1e-6:
-            raise ConfigError(f"sequence period {self.sequence.period_s} s is not a whole "
+            raise ControllerSetupError(f"sequence period {self.sequence.period_s} s is not a whole "
                               f"number of model samples ({self.model.dt} s)")
         return n
 

@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from controllers.bench.models import DeviceModel, MachiningModel
-from controllers.bench.problem import BenchProblem
+from hil.controllers.bench.models import DeviceModel, MachiningModel
+from hil.controllers.bench.problem import BenchProblem
 
 #: coefficients smaller than this fraction of the device's steady power are dropped
 COEF_RTOL = 1e-6

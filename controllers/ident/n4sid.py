@@ -56,7 +56,7 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from controllers.ident.defaults import BLOCK_ROW_CANDIDATES, DEFAULT_MAX_ORDER
+from hil.controllers.ident.defaults import BLOCK_ROW_CANDIDATES, DEFAULT_MAX_ORDER
 
 MODEL_FORMAT = "hil.ident.state-space"
 MODEL_FORMAT_VERSION = 1

@@ -1,5 +1,5 @@
 """Explicit MPC (servo paper, eq. 15 and sections III-C/D): the trajectory MPC of
-:mod:`controllers.servo.mpc` solved offline as a piecewise-affine law over a box of parameters,
+:mod:`hil.controllers.servo.mpc` solved offline as a piecewise-affine law over a box of parameters,
 searched online through a binary tree, with the online QP as fallback outside the box.
 
 Parameters. The MPC's θ = [Δx_p; y; u(k-1); r(1|k) .. r(H_t|k)] (n + 1 + 1 + H_t values) is
@@ -52,19 +52,19 @@ from typing import Any
 
 import numpy as np
 
-from controllers.servo.empc_tree import (
+from hil.controllers.errors import ControllerSetupError
+from hil.controllers.servo.empc_tree import (
     OUTSIDE_BOX,
     Polyhedron,
     SearchTree,
     TreeEvaluator,
     build_tree,
 )
-from controllers.servo.kalman import KalmanTuning
-from controllers.servo.model import StateSpaceModel, published_axis_model
-from controllers.servo.mpc import CondensedQP, MpcConfig, QpSolver, TrajectoryMpc, condense
-from controllers.servo.mpqp import MpQP, MpqpSolution, solve_mpqp
-from controllers.servo.references import Reference
-from hil.core.errors import ConfigError
+from hil.controllers.servo.kalman import KalmanTuning
+from hil.controllers.servo.model import StateSpaceModel, published_axis_model
+from hil.controllers.servo.mpc import CondensedQP, MpcConfig, QpSolver, TrajectoryMpc, condense
+from hil.controllers.servo.mpqp import MpQP, MpqpSolution, solve_mpqp
+from hil.controllers.servo.references import Reference
 
 DEFAULT_HALF_WIDTHS = {"dx1": 10.0, "dx2": 3.0, "dx3": 0.06, "dx4": 0.06, "e": 180.0, "dr": 3.0}
 
@@ -100,9 +100,10 @@ def _check_shift_invariance(qp: CondensedQP) -> None:
     d[qp.n_x + 1:] = 1.0
     scale = np.abs(qp.F).max()
     if qp.output_rows or np.abs(qp.X @ d).max() > 0 or np.abs(qp.F.T @ d).max() > 1e-9 * scale:
-        raise ConfigError("empc: the explicit MPC needs a shift-invariant problem (input and "
-                          "input-rate constraints only); output limits y_min/y_max are not "
-                          "supported")
+        raise ControllerSetupError(
+            "empc: the explicit MPC needs a shift-invariant problem (input and "
+   "input-rate constraints only); output limits y_min/y_max are not "
+   "supported")
 
 
 @dataclass(frozen=True)
@@ -126,7 +127,7 @@ def parameter_box(config: MpcConfig, n_states: int,
     items = _box_items(spec)
     scale = items.pop("scale", 1.0)
     if isinstance(scale, tuple) or not scale > 0:
-        raise ConfigError(f"empc box: scale must be a positive number, got {scale}")
+        raise ControllerSetupError(f"empc box: scale must be a positive number, got {scale}")
     defaults = dict(DEFAULT_HALF_WIDTHS)
     if n_states != 4:  # the dx defaults describe the published 4-state axis only
         defaults = {k: v for k, v in defaults.items() if not k.startswith("dx")}
@@ -143,21 +144,21 @@ def parameter_box(config: MpcConfig, n_states: int,
         else:
             base = defaults.get("dr" if name.startswith("dr") else name)
             if base is None:
-                raise ConfigError(f"empc box: no default for {name} on a {n_states}-state "
+                raise ControllerSetupError(f"empc box: no default for {name} on a {n_states}-state "
                                   f"model; give {', '.join(names[:n_states])} in the box")
             value = base * scale
         lo, hi = value if isinstance(value, tuple) else (-value, value)
         if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
-            raise ConfigError(f"empc box: {name} needs a finite interval lo < hi, got "
+            raise ControllerSetupError(f"empc box: {name} needs a finite interval lo < hi, got "
                               f"{lo}:{hi}")
         lower[i], upper[i] = lo, hi
     u = names.index("u")
     if lower[u] < config.u_min or upper[u] > config.u_max:
-        raise ConfigError(f"empc box: u must lie within the current limits "
+        raise ControllerSetupError(f"empc box: u must lie within the current limits "
                           f"[{config.u_min:g}, {config.u_max:g}] mA")
     unknown = set(items) - set(names) - {"dr"}
     if unknown:
-        raise ConfigError(f"empc box: unknown parameter(s) {', '.join(sorted(unknown))}; "
+        raise ControllerSetupError(f"empc box: unknown parameter(s) {', '.join(sorted(unknown))}; "
                           f"known: {', '.join(names)}, dr, scale")
     return ParameterBox(tuple(names), lower, upper)
 
@@ -173,7 +174,7 @@ def _box_items(spec: str | Mapping[str, Any] | None) -> dict[str, Any]:
         name, eq, text = item.partition("=")
         name = name.strip()
         if not eq or not name:
-            raise ConfigError(f"empc box: expected NAME=VALUE, got {item!r}")
+            raise ControllerSetupError(f"empc box: expected NAME=VALUE, got {item!r}")
         try:
             if ":" in text:
                 lo, hi = text.split(":", 1)
@@ -181,10 +182,11 @@ def _box_items(spec: str | Mapping[str, Any] | None) -> dict[str, Any]:
             else:
                 half = float(text)
                 if not half > 0:
-                    raise ConfigError(f"empc box: {name} half-width must be > 0, got {half}")
+                    raise ControllerSetupError(
+                        f"empc box: {name} half-width must be > 0, got {half}")
                 items[name] = half
         except ValueError:
-            raise ConfigError(f"empc box: {name}: not a number or LO:HI range: "
+            raise ControllerSetupError(f"empc box: {name}: not a number or LO:HI range: "
                               f"{text!r}") from None
     return items
 
@@ -256,7 +258,7 @@ def build_explicit_law(config: MpcConfig, model: StateSpaceModel | None = None,
                        ) -> ExplicitLaw:
     """Solve the mpQP of the MPC over the box and build the search tree of its controllers."""
     if config.hu > MAX_EXPLICIT_HU:
-        raise ConfigError(
+        raise ControllerSetupError(
             f"empc: H_u = {config.hu} is too large for an explicit solution (enumerated over "
             f"3^H_u active sets); H_u <= {MAX_EXPLICIT_HU} is supported (the paper runs H_u = 3)")
     start = time.perf_counter()
@@ -270,7 +272,7 @@ def build_explicit_law(config: MpcConfig, model: StateSpaceModel | None = None,
                    lower=box.lower, upper=box.upper)
     solution = solve_mpqp(problem)
     if not solution.regions:
-        raise ConfigError("empc: no critical region in the box (is the problem feasible?)")
+        raise ControllerSetupError("empc: no critical region in the box (is the problem feasible?)")
     labels = solution.law_labels(slice(0, 1))
     first = [int(np.flatnonzero(labels == c)[0]) for c in range(int(labels.max()) + 1)]
     gains = np.array([solution.regions[i].K[0] for i in first])
@@ -341,8 +343,9 @@ class ExplicitMpc(TrajectoryMpc):
             law = build_explicit_law(self.config, self.model, box)
         elif law.config != self.config or not (
                 np.array_equal(law.qp.F, self.qp.F) and np.array_equal(law.qp.H, self.qp.H)):
-            raise ConfigError("empc: the prebuilt explicit law is for another MPC config or "
-                              "model")
+            raise ControllerSetupError(
+                "empc: the prebuilt explicit law is for another MPC config or "
+       "model")
         self.law = law
         self.explicit = ExplicitSolver(law, self.solver)
         self.solver = self.explicit

@@ -7,7 +7,7 @@ controller gains) and one function ::
 
 ``theta`` is the MPC parameter vector exactly as the online MPC forms it (servo paper eq. 9):
 [Δx_p (n); y; u(k-1); r(1|k) .. r(H_t|k)], positions in continuous degrees, current in mA.
-The function forms the relative parameters (module :mod:`controllers.servo.empc`), checks the box,
+The function forms the relative parameters (:mod:`hil.controllers.servo.empc`), checks the box,
 descends the tree and, when a controller is found, writes Δu(0|k) to ``*du`` and returns the
 controller index (>= 0; 0 is the unconstrained law). Otherwise ``*du`` is left untouched and
 it returns EMPC_OUTSIDE_BOX (-2; NaN parameters included) or EMPC_NO_REGION (-1). The caller
@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from controllers.servo.empc import ExplicitLaw
-from controllers.servo.empc_tree import BOX_TOL
-from hil.core.errors import HilError
+from hil.controllers.errors import SolverError
+from hil.controllers.servo.empc import ExplicitLaw
+from hil.controllers.servo.empc_tree import BOX_TOL
 
 
 def _num(x: float) -> str:
@@ -170,5 +170,5 @@ def write_c(law: ExplicitLaw, path: str | Path) -> Path:
     try:
         path.write_text(c_source(law), encoding="ascii")
     except OSError as exc:
-        raise HilError(f"cannot write {path}: {exc.strerror or exc}") from None
+        raise SolverError(f"cannot write {path}: {exc.strerror or exc}") from None
     return path

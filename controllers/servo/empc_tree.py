@@ -35,8 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.servo.mpqp import LinearProgram
-from hil.core.errors import HilError
+from hil.controllers.errors import SolverError
+from hil.controllers.servo.mpqp import LinearProgram
 
 NOT_FOUND = -1
 OUTSIDE_BOX = -2
@@ -242,7 +242,7 @@ class _Builder:
             centre, radius = self.lp.chebyshev(At, bt)
             bounds = self.lp.minima(At, bt, np.vstack([eye, -eye]))
             if bounds is None or radius <= 0:
-                raise HilError("empc tree: a region is empty (inconsistent partition)")
+                raise SolverError("empc tree: a region is empty (inconsistent partition)")
             lo, hi = bounds[:n], -bounds[n:]
             mid = A_pl @ (0.5 * (hi + lo)) - b_pl
             reach = np.abs(A_pl) @ (0.5 * (hi - lo))
@@ -255,7 +255,7 @@ class _Builder:
             if rows.size:
                 ext = self.lp.minima(At, bt, np.vstack([A_pl[rows], -A_pl[rows]]))
                 if ext is None:
-                    raise HilError("empc tree: a region is empty (inconsistent partition)")
+                    raise SolverError("empc tree: a region is empty (inconsistent partition)")
                 low, high = ext[: rows.size], -ext[rows.size:]
                 sign[rows, i] = np.where(high <= b_pl[rows] + _INTERIOR_TOL, -1, np.where(
                     low >= b_pl[rows] - _INTERIOR_TOL, 1, 0))
@@ -325,7 +325,7 @@ class _Builder:
             else:
                 choice = self._choose(members, cell_A, cell_b, used, candidates_per_node)
             if choice is None:
-                raise HilError(f"empc tree: regions with laws {laws.tolist()} cannot be "
+                raise SolverError(f"empc tree: regions with laws {laws.tolist()} cannot be "
                                "separated by their facets (degenerate partition)")
             j, members_left, members_right = choice
             plane[node] = j
@@ -393,7 +393,7 @@ def build_tree(regions: Sequence[Polyhedron], labels: Sequence[int] | np.ndarray
     """The search tree of regions (with their law labels) in the box.
 
     ``covered``: the caller knows that the regions cover the box (e.g.
-    :attr:`~controllers.servo.mpqp.MpqpSolution.covers_box`); a node whose regions share one law
+    :attr:`~hil.controllers.servo.mpqp.MpqpSolution.covers_box`); a node whose regions share one law
     is then a leaf. Otherwise such a node is split further by the regions' facets until its
     cell lies inside a region or meets none (a NOT_FOUND leaf), so a gap in the partition is
     reported, never given a neighbour's law.

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from hil.core.errors import ConfigError
+from hil.controllers.errors import ControllerSetupError
 
 if TYPE_CHECKING:
     from filterpy.kalman import KalmanFilter
@@ -43,7 +43,7 @@ class KalmanTuning:
     def __post_init__(self) -> None:
         for name in ("disturbance_step_ma", "measurement_deg", "state_noise", "tolerance"):
             if not getattr(self, name) > 0:
-                raise ConfigError(f"kalman.{name} must be > 0, got {getattr(self, name)}")
+                raise ControllerSetupError(f"kalman.{name} must be > 0, got {getattr(self, name)}")
 
 
 class SteadyStateKalman:
@@ -57,7 +57,7 @@ class SteadyStateKalman:
         self.C = np.asarray(C, dtype=float).reshape(-1)
         n = self.A.shape[0]
         if self.A.shape != (n, n) or self.B.size != n or self.C.size != n:
-            raise ConfigError("kalman: A must be n x n, B n x 1 and C 1 x n")
+            raise ControllerSetupError("kalman: A must be n x n, B n x 1 and C 1 x n")
         self.filter = self._converged_filter()
         self.gain = self.filter.K.reshape(-1).copy()
         self.x = np.zeros(n)
@@ -87,7 +87,8 @@ class SteadyStateKalman:
                 if change <= t.tolerance * np.max(np.abs(kf.K)):
                     return kf
             previous = kf.K.copy()
-        raise ConfigError(f"kalman: gain did not converge in {t.max_iterations} iterations")
+        raise ControllerSetupError(
+            f"kalman: gain did not converge in {t.max_iterations} iterations")
 
     def reset(self, x0: np.ndarray) -> None:
         """Start from the prior estimate ``x0`` (before the first measurement)."""

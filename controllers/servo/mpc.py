@@ -34,10 +34,10 @@ import daqp
 import numpy as np
 import scipy.linalg as sla
 
-from controllers.servo.kalman import KalmanTuning, SteadyStateKalman
-from controllers.servo.model import StateSpaceModel, published_axis_model
-from controllers.servo.references import AngleUnwrapper, Reference
-from hil.core.errors import ConfigError, HilError
+from hil.controllers.errors import ControllerSetupError, SolverError
+from hil.controllers.servo.kalman import KalmanTuning, SteadyStateKalman
+from hil.controllers.servo.model import StateSpaceModel, published_axis_model
+from hil.controllers.servo.references import AngleUnwrapper, Reference
 
 FEASIBILITY_TOL = 1e-7  # constraint slack accepted on the unconstrained fast path [mA or deg]
 
@@ -93,9 +93,11 @@ def _weights(value: float | Sequence[float], count: int, name: str, strict: bool
     if w.ndim == 0:
         w = np.full(count, float(w))
     if w.shape != (count,):
-        raise ConfigError(f"mpc.{name}: expected a number or {count} numbers, got {w.size}")
+        raise ControllerSetupError(
+            f"mpc.{name}: expected a number or {count} numbers, got {w.size}")
     if np.any(~np.isfinite(w)) or np.any(w <= 0 if strict else w < 0):
-        raise ConfigError(f"mpc.{name}: weights must be finite and {'> 0' if strict else '>= 0'}")
+        raise ControllerSetupError(
+            f"mpc.{name}: weights must be finite and {'> 0' if strict else '>= 0'}")
     return w
 
 
@@ -122,25 +124,28 @@ class MpcConfig:
 
     def __post_init__(self) -> None:
         if self.ert not in ("foh", "zoh"):
-            raise ConfigError(f"mpc.ert must be 'foh' or 'zoh', got {self.ert!r}")
+            raise ControllerSetupError(f"mpc.ert must be 'foh' or 'zoh', got {self.ert!r}")
         for name in ("ht", "hu", "hp"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < 1:
-                raise ConfigError(f"mpc.{name} must be a positive integer, got {value!r}")
+                raise ControllerSetupError(f"mpc.{name} must be a positive integer, got {value!r}")
         if self.ht > self.hp or self.hu > self.hp:
-            raise ConfigError(f"mpc: H_t ({self.ht}) and H_u ({self.hu}) must not exceed "
+            raise ControllerSetupError(f"mpc: H_t ({self.ht}) and H_u ({self.hu}) must not exceed "
                               f"H_p ({self.hp})")
         if self.ert == "foh" and self.ht < 2:
-            raise ConfigError("mpc: a first-order-hold ERT needs H_t >= 2 (use zoh for H_t = 1)")
+            raise ControllerSetupError(
+                "mpc: a first-order-hold ERT needs H_t >= 2 (use zoh for H_t = 1)")
         _weights(self.q, self.hp, "q", strict=False)
         _weights(self.r, self.hu, "r", strict=True)
         if not self.u_min < 0 < self.u_max:
-            raise ConfigError(f"mpc: need u_min < 0 < u_max, got {self.u_min}, {self.u_max}")
+            raise ControllerSetupError(
+                f"mpc: need u_min < 0 < u_max, got {self.u_min}, {self.u_max}")
         if (self.du_min is not None and not self.du_min < 0) or (
                 self.du_max is not None and not self.du_max > 0):
-            raise ConfigError("mpc: need du_min < 0 < du_max (holding the current is feasible)")
+            raise ControllerSetupError(
+                "mpc: need du_min < 0 < du_max (holding the current is feasible)")
         if self.y_min is not None and self.y_max is not None and not self.y_min < self.y_max:
-            raise ConfigError(f"mpc: need y_min < y_max, got {self.y_min}, {self.y_max}")
+            raise ControllerSetupError(f"mpc: need y_min < y_max, got {self.y_min}, {self.y_max}")
 
 
 @dataclass(frozen=True)
@@ -174,7 +179,7 @@ def condense(config: MpcConfig, model: StateSpaceModel | None = None) -> Condens
     """Build H, F, G, W, X of (9) and (13) for ``model`` (default: the published axis)."""
     model = model or published_axis_model()
     if model.B.shape[1] != 1 or model.C.shape[0] != 1:
-        raise ConfigError("mpc: the servo MPC expects one input (current) and one output")
+        raise ControllerSetupError("mpc: the servo MPC expects one input (current) and one output")
     A, B, C = velocity_form(model)
     n_x, hp, hu, ht = A.shape[0], config.hp, config.hu, config.ht
     Psi, Theta = prediction_matrices(A, B, C, hp, hu)
@@ -261,7 +266,7 @@ class DaqpSolver:
         exitflag, _ = model.setup(self.qp.H, np.zeros(hu), np.ascontiguousarray(G),
                                   np.full(rows, 1e30), np.full(rows, -1e30))
         if exitflag < 0:
-            raise ConfigError(f"mpc: daqp setup failed (exit flag {exitflag})")
+            raise ControllerSetupError(f"mpc: daqp setup failed (exit flag {exitflag})")
         return model
 
     def solve(self, theta: np.ndarray) -> np.ndarray:
@@ -363,7 +368,7 @@ class CvxpyReferenceSolver:
         self._r.value = np.asarray(theta[nx + 1:], dtype=float)
         self.problem.solve(solver="CLARABEL", **self.SOLVER_OPTIONS)
         if self.problem.status != "optimal" or self._dU.value is None:
-            raise HilError(f"mpc: cvxpy reference failed ({self.problem.status})")
+            raise SolverError(f"mpc: cvxpy reference failed ({self.problem.status})")
         return np.asarray(self._dU.value, dtype=float)
 
 
@@ -377,7 +382,7 @@ def prediction_map(qp: CondensedQP, config: MpcConfig) -> np.ndarray:
 
 
 class TrajectoryMpc:
-    """The MPC controller (a :class:`controllers.base.ServoController`):
+    """The MPC controller (a :class:`hil.controllers.base.ServoController`):
     ``step(position_deg, t_s) -> current_mA`` once per tick.
 
     Per tick: unwrap the measured position, correct the Kalman estimate, build θ from the
@@ -400,7 +405,7 @@ class TrajectoryMpc:
         elif solver == "cvxpy":
             self.solver = CvxpyReferenceSolver(self.config, self.model)
         else:
-            raise ConfigError(f"mpc: solver must be 'daqp' or 'cvxpy', got {solver!r}")
+            raise ControllerSetupError(f"mpc: solver must be 'daqp' or 'cvxpy', got {solver!r}")
         self._position = AngleUnwrapper()
         self._ref_anchor = AngleUnwrapper()
         self._theta = np.zeros(self.qp.n_theta)

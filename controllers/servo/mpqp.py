@@ -32,8 +32,8 @@ import highspy
 import numpy as np
 import scipy.linalg as sla
 
-from controllers.highs import silent_highs
-from hil.core.errors import ConfigError, HilError
+from hil.controllers.errors import ControllerSetupError, SolverError
+from hil.controllers.highs import silent_highs
 
 _INF = highspy.kHighsInf
 
@@ -94,7 +94,7 @@ class LinearProgram:
             h.run()
             self.count += 1
             if h.getModelStatus() != highspy.HighsModelStatus.kOptimal:
-                raise HilError(f"LP over a non-empty bounded set ended with "
+                raise SolverError(f"LP over a non-empty bounded set ended with "
                                f"{h.modelStatusToString(h.getModelStatus())}")
             values[i] = h.getInfo().objective_function_value
         return values
@@ -139,12 +139,13 @@ class MpQP:
                   "X": (n_c, n_p), "lower": (n_p,), "upper": (n_p,)}
         for name, shape in shapes.items():
             if np.shape(getattr(self, name)) != shape:
-                raise ConfigError(f"mpqp: {name} has shape {np.shape(getattr(self, name))}, "
-                                  f"expected {shape}")
+                raise ControllerSetupError(
+                    f"mpqp: {name} has shape {np.shape(getattr(self, name))}, "
+           f"expected {shape}")
         if not np.all(np.isfinite(self.lower)) or not np.all(np.isfinite(self.upper)):
-            raise ConfigError("mpqp: the parameter box must be finite")
+            raise ControllerSetupError("mpqp: the parameter box must be finite")
         if not np.all(np.asarray(self.upper) > np.asarray(self.lower)):
-            raise ConfigError("mpqp: every box interval must have upper > lower")
+            raise ControllerSetupError("mpqp: every box interval must have upper > lower")
 
     @property
     def n_params(self) -> int:

@@ -39,9 +39,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from controllers.servo.model import StateSpaceModel, published_axis_model
-from controllers.servo.references import AngleUnwrapper, Reference, wrap180
-from hil.core.errors import ConfigError
+from hil.controllers.errors import ControllerSetupError
+from hil.controllers.servo.model import StateSpaceModel, published_axis_model
+from hil.controllers.servo.references import AngleUnwrapper, Reference, wrap180
 
 RPM_PER_DEG_S = 60.0 / 360.0
 EQ16_NUMERATOR = (0.9352, -0.9352 * 1.9774, 0.9352)
@@ -59,9 +59,10 @@ def notch_coefficients(center_hz: float, quality: float, dt: float) -> tuple[np.
                                                                              np.ndarray]:
     """Second-order notch (unit DC gain, zeros on the unit circle at ``center_hz``)."""
     if not 0 < center_hz < 0.5 / dt:
-        raise ConfigError(f"pid: notch centre {center_hz} Hz must be in (0, {0.5 / dt:g}) Hz")
+        raise ControllerSetupError(
+            f"pid: notch centre {center_hz} Hz must be in (0, {0.5 / dt:g}) Hz")
     if not quality > 0:
-        raise ConfigError(f"pid: notch quality factor must be > 0, got {quality}")
+        raise ControllerSetupError(f"pid: notch quality factor must be > 0, got {quality}")
     # scipy.signal.iirnotch's design (Orfanidis 11.3, -3 dB bandwidth), written out: importing
     # scipy.signal takes two seconds (its array-API layer parses every docstring), which
     # every PID run paid; the test holds the two to each other
@@ -98,9 +99,9 @@ class PidConfig:
     def __post_init__(self) -> None:
         for name in ("k_pos_rpm_per_deg", "k_vel_a_per_rpm", "ti_s", "u_max"):
             if not getattr(self, name) > 0:
-                raise ConfigError(f"pid.{name} must be > 0, got {getattr(self, name)}")
+                raise ControllerSetupError(f"pid.{name} must be > 0, got {getattr(self, name)}")
         if self.notch not in NOTCH_READINGS:
-            raise ConfigError(f"pid.notch must be one of {', '.join(NOTCH_READINGS)}, "
+            raise ControllerSetupError(f"pid.notch must be one of {', '.join(NOTCH_READINGS)}, "
                               f"got {self.notch!r}")
 
 
@@ -125,7 +126,7 @@ class SecondOrderFilter:
 
 
 class CascadedPid:
-    """The incumbent drive controller (a :class:`controllers.base.ServoController`):
+    """The incumbent drive controller (a :class:`hil.controllers.base.ServoController`):
     ``step(position_deg, t_s) -> current_mA``."""
 
     def __init__(self, reference: Reference, config: PidConfig | None = None,
@@ -199,7 +200,7 @@ def closed_loop_pole(config: PidConfig, model: StateSpaceModel) -> float:
 
 
 def check_stable(config: PidConfig, model: StateSpaceModel) -> None:
-    """A ConfigError when the loop is unstable on ``model`` at its period, naming the pole
+    """A ControllerSetupError when the loop is unstable on ``model`` at its period, naming the pole
     and an integral time that holds it (the configured one doubled until it does)."""
     pole = closed_loop_pole(config, model)
     if pole < 1.0:
@@ -212,10 +213,11 @@ def check_stable(config: PidConfig, model: StateSpaceModel) -> None:
         longer = replace(config, ti_s=config.ti_s * factor)
         holds = closed_loop_pole(longer, model)
         if holds < 1.0:
-            raise ConfigError(f"{message}; a longer integral time holds it, e.g. --param "
+            raise ControllerSetupError(f"{message}; a longer integral time holds it, e.g. --param "
                               f"ti_us={longer.ti_s * 1e6:g} (|z| = {holds:.3f})")
-    raise ConfigError(f"{message}; no longer integral time holds it: a shorter cycle period "
-                      "does")
+    raise ControllerSetupError(
+        f"{message}; no longer integral time holds it: a shorter cycle period "
+"does")
 
 
 class _AtRest:

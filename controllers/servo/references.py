@@ -26,7 +26,7 @@ from typing import Protocol
 
 import numpy as np
 
-from hil.core.errors import UsageError
+from hil.controllers.errors import ControllerSetupError
 
 
 def wrap180(angle_deg: float) -> float:
@@ -113,7 +113,8 @@ class Trapezoid:
     def __post_init__(self) -> None:
         for name in ("stroke", "speed_rpm", "acceleration"):
             if not getattr(self, name) > 0:
-                raise UsageError(f"trapezoid: {name} must be > 0, got {getattr(self, name)}")
+                raise ControllerSetupError(
+                    f"trapezoid: {name} must be > 0, got {getattr(self, name)}")
 
     def position(self, t: np.ndarray) -> np.ndarray:
         v = self.speed_rpm * 6.0  # deg/s
@@ -177,9 +178,10 @@ class PlacedReference:
 
     def position(self, t: np.ndarray) -> np.ndarray:
         if self.offset_deg is None:
-            raise UsageError("the run's reference is placed where the axis starts, when the "
-                             "drive is enabled: a controller samples it in step(), not when "
-                             "it is built")
+            raise ControllerSetupError(
+                "the run's reference is placed where the axis starts, when the "
+      "drive is enabled: a controller samples it in step(), not when "
+      "it is built")
         return self.inner.position(t) + self.offset_deg
 
 
@@ -232,14 +234,16 @@ def parse_circle(spec: str) -> tuple[float, float] | None:
     for item in filter(None, (p.strip() for p in params.split(","))):
         key, eq, text = item.partition("=")
         if not eq or key not in values:
-            raise UsageError(f"reference {spec!r}: bad parameter {item!r} (allowed: feed, "
-                             "radius)")
+            raise ControllerSetupError(
+                f"reference {spec!r}: bad parameter {item!r} (allowed: feed, "
+      "radius)")
         try:
             values[key] = float(text)
         except ValueError:
-            raise UsageError(f"reference {spec!r}: {key} must be a number, got {text!r}") from None
+            raise ControllerSetupError(
+                f"reference {spec!r}: {key} must be a number, got {text!r}") from None
         if not (math.isfinite(values[key]) and values[key] > 0):
-            raise UsageError(f"reference {spec!r}: {key} must be a positive number")
+            raise ControllerSetupError(f"reference {spec!r}: {key} must be a positive number")
     return values["radius"], values["feed"]
 
 
@@ -260,7 +264,7 @@ def position_disturbance(hold_deg: float = 0.0, torque_ma: float = 1200.0,
     axis is displaced by roughly 20 deg before the release.
     """
     if not end > start:
-        raise UsageError(f"disturbance: end ({end}) must be after start ({start})")
+        raise ControllerSetupError(f"disturbance: end ({end}) must be after start ({start})")
     return Scenario(Hold(hold_deg), PulseDisturbance(torque_ma, start, end))
 
 
@@ -282,20 +286,22 @@ def parse_scenario(spec: str) -> Scenario:
     or ``disturbance:torque=1200,start=0.1,end=0.35`` -> :class:`Scenario`."""
     kind, _, params = spec.partition(":")
     if kind not in _SPECS:
-        raise UsageError(f"reference {spec!r}: unknown kind {kind!r} (one of {', '.join(_SPECS)})")
+        raise ControllerSetupError(
+            f"reference {spec!r}: unknown kind {kind!r} (one of {', '.join(_SPECS)})")
     build, allowed = _SPECS[kind]
     values: dict[str, float] = {}
     for item in filter(None, (p.strip() for p in params.split(","))):
         key, eq, text = item.partition("=")
         if not eq or key not in allowed:
-            raise UsageError(f"reference {spec!r}: bad parameter {item!r} "
+            raise ControllerSetupError(f"reference {spec!r}: bad parameter {item!r} "
                              f"(allowed: {', '.join(sorted(allowed))})")
         try:
             values[key] = float(text)
         except ValueError:
-            raise UsageError(f"reference {spec!r}: {key} must be a number, got {text!r}") from None
+            raise ControllerSetupError(
+                f"reference {spec!r}: {key} must be a number, got {text!r}") from None
         if not math.isfinite(values[key]):
-            raise UsageError(f"reference {spec!r}: {key} must be finite")
+            raise ControllerSetupError(f"reference {spec!r}: {key} must be finite")
     if kind == "sine" and values.get("frequency", 1.0) <= 0:
-        raise UsageError(f"reference {spec!r}: frequency must be > 0")
+        raise ControllerSetupError(f"reference {spec!r}: frequency must be > 0")
     return build(**values)

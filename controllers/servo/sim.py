@@ -16,11 +16,11 @@ from typing import Any
 
 import numpy as np
 
-from controllers.base import Resettable, ServoController
-from controllers.servo.model import StateSpaceModel, published_axis_model
-from controllers.servo.mpc import MpcConfig, TrajectoryMpc
-from controllers.servo.pid import CascadedPid, PidConfig
-from controllers.servo.references import Disturbance, Reference, Sine
+from hil.controllers.base import Resettable, ServoController
+from hil.controllers.servo.model import StateSpaceModel, published_axis_model
+from hil.controllers.servo.mpc import MpcConfig, TrajectoryMpc
+from hil.controllers.servo.pid import CascadedPid, PidConfig
+from hil.controllers.servo.references import Disturbance, Reference, Sine
 
 
 @dataclass

@@ -1,5 +1,5 @@
 """A lockstep master's side of hil's bench emulator (the wire tables:
-:mod:`drivers.bench.clock_protocol`): :func:`identify` tells hil's emulator from a real bench by
+:mod:`hil.protocols.bench_clock`): :func:`identify` tells hil's emulator from a real bench by
 its Modbus device identification, :class:`EmulatorClock` gives the emulator the master's time.
 """
 
@@ -8,7 +8,9 @@ from __future__ import annotations
 import contextlib
 from dataclasses import dataclass
 
-from drivers.bench.clock_protocol import (
+from hil.drivers.bench.modbus import DeviceError, LinkError, ModbusLink
+from hil.drivers.errors import DriverError, ForeignMasterError
+from hil.protocols.bench_clock import (
     CLOCK_UNIT,
     CONTROL_REGISTER,
     HELD_BY_ANOTHER,
@@ -19,8 +21,6 @@ from drivers.bench.clock_protocol import (
     time_of,
     time_words,
 )
-from drivers.bench.modbus import DeviceError, LinkError, ModbusLink
-from hil.core.errors import ForeignMasterError, HilError
 
 
 @dataclass(frozen=True)
@@ -61,7 +61,7 @@ def identify(link: ModbusLink, unit: int, timeout_s: float) -> Identity | None:
     return Identity(text(0), text(1), text(2))
 
 
-class KeepsWallClockError(HilError):
+class KeepsWallClockError(DriverError):
     """hil's bench emulator keeps its wall clock (``--clock wall``): it follows no master."""
 
 
@@ -109,7 +109,7 @@ class EmulatorClock:
 
     def state(self) -> int:
         """What the emulator's time follows: ``ON_WALL_CLOCK``, ``ON_MASTER_TIME`` or
-        ``WAITING_FOR_MASTER`` (:mod:`drivers.bench.clock_protocol`)."""
+        ``WAITING_FOR_MASTER`` (:mod:`hil.protocols.bench_clock`)."""
         return self.link.read_registers(CLOCK_UNIT, CONTROL_REGISTER, 1)[0]
 
     def release(self) -> None:
@@ -119,7 +119,7 @@ class EmulatorClock:
         when its grace after the close runs out). The link's requests wait its own timeout
         after: the emulator keeps the wall clock again."""
         try:
-            with contextlib.suppress(HilError):
+            with contextlib.suppress(DriverError):
                 self.link.write_register(CLOCK_UNIT, CONTROL_REGISTER, 0)
         finally:
             self.link.let_go()

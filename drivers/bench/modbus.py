@@ -32,7 +32,7 @@ from pymodbus.exceptions import ModbusException
 from pymodbus.pdu import ModbusPDU
 from pymodbus.pdu.mei_message import ReadDeviceInformationResponse
 
-from hil.core.errors import ConfigError, HilError
+from hil.drivers.errors import DriverError, DriverSetupError
 
 URL_FORMS = "modbus-tcp://HOST:PORT or modbus-rtu:///dev/X?baud=115200&parity=N"
 EXCEPTION_NAMES = {
@@ -47,7 +47,7 @@ TRANSIENT_CODES = (4, 5, 6, 10, 11)
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())  # we report errors ourselves
 
 
-class LinkError(HilError):
+class LinkError(DriverError):
     """No valid answer (timeout, connection refused or lost, garbled reply) after all tries."""
 
 
@@ -56,7 +56,7 @@ class PeerGoneError(LinkError):
     (or cannot be reached): it is gone (stopped, killed, or paused longer than the bound)."""
 
 
-class RelayStuckError(HilError):
+class RelayStuckError(DriverError):
     """A verified write read back the other state: the relay does not follow its coil."""
 
     def __init__(self, message: str, relay: str, actual: bool) -> None:
@@ -64,7 +64,7 @@ class RelayStuckError(HilError):
         self.relay, self.actual = relay, actual
 
 
-class DeviceError(HilError):
+class DeviceError(DriverError):
     """The device answered with a Modbus exception: the request itself is wrong."""
 
     def __init__(self, message: str, code: int) -> None:
@@ -118,11 +118,11 @@ class BusSpec:
 def parse_bus_url(url: str) -> BusSpec:
     """``modbus-tcp://HOST:PORT`` or ``modbus-rtu:///dev/X?baud=..&parity=..&stopbits=..``."""
 
-    def bad(why: str) -> ConfigError:
-        return ConfigError(f"bus URL {url!r}: {why} (expected {URL_FORMS})")
+    def bad(why: str) -> DriverSetupError:
+        return DriverSetupError(f"bus URL {url!r}: {why} (expected {URL_FORMS})")
 
     if not isinstance(url, str):
-        raise ConfigError(f"bus URL must be a string like {URL_FORMS}, got {url!r}")
+        raise DriverSetupError(f"bus URL must be a string like {URL_FORMS}, got {url!r}")
     parts = urlsplit(url)
     if parts.scheme == "modbus-tcp":
         if parts.path not in ("", "/") or parts.query or parts.fragment:

@@ -6,15 +6,15 @@
   recorded as an event, later ones are counted.
 * Safe level: on stop, on error and on link loss every relay is driven to its ``safe`` level,
   whatever its dwell (a safety action is not chatter).
-* Watchdog (a :class:`~hil.core.types.LinkWatchdog`): ``watchdog_polls`` failed polls in a
+* Watchdog (a :class:`~hil.contracts.LinkWatchdog`): ``watchdog_polls`` failed polls in a
   row declare the link lost (event, safe level); the link is then retried every
   ``reconnect_interval_s``; on reconnection every relay is driven to its safe level first and
   the controllers start again from there.
 
-Time is the loop clock's (a :class:`~hil.core.types.TimeSource`): dwell and reconnection
+Time is the loop clock's (a :class:`~hil.contracts.TimeSource`): dwell and reconnection
 pacing run in simulated time in lockstep and in wall time in real time.
 
-:class:`SafeBench` is a :class:`~hil.core.types.Device`: ``open()`` probes every unit and
+:class:`SafeBench` is a :class:`~hil.contracts.Device`: ``open()`` probes every unit and
 drives the relays to their safe levels, ``close()`` does the safe state and releases the link.
 """
 
@@ -26,9 +26,9 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from drivers.bench.modbus import DeviceError, LinkError, ModbusBenchDriver, RelayStuckError
-from hil.core.errors import HilError
-from hil.core.types import Device, EventSink, LinkWatchdog, TimeSource, no_event
+from hil.contracts import Device, EventSink, LinkWatchdog, TimeSource, no_event
+from hil.drivers.bench.modbus import DeviceError, LinkError, ModbusBenchDriver, RelayStuckError
+from hil.drivers.errors import DriverError
 
 
 class DwellGuard:
@@ -204,7 +204,7 @@ class SafeBench(Device):
                    f"polls: {reason}", level="error", url=self.url, reason=reason)
         self._guard.pending.clear()
         self._seen = dict.fromkeys(self._seen)
-        with contextlib.suppress(HilError):  # best effort: the relay module may still hear us
+        with contextlib.suppress(DriverError):  # best effort: the relay module may still hear us
             self._drive_safe(t_s, reason="link lost")
         self._driver.link.close()
         self._next_reconnect_s = t_s + self.reconnect_interval_s
@@ -252,7 +252,7 @@ class SafeBench(Device):
         out: dict[str, str] = {}
         for name, on in changes.items():
             if name not in self._guard.state:
-                raise HilError(f"unknown relay {name!r} (relays: {', '.join(self.relay_names)})")
+                raise DriverError(f"unknown relay {name!r} (relays: {', '.join(self.relay_names)})")
             on = bool(on)
             if self.watchdog.lost:
                 self.stats.refused_requests += 1
@@ -321,7 +321,7 @@ class SafeBench(Device):
             return
         try:
             self._drive_safe(t_s, reason="link restored")
-        except HilError:
+        except DriverError:
             link.close()
             return
         self._connections_seen = link.connections

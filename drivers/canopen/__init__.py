@@ -5,19 +5,19 @@ drive's scaling (:mod:`.scaling`) and description (:mod:`.eds`), and the master 
 them (:mod:`.master`). :mod:`.bus` opens any python-can interface from a URL; :mod:`.scan`
 looks at the nodes of a bus without changing anything."""
 
-from drivers.canopen.bus import CanBusSpec, open_can_bus, parse_can_url
-from drivers.canopen.config import DriveMasterConfig
-from drivers.canopen.cyclic import Feedback, LinkStats
-from drivers.canopen.errors import (
+from hil.drivers.canopen.bus import CanBusSpec, open_can_bus, parse_can_url
+from hil.drivers.canopen.config import DriveMasterConfig
+from hil.drivers.canopen.cyclic import Feedback, LinkStats
+from hil.drivers.canopen.errors import (
     BusSharedError,
     DriveError,
     DriveFaultError,
     DriveLinkLostError,
     DriveStateError,
-    SdoAbortError,
 )
-from drivers.canopen.link import CanLink
-from drivers.canopen.master import CanDriveMaster
+from hil.drivers.canopen.link import CanLink
+from hil.drivers.canopen.master import CanDriveMaster
+from hil.protocols.cia301 import SdoAbortError
 
 __all__ = ["BusSharedError", "CanBusSpec", "CanDriveMaster", "CanLink", "DriveError",
            "DriveFaultError", "DriveLinkLostError", "DriveMasterConfig", "DriveStateError",

@@ -1,8 +1,8 @@
 """Several drives on one bus, cycled together: one SYNC per cycle, every RPDO of the cycle on
 the bus before it, each drive's TPDOs handed to its own master.
 
-:class:`AxisBus` sits between one :class:`~drivers.canopen.link.CanLink` and one
-:class:`~drivers.canopen.master.CanDriveMaster` per drive: each master talks to a
+:class:`AxisBus` sits between one :class:`~hil.drivers.canopen.link.CanLink` and one
+:class:`~hil.drivers.canopen.master.CanDriveMaster` per drive: each master talks to a
 :class:`NodeLink` (the ``CanLink`` interface) and stays what it is for one drive. The bus
 
 * routes every received frame to the master of the node its COB-ID names (EMCY, TPDOs, SDO
@@ -26,12 +26,12 @@ import time
 from collections import deque
 from collections.abc import Sequence
 
-from drivers.can_frames import Frame
-from drivers.canopen.cyclic import Feedback
-from drivers.canopen.errors import DriveError
-from drivers.canopen.link import CanLink
-from drivers.canopen.master import CanDriveMaster, stop_together
-from drivers.cia301 import HEARTBEAT_BASE, NMT_COB_ID, SYNC_COB_ID
+from hil.drivers.canopen.cyclic import Feedback
+from hil.drivers.canopen.errors import DriveError
+from hil.drivers.canopen.link import CanLink
+from hil.drivers.canopen.master import CanDriveMaster, stop_together
+from hil.protocols.can_frames import Frame
+from hil.protocols.cia301 import HEARTBEAT_BASE, NMT_COB_ID, SYNC_COB_ID
 
 NODE_ID_BITS = 0x7F
 TPDO_IDS_FIRST, TPDO_IDS_LAST = 0x181, 0x4FF  # TPDO1-4 of nodes 1-127, default COB-IDs
@@ -211,7 +211,7 @@ class AxisGroup:
 
     def safe_state(self) -> None:
         """Quick stop on every axis in the same cycles until all stand, then disable voltage
-        in one cycle (:func:`~drivers.canopen.master.stop_together`); silent."""
+        in one cycle (:func:`~hil.drivers.canopen.master.stop_together`); silent."""
         if self.bus.together:
             stop_together(self.masters, self.bus.end_cycle)
         else:  # still setting up: one drive after the other

@@ -9,7 +9,7 @@ leading ``/``: ``slcan:///dev/ttyACM0``), and every query key becomes a keyword 
 ``false`` a bool, anything else a string): ``udp_multicast://239.0.0.1?port=43113``,
 ``slcan:///dev/ttyACM0?bitrate=1000000``, ``pcan://PCAN_USBBUS1?fd=true``.
 ``socketcand://HOST:PORT[/CHANNEL]`` reaches a socketcand gateway with hil's own client
-(:class:`drivers.socketcand_bus.SocketcandBus`, one TCP write per cycle).
+(:class:`hil.drivers.socketcand_bus.SocketcandBus`, one TCP write per cycle).
 
 The same bus in a config file is ``[bus]``: ``interface``, ``channel``, ``bitrate`` and a table
 ``options`` (:class:`CanBusSpec`).
@@ -26,9 +26,9 @@ from urllib.parse import parse_qsl
 import can
 from can.interfaces import VALID_INTERFACES
 
-from drivers.canopen.errors import DriveLinkLostError, one_line
-from drivers.socketcand_bus import SocketcandBus
-from hil.core.errors import ConfigError
+from hil.drivers.canopen.errors import DriveLinkLostError, one_line
+from hil.drivers.errors import DriverSetupError
+from hil.drivers.socketcand_bus import SocketcandBus
 
 SOCKETCAND = "socketcand"
 _INTERFACE_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
@@ -74,36 +74,37 @@ def typed(text: str) -> Any:
 
 
 def parse_can_url(url: str, default_channel: str = "can0") -> CanBusSpec:
-    """The :class:`CanBusSpec` of a CAN URL; a ConfigError names what is wrong and the forms."""
+    """The :class:`CanBusSpec` of a CAN URL; a :class:`DriverSetupError` names what is wrong and
+    the forms."""
     interface, sep, rest = url.partition("://")
     if not sep or not interface:
-        raise ConfigError(f"drive {url!r}: expected {URL_FORMS}")
+        raise DriverSetupError(f"drive {url!r}: expected {URL_FORMS}")
     if not _INTERFACE_NAME.match(interface) or interface not in VALID_INTERFACES:
-        raise ConfigError(f"drive {url!r}: {interface!r} is not a python-can interface "
+        raise DriverSetupError(f"drive {url!r}: {interface!r} is not a python-can interface "
                           f"(known: {', '.join(sorted(VALID_INTERFACES))})")
     where, _, query = rest.partition("?")
     try:
         pairs = parse_qsl(query, keep_blank_values=True, strict_parsing=bool(query))
     except ValueError:
-        raise ConfigError(f"drive {url!r}: the options must be key=value pairs joined by "
+        raise DriverSetupError(f"drive {url!r}: the options must be key=value pairs joined by "
                           "'&'") from None
     options: dict[str, Any] = {}
     for key, value in pairs:
         if not key.isidentifier():
-            raise ConfigError(f"drive {url!r}: option {key!r} is not a keyword name")
+            raise DriverSetupError(f"drive {url!r}: option {key!r} is not a keyword name")
         if key in options:
-            raise ConfigError(f"drive {url!r}: option {key!r} given twice")
+            raise DriverSetupError(f"drive {url!r}: option {key!r} given twice")
         if key in ("interface", "channel"):
-            raise ConfigError(f"drive {url!r}: {key} is the URL's own part, not an option")
+            raise DriverSetupError(f"drive {url!r}: {key} is the URL's own part, not an option")
         options[key] = typed(value)
     if interface == SOCKETCAND:
         match = _HOST_PORT.match(where)
         if match is None:
-            raise ConfigError(f"drive {url!r}: expected socketcand://HOST:PORT[/CHANNEL]")
+            raise DriverSetupError(f"drive {url!r}: expected socketcand://HOST:PORT[/CHANNEL]")
         options |= {"host": match["host"], "port": int(match["port"])}
         return CanBusSpec(SOCKETCAND, match["channel"] or default_channel, options)
     if not where:
-        raise ConfigError(f"drive {url!r}: no channel (expected {interface}://CHANNEL, e.g. "
+        raise DriverSetupError(f"drive {url!r}: no channel (expected {interface}://CHANNEL, e.g. "
                           f"{interface}://can0 or {interface}:///dev/ttyACM0)")
     return CanBusSpec(interface, where, options)
 

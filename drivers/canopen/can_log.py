@@ -12,25 +12,25 @@ import time
 
 import can
 
-from drivers.can_frames import Frame
-from drivers.canopen.errors import DriveError
-from hil.core.errors import ConfigError
+from hil.drivers.canopen.errors import DriveError
+from hil.drivers.errors import DriverSetupError
+from hil.protocols.can_frames import Frame
 
 SUFFIXES = (".blf", ".asc", ".trc", ".log", ".csv")
 
 
 class CanLog:
-    """A :class:`~drivers.canopen.link.FrameTrace` writing to ``path`` (its suffix chooses the
+    """A :class:`~hil.drivers.canopen.link.FrameTrace` writing to ``path`` (its suffix chooses the
     format); :meth:`close` writes what is queued and finishes the file."""
 
     def __init__(self, path: str, channel: str = "can0") -> None:
         if not path.lower().endswith(SUFFIXES):
-            raise ConfigError(f"--can-log {path}: the file's suffix names its format, one of "
+            raise DriverSetupError(f"--can-log {path}: the file's suffix names its format, one of "
                               f"{', '.join(SUFFIXES)}")
         try:
             self._writer = can.Logger(path)
         except (OSError, ValueError) as exc:
-            raise ConfigError(f"--can-log {path}: cannot write it: {exc}") from None
+            raise DriverSetupError(f"--can-log {path}: cannot write it: {exc}") from None
         self.path, self.channel = path, channel
         self.frames = 0
         self._queue: queue.SimpleQueue[tuple[float, Frame, bool] | None] = queue.SimpleQueue()

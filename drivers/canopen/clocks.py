@@ -1,4 +1,4 @@
-"""The time a master goes by (:class:`~drivers.canopen.state.MasterClock`): its watchdogs,
+"""The time a master goes by (:class:`~hil.drivers.canopen.state.MasterClock`): its watchdogs,
 heartbeats and state waits.
 
 * :class:`MonotonicClock` - the wall clock, for a drive that keeps its own (real hardware, a
@@ -15,9 +15,9 @@ from __future__ import annotations
 import math
 import time
 
-from drivers.canopen.link import Link
-from drivers.canopen.state import MasterClock
-from drivers.cia301 import SYNC_COB_ID
+from hil.drivers.canopen.link import Link
+from hil.drivers.canopen.state import MasterClock
+from hil.protocols.cia301 import SYNC_COB_ID
 
 
 class MonotonicClock:

@@ -9,13 +9,13 @@ from dataclasses import dataclass
 @dataclass(frozen=True)
 class DriveMasterConfig:
     """How the master drives one node. ``eds``: the drive's own EDS or DCF, checked before the
-    drive is configured (:mod:`drivers.canopen.eds`); None: the objects are checked by SDO.
+    drive is configured (:mod:`hil.drivers.canopen.eds`); None: the objects are checked by SDO.
     ``sync_echo``: the drive's object (index, sub-index; UNSIGNED8) that holds the counter of
     the SYNC its TPDOs answer; the master then turns the SYNC counter on (0x1019) and maps it
     as the last byte of both TPDOs, so every TPDO is bound to its SYNC exactly.
     ``tpdo_layout``: ``"two"`` TPDOs a cycle (statusword and position; velocity and torque),
     or ``"one"`` (statusword, position and torque in 8 bytes; the velocity derived from the
-    position: :data:`drivers.cia402.TPDO_LAYOUTS`). ``lockstep_timeout_s``: in lockstep over a
+    position: :data:`hil.protocols.cia402.TPDO_LAYOUTS`). ``lockstep_timeout_s``: in lockstep over a
     bus, how long (wall clock) the master waits for the drive's answer to a SYNC or an SDO
     request before it calls the drive gone."""
 

@@ -15,9 +15,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from drivers.canopen.scaling import DriveScaling, optional_object
-from drivers.canopen.sdo import SdoClient
-from drivers.cia402 import MAX_CURRENT, MAX_TORQUE
+from hil.drivers.canopen.scaling import DriveScaling, optional_object
+from hil.drivers.canopen.sdo import SdoClient
+from hil.protocols.cia402 import MAX_CURRENT, MAX_TORQUE
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """The cyclic exchange (the hot path): RPDO + SYNC (+ the master's heartbeat, + a queued SDO
 download) in one transmission, then the TPDOs that answer that SYNC.
 
-The TPDOs are the master's layout (:data:`drivers.cia402.TPDO_LAYOUTS`): TPDO1 (statusword,
+The TPDOs are the master's layout (:data:`hil.protocols.cia402.TPDO_LAYOUTS`): TPDO1 (statusword,
 position) and TPDO2 (velocity, torque), or TPDO1 alone (statusword, position, torque), each
 decoded by the objects it maps. Without a velocity on the wire, the velocity is the position's
 change since the last fresh feedback over the cycles between (a backward difference).
@@ -30,13 +30,14 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
-from drivers.can_frames import Frame
-from drivers.canopen.errors import DriveError, DriveGoneError, DriveLinkLostError
-from drivers.canopen.link import Link
-from drivers.canopen.nmt import HeartbeatProducer
-from drivers.canopen.scaling import DriveScaling
-from drivers.cia301 import SYNC_COB_ID
-from drivers.cia402 import (
+from hil.contracts import LinkWatchdog
+from hil.drivers.canopen.errors import DriveError, DriveGoneError, DriveLinkLostError
+from hil.drivers.canopen.link import Link
+from hil.drivers.canopen.nmt import HeartbeatProducer
+from hil.drivers.canopen.scaling import DriveScaling
+from hil.protocols.can_frames import Frame
+from hil.protocols.cia301 import SYNC_COB_ID
+from hil.protocols.cia402 import (
     POSITION_ACTUAL,
     STATUSWORD,
     TORQUE_ACTUAL,
@@ -44,7 +45,6 @@ from drivers.cia402 import (
     PdoMap,
     state_of,
 )
-from hil.core.types import LinkWatchdog
 
 POLL_WAIT_MAX_NS = 2_000_000  # TPDO waits up to this long poll the bus instead of blocking
 SYNC_COUNTER_MAX = 240  # 0x1019 written when the echo is on: the SYNC counter runs 1..240

@@ -9,8 +9,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
-from drivers.canopen.errors import DriveError, one_line
-from drivers.cia301 import (
+from hil.drivers.canopen.errors import DriveError, one_line
+from hil.protocols.cia301 import (
     CONSUMER_HEARTBEAT,
     CYCLE_PERIOD,
     DEVICE_TYPE,
@@ -20,7 +20,7 @@ from drivers.cia301 import (
     TPDO_COMM_BASE,
     TPDO_MAP_BASE,
 )
-from drivers.cia402 import (
+from hil.protocols.cia402 import (
     CONTROLWORD,
     CYCLIC_SYNCHRONOUS_TORQUE,
     ENCODER_RESOLUTION,

@@ -3,11 +3,10 @@ each)."""
 
 from __future__ import annotations
 
-from drivers.cia301 import abort_text
-from hil.core.errors import HilError
+from hil.drivers.errors import DriverError
 
 
-class DriveError(HilError):
+class DriveError(DriverError):
     """The drive or the link to it is not in a state to be commanded."""
 
 
@@ -38,13 +37,6 @@ class BusSharedError(DriveError):
 class DriveStateError(DriveError):
     """The CiA 402 state machine is not where it should be (stuck, or left OPERATION ENABLED)."""
 
-
-class SdoAbortError(DriveError):
-    """The drive refused an SDO request; ``code`` is the CiA 301 abort code."""
-
-    def __init__(self, message: str, code: int) -> None:
-        super().__init__(f"{message}: {abort_text(code)}")
-        self.code = code
 
 
 def one_line(exc: BaseException) -> str:

@@ -1,7 +1,7 @@
 """The master's side of the bus: CAN frames as ``(id, data)`` tuples, sent in one call per
 cycle, received with a deadline, every one also handed to a trace (``--can-log``) if any.
 
-Bus errors become :class:`~drivers.canopen.errors.DriveLinkLostError` naming the bus.
+Bus errors become :class:`~hil.drivers.canopen.errors.DriveLinkLostError` naming the bus.
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from typing import Protocol
 
 import can
 
-from drivers.can_frames import Frame, frames_of
-from drivers.canopen.errors import DriveLinkLostError, one_line
-from drivers.cia301 import SYNC_COB_ID
+from hil.drivers.canopen.errors import DriveLinkLostError, one_line
+from hil.protocols.can_frames import Frame, frames_of
+from hil.protocols.cia301 import SYNC_COB_ID
 
 OWN_FRAMES_KEPT = 256
 #: python-can buses that hand a sender its own frames back (multicast loopback)
@@ -23,7 +23,7 @@ ECHOING_BUS_MODULES = ("can.interfaces.udp_multicast",)
 
 
 class FrameTrace(Protocol):
-    """Where a copy of every frame goes (:class:`drivers.canopen.can_log.CanLog`)."""
+    """Where a copy of every frame goes (:class:`hil.drivers.canopen.can_log.CanLog`)."""
 
     def sent(self, frames: list[Frame]) -> None: ...
 
@@ -32,7 +32,7 @@ class FrameTrace(Protocol):
 
 class Link(Protocol):
     """What a master needs of its bus: :class:`CanLink` (the bus itself), or one node's share
-    of a bus several masters use (:class:`~drivers.canopen.axes.NodeLink`)."""
+    of a bus several masters use (:class:`~hil.drivers.canopen.axes.NodeLink`)."""
 
     watched_ids: frozenset[int]
 

@@ -16,11 +16,11 @@ into its safe state (quick stop, then disable voltage), emits an event and latch
 later cyclic call raises until :meth:`CanDriveMaster.recover` recovers explicitly. EMCY
 frames become ``drive.emcy`` events through ``on_event`` (``Session.event`` fits).
 
-The master is a :class:`hil.core.types.Device`: :meth:`~CanDriveMaster.open` (SDO, voltage
+The master is a :class:`hil.contracts.Device`: :meth:`~CanDriveMaster.open` (SDO, voltage
 disabled), :meth:`~CanDriveMaster.configure` (the drive's description and scaling, mode, PDO
 map, heartbeats, limits), :meth:`~CanDriveMaster.enable` (OPERATION ENABLED),
 :meth:`~CanDriveMaster.safe_state`, :meth:`~CanDriveMaster.close`. Its time is a
-:class:`~drivers.canopen.state.MasterClock` (the monotonic clock unless a rig gives another).
+:class:`~hil.drivers.canopen.state.MasterClock` (the monotonic clock unless a rig gives another).
 """
 
 from __future__ import annotations
@@ -32,27 +32,28 @@ from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any, NoReturn
 
-from drivers.can_bus_time import AxisTraffic, BusBudget, BusPlan, plan_bus
-from drivers.can_frames import Frame
-from drivers.canopen.clocks import ClockSwitch, MonotonicClock
-from drivers.canopen.config import DriveMasterConfig
-from drivers.canopen.current_limit import CurrentLimit, read_current_limit
-from drivers.canopen.cyclic import SYNC_COUNTER_MAX, CyclicExchange, Feedback, LinkStats
-from drivers.canopen.eds import DriveDescription, required_objects
-from drivers.canopen.errors import (
+from hil.contracts import Device, EventSink, LinkWatchdog, no_event
+from hil.drivers.can_bus_time import AxisTraffic, BusBudget, BusPlan, plan_bus
+from hil.drivers.canopen.clocks import ClockSwitch, MonotonicClock
+from hil.drivers.canopen.config import DriveMasterConfig
+from hil.drivers.canopen.current_limit import CurrentLimit, read_current_limit
+from hil.drivers.canopen.cyclic import SYNC_COUNTER_MAX, CyclicExchange, Feedback, LinkStats
+from hil.drivers.canopen.eds import DriveDescription, required_objects
+from hil.drivers.canopen.errors import (
     BusSharedError,
     DriveError,
     DriveFaultError,
     DriveLinkLostError,
     DriveStateError,
 )
-from drivers.canopen.link import Link
-from drivers.canopen.nmt import HeartbeatProducer, HeartbeatWatch, Nmt
-from drivers.canopen.pdo import PdoConfigurator
-from drivers.canopen.scaling import DriveScaling, read_scaling
-from drivers.canopen.sdo import SdoClient
-from drivers.canopen.state import MasterClock, StateControl
-from drivers.cia301 import (
+from hil.drivers.canopen.link import Link
+from hil.drivers.canopen.nmt import HeartbeatProducer, HeartbeatWatch, Nmt
+from hil.drivers.canopen.pdo import PdoConfigurator
+from hil.drivers.canopen.scaling import DriveScaling, read_scaling
+from hil.drivers.canopen.sdo import SdoClient
+from hil.drivers.canopen.state import MasterClock, StateControl
+from hil.protocols.can_frames import Frame
+from hil.protocols.cia301 import (
     CONSUMER_HEARTBEAT,
     CYCLE_PERIOD,
     DEVICE_TYPE,
@@ -66,9 +67,10 @@ from drivers.cia301 import (
     SYNC_COB_ID,
     SYNC_COUNTER_OVERFLOW,
     TPDO_COMM_BASE,
+    SdoAbortError,
     emcy_text,
 )
-from drivers.cia402 import (
+from hil.protocols.cia402 import (
     CW_DISABLE_VOLTAGE,
     CW_ENABLE_OPERATION,
     CW_QUICK_STOP,
@@ -98,7 +100,6 @@ from drivers.cia402 import (
     rpdo1_for,
     state_of,
 )
-from hil.core.types import Device, EventSink, LinkWatchdog, no_event
 
 CST, CSP = CYCLIC_SYNCHRONOUS_TORQUE, CYCLIC_SYNCHRONOUS_POSITION
 CIA402_DEVICE_TYPE = 402
@@ -162,8 +163,8 @@ def plan_axes(config: DriveMasterConfig, names: Sequence[str],
 
 
 class CanDriveMaster(Device):
-    """CiA 402 master for one drive on a :class:`~drivers.canopen.link.CanLink` (a
-    :class:`~hil.core.types.Device`). :meth:`start` (:meth:`open`, :meth:`configure`,
+    """CiA 402 master for one drive on a :class:`~hil.drivers.canopen.link.CanLink` (a
+    :class:`~hil.contracts.Device`). :meth:`start` (:meth:`open`, :meth:`configure`,
     :meth:`enable`) comes first. ``url`` names the drive in events and errors."""
 
     def __init__(self, link: Link, config: DriveMasterConfig | None = None, *,
@@ -205,7 +206,7 @@ class CanDriveMaster(Device):
         self._releases: list[Callable[[], None]] = []
         self.last_emcy_code = 0
         self._enabled = False
-        self._latched: DriveError | None = None
+        self._latched: DriveError | SdoAbortError | None = None
         self.foreign: str | None = None  # another master heard on the bus: the run stops
         # told each cycle of a safe stop (quick stop, disable voltage): what the drive reported
         self.on_stop_cycle: Callable[[Feedback], None] | None = None
@@ -397,7 +398,7 @@ class CanDriveMaster(Device):
         if self._closed:
             raise DriveError("the drive master is closed")
         if self.config.eds and self.description is None:  # before anything is written
-            from drivers.canopen.eds import load_description
+            from hil.drivers.canopen.eds import load_description
 
             self.description = load_description(self.config.eds, self.node_id,
                                                  required_objects(self.mode))
@@ -685,7 +686,7 @@ class CanDriveMaster(Device):
                 return
             try:
                 release()
-            except DriveError as exc:
+            except (DriveError, SdoAbortError) as exc:
                 self._event("drive.release_failed", f"drive node {self.node_id}: a setting of "
                             f"this run stays on the drive: {exc}", level="warning")
 
@@ -710,7 +711,7 @@ class CanDriveMaster(Device):
         self._max_torque_written = False
         try:
             self.sdo.write(MAX_TORQUE, 0, found, "<H")
-        except DriveError as exc:
+        except (DriveError, SdoAbortError) as exc:
             self._event("drive.limit_restore_failed", f"drive node {self.node_id}: its max "
                         f"torque 0x6072 stays at this run's limit: {exc}", level="warning")
 
@@ -720,7 +721,7 @@ def stop_together(masters: Sequence[CanDriveMaster],
     """Quick stop on every enabled drive of ``masters`` in the same cycles, until all stand
     (or the quick-stop time-out), then disable voltage, in one cycle too. ``end_cycle`` puts a
     cycle's frames on the bus once every master has sent its own (several drives on one
-    :class:`~drivers.canopen.axes.AxisBus`; one drive sends at once). Each cycle's feedback
+    :class:`~hil.drivers.canopen.axes.AxisBus`; one drive sends at once). Each cycle's feedback
     goes to each master's ``on_stop_cycle`` (when set). Silent: failures become
     ``drive.safe_stop_failed`` events."""
     active = [m for m in masters if m.enabled]

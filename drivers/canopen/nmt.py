@@ -6,9 +6,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from drivers.can_frames import Frame
-from drivers.canopen.link import Link
-from drivers.cia301 import HEARTBEAT_BASE, NMT_BOOT_UP, NMT_COB_ID, NMT_OPERATIONAL
+from hil.drivers.canopen.link import Link
+from hil.protocols.can_frames import Frame
+from hil.protocols.cia301 import HEARTBEAT_BASE, NMT_BOOT_UP, NMT_COB_ID, NMT_OPERATIONAL
 
 
 class Nmt:
@@ -18,7 +18,7 @@ class Nmt:
         self.link, self.node_id = link, node_id
 
     def command(self, command: int) -> None:
-        """One NMT command (``drivers.cia301.NMT_START``...) to this node."""
+        """One NMT command (``hil.protocols.cia301.NMT_START``...) to this node."""
         self.link.send([(NMT_COB_ID, bytes([command, self.node_id]))])
 
 

@@ -5,10 +5,9 @@ it. PDOs the master does not use are invalidated, where the drive has them."""
 
 from __future__ import annotations
 
-from drivers.canopen.errors import SdoAbortError
-from drivers.canopen.sdo import SdoClient
-from drivers.cia301 import ABORT_NO_OBJECT, ABORT_NO_SUBINDEX
-from drivers.cia402 import PDO_NOT_VALID, PdoMap
+from hil.drivers.canopen.sdo import SdoClient
+from hil.protocols.cia301 import ABORT_NO_OBJECT, ABORT_NO_SUBINDEX, SdoAbortError
+from hil.protocols.cia402 import PDO_NOT_VALID, PdoMap
 
 EVERY_SYNC = 1  # transmission type: synchronous, every SYNC
 

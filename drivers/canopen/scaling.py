@@ -13,10 +13,10 @@ from dataclasses import asdict, dataclass
 from functools import cached_property
 from typing import Any
 
-from drivers.canopen.errors import DriveError, SdoAbortError
-from drivers.canopen.sdo import SdoClient
-from drivers.cia301 import ABORT_NO_OBJECT, ABORT_NO_SUBINDEX
-from drivers.cia402 import ENCODER_RESOLUTION, GEAR_RATIO, POLARITY, RATED_CURRENT
+from hil.drivers.canopen.errors import DriveError
+from hil.drivers.canopen.sdo import SdoClient
+from hil.protocols.cia301 import ABORT_NO_OBJECT, ABORT_NO_SUBINDEX, SdoAbortError
+from hil.protocols.cia402 import ENCODER_RESOLUTION, GEAR_RATIO, POLARITY, RATED_CURRENT
 
 
 @dataclass(frozen=True)

@@ -19,13 +19,13 @@ from typing import Any
 
 from canopen.profiles.p402 import OperationMode
 
-from drivers.can_frames import Frame
-from drivers.canopen.eds import check, import_description, required_objects
-from drivers.canopen.errors import DriveError, DriveLinkLostError, SdoAbortError
-from drivers.canopen.link import Link
-from drivers.canopen.scaling import read_scaling
-from drivers.canopen.sdo import SdoClient
-from drivers.cia301 import (
+from hil.drivers.canopen.eds import check, import_description, required_objects
+from hil.drivers.canopen.errors import DriveError, DriveLinkLostError
+from hil.drivers.canopen.link import Link
+from hil.drivers.canopen.scaling import read_scaling
+from hil.drivers.canopen.sdo import SdoClient
+from hil.protocols.can_frames import Frame
+from hil.protocols.cia301 import (
     DEVICE_NAME,
     DEVICE_TYPE,
     ERROR_HISTORY,
@@ -42,9 +42,10 @@ from drivers.cia301 import (
     SDO_RESPONSE_BASE,
     TPDO_COMM_BASE,
     TPDO_MAP_BASE,
+    SdoAbortError,
     emcy_text,
 )
-from drivers.cia402 import (
+from hil.protocols.cia402 import (
     ERROR_CODE,
     FAULT,
     FAULT_REACTION_ACTIVE,
@@ -191,7 +192,7 @@ def heartbeat_window(link: Link, nodes: list[int]) -> float:
         try:
             period_ms = SdoClient(link, node, READ_TIMEOUT_S, lambda frame: None).read_int(
                 PRODUCER_HEARTBEAT, 0, "<H")
-        except DriveError:
+        except (DriveError, SdoAbortError):
             return HEARTBEAT_S
         longest = max(longest, period_ms / 1e3)
     return min(HEARTBEAT_S, 2.5 * longest)
@@ -240,7 +241,7 @@ def read_pdos(sdo: SdoClient) -> list[PdoReport]:
 
 def inspect(link: Link, node_id: int, mode: str = "cst", eds: str | None = None
             ) -> NodeReport:
-    """Everything :mod:`drivers.canopen.scan` reads of one node, and whether hil can drive it
+    """Everything :mod:`hil.drivers.canopen.scan` reads of one node, and whether hil can drive it
     in ``mode`` (``cst`` or ``csp``), its EDS at ``eds`` checked too when given."""
     sdo = SdoClient(link, node_id, READ_TIMEOUT_S, lambda frame: None)
     read = sdo.read_int
@@ -286,7 +287,8 @@ def _read_position(report: NodeReport, sdo: SdoClient) -> None:
     """0x6064 in degrees of the axis, by the drive's own scaling (as the master reads it)."""
     try:
         scaling = read_scaling(sdo)
-    except DriveError as exc:  # no or unusable 0x608F / 0x6075: the master would stop too
+    # no or unusable 0x608F / 0x6075: the master would stop too
+    except (DriveError, SdoAbortError) as exc:
         reason = re.sub(rf"^drive node {report.node_id}:? ", "", str(exc))
         report.problems.append(f"its position and current cannot be scaled: {reason}")
         return
@@ -365,7 +367,8 @@ def scan(link: Link, nodes: list[int] | None = None, mode: str = "cst",
             report = inspect(link, node, mode, eds)
         except DriveLinkLostError:
             report = NodeReport(node, mode, problems=["does not answer SDO"])
-        except DriveError as exc:  # an answer that makes no sense (wrong size, bad command)
+        # refused, or an answer that makes no sense (wrong size, bad command)
+        except (DriveError, SdoAbortError) as exc:
             report = NodeReport(node, mode, problems=[str(exc)])
         if node in states:
             report.nmt_state = states[node]

@@ -15,10 +15,10 @@ import time
 from collections import deque
 from collections.abc import Callable
 
-from drivers.can_frames import Frame
-from drivers.canopen.errors import DriveError, DriveGoneError, DriveLinkLostError, SdoAbortError
-from drivers.canopen.link import Link
-from drivers.cia301 import (
+from hil.drivers.canopen.errors import DriveError, DriveGoneError, DriveLinkLostError
+from hil.drivers.canopen.link import Link
+from hil.protocols.can_frames import Frame
+from hil.protocols.cia301 import (
     SDO_ABORT,
     SDO_COMMAND_MASK,
     SDO_EXPEDITED,
@@ -30,6 +30,7 @@ from drivers.cia301 import (
     SDO_SIZE_INDICATED,
     SDO_TOGGLE,
     SDO_UPLOAD_SEGMENT,
+    SdoAbortError,
 )
 
 _HEAD = struct.Struct("<BHB")
@@ -59,7 +60,7 @@ class SdoClient:
         self.response_id = SDO_RESPONSE_BASE + node_id
         self._queued: deque[tuple[bytes, str]] = deque()
         self._outstanding: tuple[bytes, str] | None = None  # a queued download on the wire
-        self._error: DriveError | None = None
+        self._error: DriveError | SdoAbortError | None = None
 
     # -- blocking ---------------------------------------------------------------------------
     def read(self, index: int, subindex: int = 0, timeout_s: float | None = None) -> bytes:
@@ -126,8 +127,8 @@ class SdoClient:
                 continue
             if segment or response[1:4] == request[1:4]:
                 if response[0] == SDO_ABORT:
-                    raise SdoAbortError(f"drive node {self.node_id} refused SDO {what}",
-                                        int.from_bytes(response[4:8], "little"))
+                    raise SdoAbortError(int.from_bytes(response[4:8], "little"),
+                                        f"drive node {self.node_id} refused SDO {what}")
                 return response
 
     # -- queued for the cyclic exchange -------------------------------------------------------
@@ -150,14 +151,13 @@ class SdoClient:
             return
         self._outstanding = None
         if response[0] == SDO_ABORT:
-            self._error = SdoAbortError(f"drive node {self.node_id} refused SDO "
-                                        f"{outstanding[1]}",
-                                        int.from_bytes(response[4:8], "little"))
+            self._error = SdoAbortError(int.from_bytes(response[4:8], "little"),
+                                        f"drive node {self.node_id} refused SDO {outstanding[1]}")
         elif response[0] & SDO_COMMAND_MASK != _SCS_INITIATE_DOWNLOAD:
             self._error = DriveError(f"drive node {self.node_id}: bad SDO response to "
                                      f"{outstanding[1]}")
 
-    def take_error(self) -> DriveError | None:
+    def take_error(self) -> DriveError | SdoAbortError | None:
         """The refusal of a queued download, once."""
         error, self._error = self._error, None
         return error

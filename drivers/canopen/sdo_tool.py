@@ -13,14 +13,20 @@ from typing import Any
 
 from canopen.objectdictionary import ODVariable, datatypes
 
-from drivers.canopen.eds import import_description
-from drivers.canopen.errors import DriveError, SdoAbortError
-from drivers.canopen.link import Link
-from drivers.canopen.scan import frames_within, nmt_state_name, read_pdos
-from drivers.canopen.sdo import SdoClient
-from drivers.cia301 import HEARTBEAT_BASE, NMT_OPERATIONAL, NMT_STATE_NAMES, PRODUCER_HEARTBEAT
-from drivers.cia402 import OPERATION_ENABLED, STATUSWORD, state_of
-from hil.core.errors import UsageError
+from hil.drivers.canopen.eds import import_description
+from hil.drivers.canopen.errors import DriveError
+from hil.drivers.canopen.link import Link
+from hil.drivers.canopen.scan import frames_within, nmt_state_name, read_pdos
+from hil.drivers.canopen.sdo import SdoClient
+from hil.drivers.errors import DriverSetupError
+from hil.protocols.cia301 import (
+    HEARTBEAT_BASE,
+    NMT_OPERATIONAL,
+    NMT_STATE_NAMES,
+    PRODUCER_HEARTBEAT,
+    SdoAbortError,
+)
+from hil.protocols.cia402 import OPERATION_ENABLED, STATUSWORD, state_of
 
 CIA_TYPES = ("BOOLEAN", "INTEGER8", "INTEGER16", "INTEGER32", "INTEGER64", "UNSIGNED8",
              "UNSIGNED16", "UNSIGNED32", "UNSIGNED64", "REAL32", "REAL64", "VISIBLE_STRING",
@@ -68,7 +74,7 @@ def eds_type(path: str, node_id: int, index: int, subindex: int) -> int:
     """The data type the EDS at ``path`` gives object ``index:subindex``."""
     var = import_description(path, node_id).get_variable(index, subindex)
     if var is None:
-        raise UsageError(f"{object_name(index, subindex)} is not in the EDS {path} (give "
+        raise DriverSetupError(f"{object_name(index, subindex)} is not in the EDS {path} (give "
                          "--type)")
     code: int = var.data_type
     return code
@@ -97,9 +103,10 @@ class ObjectValue:
             return
         var = _variable(self.index, self.subindex, self.data_type)
         if self.data_type in var.STRUCT_TYPES and len(self.raw) * 8 != len(var):
-            raise UsageError(f"drive node {self.node_id}: {object_name(self.index, self.subindex)}"
-                             f" has {len(self.raw)} bytes ({self.raw.hex(' ')}), "
-                             f"{self.type_name} is {len(var) // 8}")
+            raise DriverSetupError(
+                f"drive node {self.node_id}: {object_name(self.index, self.subindex)}"
+          f" has {len(self.raw)} bytes ({self.raw.hex(' ')}), "
+          f"{self.type_name} is {len(var) // 8}")
 
     @property
     def type_name(self) -> str | None:
@@ -134,7 +141,7 @@ class ObjectValue:
 
 
 def encode(text: str, data_type: int) -> bytes:
-    """``text`` as the bytes of ``data_type`` (a UsageError says why it cannot be)."""
+    """``text`` as the bytes of ``data_type`` (a DriverSetupError says why it cannot be)."""
     name = TYPE_NAMES.get(data_type, f"0x{data_type:04X}")
     var = _variable(0, 0, data_type)
     try:
@@ -155,14 +162,14 @@ def encode(text: str, data_type: int) -> bytes:
         signed = data_type in datatypes.SIGNED_TYPES
         span = (f" ({-(1 << (bits - 1))}..{(1 << (bits - 1)) - 1})" if signed else
                 f" (0..{(1 << bits) - 1})") if data_type in datatypes.INTEGER_TYPES else ""
-        raise UsageError(f"VALUE {text!r} is not a valid {name}{span}") from None
+        raise DriverSetupError(f"VALUE {text!r} is not a valid {name}{span}") from None
 
 
 def download_format(raw: bytes) -> str:
     """The struct format of an expedited download of ``raw`` (1, 2 or 4 bytes; else a
-    UsageError)."""
+    DriverSetupError)."""
     if len(raw) not in WRITE_SIZES:
-        raise UsageError(f"hil drive sdo write sends 1, 2 or 4 bytes (an expedited SDO "
+        raise DriverSetupError(f"hil drive sdo write sends 1, 2 or 4 bytes (an expedited SDO "
                          f"download); this value is {len(raw)}")
     return WRITE_SIZES[len(raw)]
 

@@ -1,18 +1,18 @@
 """CiA 402 state control by SDO: reach the drive, wait for a state, the controlwords to
 OPERATION ENABLED, a fault reset (rising edge of bit 7), and the safe stop (quick stop on the
 cyclic channel until standstill or its time-out, then disable voltage). The tables are
-:mod:`drivers.cia402`'s."""
+:mod:`hil.protocols.cia402`'s."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from typing import Protocol
 
-from drivers.canopen.errors import DriveLinkLostError, DriveStateError
-from drivers.canopen.nmt import Nmt
-from drivers.canopen.sdo import SdoClient
-from drivers.cia301 import NMT_ENTER_PRE_OPERATIONAL
-from drivers.cia402 import (
+from hil.drivers.canopen.errors import DriveLinkLostError, DriveStateError
+from hil.drivers.canopen.nmt import Nmt
+from hil.drivers.canopen.sdo import SdoClient
+from hil.protocols.cia301 import NMT_ENTER_PRE_OPERATIONAL
+from hil.protocols.cia402 import (
     CONTROLWORD,
     CW_DISABLE_VOLTAGE,
     CW_FAULT_RESET,

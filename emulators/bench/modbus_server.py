@@ -3,9 +3,9 @@ devices and the faults of a schedule.
 
 The protocol is small enough to own: an MBAP header (transaction, protocol 0, length, unit)
 or an RTU frame (unit, PDU, CRC-16 low byte first) around a PDU; the answers come from
-:class:`~emulators.bench.server.BenchDevices` through :func:`answer`. Owning it keeps every
+:class:`~hil.emulators.bench.server.BenchDevices` through :func:`answer`. Owning it keeps every
 edge a real device has (exception codes, malformed requests, unknown units, a foreign
-protocol id, a function the unit lacks) and the faults (:mod:`emulators.faults`: delay, drop,
+protocol id, a function the unit lacks) and the faults (:mod:`hil.emulators.faults`: delay, drop,
 exception, close, corrupt_crc) independent of any Modbus library's internals.
 
 * TCP: one thread accepts, one thread per connection answers its requests in order. A frame
@@ -17,7 +17,7 @@ exception, close, corrupt_crc) independent of any Modbus library's internals.
   units on the line answer (a request for another unit is silence, as on RS-485).
 
 A :class:`ServedClock` (``clock``) answers its own unit before any fault is played: the
-emulator's time, which a lockstep master may hold (:mod:`emulators.bench.timekeeper`). While
+emulator's time, which a lockstep master may hold (:mod:`hil.emulators.bench.timekeeper`). While
 a master holds it, time passes only when the master says, so a wait means nothing: a delay
 shorter than the master's request timeout is answered at once, and where the emulator would
 leave the master waiting (a dropped answer, a longer delay, an unknown unit, and over RTU a
@@ -35,7 +35,7 @@ import time
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from emulators.faults import Fault, FaultSchedule
+from hil.emulators.faults import Fault, FaultSchedule
 
 # Modbus exception codes (Modbus Application Protocol V1.1b3, 7)
 ILLEGAL_FUNCTION = 0x01
@@ -51,7 +51,7 @@ class UnknownUnitError(LookupError):
 
 
 class ServedClock(Protocol):
-    """The emulator's clock as the server serves it (:mod:`emulators.bench.timekeeper`)."""
+    """The emulator's clock as the server serves it (:mod:`hil.emulators.bench.timekeeper`)."""
 
     unit: int  # the unit id it answers
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.core.errors import ConfigError
+from hil.emulators.errors import EmulatorSetupError
 
 COIL_LOG_LENGTH = 4096
 
@@ -241,7 +241,7 @@ class InductionMotor(Load):
         breakdown = float(grid[int(np.argmax(torques))])
         lo, hi = 1e-6, breakdown
         if self.electrical(hi)[2] <= self._load_torque(1.0 - hi):
-            raise ConfigError(f"key 'plant.loads.{self.name}': the load torque exceeds the "
+            raise EmulatorSetupError(f"key 'plant.loads.{self.name}': the load torque exceeds the "
                               "motor's breakdown torque, it would never reach speed")
         for _ in range(100):
             mid = 0.5 * (lo + hi)

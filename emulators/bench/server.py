@@ -6,7 +6,7 @@ first), ``units.levels`` (level sensors, float32). Units and register maps come 
 :class:`ServerSettings` (:mod:`hil.bench.config` reads them from the bench config).
 
 :meth:`BenchDevices.answer` gives each request the answer a real device gives, and the
-server of :mod:`emulators.bench.modbus_server` carries it over the wire:
+server of :mod:`hil.emulators.bench.modbus_server` carries it over the wire:
 
 * FC05 with a value other than FF00/0000 is exception 3 (illegal data value), as the Modbus
   specification requires;
@@ -20,12 +20,12 @@ server of :mod:`emulators.bench.modbus_server` carries it over the wire:
   (TCP: a gateway whose target did not respond), per ``emulator.unknown_unit``;
 * a Modbus TCP frame with a non-zero protocol id is discarded whole; the next is answered;
 * every device answers Read Device Identification (FC 0x2B / MEI 0x0E) as hil's emulator
-  (:mod:`drivers.bench.clock_protocol`), so a master can tell it from a real bench.
+  (:mod:`hil.protocols.bench_clock`), so a master can tell it from a real bench.
 
 With :meth:`EmulatedBench.follow`, its time follows the wall clock or a lockstep master
-(:mod:`emulators.bench.timekeeper`, which also answers the clock's unit).
+(:mod:`hil.emulators.bench.timekeeper`, which also answers the clock's unit).
 
-Faults (:mod:`emulators.faults`) are played by the server (delay, drop, exception, close,
+Faults (:mod:`hil.emulators.faults`) are played by the server (delay, drop, exception, close,
 corrupt_crc), by :class:`BenchDevices` (freeze, weld) and :class:`EmulatedBench`
 (load_step), all on the plant's clock.
 """
@@ -39,8 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.bench.clock_protocol import PRODUCT_CODE, PRODUCT_NAME, REVISION, VENDOR
-from emulators.bench.modbus_server import (
+from hil.emulators.bench.modbus_server import (
     ILLEGAL_ADDRESS,
     ILLEGAL_FUNCTION,
     ILLEGAL_VALUE,
@@ -48,10 +47,11 @@ from emulators.bench.modbus_server import (
     UnknownUnitError,
     exception_pdu,
 )
-from emulators.bench.plant import BenchPlant, PlantSpec, Snapshot
-from emulators.bench.timekeeper import Timekeeper
-from emulators.faults import Fault, FaultSchedule, for_emulator
-from hil.core.errors import ConfigError, HilError
+from hil.emulators.bench.plant import BenchPlant, PlantSpec, Snapshot
+from hil.emulators.bench.timekeeper import Timekeeper
+from hil.emulators.errors import EmulatorError, EmulatorSetupError
+from hil.emulators.faults import Fault, FaultSchedule, for_emulator
+from hil.protocols.bench_clock import PRODUCT_CODE, PRODUCT_NAME, REVISION, VENDOR
 
 SPEC_MAX_REGISTERS = 125   # Modbus spec, FC03/FC04
 SPEC_MAX_COILS = 2000      # Modbus spec, FC01
@@ -275,8 +275,9 @@ class EmulatedBench:
         relays = set(self.plant.relays)
         for fault in self._faults:
             if fault.kind == "weld" and fault.params["relay"] not in relays:
-                raise ConfigError(f"fault {str(fault)!r}: no relay {fault.params['relay']!r} "
-                                  f"(relays: {', '.join(sorted(relays))})")
+                raise EmulatorSetupError(
+                    f"fault {str(fault)!r}: no relay {fault.params['relay']!r} "
+             f"(relays: {', '.join(sorted(relays))})")
         #: the faults played, on the plant's clock; ``faults.events`` records each
         self.faults = FaultSchedule(self._faults, lambda: self.plant.t_s, on_fault)
         self.devices = BenchDevices(self.plant, server, self.faults)
@@ -291,7 +292,7 @@ class EmulatedBench:
         try:
             host, port = server.start_tcp(host, port)
         except OSError as exc:
-            raise HilError(f"bench emulator cannot listen on {host}:{port}: address in use or "
+            raise EmulatorError(f"bench emulator cannot listen on {host}:{port}: address in use or "
                            f"not available ({exc.strerror or exc})") from None
         self._server = server
         self.url = f"modbus-tcp://{host}:{port}"
@@ -304,7 +305,7 @@ class EmulatedBench:
         try:
             server.start_serial(port, baudrate, parity, stopbits, bytesize)
         except Exception as exc:  # pyserial's SerialException, ValueError for bad settings
-            raise HilError(f"bench emulator cannot listen on {port}: no such serial port, or "
+            raise EmulatorError(f"bench emulator cannot listen on {port}: no such serial port, or "
                            f"it is busy or not a tty ({exc})") from None
         self._server = server
         self.url = f"modbus-rtu://{port}?baud={baudrate}&parity={parity}"
@@ -312,7 +313,7 @@ class EmulatedBench:
 
     def _new_server(self, transport: str) -> ModbusServer:
         if self._server is not None:
-            raise HilError("emulator server already started")
+            raise EmulatorError("emulator server already started")
         silent = self._unknown_unit == "silent" or (self._unknown_unit == "auto"
                                                     and transport == "rtu")
         server = ModbusServer(self._answer, self.faults, silent_unknown=silent)
@@ -352,7 +353,7 @@ class EmulatedBench:
                ) -> Timekeeper:
         """Step the plant from a background thread: on the wall clock, or on a lockstep
         master's time when one on the wire takes it (``clock``: one of
-        :data:`~drivers.bench.clock_protocol.CLOCKS`, as ``hil emulate bench --clock``;
+        :data:`~hil.protocols.bench_clock.CLOCKS`, as ``hil emulate bench --clock``;
         ``on_change`` hears a line each time a master takes the time or lets go)."""
         if self.timekeeper is None:
             self.timekeeper = Timekeeper(self, clock, on_change)

@@ -1,5 +1,5 @@
 """What the emulated bench's time follows (``hil emulate bench --clock``), and the clock's unit
-on the wire (the tables: :mod:`drivers.bench.clock_protocol`).
+on the wire (the tables: :mod:`hil.protocols.bench_clock`).
 
 * ``auto`` - the wall clock, until a lockstep master on the wire takes the time; the master's
   time then, until it lets go (writes 0 to ``CONTROL``, or its connection ends and it is not
@@ -29,7 +29,14 @@ import time
 from collections.abc import Callable
 from typing import Protocol
 
-from drivers.bench.clock_protocol import (
+from hil.emulators.bench.modbus_server import (
+    ILLEGAL_ADDRESS,
+    ILLEGAL_FUNCTION,
+    ILLEGAL_VALUE,
+    exception_pdu,
+)
+from hil.emulators.bench.plant import BenchPlant
+from hil.protocols.bench_clock import (
     CLOCK_REGISTERS,
     CLOCK_UNIT,
     CLOCKS,
@@ -43,13 +50,6 @@ from drivers.bench.clock_protocol import (
     time_of,
     time_words,
 )
-from emulators.bench.modbus_server import (
-    ILLEGAL_ADDRESS,
-    ILLEGAL_FUNCTION,
-    ILLEGAL_VALUE,
-    exception_pdu,
-)
-from emulators.bench.plant import BenchPlant
 
 #: how often the wall-clock thread looks whether a master let go
 HELD_POLL_S = 0.02
@@ -60,7 +60,7 @@ GRACE_S = 1.0
 
 
 class Stepped(Protocol):
-    """What the timekeeper moves (:class:`~emulators.bench.server.EmulatedBench`)."""
+    """What the timekeeper moves (:class:`~hil.emulators.bench.server.EmulatedBench`)."""
 
     plant: BenchPlant
 
@@ -75,7 +75,7 @@ class Stepped(Protocol):
 
 class Timekeeper:
     """The plant's time: the wall clock (a thread) or a lockstep master's (the clock's unit,
-    :data:`~drivers.bench.clock_protocol.CLOCK_UNIT`, served ahead of any fault). ``on_change``
+    :data:`~hil.protocols.bench_clock.CLOCK_UNIT`, served ahead of any fault). ``on_change``
     hears one line each time a master takes the time, lets go or is refused."""
 
     unit = CLOCK_UNIT

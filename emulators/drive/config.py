@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from emulators.drive.od import OdDefaults
-from emulators.drive.plant import AxisPlant, Disturbance, Friction
+from hil.emulators.drive.od import OdDefaults
+from hil.emulators.drive.plant import AxisPlant, Disturbance, Friction
 
 
 @dataclass(frozen=True)

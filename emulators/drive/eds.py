@@ -12,8 +12,8 @@ from __future__ import annotations
 from canopen import export_od
 from canopen.objectdictionary import ObjectDictionary
 
-from drivers.cia301 import IDENTITY
-from emulators.drive.od import DEVICE_NAME, OdDefaults, build_object_dictionary, iter_variables
+from hil.emulators.drive.od import DEVICE_NAME, OdDefaults, build_object_dictionary, iter_variables
+from hil.protocols.cia301 import IDENTITY
 
 # The bit rates the EDS claims: every classic CAN rate of CiA 301 (10 to 1000 kbit/s). The
 # emulator has no bit timing of its own: it takes and gives whole frames over socketcand's

@@ -8,8 +8,12 @@ from __future__ import annotations
 
 from typing import Any
 
-from drivers.cia301 import EMCY_OVERCURRENT, ERR_REG_CURRENT
-from drivers.cia402 import (
+from hil.emulators.drive.config import DriveEmulatorConfig
+from hil.emulators.drive.objects import Key
+from hil.emulators.drive.plant import AxisPlant
+from hil.emulators.drive.states import DriveStates
+from hil.protocols.cia301 import EMCY_OVERCURRENT, ERR_REG_CURRENT
+from hil.protocols.cia402 import (
     CYCLIC_SYNCHRONOUS_POSITION,
     CYCLIC_SYNCHRONOUS_TORQUE,
     MAX_TORQUE,
@@ -19,10 +23,6 @@ from drivers.cia402 import (
     TARGET_POSITION,
     TARGET_TORQUE,
 )
-from emulators.drive.config import DriveEmulatorConfig
-from emulators.drive.objects import Key
-from emulators.drive.plant import AxisPlant
-from emulators.drive.states import DriveStates
 
 OVERCURRENT_TRIP = 0x2002  # the emulator's trip level [mA] (manufacturer object)
 RATED_KEY, MAX_TORQUE_KEY, MODE_KEY = (RATED_CURRENT, 0), (MAX_TORQUE, 0), (MODES_DISPLAY, 0)

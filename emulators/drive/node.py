@@ -1,16 +1,16 @@
 """A CiA 402 servo drive emulated on a CAN bus: the node that composes its parts and
 dispatches frames to them.
 
-The node is transport-agnostic: frames (:data:`~drivers.can_frames.Frame`, ``(id, data)``)
+The node is transport-agnostic: frames (:data:`~hil.protocols.can_frames.Frame`, ``(id, data)``)
 come in through :meth:`DriveNode.handle_frame` (:meth:`DriveNode.handle` for a python-can
 message), time-driven work (heartbeat production, watchdogs, ramp time-outs) runs in
 :meth:`DriveNode.service`, and frames go out through a ``send(list_of_frames)`` callable
-(:mod:`emulators.drive.runners` runs it on a bus, or in lockstep).
+(:mod:`hil.emulators.drive.runners` runs it on a bus, or in lockstep).
 
-Its parts, one job each: :mod:`~emulators.drive.objects` (dictionary and live values),
-:mod:`~emulators.drive.sdo` (the SDO server), :mod:`~emulators.drive.pdo` (PDOs),
-:mod:`~emulators.drive.states` (the CiA 402 state machine), :mod:`~emulators.drive.motor`
-(the current loops) and :mod:`~emulators.drive.plant` (the axis). The node itself is NMT,
+Its parts, one job each: :mod:`~hil.emulators.drive.objects` (dictionary and live values),
+:mod:`~hil.emulators.drive.sdo` (the SDO server), :mod:`~hil.emulators.drive.pdo` (PDOs),
+:mod:`~hil.emulators.drive.states` (the CiA 402 state machine), :mod:`~hil.emulators.drive.motor`
+(the current loops) and :mod:`~hil.emulators.drive.plant` (the axis). The node itself is NMT,
 heartbeats, SYNC, EMCY, what writing an object means, and faults on purpose.
 
 Cyclic path (raw frames, never the ``canopen`` PDO machinery): an RPDO is stored on reception;
@@ -42,8 +42,18 @@ from collections.abc import Callable, Iterable
 
 import can
 
-from drivers.can_frames import Frame, from_message
-from drivers.cia301 import (
+from hil.emulators.drive.config import DriveEmulatorConfig
+from hil.emulators.drive.motor import MotorLoops
+from hil.emulators.drive.objects import ObjectStore
+from hil.emulators.drive.od import build_object_dictionary
+from hil.emulators.drive.pdo import Pdo, PdoTable
+from hil.emulators.drive.plant import AxisPlant
+from hil.emulators.drive.sdo import SdoServer
+from hil.emulators.drive.states import POWERED, DriveStates
+from hil.emulators.drive.timebase import CLOCKS, TIME_BASE
+from hil.emulators.faults import Fault, FaultSchedule, for_emulator
+from hil.protocols.can_frames import Frame, from_message
+from hil.protocols.cia301 import (
     ABORT_DEVICE_STATE,
     ABORT_VALUE,
     CONSUMER_HEARTBEAT,
@@ -74,9 +84,10 @@ from drivers.cia301 import (
     SDO_RESPONSE_BASE,
     SYNC_COB_ID_OBJECT,
     SYNC_COUNTER_OVERFLOW,
+    SdoAbortError,
     error_register_bit,
 )
-from drivers.cia402 import (
+from hil.protocols.cia402 import (
     CONTROLWORD,
     CYCLIC_SYNCHRONOUS_POSITION,
     CYCLIC_SYNCHRONOUS_TORQUE,
@@ -95,16 +106,6 @@ from drivers.cia402 import (
     TORQUE_ACTUAL,
     VELOCITY_ACTUAL,
 )
-from emulators.drive.config import DriveEmulatorConfig
-from emulators.drive.motor import MotorLoops
-from emulators.drive.objects import ObjectStore
-from emulators.drive.od import build_object_dictionary
-from emulators.drive.pdo import Pdo, PdoTable
-from emulators.drive.plant import AxisPlant
-from emulators.drive.sdo import SdoAbortError, SdoServer
-from emulators.drive.states import POWERED, DriveStates
-from emulators.drive.timebase import CLOCKS, TIME_BASE
-from emulators.faults import Fault, FaultSchedule, for_emulator
 
 log = logging.getLogger(__name__)
 

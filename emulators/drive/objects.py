@@ -9,7 +9,8 @@ from typing import Any
 from canopen.objectdictionary import ObjectDictionary, ODVariable
 from canopen.objectdictionary.datatypes import VISIBLE_STRING
 
-from drivers.cia301 import (
+from hil.emulators.drive.od import iter_variables
+from hil.protocols.cia301 import (
     ABORT_LENGTH,
     ABORT_NO_OBJECT,
     ABORT_NO_SUBINDEX,
@@ -17,9 +18,8 @@ from drivers.cia301 import (
     ABORT_VALUE_HIGH,
     ABORT_VALUE_LOW,
     ABORT_WRITE_ONLY,
+    SdoAbortError,
 )
-from emulators.drive.od import iter_variables
-from emulators.drive.sdo import SdoAbortError
 
 Key = tuple[int, int]
 

@@ -12,7 +12,7 @@ velocity is increments per second. Manufacturer objects: 0x2001 SYNC loss timeou
 master maps to bind every TPDO to its SYNC; 0x2005 the time base: 0 the drive's own clock, N > 0
 the master's (SYNC time: time passes only with SYNCs, one communication cycle each), given up
 after N ms of wall time without a frame (a lockstep master asks for it:
-:mod:`emulators.drive.node`).
+:mod:`hil.emulators.drive.node`).
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ from canopen.objectdictionary.datatypes import (
     VISIBLE_STRING,
 )
 
-from drivers.cia301 import SDO_REQUEST_BASE, SDO_RESPONSE_BASE
-from drivers.cia402 import NO_MODE, RPDOS, SUPPORTED_MODE_BITS, TPDOS, PdoMap
+from hil.protocols.cia301 import SDO_REQUEST_BASE, SDO_RESPONSE_BASE
+from hil.protocols.cia402 import NO_MODE, RPDOS, SUPPORTED_MODE_BITS, TPDOS, PdoMap
 
 DEVICE_TYPE = 0x0002_0192  # CiA 402 profile, servo drive
 DEVICE_NAME = "hil CiA 402 drive emulator"

@@ -11,8 +11,9 @@ from dataclasses import dataclass, field
 
 from canopen.objectdictionary import ODVariable
 
-from drivers.can_frames import Frame
-from drivers.cia301 import (
+from hil.emulators.drive.objects import Key, ObjectStore
+from hil.protocols.can_frames import Frame
+from hil.protocols.cia301 import (
     ABORT_CANNOT_MAP,
     ABORT_NO_OBJECT,
     ABORT_PDO_TOO_LONG,
@@ -20,10 +21,9 @@ from drivers.cia301 import (
     ABORT_VALUE,
     EMCY_PDO_LENGTH,
     EMCY_PDO_TOO_LONG,
+    SdoAbortError,
 )
-from drivers.cia402 import PDO_NOT_VALID, RPDOS, TPDOS
-from emulators.drive.objects import Key, ObjectStore
-from emulators.drive.sdo import SdoAbortError
+from hil.protocols.cia402 import PDO_NOT_VALID, RPDOS, TPDOS
 
 EXTENDED_ID = 0x2000_0000  # COB-ID bit 29: a 29-bit identifier (not supported here)
 MAX_PDO_BITS = 64

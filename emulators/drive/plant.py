@@ -1,6 +1,7 @@
 """The servo axis behind the emulated drive: a discrete state-space model plus the physical extras.
 
-Default model: the servo paper's headstock axis (``controllers.servo.model.published_axis_model``),
+Default model: the servo paper's headstock axis
+(``hil.controllers.servo.model.published_axis_model``),
 T = 500 us, input q-axis current [mA], output motor position [deg]. Around the linear model:
 
 * the amplifier's current limit (the applied current saturates at ``current_limit_ma``);
@@ -23,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.servo.model import StateSpaceModel, published_axis_model
+from hil.controllers.servo.model import StateSpaceModel, published_axis_model
 
 DEFAULT_INCREMENTS_PER_REV = 1 << 20
 

@@ -3,7 +3,7 @@ a thread), or in lockstep on a private in-process channel (:class:`LockstepDrive
 node runs whenever the master transmits and its SYNC count is the clock.
 
 (``hil emulate drive`` wires the node straight to a
-:class:`~emulators.socketcand_server.SocketcandServer`, in real time.)
+:class:`~hil.emulators.socketcand_server.SocketcandServer`, in real time.)
 """
 
 from __future__ import annotations
@@ -17,12 +17,12 @@ from dataclasses import replace
 
 import can
 
-from drivers.can_frames import frames_of
-from drivers.cia301 import SYNC_COB_ID
-from emulators.direct_bus import DirectChannel
-from emulators.drive.config import DriveEmulatorConfig
-from emulators.drive.node import DriveNode, SendFn
-from emulators.drive.plant import AxisPlant
+from hil.emulators.direct_bus import DirectChannel
+from hil.emulators.drive.config import DriveEmulatorConfig
+from hil.emulators.drive.node import DriveNode, SendFn
+from hil.emulators.drive.plant import AxisPlant
+from hil.protocols.can_frames import frames_of
+from hil.protocols.cia301 import SYNC_COB_ID
 
 
 def bus_sender(bus: can.BusABC) -> SendFn:
@@ -72,7 +72,7 @@ class BusRunner:
 
 
 class LockstepDrive:
-    """An emulated drive on a private in-process channel (:mod:`emulators.direct_bus`), run
+    """An emulated drive on a private in-process channel (:mod:`hil.emulators.direct_bus`), run
     synchronously: every transmission on :attr:`master_bus` hands the pending frames to the
     node and runs its time service before the send returns (no threads). ``node_ids``: several
     drives on the channel instead, one axis each (``config``'s, each with its node id), all

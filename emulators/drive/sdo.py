@@ -12,7 +12,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Callable
 
-from drivers.cia301 import (
+from hil.protocols.cia301 import (
     ABORT_COMMAND,
     ABORT_GENERAL,
     ABORT_TOGGLE,
@@ -26,7 +26,7 @@ from drivers.cia301 import (
     SDO_SIZE_INDICATED,
     SDO_TOGGLE,
     SDO_UPLOAD_SEGMENT,
-    abort_text,
+    SdoAbortError,
 )
 
 _HEAD = struct.Struct("<BHB")  # command, index, sub-index
@@ -36,13 +36,6 @@ _SCS_DOWNLOAD_SEGMENT = 0x20
 _SCS_INITIATE_UPLOAD = 0x40
 _SCS_INITIATE_DOWNLOAD = 0x60
 
-
-class SdoAbortError(Exception):
-    """An SDO request the server refuses, with its CiA 301 abort code."""
-
-    def __init__(self, code: int) -> None:
-        super().__init__(abort_text(code))
-        self.code = code
 
 
 class SdoServer:

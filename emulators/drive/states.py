@@ -1,4 +1,4 @@
-"""The emulated drive's CiA 402 state machine (the tables of :mod:`drivers.cia402`): the
+"""The emulated drive's CiA 402 state machine (the tables of :mod:`hil.protocols.cia402`): the
 statusword of each state, the transitions a controlword makes, quick stop and fault reaction
 (brake to standstill, at most the quick-stop time-out), a fault reset on the rising edge of
 bit 7."""
@@ -9,8 +9,10 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
-from drivers.cia301 import EMCY_RESET, ERROR_REGISTER
-from drivers.cia402 import (
+from hil.emulators.drive.objects import Key
+from hil.emulators.drive.plant import AxisPlant
+from hil.protocols.cia301 import EMCY_RESET, ERROR_REGISTER
+from hil.protocols.cia402 import (
     CONTROLWORD,
     ERROR_CODE,
     FAULT,
@@ -32,8 +34,6 @@ from drivers.cia402 import (
     TRANSITIONS,
     command_of,
 )
-from emulators.drive.objects import Key
-from emulators.drive.plant import AxisPlant
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +93,7 @@ class DriveStates:
 
     def apply_controlword(self, cw: int) -> None:
         """One controlword write (SDO) or latch (RPDO on SYNC): the transitions its command
-        makes from the current state (:data:`drivers.cia402.TRANSITIONS`)."""
+        makes from the current state (:data:`hil.protocols.cia402.TRANSITIONS`)."""
         previous, self.controlword = self.controlword, cw
         self.values[(CONTROLWORD, 0)] = cw
         command = command_of(cw, previous)

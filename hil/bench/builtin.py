@@ -13,21 +13,21 @@ import os
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
-from controllers.bench.bc import BasicController
-from controllers.bench.models import DeviceModel, MachiningModel, load_linear_model
-from controllers.bench.prediction import BenchModels
-from controllers.bench.problem import BenchProblem
 from hil.bench.config import EecConfig, EecTable
 from hil.bench.control import BenchContext, RecordedEEC
-from hil.core.errors import ConfigError, UsageError
+from hil.controllers.bench.bc import BasicController
+from hil.controllers.bench.models import DeviceModel, MachiningModel, load_linear_model
+from hil.controllers.bench.prediction import BenchModels
+from hil.controllers.bench.problem import BenchProblem
+from hil.errors import ConfigError, UsageError
 
 if TYPE_CHECKING:  # the EEC is imported when built: it brings HiGHS and scipy
-    from controllers.bench.eec import EECSettings
+    from hil.controllers.bench.eec import EECSettings
 
 
 def eec(params: Mapping[str, Any], context: BenchContext) -> RecordedEEC:
     """The EEC of a run, recording its estimates, plans and fallbacks."""
-    from controllers.bench.eec import EEC
+    from hil.controllers.bench.eec import EEC
 
     config = context.eec
     problem = context.problem
@@ -47,7 +47,7 @@ def bc(params: Mapping[str, Any], context: BenchContext) -> BasicController:
 
 def eec_settings(table: EecTable) -> EECSettings:
     """The EEC's settings of its ``[eec]`` table."""
-    from controllers.bench.eec import EECSettings
+    from hil.controllers.bench.eec import EECSettings
 
     step = table.step_s
     try:

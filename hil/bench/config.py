@@ -4,7 +4,7 @@
 frozen dataclasses here. Drivers, emulators and controllers define the small dataclasses they
 need and receive them; none of them reads TOML. Every table is read with
 :class:`hil.core.config.Table`: a misspelt key, a wrong type or a value out of range is one
-:class:`~hil.core.errors.ConfigError` naming the file (``bench config`` / ``eec config`` for
+:class:`~hil.errors.ConfigError` naming the file (``bench config`` / ``eec config`` for
 the packaged defaults, the user's file when there is one) and the dotted key.
 
 * :func:`load_bench_config` / :func:`parse_bench_config` -> :class:`BenchConfig`;
@@ -23,11 +23,16 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-from controllers.bench.eec_choices import SOLVERS, TERMINALS
-from controllers.bench.kalman import KalmanSettings
-from controllers.bench.problem import BenchProblem, MachiningSequence, Resource, Stage
-from drivers.bench.modbus import BenchMap, BusSettings, RelaySpec, plan_reads
-from emulators.bench.plant import (
+from hil.bench.safety import BenchSafety
+from hil.controllers.bench.eec_choices import SOLVERS, TERMINALS
+from hil.controllers.bench.kalman import KalmanSettings
+from hil.controllers.bench.problem import BenchProblem, MachiningSequence, Resource, Stage
+from hil.core.config import Table, deep_merge, load_toml, parse_toml
+from hil.core.ranges import MAX_DURATION_S, MAX_DWELL_S, MAX_EEC_HORIZON_S
+from hil.core.settings import KeyRead, Layer, Layered, Setting, effective, lay
+from hil.core.verdict import RUN_TABLES, RunTables, read_run_tables
+from hil.drivers.bench.modbus import BenchMap, BusSettings, RelaySpec, plan_reads
+from hil.emulators.bench.plant import (
     METER_QUANTITIES,
     MODELS,
     PHASES,
@@ -40,14 +45,9 @@ from emulators.bench.plant import (
     PlantSpec,
     ResourceSpec,
 )
-from emulators.bench.server import UNKNOWN_UNIT_POLICIES, ServerSettings
-from emulators.faults import Fault, for_emulator, parse_faults_table
-from hil.bench.safety import BenchSafety
-from hil.core.config import Table, deep_merge, load_toml, parse_toml
-from hil.core.errors import ConfigError
-from hil.core.ranges import MAX_DURATION_S, MAX_DWELL_S, MAX_EEC_HORIZON_S
-from hil.core.settings import KeyRead, Layer, Layered, Setting, effective, lay
-from hil.core.verdict import RUN_TABLES, RunTables, read_run_tables
+from hil.emulators.bench.server import UNKNOWN_UNIT_POLICIES, ServerSettings
+from hil.emulators.faults import Fault, for_emulator, parse_faults_table
+from hil.errors import ConfigError
 
 SOURCE = "bench config"
 EEC_SOURCE = "eec config"

@@ -1,11 +1,11 @@
 """A bench controller in the loop: what it is told, when it decides, what is recorded.
 
 * :class:`Observer` (every sample) - takes the reading (read), feeds the controller's
-  estimator (:class:`~controllers.base.BenchEstimator`, the EEC's Kalman filter) in the loop
+  estimator (:class:`~hil.controllers.base.BenchEstimator`, the EEC's Kalman filter) in the loop
   thread (compute) and adds the reading to the KPIs (record);
 * :class:`ControllerTask` (every decision step) - takes a
-  :class:`~controllers.base.BenchObservation` at the decision instant, in the loop thread (the
-  estimator's ``estimate()`` included), asks any :class:`~controllers.base.BenchController`
+  :class:`~hil.controllers.base.BenchObservation` at the decision instant, in the loop thread (the
+  estimator's ``estimate()`` included), asks any :class:`~hil.controllers.base.BenchController`
   (compute), and sends its answer through the safety layer (write);
 * :class:`GuardedController` - any controller as the loop calls it: timed, held to a budget,
   its answer checked; :class:`RecordedEEC` - the EEC, whose estimates, plans and fallbacks go
@@ -23,27 +23,27 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from controllers.base import (
+from hil.bench.kpis import BenchKpis
+from hil.contracts import EventSink
+from hil.controllers.base import (
     BenchController,
     BenchEstimator,
     BenchObservation,
     BenchSample,
     estimator_of,
 )
-from hil.bench.kpis import BenchKpis
-from hil.core.errors import ControllerError
 from hil.core.guard import guarded_call
 from hil.core.loop import Task
 from hil.core.realtime import ordinary_thread
 from hil.core.stats import TimingHistogram
-from hil.core.types import EventSink
 from hil.core.verdict import SignalWatch
+from hil.errors import ControllerError
 
 if TYPE_CHECKING:
-    from controllers.bench.eec import EEC
-    from controllers.bench.problem import BenchProblem
     from hil.bench.config import EecConfig
     from hil.bench.rig import BenchRig
+    from hil.controllers.bench.eec import EEC
+    from hil.controllers.bench.problem import BenchProblem
     from hil.core.session import Session
 
 PLAN_SCHEMA: dict[str, Any] = {
@@ -238,7 +238,7 @@ class ControllerTask(Task):
 
 
 class RecordedEEC:
-    """The EEC as a run uses it (a :class:`~controllers.base.BenchController`): each decision
+    """The EEC as a run uses it (a :class:`~hil.controllers.base.BenchController`): each decision
     records the estimate it started from (``/eec/estimate``), its plan (``/eec/plan``), its
     fallbacks and solver trouble (``/events``) and its solve time (KPIs)."""
 
@@ -288,7 +288,7 @@ class GuardedController:
     """Any bench controller as the loop calls it: every ``decide()`` timed for the KPIs and
     held to its time budget, its answer checked (a mapping of peripheral relay names to
     booleans). An exception, a wrong answer or a late one is a
-    :class:`~hil.core.errors.ControllerError`, recorded on ``/events``; the loop then stops
+    :class:`~hil.errors.ControllerError`, recorded on ``/events``; the loop then stops
     with every relay at its safe level."""
 
     def __init__(self, controller: BenchController, label: str, peripherals: tuple[str, ...],

@@ -10,16 +10,16 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from hil.core.errors import HilError
+from hil.contracts import EventSink, no_event
 from hil.core.loop import Task
 from hil.core.notice import warn
-from hil.core.types import EventSink, no_event
+from hil.errors import HilError
 
 if TYPE_CHECKING:
-    from drivers.bench.emulator_clock import EmulatorClock, Identity
-    from drivers.bench.modbus import ModbusBenchDriver
-    from emulators.bench.server import EmulatedBench
     from hil.bench.config import BenchConfig
+    from hil.drivers.bench.emulator_clock import EmulatorClock, Identity
+    from hil.drivers.bench.modbus import ModbusBenchDriver
+    from hil.emulators.bench.server import EmulatedBench
 
 
 class PlantStepTask(Task):
@@ -99,7 +99,7 @@ def lockstep_over_the_wire(driver: ModbusBenchDriver, config: BenchConfig, on_ev
     again from t = 0; every request may then take ``bus.lockstep_timeout_s``). None: the wall
     clock, for any other device, and for an emulator that keeps its wall clock (a warning line
     and a ``bench.clock`` event)."""
-    from drivers.bench.emulator_clock import EmulatorClock, KeepsWallClockError, identify
+    from hil.drivers.bench.emulator_clock import EmulatorClock, KeepsWallClockError, identify
 
     bound = config.bus.lockstep_timeout_s
     identity = identify(driver.link, config.map.units["relays"], bound)

@@ -18,7 +18,7 @@ does), so a well-formed experiment has no deferred request; deferrals are counte
 state *written at this tick* (``P1``) and the switch-on event (``P1_start``, 1 at the tick the
 relay was switched on). The plant latches a write for its next step, so the meter reading
 logged at the same tick does not yet see it: models from these inputs have D = 0
-(``--no-feedthrough``), the convention of :mod:`controllers.bench.models`.
+(``--no-feedthrough``), the convention of :mod:`hil.controllers.bench.models`.
 """
 
 from __future__ import annotations
@@ -35,10 +35,10 @@ import numpy as np
 
 from hil.bench.identify_options import MACHINING_MODES, IdentifyOptions
 from hil.bench.rig import BenchRig, attach_bench, session_clock
-from hil.core.errors import UsageError
 from hil.core.loop import Task
 from hil.core.run import default_session_path
 from hil.core.session import Session
+from hil.errors import UsageError
 
 if TYPE_CHECKING:
     from hil.bench.config import BenchConfig

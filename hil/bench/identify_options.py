@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from hil.core.errors import UsageError
+from hil.errors import UsageError
 
 MACHINING_MODES = ("sequence", "prbs", "off")
 

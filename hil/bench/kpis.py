@@ -24,7 +24,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from controllers.bench.problem import BenchProblem
+from hil.controllers.bench.problem import BenchProblem
 
 
 def transitions(on: np.ndarray) -> np.ndarray:

@@ -7,10 +7,10 @@ from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
-from hil.core.errors import UsageError
 from hil.core.recording_options import RecordingOptions
 from hil.core.settings import given_options
 from hil.core.verdict import Limit
+from hil.errors import UsageError
 
 #: ``hil bench run``'s flags (argparse dests) -> the option they set, where the names differ
 FLAG_OPTIONS = {"hp": "hp_s", "hs": "hs_s", "dwell": "dwell_s", "config": "config_path",

@@ -11,7 +11,7 @@
   :class:`OpenedBench`'s ``clock``). :func:`planned_clock` is what a run asks for,
   :func:`session_clock` what a session made before the bench is opened gets.
 * :class:`SequenceSchedule` - the machining sequence as the player plays it: exact
-  nanosecond lookups on the table of :class:`controllers.bench.problem.MachiningSequence`.
+  nanosecond lookups on the table of :class:`hil.controllers.bench.problem.MachiningSequence`.
 * :class:`BenchSampler` - polls power (and levels) every sample and services the safety
   layer (read phase), records ``/bench/power``, ``/bench/levels``, ``/bench/relays`` (record
   phase).
@@ -31,25 +31,25 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from controllers.bench.problem import MachiningSequence, Stage
 from hil.bench.emulator_time import PlantStepTask, WirePlantClock, lockstep_over_the_wire
+from hil.contracts import EventSink, TimeSource, no_event
+from hil.controllers.bench.problem import MachiningSequence, Stage
 from hil.core.clock import Clock, RealtimeClock, SimClock
-from hil.core.errors import ConfigError
 from hil.core.loop import Task
 from hil.core.registry import SchemeRegistry, scheme_of
-from hil.core.types import EventSink, TimeSource, no_event
+from hil.errors import ConfigError
 
 #: polls in a row with a frozen reading before it is reported (0.5 s at 100 Hz)
 STALE_POLLS = 50
 
 if TYPE_CHECKING:
-    from drivers.bench.emulator_clock import Identity
-    from drivers.bench.modbus import ModbusBenchDriver
-    from drivers.bench.safe_bench import SafeBench
-    from emulators.bench.server import EmulatedBench
     from hil.bench.config import BenchConfig
     from hil.core.session import Session
+    from hil.drivers.bench.emulator_clock import Identity
+    from hil.drivers.bench.modbus import ModbusBenchDriver
+    from hil.drivers.bench.safe_bench import SafeBench
     from hil.emulator_process import EmulatorProcess
+    from hil.emulators.bench.server import EmulatedBench
 
 #: How the bench application opens a bench URL: ``factory(url, config, session)`` returns an
 #: :class:`OpenedBench` (modules imported only when a URL with their scheme is opened).
@@ -79,7 +79,7 @@ def planned_clock(realtime: bool) -> Clock:
 
 class SequenceSchedule:
     """The machining sequence as the player plays it: exact lookups in integer nanoseconds
-    on the stages of a :class:`~controllers.bench.problem.MachiningSequence`."""
+    on the stages of a :class:`~hil.controllers.bench.problem.MachiningSequence`."""
 
     def __init__(self, sequence: MachiningSequence) -> None:
         self.period_s = sequence.period_s
@@ -406,7 +406,7 @@ class OpenedBench:
 
 def modbus_driver(url: str, config: BenchConfig) -> ModbusBenchDriver:
     """The Modbus driver of the bench at ``url`` (not connected yet)."""
-    from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
+    from hil.drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 
     bus = config.bus
     return ModbusBenchDriver(ModbusLink(parse_bus_url(url), bus.timeout_s, bus.attempts),
@@ -417,7 +417,7 @@ def open_safe(driver: ModbusBenchDriver, config: BenchConfig, clock: TimeSource,
               on_event: EventSink = no_event) -> SafeBench:
     """The safety layer over ``driver``, opened (relays at their safe levels); ``clock``
     paces the dwell, ``on_event`` records what happens. The driver is closed on failure."""
-    from drivers.bench.safe_bench import SafeBench
+    from hil.drivers.bench.safe_bench import SafeBench
 
     bus = config.bus
     bench = SafeBench(driver, clock, on_event=on_event,
@@ -461,8 +461,8 @@ def make_emulator(config: BenchConfig, on_fault: Callable[[str], None] | None = 
                   ) -> EmulatedBench:
     """The emulated bench of ``config`` (not serving yet), once the config is checked for it;
     it plays ``config.faults`` and tells ``on_fault`` of each one as it starts."""
-    from emulators.bench.server import EmulatedBench
     from hil.bench.config import check_emulation
+    from hil.emulators.bench.server import EmulatedBench
 
     check_emulation(config)
     return EmulatedBench(config.plant, config.server, config.faults, on_fault)

@@ -10,7 +10,7 @@
    Kalman filter), fed the relays held during the last step and this reading;
 3. ``limits`` (100 Hz, only with per-tick limits): stops the run at the first violation;
 4. ``controller`` (every 100 ticks = 1 s): the controller (EEC, BC or a user's, see
-   :mod:`controllers.base`) decides P1/P2 through the safety layer; the EEC's plan goes to
+   :mod:`hil.controllers.base`) decides P1/P2 through the safety layer; the EEC's plan goes to
    ``/eec/plan``, fallbacks and solver trouble to ``/events``.
 
 Tasks 2-4 are :mod:`hil.bench.control`'s. KPIs (:mod:`hil.bench.kpis`) are computed from the
@@ -45,13 +45,6 @@ from hil.bench.rig import (
 from hil.bench.safety import BenchSafetyTask
 from hil.bench.settings import resolve_bench
 from hil.core.clock import Clock
-from hil.core.errors import (
-    ConfigError,
-    ForeignMasterError,
-    HilError,
-    SafetyStopError,
-    UsageError,
-)
 from hil.core.loop import Task
 from hil.core.notice import warn
 from hil.core.plugins import build_controller, controller_factory, controller_short_name
@@ -68,6 +61,13 @@ from hil.core.run import (
 from hil.core.session import Session
 from hil.core.settings import settings_json
 from hil.core.verdict import SignalWatch, split_limits
+from hil.errors import (
+    ConfigError,
+    ForeignMasterError,
+    HilError,
+    SafetyStopError,
+    UsageError,
+)
 
 #: the KPIs of ``hil bench run`` a limit may name (groups by their name)
 KPI_NAMES = ("J1_VA", "J2_VA", "SEC_VA", "energy_VAs", "peak_VA", "over_limit_s", "overlap_s",

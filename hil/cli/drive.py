@@ -131,7 +131,7 @@ def _register_sdo(sub: argparse._SubParsersAction) -> None:
 
 
 def _object(text: str) -> tuple[int, int]:
-    from drivers.canopen.sdo_tool import parse_object
+    from hil.drivers.canopen.sdo_tool import parse_object
 
     try:
         return parse_object(text)
@@ -140,7 +140,7 @@ def _object(text: str) -> tuple[int, int]:
 
 
 def _data_type(text: str) -> int:
-    from drivers.canopen.sdo_tool import parse_type
+    from hil.drivers.canopen.sdo_tool import parse_type
 
     try:
         return parse_type(text)
@@ -150,7 +150,7 @@ def _data_type(text: str) -> int:
 
 def _sdo_type(args: argparse.Namespace) -> int | None:
     """The object's data type: --type, else the EDS's, else None."""
-    from drivers.canopen.sdo_tool import eds_type
+    from hil.drivers.canopen.sdo_tool import eds_type
 
     if args.type is not None:
         return int(args.type)
@@ -162,14 +162,14 @@ def _sdo_type(args: argparse.Namespace) -> int | None:
 def _sdo_client(master: Any) -> Any:
     """An SDO client of the master's node on its bus that ignores every other frame (the tool
     runs no cyclic exchange to hand them to)."""
-    from drivers.canopen.sdo import SdoClient
+    from hil.drivers.canopen.sdo import SdoClient
 
     return SdoClient(master.link, master.node_id, master.config.sdo_timeout_s,
                      lambda frame: None)
 
 
 def sdo_read_command(args: argparse.Namespace) -> int:
-    from drivers.canopen.sdo_tool import read_object
+    from hil.drivers.canopen.sdo_tool import read_object
 
     data_type = _sdo_type(args)
     index, subindex = args.object
@@ -184,14 +184,14 @@ def sdo_read_command(args: argparse.Namespace) -> int:
 
 
 def sdo_write_command(args: argparse.Namespace) -> int:
-    from drivers.canopen.sdo_tool import (
+    from hil.drivers.canopen.sdo_tool import (
         TYPE_NAMES,
         download_format,
         encode,
         object_name,
         write_object,
     )
-    from hil.core.errors import UsageError
+    from hil.errors import UsageError
 
     data_type = _sdo_type(args)
     if data_type is None:
@@ -226,8 +226,8 @@ def _bus_lock(url: str) -> contextlib.AbstractContextManager[Any]:
 
 
 def scan_command(args: argparse.Namespace) -> int:
-    from drivers.canopen.eds import import_description
-    from drivers.canopen.scan import scan
+    from hil.drivers.canopen.eds import import_description
+    from hil.drivers.canopen.scan import scan
 
     if args.eds:  # an unreadable file is said before the bus is touched
         import_description(args.eds, args.node[0] if args.node else 1)
@@ -293,7 +293,7 @@ def _position(report: Any) -> str:
 
 
 def reset_command(args: argparse.Namespace) -> int:
-    from drivers.cia402 import state_of
+    from hil.protocols.cia402 import state_of
 
     with _bus_lock(args.url):
         master = _master(args.url, args.config, args.node)
@@ -313,8 +313,8 @@ def reset_command(args: argparse.Namespace) -> int:
 def plan_command(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from drivers.canopen.master import plan_axes
-    from hil.core.errors import UsageError
+    from hil.drivers.canopen.master import plan_axes
+    from hil.errors import UsageError
     from hil.servo.config import check_bitrate, load_drive_config
 
     drive = load_drive_config(args.config)
@@ -340,7 +340,7 @@ def plan_command(args: argparse.Namespace) -> int:
 
 
 def format_plan(mode: str, plan: Any) -> str:
-    from drivers.can_bus_time import WORST_CASE
+    from hil.drivers.can_bus_time import WORST_CASE
 
     b = plan.budget
     axis = plan.axes[0]

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from hil.cli.argtypes import positive_float, positive_int
 from hil.cli.output import json_text
-from hil.core.errors import UsageError
+from hil.errors import UsageError
 
 BOX_HELP = ("box of the relative parameters (controllers/servo/empc.py explains them): "
             "comma-separated "
@@ -41,9 +41,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def build_command(args: argparse.Namespace) -> int:
-    from controllers.servo.empc import build_explicit_law
-    from controllers.servo.empc_export import write_c
-    from controllers.servo.mpc import MpcConfig
+    from hil.controllers.servo.empc import build_explicit_law
+    from hil.controllers.servo.empc_export import write_c
+    from hil.controllers.servo.mpc import MpcConfig
 
     if args.export_c and not Path(args.export_c).resolve().parent.is_dir():
         raise UsageError(f"--export-c {args.export_c}: no such directory")

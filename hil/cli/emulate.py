@@ -12,9 +12,12 @@ from collections.abc import Callable, Iterator
 from dataclasses import replace
 from typing import Any
 
-from drivers.bench.clock_protocol import CLOCKS as BENCH_CLOCKS
-from emulators.drive.timebase import CLOCKS
-from emulators.faults import (
+from hil.cli.argtypes import host_port, positive_int
+from hil.cli.recording import add_live_arguments, live_address
+from hil.core.config import load_toml
+from hil.core.lifeline import die_with_parent
+from hil.emulators.drive.timebase import CLOCKS
+from hil.emulators.faults import (
     FORM,
     KINDS,
     Fault,
@@ -23,11 +26,8 @@ from emulators.faults import (
     parse_faults_table,
     print_event,
 )
-from hil.cli.argtypes import host_port, positive_int
-from hil.cli.recording import add_live_arguments, live_address
-from hil.core.config import load_toml
-from hil.core.errors import ConfigError
-from hil.core.lifeline import die_with_parent
+from hil.errors import ConfigError
+from hil.protocols.bench_clock import CLOCKS as BENCH_CLOCKS
 
 BENCH_LIVE_HZ = 10.0   # the emulators' state on --live: a modest rate, off their serving thread
 DRIVE_LIVE_HZ = 50.0
@@ -263,9 +263,9 @@ def emulate_bench_command(args: argparse.Namespace) -> int:
 def emulate_drive_command(args: argparse.Namespace) -> int:
     """Serve the emulated CiA 402 drive over socketcand in real time until Ctrl-C or SIGTERM."""
     die_with_parent()
-    from emulators.drive.node import DriveNode
-    from emulators.socketcand_server import SocketcandServer
-    from hil.core.errors import UsageError
+    from hil.emulators.drive.node import DriveNode
+    from hil.emulators.socketcand_server import SocketcandServer
+    from hil.errors import UsageError
     from hil.servo.config import load_drive_config
 
     nodes_ids = args.node or [1]
@@ -288,7 +288,7 @@ def emulate_drive_command(args: argparse.Namespace) -> int:
     send: Callable[[list[Any]], None] = server.broadcast
     trace = None
     if args.can_log:
-        from drivers.canopen.can_log import CanLog
+        from hil.drivers.canopen.can_log import CanLog
 
         trace = CanLog(args.can_log, emulator.channel)
         send = _traced_send(server.broadcast, trace)
@@ -364,7 +364,7 @@ def _traced_send(send: Callable[[list], None], trace: Any) -> Callable[[list], N
 
 
 def _traced_handle(handle: Callable[[Any], None], trace: Any) -> Callable[[Any], None]:
-    from drivers.can_frames import from_message
+    from hil.protocols.can_frames import from_message
 
     def traced(msg: Any) -> None:
         frame = from_message(msg)
@@ -378,8 +378,8 @@ def _traced_handle(handle: Callable[[Any], None], trace: Any) -> Callable[[Any],
 def write_eds(emulator: Any, path: str) -> int:
     """``hil emulate drive --write-eds F``: the emulator's object dictionary as an EDS, its
     COB-IDs relative to the node id (``$NODEID+0x180``), its bit rates claimed."""
-    from emulators.drive.eds import write_eds as write_emulator_eds
-    from hil.core.errors import UsageError
+    from hil.emulators.drive.eds import write_eds as write_emulator_eds
+    from hil.errors import UsageError
 
     try:
         write_emulator_eds(path, emulator.node_id, emulator.od_defaults())

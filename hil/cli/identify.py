@@ -10,12 +10,12 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from controllers.ident.defaults import BLOCK_ROW_CANDIDATES, DEFAULT_MAX_ORDER
 from hil.cli.argtypes import output_file, positive_int
-from hil.core.errors import UsageError
+from hil.controllers.ident.defaults import BLOCK_ROW_CANDIDATES, DEFAULT_MAX_ORDER
+from hil.errors import UsageError
 
 if TYPE_CHECKING:
-    from controllers.ident.n4sid import IdentifiedModel
+    from hil.controllers.ident.n4sid import IdentifiedModel
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -67,7 +67,7 @@ def fraction(text: str) -> float:
 
 
 def identify_command(args: argparse.Namespace) -> int:
-    from controllers.ident.n4sid import IdentificationError, identify, json_text
+    from hil.controllers.ident.n4sid import IdentificationError, identify, json_text
     from hil.core.identify import (
         IRREGULAR_TOLERANCE,
         aligned_signals,

@@ -37,7 +37,7 @@ def layout_command(args: argparse.Namespace) -> int:
         try:
             shutil.copyfile(path, args.out)
         except OSError as exc:
-            from hil.core.errors import UsageError
+            from hil.errors import UsageError
             raise UsageError(f"--out {args.out}: {exc.strerror or exc}") from None
         print(args.out)
     else:

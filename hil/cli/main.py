@@ -25,7 +25,7 @@ from hil.cli import (
     servo,
     sweep,
 )
-from hil.core.errors import HilError, RunInterruptedError
+from hil.errors import HilError, RunInterruptedError
 
 COMMAND_MODULES = (demo, bench, servo, drive, sweep, empc, identify, emulate, report, export,
                    replay, layout, doctor)

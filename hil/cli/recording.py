@@ -7,9 +7,9 @@ from collections.abc import Callable
 from typing import TypeVar
 
 from hil.cli.argtypes import positive_float
-from hil.core.errors import UsageError
 from hil.core.live import DEFAULT_RATE_HZ, check_bindable, parse_address, parse_rate
 from hil.core.recording_options import ENCODINGS, RecordingOptions
+from hil.errors import UsageError
 
 T = TypeVar("T")
 

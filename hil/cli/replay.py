@@ -29,10 +29,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def replay_command(args: argparse.Namespace) -> int:
-    from hil.core.errors import UsageError
     from hil.core.live import LiveSink, parse_address
     from hil.core.reader import read_session
     from hil.core.replay import advertise, replay
+    from hil.errors import UsageError
 
     if args.live is None:
         raise UsageError("replay needs --live [HOST:]PORT (where to serve the session)")

@@ -67,7 +67,7 @@ def event_lines(data: Any) -> list[str]:
 
 def topic_lines(data: Any, topic: str) -> list[str]:
     """Every message of ``topic`` as a JSON line; an unknown topic names the ones there are."""
-    from hil.core.errors import UsageError
+    from hil.errors import UsageError
 
     if topic not in data.messages:
         raise UsageError(f"no topic {topic!r} in {data.path}; topics: "

@@ -11,7 +11,7 @@ from hil.cli.output import json_text, print_settings
 from hil.cli.recording import add_recording_arguments, recording_options
 from hil.cli.units import milliamps, seconds, seconds_or_zero
 from hil.cli.verdict import add_controller_arguments, add_junit_argument, finish
-from hil.core.errors import UsageError
+from hil.errors import UsageError
 
 if TYPE_CHECKING:
     from hil.servo.run import ServoRunOptions

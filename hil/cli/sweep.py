@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 from hil.cli import bench, servo
 from hil.cli.argtypes import positive_int
 from hil.cli.output import json_text
-from hil.core.errors import UsageError
+from hil.errors import UsageError
 
 if TYPE_CHECKING:  # the sweep machinery (Ray, the runs) is imported when a sweep runs
     from hil.sweep.config import SweepTable

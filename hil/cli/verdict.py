@@ -13,7 +13,6 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 from hil.cli.argtypes import output_file, positive_float
 from hil.cli.output import json_text
-from hil.core.errors import HilError, UsageError
 from hil.core.params import parse_param
 from hil.core.verdict import (
     LimitResult,
@@ -23,6 +22,7 @@ from hil.core.verdict import (
     parse_limit,
     run_status,
 )
+from hil.errors import HilError, UsageError
 
 if TYPE_CHECKING:
     from hil.core.run import RunResult

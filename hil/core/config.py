@@ -8,8 +8,8 @@ import os
 from collections.abc import Mapping
 from typing import Any, overload
 
-from hil.core.errors import ConfigError
 from hil.core.settings import KeyRead, Layered
+from hil.errors import ConfigError
 
 try:
     import tomllib

@@ -7,8 +7,8 @@ once with one line naming the run that holds it. The locks are ``flock`` locks o
 when their process ends, however it ends, so a crashed run never leaves a stale lock.
 
 Another master on the wire that is not a hil run on this machine is for the protocol to
-reveal: see :class:`drivers.bench.safe_bench.SafeBench` (relays switched by someone else) and
-:mod:`drivers.canopen.master` (a foreign SYNC producer).
+reveal: see :class:`hil.drivers.bench.safe_bench.SafeBench` (relays switched by someone else) and
+:mod:`hil.drivers.canopen.master` (a foreign SYNC producer).
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ import hashlib
 import os
 import tempfile
 
-from hil.core.errors import ForeignMasterError, HilError
 from hil.core.output import open_locked
+from hil.errors import ForeignMasterError, HilError
 
 LOCK_DIR_ENV = "HIL_LOCK_DIR"
 

@@ -1,5 +1,5 @@
 """Calling a user's code from the loop: one-line descriptions of what went wrong, a time
-budget, and :class:`~hil.core.errors.ControllerError` instead of a traceback."""
+budget, and :class:`~hil.errors.ControllerError` instead of a traceback."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from hil.core.errors import ControllerError, HilError
+from hil.errors import ControllerError, HilError
 
 
 def describe_exception(exc: BaseException) -> str:

@@ -32,7 +32,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, cast
 
-from hil.core.errors import UsageError
+from hil.errors import UsageError
 
 DEFAULT_PORT = 8765
 DEFAULT_RATE_HZ = 100.0

@@ -13,7 +13,7 @@ import fcntl
 import os
 from dataclasses import dataclass
 
-from hil.core.errors import HilError
+from hil.errors import HilError
 
 
 class OutputError(HilError):

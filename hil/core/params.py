@@ -6,7 +6,7 @@ import math
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from hil.core.errors import UsageError
+from hil.errors import UsageError
 
 ParamValue = int | float | bool | str
 

@@ -7,7 +7,7 @@ A spec is one of:
 * ``FILE.py:Attribute`` - a Python file, relative to the current directory or absolute;
 * ``package.module:Attribute`` - an importable module.
 
-Every failure is a :class:`~hil.core.errors.ConfigError` that names the spec and the reason
+Every failure is a :class:`~hil.errors.ConfigError` that names the spec and the reason
 (a missing file, a module that raises on import, a missing attribute), never a traceback.
 """
 
@@ -22,8 +22,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from hil.core.errors import ConfigError, HilError
 from hil.core.guard import describe_exception
+from hil.errors import ConfigError, HilError
 
 
 def registered_names(group: str) -> list[str]:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 
-from hil.core.errors import UsageError
+from hil.errors import UsageError
 
 MAX_DURATION_S = 1e6
 MAX_DWELL_S = 3600.0

@@ -27,8 +27,8 @@ import numpy as np
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 
 from hil.core.cdr import CdrDecoder, CdrError, parse_ros2msg
-from hil.core.errors import SessionFileError
 from hil.core.mcap_walk import Damage, Walk, walk
+from hil.errors import SessionFileError
 
 _SERIES = re.compile(r"^(?P<stem>.*)_(?P<index>\d{3,})\.mcap$")
 

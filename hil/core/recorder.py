@@ -34,10 +34,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hil.core.cdr import CdrError, fields_of
-from hil.core.errors import HilError, RecordingError
 from hil.core.realtime import keep_process_off_cpu
 from hil.core.record_stream import FrameDecoder, encode_frame
 from hil.core.recording_options import ENCODINGS, RecordingOptions
+from hil.errors import HilError, RecordingError
 
 EVENTS_TOPIC = "/events"
 PIPE_BYTES = 1 << 20          # asked of the kernel for the pipe (Linux caps it at pipe-max-size)

@@ -7,9 +7,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-from hil.core.errors import HilError
 from hil.core.live import parse_address
 from hil.core.mcap_series import series_file
+from hil.errors import HilError
 
 ENCODINGS = ("json", "cdr")
 

@@ -16,7 +16,7 @@ import importlib.metadata
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from hil.core.errors import ConfigError
+from hil.errors import ConfigError
 
 Factory = Callable[..., Any]
 

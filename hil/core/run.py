@@ -15,7 +15,7 @@ line, the Python API, the sweep and the pytest fixtures alike:
 4. ``build_controller(session)`` - the controller, guarded. If it cannot be built, the file is
    discarded: nothing ran.
 5. ``start(session)`` - enable the devices and add the loop's tasks; then the loop runs.
-   A :class:`~hil.core.errors.HilError` (a fault, a lost link, a controller error) stops it;
+   A :class:`~hil.errors.HilError` (a fault, a lost link, a controller error) stops it;
    the loop has put every device in its safe state.
 6. ``finish(session)``, ``close_devices()``, ``kpis(...)``, the verdict of the limits, the
    run's ``status`` (:data:`hil.core.verdict.STATUSES`), the file finished with the KPIs. An
@@ -40,12 +40,12 @@ from typing import Any
 
 from hil.core.clock import Clock
 from hil.core.device_lock import DeviceLock, lock_device
-from hil.core.errors import HilError, RunInterruptedError
 from hil.core.output import OutputClaim, claim_output
 from hil.core.progress import ProgressLine, wants_progress
 from hil.core.recorder import RecordingOptions
 from hil.core.session import Session
 from hil.core.verdict import Limit, SignalWatch, run_status, verdict
+from hil.errors import HilError, RunInterruptedError
 
 #: the folder (under the working folder) where a run's session goes unless ``--out`` says
 SESSIONS_FOLDER = "sessions"
@@ -90,7 +90,7 @@ class RunResult:
 
 
 class EventBuffer:
-    """An event sink (:data:`hil.core.types.EventSink`) for devices opened before their
+    """An event sink (:data:`hil.contracts.EventSink`) for devices opened before their
     session: events are held, then replayed into the session once it exists."""
 
     def __init__(self) -> None:

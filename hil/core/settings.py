@@ -23,7 +23,7 @@ from dataclasses import dataclass, fields, is_dataclass
 from functools import partial
 from typing import Any
 
-from hil.core.errors import UsageError
+from hil.errors import UsageError
 
 #: the origin of a key no layer set: the reading code's own default
 BUILT_IN = "built-in default"

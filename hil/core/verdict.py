@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from hil.core.config import Table
-from hil.core.errors import ConfigError, RunInterruptedError, SafetyStopError, UsageError
+from hil.errors import ConfigError, RunInterruptedError, SafetyStopError, UsageError
 
 _OPERATORS: dict[str, Callable[[float, float], bool]] = {
     "<=": operator.le, ">=": operator.ge, "<": operator.lt, ">": operator.gt,

@@ -1,7 +1,7 @@
 """``hil servo run --axes x=1,y=2``: several axes, one SYNC per tick on each bus.
 
 Each axis is one drive (its node id) with its own master on its bus's
-:class:`~drivers.canopen.axes.AxisBus`, its own controller (the run's, built once per axis
+:class:`~hil.drivers.canopen.axes.AxisBus`, its own controller (the run's, built once per axis
 with that axis' reference) and its own servo task (topics ``/axis/NAME/command``,
 ``/axis/NAME/feedback``, ``/axis/NAME/prediction``). The axes are on the run's bus (``--drive``
 or ``[bus]``) unless one names another (``--axes x=1,y=2@URL``, ``[[axis]] bus = URL``): every
@@ -9,9 +9,9 @@ axis of a bus shares that bus's SYNC, and every bus has its cycle and SYNC in ev
 tick's phases run axis by axis, and a bus task comes last: its write ends every bus's cycle
 (each axis' RPDO, then one SYNC), its record logs the contour error of a path
 (``/path/contour``). A stop of any kind (a safety limit, a fault, Ctrl-C) stops every axis of
-every bus in the same cycles (:func:`~drivers.canopen.master.stop_together`).
+every bus in the same cycles (:func:`~hil.drivers.canopen.master.stop_together`).
 
-Each bus is planned before anything opens (:func:`drivers.canopen.master.plan_axes`, the figure
+Each bus is planned before anything opens (:func:`hil.drivers.canopen.master.plan_axes`, the figure
 ``hil drive plan`` prints: the worst-case bus time of a cycle against the period): a real bus
 whose plan does not fit is refused with the ways out; the emulated one, which has no bit rate,
 runs with a warning on the terminal and a ``bus.plan`` event.
@@ -32,27 +32,27 @@ from typing import Any
 import numpy as np
 from can.interfaces import VALID_INTERFACES
 
-from controllers.base import UNWRAPPED, cycle_periods_of, position_input_of
-from controllers.servo.references import (
+from hil.controllers.base import UNWRAPPED, cycle_periods_of, position_input_of
+from hil.controllers.servo.references import (
     CircleAxis,
     PlacedReference,
     Scenario,
     contour_error,
     parse_circle,
 )
-from drivers.can_bus_time import BusPlan
-from drivers.canopen import CanDriveMaster, CanLink, open_can_bus, parse_can_url
-from drivers.canopen.axes import AxisBus, AxisGroup
-from drivers.canopen.master import plan_axes, stop_together
-from emulators.drive.runners import LockstepDrive
 from hil.core.clock import Clock
-from hil.core.errors import ControllerError, HilError, SafetyStopError, UsageError
 from hil.core.loop import Task
 from hil.core.notice import warn
 from hil.core.plugins import build_controller
 from hil.core.registry import scheme_of
 from hil.core.run import EventBuffer, RunPlan, RunResult, controller_budget, run_experiment
 from hil.core.session import Session
+from hil.drivers.can_bus_time import BusPlan
+from hil.drivers.canopen import CanDriveMaster, CanLink, open_can_bus, parse_can_url
+from hil.drivers.canopen.axes import AxisBus, AxisGroup
+from hil.drivers.canopen.master import plan_axes, stop_together
+from hil.emulators.drive.runners import LockstepDrive
+from hil.errors import ControllerError, HilError, SafetyStopError, UsageError
 from hil.servo.config import AXIS_NAME, EMULATED, AxisSpec, DriveConfig, check_axes
 from hil.servo.rig import share_lockstep_time
 from hil.servo.run import (

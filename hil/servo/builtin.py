@@ -6,7 +6,7 @@ Params (default: ``hil servo run``'s flags): ``ht``, ``hu``, ``hp`` (horizons), 
 (``foh`` | ``zoh``) for the MPCs, ``ti_us`` (the velocity PI's integral time, Table I's
 2000 us) for the PID, and ``umax`` [mA] for all three.
 
-Cycle periods (:func:`controllers.base.runs_at`): the PID and the MPC run at every multiple of
+Cycle periods (:func:`hil.controllers.base.runs_at`): the PID and the MPC run at every multiple of
 500 us up to 10 ms (their model is the published axis stepped that many times; the PID refuses
 a period at which its loop is unstable, naming a ``ti_us`` that holds it); the explicit MPC at
 500 us only (its regions are built offline for it).
@@ -18,15 +18,15 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from controllers.base import runs_at
-from controllers.servo.model import MODEL_PERIODS_US, SAMPLE_PERIOD_S, axis_model
-from controllers.servo.pid import CascadedPid, PidConfig, check_stable
-from controllers.servo.references import Reference
+from hil.controllers.base import runs_at
+from hil.controllers.servo.model import MODEL_PERIODS_US, SAMPLE_PERIOD_S, axis_model
+from hil.controllers.servo.pid import CascadedPid, PidConfig, check_stable
+from hil.controllers.servo.references import Reference
 from hil.core.config import Table
 
 if TYPE_CHECKING:  # the MPCs are imported when built: they bring scipy, daqp and HiGHS
-    from controllers.servo.empc import ExplicitMpc
-    from controllers.servo.mpc import MpcConfig, TrajectoryMpc
+    from hil.controllers.servo.empc import ExplicitMpc
+    from hil.controllers.servo.mpc import MpcConfig, TrajectoryMpc
 
 
 @dataclass(frozen=True)
@@ -53,7 +53,7 @@ def _params(params: Mapping[str, Any], name: str) -> Table:
 def mpc(reference: Reference, params: Mapping[str, Any], context: ServoContext
         ) -> TrajectoryMpc:
     """The trajectory-tracking MPC (online QP), its prediction model at the run's period."""
-    from controllers.servo.mpc import TrajectoryMpc
+    from hil.controllers.servo.mpc import TrajectoryMpc
 
     return TrajectoryMpc(reference, mpc_config(params, context, "mpc"),
                          axis_model(context.period_s))
@@ -63,7 +63,7 @@ def mpc(reference: Reference, params: Mapping[str, Any], context: ServoContext
 def empc(reference: Reference, params: Mapping[str, Any], context: ServoContext
          ) -> ExplicitMpc:
     """The explicit MPC (regions searched through a binary tree)."""
-    from controllers.servo.empc import ExplicitMpc
+    from hil.controllers.servo.empc import ExplicitMpc
 
     return ExplicitMpc(reference, mpc_config(params, context, "empc"))
 
@@ -85,7 +85,7 @@ def pid(reference: Reference, params: Mapping[str, Any], context: ServoContext
 
 def mpc_config(params: Mapping[str, Any], context: ServoContext, name: str) -> MpcConfig:
     """The MPC's settings: the run's flags with ``params`` laid over them."""
-    from controllers.servo.mpc import MpcConfig
+    from hil.controllers.servo.mpc import MpcConfig
 
     table = _params(params, name)
     umax = table.number("umax", context.umax, above=0)

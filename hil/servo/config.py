@@ -3,10 +3,10 @@
 The packaged ``hil/configs/drive.toml`` holds every key with its default; a user file is laid
 over it table by table, then overrides (command-line flags, tests). Every key is read with its
 type and range through :class:`hil.core.config.Table`: an unknown key, a wrong type or a value
-out of range is one :class:`~hil.core.errors.ConfigError` naming the file and the dotted key.
-The driver (:class:`~drivers.canopen.config.DriveMasterConfig`, the bus as a
-:class:`~drivers.canopen.bus.CanBusSpec`) and the emulator
-(:class:`~emulators.drive.node.DriveEmulatorConfig`) define their settings and never read TOML.
+out of range is one :class:`~hil.errors.ConfigError` naming the file and the dotted key.
+The driver (:class:`~hil.drivers.canopen.config.DriveMasterConfig`, the bus as a
+:class:`~hil.drivers.canopen.bus.CanBusSpec`) and the emulator
+(:class:`~hil.emulators.drive.node.DriveEmulatorConfig`) define their settings and never read TOML.
 """
 
 from __future__ import annotations
@@ -21,17 +21,17 @@ from typing import Any
 
 from can.interfaces import VALID_INTERFACES
 
-from drivers.can_bus_time import CAN_FD_MAX_BITRATE, CLASSIC_CAN_MAX_BITRATE, max_bitrate
-from drivers.canopen.bus import SOCKETCAND, CanBusSpec, parse_can_url
-from drivers.canopen.config import DriveMasterConfig
-from drivers.cia402 import MODES, QUICK_STOP_OPTIONS, TPDO_LAYOUTS
-from emulators.drive.config import DriveEmulatorConfig
-from emulators.drive.plant import Disturbance, Friction
 from hil.core.config import Table, load_toml, parse_toml
-from hil.core.errors import ConfigError, UsageError
 from hil.core.registry import scheme_of
 from hil.core.settings import KeyRead, Layer, Layered, Setting, effective, lay
 from hil.core.verdict import RunTables, read_run_tables
+from hil.drivers.can_bus_time import CAN_FD_MAX_BITRATE, CLASSIC_CAN_MAX_BITRATE, max_bitrate
+from hil.drivers.canopen.bus import SOCKETCAND, CanBusSpec, parse_can_url
+from hil.drivers.canopen.config import DriveMasterConfig
+from hil.emulators.drive.config import DriveEmulatorConfig
+from hil.emulators.drive.plant import Disturbance, Friction
+from hil.errors import ConfigError, UsageError
+from hil.protocols.cia402 import MODES, QUICK_STOP_OPTIONS, TPDO_LAYOUTS
 from hil.servo.safety import ServoSafety
 
 AXIS_NAME = re.compile(r"[a-z][a-z0-9_]{0,15}")

@@ -17,15 +17,15 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from controllers.base import ServoController
-from controllers.servo.mpc import MpcConfig, TrajectoryMpc
-from controllers.servo.pid import CascadedPid, PidConfig
-from controllers.servo.references import Reference
-from controllers.servo.sim import PAPER_CASES, cycle_error
-from hil.core.errors import HilError
+from hil.controllers.base import ServoController
+from hil.controllers.servo.mpc import MpcConfig, TrajectoryMpc
+from hil.controllers.servo.pid import CascadedPid, PidConfig
+from hil.controllers.servo.references import Reference
+from hil.controllers.servo.sim import PAPER_CASES, cycle_error
 from hil.core.reader import read_session
 from hil.core.recorder import RecordingOptions
 from hil.core.report import plot_session
+from hil.errors import HilError
 from hil.servo.run import ServoRunOptions, run_servo
 from hil.sweep.engine import Engine
 from hil.sweep.space import Trial, named
@@ -127,7 +127,7 @@ def run_figure_trial(trial: Trial) -> dict[str, Any]:
 def figure_table_of(rows: Sequence[Mapping[str, Any]],
                     horizons: Sequence[int]) -> list[dict[str, Any]]:
     """The rows of :func:`figure_trials` as the table of
-    :func:`controllers.servo.sim.figure_table` (same keys, same numbers)."""
+    :func:`hil.controllers.servo.sim.figure_table` (same keys, same numbers)."""
     cases: dict[tuple[float, float], dict[tuple[Any, ...], Any]] = {}
     for row in rows:
         p = row["params"]

@@ -7,13 +7,13 @@ from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
-from controllers.servo.model import SAMPLE_PERIOD_S
-from hil.core.errors import UsageError
+from hil.controllers.servo.model import SAMPLE_PERIOD_S
 from hil.core.plugins import controller_label
 from hil.core.ranges import MAX_MPC_HORIZON, check_at_most, check_duration, check_milliamps
 from hil.core.recording_options import RecordingOptions
 from hil.core.settings import given_options
 from hil.core.verdict import Limit
+from hil.errors import UsageError
 from hil.servo.defaults import DEFAULT_REFERENCE
 from hil.servo.task import PREDICTION_EVERY_REALTIME, PREDICTION_EVERY_TICK_UP_TO_S
 

@@ -12,8 +12,8 @@ wired in lockstep (the driver knows nothing of the emulator).
 * installed packages add schemes through the ``hil.drive_devices`` entry points.
 
 A drive factory is called as ``factory(url, drive_config, on_event=sink, trace=trace)`` and
-returns a :class:`~drivers.canopen.master.CanDriveMaster` (not started). ``trace`` is a
-``--can-log`` file (:class:`~drivers.canopen.can_log.CanLog`) or None.
+returns a :class:`~hil.drivers.canopen.master.CanDriveMaster` (not started). ``trace`` is a
+``--can-log`` file (:class:`~hil.drivers.canopen.can_log.CanLog`) or None.
 """
 
 from __future__ import annotations
@@ -24,19 +24,19 @@ from dataclasses import replace
 import can
 from can.interfaces import VALID_INTERFACES
 
-from drivers.canopen.bus import URL_FORMS, open_can_bus, parse_can_url
-from drivers.canopen.can_log import CanLog
-from drivers.canopen.clocks import SyncClock
-from drivers.canopen.config import DriveMasterConfig
-from drivers.canopen.errors import SdoAbortError
-from drivers.canopen.link import CanLink, FrameTrace
-from drivers.canopen.master import CanDriveMaster
-from emulators.drive.config import DriveEmulatorConfig
-from emulators.drive.runners import LockstepDrive
-from emulators.drive.timebase import TIME_BASE
-from hil.core.errors import ConfigError
+from hil.contracts import EventSink, no_event
 from hil.core.registry import Factory, SchemeRegistry, scheme_of
-from hil.core.types import EventSink, no_event
+from hil.drivers.canopen.bus import URL_FORMS, open_can_bus, parse_can_url
+from hil.drivers.canopen.can_log import CanLog
+from hil.drivers.canopen.clocks import SyncClock
+from hil.drivers.canopen.config import DriveMasterConfig
+from hil.drivers.canopen.link import CanLink, FrameTrace
+from hil.drivers.canopen.master import CanDriveMaster
+from hil.emulators.drive.config import DriveEmulatorConfig
+from hil.emulators.drive.runners import LockstepDrive
+from hil.emulators.drive.timebase import TIME_BASE
+from hil.errors import ConfigError
+from hil.protocols.cia301 import SdoAbortError
 from hil.servo.config import EMULATED, DriveConfig, load_drive_config
 
 EXPECTED = f"expected emulated, {URL_FORMS}"
@@ -44,7 +44,7 @@ EXPECTED = f"expected emulated, {URL_FORMS}"
 
 class EmulatedDrive(CanDriveMaster):
     """A master whose drive is the emulator (``emulator``, a
-    :class:`~emulators.drive.node.LockstepDrive`) on a private channel, in lockstep; the
+    :class:`~hil.emulators.drive.node.LockstepDrive`) on a private channel, in lockstep; the
     emulator is its clock. The emulated node takes the master's node id."""
 
     def __init__(self, master: DriveMasterConfig, emulator: DriveEmulatorConfig, *,
@@ -151,7 +151,7 @@ def share_lockstep_time(master: CanDriveMaster, on_event: EventSink = no_event) 
     """Lockstep over a bus: ask the drive to keep the master's time (hil's emulator's
     manufacturer object 0x2005 ``Time base``: its SYNCs' time, given up after
     ``lockstep_timeout_ms`` of wall time without a frame). When it does, the master goes by its
-    SYNCs too (:class:`~drivers.canopen.clocks.SyncClock`): one clock on both sides of the
+    SYNCs too (:class:`~hil.drivers.canopen.clocks.SyncClock`): one clock on both sides of the
     wire, which no pause can fault; the drive's own clock again when the master lets it go.
     A drive that keeps its own clock (real hardware, ``hil emulate drive --clock wall``) is
     watched on the wall clock, as in real time. Whether it does: the return value, and a

@@ -20,17 +20,15 @@ import json
 from collections.abc import Callable, Mapping
 from typing import Any, cast
 
-from controllers.base import (
+from hil.controllers.base import (
     CountsFallbacks,
     ServoController,
     horizons_of,
     position_input_of,
     solver_of,
 )
-from controllers.servo.references import PlacedReference, Reference, Scenario, parse_scenario
-from drivers.canopen import CanDriveMaster, SdoAbortError
+from hil.controllers.servo.references import PlacedReference, Reference, Scenario, parse_scenario
 from hil.core.clock import Clock, RealtimeClock, SimClock
-from hil.core.errors import HilError, SafetyStopError, UsageError
 from hil.core.loop import FixedRateLoop
 from hil.core.notice import warn
 from hil.core.plugins import (
@@ -51,6 +49,8 @@ from hil.core.run import (
 from hil.core.session import Session
 from hil.core.settings import settings_json
 from hil.core.verdict import SignalWatch, split_limits
+from hil.drivers.canopen import CanDriveMaster, SdoAbortError
+from hil.errors import HilError, SafetyStopError, UsageError
 from hil.servo.builtin import ServoContext
 from hil.servo.config import EMULATED
 from hil.servo.options import ServoRunOptions

@@ -19,10 +19,8 @@ from dataclasses import dataclass, replace
 
 from can.interfaces import VALID_INTERFACES
 
-from controllers.base import check_cycle_period
-from controllers.servo.model import SAMPLE_PERIOD_S
-from drivers.canopen.bus import parse_can_url
-from hil.core.errors import ConfigError, UsageError
+from hil.controllers.base import check_cycle_period
+from hil.controllers.servo.model import SAMPLE_PERIOD_S
 from hil.core.registry import scheme_of
 from hil.core.settings import (
     LOWER,
@@ -35,6 +33,8 @@ from hil.core.settings import (
     option_settings,
     tightened_only,
 )
+from hil.drivers.canopen.bus import parse_can_url
+from hil.errors import ConfigError, UsageError
 from hil.servo.config import (
     EMULATED,
     SOURCE,
@@ -171,7 +171,7 @@ def check_emulated_period(drive: DriveConfig, url: str) -> None:
 
 def check_controller_period(factory: object, label: str, drive: DriveConfig) -> None:
     """The controller runs at ``master.cycle_period_us`` (what its factory's
-    ``cycle_periods_us`` says: :func:`controllers.base.check_cycle_period`), else one
+    ``cycle_periods_us`` says: :func:`hil.controllers.base.check_cycle_period`), else one
     ConfigError naming it."""
     check_cycle_period(factory, label, round(drive.master.cycle_period_s * 1e6))
 

@@ -12,10 +12,10 @@ default), in the loop's four phases.
   the tick is logged).
 
 The reference is placed where the axis stands when the task is built (the drive enabled,
-before the first step: :class:`~controllers.servo.references.PlacedReference`), and the
+before the first step: :class:`~hil.controllers.servo.references.PlacedReference`), and the
 error the KPIs, the safety net and the limits see is multi-turn: position - reference, turns
 included. The controller is given the position its contract asks for
-(:func:`~controllers.base.position_input_of`): ``position % 360`` by default, or multi-turn.
+(:func:`~hil.controllers.base.position_input_of`): ``position % 360`` by default, or multi-turn.
 After the ticks, each cycle of the drive's safe stop (quick stop until the axis stands, then
 disable voltage) is recorded on ``/drive/stop``.
 
@@ -32,7 +32,7 @@ import math
 
 import numpy as np
 
-from controllers.base import (
+from hil.controllers.base import (
     UNWRAPPED,
     Predicting,
     ReportsEvents,
@@ -41,13 +41,13 @@ from controllers.base import (
     position_input_of,
     solver_of,
 )
-from controllers.servo.references import PlacedReference, Scenario
-from drivers.canopen import CanDriveMaster, Feedback
-from hil.core.errors import ControllerError
+from hil.controllers.servo.references import PlacedReference, Scenario
 from hil.core.guard import guarded_call
 from hil.core.loop import Task
 from hil.core.session import Session
 from hil.core.verdict import SignalWatch
+from hil.drivers.canopen import CanDriveMaster, Feedback
+from hil.errors import ControllerError
 from hil.servo.safety import SafetyMonitor
 from hil.servo.topics import COMMAND_SCHEMA, FEEDBACK_SCHEMA, PREDICTION_SCHEMA, STOP_SCHEMA
 from hil.servo.tracking import ReferenceSamples, TrackingStats

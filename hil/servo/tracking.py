@@ -3,7 +3,7 @@ accumulated tick by tick in constant memory.
 
 KPIs are taken over the ticks from ``settle_s`` on: the error is the multi-turn position
 (as the master counts it) minus the reference placed where the axis started
-(:class:`~controllers.servo.references.PlacedReference`), turns included, so a runaway's whole
+(:class:`~hil.controllers.servo.references.PlacedReference`), turns included, so a runaway's whole
 error shows; ``max_error_pct`` is relative to the sine's amplitude or the trapezoid's stroke
 (None for a hold); ``step_us`` is the controller's compute time (Kalman + MPC, or PID) per
 tick.
@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.servo.references import Reference, Scenario, Sine, Trapezoid
+from hil.controllers.servo.references import Reference, Scenario, Sine, Trapezoid
 from hil.core.stats import TimingHistogram
 
 

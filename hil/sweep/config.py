@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hil.core.config import Table, load_toml
-from hil.core.errors import ConfigError
+from hil.errors import ConfigError
 
 
 @dataclass

@@ -11,7 +11,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from hil.core.errors import UsageError
+from hil.errors import UsageError
 
 DONE_STATUSES = ("ok", "violated")   # --resume reruns a failed trial
 

@@ -16,8 +16,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from hil.core.errors import UsageError
 from hil.core.params import parse_value
+from hil.errors import UsageError
 
 PARAM_PREFIX = "param."
 UNSWEEPABLE = {"limit", "param", "help"}  # repeatable flags: sweep param.NAME, not the list

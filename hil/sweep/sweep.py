@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
-from hil.core.errors import HilError, UsageError
+from hil.errors import HilError, UsageError
 from hil.sweep.engine import Engine
 from hil.sweep.plot import plot_sweep
 from hil.sweep.progress import Progress

@@ -8,8 +8,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from hil.core.errors import HilError
 from hil.core.run import Experiment, run_experiment
+from hil.errors import HilError
 from hil.sweep.space import PARAM_PREFIX
 
 

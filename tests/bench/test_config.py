@@ -14,8 +14,8 @@ from hil.bench.rig import attach_bench
 from hil.cli.main import main
 from hil.core.clock import SimClock
 from hil.core.config import deep_merge
-from hil.core.errors import ConfigError
 from hil.core.session import Session
+from hil.errors import ConfigError
 
 pytestmark = pytest.mark.timeout(60)
 

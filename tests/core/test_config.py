@@ -1,7 +1,7 @@
 import pytest
 
 from hil.core.config import Table, deep_merge, load_toml, parse_toml
-from hil.core.errors import ConfigError
+from hil.errors import ConfigError
 
 
 def test_toml_syntax_error_names_the_file_and_line(tmp_path):

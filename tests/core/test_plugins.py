@@ -2,9 +2,9 @@
 
 import pytest
 
-from hil.core.errors import ConfigError
 from hil.core.params import merge_params, parse_param, parse_value
 from hil.core.plugins import load_object
+from hil.errors import ConfigError
 
 GROUP = "hil.test_plugins"
 

@@ -10,9 +10,9 @@ import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from hil.core.errors import HilError
 from hil.core.reader import read_session, session_files
 from hil.core.recorder import Recorder, RecordingOptions
+from hil.errors import HilError
 
 FLAT = {
     "type": "object",

@@ -4,8 +4,8 @@ import sys
 
 import pytest
 
-from hil.core.errors import ConfigError
 from hil.core.registry import SchemeRegistry, scheme_of
+from hil.errors import ConfigError
 
 
 def test_scheme_of_urls_and_plain_words():

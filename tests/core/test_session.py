@@ -6,11 +6,11 @@ import pytest
 from mcap.reader import make_reader
 
 from hil.core.clock import SimClock
-from hil.core.errors import RecordingError
 from hil.core.loop import FunctionTask
 from hil.core.reader import read_session
 from hil.core.recorder import Recorder
 from hil.core.session import Session
+from hil.errors import RecordingError
 
 SCHEMA = {
     "type": "object",

@@ -5,13 +5,6 @@ import xml.etree.ElementTree as ET
 import pytest
 
 from hil.core.config import Table, parse_toml
-from hil.core.errors import (
-    ConfigError,
-    ControllerError,
-    RunInterruptedError,
-    SafetyStopError,
-    UsageError,
-)
 from hil.core.verdict import (
     STATUSES,
     Limit,
@@ -22,6 +15,13 @@ from hil.core.verdict import (
     limits_from_table,
     parse_limit,
     run_status,
+)
+from hil.errors import (
+    ConfigError,
+    ControllerError,
+    RunInterruptedError,
+    SafetyStopError,
+    UsageError,
 )
 
 KPIS = {"J2_VA": 523.5, "switches": 12, "solve_ms": {"median": 40.0, "p99": 71.7},

@@ -10,12 +10,12 @@ import uuid
 
 import pytest
 
-from drivers.canopen import CanDriveMaster, CanLink, DriveFaultError, DriveMasterConfig
-from drivers.canopen.axes import AxisBus, AxisGroup
-from drivers.canopen.bus import open_can_bus, parse_can_url
-from drivers.cia301 import EMCY_OVERCURRENT, ERR_REG_CURRENT, SYNC_COB_ID
-from drivers.cia402 import CW_QUICK_STOP, SWITCH_ON_DISABLED
-from emulators.drive.runners import LockstepDrive
+from hil.drivers.canopen import CanDriveMaster, CanLink, DriveFaultError, DriveMasterConfig
+from hil.drivers.canopen.axes import AxisBus, AxisGroup
+from hil.drivers.canopen.bus import open_can_bus, parse_can_url
+from hil.emulators.drive.runners import LockstepDrive
+from hil.protocols.cia301 import EMCY_OVERCURRENT, ERR_REG_CURRENT, SYNC_COB_ID
+from hil.protocols.cia402 import CW_QUICK_STOP, SWITCH_ON_DISABLED
 from tests.drive_slave import serve
 
 

@@ -2,7 +2,7 @@
 
 import pytest
 
-from drivers.can_bus_time import (
+from hil.drivers.can_bus_time import (
     AxisTraffic,
     FrameLoad,
     bus_frames,

@@ -13,7 +13,12 @@ import can
 import canopen
 import pytest
 
-from drivers.canopen import (
+from hil.contracts import no_event
+from hil.core.clock import SimClock
+from hil.core.loop import FunctionTask
+from hil.core.reader import read_session
+from hil.core.session import Session
+from hil.drivers.canopen import (
     BusSharedError,
     DriveError,
     DriveFaultError,
@@ -21,14 +26,9 @@ from drivers.canopen import (
     DriveStateError,
     SdoAbortError,
 )
-from drivers.cia402 import RPDOS, TPDOS
-from emulators.drive.od import build_object_dictionary
-from hil.core.clock import SimClock
-from hil.core.errors import ConfigError
-from hil.core.loop import FunctionTask
-from hil.core.reader import read_session
-from hil.core.session import Session
-from hil.core.types import no_event
+from hil.emulators.drive.od import build_object_dictionary
+from hil.errors import ConfigError
+from hil.protocols.cia402 import RPDOS, TPDOS
 from hil.servo.config import load_drive_config
 from hil.servo.rig import open_drive
 
@@ -376,9 +376,9 @@ def test_another_master_on_the_bus_stops_the_exchange(cob_id, data, what):
 
 def _hils_drive(url: str) -> tuple[int, Callable[[], None]]:
     """hil's emulated drive on the wall clock in a thread (patient with the master's silence)."""
-    from emulators.drive.config import DriveEmulatorConfig
-    from emulators.drive.node import DriveNode
-    from emulators.drive.runners import BusRunner, bus_sender
+    from hil.emulators.drive.config import DriveEmulatorConfig
+    from hil.emulators.drive.node import DriveNode
+    from hil.emulators.drive.runners import BusRunner, bus_sender
 
     node_bus = can.Bus(interface="virtual", channel=url.removeprefix("virtual://"))
     runner = BusRunner(DriveNode(DriveEmulatorConfig(sync_loss_timeout_ms=5000),

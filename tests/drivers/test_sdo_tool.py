@@ -6,9 +6,9 @@ import pytest
 from canopen.objectdictionary import ODVariable, datatypes
 from canopen.profiles.p402 import OperationMode
 
-from drivers.canopen.scan import mode_names
-from drivers.canopen.sdo_tool import ObjectValue, encode, parse_object, parse_type
-from hil.core.errors import UsageError
+from hil.drivers.canopen.scan import mode_names
+from hil.drivers.canopen.sdo_tool import ObjectValue, encode, parse_object, parse_type
+from hil.drivers.errors import DriverSetupError
 
 
 @pytest.mark.parametrize(("text", "expected"), [
@@ -51,12 +51,12 @@ def test_values_encode_as_canopen_decodes_them(text, kind, value):
     ("ten", datatypes.UNSIGNED8, "'ten' is not a valid UNSIGNED8"),
 ])
 def test_a_value_that_does_not_fit_its_type_is_one_line(text, kind, message):
-    with pytest.raises(UsageError, match=message):
+    with pytest.raises(DriverSetupError, match=message):
         encode(text, kind)
 
 
 def test_a_read_typed_wrong_for_its_size_is_one_line_and_an_untyped_one_unsigned():
-    with pytest.raises(UsageError, match=r"0x6064:0 has 4 bytes .*, UNSIGNED16 is 2"):
+    with pytest.raises(DriverSetupError, match=r"0x6064:0 has 4 bytes .*, UNSIGNED16 is 2"):
         ObjectValue(1, 0x6064, 0, bytes(4), datatypes.UNSIGNED16)
     untyped = ObjectValue(1, 0x6041, 0, b"\x50\x02", None)
     assert untyped.value == 0x0250 and untyped.type_name is None

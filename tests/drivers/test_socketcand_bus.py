@@ -10,7 +10,7 @@ import time
 import can
 import pytest
 
-from drivers.socketcand_bus import (
+from hil.drivers.socketcand_bus import (
     SocketcandBus,
     format_send,
     parse_frame,

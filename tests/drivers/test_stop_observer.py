@@ -11,17 +11,17 @@ import uuid
 
 import pytest
 
-from drivers.canopen import CanDriveMaster, CanLink, DriveMasterConfig
-from drivers.canopen.axes import AxisBus, AxisGroup
-from drivers.cia402 import (
+from hil.core.reader import read_session
+from hil.drivers.canopen import CanDriveMaster, CanLink, DriveMasterConfig
+from hil.drivers.canopen.axes import AxisBus, AxisGroup
+from hil.emulators.drive.runners import LockstepDrive
+from hil.protocols.cia402 import (
     CW_DISABLE_VOLTAGE,
     CW_QUICK_STOP,
     QUICK_STOP_ACTIVE,
     SWITCH_ON_DISABLED,
     state_of,
 )
-from emulators.drive.runners import LockstepDrive
-from hil.core.reader import read_session
 from hil.servo.config import load_drive_config
 from hil.servo.rig import open_drive
 from hil.servo.run import ServoRunOptions, run_servo

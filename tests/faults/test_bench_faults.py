@@ -12,14 +12,14 @@ import time
 
 import pytest
 
-from drivers.bench.modbus import LinkError, ModbusBenchDriver, ModbusLink, parse_bus_url
-from drivers.bench.safe_bench import SafeBench
-from emulators.bench.server import EmulatedBench
-from emulators.faults import parse_fault
-from emulators.null_modem import NullModem
 from hil.bench.config import load_bench_config
 from hil.cli.main import main
 from hil.core.reader import read_session
+from hil.drivers.bench.modbus import LinkError, ModbusBenchDriver, ModbusLink, parse_bus_url
+from hil.drivers.bench.safe_bench import SafeBench
+from hil.emulators.bench.server import EmulatedBench
+from hil.emulators.faults import parse_fault
+from hil.emulators.null_modem import NullModem
 
 pytestmark = [pytest.mark.slow]
 

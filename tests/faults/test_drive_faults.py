@@ -14,11 +14,11 @@ from dataclasses import replace
 
 import pytest
 
-from drivers.canopen import DriveFaultError, DriveLinkLostError
-from drivers.cia402 import FAULT, OPERATION_ENABLED, state_of
-from emulators.drive.node import DriveNode
-from emulators.faults import parse_fault
-from emulators.socketcand_server import SocketcandServer
+from hil.drivers.canopen import DriveFaultError, DriveLinkLostError
+from hil.emulators.drive.node import DriveNode
+from hil.emulators.faults import parse_fault
+from hil.emulators.socketcand_server import SocketcandServer
+from hil.protocols.cia402 import FAULT, OPERATION_ENABLED, state_of
 from hil.servo.config import load_drive_config
 from hil.servo.rig import open_drive
 

@@ -13,12 +13,12 @@ from pathlib import Path
 
 import pytest
 
-from drivers.bench.modbus import LinkError, ModbusBenchDriver, ModbusLink, parse_bus_url
-from emulators.faults import FaultSchedule, parse_fault
 from hil import api
 from hil.bench.config import load_bench_config
 from hil.cli.main import main
-from hil.core.errors import ConfigError
+from hil.drivers.bench.modbus import LinkError, ModbusBenchDriver, ModbusLink, parse_bus_url
+from hil.emulators.faults import FaultSchedule, parse_fault
+from hil.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]

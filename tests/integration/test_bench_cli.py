@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
-from emulators.null_modem import NullModem
+from hil.emulators.null_modem import NullModem
 from tests.cli import hil_here
 from tests.pymodbus_bench import ANSWER_S
 

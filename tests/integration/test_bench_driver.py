@@ -6,7 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.bench.modbus import (
+from hil.bench.config import load_bench_config, parse_bench_config
+from hil.bench.rig import make_emulator
+from hil.core.config import deep_merge
+from hil.drivers.bench.modbus import (
     DeviceError,
     LinkError,
     ModbusBenchDriver,
@@ -14,11 +17,8 @@ from drivers.bench.modbus import (
     parse_bus_url,
     plan_reads,
 )
-from emulators.null_modem import NullModem
-from hil.bench.config import load_bench_config, parse_bench_config
-from hil.bench.rig import make_emulator
-from hil.core.config import deep_merge
-from hil.core.errors import ConfigError
+from hil.emulators.null_modem import NullModem
+from hil.errors import ConfigError
 
 pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
 

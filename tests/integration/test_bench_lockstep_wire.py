@@ -1,7 +1,7 @@
 """Lockstep over the wire: ``hil bench run --bench URL`` (no ``--realtime``) against ``hil emulate
 bench`` in a process of its own, both from the command line in a folder outside the
 repository. The emulator follows the run's time (the clock unit 248 of
-drivers/bench/clock_protocol.py, read here with pymodbus's own client), so the sessions are
+hil/protocols/bench_clock.py, read here with pymodbus's own client), so the sessions are
 those of the in-process lockstep, bit for bit, and one emulator serves them one after the
 other; a pause of either side changes nothing; a dead or frozen emulator ends the run with one
 line and exit status 3; a Modbus server hil did not write is not taken for the emulator;
@@ -26,9 +26,9 @@ from pathlib import Path
 import pytest
 from pymodbus.client import ModbusTcpClient
 
-from emulators.null_modem import NullModem
 from hil.bench.config import load_bench_config
 from hil.core.reader import read_session
+from hil.emulators.null_modem import NullModem
 from tests.pymodbus_bench import PymodbusBench, short_config
 from tests.session_digest import (
     EXPERIMENTS,

@@ -16,9 +16,9 @@ import serial
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.framer.rtu import FramerRTU
 
-from emulators.null_modem import NullModem
 from hil.bench.config import load_bench_config
 from hil.bench.rig import make_emulator
+from hil.emulators.null_modem import NullModem
 from tests.pymodbus_bench import ANSWER_S
 
 pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]

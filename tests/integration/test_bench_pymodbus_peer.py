@@ -15,8 +15,8 @@ from pymodbus.datastore import (
 )
 from pymodbus.server import ModbusTcpServer
 
-from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 from hil.bench.config import load_bench_config
+from hil.drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 
 pytestmark = [pytest.mark.slow]
 

@@ -15,15 +15,15 @@ from pathlib import Path
 import pytest
 from pymodbus.client import ModbusTcpClient
 
-from drivers.bench.safe_bench import DwellGuard
 from hil.bench.config import load_bench_config, parse_bench_config
 from hil.bench.rig import attach_bench
+from hil.contracts import Device, LinkWatchdog
 from hil.core.clock import RealtimeClock, SimClock
 from hil.core.config import deep_merge
 from hil.core.loop import FunctionTask
 from hil.core.reader import read_session
 from hil.core.session import Session
-from hil.core.types import Device, LinkWatchdog
+from hil.drivers.bench.safe_bench import DwellGuard
 
 pytestmark = [pytest.mark.timeout(90), pytest.mark.slow]
 

@@ -15,10 +15,10 @@ import canopen
 import pytest
 from canopen.profiles.p402 import State402
 
-from drivers import cia402
-from drivers.canopen import DriveFaultError, DriveLinkLostError
-from drivers.cia402 import state_of
-from hil.core.types import no_event
+from hil.contracts import no_event
+from hil.drivers.canopen import DriveFaultError, DriveLinkLostError
+from hil.protocols import cia402
+from hil.protocols.cia402 import state_of
 from hil.servo.config import load_drive_config
 from hil.servo.rig import open_drive
 from tests.canopen_peer import add_402_node

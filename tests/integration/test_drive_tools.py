@@ -18,9 +18,9 @@ import can
 import canopen
 import pytest
 
-from drivers.canopen import DriveError
 from hil import api
 from hil.core.reader import read_session
+from hil.drivers.canopen import DriveError
 from hil.servo.run import ServoRunOptions, run_servo
 from tests.cli import hil_here as in_process
 from tests.drive_slave import dictionary, serve
@@ -65,8 +65,8 @@ def quick_disconnect(monkeypatch):
 
 @pytest.mark.usefixtures("quick_disconnect")
 def test_scan_of_an_independent_drive_names_what_it_lacks_for_csp():
-    from drivers.canopen.link import CanLink
-    from drivers.canopen.scan import scan
+    from hil.drivers.canopen.link import CanLink
+    from hil.drivers.canopen.scan import scan
 
     url = f"virtual://scan-{uuid.uuid4().hex}"
     network, _slave = serve(url, 3)

@@ -15,7 +15,7 @@ from pathlib import Path
 import can
 import pytest
 
-from drivers.socketcand_bus import SocketcandBus
+from hil.drivers.socketcand_bus import SocketcandBus
 
 pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
 ROOT = Path(__file__).resolve().parents[2]

@@ -22,10 +22,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.cia402 import QUICK_STOP_ACTIVE, SWITCH_ON_DISABLED, state_of
 from hil import api
-from hil.core.errors import ConfigError, HilError
 from hil.core.reader import read_session
+from hil.errors import ConfigError, HilError
+from hil.protocols.cia402 import QUICK_STOP_ACTIVE, SWITCH_ON_DISABLED, state_of
 from tests.cli import hil_here as in_process
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]

@@ -14,10 +14,10 @@ from pathlib import Path
 
 import pytest
 
-from drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
-from drivers.socketcand_bus import SocketcandBus
 from hil import api
 from hil.bench.config import load_bench_config
+from hil.drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
+from hil.drivers.socketcand_bus import SocketcandBus
 from tests.pymodbus_bench import (
     PymodbusBench,
     session_events,

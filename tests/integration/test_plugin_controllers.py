@@ -4,8 +4,8 @@
 import pytest
 
 from hil import api
-from hil.core.errors import ConfigError, ControllerError
 from hil.core.reader import read_session
+from hil.errors import ConfigError, ControllerError
 
 pytestmark = [pytest.mark.slow]
 

@@ -237,7 +237,7 @@ class WrongShape(CoupledPd):
 
 def test_a_multi_axis_controller_is_stepped_once_a_tick_with_every_axis(tmp_path):
     from hil import api
-    from hil.core.errors import ControllerError
+    from hil.errors import ControllerError
 
     CoupledPd.calls = 0
     kpis = api.run_servo(CoupledPd, {"kp": 300}, axes="x=1,y=2",

@@ -5,10 +5,10 @@ import math
 
 import pytest
 
-from drivers.canopen import DriveMasterConfig
-from emulators.drive.config import DriveEmulatorConfig
 from hil.cli.main import main
-from hil.core.errors import ConfigError
+from hil.drivers.canopen import DriveMasterConfig
+from hil.emulators.drive.config import DriveEmulatorConfig
+from hil.errors import ConfigError
 from hil.servo.config import default_drive_text, load_drive_config
 
 

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from hil.core.errors import HilError
 from hil.core.reader import read_session
+from hil.errors import HilError
 from hil.servo.options import ServoRunOptions
 from hil.servo.run import run_servo
 from hil.servo.safety import SafetyMonitor, ServoSafety, judge_stale

@@ -5,9 +5,10 @@ the start by default, the start itself from here; wrapped unless a controller as
 import numpy as np
 import pytest
 
-from controllers.base import UNWRAPPED, WRAPPED, position_input_of
-from controllers.servo.references import Hold, PlacedReference, Sine
-from hil.core.errors import ConfigError, UsageError
+from hil.controllers.base import UNWRAPPED, WRAPPED, position_input_of
+from hil.controllers.errors import ControllerSetupError
+from hil.controllers.servo.references import Hold, PlacedReference, Sine
+from hil.errors import ConfigError
 
 
 @pytest.mark.parametrize(("start", "r0", "offset"), [
@@ -30,7 +31,7 @@ def test_from_here_the_reference_is_a_motion_from_the_start():
 
 
 def test_a_reference_sampled_before_it_is_placed_says_so():
-    with pytest.raises(UsageError, match=r"placed where the axis starts.*in step"):
+    with pytest.raises(ControllerSetupError, match=r"placed where the axis starts.*in step"):
         PlacedReference(Hold(0.0)).position(np.array([0.0]))
 
 

@@ -4,9 +4,9 @@ options, the [bus] table, and the emulated drive wired in by the application, no
 
 import pytest
 
-from drivers.canopen import CanBusSpec, CanDriveMaster, DriveLinkLostError, parse_can_url
-from hil.core.errors import ConfigError
-from hil.core.types import Device
+from hil.contracts import Device
+from hil.drivers.canopen import CanBusSpec, CanDriveMaster, DriveLinkLostError, parse_can_url
+from hil.errors import ConfigError
 from hil.servo.config import load_drive_config
 from hil.servo.rig import DRIVES, EmulatedDrive, can_drive, emulated_drive, open_drive
 

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from hil import api
-from hil.core.errors import HilError
 from hil.core.reader import read_session
+from hil.errors import HilError
 from hil.servo.run import ServoRunOptions, run_servo
 
 pytestmark = [pytest.mark.slow]

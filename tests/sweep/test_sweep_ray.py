@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from controllers.servo.sim import figure_table
 from hil.cli.main import main
+from hil.controllers.servo.sim import figure_table
 
 HERE = Path(__file__).resolve().parent
 GAIN = f"{HERE / 'gain_controller.py'}:Gain"

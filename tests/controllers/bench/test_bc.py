@@ -6,10 +6,10 @@ import itertools
 
 import numpy as np
 
-from controllers.base import BenchController, BenchObservation
-from controllers.bench.bc import BasicController, hysteresis_rule
-from controllers.bench.problem import DwellClock
 from hil.bench.config import load_bench_config
+from hil.controllers.base import BenchController, BenchObservation
+from hil.controllers.bench.bc import BasicController, hysteresis_rule
+from hil.controllers.bench.problem import DwellClock
 
 
 def simulate_bc(cycles: int = 8, dwell_s: float = 5.0, q0: dict[str, float] | None = None):

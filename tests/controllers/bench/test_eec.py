@@ -12,13 +12,13 @@ import itertools
 import numpy as np
 import pytest
 
-from controllers.base import BenchController, BenchEstimator, BenchObservation
-from controllers.bench.eec import EEC, EECMilp, EECSettings
-from controllers.bench.eec_cvxpy import CvxpyEEC, solve_naive
-from controllers.bench.models import DeviceModel, LinearModel, MachiningModel
-from controllers.bench.prediction import BenchEstimate, BenchModels, HorizonPrediction
-from controllers.bench.problem import BenchProblem
 from hil.bench.config import load_bench_config
+from hil.controllers.base import BenchController, BenchEstimator, BenchObservation
+from hil.controllers.bench.eec import EEC, EECMilp, EECSettings
+from hil.controllers.bench.eec_cvxpy import CvxpyEEC, solve_naive
+from hil.controllers.bench.models import DeviceModel, LinearModel, MachiningModel
+from hil.controllers.bench.prediction import BenchEstimate, BenchModels, HorizonPrediction
+from hil.controllers.bench.problem import BenchProblem
 
 DT = 0.1  # model grid of the synthetic models: 10 samples per decision step
 
@@ -251,8 +251,8 @@ def test_models_identified_over_the_wire_load_with_their_pulse_inputs():
     """`hil identify` names inputs after recorded fields (``/ident/relays:M1_start``)."""
     import numpy as np
 
-    from controllers.bench.models import MachiningModel, to_linear_model
     from hil.bench.config import load_bench_config
+    from hil.controllers.bench.models import MachiningModel, to_linear_model
 
     inputs = ["/ident/relays:M1", "/ident/relays:M1_start", "/ident/relays:M2",
               "/ident/relays:M2_start"]

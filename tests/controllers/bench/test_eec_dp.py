@@ -1,4 +1,5 @@
-"""The schedule DP (controllers.bench.eec_dp) against the exact MILP on recorded decision instants.
+"""The schedule DP (hil.controllers.bench.eec_dp) against the exact MILP on recorded decision
+instants.
 
 ``tests/data/eec_instants.npz``: twelve decision instants of a closed-loop run of the default
 EEC (H_p = 28 s, emulated bench), among them the ones the MILP needed longest to prove.
@@ -13,10 +14,10 @@ import highspy
 import numpy as np
 import pytest
 
-from controllers.bench.eec import EECMilp
-from controllers.bench.prediction import HorizonPrediction
 from hil.bench.builtin import eec_settings, load_models
 from hil.bench.config import load_configs
+from hil.controllers.bench.eec import EECMilp
+from hil.controllers.bench.prediction import HorizonPrediction
 
 DATA = Path(__file__).parents[2] / "data" / "eec_instants.npz"
 

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controllers.base import BenchSample
-from controllers.bench.kalman import BenchKalman
-from emulators.bench.plant import BenchPlant
 from hil.bench.builtin import load_models
 from hil.bench.config import load_configs
+from hil.controllers.base import BenchSample
+from hil.controllers.bench.kalman import BenchKalman
+from hil.emulators.bench.plant import BenchPlant
 
 
 def run_filter(disturbance: bool, seconds: float = 30.0):

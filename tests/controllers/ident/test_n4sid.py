@@ -9,8 +9,8 @@ import re
 import numpy as np
 import pytest
 
-from controllers.ident import n4sid as ident
-from controllers.ident.n4sid import IdentificationError
+from hil.controllers.ident import n4sid as ident
+from hil.controllers.ident.n4sid import IdentificationError
 
 
 def random_stable_system(rng: np.random.Generator, n: int, m: int, ny: int):

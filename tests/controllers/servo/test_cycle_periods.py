@@ -7,19 +7,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controllers.base import (
+from hil.controllers.base import (
     CyclePeriods,
     check_cycle_period,
     cycle_periods_of,
     describe_periods,
     runs_at,
 )
-from controllers.servo.model import axis_model, published_axis_model
-from controllers.servo.pid import CascadedPid, PidConfig, check_stable, closed_loop_pole
-from controllers.servo.references import Sine
-from controllers.servo.sim import simulate
-from emulators.drive.plant import AxisPlant
-from hil.core.errors import ConfigError
+from hil.controllers.servo.model import axis_model, published_axis_model
+from hil.controllers.servo.pid import CascadedPid, PidConfig, check_stable, closed_loop_pole
+from hil.controllers.servo.references import Sine
+from hil.controllers.servo.sim import simulate
+from hil.emulators.drive.plant import AxisPlant
+from hil.errors import ConfigError
 from hil.servo import builtin
 from hil.servo.builtin import ServoContext
 

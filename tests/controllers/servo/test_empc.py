@@ -5,17 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controllers.servo.empc import (
+from hil.controllers.servo.empc import (
     ExplicitMpc,
     build_explicit_law,
     parameter_box,
     parameter_names,
     relative_map,
 )
-from controllers.servo.mpc import MpcConfig, TrajectoryMpc
-from controllers.servo.references import Modulo360, Ramp, Sine, Trapezoid, position_disturbance
-from controllers.servo.sim import simulate
-from hil.core.errors import ConfigError
+from hil.controllers.servo.mpc import MpcConfig, TrajectoryMpc
+from hil.controllers.servo.references import Modulo360, Ramp, Sine, Trapezoid, position_disturbance
+from hil.controllers.servo.sim import simulate
+from hil.errors import ConfigError
 
 PAPER = MpcConfig(ht=3, hu=3, hp=50, ert="foh")
 

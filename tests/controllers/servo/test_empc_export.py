@@ -8,11 +8,11 @@ import subprocess
 import numpy as np
 import pytest
 
-from controllers.servo.empc import build_explicit_law, relative_map
-from controllers.servo.empc_export import c_source, write_c
-from controllers.servo.empc_tree import NOT_FOUND, OUTSIDE_BOX
-from controllers.servo.mpc import MpcConfig
-from hil.core.errors import HilError
+from hil.controllers.servo.empc import build_explicit_law, relative_map
+from hil.controllers.servo.empc_export import c_source, write_c
+from hil.controllers.servo.empc_tree import NOT_FOUND, OUTSIDE_BOX
+from hil.controllers.servo.mpc import MpcConfig
+from hil.errors import HilError
 from tests.controllers.servo.test_mpqp import region_samples
 
 pytestmark = [pytest.mark.slow]  # compiles the exported C

@@ -7,16 +7,16 @@ import math
 import numpy as np
 import pytest
 
-from controllers.servo.empc import build_explicit_law
-from controllers.servo.empc_tree import (
+from hil.controllers.servo.empc import build_explicit_law
+from hil.controllers.servo.empc_tree import (
     NOT_FOUND,
     OUTSIDE_BOX,
     Polyhedron,
     SequentialSearch,
     build_tree,
 )
-from controllers.servo.mpc import MpcConfig
-from controllers.servo.mpqp import solve_mpqp
+from hil.controllers.servo.mpc import MpcConfig
+from hil.controllers.servo.mpqp import solve_mpqp
 from tests.controllers.servo.test_mpqp import box_samples, double_integrator, region_samples
 
 pytestmark = [pytest.mark.slow]  # builds explicit MPC trees: seconds each

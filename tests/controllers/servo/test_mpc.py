@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from controllers.servo.kalman import KalmanTuning, SteadyStateKalman
-from controllers.servo.model import published_axis_model
-from controllers.servo.mpc import (
+from hil.controllers.servo.kalman import KalmanTuning, SteadyStateKalman
+from hil.controllers.servo.model import published_axis_model
+from hil.controllers.servo.mpc import (
     REFERENCE_BLOCK,
     CvxpyReferenceSolver,
     DaqpSolver,
@@ -19,10 +19,10 @@ from controllers.servo.mpc import (
     reference_expansion,
     velocity_form,
 )
-from controllers.servo.pid import CascadedPid, PidConfig
-from controllers.servo.references import Hold, Modulo360, Ramp, Sine
-from controllers.servo.sim import rest_state, simulate
-from hil.core.errors import ConfigError, HilError
+from hil.controllers.servo.pid import CascadedPid, PidConfig
+from hil.controllers.servo.references import Hold, Modulo360, Ramp, Sine
+from hil.controllers.servo.sim import rest_state, simulate
+from hil.errors import ConfigError, HilError
 
 MODEL = published_axis_model()
 

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from scipy.optimize import linprog
 
-from controllers.servo.empc import build_explicit_law, relative_map
-from controllers.servo.mpc import DaqpSolver, MpcConfig
-from controllers.servo.mpqp import MpQP, solve_mpqp
-from hil.core.errors import ConfigError
+from hil.controllers.servo.empc import build_explicit_law, relative_map
+from hil.controllers.servo.mpc import DaqpSolver, MpcConfig
+from hil.controllers.servo.mpqp import MpQP, solve_mpqp
+from hil.errors import ConfigError
 
 PAPER = MpcConfig(ht=3, hu=3, hp=50, ert="foh")  # Q = 1e6, R = 1, |u| <= 1000 mA
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controllers.servo.model import published_axis_model
-from controllers.servo.pid import (
+from hil.controllers.servo.model import published_axis_model
+from hil.controllers.servo.pid import (
     EQ16_DENOMINATOR,
     EQ16_NUMERATOR,
     CascadedPid,
@@ -14,9 +14,9 @@ from controllers.servo.pid import (
     notch_coefficients,
     resonance_hz,
 )
-from controllers.servo.references import Hold, Modulo360, Ramp, Trapezoid
-from controllers.servo.sim import simulate
-from hil.core.errors import ConfigError
+from hil.controllers.servo.references import Hold, Modulo360, Ramp, Trapezoid
+from hil.controllers.servo.sim import simulate
+from hil.errors import ConfigError
 
 MODEL = published_axis_model()
 

@@ -8,13 +8,13 @@ from itertools import pairwise
 import numpy as np
 import pytest
 
-from controllers.servo.model import published_axis_model
-from controllers.servo.mpc import MpcConfig, TrajectoryMpc
-from controllers.servo.pid import CascadedPid, PidConfig
-from controllers.servo.references import Hold, Trapezoid, parse_scenario, position_disturbance
-from controllers.servo.sim import cycle_error, figure_table, rest_state, simulate
 from hil.cli.main import main
-from hil.core.errors import UsageError
+from hil.controllers.errors import ControllerSetupError
+from hil.controllers.servo.model import published_axis_model
+from hil.controllers.servo.mpc import MpcConfig, TrajectoryMpc
+from hil.controllers.servo.pid import CascadedPid, PidConfig
+from hil.controllers.servo.references import Hold, Trapezoid, parse_scenario, position_disturbance
+from hil.controllers.servo.sim import cycle_error, figure_table, rest_state, simulate
 
 MODEL = published_axis_model()
 
@@ -92,7 +92,7 @@ def test_position_disturbance_is_rejected_after_release():
     ("disturbance:start=0.5,end=0.2", "after start"),
 ])
 def test_bad_reference_spec_is_one_clear_error(spec, match):
-    with pytest.raises(UsageError, match=match):
+    with pytest.raises(ControllerSetupError, match=match):
         parse_scenario(spec)
 
 

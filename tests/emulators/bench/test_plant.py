@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from emulators.bench.plant import COIL_LOG_LENGTH, BenchPlant, PlantSpec
 from hil.bench.config import check_emulation, load_bench_config, parse_bench_config
 from hil.bench.rig import SequenceSchedule
 from hil.core.config import deep_merge
-from hil.core.errors import ConfigError
+from hil.emulators.bench.plant import COIL_LOG_LENGTH, BenchPlant, PlantSpec
+from hil.errors import ConfigError
 
 
 @pytest.fixture(scope="module")

@@ -121,7 +121,7 @@ def test_a_missing_function_over_rtu_is_exception_1_with_a_good_crc(code):
     import serial
     from pymodbus.framer.rtu import FramerRTU
 
-    from emulators.null_modem import NullModem
+    from hil.emulators.null_modem import NullModem
 
     with NullModem() as modem, make_emulator(
             load_bench_config(None).emulating(None, None)) as emulator:

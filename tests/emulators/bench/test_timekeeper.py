@@ -1,6 +1,6 @@
 """The bench emulator's identification and clock unit, asked by pymodbus's own client (a master
 hil did not write) over Modbus TCP on 127.0.0.1: the registers of
-drivers/bench/clock_protocol.py, the exceptions, one master at a time."""
+hil/protocols/bench_clock.py, the exceptions, one master at a time."""
 
 from __future__ import annotations
 
@@ -128,10 +128,10 @@ def test_a_device_that_gives_no_identity_is_none_and_costs_no_retry():
     """The master's question (drivers/bench/emulator_clock.py): no answer at all (a drop
     fault, the emulator on its wall clock) is None, after one patient try, and the bench's
     retry count is left as it was."""
-    from drivers.bench.emulator_clock import identify
-    from drivers.bench.modbus import ModbusLink, parse_bus_url
-    from emulators.bench.server import EmulatedBench
-    from emulators.faults import parse_fault
+    from hil.drivers.bench.emulator_clock import identify
+    from hil.drivers.bench.modbus import ModbusLink, parse_bus_url
+    from hil.emulators.bench.server import EmulatedBench
+    from hil.emulators.faults import parse_fault
 
     config = load_bench_config()
     bench = EmulatedBench(config.plant, config.server, [parse_fault("drop@0:unit=1")])

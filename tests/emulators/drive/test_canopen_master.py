@@ -10,9 +10,9 @@ import can
 import canopen
 import pytest
 
-from emulators.drive.config import DriveEmulatorConfig
-from emulators.drive.node import DriveNode
-from emulators.drive.runners import BusRunner, bus_sender
+from hil.emulators.drive.config import DriveEmulatorConfig
+from hil.emulators.drive.node import DriveNode
+from hil.emulators.drive.runners import BusRunner, bus_sender
 from tests.canopen_peer import add_402_node
 
 

@@ -9,11 +9,11 @@ import time
 import can
 import pytest
 
-from drivers.cia402 import STATUSWORD_MASKS, enable_steps
-from emulators.drive.config import DriveEmulatorConfig
-from emulators.drive.node import DriveNode
-from emulators.drive.od import build_object_dictionary, iter_variables
-from emulators.drive.runners import BusRunner, LockstepDrive, bus_sender
+from hil.emulators.drive.config import DriveEmulatorConfig
+from hil.emulators.drive.node import DriveNode
+from hil.emulators.drive.od import build_object_dictionary, iter_variables
+from hil.emulators.drive.runners import BusRunner, LockstepDrive, bus_sender
+from hil.protocols.cia402 import STATUSWORD_MASKS, enable_steps
 
 
 class Wire:

@@ -4,8 +4,8 @@ import math
 
 import pytest
 
-from controllers.servo.model import published_axis_model
-from emulators.drive.plant import AxisPlant, Disturbance, Friction
+from hil.controllers.servo.model import published_axis_model
+from hil.emulators.drive.plant import AxisPlant, Disturbance, Friction
 
 
 def run(plant: AxisPlant, current_ma: float, seconds: float) -> None:

@@ -5,14 +5,15 @@ import struct
 
 import pytest
 
-from drivers.cia301 import (
+from hil.emulators.drive.sdo import SdoServer
+from hil.protocols.cia301 import (
     ABORT_COMMAND,
     ABORT_NO_OBJECT,
     ABORT_READ_ONLY,
     ABORT_TOGGLE,
     SDO_ABORT,
+    SdoAbortError,
 )
-from emulators.drive.sdo import SdoAbortError, SdoServer
 
 
 class Objects:

@@ -8,9 +8,9 @@ import time
 import can
 import pytest
 
-from emulators.drive.node import DriveNode
-from emulators.socketcand_server import SocketcandServer, format_frame, parse_send
-from hil.core.errors import HilError
+from hil.emulators.drive.node import DriveNode
+from hil.emulators.socketcand_server import SocketcandServer, format_frame, parse_send
+from hil.errors import HilError
 
 
 @pytest.fixture

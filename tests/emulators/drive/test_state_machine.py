@@ -6,8 +6,8 @@ is checked against canopen's ``State402`` masks (and again by SDO). Lockstep: de
 import pytest
 from canopen.profiles.p402 import State402
 
-from drivers import cia402
-from drivers.cia402 import FAULT, FAULT_REACTION_ACTIVE, state_of
+from hil.protocols import cia402
+from hil.protocols.cia402 import FAULT, FAULT_REACTION_ACTIVE, state_of
 from hil.servo.config import load_drive_config
 from hil.servo.rig import open_drive
 

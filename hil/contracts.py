@@ -1,5 +1,5 @@
 """Value types and contracts shared by every layer: the only part of hil (with
-:mod:`hil.core.errors`) that drivers, emulators and controllers may import.
+:mod:`hil.errors`) that drivers, emulators and controllers may import.
 
 * :class:`TimeSource` - what a device needs of the loop's clock (session time in ns).
 * :data:`EventSink` - where a device reports what happened (``Session.event``'s signature).
@@ -16,7 +16,7 @@ import contextlib
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from hil.core.errors import ConfigError, HilError
+from hil.errors import ConfigError, HilError
 
 
 class TimeSource(Protocol):
@@ -81,7 +81,7 @@ class Device(abc.ABC):
     Lifecycle, each step explicit (ros2_control's configure/activate/deactivate/error):
 
     * ``open()`` - reach the device and leave it in its safe state (relays at their safe
-      level, drive disabled). Raises a :class:`~hil.core.errors.HilError` naming the device
+      level, drive disabled). Raises a :class:`~hil.errors.HilError` naming the device
       when it cannot.
     * ``configure()`` - write the settings the run needs (PDO maps, periods, limits).
     * ``enable()`` - make it follow commands (drive: OPERATION ENABLED). Default: nothing to do.

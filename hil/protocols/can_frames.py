@@ -2,8 +2,8 @@
 
 CiA 301 traffic is 11-bit data frames only, so a frame needs no more than its identifier and
 its bytes. A tuple costs a fraction of a :class:`can.Message` to build and to read. Buses that
-carry such frames natively (:class:`~drivers.socketcand_bus.SocketcandBus`, the in-process
-:class:`~emulators.direct_bus.DirectBus`) have ``send_frames`` / ``recv_frame``; any other
+carry such frames natively (:class:`~hil.drivers.socketcand_bus.SocketcandBus`, the in-process
+:class:`~hil.emulators.direct_bus.DirectBus`) have ``send_frames`` / ``recv_frame``; any other
 python-can bus gets them through :class:`MessageFrames`, which converts at the edge and drops
 error, remote, 29-bit and FD frames: no CiA 301 object travels in them.
 """

@@ -2,9 +2,9 @@
 chart's transitions, modes of operation and the default PDO map.
 
 Written once, in the style of ``canopen.profiles.p402``, and read by the master
-(:mod:`drivers.canopen`), the emulated drive (:mod:`emulators.drive.node`, whose state machine
-walks :data:`TRANSITIONS`) and the tests (``tests/drivers/test_cia402.py`` checks the tables
-against canopen's ``State402``). Transition numbers are those of the CiA 402 state chart.
+(:mod:`hil.drivers.canopen`), the emulated drive (:mod:`hil.emulators.drive.node`, whose state
+machine walks :data:`TRANSITIONS`) and the tests (``tests/protocols/test_cia402.py`` checks the
+tables against canopen's ``State402``). Transition numbers are those of the CiA 402 state chart.
 """
 
 from __future__ import annotations

@@ -5,8 +5,8 @@ import uuid
 
 import can
 
-from drivers.can_frames import FrameBus, MessageFrames, frames_of
-from emulators.direct_bus import DirectChannel
+from hil.emulators.direct_bus import DirectChannel
+from hil.protocols.can_frames import FrameBus, MessageFrames, frames_of
 
 
 def virtual_pair():

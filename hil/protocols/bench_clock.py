@@ -1,6 +1,6 @@
 """hil's bench emulator on the wire: how a lockstep master tells it from a real bench, and how
 it gives the emulator its time. Tables only, read by both sides: the master
-(:mod:`drivers.bench.emulator_clock`) and the emulator (:mod:`emulators.bench.timekeeper`).
+(:mod:`hil.drivers.bench.emulator_clock`) and the emulator (:mod:`hil.emulators.bench.timekeeper`).
 
 * Identification: Modbus "Read Device Identification" (FC 0x2B, MEI type 0x0E, the basic
   objects) of the relay module's unit. hil's emulator answers VendorName ``hil`` and

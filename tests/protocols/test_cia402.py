@@ -1,10 +1,10 @@
-"""The CiA 402 tables (drivers/cia402.py) against an independent statement of the standard:
+"""The CiA 402 tables (hil/protocols/cia402.py) against an independent statement of the standard:
 canopen's ``State402`` and ``OperationMode`` (canopen/profiles/p402.py)."""
 
 import pytest
 from canopen.profiles.p402 import OperationMode, State402
 
-from drivers import cia402
+from hil.protocols import cia402
 
 
 def test_statusword_masks_and_values_are_canopens_for_every_state():

@@ -1,9 +1,9 @@
-"""The shared contracts of hil.core.types: the link watchdog and the device lifecycle."""
+"""The shared contracts of hil.contracts: the link watchdog and the device lifecycle."""
 
 import pytest
 
-from hil.core.errors import ConfigError, HilError
-from hil.core.types import Device, LinkWatchdog
+from hil.contracts import Device, LinkWatchdog
+from hil.errors import ConfigError, HilError
 
 
 def test_watchdog_declares_the_link_lost_once_after_limit_failures_in_a_row():

@@ -5,6 +5,8 @@ node, ``hil drive scan`` and the tests alike; no raw CiA 301 number lives anywhe
 
 from __future__ import annotations
 
+from hil.errors import HilError
+
 # -- COB-IDs of the predefined connection set (11-bit): function code + node id -------------
 NMT_COB_ID = 0x000
 SYNC_COB_ID = 0x080
@@ -86,6 +88,16 @@ SDO_ABORT_NAMES = {
 def abort_text(code: int) -> str:
     """``"0x06020000 object does not exist in the object dictionary"``."""
     return f"0x{code:08X} {SDO_ABORT_NAMES.get(code, 'unknown abort code')}"
+
+
+class SdoAbortError(HilError):
+    """An SDO transfer aborted with the CiA 301 abort ``code``: raised by a server to refuse a
+    request (the emulated drive answers with it), and by a client that received an abort (the
+    master; ``context`` names the drive and the object)."""
+
+    def __init__(self, code: int, context: str = "") -> None:
+        super().__init__(f"{context}: {abort_text(code)}" if context else abort_text(code))
+        self.code = code
 
 
 # -- EMCY (CiA 301 7.2.7, codes of CiA 301 table 21 and CiA 402) and the error register ----
