@@ -25,7 +25,6 @@ from hil.core.run import run_experiment
 from hil.drivers.canopen import CanDriveMaster, CanLink, DriveMasterConfig
 from hil.drivers.canopen.axes import AxisBus, AxisGroup
 from hil.emulators.drive.runners import LockstepDrive
-from hil.servo.axes_run import AxesExperiment, AxisSpec
 from hil.servo.rig import open_drive
 from hil.servo.run import ServoExperiment, ServoRunOptions
 
@@ -64,11 +63,10 @@ def single_cycle_us(cycles: int) -> float:
 def run_tick_us(axes: int, seconds: float, tmp: Path) -> float:
     """A whole lockstep run, fully recorded, per tick [us]: one axis as ``hil servo run``
     runs it, several as ``--axes`` does."""
+    named = ",".join(f"a{i}={i}" for i in range(1, axes + 1)) if axes > 1 else None
     options = ServoRunOptions(controller="pid", duration_s=seconds, out=str(tmp / "run.mcap"),
-                              quiet=True)
-    experiment = ServoExperiment(options) if axes == 1 else AxesExperiment(
-        options, tuple(AxisSpec(f"a{i}", i) for i in range(1, axes + 1)))
-    kpis = run_experiment(experiment).kpis
+                              quiet=True, axes=named)
+    kpis = run_experiment(ServoExperiment(options)).kpis
     return 1e6 * seconds / float(kpis["realtime_factor"]) / (seconds / 500e-6)
 
 

@@ -75,11 +75,10 @@ def run_servo(controller: Controller, params: Mapping[str, Any] | None = None, *
     ``options`` are the other fields of :class:`hil.servo.run.ServoRunOptions` (``out``,
     ``umax``, ``settle_s``, ``drive_config``, ``controller_budget_s``, ``axes="x=1,y=2"``
     for several axes...)."""
-    from hil.servo.axes_run import run_any as run
-    from hil.servo.run import ServoRunOptions
+    from hil.servo.run import ServoRunOptions, run_servo
 
     _check_options(options, {f.name for f in fields(ServoRunOptions)}, "run_servo")
-    return run(ServoRunOptions(controller=controller, params=dict(params or {}), drive=drive,
+    return run_servo(ServoRunOptions(controller=controller, params=dict(params or {}), drive=drive,
                                reference=reference, duration_s=duration_s,
                                limits=_limits(limits), **options)).kpis
 

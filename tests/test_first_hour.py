@@ -176,7 +176,7 @@ def test_runs_that_build_no_estimator_import_no_scipy_stats():
     second of every process start), scipy.linalg, HiGHS and daqp (half a second together)
     only when a controller needs them: a PID servo run or a baseline bench run does not wait
     for them."""
-    assert imported("import hil.servo.run, hil.servo.axes_run, hil.bench.run",
+    assert imported("import hil.servo.run, hil.bench.run",
                     "filterpy", "scipy.stats", "scipy.signal", "scipy.linalg", "highspy",
                     "daqp", "cvxpy") == []
     # every recorded run starts a writer process: it imports numpy only for an array

@@ -184,7 +184,7 @@ def print_config(args: argparse.Namespace) -> int:
 
 
 def run_command(args: argparse.Namespace) -> int:
-    from hil.servo.axes_run import run_any
+    from hil.servo.run import run_servo
 
     if args.print_config:
         return print_config(args)
@@ -193,7 +193,7 @@ def run_command(args: argparse.Namespace) -> int:
         several = "axes" in kpis
         return format_axes_run(options, kpis) if several else format_run(options, kpis)
 
-    return finish(args, "hil servo run", lambda: run_options(args), run_any, summary)
+    return finish(args, "hil servo run", lambda: run_options(args), run_servo, summary)
 
 
 def format_axes_run(config: Any, kpis: dict[str, Any]) -> str:

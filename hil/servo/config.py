@@ -15,7 +15,7 @@ import math
 import os
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from typing import Any
 
@@ -43,19 +43,41 @@ EMULATED = "emulated"
 
 @dataclass(frozen=True)
 class AxisSpec:
-    """One axis of a run on several axes: its name (topics, KPIs), its drive's node id, and
-    its own current limit (None: the master's; the smaller of the two holds)."""
+    """One axis of a run: its name (topics, KPIs), its drive's node id, its own current limit
+    (None: the master's; the smaller of the two holds), its bus, its drive's EDS (None: the
+    master's) and its own safety limits (:func:`stricter_safety`: the stricter of them and the
+    run's ``[safety]`` hold)."""
 
     name: str
     node: int
     current_limit_ma: float | None = None
     bus: str = ""  # its bus's URL ("": the run's, --drive or [bus])
+    eds: str | None = None
+    safety: Mapping[str, Any] = field(default_factory=dict)  # [axis.safety] keys given
 
     def master(self, master: DriveMasterConfig) -> DriveMasterConfig:
-        """``master`` for this axis' drive: its node id, its current limit if tighter."""
+        """``master`` for this axis' drive: its node id, its current limit if tighter, its
+        EDS if it has one."""
         limit = master.current_limit_ma if self.current_limit_ma is None \
             else min(master.current_limit_ma, self.current_limit_ma)
-        return replace(master, node_id=self.node, current_limit_ma=limit)
+        return replace(master, node_id=self.node, current_limit_ma=limit,
+                       eds=self.eds or master.eds)
+
+
+#: how each ``[safety]`` key is made stricter: the smaller or the larger of two values
+STRICTER = {"following_error_deg": min, "following_error_ms": min, "position_min_deg": max,
+            "position_max_deg": min, "velocity_max_deg_s": min, "stale_share_max": min,
+            "stale_window_ms": min}
+
+
+def stricter_safety(run: ServoSafety, axis: Mapping[str, Any]) -> ServoSafety:
+    """The run's ``[safety]`` with an axis' own limits where they are stricter: an axis can
+    tighten a limit for itself, never loosen one (``enabled`` holds when either says so)."""
+    values = {key: pick(getattr(run, key), axis[key])
+              for key, pick in STRICTER.items() if key in axis}
+    if "enabled" in axis:
+        values["enabled"] = run.enabled or bool(axis["enabled"])
+    return replace(run, **values)
 
 
 def check_axes(axes: tuple[AxisSpec, ...], where: str) -> tuple[AxisSpec, ...]:
@@ -180,8 +202,9 @@ def parse_drive_config(layered: Layered, source: str, text: str = "") -> DriveCo
 
 
 def _axes(root: Table) -> tuple[AxisSpec, ...]:
-    """``[[axis]]`` tables: ``name`` and ``node`` each, optionally ``current_limit_mA`` and
-    ``bus`` (its bus's URL; "": the run's)."""
+    """``[[axis]]`` tables: ``name`` and ``node`` each, optionally ``current_limit_mA``,
+    ``bus`` (its bus's URL; "": the run's), ``eds`` (its drive's EDS or DCF) and a ``safety``
+    table (any keys of ``[safety]``, checked as they are)."""
     tables = root.value("axis", [], kind="array of tables")
     if not isinstance(tables, list):
         raise root.error("axis", "must be an array of tables ([[axis]])")
@@ -193,9 +216,19 @@ def _axes(root: Table) -> tuple[AxisSpec, ...]:
             raise table.error("name", f"must be a lower-case name (a-z, 0-9, _), got {name!r}")
         axes.append(AxisSpec(name, table.integer("node", at_least=1, at_most=127),
                              table.number("current_limit_mA", None, above=0, at_most=32_767),
-                             _axis_bus(table)))
+                             _axis_bus(table), table.file_path("eds", "") or None,
+                             _axis_safety(table.table("safety"))))
         table.done()
     return check_axes(tuple(axes), f"{root.source}: [[axis]]") if axes else ()
+
+
+def _axis_safety(s: Table) -> dict[str, Any]:
+    """An axis' ``safety`` table: the keys it gives, each checked as ``[safety]`` checks it."""
+    given = s.names()
+    # checked whole, the run's defaults filling what the axis leaves out (not settings of it)
+    full = Table({**vars(ServoSafety()), **s.data}, s.source, s.path, [], s.layered)
+    checked = vars(_safety(full))
+    return {key: checked[key] for key in given}
 
 
 def _axis_bus(table: Table) -> str:

@@ -11,14 +11,17 @@ wired in lockstep (the driver knows nothing of the emulator).
 * no URL: the ``[bus]`` table of drive.toml;
 * installed packages add schemes through the ``hil.drive_devices`` entry points.
 
-A drive factory is called as ``factory(url, drive_config, on_event=sink, trace=trace)`` and
-returns a :class:`~hil.drivers.canopen.master.CanDriveMaster` (not started). ``trace`` is a
-``--can-log`` file (:class:`~hil.drivers.canopen.can_log.CanLog`) or None.
+A drive factory opens the drives of the run's axes on one bus: it is called as
+``factory(url, drive_config, axes, on_event=sink, trace=trace)`` (``axes``: the
+:class:`~hil.servo.config.AxisSpec` of each drive on that bus, one or several) and returns a
+:class:`~hil.servo.drives.BusDrives` (one master per axis, not started; one axis' master holds
+what the factory opened, as its ``closers``). ``trace`` is a ``--can-log`` file
+(:class:`~hil.drivers.canopen.can_log.CanLog`), given only when there is one.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 import can
@@ -26,20 +29,25 @@ from can.interfaces import VALID_INTERFACES
 
 from hil.contracts import EventSink, no_event
 from hil.core.registry import Factory, SchemeRegistry, scheme_of
+from hil.drivers.canopen.axes import AxisBus, AxisGroup
 from hil.drivers.canopen.bus import URL_FORMS, open_can_bus, parse_can_url
 from hil.drivers.canopen.can_log import CanLog
 from hil.drivers.canopen.clocks import SyncClock
 from hil.drivers.canopen.config import DriveMasterConfig
 from hil.drivers.canopen.link import CanLink, FrameTrace
 from hil.drivers.canopen.master import CanDriveMaster
+from hil.drivers.canopen.state import MasterClock
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.runners import LockstepDrive
 from hil.emulators.drive.timebase import TIME_BASE
 from hil.errors import ConfigError
 from hil.protocols.cia301 import SdoAbortError
-from hil.servo.config import EMULATED, DriveConfig, load_drive_config
+from hil.servo.config import EMULATED, AxisSpec, DriveConfig, load_drive_config
+from hil.servo.drives import BusDrives
 
 EXPECTED = f"expected emulated, {URL_FORMS}"
+#: the name of the one axis of a run that names none (its topics stay /drive/...)
+LONE_AXIS = "drive"
 
 
 class EmulatedDrive(CanDriveMaster):
@@ -56,24 +64,53 @@ class EmulatedDrive(CanDriveMaster):
                          closers=(self.emulator.close, *closers), url=EMULATED)
 
 
-def emulated_drive(url: str, drive: DriveConfig, *, on_event: EventSink = no_event,
-                   trace: FrameTrace | None = None) -> EmulatedDrive:
-    """``emulated``: the drive emulator in lockstep, with drive.toml's ``[emulator]``."""
-    return EmulatedDrive(drive.master, drive.emulator, on_event=on_event, trace=trace,
-                         closers=_closing(trace))
+def emulated_drives(url: str, drive: DriveConfig, axes: Sequence[AxisSpec], *,
+                    on_event: EventSink = no_event,
+                    trace: FrameTrace | None = None) -> BusDrives:
+    """``emulated``: the drive emulator in lockstep (one node per axis), with drive.toml's
+    ``[emulator]``; it is the masters' clock."""
+    if len(axes) == 1:
+        master = EmulatedDrive(axes[0].master(drive.master), drive.emulator,
+                               on_event=on_event, trace=trace, closers=_closing(trace))
+        return BusDrives(url, [master])
+    emulator = LockstepDrive(drive.emulator, node_ids=[axis.node for axis in axes])
+    try:
+        return _grouped(url, CanLink(emulator.master_bus, trace=trace), drive, axes, on_event,
+                        clock=emulator, closers=(emulator.close, *_closing(trace)))
+    except BaseException:
+        emulator.close()
+        raise
 
 
-def can_drive(url: str, drive: DriveConfig, *, on_event: EventSink = no_event,
-              trace: FrameTrace | None = None,
-              closers: tuple[Callable[[], None], ...] = ()) -> CanDriveMaster:
+def can_drives(url: str, drive: DriveConfig, axes: Sequence[AxisSpec], *,
+               on_event: EventSink = no_event, trace: FrameTrace | None = None,
+               closers: tuple[Callable[[], None], ...] = ()) -> BusDrives:
     """``socketcand://...`` and every python-can ``INTERFACE://CHANNEL[?k=v]``."""
     spec = parse_can_url(url, drive.master.channel)
 
     def reopen() -> can.BusABC:
         return open_can_bus(spec, drive.master.bitrate)
 
-    return CanDriveMaster(CanLink(reopen(), reopen=reopen, trace=trace), drive.master,
-                          on_event=on_event, url=url, closers=(*closers, *_closing(trace)))
+    closers = (*closers, *_closing(trace))
+    if len(axes) == 1:
+        master = CanDriveMaster(CanLink(reopen(), reopen=reopen, trace=trace),
+                                axes[0].master(drive.master), on_event=on_event, url=url,
+                                closers=closers)
+        return BusDrives(url, [master])
+    return _grouped(url, CanLink(reopen(), trace=trace), drive, axes, on_event,
+                    closers=closers)
+
+
+def _grouped(url: str, link: CanLink, drive: DriveConfig, axes: Sequence[AxisSpec],
+             on_event: EventSink, *, clock: MasterClock | None = None,
+             closers: tuple[Callable[[], None], ...] = ()) -> BusDrives:
+    """Several drives on one link: an :class:`AxisBus`, one master per axis on it."""
+    nodes = [axis.node for axis in axes]
+    axis_bus = AxisBus(link, nodes, master_heartbeat_id=drive.master.heartbeat_id)
+    masters = [CanDriveMaster(axis_bus.node_link(axis.node), axis.master(drive.master),
+                              on_event=on_event, clock=clock, url=f"{url} axis {axis.name}")
+               for axis in axes]
+    return BusDrives(url, masters, AxisGroup(axis_bus, masters), closers)
 
 
 def _closing(trace: FrameTrace | None) -> tuple[Callable[[], None], ...]:
@@ -82,30 +119,28 @@ def _closing(trace: FrameTrace | None) -> tuple[Callable[[], None], ...]:
 
 
 def _python_can_interface(scheme: str) -> Factory | None:
-    return can_drive if scheme in VALID_INTERFACES else None
+    return can_drives if scheme in VALID_INTERFACES else None
 
 
 DRIVES = SchemeRegistry(
     "drive",
-    {EMULATED: ("hil.servo.rig", "emulated_drive"),
-     "socketcand": ("hil.servo.rig", "can_drive")},
+    {EMULATED: ("hil.servo.rig", "emulated_drives"),
+     "socketcand": ("hil.servo.rig", "can_drives")},
     "hil.drive_devices",
     fallback=_python_can_interface,
 )
 
 
-def open_drive(url: str | None = None, drive: DriveConfig | None = None, *,
-               on_event: EventSink = no_event, realtime: bool = False,
-               can_log: str | None = None) -> CanDriveMaster:
-    """A master (not started) for the drive at ``url`` (None: drive.toml's ``[bus]``), with
-    ``drive`` (default: the packaged drive.toml). An unknown scheme is a ConfigError naming
-    the forms; ``can_log`` writes every frame to that file (python-can's formats).
+def open_drives(url: str, drive: DriveConfig, axes: Sequence[AxisSpec], *,
+                on_event: EventSink = no_event, realtime: bool = False,
+                can_log: str | None = None) -> BusDrives:
+    """The drives of ``axes`` on the bus at ``url`` (masters not started), through
+    :data:`DRIVES`. An unknown scheme is a ConfigError naming the forms; ``can_log`` writes
+    every frame of the bus to that file (python-can's formats).
 
-    ``emulated`` with ``realtime``: the drive emulator in a process of its own on loopback, as
-    the hardware would be (the loop process then measures only its own cost), reading the same
-    config file; the process stops when the master disconnects."""
-    drive = drive or load_drive_config()
-    url = url or drive.bus_url
+    ``emulated`` with ``realtime``: the drive emulator (one node per axis) in a process of its
+    own on loopback, as the hardware would be (the loop process then measures only its own
+    cost), reading the run's effective tables; the process stops when the bus is released."""
     try:
         factory = DRIVES.factory(url)
     except ConfigError as exc:
@@ -113,35 +148,58 @@ def open_drive(url: str | None = None, drive: DriveConfig | None = None, *,
     trace = CanLog(can_log, drive.master.channel) if can_log else None
     try:
         if realtime and scheme_of(url) == EMULATED:
-            return emulator_process_drive(drive, on_event, trace)
+            return emulator_process_drives(drive, axes, on_event, trace)
         # a plug-in factory that writes no --can-log is not asked to
         extra = {"trace": trace} if trace is not None else {}
-        master: CanDriveMaster = factory(url, drive, on_event=on_event, **extra)
-        return master
+        drives: BusDrives = factory(url, drive, tuple(axes), on_event=on_event, **extra)
+        return drives
     except BaseException:
         if trace is not None:
             trace.close()
         raise
 
 
-def emulator_process_drive(drive: DriveConfig, on_event: EventSink,
-                           trace: FrameTrace | None) -> CanDriveMaster:
-    """A master on socketcand to ``hil emulate drive --harden`` started for it (node id of the
-    master)."""
+def open_drive(url: str | None = None, drive: DriveConfig | None = None, *,
+               on_event: EventSink = no_event, realtime: bool = False,
+               can_log: str | None = None) -> CanDriveMaster:
+    """A master (not started) for the one drive at ``url`` (None: drive.toml's ``[bus]``), with
+    ``drive`` (default: the packaged drive.toml): :func:`open_drives` for the axis of
+    ``[master]``; closing the master releases everything it was opened with."""
+    drive = drive or load_drive_config()
+    bus = open_drives(url or drive.bus_url, drive, [lone_axis(drive)], on_event=on_event,
+                      realtime=realtime, can_log=can_log)
+    if len(bus.masters) != 1 or bus.closers:
+        bus.disconnect()
+        raise ConfigError(f"the drive factory of {url or drive.bus_url} must give one axis one "
+                          "master that holds what it opened (its closers), got "
+                          f"{len(bus.masters)} master(s) and {len(bus.closers)} closer(s)")
+    return bus.masters[0]
+
+
+def lone_axis(drive: DriveConfig) -> AxisSpec:
+    """The one axis of a run that names none: ``[master]``'s node."""
+    return AxisSpec(LONE_AXIS, drive.master.node_id)
+
+
+def emulator_process_drives(drive: DriveConfig, axes: Sequence[AxisSpec], on_event: EventSink,
+                            trace: FrameTrace | None) -> BusDrives:
+    """The drives of ``axes`` on socketcand to ``hil emulate drive --harden`` started for
+    them (one node per axis)."""
     from hil.emulator_process import start_drive_emulator
 
     # the run's effective tables, every layer in: what the run was configured with; hardened
     # as the loop is, so that the rig's side is not what runs late (its steps: the session's
     # realtime.emulator metadata)
-    process = start_drive_emulator(node=drive.master.node_id, tables=drive.data, harden=True)
+    process = start_drive_emulator(node=[axis.node for axis in axes], tables=drive.data,
+                                   harden=True)
     granted = ", ".join(f"{step} {outcome.split(':')[0]}"
                         for step, outcome in process.hardening.items())
     on_event("emulator.process", f"drive emulator in process {process.pid} at {process.url} "
              f"(real-time: {granted or 'not reported'})", source="drive", pid=process.pid,
              url=process.url, hardening=process.hardening)
     try:
-        return can_drive(process.url, drive, on_event=on_event, trace=trace,
-                         closers=(process.stop,))
+        return can_drives(process.url, drive, axes, on_event=on_event, trace=trace,
+                          closers=(process.stop,))
     except BaseException:
         process.stop()
         raise

@@ -1,17 +1,23 @@
 """The servo scenario (``hil servo run``): a controller closing the loop through the CAN drive
-link, as the run pipeline (:mod:`hil.core.run`) drives it.
+link on one axis or several, as the run pipeline (:mod:`hil.core.run`) drives it.
 
-:class:`ServoExperiment` opens the drive (the emulator in lockstep by default), builds the
-controller, enables the drive and runs one :class:`~hil.servo.task.ServoTask` at the base
-period T = ``master.cycle_period_us`` (500 us by default, the published axis model's; the
-controller must run at it). Recorded per tick: ``/drive/command``
-(reference, command, error, controller compute time, solver path), ``/drive/feedback`` (what
-the drive reported) and ``/mpc/prediction``; faults and fallbacks go to ``/events``.
+One pipeline for every run: :class:`ServoExperiment` takes the run's axes (``--axes``,
+drive.toml's ``[[axis]]``, or, naming none, the one axis of ``[master]``), opens each bus's
+drives through the :data:`~hil.servo.rig.DRIVES` registry (the emulator in lockstep by
+default), builds a controller per axis, enables the drives and runs one
+:class:`~hil.servo.task.ServoTask` per axis at the base period T = ``master.cycle_period_us``
+(500 us by default, the published axis model's; the controller must run at it). Recorded per
+tick and axis: the command (reference, command, error, controller compute time, solver path),
+the feedback (what the drive reported) and the prediction; faults and fallbacks go to
+``/events``. The one axis of a run that names none records ``/drive/command``,
+``/drive/feedback`` and ``/mpc/prediction``; named axes record ``/axis/NAME/...``, and the bus
+task (:class:`~hil.servo.axes.BusCycle`) ends every bus's cycle and records a path's contour.
 
 KPIs (:mod:`hil.servo.tracking`, the ``--json`` document): the tracking error after
 ``settle_s``, the controller's step time, and ``deadline_misses``, which counts, in real
 time, ticks the loop skipped plus ticks whose command left after the next tick's deadline
-(always 0 in lockstep, where slow compute costs no virtual time).
+(always 0 in lockstep, where slow compute costs no virtual time). Named axes nest theirs
+under ``axes.NAME``.
 """
 
 from __future__ import annotations
@@ -23,11 +29,19 @@ from typing import Any, cast
 from hil.controllers.base import (
     CountsFallbacks,
     ServoController,
+    cycle_periods_of,
     horizons_of,
     position_input_of,
     solver_of,
 )
-from hil.controllers.servo.references import PlacedReference, Reference, Scenario, parse_scenario
+from hil.controllers.servo.references import (
+    CircleAxis,
+    PlacedReference,
+    Reference,
+    Scenario,
+    parse_circle,
+    parse_scenario,
+)
 from hil.core.clock import Clock, RealtimeClock, SimClock
 from hil.core.loop import FixedRateLoop
 from hil.core.notice import warn
@@ -49,12 +63,15 @@ from hil.core.run import (
 from hil.core.session import Session
 from hil.core.settings import settings_json
 from hil.core.verdict import SignalWatch, split_limits
+from hil.drivers.can_bus_time import BusPlan
 from hil.drivers.canopen import CanDriveMaster, SdoAbortError
 from hil.errors import HilError, SafetyStopError, UsageError
+from hil.servo.axes import AxisShare, BusCycle, SharedStep, parse_axes, plan_buses
 from hil.servo.builtin import ServoContext
-from hil.servo.config import EMULATED
+from hil.servo.config import EMULATED, stricter_safety
+from hil.servo.drives import RunDrives
 from hil.servo.options import ServoRunOptions
-from hil.servo.rig import open_drive, share_lockstep_time
+from hil.servo.rig import lone_axis, open_drives, share_lockstep_time
 from hil.servo.safety import SafetyMonitor
 from hil.servo.settings import check_controller_period, resolve_servo
 from hil.servo.task import (
@@ -70,11 +87,14 @@ STEP_BUDGET_S = 0.25
 # per-tick signals a --limit may name (magnitudes, except the position)
 SIGNALS = ("abs_error_deg", "abs_command_mA", "abs_velocity_deg_s", "position_deg")
 
-#: the KPIs of ``hil servo run`` a limit may name (groups by their name)
+#: the KPIs of ``hil servo run`` a limit may name (groups by their name); with named axes,
+#: :data:`AXES_KPI_NAMES`
 KPI_NAMES = ("max_error_deg", "max_error_pct", "rms_error_deg", "cumulative_error_deg",
              "step_us", "peak_current_mA", "peak_requested_mA", "deadline_misses", "ticks",
              "stale_feedback", "clamped_commands", "wall_s", "realtime_factor", "solver_paths",
              "empc_fallbacks", "faults")
+AXES_KPI_NAMES = ("axes", "contour", "ticks", "sync_cycles", "wall_s", "realtime_factor",
+                  "faults")
 
 def make_controller(options: ServoRunOptions, scenario: Scenario, session: Any = None,
                     params: Mapping[str, Any] | None = None,
@@ -108,58 +128,82 @@ def make_controller(options: ServoRunOptions, scenario: Scenario, session: Any =
 
 def run_servo(options: ServoRunOptions,
               on_started: Callable[[CanDriveMaster], None] | None = None) -> RunResult:
-    """Run one servo session on one axis; ``on_started(master)`` is called once the drive is
-    enabled. (:func:`hil.servo.axes_run.run_any`, what ``hil servo run`` and
-    :func:`hil.api.run_servo` call, runs several axes too.)
+    """Run one servo session, on one axis or several; ``on_started(master)`` is called with
+    the first axis' master once the drives are enabled.
 
-    Drive errors (fault, link lost) stop the loop; the drive is put in its safe state, the
+    Drive errors (fault, link lost) stop the loop; the drives are put in their safe state, the
     session file is finished with the KPIs so far, and the error is raised with its path."""
-    if options.axes or resolve_servo(options).drive.axes:
-        raise UsageError("several axes (--axes or [[axis]]) run through "
-                         "hil.servo.axes_run.run_any (as hil servo run and hil.api.run_servo "
-                         "do), not run_servo")
     return run_experiment(ServoExperiment(options, on_started))
 
 
-class ServoExperiment(Experiment):
-    """``hil servo run`` as the run pipeline drives it."""
+def can_log_path(path: str | None, bus: int) -> str | None:
+    """The ``--can-log`` file of the run's ``bus``-th bus (from 0): the path itself for the
+    first, ``STEM-busN.SUFFIX`` for the N-th after it."""
+    if path is None or bus == 0:
+        return path
+    stem, dot, suffix = path.rpartition(".")
+    return f"{stem}-bus{bus + 1}.{suffix}" if dot and "/" not in suffix else \
+        f"{path}-bus{bus + 1}"
 
-    kpi_names: tuple[str, ...] = KPI_NAMES  # what a --limit may name
+
+class ServoExperiment(Experiment):
+    """``hil servo run`` as the run pipeline drives it, on one axis or several. A ``--limit``
+    names a KPI of the run; with named axes, of an axis (``axes.x.max_error_deg``), of the path
+    (``contour.max_contour_error_deg``) or of the run; a per-tick signal limit holds on every
+    axis."""
 
     def __init__(self, options: ServoRunOptions,
                  on_started: Callable[[CanDriveMaster], None] | None = None) -> None:
         self.options = options
         self.on_started = on_started
-        self.master: CanDriveMaster | None = None
-        self.task: ServoTask | None = None
-        self.umax_ma: float | None = None  # the controller's bound, once the drive is open
-
-    def parse_reference(self) -> Scenario:
-        """The run's scenario, from ``--reference``."""
-        return parse_scenario(self.options.reference)
+        self.drives = RunDrives()
+        self.masters: list[CanDriveMaster] = []  # one per axis, in the run's order
+        self.tasks: list[ServoTask] = []
+        self.bus_task: BusCycle | None = None
+        self.umax_ma: float | None = None  # the first axis' bound, once its drive is open
 
     def plan(self) -> RunPlan:
         options = self.options
-        self.scenario = self.parse_reference()
         self.settings = resolve_servo(options)
         self.drive = drive = self.settings.drive
         self.drive_url = self.settings.drive_url
+        named = parse_axes(options.axes) if options.axes else drive.axes
+        self.lone = not named
+        self.axes = named or (lone_axis(drive),)
+        self.scenarios, self.radius = self._scenarios()
+        self.scenario = self.scenarios[0]
         self.params = {**drive.run.params, **options.params}
+        if not self.lone:
+            self._check_axis_params()
         # checked before anything is opened: a spec that cannot load leaves no file behind
         self.factory, _ = controller_factory(options.controller, self.scenario.reference,
                                              self.params, method="step", application="servo")
         check_controller_period(self.factory, options.label, drive)
         self.period_s = drive.master.cycle_period_s
-        kpi_limits, signal_limits = split_limits([*drive.run.limits, *options.limits],
-                                                 SIGNALS, self.kpi_names)
+        kpi_limits, signal_limits = split_limits(
+            [*drive.run.limits, *options.limits], SIGNALS,
+            KPI_NAMES if self.lone else AXES_KPI_NAMES)
         self.watch = SignalWatch(signal_limits)
+        self.buses = plan_buses(self.axes, self.drive_url, drive)
+        for bus in self.buses:
+            if not bus.plan.fits and bus.url != EMULATED:  # the in-process bus has no bitrate
+                raise UsageError(f"the bus plan does not fit ({bus.url}): "
+                                 f"{bus.plan.problem(self._period_note(bus.plan))} (see "
+                                 f"'hil drive plan --axes {len(bus.axes)}')")
+        self.bus_of = {axis.name: bus.url for bus in self.buses for axis in bus.axes}
         self.out = options.out or default_session_path(
             "servo", controller_short_name(options.label))
         run_info = options.record() | {
             "controller": options.label, "params": self.params,
             "limits": [str(lim) for lim in (*kpi_limits, *signal_limits)]}
+        if not self.lone:
+            run_info["axes"] = [{"name": a.name, "node": a.node, "bus": self.bus_of[a.name],
+                                 "eds": a.master(drive.master).eds,
+                                 "safety": vars(stricter_safety(drive.safety, a.safety))}
+                                for a in self.axes]
+        label = options.label if self.lone else f"{options.label} on {len(self.axes)} axes"
         return RunPlan(
-            kind="servo", label=options.label, session_path=self.out,
+            kind="servo", label=label, session_path=self.out,
             clock=RealtimeClock() if options.realtime else SimClock(),
             base_period_s=self.period_s, duration_s=options.duration_s,
             kpi_limits=tuple(kpi_limits), watch=self.watch,
@@ -169,75 +213,169 @@ class ServoExperiment(Experiment):
             config_name="drive.toml", recording=options.recording,
             devices=self._devices(), quiet=options.quiet)
 
+    def _scenarios(self) -> tuple[list[Scenario], float | None]:
+        """Every axis' scenario (a circle's axis each, or ``--reference`` for all) and the
+        circle's radius (None: no path)."""
+        options = self.options
+        circle = parse_circle(options.reference)
+        if circle is None:
+            return [parse_scenario(options.reference)] * len(self.axes), None
+        if len(self.axes) != 2:
+            raise UsageError(f"--reference {options.reference}: a circle needs two axes, "
+                             f"{'--axes names' if options.axes else 'the run has'} "
+                             f"{len(self.axes)}")
+        return [Scenario(CircleAxis(circle[0], circle[1], i)) for i in range(2)], circle[0]
+
+    def _check_axis_params(self) -> None:
+        names = [axis.name for axis in self.axes]
+        for key in self.options.params:
+            axis, dot, _ = key.partition(".")
+            if dot and axis not in names:
+                raise UsageError(f"--param {key}: no axis {axis!r} (the axes: "
+                                 f"{', '.join(names)}); NAME.KEY=VALUE sets KEY for axis NAME")
+
+    def _period_note(self, plan: BusPlan) -> str:
+        """Which longer period the run's controller runs at (when its periods can be listed):
+        the shortest the plan fits."""
+        periods = cycle_periods_of(self.factory)
+        if not isinstance(periods, (range, tuple, list, set, frozenset)):
+            return ""
+        longer = [p for p in sorted(periods) if p >= plan.min_period_us]
+        label = self.options.label
+        return (f"; controller {label!r} runs at {longer[0]} us" if longer else
+                f"; controller {label!r} runs at no period that long")
+
     def _devices(self) -> tuple[tuple[str, str], ...]:
-        """The drive's bus, locked for the run (an emulated drive is the run's own, and
-        python-can's ``virtual`` bus lives inside one process)."""
-        url = self.drive_url
-        return () if scheme_of(url) in (EMULATED, "virtual") else (("drive bus", url),)
+        """Every bus of the run, locked for the run, but the in-process ones (an emulated
+        drive is the run's own, and python-can's ``virtual`` bus lives inside one process)."""
+        return tuple(("drive bus", bus.url) for bus in self.buses
+                     if scheme_of(bus.url) not in (EMULATED, "virtual"))
 
     def open_devices(self, clock: Clock, on_event: EventBuffer) -> None:
-        """The drive master, its bus reached and the drive in a known state (not enabled)."""
+        """Every bus's drives, reached and in a known state (not enabled)."""
         options = self.options
         for kind, message in self.settings.notices:
             warn(message)
             on_event(kind, message, level="warning", source="settings")
-        master = open_drive(self.drive_url, self.drive, on_event=on_event,
-                            realtime=options.realtime, can_log=options.can_log)
         try:
-            if self.drive.master.lockstep:  # over a bus: one clock on both sides of the wire
-                share_lockstep_time(master, on_event)
-            if options.reset_fault:
-                master.fault_reset()
-            master.open()
+            masters: dict[str, CanDriveMaster] = {}
+            for i, bus in enumerate(self.buses):
+                opened = open_drives(bus.url, self.drive, bus.axes, on_event=on_event,
+                                     realtime=options.realtime,
+                                     can_log=can_log_path(options.can_log, i))
+                self.drives.add(opened)
+                masters.update(zip((axis.name for axis in bus.axes), opened.masters,
+                                   strict=True))
+            self.masters = [masters[axis.name] for axis in self.axes]
+            for master in self.masters:
+                if master.config.lockstep:  # over a bus: one clock on both sides of the wire
+                    share_lockstep_time(master, on_event)
+                if options.reset_fault:
+                    master.fault_reset()
+                master.open()
         except BaseException:
-            master.close()
+            self.close_devices()
             raise
-        self.master = master
 
     def build_controller(self, session: Session) -> None:
-        """The controller, built with the run's reference: placed where the axis stands when
-        the drive is enabled (the servo task places it, before the first step)."""
-        self.reference = PlacedReference(self.scenario.reference,
-                                         relative=self.options.from_here)
-        assert self.master is not None
-        self.umax_ma = min(self.settings.umax_ma, self.master.current_limit_ma)
-        self.controller = make_controller(self.options, self.scenario, session, self.params,
-                                          self.factory, self.umax_ma, reference=self.reference,
-                                          period_s=self.period_s)
+        """One controller per axis, with that axis' reference (placed where the axis stands
+        when its drive is enabled: its servo task places it, before the first step) and
+        parameters (the common ones, and ``NAME.KEY`` laid over them for axis NAME); a
+        multi-axis controller (``multi_axis = True``) once, with every axis' reference,
+        shared by the axes."""
+        options = self.options
+        self.references = [PlacedReference(scenario.reference, relative=options.from_here)
+                           for scenario in self.scenarios]
+        self.umax_ma = min(self.settings.umax_ma, self.masters[0].current_limit_ma)
+        if not self.lone and getattr(self.factory, "multi_axis", False):
+            whole = build_controller(self.factory, options.label, self.references,
+                                     dict(self.params), method="step", application="servo")
+            shared = SharedStep(whole, self.tasks, options.label)
+            self.controllers: list[Any] = [AxisShare(shared, i) for i in range(len(self.axes))]
+            return
+        self.controllers = [
+            make_controller(options, scenario, session, self._axis_params(axis.name),
+                            self.factory, min(self.settings.umax_ma, master.current_limit_ma),
+                            reference=reference, period_s=self.period_s)
+            for axis, scenario, reference, master in zip(
+                self.axes, self.scenarios, self.references, self.masters, strict=True)]
+
+    def _axis_params(self, name: str) -> dict[str, Any]:
+        if self.lone:
+            return dict(self.params)
+        common = {k: v for k, v in self.params.items() if "." not in k}
+        return common | {k.partition(".")[2]: v for k, v in self.params.items()
+                         if k.startswith(f"{name}.")}
 
     def start(self, session: Session) -> None:
-        master, options = self.master, self.options
-        assert master is not None
-        master.configure()
-        session.recorder.metadata("drive", {"json": json.dumps(master.describe())})
-        master.enable()
-        session.add_component(master)
-        if self.scenario.disturbance is not None:
-            check_disturbance_object(master)
-        self.task = ServoTask(
-            session, master, self.controller, self.scenario, reference=self.reference,
-            label=options.label,
-            settle_s=options.settle_s, prediction_every=options.prediction_period,
-            budget_s=controller_budget(options.controller_budget_s, options.realtime,
-                                       STEP_BUDGET_S),
-            safety=SafetyMonitor(self.drive.safety, self.period_s), watch=self.watch)
-        session.add_task(self.task)
+        options, drives = self.options, self.drives
+        for master in self.masters:
+            master.configure()
+        described = {axis.name: master.describe()
+                     for axis, master in zip(self.axes, self.masters, strict=True)}
+        session.recorder.metadata("drive", {"json": json.dumps(
+            described[self.axes[0].name] if self.lone else described)})
+        for master in self.masters:
+            master.enable()
+        drives.cycle_together()
+        session.add_component(drives)
+        if not self.lone:
+            self._record_bus_plans(session)
+        if any(scenario.disturbance is not None for scenario in self.scenarios):
+            for master in self.masters:
+                check_disturbance_object(master)
+        budget = controller_budget(options.controller_budget_s, options.realtime,
+                                   STEP_BUDGET_S)
+        for axis, master, controller, scenario, reference in zip(
+                self.axes, self.masters, self.controllers, self.scenarios, self.references,
+                strict=True):
+            task = ServoTask(session, master, controller, scenario, reference=reference,
+                             label=options.label, settle_s=options.settle_s,
+                             prediction_every=options.prediction_period, budget_s=budget,
+                             safety=SafetyMonitor(stricter_safety(self.drive.safety,
+                                                                  axis.safety), self.period_s),
+                             watch=self.watch, axis=None if self.lone else axis.name)
+            self.tasks.append(task)
+            session.add_task(task)
+        if not self.lone:
+            self.bus_task = BusCycle(session, drives, self.tasks, self.radius,
+                                     options.settle_s)
+            session.add_task(self.bus_task)
         if self.on_started is not None:
-            self.on_started(master)
+            self.on_started(self.masters[0])
+
+    def _record_bus_plans(self, session: Session) -> None:
+        """Every bus's plan as metadata; one that would not fit a real bus, as a warning."""
+        session.recorder.metadata("bus_plan", {"json": json.dumps({"buses": [
+            {"url": bus.url, "axis_names": [axis.name for axis in bus.axes],
+             **bus.plan.summary()} for bus in self.buses]})})
+        for bus in self.buses:
+            if not bus.plan.fits:
+                message = (f"on a real bus this would not fit: "
+                           f"{bus.plan.problem(self._period_note(bus.plan))}")
+                warn(message)
+                session.event("bus.plan", message, level="warning", source="bus", url=bus.url)
 
     def finish(self, session: Session) -> None:
-        """A safety stop ends the run as an error (the drive is already in its safe state)."""
-        if self.task is not None and self.task.safety.stopped is not None:
-            raise SafetyStopError(self.task.safety.stopped)
+        """A safety stop ends the run as an error (the drives are already in their safe
+        state)."""
+        for task in self.tasks:
+            if task.safety.stopped is not None:
+                raise SafetyStopError(task.safety.stopped)
 
     def close_devices(self) -> None:
-        if self.master is not None:
-            self.master.close()
+        drives, self.drives = self.drives, RunDrives()
+        drives.close()
 
     def kpis(self, session: Session, wall_s: float, error: HilError | None) -> dict[str, Any]:
         """The ``--json`` document: the keys the README documents first, then context."""
-        options, task, master = self.options, self.task, self.master
-        assert master is not None
+        return self._lone_kpis(session, wall_s) if self.lone else \
+            self._axes_kpis(session, wall_s)
+
+    def _lone_kpis(self, session: Session, wall_s: float) -> dict[str, Any]:
+        options = self.options
+        task = self.tasks[0] if self.tasks else None
+        master = self.masters[0] if self.masters else None
         base: dict[str, Any] = {"controller": options.label}
         if task is not None:
             tracking = task.stats.kpis(reference_amplitude(self.scenario))
@@ -258,15 +396,16 @@ class ServoExperiment(Experiment):
         base["mcap"] = options.recording.first_file(self.out)
         base.update({
             "reference": options.reference,
-            "drive": master.url,
+            "drive": master.url if master is not None else self.drive_url,
             "clock": session.clock.mode,
             "umax_mA": self.umax_ma if self.umax_ma is not None else self.settings.umax_ma,
-            "current_limit_mA": master.current_limit_ma,  # the smallest of the chain
+            # the smallest of the chain
+            "current_limit_mA": master.current_limit_ma if master is not None else None,
             "settle_s": options.settle_s,
             "peak_current_mA": peak,          # sent to the drive, after the clamp
             "peak_requested_mA": requested,   # the controller's request
             "stale_feedback": task.stale if task is not None else 0,
-            "clamped_commands": master.stats.clamped_commands,
+            "clamped_commands": master.stats.clamped_commands if master is not None else 0,
             "wall_s": round(wall_s, 4),
             "realtime_factor": realtime_factor(ticks, loop),
             "stop_reason": loop.stop_reason,
@@ -282,10 +421,45 @@ class ServoExperiment(Experiment):
             if isinstance(controller, CountsFallbacks):
                 base["empc_fallbacks"] = int(controller.fallbacks)
         faults = {"stale_feedback": base["stale_feedback"],
-                  "late_frames": master.stats.late_frames, "emcy": master.stats.emcy}
+                  "late_frames": master.stats.late_frames if master is not None else 0,
+                  "emcy": master.stats.emcy if master is not None else 0}
         base["faults"] = faults
         base["disturbed"] = bool(faults["stale_feedback"] or faults["emcy"])
         return base
+
+    def _axes_kpis(self, session: Session, wall_s: float) -> dict[str, Any]:
+        options, loop = self.options, session.loop
+        ticks = self.tasks[0].stats.ticks if self.tasks else 0
+        axes = {}
+        for axis, task in zip(self.axes, self.tasks, strict=False):
+            tracking = task.stats.kpis(reference_amplitude(task.scenario))
+            master = task.master
+            tracking.update({"node": axis.node, "bus": self.bus_of[axis.name],
+                             "stale_feedback": task.stale,
+                             "clamped_commands": master.stats.clamped_commands,
+                             "current_limit_mA": master.current_limit_ma,
+                             "late_frames": master.stats.late_frames,
+                             "emcy": master.stats.emcy})
+            axes[axis.name] = tracking
+        kpis: dict[str, Any] = {
+            "controller": options.label, "axes": axes, "ticks": ticks,
+            "cycle_period_us": round(self.period_s * 1e6),
+            "mcap": options.recording.first_file(self.out), "reference": options.reference,
+            "drive": self.drive_url, "buses": [bus.url for bus in self.buses],
+            "clock": session.clock.mode,
+            "umax_mA": self.settings.umax_ma, "settle_s": options.settle_s,
+            "sync_cycles": self.bus_task.cycles if self.bus_task is not None else 0,
+            "wall_s": round(wall_s, 4),
+            "realtime_factor": realtime_factor(ticks, loop),
+            "stop_reason": loop.stop_reason}
+        if self.bus_task is not None and self.radius is not None:
+            kpis["contour"] = self.bus_task.kpis()
+        stale = sum(a["stale_feedback"] for a in axes.values())
+        emcy = sum(a["emcy"] for a in axes.values())
+        kpis["faults"] = {"stale_feedback": stale, "emcy": emcy,
+                          "late_frames": sum(a["late_frames"] for a in axes.values())}
+        kpis["disturbed"] = bool(stale or emcy)
+        return kpis
 
 
 def realtime_factor(ticks: int, loop: FixedRateLoop) -> float | None:

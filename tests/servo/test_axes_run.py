@@ -175,7 +175,6 @@ def test_axes_from_the_drive_config(tmp_path, capsys):
     (["--axes", "x=1,y=2", "--reference", "circle:radius=-1"], "radius must be a positive",
      False),
     (["--axes", "x=1,y=2", "--limit", "max_error_deg<=1"], "KPIs: axes, contour", False),
-    (["--axes", "x=1,y=2", "--realtime"], "--realtime --axes needs a bus", False),
     (["--axes", "x=1,y=2", "--drive", "virtual://plan"], "the bus plan does not fit", False),
 ])
 def test_bad_axes_are_one_line_before_anything_runs(tmp_path, capsys, args, problem, outside):
@@ -187,30 +186,68 @@ def test_bad_axes_are_one_line_before_anything_runs(tmp_path, capsys, args, prob
 
 
 @pytest.mark.realtime
-def test_two_axes_in_real_time_over_socketcand_to_the_emulator_process(tmp_path):
-    """The emulated drives in a process of their own (hil emulate drive --node 1 --node 2),
-    2 kHz in real time: both axes recorded tick by tick on the same SYNCs. Two emulated drives
-    in Python on a shared 2-core machine miss many 400 us deadlines (and two axes do not fit
-    2 kHz on a real 1 Mbit/s bus: the cycle is 1 kHz, the PID's integral time made long
-    enough for it): the link and the stale-share limit are made patient, so what is checked
-    is the plumbing, and stale feedback makes it exit 3."""
-    from hil import api
-
+def test_two_axes_in_real_time_with_the_built_in_emulator(tmp_path):
+    """``--realtime`` with the built-in emulator and two axes: the emulated drives in a
+    process of their own (one node per axis, on socketcand), 1 kHz in real time, both axes
+    recorded tick by tick on the same SYNCs. Two emulated drives in Python on a shared 2-core
+    machine miss many deadlines: the link and the stale-share limit are made patient, so what
+    is checked is the plumbing, and stale feedback makes it exit 3."""
     config = tmp_path / "patient.toml"
     config.write_text("[master]\ncycle_period_us = 1000\nstale_cycles = 100000\n"
                       "[safety]\nenabled = false\n")
-    with api.start_drive_emulator(node=[1, 2], harden=True) as drive:
-        done = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller", "pid",
-                   "--param", "ti_us=8000", "--reference", "circle:radius=2,feed=20",
-                   "--duration", "0.5", "--realtime", "--drive", drive.url, "--config",
-                   str(config), "--out", "rt.mcap", "--json")
+    done = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller", "pid",
+               "--param", "ti_us=8000", "--reference", "circle:radius=2,feed=20",
+               "--duration", "0.5", "--realtime", "--config", str(config), "--out", "rt.mcap",
+               "--json")
     assert done.returncode in (0, 3), done.stderr
     kpis = json.loads(done.stdout)
     assert kpis["clock"] == "realtime" and kpis["sync_cycles"] == kpis["ticks"] > 450
+    assert kpis["buses"] == ["emulated"]
     data = read_session(tmp_path / "rt.mcap")
     cycles = {name: [m["cycle"] for _, m in data.topic(f"/axis/{name}/feedback")]
               for name in ("x", "y")}
     assert cycles["x"] == cycles["y"] and len(cycles["x"]) == kpis["ticks"]
+    started = [e for _, e in data.topic("/events") if e["kind"] == "emulator.process"]
+    assert len(started) == 1  # one emulator process serves both axes
+
+
+def test_can_log_with_two_axes_holds_both_drives_frames(tmp_path, capsys):
+    """``--can-log`` with two axes: every frame of the bus, read back by python-can's own
+    reader: each axis' RPDO and TPDOs, one SYNC a tick for both."""
+    import can
+
+    done = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller", "pid",
+               "--duration", "0.05", "--can-log", "frames.asc", "--out", "log.mcap", "--json")
+    assert done.returncode == 0, done.stderr
+    kpis = json.loads(done.stdout)
+    ids = [message.arbitration_id for message in can.LogReader(str(tmp_path / "frames.asc"))]
+    for node in (1, 2):
+        assert 0x200 + node in ids and 0x180 + node in ids  # RPDO1 out, TPDO1 back
+    syncs = ids.count(0x080)
+    assert syncs >= kpis["sync_cycles"] == kpis["ticks"] == 100
+
+
+def test_an_axis_own_safety_limit_stops_the_run_and_cannot_loosen_the_run_s(tmp_path, capsys):
+    """``[[axis]]`` with its own ``safety`` table: axis x's tighter following-error limit
+    stops the run (exit 2, every axis in its safe state); axis y asks for a looser one than
+    ``[safety]``, and the run's holds for it (recorded as it ran)."""
+    config = tmp_path / "axes.toml"
+    config.write_text(
+        "[safety]\nfollowing_error_deg = 30.0\n"
+        "[[axis]]\nname = \"x\"\nnode = 1\n[axis.safety]\nfollowing_error_deg = 0.05\n"
+        "following_error_ms = 1.0\n"
+        "[[axis]]\nname = \"y\"\nnode = 2\n[axis.safety]\nfollowing_error_deg = 90.0\n")
+    done = hil_here(tmp_path, capsys, "servo", "run", "--config", str(config),
+                    "--controller", "pid", "--reference", "sine:amplitude=20,frequency=2",
+                    "--duration", "1.0", "--out", "safe.mcap", "--json")
+    assert done.returncode == 2, done.stderr
+    assert "following error" in done.stderr
+    data = read_session(tmp_path / "safe.mcap")
+    stops = [e for _, e in data.topic("/events") if e["kind"] == "safety.stop"]
+    assert stops and all(e["message"].startswith("axis x: safety stop") for e in stops)
+    axes = {a["name"]: a for a in json.loads(data.metadata["config"]["json"])["servo"]["axes"]}
+    assert axes["x"]["safety"]["following_error_deg"] == 0.05
+    assert axes["y"]["safety"]["following_error_deg"] == 30.0  # the run's: not loosened
 
 
 class CoupledPd:

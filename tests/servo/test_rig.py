@@ -7,8 +7,15 @@ import pytest
 from hil.contracts import Device
 from hil.drivers.canopen import CanBusSpec, CanDriveMaster, DriveLinkLostError, parse_can_url
 from hil.errors import ConfigError
-from hil.servo.config import load_drive_config
-from hil.servo.rig import DRIVES, EmulatedDrive, can_drive, emulated_drive, open_drive
+from hil.servo.config import AxisSpec, load_drive_config
+from hil.servo.rig import (
+    DRIVES,
+    EmulatedDrive,
+    can_drives,
+    emulated_drives,
+    open_drive,
+    open_drives,
+)
 
 
 @pytest.mark.parametrize("url", ["nowhere", "modbus-tcp://127.0.0.1:5020", "can0"])
@@ -21,11 +28,11 @@ def test_an_unknown_scheme_is_a_config_error_listing_the_forms(url):
 
 
 def test_schemes_resolve_to_their_factories():
-    assert DRIVES.factory("emulated") is emulated_drive
+    assert DRIVES.factory("emulated") is emulated_drives
     for url in ("socketcand://127.0.0.1:29536/can0", "virtual://bus", "pcan://PCAN_USBBUS1",
                 "socketcan://can0", "udp_multicast://239.0.0.1", "gs_usb://0",
                 "slcan:///dev/ttyACM0"):
-        assert DRIVES.factory(url) is can_drive  # any python-can interface
+        assert DRIVES.factory(url) is can_drives  # any python-can interface
     assert {"emulated", "socketcand"} <= set(DRIVES.schemes())
 
 
@@ -78,6 +85,31 @@ def test_the_emulated_drive_is_a_device_on_the_masters_node_id():
     master.close()
     assert master.emulator.node.state == "SWITCH ON DISABLED"
     master.close()  # idempotent
+
+
+def test_a_factory_opens_every_axis_of_its_bus_as_a_group():
+    """Several axes on one bus: one master per node on one AxisBus, cycled together, one
+    SYNC a cycle for all; the emulator (one node per axis) closes with the bus."""
+    drive = load_drive_config()
+    bus = open_drives("emulated", drive, [AxisSpec("x", 1, current_limit_ma=600.0),
+                                          AxisSpec("y", 2)])
+    x, y = bus.masters
+    assert (x.node_id, y.node_id) == (1, 2) and bus.group is not None
+    assert x.current_limit_ma == 600.0 and y.current_limit_ma == drive.master.current_limit_ma
+    for master in bus.masters:
+        master.open()
+        master.configure()
+        master.enable()
+    bus.cycle_together(True)
+    sent = bus.group.bus.link.syncs_sent
+    for master in bus.masters:
+        master.send_command(0.0)
+    bus.end_cycle()
+    assert bus.group.bus.link.syncs_sent == sent + 1
+    assert [m.receive_feedback().state for m in bus.masters] == ["OPERATION ENABLED"] * 2
+    bus.cycle_together(False)
+    bus.disconnect()
+    assert not x.enabled and not y.enabled
 
 
 @pytest.mark.parametrize("url", ["virtual://rig-test", "udp_multicast://239.0.0.1?port=43199"])
