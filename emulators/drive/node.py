@@ -39,6 +39,7 @@ import struct
 import threading
 import time
 from collections.abc import Callable, Iterable
+from functools import partial
 
 import can
 
@@ -119,10 +120,6 @@ CAUSE_HEARTBEAT, CAUSE_SYNC = 0x01, 0x02
 EXTENDED_OR_PRODUCER = 0x6000_0000  # COB-ID SYNC: bit 30 (we would produce), bit 29 (29-bit)
 NODE_ID_MASK = 0xFF80_0000           # consumer heartbeat: bits above the node id
 PDO_IDS_FIRST, PDO_IDS_LAST = 0x180, 0x57F  # the default PDO COB-IDs of every node
-# objects whose writing means more than storing the value (:meth:`DriveNode._write`)
-WRITE_EFFECTS = frozenset({SYNC_COB_ID_OBJECT, SYNC_COUNTER_OVERFLOW, CYCLE_PERIOD,
-                           CONSUMER_HEARTBEAT, PRODUCER_HEARTBEAT, QUICK_STOP_OPTION,
-                           MODES_OF_OPERATION, CONTROLWORD, DISTURBANCE, TIME_BASE})
 
 # the objects the cyclic path reads and writes, as keys of the value store
 CONTROLWORD_KEY, MODE_KEY = (CONTROLWORD, 0), (MODES_OF_OPERATION, 0)
@@ -131,6 +128,9 @@ TORQUE_KEY, STATUSWORD_KEY, RATED_KEY = (TORQUE_ACTUAL, 0), (STATUSWORD, 0), (RA
 SYNC_OVERFLOW_KEY, SYNC_ECHO_KEY = (SYNC_COUNTER_OVERFLOW, 0), (SYNC_ECHO, 0)
 
 SendFn = Callable[[list[Frame]], None]
+# what writing an object means beyond storing its value: (index, subindex, value), raises
+# SdoAbortError with the CiA code to refuse it
+WriteEffect = Callable[[int, int, int], None]
 
 
 class DriveNode:
@@ -170,6 +170,21 @@ class DriveNode:
         self.sdo = SdoServer(self.objects.read, self._download,
                              lambda data: self._send([(sdo_response_id, data)]))
         self.pdos = PdoTable(self.objects)
+        # the objects whose writing means more than storing the value, and what it means: the
+        # one list of them (:meth:`_write`)
+        self._write_effects: dict[int, WriteEffect] = {
+            **{index: partial(self.pdos.write, pdo) for index, pdo in self.pdos.by_object.items()},
+            SYNC_COB_ID_OBJECT: self._write_sync_cob_id,
+            SYNC_COUNTER_OVERFLOW: self._write_sync_counter_overflow,
+            CYCLE_PERIOD: self._write_cycle_period,
+            CONSUMER_HEARTBEAT: self._write_consumer_heartbeat,
+            PRODUCER_HEARTBEAT: self._write_producer_heartbeat,
+            QUICK_STOP_OPTION: self._write_quick_stop_option,
+            MODES_OF_OPERATION: self._write_mode,
+            CONTROLWORD: lambda _index, _subindex, value: self._apply_controlword(value),
+            DISTURBANCE: self._write_disturbance,
+            TIME_BASE: self._write_time_base,
+        }
         self.states = DriveStates(self._values, self.plant, config.standstill_deg_s, self._now,
                                   self._emcy, self._entered)
         self.motor = MotorLoops(self._values, self.plant, config, self.states)
@@ -401,57 +416,58 @@ class DriveNode:
         self._write(index, subindex, self.objects.decode_download(index, subindex, data))
 
     def _write(self, index: int, subindex: int, value: int) -> None:
-        """Validate and apply one write (SDO or RPDO); raises SdoAbortError with the CiA
-        code."""
-        key = (index, subindex)
-        values = self._values
-        if index not in WRITE_EFFECTS and index not in self.pdos.by_object:  # a plain value
-            values[key] = value
-            return
-        pdo = self.pdos.by_object.get(index)
-        if pdo is not None:
-            self.pdos.write(pdo, index, subindex, value)
-            return
-        if index == SYNC_COB_ID_OBJECT:
-            if value & EXTENDED_OR_PRODUCER or value & 0x7FF == 0:  # we do not produce SYNC
-                raise SdoAbortError(ABORT_VALUE)
-            values[key] = value
-            self._sync_cob_id = value & 0x7FF
-        elif index == SYNC_COUNTER_OVERFLOW:
-            if values[(CYCLE_PERIOD, 0)] != 0 or value == 1:  # CiA 301: only while 0x1006 = 0
-                raise SdoAbortError(ABORT_DEVICE_STATE if value != 1 else ABORT_VALUE)
-            values[key] = value
-        elif index == CYCLE_PERIOD:
-            steps = self._steps_for_period(value)
-            values[key] = value
-            self._steps_per_sync = steps
-        elif index == CONSUMER_HEARTBEAT:
-            if value & NODE_ID_MASK or (value >> 16) == self.node_id:
-                raise SdoAbortError(ABORT_VALUE)
-            values[key] = value
-            self._hb_consumer_armed = False
-        elif index == PRODUCER_HEARTBEAT:
-            values[key] = value
-            self._hb_next_ns = None
-        elif index == QUICK_STOP_OPTION:
-            if value not in QUICK_STOP_OPTIONS:
-                raise SdoAbortError(ABORT_VALUE)
-            values[key] = value
-        elif index == MODES_OF_OPERATION:
-            if value not in MODES:
-                raise SdoAbortError(ABORT_VALUE)
-            values[key] = value
-            values[(MODES_DISPLAY, 0)] = value
-        elif index == CONTROLWORD:
-            self._apply_controlword(value)
-        elif index == DISTURBANCE:
-            values[key] = value
-            self.plant.extra_disturbance_ma = float(value)
-        elif index == TIME_BASE:
-            self._take_master_time(value)
-            values[key] = value
+        """Validate and apply one write (SDO or RPDO): its effect (``_write_effects``), or
+        else the value stored; raises SdoAbortError with the CiA code."""
+        effect = self._write_effects.get(index)
+        if effect is None:  # a plain value
+            self._values[(index, subindex)] = value
         else:
-            values[key] = value
+            effect(index, subindex, value)
+
+    def _write_sync_cob_id(self, index: int, subindex: int, value: int) -> None:
+        if value & EXTENDED_OR_PRODUCER or value & 0x7FF == 0:  # we do not produce SYNC
+            raise SdoAbortError(ABORT_VALUE)
+        self._values[(index, subindex)] = value
+        self._sync_cob_id = value & 0x7FF
+
+    def _write_sync_counter_overflow(self, index: int, subindex: int, value: int) -> None:
+        if self._values[(CYCLE_PERIOD, 0)] != 0 or value == 1:  # CiA 301: only while 0x1006 = 0
+            raise SdoAbortError(ABORT_DEVICE_STATE if value != 1 else ABORT_VALUE)
+        self._values[(index, subindex)] = value
+
+    def _write_cycle_period(self, index: int, subindex: int, value: int) -> None:
+        steps = self._steps_for_period(value)
+        self._values[(index, subindex)] = value
+        self._steps_per_sync = steps
+
+    def _write_consumer_heartbeat(self, index: int, subindex: int, value: int) -> None:
+        if value & NODE_ID_MASK or (value >> 16) == self.node_id:
+            raise SdoAbortError(ABORT_VALUE)
+        self._values[(index, subindex)] = value
+        self._hb_consumer_armed = False
+
+    def _write_producer_heartbeat(self, index: int, subindex: int, value: int) -> None:
+        self._values[(index, subindex)] = value
+        self._hb_next_ns = None
+
+    def _write_quick_stop_option(self, index: int, subindex: int, value: int) -> None:
+        if value not in QUICK_STOP_OPTIONS:
+            raise SdoAbortError(ABORT_VALUE)
+        self._values[(index, subindex)] = value
+
+    def _write_mode(self, index: int, subindex: int, value: int) -> None:
+        if value not in MODES:
+            raise SdoAbortError(ABORT_VALUE)
+        self._values[(index, subindex)] = value
+        self._values[(MODES_DISPLAY, 0)] = value
+
+    def _write_disturbance(self, index: int, subindex: int, value: int) -> None:
+        self._values[(index, subindex)] = value
+        self.plant.extra_disturbance_ma = float(value)
+
+    def _write_time_base(self, index: int, subindex: int, value: int) -> None:
+        self._take_master_time(value)
+        self._values[(index, subindex)] = value
 
     def _steps_for_period(self, period_us: int) -> int:
         """Plant steps per SYNC for a communication cycle period (0 = not set: one step); a
