@@ -173,7 +173,7 @@ class CanDriveMaster(Device):
         self.config = config = config or DriveMasterConfig()
         self.link = link
         # frames only a master sends: heard from anyone else, another master drives the bus
-        link.watched_ids = frozenset(
+        link.watched_ids = watched = frozenset(
             (SYNC_COB_ID, NMT_COB_ID, HEARTBEAT_BASE + config.heartbeat_id))
         self._url = url if url is not None else link.name
         self.node_id = n = config.node_id
@@ -186,6 +186,13 @@ class CanDriveMaster(Device):
                              silence_is_gone=config.lockstep)
         self.nmt = Nmt(link, n)
         self.heartbeat_watch = HeartbeatWatch(n, config.drive_heartbeat_ms, self._clock.time_ns)
+        # the frames that are not the cyclic TPDOs, by COB-ID (the watched ids over any other)
+        self._frame_handlers: dict[int, Callable[[Frame], None]] = {
+            self.sdo.response_id: lambda frame: self.sdo.on_response(frame[1]),
+            EMCY_BASE + n: lambda frame: self._on_emcy(frame[1]),
+            self.heartbeat_watch.cob_id: self._on_heartbeat,
+            **dict.fromkeys(watched, self._on_watched),
+        }
         self._rpdo1_map = rpdo1_for(self.mode)
         self._tpdo_maps = tpdo_maps(config.sync_echo, config.tpdo_layout)
         self.cyclic = CyclicExchange(
@@ -270,16 +277,16 @@ class CanDriveMaster(Device):
 
     # -- frames that are not the cyclic TPDOs ------------------------------------------------
     def _other_frame(self, frame: Frame) -> None:
-        can_id, data = frame
-        if can_id in self.link.watched_ids:
-            if not self.link.own_echo(frame):
-                self._foreign_frame(can_id)
-        elif can_id == self.sdo.response_id:
-            self.sdo.on_response(data)
-        elif can_id == EMCY_BASE + self.node_id:
-            self._on_emcy(data)
-        elif can_id == self.heartbeat_watch.cob_id and \
-                self.heartbeat_watch.on_frame(data, watching=self._enabled):
+        handler = self._frame_handlers.get(frame[0])
+        if handler is not None:
+            handler(frame)
+
+    def _on_watched(self, frame: Frame) -> None:
+        if not self.link.own_echo(frame):
+            self._foreign_frame(frame[0])
+
+    def _on_heartbeat(self, frame: Frame) -> None:
+        if self.heartbeat_watch.on_frame(frame[1], watching=self._enabled):
             self._event("drive.bootup", f"drive node {self.node_id} sent a boot-up message: "
                         "it restarted", level="error")
 
