@@ -9,7 +9,7 @@ axis of a bus shares that bus's SYNC, and every bus has its cycle and SYNC in ev
 tick's phases run axis by axis, and a bus task comes last: its write ends every bus's cycle
 (each axis' RPDO, then one SYNC), its record logs the contour error of a path
 (``/path/contour``). A stop of any kind (a safety limit, a fault, Ctrl-C) stops every axis of
-every bus in the same cycles (:func:`~hil.drivers.canopen.master.stop_together`).
+every bus in the same cycles (:meth:`~hil.drivers.canopen.axes.AxisGroup.stop_together`).
 
 Each bus is planned before anything opens (:func:`hil.drivers.canopen.master.plan_axes`, the figure
 ``hil drive plan`` prints: the worst-case bus time of a cycle against the period): a real bus
@@ -50,7 +50,7 @@ from hil.core.session import Session
 from hil.drivers.can_bus_time import BusPlan
 from hil.drivers.canopen import CanDriveMaster, CanLink, open_can_bus, parse_can_url
 from hil.drivers.canopen.axes import AxisBus, AxisGroup
-from hil.drivers.canopen.master import plan_axes, stop_together
+from hil.drivers.canopen.master import plan_axes
 from hil.emulators.drive.runners import LockstepDrive
 from hil.errors import ControllerError, HilError, SafetyStopError, UsageError
 from hil.servo.config import AXIS_NAME, EMULATED, AxisSpec, DriveConfig, check_axes
@@ -188,9 +188,9 @@ class AxisGroups:
             group.bus.end_cycle()
 
     def safe_state(self) -> None:
-        """Every axis stopped in the same cycles (:func:`stop_together`); silent."""
+        """Every axis stopped in the same cycles (:meth:`AxisGroup.stop_together`); silent."""
         if all(group.bus.together for group in self.groups):
-            stop_together(self.masters, self.end_cycle)
+            AxisGroup.stop_together(self.groups)
         else:  # still setting up: one drive after the other
             for master in self.masters:
                 master.safe_state()
