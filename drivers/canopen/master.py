@@ -182,6 +182,9 @@ class CanDriveMaster(Device):
         self._on_event = on_event
         self._closers = closers
         self.watchdog = LinkWatchdog(config.stale_cycles, "cycles without a TPDO")
+        # the drive's SDO and NMT, for everyone (``master.sdo.read_int(...)``); a refusal of a
+        # download queued for the cyclic exchange (``sdo.queue_write``) is raised by the next
+        # receive_feedback()
         self.sdo = SdoClient(link, n, config.sdo_timeout_s, self._other_frame,
                              silence_is_gone=config.lockstep)
         self.nmt = Nmt(link, n)
@@ -317,25 +320,6 @@ class CanDriveMaster(Device):
                     f"0x{register:02X}" + (f", data {extra}" if extra.strip("0") else ""),
                     level="info" if code == 0 or not self._enabled else "error", code=code,
                     register=register, data_hex=extra, while_driving=self._enabled)
-
-    # -- SDO and NMT for everyone ---------------------------------------------------------------
-    def sdo_read(self, index: int, subindex: int = 0, timeout_s: float | None = None) -> bytes:
-        """Upload one object (expedited or segmented); returns its raw bytes."""
-        return self.sdo.read(index, subindex, timeout_s)
-
-    def sdo_read_int(self, index: int, subindex: int = 0, fmt: str = "<I",
-                     timeout_s: float | None = None) -> int:
-        return self.sdo.read_int(index, subindex, fmt, timeout_s)
-
-    def sdo_write(self, index: int, subindex: int, value: int, fmt: str = "<I") -> None:
-        """Expedited download of one value packed with ``fmt`` (1 to 4 bytes); blocking."""
-        self.sdo.write(index, subindex, value, fmt)
-
-    def queue_sdo_write(self, index: int, subindex: int, value: int, fmt: str = "<I") -> None:
-        """A download sent with the next cycle's frames, its answer taken by the cyclic
-        receive: no SDO round trip inside a cycle. A refusal is raised by the next
-        :meth:`receive_feedback`."""
-        self.sdo.queue_write(index, subindex, value, fmt)
 
     # -- configuration --------------------------------------------------------------------------
     def _bus_budget(self) -> BusBudget:
