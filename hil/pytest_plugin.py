@@ -171,7 +171,7 @@ class DriveUnderTest:
 
         master = open_drive(self.url, load_drive_config())
         try:
-            return state_of(master.sdo_read_int(0x6041, 0, "<H"))
+            return state_of(master.sdo.read_int(0x6041, 0, "<H"))
         finally:
             master.disconnect()
 

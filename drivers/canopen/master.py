@@ -28,7 +28,7 @@ from __future__ import annotations
 import copy
 import math
 import struct
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from typing import Any, NoReturn
 
@@ -173,7 +173,7 @@ class CanDriveMaster(Device):
         self.config = config = config or DriveMasterConfig()
         self.link = link
         # frames only a master sends: heard from anyone else, another master drives the bus
-        link.watched_ids = frozenset(
+        link.watched_ids = watched = frozenset(
             (SYNC_COB_ID, NMT_COB_ID, HEARTBEAT_BASE + config.heartbeat_id))
         self._url = url if url is not None else link.name
         self.node_id = n = config.node_id
@@ -182,10 +182,20 @@ class CanDriveMaster(Device):
         self._on_event = on_event
         self._closers = closers
         self.watchdog = LinkWatchdog(config.stale_cycles, "cycles without a TPDO")
+        # the drive's SDO and NMT, for everyone (``master.sdo.read_int(...)``); a refusal of a
+        # download queued for the cyclic exchange (``sdo.queue_write``) is raised by the next
+        # receive_feedback()
         self.sdo = SdoClient(link, n, config.sdo_timeout_s, self._other_frame,
                              silence_is_gone=config.lockstep)
         self.nmt = Nmt(link, n)
         self.heartbeat_watch = HeartbeatWatch(n, config.drive_heartbeat_ms, self._clock.time_ns)
+        # the frames that are not the cyclic TPDOs, by COB-ID (the watched ids over any other)
+        self._frame_handlers: dict[int, Callable[[Frame], None]] = {
+            self.sdo.response_id: lambda frame: self.sdo.on_response(frame[1]),
+            EMCY_BASE + n: lambda frame: self._on_emcy(frame[1]),
+            self.heartbeat_watch.cob_id: self._on_heartbeat,
+            **dict.fromkeys(watched, self._on_watched),
+        }
         self._rpdo1_map = rpdo1_for(self.mode)
         self._tpdo_maps = tpdo_maps(config.sync_echo, config.tpdo_layout)
         self.cyclic = CyclicExchange(
@@ -210,6 +220,7 @@ class CanDriveMaster(Device):
         self.foreign: str | None = None  # another master heard on the bus: the run stops
         # told each cycle of a safe stop (quick stop, disable voltage): what the drive reported
         self.on_stop_cycle: Callable[[Feedback], None] | None = None
+        self._stop_target = 0  # what the stop cycles send as the target (begin_stop)
         self._closed = False
 
     # -- what the master knows -------------------------------------------------------------
@@ -270,16 +281,16 @@ class CanDriveMaster(Device):
 
     # -- frames that are not the cyclic TPDOs ------------------------------------------------
     def _other_frame(self, frame: Frame) -> None:
-        can_id, data = frame
-        if can_id in self.link.watched_ids:
-            if not self.link.own_echo(frame):
-                self._foreign_frame(can_id)
-        elif can_id == self.sdo.response_id:
-            self.sdo.on_response(data)
-        elif can_id == EMCY_BASE + self.node_id:
-            self._on_emcy(data)
-        elif can_id == self.heartbeat_watch.cob_id and \
-                self.heartbeat_watch.on_frame(data, watching=self._enabled):
+        handler = self._frame_handlers.get(frame[0])
+        if handler is not None:
+            handler(frame)
+
+    def _on_watched(self, frame: Frame) -> None:
+        if not self.link.own_echo(frame):
+            self._foreign_frame(frame[0])
+
+    def _on_heartbeat(self, frame: Frame) -> None:
+        if self.heartbeat_watch.on_frame(frame[1], watching=self._enabled):
             self._event("drive.bootup", f"drive node {self.node_id} sent a boot-up message: "
                         "it restarted", level="error")
 
@@ -309,25 +320,6 @@ class CanDriveMaster(Device):
                     f"0x{register:02X}" + (f", data {extra}" if extra.strip("0") else ""),
                     level="info" if code == 0 or not self._enabled else "error", code=code,
                     register=register, data_hex=extra, while_driving=self._enabled)
-
-    # -- SDO and NMT for everyone ---------------------------------------------------------------
-    def sdo_read(self, index: int, subindex: int = 0, timeout_s: float | None = None) -> bytes:
-        """Upload one object (expedited or segmented); returns its raw bytes."""
-        return self.sdo.read(index, subindex, timeout_s)
-
-    def sdo_read_int(self, index: int, subindex: int = 0, fmt: str = "<I",
-                     timeout_s: float | None = None) -> int:
-        return self.sdo.read_int(index, subindex, fmt, timeout_s)
-
-    def sdo_write(self, index: int, subindex: int, value: int, fmt: str = "<I") -> None:
-        """Expedited download of one value packed with ``fmt`` (1 to 4 bytes); blocking."""
-        self.sdo.write(index, subindex, value, fmt)
-
-    def queue_sdo_write(self, index: int, subindex: int, value: int, fmt: str = "<I") -> None:
-        """A download sent with the next cycle's frames, its answer taken by the cyclic
-        receive: no SDO round trip inside a cycle. A refusal is raised by the next
-        :meth:`receive_feedback`."""
-        self.sdo.queue_write(index, subindex, value, fmt)
 
     # -- configuration --------------------------------------------------------------------------
     def _bus_budget(self) -> BusBudget:
@@ -635,17 +627,79 @@ class CanDriveMaster(Device):
 
     # -- stops ------------------------------------------------------------------------------------
     def safe_state(self) -> None:
-        """Quick stop (cyclic, until standstill or the time-out), then disable voltage.
+        """Quick stop (cyclic, until standstill or the time-out), then disable voltage: the
+        stop cycles below for this drive alone (:meth:`AxisGroup.stop_together
+        <hil.drivers.canopen.axes.AxisGroup.stop_together>` runs them for several drives in
+        the same cycles).
 
         Idempotent and silent: failures become a ``drive.safe_stop_failed`` event."""
-        stop_together([self])
+        if not self.begin_stop():
+            return
+        outcome: Feedback | DriveError
+        try:
+            for _ in self.quick_stop_cycles():
+                self.send_stop_cycle(CW_QUICK_STOP)
+                feedback = self.receive_stop_cycle()
+                self.report_stop_cycle(feedback)
+                if self.stands(feedback):
+                    break
+            self.send_stop_cycle(CW_DISABLE_VOLTAGE)
+            outcome = self.receive_stop_cycle()
+            self.report_stop_cycle(outcome)
+        except DriveError as exc:
+            outcome = exc
+        self.end_stop(outcome)
 
     @property
     def enabled(self) -> bool:
         """Enabled by :meth:`start` and not stopped since (its safe stop is still to come)."""
         return self._enabled and not self._closed
 
-    def _stop_cycle_done(self, feedback: Feedback) -> None:
+    # The stop cycles, one drive's part of a safe stop: begin_stop(); then for each of
+    # quick_stop_cycles() send_stop_cycle(CW_QUICK_STOP), receive_stop_cycle() and
+    # report_stop_cycle() until the drive stands(); then one cycle of CW_DISABLE_VOLTAGE;
+    # end_stop() with its feedback, or with the DriveError that cut the stop short.
+    def begin_stop(self) -> bool:
+        """Begin a safe stop: the cyclic run ends here (the drive counts as not enabled) and
+        every stop cycle holds the target of this moment. False, and nothing to do, when the
+        drive is not enabled (never started, or stopped already)."""
+        if not self.enabled:
+            return False
+        self._enabled = False
+        feedback = self.feedback
+        self._stop_target = feedback.position_increments \
+            if self.mode == CSP and feedback is not None else 0
+        return True
+
+    def quick_stop_cycles(self) -> Iterator[None]:
+        """The quick-stop cycles of a safe stop, one per period on the master's clock (in
+        lockstep each SYNC is a period): as many as the quick-stop time-out holds, at least
+        one. Leave the loop once the drive stands; a cycle after the last waits its period."""
+        c, clock = self.config, self.clock
+        period_ns = round(c.cycle_period_s * 1e9)
+        next_ns = clock.time_ns()
+        for _ in range(max(1, math.ceil(c.quick_stop_timeout_s / c.cycle_period_s))):
+            yield
+            next_ns += period_ns
+            wait_ns = next_ns - clock.time_ns()
+            if wait_ns > 0:
+                clock.sleep(wait_ns / 1e9)
+
+    def send_stop_cycle(self, controlword: int) -> None:
+        """Send one stop cycle's frames: ``controlword`` (``CW_QUICK_STOP`` or
+        ``CW_DISABLE_VOLTAGE``) with the target held since :meth:`begin_stop`, and a SYNC (on
+        an :class:`~hil.drivers.canopen.axes.AxisBus`, at its ``end_cycle``). Raises the error
+        a lost link latched."""
+        if self._latched is not None:
+            self._check_latched()
+        self._send_cycle(controlword, self._stop_target)
+
+    def receive_stop_cycle(self) -> Feedback:
+        """The drive's TPDOs of the stop cycle sent last; raises (:class:`DriveError`) when
+        the link is lost."""
+        return self._receive()
+
+    def report_stop_cycle(self, feedback: Feedback) -> None:
         """Hand a stop cycle's feedback to ``on_stop_cycle``: one that raises is told no more
         (an event says so), and the stop goes on."""
         observer = self.on_stop_cycle
@@ -659,10 +713,28 @@ class CanDriveMaster(Device):
                         f"observer failed ({type(exc).__name__}: {exc}); the stop goes on",
                         level="warning")
 
-    def _hold_target(self) -> int:
-        if self.mode == CSP and self.feedback is not None:
-            return self.feedback.position_increments
-        return 0
+    def stands(self, feedback: Feedback) -> bool:
+        """Whether a quick-stop cycle's ``feedback`` ends the quick stop: fresh, and the drive
+        in SWITCH ON DISABLED or FAULT, or in QUICK STOP ACTIVE below the standstill speed."""
+        return feedback.fresh and (feedback.state in (SWITCH_ON_DISABLED, FAULT) or (
+            feedback.state == QUICK_STOP_ACTIVE
+            and abs(feedback.velocity_deg_s) < self.config.standstill_deg_s))
+
+    def end_stop(self, outcome: Feedback | DriveError) -> None:
+        """Tell how the safe stop ended: ``drive.safe_stop`` with the state of the disable
+        voltage cycle's feedback; ``drive.safe_stop_failed`` when the drive ignored the stop
+        (still OPERATION ENABLED) or a :class:`DriveError` cut it short."""
+        n = self.node_id
+        if isinstance(outcome, DriveError):
+            self._event("drive.safe_stop_failed", f"drive node {n}: safe stop incomplete: "
+                        f"{outcome}", level="error")
+        elif outcome.state == OPERATION_ENABLED:  # it ignored both: only its SYNC watchdog is left
+            self._event("drive.safe_stop_failed", f"drive node {n} ignored quick stop and "
+                        "disable voltage: still OPERATION ENABLED; no more SYNC, so its SYNC "
+                        "watchdog must fault it", level="error", state=outcome.state)
+        else:
+            self._event("drive.safe_stop", f"drive node {n} stopped: {outcome.state}",
+                        state=outcome.state)
 
     def disconnect(self) -> None:
         """Release the bus and anything the master was built with (an emulator process);
@@ -715,61 +787,3 @@ class CanDriveMaster(Device):
             self._event("drive.limit_restore_failed", f"drive node {self.node_id}: its max "
                         f"torque 0x6072 stays at this run's limit: {exc}", level="warning")
 
-
-def stop_together(masters: Sequence[CanDriveMaster],
-                  end_cycle: Callable[[], None] = lambda: None) -> None:
-    """Quick stop on every enabled drive of ``masters`` in the same cycles, until all stand
-    (or the quick-stop time-out), then disable voltage, in one cycle too. ``end_cycle`` puts a
-    cycle's frames on the bus once every master has sent its own (several drives on one
-    :class:`~hil.drivers.canopen.axes.AxisBus`; one drive sends at once). Each cycle's feedback
-    goes to each master's ``on_stop_cycle`` (when set). Silent: failures become
-    ``drive.safe_stop_failed`` events."""
-    active = [m for m in masters if m.enabled]
-    if not active:
-        return
-    for master in active:
-        master._enabled = False
-    c = active[0].config
-    holds = [master._hold_target() for master in active]
-
-    def cycle(controlword: int) -> list[Feedback]:
-        for master, hold in zip(active, holds, strict=True):
-            if master._latched is not None:
-                master._check_latched()
-            master._send_cycle(controlword, hold)
-        end_cycle()
-        feedbacks = [master._receive() for master in active]
-        for master, feedback in zip(active, feedbacks, strict=True):
-            master._stop_cycle_done(feedback)
-        return feedbacks
-
-    try:
-        period_ns = round(c.cycle_period_s * 1e9)
-        clock = active[0].clock
-        next_ns = clock.time_ns()
-        for _ in range(max(1, math.ceil(c.quick_stop_timeout_s / c.cycle_period_s))):
-            feedbacks = cycle(CW_QUICK_STOP)
-            if all(f.fresh and (f.state in (SWITCH_ON_DISABLED, FAULT) or (
-                    f.state == QUICK_STOP_ACTIVE
-                    and abs(f.velocity_deg_s) < m.config.standstill_deg_s))
-                   for f, m in zip(feedbacks, active, strict=True)):
-                break
-            # one cycle per period (in lockstep each SYNC is a period of the clock)
-            next_ns += period_ns
-            wait_ns = next_ns - clock.time_ns()
-            if wait_ns > 0:
-                clock.sleep(wait_ns / 1e9)
-        states = [f.state for f in cycle(CW_DISABLE_VOLTAGE)]
-    except DriveError as exc:
-        for master in active:
-            master._event("drive.safe_stop_failed", f"drive node {master.node_id}: safe stop "
-                          f"incomplete: {exc}", level="error")
-        return
-    for master, state in zip(active, states, strict=True):
-        if state == OPERATION_ENABLED:  # it ignored both: only its SYNC watchdog is left
-            master._event("drive.safe_stop_failed", f"drive node {master.node_id} ignored "
-                          "quick stop and disable voltage: still OPERATION ENABLED; no more "
-                          "SYNC, so its SYNC watchdog must fault it", level="error", state=state)
-        else:
-            master._event("drive.safe_stop", f"drive node {master.node_id} stopped: {state}",
-                          state=state)

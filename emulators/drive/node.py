@@ -39,6 +39,7 @@ import struct
 import threading
 import time
 from collections.abc import Callable, Iterable
+from functools import partial
 
 import can
 
@@ -119,10 +120,6 @@ CAUSE_HEARTBEAT, CAUSE_SYNC = 0x01, 0x02
 EXTENDED_OR_PRODUCER = 0x6000_0000  # COB-ID SYNC: bit 30 (we would produce), bit 29 (29-bit)
 NODE_ID_MASK = 0xFF80_0000           # consumer heartbeat: bits above the node id
 PDO_IDS_FIRST, PDO_IDS_LAST = 0x180, 0x57F  # the default PDO COB-IDs of every node
-# objects whose writing means more than storing the value (:meth:`DriveNode._write`)
-WRITE_EFFECTS = frozenset({SYNC_COB_ID_OBJECT, SYNC_COUNTER_OVERFLOW, CYCLE_PERIOD,
-                           CONSUMER_HEARTBEAT, PRODUCER_HEARTBEAT, QUICK_STOP_OPTION,
-                           MODES_OF_OPERATION, CONTROLWORD, DISTURBANCE, TIME_BASE})
 
 # the objects the cyclic path reads and writes, as keys of the value store
 CONTROLWORD_KEY, MODE_KEY = (CONTROLWORD, 0), (MODES_OF_OPERATION, 0)
@@ -131,6 +128,10 @@ TORQUE_KEY, STATUSWORD_KEY, RATED_KEY = (TORQUE_ACTUAL, 0), (STATUSWORD, 0), (RA
 SYNC_OVERFLOW_KEY, SYNC_ECHO_KEY = (SYNC_COUNTER_OVERFLOW, 0), (SYNC_ECHO, 0)
 
 SendFn = Callable[[list[Frame]], None]
+# what writing an object means beyond storing its value: (index, subindex, value), raises
+# SdoAbortError with the CiA code to refuse it
+WriteEffect = Callable[[int, int, int], None]
+FrameHandler = Callable[[bytes], None]  # what a received frame means, given its data
 
 
 class DriveNode:
@@ -170,6 +171,37 @@ class DriveNode:
         self.sdo = SdoServer(self.objects.read, self._download,
                              lambda data: self._send([(sdo_response_id, data)]))
         self.pdos = PdoTable(self.objects)
+        # the frames served in every NMT state, by COB-ID: NMT commands, every node's heartbeat;
+        # outside STOPPED also those of _served_unless_stopped, and the RPDOs
+        self._always_served: dict[int, FrameHandler] = {
+            NMT_COB_ID: self._on_nmt,
+            **{HEARTBEAT_BASE + node: partial(self._on_heartbeat, node)
+               for node in range(MAX_NODE_ID + 1)},
+        }
+        self._served_unless_stopped: dict[int, FrameHandler] = {}  # SYNC, SDO: _listen_to_sync
+        # what each NMT command does
+        self._nmt_commands: dict[int, Callable[[], None]] = {
+            NMT_START: partial(self._set_nmt, NMT_OPERATIONAL),
+            NMT_STOP: partial(self._set_nmt, NMT_STOPPED),
+            NMT_ENTER_PRE_OPERATIONAL: partial(self._set_nmt, NMT_PRE_OPERATIONAL),
+            NMT_RESET_NODE: self._reset_node,
+            NMT_RESET_COMMUNICATION: self._reset_communication,
+        }
+        # the objects whose writing means more than storing the value, and what it means: the
+        # one list of them (:meth:`_write`)
+        self._write_effects: dict[int, WriteEffect] = {
+            **{index: partial(self.pdos.write, pdo) for index, pdo in self.pdos.by_object.items()},
+            SYNC_COB_ID_OBJECT: self._write_sync_cob_id,
+            SYNC_COUNTER_OVERFLOW: self._write_sync_counter_overflow,
+            CYCLE_PERIOD: self._write_cycle_period,
+            CONSUMER_HEARTBEAT: self._write_consumer_heartbeat,
+            PRODUCER_HEARTBEAT: self._write_producer_heartbeat,
+            QUICK_STOP_OPTION: self._write_quick_stop_option,
+            MODES_OF_OPERATION: self._write_mode,
+            CONTROLWORD: lambda _index, _subindex, value: self._apply_controlword(value),
+            DISTURBANCE: self._write_disturbance,
+            TIME_BASE: self._write_time_base,
+        }
         self.states = DriveStates(self._values, self.plant, config.standstill_deg_s, self._now,
                                   self._emcy, self._entered)
         self.motor = MotorLoops(self._values, self.plant, config, self.states)
@@ -251,13 +283,20 @@ class DriveNode:
 
     def _reset_communication_state(self) -> None:
         self.pdos.compile_all()
-        self._sync_cob_id = self._values[(SYNC_COB_ID_OBJECT, 0)] & 0x7FF
+        self._listen_to_sync(self._values[(SYNC_COB_ID_OBJECT, 0)] & 0x7FF)
         self._steps_per_sync = self._steps_for_period(self._values[(CYCLE_PERIOD, 0)])
         self._hb_next_ns = None
         self._hb_consumer_armed = False
         self._hb_last_ns = 0
         self._sync_armed = False
         self._sync_last_ns = 0
+
+    def _listen_to_sync(self, cob_id: int) -> None:
+        """SYNC from now on is the frame with ``cob_id`` (0x1005): served ahead of an SDO
+        request with the same COB-ID."""
+        self._sync_cob_id = cob_id
+        self._served_unless_stopped = {SDO_REQUEST_BASE + self.node_id: self.sdo.handle,
+                                       cob_id: self._on_sync}
 
     def next_sync_ns(self, now_ns: int) -> int | None:
         """When the next SYNC is due, on the grid of the communication cycle (0x1006) from the
@@ -328,44 +367,37 @@ class DriveNode:
                 self._emcy(EMCY_SOFTWARE, ERR_REG_GENERIC)
 
     def _dispatch(self, can_id: int, data: bytes) -> None:
-        if can_id == NMT_COB_ID:
-            self._on_nmt(data)
-        elif HEARTBEAT_BASE <= can_id <= HEARTBEAT_BASE + MAX_NODE_ID:
-            self._on_heartbeat(can_id - HEARTBEAT_BASE, data)
+        handler = self._always_served.get(can_id)
+        if handler is not None:
+            handler(data)
         elif self.nmt_state == NMT_STOPPED:
             return  # only NMT and heartbeats are served in STOPPED
-        elif can_id == self._sync_cob_id:
-            self._on_sync(data)
-            if self._sync_timebase:  # time moved on: what is due now, in the SYNC's order
-                self._service(self._now())
-        elif can_id == SDO_REQUEST_BASE + self.node_id:
-            self.sdo.handle(data)
-        else:
-            pdo = self.pdos.receiver(can_id)
-            if pdo is not None:
-                self._on_rpdo(pdo, data)
+        elif (handler := self._served_unless_stopped.get(can_id)) is not None:
+            handler(data)
+        elif (pdo := self.pdos.receiver(can_id)) is not None:
+            self._on_rpdo(pdo, data)
 
     # ------------------------------------------------------------------------------ NMT
     def _on_nmt(self, data: bytes) -> None:
         if len(data) != 2 or data[1] not in (0, self.node_id):
             return
-        command = data[0]
-        if command == NMT_START:
-            self._set_nmt(NMT_OPERATIONAL)
-        elif command == NMT_STOP:
-            self._set_nmt(NMT_STOPPED)
-        elif command == NMT_ENTER_PRE_OPERATIONAL:
-            self._set_nmt(NMT_PRE_OPERATIONAL)
-        elif command == NMT_RESET_NODE:  # application and communication
-            self._reset_application()
-            self.states.enter(SWITCH_ON_DISABLED)
-            self._enter_pre_operational_after_boot()
-        elif command == NMT_RESET_COMMUNICATION:
-            self._leave_operational_check()
-            self.objects.reset(lambda var: var.index < 0x2000)
-            self._reset_communication_state()
-            self._refresh_actuals()
-            self._enter_pre_operational_after_boot()
+        command = self._nmt_commands.get(data[0])
+        if command is not None:
+            command()
+
+    def _reset_node(self) -> None:
+        """NMT reset node: application and communication."""
+        self._reset_application()
+        self.states.enter(SWITCH_ON_DISABLED)
+        self._enter_pre_operational_after_boot()
+
+    def _reset_communication(self) -> None:
+        """NMT reset communication: the communication objects (below 0x2000) to defaults."""
+        self._leave_operational_check()
+        self.objects.reset(lambda var: var.index < 0x2000)
+        self._reset_communication_state()
+        self._refresh_actuals()
+        self._enter_pre_operational_after_boot()
 
     def _set_nmt(self, state: int) -> None:
         if state == self.nmt_state:
@@ -401,57 +433,58 @@ class DriveNode:
         self._write(index, subindex, self.objects.decode_download(index, subindex, data))
 
     def _write(self, index: int, subindex: int, value: int) -> None:
-        """Validate and apply one write (SDO or RPDO); raises SdoAbortError with the CiA
-        code."""
-        key = (index, subindex)
-        values = self._values
-        if index not in WRITE_EFFECTS and index not in self.pdos.by_object:  # a plain value
-            values[key] = value
-            return
-        pdo = self.pdos.by_object.get(index)
-        if pdo is not None:
-            self.pdos.write(pdo, index, subindex, value)
-            return
-        if index == SYNC_COB_ID_OBJECT:
-            if value & EXTENDED_OR_PRODUCER or value & 0x7FF == 0:  # we do not produce SYNC
-                raise SdoAbortError(ABORT_VALUE)
-            values[key] = value
-            self._sync_cob_id = value & 0x7FF
-        elif index == SYNC_COUNTER_OVERFLOW:
-            if values[(CYCLE_PERIOD, 0)] != 0 or value == 1:  # CiA 301: only while 0x1006 = 0
-                raise SdoAbortError(ABORT_DEVICE_STATE if value != 1 else ABORT_VALUE)
-            values[key] = value
-        elif index == CYCLE_PERIOD:
-            steps = self._steps_for_period(value)
-            values[key] = value
-            self._steps_per_sync = steps
-        elif index == CONSUMER_HEARTBEAT:
-            if value & NODE_ID_MASK or (value >> 16) == self.node_id:
-                raise SdoAbortError(ABORT_VALUE)
-            values[key] = value
-            self._hb_consumer_armed = False
-        elif index == PRODUCER_HEARTBEAT:
-            values[key] = value
-            self._hb_next_ns = None
-        elif index == QUICK_STOP_OPTION:
-            if value not in QUICK_STOP_OPTIONS:
-                raise SdoAbortError(ABORT_VALUE)
-            values[key] = value
-        elif index == MODES_OF_OPERATION:
-            if value not in MODES:
-                raise SdoAbortError(ABORT_VALUE)
-            values[key] = value
-            values[(MODES_DISPLAY, 0)] = value
-        elif index == CONTROLWORD:
-            self._apply_controlword(value)
-        elif index == DISTURBANCE:
-            values[key] = value
-            self.plant.extra_disturbance_ma = float(value)
-        elif index == TIME_BASE:
-            self._take_master_time(value)
-            values[key] = value
+        """Validate and apply one write (SDO or RPDO): its effect (``_write_effects``), or
+        else the value stored; raises SdoAbortError with the CiA code."""
+        effect = self._write_effects.get(index)
+        if effect is None:  # a plain value
+            self._values[(index, subindex)] = value
         else:
-            values[key] = value
+            effect(index, subindex, value)
+
+    def _write_sync_cob_id(self, index: int, subindex: int, value: int) -> None:
+        if value & EXTENDED_OR_PRODUCER or value & 0x7FF == 0:  # we do not produce SYNC
+            raise SdoAbortError(ABORT_VALUE)
+        self._values[(index, subindex)] = value
+        self._listen_to_sync(value & 0x7FF)
+
+    def _write_sync_counter_overflow(self, index: int, subindex: int, value: int) -> None:
+        if self._values[(CYCLE_PERIOD, 0)] != 0 or value == 1:  # CiA 301: only while 0x1006 = 0
+            raise SdoAbortError(ABORT_DEVICE_STATE if value != 1 else ABORT_VALUE)
+        self._values[(index, subindex)] = value
+
+    def _write_cycle_period(self, index: int, subindex: int, value: int) -> None:
+        steps = self._steps_for_period(value)
+        self._values[(index, subindex)] = value
+        self._steps_per_sync = steps
+
+    def _write_consumer_heartbeat(self, index: int, subindex: int, value: int) -> None:
+        if value & NODE_ID_MASK or (value >> 16) == self.node_id:
+            raise SdoAbortError(ABORT_VALUE)
+        self._values[(index, subindex)] = value
+        self._hb_consumer_armed = False
+
+    def _write_producer_heartbeat(self, index: int, subindex: int, value: int) -> None:
+        self._values[(index, subindex)] = value
+        self._hb_next_ns = None
+
+    def _write_quick_stop_option(self, index: int, subindex: int, value: int) -> None:
+        if value not in QUICK_STOP_OPTIONS:
+            raise SdoAbortError(ABORT_VALUE)
+        self._values[(index, subindex)] = value
+
+    def _write_mode(self, index: int, subindex: int, value: int) -> None:
+        if value not in MODES:
+            raise SdoAbortError(ABORT_VALUE)
+        self._values[(index, subindex)] = value
+        self._values[(MODES_DISPLAY, 0)] = value
+
+    def _write_disturbance(self, index: int, subindex: int, value: int) -> None:
+        self._values[(index, subindex)] = value
+        self.plant.extra_disturbance_ma = float(value)
+
+    def _write_time_base(self, index: int, subindex: int, value: int) -> None:
+        self._take_master_time(value)
+        self._values[(index, subindex)] = value
 
     def _steps_for_period(self, period_us: int) -> int:
         """Plant steps per SYNC for a communication cycle period (0 = not set: one step); a
@@ -512,6 +545,11 @@ class DriveNode:
 
     # ----------------------------------------------------------------------------- SYNC
     def _on_sync(self, data: bytes) -> None:
+        self._sync_cycle(data)
+        if self._sync_timebase:  # time moved on: what is due now, in the SYNC's order
+            self._service(self._now())
+
+    def _sync_cycle(self, data: bytes) -> None:
         if len(data) > 1:
             self._emcy(EMCY_SYNC_LENGTH, ERR_REG_COMMUNICATION, raise_register=False)
             return

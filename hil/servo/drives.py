@@ -4,8 +4,8 @@ A bus with one axis gives its master the bus to itself: the master sends its own
 RPDO, then the SYNC). A bus with several holds every master's cycle in an
 :class:`~hil.drivers.canopen.axes.AxisGroup` until :meth:`RunDrives.end_cycle` puts them all out
 behind one SYNC. A stop of any kind stops every axis of every bus in the same cycles
-(:func:`~hil.drivers.canopen.master.stop_together`); for one axis that is its master's own
-safe stop.
+(:meth:`~hil.drivers.canopen.axes.AxisGroup.stop_together`); for one axis that is its master's
+own safe stop.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from hil.drivers.canopen.axes import AxisGroup
-from hil.drivers.canopen.master import CanDriveMaster, stop_together
+from hil.drivers.canopen.master import CanDriveMaster
 
 
 @dataclass
@@ -85,7 +85,7 @@ class RunDrives:
     def safe_state(self) -> None:
         """Every axis stopped in the same cycles; silent."""
         if all(bus.together for bus in self.buses):
-            stop_together(self.masters, self.end_cycle)
+            AxisGroup.stop_together(self.buses)
         else:  # still setting up: one drive after the other
             for master in self.masters:
                 master.safe_state()

@@ -216,14 +216,14 @@ def share_lockstep_time(master: CanDriveMaster, on_event: EventSink = no_event) 
     ``drive.clock`` event."""
     n, bound_ms = master.node_id, round(master.config.lockstep_timeout_s * 1e3)
     try:
-        master.sdo_write(TIME_BASE, 0, bound_ms, "<I")
+        master.sdo.write(TIME_BASE, 0, bound_ms, "<I")
     except SdoAbortError as exc:
         on_event("drive.clock", f"drive node {n} keeps its own clock ({exc}): lockstep "
                  "watches it on the wall clock, where a pause on either side can fault it",
                  level="warning", source=f"drive{n}", shared=False)
         return False
     master.clock = SyncClock(master.link, master.config.cycle_period_s)
-    master.on_release(lambda: master.sdo_write(TIME_BASE, 0, 0, "<I"))
+    master.on_release(lambda: master.sdo.write(TIME_BASE, 0, 0, "<I"))
     on_event("drive.clock", f"drive node {n} keeps the master's time: its SYNCs (a drive "
              f"silent for {bound_ms} ms of wall time is gone)", source=f"drive{n}",
              shared=True, bound_ms=bound_ms)

@@ -473,7 +473,7 @@ def realtime_factor(ticks: int, loop: FixedRateLoop) -> float | None:
 def check_disturbance_object(master: CanDriveMaster) -> None:
     """The disturbance scenario pushes the axis through the emulated drive's 0x2003."""
     try:
-        master.sdo_write(DISTURBANCE_OBJECT, 0, 0, "<h")
+        master.sdo.write(DISTURBANCE_OBJECT, 0, 0, "<h")
     except SdoAbortError as exc:
         raise UsageError(
             "the disturbance scenario needs the emulated drive's disturbance torque object "

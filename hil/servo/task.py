@@ -243,7 +243,7 @@ class ServoTask(Task):
         i.e. while u(k) is, as in the offline simulation. No SDO round trip in the cycle."""
         if value == self._disturbance_ma:
             return
-        self.master.queue_sdo_write(DISTURBANCE_OBJECT, 0, value, "<h")
+        self.master.sdo.queue_write(DISTURBANCE_OBJECT, 0, value, "<h")
         self._disturbance_ma = value
         self.session.event("servo.disturbance", f"disturbance torque {value} mA",
                            source="scenario", torque_mA=value, t_s=self._t_s)

@@ -68,7 +68,7 @@ def test_start_configures_the_drive_by_sdo():
     master = emulated({"master": {"current_limit_mA": 750.0, "drive_heartbeat_ms": 20}}, events)
     feedback = master.start()
     assert feedback.state == "OPERATION ENABLED" and feedback.position_deg == 0.0
-    read = master.sdo_read_int
+    read = master.sdo.read_int
     for pdo in (*RPDOS, *TPDOS):
         assert read(pdo.mapping, 0, "<B") == 2
         assert [read(pdo.mapping, sub) for sub in (1, 2)] == pdo.mapping_values()
@@ -270,7 +270,7 @@ def test_emcy_and_fault_are_recorded_as_session_events(tmp_path):
 def test_csp_mode_tracks_a_position_target():
     master = emulated({"master": {"mode": "csp"}})
     master.start()
-    assert master.sdo_read_int(0x1600, 2) == 0x607A0020
+    assert master.sdo.read_int(0x1600, 2) == 0x607A0020
     worst = 0.0
     for k in range(4000):  # a smooth 1.5 s move of 400 deg (over a turn), then hold
         target = 200.0 * (1.0 - math.cos(math.pi * min(k * 500e-6, 1.5) / 1.5))
@@ -312,9 +312,9 @@ def test_a_drive_stuck_in_its_state_gives_an_error_naming_the_state():
 def test_sdo_refusals_name_the_object_and_the_abort_code():
     master = emulated()
     with pytest.raises(SdoAbortError, match=r"0x6060:00 = 3.*0x06090030") as error:
-        master.sdo_write(0x6060, 0, 3, "<b")
+        master.sdo.write(0x6060, 0, 3, "<b")
     assert error.value.code == 0x06090030
-    assert master.sdo_read(0x1008).decode() == "hil CiA 402 drive emulator"  # segmented
+    assert master.sdo.read(0x1008).decode() == "hil CiA 402 drive emulator"  # segmented
     master.close()
 
 

@@ -139,5 +139,5 @@ def test_an_ignored_controlword_is_caught_and_the_sync_watchdog_faults_the_drive
     d.master.safe_state()
     assert "drive.safe_stop_failed" in d.kinds()
     time.sleep(0.6)  # no SYNC any more: the drive's SYNC watchdog (300 ms) faults it
-    assert state_of(d.master.sdo_read_int(0x6041, 0, "<H")) == FAULT
+    assert state_of(d.master.sdo.read_int(0x6041, 0, "<H")) == FAULT
     assert d.node.state != OPERATION_ENABLED

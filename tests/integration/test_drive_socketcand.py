@@ -73,7 +73,7 @@ def test_every_transition_of_the_chart_over_socketcand(emulator):
             feedback = master.cycle(controlword)
             mask, value = State402.SW_MASK[state]
             assert feedback.fresh and feedback.statusword & mask == value, (step, state)
-            assert state_of(master.sdo_read_int(0x6041, 0, "<H")) == state
+            assert state_of(master.sdo.read_int(0x6041, 0, "<H")) == state
         master.start()
         master.exchange(0.0)
         for _ in range(200):  # fault: over-current trips the drive; reset by bit 7

@@ -27,7 +27,7 @@ def assert_state(master, feedback, state):
     assert feedback.fresh
     assert feedback.statusword & mask == value, (hex(feedback.statusword), state)
     assert state_of(feedback.statusword) == state
-    assert state_of(master.sdo_read_int(0x6041, 0, "<H")) == state
+    assert state_of(master.sdo.read_int(0x6041, 0, "<H")) == state
 
 
 # (controlword, state after the SYNC, CiA 402 transition)
