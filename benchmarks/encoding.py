@@ -19,8 +19,8 @@ import tempfile
 from pathlib import Path
 
 from hil.bench.run import BenchRunOptions, run_bench
-from hil.core.reader import SessionData, read_session
-from hil.core.recorder import Recorder, RecordingOptions
+from hil.core.recording.reader import SessionData, read_session
+from hil.core.recording.recorder import Recorder, RecordingOptions
 from hil.servo.run import ServoRunOptions, run_servo
 from hil.servo.topics import COMMAND_SCHEMA, FEEDBACK_SCHEMA
 

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.core.cdr import CdrDecoder, parse_ros2msg
+from hil.core.recording.cdr import CdrDecoder, parse_ros2msg
 
 ROOT = Path(__file__).resolve().parents[1]
 CODE_ENV = "HIL_ENDURANCE_CODE"  # the checkout a child imports hil from

@@ -35,7 +35,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from hil import api  # noqa: E402
-from hil.core.reader import read_session  # noqa: E402
+from hil.core.recording.reader import read_session  # noqa: E402
 
 CYCLE_S = 28.0  # the machining sequence's period
 MARGIN_S = 1.5  # a reaction counts for a fault if it comes within this after its window

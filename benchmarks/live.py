@@ -38,7 +38,7 @@ import tomli_w
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hil.core.config import deep_merge
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.servo.demo import drive_for
 from hil.servo.report import FEEDBACK_TIMING
 
@@ -160,7 +160,8 @@ def _children(pid: int) -> list[int]:
 
 def _role(pid: int) -> str:
     command = _read(f"/proc/{pid}/cmdline").replace("\0", " ")
-    for needle, role in (("hil.core.writer", "writer"), ("emulate drive", "drive emulator"),
+    for needle, role in (("hil.core.recording.writer", "writer"),
+                         ("emulate drive", "drive emulator"),
                          ("servo run", "loop process"), ("foxglove_client", "clients")):
         if needle in command:
             return role

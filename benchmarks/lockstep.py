@@ -32,8 +32,8 @@ from typing import Any
 import numpy as np
 
 from hil.api import start_drive_emulator
-from hil.core.reader import read_session
-from hil.core.recorder import Recorder
+from hil.core.recording.reader import read_session
+from hil.core.recording.recorder import Recorder
 from hil.servo.rig import open_drive
 from hil.servo.run import ServoRunOptions, run_servo
 from hil.servo.topics import COMMAND_SCHEMA, FEEDBACK_SCHEMA, PREDICTION_SCHEMA

@@ -202,7 +202,7 @@ def sampling(url: str, duration_s: float, config: BenchConfig
 
 
 def _timing_messages(session: Session) -> list[dict]:
-    from hil.core.reader import read_session
+    from hil.core.recording.reader import read_session
 
     return [m for _, m in read_session(session.path).topic("/loop/bench_io/timing")]
 

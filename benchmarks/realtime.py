@@ -27,8 +27,8 @@ import numpy as np
 
 from hil.bench.run import BenchRunOptions, run_bench
 from hil.core.doctor import measure_loop
-from hil.core.reader import read_session
 from hil.core.realtime import Hardening
+from hil.core.recording.reader import read_session
 from hil.servo.report import FEEDBACK_TIMING
 from hil.servo.run import ServoRunOptions, run_servo
 

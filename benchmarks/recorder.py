@@ -14,7 +14,7 @@ import time
 
 from mcap.writer import CompressionType, Writer
 
-from hil.core.recorder import Recorder
+from hil.core.recording.recorder import Recorder
 
 N = 200_000
 MESSAGE = {"t": 0, "S_VA": [12.5, 431.2, 0.0], "relays": {"P1": True, "P2": False}, "k": 7}

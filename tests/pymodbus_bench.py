@@ -28,7 +28,7 @@ from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from hil.bench.config import BenchConfig
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 
 ROOT = Path(__file__).resolve().parents[1]

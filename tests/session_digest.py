@@ -71,7 +71,7 @@ def _clean(value: Any) -> Any:
 
 def session_digest(path: str) -> dict[str, dict[str, Any]]:
     """``{topic: {"count": n, "sha256": hex}}`` of every topic but the loop timing."""
-    from hil.core.reader import read_session
+    from hil.core.recording.reader import read_session
 
     data = read_session(path)
     out = {}

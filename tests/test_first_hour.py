@@ -147,7 +147,7 @@ def test_the_command_line_starts_without_the_numerical_stack():
     """`hil --help` stays fast because building the parser imports no numpy, scipy, cvxpy,
     Ray or the recorder (each command imports what it needs when it runs)."""
     assert imported("import hil.cli.main as m; m.build_parser()",
-                    "numpy", "scipy", "cvxpy", "ray", "matplotlib", "hil.core.recorder",
+                    "numpy", "scipy", "cvxpy", "ray", "matplotlib", "hil.core.recording.recorder",
                     "hil.core.session") == []
 
 
@@ -180,7 +180,7 @@ def test_runs_that_build_no_estimator_import_no_scipy_stats():
                     "filterpy", "scipy.stats", "scipy.signal", "scipy.linalg", "highspy",
                     "daqp", "cvxpy") == []
     # every recorded run starts a writer process: it imports numpy only for an array
-    assert imported("import hil.core.writer", "numpy") == []
+    assert imported("import hil.core.recording.writer", "numpy") == []
 
 
 def _stderr_on_a_terminal(cwd, *args):

@@ -57,7 +57,7 @@ def failure_section(stdout, test):
 
 #: the hil_bench fixture's runs against its own emulator go over the wire on the run's time
 OVER_THE_WIRE = '''
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 
 
 def test_runs_in_lockstep_on_the_fixtures_own_emulator(hil_bench):
@@ -189,7 +189,7 @@ stale_share_max = 1.0
 RUNS_ON_THE_GIVEN_DRIVE = '''
 import os
 
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from my_controllers import PdPosition
 
 CONFIG = os.environ["DRIVE_CONFIG"]

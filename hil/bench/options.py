@@ -7,7 +7,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
-from hil.core.recording_options import RecordingOptions
+from hil.core.recording.recording_options import RecordingOptions
 from hil.core.settings import given_options
 from hil.core.verdict import Limit
 from hil.errors import UsageError

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.core.reader import SessionData
+from hil.core.recording.reader import SessionData
 from hil.core.report import kpis
 
 SOLVE_EDGES_MS = (0.0, 5.0, 10.0, 20.0, 50.0, 100.0, 250.0, 500.0, 1000.0)

@@ -63,7 +63,7 @@ def key_value(text: str) -> tuple[str, object]:
 def output_file(text: str) -> str:
     """A file a command will write: its missing folders are created here, at parsing, so a
     path that cannot be written is refused before anything runs or any hardware is reached."""
-    from hil.core.output import output_problem
+    from hil.core.recording.output import output_problem
 
     if not text:
         raise argparse.ArgumentTypeError("expected a file name, got ''")

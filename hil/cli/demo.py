@@ -13,7 +13,7 @@ from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 from hil.cli.recording import add_live_arguments, live_address
-from hil.core.recording_options import RecordingOptions
+from hil.core.recording.recording_options import RecordingOptions
 
 BENCH_COLUMNS = ("J1_VA", "J2_VA", "SEC_VA", "peak_VA", "overlap_s", "dwell_violations",
                  "level_violations")
@@ -70,7 +70,7 @@ def progress(message: str) -> None:
 def _bench_session(controller: str, path: str, recording: RecordingOptions) -> dict[str, Any]:
     """One 8-cycle run against the emulated bench, plus its report PNG (a worker process)."""
     from hil.bench.run import BenchRunOptions, run_bench
-    from hil.core.reader import read_session
+    from hil.core.recording.reader import read_session
     from hil.core.report import plot_session
 
     kpis = run_bench(BenchRunOptions(controller=controller, cycles=8, out=path,

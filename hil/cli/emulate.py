@@ -165,8 +165,8 @@ def _live_state(args: argparse.Namespace, topics: dict[str, tuple[str, Callable[
     if address is None:
         yield
         return
-    from hil.core.live import LiveSink, parse_address
-    from hil.core.recorder import EVENT_SCHEMA
+    from hil.core.recording.live import LiveSink, parse_address
+    from hil.core.recording.recorder import EVENT_SCHEMA
 
     sink = LiveSink(*parse_address(address), rates={name: 0 for name in topics})
     sink.add_topic("/events", "/events", EVENT_SCHEMA)

@@ -32,7 +32,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def export_command(args: argparse.Namespace) -> int:
     from hil.cli.report import topic_lines
-    from hil.core.reader import read_session
+    from hil.core.recording.reader import read_session
 
     data = read_session(args.file)
     if args.jsonl:

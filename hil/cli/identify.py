@@ -76,7 +76,7 @@ def identify_command(args: argparse.Namespace) -> int:
         parse_signal,
         save_model_file,
     )
-    from hil.core.reader import read_session
+    from hil.core.recording.reader import read_session
 
     data = read_session(args.file)
     if not args.inputs or not args.outputs:

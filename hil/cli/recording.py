@@ -7,8 +7,8 @@ from collections.abc import Callable
 from typing import TypeVar
 
 from hil.cli.argtypes import positive_float
-from hil.core.live import DEFAULT_RATE_HZ, check_bindable, parse_address, parse_rate
-from hil.core.recording_options import ENCODINGS, RecordingOptions
+from hil.core.recording.live import DEFAULT_RATE_HZ, check_bindable, parse_address, parse_rate
+from hil.core.recording.recording_options import ENCODINGS, RecordingOptions
 from hil.errors import UsageError
 
 T = TypeVar("T")
@@ -24,7 +24,8 @@ def topic_encoding(text: str) -> tuple[str, str]:
 
 
 def _argparse_type(parse: Callable[[str], T]) -> Callable[[str], T]:
-    """A ``hil.core.live`` parser as an argparse type (its UsageError as argparse's error)."""
+    """A ``hil.core.recording.live`` parser as an argparse type (its UsageError as argparse's
+    error)."""
     def convert(text: str) -> T:
         try:
             return parse(text)

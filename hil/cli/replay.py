@@ -29,9 +29,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def replay_command(args: argparse.Namespace) -> int:
-    from hil.core.live import LiveSink, parse_address
-    from hil.core.reader import read_session
-    from hil.core.replay import advertise, replay
+    from hil.core.recording.live import LiveSink, parse_address
+    from hil.core.recording.reader import read_session
+    from hil.core.recording.replay import advertise, replay
     from hil.errors import UsageError
 
     if args.live is None:

@@ -36,7 +36,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def report_command(args: argparse.Namespace) -> int:
-    from hil.core.reader import read_session
+    from hil.core.recording.reader import read_session
     from hil.core.report import format_summary, plot_session, summarize
 
     data = read_session(args.file)

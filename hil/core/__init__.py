@@ -1,4 +1,5 @@
-"""The framework: clocks, the fixed-rate loop, sessions (recorder, reader), statistics,
-configuration primitives, errors, the device contract and the URL scheme registry.
+"""The framework: clocks, the fixed-rate loop, the run pipeline, sessions (recording and reading
+them: :mod:`hil.core.recording`), statistics, configuration primitives, limits and verdicts, and
+the URL scheme registry.
 
 It names no application: the bench and the servo packages plug into it."""

@@ -18,7 +18,7 @@ import hashlib
 import os
 import tempfile
 
-from hil.core.output import open_locked
+from hil.core.recording.output import open_locked
 from hil.errors import ForeignMasterError, HilError
 
 LOCK_DIR_ENV = "HIL_LOCK_DIR"

@@ -35,7 +35,7 @@ from hil.controllers.ident.n4sid import (
     dumps_model,
     loads_model,
 )
-from hil.core.reader import SessionData
+from hil.core.recording.reader import SessionData
 from hil.errors import ConfigError, UsageError
 
 IRREGULAR_TOLERANCE = 0.25  # an output interval off the median by more than this is irregular

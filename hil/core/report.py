@@ -11,7 +11,7 @@ import numpy as np
 
 from hil.core.loop import PHASES
 from hil.core.plugins import registered
-from hil.core.reader import SessionData
+from hil.core.recording.reader import SessionData
 from hil.core.stats import percentile_summary
 
 # Plotters of the applications, keyed by the session kind recorded in the metadata. An

@@ -40,9 +40,9 @@ from typing import Any
 
 from hil.core.clock import Clock
 from hil.core.device_lock import DeviceLock, lock_device
-from hil.core.output import OutputClaim, claim_output
 from hil.core.progress import ProgressLine, wants_progress
-from hil.core.recorder import RecordingOptions
+from hil.core.recording.output import OutputClaim, claim_output
+from hil.core.recording.recorder import RecordingOptions
 from hil.core.session import Session
 from hil.core.verdict import Limit, SignalWatch, run_status, verdict
 from hil.errors import HilError, RunInterruptedError

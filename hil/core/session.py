@@ -14,9 +14,9 @@ from typing import Any
 
 from hil.core.clock import Clock
 from hil.core.loop import FixedRateLoop, Task
-from hil.core.output import OutputClaim, claim_output
 from hil.core.realtime import Hardening, helper_metadata
-from hil.core.recorder import Recorder, RecorderStats, RecordingOptions, Topic
+from hil.core.recording.output import OutputClaim, claim_output
+from hil.core.recording.recorder import Recorder, RecorderStats, RecordingOptions, Topic
 
 VERSIONED_PACKAGES = (
     "hil", "numpy", "scipy", "pymodbus", "python-can", "canopen", "cvxpy", "highspy", "daqp",
@@ -97,7 +97,8 @@ class Session:
 
     def topic(self, name: str, schema: dict[str, Any], *, encoding: str | None = None,
               high_rate: bool = False) -> Topic:
-        """Register a topic (see :meth:`hil.core.recorder.Recorder.topic` for encodings)."""
+        """Register a topic (see :meth:`hil.core.recording.recorder.Recorder.topic` for
+        encodings)."""
         return self.recorder.topic(name, schema, encoding=encoding, high_rate=high_rate)
 
     def add_task(self, task: Task) -> Task:

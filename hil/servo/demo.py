@@ -22,8 +22,8 @@ from hil.controllers.servo.mpc import MpcConfig, TrajectoryMpc
 from hil.controllers.servo.pid import CascadedPid, PidConfig
 from hil.controllers.servo.references import Reference
 from hil.controllers.servo.sim import PAPER_CASES, cycle_error
-from hil.core.reader import read_session
-from hil.core.recorder import RecordingOptions
+from hil.core.recording.reader import read_session
+from hil.core.recording.recorder import RecordingOptions
 from hil.core.report import plot_session
 from hil.errors import HilError
 from hil.servo.run import ServoRunOptions, run_servo

@@ -10,7 +10,7 @@ from typing import Any
 from hil.controllers.servo.model import SAMPLE_PERIOD_S
 from hil.core.plugins import controller_label
 from hil.core.ranges import MAX_MPC_HORIZON, check_at_most, check_duration, check_milliamps
-from hil.core.recording_options import RecordingOptions
+from hil.core.recording.recording_options import RecordingOptions
 from hil.core.settings import given_options
 from hil.core.verdict import Limit
 from hil.errors import UsageError

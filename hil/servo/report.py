@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from hil.controllers.servo.model import SAMPLE_PERIOD_S
-from hil.core.reader import SessionData
+from hil.core.recording.reader import SessionData
 from hil.core.report import kpis
 from hil.servo.safety import ServoSafety, judge_stale
 

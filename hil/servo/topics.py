@@ -1,6 +1,6 @@
 """The servo run's topics: what each message of ``/drive/command``, ``/drive/feedback``,
 ``/drive/stop`` and ``/mpc/prediction`` holds, as JSON Schemas (recorded as CDR:
-:mod:`hil.core.cdr`)."""
+:mod:`hil.core.recording.cdr`)."""
 
 from __future__ import annotations
 

@@ -13,7 +13,7 @@ import pytest
 from hil.bench.config import load_configs
 from hil.bench.kpis import BenchKpis, transitions
 from hil.bench.run import BenchRunOptions, run_bench
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -9,7 +9,7 @@ import pytest
 from hil.bench.config import load_bench_config, parse_bench_config
 from hil.bench.rig import SequenceSchedule, attach_bench
 from hil.core.clock import SimClock
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.core.session import Session
 from hil.errors import ConfigError
 

@@ -17,7 +17,7 @@ import pytest
 
 from hil import api
 from hil.bench.config import load_bench_config
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.errors import ConfigError, SafetyStopError
 from tests.pymodbus_bench import PymodbusBench, session_events, short_config
 

@@ -10,8 +10,8 @@ import pytest
 from mcap.reader import make_reader
 
 from hil.cli.main import main
-from hil.core.reader import read_session
-from hil.core.recorder import Recorder
+from hil.core.recording.reader import read_session
+from hil.core.recording.recorder import Recorder
 
 pytestmark = [pytest.mark.slow]
 
@@ -20,7 +20,7 @@ SCHEMA = {"type": "object", "title": "Seq"}
 
 CHILD = """
 import time
-from hil.core.recorder import Recorder
+from hil.core.recording.recorder import Recorder
 rec = Recorder({path!r})
 print("writer", rec.writer_pid, flush=True)
 topic = rec.topic("/seq", {{"type": "object", "title": "Seq"}})

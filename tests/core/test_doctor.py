@@ -83,7 +83,7 @@ def test_an_unprivileged_process_is_refused_and_told_why():
 def test_a_realtime_session_records_every_hardening_step_and_a_lockstep_one_none(tmp_path):
     from hil.core.clock import RealtimeClock, SimClock
     from hil.core.loop import FunctionTask
-    from hil.core.reader import read_session
+    from hil.core.recording.reader import read_session
     from hil.core.session import Session
 
     seen = {}
@@ -153,7 +153,7 @@ def test_a_worker_started_from_the_hardened_loop_thread_is_an_ordinary_thread():
 
 def test_hardening_keeps_helper_processes_and_the_writer_off_the_loops_core(tmp_path):
     from hil.core.realtime import forget_helper_process, register_helper_process
-    from hil.core.recorder import Recorder
+    from hil.core.recording.recorder import Recorder
 
     usable = sorted(os.sched_getaffinity(0))
     helper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
@@ -182,7 +182,7 @@ def test_hardening_keeps_helper_processes_and_the_writer_off_the_loops_core(tmp_
 def test_a_real_time_writer_process_yields_its_cpu_to_everything_else(tmp_path):
     """Real time (the producer never waits): the writer runs under SCHED_IDLE, so an emulator
     woken up on its core preempts it at once; where SCHED_IDLE is refused, at nice >= 10."""
-    from hil.core.recorder import Recorder
+    from hil.core.recording.recorder import Recorder
 
     recorder = Recorder(tmp_path / "rt.mcap", wait_when_full=False)
     lockstep = Recorder(tmp_path / "lockstep.mcap", wait_when_full=True)

@@ -90,7 +90,7 @@ def test_a_task_takes_part_only_in_the_phases_it_defines_and_each_is_timed():
 
 
 def test_timing_records_hold_each_phase_under_its_own_name(tmp_path):
-    from hil.core.reader import read_session
+    from hil.core.recording.reader import read_session
     from hil.core.session import Session
 
     session = Session(str(tmp_path / "t.mcap"), SimClock(), 0.01, kind="test",

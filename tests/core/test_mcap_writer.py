@@ -11,8 +11,8 @@ from mcap.records import Chunk
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from hil.core.mcap_writer import McapWriter
-from hil.core.reader import read_session
+from hil.core.recording.mcap_writer import McapWriter
+from hil.core.recording.reader import read_session
 
 
 def write_session(writer):

@@ -10,8 +10,8 @@ import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from hil.core.reader import read_session, session_files
-from hil.core.recorder import Recorder, RecordingOptions
+from hil.core.recording.reader import read_session, session_files
+from hil.core.recording.recorder import Recorder, RecordingOptions
 from hil.errors import HilError
 
 FLAT = {
@@ -106,7 +106,7 @@ def test_the_compiled_cdr_encoder_writes_the_bytes_of_the_field_by_field_one():
     on messages with every type, missing fields, numpy arrays and values that do not fit."""
     import numpy as np
 
-    from hil.core.cdr import CdrEncoder, CdrError, fields_of
+    from hil.core.recording.cdr import CdrEncoder, CdrError, fields_of
 
     encoder = CdrEncoder(fields_of(FLAT))
     rng = np.random.default_rng(7)
@@ -199,7 +199,7 @@ def test_split_by_size(tmp_path):
 
 CHILD = """
 import time
-from hil.core.recorder import Recorder, RecordingOptions
+from hil.core.recording.recorder import Recorder, RecordingOptions
 rec = Recorder({path!r}, options=RecordingOptions(split_duration_s=0.5))
 print("writer", rec.writer_pid, flush=True)
 topic = rec.topic("/seq", {{"type": "object", "title": "Seq",

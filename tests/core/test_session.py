@@ -7,8 +7,8 @@ from mcap.reader import make_reader
 
 from hil.core.clock import SimClock
 from hil.core.loop import FunctionTask
-from hil.core.reader import read_session
-from hil.core.recorder import Recorder
+from hil.core.recording.reader import read_session
+from hil.core.recording.recorder import Recorder
 from hil.core.session import Session
 from hil.errors import RecordingError
 

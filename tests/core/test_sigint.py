@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 

@@ -10,7 +10,7 @@ import pytest
 
 from hil.core.clock import RealtimeClock, SimClock
 from hil.core.loop import FixedRateLoop, FunctionTask
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.core.session import Session
 from hil.core.stats import LOWEST, RELATIVE_ACCURACY, TimingHistogram
 from hil.servo.run import ServoRunOptions, run_servo

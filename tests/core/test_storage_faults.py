@@ -19,8 +19,8 @@ import pytest
 
 from hil import api
 from hil.bench.config import load_bench_config
-from hil.core.output import OutputError
-from hil.core.reader import read_session
+from hil.core.recording.output import OutputError
+from hil.core.recording.reader import read_session
 from tests.pymodbus_bench import PymodbusBench, short_config, start_bench_run
 
 pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
@@ -81,7 +81,7 @@ def test_a_killed_writer_stops_the_run_within_a_second(tmp_path):
                         cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
                     except OSError:
                         continue
-                    if b"hil.core.writer" in cmdline and str(out).encode() in cmdline:
+                    if b"hil.core.recording.writer" in cmdline and str(out).encode() in cmdline:
                         writer = int(pid)
         assert writer is not None
         while bench.meter_reads < 200:  # 2 s into the run

@@ -16,7 +16,7 @@ import pytest
 from hil.contracts import no_event
 from hil.core.clock import SimClock
 from hil.core.loop import FunctionTask
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.core.session import Session
 from hil.drivers.canopen import (
     BusSharedError,

@@ -11,7 +11,7 @@ import uuid
 
 import pytest
 
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.drivers.canopen import CanDriveMaster, CanLink, DriveMasterConfig
 from hil.drivers.canopen.axes import AxisBus, AxisGroup
 from hil.emulators.drive.runners import LockstepDrive

@@ -14,7 +14,7 @@ import pytest
 
 from hil.bench.config import load_bench_config
 from hil.cli.main import main
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.drivers.bench.modbus import LinkError, ModbusBenchDriver, ModbusLink, parse_bus_url
 from hil.drivers.bench.safe_bench import SafeBench
 from hil.emulators.bench.server import EmulatedBench

@@ -170,7 +170,7 @@ print("closed", flush=True)
 
 @pytest.mark.realtime
 def test_two_sigterms_a_few_ms_apart_stop_a_loop_cleanly(tmp_path, run_python):
-    from hil.core.reader import read_session
+    from hil.core.recording.reader import read_session
 
     path = tmp_path / "loop.mcap"
     child = run_python(LOOP_CHILD.format(path=str(path)))

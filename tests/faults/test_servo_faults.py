@@ -8,7 +8,7 @@ import pytest
 
 from hil import api
 from hil.cli.main import main
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 
 pytestmark = [pytest.mark.timeout(90), pytest.mark.slow]
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from hil import api
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from tests.cli import hil_here as in_process
 
 ROOT = Path(__file__).resolve().parents[2]

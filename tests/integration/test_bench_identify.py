@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from hil.cli.main import main
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 
 pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
 

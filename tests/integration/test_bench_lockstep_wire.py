@@ -27,7 +27,7 @@ import pytest
 from pymodbus.client import ModbusTcpClient
 
 from hil.bench.config import load_bench_config
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.emulators.null_modem import NullModem
 from tests.pymodbus_bench import PymodbusBench, short_config
 from tests.session_digest import (

@@ -11,7 +11,7 @@ import pytest
 from hil.bench.kpis import transitions
 from hil.bench.run import BenchRunOptions, run_bench
 from hil.cli.main import main
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.core.report import plot_session, summarize
 from tests.pymodbus_bench import short_config
 

@@ -21,7 +21,7 @@ from hil.contracts import Device, LinkWatchdog
 from hil.core.clock import RealtimeClock, SimClock
 from hil.core.config import deep_merge
 from hil.core.loop import FunctionTask
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.core.session import Session
 from hil.drivers.bench.safe_bench import DwellGuard
 

@@ -21,7 +21,7 @@ import pytest
 
 from hil import api
 from hil.core.device_lock import LOCK_DIR_ENV, lock_device
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.emulators.drive.eds import BIT_RATES
 from tests.cli import hil_here as in_process
 from tests.drive_slave import INCREMENTS, RATED_MA, dictionary, serve

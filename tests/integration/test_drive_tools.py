@@ -19,7 +19,7 @@ import canopen
 import pytest
 
 from hil import api
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.drivers.canopen import DriveError
 from hil.servo.run import ServoRunOptions, run_servo
 from tests.cli import hil_here as in_process

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.servo.run import ServoRunOptions, run_servo
 from tests.drive_slave import INCREMENTS, RATED_MA, serve
 

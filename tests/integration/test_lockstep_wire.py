@@ -19,7 +19,7 @@ import pytest
 
 from hil import api
 from hil.cli.main import main
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.drivers.canopen.errors import DriveFaultError, DriveGoneError
 from hil.servo.run import ServoRunOptions, run_servo
 from tests.session_digest import kpi_digest, session_digest

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from hil import api
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.errors import ConfigError, HilError
 from hil.protocols.cia402 import QUICK_STOP_ACTIVE, SWITCH_ON_DISABLED, state_of
 from tests.cli import hil_here as in_process

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 
 pytestmark = [pytest.mark.timeout(90), pytest.mark.slow, pytest.mark.realtime]
 ROOT = Path(__file__).resolve().parents[2]
@@ -63,11 +63,11 @@ def test_a_sigkilled_run_leaves_no_emulator_and_a_finished_file(tmp_path, argv):
         while time.monotonic() < deadline:
             helpers = children_of(run.pid)
             if any("emulate" in c for c in helpers.values()) and \
-                    any("hil.core.writer" in c for c in helpers.values()):
+                    any("hil.core.recording.writer" in c for c in helpers.values()):
                 break
             time.sleep(0.1)
         emulator = next(p for p, c in helpers.items() if "emulate" in c)
-        writer = next(p for p, c in helpers.items() if "hil.core.writer" in c)
+        writer = next(p for p, c in helpers.items() if "hil.core.recording.writer" in c)
         time.sleep(1.5)  # the run is under way
         run.send_signal(signal.SIGKILL)
         run.wait(10)

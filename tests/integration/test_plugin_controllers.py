@@ -4,7 +4,7 @@
 import pytest
 
 from hil import api
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.errors import ConfigError, ControllerError
 
 pytestmark = [pytest.mark.slow]

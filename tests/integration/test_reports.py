@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from hil import api
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from tests.cli import hil_here
 
 pytestmark = [pytest.mark.timeout(180), pytest.mark.slow]

@@ -19,7 +19,7 @@ import pytest
 from hil.cli.main import main
 from hil.controllers.servo.references import parse_scenario
 from hil.controllers.servo.sim import simulate
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.drivers.canopen import DriveFaultError
 from hil.servo.demo import drive_for
 from hil.servo.run import ServoRunOptions, make_controller, run_servo

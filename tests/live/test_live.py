@@ -15,10 +15,10 @@ import pytest
 
 from hil.cli.main import main
 from hil.core.clock import RealtimeClock
-from hil.core.live import flatten
 from hil.core.loop import FunctionTask
-from hil.core.reader import read_session
-from hil.core.recorder import RecordingOptions
+from hil.core.recording.live import flatten
+from hil.core.recording.reader import read_session
+from hil.core.recording.recorder import RecordingOptions
 from hil.core.session import Session
 from tests.live.foxglove_client import FoxgloveClient, stalled_client
 from tests.pymodbus_bench import short_config

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from websockets.exceptions import ConnectionClosed, WebSocketException
 
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from tests.live.foxglove_client import FoxgloveClient
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]

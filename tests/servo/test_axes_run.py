@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from tests.cli import hil_here as in_process
 
 pytestmark = [pytest.mark.slow]

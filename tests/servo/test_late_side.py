@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.errors import HilError
 from hil.servo.options import ServoRunOptions
 from hil.servo.run import run_servo

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from hil import api
-from hil.core.reader import read_session
+from hil.core.recording.reader import read_session
 from hil.errors import HilError
 from hil.servo.run import ServoRunOptions, run_servo
 

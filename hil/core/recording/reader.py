@@ -1,14 +1,15 @@
 """Read a session: one MCAP file or a split series, finished, truncated or damaged.
 
-:func:`read_session` walks each file record by record (:mod:`hil.core.mcap_walk`), checks
-chunk CRCs, keeps every readable message, and says what it could not read: ``damage`` lists
-each unreadable part (truncated tail, damaged chunk, damaged summary) with its offset, bytes
-and, where the file's indexes tell, the messages lost. ``recovered`` is true when a file was
-not finished (no footer: the writer was killed) or anything was damaged.
+:func:`read_session` walks each file record by record (:mod:`hil.core.recording.mcap_walk`),
+checks chunk CRCs, keeps every readable message, and says what it could not read: ``damage``
+lists each unreadable part (truncated tail, damaged chunk, damaged summary) with its offset,
+bytes and, where the file's indexes tell, the messages lost. ``recovered`` is true when a file
+was not finished (no footer: the writer was killed) or anything was damaged.
 
 Messages are decoded by their channel's encoding: ``json``, or ``cdr`` with a ``ros2msg``
-schema (:mod:`hil.core.cdr`). A split series (``<stem>_000.mcap``, ``<stem>_001.mcap``...) is
-read as one session from its folder, its first file or its unsplit name.
+schema (:mod:`hil.core.recording.cdr`). A split series (``<stem>_000.mcap``,
+``<stem>_001.mcap``...) is read as one session from its folder, its first file or its unsplit
+name.
 """
 
 from __future__ import annotations
@@ -26,8 +27,8 @@ from typing import Any
 import numpy as np
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 
-from hil.core.cdr import CdrDecoder, CdrError, parse_ros2msg
-from hil.core.mcap_walk import Damage, Walk, walk
+from hil.core.recording.cdr import CdrDecoder, CdrError, parse_ros2msg
+from hil.core.recording.mcap_walk import Damage, Walk, walk
 from hil.errors import SessionFileError
 
 _SERIES = re.compile(r"^(?P<stem>.*)_(?P<index>\d{3,})\.mcap$")

@@ -3,7 +3,7 @@
 * :meth:`Topic.log` appends ``(channel, t_ns, message)`` to a queue: the whole cost on the
   loop thread. :meth:`Recorder.flush` (the loop calls it once per tick, at most every
   ``flush_every_s`` of wall time) pickles the queue as one frame and writes it, without
-  blocking, to a pipe read by the writer process (:mod:`hil.core.writer`). JSON or CDR
+  blocking, to a pipe read by the writer process (:mod:`hil.core.recording.writer`). JSON or CDR
   encoding, zstd compression and file I/O happen there, off this interpreter's GIL.
 * Back-pressure: what the pipe does not take waits in a backlog of at most
   ``max_backlog_bytes``; beyond it messages are dropped at :meth:`Topic.log` and counted per
@@ -14,7 +14,7 @@
   the file when the pipe ends, so a SIGKILL of the loop process loses only what was not yet
   handed over (at most ``flush_every_s`` plus one unflushed chunk), and the file is indexed.
 * Encodings: ``json`` (JSON Schema) by default; ``cdr`` (ros2msg schema, see
-  :mod:`hil.core.cdr`) for flat high-rate topics.
+  :mod:`hil.core.recording.cdr`) for flat high-rate topics.
 """
 
 from __future__ import annotations
@@ -33,10 +33,10 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
-from hil.core.cdr import CdrError, fields_of
 from hil.core.realtime import keep_process_off_cpu
-from hil.core.record_stream import FrameDecoder, encode_frame
-from hil.core.recording_options import ENCODINGS, RecordingOptions
+from hil.core.recording.cdr import CdrError, fields_of
+from hil.core.recording.record_stream import FrameDecoder, encode_frame
+from hil.core.recording.recording_options import ENCODINGS, RecordingOptions
 from hil.errors import HilError, RecordingError
 
 EVENTS_TOPIC = "/events"
@@ -161,7 +161,7 @@ class Recorder:
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [root, env.get("PYTHONPATH")]))
         return subprocess.Popen(
-            [sys.executable, "-m", "hil.core.writer", json.dumps(options)],
+            [sys.executable, "-m", "hil.core.recording.writer", json.dumps(options)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, start_new_session=True,
         )
 
@@ -402,7 +402,7 @@ class Recorder:
 def recorded_messages(path: str, options: RecordingOptions) -> int:
     """How many messages the session at ``path`` holds, counted by reading it (a file its
     writer could not finish included)."""
-    from hil.core.reader import read_session
+    from hil.core.recording.reader import read_session
 
     try:
         return sum(read_session(options.first_file(path)).topic_counts.values())

@@ -4,7 +4,8 @@ Without splitting the session is the one file at ``path``. With ``split_duration
 ``split_size_mb`` it is ``<stem>_000.mcap``, ``<stem>_001.mcap``... beside ``path``, in the
 way of rosbag2's ``--max-bag-duration`` / ``--max-bag-size``: every file is complete and
 indexed on its own and carries the session's metadata and attachments (the configuration),
-so any one of them opens alone; :func:`hil.core.reader.read_session` reads the series as one.
+so any one of them opens alone; :func:`hil.core.recording.reader.read_session` reads the
+series as one.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import time
 from dataclasses import dataclass, field
 from typing import IO, Any
 
-from hil.core.mcap_writer import McapWriter
+from hil.core.recording.mcap_writer import McapWriter
 
 SPLIT_CHECK_EVERY = 256  # messages between two size checks
 ZSTD_LEVEL = 9  # 12 MB/s on this data, about 12 % smaller than zstandard's default level 3

@@ -1,10 +1,10 @@
 """Live view: a session's topics served over the Foxglove WebSocket protocol, beside the file.
 
 :class:`LiveSink` runs where messages are already off the loop: inside the session's writer
-process (:mod:`hil.core.writer`), in ``hil replay`` and in ``hil emulate --live``. It serves
-every topic under the same name and JSON Schema as the file (CDR topics in the file are served
-as JSON with their JSON Schema), through the Foxglove SDK's WebSocket server, which Foxglove
-and PlotJuggler connect to.
+process (:mod:`hil.core.recording.writer`), in ``hil replay`` and in ``hil emulate --live``. It
+serves every topic under the same name and JSON Schema as the file (CDR topics in the file are
+served as JSON with their JSON Schema), through the Foxglove SDK's WebSocket server, which
+Foxglove and PlotJuggler connect to.
 
 * **Flattening.** For every top-level array of numbers ``x`` (the loop timing's
   ``lateness_us`` and the phase times, the MPC prediction, the EEC's plan power) the live message

@@ -1,4 +1,5 @@
-"""Stream a recorded session through a :class:`~hil.core.live.LiveSink`, as if it ran now."""
+"""Stream a recorded session through a :class:`~hil.core.recording.live.LiveSink`, as if it ran
+now."""
 
 from __future__ import annotations
 
@@ -8,9 +9,9 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
-from hil.core.cdr import CdrError, parse_ros2msg
-from hil.core.live import LiveSink
-from hil.core.reader import SessionData
+from hil.core.recording.cdr import CdrError, parse_ros2msg
+from hil.core.recording.live import LiveSink
+from hil.core.recording.reader import SessionData
 
 _JSON_TYPES = {"bool": "boolean", "string": "string"}
 

@@ -1,9 +1,10 @@
 """The session's writer process: encoding, compression and file I/O off the loop's interpreter.
 
-Started by :class:`hil.core.recorder.Recorder` as ``python -m hil.core.writer OPTIONS_JSON``
-with the record stream (:mod:`hil.core.record_stream`) on its standard input. It encodes each
+Started by :class:`hil.core.recording.recorder.Recorder` as
+``python -m hil.core.recording.writer OPTIONS_JSON`` with the record stream
+(:mod:`hil.core.recording.record_stream`) on its standard input. It encodes each
 message (JSON, or CDR for compact topics), writes the MCAP file or split series
-(:class:`~hil.core.mcap_series.McapSeries`), closes a chunk at least every
+(:class:`~hil.core.recording.mcap_series.McapSeries`), closes a chunk at least every
 ``flush_interval_s``, and finishes the file with its summary and index when the stream says
 ``close`` *or* simply ends: a SIGKILLed loop process still leaves a finished, indexed file,
 missing only what it had not yet handed over. Its last act is one JSON line of statistics on
@@ -26,15 +27,15 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from hil.core.cdr import CdrEncoder, fields_of, ros2msg_text
-from hil.core.live import LiveSink, parse_address
-from hil.core.mcap_series import (
+from hil.core.recording.cdr import CdrEncoder, fields_of, ros2msg_text
+from hil.core.recording.live import LiveSink, parse_address
+from hil.core.recording.mcap_series import (
     DEFAULT_CHUNK_BYTES,
     ChannelSpec,
     McapSeries,
     json_schema_channel,
 )
-from hil.core.record_stream import FrameDecoder
+from hil.core.recording.record_stream import FrameDecoder
 
 EVENTS_KEY = 0  # the recorder registers /events first
 READ_BYTES = 1 << 20

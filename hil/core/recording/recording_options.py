@@ -7,8 +7,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-from hil.core.live import parse_address
-from hil.core.mcap_series import series_file
+from hil.core.recording.live import parse_address
+from hil.core.recording.mcap_series import series_file
 from hil.errors import HilError
 
 ENCODINGS = ("json", "cdr")
@@ -17,7 +17,7 @@ ENCODINGS = ("json", "cdr")
 @dataclass(frozen=True)
 class RecordingOptions:
     """How a session is written: per-topic encodings, file splitting, and the live view
-    (``live``: serve the topics at ``[HOST:]PORT``, see :mod:`hil.core.live`)."""
+    (``live``: serve the topics at ``[HOST:]PORT``, see :mod:`hil.core.recording.live`)."""
 
     #: the command-line flag of each field
     FLAGS: ClassVar[dict[str, str]] = {
@@ -29,7 +29,7 @@ class RecordingOptions:
     topic_encodings: dict[str, str] = field(default_factory=dict)  # explicit, by topic name
     split_duration_s: float | None = None
     split_size_mb: float | None = None
-    live: str | None = None                # "[HOST:]PORT": serve the topics live (hil.core.live)
+    live: str | None = None                # "[HOST:]PORT": serve the topics live (recording.live)
     live_rates: dict[str, float] = field(default_factory=dict)  # topic -> Hz (0: every message)
 
     def __post_init__(self) -> None:
