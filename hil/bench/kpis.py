@@ -21,16 +21,61 @@ lasts as long as the one before it).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from hil.controllers.bench.problem import BenchProblem
+from hil.core.kpis import Kpis, kpi
 
 
 def transitions(on: np.ndarray) -> np.ndarray:
     """Indices where a 0/1 series changes (the index of the first sample of the new state)."""
     on = np.asarray(on).astype(bool)
     return np.nonzero(on[1:] != on[:-1])[0] + 1
+
+
+@dataclass
+class EnergyKpis(Kpis):
+    """The energy paper's figures of a run so far: J1 (energy) and J2 (peak) [VA, VAs], the
+    specific energy per cycle, overlap, violations, switching."""
+
+    j1_va: float | None = kpi(key="J1_VA")
+    j2_va: float | None = kpi(key="J2_VA")
+    sec_va: float | None = kpi(key="SEC_VA")
+    peak_va: float | None = kpi(key="peak_VA")
+    energy_vas: float | None = kpi(key="energy_VAs")
+    overlap_s: float | None = kpi()
+    dwell_violations: int = kpi(0)
+    level_violations: int = kpi(0)
+    switches: dict[str, int] | None = kpi()
+    starts_per_hour: dict[str, float] | None = kpi()
+    over_limit_s: float | None = kpi(optional=True)   # with a peak limit
+
+
+@dataclass
+class BenchRunKpis(EnergyKpis):
+    """``hil bench run --json``: the controller and cycles, the energy figures, the
+    controller's timing, then context."""
+
+    controller: str = kpi("", limit=False)
+    cycles: float = kpi(0.0, limit=False)
+    solve_ms: dict[str, float] | None = kpi()
+    solves_at_limit: int = kpi(0)
+    max_gap: Any = kpi()
+    fallbacks: int = kpi(0)
+    mcap: str = kpi("", limit=False)
+    stop_reason: str | None = kpi(limit=False)
+    wall_s: float = kpi(0.0, limit=False)
+    realtime_factor: float | None = kpi(limit=False)
+    faults: dict[str, Any] | None = kpi(optional=True)   # with a bench link
+    disturbed: bool | None = kpi(limit=False, optional=True)
+
+    def document(self) -> dict[str, Any]:
+        """The controller and cycles first, as the README lists them."""
+        doc = super().document()
+        return {"controller": doc.pop("controller"), "cycles": doc.pop("cycles"), **doc}
 
 
 class _Held:
@@ -148,8 +193,8 @@ class BenchKpis:
                 self._excursions[name] += 1
             self._outside[name] = outside
 
-    def kpis(self, cycles: float) -> dict[str, object]:
-        """The KPI dictionary of the run so far (needs at least one meter sample)."""
+    def kpis(self, cycles: float) -> EnergyKpis:
+        """The energy KPIs of the run so far (needs at least one meter sample)."""
         if self._power.count == 0:
             raise ValueError("no meter sample: no bench KPIs")
         last_dt = self._power.last_dt
@@ -161,26 +206,22 @@ class BenchKpis:
         n = self._power.count
         peak = (self._s_max if n < 2 else
                 self._window_peak if n >= window.size else float(window[:n].mean()))
-        kpis: dict[str, object] = {
-            "J1_VA": round(energy, 1),
-            "J2_VA": round(self._s_max, 2),
-            "SEC_VA": round(energy / cycles, 1) if cycles else None,
-            "peak_VA": round(peak, 2),
-            "energy_VAs": round(energy, 1),
-            "overlap_s": round(overlap, 2),
-            "dwell_violations": sum(self._relay[n].dwell_violations for n in names),
-            "level_violations": sum(self._excursions.values()),
-            "switches": {n: self._relay[n].changes + int(self._relay[n].first_on)
-                         for n in names},
-        }
         held = self._relays_t
         hours = max(held.last_t - held.first_t, 1e-9) / 3600.0 if held.count else 0.0
-        kpis["starts_per_hour"] = {n: round(self._relay[n].ons / hours, 1) if hours else 0.0
-                                   for n in names}
+        over = None
         if self.limit_va is not None:
-            over = self._over_limit + (last_dt if self._s_last > self.limit_va else 0.0)
-            kpis["over_limit_s"] = round(over, 2)
-        return kpis
+            over = round(self._over_limit + (last_dt if self._s_last > self.limit_va else 0.0),
+                         2)
+        return EnergyKpis(
+            j1_va=round(energy, 1), j2_va=round(self._s_max, 2),
+            sec_va=round(energy / cycles, 1) if cycles else None, peak_va=round(peak, 2),
+            energy_vas=round(energy, 1), overlap_s=round(overlap, 2),
+            dwell_violations=sum(self._relay[n].dwell_violations for n in names),
+            level_violations=sum(self._excursions.values()),
+            switches={n: self._relay[n].changes + int(self._relay[n].first_on) for n in names},
+            starts_per_hour={n: round(self._relay[n].ons / hours, 1) if hours else 0.0
+                             for n in names},
+            over_limit_s=over)
 
 
 def timing_summary(samples_ms: Sequence[float]) -> dict[str, float]:

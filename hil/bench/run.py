@@ -31,7 +31,7 @@ from hil.bench.control import (
     RunLog,
     SignalLimits,
 )
-from hil.bench.kpis import BenchKpis
+from hil.bench.kpis import BenchKpis, BenchRunKpis
 from hil.bench.options import BenchRunOptions
 from hil.bench.rig import (
     BenchRig,
@@ -69,10 +69,6 @@ from hil.errors import (
     UsageError,
 )
 
-#: the KPIs of ``hil bench run`` a limit may name (groups by their name)
-KPI_NAMES = ("J1_VA", "J2_VA", "SEC_VA", "energy_VAs", "peak_VA", "over_limit_s", "overlap_s",
-             "level_violations", "dwell_violations", "switches", "starts_per_hour", "solve_ms",
-             "solves_at_limit", "max_gap", "fallbacks", "faults")
 
 def run_bench(opts: BenchRunOptions) -> RunResult:
     """Run one closed-loop bench session (``hil bench run``)."""
@@ -110,7 +106,7 @@ class BenchExperiment(Experiment):
         self.params = {**bench.run.params, **opts.params}
         kpi_limits, signal_limits = split_limits(
             [*bench.run.limits, *opts.limits],
-            [*bench.map.meter_quantities, *bench.map.level_names], KPI_NAMES)
+            [*bench.map.meter_quantities, *bench.map.level_names], BenchRunKpis.limit_names())
         # checked before anything is opened: a spec that cannot load leaves no file behind
         self.factory, self.label = controller_factory(opts.controller, self.params,
                                                       method="decide", application="bench")
@@ -192,16 +188,17 @@ class BenchExperiment(Experiment):
         elif self.device is not None:
             self.device.close()
 
-    def kpis(self, session: Session, wall_s: float, error: HilError | None) -> dict[str, Any]:
+    def kpis(self, session: Session, wall_s: float, error: HilError | None) -> BenchRunKpis:
         kpis = kpis_of(self.log, self.opts, self.label, self.out)
-        kpis["stop_reason"] = session.loop.stop_reason
         loop = session.loop
-        kpis["wall_s"] = round(wall_s, 4)
+        kpis.stop_reason = loop.stop_reason
+        kpis.wall_s = round(wall_s, 4)
         # simulated time over the time the loop ticked (None before a tick)
-        kpis["realtime_factor"] = (round(loop.ticks * loop.base_period_ns / 1e9 / loop.ticking_s,
-                                         2) if loop.ticking_s > 0 else None)
+        kpis.realtime_factor = (round(loop.ticks * loop.base_period_ns / 1e9 / loop.ticking_s, 2)
+                                if loop.ticking_s > 0 else None)
         if self.rig is not None:
-            kpis.update(link_report(self.rig, session.clock.time_ns()).kpis)
+            report = link_report(self.rig, session.clock.time_ns())
+            kpis.faults, kpis.disturbed = report.faults, report.disturbed
         return kpis
 
 
@@ -212,7 +209,8 @@ class LinkReport:
 
     lost: list[tuple[int, int]]
     gave_up: bool
-    kpis: dict[str, Any]
+    faults: dict[str, Any]
+    disturbed: bool
 
 
 def link_report(rig: BenchRig, end_ns: int) -> LinkReport:
@@ -228,17 +226,17 @@ def link_report(rig: BenchRig, end_ns: int) -> LinkReport:
     }
     disturbed = any(faults[k] for k in ("link_losses", "failed_polls", "failed_writes",
                                         "stuck_relays", "stale_readings", "bad_readings"))
-    return LinkReport(lost, rig.link.gave_up, {"faults": faults, "disturbed": disturbed})
+    return LinkReport(lost, rig.link.gave_up, faults, disturbed)
 
 
-def kpis_of(log: RunLog, opts: BenchRunOptions, label: str, out: str) -> dict[str, Any]:
+def kpis_of(log: RunLog, opts: BenchRunOptions, label: str, out: str) -> BenchRunKpis:
     if not log.kpis.power_samples or not log.kpis.level_samples:
         raise ConfigError("the run recorded no meter or level samples: nothing to evaluate")
     times = log.solve_ms if log.solver_reports else log.decide_ms
     solve_ms = {"median": round(times.percentile(50), 3), "p99": round(times.percentile(99), 3),
                 "max": round(times.max_us, 3)}
-    return {"controller": label, "cycles": opts.cycles, **log.kpis.kpis(opts.cycles),
-            "solve_ms": solve_ms, "solves_at_limit": log.solver_limits,
-            "max_gap": log.max_gap,
-            "fallbacks": log.fallbacks, "mcap": opts.recording.first_file(out)}
+    return BenchRunKpis(controller=label, cycles=opts.cycles, solve_ms=solve_ms,
+                        solves_at_limit=log.solver_limits, max_gap=log.max_gap,
+                        fallbacks=log.fallbacks,
+                        mcap=opts.recording.first_file(out)).lay(log.kpis.kpis(opts.cycles))
 

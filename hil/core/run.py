@@ -40,6 +40,7 @@ from typing import Any
 
 from hil.core.clock import Clock
 from hil.core.device_lock import DeviceLock, lock_device
+from hil.core.kpis import Kpis
 from hil.core.progress import ProgressLine, wants_progress
 from hil.core.recording.output import OutputClaim, claim_output
 from hil.core.recording.recorder import RecordingOptions
@@ -145,8 +146,9 @@ class Experiment(abc.ABC):
         """Release the devices (the loop already put them in their safe state); idempotent."""
 
     @abc.abstractmethod
-    def kpis(self, session: Session, wall_s: float, error: HilError | None) -> dict[str, Any]:
-        """The run's KPI document so far (``--json``), ``stop_reason`` included."""
+    def kpis(self, session: Session, wall_s: float, error: HilError | None) -> Kpis:
+        """The run's KPIs so far (its :class:`~hil.core.kpis.Kpis`: the ``--json``
+        document), ``stop_reason`` included."""
 
 
 def run_experiment(experiment: Experiment) -> RunResult:
@@ -259,7 +261,7 @@ def _kpis(experiment: Experiment, plan: RunPlan, session: Session, wall_s: float
     """The experiment's KPIs; after an error, what can be had (the error is what matters),
     with the controller, the session and the error line at least."""
     try:
-        kpis = experiment.kpis(session, wall_s, error)
+        kpis = experiment.kpis(session, wall_s, error).document()
     except HilError:
         if error is None:
             raise

@@ -33,6 +33,7 @@ from hil.drivers.canopen.master import plan_axes
 from hil.errors import ControllerError, UsageError
 from hil.servo.config import AXIS_NAME, AxisSpec, DriveConfig, check_axes
 from hil.servo.drives import RunDrives
+from hil.servo.kpis import ContourKpis
 from hil.servo.settings import bus_bitrate
 from hil.servo.task import ServoTask
 
@@ -176,10 +177,8 @@ class BusCycle(Task):
             self.sum_squares += error * error
             self.max_error = max(self.max_error, abs(error))
 
-    def kpis(self) -> dict[str, Any]:
-        return {"radius_deg": self.radius,
-                "max_contour_error_deg": self.max_error if self.counted else None,
-                "rms_contour_error_deg": math.sqrt(self.sum_squares / self.counted)
-                if self.counted else None}
+    def kpis(self) -> ContourKpis:
+        return ContourKpis(self.radius, self.max_error if self.counted else None,
+                           math.sqrt(self.sum_squares / self.counted) if self.counted else None)
 
 

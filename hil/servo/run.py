@@ -70,6 +70,7 @@ from hil.servo.axes import AxisShare, BusCycle, SharedStep, parse_axes, plan_bus
 from hil.servo.builtin import ServoContext
 from hil.servo.config import EMULATED, stricter_safety
 from hil.servo.drives import RunDrives
+from hil.servo.kpis import AxesKpis, AxisKpis, ServoKpis, no_tracking
 from hil.servo.options import ServoRunOptions
 from hil.servo.rig import lone_axis, open_drives, share_lockstep_time
 from hil.servo.safety import SafetyMonitor
@@ -87,14 +88,6 @@ STEP_BUDGET_S = 0.25
 # per-tick signals a --limit may name (magnitudes, except the position)
 SIGNALS = ("abs_error_deg", "abs_command_mA", "abs_velocity_deg_s", "position_deg")
 
-#: the KPIs of ``hil servo run`` a limit may name (groups by their name); with named axes,
-#: :data:`AXES_KPI_NAMES`
-KPI_NAMES = ("max_error_deg", "max_error_pct", "rms_error_deg", "cumulative_error_deg",
-             "step_us", "peak_current_mA", "peak_requested_mA", "deadline_misses", "ticks",
-             "stale_feedback", "clamped_commands", "wall_s", "realtime_factor", "solver_paths",
-             "empc_fallbacks", "faults")
-AXES_KPI_NAMES = ("axes", "contour", "ticks", "sync_cycles", "wall_s", "realtime_factor",
-                  "faults")
 
 def make_controller(options: ServoRunOptions, scenario: Scenario, session: Any = None,
                     params: Mapping[str, Any] | None = None,
@@ -182,7 +175,7 @@ class ServoExperiment(Experiment):
         self.period_s = drive.master.cycle_period_s
         kpi_limits, signal_limits = split_limits(
             [*drive.run.limits, *options.limits], SIGNALS,
-            KPI_NAMES if self.lone else AXES_KPI_NAMES)
+            (ServoKpis if self.lone else AxesKpis).limit_names())
         self.watch = SignalWatch(signal_limits)
         self.buses = plan_buses(self.axes, self.drive_url, drive)
         for bus in self.buses:
@@ -367,99 +360,79 @@ class ServoExperiment(Experiment):
         drives, self.drives = self.drives, RunDrives()
         drives.close()
 
-    def kpis(self, session: Session, wall_s: float, error: HilError | None) -> dict[str, Any]:
+    def kpis(self, session: Session, wall_s: float, error: HilError | None
+             ) -> ServoKpis | AxesKpis:
         """The ``--json`` document: the keys the README documents first, then context."""
         return self._lone_kpis(session, wall_s) if self.lone else \
             self._axes_kpis(session, wall_s)
 
-    def _lone_kpis(self, session: Session, wall_s: float) -> dict[str, Any]:
-        options = self.options
+    def _lone_kpis(self, session: Session, wall_s: float) -> ServoKpis:
+        options, loop = self.options, session.loop
         task = self.tasks[0] if self.tasks else None
         master = self.masters[0] if self.masters else None
-        base: dict[str, Any] = {"controller": options.label}
-        if task is not None:
-            tracking = task.stats.kpis(reference_amplitude(self.scenario))
-        else:
-            tracking = {"max_error_deg": None, "max_error_pct": None, "rms_error_deg": None,
-                        "cumulative_error_deg": None,
-                        "step_us": {"median": 0.0, "p99": 0.0, "max": 0.0},
-                        "peak_current_mA": None, "peak_requested_mA": None}
-        peak = tracking.pop("peak_current_mA")
-        requested = tracking.pop("peak_requested_mA")
-        base.update(tracking)
-        loop = session.loop
         ticks = task.stats.ticks if task is not None else 0
-        base["deadline_misses"] = (loop.skipped_ticks + task.late_writes
-                                   if task is not None and options.realtime else 0)
-        base["ticks"] = ticks
-        base["cycle_period_us"] = round(self.period_s * 1e6)
-        base["mcap"] = options.recording.first_file(self.out)
-        base.update({
-            "reference": options.reference,
-            "drive": master.url if master is not None else self.drive_url,
-            "clock": session.clock.mode,
-            "umax_mA": self.umax_ma if self.umax_ma is not None else self.settings.umax_ma,
-            # the smallest of the chain
-            "current_limit_mA": master.current_limit_ma if master is not None else None,
-            "settle_s": options.settle_s,
-            "peak_current_mA": peak,          # sent to the drive, after the clamp
-            "peak_requested_mA": requested,   # the controller's request
-            "stale_feedback": task.stale if task is not None else 0,
-            "clamped_commands": master.stats.clamped_commands if master is not None else 0,
-            "wall_s": round(wall_s, 4),
-            "realtime_factor": realtime_factor(ticks, loop),
-            "stop_reason": loop.stop_reason,
-        })
+        kpis = ServoKpis(
+            controller=options.label,
+            deadline_misses=(loop.skipped_ticks + task.late_writes
+                             if task is not None and options.realtime else 0),
+            ticks=ticks, cycle_period_us=round(self.period_s * 1e6),
+            mcap=options.recording.first_file(self.out), reference=options.reference,
+            drive=master.url if master is not None else self.drive_url,
+            clock=session.clock.mode,
+            umax_ma=self.umax_ma if self.umax_ma is not None else self.settings.umax_ma,
+            current_limit_ma=master.current_limit_ma if master is not None else None,
+            settle_s=options.settle_s,
+            stale_feedback=task.stale if task is not None else 0,
+            clamped_commands=master.stats.clamped_commands if master is not None else 0,
+            wall_s=round(wall_s, 4), realtime_factor=realtime_factor(ticks, loop),
+            stop_reason=loop.stop_reason,
+        ).lay(task.stats.kpis(reference_amplitude(self.scenario))
+                        if task is not None else no_tracking())
         controller = task.controller if task is not None else None
         horizons = horizons_of(controller)
         if horizons is not None:
-            base.update({"ert": horizons.ert, "ht": horizons.ht, "hu": horizons.hu,
-                         "hp": horizons.hp})
+            kpis.ert, kpis.ht, kpis.hu, kpis.hp = (horizons.ert, horizons.ht, horizons.hu,
+                                                   horizons.hp)
             solver = solver_of(controller)
             if solver is not None:
-                base["solver_paths"] = dict(solver.counts)
+                kpis.solver_paths = dict(solver.counts)
             if isinstance(controller, CountsFallbacks):
-                base["empc_fallbacks"] = int(controller.fallbacks)
-        faults = {"stale_feedback": base["stale_feedback"],
-                  "late_frames": master.stats.late_frames if master is not None else 0,
-                  "emcy": master.stats.emcy if master is not None else 0}
-        base["faults"] = faults
-        base["disturbed"] = bool(faults["stale_feedback"] or faults["emcy"])
-        return base
+                kpis.empc_fallbacks = int(controller.fallbacks)
+        kpis.faults = {"stale_feedback": kpis.stale_feedback,
+                       "late_frames": master.stats.late_frames if master is not None else 0,
+                       "emcy": master.stats.emcy if master is not None else 0}
+        kpis.disturbed = bool(kpis.stale_feedback or kpis.faults["emcy"])
+        return kpis
 
-    def _axes_kpis(self, session: Session, wall_s: float) -> dict[str, Any]:
+    def _axes_kpis(self, session: Session, wall_s: float) -> AxesKpis:
         options, loop = self.options, session.loop
         ticks = self.tasks[0].stats.ticks if self.tasks else 0
         axes = {}
         for axis, task in zip(self.axes, self.tasks, strict=False):
-            tracking = task.stats.kpis(reference_amplitude(task.scenario))
             master = task.master
-            tracking.update({"node": axis.node, "bus": self.bus_of[axis.name],
-                             "stale_feedback": task.stale,
-                             "clamped_commands": master.stats.clamped_commands,
-                             "current_limit_mA": master.current_limit_ma,
-                             "late_frames": master.stats.late_frames,
-                             "emcy": master.stats.emcy})
-            axes[axis.name] = tracking
-        kpis: dict[str, Any] = {
-            "controller": options.label, "axes": axes, "ticks": ticks,
-            "cycle_period_us": round(self.period_s * 1e6),
-            "mcap": options.recording.first_file(self.out), "reference": options.reference,
-            "drive": self.drive_url, "buses": [bus.url for bus in self.buses],
-            "clock": session.clock.mode,
-            "umax_mA": self.settings.umax_ma, "settle_s": options.settle_s,
-            "sync_cycles": self.bus_task.cycles if self.bus_task is not None else 0,
-            "wall_s": round(wall_s, 4),
-            "realtime_factor": realtime_factor(ticks, loop),
-            "stop_reason": loop.stop_reason}
-        if self.bus_task is not None and self.radius is not None:
-            kpis["contour"] = self.bus_task.kpis()
-        stale = sum(a["stale_feedback"] for a in axes.values())
-        emcy = sum(a["emcy"] for a in axes.values())
-        kpis["faults"] = {"stale_feedback": stale, "emcy": emcy,
-                          "late_frames": sum(a["late_frames"] for a in axes.values())}
-        kpis["disturbed"] = bool(stale or emcy)
-        return kpis
+            axes[axis.name] = AxisKpis(
+                **vars(task.stats.kpis(reference_amplitude(task.scenario))),
+                node=axis.node, bus=self.bus_of[axis.name], stale_feedback=task.stale,
+                clamped_commands=master.stats.clamped_commands,
+                current_limit_ma=master.current_limit_ma,
+                late_frames=master.stats.late_frames, emcy=master.stats.emcy)
+        stale = sum(a.stale_feedback for a in axes.values())
+        emcy = sum(a.emcy for a in axes.values())
+        return AxesKpis(
+            controller=options.label, axes=axes, ticks=ticks,
+            cycle_period_us=round(self.period_s * 1e6),
+            mcap=options.recording.first_file(self.out), reference=options.reference,
+            drive=self.drive_url, buses=[bus.url for bus in self.buses],
+            clock=session.clock.mode, umax_ma=self.settings.umax_ma,
+            settle_s=options.settle_s,
+            sync_cycles=self.bus_task.cycles if self.bus_task is not None else 0,
+            wall_s=round(wall_s, 4), realtime_factor=realtime_factor(ticks, loop),
+            stop_reason=loop.stop_reason,
+            contour=self.bus_task.kpis()
+            if self.bus_task is not None and self.radius is not None else None,
+            faults={"stale_feedback": stale, "emcy": emcy,
+                    "late_frames": sum(a.late_frames for a in axes.values())},
+            disturbed=bool(stale or emcy))
 
 
 def realtime_factor(ticks: int, loop: FixedRateLoop) -> float | None:

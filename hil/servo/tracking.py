@@ -12,12 +12,12 @@ tick.
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 
 from hil.controllers.servo.references import Reference, Scenario, Sine, Trapezoid
 from hil.core.stats import TimingHistogram
+from hil.servo.kpis import TrackingKpis
 
 
 def reference_amplitude(scenario: Scenario) -> float | None:
@@ -82,19 +82,15 @@ class TrackingStats:
             if requested > self.peak_requested:
                 self.peak_requested = requested
 
-    def kpis(self, amplitude: float | None) -> dict[str, Any]:
-        if self.counted:
-            kpis: dict[str, Any] = {
-                "max_error_deg": self.max_error,
-                "max_error_pct": 100.0 * self.max_error / amplitude if amplitude else None,
-                "rms_error_deg": math.sqrt(self.sum_squares / self.counted),
-                "cumulative_error_deg": self.sum_error,
-            }
-        else:
-            kpis = {"max_error_deg": None, "max_error_pct": None, "rms_error_deg": None,
-                    "cumulative_error_deg": None}
+    def kpis(self, amplitude: float | None) -> TrackingKpis:
+        """The tracking KPIs so far (``amplitude``: the reference's, for the error in %)."""
         step = self.compute_us.summary()
-        kpis["step_us"] = {"median": step["p50"], "p99": step["p99"], "max": step["max"]}
-        kpis["peak_current_mA"] = self.peak_current if self.counted else None
-        kpis["peak_requested_mA"] = self.peak_requested if self.counted else None
+        kpis = TrackingKpis(step_us={"median": step["p50"], "p99": step["p99"], "max": step["max"]})
+        if self.counted:
+            kpis.max_error_deg = self.max_error
+            kpis.max_error_pct = 100.0 * self.max_error / amplitude if amplitude else None
+            kpis.rms_error_deg = math.sqrt(self.sum_squares / self.counted)
+            kpis.cumulative_error_deg = self.sum_error
+            kpis.peak_current_ma = self.peak_current
+            kpis.peak_requested_ma = self.peak_requested
         return kpis

@@ -64,7 +64,7 @@ def streamed(problem, t_s, s_va, relays, relays_t_s, levels, levels_t_s, cycles,
         kpis.relays(float(t), {n: bool(relays[n][i]) for n in problem.peripherals})
     for i, t in enumerate(levels_t_s):
         kpis.levels(float(t), {name: float(v[i]) for name, v in levels.items()})
-    return kpis.kpis(cycles)
+    return kpis.kpis(cycles).document()
 
 
 @pytest.fixture(scope="module")

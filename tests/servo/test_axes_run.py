@@ -174,7 +174,7 @@ def test_axes_from_the_drive_config(tmp_path, capsys):
      False),
     (["--axes", "x=1,y=2", "--reference", "circle:radius=-1"], "radius must be a positive",
      False),
-    (["--axes", "x=1,y=2", "--limit", "max_error_deg<=1"], "KPIs: axes, contour", False),
+    (["--axes", "x=1,y=2", "--limit", "max_error_deg<=1"], "KPIs: axes, ticks", False),
     (["--axes", "x=1,y=2", "--drive", "virtual://plan"], "the bus plan does not fit", False),
 ])
 def test_bad_axes_are_one_line_before_anything_runs(tmp_path, capsys, args, problem, outside):
