@@ -218,7 +218,7 @@ def emulate_bench_command(args: argparse.Namespace) -> int:
     time (``--clock``); a master taking or letting go of the time is a line on stderr."""
     die_with_parent()
     from hil.bench.config import load_bench_config
-    from hil.bench.rig import make_emulator
+    from hil.bench.emulated import make_emulator
 
     config = load_bench_config(args.config)
     config = replace(config, faults=tuple(faults_of(args, "bench", config.faults)))
