@@ -29,12 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from hil.controllers.ident.n4sid import (
-    IdentificationError,
-    IdentifiedModel,
-    dumps_model,
-    loads_model,
-)
+from hil.controllers.ident.model_file import dumps_model, loads_model
+from hil.controllers.ident.n4sid import IdentificationError, IdentifiedModel
 from hil.core.reader import SessionData
 from hil.errors import ConfigError, UsageError
 
