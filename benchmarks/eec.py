@@ -35,8 +35,8 @@ import numpy as np
 
 from hil.bench.kpis import timing_summary
 from hil.bench.run import BenchRunOptions, run_bench
-from hil.controllers.bench import eec as eec_module
 from hil.controllers.bench.eec_cvxpy import solve_naive
+from hil.controllers.bench.eec_solver import HorizonSolver
 
 DP, MILP, NAIVE = ("DP (schedule DP, default)", "MILP (HiGHS)",
                    "naive cvxpy, rebuilt per decision")
@@ -48,7 +48,7 @@ class Run:
     kpis: dict[str, Any]
     inputs: list[Inputs]          # every solve's instance
     solve_ms: list[float]
-    milp: eec_module.EECMilp | None
+    solver: HorizonSolver | None
     wall_s: float
 
 
@@ -57,23 +57,23 @@ def closed_loop(controller: str, cycles: int, hp_s: int | None = None,
     """One run; for the EEC every solve's inputs and time are kept."""
     inputs: list[Inputs] = []
     solve_ms: list[float] = []
-    milps: list[eec_module.EECMilp] = []
-    original = eec_module.EECMilp.solve
+    solvers: list[HorizonSolver] = []
+    original = HorizonSolver.solve
 
     def recording(self, free, u_prev, fixed, q0, t_s, warm_u=None, budget_s=None):
         result = original(self, free, u_prev, fixed, q0, t_s, warm_u, budget_s)
         inputs.append((free.copy(), u_prev.copy(), fixed.copy(), q0.copy(), t_s))
         solve_ms.append(result.solve_ms)
-        milps.append(self)
+        solvers.append(self)
         return result
 
     t0 = time.perf_counter()
-    with mock.patch.object(eec_module.EECMilp, "solve", recording), \
+    with mock.patch.object(HorizonSolver, "solve", recording), \
             tempfile.TemporaryDirectory() as tmp:
         kpis = run_bench(BenchRunOptions(controller=controller, cycles=cycles, hp_s=hp_s,
                                          disturbance=disturbance, out=f"{tmp}/run.mcap",
                                          overrides=overrides or {})).kpis
-    return Run(kpis, inputs, solve_ms, milps[0] if milps else None,
+    return Run(kpis, inputs, solve_ms, solvers[0] if solvers else None,
                time.perf_counter() - t0)
 
 
@@ -85,9 +85,9 @@ def exact_table(label: str, run: Run, every: int, naive: int, naive_limit_s: flo
                 ) -> dict[str, float]:
     """Re-solve the run's instances by each method without a budget; print and return the
     medians."""
-    assert run.milp is not None
-    base = run.milp
-    solvers = {s: eec_module.EECMilp(base.p, base.problem, dataclasses.replace(
+    assert run.solver is not None
+    base = run.solver.horizon
+    solvers = {s: HorizonSolver(base.p, base.problem, dataclasses.replace(
         base.settings, time_limit_s=20.0, solver=s)) for s in ("dp", "milp")}
     dp = [solvers["dp"].solve(*x) for x in run.inputs]
     sample = list(range(0, len(run.inputs), every))
@@ -144,11 +144,12 @@ def main() -> None:
         runs[case, "eec"] = closed_loop("eec", cycles, hp_s=28, disturbance=disturbed)
     runs["2T"] = closed_loop("eec", cycles_2t, hp_s=56)
     eec_run = runs["nominal", "eec"]
-    assert eec_run.milp is not None
-    budget_ms = eec_run.milp.settings.time_limit_s * 1e3
+    assert eec_run.solver is not None
+    settings = eec_run.solver.horizon.settings
+    budget_ms = settings.time_limit_s * 1e3
 
     print(f"1. Targets (closed loop, default config: solver "
-          f"{eec_run.milp.settings.solver.upper()}, budget {budget_ms:g} ms)")
+          f"{settings.solver.upper()}, budget {budget_ms:g} ms)")
     print(f"  {'case':<24} {'n':>4} {'median':>8} {'p99':>8} {'max':>8}  at limit  "
           f"{'J2 [VA]':>8}  {'J2 BC':>8}  J2 vs BC   targets")
     for case in ("nominal", "disturbed"):
@@ -164,7 +165,7 @@ def main() -> None:
           f"{run.kpis['J2_VA']:>8.1f}  {'':>8}  {'':>9}   median <= 100, 0 at limit")
     print("  (ms; max_gap " + ", ".join(
         f"{k if isinstance(k, str) else '/'.join(k)} {r.kpis['max_gap']:.3g}"
-        for k, r in runs.items() if r.milp is not None) + ")")
+        for k, r in runs.items() if r.solver is not None) + ")")
 
     print("\n2. The same instances, each method without a budget (20 s): ms median, p99, max")
     print(f"  {'H_p':<10} {'method':<36} {'n':>4} {'median':>8} {'p99':>8} {'max':>8}")

@@ -99,7 +99,8 @@ def open_bench(url: str | None = None, config_path: str | None = None, *,
     serves the emulator in this process on a free loopback port, following the wall clock, for
     the time of the block."""
     from hil.bench.config import load_bench_config
-    from hil.bench.rig import is_emulated, make_emulator, safe_bench
+    from hil.bench.emulated import make_emulator
+    from hil.bench.openers import is_emulated, safe_bench
 
     config = load_bench_config(config_path)
     url = url or config.bus.url

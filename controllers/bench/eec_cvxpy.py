@@ -1,8 +1,9 @@
 """The EEC's MILP written with cvxpy: the reference for tests and the naive baseline.
 
-Same problem as :class:`hil.controllers.bench.eec.EECMilp` (same predictions, J1 coefficients,
-weights, level bounds), written the direct way: the total power on every fine-grid sample,
-``z >= S(r)`` for all of them, ``e >= z - limit``. Two uses:
+Same problem as :class:`hil.controllers.bench.eec_milp.EECMilp` (same predictions, J1
+coefficients, weights, level bounds: :class:`~hil.controllers.bench.eec_costs.HorizonCosts`),
+written the direct way: the total power on every fine-grid sample, ``z >= S(r)`` for all of
+them, ``e >= z - limit``. Two uses:
 
 * :class:`CvxpyEEC`: built once with ``cp.Parameter`` for everything that changes between
   solves (the free response, the relay state, the running dwell, the level bounds); the tests
@@ -22,7 +23,7 @@ from dataclasses import dataclass
 import cvxpy as cp
 import numpy as np
 
-from hil.controllers.bench.eec import EECMilp
+from hil.controllers.bench.eec_costs import HorizonCosts
 
 
 @dataclass
@@ -37,10 +38,10 @@ class ReferenceResult:
 class CvxpyEEC:
     """The MILP as a parametrised cvxpy problem (built once, solved many times)."""
 
-    def __init__(self, milp: EECMilp, time_limit_s: float = 60.0) -> None:
-        self.milp = milp
-        H, nd = milp.H, milp.nd
-        R = milp.p.rows
+    def __init__(self, horizon: HorizonCosts, time_limit_s: float = 60.0) -> None:
+        self.horizon = horizon
+        H, nd = horizon.H, horizon.nd
+        R = horizon.p.rows
         self.free = cp.Parameter(R)
         self.u_prev = cp.Parameter(nd)
         self.u_lo = cp.Parameter((nd, H))
@@ -57,7 +58,7 @@ class CvxpyEEC:
         for j in range(nd):
             prev = cp.hstack([cp.reshape(self.u_prev[j], (1,), order="C"), u[j, :-1]])
             cons.append(u[j] - prev == s[j] - d[j])
-            L = milp.dwell_steps[j]
+            L = horizon.dwell_steps[j]
             if L > 1:
                 for i in range(H):
                     lo = max(0, i - L + 1)
@@ -65,26 +66,26 @@ class CvxpyEEC:
                     cons.append(cp.sum(d[j, lo:i + 1]) <= 1 - u[j, i])
             c = cp.cumsum(u[j])
             cons += [c >= self.c_lo[j], c <= self.c_hi[j]]
-            power = power + milp.Gu[j] @ u[j] + milp.Gs[j] @ s[j]
-            cost = cost + milp.w1 * (milp.area_u[j] @ u[j]) + milp.start_cost[j] @ s[j]
+            power = power + horizon.Gu[j] @ u[j] + horizon.Gs[j] @ s[j]
+            cost = cost + horizon.w1 * (horizon.area_u[j] @ u[j]) + horizon.start_cost[j] @ s[j]
         cons.append(z >= power)
-        cost = cost + milp.w2 * z
-        if milp.settings.limit_va is not None:
+        cost = cost + horizon.w2 * z
+        if horizon.settings.limit_va is not None:
             e = cp.Variable(nonneg=True)
-            cons.append(e >= z - float(milp.settings.limit_va))
-            cost = cost + milp.w_limit * e
+            cons.append(e >= z - float(horizon.settings.limit_va))
+            cost = cost + horizon.w_limit * e
         self.u, self.z = u, z
         self.problem = cp.Problem(cp.Minimize(cost), cons)
         self.time_limit_s = time_limit_s
 
     def solve(self, free: np.ndarray, u_prev: np.ndarray, fixed_steps: np.ndarray,
               q0: np.ndarray, t_s: float) -> ReferenceResult:
-        milp, H = self.milp, self.milp.H
-        qlo, qhi = milp.level_bounds(q0, t_s)
+        horizon, H = self.horizon, self.horizon.H
+        qlo, qhi = horizon.level_bounds(q0, t_s)
         self.free.value = np.asarray(free, float)
         self.u_prev.value = np.asarray(u_prev, float)
-        lo, hi = np.zeros((milp.nd, H)), np.ones((milp.nd, H))
-        for j in range(milp.nd):
+        lo, hi = np.zeros((horizon.nd, H)), np.ones((horizon.nd, H))
+        for j in range(horizon.nd):
             k = int(min(fixed_steps[j], H))
             lo[j, :k] = hi[j, :k] = u_prev[j]
         self.u_lo.value, self.u_hi.value = lo, hi
@@ -103,39 +104,41 @@ class CvxpyEEC:
                                float(self.problem.value), float(z), ms)
 
 
-def solve_naive(milp: EECMilp, free: np.ndarray, u_prev: np.ndarray, fixed_steps: np.ndarray,
-                q0: np.ndarray, t_s: float, time_limit_s: float = 60.0) -> ReferenceResult:
+def solve_naive(horizon: HorizonCosts, free: np.ndarray, u_prev: np.ndarray,
+                fixed_steps: np.ndarray, q0: np.ndarray, t_s: float, time_limit_s: float = 60.0
+                ) -> ReferenceResult:
     """Build and solve the straightforward formulation (every call from scratch)."""
     t0 = time.perf_counter()
-    H, nd = milp.H, milp.nd
+    H, nd = horizon.H, horizon.nd
     u = cp.Variable((nd, H), boolean=True)
     z = cp.Variable()
     cons = []
     power = np.asarray(free, float)
     cost = 0
-    for j, res in enumerate(milp.problem.resources):
+    for j, res in enumerate(horizon.problem.resources):
         prev = cp.hstack([np.array([float(u_prev[j])]), u[j, :-1]])
         s = cp.Variable(H, nonneg=True)
         cons.append(s >= u[j] - prev)
         k = int(min(fixed_steps[j], H))
         if k:
             cons.append(u[j, :k] == float(u_prev[j]))
-        L = milp.dwell_steps[j]
+        L = horizon.dwell_steps[j]
         for i in range(H):  # a switch at i holds for L steps (pairwise rows)
             for m in range(i + 1, min(H, i + L)):
                 cons.append(u[j, i] - prev[i] <= u[j, m])
                 cons.append(prev[i] - u[j, i] <= 1 - u[j, m])
-        used = milp.consumption(res.consumer, t_s)
-        q = q0[j] + res.alpha * np.cumsum(used) + res.eta * milp.settings.step_s * cp.cumsum(u[j])
+        used = horizon.consumption(res.consumer, t_s)
+        q = q0[j] + res.alpha * np.cumsum(used) \
+            + res.eta * horizon.settings.step_s * cp.cumsum(u[j])
         cons += [q >= res.q_min, q <= res.q_max]
-        if milp.settings.terminal == "hold":
-            cons.append(q[H - 1] >= min(res.q0, res.q_max - res.eta * milp.settings.step_s))
-        power = power + milp.Gu[j] @ u[j] + milp.Gs[j] @ s
-        cost = cost + milp.w1 * (milp.area_u[j] @ u[j]) + milp.start_cost[j] @ s
+        if horizon.settings.terminal == "hold":
+            cons.append(q[H - 1] >= min(res.q0, res.q_max - res.eta * horizon.settings.step_s))
+        power = power + horizon.Gu[j] @ u[j] + horizon.Gs[j] @ s
+        cost = cost + horizon.w1 * (horizon.area_u[j] @ u[j]) + horizon.start_cost[j] @ s
     cons.append(z >= power)
-    cost = cost + milp.w2 * z
-    if milp.settings.limit_va is not None:
-        cost = cost + milp.w_limit * cp.pos(z - float(milp.settings.limit_va))
+    cost = cost + horizon.w2 * z
+    if horizon.settings.limit_va is not None:
+        cost = cost + horizon.w_limit * cp.pos(z - float(horizon.settings.limit_va))
     problem = cp.Problem(cp.Minimize(cost), cons)
     try:
         problem.solve(solver=cp.HIGHS, time_limit=time_limit_s)

@@ -1,7 +1,7 @@
 """Exact solver of the EEC's horizon problem: a pruned dynamic program over relay schedules.
 
-The MILP of :class:`hil.controllers.bench.eec.EECMilp` couples the peripherals only through the
-peak.
+The MILP of :class:`hil.controllers.bench.eec_milp.EECMilp` couples the peripherals only through
+the peak.
 Each peripheral's dwell and level bounds are its own, its energy (J1, plus ``gamma3`` per
 switch-on) adds up over the steps, and the peak (J2) is the highest of the step peaks
 ``table[i, combination of local states]`` (local state: off, on, starting). So a plan is a

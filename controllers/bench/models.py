@@ -1,9 +1,10 @@
 """Power models of the bench's loads (energy paper, section III-A and eq. 9), ready for
 prediction and estimation.
 
-Models are discrete state-space files written by :mod:`hil.controllers.ident.n4sid` (N4SID; format
-``hil.ident.state-space``): ``x(k+1) = A x(k) + B (u(k) - u_offset)``, ``y(k) = C x(k) +
-D (u(k) - u_offset) + y_offset``, sampled every ``dt`` (0.01 s). Sample ``k`` of the output is
+Models are discrete state-space files identified by :mod:`hil.controllers.ident.n4sid` (N4SID),
+in the format of :mod:`hil.controllers.ident.model_file` (``hil.ident.state-space``):
+``x(k+1) = A x(k) + B (u(k) - u_offset)``, ``y(k) = C x(k) + D (u(k) - u_offset) + y_offset``,
+sampled every ``dt`` (0.01 s). Sample ``k`` of the output is
 the meter reading after ``k`` plant steps; ``u(k)`` is the relay state written at that tick and
 latched by the plant for the next step (so an identified model has ``D`` close to 0).
 
@@ -35,7 +36,8 @@ import numpy as np
 
 from hil.controllers.bench.problem import MachiningSequence
 from hil.controllers.errors import ControllerSetupError
-from hil.controllers.ident.n4sid import IdentificationError, loads_model
+from hil.controllers.ident.model_file import loads_model
+from hil.controllers.ident.n4sid import IdentificationError
 
 
 def _input_key(name: str) -> str:
@@ -101,7 +103,7 @@ class LinearModel:
 
 
 def load_linear_model(path: str | os.PathLike[str], name: str = "") -> LinearModel:
-    """Read a model file (``hil.controllers.ident.n4sid`` format) as a :class:`LinearModel`."""
+    """Read a model file (``hil.controllers.ident.model_file`` format) as a :class:`LinearModel`."""
     path = os.fspath(path)
     try:
         with open(path, encoding="utf-8") as f:

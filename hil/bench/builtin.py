@@ -11,18 +11,16 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from hil.bench.config import EecConfig, EecTable
 from hil.bench.control import BenchContext, RecordedEEC
 from hil.controllers.bench.bc import BasicController
+from hil.controllers.bench.eec_settings import EECSettings
 from hil.controllers.bench.models import DeviceModel, MachiningModel, load_linear_model
 from hil.controllers.bench.prediction import BenchModels
 from hil.controllers.bench.problem import BenchProblem
 from hil.errors import ConfigError, UsageError
-
-if TYPE_CHECKING:  # the EEC is imported when built: it brings HiGHS and scipy
-    from hil.controllers.bench.eec import EECSettings
 
 
 def eec(params: Mapping[str, Any], context: BenchContext) -> RecordedEEC:
@@ -47,8 +45,6 @@ def bc(params: Mapping[str, Any], context: BenchContext) -> BasicController:
 
 def eec_settings(table: EecTable) -> EECSettings:
     """The EEC's settings of its ``[eec]`` table."""
-    from hil.controllers.bench.eec import EECSettings
-
     step = table.step_s
     try:
         return EECSettings(

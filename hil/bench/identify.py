@@ -34,7 +34,8 @@ from typing import TYPE_CHECKING, Any, TextIO
 import numpy as np
 
 from hil.bench.identify_options import MACHINING_MODES, IdentifyOptions
-from hil.bench.rig import BenchRig, attach_bench, session_clock
+from hil.bench.openers import session_clock
+from hil.bench.rig import BenchRig, attach_bench
 from hil.core.loop import Task
 from hil.core.run import default_session_path
 from hil.core.session import Session

@@ -32,17 +32,11 @@ from hil.bench.control import (
     SignalLimits,
 )
 from hil.bench.kpis import BenchKpis, BenchRunKpis
+from hil.bench.openers import OpenedBench, is_emulated, open_bench_device, planned_clock
 from hil.bench.options import BenchRunOptions
-from hil.bench.rig import (
-    BenchRig,
-    OpenedBench,
-    SequenceOrigin,
-    attach_rig,
-    is_emulated,
-    open_bench_device,
-    planned_clock,
-)
+from hil.bench.rig import BenchRig, attach_rig
 from hil.bench.safety import BenchSafetyTask
+from hil.bench.sequence import SequenceOrigin
 from hil.bench.settings import resolve_bench
 from hil.core.clock import Clock
 from hil.core.loop import Task

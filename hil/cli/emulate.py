@@ -1,14 +1,11 @@
-"""``hil emulate bench|drive``: standalone emulator processes."""
+"""``hil emulate bench|drive``: the flags of a standalone emulator process, and what it prints;
+:mod:`hil.emulation` serves the emulator."""
 
 from __future__ import annotations
 
 import argparse
-import contextlib
-import signal
 import sys
-import threading
 import time
-from collections.abc import Callable, Iterator
 from dataclasses import replace
 from typing import Any
 
@@ -16,6 +13,14 @@ from hil.cli.argtypes import host_port, positive_int
 from hil.cli.recording import add_live_arguments, live_address
 from hil.core.config import load_toml
 from hil.core.lifeline import die_with_parent
+from hil.emulation import (
+    BENCH_LIVE_HZ,
+    DRIVE_LIVE_HZ,
+    harden_serving_thread,
+    serve_bench,
+    serve_drives,
+    serve_until_stopped,
+)
 from hil.emulators.drive.timebase import CLOCKS
 from hil.emulators.faults import (
     FORM,
@@ -28,9 +33,6 @@ from hil.emulators.faults import (
 )
 from hil.errors import ConfigError
 from hil.protocols.bench_clock import CLOCKS as BENCH_CLOCKS
-
-BENCH_LIVE_HZ = 10.0   # the emulators' state on --live: a modest rate, off their serving thread
-DRIVE_LIVE_HZ = 50.0
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -127,144 +129,38 @@ def faults_of(args: argparse.Namespace, emulator: str, configured: tuple[Fault, 
     return for_emulator(faults, emulator, "--fault")
 
 
-class StopFlag:
-    """A stop request a signal handler may set: a plain store, no lock. (``Event.set()`` in a
-    handler takes the lock the interrupted ``Event.wait()`` may hold: two SIGTERMs a few ms
-    apart once hung ``hil emulate bench`` for minutes.) ``is_set``/``wait`` poll it."""
-
-    POLL_S = 0.05
-
-    def __init__(self) -> None:
-        self.requested = False
-
-    def set(self) -> None:
-        self.requested = True
-
-    def is_set(self) -> bool:
-        return self.requested
-
-    def wait(self, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while not self.requested and time.monotonic() < deadline:
-            time.sleep(min(self.POLL_S, max(deadline - time.monotonic(), 0.0)))
-        return self.requested
-
-
-def _number_schema(title: str, sample: dict[str, Any]) -> dict[str, Any]:
-    kinds = {bool: "integer", int: "integer", float: "number", str: "string"}
-    return {"type": "object", "title": title, "properties": {
-        name: {"type": kinds.get(type(value), "number")} for name, value in sample.items()}}
-
-
-@contextlib.contextmanager
-def _live_state(args: argparse.Namespace, topics: dict[str, tuple[str, Callable[[], dict]]],
-                hz: float) -> Iterator[None]:
-    """With ``--live``: serve ``topics`` (name -> (schema title, sampler)) every ``1/hz`` s of
-    wall time from a thread, and ``/events`` at start and stop; without it, nothing."""
-    address = live_address(args)
-    if address is None:
-        yield
-        return
-    from hil.core.recording.live import LiveSink, parse_address
-    from hil.core.recording.recorder import EVENT_SCHEMA
-
-    sink = LiveSink(*parse_address(address), rates={name: 0 for name in topics})
-    sink.add_topic("/events", "/events", EVENT_SCHEMA)
-    for name, (title, sample) in topics.items():
-        sink.add_topic(name, name, _number_schema(title, sample()))
-    print(f"hil: live view on {sink.url} (Foxglove: Open connection > Foxglove WebSocket)",
-          file=sys.stderr, flush=True)
-    stop = threading.Event()
-
-    def event(kind: str, message: str) -> None:
-        sink.log("/events", time.time_ns(), {"level": "info", "source": "emulator",
-                                             "kind": kind, "message": message, "data": {}})
-
-    def publish() -> None:
-        event("emulator.start", "emulator serving")
-        while not stop.wait(1.0 / hz):
-            now = time.time_ns()
-            for name, (_, sample) in topics.items():
-                sink.log(name, now, sample())
-
-    publisher = threading.Thread(target=publish, name="live-state", daemon=True)
-    publisher.start()
-    try:
-        yield
-    finally:
-        stop.set()
-        publisher.join()
-        event("emulator.stop", "emulator stopped")
-        sink.close()
-
-
-@contextlib.contextmanager
-def _until_stopped() -> Iterator[StopFlag]:
-    """A flag that SIGTERM sets; Ctrl-C ends the block quietly. Restores the SIGTERM handler,
-    except after a SIGTERM: the process is on its way out, and a second SIGTERM a few ms later
-    (a supervisor's retry) is ignored instead of killing it in the middle of its exit."""
-    stop = StopFlag()
-    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    try:
-        yield stop
-    except KeyboardInterrupt:
-        pass
-    finally:
-        signal.signal(signal.SIGTERM, signal.SIG_IGN if stop.requested else previous)
-
-
 def emulate_bench_command(args: argparse.Namespace) -> int:
     """Serve the bench plant until Ctrl-C or SIGTERM, on the wall clock or a lockstep master's
     time (``--clock``); a master taking or letting go of the time is a line on stderr."""
     die_with_parent()
     from hil.bench.config import load_bench_config
-    from hil.bench.rig import make_emulator
 
     config = load_bench_config(args.config)
     config = replace(config, faults=tuple(faults_of(args, "bench", config.faults)))
-    emulator = make_emulator(config.emulating(args.seed, args.disturbance or None), print_event)
-    if args.tcp is not None:
-        url = emulator.serve_tcp(*args.tcp)
-    else:
-        url = emulator.serve_serial(args.serial, baudrate=args.baud, parity=args.parity,
-                                    stopbits=args.stopbits)
-    emulator.follow(args.clock, lambda line: print(f"hil: clock: {line}", file=sys.stderr,
-                                                   flush=True))
-    units = emulator.devices.units
-    started = time.monotonic()
+    bench = serve_bench(
+        config.emulating(args.seed, args.disturbance or None), tcp=args.tcp,
+        serial=args.serial, baudrate=args.baud, parity=args.parity, stopbits=args.stopbits,
+        clock=args.clock, on_fault=print_event,
+        on_clock=lambda line: print(f"hil: clock: {line}", file=sys.stderr, flush=True))
+    units = bench.emulator.devices.units
 
-    # the plant of now: a lockstep master's session starts a new one
-    def coils() -> dict[str, Any]:
-        return {f"coil_{i}": int(on) for i, on in enumerate(emulator.plant.coils())}
+    def ready(live_url: str | None) -> None:
+        _print_live(live_url)
+        print(f"hil: bench emulator listening on {bench.url} (relays unit {units['relays']}, "
+              f"meter unit {units['meter']}, levels unit {units['levels']}); Ctrl-C stops",
+              flush=True)
 
-    def meter() -> dict[str, Any]:
-        return {"t_s": emulator.plant.t_s, **emulator.plant.snapshot.meter}
+    def stopped() -> None:
+        print(f"hil: bench emulator stopped after {time.monotonic() - bench.started:.1f} s "
+              f"(plant time {bench.emulator.plant.t_s:.2f} s)", flush=True)
 
-    def levels() -> dict[str, Any]:
-        return dict(emulator.plant.snapshot.levels)
-
-    state = {"/bench/power": ("hil.BenchPower", meter), "/bench/levels": ("hil.BenchLevels",
-             levels), "/emulator/coils": ("hil.EmulatorCoils", coils)}
-    # the stop flag is set before the ready line: a SIGTERM after it is handled
-    with _until_stopped() as stop, _live_state(args, state, BENCH_LIVE_HZ):
-        try:
-            print(f"hil: bench emulator listening on {url} (relays unit {units['relays']}, "
-                  f"meter unit {units['meter']}, levels unit {units['levels']}); Ctrl-C stops",
-                  flush=True)
-            while not stop.wait(0.2):
-                pass
-        finally:  # Ctrl-C (KeyboardInterrupt, ended quietly by _until_stopped) too
-            emulator.stop()
-            print(f"hil: bench emulator stopped after {time.monotonic() - started:.1f} s "
-                  f"(plant time {emulator.plant.t_s:.2f} s)", flush=True)
+    serve_until_stopped(bench, live_address(args), BENCH_LIVE_HZ, ready, stopped)
     return 0
 
 
 def emulate_drive_command(args: argparse.Namespace) -> int:
     """Serve the emulated CiA 402 drive over socketcand in real time until Ctrl-C or SIGTERM."""
     die_with_parent()
-    from hil.emulators.drive.node import DriveNode
-    from hil.emulators.socketcand_server import SocketcandServer
     from hil.errors import UsageError
     from hil.servo.config import load_drive_config
 
@@ -283,96 +179,34 @@ def emulate_drive_command(args: argparse.Namespace) -> int:
         return write_eds(emulator, args.write_eds)
     if args.socketcand is None:
         raise UsageError("hil emulate drive needs --socketcand HOST:PORT (or --write-eds F)")
-    host, port = args.socketcand
-    server = SocketcandServer(host, port, channel=emulator.channel)
-    send: Callable[[list[Any]], None] = server.broadcast
-    trace = None
-    if args.can_log:
-        from hil.drivers.canopen.can_log import CanLog
-
-        trace = CanLog(args.can_log, emulator.channel)
-        send = _traced_send(server.broadcast, trace)
-    # one drive per node id, each with its own axis, all hearing every frame of the bus
-    nodes = [DriveNode(replace(emulator, node_id=node_id), send=send, clock=args.clock,
-                       faults=faults_of(args, "drive"), on_fault=print_event)
-             for node_id in nodes_ids]
-
-    def handle(msg: Any) -> None:
-        for node in nodes:
-            node.handle(msg)
-
-    def service() -> None:
-        for node in nodes:
-            node.service()
-
-    server.on_frame = handle if trace is None else _traced_handle(handle, trace)
-    server.on_tick = service
-    server.next_frame_ns = nodes[0].next_sync_ns  # one SYNC for them all
-    for node in nodes:
-        node.boot()
-    bound_host, bound_port = server.address
-    state = {("/emulator/drive" if len(nodes) == 1 else f"/emulator/drive/{node.node_id}"):
-             ("hil.EmulatorDrive", _drive_state(node)) for node in nodes}
+    drives = serve_drives(emulator, nodes_ids, *args.socketcand, clock=args.clock,
+                          faults=faults_of(args, "drive"), can_log=args.can_log,
+                          on_fault=print_event)
+    nodes = drives.nodes
+    bound_host, bound_port = drives.server.address
     ids = ", ".join(str(node.node_id) for node in nodes)
-    # the stop flag is set before the ready line: a SIGTERM after it is handled
-    with _until_stopped() as stop, _live_state(args, state, DRIVE_LIVE_HZ):
-        try:
-            if args.harden:  # the serving thread only, reported before the ready line
-                _harden_serving_thread()
-            print(f"hil: drive emulator node{'s' if len(nodes) > 1 else ''} {ids} on socketcand "
-                  f"{bound_host}:{bound_port} (bus {emulator.channel}, clock {args.clock}); "
-                  "Ctrl-C stops", flush=True)
-            server.serve(stop)
-        finally:  # Ctrl-C (KeyboardInterrupt, ended quietly by _until_stopped) too
-            server.close()
-            if trace is not None:
-                trace.close()
-            print(f"hil: drive emulator stopped after {nodes[0].sync_count} SYNC "
-                  f"(plant time {nodes[0].plant.time_s:.3f} s)", flush=True)
+
+    def ready(live_url: str | None) -> None:
+        _print_live(live_url)
+        if args.harden:  # the serving thread only, reported before the ready line
+            for line in harden_serving_thread():
+                print(line, file=sys.stderr, flush=True)
+        print(f"hil: drive emulator node{'s' if len(nodes) > 1 else ''} {ids} on socketcand "
+              f"{bound_host}:{bound_port} (bus {emulator.channel}, clock {args.clock}); "
+              "Ctrl-C stops", flush=True)
+
+    def stopped() -> None:
+        print(f"hil: drive emulator stopped after {nodes[0].sync_count} SYNC "
+              f"(plant time {nodes[0].plant.time_s:.3f} s)", flush=True)
+
+    serve_until_stopped(drives, live_address(args), DRIVE_LIVE_HZ, ready, stopped)
     return 0
 
 
-def _harden_serving_thread() -> None:
-    """``--harden``: the calling thread as a helper of a real-time loop, each step on stderr;
-    another thread of this process (--live, --can-log) holds the GIL 0.1 ms at most, not 5."""
-    from hil.core.loop import REALTIME_SWITCH_INTERVAL_S
-    from hil.core.realtime import Hardening, step_line
-
-    sys.setswitchinterval(REALTIME_SWITCH_INTERVAL_S)
-    for step in Hardening.for_helper().apply():
-        print(step_line(step), file=sys.stderr, flush=True)
-
-
-def _drive_state(node: Any) -> Callable[[], dict[str, Any]]:
-    """The live view's sample of one emulated drive."""
-    plant = node.plant
-
-    def sample() -> dict[str, Any]:
-        return {"t_s": plant.time_s, "position_deg": plant.position_deg,
-                "velocity_deg_s": plant.velocity_deg_s, "current_mA": plant.applied_current_ma,
-                "statusword": node.statusword, "sync_count": node.sync_count}
-
-    return sample
-
-
-def _traced_send(send: Callable[[list], None], trace: Any) -> Callable[[list], None]:
-    def traced(frames: list) -> None:
-        send(frames)
-        trace.sent(frames)
-
-    return traced
-
-
-def _traced_handle(handle: Callable[[Any], None], trace: Any) -> Callable[[Any], None]:
-    from hil.protocols.can_frames import from_message
-
-    def traced(msg: Any) -> None:
-        frame = from_message(msg)
-        if frame is not None:
-            trace.received(frame)
-        handle(msg)
-
-    return traced
+def _print_live(live_url: str | None) -> None:
+    if live_url is not None:
+        print(f"hil: live view on {live_url} (Foxglove: Open connection > Foxglove WebSocket)",
+              file=sys.stderr, flush=True)
 
 
 def write_eds(emulator: Any, path: str) -> int:

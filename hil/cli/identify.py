@@ -67,7 +67,8 @@ def fraction(text: str) -> float:
 
 
 def identify_command(args: argparse.Namespace) -> int:
-    from hil.controllers.ident.n4sid import IdentificationError, identify, json_text
+    from hil.controllers.ident.model_file import json_text, model_to_dict
+    from hil.controllers.ident.n4sid import IdentificationError, identify
     from hil.core.identify import (
         IRREGULAR_TOLERANCE,
         aligned_signals,
@@ -109,7 +110,8 @@ def identify_command(args: argparse.Namespace) -> int:
               f"{IRREGULAR_TOLERANCE:.0%} (dropped or late samples?); the model assumes "
               "uniform sampling", file=sys.stderr)
     if args.json:
-        print(json_text({**model.to_dict(), "model": out, "irregular_intervals": irregular}))
+        print(json_text({**model_to_dict(model), "model": out,
+                         "irregular_intervals": irregular}))
     else:
         print(format_model(model, out))
     return 0

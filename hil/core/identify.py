@@ -13,7 +13,7 @@ count as 0/1. All signals are resampled on the time stamps of the first output w
 zero-order hold (each input keeps the value of its latest message at or before the output's
 stamp); output samples before every signal has a value are dropped.
 
-The model file (JSON, see :meth:`hil.controllers.ident.n4sid.IdentifiedModel.to_dict`) records the
+The model file (JSON, see :func:`hil.controllers.ident.model_file.model_to_dict`) records the
 command that produced it; :func:`load_model_file` reads it back for the controllers' configs.
 """
 
@@ -29,12 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from hil.controllers.ident.n4sid import (
-    IdentificationError,
-    IdentifiedModel,
-    dumps_model,
-    loads_model,
-)
+from hil.controllers.ident.model_file import dumps_model, loads_model
+from hil.controllers.ident.n4sid import IdentificationError, IdentifiedModel
 from hil.core.recording.reader import SessionData
 from hil.errors import ConfigError, UsageError
 

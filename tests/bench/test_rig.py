@@ -7,7 +7,8 @@ import os
 import pytest
 
 from hil.bench.config import load_bench_config, parse_bench_config
-from hil.bench.rig import SequenceSchedule, attach_bench
+from hil.bench.rig import attach_bench
+from hil.bench.sequence import SequenceSchedule
 from hil.core.clock import SimClock
 from hil.core.recording.reader import read_session
 from hil.core.session import Session

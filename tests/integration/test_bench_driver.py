@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hil.bench.config import load_bench_config, parse_bench_config
-from hil.bench.rig import make_emulator
+from hil.bench.emulated import make_emulator
 from hil.core.config import deep_merge
 from hil.drivers.bench.modbus import (
     DeviceError,

@@ -17,7 +17,7 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.framer.rtu import FramerRTU
 
 from hil.bench.config import load_bench_config
-from hil.bench.rig import make_emulator
+from hil.bench.emulated import make_emulator
 from hil.emulators.null_modem import NullModem
 from tests.pymodbus_bench import ANSWER_S
 

@@ -14,8 +14,12 @@ import pytest
 
 from hil.bench.config import load_bench_config
 from hil.controllers.base import BenchController, BenchEstimator, BenchObservation
-from hil.controllers.bench.eec import EEC, EECMilp, EECSettings
+from hil.controllers.bench.eec import EEC
+from hil.controllers.bench.eec_costs import HorizonCosts
 from hil.controllers.bench.eec_cvxpy import CvxpyEEC, solve_naive
+from hil.controllers.bench.eec_repair import feasible, repair
+from hil.controllers.bench.eec_settings import EECSettings
+from hil.controllers.bench.eec_solver import HorizonSolver
 from hil.controllers.bench.models import DeviceModel, LinearModel, MachiningModel
 from hil.controllers.bench.prediction import BenchEstimate, BenchModels, HorizonPrediction
 from hil.controllers.bench.problem import BenchProblem
@@ -45,8 +49,8 @@ def problem_with_dwell(dwell_s: float) -> BenchProblem:
     return load_bench_config().with_dwell(dwell_s).problem
 
 
-def q_trajectory(problem: BenchProblem, milp: EECMilp, q0: np.ndarray, t_s: float,
-                 u: np.ndarray) -> np.ndarray:
+def q_trajectory(problem: BenchProblem, q0: np.ndarray, t_s: float, u: np.ndarray
+                 ) -> np.ndarray:
     """Levels after each step, from eq. (10) directly (not from the MILP's bounds)."""
     out = np.empty((len(problem.resources), u.shape[1]))
     for j, res in enumerate(problem.resources):
@@ -58,19 +62,19 @@ def q_trajectory(problem: BenchProblem, milp: EECMilp, q0: np.ndarray, t_s: floa
     return out
 
 
-def brute_force(problem: BenchProblem, milp: EECMilp, prediction: HorizonPrediction,
+def brute_force(problem: BenchProblem, horizon: HorizonCosts, prediction: HorizonPrediction,
                 est: BenchEstimate, u_prev: np.ndarray, since_switch: np.ndarray,
                 q0: np.ndarray, t_s: float) -> tuple[float, np.ndarray | None]:
     """The best objective over every relay sequence, each simulated sample by sample."""
     H, nd = prediction.steps, len(problem.peripherals)
-    settings = milp.settings
+    settings = horizon.settings
     free = prediction.free(est)
     best, best_u = np.inf, None
     for bits in itertools.product((0, 1), repeat=nd * H):
         u = np.array(bits, float).reshape(nd, H)
         ok = True
         for j in range(nd):
-            L = milp.dwell_steps[j]
+            L = horizon.dwell_steps[j]
             seq = np.concatenate([[u_prev[j]], u[j]])
             change_steps = np.nonzero(np.diff(seq))[0]  # step index of each switch
             last = -since_switch[j]
@@ -80,7 +84,7 @@ def brute_force(problem: BenchProblem, milp: EECMilp, prediction: HorizonPredict
                 last = step
         if not ok:
             continue
-        q = q_trajectory(problem, milp, q0, t_s, u)
+        q = q_trajectory(problem, q0, t_s, u)
         for j, res in enumerate(problem.resources):
             if np.any(q[j] < res.q_min - 1e-9) or np.any(q[j] > res.q_max + 1e-9):
                 ok = False
@@ -92,12 +96,12 @@ def brute_force(problem: BenchProblem, milp: EECMilp, prediction: HorizonPredict
         starts = np.clip(np.diff(np.concatenate([u_prev[:, None], u], axis=1)), 0, None)
         area = float(np.sum(s_va - free) * prediction.dt)
         for j, name in enumerate(problem.peripherals):  # a late start's dwell beyond the end
-            beyond = np.clip(milp.dwell_steps[j] - (H - np.arange(H)), 0, None)
+            beyond = np.clip(horizon.dwell_steps[j] - (H - np.arange(H)), 0, None)
             area += float(starts[j] @ beyond) * prediction.models.devices[name].steady_va
         peak = float(s_va.max())
-        cost = milp.w1 * area + milp.w2 * peak
+        cost = horizon.w1 * area + horizon.w2 * peak
         if settings.limit_va is not None:
-            cost += milp.w_limit * max(0.0, peak - settings.limit_va)
+            cost += horizon.w_limit * max(0.0, peak - settings.limit_va)
         if cost < best - 1e-12:
             best, best_u = cost, u
     return best, best_u
@@ -121,25 +125,26 @@ def test_milp_equals_brute_force_on_a_tiny_horizon(case):
     settings = EECSettings(hp_steps=6, terminal=terminal, limit_va=limit,
                            peak_resolution_va=0.0, time_limit_s=30.0, mip_rel_gap=1e-9)
     prediction = HorizonPrediction(models, problem, 6, 10)
-    milp = EECMilp(prediction, problem, settings)
+    solver = HorizonSolver(prediction, problem, settings)
+    horizon = solver.horizon
     est = BenchEstimate(round(t_s / DT), np.array([3.0, -2.0]),
                         {"P1": np.array([u_prev[0], 5.0]), "P2": np.zeros(2)}, dist)
     u_prev, since, q0 = np.array(u_prev, float), np.array(since), np.array(q0)
-    fixed = np.maximum(0, milp.dwell_steps[0] - since)
-    result = milp.solve(prediction.free(est), u_prev, fixed, q0, t_s)
-    best, best_u = brute_force(problem, milp, prediction, est, u_prev, since, q0, t_s)
+    fixed = np.maximum(0, horizon.dwell_steps[0] - since)
+    result = solver.solve(prediction.free(est), u_prev, fixed, q0, t_s)
+    best, best_u = brute_force(problem, horizon, prediction, est, u_prev, since, q0, t_s)
     assert best_u is not None, "the brute force found no feasible sequence: bad case"
     assert result.status == "optimal"
     # equal up to the coefficients below 1e-6 of a device's power that the model drops
     assert result.objective == pytest.approx(best, rel=1e-6)
     # the plan the MILP returns is as good as the best sequence when simulated
-    again, _ = brute_force(problem, milp, prediction, est, u_prev, since, q0, t_s)
+    again, _ = brute_force(problem, horizon, prediction, est, u_prev, since, q0, t_s)
     assert again == pytest.approx(best)
     s_va = prediction.simulate(est, result.u.astype(float), u_prev)
     assert result.peak_va == pytest.approx(s_va.max(), abs=0.01)
     # the quick plan evaluation used to pick warm starts agrees
     u = result.u.astype(float)
-    quick = milp.costs(u, 1, u[1:2], u_prev, milp.peak_table(prediction.free(est)))[0]
+    quick = horizon.costs(u, 1, u[1:2], u_prev, horizon.peak_table(prediction.free(est)))[0]
     assert quick == pytest.approx(result.objective, rel=1e-9)
 
 
@@ -147,10 +152,10 @@ def test_infeasible_problem_is_reported_not_raised():
     problem = problem_with_dwell(3.0)
     models = synthetic_models(problem)
     prediction = HorizonPrediction(models, problem, 6, 10)
-    milp = EECMilp(prediction, problem, EECSettings(hp_steps=6))
+    solver = HorizonSolver(prediction, problem, EECSettings(hp_steps=6))
     est = BenchEstimate.at_rest(models, 40)
-    result = milp.solve(prediction.free(est), np.zeros(2), np.zeros(2, int),
-                        np.array([30.0, 65.0]), 4.0)
+    result = solver.solve(prediction.free(est), np.zeros(2), np.zeros(2, int),
+                          np.array([30.0, 65.0]), 4.0)
     assert result.status == "infeasible" and result.u is None
 
 
@@ -162,12 +167,12 @@ def test_highs_model_equals_the_cvxpy_reference(t_s, q0, u_prev):
     settings = EECSettings(hp_steps=10, limit_va=500.0, peak_resolution_va=0.0,
                            time_limit_s=30.0, mip_rel_gap=1e-9)
     prediction = HorizonPrediction(models, problem, 10, 10)
-    milp = EECMilp(prediction, problem, settings)
+    solver = HorizonSolver(prediction, problem, settings)
     est = BenchEstimate.at_rest(models, round(t_s / DT))
     args = (prediction.free(est), np.array(u_prev, float), np.zeros(2, int), np.array(q0), t_s)
-    fast = milp.solve(*args)
-    reference = CvxpyEEC(milp).solve(*args)
-    naive = solve_naive(milp, *args)
+    fast = solver.solve(*args)
+    reference = CvxpyEEC(solver.horizon).solve(*args)
+    naive = solve_naive(solver.horizon, *args)
     assert fast.status == "optimal" and reference.u is not None and naive.u is not None
     assert fast.objective == pytest.approx(reference.objective, rel=1e-6)
     assert naive.objective == pytest.approx(reference.objective, rel=1e-6)
@@ -227,24 +232,25 @@ def test_shifted_plan_missing_production_at_the_end_is_repaired():
     problem = problem_with_dwell(5.0)
     models = synthetic_models(problem)
     prediction = HorizonPrediction(models, problem, 12, 10)
-    milp = EECMilp(prediction, problem, EECSettings(hp_steps=12))
+    solver = HorizonSolver(prediction, problem, EECSettings(hp_steps=12))
+    horizon = solver.horizon
     # with nothing on, q1 falls short near the end of the horizon (as a plan shifted by a
     # step usually does): the repair runs P1 over the last steps
     q0 = np.array([68.0, 80.0])
-    qlo, qhi = milp.level_bounds(q0, 0.0)
+    qlo, qhi = horizon.level_bounds(q0, 0.0)
     c_lo, c_hi = np.maximum(qlo, 0), np.minimum(qhi, np.arange(12) + 1.0)
     off = np.zeros(2)
     plan = np.zeros((2, 12))
-    assert not milp.feasible(plan, off, off, c_lo, c_hi)
-    repaired = milp.repair(plan, off, off, c_lo, c_hi)
-    assert repaired is not None and milp.feasible(repaired, off, off, c_lo, c_hi)
+    assert not feasible(horizon, plan, off, off, c_lo, c_hi)
+    repaired = repair(horizon, plan, off, off, c_lo, c_hi)
+    assert repaired is not None and feasible(horizon, repaired, off, off, c_lo, c_hi)
     on = np.nonzero(repaired[0])[0]
     assert on.size and np.array_equal(on, np.arange(12 - on.size, 12))  # one final run
     assert repaired[1].sum() == 0
     # a plan that is fine is returned as it is
-    good = milp.solve(prediction.free(BenchEstimate.at_rest(models)), off, np.zeros(2, int),
-                      q0, 0.0).u.astype(float)
-    assert np.array_equal(milp.repair(good, off, off, c_lo, c_hi), good)
+    good = solver.solve(prediction.free(BenchEstimate.at_rest(models)), off, np.zeros(2, int),
+                        q0, 0.0).u.astype(float)
+    assert np.array_equal(repair(horizon, good, off, off, c_lo, c_hi), good)
 
 
 def test_models_identified_over_the_wire_load_with_their_pulse_inputs():

@@ -16,7 +16,8 @@ import pytest
 
 from hil.bench.builtin import eec_settings, load_models
 from hil.bench.config import load_configs
-from hil.controllers.bench.eec import EECMilp
+from hil.controllers.bench.eec_repair import feasible
+from hil.controllers.bench.eec_solver import HorizonSolver
 from hil.controllers.bench.prediction import HorizonPrediction
 
 DATA = Path(__file__).parents[2] / "data" / "eec_instants.npz"
@@ -41,9 +42,9 @@ def solvers(prediction, problem, settings, **changes):
     # the MILP runs HiGHS with threads = 1: a scheduler another test started with more
     # threads would make its run fail ("Not Set")
     highspy.Highs.resetGlobalScheduler(True)
-    dp = EECMilp(prediction, problem, dataclasses.replace(settings, solver="dp",
-                                                          time_limit_s=60.0, **changes))
-    milp = EECMilp(prediction, problem, dataclasses.replace(
+    dp = HorizonSolver(prediction, problem, dataclasses.replace(settings, solver="dp",
+                                                                time_limit_s=60.0, **changes))
+    milp = HorizonSolver(prediction, problem, dataclasses.replace(
         settings, solver="milp", time_limit_s=60.0, mip_rel_gap=1e-9, **changes))
     return dp, milp
 
@@ -62,14 +63,15 @@ def test_dp_objective_equals_the_exact_milp(setup, gamma3):
             assert fast.objective == pytest.approx(exact.objective, rel=1e-6)
             # the DP's plan is a plan of the MILP: the same cost when evaluated by it
             u = fast.u.astype(float)
-            quick = dp.costs(u, 0, u[:1], u_prev, dp.peak_table(free))[0]
+            horizon = dp.horizon
+            quick = horizon.costs(u, 0, u[:1], u_prev, horizon.peak_table(free))[0]
             assert quick == pytest.approx(fast.objective, rel=1e-9)
-            assert dp.feasible(u, u_prev, fixed, *bounds(dp, q0, t_s))
+            assert feasible(horizon, u, u_prev, fixed, *bounds(horizon, q0, t_s))
 
 
-def bounds(milp, q0, t_s):
-    lo, hi = milp.level_bounds(q0, t_s)
-    return np.maximum(lo, 0.0), np.minimum(hi, np.arange(milp.H) + 1.0)
+def bounds(horizon, q0, t_s):
+    lo, hi = horizon.level_bounds(q0, t_s)
+    return np.maximum(lo, 0.0), np.minimum(hi, np.arange(horizon.H) + 1.0)
 
 
 def switch_ons(u, u_prev):
@@ -98,17 +100,18 @@ def test_gamma3_only_adds_its_cost_per_switch_on(setup):
         u = result.u.astype(float)
         prev = np.concatenate([u_prev[:, None], u[:, :-1]], axis=1)
         starts = np.clip(u - prev, 0, None)
-        energy = sum(paper.area_u[j] @ u[j] + paper.area_s[j] @ starts[j] for j in range(2))
+        horizon = paper.horizon
+        energy = sum(horizon.area_u[j] @ u[j] + horizon.area_s[j] @ starts[j] for j in range(2))
         assert result.objective == pytest.approx(
-            paper.w1 * energy + paper.peak_cost(result.peak_va), rel=1e-9)
-        table = wear.peak_table(free)
-        assert wear.costs(u, 0, u[:1], u_prev, table)[0] == pytest.approx(
+            horizon.w1 * energy + horizon.peak_cost(result.peak_va), rel=1e-9)
+        table = wear.horizon.peak_table(free)
+        assert wear.horizon.costs(u, 0, u[:1], u_prev, table)[0] == pytest.approx(
             result.objective + 0.05 * switch_ons(u, u_prev), rel=1e-9)
 
 
 def test_budget_is_a_safety_net(setup):
     prediction, problem, settings, instants = setup
-    dp = EECMilp(prediction, problem, dataclasses.replace(settings, time_limit_s=1e-9))
+    dp = HorizonSolver(prediction, problem, dataclasses.replace(settings, time_limit_s=1e-9))
     free, u_prev, fixed, q0, t_s, warm = instants[2]
     result = dp.solve(free, u_prev, fixed, q0, t_s, warm)
     # out of time at once: the repaired previous plan is kept, not proven

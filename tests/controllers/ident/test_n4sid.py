@@ -10,6 +10,12 @@ import numpy as np
 import pytest
 
 from hil.controllers.ident import n4sid as ident
+from hil.controllers.ident.model_file import (
+    MODEL_FORMAT,
+    dumps_model,
+    loads_model,
+    model_to_dict,
+)
 from hil.controllers.ident.n4sid import IdentificationError
 
 
@@ -232,8 +238,8 @@ def test_model_round_trips_through_its_json_text():
     model = ident.identify(u, y, 0.01, order=3, inputs=["P1", "P2"], outputs=["L1", "L2"],
                            command="hil identify x.mcap ...")
 
-    text = ident.dumps_model(model)
-    back = ident.loads_model(text)
+    text = dumps_model(model)
+    back = loads_model(text)
 
     for name in ("A", "B", "C", "D", "K", "Q", "R", "S", "u_offset", "y_offset"):
         assert np.array_equal(getattr(back, name), getattr(model, name)), name
@@ -241,7 +247,7 @@ def test_model_round_trips_through_its_json_text():
     assert back.order == 3 and back.command == "hil identify x.mcap ..."
     assert back.fit_pct == pytest.approx(model.fit_pct, abs=1e-4)
     document = json.loads(text)
-    assert document["format"] == ident.MODEL_FORMAT and document["order"] == 3
+    assert document["format"] == MODEL_FORMAT and document["order"] == 3
     assert set(document["fit_pct_per_output"]) == {"L1", "L2"}
     assert np.allclose(back.simulate(u), model.simulate(u))
 
@@ -260,12 +266,12 @@ def test_broken_model_text_raises_a_clear_error(edit, message):
     A, B, C, D = bench_like_plant()
     u = relay_sequence(np.random.default_rng(1), 1000, 20, 60)[:, None]
     y = ident.simulate(A, B, C, D, u) + np.random.default_rng(2).normal(size=(1000, 1))
-    document = ident.identify(u, y, 0.01, order=3).to_dict()
+    document = model_to_dict(ident.identify(u, y, 0.01, order=3))
     edit(document)
     with pytest.raises(IdentificationError, match=re.escape(message)):
-        ident.loads_model(json.dumps(document))
+        loads_model(json.dumps(document))
     with pytest.raises(IdentificationError, match="not valid JSON"):
-        ident.loads_model("{broken")
+        loads_model("{broken")
 
 
 def _bench_data(n=3000, seed=4):

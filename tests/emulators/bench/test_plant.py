@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hil.bench.config import check_emulation, load_bench_config, parse_bench_config
-from hil.bench.rig import SequenceSchedule
+from hil.bench.sequence import SequenceSchedule
 from hil.core.config import deep_merge
 from hil.emulators.bench.plant import COIL_LOG_LENGTH, BenchPlant, PlantSpec
 from hil.errors import ConfigError

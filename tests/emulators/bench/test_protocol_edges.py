@@ -9,7 +9,7 @@ import struct
 import pytest
 
 from hil.bench.config import load_bench_config
-from hil.bench.rig import make_emulator
+from hil.bench.emulated import make_emulator
 from tests.pymodbus_bench import ANSWER_S
 
 REAL_FUNCTIONS = {1: (1, 5, 15), 2: (4,), 3: (4,)}  # relays, meter, levels (bench.toml [units])

@@ -10,7 +10,7 @@ import pytest
 from pymodbus.client import ModbusTcpClient
 
 from hil.bench.config import load_bench_config
-from hil.bench.rig import make_emulator
+from hil.bench.emulated import make_emulator
 
 pytestmark = [pytest.mark.slow]
 

@@ -1,0 +1,67 @@
+"""The ``emulated`` bench URL: hil's bench emulator, made from the bench config and opened.
+
+Lockstep (a SimClock): the emulator in this process on 127.0.0.1 (a free port), stepped by
+the loop (:class:`~hil.bench.emulator_time.PlantStepTask`); real time: the emulator in a
+process of its own (:mod:`hil.emulator_process`). Either way the same Modbus driver talks to
+it. :func:`make_emulator` makes the emulated bench of a config for anyone who serves it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from hil.bench.emulator_time import PlantStepTask
+from hil.bench.openers import OpenedBench, safe_bench
+from hil.contracts import EventSink
+from hil.core.clock import Clock
+
+if TYPE_CHECKING:
+    from hil.bench.config import BenchConfig
+    from hil.emulators.bench.server import EmulatedBench
+
+
+def make_emulator(config: BenchConfig, on_fault: Callable[[str], None] | None = None
+                  ) -> EmulatedBench:
+    """The emulated bench of ``config`` (not serving yet), once the config is checked for it;
+    it plays ``config.faults`` and tells ``on_fault`` of each one as it starts."""
+    from hil.bench.config import check_emulation
+    from hil.emulators.bench.server import EmulatedBench
+
+    check_emulation(config)
+    return EmulatedBench(config.plant, config.server, config.faults, on_fault)
+
+
+def open_emulated(url: str, config: BenchConfig, clock: Clock, on_event: EventSink
+                  ) -> OpenedBench:
+    """Factory of ``emulated``. Lockstep (SimClock): the emulator in this process on
+    127.0.0.1 (a free port), its plant stepped by the loop. Real time: the emulator in a
+    process of its own, as the hardware would be, so the loop process measures only its own
+    cost; it reads the same config file (``config.source``) with the plant's seed and
+    disturbance switch."""
+    if clock.mode != "sim":
+        return _emulator_process(config, clock, on_event)
+    emulator = make_emulator(config)
+    tcp_url = emulator.serve_tcp()
+    try:
+        return OpenedBench(safe_bench(tcp_url, config, clock, on_event), emulator,
+                           PlantStepTask(emulator, on_event=on_event))
+    except BaseException:
+        emulator.stop()
+        raise
+
+
+def _emulator_process(config: BenchConfig, clock: Clock, on_event: EventSink) -> OpenedBench:
+    from hil.bench.config import check_emulation
+    from hil.emulator_process import start_bench_emulator
+
+    check_emulation(config)
+    # the run's effective tables, every layer in (seed, disturbance...): what it was given
+    process = start_bench_emulator(tables=config.data)
+    on_event("emulator.process", f"bench emulator in process {process.pid} at {process.url}",
+             source="bench", pid=process.pid, url=process.url)
+    try:
+        return OpenedBench(safe_bench(process.url, config, clock, on_event), process)
+    except BaseException:
+        process.stop()
+        raise
