@@ -29,52 +29,42 @@ from typing import Any, cast
 from hil.controllers.base import (
     CountsFallbacks,
     ServoController,
-    cycle_periods_of,
     horizons_of,
     position_input_of,
     solver_of,
 )
 from hil.controllers.servo.references import (
-    CircleAxis,
     PlacedReference,
     Reference,
     Scenario,
-    parse_circle,
-    parse_scenario,
 )
-from hil.core.clock import Clock, RealtimeClock, SimClock
+from hil.core.clock import Clock
 from hil.core.loop import FixedRateLoop
 from hil.core.notice import warn
 from hil.core.plugins import (
     build_controller,
     controller_factory,
-    controller_short_name,
 )
-from hil.core.registry import scheme_of
 from hil.core.run import (
     EventBuffer,
     Experiment,
-    RunPlan,
     RunResult,
     controller_budget,
-    default_session_path,
     run_experiment,
 )
 from hil.core.session import Session
-from hil.core.settings import settings_json
-from hil.core.verdict import SignalWatch, split_limits
-from hil.drivers.can_bus_time import BusPlan
 from hil.drivers.canopen import CanDriveMaster, SdoAbortError
 from hil.errors import HilError, SafetyStopError, UsageError
-from hil.servo.axes import AxisShare, BusCycle, SharedStep, parse_axes, plan_buses
+from hil.servo.axes import AxisShare, BusCycle, SharedStep
 from hil.servo.builtin import ServoContext
-from hil.servo.config import EMULATED, stricter_safety
+from hil.servo.config import stricter_safety
 from hil.servo.drives import RunDrives
 from hil.servo.kpis import AxesKpis, AxisKpis, ServoKpis, no_tracking
 from hil.servo.options import ServoRunOptions
-from hil.servo.rig import lone_axis, open_drives, share_lockstep_time
+from hil.servo.plan import ServoPlan, ServoState, plan_servo
+from hil.servo.rig import open_drives, share_lockstep_time
 from hil.servo.safety import SafetyMonitor
-from hil.servo.settings import check_controller_period, resolve_servo
+from hil.servo.settings import resolve_servo
 from hil.servo.task import (
     DISTURBANCE_OBJECT,
     ServoTask,
@@ -85,8 +75,6 @@ from hil.servo.tracking import reference_amplitude
 # ~50 us), and long enough that a stall of the machine (a collector pass, a preempted VM) does
 # not pass for a hung controller; the loop counts the ticks a slow step costs in real time
 STEP_BUDGET_S = 0.25
-# per-tick signals a --limit may name (magnitudes, except the position)
-SIGNALS = ("abs_error_deg", "abs_command_mA", "abs_velocity_deg_s", "position_deg")
 
 
 def make_controller(options: ServoRunOptions, scenario: Scenario, session: Any = None,
@@ -140,127 +128,47 @@ def can_log_path(path: str | None, bus: int) -> str | None:
 
 
 class ServoExperiment(Experiment):
-    """``hil servo run`` as the run pipeline drives it, on one axis or several. A ``--limit``
-    names a KPI of the run; with named axes, of an axis (``axes.x.max_error_deg``), of the path
-    (``contour.max_contour_error_deg``) or of the run; a per-tick signal limit holds on every
-    axis."""
+    """``hil servo run`` as the run pipeline drives it, on one axis or several: its frozen
+    :class:`~hil.servo.plan.ServoPlan` (``planned``) and what each step opened or built
+    (``state``). A ``--limit`` names a KPI of the run; with named axes, of an axis
+    (``axes.x.max_error_deg``), of the path (``contour.max_contour_error_deg``) or of the run;
+    a per-tick signal limit holds on every axis."""
 
     def __init__(self, options: ServoRunOptions,
                  on_started: Callable[[CanDriveMaster], None] | None = None) -> None:
         self.options = options
         self.on_started = on_started
-        self.drives = RunDrives()
-        self.masters: list[CanDriveMaster] = []  # one per axis, in the run's order
-        self.tasks: list[ServoTask] = []
-        self.bus_task: BusCycle | None = None
-        self.umax_ma: float | None = None  # the first axis' bound, once its drive is open
+        self.state = ServoState()
+        self._planned: ServoPlan | None = None
 
-    def plan(self) -> RunPlan:
-        options = self.options
-        self.settings = resolve_servo(options)
-        self.drive = drive = self.settings.drive
-        self.drive_url = self.settings.drive_url
-        named = parse_axes(options.axes) if options.axes else drive.axes
-        self.lone = not named
-        self.axes = named or (lone_axis(drive),)
-        self.scenarios, self.radius = self._scenarios()
-        self.scenario = self.scenarios[0]
-        self.params = {**drive.run.params, **options.params}
-        if not self.lone:
-            self._check_axis_params()
-        # checked before anything is opened: a spec that cannot load leaves no file behind
-        self.factory, _ = controller_factory(options.controller, self.scenario.reference,
-                                             self.params, method="step", application="servo")
-        check_controller_period(self.factory, options.label, drive)
-        self.period_s = drive.master.cycle_period_s
-        kpi_limits, signal_limits = split_limits(
-            [*drive.run.limits, *options.limits], SIGNALS,
-            (ServoKpis if self.lone else AxesKpis).limit_names())
-        self.watch = SignalWatch(signal_limits)
-        self.buses = plan_buses(self.axes, self.drive_url, drive)
-        for bus in self.buses:
-            if not bus.plan.fits and bus.url != EMULATED:  # the in-process bus has no bitrate
-                raise UsageError(f"the bus plan does not fit ({bus.url}): "
-                                 f"{bus.plan.problem(self._period_note(bus.plan))} (see "
-                                 f"'hil drive plan --axes {len(bus.axes)}')")
-        self.bus_of = {axis.name: bus.url for bus in self.buses for axis in bus.axes}
-        self.out = options.out or default_session_path(
-            "servo", controller_short_name(options.label))
-        run_info = options.record() | {
-            "controller": options.label, "params": self.params,
-            "limits": [str(lim) for lim in (*kpi_limits, *signal_limits)]}
-        if not self.lone:
-            run_info["axes"] = [{"name": a.name, "node": a.node, "bus": self.bus_of[a.name],
-                                 "eds": a.master(drive.master).eds,
-                                 "safety": vars(stricter_safety(drive.safety, a.safety))}
-                                for a in self.axes]
-        label = options.label if self.lone else f"{options.label} on {len(self.axes)} axes"
-        return RunPlan(
-            kind="servo", label=label, session_path=self.out,
-            clock=RealtimeClock() if options.realtime else SimClock(),
-            base_period_s=self.period_s, duration_s=options.duration_s,
-            kpi_limits=tuple(kpi_limits), watch=self.watch,
-            config={"servo": run_info, "drive": drive.data,
-                    "settings": settings_json(self.settings.settings())},
-            config_text=drive.text,
-            config_name="drive.toml", recording=options.recording,
-            devices=self._devices(), quiet=options.quiet)
+    @property
+    def planned(self) -> ServoPlan:
+        """The run's plan (:meth:`plan` is the pipeline's first step)."""
+        if self._planned is None:
+            raise RuntimeError("ServoExperiment.plan() has not run")
+        return self._planned
 
-    def _scenarios(self) -> tuple[list[Scenario], float | None]:
-        """Every axis' scenario (a circle's axis each, or ``--reference`` for all) and the
-        circle's radius (None: no path)."""
-        options = self.options
-        circle = parse_circle(options.reference)
-        if circle is None:
-            return [parse_scenario(options.reference)] * len(self.axes), None
-        if len(self.axes) != 2:
-            raise UsageError(f"--reference {options.reference}: a circle needs two axes, "
-                             f"{'--axes names' if options.axes else 'the run has'} "
-                             f"{len(self.axes)}")
-        return [Scenario(CircleAxis(circle[0], circle[1], i)) for i in range(2)], circle[0]
-
-    def _check_axis_params(self) -> None:
-        names = [axis.name for axis in self.axes]
-        for key in self.options.params:
-            axis, dot, _ = key.partition(".")
-            if dot and axis not in names:
-                raise UsageError(f"--param {key}: no axis {axis!r} (the axes: "
-                                 f"{', '.join(names)}); NAME.KEY=VALUE sets KEY for axis NAME")
-
-    def _period_note(self, plan: BusPlan) -> str:
-        """Which longer period the run's controller runs at (when its periods can be listed):
-        the shortest the plan fits."""
-        periods = cycle_periods_of(self.factory)
-        if not isinstance(periods, (range, tuple, list, set, frozenset)):
-            return ""
-        longer = [p for p in sorted(periods) if p >= plan.min_period_us]
-        label = self.options.label
-        return (f"; controller {label!r} runs at {longer[0]} us" if longer else
-                f"; controller {label!r} runs at no period that long")
-
-    def _devices(self) -> tuple[tuple[str, str], ...]:
-        """Every bus of the run, locked for the run, but the in-process ones (an emulated
-        drive is the run's own, and python-can's ``virtual`` bus lives inside one process)."""
-        return tuple(("drive bus", bus.url) for bus in self.buses
-                     if scheme_of(bus.url) not in (EMULATED, "virtual"))
+    def plan(self) -> ServoPlan:
+        self._planned = plan_servo(self.options)
+        return self._planned
 
     def open_devices(self, clock: Clock, on_event: EventBuffer) -> None:
         """Every bus's drives, reached and in a known state (not enabled)."""
-        options = self.options
-        for kind, message in self.settings.notices:
+        options, plan, state = self.options, self.planned, self.state
+        for kind, message in plan.settings.notices:
             warn(message)
             on_event(kind, message, level="warning", source="settings")
         try:
             masters: dict[str, CanDriveMaster] = {}
-            for i, bus in enumerate(self.buses):
-                opened = open_drives(bus.url, self.drive, bus.axes, on_event=on_event,
+            for i, bus in enumerate(plan.buses):
+                opened = open_drives(bus.url, plan.drive, bus.axes, on_event=on_event,
                                      realtime=options.realtime,
                                      can_log=can_log_path(options.can_log, i))
-                self.drives.add(opened)
+                state.drives.add(opened)
                 masters.update(zip((axis.name for axis in bus.axes), opened.masters,
                                    strict=True))
-            self.masters = [masters[axis.name] for axis in self.axes]
-            for master in self.masters:
+            state.masters = [masters[axis.name] for axis in plan.axes]
+            for master in state.masters:
                 if master.config.lockstep:  # over a bus: one clock on both sides of the wire
                     share_lockstep_time(master, on_event)
                 if options.reset_fault:
@@ -276,117 +184,113 @@ class ServoExperiment(Experiment):
         parameters (the common ones, and ``NAME.KEY`` laid over them for axis NAME); a
         multi-axis controller (``multi_axis = True``) once, with every axis' reference,
         shared by the axes."""
-        options = self.options
-        self.references = [PlacedReference(scenario.reference, relative=options.from_here)
-                           for scenario in self.scenarios]
-        self.umax_ma = min(self.settings.umax_ma, self.masters[0].current_limit_ma)
-        if not self.lone and getattr(self.factory, "multi_axis", False):
-            whole = build_controller(self.factory, options.label, self.references,
-                                     dict(self.params), method="step", application="servo")
-            shared = SharedStep(whole, self.tasks, options.label)
-            self.controllers: list[Any] = [AxisShare(shared, i) for i in range(len(self.axes))]
+        options, plan, state = self.options, self.planned, self.state
+        state.references = [PlacedReference(scenario.reference, relative=options.from_here)
+                            for scenario in plan.scenarios]
+        umax_ma = plan.settings.umax_ma
+        state.umax_ma = min(umax_ma, state.masters[0].current_limit_ma)
+        if not plan.lone and getattr(plan.factory, "multi_axis", False):
+            whole = build_controller(plan.factory, options.label, state.references,
+                                     dict(plan.params), method="step", application="servo")
+            shared = SharedStep(whole, state.tasks, options.label)
+            state.controllers = [AxisShare(shared, i) for i in range(len(plan.axes))]
             return
-        self.controllers = [
-            make_controller(options, scenario, session, self._axis_params(axis.name),
-                            self.factory, min(self.settings.umax_ma, master.current_limit_ma),
-                            reference=reference, period_s=self.period_s)
+        state.controllers = [
+            make_controller(options, scenario, session, plan.axis_params(axis.name),
+                            plan.factory, min(umax_ma, master.current_limit_ma),
+                            reference=reference, period_s=plan.base_period_s)
             for axis, scenario, reference, master in zip(
-                self.axes, self.scenarios, self.references, self.masters, strict=True)]
-
-    def _axis_params(self, name: str) -> dict[str, Any]:
-        if self.lone:
-            return dict(self.params)
-        common = {k: v for k, v in self.params.items() if "." not in k}
-        return common | {k.partition(".")[2]: v for k, v in self.params.items()
-                         if k.startswith(f"{name}.")}
+                plan.axes, plan.scenarios, state.references, state.masters, strict=True)]
 
     def start(self, session: Session) -> None:
-        options, drives = self.options, self.drives
-        for master in self.masters:
+        options, plan, state = self.options, self.planned, self.state
+        for master in state.masters:
             master.configure()
         described = {axis.name: master.describe()
-                     for axis, master in zip(self.axes, self.masters, strict=True)}
+                     for axis, master in zip(plan.axes, state.masters, strict=True)}
         session.recorder.metadata("drive", {"json": json.dumps(
-            described[self.axes[0].name] if self.lone else described)})
-        for master in self.masters:
+            described[plan.axes[0].name] if plan.lone else described)})
+        for master in state.masters:
             master.enable()
-        drives.cycle_together()
-        session.add_component(drives)
-        if not self.lone:
+        state.drives.cycle_together()
+        session.add_component(state.drives)
+        if not plan.lone:
             self._record_bus_plans(session)
-        if any(scenario.disturbance is not None for scenario in self.scenarios):
-            for master in self.masters:
+        if any(scenario.disturbance is not None for scenario in plan.scenarios):
+            for master in state.masters:
                 check_disturbance_object(master)
         budget = controller_budget(options.controller_budget_s, options.realtime,
                                    STEP_BUDGET_S)
         for axis, master, controller, scenario, reference in zip(
-                self.axes, self.masters, self.controllers, self.scenarios, self.references,
+                plan.axes, state.masters, state.controllers, plan.scenarios, state.references,
                 strict=True):
             task = ServoTask(session, master, controller, scenario, reference=reference,
                              label=options.label, settle_s=options.settle_s,
                              prediction_every=options.prediction_period, budget_s=budget,
-                             safety=SafetyMonitor(stricter_safety(self.drive.safety,
-                                                                  axis.safety), self.period_s),
-                             watch=self.watch, axis=None if self.lone else axis.name)
-            self.tasks.append(task)
+                             safety=SafetyMonitor(stricter_safety(plan.drive.safety,
+                                                                  axis.safety),
+                                                  plan.base_period_s),
+                             watch=plan.watch, axis=None if plan.lone else axis.name)
+            state.tasks.append(task)
             session.add_task(task)
-        if not self.lone:
-            self.bus_task = BusCycle(session, drives, self.tasks, self.radius,
-                                     options.settle_s)
-            session.add_task(self.bus_task)
+        if not plan.lone:
+            state.bus_task = BusCycle(session, state.drives, state.tasks, plan.radius,
+                                      options.settle_s)
+            session.add_task(state.bus_task)
         if self.on_started is not None:
-            self.on_started(self.masters[0])
+            self.on_started(state.masters[0])
 
     def _record_bus_plans(self, session: Session) -> None:
         """Every bus's plan as metadata; one that would not fit a real bus, as a warning."""
+        plan = self.planned
         session.recorder.metadata("bus_plan", {"json": json.dumps({"buses": [
             {"url": bus.url, "axis_names": [axis.name for axis in bus.axes],
-             **bus.plan.summary()} for bus in self.buses]})})
-        for bus in self.buses:
+             **bus.plan.summary()} for bus in plan.buses]})})
+        for bus in plan.buses:
             if not bus.plan.fits:
                 message = (f"on a real bus this would not fit: "
-                           f"{bus.plan.problem(self._period_note(bus.plan))}")
+                           f"{bus.plan.problem(plan.period_note(bus.plan))}")
                 warn(message)
                 session.event("bus.plan", message, level="warning", source="bus", url=bus.url)
 
     def finish(self, session: Session) -> None:
         """A safety stop ends the run as an error (the drives are already in their safe
         state)."""
-        for task in self.tasks:
+        for task in self.state.tasks:
             if task.safety.stopped is not None:
                 raise SafetyStopError(task.safety.stopped)
 
     def close_devices(self) -> None:
-        drives, self.drives = self.drives, RunDrives()
+        drives, self.state.drives = self.state.drives, RunDrives()
         drives.close()
 
     def kpis(self, session: Session, wall_s: float, error: HilError | None
              ) -> ServoKpis | AxesKpis:
         """The ``--json`` document: the keys the README documents first, then context."""
-        return self._lone_kpis(session, wall_s) if self.lone else \
+        return self._lone_kpis(session, wall_s) if self.planned.lone else \
             self._axes_kpis(session, wall_s)
 
     def _lone_kpis(self, session: Session, wall_s: float) -> ServoKpis:
-        options, loop = self.options, session.loop
-        task = self.tasks[0] if self.tasks else None
-        master = self.masters[0] if self.masters else None
+        options, plan, state, loop = self.options, self.planned, self.state, session.loop
+        task = state.tasks[0] if state.tasks else None
+        master = state.masters[0] if state.masters else None
         ticks = task.stats.ticks if task is not None else 0
         kpis = ServoKpis(
             controller=options.label,
             deadline_misses=(loop.skipped_ticks + task.late_writes
                              if task is not None and options.realtime else 0),
-            ticks=ticks, cycle_period_us=round(self.period_s * 1e6),
-            mcap=options.recording.first_file(self.out), reference=options.reference,
-            drive=master.url if master is not None else self.drive_url,
+            ticks=ticks, cycle_period_us=round(plan.base_period_s * 1e6),
+            mcap=options.recording.first_file(plan.session_path), reference=options.reference,
+            drive=master.url if master is not None else plan.settings.drive_url,
             clock=session.clock.mode,
-            umax_ma=self.umax_ma if self.umax_ma is not None else self.settings.umax_ma,
+            umax_ma=state.umax_ma if state.umax_ma is not None else plan.settings.umax_ma,
             current_limit_ma=master.current_limit_ma if master is not None else None,
             settle_s=options.settle_s,
             stale_feedback=task.stale if task is not None else 0,
             clamped_commands=master.stats.clamped_commands if master is not None else 0,
             wall_s=round(wall_s, 4), realtime_factor=realtime_factor(ticks, loop),
             stop_reason=loop.stop_reason,
-        ).lay(task.stats.kpis(reference_amplitude(self.scenario))
+        ).lay(task.stats.kpis(reference_amplitude(plan.scenarios[0]))
                         if task is not None else no_tracking())
         controller = task.controller if task is not None else None
         horizons = horizons_of(controller)
@@ -405,14 +309,15 @@ class ServoExperiment(Experiment):
         return kpis
 
     def _axes_kpis(self, session: Session, wall_s: float) -> AxesKpis:
-        options, loop = self.options, session.loop
-        ticks = self.tasks[0].stats.ticks if self.tasks else 0
+        options, plan, state, loop = self.options, self.planned, self.state, session.loop
+        ticks = state.tasks[0].stats.ticks if state.tasks else 0
+        bus_of = plan.bus_of
         axes = {}
-        for axis, task in zip(self.axes, self.tasks, strict=False):
+        for axis, task in zip(plan.axes, state.tasks, strict=False):
             master = task.master
             axes[axis.name] = AxisKpis(
                 **vars(task.stats.kpis(reference_amplitude(task.scenario))),
-                node=axis.node, bus=self.bus_of[axis.name], stale_feedback=task.stale,
+                node=axis.node, bus=bus_of[axis.name], stale_feedback=task.stale,
                 clamped_commands=master.stats.clamped_commands,
                 current_limit_ma=master.current_limit_ma,
                 late_frames=master.stats.late_frames, emcy=master.stats.emcy)
@@ -420,16 +325,16 @@ class ServoExperiment(Experiment):
         emcy = sum(a.emcy for a in axes.values())
         return AxesKpis(
             controller=options.label, axes=axes, ticks=ticks,
-            cycle_period_us=round(self.period_s * 1e6),
-            mcap=options.recording.first_file(self.out), reference=options.reference,
-            drive=self.drive_url, buses=[bus.url for bus in self.buses],
-            clock=session.clock.mode, umax_ma=self.settings.umax_ma,
+            cycle_period_us=round(plan.base_period_s * 1e6),
+            mcap=options.recording.first_file(plan.session_path), reference=options.reference,
+            drive=plan.settings.drive_url, buses=[bus.url for bus in plan.buses],
+            clock=session.clock.mode, umax_ma=plan.settings.umax_ma,
             settle_s=options.settle_s,
-            sync_cycles=self.bus_task.cycles if self.bus_task is not None else 0,
+            sync_cycles=state.bus_task.cycles if state.bus_task is not None else 0,
             wall_s=round(wall_s, 4), realtime_factor=realtime_factor(ticks, loop),
             stop_reason=loop.stop_reason,
-            contour=self.bus_task.kpis()
-            if self.bus_task is not None and self.radius is not None else None,
+            contour=state.bus_task.kpis()
+            if state.bus_task is not None and plan.radius is not None else None,
             faults={"stale_feedback": stale, "emcy": emcy,
                     "late_frames": sum(a.late_frames for a in axes.values())},
             disturbed=bool(stale or emcy))
