@@ -19,10 +19,11 @@ samples the loop saw and stored in the session (``hil report`` prints them).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from hil.bench.config import default_text
+from hil.bench.config import BenchConfig, EecConfig, default_text
 from hil.bench.control import (
     BenchContext,
     ControllerTask,
@@ -37,7 +38,7 @@ from hil.bench.options import BenchRunOptions
 from hil.bench.rig import BenchRig, attach_rig
 from hil.bench.safety import BenchSafetyTask
 from hil.bench.sequence import SequenceOrigin
-from hil.bench.settings import resolve_bench
+from hil.bench.settings import BenchSettings, resolve_bench
 from hil.core.clock import Clock
 from hil.core.loop import Task
 from hil.core.notice import warn
@@ -69,129 +70,179 @@ def run_bench(opts: BenchRunOptions) -> RunResult:
     return run_experiment(BenchExperiment(opts))
 
 
+@dataclass(frozen=True, kw_only=True)
+class BenchPlan(RunPlan):
+    """A bench run, decided before anything opens: the pipeline's
+    :class:`~hil.core.run.RunPlan` (its ``label`` the controller's) and the bench's own."""
+
+    settings: BenchSettings
+    params: Mapping[str, Any]
+    factory: Callable[..., Any]   # the controller's, loaded and checked
+
+    @property
+    def bench(self) -> BenchConfig:
+        return self.settings.bench
+
+    @property
+    def eec(self) -> EecConfig:
+        return self.settings.eec
+
+    @property
+    def step_s(self) -> float:
+        """The controller's decision step [s]."""
+        return self.settings.eec.eec.step_s
+
+
+@dataclass
+class BenchState:
+    """What a bench run opened and built, step by step."""
+
+    device: OpenedBench | None = None
+    log: RunLog | None = None
+    origin: SequenceOrigin | None = None
+    controller: GuardedController | None = None
+    rig: BenchRig | None = None
+    observer: Observer | None = None
+    safety: BenchSafetyTask | None = None
+
+
+def plan_bench(opts: BenchRunOptions) -> BenchPlan:
+    """Everything a bench run decides before it opens anything; a HilError on bad input."""
+    if opts.hp_s is not None:
+        check_at_most(opts.hp_s, MAX_EEC_HORIZON_S, "--hp", "the EEC's MILP grows with "
+                      "the horizon (a decision would take far longer than its step)")
+    settings = resolve_bench(opts)
+    url = settings.url
+    if opts.disturbance and not is_emulated(url):
+        raise UsageError("--disturbance switches the emulator's unknown load on: it needs "
+                         "the emulated bench")
+    bench, eec = settings.bench, settings.eec
+    seconds = opts.cycles * bench.problem.sequence.period_s
+    if seconds > MAX_DURATION_S:
+        raise UsageError(f"--cycles {opts.cycles}: {seconds:g} s is longer than a run can "
+                         f"be ({MAX_DURATION_S:g} s, about {MAX_DURATION_S / 86400:.1f} days)")
+    params = {**bench.run.params, **opts.params}
+    kpi_limits, signal_limits = split_limits(
+        [*bench.run.limits, *opts.limits],
+        [*bench.map.meter_quantities, *bench.map.level_names], BenchRunKpis.limit_names())
+    # checked before anything is opened: a spec that cannot load leaves no file behind
+    factory, label = controller_factory(opts.controller, params, method="decide",
+                                        application="bench")
+    out = opts.out or default_session_path("bench", controller_short_name(label))
+    run_info = opts.record() | {
+        "controller": label, "params": params,
+        "limits": [str(lim) for lim in (*kpi_limits, *signal_limits)]}
+    text = "\n".join(filter(None, [default_text("bench.toml"), default_text("eec.toml"),
+                                   bench.user_text]))
+    return BenchPlan(
+        # lockstep unless --realtime; a bench URL keeps it only where hil's emulator answers
+        kind="bench", label=label, session_path=out, clock=planned_clock(opts.realtime),
+        base_period_s=bench.sampling.period_s, duration_s=seconds,
+        kpi_limits=tuple(kpi_limits), watch=SignalWatch(signal_limits),
+        config={"bench": bench.data, "controllers": eec.data, "run": run_info,
+                "settings": settings_json(settings.settings())},
+        config_text=text, recording=opts.recording,
+        devices=() if is_emulated(url) else (("bench", url),), quiet=opts.quiet,
+        settings=settings, params=params, factory=factory)
+
+
 class BenchExperiment(Experiment):
-    """``hil bench run`` as the run pipeline drives it."""
+    """``hil bench run`` as the run pipeline drives it: its frozen :class:`BenchPlan`
+    (``planned``) and what each step opened or built (``state``)."""
 
     def __init__(self, opts: BenchRunOptions) -> None:
         self.opts = opts
-        self.device: OpenedBench | None = None
-        self.rig: BenchRig | None = None
-        self.observer: Observer | None = None
-        self.controller: GuardedController | None = None
-        self.safety: BenchSafetyTask | None = None
+        self.state = BenchState()
+        self._planned: BenchPlan | None = None
 
-    def plan(self) -> RunPlan:
-        opts = self.opts
-        if opts.hp_s is not None:
-            check_at_most(opts.hp_s, MAX_EEC_HORIZON_S, "--hp", "the EEC's MILP grows with "
-                          "the horizon (a decision would take far longer than its step)")
-        self.settings = settings = resolve_bench(opts)
-        self.url = url = settings.url
-        if opts.disturbance and not is_emulated(url):
-            raise UsageError("--disturbance switches the emulator's unknown load on: it needs "
-                             "the emulated bench")
-        bench, eec = settings.bench, settings.eec
-        seconds = opts.cycles * bench.problem.sequence.period_s
-        if seconds > MAX_DURATION_S:
-            raise UsageError(f"--cycles {opts.cycles}: {seconds:g} s is longer than a run can "
-                             f"be ({MAX_DURATION_S:g} s, about {MAX_DURATION_S / 86400:.1f} days)")
-        self.bench, self.eec = bench, eec
-        self.step_s = eec.eec.step_s
-        self.params = {**bench.run.params, **opts.params}
-        kpi_limits, signal_limits = split_limits(
-            [*bench.run.limits, *opts.limits],
-            [*bench.map.meter_quantities, *bench.map.level_names], BenchRunKpis.limit_names())
-        # checked before anything is opened: a spec that cannot load leaves no file behind
-        self.factory, self.label = controller_factory(opts.controller, self.params,
-                                                      method="decide", application="bench")
-        self.watch = SignalWatch(signal_limits)
-        # lockstep unless --realtime; a bench URL keeps it only where hil's emulator answers
-        self.clock = planned_clock(opts.realtime)
-        out = opts.out or default_session_path("bench", controller_short_name(self.label))
-        self.out = out
-        run_info = opts.record() | {
-            "controller": self.label, "params": self.params,
-            "limits": [str(lim) for lim in (*kpi_limits, *signal_limits)]}
-        text = "\n".join(filter(None, [default_text("bench.toml"), default_text("eec.toml"),
-                                       bench.user_text]))
-        return RunPlan(
-            kind="bench", label=self.label, session_path=out, clock=self.clock,
-            base_period_s=bench.sampling.period_s,
-            duration_s=opts.cycles * bench.problem.sequence.period_s,
-            kpi_limits=tuple(kpi_limits), watch=self.watch,
-            config={"bench": bench.data, "controllers": eec.data, "run": run_info,
-                    "settings": settings_json(settings.settings())},
-            config_text=text, recording=opts.recording,
-            devices=() if is_emulated(url) else (("bench", url),),
-            quiet=opts.quiet)
+    @property
+    def planned(self) -> BenchPlan:
+        """The run's plan (:meth:`plan` is the pipeline's first step)."""
+        if self._planned is None:
+            raise RuntimeError("BenchExperiment.plan() has not run")
+        return self._planned
+
+    def plan(self) -> BenchPlan:
+        self._planned = plan_bench(self.opts)
+        return self._planned
 
     def open_devices(self, clock: Clock, on_event: EventBuffer) -> None:
-        for kind, message in self.settings.notices:
+        plan = self.planned
+        for kind, message in plan.settings.notices:
             warn(message)
             on_event(kind, message, level="warning", source="settings")
-        self.device = open_bench_device(self.url, self.bench, clock, on_event)
+        self.state.device = open_bench_device(plan.settings.url, plan.bench, clock, on_event)
 
     def session_clock(self, planned: Clock) -> Clock:
-        return (self.device.clock if self.device is not None else None) or planned
+        device = self.state.device
+        return (device.clock if device is not None else None) or planned
 
     def build_controller(self, session: Session) -> None:
-        opts, bench = self.opts, self.bench
+        opts, plan, state = self.opts, self.planned, self.state
+        bench = plan.bench
         problem = bench.problem
-        self.log = RunLog(BenchKpis(problem, sample_period_s=bench.sampling.period_s,
-                                    limit_va=self.eec.eec.limit_va))
-        self.origin = SequenceOrigin(session.clock)
-        context = BenchContext(problem, self.step_s, session, self.log, self.origin,
-                               self.eec)
-        controller = build_controller(self.factory, self.label, self.params, method="decide",
+        state.log = RunLog(BenchKpis(problem, sample_period_s=bench.sampling.period_s,
+                                     limit_va=plan.eec.eec.limit_va))
+        state.origin = SequenceOrigin(session.clock)
+        context = BenchContext(problem, plan.step_s, session, state.log, state.origin, plan.eec)
+        controller = build_controller(plan.factory, plan.label, plan.params, method="decide",
                                       application="bench", context=context)
         budget = controller_budget(opts.controller_budget_s,
-                                   session.clock.mode == "realtime", self.step_s)
-        self.controller = GuardedController(controller, self.label, problem.peripherals,
-                                            self.log, session.event, budget)
+                                   session.clock.mode == "realtime", plan.step_s)
+        state.controller = GuardedController(controller, plan.label, problem.peripherals,
+                                             state.log, session.event, budget)
 
     def start(self, session: Session) -> None:
-        assert self.device is not None and self.controller is not None
-        rig = self.rig = attach_rig(session, self.bench, self.device, play_sequence=True)
-        session.recorder.metadata("bench", self.device.describe())
-        self.origin.player = rig.player
-        self.observer = Observer(rig, self.log, self.origin, self.controller.estimator)
-        tasks: list[Task] = [self.observer]
-        if self.watch.limits:
-            tasks.append(SignalLimits(rig, self.watch, session))
-        self.safety = BenchSafetyTask(self.bench.safety, rig.sampler, session,
-                                      self.bench.sampling.period_s, self.origin)
-        tasks.append(self.safety)
+        plan, state = self.planned, self.state
+        device, controller, log, origin = state.device, state.controller, state.log, state.origin
+        assert device is not None and controller is not None  # opened and built before
+        assert log is not None and origin is not None
+        bench = plan.bench
+        rig = state.rig = attach_rig(session, bench, device, play_sequence=True)
+        session.recorder.metadata("bench", device.describe())
+        origin.player = rig.player
+        state.observer = Observer(rig, log, origin, controller.estimator)
+        tasks: list[Task] = [state.observer]
+        if plan.watch.limits:
+            tasks.append(SignalLimits(rig, plan.watch, session))
+        state.safety = BenchSafetyTask(bench.safety, rig.sampler, session,
+                                       bench.sampling.period_s, origin)
+        tasks.append(state.safety)
         tasks.append(ControllerTask(
-            round(self.step_s / self.bench.sampling.period_s), session.loop.base_period_ns,
-            rig, self.bench.problem.peripherals, self.controller, self.origin,
+            round(plan.step_s / bench.sampling.period_s), session.loop.base_period_ns,
+            rig, bench.problem.peripherals, controller, origin,
             asynchronous=session.clock.mode == "realtime"))
         for task in tasks:
             session.add_task(task)
 
     def finish(self, session: Session) -> None:
-        assert self.observer is not None and self.rig is not None
-        self.observer.finish(self.rig.link.gave_up)
-        if self.safety is not None and self.safety.stopped is not None:
-            raise SafetyStopError(self.safety.stopped)
-        if self.rig.link.foreign is not None:
-            raise ForeignMasterError(self.rig.link.foreign)
+        state = self.state
+        assert state.observer is not None and state.rig is not None  # started
+        state.observer.finish(state.rig.link.gave_up)
+        if state.safety is not None and state.safety.stopped is not None:
+            raise SafetyStopError(state.safety.stopped)
+        if state.rig.link.foreign is not None:
+            raise ForeignMasterError(state.rig.link.foreign)
 
     def close_devices(self) -> None:
-        if self.rig is not None:
-            self.rig.close()
-        elif self.device is not None:
-            self.device.close()
+        if self.state.rig is not None:
+            self.state.rig.close()
+        elif self.state.device is not None:
+            self.state.device.close()
 
     def kpis(self, session: Session, wall_s: float, error: HilError | None) -> BenchRunKpis:
-        kpis = kpis_of(self.log, self.opts, self.label, self.out)
+        plan, state = self.planned, self.state
+        if state.log is None:
+            raise ConfigError("the run recorded no meter or level samples: nothing to evaluate")
+        kpis = kpis_of(state.log, self.opts, plan.label, plan.session_path)
         loop = session.loop
         kpis.stop_reason = loop.stop_reason
         kpis.wall_s = round(wall_s, 4)
         # simulated time over the time the loop ticked (None before a tick)
         kpis.realtime_factor = (round(loop.ticks * loop.base_period_ns / 1e9 / loop.ticking_s, 2)
                                 if loop.ticking_s > 0 else None)
-        if self.rig is not None:
-            report = link_report(self.rig, session.clock.time_ns())
+        if state.rig is not None:
+            report = link_report(state.rig, session.clock.time_ns())
             kpis.faults, kpis.disturbed = report.faults, report.disturbed
         return kpis
 
