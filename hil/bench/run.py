@@ -146,25 +146,16 @@ def plan_bench(opts: BenchRunOptions) -> BenchPlan:
         settings=settings, params=params, factory=factory)
 
 
-class BenchExperiment(Experiment):
+class BenchExperiment(Experiment[BenchPlan]):
     """``hil bench run`` as the run pipeline drives it: its frozen :class:`BenchPlan`
     (``planned``) and what each step opened or built (``state``)."""
 
     def __init__(self, opts: BenchRunOptions) -> None:
         self.opts = opts
         self.state = BenchState()
-        self._planned: BenchPlan | None = None
-
-    @property
-    def planned(self) -> BenchPlan:
-        """The run's plan (:meth:`plan` is the pipeline's first step)."""
-        if self._planned is None:
-            raise RuntimeError("BenchExperiment.plan() has not run")
-        return self._planned
 
     def plan(self) -> BenchPlan:
-        self._planned = plan_bench(self.opts)
-        return self._planned
+        return plan_bench(self.opts)
 
     def open_devices(self, clock: Clock, on_event: EventBuffer) -> None:
         plan = self.planned

@@ -36,7 +36,7 @@ import signal
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 from hil.core.clock import Clock
 from hil.core.device_lock import DeviceLock, lock_device
@@ -112,12 +112,31 @@ class EventBuffer:
         self._held.clear()
 
 
-class Experiment(abc.ABC):
-    """One run of an application, as :func:`run_experiment` drives it (see the module)."""
+PlanT = TypeVar("PlanT", bound=RunPlan)
+
+
+class Experiment(abc.ABC, Generic[PlanT]):
+    """One run of an application, as :func:`run_experiment` drives it (see the module).
+    ``PlanT``: the application's frozen plan (a :class:`RunPlan`), which :meth:`decide` keeps
+    as :attr:`planned` for the later steps."""
+
+    _planned: PlanT | None = None
 
     @abc.abstractmethod
-    def plan(self) -> RunPlan:
+    def plan(self) -> PlanT:
         """Check and decide everything that needs no I/O; raise a HilError on bad input."""
+
+    def decide(self) -> PlanT:
+        """:meth:`plan`, kept as :attr:`planned` (the pipeline's first step)."""
+        self._planned = self.plan()
+        return self._planned
+
+    @property
+    def planned(self) -> PlanT:
+        """The run's plan, once :meth:`decide` made it."""
+        if self._planned is None:
+            raise RuntimeError(f"{type(self).__name__}: the run is not planned yet")
+        return self._planned
 
     @abc.abstractmethod
     def open_devices(self, clock: Clock, on_event: EventBuffer) -> None:
@@ -151,13 +170,13 @@ class Experiment(abc.ABC):
         document), ``stop_reason`` included."""
 
 
-def run_experiment(experiment: Experiment) -> RunResult:
+def run_experiment(experiment: Experiment[Any]) -> RunResult:
     """Run ``experiment`` through the pipeline (see the module); its :class:`RunResult`.
 
     A HilError that stopped the loop is raised again after the session file is finished with
     the KPIs so far, its message ending with the session's path, its ``result`` the
     :class:`RunResult` so far."""
-    plan = experiment.plan()
+    plan = experiment.decide()
     # the file is checked and locked before any device is reached, and each device locked
     output = claim_output(plan.recording.first_file(plan.session_path))
     locks: list[DeviceLock] = []
@@ -173,7 +192,7 @@ def run_experiment(experiment: Experiment) -> RunResult:
             lock.release()
 
 
-def _run_locked(experiment: Experiment, plan: RunPlan, output: OutputClaim) -> RunResult:
+def _run_locked(experiment: Experiment[Any], plan: RunPlan, output: OutputClaim) -> RunResult:
     events = EventBuffer()
     try:
         experiment.open_devices(plan.clock, events)
@@ -256,7 +275,7 @@ def _interrupted(name: str, ticks: int) -> RunInterruptedError:
         "KPIs so far are in the session", 128 + getattr(signal.Signals, name, signal.SIGINT).value)
 
 
-def _kpis(experiment: Experiment, plan: RunPlan, session: Session, wall_s: float,
+def _kpis(experiment: Experiment[Any], plan: RunPlan, session: Session, wall_s: float,
           error: HilError | None) -> dict[str, Any]:
     """The experiment's KPIs; after an error, what can be had (the error is what matters),
     with the controller, the session and the error line at least."""

@@ -127,7 +127,7 @@ def can_log_path(path: str | None, bus: int) -> str | None:
         f"{path}-bus{bus + 1}"
 
 
-class ServoExperiment(Experiment):
+class ServoExperiment(Experiment[ServoPlan]):
     """``hil servo run`` as the run pipeline drives it, on one axis or several: its frozen
     :class:`~hil.servo.plan.ServoPlan` (``planned``) and what each step opened or built
     (``state``). A ``--limit`` names a KPI of the run; with named axes, of an axis
@@ -139,18 +139,9 @@ class ServoExperiment(Experiment):
         self.options = options
         self.on_started = on_started
         self.state = ServoState()
-        self._planned: ServoPlan | None = None
-
-    @property
-    def planned(self) -> ServoPlan:
-        """The run's plan (:meth:`plan` is the pipeline's first step)."""
-        if self._planned is None:
-            raise RuntimeError("ServoExperiment.plan() has not run")
-        return self._planned
 
     def plan(self) -> ServoPlan:
-        self._planned = plan_servo(self.options)
-        return self._planned
+        return plan_servo(self.options)
 
     def open_devices(self, clock: Clock, on_event: EventBuffer) -> None:
         """Every bus's drives, reached and in a known state (not enabled)."""
