@@ -52,7 +52,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       "--reference circle:radius=R,feed=F is a circular test on two axes "
                       "(R deg, F deg/s along the path; KPIs: the contour error); topics "
                       "/axis/NAME/..., KPIs per axis; a stop stops every axis in the same "
-                      "cycles")
+                      "cycles; NAME=NODE@URL puts an axis on a bus of its own. Without it: "
+                      "the config's [[axis]] tables, else the one drive of [master] node_id")
     add_recording_arguments(srun)
     srun.set_defaults(handler=run_command)
 
@@ -98,7 +99,8 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--can-log", metavar="F.blf|F.asc|F.trc|F.log", type=output_file,
                         help="write every CAN frame of the run to this file (python-can's "
                         "can.Logger; the suffix picks the format: opens in can.player, "
-                        "can.viewer, Vector and PEAK tools)")
+                        "can.viewer, Vector and PEAK tools); with axes on several buses, one "
+                        "file a bus: F, then STEM-bus2.SUFFIX...")
     parser.add_argument("--safety", action="append", type=key_value, default=[],
                         metavar="KEY=VALUE",
                         help="tighten one safety limit of drive.toml's [safety] for this run "

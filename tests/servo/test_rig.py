@@ -149,3 +149,12 @@ def test_the_bus_table_is_the_same_url_in_a_config_file(tmp_path):
     bad.write_text('[bus]\ninterface = "socketcand"\n')
     with pytest.raises(ConfigError, match="needs host and port"):
         load_drive_config(bad)
+
+
+@pytest.mark.parametrize(("path", "bus", "expected"), [
+    ("frames.asc", 0, "frames.asc"), ("frames.asc", 1, "frames-bus2.asc"),
+    ("logs.d/frames", 2, "logs.d/frames-bus3"), (None, 1, None)])
+def test_each_bus_of_a_run_logs_to_its_own_file(path, bus, expected):
+    from hil.servo.run import can_log_path
+
+    assert can_log_path(path, bus) == expected
