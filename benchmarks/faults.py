@@ -40,6 +40,7 @@ sys.path.insert(0, str(REPO))
 
 from hil import api  # noqa: E402
 from hil.core.recording.reader import read_session  # noqa: E402
+from hil.errors import HilError  # noqa: E402
 
 CYCLE_S = 28.0  # the machining sequence's period
 QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
@@ -104,12 +105,21 @@ def soak_bench(minutes: float, seed: int, faults: bool, tmp: Path) -> dict[str, 
     config.write_text("[faults]\nschedule = " + json.dumps(schedule) + "\n")
     out = tmp / f"bench-{faults}.mcap"
     wall = time.perf_counter()
-    kpis = api.run_bench("bc", cycles=cycles, config_path=str(config), out=str(out))
+    stopped = None
+    try:
+        kpis = api.run_bench("bc", cycles=cycles, config_path=str(config), out=str(out))
+    except HilError as exc:  # the bridge stopped the run: its reaction, the session is there
+        if not out.exists():
+            raise
+        kpis, stopped = {}, str(exc).split(" (session")[0]
     wall = time.perf_counter() - wall
     data = read_session(out)
     span = data.time_range_ns()
     t_start = span[0] if span else 0
     events = [m | {"t_s": (t - t_start) / 1e9} for t, m in data.topic("/events")]
+    if stopped is not None:
+        at = next((e["t_s"] for e in events if e["kind"] == "session.stop"), math.nan)
+        kpis["stop_reason"] = f"stopped by the bridge at {at:.1f} s: {stopped}"
     windows = windows_of(events)
     relays = [((t - t_start) / 1e9, m) for t, m in data.topic("/bench/relays")]
     rows = []
