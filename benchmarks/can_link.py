@@ -15,7 +15,8 @@
 
 Targets (the project's): 2 kHz lateness p99 <= 50 us, misses <= 0.1 %. The machine is shared and
 has two cores for everything (this process and the emulator process included): the figures
-are noisy, run it alone when they matter.
+are noisy, run it alone when they matter. ``--quick``: 500 lockstep cycles, tens of round trips,
+real-time runs of 1 s and 0.5 s (seconds in all; figures not worth quoting).
 """
 
 from __future__ import annotations
@@ -52,6 +53,9 @@ from hil.servo.rig import open_drive
 
 PERIOD_S = 500e-6
 REPO = Path(__file__).resolve().parents[1]
+QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
+              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
+              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
 
 
 def pct(values_us) -> str:
@@ -152,7 +156,7 @@ def canopen_sdo_round_trip(requests: int) -> np.ndarray:
     return samples
 
 
-def part1(cycles: int) -> None:
+def part1(cycles: int, sdo_requests: int = 500) -> None:
     print(f"1. lockstep over the python-can virtual bus, {cycles} cycles, as fast as possible")
     print(f"   {'':44}{'cycles/s':>10}{'x real time':>12}   {'rtt p50':>7} {'p99 us':>7}")
     rate, rtt = run_lockstep(open_drive("emulated"), cycles)
@@ -163,7 +167,7 @@ def part1(cycles: int) -> None:
           f"{rate * PERIOD_S:12.1f}   {pct(rtt)}")
     rate = plant_alone(cycles)
     print(f"   {'baseline: the plant alone, no CAN':44}{rate:10.0f}{rate * PERIOD_S:12.1f}")
-    sdo = canopen_sdo_round_trip(500)
+    sdo = canopen_sdo_round_trip(sdo_requests)
     print(f"   {'baseline: canopen SDO upload (real-time node)':44}{1e6 / np.median(sdo):10.0f}"
           f"{'':12}   {pct(sdo)}")
 
@@ -244,7 +248,7 @@ def print_realtime(label: str, r: dict) -> None:
         print(f"   {'':38}{r['lost']}")
 
 
-def part2(realtime_s: float) -> None:
+def part2(realtime_s: float, exchanges: int = 4000, echoes: int = 2000) -> None:
     config = load_drive_config(overrides={"master": {"sdo_timeout_ms": 3000,
                                                         "heartbeat_timeout_ms": 2000}})
     with tempfile.TemporaryDirectory() as tmp:
@@ -255,8 +259,8 @@ def part2(realtime_s: float) -> None:
             where = f"socketcand://127.0.0.1:{port}"
             print(f"2. socketcand to a separate emulator process (127.0.0.1:{port})")
             relaxed = config.laid_over({"master": {"rx_timeout_us": 200_000}})
-            rate, rtt = run_lockstep(open_drive(where, relaxed), 4000)
-            echo = echo_round_trip(port, 2000)
+            rate, rtt = run_lockstep(open_drive(where, relaxed), exchanges)
+            echo = echo_round_trip(port, echoes)
             print(f"   {'':44}{'cycles/s':>10}   {'rtt p50':>7} {'p99 us':>7}")
             print(f"   {'a. exchange as fast as possible':44}{rate:10.0f}   {pct(rtt)}")
             print(f"   {'   baseline: socketcand < echo > alone':44}{1e6 / np.median(echo):10.0f}"
@@ -277,14 +281,24 @@ def part2(realtime_s: float) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cycles", type=int, default=20_000, help="lockstep cycles")
-    parser.add_argument("--seconds", type=float, default=10.0, help="real-time run length")
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cycles", type=int,
+                        help="lockstep cycles (default 20000; 500 with --quick)")
+    parser.add_argument("--seconds", type=float,
+                        help="real-time run length (default 10; 1 with --quick)")
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
+    cycles = args.cycles or (500 if args.quick else 20_000)
+    seconds = args.seconds or (1.0 if args.quick else 10.0)
     print(__doc__.splitlines()[0])
     print("(shared 2-core machine: figures are noisy; this process and the emulator share it)")
-    part1(args.cycles)
-    part2(args.seconds)
+    if args.quick:
+        part1(cycles, sdo_requests=50)
+        part2(seconds, exchanges=500, echoes=200)
+    else:
+        part1(cycles)
+        part2(seconds)
 
 
 if __name__ == "__main__":

@@ -18,8 +18,10 @@ instance kept; and of the hysteresis baseline (BC) under the same conditions. Pr
 
 Targets: H_p = T median <= 20 ms, p99 <= 100 ms, none at the budget, J2 the same as the
 exact MILP; H_p = 2T median <= 100 ms, none at the budget. The machine is shared: figures
-are noisy, run it on a quiet box for figures worth quoting. ``--quick``: fewer cycles and
-instances (about 3 minutes instead of 6-7).
+are noisy, run it on a quiet box for figures worth quoting. ``--quick``: one machine cycle
+per run, H_p = T and the nominal case only, no naive baseline, gamma3 = 0 only (seconds instead
+of 6-7 minutes; figures not worth quoting). The former middle size
+(about 3 minutes) is ``--cycles 3 --cycles-2t 2 --sweep-cycles 1 --naive 1``.
 """
 
 from __future__ import annotations
@@ -41,6 +43,9 @@ from hil.controllers.bench.eec_solver import HorizonSolver
 DP, MILP, NAIVE = ("DP (schedule DP, default)", "MILP (HiGHS)",
                    "naive cvxpy, rebuilt per decision")
 Inputs = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]
+QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
+              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
+              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
 
 
 @dataclasses.dataclass
@@ -118,31 +123,39 @@ def exact_table(label: str, run: Run, every: int, naive: int, naive_limit_s: flo
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="fewer cycles and instances")
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     parser.add_argument("--cycles", type=int, help="machine cycles at H_p = T (default 8)")
-    parser.add_argument("--cycles-2t", type=int, help="machine cycles at H_p = 2T (default 3)")
+    parser.add_argument("--cycles-2t", type=int,
+                        help="machine cycles at H_p = 2T (default 3; not run with --quick)")
     parser.add_argument("--sweep-cycles", type=int, help="cycles per gamma3 run (default 3)")
-    parser.add_argument("--exact-every", type=int, default=8,
-                        help="re-solve every Nth instance by the MILP")
+    parser.add_argument("--exact-every", type=int,
+                        help="re-solve every Nth instance by the MILP (default 8; 28 with "
+                             "--quick)")
     parser.add_argument("--naive", type=int, help="instances per horizon for the naive "
                         "cvxpy baseline (default 2)")
     parser.add_argument("--naive-limit", type=float, default=60.0,
                         help="time limit of a naive cvxpy solve [s]")
-    parser.add_argument("--gamma3", type=float, nargs="+", default=[0.0, 0.02, 0.1, 1.0],
-                        help="costs per switch-on of the trade-off table")
+    parser.add_argument("--gamma3", type=float, nargs="+",
+                        help="costs per switch-on of the trade-off table (default 0 0.02 0.1 1; "
+                             "1 with --quick)")
     args = parser.parse_args()
-    cycles = args.cycles or (3 if args.quick else 8)
-    cycles_2t = args.cycles_2t or (2 if args.quick else 3)
+    cycles = args.cycles or (1 if args.quick else 8)
+    cycles_2t = args.cycles_2t or (1 if args.quick else 3)
     sweep_cycles = args.sweep_cycles or (1 if args.quick else 3)
-    naive = args.naive if args.naive is not None else (1 if args.quick else 2)
+    naive = args.naive if args.naive is not None else (0 if args.quick else 2)
+    gammas = args.gamma3 or ([0.0] if args.quick else [0.0, 0.02, 0.1, 1.0])
+    exact_every = args.exact_every or (28 if args.quick else 8)
+    cases = (("nominal", False),) if args.quick else (("nominal", False), ("disturbed", True))
     t_start = time.perf_counter()
 
     runs: dict[Any, Run] = {}
-    for case, disturbed in (("nominal", False), ("disturbed", True)):
+    for case, disturbed in cases:
         runs[case, "bc"] = closed_loop("bc", cycles, disturbance=disturbed)
         runs[case, "eec"] = closed_loop("eec", cycles, hp_s=28, disturbance=disturbed)
-    runs["2T"] = closed_loop("eec", cycles_2t, hp_s=56)
+    if not args.quick:
+        runs["2T"] = closed_loop("eec", cycles_2t, hp_s=56)
     eec_run = runs["nominal", "eec"]
     assert eec_run.solver is not None
     settings = eec_run.solver.horizon.settings
@@ -152,17 +165,20 @@ def main() -> None:
           f"{settings.solver.upper()}, budget {budget_ms:g} ms)")
     print(f"  {'case':<24} {'n':>4} {'median':>8} {'p99':>8} {'max':>8}  at limit  "
           f"{'J2 [VA]':>8}  {'J2 BC':>8}  J2 vs BC   targets")
-    for case in ("nominal", "disturbed"):
+    for case, _ in cases:
         run, bc = runs[case, "eec"], runs[case, "bc"]
         j2, j2_bc = run.kpis["J2_VA"], bc.kpis["J2_VA"]
         print(f"  {f'H_p = T, {case}, {cycles} cyc':<24} {len(run.solve_ms):>4} "
               f"{fmt(timing_summary(run.solve_ms))}  {run.kpis['solves_at_limit']:>8}  "
               f"{j2:>8.1f}  {j2_bc:>8.1f}  {100 * (j2 / j2_bc - 1):>+7.1f} %   "
               "median <= 20, p99 <= 100, 0 at limit")
-    run = runs["2T"]
-    print(f"  {f'H_p = 2T, {cycles_2t} cyc':<24} {len(run.solve_ms):>4} "
-          f"{fmt(timing_summary(run.solve_ms))}  {run.kpis['solves_at_limit']:>8}  "
-          f"{run.kpis['J2_VA']:>8.1f}  {'':>8}  {'':>9}   median <= 100, 0 at limit")
+    if args.quick:
+        print("  (the disturbed case and H_p = 2T: skipped, --quick)")
+    else:
+        run = runs["2T"]
+        print(f"  {f'H_p = 2T, {cycles_2t} cyc':<24} {len(run.solve_ms):>4} "
+              f"{fmt(timing_summary(run.solve_ms))}  {run.kpis['solves_at_limit']:>8}  "
+              f"{run.kpis['J2_VA']:>8.1f}  {'':>8}  {'':>9}   median <= 100, 0 at limit")
     print("  (ms; max_gap " + ", ".join(
         f"{k if isinstance(k, str) else '/'.join(k)} {r.kpis['max_gap']:.3g}"
         for k, r in runs.items() if r.solver is not None) + ")")
@@ -170,8 +186,12 @@ def main() -> None:
     print("\n2. The same instances, each method without a budget (20 s): ms median, p99, max")
     print(f"  {'H_p':<10} {'method':<36} {'n':>4} {'median':>8} {'p99':>8} {'max':>8}")
     speedups = []
-    for label, key in (("T", ("nominal", "eec")), ("2T", "2T")):
-        medians = exact_table(label, runs[key], args.exact_every, naive, args.naive_limit)
+    horizons: tuple[tuple[str, Any], ...] = (("T", ("nominal", "eec")), ("2T", "2T"))
+    if args.quick:
+        print("  (H_p = 2T and the naive cvxpy baseline: skipped, --quick)")
+        horizons = horizons[:1]
+    for label, key in horizons:
+        medians = exact_table(label, runs[key], exact_every, naive, args.naive_limit)
         naive_ms = medians.get(NAIVE)
         if naive_ms:
             speedups.append(f"H_p = {label}: DP {naive_ms / medians[DP]:.0f}x, "
@@ -183,9 +203,12 @@ def main() -> None:
           f"{sweep_cycles} cycles")
     print(f"  {'gamma3':>8} {'J1/cycle [VA s]':>16} {'J2 [VA]':>8} {'starts/h P1':>12} "
           f"{'starts/h P2':>12} {'solve median ms':>16}")
-    bc = closed_loop("bc", sweep_cycles)
-    for gamma3 in args.gamma3:
-        run = closed_loop("eec", sweep_cycles, hp_s=28, overrides={"gamma3": gamma3})
+    # BC takes no gamma3: the nominal run of section 1 is the same run when the cycles agree
+    bc = runs["nominal", "bc"] if sweep_cycles == cycles else closed_loop("bc", sweep_cycles)
+    for gamma3 in gammas:
+        # the nominal run of section 1 is this one when its gamma3 and cycles agree
+        run = eec_run if sweep_cycles == cycles and eec_run.milp.settings.gamma3 == gamma3 \
+            else closed_loop("eec", sweep_cycles, hp_s=28, overrides={"gamma3": gamma3})
         k = run.kpis
         print(f"  {gamma3:>8g} {k['SEC_VA']:>16.1f} {k['J2_VA']:>8.1f} "
               f"{k['starts_per_hour']['P1']:>12.1f} {k['starts_per_hour']['P2']:>12.1f} "

@@ -14,11 +14,14 @@
 3. ppopt (if installed, benchmarks/optional-requirements.txt): region count and build time of its
    combinatorial mpQP algorithm on the same problem, and its optimiser against ours.
 
-The machine is shared: figures are noisy, run it alone when the numbers matter.
+The machine is shared: figures are noisy, run it alone when the numbers matter. ``--quick``:
+H_t = H_u = 3 only, 200 θ of each kind timed once, ppopt skipped (seconds; figures not worth
+quoting).
 """
 
 from __future__ import annotations
 
+import argparse
 import ctypes
 import subprocess
 import sys
@@ -39,6 +42,9 @@ from hil.controllers.servo.sim import simulate
 
 PY_TARGET_US = 10.0
 C_TARGET_US = 1.0
+QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
+              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
+              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
 HARNESS = r"""
 #define _POSIX_C_SOURCE 199309L
 #include <time.h>
@@ -64,12 +70,12 @@ def config(h: int) -> MpcConfig:
     return MpcConfig(ht=h, hu=h, hp=50, ert="foh", u_min=-1000.0, u_max=1000.0)
 
 
-def build() -> object:
+def build(horizons: tuple[int, ...] = (3, 4)) -> object:
     print("1. build: mpQP (combinatorial, pruned) + binary search tree, default box")
     print(f"   {'H_t=H_u':>7}{'regions':>9}{'ctrls':>7}{'nodes':>7}{'leaves':>8}{'depth':>7}"
           f"{'planes':>8}{'mpQP s':>9}{'tree s':>8}{'total s':>9}")
     law3 = None
-    for h in (3, 4):
+    for h in horizons:
         law = build_explicit_law(config(h))
         s = law.summary()
         print(f"   {h:>7}{s['regions']:>9}{s['controllers']:>7}{s['tree_nodes']:>7}"
@@ -80,8 +86,10 @@ def build() -> object:
     return law3
 
 
-def sample_thetas(law, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """θ seen by the online MPC in a saturated closed loop, and θ uniform in the box."""
+def sample_thetas(law, rng: np.random.Generator, count: int = 2000, seconds: float = 1.0
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """θ seen by the online MPC in a saturated closed loop (``seconds`` of it, at most
+    ``count``), and ``count`` θ uniform in the box."""
     cfg = law.config
     seen: list[np.ndarray] = []
 
@@ -91,10 +99,10 @@ def sample_thetas(law, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray
             return super().step(position_deg, t_s)
 
     reference = Sine(2.0, 10.0)
-    simulate(Recording(reference, cfg), reference, 1.0, current_limit_ma=cfg.u_max)
-    closed_loop = np.array(seen[10:])
+    simulate(Recording(reference, cfg), reference, seconds, current_limit_ma=cfg.u_max)
+    closed_loop = np.array(seen[10:count + 10])
     _, S = relative_map(law.qp, cfg.ht)
-    phi = law.box.lower + (law.box.upper - law.box.lower) * rng.random((2000, law.P.shape[0]))
+    phi = law.box.lower + (law.box.upper - law.box.lower) * rng.random((count, law.P.shape[0]))
     uniform = phi @ S.T
     y = rng.uniform(-720.0, 720.0, len(uniform))
     uniform[:, law.qp.n_x - 1] += y
@@ -131,7 +139,7 @@ def compile_c(law, folder: Path):
     return dll
 
 
-def evaluation(law) -> tuple[float, float]:
+def evaluation(law, quick: bool = False) -> tuple[float, float]:
     """Print the evaluation table; return the worst p99 of the Python tree and of C [us]."""
     rng = np.random.default_rng(0)
     online = DaqpSolver(law.qp)
@@ -157,7 +165,8 @@ def evaluation(law) -> tuple[float, float]:
                           ctypes.byref(du))
 
         for name, thetas in zip(("closed loop, saturated sine", "uniform in the box"),
-                                sample_thetas(law, rng), strict=True):
+                                sample_thetas(law, rng, *((200, 0.2) if quick else ())),
+                                strict=True):
             thetas = np.ascontiguousarray(thetas)
             for theta in thetas[:200]:  # the explicit law is the online QP's optimum
                 assert abs(explicit.solve(theta)[0] - online.solve(theta)[0]) < 1e-6
@@ -173,11 +182,12 @@ def evaluation(law) -> tuple[float, float]:
                 dll.empc_time_each(flat.ctypes.data_as(ctypes.POINTER(ctypes.c_double)),
                                    len(thetas), thetas.shape[1],
                                    ns.ctypes.data_as(ctypes.POINTER(ctypes.c_double)))
+            repeat = 1 if quick else 3
             rows = {
-                "online QP (daqp)": per_call_us(online.solve, thetas),
-                "Python tree descent": per_call_us(explicit.solve, thetas),
-                "Python sequential": per_call_us(sequential_law, thetas),
-                "C via ctypes": per_call_us(c_call, thetas),
+                "online QP (daqp)": per_call_us(online.solve, thetas, repeat),
+                "Python tree descent": per_call_us(explicit.solve, thetas, repeat),
+                "Python sequential": per_call_us(sequential_law, thetas, repeat),
+                "C via ctypes": per_call_us(c_call, thetas, repeat),
                 "C, timed in C": ns / 1e3,
             }
             print(f"   {name}: {len(thetas)} θ, {len(used)} controllers used, "
@@ -223,9 +233,16 @@ def ppopt_comparison(law) -> None:
 
 
 def main() -> int:
-    law = build()
-    worst_py, worst_c = evaluation(law)
-    ppopt_comparison(law)
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    args = parser.parse_args()
+    law = build((3,) if args.quick else (3, 4))
+    worst_py, worst_c = evaluation(law, args.quick)
+    if args.quick:
+        print("\n3. ppopt: skipped (--quick)")
+    else:
+        ppopt_comparison(law)
     print(f"\ntargets: Python tree p99 {worst_py:.2f} us (<= {PY_TARGET_US:g}): "
           f"{'ok' if worst_py <= PY_TARGET_US else 'MISSED'}; C p99 {worst_c:.3f} us "
           f"(<= {C_TARGET_US:g}): {'ok' if worst_c <= C_TARGET_US else 'MISSED'}")

@@ -8,6 +8,8 @@ whole-file bytes minus an empty session's, so chunk compression, MCAP record ove
 message indexes (16 B per message, which Foxglove's reader requires) are all counted.
 
 Targets: servo /drive/command + /drive/feedback <= 32 B per tick; bench <= 1 GB per 24 h.
+``--quick``: a 0.5 s servo run and one bench cycle of a 4 s machining sequence instead of the
+28 s one (a few seconds; figures not worth quoting).
 """
 
 from __future__ import annotations
@@ -24,11 +26,27 @@ from hil.core.recording.recorder import Recorder, RecordingOptions
 from hil.servo.run import ServoRunOptions, run_servo
 from hil.servo.topics import COMMAND_SCHEMA, FEEDBACK_SCHEMA
 
+QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
+              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
+              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
+# --quick: a 4 s machining sequence instead of bench.toml's 28 s one (same devices and topics)
+SHORT_SEQUENCE = """[sequence]
+period_s = 4.0
+stages = [{ start_s = 0.0, end_s = 2.0, on = ["M1"] },
+          { start_s = 2.0, end_s = 4.0, on = ["M1", "M2"] }]
+"""
+
+
+def empty_session_bytes(folder: Path) -> int:
+    """The bytes of a session with no topic (header, metadata, summary, footer)."""
+    empty = folder / "empty.mcap"
+    if not empty.exists():
+        Recorder(empty).close()
+    return os.path.getsize(empty)
+
 
 def rerecord(data: SessionData, topics: dict[str, dict], path: Path, encoding: str) -> int:
     """Bytes taken by ``topics`` of ``data`` written again with ``encoding``."""
-    empty = path.with_suffix(".empty.mcap")
-    Recorder(empty).close()
     recorder = Recorder(path, wait_when_full=True)
     handles = {name: recorder.topic(name, schema, encoding=encoding)
                for name, schema in topics.items()}
@@ -36,7 +54,7 @@ def rerecord(data: SessionData, topics: dict[str, dict], path: Path, encoding: s
     for t, name, message in merged:
         handles[name].log(t, message)
     recorder.close()
-    return os.path.getsize(path) - os.path.getsize(empty)
+    return os.path.getsize(path) - empty_session_bytes(path.parent)
 
 
 def bench_schemas(data: SessionData) -> dict[str, dict]:
@@ -52,12 +70,22 @@ def bench_schemas(data: SessionData) -> dict[str, dict]:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--seconds", type=float, default=10.0, help="servo run [s]")
-    parser.add_argument("--cycles", type=int, default=2, help="bench run, 28 s each")
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float,
+                        help="servo run [s] (default 10; 0.5 with --quick)")
+    parser.add_argument("--cycles", type=int, help="bench run, 28 s each (default 2; one "
+                        "4 s cycle with --quick)")
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
+    args.seconds = args.seconds or (0.5 if args.quick else 10.0)
+    args.cycles = args.cycles or (1 if args.quick else 2)
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
+        bench_config = None
+        if args.quick:
+            bench_config = str(tmp / "short-sequence.toml")
+            Path(bench_config).write_text(SHORT_SEQUENCE)
         as_json = RecordingOptions(high_rate_encoding="json")  # the source: full precision
         run_servo(ServoRunOptions(controller="pid", duration_s=args.seconds,
                                  out=str(tmp / "servo.mcap"), recording=as_json))
@@ -67,10 +95,10 @@ def main() -> int:
         servo_bytes = {enc: rerecord(servo, drive, tmp / f"servo-{enc}.mcap", enc)
                        for enc in ("json", "cdr")}
 
-        run_bench(BenchRunOptions(controller="bc", cycles=args.cycles,
+        run_bench(BenchRunOptions(controller="bc", cycles=args.cycles, config_path=bench_config,
                                   out=str(tmp / "bench-default.mcap")))
         whole = os.path.getsize(tmp / "bench-default.mcap")
-        run_bench(BenchRunOptions(controller="bc", cycles=args.cycles,
+        run_bench(BenchRunOptions(controller="bc", cycles=args.cycles, config_path=bench_config,
                                   out=str(tmp / "bench.mcap"), recording=as_json))
         bench = read_session(tmp / "bench.mcap")
         schemas = bench_schemas(bench)
@@ -84,8 +112,8 @@ def main() -> int:
               f"GB/day at 2 kHz{'   (baseline)' if enc == 'json' else ''}")
     print(f"   cdr is {servo_bytes['cdr'] / servo_bytes['json']:.2f}x the JSON size; message "
           "indexes alone are 32 B/tick (2 messages x 16 B)")
-    print(f"bench, BC, {args.cycles} cycles lockstep: /bench/power + /bench/levels + "
-          "/bench/relays at 100 Hz")
+    print(f"bench, BC, {args.cycles} cycles of {4 if args.quick else 28} s lockstep: "
+          "/bench/power + /bench/levels + /bench/relays at 100 Hz")
     for enc, size in bench_bytes.items():
         print(f"   {enc:<5} {size / hours / 1e6:7.1f} MB/h  {size / hours * 24 / 1e9:6.2f} GB/day"
               f"{'   (baseline)' if enc == 'json' else ''}")

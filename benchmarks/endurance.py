@@ -17,7 +17,8 @@ lateness and compute p99 per simulated minute from the session's /loop/*/timing 
 ages). ``--baseline-code DIR`` runs the same children on another checkout (e.g. ``git
 archive`` of main) in the same run, for the before figures. ``--hours H`` sets both sessions
 to H simulated hours; ``--full`` is the issue's soak: 1 h servo, 24 h bench (hours of wall
-time).
+time). ``--quick``: 5 s of servo and one 28 s bench cycle, sampled every simulated second
+instead of every minute (seconds; figures not worth quoting).
 """
 
 from __future__ import annotations
@@ -43,6 +44,9 @@ sys.path.insert(0, os.environ.get(CODE_ENV, str(ROOT)))
 GROWTH_TARGET_MB = 5.0
 MACHINE_CYCLE_S = 28.0  # the bench's default sequence period (hil/configs/bench.toml)
 PAGE = os.sysconf("SC_PAGE_SIZE")
+QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
+              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
+              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
 
 
 def rss_bytes() -> int:
@@ -51,8 +55,9 @@ def rss_bytes() -> int:
 
 
 # ------------------------------------------------------------------------------- the child
-def child(kind: str, seconds: float, out: str) -> None:
-    """Run one session, printing one JSON line: RSS at each whole simulated minute."""
+def child(kind: str, seconds: float, out: str, sample_s: float = 60.0) -> None:
+    """Run one session, printing one JSON line: RSS at each whole ``sample_s`` of simulated
+    time (a minute but with ``--quick``)."""
     from hil.core.loop import FixedRateLoop
 
     assert Path(sys.modules["hil"].__file__ or "").resolve().is_relative_to(
@@ -64,7 +69,7 @@ def child(kind: str, seconds: float, out: str) -> None:
     # simulated second, which is where a whole simulated minute is noticed
     def publish_and_sample(loop: FixedRateLoop, final: bool) -> None:
         publish(loop, final)
-        minute = loop.ticks * loop.base_period_ns // 60_000_000_000
+        minute = loop.ticks * loop.base_period_ns // round(sample_s * 1e9)
         queue = getattr(getattr(loop, "_recorder", None), "_queue", ())
         while len(samples) < minute:
             samples.append((rss_bytes(), len(queue)))
@@ -84,18 +89,20 @@ def child(kind: str, seconds: float, out: str) -> None:
 
 
 # ------------------------------------------------------------------------------ the parent
-def run_child(kind: str, seconds: float, code: Path, out: str) -> dict:
+def run_child(kind: str, seconds: float, code: Path, out: str, sample_s: float) -> dict:
     env = {**os.environ, CODE_ENV: str(code)}
     done = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child", kind,
-                           "--seconds", str(seconds), "--out", out],
+                           "--seconds", str(seconds), "--out", out,
+                           *(["--sample-s", str(sample_s)] if sample_s != 60.0 else [])],
                           env=env, cwd=code, capture_output=True, text=True, check=False)
     if done.returncode != 0:
         raise SystemExit(f"{kind} child failed:\n{done.stderr[-2000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def timing_per_minute(path: str) -> tuple[list[float], list[float]]:
-    """Lateness and compute p99 [us] per simulated minute, over every task of the loop."""
+def timing_per_minute(path: str, sample_s: float = 60.0) -> tuple[list[float], list[float]]:
+    """Lateness and compute p99 [us] per simulated minute (``sample_s``), over every task of
+    the loop."""
     from mcap.reader import make_reader  # indexed read of the timing topics only
 
     lateness: dict[int, list[np.ndarray]] = {}
@@ -109,7 +116,7 @@ def timing_per_minute(path: str) -> tuple[list[float], list[float]]:
         for schema, channel, message in reader.iter_messages(topics=topics,
                                                               log_time_order=True):
             start = message.log_time - 1_000_000_000 if start is None else start
-            minute = max(0, message.log_time - start - 1) // 60_000_000_000
+            minute = max(0, message.log_time - start - 1) // round(sample_s * 1e9)
             if channel.id not in decoders:  # JSON, or CDR with a ros2msg schema (the default)
                 decoders[channel.id] = (
                     CdrDecoder(parse_ros2msg(schema.data.decode())).decode
@@ -128,57 +135,68 @@ def timing_per_minute(path: str) -> tuple[list[float], list[float]]:
     return p99(lateness), p99(compute)
 
 
-def soak(kind: str, seconds: float, code: Path, label: str) -> float:
+def soak(kind: str, seconds: float, code: Path, label: str, sample_s: float = 60.0) -> float:
+    period = "minute" if sample_s == 60.0 else f"{sample_s:g} s"
     with tempfile.TemporaryDirectory() as tmp:
         out = os.path.join(tmp, f"{kind}.mcap")
-        result = run_child(kind, seconds, code, out)
+        result = run_child(kind, seconds, code, out, sample_s)
         size = os.path.getsize(out)
-        lateness, compute = timing_per_minute(out)
+        lateness, compute = timing_per_minute(out, sample_s)
     rss = np.asarray([r for r, _ in result["rss"]], float) / 1e6
     queued = [q for _, q in result["rss"]]
     growth = float(rss[1:].max() - rss[0]) if rss.size > 1 else 0.0
-    print(f"  {label:<6} {kind}: {seconds / 60:.0f} simulated min in {result['wall_s']:.0f} s; "
-          f"RSS after minute 1 {rss[0]:.1f} MB, growth after it {growth:+.2f} MB "
+    length = f"{seconds / 60:.0f} simulated min" if seconds >= 60 else f"{seconds:g} simulated s"
+    print(f"  {label:<6} {kind}: {length} in {result['wall_s']:.0f} s; "
+          f"RSS after the first {period} {rss[0]:.1f} MB, growth after it {growth:+.2f} MB "
           f"(target <= {GROWTH_TARGET_MB:g} MB: {'ok' if growth <= GROWTH_TARGET_MB else 'MISSED'})"
           f"; session file {size / 1e6:.1f} MB = {size / (seconds / 3600) / 1e9:.2f} GB/h")
     step = max(1, rss.size // 12)
-    print("         RSS per minute [MB]: "
+    print(f"         RSS per {period} [MB]: "
           + " ".join(f"{m + 1}:{v:.1f}" for m, v in list(enumerate(rss))[::step]))
     print("         messages queued in the recorder: "
           + " ".join(f"{q}" for q in queued[::step]))
-    print("         lateness p99 per minute [us]: "
+    print(f"         lateness p99 per {period} [us]: "
           + " ".join(f"{v:.0f}" for v in lateness[::step]))
-    print("         compute p99 per minute [us]: "
+    print(f"         compute p99 per {period} [us]: "
           + " ".join(f"{v:.0f}" for v in compute[::step]))
     return growth
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--hours", type=float, help="simulated hours of both sessions")
     parser.add_argument("--full", action="store_true", help="1 h servo and 24 h bench")
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     parser.add_argument("--baseline-code", type=Path,
                         help="another checkout to run the same sessions on, for comparison")
     parser.add_argument("--child", choices=("servo", "bench"), help=argparse.SUPPRESS)
     parser.add_argument("--seconds", type=float, help=argparse.SUPPRESS)
     parser.add_argument("--out", help=argparse.SUPPRESS)
+    parser.add_argument("--sample-s", type=float, default=60.0, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
-        child(args.child, args.seconds, args.out)
+        child(args.child, args.seconds, args.out, args.sample_s)
         return 0
+    if args.quick and (args.full or args.hours):
+        parser.error("--quick goes with neither --full nor --hours")
     lengths = {"servo": 3 * 60.0, "bench": 64 * MACHINE_CYCLE_S}
+    sample_s = 1.0 if args.quick else 60.0
+    if args.quick:
+        lengths = {"servo": 5.0, "bench": MACHINE_CYCLE_S}
     if args.full:
         lengths = {"servo": 3600.0, "bench": 24 * 3600.0}
     if args.hours:
         lengths = dict.fromkeys(lengths, args.hours * 3600.0)
-    print("Endurance: RSS sampled every simulated minute (lockstep sessions)")
+    period = "minute" if sample_s == 60.0 else f"{sample_s:g} s"
+    print(f"Endurance: RSS sampled every simulated {period} (lockstep sessions)")
     growths = []
     for kind, seconds in lengths.items():
         if args.baseline_code is not None:
-            soak(kind, seconds, args.baseline_code.resolve(), "before")
-        growths.append(soak(kind, seconds, ROOT, "now"))
+            soak(kind, seconds, args.baseline_code.resolve(), "before", sample_s)
+        growths.append(soak(kind, seconds, ROOT, "now", sample_s))
     worst = max(growths)
-    print(f"  worst RSS growth after the first minute: {worst:.2f} MB "
+    print(f"  worst RSS growth after the first {period}: {worst:.2f} MB "
           f"(target <= {GROWTH_TARGET_MB:g} MB)")
     return 0
 

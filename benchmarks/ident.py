@@ -47,6 +47,10 @@ load from other processes hits them alike. BLAS runs single-threaded for every m
 before numpy loads): on the shared 2-core machine a busy second core made OpenBLAS's second
 thread stall these small factorisations (hil's order-3 run: 9 ms single-threaded, 20-110 ms
 with two threads under load). Set OPENBLAS_NUM_THREADS yourself to measure otherwise.
+
+``--quick``: 1000 synthetic samples at one noise level, 60 s of the emulated bench for P1 alone
+at the emulator's noise, 15 block rows, every method once; SIPPY (optional) left out, nfoursid
+compared only if installed (seconds; figures not worth quoting).
 """
 
 from __future__ import annotations
@@ -56,7 +60,8 @@ import os
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
-import contextlib  # noqa: E402 - BLAS threads must be set before numpy is imported
+import argparse  # noqa: E402 - BLAS threads must be set before numpy is imported
+import contextlib  # noqa: E402
 import io  # noqa: E402
 import statistics  # noqa: E402
 import time  # noqa: E402
@@ -89,6 +94,27 @@ BENCH_SEEDS = {"P1": 1, "P2": 2, "machining": 3}  # PRBS and meter noise seed pe
 BENCH_BLOCK_ROWS = (15, 60)
 BENCH_REPEATS = 3
 SENSITIVITY_VA_SIGMA = 0.15  # VA: about the paper's meter noise (see the module docstring)
+QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
+              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
+              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
+
+
+@dataclass(frozen=True)
+class Sizes:
+    """How much each section runs: the defaults above, or ``--quick``'s."""
+
+    samples: int = SAMPLES
+    repeats: int = REPEATS
+    noise_levels: tuple[float, ...] = NOISE_LEVELS
+    bench_seconds: float = BENCH_SECONDS
+    bench_models: tuple[str, ...] = tuple(BENCH_MODELS)
+    bench_block_rows: tuple[int, ...] = BENCH_BLOCK_ROWS
+    bench_repeats: int = BENCH_REPEATS
+    sensitivity: bool = True   # the SENSITIVITY_VA_SIGMA rows
+
+
+QUICK = Sizes(samples=1000, repeats=1, noise_levels=(0.05,), bench_seconds=60.0,
+              bench_models=("P1",), bench_block_rows=(15,), bench_repeats=1, sensitivity=False)
 
 Matrices = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 T = TypeVar("T")
@@ -165,28 +191,29 @@ def available(module: str) -> bool:
     return True
 
 
-def synthetic_section(has_sippy: bool) -> None:
+def synthetic_section(has_nfoursid: bool, has_sippy: bool, sizes: Sizes = Sizes()) -> None:
     rng = np.random.default_rng(2024)
     true_model = plant()
-    u = relay_sequence(rng, SAMPLES)
+    u = relay_sequence(rng, sizes.samples)
     y_true = ident.simulate(*true_model, u[:, None])[:, 0]
-    n_train = round(SAMPLES * TRAIN_FRACTION)
+    n_train = round(sizes.samples * TRAIN_FRACTION)
     methods: dict[str, Callable[[np.ndarray, np.ndarray], Matrices]] = {
         "hil n4sid, order 3": lambda a, b: hil_n4sid(a, b, ORDER),
         "hil n4sid, order selected": lambda a, b: hil_n4sid(a, b, None),
     }
     baseline = "nfoursid 1.0.2 (PO-MOESP), order 3"
-    methods[baseline] = nfoursid_n4sid
+    if has_nfoursid:
+        methods[baseline] = nfoursid_n4sid
     if has_sippy:
         methods["SIPPY 1.0.1 N4SID, order 3"] = sippy_n4sid
 
-    print(f"== synthetic plant: 3rd order, relay-switched, dt 0.01 s, {SAMPLES} samples "
+    print(f"== synthetic plant: 3rd order, relay-switched, dt 0.01 s, {sizes.samples} samples "
           f"({TRAIN_FRACTION:.0%} train), {BLOCK_ROWS} block rows for every method; "
-          f"BLAS threads {os.environ['OPENBLAS_NUM_THREADS']}, median of {REPEATS} runs")
+          f"BLAS threads {os.environ['OPENBLAS_NUM_THREADS']}, median of {sizes.repeats} runs")
     print("paper (MATLAB n4sid, real bench): " + ", ".join(
         f"{name} {fit:.2f} %" for name, fit in PAPER_FITS.items()))
-    for noise in NOISE_LEVELS:
-        y = y_true + noise * np.std(y_true) * rng.normal(size=SAMPLES)
+    for noise in sizes.noise_levels:
+        y = y_true + noise * np.std(y_true) * rng.normal(size=sizes.samples)
         truth = float(ident.fit_percent(y[n_train:], y_true[n_train:])[0])
         print(f"\nnoise {noise:.0%} of the output std; truth (noise-free plant) fit "
               f"{truth:.2f} %")
@@ -194,7 +221,7 @@ def synthetic_section(has_sippy: bool) -> None:
         u_train, y_train = u[:n_train], y[:n_train]
         timed = timed_interleaved(
             {name: partial(func, u_train, y_train) for name, func in methods.items()},
-            REPEATS,
+            sizes.repeats,
         )
         fits = {}
         for name, (model, ms) in timed.items():
@@ -202,6 +229,10 @@ def synthetic_section(has_sippy: bool) -> None:
             order = f"   (order {model[0].shape[0]})" if "selected" in name else ""
             print(f"{name:<38} {fits[name]:8.2f} {ms:9.1f}{order}")
         ours = "hil n4sid, order 3"
+        if baseline not in timed:
+            print("target (faster than nfoursid, fit at least equal): not judged, nfoursid "
+                  "not installed")
+            continue
         speedup = timed[baseline][1] / timed[ours][1]
         gain = fits[ours] - fits[baseline]
         verdict = "met" if speedup > 1 and gain >= -0.005 else "NOT met"
@@ -266,10 +297,10 @@ def play(plant_spec: PlantSpec, relays: dict[str, np.ndarray], seed: int) -> np.
     return y
 
 
-def bench_record(config: BenchConfig, name: str, va_sigmas: tuple[float, ...]
-                 ) -> BenchRecord:
+def bench_record(config: BenchConfig, name: str, va_sigmas: tuple[float, ...],
+                 seconds: float = BENCH_SECONDS) -> BenchRecord:
     dt = config.plant.dt_s
-    n = round(BENCH_SECONDS / dt)
+    n = round(seconds / dt)
     seed = BENCH_SEEDS[name]
     relays = {
         relay: prbs(np.random.default_rng([seed, k]), n,
@@ -348,8 +379,9 @@ class Row:
     runs: int
 
 
-def bench_rows(record: BenchRecord, va_sigma: float, has_sippy: bool, dt: float,
-               repeats: int) -> list[Row]:
+def bench_rows(record: BenchRecord, va_sigma: float, has_nfoursid: bool, has_sippy: bool,
+               dt: float, repeats: int, block_rows: tuple[int, ...] = BENCH_BLOCK_ROWS
+               ) -> list[Row]:
     """Identify with every method on one noise level; fit on the held-out part."""
     u, y = record.u, record.y[va_sigma]
     n_train = round(len(y) * TRAIN_FRACTION)
@@ -361,13 +393,14 @@ def bench_rows(record: BenchRecord, va_sigma: float, has_sippy: bool, dt: float,
         return float(ident.fit_percent(y[n_train:], y_hat[n_train:])[0])
 
     compared: dict[tuple[str, int], Callable[[], Model]] = {}
-    for i in BENCH_BLOCK_ROWS:
+    for i in block_rows:
         compared["hil n4sid", i] = partial(bench_hil, u_d[:n_train], y_train, i)
-        compared["nfoursid 1.0.2", i] = partial(bench_nfoursid, u_d[:n_train], y_train, i)
+        if has_nfoursid:
+            compared["nfoursid 1.0.2", i] = partial(bench_nfoursid, u_d[:n_train], y_train, i)
     once: dict[tuple[str, int], Callable[[], Model]] = {}
     if has_sippy:
         once = {("SIPPY 1.0.1", i): partial(bench_sippy, u_d[:n_train], y_train, i)
-                for i in BENCH_BLOCK_ROWS}
+                for i in block_rows}
     rows = []
     for funcs, runs in ((compared, repeats), (once, 1)):
         timed = timed_interleaved({f"{m}/{i}": f for (m, i), f in funcs.items()}, runs,
@@ -383,6 +416,7 @@ def bench_rows(record: BenchRecord, va_sigma: float, has_sippy: bool, dt: float,
 
 
 def print_bench(record: BenchRecord, va_sigma: float, rows: list[Row], timed: bool) -> None:
+    block_rows = sorted({r.block_rows for r in rows if r.method == "hil n4sid"})
     y = record.y[va_sigma]
     n_train = round(len(y) * TRAIN_FRACTION)
     y_test = y[n_train:]
@@ -400,31 +434,35 @@ def print_bench(record: BenchRecord, va_sigma: float, rows: list[Row], timed: bo
     ours = next(r for r in rows if r.method == "hil auto (BIC)")
     print(f"paper fit: {'met' if ours.fit >= paper else 'NOT met'} (got {ours.fit:.2f} with "
           f"hil auto, {ours.block_rows} block rows, ceiling {ceiling:.2f}, truth {truth:.2f})")
-    if timed:
-        by_key = {(r.method, r.block_rows): r for r in rows}
+    by_key = {(r.method, r.block_rows): r for r in rows}
+    if timed and not any(method == "nfoursid 1.0.2" for method, _ in by_key):
+        print("faster than nfoursid at equal block rows: not judged, nfoursid not installed")
+    elif timed:
         speedups = {i: by_key["nfoursid 1.0.2", i].ms / by_key["hil n4sid", i].ms
-                    for i in BENCH_BLOCK_ROWS}
+                    for i in block_rows}
         print(f"faster than nfoursid at equal block rows: "
               f"{'met' if min(speedups.values()) > 1 else 'NOT met'} ("
               + ", ".join(f"{i} rows {x:.1f}x" for i, x in speedups.items()) + ")")
 
 
-def emulated_section(has_sippy: bool) -> None:
+def emulated_section(has_nfoursid: bool, has_sippy: bool, sizes: Sizes = Sizes()) -> None:
     from hil.bench.config import load_bench_config
 
     config = load_bench_config()
     dt = config.plant.dt_s
     default_sigma = config.plant.meter.va_sigma
-    sigmas = (default_sigma, SENSITIVITY_VA_SIGMA)
+    sigmas = (default_sigma, SENSITIVITY_VA_SIGMA) if sizes.sensitivity else (default_sigma,)
+    seconds = sizes.bench_seconds
     print(f"\n== emulated bench: BenchPlant (default bench config) stepped directly, dt {dt:g} s,"
-          f" {BENCH_SECONDS:g} s = {round(BENCH_SECONDS / dt)} samples per model "
+          f" {seconds:g} s = {round(seconds / dt)} samples per model "
           f"({TRAIN_FRACTION:.0%} train); PRBS bit = relay dwell; output {BENCH_OUTPUT} "
           f"detrended, order {ORDER}, D = 0; nfoursid with the economy SVD")
-    print(f"timing: hil n4sid and nfoursid median of {BENCH_REPEATS} interleaved runs at "
-          f"{default_sigma:g} VA; the rest 1 run. Sensitivity row: {SENSITIVITY_VA_SIGMA:g} VA")
-    for name in BENCH_MODELS:
+    print(f"timing: hil n4sid and nfoursid median of {sizes.bench_repeats} interleaved runs at "
+          f"{default_sigma:g} VA; the rest 1 run. Sensitivity row: " +
+          (f"{SENSITIVITY_VA_SIGMA:g} VA" if sizes.sensitivity else "skipped (--quick)"))
+    for name in sizes.bench_models:
         t0 = time.perf_counter()
-        record = bench_record(config, name, sigmas)
+        record = bench_record(config, name, sigmas, seconds)
         print(f"\n[{name}: {len(sigmas) + 1} plant runs in {time.perf_counter() - t0:.1f} s]",
               flush=True)
         if name == "machining":
@@ -435,20 +473,30 @@ def emulated_section(has_sippy: bool) -> None:
                   f"{bound:.2f} VA here")
         for sigma in sigmas:
             main_level = sigma == default_sigma
-            rows = bench_rows(record, sigma, has_sippy and main_level, dt,
-                              BENCH_REPEATS if main_level else 1)
+            rows = bench_rows(record, sigma, has_nfoursid, has_sippy and main_level, dt,
+                              sizes.bench_repeats if main_level else 1, sizes.bench_block_rows)
             print_bench(record, sigma, rows, timed=main_level)
 
 
 def main() -> None:
-    if not available("nfoursid"):
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    args = parser.parse_args()
+    has_nfoursid = available("nfoursid")
+    if not has_nfoursid and not args.quick:
         raise SystemExit("nfoursid is not installed: pip install -r benchmarks/requirements.txt")
-    has_sippy = available("sippy_unipi")
-    if not has_sippy:
+    if not has_nfoursid:
+        print("nfoursid not installed (benchmarks/requirements.txt): skipped")
+    has_sippy = not args.quick and available("sippy_unipi")
+    if args.quick:
+        print("SIPPY (sippy-unipi, optional): skipped (--quick)")
+    elif not has_sippy:
         print("SIPPY (sippy-unipi) not installed: skipped")
+    sizes = QUICK if args.quick else Sizes()
     t0 = time.perf_counter()
-    synthetic_section(has_sippy)
-    emulated_section(has_sippy)
+    synthetic_section(has_nfoursid, has_sippy, sizes)
+    emulated_section(has_nfoursid, has_sippy, sizes)
     print(f"\ntotal {time.perf_counter() - t0:.0f} s")
 
 

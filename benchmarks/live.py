@@ -17,7 +17,9 @@ went: the loop process, the drive emulator (with the time it waited for a CPU), 
 split into the recording (its Python thread) and the live server (the SDK's threads), and the
 clients. The default runs keep the watchdogs off the machine's CAN timing (a late TPDO is
 counted, a late heartbeat does not fault the drive); ``--churn`` runs as shipped, safety net
-and watchdogs on, so that whether they complete is part of the figures.
+and watchdogs on, so that whether they complete is part of the figures. ``--quick``: one 1 s run
+with the live view, the one without it (the baseline) skipped (seconds; figures not worth
+quoting).
 """
 
 from __future__ import annotations
@@ -46,6 +48,9 @@ REPO = Path(__file__).resolve().parents[1]
 TOLERANT = {"master": {"stale_cycles": 100_000, "heartbeat_timeout_ms": 0}}
 TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 LIVE_SERVER_THREADS = ("tokio-rt-worker",)  # the Foxglove SDK's server runtime
+QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
+              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
+              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
 
 WATCHER = """
 import sys
@@ -248,20 +253,25 @@ def print_run(label: str, row: dict[str, Any], churn: int) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--duration", type=float, default=10.0, help="seconds per run")
-    parser.add_argument("--pairs", type=int, default=2, help="off/on pairs")
+    parser.add_argument("--duration", type=float,
+                        help="seconds per run (default 10; 1 with --quick)")
+    parser.add_argument("--pairs", type=int, help="off/on pairs (default 2; 1 with --quick)")
     parser.add_argument("--churn", type=int, default=0, metavar="N",
                         help="N clients coming and going instead of one watching throughout")
     parser.add_argument("--hold", type=float, default=0.3, metavar="S",
                         help="with --churn: seconds each connection reads before it closes")
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
+    args.duration = args.duration or (1.0 if args.quick else 10.0)
+    args.pairs = args.pairs or (1 if args.quick else 2)
     clients = f"{args.churn} clients coming and going" if args.churn else "1 client"
     print(f"real-time servo, MPC FOH H_t = H_u = 8 at 2 kHz, {args.duration:g} s per run, "
-          f"{args.pairs} pair(s), alternating: no live view / --live + {clients}")
+          + (f"--live + {clients} only (--quick)" if args.quick else
+             f"{args.pairs} pair(s), alternating: no live view / --live + {clients}"))
     rows: dict[bool, list[dict[str, Any]]] = {False: [], True: []}
     with tempfile.TemporaryDirectory() as tmp:
         for pair in range(args.pairs):
-            for live in (False, True):
+            for live in (True,) if args.quick else (False, True):
                 row = run_once(tmp, f"r{pair}{int(live)}", args.duration, live, args.churn,
                                args.hold)
                 rows[live].append(row)
@@ -269,6 +279,9 @@ def main() -> None:
                           row, args.churn)
     for live in (False, True):
         runs = rows[live]
+        if not runs:
+            print("mean without the live view: skipped (--quick)")
+            continue
         p99 = sum(r["loop"].get("lateness_us", {}).get("p99", 0) for r in runs) / len(runs)
         total = sum(r["loop"].get("runs", 0) + r["loop"].get("missed", 0) for r in runs)
         skipped = 100 * sum(r["loop"].get("missed", 0) for r in runs) / max(1, total)

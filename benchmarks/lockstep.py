@@ -15,7 +15,9 @@ each tick's time goes.
 4. One CAN cycle alone (RPDO + SYNC, TPDO pair back) and the emulated node's share of it.
 
 Targets (issue 28): MPC >= 10x real time, 0 mA >= 25x, recorder <= 5 us per tick. The machine
-is shared: figures drift up to 2x between minutes; use ``--repeat 3`` or more.
+is shared: figures drift up to 2x between minutes; use ``--repeat 3`` or more. ``--quick``:
+one run of each kind, 0.3 s each, 2,000 recorder ticks and 1,000 CAN cycles (seconds in all;
+figures not worth quoting).
 """
 
 from __future__ import annotations
@@ -40,6 +42,9 @@ from hil.servo.topics import COMMAND_SCHEMA, FEEDBACK_SCHEMA, PREDICTION_SCHEMA
 
 PERIOD_S = 500e-6
 PHASES = ("read", "compute", "write", "record")
+QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
+              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
+              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
 
 
 class ZeroCurrent:
@@ -134,9 +139,15 @@ def can_cycle(cycles: int) -> tuple[float, float]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seconds", type=float, default=5.0, help="simulated time per run [s]")
-    parser.add_argument("--repeat", type=int, default=3, help="runs of each kind, alternated")
+    parser.add_argument("--seconds", type=float,
+                        help="simulated time per run [s] (default 5; 0.3 with --quick)")
+    parser.add_argument("--repeat", type=int,
+                        help="runs of each kind, alternated (default 3; 1 with --quick)")
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
+    args.seconds = args.seconds if args.seconds is not None else (0.3 if args.quick else 5.0)
+    args.repeat = args.repeat if args.repeat is not None else (1 if args.quick else 3)
+    sizes = 2_000 if args.quick else 20_000  # recorder ticks; CAN cycles (1,000 quick)
     if args.repeat < 1 or not args.seconds > 0:
         parser.error("--repeat must be >= 1 and --seconds > 0")
     runs: dict[str, list[dict[str, Any]]] = {"mpc": [], "zero": [], "mpc-wire": [],
@@ -151,8 +162,8 @@ def main() -> int:
             runs["mpc-wire"].append(session(tmp, args.seconds, "mpc", wire=True))
             runs["zero-wire"].append(session(tmp, args.seconds, ZeroCurrent, wire=True))
             for form in ("dicts", "rows"):
-                costs[form].append(recorder_cost(tmp, 20_000, rows=form == "rows"))
-    cycle_us, node_us = can_cycle(20_000)
+                costs[form].append(recorder_cost(tmp, sizes, rows=form == "rows"))
+    cycle_us, node_us = can_cycle(sizes // 2 if args.quick else sizes)
 
     print(f"lockstep servo through the CAN link, {args.seconds:g} s, fully recorded "
           f"(median of {args.repeat})")

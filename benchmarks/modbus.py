@@ -6,7 +6,9 @@ Round trips: each transport's figure is printed next to a baseline measured in t
 frames). Sampling: a real-time session at 100 Hz polls the meter and the levels for
 ``--duration`` s against the TCP emulator, next to the same loop without I/O, then briefly
 over a paced RTU line. Target (the project's): TCP poll p99 <= 2 ms. The machine is shared:
-figures are noisy, run it on a quiet box for figures worth quoting.
+figures are noisy, run it on a quiet box for figures worth quoting. ``--quick``: 100 TCP and
+20 RTU round trips per row, sampling runs of 0.5 s and 0.3 s (seconds; figures not worth
+quoting).
 """
 
 from __future__ import annotations
@@ -41,6 +43,9 @@ from hil.drivers.bench.modbus import ModbusLink, parse_bus_url
 REPO = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
 METER_UNIT, FULL, SMALL = 2, 76, 6   # whole SDM630 map in one request; va_l1..va_l3
+QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
+              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
+              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
 
 
 def spawn(*args: str) -> tuple[subprocess.Popen[str], str]:
@@ -162,7 +167,7 @@ def round_trips(n_tcp: int, n_rtu: int) -> None:
             link = ModbusLink(parse_bus_url(f"modbus-rtu://{ports[0]}?baud=115200"),
                               timeout_s=0.2, attempts=2)
             for count in (FULL, SMALL):
-                n = n_rtu if baud is None else max(50, n_rtu // 5)
+                n = n_rtu if baud is None else max(min(50, n_rtu), n_rtu // 5)
                 wire_us = (8 + 5 + 2 * count) * 10 / 115200 * 1e6
                 note = "" if baud is None else f"wire time of the frames {wire_us:.0f} us"
                 first = 0x12 if count == SMALL else 0
@@ -243,12 +248,22 @@ def sampling_report(duration_s: float, rtu_s: float) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--duration", type=float, default=30.0, help="TCP sampling run [s]")
-    parser.add_argument("--rtu-duration", type=float, default=10.0, help="RTU sampling run [s]")
-    parser.add_argument("--polls", type=int, default=3000, help="TCP round trips per row")
-    parser.add_argument("--rtu-polls", type=int, default=600, help="RTU round trips per row")
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--duration", type=float,
+                        help="TCP sampling run [s] (default 30; 0.5 with --quick)")
+    parser.add_argument("--rtu-duration", type=float,
+                        help="RTU sampling run [s] (default 10; 0.3 with --quick)")
+    parser.add_argument("--polls", type=int,
+                        help="TCP round trips per row (default 3000; 100 with --quick)")
+    parser.add_argument("--rtu-polls", type=int,
+                        help="RTU round trips per row (default 600; 20 with --quick)")
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
+    for name, full, quick in (("duration", 30.0, 0.5), ("rtu_duration", 10.0, 0.3),
+                              ("polls", 3000, 100), ("rtu_polls", 600, 20)):
+        if getattr(args, name) is None:
+            setattr(args, name, quick if args.quick else full)
     started = time.monotonic()
     round_trips(args.polls, args.rtu_polls)
     sampling_report(args.duration, args.rtu_duration)

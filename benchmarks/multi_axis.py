@@ -10,7 +10,8 @@ axis), in one run:
 Each figure is the quickest of ``--repeat`` alternated batches (this shared machine has slow
 minutes: the quickest batch is the one it ran undisturbed). The target (issue 29) is that
 each axis past the first costs at most 40 % of the first. Runs are at 2 kHz: the servo
-controllers are designed for T = 500 us.
+controllers are designed for T = 500 us. ``--quick``: one batch of 200 cycles and runs of
+0.1 s (a few seconds; figures not worth quoting).
 """
 
 from __future__ import annotations
@@ -27,6 +28,10 @@ from hil.drivers.canopen.axes import AxisBus, AxisGroup
 from hil.emulators.drive.runners import LockstepDrive
 from hil.servo.rig import open_drive
 from hil.servo.run import ServoExperiment, ServoRunOptions
+
+QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
+              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
+              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
 
 
 def group_cycle_us(axes: int, cycles: int) -> float:
@@ -73,10 +78,17 @@ def run_tick_us(axes: int, seconds: float, tmp: Path) -> float:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--cycles", type=int, default=4000, help="cycles per batch")
-    parser.add_argument("--repeat", type=int, default=5, help="batches of each, alternated")
-    parser.add_argument("--seconds", type=float, default=2.0, help="simulated time per run")
+    parser.add_argument("--cycles", type=int,
+                        help="cycles per batch (default 4000; 200 with --quick)")
+    parser.add_argument("--repeat", type=int,
+                        help="batches of each, alternated (default 5; 1 with --quick)")
+    parser.add_argument("--seconds", type=float,
+                        help="simulated time per run (default 2; 0.1 with --quick)")
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
+    for name, full, quick in (("cycles", 4000, 200), ("repeat", 5, 1), ("seconds", 2.0, 0.1)):
+        if getattr(args, name) is None:
+            setattr(args, name, quick if args.quick else full)
     if args.cycles < 1 or args.repeat < 1:
         parser.error("--cycles and --repeat must be >= 1")
     runs: dict[str, list[float]] = {"single": [], "1": [], "2": [], "3": [],

@@ -12,6 +12,8 @@ is shared: figures are noisy, run it on a quiet box for figures worth quoting, w
 ``--repeat 3`` or more: the targets are then checked on the medians of alternated pairs.
 For 2 it also prints the stale feedback, the side that was late (``hil report``'s feedback
 section) and what the drive emulator's process was granted (``realtime.emulator``).
+``--quick``: servo runs of 0.5 s and one bench cycle of a 1 s machining sequence instead of
+the 28 s one (seconds in all; figures not worth quoting).
 """
 
 from __future__ import annotations
@@ -35,6 +37,20 @@ from hil.servo.run import ServoRunOptions, run_servo
 SKIPPED_RATIO_MAX = 1.5     # the servo loop's skipped share against the bare loop's...
 SKIPPED_POINTS_MAX = 0.05   # ...plus this many percentage points
 LATENESS_P99_MAX_US = 100.0
+QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
+              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
+              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
+# --quick: a 1 s machining sequence instead of bench.toml's 28 s one (M1 and M2 then switch
+# faster than their 1 s dwell allows, so it is shortened too)
+SHORT_SEQUENCE = """[relays]
+M1 = { coil = 0, safe = false, dwell_s = 0.2 }
+M2 = { coil = 1, safe = false, dwell_s = 0.2 }
+
+[sequence]
+period_s = 1.0
+stages = [{ start_s = 0.0, end_s = 0.5, on = ["M1"] },
+          { start_s = 0.5, end_s = 1.0, on = ["M1", "M2"] }]
+"""
 
 
 def bare_loop(seconds: float) -> dict[str, float]:
@@ -84,9 +100,10 @@ def servo_session(tmp: Path, seconds: float, realtime: bool,
             "emulator": session.metadata.get("realtime.emulator", {})}
 
 
-def bench_session(tmp: Path, cycles: int) -> dict[str, float]:
+def bench_session(tmp: Path, cycles: int, config_path: str | None = None) -> dict[str, float]:
     out = tmp / "bench-rt.mcap"
-    run_bench(BenchRunOptions(controller="bc", cycles=cycles, realtime=True, out=str(out)))
+    run_bench(BenchRunOptions(controller="bc", cycles=cycles, realtime=True, out=str(out),
+                              config_path=config_path))
     sampler = json.loads(read_session(out).metadata["loop"]["bench_io"])
     return {"missed": sampler["missed"], "runs": sampler["runs"],
             "p99_us": sampler["lateness_us"]["p99"]}
@@ -98,15 +115,22 @@ def median_run(runs: list[dict[str, Any]], key: str) -> dict[str, Any]:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--seconds", type=float, default=10.0, help="servo runs [s]")
-    parser.add_argument("--bench-cycles", type=int, default=2, help="bench run, 28 s each")
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float,
+                        help="servo runs [s] (default 10; 0.5 with --quick)")
+    parser.add_argument("--bench-cycles", type=int, help="bench run, 28 s each (default 2; "
+                        "one 1 s cycle with --quick)")
     parser.add_argument("--repeat", type=int, default=1,
                         help="bare loop / real-time servo pairs, alternated (the machine's "
                              "speed drifts: the targets are checked on the medians)")
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
     if args.repeat < 1:
         parser.error("--repeat must be >= 1")
+    args.seconds = args.seconds or (0.5 if args.quick else 10.0)
+    args.bench_cycles = args.bench_cycles or (1 if args.quick else 2)
+    cycle_s = 1.0 if args.quick else 28.0
     bares: list[dict[str, Any]] = []
     rts: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory() as tmp_name:
@@ -116,7 +140,11 @@ def main() -> int:
             rts.append(servo_session(tmp, args.seconds, realtime=True))
         lockstep = servo_session(tmp, args.seconds, realtime=False)
         floor = servo_session(tmp, args.seconds, realtime=False, controller=ZeroCurrent)
-        bench = bench_session(tmp, args.bench_cycles)
+        bench_config = None
+        if args.quick:
+            bench_config = str(tmp / "short-sequence.toml")
+            Path(bench_config).write_text(SHORT_SEQUENCE)
+        bench = bench_session(tmp, args.bench_cycles, bench_config)
     print(f"{'run':<52} {'skipped %':>9} {'p99 us':>8}")
     for bare_run, rt_run in zip(bares, rts, strict=True):
         print(f"{'bare 2 kHz loop, hardened (hil doctor) [baseline]':<52} "
@@ -149,7 +177,7 @@ def main() -> int:
         if values:
             print(f"   {name:<24}" + "".join(f"{v:>9.1f}" for v in values))
     print(f"real-time bench, 100 Hz over Modbus TCP to the emulator process, "
-          f"{args.bench_cycles * 28} s: {bench['missed']:.0f} of "
+          f"{args.bench_cycles * cycle_s:g} s: {bench['missed']:.0f} of "
           f"{bench['runs'] + bench['missed']:.0f} ticks skipped, sampler p99 "
           f"{bench['p99_us']:.0f} us")
     print("targets")

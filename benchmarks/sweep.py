@@ -17,6 +17,9 @@ Also printed: how many trials Ray kept in flight on average, and the load averag
 shared machine other processes take the cores the workers need.
 
 The machine is shared: figures are noisy, run it alone when the numbers matter.
+
+``--quick``: 2 trials of 0.3 s, no fresh-process baseline, one overhead sample (the Ray
+start-up still takes seconds; figures not worth quoting).
 """
 
 from __future__ import annotations
@@ -38,17 +41,23 @@ from hil.sweep.space import expand
 from hil.sweep.trial import TrialJob, run_trial
 
 TARGET_SPEEDUP = 1.7
+# 1200 and 1500 mA are above drive.toml's 1000 mA limit: a sweep over them says so
 RUN = ["--controller", "mpc", "--duration", "3", "--reference",
-       "sine:amplitude=2,frequency=1"]
+       "sine:amplitude=2,frequency=1", "--allow-higher-current"]
 GRID = {"umax": [800.0, 1000.0, 1200.0, 1500.0], "ert": ["zoh", "foh"]}
+QUICK_RUN = [*RUN[:2], "--duration", "0.3", *RUN[4:]]
+QUICK_GRID = {"umax": [800.0, 1500.0], "ert": ["foh"]}
+QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
+              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
+              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
 
 
-def jobs_in(out: Path) -> list[TrialJob]:
+def jobs_in(out: Path, quick: bool = False) -> list[TrialJob]:
     parser = argparse.ArgumentParser()
     add_run_arguments(parser)
-    base = vars(parser.parse_args(RUN))
+    base = vars(parser.parse_args(QUICK_RUN if quick else RUN))
     return [TrialJob("servo", base, t.name, t.params, str(out / f"{t.name}.mcap"))
-            for t in expand(GRID)]
+            for t in expand(QUICK_GRID if quick else GRID)]
 
 
 def timed(function, *args):  # type: ignore[no-untyped-def]
@@ -72,12 +81,16 @@ def sequential_cold(out: Path) -> float:
 
 
 def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    args = parser.parse_args()
     workers = os.cpu_count() or 1
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
-        cold = sequential_cold(out)
-        jobs = jobs_in(out)
+        cold = None if args.quick else sequential_cold(out)
+        jobs = jobs_in(out, args.quick)
         run_trial(jobs[0])   # warm-up: the baseline pays no imports
         sequential, rows = timed(lambda: [run_trial(j) for j in jobs])
         assert all(r["status"] == "ok" for r in rows), rows
@@ -94,7 +107,7 @@ def main() -> int:
 
         task = ray.remote(num_cpus=1, max_retries=0)(run_trial)
         overheads, local_times, remote_times = [], [], []
-        for _ in range(3):
+        for _ in range(1 if args.quick else 3):
             remote_s, _ = timed(lambda: ray.get(task.remote(jobs[1])))
             local_s, _ = timed(run_trial, jobs[1])
             remote_times.append(remote_s)
@@ -104,18 +117,25 @@ def main() -> int:
 
     speedup = sequential / on_ray
     busy = sum(r["trial_s"] for r in ray_rows) / on_ray
-    print(f"sweep: 8 servo trials (MPC, 3 s lockstep each), {workers} core(s)")
-    print(f"  in sequence, in-process      {sequential:7.2f} s  ({sequential / 8:.2f} s/trial, "
+    n = len(jobs)
+    print(f"sweep: {n} servo trials (MPC, {jobs[0].flags['duration']:g} s lockstep each), "
+          f"{workers} core(s)")
+    print(f"  in sequence, in-process      {sequential:7.2f} s  ({sequential / n:.2f} s/trial, "
           "imports done before)")
-    print(f"  in sequence, fresh process   {cold:7.2f} s  (its imports included, as each Ray "
-          "worker pays them)")
+    if cold is None:
+        print("  in sequence, fresh process   skipped (--quick)")
+    else:
+        print(f"  in sequence, fresh process   {cold:7.2f} s  (its imports included, as each "
+              "Ray worker pays them)")
     print(f"  local Ray start-up           {startup:7.2f} s")
     print(f"  on local Ray, {workers} workers      {on_ray:7.2f} s  -> {speedup:.2f}x "
           f"(target >= {TARGET_SPEEDUP}x: {'met' if speedup >= TARGET_SPEEDUP else 'MISSED'})")
     print(f"  with the start-up            {startup + on_ray:7.2f} s  -> "
           f"{sequential / (startup + on_ray):.2f}x")
-    print(f"  against the fresh process    {on_ray:7.2f} s  -> {cold / on_ray:.2f}x")
-    print(f"  per-trial overhead (Ray task on a warm worker vs in-process, median of 3): "
+    if cold is not None:
+        print(f"  against the fresh process    {on_ray:7.2f} s  -> {cold / on_ray:.2f}x")
+    print(f"  per-trial overhead (Ray task on a warm worker vs in-process, median of "
+          f"{len(overheads)}): "
           f"{statistics.median(overheads) * 1e3:+.0f} ms "
           f"({statistics.median(remote_times):.2f} s vs {statistics.median(local_times):.2f} s)")
     print(f"  trials in flight on Ray (sum of trial times / wall): {busy:.2f} of {workers}")

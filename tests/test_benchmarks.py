@@ -1,15 +1,27 @@
 """Benchmarks that cannot rot: every script in benchmarks/ imports (``make check`` runs this),
-so a name that moves in the code under them fails here, not on the next ``make bench``."""
+so a name that moves in the code under them fails here, not on the next ``make bench``; and
+every script runs end to end in its seconds-long ``--quick`` mode (``make test``), so a call
+that no longer fits, a run that fails or a figure that no longer prints fails here too. Only
+that it ran and printed figures is checked, never their values: this machine is shared."""
 
 from __future__ import annotations
 
 import importlib.util
+import os
+import re
+import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-BENCHMARKS = sorted((Path(__file__).resolve().parents[1] / "benchmarks").glob("*.py"))
+ROOT = Path(__file__).resolve().parents[1]
+BENCHMARKS = sorted((ROOT / "benchmarks").glob("*.py"))
+# a figure: a decimal number, a ratio (3.2x) or a share (12 %)
+FIGURE = re.compile(r"\d\.\d|\d+x\b|\d ?%")
+# sweep.py starts a local Ray (10-25 s of it): conftest runs such tests first
+QUICK_RUNS = [pytest.param(path, marks=[pytest.mark.ray] if path.stem == "sweep" else [])
+              for path in BENCHMARKS]
 
 
 @pytest.mark.parametrize("script", BENCHMARKS, ids=lambda path: path.stem)
@@ -22,3 +34,17 @@ def test_every_benchmark_imports(script: Path, monkeypatch: pytest.MonkeyPatch) 
     monkeypatch.syspath_prepend(str(script.parent))  # as `python benchmarks/X.py` runs it
     spec.loader.exec_module(module)
     assert callable(getattr(module, "main", None)), f"{script.name} has no main()"
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("script", QUICK_RUNS, ids=lambda path: path.stem)
+def test_every_benchmark_runs_quick(script: Path) -> None:
+    # as `make bench` runs it, from the checkout, only shorter
+    done = subprocess.run([sys.executable, str(script), "--quick"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=280, stdin=subprocess.DEVNULL,
+                          env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    assert done.returncode == 0, f"{script.name} --quick exited {done.returncode}:\n" \
+                                 f"{done.stdout[-2000:]}\n{done.stderr[-3000:]}"
+    figures = [line for line in done.stdout.splitlines() if FIGURE.search(line)]
+    assert figures, f"{script.name} --quick printed no figure:\n{done.stdout[-2000:]}"
