@@ -207,8 +207,10 @@ def main() -> None:
     bc = runs["nominal", "bc"] if sweep_cycles == cycles else closed_loop("bc", sweep_cycles)
     for gamma3 in gammas:
         # the nominal run of section 1 is this one when its gamma3 and cycles agree
-        run = eec_run if sweep_cycles == cycles and eec_run.milp.settings.gamma3 == gamma3 \
-            else closed_loop("eec", sweep_cycles, hp_s=28, overrides={"gamma3": gamma3})
+        nominal = sweep_cycles == cycles and eec_run.solver is not None \
+            and eec_run.solver.horizon.settings.gamma3 == gamma3
+        run = eec_run if nominal else closed_loop("eec", sweep_cycles, hp_s=28,
+                                                  overrides={"gamma3": gamma3})
         k = run.kpis
         print(f"  {gamma3:>8g} {k['SEC_VA']:>16.1f} {k['J2_VA']:>8.1f} "
               f"{k['starts_per_hour']['P1']:>12.1f} {k['starts_per_hour']['P2']:>12.1f} "
