@@ -30,7 +30,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable, Generator, Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 import pytest
 
@@ -44,6 +44,7 @@ from hil.protocols.cia402 import OPERATION_ENABLED, state_of
 
 #: where a run's KPIs go: ``(name, value)`` pairs, a test's ``user_properties``
 Record = Callable[[tuple[str, object]], None]
+DeviceT = TypeVar("DeviceT")
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -61,7 +62,43 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                     "socketcan://can0...) instead of the emulator")
 
 
-class BenchUnderTest:
+class _UnderTest(Generic[DeviceT]):
+    """What the bench and the drive of one test share: where the device is, whether it is
+    hil's emulator (and its process), the session files of the runs, and the device opened
+    once when a test asks for it (closed by :meth:`close`)."""
+
+    kind = ""  # the session files' stem: bench-1.mcap, servo-1.mcap...
+
+    def __init__(self, url: str, emulated: bool, directory: Path,
+                 record: Record) -> None:
+        self.url, self.emulated, self.directory = url, emulated, directory
+        self.emulator: EmulatorProcess | None = None  # the emulator process, if it is one
+        self.sessions: list[str] = []
+        self._record = record
+        self._stack = contextlib.ExitStack()
+        self._opened: DeviceT | None = None
+
+    def _device(self, open_device: Callable[[], contextlib.AbstractContextManager[DeviceT]]
+                ) -> DeviceT:
+        if self._opened is None:
+            self._opened = self._stack.enter_context(open_device())
+        return self._opened
+
+    def _run(self, options: dict[str, Any], run: Callable[[], dict[str, Any]]
+             ) -> dict[str, Any]:
+        """``run()`` into the next session file (``options["out"]`` unless given), its KPIs
+        recorded as the test's properties."""
+        options.setdefault("out", str(self.directory /
+                                      f"{self.kind}-{len(self.sessions) + 1}.mcap"))
+        self.sessions.append(options["out"])
+        return run_recorded(self._record, options["out"], run)
+
+    def close(self) -> None:
+        self._stack.close()
+        self._opened = None
+
+
+class BenchUnderTest(_UnderTest[SafeBench]):
     """The relay bench of one test.
 
     * ``url`` - where it is (``modbus-tcp://127.0.0.1:PORT`` for the emulator);
@@ -75,32 +112,17 @@ class BenchUnderTest:
     * ``sessions`` - the session files of the runs.
     """
 
-    def __init__(self, url: str, emulated: bool, directory: Path,
-                 record: Record) -> None:
-        self.url, self.emulated, self.directory = url, emulated, directory
-        self.emulator: EmulatorProcess | None = None  # the emulator process, if it is one
-        self.sessions: list[str] = []
-        self._record = record
-        self._stack = contextlib.ExitStack()
-        self._driver: SafeBench | None = None
+    kind = "bench"
 
     @property
     def driver(self) -> SafeBench:
-        if self._driver is None:
-            self._driver = self._stack.enter_context(api.open_bench(self.url))
-        return self._driver
+        return self._device(lambda: api.open_bench(self.url))
 
     def run(self, controller: api.Controller, params: Mapping[str, Any] | None = None,
             cycles: int = 1, **options: Any) -> dict[str, Any]:
         realtime = bool(options.pop("realtime", not self.emulated))
-        options.setdefault("out", str(self.directory / f"bench-{len(self.sessions) + 1}.mcap"))
-        self.sessions.append(options["out"])
-        return run_recorded(self._record, options["out"], lambda: api.run_bench(
+        return self._run(options, lambda: api.run_bench(
             controller, params, bench=self.url, cycles=cycles, realtime=realtime, **options))
-
-    def close(self) -> None:
-        self._stack.close()
-        self._driver = None
 
     def unsafe_relays(self) -> list[str]:
         """Relays not at their safe level, read straight from the relay module."""
@@ -117,7 +139,7 @@ class BenchUnderTest:
         return [name for name, spec in config.map.relays.items() if actual[name] != spec.safe]
 
 
-class DriveUnderTest:
+class DriveUnderTest(_UnderTest[CanDriveMaster]):
     """The servo drive of one test.
 
     * ``url`` - where it is (``socketcand://127.0.0.1:PORT`` for the emulator);
@@ -133,36 +155,21 @@ class DriveUnderTest:
     * ``sessions`` - the session files of the runs.
     """
 
-    def __init__(self, url: str, emulated: bool, directory: Path,
-                 record: Record) -> None:
-        self.url, self.emulated, self.directory = url, emulated, directory
-        self.emulator: EmulatorProcess | None = None  # the emulator process, if it is one
-        self.sessions: list[str] = []
-        self._record = record
-        self._stack = contextlib.ExitStack()
-        self._master: CanDriveMaster | None = None
+    kind = "servo"
 
     @property
     def master(self) -> CanDriveMaster:
-        if self._master is None:
-            self._master = self._stack.enter_context(api.open_drive(self.url))
-        return self._master
+        return self._device(lambda: api.open_drive(self.url))
 
     def run(self, controller: api.Controller, params: Mapping[str, Any] | None = None,
             reference: str = "sine:amplitude=2,frequency=1", duration_s: float = 1.0,
             **options: Any) -> dict[str, Any]:
         self.close()
-        options.setdefault("out", str(self.directory / f"servo-{len(self.sessions) + 1}.mcap"))
         options.setdefault("realtime", not self.emulated)
         options.setdefault("from_here", True)
-        self.sessions.append(options["out"])
-        return run_recorded(self._record, options["out"], lambda: api.run_servo(
+        return self._run(options, lambda: api.run_servo(
             controller, params, drive=self.url, reference=reference, duration_s=duration_s,
             **options))
-
-    def close(self) -> None:
-        self._stack.close()
-        self._master = None
 
     def state(self) -> str:
         """The drive's CiA 402 state, read by SDO without changing anything."""

@@ -3,18 +3,18 @@
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from hil.bench.identify_options import MACHINING_MODES, IdentifyOptions, parse_relays
 from hil.cli.argtypes import key_value, nonnegative_float, output_file, positive_float, positive_int
-from hil.cli.output import json_text, print_settings
-from hil.cli.recording import add_recording_arguments, recording_options
+from hil.cli.output import json_text
+from hil.cli.recording import add_recording_arguments
 from hil.cli.units import seconds
-from hil.cli.verdict import add_controller_arguments, add_junit_argument, finish
+from hil.cli.verdict import add_controller_arguments, add_junit_argument
 
 if TYPE_CHECKING:
     from hil.bench.run import BenchRunOptions
+    from hil.cli.application import RunApplication
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -93,31 +93,19 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "as a warning in the session)")
 
 
-def run_options(args: argparse.Namespace, need_controller: bool = True) -> BenchRunOptions:
-    """The :class:`BenchRunOptions` of parsed :func:`add_run_arguments` flags (``--out`` and
-    the recording flags included)."""
-    from hil.bench.run import BenchRunOptions
-
-    options = BenchRunOptions.from_flags(vars(args), need_controller=need_controller)
-    return replace(options, recording=recording_options(args))
-
-
-def print_config(args: argparse.Namespace) -> int:
-    """``hil bench run --print-config``: every setting as the run would use it, and its origin;
-    nothing is opened."""
+def application() -> RunApplication[BenchRunOptions]:
+    """``hil bench run``'s application (its modules load here)."""
+    from hil.bench.run import BenchRunOptions, run_bench
     from hil.bench.settings import resolve_bench
+    from hil.cli.application import RunApplication
 
-    settings = resolve_bench(run_options(args, need_controller=False)).settings()
-    return print_settings("hil bench run", settings, args.json)
+    return RunApplication("hil bench run", BenchRunOptions.from_flags,
+                          lambda options: resolve_bench(options).settings(), run_bench,
+                          lambda _options, kpis: format_kpis(kpis))
 
 
 def run_command(args: argparse.Namespace) -> int:
-    from hil.bench.run import run_bench
-
-    if args.print_config:
-        return print_config(args)
-    return finish(args, "hil bench run", lambda: run_options(args), run_bench,
-                  lambda _options, kpis: format_kpis(kpis))
+    return application().command_line(args)
 
 
 def format_kpis(kpis: dict[str, Any]) -> str:

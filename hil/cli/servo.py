@@ -3,17 +3,17 @@
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from hil.cli.argtypes import key_value, output_file, positive_float, positive_int
-from hil.cli.output import json_text, print_settings
-from hil.cli.recording import add_recording_arguments, recording_options
+from hil.cli.output import json_text
+from hil.cli.recording import add_recording_arguments
 from hil.cli.units import milliamps, seconds, seconds_or_zero
-from hil.cli.verdict import add_controller_arguments, add_junit_argument, finish
+from hil.cli.verdict import add_controller_arguments, add_junit_argument
 from hil.errors import UsageError
 
 if TYPE_CHECKING:
+    from hil.cli.application import RunApplication
     from hil.servo.run import ServoRunOptions
 
 
@@ -167,35 +167,23 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         help="drive config laid over the default (hil/configs/drive.toml)")
 
 
-def run_options(args: argparse.Namespace, need_controller: bool = True) -> ServoRunOptions:
-    """The :class:`ServoRunOptions` of parsed :func:`add_run_arguments` flags (``--out`` and
-    the recording flags included)."""
-    from hil.servo.run import ServoRunOptions
-
-    options = ServoRunOptions.from_flags(vars(args), need_controller=need_controller)
-    return replace(options, recording=recording_options(args))
-
-
-def print_config(args: argparse.Namespace) -> int:
-    """``hil servo run --print-config``: every setting as the run would use it, and its origin;
-    nothing is opened."""
+def application() -> RunApplication[ServoRunOptions]:
+    """``hil servo run``'s application (its modules load here)."""
+    from hil.cli.application import RunApplication
+    from hil.servo.run import ServoRunOptions, run_servo
     from hil.servo.settings import resolve_servo
-
-    settings = resolve_servo(run_options(args, need_controller=False)).settings()
-    return print_settings("hil servo run", settings, args.json)
-
-
-def run_command(args: argparse.Namespace) -> int:
-    from hil.servo.run import run_servo
-
-    if args.print_config:
-        return print_config(args)
 
     def summary(options: ServoRunOptions, kpis: dict[str, Any]) -> str:
         several = "axes" in kpis
         return format_axes_run(options, kpis) if several else format_run(options, kpis)
 
-    return finish(args, "hil servo run", lambda: run_options(args), run_servo, summary)
+    return RunApplication("hil servo run", ServoRunOptions.from_flags,
+                          lambda options: resolve_servo(options).settings(), run_servo,
+                          summary)
+
+
+def run_command(args: argparse.Namespace) -> int:
+    return application().command_line(args)
 
 
 def format_axes_run(config: Any, kpis: dict[str, Any]) -> str:
