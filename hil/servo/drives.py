@@ -65,11 +65,6 @@ class RunDrives:
     def masters(self) -> list[CanDriveMaster]:
         return [master for bus in self.buses for master in bus.masters]
 
-    @property
-    def several(self) -> bool:
-        """Whether any bus holds its cycles for :meth:`end_cycle` (a group of axes)."""
-        return any(bus.group is not None for bus in self.buses)
-
     def add(self, bus: BusDrives) -> None:
         self.buses.append(bus)
 
