@@ -17,7 +17,7 @@ lateness and compute p99 per simulated minute from the session's /loop/*/timing 
 ages). ``--baseline-code DIR`` runs the same children on another checkout (e.g. ``git
 archive`` of main) in the same run, for the before figures. ``--hours H`` sets both sessions
 to H simulated hours; ``--full`` is the issue's soak: 1 h servo, 24 h bench (hours of wall
-time). ``--quick``: 5 s of servo and one 28 s bench cycle, sampled every simulated second
+time). ``--quick``: 2 s of servo and one 28 s bench cycle, sampled every simulated second
 instead of every minute (seconds; figures not worth quoting).
 """
 
@@ -183,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     lengths = {"servo": 3 * 60.0, "bench": 64 * MACHINE_CYCLE_S}
     sample_s = 1.0 if args.quick else 60.0
     if args.quick:
-        lengths = {"servo": 5.0, "bench": MACHINE_CYCLE_S}
+        lengths = {"servo": 2.0, "bench": MACHINE_CYCLE_S}
     if args.full:
         lengths = {"servo": 3600.0, "bench": 24 * 3600.0}
     if args.hours:

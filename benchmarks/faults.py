@@ -258,7 +258,7 @@ def main() -> int:
             "" if base is None else f", {base['wall_s']:.1f} s without") +
             f" ({soak['session_s']:g} s of session time)")
         print(f"== servo: real time over socketcand, {args.servo_s:g} s with faults")
-        servo = soak_servo(args.servo_s, args.seed, tmp, lead=3.0 if args.quick else 8.0)
+        servo = soak_servo(args.servo_s, args.seed, tmp, lead=1.5 if args.quick else 8.0)
         print(f"  faults scheduled {servo['scheduled']}, injected {servo['injected']}, "
               f"detected (stale cycles in their window) {len(servo['detected'])}")
         print(f"  stale cycles: {servo['stale_in']} inside fault windows, {servo['stale_out']} "

@@ -18,8 +18,9 @@ shared machine other processes take the cores the workers need.
 
 The machine is shared: figures are noisy, run it alone when the numbers matter.
 
-``--quick``: 2 trials of 0.3 s, no fresh-process baseline, one overhead sample (the Ray
-start-up still takes seconds; figures not worth quoting).
+``--quick``: 2 trials of 0.3 s in sequence, in-process, and no Ray at all (its start-up alone
+takes 7-20 s on a shared machine; the sweep's Ray path is tests/sweep/test_sweep_ray.py's):
+what ``make test`` runs so that the script cannot rot, figures not worth quoting.
 """
 
 from __future__ import annotations
@@ -94,6 +95,11 @@ def main() -> int:
         run_trial(jobs[0])   # warm-up: the baseline pays no imports
         sequential, rows = timed(lambda: [run_trial(j) for j in jobs])
         assert all(r["status"] == "ok" for r in rows), rows
+        if args.quick:
+            print(f"sweep: {len(jobs)} servo trials (MPC, {jobs[0].flags['duration']:g} s "
+                  f"lockstep each)\n  in sequence, in-process      {sequential:7.2f} s  "
+                  f"({sequential / len(jobs):.2f} s/trial)\n  on local Ray: skipped (--quick)")
+            return 0
 
         ray = import_ray()
         startup, _ = timed(lambda: (start_ray(ray, workers, None),

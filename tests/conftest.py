@@ -40,9 +40,7 @@ def socketcand_server():
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Ray's tests first (``local_ray``, or marked ``ray``: a Ray of their own in a process they
-    start): Ray takes 10-25 s to start, and a worker that starts it late keeps the
+    """Ray's tests first: Ray takes 10-25 s to start, and a worker that starts it late keeps the
     other one waiting at the end of the suite (the not-realtime tests: 218 s in the order of the
     files, 191 s with Ray's first, 209 s with every slow test first as well)."""
-    items.sort(key=lambda item: "local_ray" not in getattr(item, "fixturenames", ())
-               and item.get_closest_marker("ray") is None)
+    items.sort(key=lambda item: "local_ray" not in getattr(item, "fixturenames", ()))

@@ -19,9 +19,6 @@ ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = sorted((ROOT / "benchmarks").glob("*.py"))
 # a figure: a decimal number, a ratio (3.2x) or a share (12 %)
 FIGURE = re.compile(r"\d\.\d|\d+x\b|\d ?%")
-# sweep.py starts a local Ray (10-25 s of it): conftest runs such tests first
-QUICK_RUNS = [pytest.param(path, marks=[pytest.mark.ray] if path.stem == "sweep" else [])
-              for path in BENCHMARKS]
 
 
 @pytest.mark.parametrize("script", BENCHMARKS, ids=lambda path: path.stem)
@@ -38,7 +35,7 @@ def test_every_benchmark_imports(script: Path, monkeypatch: pytest.MonkeyPatch) 
 
 @pytest.mark.slow
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize("script", QUICK_RUNS, ids=lambda path: path.stem)
+@pytest.mark.parametrize("script", BENCHMARKS, ids=lambda path: path.stem)
 def test_every_benchmark_runs_quick(script: Path) -> None:
     # as `make bench` runs it, from the checkout, only shorter
     done = subprocess.run([sys.executable, str(script), "--quick"], cwd=ROOT,
