@@ -57,11 +57,11 @@ class EmulatedDrive(CanDriveMaster):
 
     def __init__(self, master: DriveMasterConfig, emulator: DriveEmulatorConfig, *,
                  on_event: EventSink = no_event, trace: FrameTrace | None = None,
-                 closers: tuple[Callable[[], None], ...] = ()) -> None:
+                 closers: tuple[Callable[[], None], ...] = (), url: str = EMULATED) -> None:
         self.emulator = LockstepDrive(replace(emulator, node_id=master.node_id))
         super().__init__(CanLink(self.emulator.master_bus, trace=trace), master,
                          on_event=on_event, clock=self.emulator,
-                         closers=(self.emulator.close, *closers), url=EMULATED)
+                         closers=(self.emulator.close, *closers), url=url)
 
 
 def emulated_drives(url: str, drive: DriveConfig, axes: Sequence[AxisSpec], *,
@@ -71,7 +71,7 @@ def emulated_drives(url: str, drive: DriveConfig, axes: Sequence[AxisSpec], *,
     ``[emulator]``; it is the masters' clock."""
     if len(axes) == 1:
         master = EmulatedDrive(axes[0].master(drive.master), drive.emulator,
-                               on_event=on_event, trace=trace, closers=_closing(trace))
+                               on_event=on_event, trace=trace, closers=_closing(trace), url=url)
         return BusDrives(url, [master])
     emulator = LockstepDrive(drive.emulator, node_ids=[axis.node for axis in axes])
     try:

@@ -285,3 +285,46 @@ def test_a_multi_axis_controller_is_stepped_once_a_tick_with_every_axis(tmp_path
     with pytest.raises(ControllerError, match=r"one current per axis \(2\), got shape \(1,\)"):
         api.run_servo(WrongShape, axes="x=1,y=2", duration_s=0.01,
                       out=str(tmp_path / "wrong.mcap"))
+
+
+PLUGIN = '''
+from hil.servo.rig import emulated_drives
+
+
+def open_twin(url, drive, axes, *, on_event, trace=None):
+    """A lab's own scheme: here, hil's emulated drives under another name."""
+    return emulated_drives(url, drive, axes, on_event=on_event, trace=trace)
+'''
+
+
+def test_an_installed_drive_scheme_opens_one_axis_or_several(tmp_path):
+    """A package installed beside hil (a dist-info folder on the path, as pip leaves it)
+    declares ``twin`` in the ``hil.drive_devices`` entry points; ``hil servo run`` opens its
+    drives through it, from outside, for one axis and for two."""
+    plugin = tmp_path / "site"
+    (plugin / "my_lab").mkdir(parents=True)
+    (plugin / "my_lab" / "__init__.py").write_text("")
+    (plugin / "my_lab" / "drives.py").write_text(PLUGIN)
+    info = plugin / "my_lab-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: my-lab\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text(
+        "[hil.drive_devices]\ntwin = my_lab.drives:open_twin\n")
+    env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{plugin}")
+
+    def run(*args: str) -> dict:
+        done = subprocess.run([sys.executable, "-m", "hil", "servo", "run", "--controller",
+                               "pid", "--drive", "twin://cell-3", "--duration", "0.05",
+                               "--json", *args], cwd=tmp_path, capture_output=True, text=True,
+                              env=env, timeout=180)
+        assert done.returncode == 0, done.stderr
+        return json.loads(done.stdout)
+
+    lone = run("--out", "one.mcap")
+    assert lone["drive"] == "twin://cell-3" and lone["ticks"] == 100
+    # a plug-in's bus is held to the bus plan as a real one: two axes need a 1 kHz cycle
+    (tmp_path / "1khz.toml").write_text("[master]\ncycle_period_us = 1000\n")
+    two = run("--axes", "x=1,y=2", "--config", "1khz.toml", "--param", "ti_us=8000",
+              "--out", "two.mcap")
+    assert two["buses"] == ["twin://cell-3"] and set(two["axes"]) == {"x", "y"}
+    assert two["sync_cycles"] == two["ticks"] == 50
