@@ -45,7 +45,8 @@ from hil.servo.demo import drive_for
 from hil.servo.report import FEEDBACK_TIMING
 
 REPO = Path(__file__).resolve().parents[1]
-TOLERANT = {"master": {"stale_cycles": 100_000, "heartbeat_timeout_ms": 0}}
+TOLERANT = {"master": {"stale_cycles": 100_000, "heartbeat_timeout_ms": 0},
+            "safety": {"stale_share_max": 1.0}}
 TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 LIVE_SERVER_THREADS = ("tokio-rt-worker",)  # the Foxglove SDK's server runtime
 QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "

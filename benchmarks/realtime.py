@@ -76,11 +76,13 @@ class ZeroCurrent:
 def servo_session(tmp: Path, seconds: float, realtime: bool,
                   controller: Any = "mpc") -> dict[str, Any]:
     out = tmp / f"servo-{'rt' if realtime else 'lockstep'}.mcap"
-    # the watchdog of a loaded 2-core box: stale feedback is counted, not fatal, here
+    # a loaded 2-core box: stale feedback is counted, not fatal, here (the watchdog and the
+    # safety net's stale share)
     result = run_servo(ServoRunOptions(
         controller=controller, ert="foh", ht=8, hu=8, duration_s=seconds,
         realtime=realtime, out=str(out),
-        drive_overrides={"master": {"stale_cycles": 100_000}}))
+        drive_overrides={"master": {"stale_cycles": 100_000},
+                         "safety": {"stale_share_max": 1.0}}))
     loop = result.loop["servo"]
     # the loop times each phase of the tick: p50 / p90 / p99 from its timing topic
     session = read_session(out)
