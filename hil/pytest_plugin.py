@@ -27,6 +27,7 @@ test if not.
 
 from __future__ import annotations
 
+import abc
 import contextlib
 from collections.abc import Callable, Generator, Iterator, Mapping
 from pathlib import Path
@@ -62,7 +63,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                     "socketcan://can0...) instead of the emulator")
 
 
-class _UnderTest(Generic[DeviceT]):
+class _UnderTest(abc.ABC, Generic[DeviceT]):
     """What the bench and the drive of one test share: where the device is, whether it is
     hil's emulator (and its process), the session files of the runs, and the device opened
     once when a test asks for it (closed by :meth:`close`)."""
@@ -97,6 +98,10 @@ class _UnderTest(Generic[DeviceT]):
         self._stack.close()
         self._opened = None
 
+    @abc.abstractmethod
+    def left_unsafe(self) -> str | None:
+        """Why the device is not in its safe state after the test (None: it is)."""
+
 
 class BenchUnderTest(_UnderTest[SafeBench]):
     """The relay bench of one test.
@@ -123,6 +128,11 @@ class BenchUnderTest(_UnderTest[SafeBench]):
         realtime = bool(options.pop("realtime", not self.emulated))
         return self._run(options, lambda: api.run_bench(
             controller, params, bench=self.url, cycles=cycles, realtime=realtime, **options))
+
+    def left_unsafe(self) -> str | None:
+        unsafe = self.unsafe_relays()
+        return (f"relays {', '.join(unsafe)} were left off their safe level at {self.url}"
+                if unsafe else None)
 
     def unsafe_relays(self) -> list[str]:
         """Relays not at their safe level, read straight from the relay module."""
@@ -170,6 +180,11 @@ class DriveUnderTest(_UnderTest[CanDriveMaster]):
         return self._run(options, lambda: api.run_servo(
             controller, params, drive=self.url, reference=reference, duration_s=duration_s,
             **options))
+
+    def left_unsafe(self) -> str | None:
+        state = self.state()
+        return f"the drive at {self.url} was left in {state}" if state == OPERATION_ENABLED \
+            else None
 
     def state(self) -> str:
         """The drive's CiA 402 state, read by SDO without changing anything."""
@@ -221,37 +236,39 @@ def _emulator_or(request: pytest.FixtureRequest, option: str, start: Any
         emulator.stop()
 
 
+UnderTest = TypeVar("UnderTest", bound="_UnderTest[Any]")
+
+
+def _under_test(request: pytest.FixtureRequest, tmp_path: Path, option: str, start: Any,
+                make: type[UnderTest]) -> Generator[UnderTest, None, str | None]:
+    """The device of a test (``make``): the emulator ``start`` gives, or the ``--OPTION``
+    URL; after the test, closed; returns why the test left it unsafe (None: it did not)."""
+    with _emulator_or(request, option, start) as (url, emulator):
+        device = make(url, emulator is not None, tmp_path, request.node.user_properties.append)
+        device.emulator = emulator
+        try:
+            yield device
+        finally:
+            device.close()
+        return device.left_unsafe()
+
+
 @pytest.fixture
 def hil_bench(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[BenchUnderTest]:
     """A relay bench for this test: the emulator in its own process, or ``--hil-bench URL``."""
-    with _emulator_or(request, "hil_bench", api.start_bench_emulator) as (url, emulator):
-        bench = BenchUnderTest(url, emulator is not None, tmp_path,
-                               request.node.user_properties.append)
-        bench.emulator = emulator
-        try:
-            yield bench
-        finally:
-            bench.close()
-        unsafe = bench.unsafe_relays()
-        if unsafe:
-            pytest.fail(f"hil_bench: relays {', '.join(unsafe)} were left off their safe "
-                        f"level at {url}")
+    unsafe = yield from _under_test(request, tmp_path, "hil_bench", api.start_bench_emulator,
+                                    BenchUnderTest)
+    if unsafe:
+        pytest.fail(f"hil_bench: {unsafe}")
 
 
 @pytest.fixture
 def hil_drive(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[DriveUnderTest]:
     """A servo drive for this test: the emulator in its own process, or ``--hil-drive URL``."""
-    with _emulator_or(request, "hil_drive", api.start_drive_emulator) as (url, emulator):
-        drive = DriveUnderTest(url, emulator is not None, tmp_path,
-                               request.node.user_properties.append)
-        drive.emulator = emulator
-        try:
-            yield drive
-        finally:
-            drive.close()
-        state = drive.state()
-        if state == OPERATION_ENABLED:
-            pytest.fail(f"hil_drive: the drive at {url} was left in {state}")
+    unsafe = yield from _under_test(request, tmp_path, "hil_drive", api.start_drive_emulator,
+                                    DriveUnderTest)
+    if unsafe:
+        pytest.fail(f"hil_drive: {unsafe}")
 
 
 @pytest.hookimpl(hookwrapper=True)
