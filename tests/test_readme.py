@@ -1,5 +1,5 @@
 """The README's code, run as a user would, from a folder outside the repository: its Python
-blocks (the controllers file, the API tour; the pytest example runs ten times over on a busy
+blocks (the controllers file, the API tour; the pytest example runs five times over on a busy
 machine in tests/integration/test_busy_machine.py), its `hil` commands checked
 against the parser (every flag it shows exists) and the limit examples run for the exit status
 the README promises (the first from a ``hil`` process, the others from the command line run in

@@ -25,25 +25,28 @@ from tests.test_readme import blocks
 pytestmark = [pytest.mark.slow]
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
-ROUNDS = 10
+# five rounds: 44 s of a make test worker with both cores busy, where ten took 88 s (issue 38's
+# ten of ten were shown once more by hand for issue 39's note: ROUNDS = 10 passes too)
+ROUNDS = 5
 
 
-def ten_rounds(example: str) -> str:
+def rounds_of(example: str) -> str:
     """The README's example, its tests run :data:`ROUNDS` times each."""
     body = example.replace("\ndef test_", "\n@pytest.mark.parametrize('round', range("
                            f"{ROUNDS}))\ndef test_").replace("(hil_bench)", "(round, hil_bench)")
     return "import pytest\n" + body.replace("(hil_drive)", "(round, hil_drive)")
 
 
-def test_the_readme_fixture_example_passes_ten_times_in_a_row_under_load(tmp_path):
-    """The README's `hil_bench` / `hil_drive` example, as a user copies it, ten times over,
-    both cores busy all along (its only run in the suite: tests/test_readme.py leaves it here)."""
+def test_the_readme_fixture_example_passes_round_after_round_under_load(tmp_path):
+    """The README's `hil_bench` / `hil_drive` example, as a user copies it, :data:`ROUNDS`
+    times over, both cores busy all along (its only run in the suite: tests/test_readme.py
+    leaves it here)."""
     folder = tmp_path / "my_lab"
     folder.mkdir()
     shutil.copy(EXAMPLES / "my_controllers.py", folder / "my_controllers.py")
     example = blocks("python")[2]
     assert "def test_threshold_relays_keep_the_levels_in_range(hil_bench)" in example
-    (folder / "test_readme_example.py").write_text(ten_rounds(example))
+    (folder / "test_readme_example.py").write_text(rounds_of(example))
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # a user's shell
     with busy_machine() as spinning:
         run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
