@@ -31,9 +31,9 @@ from hil.drivers.canopen.cyclic import Feedback
 from hil.drivers.canopen.errors import DriveError
 from hil.drivers.canopen.link import CanLink
 from hil.drivers.canopen.master import CanDriveMaster
+from hil.drivers.canopen.stopping import stop_together
 from hil.protocols.can_frames import Frame
 from hil.protocols.cia301 import HEARTBEAT_BASE, NMT_COB_ID, SYNC_COB_ID
-from hil.protocols.cia402 import CW_DISABLE_VOLTAGE, CW_QUICK_STOP
 
 NODE_ID_BITS = 0x7F
 TPDO_IDS_FIRST, TPDO_IDS_LAST = 0x181, 0x4FF  # TPDO1-4 of nodes 1-127, default COB-IDs
@@ -236,41 +236,14 @@ class AxisGroup:
 
     @staticmethod
     def stop_together(groups: Sequence[CycledDrives]) -> None:
-        """Quick stop on every enabled axis of ``groups`` (one bus each, cycling together) in
-        the same cycles, until all stand (or the quick-stop time-out), then disable voltage,
-        in one cycle too: each cycle every axis' frames, then every bus's
-        :meth:`~AxisBus.end_cycle`. A lone master's
-        :meth:`~hil.drivers.canopen.master.CanDriveMaster.safe_state` for several drives, on
-        the masters' stop cycles; each cycle's feedback goes to each master's
-        ``on_stop_cycle`` (when set). Silent: failures become ``drive.safe_stop_failed``
-        events."""
-        stopping = [master for group in groups for master in group.masters
-                    if master.begin_stop()]
-        if not stopping:
-            return
-
-        def cycle(controlword: int) -> list[Feedback]:
-            for master in stopping:
-                master.send_stop_cycle(controlword)
+        """Every enabled axis of ``groups`` (one bus each, cycling together) stopped in the same
+        cycles (:func:`~hil.drivers.canopen.stopping.stop_together`): each cycle every axis'
+        frames, then every bus's :meth:`~AxisBus.end_cycle`. Silent."""
+        def end_cycles() -> None:
             for group in groups:
                 group.end_cycle()
-            feedbacks = [master.receive_stop_cycle() for master in stopping]
-            for master, feedback in zip(stopping, feedbacks, strict=True):
-                master.report_stop_cycle(feedback)
-            return feedbacks
 
-        outcomes: Sequence[Feedback | DriveError]
-        try:
-            for _ in stopping[0].quick_stop_cycles():
-                feedbacks = cycle(CW_QUICK_STOP)
-                if all(master.stands(feedback)
-                       for master, feedback in zip(stopping, feedbacks, strict=True)):
-                    break
-            outcomes = cycle(CW_DISABLE_VOLTAGE)
-        except DriveError as exc:
-            outcomes = [exc] * len(stopping)
-        for master, outcome in zip(stopping, outcomes, strict=True):
-            master.end_stop(outcome)
+        stop_together([master for group in groups for master in group.masters], end_cycles)
 
     def close(self) -> None:
         """Stop together, then release every master (and the bus with the last); their

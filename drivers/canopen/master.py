@@ -52,6 +52,7 @@ from hil.drivers.canopen.pdo import PdoConfigurator
 from hil.drivers.canopen.scaling import DriveScaling, read_scaling
 from hil.drivers.canopen.sdo import SdoClient
 from hil.drivers.canopen.state import MasterClock, StateControl
+from hil.drivers.canopen.stopping import stop_together
 from hil.protocols.can_frames import Frame
 from hil.protocols.cia301 import (
     CONSUMER_HEARTBEAT,
@@ -628,27 +629,11 @@ class CanDriveMaster(Device):
     # -- stops ------------------------------------------------------------------------------------
     def safe_state(self) -> None:
         """Quick stop (cyclic, until standstill or the time-out), then disable voltage: the
-        stop cycles below for this drive alone (:meth:`AxisGroup.stop_together
-        <hil.drivers.canopen.axes.AxisGroup.stop_together>` runs them for several drives in
-        the same cycles).
+        stop cycles below for this drive alone (:mod:`hil.drivers.canopen.stopping`, which an
+        axis group runs for several drives in the same cycles).
 
         Idempotent and silent: failures become a ``drive.safe_stop_failed`` event."""
-        if not self.begin_stop():
-            return
-        outcome: Feedback | DriveError
-        try:
-            for _ in self.quick_stop_cycles():
-                self.send_stop_cycle(CW_QUICK_STOP)
-                feedback = self.receive_stop_cycle()
-                self.report_stop_cycle(feedback)
-                if self.stands(feedback):
-                    break
-            self.send_stop_cycle(CW_DISABLE_VOLTAGE)
-            outcome = self.receive_stop_cycle()
-            self.report_stop_cycle(outcome)
-        except DriveError as exc:
-            outcome = exc
-        self.end_stop(outcome)
+        stop_together([self])
 
     @property
     def enabled(self) -> bool:
