@@ -65,7 +65,12 @@ class ServoPlan(RunPlan):
     @property
     def bus_of(self) -> dict[str, str]:
         """Each axis' bus URL by its name."""
-        return {axis.name: bus.url for bus in self.buses for axis in bus.axes}
+        return axis_buses(self.buses)
+
+    def umax_for(self, master: CanDriveMaster) -> float:
+        """The current bound of the controller of ``master``'s axis [mA]: the run's, or the
+        drive's limit where it is lower."""
+        return min(self.settings.umax_ma, master.current_limit_ma)
 
     def axis_params(self, name: str) -> dict[str, Any]:
         """Axis ``name``'s parameters: the common ones, and ``NAME.KEY`` laid over them (a run
@@ -91,8 +96,8 @@ class ServoPlan(RunPlan):
 @dataclass
 class ServoState:
     """What a servo run opened and built, step by step: the drives (bus by bus), each axis'
-    master, reference, controller and task (in the run's order), the bus task (named axes) and
-    the first axis' current bound."""
+    master, reference, controller and task (in the run's order) and the bus task (named
+    axes)."""
 
     drives: RunDrives = field(default_factory=RunDrives)
     masters: list[CanDriveMaster] = field(default_factory=list)
@@ -100,7 +105,6 @@ class ServoState:
     controllers: list[Any] = field(default_factory=list)
     tasks: list[ServoTask] = field(default_factory=list)
     bus_task: BusCycle | None = None
-    umax_ma: float | None = None
 
 
 def plan_servo(options: ServoRunOptions) -> ServoPlan:
@@ -126,7 +130,7 @@ def plan_servo(options: ServoRunOptions) -> ServoPlan:
         "controller": options.label, "params": params,
         "limits": [str(lim) for lim in (*kpi_limits, *signal_limits)]}
     if named:
-        bus_of = {axis.name: bus.url for bus in buses for axis in bus.axes}
+        bus_of = axis_buses(buses)
         run_info["axes"] = [{"name": a.name, "node": a.node, "bus": bus_of[a.name],
                              "eds": a.master(drive.master).eds,
                              "safety": vars(stricter_safety(drive.safety, a.safety))}
@@ -151,6 +155,11 @@ def plan_servo(options: ServoRunOptions) -> ServoPlan:
                              f"{bus.plan.problem(plan.period_note(bus.plan))} (see "
                              f"'hil drive plan --axes {len(bus.axes)}')")
     return plan
+
+
+def axis_buses(buses: tuple[BusAxes, ...]) -> dict[str, str]:
+    """Each axis' bus URL by the axis' name."""
+    return {axis.name: bus.url for bus in buses for axis in bus.axes}
 
 
 def _scenarios(options: ServoRunOptions, axes: int) -> tuple[list[Scenario], float | None]:

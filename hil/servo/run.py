@@ -178,8 +178,6 @@ class ServoExperiment(Experiment[ServoPlan]):
         options, plan, state = self.options, self.planned, self.state
         state.references = [PlacedReference(scenario.reference, relative=options.from_here)
                             for scenario in plan.scenarios]
-        umax_ma = plan.settings.umax_ma
-        state.umax_ma = min(umax_ma, state.masters[0].current_limit_ma)
         if not plan.lone and getattr(plan.factory, "multi_axis", False):
             whole = build_controller(plan.factory, options.label, state.references,
                                      dict(plan.params), method="step", application="servo")
@@ -188,7 +186,7 @@ class ServoExperiment(Experiment[ServoPlan]):
             return
         state.controllers = [
             make_controller(options, scenario, session, plan.axis_params(axis.name),
-                            plan.factory, min(umax_ma, master.current_limit_ma),
+                            plan.factory, plan.umax_for(master),
                             reference=reference, period_s=plan.base_period_s)
             for axis, scenario, reference, master in zip(
                 plan.axes, plan.scenarios, state.references, state.masters, strict=True)]
@@ -274,7 +272,7 @@ class ServoExperiment(Experiment[ServoPlan]):
             mcap=options.recording.first_file(plan.session_path), reference=options.reference,
             drive=master.url if master is not None else plan.settings.drive_url,
             clock=session.clock.mode,
-            umax_ma=state.umax_ma if state.umax_ma is not None else plan.settings.umax_ma,
+            umax_ma=plan.umax_for(master) if master is not None else plan.settings.umax_ma,
             current_limit_ma=master.current_limit_ma if master is not None else None,
             settle_s=options.settle_s,
             stale_feedback=task.stale if task is not None else 0,
