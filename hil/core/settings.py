@@ -66,9 +66,15 @@ class Layered:
     folders: tuple[str | None, ...] = ()
 
     def _setter(self, key: str) -> int | None:
-        found = [index for dotted, index in self.origins.items()
-                 if dotted == key or dotted.startswith(key + ".")]
-        return max(found) if found else None
+        """The layer that set ``key`` last: a leaf's, a table's last-set leaf's, or for a key
+        inside an array of tables (``axis[0].eds``) the array's, which a layer sets whole."""
+        while key:
+            found = [index for dotted, index in self.origins.items()
+                     if dotted == key or dotted.startswith(key + ".")]
+            if found:
+                return max(found)
+            key = key[:max(key.rfind("."), key.rfind("["), 0)]  # its parent: a table, an array
+        return None
 
     def origin(self, key: str) -> str:
         """Who set ``key`` (a leaf, or a table: its last-set leaf); :data:`BUILT_IN` if nobody."""

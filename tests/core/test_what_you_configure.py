@@ -91,7 +91,11 @@ SPECIAL: dict[str, dict[str, Any]] = {
     "master.cycle_period_us": {"master.cycle_period_us": 1000},
     "emulator.channel": {"emulator.channel": "can1"},
     "emulator.disturbance.end_s": {"emulator.disturbance.end_s": 1.5},
-    "axis": {"axis": [{"name": "x", "node": 1}, {"name": "y", "node": 2}]},
+    # every key an [[axis]] takes: its own EDS and safety limits too
+    "axis": {"axis": [{"name": "x", "node": 1, "current_limit_mA": 800.0, "eds": "x.eds",
+                       "bus": "socketcand://127.0.0.1:29536",
+                       "safety": {"following_error_deg": 5.0, "enabled": True}},
+                      {"name": "y", "node": 2}]},
     # bench.toml
     "bus.url": {"bus.url": "modbus-tcp://127.0.0.1:5999"},
     "units.*": {"units.{name}": 20},
@@ -380,6 +384,14 @@ def test_the_run_tables_and_the_bus_options_take_effect(tmp_path, capsys):
      "key 'safety.following_error_deg' must be a number, got a boolean true"),
     ("bench", "[eec]\nhp_s = \"28\"\n", "key 'eec.hp_s' must be a number, got a string '28'"),
     ("bench", "[relays.P1]\ndwell_s = -1\n", "key 'relays.P1.dwell_s' must be >= 0 s, got -1 s"),
+    ("servo", "[[axis]]\nname = \"x\"\nnode = 1\n[axis.safety]\nfollowing_error_deg = -1\n"
+              "[[axis]]\nname = \"y\"\nnode = 2\n",
+     "key 'axis[0].safety.following_error_deg' must be > 0 deg, got -1 deg"),
+    ("servo", "[[axis]]\nname = \"x\"\nnode = 1\n[axis.safety]\nfollowing_error = 5\n"
+              "[[axis]]\nname = \"y\"\nnode = 2\n",
+     "unknown key 'axis[0].safety.following_error' (known here: enabled, following_error_deg, "
+     "following_error_ms, position_max_deg, position_min_deg, stale_share_max, "
+     "stale_window_ms, velocity_max_deg_s)"),
 ])
 def test_a_value_of_the_wrong_kind_is_one_line_naming_the_key(tmp_path, capsys, app, text,
                                                               named):

@@ -328,3 +328,17 @@ def test_an_installed_drive_scheme_opens_one_axis_or_several(tmp_path):
               "--out", "two.mcap")
     assert two["buses"] == ["twin://cell-3"] and set(two["axes"]) == {"x", "y"}
     assert two["sync_cycles"] == two["ticks"] == 50
+
+
+def test_an_axis_own_eds_is_the_one_its_drive_is_checked_against(tmp_path, capsys):
+    """``[[axis]] eds``: that axis' drive is checked against it (a path beside the config file);
+    the other axis keeps ``[master]``'s (none here)."""
+    folder = tmp_path / "cell"
+    folder.mkdir()
+    config = folder / "axes.toml"
+    config.write_text("[[axis]]\nname = \"x\"\nnode = 1\n[[axis]]\nname = \"y\"\nnode = 2\n"
+                      "eds = \"y-drive.eds\"\n")
+    done = hil_here(tmp_path, capsys, "servo", "run", "--config", str(config), "--controller",
+                    "pid", "--duration", "0.05", "--out", "eds.mcap")
+    assert done.returncode == 2 and str(folder / "y-drive.eds") in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr
