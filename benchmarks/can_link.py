@@ -37,6 +37,7 @@ from pathlib import Path
 import can
 import canopen
 import numpy as np
+from benchkit import add_quick
 
 from hil.core.clock import RealtimeClock
 from hil.core.loop import FixedRateLoop, FunctionTask
@@ -53,10 +54,6 @@ from hil.servo.rig import open_drive
 
 PERIOD_S = 500e-6
 REPO = Path(__file__).resolve().parents[1]
-QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
-              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
-              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
-
 
 def pct(values_us) -> str:
     values = np.asarray(values_us, dtype=float)
@@ -287,7 +284,7 @@ def main() -> None:
                         help="lockstep cycles (default 20000; 500 with --quick)")
     parser.add_argument("--seconds", type=float,
                         help="real-time run length (default 10; 1 with --quick)")
-    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    add_quick(parser)
     args = parser.parse_args()
     cycles = args.cycles or (500 if args.quick else 20_000)
     seconds = args.seconds or (1.0 if args.quick else 10.0)

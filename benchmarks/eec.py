@@ -34,6 +34,7 @@ from typing import Any
 from unittest import mock
 
 import numpy as np
+from benchkit import add_quick
 
 from hil.bench.kpis import timing_summary
 from hil.bench.run import BenchRunOptions, run_bench
@@ -43,10 +44,6 @@ from hil.controllers.bench.eec_solver import HorizonSolver
 DP, MILP, NAIVE = ("DP (schedule DP, default)", "MILP (HiGHS)",
                    "naive cvxpy, rebuilt per decision")
 Inputs = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]
-QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
-              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
-              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
-
 
 @dataclasses.dataclass
 class Run:
@@ -125,7 +122,7 @@ def exact_table(label: str, run: Run, every: int, naive: int, naive_limit_s: flo
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    add_quick(parser)
     parser.add_argument("--cycles", type=int, help="machine cycles at H_p = T (default 8)")
     parser.add_argument("--cycles-2t", type=int,
                         help="machine cycles at H_p = 2T (default 3; not run with --quick)")

@@ -33,6 +33,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchkit import add_quick
+
 from hil.controllers.servo.empc import ExplicitSolver, build_explicit_law, relative_map
 from hil.controllers.servo.empc_export import write_c
 from hil.controllers.servo.empc_tree import Polyhedron, SequentialSearch
@@ -42,9 +44,6 @@ from hil.controllers.servo.sim import simulate
 
 PY_TARGET_US = 10.0
 C_TARGET_US = 1.0
-QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
-              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
-              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
 HARNESS = r"""
 #define _POSIX_C_SOURCE 199309L
 #include <time.h>
@@ -235,7 +234,7 @@ def ppopt_comparison(law) -> None:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    add_quick(parser)
     args = parser.parse_args()
     law = build((3,) if args.quick else (3, 4))
     worst_py, worst_c = evaluation(law, args.quick)

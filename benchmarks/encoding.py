@@ -20,15 +20,14 @@ import sys
 import tempfile
 from pathlib import Path
 
+from benchkit import add_quick
+
 from hil.bench.run import BenchRunOptions, run_bench
 from hil.core.recording.reader import SessionData, read_session
 from hil.core.recording.recorder import Recorder, RecordingOptions
 from hil.servo.run import ServoRunOptions, run_servo
 from hil.servo.topics import COMMAND_SCHEMA, FEEDBACK_SCHEMA
 
-QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
-              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
-              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
 # --quick: a 4 s machining sequence instead of bench.toml's 28 s one (same devices and topics)
 SHORT_SEQUENCE = """[sequence]
 period_s = 4.0
@@ -76,7 +75,7 @@ def main() -> int:
                         help="servo run [s] (default 10; 0.5 with --quick)")
     parser.add_argument("--cycles", type=int, help="bench run, 28 s each (default 2; one "
                         "4 s cycle with --quick)")
-    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    add_quick(parser)
     args = parser.parse_args()
     args.seconds = args.seconds or (0.5 if args.quick else 10.0)
     args.cycles = args.cycles or (1 if args.quick else 2)

@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from benchkit import add_quick
 
 from hil.core.recording.cdr import CdrDecoder, parse_ros2msg
 
@@ -44,10 +45,6 @@ sys.path.insert(0, os.environ.get(CODE_ENV, str(ROOT)))
 GROWTH_TARGET_MB = 5.0
 MACHINE_CYCLE_S = 28.0  # the bench's default sequence period (hil/configs/bench.toml)
 PAGE = os.sysconf("SC_PAGE_SIZE")
-QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
-              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
-              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
-
 
 def rss_bytes() -> int:
     with open("/proc/self/statm") as f:
@@ -167,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--hours", type=float, help="simulated hours of both sessions")
     parser.add_argument("--full", action="store_true", help="1 h servo and 24 h bench")
-    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    add_quick(parser)
     parser.add_argument("--baseline-code", type=Path,
                         help="another checkout to run the same sessions on, for comparison")
     parser.add_argument("--child", choices=("servo", "bench"), help=argparse.SUPPRESS)

@@ -38,14 +38,13 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from benchkit import add_quick  # noqa: E402
+
 from hil import api  # noqa: E402
 from hil.core.recording.reader import read_session  # noqa: E402
 from hil.errors import HilError  # noqa: E402
 
 CYCLE_S = 28.0  # the machining sequence's period
-QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
-              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
-              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
 MARGIN_S = 1.5  # a reaction counts for a fault if it comes within this after its window
 BENCH_DETECTIONS = {  # kind -> events that show the bridge noticed
     "drop": ("link.retried", "link.lost", "relay.write_failed"),
@@ -227,7 +226,7 @@ def main() -> int:
                         help="servo run, seconds of faults (default 10, the issue's soak: 60; "
                              "2 with --quick)")
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    add_quick(parser)
     args = parser.parse_args()
     args.bench_minutes = args.bench_minutes or (CYCLE_S / 60 if args.quick else 2.0)
     args.servo_s = args.servo_s or (2.0 if args.quick else 10.0)

@@ -71,6 +71,7 @@ from functools import partial  # noqa: E402
 from typing import TYPE_CHECKING, Any, TypeVar  # noqa: E402
 
 import numpy as np  # noqa: E402
+from benchkit import add_quick  # noqa: E402
 
 from hil.controllers.ident import n4sid as ident  # noqa: E402
 
@@ -94,10 +95,6 @@ BENCH_SEEDS = {"P1": 1, "P2": 2, "machining": 3}  # PRBS and meter noise seed pe
 BENCH_BLOCK_ROWS = (15, 60)
 BENCH_REPEATS = 3
 SENSITIVITY_VA_SIGMA = 0.15  # VA: about the paper's meter noise (see the module docstring)
-QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
-              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
-              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
-
 
 @dataclass(frozen=True)
 class Sizes:
@@ -481,7 +478,7 @@ def emulated_section(has_nfoursid: bool, has_sippy: bool, sizes: Sizes = Sizes()
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    add_quick(parser)
     args = parser.parse_args()
     has_nfoursid = available("nfoursid")
     if not has_nfoursid and not args.quick:

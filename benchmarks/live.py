@@ -39,6 +39,8 @@ import tomli_w
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchkit import add_quick
+
 from hil.core.config import deep_merge
 from hil.core.recording.reader import read_session
 from hil.servo.demo import drive_for
@@ -49,10 +51,6 @@ TOLERANT = {"master": {"stale_cycles": 100_000, "heartbeat_timeout_ms": 0},
             "safety": {"stale_share_max": 1.0}}
 TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 LIVE_SERVER_THREADS = ("tokio-rt-worker",)  # the Foxglove SDK's server runtime
-QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
-              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
-              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
-
 WATCHER = """
 import sys
 from tests.live.foxglove_client import FoxgloveClient
@@ -261,7 +259,7 @@ def main() -> None:
                         help="N clients coming and going instead of one watching throughout")
     parser.add_argument("--hold", type=float, default=0.3, metavar="S",
                         help="with --churn: seconds each connection reads before it closes")
-    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    add_quick(parser)
     args = parser.parse_args()
     args.duration = args.duration or (1.0 if args.quick else 10.0)
     args.pairs = args.pairs or (1 if args.quick else 2)

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from benchkit import add_quick
 
 from hil.api import start_drive_emulator
 from hil.core.recording.reader import read_session
@@ -42,10 +43,6 @@ from hil.servo.topics import COMMAND_SCHEMA, FEEDBACK_SCHEMA, PREDICTION_SCHEMA
 
 PERIOD_S = 500e-6
 PHASES = ("read", "compute", "write", "record")
-QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
-              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
-              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
-
 
 class ZeroCurrent:
     """A controller that costs nothing (0 mA every tick): the floor of a lockstep tick."""
@@ -143,7 +140,7 @@ def main() -> int:
                         help="simulated time per run [s] (default 5; 0.3 with --quick)")
     parser.add_argument("--repeat", type=int,
                         help="runs of each kind, alternated (default 3; 1 with --quick)")
-    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    add_quick(parser)
     args = parser.parse_args()
     args.seconds = args.seconds if args.seconds is not None else (0.3 if args.quick else 5.0)
     args.repeat = args.repeat if args.repeat is not None else (1 if args.quick else 3)

@@ -14,15 +14,12 @@ import tempfile
 import time
 
 import numpy as np
+from benchkit import add_quick
 
 from hil.core.clock import RealtimeClock
 from hil.core.loop import FunctionTask
 from hil.core.session import Session
 from hil.core.stats import percentile_summary
-
-QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
-              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
-              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
 
 
 def plain_sleep_loop(rate_hz: float, duration_s: float) -> tuple[np.ndarray, int]:
@@ -65,7 +62,7 @@ def main() -> None:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--duration", type=float,
                         help="seconds per run (default 10; 0.3 with --quick)")
-    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    add_quick(parser)
     args = parser.parse_args()
     args.duration = args.duration or (0.3 if args.quick else 10.0)
     print(f"{'loop':<34} {'p50 us':>8} {'p99 us':>9} {'max us':>9} {'missed':>8} {'miss %':>7}")

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import serial
+from benchkit import add_quick, fill_defaults
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.framer.rtu import FramerRTU
 
@@ -43,10 +44,6 @@ from hil.drivers.bench.modbus import ModbusLink, parse_bus_url
 REPO = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
 METER_UNIT, FULL, SMALL = 2, 76, 6   # whole SDM630 map in one request; va_l1..va_l3
-QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
-              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
-              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
-
 
 def spawn(*args: str) -> tuple[subprocess.Popen[str], str]:
     proc = subprocess.Popen([sys.executable, *args], stdin=subprocess.PIPE,
@@ -258,12 +255,10 @@ def main() -> None:
                         help="TCP round trips per row (default 3000; 100 with --quick)")
     parser.add_argument("--rtu-polls", type=int,
                         help="RTU round trips per row (default 600; 20 with --quick)")
-    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    add_quick(parser)
     args = parser.parse_args()
-    for name, full, quick in (("duration", 30.0, 0.5), ("rtu_duration", 10.0, 0.3),
-                              ("polls", 3000, 100), ("rtu_polls", 600, 20)):
-        if getattr(args, name) is None:
-            setattr(args, name, quick if args.quick else full)
+    fill_defaults(args, {"duration": (30.0, 0.5), "rtu_duration": (10.0, 0.3),
+                         "polls": (3000, 100), "rtu_polls": (600, 20)})
     started = time.monotonic()
     round_trips(args.polls, args.rtu_polls)
     sampling_report(args.duration, args.rtu_duration)

@@ -22,16 +22,14 @@ import tempfile
 import time
 from pathlib import Path
 
+from benchkit import add_quick, fill_defaults
+
 from hil.core.run import run_experiment
 from hil.drivers.canopen import CanDriveMaster, CanLink, DriveMasterConfig
 from hil.drivers.canopen.axes import AxisBus, AxisGroup
 from hil.emulators.drive.runners import LockstepDrive
 from hil.servo.rig import open_drive
 from hil.servo.run import ServoExperiment, ServoRunOptions
-
-QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
-              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
-              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
 
 
 def group_cycle_us(axes: int, cycles: int) -> float:
@@ -84,11 +82,9 @@ def main() -> int:
                         help="batches of each, alternated (default 5; 1 with --quick)")
     parser.add_argument("--seconds", type=float,
                         help="simulated time per run (default 2; 0.1 with --quick)")
-    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    add_quick(parser)
     args = parser.parse_args()
-    for name, full, quick in (("cycles", 4000, 200), ("repeat", 5, 1), ("seconds", 2.0, 0.1)):
-        if getattr(args, name) is None:
-            setattr(args, name, quick if args.quick else full)
+    fill_defaults(args, {"cycles": (4000, 200), "repeat": (5, 1), "seconds": (2.0, 0.1)})
     if args.cycles < 1 or args.repeat < 1:
         parser.error("--cycles and --repeat must be >= 1")
     runs: dict[str, list[float]] = {"single": [], "1": [], "2": [], "3": [],

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from benchkit import add_quick
 
 from hil.bench.run import BenchRunOptions, run_bench
 from hil.core.doctor import measure_loop
@@ -37,9 +38,6 @@ from hil.servo.run import ServoRunOptions, run_servo
 SKIPPED_RATIO_MAX = 1.5     # the servo loop's skipped share against the bare loop's...
 SKIPPED_POINTS_MAX = 0.05   # ...plus this many percentage points
 LATENESS_P99_MAX_US = 100.0
-QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
-              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
-              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
 # --quick: a 1 s machining sequence instead of bench.toml's 28 s one (M1 and M2 then switch
 # faster than their 1 s dwell allows, so it is shortened too)
 SHORT_SEQUENCE = """[relays]
@@ -126,7 +124,7 @@ def main() -> int:
     parser.add_argument("--repeat", type=int, default=1,
                         help="bare loop / real-time servo pairs, alternated (the machine's "
                              "speed drifts: the targets are checked on the medians)")
-    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    add_quick(parser)
     args = parser.parse_args()
     if args.repeat < 1:
         parser.error("--repeat must be >= 1")

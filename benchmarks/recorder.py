@@ -14,15 +14,13 @@ import json
 import tempfile
 import time
 
+from benchkit import add_quick
 from mcap.writer import CompressionType, Writer
 
 from hil.core.recording.recorder import Recorder
 
 N = 200_000
 QUICK_N = 10_000
-QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
-              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
-              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
 MESSAGE = {"t": 0, "S_VA": [12.5, 431.2, 0.0], "relays": {"P1": True, "P2": False}, "k": 7}
 
 
@@ -59,7 +57,7 @@ def main() -> None:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--messages", type=int, help=f"messages per run (default {N}; "
                         f"{QUICK_N} with --quick)")
-    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    add_quick(parser)
     args = parser.parse_args()
     n = args.messages or (QUICK_N if args.quick else N)
     with tempfile.TemporaryDirectory() as tmp:

@@ -29,6 +29,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchkit import add_quick
+
 from hil.controllers.base import ServoController
 from hil.controllers.servo.mpc import DaqpSolver, MpcConfig, TrajectoryMpc
 from hil.controllers.servo.pid import CascadedPid
@@ -47,10 +49,6 @@ LOCKSTEP_TARGET = 10.0
 RT_LATENESS_TARGET_US = 50.0
 RT_MISS_TARGET_PCT = 0.1
 CASES = ((12000.0, "10 Hz, 12 A (unconstrained)"), (1000.0, "10 Hz, 1000 mA (saturated)"))
-QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
-              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
-              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
-
 
 class Sizes:
     """How much each part runs: the full benchmark, or ``--quick``'s seconds-long run."""
@@ -200,7 +198,7 @@ def realtime_can(sizes: Sizes) -> tuple[float, float, float]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    add_quick(parser)
     args = parser.parse_args()
     sizes = Sizes(args.quick)
     print(__doc__.split("\n\n")[0])

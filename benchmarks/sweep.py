@@ -36,6 +36,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchkit import add_quick
+
 from hil.cli.servo import add_run_arguments
 from hil.sweep.engine import Engine, import_ray, start_ray
 from hil.sweep.space import expand
@@ -48,10 +50,6 @@ RUN = ["--controller", "mpc", "--duration", "3", "--reference",
 GRID = {"umax": [800.0, 1000.0, 1200.0, 1500.0], "ert": ["zoh", "foh"]}
 QUICK_RUN = [*RUN[:2], "--duration", "0.3", *RUN[4:]]
 QUICK_GRID = {"umax": [800.0, 1500.0], "ert": ["foh"]}
-QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
-              "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
-              "worth quoting (tests/test_benchmarks.py runs every benchmark this way)")
-
 
 def jobs_in(out: Path, quick: bool = False) -> list[TrialJob]:
     parser = argparse.ArgumentParser()
@@ -84,7 +82,7 @@ def sequential_cold(out: Path) -> float:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    add_quick(parser)
     args = parser.parse_args()
     workers = os.cpu_count() or 1
     load_before = os.getloadavg()[0]
