@@ -32,11 +32,6 @@ class Kpis:
     """Base of a KPI document (see the module)."""
 
     @classmethod
-    def keys(cls) -> tuple[str, ...]:
-        """The document's keys, in order."""
-        return tuple(_key(f) for f in dataclasses.fields(cls))
-
-    @classmethod
     def limit_names(cls) -> tuple[str, ...]:
         """The keys a ``--limit`` may name (a group by its key)."""
         return tuple(_key(f) for f in dataclasses.fields(cls) if f.metadata.get("limit", True))
