@@ -216,9 +216,9 @@ class ServoExperiment(Experiment[ServoPlan]):
             task = ServoTask(session, master, controller, scenario, reference=reference,
                              label=options.label, settle_s=options.settle_s,
                              prediction_every=options.prediction_period, budget_s=budget,
-                             safety=SafetyMonitor(stricter_safety(plan.drive.safety,
-                                                                  axis.safety),
-                                                  plan.base_period_s),
+                             safety=SafetyMonitor(
+                                 stricter_safety(plan.drive.safety, axis.safety),
+                                 plan.base_period_s, axis=None if plan.lone else axis.name),
                              watch=plan.watch, axis=None if plan.lone else axis.name)
             state.tasks.append(task)
             session.add_task(task)

@@ -132,9 +132,10 @@ def judge_stale(stale: npt.ArrayLike, late_us: npt.ArrayLike, rtt_us: npt.ArrayL
 class SafetyMonitor:
     """The limits checked tick by tick; :meth:`check` names the first one crossed, once."""
 
-    def __init__(self, limits: ServoSafety, period_s: float) -> None:
+    def __init__(self, limits: ServoSafety, period_s: float, axis: str | None = None) -> None:
         self.limits = limits
         self.period_s = period_s
+        self._stop_prefix = f"axis {axis}: " if axis is not None else ""  # one of several
         self._window_ticks = max(1, round(limits.following_error_ms / 1000 / period_s))
         self._stale_ticks = max(1, round(limits.stale_window_ms / 1000 / period_s))
         self._beyond = 0                     # ticks in a row beyond the following-error window
@@ -182,7 +183,7 @@ class SafetyMonitor:
                      f"feedback (more than {limits.stale_share_max:.0%} in "
                      f"{limits.stale_window_ms:g} ms): {self.verdict.describe()}")
         if found is not None:
-            self.stopped = f"safety stop at t={t_s:.4f} s: {found}"
+            self.stopped = f"{self._stop_prefix}safety stop at t={t_s:.4f} s: {found}"
         return self.stopped
 
     def _judge(self) -> StaleVerdict:

@@ -70,7 +70,6 @@ class ServoTask(Task):
                  safety: SafetyMonitor, watch: SignalWatch | None = None,
                  axis: str | None = None) -> None:
         super().__init__("servo" if axis is None else f"servo-{axis}")
-        self.axis = axis
         self.session, self.master, self.controller = session, master, controller
         self.scenario = scenario
         self.loop = session.loop
@@ -169,8 +168,6 @@ class ServoTask(Task):
                                  rtt_us=feedback.rtt_us, late_us=(t_ns - self.loop.start_ns
                                                                   - n * self.period_ns) / 1e3)
         if stop is not None:
-            if self.axis is not None:  # which axis, when there are several
-                stop = self.safety.stopped = f"axis {self.axis}: {stop}"
             self.session.event("safety.stop", stop, level="error", source="safety", t_s=t_s)
             self.loop.stop(stop)
         if self.watch is not None:
