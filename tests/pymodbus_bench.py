@@ -152,7 +152,7 @@ class PymodbusBench:
 
     def relays(self) -> dict[str, bool]:
         """The relays as the module reads them now (through hil's Modbus driver)."""
-        driver = ModbusBenchDriver(ModbusLink(parse_bus_url(self.url), 0.5, 2),
+        driver = ModbusBenchDriver(ModbusLink(parse_bus_url(self.url), ANSWER_S, 2),
                                    self.config.map)
         try:
             return driver.read_relays()

@@ -19,6 +19,7 @@ from hil.drivers.bench.modbus import (
 )
 from hil.emulators.null_modem import NullModem
 from hil.errors import ConfigError
+from tests.pymodbus_bench import ANSWER_S
 
 pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
 
@@ -90,7 +91,10 @@ def rig(request):
         modem = NullModem()
         emulator.serve_serial(modem.ports[1])
         url = f"modbus-rtu://{modem.ports[0]}?baud=115200"
-    link = ModbusLink(parse_bus_url(url), timeout_s=0.2, attempts=2)
+    # every test of this rig expects its answers: waited for as long as a busy machine may
+    # take (returned as soon as they are there); 0.2 s once went by unanswered over the
+    # pseudo-terminal on a loaded fresh-clone suite
+    link = ModbusLink(parse_bus_url(url), timeout_s=ANSWER_S, attempts=2)
     driver = ModbusBenchDriver(link, CONFIG.map)
     yield emulator, driver
     driver.close()

@@ -19,6 +19,7 @@ from hil.bench.config import load_bench_config
 from hil.drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 from hil.drivers.socketcand_bus import SocketcandBus
 from tests.pymodbus_bench import (
+    ANSWER_S,
     PymodbusBench,
     session_events,
     short_config,
@@ -43,7 +44,7 @@ def bench_run(bench, tmp_path, name, cycles=1):
 
 
 def driver_of(url):
-    return ModbusBenchDriver(ModbusLink(parse_bus_url(url), 0.5, 2), CONFIG.map)
+    return ModbusBenchDriver(ModbusLink(parse_bus_url(url), ANSWER_S, 2), CONFIG.map)
 
 
 def test_a_second_run_on_the_same_bench_refuses_at_once(tmp_path):
