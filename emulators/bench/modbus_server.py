@@ -17,8 +17,9 @@ exception, close, corrupt_crc) independent of any Modbus library's internals.
   units on the line answer (a request for another unit is silence, as on RS-485).
 
 A :class:`ServedClock` (``clock``) answers its own unit before any fault is played: the
-emulator's time, which a lockstep master may hold (:mod:`hil.emulators.bench.timekeeper`). While
-a master holds it, time passes only when the master says, so a wait means nothing: a delay
+emulator's time, which a lockstep master may hold (:mod:`hil.emulators.bench.timekeeper`), or
+which the master in this process holds (``loop_timeout_s``). While a master holds it, time
+passes only when the master says, so a wait means nothing: a delay
 shorter than the master's request timeout is answered at once, and where the emulator would
 leave the master waiting (a dropped answer, a longer delay, an unknown unit, and over RTU a
 closed link or a corrupt frame) it answers exception 0x0B at once, as a Modbus gateway whose
@@ -119,6 +120,9 @@ class ModbusServer:
         self._serial: Any = None
         self.transport = ""  # "tcp" | "rtu", once started
         self.clock: ServedClock | None = None  # answers its own unit, ahead of any fault
+        #: lockstep in the master's own process: its request timeout (the plant steps only when
+        #: that master says, so, as for a master holding the clock, no request is left waiting)
+        self.loop_timeout_s: float | None = None
 
     # -- starting and stopping --------------------------------------------------------------
     def start_tcp(self, host: str, port: int) -> tuple[str, int]:
@@ -177,7 +181,7 @@ class ModbusServer:
         clock = self.clock
         if clock is not None and unit == clock.unit:
             return clock.answer(pdu, peer), False, False
-        patience = clock.master_timeout_s if clock is not None else None
+        patience = clock.master_timeout_s if clock is not None else self.loop_timeout_s
         rtu = self.transport == "rtu"
         no_answer = exception_pdu(pdu[0], GATEWAY_TARGET_FAILED)
         for fault in self._active("delay", unit):

@@ -332,6 +332,15 @@ class EmulatedBench:
         if self._server is not None:
             self._server.faults = self.faults
 
+    def hold_in_process(self, request_timeout_s: float) -> None:
+        """Lockstep in this process: the plant steps only by :meth:`step`, and the server answers
+        as to a master holding its time whose requests wait ``request_timeout_s``: where it
+        would leave the master waiting (a drop, a longer delay, an unknown unit), exception 0x0B
+        at once. A busy machine then changes no answer: the session is the same, bit for bit."""
+        if self._server is None:
+            raise EmulatorError("the emulator serves no link yet: serve_tcp() first")
+        self._server.loop_timeout_s = request_timeout_s
+
     @property
     def port(self) -> int:
         address = self._server.address if self._server is not None else None

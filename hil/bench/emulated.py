@@ -1,7 +1,8 @@
 """The ``emulated`` bench URL: hil's bench emulator, made from the bench config and opened.
 
 Lockstep (a SimClock): the emulator in this process on 127.0.0.1 (a free port), stepped by
-the loop (:class:`~hil.bench.emulator_time.PlantStepTask`); real time: the emulator in a
+the loop (:class:`~hil.bench.emulator_time.PlantStepTask`), which holds its time as a master
+over the wire does (no answer is late on a busy machine); real time: the emulator in a
 process of its own (:mod:`hil.emulator_process`). Either way the same Modbus driver talks to
 it. :func:`make_emulator` makes the emulated bench of a config for anyone who serves it.
 """
@@ -12,7 +13,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from hil.bench.emulator_time import PlantStepTask
-from hil.bench.openers import OpenedBench, safe_bench
+from hil.bench.openers import OpenedBench, modbus_driver, open_safe, safe_bench
 from hil.contracts import EventSink
 from hil.core.clock import Clock
 
@@ -42,9 +43,13 @@ def open_emulated(url: str, config: BenchConfig, clock: Clock, on_event: EventSi
     if clock.mode != "sim":
         return _emulator_process(config, clock, on_event)
     emulator = make_emulator(config)
-    tcp_url = emulator.serve_tcp()
+    driver = modbus_driver(emulator.serve_tcp(), config)
+    # the loop holds the plant's time: no answer is late, whatever else the machine does, and
+    # a request waits as long as over the wire (a silence that long is a broken emulator)
+    emulator.hold_in_process(config.bus.timeout_s)
+    driver.link.hold_on(config.bus.lockstep_timeout_s)
     try:
-        return OpenedBench(safe_bench(tcp_url, config, clock, on_event), emulator,
+        return OpenedBench(open_safe(driver, config, clock, on_event), emulator,
                            PlantStepTask(emulator, on_event=on_event))
     except BaseException:
         emulator.stop()
