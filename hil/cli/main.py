@@ -24,11 +24,12 @@ from hil.cli import (
     report,
     servo,
     sweep,
+    twin,
 )
 from hil.errors import HilError, RunInterruptedError
 
 COMMAND_MODULES = (demo, bench, servo, drive, sweep, empc, identify, emulate, report, export,
-                   replay, layout, doctor)
+                   replay, twin, layout, doctor)
 
 
 class OneLineParser(argparse.ArgumentParser):
