@@ -16,10 +16,6 @@ from typing import Any
 
 import numpy as np
 
-#: ``hil twin check``'s default ``--min-fit`` [%]
-DEFAULT_MIN_FIT_PCT = 80.0
-
-
 @dataclass(frozen=True)
 class OutputFit:
     """One output of the twin against the recording: fit [%], largest and RMS error [unit]."""
