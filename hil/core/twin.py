@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+
 @dataclass(frozen=True)
 class OutputFit:
     """One output of the twin against the recording: fit [%], largest and RMS error [unit]."""
