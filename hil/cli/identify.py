@@ -92,6 +92,8 @@ def identify_command(args: argparse.Namespace) -> int:
 
     data = read_session(args.file)
     stale = 0
+    input_names: tuple[str, ...]
+    output_names: tuple[str, ...]
     if args.servo:
         if args.inputs or args.outputs:
             raise UsageError("--servo names the signals itself: leave out --input and --output")

@@ -282,9 +282,10 @@ def servo_identify_command(args: argparse.Namespace) -> int:
 
     def summary(options: ServoRunOptions, kpis: dict[str, Any]) -> str:
         params = dict(options.params)
-        first, *rest = format_run(options, kpis).splitlines()
+        rest = format_run(options, kpis).splitlines()[1:]
+        amplitude = params.get("amplitude", DEFAULT_AMPLITUDE_MA)
         lines = [f"servo identify: {params.get('kind', DEFAULT_KIND)} excitation, amplitude "
-                 f"{params.get('amplitude', DEFAULT_AMPLITUDE_MA):g} mA, |u| <= {kpis['umax_mA']:g} mA, "
+                 f"{amplitude:g} mA, |u| <= {kpis['umax_mA']:g} mA, "
                  f"drive {kpis['drive']}, clock {kpis['clock']}",
                  *(line.replace("  error:", "  distance from the start:") for line in rest),
                  f"  identify the axis: hil identify {kpis['mcap']} --servo"]
