@@ -18,8 +18,13 @@ The excitation (``kind``), each a periodic signal of peak 1 sampled once a tick:
   that a current limit allows (twice a chirp's, about three times a flat multisine's), and its
   spectrum is flat from 1/period up to about 0.44 / T (880 Hz at 500 us), the resonance included.
 * ``multisine`` - every harmonic of 0.5 Hz up to 0.45 / T with Schroeder phases (crest factor
-  about 1.7): flat and leakage-free over a 2 s period, less power for the same peak.
-* ``chirp`` - a linear sweep from 1 Hz to 0.45 / T over 2 s, repeated (crest factor 1.4).
+  1.65): flat and leakage-free over a 2 s period, a third of the power for the same peak.
+* ``chirp`` - a linear sweep from 1 Hz to 0.45 / T over 2 s, repeated (crest factor 1.42):
+  each frequency excited in turn, so a held-out part of the record sees only some of them.
+
+Measured on the emulated axis (4 s, 300 mA, lockstep): all three find the resonance (439.86 Hz,
+damping 0.0112-0.0113) and the rigid-body gain (2.83 deg/s^2 per mA); the held-out fit of
+``hil identify --servo`` is 99.8 % (prbs), 96.9 % (multisine), -44 % (chirp).
 
 Settings (:class:`ExcitationConfig`): ``amplitude_ma`` (default ``DEFAULT_AMPLITUDE_MA``),
 ``kind``, ``seed`` (prbs), ``kp`` [mA/deg] and ``kd`` [mA per deg/s], the stabiliser's gains
@@ -82,7 +87,7 @@ def check_fits(amplitude_ma: float, limit_ma: float, flag: str = "amplitude") ->
 
 def prbs(seed: int = DEFAULT_SEED) -> np.ndarray:
     """One period of the maximum-length sequence (+-1), the LFSR started at state ``seed``
-    (taken modulo the period, 0 counted as 1)."""
+    (taken modulo the period; a multiple of it counts as 1)."""
     period = (1 << PRBS_BITS) - 1
     state = seed % period or 1
     out = np.empty(period)

@@ -1,4 +1,6 @@
-"""``hil identify``: N4SID model of recorded signals, written to a model file."""
+"""``hil identify``: N4SID model of recorded signals, written to a model file, and what the
+model says about the machine (:mod:`hil.controllers.ident.analysis`); ``--servo`` takes a servo
+session's signals itself (:func:`hil.servo.identify.servo_signals`)."""
 
 from __future__ import annotations
 
@@ -24,7 +26,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "identify",
         help="N4SID model from a recorded session",
         description="Identify a discrete-time state-space model (N4SID) from signals recorded in "
-        "a session file, report its fit on held-out data (simulated output) and write a model "
+        "a session file, report its fit on held-out data (simulated output) and what it says about "
+        "the machine (resonances: frequency and damping; integrators; the DC gain, or with "
+        "integrators the gain of the integrating part, e.g. a servo axis' rigid-body gain in "
+        "deg/s^2 per mA) and write a model "
         "file the controllers' configs can point to. Signals are TOPIC:FIELD, FIELD a path of "
         "keys joined by '.' with list elements as [N], e.g. /bench/power:L2, "
         "/bench/relays:coils[2], /bench/power:phases[1].va.",
@@ -104,8 +109,8 @@ def identify_command(args: argparse.Namespace) -> int:
             raise UsageError("--axis NAME picks an axis of a servo session: give --servo too")
         if not args.inputs or not args.outputs:
             raise UsageError(
-                "name the signals with --input TOPIC:FIELD and --output TOPIC:FIELD (or "
-                "--servo); " + describe_signals(data)
+                "name the signals with --input TOPIC:FIELD and --output TOPIC:FIELD; "
+                + describe_signals(data) + " (a servo session: --servo)"
             )
         inputs = [parse_signal(text) for text in args.inputs]
         outputs = [parse_signal(text) for text in args.outputs]

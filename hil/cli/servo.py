@@ -116,9 +116,9 @@ def register_identify(servo_sub: argparse._SubParsersAction) -> None:
                        help=f"peak current of the excitation [mA] (default "
                        f"{DEFAULT_AMPLITUDE_MA:g}); the stabiliser adds up to "
                        f"{STABILISER_SHARE * 100:g} %% of it")
-    ident.add_argument("--seed", type=int, metavar="N",
-                       help=f"the PRBS's start state (default {DEFAULT_SEED}): the same seed, "
-                       "the same excitation")
+    ident.add_argument("--seed", type=positive_int, metavar="N",
+                       help=f"the PRBS's start state (default {DEFAULT_SEED}; taken modulo its "
+                       "period, 32767): the same seed, the same excitation")
     ident.add_argument("--duration", type=seconds, metavar="S",
                        help=f"length of the experiment [s] (default {DEFAULT_DURATION_S:g})")
     ident.add_argument("--param", action="append", type=key_value, default=[],
@@ -276,9 +276,8 @@ def servo_identify_command(args: argparse.Namespace) -> int:
     """``hil servo identify``: the excitation as a servo run."""
     from hil.cli.application import RunApplication
     from hil.controllers.servo.excitation_defaults import DEFAULT_AMPLITUDE_MA, DEFAULT_KIND
-    from hil.servo.identify import identify_options
+    from hil.servo.identify import identify_options, identify_settings
     from hil.servo.run import run_servo
-    from hil.servo.settings import resolve_servo
 
     def summary(options: ServoRunOptions, kpis: dict[str, Any]) -> str:
         params = dict(options.params)
@@ -292,7 +291,7 @@ def servo_identify_command(args: argparse.Namespace) -> int:
         return "\n".join(lines)
 
     return RunApplication("hil servo identify", identify_options,
-                          lambda options: resolve_servo(options).settings(), run_servo,
+                          lambda options: identify_settings(options, vars(args)), run_servo,
                           summary).command_line(args)
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -44,6 +45,7 @@ from hil.controllers.servo.references import Reference
 from hil.core.config import Table
 from hil.core.identify import aligned_signals, parse_signal
 from hil.core.recording.reader import SessionData
+from hil.core.settings import Setting
 from hil.errors import UsageError
 from hil.servo.options import ServoRunOptions
 from hil.servo.settings import resolve_servo
@@ -65,7 +67,7 @@ def excitation(reference: Reference, params: Mapping[str, Any], context: Any) ->
     config = ExcitationConfig(
         amplitude_ma=table.number("amplitude", DEFAULT_AMPLITUDE_MA, above=0),
         kind=table.string("kind", DEFAULT_KIND, choices=KINDS),
-        seed=table.integer("seed", DEFAULT_SEED, at_least=0),
+        seed=table.integer("seed", DEFAULT_SEED, at_least=1),
         kp=table.number("kp", DEFAULT_KP_MA_PER_DEG, above=0),
         kd=table.number("kd", DEFAULT_KD_MA_PER_DEG_S, at_least=0))
     table.done()
@@ -95,6 +97,20 @@ def identify_options(flags: Mapping[str, Any], *, need_controller: bool = True
         except (TypeError, ValueError):
             pass  # not a number: the controller's params name it
     return options
+
+
+def identify_settings(options: ServoRunOptions, flags: Mapping[str, Any]) -> list[Setting]:
+    """``--print-config``: the run's settings, what the experiment sets itself said so (origin
+    ``hil servo identify``), its params' origin the flags that set them."""
+    own = "hil servo identify"
+    given = [f"--{flag}" for flag in (*PARAM_FLAGS, "param") if flags.get(flag)]
+    origins = {"run.controller": own, "run.reference": own, "run.from_here": own}
+    if flags.get("duration") is None:
+        origins["run.duration_s"] = own
+    settings = resolve_servo(options).settings()
+    return [replace(s, origin=origins[s.key]) if s.key in origins else
+            replace(s, origin=", ".join(given)) if s.key == "run.params" and
+            s.origin == "--param" else s for s in settings]
 
 
 def feedback_topic(axis: str | None) -> str:
