@@ -95,18 +95,18 @@ def identify_command(args: argparse.Namespace) -> int:
     from hil.core.recording.reader import read_session
     from hil.servo.identify import servo_signals
 
+    if args.servo and (args.inputs or args.outputs):
+        raise UsageError("--servo names the signals itself: leave out --input and --output")
+    if args.axis is not None and not args.servo:
+        raise UsageError("--axis NAME picks an axis of a servo session: give --servo too")
     data = read_session(args.file)
     stale = 0
     input_names: tuple[str, ...]
     output_names: tuple[str, ...]
     if args.servo:
-        if args.inputs or args.outputs:
-            raise UsageError("--servo names the signals itself: leave out --input and --output")
         source, target, u, y, dt, irregular, stale = servo_signals(data, args.axis)
         input_names, output_names = (source,), (target,)
     else:
-        if args.axis is not None:
-            raise UsageError("--axis NAME picks an axis of a servo session: give --servo too")
         if not args.inputs or not args.outputs:
             raise UsageError(
                 "name the signals with --input TOPIC:FIELD and --output TOPIC:FIELD; "

@@ -17,6 +17,7 @@ import pytest
 from hil.controllers.ident.analysis import analyse
 from hil.controllers.servo.model import published_axis_model
 from hil.core.recording.reader import read_session
+from tests.cli import hil_here
 
 pytestmark = [pytest.mark.slow]
 
@@ -127,3 +128,43 @@ def test_help_explains_both_commands(tmp_path):
         assert words in text
     ident = hil(tmp_path, "identify", "--help")
     assert "--servo" in ident.stdout and "--axis NAME" in ident.stdout
+
+
+def test_an_axis_of_a_session_with_several(tmp_path):
+    """The experiment's controller runs on several axes as any controller does; --servo
+    names the feedback topics of such a session, --axis picks one."""
+    session = tmp_path / "axes.mcap"
+    run = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller",
+              "hil.servo.identify:excitation", "--reference", "hold:position=0", "--from-here",
+              "--param", "y.amplitude=200", "--duration", "0.5", "--out", session)
+    assert run.returncode == 0, run.stderr
+    whole = hil(tmp_path, "identify", session, "--servo")
+    assert whole.returncode == 2
+    assert "/axis/x/feedback, /axis/y/feedback (pick one with --axis NAME)" in whole.stderr
+    one = hil(tmp_path, "identify", session, "--servo", "--axis", "y", "--order", "4", "--json")
+    assert one.returncode == 0, one.stderr
+    model = json.loads(one.stdout)
+    assert model["inputs"] == ["/axis/y/feedback:command_mA"]
+    assert model["analysis"]["integrators"] == 2
+    assert "--servo --axis y" in model["command"]
+
+
+def test_servo_signals_are_not_named_twice(tmp_path, capsys):
+    session = tmp_path / "never-read.mcap"  # the flags are refused before the file is read
+    both = hil_here(capsys, "identify", session, "--servo", "--input", "/a:b", cwd=tmp_path)
+    assert both.returncode == 2 and "leave out --input and --output" in both.stderr
+    axis = hil_here(capsys, "identify", session, "--axis", "x", "--input", "/a:b",
+                    "--output", "/a:c", cwd=tmp_path)
+    assert axis.returncode == 2 and "--axis NAME picks an axis of a servo session" in axis.stderr
+
+
+def test_print_config_says_what_the_experiment_sets(tmp_path, capsys):
+    shown = hil_here(capsys, "servo", "identify", "--amplitude", "200", "--umax", "500",
+                     "--print-config", "--json", cwd=tmp_path)
+    assert shown.returncode == 0, shown.stderr
+    settings = json.loads(shown.stdout)
+    assert settings["run.controller"] == {"value": "hil.servo.identify:excitation",
+                                          "origin": "hil servo identify"}
+    assert settings["run.params"] == {"value": {"amplitude": 200.0}, "origin": "--amplitude"}
+    assert settings["run.duration_s"] == {"value": 4.0, "origin": "hil servo identify"}
+    assert settings["run.umax"] == {"value": 500.0, "origin": "--umax"}
