@@ -48,12 +48,17 @@ from hil.core.recording.reader import SessionData
 from hil.core.settings import Setting
 from hil.errors import UsageError
 from hil.servo.options import ServoRunOptions
-from hil.servo.settings import resolve_servo
+from hil.servo.settings import ServoSettings, resolve_servo
 
 #: the experiment's controller, as a run records it
 CONTROLLER = "hil.servo.identify:excitation"
 #: the experiment's reference: held where the axis starts
 HOLD_HERE = "hold:position=0"
+#: how ``hil servo run`` says a limit can be loosened -> what the experiment says instead
+LOOSENING_HINTS = {
+    "; --allow-higher-current raises it (recorded)": "",
+    " (set it in the --config file, or add --allow-looser-safety, recorded)":
+        " (set it in the --config file)"}
 #: ``hil servo identify``'s flags (argparse dests) -> the controller's params
 PARAM_FLAGS = {"amplitude": "amplitude", "excitation": "kind", "seed": "seed"}
 
@@ -89,14 +94,28 @@ def identify_options(flags: Mapping[str, Any], *, need_controller: bool = True
                  "duration": flags.get("duration") or DEFAULT_DURATION_S}
     options = ServoRunOptions.from_flags(run_flags, need_controller=need_controller)
     if need_controller:
-        amplitude = params.get("amplitude", DEFAULT_AMPLITUDE_MA)
+        settings = resolve_identify(options)
+        amplitude = {**settings.drive.run.params, **params}.get("amplitude",
+                                                                 DEFAULT_AMPLITUDE_MA)
         try:
-            check_fits(float(amplitude), resolve_servo(options).umax_ma, "--amplitude")
+            check_fits(float(amplitude), settings.umax_ma, "--amplitude")
         except ControllerSetupError as exc:
             raise UsageError(str(exc)) from None
         except (TypeError, ValueError):
             pass  # not a number: the controller's params name it
     return options
+
+
+def resolve_identify(options: ServoRunOptions) -> ServoSettings:
+    """:func:`~hil.servo.settings.resolve_servo` for the experiment, which offers no flag to
+    loosen a limit: a refusal says so, without naming ``hil servo run``'s escape hatches."""
+    try:
+        return resolve_servo(options)
+    except UsageError as exc:
+        message = str(exc)
+        for hatch, instead in LOOSENING_HINTS.items():
+            message = message.replace(hatch, instead)
+        raise UsageError(message) from None
 
 
 def identify_settings(options: ServoRunOptions, flags: Mapping[str, Any]) -> list[Setting]:
@@ -107,7 +126,7 @@ def identify_settings(options: ServoRunOptions, flags: Mapping[str, Any]) -> lis
     origins = {"run.controller": own, "run.reference": own, "run.from_here": own}
     if flags.get("duration") is None:
         origins["run.duration_s"] = own
-    settings = resolve_servo(options).settings()
+    settings = resolve_identify(options).settings()
     return [replace(s, origin=origins[s.key]) if s.key in origins else
             replace(s, origin=", ".join(given)) if s.key == "run.params" and
             s.origin == "--param" else s for s in settings]

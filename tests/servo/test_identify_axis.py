@@ -168,3 +168,15 @@ def test_print_config_says_what_the_experiment_sets(tmp_path, capsys):
     assert settings["run.params"] == {"value": {"amplitude": 200.0}, "origin": "--amplitude"}
     assert settings["run.duration_s"] == {"value": 4.0, "origin": "hil servo identify"}
     assert settings["run.umax"] == {"value": 500.0, "origin": "--umax"}
+
+
+@pytest.mark.parametrize("flags, refused", [
+    (["--umax", "2000"], "--umax 2000 mA is above the configured current limit"),
+    (["--safety", "following_error_deg=100"], "--safety following_error_deg 45 -> 100: looser")])
+def test_a_limit_is_only_tightened(tmp_path, capsys, flags, refused):
+    """The experiment has no flag to loosen a limit, and its refusal names none."""
+    run = hil_here(capsys, "servo", "identify", *flags, "--out", tmp_path / "never.mcap",
+                   cwd=tmp_path)
+    assert run.returncode == 2 and refused in run.stderr
+    assert "--allow" not in run.stderr and run.stderr.count("\n") == 1
+    assert not (tmp_path / "never.mcap").exists()
