@@ -69,7 +69,8 @@ def analyse(A: np.ndarray, B: np.ndarray, C: np.ndarray, D: np.ndarray, dt: floa
     from a record ``record_s`` [s] long (which poles count as integrators)."""
     slowest = 1.0 / record_s            # rad/s
     poles = np.linalg.eigvals(A).astype(complex)
-    s = np.log(poles) / dt
+    with np.errstate(divide="ignore", invalid="ignore"):  # z = 0 (a delay): infinitely fast
+        s = np.log(poles) / dt
     slow = np.abs(s) < slowest
     k = int(slow.sum())
     resonances = tuple(sorted(
@@ -97,7 +98,7 @@ def _integrator_gain(A: np.ndarray, B: np.ndarray, C: np.ndarray, dt: float, slo
                      k: int) -> np.ndarray:
     """lim s^k G(s) of the integrator cluster (the k poles with |ln z| / dt < ``slowest``)."""
     def in_cluster(re: float, im: float) -> bool:
-        return bool(abs(np.log(complex(re, im))) / dt < slowest)
+        return bool(abs(complex(re, im)) > 0 and abs(np.log(complex(re, im))) / dt < slowest)
 
     T, Z, sdim = scipy.linalg.schur(A, output="real", sort=in_cluster)
     T11, T12, T22 = T[:sdim, :sdim], T[:sdim, sdim:], T[sdim:, sdim:]

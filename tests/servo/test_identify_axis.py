@@ -56,6 +56,10 @@ def test_the_published_axis_analysed():
                   0.01, record_s=10.0)
     assert lag.integrators == 0 and lag.resonances == ()
     assert lag.dc_gain is not None and lag.dc_gain[0, 0] == pytest.approx(10.0)
+    delayed = analyse(np.diag([0.0, 1.0]), np.ones((2, 1)), np.ones((1, 2)), np.zeros((1, 1)),
+                      0.01, record_s=10.0)  # a pole at z = 0 (a delay) and an integrator
+    assert delayed.integrators == 1 and delayed.integrator_gain is not None
+    assert delayed.integrator_gain[0, 0] == pytest.approx(100.0)  # 1 per tick of 10 ms
 
 
 def test_the_emulated_axis_identified_as_the_published_one(tmp_path):
