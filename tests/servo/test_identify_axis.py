@@ -104,7 +104,7 @@ def test_a_tightened_current_limit_holds(tmp_path):
     """--umax lowers the limit; the experiment's peak (amplitude and stabiliser) stays inside
     it, with another excitation."""
     session = tmp_path / "low.mcap"
-    run = hil(tmp_path, "servo", "identify", "--duration", "1", "--umax", "200",
+    run = hil(tmp_path, "servo", "identify", "--duration", "0.5", "--umax", "200",
               "--amplitude", "120", "--excitation", "chirp", "--out", session)
     assert run.returncode == 0, run.stderr
     assert "|u| <= 200 mA" in run.stdout
@@ -134,18 +134,20 @@ def test_help_explains_both_commands(tmp_path):
     assert "--servo" in ident.stdout and "--axis NAME" in ident.stdout
 
 
-def test_an_axis_of_a_session_with_several(tmp_path):
+def test_an_axis_of_a_session_with_several(tmp_path, capsys):
     """The experiment's controller runs on several axes as any controller does; --servo
-    names the feedback topics of such a session, --axis picks one."""
+    names the feedback topics of such a session, --axis picks one (variants of the command the
+    test above runs from outside, run here)."""
     session = tmp_path / "axes.mcap"
     run = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller",
               "hil.servo.identify:excitation", "--reference", "hold:position=0", "--from-here",
-              "--param", "y.amplitude=200", "--duration", "0.5", "--out", session)
+              "--param", "y.amplitude=200", "--duration", "0.4", "--out", session)
     assert run.returncode == 0, run.stderr
-    whole = hil(tmp_path, "identify", session, "--servo")
+    whole = hil_here(capsys, "identify", session, "--servo", cwd=tmp_path)
     assert whole.returncode == 2
     assert "/axis/x/feedback, /axis/y/feedback (pick one with --axis NAME)" in whole.stderr
-    one = hil(tmp_path, "identify", session, "--servo", "--axis", "y", "--order", "4", "--json")
+    one = hil_here(capsys, "identify", session, "--servo", "--axis", "y", "--order", "4",
+                   "--block-rows", "15", "--json", cwd=tmp_path)
     assert one.returncode == 0, one.stderr
     model = json.loads(one.stdout)
     assert model["inputs"] == ["/axis/y/feedback:command_mA"]
