@@ -1,4 +1,6 @@
-"""``hil identify``: N4SID model of recorded signals, written to a model file."""
+"""``hil identify``: N4SID model of recorded signals, written to a model file, and what the
+model says about the machine (:mod:`hil.controllers.ident.analysis`); ``--servo`` takes a servo
+session's signals itself (:func:`hil.servo.identify.servo_signals`)."""
 
 from __future__ import annotations
 
@@ -8,13 +10,14 @@ import os
 import shlex
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from hil.cli.argtypes import output_file, positive_int
 from hil.controllers.ident.defaults import BLOCK_ROW_CANDIDATES, DEFAULT_MAX_ORDER
 from hil.errors import UsageError
 
 if TYPE_CHECKING:
+    from hil.controllers.ident.analysis import ModelAnalysis
     from hil.controllers.ident.n4sid import IdentifiedModel
 
 
@@ -23,7 +26,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "identify",
         help="N4SID model from a recorded session",
         description="Identify a discrete-time state-space model (N4SID) from signals recorded in "
-        "a session file, report its fit on held-out data (simulated output) and write a model "
+        "a session file, report its fit on held-out data (simulated output) and what it says about "
+        "the machine (resonances: frequency and damping; integrators; the DC gain, or with "
+        "integrators the gain of the integrating part, e.g. a servo axis' rigid-body gain in "
+        "deg/s^2 per mA) and write a model "
         "file the controllers' configs can point to. Signals are TOPIC:FIELD, FIELD a path of "
         "keys joined by '.' with list elements as [N], e.g. /bench/power:L2, "
         "/bench/relays:coils[2], /bench/power:phases[1].va.",
@@ -50,6 +56,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--detrend", action="store_true",
                    help="remove the training means (stored as offsets in the model)")
     p.add_argument("--no-feedthrough", action="store_true", help="force D = 0")
+    p.add_argument("--servo", action="store_true",
+                   help="a servo session ('hil servo identify', 'hil servo run'): input the "
+                   "current commanded on the wire, output the multi-turn position "
+                   "(/drive/feedback:command_mA and :position_deg, the command paired with "
+                   "the position it starts from: no feedthrough, as the published axis "
+                   "model); instead of --input and --output")
+    p.add_argument("--axis", metavar="NAME",
+                   help="with --servo: the axis NAME of a session with several "
+                   "(/axis/NAME/feedback)")
     p.add_argument("--out", metavar="MODEL.json", type=output_file,
                    help="model file (default: next to the session, F.model.json)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
@@ -78,51 +93,123 @@ def identify_command(args: argparse.Namespace) -> int:
         save_model_file,
     )
     from hil.core.recording.reader import read_session
+    from hil.servo.identify import servo_signals
 
+    if args.servo and (args.inputs or args.outputs):
+        raise UsageError("--servo names the signals itself: leave out --input and --output")
+    if args.axis is not None and not args.servo:
+        raise UsageError("--axis NAME picks an axis of a servo session: give --servo too")
     data = read_session(args.file)
-    if not args.inputs or not args.outputs:
-        raise UsageError(
-            "name the signals with --input TOPIC:FIELD and --output TOPIC:FIELD; "
-            + describe_signals(data)
-        )
-    inputs = [parse_signal(text) for text in args.inputs]
-    outputs = [parse_signal(text) for text in args.outputs]
-    u, y, dt, irregular = aligned_signals(data, inputs, outputs)
+    stale = 0
+    input_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    if args.servo:
+        source, target, u, y, dt, irregular, stale = servo_signals(data, args.axis)
+        input_names, output_names = (source,), (target,)
+    else:
+        if not args.inputs or not args.outputs:
+            raise UsageError(
+                "name the signals with --input TOPIC:FIELD and --output TOPIC:FIELD; "
+                + describe_signals(data) + " (a servo session: --servo)"
+            )
+        inputs = [parse_signal(text) for text in args.inputs]
+        outputs = [parse_signal(text) for text in args.outputs]
+        u, y, dt, irregular = aligned_signals(data, inputs, outputs)
+        input_names = tuple(s.text for s in inputs)
+        output_names = tuple(s.text for s in outputs)
     out = args.out or str(Path(args.file).with_suffix(".model.json"))
     if os.path.abspath(out) == os.path.abspath(args.file):
         raise UsageError(f"--out {out} is the session file itself; choose another model file")
     try:
         model = identify(
             u, y, dt,
-            inputs=tuple(s.text for s in inputs), outputs=tuple(s.text for s in outputs),
+            inputs=input_names, outputs=output_names,
             order=args.order, max_order=args.max_order, block_rows=args.block_rows,
             train_fraction=args.train_fraction, detrend=args.detrend,
-            feedthrough=not args.no_feedthrough,
+            feedthrough=not (args.no_feedthrough or args.servo),
         )
     except IdentificationError as exc:
         raise UsageError(f"{args.file}: {exc}") from None
     model = dataclasses.replace(model, command=regenerate_command(args, model.block_rows, out),
                                 experiment=experiment_command(data))
     save_model_file(out, model)
+    analysis = analyse_model(model)
+    units = SERVO_UNITS if args.servo else None
     if irregular:
         print(f"hil: warning: {irregular} of {len(y) - 1} sampling intervals of "
-              f"{outputs[0].text} differ from dt = {dt:g} s by more than "
+              f"{output_names[0]} differ from dt = {dt:g} s by more than "
               f"{IRREGULAR_TOLERANCE:.0%} (dropped or late samples?); the model assumes "
               "uniform sampling", file=sys.stderr)
+    if stale:
+        print(f"hil: warning: {stale} feedback samples of {len(y) + 1} were stale (the drive's "
+              "answer late, its values repeated); the model takes them as measured",
+              file=sys.stderr)
     if args.json:
         print(json_text({**model_to_dict(model), "model": out,
-                         "irregular_intervals": irregular}))
+                         "irregular_intervals": irregular,
+                         "analysis": analysis_json(analysis, units)}))
     else:
-        print(format_model(model, out))
+        print(format_model(model, out) + "\n" + format_analysis(analysis, units))
     return 0
+
+
+#: the units of a servo model's signals: output, input
+SERVO_UNITS = ("deg", "mA")
+
+
+def analyse_model(model: IdentifiedModel) -> ModelAnalysis:
+    """:func:`~hil.controllers.ident.analysis.analyse` of an identified model (its record:
+    every sample it was identified from)."""
+    from hil.controllers.ident.analysis import analyse
+
+    record_s = max(model.samples.get("total", 0), 2) * model.dt
+    return analyse(model.A, model.B, model.C, model.D, model.dt, record_s)
+
+
+def gain_unit(integrators: int, units: tuple[str, str] | None) -> str:
+    """The unit of the gain of a model with ``integrators`` (``units``: output, input; None:
+    the signals' own)."""
+    out, per = units or ("output", "input")
+    return f"{out}/s^{integrators} per {per}" if integrators else f"{out} per {per}"
+
+
+def analysis_json(analysis: ModelAnalysis, units: tuple[str, str] | None) -> dict[str, Any]:
+    """``--json``'s ``analysis``: the model's resonances, integrators and gain, with the
+    gain's unit."""
+    return {**analysis.to_dict(), "gain_unit": gain_unit(analysis.integrators, units)}
+
+
+def format_analysis(analysis: ModelAnalysis, units: tuple[str, str] | None) -> str:
+    """The analysis lines of the text report."""
+    lines = ["resonances:   " + ("; ".join(
+        f"{r.frequency_hz:.2f} Hz, damping {r.damping_ratio:.4f} (peak {r.peak_gain:.3g})"
+        for r in analysis.resonances) or "none (no complex pole pair)")]
+    unit = gain_unit(analysis.integrators, units)
+    if analysis.dc_gain is not None:
+        lines.append(f"DC gain:      {_gains(analysis.dc_gain)} {unit}")
+        return "\n".join(lines)
+    k = analysis.integrators
+    name = "rigid-body gain" if units == SERVO_UNITS and k == 2 else f"gain lim s^{k} G(s)"
+    lines.append(f"integrators:  {k} (poles slower than {analysis.slowest_hz:.3g} Hz): the DC "
+                 f"gain is infinite; {name} {_gains(analysis.integrator_gain)} {unit}")
+    return "\n".join(lines)
+
+
+def _gains(matrix: Any) -> str:
+    rows = [" ".join(f"{v:.4g}" for v in row) for row in matrix]
+    return rows[0] if len(rows) == 1 and " " not in rows[0] else "[" + "; ".join(rows) + "]"
 
 
 def regenerate_command(args: argparse.Namespace, block_rows: int, out: str) -> str:
     """The command line that regenerates the model, every choice spelled out."""
     argv = ["hil", "identify", args.file]
-    for spec in args.inputs:
+    if args.servo:
+        argv.append("--servo")
+        if args.axis is not None:
+            argv += ["--axis", args.axis]
+    for spec in args.inputs or ():
         argv += ["--input", spec]
-    for spec in args.outputs:
+    for spec in args.outputs or ():
         argv += ["--output", spec]
     if args.order is not None:
         argv += ["--order", str(args.order)]

@@ -57,6 +57,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_recording_arguments(srun)
     srun.set_defaults(handler=run_command)
 
+    register_identify(servo_sub)
+
     figs = servo_sub.add_parser(
         "figures", help="regenerate the paper's Figs. 7-8 table (offline simulation)",
         description="Normalised cumulative tracking error vs trajectory horizon H_t (= H_u) for "
@@ -82,25 +84,76 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     figs.set_defaults(handler=figures_command)
 
 
+def register_identify(servo_sub: argparse._SubParsersAction) -> None:
+    """``hil servo identify``: the identification experiment, a servo run of its own."""
+    from hil.controllers.servo.excitation_defaults import (
+        DEFAULT_AMPLITUDE_MA,
+        DEFAULT_DURATION_S,
+        DEFAULT_KD_MA_PER_DEG_S,
+        DEFAULT_KP_MA_PER_DEG,
+        DEFAULT_SEED,
+        KINDS,
+        STABILISER_SHARE,
+    )
+
+    ident = servo_sub.add_parser(
+        "identify", help="excite the axis in CST and record a session to identify it from",
+        description="Record an identification experiment on the drive: a current excitation "
+        "(CST) plus a weak stabilising loop (PD on the position) that keeps the axis near "
+        "where it started, for 'hil identify F.mcap --servo' to make a model of the axis "
+        "from. It is a servo run like 'hil servo run' (same drive URLs, lockstep or "
+        "--realtime, safety limits, current clamp, safe stop, MCAP session), its controller "
+        "the excitation, its reference held where the axis starts. The command's peak is the "
+        f"amplitude plus the stabiliser's share ({STABILISER_SHARE * 100:g} % of the amplitude): "
+        "an amplitude whose peak does not fit inside the current limit is refused. Exit "
+        "status as 'hil servo run': 0 completed, 2 refused or stopped (a safety limit, a "
+        "fault), 3 completed with faults, 130 interrupted.")
+    ident.add_argument("--excitation", choices=KINDS,
+                       help="prbs (default: crest factor 1, the most power a current limit "
+                       "allows, flat up to 0.44/T), multisine (Schroeder phases, 0.5 Hz to "
+                       "0.45/T) or chirp (linear sweep 1 Hz to 0.45/T)")
+    ident.add_argument("--amplitude", type=milliamps, metavar="MA",
+                       help=f"peak current of the excitation [mA] (default "
+                       f"{DEFAULT_AMPLITUDE_MA:g}); the stabiliser adds up to "
+                       f"{STABILISER_SHARE * 100:g} %% of it")
+    ident.add_argument("--seed", type=positive_int, metavar="N",
+                       help=f"the PRBS's start state (default {DEFAULT_SEED}; taken modulo its "
+                       "period, 32767): the same seed, the same excitation")
+    ident.add_argument("--duration", type=seconds, metavar="S",
+                       help=f"length of the experiment [s] (default {DEFAULT_DURATION_S:g})")
+    ident.add_argument("--param", action="append", type=key_value, default=[],
+                       metavar="KEY=VALUE",
+                       help="the stabiliser's gains: kp [mA/deg] (default "
+                       f"{DEFAULT_KP_MA_PER_DEG:g}), kd [mA per deg/s] (default "
+                       f"{DEFAULT_KD_MA_PER_DEG_S:g}); about 2 Hz on the published axis")
+    ident.add_argument("--umax", type=milliamps, metavar="MA",
+                       help="current limit [mA] (default: [master] current_limit_mA, 1000): "
+                       "may only lower the configured limit")
+    ident.add_argument("--safety", action="append", type=key_value, default=[],
+                       metavar="KEY=VALUE",
+                       help="tighten one safety limit of drive.toml's [safety] (repeat), as "
+                       "'hil servo run --safety'; following_error_deg is the distance from "
+                       "where the axis started; never loosened")
+    add_drive_arguments(ident)
+    add_device_arguments(ident)
+    add_clock_arguments(ident)
+    add_config_argument(ident)
+    ident.add_argument("--out", metavar="F.mcap", type=output_file,
+                       help="session file (default: sessions/servo-excitation-DATE-TIME.mcap)")
+    ident.add_argument("--json", action="store_true", help="print the run's KPIs as JSON")
+    ident.add_argument("--print-config", action="store_true",
+                       help="print every setting as the run would use it, and exit")
+    add_junit_argument(ident)
+    add_recording_arguments(ident)
+    ident.set_defaults(handler=servo_identify_command)
+
+
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     """The flags of ``hil servo run`` that make up the experiment (shared with ``hil sweep
     servo``): the controller, its tuning, the drive, the reference and the verdict."""
     add_controller_arguments(parser, "mpc, empc, pid", "abs_error_deg, abs_command_mA, "
                              "abs_velocity_deg_s, position_deg")
-    parser.add_argument("--drive", metavar="URL",
-                        help="where the drive is (default: drive.toml's [bus], emulated): "
-                        "emulated (hil's emulator: in this process in lockstep, in a process "
-                        "of its own with --realtime) | socketcand://HOST:PORT[/CHANNEL] | "
-                        "INTERFACE://CHANNEL[?key=value&...] for any python-can interface, "
-                        "e.g. socketcan://can0, pcan://PCAN_USBBUS1, kvaser://0, gs_usb://0, "
-                        "slcan:///dev/ttyACM0?bitrate=1000000, serial:///dev/ttyUSB0, "
-                        "udp_multicast://239.0.0.1?port=43113, virtual://NAME (query keys are "
-                        "keyword arguments of python-can's can.Bus)")
-    parser.add_argument("--can-log", metavar="F.blf|F.asc|F.trc|F.log", type=output_file,
-                        help="write every CAN frame of the run to this file (python-can's "
-                        "can.Logger; the suffix picks the format: opens in can.player, "
-                        "can.viewer, Vector and PEAK tools); with axes on several buses, one "
-                        "file a bus: F, then STEM-bus2.SUFFIX...")
+    add_drive_arguments(parser)
     parser.add_argument("--safety", action="append", type=key_value, default=[],
                         metavar="KEY=VALUE",
                         help="tighten one safety limit of drive.toml's [safety] for this run "
@@ -111,14 +164,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--allow-looser-safety", action="store_true",
                         help="let --safety loosen a limit of the config (recorded as a "
                         "warning in the session)")
-    parser.add_argument("--reset-fault", action="store_true",
-                        help="clear a drive left in FAULT (CiA 402 fault reset) before "
-                        "enabling it")
-    parser.add_argument("--node", type=positive_int,
-                        help="the drive's CANopen node id (default: [master] node_id, 1)")
-    parser.add_argument("--eds", metavar="F.eds",
-                        help="the drive's EDS or DCF: every object hil uses is checked in it "
-                        "before the drive is configured (default: [master] eds)")
+    add_device_arguments(parser)
     parser.add_argument("--ert", choices=["foh", "zoh"],
                         help="extended reference trajectory: first- or zero-order hold "
                         "(default foh)")
@@ -155,14 +201,54 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--settle", type=seconds_or_zero, metavar="S",
                         help="KPIs ignore the first S seconds [s] (start-up transient; "
                         "default 0)")
+    add_clock_arguments(parser)
+    parser.add_argument("--prediction-every", type=positive_int, metavar="N",
+                        help="record /mpc/prediction every N ticks (default: every tick in "
+                        "lockstep, every 10th in real time)")
+    add_config_argument(parser)
+
+
+def add_drive_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--drive`` and ``--can-log`` (every servo run)."""
+    parser.add_argument("--drive", metavar="URL",
+                        help="where the drive is (default: drive.toml's [bus], emulated): "
+                        "emulated (hil's emulator: in this process in lockstep, in a process "
+                        "of its own with --realtime) | socketcand://HOST:PORT[/CHANNEL] | "
+                        "INTERFACE://CHANNEL[?key=value&...] for any python-can interface, "
+                        "e.g. socketcan://can0, pcan://PCAN_USBBUS1, kvaser://0, gs_usb://0, "
+                        "slcan:///dev/ttyACM0?bitrate=1000000, serial:///dev/ttyUSB0, "
+                        "udp_multicast://239.0.0.1?port=43113, virtual://NAME (query keys are "
+                        "keyword arguments of python-can's can.Bus)")
+    parser.add_argument("--can-log", metavar="F.blf|F.asc|F.trc|F.log", type=output_file,
+                        help="write every CAN frame of the run to this file (python-can's "
+                        "can.Logger; the suffix picks the format: opens in can.player, "
+                        "can.viewer, Vector and PEAK tools); with axes on several buses, one "
+                        "file a bus: F, then STEM-bus2.SUFFIX...")
+
+
+def add_device_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--reset-fault``, ``--node``, ``--eds`` (every servo run)."""
+    parser.add_argument("--reset-fault", action="store_true",
+                        help="clear a drive left in FAULT (CiA 402 fault reset) before "
+                        "enabling it")
+    parser.add_argument("--node", type=positive_int,
+                        help="the drive's CANopen node id (default: [master] node_id, 1)")
+    parser.add_argument("--eds", metavar="F.eds",
+                        help="the drive's EDS or DCF: every object hil uses is checked in it "
+                        "before the drive is configured (default: [master] eds)")
+
+
+def add_clock_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--realtime`` and ``--quiet`` (every servo run)."""
     parser.add_argument("--realtime", action="store_true",
                         help="follow the wall clock (default: lockstep virtual time)")
     parser.add_argument("--quiet", action="store_true",
                         help="no progress line on the terminal (there is none when stderr is "
                         "not a terminal)")
-    parser.add_argument("--prediction-every", type=positive_int, metavar="N",
-                        help="record /mpc/prediction every N ticks (default: every tick in "
-                        "lockstep, every 10th in real time)")
+
+
+def add_config_argument(parser: argparse.ArgumentParser) -> None:
+    """``--config`` (every servo run)."""
     parser.add_argument("--config", metavar="F.toml",
                         help="drive config laid over the default (hil/configs/drive.toml)")
 
@@ -184,6 +270,29 @@ def application() -> RunApplication[ServoRunOptions]:
 
 def run_command(args: argparse.Namespace) -> int:
     return application().command_line(args)
+
+
+def servo_identify_command(args: argparse.Namespace) -> int:
+    """``hil servo identify``: the excitation as a servo run."""
+    from hil.cli.application import RunApplication
+    from hil.controllers.servo.excitation_defaults import DEFAULT_AMPLITUDE_MA, DEFAULT_KIND
+    from hil.servo.identify import identify_options, identify_settings
+    from hil.servo.run import run_servo
+
+    def summary(options: ServoRunOptions, kpis: dict[str, Any]) -> str:
+        params = dict(options.params)
+        rest = format_run(options, kpis).splitlines()[1:]
+        amplitude = params.get("amplitude", DEFAULT_AMPLITUDE_MA)
+        lines = [f"servo identify: {params.get('kind', DEFAULT_KIND)} excitation, amplitude "
+                 f"{amplitude:g} mA, |u| <= {kpis['umax_mA']:g} mA, "
+                 f"drive {kpis['drive']}, clock {kpis['clock']}",
+                 *(line.replace("  error:", "  distance from the start:") for line in rest),
+                 f"  identify the axis: hil identify {kpis['mcap']} --servo"]
+        return "\n".join(lines)
+
+    return RunApplication("hil servo identify", identify_options,
+                          lambda options: identify_settings(options, vars(args)), run_servo,
+                          summary).command_line(args)
 
 
 def format_axes_run(config: Any, kpis: dict[str, Any]) -> str:
