@@ -78,6 +78,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     help="drive config laid over the default (hil/configs/drive.toml); "
                     "its [emulator] table is used")
     ed.add_argument("--channel", help="bus name clients open (default: emulator.channel)")
+    ed.add_argument("--model", metavar="F.json",
+                    help="the axis as a model file (`hil identify` writes them): one input, a "
+                    "current in mA, one output, a position in deg, its period dividing "
+                    "master.cycle_period_us (default: emulator.model, else the published axis)")
     ed.add_argument("--harden", action="store_true",
                     help="serve as a real-time process where the OS allows (as `hil doctor` "
                     "reports): SCHED_FIFO below hil's loop, a core apart from the loop's, "
@@ -174,7 +178,11 @@ def emulate_drive_command(args: argparse.Namespace) -> int:
     overrides: dict[str, object] = {"node_id": nodes_ids[0]}
     if args.channel is not None:
         overrides["channel"] = args.channel
-    emulator = load_drive_config(args.config, overrides={"emulator": overrides}).emulator
+    if args.model is not None:
+        overrides["model"] = args.model  # a flag's path: from the working folder
+    emulator = load_drive_config(args.config, overrides={"emulator": overrides},
+                                 origin="--model" if args.model is not None else "overrides"
+                                 ).emulator
     if args.write_eds:
         return write_eds(emulator, args.write_eds)
     if args.socketcand is None:
