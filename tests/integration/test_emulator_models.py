@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from hil.controllers.ident.model_file import loads_model, model_file_of
-from hil.controllers.servo.model import StateSpaceModel, published_axis_model
+from hil.controllers.servo.model import StateSpaceModel, published_axis_model, resampled
 from hil.core.recording.reader import read_session
 from hil.emulators.drive.axis_model import axis_model_file
 from hil.emulators.drive.plant import AxisPlant
@@ -121,6 +121,25 @@ def test_the_published_axis_as_a_model_file_runs_as_the_default(machine):
     positions, _ = positions_and_currents(machine / "pub.mcap")
     default, _ = positions_and_currents(machine / "default.mcap")
     assert np.array_equal(positions, default)
+
+
+def test_a_model_steps_as_often_as_its_period_fits_in_the_cycle(machine):
+    """A 1000 us cycle: the published axis' 500 us file steps twice per SYNC, as the default
+    axis does; the same axis sampled every 1000 us steps once, to the same positions."""
+    axis = published_axis_model()
+    (machine / "p500.json").write_text(axis_model_file(axis))
+    (machine / "p1000.json").write_text(axis_model_file(resampled(axis, 1e-3)))
+    (machine / "cycle.toml").write_text("[master]\ncycle_period_us = 1000\n")
+    positions = {}
+    for name in ("default", "p500", "p1000"):
+        drive = "emulated" if name == "default" else f"emulated?model={name}.json"
+        done = hil(machine, *RUN, "--param", "ti_us=8000", "--config", "cycle.toml",
+                   "--drive", drive, "--out", f"cycle-{name}.mcap")
+        assert done.returncode == 0, done.stderr
+        positions[name], _ = positions_and_currents(machine / f"cycle-{name}.mcap")
+    assert len(positions["default"]) == 300
+    assert np.array_equal(positions["p500"], positions["default"])
+    assert np.max(np.abs(positions["p1000"] - positions["default"])) <= INCREMENT_DEG
 
 
 def axis_file(**change) -> str:
