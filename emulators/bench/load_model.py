@@ -11,7 +11,8 @@ step k is the relay state latched for it, the output the meter reading at its st
     x(k+1) = A x(k) + B (u(k) - u_offset),  S = C x + D (u - u_offset) + y_offset - rest
 
 (``D`` with the inputs of the step just run: identified bench models have D = 0). The load's S is
-the model's output less its ``rest`` (all relays off, held: the state it starts in), so a model
+the model's output less its ``rest`` (all relays off, held: the state it starts in), never below
+0 (a linear model's dip at a switch-off gives no power back), so a model
 whose output includes the machine's base load adds only what its relays switch; the base load
 stays ``[plant.base]``.
 """

@@ -278,7 +278,7 @@ class InductionMotor(Load):
 
 class ModelLoad(Load):
     """A model file's load: S from its relays and their switch-on events (see
-    :mod:`~hil.emulators.bench.load_model`); 0 at rest."""
+    :mod:`~hil.emulators.bench.load_model`); 0 at rest, never below."""
 
     def __init__(self, spec: ModelLoadSpec, relays: dict[str, int]) -> None:
         super().__init__(spec.name, None, _phase_weights(spec.phases))
@@ -293,7 +293,8 @@ class ModelLoad(Load):
         u = np.array([float(coils[c] and not (start and before[c])) for c, start in self._inputs])
         u -= m.u_offset
         self.x = m.A @ self.x + m.B @ u
-        self.va = float(m.C @ self.x + m.D @ u) + m.y_offset - m.rest_va
+        # a linear model may dip below its rest at a switch-off: no load gives power back
+        self.va = max(float(m.C @ self.x + m.D @ u) + m.y_offset - m.rest_va, 0.0)
 
     def step(self, on: bool, dt: float) -> None:
         raise TypeError("a model load steps by advance(coils, before)")
