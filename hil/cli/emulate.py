@@ -165,8 +165,9 @@ def emulate_bench_command(args: argparse.Namespace) -> int:
 def emulate_drive_command(args: argparse.Namespace) -> int:
     """Serve the emulated CiA 402 drive over socketcand in real time until Ctrl-C or SIGTERM."""
     die_with_parent()
+    from hil.core.settings import Layer, lay
     from hil.errors import UsageError
-    from hil.servo.config import load_drive_config
+    from hil.servo.config import SOURCE, drive_layers, parse_drive_config
 
     nodes_ids = args.node or [1]
     for node_id in nodes_ids:
@@ -178,11 +179,11 @@ def emulate_drive_command(args: argparse.Namespace) -> int:
     overrides: dict[str, object] = {"node_id": nodes_ids[0]}
     if args.channel is not None:
         overrides["channel"] = args.channel
-    if args.model is not None:
-        overrides["model"] = args.model  # a flag's path: from the working folder
-    emulator = load_drive_config(args.config, overrides={"emulator": overrides},
-                                 origin="--model" if args.model is not None else "overrides"
-                                 ).emulator
+    layers, text = drive_layers(args.config)
+    layers.append(Layer("overrides", {"emulator": overrides}))
+    if args.model is not None:  # its path from the working folder; its errors name it
+        layers.append(Layer("--model", {"emulator": {"model": args.model}}))
+    emulator = parse_drive_config(lay(layers), args.config or SOURCE, text).emulator
     if args.write_eds:
         return write_eds(emulator, args.write_eds)
     if args.socketcand is None:

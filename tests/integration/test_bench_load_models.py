@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import tomli_w
 
 from hil.bench.config import load_bench_config
 from hil.controllers.bench.models import load_linear_model
@@ -173,3 +174,16 @@ def test_a_load_model_that_cannot_be_the_load_is_one_line_exit_2(tmp_path, case)
     lines = done.stderr.splitlines()
     assert len(lines) == 1 and done.stdout == "", done.stderr
     assert lines[0].startswith(f"hil: error: bad.toml: {problem.format(**names)}"), lines[0]
+
+
+def test_an_emulator_process_is_handed_the_model_path_resolved(bench, tmp_path):
+    """A real-time run gives its emulator process the run's tables in a temporary file: the
+    model's path goes in absolute, so the process reads the file the config named."""
+    config = load_bench_config(str(bench / "models" / "bench.toml"))
+    tables = config.emulator_tables()
+    assert tables["plant"]["loads"]["P1"]["model"] == str(bench / "models" / "pump.json")
+    elsewhere = tmp_path / "run.toml"
+    elsewhere.write_text(tomli_w.dumps(tables))
+    spec = load_bench_config(str(elsewhere)).plant
+    assert [load.model.source for load in spec.loads if isinstance(load, ModelLoadSpec)] == \
+        [str(bench / "models" / "pump.json")]
