@@ -182,7 +182,8 @@ def start_drive_emulator(config: str | Path | None = None, *, node: int | Iterab
                          host: str = "127.0.0.1", faults: Iterable[str | Fault] = (),
                          timeout_s: float = 30.0,
                          tables: Mapping[str, Any] | None = None,
-                         harden: bool = False, clock: str = "auto") -> EmulatorProcess:
+                         harden: bool = False, clock: str = "auto",
+                         model: str | Path | None = None) -> EmulatorProcess:
     """The CiA 402 drive emulator over socketcand on ``host`` and a free port (``node``: its
     node id, or several, one drive and axis each, on the one bus); ``faults`` as for
     :func:`start_bench_emulator`, seconds after it starts (each drive plays them). Its
@@ -191,11 +192,14 @@ def start_drive_emulator(config: str | Path | None = None, *, node: int | Iterab
     is its ``hardening`` (``{step: "granted: ..." | "refused: ..."}``), which the next
     real-time session of this process records as ``realtime.emulator`` metadata. ``clock``:
     ``auto`` (its own, until a lockstep master asks for its SYNC time), ``sync`` or ``wall``
-    (``hil emulate drive --clock``)."""
+    (``hil emulate drive --clock``). ``model``: its axis as a model file (``--model``, over the
+    config's ``[emulator] model``; made absolute here, as the tables of a run are read from a
+    temporary file whose folder is not the run's)."""
     nodes = [node] if isinstance(node, int) else list(node)
     argv = ["drive", "--socketcand", f"{host}:0", "--clock", clock,
             *[arg for n in nodes for arg in ("--node", str(n))], *_fault_flags(faults),
-            *(["--harden"] if harden else [])]
+            *(["--harden"] if harden else []),
+            *(["--model", os.path.abspath(model)] if model is not None else [])]
     with _config_file(config, tables) as path:
         process = EmulatorProcess([*argv, *(["--config", path] if path else [])], "drive",
                                   timeout_s)

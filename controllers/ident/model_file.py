@@ -3,7 +3,8 @@
 :func:`dumps_model` / :func:`loads_model` convert an
 :class:`~hil.controllers.ident.n4sid.IdentifiedModel` to and from its JSON text (format
 ``hil.ident.state-space``, its content :func:`model_to_dict`); :func:`json_text` is the
-formatter that keeps every matrix row on one line.
+formatter that keeps every matrix row on one line. :func:`model_file_of` writes the file of a
+known model (not identified: a model of another machine, for an emulator to run).
 """
 
 from __future__ import annotations
@@ -11,7 +12,8 @@ from __future__ import annotations
 import json
 import math
 import re
-from typing import Any
+from collections.abc import Sequence
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -105,6 +107,46 @@ def model_from_dict(data: dict[str, Any]) -> IdentifiedModel:
         raise IdentificationError(f"model file lacks the key {exc.args[0]!r}") from None
     except (TypeError, ValueError, AttributeError) as exc:
         raise IdentificationError(f"model file has a malformed value: {exc}") from None
+
+
+class LinearSystem(Protocol):
+    """A discrete model ``x(k+1) = A x(k) + B u(k)``, ``y(k) = C x(k) + D u(k)`` every ``dt``
+    seconds (e.g. :class:`hil.controllers.servo.model.StateSpaceModel`)."""
+
+    @property
+    def A(self) -> np.ndarray: ...  # noqa: N802
+    @property
+    def B(self) -> np.ndarray: ...  # noqa: N802
+    @property
+    def C(self) -> np.ndarray: ...  # noqa: N802
+    @property
+    def D(self) -> np.ndarray: ...  # noqa: N802
+    @property
+    def dt(self) -> float: ...
+
+
+def model_file_of(model: LinearSystem, inputs: Sequence[str], outputs: Sequence[str], *,
+                  u_offset: Sequence[float] | None = None,
+                  y_offset: Sequence[float] | None = None, note: str = "") -> str:
+    """The model file text of a known model, its matrices as they are (sample ``k`` pairs
+    ``u(k)`` and ``y(k)`` as the file's equations say): inputs and outputs named as signals
+    (``TOPIC:FIELD``), optional offsets, no noise (K, Q, R, S zero). Its fit is 100 % (the
+    model is its own data) and its ``experiment`` says it was not identified (``note``)."""
+    A, B = np.atleast_2d(np.asarray(model.A, float)), np.asarray(model.B, float)
+    C, D = np.asarray(model.C, float), np.asarray(model.D, float)
+    n, m, ny = A.shape[0], len(inputs), len(outputs)
+    B, C, D = B.reshape(n, m), C.reshape(ny, n), D.reshape(ny, m)
+    zeros = np.zeros
+    known = IdentifiedModel(
+        A=A, B=B, C=C, D=D, K=zeros((n, ny)), Q=zeros((n, n)), R=zeros((ny, ny)),
+        S=zeros((n, ny)), dt=float(model.dt), inputs=tuple(inputs), outputs=tuple(outputs),
+        u_offset=np.asarray(u_offset if u_offset is not None else zeros(m), float),
+        y_offset=np.asarray(y_offset if y_offset is not None else zeros(ny), float),
+        fit_pct_per_output=np.full(ny, 100.0),
+        experiment=note or "a known model written by model_file_of, not identified")
+    text = dumps_model(known)
+    loads_model(text)  # what it wrote reads back (shapes, finite values, dt > 0)
+    return text
 
 
 def dumps_model(model: IdentifiedModel) -> str:

@@ -10,7 +10,9 @@ built from a :class:`PlantSpec` that :mod:`hil.bench.config` reads from it):
   ``tau_off_s``;
 * induction motors (P1, P2): a per-unit equivalent circuit and a speed state, so the inrush
   at switch-on, the spin-up and the coast-down come from the physics, not from a fitted curve;
-* an optional disturbance load on a time schedule.
+* an optional disturbance load on a time schedule;
+* loads given as a model file (``model = "F.json"``): their apparent power from their relays,
+  as an identified model says (:mod:`~hil.emulators.bench.load_model`).
 
 The meter adds the loads per phase (S and P additive), then one seeded noise draw per step;
 every register of a step comes from one snapshot. Resource levels follow eq. (10) of the paper
@@ -27,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hil.emulators.bench.load_model import LoadModel
 from hil.emulators.errors import EmulatorSetupError
 
 COIL_LOG_LENGTH = 4096
@@ -97,6 +100,17 @@ class MotorSpec:
 
 
 @dataclass(frozen=True)
+class ModelLoadSpec:
+    """Loads whose apparent power a model file gives: ``name`` the loads it stands for (each
+    load whose table names the file, joined by ``+``), on ``phases`` at power factor ``pf``."""
+
+    name: str
+    model: LoadModel
+    pf: float
+    phases: tuple[str, ...]
+
+
+@dataclass(frozen=True)
 class DisturbanceSpec:
     """The unknown load: on during ``windows`` (plant time), repeated every ``period_s``
     (0 = not repeated)."""
@@ -146,7 +160,7 @@ class PlantSpec:
     relays: dict[str, int]        # relay name -> coil
     meter: MeterSpec
     base: ConstantLoadSpec
-    loads: tuple[FirstOrderLoadSpec | MotorSpec, ...]
+    loads: tuple[FirstOrderLoadSpec | MotorSpec | ModelLoadSpec, ...]
     disturbance: DisturbanceSpec
     resources: tuple[ResourceSpec, ...]
 
@@ -262,6 +276,30 @@ class InductionMotor(Load):
             self.va = 0.0
 
 
+class ModelLoad(Load):
+    """A model file's load: S from its relays and their switch-on events (see
+    :mod:`~hil.emulators.bench.load_model`); 0 at rest, never below."""
+
+    def __init__(self, spec: ModelLoadSpec, relays: dict[str, int]) -> None:
+        super().__init__(spec.name, None, _phase_weights(spec.phases))
+        self.pf, self.model = spec.pf, spec.model
+        self._inputs = [(relays[relay], start) for relay, start in spec.model.inputs]
+        self.x = spec.model.x_rest.copy()
+
+    def advance(self, coils: Sequence[bool], before: Sequence[bool]) -> None:
+        """One step with the relays latched for it (``coils``) after those of the step before
+        (``before``): an event input is 1 in the step its relay is switched on."""
+        m = self.model
+        u = np.array([float(coils[c] and not (start and before[c])) for c, start in self._inputs])
+        u -= m.u_offset
+        self.x = m.A @ self.x + m.B @ u
+        # a linear model may dip below its rest at a switch-off: no load gives power back
+        self.va = max(float(m.C @ self.x + m.D @ u) + m.y_offset - m.rest_va, 0.0)
+
+    def step(self, on: bool, dt: float) -> None:
+        raise TypeError("a model load steps by advance(coils, before)")
+
+
 class ScheduledLoad(FirstOrderLoad):
     """The unknown disturbance: a first-order load switched by a time schedule, not a relay."""
 
@@ -307,7 +345,11 @@ class Snapshot:
     levels: dict[str, float]
 
 
-def _build_load(spec: FirstOrderLoadSpec | MotorSpec, coil: int) -> Load:
+def _build_load(spec: FirstOrderLoadSpec | MotorSpec | ModelLoadSpec, relays: dict[str, int]
+                ) -> Load:
+    if isinstance(spec, ModelLoadSpec):
+        return ModelLoad(spec, relays)
+    coil = relays[spec.relay]
     if isinstance(spec, MotorSpec):
         return InductionMotor(spec, coil)
     return FirstOrderLoad(spec.name, coil, spec.va, spec.pf, spec.tau_on_s, spec.tau_off_s,
@@ -328,7 +370,7 @@ class BenchPlant:
         base = spec.base
         self.loads: list[Load] = [
             ConstantLoad("base", base.va, base.pf, _phase_weights(base.phases)),
-            *(_build_load(load, self.relays[load.relay]) for load in spec.loads),
+            *(_build_load(load, self.relays) for load in spec.loads),
         ]
         self.disturbance = ScheduledLoad(spec.disturbance)
         self.resources = [
@@ -379,13 +421,17 @@ class BenchPlant:
         """Advance one ``dt`` with the relay states latched now; return the new snapshot."""
         with self._lock:
             coils = list(self._coils)
-        for i, (before, now) in enumerate(zip(self._applied, coils, strict=True)):
+        previous = self._applied
+        for i, (before, now) in enumerate(zip(previous, coils, strict=True)):
             if before != now:
                 self.coil_log.append((self.k, i, now))
         self._applied = coils
         dt = self.dt
         for load in self.loads:
-            load.step(load.coil is not None and coils[load.coil], dt)
+            if isinstance(load, ModelLoad):
+                load.advance(coils, previous)
+            else:
+                load.step(load.coil is not None and coils[load.coil], dt)
         self.disturbance.step(self.disturbance.scheduled_on(self.t_s), dt)
         for resource in self.resources:
             resource.step(coils, dt)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from hil.controllers.servo.model import SAMPLE_PERIOD_S
+from hil.emulators.drive.axis_model import AxisModel
 from hil.emulators.drive.od import OdDefaults
 from hil.emulators.drive.plant import AxisPlant, Disturbance, Friction
 
@@ -31,6 +33,7 @@ class DriveEmulatorConfig:
     channel: str = "can0"
     friction: Friction = field(default_factory=Friction)
     disturbance: Disturbance = field(default_factory=Disturbance)
+    axis_model: AxisModel | None = None  # a model file's axis (None: the published axis)
 
     def od_defaults(self) -> OdDefaults:
         return OdDefaults(
@@ -40,7 +43,12 @@ class DriveEmulatorConfig:
             overcurrent_trip_ma=self.overcurrent_trip_ma, quick_stop_option=self.quick_stop_option,
         )
 
+    @property
+    def axis_period_s(self) -> float:
+        """The axis' model period [s]: the drive steps it cycle / period times per SYNC."""
+        return self.axis_model.dt if self.axis_model is not None else SAMPLE_PERIOD_S
+
     def make_plant(self) -> AxisPlant:
-        return AxisPlant(current_limit_ma=self.current_limit_ma,
+        return AxisPlant(self.axis_model, current_limit_ma=self.current_limit_ma,
                          increments_per_rev=self.increments_per_rev,
                          friction=self.friction, disturbance=self.disturbance)

@@ -2,7 +2,9 @@
 
 Default model: the servo paper's headstock axis
 (``hil.controllers.servo.model.published_axis_model``),
-T = 500 us, input q-axis current [mA], output motor position [deg]. Around the linear model:
+T = 500 us, input q-axis current [mA], output motor position [deg]; or another axis, as an
+:class:`~hil.emulators.drive.axis_model.AxisModel` (a model file: ``[emulator] model``), whose
+offsets and feedthrough it applies. Around the linear model:
 
 * the amplifier's current limit (the applied current saturates at ``current_limit_ma``);
 * optional friction, as an equivalent current opposing the motion: viscous ``b * v`` and
@@ -25,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hil.controllers.servo.model import StateSpaceModel, published_axis_model
+from hil.emulators.drive.axis_model import AxisModel
 
 DEFAULT_INCREMENTS_PER_REV = 1 << 20
 
@@ -70,7 +73,7 @@ class AxisPlant:
 
     def __init__(
         self,
-        model: StateSpaceModel | None = None,
+        model: StateSpaceModel | AxisModel | None = None,
         *,
         current_limit_ma: float = 12_000.0,
         increments_per_rev: int = DEFAULT_INCREMENTS_PER_REV,
@@ -78,25 +81,26 @@ class AxisPlant:
         disturbance: Disturbance | None = None,
     ) -> None:
         self.model = model if model is not None else published_axis_model()
-        if self.model.B.shape[1] != 1 or self.model.C.shape[0] != 1:
+        axis = self.model if isinstance(self.model, AxisModel) \
+            else AxisModel.of_state_space(self.model)
+        if axis.B.shape[1] != 1 or axis.C.shape[0] != 1:
             raise ValueError("the axis model must have one input (mA) and one output (deg)")
         if not current_limit_ma > 0:
             raise ValueError(f"current limit must be > 0 mA, got {current_limit_ma!r}")
         if int(increments_per_rev) != increments_per_rev or not 2 <= increments_per_rev < 2**31:
             raise ValueError(f"increments per revolution must be in 2..2^31-1, got "
                              f"{increments_per_rev!r}")
-        self.dt = float(self.model.dt)
+        self.axis = axis
+        self.dt = float(axis.dt)
         self.current_limit_ma = float(current_limit_ma)
         self.increments_per_rev = int(increments_per_rev)
         self.friction = friction or Friction()
         self.disturbance = disturbance or Disturbance()
         self.extra_disturbance_ma = 0.0  # set at run time (e.g. through the drive's 0x2003)
-        A = np.asarray(self.model.A, dtype=float)
-        B = np.asarray(self.model.B, dtype=float)[:, :1]
-        C = np.asarray(self.model.C, dtype=float)[:1]
-        n = A.shape[0]
-        # one product per period: [x(k+1); y(k+1)] = [[A, B], [C A, C B]] [x(k); u(k)]
-        self._step_matrix = np.block([[A, B], [C @ A, C @ B]])
+        n = axis.n_states
+        # one product per period: [x(k+1); y(end of period k)] = [[A, B], [C, D]] [x(k); u(k)]
+        # (u less u_offset, the position less y_offset)
+        self._step_matrix = np.block([[axis.A, axis.B], [axis.C, axis.D]]).astype(float)
         self._n = n
         f, d = self.friction, self.disturbance
         # friction or a configured disturbance: the load is computed every period
@@ -106,10 +110,11 @@ class AxisPlant:
 
     def reset(self) -> None:
         """Back to rest at position 0, time 0."""
-        self._xu = np.zeros(self.model.n_states + 1)  # state, then the input of the period
+        axis = self.axis
+        self._xu = np.zeros(axis.n_states + 1)  # state, then the input of the period
         self._next = np.zeros_like(self._xu)  # the product's buffer: x(k+1), then y(k+1)
         self.steps = 0
-        self.position_deg = 0.0
+        self.position_deg = axis.y_offset  # state 0: the model's operating point
         self.velocity_deg_s = 0.0
         self.applied_current_ma = 0.0
 
@@ -128,11 +133,12 @@ class AxisPlant:
         applied = min(max(float(current_ma), -limit), limit) if math.isfinite(current_ma) else 0.0
         self.applied_current_ma = applied
         M, xu, z, n = self._step_matrix, self._xu, self._next, self._n
+        u_offset, y_offset = self.axis.u_offset, self.axis.y_offset
         for _ in range(periods):
             loaded = self._configured_load or self.extra_disturbance_ma
-            xu[n] = applied - self.load_current_ma() if loaded else applied
+            xu[n] = (applied - self.load_current_ma() if loaded else applied) - u_offset
             np.matmul(M, xu, out=z)
-            position = float(z[n])
+            position = float(z[n]) + y_offset
             xu, z = z, xu  # x(k+1) is where the product put it; its last entry takes u(k+1)
             self.velocity_deg_s = (position - self.position_deg) / self.dt
             self.position_deg = position

@@ -32,6 +32,7 @@ from hil.core.ranges import MAX_DURATION_S, MAX_DWELL_S, MAX_EEC_HORIZON_S
 from hil.core.settings import KeyRead, Layer, Layered, Setting, effective, lay
 from hil.core.verdict import RUN_TABLES, RunTables, read_run_tables
 from hil.drivers.bench.modbus import BenchMap, BusSettings, RelaySpec, plan_reads
+from hil.emulators.bench.load_model import LoadModel, load_load_model, period_problem
 from hil.emulators.bench.plant import (
     METER_QUANTITIES,
     MODELS,
@@ -40,12 +41,14 @@ from hil.emulators.bench.plant import (
     DisturbanceSpec,
     FirstOrderLoadSpec,
     MeterSpec,
+    ModelLoadSpec,
     MotorCircuit,
     MotorSpec,
     PlantSpec,
     ResourceSpec,
 )
 from hil.emulators.bench.server import UNKNOWN_UNIT_POLICIES, ServerSettings
+from hil.emulators.errors import EmulatorSetupError
 from hil.emulators.faults import Fault, for_emulator, parse_faults_table
 from hil.errors import ConfigError
 
@@ -103,6 +106,17 @@ class BenchConfig:
         data = deep_merge(self.data, {"relays": {n: {"dwell_s": dwell} for n in peripherals}})
         problem = replace(self.problem, dwell_s=dict.fromkeys(peripherals, dwell))
         return replace(self, data=data, map=replace(self.map, relays=relays), problem=problem)
+
+    def emulator_tables(self) -> dict[str, Any]:
+        """:attr:`data` for an emulator in another process: every load's model file made
+        absolute (the tables are read from a temporary file, whose folder is not the
+        config's)."""
+        files = {name: spec.model.source for spec in self.plant.loads
+                 if isinstance(spec, ModelLoadSpec) for name in spec.name.split("+")}
+        if not files:
+            return self.data
+        return deep_merge(self.data, {"plant": {"loads": {
+            name: {"model": path} for name, path in files.items()}}})
 
     def emulating(self, seed: int | None = None, disturbance: bool | None = None
                   ) -> BenchConfig:
@@ -501,7 +515,8 @@ def _plant(table: Table, coils: int, relays: Mapping[str, RelaySpec],
                             _phases(base_table))
     base_table.done()
     loads_table = table.table("loads")
-    loads = tuple(_load(loads_table.table(name), name, relays) for name in loads_table.names())
+    read = [_load(loads_table.table(name), name, relays) for name in loads_table.names()]
+    loads = _with_model_loads(read, dt)
     loads_table.done()
     disturbance = _disturbance(table.table("disturbance"))
     table.done()
@@ -509,10 +524,29 @@ def _plant(table: Table, coils: int, relays: Mapping[str, RelaySpec],
                      loads, disturbance, tuple(resources))
 
 
+@dataclass(frozen=True)
+class _ModelFileLoad:
+    """A load whose table names a model file, as read (its table: for errors)."""
+
+    name: str
+    relay: str
+    model: LoadModel
+    pf: float
+    phases: tuple[str, ...]
+    table: Table
+
+
+#: the keys of a built-in load model, unused when the load is a model file
+_BUILT_IN_KEYS = ("va", "tau_on_s", "tau_off_s", "inertia_h_s", "circuit", "load_torque")
+
+
 def _load(table: Table, name: str, relays: Mapping[str, RelaySpec]
-          ) -> FirstOrderLoadSpec | MotorSpec:
+          ) -> FirstOrderLoadSpec | MotorSpec | _ModelFileLoad:
     relay = _relay(table, "relay", relays)
     phases = _phases(table)
+    given = table.data.get("model")
+    if isinstance(given, str) and given not in MODELS:
+        return _model_file_load(table, name, relay, phases)
     model = table.string("model", choices=MODELS)
     load: FirstOrderLoadSpec | MotorSpec
     if model == "first_order":
@@ -530,6 +564,62 @@ def _load(table: Table, name: str, relays: Mapping[str, RelaySpec]
         torque.done()
     table.done()
     return load
+
+
+def _model_file_load(table: Table, name: str, relay: str, phases: tuple[str, ...]
+                     ) -> _ModelFileLoad:
+    """``model = "F.json"``: the load's S from a model file (its path from the folder of the
+    config file that names it), at power factor ``pf`` (default 1); a built-in model's keys
+    (from the packaged table) are left unused."""
+    path = table.file_path("model")
+    try:
+        model = load_load_model(path)
+    except EmulatorSetupError as exc:
+        raise table.error("model", f"is neither {' nor '.join(MODELS)} nor a load model: "
+                          f"{exc}") from None
+    pf = _power_factor(table, "pf", 1.0)
+    for key in _BUILT_IN_KEYS:
+        table.raw(key, None)
+    table.done()
+    return _ModelFileLoad(name, relay, model, pf, phases, table)
+
+
+def _with_model_loads(read: list[FirstOrderLoadSpec | MotorSpec | _ModelFileLoad], dt: float
+                      ) -> tuple[FirstOrderLoadSpec | MotorSpec | ModelLoadSpec, ...]:
+    """The loads, those naming one model file as one load where the first of them is: the
+    file's inputs read exactly their relays (the machining model reads M1 and M2: both tables
+    name it), its period is the plant's step; it takes the first load's pf and phases."""
+    groups: dict[str, list[_ModelFileLoad]] = {}
+    for load in read:
+        if isinstance(load, _ModelFileLoad):
+            groups.setdefault(load.model.source, []).append(load)
+    loads: list[FirstOrderLoadSpec | MotorSpec | ModelLoadSpec] = []
+    for load in read:
+        if not isinstance(load, _ModelFileLoad):
+            loads.append(load)
+            continue
+        group = groups[load.model.source]
+        if load is not group[0]:
+            continue
+        model, table = load.model, load.table
+        problem = period_problem(model, dt)
+        if problem is not None:
+            raise table.error("model", f"({model.source}) does not fit the plant: {problem}")
+        behind = {other.relay: other for other in group}
+        for relay in model.relays:
+            if relay not in behind:
+                raise table.error("model", f"({model.source}) reads relay {relay!r}, and no "
+                                  "load behind it names this file: name it in that load's table "
+                                  "too (a model stands for every load it reads), or give this "
+                                  "load a model of its own relay")
+        for other in group:
+            if other.relay not in model.relays:
+                raise other.table.error("model", f"({model.source}) has no input of relay "
+                                        f"{other.relay!r} (its relays: "
+                                        f"{', '.join(model.relays)})")
+        loads.append(ModelLoadSpec("+".join(other.name for other in group), model, load.pf,
+                                   load.phases))
+    return tuple(loads)
 
 
 def _disturbance(table: Table) -> DisturbanceSpec:

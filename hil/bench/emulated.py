@@ -62,7 +62,7 @@ def _emulator_process(config: BenchConfig, clock: Clock, on_event: EventSink) ->
 
     check_emulation(config)
     # the run's effective tables, every layer in (seed, disturbance...): what it was given
-    process = start_bench_emulator(tables=config.data)
+    process = start_bench_emulator(tables=config.emulator_tables())
     on_event("emulator.process", f"bench emulator in process {process.pid} at {process.url}",
              source="bench", pid=process.pid, url=process.url)
     try:

@@ -78,6 +78,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     help="drive config laid over the default (hil/configs/drive.toml); "
                     "its [emulator] table is used")
     ed.add_argument("--channel", help="bus name clients open (default: emulator.channel)")
+    ed.add_argument("--model", metavar="F.json",
+                    help="the axis as a model file (`hil identify` writes them): one input, a "
+                    "current in mA, one output, a position in deg, its period dividing "
+                    "master.cycle_period_us (default: emulator.model, else the published axis)")
     ed.add_argument("--harden", action="store_true",
                     help="serve as a real-time process where the OS allows (as `hil doctor` "
                     "reports): SCHED_FIFO below hil's loop, a core apart from the loop's, "
@@ -161,8 +165,9 @@ def emulate_bench_command(args: argparse.Namespace) -> int:
 def emulate_drive_command(args: argparse.Namespace) -> int:
     """Serve the emulated CiA 402 drive over socketcand in real time until Ctrl-C or SIGTERM."""
     die_with_parent()
+    from hil.core.settings import Layer, lay
     from hil.errors import UsageError
-    from hil.servo.config import load_drive_config
+    from hil.servo.config import SOURCE, drive_layers, parse_drive_config
 
     nodes_ids = args.node or [1]
     for node_id in nodes_ids:
@@ -174,7 +179,11 @@ def emulate_drive_command(args: argparse.Namespace) -> int:
     overrides: dict[str, object] = {"node_id": nodes_ids[0]}
     if args.channel is not None:
         overrides["channel"] = args.channel
-    emulator = load_drive_config(args.config, overrides={"emulator": overrides}).emulator
+    layers, text = drive_layers(args.config)
+    layers.append(Layer("overrides", {"emulator": overrides}))
+    if args.model is not None:  # its path from the working folder; its errors name it
+        layers.append(Layer("--model", {"emulator": {"model": args.model}}))
+    emulator = parse_drive_config(lay(layers), args.config or SOURCE, text).emulator
     if args.write_eds:
         return write_eds(emulator, args.write_eds)
     if args.socketcand is None:

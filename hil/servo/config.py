@@ -28,8 +28,10 @@ from hil.core.verdict import RunTables, read_run_tables
 from hil.drivers.can_bus_time import CAN_FD_MAX_BITRATE, CLASSIC_CAN_MAX_BITRATE, max_bitrate
 from hil.drivers.canopen.bus import SOCKETCAND, CanBusSpec, parse_can_url
 from hil.drivers.canopen.config import DriveMasterConfig
+from hil.emulators.drive.axis_model import AxisModel, load_axis_model, period_problem
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.plant import Disturbance, Friction
+from hil.emulators.errors import EmulatorSetupError
 from hil.errors import ConfigError, UsageError
 from hil.protocols.cia402 import MODES, QUICK_STOP_OPTIONS, TPDO_LAYOUTS
 from hil.servo.safety import ServoSafety
@@ -191,7 +193,7 @@ def parse_drive_config(layered: Layered, source: str, text: str = "") -> DriveCo
     bus = _bus(bus_table)
     fd = bus is not None and bus.options.get("fd") is True
     master = _master(root.table("master", required=True), bus_table, fd)
-    emulator = _emulator(root.table("emulator", required=True))
+    emulator = _emulator(root.table("emulator", required=True), master.cycle_period_s)
     safety = _safety(root.table("safety", required=True))
     run = read_run_tables(root)
     axes = _axes(root)
@@ -361,8 +363,26 @@ def _or_inf(value: float | None) -> float:
     return math.inf if value is None else value
 
 
-def _emulator(e: Table) -> DriveEmulatorConfig:
-    """``[emulator]`` with its ``friction`` and ``disturbance`` sub-tables."""
+def _axis_model(e: Table, cycle_period_s: float) -> AxisModel | None:
+    """``[emulator] model``: a model file's axis (its path from the folder of the config file
+    that names it), checked, its period dividing the drive's cycle; '' (None): the published
+    axis."""
+    path = e.file_path("model")
+    if not path:
+        return None
+    try:
+        model = load_axis_model(path)
+    except EmulatorSetupError as exc:
+        raise e.error("model", f"is no axis model: {exc}") from None
+    problem = period_problem(model, cycle_period_s)
+    if problem is not None:
+        raise e.error("model", f"({path}) does not fit master.cycle_period_us: {problem}")
+    return model
+
+
+def _emulator(e: Table, cycle_period_s: float) -> DriveEmulatorConfig:
+    """``[emulator]`` with its ``friction`` and ``disturbance`` sub-tables; its ``model`` checked
+    against the drive's cycle of ``cycle_period_s``."""
     f, d = e.table("friction"), e.table("disturbance")
     friction = Friction(
         viscous_ma_per_deg_s=f.number("viscous_mA_per_deg_s"),
@@ -393,6 +413,7 @@ def _emulator(e: Table) -> DriveEmulatorConfig:
         channel=e.string("channel"),
         friction=friction,
         disturbance=disturbance,
+        axis_model=_axis_model(e, cycle_period_s),
     )
     for table in (f, d, e):
         table.done()

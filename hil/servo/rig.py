@@ -190,8 +190,9 @@ def emulator_process_drives(drive: DriveConfig, axes: Sequence[AxisSpec], on_eve
     # the run's effective tables, every layer in: what the run was configured with; hardened
     # as the loop is, so that the rig's side is not what runs late (its steps: the session's
     # realtime.emulator metadata)
+    model = drive.emulator.axis_model
     process = start_drive_emulator(node=[axis.node for axis in axes], tables=drive.data,
-                                   harden=True)
+                                   harden=True, model=model.source if model else None)
     granted = ", ".join(f"{step} {outcome.split(':')[0]}"
                         for step, outcome in process.hardening.items())
     on_event("emulator.process", f"drive emulator in process {process.pid} at {process.url} "

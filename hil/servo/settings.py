@@ -4,7 +4,9 @@
 
 Flags that set a key of drive.toml are layers over the files (``--node`` is
 ``master.node_id``, ``--eds`` is ``master.eds``, ``--safety K=V`` is ``safety.K``, ``--umax`` is
-``master.current_limit_mA``); ``--drive URL`` names the bus instead of ``[bus]``. What the run
+``master.current_limit_mA``); ``--drive URL`` names the bus instead of ``[bus]``
+(``--drive 'emulated?model=F.json'``: the emulated drive, ``[emulator] model`` = F.json, its
+path from the working folder). What the run
 uses comes from :class:`ServoSettings` only, so what ``--print-config`` shows is what runs.
 
 Limits only tighten from a flag: ``--umax`` above the configured current limit needs
@@ -20,7 +22,6 @@ from dataclasses import dataclass, replace
 from can.interfaces import VALID_INTERFACES
 
 from hil.controllers.base import check_cycle_period
-from hil.controllers.servo.model import SAMPLE_PERIOD_S
 from hil.core.registry import scheme_of
 from hil.core.settings import (
     LOWER,
@@ -50,7 +51,9 @@ from hil.servo.options import ServoRunOptions, flag_of
 FLAG_KEYS = {"bus.interface": "--drive", "bus.channel": "--drive", "bus.options": "--drive",
              "bus.options.*": "--drive", "master.node_id": "--node",
              "master.current_limit_mA": "--umax", "master.eds": "--eds",
-             "safety.*": "--safety KEY=VALUE"}
+             "emulator.model": "--drive emulated?model=F", "safety.*": "--safety KEY=VALUE"}
+#: the keys of ``[emulator]`` the URL ``emulated?KEY=VALUE`` sets
+EMULATED_URL_KEYS = ("model",)
 #: how each safety limit of ``[safety]`` tightens
 SAFETY_DIRECTIONS = {"enabled": SWITCH, "following_error_deg": UPPER,
                      "following_error_ms": UPPER, "position_min_deg": LOWER,
@@ -114,14 +117,17 @@ def resolve_servo(options: ServoRunOptions) -> ServoSettings:
     layers, text = drive_layers(options.drive_config)
     source = os.fspath(options.drive_config) if options.drive_config is not None else SOURCE
     configured = parse_drive_config(lay(layers), source, text)
+    drive_url, url_keys = emulated_url(options.drive)
     flags = _flag_layers(options)
+    if url_keys:  # a flag's path: from the working folder
+        flags.append(Layer("--drive", {"emulator": url_keys}))
     drive = parse_drive_config(lay([*layers, *flags]), source, text)
     notices = [*_current_limit(options, configured), *_safety(options, configured, drive)]
     if options.umax is not None:
         drive = drive.laid_over({"master": {"current_limit_mA": float(options.umax)}}, "--umax")
     if options.drive_overrides:  # a program's, last of all (tests, scripts, the demo)
         drive = drive.laid_over(options.drive_overrides, "drive_overrides")
-    url = options.drive or drive.bus_url
+    url = drive_url or drive.bus_url
     url_origin = "--drive" if options.drive else drive.layered.origin("bus.interface")
     buses = run_buses(options, drive, url)
     for bus in buses:
@@ -156,14 +162,31 @@ def run_buses(options: ServoRunOptions, drive: DriveConfig, url: str) -> set[str
     return {bus or url for bus in named}
 
 
+def emulated_url(url: str | None) -> tuple[str | None, dict[str, str]]:
+    """``emulated?model=F.json`` -> ``emulated`` and the ``[emulator]`` keys of its query
+    (:data:`EMULATED_URL_KEYS`); any other URL as it is, with none. A key it does not take is a
+    UsageError naming the URL."""
+    if url is None or not url.startswith(EMULATED + "?"):
+        return url, {}
+    keys = {}
+    for part in url.partition("?")[2].split("&"):
+        name, eq, value = part.partition("=")
+        if name not in EMULATED_URL_KEYS or not eq or not value:
+            raise UsageError(f"--drive {url!r}: {part!r} is not a key of the emulated drive "
+                             "(it takes model=F.json: its axis as a model file)")
+        keys[name] = value
+    return EMULATED, keys
+
+
 def check_emulated_period(drive: DriveConfig, url: str) -> None:
-    """The emulated drive steps its axis every 500 us: its cycle period (SYNC, 0x1006) must be
-    a whole multiple of it (ConfigError naming the key and the unit)."""
+    """The emulated drive steps its axis every 500 us (a model file's: its period): its cycle
+    period (SYNC, 0x1006) must be a whole multiple of it (ConfigError naming the key and the
+    unit)."""
     if scheme_of(url) != EMULATED:
         return
     period_us = round(drive.master.cycle_period_s * 1e6)
-    step_us = round(SAMPLE_PERIOD_S * 1e6)
-    if period_us % step_us:
+    step_us = round(drive.emulator.axis_period_s * 1e6)
+    if period_us % max(step_us, 1):
         raise ConfigError(f"{drive.source}: key 'master.cycle_period_us' is {period_us} us: the "
                           f"emulated drive steps its axis every {step_us} us, so its cycle "
                           f"period is a multiple of {step_us} us ({step_us}, {2 * step_us}...)")

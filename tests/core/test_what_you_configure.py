@@ -12,18 +12,23 @@ from __future__ import annotations
 
 import json
 import re
+import types
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from hil.bench.run import BenchRunOptions
 from hil.bench.settings import resolve_bench
 from hil.cli.main import build_parser, main
+from hil.controllers.ident.model_file import model_file_of
 from hil.core.settings import Setting
 from hil.servo.run import ServoRunOptions
 from hil.servo.settings import resolve_servo
 
+DATA = Path(__file__).parents[1] / "data"
+AXIS_MODEL, OTHER_AXIS_MODEL = DATA / "axis-published.json", DATA / "axis-half-gain.json"
 SERVO = resolve_servo(ServoRunOptions(controller="")).settings()
 BENCH = resolve_bench(BenchRunOptions(controller="")).settings()
 
@@ -91,6 +96,7 @@ SPECIAL: dict[str, dict[str, Any]] = {
     "master.cycle_period_us": {"master.cycle_period_us": 1000},
     "emulator.channel": {"emulator.channel": "can1"},
     "emulator.disturbance.end_s": {"emulator.disturbance.end_s": 1.5},
+    "emulator.model": {"emulator.model": str(AXIS_MODEL)},  # a model file that fits the axis
     # every key an [[axis]] takes: its own EDS and safety limits too
     "axis": {"axis": [{"name": "x", "node": 1, "current_limit_mA": 800.0, "eds": "x.eds",
                        "bus": "socketcand://127.0.0.1:29536",
@@ -135,7 +141,7 @@ SPECIAL: dict[str, dict[str, Any]] = {
 COUPLED = {
     # a load's model decides which other keys it has: a packaged load cannot change model
     # without keys the other model refuses; a new load of either model is proven below
-    "plant.loads.*.model": "test_a_new_load_of_either_model_takes_effect",
+    "plant.loads.*.model": "test_a_new_load_of_any_model_takes_effect",
 }
 
 
@@ -210,6 +216,8 @@ KEY_FLAGS: dict[str, list[tuple[str, Any, list[str], Any]]] = {
         ("master.eds", "in-config.eds", ["--eds", "from-flag.eds"], "{cwd}/from-flag.eds"),
         ("bus.interface", "virtual", ["--drive", "socketcand://127.0.0.1:29999"],
          "virtual"),  # --drive names the bus instead: bus.url below
+        ("emulator.model", str(AXIS_MODEL), ["--drive", f"emulated?model={OTHER_AXIS_MODEL}"],
+         str(OTHER_AXIS_MODEL)),
         ("safety.enabled", True, ["--safety", "enabled=true"], True),
         ("safety.following_error_deg", 40.0, ["--safety", "following_error_deg=20"], 20),
         ("safety.following_error_ms", 20.0, ["--safety", "following_error_ms=5"], 5),
@@ -299,7 +307,8 @@ def test_a_flag_overrides_the_config_file_key_by_key(tmp_path, capsys, monkeypat
     after = print_config(capsys, app, "--config", str(config), *argv)
     if isinstance(runs, str):
         runs = runs.format(cwd=tmp_path)
-    if argv[0] == "--drive":  # the URL names the bus; the [bus] keys are kept, unused
+    if argv[0] == "--drive" and key.startswith("bus."):  # the URL names the bus; the [bus]
+        # keys are kept, unused
         assert after["bus.url"] == {"value": argv[1], "origin": "--drive"}
         assert after[key]["origin"].endswith("(unused: --drive names the bus)")
         return
@@ -343,10 +352,17 @@ def test_every_key_of_the_packaged_configs_is_covered():
                 or key == "bus.url", key
 
 
-def test_a_new_load_of_either_model_takes_effect(tmp_path, capsys):
-    """A load's model decides its other keys: a new relay with a load of each model."""
+def test_a_new_load_of_any_model_takes_effect(tmp_path, capsys):
+    """A load's model decides its other keys: a new relay with a load of each built-in model,
+    and one of a model file (its path beside the config file)."""
+    s3 = types.SimpleNamespace(A=np.eye(1) * 0.5, B=np.ones((1, 1)), C=np.ones((1, 1)),
+                               D=np.zeros((1, 1)), dt=0.01)
+    (tmp_path / "s3.json").write_text(model_file_of(s3, ["/ident/relays:S3"],
+                                                    ["/bench/power:va_l2"]))
     config = tmp_path / "loads.toml"
     config.write_text(toml({"relays.S1": {"coil": 5}, "relays.S2": {"coil": 6},
+                            "relays.S3": {"coil": 7},
+                            "plant.loads.S3": {"relay": "S3", "model": "s3.json", "pf": 0.5},
                             "plant.loads.S1": {"relay": "S1", "model": "first_order",
                                                "va": 50.0, "pf": 1.0, "tau_on_s": 0.1,
                                                "tau_off_s": 0.1},
@@ -360,6 +376,9 @@ def test_a_new_load_of_either_model_takes_effect(tmp_path, capsys):
     assert effective["plant.loads.S1.model"] == {"value": "first_order", "origin": origin}
     assert effective["plant.loads.S2.model"] == {"value": "induction_motor", "origin": origin}
     assert effective["plant.loads.S2.circuit.xm"] == {"value": 2.0, "origin": origin}
+    assert effective["plant.loads.S3.model"] == {"value": str(tmp_path / "s3.json"),
+                                                 "origin": origin}
+    assert effective["plant.loads.S3.pf"] == {"value": 0.5, "origin": origin}
 
 
 def test_the_run_tables_and_the_bus_options_take_effect(tmp_path, capsys):

@@ -185,7 +185,8 @@ def test_disturbance_follows_its_schedule_only_when_enabled(config):
     ({"plant": {"loads": {"P1": {"relay": "P9"}}}}, "names relay 'P9', not in [relays]"),
     ({"plant": {"loads": {"M2": {"pf": 1.5}}}}, "key 'plant.loads.M2.pf' must be <= 1, got 1.5"),
     ({"plant": {"base": {"phases": ["L4"]}}}, "key 'plant.base.phases' must list distinct"),
-    ({"plant": {"loads": {"M1": {"model": "magic"}}}}, "key 'plant.loads.M1.model' must be"),
+    ({"plant": {"loads": {"M1": {"model": "magic"}}}},
+     "key 'plant.loads.M1.model' is neither first_order nor induction_motor nor a load model"),
     ({"relays": {"P1": {"coil": 9}}}, "relay module has 8 coils"),
     ({"plant": {"resources": {"q1": {"bounds": [150, 50]}}}}, "'plant.resources.q1.bounds'"),
 ])
