@@ -45,13 +45,12 @@ import can
 
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.motor import MotorLoops
-from hil.emulators.drive.objects import ObjectStore
-from hil.emulators.drive.od import build_object_dictionary
 from hil.emulators.drive.pdo import Pdo, PdoTable
 from hil.emulators.drive.plant import AxisPlant
 from hil.emulators.drive.sdo import SdoServer
 from hil.emulators.drive.states import POWERED, DriveStates
 from hil.emulators.drive.timebase import CLOCKS, TIME_BASE
+from hil.emulators.drive.twin import drive_dictionary
 from hil.emulators.faults import Fault, FaultSchedule, for_emulator
 from hil.protocols.can_frames import Frame, from_message
 from hil.protocols.cia301 import (
@@ -90,12 +89,9 @@ from hil.protocols.cia301 import (
 )
 from hil.protocols.cia402 import (
     CONTROLWORD,
-    CYCLIC_SYNCHRONOUS_POSITION,
-    CYCLIC_SYNCHRONOUS_TORQUE,
     FAULT,
     MODES_DISPLAY,
     MODES_OF_OPERATION,
-    NO_MODE,
     OPERATION_ENABLED,
     POSITION_ACTUAL,
     QUICK_STOP_ACTIVE,
@@ -110,7 +106,6 @@ from hil.protocols.cia402 import (
 
 log = logging.getLogger(__name__)
 
-MODES = (NO_MODE, CYCLIC_SYNCHRONOUS_POSITION, CYCLIC_SYNCHRONOUS_TORQUE)  # what 0x6060 accepts
 SYNC_LOSS_TIMEOUT = 0x2001  # [ms] (manufacturer object)
 DISTURBANCE = 0x2003        # external disturbance torque [mA] (manufacturer object)
 SYNC_ECHO = 0x2004          # the counter of the SYNC the TPDOs answer (manufacturer object)
@@ -150,11 +145,13 @@ class DriveNode:
     ) -> None:
         if clock not in CLOCKS:
             raise ValueError(f"clock must be one of {', '.join(CLOCKS)}, got {clock!r}")
-        self.config = config = config or DriveEmulatorConfig()
+        config = config or DriveEmulatorConfig()
+        self.dictionary = drive_dictionary(config)  # hil's own, or the twin of config.eds
+        self.config = config = self.dictionary.configure(config)
         self.node_id = config.node_id
         self.plant = plant if plant is not None else config.make_plant()
-        self.object_dictionary = build_object_dictionary(self.node_id, config.od_defaults())
-        self.objects = ObjectStore(self.object_dictionary)
+        self.object_dictionary = self.dictionary.od
+        self.objects = self.dictionary.store()
         self._values = self.objects.values
         self.lock = threading.RLock()
         self._send_fn = send
@@ -473,8 +470,7 @@ class DriveNode:
         self._values[(index, subindex)] = value
 
     def _write_mode(self, index: int, subindex: int, value: int) -> None:
-        if value not in MODES:
-            raise SdoAbortError(ABORT_VALUE)
+        self.dictionary.check_mode(value)  # the modes it emulates (of those 0x6502 lists)
         self._values[(index, subindex)] = value
         self._values[(MODES_DISPLAY, 0)] = value
 
@@ -518,7 +514,7 @@ class DriveNode:
         for key, value in zip(pdo.keys, pdo.layout.unpack(data), strict=True):
             if key == CONTROLWORD_KEY:
                 controlword = value  # applied after the targets of the same PDO
-            elif key == MODE_KEY and value not in MODES:
+            elif key == MODE_KEY and value not in self.dictionary.modes:
                 continue  # invalid mode in a PDO: ignored, the display keeps the active mode
             else:
                 try:

@@ -2,7 +2,8 @@
 mapping objects whenever one of them changes, the rules for changing them (a valid PDO's
 COB-ID and mapping are frozen; a mapping entry must name a mappable object of its size, at
 most 64 bits in all), received RPDO data checked for length and held for the next SYNC, and
-the TPDO frames of a SYNC."""
+the TPDO frames of a SYNC. The PDOs are those the dictionary has: every communication object
+0x1400.. (RPDO) and 0x1800.. (TPDO) with its mapping object 0x200 above it."""
 
 from __future__ import annotations
 
@@ -19,15 +20,20 @@ from hil.protocols.cia301 import (
     ABORT_PDO_TOO_LONG,
     ABORT_UNSUPPORTED,
     ABORT_VALUE,
+    ABORT_VALUE_HIGH,
     EMCY_PDO_LENGTH,
     EMCY_PDO_TOO_LONG,
+    RPDO_COMM_BASE,
+    TPDO_COMM_BASE,
     SdoAbortError,
 )
-from hil.protocols.cia402 import PDO_NOT_VALID, RPDOS, TPDOS
+from hil.protocols.cia402 import PDO_NOT_VALID
 
 EXTENDED_ID = 0x2000_0000  # COB-ID bit 29: a 29-bit identifier (not supported here)
 MAX_PDO_BITS = 64
 LAST_SYNCHRONOUS_TYPE = 240
+PDOS_PER_DIRECTION = 512  # CiA 301: communication objects 0x1400..0x15FF, 0x1800..0x19FF
+MAPPING_OFFSET = 0x200    # a PDO's mapping object is 0x200 above its communication object
 
 
 @dataclass
@@ -61,8 +67,11 @@ class PdoTable:
 
     def __init__(self, objects: ObjectStore) -> None:
         self.objects = objects
-        self.pdos = [Pdo(p.comm, p.mapping, False) for p in RPDOS] + \
-            [Pdo(p.comm, p.mapping, True) for p in TPDOS]
+        od = objects.od
+        self.pdos = [Pdo(comm, comm + MAPPING_OFFSET, transmit)
+                     for base, transmit in ((RPDO_COMM_BASE, False), (TPDO_COMM_BASE, True))
+                     for comm in range(base, base + PDOS_PER_DIRECTION)
+                     if comm in od and comm + MAPPING_OFFSET in od]
         self.by_object: dict[int, Pdo] = {}
         for pdo in self.pdos:
             self.by_object[pdo.comm] = pdo
@@ -119,15 +128,17 @@ class PdoTable:
             if not values[(pdo.comm, 1)] & PDO_NOT_VALID:
                 raise SdoAbortError(ABORT_UNSUPPORTED)  # mapping of a valid PDO is frozen
             if subindex == 0:
-                self._check_mapping(pdo, [values[(index, s)] for s in range(1, value + 1)])
+                if any((index, s) not in values for s in range(1, value + 1)):
+                    raise SdoAbortError(ABORT_VALUE_HIGH)  # more entries than it has
+                self.check_mapping(pdo, [values[(index, s)] for s in range(1, value + 1)])
             elif values[(index, 0)] != 0:
                 raise SdoAbortError(ABORT_UNSUPPORTED)  # disable the mapping first
             elif value:  # 0 clears an unused entry
-                self._check_mapping(pdo, [value])
+                self.check_mapping(pdo, [value])
             values[key] = value
         self.compile(pdo)
 
-    def _check_mapping(self, pdo: Pdo, entries: list[int]) -> None:
+    def check_mapping(self, pdo: Pdo, entries: list[int]) -> None:
         bits = 0
         for entry in entries:
             index, subindex, size = entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF
@@ -136,7 +147,9 @@ class PdoTable:
             except SdoAbortError:
                 raise SdoAbortError(ABORT_NO_OBJECT) from None
             usable = var.readable if pdo.transmit else var.writable
-            if not var.pdo_mappable or not usable or size != len(var):
+            emulated = (index, subindex) not in (
+                self.objects.no_read if pdo.transmit else self.objects.no_write)
+            if not var.pdo_mappable or not usable or not emulated or size != len(var):
                 raise SdoAbortError(ABORT_CANNOT_MAP)
             bits += size
         if bits > MAX_PDO_BITS:

@@ -361,6 +361,25 @@ def _or_inf(value: float | None) -> float:
     return math.inf if value is None else value
 
 
+#: ``[emulator]`` keys that set an object's power-on value, which a twin's EDS gives instead
+EDS_OBJECT_KEYS = {"rated_current_mA": "0x6075", "max_torque_permille": "0x6072",
+                   "increments_per_rev": "0x608F", "heartbeat_ms": "0x1017",
+                   "quick_stop_option": "0x605A"}
+
+
+def _twin_keys(e: Table, config: DriveEmulatorConfig) -> None:
+    """With ``eds`` the EDS gives the objects' power-on values: a key of one of them set to
+    another value than hil's default is refused (it could not take effect)."""
+    if config.eds is None:
+        return
+    default = DriveEmulatorConfig()
+    for key, index in EDS_OBJECT_KEYS.items():
+        field_name = key.replace("_mA", "_ma")
+        if getattr(config, field_name) != getattr(default, field_name):
+            raise e.error(key, f"is set, and so is eds ({config.eds}): the EDS gives "
+                          f"{index}'s power-on value; drop one of the two")
+
+
 def _emulator(e: Table) -> DriveEmulatorConfig:
     """``[emulator]`` with its ``friction`` and ``disturbance`` sub-tables."""
     f, d = e.table("friction"), e.table("disturbance")
@@ -378,6 +397,7 @@ def _emulator(e: Table) -> DriveEmulatorConfig:
     )
     config = DriveEmulatorConfig(
         node_id=e.integer("node_id", at_least=1, at_most=127),
+        eds=e.file_path("eds") or None,
         rated_current_ma=e.integer("rated_current_mA", above=0),
         max_torque_permille=e.integer("max_torque_permille", at_least=0, at_most=U16),
         current_limit_ma=e.number("current_limit_mA", above=0),
@@ -396,4 +416,5 @@ def _emulator(e: Table) -> DriveEmulatorConfig:
     )
     for table in (f, d, e):
         table.done()
+    _twin_keys(e, config)
     return config
