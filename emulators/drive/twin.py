@@ -5,13 +5,13 @@ with canopen's ``import_od``.
 A twin takes from the file every object with its power-on value (a DCF's ParameterValue, else
 the DefaultValue), the PDOs as mapped at power-on, the units of its axis (0x608F encoder
 increments per motor revolution, 0x6091 gear ratio: one turn of the axis is that many counts
-of 0x6064; 0x6075 rated current, 0x6072 max torque), the modes it supports (0x6502) and its
-identity (0x1018). Each of its objects is one of:
+of 0x6064; 0x6075 rated current; 0x6072 max torque and 0x6073 max current limit the
+current), the modes it supports (0x6502) and its identity (0x1018). Each of its objects is one of:
 
 * emulated - an object whose behaviour hil's node has (hil's own dictionary, the PDO objects,
-  0x6091, 0x607E at 0): the file's type must be hil's, its access and value are the file's; a
-  write the node has no behaviour for (the file makes writable what hil's drive only reads,
-  0x608F, 0x1014...) is refused with 0x08000020;
+  0x6091, 0x6073 max current, 0x607E at 0): the file's type must be hil's, its access and
+  value are the file's; a write the node has no behaviour for (the file makes writable what
+  hil's drive only reads, 0x608F, 0x1014...) is refused with 0x08000020;
 * plain - a constant (access ``const``) or a description without behaviour (0x1000, 0x1008,
   0x1009, 0x100A, 0x1018, 0x6402..0x6404, 0x6503..0x6505): read back as the file gives it,
   stored when an integer is written; without a value in the file it reads 0x08000024;
@@ -42,7 +42,7 @@ from typing import Any
 
 from canopen import import_od
 from canopen.objectdictionary import ObjectDictionary, ODVariable
-from canopen.objectdictionary.datatypes import UNSIGNED8, UNSIGNED32
+from canopen.objectdictionary.datatypes import UNSIGNED8, UNSIGNED16, UNSIGNED32
 
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.objects import Key, ObjectStore
@@ -66,6 +66,7 @@ from hil.protocols.cia402 import (
     CYCLIC_SYNCHRONOUS_TORQUE,
     ENCODER_RESOLUTION,
     GEAR_RATIO,
+    MAX_CURRENT,
     MODES_DISPLAY,
     MODES_OF_OPERATION,
     NO_MODE,
@@ -242,6 +243,14 @@ def _polarity_template() -> ODVariable:
     return var
 
 
+def _max_current_template() -> ODVariable:
+    """0x6073 as the twin emulates it: the current loops' limit, with 0x6072."""
+    var = ODVariable("Max current", MAX_CURRENT, 0)
+    var.data_type, var.access_type, var.default = UNSIGNED16, "rw", 0xFFFF
+    var.pdo_mappable = True
+    return var
+
+
 class _Twin:
     """The steps of building a twin from one file."""
 
@@ -283,6 +292,8 @@ class _Twin:
             return self.gear.get(sub)
         if key == (POLARITY, 0):
             return _polarity_template()
+        if key == (MAX_CURRENT, 0):
+            return _max_current_template()
         return self.own_vars.get(key)
 
     def classify(self) -> None:
