@@ -417,4 +417,6 @@ def _emulator(e: Table) -> DriveEmulatorConfig:
     for table in (f, d, e):
         table.done()
     _twin_keys(e, config)
+    if config.eds is not None:  # resolved in the tables too: an emulator process reads them
+        e.data["eds"] = config.eds  # from a file of its own, elsewhere
     return config

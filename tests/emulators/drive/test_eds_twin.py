@@ -242,3 +242,11 @@ def test_a_key_of_an_object_the_eds_gives_is_refused_with_it(tmp_path, ex20, cap
     assert one_error_line(refused).endswith(
         f"key 'emulator.increments_per_rev' is set, and so is eds ({tmp_path / 'ex20.eds'}): "
         "the EDS gives 0x608F's power-on value; drop one of the two")
+
+
+def test_the_eds_path_is_resolved_in_the_tables_an_emulator_process_reads(tmp_path):
+    from hil.servo.config import load_drive_config
+
+    drive = load_drive_config(twin_config(tmp_path))
+    assert drive.emulator.eds == str(tmp_path / "ex20.eds")
+    assert drive.data["emulator"]["eds"] == str(tmp_path / "ex20.eds")  # --realtime's process
