@@ -192,6 +192,8 @@ def parse_drive_config(layered: Layered, source: str, text: str = "") -> DriveCo
     fd = bus is not None and bus.options.get("fd") is True
     master = _master(root.table("master", required=True), bus_table, fd)
     emulator = _emulator(root.table("emulator", required=True))
+    if emulator.eds is not None:  # resolved in the tables too: an emulator process reads them
+        layered.data["emulator"]["eds"] = emulator.eds  # from a file of its own, elsewhere
     safety = _safety(root.table("safety", required=True))
     run = read_run_tables(root)
     axes = _axes(root)
@@ -417,6 +419,4 @@ def _emulator(e: Table) -> DriveEmulatorConfig:
     for table in (f, d, e):
         table.done()
     _twin_keys(e, config)
-    if config.eds is not None:  # resolved in the tables too: an emulator process reads them
-        e.data["eds"] = config.eds  # from a file of its own, elsewhere
     return config
