@@ -609,6 +609,8 @@ class DriveNode:
             now = self._now()
         if self.faults:
             self._service_faults(now)
+        if self.nmt_state == NMT_OPERATIONAL and (events := self.pdos.event_frames(now)):
+            self._send(events)  # event-driven TPDOs (transmission types 254, 255)
         period_ms = self._values[(PRODUCER_HEARTBEAT, 0)]
         if period_ms and (self._hb_next_ns is None or now >= self._hb_next_ns):
             if not self.faults.active("no_heartbeat"):

@@ -28,7 +28,7 @@ one of them is not emulated and the hook is gone. A mode 0x6502 lists that hil d
 emulate (only CSP and CST) is refused with 0x08000020 when 0x6060 is set to it; a mode it does
 not list with 0x06090030, as the drive would. A file the twin cannot run (no 0x6040, 0x6041,
 0x6060, 0x6061, 0x6064, 0x6502, 0x608F, no CSP or CST, a type other than hil's, a PDO mapping
-an object the twin cannot produce or take, a TPDO not sent on SYNC) is an
+an object the twin cannot produce or take, a transmission type other than 0..240, 254, 255) is an
 :class:`~hil.emulators.errors.EmulatorSetupError` naming the file and the object.
 """
 
@@ -420,13 +420,9 @@ class _Twin:
         if cob & EXTENDED_ID:
             raise self.error(f"{name} has a 29-bit COB-ID 0x{cob:08X}; the twin uses 11-bit "
                              "identifiers")
-        if transmit and not 1 <= kind <= 240:
-            raise self.error(f"{name} is valid at power-on with transmission type {kind}; the "
-                             "twin sends TPDOs on SYNC only (types 1..240): make it "
-                             f"synchronous or not valid (bit 31 of 0x{comm:04X}:1)")
-        if not transmit and 241 <= kind <= 253:
-            raise self.error(f"{name} has transmission type {kind}, which the twin does not "
-                             "take (0..240, 254, 255)")
+        if 241 <= kind <= 253:
+            raise self.error(f"{name} is valid at power-on with transmission type {kind}, "
+                             "which the twin does not emulate (0..240, 254, 255; no RTR)")
 
     def check_entry(self, name: str, entry: int, transmit: bool) -> int:
         key, size = (entry >> 16, (entry >> 8) & 0xFF), entry & 0xFF

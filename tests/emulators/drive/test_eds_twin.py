@@ -21,6 +21,8 @@ import pytest
 
 from hil import api
 from hil.core.recording.reader import read_session
+from hil.emulators.drive.config import DriveEmulatorConfig
+from hil.emulators.drive.node import DriveNode
 from tests.cli import hil_here
 
 DATA = Path(__file__).resolve().parents[2] / "data"
@@ -217,9 +219,9 @@ def test_an_eds_of_no_drive_is_one_line(tmp_path):
     ("DefaultValue=$NODEID+0x40000280\nPDOMapping=0\n\n[1801sub2]\nParameterName="
      "Transmission type\nObjectType=0x7\nDataType=0x0005\nAccessType=rw\nDefaultValue=1",
      "DefaultValue=$NODEID+0x40000280\nPDOMapping=0\n\n[1801sub2]\nParameterName="
-     "Transmission type\nObjectType=0x7\nDataType=0x0005\nAccessType=rw\nDefaultValue=255",
-     "TPDO2 (0x1801) is valid at power-on with transmission type 255; the twin sends TPDOs "
-     "on SYNC only"),
+     "Transmission type\nObjectType=0x7\nDataType=0x0005\nAccessType=rw\nDefaultValue=252",
+     "TPDO2 (0x1801) is valid at power-on with transmission type 252, which the twin does not "
+     "emulate (0..240, 254, 255; no RTR)"),
     ("DefaultValue=0x000002A1", "DefaultValue=0x00000001",
      "0x6502 = 0x00000001 lists neither CSP nor CST"),
     ("ParameterName=Shaft revolutions\nObjectType=0x7\nDataType=0x0007\nAccessType=rw\n"
@@ -227,7 +229,7 @@ def test_an_eds_of_no_drive_is_one_line(tmp_path):
      "AccessType=rw\nDefaultValue=7",
      "0x608F and 0x6091 give 748983 counts per turn of the axis; the twin needs a whole "
      "number"),
-], ids=["type", "tpdo-maps-vendor-object", "event-driven-tpdo", "no-cyclic-mode",
+], ids=["type", "tpdo-maps-vendor-object", "rtr-tpdo", "no-cyclic-mode",
         "gear-not-whole"])
 def test_an_eds_the_twin_cannot_run_is_one_line(tmp_path, capsys, old, new, says):
     path = edited(tmp_path, old, new)
@@ -250,3 +252,21 @@ def test_the_eds_path_is_resolved_in_the_tables_an_emulator_process_reads(tmp_pa
     drive = load_drive_config(twin_config(tmp_path))
     assert drive.emulator.eds == str(tmp_path / "ex20.eds")
     assert drive.data["emulator"]["eds"] == str(tmp_path / "ex20.eds")  # --realtime's process
+
+
+def test_an_event_driven_tpdo_of_the_eds_goes_out_when_its_data_changes(tmp_path):
+    header = "[1800sub2]\nParameterName=Transmission type\nObjectType=0x7\nDataType=0x0005\n"
+    path = edited(tmp_path, header + "AccessType=rw\nDefaultValue=1\n",
+                  header + "AccessType=rw\nDefaultValue=255\n")
+    sent: list[tuple[int, bytes]] = []
+    node = DriveNode(DriveEmulatorConfig(node_id=NODE, eds=str(path)), send=sent.extend)
+    node.boot()
+    node.handle_frame(0x000, bytes([0x01, NODE]))  # NMT start
+    node.service()
+    node.service()
+    node.handle_frame(0x600 + NODE, bytes([0x2B, 0x40, 0x60, 0, 0x06, 0, 0, 0]))  # shutdown
+    node.service()
+    node.service()
+    tpdo1 = [data for can_id, data in sent if can_id == 0x180 + NODE]
+    # statusword and position: once on start, once when the statusword changed, no more
+    assert tpdo1 == [bytes.fromhex("5002") + bytes(4), bytes.fromhex("3102") + bytes(4)]
