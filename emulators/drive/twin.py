@@ -67,6 +67,7 @@ from hil.protocols.cia402 import (
     ENCODER_RESOLUTION,
     GEAR_RATIO,
     MAX_CURRENT,
+    MAX_TORQUE,
     MODES_DISPLAY,
     MODES_OF_OPERATION,
     NO_MODE,
@@ -87,8 +88,10 @@ MODE_NAMES = {1: "PP", 2: "VL", 3: "PV", 4: "TQ", 6: "HM", 7: "IP", 8: "CSP", 9:
 #: hil's manufacturer objects (test hooks and time base, :mod:`hil.emulators.drive.od`)
 HOOKS = (0x2001, 0x2002, 0x2003, 0x2004, TIME_BASE)
 #: objects that only describe the drive: read back as the file gives them
-DESCRIPTIONS = (DEVICE_TYPE, 0x1008, 0x1009, 0x100A, IDENTITY, 0x6402, 0x6403, 0x6404, 0x6503,
-                0x6504, 0x6505)
+DESCRIPTIONS = (DEVICE_TYPE, 0x1008, 0x1009, 0x100A, IDENTITY, 0x6402, 0x6403, 0x6404,
+                SUPPORTED_MODES, 0x6503, 0x6504, 0x6505)
+#: the axis' units and current limits: the file must give their values (never hil's)
+VALUED = (ENCODER_RESOLUTION, GEAR_RATIO, RATED_CURRENT, MAX_TORQUE, MAX_CURRENT)
 #: what the twin needs to run CST or CSP at all
 NEEDED = ((CONTROLWORD, 0, "controlword"), (STATUSWORD, 0, "statusword"),
           (MODES_OF_OPERATION, 0, "modes of operation"),
@@ -315,6 +318,10 @@ class _Twin:
 
     def emulated(self, var: ODVariable, template: ODVariable, value: Any) -> None:
         key = (var.index, var.subindex)
+        if value is None and var.index in VALUED and key not in (
+                (ENCODER_RESOLUTION, 0), (GEAR_RATIO, 0)):
+            raise self.error(f"{_name(key)} ({var.name}) has no value: the twin takes the "
+                             "axis' units and current limits from the file, never its own")
         if var.data_type != template.data_type:
             raise self.error(
                 f"{_name(key)} ({var.name}) is {TYPE_NAMES.get(var.data_type or 0, var.data_type)}"

@@ -23,6 +23,7 @@ from hil import api
 from hil.core.recording.reader import read_session
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.node import DriveNode
+from hil.protocols.cia301 import ABORT_NO_DATA, SdoAbortError
 from tests.cli import hil_here
 
 DATA = Path(__file__).resolve().parents[2] / "data"
@@ -270,3 +271,24 @@ def test_an_event_driven_tpdo_of_the_eds_goes_out_when_its_data_changes(tmp_path
     tpdo1 = [data for can_id, data in sent if can_id == 0x180 + NODE]
     # statusword and position: once on start, once when the statusword changed, no more
     assert tpdo1 == [bytes.fromhex("5002") + bytes(4), bytes.fromhex("3102") + bytes(4)]
+
+
+def test_a_unit_the_eds_does_not_give_is_refused_not_guessed(tmp_path, capsys):
+    path = edited(tmp_path, "AccessType=rw\nDefaultValue=1048576\n", "AccessType=rw\n")
+    refused = hil_here(capsys, "emulate", "drive", "--eds", path, cwd=tmp_path)
+    assert one_error_line(refused).endswith(
+        "0x608F:1 (Encoder increments) has no value: the twin takes the axis' units and "
+        "current limits from the file, never its own")
+
+
+def test_a_vendor_object_at_a_hook_index_is_the_vendors_and_not_emulated(tmp_path):
+    path = edited(tmp_path, "[ManufacturerObjects]\nSupportedObjects=2\n",
+                  "[2005]\nParameterName=Brake delay\nObjectType=0x7\nDataType=0x0006\n"
+                  "AccessType=rw\nDefaultValue=20\nPDOMapping=0\n\n"
+                  "[ManufacturerObjects]\nSupportedObjects=2\n")
+    node = DriveNode(DriveEmulatorConfig(node_id=NODE, eds=str(path)), send=lambda frames: None)
+    assert node.dictionary.summary(NODE).endswith("; hil's 0x2005 replaced by its own")
+    with pytest.raises(SdoAbortError) as read:
+        node.objects.read(0x2005, 0)
+    assert read.value.code == ABORT_NO_DATA
+    assert node.objects.read(0x2003, 0) == bytes(2)  # hil's disturbance hook is still there
