@@ -28,7 +28,8 @@ one of them is not emulated and the hook is gone. A mode 0x6502 lists that hil d
 emulate (only CSP and CST) is refused with 0x08000020 when 0x6060 is set to it; a mode it does
 not list with 0x06090030, as the drive would. A file the twin cannot run (no 0x6040, 0x6041,
 0x6060, 0x6061, 0x6064, 0x6502, 0x608F, no CSP or CST, a type other than hil's, a PDO mapping
-an object the twin cannot produce or take, a transmission type other than 0..240, 254, 255) is an
+an object the twin cannot produce or take, a transmission type other than 0..240, 254, 255, a
+unit or limit without a value, an EMCY or SDO COB-ID other than CiA 301's) is an
 :class:`~hil.emulators.errors.EmulatorSetupError` naming the file and the object.
 """
 
@@ -36,7 +37,7 @@ from __future__ import annotations
 
 import configparser
 import logging
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from fractions import Fraction
 from typing import Any
 
@@ -47,6 +48,7 @@ from canopen.objectdictionary.datatypes import UNSIGNED8, UNSIGNED16, UNSIGNED32
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.objects import Key, ObjectStore
 from hil.emulators.drive.od import build_object_dictionary, iter_variables
+from hil.emulators.drive.pdo import EXTENDED_ID, MAPPING_OFFSET, MAX_PDO_BITS
 from hil.emulators.drive.timebase import TIME_BASE
 from hil.emulators.errors import EmulatorSetupError
 from hil.protocols.cia301 import (
@@ -90,6 +92,9 @@ HOOKS = (0x2001, 0x2002, 0x2003, 0x2004, TIME_BASE)
 #: objects that only describe the drive: read back as the file gives them
 DESCRIPTIONS = (DEVICE_TYPE, 0x1008, 0x1009, 0x100A, IDENTITY, 0x6402, 0x6403, 0x6404,
                 SUPPORTED_MODES, 0x6503, 0x6504, 0x6505)
+#: hil's node behaves by these, whatever they hold: a file must give the value it behaves by
+FIXED = ((0x1014, 0, "COB-ID EMCY"), (0x1200, 1, "SDO request COB-ID"),
+         (0x1200, 2, "SDO response COB-ID"))
 #: the axis' units and current limits: the file must give their values (never hil's)
 VALUED = (ENCODER_RESOLUTION, GEAR_RATIO, RATED_CURRENT, MAX_TORQUE, MAX_CURRENT)
 #: what the twin needs to run CST or CSP at all
@@ -105,9 +110,7 @@ MODE_NEEDS = {CYCLIC_SYNCHRONOUS_POSITION: ((TARGET_POSITION, 0, "target positio
                                           (RATED_CURRENT, 0, "motor rated current"))}
 TYPE_NAMES = {1: "BOOLEAN", 2: "INTEGER8", 3: "INTEGER16", 4: "INTEGER32", 5: "UNSIGNED8",
               6: "UNSIGNED16", 7: "UNSIGNED32", 8: "REAL32", 9: "VISIBLE_STRING"}
-PDO_SPAN = 0x200  # 0x1400..0x15FF, 0x1800..0x19FF; their mappings 0x200 above
-MAX_PDO_BITS = 64
-EXTENDED_ID = 0x2000_0000
+PDO_SPAN = MAPPING_OFFSET  # 0x1400..0x15FF, 0x1800..0x19FF; their mappings 0x200 above
 
 
 @dataclass(frozen=True)
@@ -123,7 +126,7 @@ class DriveDictionary:
     listed_modes: frozenset[int] = frozenset(EMULATED_MODES)  # 0x6502's
     counts_per_turn: int | None = None  # 0x6064 counts per turn of the axis (None: config's)
     path: str | None = None
-    replaced_hooks: tuple[int, ...] = field(default=())
+    replaced_hooks: tuple[int, ...] = ()
 
     def store(self) -> ObjectStore:
         return ObjectStore(self.od, hidden=self.hidden, no_read=self.no_read,
@@ -331,6 +334,10 @@ class _Twin:
         var.max = template.max if var.max is None else var.max
         if var.writable and not template.writable:
             self.no_write.add(key)
+        fixed = next((name for index, sub, name in FIXED if key == (index, sub)), None)
+        if fixed is not None and var.default != template.default:
+            raise self.error(f"{_name(key)} ({fixed}) is 0x{var.default:X}; the twin's is "
+                             f"0x{template.default:X}, as CiA 301 predefines it")
 
     def variable(self, key: Key) -> ODVariable | None:
         """The file's object ``key``, if it has one."""
@@ -397,7 +404,7 @@ class _Twin:
 
     def check_pdos(self, store: ObjectStore) -> None:
         """The PDOs as mapped at power-on: each mapped object one the twin produces (TPDO) or
-        takes (RPDO), the TPDOs valid at power-on sent on SYNC."""
+        takes (RPDO), each valid one of a transmission type it emulates."""
         store.reset()
         values = store.values
         for base, transmit in ((RPDO_COMM_BASE, False), (TPDO_COMM_BASE, True)):
@@ -408,11 +415,11 @@ class _Twin:
     def check_pdo(self, values: dict[Key, object], comm: int, transmit: bool) -> None:
         mapping = comm + PDO_SPAN
         name = f"{'TPDO' if transmit else 'RPDO'}{comm % PDO_SPAN + 1} (0x{comm:04X})"
-        for key in ((comm, 1), (comm, 2), (mapping, 0)):
+        keys = ((comm, 1), (comm, 2), (mapping, 0))
+        for key in keys:
             if not isinstance(values.get(key), int):
                 raise self.error(f"{name}: no {_name(key)} with a value")
-        cob, kind, count = values[(comm, 1)], values[(comm, 2)], values[(mapping, 0)]
-        assert isinstance(cob, int) and isinstance(kind, int) and isinstance(count, int)
+        cob, kind, count = (value for key in keys if isinstance(value := values[key], int))
         bits = 0
         for sub in range(1, count + 1):
             entry = values.get((mapping, sub))

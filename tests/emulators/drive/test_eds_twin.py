@@ -230,8 +230,10 @@ def test_an_eds_of_no_drive_is_one_line(tmp_path):
      "AccessType=rw\nDefaultValue=7",
      "0x608F and 0x6091 give 748983 counts per turn of the axis; the twin needs a whole "
      "number"),
+    ("DefaultValue=$NODEID+0x80\n", "DefaultValue=$NODEID+0x80000080\n",
+     "0x1014:0 (COB-ID EMCY) is 0x80000081; the twin's is 0x81, as CiA 301 predefines it"),
 ], ids=["type", "tpdo-maps-vendor-object", "rtr-tpdo", "no-cyclic-mode",
-        "gear-not-whole"])
+        "gear-not-whole", "emcy-off"])
 def test_an_eds_the_twin_cannot_run_is_one_line(tmp_path, capsys, old, new, says):
     path = edited(tmp_path, old, new)
     refused = hil_here(capsys, "emulate", "drive", "--eds", path, cwd=tmp_path)
