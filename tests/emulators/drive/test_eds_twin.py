@@ -81,7 +81,7 @@ def edited(tmp_path: Path, old: str, new: str, name: str = "edited.eds") -> Path
 def test_scan_of_the_twin_reads_the_eds_identity_scaling_modes_and_pdos(tmp_path, twin,
                                                                         capsys):
     table = hil(tmp_path, "drive", "scan", twin.url)
-    report = hil_here(capsys, "drive", "scan", twin.url, "--json", cwd=tmp_path)
+    report = hil_here(capsys, "drive", "scan", twin.url, "--eds", EX20, "--json", cwd=tmp_path)
     startup = twin.stderr_lines()
     assert table.returncode == 0, table.stderr
     assert (f"position 0.000 deg (0x6064 = 0 counts, {COUNTS_PER_TURN} per turn: 0x608F "
@@ -103,6 +103,7 @@ def test_scan_of_the_twin_reads_the_eds_identity_scaling_modes_and_pdos(tmp_path
         "TPDO1": (0x184, True, ["0x6041:0 (16 bits)", "0x6064:0 (32 bits)"]),
         "TPDO2": (0x284, True, ["0x606C:0 (32 bits)", "0x6077:0 (16 bits)"])}
     assert node["verdict"] == "can drive: yes, in CST"
+    assert node["eds"]["problems"] == []  # the file checked against the twin, as a drive
     # one line at start-up names what the twin does not emulate
     [line] = [line for line in startup if line.startswith("hil: twin of ")]
     assert line.endswith("not emulated: 0x1003, 0x1014 (writes), 0x1800:6, 0x2100, 0x2101, "
@@ -188,6 +189,9 @@ def test_a_twin_of_another_hil_configuration_from_its_write_eds(tmp_path, capsys
                       cwd=tmp_path)
     assert listed.returncode == 0
     assert listed.stdout.splitlines()[-1] == "every object is emulated"
+    both = hil_here(capsys, "emulate", "drive", "--eds", "hil7.eds", "--write-eds", "x.eds",
+                    cwd=tmp_path)
+    assert "--write-eds writes hil's own dictionary" in one_error_line(both)
 
 
 def test_emulate_drive_eds_alone_lists_what_the_twin_refuses(tmp_path, capsys):
