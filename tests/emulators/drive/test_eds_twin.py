@@ -209,9 +209,13 @@ def test_emulate_drive_eds_alone_lists_what_the_twin_refuses(tmp_path, capsys):
 
 def test_an_eds_of_no_drive_is_one_line(tmp_path):
     refused = hil(tmp_path, "emulate", "drive", "--eds", SAMPLE, "--socketcand", "127.0.0.1:0")
-    assert one_error_line(refused) == (
-        f"hil: error: EDS {SAMPLE}: no 0x6040:0 (controlword): the twin needs it to run CST "
-        "or CSP")
+    said = (f"hil: error: EDS {SAMPLE}: no 0x6040:0 (controlword): the twin needs it to run CST "
+            "or CSP")
+    assert one_error_line(refused) == said
+    (tmp_path / "sample.toml").write_text(f'[emulator]\neds = "{SAMPLE}"\n')
+    run = hil(tmp_path, "servo", "run", "--config", "sample.toml", "--controller", "pid",
+              "--duration", "0.1", "--out", "never.mcap")  # the in-process lockstep twin
+    assert one_error_line(run) == said
 
 
 @pytest.mark.parametrize("old, new, says", [
