@@ -7,7 +7,9 @@ message), time-driven work (heartbeat production, watchdogs, ramp time-outs) run
 :meth:`DriveNode.service`, and frames go out through a ``send(list_of_frames)`` callable
 (:mod:`hil.emulators.drive.runners` runs it on a bus, or in lockstep).
 
-Its parts, one job each: :mod:`~hil.emulators.drive.objects` (dictionary and live values),
+Its dictionary is hil's own or a twin of a real drive's EDS (:mod:`~hil.emulators.drive.twin`:
+its objects, PDO maps, axis units and modes). Its parts, one job each:
+:mod:`~hil.emulators.drive.objects` (dictionary and live values),
 :mod:`~hil.emulators.drive.sdo` (the SDO server), :mod:`~hil.emulators.drive.pdo` (PDOs),
 :mod:`~hil.emulators.drive.states` (the CiA 402 state machine), :mod:`~hil.emulators.drive.motor`
 (the current loops) and :mod:`~hil.emulators.drive.plant` (the axis). The node itself is NMT,
@@ -16,7 +18,8 @@ heartbeats, SYNC, EMCY, what writing an object means, and faults on purpose.
 Cyclic path (raw frames, never the ``canopen`` PDO machinery): an RPDO is stored on reception;
 on SYNC the node latches it (controlword and targets), advances the plant one communication
 cycle (0x1006 / plant period steps, at least one), and sends the TPDOs whose transmission type
-counter expires. Every value an SDO reads is the one the last TPDO carried.
+counter expires; event-driven TPDOs go out from :meth:`DriveNode.service` when their data
+change. Every value an SDO reads is the one the last TPDO carried.
 
 Faults: heartbeat-consumer time-out or SYNC loss while the power stage is enabled -> EMCY
 0x8130; commanded current above the trip level -> EMCY 0x2310; either starts the fault reaction
