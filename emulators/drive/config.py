@@ -17,6 +17,7 @@ class DriveEmulatorConfig:
     :mod:`hil.servo.config`)."""
 
     node_id: int = 1
+    eds: str | None = None  # the drive's EDS or DCF: a twin of it (emulators/drive/twin.py)
     # the object dictionary's start-up values are the defaults (emulators/drive/od.py)
     rated_current_ma: int = OdDefaults.rated_current_ma
     max_torque_permille: int = OdDefaults.max_torque_permille

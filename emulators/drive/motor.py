@@ -6,6 +6,7 @@ it (statusword bit 11)."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from hil.emulators.drive.config import DriveEmulatorConfig
@@ -16,6 +17,7 @@ from hil.protocols.cia301 import EMCY_OVERCURRENT, ERR_REG_CURRENT
 from hil.protocols.cia402 import (
     CYCLIC_SYNCHRONOUS_POSITION,
     CYCLIC_SYNCHRONOUS_TORQUE,
+    MAX_CURRENT,
     MAX_TORQUE,
     MODES_DISPLAY,
     OPERATION_ENABLED,
@@ -26,6 +28,7 @@ from hil.protocols.cia402 import (
 
 OVERCURRENT_TRIP = 0x2002  # the emulator's trip level [mA] (manufacturer object)
 RATED_KEY, MAX_TORQUE_KEY, MODE_KEY = (RATED_CURRENT, 0), (MAX_TORQUE, 0), (MODES_DISPLAY, 0)
+MAX_CURRENT_KEY = (MAX_CURRENT, 0)
 TORQUE_KEY, TRIP_KEY = (TARGET_TORQUE, 0), (OVERCURRENT_TRIP, 0)
 
 
@@ -47,8 +50,10 @@ class MotorLoops:
         self.last_target_deg = None
 
     def current_limit_ma(self) -> float:
+        """The smallest of 0x6072, 0x6073 (a twin's, when its EDS has it) and the amplifier's."""
         rated = self.values[RATED_KEY]
-        return min(self.values[MAX_TORQUE_KEY] * rated / 1000.0, self.plant.current_limit_ma)
+        per_mille = min(self.values[MAX_TORQUE_KEY], self.values.get(MAX_CURRENT_KEY, math.inf))
+        return min(per_mille * rated / 1000.0, self.plant.current_limit_ma)
 
     def current(self, cycle_s: float) -> tuple[float, bool]:
         """The current the drive applies this cycle and whether it had to limit it."""

@@ -7,7 +7,9 @@ message), time-driven work (heartbeat production, watchdogs, ramp time-outs) run
 :meth:`DriveNode.service`, and frames go out through a ``send(list_of_frames)`` callable
 (:mod:`hil.emulators.drive.runners` runs it on a bus, or in lockstep).
 
-Its parts, one job each: :mod:`~hil.emulators.drive.objects` (dictionary and live values),
+Its dictionary is hil's own or a twin of a real drive's EDS (:mod:`~hil.emulators.drive.twin`:
+its objects, PDO maps, axis units and modes). Its parts, one job each:
+:mod:`~hil.emulators.drive.objects` (dictionary and live values),
 :mod:`~hil.emulators.drive.sdo` (the SDO server), :mod:`~hil.emulators.drive.pdo` (PDOs),
 :mod:`~hil.emulators.drive.states` (the CiA 402 state machine), :mod:`~hil.emulators.drive.motor`
 (the current loops) and :mod:`~hil.emulators.drive.plant` (the axis). The node itself is NMT,
@@ -16,7 +18,8 @@ heartbeats, SYNC, EMCY, what writing an object means, and faults on purpose.
 Cyclic path (raw frames, never the ``canopen`` PDO machinery): an RPDO is stored on reception;
 on SYNC the node latches it (controlword and targets), advances the plant one communication
 cycle (0x1006 / plant period steps, at least one), and sends the TPDOs whose transmission type
-counter expires. Every value an SDO reads is the one the last TPDO carried.
+counter expires; event-driven TPDOs go out from :meth:`DriveNode.service` when their data
+change. Every value an SDO reads is the one the last TPDO carried.
 
 Faults: heartbeat-consumer time-out or SYNC loss while the power stage is enabled -> EMCY
 0x8130; commanded current above the trip level -> EMCY 0x2310; either starts the fault reaction
@@ -45,13 +48,12 @@ import can
 
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.motor import MotorLoops
-from hil.emulators.drive.objects import ObjectStore
-from hil.emulators.drive.od import build_object_dictionary
 from hil.emulators.drive.pdo import Pdo, PdoTable
 from hil.emulators.drive.plant import AxisPlant
 from hil.emulators.drive.sdo import SdoServer
 from hil.emulators.drive.states import POWERED, DriveStates
 from hil.emulators.drive.timebase import CLOCKS, TIME_BASE
+from hil.emulators.drive.twin import drive_dictionary
 from hil.emulators.faults import Fault, FaultSchedule, for_emulator
 from hil.protocols.can_frames import Frame, from_message
 from hil.protocols.cia301 import (
@@ -90,12 +92,9 @@ from hil.protocols.cia301 import (
 )
 from hil.protocols.cia402 import (
     CONTROLWORD,
-    CYCLIC_SYNCHRONOUS_POSITION,
-    CYCLIC_SYNCHRONOUS_TORQUE,
     FAULT,
     MODES_DISPLAY,
     MODES_OF_OPERATION,
-    NO_MODE,
     OPERATION_ENABLED,
     POSITION_ACTUAL,
     QUICK_STOP_ACTIVE,
@@ -110,7 +109,6 @@ from hil.protocols.cia402 import (
 
 log = logging.getLogger(__name__)
 
-MODES = (NO_MODE, CYCLIC_SYNCHRONOUS_POSITION, CYCLIC_SYNCHRONOUS_TORQUE)  # what 0x6060 accepts
 SYNC_LOSS_TIMEOUT = 0x2001  # [ms] (manufacturer object)
 DISTURBANCE = 0x2003        # external disturbance torque [mA] (manufacturer object)
 SYNC_ECHO = 0x2004          # the counter of the SYNC the TPDOs answer (manufacturer object)
@@ -150,11 +148,13 @@ class DriveNode:
     ) -> None:
         if clock not in CLOCKS:
             raise ValueError(f"clock must be one of {', '.join(CLOCKS)}, got {clock!r}")
-        self.config = config = config or DriveEmulatorConfig()
+        config = config or DriveEmulatorConfig()
+        self.dictionary = drive_dictionary(config)  # hil's own, or the twin of config.eds
+        self.config = config = self.dictionary.configure(config)
         self.node_id = config.node_id
         self.plant = plant if plant is not None else config.make_plant()
-        self.object_dictionary = build_object_dictionary(self.node_id, config.od_defaults())
-        self.objects = ObjectStore(self.object_dictionary)
+        self.object_dictionary = self.dictionary.od
+        self.objects = self.dictionary.store()
         self._values = self.objects.values
         self.lock = threading.RLock()
         self._send_fn = send
@@ -473,8 +473,7 @@ class DriveNode:
         self._values[(index, subindex)] = value
 
     def _write_mode(self, index: int, subindex: int, value: int) -> None:
-        if value not in MODES:
-            raise SdoAbortError(ABORT_VALUE)
+        self.dictionary.check_mode(value)  # the modes it emulates (of those 0x6502 lists)
         self._values[(index, subindex)] = value
         self._values[(MODES_DISPLAY, 0)] = value
 
@@ -518,7 +517,7 @@ class DriveNode:
         for key, value in zip(pdo.keys, pdo.layout.unpack(data), strict=True):
             if key == CONTROLWORD_KEY:
                 controlword = value  # applied after the targets of the same PDO
-            elif key == MODE_KEY and value not in MODES:
+            elif key == MODE_KEY and value not in self.dictionary.modes:
                 continue  # invalid mode in a PDO: ignored, the display keeps the active mode
             else:
                 try:
@@ -613,6 +612,8 @@ class DriveNode:
             now = self._now()
         if self.faults:
             self._service_faults(now)
+        if self.nmt_state == NMT_OPERATIONAL and (events := self.pdos.event_frames(now)):
+            self._send(events)  # event-driven TPDOs (transmission types 254, 255)
         period_ms = self._values[(PRODUCER_HEARTBEAT, 0)]
         if period_ms and (self._hb_next_ns is None or now >= self._hb_next_ns):
             if not self.faults.active("no_heartbeat"):

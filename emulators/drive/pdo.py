@@ -2,7 +2,11 @@
 mapping objects whenever one of them changes, the rules for changing them (a valid PDO's
 COB-ID and mapping are frozen; a mapping entry must name a mappable object of its size, at
 most 64 bits in all), received RPDO data checked for length and held for the next SYNC, and
-the TPDO frames of a SYNC."""
+the TPDO frames: on SYNC (transmission types 1..240 every that many SYNCs, 0 on the SYNC after
+its data changed) or on an event (254, 255: when its data changed, at most once per inhibit
+time, sub 3 in 100 us, and at least every event timer, sub 5 in ms, when it is set). The
+PDOs are those the dictionary has: every communication object 0x1400.. (RPDO) and 0x1800..
+(TPDO) with its mapping object 0x200 above it."""
 
 from __future__ import annotations
 
@@ -19,15 +23,22 @@ from hil.protocols.cia301 import (
     ABORT_PDO_TOO_LONG,
     ABORT_UNSUPPORTED,
     ABORT_VALUE,
+    ABORT_VALUE_HIGH,
     EMCY_PDO_LENGTH,
     EMCY_PDO_TOO_LONG,
+    RPDO_COMM_BASE,
+    TPDO_COMM_BASE,
     SdoAbortError,
 )
-from hil.protocols.cia402 import PDO_NOT_VALID, RPDOS, TPDOS
+from hil.protocols.cia402 import PDO_NOT_VALID
 
 EXTENDED_ID = 0x2000_0000  # COB-ID bit 29: a 29-bit identifier (not supported here)
 MAX_PDO_BITS = 64
 LAST_SYNCHRONOUS_TYPE = 240
+EVENT_TYPES = (254, 255)  # event-driven TPDOs (manufacturer-specific, profile-specific)
+INHIBIT, EVENT_TIMER = 3, 5  # the TPDO communication object's sub-indices
+PDOS_PER_DIRECTION = 512  # CiA 301: communication objects 0x1400..0x15FF, 0x1800..0x19FF
+MAPPING_OFFSET = 0x200    # a PDO's mapping object is 0x200 above its communication object
 
 
 @dataclass
@@ -45,6 +56,10 @@ class Pdo:
     layout: struct.Struct = field(default_factory=lambda: struct.Struct("<"))
     counter: int = 0
     length_error: bool = False
+    inhibit_ns: int = 0       # event-driven TPDO: at most one per this
+    event_ns: int = 0         # event-driven TPDO: at least one per this (0: on change only)
+    last_data: bytes | None = None  # a TPDO's data when it was last sent
+    last_ns: int = 0
 
 
 def pdo_struct(var: ODVariable) -> struct.Struct:
@@ -61,8 +76,11 @@ class PdoTable:
 
     def __init__(self, objects: ObjectStore) -> None:
         self.objects = objects
-        self.pdos = [Pdo(p.comm, p.mapping, False) for p in RPDOS] + \
-            [Pdo(p.comm, p.mapping, True) for p in TPDOS]
+        od = objects.od
+        self.pdos = [Pdo(comm, comm + MAPPING_OFFSET, transmit)
+                     for base, transmit in ((RPDO_COMM_BASE, False), (TPDO_COMM_BASE, True))
+                     for comm in range(base, base + PDOS_PER_DIRECTION)
+                     if comm in od and comm + MAPPING_OFFSET in od]
         self.by_object: dict[int, Pdo] = {}
         for pdo in self.pdos:
             self.by_object[pdo.comm] = pdo
@@ -70,7 +88,8 @@ class PdoTable:
         self.pending: dict[int, bytes] = {}  # RPDO data held for the next SYNC
         # the cyclic path's views, rebuilt whenever a PDO is compiled
         self._receivers: dict[int, Pdo] = {}  # the valid RPDOs by COB-ID (the first one wins)
-        self._transmitters: list[Pdo] = []    # the valid TPDOs, in order
+        self._transmitters: list[Pdo] = []    # the valid synchronous TPDOs, in order
+        self._on_event: list[Pdo] = []        # the valid event-driven TPDOs, in order
 
     def compile_all(self) -> None:
         for pdo in self.pdos:
@@ -82,6 +101,8 @@ class PdoTable:
         pdo.cob_id = cob & 0x7FF
         pdo.valid = not cob & PDO_NOT_VALID
         pdo.trans_type = values[(pdo.comm, 2)]
+        pdo.inhibit_ns = (values.get((pdo.comm, INHIBIT)) or 0) * 100_000
+        pdo.event_ns = (values.get((pdo.comm, EVENT_TIMER)) or 0) * 1_000_000
         keys, fmt = [], "<"
         for sub in range(1, values[(pdo.mapping, 0)] + 1):
             entry = values[(pdo.mapping, sub)]
@@ -94,7 +115,10 @@ class PdoTable:
         for each in self.pdos:
             if not each.transmit and each.valid:
                 self._receivers.setdefault(each.cob_id, each)
-        self._transmitters = [each for each in self.pdos if each.transmit and each.valid]
+        self._transmitters = [each for each in self.pdos if each.transmit and each.valid
+                              and each.trans_type <= LAST_SYNCHRONOUS_TYPE]
+        self._on_event = [each for each in self.pdos if each.transmit and each.valid
+                          and each.trans_type in EVENT_TYPES]
 
     # -- writes to the PDO objects (SDO) ----------------------------------------------------
     def write(self, pdo: Pdo, index: int, subindex: int, value: int) -> None:
@@ -110,8 +134,7 @@ class PdoTable:
                 if both_valid and (old & 0x7FF) != (value & 0x7FF):
                     raise SdoAbortError(ABORT_VALUE)  # invalidate before changing the id
             elif subindex == 2:
-                allowed = range(1, LAST_SYNCHRONOUS_TYPE + 1) if pdo.transmit else \
-                    [*range(LAST_SYNCHRONOUS_TYPE + 1), 254, 255]
+                allowed = [*range(LAST_SYNCHRONOUS_TYPE + 1), *EVENT_TYPES]
                 if value not in allowed:
                     raise SdoAbortError(ABORT_VALUE)
             values[key] = value
@@ -119,15 +142,17 @@ class PdoTable:
             if not values[(pdo.comm, 1)] & PDO_NOT_VALID:
                 raise SdoAbortError(ABORT_UNSUPPORTED)  # mapping of a valid PDO is frozen
             if subindex == 0:
-                self._check_mapping(pdo, [values[(index, s)] for s in range(1, value + 1)])
+                if any((index, s) not in values for s in range(1, value + 1)):
+                    raise SdoAbortError(ABORT_VALUE_HIGH)  # more entries than it has
+                self.check_mapping(pdo, [values[(index, s)] for s in range(1, value + 1)])
             elif values[(index, 0)] != 0:
                 raise SdoAbortError(ABORT_UNSUPPORTED)  # disable the mapping first
             elif value:  # 0 clears an unused entry
-                self._check_mapping(pdo, [value])
+                self.check_mapping(pdo, [value])
             values[key] = value
         self.compile(pdo)
 
-    def _check_mapping(self, pdo: Pdo, entries: list[int]) -> None:
+    def check_mapping(self, pdo: Pdo, entries: list[int]) -> None:
         bits = 0
         for entry in entries:
             index, subindex, size = entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF
@@ -136,7 +161,9 @@ class PdoTable:
             except SdoAbortError:
                 raise SdoAbortError(ABORT_NO_OBJECT) from None
             usable = var.readable if pdo.transmit else var.writable
-            if not var.pdo_mappable or not usable or size != len(var):
+            emulated = (index, subindex) not in (
+                self.objects.no_read if pdo.transmit else self.objects.no_write)
+            if not var.pdo_mappable or not usable or not emulated or size != len(var):
                 raise SdoAbortError(ABORT_CANNOT_MAP)
             bits += size
         if bits > MAX_PDO_BITS:
@@ -179,14 +206,38 @@ class PdoTable:
         self.pending.clear()
         for pdo in self.pdos:
             pdo.counter = 0
+            pdo.last_data = None
 
     def tpdo_frames(self) -> list[Frame]:
         """The TPDOs this SYNC sends (each valid one whose transmission type is due)."""
-        values = self.objects.values
         frames = []
         for pdo in self._transmitters:
+            if pdo.trans_type == 0:  # acyclic: on the SYNC after its data changed
+                data = self._data(pdo)
+                if data != pdo.last_data:
+                    pdo.last_data = data
+                    frames.append((pdo.cob_id, data))
+                continue
             pdo.counter += 1
             if pdo.counter >= pdo.trans_type:
                 pdo.counter = 0
-                frames.append((pdo.cob_id, pdo.layout.pack(*map(values.__getitem__, pdo.keys))))
+                frames.append((pdo.cob_id, self._data(pdo)))
         return frames
+
+    def event_frames(self, now_ns: int) -> list[Frame]:
+        """The event-driven TPDOs due at ``now_ns``: their data changed (and the inhibit time
+        passed since the last one), or the event timer ran out."""
+        frames = []
+        for pdo in self._on_event:
+            data = self._data(pdo)
+            since = now_ns - pdo.last_ns
+            changed = data != pdo.last_data and (pdo.last_data is None or
+                                                 since >= pdo.inhibit_ns)
+            if changed or (pdo.event_ns and since >= pdo.event_ns):
+                pdo.last_data, pdo.last_ns = data, now_ns
+                frames.append((pdo.cob_id, data))
+        return frames
+
+    def _data(self, pdo: Pdo) -> bytes:
+        values = self.objects.values
+        return pdo.layout.pack(*map(values.__getitem__, pdo.keys))

@@ -98,9 +98,13 @@ class LockstepDrive:
         self._node_buses = [self.channel.attach() for _ in ids]
         self.master_bus = self.channel.attach(on_send=self.pump)
         self._time_bus = self.channel.attach(on_send=self.pump, listen=False)  # SYNCs only
-        self.nodes = [DriveNode(replace(config, node_id=node_id), send=bus.send_frames,
-                               plant=plant, clock="sync")
-                      for node_id, bus in zip(ids, self._node_buses, strict=True)]
+        try:  # a drive that cannot be (a twin's EDS that does not fit) leaves no bus open
+            self.nodes = [DriveNode(replace(config, node_id=node_id), send=bus.send_frames,
+                                   plant=plant, clock="sync")
+                          for node_id, bus in zip(ids, self._node_buses, strict=True)]
+        except BaseException:
+            self.close()
+            raise
         self.node = self.nodes[0]
         for node in self.nodes:
             node.boot()

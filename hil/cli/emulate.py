@@ -68,6 +68,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ed.add_argument("--write-eds", metavar="F.eds",
                     help="write the emulated drive's object dictionary as an EDS file (for "
                     "canopen's import_od, CANopen tools, `[master] eds`) and exit")
+    ed.add_argument("--eds", metavar="F.eds",
+                    help="a twin of your drive: its EDS or DCF (canopen's import_od) is the "
+                    "emulated drive's dictionary, PDO maps, scaling, modes and identity "
+                    "(default: emulator.eds); what it cannot emulate is one line on stderr "
+                    "and answered with an SDO abort; without --socketcand: print what the "
+                    "twin takes and refuses, and exit")
     ed.add_argument("--can-log", metavar="F.blf|F.asc|F.trc|F.log",
                     help="write every CAN frame the emulator receives and sends to this file "
                     "(python-can's can.Logger; the suffix picks the format)")
@@ -181,11 +187,18 @@ def emulate_drive_command(args: argparse.Namespace) -> int:
         overrides["channel"] = args.channel
     layers, text = drive_layers(args.config)
     layers.append(Layer("overrides", {"emulator": overrides}))
-    if args.model is not None:  # its path from the working folder; its errors name it
-        layers.append(Layer("--model", {"emulator": {"model": args.model}}))
+    # the flags' paths from the working folder; their errors name them
+    for flag, key, path in (("--model", "model", args.model), ("--eds", "eds", args.eds)):
+        if path is not None:
+            layers.append(Layer(flag, {"emulator": {key: path}}))
     emulator = parse_drive_config(lay(layers), args.config or SOURCE, text).emulator
     if args.write_eds:
+        if emulator.eds is not None:
+            raise UsageError(f"--write-eds writes hil's own dictionary; the twin's is "
+                             f"{emulator.eds} (--eds, emulator.eds) already")
         return write_eds(emulator, args.write_eds)
+    if emulator.eds is not None and not twin_report(emulator, args.socketcand is None):
+        return 0
     if args.socketcand is None:
         raise UsageError("hil emulate drive needs --socketcand HOST:PORT (or --write-eds F)")
     drives = serve_drives(emulator, nodes_ids, *args.socketcand, clock=args.clock,
@@ -216,6 +229,20 @@ def _print_live(live_url: str | None) -> None:
     if live_url is not None:
         print(f"hil: live view on {live_url} (Foxglove: Open connection > Foxglove WebSocket)",
               file=sys.stderr, flush=True)
+
+
+def twin_report(emulator: Any, full: bool) -> bool:
+    """The twin of ``emulator.eds`` built once (a file it cannot be a twin of: one line):
+    its summary on stderr before serving, or (``full``) on stdout with every object it does
+    not emulate, one a line. Whether to serve it."""
+    from hil.emulators.drive.twin import eds_twin
+
+    twin = eds_twin(emulator.eds, emulator)
+    if not full:
+        print(f"hil: {twin.summary(emulator.node_id)}", file=sys.stderr, flush=True)
+        return True
+    print("\n".join([twin.summary(emulator.node_id), *twin.report()]), flush=True)
+    return False
 
 
 def write_eds(emulator: Any, path: str) -> int:

@@ -62,7 +62,9 @@ ABORT_VALUE = 0x0609_0030
 ABORT_VALUE_HIGH = 0x0609_0031
 ABORT_VALUE_LOW = 0x0609_0032
 ABORT_GENERAL = 0x0800_0000
+ABORT_CANNOT_STORE = 0x0800_0020  # a write the application cannot take (no behaviour for it)
 ABORT_DEVICE_STATE = 0x0800_0022
+ABORT_NO_DATA = 0x0800_0024       # a read the application has no value for
 SDO_ABORT_NAMES = {
     ABORT_TOGGLE: "toggle bit not alternated", ABORT_TIMEOUT: "SDO protocol timed out",
     ABORT_COMMAND: "client/server command specifier not valid or unknown",
@@ -80,8 +82,10 @@ SDO_ABORT_NAMES = {
     ABORT_VALUE_HIGH: "value of parameter written too high",
     ABORT_VALUE_LOW: "value of parameter written too low",
     ABORT_GENERAL: "general error",
+    ABORT_CANNOT_STORE: "data cannot be transferred or stored to the application",
     ABORT_DEVICE_STATE: "data cannot be transferred or stored because of the present device "
                         "state",
+    ABORT_NO_DATA: "no data available",
 }
 
 

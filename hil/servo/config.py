@@ -194,6 +194,8 @@ def parse_drive_config(layered: Layered, source: str, text: str = "") -> DriveCo
     fd = bus is not None and bus.options.get("fd") is True
     master = _master(root.table("master", required=True), bus_table, fd)
     emulator = _emulator(root.table("emulator", required=True), master.cycle_period_s)
+    if emulator.eds is not None:  # resolved in the tables too: an emulator process reads them
+        layered.data["emulator"]["eds"] = emulator.eds  # from a file of its own, elsewhere
     safety = _safety(root.table("safety", required=True))
     run = read_run_tables(root)
     axes = _axes(root)
@@ -363,6 +365,25 @@ def _or_inf(value: float | None) -> float:
     return math.inf if value is None else value
 
 
+#: ``[emulator]`` keys that set an object's power-on value, which a twin's EDS gives instead
+EDS_OBJECT_KEYS = {"rated_current_mA": "0x6075", "max_torque_permille": "0x6072",
+                   "increments_per_rev": "0x608F", "heartbeat_ms": "0x1017",
+                   "quick_stop_option": "0x605A"}
+
+
+def _twin_keys(e: Table, config: DriveEmulatorConfig) -> None:
+    """With ``eds`` the EDS gives the objects' power-on values: a key of one of them set to
+    another value than hil's default is refused (it could not take effect)."""
+    if config.eds is None:
+        return
+    default = DriveEmulatorConfig()
+    for key, index in EDS_OBJECT_KEYS.items():
+        field_name = key.replace("_mA", "_ma")
+        if getattr(config, field_name) != getattr(default, field_name):
+            raise e.error(key, f"is set, and so is eds ({config.eds}): the EDS gives "
+                          f"{index}'s power-on value; drop one of the two")
+
+
 def _axis_model(e: Table, cycle_period_s: float) -> AxisModel | None:
     """``[emulator] model``: a model file's axis (its path from the folder of the config file
     that names it), checked, its period dividing the drive's cycle; '' (None): the published
@@ -398,6 +419,7 @@ def _emulator(e: Table, cycle_period_s: float) -> DriveEmulatorConfig:
     )
     config = DriveEmulatorConfig(
         node_id=e.integer("node_id", at_least=1, at_most=127),
+        eds=e.file_path("eds") or None,
         rated_current_ma=e.integer("rated_current_mA", above=0),
         max_torque_permille=e.integer("max_torque_permille", at_least=0, at_most=U16),
         current_limit_ma=e.number("current_limit_mA", above=0),
@@ -417,4 +439,5 @@ def _emulator(e: Table, cycle_period_s: float) -> DriveEmulatorConfig:
     )
     for table in (f, d, e):
         table.done()
+    _twin_keys(e, config)
     return config

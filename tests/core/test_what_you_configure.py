@@ -175,7 +175,7 @@ def cases(settings: list[Setting]) -> list[Setting]:
 
 
 def expected_value(key: str, value: Any, folder: Path) -> Any:
-    if key == "master.eds" or key.startswith("models."):
+    if key in ("master.eds", "emulator.eds") or key.startswith("models."):
         return str(folder / value)
     return value
 

@@ -147,7 +147,7 @@ def test_pdo_remapping_follows_the_cia_301_procedure(wire):
         assert wire.write(0x1A01, sub, 0x60640020, "<I")[0] == 0x60
     assert abort_code(wire.write(0x1A01, 0, 3, "<B")) == 0x06040042      # 96 bits
     assert wire.write(0x1A01, 0, 2, "<B")[0] == 0x60
-    assert abort_code(wire.write(tpdo2, 2, 0, "<B")) == 0x06090030       # acyclic: unsupported
+    assert abort_code(wire.write(tpdo2, 2, 241, "<B")) == 0x06090030     # reserved
     assert wire.write(tpdo2, 2, 2, "<B")[0] == 0x60                       # every 2nd SYNC
     assert wire.write(tpdo2, 1, 0x281, "<I")[0] == 0x60                   # valid again
     wire.send(0x000, [0x01, 1])

@@ -1,0 +1,476 @@
+"""The emulated drive's dictionary: hil's own (:mod:`hil.emulators.drive.od`), or a twin of a
+real drive built from its EDS or DCF (``[emulator] eds``, ``hil emulate drive --eds``), read
+with canopen's ``import_od``.
+
+A twin takes from the file every object with its power-on value (a DCF's ParameterValue, else
+the DefaultValue), the PDOs as mapped at power-on, the units of its axis (0x608F encoder
+increments per motor revolution, 0x6091 gear ratio: one turn of the axis is that many counts
+of 0x6064; 0x6075 rated current; 0x6072 max torque and 0x6073 max current limit the
+current), the modes it supports (0x6502) and its identity (0x1018). Each of its objects is one of:
+
+* emulated - an object whose behaviour hil's node has (hil's own dictionary, the PDO objects,
+  0x6091, 0x6073 max current, 0x607E at 0): the file's type must be hil's, its access and
+  value are the file's; a write the node has no behaviour for (the file makes writable what
+  hil's drive only reads, 0x608F, 0x1014...) is refused with 0x08000020;
+* plain - a constant (access ``const``) or a description without behaviour (0x1000, 0x1008,
+  0x1009, 0x100A, 0x1018, 0x6402..0x6404, 0x6503..0x6505): read back as the file gives it,
+  stored when an integer is written; without a value in the file it reads 0x08000024;
+* not emulated - every other object (manufacturer objects, 0x1003, 0x6073...): a read is
+  refused with 0x08000024 (no data available: the twin has no value that means what the
+  drive's does), a write with 0x08000020 (data cannot be stored to the application), never
+  a value made up;
+* hidden - hil's objects the file lacks: the node keeps them but SDO says they do not exist
+  (0x06020000), as the drive would.
+
+hil's manufacturer objects (0x2001..0x2005, :mod:`hil.emulators.drive.od`) stay where the file
+has no object of their index (or has hil's own, an EDS hil wrote); an object of the file at
+one of them is not emulated and the hook is gone. A mode 0x6502 lists that hil does not
+emulate (only CSP and CST) is refused with 0x08000020 when 0x6060 is set to it; a mode it does
+not list with 0x06090030, as the drive would. A file the twin cannot run (no 0x6040, 0x6041,
+0x6060, 0x6061, 0x6064, 0x6502, 0x608F, no CSP or CST, a type other than hil's, a PDO mapping
+an object the twin cannot produce or take, a transmission type other than 0..240, 254, 255, a
+unit or limit without a value, an EMCY or SDO COB-ID other than CiA 301's) is an
+:class:`~hil.emulators.errors.EmulatorSetupError` naming the file and the object.
+"""
+
+from __future__ import annotations
+
+import configparser
+import logging
+from dataclasses import dataclass, replace
+from fractions import Fraction
+from typing import Any
+
+from canopen import import_od
+from canopen.objectdictionary import ObjectDictionary, ODVariable
+from canopen.objectdictionary.datatypes import UNSIGNED8, UNSIGNED16, UNSIGNED32
+
+from hil.emulators.drive.config import DriveEmulatorConfig
+from hil.emulators.drive.objects import Key, ObjectStore
+from hil.emulators.drive.od import build_object_dictionary, iter_variables
+from hil.emulators.drive.pdo import EXTENDED_ID, MAPPING_OFFSET, MAX_PDO_BITS
+from hil.emulators.drive.timebase import TIME_BASE
+from hil.emulators.errors import EmulatorSetupError
+from hil.protocols.cia301 import (
+    ABORT_CANNOT_STORE,
+    ABORT_NO_DATA,
+    ABORT_VALUE,
+    DEVICE_TYPE,
+    IDENTITY,
+    RPDO_COMM_BASE,
+    TPDO_COMM_BASE,
+    SdoAbortError,
+    abort_text,
+)
+from hil.protocols.cia402 import (
+    CONTROLWORD,
+    CYCLIC_SYNCHRONOUS_POSITION,
+    CYCLIC_SYNCHRONOUS_TORQUE,
+    ENCODER_RESOLUTION,
+    GEAR_RATIO,
+    MAX_CURRENT,
+    MAX_TORQUE,
+    MODES_DISPLAY,
+    MODES_OF_OPERATION,
+    NO_MODE,
+    PDO_NOT_VALID,
+    POLARITY,
+    POSITION_ACTUAL,
+    RATED_CURRENT,
+    STATUSWORD,
+    SUPPORTED_MODES,
+    TARGET_POSITION,
+    TARGET_TORQUE,
+)
+
+#: the modes hil's node emulates, and the mode of each 0x6502 bit 0..9 (CiA 402)
+EMULATED_MODES = (CYCLIC_SYNCHRONOUS_POSITION, CYCLIC_SYNCHRONOUS_TORQUE)
+MODE_NAMES = {1: "PP", 2: "VL", 3: "PV", 4: "TQ", 6: "HM", 7: "IP", 8: "CSP", 9: "CSV",
+              10: "CST"}
+#: hil's manufacturer objects (test hooks and time base, :mod:`hil.emulators.drive.od`)
+HOOKS = (0x2001, 0x2002, 0x2003, 0x2004, TIME_BASE)
+#: objects that only describe the drive: read back as the file gives them
+DESCRIPTIONS = (DEVICE_TYPE, 0x1008, 0x1009, 0x100A, IDENTITY, 0x6402, 0x6403, 0x6404,
+                SUPPORTED_MODES, 0x6503, 0x6504, 0x6505)
+#: hil's node behaves by these, whatever they hold: a file must give the value it behaves by
+FIXED = ((0x1014, 0, "COB-ID EMCY"), (0x1200, 1, "SDO request COB-ID"),
+         (0x1200, 2, "SDO response COB-ID"))
+#: the axis' units and current limits: the file must give their values (never hil's)
+VALUED = (ENCODER_RESOLUTION, GEAR_RATIO, RATED_CURRENT, MAX_TORQUE, MAX_CURRENT)
+#: what the twin needs to run CST or CSP at all
+NEEDED = ((CONTROLWORD, 0, "controlword"), (STATUSWORD, 0, "statusword"),
+          (MODES_OF_OPERATION, 0, "modes of operation"),
+          (MODES_DISPLAY, 0, "modes of operation display"),
+          (POSITION_ACTUAL, 0, "position actual value"),
+          (SUPPORTED_MODES, 0, "supported drive modes"),
+          (ENCODER_RESOLUTION, 1, "encoder increments"),
+          (ENCODER_RESOLUTION, 2, "motor revolutions"))
+MODE_NEEDS = {CYCLIC_SYNCHRONOUS_POSITION: ((TARGET_POSITION, 0, "target position"),),
+              CYCLIC_SYNCHRONOUS_TORQUE: ((TARGET_TORQUE, 0, "target torque"),
+                                          (RATED_CURRENT, 0, "motor rated current"))}
+TYPE_NAMES = {1: "BOOLEAN", 2: "INTEGER8", 3: "INTEGER16", 4: "INTEGER32", 5: "UNSIGNED8",
+              6: "UNSIGNED16", 7: "UNSIGNED32", 8: "REAL32", 9: "VISIBLE_STRING"}
+PDO_SPAN = MAPPING_OFFSET  # 0x1400..0x15FF, 0x1800..0x19FF; their mappings 0x200 above
+
+
+@dataclass(frozen=True)
+class DriveDictionary:
+    """The node's dictionary and what it cannot emulate (:mod:`hil.emulators.drive.objects`);
+    ``modes``: what 0x6060 takes; ``path``: the EDS of a twin (None: hil's own)."""
+
+    od: ObjectDictionary
+    hidden: tuple[ODVariable, ...] = ()
+    no_read: frozenset[Key] = frozenset()
+    no_write: frozenset[Key] = frozenset()
+    modes: frozenset[int] = frozenset((NO_MODE, *EMULATED_MODES))
+    listed_modes: frozenset[int] = frozenset(EMULATED_MODES)  # 0x6502's
+    counts_per_turn: int | None = None  # 0x6064 counts per turn of the axis (None: config's)
+    path: str | None = None
+    replaced_hooks: tuple[int, ...] = ()
+
+    def store(self) -> ObjectStore:
+        return ObjectStore(self.od, hidden=self.hidden, no_read=self.no_read,
+                           no_write=self.no_write)
+
+    def configure(self, config: DriveEmulatorConfig) -> DriveEmulatorConfig:
+        """``config`` with the twin's axis units."""
+        if self.counts_per_turn is None:
+            return config
+        return replace(config, increments_per_rev=self.counts_per_turn)
+
+    def check_mode(self, mode: int) -> None:
+        """Whether 0x6060 takes ``mode``: a mode 0x6502 lists that hil does not emulate is
+        refused with 0x08000020, one it does not list with 0x06090030."""
+        if mode in self.modes:
+            return
+        raise SdoAbortError(ABORT_CANNOT_STORE if mode in self.listed_modes else ABORT_VALUE)
+
+    def unemulated(self) -> list[str]:
+        """What the twin refuses: ``0x2100`` (not emulated), ``0x1800:6``, ``0x1014 (writes)``,
+        ``modes PP, HM``."""
+        items = []
+        for index in sorted({key[0] for key in self.no_read | self.no_write}):
+            subs = [var.subindex for var in iter_variables(self.od) if var.index == index]
+            refused = [s for s in subs if (index, s) in self.no_read]
+            written = [s for s in subs if (index, s) in self.no_write and s not in refused]
+            if refused:
+                items.append(f"0x{index:04X}" if len(refused) == len(subs) else
+                             ", ".join(f"0x{index:04X}:{s}" for s in refused))
+            if written:
+                items.append(f"0x{index:04X}" + ("" if len(subs) == 1 else
+                             ":" + "/".join(map(str, written))) + " (writes)")
+        modes = sorted(self.listed_modes - self.modes)
+        if modes:
+            items.append("modes " + ", ".join(MODE_NAMES.get(m, str(m)) for m in modes))
+        return items
+
+    def report(self) -> list[str]:
+        """What the twin refuses, one object a line, with the abort code it answers."""
+        names = {(v.index, v.subindex): v.name for v in iter_variables(self.od)}
+        lines = []
+        for title, keys in (
+                (f"not emulated (read: {abort_text(ABORT_NO_DATA)}; write: "
+                 f"{abort_text(ABORT_CANNOT_STORE)})", self.no_read),
+                (f"writes not emulated ({abort_text(ABORT_CANNOT_STORE)})",
+                 self.no_write - self.no_read)):
+            if keys:
+                lines.append(f"{title}:")
+                lines += [f"  {_name(key)} {names[key]}" for key in sorted(keys)]
+        modes = sorted(self.listed_modes - self.modes)
+        if modes:
+            lines.append(f"modes 0x6502 lists, not emulated (0x6060 write: "
+                         f"{abort_text(ABORT_CANNOT_STORE)}): "
+                         + ", ".join(MODE_NAMES.get(m, str(m)) for m in modes))
+        return lines or ["every object is emulated"]
+
+    def summary(self, node_id: int) -> str:
+        """One line: the twin, what it took from its file and what it refuses."""
+        values = {(v.index, v.subindex): v.default for v in iter_variables(self.od)}
+        identity = ", ".join(f"{name} 0x{values[(IDENTITY, s)]:X}"
+                             for s, name in ((1, "vendor"), (2, "product"), (3, "revision"))
+                             if isinstance(values.get((IDENTITY, s)), int)
+                             and (IDENTITY, s) not in self.no_read)
+        gear = f"{values.get((GEAR_RATIO, 1), 1)}:{values.get((GEAR_RATIO, 2), 1)}"
+        modes = ", ".join(MODE_NAMES[m] for m in sorted(self.modes - {NO_MODE}))
+        refused = self.unemulated()
+        hooks = ", ".join(f"0x{h:04X}" for h in self.replaced_hooks)
+        return (f"twin of {self.path} (node {node_id}): {identity or 'no identity'}; "
+                f"{self.counts_per_turn} counts per turn (0x608F "
+                f"{values[(ENCODER_RESOLUTION, 1)]} increments, gear {gear}); modes {modes}; "
+                f"not emulated: {', '.join(refused) or 'none'}"
+                + (f"; hil's {hooks} replaced by its own" if hooks else ""))
+
+
+def drive_dictionary(config: DriveEmulatorConfig) -> DriveDictionary:
+    """hil's own dictionary, or the twin of ``config.eds``."""
+    if config.eds is None:
+        return DriveDictionary(build_object_dictionary(config.node_id, config.od_defaults()))
+    return eds_twin(config.eds, config)
+
+
+def _import(path: str, node_id: int) -> ObjectDictionary:
+    """The file read by canopen (its warnings about objects it skips kept off stderr: an
+    object the twin lacks is refused by SDO like any other it does not have)."""
+    eds_log = logging.getLogger("canopen.objectdictionary.eds")
+    level = eds_log.level
+    eds_log.setLevel(logging.ERROR)
+    try:
+        od: ObjectDictionary = import_od(path, node_id)
+    except (OSError, ValueError, KeyError, configparser.Error) as exc:
+        reason = getattr(exc, "strerror", None) or str(exc).splitlines()[0]
+        raise EmulatorSetupError(f"EDS {path}: cannot read it: {reason}") from None
+    finally:
+        eds_log.setLevel(level)
+    return od
+
+
+def _value(var: ODVariable) -> object:
+    """The power-on value the file gives (a DCF's ParameterValue, else the DefaultValue)."""
+    return var.value if var.value is not None else var.default
+
+
+def _name(key: Key) -> str:
+    return f"0x{key[0]:04X}:{key[1]}"
+
+
+def _gear_template() -> dict[int, ODVariable]:
+    """0x6091 as the twin emulates it: read, the axis built with it."""
+    out = {}
+    for sub, data_type in ((0, UNSIGNED8), (1, UNSIGNED32), (2, UNSIGNED32)):
+        var = ODVariable("Gear ratio", GEAR_RATIO, sub)
+        var.data_type, var.access_type, var.default = data_type, "ro", 2 if sub == 0 else 1
+        out[sub] = var
+    return out
+
+
+def _polarity_template() -> ODVariable:
+    var = ODVariable("Polarity", POLARITY, 0)
+    var.data_type, var.access_type, var.default = UNSIGNED8, "ro", 0
+    return var
+
+
+def _max_current_template() -> ODVariable:
+    """0x6073 as the twin emulates it: the current loops' limit, with 0x6072."""
+    var = ODVariable("Max current", MAX_CURRENT, 0)
+    var.data_type, var.access_type, var.default = UNSIGNED16, "rw", 0xFFFF
+    var.pdo_mappable = True
+    return var
+
+
+class _Twin:
+    """The steps of building a twin from one file."""
+
+    def __init__(self, path: str, config: DriveEmulatorConfig) -> None:
+        self.path, self.node_id = path, config.node_id
+        self.od = _import(path, config.node_id)
+        self.own = build_object_dictionary(config.node_id, config.od_defaults())
+        self.own_vars = {(v.index, v.subindex): v for v in iter_variables(self.own)}
+        self.no_read: set[Key] = set()
+        self.no_write: set[Key] = set()
+        self.replaced: list[int] = []
+        self.gear = _gear_template()
+
+    def error(self, text: str) -> EmulatorSetupError:
+        return EmulatorSetupError(f"EDS {self.path}: {text}")
+
+    def take_hooks(self) -> None:
+        for index in HOOKS:
+            own = self.own[index]
+            if index not in self.od:
+                self.od.add_object(own)
+                continue
+            theirs = self.od[index]
+            if not (isinstance(theirs, ODVariable) and isinstance(own, ODVariable)
+                    and theirs.name == own.name and theirs.data_type == own.data_type):
+                self.replaced.append(index)
+
+    def template(self, key: Key) -> ODVariable | None:
+        """hil's variable of the same role, if the node emulates it."""
+        index, sub = key
+        if index in self.replaced:
+            return None
+        for base in (RPDO_COMM_BASE, TPDO_COMM_BASE):
+            if base <= index < base + PDO_SPAN:
+                return self.own_vars.get((base, sub))
+            if base + PDO_SPAN <= index < base + 2 * PDO_SPAN:
+                return self.own_vars.get((base + PDO_SPAN, min(sub, 1)))
+        if index == GEAR_RATIO:
+            return self.gear.get(sub)
+        if key == (POLARITY, 0):
+            return _polarity_template()
+        if key == (MAX_CURRENT, 0):
+            return _max_current_template()
+        return self.own_vars.get(key)
+
+    def classify(self) -> None:
+        for var in list(iter_variables(self.od)):
+            key = (var.index, var.subindex)
+            value = _value(var)
+            template = self.template(key)
+            if var.index in DESCRIPTIONS or (var.access_type == "const" and template is None
+                                             and var.index not in self.replaced):
+                var.default = value
+                if value is None:
+                    self.no_read.add(key)
+            elif template is not None:
+                self.emulated(var, template, value)
+            else:
+                var.default = value
+                self.no_read.add(key)
+                self.no_write.add(key)
+
+    def emulated(self, var: ODVariable, template: ODVariable, value: Any) -> None:
+        key = (var.index, var.subindex)
+        if value is None and var.index in VALUED and key not in (
+                (ENCODER_RESOLUTION, 0), (GEAR_RATIO, 0)):
+            raise self.error(f"{_name(key)} ({var.name}) has no value: the twin takes the "
+                             "axis' units and current limits from the file, never its own")
+        if var.data_type != template.data_type:
+            raise self.error(
+                f"{_name(key)} ({var.name}) is {TYPE_NAMES.get(var.data_type or 0, var.data_type)}"
+                f", the twin's is {TYPE_NAMES.get(template.data_type or 0)}")
+        var.default = template.default if value is None else value
+        var.min = template.min if var.min is None else var.min
+        var.max = template.max if var.max is None else var.max
+        if var.writable and not template.writable:
+            self.no_write.add(key)
+        fixed = next((name for index, sub, name in FIXED if key == (index, sub)), None)
+        if fixed is not None and var.default != template.default:
+            raise self.error(f"{_name(key)} ({fixed}) is 0x{var.default:X}; the twin's is "
+                             f"0x{template.default:X}, as CiA 301 predefines it")
+
+    def variable(self, key: Key) -> ODVariable | None:
+        """The file's object ``key``, if it has one."""
+        if key[0] not in self.od:
+            return None
+        obj = self.od[key[0]]
+        if isinstance(obj, ODVariable):
+            return obj if key[1] == 0 else None
+        var: ODVariable | None = obj.subindices.get(key[1])
+        return var
+
+    def value(self, index: int, sub: int = 0, default: int | None = None) -> int | None:
+        """The power-on value of an object the twin serves (``default``: none)."""
+        var = self.variable((index, sub))
+        if var is None or (index, sub) in self.no_read or not isinstance(var.default, int):
+            return default
+        return var.default
+
+    def check_needed(self, needs: tuple[tuple[int, int, str], ...], why: str) -> None:
+        for index, sub, name in needs:
+            if self.variable((index, sub)) is None:
+                raise self.error(f"no {_name((index, sub))} ({name}): the twin needs it {why}")
+            if self.value(index, sub) is None:
+                raise self.error(f"{_name((index, sub))} ({name}) has no value: the twin needs "
+                                 f"it {why}")
+
+    def modes(self) -> tuple[frozenset[int], frozenset[int]]:
+        """(the modes 0x6060 takes, the modes 0x6502 lists)."""
+        supported = self.value(SUPPORTED_MODES) or 0
+        listed = frozenset(bit + 1 for bit in range(10) if supported >> bit & 1)
+        emulated = [mode for mode in EMULATED_MODES if mode in listed]
+        if not emulated:
+            raise self.error(f"0x6502 = 0x{supported:08X} lists neither CSP nor CST, the "
+                             "modes the twin emulates")
+        for mode in emulated:
+            self.check_needed(MODE_NEEDS[mode], f"for {MODE_NAMES[mode]}, which 0x6502 lists")
+        modes = frozenset((NO_MODE, *emulated))
+        start = self.value(MODES_OF_OPERATION)
+        if start not in modes:
+            raise self.error(f"0x6060 starts in mode {start}, which the twin does not emulate "
+                             "(it emulates CSP and CST)")
+        display = self.od[MODES_DISPLAY]
+        if isinstance(display, ODVariable):
+            display.default = start  # the display shows the mode in effect
+        return modes, listed
+
+    def counts_per_turn(self) -> int:
+        increments = self.value(ENCODER_RESOLUTION, 1) or 0
+        motor_turns = self.value(ENCODER_RESOLUTION, 2) or 0
+        gear_motor = self.value(GEAR_RATIO, 1, 1) or 0
+        gear_shaft = self.value(GEAR_RATIO, 2, 1) or 0
+        if not (increments and motor_turns and gear_motor and gear_shaft):
+            raise self.error(f"0x608F = {increments} increments / {motor_turns} revolutions, "
+                             f"0x6091 gear {gear_motor}:{gear_shaft}: a zero gives no axis unit")
+        counts = Fraction(increments * gear_motor, motor_turns * gear_shaft)
+        if counts.denominator != 1 or not 2 <= counts < 2**31:
+            raise self.error(f"0x608F and 0x6091 give {float(counts):g} counts per turn of the "
+                             "axis; the twin needs a whole number in 2..2^31-1")
+        polarity = self.value(POLARITY, 0, 0)
+        if polarity:
+            raise self.error(f"0x607E polarity is 0x{polarity:02X}: the twin does not reverse "
+                             "its axis (0 only)")
+        return int(counts)
+
+    def check_pdos(self, store: ObjectStore) -> None:
+        """The PDOs as mapped at power-on: each mapped object one the twin produces (TPDO) or
+        takes (RPDO), each valid one of a transmission type it emulates."""
+        store.reset()
+        values = store.values
+        for base, transmit in ((RPDO_COMM_BASE, False), (TPDO_COMM_BASE, True)):
+            for comm in range(base, base + PDO_SPAN):
+                if comm in self.od and comm + PDO_SPAN in self.od:
+                    self.check_pdo(values, comm, transmit)
+
+    def check_pdo(self, values: dict[Key, object], comm: int, transmit: bool) -> None:
+        mapping = comm + PDO_SPAN
+        name = f"{'TPDO' if transmit else 'RPDO'}{comm % PDO_SPAN + 1} (0x{comm:04X})"
+        keys = ((comm, 1), (comm, 2), (mapping, 0))
+        for key in keys:
+            if not isinstance(values.get(key), int):
+                raise self.error(f"{name}: no {_name(key)} with a value")
+        cob, kind, count = (value for key in keys if isinstance(value := values[key], int))
+        bits = 0
+        for sub in range(1, count + 1):
+            entry = values.get((mapping, sub))
+            if not isinstance(entry, int):
+                raise self.error(f"{name} maps {count} objects, {_name((mapping, sub))} has no "
+                                 "value")
+            bits += self.check_entry(name, entry, transmit)
+        if bits > MAX_PDO_BITS:
+            raise self.error(f"{name} maps {bits} bits, more than a CAN frame's 64")
+        if cob & PDO_NOT_VALID:
+            return
+        if cob & EXTENDED_ID:
+            raise self.error(f"{name} has a 29-bit COB-ID 0x{cob:08X}; the twin uses 11-bit "
+                             "identifiers")
+        if 241 <= kind <= 253:
+            raise self.error(f"{name} is valid at power-on with transmission type {kind}, "
+                             "which the twin does not emulate (0..240, 254, 255; no RTR)")
+
+    def check_entry(self, name: str, entry: int, transmit: bool) -> int:
+        key, size = (entry >> 16, (entry >> 8) & 0xFF), entry & 0xFF
+        where = f"{name} maps {_name(key)}"
+        var = self.variable(key)
+        if var is None:
+            raise self.error(f"{where}, which it does not have")
+        if key in (self.no_read if transmit else self.no_write):
+            raise self.error(f"{where} ({var.name}), which the twin cannot "
+                             f"{'produce' if transmit else 'take'}: not emulated")
+        if not var.pdo_mappable:
+            raise self.error(f"{where} ({var.name}), which it says is not PDO-mappable")
+        if size != len(var):
+            raise self.error(f"{where} as {size} bits; the object is {len(var)}")
+        return size
+
+    def build(self) -> DriveDictionary:
+        self.take_hooks()
+        self.classify()
+        self.check_needed(NEEDED, "to run CST or CSP")
+        modes, listed = self.modes()
+        counts = self.counts_per_turn()
+        present = {(v.index, v.subindex) for v in iter_variables(self.od)}
+        hidden = tuple(var for key, var in self.own_vars.items()
+                       if key not in present or key[0] in self.replaced)
+        twin = DriveDictionary(self.od, hidden, frozenset(self.no_read),
+                               frozenset(self.no_write), modes, listed, counts, self.path,
+                               tuple(self.replaced))
+        self.check_pdos(twin.store())
+        return twin
+
+
+def eds_twin(path: str, config: DriveEmulatorConfig) -> DriveDictionary:
+    """The twin of the drive the EDS or DCF at ``path`` describes, as node ``config.node_id``
+    (``$NODEID`` values resolved); EmulatorSetupError when it cannot be one."""
+    return _Twin(path, config).build()
+
