@@ -171,7 +171,9 @@ def run_twin(recording: BenchRecording, models: Mapping[str, str], out: str) -> 
     from hil.bench.config import parse_bench_config
 
     tables = twin_tables(recording, models)
-    peripherals = parse_bench_config(tables).problem.peripherals
+    # a model file that does not fit the bench is refused here, naming the recording
+    peripherals = parse_bench_config(tables, f"{recording.path} with --model"
+                                     ).problem.peripherals
     with tempfile.TemporaryDirectory(prefix="hil-twin-") as folder:
         config = os.path.join(folder, "twin.toml")
         with open(config, "wb") as file:
