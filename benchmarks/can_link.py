@@ -1,4 +1,4 @@
-"""CAN drive link benchmark (issue 6): the cyclic CiA 402 exchange, lockstep and real time.
+"""CAN drive link benchmark: the cyclic CiA 402 exchange, lockstep and real time.
 
 1. Lockstep over the python-can virtual bus, as fast as possible: cycles per second and round
    trip (RPDO + SYNC sent -> TPDO1 + TPDO2 read back) p50/p99, next to the same link on the

@@ -1,4 +1,4 @@
-"""EEC solve time per decision (issue 18 targets), next to the naive baseline, and the relay
+"""EEC solve time per decision, next to the naive baseline, and the relay
 wear trade-off of gamma3.
 
 Closed-loop lockstep runs of the EEC against the emulated bench over Modbus TCP, default

@@ -1,4 +1,4 @@
-"""Session-file size by encoding (issue 19): bytes per servo tick and per bench day.
+"""Session-file size by encoding: bytes per servo tick and per bench day.
 
 One lockstep servo run (PID, default 10 s) and one lockstep bench run (BC, 2 cycles) are
 recorded; their messages are then re-recorded with only the topics measured, once as JSON

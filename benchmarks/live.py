@@ -1,4 +1,4 @@
-"""Live view cost (issues 16 and 38): real-time servo sessions with ``--live`` and clients, next
+"""Live view cost: real-time servo sessions with ``--live`` and clients, next
 to the same session without the live view, in the same run.
 
 Each session is ``hil servo run --controller mpc --realtime`` (MPC FOH at 2 kHz, the drive

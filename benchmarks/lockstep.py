@@ -1,4 +1,4 @@
-"""The lockstep tick (issue 28): how fast a servo session runs through the CAN link, and where
+"""The lockstep tick: how fast a servo session runs through the CAN link, and where
 each tick's time goes.
 
 1. Lockstep servo sessions through the CAN link (the master's frames, the emulated CiA 402
@@ -11,10 +11,10 @@ each tick's time goes.
    (``write``), the tick's recording and KPIs (``record``), and the loop itself (the rest).
 3. The recorder's cost on the loop per tick: the three servo messages of a tick queued and
    handed to a real writer process, as packed rows (what a run does) against the same
-   messages as dicts (before issue 28), in the same run.
+   messages as dicts (as hil recorded them before), in the same run.
 4. One CAN cycle alone (RPDO + SYNC, TPDO pair back) and the emulated node's share of it.
 
-Targets (issue 28): MPC >= 10x real time, 0 mA >= 25x, recorder <= 5 us per tick. The machine
+Targets: MPC >= 10x real time, 0 mA >= 25x, recorder <= 5 us per tick. The machine
 is shared: figures drift up to 2x between minutes; use ``--repeat 3`` or more. ``--quick``:
 one run of each kind, 0.3 s each, 2,000 recorder ticks and 1,000 CAN cycles (seconds in all;
 figures not worth quoting).

@@ -1,4 +1,4 @@
-"""The real-time path (issue 14): a full servo session next to the bare loop, in one run.
+"""The real-time path: a full servo session next to the bare loop, in one run.
 
 1. the bare 2 kHz loop as ``hil doctor`` runs it (hardened, no I/O): the baseline;
 2. a 10 s real-time servo session: MPC FOH H_t = H_u = 8, the drive emulator in a process of

@@ -1,4 +1,4 @@
-"""Servo controller benchmark (issue 7): per-tick compute, lockstep speed, real time via CAN.
+"""Servo controller benchmark: per-tick compute, lockstep speed, real time via CAN.
 
 1. Per-tick compute of the MPC controller (Kalman update + θ + QP + Kalman predict) for
    H_t = H_u = 3, 6, 8 (FOH, H_p = 50), fast solver (unconstrained fast path + daqp) next to

@@ -1,4 +1,4 @@
-"""Sweep benchmark (issue 17): an 8-trial servo sweep on a local Ray against the same trials
+"""Sweep benchmark: an 8-trial servo sweep on a local Ray against the same trials
 one after another in this process, measured in the same run.
 
 1. Sequential baseline: the 8 trials (MPC FOH/ZOH x 4 current limits, 3 s of a 1 Hz sine in
