@@ -168,7 +168,7 @@ def test_the_driver_retries_across_a_server_restart():
     with make_emulator(CONFIG) as first:
         first.serve_tcp()
         port = first.port
-        link = ModbusLink(parse_bus_url(first.url), timeout_s=0.2, attempts=2)
+        link = ModbusLink(parse_bus_url(first.url), timeout_s=ANSWER_S, attempts=2)
         driver = ModbusBenchDriver(link, CONFIG.map)
         assert driver.read_levels() == {"q1": 55.0, "q2": 65.0}
     with make_emulator(CONFIG) as second:
