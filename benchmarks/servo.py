@@ -54,8 +54,7 @@ class Sizes:
     """How much each part runs: the full benchmark, or ``--quick``'s seconds-long run."""
 
     def __init__(self, quick: bool) -> None:
-        self.cases = CASES                                  # 1.
-        self.horizons = (8,) if quick else (3, 6, 8)
+        self.horizons = (8,) if quick else (3, 6, 8)        # 1.
         self.compute_s, self.cvxpy_s = (0.02, 0.0025) if quick else (1.0, 0.1)
         self.warmup_s = 0.01 if quick else 0.05
         self.lockstep_s = 0.05 if quick else 5.0            # 2.
@@ -85,7 +84,7 @@ def tick_compute(sizes: Sizes) -> float:
     print(f"   {'case':<30}{'H_u':>4}  {'fast p50':>9}{'fast p99':>9}   {'QP ticks':>8}"
           f"   {'cvxpy p50':>10}{'cvxpy p99':>10}   {'speed-up':>8}")
     worst_p99 = 0.0
-    for limit, label in sizes.cases:
+    for limit, label in CASES:
         for hu in sizes.horizons:
             cfg = MpcConfig(ht=hu, hu=hu, hp=50, ert="foh", u_min=-limit, u_max=limit)
             fast = TrajectoryMpc(reference, cfg)
