@@ -16,7 +16,7 @@ each tick's time goes.
 
 Targets: MPC >= 10x real time, 0 mA >= 25x, recorder <= 5 us per tick. The machine
 is shared: figures drift up to 2x between minutes; use ``--repeat 3`` or more. ``--quick``:
-one run of each kind, 0.3 s each, 2,000 recorder ticks and 1,000 CAN cycles (seconds in all;
+one run of each kind, 0.1 s each, 200 recorder ticks and 100 CAN cycles (seconds in all;
 figures not worth quoting).
 """
 
@@ -137,14 +137,14 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float,
-                        help="simulated time per run [s] (default 5; 0.3 with --quick)")
+                        help="simulated time per run [s] (default 5; 0.1 with --quick)")
     parser.add_argument("--repeat", type=int,
                         help="runs of each kind, alternated (default 3; 1 with --quick)")
     add_quick(parser)
     args = parser.parse_args()
-    args.seconds = args.seconds if args.seconds is not None else (0.3 if args.quick else 5.0)
+    args.seconds = args.seconds if args.seconds is not None else (0.1 if args.quick else 5.0)
     args.repeat = args.repeat if args.repeat is not None else (1 if args.quick else 3)
-    sizes = 2_000 if args.quick else 20_000  # recorder ticks; CAN cycles (1,000 quick)
+    sizes = 200 if args.quick else 20_000  # recorder ticks; CAN cycles (100 quick)
     if args.repeat < 1 or not args.seconds > 0:
         parser.error("--repeat must be >= 1 and --seconds > 0")
     runs: dict[str, list[dict[str, Any]]] = {"mpc": [], "zero": [], "mpc-wire": [],
