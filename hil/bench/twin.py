@@ -33,7 +33,7 @@ from hil.controllers.bench.replay import RelayReplay
 from hil.core.recording.reader import SessionData
 from hil.core.run import run_experiment
 from hil.core.session import Session
-from hil.core.twin import OutputFit, TwinCheck, compare_output
+from hil.core.twin import Compared, TwinCheck, check_topic
 from hil.errors import UsageError
 
 POWER, RELAYS = "/bench/power", "/bench/relays"
@@ -186,12 +186,7 @@ def run_twin(recording: BenchRecording, models: Mapping[str, str], out: str) -> 
 
 
 def check_twin(recording: BenchRecording, twin: SessionData, min_fit_pct: float
-               ) -> tuple[TwinCheck, list[tuple[OutputFit, np.ndarray, np.ndarray]]]:
-    """The twin's ``/bench/power`` against the recording's: the check, and each output's fit
-    with both series (for the plot)."""
-    power = twin.topic(POWER)
-    pairs = []
-    for name, recorded in recording.outputs.items():
-        mine = np.array([m[name] for _, m in power], dtype=float)
-        pairs.append((compare_output(name, "VA", recorded, mine), recorded, mine))
-    return TwinCheck(tuple(fit for fit, _, _ in pairs), min_fit_pct), pairs
+               ) -> tuple[TwinCheck, list[Compared]]:
+    """The twin's ``/bench/power`` against the recording's."""
+    return check_topic(recording.outputs, dict.fromkeys(recording.outputs, "VA"), twin, POWER,
+                       min_fit_pct)

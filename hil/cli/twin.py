@@ -15,10 +15,10 @@ if TYPE_CHECKING:  # numpy and the reader load when a check runs, not for --help
     import numpy as np
 
     from hil.core.recording.reader import SessionData
-    from hil.core.twin import OutputFit, TwinCheck
+    from hil.core.twin import Compared, TwinCheck
 
     #: a check, its time axis [s], and each output's fit with the recorded and twin's series
-    Checked = tuple[TwinCheck, np.ndarray, list[tuple[OutputFit, np.ndarray, np.ndarray]]]
+    Checked = tuple[TwinCheck, np.ndarray, list[Compared]]
 
 #: the fit every output must reach unless --min-fit says [%]
 DEFAULT_MIN_FIT_PCT = 80.0
