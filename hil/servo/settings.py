@@ -28,6 +28,7 @@ from hil.core.settings import (
     SWITCH,
     UPPER,
     Layer,
+    LooseningRefusedError,
     Setting,
     lay,
     loosened,
@@ -234,9 +235,10 @@ def _current_limit(options: ServoRunOptions, configured: DriveConfig
         return []
     origin = configured.layered.origin("master.current_limit_mA")
     if not options.allow_higher_current:
-        raise UsageError(f"--umax {options.umax:g} mA is above the configured current limit "
-                         f"(master.current_limit_mA = {limit:g} mA, {origin}): a flag may lower "
-                         "it, not raise it; --allow-higher-current raises it (recorded)")
+        raise LooseningRefusedError(
+            f"--umax {options.umax:g} mA is above the configured current limit "
+            f"(master.current_limit_mA = {limit:g} mA, {origin}): a flag may lower it, not "
+            "raise it", "; --allow-higher-current raises it (recorded)")
     return [("current.limit_raised", f"--umax {options.umax:g} mA raises the configured "
              f"current limit of {limit:g} mA ({origin}): --allow-higher-current")]
 
