@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, replace
+from urllib.parse import parse_qsl
 
 from can.interfaces import VALID_INTERFACES
 
@@ -171,11 +172,11 @@ def emulated_url(url: str | None) -> tuple[str | None, dict[str, str]]:
         return url, {}
     keys = {}
     for part in url.partition("?")[2].split("&"):
-        name, eq, value = part.partition("=")
-        if name not in EMULATED_URL_KEYS or not eq or not value:
+        pairs = parse_qsl(part)  # one key=value, percent-decoded; nothing when malformed
+        if len(pairs) != 1 or pairs[0][0] not in EMULATED_URL_KEYS:
             raise UsageError(f"--drive {url!r}: {part!r} is not a key of the emulated drive "
                              "(it takes model=F.json: its axis as a model file)")
-        keys[name] = value
+        keys[pairs[0][0]] = pairs[0][1]
     return EMULATED, keys
 
 
