@@ -58,7 +58,7 @@ def plan_resim(recorded: Recorded, controller: str | None, params: Mapping[str, 
     tables = resolved_paths({**bench, **controllers}, recorded.settings)
     for table in ("controller", "limits"):  # the recorded run's, given as options below
         tables.pop(table, None)
-    loads = list(((tables.get("plant") or {}).get("loads") or {}))
+    loads = list((tables.get("plant") or {}).get("loads") or {})
     for name, path in parse_models(models, loads).items():
         tables["plant"]["loads"][name]["model"] = path
     try:
