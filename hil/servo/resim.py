@@ -87,9 +87,7 @@ def plan_resim(recorded: Recorded, controller: str | None, params: Mapping[str, 
         if not os.path.isfile(model):
             raise UsageError(f"--model {model}: no such file")
         tables.setdefault("emulator", {})["model"] = os.path.abspath(model)
-    axes = run.get("axes")
-    if isinstance(axes, str):  # every axis on the emulated bus
-        axes = ",".join(part.partition("@")[0] for part in axes.split(","))
+    axes = recorded_axes(run, tables)
     try:
         options = ServoRunOptions(
             controller=spec, params=laid, drive=EMULATED,
@@ -98,7 +96,7 @@ def plan_resim(recorded: Recorded, controller: str | None, params: Mapping[str, 
             drive_config=write_config(tables, folder, "drive.toml"),
             settle_s=run["settle_s"], prediction_every=_prediction_every(run),
             limits=recorded.limits(run), controller_budget_s=run.get("controller_budget_s"),
-            quiet=True, axes=axes if isinstance(axes, str) else None,
+            quiet=True, axes=axes,
             from_here=bool(run.get("from_here")))
     except KeyError as exc:
         raise UsageError(f"{recorded.path}: its recorded servo run has no {exc.args[0]!r} (a "
@@ -107,6 +105,15 @@ def plan_resim(recorded: Recorded, controller: str | None, params: Mapping[str, 
              "hil's emulator built from the recorded config" if hardware else
              "the recorded emulator")
     return ServoResim(options, url, plant)
+
+
+def recorded_axes(run: Mapping[str, Any], tables: Mapping[str, Any]) -> str | None:
+    """The recorded run's ``--axes`` (``NAME=NODE,...``, every axis on the emulated bus): None
+    when it named none or its config's ``[[axis]]`` tables did (they come with the tables)."""
+    axes = run.get("axes")
+    if tables.get("axis") or not isinstance(axes, list):
+        return None
+    return ",".join(f"{axis['name']}={axis['node']}" for axis in axes)
 
 
 def _prediction_every(run: Mapping[str, Any]) -> int:

@@ -164,3 +164,18 @@ def test_what_cannot_be_resimulated_is_one_line(folder, capsys, args, message):
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0], done.stderr
     assert not (elsewhere / "x.mcap").exists()
+
+
+def test_several_axes_come_back_axis_by_axis(tmp_path, capsys):
+    done = hil_here(capsys, "servo", "run", "--controller", "pid", "--axes", "x=1,y=2",
+                    "--reference", "circle:radius=1,feed=20", "--duration", "0.1", "--quiet",
+                    "--out", "axes.mcap", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    done = hil_here(capsys, "resim", "axes.mcap", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert "servo run on 2 axes" in done.stdout
+    recorded, resim = read_session(tmp_path / "axes.mcap"), read_session(
+        tmp_path / "axes.resim.mcap")
+    for topic in ("/axis/x/feedback", "/axis/y/feedback", "/axis/y/command"):
+        assert messages(resim, topic) == messages(recorded, topic), topic
+        assert len(messages(resim, topic)) == 200
