@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from hil.cli.argtypes import output_file
-from hil.cli.verdict import _param, finish
+from hil.cli.verdict import add_param_argument, finish
 
 if TYPE_CHECKING:
     from hil.bench.resim import BenchResim
@@ -41,9 +41,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--controller", metavar="SPEC",
                    help="the controller: a built-in name, FILE.py:Class, package.module:Class "
                    "or a registered name (default: the recorded one)")
-    p.add_argument("--param", action="append", type=_param, default=[], metavar="KEY=VALUE",
-                   help="a parameter of the controller (repeat), laid over the recorded run's "
-                   "parameters when --controller is the recorded one (else over none)")
+    add_param_argument(p, "laid over the recorded run's parameters when --controller is "
+                       "the recorded one (else over none)")
     p.add_argument("--model", metavar="F.json", action="append", default=[],
                    help="servo: the emulator's axis as a model file of 'hil identify' "
                    "([emulator] model); bench: LOAD=F.json, a load of [plant.loads] made that "
@@ -128,5 +127,6 @@ def _bench_summary(args: argparse.Namespace) -> Any:
     from hil.cli.bench import format_kpis
 
     def summary(resim: BenchResim, kpis: dict[str, Any]) -> str:
-        return f"{headline(args, resim)}\n{format_kpis(kpis)}"
+        rest = {key: value for key, value in kpis.items() if key != "resim"}  # the headline's
+        return f"{headline(args, resim)}\n{format_kpis(rest)}"
     return summary
