@@ -11,6 +11,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -179,3 +180,12 @@ def test_several_axes_come_back_axis_by_axis(tmp_path, capsys):
     for topic in ("/axis/x/feedback", "/axis/y/feedback", "/axis/y/command"):
         assert messages(resim, topic) == messages(recorded, topic), topic
         assert len(messages(resim, topic)) == 200
+
+
+def test_hil_emulate_drive_plays_the_configs_faults_too(tmp_path):
+    (tmp_path / "drive.toml").write_text('[emulator]\nfaults = ["silent@0"]\n')
+    with api.start_drive_emulator(tmp_path / "drive.toml") as drive:
+        deadline = time.monotonic() + 60  # a bound on a stuck emulator, not a measurement
+        while not drive.fault_events() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert drive.fault_events()[0].startswith("silent@0 injected at t=")
