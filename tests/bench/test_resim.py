@@ -17,6 +17,8 @@ from hil.cli.main import main
 from hil.core.recording.reader import SessionData, read_session
 from tests.cli import hil_here
 
+pytestmark = [pytest.mark.slow]  # processes, emulators, sessions
+
 FAULT = "load_step@5-6:va=100"
 TOPICS = ("/bench/power", "/bench/relays", "/bench/levels")
 PACKAGED_MODELS = Path(str(resources.files("hil.configs"))) / "models"

@@ -23,6 +23,8 @@ from hil.cli.main import main
 from hil.core.recording.reader import SessionData, read_session
 from tests.cli import hil_here
 
+pytestmark = [pytest.mark.slow]  # processes, emulators, sessions
+
 ROOT = Path(__file__).resolve().parents[2]
 CONTROLLER = "my_controllers.py:PdPosition"
 FAULT = "drop_tpdo@0.2-0.22:every=2"
