@@ -22,6 +22,7 @@ from hil.cli import (
     layout,
     replay,
     report,
+    resim,
     servo,
     sweep,
     twin,
@@ -29,7 +30,7 @@ from hil.cli import (
 from hil.errors import HilError, RunInterruptedError
 
 COMMAND_MODULES = (demo, bench, servo, drive, sweep, empc, identify, emulate, report, export,
-                   replay, twin, layout, doctor)
+                   replay, resim, twin, layout, doctor)
 
 
 class OneLineParser(argparse.ArgumentParser):

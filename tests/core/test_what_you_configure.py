@@ -97,6 +97,7 @@ SPECIAL: dict[str, dict[str, Any]] = {
     "emulator.channel": {"emulator.channel": "can1"},
     "emulator.disturbance.end_s": {"emulator.disturbance.end_s": 1.5},
     "emulator.model": {"emulator.model": str(AXIS_MODEL)},  # a model file that fits the axis
+    "emulator.faults": {"emulator.faults": ["drop_tpdo@1-2:every=3"]},
     # every key an [[axis]] takes: its own EDS and safety limits too
     "axis": {"axis": [{"name": "x", "node": 1, "current_limit_mA": 800.0, "eds": "x.eds",
                        "bus": "socketcand://127.0.0.1:29536",
