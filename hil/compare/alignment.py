@@ -22,26 +22,28 @@ class Series:
 
 @dataclass(frozen=True)
 class Aligned:
-    """Baseline and candidate on the baseline's ticks: ``t_s``, ``baseline``, ``candidate``."""
+    """Baseline and candidate on the baseline's ticks: ``t_s``, ``baseline``, ``candidate``;
+    ``index``: where those ticks are in the baseline's whole series."""
 
     t_s: np.ndarray
     baseline: np.ndarray
     candidate: np.ndarray
+    index: np.ndarray
 
 
 def tick_for_tick(base: Series, cand: Series) -> Aligned:
     """The ticks both sessions hold, matched by their exact time."""
     common, ib, ic = np.intersect1d(base.t_ns, cand.t_ns, return_indices=True)
-    return Aligned(common / 1e9, base.values[ib], cand.values[ic])
+    return Aligned(common / 1e9, base.values[ib], cand.values[ic], ib)
 
 
 def interpolated(base: Series, cand: Series) -> Aligned:
     """The candidate interpolated onto the baseline's ticks that lie within its own span."""
     if cand.t_ns.size == 0:
-        return Aligned(np.empty(0), np.empty(0), np.empty(0))
-    keep = (base.t_ns >= cand.t_ns[0]) & (base.t_ns <= cand.t_ns[-1])
-    t = base.t_ns[keep]
-    return Aligned(t / 1e9, base.values[keep], np.interp(t, cand.t_ns, cand.values))
+        return Aligned(np.empty(0), np.empty(0), np.empty(0), np.empty(0, dtype=np.intp))
+    index = np.flatnonzero((base.t_ns >= cand.t_ns[0]) & (base.t_ns <= cand.t_ns[-1]))
+    t = base.t_ns[index]
+    return Aligned(t / 1e9, base.values[index], np.interp(t, cand.t_ns, cand.values), index)
 
 
 def window_extremes(values: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:

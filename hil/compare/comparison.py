@@ -234,7 +234,7 @@ def _signal_row(name: str, ours: Series, theirs: Series, tolerance: Tolerance,
         notes.append(f"{name}: compared over {aligned.t_s.size} ticks "
                      f"({aligned.t_s[0]:.4f}..{aligned.t_s[-1]:.4f} s); the baseline has "
                      f"{ours.t_ns.size}, the candidate {theirs.t_ns.size}")
-    verdict = judge_signal(tolerance, aligned)
+    verdict = judge_signal(tolerance, aligned, ours)
     i = verdict.index
     return Row("signal", name, float(aligned.baseline[i]), float(aligned.candidate[i]),
                verdict.difference, tolerance.text(name), verdict.passed,

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.compare.alignment import Aligned, window_extremes
+from hil.compare.alignment import Aligned, Series, window_extremes
 from hil.compare.tolerances import Tolerance
 
 
@@ -30,15 +30,17 @@ def judge_kpi(tolerance: Tolerance, baseline: float, candidate: float) -> Verdic
     return Verdict(abs(difference) <= tolerance.allowed(baseline), difference)
 
 
-def judge_signal(tolerance: Tolerance, aligned: Aligned) -> Verdict:
+def judge_signal(tolerance: Tolerance, aligned: Aligned, baseline: Series) -> Verdict:
     """Every aligned tick within the tolerance; a tube lets the candidate lead or lag the
-    baseline by ``lag_s`` (the band around the baseline's extremes within that window)."""
+    baseline by ``lag_s``: the band is around the baseline's extremes within that window
+    (of its whole series: ``baseline``)."""
     base, cand = aligned.baseline, aligned.candidate
     low, high = base, base
-    if tolerance.kind == "tube" and tolerance.lag_s > 0 and aligned.t_s.size > 1:
-        step = float(np.median(np.diff(aligned.t_s)))
+    if tolerance.kind == "tube" and tolerance.lag_s > 0 and baseline.t_ns.size > 1:
+        step = float(np.median(np.diff(baseline.t_ns))) / 1e9
         half = math.ceil(tolerance.lag_s / step - 1e-9) if step > 0 else 0
-        low, high = window_extremes(base, half)
+        low, high = (extreme[aligned.index] for extreme in
+                     window_extremes(baseline.values, half))
     if tolerance.kind == "rel":
         allowed = tolerance.value * np.abs(base)
     else:
