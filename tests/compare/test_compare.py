@@ -86,15 +86,15 @@ def test_identical_lockstep_sessions_are_within_exact_tolerance(folder):
                                                 f"{len(names)} KPI(s) and signal(s)"]
 
 
-def test_a_changed_gain_is_outside_naming_the_signal_and_its_time(folder):
+def test_a_changed_gain_is_outside_naming_the_signal_and_its_time(folder, capsys):
     done = hil(folder, "compare", "base.mcap", "stiffer.mcap", "--signal", POSITION)
     assert done.returncode == 1, done.stderr
     [line] = done.stderr.strip().splitlines()
     assert line.startswith("hil: outside tolerance (") and f"{POSITION} by " in line
     row = next(r for r in done.stdout.splitlines() if POSITION in r)
     assert row.endswith("FAIL")
-    as_json = json.loads(hil(folder, "compare", "base.mcap", "stiffer.mcap", "--signal",
-                             POSITION, "--json").stdout)
+    as_json = json.loads(hil_here(capsys, "compare", "base.mcap", "stiffer.mcap", "--signal",
+                                  POSITION, "--json", cwd=folder).stdout)
     worst = next(r for r in as_json["rows"] if r["name"] == POSITION)
     assert not as_json["passed"] and not worst["passed"] and worst["difference"] > 0
     assert worst["difference"] == pytest.approx(abs(worst["candidate"] - worst["baseline"]))
@@ -163,14 +163,15 @@ def test_a_truncated_baseline_is_compared_over_what_was_read(folder, capsys):
     assert nothing.returncode == 2 and "nothing to compare" in nothing.stderr
 
 
-def test_real_time_is_interpolated_onto_the_baselines_ticks(folder):
+def test_real_time_is_interpolated_onto_the_baselines_ticks(folder, capsys):
     run = hil(folder, "servo", "run", "--controller", "my_controllers.py:Pd", "--duration",
               "0.3", "--realtime", "--out", "wall.mcap", "--quiet")
     assert run.returncode in (0, 3), run.stderr  # 3: the wall clock disturbed it (a busy CPU)
-    refused = hil(folder, "compare", "base.mcap", "wall.mcap", "--signal", POSITION)
+    refused = hil_here(capsys, "compare", "base.mcap", "wall.mcap", "--signal", POSITION,
+                       cwd=folder)
     assert refused.returncode == 2 and "real-time sessions need a tolerance" in refused.stderr
-    done = hil(folder, "compare", "base.mcap", "wall.mcap", "--tolerance", "*=abs:1e9",
-               "--signal", POSITION, "--json")
+    done = hil_here(capsys, "compare", "base.mcap", "wall.mcap", "--tolerance", "*=abs:1e9",
+                    "--signal", POSITION, "--json", cwd=folder)
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout)
     assert result["alignment"] == "interpolated"
