@@ -44,7 +44,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--tolerance", action="append", default=[], type=_entry,
                    metavar="NAME=SPEC", help="the tolerance of a KPI or signal (repeat; a "
                    "signal named here is compared): exact, abs:V, rel:P%%, tube:V,LAG; "
-                   "NAME '*' for everything else; laid over --tolerances")
+                   "NAME '*' for everything else (a tube: every signal); laid over --tolerances")
     p.add_argument("--tolerances", metavar="F.toml",
                    help="tolerances from a TOML file: NAME = \"SPEC\" lines, e.g. "
                    "rms_error_deg = \"rel:2%%\", \"/drive/feedback:position_deg\" = "

@@ -109,6 +109,9 @@ def compare_sessions(baseline: str | os.PathLike[str], candidate: str | os.PathL
         if data.recovered:
             out.notes.append(f"{role} is a recovered file ({data.error}): compared over what "
                              "was read")
+    only = sorted(set(base.messages) ^ set(cand.messages))
+    if only:
+        out.notes.append(f"topics in one session only: {', '.join(only)}")
     chosen = list(dict.fromkeys([*signals, *(n for n in tolerances if ":" in n)]))
     out.rows.extend(_kpi_rows(base, cand, tolerances, lockstep, out.notes))
     ours = _from_first_tick([series(base, name, "baseline") for name in chosen])
@@ -143,8 +146,8 @@ def _tolerance(name: str, tolerances: Mapping[str, Tolerance], lockstep: bool,
                kpi: bool = False) -> Tolerance:
     if name in tolerances:
         return tolerances[name]
-    if DEFAULT in tolerances:
-        return tolerances[DEFAULT]
+    if DEFAULT in tolerances and not (kpi and tolerances[DEFAULT].kind == "tube"):
+        return tolerances[DEFAULT]  # a tube for '*' is the signals' default only
     if lockstep:
         return EXACT
     if kpi:
