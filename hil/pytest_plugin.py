@@ -23,6 +23,19 @@ test (a drive fault, a safety stop...) fails it with its one line, not a traceba
 (``--fulltrace`` shows it). After every test the fixture checks that the hardware was left in
 its safe state (relays at their safe levels, the drive not in OPERATION ENABLED) and fails the
 test if not.
+
+Regression against a baseline: ``hil_baseline.check()`` holds the test's last run against
+``baselines/TEST_NAME.mcap`` beside the test file (the run's metadata and KPIs, and its
+``/drive/feedback:position_deg`` and ``/drive/command:command_mA``, or the bench's
+``/bench/power:total_va`` and levels, at every tick). The first run records that file (a
+``BaselineRecorded`` warning says so); ``--hil-update-baselines`` records it again. Later
+runs compare as ``hil compare`` does: exact against the emulator (lockstep), within
+``tolerances={"NAME": "SPEC"}`` against hardware; a failure shows the table and writes the
+comparison's JSON under ``tmp_path``::
+
+    def test_pd_tracks_as_before(hil_drive, hil_baseline):
+        hil_drive.run(MyServoController, {"kp": 300}, duration_s=0.5)
+        hil_baseline.check(tolerances={"/drive/feedback:position_deg": "tube:0.01,2ms"})
 """
 
 from __future__ import annotations
@@ -42,6 +55,7 @@ from hil.drivers.canopen import CanDriveMaster
 from hil.emulator_process import EmulatorProcess
 from hil.errors import HilError
 from hil.protocols.cia402 import OPERATION_ENABLED, state_of
+from hil.pytest_baseline import hil_baseline  # noqa: F401  (a fixture of this plugin)
 
 #: where a run's KPIs go: ``(name, value)`` pairs, a test's ``user_properties``
 Record = Callable[[tuple[str, object]], None]
@@ -61,6 +75,9 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     group.addoption("--hil-drive", metavar="URL", default=None,
                     help="run hil_drive tests against this drive (socketcand://H:P, "
                     "socketcan://can0...) instead of the emulator")
+    group.addoption("--hil-update-baselines", action="store_true", default=False,
+                    help="hil_baseline records each test's baseline again instead of "
+                    "comparing with it")
 
 
 class _UnderTest(abc.ABC, Generic[DeviceT]):
