@@ -61,7 +61,7 @@ def report_command(args: argparse.Namespace) -> int:
         plot_session(data, args.out)
         summary["png"] = args.out
     if args.html:
-        summary["html"] = write_html(args.file, args.html, args.max_points).path
+        summary["html"] = write_html(data, args.html, args.max_points).path
     print(json_text(summary) if args.json else format_summary(summary))
     return 0
 
@@ -74,11 +74,11 @@ def points_per_trace(text: str) -> int:
     return value
 
 
-def write_html(session: str, out: str, max_points: int | None) -> Any:
+def write_html(data: Any, out: str, max_points: int | None) -> Any:
     """``--html``: the session's HTML report (its :class:`~hil.core.html_report.HtmlStats`)."""
-    from hil.core.html_report import DEFAULT_MAX_POINTS, write_session_html
+    from hil.core.html_report import DEFAULT_MAX_POINTS, write_session_data_html
 
-    return write_session_html(session, out, max_points=max_points or DEFAULT_MAX_POINTS)
+    return write_session_data_html(data, out, max_points=max_points or DEFAULT_MAX_POINTS)
 
 
 def _start_ns(data: Any) -> int:

@@ -21,6 +21,7 @@ from hil.core.html_report.decimate import minmax_decimate
 from hil.core.recording.reader import read_session
 from hil.core.report import kpis
 from hil.errors import UsageError
+from tests.cli import hil_here
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 
@@ -144,15 +145,18 @@ def test_report_html_from_the_command_line(folder):
     assert "Decimated" not in words and "Damage" not in words
 
 
-def test_long_signals_are_decimated_and_the_page_says_so(folder, tmp_path):
+def test_long_signals_are_decimated_and_the_page_says_so(folder, tmp_path, capsys):
     stats = write_session_html(str(folder / "base.mcap"), str(tmp_path / "d.html"),
                                max_points=200)
     assert stats.traces == 5 and stats.points <= 5 * 200   # the 5 signals over time
     assert "tracking: position" in stats.decimated          # 1000 ticks > 200 points
     assert stats.bytes == (tmp_path / "d.html").stat().st_size
-    words = Page((tmp_path / "d.html").read_text(encoding="utf-8")).text
-    assert f"Decimated for size: {len(stats.decimated)} of" in words
-    assert "at most 200 points each" in words
+    assert hil_here(capsys, "report", folder / "base.mcap", "--html", tmp_path / "c.html",
+                    "--max-points", "200").returncode == 0
+    for page in ("d.html", "c.html"):
+        words = Page((tmp_path / page).read_text(encoding="utf-8")).text
+        assert f"Decimated for size: {len(stats.decimated)} of 5 traces" in words
+        assert "at most 200 points each" in words
 
 
 def test_bad_html_options_are_one_line(folder, tmp_path):
@@ -186,6 +190,11 @@ def test_comparison_html_overlays_both_sessions_and_marks_the_worst_point(folder
     for name in ("position (baseline)", "position (candidate)", SIGNAL,
                  "/drive/feedback:current_mA", "worst: "):
         assert name in text.replace("\\u002f", "/"), name   # plotly writes / as \u002f
+    comparison["rows"].append({**worst, "name": "/drive/gone:x_deg"})   # not in the sessions
+    write_comparison_html(str(folder / "base.mcap"), str(folder / "cand.mcap"), comparison,
+                          str(out))
+    assert "Not drawn: signal '/drive/gone:x_deg': no topic '/drive/gone'" in Page(
+        out.read_text(encoding="utf-8")).text
     with pytest.raises(UsageError, match=r"no numeric field 'nope'; fields: .*error_deg"):
         write_comparison_html(str(folder / "base.mcap"), str(folder / "cand.mcap"),
                               comparison, str(tmp_path / "x.html"),
@@ -281,12 +290,12 @@ def open_page(driver, path: Path) -> tuple[list[dict], list[str], list[str]]:
 
 def test_reports_open_in_a_browser_draw_every_plot_and_fetch_nothing(folder, browser,
                                                                       tmp_path):
-    assert hil(folder, "report", "base.mcap", "--html", "servo.html").returncode == 0
-    assert hil(folder, "report", "bench.mcap", "--html", "bench.html").returncode == 0
+    write_session_html(str(folder / "base.mcap"), str(tmp_path / "servo.html"))
+    write_session_html(str(folder / "bench.mcap"), str(tmp_path / "bench.html"))
     write_comparison_html(str(folder / "base.mcap"), str(folder / "cand.mcap"),
                           comparison_of(folder / "base.mcap", folder / "cand.mcap"),
                           str(tmp_path / "cmp.html"))
-    for path in (folder / "servo.html", folder / "bench.html", tmp_path / "cmp.html"):
+    for path in (tmp_path / "servo.html", tmp_path / "bench.html", tmp_path / "cmp.html"):
         plots, errors, requests = open_page(browser, path)
         assert errors == [], path.name
         assert len(plots) == 2, path.name

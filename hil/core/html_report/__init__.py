@@ -28,7 +28,7 @@ from hil.core.verdict import unit_of
 from hil.errors import UsageError
 
 __all__ = ["DEFAULT_MAX_POINTS", "HtmlStats", "Panel", "Trace", "write_comparison_html",
-           "write_session_html"]
+           "write_session_data_html", "write_session_html"]
 
 DEFAULT_MAX_POINTS = 5000
 PLOT_CONFIG = {"displaylogo": False, "responsive": True}
@@ -54,7 +54,14 @@ def write_session_html(session_path: str, out_path: str, *,
     """The report of the session at ``session_path`` (a file, a split series, a truncated
     file) written to ``out_path``."""
     _check_points(max_points)
-    data = read_session(session_path)
+    return write_session_data_html(read_session(session_path), out_path,
+                                   max_points=max_points)
+
+
+def write_session_data_html(data: SessionData, out_path: str, *,
+                            max_points: int = DEFAULT_MAX_POINTS) -> HtmlStats:
+    """:func:`write_session_html` of a session already read."""
+    _check_points(max_points)
     summary = summarize(data)
     drawn = figures.Drawn(max_points)
     rows = figures.overlay([session_panels(data)])
@@ -78,7 +85,8 @@ def write_comparison_html(baseline_path: str, candidate_path: str,
     summaries = [summarize(data) for data in sessions]
     drawn = figures.Drawn(max_points)
     rows = figures.overlay([session_panels(data) for data in sessions])
-    rows += _signal_rows(sessions, comparison, signals)
+    signal_rows, undrawn = _signal_rows(sessions, comparison, signals)
+    rows += signal_rows
     title = (f"hil comparison: {os.path.basename(sessions[1].path)} against "
              f"{os.path.basename(sessions[0].path)}")
     passed = comparison.get("passed")
@@ -89,7 +97,8 @@ def write_comparison_html(baseline_path: str, candidate_path: str,
     head = [f"<h1>{html.escape(title)}</h1>",
             f"<p>{verdict} {html.escape(facts)}</p>",
             f"<p>baseline {html.escape(sessions[0].path)}<br>candidate "
-            f"{html.escape(sessions[1].path)}</p>"]
+            f"{html.escape(sessions[1].path)}</p>",
+            *(paragraph(f"Not drawn: {why}", "note") for why in undrawn)]
     return _write(out_path, title, head, sessions, summaries, labels, rows,
                   sections.comparison_rows(comparison), drawn)
 
@@ -123,18 +132,20 @@ def _write(out_path: str, title: str, head: list[str], sessions: Sequence[Sessio
 
 
 def _signal_rows(sessions: Sequence[SessionData], comparison: Mapping[str, Any],
-                 signals: Sequence[str]) -> list[figures.Row]:
+                 signals: Sequence[str]) -> tuple[list[figures.Row], list[str]]:
     """A row per signal asked for (unknown: a UsageError) and per signal row of the
-    comparison (one the sessions lack is left out), its worst point marked."""
+    comparison, its worst point marked; and why a signal row the sessions lack is not
+    drawn."""
     worst = {str(r.get("name")): r for r in comparison.get("rows", [])
              if r.get("kind") == "signal"}
-    rows = []
+    rows, undrawn = [], []
     for name in dict.fromkeys([*signals, *worst]):
         try:
             traces = [signal_trace(data, name, name.rpartition(":")[2]) for data in sessions]
-        except UsageError:
+        except UsageError as error:
             if name in signals:
                 raise
+            undrawn.append(str(error))
             continue
         field = name.rpartition(":")[2]
         unit = unit_of(field)
@@ -147,7 +158,7 @@ def _signal_rows(sessions: Sequence[SessionData], comparison: Mapping[str, Any],
                 float(found["worst_t_s"]), None if candidate is None else float(candidate),
                 f"worst: {found.get('difference')} at {found['worst_t_s']} s"))
         rows.append(row)
-    return rows
+    return rows, undrawn
 
 
 def _check_points(max_points: int) -> None:
