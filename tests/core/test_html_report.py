@@ -188,7 +188,8 @@ def test_comparison_html_overlays_both_sessions_and_marks_the_worst_point(folder
     worst = comparison["rows"][-1]
     assert f"{worst['worst_t_s']:.6g}" in words and "FAIL" in words
     for name in ("position (baseline)", "position (candidate)", SIGNAL,
-                 "/drive/feedback:current_mA", "worst: "):
+                 "/drive/feedback:current_mA",
+                 f"worst: difference {worst['difference']:.6g} at {worst['worst_t_s']:.6g} s"):
         assert name in text.replace("\\u002f", "/"), name   # plotly writes / as \u002f
     comparison["rows"].append({**worst, "name": "/drive/gone:x_deg"})   # not in the sessions
     write_comparison_html(str(folder / "base.mcap"), str(folder / "cand.mcap"), comparison,

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from hil.core.html_report import figures, sections
-from hil.core.html_report.page import badge, document, paragraph, section
+from hil.core.html_report.page import badge, document, paragraph, section, text
 from hil.core.html_report.panels import Panel, Trace, session_panels, signal_trace
 from hil.core.recording.reader import SessionData, read_session
 from hil.core.report import summarize
@@ -156,7 +156,8 @@ def _signal_rows(sessions: Sequence[SessionData], comparison: Mapping[str, Any],
             candidate = found.get("candidate")
             row.marks.append(figures.Mark(
                 float(found["worst_t_s"]), None if candidate is None else float(candidate),
-                f"worst: {found.get('difference')} at {found['worst_t_s']} s"))
+                f"worst: difference {text(found.get('difference'))} at "
+                f"{text(float(found['worst_t_s']))} s"))
         rows.append(row)
     return rows, undrawn
 
