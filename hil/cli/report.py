@@ -1,5 +1,5 @@
 """``hil report``: KPIs, loop timing and plots of any session file, truncated ones included;
-its events and any topic's messages as text."""
+its events and any topic's messages as text; a self-contained HTML page of it (``--html``)."""
 
 from __future__ import annotations
 
@@ -21,7 +21,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "timing per task, events and KPIs. Works on truncated files (e.g. after a crash) and "
         "split series (give the first file): every complete chunk is recovered and the "
         "summary says how much was lost. --events lists every event, --topic prints a topic's "
-        "messages as JSON lines (see also 'hil export').",
+        "messages as JSON lines (see also 'hil export'). --html writes the whole report as "
+        "one HTML page that opens offline, with interactive plots.",
     )
     p.add_argument("file", help="session file (.mcap; the first file of a split series)")
     p.add_argument("--out", metavar="F.png", type=output_file,

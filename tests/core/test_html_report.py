@@ -289,7 +289,7 @@ def open_page(driver, path: Path) -> tuple[list[dict], list[str], list[str]]:
     return plots, errors, requests
 
 
-def test_reports_open_in_a_browser_draw_every_plot_and_fetch_nothing(folder, browser,
+def test_reports_open_in_a_browser_draw_every_plot_and_fetch_nothing(browser, folder,
                                                                       tmp_path):
     write_session_html(str(folder / "base.mcap"), str(tmp_path / "servo.html"))
     write_session_html(str(folder / "bench.mcap"), str(tmp_path / "bench.html"))
