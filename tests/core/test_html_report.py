@@ -33,18 +33,8 @@ def hil(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
                           text=True, timeout=180, check=False)
 
 
-@pytest.fixture(scope="module")
-def folder(tmp_path_factory) -> Path:
-    """A user's folder with three lockstep sessions, recorded side by side: a PID run with a
-    limit (the baseline), the same with a slower integrator (the candidate), a bench cycle."""
-    folder = tmp_path_factory.mktemp("html")
-    runs = {
-        "base": ["servo", "run", "--controller", "pid", "--duration", "0.5",
-                 "--limit", "rms_error_deg<=0.5"],
-        "cand": ["servo", "run", "--controller", "pid", "--duration", "0.5",
-                 "--param", "ti_us=8000", "--limit", "rms_error_deg<=0.5"],
-        "bench": ["bench", "run", "--controller", "bc", "--cycles", "1"],
-    }
+def record(folder: Path, runs: dict[str, list[str]]) -> Path:
+    """``hil RUN --out NAME.mcap`` for each run, side by side, in ``folder``."""
     started = {name: subprocess.Popen(
         [sys.executable, "-m", "hil", *argv, "--out", f"{name}.mcap", "--quiet"], cwd=folder,
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -53,6 +43,24 @@ def folder(tmp_path_factory) -> Path:
         _, err = process.communicate(timeout=180)
         assert process.returncode == 0, f"{name}: {err}"
     return folder
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory) -> Path:
+    """A user's folder with two lockstep servo sessions: a PID run with a limit (the
+    baseline), the same with a slower integrator (the candidate)."""
+    limit = ["--limit", "rms_error_deg<=0.5"]
+    return record(tmp_path_factory.mktemp("html"), {
+        "base": ["servo", "run", "--controller", "pid", "--duration", "0.5", *limit],
+        "cand": ["servo", "run", "--controller", "pid", "--duration", "0.5",
+                 "--param", "ti_us=8000", *limit]})
+
+
+@pytest.fixture(scope="module")
+def bench_folder(tmp_path_factory) -> Path:
+    """A user's folder with one bench cycle (28 s of session) of the BC."""
+    return record(tmp_path_factory.mktemp("html-bench"),
+                  {"bench": ["bench", "run", "--controller", "bc", "--cycles", "1"]})
 
 
 def comparison_of(base: Path, cand: Path) -> dict:
@@ -217,10 +225,10 @@ def test_a_recovered_file_shows_its_damage(folder, tmp_path):
     assert "tracking error" in (tmp_path / "cut.html").read_text()   # what was read
 
 
-def test_bench_report_draws_power_relays_and_levels(folder):
-    done = hil(folder, "report", "bench.mcap", "--html", "bench.html")
+def test_bench_report_draws_power_relays_and_levels(bench_folder):
+    done = hil(bench_folder, "report", "bench.mcap", "--html", "bench.html")
     assert done.returncode == 0, done.stderr
-    text = (folder / "bench.html").read_text(encoding="utf-8")
+    text = (bench_folder / "bench.html").read_text(encoding="utf-8")
     words = Page(text).text
     for expected in ("total apparent power", "relays (on = raised)", "resource levels",
                      "J1_VA", "bench.open", "contracted", "q1 bound"):
@@ -290,9 +298,9 @@ def open_page(driver, path: Path) -> tuple[list[dict], list[str], list[str]]:
 
 
 def test_reports_open_in_a_browser_draw_every_plot_and_fetch_nothing(browser, folder,
-                                                                      tmp_path):
+                                                                      bench_folder, tmp_path):
     write_session_html(str(folder / "base.mcap"), str(tmp_path / "servo.html"))
-    write_session_html(str(folder / "bench.mcap"), str(tmp_path / "bench.html"))
+    write_session_html(str(bench_folder / "bench.mcap"), str(tmp_path / "bench.html"))
     write_comparison_html(str(folder / "base.mcap"), str(folder / "cand.mcap"),
                           comparison_of(folder / "base.mcap", folder / "cand.mcap"),
                           str(tmp_path / "cmp.html"))
