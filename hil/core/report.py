@@ -64,16 +64,23 @@ def loop_stats(data: SessionData) -> dict[str, Any]:
             "overruns": int(sum(m.get("overruns", 0) for m in msgs)),
             "lateness_us": percentile_summary(_samples(msgs, "lateness_us")),
         }
-        if not any(f"{phase}_us" in msgs[0] for phase in PHASES if phase != "compute"):
-            stats["step_us"] = percentile_summary(_samples(msgs, "compute_us"))
-        else:
+        stats["step_us"] = percentile_summary(step_samples(msgs))
+        if any(f"{phase}_us" in msgs[0] for phase in PHASES if phase != "compute"):
             phases = {phase: _samples(msgs, f"{phase}_us") for phase in PHASES}
-            taken = {phase: v for phase, v in phases.items() if v.size}
-            step = np.sum(list(taken.values()), axis=0) if taken else np.empty(0)
-            stats["step_us"] = percentile_summary(np.asarray(step, float))
-            stats.update({f"{phase}_us": percentile_summary(v) for phase, v in taken.items()})
+            stats.update({f"{phase}_us": percentile_summary(v) for phase, v in phases.items()
+                          if v.size})
         out[topic[len("/loop/"):-len("/timing")]] = stats
     return out
+
+
+def step_samples(messages: list[dict[str, Any]]) -> np.ndarray:
+    """Every recorded run's ``step_us`` (the sum of its phases) from a task's timing
+    messages; a session recorded before the loop had phases: its ``compute_us``."""
+    if not messages or not any(f"{phase}_us" in messages[0] for phase in PHASES
+                               if phase != "compute"):
+        return _samples(messages, "compute_us")
+    taken = [v for v in (_samples(messages, f"{phase}_us") for phase in PHASES) if v.size]
+    return np.asarray(np.sum(taken, axis=0), float) if taken else np.empty(0)
 
 
 def _samples(messages: list[dict[str, Any]], key: str) -> np.ndarray:

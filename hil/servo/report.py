@@ -166,7 +166,8 @@ def _seconds(stamps_ns: np.ndarray, origin_ns: int) -> np.ndarray:
     return (stamps_ns - origin_ns) / 1e9
 
 
-def _current_limit(data: SessionData) -> float | None:
+def current_limit(data: SessionData) -> float | None:
+    """The run's current limit [mA] (the ``umax_mA`` KPI, else the configured ``umax``)."""
     limit = kpis(data).get("umax_mA")
     if limit is None:
         try:
@@ -241,7 +242,7 @@ def plot_servo(data: SessionData, out_png: str) -> None:
     if feedback["log_time_ns"].size:
         ax.plot(_seconds(feedback["log_time_ns"], origin), feedback["current_mA"], lw=0.7,
                 alpha=0.8, label="drive (torque actual)")
-    limit = _current_limit(data)
+    limit = current_limit(data)
     if limit is not None:
         for sign in (1, -1):
             ax.axhline(sign * limit, color="r", lw=0.6, ls=":")
