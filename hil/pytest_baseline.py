@@ -18,6 +18,7 @@ from hil.compare.table import format_table, summary_line
 from hil.core.recording.reader import read_session
 from hil.core.report import session_kind
 from hil.errors import HilError
+from hil.pytest_html import html_folder, write_comparison_report
 
 #: the signals a baseline keeps and compares unless the test names its own, by session kind
 DEFAULT_SIGNALS = {
@@ -69,11 +70,18 @@ class Baseline:
             comparison = compare_sessions(path, run, chosen, limits)
         except HilError as exc:
             pytest.fail(f"hil_baseline: {exc}", pytrace=False)
+        document = comparison.to_json()
         report = self._tmp_path / f"{path.stem}.compare.json"
-        report.write_text(json.dumps(comparison.to_json(), indent=1) + "\n")
+        report.write_text(json.dumps(document, indent=1) + "\n")
+        folder = html_folder(self._request)
+        if folder is not None:
+            write_comparison_report(self._request, path, run, document,
+                                    Path(folder) / f"{path.stem}.compare.html")
         if not comparison.passed:
+            page = write_comparison_report(self._request, path, run, document,
+                                           report.with_suffix(".html"))
             pytest.fail(f"{format_table(comparison)}\n{summary_line(comparison)}\n"
-                        f"comparison: {report}", pytrace=False)
+                        f"comparison: {report} (report: {page})", pytrace=False)
         return comparison
 
     def _last_session(self) -> str:

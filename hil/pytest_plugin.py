@@ -36,6 +36,10 @@ comparison's JSON under ``tmp_path``::
     def test_pd_tracks_as_before(hil_drive, hil_baseline):
         hil_drive.run(MyServoController, {"kp": 300}, duration_s=0.5)
         hil_baseline.check(tolerances={"/drive/feedback:position_deg": "tube:0.01,2ms"})
+
+``--hil-html DIR``: an HTML report of every session the fixtures ran and of every baseline
+comparison, in ``DIR`` (:mod:`hil.pytest_html`); a failed comparison writes its page under
+``tmp_path`` without it too.
 """
 
 from __future__ import annotations
@@ -56,6 +60,8 @@ from hil.emulator_process import EmulatorProcess
 from hil.errors import HilError
 from hil.protocols.cia402 import OPERATION_ENABLED, state_of
 from hil.pytest_baseline import hil_baseline  # noqa: F401  (a fixture of this plugin)
+from hil.pytest_html import add_option as add_html_option
+from hil.pytest_html import write_session_reports
 
 #: where a run's KPIs go: ``(name, value)`` pairs, a test's ``user_properties``
 Record = Callable[[tuple[str, object]], None]
@@ -78,6 +84,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     group.addoption("--hil-update-baselines", action="store_true", default=False,
                     help="hil_baseline records each test's baseline again instead of "
                     "comparing with it")
+    add_html_option(group)
 
 
 class _UnderTest(abc.ABC, Generic[DeviceT]):
@@ -267,6 +274,7 @@ def _under_test(request: pytest.FixtureRequest, tmp_path: Path, option: str, sta
             yield device
         finally:
             device.close()
+            write_session_reports(request, device.sessions)
         return device.left_unsafe()
 
 

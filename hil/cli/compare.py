@@ -6,7 +6,9 @@ from __future__ import annotations
 import argparse
 import sys
 
+from hil.cli.argtypes import output_file
 from hil.cli.output import json_text
+from hil.cli.report import points_per_trace
 from hil.compare.tolerances import Tolerance, parse_entry
 from hil.errors import UsageError
 
@@ -50,6 +52,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "rms_error_deg = \"rel:2%%\", \"/drive/feedback:position_deg\" = "
                    "\"tube:0.01,2ms\", \"*\" = \"abs:0.001\"")
     p.add_argument("--json", action="store_true", help="print the comparison as JSON")
+    p.add_argument("--html", metavar="F.html", type=output_file,
+                   help="also write the comparison as one self-contained HTML page: its table, "
+                   "both sessions' signals overlaid (the compared ones with their worst point "
+                   "marked), KPIs, events, loop timing")
+    p.add_argument("--max-points", type=points_per_trace, default=None, metavar="N",
+                   help="with --html: at most N points per plotted trace (default 5000; "
+                   "longer signals are decimated, keeping every peak)")
     p.set_defaults(handler=compare_command)
 
 
@@ -59,7 +68,17 @@ def compare_command(args: argparse.Namespace) -> int:
 
     tolerances = tolerances_file(args.tolerances) if args.tolerances else {}
     tolerances.update(dict(args.tolerance))
+    if args.max_points is not None and not args.html:
+        raise UsageError("--max-points N (points per trace) needs --html F.html")
     comparison = compare_sessions(args.baseline, args.candidate, args.signal, tolerances)
-    print(json_text(comparison.to_json()) if args.json else format_table(comparison))
+    document = comparison.to_json()
+    if args.html:
+        from hil.core.html_report import DEFAULT_MAX_POINTS, write_comparison_html
+
+        write_comparison_html(args.baseline, args.candidate, document, args.html,
+                              signals=args.signal,
+                              max_points=args.max_points or DEFAULT_MAX_POINTS)
+        document["html"] = args.html
+    print(json_text(document) if args.json else format_table(comparison))
     print(f"hil: {summary_line(comparison)}", file=sys.stderr)
     return 0 if comparison.passed else 1

@@ -65,6 +65,9 @@ class Comparison:
     alignment: str
     rows: list[Row] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    #: the log time [ns] each session's time counts from ("baseline", "candidate"): the first
+    #: tick of the compared signals, else the session's first message
+    origins_ns: dict[str, int] = field(default_factory=dict)
 
     @property
     def passed(self) -> bool:
@@ -82,7 +85,7 @@ class Comparison:
                           "difference": _plain(r.difference), "tolerance": r.tolerance,
                           "passed": r.passed, "worst_t_s": _plain(r.worst_t_s),
                           "unit": r.unit} for r in self.rows],
-                "notes": list(self.notes)}
+                "notes": list(self.notes), "origins_ns": dict(self.origins_ns)}
 
 
 def _plain(value: float | None) -> float | None:
@@ -114,8 +117,10 @@ def compare_sessions(baseline: str | os.PathLike[str], candidate: str | os.PathL
         out.notes.append(f"topics in one session only: {', '.join(only)}")
     chosen = list(dict.fromkeys([*signals, *(n for n in tolerances if ":" in n)]))
     out.rows.extend(_kpi_rows(base, cand, tolerances, lockstep, out.notes))
-    ours = _from_first_tick([series(base, name, "baseline") for name in chosen])
-    theirs = _from_first_tick([series(cand, name, "candidate") for name in chosen])
+    ours, out.origins_ns["baseline"] = _from_first_tick(
+        [series(base, name, "baseline") for name in chosen], base)
+    theirs, out.origins_ns["candidate"] = _from_first_tick(
+        [series(cand, name, "candidate") for name in chosen], cand)
     for name, mine, other in zip(chosen, ours, theirs, strict=True):
         out.rows.append(_signal_row(name, mine, other, _tolerance(name, tolerances, lockstep),
                                     lockstep, out.notes))
@@ -220,12 +225,14 @@ def series(data: SessionData, name: str, role: str) -> Series:
     return Series(arrays["log_time_ns"], values)
 
 
-def _from_first_tick(signals: list[Series]) -> list[Series]:
+def _from_first_tick(signals: list[Series], data: SessionData) -> tuple[list[Series], int]:
     """Session time: the signals' log times from the first of them (the first tick; events
-    and set-up before it do not shift a real-time session against a lockstep one)."""
-    firsts = [s.t_ns[0] for s in signals if s.t_ns.size]
-    start = min(firsts) if firsts else 0
-    return [Series(s.t_ns - start, s.values) for s in signals]
+    and set-up before it do not shift a real-time session against a lockstep one), else from
+    the session's first message; and that origin [ns]."""
+    firsts = [int(s.t_ns[0]) for s in signals if s.t_ns.size]
+    span = data.time_range_ns()
+    start = min(firsts) if firsts else (span[0] if span else 0)
+    return [Series(s.t_ns - start, s.values) for s in signals], start
 
 
 def _signal_row(name: str, ours: Series, theirs: Series, tolerance: Tolerance,

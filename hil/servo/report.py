@@ -98,10 +98,12 @@ def _feedback_topics(data: SessionData, info: dict[str, Any]
 def feedback_timing(data: SessionData, topic: str, period_s: float,
                     window_ms: float) -> dict[str, Any]:
     """The feedback section of one topic (empty without feedback, or without the commands
-    that give each tick its slot on the schedule grid)."""
+    that give each tick its slot on the schedule grid, or in a session that keeps only some
+    of their fields: a baseline's)."""
     feedback = data.arrays(topic)
     command = data.arrays(topic.removesuffix("/feedback") + "/command")
-    if feedback["log_time_ns"].size == 0 or command["log_time_ns"].size == 0 or period_s <= 0:
+    if feedback["log_time_ns"].size == 0 or command["log_time_ns"].size == 0 or period_s <= 0 \
+            or "t_s" not in command or not {"fresh", "rtt_us"} <= feedback.keys():
         return {}
     # each tick's slot: the t_s of the /drive/command stamped with the same tick start
     order = np.argsort(command["log_time_ns"], kind="stable")

@@ -100,6 +100,22 @@ def test_a_changed_gain_is_outside_naming_the_signal_and_its_time(folder, capsys
     assert worst["difference"] == pytest.approx(abs(worst["candidate"] - worst["baseline"]))
     assert 0 < worst["worst_t_s"] < 0.5
     assert f"at t = {worst['worst_t_s']:.4f} s" in line and f"{worst['worst_t_s']:.4f}" in row
+    assert set(as_json["origins_ns"]) == {"baseline", "candidate"}
+
+
+def test_a_comparison_as_one_html_page(folder, capsys):
+    done = hil_here(capsys, "compare", "base.mcap", "stiffer.mcap", "--signal", POSITION,
+                    "--json", "--html", "pages/compare.html", "--max-points", "300",
+                    cwd=folder)
+    document = json.loads(done.stdout)
+    page = (folder / "pages" / "compare.html").read_text()
+    assert document["html"] == "pages/compare.html" and not document["passed"]
+    worst = next(r for r in document["rows"] if r["name"] == POSITION)
+    assert "FAILED" in page and POSITION in page and "<script src" not in page
+    assert "worst: difference" in page and worst["worst_t_s"] > 0
+    assert "Decimated for size" in page  # 1000 ticks drawn with at most 300 points
+    refused = hil(folder, "compare", "base.mcap", "again.mcap", "--max-points", "300")
+    assert refused.returncode == 2 and "needs --html" in refused.stderr
 
 
 def test_flags_win_over_the_tolerances_file(folder, capsys):
@@ -218,7 +234,8 @@ def test_the_pytest_baseline_records_then_fails_on_a_changed_controller(tmp_path
     def pytest_run(kp: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run(
             [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "0",
-             "--basetemp", str(tmp_path / f"runs-{kp}"), "test_mine.py"],
+             "--basetemp", str(tmp_path / f"runs-{kp}"), "test_mine.py",
+             *(["--hil-html", "pages"] if kp == "250" else [])],
             cwd=tmp_path, env={**ENV, "KP": kp}, capture_output=True, text=True,
             timeout=150, check=False)
 
@@ -239,3 +256,8 @@ def test_the_pytest_baseline_records_then_fails_on_a_changed_controller(tmp_path
     changed = json.loads(next(runs.rglob("test_pd-env.compare.json")).read_text())
     assert changed["passed"] is False and changed["alignment"] == "lockstep"
     assert f"comparison: {next(runs.rglob('test_pd-env.compare.json'))}" in second.stdout
+    failed_page = next(runs.rglob("test_pd-env.compare.html"))
+    assert f"(report: {failed_page})" in second.stdout and "FAILED" in failed_page.read_text()
+    pages = sorted(p.name for p in (tmp_path / "pages").iterdir())
+    assert pages == ["test_pd-env.compare.html", "test_pd-fixed.compare.html",
+                     "test_pd-servo-1.html", "test_pd-servo-2.html"]

@@ -78,14 +78,18 @@ def write_comparison_html(baseline_path: str, candidate_path: str,
     """The report of ``comparison`` (the document of ``hil compare --json``) of the two
     sessions, written to ``out_path``: its table, both sessions' panels overlaid, and each
     of ``signals`` and of the comparison's signal rows (``/topic:field``) overlaid with the
-    point of its largest difference marked."""
+    point of its largest difference marked; on the comparison's session time (its
+    ``origins_ns``) where it gives one."""
     _check_points(max_points)
     labels = ["baseline", "candidate"]
     sessions = [read_session(baseline_path), read_session(candidate_path)]
     summaries = [summarize(data) for data in sessions]
     drawn = figures.Drawn(max_points)
-    rows = figures.overlay([session_panels(data) for data in sessions])
-    signal_rows, undrawn = _signal_rows(sessions, comparison, signals)
+    given = comparison.get("origins_ns") or {}
+    origins = [given.get(label) for label in labels]  # the comparison's session time
+    rows = figures.overlay([session_panels(data, origin)
+                            for data, origin in zip(sessions, origins, strict=True)])
+    signal_rows, undrawn = _signal_rows(sessions, origins, comparison, signals)
     rows += signal_rows
     title = (f"hil comparison: {os.path.basename(sessions[1].path)} against "
              f"{os.path.basename(sessions[0].path)}")
@@ -131,7 +135,8 @@ def _write(out_path: str, title: str, head: list[str], sessions: Sequence[Sessio
                      drawn.points, tuple(drawn.decimated), drawn.max_points)
 
 
-def _signal_rows(sessions: Sequence[SessionData], comparison: Mapping[str, Any],
+def _signal_rows(sessions: Sequence[SessionData], origins: Sequence[int | None],
+                 comparison: Mapping[str, Any],
                  signals: Sequence[str]) -> tuple[list[figures.Row], list[str]]:
     """A row per signal asked for (unknown: a UsageError) and per signal row of the
     comparison, its worst point marked; and why a signal row the sessions lack is not
@@ -141,7 +146,8 @@ def _signal_rows(sessions: Sequence[SessionData], comparison: Mapping[str, Any],
     rows, undrawn = [], []
     for name in dict.fromkeys([*signals, *worst]):
         try:
-            traces = [signal_trace(data, name, name.rpartition(":")[2]) for data in sessions]
+            traces = [signal_trace(data, name, name.rpartition(":")[2], origin)
+                      for data, origin in zip(sessions, origins, strict=True)]
         except UsageError as error:
             if name in signals:
                 raise

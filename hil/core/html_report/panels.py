@@ -60,14 +60,19 @@ def origin_ns(data: SessionData) -> int:
     return span[0] if span else 0
 
 
-def session_panels(data: SessionData) -> list[Panel]:
-    """The panels of the session's kind (none for a kind without a panel maker)."""
+def session_panels(data: SessionData, origin: int | None = None) -> list[Panel]:
+    """The panels of the session's kind (none for a kind without a panel maker), on session
+    time from ``origin`` [ns] (default: :func:`origin_ns`)."""
     maker = find_panels(data.metadata.get("session", {}).get("kind", ""))
-    return maker(data, origin_ns(data)) if maker is not None else []
+    if maker is None:
+        return []
+    return maker(data, origin_ns(data) if origin is None else origin)
 
 
-def signal_trace(data: SessionData, signal: str, name: str | None = None) -> Trace:
-    """The trace of ``/topic:field`` in the session; a UsageError names what there is."""
+def signal_trace(data: SessionData, signal: str, name: str | None = None,
+                 origin: int | None = None) -> Trace:
+    """The trace of ``/topic:field`` in the session (time from ``origin`` [ns], default
+    :func:`origin_ns`); a UsageError names what there is."""
     topic, sep, field = signal.rpartition(":")
     if not sep or not topic.startswith("/") or not field:
         raise UsageError(f"signal {signal!r}: expected /TOPIC:FIELD, e.g. "
@@ -82,5 +87,5 @@ def signal_trace(data: SessionData, signal: str, name: str | None = None) -> Tra
     if values is None or field not in numeric:
         raise UsageError(f"signal {signal!r}: {topic} has no numeric field {field!r}; "
                          f"fields: {', '.join(numeric)}")
-    t_s = (arrays["log_time_ns"] - origin_ns(data)) / 1e9
+    t_s = (arrays["log_time_ns"] - (origin_ns(data) if origin is None else origin)) / 1e9
     return Trace(name or signal, t_s, np.asarray(values, float))
