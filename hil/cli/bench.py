@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Any
 from hil.bench.identify_options import MACHINING_MODES, IdentifyOptions, parse_relays
 from hil.cli.argtypes import key_value, nonnegative_float, output_file, positive_float, positive_int
 from hil.cli.output import json_text
+from hil.cli.place import add_place_arguments, run_on_place
 from hil.cli.recording import add_recording_arguments
 from hil.cli.units import seconds
 from hil.cli.verdict import add_controller_arguments, add_junit_argument
@@ -42,6 +43,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                      "from (built-in default, hil/configs/bench.toml or eec.toml, --config, a "
                      "flag), and exit without running; with --json as JSON")
     add_recording_arguments(run)
+    add_place_arguments(run, "bench")
     run.set_defaults(handler=run_command)
     ident = bench_sub.add_parser("identify", help="PRBS switching experiment for identification")
     add_identify_arguments(ident)
@@ -105,7 +107,7 @@ def application() -> RunApplication[BenchRunOptions]:
 
 
 def run_command(args: argparse.Namespace) -> int:
-    return application().command_line(args)
+    return run_on_place(args, "bench", lambda: application().command_line(args))
 
 
 def format_kpis(kpis: dict[str, Any]) -> str:
