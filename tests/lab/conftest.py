@@ -115,6 +115,20 @@ class Lab:
             session.loop.run_until_complete(session.stop())
             session.loop.run_until_complete(session.close())
 
+    def wait_for_reservation(self, timeout_s: float = READY_TIMEOUT_S) -> None:
+        """Poll the coordinator until a reservation waits for a place."""
+        deadline = time.monotonic() + timeout_s
+        while "state: waiting" not in client(self.address, "reservations").stdout:
+            assert time.monotonic() < deadline, "no reservation waits"
+            time.sleep(0.2)
+
+    def wait_for_session(self, session: Path, timeout_s: float = READY_TIMEOUT_S) -> None:
+        """Wait until a run has started writing ``session`` (the place is held by then)."""
+        deadline = time.monotonic() + timeout_s
+        while not session.exists():
+            assert time.monotonic() < deadline, f"{session} never appeared"
+            time.sleep(0.2)
+
     def wait_for(self, place: str, holder: str | None, timeout_s: float = READY_TIMEOUT_S
                  ) -> None:
         """Poll the coordinator until ``place`` is held by ``holder`` (None: free)."""

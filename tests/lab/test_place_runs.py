@@ -4,6 +4,7 @@ labgrid coordinator and exporter publishing hil's emulators (tests/lab/conftest.
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 
@@ -54,3 +55,81 @@ def test_a_servo_run_on_a_place_takes_the_drive_and_its_node(lab, tmp_path):
     assert run["drive"] == lab.drive_url and run["node"] == 1
     assert run["lab"]["resources"][0]["cls"] == "HilDrive"
     assert lab.holder("drive") is None
+
+
+def test_a_place_held_by_someone_else_is_refused_then_waited_for(lab, tmp_path):
+    client(lab.address, "-p", "bench", "acquire", user="alice")
+    holder = lab.holder("bench")
+    assert holder.endswith("/alice")
+    run = ("bench", "run", "--controller", "bc", "--cycles", "1", "--place", "bench",
+           "--coordinator", lab.address, "--out", tmp_path / "b.mcap")
+    refused = hil(tmp_path, *run)
+    assert refused.returncode == 2
+    assert refused.stderr.strip().splitlines() == [
+        f"hil: error: place bench is held by {holder} (wait for it with --wait S)"]
+    assert not (tmp_path / "b.mcap").exists()
+
+    waiting = subprocess.Popen([sys.executable, "-m", "hil", *map(str, run), "--wait", "600"],
+                               cwd=tmp_path, env=user_env(), stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    try:
+        lab.wait_for_reservation()
+        assert waiting.poll() is None  # still waiting: alice holds the place
+        client(lab.address, "-p", "bench", "release", user="alice")
+        out, err = waiting.communicate(timeout=300)
+    finally:
+        if waiting.poll() is None:
+            waiting.kill()
+            waiting.communicate()
+    assert waiting.returncode == 0, err
+    assert f"place bench is held by {holder}: waiting up to 600 s" in err
+    assert "place bench acquired after" in err
+    assert run_metadata(tmp_path / "b.mcap", "run")["lab"]["acquired_by_run"] is True
+    assert lab.holder("bench") is None
+    assert "Reservation" not in client(lab.address, "reservations").stdout
+
+
+def test_a_run_that_fails_releases_the_place_and_one_the_user_holds_stays_held(lab, tmp_path):
+    failed = hil(tmp_path, "bench", "run", "--controller", "nosuch.module:Nope", "--place",
+                 "bench", "--coordinator", lab.address)
+    assert failed.returncode == 2 and "nosuch" in failed.stderr
+    assert lab.holder("bench") is None
+
+    client(lab.address, "-p", "bench", "acquire")
+    mine = lab.holder("bench")
+    out = hil(tmp_path, "bench", "run", "--controller", "bc", "--cycles", "1", "--place",
+              "bench", "--coordinator", lab.address, "--out", tmp_path / "b.mcap")
+    assert out.returncode == 0, out.stderr
+    assert run_metadata(tmp_path / "b.mcap", "run")["lab"]["acquired_by_run"] is False
+    assert lab.holder("bench") == mine
+
+
+@pytest.mark.parametrize("signal_, status", [(signal.SIGINT, 130), (signal.SIGKILL, -9)])
+def test_an_interrupted_run_releases_the_place_a_killed_one_leaves_it_locked(
+        lab, tmp_path, signal_, status):
+    """Ctrl-C stops the run safely and releases the place; SIGKILL leaves it acquired, as
+    labgrid does, until ``labgrid-client -p NAME release``."""
+    run = subprocess.Popen(
+        [sys.executable, "-m", "hil", "bench", "run", "--controller", "bc", "--cycles", "1000",
+         "--place", "bench", "--coordinator", lab.address, "--out", str(tmp_path / "b.mcap")],
+        cwd=tmp_path, env=user_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        lab.wait_for_session(tmp_path / "b.mcap")
+        mine = lab.holder("bench")
+        assert mine is not None
+        run.send_signal(signal_)
+        _, err = run.communicate(timeout=300)
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.communicate()
+    assert run.returncode == status, err
+    if signal_ == signal.SIGINT:
+        assert lab.holder("bench") is None
+        return
+    assert lab.holder("bench") == mine
+    refused = hil(tmp_path, "bench", "run", "--controller", "bc", "--place", "bench",
+                  "--coordinator", lab.address, LG_USERNAME="bob")
+    assert refused.returncode == 2 and f"held by {mine}" in refused.stderr
+    client(lab.address, "-p", "bench", "release")
+    assert lab.holder("bench") is None
