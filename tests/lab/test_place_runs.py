@@ -76,7 +76,7 @@ def test_a_place_held_by_someone_else_is_refused_then_waited_for(lab, tmp_path):
         lab.wait_for_reservation()
         assert waiting.poll() is None  # still waiting: alice holds the place
         client(lab.address, "-p", "bench", "release", user="alice")
-        out, err = waiting.communicate(timeout=300)
+        _, err = waiting.communicate(timeout=300)
     finally:
         if waiting.poll() is None:
             waiting.kill()
