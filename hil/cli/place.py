@@ -18,13 +18,16 @@ KINDS = {
 }
 
 
+FIELDS = {"bench": "and its --config", "drive": "and its --node, --eds, --config"}
+
+
 def add_place_arguments(parser: argparse.ArgumentParser, device: str) -> None:
     """``--place``, ``--coordinator`` and ``--wait`` (``device``: ``bench`` or ``drive``)."""
     parser.add_argument("--place", metavar="NAME",
                         help=f"run on this labgrid place (pip install 'hil[lab]'): its Hil"
-                        f"{device.capitalize()} resource gives the {device} URL and config; "
-                        "the place is acquired for the run unless you hold it already, and "
-                        "released after the safe stop")
+                        f"{device.capitalize()} resource gives the {device} URL "
+                        f"({FIELDS[device]}); the place is acquired for the run unless you "
+                        "hold it already, and released after the safe stop")
     parser.add_argument("--coordinator", metavar="HOST:PORT",
                         help="the labgrid coordinator of --place (default: LG_COORDINATOR, "
                         "else 127.0.0.1:20408)")
