@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import os
 import sys
 import time
@@ -88,25 +89,60 @@ def hold_place(name: str, coordinator: str | None = None, wait_s: float = 0.0,
     else is a :class:`PlaceBusyError` naming the holder."""
     address = coordinator_address(coordinator)
     say = progress or (lambda line: print(line, file=sys.stderr, flush=True))
+    lease = _Lease.connect(name, address)
     try:
-        session = client.start_session(address)
-    except (client.Error, OSError) as exc:
-        raise UsageError(f"--coordinator {address}: no labgrid coordinator answers there "
-                         f"({exc})") from None
-    lease = _Lease(session, name, address)
-    try:
-        held = lease.acquire(wait_s, say)
-        try:
-            yield held
-        finally:
-            if held.acquired_here:
-                lease.release()
+        with _quiet_labgrid():
+            held = lease.acquire(wait_s, say)
     finally:
-        lease.close()
+        lease.close()  # no connection idles through the run: a new one releases the place
+    try:
+        yield held
+    finally:
+        if held.acquired_here:
+            _release(name, address, say)
+
+
+def _release(name: str, address: str, say: Callable[[str], None]) -> None:
+    """Release the place over a new connection; a coordinator gone meanwhile is a warning
+    (the run's outcome stands) naming how to release it later."""
+    try:
+        lease = _Lease.connect(name, address)
+        try:
+            with _quiet_labgrid():
+                lease.release()
+        finally:
+            lease.close()
+    except UsageError as exc:
+        say(f"hil: warning: place {name} not released ({exc}): labgrid-client -x {address} "
+            f"-p {name} release frees it")
+
+
+@contextlib.contextmanager
+def _quiet_labgrid() -> Iterator[None]:
+    """labgrid's client logs its failures on the root logger, which Python prints to stderr
+    when nothing is configured: hil reports them itself, as one line."""
+    root = logging.getLogger()
+    quiet = logging.NullHandler()
+    if not root.handlers:
+        root.addHandler(quiet)
+    try:
+        yield
+    finally:
+        root.removeHandler(quiet)
 
 
 class _Lease:
     """The coordinator calls of :func:`hold_place`, over one labgrid ClientSession."""
+
+    @classmethod
+    def connect(cls, name: str, address: str) -> _Lease:
+        with _quiet_labgrid():
+            try:
+                session = client.start_session(address)
+            except (client.Error, OSError):
+                raise UsageError(f"--coordinator {address}: no labgrid coordinator answers "
+                                 "there") from None
+        return cls(session, name, address)
 
     def __init__(self, session: Any, name: str, address: str) -> None:
         from labgrid.remote.generated import labgrid_coordinator_pb2 as pb2

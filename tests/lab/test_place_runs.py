@@ -68,6 +68,11 @@ def test_a_place_held_by_someone_else_is_refused_then_waited_for(lab, tmp_path):
     assert refused.stderr.strip().splitlines() == [
         f"hil: error: place bench is held by {holder} (wait for it with --wait S)"]
     assert not (tmp_path / "b.mcap").exists()
+    gave_up = hil(tmp_path, *run, "--wait", "1")
+    assert gave_up.returncode == 2
+    assert gave_up.stderr.strip().splitlines()[-1] == (
+        f"hil: error: place bench is still held by {holder} after --wait 1 s")
+    assert "Reservation" not in client(lab.address, "reservations").stdout
 
     waiting = subprocess.Popen([sys.executable, "-m", "hil", *map(str, run), "--wait", "600"],
                                cwd=tmp_path, env=user_env(), stdout=subprocess.PIPE,
@@ -90,6 +95,12 @@ def test_a_place_held_by_someone_else_is_refused_then_waited_for(lab, tmp_path):
 
 
 def test_a_run_that_fails_releases_the_place_and_one_the_user_holds_stays_held(lab, tmp_path):
+    unknown = hil(tmp_path, "bench", "run", "--controller", "bc", "--place", "nosuch",
+                  "--coordinator", lab.address)
+    assert unknown.returncode == 2
+    assert unknown.stderr.strip().splitlines() == [
+        f"hil: error: --place nosuch: no such place at the coordinator {lab.address} (its "
+        "places: bench, drive; labgrid-client -p nosuch create makes it)"]
     failed = hil(tmp_path, "bench", "run", "--controller", "nosuch.module:Nope", "--place",
                  "bench", "--coordinator", lab.address)
     assert failed.returncode == 2 and "nosuch" in failed.stderr
