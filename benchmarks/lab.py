@@ -5,7 +5,8 @@ publishing hil's bench emulator as a HilBench resource of the place ``bench``.
    acquire the place, read its resources) and left (release, disconnect), p50 and p90.
 2. End to end: ``hil bench run --controller bc --cycles 1`` as a process, ``--bench URL``
    against ``--place bench``, alternated; the median of each and their difference (which adds
-   labgrid's import, the connection, acquire and release to the run).
+   labgrid's import, the connection, acquire and release to the run);
+3. what importing labgrid alone adds to a process (``import hil.lab.place``).
 
 The machine is shared: run it alone when the figures matter. ``--quick``: 5 holds, 2 runs of
 each (seconds; figures not worth quoting).
@@ -63,6 +64,17 @@ def runs(address: str, url: str, folder: Path, count: int) -> tuple[np.ndarray, 
     return plain, placed
 
 
+def imports(count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Seconds of a process that imports hil's command line, without and with labgrid."""
+    bare, lab = np.empty(count), np.empty(count)
+    for k in range(count):
+        for times, module in ((bare, "hil.cli.bench"), (lab, "hil.lab.place")):
+            t0 = time.perf_counter()
+            subprocess.run([sys.executable, "-c", f"import {module}"], check=True, timeout=120)
+            times[k] = time.perf_counter() - t0
+    return bare, lab
+
+
 def ms(values: np.ndarray) -> str:
     p50, p90 = np.percentile(values * 1e3, [50, 90])
     return f"p50 {p50:7.1f} ms  p90 {p90:7.1f} ms"
@@ -90,6 +102,10 @@ def main() -> None:
     print(f"  --bench URL        {ms(plain)}")
     print(f"  --place bench      {ms(placed)}")
     print(f"  --place adds       {(np.median(placed) - np.median(plain)) * 1e3:7.1f} ms "
+          "(difference of the medians)")
+    bare, lab = imports(args.runs)
+    print(f"importing labgrid (hil.lab.place), {args.runs} processes")
+    print(f"  adds               {(np.median(lab) - np.median(bare)) * 1e3:7.1f} ms "
           "(difference of the medians)")
 
 

@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
+from labgrid.factory import target_factory
 from labgrid.remote import client
 
 from hil.errors import UsageError
@@ -71,7 +72,14 @@ class HeldPlace:
             raise UsageError(f"place {self.name} must hold one {cls} resource, it holds "
                              f"{len(found)} ({names}): labgrid-client -p {self.name} "
                              f"add-match EXPORTER/GROUP/{cls}/NAME")
-        return found[0]
+        resource = found[0]
+        try:  # the fields as the registered class takes them (an exporter forwards any)
+            target_factory.resources[cls](None, resource.name, **resource.args)
+        except TypeError as exc:
+            reason = exc.args[0] if exc.args else exc
+            raise UsageError(f"place {self.name}: resource {resource.record()['path']}: "
+                             f"{reason}") from None
+        return resource
 
     def record(self) -> dict[str, Any]:
         """What a session's metadata records of the place."""

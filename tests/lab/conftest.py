@@ -1,6 +1,7 @@
 """A labgrid lab on 127.0.0.1 for one test: a real ``labgrid-coordinator`` on a free port, hil's
 bench and drive emulators in processes of their own, a real ``labgrid-exporter`` publishing them
-as HilBench / HilDrive resources, and the places ``bench`` and ``drive`` that hold them. Every
+as HilBench / HilDrive resources, and the places ``bench``, ``drive`` and ``bad`` (a drive
+published with a wrong field) that hold them. Every
 process ends with the test (and with the test process, however it ends)."""
 
 from __future__ import annotations
@@ -31,6 +32,11 @@ drive-1:
   HilDrive:
     url: {drive_url}
     node: 1
+## a drive published with a node id that is no number (place "bad")
+bad-1:
+  HilDrive:
+    url: {drive_url}
+    node: one
 """
 
 
@@ -98,9 +104,11 @@ def lab(tmp_path: Path) -> Iterator[Lab]:
         text = EXPORTER_YAML.format(
             bench_url=bench.url, drive_url=drive.url,
             bench_hostport=bench.url.split("//")[1], drive_hostport=drive.url.split("//")[1])
-        with local_lab(tmp_path / "lab", text, RESOURCES, exporter=EXPORTER,
+        with local_lab(tmp_path / "lab", text, [*RESOURCES, ("bad-1", "HilDrive")],
+                       exporter=EXPORTER,
                        timeout_s=READY_TIMEOUT_S, env=user_env()) as address:
-            for place, (group, cls) in zip(("bench", "drive"), RESOURCES, strict=True):
+            for place, (group, cls) in zip(("bench", "drive", "bad"),
+                                           [*RESOURCES, ("bad-1", "HilDrive")], strict=True):
                 client(address, "-p", place, "create")
                 client(address, "-p", place, "add-match", f"{EXPORTER}/{group}/{cls}")
             yield Lab(address, tmp_path, bench.url, drive.url, text)

@@ -1,8 +1,11 @@
-"""The flags of a run on a place that are refused before any coordinator is reached."""
+"""The flags of a run on a place that are refused before any coordinator is reached, and the
+README's labgrid configs as labgrid reads them."""
 
 from __future__ import annotations
 
+import re
 import socket
+from pathlib import Path
 
 import pytest
 
@@ -42,3 +45,31 @@ def test_a_negative_wait_is_refused_by_the_parser(capsys, tmp_path):
     out = hil_here(capsys, "bench", "run", "--controller", "bc", "--place", "p", "--wait", "-1",
                    cwd=tmp_path)
     assert out.returncode == 2 and "expected seconds >= 0, got -1" in out.stderr
+
+
+def readme_yaml() -> list[str]:
+    text = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    section = text.split("## Shared benches (labgrid)", 1)[1]
+    return re.findall(r"^```yaml\n(.*?)^```", section, re.M | re.S)[:2]
+
+
+def test_the_readme_s_exporter_config_and_environment_are_what_labgrid_reads(tmp_path):
+    """The README's exporter config, read as labgrid's exporter reads it (a Jinja template),
+    makes the hil resources; its environment imports hil.lab and holds a RemotePlace."""
+    from labgrid.config import Config
+    from labgrid.remote.config import ResourceConfig
+
+    from hil.lab import HilBench, HilDrive
+
+    exporter, env = readme_yaml()
+    (tmp_path / "exporter.yaml").write_text(exporter)
+    groups = ResourceConfig(str(tmp_path / "exporter.yaml")).data
+    bench = HilBench(None, "b", **groups["bench-1"]["HilBench"])
+    drive = HilDrive(None, "d", **groups["drive-1"]["HilDrive"])
+    assert bench.url.startswith("modbus-tcp://") and drive.node == 1
+    (tmp_path / "env.yaml").write_text(env)
+    config = Config(str(tmp_path / "env.yaml"))
+    assert config.get_imports() == ["hil.lab"]
+    main = config.get_targets()["main"]
+    assert "RemotePlace" in main["resources"]
+    assert set(main["drivers"]) == {"HilBenchDriver", "HilDriveDriver"}

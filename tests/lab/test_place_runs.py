@@ -100,7 +100,20 @@ def test_a_run_that_fails_releases_the_place_and_one_the_user_holds_stays_held(l
     assert unknown.returncode == 2
     assert unknown.stderr.strip().splitlines() == [
         f"hil: error: --place nosuch: no such place at the coordinator {lab.address} (its "
-        "places: bench, drive; labgrid-client -p nosuch create makes it)"]
+        "places: bad, bench, drive; labgrid-client -p nosuch create makes it)"]
+    no_bench = hil(tmp_path, "bench", "run", "--controller", "bc", "--place", "drive",
+                   "--coordinator", lab.address)
+    assert no_bench.returncode == 2
+    assert no_bench.stderr.strip().splitlines() == [
+        "hil: error: place drive must hold one HilBench resource, it holds 0 (none): "
+        "labgrid-client -p drive add-match EXPORTER/GROUP/HilBench/NAME"]
+    bad = hil(tmp_path, "servo", "run", "--controller", "pid", "--place", "bad",
+              "--coordinator", lab.address)
+    assert bad.returncode == 2
+    [line] = bad.stderr.strip().splitlines()
+    assert line.startswith(f"hil: error: place bad: resource {EXPORTER}/bad-1/HilDrive/"
+                           "HilDrive: 'node' must be <class 'int'>")
+    assert lab.holder("drive") is None and lab.holder("bad") is None
     failed = hil(tmp_path, "bench", "run", "--controller", "nosuch.module:Nope", "--place",
                  "bench", "--coordinator", lab.address)
     assert failed.returncode == 2 and "nosuch" in failed.stderr
