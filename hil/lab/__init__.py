@@ -9,7 +9,9 @@ and drives, more people and CI runners than benches. Needs ``pip install 'hil[la
 * :mod:`hil.lab.place` - a place held for one run (acquired unless already yours, waited for
   through a labgrid reservation, released after the safe stop);
 * :mod:`hil.lab.pytest_target` - the ``hil_bench`` / ``hil_drive`` fixtures on a labgrid
-  target (``pytest --lg-env``).
+  target (``pytest --lg-env``);
+* :mod:`hil.lab.local` - a coordinator and an exporter on 127.0.0.1 (tests, benchmarks, trying
+  it on one machine).
 
 ``--place`` / ``--coordinator`` / ``--wait`` of ``hil bench run`` and ``hil servo run`` are
 :mod:`hil.cli.place`.
