@@ -55,6 +55,12 @@ def test_a_servo_run_on_a_place_takes_the_drive_and_its_node(lab, tmp_path):
     assert run["drive"] == lab.drive_url and run["node"] == 1
     assert run["lab"]["resources"][0]["cls"] == "HilDrive"
     assert lab.holder("drive") is None
+    other_node = hil(tmp_path, "servo", "run", "--controller", "pid", "--place", "drive",
+                     "--node", "2", LG_COORDINATOR=lab.address)
+    assert other_node.returncode == 2
+    assert other_node.stderr.strip().splitlines() == [
+        "hil: error: --node and place drive's HilDrive (node = 1) both set it: give one"]
+    assert lab.holder("drive") is None
 
 
 def test_a_place_held_by_someone_else_is_refused_then_waited_for(lab, tmp_path):
