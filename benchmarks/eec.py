@@ -1,4 +1,4 @@
-"""EEC solve time per decision (issue 18 targets), next to the naive baseline, and the relay
+"""EEC solve time per decision, next to the naive baseline, and the relay
 wear trade-off of gamma3.
 
 Closed-loop lockstep runs of the EEC against the emulated bench over Modbus TCP, default
@@ -38,7 +38,6 @@ from benchkit import add_quick
 
 from hil.bench.kpis import timing_summary
 from hil.bench.run import BenchRunOptions, run_bench
-from hil.controllers.bench.eec_cvxpy import solve_naive
 from hil.controllers.bench.eec_solver import HorizonSolver
 
 DP, MILP, NAIVE = ("DP (schedule DP, default)", "MILP (HiGHS)",
@@ -96,8 +95,11 @@ def exact_table(label: str, run: Run, every: int, naive: int, naive_limit_s: flo
     milp = [solvers["milp"].solve(*run.inputs[k]) for k in sample]
     picks = [int(k) for k in np.linspace(0, len(run.inputs) - 1, naive).round()] if naive \
         else []
-    cvx = [solve_naive(base, *run.inputs[k], time_limit_s=naive_limit_s)  # type: ignore[misc]
-           for k in picks]
+    cvx = []
+    if picks:  # cvxpy takes 1-2 s to import: only for the naive baseline (not with --quick)
+        from hil.controllers.bench.eec_cvxpy import solve_naive
+        cvx = [solve_naive(base, *run.inputs[k], time_limit_s=naive_limit_s)  # type: ignore[misc]
+               for k in picks]
     # the fast model's step peaks may overestimate by peak_overestimate_va (model tails)
     slack = (base.w2 + base.w_limit) * base.peak_overestimate_va
     medians = {}

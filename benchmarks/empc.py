@@ -1,4 +1,4 @@
-"""Explicit MPC benchmark (issue 8): build time, evaluation time, and ppopt as a cross-check.
+"""Explicit MPC benchmark: build time, evaluation time, and ppopt as a cross-check.
 
 1. Build (mpQP + search tree) for FOH, H_p = 50, |u| <= 1000 mA, H_t = H_u = 3 (the paper's
    EMPC of Figs. 14/16) and 4, default box (controllers/servo/empc.py). Paper: 25 regions,

@@ -1,4 +1,4 @@
-"""Session-file size by encoding (issue 19): bytes per servo tick and per bench day.
+"""Session-file size by encoding: bytes per servo tick and per bench day.
 
 One lockstep servo run (PID, default 10 s) and one lockstep bench run (BC, 2 cycles) are
 recorded; their messages are then re-recorded with only the topics measured, once as JSON
@@ -8,7 +8,7 @@ whole-file bytes minus an empty session's, so chunk compression, MCAP record ove
 message indexes (16 B per message, which Foxglove's reader requires) are all counted.
 
 Targets: servo /drive/command + /drive/feedback <= 32 B per tick; bench <= 1 GB per 24 h.
-``--quick``: a 0.5 s servo run and one bench cycle of a 4 s machining sequence instead of the
+``--quick``: a 0.1 s servo run and one bench cycle of a 4 s machining sequence instead of the
 28 s one (a few seconds; figures not worth quoting).
 """
 
@@ -72,12 +72,12 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float,
-                        help="servo run [s] (default 10; 0.5 with --quick)")
+                        help="servo run [s] (default 10; 0.1 with --quick)")
     parser.add_argument("--cycles", type=int, help="bench run, 28 s each (default 2; one "
                         "4 s cycle with --quick)")
     add_quick(parser)
     args = parser.parse_args()
-    args.seconds = args.seconds or (0.5 if args.quick else 10.0)
+    args.seconds = args.seconds or (0.1 if args.quick else 10.0)
     args.cycles = args.cycles or (1 if args.quick else 2)
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)

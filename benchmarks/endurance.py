@@ -1,4 +1,4 @@
-"""Endurance (issue 19, memory part): does a long session keep its memory constant?
+"""Endurance (memory): does a long session keep its memory constant?
 
 Two lockstep sessions, each in a child process of its own:
 

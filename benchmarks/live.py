@@ -1,4 +1,4 @@
-"""Live view cost (issues 16 and 38): real-time servo sessions with ``--live`` and clients, next
+"""Live view cost: real-time servo sessions with ``--live`` and clients, next
 to the same session without the live view, in the same run.
 
 Each session is ``hil servo run --controller mpc --realtime`` (MPC FOH at 2 kHz, the drive
@@ -17,7 +17,7 @@ went: the loop process, the drive emulator (with the time it waited for a CPU), 
 split into the recording (its Python thread) and the live server (the SDK's threads), and the
 clients. The default runs keep the watchdogs off the machine's CAN timing (a late TPDO is
 counted, a late heartbeat does not fault the drive); ``--churn`` runs as shipped, safety net
-and watchdogs on, so that whether they complete is part of the figures. ``--quick``: one 1 s run
+and watchdogs on, so that whether they complete is part of the figures. ``--quick``: one 0.5 s run
 with the live view, the one without it (the baseline) skipped (seconds; figures not worth
 quoting).
 """
@@ -253,7 +253,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--duration", type=float,
-                        help="seconds per run (default 10; 1 with --quick)")
+                        help="seconds per run (default 10; 0.5 with --quick)")
     parser.add_argument("--pairs", type=int, help="off/on pairs (default 2; 1 with --quick)")
     parser.add_argument("--churn", type=int, default=0, metavar="N",
                         help="N clients coming and going instead of one watching throughout")
@@ -261,7 +261,7 @@ def main() -> None:
                         help="with --churn: seconds each connection reads before it closes")
     add_quick(parser)
     args = parser.parse_args()
-    args.duration = args.duration or (1.0 if args.quick else 10.0)
+    args.duration = args.duration or (0.5 if args.quick else 10.0)
     args.pairs = args.pairs or (1 if args.quick else 2)
     clients = f"{args.churn} clients coming and going" if args.churn else "1 client"
     print(f"real-time servo, MPC FOH H_t = H_u = 8 at 2 kHz, {args.duration:g} s per run, "

@@ -4,7 +4,7 @@ Both loops use absolute deadlines and measure lateness the same way (wake-up min
 A third run per rate records one message per tick to an MCAP session, to show what the
 recorder's writer thread costs the loop. Targets (the project's): 2 kHz p99 <= 50 us, misses <=
 0.1 %. The machine is shared: run it on a quiet box for figures worth quoting. ``--quick``:
-2 kHz only, 0.3 s per run instead of 10 s (a few seconds; figures not worth quoting).
+2 kHz only, 0.1 s per run instead of 10 s (a few seconds; figures not worth quoting).
 """
 
 from __future__ import annotations
@@ -61,10 +61,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--duration", type=float,
-                        help="seconds per run (default 10; 0.3 with --quick)")
+                        help="seconds per run (default 10; 0.1 with --quick)")
     add_quick(parser)
     args = parser.parse_args()
-    args.duration = args.duration or (0.3 if args.quick else 10.0)
+    args.duration = args.duration or (0.1 if args.quick else 10.0)
     print(f"{'loop':<34} {'p50 us':>8} {'p99 us':>9} {'max us':>9} {'missed':>8} {'miss %':>7}")
     for rate in (2000,) if args.quick else (1000, 2000):
         lat, missed = plain_sleep_loop(rate, args.duration)

@@ -6,8 +6,8 @@ Round trips: each transport's figure is printed next to a baseline measured in t
 frames). Sampling: a real-time session at 100 Hz polls the meter and the levels for
 ``--duration`` s against the TCP emulator, next to the same loop without I/O, then briefly
 over a paced RTU line. Target (the project's): TCP poll p99 <= 2 ms. The machine is shared:
-figures are noisy, run it on a quiet box for figures worth quoting. ``--quick``: 100 TCP and
-20 RTU round trips per row, sampling runs of 0.5 s and 0.3 s (seconds; figures not worth
+figures are noisy, run it on a quiet box for figures worth quoting. ``--quick``: 20 TCP and
+5 RTU round trips per row, sampling runs of 0.2 s each (seconds; figures not worth
 quoting).
 """
 
@@ -248,17 +248,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--duration", type=float,
-                        help="TCP sampling run [s] (default 30; 0.5 with --quick)")
+                        help="TCP sampling run [s] (default 30; 0.2 with --quick)")
     parser.add_argument("--rtu-duration", type=float,
-                        help="RTU sampling run [s] (default 10; 0.3 with --quick)")
+                        help="RTU sampling run [s] (default 10; 0.2 with --quick)")
     parser.add_argument("--polls", type=int,
-                        help="TCP round trips per row (default 3000; 100 with --quick)")
+                        help="TCP round trips per row (default 3000; 20 with --quick)")
     parser.add_argument("--rtu-polls", type=int,
-                        help="RTU round trips per row (default 600; 20 with --quick)")
+                        help="RTU round trips per row (default 600; 5 with --quick)")
     add_quick(parser)
     args = parser.parse_args()
-    fill_defaults(args, {"duration": (30.0, 0.5), "rtu_duration": (10.0, 0.3),
-                         "polls": (3000, 100), "rtu_polls": (600, 20)})
+    fill_defaults(args, {"duration": (30.0, 0.2), "rtu_duration": (10.0, 0.2),
+                         "polls": (3000, 20), "rtu_polls": (600, 5)})
     started = time.monotonic()
     round_trips(args.polls, args.rtu_polls)
     sampling_report(args.duration, args.rtu_duration)

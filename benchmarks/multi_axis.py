@@ -1,4 +1,4 @@
-"""Several axes on one SYNC (issue 29): what a tick costs with 1, 2 and 3 axes on one bus,
+"""Several axes on one SYNC: what a tick costs with 1, 2 and 3 axes on one bus,
 lockstep through the CAN link (the masters' frames, one emulated CiA 402 node and plant per
 axis), in one run:
 
@@ -8,7 +8,7 @@ axis), in one run:
    [baseline] and ``hil servo run --axes`` with 2 and 3 axes, per tick.
 
 Each figure is the quickest of ``--repeat`` alternated batches (this shared machine has slow
-minutes: the quickest batch is the one it ran undisturbed). The target (issue 29) is that
+minutes: the quickest batch is the one it ran undisturbed). The target is that
 each axis past the first costs at most 40 % of the first. Runs are at 2 kHz: the servo
 controllers are designed for T = 500 us. ``--quick``: one batch of 200 cycles and runs of
 0.1 s (a few seconds; figures not worth quoting).

@@ -1,4 +1,4 @@
-"""The real-time path (issue 14): a full servo session next to the bare loop, in one run.
+"""The real-time path: a full servo session next to the bare loop, in one run.
 
 1. the bare 2 kHz loop as ``hil doctor`` runs it (hardened, no I/O): the baseline;
 2. a 10 s real-time servo session: MPC FOH H_t = H_u = 8, the drive emulator in a process of
@@ -12,7 +12,7 @@ is shared: figures are noisy, run it on a quiet box for figures worth quoting, w
 ``--repeat 3`` or more: the targets are then checked on the medians of alternated pairs.
 For 2 it also prints the stale feedback, the side that was late (``hil report``'s feedback
 section) and what the drive emulator's process was granted (``realtime.emulator``).
-``--quick``: servo runs of 0.5 s and one bench cycle of a 1 s machining sequence instead of
+``--quick``: servo runs of 0.2 s and one bench cycle of a 1 s machining sequence instead of
 the 28 s one (seconds in all; figures not worth quoting).
 """
 
@@ -118,7 +118,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float,
-                        help="servo runs [s] (default 10; 0.5 with --quick)")
+                        help="servo runs [s] (default 10; 0.2 with --quick)")
     parser.add_argument("--bench-cycles", type=int, help="bench run, 28 s each (default 2; "
                         "one 1 s cycle with --quick)")
     parser.add_argument("--repeat", type=int, default=1,
@@ -128,7 +128,7 @@ def main() -> int:
     args = parser.parse_args()
     if args.repeat < 1:
         parser.error("--repeat must be >= 1")
-    args.seconds = args.seconds or (0.5 if args.quick else 10.0)
+    args.seconds = args.seconds or (0.2 if args.quick else 10.0)
     args.bench_cycles = args.bench_cycles or (1 if args.quick else 2)
     cycle_s = 1.0 if args.quick else 28.0
     bares: list[dict[str, Any]] = []

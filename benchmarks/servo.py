@@ -1,4 +1,4 @@
-"""Servo controller benchmark (issue 7): per-tick compute, lockstep speed, real time via CAN.
+"""Servo controller benchmark: per-tick compute, lockstep speed, real time via CAN.
 
 1. Per-tick compute of the MPC controller (Kalman update + θ + QP + Kalman predict) for
    H_t = H_u = 3, 6, 8 (FOH, H_p = 50), fast solver (unconstrained fast path + daqp) next to
@@ -13,8 +13,8 @@
    measured in the same run. Targets: lateness p99 <= 50 us, misses <= 0.1 %.
 
 The machine is shared: figures are noisy, run it alone when the numbers matter. ``--quick``:
-H_u = 8 only, saturated, runs of tenths of a second (the cvxpy reference: 10 ticks), no run
-without /mpc/prediction, the real-time run 0.5 s (seconds in all; figures not worth quoting).
+H_u = 8 only, both cases, runs of hundredths of a second (the cvxpy reference: 5 ticks), the
+real-time run 0.2 s (seconds in all; figures not worth quoting).
 """
 
 from __future__ import annotations
@@ -54,13 +54,12 @@ class Sizes:
     """How much each part runs: the full benchmark, or ``--quick``'s seconds-long run."""
 
     def __init__(self, quick: bool) -> None:
-        self.cases = CASES[1:] if quick else CASES          # 1. the saturated case: the QP works
-        self.horizons = (8,) if quick else (3, 6, 8)
-        self.compute_s, self.cvxpy_s = (0.1, 0.005) if quick else (1.0, 0.1)
-        self.lockstep_s = 0.3 if quick else 5.0             # 2.
-        self.can_lockstep_s = 0.3 if quick else 4.0         # 3.
-        self.bare_s, self.realtime_s = (0.3, 0.5) if quick else (10.0, 30.0)
-        self.without_prediction = not quick                 # 3. MPC without /mpc/prediction
+        self.horizons = (8,) if quick else (3, 6, 8)        # 1.
+        self.compute_s, self.cvxpy_s = (0.02, 0.0025) if quick else (1.0, 0.1)
+        self.warmup_s = 0.01 if quick else 0.05
+        self.lockstep_s = 0.05 if quick else 5.0            # 2.
+        self.can_lockstep_s = 0.05 if quick else 4.0        # 3.
+        self.bare_s, self.realtime_s = (0.1, 0.2) if quick else (10.0, 30.0)
 
 
 class _Bare:
@@ -85,11 +84,11 @@ def tick_compute(sizes: Sizes) -> float:
     print(f"   {'case':<30}{'H_u':>4}  {'fast p50':>9}{'fast p99':>9}   {'QP ticks':>8}"
           f"   {'cvxpy p50':>10}{'cvxpy p99':>10}   {'speed-up':>8}")
     worst_p99 = 0.0
-    for limit, label in sizes.cases:
+    for limit, label in CASES:
         for hu in sizes.horizons:
             cfg = MpcConfig(ht=hu, hu=hu, hp=50, ert="foh", u_min=-limit, u_max=limit)
             fast = TrajectoryMpc(reference, cfg)
-            simulate(fast, reference, 0.05, current_limit_ma=limit)  # warm-up
+            simulate(fast, reference, sizes.warmup_s, current_limit_ma=limit)  # warm-up
             run = simulate(fast, reference, sizes.compute_s, current_limit_ma=limit)
             f50, f99 = _us(run.compute_ns)
             assert isinstance(fast.solver, DaqpSolver)  # the default online solver
@@ -159,9 +158,8 @@ def realtime_can(sizes: Sizes) -> tuple[float, float, float]:
           "every tick in lockstep)")
     with tempfile.TemporaryDirectory() as tmp:
         speeds = {}
-        runs = [("PID", "pid", None), ("MPC FOH H_t = H_u = 8", "mpc", None)]
-        if sizes.without_prediction:
-            runs.append(("MPC, no /mpc/prediction", "mpc", 10**9))
+        runs = [("PID", "pid", None), ("MPC FOH H_t = H_u = 8", "mpc", None),
+                ("MPC, no /mpc/prediction", "mpc", 10**9)]
         for label, controller, every in runs:
             kpis = _servo_run(tmp, controller, controller=controller,
                               duration_s=sizes.can_lockstep_s,

@@ -1,4 +1,4 @@
-"""Sweep benchmark (issue 17): an 8-trial servo sweep on a local Ray against the same trials
+"""Sweep benchmark: an 8-trial servo sweep on a local Ray against the same trials
 one after another in this process, measured in the same run.
 
 1. Sequential baseline: the 8 trials (MPC FOH/ZOH x 4 current limits, 3 s of a 1 Hz sine in
@@ -18,7 +18,7 @@ shared machine other processes take the cores the workers need.
 
 The machine is shared: figures are noisy, run it alone when the numbers matter.
 
-``--quick``: 2 trials of 0.3 s in sequence, in-process, and no Ray at all (its start-up alone
+``--quick``: 2 trials of 0.05 s in sequence, in-process, and no Ray at all (its start-up alone
 takes 7-20 s on a shared machine; the sweep's Ray path is tests/sweep/test_sweep_ray.py's):
 what ``make test`` runs so that the script cannot rot, figures not worth quoting.
 """
@@ -48,7 +48,7 @@ TARGET_SPEEDUP = 1.7
 RUN = ["--controller", "mpc", "--duration", "3", "--reference",
        "sine:amplitude=2,frequency=1", "--allow-higher-current"]
 GRID = {"umax": [800.0, 1000.0, 1200.0, 1500.0], "ert": ["zoh", "foh"]}
-QUICK_RUN = [*RUN[:2], "--duration", "0.3", *RUN[4:]]
+QUICK_RUN = [*RUN[:2], "--duration", "0.05", *RUN[4:]]
 QUICK_GRID = {"umax": [800.0, 1500.0], "ert": ["foh"]}
 
 def jobs_in(out: Path, quick: bool = False) -> list[TrialJob]:

@@ -24,9 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.controllers.ident.model_file import loads_model
-from hil.controllers.ident.n4sid import IdentificationError
 from hil.emulators.errors import EmulatorSetupError
+from hil.emulators.model_file import read_model_file
 
 START_SUFFIX = "_start"
 VA_FIELDS = ("total_va", "va_l1", "va_l2", "va_l3")
@@ -71,17 +70,7 @@ def is_apparent_power(signal: str) -> bool:
 def load_load_model(path: str) -> LoadModel:
     """The load in the model file at ``path``; EmulatorSetupError naming the file and the
     problem (not readable, not a model file, not relays to one power in VA, not stable)."""
-    try:
-        with open(path, encoding="utf-8") as file:
-            text = file.read()
-    except FileNotFoundError:
-        raise EmulatorSetupError(f"{path}: no such model file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise EmulatorSetupError(f"{path}: cannot read it: {exc}") from None
-    try:
-        model = loads_model(text)
-    except IdentificationError as exc:
-        raise EmulatorSetupError(f"{path}: {exc}") from None
+    model = read_model_file(path)
     if len(model.outputs) != 1 or not is_apparent_power(model.outputs[0]):
         raise EmulatorSetupError(
             f"{path}: its outputs {list(model.outputs)} are not one apparent power in VA (a "

@@ -183,6 +183,11 @@ class Load:
     def step(self, on: bool, dt: float) -> None:
         raise NotImplementedError
 
+    def advance(self, coils: Sequence[bool], before: Sequence[bool], dt: float) -> None:
+        """One step with the relays latched for it (``coils``) after those of the step before
+        (``before``): a relay's load steps by its own coil."""
+        self.step(self.coil is not None and coils[self.coil], dt)
+
 
 class ConstantLoad(Load):
     """Always on (the machine's idle consumption)."""
@@ -286,18 +291,15 @@ class ModelLoad(Load):
         self._inputs = [(relays[relay], start) for relay, start in spec.model.inputs]
         self.x = spec.model.x_rest.copy()
 
-    def advance(self, coils: Sequence[bool], before: Sequence[bool]) -> None:
-        """One step with the relays latched for it (``coils``) after those of the step before
-        (``before``): an event input is 1 in the step its relay is switched on."""
+    def advance(self, coils: Sequence[bool], before: Sequence[bool], dt: float) -> None:
+        """An event input is 1 in the step its relay is switched on (``dt``: the model's own
+        period, checked against the plant's when the file was read)."""
         m = self.model
         u = np.array([float(coils[c] and not (start and before[c])) for c, start in self._inputs])
         u -= m.u_offset
         self.x = m.A @ self.x + m.B @ u
         # a linear model may dip below its rest at a switch-off: no load gives power back
         self.va = max(float(m.C @ self.x + m.D @ u) + m.y_offset - m.rest_va, 0.0)
-
-    def step(self, on: bool, dt: float) -> None:
-        raise TypeError("a model load steps by advance(coils, before)")
 
 
 class ScheduledLoad(FirstOrderLoad):
@@ -428,10 +430,7 @@ class BenchPlant:
         self._applied = coils
         dt = self.dt
         for load in self.loads:
-            if isinstance(load, ModelLoad):
-                load.advance(coils, previous)
-            else:
-                load.step(load.coil is not None and coils[load.coil], dt)
+            load.advance(coils, previous, dt)
         self.disturbance.step(self.disturbance.scheduled_on(self.t_s), dt)
         for resource in self.resources:
             resource.step(coils, dt)

@@ -26,10 +26,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.controllers.ident.model_file import loads_model, model_file_of
-from hil.controllers.ident.n4sid import IdentificationError
+from hil.controllers.ident.model_file import model_file_of
 from hil.controllers.servo.model import StateSpaceModel
 from hil.emulators.errors import EmulatorSetupError
+from hil.emulators.model_file import read_model_file
 
 #: the signals a servo recording holds the axis' input and output in (``hil identify`` names)
 COMMAND_SIGNAL = "/drive/feedback:command_mA"
@@ -79,17 +79,7 @@ def axis_model_file(model: StateSpaceModel, note: str = "") -> str:
 def load_axis_model(path: str) -> AxisModel:
     """The axis model in the model file at ``path``; EmulatorSetupError naming the file and the
     problem (not readable, not a model file, not one current in mA to one position in deg)."""
-    try:
-        with open(path, encoding="utf-8") as file:
-            text = file.read()
-    except FileNotFoundError:
-        raise EmulatorSetupError(f"{path}: no such model file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise EmulatorSetupError(f"{path}: cannot read it: {exc}") from None
-    try:
-        model = loads_model(text)
-    except IdentificationError as exc:
-        raise EmulatorSetupError(f"{path}: {exc}") from None
+    model = read_model_file(path)
     if len(model.inputs) != 1 or len(model.outputs) != 1:
         raise EmulatorSetupError(
             f"{path}: has {len(model.inputs)} input(s) and {len(model.outputs)} output(s); an "

@@ -4,7 +4,8 @@ Loop (base period = the bench's sampling period, tasks in this order every tick)
 
 1. [lockstep emulator] plant step, 2. sampler (meter, levels, safety service; publishes
    ``/bench/power``, ``/bench/levels``, ``/bench/relays``), 3. [machining sequence player] -
-   all from :func:`~hil.bench.rig.attach_bench`;
+   all from :func:`~hil.bench.rig.attach_rig`, the bench opened first as a run opens it
+   (lockstep over the wire where hil's emulator answers at ``--bench URL``);
 4. ``prbs``: switches every chosen relay with its own seeded pseudo-random binary sequence
    and publishes ``/ident/relays``.
 
@@ -34,10 +35,10 @@ from typing import TYPE_CHECKING, Any, TextIO
 import numpy as np
 
 from hil.bench.identify_options import MACHINING_MODES, IdentifyOptions
-from hil.bench.openers import session_clock
-from hil.bench.rig import BenchRig, attach_bench
+from hil.bench.openers import open_bench_device, planned_clock
+from hil.bench.rig import BenchRig, attach_rig
 from hil.core.loop import Task
-from hil.core.run import default_session_path
+from hil.core.run import EventBuffer, default_session_path
 from hil.core.session import Session
 from hil.errors import UsageError
 
@@ -191,25 +192,37 @@ def run_identify_experiment(opts: IdentifyOptions, stream: TextIO | None = None
         raise UsageError(f"--output-quantity {opts.meter_quantity!r} is not polled (meter "
                          f"quantities: {', '.join(quantities)})")
     out = opts.out or default_session_path("bench", "identify")
-    clock = session_clock(opts.bench, opts.realtime)
     prbs = [PrbsRelay(name, max(1, math.ceil(holds[name] / sample_s - 1e-9)),
                       config.map.relays[name].dwell_s, np.random.default_rng([opts.seed, k]))
             for k, name in enumerate(prbs_names)]
     recorded = prbs_names + played
     run = vars(opts) | {"prbs": prbs_names, "sequence": played, "min_hold_s": holds}
     text = "\n".join(filter(None, [default_text("bench.toml"), config.user_text]))
-    session = Session(out, clock, sample_s, kind="bench-identify",
-                      config={"bench": config.data, "run": run}, config_text=text)
-    log = ExperimentLog()
+    # the bench first, as a run opens it: hil's emulator at a URL takes the run's time over
+    # the wire (lockstep); any other bench keeps the wall clock
+    events = EventBuffer()
+    planned = planned_clock(opts.realtime)
+    device = open_bench_device(opts.bench or config.bus.url, config, planned, events)
+    clock = device.clock or planned
     rig = None
     try:
-        rig = attach_bench(session, config, opts.bench, play_sequence=bool(played))
+        session = Session(out, clock, sample_s, kind="bench-identify",
+                          config={"bench": config.data, "run": run}, config_text=text)
+    except BaseException:
+        device.close()
+        raise
+    events.attach(session)
+    log = ExperimentLog()
+    try:
+        rig = attach_rig(session, config, device, play_sequence=bool(played))
         progress = _progress_printer(session, rig, log, opts, stream or sys.stderr)
         session.add_task(PrbsTask(rig, prbs, recorded, session, log, progress,
                                   rig.sampler.divisor))
         session.run(duration_s=opts.duration_s)
     except BaseException:
-        if rig is not None:
+        if rig is None:
+            device.close()
+        else:
             rig.close()
         session.close()
         raise

@@ -5,8 +5,7 @@
   ``hil.bench_devices`` entry points). A Modbus URL asked to run in lockstep (a SimClock) is:
   when hil's emulator answers there (its device identification), it is given the run's time
   over the wire (:mod:`hil.bench.emulator_time`); any other device runs on the wall clock (the
-  :class:`OpenedBench`'s ``clock``). :func:`planned_clock` is what a run asks for,
-  :func:`session_clock` what a session made before the bench is opened gets.
+  :class:`OpenedBench`'s ``clock``). :func:`planned_clock` is what a run asks for.
 * :func:`open_bench_device` opens a bench URL: the Modbus driver and its safety layer
   (:func:`safe_bench`), relays at their safe levels, as an :class:`OpenedBench`.
 """
@@ -41,12 +40,6 @@ BENCH_DEVICES = SchemeRegistry("bench", {
 def is_emulated(url: str) -> bool:
     """Whether ``url`` is the in-process emulator."""
     return scheme_of(url) == "emulated"
-
-
-def session_clock(url: str, realtime: bool = False) -> Clock:
-    """For a session made before its bench is opened: lockstep (a SimClock) against the
-    in-process emulator unless ``realtime``; any bench URL on the wall clock."""
-    return RealtimeClock() if realtime or not is_emulated(url) else SimClock()
 
 
 def planned_clock(realtime: bool) -> Clock:

@@ -259,17 +259,28 @@ def loosened(before: Mapping[str, Any], after: Mapping[str, Any],
     return found
 
 
+class LooseningRefusedError(UsageError):
+    """A flag that would loosen a configured limit, refused. Its text names the flag that lets
+    it through (``--allow-looser-safety``, ``--allow-higher-current``); ``without_hatch`` is
+    the refusal for a command that offers no such flag."""
+
+    def __init__(self, refusal: str, hatch: str, without_hatch: str = "") -> None:
+        super().__init__(refusal + hatch)
+        self.without_hatch = refusal + without_hatch
+
+
 def tightened_only(looser: Sequence[str], flag: str, allowed: bool
                    ) -> list[tuple[str, str]]:
     """A flag's limits that would be ``looser`` than the configured ones: refused (a
-    UsageError naming the first) unless ``allowed`` (``--allow-looser-safety``); then the
-    warning notice the run records and prints."""
+    :class:`LooseningRefusedError` naming the first) unless ``allowed``
+    (``--allow-looser-safety``); then the warning notice the run records and prints."""
     if not looser:
         return []
     if not allowed:
-        raise UsageError(f"{flag} {looser[0]}: looser than the configured safety limit; a flag "
-                         "may tighten a limit, not loosen it (set it in the --config file, or "
-                         "add --allow-looser-safety, recorded)")
+        raise LooseningRefusedError(
+            f"{flag} {looser[0]}: looser than the configured safety limit; a flag may tighten "
+            "a limit, not loosen it", " (set it in the --config file, or add "
+            "--allow-looser-safety, recorded)", " (set it in the --config file)")
     return [("safety.loosened", f"safety limits loosened by {flag}: {', '.join(looser)} "
              "(--allow-looser-safety)")]
 

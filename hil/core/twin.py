@@ -10,11 +10,13 @@ in percent, 100 for a perfect twin, 0 for one no better than the recording's mea
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
+
+from hil.core.recording.reader import SessionData
 
 
 @dataclass(frozen=True)
@@ -64,6 +66,23 @@ def compare_output(name: str, unit: str, recorded: np.ndarray, twin: np.ndarray)
                      float(np.sqrt(np.mean(error ** 2))) if n else math.nan, n)
 
 
+#: an output of the twin set against the recording: its fit, the recorded and the twin's series
+Compared = tuple[OutputFit, np.ndarray, np.ndarray]
+
+
+def check_topic(recorded: Mapping[str, np.ndarray], units: Mapping[str, str],
+                twin: SessionData, topic: str, min_fit_pct: float
+                ) -> tuple[TwinCheck, list[Compared]]:
+    """Each field of ``recorded`` (its unit in ``units``) against the same field of the twin's
+    ``topic``: the check, and each output's fit with both series (for the plot)."""
+    messages = twin.topic(topic)
+    pairs = []
+    for name, series in recorded.items():
+        mine = np.array([m[name] for _, m in messages], dtype=float)
+        pairs.append((compare_output(name, units[name], series, mine), series, mine))
+    return TwinCheck(tuple(fit for fit, _, _ in pairs), min_fit_pct), pairs
+
+
 def format_check(check: TwinCheck, recorded: str, twin: str) -> str:
     """The text report: a line per output, then the verdict."""
     lines = [f"twin check of {recorded} (twin's session: {twin})"]
@@ -75,7 +94,7 @@ def format_check(check: TwinCheck, recorded: str, twin: str) -> str:
     return "\n".join(lines)
 
 
-def plot_check(t_s: np.ndarray, outputs: Sequence[tuple[OutputFit, np.ndarray, np.ndarray]],
+def plot_check(t_s: np.ndarray, outputs: Sequence[Compared],
                path: str, title: str) -> None:
     """One panel per output, recording and twin over time, the error below them."""
     import matplotlib

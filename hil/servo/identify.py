@@ -45,7 +45,7 @@ from hil.controllers.servo.references import Reference
 from hil.core.config import Table
 from hil.core.identify import aligned_signals, parse_signal
 from hil.core.recording.reader import SessionData
-from hil.core.settings import Setting
+from hil.core.settings import LooseningRefusedError, Setting
 from hil.errors import UsageError
 from hil.servo.options import ServoRunOptions
 from hil.servo.settings import ServoSettings, resolve_servo
@@ -54,11 +54,6 @@ from hil.servo.settings import ServoSettings, resolve_servo
 CONTROLLER = "hil.servo.identify:excitation"
 #: the experiment's reference: held where the axis starts
 HOLD_HERE = "hold:position=0"
-#: how ``hil servo run`` says a limit can be loosened -> what the experiment says instead
-LOOSENING_HINTS = {
-    "; --allow-higher-current raises it (recorded)": "",
-    " (set it in the --config file, or add --allow-looser-safety, recorded)":
-        " (set it in the --config file)"}
 #: ``hil servo identify``'s flags (argparse dests) -> the controller's params
 PARAM_FLAGS = {"amplitude": "amplitude", "excitation": "kind", "seed": "seed"}
 
@@ -108,14 +103,11 @@ def identify_options(flags: Mapping[str, Any], *, need_controller: bool = True
 
 def resolve_identify(options: ServoRunOptions) -> ServoSettings:
     """:func:`~hil.servo.settings.resolve_servo` for the experiment, which offers no flag to
-    loosen a limit: a refusal says so, without naming ``hil servo run``'s escape hatches."""
+    loosen a limit: a refusal says so, without naming ``hil servo run``'s."""
     try:
         return resolve_servo(options)
-    except UsageError as exc:
-        message = str(exc)
-        for hatch, instead in LOOSENING_HINTS.items():
-            message = message.replace(hatch, instead)
-        raise UsageError(message) from None
+    except LooseningRefusedError as exc:
+        raise UsageError(exc.without_hatch) from None
 
 
 def identify_settings(options: ServoRunOptions, flags: Mapping[str, Any]) -> list[Setting]:

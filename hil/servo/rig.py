@@ -28,6 +28,7 @@ import can
 from can.interfaces import VALID_INTERFACES
 
 from hil.contracts import EventSink, no_event
+from hil.core.notice import warn
 from hil.core.registry import Factory, SchemeRegistry, scheme_of
 from hil.drivers.canopen.axes import AxisBus, AxisGroup
 from hil.drivers.canopen.bus import URL_FORMS, open_can_bus, parse_can_url
@@ -68,18 +69,30 @@ def emulated_drives(url: str, drive: DriveConfig, axes: Sequence[AxisSpec], *,
                     on_event: EventSink = no_event,
                     trace: FrameTrace | None = None) -> BusDrives:
     """``emulated``: the drive emulator in lockstep (one node per axis), with drive.toml's
-    ``[emulator]``; it is the masters' clock."""
+    ``[emulator]``; it is the masters' clock. A twin of an EDS says what it does not emulate
+    (a warning line and an ``emulator.twin`` event)."""
     if len(axes) == 1:
         master = EmulatedDrive(axes[0].master(drive.master), drive.emulator,
                                on_event=on_event, trace=trace, closers=_closing(trace), url=url)
+        _tell_twin(master.emulator, on_event)
         return BusDrives(url, [master])
     emulator = LockstepDrive(drive.emulator, node_ids=[axis.node for axis in axes])
+    _tell_twin(emulator, on_event)
     try:
         return _grouped(url, CanLink(emulator.master_bus, trace=trace), drive, axes, on_event,
                         clock=emulator, closers=(emulator.close, *_closing(trace)))
     except BaseException:
         emulator.close()
         raise
+
+
+def _tell_twin(emulator: LockstepDrive, on_event: EventSink) -> None:
+    """A twin of an EDS: one line of what it took from its file and what it refuses."""
+    if emulator.node.config.eds is None:
+        return
+    summary = emulator.node.dictionary.summary(emulator.node.config.node_id)
+    warn(summary)
+    on_event("emulator.twin", summary, level="warning", source="emulator")
 
 
 def can_drives(url: str, drive: DriveConfig, axes: Sequence[AxisSpec], *,

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, replace
+from urllib.parse import parse_qsl
 
 from can.interfaces import VALID_INTERFACES
 
@@ -28,6 +29,7 @@ from hil.core.settings import (
     SWITCH,
     UPPER,
     Layer,
+    LooseningRefusedError,
     Setting,
     lay,
     loosened,
@@ -170,11 +172,11 @@ def emulated_url(url: str | None) -> tuple[str | None, dict[str, str]]:
         return url, {}
     keys = {}
     for part in url.partition("?")[2].split("&"):
-        name, eq, value = part.partition("=")
-        if name not in EMULATED_URL_KEYS or not eq or not value:
+        pairs = parse_qsl(part)  # one key=value, percent-decoded; nothing when malformed
+        if len(pairs) != 1 or pairs[0][0] not in EMULATED_URL_KEYS:
             raise UsageError(f"--drive {url!r}: {part!r} is not a key of the emulated drive "
                              "(it takes model=F.json: its axis as a model file)")
-        keys[name] = value
+        keys[pairs[0][0]] = pairs[0][1]
     return EMULATED, keys
 
 
@@ -234,9 +236,10 @@ def _current_limit(options: ServoRunOptions, configured: DriveConfig
         return []
     origin = configured.layered.origin("master.current_limit_mA")
     if not options.allow_higher_current:
-        raise UsageError(f"--umax {options.umax:g} mA is above the configured current limit "
-                         f"(master.current_limit_mA = {limit:g} mA, {origin}): a flag may lower "
-                         "it, not raise it; --allow-higher-current raises it (recorded)")
+        raise LooseningRefusedError(
+            f"--umax {options.umax:g} mA is above the configured current limit "
+            f"(master.current_limit_mA = {limit:g} mA, {origin}): a flag may lower it, not "
+            "raise it", "; --allow-higher-current raises it (recorded)")
     return [("current.limit_raised", f"--umax {options.umax:g} mA raises the configured "
              f"current limit of {limit:g} mA ({origin}): --allow-higher-current")]
 

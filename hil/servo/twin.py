@@ -20,7 +20,7 @@ import numpy as np
 from hil.controllers.base import runs_at
 from hil.controllers.servo.replay import CurrentReplay
 from hil.core.recording.reader import SessionData
-from hil.core.twin import OutputFit, TwinCheck, compare_output
+from hil.core.twin import Compared, TwinCheck, check_topic
 from hil.errors import UsageError
 from hil.servo.options import ServoRunOptions
 from hil.servo.run import run_servo
@@ -107,13 +107,6 @@ def run_twin(recording: ServoRecording, model: str | None, eds: str | None, out:
 
 
 def check_twin(recording: ServoRecording, twin: SessionData, min_fit_pct: float
-               ) -> tuple[TwinCheck, list[tuple[OutputFit, np.ndarray, np.ndarray]]]:
-    """The twin's outputs against the recording's: the check, and each output's fit with
-    both series (for the plot)."""
-    feedback = twin.topic(FEEDBACK)
-    pairs = []
-    for name, unit in OUTPUTS.items():
-        mine = np.array([m[name] for _, m in feedback], dtype=float)
-        recorded = recording.outputs[name]
-        pairs.append((compare_output(name, unit, recorded, mine), recorded, mine))
-    return TwinCheck(tuple(fit for fit, _, _ in pairs), min_fit_pct), pairs
+               ) -> tuple[TwinCheck, list[Compared]]:
+    """The twin's position and velocity against the recording's."""
+    return check_topic(recording.outputs, OUTPUTS, twin, FEEDBACK, min_fit_pct)

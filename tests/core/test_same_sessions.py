@@ -3,9 +3,9 @@ applications (`tests/session_digest.py`: the EEC and BC on the bench, MPC, PID a
 disturbance on the servo, limits included) give, bit for bit, the messages and KPIs recorded in
 `tests/data/session_digests.json` by the code before the run pipeline and the tick phases
 (commit 0377251). Wall-clock fields (step and solve times, loop timing) are left out. Since,
-on purpose: the servo runs' ``drive.configured`` event carries the drive's scaling (issue 25);
-the bench runs' ``faults`` KPI counts ``bad_readings`` (issue 26, 0 here) and the servo runs
-have ``peak_requested_mA`` (issue 27: equal to ``peak_current_mA``, nothing clamped); every other
+on purpose: the servo runs' ``drive.configured`` event carries the drive's scaling;
+the bench runs' ``faults`` KPI counts ``bad_readings`` (0 here) and the servo runs
+have ``peak_requested_mA`` (equal to ``peak_current_mA``, nothing clamped); every other
 message and every KPI is still the one of 0377251.
 
 The reference holds for OpenBLAS's AVX2 kernel (``REFERENCE_BLAS_KERNEL``): on a CPU where

@@ -123,14 +123,18 @@ def test_an_unwritable_output_refuses_before_the_bench_is_reached(tmp_path, out,
 def test_two_runs_on_one_file_the_second_refuses_and_nothing_mixes(tmp_path):
     out = tmp_path / "one.mcap"
     with PymodbusBench(CONFIG) as bench:
-        first = bench_run(bench, out, cycles=1)
+        # the first run lasts 40 s, far beyond the second's start on a loaded machine; it is
+        # interrupted once the second has been refused
+        first = bench_run(bench, out, cycles=10)
         while bench.meter_reads < 50:
             time.sleep(0.05)
         second = bench_run(bench, out, cycles=1)
-        _, stderr = second.communicate(timeout=30)
-        assert second.returncode == 2
+        _, stderr = second.communicate(timeout=60)
+        assert first.poll() is None, first.communicate()[1]  # still writing the file
+        assert second.returncode == 2, stderr
         assert f"session file {out} is being written by another run" in stderr
-        assert first.wait(timeout=30) == 0, first.stderr.read()
+        first.send_signal(signal.SIGINT)
+        assert first.wait(timeout=30) == 130, first.stderr.read()
     data = read_session(str(out))
     assert not data.recovered and not data.damage
     kinds = [event["kind"] for _, event in data.topic("/events")]

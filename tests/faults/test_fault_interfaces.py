@@ -19,6 +19,7 @@ from hil.cli.main import main
 from hil.drivers.bench.modbus import LinkError, ModbusBenchDriver, ModbusLink, parse_bus_url
 from hil.emulators.faults import FaultSchedule, parse_fault
 from hil.errors import ConfigError
+from tests.pymodbus_bench import ANSWER_S
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
@@ -104,15 +105,15 @@ def test_the_api_starts_an_emulator_with_faults_and_lists_what_it_injected():
     config = load_bench_config()
     with api.start_bench_emulator(faults=["drop@0.5:unit=2"]) as emulator:
         driver = ModbusBenchDriver(ModbusLink(parse_bus_url(emulator.url), 0.2, 1), config.map)
-        assert driver.read_levels()
-        deadline = time.monotonic() + 10
-        while not emulator.fault_events() and time.monotonic() < deadline:
-            try:
-                driver.read_power()
-            except LinkError:
-                break
-            time.sleep(0.05)
-        with pytest.raises(LinkError):
+        # the levels' unit is never dropped: its answers, however late a loaded machine makes
+        # them, are waited for until the fault has started on the emulator's clock
+        with driver.link.patient(ANSWER_S):
+            assert driver.read_levels()
+            deadline = time.monotonic() + 30
+            while not emulator.fault_events() and time.monotonic() < deadline:
+                driver.read_levels()
+                time.sleep(0.05)
+        with pytest.raises(LinkError):  # the meter's unit: dropped, unanswered
             driver.read_power()
         driver.close()
         assert emulator.fault_events()[0].startswith("drop@0.5:every=1,unit=2 injected at t=")

@@ -88,8 +88,8 @@ def test_a_load_model_gives_the_recorded_power_in_lockstep(bench):
 
 
 def test_hil_emulate_bench_serves_the_load_model(bench):
-    """The standalone emulator reads the model beside its config; a lockstep experiment over
-    Modbus TCP records what the model says."""
+    """The standalone emulator reads the model beside its config; an experiment over Modbus
+    TCP, in lockstep over the wire as a run is, records what the model says."""
     process = subprocess.Popen(
         [sys.executable, "-m", "hil", "emulate", "bench", "--tcp", "127.0.0.1:0", "--config",
          "models/bench.toml"], cwd=bench, env={**user_env(), "PYTHONUNBUFFERED": "1"},
@@ -106,7 +106,7 @@ def test_hil_emulate_bench_serves_the_load_model(bench):
         process.send_signal(signal.SIGTERM)
         process.communicate(timeout=30)
     expected, recorded, starts = expected_and_recorded(bench / "wire.mcap")
-    assert starts >= 1
+    assert starts >= 1 and len(recorded) == 3000  # lockstep over the wire: every sample
     assert np.max(np.abs(recorded - expected)) < 1e-3
 
 

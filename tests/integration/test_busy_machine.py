@@ -25,9 +25,9 @@ from tests.test_readme import blocks
 pytestmark = [pytest.mark.slow]
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
-# five rounds: 44 s of a make test worker with both cores busy, where ten took 88 s (issue 38's
-# ten of ten were shown once more by hand for issue 39's note: ROUNDS = 10 passes too)
-ROUNDS = 5
+# three rounds: about 30 s of a make test worker with both cores busy, where ten took 88 s
+# (ten of ten pass by hand too: ROUNDS = 10)
+ROUNDS = 3
 
 
 def rounds_of(example: str) -> str:

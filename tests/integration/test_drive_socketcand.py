@@ -280,6 +280,8 @@ def test_several_drives_on_one_bus_each_move_their_own_axis():
                 node.rpdo[1]["Target torque"].raw = 0
                 node.state = "SWITCH ON DISABLED"
         finally:
+            for node, _ in nodes.values():
+                node.rpdo[1].stop()  # its periodic task, before the bus it sends on closes
             network.sync.stop()
             network.disconnect()
     assert moved[1] >= 500 and moved[2] <= -500, moved

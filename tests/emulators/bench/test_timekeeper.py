@@ -140,7 +140,7 @@ def test_a_device_that_gives_no_identity_is_none_and_costs_no_retry():
     try:
         assert identify(link, 1, 0.3) is None
         assert link.retries == 0 and (link.timeout_s, link.attempts) == (0.1, 2)
-        assert str(identify(link, 2, 0.3)) == "hil hil-bench-emulator 1.0"
+        assert str(identify(link, 2, 30.0)) == "hil hil-bench-emulator 1.0"  # any load
     finally:
         link.close()
         bench.stop()

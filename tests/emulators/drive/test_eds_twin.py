@@ -168,6 +168,11 @@ def test_a_lockstep_run_against_the_twin_moves_its_axis_in_the_eds_units(tmp_pat
     counts = [message["position_deg"] / 360.0 * COUNTS_PER_TURN for message in feedback]
     assert all(abs(c - round(c)) < 1e-3 for c in counts)
     assert len({round(c) % 5 for c in counts}) > 1  # finer than one count of 2^20 a turn
+    # what the twin does not emulate: one line on stderr and an event of the session
+    told = [line for line in done.stderr.splitlines() if "twin of " in line]
+    assert len(told) == 1 and "not emulated: 0x1003" in told[0] and "modes PP, HM" in told[0]
+    events = [e for _, e in session.topic("/events") if e["kind"] == "emulator.twin"]
+    assert len(events) == 1 and told[0].endswith(events[0]["message"])
 
 
 def test_a_twin_of_another_hil_configuration_from_its_write_eds(tmp_path, capsys):

@@ -1,0 +1,103 @@
+"""The README's "Make a twin of your machine", its commands run as a user runs them: from a copy
+of examples/twin/ outside the repository, each `hil` line of the section's first sh block in a
+process of its own. "The machine" (machine.toml: another axis, viscous friction) is identified,
+its twin checked against a PID run of it, and the controllers' KPIs on the twin come within a
+hair of the machine's; a machine with Coulomb friction, which a linear twin cannot hold, fails
+its check."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hil.core.recording.reader import read_session
+
+pytestmark = [pytest.mark.slow]
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE = ROOT / "examples" / "twin"
+
+
+def readme_commands() -> list[list[str]]:
+    """The `hil` lines of the first sh block of the README's twin section."""
+    readme = (ROOT / "README.md").read_text()
+    section = readme[readme.index("## Make a twin of your machine"):]
+    block = re.search(r"```sh\n(.*?)```", section, re.S)
+    assert block is not None
+    lines = [line.split("  #")[0].strip() for line in block.group(1).splitlines()]
+    return [shlex.split(line)[1:] for line in lines if line.startswith("hil ")]
+
+
+def hil(folder: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    return subprocess.run([sys.executable, "-m", "hil", *args], cwd=folder, env=env,
+                          capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture
+def machine(tmp_path: Path) -> Path:
+    folder = tmp_path / "machine"
+    shutil.copytree(EXAMPLE, folder, ignore=shutil.ignore_patterns("__pycache__"))
+    return folder
+
+
+def test_the_readme_makes_a_twin_that_fits_the_machine_and_predicts_its_kpis(machine):
+    commands = readme_commands()
+    assert [c[:2] for c in commands[:4]] == [["servo", "identify"], ["identify",
+                                              "identify.mcap"], ["servo", "run"],
+                                             ["twin", "check"]]
+    kpis = {}
+    for args in commands:
+        done = hil(machine, *args)
+        assert done.returncode == 0, (args, done.stdout[-2000:], done.stderr[-2000:])
+        if "--json" in args and args[:2] == ["servo", "run"]:
+            kpis[args[args.index("--out") + 1].removesuffix(".mcap")] = json.loads(done.stdout)
+
+    model = json.loads((machine / "twin.json").read_text())
+    assert model["fit_pct"] > 99.0
+    identify = hil(machine, "identify", "identify.mcap", "--servo", "--out", "again.json",
+                   "--json")
+    analysis = json.loads(identify.stdout)["analysis"]
+    resonance = max(analysis["resonances"], key=lambda r: r["peak_gain"])
+    assert resonance["frequency_hz"] == pytest.approx(560.0, abs=2.0)  # the machine's
+    assert resonance["damping_ratio"] == pytest.approx(0.02, rel=0.1)
+    assert analysis["integrators"] == 1  # viscous friction: the speed settles, 1 deg/s per mA
+    assert analysis["integrator_gain"][0][0] == pytest.approx(1.0, rel=0.02)
+
+    check = hil(machine, "twin", "check", "machine-pid.mcap", "--model", "twin.json", "--json")
+    assert check.returncode == 0, check.stdout
+    assert all(o["fit_pct"] > 99.0 for o in json.loads(check.stdout)["outputs"])
+    assert (machine / "twin-check.png").stat().st_size > 0
+    for controller in ("pid", "mpc"):
+        on_machine, on_twin = kpis[f"machine-{controller}"], kpis[f"twin-{controller}"]
+        for key in ("max_error_deg", "rms_error_deg"):
+            assert on_twin[key] == pytest.approx(on_machine[key], rel=0.02), (controller, key)
+    twin_run = read_session(str(machine / "twin-pid.mcap"))
+    tables = json.loads(twin_run.metadata["config"]["json"])["drive"]["emulator"]
+    assert tables["model"].endswith("twin.json") and tables["friction"]["viscous_mA_per_deg_s"] == 0
+
+
+def test_a_machine_with_coulomb_friction_fails_the_check_of_a_linear_twin(machine):
+    (machine / "machine.toml").write_text((machine / "machine.toml").read_text()
+                                          + "coulomb_mA = 20.0\ncoulomb_smoothing_deg_s = 2.0\n")
+    for args in readme_commands()[:4]:
+        done = hil(machine, *args)
+    assert done.returncode == 1, done.stdout + done.stderr  # the twin check, last of the four
+    assert "FAIL: every output's fit must reach 80 %" in done.stdout
+
+
+def test_the_machine_model_is_what_make_machine_writes(tmp_path):
+    shutil.copy(EXAMPLE / "make_machine.py", tmp_path)
+    done = subprocess.run([sys.executable, "make_machine.py"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "machine_axis.json").read_text() == \
+        (EXAMPLE / "machine_axis.json").read_text()
