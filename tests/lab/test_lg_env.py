@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from tests.lab.conftest import EXPORTER, client, user_env
+from tests.lab.conftest import user_env
 
 pytestmark = [pytest.mark.lab, pytest.mark.slow]
 
@@ -18,7 +18,7 @@ targets:
   main:
     resources:
       RemotePlace:
-        name: rig
+        name: PLACE
     drivers:
       HilBenchDriver: {}
       HilDriveDriver: {}
@@ -58,13 +58,11 @@ def test_hil_drive_is_the_place_s_drive(hil_drive):
 
 
 def test_a_users_tests_run_on_a_place_with_lg_env(lab, tmp_path):
-    client(lab.address, "-p", "rig", "create")
-    client(lab.address, "-p", "rig", "add-match", f"{EXPORTER}/bench-1/HilBench")
-    client(lab.address, "-p", "rig", "add-match", f"{EXPORTER}/drive-1/HilDrive")
-    client(lab.address, "-p", "rig", "acquire")
+    place = lab.place("bench-1", "drive-1")
+    lab.acquire(place)
     folder = tmp_path / "my_lab"
     folder.mkdir()
-    (folder / "env.yaml").write_text(ENV_YAML)
+    (folder / "env.yaml").write_text(ENV_YAML.replace("PLACE", place))
     (folder / "test_on_the_place.py").write_text(USER_TESTS)
     out = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--rootdir",
@@ -73,4 +71,4 @@ def test_a_users_tests_run_on_a_place_with_lg_env(lab, tmp_path):
         capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
     assert "4 passed" in out.stdout
-    assert lab.holder("rig") is not None  # the user's, as labgrid leaves it
+    assert lab.holder(place) is not None  # the user's, as labgrid leaves it
