@@ -141,8 +141,9 @@ def add_identify_arguments(parser: argparse.ArgumentParser) -> None:
                         help="bit length of the PRBS = shortest hold [s] (default: each relay's "
                         "dwell; shorter than the dwell is refused)")
     parser.add_argument("--seed", type=int, default=1, help="PRBS seed (default 1)")
-    parser.add_argument("--bench", default="emulated",
-                        help="emulated | modbus-tcp://HOST:PORT | modbus-rtu:///dev/X")
+    parser.add_argument("--bench", metavar="URL",
+                        help="emulated (default) | modbus-tcp://HOST:PORT | "
+                        "modbus-rtu:///dev/X")
     parser.add_argument("--machining", choices=MACHINING_MODES, default="off",
                         help="M1/M2: play the machining sequence, switch them by PRBS too, or "
                         "leave them off (default off)")
@@ -158,17 +159,22 @@ def add_identify_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", metavar="F.mcap", type=output_file,
                         help="session file (default: sessions/bench-identify-DATE-TIME.mcap)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_place_arguments(parser, "bench")
 
 
 def identify_command(args: argparse.Namespace) -> int:
     """Handler of ``hil bench identify``."""
+    return run_on_place(args, "bench", lambda: _identify(args))
+
+
+def _identify(args: argparse.Namespace) -> int:
     from hil.bench.identify import run_identify_experiment
 
     summary = run_identify_experiment(IdentifyOptions(
         relays=args.relays, duration_s=args.duration, min_hold_s=args.min_hold, seed=args.seed,
-        bench=args.bench, machining=args.machining, meter_quantity=args.output_quantity,
-        realtime=args.realtime, out=args.out, config_path=args.config,
-        progress_s=args.progress,
+        bench=args.bench or "emulated", machining=args.machining,
+        meter_quantity=args.output_quantity, realtime=args.realtime, out=args.out,
+        config_path=args.config, progress_s=args.progress, lab=getattr(args, "lab", None),
     ))
     if args.json:
         print(json_text(summary))

@@ -147,6 +147,7 @@ def register_identify(servo_sub: argparse._SubParsersAction) -> None:
                        help="print every setting as the run would use it, and exit")
     add_junit_argument(ident)
     add_recording_arguments(ident)
+    add_place_arguments(ident, "drive")
     ident.set_defaults(handler=servo_identify_command)
 
 
@@ -292,9 +293,10 @@ def servo_identify_command(args: argparse.Namespace) -> int:
                  f"  identify the axis: hil identify {kpis['mcap']} --servo"]
         return "\n".join(lines)
 
-    return RunApplication("hil servo identify", identify_options,
-                          lambda options: identify_settings(options, vars(args)), run_servo,
-                          summary).command_line(args)
+    application = RunApplication("hil servo identify", identify_options,
+                                 lambda options: identify_settings(options, vars(args)),
+                                 run_servo, summary)
+    return run_on_place(args, "servo", lambda: application.command_line(args))
 
 
 def format_axes_run(config: Any, kpis: dict[str, Any]) -> str:

@@ -14,10 +14,14 @@ from tests.cli import hil_here
 pytestmark = [pytest.mark.lab]
 
 
-@pytest.mark.parametrize("app, device", [("bench", "bench"), ("servo", "drive")])
-def test_the_place_and_a_device_url_are_one_too_many(capsys, tmp_path, app, device):
-    out = hil_here(capsys, app, "run", "--controller", "bc" if app == "bench" else "pid",
-                   "--place", "p", f"--{device}", "emulated", cwd=tmp_path)
+@pytest.mark.parametrize("command, device", [
+    (["bench", "run", "--controller", "bc"], "bench"),
+    (["servo", "run", "--controller", "pid"], "drive"),
+    (["bench", "identify"], "bench"),
+    (["servo", "identify"], "drive"),
+    (["sweep", "servo", "--controller", "pid", "--serial", "--grid", "param.kp=1"], "drive")])
+def test_the_place_and_a_device_url_are_one_too_many(capsys, tmp_path, command, device):
+    out = hil_here(capsys, *command, "--place", "p", f"--{device}", "emulated", cwd=tmp_path)
     assert out.returncode == 2
     assert out.stderr.strip() == (f"hil: error: --place p and --{device} both say where the "
                                   f"{device} is: give one")
@@ -73,3 +77,19 @@ def test_the_readme_s_exporter_config_and_environment_are_what_labgrid_reads(tmp
     main = config.get_targets()["main"]
     assert "RemotePlace" in main["resources"]
     assert set(main["drivers"]) == {"HilBenchDriver", "HilDriveDriver"}
+
+
+def test_a_sweep_on_a_place_runs_its_trials_one_after_another_on_its_device(capsys, tmp_path):
+    """A place's device is one device: no parallel trials, no swept device URL (both refused
+    before any coordinator is reached or the place is held)."""
+    sweep = ("sweep", "servo", "--controller", "pid", "--place", "p")
+    out = hil_here(capsys, *sweep, "--grid", "param.kp=1,2", cwd=tmp_path)
+    assert out.returncode == 2
+    assert out.stderr.strip() == ("hil: error: --place p: a place's drive is one device; add "
+                                  "--serial to run the trials one after another")
+    with socket.socket() as closed:  # a free port nobody listens on
+        closed.bind(("127.0.0.1", 0))
+        port = closed.getsockname()[1]
+    out = hil_here(capsys, *sweep, "--serial", "--grid", "param.kp=1,2", "--coordinator",
+                   f"127.0.0.1:{port}", cwd=tmp_path)
+    assert out.returncode == 2 and "no labgrid coordinator answers there" in out.stderr

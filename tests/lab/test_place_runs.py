@@ -178,3 +178,24 @@ def test_an_interrupted_run_releases_the_place_a_killed_one_leaves_it_locked(
         f"hil: error: place {place} is held by {mine} (wait for it with --wait S)")
     client(lab.address, "-p", place, "release")
     assert lab.holder(place) is None
+
+
+def test_servo_identify_on_a_place_holds_it_and_records_it(lab, tmp_path):
+    place = lab.place("drive-1")
+    out = hil(tmp_path, "servo", "identify", "--duration", "0.5", "--place", place,
+              "--coordinator", lab.address, "--out", tmp_path / "i.mcap", "--json")
+    assert out.returncode == 0, out.stderr
+    run = run_metadata(tmp_path / "i.mcap", "servo")
+    assert run["drive"] == lab.drive_url and run["node"] == 1
+    assert run["controller"] == "hil.servo.identify:excitation"
+    assert run["lab"]["place"] == place and run["lab"]["acquired_by_run"] is True
+    assert lab.holder(place) is None
+
+
+def test_a_sweep_on_a_place_may_not_sweep_its_drive(lab, tmp_path, capsys):
+    place = lab.place("drive-1")
+    assert refused(capsys, tmp_path, "sweep", "servo", "--controller", "pid", "--serial",
+                   "--grid", "drive=emulated", "--place", place, "--coordinator",
+                   lab.address) == (f"hil: error: --place {place} and a swept drive both say "
+                                    "where the drive is: give one")
+    assert lab.holder(place) is None
