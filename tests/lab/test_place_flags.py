@@ -19,7 +19,8 @@ pytestmark = [pytest.mark.lab]
     (["servo", "run", "--controller", "pid"], "drive"),
     (["bench", "identify"], "bench"),
     (["servo", "identify"], "drive"),
-    (["sweep", "servo", "--controller", "pid", "--serial", "--grid", "param.kp=1"], "drive")])
+    (["sweep", "servo", "--controller", "pid", "--serial", "--grid", "param.kp=1"], "drive")],
+    ids=["bench-run", "servo-run", "bench-identify", "servo-identify", "sweep-servo"])
 def test_the_place_and_a_device_url_are_one_too_many(capsys, tmp_path, command, device):
     out = hil_here(capsys, *command, "--place", "p", f"--{device}", "emulated", cwd=tmp_path)
     assert out.returncode == 2
