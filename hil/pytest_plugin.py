@@ -1,6 +1,8 @@
 """pytest fixtures that put a relay bench and a servo drive under your tests: hil's emulators,
 each in its own process on a free 127.0.0.1 port, or your hardware with ``--hil-bench URL`` /
-``--hil-drive URL``. Installed with hil (entry point ``pytest11``): nothing to import.
+``--hil-drive URL``, or a labgrid target's ``HilBench`` / ``HilDrive`` with labgrid's
+``--lg-env ENV.yaml`` (:mod:`hil.lab`; the resource's config, node and EDS apply to the runs).
+Installed with hil (entry point ``pytest11``): nothing to import.
 
 ::
 
@@ -98,6 +100,7 @@ class _UnderTest(abc.ABC, Generic[DeviceT]):
                  record: Record) -> None:
         self.url, self.emulated, self.directory = url, emulated, directory
         self.emulator: EmulatorProcess | None = None  # the emulator process, if it is one
+        self.defaults: dict[str, Any] = {}  # run options a labgrid resource sets (config...)
         self.sessions: list[str] = []
         self._record = record
         self._stack = contextlib.ExitStack()
@@ -113,6 +116,8 @@ class _UnderTest(abc.ABC, Generic[DeviceT]):
              ) -> dict[str, Any]:
         """``run()`` into the next session file (``options["out"]`` unless given), its KPIs
         recorded as the test's properties."""
+        for name, value in self.defaults.items():
+            options.setdefault(name, value)
         options.setdefault("out", str(self.directory /
                                       f"{self.kind}-{len(self.sessions) + 1}.mcap"))
         self.sessions.append(options["out"])
@@ -145,7 +150,7 @@ class BenchUnderTest(_UnderTest[SafeBench]):
 
     @property
     def driver(self) -> SafeBench:
-        return self._device(lambda: api.open_bench(self.url))
+        return self._device(lambda: api.open_bench(self.url, self.defaults.get("config_path")))
 
     def run(self, controller: api.Controller, params: Mapping[str, Any] | None = None,
             cycles: int = 1, **options: Any) -> dict[str, Any]:
@@ -163,7 +168,7 @@ class BenchUnderTest(_UnderTest[SafeBench]):
         from hil.bench.config import load_bench_config
         from hil.drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 
-        config = load_bench_config()
+        config = load_bench_config(self.defaults.get("config_path"))
         driver = ModbusBenchDriver(ModbusLink(parse_bus_url(self.url), config.bus.timeout_s,
                                               config.bus.attempts), config.map)
         try:
@@ -193,7 +198,7 @@ class DriveUnderTest(_UnderTest[CanDriveMaster]):
 
     @property
     def master(self) -> CanDriveMaster:
-        return self._device(lambda: api.open_drive(self.url))
+        return self._device(lambda: api.open_drive(self.url, self.defaults.get("drive_config")))
 
     def run(self, controller: api.Controller, params: Mapping[str, Any] | None = None,
             reference: str = "sine:amplitude=2,frequency=1", duration_s: float = 1.0,
@@ -215,7 +220,7 @@ class DriveUnderTest(_UnderTest[CanDriveMaster]):
         from hil.servo.config import load_drive_config
         from hil.servo.rig import open_drive
 
-        master = open_drive(self.url, load_drive_config())
+        master = open_drive(self.url, load_drive_config(self.defaults.get("drive_config")))
         try:
             return state_of(master.sdo.read_int(0x6041, 0, "<H"))
         finally:
@@ -242,20 +247,38 @@ def _record_kpis(record: Record, session: str, kpis: dict[str, Any]) -> None:
         record((name, value))
 
 
+def _lab_device(request: pytest.FixtureRequest, option: str
+                ) -> tuple[str, dict[str, Any]] | None:
+    """The device of the labgrid environment's target (``--lg-env``; :mod:`hil.lab`) and the
+    run options its resource sets; None without one."""
+    if not request.config.pluginmanager.hasplugin("labgrid"):
+        return None
+    from hil.lab.pytest_target import target_device
+
+    return target_device(request, option)
+
+
 @contextlib.contextmanager
 def _emulator_or(request: pytest.FixtureRequest, option: str, start: Any
-                 ) -> Iterator[tuple[str, EmulatorProcess | None]]:
+                 ) -> Iterator[tuple[str, EmulatorProcess | None, dict[str, Any]]]:
     url = request.config.getoption(option)
+    flag = "--" + option.replace("_", "-")
     faults = [spec for mark in request.node.iter_markers("hil_faults") for spec in mark.args]
+    lab = _lab_device(request, option)
+    defaults: dict[str, Any] = {}
+    if lab is not None:
+        if url is not None:
+            pytest.fail(f"{flag} {url} and --lg-env both name the device: give one")
+        url, defaults = lab
+        flag = "--lg-env"
     if url is not None:
         if faults:
-            flag = "--" + option.replace("_", "-")
             pytest.fail(f"hil_faults: faults are played by the emulator, not by {flag} {url}")
-        yield url, None
+        yield url, None, defaults
         return
     emulator: EmulatorProcess = start(faults=faults)
     try:
-        yield emulator.url, emulator
+        yield emulator.url, emulator, defaults
     finally:
         emulator.stop()
 
@@ -267,9 +290,9 @@ def _under_test(request: pytest.FixtureRequest, tmp_path: Path, option: str, sta
                 make: type[UnderTest]) -> Generator[UnderTest, None, str | None]:
     """The device of a test (``make``): the emulator ``start`` gives, or the ``--OPTION``
     URL; after the test, closed; returns why the test left it unsafe (None: it did not)."""
-    with _emulator_or(request, option, start) as (url, emulator):
+    with _emulator_or(request, option, start) as (url, emulator, defaults):
         device = make(url, emulator is not None, tmp_path, request.node.user_properties.append)
-        device.emulator = emulator
+        device.emulator, device.defaults = emulator, defaults
         try:
             yield device
         finally:

@@ -55,6 +55,7 @@ class BenchRunOptions:
     recording: RecordingOptions = field(default_factory=RecordingOptions)
     quiet: bool = False              # no progress line on the terminal
     allow_looser_safety: bool = False  # --safety / --dwell may loosen the config's (logged)
+    lab: Mapping[str, Any] | None = None  # the labgrid place of --place (hil.lab.place)
 
     @classmethod
     def from_flags(cls, flags: Mapping[str, Any], *, need_controller: bool = True

@@ -65,6 +65,7 @@ class ServoRunOptions:
     eds: str | None = None           # the drive's EDS (else drive.toml's [master] eds)
     allow_higher_current: bool = False  # --umax may exceed [master] current_limit_mA (logged)
     allow_looser_safety: bool = False   # --safety may loosen [safety] (logged)
+    lab: Mapping[str, Any] | None = None  # the labgrid place of --place (hil.lab.place)
 
     def __post_init__(self) -> None:
         if self.umax is not None:

@@ -292,7 +292,10 @@ RECORDING_FLAGS = [
     (["--live-rate", "/bench/power=5"], "run.recording.live_rates", {"/bench/power": 5.0}),
 ]
 #: flags that are not settings of the run: what to print, and where the config comes from
-NOT_SETTINGS = {"--help", "--json", "--junit", "--print-config", "--config", "--live"}
+NOT_SETTINGS = {"--help", "--json", "--junit", "--print-config", "--config", "--live",
+                # a labgrid place: it sets --bench / --drive (and --config, --node, --eds) as
+                # its resource says, refusing a flag that says otherwise (tests/lab)
+                "--place", "--coordinator", "--wait"}
 
 
 @pytest.mark.parametrize("app, key, configured, argv, runs", [
