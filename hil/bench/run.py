@@ -49,6 +49,7 @@ from hil.core.run import (
     Experiment,
     RunPlan,
     RunResult,
+    TunerStarted,
     controller_budget,
     default_session_path,
     run_experiment,
@@ -65,9 +66,11 @@ from hil.errors import (
 )
 
 
-def run_bench(opts: BenchRunOptions) -> RunResult:
-    """Run one closed-loop bench session (``hil bench run``)."""
-    return run_experiment(BenchExperiment(opts))
+def run_bench(opts: BenchRunOptions, *, tuner_started: TunerStarted | None = None
+              ) -> RunResult:
+    """Run one closed-loop bench session (``hil bench run``); ``tuner_started(tuner)`` is
+    called with the run's tuner before the first tick (:mod:`hil.core.tuning`)."""
+    return run_experiment(BenchExperiment(opts), tuner_started=tuner_started)
 
 
 @dataclass(frozen=True, kw_only=True)
