@@ -7,7 +7,8 @@ its safety limits (``safety.NAME``, which may only be made stricter: :attr:`Tuna
 
 A change is asked for with :meth:`Tuner.request` from any thread. It is checked there (a known
 name, the type, the range, the safety direction, the controller's own check); a parameter that
-needs a rebuild is rebuilt there too, off the loop. The change then waits in a queue that the
+needs a rebuild is rebuilt there too, off the loop, once the rebuilds queued before it are in
+place (so it starts from the parameters in force). The change then waits in a queue that the
 loop looks at once per tick, before the tick's phases (:attr:`FixedRateLoop.at_boundary
 <hil.core.loop.FixedRateLoop.at_boundary>`: one look at an empty queue when nobody tunes), and
 is applied at the first tick boundary, the tick's number reported back. Every applied change is
@@ -165,6 +166,11 @@ class Tuner:
             with self._lock:
                 entry = self._entries.get(name)
                 ended = self._ended
+                # a rebuild starts from the parameters in force: after the rebuilds queued
+                rebuilds = [p for p in self._queue if p.swap is not None] \
+                    if entry is not None and entry.prepare is not None else []
+            for queued in rebuilds:
+                queued.done.wait()
             try:
                 if ended:
                     raise _RefusedError("the run has ended")
