@@ -11,6 +11,7 @@ import pytest
 from hil import api
 from hil.core.recording.reader import read_session
 from hil.core.tuning import TunableSpec, Tuner
+from tests.cli import hil_here
 
 REFERENCE = "sine:amplitude=10,frequency=2"
 PERIOD_S = 500e-6
@@ -168,3 +169,21 @@ def test_the_tuner_checks_types_and_refuses_after_the_run():
     tuner.close()
     late = tuner.request("controller.n", 9, "t", 1.0)
     assert (late.accepted, late.value, late.reason) == (False, 12, "the run has ended")
+
+
+def test_report_and_export_show_the_changes(pid_runs, capsys):
+    _, tuned, _, _ = pid_runs
+    report = hil_here(capsys, "report", tuned.path)
+    assert report.returncode == 0, report.stderr
+    lines = report.stdout.splitlines()
+    first = lines.index("params   changed while running")
+    assert lines[first + 1].startswith("  controller.kp = 500.0 refused (test-client): "
+                                       "controller.kp = 500 rpm/deg is outside its range")
+    assert "  controller.kp: 3.6111 -> 0.6 at tick 200 (test-client)" in lines
+    assert "  safety.current_limit_mA: 1000.0 -> 150.0 at tick 400 (test-client)" in lines
+    exported = hil_here(capsys, "export", tuned.path, "--topic", "/params")
+    assert exported.returncode == 0, exported.stderr
+    assert exported.stdout.splitlines() == [
+        "t_s,log_time_ns,parameter,old,new,unit,client,tick",
+        "0.1,100000000,controller.kp,3.6111,0.6,rpm/deg,test-client,200",
+        "0.2,200000000,safety.current_limit_mA,1000.0,150.0,mA,test-client,400"]
