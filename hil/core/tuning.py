@@ -94,14 +94,16 @@ class _Entry:
     promised: Value                                       # the value once the queue is applied
 
 
-class _Pending:
-    """One queued change (or refusal to record) and its answer."""
+class PendingChange:
+    """One change asked for (:meth:`Tuner.submit`): queued, or a refusal waiting to be
+    recorded; :meth:`Tuner.wait` gives its answer."""
 
     def __init__(self, entry: _Entry | None, name: str, value: Any, client: str,
                  at_tick: int | None, swap: Callable[[], None] | None,
                  refused: TuneResult | None = None) -> None:
         self.entry, self.name, self.value, self.client = entry, name, value, client
         self.at_tick, self.swap = at_tick, swap
+        self.asked_at = -1                # the last tick boundary before it was asked for
         self.refused = refused           # a refusal, queued only to be recorded
         self.cancelled = False
         self.result: TuneResult | None = refused
@@ -115,12 +117,13 @@ class Tuner:
                  topic: Callable[[str, dict[str, Any]], Any] | None = None,
                  time_ns: Callable[[], int] | None = None) -> None:
         self._entries: dict[str, _Entry] = {}
-        self._queue: deque[_Pending] = deque()
+        self._queue: deque[PendingChange] = deque()
         self._lock = threading.Lock()            # the entries and the queue
         self._requests = threading.Lock()        # one request checked at a time
         self._listeners: list[Callable[[TuneResult], None]] = []
         self._event, self._topic, self._time_ns = event, topic, time_ns
         self._params: Any = None                 # the /params topic, made at the first change
+        self.now = -1                            # the last tick boundary the loop reached
         self._ended = False
         self.applied = 0                         # changes applied so far
 
@@ -159,9 +162,10 @@ class Tuner:
         return self.wait(pending, timeout_s)
 
     def submit(self, name: str, value: object, client: str, *,
-               at_tick: int | None = None) -> _Pending:
+               at_tick: int | None = None) -> PendingChange:
         """:meth:`request` without the wait: the change checked and queued (its rebuild
         done); :meth:`wait` gives its result."""
+        asked_at = self.now
         with self._requests:
             with self._lock:
                 entry = self._entries.get(name)
@@ -187,15 +191,16 @@ class Tuner:
                 return self._refuse(entry, name, value, client, str(exc))
             except (HilError, ValueError) as exc:
                 return self._refuse(entry, name, value, client, str(exc))
-            pending = _Pending(entry, name, checked, client, at_tick, swap)
+            pending = PendingChange(entry, name, checked, client, at_tick, swap)
             with self._lock:
                 if self._ended:
                     return self._refuse(entry, name, value, client, "the run has ended")
                 entry.promised = checked
+                pending.asked_at = asked_at
                 self._queue.append(pending)
             return pending
 
-    def wait(self, pending: _Pending, timeout_s: float) -> TuneResult:
+    def wait(self, pending: PendingChange, timeout_s: float) -> TuneResult:
         """The result of a submitted change; withdrawn (refused) if not applied in time."""
         if not pending.done.wait(timeout_s):
             with self._lock:
@@ -213,10 +218,10 @@ class Tuner:
         return pending.result
 
     def _refuse(self, entry: _Entry | None, name: str, value: object, client: str,
-                reason: str) -> _Pending:
+                reason: str) -> PendingChange:
         stays = entry.spec.value if entry is not None else ""
         result = TuneResult(name, False, stays, reason, None)
-        pending = _Pending(entry, name, value, client, None, None, refused=result)
+        pending = PendingChange(entry, name, value, client, None, None, refused=result)
         pending.done.set()
         with self._lock:
             if not self._ended:
@@ -226,6 +231,7 @@ class Tuner:
     # -- the loop's side -------------------------------------------------------------------
     def tick(self, n: int) -> None:
         """At the boundary of tick ``n`` (the loop's thread): apply what is due."""
+        self.now = n
         if not self._queue:
             return
         with self._lock:
@@ -245,7 +251,7 @@ class Tuner:
                     listener(result)
             pending.done.set()
 
-    def _apply(self, pending: _Pending, n: int) -> None:
+    def _apply(self, pending: PendingChange, n: int) -> None:
         entry = pending.entry
         assert entry is not None
         old = entry.spec.value
@@ -267,7 +273,7 @@ class Tuner:
         unit = entry.spec.unit
         self._record(pending, "param.changed", f"{pending.name}: {old!r} -> "
                      f"{pending.value!r}{' ' + unit if unit else ''} at tick {n}",
-                     old=old, new=pending.value, tick=n)
+                     old=old, new=pending.value, tick=n, asked_at_tick=pending.asked_at)
         if self._topic is not None and self._time_ns is not None:
             if self._params is None:
                 self._params = self._topic("/params", PARAMS_SCHEMA)
@@ -275,7 +281,7 @@ class Tuner:
                 "parameter": pending.name, "old": old, "new": pending.value, "unit": unit,
                 "client": pending.client, "tick": n})
 
-    def _record_refused(self, pending: _Pending) -> None:
+    def _record_refused(self, pending: PendingChange) -> None:
         result = pending.refused
         assert result is not None
         value = pending.value if isinstance(pending.value, (bool, int, float, str)) \
@@ -283,7 +289,7 @@ class Tuner:
         self._record(pending, "param.refused", f"{pending.name} = {value!r} refused: "
                      f"{result.reason}", level="warning", value=value, reason=result.reason)
 
-    def _record(self, pending: _Pending, kind: str, message: str, level: str = "info",
+    def _record(self, pending: PendingChange, kind: str, message: str, level: str = "info",
                 **data: Any) -> None:
         if self._event is not None:
             self._event(kind, message, level=level, source="tuner", parameter=pending.name,

@@ -3,7 +3,11 @@ thread, through the run's tuner (``tuner_started``), is checked, applied at a ti
 and recorded; before that tick the run is the run without the change, after it the change
 shows in the recorded error and command. Refused requests leave the run as it was."""
 
+import os
+import subprocess
+import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -187,3 +191,21 @@ def test_report_and_export_show_the_changes(pid_runs, capsys):
         "t_s,log_time_ns,parameter,old,new,unit,client,tick",
         "0.1,100000000,controller.kp,3.6111,0.6,rpm/deg,test-client,200",
         "0.2,200000000,safety.current_limit_mA,1000.0,150.0,mA,test-client,400"]
+
+
+def test_the_readme_example_tunes_a_run_from_outside_the_repository(tmp_path):
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    section = readme[readme.index("## Tune while it runs"):]
+    start = section.index("```python\n") + len("```python\n")
+    code = section[start:section.index("\n```", start)]
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
+                          text=True, env=env, timeout=600)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[0].startswith("[('controller.kp', 3.6111, 'rpm/deg'), ")
+    assert lines[1].startswith("TuneResult(name='safety.following_error_deg', accepted=False, "
+                               "value=45.0, reason='safety.following_error_deg is a safety "
+                               "limit: while running it may only be lowered")
+    assert lines[2] == "TuneResult(name='controller.kp', accepted=True, value=2.5, reason='', " \
+                       "tick=200)"
