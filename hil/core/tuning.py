@@ -7,11 +7,12 @@ its safety limits (``safety.NAME``, which may only be made stricter: :attr:`Tuna
 
 A change is asked for with :meth:`Tuner.request` from any thread. It is checked there (a known
 name, the type, the range, the safety direction, the controller's own check); a parameter that
-needs a rebuild is rebuilt there too, off the loop, once the rebuilds queued before it are in
-place (so it starts from the parameters in force). The change then waits in a queue that the
-loop looks at once per tick, before the tick's phases (:attr:`FixedRateLoop.at_boundary
-<hil.core.loop.FixedRateLoop.at_boundary>`: one look at an empty queue when nobody tunes), and
-is applied at the first tick boundary, the tick's number reported back. Every applied change is
+needs a rebuild is rebuilt by the tuner's worker thread, off the loop, once the rebuilds queued
+before it are in place (so it starts from the parameters in force). The change then waits in
+a queue that the loop looks at once per tick, before the tick's phases
+(:attr:`FixedRateLoop.at_boundary <hil.core.loop.FixedRateLoop.at_boundary>`: one look at an
+empty queue when nobody tunes), and is applied at the first tick boundary (``at_tick``: not
+before that tick), the tick's number reported back. Every applied change is
 an event ``param.changed`` on ``/events`` (parameter, old, new, client, tick) and a message on
 ``/params`` (:data:`PARAMS_SCHEMA`); a refused one an event ``param.refused`` (parameter,
 value, client, reason). Both are recorded by the loop's thread.
@@ -125,6 +126,9 @@ class Tuner:
         self._params: Any = None                 # the /params topic, made at the first change
         self.now = -1                            # the last tick boundary the loop reached
         self._ended = False
+        self._rebuilds: deque[PendingChange] = deque()   # waiting for the worker
+        self._work = threading.Condition(self._lock)
+        self._worker: threading.Thread | None = None
         self.applied = 0                         # changes applied so far
 
     # -- what may change -------------------------------------------------------------------
@@ -170,11 +174,6 @@ class Tuner:
             with self._lock:
                 entry = self._entries.get(name)
                 ended = self._ended
-                # a rebuild starts from the parameters in force: after the rebuilds queued
-                rebuilds = [p for p in self._queue if p.swap is not None] \
-                    if entry is not None and entry.prepare is not None else []
-            for queued in rebuilds:
-                queued.done.wait()
             try:
                 if ended:
                     raise _RefusedError("the run has ended")
@@ -186,19 +185,63 @@ class Tuner:
                 _check_range(entry.spec, checked)
                 if entry.check is not None:
                     entry.check(checked)
-                swap = entry.prepare(checked) if entry.prepare is not None else None
-            except _RefusedError as exc:
+            except (_RefusedError, HilError, ValueError) as exc:
                 return self._refuse(entry, name, value, client, str(exc))
-            except (HilError, ValueError) as exc:
-                return self._refuse(entry, name, value, client, str(exc))
-            pending = PendingChange(entry, name, checked, client, at_tick, swap)
+            pending = PendingChange(entry, name, checked, client, at_tick, None)
+            pending.asked_at = asked_at
             with self._lock:
-                if self._ended:
-                    return self._refuse(entry, name, value, client, "the run has ended")
-                entry.promised = checked
-                pending.asked_at = asked_at
-                self._queue.append(pending)
+                ended = self._ended
+                if not ended:
+                    entry.promised = checked
+                    if entry.prepare is None:
+                        self._queue.append(pending)
+                    else:  # rebuilt by the worker, then queued
+                        self._rebuilds.append(pending)
+                        self._start_worker()
+                        self._work.notify()
+            if ended:
+                return self._refuse(entry, name, value, client, "the run has ended")
             return pending
+
+    def _start_worker(self) -> None:
+        if self._worker is None:
+            self._worker = threading.Thread(target=self._rebuild_all, name="hil-tuner-rebuild",
+                                            daemon=True)
+            self._worker.start()
+
+    def _rebuild_all(self) -> None:
+        """The worker: each rebuild in turn, once the swaps queued before it are in place
+        (so it starts from the parameters in force), then queued for the loop."""
+        while True:
+            with self._work:
+                while not self._rebuilds and not self._ended:
+                    self._work.wait()
+                if self._ended:
+                    return
+                pending = self._rebuilds.popleft()
+                before = [p for p in self._queue if p.swap is not None]
+            for queued in before:
+                queued.done.wait()
+            if pending.cancelled:
+                continue
+            entry = pending.entry
+            assert entry is not None and entry.prepare is not None
+            try:
+                swap = entry.prepare(pending.value)
+            except (HilError, ValueError) as exc:
+                with self._lock:
+                    if pending.result is None:
+                        entry.promised = entry.spec.value
+                        pending.result = pending.refused = TuneResult(
+                            pending.name, False, entry.spec.value, str(exc), None)
+                        if not self._ended:
+                            self._queue.append(pending)  # recorded by the loop's thread
+                pending.done.set()
+                continue
+            with self._lock:
+                if not pending.cancelled and not self._ended:
+                    pending.swap = swap
+                    self._queue.append(pending)
 
     def wait(self, pending: PendingChange, timeout_s: float) -> TuneResult:
         """The result of a submitted change; withdrawn (refused) if not applied in time."""
@@ -242,6 +285,7 @@ class Tuner:
             for pending in due:
                 if pending.refused is not None:
                     self._record_refused(pending)
+                    pending.result = pending.refused
                 elif not pending.cancelled:
                     self._apply(pending, n)
         for pending in due:
@@ -300,8 +344,10 @@ class Tuner:
         by :meth:`tick` are dropped), and so is every later request."""
         with self._lock:
             self._ended = True
-            left = list(self._queue)
+            self._work.notify_all()
+            left = list(self._queue) + list(self._rebuilds)
             self._queue.clear()
+            self._rebuilds.clear()
             for pending in left:
                 if pending.result is None:
                     entry = pending.entry
