@@ -31,7 +31,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -442,12 +442,3 @@ def add_controller(tuner: Tuner, controller: object, prefix: str = "controller")
                               param.maximum, param.step, param.rebuild, None,
                               param.description), apply, prepare=prepare, check=check)
     return len(params)
-
-
-def safety_limits(tuner: Tuner, specs: Sequence[tuple[TunableSpec, Callable[[Any], None]]]
-                  ) -> None:
-    """Register safety limits: each spec must say its ``stricter`` direction."""
-    for spec, apply in specs:
-        if spec.stricter not in ("lower", "higher"):
-            raise ValueError(f"safety limit {spec.name}: stricter must be lower or higher")
-        tuner.add(spec, apply)
