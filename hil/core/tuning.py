@@ -242,6 +242,11 @@ class Tuner:
                 if not pending.cancelled and not self._ended:
                     pending.swap = swap
                     self._queue.append(pending)
+                    continue
+                if pending.result is None:  # the run ended while it was rebuilt
+                    pending.result = TuneResult(pending.name, False, entry.spec.value,
+                                                "the run ended before it was applied", None)
+            pending.done.set()
 
     def wait(self, pending: PendingChange, timeout_s: float) -> TuneResult:
         """The result of a submitted change; withdrawn (refused) if not applied in time."""

@@ -209,3 +209,21 @@ def test_the_readme_example_tunes_a_run_from_outside_the_repository(tmp_path):
                                "limit: while running it may only be lowered")
     assert lines[2] == "TuneResult(name='controller.kp', accepted=True, value=2.5, reason='', " \
                        "tick=200)"
+
+
+def test_rebuilds_run_in_turn_off_the_caller_and_the_end_of_the_run_refuses_the_rest():
+    swapped = []
+    tuner = Tuner()
+    tuner.add(TunableSpec("controller.h", 8, "ticks", 1, 50, 1, True, None, ""),
+              swapped.append, prepare=lambda value: lambda: swapped.append(value))
+    first = tuner.submit("controller.h", 10, "t")     # returns at once: the worker rebuilds
+    second = tuner.submit("controller.h", 12, "t")    # rebuilt once the first is in place
+    n = 0
+    while not first.done.is_set():                   # the loop's tick boundaries
+        tuner.tick(n)
+        n += 1
+    assert tuner.wait(first, 60.0).tick is not None and swapped == [10]
+    tuner.close()
+    late = tuner.wait(second, 60.0)
+    assert not late.accepted and late.value == 10 and "the run ended" in late.reason
+    assert swapped == [10] and tuner.specs()[0].value == 10
