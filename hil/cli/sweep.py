@@ -177,8 +177,9 @@ def _configured_url(kind: str, base: dict[str, Any]) -> str:
 
 def _absolute_paths(base: dict[str, Any]) -> None:
     """Files named relative to here, made absolute for workers that start elsewhere."""
-    if base.get("config"):
-        base["config"] = os.path.abspath(base["config"])
+    for key in ("config", "params"):
+        if base.get(key):
+            base[key] = os.path.abspath(base[key])
     controller = str(base.get("controller", ""))
     path, sep, cls = controller.rpartition(":")
     if sep and path.endswith(".py") and os.path.exists(path):

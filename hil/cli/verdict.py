@@ -56,6 +56,10 @@ def add_controller_arguments(parser: argparse.ArgumentParser, builtins: str,
     parser.add_argument("--controller", metavar="SPEC",
                         help=SPEC_HELP.format(builtins=builtins))
     add_param_argument(parser, "laid over the config's [controller]")
+    parser.add_argument("--params", metavar="F.toml",
+                        help="the controller's parameters from a file, NAME = VALUE each (a "
+                        "sweep's best.toml), laid over the config's [controller]; --param "
+                        "flags win")
     parser.add_argument("--controller-budget", type=positive_float, metavar="S",
                         help="longest time one call of the controller may take before the run "
                         "stops to the safe state")

@@ -132,12 +132,40 @@ def summarize(data: SessionData) -> dict[str, Any]:
             level: sum(1 for e in events if e.get("level") == level)
             for level in ("info", "warning", "error")
         },
+        "params": param_changes(events),
         "kpis": kpis(data),
     }
     extra = find_summary(session_kind(data))
     if extra is not None and (section := extra.section(data)):
         summary[extra.key] = section
     return summary
+
+
+def param_changes(events: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The parameters changed while the run ran, and the refused requests, in order (the
+    ``param.changed`` and ``param.refused`` events of :mod:`hil.core.tuning`)."""
+    changes = []
+    for event in events:
+        kind, data = event.get("kind"), event.get("data") or {}
+        if kind in ("param.changed", "param.refused"):
+            changes.append({"accepted": kind == "param.changed",
+                            **{k: data.get(k) for k in ("parameter", "old", "new", "value",
+                                                        "client", "tick", "reason")
+                               if k in data}})
+    return changes
+
+
+def _param_lines(changes: list[dict[str, Any]]) -> list[str]:
+    lines = ["params   changed while running"] if changes else []
+    for change in changes:
+        if change["accepted"]:
+            lines.append(f"  {change.get('parameter')}: {change.get('old')} -> "
+                         f"{change.get('new')} at tick {change.get('tick')} "
+                         f"({change.get('client')})")
+        else:
+            lines.append(f"  {change.get('parameter')} = {change.get('value')} refused "
+                         f"({change.get('client')}): {change.get('reason')}")
+    return lines
 
 
 def format_summary(summary: dict[str, Any]) -> str:
@@ -184,6 +212,7 @@ def format_summary(summary: dict[str, Any]) -> str:
             lines.append(f"  {step:<16} {outcome}")
     ev = summary["events"]
     lines.append(f"events   {ev['info']} info, {ev['warning']} warning, {ev['error']} error")
+    lines.extend(_param_lines(summary.get("params", [])))
     if summary["kpis"]:
         lines.append("kpis")
         for key, value in summary["kpis"].items():
