@@ -5,16 +5,21 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import TYPE_CHECKING
 
 from hil.cli.argtypes import output_file
 from hil.cli.output import json_text
 from hil.cli.report import points_per_trace
-from hil.compare.tolerances import Tolerance, parse_entry
 from hil.errors import UsageError
+
+if TYPE_CHECKING:
+    from hil.compare.tolerances import Tolerance
 
 
 def _entry(text: str) -> tuple[str, Tolerance]:
     """``--tolerance NAME=SPEC`` as an argparse type (a bad one: argparse's one line)."""
+    from hil.compare.tolerances import parse_entry  # not at import: hil.compare needs numpy
+
     try:
         return parse_entry(text)
     except UsageError as exc:
