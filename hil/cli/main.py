@@ -24,12 +24,13 @@ from hil.cli import (
     report,
     servo,
     sweep,
+    tune,
     twin,
 )
 from hil.errors import HilError, RunInterruptedError
 
 COMMAND_MODULES = (demo, bench, servo, drive, sweep, empc, identify, emulate, report, export,
-                   replay, twin, layout, doctor)
+                   replay, tune, twin, layout, doctor)
 
 
 class OneLineParser(argparse.ArgumentParser):
