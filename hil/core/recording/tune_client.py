@@ -8,6 +8,7 @@ force afterwards) and the warning ``status`` a refusal sends
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 import uuid
@@ -46,10 +47,11 @@ class TuneClient:
         from websockets.sync.client import connect
 
         where = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+        self._stack = contextlib.ExitStack()
         try:
-            self._ws = connect(f"ws://{where}", subprotocols=SUBPROTOCOLS,  # type: ignore[arg-type]
-                               open_timeout=timeout_s, max_size=None, ping_interval=None,
-                               close_timeout=1)
+            self._ws = self._stack.enter_context(connect(
+                f"ws://{where}", subprotocols=SUBPROTOCOLS,  # type: ignore[arg-type]
+                open_timeout=timeout_s, max_size=None, ping_interval=None, close_timeout=1))
         except (OSError, TimeoutError) as exc:
             raise TuneConnectionError(f"cannot connect to {where}: "
                                       f"{getattr(exc, 'strerror', None) or exc}") from None
@@ -65,7 +67,7 @@ class TuneClient:
                                       "'hil bench|servo run --live' does)")
 
     def close(self) -> None:
-        self._ws.close()
+        self._stack.close()
 
     def _wait(self, wanted: Any, timeout_s: float) -> dict[str, Any]:
         """Read messages (keeping answers and statuses) until one is ``wanted``."""
