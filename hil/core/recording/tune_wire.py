@@ -104,11 +104,6 @@ class RemotePort:
             f"no answer from the loop within {timeout_s:g} s"
         return {"name": name, "accepted": False, "value": None, "reason": why, "tick": None}
 
-    def close(self) -> None:
-        with contextlib.suppress(OSError):
-            self._sock.shutdown(socket.SHUT_RDWR)
-        self._sock.close()
-
 
 def _plain(item: Any) -> dict[str, Any]:
     """A spec or result as the dict that crosses the channel."""
