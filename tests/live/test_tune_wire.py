@@ -21,6 +21,7 @@ from hil.cli.layout import layout_path
 from hil.core.recording.live import LiveSink
 from hil.core.recording.recorder import Recorder
 from hil.core.recording.recording_options import RecordingOptions
+from hil.core.recording.tune_wire import PortServer, RemotePort
 from tests.cli import hil_here
 from tests.live.foxglove_client import FoxgloveClient
 
@@ -232,3 +233,22 @@ def test_the_shipped_layouts_have_a_parameters_panel_beside_the_plots() -> None:
             else:
                 stack += [node["first"], node["second"]]
         assert "Parameters!hilparams" in leaves
+
+
+class FailingTuner(StandInTuner):
+    def request(self, name: str, value: object, client: str, timeout_s: float = 5.0) -> Result:
+        raise RuntimeError("the rebuild failed")
+
+
+def test_the_reverse_channel_refuses_what_the_loop_cannot_answer() -> None:
+    writer_end, loop_end = socket.socketpair()
+    port = RemotePort(writer_end)
+    server = PortServer(loop_end, FailingTuner())
+    assert [s["name"] for s in port.specs()] == [
+        "controller.kp", "controller.hp", "safety.max_following_error_deg"]
+    failed = port.request("controller.kp", 3.0, "live client 1")
+    assert (failed["accepted"], failed["reason"]) == (False, "RuntimeError: the rebuild failed")
+    server.close()  # the run has ended
+    ended = port.request("controller.kp", 3.0, "live client 1")
+    assert (ended["accepted"], ended["reason"]) == (False, "the run has ended")
+    assert port.specs() == []
