@@ -32,7 +32,8 @@ with ``isinstance`` (the built-ins have them; a user's controller may):
   :class:`SolverReport` (the path of each step, counted), :class:`ReportsEvents` (events the
   controller raised, recorded to ``/events``), :class:`CountsFallbacks`, and a ``config``
   with :class:`MpcHorizons` (recorded with the KPIs);
-* both: :class:`Resettable`.
+* both: :class:`Resettable`, :class:`Tunable` (parameters that may change while it runs,
+  each a :class:`TunableParam`; those that need a rebuild through :class:`Rebuilding`).
 """
 
 from __future__ import annotations
@@ -260,3 +261,45 @@ def horizons_of(controller: object) -> MpcHorizons | None:
     """The controller's MPC horizons (its ``config``), if it has them."""
     config = getattr(controller, "config", None)
     return config if isinstance(config, MpcHorizons) else None
+
+
+@dataclass(frozen=True)
+class TunableParam:
+    """A parameter a controller lets change while it runs (:class:`Tunable`): its ``name``
+    (as ``controller.NAME`` names it), the ``value`` in force, its ``unit``, the range
+    ``[minimum, maximum]`` and ``step`` (None: unbounded, any), and whether a change needs a
+    ``rebuild`` (built off the loop by :meth:`Rebuilding.rebuilt`, swapped in at a tick
+    boundary) or applies at once (:meth:`Tunable.set_tunable`, at a tick boundary)."""
+
+    name: str
+    value: float | int | bool | str
+    unit: str = ""
+    minimum: float | None = None
+    maximum: float | None = None
+    step: float | None = None
+    rebuild: bool = False
+    description: str = ""
+
+
+@runtime_checkable
+class Tunable(Protocol):
+    """A controller with parameters that may change while it runs: ``tunables()`` lists them
+    with the values in force; ``set_tunable(name, value)`` applies one that needs no rebuild
+    (called in the loop thread, between two steps: it must be cheap). A value it cannot take
+    raises a ControllerSetupError naming the problem; the run's tuner refuses the change with
+    that line. ``check_tunable(name, value)``, if the controller has it, is asked first, off
+    the loop (e.g. whether the loop stays stable)."""
+
+    def tunables(self) -> Sequence[TunableParam]: ...
+
+    def set_tunable(self, name: str, value: Any) -> None: ...
+
+
+@runtime_checkable
+class Rebuilding(Protocol):
+    """A :class:`Tunable` controller with parameters that need a rebuild (an MPC's horizons
+    change its QP's size): ``rebuilt(name, value)`` builds the new parts off the loop thread
+    and returns the swap, a cheap callable the loop runs at a tick boundary to put them in
+    place (keeping the controller's state: its estimate, its last command)."""
+
+    def rebuilt(self, name: str, value: Any) -> Callable[[], None]: ...

@@ -25,7 +25,7 @@ import contextlib
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hil.contracts import EventSink, no_event
 from hil.core.verdict import Limit, parse_limit
@@ -34,6 +34,9 @@ from hil.drivers.canopen import CanDriveMaster
 from hil.emulator_process import EmulatorProcess, start_bench_emulator, start_drive_emulator
 from hil.errors import UsageError
 from hil.servo.defaults import DEFAULT_REFERENCE
+
+if TYPE_CHECKING:
+    from hil.core.run import TunerStarted
 
 __all__ = ["EmulatorProcess", "open_bench", "open_drive", "run_bench", "run_servo",
            "start_bench_emulator", "start_drive_emulator"]
@@ -54,33 +57,39 @@ def _check_options(options: Mapping[str, Any], known: Iterable[str], what: str) 
 
 def run_bench(controller: Controller, params: Mapping[str, Any] | None = None, *,
               bench: str | None = None, cycles: int = 1, limits: Iterable[str | Limit] = (),
-              **options: Any) -> dict[str, Any]:
+              tuner_started: TunerStarted | None = None, **options: Any) -> dict[str, Any]:
     """One closed-loop bench run (``hil bench run``); ``options`` are the other fields of
     :class:`hil.bench.run.BenchRunOptions` (``out``, ``realtime``, ``config_path``,
-    ``dwell_s``, ``seed``, ``disturbance``, ``controller_budget_s``...)."""
+    ``dwell_s``, ``seed``, ``disturbance``, ``controller_budget_s``...);
+    ``tuner_started(tuner)``: given the run's :class:`~hil.core.tuning.Tuner` before the
+    first tick, to change parameters while it runs."""
     from hil.bench.run import BenchRunOptions
     from hil.bench.run import run_bench as run
 
     _check_options(options, {f.name for f in fields(BenchRunOptions)}, "run_bench")
     return run(BenchRunOptions(controller=controller, params=dict(params or {}), bench=bench,
-                               cycles=cycles, limits=_limits(limits), **options)).kpis
+                               cycles=cycles, limits=_limits(limits), **options),
+               tuner_started=tuner_started).kpis
 
 
 def run_servo(controller: Controller, params: Mapping[str, Any] | None = None, *,
               drive: str | None = None, reference: str = DEFAULT_REFERENCE,
               duration_s: float = 1.0, limits: Iterable[str | Limit] = (),
-              **options: Any) -> dict[str, Any]:
+              tuner_started: TunerStarted | None = None, **options: Any) -> dict[str, Any]:
     """One closed-loop servo run (``hil servo run``), lockstep unless ``realtime=True``, on
     the drive at ``drive`` (None: the config's ``[bus]``, by default the emulated drive);
     ``options`` are the other fields of :class:`hil.servo.run.ServoRunOptions` (``out``,
     ``umax``, ``settle_s``, ``drive_config``, ``controller_budget_s``, ``axes="x=1,y=2"``
-    for several axes...)."""
+    for several axes...); ``tuner_started(tuner)``: given the run's
+    :class:`~hil.core.tuning.Tuner` before the first tick, to change parameters while it
+    runs (:mod:`hil.core.tuning`)."""
     from hil.servo.run import ServoRunOptions, run_servo
 
     _check_options(options, {f.name for f in fields(ServoRunOptions)}, "run_servo")
     return run_servo(ServoRunOptions(controller=controller, params=dict(params or {}), drive=drive,
                                reference=reference, duration_s=duration_s,
-                               limits=_limits(limits), **options)).kpis
+                               limits=_limits(limits), **options),
+                     tuner_started=tuner_started).kpis
 
 
 class _MonotonicTime:

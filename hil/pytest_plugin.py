@@ -1,6 +1,8 @@
 """pytest fixtures that put a relay bench and a servo drive under your tests: hil's emulators,
 each in its own process on a free 127.0.0.1 port, or your hardware with ``--hil-bench URL`` /
-``--hil-drive URL``. Installed with hil (entry point ``pytest11``): nothing to import.
+``--hil-drive URL``, or a labgrid target's ``HilBench`` / ``HilDrive`` with labgrid's
+``--lg-env ENV.yaml`` (:mod:`hil.lab`; the resource's config, node and EDS apply to the runs).
+Installed with hil (entry point ``pytest11``): nothing to import.
 
 ::
 
@@ -23,6 +25,23 @@ test (a drive fault, a safety stop...) fails it with its one line, not a traceba
 (``--fulltrace`` shows it). After every test the fixture checks that the hardware was left in
 its safe state (relays at their safe levels, the drive not in OPERATION ENABLED) and fails the
 test if not.
+
+Regression against a baseline: ``hil_baseline.check()`` holds the test's last run against
+``baselines/TEST_NAME.mcap`` beside the test file (the run's metadata and KPIs, and its
+``/drive/feedback:position_deg`` and ``/drive/command:command_mA``, or the bench's
+``/bench/power:total_va`` and levels, at every tick). The first run records that file (a
+``BaselineRecorded`` warning says so); ``--hil-update-baselines`` records it again. Later
+runs compare as ``hil compare`` does: exact against the emulator (lockstep), within
+``tolerances={"NAME": "SPEC"}`` against hardware; a failure shows the table and writes the
+comparison's JSON under ``tmp_path``::
+
+    def test_pd_tracks_as_before(hil_drive, hil_baseline):
+        hil_drive.run(MyServoController, {"kp": 300}, duration_s=0.5)
+        hil_baseline.check(tolerances={"/drive/feedback:position_deg": "tube:0.01,2ms"})
+
+``--hil-html DIR``: an HTML report of every session the fixtures ran and of every baseline
+comparison, in ``DIR`` (:mod:`hil.pytest_html`); a failed comparison writes its page under
+``tmp_path`` without it too.
 """
 
 from __future__ import annotations
@@ -42,6 +61,9 @@ from hil.drivers.canopen import CanDriveMaster
 from hil.emulator_process import EmulatorProcess
 from hil.errors import HilError
 from hil.protocols.cia402 import OPERATION_ENABLED, state_of
+from hil.pytest_baseline import hil_baseline  # noqa: F401  (a fixture of this plugin)
+from hil.pytest_html import add_option as add_html_option
+from hil.pytest_html import write_session_reports
 
 #: where a run's KPIs go: ``(name, value)`` pairs, a test's ``user_properties``
 Record = Callable[[tuple[str, object]], None]
@@ -61,6 +83,10 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     group.addoption("--hil-drive", metavar="URL", default=None,
                     help="run hil_drive tests against this drive (socketcand://H:P, "
                     "socketcan://can0...) instead of the emulator")
+    group.addoption("--hil-update-baselines", action="store_true", default=False,
+                    help="hil_baseline records each test's baseline again instead of "
+                    "comparing with it")
+    add_html_option(group)
 
 
 class _UnderTest(abc.ABC, Generic[DeviceT]):
@@ -74,6 +100,7 @@ class _UnderTest(abc.ABC, Generic[DeviceT]):
                  record: Record) -> None:
         self.url, self.emulated, self.directory = url, emulated, directory
         self.emulator: EmulatorProcess | None = None  # the emulator process, if it is one
+        self.defaults: dict[str, Any] = {}  # run options a labgrid resource sets (config...)
         self.sessions: list[str] = []
         self._record = record
         self._stack = contextlib.ExitStack()
@@ -89,6 +116,8 @@ class _UnderTest(abc.ABC, Generic[DeviceT]):
              ) -> dict[str, Any]:
         """``run()`` into the next session file (``options["out"]`` unless given), its KPIs
         recorded as the test's properties."""
+        for name, value in self.defaults.items():
+            options.setdefault(name, value)
         options.setdefault("out", str(self.directory /
                                       f"{self.kind}-{len(self.sessions) + 1}.mcap"))
         self.sessions.append(options["out"])
@@ -121,7 +150,7 @@ class BenchUnderTest(_UnderTest[SafeBench]):
 
     @property
     def driver(self) -> SafeBench:
-        return self._device(lambda: api.open_bench(self.url))
+        return self._device(lambda: api.open_bench(self.url, self.defaults.get("config_path")))
 
     def run(self, controller: api.Controller, params: Mapping[str, Any] | None = None,
             cycles: int = 1, **options: Any) -> dict[str, Any]:
@@ -139,7 +168,7 @@ class BenchUnderTest(_UnderTest[SafeBench]):
         from hil.bench.config import load_bench_config
         from hil.drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 
-        config = load_bench_config()
+        config = load_bench_config(self.defaults.get("config_path"))
         driver = ModbusBenchDriver(ModbusLink(parse_bus_url(self.url), config.bus.timeout_s,
                                               config.bus.attempts), config.map)
         try:
@@ -169,7 +198,7 @@ class DriveUnderTest(_UnderTest[CanDriveMaster]):
 
     @property
     def master(self) -> CanDriveMaster:
-        return self._device(lambda: api.open_drive(self.url))
+        return self._device(lambda: api.open_drive(self.url, self.defaults.get("drive_config")))
 
     def run(self, controller: api.Controller, params: Mapping[str, Any] | None = None,
             reference: str = "sine:amplitude=2,frequency=1", duration_s: float = 1.0,
@@ -191,7 +220,7 @@ class DriveUnderTest(_UnderTest[CanDriveMaster]):
         from hil.servo.config import load_drive_config
         from hil.servo.rig import open_drive
 
-        master = open_drive(self.url, load_drive_config())
+        master = open_drive(self.url, load_drive_config(self.defaults.get("drive_config")))
         try:
             return state_of(master.sdo.read_int(0x6041, 0, "<H"))
         finally:
@@ -218,20 +247,38 @@ def _record_kpis(record: Record, session: str, kpis: dict[str, Any]) -> None:
         record((name, value))
 
 
+def _lab_device(request: pytest.FixtureRequest, option: str
+                ) -> tuple[str, dict[str, Any]] | None:
+    """The device of the labgrid environment's target (``--lg-env``; :mod:`hil.lab`) and the
+    run options its resource sets; None without one."""
+    if not request.config.pluginmanager.hasplugin("labgrid"):
+        return None
+    from hil.lab.pytest_target import target_device
+
+    return target_device(request, option)
+
+
 @contextlib.contextmanager
 def _emulator_or(request: pytest.FixtureRequest, option: str, start: Any
-                 ) -> Iterator[tuple[str, EmulatorProcess | None]]:
+                 ) -> Iterator[tuple[str, EmulatorProcess | None, dict[str, Any]]]:
     url = request.config.getoption(option)
+    flag = "--" + option.replace("_", "-")
     faults = [spec for mark in request.node.iter_markers("hil_faults") for spec in mark.args]
+    lab = _lab_device(request, option)
+    defaults: dict[str, Any] = {}
+    if lab is not None:
+        if url is not None:
+            pytest.fail(f"{flag} {url} and --lg-env both name the device: give one")
+        url, defaults = lab
+        flag = "--lg-env"
     if url is not None:
         if faults:
-            flag = "--" + option.replace("_", "-")
             pytest.fail(f"hil_faults: faults are played by the emulator, not by {flag} {url}")
-        yield url, None
+        yield url, None, defaults
         return
     emulator: EmulatorProcess = start(faults=faults)
     try:
-        yield emulator.url, emulator
+        yield emulator.url, emulator, defaults
     finally:
         emulator.stop()
 
@@ -243,13 +290,14 @@ def _under_test(request: pytest.FixtureRequest, tmp_path: Path, option: str, sta
                 make: type[UnderTest]) -> Generator[UnderTest, None, str | None]:
     """The device of a test (``make``): the emulator ``start`` gives, or the ``--OPTION``
     URL; after the test, closed; returns why the test left it unsafe (None: it did not)."""
-    with _emulator_or(request, option, start) as (url, emulator):
+    with _emulator_or(request, option, start) as (url, emulator, defaults):
         device = make(url, emulator is not None, tmp_path, request.node.user_properties.append)
-        device.emulator = emulator
+        device.emulator, device.defaults = emulator, defaults
         try:
             yield device
         finally:
             device.close()
+            write_session_reports(request, device.sessions)
         return device.left_unsafe()
 
 

@@ -30,18 +30,20 @@ the tuning (:mod:`~hil.controllers.bench.eec_settings`).
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
-from hil.controllers.base import BenchObservation
+from hil.controllers.base import BenchObservation, TunableParam
 from hil.controllers.bench.bc import hysteresis_rule
 from hil.controllers.bench.eec_settings import EECSettings, SolveResult
 from hil.controllers.bench.eec_solver import HorizonSolver
 from hil.controllers.bench.kalman import BenchKalman, KalmanSettings
 from hil.controllers.bench.prediction import BenchEstimate, BenchModels, HorizonPrediction
 from hil.controllers.bench.problem import BenchProblem, DwellClock
+from hil.controllers.errors import ControllerSetupError
 
 
 @dataclass
@@ -86,6 +88,7 @@ class EEC:
         """``feedback``: use the estimate's disturbance in the predictions (False: the
         models alone, as an open-loop plan would); ``kalman``: the estimator's noise levels."""
         self.estimator = BenchKalman(models, kalman)
+        self.models = models
         self.problem = problem
         self.settings = settings
         spd = round(settings.step_s / models.dt)
@@ -99,6 +102,8 @@ class EEC:
         self._plan_age = 0
         self._first = True
         self.feedback = feedback
+        # rebuilt parts swapped in at the next decision: (settings, prediction, solver)
+        self._next: tuple[EECSettings, HorizonPrediction, HorizonSolver] | None = None
         # first call of the cached model products outside the timed path
         self.prediction.free(BenchEstimate.at_rest(models))
 
@@ -108,6 +113,8 @@ class EEC:
 
     def step(self, obs: BenchObservation) -> Decision:
         """Decide from ``obs``, whose ``estimate`` is a :class:`BenchEstimate`."""
+        if self._next is not None:
+            self._swap_in()
         if not isinstance(obs.estimate, BenchEstimate):
             raise TypeError(f"the EEC decides from its estimator's BenchEstimate, got "
                             f"{type(obs.estimate).__name__} in obs.estimate")
@@ -171,3 +178,62 @@ class EEC:
         return Plan(t, result.u, q, power.max(axis=1), float(power.max()),
                     float(power.sum() * self.prediction.dt), result.objective, result.status,
                     result.solve_ms, result.rows, result.gap, result.nodes, result.bound)
+
+    # -- parameters changed while it runs (hil.controllers.base.Tunable, Rebuilding) ---------
+    def tunables(self) -> list[TunableParam]:
+        """The weights of J and the prediction horizon, in force now (or waiting for the next
+        decision). Each changes the horizon's costs, built once per horizon: rebuilt off the
+        loop, in place from the next decision on, the estimate and the dwell kept."""
+        c = self._next[0] if self._next is not None else self.settings
+        return [
+            TunableParam("gamma1", c.gamma1, "", 0.0, 1e6, 0.05, rebuild=True,
+                         description="weight of J1 (energy)"),
+            TunableParam("gamma2", c.gamma2, "", 0.0, 1e6, 0.05, rebuild=True,
+                         description="weight of J2 (peak)"),
+            TunableParam("gamma3", c.gamma3, "", 0.0, 1e9, None, rebuild=True,
+                         description="cost of one switch-on (relay wear), in units of J"),
+            TunableParam("hp_s", round(c.hp_steps * c.step_s), "s", c.step_s, 3600.0, c.step_s,
+                         rebuild=True, description="prediction horizon H_p"),
+        ]
+
+    def set_tunable(self, name: str, value: Any) -> None:
+        """Every parameter of the EEC needs a rebuild: :meth:`rebuilt`."""
+        raise ControllerSetupError(f"eec: {name} is applied by a rebuild")
+
+    def rebuilt(self, name: str, value: Any) -> Callable[[], None]:
+        """The costs (and, for ``hp_s``, the prediction) for ``name = value``, built now; the
+        swap hands them to the next decision."""
+        base = self._next[0] if self._next is not None else self.settings
+        if name == "hp_s":
+            steps = round(float(value) / base.step_s)
+            if abs(steps * base.step_s - float(value)) > 1e-9:
+                raise ControllerSetupError(f"eec: hp_s = {value:g} s is not a whole number of "
+                                           f"decision steps ({base.step_s:g} s)")
+            changes: dict[str, Any] = {"hp_steps": steps}
+        elif name in ("gamma1", "gamma2", "gamma3"):
+            changes = {name: float(value)}
+        else:
+            raise ControllerSetupError(f"eec: no tunable parameter {name!r}")
+        try:
+            settings = replace(base, **changes)
+        except ValueError as exc:
+            raise ControllerSetupError(f"eec: {exc}") from None
+        prediction = self.prediction
+        if settings.hp_steps != prediction.steps:
+            prediction = HorizonPrediction(self.models, self.problem, settings.hp_steps,
+                                           prediction.samples_per_step)
+            prediction.free(BenchEstimate.at_rest(self.models))
+        solver = HorizonSolver(prediction, self.problem, settings)
+
+        def swap() -> None:
+            self._next = (settings, prediction, solver)
+        return swap
+
+    def _swap_in(self) -> None:
+        """The rebuilt parts, at a decision; a new horizon drops the plan (its warm start)."""
+        assert self._next is not None
+        settings, prediction, solver = self._next
+        self._next = None
+        if prediction is not self.prediction:
+            self.plan = None
+        self.settings, self.prediction, self.solver = settings, prediction, solver

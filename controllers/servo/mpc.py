@@ -26,14 +26,15 @@ continuous frame, which starts at the first measured position.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 from typing import Any, ClassVar, Protocol
 
 import daqp
 import numpy as np
 import scipy.linalg as sla
 
+from hil.controllers.base import TunableParam
 from hil.controllers.errors import ControllerSetupError, SolverError
 from hil.controllers.servo.kalman import KalmanTuning, SteadyStateKalman
 from hil.controllers.servo.model import StateSpaceModel, published_axis_model
@@ -491,3 +492,51 @@ class TrajectoryMpc:
         given[n_x + 1:] = self._dU
         z = self._prediction_matrix @ given
         return z[:hp], z[hp:]
+
+    # -- parameters changed while it runs (hil.controllers.base.Tunable, Rebuilding) ---------
+    def tunables(self) -> list[TunableParam]:
+        """The horizons, the scalar weights and the current bound, in force now: each
+        changes the QP, so each is rebuilt off the loop and swapped in at a tick boundary."""
+        c = self.config
+        params = [
+            TunableParam("ht", c.ht, "ticks", 1, 200, 1, rebuild=True,
+                         description="trajectory horizon H_t (<= H_p)"),
+            TunableParam("hu", c.hu, "ticks", 1, 200, 1, rebuild=True,
+                         description="control horizon H_u (<= H_p)"),
+            TunableParam("hp", c.hp, "ticks", 1, 200, 1, rebuild=True,
+                         description="prediction horizon H_p"),
+            TunableParam("umax", c.u_max, "mA", 0.0, 32_767.0, 10.0, rebuild=True,
+                         description="current bound |u| <= umax"),
+        ]
+        for name, value, what in (("q", c.q, "output weight Q"), ("r", c.r, "input weight R")):
+            if isinstance(value, (int, float)):
+                params.append(TunableParam(name, float(value), "", 0.0, 1e12, None,
+                                           rebuild=True, description=what))
+        return params
+
+    def set_tunable(self, name: str, value: Any) -> None:
+        """Every parameter of the MPC needs a rebuild: :meth:`rebuilt`."""
+        raise ControllerSetupError(f"mpc: {name} is applied by a rebuild")
+
+    def rebuilt(self, name: str, value: Any) -> Callable[[], None]:
+        """The QP and solver for ``name = value``, built now (off the loop); the returned swap
+        puts them in place keeping the estimate, the unwrapped position and the last
+        current, and carries the solver's counts over."""
+        changes: dict[str, Any] = {"u_min": -float(value), "u_max": float(value)} \
+            if name == "umax" else {name: value}
+        if name not in ("ht", "hu", "hp", "umax", "q", "r"):
+            raise ControllerSetupError(f"mpc: no tunable parameter {name!r}")
+        solver = "cvxpy" if isinstance(self.solver, CvxpyReferenceSolver) else "daqp"
+        fresh = TrajectoryMpc(self.reference, replace(self.config, **changes), self.model,
+                              solver=solver)
+
+        def swap() -> None:
+            kept = (self._position, self._ref_anchor, self.kalman, self._u, self._started)
+            counts = getattr(self.solver, "counts", {})
+            self.__dict__.update(fresh.__dict__)
+            self._position, self._ref_anchor, self.kalman, self._u, self._started = kept
+            new_counts = getattr(self.solver, "counts", None)
+            if isinstance(new_counts, dict):
+                for path, count in counts.items():
+                    new_counts[path] = new_counts.get(path, 0) + count
+        return swap

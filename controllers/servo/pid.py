@@ -36,9 +36,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
+from hil.controllers.base import TunableParam
 from hil.controllers.errors import ControllerSetupError
 from hil.controllers.servo.model import StateSpaceModel, published_axis_model
 from hil.controllers.servo.references import AngleUnwrapper, Reference, wrap180
@@ -174,6 +176,62 @@ class CascadedPid:
         if self.notch:
             command = self.notch(command)
         return min(max(command, -c.u_max), c.u_max)
+
+
+    # -- parameters changed while it runs (hil.controllers.base.Tunable) ----------------------
+    def tunables(self) -> list[TunableParam]:
+        """The gains, the integral time, the notch (with the resonance reading) and the
+        current bound, in force now; each applies at once."""
+        c = self.config
+        params = [
+            TunableParam("kp", c.k_pos_rpm_per_deg, "rpm/deg", 0.0, 100.0, 0.01,
+                         description="position gain K_pos"),
+            TunableParam("kv", c.k_vel_a_per_rpm, "A/rpm", 0.0, 10.0, 0.001,
+                         description="velocity gain K_vel"),
+            TunableParam("ti_us", c.ti_s * 1e6, "us", 100.0, 1e6, 100.0,
+                         description="integral time T_i of the velocity PI"),
+            TunableParam("umax", c.u_max, "mA", 0.0, 32_767.0, 10.0,
+                         description="current bound of the PI's clamp"),
+        ]
+        if c.notch == "resonance":
+            params += [
+                TunableParam("notch_hz", self.notch_center_hz(), "Hz", 1.0, 0.5 / self.dt, 1.0,
+                             description="centre of the notch on the current reference"),
+                TunableParam("notch_q", c.notch_quality, "", 0.1, 100.0, 0.01,
+                             description="quality factor of the notch (centre / bandwidth)")]
+        return params
+
+    def notch_center_hz(self) -> float:
+        """The notch's centre [Hz]: as configured, else the model's resonance."""
+        return resonance_hz(self.model) if self.config.notch_hz is None else self.config.notch_hz
+
+    def _tuned(self, name: str, value: float) -> PidConfig:
+        field = _TUNABLE_FIELDS.get(name)
+        if field is None:
+            raise ControllerSetupError(f"pid: no tunable parameter {name!r}")
+        changed: dict[str, Any] = {field: value / 1e6 if name == "ti_us" else value}
+        return replace(self.config, **changed)
+
+    def check_tunable(self, name: str, value: float) -> None:
+        """A ControllerSetupError when the change leaves the loop unstable on the model."""
+        config = self._tuned(name, value)
+        if config.notch == "resonance":
+            notch_coefficients(self.notch_center_hz() if config.notch_hz is None
+                               else config.notch_hz, config.notch_quality, self.dt)
+        check_stable(config, self.model)
+
+    def set_tunable(self, name: str, value: float) -> None:
+        """Apply a change between two steps; the integrator and the notch keep their state."""
+        self.config = self._tuned(name, value)
+        if name in ("notch_hz", "notch_q") and self.notch is not None:
+            state = (self.notch._s1, self.notch._s2)
+            self.notch = self._make_notch()
+            if self.notch is not None:
+                self.notch._s1, self.notch._s2 = state
+
+
+_TUNABLE_FIELDS = {"kp": "k_pos_rpm_per_deg", "kv": "k_vel_a_per_rpm", "ti_us": "ti_s",
+                   "umax": "u_max", "notch_hz": "notch_hz", "notch_q": "notch_quality"}
 
 
 def closed_loop_pole(config: PidConfig, model: StateSpaceModel) -> float:

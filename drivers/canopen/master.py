@@ -562,6 +562,20 @@ class CanDriveMaster(Device):
         return self._limit.applied_ma if self._limit is not None \
             else self.config.current_limit_ma
 
+    def tighten_current_limit(self, limit_ma: float) -> float:
+        """Lower the run's current limit to ``limit_ma`` while running (never raised: a
+        higher value is a DriveError); every later command is clamped to it. Returns the
+        limit now applied [mA]."""
+        if not 0 < limit_ma <= self.current_limit_ma:
+            raise DriveError(f"drive node {self.node_id}: the current limit may only be "
+                             f"lowered while running (now {self.current_limit_ma:g} mA, asked "
+                             f"{limit_ma:g} mA)")
+        if self._limit is None:
+            self.config = replace(self.config, current_limit_ma=limit_ma)
+        else:
+            self._limit = replace(self._limit, run_ma=min(self._limit.run_ma, limit_ma))
+        return self.current_limit_ma
+
     def applied_current(self, current_ma: float) -> float:
         """The current the drive is sent for a request of ``current_ma``: clamped to
         :attr:`current_limit_ma`."""

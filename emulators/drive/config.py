@@ -9,6 +9,7 @@ from hil.controllers.servo.model import SAMPLE_PERIOD_S
 from hil.emulators.drive.axis_model import AxisModel
 from hil.emulators.drive.od import OdDefaults
 from hil.emulators.drive.plant import AxisPlant, Disturbance, Friction
+from hil.emulators.faults import Fault
 
 
 @dataclass(frozen=True)
@@ -35,6 +36,7 @@ class DriveEmulatorConfig:
     friction: Friction = field(default_factory=Friction)
     disturbance: Disturbance = field(default_factory=Disturbance)
     axis_model: AxisModel | None = None  # a model file's axis (None: the published axis)
+    faults: tuple[Fault, ...] = ()  # [emulator] faults: what it does wrong, and when
 
     def od_defaults(self) -> OdDefaults:
         return OdDefaults(

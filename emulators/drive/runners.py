@@ -12,8 +12,9 @@ import math
 import threading
 import time
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
+from typing import Any
 
 import can
 
@@ -79,14 +80,18 @@ class LockstepDrive:
     hearing every frame; :attr:`node` is the first.
 
     The node's clock is its SYNC count, so the run is deterministic and as fast as the CPU
-    allows. The drive is also the master's clock in lockstep (:meth:`time_ns`, :meth:`sleep`):
+    allows. The nodes play ``config.faults`` (``[emulator] faults``), each told to
+    ``on_fault(node_id, event)`` as it starts (``event``: its ``fault``, its node time
+    ``t_s``). The drive is also the master's clock in lockstep (:meth:`time_ns`,
+    :meth:`sleep`):
     time passes for it when SYNCs come, so a master waiting for a state lets time pass by
     sending SYNCs.
     """
 
     def __init__(self, config: DriveEmulatorConfig | None = None,
                  plant: AxisPlant | None = None, *,
-                 node_ids: Sequence[int] | None = None) -> None:
+                 node_ids: Sequence[int] | None = None,
+                 on_fault: Callable[[int, dict[str, Any]], None] | None = None) -> None:
         self.channel = DirectChannel(f"hil-drive-{uuid.uuid4().hex}")
         config = config or DriveEmulatorConfig()
         if node_ids is None:
@@ -98,16 +103,30 @@ class LockstepDrive:
         self._node_buses = [self.channel.attach() for _ in ids]
         self.master_bus = self.channel.attach(on_send=self.pump)
         self._time_bus = self.channel.attach(on_send=self.pump, listen=False)  # SYNCs only
+        self.nodes: list[DriveNode] = []
         try:  # a drive that cannot be (a twin's EDS that does not fit) leaves no bus open
             self.nodes = [DriveNode(replace(config, node_id=node_id), send=bus.send_frames,
-                                   plant=plant, clock="sync")
-                          for node_id, bus in zip(ids, self._node_buses, strict=True)]
+                                   plant=plant, clock="sync", faults=config.faults,
+                                   on_fault=self._teller(i, on_fault))
+                          for i, (node_id, bus) in enumerate(
+                              zip(ids, self._node_buses, strict=True))]
         except BaseException:
             self.close()
             raise
         self.node = self.nodes[0]
         for node in self.nodes:
             node.boot()
+
+    def _teller(self, i: int, on_fault: Callable[[int, dict[str, Any]], None] | None
+                ) -> Callable[[str], None] | None:
+        """The ``i``-th node's fault callback: ``on_fault`` with its node id and the event."""
+        if on_fault is None:
+            return None
+
+        def told(_message: str) -> None:
+            node = self.nodes[i]
+            on_fault(node.node_id, node.faults.events[-1])
+        return told
 
     def attach_bus(self) -> can.BusABC:
         """One more bus on the same channel (an observer or a second master)."""

@@ -30,6 +30,7 @@ from hil.controllers.base import (
     BenchEstimator,
     BenchObservation,
     BenchSample,
+    TunableParam,
     estimator_of,
 )
 from hil.core.guard import guarded_call
@@ -250,6 +251,16 @@ class RecordedEEC:
         self.origin = origin
         self.plan_topic = session.topic("/eec/plan", PLAN_SCHEMA)
         self.estimate_topic = session.topic("/eec/estimate", ESTIMATE_SCHEMA)
+
+    def tunables(self) -> list[TunableParam]:
+        """The EEC's (:meth:`~hil.controllers.bench.eec.EEC.tunables`)."""
+        return self.eec.tunables()
+
+    def set_tunable(self, name: str, value: Any) -> None:
+        self.eec.set_tunable(name, value)
+
+    def rebuilt(self, name: str, value: Any) -> Callable[[], None]:
+        return self.eec.rebuilt(name, value)
 
     def decide(self, obs: BenchObservation) -> dict[str, bool]:
         # recorded at the decision instant: obs.t_s counts whole ns from the sequence origin

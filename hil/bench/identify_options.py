@@ -3,7 +3,9 @@ experiment itself is :mod:`hil.bench.identify`)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 from hil.errors import UsageError
 
@@ -25,6 +27,7 @@ class IdentifyOptions:
     out: str | None = None
     config_path: str | None = None
     progress_s: float = 10.0
+    lab: Mapping[str, Any] | None = None  # the labgrid place of --place (hil.lab.place)
 
 
 def parse_relays(text: str) -> tuple[str, ...]:

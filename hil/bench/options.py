@@ -7,6 +7,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
+from hil.core.params import read_params_file
 from hil.core.recording.recording_options import RecordingOptions
 from hil.core.settings import given_options
 from hil.core.verdict import Limit
@@ -14,7 +15,8 @@ from hil.errors import UsageError
 
 #: ``hil bench run``'s flags (argparse dests) -> the option they set, where the names differ
 FLAG_OPTIONS = {"hp": "hp_s", "hs": "hs_s", "dwell": "dwell_s", "config": "config_path",
-                "limit": "limits", "param": "params", "controller_budget": "controller_budget_s"}
+                "limit": "limits", "param": "params", "params": "params_file",
+                "controller_budget": "controller_budget_s"}
 
 
 def flag_of(field: str) -> str:
@@ -35,6 +37,7 @@ class BenchRunOptions:
 
     controller: str | Callable[..., Any] = "eec"
     params: Mapping[str, Any] = field(default_factory=dict)
+    params_file: str | None = None   # --params F.toml: laid under params (the --param flags)
     bench: str | None = None         # a bench URL; None: bench.toml's [bus] url
     cycles: int = 8
     hp_s: int | None = None
@@ -55,6 +58,12 @@ class BenchRunOptions:
     recording: RecordingOptions = field(default_factory=RecordingOptions)
     quiet: bool = False              # no progress line on the terminal
     allow_looser_safety: bool = False  # --safety / --dwell may loosen the config's (logged)
+    lab: Mapping[str, Any] | None = None  # the labgrid place of --place (hil.lab.place)
+
+    def __post_init__(self) -> None:
+        if self.params_file is not None:  # the file under the --param flags
+            object.__setattr__(self, "params", {**read_params_file(self.params_file),
+                                                **self.params})
 
     @classmethod
     def from_flags(cls, flags: Mapping[str, Any], *, need_controller: bool = True

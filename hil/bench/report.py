@@ -73,7 +73,8 @@ class SolveTimes:
 SOLVE_TIMES = SolveTimes()
 
 
-def _config(data: SessionData) -> dict[str, Any]:
+def session_config(data: SessionData) -> dict[str, Any]:
+    """The run's configuration as recorded in the session (empty when unreadable)."""
     raw = data.metadata.get("config", {}).get("json")
     try:
         return json.loads(raw) if raw else {}
@@ -124,7 +125,7 @@ def plot_bench(data: SessionData, out_png: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    config = _config(data)
+    config = session_config(data)
     bench = config.get("bench", {})
     power = data.arrays("/bench/power")
     relays = data.arrays("/bench/relays")

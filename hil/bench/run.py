@@ -39,6 +39,7 @@ from hil.bench.rig import BenchRig, attach_rig
 from hil.bench.safety import BenchSafetyTask
 from hil.bench.sequence import SequenceOrigin
 from hil.bench.settings import BenchSettings, resolve_bench
+from hil.bench.tunables import add_safety_limits
 from hil.core.clock import Clock
 from hil.core.loop import Task
 from hil.core.notice import warn
@@ -49,12 +50,14 @@ from hil.core.run import (
     Experiment,
     RunPlan,
     RunResult,
+    TunerStarted,
     controller_budget,
     default_session_path,
     run_experiment,
 )
 from hil.core.session import Session
 from hil.core.settings import settings_json
+from hil.core.tuning import Tuner, add_controller
 from hil.core.verdict import SignalWatch, split_limits
 from hil.errors import (
     ConfigError,
@@ -65,9 +68,11 @@ from hil.errors import (
 )
 
 
-def run_bench(opts: BenchRunOptions) -> RunResult:
-    """Run one closed-loop bench session (``hil bench run``)."""
-    return run_experiment(BenchExperiment(opts))
+def run_bench(opts: BenchRunOptions, *, tuner_started: TunerStarted | None = None
+              ) -> RunResult:
+    """Run one closed-loop bench session (``hil bench run``); ``tuner_started(tuner)`` is
+    called with the run's tuner before the first tick (:mod:`hil.core.tuning`)."""
+    return run_experiment(BenchExperiment(opts), tuner_started=tuner_started)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -205,6 +210,16 @@ class BenchExperiment(Experiment[BenchPlan]):
             asynchronous=session.clock.mode == "realtime"))
         for task in tasks:
             session.add_task(task)
+
+    def tunables(self, tuner: Tuner) -> None:
+        """The controller's parameters (``controller.NAME``: the EEC's weights and horizon,
+        applied from its next decision) and the safety limits (``safety.NAME``, only
+        stricter)."""
+        state = self.state
+        if state.controller is not None:
+            add_controller(tuner, state.controller.controller)
+        if state.safety is not None:
+            add_safety_limits(tuner, state.safety)
 
     def finish(self, session: Session) -> None:
         state = self.state

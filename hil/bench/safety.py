@@ -16,8 +16,8 @@ Non-finite readings never reach this check: the sampler counts them as faults fi
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any, Protocol
 
 from hil.core.loop import Task
 
@@ -45,6 +45,16 @@ class BenchSafety:
     level_max: float = 250.0
 
 
+#: the limits of ``[safety]`` that may change while a run runs, each only the stricter way:
+#: name -> (unit, "lower" or "higher", what it is)
+STRICTER: dict[str, tuple[str, str, str]] = {
+    "max_total_va": ("VA", "lower", "the highest total apparent power allowed"),
+    "max_total_va_ms": ("ms", "lower", "how long the power may stay above it"),
+    "level_min": ("", "higher", "the lowest resource level allowed"),
+    "level_max": ("", "lower", "the highest resource level allowed"),
+}
+
+
 class BenchSafetyTask(Task):
     """Every sample (record phase): the limits of :class:`BenchSafety` on the sampler's new
     reading; ``stopped`` holds the first one crossed, as one line."""
@@ -54,6 +64,7 @@ class BenchSafetyTask(Task):
         super().__init__("safety", sampler.divisor)
         self.limits, self.sampler, self.session = limits, sampler, session
         self._origin = clock_origin
+        self._period_s = period_s
         self._window_samples = max(1, round(limits.max_total_va_ms / 1000 / period_s))
         self._over = 0
         self.stopped: str | None = None
@@ -67,6 +78,14 @@ class BenchSafetyTask(Task):
             self.stopped = f"safety stop at t={t_s:.2f} s: {found}"
             self.session.event("safety.stop", self.stopped, level="error", source="safety")
             self.session.loop.stop(self.stopped)
+
+    def tighten(self, name: str, value: float) -> None:
+        """Make the limit ``name`` (a field of :class:`BenchSafety`) ``value`` from this tick
+        on; the tuner lets it move only the stricter way (:data:`STRICTER`)."""
+        changed: dict[str, Any] = {name: value}
+        self.limits = replace(self.limits, **changed)
+        self._window_samples = max(1, round(self.limits.max_total_va_ms / 1000
+                                            / self._period_s))
 
     def _check(self, power: dict[str, float] | None, levels: dict[str, float] | None
                ) -> str | None:

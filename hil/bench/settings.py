@@ -23,6 +23,7 @@ from typing import Any
 
 from hil.bench.config import BenchConfig, EecConfig, config_layers, parse_configs
 from hil.bench.options import BenchRunOptions, flag_of
+from hil.core.params import params_origin
 from hil.core.settings import (
     LOWER,
     SWITCH,
@@ -78,7 +79,9 @@ class BenchSettings:
         assert layered is not None
         named = options.controller if isinstance(options.controller, str) else None
         resolved = {"controller": (named or options.controller,
-                                   "--controller" if named != "" else "not given")}
+                                   "--controller" if named != "" else "not given"),
+                    "params": (dict(options.params), "default" if not options.params
+                               else params_origin(options.params, options.params_file))}
         return [*option_settings(options, defaults, resolved, NOT_SETTINGS, flag_of),
                 *self.bench.settings(), *effective(self.eec.reads, layered)]
 

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Any
 from hil.bench.identify_options import MACHINING_MODES, IdentifyOptions, parse_relays
 from hil.cli.argtypes import key_value, nonnegative_float, output_file, positive_float, positive_int
 from hil.cli.output import json_text
+from hil.cli.place import add_place_arguments, run_on_place
 from hil.cli.recording import add_recording_arguments
 from hil.cli.units import seconds
 from hil.cli.verdict import add_controller_arguments, add_junit_argument
@@ -42,6 +43,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                      "from (built-in default, hil/configs/bench.toml or eec.toml, --config, a "
                      "flag), and exit without running; with --json as JSON")
     add_recording_arguments(run)
+    add_place_arguments(run, "bench")
     run.set_defaults(handler=run_command)
     ident = bench_sub.add_parser("identify", help="PRBS switching experiment for identification")
     add_identify_arguments(ident)
@@ -105,7 +107,7 @@ def application() -> RunApplication[BenchRunOptions]:
 
 
 def run_command(args: argparse.Namespace) -> int:
-    return application().command_line(args)
+    return run_on_place(args, "bench", lambda: application().command_line(args))
 
 
 def format_kpis(kpis: dict[str, Any]) -> str:
@@ -139,8 +141,9 @@ def add_identify_arguments(parser: argparse.ArgumentParser) -> None:
                         help="bit length of the PRBS = shortest hold [s] (default: each relay's "
                         "dwell; shorter than the dwell is refused)")
     parser.add_argument("--seed", type=int, default=1, help="PRBS seed (default 1)")
-    parser.add_argument("--bench", default="emulated",
-                        help="emulated | modbus-tcp://HOST:PORT | modbus-rtu:///dev/X")
+    parser.add_argument("--bench", metavar="URL",
+                        help="emulated (default) | modbus-tcp://HOST:PORT | "
+                        "modbus-rtu:///dev/X")
     parser.add_argument("--machining", choices=MACHINING_MODES, default="off",
                         help="M1/M2: play the machining sequence, switch them by PRBS too, or "
                         "leave them off (default off)")
@@ -156,17 +159,22 @@ def add_identify_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", metavar="F.mcap", type=output_file,
                         help="session file (default: sessions/bench-identify-DATE-TIME.mcap)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_place_arguments(parser, "bench")
 
 
 def identify_command(args: argparse.Namespace) -> int:
     """Handler of ``hil bench identify``."""
+    return run_on_place(args, "bench", lambda: _identify(args))
+
+
+def _identify(args: argparse.Namespace) -> int:
     from hil.bench.identify import run_identify_experiment
 
     summary = run_identify_experiment(IdentifyOptions(
         relays=args.relays, duration_s=args.duration, min_hold_s=args.min_hold, seed=args.seed,
-        bench=args.bench, machining=args.machining, meter_quantity=args.output_quantity,
-        realtime=args.realtime, out=args.out, config_path=args.config,
-        progress_s=args.progress,
+        bench=args.bench or "emulated", machining=args.machining,
+        meter_quantity=args.output_quantity, realtime=args.realtime, out=args.out,
+        config_path=args.config, progress_s=args.progress, lab=getattr(args, "lab", None),
     ))
     if args.json:
         print(json_text(summary))

@@ -202,7 +202,7 @@ def emulate_drive_command(args: argparse.Namespace) -> int:
     if args.socketcand is None:
         raise UsageError("hil emulate drive needs --socketcand HOST:PORT (or --write-eds F)")
     drives = serve_drives(emulator, nodes_ids, *args.socketcand, clock=args.clock,
-                          faults=faults_of(args, "drive"), can_log=args.can_log,
+                          faults=faults_of(args, "drive", emulator.faults), can_log=args.can_log,
                           on_fault=print_event)
     nodes = drives.nodes
     bound_host, bound_port = drives.server.address

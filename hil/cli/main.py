@@ -12,6 +12,7 @@ from typing import NoReturn
 from hil import __version__
 from hil.cli import (
     bench,
+    compare,
     demo,
     doctor,
     drive,
@@ -22,6 +23,7 @@ from hil.cli import (
     layout,
     replay,
     report,
+    resim,
     servo,
     sweep,
     tune,
@@ -29,8 +31,8 @@ from hil.cli import (
 )
 from hil.errors import HilError, RunInterruptedError
 
-COMMAND_MODULES = (demo, bench, servo, drive, sweep, empc, identify, emulate, report, export,
-                   replay, tune, twin, layout, doctor)
+COMMAND_MODULES = (demo, bench, servo, drive, sweep, empc, identify, emulate, report, compare,
+                   export, replay, resim, tune, twin, layout, doctor)
 
 
 class OneLineParser(argparse.ArgumentParser):

@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING, Any
 
 from hil.cli.argtypes import key_value, output_file, positive_float, positive_int
 from hil.cli.output import json_text
+from hil.cli.place import add_place_arguments, run_on_place
 from hil.cli.recording import add_recording_arguments
 from hil.cli.units import milliamps, seconds, seconds_or_zero
 from hil.cli.verdict import add_controller_arguments, add_junit_argument
@@ -55,6 +56,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       "cycles; NAME=NODE@URL puts an axis on a bus of its own. Without it: "
                       "the config's [[axis]] tables, else the one drive of [master] node_id")
     add_recording_arguments(srun)
+    add_place_arguments(srun, "drive")
     srun.set_defaults(handler=run_command)
 
     register_identify(servo_sub)
@@ -145,6 +147,7 @@ def register_identify(servo_sub: argparse._SubParsersAction) -> None:
                        help="print every setting as the run would use it, and exit")
     add_junit_argument(ident)
     add_recording_arguments(ident)
+    add_place_arguments(ident, "drive")
     ident.set_defaults(handler=servo_identify_command)
 
 
@@ -269,7 +272,7 @@ def application() -> RunApplication[ServoRunOptions]:
 
 
 def run_command(args: argparse.Namespace) -> int:
-    return application().command_line(args)
+    return run_on_place(args, "servo", lambda: application().command_line(args))
 
 
 def servo_identify_command(args: argparse.Namespace) -> int:
@@ -290,9 +293,10 @@ def servo_identify_command(args: argparse.Namespace) -> int:
                  f"  identify the axis: hil identify {kpis['mcap']} --servo"]
         return "\n".join(lines)
 
-    return RunApplication("hil servo identify", identify_options,
-                          lambda options: identify_settings(options, vars(args)), run_servo,
-                          summary).command_line(args)
+    application = RunApplication("hil servo identify", identify_options,
+                                 lambda options: identify_settings(options, vars(args)),
+                                 run_servo, summary)
+    return run_on_place(args, "servo", lambda: application.command_line(args))
 
 
 def format_axes_run(config: Any, kpis: dict[str, Any]) -> str:

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 from hil.cli import bench, servo
 from hil.cli.argtypes import positive_int
 from hil.cli.output import json_text
+from hil.cli.place import add_place_arguments, run_on_place
 from hil.errors import UsageError
 
 if TYPE_CHECKING:  # the sweep machinery (Ray, the runs) is imported when a sweep runs
@@ -24,7 +25,8 @@ RUN_ARGUMENTS: dict[str, Callable[[argparse.ArgumentParser], None]] = {
     "bench": bench.add_run_arguments, "servo": servo.add_run_arguments}
 URL_KEY = {"bench": "bench", "servo": "drive"}   # the run flag naming the device
 SWEEP_DESTS = ("grid", "random", "sweep_config", "seed", "out", "workers", "address",
-               "resume", "json", "serial", "handler", "command", "sweep_kind")
+               "resume", "json", "serial", "handler", "command", "sweep_kind", "place",
+               "coordinator", "wait")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -45,6 +47,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             "param.NAME can be swept.")
         RUN_ARGUMENTS[kind](parser)
         add_sweep_arguments(parser)
+        add_place_arguments(parser, URL_KEY[kind])
         parser.set_defaults(handler=sweep_command)
 
 
@@ -76,6 +79,15 @@ def add_sweep_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def sweep_command(args: argparse.Namespace) -> int:
+    """The sweep; on ``--place``, every trial on the place's device, the place held for the
+    whole sweep (its trials one after another: ``--serial``)."""
+    if args.place is not None and not args.serial:
+        raise UsageError(f"--place {args.place}: a place's {URL_KEY[args.sweep_kind]} is one "
+                         "device; add --serial to run the trials one after another")
+    return run_on_place(args, args.sweep_kind, lambda: _sweep(args))
+
+
+def _sweep(args: argparse.Namespace) -> int:
     from hil.sweep.config import load_sweep_table
     from hil.sweep.engine import Engine, check_address
     from hil.sweep.sweep import Sweep, check_trials, format_sweep, run_sweep
@@ -83,6 +95,9 @@ def sweep_command(args: argparse.Namespace) -> int:
     kind = args.sweep_kind
     table = load_sweep_table(args.sweep_config) if args.sweep_config else None
     trials, keys = space_of(args, kind, table)
+    if args.place is not None and URL_KEY[kind] in keys:
+        raise UsageError(f"--place {args.place} and a swept {URL_KEY[kind]} both say where "
+                         f"the {URL_KEY[kind]} is: give one")
     base = {k: v for k, v in vars(args).items() if k not in SWEEP_DESTS}
     engine = Engine(workers=args.workers or (table.workers if table else None),
                     address=args.address or (table.address if table else None),
@@ -162,8 +177,9 @@ def _configured_url(kind: str, base: dict[str, Any]) -> str:
 
 def _absolute_paths(base: dict[str, Any]) -> None:
     """Files named relative to here, made absolute for workers that start elsewhere."""
-    if base.get("config"):
-        base["config"] = os.path.abspath(base["config"])
+    for key in ("config", "params"):
+        if base.get(key):
+            base[key] = os.path.abspath(base[key])
     controller = str(base.get("controller", ""))
     path, sep, cls = controller.rpartition(":")
     if sep and path.endswith(".py") and os.path.exists(path):

@@ -55,9 +55,11 @@ def add_controller_arguments(parser: argparse.ArgumentParser, builtins: str,
     """``--controller SPEC`` and the flags that go with a plug-in controller and a verdict."""
     parser.add_argument("--controller", metavar="SPEC",
                         help=SPEC_HELP.format(builtins=builtins))
-    parser.add_argument("--param", action="append", type=_param, default=[],
-                        metavar="KEY=VALUE", help="a parameter of the controller (repeat; "
-                        "numbers are parsed as numbers), laid over the config's [controller]")
+    add_param_argument(parser, "laid over the config's [controller]")
+    parser.add_argument("--params", metavar="F.toml",
+                        help="the controller's parameters from a file, NAME = VALUE each (a "
+                        "sweep's best.toml), laid over the config's [controller]; --param "
+                        "flags win")
     parser.add_argument("--controller-budget", type=positive_float, metavar="S",
                         help="longest time one call of the controller may take before the run "
                         "stops to the safe state")
@@ -67,6 +69,13 @@ def add_controller_arguments(parser: argparse.ArgumentParser, builtins: str,
                         f"joined by '.'), or on a per-tick signal ({signals}), which stops the "
                         "run to the safe state at once when crossed. Exit status 1 when one "
                         "is violated")
+
+
+def add_param_argument(parser: argparse.ArgumentParser, laid_over: str) -> None:
+    """``--param KEY=VALUE`` (repeat), its values ``laid_over`` what the help names."""
+    parser.add_argument("--param", action="append", type=_param, default=[],
+                        metavar="KEY=VALUE", help="a parameter of the controller (repeat; "
+                        f"numbers are parsed as numbers), {laid_over}")
 
 
 def add_junit_argument(parser: argparse.ArgumentParser) -> None:

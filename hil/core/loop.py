@@ -236,6 +236,9 @@ class FixedRateLoop:
         self.skipped_ticks = 0
         self.ticking_s = 0.0  # wall time from the first tick to the end of the last
         self.start_ns = 0  # clock time of tick 0's deadline: the origin of the schedule grid
+        #: called with the tick's number at each tick boundary, before its phases (the run's
+        #: tuner applies parameter changes there); None: nothing
+        self.at_boundary: Callable[[int], None] | None = None
         for task in tasks:
             self.add_task(task)
 
@@ -309,6 +312,7 @@ class FixedRateLoop:
         perf = time.perf_counter_ns
         realtime = clock.mode == "realtime"  # in lockstep, slow compute costs no virtual time
         recorder = self._recorder
+        boundary = self.at_boundary
         while not (self._signalled or self._stop.is_set()) and (limit is None or n < limit):
             deadline = t0 + n * period
             late_by = clock.wait_until(deadline)
@@ -321,6 +325,8 @@ class FixedRateLoop:
                 if limit is not None and n >= limit:
                     break
                 deadline = t0 + n * period
+            if boundary is not None:
+                boundary(n)
             start = clock.time_ns()
             for index, divisor, method, samples in schedule:
                 if n % divisor:

@@ -1,4 +1,5 @@
-"""``--param KEY=VALUE`` for a plug-in controller: numbers parsed as numbers."""
+"""``--param KEY=VALUE`` for a plug-in controller: numbers parsed as numbers; ``--params F.toml``
+for many at once (a sweep's ``best.toml``)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,8 @@ import math
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from hil.errors import UsageError
+from hil.core.config import load_toml
+from hil.errors import ConfigError, UsageError
 
 ParamValue = int | float | bool | str
 
@@ -44,3 +46,29 @@ def merge_params(table: Mapping[str, Any], flags: Iterable[str]) -> dict[str, An
     params = dict(table)
     params.update(parse_param(text) for text in flags)
     return params
+
+
+def read_params_file(path: str) -> dict[str, ParamValue]:
+    """``--params F.toml``: the controller's parameters, ``NAME = VALUE`` each (a number,
+    true/false or text), an axis' own in its table (``[x]`` ``gain = 2`` is ``x.gain``)."""
+    data, _ = load_toml(path)
+    params: dict[str, ParamValue] = {}
+    for key, value in data.items():
+        entries = value.items() if isinstance(value, dict) else [("", value)]
+        for sub, item in entries:
+            name = f"{key}.{sub}" if sub else key
+            if isinstance(item, dict) or not isinstance(item, (bool, int, float, str)):
+                raise ConfigError(f"{path}: {name}: a parameter is a number, true/false or "
+                                  f"text (an axis' own in its [AXIS] table), got {item!r:.40}")
+            params[name] = item
+    return params
+
+
+def params_origin(params: Mapping[str, Any], params_file: str | None) -> str:
+    """Where a run's controller parameters came from, for ``--print-config``: ``--params``
+    when the file gave them all, else ``--param``."""
+    if params_file is None:
+        return "--param"
+    given = read_params_file(params_file)
+    return "--params" if all(k in given and given[k] == v for k, v in params.items()) \
+        else "--param"

@@ -64,16 +64,23 @@ def loop_stats(data: SessionData) -> dict[str, Any]:
             "overruns": int(sum(m.get("overruns", 0) for m in msgs)),
             "lateness_us": percentile_summary(_samples(msgs, "lateness_us")),
         }
-        if not any(f"{phase}_us" in msgs[0] for phase in PHASES if phase != "compute"):
-            stats["step_us"] = percentile_summary(_samples(msgs, "compute_us"))
-        else:
+        stats["step_us"] = percentile_summary(step_samples(msgs))
+        if any(f"{phase}_us" in msgs[0] for phase in PHASES if phase != "compute"):
             phases = {phase: _samples(msgs, f"{phase}_us") for phase in PHASES}
-            taken = {phase: v for phase, v in phases.items() if v.size}
-            step = np.sum(list(taken.values()), axis=0) if taken else np.empty(0)
-            stats["step_us"] = percentile_summary(np.asarray(step, float))
-            stats.update({f"{phase}_us": percentile_summary(v) for phase, v in taken.items()})
+            stats.update({f"{phase}_us": percentile_summary(v) for phase, v in phases.items()
+                          if v.size})
         out[topic[len("/loop/"):-len("/timing")]] = stats
     return out
+
+
+def step_samples(messages: list[dict[str, Any]]) -> np.ndarray:
+    """Every recorded run's ``step_us`` (the sum of its phases) from a task's timing
+    messages; a session recorded before the loop had phases: its ``compute_us``."""
+    if not messages or not any(f"{phase}_us" in messages[0] for phase in PHASES
+                               if phase != "compute"):
+        return _samples(messages, "compute_us")
+    taken = [v for v in (_samples(messages, f"{phase}_us") for phase in PHASES) if v.size]
+    return np.asarray(np.sum(taken, axis=0), float) if taken else np.empty(0)
 
 
 def _samples(messages: list[dict[str, Any]], key: str) -> np.ndarray:
@@ -125,12 +132,40 @@ def summarize(data: SessionData) -> dict[str, Any]:
             level: sum(1 for e in events if e.get("level") == level)
             for level in ("info", "warning", "error")
         },
+        "params": param_changes(events),
         "kpis": kpis(data),
     }
     extra = find_summary(session_kind(data))
     if extra is not None and (section := extra.section(data)):
         summary[extra.key] = section
     return summary
+
+
+def param_changes(events: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The parameters changed while the run ran, and the refused requests, in order (the
+    ``param.changed`` and ``param.refused`` events of :mod:`hil.core.tuning`)."""
+    changes = []
+    for event in events:
+        kind, data = event.get("kind"), event.get("data") or {}
+        if kind in ("param.changed", "param.refused"):
+            changes.append({"accepted": kind == "param.changed",
+                            **{k: data.get(k) for k in ("parameter", "old", "new", "value",
+                                                        "client", "tick", "reason")
+                               if k in data}})
+    return changes
+
+
+def _param_lines(changes: list[dict[str, Any]]) -> list[str]:
+    lines = ["params   changed while running"] if changes else []
+    for change in changes:
+        if change["accepted"]:
+            lines.append(f"  {change.get('parameter')}: {change.get('old')} -> "
+                         f"{change.get('new')} at tick {change.get('tick')} "
+                         f"({change.get('client')})")
+        else:
+            lines.append(f"  {change.get('parameter')} = {change.get('value')} refused "
+                         f"({change.get('client')}): {change.get('reason')}")
+    return lines
 
 
 def format_summary(summary: dict[str, Any]) -> str:
@@ -177,6 +212,7 @@ def format_summary(summary: dict[str, Any]) -> str:
             lines.append(f"  {step:<16} {outcome}")
     ev = summary["events"]
     lines.append(f"events   {ev['info']} info, {ev['warning']} warning, {ev['error']} error")
+    lines.extend(_param_lines(summary.get("params", [])))
     if summary["kpis"]:
         lines.append("kpis")
         for key, value in summary["kpis"].items():

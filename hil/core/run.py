@@ -14,7 +14,10 @@ line, the Python API, the sweep and the pytest fixtures alike:
 3. The session is created (the file, its metadata and config attachment).
 4. ``build_controller(session)`` - the controller, guarded. If it cannot be built, the file is
    discarded: nothing ran.
-5. ``start(session)`` - enable the devices and add the loop's tasks; then the loop runs.
+5. ``start(session)`` - enable the devices and add the loop's tasks; ``tunables(tuner)``
+   registers what may change while the run runs on the run's :class:`~hil.core.tuning.Tuner`
+   (applied at the loop's tick boundaries), and ``tuner_started(tuner)``, when the run was given
+   one, attaches a transport to it (:mod:`hil.core.tuning`); then the loop runs.
    A :class:`~hil.errors.HilError` (a fault, a lost link, a controller error) stops it;
    the loop has put every device in its safe state.
 6. ``finish(session)``, ``close_devices()``, ``kpis(...)``, the verdict of the limits, the
@@ -34,7 +37,7 @@ import abc
 import os
 import signal
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
@@ -45,6 +48,7 @@ from hil.core.progress import ProgressLine, wants_progress
 from hil.core.recording.output import OutputClaim, claim_output
 from hil.core.recording.recorder import RecordingOptions
 from hil.core.session import Session
+from hil.core.tuning import Tuner
 from hil.core.verdict import Limit, SignalWatch, run_status, verdict
 from hil.errors import HilError, RunInterruptedError
 
@@ -156,6 +160,11 @@ class Experiment(abc.ABC, Generic[PlanT]):
     def start(self, session: Session) -> None:
         """Enable the devices and add the loop's tasks and safe-state components."""
 
+    def tunables(self, tuner: Tuner) -> None:
+        """Register what may change while the run runs (after :meth:`start`). Default:
+        nothing."""
+        return None
+
     def finish(self, session: Session) -> None:
         """After a loop that ended without error, before the devices close. Default: none."""
         return None
@@ -170,8 +179,14 @@ class Experiment(abc.ABC, Generic[PlanT]):
         document), ``stop_reason`` included."""
 
 
-def run_experiment(experiment: Experiment[Any]) -> RunResult:
+#: the hook a transport attaches to a run's tuner with (:mod:`hil.core.tuning`)
+TunerStarted = Callable[[Tuner], None]
+
+
+def run_experiment(experiment: Experiment[Any], *,
+                   tuner_started: TunerStarted | None = None) -> RunResult:
     """Run ``experiment`` through the pipeline (see the module); its :class:`RunResult`.
+    ``tuner_started(tuner)``: called with the run's tuner just before the loop's first tick.
 
     A HilError that stopped the loop is raised again after the session file is finished with
     the KPIs so far, its message ending with the session's path, its ``result`` the
@@ -186,13 +201,14 @@ def run_experiment(experiment: Experiment[Any]) -> RunResult:
         output.abandon()
         raise
     try:
-        return _run_locked(experiment, plan, output)
+        return _run_locked(experiment, plan, output, tuner_started)
     finally:
         for lock in locks:
             lock.release()
 
 
-def _run_locked(experiment: Experiment[Any], plan: RunPlan, output: OutputClaim) -> RunResult:
+def _run_locked(experiment: Experiment[Any], plan: RunPlan, output: OutputClaim,
+                tuner_started: TunerStarted | None) -> RunResult:
     events = EventBuffer()
     try:
         experiment.open_devices(plan.clock, events)
@@ -221,8 +237,13 @@ def _run_locked(experiment: Experiment[Any], plan: RunPlan, output: OutputClaim)
     kpis: dict[str, Any] = {}
     outcome: dict[str, Any] = {}
     progress = None
+    tuner = Tuner(event=session.event, topic=session.topic, time_ns=session.clock.time_ns)
     try:
         experiment.start(session)
+        experiment.tunables(tuner)
+        session.loop.at_boundary = tuner.tick
+        if tuner_started is not None:
+            tuner_started(tuner)
         if wants_progress(plan.quiet):
             progress = ProgressLine(f"{plan.kind} {plan.label}", plan.duration_s,
                                     max(1, round(0.1 / plan.base_period_s)))
@@ -231,6 +252,7 @@ def _run_locked(experiment: Experiment[Any], plan: RunPlan, output: OutputClaim)
         try:
             session.run(duration_s=plan.duration_s)
         finally:
+            tuner.close()
             wall_s = time.perf_counter() - begin
             if progress is not None:
                 progress.clear()
@@ -240,6 +262,7 @@ def _run_locked(experiment: Experiment[Any], plan: RunPlan, output: OutputClaim)
     except KeyboardInterrupt:  # outside the loop (enabling, finishing): the loop takes its own
         error = _interrupted("SIGINT", session.loop.ticks)
     finally:
+        tuner.close()
         try:
             experiment.close_devices()
         finally:

@@ -32,6 +32,7 @@ from hil.emulators.drive.axis_model import AxisModel, load_axis_model, period_pr
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.plant import Disturbance, Friction
 from hil.emulators.errors import EmulatorSetupError
+from hil.emulators.faults import Fault, for_emulator, parse_faults_table
 from hil.errors import ConfigError, UsageError
 from hil.protocols.cia402 import MODES, QUICK_STOP_OPTIONS, TPDO_LAYOUTS
 from hil.servo.safety import ServoSafety
@@ -401,6 +402,15 @@ def _axis_model(e: Table, cycle_period_s: float) -> AxisModel | None:
     return model
 
 
+def _faults(e: Table) -> tuple[Fault, ...]:
+    """``[emulator] faults``: the drive's fault schedule (docs/FAULTS.md), checked."""
+    schedule = e.array("faults", [], "faults KIND@START[-END][:KEY=VALUE,...] or inline "
+                       "tables (docs/FAULTS.md), drive kinds")
+    where = f"{e.source}: emulator"
+    return tuple(for_emulator(parse_faults_table({"schedule": schedule}, where), "drive",
+                              f"{where}.faults"))
+
+
 def _emulator(e: Table, cycle_period_s: float) -> DriveEmulatorConfig:
     """``[emulator]`` with its ``friction`` and ``disturbance`` sub-tables; its ``model`` checked
     against the drive's cycle of ``cycle_period_s``."""
@@ -436,6 +446,7 @@ def _emulator(e: Table, cycle_period_s: float) -> DriveEmulatorConfig:
         friction=friction,
         disturbance=disturbance,
         axis_model=_axis_model(e, cycle_period_s),
+        faults=_faults(e),
     )
     for table in (f, d, e):
         table.done()

@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 from hil.controllers.servo.model import SAMPLE_PERIOD_S
+from hil.core.params import read_params_file
 from hil.core.plugins import controller_label
 from hil.core.ranges import MAX_MPC_HORIZON, check_at_most, check_duration, check_milliamps
 from hil.core.recording.recording_options import RecordingOptions
@@ -20,7 +21,8 @@ from hil.servo.task import PREDICTION_EVERY_REALTIME, PREDICTION_EVERY_TICK_UP_T
 CONTROLLER_FORMS = "mpc, empc, pid, FILE.py:Class, package.module:Class or a registered name"
 #: ``hil servo run``'s flags (argparse dests) -> the option they set, where the names differ
 FLAG_OPTIONS = {"duration": "duration_s", "config": "drive_config", "settle": "settle_s",
-                "limit": "limits", "param": "params", "controller_budget": "controller_budget_s"}
+                "limit": "limits", "param": "params", "params": "params_file",
+                "controller_budget": "controller_budget_s"}
 
 
 @dataclass(frozen=True)
@@ -38,6 +40,7 @@ class ServoRunOptions:
 
     controller: str | Callable[..., Any]
     params: Mapping[str, Any] = field(default_factory=dict)
+    params_file: str | None = None   # --params F.toml: laid under params (the --param flags)
     drive: str | None = None         # a drive URL; None: drive.toml's [bus]
     node: int | None = None          # None: [master] node_id
     ert: str = "foh"
@@ -65,8 +68,12 @@ class ServoRunOptions:
     eds: str | None = None           # the drive's EDS (else drive.toml's [master] eds)
     allow_higher_current: bool = False  # --umax may exceed [master] current_limit_mA (logged)
     allow_looser_safety: bool = False   # --safety may loosen [safety] (logged)
+    lab: Mapping[str, Any] | None = None  # the labgrid place of --place (hil.lab.place)
 
     def __post_init__(self) -> None:
+        if self.params_file is not None:  # the file under the --param flags
+            object.__setattr__(self, "params", {**read_params_file(self.params_file),
+                                                **self.params})
         if self.umax is not None:
             check_milliamps(self.umax, "--umax")
         check_duration(self.duration_s, "--duration", SAMPLE_PERIOD_S)

@@ -98,10 +98,12 @@ def _feedback_topics(data: SessionData, info: dict[str, Any]
 def feedback_timing(data: SessionData, topic: str, period_s: float,
                     window_ms: float) -> dict[str, Any]:
     """The feedback section of one topic (empty without feedback, or without the commands
-    that give each tick its slot on the schedule grid)."""
+    that give each tick its slot on the schedule grid, or in a session that keeps only some
+    of their fields: a baseline's)."""
     feedback = data.arrays(topic)
     command = data.arrays(topic.removesuffix("/feedback") + "/command")
-    if feedback["log_time_ns"].size == 0 or command["log_time_ns"].size == 0 or period_s <= 0:
+    if feedback["log_time_ns"].size == 0 or command["log_time_ns"].size == 0 or period_s <= 0 \
+            or "t_s" not in command or not {"fresh", "rtt_us"} <= feedback.keys():
         return {}
     # each tick's slot: the t_s of the /drive/command stamped with the same tick start
     order = np.argsort(command["log_time_ns"], kind="stable")
@@ -166,7 +168,8 @@ def _seconds(stamps_ns: np.ndarray, origin_ns: int) -> np.ndarray:
     return (stamps_ns - origin_ns) / 1e9
 
 
-def _current_limit(data: SessionData) -> float | None:
+def current_limit(data: SessionData) -> float | None:
+    """The run's current limit [mA] (the ``umax_mA`` KPI, else the configured ``umax``)."""
     limit = kpis(data).get("umax_mA")
     if limit is None:
         try:
@@ -241,7 +244,7 @@ def plot_servo(data: SessionData, out_png: str) -> None:
     if feedback["log_time_ns"].size:
         ax.plot(_seconds(feedback["log_time_ns"], origin), feedback["current_mA"], lw=0.7,
                 alpha=0.8, label="drive (torque actual)")
-    limit = _current_limit(data)
+    limit = current_limit(data)
     if limit is not None:
         for sign in (1, -1):
             ax.axhline(sign * limit, color="r", lw=0.6, ls=":")

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import replace
+from typing import Any
 
 import can
 from can.interfaces import VALID_INTERFACES
@@ -59,7 +60,8 @@ class EmulatedDrive(CanDriveMaster):
     def __init__(self, master: DriveMasterConfig, emulator: DriveEmulatorConfig, *,
                  on_event: EventSink = no_event, trace: FrameTrace | None = None,
                  closers: tuple[Callable[[], None], ...] = (), url: str = EMULATED) -> None:
-        self.emulator = LockstepDrive(replace(emulator, node_id=master.node_id))
+        self.emulator = LockstepDrive(replace(emulator, node_id=master.node_id),
+                                      on_fault=fault_teller(on_event))
         super().__init__(CanLink(self.emulator.master_bus, trace=trace), master,
                          on_event=on_event, clock=self.emulator,
                          closers=(self.emulator.close, *closers), url=url)
@@ -76,7 +78,8 @@ def emulated_drives(url: str, drive: DriveConfig, axes: Sequence[AxisSpec], *,
                                on_event=on_event, trace=trace, closers=_closing(trace), url=url)
         _tell_twin(master.emulator, on_event)
         return BusDrives(url, [master])
-    emulator = LockstepDrive(drive.emulator, node_ids=[axis.node for axis in axes])
+    emulator = LockstepDrive(drive.emulator, node_ids=[axis.node for axis in axes],
+                             on_fault=fault_teller(on_event))
     _tell_twin(emulator, on_event)
     try:
         return _grouped(url, CanLink(emulator.master_bus, trace=trace), drive, axes, on_event,
@@ -84,6 +87,15 @@ def emulated_drives(url: str, drive: DriveConfig, axes: Sequence[AxisSpec], *,
     except BaseException:
         emulator.close()
         raise
+
+
+def fault_teller(on_event: EventSink) -> Callable[[int, dict[str, Any]], None]:
+    """Each fault of ``[emulator] faults`` as it starts: a ``fault.injected`` event."""
+    def told(node: int, event: dict[str, Any]) -> None:
+        on_event("fault.injected", f"emulator: {event['fault']} injected at drive node {node} "
+                 f"t={event['t_s']:.4f} s", level="warning", source="emulator",
+                 fault=event["fault"], node=node, drive_t_s=event["t_s"])
+    return told
 
 
 def _tell_twin(emulator: LockstepDrive, on_event: EventSink) -> None:

@@ -49,10 +49,12 @@ from hil.core.run import (
     EventBuffer,
     Experiment,
     RunResult,
+    TunerStarted,
     controller_budget,
     run_experiment,
 )
 from hil.core.session import Session
+from hil.core.tuning import Tuner, add_controller
 from hil.drivers.canopen import CanDriveMaster, SdoAbortError
 from hil.errors import HilError, SafetyStopError, UsageError
 from hil.servo.axes import AxisShare, BusCycle, SharedStep
@@ -70,6 +72,7 @@ from hil.servo.task import (
     ServoTask,
 )
 from hil.servo.tracking import reference_amplitude
+from hil.servo.tunables import add_safety_limits
 
 # a step longer than this stops the run: far beyond any real controller's step (the MPC takes
 # ~50 us), and long enough that a stall of the machine (a collector pass, a preempted VM) does
@@ -108,13 +111,15 @@ def make_controller(options: ServoRunOptions, scenario: Scenario, session: Any =
 
 
 def run_servo(options: ServoRunOptions,
-              on_started: Callable[[CanDriveMaster], None] | None = None) -> RunResult:
+              on_started: Callable[[CanDriveMaster], None] | None = None, *,
+              tuner_started: TunerStarted | None = None) -> RunResult:
     """Run one servo session, on one axis or several; ``on_started(master)`` is called with
-    the first axis' master once the drives are enabled.
+    the first axis' master once the drives are enabled, ``tuner_started(tuner)`` with the
+    run's tuner before the first tick (:mod:`hil.core.tuning`).
 
     Drive errors (fault, link lost) stop the loop; the drives are put in their safe state, the
     session file is finished with the KPIs so far, and the error is raised with its path."""
-    return run_experiment(ServoExperiment(options, on_started))
+    return run_experiment(ServoExperiment(options, on_started), tuner_started=tuner_started)
 
 
 def can_log_path(path: str | None, bus: int) -> str | None:
@@ -228,6 +233,17 @@ class ServoExperiment(Experiment[ServoPlan]):
             session.add_task(state.bus_task)
         if self.on_started is not None:
             self.on_started(state.masters[0])
+
+    def tunables(self, tuner: Tuner) -> None:
+        """One axis: its controller's parameters (``controller.NAME``) and its safety
+        limits (``safety.NAME``, only stricter). Several axes: none yet."""
+        if not self.planned.lone or not self.state.tasks:
+            return
+        task = self.state.tasks[0]
+        if add_controller(tuner, task.controller):
+            tuner.add_listener(lambda result: task.controller_changed()
+                               if result.name.startswith("controller.") else None)
+        add_safety_limits(tuner, task.safety, task.master)
 
     def _record_bus_plans(self, session: Session) -> None:
         """Every bus's plan as metadata; one that would not fit a real bus, as a warning."""

@@ -26,7 +26,8 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -52,6 +53,18 @@ class ServoSafety:
     velocity_max_deg_s: float = 1800.0
     stale_share_max: float = 0.5
     stale_window_ms: float = 200.0
+
+
+#: the limits of ``[safety]`` that may change while a run runs, each only the stricter way:
+#: name -> (unit, "lower" or "higher", what it is)
+STRICTER: dict[str, tuple[str, str, str]] = {
+    "following_error_deg": ("deg", "lower", "the following-error window"),
+    "following_error_ms": ("ms", "lower", "how long the error may stay beyond the window"),
+    "position_min_deg": ("deg", "higher", "the lowest position allowed (multi-turn)"),
+    "position_max_deg": ("deg", "lower", "the highest position allowed (multi-turn)"),
+    "velocity_max_deg_s": ("deg/s", "lower", "the highest speed allowed"),
+    "stale_share_max": ("", "lower", "the share of cycles without fresh feedback allowed"),
+}
 
 
 @dataclass(frozen=True)
@@ -185,6 +198,13 @@ class SafetyMonitor:
         if found is not None:
             self.stopped = f"{self._stop_prefix}safety stop at t={t_s:.4f} s: {found}"
         return self.stopped
+
+    def tighten(self, name: str, value: float) -> None:
+        """Make the limit ``name`` (a field of :class:`ServoSafety`) ``value`` from this tick
+        on; the tuner lets it move only the stricter way (:data:`STRICTER`)."""
+        changed: dict[str, Any] = {name: value}
+        self.limits = replace(self.limits, **changed)
+        self._window_ticks = max(1, round(self.limits.following_error_ms / 1000 / self.period_s))
 
     def _judge(self) -> StaleVerdict:
         stale, late, rtt, ticks = zip(*self._cycles, strict=True)

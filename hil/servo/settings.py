@@ -23,6 +23,7 @@ from urllib.parse import parse_qsl
 from can.interfaces import VALID_INTERFACES
 
 from hil.controllers.base import check_cycle_period
+from hil.core.params import params_origin
 from hil.core.registry import scheme_of
 from hil.core.settings import (
     LOWER,
@@ -89,6 +90,8 @@ class ServoSettings:
         defaults = ServoRunOptions.from_flags({"controller": options.controller or None},
                                               need_controller=False)
         resolved = {
+            "params": (dict(options.params), "default" if not options.params
+                       else params_origin(options.params, options.params_file)),
             "umax": (self.umax_ma, self._umax_origin()),
             "prediction_every": (every, "default" if options.prediction_every is None
                                  else "--prediction-every"),

@@ -86,12 +86,7 @@ class ServoTask(Task):
         self.budget_s = budget_s
         self.watch = watch if watch is not None and watch.limits else None
         self.safety = safety
-        horizons = horizons_of(controller)
-        self.hu = horizons.hu if horizons is not None else None
-        self.solver = solver_of(controller)
-        self.predictor = controller if isinstance(controller, Predicting) else None
-        # decided once: a runtime-checkable Protocol's isinstance costs microseconds a tick
-        self.event_source = controller if isinstance(controller, ReportsEvents) else None
+        self.controller_changed()
         # one axis: /drive/command, /drive/feedback, /mpc/prediction; several: /axis/NAME/...
         drive, mpc = ("/drive", "/mpc") if axis is None else (f"/axis/{axis}",) * 2
         self.commands = session.topic(f"{drive}/command", COMMAND_SCHEMA, high_rate=True)
@@ -178,6 +173,17 @@ class ServoTask(Task):
             # as lists: cheaper to hand over than arrays; the writer process encodes them
             # (CDR float32 by default)
             self.predictions.log(t_ns, (t_s, u_pred[: self.hu].tolist(), y_pred.tolist()))
+
+    def controller_changed(self) -> None:
+        """Read again what the task keeps of its controller (after a rebuild swapped its
+        horizons or solver in, at a tick boundary)."""
+        controller = self.controller
+        horizons = horizons_of(controller)
+        self.hu = horizons.hu if horizons is not None else None
+        self.solver = solver_of(controller)
+        self.predictor = controller if isinstance(controller, Predicting) else None
+        # decided here: a runtime-checkable Protocol's isinstance costs microseconds a tick
+        self.event_source = controller if isinstance(controller, ReportsEvents) else None
 
     # -- helpers -----------------------------------------------------------------------
     def _place(self, reference: PlacedReference, axis: str | None) -> float:

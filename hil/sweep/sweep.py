@@ -1,5 +1,6 @@
 """A sweep from start to end: skip what ``--resume`` finds done, run the rest on the engine
-with a progress bar, keep each row as it comes, then write ``results.csv`` and ``sweep.png``."""
+with a progress bar, keep each row as it comes, then write ``results.csv``, ``best.toml`` (the
+best trial's parameters, :mod:`hil.sweep.best`) and ``sweep.png``."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from hil.errors import HilError, UsageError
+from hil.sweep.best import BEST_KPI, write_best
 from hil.sweep.engine import Engine
 from hil.sweep.plot import plot_sweep
 from hil.sweep.progress import Progress
@@ -63,6 +65,10 @@ def run_sweep(sweep: Sweep, stream: TextIO | None = None) -> dict[str, Any]:
     csv_path = sweep.out / "results.csv"
     write_csv(csv_path, ordered, sweep.keys)
     result["csv"] = str(csv_path)
+    best = write_best(sweep.out / "best.toml", ordered, sweep.kind, f"hil sweep {sweep.kind}")
+    result["best"] = {"trial": best["name"], "kpi": BEST_KPI[sweep.kind],
+                      "value": best["kpis"][BEST_KPI[sweep.kind]],
+                      "params": str(sweep.out / "best.toml")} if best is not None else None
     png = sweep.out / "sweep.png"
     result["png"] = str(png) if plot_sweep(sweep.kind, ordered, sweep.keys, str(png)) else None
     return result
@@ -104,7 +110,10 @@ def format_sweep(result: Mapping[str, Any], kind: str, keys: Sequence[str]) -> s
     failed = sum(t["status"] == "failed" for t in result["trials"])
     lines.append(f"{len(result['trials'])} trials ({failed} failed) on {result['engine']} "
                  f"with {result['workers']} worker(s) in {result['wall_s']:.1f} s; "
-                 f"table {result['csv']}" + (f", plot {result['png']}" if result["png"] else ""))
+                 f"table {result['csv']}" + (f", plot {result['png']}" if result["png"] else "")
+                 + (f"; best {result['best']['trial']} ({result['best']['kpi']} "
+                    f"{_text(result['best']['value'])}): --params {result['best']['params']}"
+                    if result.get("best") else ""))
     return "\n".join(lines)
 
 

@@ -97,6 +97,7 @@ SPECIAL: dict[str, dict[str, Any]] = {
     "emulator.channel": {"emulator.channel": "can1"},
     "emulator.disturbance.end_s": {"emulator.disturbance.end_s": 1.5},
     "emulator.model": {"emulator.model": str(AXIS_MODEL)},  # a model file that fits the axis
+    "emulator.faults": {"emulator.faults": ["drop_tpdo@1-2:every=3"]},
     # every key an [[axis]] takes: its own EDS and safety limits too
     "axis": {"axis": [{"name": "x", "node": 1, "current_limit_mA": 800.0, "eds": "x.eds",
                        "bus": "socketcand://127.0.0.1:29536",
@@ -291,7 +292,12 @@ RECORDING_FLAGS = [
     (["--live-rate", "/bench/power=5"], "run.recording.live_rates", {"/bench/power": 5.0}),
 ]
 #: flags that are not settings of the run: what to print, and where the config comes from
-NOT_SETTINGS = {"--help", "--json", "--junit", "--print-config", "--config", "--live"}
+NOT_SETTINGS = {"--help", "--json", "--junit", "--print-config", "--config", "--live",
+                # a labgrid place: it sets --bench / --drive (and --config, --node, --eds) as
+                # its resource says, refusing a flag that says otherwise (tests/lab)
+                "--place", "--coordinator", "--wait"}
+#: flags that name a file of settings, each with its own test below
+FILE_FLAGS = {"--params"}
 
 
 @pytest.mark.parametrize("app, key, configured, argv, runs", [
@@ -338,8 +344,42 @@ def test_every_flag_of_a_run_is_known_to_this_test(app):
     flags = {a.option_strings[-1] for a in run._actions if a.option_strings}
     known = ({argv[0] for _, _, argv, _ in KEY_FLAGS[app]}
              | {argv[0] for argv, _, _ in RUN_FLAGS[app]}
-             | {argv[0] for argv, _, _ in RECORDING_FLAGS} | NOT_SETTINGS)
+             | {argv[0] for argv, _, _ in RECORDING_FLAGS} | NOT_SETTINGS | FILE_FLAGS)
     assert flags - known == set()
+
+
+SHOWS_PARAMS = """
+class ShowsParams:
+    def __init__(self, *args):
+        raise ValueError("params " + repr(sorted(args[-1].items())))
+    def step(self, position_deg, t_s):
+        return 0.0
+    def decide(self, obs):
+        return {}
+"""
+
+
+@pytest.mark.parametrize("app", ["servo", "bench"])
+def test_params_from_a_file_sit_between_the_config_and_the_param_flags(tmp_path, capsys,
+                                                                       monkeypatch, app):
+    """defaults < packaged < --config's [controller] < --params F.toml < --param."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "shows.py").write_text(SHOWS_PARAMS)
+    (tmp_path / "mine.toml").write_text("[controller]\na = 1\nb = 1\nc = 1\n")
+    (tmp_path / "best.toml").write_text("b = 2\nc = 2\n")
+    shown = print_config(capsys, app, "--controller", "shows.py:ShowsParams",
+                         "--params", "best.toml")
+    assert shown["run.params"] == {"value": {"b": 2, "c": 2}, "origin": "--params"}
+    assert shown["run.params_file"] == {"value": "best.toml", "origin": "--params"}
+    assert main([app, "run", "--controller", "shows.py:ShowsParams", "--config", "mine.toml",
+                 "--params", "best.toml", "--param", "c=3"]) == 2
+    assert "params [('a', 1), ('b', 2), ('c', 3)]" in capsys.readouterr().err
+    (tmp_path / "bad.toml").write_text("gain = [1, 2]\n")
+    assert main([app, "run", "--controller", "pid" if app == "servo" else "eec",
+                 "--params", "bad.toml"]) == 2
+    assert capsys.readouterr().err.strip().endswith(
+        "bad.toml: gain: a parameter is a number, true/false or text (an axis' own in its "
+        "[AXIS] table), got [1, 2]")
 
 
 def test_every_key_of_the_packaged_configs_is_covered():
