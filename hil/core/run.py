@@ -242,6 +242,7 @@ def _run_locked(experiment: Experiment[Any], plan: RunPlan, output: OutputClaim,
         experiment.start(session)
         experiment.tunables(tuner)
         session.loop.at_boundary = tuner.tick
+        session.recorder.serve_parameters(tuner)  # the live view's parameters (with --live)
         if tuner_started is not None:
             tuner_started(tuner)
         if wants_progress(plan.quiet):

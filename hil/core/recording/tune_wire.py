@@ -29,7 +29,7 @@ from typing import Any
 
 from hil.core.recording.live_params import Result, Spec
 
-SPECS_TIMEOUT_S = 5.0
+SPECS_TIMEOUT_S = 30.0     # a listing asked for while the run still starts waits for its loop
 SET_TIMEOUT_S = 5.0        # the tuner's own wait for the tick boundary (or the rebuild)
 ANSWER_MARGIN_S = 5.0      # on top of it, for the loop process to answer
 
