@@ -23,7 +23,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("address", metavar="HOST:PORT",
                         help="the session's live view (its --live; HOST 127.0.0.1 if left out)")
     parser.add_argument("assignments", metavar="NAME=VALUE", nargs="*",
-                        help="e.g. controller.kp=300 (VALUE: a number, true/false or text)")
+                        help="e.g. controller.kp=5 (VALUE: a number, true/false or text)")
     parser.add_argument("--list", action="store_true",
                         help="print every parameter and its value (after the sets)")
     parser.add_argument("--json", action="store_true", help="print one JSON document")
@@ -34,7 +34,7 @@ def parse_assignment(text: str) -> tuple[str, Any]:
     """``NAME=VALUE``: VALUE as a JSON number or true/false, else as text."""
     name, sep, value_text = text.partition("=")
     if not sep or not name.strip() or not value_text.strip():
-        raise UsageError(f"tune: expected NAME=VALUE (e.g. controller.kp=300), got {text!r}")
+        raise UsageError(f"tune: expected NAME=VALUE (e.g. controller.kp=5), got {text!r}")
     value: Any = value_text.strip()
     try:
         parsed = json.loads(value)
