@@ -7,8 +7,9 @@ two methods. Specs and results are plain dicts with the fields of ``hil.core.tun
 ``TunableSpec`` and ``TuneResult`` (what crosses the reverse channel).
 
 * ``getParameters`` lists every parameter (or the ones named) with the value in force now.
-* ``setParameters`` hands each value to the port, which checks it and returns once the loop
-  applied it at a tick boundary or refused it. The answer (sent back to the client and, by the
+* ``setParameters`` hands each value to the port, which checks it (its type too: JSON has one
+  number type, so ``300`` for a decimal parameter is taken as ``300.0``) and returns once the
+  loop applied it at a tick boundary or refused it. The answer (sent back to the client and, by the
   SDK, published to every client subscribed to the parameter) holds the value in force
   afterwards: the new one, or the one that stays. A refusal's reason reaches the clients as a
   warning status (the SDK's ``publish_status`` goes to every client: it names the parameter
@@ -43,15 +44,6 @@ def status_id(client_id: int, request_id: str | None, name: str) -> str:
     return f"tune:{client_id}:{request_id or ''}:{name}"
 
 
-def wire_value(spec_value: object, value: object) -> object:
-    """``value`` as a client sent it, in the type of the parameter's value: JSON has one
-    number type, so a whole number for a float parameter (``300`` for ``300.0``) is a float;
-    anything else is left for the port to check."""
-    if isinstance(spec_value, float) and isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
-    return value
-
-
 class LiveParameters:
     """The server listener's parameter half (see the module doc)."""
 
@@ -77,17 +69,14 @@ class LiveParameters:
 
     def set(self, client_id: int, parameters: list[Any], request_id: str | None) -> list[Any]:
         """Apply each parameter through the port; the values in force afterwards."""
-        current = {spec["name"]: spec["value"] for spec in self.port.specs()}
         answers = []
         for parameter in parameters:
-            name = parameter.name
-            value = wire_value(current.get(name), parameter.get_value())
+            name, value = parameter.name, parameter.get_value()
             result = self.port.request(name, value, client_name(client_id))
-            stays = result["value"] if result["value"] is not None else current.get(name)
             if not result["accepted"]:
                 self.refused(client_id, request_id, name, value, result["reason"])
-            if stays is not None:  # an unknown name: the client learns it by the status
-                answers.append(self.parameter(name, stays))
+            if result["value"] is not None:  # None: an unknown name, or no answer (the status)
+                answers.append(self.parameter(name, result["value"]))
         return answers
 
     def refused(self, client_id: int, request_id: str | None, name: str, value: object,

@@ -13,7 +13,7 @@ SPEC and RESULT carry the fields of ``hil.core.tuning``'s ``TunableSpec`` and ``
 :class:`RemotePort` is the writer's end (the live view's :class:`ParameterPort`);
 :class:`PortServer` is the loop's end, a thread that asks the tuner (anything with ``specs()``
 and ``request(name, value, client)``) and answers; each set waits for its tick boundary in a
-thread of its own, so a rebuild does not hold up a listing. Without ``--live`` none of this
+small pool of threads, so a rebuild does not hold up a listing. Without ``--live`` none of this
 exists.
 """
 
@@ -25,6 +25,7 @@ import itertools
 import json
 import socket
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from hil.core.recording.live_params import Result, Spec
@@ -32,6 +33,7 @@ from hil.core.recording.live_params import Result, Spec
 SPECS_TIMEOUT_S = 30.0     # a listing asked for while the run still starts waits for its loop
 SET_TIMEOUT_S = 5.0        # the tuner's own wait for the tick boundary (or the rebuild)
 ANSWER_MARGIN_S = 5.0      # on top of it, for the loop process to answer
+SET_THREADS = 4            # sets waiting at once in the loop process (more wait their turn)
 
 
 def _send(sock: socket.socket, lock: threading.Lock, message: dict[str, Any]) -> bool:
@@ -82,8 +84,10 @@ class RemotePort:
         answer: list[dict[str, Any]] = []
         self._waiting[request_id] = (event, answer)
         try:
-            if self._closed.is_set() or not _send(self._sock, self._lock,
-                                                  {"id": request_id, **message}):
+            if self._closed.is_set():
+                return None
+            if not _send(self._sock, self._lock, {"id": request_id, **message}):
+                self._closed.set()  # the loop's end is gone (its reader may not know yet)
                 return None
             event.wait(timeout_s)
             return answer[0] if answer else None
@@ -106,9 +110,10 @@ class RemotePort:
 
 
 def _plain(item: Any) -> dict[str, Any]:
-    """A spec or result as the dict that crosses the channel."""
+    """A spec or result as the dict that crosses the channel (its fields are plain values:
+    no deep copy)."""
     if dataclasses.is_dataclass(item) and not isinstance(item, type):
-        return dataclasses.asdict(item)
+        return {f.name: getattr(item, f.name) for f in dataclasses.fields(item)}
     return dict(item)
 
 
@@ -121,6 +126,9 @@ class PortServer:
         self._port = port
         self._set_timeout_s = set_timeout_s
         self._lock = threading.Lock()
+        # each set waits for its tick boundary (or rebuild) in a thread of the pool, so a
+        # rebuild holds up neither a listing nor another client's set; no thread per set
+        self._sets = ThreadPoolExecutor(SET_THREADS, thread_name_prefix="tune-set")
         self._thread = threading.Thread(target=self._serve, name="tune-port", daemon=True)
         self._thread.start()
 
@@ -130,8 +138,7 @@ class PortServer:
                 if message.get("op") == "specs":
                     self._answer(message["id"], specs=[_plain(s) for s in self._port.specs()])
                 elif message.get("op") == "set":
-                    threading.Thread(target=self._set, args=(message,), name="tune-set",
-                                     daemon=True).start()
+                    self._sets.submit(self._set, message)
 
     def _set(self, message: dict[str, Any]) -> None:
         name = str(message.get("name"))
@@ -153,3 +160,4 @@ class PortServer:
             self._sock.shutdown(socket.SHUT_RDWR)
         self._sock.close()
         self._thread.join(1.0)
+        self._sets.shutdown(wait=False, cancel_futures=True)
