@@ -9,9 +9,10 @@ from importlib import resources
 from hil.cli.argtypes import output_file
 
 LAYOUTS = {
-    "bench": ("bench.json", "total VA against the limit, relays, levels q_j, the EEC's plan"),
+    "bench": ("bench.json", "total VA against the limit, relays, levels q_j, the EEC's plan, "
+                            "the run's parameters"),
     "servo": ("servo.json", "reference and position, error, current and its limits, the MPC "
-                            "prediction, loop timing"),
+                            "prediction, loop timing, the run's parameters"),
 }
 
 

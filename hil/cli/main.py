@@ -26,12 +26,13 @@ from hil.cli import (
     resim,
     servo,
     sweep,
+    tune,
     twin,
 )
 from hil.errors import HilError, RunInterruptedError
 
 COMMAND_MODULES = (demo, bench, servo, drive, sweep, empc, identify, emulate, report, compare,
-                   export, replay, resim, twin, layout, doctor)
+                   export, replay, resim, tune, twin, layout, doctor)
 
 
 class OneLineParser(argparse.ArgumentParser):

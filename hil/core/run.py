@@ -16,7 +16,8 @@ line, the Python API, the sweep and the pytest fixtures alike:
    discarded: nothing ran.
 5. ``start(session)`` - enable the devices and add the loop's tasks; ``tunables(tuner)``
    registers what may change while the run runs on the run's :class:`~hil.core.tuning.Tuner`
-   (applied at the loop's tick boundaries), and ``tuner_started(tuner)``, when the run was given
+   (applied at the loop's tick boundaries), the live view (``--live``) serves it
+   (:mod:`hil.core.recording.tune_wire`), and ``tuner_started(tuner)``, when the run was given
    one, attaches a transport to it (:mod:`hil.core.tuning`); then the loop runs.
    A :class:`~hil.errors.HilError` (a fault, a lost link, a controller error) stops it;
    the loop has put every device in its safe state.
@@ -242,6 +243,7 @@ def _run_locked(experiment: Experiment[Any], plan: RunPlan, output: OutputClaim,
         experiment.start(session)
         experiment.tunables(tuner)
         session.loop.at_boundary = tuner.tick
+        session.recorder.serve_parameters(tuner)  # the live view's parameters (with --live)
         if tuner_started is not None:
             tuner_started(tuner)
         if wants_progress(plan.quiet):

@@ -7,6 +7,10 @@ Foxglove WebSocket protocol spec, v1. The client offers both names, as the Foxgl
 Text frames are JSON (``serverInfo``, ``advertise``, ``status``...); the client subscribes with
 a ``subscribe`` JSON message and receives binary ``messageData`` frames: opcode 1, a uint32
 subscription id, a uint64 log time (little endian), then the payload (JSON here).
+
+Parameters (capability ``parameters``): ``getParameters`` and ``setParameters`` (with an id, the
+answer is a ``parameterValues`` with that id), ``subscribeParameterUpdates`` (later changes come
+as ``parameterValues`` without an id), and ``status`` messages (level 1: warning).
 """
 
 from __future__ import annotations
@@ -56,6 +60,9 @@ class FoxgloveClient:
         self.channels: dict[int, dict[str, Any]] = {}   # channel id -> advertised channel
         self.subscriptions: dict[int, str] = {}         # subscription id -> topic
         self.messages: dict[str, list[tuple[int, Any]]] = {}
+        self.answers: dict[str, list[dict[str, Any]]] = {}   # request id -> its parameters
+        self.updates: list[dict[str, Any]] = []   # parameterValues without an id, in order
+        self.statuses: list[dict[str, Any]] = []
         self.closed = False
 
     def close(self) -> None:
@@ -82,6 +89,13 @@ class FoxgloveClient:
             elif message["op"] == "unadvertise":
                 for cid in message["channelIds"]:
                     self.channels.pop(cid, None)
+            elif message["op"] == "parameterValues":
+                if message.get("id") is not None:
+                    self.answers[message["id"]] = message["parameters"]
+                else:
+                    self.updates.extend(message["parameters"])
+            elif message["op"] == "status":
+                self.statuses.append(message)
             return True
         opcode, sub_id, log_time = _HEADER.unpack_from(frame)
         if opcode == MESSAGE_DATA:
@@ -109,6 +123,26 @@ class FoxgloveClient:
             self.subscriptions[sub_id] = topic
             subs.append({"id": sub_id, "channelId": by_topic[topic]})
         self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+
+
+    def get_parameters(self, names: list[str], request_id: str,
+                       timeout_s: float = 30.0) -> dict[str, Any]:
+        """``getParameters``: the named parameters (all for ``[]``) by name."""
+        self.ws.send(json.dumps({"op": "getParameters", "parameterNames": names,
+                                 "id": request_id}))
+        assert self.wait_for(lambda: request_id in self.answers, timeout_s), request_id
+        return {p["name"]: p for p in self.answers[request_id]}
+
+    def set_parameters(self, values: dict[str, Any], request_id: str,
+                       timeout_s: float = 30.0) -> dict[str, Any]:
+        """``setParameters``: the values in force afterwards, by name."""
+        self.ws.send(json.dumps({"op": "setParameters", "id": request_id, "parameters": [
+            {"name": name, "value": value} for name, value in values.items()]}))
+        assert self.wait_for(lambda: request_id in self.answers, timeout_s), request_id
+        return {p["name"]: p["value"] for p in self.answers[request_id]}
+
+    def subscribe_parameter_updates(self, names: list[str]) -> None:
+        self.ws.send(json.dumps({"op": "subscribeParameterUpdates", "parameterNames": names}))
 
 
 def _read_frame(sock: socket.socket) -> tuple[int, bytes]:

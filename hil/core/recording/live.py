@@ -17,6 +17,9 @@ Foxglove and PlotJuggler connect to.
   when a client falls behind (it does not count them; it logs "outbox for client ... full",
   at most every 30 s, which :class:`LiveSink` counts as ``client_queue_full``). Nothing here
   waits for a client; with no subscriber a message costs one rate check.
+* **Parameters.** Given a parameter port, the server also offers Foxglove's Parameters
+  capability: a run's tunables, read and set from the Parameters panel or ``hil tune``
+  (:mod:`hil.core.recording.live_params`).
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, cast
 
+from hil.core.recording.live_params import LiveParameters, ParameterPort
 from hil.errors import UsageError
 
 DEFAULT_PORT = 8765
@@ -174,10 +178,12 @@ _SDK_LOG: _SdkLog | None = None
 
 
 class _Subscriptions:
-    """The SDK's server listener: notes that some client subscribed to something."""
+    """The SDK's server listener: notes that some client subscribed to something, and
+    answers parameter requests when the server offers parameters."""
 
-    def __init__(self) -> None:
+    def __init__(self, parameters: LiveParameters | None = None) -> None:
         self.first = threading.Event()
+        self.parameters = parameters
 
     def on_subscribe(self, client: Any, channel: Any) -> None:
         self.first.set()
@@ -185,14 +191,25 @@ class _Subscriptions:
     def on_unsubscribe(self, client: Any, channel: Any) -> None:
         pass
 
+    def on_get_parameters(self, client: Any, param_names: list[str],
+                          request_id: str | None = None) -> list[Any]:
+        return self.parameters.get(param_names) if self.parameters is not None else []
+
+    def on_set_parameters(self, client: Any, parameters: list[Any],
+                          request_id: str | None = None) -> list[Any]:
+        if self.parameters is None:
+            return []
+        return self.parameters.set(int(client.id), parameters, request_id)
+
 
 class LiveSink:
     """A Foxglove WebSocket server for one session's topics (its own SDK context)."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, *,
                  rates: dict[str, float] | None = None, backlog: int = DEFAULT_BACKLOG,
-                 name: str = "hil") -> None:
+                 name: str = "hil", parameters: ParameterPort | None = None) -> None:
         import foxglove
+        from foxglove.websocket import Capability
 
         self._foxglove = foxglove
         self.rates = dict(rates or {})
@@ -200,10 +217,14 @@ class LiveSink:
         self._log = _sdk_log()
         self._queue_full_before = self._log.queue_full
         self._errors_before = dict(self._log.errors)
-        self._subscriptions = _Subscriptions()
-        self.server = foxglove.start_server(name=name, host=host, port=port,
-                                            context=self._context, message_backlog_size=backlog,
-                                            server_listener=cast(Any, self._subscriptions))
+        self.parameters = LiveParameters(parameters) if parameters is not None else None
+        self._subscriptions = _Subscriptions(self.parameters)
+        self.server = foxglove.start_server(
+            name=name, host=host, port=port, context=self._context,
+            message_backlog_size=backlog, server_listener=cast(Any, self._subscriptions),
+            capabilities=[Capability.Parameters] if parameters is not None else None)
+        if self.parameters is not None:
+            self.parameters.server = self.server
         self.host = host
         self.port = int(self.server.port)
         self._by_key: dict[Any, _Topic] = {}

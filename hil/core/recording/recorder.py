@@ -25,6 +25,7 @@ import json
 import os
 import select
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -37,6 +38,7 @@ from hil.core.realtime import keep_process_off_cpu
 from hil.core.recording.cdr import CdrError, fields_of
 from hil.core.recording.record_stream import FrameDecoder, encode_frame
 from hil.core.recording.recording_options import ENCODINGS, RecordingOptions
+from hil.core.recording.tune_wire import PortServer
 from hil.errors import HilError, RecordingError
 
 EVENTS_TOPIC = "/events"
@@ -139,6 +141,12 @@ class Recorder:
         self._next_check = 0.0
         self._ready = False
         self._stats: RecorderStats | None = None
+        # with a live view, the reverse channel of its parameters (recording.tune_wire)
+        self._tune_socket: socket.socket | None = None
+        writer_end: socket.socket | None = None
+        if self.options.live:
+            self._tune_socket, writer_end = socket.socketpair()
+        self._port_server: PortServer | None = None
         self._process = self._start_writer({
             "path": self.path, "chunk_size": chunk_size, "flush_interval_s": flush_interval_s,
             "profile": profile, "split_duration_s": self.options.split_duration_s,
@@ -147,7 +155,10 @@ class Recorder:
             # the loop waits for the writer, so it must not be held back
             "yield_cpu": not wait_when_full,
             "live": self.options.live, "live_rates": self.options.live_rates,
-        })
+            "tune_fd": writer_end.fileno() if writer_end is not None else None,
+        }, writer_end)
+        if writer_end is not None:
+            writer_end.close()
         assert self._process.stdin is not None
         self._fd = self._process.stdin.fileno()
         with contextlib.suppress(OSError):  # a bigger pipe absorbs a slow writer for longer
@@ -156,14 +167,23 @@ class Recorder:
         self.events = self.topic(EVENTS_TOPIC, EVENT_SCHEMA)
 
     @staticmethod
-    def _start_writer(options: dict[str, Any]) -> subprocess.Popen[bytes]:
+    def _start_writer(options: dict[str, Any], tune_end: socket.socket | None = None
+                      ) -> subprocess.Popen[bytes]:
         root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [root, env.get("PYTHONPATH")]))
         return subprocess.Popen(
             [sys.executable, "-m", "hil.core.recording.writer", json.dumps(options)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, start_new_session=True,
+            pass_fds=(tune_end.fileno(),) if tune_end is not None else (),
         )
+
+    def serve_parameters(self, port: Any) -> None:
+        """Answer the live view's parameter requests from ``port`` (the run's tuner: its
+        ``specs()`` and ``request(name, value, client, timeout_s)``); nothing without a live
+        view. Once per session."""
+        if self._tune_socket is not None and self._port_server is None:
+            self._port_server = PortServer(self._tune_socket, port)
 
     @property
     def writer_pid(self) -> int:
@@ -354,6 +374,7 @@ class Recorder:
             self._process.stdin.close()
         if self._report is None:
             self._report = self._parse_result(self._writer_report())
+        self._close_parameters()
         result = self._report
         drops = self.dropped()
         self._stats = RecorderStats(
@@ -370,6 +391,13 @@ class Recorder:
                 f"message(s) recorded in {self.options.first_file(self.path)}"
                 + (f", {lost} later message(s) lost" if lost else ""))
         return self._stats
+    def _close_parameters(self) -> None:
+        if self._port_server is not None:
+            self._port_server.close()
+        elif self._tune_socket is not None:
+            self._tune_socket.close()
+        self._tune_socket = None
+
     def _writer_report(self) -> bytes:
         """The writer's standard output until it exits (killed after a generous timeout);
         its last line is the JSON report."""

@@ -22,6 +22,7 @@ import json
 import os
 import select
 import signal
+import socket
 import sys
 import time
 from collections.abc import Callable
@@ -36,6 +37,7 @@ from hil.core.recording.mcap_series import (
     json_schema_channel,
 )
 from hil.core.recording.record_stream import FrameDecoder
+from hil.core.recording.tune_wire import RemotePort
 
 EVENTS_KEY = 0  # the recorder registers /events first
 READ_BYTES = 1 << 20
@@ -167,14 +169,19 @@ class SessionWriter:
 
 def start_live(options: dict[str, Any]) -> LiveSink | None:
     """The session's live view when ``options["live"]`` asks for one; its URL on stderr.
+    With ``options["tune_fd"]`` (the reverse channel to the loop process, see
+    :mod:`hil.core.recording.tune_wire`) it serves the run's parameters too.
 
     A live view that cannot start is reported on stderr and left out: the file comes first.
     """
     if not options.get("live"):
         return None
+    tune_fd = options.get("tune_fd")
+    parameters = RemotePort(socket.socket(fileno=tune_fd)) if tune_fd is not None else None
     try:
         host, port = parse_address(options["live"])
-        live = LiveSink(host, port, rates=options.get("live_rates") or {})
+        live = LiveSink(host, port, rates=options.get("live_rates") or {},
+                        parameters=parameters)
     except Exception as exc:  # any failure of the server must not cost the recording
         print(f"hil: warning: live view off: {exc}", file=sys.stderr, flush=True)
         return None

@@ -1,0 +1,88 @@
+"""The live view's Parameters capability: a run's tunables as Foxglove parameters.
+
+:class:`LiveParameters` answers the Foxglove WebSocket server's ``getParameters`` and
+``setParameters`` from a :class:`ParameterPort`: in a session's writer process, the reverse
+channel to the loop process (:mod:`hil.core.recording.tune_wire`); in a test, any object with the
+two methods. Specs and results are plain dicts with the fields of ``hil.core.tuning``'s
+``TunableSpec`` and ``TuneResult`` (what crosses the reverse channel).
+
+* ``getParameters`` lists every parameter (or the ones named) with the value in force now.
+* ``setParameters`` hands each value to the port, which checks it (its type too: JSON has one
+  number type, so ``300`` for a decimal parameter is taken as ``300.0``) and returns once the
+  loop applied it at a tick boundary or refused it. The answer (sent back to the client and, by the
+  SDK, published to every client subscribed to the parameter) holds the value in force
+  afterwards: the new one, or the one that stays. A refusal's reason reaches the clients as a
+  warning status (the SDK's ``publish_status`` goes to every client: it names the parameter
+  and the client). Its id is ``tune:CLIENT:REQUEST_ID:NAME``, so a client finds the status
+  of its own request.
+* Who asked is ``live client N`` (the server's id of the connection), recorded with the change.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+Spec = dict[str, Any]     # TunableSpec's fields: name, value, unit, minimum, maximum, step...
+Result = dict[str, Any]   # TuneResult's fields: name, accepted, value, reason, tick
+
+
+class ParameterPort(Protocol):
+    """Where the parameters live: their specs now, and a checked, applied change."""
+
+    def specs(self) -> list[Spec]: ...
+
+    def request(self, name: str, value: object, client: str) -> Result: ...
+
+
+def client_name(client_id: int) -> str:
+    """Who asked, as recorded with a change."""
+    return f"live client {client_id}"
+
+
+def status_id(client_id: int, request_id: str | None, name: str) -> str:
+    """The id of the warning status of a refused set (see the module doc)."""
+    return f"tune:{client_id}:{request_id or ''}:{name}"
+
+
+class LiveParameters:
+    """The server listener's parameter half (see the module doc)."""
+
+    def __init__(self, port: ParameterPort) -> None:
+        import foxglove
+
+        self._foxglove = foxglove
+        self.port = port
+        self.server: Any = None  # set once the server runs: statuses go through it
+
+    def parameter(self, name: str, value: object) -> Any:
+        """A Foxglove parameter; a float stays a float on the wire (``300.0``, not ``300``)."""
+        foxglove = self._foxglove
+        if isinstance(value, float):
+            return foxglove.Parameter(name, value=value, type=foxglove.ParameterType.Float64)
+        return foxglove.Parameter(name, value=value)  # type: ignore[arg-type]
+
+    def get(self, names: list[str]) -> list[Any]:
+        """Every parameter, or those of ``names``, with its value now."""
+        wanted = set(names)
+        return [self.parameter(spec["name"], spec["value"]) for spec in self.port.specs()
+                if not wanted or spec["name"] in wanted]
+
+    def set(self, client_id: int, parameters: list[Any], request_id: str | None) -> list[Any]:
+        """Apply each parameter through the port; the values in force afterwards."""
+        answers = []
+        for parameter in parameters:
+            name, value = parameter.name, parameter.get_value()
+            result = self.port.request(name, value, client_name(client_id))
+            if not result["accepted"]:
+                self.refused(client_id, request_id, name, value, result["reason"])
+            if result["value"] is not None:  # None: an unknown name, or no answer (the status)
+                answers.append(self.parameter(name, result["value"]))
+        return answers
+
+    def refused(self, client_id: int, request_id: str | None, name: str, value: object,
+                reason: str) -> None:
+        if self.server is None:
+            return
+        self.server.publish_status(
+            f"{name} = {value!r} refused ({client_name(client_id)}): {reason}",
+            self._foxglove.StatusLevel.Warning, id=status_id(client_id, request_id, name))
