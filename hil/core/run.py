@@ -221,7 +221,7 @@ def _run_locked(experiment: Experiment[Any], plan: RunPlan, output: OutputClaim,
                           plan.base_period_s, kind=plan.kind,
                           config=dict(plan.config), config_text=plan.config_text,
                           config_name=plan.config_name, recording=plan.recording,
-                          output=output)
+                          output=output, tunable=True)
     except BaseException:
         experiment.close_devices()
         output.abandon()

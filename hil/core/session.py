@@ -66,6 +66,7 @@ class Session:
         harden: bool | None = None,
         recording: RecordingOptions | None = None,
         output: OutputClaim | None = None,
+        tunable: bool = False,
     ) -> None:
         self.path = path
         recording = recording or RecordingOptions()
@@ -76,7 +77,8 @@ class Session:
         self.hardening: dict[str, str] = {}
         self.clock = clock
         self.kind = kind
-        self.recorder = Recorder(path, wait_when_full=clock.mode == "sim", options=recording)
+        self.recorder = Recorder(path, wait_when_full=clock.mode == "sim", options=recording,
+                                 tunable=tunable)
         self.loop = FixedRateLoop(
             clock, base_period_s, recorder=self.recorder, on_event=self._loop_event,
             handle_signals=handle_signals,

@@ -101,7 +101,7 @@ def live_session(tmp_path_factory: pytest.TempPathFactory
     """A recorder with a live view whose parameters are the stand-in tuner's."""
     port = free_port()
     recorder = Recorder(tmp_path_factory.mktemp("tune") / "s.mcap",
-                        options=RecordingOptions(live=str(port)))
+                        options=RecordingOptions(live=str(port)), tunable=True)
     recorder.wait_ready()
     tuner = StandInTuner()
     recorder.serve_parameters(tuner)

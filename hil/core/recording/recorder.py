@@ -118,6 +118,7 @@ class Recorder:
         profile: str = "",
         wait_when_full: bool = False,
         options: RecordingOptions | None = None,
+        tunable: bool = False,
     ) -> None:
         self.path = os.fspath(path)
         self.options = options or RecordingOptions()
@@ -141,10 +142,11 @@ class Recorder:
         self._next_check = 0.0
         self._ready = False
         self._stats: RecorderStats | None = None
-        # with a live view, the reverse channel of its parameters (recording.tune_wire)
+        # with a live view of a run that has a tuner (``tunable``), the reverse channel of its
+        # parameters (recording.tune_wire): the live view offers parameters only then
         self._tune_socket: socket.socket | None = None
         writer_end: socket.socket | None = None
-        if self.options.live:
+        if self.options.live and tunable:
             self._tune_socket, writer_end = socket.socketpair()
         self._port_server: PortServer | None = None
         self._process = self._start_writer({

@@ -1,7 +1,8 @@
 """The reverse channel of a live session: parameter requests from the writer process back to
 the loop process, where the run's tuner lives.
 
-The record stream only flows from the loop process to its writer process. With ``--live``, the
+The record stream only flows from the loop process to its writer process. With ``--live`` on a
+run (a session with a tuner: ``Recorder(..., tunable=True)``), the
 :class:`~hil.core.recording.recorder.Recorder` also creates a socket pair and passes one end to
 the writer (``tune_fd``). Over it, JSON lines, one per message:
 
@@ -13,8 +14,8 @@ SPEC and RESULT carry the fields of ``hil.core.tuning``'s ``TunableSpec`` and ``
 :class:`RemotePort` is the writer's end (the live view's :class:`ParameterPort`);
 :class:`PortServer` is the loop's end, a thread that asks the tuner (anything with ``specs()``
 and ``request(name, value, client)``) and answers; each set waits for its tick boundary in a
-small pool of threads, so a rebuild does not hold up a listing. Without ``--live`` none of this
-exists.
+small pool of threads, so a rebuild does not hold up a listing. Without ``--live``, or in a
+session without a tuner, none of this exists and the live view offers no parameters.
 """
 
 from __future__ import annotations
