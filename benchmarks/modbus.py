@@ -7,8 +7,8 @@ frames). Sampling: a real-time session at 100 Hz polls the meter and the levels 
 ``--duration`` s against the TCP emulator, next to the same loop without I/O, then briefly
 over a paced RTU line. Target (the project's): TCP poll p99 <= 2 ms. The machine is shared:
 figures are noisy, run it on a quiet box for figures worth quoting. ``--quick``: 20 TCP and
-5 RTU round trips per row, sampling runs of 0.2 s each (seconds; figures not worth
-quoting).
+5 RTU round trips per row (the driver waiting up to 2 s for each answer), sampling runs of
+0.2 s each (seconds; figures not worth quoting).
 """
 
 from __future__ import annotations
@@ -128,7 +128,10 @@ def raw_rtu(port: str, count: int) -> Callable[[], bytes]:
     return call
 
 
-def round_trips(n_tcp: int, n_rtu: int) -> None:
+def round_trips(n_tcp: int, n_rtu: int, patient: bool = False) -> None:
+    """``patient`` (``--quick``): the hil driver waits 2 s for an answer, not 0.1 s (TCP) and
+    0.2 s (RTU): on a loaded machine (make test) an emulator answers late, and a quick run
+    checks that the benchmark runs, not the machine's pace."""
     header("Poll round trip, meter unit (FC04)")
     proc, url = emulator("--tcp", "127.0.0.1:0")
     try:
@@ -139,7 +142,7 @@ def round_trips(n_tcp: int, n_rtu: int) -> None:
         row(f"TCP pymodbus client ({FULL} regs)", time_calls(
             lambda: client.read_input_registers(0, count=FULL, device_id=METER_UNIT), n_tcp))
         client.close()
-        link = ModbusLink(parse_bus_url(url), timeout_s=0.1, attempts=2)
+        link = ModbusLink(parse_bus_url(url), timeout_s=2.0 if patient else 0.1, attempts=2)
         samples = time_calls(lambda: link.read_floats(METER_UNIT, 0, FULL), n_tcp)
         row(f"TCP hil driver ({FULL} regs)", samples,
             f"target p99 <= 2000 us: {'met' if np.percentile(samples, 99) <= 2000 else 'MISSED'}")
@@ -162,7 +165,7 @@ def round_trips(n_tcp: int, n_rtu: int) -> None:
                             device_id=METER_UNIT), n_rtu))
                 serial_client.close()
             link = ModbusLink(parse_bus_url(f"modbus-rtu://{ports[0]}?baud=115200"),
-                              timeout_s=0.2, attempts=2)
+                              timeout_s=2.0 if patient else 0.2, attempts=2)
             for count in (FULL, SMALL):
                 n = n_rtu if baud is None else max(min(50, n_rtu), n_rtu // 5)
                 wire_us = (8 + 5 + 2 * count) * 10 / 115200 * 1e6
@@ -260,7 +263,7 @@ def main() -> None:
     fill_defaults(args, {"duration": (30.0, 0.2), "rtu_duration": (10.0, 0.2),
                          "polls": (3000, 20), "rtu_polls": (600, 5)})
     started = time.monotonic()
-    round_trips(args.polls, args.rtu_polls)
+    round_trips(args.polls, args.rtu_polls, patient=args.quick)
     sampling_report(args.duration, args.rtu_duration)
     print(f"\n(total {time.monotonic() - started:.0f} s; shared machine: figures are noisy)")
 
