@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from hil.controllers.base import runs_at
 from hil.controllers.servo.model import MODEL_PERIODS_US, SAMPLE_PERIOD_S, axis_model
@@ -76,8 +76,14 @@ def pid(reference: Reference, params: Mapping[str, Any], context: ServoContext
     table = _params(params, "pid")
     umax = table.number("umax", context.umax, above=0)
     ti_us = table.number("ti_us", PidConfig.ti_s * 1e6, above=0)
+    # the names and units of its tunables (controller.kp... while it runs)
+    kp = table.number("kp", PidConfig.k_pos_rpm_per_deg, at_least=0)
+    kv = table.number("kv", PidConfig.k_vel_a_per_rpm, at_least=0)
+    notch_hz = table.number("notch_hz", None, above=0, at_most=0.5 / context.period_s)
+    notch_q = table.number("notch_q", PidConfig.notch_quality, above=0)
     table.done()
-    config = PidConfig(u_max=umax, ti_s=ti_us / 1e6)
+    config = PidConfig(u_max=umax, ti_s=ti_us / 1e6, k_pos_rpm_per_deg=kp,
+                       k_vel_a_per_rpm=kv, notch_hz=notch_hz, notch_quality=notch_q)
     model = axis_model(context.period_s)
     check_stable(config, model)
     return CascadedPid(reference, config, model)
@@ -93,6 +99,8 @@ def mpc_config(params: Mapping[str, Any], context: ServoContext, name: str) -> M
                        hu=table.integer("hu", context.hu, at_least=1),
                        hp=table.integer("hp", context.hp, at_least=1),
                        ert=table.string("ert", context.ert, choices=("foh", "zoh")),
+                       q=table.number("q", float(cast(float, MpcConfig.q)), above=0),
+                       r=table.number("r", float(cast(float, MpcConfig.r)), above=0),
                        u_min=-umax, u_max=umax)
     table.done()
     return config

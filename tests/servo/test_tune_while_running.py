@@ -227,3 +227,21 @@ def test_rebuilds_run_in_turn_off_the_caller_and_the_end_of_the_run_refuses_the_
     late = tuner.wait(second, 60.0)
     assert not late.accepted and late.value == 10 and "the run ended" in late.reason
     assert swapped == [10] and tuner.specs()[0].value == 10
+
+
+@pytest.mark.parametrize("controller, params", [
+    ("pid", {"kp": 3.0, "kv": 0.05, "ti_us": 4000.0, "umax": 800.0, "notch_hz": 500.0,
+             "notch_q": 2.0}),
+    ("mpc", {"ht": 6, "hu": 6, "hp": 40, "umax": 900.0, "q": 2e5, "r": 2.0}),
+])
+def test_a_tunable_is_a_param_of_the_same_name_and_unit(tmp_path, controller, params):
+    """A value tuned while running goes back into --param as it is: each built-in's tunable
+    ``controller.NAME`` starts at the ``--param NAME`` given."""
+    seen: dict[str, float] = {}
+
+    def note(tuner):
+        seen.update({s.name: s.value for s in tuner.specs() if s.name.startswith("controller.")})
+
+    api.run_servo(controller, params, reference=REFERENCE, duration_s=0.005,
+                  out=str(tmp_path / "s.mcap"), quiet=True, tuner_started=note)
+    assert {name: seen[f"controller.{name}"] for name in params} == pytest.approx(params)
