@@ -20,7 +20,7 @@ import mmap
 import os
 import re
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -34,12 +34,52 @@ from hil.errors import SessionFileError
 _SERIES = re.compile(r"^(?P<stem>.*)_(?P<index>\d{3,})\.mcap$")
 
 
+class Topics(Mapping[str, list[tuple[int, Any]]]):
+    """A session's messages by topic, ``(log_time_ns, message)`` pairs in time order. Each
+    topic is decoded when it is first read, so a command that reads two topics of a long
+    session decodes only those; counts and time spans come without decoding."""
+
+    def __init__(self, raw: dict[str, list[tuple[int, bytes]]] | None = None,
+                 decoders: dict[str, Callable[[bytes], Any]] | None = None) -> None:
+        self._raw = raw or {}
+        self._decoders = decoders or {}
+        self._decoded: dict[str, list[tuple[int, Any]]] = {}
+        self._counts = {topic: len(items) for topic, items in self._raw.items()}
+        self._spans = {topic: (items[0][0], items[-1][0])
+                       for topic, items in self._raw.items() if items}
+
+    def __getitem__(self, topic: str) -> list[tuple[int, Any]]:
+        decoded = self._decoded.get(topic)
+        if decoded is None:
+            items = self._raw.pop(topic)  # the payloads, no longer needed once decoded
+            decode = self._decoders.get(topic, _decode_json)
+            decoded = self._decoded[topic] = [(t, decode(payload)) for t, payload in items]
+        return decoded
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._counts)
+
+    def __len__(self) -> int:
+        return len(self._counts)
+
+    def __contains__(self, topic: object) -> bool:
+        return topic in self._counts
+
+    def count(self, topic: str) -> int:
+        """The number of messages of ``topic`` (0 when absent), without decoding them."""
+        return self._counts.get(topic, 0)
+
+    def span_ns(self, topic: str) -> tuple[int, int] | None:
+        """The first and last log time of ``topic``, without decoding it."""
+        return self._spans.get(topic)
+
+
 @dataclass
 class SessionData:
-    """Everything readable from one session (file or series), messages decoded."""
+    """Everything readable from one session (file or series), messages decoded as read."""
 
     path: str
-    messages: dict[str, list[tuple[int, Any]]] = field(default_factory=dict)
+    messages: Topics = field(default_factory=Topics)
     schemas: dict[str, dict[str, Any]] = field(default_factory=dict)
     encodings: dict[str, str] = field(default_factory=dict)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
@@ -60,11 +100,12 @@ class SessionData:
 
     @property
     def topic_counts(self) -> dict[str, int]:
-        return {topic: len(msgs) for topic, msgs in sorted(self.messages.items())}
+        return {topic: self.messages.count(topic) for topic in sorted(self.messages)}
 
     def time_range_ns(self) -> tuple[int, int] | None:
-        stamps = [t for msgs in self.messages.values() for t, _ in msgs[:1] + msgs[-1:]]
-        return (min(stamps), max(stamps)) if stamps else None
+        spans = [span for topic in self.messages
+                 if (span := self.messages.span_ns(topic)) is not None]
+        return (min(s[0] for s in spans), max(s[1] for s in spans)) if spans else None
 
     def duration_s(self) -> float:
         span = self.time_range_ns()
@@ -140,10 +181,9 @@ def read_session(path: str | os.PathLike[str]) -> SessionData:
     decoders: dict[str, Callable[[bytes], Any]] = {}
     for name in files:
         _read_file(name, data, raw, decoders)
-    for topic, items in raw.items():
+    for items in raw.values():
         items.sort(key=lambda item: item[0])
-        decode = decoders.get(topic, _decode_json)
-        data.messages[topic] = [(t, decode(payload)) for t, payload in items]
+    data.messages = Topics(dict(raw), decoders)
     return data
 
 
