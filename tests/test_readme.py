@@ -32,6 +32,13 @@ def blocks(language):
             for indent, block in found]
 
 
+def block(language, containing):
+    """The one README code block in ``language`` that holds ``containing`` (a block's place
+    among the others changes as the README grows)."""
+    [found] = [text for text in blocks(language) if containing in text]
+    return found
+
+
 def hil_commands():
     """Every `hil ...` command of the sh blocks, continuation lines joined."""
     commands = []
@@ -46,7 +53,7 @@ def hil_commands():
 @pytest.fixture
 def user_folder(tmp_path):
     """A folder of the user's: the README's controllers file in it, nothing of the repo."""
-    (tmp_path / "my_controllers.py").write_text(blocks("python")[0])
+    (tmp_path / "my_controllers.py").write_text(block("python", "class ThresholdRelays:"))
     return tmp_path
 
 
@@ -86,7 +93,8 @@ def test_the_readme_commands_give_the_status_it_says(user_folder, monkeypatch, c
 
 
 def test_the_api_tour_runs(user_folder):
-    script = "from my_controllers import PdPosition, ThresholdRelays\n" + blocks("python")[1]
+    script = "from my_controllers import PdPosition, ThresholdRelays\n" + \
+        block("python", "kpis = api.run_bench(ThresholdRelays")
     (user_folder / "tour.py").write_text(script)
     done = subprocess.run([sys.executable, "tour.py"], cwd=user_folder, capture_output=True,
                           text=True, env=ENV, timeout=180, check=False)
@@ -96,7 +104,7 @@ def test_the_api_tour_runs(user_folder):
 
 
 def test_the_several_axes_example_moves_each_axis_its_own_way(user_folder):
-    (user_folder / "axes.py").write_text(blocks("python")[3])
+    (user_folder / "axes.py").write_text(block("python", "CanDriveMaster"))
     done = subprocess.run([sys.executable, "axes.py"], cwd=user_folder, capture_output=True,
                           text=True, env=ENV, timeout=180, check=False)
     assert done.returncode == 0, done.stderr

@@ -20,7 +20,7 @@ from hil import api
 from hil.servo.run import ServoRunOptions, run_servo
 from tests.busy import busy_machine, busy_now
 from tests.session_digest import EXPERIMENTS, kpi_digest, session_digest
-from tests.test_readme import blocks
+from tests.test_readme import block
 
 pytestmark = [pytest.mark.slow]
 
@@ -44,7 +44,7 @@ def test_the_readme_fixture_example_passes_round_after_round_under_load(tmp_path
     folder = tmp_path / "my_lab"
     folder.mkdir()
     shutil.copy(EXAMPLES / "my_controllers.py", folder / "my_controllers.py")
-    example = blocks("python")[2]
+    example = block("python", "def test_threshold_relays_keep_the_levels_in_range")
     assert "def test_threshold_relays_keep_the_levels_in_range(hil_bench)" in example
     (folder / "test_readme_example.py").write_text(rounds_of(example))
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # a user's shell
