@@ -39,7 +39,7 @@ from hil.bench.rig import BenchRig, attach_rig
 from hil.bench.safety import BenchSafetyTask
 from hil.bench.sequence import SequenceOrigin
 from hil.bench.settings import BenchSettings, resolve_bench
-from hil.bench.tunables import add_safety_limits
+from hil.bench.tunables import add_bench_limits
 from hil.core.clock import Clock
 from hil.core.loop import Task
 from hil.core.notice import warn
@@ -219,7 +219,7 @@ class BenchExperiment(Experiment[BenchPlan]):
         if state.controller is not None:
             add_controller(tuner, state.controller.controller)
         if state.safety is not None:
-            add_safety_limits(tuner, state.safety)
+            add_bench_limits(tuner, state.safety)
 
     def finish(self, session: Session) -> None:
         state = self.state

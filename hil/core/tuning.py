@@ -31,7 +31,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -447,3 +447,23 @@ def add_controller(tuner: Tuner, controller: object, prefix: str = "controller")
                               param.maximum, param.step, param.rebuild, None,
                               param.description), apply, prepare=prepare, check=check)
     return len(params)
+
+
+def add_safety_limits(tuner: Tuner, limits: object,
+                      stricter: Mapping[str, tuple[str, str, str]],
+                      tighten: Callable[[str, float], None], signed: str) -> None:
+    """Register each limit of ``stricter`` (``{NAME: (unit, "lower"|"higher", description)}``)
+    that ``limits`` holds as ``safety.NAME``: movable only towards its stricter side, from the
+    value in force, and applied by ``tighten(NAME, value)``. Limits named ``signed...`` may be
+    of either sign (a position, a level); the others are at least 0."""
+    for name, (unit, direction, description) in stricter.items():
+        now = float(getattr(limits, name))
+        low = None if direction == "higher" or name.startswith(signed) else 0.0
+        high = None if direction == "higher" else now
+
+        def apply(value: Any, name: str = name) -> None:
+            tighten(name, float(value))
+
+        tuner.add(TunableSpec(f"safety.{name}", now, unit, low, high, None, False, direction,
+                              description), apply)
+

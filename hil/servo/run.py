@@ -72,7 +72,7 @@ from hil.servo.task import (
     ServoTask,
 )
 from hil.servo.tracking import reference_amplitude
-from hil.servo.tunables import add_safety_limits
+from hil.servo.tunables import add_servo_limits
 
 # a step longer than this stops the run: far beyond any real controller's step (the MPC takes
 # ~50 us), and long enough that a stall of the machine (a collector pass, a preempted VM) does
@@ -243,7 +243,7 @@ class ServoExperiment(Experiment[ServoPlan]):
         if add_controller(tuner, task.controller):
             tuner.add_listener(lambda result: task.controller_changed()
                                if result.name.startswith("controller.") else None)
-        add_safety_limits(tuner, task.safety, task.master)
+        add_servo_limits(tuner, task.safety, task.master)
 
     def _record_bus_plans(self, session: Session) -> None:
         """Every bus's plan as metadata; one that would not fit a real bus, as a warning."""
