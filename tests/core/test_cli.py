@@ -90,7 +90,7 @@ def test_bad_arguments_exit_2_with_a_usage_line(argv, capsys):
     (["servo", "run", "--controller", "eec"], "a servo controller is built as "
                                               "Class(reference, params)"),
     (["servo", "run", "--controller", "mpc", "--param", "hx=3"],
-     "unknown key 'hx' (known here: ert, hp, ht, hu, umax)"),
+     "unknown key 'hx' (known here: ert, hp, ht, hu, q, r, umax)"),
 ])
 def test_bad_controller_specs_exit_2_with_one_line_and_no_session(argv, message, capsys,
                                                                   tmp_path):
