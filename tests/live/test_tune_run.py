@@ -154,6 +154,31 @@ def test_a_gain_set_while_it_runs_takes_effect_at_its_tick_and_is_recorded(
     assert after > 2 * before, (before, after)
 
 
+def test_hil_replay_serves_the_changes_as_they_were_recorded(
+        tuned_pid_run: dict[str, Any]) -> None:
+    """``hil replay`` serves ``/params`` (and the change's event) as the run recorded them."""
+    session = tuned_pid_run["session"]
+    recorded = session.topic("/params")
+    assert recorded
+    port = free_port()
+    replay = subprocess.Popen(
+        [sys.executable, "-m", "hil", "replay", session.path, "--live", str(port), "--speed",
+         "0", "--wait", "20"], cwd=Path(session.path).parent, env=user_env(),
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        client = FoxgloveClient(f"ws://127.0.0.1:{port}", timeout_s=CONNECT_S,
+                                alive=replay.poll)
+        assert client.wait_for(lambda: {"/params", "/events"} <= set(client.topics()), 30)
+        client.subscribe(["/params", "/events"])
+        client.wait_for(lambda: client.closed, 60)
+    finally:
+        _, stderr = replay.communicate(timeout=60)
+    assert replay.returncode == 0, stderr
+    assert client.messages["/params"] == [(t, m) for t, m in recorded]
+    served = [m["kind"] for _, m in client.messages["/events"]]
+    assert served.count("param.changed") == len(events(session, "param.changed"))
+
+
 def test_a_value_out_of_range_and_a_looser_safety_limit_are_refused_and_change_nothing(
         tuned_pid_run: dict[str, Any]) -> None:
     kp = tuned_pid_run["listed"]["controller.kp"]["value"]
