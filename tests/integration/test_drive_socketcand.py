@@ -280,8 +280,15 @@ def test_several_drives_on_one_bus_each_move_their_own_axis():
                 node.rpdo[1]["Target torque"].raw = 0
                 node.state = "SWITCH ON DISABLED"
         finally:
+            # the periodic tasks (RPDOs, SYNC) stopped and their threads ended before the bus
+            # they send on closes: python-can's stop() only asks the thread to end, and one
+            # still in its send then writes to a closed socket
+            tasks = [node.rpdo[1]._task for node, _ in nodes.values()] + [network.sync._task]
             for node, _ in nodes.values():
-                node.rpdo[1].stop()  # its periodic task, before the bus it sends on closes
+                node.rpdo[1].stop()
             network.sync.stop()
+            for task in tasks:
+                if task is not None and getattr(task, "thread", None) is not None:
+                    task.thread.join(timeout=5)
             network.disconnect()
     assert moved[1] >= 500 and moved[2] <= -500, moved
