@@ -102,16 +102,22 @@ class _MonotonicTime:
 
 @contextlib.contextmanager
 def open_bench(url: str | None = None, config_path: str | None = None, *,
-               on_event: EventSink = no_event) -> Iterator[SafeBench]:
+               on_event: EventSink = no_event,
+               timeout_s: float | None = None) -> Iterator[SafeBench]:
     """The relay bench at ``url`` (None: the config's ``[bus] url``) behind its safety layer,
     relays at their safe levels; closed (relays safe, link released) on exit. ``emulated``
     serves the emulator in this process on a free loopback port, following the wall clock, for
-    the time of the block."""
+    the time of the block. ``timeout_s``: how long the link waits for each answer, over the
+    config's ``[bus] timeout_s``."""
+    from dataclasses import replace
+
     from hil.bench.config import load_bench_config
     from hil.bench.emulated import make_emulator
     from hil.bench.openers import is_emulated, safe_bench
 
     config = load_bench_config(config_path)
+    if timeout_s is not None:
+        config = replace(config, bus=replace(config.bus, timeout_s=timeout_s))
     url = url or config.bus.url
     emulator = None
     if is_emulated(url):

@@ -65,6 +65,10 @@ from hil.pytest_baseline import hil_baseline  # noqa: F401  (a fixture of this p
 from hil.pytest_html import add_option as add_html_option
 from hil.pytest_html import write_session_reports
 
+#: how long the fixtures' own links (``hil_bench.driver``, the safe-state check after a test)
+#: wait for an answer from hil's emulator [s]: its process on a busy machine answers late,
+#: which is not what a test of a controller tests (a bench keeps its ``[bus] timeout_s``)
+EMULATOR_ANSWER_S = 2.0
 #: where a run's KPIs go: ``(name, value)`` pairs, a test's ``user_properties``
 Record = Callable[[tuple[str, object]], None]
 DeviceT = TypeVar("DeviceT")
@@ -150,7 +154,13 @@ class BenchUnderTest(_UnderTest[SafeBench]):
 
     @property
     def driver(self) -> SafeBench:
-        return self._device(lambda: api.open_bench(self.url, self.defaults.get("config_path")))
+        return self._device(lambda: api.open_bench(self.url, self.defaults.get("config_path"),
+                                                   timeout_s=self._answer_s()))
+
+    def _answer_s(self) -> float | None:
+        """How long the fixture's own link waits for an answer: :data:`EMULATOR_ANSWER_S` from
+        hil's emulator, the config's ``[bus] timeout_s`` from a bench (None)."""
+        return EMULATOR_ANSWER_S if self.emulated else None
 
     def run(self, controller: api.Controller, params: Mapping[str, Any] | None = None,
             cycles: int = 1, **options: Any) -> dict[str, Any]:
@@ -169,7 +179,8 @@ class BenchUnderTest(_UnderTest[SafeBench]):
         from hil.drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 
         config = load_bench_config(self.defaults.get("config_path"))
-        driver = ModbusBenchDriver(ModbusLink(parse_bus_url(self.url), config.bus.timeout_s,
+        driver = ModbusBenchDriver(ModbusLink(parse_bus_url(self.url),
+                                              self._answer_s() or config.bus.timeout_s,
                                               config.bus.attempts), config.map)
         try:
             actual = driver.read_relays()

@@ -187,3 +187,15 @@ def test_two_sigterms_a_few_ms_apart_stop_a_loop_cleanly(tmp_path, run_python):
     assert "closed" in out
     stop = [m for _, m in read_session(path).topic("/events") if m["kind"] == "session.stop"]
     assert stop[0]["data"]["reason"] == "signal SIGTERM"
+
+
+@pytest.mark.hil_faults("delay@0:ms=400")
+def test_the_fixture_driver_waits_for_a_late_emulator(hil_bench):
+    """Answers 400 ms late (past the packaged 0.1 s timeout, twice) still reach the fixture's
+    own driver: from hil's emulator it waits up to EMULATOR_ANSWER_S for each."""
+    from hil.pytest_plugin import EMULATOR_ANSWER_S
+
+    assert EMULATOR_ANSWER_S > 0.4 * 2
+    assert hil_bench.driver.set_relays({"P1": True}) == {"P1": "switched"}
+    assert set(hil_bench.driver.read_levels()) == {"q1", "q2"}
+    hil_bench.driver.set_relays({"P1": False})
