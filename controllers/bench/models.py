@@ -40,12 +40,23 @@ from hil.controllers.ident.model_file import loads_model
 from hil.controllers.ident.n4sid import IdentificationError
 
 
-def _input_key(name: str) -> str:
-    """Model input name of a recorded field: ``/bench/relays:P1`` -> ``P1``; the switch-on
-    pulse as ``hil bench identify`` records it, ``/ident/relays:P1_start``, or ``P1:start``
-    -> ``P1:start``."""
+def relay_input(name: str) -> tuple[str, bool]:
+    """A model input's relay and whether it is the switch-on pulse: ``/bench/relays:P1`` ->
+    ("P1", False); the pulse as ``hil bench identify`` records it, ``/ident/relays:P1_start``,
+    or ``P1:start`` -> ("P1", True)."""
     key = name.split("relays:", 1)[-1]
-    return key.removesuffix("_start") + ":start" if key.endswith("_start") else key
+    if key.endswith(":start"):
+        return key.removesuffix(":start"), True
+    if key.endswith("_start") and len(key) > len("_start"):
+        return key.removesuffix("_start"), True
+    return key, False
+
+
+def _input_key(name: str) -> str:
+    """Model input name of a recorded field: ``P1``, or ``P1:start`` for the switch-on pulse
+    (:func:`relay_input`)."""
+    relay, start = relay_input(name)
+    return f"{relay}:start" if start else relay
 
 
 @dataclass(eq=False)

@@ -24,10 +24,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hil.controllers.bench.models import relay_input
 from hil.emulators.errors import EmulatorSetupError
 from hil.emulators.model_file import read_model_file
 
-START_SUFFIX = "_start"
 VA_FIELDS = ("total_va", "va_l1", "va_l2", "va_l3")
 
 
@@ -51,14 +51,6 @@ class LoadModel:
     def relays(self) -> tuple[str, ...]:
         """The relays it reads, each once, in order."""
         return tuple(dict.fromkeys(relay for relay, _ in self.inputs))
-
-
-def input_of(signal: str) -> tuple[str, bool]:
-    """``/ident/relays:P1`` -> ("P1", False); ``/ident/relays:P1_start`` -> ("P1", True)."""
-    field = signal.rpartition(":")[2]
-    if field.endswith(START_SUFFIX) and len(field) > len(START_SUFFIX):
-        return field.removesuffix(START_SUFFIX), True
-    return field, False
 
 
 def is_apparent_power(signal: str) -> bool:
@@ -88,7 +80,7 @@ def load_load_model(path: str) -> LoadModel:
     x_rest = np.linalg.solve(np.eye(n) - A, B @ (-u0)) if n else np.zeros(0)
     rest = float(model.C[0] @ x_rest + model.D[0] @ (-u0) + model.y_offset[0])
     return LoadModel(A, B, model.C[0].copy(), model.D[0].copy(), model.dt,
-                     tuple(input_of(name) for name in model.inputs), u0,
+                     tuple(relay_input(name) for name in model.inputs), u0,
                      float(model.y_offset[0]), x_rest, rest, os.path.abspath(path))
 
 
