@@ -1,6 +1,6 @@
 """The ``hil_baseline`` fixture of hil's pytest plugin: a run held against a baseline session
 kept beside the test file (``baselines/TEST.mcap``), recorded on first use or with
-``--hil-update-baselines``, compared by :func:`hil.compare.compare_sessions` afterwards."""
+``--hil-update-baselines``, compared by :func:`hil.compare.compare_data` afterwards."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from hil.compare import Comparison, Tolerance, compare_sessions, parse_tolerance
+from hil.compare import Comparison, Tolerance, compare_data, parse_tolerance
 from hil.compare.baseline import write_baseline
 from hil.compare.table import format_table, summary_line
 from hil.core.recording.reader import read_session
@@ -57,8 +57,9 @@ class Baseline:
         run = str(session) if session is not None else self._last_session()
         path = self.path(name)
         try:
+            ran = read_session(run)  # once: for its kind, the comparison and its page
             chosen = list(signals) if signals is not None else \
-                list(DEFAULT_SIGNALS.get(session_kind(read_session(run)), ()))
+                list(DEFAULT_SIGNALS.get(session_kind(ran), ()))
             if self.update or not path.exists():
                 size = write_baseline(run, path, chosen, every)
                 warnings.warn(BaselineRecorded(f"hil_baseline: recorded {path} ({size} "
@@ -67,7 +68,8 @@ class Baseline:
             limits = {key: value if isinstance(value, Tolerance) else
                       parse_tolerance(value, f"hil_baseline tolerance {key}")
                       for key, value in (tolerances or {}).items()}
-            comparison = compare_sessions(path, run, chosen, limits)
+            baseline = read_session(path)
+            comparison = compare_data(baseline, ran, chosen, limits)
         except HilError as exc:
             pytest.fail(f"hil_baseline: {exc}", pytrace=False)
         document = comparison.to_json()
@@ -75,10 +77,10 @@ class Baseline:
         report.write_text(json.dumps(document, indent=1) + "\n")
         folder = html_folder(self._request)
         if folder is not None:
-            write_comparison_report(self._request, path, run, document,
+            write_comparison_report(self._request, baseline, ran, document,
                                     Path(folder) / f"{path.stem}.compare.html")
         if not comparison.passed:
-            page = write_comparison_report(self._request, path, run, document,
+            page = write_comparison_report(self._request, baseline, ran, document,
                                            report.with_suffix(".html"))
             pytest.fail(f"{format_table(comparison)}\n{summary_line(comparison)}\n"
                         f"comparison: {report} (report: {page})", pytrace=False)

@@ -7,9 +7,12 @@ from __future__ import annotations
 import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pytest
+
+if TYPE_CHECKING:
+    from hil.core.recording.reader import SessionData
 
 
 def add_option(group: Any) -> None:
@@ -45,11 +48,12 @@ def write_session_reports(request: pytest.FixtureRequest, sessions: Sequence[str
             request.node.user_properties.append((f"{name}.html", str(path)))
 
 
-def write_comparison_report(request: pytest.FixtureRequest, baseline: str | Path, run: str,
-                            comparison: Mapping[str, Any], path: Path) -> Path:
-    """The comparison's report at ``path``, named in the test's properties."""
-    from hil.core.html_report import write_comparison_html
+def write_comparison_report(request: pytest.FixtureRequest, baseline: SessionData,
+                            run: SessionData, comparison: Mapping[str, Any], path: Path) -> Path:
+    """The comparison's report at ``path`` (of the sessions as read for the comparison),
+    named in the test's properties."""
+    from hil.core.html_report import write_comparison_data_html
 
-    write_comparison_html(str(baseline), run, comparison, str(path))
+    write_comparison_data_html(baseline, run, comparison, str(path))
     request.node.user_properties.append((f"{path.stem}.html", str(path)))
     return path

@@ -68,21 +68,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def compare_command(args: argparse.Namespace) -> int:
-    from hil.compare import compare_sessions, tolerances_file
+    from hil.compare import compare_data, tolerances_file
     from hil.compare.table import format_table, summary_line
+    from hil.core.recording.reader import read_session
 
     tolerances = tolerances_file(args.tolerances) if args.tolerances else {}
     tolerances.update(dict(args.tolerance))
     if args.max_points is not None and not args.html:
         raise UsageError("--max-points N (points per trace) needs --html F.html")
-    comparison = compare_sessions(args.baseline, args.candidate, args.signal, tolerances)
+    baseline, candidate = read_session(args.baseline), read_session(args.candidate)
+    comparison = compare_data(baseline, candidate, args.signal, tolerances)
     document = comparison.to_json()
-    if args.html:
-        from hil.core.html_report import DEFAULT_MAX_POINTS, write_comparison_html
+    if args.html:  # from the sessions as read for the comparison, not read again
+        from hil.core.html_report import DEFAULT_MAX_POINTS, write_comparison_data_html
 
-        write_comparison_html(args.baseline, args.candidate, document, args.html,
-                              signals=args.signal,
-                              max_points=args.max_points or DEFAULT_MAX_POINTS)
+        write_comparison_data_html(baseline, candidate, document, args.html,
+                                   signals=args.signal,
+                                   max_points=args.max_points or DEFAULT_MAX_POINTS)
         document["html"] = args.html
     print(json_text(document) if args.json else format_table(comparison))
     print(f"hil: {summary_line(comparison)}", file=sys.stderr)

@@ -99,11 +99,16 @@ def compare_sessions(baseline: str | os.PathLike[str], candidate: str | os.PathL
     damaged ones as ``hil report`` reads them). ``signals``: ``TOPIC:FIELD`` names; a signal a
     tolerance names is compared too. Raises :class:`IncomparableError` when the sessions
     cannot be compared."""
+    return compare_data(read_session(baseline), read_session(candidate), signals, tolerances)
+
+
+def compare_data(base: SessionData, cand: SessionData, signals: Sequence[str] = (),
+                 tolerances: Mapping[str, Tolerance] | None = None) -> Comparison:
+    """:func:`compare_sessions` of two sessions already read."""
     tolerances = dict(tolerances or {})
-    base, cand = read_session(baseline), read_session(candidate)
     application = _application(base, cand)
     lockstep = all(_session(d).get("clock") == "sim" for d in (base, cand))
-    out = Comparison(os.fspath(baseline), os.fspath(candidate), application,
+    out = Comparison(base.path, cand.path, application,
                      "lockstep" if lockstep else "interpolated")
     if not lockstep:
         out.notes.append("real-time sessions: the candidate interpolated onto the baseline's "

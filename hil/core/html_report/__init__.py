@@ -27,8 +27,8 @@ from hil.core.report import summarize
 from hil.core.verdict import unit_of
 from hil.errors import UsageError
 
-__all__ = ["DEFAULT_MAX_POINTS", "HtmlStats", "Panel", "Trace", "write_comparison_html",
-           "write_session_data_html", "write_session_html"]
+__all__ = ["DEFAULT_MAX_POINTS", "HtmlStats", "Panel", "Trace", "write_comparison_data_html",
+           "write_comparison_html", "write_session_data_html", "write_session_html"]
 
 DEFAULT_MAX_POINTS = 5000
 PLOT_CONFIG = {"displaylogo": False, "responsive": True}
@@ -81,8 +81,19 @@ def write_comparison_html(baseline_path: str, candidate_path: str,
     point of its largest difference marked; on the comparison's session time (its
     ``origins_ns``) where it gives one."""
     _check_points(max_points)
+    return write_comparison_data_html(read_session(baseline_path), read_session(candidate_path),
+                                      comparison, out_path, signals=signals,
+                                      max_points=max_points)
+
+
+def write_comparison_data_html(baseline: SessionData, candidate: SessionData,
+                               comparison: Mapping[str, Any], out_path: str, *,
+                               signals: Sequence[str] = (),
+                               max_points: int = DEFAULT_MAX_POINTS) -> HtmlStats:
+    """:func:`write_comparison_html` of two sessions already read."""
+    _check_points(max_points)
     labels = ["baseline", "candidate"]
-    sessions = [read_session(baseline_path), read_session(candidate_path)]
+    sessions = [baseline, candidate]
     summaries = [summarize(data) for data in sessions]
     drawn = figures.Drawn(max_points)
     given = comparison.get("origins_ns") or {}
