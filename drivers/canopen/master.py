@@ -81,11 +81,11 @@ from hil.protocols.cia402 import (
     FAULT,
     FAULT_REACTION_ACTIVE,
     MAX_TORQUE,
-    MODES,
     MODES_DISPLAY,
     MODES_OF_OPERATION,
     NOT_READY_TO_SWITCH_ON,
     OPERATION_ENABLED,
+    OPERATION_MODES,
     POSITION_ACTUAL,
     QUICK_STOP_ACTIVE,
     QUICK_STOP_OPTION,
@@ -98,7 +98,6 @@ from hil.protocols.cia402 import (
     TPDO_LAYOUTS,
     VELOCITY_ACTUAL,
     PdoMap,
-    rpdo1_for,
     state_of,
 )
 
@@ -137,7 +136,7 @@ def axis_traffic(config: DriveMasterConfig, name: str = "axis",
     """What one node driven with ``config`` puts on the bus each cycle (for bus plans); with
     ``layout``, as if its ``tpdo_layout`` were that one."""
     maps = tpdo_maps(config.sync_echo, layout or config.tpdo_layout)
-    return AxisTraffic(name, rpdo1_for(MODES[config.mode]).size_bytes,
+    return AxisTraffic(name, OPERATION_MODES[config.mode].rpdo1().size_bytes,
                        tuple(pdo.size_bytes for pdo in maps), config.drive_heartbeat_ms / 1e3)
 
 
@@ -178,7 +177,7 @@ class CanDriveMaster(Device):
             (SYNC_COB_ID, NMT_COB_ID, HEARTBEAT_BASE + config.heartbeat_id))
         self._url = url if url is not None else link.name
         self.node_id = n = config.node_id
-        self.mode = MODES[config.mode]
+        self.mode = OPERATION_MODES[config.mode].code
         self._clock = ClockSwitch(clock or MonotonicClock())
         self._on_event = on_event
         self._closers = closers
@@ -197,7 +196,7 @@ class CanDriveMaster(Device):
             self.heartbeat_watch.cob_id: self._on_heartbeat,
             **dict.fromkeys(watched, self._on_watched),
         }
-        self._rpdo1_map = rpdo1_for(self.mode)
+        self._rpdo1_map = OPERATION_MODES[config.mode].rpdo1()
         self._tpdo_maps = tpdo_maps(config.sync_echo, config.tpdo_layout)
         self.cyclic = CyclicExchange(
             link, n, self._rpdo1_map, self._tpdo_maps, rx_timeout_s=config.rx_timeout_s,
@@ -350,21 +349,21 @@ class CanDriveMaster(Device):
         for pdo in (self._rpdo1_map, *self._tpdo_maps):
             pdos.map(pdo)
         self.cyclic.echo = c.sync_echo is not None
-        sdo.write(CYCLE_PERIOD, 0, round(c.cycle_period_s * 1e6))
-        sdo.write(PRODUCER_HEARTBEAT, 0, c.drive_heartbeat_ms, "<H")
+        self._write_setting(CYCLE_PERIOD, 0, round(c.cycle_period_s * 1e6))
+        self._write_setting(PRODUCER_HEARTBEAT, 0, c.drive_heartbeat_ms, "<H")
         consumer = (c.heartbeat_id << 16) | c.heartbeat_timeout_ms if c.heartbeat_period_ms else 0
-        sdo.write(CONSUMER_HEARTBEAT, 1, consumer)
-        sdo.write(MODES_OF_OPERATION, 0, self.mode, "<b")
+        self._write_setting(CONSUMER_HEARTBEAT, 1, consumer)
+        self._write_setting(MODES_OF_OPERATION, 0, self.mode, "<b")
         shown = sdo.read_int(MODES_DISPLAY, 0, "<b")
         if shown != self.mode:
             raise DriveStateError(f"drive node {n} shows mode {shown} after 0x6060 = {self.mode}")
-        sdo.write(MAX_TORQUE, 0, self._max_torque_units(), "<H")
+        self._write_setting(MAX_TORQUE, 0, self._max_torque_units(), "<H")
         self._max_torque_written = True
-        sdo.write(QUICK_STOP_OPTION, 0, c.quick_stop_option, "<h")
+        self._write_setting(QUICK_STOP_OPTION, 0, c.quick_stop_option, "<h")
         if self.mode == CSP:
-            sdo.write(TARGET_POSITION, 0, sdo.read_int(POSITION_ACTUAL, 0, "<i"), "<i")
+            self._write_setting(TARGET_POSITION, 0, sdo.read_int(POSITION_ACTUAL, 0, "<i"), "<i")
         else:
-            sdo.write(TARGET_TORQUE, 0, 0, "<h")
+            self._write_setting(TARGET_TORQUE, 0, 0, "<h")
         self._event("drive.configured",
                     f"drive node {n}: {c.mode.upper()} at {c.cycle_period_s * 1e6:g} us, "
                     f"limit {limit.applied_ma:g} mA, {scaling.increments_per_rev} "
@@ -380,6 +379,11 @@ class CanDriveMaster(Device):
             self._event("drive.heartbeat_config",
                         f"master heartbeat every {c.heartbeat_period_ms} ms but the drive gives "
                         f"up after {c.heartbeat_timeout_ms} ms: it will fault", level="warning")
+
+    def _write_setting(self, index: int, subindex: int, value: int, fmt: str = "<I") -> None:
+        """Write one setting of this run to the drive (SDO): every object :meth:`configure`
+        sets goes through here."""
+        self.sdo.write(index, subindex, value, fmt)
 
     # -- life cycle -----------------------------------------------------------------------------
     def open(self) -> None:

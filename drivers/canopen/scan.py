@@ -17,8 +17,6 @@ from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from canopen.profiles.p402 import OperationMode
-
 from hil.drivers.canopen.eds import check, import_description, required_objects
 from hil.drivers.canopen.errors import DriveError, DriveLinkLostError
 from hil.drivers.canopen.link import Link
@@ -49,6 +47,7 @@ from hil.protocols.cia402 import (
     ERROR_CODE,
     FAULT,
     FAULT_REACTION_ACTIVE,
+    MODE_SHORT_NAMES,
     MODES,
     OPERATION_ENABLED,
     PDO_NOT_VALID,
@@ -59,6 +58,7 @@ from hil.protocols.cia402 import (
     SUPPORTED_MODES,
     UNKNOWN_STATE,
     state_of,
+    supported_mode_bit,
 )
 
 DISCOVER_S = 0.3     # how long answers to the broadcast of SDO requests are collected
@@ -67,24 +67,12 @@ READ_TIMEOUT_S = 1.0  # one SDO read, as a run's default: a late answer is no si
 PDOS = 4             # PDOs 1..4 of each direction
 UNKNOWN_NMT = "unknown (no heartbeat)"
 
-# CiA 402's short names of the modes of operation, by code (canopen's OperationMode codes;
-# the bit of each in 0x6502 is canopen's OperationMode.SUPPORTED)
-MODE_SHORT_NAMES = {
-    OperationMode.PROFILED_POSITION: "PP", OperationMode.VELOCITY: "VL",
-    OperationMode.PROFILED_VELOCITY: "PV", OperationMode.PROFILED_TORQUE: "TQ",
-    OperationMode.HOMING: "HM", OperationMode.INTERPOLATED_POSITION: "IP",
-    OperationMode.CYCLIC_SYNCHRONOUS_POSITION: "CSP",
-    OperationMode.CYCLIC_SYNCHRONOUS_VELOCITY: "CSV",
-    OperationMode.CYCLIC_SYNCHRONOUS_TORQUE: "CST",
-}
-
-
 def mode_names(supported: int) -> list[str]:
     """The modes a 0x6502 value names (``["CSP", "CST"]``); a set bit no mode has is named
     ``bit N``."""
     names, known = [], 0
     for code, short in MODE_SHORT_NAMES.items():
-        bit = OperationMode.SUPPORTED[OperationMode.CODE2NAME[code]]
+        bit = supported_mode_bit(code)
         known |= bit
         if supported & bit:
             names.append(short)

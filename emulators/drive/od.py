@@ -31,11 +31,20 @@ from canopen.objectdictionary.datatypes import (
 )
 
 from hil.protocols.cia301 import SDO_REQUEST_BASE, SDO_RESPONSE_BASE
-from hil.protocols.cia402 import NO_MODE, RPDOS, SUPPORTED_MODE_BITS, TPDOS, PdoMap
+from hil.protocols.cia402 import (
+    CYCLIC_SYNCHRONOUS_POSITION,
+    CYCLIC_SYNCHRONOUS_TORQUE,
+    NO_MODE,
+    RPDOS,
+    TPDOS,
+    PdoMap,
+    supported_mode_bit,
+)
 
 DEVICE_TYPE = 0x0002_0192  # CiA 402 profile, servo drive
 DEVICE_NAME = "hil CiA 402 drive emulator"
-SUPPORTED_MODES = sum(SUPPORTED_MODE_BITS.values())  # CSP (8) and CST (10)
+SUPPORTED_MODES = sum(map(supported_mode_bit, (CYCLIC_SYNCHRONOUS_POSITION,
+                                               CYCLIC_SYNCHRONOUS_TORQUE)))  # emulated
 RTR_NOT_ALLOWED = 0x4000_0000
 
 @dataclass(frozen=True)

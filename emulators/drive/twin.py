@@ -70,6 +70,7 @@ from hil.protocols.cia402 import (
     GEAR_RATIO,
     MAX_CURRENT,
     MAX_TORQUE,
+    MODE_SHORT_NAMES,
     MODES_DISPLAY,
     MODES_OF_OPERATION,
     NO_MODE,
@@ -85,8 +86,6 @@ from hil.protocols.cia402 import (
 
 #: the modes hil's node emulates, and the mode of each 0x6502 bit 0..9 (CiA 402)
 EMULATED_MODES = (CYCLIC_SYNCHRONOUS_POSITION, CYCLIC_SYNCHRONOUS_TORQUE)
-MODE_NAMES = {1: "PP", 2: "VL", 3: "PV", 4: "TQ", 6: "HM", 7: "IP", 8: "CSP", 9: "CSV",
-              10: "CST"}
 #: hil's manufacturer objects (test hooks and time base, :mod:`hil.emulators.drive.od`)
 HOOKS = (0x2001, 0x2002, 0x2003, 0x2004, TIME_BASE)
 #: objects that only describe the drive: read back as the file gives them
@@ -161,7 +160,7 @@ class DriveDictionary:
                              ":" + "/".join(map(str, written))) + " (writes)")
         modes = sorted(self.listed_modes - self.modes)
         if modes:
-            items.append("modes " + ", ".join(MODE_NAMES.get(m, str(m)) for m in modes))
+            items.append("modes " + ", ".join(MODE_SHORT_NAMES.get(m, str(m)) for m in modes))
         return items
 
     def report(self) -> list[str]:
@@ -180,7 +179,7 @@ class DriveDictionary:
         if modes:
             lines.append(f"modes 0x6502 lists, not emulated (0x6060 write: "
                          f"{abort_text(ABORT_CANNOT_STORE)}): "
-                         + ", ".join(MODE_NAMES.get(m, str(m)) for m in modes))
+                         + ", ".join(MODE_SHORT_NAMES.get(m, str(m)) for m in modes))
         return lines or ["every object is emulated"]
 
     def summary(self, node_id: int) -> str:
@@ -191,7 +190,7 @@ class DriveDictionary:
                              if isinstance(values.get((IDENTITY, s)), int)
                              and (IDENTITY, s) not in self.no_read)
         gear = f"{values.get((GEAR_RATIO, 1), 1)}:{values.get((GEAR_RATIO, 2), 1)}"
-        modes = ", ".join(MODE_NAMES[m] for m in sorted(self.modes - {NO_MODE}))
+        modes = ", ".join(MODE_SHORT_NAMES[m] for m in sorted(self.modes - {NO_MODE}))
         refused = self.unemulated()
         hooks = ", ".join(f"0x{h:04X}" for h in self.replaced_hooks)
         return (f"twin of {self.path} (node {node_id}): {identity or 'no identity'}; "
@@ -373,7 +372,7 @@ class _Twin:
             raise self.error(f"0x6502 = 0x{supported:08X} lists neither CSP nor CST, the "
                              "modes the twin emulates")
         for mode in emulated:
-            self.check_needed(MODE_NEEDS[mode], f"for {MODE_NAMES[mode]}, which 0x6502 lists")
+            self.check_needed(MODE_NEEDS[mode], f"for {MODE_SHORT_NAMES[mode]}, which 0x6502 lists")
         modes = frozenset((NO_MODE, *emulated))
         start = self.value(MODES_OF_OPERATION)
         if start not in modes:

@@ -163,15 +163,21 @@ QUICK_STOP_OPTIONS: dict[int, str] = {
 QUICK_STOP_THEN_DISABLED = (1, 2, 3, 4)  # options ending in SWITCH ON DISABLED (transition 12)
 QUICK_STOP_STAYS = (5, 6, 7, 8)          # options staying in QUICK STOP ACTIVE (16 allowed)
 
-# ---------------------------------------------------------- modes of operation (0x6060)
-NO_MODE = 0
-CYCLIC_SYNCHRONOUS_POSITION = 8
-CYCLIC_SYNCHRONOUS_TORQUE = 10
-MODES: dict[str, int] = {"csp": CYCLIC_SYNCHRONOUS_POSITION, "cst": CYCLIC_SYNCHRONOUS_TORQUE}
-SUPPORTED_MODE_BITS: dict[int, int] = {  # the bit of each mode in 0x6502 (supported modes)
-    CYCLIC_SYNCHRONOUS_POSITION: 0x0080,
-    CYCLIC_SYNCHRONOUS_TORQUE: 0x0200,
-}
+# ------------------------------------------------------------ mode-specific bits
+# controlword bits 4..6 and 8 mean what the mode of operation says (CiA 402)
+CW_NEW_SET_POINT = 0x0010         # PP: a new target position (rising edge)
+CW_HOMING_START = 0x0010          # HM: start homing (rising edge; falling: interrupt)
+CW_CHANGE_SET_IMMEDIATELY = 0x0020  # PP: the new target replaces the one under way
+CW_RELATIVE = 0x0040              # PP: the target is relative to the last one
+CW_HALT = 0x0100                  # PP, PV, HM: stop with the profile deceleration
+# statusword bits 10, 12 and 13 too
+SW_TARGET_REACHED = 0x0400        # PP, PV, HM (and set on a halt once standing)
+SW_SET_POINT_ACK = 0x1000         # PP: the new set point was taken
+SW_SPEED_ZERO = 0x1000            # PV: the speed is zero
+SW_HOMING_ATTAINED = 0x1000       # HM: homing completed
+SW_FOLLOWING_ERROR = 0x2000       # PP, CSP: beyond the following error window
+SW_HOMING_ERROR = 0x2000          # HM: homing failed
+SW_MODE_BITS = SW_TARGET_REACHED | SW_FOLLOWS_COMMAND | SW_FOLLOWING_ERROR
 
 # ---------------------------------------------------------------------------- objects
 ERROR_CODE = 0x603F
@@ -180,25 +186,166 @@ STATUSWORD = 0x6041
 QUICK_STOP_OPTION = 0x605A
 MODES_OF_OPERATION = 0x6060
 MODES_DISPLAY = 0x6061
+POSITION_DEMAND = 0x6062
 POSITION_ACTUAL = 0x6064
+FOLLOWING_ERROR_WINDOW = 0x6065   # UNSIGNED32 [increments]
+POSITION_WINDOW = 0x6067          # UNSIGNED32 [increments]: PP's "target reached" band
+POSITION_WINDOW_TIME = 0x6068     # UNSIGNED16 [ms]
+VELOCITY_DEMAND = 0x606B
 VELOCITY_ACTUAL = 0x606C
+VELOCITY_WINDOW = 0x606D          # UNSIGNED16 [increments/s]: PV's "target reached" band
+VELOCITY_WINDOW_TIME = 0x606E     # UNSIGNED16 [ms]
+VELOCITY_THRESHOLD = 0x606F       # UNSIGNED16 [increments/s]: PV's "speed zero" band
 TARGET_TORQUE = 0x6071
 MAX_TORQUE = 0x6072
 MAX_CURRENT = 0x6073
 RATED_CURRENT = 0x6075
 TORQUE_ACTUAL = 0x6077
 TARGET_POSITION = 0x607A
+HOME_OFFSET = 0x607C              # INTEGER32 [increments]: the home position's value
 POLARITY = 0x607E               # bit 7: position, bit 6: velocity (and torque) reversed
+PROFILE_VELOCITY = 0x6081         # UNSIGNED32 [increments/s]
+PROFILE_ACCELERATION = 0x6083     # UNSIGNED32 [increments/s^2]
+PROFILE_DECELERATION = 0x6084     # UNSIGNED32 [increments/s^2]
+QUICK_STOP_DECELERATION = 0x6085  # UNSIGNED32 [increments/s^2]
 ENCODER_RESOLUTION = 0x608F     # 1: increments, 2: motor revolutions
 GEAR_RATIO = 0x6091             # 1: motor revolutions, 2: shaft revolutions
+HOMING_METHOD = 0x6098            # INTEGER8
+HOMING_SPEEDS = 0x6099            # 1: switch search, 2: zero search, UNSIGNED32 [increments/s]
+HOMING_ACCELERATION = 0x609A      # UNSIGNED32 [increments/s^2]
+DIGITAL_INPUTS = 0x60FD           # UNSIGNED32: bit 0 negative limit, 1 positive limit, 2 home
+TARGET_VELOCITY = 0x60FF          # INTEGER32 [increments/s]
 SUPPORTED_MODES = 0x6502
 POLARITY_POSITION, POLARITY_VELOCITY = 0x80, 0x40
-
-# -------------------------------------------------------------------- default PDO map
-PDO_NOT_VALID = 0x8000_0000  # CiA 301: bit 31 of a PDO's COB-ID
+DI_NEGATIVE_LIMIT, DI_POSITIVE_LIMIT, DI_HOME_SWITCH = 0x1, 0x2, 0x4
 
 MapEntry = tuple[int, int, int]  # (index, subindex, size in bits)
 
+# ---------------------------------------------------------- modes of operation (0x6060)
+NO_MODE = 0
+PROFILE_POSITION_MODE = 1
+PROFILE_VELOCITY_MODE = 3
+HOMING_MODE = 6
+CYCLIC_SYNCHRONOUS_POSITION = 8
+CYCLIC_SYNCHRONOUS_VELOCITY = 9
+CYCLIC_SYNCHRONOUS_TORQUE = 10
+#: CiA 402's short name of every mode of operation, by code
+MODE_SHORT_NAMES: dict[int, str] = {1: "PP", 2: "VL", 3: "PV", 4: "TQ", 6: "HM", 7: "IP",
+                                    8: "CSP", 9: "CSV", 10: "CST"}
+
+
+def supported_mode_bit(code: int) -> int:
+    """The bit of mode ``code`` in 0x6502: bit n-1 for modes 1..10 (CiA 402)."""
+    return 1 << (code - 1)
+
+
+@dataclass(frozen=True)
+class OperationMode:
+    """One mode of operation as a master drives it: everything that differs between modes
+    is here, so the master and the emulated drive branch on data, not on the mode.
+
+    ``set_point``: the object the master sends after the controlword in RPDO1 every cycle
+    (None: the controlword alone, homing); ``unit``: the set point's unit on hil's side
+    (``deg``, ``deg/s``, ``mA``; None: none); ``cyclic``: the drive follows a set point sent
+    every SYNC (statusword bit 12 "follows the command"), else it runs a profile of its own
+    towards a target (PP, PV) or a homing; ``profile``: the objects that shape that profile,
+    written at configure; ``status_bits``: what statusword bits 10, 12 and 13 mean in it."""
+
+    name: str
+    code: int
+    title: str
+    set_point: MapEntry | None
+    unit: str | None
+    cyclic: bool
+    profile: tuple[tuple[int, int], ...] = ()
+    status_bits: tuple[tuple[int, str], ...] = ()
+
+    @property
+    def short(self) -> str:
+        return MODE_SHORT_NAMES[self.code]
+
+    @property
+    def supported_bit(self) -> int:
+        return supported_mode_bit(self.code)
+
+    def rpdo1(self) -> PdoMap:
+        """RPDO1 in this mode: the controlword, then the set point (if the mode has one)."""
+        entries = ((CONTROLWORD, 0, 16),) + ((self.set_point,) if self.set_point else ())
+        return PdoMap(RPDO1.comm, RPDO1.mapping, RPDO1.cob_base, entries)
+
+
+_FOLLOWS = ((12, "follows the command"), (13, "following error"))
+PROFILE_MOVE = ((PROFILE_VELOCITY, 0), (PROFILE_ACCELERATION, 0), (PROFILE_DECELERATION, 0))
+#: every mode hil drives, by the name ``[master] mode`` and the command line give
+OPERATION_MODES: dict[str, OperationMode] = {mode.name: mode for mode in (
+    OperationMode("pp", PROFILE_POSITION_MODE, "profile position", (TARGET_POSITION, 0, 32),
+                  "deg", False, PROFILE_MOVE,
+                  ((10, "target reached"), (12, "set-point acknowledge"),
+                   (13, "following error"))),
+    OperationMode("pv", PROFILE_VELOCITY_MODE, "profile velocity", (TARGET_VELOCITY, 0, 32),
+                  "deg/s", False, PROFILE_MOVE[1:],
+                  ((10, "target reached"), (12, "speed zero"), (13, "max slippage"))),
+    OperationMode("hm", HOMING_MODE, "homing", None, None, False,
+                  ((HOMING_METHOD, 0), (HOME_OFFSET, 0), (HOMING_SPEEDS, 1), (HOMING_SPEEDS, 2),
+                   (HOMING_ACCELERATION, 0)),
+                  ((10, "target reached"), (12, "homing attained"), (13, "homing error"))),
+    OperationMode("csp", CYCLIC_SYNCHRONOUS_POSITION, "cyclic synchronous position",
+                  (TARGET_POSITION, 0, 32), "deg", True, (), ((10, "status toggle"), *_FOLLOWS)),
+    OperationMode("csv", CYCLIC_SYNCHRONOUS_VELOCITY, "cyclic synchronous velocity",
+                  (TARGET_VELOCITY, 0, 32), "deg/s", True, (),
+                  ((10, "status toggle"), (12, "follows the command"))),
+    OperationMode("cst", CYCLIC_SYNCHRONOUS_TORQUE, "cyclic synchronous torque",
+                  (TARGET_TORQUE, 0, 16), "mA", True, (),
+                  ((10, "status toggle"), (12, "follows the command"))),
+)}
+#: the modes by their 0x6060 code
+MODES_BY_CODE: dict[int, OperationMode] = {mode.code: mode for mode in OPERATION_MODES.values()}
+# the older names, kept as views of the table
+MODES: dict[str, int] = {name: mode.code for name, mode in OPERATION_MODES.items()}
+SUPPORTED_MODE_BITS: dict[int, int] = {mode.code: mode.supported_bit
+                                       for mode in OPERATION_MODES.values()}
+
+
+def mode_switch_allowed(state: str, current: OperationMode | None, target: OperationMode,
+                        standing: bool) -> bool:
+    """Whether a master may switch 0x6060 from ``current`` to ``target`` now. CiA 402 lets a
+    drive change modes in any state, but only a standing axis may change what it follows:
+    outside OPERATION ENABLED always; in it, only between modes whose set points are alike
+    (cyclic to cyclic) and with the axis standing (``standing``: below the standstill speed)."""
+    if state != OPERATION_ENABLED or current is None or current == target:
+        return True
+    return standing and current.cyclic == target.cyclic
+
+
+# --------------------------------------------------------------------- homing (0x6098)
+@dataclass(frozen=True)
+class HomingMethod:
+    """One CiA 402 homing method: where it searches first (``direction`` -1 / +1; 0: no
+    move), the switch whose edge it looks for (``switch``: a DI_* bit of 0x60FD, 0: none),
+    and whether home is the first index pulse after that edge (``index``) or the edge itself.
+    Home is then ``0x607C`` home offset."""
+
+    number: int
+    direction: int
+    switch: int
+    index: bool
+    text: str
+
+
+#: the homing methods hil knows, by number (CiA 402 section "homing mode")
+HOMING_METHODS: dict[int, HomingMethod] = {m.number: m for m in (
+    HomingMethod(1, -1, DI_NEGATIVE_LIMIT, True, "negative limit switch and index pulse"),
+    HomingMethod(2, +1, DI_POSITIVE_LIMIT, True, "positive limit switch and index pulse"),
+    HomingMethod(17, -1, DI_NEGATIVE_LIMIT, False, "negative limit switch"),
+    HomingMethod(18, +1, DI_POSITIVE_LIMIT, False, "positive limit switch"),
+    HomingMethod(33, -1, 0, True, "index pulse in the negative direction"),
+    HomingMethod(34, +1, 0, True, "index pulse in the positive direction"),
+    HomingMethod(35, 0, 0, False, "current position (before CiA 402 v4: 37)"),
+    HomingMethod(37, 0, 0, False, "current position"),
+)}
+
+# -------------------------------------------------------------------- default PDO map
+PDO_NOT_VALID = 0x8000_0000  # CiA 301: bit 31 of a PDO's COB-ID
 
 def mapping_entry(index: int, subindex: int, bits: int) -> int:
     """The UNSIGNED32 value of one PDO mapping entry (CiA 301)."""
@@ -226,11 +373,6 @@ class PdoMap:
         return sum(bits for _, _, bits in self.entries) // 8
 
 
-# the target each cyclic synchronous mode reads from RPDO1, after the controlword
-CYCLIC_TARGETS: dict[int, MapEntry] = {
-    CYCLIC_SYNCHRONOUS_TORQUE: (TARGET_TORQUE, 0, 16),
-    CYCLIC_SYNCHRONOUS_POSITION: (TARGET_POSITION, 0, 32),
-}
 RPDO1 = PdoMap(0x1400, 0x1600, 0x200, ((CONTROLWORD, 0, 16), (TARGET_TORQUE, 0, 16)))
 TPDO1 = PdoMap(0x1800, 0x1A00, 0x180, ((STATUSWORD, 0, 16), (POSITION_ACTUAL, 0, 32)))
 TPDO2 = PdoMap(0x1801, 0x1A01, 0x280, ((VELOCITY_ACTUAL, 0, 32), (TORQUE_ACTUAL, 0, 16)))
@@ -243,8 +385,3 @@ TPDO1_ALONE = PdoMap(0x1800, 0x1A00, 0x180, ((STATUSWORD, 0, 16), (POSITION_ACTU
 #: ``[master] tpdo_layout``: the TPDOs each cycle's feedback comes in
 TPDO_LAYOUTS: dict[str, tuple[PdoMap, ...]] = {"two": TPDOS, "one": (TPDO1_ALONE,)}
 
-
-def rpdo1_for(mode: int) -> PdoMap:
-    """RPDO1 for a cyclic synchronous mode: the controlword and that mode's target."""
-    return PdoMap(RPDO1.comm, RPDO1.mapping, RPDO1.cob_base,
-                  ((CONTROLWORD, 0, 16), CYCLIC_TARGETS[mode]))

@@ -82,11 +82,28 @@ def test_enable_steps_walk_from_switch_on_disabled_to_operation_enabled():
 
 
 def test_mode_codes_and_supported_mode_bits_are_canopens():
-    assert cia402.MODES == {"csp": OperationMode.CYCLIC_SYNCHRONOUS_POSITION,
+    assert cia402.MODES == {"pp": OperationMode.PROFILED_POSITION,
+                            "pv": OperationMode.PROFILED_VELOCITY,
+                            "hm": OperationMode.HOMING,
+                            "csp": OperationMode.CYCLIC_SYNCHRONOUS_POSITION,
+                            "csv": OperationMode.CYCLIC_SYNCHRONOUS_VELOCITY,
                             "cst": OperationMode.CYCLIC_SYNCHRONOUS_TORQUE}
     assert cia402.NO_MODE == OperationMode.NO_MODE
     for mode, bit in cia402.SUPPORTED_MODE_BITS.items():
         assert OperationMode.SUPPORTED[OperationMode.CODE2NAME[mode]] == bit
+    for code, short in cia402.MODE_SHORT_NAMES.items():
+        assert cia402.supported_mode_bit(code) == OperationMode.SUPPORTED[
+            OperationMode.CODE2NAME[code]], short
+
+
+def test_a_standing_axis_switches_between_modes_alike_only():
+    modes = cia402.OPERATION_MODES
+    enabled = cia402.OPERATION_ENABLED
+    assert cia402.mode_switch_allowed(cia402.SWITCH_ON_DISABLED, modes["cst"], modes["pp"],
+                                      standing=False)
+    assert cia402.mode_switch_allowed(enabled, modes["cst"], modes["csp"], standing=True)
+    assert not cia402.mode_switch_allowed(enabled, modes["cst"], modes["csp"], standing=False)
+    assert not cia402.mode_switch_allowed(enabled, modes["csp"], modes["pp"], standing=True)
 
 
 def test_default_pdo_map():
@@ -95,6 +112,9 @@ def test_default_pdo_map():
     assert cia402.TPDO2.mapping_values() == [0x606C0020, 0x60770010]
     assert [p.cob_id(5) for p in (*cia402.RPDOS, *cia402.TPDOS)] == [0x205, 0x185, 0x285]
     assert [p.size_bytes for p in (*cia402.RPDOS, *cia402.TPDOS)] == [4, 6, 6]
-    assert cia402.rpdo1_for(cia402.CYCLIC_SYNCHRONOUS_TORQUE) == cia402.RPDO1
-    csp = cia402.rpdo1_for(cia402.CYCLIC_SYNCHRONOUS_POSITION)
+    modes = cia402.OPERATION_MODES
+    assert modes["cst"].rpdo1() == cia402.RPDO1
+    csp = modes["csp"].rpdo1()
     assert csp.mapping_values() == [0x60400010, 0x607A0020] and csp.size_bytes == 6
+    assert modes["csv"].rpdo1().mapping_values() == [0x60400010, 0x60FF0020]
+    assert modes["hm"].rpdo1().mapping_values() == [0x60400010]
