@@ -22,6 +22,11 @@ class DriveLinkLostError(DriveError):
     """No answer from the drive (TPDO watchdog, SDO time-out, bus error, reboot)."""
 
 
+class DriveNotFoundError(DriveLinkLostError):
+    """The node never answered: no drive at that node id on that bus (a wrong ``--node``, the
+    wrong bus, the drive off). The message names the nodes a scan of the bus found."""
+
+
 class DriveGoneError(DriveLinkLostError):
     """In lockstep, the drive gave no sign of life for the whole wall-clock bound of a cycle:
     it is gone (stopped, disconnected, or paused for longer than the bound). A disturbed run,

@@ -186,7 +186,7 @@ class CanDriveMaster(Device):
         # download queued for the cyclic exchange (``sdo.queue_write``) is raised by the next
         # receive_feedback()
         self.sdo = SdoClient(link, n, config.sdo_timeout_s, self._other_frame,
-                             silence_is_gone=config.lockstep)
+                             gone_after_s=config.lockstep_timeout_s if config.lockstep else None)
         self.nmt = Nmt(link, n)
         self.heartbeat_watch = HeartbeatWatch(n, config.drive_heartbeat_ms, self._clock.time_ns)
         # the frames that are not the cyclic TPDOs, by COB-ID (the watched ids over any other)

@@ -2,7 +2,11 @@
 downloads queued for the cyclic exchange.
 
 A blocking request has one absolute deadline: frames that are not its answer (EMCY,
-heartbeats, late TPDOs, garbage) go to ``other`` as they come and never extend it. A queued
+heartbeats, late TPDOs, garbage) go to ``other`` as they come and never extend it. A node that
+has never answered is waited the SDO time-out, whatever longer bound lockstep gives a node
+known to be there (``gone_after_s``); when it stays silent, the error names the nodes that
+answer a scan of the bus (:func:`hil.drivers.canopen.scan.discover`): a wrong node id is said
+at once, not after the lockstep bound. A queued
 download (:meth:`SdoClient.queue_write`) goes out with the next cycle's frames and its answer
 is taken by the cyclic receive, so no SDO round trip runs inside a cycle; a refusal is kept
 for :meth:`SdoClient.take_error`.
@@ -15,7 +19,12 @@ import time
 from collections import deque
 from collections.abc import Callable
 
-from hil.drivers.canopen.errors import DriveError, DriveGoneError, DriveLinkLostError
+from hil.drivers.canopen.errors import (
+    DriveError,
+    DriveGoneError,
+    DriveLinkLostError,
+    DriveNotFoundError,
+)
 from hil.drivers.canopen.link import Link
 from hil.protocols.can_frames import Frame
 from hil.protocols.cia301 import (
@@ -48,13 +57,15 @@ def download_request(index: int, subindex: int, value: int, fmt: str) -> bytes:
 
 
 class SdoClient:
-    """The SDO channel to node ``node_id`` over ``link``."""
+    """The SDO channel to node ``node_id`` over ``link``: each request waits ``timeout_s``;
+    lockstep over a bus (``gone_after_s``): a node that has answered once is waited that
+    long (wall clock) and is gone after it (:class:`DriveGoneError`)."""
 
     def __init__(self, link: Link, node_id: int, timeout_s: float,
-                 other: Callable[[Frame], None], *, silence_is_gone: bool = False) -> None:
+                 other: Callable[[Frame], None], *, gone_after_s: float | None = None) -> None:
         self.link, self.node_id, self.timeout_s = link, node_id, timeout_s
-        # lockstep over a bus: the time-out is the generous wall-clock bound of a gone drive
-        self._unanswered = DriveGoneError if silence_is_gone else DriveLinkLostError
+        self.gone_after_s = gone_after_s
+        self.answered = False  # the node has answered a request (it is on the bus)
         self._other = other
         self._request_id = SDO_REQUEST_BASE + node_id
         self.response_id = SDO_RESPONSE_BASE + node_id
@@ -102,17 +113,51 @@ class SdoClient:
         self._request(download_request(index, subindex, value, fmt),
                       f"write 0x{index:04X}:{subindex:02X} = {value}", None)
 
+    def _wait_s(self, timeout_s: float | None) -> float:
+        """How long a request waits: as asked, else the SDO time-out, or for a node that has
+        answered before, lockstep's longer bound."""
+        if timeout_s is not None:
+            return timeout_s
+        if self.answered and self.gone_after_s is not None:
+            return max(self.timeout_s, self.gone_after_s)
+        return self.timeout_s
+
+    def _silent(self, what: str, timeout_s: float) -> DriveLinkLostError:
+        """The error of a request ``timeout_s`` unanswered: a node never heard from is not
+        found (the nodes a scan of the bus finds named), one heard from is gone (lockstep) or
+        its link lost."""
+        message = (f"drive node {self.node_id} did not answer SDO {what} within "
+                   f"{timeout_s:g} s on {self.link.name}")
+        if not self.answered:
+            return DriveNotFoundError(f"{message}: it has never answered; {self._census()}")
+        kind = DriveGoneError if self.gone_after_s is not None else DriveLinkLostError
+        return kind(message)
+
+    def _census(self) -> str:
+        """Which nodes answer a scan of the bus (an SDO read of 0x1000 sent to every node id:
+        :func:`hil.drivers.canopen.scan.discover`), as a clause of an error."""
+        from hil.drivers.canopen.scan import discover  # scan builds on this module
+
+        try:
+            found = discover(self.link)
+        except DriveLinkLostError as exc:
+            return f"the bus could not be scanned ({exc})"
+        if not found:
+            return ("no node answered a scan of the bus (is the drive powered, on this bus, "
+                    "at its bit rate?)")
+        names = ", ".join(str(node) for node in found)
+        return (f"the nodes that answered a scan of the bus: {names} (the drive's node id: "
+                "--node N or [master] node_id)")
+
     def _request(self, request: bytes, what: str, timeout_s: float | None,
                  segment: bool = False) -> bytes:
-        timeout_s = self.timeout_s if timeout_s is None else timeout_s
+        timeout_s = self._wait_s(timeout_s)
         self.link.send([(self._request_id, request)])
         deadline = time.monotonic() + timeout_s
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                raise self._unanswered(
-                    f"drive node {self.node_id} did not answer SDO {what} within "
-                    f"{timeout_s:g} s on {self.link.name}")
+                raise self._silent(what, timeout_s)
             frame = self.link.recv(min(remaining, WAIT_SLICE_S))
             if frame is None:
                 continue
@@ -126,6 +171,7 @@ class SdoClient:
                 self.on_response(response)  # a queued download's answer
                 continue
             if segment or response[1:4] == request[1:4]:
+                self.answered = True
                 if response[0] == SDO_ABORT:
                     raise SdoAbortError(int.from_bytes(response[4:8], "little"),
                                         f"drive node {self.node_id} refused SDO {what}")
@@ -149,6 +195,7 @@ class SdoClient:
         outstanding = self._outstanding
         if outstanding is None or len(response) != 8 or response[1:4] != outstanding[0][1:4]:
             return
+        self.answered = True
         self._outstanding = None
         if response[0] == SDO_ABORT:
             self._error = SdoAbortError(int.from_bytes(response[4:8], "little"),

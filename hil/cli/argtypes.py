@@ -15,6 +15,16 @@ def positive_int(text: str) -> int:
     return value
 
 
+def node_id(text: str) -> int:
+    """A CANopen node id: 1..127 (CiA 301)."""
+    from hil.protocols.cia301 import MAX_NODE_ID
+
+    value = positive_int(text)
+    if value > MAX_NODE_ID:
+        raise argparse.ArgumentTypeError(f"a CANopen node id is 1..{MAX_NODE_ID}, got {value}")
+    return value
+
+
 def positive_float(text: str) -> float:
     try:
         value = float(text)

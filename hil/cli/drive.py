@@ -9,7 +9,7 @@ import contextlib
 import json
 from typing import Any
 
-from hil.cli.argtypes import positive_float, positive_int
+from hil.cli.argtypes import node_id, positive_float, positive_int
 
 URL_HELP = ("the bus: socketcand://HOST:PORT[/CHANNEL] | INTERFACE://CHANNEL[?key=value&...] "
             "for any python-can interface (socketcan://can0, pcan://PCAN_USBBUS1, gs_usb://0, "
@@ -35,7 +35,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "drive it in the configured mode, and if not, every reason (a FAULT names its code "
         "and `hil drive reset`). Exit status 0: nodes found; 1: none answered.")
     scan.add_argument("url", metavar="URL", help=URL_HELP)
-    scan.add_argument("--node", type=positive_int, action="append",
+    scan.add_argument("--node", type=node_id, action="append",
                       help="inspect this node only (repeat for several)")
     scan.add_argument("--config", metavar="F.toml",
                       help="drive config laid over the default (its [master] mode and [bus])")
@@ -53,7 +53,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "fault reaction has ended. A drive that is not in FAULT is left as it is; nothing is "
         "enabled.")
     reset.add_argument("url", metavar="URL", help=URL_HELP)
-    reset.add_argument("--node", type=positive_int, default=1, help="CANopen node id")
+    reset.add_argument("--node", type=node_id, default=1, help="CANopen node id")
     reset.add_argument("--config", metavar="F.toml",
                        help="drive config laid over the default (hil/configs/drive.toml)")
     reset.set_defaults(handler=reset_command)
@@ -115,7 +115,7 @@ def _register_sdo(sub: argparse._SubParsersAction) -> None:
                        help="the value: an integer (decimal, 0x-hex, negative), a number for "
                        "REAL32, 0/1/true/false for BOOLEAN")
     for parser in (read, write):
-        parser.add_argument("--node", type=positive_int, default=1,
+        parser.add_argument("--node", type=node_id, default=1,
                             help="CANopen node id (1)")
         parser.add_argument("--type", type=_data_type, metavar="T",
                             help="the object's data type: u8, u16, u32, u64, i8, i16, i32, "

@@ -146,12 +146,12 @@ def resolve_servo(options: ServoRunOptions) -> ServoSettings:
 
 def lockstep_over_a_bus(drive: DriveConfig) -> DriveConfig:
     """Lockstep over a bus: the master waits ``lockstep_timeout_ms`` of wall time for every
-    answer (a SYNC's TPDOs, an SDO reply); a drive silent for all of it is gone."""
+    answer (a SYNC's TPDOs, an SDO reply of a drive that has answered before: a node never
+    heard from gets ``sdo_timeout_ms``); a drive silent for all of it is gone."""
     master = drive.master
     timeout_ms = round(master.lockstep_timeout_s * 1e3)
     drive = drive.laid_over({"master": {
-        "rx_timeout_us": max(round(master.rx_timeout_s * 1e6), timeout_ms * 1000),
-        "sdo_timeout_ms": max(round(master.sdo_timeout_s * 1e3), timeout_ms)}},
+        "rx_timeout_us": max(round(master.rx_timeout_s * 1e6), timeout_ms * 1000)}},
         LOCKSTEP_ORIGIN)
     return replace(drive, master=replace(drive.master, lockstep=True))
 
