@@ -2,7 +2,9 @@
 own, different from hil's emulator where a real drive would be: a 17-bit encoder, a rated
 current of 2 A, CST only, all four PDOs valid at power-on, no RPDO2-4/TPDO3-4 at all, and the
 CiA 301 remapping rules enforced (a valid PDO's COB-ID and mapping cannot change; a mapping
-entry must name a mappable object of the right size). Its SYNC counter echo is object 0x2100.
+entry must name a mappable object of the right size). Its SYNC counter echo is object 0x2100;
+0x2003 and 0x2005 are objects of its own (digital outputs, a brake release delay), where hil's
+emulator has its disturbance torque and time base.
 
 SDO, NMT and the heartbeat producer are canopen's; this module adds what a LocalNode does not
 do: the cyclic path (RPDO latched on SYNC, a simple axis advanced one period, the TPDOs of the
@@ -37,6 +39,7 @@ from canopen.sdo import SdoAbortedError
 INCREMENTS = 1 << 17
 RATED_MA = 2000
 ECHO = 0x2100
+VENDOR_OUTPUTS, VENDOR_BRAKE_DELAY = 0x2003, 0x2005  # where hil's emulator has its hooks
 SUPPORTED = 0x0200  # CST only
 PERIOD_S = 500e-6
 GAIN_DEG_S2_PER_MA = 400.0  # axis acceleration per mA (a plain inertia)
@@ -99,6 +102,9 @@ def dictionary(node_id: int, max_current_permille: int | None = None) -> ObjectD
     _pdo(od, 0x1800, 0x1A00, 0x180 + node_id, TPDO1)
     _pdo(od, 0x1801, 0x1A01, 0x280 + node_id, TPDO2)
     add(_var("SYNC counter of this answer", ECHO, 0, dt.UNSIGNED8, "ro", 0, True))
+    # the vendor's own objects at the indices of hil's emulator's hooks, meaning other things
+    add(_var("Digital outputs", VENDOR_OUTPUTS, 0, dt.INTEGER16, "rw", 0))
+    add(_var("Brake release delay [ms]", VENDOR_BRAKE_DELAY, 0, dt.UNSIGNED32, "rw", 200))
     add(_var("Error code", 0x603F, 0, dt.UNSIGNED16, "ro", 0))
     add(_var("Controlword", 0x6040, 0, dt.UNSIGNED16, "rw", 0, True))
     add(_var("Statusword", 0x6041, 0, dt.UNSIGNED16, "ro", 0, True))

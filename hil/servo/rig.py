@@ -36,6 +36,7 @@ from hil.drivers.canopen.bus import URL_FORMS, open_can_bus, parse_can_url
 from hil.drivers.canopen.can_log import CanLog
 from hil.drivers.canopen.clocks import SyncClock
 from hil.drivers.canopen.config import DriveMasterConfig
+from hil.drivers.canopen.identity import not_hil_emulator, read_identity
 from hil.drivers.canopen.link import CanLink, FrameTrace
 from hil.drivers.canopen.master import CanDriveMaster
 from hil.drivers.canopen.state import MasterClock
@@ -239,8 +240,16 @@ def share_lockstep_time(master: CanDriveMaster, on_event: EventSink = no_event) 
     wire, which no pause can fault; the drive's own clock again when the master lets it go.
     A drive that keeps its own clock (real hardware, ``hil emulate drive --clock wall``) is
     watched on the wall clock, as in real time. Whether it does: the return value, and a
-    ``drive.clock`` event."""
+    ``drive.clock`` event. 0x2005 is written only to a drive whose identity (0x1018) is hil's
+    emulator's: a vendor's drive is watched on the wall clock without being asked."""
     n, bound_ms = master.node_id, round(master.config.lockstep_timeout_s * 1e3)
+    identity = read_identity(master.sdo)
+    if not identity.hil_emulator:
+        on_event("drive.clock", f"{not_hil_emulator(n, identity, '0x2005 time base')}: it "
+                 "keeps its own clock, and lockstep watches it on the wall clock, where a "
+                 "pause on either side can fault it", level="warning", source=f"drive{n}",
+                 shared=False, identity=identity.as_dict())
+        return False
     try:
         master.sdo.write(TIME_BASE, 0, bound_ms, "<I")
     except SdoAbortError as exc:

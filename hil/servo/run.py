@@ -55,8 +55,8 @@ from hil.core.run import (
 )
 from hil.core.session import Session
 from hil.core.tuning import Tuner, add_controller
-from hil.drivers.canopen import CanDriveMaster, SdoAbortError
-from hil.errors import HilError, SafetyStopError, UsageError
+from hil.drivers.canopen import CanDriveMaster
+from hil.errors import HilError, SafetyStopError
 from hil.servo.axes import AxisShare, BusCycle, SharedStep
 from hil.servo.builtin import ServoContext
 from hil.servo.config import stricter_safety
@@ -67,10 +67,7 @@ from hil.servo.plan import ServoPlan, ServoState, plan_servo
 from hil.servo.rig import open_drives, share_lockstep_time
 from hil.servo.safety import SafetyMonitor
 from hil.servo.settings import resolve_servo
-from hil.servo.task import (
-    DISTURBANCE_OBJECT,
-    ServoTask,
-)
+from hil.servo.task import ServoTask, check_disturbance_object
 from hil.servo.tracking import reference_amplitude
 from hil.servo.tunables import add_servo_limits
 
@@ -352,12 +349,3 @@ def realtime_factor(ticks: int, loop: FixedRateLoop) -> float | None:
         return None
     return round(ticks * (loop.base_period_ns / 1e9) / loop.ticking_s, 2)
 
-
-def check_disturbance_object(master: CanDriveMaster) -> None:
-    """The disturbance scenario pushes the axis through the emulated drive's 0x2003."""
-    try:
-        master.sdo.write(DISTURBANCE_OBJECT, 0, 0, "<h")
-    except SdoAbortError as exc:
-        raise UsageError(
-            "the disturbance scenario needs the emulated drive's disturbance torque object "
-            f"0x2003 (a test hook), which this drive refuses: {exc}") from None

@@ -46,8 +46,9 @@ from hil.core.guard import guarded_call
 from hil.core.loop import Task
 from hil.core.session import Session
 from hil.core.verdict import SignalWatch
-from hil.drivers.canopen import CanDriveMaster, Feedback
-from hil.errors import ControllerError
+from hil.drivers.canopen import CanDriveMaster, Feedback, SdoAbortError
+from hil.drivers.canopen.identity import not_hil_emulator, read_identity
+from hil.errors import ControllerError, UsageError
 from hil.servo.safety import SafetyMonitor
 from hil.servo.topics import COMMAND_SCHEMA, FEEDBACK_SCHEMA, PREDICTION_SCHEMA, STOP_SCHEMA
 from hil.servo.tracking import ReferenceSamples, TrackingStats
@@ -55,6 +56,8 @@ from hil.servo.tracking import ReferenceSamples, TrackingStats
 PREDICTION_EVERY_REALTIME = 10  # 200 Hz of /mpc/prediction in real time and in long runs
 PREDICTION_EVERY_TICK_UP_TO_S = 60.0  # lockstep runs up to this long record it every tick
 DISTURBANCE_OBJECT = 0x2003  # the emulated drive's external disturbance torque [mA], INTEGER16
+#: hil's emulated drive's object the disturbance scenario pushes the axis through
+DISTURBANCE_TEXT = "0x2003 disturbance torque"
 NUMBERS = (int, float, np.number)  # what a step may return (built once: checked every tick)
 
 
@@ -268,3 +271,20 @@ class ServoTask(Task):
                                "the input", level="warning", source="mpc", t_s=self._t_s)
         self._last_path = path
         return path
+
+
+def check_disturbance_object(master: CanDriveMaster) -> None:
+    """The disturbance scenario pushes the axis through hil's emulated drive's 0x2003, a
+    manufacturer object: the drive must be hil's emulator (its 0x1018), and take it (a twin
+    whose file has an object of its own there does not). Else one UsageError line."""
+    identity = read_identity(master.sdo)
+    if not identity.hil_emulator:
+        raise UsageError("the disturbance scenario pushes the axis through hil's emulated "
+                         f"drive's {DISTURBANCE_TEXT}: "
+                         f"{not_hil_emulator(master.node_id, identity, DISTURBANCE_TEXT)}")
+    try:
+        master.sdo.write(DISTURBANCE_OBJECT, 0, 0, "<h")
+    except SdoAbortError as exc:
+        raise UsageError(
+            f"the disturbance scenario needs the emulated drive's {DISTURBANCE_TEXT} object "
+            f"(a test hook), which this drive refuses: {exc}") from None

@@ -129,12 +129,14 @@ def test_a_drive_silent_beyond_the_bound_is_gone(tmp_path):
 
 
 def test_a_drive_gone_silent_is_one_line_and_exit_3_from_the_command_line(tmp_path):
-    """The emulator falls silent (its 'silent' fault: bus-off, 1 s into its time) while a
-    lockstep run waits on it (for its SDO answer or its TPDOs, whichever comes first): one line
-    after the bound, exit status 3, the report disturbed."""
+    """The emulator falls silent (its 'silent' fault: bus-off, 0.2 s into its time, which is
+    the SYNCs' from power-on: 400 ticks into the run, after it reached the drive; a drive
+    silent from the first request on is not found, exit status 2) while a lockstep run waits on
+    it (for its SDO answer or its TPDOs, whichever comes first): one line after the bound, exit
+    status 3, the report disturbed."""
     config = tmp_path / "drive.toml"
     config.write_text("[master]\nlockstep_timeout_ms = 500\n")
-    with api.start_drive_emulator(faults=["silent@1"]) as drive:
+    with api.start_drive_emulator(faults=["silent@0.2"], clock="sync") as drive:
         run = hil(tmp_path, "servo", "run", "--controller", "pid", "--drive", drive.url,
                   "--config", str(config), "--duration", "60", "--json", "--out", "gone.mcap")
         out, err = run.communicate(timeout=120)
