@@ -2,14 +2,23 @@
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+
+# the journals of settings runs write to drives (hil.drivers.canopen.run_settings) go to this
+# test session's own folder, not the user's state folder; hil processes the tests start inherit it
+if "HIL_STATE_DIR" not in os.environ:
+    os.environ["HIL_STATE_DIR"] = tempfile.mkdtemp(prefix="hil-test-state-")
+    atexit.register(shutil.rmtree, os.environ["HIL_STATE_DIR"], True)
 
 
 @pytest.fixture

@@ -49,6 +49,7 @@ from hil.drivers.canopen.errors import (
 from hil.drivers.canopen.link import Link
 from hil.drivers.canopen.nmt import HeartbeatProducer, HeartbeatWatch, Nmt
 from hil.drivers.canopen.pdo import PdoConfigurator
+from hil.drivers.canopen.run_settings import RunSettings
 from hil.drivers.canopen.scaling import DriveScaling, read_scaling
 from hil.drivers.canopen.sdo import SdoClient
 from hil.drivers.canopen.state import MasterClock, StateControl
@@ -212,8 +213,8 @@ class CanDriveMaster(Device):
         self.budget = self._bus_budget()
         self.description: DriveDescription | None = None
         self._limit: CurrentLimit | None = None   # read at open()
-        self._max_torque_written = False
-        self._releases: list[Callable[[], None]] = []
+        # every setting this master writes, put back when it lets the drive go
+        self.settings = RunSettings(self.sdo, n, self._event)
         self.last_emcy_code = 0
         self._enabled = False
         self._latched: DriveError | SdoAbortError | None = None
@@ -236,12 +237,6 @@ class CanDriveMaster(Device):
     @clock.setter
     def clock(self, clock: MasterClock) -> None:
         self._clock.clock = clock
-
-    def on_release(self, release: Callable[[], None]) -> None:
-        """``release`` runs when the master lets the drive go (:meth:`disconnect`), over a link
-        still up, before the bus is released: a setting of this run put back. A
-        :class:`DriveError` it raises becomes a ``drive.release_failed`` event."""
-        self._releases.append(release)
 
     @property
     def link_up(self) -> bool:
@@ -358,7 +353,6 @@ class CanDriveMaster(Device):
         if shown != self.mode:
             raise DriveStateError(f"drive node {n} shows mode {shown} after 0x6060 = {self.mode}")
         self._write_setting(MAX_TORQUE, 0, self._max_torque_units(), "<H")
-        self._max_torque_written = True
         self._write_setting(QUICK_STOP_OPTION, 0, c.quick_stop_option, "<h")
         if self.mode == CSP:
             self._write_setting(TARGET_POSITION, 0, sdo.read_int(POSITION_ACTUAL, 0, "<i"), "<i")
@@ -382,8 +376,8 @@ class CanDriveMaster(Device):
 
     def _write_setting(self, index: int, subindex: int, value: int, fmt: str = "<I") -> None:
         """Write one setting of this run to the drive (SDO): every object :meth:`configure`
-        sets goes through here."""
-        self.sdo.write(index, subindex, value, fmt)
+        sets goes through here, kept to be put back (:attr:`settings`)."""
+        self.settings.write(index, subindex, value, fmt)
 
     # -- life cycle -----------------------------------------------------------------------------
     def open(self) -> None:
@@ -410,6 +404,7 @@ class CanDriveMaster(Device):
         if state not in (SWITCH_ON_DISABLED, NOT_READY_TO_SWITCH_ON):
             self.states.controlword(CW_DISABLE_VOLTAGE)  # left enabled by someone
         self.states.wait_state(SWITCH_ON_DISABLED, "disable voltage")
+        self.settings.open()  # an earlier run's leftover put back before the limits are read
         self._read_units_and_limits()
 
     def _read_units_and_limits(self) -> None:
@@ -744,26 +739,26 @@ class CanDriveMaster(Device):
         idempotent. :meth:`close` (safe stop, then this) is the usual way out."""
         if self._closed:
             return
-        self._restore_max_torque()
-        self._release_settings()
+        self._put_settings_back()
         self._closed = True
         self._enabled = False
         self.link.shutdown()
         for closer in self._closers:
             closer()
 
-
-    def _release_settings(self) -> None:
-        """The :meth:`on_release` callbacks, over a link still up (best effort)."""
-        releases, self._releases = self._releases, []
-        for release in releases:
-            if not self.link_up:
-                return
+    def _put_settings_back(self) -> None:
+        """This run's settings back on the drive, over the link, or after a lost link over a
+        reconnected one (those it cannot put back stay in the journal for the next open)."""
+        if not self.settings.log:
+            return
+        if not self.link_up:
             try:
-                release()
-            except (DriveError, SdoAbortError) as exc:
-                self._event("drive.release_failed", f"drive node {self.node_id}: a setting of "
-                            f"this run stays on the drive: {exc}", level="warning")
+                self.link.reconnect()
+            except (DriveError, OSError) as exc:
+                self._event("drive.reconnect_failed", f"drive node {self.node_id}: cannot "
+                            f"reach it again to put this run's settings back: {exc}",
+                            level="warning")
+        self.settings.restore()
 
     def _max_torque_units(self) -> int:
         """0x6072 for this session: the applied limit rounded up to a torque unit, never above
@@ -777,16 +772,3 @@ class CanDriveMaster(Device):
                              f"is beyond what 0x6072 can hold with a rated current of {rated:g} "
                              "mA")
         return units
-
-    def _restore_max_torque(self) -> None:
-        """0x6072 back to the drive's own value, over a link still up (best effort)."""
-        found = self._limit.max_torque_found if self._limit is not None else None
-        if not self._max_torque_written or found is None or not self.link_up:
-            return
-        self._max_torque_written = False
-        try:
-            self.sdo.write(MAX_TORQUE, 0, found, "<H")
-        except (DriveError, SdoAbortError) as exc:
-            self._event("drive.limit_restore_failed", f"drive node {self.node_id}: its max "
-                        f"torque 0x6072 stays at this run's limit: {exc}", level="warning")
-

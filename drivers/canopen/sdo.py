@@ -108,10 +108,11 @@ class SdoClient:
         value: int = struct.unpack_from(fmt, raw)[0]
         return value
 
-    def write(self, index: int, subindex: int, value: int, fmt: str = "<I") -> None:
+    def write(self, index: int, subindex: int, value: int, fmt: str = "<I",
+              timeout_s: float | None = None) -> None:
         """Expedited download of one value packed with ``fmt`` (1 to 4 bytes)."""
         self._request(download_request(index, subindex, value, fmt),
-                      f"write 0x{index:04X}:{subindex:02X} = {value}", None)
+                      f"write 0x{index:04X}:{subindex:02X} = {value}", timeout_s)
 
     def _wait_s(self, timeout_s: float | None) -> float:
         """How long a request waits: as asked, else the SDO time-out, or for a node that has

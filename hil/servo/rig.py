@@ -36,6 +36,7 @@ from hil.drivers.canopen.bus import URL_FORMS, open_can_bus, parse_can_url
 from hil.drivers.canopen.can_log import CanLog
 from hil.drivers.canopen.clocks import SyncClock
 from hil.drivers.canopen.config import DriveMasterConfig
+from hil.drivers.canopen.current_limit import CurrentLimit
 from hil.drivers.canopen.identity import not_hil_emulator, read_identity
 from hil.drivers.canopen.link import CanLink, FrameTrace
 from hil.drivers.canopen.master import CanDriveMaster
@@ -119,12 +120,15 @@ def can_drives(url: str, drive: DriveConfig, axes: Sequence[AxisSpec], *,
 
     closers = (*closers, *_closing(trace))
     if len(axes) == 1:
-        master = CanDriveMaster(CanLink(reopen(), reopen=reopen, trace=trace),
-                                axes[0].master(drive.master), on_event=on_event, url=url,
-                                closers=closers)
-        return BusDrives(url, [master])
-    return _grouped(url, CanLink(reopen(), trace=trace), drive, axes, on_event,
-                    closers=closers)
+        drives = BusDrives(url, [CanDriveMaster(
+            CanLink(reopen(), reopen=reopen, trace=trace), axes[0].master(drive.master),
+            on_event=on_event, url=url, closers=closers)])
+    else:
+        drives = _grouped(url, CanLink(reopen(), trace=trace), drive, axes, on_event,
+                          closers=closers)
+    for master in drives.masters:  # a drive that outlives the run: its settings journaled
+        master.settings.keep_journal(url)
+    return drives
 
 
 def _grouped(url: str, link: CanLink, drive: DriveConfig, axes: Sequence[AxisSpec],
@@ -250,16 +254,41 @@ def share_lockstep_time(master: CanDriveMaster, on_event: EventSink = no_event) 
                  "pause on either side can fault it", level="warning", source=f"drive{n}",
                  shared=False, identity=identity.as_dict())
         return False
-    try:
-        master.sdo.write(TIME_BASE, 0, bound_ms, "<I")
+    try:  # a setting of the run: the drive's own clock again when the master lets it go
+        master.settings.write(TIME_BASE, 0, bound_ms, "<I")
     except SdoAbortError as exc:
         on_event("drive.clock", f"drive node {n} keeps its own clock ({exc}): lockstep "
                  "watches it on the wall clock, where a pause on either side can fault it",
                  level="warning", source=f"drive{n}", shared=False)
         return False
     master.clock = SyncClock(master.link, master.config.cycle_period_s)
-    master.on_release(lambda: master.sdo.write(TIME_BASE, 0, 0, "<I"))
     on_event("drive.clock", f"drive node {n} keeps the master's time: its SYNCs (a drive "
              f"silent for {bound_ms} ms of wall time is gone)", source=f"drive{n}",
              shared=True, bound_ms=bound_ms)
     return True
+
+
+def tell_opened(master: CanDriveMaster, asked: str, on_event: EventSink = no_event) -> None:
+    """What opening the drive found that the person at the terminal must hear of, a line each:
+    settings an earlier run left on it, put back (the master's event says it too), and the
+    current limit cut below the one asked for (``asked``: what asked for it, ``--umax`` or
+    the key), with the limit that cut it (a ``current.limit_cut`` event too)."""
+    if master.settings.restored is not None:
+        warn(master.settings.restored)
+    cut = limit_cut(master.limit, asked)
+    if cut is not None:
+        warn(f"drive node {master.node_id}: {cut}")
+        on_event("current.limit_cut", f"drive node {master.node_id}: {cut}", level="warning",
+                 source=f"drive{master.node_id}", **master.limit.describe())
+
+
+def limit_cut(limit: CurrentLimit, asked: str) -> str | None:
+    """``current limit: asked 12000 mA (--umax), applied 1000 mA: the drive's max torque
+    (0x6072) 1000 mA cuts it``; None when the limit asked for is the one applied."""
+    if limit.applied_ma >= limit.run_ma:
+        return None
+    cutting = " and ".join(f"the drive's {name} {value:g} mA" for name, value in (
+        ("max current (0x6073)", limit.max_current_ma),
+        ("max torque (0x6072)", limit.max_torque_ma)) if value == limit.applied_ma)
+    return (f"current limit: asked {limit.run_ma:g} mA ({asked}), applied "
+            f"{limit.applied_ma:g} mA: {cutting} cuts it")

@@ -64,7 +64,7 @@ from hil.servo.drives import RunDrives
 from hil.servo.kpis import AxesKpis, AxisKpis, ServoKpis, no_tracking
 from hil.servo.options import ServoRunOptions
 from hil.servo.plan import ServoPlan, ServoState, plan_servo
-from hil.servo.rig import open_drives, share_lockstep_time
+from hil.servo.rig import open_drives, share_lockstep_time, tell_opened
 from hil.servo.safety import SafetyMonitor
 from hil.servo.settings import resolve_servo
 from hil.servo.task import ServoTask, check_disturbance_object
@@ -167,6 +167,8 @@ class ServoExperiment(Experiment[ServoPlan]):
                 if options.reset_fault:
                     master.fault_reset()
                 master.open()
+                tell_opened(master, "--umax" if options.umax is not None
+                            else "master.current_limit_mA", on_event)
         except BaseException:
             self.close_devices()
             raise

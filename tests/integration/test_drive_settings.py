@@ -1,0 +1,119 @@
+"""The drive's own settings are never lost, tried from outside against a standalone ``hil
+emulate drive`` (its 0x6072 max torque 1000 mA at power-on) over socketcand: a run at
+``--umax 300`` writes 300 to 0x6072 and puts 1000 back, also after its link is lost (once the
+drive answers again at the close); when the drive is silent at the close, the journal keeps what
+the run left, and the next run puts it back before it reads the drive's limits. A limit that
+cuts what was asked is one terminal line."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+
+import pytest
+
+from hil import api
+from hil.drivers.canopen.errors import DriveGoneError
+from hil.servo.run import ServoRunOptions, run_servo
+from tests.cli import hil_here
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
+
+# lockstep over the bus; a drive silent for half a second is gone
+PATIENCE = "[master]\nlockstep_timeout_ms = 500\n"
+
+
+def max_torque(capsys, url):
+    read = hil_here(capsys, "drive", "sdo", "read", url, "0x6072", "--type", "u16", "--json")
+    assert read.returncode == 0, read.stderr
+    return json.loads(read.stdout)["value"]
+
+
+@pytest.fixture
+def state(tmp_path, monkeypatch):
+    """The journal's folder (HIL_STATE_DIR) of this test."""
+    folder = tmp_path / "state"
+    monkeypatch.setenv("HIL_STATE_DIR", str(folder))
+    return folder / "drive-settings"
+
+
+def journals(folder):
+    return sorted(p.name for p in folder.glob("*.json")) if folder.exists() else []
+
+
+def test_a_run_puts_the_drives_limit_back_also_after_its_link_was_lost(tmp_path, capsys,
+                                                                        state):
+    config = tmp_path / "drive.toml"
+    config.write_text(PATIENCE)
+    # TPDOs dropped from 0.05 s of the drive's time on (its SYNCs': 100 ticks into the run),
+    # while it still answers SDO
+    with api.start_drive_emulator(clock="sync", faults=["drop_tpdo@0.05"]) as drive:
+        assert max_torque(capsys, drive.url) == 1000
+        run = hil_here(capsys, "servo", "run", "--controller", "pid", "--drive", drive.url,
+                       "--config", config, "--umax", "300", "--duration", "1", "--out",
+                       "lost.mcap", cwd=tmp_path)
+        assert run.returncode == 3, run.stderr  # the drive gone quiet: a disturbed run
+        assert "link lost" in run.stderr or "the drive is gone" in run.stderr
+        assert max_torque(capsys, drive.url) == 1000  # on main: 300, this run's
+    assert journals(state) == []
+
+
+def test_a_limit_left_on_a_silent_drive_is_put_back_by_the_next_run(tmp_path, capsys, state):
+    config = tmp_path / "drive.toml"
+    config.write_text(PATIENCE)
+    with api.start_drive_emulator() as drive:
+        stopped = []
+
+        def freeze(_master):  # configured and enabled: now the drive falls silent
+            os.kill(drive.pid, signal.SIGSTOP)
+            stopped.append(True)
+
+        try:
+            with pytest.raises(DriveGoneError):
+                run_servo(ServoRunOptions(controller="pid", drive=drive.url, umax=300,
+                                          drive_config=str(config), duration_s=10.0,
+                                          out=str(tmp_path / "first.mcap")), on_started=freeze)
+        finally:
+            if stopped:
+                os.kill(drive.pid, signal.SIGCONT)
+        [journal] = journals(state)
+        left = json.loads((state / journal).read_text())
+        assert left["node"] == 1 and left["bus"] == drive.url
+        assert left["identity"]["product_code"] == 0x402
+        assert {"index": 0x6072, "subindex": 0, "fmt": "<H", "found": 1000,
+                "written": 300} in left["settings"]
+        assert max_torque(capsys, drive.url) == 300  # left behind
+        # meanwhile someone sets the drive's heartbeat (the run wrote 100 ms): that one is
+        # the drive's own now
+        assert hil_here(capsys, "drive", "sdo", "write", drive.url, "0x1017", "250", "--type",
+                        "u16").returncode == 0
+        # the drive faulted when its master fell silent: the next run clears that and asks
+        # for 800 mA, which the drive's own 1000 mA allows
+        second = hil_here(capsys, "servo", "run", "--controller", "pid", "--drive", drive.url,
+                          "--config", config, "--umax", "800", "--reset-fault", "--duration",
+                          "0.2", "--json", "--out", "second.mcap", cwd=tmp_path)
+        assert second.returncode == 0, second.stderr
+        assert json.loads(second.stdout)["current_limit_mA"] == 800  # on main: 300
+        assert "hil: warning: drive node 1: put back what an earlier run (pid " in second.stderr
+        assert "0x6072:00 300 -> 1000" in second.stderr
+        assert "0x1017:00" in second.stderr.split("changed since, left as they are: ")[1]
+        assert max_torque(capsys, drive.url) == 1000
+        heartbeat = hil_here(capsys, "drive", "sdo", "read", drive.url, "0x1017", "--type",
+                             "u16", "--json")
+        assert json.loads(heartbeat.stdout)["value"] == 250
+    assert journals(state) == []
+
+
+def test_a_limit_that_cuts_what_was_asked_is_one_line(tmp_path, capsys):
+    run = hil_here(capsys, "servo", "run", "--controller", "pid", "--umax", "12000",
+                   "--allow-higher-current", "--duration", "0.05", "--json", "--out",
+                   "cut.mcap", cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    assert json.loads(run.stdout)["current_limit_mA"] == 1000
+    [cut] = [line for line in run.stderr.splitlines() if "cuts it" in line]
+    assert cut == ("hil: warning: drive node 1: current limit: asked 12000 mA (--umax), "
+                   "applied 1000 mA: the drive's max torque (0x6072) 1000 mA cuts it")
+    asked = hil_here(capsys, "servo", "run", "--controller", "pid", "--umax", "800",
+                     "--duration", "0.05", "--out", "asked.mcap", cwd=tmp_path)
+    assert asked.returncode == 0 and "cuts it" not in asked.stderr
