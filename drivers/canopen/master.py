@@ -30,6 +30,7 @@ import math
 import struct
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
+from functools import partial
 from typing import Any, NoReturn
 
 from hil.contracts import Device, EventSink, LinkWatchdog, no_event
@@ -51,9 +52,10 @@ from hil.drivers.canopen.nmt import HeartbeatProducer, HeartbeatWatch, Nmt
 from hil.drivers.canopen.pdo import PdoConfigurator
 from hil.drivers.canopen.run_settings import RunSettings
 from hil.drivers.canopen.scaling import DriveScaling, read_scaling
+from hil.drivers.canopen.scan import discover
 from hil.drivers.canopen.sdo import SdoClient
 from hil.drivers.canopen.state import MasterClock, StateControl
-from hil.drivers.canopen.stopping import stop_together
+from hil.drivers.canopen.stopping import MAY_STILL_MOVE, last_report, stop_together
 from hil.protocols.can_frames import Frame
 from hil.protocols.cia301 import (
     CONSUMER_HEARTBEAT,
@@ -187,7 +189,8 @@ class CanDriveMaster(Device):
         # download queued for the cyclic exchange (``sdo.queue_write``) is raised by the next
         # receive_feedback()
         self.sdo = SdoClient(link, n, config.sdo_timeout_s, self._other_frame,
-                             gone_after_s=config.lockstep_timeout_s if config.lockstep else None)
+                             gone_after_s=config.lockstep_timeout_s if config.lockstep else None,
+                             census=partial(discover, link))
         self.nmt = Nmt(link, n)
         self.heartbeat_watch = HeartbeatWatch(n, config.drive_heartbeat_ms, self._clock.time_ns)
         # the frames that are not the cyclic TPDOs, by COB-ID (the watched ids over any other)
@@ -723,13 +726,15 @@ class CanDriveMaster(Device):
         voltage cycle's feedback; ``drive.safe_stop_failed`` when the drive ignored the stop
         (still OPERATION ENABLED) or a :class:`DriveError` cut it short."""
         n = self.node_id
+        said, last = last_report(self.feedback)
         if isinstance(outcome, DriveError):
-            self._event("drive.safe_stop_failed", f"drive node {n}: safe stop incomplete: "
-                        f"{outcome}", level="error")
+            self._event("drive.safe_stop_failed", f"drive node {n}: safe stop incomplete "
+                        f"({outcome}); {said}: {MAY_STILL_MOVE}", level="error", last=last)
         elif outcome.state == OPERATION_ENABLED:  # it ignored both: only its SYNC watchdog is left
             self._event("drive.safe_stop_failed", f"drive node {n} ignored quick stop and "
-                        "disable voltage: still OPERATION ENABLED; no more SYNC, so its SYNC "
-                        "watchdog must fault it", level="error", state=outcome.state)
+                        f"disable voltage: {said}; no more SYNC, so its SYNC watchdog must "
+                        f"fault it: {MAY_STILL_MOVE}", level="error", state=outcome.state,
+                        last=last)
         else:
             self._event("drive.safe_stop", f"drive node {n} stopped: {outcome.state}",
                         state=outcome.state)

@@ -5,8 +5,9 @@ A blocking request has one absolute deadline: frames that are not its answer (EM
 heartbeats, late TPDOs, garbage) go to ``other`` as they come and never extend it. A node that
 has never answered is waited the SDO time-out, whatever longer bound lockstep gives a node
 known to be there (``gone_after_s``); when it stays silent, the error names the nodes that
-answer a scan of the bus (:func:`hil.drivers.canopen.scan.discover`): a wrong node id is said
-at once, not after the lockstep bound. A queued
+answer a scan of the bus (``census``: the master gives
+:func:`hil.drivers.canopen.scan.discover`): a wrong node id is said at once, not after the
+lockstep bound. A queued
 download (:meth:`SdoClient.queue_write`) goes out with the next cycle's frames and its answer
 is taken by the cyclic receive, so no SDO round trip runs inside a cycle; a refusal is kept
 for :meth:`SdoClient.take_error`.
@@ -59,12 +60,15 @@ def download_request(index: int, subindex: int, value: int, fmt: str) -> bytes:
 class SdoClient:
     """The SDO channel to node ``node_id`` over ``link``: each request waits ``timeout_s``;
     lockstep over a bus (``gone_after_s``): a node that has answered once is waited that
-    long (wall clock) and is gone after it (:class:`DriveGoneError`)."""
+    long (wall clock) and is gone after it (:class:`DriveGoneError`). ``census``: the node
+    ids that answer on the bus, asked when a node that never answered stays silent."""
 
     def __init__(self, link: Link, node_id: int, timeout_s: float,
-                 other: Callable[[Frame], None], *, gone_after_s: float | None = None) -> None:
+                 other: Callable[[Frame], None], *, gone_after_s: float | None = None,
+                 census: Callable[[], list[int]] | None = None) -> None:
         self.link, self.node_id, self.timeout_s = link, node_id, timeout_s
         self.gone_after_s = gone_after_s
+        self._census_of = census
         self.answered = False  # the node has answered a request (it is on the bus)
         self._other = other
         self._request_id = SDO_REQUEST_BASE + node_id
@@ -130,24 +134,23 @@ class SdoClient:
         message = (f"drive node {self.node_id} did not answer SDO {what} within "
                    f"{timeout_s:g} s on {self.link.name}")
         if not self.answered:
-            return DriveNotFoundError(f"{message}: it has never answered; {self._census()}")
+            return DriveNotFoundError(f"{message}: it has never answered{self._census()}")
         kind = DriveGoneError if self.gone_after_s is not None else DriveLinkLostError
         return kind(message)
 
     def _census(self) -> str:
-        """Which nodes answer a scan of the bus (an SDO read of 0x1000 sent to every node id:
-        :func:`hil.drivers.canopen.scan.discover`), as a clause of an error."""
-        from hil.drivers.canopen.scan import discover  # scan builds on this module
-
+        """Which nodes answer a scan of the bus (``census``), as the end of an error."""
+        if self._census_of is None:
+            return ""
         try:
-            found = discover(self.link)
+            found = self._census_of()
         except DriveLinkLostError as exc:
-            return f"the bus could not be scanned ({exc})"
+            return f"; the bus could not be scanned ({exc})"
         if not found:
-            return ("no node answered a scan of the bus (is the drive powered, on this bus, "
+            return ("; no node answered a scan of the bus (is the drive powered, on this bus, "
                     "at its bit rate?)")
         names = ", ".join(str(node) for node in found)
-        return (f"the nodes that answered a scan of the bus: {names} (the drive's node id: "
+        return (f"; the nodes that answered a scan of the bus: {names} (the drive's node id: "
                 "--node N or [master] node_id)")
 
     def _request(self, request: bytes, what: str, timeout_s: float | None,

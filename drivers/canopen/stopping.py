@@ -7,7 +7,7 @@ drives (:meth:`~hil.drivers.canopen.axes.AxisGroup.stop_together`)."""
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
-from typing import Protocol
+from typing import Any, Protocol
 
 from hil.drivers.canopen.cyclic import Feedback
 from hil.drivers.canopen.errors import DriveError
@@ -64,3 +64,21 @@ def stop_together(drives: Sequence[StopCycles],
         outcomes = [exc] * len(stopping)
     for drive, outcome in zip(stopping, outcomes, strict=True):
         drive.end_stop(outcome)
+
+
+#: what a failed safe stop's line ends with
+MAY_STILL_MOVE = "the axis may still move"
+
+
+def last_report(feedback: Feedback | None) -> tuple[str, dict[str, Any]]:
+    """What the drive last reported, as a clause (``it last reported OPERATION ENABLED
+    (statusword 0x1237) at 79.600 deg, 0.0 deg/s, -300 mA``) and as data."""
+    if feedback is None:
+        return "it reported nothing", {}
+    data = {"state": feedback.state, "statusword": feedback.statusword,
+            "position_deg": feedback.position_deg, "velocity_deg_s": feedback.velocity_deg_s,
+            "current_mA": feedback.current_ma, "cycle": feedback.cycle, "fresh": feedback.fresh}
+    stale = "" if feedback.fresh else ", its last answer repeated: none came in that cycle"
+    return (f"it last reported {feedback.state} (statusword 0x{feedback.statusword:04X}) at "
+            f"{feedback.position_deg:.3f} deg, {feedback.velocity_deg_s:.1f} deg/s, "
+            f"{feedback.current_ma:.0f} mA (cycle {feedback.cycle}{stale})"), data

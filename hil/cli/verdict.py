@@ -22,7 +22,7 @@ from hil.core.verdict import (
     parse_limit,
     run_status,
 )
-from hil.errors import HilError, UsageError
+from hil.errors import HilError, RunInterruptedError, UsageError
 
 if TYPE_CHECKING:
     from hil.core.run import RunResult
@@ -93,6 +93,9 @@ def params_of(args: argparse.Namespace) -> dict[str, Any]:
 
 #: exit status of a run that completed (no limit violated) but whose hardware misbehaved
 EXIT_DISTURBED = 3
+#: exit status of a run, however it ended, whose outputs are not known to be safe (status
+#: ``unsafe``: a safe stop that did not complete, relays not confirmed at their safe levels)
+EXIT_UNSAFE = 4
 
 
 def disturbance_line(kpis: Mapping[str, Any]) -> str:
@@ -103,6 +106,18 @@ def disturbance_line(kpis: Mapping[str, Any]) -> str:
             "the KPIs exclude what the hardware did not report")
 
 
+def unsafe_lines(kpis: Mapping[str, Any]) -> list[str]:
+    """``hil: UNSAFE: ...``, one line per device whose outputs are not known to be safe."""
+    return [f"hil: UNSAFE: {line}" for line in kpis.get("unsafe", ())]
+
+
+def _unsafe_case(kpis: Mapping[str, Any], after: BaseException | None = None) -> RunCase:
+    """The JUnit ``run`` case of an unsafe run: an ``UnsafeStop`` error naming each device,
+    and the error that ended the run, if one did."""
+    ended = f" (the run ended: {type(after).__name__}: {after})" if after is not None else ""
+    return RunCase("; ".join(kpis.get("unsafe", ())) + ended, "UnsafeStop")
+
+
 def finish(args: argparse.Namespace, command: str, options: Callable[[], Options],
            run: Callable[[Options], RunResult],
            summary: Callable[[Options, dict[str, Any]], str]) -> int:
@@ -111,25 +126,37 @@ def finish(args: argparse.Namespace, command: str, options: Callable[[], Options
     disturbance on stderr; the exit status: 1 a limit violated, else 3 the run was disturbed,
     else 0. A run that ended in an error (a safety stop, a fault, a lost link, Ctrl-C...) still
     prints ``--json`` (the KPIs so far, ``status``, ``error``) and writes ``--junit``; then the
-    error is raised again for its one line and exit status."""
+    error is raised again for its one line and exit status. A run whose outputs are not known
+    to be safe (status ``unsafe``), however it ended, says so in a line per device after
+    everything else, and exits 4."""
     started = time.perf_counter()
     try:
         made = options()
         kpis = run(made).kpis
     except (HilError, KeyboardInterrupt) as exc:
         _report_error(exc, args, command, time.perf_counter() - started)
-        raise
+        result = exc.result if isinstance(exc, HilError) else None
+        if result is None or not result.kpis.get("unsafe"):
+            raise
+        prefix = "hil: " if isinstance(exc, RunInterruptedError) else "hil: error: "
+        print(f"{prefix}{exc}", *unsafe_lines(result.kpis), sep="\n", file=sys.stderr)
+        return EXIT_UNSAFE
     print(json_text(kpis) if args.json else summary(made, kpis))
     results = limit_results(kpis)
     disturbed = bool(kpis.get("disturbed"))
     write_junit(args, kpis, f"{command} {kpis['controller']}", time.perf_counter() - started,
-                results, RunCase(disturbance_line(kpis).removeprefix("hil: "), "RunDisturbed")
+                results, _unsafe_case(kpis) if kpis.get("unsafe") else
+                RunCase(disturbance_line(kpis).removeprefix("hil: "), "RunDisturbed")
                 if disturbed else RunCase(_ending(kpis)))
     failed = [r for r in results if not r.passed]
     for result in failed:
         print(f"hil: limit violated: {result.describe()}", file=sys.stderr)
     if disturbed:
         print(disturbance_line(kpis), file=sys.stderr)
+    for line in unsafe_lines(kpis):
+        print(line, file=sys.stderr)
+    if kpis.get("unsafe"):
+        return EXIT_UNSAFE
     if failed:
         return 1
     return EXIT_DISTURBED if disturbed else 0
@@ -156,9 +183,11 @@ def _report_error(exc: HilError | KeyboardInterrupt, args: argparse.Namespace, c
                 "error": str(exc) or "interrupted"}
     if args.json:
         print(json_text(kpis))
+    case = _unsafe_case(kpis, exc) if kpis.get("unsafe") else \
+        RunCase(str(exc) or "interrupted", type(exc).__name__)
     try:
         write_junit(args, kpis, f"{command} {kpis['controller']}", duration_s,
-                    limit_results(kpis), RunCase(str(exc) or "interrupted", type(exc).__name__))
+                    limit_results(kpis), case)
     except UsageError as failure:
         print(f"hil: error: {failure}", file=sys.stderr)
 

@@ -13,6 +13,7 @@ from hil.core.loop import PHASES
 from hil.core.plugins import registered
 from hil.core.recording.reader import SessionData
 from hil.core.stats import percentile_summary
+from hil.core.verdict import UNSAFE_EVENTS
 
 # Plotters of the applications, keyed by the session kind recorded in the metadata. An
 # application (or a user's package) registers ``kind = "module:function"`` in this entry-point
@@ -132,6 +133,7 @@ def summarize(data: SessionData) -> dict[str, Any]:
             level: sum(1 for e in events if e.get("level") == level)
             for level in ("info", "warning", "error")
         },
+        "unsafe": [str(e.get("message")) for e in events if e.get("kind") in UNSAFE_EVENTS],
         "params": param_changes(events),
         "kpis": kpis(data),
     }
@@ -179,6 +181,7 @@ def format_summary(summary: dict[str, Any]) -> str:
                      f"{os.path.basename(summary['files'][0])} ... "
                      f"{os.path.basename(summary['files'][-1])}")
     lines.extend(_damage_lines(summary))
+    lines.extend(f"UNSAFE: {line}" for line in summary["unsafe"])
     if summary["ended"]:
         lines.append(f"ENDED ABNORMALLY: {summary['ended']}")
     if summary["dropped"]:

@@ -22,7 +22,9 @@ line, the Python API, the sweep and the pytest fixtures alike:
    A :class:`~hil.errors.HilError` (a fault, a lost link, a controller error) stops it;
    the loop has put every device in its safe state.
 6. ``finish(session)``, ``close_devices()``, ``kpis(...)``, the verdict of the limits, the
-   run's ``status`` (:data:`hil.core.verdict.STATUSES`), the file finished with the KPIs. An
+   run's ``status`` (:data:`hil.core.verdict.STATUSES`; ``unsafe``, and the KPIs' ``unsafe``
+   lines, when a device said its outputs are not known to be safe:
+   :data:`~hil.core.verdict.UNSAFE_EVENTS`), the file finished with the KPIs. An
    error (a Ctrl-C outside the loop becomes a :class:`RunInterruptedError`) is raised again
    with the session's path in its message and the :class:`RunResult` so far as its
    ``result``, for the run's report.
@@ -50,7 +52,7 @@ from hil.core.recording.output import OutputClaim, claim_output
 from hil.core.recording.recorder import RecordingOptions
 from hil.core.session import Session
 from hil.core.tuning import Tuner
-from hil.core.verdict import Limit, SignalWatch, run_status, verdict
+from hil.core.verdict import UNSAFE_EVENTS, Limit, SignalWatch, run_status, verdict
 from hil.errors import HilError, RunInterruptedError
 
 #: the folder (under the working folder) where a run's session goes unless ``--out`` says
@@ -97,13 +99,18 @@ class RunResult:
 
 class EventBuffer:
     """An event sink (:data:`hil.contracts.EventSink`) for devices opened before their
-    session: events are held, then replayed into the session once it exists."""
+    session: events are held, then replayed into the session once it exists. It keeps the
+    message of every event that makes the run unsafe (:data:`~hil.core.verdict.UNSAFE_EVENTS`:
+    ``unsafe``)."""
 
     def __init__(self) -> None:
         self._held: list[tuple[str, str, dict[str, Any]]] = []
         self._session: Session | None = None
+        self.unsafe: list[str] = []
 
     def __call__(self, kind: str, message: str, **data: Any) -> None:
+        if kind in UNSAFE_EVENTS:
+            self.unsafe.append(message)
         if self._session is not None:
             self._session.event(kind, message, **data)
         else:
@@ -271,6 +278,8 @@ def _run_locked(experiment: Experiment[Any], plan: RunPlan, output: OutputClaim,
             try:
                 error = error or _signal_error(session)
                 kpis = _kpis(experiment, plan, session, wall_s, error)
+                if events.unsafe:  # the devices' outputs are not known to be safe
+                    kpis["unsafe"] = list(events.unsafe)
                 outcome = verdict(kpis, plan.kpi_limits, plan.watch)
                 kpis.update(outcome)
                 kpis["status"] = run_status(kpis, error)

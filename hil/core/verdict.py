@@ -115,13 +115,21 @@ def check_limits(limits: Sequence[Limit], kpis: Mapping[str, Any]) -> list[Limit
 
 #: what became of a run (the ``status`` KPI), with the exit status of ``hil bench|servo run``:
 #: completed 0, violated 1 (a limit), disturbed 3 (the hardware misbehaved), stopped 2 (a
-#: safety limit), failed 2 (a fault, a lost link, a controller error...), interrupted 130/143
-STATUSES = ("completed", "violated", "disturbed", "stopped", "failed", "interrupted")
+#: safety limit), failed 2 (a fault, a lost link, a controller error...), unsafe 4 (however
+#: it ended, its outputs are not known to be safe: see UNSAFE_EVENTS), interrupted 130/143
+STATUSES = ("completed", "violated", "disturbed", "stopped", "failed", "unsafe", "interrupted")
+#: the events that make a run ``unsafe``: the drive's safe stop did not complete (the axis may
+#: still move), the bench's relays are not confirmed at their safe levels; each event's message
+#: is the line the run reports (the KPIs' ``unsafe``)
+UNSAFE_EVENTS = ("drive.safe_stop_failed", "bench.safe_state_unconfirmed")
 
 
 def run_status(kpis: Mapping[str, Any], error: BaseException | None) -> str:
-    """The run's ``status`` (one of :data:`STATUSES`): stopped by a signal, by a safety
-    limit or by another error; else a limit violated, the hardware misbehaved, or neither."""
+    """The run's ``status`` (one of :data:`STATUSES`): unsafe when its KPIs carry ``unsafe``
+    lines, whatever else happened; else stopped by a signal, by a safety limit or by another
+    error; else a limit violated, the hardware misbehaved, or neither."""
+    if kpis.get("unsafe"):
+        return "unsafe"
     if isinstance(error, RunInterruptedError | KeyboardInterrupt):
         return "interrupted"
     if isinstance(error, SafetyStopError):

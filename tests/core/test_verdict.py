@@ -118,6 +118,10 @@ def test_kpis_become_flat_properties_nested_keys_joined_by_dots():
     ({}, ControllerError("controller 'x' raised"), "failed"),
     ({}, RunInterruptedError("interrupted by SIGTERM", 143), "interrupted"),
     ({}, KeyboardInterrupt(), "interrupted"),
+    ({"unsafe": ["drive node 1: safe stop incomplete ..."]}, None, "unsafe"),
+    ({"unsafe": ["relays P2 ..."], "passed": False}, SafetyStopError("safety stop"),
+     "unsafe"),
+    ({"unsafe": ["drive node 1 ..."]}, RunInterruptedError("interrupted", 130), "unsafe"),
 ])
 def test_the_status_of_a_run(kpis, error, status):
     assert run_status(kpis, error) == status

@@ -67,7 +67,8 @@ def write_session_data_html(data: SessionData, out_path: str, *,
     rows = figures.overlay([session_panels(data)])
     title = f"hil report: {os.path.basename(data.path)}"
     head = [f"<h1>{html.escape(title)}</h1>",
-            f"<p>{_session_badge(summary['kpis'])} {html.escape(_headline(summary))}</p>"]
+            f"<p>{_session_badge(summary['kpis'])} {html.escape(_headline(summary))}</p>",
+            *(paragraph(f"UNSAFE: {line}", "damage") for line in summary["unsafe"])]
     return _write(out_path, title, head, [data], [summary], ["session"], rows, "", drawn)
 
 
