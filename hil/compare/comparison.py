@@ -5,7 +5,8 @@ KPIs are those the run recorded (``hil report``'s ``kpis``), nested keys joined 
 KPIs that measure the computer rather than the experiment (:data:`COMPUTER_KPIS`) are left
 out unless a tolerance names them. Without a tolerance, a KPI or a signal is held exact when
 both sessions are lockstep; in real time a KPI gets :data:`REALTIME_KPI_DEFAULT` and a signal
-needs a tolerance of its own (or ``*``).
+needs a tolerance of its own (or ``*``). An axis' positions are compared relative to each
+run's start when both runs started from where their axis stood (:mod:`hil.compare.relative`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import numpy as np
 
 from hil.compare.alignment import Aligned, Series, interpolated, tick_for_tick
 from hil.compare.judge import judge_kpi, judge_signal
+from hil.compare.relative import start_offsets
 from hil.compare.tolerances import DEFAULT, EXACT, Tolerance
 from hil.core.recording.reader import SessionData, read_session
 from hil.core.report import kpis, session_kind
@@ -49,6 +51,8 @@ class Row:
     tolerance: str
     passed: bool
     worst_t_s: float | None = None
+    #: a position taken relative to each run's start: (the baseline's, the candidate's) [deg]
+    from_start_deg: tuple[float, float] | None = None
 
     @property
     def unit(self) -> str:
@@ -84,7 +88,9 @@ class Comparison:
                           "candidate": _plain(r.candidate),
                           "difference": _plain(r.difference), "tolerance": r.tolerance,
                           "passed": r.passed, "worst_t_s": _plain(r.worst_t_s),
-                          "unit": r.unit} for r in self.rows],
+                          "unit": r.unit,
+                          "from_start_deg": list(r.from_start_deg) if r.from_start_deg
+                          else None} for r in self.rows],
                 "notes": list(self.notes), "origins_ns": dict(self.origins_ns)}
 
 
@@ -122,13 +128,18 @@ def compare_data(base: SessionData, cand: SessionData, signals: Sequence[str] = 
         out.notes.append(f"topics in one session only: {', '.join(only)}")
     chosen = list(dict.fromkeys([*signals, *(n for n in tolerances if ":" in n)]))
     out.rows.extend(_kpi_rows(base, cand, tolerances, lockstep, out.notes))
+    offsets = start_offsets(chosen, base, cand, out.notes)
     ours, out.origins_ns["baseline"] = _from_first_tick(
-        [series(base, name, "baseline") for name in chosen], base)
+        [_from(series(base, name, "baseline"), offset, 0)
+         for name, offset in zip(chosen, offsets, strict=True)], base)
     theirs, out.origins_ns["candidate"] = _from_first_tick(
-        [series(cand, name, "candidate") for name in chosen], cand)
-    for name, mine, other in zip(chosen, ours, theirs, strict=True):
-        out.rows.append(_signal_row(name, mine, other, _tolerance(name, tolerances, lockstep),
-                                    lockstep, out.notes))
+        [_from(series(cand, name, "candidate"), offset, 1)
+         for name, offset in zip(chosen, offsets, strict=True)], cand)
+    for name, mine, other, offset in zip(chosen, ours, theirs, offsets, strict=True):
+        row = _signal_row(name, mine, other, _tolerance(name, tolerances, lockstep), lockstep,
+                          out.notes)
+        row.from_start_deg = offset
+        out.rows.append(row)
     if not out.rows:
         raise IncomparableError("nothing to compare: no KPI in both sessions (a recovered "
                                 "file has none) and no --signal given")
@@ -228,6 +239,11 @@ def series(data: SessionData, name: str, role: str) -> Series:
     if values.ndim != 1:
         raise IncomparableError(f"signal {name}: a list per message, not one number")
     return Series(arrays["log_time_ns"], values)
+
+
+def _from(signal: Series, offset: tuple[float, float] | None, role: int) -> Series:
+    """``signal`` less its run's start (``offset``'s ``role``-th), when it has one."""
+    return signal if offset is None else Series(signal.t_ns, signal.values - offset[role])
 
 
 def _from_first_tick(signals: list[Series], data: SessionData) -> tuple[list[Series], int]:

@@ -248,7 +248,8 @@ def test_the_pytest_baseline_records_then_fails_on_a_changed_controller(tmp_path
     second = pytest_run("250")
     assert second.returncode == 1, second.stdout + second.stderr
     assert "1 failed" in second.stdout and "BaselineRecorded" not in second.stdout
-    assert f"{POSITION} by " in second.stdout and " at t = " in second.stdout
+    # the fixture's runs start where the axis stands: positions from each run's start
+    assert f"{POSITION} (from start) by " in second.stdout and " at t = " in second.stdout
     assert "outside tolerance" in second.stdout and "FAIL" in second.stdout
     runs = tmp_path / "runs-250"
     same = json.loads(next(runs.rglob("test_pd-fixed.compare.json")).read_text())

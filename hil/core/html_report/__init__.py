@@ -16,7 +16,7 @@ from __future__ import annotations
 import html
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from hil.core.html_report import figures, sections
@@ -165,11 +165,16 @@ def _signal_rows(sessions: Sequence[SessionData], origins: Sequence[int | None],
                 raise
             undrawn.append(str(error))
             continue
+        found = worst.get(name, {})
+        starts = found.get("from_start_deg")  # a position compared from each run's start
+        if starts:
+            traces = [replace(trace, y=trace.y - start)
+                      for trace, start in zip(traces, starts, strict=True)]
         field = name.rpartition(":")[2]
         unit = unit_of(field)
-        row = figures.Row(Panel(name, f"{field} [{unit}]" if unit else field, tuple(traces)),
+        title = f"{name} (from start)" if starts else name
+        row = figures.Row(Panel(title, f"{field} [{unit}]" if unit else field, tuple(traces)),
                           list(enumerate(traces)))
-        found = worst.get(name, {})
         if found.get("worst_t_s") is not None:
             candidate = found.get("candidate")
             row.marks.append(figures.Mark(
