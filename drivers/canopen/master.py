@@ -492,7 +492,7 @@ class CanDriveMaster(Device):
         except DriveLinkLostError as exc:
             self._lose_link(str(exc))
 
-    def _receive(self) -> Feedback:
+    def _receive(self, stopping: bool = False) -> Feedback:
         if not self.cyclic.awaiting:  # no cycle since the last read: the same feedback again
             return self.cyclic.receive()
         try:
@@ -511,6 +511,8 @@ class CanDriveMaster(Device):
         if silent_ns is not None:
             self._lose_link(f"no heartbeat for {silent_ns / 1e6:.0f} ms (it beats every "
                             f"{self.config.drive_heartbeat_ms} ms)")
+        if stopping:  # a stop goes on after another master or a refused write: only a lost
+            return feedback  # link cuts it short
         error = self.sdo.take_error()
         if error is None and self.foreign is not None:
             error = BusSharedError(self.foreign)
@@ -690,15 +692,15 @@ class CanDriveMaster(Device):
         """Send one stop cycle's frames: ``controlword`` (``CW_QUICK_STOP`` or
         ``CW_DISABLE_VOLTAGE``) with the target held since :meth:`begin_stop`, and a SYNC (on
         an :class:`~hil.drivers.canopen.axes.AxisBus`, at its ``end_cycle``). Raises the error
-        a lost link latched."""
-        if self._latched is not None:
+        a lost link latched (another error that ended the run does not stop the stop)."""
+        if isinstance(self._latched, DriveLinkLostError):
             self._check_latched()
         self._send_cycle(controlword, self._stop_target)
 
     def receive_stop_cycle(self) -> Feedback:
         """The drive's TPDOs of the stop cycle sent last; raises (:class:`DriveError`) when
         the link is lost."""
-        return self._receive()
+        return self._receive(stopping=True)
 
     def report_stop_cycle(self, feedback: Feedback) -> None:
         """Hand a stop cycle's feedback to ``on_stop_cycle``: one that raises is told no more

@@ -141,3 +141,5 @@ def test_a_second_run_on_the_same_drive_bus_refuses_and_a_foreign_sync_stops_the
     assert stopped_after < 5
     kinds = [e["kind"] for e in session_events(tmp_path / "first.mcap")]
     assert "bus.foreign_master" in kinds
+    # the foreign master does not cut this one's safe stop short: quick stop, disable voltage
+    assert "drive.safe_stop" in kinds and "drive.safe_stop_failed" not in kinds
