@@ -4,6 +4,11 @@ current of 2 A, CST only, all four PDOs valid at power-on, no RPDO2-4/TPDO3-4 at
 CiA 301 remapping rules enforced (a valid PDO's COB-ID and mapping cannot change; a mapping
 entry must name a mappable object of the right size). Its SYNC counter echo is object 0x2100.
 
+Made to lack what vendors' drives lack (``dictionary(without=...)``: a maxon EPOS4 has no
+0x608F and no 0x6075; any optional object), to support CSP too (``modes``: its own position
+loop towards 0x607A), and built from an EDS file (``IndependentSlave(od=import_od(F))``: the
+dictionary a vendor's file describes).
+
 SDO, NMT and the heartbeat producer are canopen's; this module adds what a LocalNode does not
 do: the cyclic path (RPDO latched on SYNC, a simple axis advanced one period, the TPDOs of the
 current maps sent), and the CiA 402 state machine after canopen's ``State402`` tables. Every
@@ -23,7 +28,6 @@ from __future__ import annotations
 
 import json
 import signal
-import struct
 import sys
 import threading
 from typing import Any
@@ -38,6 +42,9 @@ INCREMENTS = 1 << 17
 RATED_MA = 2000
 ECHO = 0x2100
 SUPPORTED = 0x0200  # CST only
+CST, CSP = 10, 8
+SUPPORTED_BITS = {CST: 0x0200, CSP: 0x0080}
+LOOP_HZ = 50.0  # CSP: its position loop's natural frequency (critically damped)
 PERIOD_S = 500e-6
 GAIN_DEG_S2_PER_MA = 400.0  # axis acceleration per mA (a plain inertia)
 
@@ -74,9 +81,12 @@ def _pdo(od: ObjectDictionary, comm: int, mapping: int, cob: int, entries: list)
           for k in range(len(entries) + 1, 5))])
 
 
-def dictionary(node_id: int, max_current_permille: int | None = None) -> ObjectDictionary:
+def dictionary(node_id: int, max_current_permille: int | None = None, *,
+               without: tuple[int, ...] = (), modes: tuple[int, ...] = (CST,)
+               ) -> ObjectDictionary:
     """The slave's object dictionary; with ``max_current_permille``, a 0x6073 max current of
-    its own (per mille of the rated current)."""
+    its own (per mille of the rated current); ``without``: objects it lacks; ``modes``: the
+    modes 0x6502 lists (CST, CSP: 0x607A then)."""
     od = ObjectDictionary()
     od.node_id = node_id
     add = od.add_object
@@ -117,7 +127,12 @@ def dictionary(node_id: int, max_current_permille: int | None = None) -> ObjectD
         _var("count", 0x608F, 0, dt.UNSIGNED8, "const", 2),
         _var("increments", 0x608F, 1, dt.UNSIGNED32, "ro", INCREMENTS),
         _var("motor revolutions", 0x608F, 2, dt.UNSIGNED32, "ro", 1)])
-    add(_var("Supported drive modes", 0x6502, 0, dt.UNSIGNED32, "ro", SUPPORTED))
+    if CSP in modes:
+        add(_var("Target position", 0x607A, 0, dt.INTEGER32, "rw", 0, True))
+    add(_var("Supported drive modes", 0x6502, 0, dt.UNSIGNED32, "ro",
+             sum(SUPPORTED_BITS[mode] for mode in modes)))
+    for index in without:
+        del od[index]
     return od
 
 
@@ -126,11 +141,12 @@ class IndependentSlave:
 
     def __init__(self, network: canopen.Network, node_id: int = 3, *,
                  behind_at: int | None = None,
-                 max_current_permille: int | None = None) -> None:
+                 max_current_permille: int | None = None,
+                 od: ObjectDictionary | None = None) -> None:
         self.network, self.node_id = network, node_id
         self.behind_at = behind_at
         self.held: list[tuple[int, bytes]] = []  # an answer held back (behind_at)
-        self.node = canopen.LocalNode(node_id, dictionary(node_id, max_current_permille))
+        self.node = canopen.LocalNode(node_id, od or dictionary(node_id, max_current_permille))
         self.od = self.node.object_dictionary
         self.node.add_write_callback(self._on_write)
         self.node.add_read_callback(self._on_read)
@@ -146,6 +162,8 @@ class IndependentSlave:
         self.syncs = 0           # SYNCs since NMT start
         self.log: list[dict[str, Any]] = []
         self.writes: list[tuple[int, int, bytes]] = []  # every SDO download, in order
+        # objects it answers with abort 0x06020000 (no such object) though it has them
+        self.refuses: tuple[int, ...] = ()
         self.lock = threading.Lock()
         self.node.nmt.state = "PRE-OPERATIONAL"
 
@@ -169,18 +187,28 @@ class IndependentSlave:
             return self.value(0x6060)
         return None
 
+    def modes(self) -> list[int]:
+        """The modes it runs: those its 0x6502 lists (without one: CSP where it has 0x607A,
+        and CST)."""
+        if 0x6502 in self.od:
+            return [mode for mode, bit in SUPPORTED_BITS.items() if self.value(0x6502) & bit]
+        return [CST, *([CSP] if 0x607A in self.od else [])]
+
     def torque_limit(self) -> int:
-        """The torque it applies at most, per mille: its max torque, and max current if any."""
-        limits = [self.value(0x6072)]
-        if 0x6073 in self.od:
-            limits.append(self.value(0x6073))
-        return min(limits)
+        """The torque it applies at most, per mille: its max torque and max current, those it
+        has."""
+        return min([self.value(index) for index in (0x6072, 0x6073) if index in self.od]
+                   or [0x7FFF])
 
     def _on_read(self, index: int, subindex: int, od: Any) -> int | None:
+        if index in self.refuses:
+            raise SdoAbortedError(0x0602_0000)
         return self._live(index)
 
     # -- CiA 301 rules for PDO parameters, CiA 402 for the controlword ----------------------
     def _on_write(self, index: int, subindex: int, od: Any, data: bytes) -> None:
+        if index in self.refuses:
+            raise SdoAbortedError(0x0602_0000)
         self.writes.append((index, subindex, bytes(data)))
         if index in (0x1400, 0x1800, 0x1801) and subindex == 1:
             old, new = self.value(index, 1), int.from_bytes(data, "little")
@@ -199,7 +227,8 @@ class IndependentSlave:
                 var = obj[sub] if hasattr(obj, "subindices") else obj
                 if not var.pdo_mappable or len(var) != bits:
                     raise SdoAbortedError(0x0604_0041)
-        if index == 0x6060 and int.from_bytes(data, "little", signed=True) not in (0, 10):
+        if index == 0x6060 and int.from_bytes(data, "little", signed=True) not in (
+                0, *self.modes()):
             raise SdoAbortedError(0x0609_0030)
         if index == 0x6040:
             self._controlword(int.from_bytes(data, "little"))
@@ -239,12 +268,12 @@ class IndependentSlave:
                 self.network.send_message(cob, payload)
             self.held = []
             if self.latched is not None:
-                word, torque = struct.unpack("<Hh", self.latched)
-                self._controlword(word)
-                self.node.set_data(0x6071, 0, struct.pack("<h", torque))
+                self._latch_rpdo(self.latched)
             if self.state == "OPERATION ENABLED":  # as a drive does: within its own limits
                 limit = self.torque_limit()
-                torque = max(-limit, min(limit, self.value(0x6071)))
+                wanted = self._position_loop() if self.value(0x6060) == CSP \
+                    else self.value(0x6071)
+                torque = max(-limit, min(limit, wanted))
                 self.current_ma = torque * RATED_MA / 1000
             else:
                 self.current_ma = 0.0
@@ -258,6 +287,28 @@ class IndependentSlave:
             if data and self.value(0x1019):
                 self.node.set_data(ECHO, 0, bytes([data[0]]))
             self._send_tpdos()
+
+    def _latch_rpdo(self, data: bytes) -> None:
+        """The RPDO's objects as its mapping (0x1600) says: the controlword first."""
+        offset = 0
+        for sub in range(1, self.value(0x1600, 0) + 1):
+            entry = self.value(0x1600, sub)
+            index, size = entry >> 16, (entry & 0xFF) // 8
+            raw = bytes(data[offset:offset + size])
+            offset += size
+            if index == 0x6040:
+                self._controlword(int.from_bytes(raw, "little"))
+            else:
+                self.node.set_data(index, (entry >> 8) & 0xFF, raw)
+
+    def _position_loop(self) -> int:
+        """CSP: the torque [per mille] of a critically damped loop towards 0x607A (its own
+        turn: the target and the position compared modulo one turn)."""
+        target = self.value(0x607A) * 360.0 / INCREMENTS
+        error = (target - self.position + 180.0) % 360.0 - 180.0
+        omega = 2 * 3.141592653589793 * LOOP_HZ
+        acceleration = omega * omega * error - 2 * omega * self.velocity
+        return round(acceleration / GAIN_DEG_S2_PER_MA * 1000 / RATED_MA)
 
     def _send_tpdos(self) -> None:
         sent = {}
@@ -285,26 +336,31 @@ class IndependentSlave:
 
     def on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if self.node.nmt.state == "OPERATIONAL" and len(data) >= 4:
-            self.latched = bytes(data[:4])
+            self.latched = bytes(data)
 
 
 def serve(url: str, node_id: int, behind_at: int | None = None,
-          max_current_permille: int | None = None) -> tuple[canopen.Network, IndependentSlave]:
-    """The slave on the bus at ``url`` (``INTERFACE://CHANNEL?key=value``), serving."""
+          max_current_permille: int | None = None, od: ObjectDictionary | None = None
+          ) -> tuple[canopen.Network, IndependentSlave]:
+    """The slave on the bus at ``url`` (``INTERFACE://CHANNEL?key=value``), serving; ``od``:
+    its dictionary (default: :func:`dictionary`'s)."""
     from hil.drivers.canopen.bus import open_can_bus, parse_can_url
 
     network = canopen.Network(open_can_bus(parse_can_url(url)))
     network.connect()
     slave = IndependentSlave(network, node_id, behind_at=behind_at,
-                             max_current_permille=max_current_permille)
+                             max_current_permille=max_current_permille, od=od)
     network.subscribe(0x200 + node_id, slave.on_rpdo)
     return network, slave
 
 
 def main(argv: list[str]) -> None:
+    """``URL NODE LOG.json [--behind-at N] [--eds F.eds]``: with ``--eds``, the dictionary of
+    that file."""
     url, node_id, log_path = argv[0], int(argv[1]), argv[2]
     behind_at = int(argv[argv.index("--behind-at") + 1]) if "--behind-at" in argv else None
-    network, slave = serve(url, node_id, behind_at)
+    od = canopen.import_od(argv[argv.index("--eds") + 1], node_id) if "--eds" in argv else None
+    network, slave = serve(url, node_id, behind_at, od=od)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     print("serving", flush=True)

@@ -133,11 +133,7 @@ class CyclicExchange:
         # lockstep over a bus: a wait with no frame at all is not a late drive but a gone one
         self._silence_is_gone = silence_is_gone
         self._heard = False  # a frame came since the last SYNC
-        self._rpdo_id = rpdo.cob_id(node_id)
-        # the controlword (UNSIGNED16), then the mode's target (INTEGER16 torque, INTEGER32
-        # position)
-        target_bits = rpdo.entries[1][2]
-        self._rpdo_layout = struct.Struct("<H" + ("h" if target_bits == 16 else "i"))
+        self.use_rpdo(rpdo)
         self._decoders = {pdo.cob_id(node_id): tpdo_decoder(pdo, i)
                           for i, pdo in enumerate(tpdos)}
         self._all = (1 << len(tpdos)) - 1  # every TPDO of the cycle received
@@ -165,6 +161,24 @@ class CyclicExchange:
         self._last_raw: int | None = None
 
     # -- set-up ---------------------------------------------------------------------------
+    def use_rpdo(self, rpdo: PdoMap) -> None:
+        """Send ``rpdo`` from the next cycle on: the controlword (UNSIGNED16), then the mode's
+        set point if it has one (INTEGER16 torque, INTEGER32 position or velocity)."""
+        self._rpdo_id = rpdo.cob_id(self.node_id)
+        sizes = [bits for _, _, bits in rpdo.entries[1:]]
+        self._rpdo_layout = struct.Struct("<H" + "".join("h" if b == 16 else "i" for b in sizes))
+        self._rpdo_target = bool(sizes)
+
+    @property
+    def turns(self) -> int:
+        """The turns counted on the drive's position so far (where it wraps: one turn)."""
+        return self._turns
+
+    def forget_turns(self) -> None:
+        """The drive's position starts a frame of its own (a homing set it): no turns counted,
+        the next position taken as it is."""
+        self._turns, self._last_raw, self._last_fresh = 0, None, None
+
     def start(self, feedback_raw: tuple[int, int, int, int]) -> Feedback:
         """Enabled: the first feedback from values read by SDO (statusword, position,
         velocity, torque); the master's heartbeat and the watchdog start afresh."""
@@ -190,7 +204,7 @@ class CyclicExchange:
         self._take_waiting()
         # a queued SDO download first: the drive takes it before it latches this cycle
         frames: list[Frame] = self.extra_frames()
-        frames.append((self._rpdo_id, self._rpdo_layout.pack(controlword, target)))
+        frames.append((self._rpdo_id, self._rpdo_frame(controlword, target)))
         if self.echo:
             self.sync_counter = self.sync_counter % SYNC_COUNTER_MAX + 1
             frames.append((SYNC_COB_ID, bytes([self.sync_counter])))
@@ -270,9 +284,14 @@ class CyclicExchange:
         sync: Frame = (SYNC_COB_ID, b"")
         for word in controlwords:
             try:
-                self.link.send([(self._rpdo_id, self._rpdo_layout.pack(word, 0)), sync])
+                self.link.send([(self._rpdo_id, self._rpdo_frame(word, 0)), sync])
             except DriveError:
                 return
+
+    def _rpdo_frame(self, controlword: int, target: int) -> bytes:
+        if self._rpdo_target:
+            return self._rpdo_layout.pack(controlword, target)
+        return self._rpdo_layout.pack(controlword)
 
     def drain(self) -> None:
         """Every frame already here, read now (TPDOs among them are late): before a recovery,

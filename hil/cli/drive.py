@@ -234,7 +234,7 @@ def scan_command(args: argparse.Namespace) -> int:
     with _bus_lock(args.url):
         master = _master(args.url, args.config, None)
         try:
-            reports = scan(master.link, args.node, master.config.mode, args.eds)
+            reports = scan(master.link, args.node, master.config.mode, args.eds, master.config)
         finally:
             master.disconnect()
     if args.json:
@@ -313,7 +313,7 @@ def reset_command(args: argparse.Namespace) -> int:
 def plan_command(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from hil.drivers.canopen.master import plan_axes
+    from hil.drivers.canopen.bus_plan import plan_axes
     from hil.errors import UsageError
     from hil.servo.config import check_bitrate, load_drive_config
 

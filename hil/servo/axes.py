@@ -29,7 +29,7 @@ from hil.core.registry import scheme_of
 from hil.core.session import Session
 from hil.drivers.can_bus_time import BusPlan
 from hil.drivers.canopen import parse_can_url
-from hil.drivers.canopen.master import plan_axes
+from hil.drivers.canopen.bus_plan import plan_axes
 from hil.errors import ControllerError, UsageError
 from hil.servo.config import AXIS_NAME, AxisSpec, DriveConfig, check_axes
 from hil.servo.drives import RunDrives

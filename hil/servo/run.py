@@ -170,6 +170,7 @@ class ServoExperiment(Experiment[ServoPlan]):
                 if options.reset_fault:
                     master.fault_reset()
                 master.open()
+                tell_notices(master)
         except BaseException:
             self.close_devices()
             raise
@@ -200,6 +201,7 @@ class ServoExperiment(Experiment[ServoPlan]):
         options, plan, state = self.options, self.planned, self.state
         for master in state.masters:
             master.configure()
+            tell_notices(master)
         described = {axis.name: master.describe()
                      for axis, master in zip(plan.axes, state.masters, strict=True)}
         session.recorder.metadata("drive", {"json": json.dumps(
@@ -351,6 +353,13 @@ def realtime_factor(ticks: int, loop: FixedRateLoop) -> float | None:
     if loop.ticking_s <= 0:
         return None
     return round(ticks * (loop.base_period_ns / 1e9) / loop.ticking_s, 2)
+
+
+def tell_notices(master: CanDriveMaster) -> None:
+    """What the run does differently because of the drive (an object it lacks, a limit it
+    cannot be given), on the terminal (the events are recorded)."""
+    for line in master.notices.take():
+        warn(line)
 
 
 def check_disturbance_object(master: CanDriveMaster) -> None:

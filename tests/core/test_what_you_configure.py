@@ -92,6 +92,10 @@ SPECIAL: dict[str, dict[str, Any]] = {
     "bus.interface": {"bus.interface": "virtual", "bus.channel": "bench-7"},
     "bus.channel": {"bus.interface": "virtual", "bus.channel": "bench-7"},
     "master.sync_echo": {"master.sync_echo": "0x2004:0"},
+    # the keys that stand in for objects a drive lacks, and the homing method: none by default
+    "master.increments_per_rev": {"master.increments_per_rev": 4096},
+    "master.max_torque_permille": {"master.max_torque_permille": 800},
+    "homing.method": {"homing.method": 17},
     # the emulated drive steps 500 us: its cycle is a multiple of it
     "master.cycle_period_us": {"master.cycle_period_us": 1000},
     "emulator.channel": {"emulator.channel": "can1"},

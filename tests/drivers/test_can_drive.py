@@ -278,8 +278,10 @@ def test_csp_mode_tracks_a_position_target():
         worst = max(worst, abs(feedback.position_deg - target))
     assert worst < 1.0  # the drive's own loop with feed-forward follows closely
     assert feedback.position_deg == pytest.approx(400.0, abs=0.01)
-    with pytest.raises(DriveStateError, match="mode 'cst'"):
+    with pytest.raises(DriveStateError, match=r"send_command\(\) sends mA, and mode CSP takes "
+                       "deg"):
         master.send_command(0.0)
+    assert master.exchange(400.0).position_deg == pytest.approx(400.0, abs=0.01)  # the mode's
     master.close()
 
 
