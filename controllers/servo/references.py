@@ -185,6 +185,23 @@ class PlacedReference:
         return self.inner.position(t) + self.offset_deg
 
 
+class ReferenceSamples:
+    """r(k T) for tick k, computed a block of ticks at a time (vectorised, constant memory)."""
+
+    def __init__(self, reference: Reference, dt: float, block: int = 2048) -> None:
+        self.reference, self.dt, self.block = reference, dt, block
+        self._first = -1
+        self._values = np.empty(0)
+
+    def __call__(self, tick: int) -> float:
+        first = tick - tick % self.block
+        if first != self._first:
+            ticks = first + np.arange(self.block)
+            self._values = np.asarray(self.reference.position(ticks * self.dt), dtype=float)
+            self._first = first
+        return float(self._values[tick - first])
+
+
 @dataclass(frozen=True)
 class PulseDisturbance:
     """A disturbance torque of ``torque_ma`` (current equivalent) from ``start`` to ``end`` [s]."""

@@ -9,16 +9,14 @@ while the loop sleeps::
 
 or in one call (``exchange``) for commissioning and tests. Either way ``feedback`` reflects
 the command of the previous cycle applied for one period (``x(k+1) = A x(k) + B u(k)``).
-The set point is the mode's (:data:`~hil.protocols.cia402.OPERATION_MODES`: a current, a
-position or a velocity, in hil's units; :mod:`.setpoint`); the profile modes' handshakes and
-the homing are :mod:`.motion`'s, on the same cycles. An object the drive lacks is neither read
-nor written (:mod:`.objects`). Safety lives here, not in the controller: currents are clamped
-to ``current_limit_mA``; no
-TPDO for ``stale_cycles`` cycles, a send error, a silent heartbeat or a drive reboot -> link
-lost; a FAULT or any state other than OPERATION ENABLED -> error. Each of these puts the drive
-into its safe state (quick stop, then disable voltage), emits an event and latches: every
-later cyclic call raises until :meth:`CanDriveMaster.recover` recovers explicitly. EMCY
-frames become ``drive.emcy`` events through ``on_event`` (``Session.event`` fits).
+The set point is the mode's (a current, a position or a velocity: :mod:`.setpoint`), the
+profile moves' and the homing's cycles :mod:`.motion`'s; an object the drive lacks is neither
+read nor written (:mod:`.objects`). Safety lives here: currents are clamped to
+``current_limit_mA``; no TPDO for ``stale_cycles`` cycles, a send error, a silent heartbeat or
+a drive reboot -> link lost; a FAULT or any state other than OPERATION ENABLED -> error. Each
+of these puts the drive into its safe state (quick stop, then disable voltage), emits an event
+and latches: every later cyclic call raises until :meth:`CanDriveMaster.recover` recovers
+explicitly. EMCY frames become ``drive.emcy`` events through ``on_event``.
 
 The master is a :class:`hil.contracts.Device`: :meth:`~CanDriveMaster.open` (SDO, voltage
 disabled), :meth:`~CanDriveMaster.configure` (the drive's description and scaling, mode, PDO
@@ -278,20 +276,25 @@ class CanDriveMaster(Device):
                     register=register, data_hex=extra, while_driving=self._enabled)
 
     # -- configuration --------------------------------------------------------------------------
+    def _check_mode(self) -> None:
+        """The node is a CiA 402 drive that supports the mode (0x6502, where it has one)."""
+        n = self.node_id
+        device_type = self.sdo.read_int(DEVICE_TYPE, 0)
+        if device_type & 0xFFFF != CIA402_DEVICE_TYPE:
+            raise DriveError(f"node {n} is not a CiA 402 drive (device type 0x{device_type:08X})")
+        supported = self.objects.read(SUPPORTED_MODES, 0)
+        if supported is None:
+            self.notices.tell("drive.object_missing", without_text(n, SUPPORTED_MODES, 0))
+        elif (problem := modes_problem(supported, self.operation)) is not None:
+            raise DriveError(f"drive node {n}: {problem}")
+
     def configure(self) -> None:
         """Check the drive (device type, modes), then write the run's settings by SDO: mode,
         PDO map, cycle period, heartbeats, limits, the mode's profile (configured values).
         An object the drive lacks is not written: hil does without it and says so
         (:attr:`notices`). The drive is in SWITCH ON DISABLED (after :meth:`open`)."""
         c, n, sdo, mode = self.config, self.node_id, self.sdo, self.operation
-        device_type = sdo.read_int(DEVICE_TYPE, 0)
-        if device_type & 0xFFFF != CIA402_DEVICE_TYPE:
-            raise DriveError(f"node {n} is not a CiA 402 drive (device type 0x{device_type:08X})")
-        supported = self.objects.read(SUPPORTED_MODES, 0)
-        if supported is None:
-            self.notices.tell("drive.object_missing", without_text(n, SUPPORTED_MODES, 0))
-        elif (problem := modes_problem(supported, mode)) is not None:
-            raise DriveError(f"drive node {n}: {problem}")
+        self._check_mode()
         profile = profile_writes(self.objects, mode, c.profile, self.scaling)
         scaling, limit = self.scaling, self.limit
         self.nmt.command(NMT_ENTER_PRE_OPERATIONAL)
@@ -343,8 +346,8 @@ class CanDriveMaster(Device):
 
     def _write_where_present(self, index: int, subindex: int, value: int,
                              fmt: str = "<I") -> bool:
-        """:meth:`_write_setting` where the drive has the object; else nothing is written and
-        what hil does without it is told. Whether it was written."""
+        """:meth:`_write_setting` where the drive has the object (else what hil does without
+        it is told); whether it was written."""
         if self.objects.has(index, subindex):
             self._write_setting(index, subindex, value, fmt)
             return True
@@ -397,6 +400,7 @@ class CanDriveMaster(Device):
         if state not in (SWITCH_ON_DISABLED, NOT_READY_TO_SWITCH_ON):
             self.states.controlword(CW_DISABLE_VOLTAGE)  # left enabled by someone
         self.states.wait_state(SWITCH_ON_DISABLED, "disable voltage")
+        self._check_mode()
         self._read_units_and_limits()
 
     def _read_units_and_limits(self) -> None:
@@ -606,13 +610,11 @@ class CanDriveMaster(Device):
             mode, value, self.scaling, self.cyclic.turns, self.node_id), math.nan)
 
     def send_command(self, current_ma: float) -> None:
-        """Send a current command [mA] (clamped to the limit) and a SYNC: the set point of a
-        mode that takes a current (CST)."""
+        """:meth:`send_set_point` of a current [mA] (CST)."""
         self._send_in("mA", current_ma, "send_command")
 
     def send_position(self, target_deg: float) -> None:
-        """Send a position target (multi-turn degrees) and a SYNC: the set point of a mode
-        that takes a position (CSP)."""
+        """:meth:`send_set_point` of a position [deg, multi-turn] (CSP)."""
         self._send_in("deg", target_deg, "send_position")
 
     def _send_in(self, unit: str, value: float, name: str) -> None:

@@ -32,13 +32,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(0x1008), error register and history (0x1001, 0x1003), supported modes by name "
         "(0x6502), the current PDO maps and heartbeat period; with --eds, the drive's EDS "
         "checked for every object hil reads, writes or maps; and a verdict: whether hil can "
-        "drive it in the configured mode, and if not, every reason (a FAULT names its code "
-        "and `hil drive reset`). Exit status 0: nodes found; 1: none answered.")
+        "drive it in the configured mode ([master] mode, with the config's stand-ins for "
+        "objects it lacks and its [profile] and [homing]), and if not, every reason, one a "
+        "line, the deciding one first (the modes it supports; a FAULT names its code and "
+        "`hil drive reset`). Exit status 0: nodes found (with --eds: each can be driven); 1: "
+        "none answered, or with --eds one cannot be driven.")
     scan.add_argument("url", metavar="URL", help=URL_HELP)
     scan.add_argument("--node", type=positive_int, action="append",
                       help="inspect this node only (repeat for several)")
     scan.add_argument("--config", metavar="F.toml",
-                      help="drive config laid over the default (its [master] mode and [bus])")
+                      help="drive config laid over the default (its [master] mode, stand-ins "
+                      "and [bus], [profile], [homing])")
     scan.add_argument("--eds", metavar="F.eds",
                       help="the drive's EDS or DCF: check every object hil reads, writes or "
                       "maps in the mode (exists, hil's size, readable, writable, "
@@ -242,7 +246,8 @@ def scan_command(args: argparse.Namespace) -> int:
                           "nodes": [r.as_dict() for r in reports]}, indent=2))
     else:
         print(format_scan(args.url, master.config.mode, reports))
-    return 0 if reports else 1
+    # a drive checked against its description that cannot be driven fails the scan
+    return 0 if reports and (not args.eds or all(r.drivable for r in reports)) else 1
 
 
 def format_scan(url: str, mode: str, reports: list[Any]) -> str:
@@ -272,8 +277,18 @@ def format_scan(url: str, mode: str, reports: list[Any]) -> str:
             lines.append(f"  EDS {r.eds['path']}: " + (
                 f"{len(problems)} problem(s), below" if problems else
                 "every object hil reads, writes or maps is there as hil needs it"))
-        lines.append(f"  {r.verdict}")
+        lines += _verdict_lines(r)
     return "\n".join(lines)
+
+
+def _verdict_lines(report: Any) -> list[str]:
+    """``can drive: yes, in CSP`` (and its notes), or ``can drive: no, `` and every reason,
+    one a line, the deciding one first."""
+    if report.drivable:
+        return [f"  can drive: yes, in {report.mode.upper()}",
+                *(f"    {note}" for note in report.notes)]
+    first, *rest = report.problems
+    return [f"  can drive: no, {first}", *(f"    {problem}" for problem in rest)]
 
 
 def _state(report: Any) -> str:

@@ -18,7 +18,8 @@ from hil.errors import UsageError
 from hil.servo.defaults import DEFAULT_REFERENCE
 from hil.servo.task import PREDICTION_EVERY_REALTIME, PREDICTION_EVERY_TICK_UP_TO_S
 
-CONTROLLER_FORMS = "mpc, empc, pid, FILE.py:Class, package.module:Class or a registered name"
+CONTROLLER_FORMS = ("mpc, empc, pid, setpoint, FILE.py:Class, package.module:Class or a registered "
+                    "name")
 #: ``hil servo run``'s flags (argparse dests) -> the option they set, where the names differ
 FLAG_OPTIONS = {"duration": "duration_s", "config": "drive_config", "settle": "settle_s",
                 "limit": "limits", "param": "params", "params": "params_file",

@@ -27,12 +27,15 @@ from collections.abc import Callable, Mapping
 from typing import Any, cast
 
 from hil.controllers.base import (
+    OUTPUT_UNITS,
     CountsFallbacks,
     ServoController,
     horizons_of,
+    output_of,
     position_input_of,
     solver_of,
 )
+from hil.controllers.errors import ControllerSetupError
 from hil.controllers.servo.references import (
     PlacedReference,
     Reference,
@@ -66,7 +69,7 @@ from hil.servo.options import ServoRunOptions
 from hil.servo.plan import ServoPlan, ServoState, plan_servo
 from hil.servo.rig import open_drives, share_lockstep_time
 from hil.servo.safety import SafetyMonitor
-from hil.servo.settings import resolve_servo
+from hil.servo.settings import resolve_servo, run_output
 from hil.servo.task import (
     DISTURBANCE_OBJECT,
     ServoTask,
@@ -85,19 +88,22 @@ def make_controller(options: ServoRunOptions, scenario: Scenario, session: Any =
                     factory: Callable[..., Any] | None = None,
                     umax_ma: float | None = None, *,
                     reference: Reference | None = None,
-                    period_s: float | None = None) -> ServoController:
+                    period_s: float | None = None,
+                    output: str | None = None) -> ServoController:
     """The controller of the run, built from its spec as ``factory(reference, params)``
     (``context=`` too when the factory takes it); ``factory``: already loaded and checked;
     ``umax_ma``: its current bound (default: the run's, as :func:`resolve_servo` gives it);
     ``reference``: the run's (placed where the axis starts), else the scenario's;
-    ``period_s``: the cycle period it is stepped at (default: the run's). A
-    ``position_input`` other than wrapped or unwrapped is a ConfigError naming it."""
-    if umax_ma is None or period_s is None:
+    ``period_s``: the cycle period it is stepped at (default: the run's); ``output``: what it
+    is to return (default: what the drive's mode takes). A ``position_input`` other than
+    wrapped or unwrapped, or another ``output``, is a ConfigError naming it."""
+    if umax_ma is None or period_s is None or output is None:
         settings = resolve_servo(options)
         umax_ma = settings.umax_ma if umax_ma is None else umax_ma
         period_s = settings.drive.master.cycle_period_s if period_s is None else period_s
+        output = run_output(settings.drive) if output is None else output
     context = ServoContext(options.ht, options.hu, options.hp, options.ert, umax_ma, session,
-                           period_s)
+                           period_s, output)
     values = dict(options.params if params is None else params)
     label = options.label
     if factory is None:
@@ -107,6 +113,9 @@ def make_controller(options: ServoRunOptions, scenario: Scenario, session: Any =
                                   else reference, values, method="step",
                                   application="servo", context=context)
     position_input_of(controller, label)
+    if (returned := output_of(controller, label)) != output:
+        raise ControllerSetupError(f"controller {label!r} returns a {returned}, and the drive "
+                                   f"takes a {output} [{OUTPUT_UNITS[output]}] (its mode)")
     return cast(ServoController, controller)
 
 
@@ -193,7 +202,8 @@ class ServoExperiment(Experiment[ServoPlan]):
         state.controllers = [
             make_controller(options, scenario, session, plan.axis_params(axis.name),
                             plan.factory, plan.umax_for(master),
-                            reference=reference, period_s=plan.base_period_s)
+                            reference=reference, period_s=plan.base_period_s,
+                            output=run_output(plan.drive))
             for axis, scenario, reference, master in zip(
                 plan.axes, plan.scenarios, state.references, state.masters, strict=True)]
 
@@ -300,6 +310,8 @@ class ServoExperiment(Experiment[ServoPlan]):
         ).lay(task.stats.kpis(reference_amplitude(plan.scenarios[0]))
                         if task is not None else no_tracking())
         controller = task.controller if task is not None else None
+        if task is not None and not task.currents:
+            kpis.set_point = task.output
         horizons = horizons_of(controller)
         if horizons is not None:
             kpis.ert, kpis.ht, kpis.hu, kpis.hp = (horizons.ert, horizons.ht, horizons.hu,

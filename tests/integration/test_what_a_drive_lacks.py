@@ -71,9 +71,9 @@ def slave_of(tmp_path):
         slave.close()
 
 
-def run(capsys, tmp_path, slave, config="", *extra, name="run"):
+def run(capsys, tmp_path, slave, config="", *extra, name="run", controller="pid"):
     (tmp_path / f"{name}.toml").write_text(config)
-    return hil_here(capsys, "servo", "run", "--controller", "pid", "--drive", slave.url,
+    return hil_here(capsys, "servo", "run", "--controller", controller, "--drive", slave.url,
                     "--node", NODE, "--duration", "0.1", "--config", f"{name}.toml",
                     "--out", f"{name}.mcap", *extra, cwd=tmp_path)
 
@@ -98,13 +98,17 @@ def test_a_drive_without_0x608f_and_0x6075_stops_before_anything_is_enabled(tmp_
         "of): set [master] rated_current_mA to its value")
 
 
-def test_the_keys_that_stand_in_for_them_drive_it_and_are_recorded(tmp_path, capsys, slave_of):
-    slave = slave_of(EPOS4_LACKS)
-    ran = run(capsys, tmp_path, slave, STAND_INS, "--json")
+@pytest.mark.parametrize("mode, controller", [("cst", "pid"), ("csp", "setpoint")])
+def test_the_keys_that_stand_in_for_them_drive_it_and_are_recorded(tmp_path, capsys, slave_of,
+                                                                   mode, controller):
+    slave = slave_of(EPOS4_LACKS, (CSP, CST))
+    ran = run(capsys, tmp_path, slave, STAND_INS + f'mode = "{mode}"\n', "--json",
+              controller=controller)
     assert ran.returncode == 0, ran.stderr
     kpis = json.loads(ran.stdout)
     assert kpis["ticks"] == 200 and kpis["stale_feedback"] == 0
     assert kpis["rms_error_deg"] < 1.0  # scaled right: it tracks the sine
+    assert slave.drive.value(0x6060) == {"cst": CST, "csp": CSP}[mode]
     session = read_session(str(tmp_path / "run.mcap"))
     drive = json.loads(session.metadata["drive"]["json"])
     assert drive["scaling"]["increments_per_rev"] == INCREMENTS
@@ -167,7 +171,8 @@ def test_a_drive_without_the_optional_settings_runs_and_says_what_it_does_withou
 
 
 def test_from_outside_a_drive_built_from_a_file_without_them(tmp_path):
-    """The drive in another process, its dictionary the EDS's, reached over udp_multicast."""
+    """The drive in another process, its dictionary the EDS's, reached over udp_multicast,
+    in CSP."""
     eds = lacking_eds(tmp_path, EPOS4_LACKS, (CSP, CST))
     url = f"udp_multicast://239.0.0.1?port={free_udp_port()}"
     log = tmp_path / "slave.json"
@@ -175,11 +180,11 @@ def test_from_outside_a_drive_built_from_a_file_without_them(tmp_path):
     slave = subprocess.Popen([sys.executable, str(ROOT / "tests" / "drive_slave.py"), url,
                               str(NODE), str(log), "--eds", str(eds)], stdout=subprocess.PIPE,
                              text=True, env=env)
-    (tmp_path / "drive.toml").write_text(STAND_INS)
+    (tmp_path / "drive.toml").write_text(STAND_INS + 'mode = "csp"\n')
     try:
         assert slave.stdout.readline().strip() == "serving"
         ran = subprocess.run([sys.executable, "-m", "hil", "servo", "run", "--controller",
-                              "pid", "--drive", url, "--node", str(NODE), "--config",
+                              "setpoint", "--drive", url, "--node", str(NODE), "--config",
                               "drive.toml", "--eds", str(eds), "--duration", "0.2", "--json",
                               "--out", "run.mcap"], cwd=tmp_path, env=env,
                              capture_output=True, text=True, timeout=120)
@@ -189,4 +194,53 @@ def test_from_outside_a_drive_built_from_a_file_without_them(tmp_path):
     assert ran.returncode == 0, ran.stderr
     kpis = json.loads(ran.stdout)
     assert kpis["ticks"] == 400 and kpis["stale_feedback"] == 0
-    assert kpis["rms_error_deg"] < 1.0
+    assert kpis["set_point"] == "position" and kpis["rms_error_deg"] < 1.0
+
+
+def ip_only(tmp_path):
+    """The EDS of a drive whose 0x6502 lists interpolated position (IP) alone."""
+    od = dictionary(NODE)
+    od[0x6502].default = 0x40
+    path = tmp_path / "ip-only.eds"
+    canopen.export_od(od, str(path), doc_type="eds")
+    return path
+
+
+def test_scan_with_an_eds_lists_one_problem_a_line_and_fails(tmp_path, capsys, slave_of):
+    slave = slave_of((0x6077,), (CSP, CST))  # no torque actual: hil cannot drive it
+    eds = lacking_eds(tmp_path, (0x6077,), (CSP, CST), "described")
+    (tmp_path / "csp.toml").write_text('[master]\nmode = "csp"\n')
+    scanned = hil_here(capsys, "drive", "scan", slave.url, "--node", NODE, "--eds", eds,
+                       "--config", "csp.toml", cwd=tmp_path)
+    assert scanned.returncode == 1, scanned.stderr
+    verdict = scanned.stdout[scanned.stdout.index("can drive: no"):].splitlines()
+    assert verdict == [
+        "can drive: no, 0x6077 torque actual: drive node 3 refused SDO read 0x6077:00: "
+        "0x06020000 object does not exist in the object dictionary",
+        f"    EDS {eds}: 0x6077 is not in it: hil needs it readable and TPDO-mappable, 16 "
+        "bits, for the current every cycle"]
+    healthy = slave_of((), (CSP, CST))
+    fine = hil_here(capsys, "drive", "scan", healthy.url, "--node", NODE, "--eds",
+                    lacking_eds(tmp_path, (), (CSP, CST), "complete"), "--config", "csp.toml",
+                    cwd=tmp_path)
+    assert fine.returncode == 0, fine.stdout
+    assert "can drive: yes, in CSP" in fine.stdout
+
+
+def test_a_drive_with_no_mode_hil_drives_says_that_first(tmp_path, capsys):
+    eds = ip_only(tmp_path)
+    slave = Slave(eds)
+    try:
+        scanned = hil_here(capsys, "drive", "scan", slave.url, "--node", NODE, "--eds", eds,
+                           cwd=tmp_path)
+        ran = hil_here(capsys, "servo", "run", "--controller", "pid", "--drive", slave.url,
+                       "--node", NODE, "--eds", eds, "--out", "x.mcap", cwd=tmp_path)
+    finally:
+        slave.close()
+    assert scanned.returncode == 1
+    modes = ("supports no mode hil drives (IP: 0x6502 = 0x00000040; hil drives PP, PV, HM, "
+             "CSP, CSV, CST)")
+    assert f"can drive: no, {modes}" in scanned.stdout
+    assert ran.returncode == 2 and ran.stderr.startswith(
+        f"hil: error: drive node 3 (EDS {eds}): {modes}")
+    assert not (tmp_path / "x.mcap").exists()
