@@ -5,9 +5,11 @@ CiA 301 remapping rules enforced (a valid PDO's COB-ID and mapping cannot change
 entry must name a mappable object of the right size). Its SYNC counter echo is object 0x2100.
 
 Made to lack what vendors' drives lack (``dictionary(without=...)``: a maxon EPOS4 has no
-0x608F and no 0x6075; any optional object), to support CSP too (``modes``: its own position
-loop towards 0x607A), and built from an EDS file (``IndependentSlave(od=import_od(F))``: the
-dictionary a vendor's file describes).
+0x608F and no 0x6075; any optional object), to support CSP, PP and HM too (``modes``: its own
+position loop towards 0x607A; a trapezoidal profile by 0x6081/0x6083/0x6084 with the
+new-set-point handshake; homing methods 35 and 37, where the axis stands, any other one a
+homing error: it has no switches), and built from an EDS file
+(``IndependentSlave(od=import_od(F))``: the dictionary a vendor's file describes).
 
 SDO, NMT and the heartbeat producer are canopen's; this module adds what a LocalNode does not
 do: the cyclic path (RPDO latched on SYNC, a simple axis advanced one period, the TPDOs of the
@@ -42,8 +44,8 @@ INCREMENTS = 1 << 17
 RATED_MA = 2000
 ECHO = 0x2100
 SUPPORTED = 0x0200  # CST only
-CST, CSP = 10, 8
-SUPPORTED_BITS = {CST: 0x0200, CSP: 0x0080}
+CST, CSP, PP, HM = 10, 8, 1, 6
+SUPPORTED_BITS = {CST: 0x0200, CSP: 0x0080, PP: 0x0001, HM: 0x0020}
 LOOP_HZ = 50.0  # CSP: its position loop's natural frequency (critically damped)
 PERIOD_S = 500e-6
 GAIN_DEG_S2_PER_MA = 400.0  # axis acceleration per mA (a plain inertia)
@@ -127,8 +129,22 @@ def dictionary(node_id: int, max_current_permille: int | None = None, *,
         _var("count", 0x608F, 0, dt.UNSIGNED8, "const", 2),
         _var("increments", 0x608F, 1, dt.UNSIGNED32, "ro", INCREMENTS),
         _var("motor revolutions", 0x608F, 2, dt.UNSIGNED32, "ro", 1)])
-    if CSP in modes:
+    if {CSP, PP} & set(modes):
         add(_var("Target position", 0x607A, 0, dt.INTEGER32, "rw", 0, True))
+    if PP in modes:  # 90 deg/s, 360 deg/s^2, a window of 0.1 deg
+        for index, name, default in ((0x6081, "Profile velocity", INCREMENTS // 4),
+                                     (0x6083, "Profile acceleration", INCREMENTS),
+                                     (0x6084, "Profile deceleration", INCREMENTS),
+                                     (0x6067, "Position window", INCREMENTS // 3600)):
+            add(_var(name, index, 0, dt.UNSIGNED32, "rw", default))
+    if HM in modes:
+        add(_var("Homing method", 0x6098, 0, dt.INTEGER8, "rw", 0))
+        add(_var("Home offset", 0x607C, 0, dt.INTEGER32, "rw", 0))
+        _record(od, "Homing speeds", 0x6099, [
+            _var("count", 0x6099, 0, dt.UNSIGNED8, "const", 2),
+            _var("switch", 0x6099, 1, dt.UNSIGNED32, "rw", INCREMENTS // 12),
+            _var("zero", 0x6099, 2, dt.UNSIGNED32, "rw", INCREMENTS // 72)], array=True)
+        add(_var("Homing acceleration", 0x609A, 0, dt.UNSIGNED32, "rw", INCREMENTS))
     add(_var("Supported drive modes", 0x6502, 0, dt.UNSIGNED32, "ro",
              sum(SUPPORTED_BITS[mode] for mode in modes)))
     for index in without:
@@ -158,6 +174,8 @@ class IndependentSlave:
         self.velocity = 0.0      # degrees per second
         self.current_ma = 0.0
         self.controlword = 0
+        self.mode_bits = 0       # statusword bits 10, 12, 13 of PP and HM
+        self.pp_target: float | None = None  # degrees, its own multi-turn frame
         self.latched: bytes | None = None
         self.syncs = 0           # SYNCs since NMT start
         self.log: list[dict[str, Any]] = []
@@ -176,7 +194,8 @@ class IndependentSlave:
     def _live(self, index: int) -> int | None:
         if index == 0x6041:
             _mask, word = State402.SW_MASK[self.state]
-            return word | 0x0200 | (0x0010 if self.state != "NOT READY TO SWITCH ON" else 0)
+            return word | 0x0200 | (0x0010 if self.state != "NOT READY TO SWITCH ON" else 0) \
+                | self.mode_bits
         if index == 0x6064:
             return round(self.position / 360.0 * INCREMENTS) % INCREMENTS
         if index == 0x606C:
@@ -192,7 +211,7 @@ class IndependentSlave:
         and CST)."""
         if 0x6502 in self.od:
             return [mode for mode, bit in SUPPORTED_BITS.items() if self.value(0x6502) & bit]
-        return [CST, *([CSP] if 0x607A in self.od else [])]
+        return [CST, *([CSP, PP] if 0x607A in self.od else [])]
 
     def torque_limit(self) -> int:
         """The torque it applies at most, per mille: its max torque and max current, those it
@@ -236,6 +255,8 @@ class IndependentSlave:
     def _controlword(self, word: int) -> None:
         previous, self.controlword = self.controlword, word
         state = self.state
+        if state == "OPERATION ENABLED" and 0x6060 in self.od:
+            self._mode_bit_4(word, previous)
         if word & 0x80 and not previous & 0x80:
             if state == "FAULT":
                 self.state = "SWITCH ON DISABLED"
@@ -269,10 +290,14 @@ class IndependentSlave:
             self.held = []
             if self.latched is not None:
                 self._latch_rpdo(self.latched)
-            if self.state == "OPERATION ENABLED":  # as a drive does: within its own limits
+            mode = self.value(0x6060) if 0x6060 in self.od else CST
+            if self.state == "OPERATION ENABLED" and mode in (PP, HM):
+                self.current_ma = 0.0
+                if mode == PP:
+                    self._profile()
+            elif self.state == "OPERATION ENABLED":  # as a drive does: within its own limits
                 limit = self.torque_limit()
-                wanted = self._position_loop() if self.value(0x6060) == CSP \
-                    else self.value(0x6071)
+                wanted = self._position_loop() if mode == CSP else self.value(0x6071)
                 torque = max(-limit, min(limit, wanted))
                 self.current_ma = torque * RATED_MA / 1000
             else:
@@ -282,11 +307,52 @@ class IndependentSlave:
                     if abs(self.velocity) < 1.0:
                         self.velocity = 0.0
                         self.state = "SWITCH ON DISABLED"
-            self.velocity += GAIN_DEG_S2_PER_MA * self.current_ma * PERIOD_S
-            self.position += self.velocity * PERIOD_S
+            if mode not in (PP, HM) or self.state != "OPERATION ENABLED":
+                self.velocity += GAIN_DEG_S2_PER_MA * self.current_ma * PERIOD_S
+                self.position += self.velocity * PERIOD_S
             if data and self.value(0x1019):
                 self.node.set_data(ECHO, 0, bytes([data[0]]))
             self._send_tpdos()
+
+    def _mode_bit_4(self, word: int, previous: int) -> None:
+        """Controlword bit 4 in PP (a new set point) and HM (start homing)."""
+        mode, rising = self.value(0x6060), word & 0x10 and not previous & 0x10
+        if mode == PP:
+            if rising:
+                raw = self.value(0x607A) * 360.0 / INCREMENTS  # on its own turn
+                self.pp_target = self.position - self.position % 360.0 + raw
+                self.mode_bits = 0x1000
+            elif not word & 0x10:
+                self.mode_bits &= ~0x1000
+        elif mode == HM and rising:
+            if self.value(0x6098) in (35, 37):  # home is where it stands: offset there
+                offset = self.value(0x607C) * 360.0 / INCREMENTS
+                self.position = offset
+                self.mode_bits = 0x1400
+            else:  # no switches to find: a homing error, standing
+                self.mode_bits = 0x2400
+
+    def _profile(self) -> None:
+        """PP: one period of the trapezoid towards the target, position and velocity set
+        as the profile says; bit 10 once within the window, standing."""
+        if self.pp_target is None:
+            self.velocity = 0.0
+            return
+        scale = 360.0 / INCREMENTS
+        v_max, accel = self.value(0x6081) * scale, self.value(0x6083) * scale
+        decel = self.value(0x6084) * scale
+        distance = self.pp_target - self.position
+        stop = (2.0 * decel * abs(distance)) ** 0.5
+        wanted = min(v_max, stop) * (1 if distance >= 0 else -1)
+        step = max(accel, decel) * PERIOD_S
+        self.velocity += max(-step, min(step, wanted - self.velocity))
+        self.position += self.velocity * PERIOD_S
+        if abs(self.pp_target - self.position) <= self.value(0x6067) * scale and \
+                abs(self.velocity) < step:
+            self.position, self.velocity = self.pp_target, 0.0
+            self.mode_bits |= 0x0400
+        else:
+            self.mode_bits &= ~0x0400
 
     def _latch_rpdo(self, data: bytes) -> None:
         """The RPDO's objects as its mapping (0x1600) says: the controlword first."""
@@ -335,7 +401,7 @@ class IndependentSlave:
                          "state": self.state})
 
     def on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        if self.node.nmt.state == "OPERATIONAL" and len(data) >= 4:
+        if self.node.nmt.state == "OPERATIONAL" and len(data) >= 2:
             self.latched = bytes(data)
 
 

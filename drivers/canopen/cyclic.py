@@ -159,6 +159,7 @@ class CyclicExchange:
         self._command_ma = 0.0
         self._turns = 0
         self._last_raw: int | None = None
+        self._near: int | None = None  # after forget_turns: the first position's turn
 
     # -- set-up ---------------------------------------------------------------------------
     def use_rpdo(self, rpdo: PdoMap) -> None:
@@ -174,10 +175,12 @@ class CyclicExchange:
         """The turns counted on the drive's position so far (where it wraps: one turn)."""
         return self._turns
 
-    def forget_turns(self) -> None:
-        """The drive's position starts a frame of its own (a homing set it): no turns counted,
-        the next position taken as it is."""
+    def forget_turns(self, near_deg: float = 0.0) -> None:
+        """The drive's position starts a frame of its own (a homing set it): the turns counted
+        anew, the next position taken on the turn nearest ``near_deg`` (where the frame puts
+        the axis: home; a drive that counts one turn says -5 deg as 355)."""
         self._turns, self._last_raw, self._last_fresh = 0, None, None
+        self._near = self.scaling.counts(near_deg)
 
     def start(self, feedback_raw: tuple[int, int, int, int]) -> Feedback:
         """Enabled: the first feedback from values read by SDO (statusword, position,
@@ -335,6 +338,8 @@ class CyclicExchange:
                 self._turns -= 1
             elif step < -(turn // 2):
                 self._turns += 1
+        elif self._near is not None:
+            self._turns, self._near = round((self._near - raw) / turn), None
         self._last_raw = raw
         position_deg = scaling.degrees(self._turns * turn + raw)
         velocity_deg_s = scaling.degrees(velocity)

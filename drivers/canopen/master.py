@@ -55,10 +55,10 @@ from hil.drivers.canopen.errors import (
     DriveStateError,
 )
 from hil.drivers.canopen.link import Link
-from hil.drivers.canopen.motion import profile_writes
 from hil.drivers.canopen.nmt import HeartbeatProducer, HeartbeatWatch, Nmt
 from hil.drivers.canopen.objects import DriveObjects, Notices, without_text
 from hil.drivers.canopen.pdo import PdoConfigurator, tpdo_maps, unused_pdos
+from hil.drivers.canopen.profile import profile_writes
 from hil.drivers.canopen.scaling import DriveScaling, read_scaling
 from hil.drivers.canopen.sdo import SdoClient
 from hil.drivers.canopen.setpoint import holding_value, wire_format, wire_value

@@ -22,8 +22,8 @@ from hil.drivers.canopen.current_limit import read_current_limit, unenforced_tex
 from hil.drivers.canopen.eds import check, import_description, modes_problem
 from hil.drivers.canopen.errors import DriveError, DriveLinkLostError
 from hil.drivers.canopen.link import Link
-from hil.drivers.canopen.motion import profile_writes
 from hil.drivers.canopen.objects import DriveObjects
+from hil.drivers.canopen.profile import profile_writes
 from hil.drivers.canopen.scaling import DriveScaling, read_scaling
 from hil.drivers.canopen.sdo import SdoClient
 from hil.protocols.can_frames import Frame

@@ -201,6 +201,10 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--from-here", action="store_true",
                         help="the reference is relative to where the axis stands when the run "
                         "starts (default: an angle of the spindle, on the turn nearest it)")
+    parser.add_argument("--home", action="store_true",
+                        help="home the axis first (homing mode, HM: [homing] method, offset, "
+                        "speeds; as 'hil drive home'), then run in [master] mode with the "
+                        "reference absolute from home (not with --from-here)")
     parser.add_argument("--duration", type=seconds, metavar="S",
                         help="length of the run [s] (default 2)")
     parser.add_argument("--settle", type=seconds_or_zero, metavar="S",

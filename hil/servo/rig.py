@@ -254,3 +254,22 @@ def share_lockstep_time(master: CanDriveMaster, on_event: EventSink = no_event) 
              f"silent for {bound_ms} ms of wall time is gone)", source=f"drive{n}",
              shared=True, bound_ms=bound_ms)
     return True
+
+
+def reach(master: CanDriveMaster, on_event: EventSink, reset_fault: bool) -> None:
+    """Reach ``master``'s drive and leave it not enabled: over a bus in lockstep, one clock
+    on both sides of the wire; a FAULT cleared when ``reset_fault``; opened, and what it
+    lacks said on the terminal."""
+    if master.config.lockstep:
+        share_lockstep_time(master, on_event)
+    if reset_fault:
+        master.fault_reset()
+    master.open()
+    tell_notices(master)
+
+
+def tell_notices(master: CanDriveMaster) -> None:
+    """What the run does differently because of the drive (an object it lacks, a limit it
+    cannot be given), on the terminal (the events are recorded)."""
+    for line in master.notices.take():
+        warn(line)

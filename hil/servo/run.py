@@ -65,9 +65,10 @@ from hil.servo.builtin import ServoContext
 from hil.servo.config import stricter_safety
 from hil.servo.drives import RunDrives
 from hil.servo.kpis import AxesKpis, AxisKpis, ServoKpis, no_tracking
+from hil.servo.motion import home_axis
 from hil.servo.options import ServoRunOptions
 from hil.servo.plan import ServoPlan, ServoState, plan_servo
-from hil.servo.rig import open_drives, share_lockstep_time
+from hil.servo.rig import open_drives, reach, tell_notices
 from hil.servo.safety import SafetyMonitor
 from hil.servo.settings import resolve_servo, run_output
 from hil.servo.task import (
@@ -174,12 +175,7 @@ class ServoExperiment(Experiment[ServoPlan]):
                                    strict=True))
             state.masters = [masters[axis.name] for axis in plan.axes]
             for master in state.masters:
-                if master.config.lockstep:  # over a bus: one clock on both sides of the wire
-                    share_lockstep_time(master, on_event)
-                if options.reset_fault:
-                    master.fault_reset()
-                master.open()
-                tell_notices(master)
+                reach(master, on_event, options.reset_fault)
         except BaseException:
             self.close_devices()
             raise
@@ -191,7 +187,8 @@ class ServoExperiment(Experiment[ServoPlan]):
         multi-axis controller (``multi_axis = True``) once, with every axis' reference,
         shared by the axes."""
         options, plan, state = self.options, self.planned, self.state
-        state.references = [PlacedReference(scenario.reference, relative=options.from_here)
+        state.references = [PlacedReference(scenario.reference, relative=options.from_here,
+                                            absolute=options.home)
                             for scenario in plan.scenarios]
         if not plan.lone and getattr(plan.factory, "multi_axis", False):
             whole = build_controller(plan.factory, options.label, state.references,
@@ -209,6 +206,9 @@ class ServoExperiment(Experiment[ServoPlan]):
 
     def start(self, session: Session) -> None:
         options, plan, state = self.options, self.planned, self.state
+        if options.home:
+            for master in state.masters:
+                self._home(session, master)
         for master in state.masters:
             master.configure()
             tell_notices(master)
@@ -245,6 +245,13 @@ class ServoExperiment(Experiment[ServoPlan]):
             session.add_task(state.bus_task)
         if self.on_started is not None:
             self.on_started(state.masters[0])
+
+    def _home(self, session: Session, master: CanDriveMaster) -> None:
+        """``--home``: the axis homed (HM) before the run's mode is configured."""
+        at_home = home_axis(master, self.planned.drive.master.profile.homing_timeout_s)
+        session.event("drive.homed", f"drive node {master.node_id} homed: at "
+                      f"{at_home.position_deg:.4f} deg", source=f"drive{master.node_id}",
+                      position_deg=at_home.position_deg)
 
     def tunables(self, tuner: Tuner) -> None:
         """One axis: its controller's parameters (``controller.NAME``) and its safety
@@ -365,13 +372,6 @@ def realtime_factor(ticks: int, loop: FixedRateLoop) -> float | None:
     if loop.ticking_s <= 0:
         return None
     return round(ticks * (loop.base_period_ns / 1e9) / loop.ticking_s, 2)
-
-
-def tell_notices(master: CanDriveMaster) -> None:
-    """What the run does differently because of the drive (an object it lacks, a limit it
-    cannot be given), on the terminal (the events are recorded)."""
-    for line in master.notices.take():
-        warn(line)
 
 
 def check_disturbance_object(master: CanDriveMaster) -> None:

@@ -210,7 +210,8 @@ class ServoTask(Task):
         offset = reference.place(start.position_deg)
         self.session.recorder.metadata("reference" if axis is None else f"reference/{axis}", {
             "start_deg": repr(start.position_deg), "offset_deg": repr(offset),
-            "placed": "from here" if reference.relative else "on the nearest turn"})
+            "placed": "from here" if reference.relative else
+            "absolute (homed)" if reference.absolute else "on the nearest turn"})
         return offset
 
     def _record_stop_cycle(self, feedback: Feedback) -> None:

@@ -265,6 +265,7 @@ RUN_FLAGS: dict[str, list[tuple[list[str], str, Any]]] = {
         (["--umax", "600"], "run.umax", 600.0),
         (["--reference", "hold:position=5"], "run.reference", "hold:position=5"),
         (["--from-here"], "run.from_here", True),
+        (["--home"], "run.home", True),
         (["--duration", "1.5"], "run.duration_s", 1.5),
         (["--settle", "0.25"], "run.settle_s", 0.25),
         (["--realtime"], "run.realtime", True),

@@ -15,6 +15,7 @@ import pytest
 
 from hil import api
 from hil.core.recording.reader import read_session
+from hil.errors import UsageError
 from tests.cli import hil_here
 
 pytestmark = [pytest.mark.slow]
@@ -110,3 +111,134 @@ def test_csp_over_the_wire_with_a_controller_of_ones_own(tmp_path):
                              out=str(tmp_path / "own.mcap"))
     assert kpis["set_point"] == "position" and kpis["ticks"] == 600
     assert kpis["rms_error_deg"] < 0.1
+
+
+# -- PP and HM against a drive hil did not write (tests/drive_slave.py) ----------------------
+NODE = 3
+
+
+@pytest.fixture
+def profile_drive(monkeypatch):
+    """canopen's LocalNode with PP and HM (a trapezoid by 0x6081/0x6083/0x6084, the
+    new-set-point handshake; homing methods 35, 37), on a virtual bus of its own."""
+    import uuid
+
+    import canopen
+
+    from tests.drive_slave import CSP, CST, HM, PP, dictionary, serve
+
+    monkeypatch.setattr(canopen.Network, "NOTIFIER_CYCLE", 0.1)
+    drives = []
+
+    def start(without=()):
+        url = f"virtual://modes-{uuid.uuid4().hex}"
+        network, slave = serve(url, NODE, od=dictionary(NODE, without=without,
+                                                        modes=(CST, CSP, PP, HM)))
+        drives.append(network)
+        return url, slave
+
+    yield start
+    for network in drives:
+        network.disconnect()
+
+
+def test_a_pp_move_ends_at_its_target_and_its_profile_is_recorded(tmp_path, capsys,
+                                                                  profile_drive):
+    url, slave = profile_drive()
+    moved = hil_here(capsys, "drive", "move", url, "90", "--node", NODE, "--velocity", "180",
+                     "--acceleration", "720", "--deceleration", "720", "--json", "--out",
+                     "move.mcap", cwd=tmp_path)
+    assert moved.returncode == 0, moved.stderr
+    kpis = json.loads(moved.stdout)
+    assert kpis["motion"] == "move" and kpis["reached"] is True
+    assert kpis["position_deg"] == pytest.approx(90.0, abs=0.1)  # the drive's window: 0.1 deg
+    assert kpis["peak_velocity_deg_s"] == pytest.approx(180.0, rel=0.02)
+    assert kpis["time_s"] == pytest.approx(0.75, abs=0.01)  # 0.25 s up, 0.25 s at 180, down
+    assert slave.value(0x6081) == round(180 / 360 * (1 << 17))  # written in its increments
+    data = read_session(str(tmp_path / "move.mcap"))
+    assert json.loads(data.metadata["motion"]["json"])["profile velocity"] == \
+        pytest.approx(180.0, rel=1e-4)
+    positions = [m["position_deg"] for _, m in data.topic("/drive/feedback")]
+    assert positions[0] == pytest.approx(0.0) and positions[-1] == pytest.approx(90.0, abs=0.1)
+    assert len(positions) == kpis["ticks"]
+    sent = [m["controlword"] for _, m in data.topic("/drive/motion")]
+    assert 0x003F in sent and sent[-1] == 0x002F  # bit 4 raised once, then down
+    back = hil_here(capsys, "drive", "move", url, "-30", "--relative", "--node", NODE,
+                    "--json", "--out", "back.mcap", cwd=tmp_path)
+    assert back.returncode == 0, back.stderr
+    back_kpis = json.loads(back.stdout)
+    assert back_kpis["target_deg"] == pytest.approx(kpis["position_deg"] - 30.0, abs=0.01)
+    assert back_kpis["position_deg"] == pytest.approx(60.0, abs=0.1)
+
+
+def test_a_move_that_runs_out_of_time_and_a_value_the_drive_cannot_take_are_one_line(
+        tmp_path, capsys, profile_drive):
+    url, _slave = profile_drive()
+    late = hil_here(capsys, "drive", "move", url, "90", "--node", NODE, "--timeout", "0.05",
+                    "--out", "late.mcap", cwd=tmp_path)
+    assert late.returncode == 2
+    assert late.stderr.startswith("hil: error: PP move to 90 deg: not done within 0.05 s "
+                                  "(statusword 0x")
+    url, slave = profile_drive(without=(0x6081,))
+    refused = hil_here(capsys, "drive", "move", url, "90", "--node", NODE, "--velocity", "90",
+                       "--out", "refused.mcap", cwd=tmp_path)
+    assert refused.returncode == 2 and refused.stderr == (
+        "hil: error: drive node 3 has no 0x6081 (profile velocity): [profile] velocity_deg_s "
+        "= 90 cannot take effect; leave it out to keep the drive's own\n")
+    assert not (tmp_path / "refused.mcap").exists() and slave.syncs == 0
+
+
+def test_home_ends_at_the_offset_with_homing_attained(tmp_path, capsys, profile_drive):
+    url, _slave = profile_drive()
+    none = hil_here(capsys, "drive", "home", url, "--node", NODE, "--out", "none.mcap",
+                    cwd=tmp_path)
+    assert none.returncode == 2 and none.stderr == (
+        "hil: error: drive node 3's homing method 0x6098 is 0 (none): give --method N or "
+        "[homing] method\n")
+    assert not (tmp_path / "none.mcap").exists()
+    homed = hil_here(capsys, "drive", "home", url, "--node", NODE, "--method", "37",
+                     "--offset", "12.5", "--json", "--out", "home.mcap", cwd=tmp_path)
+    assert homed.returncode == 0, homed.stderr
+    kpis = json.loads(homed.stdout)
+    assert kpis["reached"] is True and kpis["method"] == 37
+    assert kpis["position_deg"] == pytest.approx(12.5, abs=1e-3)
+    data = read_session(str(tmp_path / "home.mcap"))
+    *_, (_, last) = data.topic("/drive/feedback")
+    assert last["statusword"] & 0x1400 == 0x1400  # homing attained, standing
+    failed = hil_here(capsys, "drive", "home", url, "--node", NODE, "--method", "17",
+                      "--out", "failed.mcap", cwd=tmp_path)
+    assert failed.returncode == 2 and failed.stderr.startswith(
+        "hil: error: homing (method 17): the drive reports a homing error (statusword 0x")
+    assert "bit 13) at 12.500 deg, standing" in failed.stderr
+
+
+def test_servo_run_home_places_the_reference_absolute_from_home(tmp_path, capsys,
+                                                              profile_drive):
+    url, _slave = profile_drive()
+    (tmp_path / "csp.toml").write_text('[master]\nmode = "csp"\n[homing]\nmethod = 35\n'
+                                       'offset_deg = 100.0\n')
+    ran = hil_here(capsys, "servo", "run", "--controller", "setpoint", "--drive", url,
+                   "--node", NODE, "--config", "csp.toml", "--home", "--reference",
+                   "hold:position=100", "--duration", "0.2", "--json", "--out", "run.mcap",
+                   cwd=tmp_path)
+    assert ran.returncode == 0, ran.stderr
+    assert json.loads(ran.stdout)["max_error_deg"] < 0.01  # held where home says 100 deg is
+    data = read_session(str(tmp_path / "run.mcap"))
+    assert data.metadata["reference"]["placed"] == "absolute (homed)"
+    assert [m["kind"] for _, m in data.topic("/events")].count("drive.homed") == 1
+    both = hil_here(capsys, "servo", "run", "--controller", "setpoint", "--home",
+                    "--from-here", cwd=tmp_path)
+    assert both.returncode == 2 and "give one" in both.stderr
+
+
+def test_the_python_api_moves_and_homes(tmp_path, profile_drive):
+    url, _slave = profile_drive()
+    homed = api.home_drive(url, node=NODE, method=37, offset_deg=-5.0,
+                           out=str(tmp_path / "h.mcap"))
+    moved = api.move_drive(20.0, url, node=NODE, velocity_deg_s=40.0,
+                           out=str(tmp_path / "m.mcap"))
+    assert homed["position_deg"] == pytest.approx(-5.0, abs=0.01)  # 17-bit: 0.003 deg
+    assert moved["reached"] and moved["position_deg"] == pytest.approx(20.0, abs=0.1)
+    assert moved["peak_velocity_deg_s"] == pytest.approx(40.0, rel=0.02)
+    with pytest.raises(UsageError, match="unknown option 'speed'"):
+        api.home_drive(url, speed=3.0)
