@@ -163,6 +163,8 @@ def test_a_pp_move_ends_at_its_target_and_its_profile_is_recorded(tmp_path, caps
     assert len(positions) == kpis["ticks"]
     sent = [m["controlword"] for _, m in data.topic("/drive/motion")]
     assert 0x003F in sent and sent[-1] == 0x002F  # bit 4 raised once, then down
+    plotted = hil_here(capsys, "report", "move.mcap", "--out", "move.png", cwd=tmp_path)
+    assert plotted.returncode == 0 and (tmp_path / "move.png").stat().st_size > 10_000
     back = hil_here(capsys, "drive", "move", url, "-30", "--relative", "--node", NODE,
                     "--json", "--out", "back.mcap", cwd=tmp_path)
     assert back.returncode == 0, back.stderr
