@@ -5,10 +5,11 @@ CiA 301 remapping rules enforced (a valid PDO's COB-ID and mapping cannot change
 entry must name a mappable object of the right size). Its SYNC counter echo is object 0x2100.
 
 Made to lack what vendors' drives lack (``dictionary(without=...)``: a maxon EPOS4 has no
-0x608F and no 0x6075; any optional object), to support CSP, PP and HM too (``modes``: its own
-position loop towards 0x607A; a trapezoidal profile by 0x6081/0x6083/0x6084 with the
-new-set-point handshake; homing methods 35 and 37, where the axis stands, any other one a
-homing error: it has no switches), and built from an EDS file
+0x608F and no 0x6075; any optional object), to support CSP, CSV, PP, PV and HM too
+(``modes``: its own position loop towards 0x607A, velocity loop towards 0x60FF; a trapezoidal
+profile by 0x6081/0x6083/0x6084 with the new-set-point handshake, a velocity ramp; homing
+methods 35 and 37, where the axis stands, any other one a homing error: it has no switches),
+and built from an EDS file
 (``IndependentSlave(od=import_od(F))``: the dictionary a vendor's file describes).
 
 SDO, NMT and the heartbeat producer are canopen's; this module adds what a LocalNode does not
@@ -44,8 +45,8 @@ INCREMENTS = 1 << 17
 RATED_MA = 2000
 ECHO = 0x2100
 SUPPORTED = 0x0200  # CST only
-CST, CSP, PP, HM = 10, 8, 1, 6
-SUPPORTED_BITS = {CST: 0x0200, CSP: 0x0080, PP: 0x0001, HM: 0x0020}
+CST, CSP, CSV, PP, PV, HM = 10, 8, 9, 1, 3, 6
+SUPPORTED_BITS = {CST: 0x0200, CSP: 0x0080, CSV: 0x0100, PP: 0x0001, PV: 0x0004, HM: 0x0020}
 LOOP_HZ = 50.0  # CSP: its position loop's natural frequency (critically damped)
 PERIOD_S = 500e-6
 GAIN_DEG_S2_PER_MA = 400.0  # axis acceleration per mA (a plain inertia)
@@ -131,7 +132,9 @@ def dictionary(node_id: int, max_current_permille: int | None = None, *,
         _var("motor revolutions", 0x608F, 2, dt.UNSIGNED32, "ro", 1)])
     if {CSP, PP} & set(modes):
         add(_var("Target position", 0x607A, 0, dt.INTEGER32, "rw", 0, True))
-    if PP in modes:  # 90 deg/s, 360 deg/s^2, a window of 0.1 deg
+    if {CSV, PV} & set(modes):
+        add(_var("Target velocity", 0x60FF, 0, dt.INTEGER32, "rw", 0, True))
+    if {PP, PV} & set(modes):  # 90 deg/s, 360 deg/s^2, a window of 0.1 deg
         for index, name, default in ((0x6081, "Profile velocity", INCREMENTS // 4),
                                      (0x6083, "Profile acceleration", INCREMENTS),
                                      (0x6084, "Profile deceleration", INCREMENTS),
@@ -211,7 +214,8 @@ class IndependentSlave:
         and CST)."""
         if 0x6502 in self.od:
             return [mode for mode, bit in SUPPORTED_BITS.items() if self.value(0x6502) & bit]
-        return [CST, *([CSP, PP] if 0x607A in self.od else [])]
+        return [CST, *([CSP, PP] if 0x607A in self.od else []),
+                *([CSV, PV] if 0x60FF in self.od else [])]
 
     def torque_limit(self) -> int:
         """The torque it applies at most, per mille: its max torque and max current, those it
@@ -291,13 +295,16 @@ class IndependentSlave:
             if self.latched is not None:
                 self._latch_rpdo(self.latched)
             mode = self.value(0x6060) if 0x6060 in self.od else CST
-            if self.state == "OPERATION ENABLED" and mode in (PP, HM):
+            if self.state == "OPERATION ENABLED" and mode in (PP, PV, HM):
                 self.current_ma = 0.0
                 if mode == PP:
                     self._profile()
+                elif mode == PV:
+                    self._ramp()
             elif self.state == "OPERATION ENABLED":  # as a drive does: within its own limits
                 limit = self.torque_limit()
-                wanted = self._position_loop() if mode == CSP else self.value(0x6071)
+                wanted = self._position_loop() if mode == CSP else \
+                    self._velocity_loop() if mode == CSV else self.value(0x6071)
                 torque = max(-limit, min(limit, wanted))
                 self.current_ma = torque * RATED_MA / 1000
             else:
@@ -307,7 +314,7 @@ class IndependentSlave:
                     if abs(self.velocity) < 1.0:
                         self.velocity = 0.0
                         self.state = "SWITCH ON DISABLED"
-            if mode not in (PP, HM) or self.state != "OPERATION ENABLED":
+            if mode not in (PP, PV, HM) or self.state != "OPERATION ENABLED":
                 self.velocity += GAIN_DEG_S2_PER_MA * self.current_ma * PERIOD_S
                 self.position += self.velocity * PERIOD_S
             if data and self.value(0x1019):
@@ -353,6 +360,22 @@ class IndependentSlave:
             self.mode_bits |= 0x0400
         else:
             self.mode_bits &= ~0x0400
+
+    def _ramp(self) -> None:
+        """PV: one period of the ramp towards 0x60FF at the profile acceleration; bit 10
+        once at it, bit 12 while standing."""
+        scale = 360.0 / INCREMENTS
+        target, step = self.value(0x60FF) * scale, self.value(0x6083) * scale * PERIOD_S
+        self.velocity += max(-step, min(step, target - self.velocity))
+        self.position += self.velocity * PERIOD_S
+        self.mode_bits = (0x0400 if abs(target - self.velocity) < 1e-9 else 0) | \
+            (0x1000 if abs(self.velocity) < 1e-9 else 0)
+
+    def _velocity_loop(self) -> int:
+        """CSV: the torque [per mille] of its velocity loop towards 0x60FF."""
+        target = self.value(0x60FF) * 360.0 / INCREMENTS
+        acceleration = 2 * 3.141592653589793 * 4 * LOOP_HZ * (target - self.velocity)
+        return round(acceleration / GAIN_DEG_S2_PER_MA * 1000 / RATED_MA)
 
     def _latch_rpdo(self, data: bytes) -> None:
         """The RPDO's objects as its mapping (0x1600) says: the controlword first."""

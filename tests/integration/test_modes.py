@@ -119,27 +119,47 @@ NODE = 3
 
 @pytest.fixture
 def profile_drive(monkeypatch):
-    """canopen's LocalNode with PP and HM (a trapezoid by 0x6081/0x6083/0x6084, the
-    new-set-point handshake; homing methods 35, 37), on a virtual bus of its own."""
+    """canopen's LocalNode with every mode: CSP and CSV its own loops, PP a trapezoid by
+    0x6081/0x6083/0x6084 and the new-set-point handshake, PV a ramp, HM methods 35 and 37, on
+    a virtual bus of its own."""
     import uuid
 
     import canopen
 
-    from tests.drive_slave import CSP, CST, HM, PP, dictionary, serve
+    from tests.drive_slave import CSP, CST, CSV, HM, PP, PV, dictionary, serve
 
     monkeypatch.setattr(canopen.Network, "NOTIFIER_CYCLE", 0.1)
     drives = []
 
     def start(without=()):
         url = f"virtual://modes-{uuid.uuid4().hex}"
-        network, slave = serve(url, NODE, od=dictionary(NODE, without=without,
-                                                        modes=(CST, CSP, PP, HM)))
+        network, slave = serve(url, NODE, od=dictionary(
+            NODE, without=without, modes=(CST, CSP, CSV, PP, PV, HM)))
         drives.append(network)
         return url, slave
 
     yield start
     for network in drives:
         network.disconnect()
+
+
+@pytest.mark.parametrize("mode, set_point", [("csp", "position"), ("csv", "velocity"),
+                                             ("pv", "velocity")])
+def test_a_drive_that_closes_its_loop_follows_the_set_points_of_servo_run(
+        tmp_path, capsys, profile_drive, mode, set_point):
+    url, slave = profile_drive()
+    (tmp_path / "mode.toml").write_text(f'[master]\nmode = "{mode}"\n[profile]\n'
+                                        'acceleration_deg_s2 = 100000.0\n')
+    ran = hil_here(capsys, "servo", "run", "--controller", "setpoint", "--drive", url,
+                   "--node", NODE, "--config", "mode.toml", "--duration", "0.5", "--json",
+                   "--out", "run.mcap", cwd=tmp_path)
+    assert ran.returncode == 0, ran.stderr
+    kpis = json.loads(ran.stdout)
+    assert kpis["set_point"] == set_point and kpis["rms_error_deg"] < 0.1
+    assert slave.value(0x6060) == {"csp": 8, "csv": 9, "pv": 3}[mode]
+    commands = [m for _, m in read_session(str(tmp_path / "run.mcap")).topic("/drive/command")]
+    field = "set_point_deg" if set_point == "position" else "set_point_deg_s"
+    assert max(abs(m[field]) for m in commands) > 1.0  # the sine's positions or velocities
 
 
 def test_a_pp_move_ends_at_its_target_and_its_profile_is_recorded(tmp_path, capsys,
