@@ -104,11 +104,15 @@ class PositionPd:
 
 
 def test_csp_over_the_wire_with_a_controller_of_ones_own(tmp_path):
-    """The standalone emulator, lockstep over socketcand; a user's position controller."""
+    """The standalone emulator, lockstep over socketcand; a user's position controller. The
+    scan claims CSP (on main it did, and every CSP run failed)."""
     with api.start_drive_emulator() as emulator:
+        scanned = hil("drive", "scan", emulator.url, "--config", mode_config(tmp_path, "csp"),
+                      cwd=tmp_path)
         kpis = api.run_servo(PositionPd, {"gain": 0.2}, drive=emulator.url, duration_s=0.3,
                              drive_overrides={"master": {"mode": "csp"}},
                              out=str(tmp_path / "own.mcap"))
+    assert scanned.returncode == 0 and "can drive: yes, in CSP" in scanned.stdout
     assert kpis["set_point"] == "position" and kpis["ticks"] == 600
     assert kpis["rms_error_deg"] < 0.1
 

@@ -244,3 +244,23 @@ def test_a_drive_with_no_mode_hil_drives_says_that_first(tmp_path, capsys):
     assert ran.returncode == 2 and ran.stderr.startswith(
         f"hil: error: drive node 3 (EDS {eds}): {modes}")
     assert not (tmp_path / "x.mcap").exists()
+
+
+def test_scan_with_an_epos4_like_file_drives_it_with_the_stand_ins(tmp_path, capsys, slave_of):
+    """On main every object the master read was needed: the scan of a file without 0x608F
+    and 0x6075 said it could not drive the drive whatever the config."""
+    slave = slave_of(EPOS4_LACKS, (CSP, CST))
+    eds = lacking_eds(tmp_path, EPOS4_LACKS, (CSP, CST), "epos4-like")
+    bare = hil_here(capsys, "drive", "scan", slave.url, "--node", NODE, "--eds", eds,
+                    cwd=tmp_path)
+    assert bare.returncode == 1
+    assert ("can drive: no, its position and current cannot be scaled: has no 0x608F:1 "
+            "(encoder increments per motor revolution): set [master] increments_per_rev to "
+            "its value") in bare.stdout
+    (tmp_path / "stand-ins.toml").write_text(STAND_INS + 'mode = "csp"\n')
+    scanned = hil_here(capsys, "drive", "scan", slave.url, "--node", NODE, "--eds", eds,
+                       "--config", "stand-ins.toml", "--json", cwd=tmp_path)
+    assert scanned.returncode == 0, scanned.stdout
+    [node] = json.loads(scanned.stdout)["nodes"]
+    assert node["verdict"] == "can drive: yes, in CSP" and node["eds"]["problems"] == []
+    assert node["scaling"]["from"]["increments_per_rev"] == "[master] increments_per_rev"
