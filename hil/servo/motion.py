@@ -212,6 +212,11 @@ class MotionTask(Task):
         self._feedback: Feedback | None = None
         self._next = (0.0, 0)
 
+    @property
+    def feedback(self) -> Feedback | None:
+        """The drive's last feedback (None before the first tick)."""
+        return self._feedback
+
     def read(self, t_ns: int) -> None:
         self._feedback = self.master.receive_feedback()
 
@@ -318,13 +323,12 @@ class MotionExperiment(Experiment[MotionPlan]):
     def finish(self, session: Session) -> None:
         task = self.task
         assert task is not None
+        feedback = task.feedback
+        assert feedback is not None
         if task.stopped is not None:
             raise SafetyStopError(task.stopped)
         if not task.motion.done:
-            assert task._feedback is not None
-            raise timed_out(task.motion, task._feedback, self.planned.duration_s)
-        feedback = task._feedback
-        assert feedback is not None
+            raise timed_out(task.motion, feedback, self.planned.duration_s)
         session.event("drive.motion", f"drive node {self.master.node_id}: {task.motion.what}: "
                       f"done at {feedback.position_deg:.3f} deg in {task.end_s:.3f} s",
                       source=f"drive{self.master.node_id}", position_deg=feedback.position_deg)
@@ -335,7 +339,7 @@ class MotionExperiment(Experiment[MotionPlan]):
 
     def kpis(self, session: Session, wall_s: float, error: Any) -> MotionKpis:
         task, plan = self.task, self.planned
-        feedback = task._feedback if task is not None else None
+        feedback = task.feedback if task is not None else None
         target = task.target_deg if task is not None else None
         position = feedback.position_deg if feedback is not None else None
         motion = task.motion if task is not None else None
@@ -362,10 +366,10 @@ def homing_method(master: CanDriveMaster) -> int:
     if not master.objects.has(HOMING_METHOD):
         raise MotionError(f"drive node {n} has no 0x6098 (homing method): it cannot home")
     method = master.objects.read(HOMING_METHOD, 0, "<b") if configured is None else configured
-    if method == 0:
+    if not method:
         raise MotionError(f"drive node {n}'s homing method 0x6098 is 0 (none): give --method "
                           "N or [homing] method")
-    return int(method or 0)
+    return method
 
 
 def profile_held(master: CanDriveMaster) -> dict[str, float | None]:
