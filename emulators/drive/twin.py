@@ -24,13 +24,19 @@ current), the modes it supports (0x6502) and its identity (0x1018). Each of its 
 
 hil's manufacturer objects (0x2001..0x2005, :mod:`hil.emulators.drive.od`) stay where the file
 has no object of their index (or has hil's own, an EDS hil wrote); an object of the file at
-one of them is not emulated and the hook is gone. A mode 0x6502 lists that hil does not
-emulate (only CSP and CST) is refused with 0x08000020 when 0x6060 is set to it; a mode it does
-not list with 0x06090030, as the drive would. A file the twin cannot run (no 0x6040, 0x6041,
-0x6060, 0x6061, 0x6064, 0x6502, 0x608F, no CSP or CST, a type other than hil's, a PDO mapping
-an object the twin cannot produce or take, a transmission type other than 0..240, 254, 255, a
-unit or limit without a value, an EMCY or SDO COB-ID other than CiA 301's) is an
-:class:`~hil.emulators.errors.EmulatorSetupError` naming the file and the object.
+one of them is not emulated and the hook is gone. The modes are those 0x6502 lists that hil
+emulates (:data:`hil.emulators.drive.modes.EMULATED_MODES`) and whose objects the file has
+(``MODE_NEEDS``); another mode it lists is refused with 0x08000020 when 0x6060 is set to it,
+one it does not list with 0x06090030, as the drive would.
+
+Vendor files as they come: a value left empty for commissioning comes from ``set``
+(``[emulator] set``, ``--set``; a DCF's ParameterValue is the file's value), which also gives a
+unit the file lacks onto hil's hidden object; a signed type is taken where CiA 402's values
+are never negative (``UNSIGNED_IN_USE``); a power-on PDO map the twin cannot serve is emptied
+for the master to write its own (named in :meth:`DriveDictionary.summary`), a PDO invalid at
+power-on is not looked at further. A file the twin cannot run is an
+:class:`~hil.emulators.errors.EmulatorSetupError` naming the file, the deciding reason (no mode
+it lists that hil emulates) on its first line, every other problem one a line.
 """
 
 from __future__ import annotations
@@ -597,13 +603,13 @@ class _Twin:
                        if key not in present or key[0] in self.replaced)
         twin = DriveDictionary(self.od, hidden, frozenset(self.no_read),
                                frozenset(self.no_write), modes, listed, counts, self.path,
-                               tuple(self.replaced), tuple(self.unserved),
-                               self.motor_turns_per_turn)
+                               tuple(self.replaced),
+                               motor_turns_per_turn=self.motor_turns_per_turn)
         if not self.problems:
             self.serve_pdos(twin.store())
         if self.problems:
             raise self.refusal()
-        return twin
+        return replace(twin, unserved_maps=tuple(self.unserved))
 
 
 def _mode_names(modes: Iterable[int]) -> list[str]:

@@ -74,6 +74,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "(default: emulator.eds); what it cannot emulate is one line on stderr "
                     "and answered with an SDO abort; without --socketcand: print what the "
                     "twin takes and refuses, and exit")
+    ed.add_argument("--set", action="append", type=object_value, default=[],
+                    metavar="INDEX:SUB=VALUE",
+                    help="an object's power-on value, e.g. 0x6075:0=2000 (repeatable; over "
+                    "emulator.set): a value the EDS leaves empty for commissioning (a DCF's "
+                    "ParameterValue gives it too), or a unit the file lacks (0x608F:1), "
+                    "which the twin keeps hidden as the drive has none")
     ed.add_argument("--can-log", metavar="F.blf|F.asc|F.trc|F.log",
                     help="write every CAN frame the emulator receives and sends to this file "
                     "(python-can's can.Logger; the suffix picks the format)")
@@ -104,6 +110,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_fault_arguments(ed, "drive", "emcy@2:code=0x2310, no_heartbeat@1-3")
     add_live_arguments(ed, rates=False)
     ed.set_defaults(handler=emulate_drive_command)
+
+
+def object_value(text: str) -> tuple[str, int]:
+    """``--set 0x6075:0=2000`` -> ("0x6075:0", 2000) (argparse: one line naming the
+    problem)."""
+    name, equals, value = text.partition("=")
+    try:
+        number = int(value, 0)
+    except ValueError:
+        number = None
+    if not equals or number is None or ":" not in name:
+        raise argparse.ArgumentTypeError(f"give INDEX:SUB=VALUE, e.g. 0x6075:0=2000, got {text!r}")
+    return name.strip(), number
 
 
 def _fault(text: str) -> Fault:
@@ -191,6 +210,8 @@ def emulate_drive_command(args: argparse.Namespace) -> int:
     for flag, key, path in (("--model", "model", args.model), ("--eds", "eds", args.eds)):
         if path is not None:
             layers.append(Layer(flag, {"emulator": {key: path}}))
+    if args.set:
+        layers.append(Layer("--set", {"emulator": {"set": dict(args.set)}}))
     emulator = parse_drive_config(lay(layers), args.config or SOURCE, text).emulator
     if args.write_eds:
         if emulator.eds is not None:

@@ -42,7 +42,8 @@ def toml_value(value: Any) -> str:
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(toml_value(v) for v in value) + "]"
     if isinstance(value, dict):
-        return "{ " + ", ".join(f"{k} = {toml_value(v)}" for k, v in value.items()) + " }"
+        return "{ " + ", ".join(f"{json.dumps(k)} = {toml_value(v)}"
+                                for k, v in value.items()) + " }"
     return repr(value)
 
 
@@ -98,6 +99,7 @@ SPECIAL: dict[str, dict[str, Any]] = {
     "emulator.disturbance.end_s": {"emulator.disturbance.end_s": 1.5},
     "emulator.model": {"emulator.model": str(AXIS_MODEL)},  # a model file that fits the axis
     "emulator.faults": {"emulator.faults": ["drop_tpdo@1-2:every=3"]},
+    "emulator.set": {"emulator.set": {"0x6075:0": 2000}},  # an object's power-on value
     # every key an [[axis]] takes: its own EDS and safety limits too
     "axis": {"axis": [{"name": "x", "node": 1, "current_limit_mA": 800.0, "eds": "x.eds",
                        "bus": "socketcand://127.0.0.1:29536",
