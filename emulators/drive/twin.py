@@ -271,12 +271,23 @@ def _import(path: str, node_id: int) -> ObjectDictionary:
     level = eds_log.level
     eds_log.setLevel(logging.ERROR)
     try:
-        od: ObjectDictionary = import_od(path, node_id)
+        od: ObjectDictionary = _read_od(path, node_id)
     except (OSError, ValueError, KeyError, configparser.Error) as exc:
         reason = getattr(exc, "strerror", None) or str(exc).splitlines()[0]
         raise EmulatorSetupError(f"EDS {path}: cannot read it: {reason}") from None
     finally:
         eds_log.setLevel(level)
+    return od
+
+
+def _read_od(path: str, node_id: int) -> ObjectDictionary:
+    """canopen's reading of the file; one that is not UTF-8 (a vendor's comment in
+    Windows-1252) read as Latin-1, which takes every byte."""
+    try:
+        od: ObjectDictionary = import_od(path, node_id)
+    except UnicodeDecodeError:
+        with open(path, encoding="latin-1") as text:
+            od = import_od(text, node_id)
     return od
 
 
@@ -323,6 +334,8 @@ class _Twin:
         self.own = build_object_dictionary(config.node_id, config.od_defaults())
         self.own_vars = {(v.index, v.subindex): v for v in iter_variables(self.own)}
         self.settings = dict(config.object_values)
+        self.od_defaults = config.od_defaults()
+        self.defaulted: list[ODVariable] = []  # given hil's default: the file has no value
         self.no_read: set[Key] = set()
         self.no_write: set[Key] = set()
         self.replaced: list[int] = []
@@ -422,6 +435,8 @@ class _Twin:
                     f"{TYPE_NAMES.get(template.data_type or 0)}")
                 return
             var.min = max(var.min or 0, 0)  # signed in the file, CiA 402's values are not
+        if value is None:
+            self.defaulted.append(var)
         var.default = template.default if value is None else value
         var.min = template.min if var.min is None else var.min
         var.max = template.max if var.max is None else var.max
@@ -454,7 +469,9 @@ class _Twin:
         lacking = []
         for index, sub, name in needs:
             if self.variable((index, sub)) is None:
-                lacking.append(f"no {_name((index, sub))} ({name})")
+                if (index, sub) not in self.settings:  # set: onto hil's hidden object
+                    lacking.append(f"no {_name((index, sub))} ({name}); "
+                                   f"{_how_to_set((index, sub))}")
             elif self.value(index, sub) is None:
                 lacking.append(f"{_name((index, sub))} ({name}) has no value; "
                                f"{_how_to_set((index, sub))}")
@@ -482,10 +499,7 @@ class _Twin:
             raise self.refusal(f"none of the modes it lists that hil emulates "
                                f"({', '.join(_mode_names(candidates))}) has its objects:")
         modes = frozenset((NO_MODE, *emulated))
-        start = self.value(MODES_OF_OPERATION)
-        if start not in modes:
-            self.problem(f"0x6060 starts in mode {start}, which the twin does not emulate "
-                         f"(it emulates {', '.join(_mode_names(emulated))} of those listed)")
+        start = self.value(MODES_OF_OPERATION, 0, NO_MODE)  # the master sets the mode it runs
         display = self.od.get(MODES_DISPLAY)
         if isinstance(display, ODVariable):
             display.default = start  # the display shows the mode in effect
@@ -517,7 +531,8 @@ class _Twin:
         counts = Fraction(increments * gear_motor, motor_turns * gear_shaft)
         if counts.denominator != 1 or not 2 <= counts < 2**31:
             self.problem(f"0x608F and 0x6091 give {float(counts):g} counts per turn of the "
-                         "axis; the twin needs a whole number in 2..2^31-1")
+                         "axis; the twin needs a whole number in 2..2^31-1; "
+                         f"{_how_to_set((ENCODER_RESOLUTION, 1))}")
             return None
         polarity = self.value(POLARITY, 0, 0)
         if polarity:
@@ -525,6 +540,19 @@ class _Twin:
                          "its axis (0 only)")
         self.motor_turns_per_turn = Fraction(gear_motor, gear_shaft)
         return int(counts)
+
+    def scale_defaults(self, counts: int) -> None:
+        """hil's defaults the twin stands in with (for objects hidden or left empty, ``set``
+        not giving them) in the twin's unit: its windows, speeds and accelerations are the
+        same fractions of a turn as hil's own."""
+        own = {(v.index, v.subindex): v.default for v in iter_variables(build_object_dictionary(
+            self.node_id, replace(self.od_defaults, increments_per_rev=counts)))}
+        present = {(v.index, v.subindex) for v in iter_variables(self.od)}
+        hidden = [var for key, var in self.own_vars.items() if key not in present]
+        for var in (*self.defaulted, *hidden):
+            key = (var.index, var.subindex)
+            if key not in self.settings and key in own:
+                var.default = own[key]
 
     def serve_pdos(self, store: ObjectStore) -> None:
         """The PDOs as the file maps them at power-on. A master maps them again at configure
@@ -598,6 +626,8 @@ class _Twin:
         for lack in self.lacks(NEEDED):
             self.problem(f"{lack}: the twin needs it to run any mode")
         counts = self.counts_per_turn()
+        if counts is not None:
+            self.scale_defaults(counts)
         present = {(v.index, v.subindex) for v in iter_variables(self.od)}
         hidden = tuple(var for key, var in self.own_vars.items()
                        if key not in present or key[0] in self.replaced)
