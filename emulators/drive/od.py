@@ -113,9 +113,8 @@ def supported_modes(codes: Iterable[int]) -> int:
 
 
 def build_object_dictionary(node_id: int, defaults: OdDefaults | None = None) -> ObjectDictionary:
-    """The drive's object dictionary for node ``node_id`` (1..127), listing every mode it
-    emulates in 0x6502 (:data:`hil.emulators.drive.modes.EMULATED_MODES`)."""
-    from hil.emulators.drive.modes import EMULATED_MODES  # the modes' motion imports this
+    """The drive's object dictionary for node ``node_id`` (1..127), listing in 0x6502 every
+    mode of the table, which it emulates (:data:`hil.emulators.drive.modes.MOTIONS`)."""
     if not 1 <= node_id <= 127:
         raise ValueError(f"CANopen node id must be 1..127, got {node_id}")
     d = defaults or OdDefaults()
@@ -204,7 +203,7 @@ def build_object_dictionary(node_id: int, defaults: OdDefaults | None = None) ->
     add(_var("Digital inputs", 0x60FD, 0, UNSIGNED32, "ro", 0, mappable=True))
     add(_var("Target velocity", 0x60FF, 0, INTEGER32, "rw", 0, mappable=True))
     add(_var("Supported drive modes", 0x6502, 0, UNSIGNED32, "ro",
-             supported_modes(EMULATED_MODES)))
+             supported_modes(MODES_BY_CODE)))
     return od
 
 

@@ -10,6 +10,7 @@ import struct
 
 import pytest
 
+from hil.emulators.drive.modes import MOTIONS
 from hil.emulators.drive.switches import Switches
 from hil.protocols.cia402 import HOMING_METHODS, OPERATION_MODES
 from tests.emulators.drive.test_node import Wire, abort_code, enable
@@ -83,6 +84,10 @@ def within_profile(seen: list[dict[str, int]], speed: int, acceleration: int) ->
     steps = [abs(b - a) / CYCLE_S for a, b in itertools.pairwise(demand)]
     assert max(steps) <= acceleration + 1 / CYCLE_S  # + the rounding to a count
     assert max(abs(s["velocity"]) for s in seen) <= speed * 1.1
+
+
+def test_every_mode_of_the_table_has_its_motion():
+    assert set(MOTIONS) == set(OPERATION_MODES)
 
 
 def test_0x6502_lists_every_mode_of_the_table_and_each_is_taken(drives):
