@@ -18,7 +18,8 @@ Foxglove and PlotJuggler connect to.
   at most every 30 s, which :class:`LiveSink` counts as ``client_queue_full``). Nothing here
   waits for a client; with no subscriber a message costs one rate check.
 * **Parameters.** Given a parameter port, the server also offers Foxglove's Parameters
-  capability: a run's tunables, read and set from the Parameters panel or ``hil tune``
+  capability: a run's tunables, read and set from the Parameters panel or ``hil tune``, and
+  every change the run applies pushed to the clients subscribed to it
   (:mod:`hil.core.recording.live_params`).
 """
 
@@ -179,7 +180,9 @@ _SDK_LOG: _SdkLog | None = None
 
 class _Subscriptions:
     """The SDK's server listener: notes that some client subscribed to something, and
-    answers parameter requests when the server offers parameters."""
+    answers parameter requests and follows parameter subscriptions when the server offers
+    parameters (the SDK calls every method of its ``ServerListener`` for its capabilities: a
+    missing one is an error in its log)."""
 
     def __init__(self, parameters: LiveParameters | None = None) -> None:
         self.first = threading.Event()
@@ -201,6 +204,14 @@ class _Subscriptions:
             return []
         return self.parameters.set(int(client.id), parameters, request_id)
 
+    def on_parameters_subscribe(self, param_names: list[str]) -> None:
+        if self.parameters is not None:
+            self.parameters.subscribed(param_names)
+
+    def on_parameters_unsubscribe(self, param_names: list[str]) -> None:
+        if self.parameters is not None:
+            self.parameters.unsubscribed(param_names)
+
 
 class LiveSink:
     """A Foxglove WebSocket server for one session's topics (its own SDK context)."""
@@ -218,6 +229,7 @@ class LiveSink:
         self._queue_full_before = self._log.queue_full
         self._errors_before = dict(self._log.errors)
         self.parameters = LiveParameters(parameters) if parameters is not None else None
+        self._changes_key: Any = None  # the key of the tuner's /params topic, once added
         self._subscriptions = _Subscriptions(self.parameters)
         self.server = foxglove.start_server(
             name=name, host=host, port=port, context=self._context,
@@ -246,6 +258,11 @@ class LiveSink:
 
     def add_topic(self, key: Any, name: str, schema: dict[str, Any]) -> None:
         """Advertise ``name`` with (the live form of) its JSON Schema; ``key`` logs to it."""
+        if self.parameters is not None:
+            from hil.core.tuning import PARAMS_TOPIC
+
+            if name == PARAMS_TOPIC:  # each change the run applied: pushed to subscribers
+                self._changes_key = key
         try:
             data = json.dumps(live_schema(schema)).encode()
             channel = self._foxglove.Channel(
@@ -260,6 +277,8 @@ class LiveSink:
 
     def log(self, key: Any, t_ns: int, message: Any) -> None:
         """Serve ``message`` of topic ``key`` unless decimated away or nobody subscribed."""
+        if key == self._changes_key and not self._closed:
+            self._push_change(message)
         topic = self._by_key.get(key)
         if topic is None or self._closed:
             return
@@ -280,6 +299,14 @@ class LiveSink:
             self._failed += 1
             return
         topic.sent += 1
+
+    def _push_change(self, change: Any) -> None:
+        """A ``/params`` message (a change the run applied) to the parameter's subscribers."""
+        assert self.parameters is not None
+        try:
+            self.parameters.changed(change["parameter"], change["new"], int(change["tick"]))
+        except Exception:  # a change the live view cannot push never costs the recording
+            self._failed += 1
 
     def stats(self) -> LiveStats:
         sent = {t.channel.topic(): t.sent for t in self._by_key.values() if t.sent}

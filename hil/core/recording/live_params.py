@@ -15,11 +15,18 @@ two methods. Specs and results are plain dicts with the fields of ``hil.core.tun
   warning status (the SDK's ``publish_status`` goes to every client: it names the parameter
   and the client). Its id is ``tune:CLIENT:REQUEST_ID:NAME``, so a client finds the status
   of its own request.
+* ``subscribeParameterUpdates``: the server keeps who subscribed to what;
+  :meth:`LiveParameters.changed` pushes every change the run applied, whatever asked for it (a
+  client, ``hil tune``, a script's tuner, a rebuild), to the clients subscribed to that
+  parameter. The live view calls it for each message on the tuner's ``/params`` topic, so what
+  subscribers are told is what the file records. A change a set made is pushed once: the server
+  itself sends the set's answer to the subscribers.
 * Who asked is ``live client N`` (the server's id of the connection), recorded with the change.
 """
 
 from __future__ import annotations
 
+import threading
 from typing import Any, Protocol
 
 Spec = dict[str, Any]     # TunableSpec's fields: name, value, unit, minimum, maximum, step...
@@ -52,7 +59,10 @@ class LiveParameters:
 
         self._foxglove = foxglove
         self.port = port
-        self.server: Any = None  # set once the server runs: statuses go through it
+        self.server: Any = None  # set once the server runs: statuses and pushes go through it
+        self._lock = threading.Lock()
+        self._subscribed: set[str] = set()  # parameters some client subscribed to
+        self._sent_tick: dict[str, int] = {}  # the tick of the newest value subscribers got
 
     def parameter(self, name: str, value: object) -> Any:
         """A Foxglove parameter; a float stays a float on the wire (``300.0``, not ``300``)."""
@@ -68,16 +78,44 @@ class LiveParameters:
                 if not wanted or spec["name"] in wanted]
 
     def set(self, client_id: int, parameters: list[Any], request_id: str | None) -> list[Any]:
-        """Apply each parameter through the port; the values in force afterwards."""
+        """Apply each parameter through the port; the values in force afterwards (which the
+        server also sends to the parameter's subscribers)."""
         answers = []
         for parameter in parameters:
             name, value = parameter.name, parameter.get_value()
             result = self.port.request(name, value, client_name(client_id))
             if not result["accepted"]:
                 self.refused(client_id, request_id, name, value, result["reason"])
+            elif result["tick"] is not None:
+                self._note_sent(name, int(result["tick"]))
             if result["value"] is not None:  # None: an unknown name, or no answer (the status)
                 answers.append(self.parameter(name, result["value"]))
         return answers
+
+    def subscribed(self, names: list[str]) -> None:
+        """The server's notice that some client subscribed to ``names`` (the first one)."""
+        with self._lock:
+            self._subscribed.update(names)
+
+    def unsubscribed(self, names: list[str]) -> None:
+        """The server's notice that the last subscriber of ``names`` left."""
+        with self._lock:
+            self._subscribed.difference_update(names)
+
+    def changed(self, name: str, value: object, tick: int) -> None:
+        """The run applied ``name = value`` at ``tick``: pushed to the parameter's subscribers,
+        unless nobody subscribed or they have it already (the answer to the set that made it,
+        or a newer value)."""
+        with self._lock:
+            if self.server is None or name not in self._subscribed or \
+                    self._sent_tick.get(name, -1) >= tick:
+                return
+            self._sent_tick[name] = tick
+        self.server.publish_parameter_values([self.parameter(name, value)])
+
+    def _note_sent(self, name: str, tick: int) -> None:
+        with self._lock:
+            self._sent_tick[name] = max(tick, self._sent_tick.get(name, -1))
 
     def refused(self, client_id: int, request_id: str | None, name: str, value: object,
                 reason: str) -> None:

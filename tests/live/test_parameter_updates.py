@@ -1,0 +1,123 @@
+"""Parameter subscriptions of a running session's live view, from outside: a user's script (a
+process, from a folder of theirs) runs a servo session through ``hil.api.run_servo`` with
+``--live``'s option and a tuner of its own, and independent Foxglove WebSocket clients
+(tests/live/foxglove_client.py) subscribe to its parameters as Foxglove's Parameters panel
+does. Every change is pushed to the subscribers, whoever made it: another client's set, or the
+script's own tuner. The script's live view listens on 127.0.0.2, which is loopback too: its
+clients may set parameters. The test stops the run with SIGINT once it has seen what it
+needs; nothing depends on the machine's speed."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+from typing import Any
+
+import pytest
+
+from hil.core.recording.reader import read_session
+from tests.live.foxglove_client import FoxgloveClient
+from tests.live.test_tune_run import ANSWER_S, CONNECT_S, free_port, user_env
+
+pytestmark = [pytest.mark.slow]
+
+#: the user's script: a long lockstep PID session; once the file GO exists, its own tuner
+#: tightens the following-error limit (a change no live client asked for)
+SCRIPT = """
+import sys, threading, time
+from pathlib import Path
+
+from hil import api
+from hil.core.recording.recording_options import RecordingOptions
+from hil.errors import HilError
+
+live, go = sys.argv[1], Path(sys.argv[2])
+
+
+def tighten_on_go(tuner):
+    def later():
+        while not go.exists():
+            time.sleep(0.01)
+        print(tuner.request("safety.following_error_deg", 40.0, "my-script", timeout_s=60),
+              flush=True)
+    threading.Thread(target=later, daemon=True).start()
+
+
+try:
+    api.run_servo("pid", duration_s=600, out="run.mcap", quiet=True,
+                  recording=RecordingOptions(live=live), tuner_started=tighten_on_go)
+except HilError as exc:  # SIGINT: the session is finished with the KPIs so far
+    print(exc, file=sys.stderr)
+"""
+WATCHED = ["controller.kp", "safety.following_error_deg"]
+
+
+def updates_of(client: FoxgloveClient, name: str) -> list[Any]:
+    return [p["value"] for p in client.updates if p["name"] == name]
+
+
+@pytest.fixture(scope="module")
+def watched_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """What a subscribed client saw while another client set the PID gain and the script's
+    tuner tightened a limit; the run's stderr and session."""
+    cwd = tmp_path_factory.mktemp("updates")
+    (cwd / "tuned.py").write_text(SCRIPT)
+    port = free_port()
+    run = subprocess.Popen([sys.executable, "tuned.py", f"127.0.0.2:{port}", "go"], cwd=cwd,
+                           env=user_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                           text=True)
+    seen: dict[str, Any] = {}
+    try:
+        url = f"ws://127.0.0.2:{port}"
+        watcher = FoxgloveClient(url, timeout_s=CONNECT_S, alive=run.poll)
+        seen["listed"] = watcher.get_parameters([], "list", ANSWER_S)
+        watcher.subscribe_parameter_updates(WATCHED)
+        setter = FoxgloveClient(url, timeout_s=CONNECT_S, alive=run.poll)
+        kp = seen["listed"]["controller.kp"]["value"] / 2
+        seen["set"] = setter.set_parameters({"controller.kp": kp}, "kp", ANSWER_S)
+        seen["kp_pushed"] = watcher.wait_for(
+            lambda: kp in updates_of(watcher, "controller.kp"), ANSWER_S)
+        setter.close()
+        (cwd / "go").touch()
+        seen["limit_pushed"] = watcher.wait_for(
+            lambda: 40.0 in updates_of(watcher, "safety.following_error_deg"), ANSWER_S)
+        seen["updates"] = list(watcher.updates)
+        watcher.close()  # its subscriptions end with it
+    except BaseException:
+        run.kill()
+        raise
+    run.send_signal(signal.SIGINT)
+    seen["stdout"], seen["stderr"] = run.communicate(timeout=120)
+    seen["session"] = read_session(cwd / "run.mcap")
+    return seen
+
+
+def test_a_set_by_another_client_is_pushed_to_a_subscriber(watched_run: dict[str, Any]
+                                                           ) -> None:
+    kp = watched_run["listed"]["controller.kp"]["value"] / 2
+    assert watched_run["set"] == {"controller.kp": pytest.approx(kp)}  # 127.0.0.2: loopback
+    assert watched_run["kp_pushed"], watched_run["updates"]
+
+
+def test_a_change_no_client_asked_for_is_pushed_to_a_subscriber(watched_run: dict[str, Any]
+                                                                ) -> None:
+    assert watched_run["limit_pushed"], watched_run["updates"]
+    assert "accepted=True" in watched_run["stdout"]
+    changes = [(m["parameter"], m["new"], m["client"])
+               for _, m in watched_run["session"].topic("/params")]
+    assert ("safety.following_error_deg", 40.0, "my-script") in changes
+    # the subscriber was told the values in force, in the order they came into force
+    for name in WATCHED:
+        pushed = [p["value"] for p in watched_run["updates"] if p["name"] == name]
+        recorded = [new for parameter, new, _ in changes if parameter == name]
+        assert pushed and pushed[-1] == recorded[-1], (name, pushed, recorded)
+
+
+def test_subscribing_and_leaving_cost_the_live_view_no_error(watched_run: dict[str, Any]
+                                                             ) -> None:
+    assert "Callback failed" not in watched_run["stderr"], watched_run["stderr"]
+    live = watched_run["session"].metadata["live"]
+    assert json.loads(live["client_errors"]) == {}
+    assert json.loads(live["failed"]) == 0
