@@ -60,7 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "(a master's time only: the plant waits for one). A master's session "
                     "starts the plant and its faults again from t = 0")
     _add_fault_arguments(eb, "bench", "delay@2-4:ms=300, drop@5-8, weld@3:relay=P1")
-    add_live_arguments(eb, rates=False)
+    add_live_arguments(eb, rates=False, tuning=False)
     eb.set_defaults(handler=emulate_bench_command)
     ed = emu_sub.add_parser("drive", help="CiA 402 servo drive over socketcand")
     ed.add_argument("--socketcand", type=host_port, metavar="HOST:PORT",
@@ -102,7 +102,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "own clock always: a lockstep master is told so and watches them on the "
                     "wall clock)")
     _add_fault_arguments(ed, "drive", "emcy@2:code=0x2310, no_heartbeat@1-3")
-    add_live_arguments(ed, rates=False)
+    add_live_arguments(ed, rates=False, tuning=False)
     ed.set_defaults(handler=emulate_drive_command)
 
 

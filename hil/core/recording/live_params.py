@@ -21,6 +21,9 @@ two methods. Specs and results are plain dicts with the fields of ``hil.core.tun
   parameter. The live view calls it for each message on the tuner's ``/params`` topic, so what
   subscribers are told is what the file records. A change a set made is pushed once: the server
   itself sends the set's answer to the subscribers.
+* **Read-only.** Given a reason (``read_only``), every set is refused with it and changes
+  nothing: listing and subscribing still work (:mod:`hil.core.recording.live` makes a live view
+  that listens beyond loopback read-only unless the run allows its clients to set).
 * Who asked is ``live client N`` (the server's id of the connection), recorded with the change.
 """
 
@@ -54,11 +57,12 @@ def status_id(client_id: int, request_id: str | None, name: str) -> str:
 class LiveParameters:
     """The server listener's parameter half (see the module doc)."""
 
-    def __init__(self, port: ParameterPort) -> None:
+    def __init__(self, port: ParameterPort, read_only: str = "") -> None:
         import foxglove
 
         self._foxglove = foxglove
         self.port = port
+        self.read_only = read_only  # why every set is refused ("": sets go to the port)
         self.server: Any = None  # set once the server runs: statuses and pushes go through it
         self._lock = threading.Lock()
         self._subscribed: set[str] = set()  # parameters some client subscribed to
@@ -80,6 +84,8 @@ class LiveParameters:
     def set(self, client_id: int, parameters: list[Any], request_id: str | None) -> list[Any]:
         """Apply each parameter through the port; the values in force afterwards (which the
         server also sends to the parameter's subscribers)."""
+        if self.read_only:
+            return self._refuse_all(client_id, parameters, request_id)
         answers = []
         for parameter in parameters:
             name, value = parameter.name, parameter.get_value()
@@ -91,6 +97,14 @@ class LiveParameters:
             if result["value"] is not None:  # None: an unknown name, or no answer (the status)
                 answers.append(self.parameter(name, result["value"]))
         return answers
+
+    def _refuse_all(self, client_id: int, parameters: list[Any], request_id: str | None
+                    ) -> list[Any]:
+        """A read-only live view's answer to a set: each refused, the values that stay."""
+        for parameter in parameters:
+            self.refused(client_id, request_id, parameter.name, parameter.get_value(),
+                         self.read_only)
+        return self.get([parameter.name for parameter in parameters]) if parameters else []
 
     def subscribed(self, names: list[str]) -> None:
         """The server's notice that some client subscribed to ``names`` (the first one)."""
