@@ -17,7 +17,9 @@ from typing import Any
 
 import pytest
 
+from hil.core.recording.live import LiveSink
 from hil.core.recording.reader import read_session
+from hil.core.tuning import PARAMS_SCHEMA, PARAMS_TOPIC
 from tests.live.foxglove_client import FoxgloveClient
 from tests.live.test_tune_run import ANSWER_S, CONNECT_S, free_port, user_env
 
@@ -121,3 +123,46 @@ def test_subscribing_and_leaving_cost_the_live_view_no_error(watched_run: dict[s
     live = watched_run["session"].metadata["live"]
     assert json.loads(live["client_errors"]) == {}
     assert json.loads(live["failed"]) == 0
+
+
+class AcceptingPort:
+    """A stand-in for the run's side of the parameters: two of them; a set is accepted and
+    applied at tick 7."""
+
+    def specs(self) -> list[dict[str, Any]]:
+        return [{"name": "controller.kp", "value": 2.0}, {"name": "controller.kv", "value": 0.1}]
+
+    def request(self, name: str, value: object, client: str) -> dict[str, Any]:
+        return {"name": name, "accepted": True, "value": value, "reason": "", "tick": 7}
+
+
+def test_a_subscriber_is_sent_each_newer_value_once() -> None:
+    """The live view fed /params messages as a session's writer feeds them, and a client
+    subscribed to one parameter: a live client's change comes once, as its set's answer (its
+    record is not pushed too), a change from elsewhere as its record; an older value or another
+    parameter not at all."""
+    sink = LiveSink("127.0.0.1", 0, parameters=AcceptingPort())
+    try:
+        sink.add_topic(1, PARAMS_TOPIC, PARAMS_SCHEMA)
+        client = FoxgloveClient(sink.url, timeout_s=CONNECT_S)
+        client.subscribe_parameter_updates(["controller.kp"])
+        client.get_parameters(["controller.kp"], "sync")  # the subscription is in place
+        assert client.set_parameters({"controller.kp": 3.0}, "set") == {"controller.kp": 3.0}
+
+        def record(name: str, new: float, tick: int, client: str = "my-script") -> None:
+            sink.log(1, tick, {"parameter": name, "old": 0.0, "new": new, "unit": "",
+                               "client": client, "tick": tick})
+
+        record("controller.kp", 3.0, 7, "live client 1")  # the set's own record
+        record("controller.kp", 3.5, 8, "live client 2")  # another set's, before its answer
+        record("controller.kp", 2.5, 6)                     # older than the value sent
+        record("controller.kv", 0.2, 8)                     # nobody subscribed to it
+        record("controller.kp", 4.0, 9)                     # a script's change
+        assert client.wait_for(lambda: 4.0 in [u["value"] for u in client.updates], 10)
+        client.close()
+    finally:
+        sink.close()
+    # one connection's control messages keep their order: anything pushed came before 4.0
+    assert [(u["name"], u["value"]) for u in client.updates] == [
+        ("controller.kp", 3.0), ("controller.kp", 4.0)]
+    assert sink.stats().failed == 0

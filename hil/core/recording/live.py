@@ -349,7 +349,8 @@ class LiveSink:
         """A ``/params`` message (a change the run applied) to the parameter's subscribers."""
         assert self.parameters is not None
         try:
-            self.parameters.changed(change["parameter"], change["new"], int(change["tick"]))
+            self.parameters.changed(change["parameter"], change["new"], int(change["tick"]),
+                                    str(change.get("client", "")))
         except Exception:  # a change the live view cannot push never costs the recording
             self._failed += 1
 

@@ -19,8 +19,9 @@ two methods. Specs and results are plain dicts with the fields of ``hil.core.tun
   :meth:`LiveParameters.changed` pushes every change the run applied, whatever asked for it (a
   client, ``hil tune``, a script's tuner, a rebuild), to the clients subscribed to that
   parameter. The live view calls it for each message on the tuner's ``/params`` topic, so what
-  subscribers are told is what the file records. A change a set made is pushed once: the server
-  itself sends the set's answer to the subscribers.
+  subscribers are told is what the file records. A change a live client's set made is not
+  pushed again: the server itself sends the set's answer to the subscribers. A value older than
+  the last one sent is never pushed.
 * **Read-only.** Given a reason (``read_only``), every set is refused with it and changes
   nothing: listing and subscribing still work (:mod:`hil.core.recording.live` makes a live view
   that listens beyond loopback read-only unless the run allows its clients to set).
@@ -44,9 +45,12 @@ class ParameterPort(Protocol):
     def request(self, name: str, value: object, client: str) -> Result: ...
 
 
+CLIENT_PREFIX = "live client "
+
+
 def client_name(client_id: int) -> str:
     """Who asked, as recorded with a change."""
-    return f"live client {client_id}"
+    return f"{CLIENT_PREFIX}{client_id}"
 
 
 def status_id(client_id: int, request_id: str | None, name: str) -> str:
@@ -116,10 +120,12 @@ class LiveParameters:
         with self._lock:
             self._subscribed.difference_update(names)
 
-    def changed(self, name: str, value: object, tick: int) -> None:
-        """The run applied ``name = value`` at ``tick``: pushed to the parameter's subscribers,
-        unless nobody subscribed or they have it already (the answer to the set that made it,
-        or a newer value)."""
+    def changed(self, name: str, value: object, tick: int, client: str) -> None:
+        """The run applied ``name = value`` at ``tick``, asked for by ``client``: pushed to the
+        parameter's subscribers, unless nobody subscribed or they have it (a live client's set:
+        the server sends them its answer) or a newer value already."""
+        if client.startswith(CLIENT_PREFIX):
+            return
         with self._lock:
             if self.server is None or name not in self._subscribed or \
                     self._sent_tick.get(name, -1) >= tick:
