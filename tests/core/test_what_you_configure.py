@@ -292,6 +292,7 @@ RECORDING_FLAGS = [
     (["--split-duration", "10"], "run.recording.split_duration_s", 10.0),
     (["--split-size", "5"], "run.recording.split_size_mb", 5.0),
     (["--live-rate", "/bench/power=5"], "run.recording.live_rates", {"/bench/power": 5.0}),
+    (["--allow-remote-tuning"], "run.recording.live_remote_tuning", True),
 ]
 #: flags that are not settings of the run: what to print, and where the config comes from
 NOT_SETTINGS = {"--help", "--json", "--junit", "--print-config", "--config", "--live",
