@@ -123,6 +123,7 @@ class NodeReport:
     position_counts: int | None = None   # 0x6064
     position_deg: float | None = None
     scaling: dict[str, Any] | None = None
+    scaling_from: dict[str, str] | None = None  # the object, or the key standing in for it
     device_type: int | None = None
     device_name: str | None = None
     identity: dict[str, int] = field(default_factory=dict)
@@ -295,7 +296,7 @@ def _read_position(report: NodeReport, objects: DriveObjects, config: DriveMaste
         reason = re.sub(rf"^drive node {report.node_id}:? ", "", str(exc))
         report.problems.append(f"its position and current cannot be scaled: {reason}")
         return None
-    report.scaling = scaling.describe() | {"from": units_from}
+    report.scaling, report.scaling_from = scaling.describe(), units_from
     report.position_counts = objects.read(POSITION_ACTUAL, 0, "<i")
     if report.position_counts is not None:
         report.position_deg = scaling.degrees(report.position_counts)

@@ -263,4 +263,4 @@ def test_scan_with_an_epos4_like_file_drives_it_with_the_stand_ins(tmp_path, cap
     assert scanned.returncode == 0, scanned.stdout
     [node] = json.loads(scanned.stdout)["nodes"]
     assert node["verdict"] == "can drive: yes, in CSP" and node["eds"]["problems"] == []
-    assert node["scaling"]["from"]["increments_per_rev"] == "[master] increments_per_rev"
+    assert node["scaling_from"]["increments_per_rev"] == "[master] increments_per_rev"

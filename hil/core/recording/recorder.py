@@ -157,6 +157,7 @@ class Recorder:
             # the loop waits for the writer, so it must not be held back
             "yield_cpu": not wait_when_full,
             "live": self.options.live, "live_rates": self.options.live_rates,
+            "live_remote_tuning": self.options.live_remote_tuning,
             "tune_fd": writer_end.fileno() if writer_end is not None else None,
         }, writer_end)
         if writer_end is not None:
