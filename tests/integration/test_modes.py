@@ -268,3 +268,56 @@ def test_the_python_api_moves_and_homes(tmp_path, profile_drive):
     assert moved["peak_velocity_deg_s"] == pytest.approx(40.0, rel=0.02)
     with pytest.raises(UsageError, match="unknown option 'speed'"):
         api.home_drive(url, speed=3.0)
+
+
+# -- every mode on hil's emulated drive ---------------------------------------------------------
+def test_csv_on_the_emulator_tracks_the_default_reference(tmp_path):
+    csv = hil("servo", "run", "--controller", "setpoint", "--config",
+              mode_config(tmp_path, "csv"), "--duration", "0.5", "--json", "--out", "csv.mcap",
+              cwd=tmp_path)
+    assert csv.returncode == 0, csv.stderr
+    kpis = json.loads(csv.stdout)
+    assert kpis["set_point"] == "velocity" and kpis["stale_feedback"] == 0
+    assert kpis["rms_error_deg"] < 0.1 and kpis["max_error_pct"] < 10
+
+
+def test_a_pp_move_on_the_emulator_ends_within_its_position_window(tmp_path):
+    moved = hil("drive", "move", "emulated", "90", "--velocity", "90", "--acceleration", "360",
+                "--json", "--out", "move.mcap", cwd=tmp_path)
+    assert moved.returncode == 0, moved.stderr
+    kpis = json.loads(moved.stdout)
+    assert kpis["reached"] and abs(kpis["error_deg"]) <= 0.1  # the emulator's 0x6067
+    assert kpis["peak_velocity_deg_s"] == pytest.approx(90.0, rel=0.05)
+    data = read_session(str(tmp_path / "move.mcap"))
+    held = json.loads(data.metadata["motion"]["json"])
+    assert held["profile velocity"] == pytest.approx(90.0, rel=1e-3)
+    assert held["profile acceleration"] == pytest.approx(360.0, rel=1e-3)
+    *_, (_, last) = data.topic("/drive/feedback")
+    assert last["statusword"] & 0x0400  # target reached
+
+
+@pytest.mark.parametrize("method", [1, 2, 17, 18, 33, 34, 35, 37])
+def test_every_emulated_homing_method_ends_at_home_with_bit_12(tmp_path, capsys, method):
+    homed = hil_here(capsys, "drive", "home", "emulated", "--method", method, "--offset",
+                     "5", "--speed", "180", "--zero-speed", "90", "--json", "--out",
+                     "home.mcap", cwd=tmp_path)
+    assert homed.returncode == 0, homed.stderr
+    kpis = json.loads(homed.stdout)
+    assert kpis["reached"] and kpis["method"] == method
+    # home is the offset; the axis stops just beyond the edge or pulse it was found at
+    assert kpis["position_deg"] == pytest.approx(5.0, abs=0.1)
+    *_, (_, last) = read_session(str(tmp_path / "home.mcap")).topic("/drive/feedback")
+    assert last["statusword"] & 0x1400 == 0x1400 and not last["statusword"] & 0x2000
+
+
+def test_servo_run_home_on_the_emulator_holds_absolute_from_home(tmp_path):
+    (tmp_path / "csp.toml").write_text('[master]\nmode = "csp"\n[homing]\nmethod = 17\n'
+                                       'offset_deg = 0.0\nswitch_speed_deg_s = 180.0\n')
+    ran = hil("servo", "run", "--controller", "setpoint", "--config", "csp.toml", "--home",
+              "--reference", "hold:position=30", "--duration", "0.5", "--json", "--out",
+              "run.mcap", cwd=tmp_path)
+    assert ran.returncode == 0, ran.stderr
+    data = read_session(str(tmp_path / "run.mcap"))
+    assert data.metadata["reference"]["placed"] == "absolute (homed)"
+    positions = data.arrays("/drive/feedback")["position_deg"]
+    assert abs(positions[0]) < 0.1 and positions[-1] == pytest.approx(30.0, abs=0.5)
