@@ -264,3 +264,53 @@ def test_scan_with_an_epos4_like_file_drives_it_with_the_stand_ins(tmp_path, cap
     [node] = json.loads(scanned.stdout)["nodes"]
     assert node["verdict"] == "can drive: yes, in CSP" and node["eds"]["problems"] == []
     assert node["scaling_from"]["increments_per_rev"] == "[master] increments_per_rev"
+
+
+EPOS4 = ROOT / "tests" / "data" / "drives" / "maxon" / \
+    "epos4_50_15_can_ec90flat_gp52c_mile800_node1.dcf"
+
+
+def epos4_config(folder, mode, stand_ins=True):
+    """maxon's own DCF of an EPOS4 as the master's description and the emulator's twin (its
+    commissioning values supplied: 4096 increments, 2 A), with or without the stand-ins."""
+    keys = "increments_per_rev = 4096\nrated_current_mA = 2000.0\n" if stand_ins else ""
+    path = folder / f"epos4-{mode}-{stand_ins}.toml"
+    path.write_text(f'[master]\nmode = "{mode}"\neds = "{EPOS4}"\n{keys}'
+                    f'[emulator]\neds = "{EPOS4}"\n'
+                    'set = {"0x608F:1" = 4096, "0x608F:2" = 1, "0x6075:0" = 2000}\n')
+    return path.name
+
+
+@pytest.mark.parametrize("mode, controller", [("cst", "pid"), ("csp", "setpoint"),
+                                              ("csv", "setpoint")])
+def test_a_maxon_epos4_is_driven_with_the_stand_ins(tmp_path, capsys, mode, controller):
+    """The vendor's file lacks 0x608F, 0x6075, 0x6072 and 0x1006: nothing of them is read or
+    written, the stand-ins give the scaling, the terminal says what hil does without."""
+    refused = hil_here(capsys, "servo", "run", "--controller", controller, "--config",
+                       epos4_config(tmp_path, mode, stand_ins=False), "--out", "x.mcap",
+                       cwd=tmp_path)
+    assert refused.returncode == 2 and refused.stderr.strip().splitlines()[-1].endswith(
+        "set [master] increments_per_rev to its value")
+    ran = hil_here(capsys, "servo", "run", "--controller", controller, "--config",
+                   epos4_config(tmp_path, mode), "--duration", "0.5", "--json", "--out",
+                   "run.mcap", cwd=tmp_path)
+    assert ran.returncode == 0, ran.stderr
+    kpis = json.loads(ran.stdout)
+    assert kpis["ticks"] == 1000 and kpis["stale_feedback"] == 0
+    assert kpis["rms_error_deg"] < 1.0
+    assert "drive node 1 has no 0x6072 (max torque)" in ran.stderr
+    assert "drive node 1 has no 0x1006 (communication cycle period)" in ran.stderr
+
+
+def test_a_maxon_epos4_homes_and_moves(tmp_path, capsys):
+    config = epos4_config(tmp_path, "pp")
+    homed = hil_here(capsys, "drive", "home", "emulated", "--config", config, "--method", "37",
+                     "--json", "--out", "home.mcap", cwd=tmp_path)
+    moved = hil_here(capsys, "drive", "move", "emulated", "45", "--config", config,
+                     "--velocity", "90", "--acceleration", "720", "--deceleration", "720",
+                     "--json", "--out", "move.mcap", cwd=tmp_path)
+    assert homed.returncode == 0, homed.stderr
+    assert moved.returncode == 0, moved.stderr
+    assert json.loads(homed.stdout)["reached"]
+    kpis = json.loads(moved.stdout)
+    assert kpis["reached"] and kpis["position_deg"] == pytest.approx(45.0, abs=0.5)
