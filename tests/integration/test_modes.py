@@ -86,6 +86,14 @@ def test_a_set_point_controller_in_cst_and_a_profile_mode_are_refused(tmp_path, 
         "CSP, CSV, PV); PP (profile position) runs with hil drive move\n")
 
 
+def test_servo_identify_in_another_mode_is_refused(tmp_path, capsys):
+    refused = hil_here(capsys, "servo", "identify", "--config", mode_config(tmp_path, "csp"),
+                       "--out", "id.mcap", cwd=tmp_path)
+    assert refused.returncode == 2 and refused.stderr == (
+        "hil: error: hil servo identify excites the axis with currents, in CST: [master] mode "
+        "= 'csp' sends the drive other set points; give it a config with mode = \"cst\"\n")
+
+
 class PositionPd:
     """A controller of the user's that returns positions: the reference, nudged by the error
     (its own outer loop around the drive's)."""
