@@ -58,8 +58,10 @@ class McapSeries:
         split_duration_s: float | None = None,
         split_size_mb: float | None = None,
         profile: str = "",
+        first_fd: int | None = None,
     ) -> None:
         self.path = path
+        self.first_fd = first_fd  # the first file, already open (a run's staging file)
         self.chunk_size = chunk_size
         self.zstd_level = zstd_level
         self.split = split_duration_s is not None or split_size_mb is not None
@@ -81,7 +83,10 @@ class McapSeries:
     # -- files -----------------------------------------------------------------------------
     def _open(self, index: int) -> None:
         name = series_file(self.path, index) if self.split else self.path
-        self._file = open(name, "wb")  # noqa: SIM115 - closed by _finish_file()
+        if index == 0 and self.first_fd is not None:
+            self._file = open(self.first_fd, "wb")  # noqa: SIM115 - closed by _finish_file()
+        else:
+            self._file = open(name, "wb")  # noqa: SIM115 - closed by _finish_file()
         self._writer = McapWriter(self._file, chunk_size=self.chunk_size,
                                   zstd_level=self.zstd_level)
         self._writer.start(profile=self.profile, library="hil")

@@ -36,6 +36,7 @@ from typing import Any
 
 from hil.core.realtime import keep_process_off_cpu
 from hil.core.recording.cdr import CdrError, fields_of
+from hil.core.recording.output import OutputClaim
 from hil.core.recording.record_stream import FrameDecoder, encode_frame
 from hil.core.recording.recording_options import ENCODINGS, RecordingOptions
 from hil.core.recording.tune_wire import PortServer
@@ -104,7 +105,9 @@ class Topic:
 
 
 class Recorder:
-    """Writes one MCAP session (file or split series) through a writer process."""
+    """Writes one MCAP session (file or split series) through a writer process; with a
+    ``claim`` (:func:`hil.core.recording.output.claim_output`), its first file goes to the
+    claim's staging file until the claim is started."""
 
     def __init__(
         self,
@@ -119,6 +122,7 @@ class Recorder:
         wait_when_full: bool = False,
         options: RecordingOptions | None = None,
         tunable: bool = False,
+        claim: OutputClaim | None = None,
     ) -> None:
         self.path = os.fspath(path)
         self.options = options or RecordingOptions()
@@ -149,6 +153,10 @@ class Recorder:
         if self.options.live and tunable:
             self._tune_socket, writer_end = socket.socketpair()
         self._port_server: PortServer | None = None
+        # with a claim (hil.core.recording.output), the writer writes the first file to the
+        # claim's staging file, whose open descriptor it inherits
+        first_fd = claim.fd if claim is not None else None
+        tune_fd = writer_end.fileno() if writer_end is not None else None
         self._process = self._start_writer({
             "path": self.path, "chunk_size": chunk_size, "flush_interval_s": flush_interval_s,
             "profile": profile, "split_duration_s": self.options.split_duration_s,
@@ -157,8 +165,9 @@ class Recorder:
             # the loop waits for the writer, so it must not be held back
             "yield_cpu": not wait_when_full,
             "live": self.options.live, "live_rates": self.options.live_rates,
-            "tune_fd": writer_end.fileno() if writer_end is not None else None,
-        }, writer_end)
+            "tune_fd": tune_fd, "first_fd": first_fd,
+            "staging": claim.staging if claim is not None and first_fd is not None else None,
+        }, [fd for fd in (tune_fd, first_fd) if fd is not None])
         if writer_end is not None:
             writer_end.close()
         assert self._process.stdin is not None
@@ -169,15 +178,14 @@ class Recorder:
         self.events = self.topic(EVENTS_TOPIC, EVENT_SCHEMA)
 
     @staticmethod
-    def _start_writer(options: dict[str, Any], tune_end: socket.socket | None = None
-                      ) -> subprocess.Popen[bytes]:
+    def _start_writer(options: dict[str, Any], pass_fds: list[int]) -> subprocess.Popen[bytes]:
         root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [root, env.get("PYTHONPATH")]))
         return subprocess.Popen(
             [sys.executable, "-m", "hil.core.recording.writer", json.dumps(options)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, start_new_session=True,
-            pass_fds=(tune_end.fileno(),) if tune_end is not None else (),
+            pass_fds=pass_fds,
         )
 
     def serve_parameters(self, port: Any) -> None:
