@@ -54,6 +54,7 @@ class McapSeries:
         path: str,
         *,
         chunk_size: int = DEFAULT_CHUNK_BYTES,
+        chunk_span_s: float | None = None,
         zstd_level: int = ZSTD_LEVEL,
         split_duration_s: float | None = None,
         split_size_mb: float | None = None,
@@ -63,6 +64,7 @@ class McapSeries:
         self.path = path
         self.first_fd = first_fd  # the first file, already open (a run's staging file)
         self.chunk_size = chunk_size
+        self.chunk_span_ns = round(chunk_span_s * 1e9) if chunk_span_s else None
         self.zstd_level = zstd_level
         self.split = split_duration_s is not None or split_size_mb is not None
         self.split_ns = round(split_duration_s * 1e9) if split_duration_s else None
@@ -88,7 +90,7 @@ class McapSeries:
         else:
             self._file = open(name, "wb")  # noqa: SIM115 - closed by _finish_file()
         self._writer = McapWriter(self._file, chunk_size=self.chunk_size,
-                                  zstd_level=self.zstd_level)
+                                  chunk_span_ns=self.chunk_span_ns, zstd_level=self.zstd_level)
         self._writer.start(profile=self.profile, library="hil")
         self._file_channels = {}
         self._file_first_ns = None

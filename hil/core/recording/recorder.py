@@ -10,8 +10,10 @@
   topic, and the counts reach ``/events`` (``recorder.dropped``) and the file's ``recorder``
   metadata. In lockstep (``wait_when_full``) the producer waits for the writer instead:
   virtual time costs nothing, and a lockstep run must not lose samples.
-* Crash safety: the writer closes a chunk at least every ``flush_interval_s`` and finishes
-  the file when the pipe ends, so a SIGKILL of the loop process loses only what was not yet
+* Crash safety: the writer closes a chunk at least every ``flush_interval_s`` of wall time
+  and every ``chunk_span_s`` of session time (by default the same: a damaged chunk costs a
+  lockstep session no more of its time than a real-time one), and finishes the file when the
+  pipe ends, so a SIGKILL of the loop process loses only what was not yet
   handed over (at most ``flush_every_s`` plus one unflushed chunk), and the file is indexed.
 * Encodings: ``json`` (JSON Schema) by default; ``cdr`` (ros2msg schema, see
   :mod:`hil.core.recording.cdr`) for flat high-rate topics.
@@ -115,6 +117,7 @@ class Recorder:
         *,
         chunk_size: int = 1 << 20,
         flush_interval_s: float = 1.0,
+        chunk_span_s: float | None = 1.0,
         flush_every_s: float = 0.005,
         batch_size: int = 512,
         max_backlog_bytes: int = 64 << 20,
@@ -159,6 +162,7 @@ class Recorder:
         tune_fd = writer_end.fileno() if writer_end is not None else None
         self._process = self._start_writer({
             "path": self.path, "chunk_size": chunk_size, "flush_interval_s": flush_interval_s,
+            "chunk_span_s": chunk_span_s,
             "profile": profile, "split_duration_s": self.options.split_duration_s,
             "split_size_mb": self.options.split_size_mb,
             # in real time a late writer costs a backlog, a late emulator a fault; in lockstep

@@ -5,9 +5,10 @@ Started by :class:`hil.core.recording.recorder.Recorder` as
 (:mod:`hil.core.recording.record_stream`) on its standard input. It encodes each
 message (JSON, or CDR for compact topics), writes the MCAP file or split series
 (:class:`~hil.core.recording.mcap_series.McapSeries`), closes a chunk at least every
-``flush_interval_s``, and finishes the file with its summary and index when the stream says
-``close`` *or* simply ends: a SIGKILLed loop process still leaves a finished, indexed file,
-missing only what it had not yet handed over. A run's session is written to its staging file
+``flush_interval_s`` of wall time and every ``chunk_span_s`` of session time, and finishes
+the file with its summary and index when the stream says ``close`` *or* simply ends: a
+SIGKILLed loop process still leaves a finished, indexed file, missing only what it had not yet
+handed over. A run's session is written to its staging file
 (``first_fd``, ``staging``: :mod:`hil.core.recording.output`); if that file still bears its
 staging name when the writing ends, the run never started, and the writer removes it. Its last
 act is one JSON line of statistics on standard output.
@@ -212,6 +213,7 @@ def run(options: dict[str, Any], fd: int = 0, ready: Callable[[], None] = lambda
     try:
         series = McapSeries(
             options["path"], chunk_size=int(options.get("chunk_size", DEFAULT_CHUNK_BYTES)),
+            chunk_span_s=options.get("chunk_span_s"),
             split_duration_s=options.get("split_duration_s"),
             split_size_mb=options.get("split_size_mb"), profile=options.get("profile", ""),
             first_fd=first_fd,
