@@ -83,12 +83,14 @@ def test_a_fifo_or_device_as_out_is_refused_and_left_alone(tmp_path, capfd):
     assert stat.S_ISCHR(os.stat("/dev/null").st_mode)
 
 
-def test_a_controller_that_cannot_be_built_leaves_the_earlier_session(tmp_path, capfd):
+@pytest.mark.parametrize("split", [[], ["--split-duration", "0.05"]], ids=["file", "series"])
+def test_a_controller_that_cannot_be_built_leaves_the_earlier_session(tmp_path, capfd, split):
     (tmp_path / "bad.py").write_text(BAD_CONTROLLER)
     (tmp_path / "run.mcap").write_bytes(EARLIER)
+    (tmp_path / "run_000.mcap").write_bytes(EARLIER)
     before = listing(tmp_path)
     done = hil_here(capfd, "servo", "run", "--controller", "bad.py:Bad", "--out", "run.mcap",
-                    "--json", cwd=tmp_path)
+                    "--json", *split, cwd=tmp_path)
     assert done.returncode == 2
     assert "building it failed: RuntimeError: cannot be built" in one_error_line(done)
     assert json.loads(done.stdout)["mcap"] is None

@@ -60,9 +60,14 @@ class McapSeries:
         split_size_mb: float | None = None,
         profile: str = "",
         first_fd: int | None = None,
+        staging: str | None = None,
     ) -> None:
         self.path = path
-        self.first_fd = first_fd  # the first file, already open (a run's staging file)
+        # the first file, already open: a run's staging file, named ``staging`` until the run
+        # starts; the series goes on to a second file only then (a run that never started
+        # leaves none)
+        self.first_fd = first_fd
+        self.staging = staging
         self.chunk_size = chunk_size
         self.chunk_span_ns = round(chunk_span_s * 1e9) if chunk_span_s else None
         self.zstd_level = zstd_level
@@ -123,6 +128,9 @@ class McapSeries:
                 self._since_check = 0
                 assert self._file is not None
                 due = self._file.tell() >= self.split_bytes
+        if due and self.staging is not None and len(self.stats.files) == 1 and \
+                os.path.exists(self.staging):
+            due = False
         if due:
             self._finish_file()
             self._open(len(self.stats.files))

@@ -216,7 +216,7 @@ def run(options: dict[str, Any], fd: int = 0, ready: Callable[[], None] = lambda
             chunk_span_s=options.get("chunk_span_s"),
             split_duration_s=options.get("split_duration_s"),
             split_size_mb=options.get("split_size_mb"), profile=options.get("profile", ""),
-            first_fd=first_fd,
+            first_fd=first_fd, staging=options.get("staging"),
         )
     except Exception as exc:
         return {"messages_written": 0, "error": describe_failure(exc), "closed": False}
