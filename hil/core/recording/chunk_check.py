@@ -64,7 +64,7 @@ class ChunkCheck:
         if zlib.crc32(body[:-_CRC.size]) != _CRC.unpack_from(body, len(body) - _CRC.size)[0]:
             return None
         _, length, count, start, end, piece, n = _FIELDS.unpack_from(body)
-        if len(body) != _FIELDS.size + 4 * n + _CRC.size or piece <= 0:
+        if len(body) != _FIELDS.size + 4 * n + _CRC.size or piece <= 0 or length <= _HEAD.size:
             return None
         return cls(length, count, start, end, piece,
                    struct.unpack_from(f"<{n}I", body, _FIELDS.size))

@@ -148,18 +148,21 @@ def summary_offsets(data: Buffer) -> list[int]:
     if opcode != 0x02 or not crc or not MAGIC_BYTES <= summary_start <= footer_at or \
             zlib.crc32(data[summary_start:footer_at + _FOOTER.size - 4]) != crc:
         return []
-    offsets = []
+    offsets: list[int] = []
     pos = summary_start
-    while pos + HEAD.size <= footer_at:
-        opcode, length = HEAD.unpack_from(data, pos)
-        body = pos + HEAD.size
-        if opcode == 0x08:  # chunk index: start, end, chunk offset, length, index offsets
-            offsets.append(struct.unpack_from("<Q", data, body + 16)[0])
-            (map_bytes,) = struct.unpack_from("<I", data, body + 32)
-            offsets.extend(_index_offsets(data, body + 36, map_bytes))
-        elif opcode in (0x0A, 0x0D):  # attachment, metadata index: the offset first
-            offsets.append(struct.unpack_from("<Q", data, body)[0])
-        pos = body + length
+    try:
+        while pos + HEAD.size <= footer_at:
+            opcode, length = HEAD.unpack_from(data, pos)
+            body = pos + HEAD.size
+            if opcode == 0x08:  # chunk index: start, end, chunk offset, length, index offsets
+                offsets.append(struct.unpack_from("<Q", data, body + 16)[0])
+                (map_bytes,) = struct.unpack_from("<I", data, body + 32)
+                offsets.extend(_index_offsets(data, body + 36, map_bytes))
+            elif opcode in (0x0A, 0x0D):  # attachment, metadata index: the offset first
+                offsets.append(struct.unpack_from("<Q", data, body)[0])
+            pos = body + length
+    except struct.error:  # a summary its CRC vouches for, yet not as the writer lays one out
+        return []
     data_end = summary_start - HEAD.size - 4
     if data_end >= MAGIC_BYTES and data[data_end] == 0x0F:
         offsets.append(data_end)
