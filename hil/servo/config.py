@@ -31,6 +31,7 @@ from hil.drivers.canopen.config import DriveMasterConfig
 from hil.emulators.drive.axis_model import AxisModel, load_axis_model, period_problem
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.plant import Disturbance, Friction
+from hil.emulators.drive.switches import Switches
 from hil.emulators.errors import EmulatorSetupError
 from hil.emulators.faults import Fault, for_emulator, parse_faults_table
 from hil.errors import ConfigError, UsageError
@@ -362,6 +363,50 @@ def _object_address(table: Table, name: str) -> tuple[int, int] | None:
     return address
 
 
+def parse_object_values(values: Mapping[str, Any], where: str
+                        ) -> tuple[tuple[tuple[int, int], int], ...]:
+    """``{"0x6075:0" = 2000}`` (``[emulator] set``, ``--set``) -> (((0x6075, 0), 2000),);
+    a ConfigError naming ``where`` for a key that is no object or a value that is no
+    integer."""
+    out = []
+    for name, value in values.items():
+        index, _, sub = str(name).partition(":")
+        try:
+            key = int(index, 0), int(sub or "0", 0)
+        except ValueError:
+            key = (-1, -1)
+        if not (0x1000 <= key[0] <= 0xFFFF and 0 <= key[1] <= 0xFF):
+            raise ConfigError(f"{where}: {name!r} is no object: give INDEX:SUBINDEX, e.g. "
+                              "'0x6075:0'")
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise ConfigError(f"{where}: {name} = {value!r}: an object's value is an integer")
+        out.append((key, value))
+    return tuple(out)
+
+
+def _object_values(e: Table) -> tuple[tuple[tuple[int, int], int], ...]:
+    """``[emulator] set``: objects' power-on values, ``{"0x6075:0" = 2000}``."""
+    values = e.value("set", kind="table")
+    if not isinstance(values, Mapping):
+        raise e.error("set", "must be a table of objects' values, e.g. {\"0x6075:0\" = 2000}")
+    return parse_object_values(values, f"{e.source}: key '{e.key('set')}'")
+
+
+def _switches(e: Table) -> Switches:
+    """``[emulator]``'s limit switches, home switch and index pulse [deg of the axis]."""
+    switches = Switches(
+        negative_limit_deg=e.number("negative_limit_deg"),
+        positive_limit_deg=e.number("positive_limit_deg"),
+        home_switch_deg=e.number("home_switch_deg"),
+        index_pulse_deg=e.number("index_pulse_deg", at_least=-360, at_most=360),
+    )
+    if not switches.negative_limit_deg < switches.positive_limit_deg:
+        raise e.error("negative_limit_deg", f"must be below positive_limit_deg "
+                      f"({switches.positive_limit_deg:g} deg), got "
+                      f"{switches.negative_limit_deg:g} deg")
+    return switches
+
+
 def _or_inf(value: float | None) -> float:
     return math.inf if value is None else value
 
@@ -447,6 +492,9 @@ def _emulator(e: Table, cycle_period_s: float) -> DriveEmulatorConfig:
         disturbance=disturbance,
         axis_model=_axis_model(e, cycle_period_s),
         faults=_faults(e),
+        switches=_switches(e),
+        homing_search_deg=e.number("homing_search_deg", above=0),
+        object_values=_object_values(e),
     )
     for table in (f, d, e):
         table.done()

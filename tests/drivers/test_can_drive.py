@@ -311,8 +311,8 @@ def test_a_drive_stuck_in_its_state_gives_an_error_naming_the_state():
 
 def test_sdo_refusals_name_the_object_and_the_abort_code():
     master = emulated()
-    with pytest.raises(SdoAbortError, match=r"0x6060:00 = 3.*0x06090030") as error:
-        master.sdo.write(0x6060, 0, 3, "<b")
+    with pytest.raises(SdoAbortError, match=r"0x6060:00 = 2.*0x06090030") as error:
+        master.sdo.write(0x6060, 0, 2, "<b")  # VL: not a mode the emulator has
     assert error.value.code == 0x06090030
     assert master.sdo.read(0x1008).decode() == "hil CiA 402 drive emulator"  # segmented
     master.close()

@@ -169,6 +169,7 @@ class Recorder:
             # the loop waits for the writer, so it must not be held back
             "yield_cpu": not wait_when_full,
             "live": self.options.live, "live_rates": self.options.live_rates,
+            "live_remote_tuning": self.options.live_remote_tuning,
             "tune_fd": tune_fd, "first_fd": first_fd,
             "staging": claim.staging if claim is not None and first_fd is not None else None,
         }, [fd for fd in (tune_fd, first_fd) if fd is not None])

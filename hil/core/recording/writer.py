@@ -32,7 +32,7 @@ from collections.abc import Callable
 from typing import Any
 
 from hil.core.recording.cdr import CdrEncoder, fields_of, ros2msg_text
-from hil.core.recording.live import LiveSink, parse_address
+from hil.core.recording.live import LiveSink, announce, parse_address
 from hil.core.recording.mcap_series import (
     DEFAULT_CHUNK_BYTES,
     ChannelSpec,
@@ -174,7 +174,8 @@ class SessionWriter:
 def start_live(options: dict[str, Any]) -> LiveSink | None:
     """The session's live view when ``options["live"]`` asks for one; its URL on stderr.
     With ``options["tune_fd"]`` (the reverse channel to the loop process, see
-    :mod:`hil.core.recording.tune_wire`) it serves the run's parameters too.
+    :mod:`hil.core.recording.tune_wire`) it serves the run's parameters too, read-only beyond
+    loopback unless ``options["live_remote_tuning"]``.
 
     A live view that cannot start is reported on stderr and left out: the file comes first.
     """
@@ -185,12 +186,12 @@ def start_live(options: dict[str, Any]) -> LiveSink | None:
     try:
         host, port = parse_address(options["live"])
         live = LiveSink(host, port, rates=options.get("live_rates") or {},
-                        parameters=parameters)
+                        parameters=parameters,
+                        remote_tuning=bool(options.get("live_remote_tuning")))
     except Exception as exc:  # any failure of the server must not cost the recording
         print(f"hil: warning: live view off: {exc}", file=sys.stderr, flush=True)
         return None
-    print(f"hil: live view on {live.url} (Foxglove: Open connection > Foxglove WebSocket)",
-          file=sys.stderr, flush=True)
+    announce(live.url, live.exposure)
     return live
 
 
