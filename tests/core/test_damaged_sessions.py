@@ -39,28 +39,38 @@ def hil(folder: Path, *argv: str) -> None:
 
 
 @pytest.fixture(scope="module")
-def sessions(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    folder = tmp_path_factory.mktemp("damaged")
-    (folder / "patient.toml").write_text(PATIENT)
+def folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("damaged")
+
+
+@pytest.fixture(scope="module")
+def lockstep(folder: Path) -> Path:
     hil(folder, "bench", "run", "--controller", "bc", "--cycles", "1", "--out", "lockstep.mcap")
+    return folder / "lockstep.mcap"
+
+
+@pytest.fixture(scope="module")
+def realtime(folder: Path) -> Path:
+    (folder / "patient.toml").write_text(PATIENT)
     hil(folder, "servo", "run", "--controller", "pid", "--realtime", "--duration", "2.5",
         "--config", "patient.toml", "--out", "realtime.mcap")
-    return {"lockstep": folder / "lockstep.mcap", "realtime": folder / "realtime.mcap"}
+    return folder / "realtime.mcap"
 
 
-def test_a_lockstep_session_is_chunked_by_its_own_time(sessions):
-    places = chunk_places(sessions["lockstep"])
+def test_a_lockstep_session_is_chunked_by_its_own_time(lockstep):
+    places = chunk_places(lockstep)
     duration_s = (places[-1].end_ns - places[0].start_ns) / 1e9
     assert duration_s > 27  # one machine cycle, recorded in a few seconds of wall time
     assert len(places) >= duration_s / CHUNK_SPAN_S
     assert all(p.end_ns - p.start_ns < CHUNK_SPAN_S * 1e9 for p in places)
 
 
-@pytest.mark.parametrize("kind", ["lockstep", "realtime"])
+@pytest.mark.parametrize("kind", ["lockstep", pytest.param("realtime",
+                                                         marks=pytest.mark.realtime)])
 @pytest.mark.parametrize("damage", ["cut", "overwrite"])
-def test_damage_anywhere_loses_at_most_a_chunk_of_session_time(sessions, tmp_path, kind,
+def test_damage_anywhere_loses_at_most_a_chunk_of_session_time(request, tmp_path, kind,
                                                                damage):
-    path = sessions[kind]
+    path = request.getfixturevalue(kind)
     intact = read_session(path)
     assert not intact.recovered and not intact.damage
     original, places = items_of(intact), chunk_places(path)
