@@ -205,6 +205,24 @@ def test_a_pp_move_ends_at_its_target_and_its_profile_is_recorded(tmp_path, caps
     assert back_kpis["position_deg"] == pytest.approx(60.0, abs=0.1)
 
 
+def test_a_move_flag_wins_over_the_config_and_both_are_recorded_with_their_origin(
+        tmp_path, capsys, profile_drive):
+    url, slave = profile_drive()
+    (tmp_path / "slow.toml").write_text("[profile]\nvelocity_deg_s = 30.0\n"
+                                        "acceleration_deg_s2 = 720.0\n")
+    moved = hil_here(capsys, "drive", "move", url, "10", "--node", NODE, "--config",
+                     "slow.toml", "--velocity", "60", "--out", "move.mcap", cwd=tmp_path)
+    assert moved.returncode == 0, moved.stderr
+    settings = json.loads(read_session(str(tmp_path / "move.mcap")).metadata["config"]["json"])[
+        "settings"]
+    assert settings["profile.velocity_deg_s"] == {"value": 60.0, "origin": "--velocity"}
+    assert settings["profile.acceleration_deg_s2"] == {"value": 720.0,
+                                                       "origin": "--config slow.toml"}
+    assert settings["master.mode"]["origin"] == "hil drive move"
+    assert slave.value(0x6081) == round(60 / 360 * (1 << 17))
+    assert slave.value(0x6083) == round(720 / 360 * (1 << 17))
+
+
 def test_a_move_that_runs_out_of_time_and_a_value_the_drive_cannot_take_are_one_line(
         tmp_path, capsys, profile_drive):
     url, _slave = profile_drive()
