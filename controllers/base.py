@@ -11,12 +11,15 @@ Servo drive (servo paper), stepped every tick (500 us, or the cycle period it sa
 
     class MyServoController:
         position_input = "wrapped"                                      # optional, see below
+        output = "current"                                              # optional, see below
         cycle_periods_us = (500, 1000)                                  # optional, see below
         def step(self, position_deg: float, t_s: float) -> float: ...   # current [mA]
         def reset(self) -> None: ...                                    # optional
 
 ``position_deg`` is what the controller's :class:`PositionInput` says: the spindle's angle in
-[0, 360) by default, or the multi-turn position.
+[0, 360) by default, or the multi-turn position. What ``step`` returns is what its
+:class:`Output` says: a current [mA] by default (the drive in CST), or a position [deg] or a
+velocity [deg/s] for a drive that closes its own loop (CSP, CSV).
 
 Controllers compute; they never touch I/O or a clock. What they ask for goes through the
 drivers' safety layers (relay dwell and safe levels, the drive's current clamp), which no
@@ -27,7 +30,8 @@ with ``isinstance`` (the built-ins have them; a user's controller may):
 
 * bench: :class:`Estimating` (an estimator fed every sample);
 * servo: :class:`CyclePeriods` (the cycle periods it runs at, declared by its factory),
-  :class:`PositionInput` (wrapped or multi-turn positions), :class:`Predicting`
+  :class:`PositionInput` (wrapped or multi-turn positions), :class:`Output` (what ``step``
+  returns: a current, a position or a velocity), :class:`Predicting`
   (recorded to ``/mpc/prediction``), a ``solver`` with a
   :class:`SolverReport` (the path of each step, counted), :class:`ReportsEvents` (events the
   controller raised, recorded to ``/events``), :class:`CountsFallbacks`, and a ``config``
@@ -198,6 +202,62 @@ def position_input_of(controller: object, label: str = "") -> str:
         raise ControllerSetupError(f"{named}position_input = {value!r}: a servo controller takes "
                           f"{WRAPPED!r} (position % 360, the default) or {UNWRAPPED!r} "
                           "(multi-turn) positions")
+    return str(value)
+
+
+#: what a servo controller's ``step`` may return (:class:`Output`), and its unit
+CURRENT, POSITION, VELOCITY = "current", "position", "velocity"
+OUTPUT_UNITS = {CURRENT: "mA", POSITION: "deg", VELOCITY: "deg/s"}
+
+
+@runtime_checkable
+class Output(Protocol):
+    """A servo controller that says what its ``step`` returns, as its ``output`` (a class
+    attribute will do):
+
+    * ``"current"`` (also the default, without the attribute): the motor current [mA], which
+      the drive applies (CST);
+    * ``"position"``: where the axis is to be [deg], multi-turn, in the frame of the position
+      the controller is given (``position_input = "unwrapped"``'s); the drive closes its own
+      loop (CSP);
+    * ``"velocity"``: how fast it is to turn [deg/s] (CSV, PV).
+
+    A run refuses a controller whose output is not what the drive's mode takes, before it
+    opens anything: a factory says what its controllers return as ``outputs`` (a class's
+    ``output`` says it for the class; :func:`returns` marks a factory function); one that
+    can return several is told the run's as ``context.output``."""
+
+    output: str
+
+
+def returns(*outputs: str) -> Callable[[Factory], Factory]:
+    """Mark a factory function with what its controllers' ``step`` may return
+    (:class:`Output`)."""
+    def mark(factory: Factory) -> Factory:
+        factory.outputs = outputs  # type: ignore[attr-defined]
+        return factory
+    return mark
+
+
+def outputs_of(factory: object) -> tuple[str, ...]:
+    """What ``factory``'s controllers may return: its ``outputs``, a class's ``output``, else
+    a current."""
+    outputs = getattr(factory, "outputs", None)
+    if outputs is None:
+        outputs = (factory.output,) if isinstance(factory, Output) else (CURRENT,)
+    return tuple(outputs)
+
+
+def output_of(controller: object, label: str = "") -> str:
+    """:data:`CURRENT`, :data:`POSITION` or :data:`VELOCITY`: the controller's ``output``, a
+    current when it has none; any other value is a ControllerSetupError naming the three (and
+    ``label``)."""
+    value = controller.output if isinstance(controller, Output) else CURRENT
+    if value not in OUTPUT_UNITS:
+        named = f"controller {label!r}: " if label else ""
+        raise ControllerSetupError(f"{named}output = {value!r}: a servo controller returns a "
+                                   f"{CURRENT!r} [mA] (the default), a {POSITION!r} [deg] or a "
+                                   f"{VELOCITY!r} [deg/s]")
     return str(value)
 
 

@@ -6,13 +6,17 @@
 
     kpis = api.run_bench(MyBenchController, {"on_below": 75}, cycles=1)   # lockstep emulator
     kpis = api.run_servo("pid", duration_s=1.0, limits=["rms_error_deg<=0.5"])
+    kpis = api.run_servo("setpoint", drive_overrides={"master": {"mode": "csp"}})  # CSP
+    kpis = api.home_drive(method=37, offset_deg=0.0)   # HM, then a PP move (as the CLI)
+    kpis = api.move_drive(90.0, velocity_deg_s=45.0)
     with api.start_drive_emulator() as emulator:        # its own process, a free port
         kpis = api.run_servo(MyServoController, drive=emulator.url, duration_s=0.5)
     with api.open_bench("modbus-tcp://192.168.0.50:502") as bench:
         bench.read_power(); bench.set_relays({"P1": True})
 
 ``run_bench`` and ``run_servo`` return the KPI dictionary of ``hil bench|servo run --json``
-(``mcap`` is the session file); with ``limits`` it also has ``passed`` and ``limits``. A
+(``mcap`` is the session file); with ``limits`` it also has ``passed`` and ``limits``;
+``home_drive`` and ``move_drive`` that of ``hil drive home|move --json``. A
 controller is a class (or factory) or a spec string (``"eec"``, ``"my_ctl.py:Threshold"``,
 ``"package.module:Class"``). Errors are :class:`~hil.errors.HilError` with a one-line
 message; a controller that raises, answers wrongly or overruns its budget ends the run with a
@@ -38,8 +42,8 @@ from hil.servo.defaults import DEFAULT_REFERENCE
 if TYPE_CHECKING:
     from hil.core.run import TunerStarted
 
-__all__ = ["EmulatorProcess", "open_bench", "open_drive", "run_bench", "run_servo",
-           "start_bench_emulator", "start_drive_emulator"]
+__all__ = ["EmulatorProcess", "home_drive", "move_drive", "open_bench", "open_drive",
+           "run_bench", "run_servo", "start_bench_emulator", "start_drive_emulator"]
 
 Controller = str | Callable[..., Any]
 
@@ -90,6 +94,38 @@ def run_servo(controller: Controller, params: Mapping[str, Any] | None = None, *
                                reference=reference, duration_s=duration_s,
                                limits=_limits(limits), **options),
                      tuner_started=tuner_started).kpis
+
+
+def move_drive(target_deg: float, drive: str | None = None, *, relative: bool = False,
+               **settings: Any) -> dict[str, Any]:
+    """A profile position move (``hil drive move``) of the drive at ``drive`` (None: the
+    config's ``[bus]``) to ``target_deg`` (by it with ``relative``), lockstep unless
+    ``realtime=True``. ``settings``: the motion's own (``velocity_deg_s``,
+    ``acceleration_deg_s2``, ``deceleration_deg_s2``, ``timeout_s``) and the other fields of
+    :class:`hil.servo.motion.MotionOptions` (``out``, ``node``, ``drive_config``...)."""
+    return _motion("move", target_deg, drive, relative, settings)
+
+
+def home_drive(drive: str | None = None, **settings: Any) -> dict[str, Any]:
+    """A homing (``hil drive home``) of the drive at ``drive``, lockstep unless
+    ``realtime=True``. ``settings``: the homing's own (``method``, ``offset_deg``,
+    ``switch_speed_deg_s``, ``zero_speed_deg_s``, ``homing_acceleration_deg_s2``,
+    ``timeout_s``) and the other fields of :class:`hil.servo.motion.MotionOptions`."""
+    return _motion("home", None, drive, False, settings)
+
+
+def _motion(motion: str, target_deg: float | None, drive: str | None, relative: bool,
+            settings: dict[str, Any]) -> dict[str, Any]:
+    from hil.servo.motion import MOTION_KEYS, MotionOptions, run_motion_options
+
+    table = "profile" if motion == "move" else "homing"
+    names = {**MOTION_KEYS, "timeout_s": f"{table}.timeout_s"}
+    keys = {names[name]: (settings.pop(name), f"{motion}_drive({name}=)")
+            for name in list(settings) if name in names and settings[name] is not None}
+    _check_options(settings, {f.name for f in fields(MotionOptions)} - {"motion", "keys"},
+                   f"{motion}_drive")
+    return run_motion_options(MotionOptions(motion, target_deg, relative, keys, drive=drive,
+                                            **settings)).kpis
 
 
 class _MonotonicTime:

@@ -199,9 +199,15 @@ class DriveUnderTest(_UnderTest[CanDriveMaster]):
       (``realtime=`` says otherwise). Each run starts where the axis stands: the drive is
       enabled at its position and the reference is relative to it (``from_here=True``;
       ``from_here=False``: the reference's own angles). A drive in FAULT stays so and the run
-      fails; ``reset_fault=True`` clears it (CiA 402 fault reset) before enabling;
+      fails; ``reset_fault=True`` clears it (CiA 402 fault reset) before enabling. In the
+      config's mode (``drive_config=``, or ``drive_overrides={"master": {"mode": "csp"}}``:
+      CSP, CSV and PV take a controller that returns positions or velocities, e.g.
+      ``"setpoint"``); ``home=True`` homes the axis first (the reference then absolute from
+      home);
+    * ``home(**settings)``, ``move(target_deg, **settings)`` - ``hil drive home`` and ``hil
+      drive move``'s KPIs (:func:`hil.api.home_drive`, :func:`hil.api.move_drive`);
     * ``master`` - the CiA 402 master, opened and configured (not enabled); it is closed
-      before a ``run`` (one master per bus);
+      before a ``run``, a ``home`` or a ``move`` (one master per bus);
     * ``sessions`` - the session files of the runs.
     """
 
@@ -216,10 +222,26 @@ class DriveUnderTest(_UnderTest[CanDriveMaster]):
             **options: Any) -> dict[str, Any]:
         self.close()
         options.setdefault("realtime", not self.emulated)
-        options.setdefault("from_here", True)
+        options.setdefault("from_here", not options.get("home", False))
         return self._run(options, lambda: api.run_servo(
             controller, params, drive=self.url, reference=reference, duration_s=duration_s,
             **options))
+
+    def home(self, **settings: Any) -> dict[str, Any]:
+        """Home the axis (``hil drive home``): its KPIs."""
+        return self._motion("home", lambda: api.home_drive(self.url, **settings), settings)
+
+    def move(self, target_deg: float, **settings: Any) -> dict[str, Any]:
+        """A profile position move to ``target_deg`` (``hil drive move``): its KPIs."""
+        return self._motion("move", lambda: api.move_drive(target_deg, self.url, **settings),
+                            settings)
+
+    def _motion(self, name: str, run: Callable[[], dict[str, Any]],
+                settings: dict[str, Any]) -> dict[str, Any]:
+        self.close()
+        settings.setdefault("realtime", not self.emulated)
+        settings.setdefault("out", str(self.directory / f"{name}-{len(self.sessions) + 1}.mcap"))
+        return self._run(settings, run)
 
     def left_unsafe(self) -> str | None:
         state = self.state()

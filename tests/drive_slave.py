@@ -6,6 +6,14 @@ entry must name a mappable object of the right size). Its SYNC counter echo is o
 0x2003 and 0x2005 are objects of its own (digital outputs, a brake release delay), where hil's
 emulator has its disturbance torque and time base.
 
+Made to lack what vendors' drives lack (``dictionary(without=...)``: a maxon EPOS4 has no
+0x608F and no 0x6075; any optional object), to support CSP, CSV, PP, PV and HM too
+(``modes``: its own position loop towards 0x607A, velocity loop towards 0x60FF; a trapezoidal
+profile by 0x6081/0x6083/0x6084 with the new-set-point handshake, a velocity ramp; homing
+methods 35 and 37, where the axis stands, any other one a homing error: it has no switches),
+and built from an EDS file
+(``IndependentSlave(od=import_od(F))``: the dictionary a vendor's file describes).
+
 SDO, NMT and the heartbeat producer are canopen's; this module adds what a LocalNode does not
 do: the cyclic path (RPDO latched on SYNC, a simple axis advanced one period, the TPDOs of the
 current maps sent), and the CiA 402 state machine after canopen's ``State402`` tables. Every
@@ -25,7 +33,6 @@ from __future__ import annotations
 
 import json
 import signal
-import struct
 import sys
 import threading
 from typing import Any
@@ -41,6 +48,9 @@ RATED_MA = 2000
 ECHO = 0x2100
 VENDOR_OUTPUTS, VENDOR_BRAKE_DELAY = 0x2003, 0x2005  # where hil's emulator has its hooks
 SUPPORTED = 0x0200  # CST only
+CST, CSP, CSV, PP, PV, HM = 10, 8, 9, 1, 3, 6
+SUPPORTED_BITS = {CST: 0x0200, CSP: 0x0080, CSV: 0x0100, PP: 0x0001, PV: 0x0004, HM: 0x0020}
+LOOP_HZ = 50.0  # CSP: its position loop's natural frequency (critically damped)
 PERIOD_S = 500e-6
 GAIN_DEG_S2_PER_MA = 400.0  # axis acceleration per mA (a plain inertia)
 
@@ -77,9 +87,12 @@ def _pdo(od: ObjectDictionary, comm: int, mapping: int, cob: int, entries: list)
           for k in range(len(entries) + 1, 5))])
 
 
-def dictionary(node_id: int, max_current_permille: int | None = None) -> ObjectDictionary:
+def dictionary(node_id: int, max_current_permille: int | None = None, *,
+               without: tuple[int, ...] = (), modes: tuple[int, ...] = (CST,)
+               ) -> ObjectDictionary:
     """The slave's object dictionary; with ``max_current_permille``, a 0x6073 max current of
-    its own (per mille of the rated current)."""
+    its own (per mille of the rated current); ``without``: objects it lacks; ``modes``: the
+    modes 0x6502 lists (CST, CSP: 0x607A then)."""
     od = ObjectDictionary()
     od.node_id = node_id
     add = od.add_object
@@ -123,7 +136,28 @@ def dictionary(node_id: int, max_current_permille: int | None = None) -> ObjectD
         _var("count", 0x608F, 0, dt.UNSIGNED8, "const", 2),
         _var("increments", 0x608F, 1, dt.UNSIGNED32, "ro", INCREMENTS),
         _var("motor revolutions", 0x608F, 2, dt.UNSIGNED32, "ro", 1)])
-    add(_var("Supported drive modes", 0x6502, 0, dt.UNSIGNED32, "ro", SUPPORTED))
+    if {CSP, PP} & set(modes):
+        add(_var("Target position", 0x607A, 0, dt.INTEGER32, "rw", 0, True))
+    if {CSV, PV} & set(modes):
+        add(_var("Target velocity", 0x60FF, 0, dt.INTEGER32, "rw", 0, True))
+    if {PP, PV} & set(modes):  # 90 deg/s, 360 deg/s^2, a window of 0.1 deg
+        for index, name, default in ((0x6081, "Profile velocity", INCREMENTS // 4),
+                                     (0x6083, "Profile acceleration", INCREMENTS),
+                                     (0x6084, "Profile deceleration", INCREMENTS),
+                                     (0x6067, "Position window", INCREMENTS // 3600)):
+            add(_var(name, index, 0, dt.UNSIGNED32, "rw", default))
+    if HM in modes:
+        add(_var("Homing method", 0x6098, 0, dt.INTEGER8, "rw", 0))
+        add(_var("Home offset", 0x607C, 0, dt.INTEGER32, "rw", 0))
+        _record(od, "Homing speeds", 0x6099, [
+            _var("count", 0x6099, 0, dt.UNSIGNED8, "const", 2),
+            _var("switch", 0x6099, 1, dt.UNSIGNED32, "rw", INCREMENTS // 12),
+            _var("zero", 0x6099, 2, dt.UNSIGNED32, "rw", INCREMENTS // 72)], array=True)
+        add(_var("Homing acceleration", 0x609A, 0, dt.UNSIGNED32, "rw", INCREMENTS))
+    add(_var("Supported drive modes", 0x6502, 0, dt.UNSIGNED32, "ro",
+             sum(SUPPORTED_BITS[mode] for mode in modes)))
+    for index in without:
+        del od[index]
     return od
 
 
@@ -132,11 +166,12 @@ class IndependentSlave:
 
     def __init__(self, network: canopen.Network, node_id: int = 3, *,
                  behind_at: int | None = None,
-                 max_current_permille: int | None = None) -> None:
+                 max_current_permille: int | None = None,
+                 od: ObjectDictionary | None = None) -> None:
         self.network, self.node_id = network, node_id
         self.behind_at = behind_at
         self.held: list[tuple[int, bytes]] = []  # an answer held back (behind_at)
-        self.node = canopen.LocalNode(node_id, dictionary(node_id, max_current_permille))
+        self.node = canopen.LocalNode(node_id, od or dictionary(node_id, max_current_permille))
         self.od = self.node.object_dictionary
         self.node.add_write_callback(self._on_write)
         self.node.add_read_callback(self._on_read)
@@ -148,10 +183,14 @@ class IndependentSlave:
         self.velocity = 0.0      # degrees per second
         self.current_ma = 0.0
         self.controlword = 0
+        self.mode_bits = 0       # statusword bits 10, 12, 13 of PP and HM
+        self.pp_target: float | None = None  # degrees, its own multi-turn frame
         self.latched: bytes | None = None
         self.syncs = 0           # SYNCs since NMT start
         self.log: list[dict[str, Any]] = []
         self.writes: list[tuple[int, int, bytes]] = []  # every SDO download, in order
+        # objects it answers with abort 0x06020000 (no such object) though it has them
+        self.refuses: tuple[int, ...] = ()
         self.lock = threading.Lock()
         self.node.nmt.state = "PRE-OPERATIONAL"
 
@@ -161,10 +200,18 @@ class IndependentSlave:
                    if sub == 0 and not hasattr(self.od[index], "subindices") else
                    self.od[index][sub].decode_raw(self.node.get_data(index, sub)))
 
+    def written(self, index: int, sub: int = 0) -> list[int]:
+        """Every value a master downloaded to ``index:sub``, in order (a run's setting, then
+        the drive's own put back when the run let it go)."""
+        var = self.od[index][sub] if hasattr(self.od[index], "subindices") else self.od[index]
+        return [int(var.decode_raw(data)) for i, s, data in self.writes
+                if (i, s) == (index, sub)]
+
     def _live(self, index: int) -> int | None:
         if index == 0x6041:
             _mask, word = State402.SW_MASK[self.state]
-            return word | 0x0200 | (0x0010 if self.state != "NOT READY TO SWITCH ON" else 0)
+            return word | 0x0200 | (0x0010 if self.state != "NOT READY TO SWITCH ON" else 0) \
+                | self.mode_bits
         if index == 0x6064:
             return round(self.position / 360.0 * INCREMENTS) % INCREMENTS
         if index == 0x606C:
@@ -175,18 +222,29 @@ class IndependentSlave:
             return self.value(0x6060)
         return None
 
+    def modes(self) -> list[int]:
+        """The modes it runs: those its 0x6502 lists (without one: CSP where it has 0x607A,
+        and CST)."""
+        if 0x6502 in self.od:
+            return [mode for mode, bit in SUPPORTED_BITS.items() if self.value(0x6502) & bit]
+        return [CST, *([CSP, PP] if 0x607A in self.od else []),
+                *([CSV, PV] if 0x60FF in self.od else [])]
+
     def torque_limit(self) -> int:
-        """The torque it applies at most, per mille: its max torque, and max current if any."""
-        limits = [self.value(0x6072)]
-        if 0x6073 in self.od:
-            limits.append(self.value(0x6073))
-        return min(limits)
+        """The torque it applies at most, per mille: its max torque and max current, those it
+        has."""
+        return min([self.value(index) for index in (0x6072, 0x6073) if index in self.od]
+                   or [0x7FFF])
 
     def _on_read(self, index: int, subindex: int, od: Any) -> int | None:
+        if index in self.refuses:
+            raise SdoAbortedError(0x0602_0000)
         return self._live(index)
 
     # -- CiA 301 rules for PDO parameters, CiA 402 for the controlword ----------------------
     def _on_write(self, index: int, subindex: int, od: Any, data: bytes) -> None:
+        if index in self.refuses:
+            raise SdoAbortedError(0x0602_0000)
         self.writes.append((index, subindex, bytes(data)))
         if index in (0x1400, 0x1800, 0x1801) and subindex == 1:
             old, new = self.value(index, 1), int.from_bytes(data, "little")
@@ -205,7 +263,8 @@ class IndependentSlave:
                 var = obj[sub] if hasattr(obj, "subindices") else obj
                 if not var.pdo_mappable or len(var) != bits:
                     raise SdoAbortedError(0x0604_0041)
-        if index == 0x6060 and int.from_bytes(data, "little", signed=True) not in (0, 10):
+        if index == 0x6060 and int.from_bytes(data, "little", signed=True) not in (
+                0, *self.modes()):
             raise SdoAbortedError(0x0609_0030)
         if index == 0x6040:
             self._controlword(int.from_bytes(data, "little"))
@@ -213,6 +272,8 @@ class IndependentSlave:
     def _controlword(self, word: int) -> None:
         previous, self.controlword = self.controlword, word
         state = self.state
+        if state == "OPERATION ENABLED" and 0x6060 in self.od:
+            self._mode_bit_4(word, previous)
         if word & 0x80 and not previous & 0x80:
             if state == "FAULT":
                 self.state = "SWITCH ON DISABLED"
@@ -245,12 +306,19 @@ class IndependentSlave:
                 self.network.send_message(cob, payload)
             self.held = []
             if self.latched is not None:
-                word, torque = struct.unpack("<Hh", self.latched)
-                self._controlword(word)
-                self.node.set_data(0x6071, 0, struct.pack("<h", torque))
-            if self.state == "OPERATION ENABLED":  # as a drive does: within its own limits
+                self._latch_rpdo(self.latched)
+            mode = self.value(0x6060) if 0x6060 in self.od else CST
+            if self.state == "OPERATION ENABLED" and mode in (PP, PV, HM):
+                self.current_ma = 0.0
+                if mode == PP:
+                    self._profile()
+                elif mode == PV:
+                    self._ramp()
+            elif self.state == "OPERATION ENABLED":  # as a drive does: within its own limits
                 limit = self.torque_limit()
-                torque = max(-limit, min(limit, self.value(0x6071)))
+                wanted = self._position_loop() if mode == CSP else \
+                    self._velocity_loop() if mode == CSV else self.value(0x6071)
+                torque = max(-limit, min(limit, wanted))
                 self.current_ma = torque * RATED_MA / 1000
             else:
                 self.current_ma = 0.0
@@ -259,11 +327,90 @@ class IndependentSlave:
                     if abs(self.velocity) < 1.0:
                         self.velocity = 0.0
                         self.state = "SWITCH ON DISABLED"
-            self.velocity += GAIN_DEG_S2_PER_MA * self.current_ma * PERIOD_S
-            self.position += self.velocity * PERIOD_S
+            if mode not in (PP, PV, HM) or self.state != "OPERATION ENABLED":
+                self.velocity += GAIN_DEG_S2_PER_MA * self.current_ma * PERIOD_S
+                self.position += self.velocity * PERIOD_S
             if data and self.value(0x1019):
                 self.node.set_data(ECHO, 0, bytes([data[0]]))
             self._send_tpdos()
+
+    def _mode_bit_4(self, word: int, previous: int) -> None:
+        """Controlword bit 4 in PP (a new set point) and HM (start homing)."""
+        mode, rising = self.value(0x6060), word & 0x10 and not previous & 0x10
+        if mode == PP:
+            if rising:
+                raw = self.value(0x607A) * 360.0 / INCREMENTS  # on its own turn
+                self.pp_target = self.position - self.position % 360.0 + raw
+                self.mode_bits = 0x1000
+            elif not word & 0x10:
+                self.mode_bits &= ~0x1000
+        elif mode == HM and rising:
+            if self.value(0x6098) in (35, 37):  # home is where it stands: offset there
+                offset = self.value(0x607C) * 360.0 / INCREMENTS
+                self.position = offset
+                self.mode_bits = 0x1400
+            else:  # no switches to find: a homing error, standing
+                self.mode_bits = 0x2400
+
+    def _profile(self) -> None:
+        """PP: one period of the trapezoid towards the target, position and velocity set
+        as the profile says; bit 10 once within the window, standing."""
+        if self.pp_target is None:
+            self.velocity = 0.0
+            return
+        scale = 360.0 / INCREMENTS
+        v_max, accel = self.value(0x6081) * scale, self.value(0x6083) * scale
+        decel = self.value(0x6084) * scale
+        distance = self.pp_target - self.position
+        stop = (2.0 * decel * abs(distance)) ** 0.5
+        wanted = min(v_max, stop) * (1 if distance >= 0 else -1)
+        step = max(accel, decel) * PERIOD_S
+        self.velocity += max(-step, min(step, wanted - self.velocity))
+        self.position += self.velocity * PERIOD_S
+        if abs(self.pp_target - self.position) <= self.value(0x6067) * scale and \
+                abs(self.velocity) < step:
+            self.position, self.velocity = self.pp_target, 0.0
+            self.mode_bits |= 0x0400
+        else:
+            self.mode_bits &= ~0x0400
+
+    def _ramp(self) -> None:
+        """PV: one period of the ramp towards 0x60FF at the profile acceleration; bit 10
+        once at it, bit 12 while standing."""
+        scale = 360.0 / INCREMENTS
+        target, step = self.value(0x60FF) * scale, self.value(0x6083) * scale * PERIOD_S
+        self.velocity += max(-step, min(step, target - self.velocity))
+        self.position += self.velocity * PERIOD_S
+        self.mode_bits = (0x0400 if abs(target - self.velocity) < 1e-9 else 0) | \
+            (0x1000 if abs(self.velocity) < 1e-9 else 0)
+
+    def _velocity_loop(self) -> int:
+        """CSV: the torque [per mille] of its velocity loop towards 0x60FF."""
+        target = self.value(0x60FF) * 360.0 / INCREMENTS
+        acceleration = 2 * 3.141592653589793 * 4 * LOOP_HZ * (target - self.velocity)
+        return round(acceleration / GAIN_DEG_S2_PER_MA * 1000 / RATED_MA)
+
+    def _latch_rpdo(self, data: bytes) -> None:
+        """The RPDO's objects as its mapping (0x1600) says: the controlword first."""
+        offset = 0
+        for sub in range(1, self.value(0x1600, 0) + 1):
+            entry = self.value(0x1600, sub)
+            index, size = entry >> 16, (entry & 0xFF) // 8
+            raw = bytes(data[offset:offset + size])
+            offset += size
+            if index == 0x6040:
+                self._controlword(int.from_bytes(raw, "little"))
+            else:
+                self.node.set_data(index, (entry >> 8) & 0xFF, raw)
+
+    def _position_loop(self) -> int:
+        """CSP: the torque [per mille] of a critically damped loop towards 0x607A (its own
+        turn: the target and the position compared modulo one turn)."""
+        target = self.value(0x607A) * 360.0 / INCREMENTS
+        error = (target - self.position + 180.0) % 360.0 - 180.0
+        omega = 2 * 3.141592653589793 * LOOP_HZ
+        acceleration = omega * omega * error - 2 * omega * self.velocity
+        return round(acceleration / GAIN_DEG_S2_PER_MA * 1000 / RATED_MA)
 
     def _send_tpdos(self) -> None:
         sent = {}
@@ -290,27 +437,32 @@ class IndependentSlave:
                          "state": self.state})
 
     def on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        if self.node.nmt.state == "OPERATIONAL" and len(data) >= 4:
-            self.latched = bytes(data[:4])
+        if self.node.nmt.state == "OPERATIONAL" and len(data) >= 2:
+            self.latched = bytes(data)
 
 
 def serve(url: str, node_id: int, behind_at: int | None = None,
-          max_current_permille: int | None = None) -> tuple[canopen.Network, IndependentSlave]:
-    """The slave on the bus at ``url`` (``INTERFACE://CHANNEL?key=value``), serving."""
+          max_current_permille: int | None = None, od: ObjectDictionary | None = None
+          ) -> tuple[canopen.Network, IndependentSlave]:
+    """The slave on the bus at ``url`` (``INTERFACE://CHANNEL?key=value``), serving; ``od``:
+    its dictionary (default: :func:`dictionary`'s)."""
     from hil.drivers.canopen.bus import open_can_bus, parse_can_url
 
     network = canopen.Network(open_can_bus(parse_can_url(url)))
     network.connect()
     slave = IndependentSlave(network, node_id, behind_at=behind_at,
-                             max_current_permille=max_current_permille)
+                             max_current_permille=max_current_permille, od=od)
     network.subscribe(0x200 + node_id, slave.on_rpdo)
     return network, slave
 
 
 def main(argv: list[str]) -> None:
+    """``URL NODE LOG.json [--behind-at N] [--eds F.eds]``: with ``--eds``, the dictionary of
+    that file."""
     url, node_id, log_path = argv[0], int(argv[1]), argv[2]
     behind_at = int(argv[argv.index("--behind-at") + 1]) if "--behind-at" in argv else None
-    network, slave = serve(url, node_id, behind_at)
+    od = canopen.import_od(argv[argv.index("--eds") + 1], node_id) if "--eds" in argv else None
+    network, slave = serve(url, node_id, behind_at, od=od)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     print("serving", flush=True)

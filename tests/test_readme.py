@@ -112,3 +112,20 @@ def test_the_several_axes_example_moves_each_axis_its_own_way(user_folder):
     assert x > 0.5 and y < -0.5
 
 
+
+
+def test_connect_your_drive_names_every_mode_the_homing_and_the_stand_ins():
+    """The modes of the mode table, the homing and the keys that stand in for what a drive
+    lacks are each named where a user connects a drive."""
+    from hil.drivers.canopen.current_limit import MAX_TORQUE_STAND_IN
+    from hil.drivers.canopen.scaling import INCREMENTS, RATED
+    from hil.protocols.cia402 import OPERATION_MODES
+
+    section = README[README.index("## Connect your drive"):]
+    section = section[:section.index("\n## ", 1)]
+    for mode in OPERATION_MODES:
+        assert f"`{mode}`" in section or mode.upper() in section, mode
+    for stand_in in (INCREMENTS, RATED, MAX_TORQUE_STAND_IN):
+        assert f"`{stand_in.key}`" in section and stand_in.name in section, stand_in.key
+    for command in ("hil drive home", "hil drive move", "hil servo run --home"):
+        assert command in section, command

@@ -91,6 +91,30 @@ def test_users_tests_pass_with_plain_pytest_and_the_installed_plugin(tmp_path):
     assert cases["test_the_bench_driver_switches_a_relay_and_reads_power"] == {}  # no run
 
 
+#: the hil_drive fixture in every mode: a homing, a profile move, a CSP run homed first
+EVERY_MODE = '''
+def test_homes_moves_and_runs_csp_from_home(hil_drive):
+    home = hil_drive.home(method=37, offset_deg=10.0)
+    assert home["reached"] and abs(home["position_deg"] - 10.0) < 0.01
+    move = hil_drive.move(40.0, velocity_deg_s=180.0)
+    assert move["reached"] and abs(move["error_deg"]) <= 0.1
+    run = hil_drive.run("setpoint", reference="hold:position=40", duration_s=0.2, home=True,
+                        drive_overrides={"master": {"mode": "csp"},
+                                         "homing": {"method": 37, "offset_deg": 40.0}})
+    assert run["set_point"] == "position" and run["max_error_deg"] < 0.1
+    assert [s.rsplit("/", 1)[-1] for s in hil_drive.sessions] == [
+        "home-1.mcap", "move-2.mcap", "servo-3.mcap"]
+'''
+
+
+def test_the_drive_fixture_homes_moves_and_runs_every_mode(tmp_path):
+    folder = user_folder(tmp_path)
+    (folder / "test_every_mode.py").write_text(EVERY_MODE)
+    out = run_pytest(folder, "test_every_mode.py")
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
+    assert "1 passed" in out.stdout
+
+
 LEAVES_A_RELAY_ON = '''
 from hil.drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 from hil.bench.config import load_bench_config

@@ -157,20 +157,25 @@ class PlacedReference:
     * by default the reference is an angle of the spindle (the papers' axis): it runs on the
       turn nearest p0, ``offset_deg = 360 k`` with ``k = round((p0 - r(0)) / 360)``;
     * ``relative`` (``from_here``): the reference is a motion from where the axis stands,
-      ``offset_deg = p0`` (r'(t) = p0 + r(t)).
+      ``offset_deg = p0`` (r'(t) = p0 + r(t));
+    * ``absolute`` (a homed axis): the reference is the axis' own position, ``offset_deg =
+      0``.
 
     Sampled before it is placed (a controller that reads its reference when it is built, not
     in ``step``), it raises: the start position is not known yet."""
 
-    def __init__(self, inner: Reference, *, relative: bool = False) -> None:
+    def __init__(self, inner: Reference, *, relative: bool = False,
+                 absolute: bool = False) -> None:
         self.inner = inner
-        self.relative = relative
+        self.relative, self.absolute = relative, absolute
         self.offset_deg: float | None = None
 
     def place(self, start_deg: float) -> float:
         """Fix the offset for an axis that starts at ``start_deg`` (multi-turn); returns it."""
         if self.relative:
             self.offset_deg = float(start_deg)
+        elif self.absolute:
+            self.offset_deg = 0.0
         else:
             r0 = float(np.asarray(self.inner.position(np.array([0.0])), dtype=float)[0])
             self.offset_deg = 360.0 * round((start_deg - r0) / 360.0)
@@ -183,6 +188,23 @@ class PlacedReference:
       "drive is enabled: a controller samples it in step(), not when "
       "it is built")
         return self.inner.position(t) + self.offset_deg
+
+
+class ReferenceSamples:
+    """r(k T) for tick k, computed a block of ticks at a time (vectorised, constant memory)."""
+
+    def __init__(self, reference: Reference, dt: float, block: int = 2048) -> None:
+        self.reference, self.dt, self.block = reference, dt, block
+        self._first = -1
+        self._values = np.empty(0)
+
+    def __call__(self, tick: int) -> float:
+        first = tick - tick % self.block
+        if first != self._first:
+            ticks = first + np.arange(self.block)
+            self._values = np.asarray(self.reference.position(ticks * self.dt), dtype=float)
+            self._first = first
+        return float(self._values[tick - first])
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,52 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+
+from hil.protocols.cia402 import (
+    HOME_OFFSET,
+    HOMING_ACCELERATION,
+    HOMING_METHOD,
+    HOMING_SPEEDS,
+    PROFILE_ACCELERATION,
+    PROFILE_DECELERATION,
+    PROFILE_VELOCITY,
+)
+
+#: the configured value of each profile object: (the field of ProfileSettings, its key)
+PROFILE_KEYS: dict[tuple[int, int], tuple[str, str]] = {
+    (PROFILE_VELOCITY, 0): ("velocity_deg_s", "[profile] velocity_deg_s"),
+    (PROFILE_ACCELERATION, 0): ("acceleration_deg_s2", "[profile] acceleration_deg_s2"),
+    (PROFILE_DECELERATION, 0): ("deceleration_deg_s2", "[profile] deceleration_deg_s2"),
+    (HOMING_METHOD, 0): ("homing_method", "[homing] method"),
+    (HOME_OFFSET, 0): ("home_offset_deg", "[homing] offset_deg"),
+    (HOMING_SPEEDS, 1): ("homing_switch_speed_deg_s", "[homing] switch_speed_deg_s"),
+    (HOMING_SPEEDS, 2): ("homing_zero_speed_deg_s", "[homing] zero_speed_deg_s"),
+    (HOMING_ACCELERATION, 0): ("homing_acceleration_deg_s2", "[homing] acceleration_deg_s2"),
+}
+
+
+@dataclass(frozen=True)
+class ProfileSettings:
+    """How PP and PV move (``[profile]``) and how HM homes (``[homing]``), in hil's units;
+    None: the drive's own value, left as it is. ``move_timeout_s``, ``homing_timeout_s``: how
+    long a move or a homing may take before the master gives up on it."""
+
+    velocity_deg_s: float | None = None
+    acceleration_deg_s2: float | None = None
+    deceleration_deg_s2: float | None = None
+    homing_method: int | None = None
+    home_offset_deg: float | None = None
+    homing_switch_speed_deg_s: float | None = None
+    homing_zero_speed_deg_s: float | None = None
+    homing_acceleration_deg_s2: float | None = None
+    move_timeout_s: float = 30.0
+    homing_timeout_s: float = 60.0
+
+    def value_of(self, index: int, subindex: int) -> float | None:
+        """The configured value of profile object ``index:subindex`` (None: the drive's)."""
+        value: float | None = getattr(self, PROFILE_KEYS[index, subindex][0])
+        return value
 
 
 @dataclass(frozen=True)
@@ -17,7 +62,10 @@ class DriveMasterConfig:
     or ``"one"`` (statusword, position and torque in 8 bytes; the velocity derived from the
     position: :data:`hil.protocols.cia402.TPDO_LAYOUTS`). ``lockstep_timeout_s``: in lockstep over a
     bus, how long (wall clock) the master waits for the drive's answer to a SYNC or an SDO
-    request before it calls the drive gone."""
+    request before it calls the drive gone. ``increments_per_rev``, ``rated_current_ma`` and
+    ``max_torque_permille`` stand in for 0x608F:1, 0x6075 and 0x6072 on a drive without them
+    (None: not set; a drive that has the object is read). ``profile``: PP's and PV's profile
+    and HM's homing."""
 
     node_id: int = 1
     mode: str = "cst"
@@ -44,3 +92,7 @@ class DriveMasterConfig:
     #: master's time, or is paused), and a drive that sends nothing at all for a whole wait
     #: is gone (DriveGoneError), not merely late
     lockstep: bool = False
+    increments_per_rev: int | None = None
+    rated_current_ma: float | None = None
+    max_torque_permille: int | None = None
+    profile: ProfileSettings = field(default_factory=ProfileSettings)

@@ -4,20 +4,30 @@ read before anything is written (a limit only ever tightens on its way to the dr
 * the run's limit: ``current_limit_mA`` of the master's config (lowered by a flag, never raised
   unless the user said so);
 * 0x6073 max current and 0x6072 max torque as the drive holds them, per mille of its rated
-  current (0x6075; hil reads the torque objects as current), each optional in CiA 402.
+  current (0x6075; hil reads the torque objects as current), each optional in CiA 402; for a
+  drive without 0x6072, ``[master] max_torque_permille`` stands in for it (the drive's own
+  torque limit, set by other means).
 
-The master writes the result to 0x6072 for the session and puts the drive's own value back when
-it lets the drive go, so one run's limit never becomes the next one's.
+The master writes the result to 0x6072 for the session, where the drive has it, and puts the
+drive's own value back when it lets the drive go, so one run's limit never becomes the next
+one's. Without 0x6072 the drive cannot be given the run's limit: hil's own clamp is the only
+limit of the current it commands (:attr:`CurrentLimit.unenforced` says so).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
-from hil.drivers.canopen.scaling import DriveScaling, optional_object
-from hil.drivers.canopen.sdo import SdoClient
-from hil.protocols.cia402 import MAX_CURRENT, MAX_TORQUE
+from hil.drivers.canopen.errors import DriveError
+from hil.drivers.canopen.objects import DriveObjects, StandIn, drive_or_config
+from hil.drivers.canopen.scaling import DriveScaling
+from hil.protocols.cia402 import MAX_CURRENT, MAX_TORQUE, OperationMode
+
+#: the key that stands in for 0x6072 on a drive without it
+MAX_TORQUE_STAND_IN = StandIn(MAX_TORQUE, 0, "max torque [per mille of the rated current]",
+                              "max_torque_permille")
 
 
 @dataclass(frozen=True)
@@ -28,7 +38,13 @@ class CurrentLimit:
     run_ma: float
     max_current_ma: float | None   # 0x6073
     max_torque_ma: float | None    # 0x6072 as found
-    max_torque_found: int | None   # its raw per mille
+    max_torque_found: int | None   # its raw per mille (None: the drive has no 0x6072)
+    max_torque_from: str = "0x6072"  # where max_torque_ma came from: 0x6072 or the key
+
+    @property
+    def unenforced(self) -> bool:
+        """The drive has no 0x6072: the run's limit cannot be given to it."""
+        return self.max_torque_found is None
 
     @property
     def applied_ma(self) -> float:
@@ -45,14 +61,46 @@ class CurrentLimit:
         """``300 mA: the run's 300 mA, the drive's max current (0x6073) 2000 mA, ...``."""
         links = [f"the run's {self.run_ma:g} mA"]
         for name, value in (("max current (0x6073)", self.max_current_ma),
-                            ("max torque (0x6072)", self.max_torque_ma)):
+                            (f"max torque ({self.max_torque_from})", self.max_torque_ma)):
             links.append(f"the drive's {name} " + ("-" if value is None else f"{value:g} mA"))
         return f"{self.applied_ma:g} mA, the smallest of " + ", ".join(links)
 
 
-def read_current_limit(sdo: SdoClient, scaling: DriveScaling, run_ma: float) -> CurrentLimit:
-    """The chain of ``run_ma`` and the drive's 0x6073 / 0x6072, read by SDO."""
-    current = optional_object(sdo, MAX_CURRENT, 0, "<H")
-    torque = optional_object(sdo, MAX_TORQUE, 0, "<H")
+def read_current_limit(objects: DriveObjects, scaling: DriveScaling, run_ma: float,
+                       max_torque_permille: int | None = None) -> CurrentLimit:
+    """The chain of ``run_ma`` and the drive's 0x6073 / 0x6072 (or the key that stands in for
+    0x6072, ``max_torque_permille``), read by SDO where the drive has them."""
+    current = objects.read(MAX_CURRENT, 0, "<H")
+    torque, torque_from = drive_or_config(objects, MAX_TORQUE_STAND_IN, max_torque_permille,
+                                          "<H")
+    if torque is None:
+        return CurrentLimit(run_ma, None if current is None else scaling.milliamps(current),
+                            None, None)
+    found = int(torque) if torque_from == MAX_TORQUE_STAND_IN.name else None
     return CurrentLimit(run_ma, None if current is None else scaling.milliamps(current),
-                        None if torque is None else scaling.milliamps(torque), torque)
+                        scaling.milliamps(torque), found, torque_from)
+
+
+def unenforced_text(node_id: int, mode: OperationMode, limit: CurrentLimit) -> str:
+    """What a drive without 0x6072 means for a run in ``mode``: in a current mode hil's clamp
+    is the only limit of the current it commands; in the others the drive chooses the current
+    and only its own limits hold."""
+    head = (f"drive node {node_id} has no 0x6072 (max torque): the run's limit of "
+            f"{limit.run_ma:g} mA cannot be given to the drive; ")
+    if mode.unit == "mA":
+        return head + f"hil's clamp ({limit.applied_ma:g} mA) is the only limit of the current"
+    return head + (f"in {mode.short} the drive chooses the current, and only its own limits "
+                   "hold")
+
+
+def max_torque_units(limit: CurrentLimit, scaling: DriveScaling, node_id: int) -> int:
+    """0x6072 for a run: the applied limit rounded up to a torque unit, never above what the
+    drive held."""
+    rated = scaling.rated_current_ma
+    units = math.ceil(limit.applied_ma * 1000.0 / rated - 1e-9)
+    if limit.max_torque_found is not None:
+        units = min(units, limit.max_torque_found)
+    if units > 0xFFFF:
+        raise DriveError(f"drive node {node_id}: current limit {limit.applied_ma:g} mA is "
+                         f"beyond what 0x6072 can hold with a rated current of {rated:g} mA")
+    return units

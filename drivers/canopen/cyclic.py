@@ -133,11 +133,7 @@ class CyclicExchange:
         # lockstep over a bus: a wait with no frame at all is not a late drive but a gone one
         self._silence_is_gone = silence_is_gone
         self._heard = False  # a frame came since the last SYNC
-        self._rpdo_id = rpdo.cob_id(node_id)
-        # the controlword (UNSIGNED16), then the mode's target (INTEGER16 torque, INTEGER32
-        # position)
-        target_bits = rpdo.entries[1][2]
-        self._rpdo_layout = struct.Struct("<H" + ("h" if target_bits == 16 else "i"))
+        self.use_rpdo(rpdo)
         self._decoders = {pdo.cob_id(node_id): tpdo_decoder(pdo, i)
                           for i, pdo in enumerate(tpdos)}
         self._all = (1 << len(tpdos)) - 1  # every TPDO of the cycle received
@@ -163,8 +159,29 @@ class CyclicExchange:
         self._command_ma = 0.0
         self._turns = 0
         self._last_raw: int | None = None
+        self._near: int | None = None  # after forget_turns: the first position's turn
 
     # -- set-up ---------------------------------------------------------------------------
+    def use_rpdo(self, rpdo: PdoMap) -> None:
+        """Send ``rpdo`` from the next cycle on: the controlword (UNSIGNED16), then the mode's
+        set point if it has one (INTEGER16 torque, INTEGER32 position or velocity)."""
+        self._rpdo_id = rpdo.cob_id(self.node_id)
+        sizes = [bits for _, _, bits in rpdo.entries[1:]]
+        self._rpdo_layout = struct.Struct("<H" + "".join("h" if b == 16 else "i" for b in sizes))
+        self._rpdo_target = bool(sizes)
+
+    @property
+    def turns(self) -> int:
+        """The turns counted on the drive's position so far (where it wraps: one turn)."""
+        return self._turns
+
+    def forget_turns(self, near_deg: float = 0.0) -> None:
+        """The drive's position starts a frame of its own (a homing set it): the turns counted
+        anew, the next position taken on the turn nearest ``near_deg`` (where the frame puts
+        the axis: home; a drive that counts one turn says -5 deg as 355)."""
+        self._turns, self._last_raw, self._last_fresh = 0, None, None
+        self._near = self.scaling.counts(near_deg)
+
     def start(self, feedback_raw: tuple[int, int, int, int]) -> Feedback:
         """Enabled: the first feedback from values read by SDO (statusword, position,
         velocity, torque); the master's heartbeat and the watchdog start afresh."""
@@ -190,7 +207,7 @@ class CyclicExchange:
         self._take_waiting()
         # a queued SDO download first: the drive takes it before it latches this cycle
         frames: list[Frame] = self.extra_frames()
-        frames.append((self._rpdo_id, self._rpdo_layout.pack(controlword, target)))
+        frames.append((self._rpdo_id, self._rpdo_frame(controlword, target)))
         if self.echo:
             self.sync_counter = self.sync_counter % SYNC_COUNTER_MAX + 1
             frames.append((SYNC_COB_ID, bytes([self.sync_counter])))
@@ -270,9 +287,14 @@ class CyclicExchange:
         sync: Frame = (SYNC_COB_ID, b"")
         for word in controlwords:
             try:
-                self.link.send([(self._rpdo_id, self._rpdo_layout.pack(word, 0)), sync])
+                self.link.send([(self._rpdo_id, self._rpdo_frame(word, 0)), sync])
             except DriveError:
                 return
+
+    def _rpdo_frame(self, controlword: int, target: int) -> bytes:
+        if self._rpdo_target:
+            return self._rpdo_layout.pack(controlword, target)
+        return self._rpdo_layout.pack(controlword)
 
     def drain(self) -> None:
         """Every frame already here, read now (TPDOs among them are late): before a recovery,
@@ -316,6 +338,8 @@ class CyclicExchange:
                 self._turns -= 1
             elif step < -(turn // 2):
                 self._turns += 1
+        elif self._near is not None:
+            self._turns, self._near = round((self._near - raw) / turn), None
         self._last_raw = raw
         position_deg = scaling.degrees(self._turns * turn + raw)
         velocity_deg_s = scaling.degrees(velocity)

@@ -5,16 +5,18 @@ listener raises). Use from a loop task split over two phases, which lets the TPD
 while the loop sleeps::
 
     feedback = master.receive_feedback()            # read: the previous SYNC's TPDOs
-    master.send_command(current_mA)                 # write: RPDO + SYNC
+    master.send_set_point(value)                    # write: RPDO + SYNC
 
 or in one call (``exchange``) for commissioning and tests. Either way ``feedback`` reflects
 the command of the previous cycle applied for one period (``x(k+1) = A x(k) + B u(k)``).
-Safety lives here, not in the controller: commands are clamped to ``current_limit_mA``; no
-TPDO for ``stale_cycles`` cycles, a send error, a silent heartbeat or a drive reboot -> link
-lost; a FAULT or any state other than OPERATION ENABLED -> error. Each of these puts the drive
-into its safe state (quick stop, then disable voltage), emits an event and latches: every
-later cyclic call raises until :meth:`CanDriveMaster.recover` recovers explicitly. EMCY
-frames become ``drive.emcy`` events through ``on_event`` (``Session.event`` fits).
+The set point is the mode's (a current, a position or a velocity: :mod:`.setpoint`), the
+profile moves' and the homing's cycles :mod:`.motion`'s; an object the drive lacks is neither
+read nor written (:mod:`.objects`). Safety lives here: currents are clamped to
+``current_limit_mA``; no TPDO for ``stale_cycles`` cycles, a send error, a silent heartbeat or
+a drive reboot -> link lost; a FAULT or any state other than OPERATION ENABLED -> error. Each
+of these puts the drive into its safe state (quick stop, then disable voltage), emits an event
+and latches: every later cyclic call raises until :meth:`CanDriveMaster.recover` recovers
+explicitly. EMCY frames become ``drive.emcy`` events through ``on_event``.
 
 The master is a :class:`hil.contracts.Device`: :meth:`~CanDriveMaster.open` (SDO, voltage
 disabled), :meth:`~CanDriveMaster.configure` (the drive's description and scaling, mode, PDO
@@ -28,18 +30,24 @@ from __future__ import annotations
 import copy
 import math
 import struct
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from functools import partial
 from typing import Any, NoReturn
 
 from hil.contracts import Device, EventSink, LinkWatchdog, no_event
-from hil.drivers.can_bus_time import AxisTraffic, BusBudget, BusPlan, plan_bus
+from hil.drivers.can_bus_time import BusBudget
+from hil.drivers.canopen.bus_plan import plan_axes
 from hil.drivers.canopen.clocks import ClockSwitch, MonotonicClock
 from hil.drivers.canopen.config import DriveMasterConfig
-from hil.drivers.canopen.current_limit import CurrentLimit, read_current_limit
-from hil.drivers.canopen.cyclic import SYNC_COUNTER_MAX, CyclicExchange, Feedback, LinkStats
-from hil.drivers.canopen.eds import DriveDescription, required_objects
+from hil.drivers.canopen.current_limit import (
+    CurrentLimit,
+    max_torque_units,
+    read_current_limit,
+    unenforced_text,
+)
+from hil.drivers.canopen.cyclic import CyclicExchange, Feedback, LinkStats
+from hil.drivers.canopen.eds import DriveDescription, modes_problem
 from hil.drivers.canopen.errors import (
     BusSharedError,
     DriveError,
@@ -49,11 +57,14 @@ from hil.drivers.canopen.errors import (
 )
 from hil.drivers.canopen.link import Link
 from hil.drivers.canopen.nmt import HeartbeatProducer, HeartbeatWatch, Nmt
-from hil.drivers.canopen.pdo import PdoConfigurator
+from hil.drivers.canopen.objects import DriveObjects, Notices, without_text
+from hil.drivers.canopen.pdo import PdoConfigurator, tpdo_maps, unused_pdos
+from hil.drivers.canopen.profile import profile_writes
 from hil.drivers.canopen.run_settings import RunSettings
 from hil.drivers.canopen.scaling import DriveScaling, read_scaling
 from hil.drivers.canopen.scan import discover
 from hil.drivers.canopen.sdo import SdoClient
+from hil.drivers.canopen.setpoint import holding_value, wire_format, wire_value
 from hil.drivers.canopen.state import MasterClock, StateControl
 from hil.drivers.canopen.stopping import MAY_STILL_MOVE, last_report, stop_together
 from hil.protocols.can_frames import Frame
@@ -67,10 +78,8 @@ from hil.protocols.cia301 import (
     NMT_ENTER_PRE_OPERATIONAL,
     NMT_START,
     PRODUCER_HEARTBEAT,
-    RPDO_COMM_BASE,
     SYNC_COB_ID,
     SYNC_COUNTER_OVERFLOW,
-    TPDO_COMM_BASE,
     SdoAbortError,
     emcy_text,
 )
@@ -78,8 +87,6 @@ from hil.protocols.cia402 import (
     CW_DISABLE_VOLTAGE,
     CW_ENABLE_OPERATION,
     CW_QUICK_STOP,
-    CYCLIC_SYNCHRONOUS_POSITION,
-    CYCLIC_SYNCHRONOUS_TORQUE,
     ERROR_CODE,
     FAULT,
     FAULT_REACTION_ACTIVE,
@@ -92,77 +99,15 @@ from hil.protocols.cia402 import (
     POSITION_ACTUAL,
     QUICK_STOP_ACTIVE,
     QUICK_STOP_OPTION,
-    SUPPORTED_MODE_BITS,
     SUPPORTED_MODES,
     SWITCH_ON_DISABLED,
-    TARGET_POSITION,
-    TARGET_TORQUE,
     TORQUE_ACTUAL,
-    TPDO_LAYOUTS,
     VELOCITY_ACTUAL,
-    PdoMap,
+    mode_switch_allowed,
     state_of,
 )
 
-CST, CSP = CYCLIC_SYNCHRONOUS_TORQUE, CYCLIC_SYNCHRONOUS_POSITION
 CIA402_DEVICE_TYPE = 402
-# PDOs the master never uses (RPDO2-4), and the TPDOs 1-4 (which it uses depends on the layout)
-RPDO_UNUSED = (RPDO_COMM_BASE + 1, RPDO_COMM_BASE + 2, RPDO_COMM_BASE + 3)
-TPDO_COMMS = tuple(TPDO_COMM_BASE + i for i in range(4))
-
-
-def tpdo_maps(sync_echo: tuple[int, int] | None, layout: str = "two") -> tuple[PdoMap, ...]:
-    """The TPDOs as the master maps them: the ``layout``'s (:data:`TPDO_LAYOUTS`), each with
-    the drive's SYNC counter echo as its last byte when there is one."""
-    if layout not in TPDO_LAYOUTS:
-        raise ValueError(f"tpdo_layout must be one of {', '.join(TPDO_LAYOUTS)}, got {layout!r}")
-    maps = TPDO_LAYOUTS[layout]
-    if sync_echo is None:
-        return maps
-    echo = (*sync_echo, 8)
-    echoed = tuple(replace(pdo, entries=(*pdo.entries, echo)) for pdo in maps)
-    if any(pdo.size_bytes > 8 for pdo in echoed):
-        raise ValueError(f"tpdo_layout {layout!r} fills its 8 bytes: no room for the "
-                         "sync_echo byte")
-    return echoed
-
-
-def unused_pdos(tpdos: Sequence[PdoMap]) -> tuple[int, ...]:
-    """The communication objects of the PDOs the master does not use (RPDO2-4 and the TPDOs
-    of 1-4 not in ``tpdos``), invalidated where the drive has them."""
-    used = {pdo.comm for pdo in tpdos}
-    return (*RPDO_UNUSED, *(comm for comm in TPDO_COMMS if comm not in used))
-
-
-def axis_traffic(config: DriveMasterConfig, name: str = "axis",
-                 layout: str | None = None) -> AxisTraffic:
-    """What one node driven with ``config`` puts on the bus each cycle (for bus plans); with
-    ``layout``, as if its ``tpdo_layout`` were that one."""
-    maps = tpdo_maps(config.sync_echo, layout or config.tpdo_layout)
-    return AxisTraffic(name, OPERATION_MODES[config.mode].rpdo1().size_bytes,
-                       tuple(pdo.size_bytes for pdo in maps), config.drive_heartbeat_ms / 1e3)
-
-
-LEAN_LAYOUT = ('master.tpdo_layout = "one" (statusword, position and torque in one 8-byte '
-               'TPDO per axis, the velocity derived from the position)')
-
-
-def plan_axes(config: DriveMasterConfig, names: Sequence[str],
-              bitrate: int | None = None) -> BusPlan:
-    """The bus plan of the axes ``names`` on one bus, each driven with ``config``, at
-    ``bitrate`` (default: the config's): what ``hil drive plan`` prints and what a run on
-    several axes is held to, one figure for both. Its ways out name the one-TPDO layout while
-    the config maps two."""
-    lean: list[AxisTraffic] = []
-    how = LEAN_LAYOUT
-    if config.tpdo_layout != "one":
-        if config.sync_echo is not None:  # the echo byte does not fit the one 8-byte TPDO
-            how += ' and sync_echo = ""'
-        lean = [axis_traffic(replace(config, sync_echo=None), name, "one") for name in names]
-    return plan_bus(bitrate or config.bitrate, config.cycle_period_s,
-                    [axis_traffic(config, name) for name in names],
-                    master_heartbeat_s=config.heartbeat_period_ms / 1e3, lean=lean,
-                    lean_how=how)
 
 
 class CanDriveMaster(Device):
@@ -180,7 +125,7 @@ class CanDriveMaster(Device):
             (SYNC_COB_ID, NMT_COB_ID, HEARTBEAT_BASE + config.heartbeat_id))
         self._url = url if url is not None else link.name
         self.node_id = n = config.node_id
-        self.mode = OPERATION_MODES[config.mode].code
+        self.operation = OPERATION_MODES[config.mode]  # the mode configure() sets
         self._clock = ClockSwitch(clock or MonotonicClock())
         self._on_event = on_event
         self._closers = closers
@@ -191,6 +136,7 @@ class CanDriveMaster(Device):
         self.sdo = SdoClient(link, n, config.sdo_timeout_s, self._other_frame,
                              gone_after_s=config.lockstep_timeout_s if config.lockstep else None,
                              census=partial(discover, link))
+        self.objects = DriveObjects(self.sdo)  # which the drive has (its EDS's, at open())
         self.nmt = Nmt(link, n)
         self.heartbeat_watch = HeartbeatWatch(n, config.drive_heartbeat_ms, self._clock.time_ns)
         # the frames that are not the cyclic TPDOs, by COB-ID (the watched ids over any other)
@@ -200,10 +146,9 @@ class CanDriveMaster(Device):
             self.heartbeat_watch.cob_id: self._on_heartbeat,
             **dict.fromkeys(watched, self._on_watched),
         }
-        self._rpdo1_map = OPERATION_MODES[config.mode].rpdo1()
         self._tpdo_maps = tpdo_maps(config.sync_echo, config.tpdo_layout)
         self.cyclic = CyclicExchange(
-            link, n, self._rpdo1_map, self._tpdo_maps, rx_timeout_s=config.rx_timeout_s,
+            link, n, self.operation.rpdo1(), self._tpdo_maps, rx_timeout_s=config.rx_timeout_s,
             silence_is_gone=config.lockstep,
             period_s=config.cycle_period_s,
             watchdog=self.watchdog,
@@ -213,9 +158,12 @@ class CanDriveMaster(Device):
         self.cyclic.extra_frames = self.sdo.next_frames
         self.states = StateControl(self.sdo, self.nmt, self._clock, config.state_timeout_s,
                                    config.sdo_timeout_s)
-        self.budget = self._bus_budget()
+        self.budget: BusBudget = plan_axes(config, ["axis"]).budget
         self.description: DriveDescription | None = None
         self._limit: CurrentLimit | None = None   # read at open()
+        self._units_from: dict[str, str] = {}      # where each scaling value came from
+        # what hil does without because the drive lacks an object (events, terminal lines)
+        self.notices = Notices(self._event)
         # every setting this master writes, put back when it lets the drive go
         self.settings = RunSettings(self.sdo, n, self._event)
         self.last_emcy_code = 0
@@ -260,6 +208,11 @@ class CanDriveMaster(Device):
         return self.cyclic.scaling
 
     @property
+    def mode(self) -> int:
+        """The 0x6060 code of the mode configure() sets."""
+        return self.operation.code
+
+    @property
     def increments_per_rev(self) -> int:
         return self.scaling.increments_per_rev
 
@@ -270,8 +223,9 @@ class CanDriveMaster(Device):
     def describe(self) -> dict[str, Any]:
         """What the session records of the drive: node, mode, scaling, current limit,
         description."""
-        return {"url": self.url, "node_id": self.node_id, "mode": self.config.mode,
-                "scaling": self.scaling.describe(), "current_limit": self.limit.describe(),
+        return {"url": self.url, "node_id": self.node_id, "mode": self.operation.name,
+                "scaling": self.scaling.describe(), "scaling_from": self._units_from,
+                "current_limit": self.limit.describe(),
                 "eds": self.description.describe() if self.description else None}
 
     def _event(self, kind: str, message: str, level: str = "info", **data: Any) -> None:
@@ -320,52 +274,62 @@ class CanDriveMaster(Device):
                     register=register, data_hex=extra, while_driving=self._enabled)
 
     # -- configuration --------------------------------------------------------------------------
-    def _bus_budget(self) -> BusBudget:
-        return plan_axes(self.config, ["axis"]).budget
-
-    def configure(self) -> None:
-        """Check the drive (device type, modes), read its scaling, then write the run's
-        settings by SDO: mode, PDO map, cycle period, heartbeats, limits.
-        The drive is in SWITCH ON DISABLED (after :meth:`open`)."""
-        c, n, sdo = self.config, self.node_id, self.sdo
-        device_type = sdo.read_int(DEVICE_TYPE, 0)
+    def _check_mode(self) -> None:
+        """The node is a CiA 402 drive that supports the mode (0x6502, where it has one)."""
+        n = self.node_id
+        device_type = self.sdo.read_int(DEVICE_TYPE, 0)
         if device_type & 0xFFFF != CIA402_DEVICE_TYPE:
             raise DriveError(f"node {n} is not a CiA 402 drive (device type 0x{device_type:08X})")
-        supported = sdo.read_int(SUPPORTED_MODES, 0)
-        if not supported & SUPPORTED_MODE_BITS[self.mode]:
-            raise DriveError(f"drive node {n} does not support mode {c.mode.upper()} "
-                             f"({self.mode}): 0x6502 = 0x{supported:08X}")
-        scaling = self.scaling
-        limit = self.limit
+        supported = self.objects.read(SUPPORTED_MODES, 0)
+        if supported is None:
+            self.notices.tell("drive.object_missing", without_text(n, SUPPORTED_MODES, 0))
+        elif (problem := modes_problem(supported, self.operation)) is not None:
+            raise DriveError(f"drive node {n}: {problem}")
+
+    def configure(self) -> None:
+        """Check the drive (device type, modes), then write the run's settings by SDO: mode,
+        PDO map, cycle period, heartbeats, limits, the mode's profile (configured values).
+        An object the drive lacks is not written: hil does without it and says so
+        (:attr:`notices`). The drive is in SWITCH ON DISABLED (after :meth:`open`)."""
+        c, n, sdo, mode = self.config, self.node_id, self.sdo, self.operation
+        self._check_mode()
+        profile = profile_writes(self.objects, mode, c.profile, self.scaling)
+        scaling, limit = self.scaling, self.limit
         self.nmt.command(NMT_ENTER_PRE_OPERATIONAL)
-        if c.sync_echo is not None:  # CiA 301: 0x1019 changes only while 0x1006 is 0
-            sdo.write(CYCLE_PERIOD, 0, 0)
-            sdo.write(SYNC_COUNTER_OVERFLOW, 0, SYNC_COUNTER_MAX, "<B")
         pdos = PdoConfigurator(sdo, n)
+        if c.sync_echo is not None:
+            pdos.start_sync_counter(self.objects.has(CYCLE_PERIOD),
+                                    self.objects.has(SYNC_COUNTER_OVERFLOW))
         for comm in unused_pdos(self._tpdo_maps):
             pdos.disable(comm)
-        for pdo in (self._rpdo1_map, *self._tpdo_maps):
+        for pdo in (mode.rpdo1(), *self._tpdo_maps):
             pdos.map(pdo)
         self.cyclic.echo = c.sync_echo is not None
-        self._write_setting(CYCLE_PERIOD, 0, round(c.cycle_period_s * 1e6))
-        self._write_setting(PRODUCER_HEARTBEAT, 0, c.drive_heartbeat_ms, "<H")
+        self._write_where_present(CYCLE_PERIOD, 0, round(c.cycle_period_s * 1e6))
+        if not self._write_where_present(PRODUCER_HEARTBEAT, 0, c.drive_heartbeat_ms, "<H"):
+            self.heartbeat_watch.period_ms = 0  # no heartbeat to watch
         consumer = (c.heartbeat_id << 16) | c.heartbeat_timeout_ms if c.heartbeat_period_ms else 0
-        self._write_setting(CONSUMER_HEARTBEAT, 1, consumer)
-        self._write_setting(MODES_OF_OPERATION, 0, self.mode, "<b")
+        self._write_where_present(CONSUMER_HEARTBEAT, 1, consumer)
+        self._write_setting(MODES_OF_OPERATION, 0, mode.code, "<b")
         shown = sdo.read_int(MODES_DISPLAY, 0, "<b")
-        if shown != self.mode:
-            raise DriveStateError(f"drive node {n} shows mode {shown} after 0x6060 = {self.mode}")
-        self._write_setting(MAX_TORQUE, 0, self._max_torque_units(), "<H")
-        self._write_setting(QUICK_STOP_OPTION, 0, c.quick_stop_option, "<h")
-        if self.mode == CSP:
-            self._write_setting(TARGET_POSITION, 0, sdo.read_int(POSITION_ACTUAL, 0, "<i"), "<i")
+        if shown != mode.code:
+            raise DriveStateError(f"drive node {n} shows mode {shown} after 0x6060 = {mode.code}")
+        if limit.unenforced:
+            self.notices.tell("drive.limit_unenforced", unenforced_text(n, mode, limit))
         else:
-            self._write_setting(TARGET_TORQUE, 0, 0, "<h")
+            self._write_setting(MAX_TORQUE, 0, max_torque_units(limit, scaling, n), "<H")
+        self._write_where_present(QUICK_STOP_OPTION, 0, c.quick_stop_option, "<h")
+        if mode.set_point is not None:
+            index, subindex, _ = mode.set_point
+            self._write_setting(index, subindex, holding_value(
+                mode, lambda: sdo.read_int(POSITION_ACTUAL, 0, "<i")), wire_format(mode))
+        for index, subindex, value, fmt in profile:
+            self._write_setting(index, subindex, value, fmt)
         self._event("drive.configured",
-                    f"drive node {n}: {c.mode.upper()} at {c.cycle_period_s * 1e6:g} us, "
+                    f"drive node {n}: {mode.short} at {c.cycle_period_s * 1e6:g} us, "
                     f"limit {limit.applied_ma:g} mA, {scaling.increments_per_rev} "
                     f"increments/rev, rated {scaling.rated_current_ma:g} mA",
-                    mode=c.mode, period_us=c.cycle_period_s * 1e6,
+                    mode=mode.name, period_us=c.cycle_period_s * 1e6,
                     current_limit=limit.describe(),
                     rated_current_mA=scaling.rated_current_ma,
                     increments_per_rev=scaling.increments_per_rev,
@@ -376,6 +340,30 @@ class CanDriveMaster(Device):
             self._event("drive.heartbeat_config",
                         f"master heartbeat every {c.heartbeat_period_ms} ms but the drive gives "
                         f"up after {c.heartbeat_timeout_ms} ms: it will fault", level="warning")
+
+    def _write_where_present(self, index: int, subindex: int, value: int,
+                             fmt: str = "<I") -> bool:
+        """:meth:`_write_setting` where the drive has the object (else what hil does without
+        it is told); whether it was written."""
+        if self.objects.has(index, subindex):
+            self._write_setting(index, subindex, value, fmt)
+            return True
+        self.notices.tell("drive.object_missing", without_text(self.node_id, index, subindex))
+        return False
+
+    def use_mode(self, name: str) -> None:
+        """Drive in mode ``name`` (of :data:`~hil.protocols.cia402.OPERATION_MODES`) from the
+        next :meth:`configure` on, which maps its RPDO, writes 0x6060 and waits for 0x6061 to
+        show it. Only while the drive is not enabled: where CiA 402 lets any mode follow any
+        other (:func:`~hil.protocols.cia402.mode_switch_allowed`)."""
+        target = OPERATION_MODES[name]
+        if self.enabled and not mode_switch_allowed(OPERATION_ENABLED, self.operation, target,
+                                                    standing=False):
+            raise DriveStateError(f"drive node {self.node_id} is enabled in "
+                                  f"{self.operation.short}: it switches to {target.short} "
+                                  "once stopped (the master maps its RPDO anew)")
+        self.operation = target
+        self.cyclic.use_rpdo(target.rpdo1())
 
     def _write_setting(self, index: int, subindex: int, value: int, fmt: str = "<I") -> None:
         """Write one setting of this run to the drive (SDO): every object :meth:`configure`
@@ -395,18 +383,21 @@ class CanDriveMaster(Device):
             from hil.drivers.canopen.eds import load_description
 
             self.description = load_description(self.config.eds, self.node_id,
-                                                 required_objects(self.mode))
+                                                 self.operation)
+            self.objects.od = self.description.od
         self._latched, self._enabled = None, False
         self.heartbeat_watch.rebooted = False
         state = state_of(self.states.reach())
         if state in (FAULT, FAULT_REACTION_ACTIVE):
-            code = self.sdo.read_int(ERROR_CODE, 0, "<H")
+            code = self.objects.read(ERROR_CODE, 0, "<H")
+            code = self.last_emcy_code if code is None else code
             raise DriveFaultError(f"drive node {self.node_id} is in {state} (error code "
                                   f"{emcy_text(code)}): clear it with `hil drive reset`, "
                                   "--reset-fault on a run, or recover()", code)
         if state not in (SWITCH_ON_DISABLED, NOT_READY_TO_SWITCH_ON):
             self.states.controlword(CW_DISABLE_VOLTAGE)  # left enabled by someone
         self.states.wait_state(SWITCH_ON_DISABLED, "disable voltage")
+        self._check_mode()
         self.settings.open()  # an earlier run's leftover put back before the limits are read
         self._read_units_and_limits()
 
@@ -415,8 +406,17 @@ class CanDriveMaster(Device):
         writes by, and the current a controller may be given before then."""
         if self._limit is not None:  # read once: 0x6072 may hold this master's own value since
             return
-        scaling = read_scaling(self.sdo)
-        limit = read_current_limit(self.sdo, scaling, self.config.current_limit_ma)
+        c = self.config
+        scaling, self._units_from = read_scaling(self.objects, c.increments_per_rev,
+                                                 c.rated_current_ma)
+        limit = read_current_limit(self.objects, scaling, c.current_limit_ma,
+                                   c.max_torque_permille)
+        stand_ins = {what: key for what, key in
+                     [*self._units_from.items(), ("max_torque", limit.max_torque_from)]
+                     if key.startswith("[master]")}
+        if stand_ins:
+            self._event("drive.stand_in", f"drive node {self.node_id} lacks objects: "
+                        f"{', '.join(stand_ins.values())} stand in", stand_ins=stand_ins)
         unit = scaling.rated_current_ma / 1000.0
         if limit.applied_ma < unit:
             raise DriveError(f"drive node {self.node_id}: current limit {limit.text()}: below "
@@ -439,7 +439,7 @@ class CanDriveMaster(Device):
         self.heartbeat_watch.restart()  # the heartbeat is watched from here on
         read = self.sdo.read_int
         feedback = self.cyclic.start((self.states.statusword(), read(POSITION_ACTUAL, 0, "<i"),
-                                      read(VELOCITY_ACTUAL, 0, "<i"),
+                                      self.objects.read(VELOCITY_ACTUAL, 0, "<i") or 0,
                                       read(TORQUE_ACTUAL, 0, "<h")))
         self._event("drive.enabled", f"drive node {n} OPERATION ENABLED at "
                     f"{feedback.position_deg:.4f} deg", position_deg=feedback.position_deg)
@@ -595,26 +595,34 @@ class CanDriveMaster(Device):
             self.stats.clamped_commands += 1
         return round(clamped * 1000.0 / self.scaling.rated_current_ma), clamped
 
-    def send_command(self, current_ma: float) -> None:
-        """CST: send the current command (clamped to the limit) and a SYNC."""
+    def send_set_point(self, value: float, bits: int = 0) -> None:
+        """Send the mode's set point in its unit (a current [mA] in CST, clamped to the limit;
+        a multi-turn position [deg] in CSP and PP; a velocity [deg/s] in CSV and PV; none in
+        HM) and a SYNC; ``bits``: the mode's own controlword bits beside enable operation
+        (:data:`~hil.protocols.cia402.CW_NEW_SET_POINT`, ``CW_HALT``...)."""
         self._check_latched()
-        if self.mode != CST:
-            raise DriveStateError("send_command() needs mode 'cst'; use send_position()")
-        units, clamped = self._torque_units(current_ma)
-        self._send_cycle(CW_ENABLE_OPERATION, units, clamped)
+        mode = self.operation
+        if mode.unit == "mA":
+            units, clamped = self._torque_units(value)
+            self._send_cycle(CW_ENABLE_OPERATION | bits, units, clamped)
+            return
+        self._send_cycle(CW_ENABLE_OPERATION | bits, wire_value(
+            mode, value, self.scaling, self.cyclic.turns, self.node_id), math.nan)
+
+    def send_command(self, current_ma: float) -> None:
+        """:meth:`send_set_point` of a current [mA] (CST)."""
+        self._send_in("mA", current_ma, "send_command")
 
     def send_position(self, target_deg: float) -> None:
-        """CSP: send the position target (multi-turn degrees) and a SYNC.
+        """:meth:`send_set_point` of a position [deg, multi-turn] (CSP)."""
+        self._send_in("deg", target_deg, "send_position")
 
-        On the wire the target is modulo one turn, like the position: the drive goes the short
-        way round, so consecutive targets must differ by less than half a turn."""
-        self._check_latched()
-        if self.mode != CSP:
-            raise DriveStateError("send_position() needs mode 'csp'; use send_command()")
-        if not math.isfinite(target_deg):
-            raise DriveError(f"drive node {self.node_id}: refusing a non-finite position target")
-        turn = self.scaling.counts_per_turn
-        self._send_cycle(CW_ENABLE_OPERATION, self.scaling.counts(target_deg) % turn)
+    def _send_in(self, unit: str, value: float, name: str) -> None:
+        if self.operation.unit != unit:
+            raise DriveStateError(f"{name}() sends {unit}, and mode {self.operation.short} "
+                                  f"takes {self.operation.unit or 'no set point'}: use "
+                                  "send_set_point()")
+        self.send_set_point(value)
 
     def receive_feedback(self) -> Feedback:
         """The TPDOs of the last SYNC (waits until ``rx_timeout`` after that SYNC); raises on
@@ -625,9 +633,9 @@ class CanDriveMaster(Device):
         self._check_latched()
         return self._check_operation(self._receive())
 
-    def exchange(self, current_ma: float) -> Feedback:
-        """One CST cycle: command, SYNC, feedback."""
-        self.send_command(current_ma)
+    def exchange(self, set_point: float) -> Feedback:
+        """One cycle: the mode's set point (:meth:`send_set_point`), SYNC, feedback."""
+        self.send_set_point(set_point)
         return self.receive_feedback()
 
     def exchange_position(self, target_deg: float) -> Feedback:
@@ -670,18 +678,23 @@ class CanDriveMaster(Device):
             return False
         self._enabled = False
         feedback = self.feedback
-        self._stop_target = feedback.position_increments \
-            if self.mode == CSP and feedback is not None else 0
+        self._stop_target = holding_value(
+            self.operation, lambda: None if feedback is None else feedback.position_increments)
         return True
 
     def quick_stop_cycles(self) -> Iterator[None]:
-        """The quick-stop cycles of a safe stop, one per period on the master's clock (in
-        lockstep each SYNC is a period): as many as the quick-stop time-out holds, at least
-        one. Leave the loop once the drive stands; a cycle after the last waits its period."""
+        """The quick-stop cycles of a safe stop: :meth:`periods` of the quick-stop
+        time-out."""
+        return self.periods(self.config.quick_stop_timeout_s)
+
+    def periods(self, seconds: float) -> Iterator[None]:
+        """Cycles one period apart on the master's clock (in lockstep each SYNC is a period):
+        as many as ``seconds`` hold, at least one. Leave the loop when done; a cycle after the
+        last waits its period."""
         c, clock = self.config, self.clock
         period_ns = round(c.cycle_period_s * 1e9)
         next_ns = clock.time_ns()
-        for _ in range(max(1, math.ceil(c.quick_stop_timeout_s / c.cycle_period_s))):
+        for _ in range(max(1, math.ceil(seconds / c.cycle_period_s))):
             yield
             next_ns += period_ns
             wait_ns = next_ns - clock.time_ns()
@@ -766,16 +779,3 @@ class CanDriveMaster(Device):
                             f"reach it again to put this run's settings back: {exc}",
                             level="warning")
         self.settings.restore()
-
-    def _max_torque_units(self) -> int:
-        """0x6072 for this session: the applied limit rounded up to a torque unit, never above
-        what the drive held."""
-        limit, rated = self.limit, self.scaling.rated_current_ma
-        units = math.ceil(limit.applied_ma * 1000.0 / rated - 1e-9)
-        if limit.max_torque_found is not None:
-            units = min(units, limit.max_torque_found)
-        if units > 0xFFFF:
-            raise DriveError(f"drive node {self.node_id}: current limit {limit.applied_ma:g} mA "
-                             f"is beyond what 0x6072 can hold with a rated current of {rated:g} "
-                             "mA")
-        return units

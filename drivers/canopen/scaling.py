@@ -1,9 +1,12 @@
-"""How the drive's numbers become degrees and milliamps: read from the drive, never assumed.
+"""How the drive's numbers become degrees and milliamps: read from the drive, never assumed;
+for a drive without an object, the ``[master]`` key that stands in for it.
 
-* position: 0x608F encoder increments per motor revolution (sub 1 / sub 2), 0x6091 gear ratio
-  (motor revolutions per shaft revolution; 1:1 when the drive has no 0x6091): one turn of the
-  axis is ``increments * motor_revolutions / shaft_revolutions`` counts of 0x6064;
-* current: 0x6071 and 0x6077 are per mille of the rated current 0x6075 (mA);
+* position: 0x608F encoder increments per motor revolution (sub 1 / sub 2; ``[master]
+  increments_per_rev`` where the drive has no 0x608F), 0x6091 gear ratio (motor revolutions
+  per shaft revolution; 1:1 when the drive has no 0x6091): one turn of the axis is
+  ``increments * motor_revolutions / shaft_revolutions`` counts of 0x6064;
+* current: 0x6071 and 0x6077 are per mille of the rated current 0x6075 (mA; ``[master]
+  rated_current_mA`` where the drive has none);
 * polarity: 0x607E is applied by the drive itself; it is read to be recorded.
 """
 
@@ -14,8 +17,7 @@ from functools import cached_property
 from typing import Any
 
 from hil.drivers.canopen.errors import DriveError
-from hil.drivers.canopen.sdo import SdoClient
-from hil.protocols.cia301 import ABORT_NO_OBJECT, ABORT_NO_SUBINDEX, SdoAbortError
+from hil.drivers.canopen.objects import DriveObjects, StandIn, drive_or_config
 from hil.protocols.cia402 import ENCODER_RESOLUTION, GEAR_RATIO, POLARITY, RATED_CURRENT
 
 
@@ -57,38 +59,44 @@ class DriveScaling:
         return asdict(self) | {"counts_per_turn": self.counts_per_turn}
 
 
-def optional_object(sdo: SdoClient, index: int, subindex: int, fmt: str) -> int | None:
-    """An object the drive may not have (CiA 402 makes it optional): None when it has not."""
-    try:
-        return sdo.read_int(index, subindex, fmt)
-    except SdoAbortError as exc:
-        if exc.code in (ABORT_NO_OBJECT, ABORT_NO_SUBINDEX):
-            return None
-        raise
+#: the keys that stand in for the scaling objects a drive lacks
+INCREMENTS = StandIn(ENCODER_RESOLUTION, 1, "encoder increments per motor revolution",
+                     "increments_per_rev")
+RATED = StandIn(RATED_CURRENT, 0, "rated current [mA], what the torque objects are per mille "
+                "of", "rated_current_mA")
 
 
-def _optional(sdo: SdoClient, index: int, subindex: int, fmt: str, default: int) -> int:
-    value = optional_object(sdo, index, subindex, fmt)
-    return default if value is None else value
-
-
-def read_scaling(sdo: SdoClient) -> DriveScaling:
-    """The drive's scaling by SDO; an unusable value is a DriveError naming the object."""
-    n = sdo.node_id
-    increments = sdo.read_int(ENCODER_RESOLUTION, 1)
-    motor_turns = sdo.read_int(ENCODER_RESOLUTION, 2)
-    if not increments or motor_turns != 1:
+def read_scaling(objects: DriveObjects, increments_per_rev: int | None = None,
+                 rated_current_ma: float | None = None) -> tuple[DriveScaling, dict[str, str]]:
+    """The drive's scaling, by SDO where it has the objects, else from the keys that stand in
+    for them (``increments_per_rev``, ``rated_current_ma``), and where each value came from
+    (``{"increments_per_rev": "0x608F:1", "rated_current_ma": "[master] rated_current_mA"}``).
+    A value neither has, or one that cannot be used, is a DriveError naming the object."""
+    n = objects.sdo.node_id
+    increments, increments_from = drive_or_config(objects, INCREMENTS, increments_per_rev)
+    if increments is None:
+        raise INCREMENTS.missing(n)
+    motor_turns = objects.read(ENCODER_RESOLUTION, 2) if increments_from == INCREMENTS.name \
+        else 1
+    if not increments or motor_turns not in (1, None):
         raise DriveError(f"drive node {n}: encoder resolution 0x608F = {increments} "
                          f"increments / {motor_turns} revolutions is not supported (hil needs "
                          "increments per one motor revolution)")
-    rated = sdo.read_int(RATED_CURRENT, 0)
+    rated, rated_from = drive_or_config(objects, RATED, rated_current_ma)
+    if rated is None:
+        raise RATED.missing(n)
     if not rated:
         raise DriveError(f"drive node {n}: rated current 0x6075 is 0 mA: the torque objects "
                          "would mean nothing")
-    gear_motor = _optional(sdo, GEAR_RATIO, 1, "<I", 1)
-    gear_shaft = _optional(sdo, GEAR_RATIO, 2, "<I", 1)
+    gear_motor = _or(objects.read(GEAR_RATIO, 1), 1)
+    gear_shaft = _or(objects.read(GEAR_RATIO, 2), 1)
     if not gear_motor or not gear_shaft:
         raise DriveError(f"drive node {n}: gear ratio 0x6091 = {gear_motor}:{gear_shaft} has a "
                          "zero")
-    polarity = _optional(sdo, POLARITY, 0, "<B", 0)
-    return DriveScaling(increments, gear_motor, gear_shaft, float(rated), polarity)
+    polarity = _or(objects.read(POLARITY, 0, "<B"), 0)
+    return (DriveScaling(int(increments), gear_motor, gear_shaft, float(rated), polarity),
+            {"increments_per_rev": increments_from, "rated_current_ma": rated_from})
+
+
+def _or(value: int | None, default: int) -> int:
+    return default if value is None else value

@@ -17,10 +17,14 @@ from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from hil.drivers.canopen.eds import check, import_description, required_objects
+from hil.drivers.canopen.config import DriveMasterConfig
+from hil.drivers.canopen.current_limit import read_current_limit, unenforced_text
+from hil.drivers.canopen.eds import check, import_description, modes_problem
 from hil.drivers.canopen.errors import DriveError, DriveLinkLostError
 from hil.drivers.canopen.link import Link
-from hil.drivers.canopen.scaling import read_scaling
+from hil.drivers.canopen.objects import DriveObjects
+from hil.drivers.canopen.profile import profile_writes
+from hil.drivers.canopen.scaling import DriveScaling, read_scaling
 from hil.drivers.canopen.sdo import SdoClient
 from hil.protocols.can_frames import Frame
 from hil.protocols.cia301 import (
@@ -44,19 +48,21 @@ from hil.protocols.cia301 import (
     emcy_text,
 )
 from hil.protocols.cia402 import (
+    CONTROLWORD,
     ERROR_CODE,
     FAULT,
     FAULT_REACTION_ACTIVE,
     MODE_SHORT_NAMES,
-    MODES,
     OPERATION_ENABLED,
+    OPERATION_MODES,
     PDO_NOT_VALID,
     POSITION_ACTUAL,
     QUICK_STOP_ACTIVE,
     STATUSWORD,
-    SUPPORTED_MODE_BITS,
     SUPPORTED_MODES,
+    TORQUE_ACTUAL,
     UNKNOWN_STATE,
+    VELOCITY_ACTUAL,
     state_of,
     supported_mode_bit,
 )
@@ -117,6 +123,7 @@ class NodeReport:
     position_counts: int | None = None   # 0x6064
     position_deg: float | None = None
     scaling: dict[str, Any] | None = None
+    scaling_from: dict[str, str] | None = None  # the object, or the key standing in for it
     device_type: int | None = None
     device_name: str | None = None
     identity: dict[str, int] = field(default_factory=dict)
@@ -227,11 +234,15 @@ def read_pdos(sdo: SdoClient) -> list[PdoReport]:
     return pdos
 
 
-def inspect(link: Link, node_id: int, mode: str = "cst", eds: str | None = None
-            ) -> NodeReport:
+def inspect(link: Link, node_id: int, mode: str = "cst", eds: str | None = None,
+            config: DriveMasterConfig | None = None) -> NodeReport:
     """Everything :mod:`hil.drivers.canopen.scan` reads of one node, and whether hil can drive it
-    in ``mode`` (``cst`` or ``csp``), its EDS at ``eds`` checked too when given."""
+    in ``mode`` (a name of :data:`~hil.protocols.cia402.OPERATION_MODES`) with ``config``'s
+    stand-ins for objects it lacks and its profile, its EDS at ``eds`` checked too when
+    given. The deciding reason comes first: the modes it supports."""
+    config = config or DriveMasterConfig()
     sdo = SdoClient(link, node_id, READ_TIMEOUT_S, lambda frame: None)
+    objects = DriveObjects(sdo)
     read = sdo.read_int
     report = NodeReport(node_id, mode)
     report.device_type = read(DEVICE_TYPE, 0)
@@ -253,11 +264,13 @@ def inspect(link: Link, node_id: int, mode: str = "cst", eds: str | None = None
     report.heartbeat_ms = _optional(read, PRODUCER_HEARTBEAT, 0, "<H")
     report.pdos = read_pdos(sdo)
     _read_state(report, sdo)
-    _read_position(report, sdo)
+    scaling = _read_position(report, objects, config)
     if eds is not None:
         _check_eds(report, eds)
-    report.problems = _state_problems(report) + _problems(report, sdo) + report.problems
-    report.notes = _state_notes(report)
+    if scaling is not None:
+        _check_settings(report, objects, config, scaling)
+    report.problems = _problems(report, sdo) + _state_problems(report) + report.problems
+    report.notes = _state_notes(report) + report.notes
     return report
 
 
@@ -271,26 +284,46 @@ def _read_state(report: NodeReport, sdo: SdoClient) -> None:
         report.error_text = emcy_text(report.error_code) if report.error_code else "none"
 
 
-def _read_position(report: NodeReport, sdo: SdoClient) -> None:
-    """0x6064 in degrees of the axis, by the drive's own scaling (as the master reads it)."""
+def _read_position(report: NodeReport, objects: DriveObjects, config: DriveMasterConfig
+                   ) -> DriveScaling | None:
+    """0x6064 in degrees of the axis, by the drive's own scaling (as the master reads it, the
+    config's stand-ins for objects it lacks); the scaling, None when it cannot be had."""
     try:
-        scaling = read_scaling(sdo)
+        scaling, units_from = read_scaling(objects, config.increments_per_rev,
+                                           config.rated_current_ma)
     # no or unusable 0x608F / 0x6075: the master would stop too
     except (DriveError, SdoAbortError) as exc:
         reason = re.sub(rf"^drive node {report.node_id}:? ", "", str(exc))
         report.problems.append(f"its position and current cannot be scaled: {reason}")
-        return
-    report.scaling = scaling.describe()
-    report.position_counts = _optional(sdo.read_int, POSITION_ACTUAL, 0, "<i")
+        return None
+    report.scaling, report.scaling_from = scaling.describe(), units_from
+    report.position_counts = objects.read(POSITION_ACTUAL, 0, "<i")
     if report.position_counts is not None:
         report.position_deg = scaling.degrees(report.position_counts)
+    return scaling
+
+
+def _check_settings(report: NodeReport, objects: DriveObjects, config: DriveMasterConfig,
+                    scaling: DriveScaling) -> None:
+    """What a run in the mode would refuse or do without: a limit or a profile value
+    configured for an object the drive lacks, a drive that cannot be given the run's limit."""
+    mode = OPERATION_MODES[report.mode]
+    try:
+        limit = read_current_limit(objects, scaling, config.current_limit_ma,
+                                   config.max_torque_permille)
+        profile_writes(objects, mode, config.profile, scaling)
+    except (DriveError, SdoAbortError) as exc:
+        report.problems.append(re.sub(rf"^drive node {report.node_id}:? ", "", str(exc)))
+        return
+    if limit.unenforced:
+        report.notes.append(unenforced_text(report.node_id, mode, limit))
 
 
 def _check_eds(report: NodeReport, path: str) -> None:
     """The EDS at ``path`` against every object hil reads, writes or maps in the mode, and
     against the drive's identity (an EDS of another product describes another drive)."""
     od = import_description(path, report.node_id)
-    problems = check(od, required_objects(MODES[report.mode]))
+    problems = check(od, OPERATION_MODES[report.mode])
     info = od.device_information
     for key, described in (("vendor_id", info.vendor_number),
                            ("product_code", info.product_number)):
@@ -321,21 +354,19 @@ def _state_notes(report: NodeReport) -> list[str]:
 
 
 def _problems(report: NodeReport, sdo: SdoClient) -> list[str]:
+    """Whether the node is a CiA 402 drive that supports the mode (the deciding reasons,
+    first), and has the objects of the cyclic exchange in it."""
     problems = []
-    mode = report.mode
+    mode = OPERATION_MODES[report.mode]
+    if report.supported_modes is not None and \
+            (problem := modes_problem(report.supported_modes, mode)) is not None:
+        problems.append(problem)
     if report.device_type is not None and report.device_type & 0xFFFF != 402:
         problems.append(f"not a CiA 402 drive (device type 0x{report.device_type:08X})")
-    bit = SUPPORTED_MODE_BITS[MODES[mode]]
-    if report.supported_modes is None:
-        problems.append("no 0x6502 (supported modes)")
-    elif not report.supported_modes & bit:
-        problems.append(f"mode {mode.upper()} not supported (it supports "
-                        f"{', '.join(report.modes) or 'none'}: 0x6502 = "
-                        f"0x{report.supported_modes:08X})")
-    for index, what in ((0x6040, "controlword"), (STATUSWORD, "statusword"),
-                        (POSITION_ACTUAL, "position actual"), (0x606C, "velocity actual"),
-                        (0x6077, "torque actual"),
-                        (0x6071 if mode == "cst" else 0x607A, "the mode's target")):
+    target = () if mode.set_point is None else ((mode.set_point[0], "the mode's target"),)
+    for index, what in ((CONTROLWORD, "controlword"), (STATUSWORD, "statusword"),
+                        (POSITION_ACTUAL, "position actual"), (VELOCITY_ACTUAL, "velocity actual"),
+                        (TORQUE_ACTUAL, "torque actual"), *target):
         try:
             sdo.read(index, 0)
         except SdoAbortError as exc:
@@ -344,15 +375,16 @@ def _problems(report: NodeReport, sdo: SdoClient) -> list[str]:
 
 
 def scan(link: Link, nodes: list[int] | None = None, mode: str = "cst",
-         eds: str | None = None) -> list[NodeReport]:
+         eds: str | None = None, config: DriveMasterConfig | None = None) -> list[NodeReport]:
     """The nodes of ``link`` (``nodes``: these only), each inspected (against the EDS at
-    ``eds`` too); a node that does not answer at all is reported as such."""
+    ``eds`` too, with ``config``'s stand-ins and profile); a node that does not answer at all
+    is reported as such."""
     found = discover(link) if nodes is None else nodes
     states = heartbeats(link, heartbeat_window(link, found)) if found else {}
     reports = []
     for node in found:
         try:
-            report = inspect(link, node, mode, eds)
+            report = inspect(link, node, mode, eds, config)
         except DriveLinkLostError:
             report = NodeReport(node, mode, problems=["does not answer SDO"])
         # refused, or an answer that makes no sense (wrong size, bad command)

@@ -9,6 +9,7 @@ from hil.controllers.servo.model import SAMPLE_PERIOD_S
 from hil.emulators.drive.axis_model import AxisModel
 from hil.emulators.drive.od import OdDefaults
 from hil.emulators.drive.plant import AxisPlant, Disturbance, Friction
+from hil.emulators.drive.switches import Switches
 from hil.emulators.faults import Fault
 
 
@@ -35,6 +36,10 @@ class DriveEmulatorConfig:
     channel: str = "can0"
     friction: Friction = field(default_factory=Friction)
     disturbance: Disturbance = field(default_factory=Disturbance)
+    switches: Switches = field(default_factory=Switches)  # limit and home switches, index
+    homing_search_deg: float = 720.0  # a homing that finds nothing this far away: error
+    #: power-on values of objects ((index, subindex), value): ``[emulator] set``, ``--set``
+    object_values: tuple[tuple[tuple[int, int], int], ...] = ()
     axis_model: AxisModel | None = None  # a model file's axis (None: the published axis)
     faults: tuple[Fault, ...] = ()  # [emulator] faults: what it does wrong, and when
 

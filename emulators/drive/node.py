@@ -12,7 +12,9 @@ its objects, PDO maps, axis units and modes). Its parts, one job each:
 :mod:`~hil.emulators.drive.objects` (dictionary and live values),
 :mod:`~hil.emulators.drive.sdo` (the SDO server), :mod:`~hil.emulators.drive.pdo` (PDOs),
 :mod:`~hil.emulators.drive.states` (the CiA 402 state machine), :mod:`~hil.emulators.drive.motor`
-(the current loops) and :mod:`~hil.emulators.drive.plant` (the axis). The node itself is NMT,
+(the current loops, each mode's motion by the mode table: :mod:`~hil.emulators.drive.modes`),
+:mod:`~hil.emulators.drive.switches` (limit and home switches, index pulse: 0x60FD) and
+:mod:`~hil.emulators.drive.plant` (the axis). The node itself is NMT,
 heartbeats, SYNC, EMCY, what writing an object means, and faults on purpose.
 
 Cyclic path (raw frames, never the ``canopen`` PDO machinery): an RPDO is stored on reception;
@@ -31,13 +33,14 @@ OPERATIONAL with the power stage on loses the cyclic commands: EMCY 0x8100 and f
 Simplifications, on purpose: the plant moves only on SYNC, also during a quick stop or fault
 reaction (without SYNC these end by their time-out, or at once when the axis already stands);
 braking is the drive's velocity loop at the current limit; quick-stop options 5/6 then hold with
-zero current; CSP is the drive's own position loop (P with velocity feed-forward, around a
-velocity P loop); the halt bit (8) and modes other than 8 and 10 are not implemented.
+zero current; the modes' loops (CSP, PP, HM: a position P loop with velocity feed-forward around
+a velocity P loop; CSV, PV: the velocity loop) run once per SYNC, tuned for a 500 us cycle.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import struct
 import threading
 import time
@@ -92,11 +95,15 @@ from hil.protocols.cia301 import (
 )
 from hil.protocols.cia402 import (
     CONTROLWORD,
+    DIGITAL_INPUTS,
     FAULT,
+    HOMING_METHOD,
+    HOMING_METHODS,
     MODES_DISPLAY,
     MODES_OF_OPERATION,
     OPERATION_ENABLED,
     POSITION_ACTUAL,
+    POSITION_DEMAND,
     QUICK_STOP_ACTIVE,
     QUICK_STOP_OPTION,
     QUICK_STOP_OPTIONS,
@@ -105,6 +112,7 @@ from hil.protocols.cia402 import (
     SWITCH_ON_DISABLED,
     TORQUE_ACTUAL,
     VELOCITY_ACTUAL,
+    VELOCITY_DEMAND,
 )
 
 log = logging.getLogger(__name__)
@@ -124,6 +132,16 @@ CONTROLWORD_KEY, MODE_KEY = (CONTROLWORD, 0), (MODES_OF_OPERATION, 0)
 POSITION_KEY, VELOCITY_KEY = (POSITION_ACTUAL, 0), (VELOCITY_ACTUAL, 0)
 TORQUE_KEY, STATUSWORD_KEY, RATED_KEY = (TORQUE_ACTUAL, 0), (STATUSWORD, 0), (RATED_CURRENT, 0)
 SYNC_OVERFLOW_KEY, SYNC_ECHO_KEY = (SYNC_COUNTER_OVERFLOW, 0), (SYNC_ECHO, 0)
+DEMAND_POSITION_KEY, DEMAND_VELOCITY_KEY = (POSITION_DEMAND, 0), (VELOCITY_DEMAND, 0)
+INPUTS_KEY = (DIGITAL_INPUTS, 0)
+NO_HOMING = 0  # 0x6098 = 0: no homing method
+
+
+
+def _int32(value: int) -> int:
+    """``value`` wrapped into INTEGER32, as a drive's counter wraps."""
+    return (value + 2**31) % 2**32 - 2**31
+
 
 SendFn = Callable[[list[Frame]], None]
 # what writing an object means beyond storing its value: (index, subindex, value), raises
@@ -198,6 +216,7 @@ class DriveNode:
             PRODUCER_HEARTBEAT: self._write_producer_heartbeat,
             QUICK_STOP_OPTION: self._write_quick_stop_option,
             MODES_OF_OPERATION: self._write_mode,
+            HOMING_METHOD: self._write_homing_method,
             CONTROLWORD: lambda _index, _subindex, value: self._apply_controlword(value),
             DISTURBANCE: self._write_disturbance,
             TIME_BASE: self._write_time_base,
@@ -275,7 +294,7 @@ class DriveNode:
             self._own_clock_again()
         self.objects.reset()
         self.states.reset()
-        self.motor.forget()
+        self.motor.reset()
         self.pdos.pending.clear()
         self.plant.extra_disturbance_ma = 0.0
         self._reset_communication_state()
@@ -474,8 +493,16 @@ class DriveNode:
 
     def _write_mode(self, index: int, subindex: int, value: int) -> None:
         self.dictionary.check_mode(value)  # the modes it emulates (of those 0x6502 lists)
+        changed = value != self._values[(MODES_DISPLAY, 0)]
         self._values[(index, subindex)] = value
         self._values[(MODES_DISPLAY, 0)] = value
+        if changed:  # the new mode's motion starts from where the axis is
+            self.motor.forget()
+
+    def _write_homing_method(self, index: int, subindex: int, value: int) -> None:
+        if value not in HOMING_METHODS and value != NO_HOMING:
+            raise SdoAbortError(ABORT_VALUE)
+        self._values[(index, subindex)] = value
 
     def _write_disturbance(self, index: int, subindex: int, value: int) -> None:
         self._values[(index, subindex)] = value
@@ -500,7 +527,10 @@ class DriveNode:
             for fault in self.faults.active("ignore_controlword"):
                 self.faults.hit(fault)
                 return
+        previous = self.states.controlword
         self.states.apply_controlword(cw)
+        self.motor.controlword(cw, previous)
+        self._values[STATUSWORD_KEY] = self.states.statusword  # the mode's bits too
 
     # ------------------------------------------------------------------------------ PDOs
     def _on_rpdo(self, pdo: Pdo, data: bytes) -> None:
@@ -576,7 +606,11 @@ class DriveNode:
 
     def _refresh_actuals(self) -> None:
         values, plant = self._values, self.plant
-        values[POSITION_KEY] = plant.position_increments()
+        values[POSITION_KEY] = self.motor.count.on_wire()
+        demand_position, demand_velocity = self.motor.demand()
+        values[DEMAND_POSITION_KEY] = _int32(math.floor(demand_position))
+        values[DEMAND_VELOCITY_KEY] = _int32(round(demand_velocity))
+        values[INPUTS_KEY] = self.config.switches.inputs(plant.position_deg)
         values[VELOCITY_KEY] = plant.velocity_increments_s()
         torque = round(plant.applied_current_ma * 1000.0 / values[RATED_KEY])
         values[TORQUE_KEY] = max(-32768, min(32767, torque))

@@ -17,6 +17,7 @@ after N ms of wall time without a frame (a lockstep master asks for it:
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable
@@ -32,19 +33,15 @@ from canopen.objectdictionary.datatypes import (
 
 from hil.protocols.cia301 import SDO_REQUEST_BASE, SDO_RESPONSE_BASE
 from hil.protocols.cia402 import (
-    CYCLIC_SYNCHRONOUS_POSITION,
-    CYCLIC_SYNCHRONOUS_TORQUE,
+    MODES_BY_CODE,
     NO_MODE,
     RPDOS,
     TPDOS,
     PdoMap,
-    supported_mode_bit,
 )
 
 DEVICE_TYPE = 0x0002_0192  # CiA 402 profile, servo drive
 DEVICE_NAME = "hil CiA 402 drive emulator"
-SUPPORTED_MODES = sum(map(supported_mode_bit, (CYCLIC_SYNCHRONOUS_POSITION,
-                                               CYCLIC_SYNCHRONOUS_TORQUE)))  # emulated
 RTR_NOT_ALLOWED = 0x4000_0000
 
 @dataclass(frozen=True)
@@ -58,6 +55,10 @@ class OdDefaults:
     sync_loss_timeout_ms: int = 100
     overcurrent_trip_ma: int = 15_000
     quick_stop_option: int = 2
+
+    def per_turn(self, turns: float) -> int:
+        """``turns`` axis turns [increments], as UNSIGNED32."""
+        return max(1, min(0xFFFF_FFFF, round(turns * self.increments_per_rev)))
 
 
 def _var(name: str, index: int, subindex: int, data_type: int, access: str, default: int | str,
@@ -106,8 +107,14 @@ def _pdo_objects(od: ObjectDictionary, node_id: int, pdo: PdoMap, tpdo: bool) ->
     od.add_object(_record(f"{kind}{number} mapping parameter", mapping, map_members))
 
 
+def supported_modes(codes: Iterable[int]) -> int:
+    """0x6502 listing the modes ``codes``."""
+    return sum(MODES_BY_CODE[code].supported_bit for code in set(codes))
+
+
 def build_object_dictionary(node_id: int, defaults: OdDefaults | None = None) -> ObjectDictionary:
-    """The drive's object dictionary for node ``node_id`` (1..127)."""
+    """The drive's object dictionary for node ``node_id`` (1..127), listing in 0x6502 every
+    mode of the table, which it emulates (:data:`hil.emulators.drive.modes.MOTIONS`)."""
     if not 1 <= node_id <= 127:
         raise ValueError(f"CANopen node id must be 1..127, got {node_id}")
     d = defaults or OdDefaults()
@@ -155,20 +162,48 @@ def build_object_dictionary(node_id: int, defaults: OdDefaults | None = None) ->
     add(_var("Quick stop option code", 0x605A, 0, INTEGER16, "rw", d.quick_stop_option))
     add(_var("Modes of operation", 0x6060, 0, INTEGER8, "rw", NO_MODE, mappable=True))
     add(_var("Modes of operation display", 0x6061, 0, INTEGER8, "ro", NO_MODE, mappable=True))
+    add(_var("Position demand value", 0x6062, 0, INTEGER32, "ro", 0, mappable=True))
     add(_var("Position actual value", 0x6064, 0, INTEGER32, "ro", 0, mappable=True))
+    add(_var("Following error window", 0x6065, 0, UNSIGNED32, "rw", d.per_turn(1 / 36)))
+    add(_var("Position window", 0x6067, 0, UNSIGNED32, "rw", d.per_turn(1 / 3600)))
+    add(_var("Position window time", 0x6068, 0, UNSIGNED16, "rw", 10))
+    add(_var("Velocity demand value", 0x606B, 0, INTEGER32, "ro", 0, mappable=True))
     add(_var("Velocity actual value", 0x606C, 0, INTEGER32, "ro", 0, mappable=True))
+    slow = min(0xFFFF, d.per_turn(1 / 180))  # 2 deg/s
+    add(_var("Velocity window", 0x606D, 0, UNSIGNED16, "rw", slow))
+    add(_var("Velocity window time", 0x606E, 0, UNSIGNED16, "rw", 10))
+    add(_var("Velocity threshold", 0x606F, 0, UNSIGNED16, "rw", slow))
     add(_var("Target torque", 0x6071, 0, INTEGER16, "rw", 0, mappable=True))
     add(_var("Max torque", 0x6072, 0, UNSIGNED16, "rw", d.max_torque_permille, mappable=True))
     add(_var("Motor rated current", 0x6075, 0, UNSIGNED32, "rw", d.rated_current_ma,
              minimum=1, maximum=1_000_000))
     add(_var("Torque actual value", 0x6077, 0, INTEGER16, "ro", 0, mappable=True))
     add(_var("Target position", 0x607A, 0, INTEGER32, "rw", 0, mappable=True))
+    add(_var("Home offset", 0x607C, 0, INTEGER32, "rw", 0, mappable=True))
+    add(_var("Profile velocity", 0x6081, 0, UNSIGNED32, "rw", d.per_turn(1 / 4), mappable=True))
+    add(_var("Profile acceleration", 0x6083, 0, UNSIGNED32, "rw", d.per_turn(1),
+             mappable=True, minimum=1))
+    add(_var("Profile deceleration", 0x6084, 0, UNSIGNED32, "rw", d.per_turn(1),
+             mappable=True, minimum=1))
     add(_record("Position encoder resolution", 0x608F, [
         _var("Highest sub-index supported", 0x608F, 0, UNSIGNED8, "const", 2),
         _var("Encoder increments", 0x608F, 1, UNSIGNED32, "ro", d.increments_per_rev),
         _var("Motor revolutions", 0x608F, 2, UNSIGNED32, "ro", 1),
     ]))
-    add(_var("Supported drive modes", 0x6502, 0, UNSIGNED32, "ro", SUPPORTED_MODES))
+    add(_var("Homing method", 0x6098, 0, INTEGER8, "rw", 37, mappable=True))
+    add(_record("Homing speeds", 0x6099, [
+        _var("Highest sub-index supported", 0x6099, 0, UNSIGNED8, "const", 2),
+        _var("Speed during search for switch", 0x6099, 1, UNSIGNED32, "rw", d.per_turn(1 / 4),
+             mappable=True),
+        _var("Speed during search for zero", 0x6099, 2, UNSIGNED32, "rw", d.per_turn(1 / 36),
+             mappable=True),
+    ], array=True))
+    add(_var("Homing acceleration", 0x609A, 0, UNSIGNED32, "rw", d.per_turn(2), mappable=True,
+             minimum=1))
+    add(_var("Digital inputs", 0x60FD, 0, UNSIGNED32, "ro", 0, mappable=True))
+    add(_var("Target velocity", 0x60FF, 0, INTEGER32, "rw", 0, mappable=True))
+    add(_var("Supported drive modes", 0x6502, 0, UNSIGNED32, "ro",
+             supported_modes(MODES_BY_CODE)))
     return od
 
 

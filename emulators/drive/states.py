@@ -55,6 +55,8 @@ class DriveStates:
                  entered: Callable[[str], None]) -> None:
         self.values, self.plant, self.standstill_deg_s = values, plant, standstill_deg_s
         self._now, self._emcy, self._entered = now, emcy, entered
+        #: statusword bits 10, 12, 13 in OPERATION ENABLED: the mode's (the node sets it)
+        self.mode_bits: Callable[[], int] = lambda: SW_FOLLOWS_COMMAND
         self.reset()
 
     def reset(self) -> None:
@@ -69,7 +71,7 @@ class DriveStates:
     def statusword(self) -> int:
         word = STATUSWORD[self.state]
         if self.state == OPERATION_ENABLED:
-            word |= SW_FOLLOWS_COMMAND
+            word |= self.mode_bits()
             if self.limit_active:
                 word |= SW_INTERNAL_LIMIT
         if self.comm_warning and self.state not in (FAULT, FAULT_REACTION_ACTIVE):

@@ -24,28 +24,44 @@ current), the modes it supports (0x6502) and its identity (0x1018). Each of its 
 
 hil's manufacturer objects (0x2001..0x2005, :mod:`hil.emulators.drive.od`) stay where the file
 has no object of their index (or has hil's own, an EDS hil wrote); an object of the file at
-one of them is not emulated and the hook is gone. A mode 0x6502 lists that hil does not
-emulate (only CSP and CST) is refused with 0x08000020 when 0x6060 is set to it; a mode it does
-not list with 0x06090030, as the drive would. A file the twin cannot run (no 0x6040, 0x6041,
-0x6060, 0x6061, 0x6064, 0x6502, 0x608F, no CSP or CST, a type other than hil's, a PDO mapping
-an object the twin cannot produce or take, a transmission type other than 0..240, 254, 255, a
-unit or limit without a value, an EMCY or SDO COB-ID other than CiA 301's) is an
-:class:`~hil.emulators.errors.EmulatorSetupError` naming the file and the object.
+one of them is not emulated and the hook is gone. The modes are those 0x6502 lists that hil
+emulates (:data:`hil.emulators.drive.modes.EMULATED_MODES`) and whose objects the file has
+(``MODE_NEEDS``); another mode it lists is refused with 0x08000020 when 0x6060 is set to it,
+one it does not list with 0x06090030, as the drive would.
+
+Vendor files as they come: a value left empty for commissioning comes from ``set``
+(``[emulator] set``, ``--set``; a DCF's ParameterValue is the file's value), which also gives a
+unit the file lacks onto hil's hidden object; a signed type is taken where CiA 402's values
+are never negative (``UNSIGNED_IN_USE``); a power-on PDO map the twin cannot serve is emptied
+for the master to write its own (named in :meth:`DriveDictionary.summary`), a PDO invalid at
+power-on is not looked at further. A file the twin cannot run is an
+:class:`~hil.emulators.errors.EmulatorSetupError` naming the file, the deciding reason (no mode
+it lists that hil emulates) on its first line, every other problem one a line.
 """
 
 from __future__ import annotations
 
 import configparser
 import logging
+import struct
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from fractions import Fraction
 from typing import Any
 
 from canopen import import_od
 from canopen.objectdictionary import ObjectDictionary, ODVariable
-from canopen.objectdictionary.datatypes import UNSIGNED8, UNSIGNED16, UNSIGNED32
+from canopen.objectdictionary.datatypes import (
+    INTEGER8,
+    INTEGER16,
+    INTEGER32,
+    UNSIGNED8,
+    UNSIGNED16,
+    UNSIGNED32,
+)
 
 from hil.emulators.drive.config import DriveEmulatorConfig
+from hil.emulators.drive.modes import EMULATED_MODES
 from hil.emulators.drive.objects import Key, ObjectStore
 from hil.emulators.drive.od import build_object_dictionary, iter_variables
 from hil.emulators.drive.pdo import EXTENDED_ID, MAPPING_OFFSET, MAX_PDO_BITS
@@ -66,8 +82,12 @@ from hil.protocols.cia402 import (
     CONTROLWORD,
     CYCLIC_SYNCHRONOUS_POSITION,
     CYCLIC_SYNCHRONOUS_TORQUE,
+    CYCLIC_SYNCHRONOUS_VELOCITY,
     ENCODER_RESOLUTION,
     GEAR_RATIO,
+    HOMING_METHOD,
+    HOMING_MODE,
+    HOMING_SPEEDS,
     MAX_CURRENT,
     MAX_TORQUE,
     MODE_SHORT_NAMES,
@@ -77,15 +97,18 @@ from hil.protocols.cia402 import (
     PDO_NOT_VALID,
     POLARITY,
     POSITION_ACTUAL,
+    PROFILE_ACCELERATION,
+    PROFILE_POSITION_MODE,
+    PROFILE_VELOCITY,
+    PROFILE_VELOCITY_MODE,
     RATED_CURRENT,
     STATUSWORD,
     SUPPORTED_MODES,
     TARGET_POSITION,
     TARGET_TORQUE,
+    TARGET_VELOCITY,
 )
 
-#: the modes hil's node emulates, and the mode of each 0x6502 bit 0..9 (CiA 402)
-EMULATED_MODES = (CYCLIC_SYNCHRONOUS_POSITION, CYCLIC_SYNCHRONOUS_TORQUE)
 #: hil's manufacturer objects (test hooks and time base, :mod:`hil.emulators.drive.od`)
 HOOKS = (0x2001, 0x2002, 0x2003, 0x2004, TIME_BASE)
 #: objects that only describe the drive: read back as the file gives them
@@ -96,17 +119,35 @@ FIXED = ((0x1014, 0, "COB-ID EMCY"), (0x1200, 1, "SDO request COB-ID"),
          (0x1200, 2, "SDO response COB-ID"))
 #: the axis' units and current limits: the file must give their values (never hil's)
 VALUED = (ENCODER_RESOLUTION, GEAR_RATIO, RATED_CURRENT, MAX_TORQUE, MAX_CURRENT)
-#: what the twin needs to run CST or CSP at all
+#: what the twin needs to run any mode at all
 NEEDED = ((CONTROLWORD, 0, "controlword"), (STATUSWORD, 0, "statusword"),
           (MODES_OF_OPERATION, 0, "modes of operation"),
           (MODES_DISPLAY, 0, "modes of operation display"),
-          (POSITION_ACTUAL, 0, "position actual value"),
-          (SUPPORTED_MODES, 0, "supported drive modes"),
-          (ENCODER_RESOLUTION, 1, "encoder increments"),
-          (ENCODER_RESOLUTION, 2, "motor revolutions"))
-MODE_NEEDS = {CYCLIC_SYNCHRONOUS_POSITION: ((TARGET_POSITION, 0, "target position"),),
-              CYCLIC_SYNCHRONOUS_TORQUE: ((TARGET_TORQUE, 0, "target torque"),
-                                          (RATED_CURRENT, 0, "motor rated current"))}
+          (POSITION_ACTUAL, 0, "position actual value"))
+#: the axis' unit: from the file, or (a file without it) from ``set`` onto hil's hidden one
+UNIT = ((ENCODER_RESOLUTION, 1, "encoder increments"),
+        (ENCODER_RESOLUTION, 2, "motor revolutions"))
+#: what each mode needs besides, when 0x6502 lists it (a mode lacking one is not emulated)
+MODE_NEEDS = {
+    PROFILE_POSITION_MODE: ((TARGET_POSITION, 0, "target position"),
+                            (PROFILE_VELOCITY, 0, "profile velocity"),
+                            (PROFILE_ACCELERATION, 0, "profile acceleration")),
+    PROFILE_VELOCITY_MODE: ((TARGET_VELOCITY, 0, "target velocity"),
+                            (PROFILE_ACCELERATION, 0, "profile acceleration")),
+    HOMING_MODE: ((HOMING_METHOD, 0, "homing method"),
+                  (HOMING_SPEEDS, 1, "speed during search for switch"),
+                  (HOMING_SPEEDS, 2, "speed during search for zero")),
+    CYCLIC_SYNCHRONOUS_POSITION: ((TARGET_POSITION, 0, "target position"),),
+    CYCLIC_SYNCHRONOUS_VELOCITY: ((TARGET_VELOCITY, 0, "target velocity"),),
+    CYCLIC_SYNCHRONOUS_TORQUE: ((TARGET_TORQUE, 0, "target torque"),
+                                (RATED_CURRENT, 0, "motor rated current")),
+}
+#: objects CiA 402 gives a range of non-negative values: a file may declare them signed
+#: (Nanotec's 0x608F is INTEGER32), the twin then takes values 0..the signed type's maximum
+UNSIGNED_IN_USE = (ENCODER_RESOLUTION, GEAR_RATIO, RATED_CURRENT, MAX_TORQUE, MAX_CURRENT,
+                   0x6065, 0x6067, 0x6068, 0x606D, 0x606E, 0x606F, PROFILE_VELOCITY,
+                   PROFILE_ACCELERATION, 0x6084, HOMING_SPEEDS, 0x609A)
+SIGNED_OF = {UNSIGNED8: INTEGER8, UNSIGNED16: INTEGER16, UNSIGNED32: INTEGER32}
 TYPE_NAMES = {1: "BOOLEAN", 2: "INTEGER8", 3: "INTEGER16", 4: "INTEGER32", 5: "UNSIGNED8",
               6: "UNSIGNED16", 7: "UNSIGNED32", 8: "REAL32", 9: "VISIBLE_STRING"}
 PDO_SPAN = MAPPING_OFFSET  # 0x1400..0x15FF, 0x1800..0x19FF; their mappings 0x200 above
@@ -126,6 +167,8 @@ class DriveDictionary:
     counts_per_turn: int | None = None  # 0x6064 counts per turn of the axis (None: config's)
     path: str | None = None
     replaced_hooks: tuple[int, ...] = ()
+    unserved_maps: tuple[str, ...] = ()  # valid PDOs whose power-on map was emptied
+    motor_turns_per_turn: Fraction = Fraction(1)  # 0x6091: the index pulse's period
 
     def store(self) -> ObjectStore:
         return ObjectStore(self.od, hidden=self.hidden, no_read=self.no_read,
@@ -135,7 +178,9 @@ class DriveDictionary:
         """``config`` with the twin's axis units."""
         if self.counts_per_turn is None:
             return config
-        return replace(config, increments_per_rev=self.counts_per_turn)
+        index_period_deg = float(360 / self.motor_turns_per_turn)
+        return replace(config, increments_per_rev=self.counts_per_turn,
+                       switches=replace(config.switches, index_period_deg=index_period_deg))
 
     def check_mode(self, mode: int) -> None:
         """Whether 0x6060 takes ``mode``: a mode 0x6502 lists that hil does not emulate is
@@ -193,18 +238,30 @@ class DriveDictionary:
         modes = ", ".join(MODE_SHORT_NAMES[m] for m in sorted(self.modes - {NO_MODE}))
         refused = self.unemulated()
         hooks = ", ".join(f"0x{h:04X}" for h in self.replaced_hooks)
+        increments = values.get((ENCODER_RESOLUTION, 1)) or next(
+            var.default for var in self.hidden if (var.index, var.subindex) ==
+            (ENCODER_RESOLUTION, 1))
         return (f"twin of {self.path} (node {node_id}): {identity or 'no identity'}; "
                 f"{self.counts_per_turn} counts per turn (0x608F "
-                f"{values[(ENCODER_RESOLUTION, 1)]} increments, gear {gear}); modes {modes}; "
+                f"{increments} increments, gear {gear}); modes {modes}; "
                 f"not emulated: {', '.join(refused) or 'none'}"
-                + (f"; hil's {hooks} replaced by its own" if hooks else ""))
+                + (f"; hil's {hooks} replaced by its own" if hooks else "")
+                + (f"; power-on maps left for the master to write: "
+                   f"{', '.join(self.unserved_maps)}" if self.unserved_maps else ""))
 
 
 def drive_dictionary(config: DriveEmulatorConfig) -> DriveDictionary:
-    """hil's own dictionary, or the twin of ``config.eds``."""
-    if config.eds is None:
-        return DriveDictionary(build_object_dictionary(config.node_id, config.od_defaults()))
-    return eds_twin(config.eds, config)
+    """hil's own dictionary (with the power-on values ``set`` gives), or the twin of
+    ``config.eds``."""
+    if config.eds is not None:
+        return eds_twin(config.eds, config)
+    od = build_object_dictionary(config.node_id, config.od_defaults())
+    variables = {(var.index, var.subindex): var for var in iter_variables(od)}
+    for key, value in config.object_values:
+        if key not in variables:
+            raise EmulatorSetupError(f"set {_name(key)}: hil's drive has no such object")
+        variables[key].default = value
+    return DriveDictionary(od)
 
 
 def _import(path: str, node_id: int) -> ObjectDictionary:
@@ -214,12 +271,23 @@ def _import(path: str, node_id: int) -> ObjectDictionary:
     level = eds_log.level
     eds_log.setLevel(logging.ERROR)
     try:
-        od: ObjectDictionary = import_od(path, node_id)
+        od: ObjectDictionary = _read_od(path, node_id)
     except (OSError, ValueError, KeyError, configparser.Error) as exc:
         reason = getattr(exc, "strerror", None) or str(exc).splitlines()[0]
         raise EmulatorSetupError(f"EDS {path}: cannot read it: {reason}") from None
     finally:
         eds_log.setLevel(level)
+    return od
+
+
+def _read_od(path: str, node_id: int) -> ObjectDictionary:
+    """canopen's reading of the file; one that is not UTF-8 (a vendor's comment in
+    Windows-1252) read as Latin-1, which takes every byte."""
+    try:
+        od: ObjectDictionary = import_od(path, node_id)
+    except UnicodeDecodeError:
+        with open(path, encoding="latin-1") as text:
+            od = import_od(text, node_id)
     return od
 
 
@@ -257,20 +325,35 @@ def _max_current_template() -> ODVariable:
 
 
 class _Twin:
-    """The steps of building a twin from one file."""
+    """The steps of building a twin from one file. Each problem found is kept (one line
+    each) and the twin refused with all of them, the deciding one first."""
 
     def __init__(self, path: str, config: DriveEmulatorConfig) -> None:
         self.path, self.node_id = path, config.node_id
         self.od = _import(path, config.node_id)
         self.own = build_object_dictionary(config.node_id, config.od_defaults())
         self.own_vars = {(v.index, v.subindex): v for v in iter_variables(self.own)}
+        self.settings = dict(config.object_values)
+        self.od_defaults = config.od_defaults()
+        self.defaulted: list[ODVariable] = []  # given hil's default: the file has no value
         self.no_read: set[Key] = set()
         self.no_write: set[Key] = set()
         self.replaced: list[int] = []
         self.gear = _gear_template()
+        self.problems: list[str] = []
+        self.unserved: list[str] = []  # PDOs whose power-on map the twin cannot serve
+        self.motor_turns_per_turn = Fraction(1)  # 0x6091's gear
 
     def error(self, text: str) -> EmulatorSetupError:
         return EmulatorSetupError(f"EDS {self.path}: {text}")
+
+    def problem(self, text: str) -> None:
+        self.problems.append(text)
+
+    def refusal(self, deciding: str | None = None) -> EmulatorSetupError:
+        """The twin refused: the deciding reason first, then every other problem, one a line."""
+        lines = ([deciding] if deciding else []) + self.problems
+        return EmulatorSetupError("\n".join(f"EDS {self.path}: {line}" for line in lines))
 
     def take_hooks(self) -> None:
         for index in HOOKS:
@@ -282,6 +365,23 @@ class _Twin:
             if not (isinstance(theirs, ODVariable) and isinstance(own, ODVariable)
                     and theirs.name == own.name and theirs.data_type == own.data_type):
                 self.replaced.append(index)
+
+    def take_settings(self) -> None:
+        """The power-on values given by ``set`` (``--set``, ``[emulator] set``): over the
+        file's (its DCF values too), or onto hil's own object the file lacks, which the twin
+        keeps hidden (a unit, a limit)."""
+        for key, value in self.settings.items():
+            var = self.variable(key) or self.own_vars.get(key)
+            if var is None:
+                self.problem(f"set {_name(key)}: neither the file nor hil's drive has it")
+                continue
+            try:
+                var.encode_raw(value)
+            except (struct.error, ValueError, TypeError):
+                self.problem(f"set {_name(key)} = {value}: out of the range of its type "
+                             f"{TYPE_NAMES.get(var.data_type or 0, var.data_type)}")
+                continue
+            var.value = var.default = value
 
     def template(self, key: Key) -> ODVariable | None:
         """hil's variable of the same role, if the node emulates it."""
@@ -322,12 +422,21 @@ class _Twin:
         key = (var.index, var.subindex)
         if value is None and var.index in VALUED and key not in (
                 (ENCODER_RESOLUTION, 0), (GEAR_RATIO, 0)):
-            raise self.error(f"{_name(key)} ({var.name}) has no value: the twin takes the "
-                             "axis' units and current limits from the file, never its own")
+            self.problem(f"{_name(key)} ({var.name}) has no value: the twin takes the axis' "
+                         f"units and current limits from the file, never its own; "
+                         f"{_how_to_set(key)}")
+            value = template.default
         if var.data_type != template.data_type:
-            raise self.error(
-                f"{_name(key)} ({var.name}) is {TYPE_NAMES.get(var.data_type or 0, var.data_type)}"
-                f", the twin's is {TYPE_NAMES.get(template.data_type or 0)}")
+            if not (var.index in UNSIGNED_IN_USE
+                    and SIGNED_OF.get(template.data_type or 0) == var.data_type):
+                self.problem(
+                    f"{_name(key)} ({var.name}) is "
+                    f"{TYPE_NAMES.get(var.data_type or 0, var.data_type)}, the twin's is "
+                    f"{TYPE_NAMES.get(template.data_type or 0)}")
+                return
+            var.min = max(var.min or 0, 0)  # signed in the file, CiA 402's values are not
+        if value is None:
+            self.defaulted.append(var)
         var.default = template.default if value is None else value
         var.min = template.min if var.min is None else var.min
         var.max = template.max if var.max is None else var.max
@@ -335,8 +444,8 @@ class _Twin:
             self.no_write.add(key)
         fixed = next((name for index, sub, name in FIXED if key == (index, sub)), None)
         if fixed is not None and var.default != template.default:
-            raise self.error(f"{_name(key)} ({fixed}) is 0x{var.default:X}; the twin's is "
-                             f"0x{template.default:X}, as CiA 301 predefines it")
+            self.problem(f"{_name(key)} ({fixed}) is 0x{var.default:X}; the twin's is "
+                         f"0x{template.default:X}, as CiA 301 predefines it")
 
     def variable(self, key: Key) -> ODVariable | None:
         """The file's object ``key``, if it has one."""
@@ -355,117 +464,192 @@ class _Twin:
             return default
         return var.default
 
-    def check_needed(self, needs: tuple[tuple[int, int, str], ...], why: str) -> None:
+    def lacks(self, needs: tuple[tuple[int, int, str], ...]) -> list[str]:
+        """What of ``needs`` the file lacks or leaves without a value, one line each."""
+        lacking = []
         for index, sub, name in needs:
             if self.variable((index, sub)) is None:
-                raise self.error(f"no {_name((index, sub))} ({name}): the twin needs it {why}")
-            if self.value(index, sub) is None:
-                raise self.error(f"{_name((index, sub))} ({name}) has no value: the twin needs "
-                                 f"it {why}")
+                if (index, sub) not in self.settings:  # set: onto hil's hidden object
+                    lacking.append(f"no {_name((index, sub))} ({name}); "
+                                   f"{_how_to_set((index, sub))}")
+            elif self.value(index, sub) is None:
+                lacking.append(f"{_name((index, sub))} ({name}) has no value; "
+                               f"{_how_to_set((index, sub))}")
+        return lacking
 
     def modes(self) -> tuple[frozenset[int], frozenset[int]]:
-        """(the modes 0x6060 takes, the modes 0x6502 lists)."""
-        supported = self.value(SUPPORTED_MODES) or 0
-        listed = frozenset(bit + 1 for bit in range(10) if supported >> bit & 1)
-        emulated = [mode for mode in EMULATED_MODES if mode in listed]
+        """(the modes 0x6060 takes, the modes 0x6502 lists): every listed mode hil emulates
+        whose objects the file has. None of them: the deciding reason, raised."""
+        supported = self.value(SUPPORTED_MODES)
+        listed = frozenset(bit + 1 for bit in range(10) if (supported or 0) >> bit & 1)
+        names = ", ".join(MODE_SHORT_NAMES[m] for m in EMULATED_MODES)
+        if supported is None:
+            raise self.refusal(f"no 0x6502 (supported drive modes) with a value: the twin "
+                               f"emulates the modes it lists ({names})")
+        candidates = [mode for mode in EMULATED_MODES if mode in listed]
+        if not candidates:
+            raise self.refusal(f"lists no mode hil emulates: 0x6502 = 0x{supported:08X} "
+                               f"({', '.join(_mode_names(listed)) or 'none'}); hil emulates "
+                               f"{names}")
+        emulated = [mode for mode in candidates if not self.lacks(MODE_NEEDS[mode])]
         if not emulated:
-            raise self.error(f"0x6502 = 0x{supported:08X} lists neither CSP nor CST, the "
-                             "modes the twin emulates")
-        for mode in emulated:
-            self.check_needed(MODE_NEEDS[mode], f"for {MODE_SHORT_NAMES[mode]}, which 0x6502 lists")
+            lines = [f"{MODE_SHORT_NAMES[mode]}: {lack}" for mode in candidates
+                     for lack in self.lacks(MODE_NEEDS[mode])]
+            self.problems[:0] = lines
+            raise self.refusal(f"none of the modes it lists that hil emulates "
+                               f"({', '.join(_mode_names(candidates))}) has its objects:")
         modes = frozenset((NO_MODE, *emulated))
-        start = self.value(MODES_OF_OPERATION)
-        if start not in modes:
-            raise self.error(f"0x6060 starts in mode {start}, which the twin does not emulate "
-                             "(it emulates CSP and CST)")
-        display = self.od[MODES_DISPLAY]
+        start = self.value(MODES_OF_OPERATION, 0, NO_MODE)  # the master sets the mode it runs
+        display = self.od.get(MODES_DISPLAY)
         if isinstance(display, ODVariable):
             display.default = start  # the display shows the mode in effect
         return modes, listed
 
-    def counts_per_turn(self) -> int:
-        increments = self.value(ENCODER_RESOLUTION, 1) or 0
-        motor_turns = self.value(ENCODER_RESOLUTION, 2) or 0
+    def unit_value(self, index: int, sub: int) -> int | None:
+        """A unit's value: the file's, or hil's hidden object given by ``set``."""
+        if self.variable((index, sub)) is not None:
+            return self.value(index, sub)
+        value = self.settings.get((index, sub))
+        return value if isinstance(value, int) else None
+
+    def counts_per_turn(self) -> int | None:
+        for index, sub, name in UNIT:
+            if self.unit_value(index, sub) is None and self.variable((index, sub)) is None:
+                self.problem(f"no {_name((index, sub))} ({name}): the twin needs the axis' "
+                             f"unit; {_how_to_set((index, sub))} (kept hidden, as the "
+                             "drive has none)")
+        increments = self.unit_value(ENCODER_RESOLUTION, 1)
+        motor_turns = self.unit_value(ENCODER_RESOLUTION, 2)
+        if increments is None or motor_turns is None:
+            return None
         gear_motor = self.value(GEAR_RATIO, 1, 1) or 0
         gear_shaft = self.value(GEAR_RATIO, 2, 1) or 0
         if not (increments and motor_turns and gear_motor and gear_shaft):
-            raise self.error(f"0x608F = {increments} increments / {motor_turns} revolutions, "
-                             f"0x6091 gear {gear_motor}:{gear_shaft}: a zero gives no axis unit")
+            self.problem(f"0x608F = {increments} increments / {motor_turns} revolutions, "
+                         f"0x6091 gear {gear_motor}:{gear_shaft}: a zero gives no axis unit")
+            return None
         counts = Fraction(increments * gear_motor, motor_turns * gear_shaft)
         if counts.denominator != 1 or not 2 <= counts < 2**31:
-            raise self.error(f"0x608F and 0x6091 give {float(counts):g} counts per turn of the "
-                             "axis; the twin needs a whole number in 2..2^31-1")
+            self.problem(f"0x608F and 0x6091 give {float(counts):g} counts per turn of the "
+                         "axis; the twin needs a whole number in 2..2^31-1; "
+                         f"{_how_to_set((ENCODER_RESOLUTION, 1))}")
+            return None
         polarity = self.value(POLARITY, 0, 0)
         if polarity:
-            raise self.error(f"0x607E polarity is 0x{polarity:02X}: the twin does not reverse "
-                             "its axis (0 only)")
+            self.problem(f"0x607E polarity is 0x{polarity:02X}: the twin does not reverse "
+                         "its axis (0 only)")
+        self.motor_turns_per_turn = Fraction(gear_motor, gear_shaft)
         return int(counts)
 
-    def check_pdos(self, store: ObjectStore) -> None:
-        """The PDOs as mapped at power-on: each mapped object one the twin produces (TPDO) or
-        takes (RPDO), each valid one of a transmission type it emulates."""
+    def scale_defaults(self, counts: int) -> None:
+        """hil's defaults the twin stands in with (for objects hidden or left empty, ``set``
+        not giving them) in the twin's unit: its windows, speeds and accelerations are the
+        same fractions of a turn as hil's own."""
+        own = {(v.index, v.subindex): v.default for v in iter_variables(build_object_dictionary(
+            self.node_id, replace(self.od_defaults, increments_per_rev=counts)))}
+        present = {(v.index, v.subindex) for v in iter_variables(self.od)}
+        hidden = [var for key, var in self.own_vars.items() if key not in present]
+        for var in (*self.defaulted, *hidden):
+            key = (var.index, var.subindex)
+            if key not in self.settings and key in own:
+                var.default = own[key]
+
+    def serve_pdos(self, store: ObjectStore) -> None:
+        """The PDOs as the file maps them at power-on. A master maps them again at configure
+        (a drive's maps are dynamic), so a map the twin cannot serve is emptied, not refused:
+        the master's own map is checked when it writes it (SDO abort 0x06040041). A valid
+        PDO must still be of a kind the twin emulates; an invalid one (COB-ID bit 31) is
+        not looked at further."""
         store.reset()
         values = store.values
         for base, transmit in ((RPDO_COMM_BASE, False), (TPDO_COMM_BASE, True)):
             for comm in range(base, base + PDO_SPAN):
                 if comm in self.od and comm + PDO_SPAN in self.od:
-                    self.check_pdo(values, comm, transmit)
+                    self.serve_pdo(values, comm, transmit)
 
-    def check_pdo(self, values: dict[Key, object], comm: int, transmit: bool) -> None:
+    def serve_pdo(self, values: dict[Key, object], comm: int, transmit: bool) -> None:
         mapping = comm + PDO_SPAN
         name = f"{'TPDO' if transmit else 'RPDO'}{comm % PDO_SPAN + 1} (0x{comm:04X})"
-        keys = ((comm, 1), (comm, 2), (mapping, 0))
-        for key in keys:
-            if not isinstance(values.get(key), int):
-                raise self.error(f"{name}: no {_name(key)} with a value")
-        cob, kind, count = (value for key in keys if isinstance(value := values[key], int))
+        cob, kind, count = (values.get(key) for key in ((comm, 1), (comm, 2), (mapping, 0)))
+        if not isinstance(cob, int):
+            self.problem(f"{name}: no {_name((comm, 1))} with a value")
+            return
+        valid = not cob & PDO_NOT_VALID
+        why = self.unservable(mapping, count, transmit)
+        if why is not None:
+            self.empty_map(mapping)
+            if valid:
+                self.unserved.append(f"{name} ({why})")
+        if not valid:
+            return
+        if not isinstance(kind, int):
+            self.problem(f"{name}: no {_name((comm, 2))} with a value")
+        elif 241 <= kind <= 253:
+            self.problem(f"{name} is valid at power-on with transmission type {kind}, "
+                         "which the twin does not emulate (0..240, 254, 255; no RTR)")
+        if cob & EXTENDED_ID:
+            self.problem(f"{name} has a 29-bit COB-ID 0x{cob:08X}; the twin uses 11-bit "
+                         "identifiers")
+
+    def unservable(self, mapping: int, count: object, transmit: bool) -> str | None:
+        """Why the twin cannot serve the power-on map of ``mapping`` (None: it can)."""
+        if not isinstance(count, int):
+            return f"{_name((mapping, 0))} has no value"
         bits = 0
         for sub in range(1, count + 1):
-            entry = values.get((mapping, sub))
+            var = self.variable((mapping, sub))
+            entry = None if var is None else var.default
             if not isinstance(entry, int):
-                raise self.error(f"{name} maps {count} objects, {_name((mapping, sub))} has no "
-                                 "value")
-            bits += self.check_entry(name, entry, transmit)
-        if bits > MAX_PDO_BITS:
-            raise self.error(f"{name} maps {bits} bits, more than a CAN frame's 64")
-        if cob & PDO_NOT_VALID:
-            return
-        if cob & EXTENDED_ID:
-            raise self.error(f"{name} has a 29-bit COB-ID 0x{cob:08X}; the twin uses 11-bit "
-                             "identifiers")
-        if 241 <= kind <= 253:
-            raise self.error(f"{name} is valid at power-on with transmission type {kind}, "
-                             "which the twin does not emulate (0..240, 254, 255; no RTR)")
+                return f"{_name((mapping, sub))} has no value"
+            key, size = (entry >> 16, (entry >> 8) & 0xFF), entry & 0xFF
+            mapped = self.variable(key)
+            if mapped is None:
+                return f"maps {_name(key)}, which the file does not have"
+            if key in (self.no_read if transmit else self.no_write):
+                return (f"maps {_name(key)} ({mapped.name}), which the twin cannot "
+                        f"{'produce' if transmit else 'take'}")
+            if not mapped.pdo_mappable or size != len(mapped):
+                return f"maps {_name(key)} as {size} bits, not as the file declares it"
+            bits += size
+        return f"maps {bits} bits, more than a CAN frame's 64" if bits > MAX_PDO_BITS else None
 
-    def check_entry(self, name: str, entry: int, transmit: bool) -> int:
-        key, size = (entry >> 16, (entry >> 8) & 0xFF), entry & 0xFF
-        where = f"{name} maps {_name(key)}"
-        var = self.variable(key)
-        if var is None:
-            raise self.error(f"{where}, which it does not have")
-        if key in (self.no_read if transmit else self.no_write):
-            raise self.error(f"{where} ({var.name}), which the twin cannot "
-                             f"{'produce' if transmit else 'take'}: not emulated")
-        if not var.pdo_mappable:
-            raise self.error(f"{where} ({var.name}), which it says is not PDO-mappable")
-        if size != len(var):
-            raise self.error(f"{where} as {size} bits; the object is {len(var)}")
-        return size
+    def empty_map(self, mapping: int) -> None:
+        var = self.variable((mapping, 0))
+        if var is not None:
+            var.default = 0
 
     def build(self) -> DriveDictionary:
         self.take_hooks()
+        self.take_settings()
         self.classify()
-        self.check_needed(NEEDED, "to run CST or CSP")
-        modes, listed = self.modes()
+        modes, listed = self.modes()  # the deciding reason, when there is one
+        for lack in self.lacks(NEEDED):
+            self.problem(f"{lack}: the twin needs it to run any mode")
         counts = self.counts_per_turn()
+        if counts is not None:
+            self.scale_defaults(counts)
         present = {(v.index, v.subindex) for v in iter_variables(self.od)}
         hidden = tuple(var for key, var in self.own_vars.items()
                        if key not in present or key[0] in self.replaced)
         twin = DriveDictionary(self.od, hidden, frozenset(self.no_read),
                                frozenset(self.no_write), modes, listed, counts, self.path,
-                               tuple(self.replaced))
-        self.check_pdos(twin.store())
-        return twin
+                               tuple(self.replaced),
+                               motor_turns_per_turn=self.motor_turns_per_turn)
+        if not self.problems:
+            self.serve_pdos(twin.store())
+        if self.problems:
+            raise self.refusal()
+        return replace(twin, unserved_maps=tuple(self.unserved))
+
+
+def _mode_names(modes: Iterable[int]) -> list[str]:
+    return [MODE_SHORT_NAMES.get(mode, str(mode)) for mode in sorted(modes)]
+
+
+def _how_to_set(key: Key) -> str:
+    """How a user gives an object's power-on value the file leaves empty."""
+    return (f"give it with --set {_name(key)}=VALUE or [emulator] set = "
+            f"{{\"{_name(key)}\" = VALUE}} (or a DCF's ParameterValue)")
 
 
 def eds_twin(path: str, config: DriveEmulatorConfig) -> DriveDictionary:

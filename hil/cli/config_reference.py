@@ -29,6 +29,8 @@ AXIS_TABLE = ("Several axes, one drive each, the axes of a bus cycled on its one
               "default: without [[axis]] a run drives one axis.")
 _TABLE = re.compile(r"^\s*\[\[?([A-Za-z0-9_.\"-]+)\]\]?\s*(#.*)?$")
 _KEY = re.compile(r"^\s*([A-Za-z0-9_\"]+)\s*=")
+# a key the packaged file leaves out (its default: none), shown commented out with an example
+_LEFT_OUT = re.compile(r"^#\s*([A-Za-z0-9_]+)\s*=\s*[^#]*#\s*(.*)$")
 
 INTRO = """\
 # Configuration reference
@@ -68,7 +70,8 @@ its rule is one error line naming the file (or the flag) and the key, with its u
 def toml_comments(text: str) -> dict[str, str]:
     """The comments of a TOML file by dotted key: a key's comment on its line and the comment
     lines that continue it; a table's (under ``[TABLE]``), the comment lines right under its
-    header."""
+    header; a key the file leaves out, from its commented-out example line (``# name = 4096
+    # what it is``) and the lines that continue it."""
     comments: dict[str, str] = {}
     table, current = "", None
     for line in text.splitlines():
@@ -77,6 +80,11 @@ def toml_comments(text: str) -> dict[str, str]:
         if header:
             table = header.group(1).replace('"', "")
             current = f"[{table}]"
+            continue
+        left_out = _LEFT_OUT.match(line)
+        if left_out:
+            current = f"{table}.{left_out.group(1)}" if table else left_out.group(1)
+            comments[current] = left_out.group(2).strip()
             continue
         if stripped.startswith("#"):  # a table's own lines, or a key's indented follow-ups
             words = stripped.lstrip("#").strip()

@@ -48,14 +48,13 @@ def demo_command(args: argparse.Namespace) -> int:
 
     os.makedirs(args.out, exist_ok=True)
     first, second = live_ports(args)
-    rates = dict(args.live_rate)
+    live = {"live_rates": dict(args.live_rate), "live_remote_tuning": args.allow_remote_tuning}
     progress("relay bench: EEC vs BC, 8 machine cycles over Modbus TCP (lockstep, ~30 s)")
-    print(bench_demo(args.out, {"eec": RecordingOptions(live=first, live_rates=rates),
-                                "bc": RecordingOptions(live=second, live_rates=rates)}),
+    print(bench_demo(args.out, {"eec": RecordingOptions(live=first, **live),
+                                "bc": RecordingOptions(live=second, **live)}),
           flush=True)
     progress("servo drive: MPC (FOH) vs PID through the emulated CiA 402 drive (~5 s)")
-    servo = run_servo_demo(args.out, echo=None,
-                           recording=RecordingOptions(live=first, live_rates=rates))
+    servo = run_servo_demo(args.out, echo=None, recording=RecordingOptions(live=first, **live))
     print("\n" + format_servo_demo(servo), flush=True)
     print(f"\nsessions (.mcap) and reports (.png) in {os.path.abspath(args.out)}; "
           f"'hil report {os.path.join(args.out, 'bench_eec.mcap')}' summarises one (with "

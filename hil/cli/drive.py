@@ -1,6 +1,7 @@
 """``hil drive scan`` (what is on the bus, read-only), ``hil drive sdo read|write`` (one
-object by SDO), ``hil drive reset`` (clear a drive's FAULT) and ``hil drive plan`` (whether N
-axes fit one bus): the first commands on a new drive."""
+object by SDO), ``hil drive reset`` (clear a drive's FAULT), ``hil drive plan`` (whether N
+axes fit one bus): the first commands on a new drive; ``hil drive home`` (a homing, HM) and
+``hil drive move`` (a profile position move, PP), each a recorded run of its own."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import contextlib
 import json
 from typing import Any
 
-from hil.cli.argtypes import node_id, positive_float, positive_int
+from hil.cli.argtypes import node_id, output_file, positive_float, positive_int
 
 URL_HELP = ("the bus: socketcand://HOST:PORT[/CHANNEL] | INTERFACE://CHANNEL[?key=value&...] "
             "for any python-can interface (socketcan://can0, pcan://PCAN_USBBUS1, gs_usb://0, "
@@ -19,7 +20,7 @@ URL_HELP = ("the bus: socketcand://HOST:PORT[/CHANNEL] | INTERFACE://CHANNEL[?ke
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     drive = subparsers.add_parser("drive", help="CANopen drives on a bus: scan, fault reset, "
-                                  "bus plan")
+                                  "bus plan, homing, a profile move")
     sub = drive.add_subparsers(dest="drive_command", metavar="COMMAND", required=True)
     scan = sub.add_parser(
         "scan", help="list the nodes of a bus, their state and whether hil can drive them "
@@ -32,13 +33,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(0x1008), error register and history (0x1001, 0x1003), supported modes by name "
         "(0x6502), the current PDO maps and heartbeat period; with --eds, the drive's EDS "
         "checked for every object hil reads, writes or maps; and a verdict: whether hil can "
-        "drive it in the configured mode, and if not, every reason (a FAULT names its code "
-        "and `hil drive reset`). Exit status 0: nodes found; 1: none answered.")
+        "drive it in the configured mode ([master] mode, with the config's stand-ins for "
+        "objects it lacks and its [profile] and [homing]), and if not, every reason, one a "
+        "line, the deciding one first (the modes it supports; a FAULT names its code and "
+        "`hil drive reset`). Exit status 0: nodes found (with --eds: each can be driven); 1: "
+        "none answered, or with --eds one cannot be driven.")
     scan.add_argument("url", metavar="URL", help=URL_HELP)
     scan.add_argument("--node", type=node_id, action="append",
                       help="inspect this node only (repeat for several)")
     scan.add_argument("--config", metavar="F.toml",
-                      help="drive config laid over the default (its [master] mode and [bus])")
+                      help="drive config laid over the default (its [master] mode, stand-ins "
+                      "and [bus], [profile], [homing])")
     scan.add_argument("--eds", metavar="F.eds",
                       help="the drive's EDS or DCF: check every object hil reads, writes or "
                       "maps in the mode (exists, hil's size, readable, writable, "
@@ -82,6 +87,130 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       "and options")
     plan.add_argument("--json", action="store_true", help="print the plan as JSON")
     plan.set_defaults(handler=plan_command)
+    _register_motions(sub)
+
+
+#: the flags of ``hil drive move`` and ``hil drive home`` -> the motion setting each gives
+#: (:data:`hil.servo.motion.MOTION_KEYS`)
+MOTION_FLAGS = {"velocity": "velocity_deg_s", "acceleration": "acceleration_deg_s2",
+                "deceleration": "deceleration_deg_s2", "method": "method",
+                "offset": "offset_deg", "speed": "switch_speed_deg_s",
+                "zero_speed": "zero_speed_deg_s",
+                "homing_acceleration": "homing_acceleration_deg_s2"}
+
+
+def _register_motions(sub: argparse._SubParsersAction) -> None:
+    from hil.cli.recording import add_recording_arguments
+    from hil.cli.units import degrees, degrees_per_s, degrees_per_s2, seconds
+    from hil.cli.verdict import add_junit_argument
+
+    run = ("A run like 'hil servo run' (lockstep by default, --realtime on the wall clock; the "
+           "bus locked; the drive stopped, quick stop then disable voltage, at the end), "
+           "recorded to an MCAP session: /drive/feedback every cycle (the profile as the drive "
+           "ran it), /drive/motion (what each cycle sent), the profile objects as the drive "
+           "holds them (metadata motion). [safety]'s position range and speed hold. Exit "
+           "status 0 done, 2 refused, failed (the drive's error, the time-out) or stopped, 130 "
+           "interrupted.")
+    move = sub.add_parser(
+        "move", help="move the axis to a position in profile position mode (PP)",
+        description="Move the axis to TARGET (degrees of the axis, multi-turn, in the drive's "
+        "frame: after 'hil drive home', from home) in CiA 402 profile position mode: the "
+        "drive's own trapezoid with the profile velocity, acceleration and deceleration "
+        "(0x6081, 0x6083, 0x6084: [profile], or these flags; left out, the drive's own), "
+        "started by the new-set-point handshake (controlword bit 4, statusword bit 12) and "
+        "done when the drive reports the target reached (statusword bit 10: within its "
+        "position window 0x6067). A following error (statusword bit 13) or no target reached "
+        "within [profile] timeout_s is an error. " + run)
+    move.add_argument("url", metavar="URL", help=URL_HELP)
+    move.add_argument("target", metavar="TARGET", type=degrees,
+                      help="where to move [deg] (with --relative: by how much)")
+    move.add_argument("--relative", action="store_true",
+                      help="TARGET is a distance from where the axis stands")
+    move.add_argument("--velocity", type=degrees_per_s, metavar="DEG_S",
+                      help="profile velocity [deg/s] (0x6081; [profile] velocity_deg_s)")
+    move.add_argument("--acceleration", type=degrees_per_s2, metavar="DEG_S2",
+                      help="profile acceleration [deg/s^2] (0x6083)")
+    move.add_argument("--deceleration", type=degrees_per_s2, metavar="DEG_S2",
+                      help="profile deceleration [deg/s^2] (0x6084)")
+    home = sub.add_parser(
+        "home", help="home the axis (homing mode, HM)",
+        description="Home the axis in CiA 402 homing mode: the method (0x6098: --method, "
+        "[homing] method, else the drive's own), the home offset (0x607C: the position's value "
+        "at home), the speeds (0x6099) and acceleration (0x609A), then controlword bit 4; done "
+        "when the drive reports homing attained and the axis standing (statusword bits 12 and "
+        "10). A homing error (statusword bit 13) or no home within [homing] timeout_s is an "
+        "error; a drive whose method is 0 (none) is refused before it moves. " + run)
+    home.add_argument("url", metavar="URL", help=URL_HELP)
+    home.add_argument("--method", type=int, metavar="N",
+                      help="the CiA 402 homing method (0x6098; [homing] method): 1, 2 a limit "
+                      "switch and the index pulse, 17, 18 a limit switch, 33, 34 the index "
+                      "pulse, 35, 37 where the axis stands...")
+    home.add_argument("--offset", type=degrees, metavar="DEG",
+                      help="the position's value at home [deg] (0x607C; [homing] offset_deg)")
+    home.add_argument("--speed", type=degrees_per_s, metavar="DEG_S",
+                      help="speed while searching for the switch [deg/s] (0x6099:1)")
+    home.add_argument("--zero-speed", type=degrees_per_s, metavar="DEG_S",
+                      help="speed while searching for zero [deg/s] (0x6099:2)")
+    home.add_argument("--homing-acceleration", type=degrees_per_s2, metavar="DEG_S2",
+                      help="homing acceleration [deg/s^2] (0x609A)")
+    for parser, table in ((move, "profile"), (home, "homing")):
+        parser.add_argument("--timeout", type=seconds, metavar="S",
+                            help=f"how long it may take [s] ([{table}] timeout_s)")
+        parser.add_argument("--node", type=positive_int, help="CANopen node id (default: "
+                            "[master] node_id, 1)")
+        parser.add_argument("--config", metavar="F.toml",
+                            help="drive config laid over the default (hil/configs/drive.toml)")
+        parser.add_argument("--eds", metavar="F.eds", help="the drive's EDS or DCF, checked "
+                            "for every object the mode uses before anything is written")
+        parser.add_argument("--reset-fault", action="store_true",
+                            help="clear a drive left in FAULT before enabling it")
+        parser.add_argument("--realtime", action="store_true",
+                            help="follow the wall clock (default: lockstep virtual time)")
+        parser.add_argument("--quiet", action="store_true", help="no progress line")
+        parser.add_argument("--out", metavar="F.mcap", type=output_file, help="session file "
+                            "(default: sessions/motion-move|home-DATE-TIME.mcap)")
+        parser.add_argument("--json", action="store_true", help="print the KPIs as JSON")
+        add_junit_argument(parser)
+        add_recording_arguments(parser)
+        parser.set_defaults(handler=motion_command, motion=parser.prog.split()[-1])
+
+
+def motion_command(args: argparse.Namespace) -> int:
+    """``hil drive move`` / ``hil drive home``: the motion as a run, its report."""
+    from hil.cli.recording import recording_options
+    from hil.cli.verdict import finish
+    from hil.servo.motion import MOTION_KEYS, MotionOptions, run_motion_options
+
+    def options() -> MotionOptions:
+        flags = vars(args)
+        keys = {MOTION_KEYS[setting]: (flags[flag], "--" + flag.replace("_", "-"))
+                for flag, setting in MOTION_FLAGS.items() if flags.get(flag) is not None}
+        if args.timeout is not None:
+            table = "profile" if args.motion == "move" else "homing"
+            keys[f"{table}.timeout_s"] = (args.timeout, "--timeout")
+        return MotionOptions(args.motion, getattr(args, "target", None),
+                             getattr(args, "relative", False), keys, drive=args.url,
+                             node=args.node, drive_config=args.config, eds=args.eds,
+                             realtime=args.realtime, out=args.out, quiet=args.quiet,
+                             reset_fault=args.reset_fault, recording=recording_options(args))
+
+    return finish(args, f"hil drive {args.motion}", options, run_motion_options,
+                  lambda made, kpis: format_motion(kpis))
+
+
+def format_motion(kpis: dict[str, Any]) -> str:
+    """The human summary of ``hil drive move`` / ``hil drive home``."""
+    if kpis["motion"] == "move":
+        what = (f"PP move to {kpis['target_deg']:.3f} deg: at {kpis['position_deg']:.3f} deg "
+                f"(error {kpis['error_deg']:+.4f} deg)")
+    else:
+        what = f"homed (method {kpis['method']}): at {kpis['position_deg']:.3f} deg"
+    return "\n".join([
+        f"drive {kpis['drive']}: {what} after {kpis['time_s']:.3f} s, clock {kpis['clock']}",
+        f"  peak velocity {kpis['peak_velocity_deg_s']:.1f} deg/s, peak current "
+        f"{kpis['peak_current_mA']:.0f} mA, ticks {kpis['ticks']} in {kpis['wall_s']:.2f} s "
+        "wall",
+        f"  session {kpis['mcap']}"])
 
 
 def _register_sdo(sub: argparse._SubParsersAction) -> None:
@@ -234,7 +363,7 @@ def scan_command(args: argparse.Namespace) -> int:
     with _bus_lock(args.url):
         master = _master(args.url, args.config, None)
         try:
-            reports = scan(master.link, args.node, master.config.mode, args.eds)
+            reports = scan(master.link, args.node, master.config.mode, args.eds, master.config)
         finally:
             master.disconnect()
     if args.json:
@@ -242,7 +371,8 @@ def scan_command(args: argparse.Namespace) -> int:
                           "nodes": [r.as_dict() for r in reports]}, indent=2))
     else:
         print(format_scan(args.url, master.config.mode, reports))
-    return 0 if reports else 1
+    # a drive checked against its description that cannot be driven fails the scan
+    return 0 if reports and (not args.eds or all(r.drivable for r in reports)) else 1
 
 
 def format_scan(url: str, mode: str, reports: list[Any]) -> str:
@@ -272,8 +402,18 @@ def format_scan(url: str, mode: str, reports: list[Any]) -> str:
             lines.append(f"  EDS {r.eds['path']}: " + (
                 f"{len(problems)} problem(s), below" if problems else
                 "every object hil reads, writes or maps is there as hil needs it"))
-        lines.append(f"  {r.verdict}")
+        lines += _verdict_lines(r)
     return "\n".join(lines)
+
+
+def _verdict_lines(report: Any) -> list[str]:
+    """``can drive: yes, in CSP`` (and its notes), or ``can drive: no, `` and every reason,
+    one a line, the deciding one first."""
+    if report.drivable:
+        return [f"  can drive: yes, in {report.mode.upper()}",
+                *(f"    {note}" for note in report.notes)]
+    first, *rest = report.problems
+    return [f"  can drive: no, {first}", *(f"    {problem}" for problem in rest)]
 
 
 def _state(report: Any) -> str:
@@ -313,7 +453,7 @@ def reset_command(args: argparse.Namespace) -> int:
 def plan_command(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from hil.drivers.canopen.master import plan_axes
+    from hil.drivers.canopen.bus_plan import plan_axes
     from hil.errors import UsageError
     from hil.servo.config import check_bitrate, load_drive_config
 

@@ -12,7 +12,10 @@ from typing import Any
 from hil.cli.argtypes import host_port, positive_int
 from hil.cli.recording import add_live_arguments, live_address
 from hil.core.config import load_toml
+from hil.core.exposure import exposure
 from hil.core.lifeline import die_with_parent
+from hil.core.notice import warn
+from hil.core.recording.live import announce, live_exposure
 from hil.emulation import (
     BENCH_LIVE_HZ,
     DRIVE_LIVE_HZ,
@@ -60,7 +63,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "(a master's time only: the plant waits for one). A master's session "
                     "starts the plant and its faults again from t = 0")
     _add_fault_arguments(eb, "bench", "delay@2-4:ms=300, drop@5-8, weld@3:relay=P1")
-    add_live_arguments(eb, rates=False)
+    add_live_arguments(eb, rates=False, tuning=False)
     eb.set_defaults(handler=emulate_bench_command)
     ed = emu_sub.add_parser("drive", help="CiA 402 servo drive over socketcand")
     ed.add_argument("--socketcand", type=host_port, metavar="HOST:PORT",
@@ -74,6 +77,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "(default: emulator.eds); what it cannot emulate is one line on stderr "
                     "and answered with an SDO abort; without --socketcand: print what the "
                     "twin takes and refuses, and exit")
+    ed.add_argument("--set", action="append", type=object_value, default=[],
+                    metavar="INDEX:SUB=VALUE",
+                    help="an object's power-on value, e.g. 0x6075:0=2000 (repeatable; over "
+                    "emulator.set): a value the EDS leaves empty for commissioning (a DCF's "
+                    "ParameterValue gives it too), or a unit the file lacks (0x608F:1), "
+                    "which the twin keeps hidden as the drive has none")
     ed.add_argument("--can-log", metavar="F.blf|F.asc|F.trc|F.log",
                     help="write every CAN frame the emulator receives and sends to this file "
                     "(python-can's can.Logger; the suffix picks the format)")
@@ -102,8 +111,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "own clock always: a lockstep master is told so and watches them on the "
                     "wall clock)")
     _add_fault_arguments(ed, "drive", "emcy@2:code=0x2310, no_heartbeat@1-3")
-    add_live_arguments(ed, rates=False)
+    add_live_arguments(ed, rates=False, tuning=False)
     ed.set_defaults(handler=emulate_drive_command)
+
+
+def object_value(text: str) -> tuple[str, int]:
+    """``--set 0x6075:0=2000`` -> ("0x6075:0", 2000) (argparse: one line naming the
+    problem)."""
+    name, equals, value = text.partition("=")
+    try:
+        number = int(value, 0)
+    except ValueError:
+        number = None
+    if not equals or number is None or ":" not in name:
+        raise argparse.ArgumentTypeError(f"give INDEX:SUB=VALUE, e.g. 0x6075:0=2000, got {text!r}")
+    return name.strip(), number
 
 
 def _fault(text: str) -> Fault:
@@ -155,7 +177,10 @@ def emulate_bench_command(args: argparse.Namespace) -> int:
     units = bench.emulator.devices.units
 
     def ready(live_url: str | None) -> None:
-        _print_live(live_url)
+        _print_live(live_url, args)
+        if args.tcp is not None:
+            _warn_exposed(f"the bench emulator on {bench.url}", args.tcp[0],
+                          "read the emulated bench and switch its relays")
         print(f"hil: bench emulator listening on {bench.url} (relays unit {units['relays']}, "
               f"meter unit {units['meter']}, levels unit {units['levels']}); Ctrl-C stops",
               flush=True)
@@ -191,6 +216,8 @@ def emulate_drive_command(args: argparse.Namespace) -> int:
     for flag, key, path in (("--model", "model", args.model), ("--eds", "eds", args.eds)):
         if path is not None:
             layers.append(Layer(flag, {"emulator": {key: path}}))
+    if args.set:
+        layers.append(Layer("--set", {"emulator": {"set": dict(args.set)}}))
     emulator = parse_drive_config(lay(layers), args.config or SOURCE, text).emulator
     if args.write_eds:
         if emulator.eds is not None:
@@ -209,7 +236,10 @@ def emulate_drive_command(args: argparse.Namespace) -> int:
     ids = ", ".join(str(node.node_id) for node in nodes)
 
     def ready(live_url: str | None) -> None:
-        _print_live(live_url)
+        _print_live(live_url, args)
+        _warn_exposed(f"the drive emulator on socketcand://{bound_host}:{bound_port}",
+                      args.socketcand[0],
+                      "send CAN frames to the emulated drives")
         if args.harden:  # the serving thread only, reported before the ready line
             for line in harden_serving_thread():
                 print(line, file=sys.stderr, flush=True)
@@ -225,10 +255,17 @@ def emulate_drive_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print_live(live_url: str | None) -> None:
+def _print_live(live_url: str | None, args: argparse.Namespace) -> None:
+    """The emulator's live view (``--live``), if any: its URL, and a warning beyond loopback."""
     if live_url is not None:
-        print(f"hil: live view on {live_url} (Foxglove: Open connection > Foxglove WebSocket)",
-              file=sys.stderr, flush=True)
+        announce(live_url, live_exposure(live_url, args.live[0]))
+
+
+def _warn_exposed(server: str, host: str, reach: str) -> None:
+    """One line on stderr when ``server`` listens on ``host`` beyond loopback."""
+    warning = exposure(server, host, reach)
+    if warning is not None:
+        warn(warning)
 
 
 def twin_report(emulator: Any, full: bool) -> bool:

@@ -34,8 +34,10 @@ def _argparse_type(parse: Callable[[str], T]) -> Callable[[str], T]:
     return convert
 
 
-def add_live_arguments(parser: argparse.ArgumentParser, *, rates: bool = True) -> None:
-    """``--live [HOST:]PORT`` and (``rates``) ``--live-rate /TOPIC=HZ``."""
+def add_live_arguments(parser: argparse.ArgumentParser, *, rates: bool = True,
+                       tuning: bool = True) -> None:
+    """``--live [HOST:]PORT``, (``rates``) ``--live-rate /TOPIC=HZ`` and, for a live view that
+    serves a run's parameters (``tuning``), ``--allow-remote-tuning``."""
     group = parser.add_argument_group(
         "live view", "Serve the session's topics over the Foxglove WebSocket protocol while it "
         "runs (Foxglove: Open connection > Foxglove WebSocket; PlotJuggler: Foxglove "
@@ -47,6 +49,11 @@ def add_live_arguments(parser: argparse.ArgumentParser, *, rates: bool = True) -
                            default=[], metavar="/TOPIC=HZ",
                            help=f"messages per second of session time served on TOPIC "
                            f"(default {DEFAULT_RATE_HZ:g}; 0: every one; /events: every one)")
+    if tuning:
+        group.add_argument("--allow-remote-tuning", action="store_true",
+                           help="let the clients of a live view that listens beyond loopback "
+                           "(--live 0.0.0.0:PORT) set the run's parameters; without it they "
+                           "are read-only there (on loopback, clients may always set them)")
 
 
 def live_address(args: argparse.Namespace) -> str | None:
@@ -82,4 +89,5 @@ def recording_options(args: argparse.Namespace) -> RecordingOptions:
     return RecordingOptions(
         high_rate_encoding=args.encoding, topic_encodings=dict(args.topic_encoding),
         split_duration_s=args.split_duration, split_size_mb=args.split_size,
-        live=live_address(args), live_rates=dict(args.live_rate))
+        live=live_address(args), live_rates=dict(args.live_rate),
+        live_remote_tuning=args.allow_remote_tuning)

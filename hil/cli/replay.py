@@ -24,12 +24,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="X times real time (default 1; 0: as fast as possible)")
     parser.add_argument("--wait", type=positive_float, metavar="S",
                         help="wait up to S seconds for a client to subscribe before streaming")
-    add_live_arguments(parser)
+    add_live_arguments(parser, tuning=False)
     parser.set_defaults(handler=replay_command)
 
 
 def replay_command(args: argparse.Namespace) -> int:
-    from hil.core.recording.live import LiveSink, parse_address
+    from hil.core.recording.live import LiveSink, announce, parse_address
     from hil.core.recording.reader import read_session
     from hil.core.recording.replay import advertise, replay
     from hil.errors import UsageError
@@ -44,8 +44,7 @@ def replay_command(args: argparse.Namespace) -> int:
               f"{sum(data.topic_counts.values())} readable messages", file=sys.stderr)
     host, port = parse_address(live_address(args) or "")
     sink = LiveSink(host, port, rates=dict(args.live_rate))
-    print(f"hil: live view on {sink.url} (Foxglove: Open connection > Foxglove WebSocket)",
-          file=sys.stderr, flush=True)
+    announce(sink.url, sink.exposure)
     try:
         advertise(data, sink)
         if args.wait is not None and not sink.wait_for_subscriber(args.wait):

@@ -154,7 +154,9 @@ def register_identify(servo_sub: argparse._SubParsersAction) -> None:
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     """The flags of ``hil servo run`` that make up the experiment (shared with ``hil sweep
     servo``): the controller, its tuning, the drive, the reference and the verdict."""
-    add_controller_arguments(parser, "mpc, empc, pid", "abs_error_deg, abs_command_mA, "
+    add_controller_arguments(parser, "mpc, empc, pid (currents, CST), setpoint (the reference "
+                             "as a position or velocity set point: CSP, CSV, PV)",
+                             "abs_error_deg, abs_command_mA, "
                              "abs_velocity_deg_s, position_deg")
     add_drive_arguments(parser)
     parser.add_argument("--safety", action="append", type=key_value, default=[],
@@ -199,6 +201,10 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--from-here", action="store_true",
                         help="the reference is relative to where the axis stands when the run "
                         "starts (default: an angle of the spindle, on the turn nearest it)")
+    parser.add_argument("--home", action="store_true",
+                        help="home the axis first (homing mode, HM: [homing] method, offset, "
+                        "speeds; as 'hil drive home'), then run in [master] mode with the "
+                        "reference absolute from home (not with --from-here)")
     parser.add_argument("--duration", type=seconds, metavar="S",
                         help="length of the run [s] (default 2)")
     parser.add_argument("--settle", type=seconds_or_zero, metavar="S",
@@ -324,6 +330,17 @@ def _deg(value: float | None, digits: int = 4) -> str:
     return "-" if value is None else f"{value:.{digits}f} deg"
 
 
+def _currents(kpis: dict[str, Any]) -> str:
+    """The peak currents: sent and requested, or where the drive closed its own loop on the
+    set points it was sent, the drive's."""
+    if "set_point" in kpis:
+        return (f"  {kpis['set_point']} set points, the drive's own loop: peak current "
+                f"{kpis['peak_current_mA'] or 0:.0f} mA (torque actual)")
+    return (f"  peak current sent {kpis['peak_current_mA'] or 0:.0f} mA (requested "
+            f"{kpis['peak_requested_mA'] or 0:.0f} mA; clamped by the driver "
+            f"{kpis['clamped_commands']} times)")
+
+
 def format_run(config: Any, kpis: dict[str, Any]) -> str:
     """The human summary of ``hil servo run``."""
     pct = kpis["max_error_pct"]
@@ -339,9 +356,7 @@ def format_run(config: Any, kpis: dict[str, Any]) -> str:
         + (f" ({pct:.1f} % of the reference amplitude)" if pct is not None else "")
         + f", rms {_deg(kpis['rms_error_deg'])}, cumulative "
         f"{_deg(kpis['cumulative_error_deg'], 2)}",
-        f"  peak current sent {kpis['peak_current_mA'] or 0:.0f} mA (requested "
-        f"{kpis['peak_requested_mA'] or 0:.0f} mA; clamped by the driver "
-        f"{kpis['clamped_commands']} times), stale feedback {kpis['stale_feedback']}",
+        _currents(kpis) + f", stale feedback {kpis['stale_feedback']}",
         f"  controller step median/p99/max {step['median']:.1f}/{step['p99']:.1f}/"
         f"{step['max']:.1f} us, deadline misses {kpis['deadline_misses']}",
     ]

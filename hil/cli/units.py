@@ -15,6 +15,7 @@ UNITS: dict[str, tuple[str, float]] = {
     "min": ("time", 60.0), "h": ("time", 3600.0),
     "A": ("current", 1.0), "mA": ("current", 1e-3),
     "deg": ("angle", 1.0), "rad": ("angle", 180.0 / math.pi), "rev": ("angle", 360.0),
+    "deg/s": ("speed", 1.0), "rpm": ("speed", 6.0), "deg/s^2": ("acceleration", 1.0),
     "Hz": ("frequency", 1.0), "kHz": ("frequency", 1e3),
     "bit/s": ("bitrate", 1.0), "kbit/s": ("bitrate", 1e3), "Mbit/s": ("bitrate", 1e6),
     "VA": ("power", 1.0), "kVA": ("power", 1e3),
@@ -73,3 +74,6 @@ def quantity(unit: str, *, above: float | None = 0.0, at_least: float | None = N
 seconds = quantity("s")
 seconds_or_zero = quantity("s", above=None, at_least=0.0)
 milliamps = quantity("mA", smallest_plausible=1.0, more_likely="A")
+degrees = quantity("deg", above=None)
+degrees_per_s = quantity("deg/s")
+degrees_per_s2 = quantity("deg/s^2")

@@ -11,16 +11,18 @@ line, the Python API, the sweep and the pytest fixtures alike:
 2. ``open_devices(clock, on_event)`` - reach the hardware (or start its emulator) and leave it
    in its safe state. Events go to a buffer until the session exists. An unreachable device
    leaves no session file behind.
-3. The session is created (the file, its metadata and config attachment).
-4. ``build_controller(session)`` - the controller, guarded. If it cannot be built, the file is
-   discarded: nothing ran.
+3. The session is created (its metadata and config attachment), written to a staging file
+   beside its path (:mod:`hil.core.recording.output`).
+4. ``build_controller(session)`` - the controller, guarded.
 5. ``start(session)`` - enable the devices and add the loop's tasks; ``tunables(tuner)``
    registers what may change while the run runs on the run's :class:`~hil.core.tuning.Tuner`
    (applied at the loop's tick boundaries), the live view (``--live``) serves it
    (:mod:`hil.core.recording.tune_wire`), and ``tuner_started(tuner)``, when the run was given
-   one, attaches a transport to it (:mod:`hil.core.tuning`); then the loop runs.
-   A :class:`~hil.errors.HilError` (a fault, a lost link, a controller error) stops it;
-   the loop has put every device in its safe state.
+   one, attaches a transport to it (:mod:`hil.core.tuning`); then the session file is put at
+   its path and the loop runs. A :class:`~hil.errors.HilError` (a fault, a lost link, a
+   controller error) stops it; the loop has put every device in its safe state. A run that
+   ends before its loop started, whichever step refused it, leaves no file (``mcap`` is None)
+   and its path as it was.
 6. ``finish(session)``, ``close_devices()``, ``kpis(...)``, the verdict of the limits, the
    run's ``status`` (:data:`hil.core.verdict.STATUSES`; ``unsafe``, and the KPIs' ``unsafe``
    lines, when a device said its outputs are not known to be safe:
@@ -87,7 +89,7 @@ class RunResult:
 
     kpis: dict[str, Any]
     verdict: dict[str, Any]
-    session_path: str
+    session_path: str | None  # None: the run never started, no session was recorded
     stop_reason: str
     loop: dict[str, Any]
 
@@ -238,7 +240,7 @@ def _run_locked(experiment: Experiment[Any], plan: RunPlan, output: OutputClaim,
         experiment.build_controller(session)
     except BaseException:  # nothing ran: no session file is left behind
         experiment.close_devices()
-        session.discard()
+        session.close()
         raise
     error: HilError | None = None
     wall_s = 0.0
@@ -283,12 +285,16 @@ def _run_locked(experiment: Experiment[Any], plan: RunPlan, output: OutputClaim,
                 outcome = verdict(kpis, plan.kpi_limits, plan.watch)
                 kpis.update(outcome)
                 kpis["status"] = run_status(kpis, error)
+                if not session.started:  # refused before its first tick: no session file
+                    kpis["mcap"] = None
             finally:
                 session.close(kpis=kpis or None)
-    result = RunResult(kpis, outcome, plan.recording.first_file(plan.session_path),
-                       session.loop.stop_reason or "completed", session.loop.summary())
+    recorded = plan.recording.first_file(plan.session_path) if session.started else None
+    result = RunResult(kpis, outcome, recorded, session.loop.stop_reason or "completed",
+                       session.loop.summary())
     if error is not None:
-        error.args = (f"{error} (session recorded to {plan.session_path})",)
+        if recorded is not None:
+            error.args = (f"{error} (session recorded to {plan.session_path})",)
         error.result = result
         raise error
     return result

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import contextlib
 import json
-import os
 import platform
 import sys
 import time
@@ -50,6 +48,10 @@ class Session:
 
     ``config`` is recorded as a metadata record (JSON) and ``config_text`` (the file as the user
     wrote it, TOML) as an attachment. ``kind`` names the scenario (``bench``, ``servo``...).
+
+    The file is written to its claim's staging file (:mod:`hil.core.recording.output`) and put
+    at ``path`` when :meth:`run` starts the loop: a session closed before it ran leaves no file,
+    and whatever was at ``path`` stays as it was.
     """
 
     def __init__(
@@ -78,7 +80,7 @@ class Session:
         self.clock = clock
         self.kind = kind
         self.recorder = Recorder(path, wait_when_full=clock.mode == "sim", options=recording,
-                                 tunable=tunable)
+                                 tunable=tunable, claim=self.output)
         self.loop = FixedRateLoop(
             clock, base_period_s, recorder=self.recorder, on_event=self._loop_event,
             handle_signals=handle_signals,
@@ -120,7 +122,9 @@ class Session:
         self.event(kind, message, level=level, source="loop", **data)
 
     def run(self, duration_s: float | None = None, max_ticks: int | None = None) -> None:
-        """Run the loop; safe-state hooks run before this returns, whatever happens."""
+        """Put the session file in place, then run the loop; safe-state hooks run before this
+        returns, whatever happens."""
+        self.output.start()
         self.event("session.start", f"{self.kind} session started", source="session")
         hardening = Hardening() if self.harden else None
         if hardening is not None:
@@ -151,8 +155,14 @@ class Session:
             level="warning" if refused else "info", source="session",
             granted=[s.name for s in hardening.steps if s.granted], refused=refused)
 
+    @property
+    def started(self) -> bool:
+        """Whether the loop was started: only then is the session file at its path."""
+        return self.output.started
+
     def close(self, kpis: dict[str, Any] | None = None) -> RecorderStats:
-        """Write loop stats and KPIs as metadata and finish the file (summary + index)."""
+        """Write loop stats and KPIs as metadata and finish the file (summary + index); a
+        session that never ran is removed instead (its staging file: nothing else)."""
         if self._closed and self.recorder_stats is not None:
             return self.recorder_stats
         self._closed = True
@@ -164,14 +174,8 @@ class Session:
         try:
             self.recorder_stats = self.recorder.close()
         finally:
-            self.output.release()
+            self.output.abandon()  # the lock goes; the file too if the session never ran
         return self.recorder_stats
-
-    def discard(self) -> None:
-        """Close the file and delete it: for a run that failed before its loop started."""
-        self.close()
-        with contextlib.suppress(FileNotFoundError):
-            os.remove(self.path)
 
     def __enter__(self) -> Session:
         return self

@@ -38,7 +38,8 @@ from typing import Any
 from hil.controllers.base import Rebuilding, Tunable
 from hil.errors import HilError
 
-#: the schema of ``/params``: one message per applied change
+#: the topic of applied changes, and its schema: one message per change
+PARAMS_TOPIC = "/params"
 PARAMS_SCHEMA: dict[str, Any] = {
     "type": "object",
     "title": "hil.ParamChange",
@@ -325,7 +326,7 @@ class Tuner:
                      old=old, new=pending.value, tick=n, asked_at_tick=pending.asked_at)
         if self._topic is not None and self._time_ns is not None:
             if self._params is None:
-                self._params = self._topic("/params", PARAMS_SCHEMA)
+                self._params = self._topic(PARAMS_TOPIC, PARAMS_SCHEMA)
             self._params.log(self._time_ns(), {
                 "parameter": pending.name, "old": old, "new": pending.value, "unit": unit,
                 "client": pending.client, "tick": n})

@@ -298,6 +298,36 @@ OPERATION_MODES: dict[str, OperationMode] = {mode.name: mode for mode in (
                   (TARGET_TORQUE, 0, 16), "mA", True, (),
                   ((10, "status toggle"), (12, "follows the command"))),
 )}
+
+
+@dataclass(frozen=True)
+class ProfileObject:
+    """An object that shapes a mode's profile or homing (:attr:`OperationMode.profile`): what
+    it is, its unit on hil's side (``deg``, ``deg/s``, ``deg/s^2``; "" a plain number, the
+    homing method: the drive's are increments, increments/s, increments/s^2) and its wire
+    format."""
+
+    title: str
+    unit: str
+    fmt: str
+
+    @property
+    def bits(self) -> int:
+        return {"b": 8, "h": 16, "H": 16, "i": 32, "I": 32}[self.fmt[-1]]
+
+
+#: every object of a mode's ``profile``, by (index, sub-index)
+PROFILE_OBJECTS: dict[tuple[int, int], ProfileObject] = {
+    (PROFILE_VELOCITY, 0): ProfileObject("profile velocity", "deg/s", "<I"),
+    (PROFILE_ACCELERATION, 0): ProfileObject("profile acceleration", "deg/s^2", "<I"),
+    (PROFILE_DECELERATION, 0): ProfileObject("profile deceleration", "deg/s^2", "<I"),
+    (HOMING_METHOD, 0): ProfileObject("homing method", "", "<b"),
+    (HOME_OFFSET, 0): ProfileObject("home offset", "deg", "<i"),
+    (HOMING_SPEEDS, 1): ProfileObject("homing speed while searching for the switch", "deg/s",
+                                      "<I"),
+    (HOMING_SPEEDS, 2): ProfileObject("homing speed while searching for zero", "deg/s", "<I"),
+    (HOMING_ACCELERATION, 0): ProfileObject("homing acceleration", "deg/s^2", "<I"),
+}
 #: the modes by their 0x6060 code
 MODES_BY_CODE: dict[int, OperationMode] = {mode.code: mode for mode in OPERATION_MODES.values()}
 # the older names, kept as views of the table

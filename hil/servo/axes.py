@@ -22,14 +22,14 @@ from typing import Any
 import numpy as np
 from can.interfaces import VALID_INTERFACES
 
-from hil.controllers.base import UNWRAPPED, position_input_of
+from hil.controllers.base import UNWRAPPED, output_of, position_input_of
 from hil.controllers.servo.references import contour_error
 from hil.core.loop import Task
 from hil.core.registry import scheme_of
 from hil.core.session import Session
 from hil.drivers.can_bus_time import BusPlan
 from hil.drivers.canopen import parse_can_url
-from hil.drivers.canopen.master import plan_axes
+from hil.drivers.canopen.bus_plan import plan_axes
 from hil.errors import ControllerError, UsageError
 from hil.servo.config import AXIS_NAME, AxisSpec, DriveConfig, check_axes
 from hil.servo.drives import RunDrives
@@ -134,10 +134,12 @@ class SharedStep:
 
 
 class AxisShare:
-    """One axis' view of a :class:`SharedStep`: the servo contract for its task."""
+    """One axis' view of a :class:`SharedStep`: the servo contract for its task (what it
+    returns, the whole controller's ``output``)."""
 
     def __init__(self, shared: SharedStep, index: int) -> None:
         self.shared, self.index = shared, index
+        self.output = output_of(shared.whole, shared.label)
 
     def step(self, position_deg: float, t_s: float) -> float:
         return float(self.shared.currents(t_s)[self.index])

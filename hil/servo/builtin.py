@@ -1,6 +1,8 @@
 """The built-in servo controllers, built the way a user's are: registered in the entry-point
-group ``hil.controllers`` (``mpc``, ``empc``, ``pid``) as factories
-``(reference, params, context)``.
+group ``hil.controllers`` (``mpc``, ``empc``, ``pid``, ``setpoint``) as factories
+``(reference, params, context)``. The first three return currents (CST); ``setpoint`` sends
+the reference itself to a drive that closes its own loop: positions in CSP, velocities in CSV
+and PV (:mod:`hil.controllers.servo.setpoint`), at any cycle period.
 
 Params (default: ``hil servo run``'s flags): ``ht``, ``hu``, ``hp`` (horizons), ``ert``
 (``foh`` | ``zoh``) for the MPCs, ``ti_us`` (the velocity PI's integral time, Table I's
@@ -18,10 +20,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, cast
 
-from hil.controllers.base import runs_at
+from hil.controllers.base import CURRENT, POSITION, VELOCITY, returns, runs_at
 from hil.controllers.servo.model import MODEL_PERIODS_US, SAMPLE_PERIOD_S, axis_model
 from hil.controllers.servo.pid import CascadedPid, PidConfig, check_stable
 from hil.controllers.servo.references import Reference
+from hil.controllers.servo.setpoint import SetPointFollower
 from hil.core.config import Table
 
 if TYPE_CHECKING:  # the MPCs are imported when built: they bring scipy, daqp and HiGHS
@@ -33,8 +36,9 @@ if TYPE_CHECKING:  # the MPCs are imported when built: they bring scipy, daqp an
 class ServoContext:
     """What a run gives a controller factory that takes a ``context`` argument: the run's
     flags (horizons, current limit), the session, whose ``topic(name, json_schema)`` and
-    ``event(kind, message, **data)`` record a controller's own signals, and the cycle period
-    its ``step`` is called at [s]."""
+    ``event(kind, message, **data)`` record a controller's own signals, the cycle period
+    its ``step`` is called at [s] and what it is to return (``output``: what the drive's mode
+    takes, :class:`~hil.controllers.base.Output`)."""
 
     ht: int
     hu: int
@@ -43,6 +47,7 @@ class ServoContext:
     umax: float
     session: Any
     period_s: float = SAMPLE_PERIOD_S
+    output: str = CURRENT
 
 
 def _params(params: Mapping[str, Any], name: str) -> Table:
@@ -87,6 +92,16 @@ def pid(reference: Reference, params: Mapping[str, Any], context: ServoContext
     model = axis_model(context.period_s)
     check_stable(config, model)
     return CascadedPid(reference, config, model)
+
+
+@returns(POSITION, VELOCITY)
+@runs_at(range(1, 1_000_001))
+def setpoint(reference: Reference, params: Mapping[str, Any], context: ServoContext
+             ) -> SetPointFollower:
+    """The reference itself as the set point of a drive that closes its loop: where it is one
+    period ahead (CSP), or the velocity that takes the axis there (CSV, PV). No parameters."""
+    _params(params, "setpoint").done()
+    return SetPointFollower(reference, context.output, context.period_s)
 
 
 def mpc_config(params: Mapping[str, Any], context: ServoContext, name: str) -> MpcConfig:

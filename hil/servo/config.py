@@ -27,14 +27,15 @@ from hil.core.settings import KeyRead, Layer, Layered, Setting, effective, lay
 from hil.core.verdict import RunTables, read_run_tables
 from hil.drivers.can_bus_time import CAN_FD_MAX_BITRATE, CLASSIC_CAN_MAX_BITRATE, max_bitrate
 from hil.drivers.canopen.bus import SOCKETCAND, CanBusSpec, parse_can_url
-from hil.drivers.canopen.config import DriveMasterConfig
+from hil.drivers.canopen.config import DriveMasterConfig, ProfileSettings
 from hil.emulators.drive.axis_model import AxisModel, load_axis_model, period_problem
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.plant import Disturbance, Friction
+from hil.emulators.drive.switches import Switches
 from hil.emulators.errors import EmulatorSetupError
 from hil.emulators.faults import Fault, for_emulator, parse_faults_table
 from hil.errors import ConfigError, UsageError
-from hil.protocols.cia402 import MODES, QUICK_STOP_OPTIONS, TPDO_LAYOUTS
+from hil.protocols.cia402 import OPERATION_MODES, QUICK_STOP_OPTIONS, TPDO_LAYOUTS
 from hil.servo.safety import ServoSafety
 
 AXIS_NAME = re.compile(r"[a-z][a-z0-9_]{0,15}")
@@ -193,7 +194,9 @@ def parse_drive_config(layered: Layered, source: str, text: str = "") -> DriveCo
     bus_table = root.table("bus", required=True)
     bus = _bus(bus_table)
     fd = bus is not None and bus.options.get("fd") is True
-    master = _master(root.table("master", required=True), bus_table, fd)
+    profile = _profile(root.table("profile", required=True),
+                       root.table("homing", required=True))
+    master = _master(root.table("master", required=True), bus_table, profile, fd)
     emulator = _emulator(root.table("emulator", required=True), master.cycle_period_s)
     if emulator.eds is not None:  # resolved in the tables too: an emulator process reads them
         layered.data["emulator"]["eds"] = emulator.eds  # from a file of its own, elsewhere
@@ -312,14 +315,36 @@ def _tpdo_layout(m: Table, sync_echo: tuple[int, int] | None) -> str:
     return layout
 
 
-def _master(m: Table, bus: Table, fd: bool = False) -> DriveMasterConfig:
-    """``[master]`` and ``[bus]`` (``fd``: its options make it a CAN FD bus)."""
+def _profile(p: Table, h: Table) -> ProfileSettings:
+    """``[profile]`` (PP's and PV's) and ``[homing]`` (HM's): a key left out keeps the
+    drive's own value."""
+    profile = ProfileSettings(
+        velocity_deg_s=p.number("velocity_deg_s", None, above=0),
+        acceleration_deg_s2=p.number("acceleration_deg_s2", None, above=0),
+        deceleration_deg_s2=p.number("deceleration_deg_s2", None, above=0),
+        move_timeout_s=p.number("timeout_s", above=0, at_most=3600),
+        homing_method=h.integer("method", None, at_least=-128, at_most=127),
+        home_offset_deg=h.number("offset_deg", None),
+        homing_switch_speed_deg_s=h.number("switch_speed_deg_s", None, above=0),
+        homing_zero_speed_deg_s=h.number("zero_speed_deg_s", None, above=0),
+        homing_acceleration_deg_s2=h.number("acceleration_deg_s2", None, above=0),
+        homing_timeout_s=h.number("timeout_s", above=0, at_most=3600),
+    )
+    p.done()
+    h.done()
+    return profile
+
+
+def _master(m: Table, bus: Table, profile: ProfileSettings, fd: bool = False
+            ) -> DriveMasterConfig:
+    """``[master]`` and ``[bus]`` (``fd``: its options make it a CAN FD bus), with the
+    profile and homing of ``profile``."""
     channel = bus.string("channel")
     if not channel:
         raise bus.error("channel", "must be a bus name, got ''")
     config = DriveMasterConfig(
         node_id=m.integer("node_id", at_least=1, at_most=127),
-        mode=m.string("mode", choices=tuple(MODES)),
+        mode=m.string("mode", choices=tuple(OPERATION_MODES)),
         cycle_period_s=m.integer("cycle_period_us", above=0) / 1e6,
         bitrate=_bitrate(bus, fd),
         channel=channel,
@@ -340,6 +365,11 @@ def _master(m: Table, bus: Table, fd: bool = False) -> DriveMasterConfig:
         tpdo_layout=_tpdo_layout(m, echo),
         lockstep_timeout_s=m.integer("lockstep_timeout_ms", at_least=10, at_most=3_600_000)
         / 1e3,
+        increments_per_rev=m.integer("increments_per_rev", None, at_least=1,
+                                     at_most=2**31 - 1),
+        rated_current_ma=m.number("rated_current_mA", None, above=0),
+        max_torque_permille=m.integer("max_torque_permille", None, at_least=1, at_most=U16),
+        profile=profile,
     )
     m.done()
     bus.done()
@@ -360,6 +390,50 @@ def _object_address(table: Table, name: str) -> tuple[int, int] | None:
         raise table.error(name, f"must be an object as INDEX[:SUBINDEX], e.g. '0x2004:0', "
                           f"got {text!r}")
     return address
+
+
+def parse_object_values(values: Mapping[str, Any], where: str
+                        ) -> tuple[tuple[tuple[int, int], int], ...]:
+    """``{"0x6075:0" = 2000}`` (``[emulator] set``, ``--set``) -> (((0x6075, 0), 2000),);
+    a ConfigError naming ``where`` for a key that is no object or a value that is no
+    integer."""
+    out = []
+    for name, value in values.items():
+        index, _, sub = str(name).partition(":")
+        try:
+            key = int(index, 0), int(sub or "0", 0)
+        except ValueError:
+            key = (-1, -1)
+        if not (0x1000 <= key[0] <= 0xFFFF and 0 <= key[1] <= 0xFF):
+            raise ConfigError(f"{where}: {name!r} is no object: give INDEX:SUBINDEX, e.g. "
+                              "'0x6075:0'")
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise ConfigError(f"{where}: {name} = {value!r}: an object's value is an integer")
+        out.append((key, value))
+    return tuple(out)
+
+
+def _object_values(e: Table) -> tuple[tuple[tuple[int, int], int], ...]:
+    """``[emulator] set``: objects' power-on values, ``{"0x6075:0" = 2000}``."""
+    values = e.value("set", kind="table")
+    if not isinstance(values, Mapping):
+        raise e.error("set", "must be a table of objects' values, e.g. {\"0x6075:0\" = 2000}")
+    return parse_object_values(values, f"{e.source}: key '{e.key('set')}'")
+
+
+def _switches(e: Table) -> Switches:
+    """``[emulator]``'s limit switches, home switch and index pulse [deg of the axis]."""
+    switches = Switches(
+        negative_limit_deg=e.number("negative_limit_deg"),
+        positive_limit_deg=e.number("positive_limit_deg"),
+        home_switch_deg=e.number("home_switch_deg"),
+        index_pulse_deg=e.number("index_pulse_deg", at_least=-360, at_most=360),
+    )
+    if not switches.negative_limit_deg < switches.positive_limit_deg:
+        raise e.error("negative_limit_deg", f"must be below positive_limit_deg "
+                      f"({switches.positive_limit_deg:g} deg), got "
+                      f"{switches.negative_limit_deg:g} deg")
+    return switches
 
 
 def _or_inf(value: float | None) -> float:
@@ -447,6 +521,9 @@ def _emulator(e: Table, cycle_period_s: float) -> DriveEmulatorConfig:
         disturbance=disturbance,
         axis_model=_axis_model(e, cycle_period_s),
         faults=_faults(e),
+        switches=_switches(e),
+        homing_search_deg=e.number("homing_search_deg", above=0),
+        object_values=_object_values(e),
     )
     for table in (f, d, e):
         table.done()

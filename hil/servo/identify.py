@@ -90,6 +90,11 @@ def identify_options(flags: Mapping[str, Any], *, need_controller: bool = True
     options = ServoRunOptions.from_flags(run_flags, need_controller=need_controller)
     if need_controller:
         settings = resolve_identify(options)
+        mode = settings.drive.master.mode
+        if mode != "cst":
+            raise UsageError(f"hil servo identify excites the axis with currents, in CST: "
+                             f"[master] mode = {mode!r} sends the drive other set points; "
+                             "give it a config with mode = \"cst\"")
         amplitude = {**settings.drive.run.params, **params}.get("amplitude",
                                                                  DEFAULT_AMPLITUDE_MA)
         try:

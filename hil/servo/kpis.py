@@ -56,6 +56,9 @@ class ServoKpis(Kpis):
     wall_s: float = kpi(0.0)
     realtime_factor: float | None = kpi()
     stop_reason: str | None = kpi(limit=False)
+    # what the controller sent a drive that closes its own loop (position: CSP; velocity: CSV,
+    # PV); absent, a current (CST). The peak currents are then the drive's (torque actual)
+    set_point: str | None = kpi(limit=False, optional=True)
     ert: str | None = kpi(limit=False, optional=True)   # an MPC's horizons
     ht: int | None = kpi(limit=False, optional=True)
     hu: int | None = kpi(limit=False, optional=True)

@@ -18,7 +18,8 @@ from hil.errors import UsageError
 from hil.servo.defaults import DEFAULT_REFERENCE
 from hil.servo.task import PREDICTION_EVERY_REALTIME, PREDICTION_EVERY_TICK_UP_TO_S
 
-CONTROLLER_FORMS = "mpc, empc, pid, FILE.py:Class, package.module:Class or a registered name"
+CONTROLLER_FORMS = ("mpc, empc, pid, setpoint, FILE.py:Class, package.module:Class or a registered "
+                    "name")
 #: ``hil servo run``'s flags (argparse dests) -> the option they set, where the names differ
 FLAG_OPTIONS = {"duration": "duration_s", "config": "drive_config", "settle": "settle_s",
                 "limit": "limits", "param": "params", "params": "params_file",
@@ -65,6 +66,7 @@ class ServoRunOptions:
     reset_fault: bool = False        # clear a drive FAULT (CiA 402 fault reset) before enabling
     axes: str | None = None          # NAME=NODE,...: several axes (else drive.toml's [[axis]])
     from_here: bool = False          # the reference relative to the position the run starts at
+    home: bool = False               # home the axis first (HM); the reference absolute from home
     eds: str | None = None           # the drive's EDS (else drive.toml's [master] eds)
     allow_higher_current: bool = False  # --umax may exceed [master] current_limit_mA (logged)
     allow_looser_safety: bool = False   # --safety may loosen [safety] (logged)
@@ -85,6 +87,9 @@ class ServoRunOptions:
                              f"--duration ({self.duration_s:g} s)")
         if self.prediction_every is not None and self.prediction_every < 1:
             raise UsageError(f"--prediction-every must be >= 1, got {self.prediction_every}")
+        if self.home and self.from_here:
+            raise UsageError("--home places the reference absolute from home, --from-here "
+                             "where the axis stands: give one")
         if self.node is not None and not 1 <= self.node <= 127:
             raise UsageError(f"--node must be a CANopen node id 1..127, got {self.node}")
 

@@ -37,7 +37,12 @@ from hil.servo.drives import RunDrives
 from hil.servo.kpis import AxesKpis, ServoKpis
 from hil.servo.options import ServoRunOptions
 from hil.servo.rig import lone_axis
-from hil.servo.settings import ServoSettings, check_controller_period, resolve_servo
+from hil.servo.settings import (
+    ServoSettings,
+    check_controller_output,
+    check_controller_period,
+    resolve_servo,
+)
 from hil.servo.task import ServoTask
 
 # per-tick signals a --limit may name (magnitudes, except the position)
@@ -121,6 +126,7 @@ def plan_servo(options: ServoRunOptions) -> ServoPlan:
     factory, _ = controller_factory(options.controller, scenarios[0].reference, params,
                                     method="step", application="servo")
     check_controller_period(factory, options.label, drive)
+    check_controller_output(factory, options.label, drive)
     kpi_limits, signal_limits = split_limits(
         [*drive.run.limits, *options.limits], SIGNALS,
         (AxesKpis if named else ServoKpis).limit_names())

@@ -343,3 +343,37 @@ def plot_axes(data: SessionData, names: list[str], out_png: str) -> None:
     fig.tight_layout()
     fig.savefig(out_png, dpi=110)
     plt.close(fig)
+
+
+def plot_motion(data: SessionData, out_png: str) -> None:
+    """A move's or a homing's profile as the drive ran it (``hil drive move|home``):
+    position (and a move's target), velocity and current over time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    feedback = data.arrays("/drive/feedback")
+    sent = data.arrays("/drive/motion")
+    stamps = feedback["log_time_ns"]
+    fig, axes = plt.subplots(3, 1, figsize=(10, 7.8), sharex=True)
+    info = kpis(data)
+    fig.suptitle(f"drive {info.get('motion', 'motion')}: {info.get('drive', '')}", fontsize=10)
+    if stamps.size == 0:
+        axes[0].text(0.5, 0.5, "no /drive/feedback messages recorded", ha="center")
+    else:
+        t = _seconds(stamps, int(stamps[0]))
+        axes[0].plot(t, feedback["position_deg"], lw=1.0, label="position")
+        if "target_deg" in sent and sent["log_time_ns"].size:
+            axes[0].plot(_seconds(sent["log_time_ns"], int(stamps[0])), sent["target_deg"],
+                         "k--", lw=0.8, label="target")
+        axes[1].plot(t, feedback["velocity_deg_s"], lw=0.9)
+        axes[2].plot(t, feedback["current_mA"], lw=0.9)
+    for ax, label in zip(axes, ("angle [deg]", "velocity [deg/s]", "current [mA]"),
+                         strict=True):
+        ax.set_ylabel(label)
+    axes[0].legend(loc="best", fontsize=8)
+    axes[-1].set_xlabel("time [s]")
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)

@@ -268,6 +268,28 @@ def share_lockstep_time(master: CanDriveMaster, on_event: EventSink = no_event) 
     return True
 
 
+def reach(master: CanDriveMaster, on_event: EventSink, reset_fault: bool,
+          asked: str = "master.current_limit_mA") -> None:
+    """Reach ``master``'s drive and leave it not enabled: over a bus in lockstep, one clock
+    on both sides of the wire; a FAULT cleared when ``reset_fault``; opened, and what it
+    lacks, what an earlier run left on it and a current limit cut below the one ``asked``
+    (``--umax`` or the key) said on the terminal."""
+    if master.config.lockstep:
+        share_lockstep_time(master, on_event)
+    if reset_fault:
+        master.fault_reset()
+    master.open()
+    tell_notices(master)
+    tell_opened(master, asked, on_event)
+
+
+def tell_notices(master: CanDriveMaster) -> None:
+    """What the run does differently because of the drive (an object it lacks, a limit it
+    cannot be given), on the terminal (the events are recorded)."""
+    for line in master.notices.take():
+        warn(line)
+
+
 def tell_opened(master: CanDriveMaster, asked: str, on_event: EventSink = no_event) -> None:
     """What opening the drive found that the person at the terminal must hear of, a line each:
     settings an earlier run left on it, put back (the master's event says it too), and the
@@ -289,6 +311,7 @@ def limit_cut(limit: CurrentLimit, asked: str) -> str | None:
         return None
     cutting = " and ".join(f"the drive's {name} {value:g} mA" for name, value in (
         ("max current (0x6073)", limit.max_current_ma),
-        ("max torque (0x6072)", limit.max_torque_ma)) if value == limit.applied_ma)
+        (f"max torque ({limit.max_torque_from})", limit.max_torque_ma))
+        if value == limit.applied_ma)
     return (f"current limit: asked {limit.run_ma:g} mA ({asked}), applied "
             f"{limit.applied_ma:g} mA: {cutting} cuts it")

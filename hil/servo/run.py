@@ -27,12 +27,15 @@ from collections.abc import Callable, Mapping
 from typing import Any, cast
 
 from hil.controllers.base import (
+    OUTPUT_UNITS,
     CountsFallbacks,
     ServoController,
     horizons_of,
+    output_of,
     position_input_of,
     solver_of,
 )
+from hil.controllers.errors import ControllerSetupError
 from hil.controllers.servo.references import (
     PlacedReference,
     Reference,
@@ -62,11 +65,12 @@ from hil.servo.builtin import ServoContext
 from hil.servo.config import stricter_safety
 from hil.servo.drives import RunDrives
 from hil.servo.kpis import AxesKpis, AxisKpis, ServoKpis, no_tracking
+from hil.servo.motion import home_axis
 from hil.servo.options import ServoRunOptions
 from hil.servo.plan import ServoPlan, ServoState, plan_servo
-from hil.servo.rig import open_drives, share_lockstep_time, tell_opened
+from hil.servo.rig import open_drives, reach, tell_notices
 from hil.servo.safety import SafetyMonitor
-from hil.servo.settings import resolve_servo
+from hil.servo.settings import resolve_servo, run_output
 from hil.servo.task import ServoTask, check_disturbance_object
 from hil.servo.tracking import reference_amplitude
 from hil.servo.tunables import add_servo_limits
@@ -82,19 +86,22 @@ def make_controller(options: ServoRunOptions, scenario: Scenario, session: Any =
                     factory: Callable[..., Any] | None = None,
                     umax_ma: float | None = None, *,
                     reference: Reference | None = None,
-                    period_s: float | None = None) -> ServoController:
+                    period_s: float | None = None,
+                    output: str | None = None) -> ServoController:
     """The controller of the run, built from its spec as ``factory(reference, params)``
     (``context=`` too when the factory takes it); ``factory``: already loaded and checked;
     ``umax_ma``: its current bound (default: the run's, as :func:`resolve_servo` gives it);
     ``reference``: the run's (placed where the axis starts), else the scenario's;
-    ``period_s``: the cycle period it is stepped at (default: the run's). A
-    ``position_input`` other than wrapped or unwrapped is a ConfigError naming it."""
-    if umax_ma is None or period_s is None:
+    ``period_s``: the cycle period it is stepped at (default: the run's); ``output``: what it
+    is to return (default: what the drive's mode takes). A ``position_input`` other than
+    wrapped or unwrapped, or another ``output``, is a ConfigError naming it."""
+    if umax_ma is None or period_s is None or output is None:
         settings = resolve_servo(options)
         umax_ma = settings.umax_ma if umax_ma is None else umax_ma
         period_s = settings.drive.master.cycle_period_s if period_s is None else period_s
+        output = run_output(settings.drive) if output is None else output
     context = ServoContext(options.ht, options.hu, options.hp, options.ert, umax_ma, session,
-                           period_s)
+                           period_s, output)
     values = dict(options.params if params is None else params)
     label = options.label
     if factory is None:
@@ -104,6 +111,9 @@ def make_controller(options: ServoRunOptions, scenario: Scenario, session: Any =
                                   else reference, values, method="step",
                                   application="servo", context=context)
     position_input_of(controller, label)
+    if (returned := output_of(controller, label)) != output:
+        raise ControllerSetupError(f"controller {label!r} returns a {returned}, and the drive "
+                                   f"takes a {output} [{OUTPUT_UNITS[output]}] (its mode)")
     return cast(ServoController, controller)
 
 
@@ -162,13 +172,8 @@ class ServoExperiment(Experiment[ServoPlan]):
                                    strict=True))
             state.masters = [masters[axis.name] for axis in plan.axes]
             for master in state.masters:
-                if master.config.lockstep:  # over a bus: one clock on both sides of the wire
-                    share_lockstep_time(master, on_event)
-                if options.reset_fault:
-                    master.fault_reset()
-                master.open()
-                tell_opened(master, "--umax" if options.umax is not None
-                            else "master.current_limit_mA", on_event)
+                reach(master, on_event, options.reset_fault,
+                      "--umax" if options.umax is not None else "master.current_limit_mA")
         except BaseException:
             self.close_devices()
             raise
@@ -180,7 +185,8 @@ class ServoExperiment(Experiment[ServoPlan]):
         multi-axis controller (``multi_axis = True``) once, with every axis' reference,
         shared by the axes."""
         options, plan, state = self.options, self.planned, self.state
-        state.references = [PlacedReference(scenario.reference, relative=options.from_here)
+        state.references = [PlacedReference(scenario.reference, relative=options.from_here,
+                                            absolute=options.home)
                             for scenario in plan.scenarios]
         if not plan.lone and getattr(plan.factory, "multi_axis", False):
             whole = build_controller(plan.factory, options.label, state.references,
@@ -191,14 +197,19 @@ class ServoExperiment(Experiment[ServoPlan]):
         state.controllers = [
             make_controller(options, scenario, session, plan.axis_params(axis.name),
                             plan.factory, plan.umax_for(master),
-                            reference=reference, period_s=plan.base_period_s)
+                            reference=reference, period_s=plan.base_period_s,
+                            output=run_output(plan.drive))
             for axis, scenario, reference, master in zip(
                 plan.axes, plan.scenarios, state.references, state.masters, strict=True)]
 
     def start(self, session: Session) -> None:
         options, plan, state = self.options, self.planned, self.state
+        if options.home:
+            for master in state.masters:
+                self._home(session, master)
         for master in state.masters:
             master.configure()
+            tell_notices(master)
         described = {axis.name: master.describe()
                      for axis, master in zip(plan.axes, state.masters, strict=True)}
         session.recorder.metadata("drive", {"json": json.dumps(
@@ -232,6 +243,13 @@ class ServoExperiment(Experiment[ServoPlan]):
             session.add_task(state.bus_task)
         if self.on_started is not None:
             self.on_started(state.masters[0])
+
+    def _home(self, session: Session, master: CanDriveMaster) -> None:
+        """``--home``: the axis homed (HM) before the run's mode is configured."""
+        at_home = home_axis(master, self.planned.drive.master.profile.homing_timeout_s)
+        session.event("drive.homed", f"drive node {master.node_id} homed: at "
+                      f"{at_home.position_deg:.4f} deg", source=f"drive{master.node_id}",
+                      position_deg=at_home.position_deg)
 
     def tunables(self, tuner: Tuner) -> None:
         """One axis: its controller's parameters (``controller.NAME``) and its safety
@@ -297,6 +315,8 @@ class ServoExperiment(Experiment[ServoPlan]):
         ).lay(task.stats.kpis(reference_amplitude(plan.scenarios[0]))
                         if task is not None else no_tracking())
         controller = task.controller if task is not None else None
+        if task is not None and not task.currents:
+            kpis.set_point = task.output
         horizons = horizons_of(controller)
         if horizons is not None:
             kpis.ert, kpis.ht, kpis.hu, kpis.hp = (horizons.ert, horizons.ht, horizons.hu,

@@ -22,7 +22,7 @@ from urllib.parse import parse_qsl
 
 from can.interfaces import VALID_INTERFACES
 
-from hil.controllers.base import check_cycle_period
+from hil.controllers.base import CURRENT, OUTPUT_UNITS, check_cycle_period, outputs_of
 from hil.core.params import params_origin
 from hil.core.registry import scheme_of
 from hil.core.settings import (
@@ -39,6 +39,7 @@ from hil.core.settings import (
 )
 from hil.drivers.canopen.bus import parse_can_url
 from hil.errors import ConfigError, UsageError
+from hil.protocols.cia402 import OPERATION_MODES
 from hil.servo.config import (
     EMULATED,
     SOURCE,
@@ -202,6 +203,42 @@ def check_controller_period(factory: object, label: str, drive: DriveConfig) -> 
     ``cycle_periods_us`` says: :func:`hil.controllers.base.check_cycle_period`), else one
     ConfigError naming it."""
     check_cycle_period(factory, label, round(drive.master.cycle_period_s * 1e6))
+
+
+#: the modes ``hil servo run`` drives: a set point every cycle (PP takes one through its
+#: handshake: ``hil drive move``; HM none: ``hil drive home``)
+RUN_MODES = ("cst", "csp", "csv", "pv")
+#: what a controller returns for a drive whose set point is in each unit
+OUTPUT_FOR_UNIT = {unit: output for output, unit in OUTPUT_UNITS.items()}
+
+
+def run_output(drive: DriveConfig) -> str:
+    """What the run's controller returns: what the drive's mode (``[master] mode``) takes
+    every cycle; a mode ``hil servo run`` does not drive is a UsageError naming the command
+    that does."""
+    mode = OPERATION_MODES[drive.master.mode]
+    if mode.name not in RUN_MODES:
+        other = "hil drive move" if mode.set_point is not None else "hil drive home"
+        raise UsageError(f"[master] mode = {mode.name!r}: hil servo run sends a set point "
+                         f"every cycle ({', '.join(m.upper() for m in RUN_MODES)}); "
+                         f"{mode.short} ({mode.title}) runs with {other}")
+    return OUTPUT_FOR_UNIT[str(mode.unit)]
+
+
+def check_controller_output(factory: object, label: str, drive: DriveConfig) -> None:
+    """The controller returns what the drive's mode takes (:func:`run_output`: a current in
+    CST, a position in CSP, a velocity in CSV and PV), else one UsageError naming the mode."""
+    output = run_output(drive)
+    outputs = outputs_of(factory)
+    if output in outputs:
+        return
+    mode = OPERATION_MODES[drive.master.mode]
+    gives = " or ".join(f"{o} [{OUTPUT_UNITS[o]}]" for o in outputs)
+    hint = "pid, mpc and empc return one" if output == CURRENT else \
+        f"--controller setpoint sends the reference as one, or your own with output = {output!r}"
+    raise UsageError(f"controller {label!r} returns a {gives}: a drive in {mode.short} "
+                     f"({mode.title}, [master] mode = {mode.name!r}) takes a {output} "
+                     f"[{OUTPUT_UNITS[output]}] every cycle; {hint}")
 
 
 def bus_bitrate(url: str, drive: DriveConfig) -> int:

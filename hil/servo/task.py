@@ -4,8 +4,10 @@ default), in the loop's four phases.
 * **read** - ``master.receive_feedback()``: the TPDOs of the SYNC the previous tick sent. In
   real time they travelled while the loop slept; in lockstep the emulated drive answered the
   SYNC at once on the in-process bus, so they are waiting. One form for both clocks.
-* **compute** - the controller's ``step(y_k, t_k)`` gives u_k (guarded, timed).
-* **write** - ``master.send_command(u_k)``: RPDO + SYNC. The drive applies u_k on that SYNC
+* **compute** - the controller's ``step(y_k, t_k)`` gives u_k (guarded, timed): a current, or
+  where the drive closes its own loop (CSP, CSV, PV) a position or a velocity, as the
+  controller's :class:`~hil.controllers.base.Output` says.
+* **write** - ``master.send_set_point(u_k)``: RPDO + SYNC. The drive applies u_k on that SYNC
   and its TPDOs report y_{k+1}, exactly the offline simulation's ``x(k+1) = A x(k) + B u(k)``.
 * **record** - ``/drive/command``, ``/drive/feedback``, ``/mpc/prediction``, the KPIs and the
   per-tick limits, after the command has left (in real time the drive's answer travels while
@@ -33,15 +35,18 @@ import math
 import numpy as np
 
 from hil.controllers.base import (
+    CURRENT,
+    OUTPUT_UNITS,
     UNWRAPPED,
     Predicting,
     ReportsEvents,
     ServoController,
     horizons_of,
+    output_of,
     position_input_of,
     solver_of,
 )
-from hil.controllers.servo.references import PlacedReference, Scenario
+from hil.controllers.servo.references import PlacedReference, ReferenceSamples, Scenario
 from hil.core.guard import guarded_call
 from hil.core.loop import Task
 from hil.core.session import Session
@@ -50,8 +55,8 @@ from hil.drivers.canopen import CanDriveMaster, Feedback, SdoAbortError
 from hil.drivers.canopen.identity import not_hil_emulator, read_identity
 from hil.errors import ControllerError, UsageError
 from hil.servo.safety import SafetyMonitor
-from hil.servo.topics import COMMAND_SCHEMA, FEEDBACK_SCHEMA, PREDICTION_SCHEMA, STOP_SCHEMA
-from hil.servo.tracking import ReferenceSamples, TrackingStats
+from hil.servo.topics import FEEDBACK_SCHEMA, PREDICTION_SCHEMA, STOP_SCHEMA, command_schema
+from hil.servo.tracking import TrackingStats
 
 PREDICTION_EVERY_REALTIME = 10  # 200 Hz of /mpc/prediction in real time and in long runs
 PREDICTION_EVERY_TICK_UP_TO_S = 60.0  # lockstep runs up to this long record it every tick
@@ -83,6 +88,9 @@ class ServoTask(Task):
         self.reference_offset_deg = self._place(reference, axis)
         self.reference = ReferenceSamples(reference, self.dt)
         self.unwrapped = position_input_of(controller) == UNWRAPPED
+        # a current, or a set point for a drive that closes its own loop
+        self.output = output_of(controller)
+        self.currents = self.output == CURRENT
         self.stats = TrackingStats(settle_s)
         self.prediction_every = prediction_every
         self.label = label
@@ -92,7 +100,8 @@ class ServoTask(Task):
         self.controller_changed()
         # one axis: /drive/command, /drive/feedback, /mpc/prediction; several: /axis/NAME/...
         drive, mpc = ("/drive", "/mpc") if axis is None else (f"/axis/{axis}",) * 2
-        self.commands = session.topic(f"{drive}/command", COMMAND_SCHEMA, high_rate=True)
+        self.commands = session.topic(f"{drive}/command", command_schema(self.output),
+                                      high_rate=True)
         self.feedbacks = session.topic(f"{drive}/feedback", FEEDBACK_SCHEMA, high_rate=True)
         self.predictions = (session.topic(f"{mpc}/prediction", PREDICTION_SCHEMA, high_rate=True)
                             if self.predictor is not None else None)
@@ -137,7 +146,7 @@ class ServoTask(Task):
         """RPDO + SYNC (and the scenario's disturbance torque, applied from that SYNC on)."""
         if self.scenario.disturbance is not None:
             self._inject_disturbance(self._disturbance_for(self._t_s))
-        self.master.send_command(self._command)
+        self.master.send_set_point(self._command)
         if self.realtime and \
                 self.clock.time_ns() > self.loop.start_ns + (self._tick + 1) * self.period_ns:
             self.late_writes += 1
@@ -151,17 +160,23 @@ class ServoTask(Task):
         error = position - r
         if not feedback.fresh:
             self.stale += 1
-        # the current the drive is sent; the request stays on /drive/command
-        applied = self.master.applied_current(u) if math.isfinite(u) else u
-        self.stats.add(t_s, error, applied, self._compute_us, requested_ma=u)
         disturbance = self._disturbance_for(t_s) if self.scenario.disturbance is not None \
             else None
         path = self._solver_path()
-        # packed rows, in the order of FEEDBACK_SCHEMA and COMMAND_SCHEMA (None: left out)
+        # packed rows, in the order of FEEDBACK_SCHEMA and command_schema (None: left out)
         self.feedbacks.log(t_ns, (position, feedback.velocity_deg_s, feedback.current_ma,
                                   feedback.command_ma, feedback.statusword, feedback.cycle,
                                   feedback.fresh, feedback.rtt_us))
-        self.commands.log(t_ns, (t_s, r, error, u, disturbance, self._compute_us, path or None))
+        if self.currents:  # the current the drive is sent; the request on /drive/command
+            applied = self.master.applied_current(u) if math.isfinite(u) else u
+            self.stats.add(t_s, error, applied, self._compute_us, requested_ma=u)
+            self.commands.log(t_ns, (t_s, r, error, u, disturbance, self._compute_us,
+                                     path or None))
+        else:  # the drive chooses the current: the KPIs take the one it reports
+            applied = feedback.current_ma
+            self.stats.add(t_s, error, applied, self._compute_us)
+            self.commands.log(t_ns, (t_s, r, error, math.nan, disturbance, self._compute_us,
+                                     path or None, u))
         stop = self.safety.check(t_s, error, position, feedback.velocity_deg_s, feedback.fresh,
                                  rtt_us=feedback.rtt_us, late_us=(t_ns - self.loop.start_ns
                                                                   - n * self.period_ns) / 1e3)
@@ -198,7 +213,8 @@ class ServoTask(Task):
         offset = reference.place(start.position_deg)
         self.session.recorder.metadata("reference" if axis is None else f"reference/{axis}", {
             "start_deg": repr(start.position_deg), "offset_deg": repr(offset),
-            "placed": "from here" if reference.relative else "on the nearest turn"})
+            "placed": "from here" if reference.relative else
+            "absolute (homed)" if reference.absolute else "on the nearest turn"})
         return offset
 
     def _record_stop_cycle(self, feedback: Feedback) -> None:
@@ -220,7 +236,8 @@ class ServoTask(Task):
             if isinstance(u, bool) or not isinstance(u, NUMBERS) \
                     or not math.isfinite(u):
                 raise ControllerError(f"controller {self.label!r}: step() must return a finite "
-                                      f"current in mA, got {type(u).__name__} {u!r:.60}")
+                                      f"{self.output} in {OUTPUT_UNITS[self.output]}, got "
+                                      f"{type(u).__name__} {u!r:.60}")
         except ControllerError as exc:
             self.session.event("controller.error", str(exc), level="error",
                                source="controller", t_s=t_s)

@@ -1,10 +1,14 @@
 """The servo run's topics: what each message of ``/drive/command``, ``/drive/feedback``,
 ``/drive/stop`` and ``/mpc/prediction`` holds, as JSON Schemas (recorded as CDR:
-:mod:`hil.core.recording.cdr`)."""
+:mod:`hil.core.recording.cdr`). A controller that returns a position or a velocity (a drive
+in CSP, CSV, PV) records its set point on ``/drive/command`` beside the fields of a current
+controller's (:func:`command_schema`)."""
 
 from __future__ import annotations
 
 from typing import Any
+
+from hil.controllers.base import CURRENT, POSITION, VELOCITY
 
 COMMAND_SCHEMA: dict[str, Any] = {
     "type": "object",
@@ -66,3 +70,22 @@ PREDICTION_SCHEMA: dict[str, Any] = {
         "y_deg": {"type": "array", "items": {"type": "number", "x-cdr": "float32"}},
     },
 }
+#: the field of /drive/command that holds the set point of a controller of each output
+SET_POINT_FIELDS = {POSITION: "set_point_deg", VELOCITY: "set_point_deg_s"}
+
+
+def command_schema(output: str) -> dict[str, Any]:
+    """``/drive/command``'s schema for a controller that returns ``output``: a current's is
+    :data:`COMMAND_SCHEMA`; a position's or a velocity's has its set point last
+    (:data:`SET_POINT_FIELDS`), ``command_mA`` then NaN (no current is commanded: the drive
+    chooses it, ``/drive/feedback:current_mA``)."""
+    if output == CURRENT:
+        return COMMAND_SCHEMA
+    unit = "deg" if output == POSITION else "deg/s"
+    return {**COMMAND_SCHEMA, "title": "hil.ServoSetPoint",
+            "description": f"One controller tick: reference r(k), error y(k) - r(k) "
+                           f"(multi-turn), the {output} set point sent to the drive, which "
+                           "closes its own loop, controller compute time.",
+            "properties": {**COMMAND_SCHEMA["properties"], SET_POINT_FIELDS[output]: {
+                "type": "number", "description": f"the {output} set point sent [{unit}] "
+                "(command_mA is NaN: the drive chooses the current)"}}}

@@ -1,4 +1,4 @@
-"""What a servo run measures: the reference sampled on the tick grid and the tracking KPIs,
+"""What a servo run measures: the tracking KPIs,
 accumulated tick by tick in constant memory.
 
 KPIs are taken over the ticks from ``settle_s`` on: the error is the multi-turn position
@@ -13,9 +13,7 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
-from hil.controllers.servo.references import Reference, Scenario, Sine, Trapezoid
+from hil.controllers.servo.references import Scenario, Sine, Trapezoid
 from hil.core.stats import TimingHistogram
 from hil.servo.kpis import TrackingKpis
 
@@ -28,23 +26,6 @@ def reference_amplitude(scenario: Scenario) -> float | None:
     if isinstance(ref, Trapezoid):
         return ref.stroke
     return None
-
-
-class ReferenceSamples:
-    """r(k T) for tick k, computed a block of ticks at a time (vectorised, constant memory)."""
-
-    def __init__(self, reference: Reference, dt: float, block: int = 2048) -> None:
-        self.reference, self.dt, self.block = reference, dt, block
-        self._first = -1
-        self._values = np.empty(0)
-
-    def __call__(self, tick: int) -> float:
-        first = tick - tick % self.block
-        if first != self._first:
-            ticks = first + np.arange(self.block)
-            self._values = np.asarray(self.reference.position(ticks * self.dt), dtype=float)
-            self._first = first
-        return float(self._values[tick - first])
 
 
 class TrackingStats:

@@ -1,6 +1,10 @@
 """What a sweep leaves in ``--out DIR``: per trial ``NAME.mcap`` (the session) and
-``NAME.json`` (its row: params, kpis, status, error), and over all trials ``results.csv``.
-``--resume`` reuses the rows of trials that already finished."""
+``NAME.json`` (its row: params, kpis, status, run_status, error), and over all trials
+``results.csv``. ``--resume`` reuses the rows of trials that already finished.
+
+Two statuses, kept apart: a trial's ``status`` (``ok``, ``violated``, ``failed``: what the
+sweep made of it) and its run's ``run_status`` (the run's own ``status``,
+:data:`hil.core.verdict.STATUSES`: ``completed``, ``stopped``...)."""
 
 from __future__ import annotations
 
@@ -14,6 +18,8 @@ from typing import Any
 from hil.errors import UsageError
 
 DONE_STATUSES = ("ok", "violated")   # --resume reruns a failed trial
+#: the columns of results.csv that are the trial's own, never a KPI's of the same name
+TRIAL_COLUMNS = ("trial", "status", "run_status", "mcap", "error")
 
 
 def row_path(out: Path, name: str) -> Path:
@@ -54,22 +60,29 @@ def flatten(kpis: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     return flat
 
 
+def run_status_of(row: Mapping[str, Any]) -> str:
+    """The run's own status of a trial's row (a row kept before it had one: its KPIs')."""
+    return str(row.get("run_status") or row.get("kpis", {}).get("status") or "")
+
+
 def write_csv(path: Path, rows: Sequence[Mapping[str, Any]], keys: Sequence[str]) -> None:
-    """``results.csv``: trial, status, the swept keys, every scalar KPI, mcap, error."""
+    """``results.csv``: trial, status (the trial's), run_status (the run's), the swept keys,
+    every other scalar KPI, mcap, error: one column each."""
     kpi_columns: list[str] = []
     flats = []
     for row in rows:
-        flat = flatten(row.get("kpis", {}))
-        flat.pop("mcap", None)
+        flat = {key: value for key, value in flatten(row.get("kpis", {})).items()
+                if key not in TRIAL_COLUMNS and key not in keys}
         flats.append(flat)
         kpi_columns += [c for c in flat if c not in kpi_columns]
-    columns = ["trial", "status", *keys, *kpi_columns, "mcap", "error"]
+    columns = ["trial", "status", "run_status", *keys, *kpi_columns, "mcap", "error"]
     try:
         with path.open("w", newline="", encoding="utf-8") as f:
             writer = csv.DictWriter(f, fieldnames=columns)
             writer.writeheader()
             for row, flat in zip(rows, flats, strict=True):
                 writer.writerow({"trial": row["name"], "status": row["status"],
+                                 "run_status": run_status_of(row),
                                  **{k: row["params"].get(k, "") for k in keys}, **flat,
                                  "mcap": row.get("mcap", ""), "error": row.get("error", "")})
     except OSError as exc:
@@ -82,6 +95,7 @@ def summary(rows: Iterable[Mapping[str, Any]], engine: str, workers: int,
     return {"engine": engine, "workers": workers, "wall_s": round(wall_s, 3),
             "trials": [{"name": r["name"], "params": r["params"], "kpis": r.get("kpis", {}),
                         "mcap": r.get("mcap", ""), "status": r["status"],
+                        "run_status": run_status_of(r),
                         **({"error": r["error"]} if r.get("error") else {})}
                        for r in rows]}
 

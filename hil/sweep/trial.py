@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from hil.core.run import Experiment, run_experiment
+from hil.core.verdict import run_status
 from hil.errors import HilError
 from hil.sweep.space import PARAM_PREFIX
 
@@ -52,17 +53,21 @@ def experiment_of(job: TrialJob) -> Experiment:
 
 def run_trial(job: TrialJob) -> dict[str, Any]:
     """Run ``job``; its result row (status ``ok``, ``violated`` when a --limit does not hold,
-    or ``failed`` with the error). Never raises for a failing run."""
+    or ``failed`` with the error; ``run_status``, the run's own status). Never raises for a
+    failing run."""
     start = time.perf_counter()
     row: dict[str, Any] = {"name": job.name, "params": job.params, "mcap": job.mcap}
     try:
         result = run_experiment(experiment_of(job))
     except HilError as exc:
-        row.update(status="failed", error=str(exc), kpis={})
+        so_far = exc.result.kpis if exc.result is not None else {}
+        row.update(status="failed", run_status=so_far.get("status") or run_status({}, exc),
+                   error=str(exc), kpis={})
     except Exception as exc:  # a trial's bug must not stop the sweep: it is recorded
-        row.update(status="failed", error=f"{type(exc).__name__}: {exc}", kpis={})
+        row.update(status="failed", run_status="failed", error=f"{type(exc).__name__}: {exc}",
+                   kpis={})
     else:
         row.update(status="violated" if result.passed is False else "ok",
-                   kpis=dict(result.kpis))
+                   run_status=result.kpis.get("status", ""), kpis=dict(result.kpis))
     row["trial_s"] = time.perf_counter() - start
     return row

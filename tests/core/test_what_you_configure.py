@@ -42,7 +42,8 @@ def toml_value(value: Any) -> str:
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(toml_value(v) for v in value) + "]"
     if isinstance(value, dict):
-        return "{ " + ", ".join(f"{k} = {toml_value(v)}" for k, v in value.items()) + " }"
+        return "{ " + ", ".join(f"{json.dumps(k)} = {toml_value(v)}"
+                                for k, v in value.items()) + " }"
     return repr(value)
 
 
@@ -92,12 +93,17 @@ SPECIAL: dict[str, dict[str, Any]] = {
     "bus.interface": {"bus.interface": "virtual", "bus.channel": "bench-7"},
     "bus.channel": {"bus.interface": "virtual", "bus.channel": "bench-7"},
     "master.sync_echo": {"master.sync_echo": "0x2004:0"},
+    # the keys that stand in for objects a drive lacks, and the homing method: none by default
+    "master.increments_per_rev": {"master.increments_per_rev": 4096},
+    "master.max_torque_permille": {"master.max_torque_permille": 800},
+    "homing.method": {"homing.method": 17},
     # the emulated drive steps 500 us: its cycle is a multiple of it
     "master.cycle_period_us": {"master.cycle_period_us": 1000},
     "emulator.channel": {"emulator.channel": "can1"},
     "emulator.disturbance.end_s": {"emulator.disturbance.end_s": 1.5},
     "emulator.model": {"emulator.model": str(AXIS_MODEL)},  # a model file that fits the axis
     "emulator.faults": {"emulator.faults": ["drop_tpdo@1-2:every=3"]},
+    "emulator.set": {"emulator.set": {"0x6075:0": 2000}},  # an object's power-on value
     # every key an [[axis]] takes: its own EDS and safety limits too
     "axis": {"axis": [{"name": "x", "node": 1, "current_limit_mA": 800.0, "eds": "x.eds",
                        "bus": "socketcand://127.0.0.1:29536",
@@ -261,6 +267,7 @@ RUN_FLAGS: dict[str, list[tuple[list[str], str, Any]]] = {
         (["--umax", "600"], "run.umax", 600.0),
         (["--reference", "hold:position=5"], "run.reference", "hold:position=5"),
         (["--from-here"], "run.from_here", True),
+        (["--home"], "run.home", True),
         (["--duration", "1.5"], "run.duration_s", 1.5),
         (["--settle", "0.25"], "run.settle_s", 0.25),
         (["--realtime"], "run.realtime", True),
@@ -290,6 +297,7 @@ RECORDING_FLAGS = [
     (["--split-duration", "10"], "run.recording.split_duration_s", 10.0),
     (["--split-size", "5"], "run.recording.split_size_mb", 5.0),
     (["--live-rate", "/bench/power=5"], "run.recording.live_rates", {"/bench/power": 5.0}),
+    (["--allow-remote-tuning"], "run.recording.live_remote_tuning", True),
 ]
 #: flags that are not settings of the run: what to print, and where the config comes from
 NOT_SETTINGS = {"--help", "--json", "--junit", "--print-config", "--config", "--live",

@@ -11,7 +11,8 @@ import pytest
 
 from hil.drivers.canopen import CanDriveMaster, CanLink, DriveMasterConfig
 from hil.drivers.canopen.bus import open_can_bus, parse_can_url
-from hil.drivers.canopen.master import axis_traffic, tpdo_maps, unused_pdos
+from hil.drivers.canopen.bus_plan import axis_traffic
+from hil.drivers.canopen.pdo import tpdo_maps, unused_pdos
 from hil.emulators.drive.runners import LockstepDrive
 from hil.protocols.cia402 import TPDO1, TPDO1_ALONE, TPDO2
 from tests.drive_slave import INCREMENTS, serve

@@ -120,8 +120,9 @@ def test_scan_of_a_healthy_drive_names_its_modes_and_where_the_axis_stands(tmp_p
         report = hil_here("drive", "scan", emulator.url, "--json", cwd=tmp_path, capsys=capsys)
     last = [m for _, m in read_session(str(tmp_path / "hold.mcap")).topic("/drive/feedback")][-1]
     [node] = json.loads(report.stdout)["nodes"]
-    assert node["modes"] == ["CSP", "CST"] and node["supported_modes"] == 0x280
-    assert "supported modes CSP, CST (0x6502 = 0x00000280)" in table.stdout
+    assert node["modes"] == ["PP", "PV", "HM", "CSP", "CSV", "CST"]
+    assert node["supported_modes"] == 0x3A5
+    assert "supported modes PP, PV, HM, CSP, CSV, CST (0x6502 = 0x000003A5)" in table.stdout
     assert node["scaling"]["counts_per_turn"] == 1 << 20
     assert node["position_deg"] == pytest.approx(node["position_counts"] * 360 / (1 << 20))
     assert node["position_deg"] == pytest.approx(last["position_deg"], abs=1.0)  # the stop

@@ -15,6 +15,7 @@ from hil.cli.main import main
 from hil.cli.servo import add_run_arguments
 from hil.sweep.plot import pareto_front
 from hil.sweep.space import Space, expand
+from tests.cli import hil_here
 
 pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
 
@@ -132,3 +133,33 @@ def test_names_that_clash_after_cleaning_get_a_suffix():
 def test_the_pareto_front_keeps_the_points_nothing_beats_on_both():
     points = [(3.0, 1.0), (1.0, 3.0), (2.0, 2.0), (2.5, 2.5), (1.0, 4.0)]
     assert pareto_front(points) == [1, 2, 0]
+
+
+def test_results_csv_has_one_status_the_trials_and_the_runs_as_run_status(capsys, tmp_path):
+    """The trial's status (ok / violated) and its run's (completed / violated) are two
+    columns: a KPI named ``status`` no longer overwrites the trial's."""
+    import csv
+
+    import pandas
+
+    out = tmp_path / "sweep"
+    done = hil_here(capsys, "sweep", "servo", "--controller", "pid", "--duration", "0.2",
+                    "--grid", "reference=sine:amplitude=1,frequency=1;"
+                    "sine:amplitude=2,frequency=1", "--limit", "max_error_deg<=0.35",
+                    "--serial", "--out", out, "--json")
+    assert done.returncode == 1, done.stderr  # one trial violated its limit
+    trials = json.loads(done.stdout)["trials"]
+    assert [(t["status"], t["run_status"]) for t in trials] == [("ok", "completed"),
+                                                                ("violated", "violated")]
+    with (out / "results.csv").open(newline="") as f:
+        header = next(csv.reader(f))
+        f.seek(0)
+        rows = list(csv.DictReader(f))
+    assert header.count("status") == 1 and header.count("run_status") == 1
+    assert header[:3] == ["trial", "status", "run_status"]
+    assert [(r["status"], r["run_status"]) for r in rows] == [("ok", "completed"),
+                                                              ("violated", "violated")]
+    table = pandas.read_csv(out / "results.csv")
+    assert list(table["status"]) == ["ok", "violated"]
+    assert list(table["run_status"]) == ["completed", "violated"]
+    assert not any(str(column).startswith("status.") for column in table.columns)

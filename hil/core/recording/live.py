@@ -18,8 +18,16 @@ Foxglove and PlotJuggler connect to.
   at most every 30 s, which :class:`LiveSink` counts as ``client_queue_full``). Nothing here
   waits for a client; with no subscriber a message costs one rate check.
 * **Parameters.** Given a parameter port, the server also offers Foxglove's Parameters
-  capability: a run's tunables, read and set from the Parameters panel or ``hil tune``
+  capability: a run's tunables, read and set from the Parameters panel or ``hil tune``, and
+  every change the run applies pushed to the clients subscribed to it
   (:mod:`hil.core.recording.live_params`).
+* **Who may set them.** A live view that listens on loopback can only have clients on this
+  machine: they may set parameters. One that listens beyond loopback (``0.0.0.0``, a LAN
+  address) is read-only, for every client, unless the run allows remote tuning
+  (``remote_tuning``, ``--allow-remote-tuning``): the SDK tells its listener which connection
+  asked (an id), never from which address, so the address the view listens on is what bounds
+  who can ask (:func:`read_only_reason`). :attr:`LiveSink.exposure` is the one-line warning
+  of a view that listens beyond loopback.
 """
 
 from __future__ import annotations
@@ -35,6 +43,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, cast
 
+from hil.core.exposure import beyond_loopback, exposure
+from hil.core.notice import warn
 from hil.core.recording.live_params import LiveParameters, ParameterPort
 from hil.errors import UsageError
 
@@ -68,6 +78,37 @@ def check_bindable(host: str, port: int) -> None:
         except OSError as exc:
             raise UsageError(f"--live: cannot serve on {host}:{port}: "
                              f"{exc.strerror or exc}") from None
+
+
+def read_only_reason(host: str, remote_tuning: bool) -> str:
+    """Why the parameters of a live view listening on ``host`` are read-only for its clients
+    ("": they are not): it listens beyond loopback, and the run did not allow remote tuning."""
+    if remote_tuning or not beyond_loopback(host):
+        return ""
+    return (f"this live view listens beyond loopback ({host}), where hil cannot tell a client "
+            "on this machine from one on another: its parameters are read-only unless the run "
+            "is started with --allow-remote-tuning")
+
+
+def live_exposure(url: str, host: str, *, parameters: bool = False,
+                  remote_tuning: bool = False) -> str | None:
+    """The one-line warning of a live view at ``url`` listening on ``host`` beyond loopback
+    (None on loopback): who may watch it, and (``parameters``) set its parameters."""
+    if not parameters:
+        reach = "watch it"
+    elif remote_tuning:
+        reach = "watch it and set the run's parameters (--allow-remote-tuning)"
+    else:
+        reach = "watch it, not set the run's parameters (--allow-remote-tuning would let them)"
+    return exposure(f"the live view on {url}", host, reach)
+
+
+def announce(url: str, warning: str | None = None) -> None:
+    """The live view's URL on stderr, and its warning (:func:`live_exposure`) if any."""
+    print(f"hil: live view on {url} (Foxglove: Open connection > Foxglove WebSocket)",
+          file=sys.stderr, flush=True)
+    if warning is not None:
+        warn(warning)
 
 
 def parse_rate(text: str) -> tuple[str, float]:
@@ -179,7 +220,9 @@ _SDK_LOG: _SdkLog | None = None
 
 class _Subscriptions:
     """The SDK's server listener: notes that some client subscribed to something, and
-    answers parameter requests when the server offers parameters."""
+    answers parameter requests and follows parameter subscriptions when the server offers
+    parameters (the SDK calls every method of its ``ServerListener`` for its capabilities: a
+    missing one is an error in its log)."""
 
     def __init__(self, parameters: LiveParameters | None = None) -> None:
         self.first = threading.Event()
@@ -201,13 +244,22 @@ class _Subscriptions:
             return []
         return self.parameters.set(int(client.id), parameters, request_id)
 
+    def on_parameters_subscribe(self, param_names: list[str]) -> None:
+        if self.parameters is not None:
+            self.parameters.subscribed(param_names)
+
+    def on_parameters_unsubscribe(self, param_names: list[str]) -> None:
+        if self.parameters is not None:
+            self.parameters.unsubscribed(param_names)
+
 
 class LiveSink:
     """A Foxglove WebSocket server for one session's topics (its own SDK context)."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, *,
                  rates: dict[str, float] | None = None, backlog: int = DEFAULT_BACKLOG,
-                 name: str = "hil", parameters: ParameterPort | None = None) -> None:
+                 name: str = "hil", parameters: ParameterPort | None = None,
+                 remote_tuning: bool = False) -> None:
         import foxglove
         from foxglove.websocket import Capability
 
@@ -217,7 +269,9 @@ class LiveSink:
         self._log = _sdk_log()
         self._queue_full_before = self._log.queue_full
         self._errors_before = dict(self._log.errors)
-        self.parameters = LiveParameters(parameters) if parameters is not None else None
+        self.parameters = LiveParameters(parameters, read_only_reason(host, remote_tuning)) \
+            if parameters is not None else None
+        self._changes_key: Any = None  # the key of the tuner's /params topic, once added
         self._subscriptions = _Subscriptions(self.parameters)
         self.server = foxglove.start_server(
             name=name, host=host, port=port, context=self._context,
@@ -230,6 +284,9 @@ class LiveSink:
         self._by_key: dict[Any, _Topic] = {}
         self._closed = False
         self._failed = 0
+        #: the warning of a view that listens beyond loopback (None on loopback)
+        self.exposure = live_exposure(self.url, host, parameters=parameters is not None,
+                                      remote_tuning=remote_tuning)
 
     @property
     def url(self) -> str:
@@ -246,6 +303,11 @@ class LiveSink:
 
     def add_topic(self, key: Any, name: str, schema: dict[str, Any]) -> None:
         """Advertise ``name`` with (the live form of) its JSON Schema; ``key`` logs to it."""
+        if self.parameters is not None:
+            from hil.core.tuning import PARAMS_TOPIC
+
+            if name == PARAMS_TOPIC:  # each change the run applied: pushed to subscribers
+                self._changes_key = key
         try:
             data = json.dumps(live_schema(schema)).encode()
             channel = self._foxglove.Channel(
@@ -260,6 +322,8 @@ class LiveSink:
 
     def log(self, key: Any, t_ns: int, message: Any) -> None:
         """Serve ``message`` of topic ``key`` unless decimated away or nobody subscribed."""
+        if key == self._changes_key and not self._closed:
+            self._push_change(message)
         topic = self._by_key.get(key)
         if topic is None or self._closed:
             return
@@ -280,6 +344,15 @@ class LiveSink:
             self._failed += 1
             return
         topic.sent += 1
+
+    def _push_change(self, change: Any) -> None:
+        """A ``/params`` message (a change the run applied) to the parameter's subscribers."""
+        assert self.parameters is not None
+        try:
+            self.parameters.changed(change["parameter"], change["new"], int(change["tick"]),
+                                    str(change.get("client", "")))
+        except Exception:  # a change the live view cannot push never costs the recording
+            self._failed += 1
 
     def stats(self) -> LiveStats:
         sent = {t.channel.topic(): t.sent for t in self._by_key.values() if t.sent}

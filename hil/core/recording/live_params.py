@@ -15,11 +15,22 @@ two methods. Specs and results are plain dicts with the fields of ``hil.core.tun
   warning status (the SDK's ``publish_status`` goes to every client: it names the parameter
   and the client). Its id is ``tune:CLIENT:REQUEST_ID:NAME``, so a client finds the status
   of its own request.
+* ``subscribeParameterUpdates``: the server keeps who subscribed to what;
+  :meth:`LiveParameters.changed` pushes every change the run applied, whatever asked for it (a
+  client, ``hil tune``, a script's tuner, a rebuild), to the clients subscribed to that
+  parameter. The live view calls it for each message on the tuner's ``/params`` topic, so what
+  subscribers are told is what the file records. A change a live client's set made is not
+  pushed again: the server itself sends the set's answer to the subscribers. A value older than
+  the last one sent is never pushed.
+* **Read-only.** Given a reason (``read_only``), every set is refused with it and changes
+  nothing: listing and subscribing still work (:mod:`hil.core.recording.live` makes a live view
+  that listens beyond loopback read-only unless the run allows its clients to set).
 * Who asked is ``live client N`` (the server's id of the connection), recorded with the change.
 """
 
 from __future__ import annotations
 
+import threading
 from typing import Any, Protocol
 
 Spec = dict[str, Any]     # TunableSpec's fields: name, value, unit, minimum, maximum, step...
@@ -34,9 +45,12 @@ class ParameterPort(Protocol):
     def request(self, name: str, value: object, client: str) -> Result: ...
 
 
+CLIENT_PREFIX = "live client "
+
+
 def client_name(client_id: int) -> str:
     """Who asked, as recorded with a change."""
-    return f"live client {client_id}"
+    return f"{CLIENT_PREFIX}{client_id}"
 
 
 def status_id(client_id: int, request_id: str | None, name: str) -> str:
@@ -47,12 +61,16 @@ def status_id(client_id: int, request_id: str | None, name: str) -> str:
 class LiveParameters:
     """The server listener's parameter half (see the module doc)."""
 
-    def __init__(self, port: ParameterPort) -> None:
+    def __init__(self, port: ParameterPort, read_only: str = "") -> None:
         import foxglove
 
         self._foxglove = foxglove
         self.port = port
-        self.server: Any = None  # set once the server runs: statuses go through it
+        self.read_only = read_only  # why every set is refused ("": sets go to the port)
+        self.server: Any = None  # set once the server runs: statuses and pushes go through it
+        self._lock = threading.Lock()
+        self._subscribed: set[str] = set()  # parameters some client subscribed to
+        self._sent_tick: dict[str, int] = {}  # the tick of the newest value subscribers got
 
     def parameter(self, name: str, value: object) -> Any:
         """A Foxglove parameter; a float stays a float on the wire (``300.0``, not ``300``)."""
@@ -68,16 +86,56 @@ class LiveParameters:
                 if not wanted or spec["name"] in wanted]
 
     def set(self, client_id: int, parameters: list[Any], request_id: str | None) -> list[Any]:
-        """Apply each parameter through the port; the values in force afterwards."""
+        """Apply each parameter through the port; the values in force afterwards (which the
+        server also sends to the parameter's subscribers)."""
+        if self.read_only:
+            return self._refuse_all(client_id, parameters, request_id)
         answers = []
         for parameter in parameters:
             name, value = parameter.name, parameter.get_value()
             result = self.port.request(name, value, client_name(client_id))
             if not result["accepted"]:
                 self.refused(client_id, request_id, name, value, result["reason"])
+            elif result["tick"] is not None:
+                self._note_sent(name, int(result["tick"]))
             if result["value"] is not None:  # None: an unknown name, or no answer (the status)
                 answers.append(self.parameter(name, result["value"]))
         return answers
+
+    def _refuse_all(self, client_id: int, parameters: list[Any], request_id: str | None
+                    ) -> list[Any]:
+        """A read-only live view's answer to a set: each refused, the values that stay."""
+        for parameter in parameters:
+            self.refused(client_id, request_id, parameter.name, parameter.get_value(),
+                         self.read_only)
+        return self.get([parameter.name for parameter in parameters]) if parameters else []
+
+    def subscribed(self, names: list[str]) -> None:
+        """The server's notice that some client subscribed to ``names`` (the first one)."""
+        with self._lock:
+            self._subscribed.update(names)
+
+    def unsubscribed(self, names: list[str]) -> None:
+        """The server's notice that the last subscriber of ``names`` left."""
+        with self._lock:
+            self._subscribed.difference_update(names)
+
+    def changed(self, name: str, value: object, tick: int, client: str) -> None:
+        """The run applied ``name = value`` at ``tick``, asked for by ``client``: pushed to the
+        parameter's subscribers, unless nobody subscribed or they have it (a live client's set:
+        the server sends them its answer) or a newer value already."""
+        if client.startswith(CLIENT_PREFIX):
+            return
+        with self._lock:
+            if self.server is None or name not in self._subscribed or \
+                    self._sent_tick.get(name, -1) >= tick:
+                return
+            self._sent_tick[name] = tick
+        self.server.publish_parameter_values([self.parameter(name, value)])
+
+    def _note_sent(self, name: str, tick: int) -> None:
+        with self._lock:
+            self._sent_tick[name] = max(tick, self._sent_tick.get(name, -1))
 
     def refused(self, client_id: int, request_id: str | None, name: str, value: object,
                 reason: str) -> None:

@@ -54,13 +54,22 @@ class McapSeries:
         path: str,
         *,
         chunk_size: int = DEFAULT_CHUNK_BYTES,
+        chunk_span_s: float | None = None,
         zstd_level: int = ZSTD_LEVEL,
         split_duration_s: float | None = None,
         split_size_mb: float | None = None,
         profile: str = "",
+        first_fd: int | None = None,
+        staging: str | None = None,
     ) -> None:
         self.path = path
+        # the first file, already open: a run's staging file, named ``staging`` until the run
+        # starts; the series goes on to a second file only then (a run that never started
+        # leaves none)
+        self.first_fd = first_fd
+        self.staging = staging
         self.chunk_size = chunk_size
+        self.chunk_span_ns = round(chunk_span_s * 1e9) if chunk_span_s else None
         self.zstd_level = zstd_level
         self.split = split_duration_s is not None or split_size_mb is not None
         self.split_ns = round(split_duration_s * 1e9) if split_duration_s else None
@@ -81,9 +90,12 @@ class McapSeries:
     # -- files -----------------------------------------------------------------------------
     def _open(self, index: int) -> None:
         name = series_file(self.path, index) if self.split else self.path
-        self._file = open(name, "wb")  # noqa: SIM115 - closed by _finish_file()
+        if index == 0 and self.first_fd is not None:
+            self._file = open(self.first_fd, "wb")  # noqa: SIM115 - closed by _finish_file()
+        else:
+            self._file = open(name, "wb")  # noqa: SIM115 - closed by _finish_file()
         self._writer = McapWriter(self._file, chunk_size=self.chunk_size,
-                                  zstd_level=self.zstd_level)
+                                  chunk_span_ns=self.chunk_span_ns, zstd_level=self.zstd_level)
         self._writer.start(profile=self.profile, library="hil")
         self._file_channels = {}
         self._file_first_ns = None
@@ -116,6 +128,9 @@ class McapSeries:
                 self._since_check = 0
                 assert self._file is not None
                 due = self._file.tell() >= self.split_bytes
+        if due and self.staging is not None and len(self.stats.files) == 1 and \
+                os.path.exists(self.staging):
+            due = False
         if due:
             self._finish_file()
             self._open(len(self.stats.files))

@@ -2,10 +2,13 @@
 
 The stock readers stop at the first bad byte. A session file may be truncated (SIGKILL, power
 cut), carry a damaged chunk in the middle (a bad sector, a bit flip) or a damaged summary.
-:func:`walk` reads every top-level record on its own; a chunk whose data or CRC is bad is
-skipped and counted (its message count comes from the message indexes that follow it), and
-the walk goes on with the next record. What could not be read is returned as
-:class:`Damage` entries, each with its byte offset and size.
+:func:`walk` reads every top-level record on its own. A chunk whose data or CRC is bad gives
+what it holds before its damage (:func:`hil.core.recording.mcap_salvage.salvage_chunk`, as
+far as hil's check record before it vouches for its bytes, or up to where the file was cut)
+and its loss is counted (from the message indexes that follow it, else from its check). Bytes
+that are no record are skipped up to the next record that surely starts
+(:func:`~hil.core.recording.mcap_salvage.restart_after`), and the walk goes on. What could
+not be read is returned as :class:`Damage` entries, each with its byte offset and size.
 """
 
 from __future__ import annotations
@@ -33,7 +36,11 @@ from mcap.records import (
 )
 from mcap.stream_reader import breakup_chunk
 
-Buffer = bytes | memoryview | mmap.mmap
+from hil.core.recording.chunk_check import OPCODE as CHECK_OPCODE
+from hil.core.recording.chunk_check import ChunkCheck
+from hil.core.recording.mcap_salvage import restart_after, salvage_chunk, summary_offsets
+
+Buffer = bytes | mmap.mmap
 MAGIC = b"\x89MCAP0\r\n"
 _HEAD = struct.Struct("<BQ")
 CHUNK_OPCODE = 0x06
@@ -59,6 +66,7 @@ class Damage:
     offset: int               # byte offset in the file where it starts
     bytes: int                # bytes that could not be read
     messages: int | None = None  # messages lost, when the file says how many
+    salvaged: int | None = None  # messages read from a damaged chunk, before its damage
     start_ns: int | None = None  # log-time range of the lost messages, when known
     end_ns: int | None = None
     reason: str = ""
@@ -99,73 +107,170 @@ def _chunk_times(content: bytes) -> tuple[int, int] | None:
     return (start, end) if start <= end else None
 
 
+@dataclass
+class _Broken:
+    """A damaged chunk while the records after it are read: its message indexes say which of
+    its messages were lost (those at or beyond ``kept`` bytes of its content)."""
+
+    damage: Damage
+    check: ChunkCheck | None
+    kept: int                   # bytes of its content salvaged, whole records
+    salvaged: int               # messages salvaged
+    indexed: int = 0            # messages its indexes list
+    lost_times: list[int] = field(default_factory=list)
+
+    def count(self, index: MessageIndex) -> None:
+        self.indexed += len(index.records)
+        self.lost_times += [t for t, offset in index.records if offset >= self.kept]
+
+    def settle(self) -> None:
+        """The loss, from the indexes when they are whole (as many as the check says, or no
+        check to say otherwise), else from the check."""
+        damage, check = self.damage, self.check
+        if self.indexed and (check is None or self.indexed == check.message_count):
+            damage.messages = len(self.lost_times)
+            if self.lost_times:
+                damage.start_ns, damage.end_ns = min(self.lost_times), max(self.lost_times)
+        elif check is not None:
+            damage.messages = check.message_count - self.salvaged
+        elif damage.kind == "chunk":
+            damage.messages = None
+
+
+def _damaged_chunk(record: bytes, check: ChunkCheck | None, damage: Damage,
+                   intact: int) -> tuple[list[Any], _Broken]:
+    """What can be read of a chunk record whose first ``intact`` bytes are the writer's."""
+    records, kept = salvage_chunk(record[:intact])
+    salvaged = sum(isinstance(r, Message) for r in records)
+    times = _chunk_times(record[_HEAD.size:]) if intact >= _HEAD.size + 16 else None
+    if check is not None:
+        times = (check.start_ns, check.end_ns)
+    if times:
+        damage.start_ns, damage.end_ns = times
+    if salvaged:
+        damage.salvaged = salvaged
+    broken = _Broken(damage, check, kept, salvaged)
+    broken.settle()
+    return records, broken
+
+
 def walk(data: Buffer, state: Walk) -> Iterator[Any]:
-    """Yield every readable record of an MCAP file's bytes (chunks opened), in file order."""
+    """Yield every readable record of an MCAP file's bytes (chunks opened, damaged ones as far
+    as they go), in file order."""
+    size = len(data)
+    known = summary_offsets(data)
+    pos = len(MAGIC)
     if bytes(data[:len(MAGIC)]) != MAGIC:
-        raise ValueError("not an MCAP session file (bad magic)")
-    pos, size = len(MAGIC), len(data)
-    broken_chunk: Damage | None = None  # its messages are counted from the indexes after it
+        restart = restart_after(data, 0, known)
+        if restart is None:
+            raise ValueError("not an MCAP session file (bad magic)")
+        state.damage.append(Damage("record", 0, restart, reason="bad magic"))
+        pos = restart
+    check: ChunkCheck | None = None  # the check record just read: of the chunk that follows
+    broken: _Broken | None = None    # the damaged chunk its message indexes may still count
     while pos < size:
         if size - pos < _HEAD.size:
             state.damage.append(Damage("truncated", pos, size - pos, reason="record header cut"))
             return
         opcode, length = _HEAD.unpack_from(data, pos)
-        body = pos + _HEAD.size
-        end = body + length
-        if end > size or length > size:
-            if opcode == 0 or opcode > 0x10:  # garbage where a record should start
-                state.damage.append(Damage("summary" if state.in_summary else "record", pos,
-                                           size - pos, reason=f"bad record header at {pos}"))
-            else:
+        end = pos + _HEAD.size + length
+        if check is not None and (opcode != CHUNK_OPCODE or end != pos + check.chunk_length):
+            opcode, end = CHUNK_OPCODE, pos + check.chunk_length  # its head is damaged
+        if broken is not None and opcode != 0x07:
+            broken = None
+        if end > size or not _known_opcode(opcode):
+            restart = restart_after(data, pos + 1, known)
+            if restart is None and end > size and _known_opcode(opcode):
                 damage = Damage("truncated", pos, size - pos, reason="file ends inside a record")
                 if opcode == CHUNK_OPCODE:
-                    times = _chunk_times(bytes(data[body:min(size, body + 16)]))
-                    if times:
-                        damage.start_ns, damage.end_ns = times
+                    record = bytes(data[pos:size])
+                    intact = check.intact_bytes(record) if check is not None else len(record)
+                    records, broken = _damaged_chunk(record, check, damage, intact)
+                    yield from records
                 state.damage.append(damage)
-            return
-        content = bytes(data[body:end])
-        if opcode == CHUNK_OPCODE:
-            broken_chunk = None
-            try:
-                records = _chunk_records(content)
-            except Exception as exc:  # zstd, CRC, struct: any of them means the chunk is lost
-                broken_chunk = Damage("chunk", pos, end - pos, messages=0,
-                                      reason=f"{type(exc).__name__}: {exc}".strip(": "))
-                times = _chunk_times(content)
-                if times:
-                    broken_chunk.start_ns, broken_chunk.end_ns = times
-                state.damage.append(broken_chunk)
-            else:
-                yield from records
-        else:
-            try:
-                record = _parse(opcode, content)
-            except Exception as exc:
-                state.damage.append(Damage("summary" if state.in_summary else "record", pos,
-                                           end - pos, reason=f"{type(exc).__name__}: {exc}"))
-                record = None
-            if isinstance(record, MessageIndex):
-                if broken_chunk is not None and broken_chunk.messages is not None:
-                    broken_chunk.messages += len(record.records)
-            elif isinstance(record, DataEnd):
-                state.in_summary = True
-                crc = record.data_section_crc
-                if crc and zlib.crc32(bytes(data[:pos])) != crc and not any(
-                        d.kind == "chunk" for d in state.damage):
-                    state.damage.append(Damage("record", 0, 0, reason="data section CRC "
-                                               "mismatch"))
-            elif isinstance(record, Statistics):
-                state.statistics = record
-            elif isinstance(record, Footer):
-                _check_summary(data, pos, record, state)
-                _check_end(data, end, state)
-                state.finished = True
-                yield record
                 return
-            elif record is not None:
-                yield record
+            _add_unreadable(state, pos, (restart or size) - pos, f"bad record header at {pos}")
+            if restart is None:
+                return
+            pos, check = restart, None
+            continue
+        content = bytes(data[pos + _HEAD.size:end])
+        if opcode == CHUNK_OPCODE:
+            try:
+                yield from _chunk_records(content)
+            except Exception as exc:  # zstd, CRC, struct: what is before the damage is kept
+                damage = Damage("chunk", pos, end - pos,
+                                reason=f"{type(exc).__name__}: {exc}".strip(": "))
+                record = bytes(data[pos:end])
+                records, broken = _damaged_chunk(
+                    record, check, damage, check.intact_bytes(record) if check else 0)
+                state.damage.append(damage)
+                yield from records
+            check = None
+            pos = end
+            continue
+        check = None
+        try:
+            record = _parse(opcode, content)
+        except Exception as exc:  # the record's length may be damaged too: not past a chunk
+            restart = restart_after(data, pos + 1, known)
+            end = min(end, restart) if restart is not None else end
+            _add_unreadable(state, pos, end - pos, f"{type(exc).__name__}: {exc}", messages=0)
+            pos = end
+            continue
+        if opcode == CHECK_OPCODE:
+            check = ChunkCheck.parse(content)
+            if check is None:
+                state.damage.append(Damage("record", pos, end - pos, messages=0,
+                                           reason="damaged chunk check"))
+        elif isinstance(record, MessageIndex):
+            if broken is not None:
+                broken.count(record)
+                broken.settle()
+        elif isinstance(record, DataEnd):
+            state.in_summary = True
+            crc = record.data_section_crc
+            if crc and _crc(data, pos) != crc and not state.damage:
+                state.damage.append(Damage("record", 0, 0, reason="data section CRC "
+                                           "mismatch"))
+        elif isinstance(record, Statistics):
+            state.statistics = record
+        elif isinstance(record, Footer):
+            _check_summary(data, pos, record, state)
+            _check_end(data, end, state)
+            state.finished = True
+            yield record
+            return
+        elif record is not None:
+            yield record
         pos = end
+
+
+def _crc(data: Buffer, end: int, step: int = 1 << 20) -> int:
+    """The CRC-32 of ``data[:end]``, read a piece at a time (no copy of the whole)."""
+    crc = 0
+    for at in range(0, end, step):
+        crc = zlib.crc32(data[at:min(end, at + step)], crc)
+    return crc
+
+
+def _add_unreadable(state: Walk, offset: int, size: int, reason: str,
+                    messages: int | None = None) -> None:
+    """Bytes that are no readable record: one damage with the unreadable bytes just before
+    them, if there are any (damage found again where the walk restarted)."""
+    kind = "summary" if state.in_summary else "record"
+    last = state.damage[-1] if state.damage else None
+    if last is not None and last.kind == kind and last.offset + last.bytes == offset:
+        last.bytes += size
+        last.messages = None if None in (last.messages, messages) else \
+            (last.messages or 0) + (messages or 0)
+        return
+    state.damage.append(Damage(kind, offset, size, messages=messages, reason=reason))
+
+
+def _known_opcode(opcode: int) -> bool:
+    """An MCAP opcode (0x01-0x0F), hil's check record, or one left to applications."""
+    return 0x01 <= opcode <= 0x0F or opcode >= 0x80
 
 
 def _check_end(data: Buffer, footer_end: int, state: Walk) -> None:

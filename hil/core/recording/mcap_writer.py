@@ -2,11 +2,19 @@
 
 mcap's own ``Writer`` compresses chunks at zstandard's default level and offers no option for
 another. This writer builds the same file from the mcap package's public record classes
-(``mcap.records``, ``mcap.data_stream.RecordBuilder``): a header; schemas, channels and
-messages in zstd chunks, each followed by its message indexes; metadata and attachments
-between chunks; then the summary (schemas, channels, statistics, chunk, attachment and
-metadata indexes, summary offsets), the footer with the summary CRC, and the magic. Readers
-that need the indexes (Foxglove's) read it as they read mcap's own files.
+(``mcap.records``, ``mcap.data_stream.RecordBuilder``): a header; messages in zstd chunks,
+each followed by its message indexes; schemas, channels, metadata and attachments between
+chunks; then the summary (schemas, channels, statistics, chunk, attachment and metadata
+indexes, summary offsets), the footer with the summary CRC, and the magic. Readers that need
+the indexes (Foxglove's) read it as they read mcap's own files.
+
+Where it differs from mcap's ``Writer``, for a damaged file's sake: schemas and channels are
+records of their own between chunks (a lost chunk takes no topic with it); a chunk closes once
+it spans ``chunk_span_ns`` of log time as well as at ``chunk_size`` bytes (a lockstep session,
+many times faster than real time, would otherwise be one chunk); each chunk is preceded by
+hil's check record (:mod:`hil.core.recording.chunk_check`: the piece CRCs a reader salvages a
+damaged chunk by) and its zstd stream is cut into small blocks; the data end record carries
+the data section's CRC.
 
 The methods are those of ``mcap.writer.Writer`` that a session uses: ``start``,
 ``register_schema``, ``register_channel``, ``add_message``, ``add_metadata``,
@@ -40,6 +48,8 @@ from mcap.records import (
     SummaryOffset,
 )
 
+from hil.core.recording.chunk_check import ChunkCheck, compress_in_blocks
+
 MAGIC = b"\x89MCAP0\r\n"  # MCAP specification, "Magic"
 # a Message record up to its data: opcode, record length, channel id, sequence, log time,
 # publish time (mcap's Message.write, in one call: the writer's busiest record)
@@ -52,9 +62,11 @@ class McapWriter:
     """Writes one MCAP file to ``stream``; chunks are zstd-compressed at ``zstd_level``."""
 
     def __init__(self, stream: IO[bytes], *, chunk_size: int = DEFAULT_CHUNK_BYTES,
-                 zstd_level: int = 3) -> None:
+                 chunk_span_ns: int | None = None, zstd_level: int = 3) -> None:
         self._stream = stream
+        self._data_crc = 0  # of every byte written before the data end record
         self._chunk_size = chunk_size
+        self._chunk_span_ns = chunk_span_ns
         self._compressor = zstandard.ZstdCompressor(level=zstd_level)
         self._out = RecordBuilder()    # records outside chunks, written out at once
         self._chunk = RecordBuilder()  # the records of the chunk in progress
@@ -73,14 +85,14 @@ class McapWriter:
 
     # -- the file -----------------------------------------------------------------------
     def start(self, profile: str = "", library: str = "hil") -> None:
-        self._stream.write(MAGIC)
+        self._write(MAGIC)
         Header(profile=profile, library=library).write(self._out)
         self._write_out()
 
     def finish(self) -> None:
         """The last chunk, the data end, the summary, the footer and the magic."""
         self._finish_chunk()
-        DataEnd(data_section_crc=0).write(self._out)
+        DataEnd(data_section_crc=self._data_crc).write(self._out)
         self._write_out()
         summary_start = self._stream.tell()
         summary = RecordBuilder()
@@ -116,7 +128,8 @@ class McapWriter:
         schema = Schema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=data)
         self._schemas[schema.id] = schema
         self._statistics.schema_count += 1
-        schema.write(self._chunk)
+        schema.write(self._out)
+        self._write_out()
         return schema.id
 
     def register_channel(self, topic: str, message_encoding: str, schema_id: int) -> int:
@@ -124,7 +137,8 @@ class McapWriter:
                           message_encoding=message_encoding, schema_id=schema_id, metadata={})
         self._channels[channel.id] = channel
         self._statistics.channel_count += 1
-        channel.write(self._chunk)
+        channel.write(self._out)
+        self._write_out()
         return channel.id
 
     def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int,
@@ -135,6 +149,9 @@ class McapWriter:
         stats.message_end_time = max(stats.message_end_time, log_time)
         stats.channel_message_counts[channel_id] += 1
         stats.message_count += 1
+        if self._chunk_messages and self._chunk_span_ns is not None and \
+                log_time - self._chunk_start_ns >= self._chunk_span_ns:
+            self._finish_chunk()
         if self._chunk_messages == 0 or log_time < self._chunk_start_ns:
             self._chunk_start_ns = log_time
         self._chunk_end_ns = max(self._chunk_end_ns, log_time)
@@ -180,22 +197,27 @@ class McapWriter:
         if self._chunk_messages == 0:
             return
         records = self._chunk.end()
-        compressed = self._compressor.compress(records)
-        start = self._stream.tell()
+        compressed = compress_in_blocks(records, self._compressor)
+        chunk = RecordBuilder()
         Chunk(message_start_time=self._chunk_start_ns, message_end_time=self._chunk_end_ns,
               uncompressed_size=len(records), uncompressed_crc=zlib.crc32(records),
-              compression="zstd", data=compressed).write(self._out)
-        chunk_length = self._out.count
-        index_start = start + chunk_length
+              compression="zstd", data=compressed).write(chunk)
+        chunk_record = chunk.end()
+        self._out.write(ChunkCheck.of(chunk_record, self._chunk_messages, self._chunk_start_ns,
+                                      self._chunk_end_ns).record())
+        base = self._stream.tell()
+        start = base + self._out.count
+        self._out.write(chunk_record)
+        index_start = base + self._out.count
         offsets = {}
         for channel_id, index in self._chunk_indexes.items():
-            offsets[channel_id] = start + self._out.count
+            offsets[channel_id] = base + self._out.count
             index.write(self._out)
         self._chunk_index_records.append(ChunkIndex(
             message_start_time=self._chunk_start_ns, message_end_time=self._chunk_end_ns,
-            chunk_start_offset=start, chunk_length=chunk_length,
+            chunk_start_offset=start, chunk_length=len(chunk_record),
             message_index_offsets=offsets,
-            message_index_length=start + self._out.count - index_start, compression="zstd",
+            message_index_length=base + self._out.count - index_start, compression="zstd",
             compressed_size=len(compressed), uncompressed_size=len(records)))
         self._statistics.chunk_count += 1
         self._write_out()
@@ -204,4 +226,8 @@ class McapWriter:
         self._chunk_start_ns = self._chunk_end_ns = 0
 
     def _write_out(self) -> None:
-        self._stream.write(self._out.end())
+        self._write(self._out.end())
+
+    def _write(self, data: bytes) -> None:
+        self._stream.write(data)
+        self._data_crc = zlib.crc32(data, self._data_crc)

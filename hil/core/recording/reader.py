@@ -89,14 +89,19 @@ class SessionData:
     recovered: bool = False
     lost_bytes: int = 0
     error: str = ""
+    #: messages the files' statistics say they hold (None: a file without them)
+    expected_messages: int | None = 0
 
     @property
     def lost_messages(self) -> int | None:
-        """Messages known lost to damage; None when some damage does not say how many."""
-        counts = [d.messages for d in self.damage if d.kind in ("chunk", "truncated")]
-        if any(c is None for c in counts):
+        """Messages known lost to damage: each damage's count, or where one does not say,
+        what the files' statistics hold beyond what was read; None when neither tells."""
+        counts = [d.messages for d in self.damage if d.kind not in ("summary", "trailing")]
+        if all(c is not None for c in counts):
+            return sum(c for c in counts if c is not None)
+        if self.expected_messages is None:
             return None
-        return sum(c for c in counts if c is not None)
+        return max(0, self.expected_messages - sum(self.topic_counts.values()))
 
     @property
     def topic_counts(self) -> dict[str, int]:
@@ -195,7 +200,7 @@ def _read_file(path: str, data: SessionData, raw: dict[str, list[tuple[int, byte
     state = Walk()
     schemas: dict[int, Schema] = {}
     channels: dict[int, str] = {}
-    seen = 0
+    by_channel: dict[int, list[tuple[int, bytes]]] = defaultdict(list)
     with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as view:
         try:
             for record in walk(view, state):
@@ -207,28 +212,34 @@ def _read_file(path: str, data: SessionData, raw: dict[str, list[tuple[int, byte
                         _register(data, decoders, record, schemas.get(record.schema_id))
                     raw.setdefault(record.topic, [])
                 elif isinstance(record, Message):
-                    topic = channels.get(record.channel_id, f"<channel {record.channel_id}>")
-                    raw[topic].append((record.log_time, record.data))
-                    seen += 1
+                    by_channel[record.channel_id].append((record.log_time, record.data))
                 elif isinstance(record, Metadata):
                     data.metadata[record.name] = dict(record.metadata)
                 elif isinstance(record, Attachment):
                     data.attachments[record.name] = bytes(record.data)
         except ValueError as exc:
             raise SessionFileError(f"{path}: {exc}") from None
-    _account(path, data, state, seen)
+    # by channel id, once the walk is over: a channel may be known only from the summary
+    for channel_id, items in by_channel.items():
+        raw[channels.get(channel_id, f"<channel {channel_id}>")].extend(items)
+    _account(path, data, state, sum(map(len, by_channel.values())))
 
 
 def _account(path: str, data: SessionData, state: Walk, seen: int) -> None:
     """Fold one file's damage into the session; count truncated messages where knowable."""
-    stats = state.statistics
+    damaged_summary = any(d.kind == "summary" for d in state.damage)
+    stats = None if damaged_summary else state.statistics
     for damage in state.damage:
-        if damage.kind == "truncated" and stats is not None:
+        if damage.kind == "truncated" and damage.messages is None and stats is not None:
             damage.messages = max(0, stats.message_count - seen)
         damage.reason = f"{os.path.basename(path)}: {damage.reason}" if damage.reason else \
             os.path.basename(path)
     data.damage.extend(state.damage)
     data.lost_bytes += sum(d.bytes for d in state.damage)
+    if stats is None or data.expected_messages is None:
+        data.expected_messages = None
+    else:
+        data.expected_messages += stats.message_count
     if not state.finished or state.damage:
         data.recovered = True
         data.error = data.error or "; ".join(d.reason for d in state.damage) or \

@@ -10,8 +10,10 @@
   topic, and the counts reach ``/events`` (``recorder.dropped``) and the file's ``recorder``
   metadata. In lockstep (``wait_when_full``) the producer waits for the writer instead:
   virtual time costs nothing, and a lockstep run must not lose samples.
-* Crash safety: the writer closes a chunk at least every ``flush_interval_s`` and finishes
-  the file when the pipe ends, so a SIGKILL of the loop process loses only what was not yet
+* Crash safety: the writer closes a chunk at least every ``flush_interval_s`` of wall time
+  and every ``chunk_span_s`` of session time (by default the same: a damaged chunk costs a
+  lockstep session no more of its time than a real-time one), and finishes the file when the
+  pipe ends, so a SIGKILL of the loop process loses only what was not yet
   handed over (at most ``flush_every_s`` plus one unflushed chunk), and the file is indexed.
 * Encodings: ``json`` (JSON Schema) by default; ``cdr`` (ros2msg schema, see
   :mod:`hil.core.recording.cdr`) for flat high-rate topics.
@@ -36,6 +38,7 @@ from typing import Any
 
 from hil.core.realtime import keep_process_off_cpu
 from hil.core.recording.cdr import CdrError, fields_of
+from hil.core.recording.output import OutputClaim
 from hil.core.recording.record_stream import FrameDecoder, encode_frame
 from hil.core.recording.recording_options import ENCODINGS, RecordingOptions
 from hil.core.recording.tune_wire import PortServer
@@ -104,7 +107,9 @@ class Topic:
 
 
 class Recorder:
-    """Writes one MCAP session (file or split series) through a writer process."""
+    """Writes one MCAP session (file or split series) through a writer process; with a
+    ``claim`` (:func:`hil.core.recording.output.claim_output`), its first file goes to the
+    claim's staging file until the claim is started."""
 
     def __init__(
         self,
@@ -112,6 +117,7 @@ class Recorder:
         *,
         chunk_size: int = 1 << 20,
         flush_interval_s: float = 1.0,
+        chunk_span_s: float | None = 1.0,
         flush_every_s: float = 0.005,
         batch_size: int = 512,
         max_backlog_bytes: int = 64 << 20,
@@ -119,6 +125,7 @@ class Recorder:
         wait_when_full: bool = False,
         options: RecordingOptions | None = None,
         tunable: bool = False,
+        claim: OutputClaim | None = None,
     ) -> None:
         self.path = os.fspath(path)
         self.options = options or RecordingOptions()
@@ -149,16 +156,23 @@ class Recorder:
         if self.options.live and tunable:
             self._tune_socket, writer_end = socket.socketpair()
         self._port_server: PortServer | None = None
+        # with a claim (hil.core.recording.output), the writer writes the first file to the
+        # claim's staging file, whose open descriptor it inherits
+        first_fd = claim.fd if claim is not None else None
+        tune_fd = writer_end.fileno() if writer_end is not None else None
         self._process = self._start_writer({
             "path": self.path, "chunk_size": chunk_size, "flush_interval_s": flush_interval_s,
+            "chunk_span_s": chunk_span_s,
             "profile": profile, "split_duration_s": self.options.split_duration_s,
             "split_size_mb": self.options.split_size_mb,
             # in real time a late writer costs a backlog, a late emulator a fault; in lockstep
             # the loop waits for the writer, so it must not be held back
             "yield_cpu": not wait_when_full,
             "live": self.options.live, "live_rates": self.options.live_rates,
-            "tune_fd": writer_end.fileno() if writer_end is not None else None,
-        }, writer_end)
+            "live_remote_tuning": self.options.live_remote_tuning,
+            "tune_fd": tune_fd, "first_fd": first_fd,
+            "staging": claim.staging if claim is not None and first_fd is not None else None,
+        }, [fd for fd in (tune_fd, first_fd) if fd is not None])
         if writer_end is not None:
             writer_end.close()
         assert self._process.stdin is not None
@@ -169,15 +183,14 @@ class Recorder:
         self.events = self.topic(EVENTS_TOPIC, EVENT_SCHEMA)
 
     @staticmethod
-    def _start_writer(options: dict[str, Any], tune_end: socket.socket | None = None
-                      ) -> subprocess.Popen[bytes]:
+    def _start_writer(options: dict[str, Any], pass_fds: list[int]) -> subprocess.Popen[bytes]:
         root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [root, env.get("PYTHONPATH")]))
         return subprocess.Popen(
             [sys.executable, "-m", "hil.core.recording.writer", json.dumps(options)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, start_new_session=True,
-            pass_fds=(tune_end.fileno(),) if tune_end is not None else (),
+            pass_fds=pass_fds,
         )
 
     def serve_parameters(self, port: Any) -> None:

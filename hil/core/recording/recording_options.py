@@ -17,13 +17,16 @@ ENCODINGS = ("json", "cdr")
 @dataclass(frozen=True)
 class RecordingOptions:
     """How a session is written: per-topic encodings, file splitting, and the live view
-    (``live``: serve the topics at ``[HOST:]PORT``, see :mod:`hil.core.recording.live`)."""
+    (``live``: serve the topics at ``[HOST:]PORT``, see :mod:`hil.core.recording.live`;
+    ``live_remote_tuning``: its clients may set the run's parameters even when it listens
+    beyond loopback)."""
 
     #: the command-line flag of each field
     FLAGS: ClassVar[dict[str, str]] = {
         "high_rate_encoding": "--encoding", "topic_encodings": "--topic-encoding",
         "split_duration_s": "--split-duration", "split_size_mb": "--split-size",
-        "live": "--live", "live_rates": "--live-rate"}
+        "live": "--live", "live_rates": "--live-rate",
+        "live_remote_tuning": "--allow-remote-tuning"}
 
     high_rate_encoding: str = "cdr"       # for topics registered with ``high_rate=True``
     topic_encodings: dict[str, str] = field(default_factory=dict)  # explicit, by topic name
@@ -31,6 +34,7 @@ class RecordingOptions:
     split_size_mb: float | None = None
     live: str | None = None                # "[HOST:]PORT": serve the topics live (recording.live)
     live_rates: dict[str, float] = field(default_factory=dict)  # topic -> Hz (0: every message)
+    live_remote_tuning: bool = False       # clients beyond loopback may set parameters
 
     def __post_init__(self) -> None:
         for name, encoding in [("high-rate topics", self.high_rate_encoding),

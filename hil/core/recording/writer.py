@@ -5,10 +5,13 @@ Started by :class:`hil.core.recording.recorder.Recorder` as
 (:mod:`hil.core.recording.record_stream`) on its standard input. It encodes each
 message (JSON, or CDR for compact topics), writes the MCAP file or split series
 (:class:`~hil.core.recording.mcap_series.McapSeries`), closes a chunk at least every
-``flush_interval_s``, and finishes the file with its summary and index when the stream says
-``close`` *or* simply ends: a SIGKILLed loop process still leaves a finished, indexed file,
-missing only what it had not yet handed over. Its last act is one JSON line of statistics on
-standard output.
+``flush_interval_s`` of wall time and every ``chunk_span_s`` of session time, and finishes
+the file with its summary and index when the stream says ``close`` *or* simply ends: a
+SIGKILLed loop process still leaves a finished, indexed file, missing only what it had not yet
+handed over. A run's session is written to its staging file
+(``first_fd``, ``staging``: :mod:`hil.core.recording.output`); if that file still bears its
+staging name when the writing ends, the run never started, and the writer removes it. Its last
+act is one JSON line of statistics on standard output.
 
 It runs in its own session (process group) and ignores SIGINT and SIGTERM, so a Ctrl-C or a
 signal to the run's process group lets the loop process drain into it before the stream ends.
@@ -29,13 +32,14 @@ from collections.abc import Callable
 from typing import Any
 
 from hil.core.recording.cdr import CdrEncoder, fields_of, ros2msg_text
-from hil.core.recording.live import LiveSink, parse_address
+from hil.core.recording.live import LiveSink, announce, parse_address
 from hil.core.recording.mcap_series import (
     DEFAULT_CHUNK_BYTES,
     ChannelSpec,
     McapSeries,
     json_schema_channel,
 )
+from hil.core.recording.output import remove_if_same
 from hil.core.recording.record_stream import FrameDecoder
 from hil.core.recording.tune_wire import RemotePort
 
@@ -170,7 +174,8 @@ class SessionWriter:
 def start_live(options: dict[str, Any]) -> LiveSink | None:
     """The session's live view when ``options["live"]`` asks for one; its URL on stderr.
     With ``options["tune_fd"]`` (the reverse channel to the loop process, see
-    :mod:`hil.core.recording.tune_wire`) it serves the run's parameters too.
+    :mod:`hil.core.recording.tune_wire`) it serves the run's parameters too, read-only beyond
+    loopback unless ``options["live_remote_tuning"]``.
 
     A live view that cannot start is reported on stderr and left out: the file comes first.
     """
@@ -181,12 +186,12 @@ def start_live(options: dict[str, Any]) -> LiveSink | None:
     try:
         host, port = parse_address(options["live"])
         live = LiveSink(host, port, rates=options.get("live_rates") or {},
-                        parameters=parameters)
+                        parameters=parameters,
+                        remote_tuning=bool(options.get("live_remote_tuning")))
     except Exception as exc:  # any failure of the server must not cost the recording
         print(f"hil: warning: live view off: {exc}", file=sys.stderr, flush=True)
         return None
-    print(f"hil: live view on {live.url} (Foxglove: Open connection > Foxglove WebSocket)",
-          file=sys.stderr, flush=True)
+    announce(live.url, live.exposure)
     return live
 
 
@@ -204,11 +209,15 @@ def run(options: dict[str, Any], fd: int = 0, ready: Callable[[], None] = lambda
     ``ready`` is called once the file is open, before the first read. A failure (the file
     cannot be opened or written, a message cannot be encoded) ends the writing: what was
     written stays in the file and the statistics name the failure (``error``)."""
+    first_fd = options.get("first_fd")
+    staging = os.fstat(first_fd) if first_fd is not None else None
     try:
         series = McapSeries(
             options["path"], chunk_size=int(options.get("chunk_size", DEFAULT_CHUNK_BYTES)),
+            chunk_span_s=options.get("chunk_span_s"),
             split_duration_s=options.get("split_duration_s"),
             split_size_mb=options.get("split_size_mb"), profile=options.get("profile", ""),
+            first_fd=first_fd, staging=options.get("staging"),
         )
     except Exception as exc:
         return {"messages_written": 0, "error": describe_failure(exc), "closed": False}
@@ -248,6 +257,8 @@ def run(options: dict[str, Any], fd: int = 0, ready: Callable[[], None] = lambda
     except Exception as exc:  # the disk is full, say: what is in the file stays readable
         error = error or describe_failure(exc)
         stats = series.stats
+    if staging is not None:  # the run never started (its loop process may be gone): no file
+        remove_if_same(options["staging"], staging)
     if live is not None:  # after the file: a stalled client may hold the server's stop
         live.close()
     return {"messages_written": stats.messages_written, "chunks_flushed": stats.chunks_flushed,

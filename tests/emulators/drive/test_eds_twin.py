@@ -189,7 +189,7 @@ def test_a_twin_of_another_hil_configuration_from_its_write_eds(tmp_path, capsys
                                 "serial": 7}
     assert node["scaling"]["increments_per_rev"] == 4096
     assert node["scaling"]["counts_per_turn"] == 4096
-    assert node["modes"] == ["CSP", "CST"]
+    assert node["modes"] == ["PP", "PV", "HM", "CSP", "CSV", "CST"]
     listed = hil_here(capsys, "emulate", "drive", "--eds", "hil7.eds", "--node", "7",
                       cwd=tmp_path)
     assert listed.returncode == 0
@@ -214,8 +214,8 @@ def test_emulate_drive_eds_alone_lists_what_the_twin_refuses(tmp_path, capsys):
 
 def test_an_eds_of_no_drive_is_one_line(tmp_path):
     refused = hil(tmp_path, "emulate", "drive", "--eds", SAMPLE, "--socketcand", "127.0.0.1:0")
-    said = (f"hil: error: EDS {SAMPLE}: no 0x6040:0 (controlword): the twin needs it to run CST "
-            "or CSP")
+    said = (f"hil: error: EDS {SAMPLE}: no 0x6502 (supported drive modes) with a value: the twin "
+            "emulates the modes it lists (PP, PV, HM, CSP, CSV, CST)")
     assert one_error_line(refused) == said
     (tmp_path / "sample.toml").write_text(f'[emulator]\neds = "{SAMPLE}"\n')
     run = hil(tmp_path, "servo", "run", "--config", "sample.toml", "--controller", "pid",
@@ -227,17 +227,15 @@ def test_an_eds_of_no_drive_is_one_line(tmp_path):
     ("[6077]\nParameterName=Torque actual value\nObjectType=0x7\nDataType=0x0003",
      "[6077]\nParameterName=Torque actual value\nObjectType=0x7\nDataType=0x0004",
      "0x6077:0 (Torque actual value) is INTEGER32, the twin's is INTEGER16"),
-    ("DefaultValue=0x606C0020", "DefaultValue=0x21000010",
-     "TPDO2 (0x1801) maps 0x2100:0 (DC link voltage), which the twin cannot produce: not "
-     "emulated"),
     ("DefaultValue=$NODEID+0x40000280\nPDOMapping=0\n\n[1801sub2]\nParameterName="
      "Transmission type\nObjectType=0x7\nDataType=0x0005\nAccessType=rw\nDefaultValue=1",
      "DefaultValue=$NODEID+0x40000280\nPDOMapping=0\n\n[1801sub2]\nParameterName="
      "Transmission type\nObjectType=0x7\nDataType=0x0005\nAccessType=rw\nDefaultValue=252",
      "TPDO2 (0x1801) is valid at power-on with transmission type 252, which the twin does not "
      "emulate (0..240, 254, 255; no RTR)"),
-    ("DefaultValue=0x000002A1", "DefaultValue=0x00000001",
-     "0x6502 = 0x00000001 lists neither CSP nor CST"),
+    ("DefaultValue=0x000002A1", "DefaultValue=0x00000002",
+     "lists no mode hil emulates: 0x6502 = 0x00000002 (VL); hil emulates PP, PV, HM, CSP, "
+     "CSV, CST"),
     ("ParameterName=Shaft revolutions\nObjectType=0x7\nDataType=0x0007\nAccessType=rw\n"
      "DefaultValue=1", "ParameterName=Shaft revolutions\nObjectType=0x7\nDataType=0x0007\n"
      "AccessType=rw\nDefaultValue=7",
@@ -245,7 +243,7 @@ def test_an_eds_of_no_drive_is_one_line(tmp_path):
      "number"),
     ("DefaultValue=$NODEID+0x80\n", "DefaultValue=$NODEID+0x80000080\n",
      "0x1014:0 (COB-ID EMCY) is 0x80000081; the twin's is 0x81, as CiA 301 predefines it"),
-], ids=["type", "tpdo-maps-vendor-object", "rtr-tpdo", "no-cyclic-mode",
+], ids=["type", "rtr-tpdo", "no-emulated-mode",
         "gear-not-whole", "emcy-off"])
 def test_an_eds_the_twin_cannot_run_is_one_line(tmp_path, capsys, old, new, says):
     path = edited(tmp_path, old, new)
@@ -293,7 +291,8 @@ def test_a_unit_the_eds_does_not_give_is_refused_not_guessed(tmp_path, capsys):
     refused = hil_here(capsys, "emulate", "drive", "--eds", path, cwd=tmp_path)
     assert one_error_line(refused).endswith(
         "0x608F:1 (Encoder increments) has no value: the twin takes the axis' units and "
-        "current limits from the file, never its own")
+        "current limits from the file, never its own; give it with --set 0x608F:1=VALUE or "
+        "[emulator] set = {\"0x608F:1\" = VALUE} (or a DCF's ParameterValue)")
 
 
 def test_a_vendor_object_at_a_hook_index_is_the_vendors_and_not_emulated(tmp_path):

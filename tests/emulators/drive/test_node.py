@@ -114,7 +114,7 @@ def test_every_readable_object_uploads_with_its_size(wire):
     (struct.pack("<BHB", 0x40, 0x6041, 1) + bytes(4), 0x06090011),   # variable with sub-index
     (struct.pack("<BHBH", 0x2B, 0x6041, 0, 1) + bytes(2), 0x06010002),  # read-only
     (struct.pack("<BHBI", 0x23, 0x6040, 0, 1), 0x06070010),          # 4 bytes to a u16
-    (struct.pack("<BHBb", 0x2F, 0x6060, 0, 3) + bytes(3), 0x06090030),  # unsupported mode
+    (struct.pack("<BHBb", 0x2F, 0x6060, 0, 2) + bytes(3), 0x06090030),  # unsupported mode (VL)
     (struct.pack("<BHBI", 0x23, 0x6075, 0, 0), 0x06090032),          # rated current 0
     (struct.pack("<BHBI", 0x23, 0x1006, 0, 750), 0x06090030),        # not a plant multiple
     (struct.pack("<BHBh", 0x2B, 0x605A, 0, 3) + bytes(2), 0x06090030),  # quick-stop option 3
