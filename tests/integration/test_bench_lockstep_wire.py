@@ -148,7 +148,7 @@ def test_a_lockstep_run_over_the_wire_records_the_in_process_session(seeded, tmp
     assert seeded.clock()[1] != ON_MASTER_TIME  # let go: back on the wall clock
     metadata = read_session(str(tmp_path / f"{name}.mcap")).metadata
     assert metadata["session"]["clock"] == "sim"
-    assert metadata["bench"]["identity"] == "hil hil-bench-emulator 1.0"
+    assert metadata["bench"]["identity"] == "hil hil-bench-emulator 2.0"
     assert metadata["bench"]["time"] == "the run's (lockstep over the wire)"
     lines = seeded.lines()[seen:]
     assert "took the plant's time; the plant starts again from t = 0" in lines[0]
