@@ -158,3 +158,29 @@ class _Clock:
     def time_ns(self) -> int:
         return time.monotonic_ns()
 
+
+def test_a_write_given_up_on_and_carried_out_late_is_no_foreign_master():
+    """A Modbus server that serves a connection's requests in turn carries out a write after
+    the master gave up on it: the relay is found where that write put it, after a later write
+    of the run said otherwise. This run's own late write (``relay.late_write``), not another
+    master: the run goes on. Another master's switch is still one (test_one_master.py)."""
+    with emulator_with("delay@1-2:ms=1500,unit=1") as emulator:
+        events = []
+        bench = SafeBench(driver_for(emulator.serve_tcp(), timeout_s=0.1, attempts=1), _Clock(),
+                          on_event=lambda kind, *a, **k: events.append(kind))
+        bench.open()
+        assert bench.set_relays({"M1": True}) == {"M1": "switched"}
+        emulator.step(100)  # plant time 1 s: the relay module answers 1.5 s late
+        with pytest.raises(LinkError):
+            bench.safe_state()  # M1 off: given up on, carried out 1.5 s later
+        emulator.step(100)  # the window is over
+        with bench._driver.link.patient(ANSWER_S):
+            assert bench.set_relays({"M1": True}) == {"M1": "unchanged"}  # as it knows it
+            assert bench.readback()["M1"] is True
+            deadline = time.monotonic() + ANSWER_S
+            while emulator.plant.coils()[0] and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert bench.readback()["M1"] is False  # the late write
+        assert (bench.stats.late_writes, bench.stats.foreign_changes) == (1, 0)
+        assert "relay.late_write" in events and "relay.foreign_change" not in events
+        bench.close()
