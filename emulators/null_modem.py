@@ -7,10 +7,10 @@ time it would take on a real line (10 bits per byte for 8N1, 11 with parity), so
 measured through the cable include the wire time of the frames.
 
 A noisy line is a fault the cable plays (:mod:`hil.emulators.faults`, kind ``noise``, on the
-cable's time: seconds since it was made): while one is on, each byte crossing it, either way,
-has one bit flipped with probability ``rate``, the bytes and bits drawn from ``seed`` (the same
-bytes through the same cable are flipped the same way). ``carried`` and ``flipped`` count the
-bytes each way.
+cable's time: seconds since it was made, or what ``now`` says): while one is on, each byte
+crossing it, either way, has one bit flipped with probability ``rate``, the bytes and bits drawn
+from ``seed`` (the same bytes through the same cable are flipped the same way). ``carried`` and
+``flipped`` count the bytes each way.
 """
 
 from __future__ import annotations
@@ -30,16 +30,17 @@ from hil.emulators.faults import Fault, FaultSchedule, for_emulator
 
 class NullModem:
     """Two connected serial ports: ``ports[0]`` <-> ``ports[1]``. Use as a context manager.
-    ``faults``: line faults (``noise``) on the cable's time; each is told to ``on_fault`` as it
-    starts."""
+    ``faults``: line faults (``noise``) on the cable's time, ``now()`` (default: seconds since
+    it was made); each is told to ``on_fault`` as it starts."""
 
     def __init__(self, baudrate: float | None = None, bits_per_byte: int = 10,
                  faults: Iterable[Fault] = (),
-                 on_fault: Callable[[str], None] | None = None) -> None:
+                 on_fault: Callable[[str], None] | None = None,
+                 now: Callable[[], float] | None = None) -> None:
         self.byte_time_s = bits_per_byte / baudrate if baudrate else 0.0
         started = time.monotonic()
         self.faults = FaultSchedule(for_emulator(faults, "line"),
-                                    lambda: time.monotonic() - started, on_fault)
+                                    now or (lambda: time.monotonic() - started), on_fault)
         #: bytes copied and bytes flipped, each way: [0] ports[0] -> ports[1], [1] back
         self.carried, self.flipped = [0, 0], [0, 0]
         self._noise = {(id(f), way): Noise(f, way) for f in self.faults.faults for way in (0, 1)}

@@ -10,6 +10,11 @@
   row declare the link lost (event, safe level); the link is then retried every
   ``reconnect_interval_s``; on reconnection every relay is driven to its safe level first and
   the controllers start again from there.
+* After the run (:meth:`SafeBench.confirm_safe`): unless the last safe state read every
+  relay back at its safe level, the bench is reached again (a lost link's rules: up to
+  ``watchdog_polls`` tries, ``reconnect_interval_s`` apart), its relays driven to their safe
+  levels and read back; when they still cannot be confirmed, event
+  ``bench.safe_state_unconfirmed`` (level error) says which may still be on.
 * Another master: a relay found switched with no write of this run since it was last read is
   another master's doing (event ``relay.foreign_change``), unless a write of this run that was
   given up on (no answer) asked for that state within :data:`LATE_WRITE_S`: a slow peer
@@ -26,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -124,6 +130,9 @@ class SafeBench(Device):
         self._seen: dict[str, bool | None] = dict.fromkeys(relays)
         # the states asked by writes given up on (no answer), by relay: when (s)
         self._given_up: dict[str, dict[bool, float]] = {name: {} for name in relays}
+        #: every relay read back at its safe level by the last safe state, no write since
+        self.confirmed_safe = False
+        self._read_back: dict[str, bool] | None = None  # the last safe state's read, if any
 
     # -- state -----------------------------------------------------------------------------
     @property
@@ -310,6 +319,7 @@ class SafeBench(Device):
     def _write(self, name: str, on: bool, t_s: float) -> None:
         """The relay's coil written; a write left unanswered is remembered (it may still be
         carried out)."""
+        self.confirmed_safe = False
         try:
             self._driver.link.write_coil(self._driver.map.units["relays"],
                                          self._driver.map.relays[name].coil, on)
@@ -373,9 +383,10 @@ class SafeBench(Device):
     def _drive_safe(self, t_s: float, reason: str) -> None:
         """Every relay to its safe level regardless of dwell, then verify all of them."""
         self._seen = dict.fromkeys(self._seen)
+        self._read_back = None
         for name, level in self.safe_levels.items():
             self._write(name, level, t_s)
-        actual = self._driver.read_relays()
+        actual = self._read_back = self._driver.read_relays()
         wrong = [n for n, level in self.safe_levels.items() if actual[n] != level]
         if wrong:
             raise LinkError(f"relays {wrong} did not reach their safe level ({reason})")
@@ -383,6 +394,7 @@ class SafeBench(Device):
             self._guard.applied(name, on, t_s)
         self._seen = dict(actual)
         self._guard.pending.clear()
+        self.confirmed_safe = True
 
     def safe_state(self) -> None:
         """Every relay to its safe level (ignores dwell). Idempotent; raises when it cannot."""
@@ -394,6 +406,58 @@ class SafeBench(Device):
                 return
         self._drive_safe(self._now_s(None), reason="safe state")
         self._emit("bench.safe", "relays at their safe levels")
+
+    def confirm_safe(self) -> str | None:
+        """After the run: None when every relay is confirmed at its safe level. The last safe
+        state's read-back confirms them; else (a lost link, a failed safe state) the bench is
+        reached again, as a lost link is: up to ``watchdog_polls`` tries, ``reconnect_interval_s``
+        apart (wall clock), its relays driven to their safe levels and read back. Still not
+        confirmed: event ``bench.safe_state_unconfirmed`` (level error; data: ``on`` and ``off``,
+        the relays read away from their safe level, ``unknown``, those that could not be read)
+        and its message, one line naming the relays that may still be on."""
+        if self.confirmed_safe:
+            return None
+        link, tries = self._driver.link, self.watchdog.limit
+        retries = link.retries  # the questions after the run are no retries of its polls
+        try:
+            for attempt in range(tries):
+                if attempt:
+                    time.sleep(self.reconnect_interval_s)
+                link.close()
+                if not link.connect():
+                    continue
+                try:
+                    self._drive_safe(self._now_s(None), reason="after the run")
+                except DriverError:
+                    continue
+                self._emit("bench.safe", "relays at their safe levels, read back after the "
+                           "run")
+                return None
+        finally:
+            link.retries = retries
+        read = self._read_back
+        away = [n for n, level in self.safe_levels.items() if read is not None
+                and read[n] != level]
+        unknown = [] if read is not None else list(self.safe_levels)
+        still = self._may_still_be(away + unknown)
+        why = (f"read back from {self.url} after the run, not at their safe level"
+               if read is not None else f"the bench at {self.url} did not answer after the "
+               f"run ({tries} tries, {self.reconnect_interval_s:g} s apart)")
+        message = f"{still}: {why}"
+        self._emit("bench.safe_state_unconfirmed", message, level="error", url=self.url,
+                   on=[n for n in away if not self.safe_levels[n]],
+                   off=[n for n in away if self.safe_levels[n]], unknown=unknown)
+        return message
+
+    def _may_still_be(self, names: list[str]) -> str:
+        """``relays P1, P2 may still be on`` (``off`` for those whose safe level is on)."""
+        parts = []
+        for state, safe in (("on", False), ("off", True)):
+            chosen = [n for n in names if self.safe_levels[n] == safe]
+            if chosen:
+                word = "relay" if len(chosen) == 1 else "relays"
+                parts.append(f"{word} {', '.join(chosen)} may still be {state}")
+        return "; ".join(parts)
 
     def disconnect(self) -> None:
         """Close the link (the driver's socket or serial port)."""

@@ -184,3 +184,69 @@ def test_a_write_given_up_on_and_carried_out_late_is_no_foreign_master():
         assert (bench.stats.late_writes, bench.stats.foreign_changes) == (1, 0)
         assert "relay.late_write" in events and "relay.foreign_change" not in events
         bench.close()
+
+
+def bench_with(emulator, events):
+    """The safety layer over ``emulator``'s TCP server, each event kept as (kind, data); a lost
+    link is retried 3 times, 50 ms apart."""
+    return SafeBench(driver_for(emulator.serve_tcp(), timeout_s=ANSWER_S), _Clock(),
+                     on_event=lambda kind, message, **data: events.append((kind, data)),
+                     watchdog_polls=3, reconnect_interval_s=0.05)
+
+
+def test_relays_confirmed_at_their_safe_level_after_a_run_ask_nothing_more():
+    with emulator_with() as emulator:
+        events = []
+        bench = bench_with(emulator, events)
+        bench.open()
+        assert bench.set_relays({"P2": True}) == {"P2": "switched"}
+        assert not bench.confirmed_safe  # written since
+        bench.safe_state()
+        asked = bench.stats.polls, bench._driver.link.connections
+        assert bench.confirm_safe() is None
+        assert (bench.stats.polls, bench._driver.link.connections) == asked
+        bench.close()
+
+
+def test_a_welded_relay_left_on_is_said_after_the_run():
+    """P2 welded while on: the safe state cannot switch it off; after the run it is tried again
+    as a lost link is, read back on: event bench.safe_state_unconfirmed and one line."""
+    with emulator_with("weld@1:relay=P2") as emulator:
+        events = []
+        bench = bench_with(emulator, events)
+        bench.open()
+        assert bench.set_relays({"P2": True}) == {"P2": "switched"}
+        emulator.step(100)  # plant time 1 s: welded on
+        with pytest.raises(LinkError, match=r"relays \['P2'\] did not reach their safe level"):
+            bench.safe_state()
+        retries = bench.retries
+        message = bench.confirm_safe()
+        assert message == (f"relay P2 may still be on: read back from {emulator.url} after the "
+                           "run, not at their safe level")
+        assert events[-1] == ("bench.safe_state_unconfirmed", {
+            "level": "error", "source": "bench", "url": emulator.url, "on": ["P2"], "off": [],
+            "unknown": []})
+        assert emulator.faults.hits["weld@1:relay=P2"] == 4 * 4  # 4 relays: the run, 3 tries
+        assert bench.retries == retries  # the tries after the run are not the run's retries
+        bench.close()
+
+
+def test_after_a_lost_link_the_relays_are_driven_safe_again_once_the_bench_answers():
+    """The link lost with P2 on (every answer dropped), then back: after the run the relays
+    are driven to their safe levels and read back, nothing is said."""
+    with emulator_with("drop@1-2") as emulator:
+        events = []
+        bench = SafeBench(driver_for(emulator.serve_tcp(), timeout_s=0.1, attempts=1),
+                          _Clock(), on_event=lambda kind, message, **data: events.append(kind),
+                          watchdog_polls=3, reconnect_interval_s=0.3)
+        bench.open()
+        assert bench.set_relays({"P2": True}) == {"P2": "switched"}
+        emulator.step(100)  # every answer dropped
+        emulator.plant.set_coils(3, [True])  # as if the loss's safe state never got through
+        bench.lose_link("gone")
+        assert not bench.confirmed_safe
+        threading.Timer(0.2, emulator.step, args=(100,)).start()  # back during the first wait
+        assert bench.confirm_safe() is None
+        assert emulator.plant.coils()[:4] == [False] * 4
+        assert events[-1] == "bench.safe" and "bench.safe_state_unconfirmed" not in events
+        bench.close()
