@@ -52,7 +52,8 @@ class Identity:
 
 def identify(link: ModbusLink, unit: int, timeout_s: float) -> Identity | None:
     """The identity of the device at ``unit``, asked once, waiting up to ``timeout_s`` (a busy
-    machine may be slow to answer: a lost answer would make a lockstep run a wall-clock one);
+    machine may be slow to answer: a lost answer would make a lockstep run a wall-clock one;
+    over a serial line the question is asked again every request timeout within it);
     None when it gives none (an exception, as most real devices answer, or nothing). A
     question the device did not answer is no retry of the bench's polls: ``link.retries`` is
     left as it was."""

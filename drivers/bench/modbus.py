@@ -171,6 +171,7 @@ class ModbusLink:
         self.timeout_s = self.request_timeout_s = timeout_s
         self.attempts = attempts
         self.connections = 0  # successful (re)connections so far
+        self.requests = 0     # requests asked (however many tries each took)
         self.retries = 0      # tries that failed and were tried again (or given up)
         self.bound_s: float | None = None  # lockstep over the wire: the wall-clock bound
         self.gone: str | None = None  # lockstep: why the peer is gone; None while it is not
@@ -232,6 +233,7 @@ class ModbusLink:
         """Ask ``request`` until ``check`` accepts an answer; exceptions from the device raise."""
         if self.gone is not None:
             raise PeerGoneError(f"{what}: {self.gone}: the peer is gone")
+        self.requests += 1
         reason = ""
         for _ in range(self.attempts):
             if not self.connect():

@@ -144,6 +144,11 @@ class SafeBench(Device):
         """Modbus requests tried again so far (timeouts, dropped or garbled answers)."""
         return self._driver.link.retries
 
+    @property
+    def requests(self) -> int:
+        """Modbus requests asked so far (however many tries each took)."""
+        return self._driver.link.requests
+
     def relays(self) -> dict[str, bool]:
         """Last known actual relay states (verified writes and read-backs)."""
         return dict(self._guard.state)
