@@ -6,13 +6,15 @@ run; a line flipping 2 % of the bytes for a while slows the run down and it comp
 by the link-loss rules, its relays read back or said); a line cut for longer than
 ``lockstep_timeout_s`` ends the run, and the relays it left on are driven to their safe levels
 once the line is back, read back, or said to be unconfirmed. After each run an independent
-master (pymodbus's serial client) reads the relays."""
+master (pymodbus's serial client) reads the relays. ``hil emulate line`` is the same cable in
+a process of its own."""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -20,6 +22,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import serial
 from pymodbus.client import ModbusSerialClient
 
 from hil.core.recording.reader import read_session
@@ -196,3 +199,38 @@ def test_a_line_cut_mid_run_ends_it_and_the_relays_are_read_back_or_said(tmp_pat
                        if e["kind"] == "bench.safe_state_unconfirmed"]
         assert [e["data"]["unknown"] for e in unconfirmed] == [["M1", "M2", "P1", "P2"]]
     assert "link_losses 1" in run.stderr
+
+
+def test_hil_emulate_line_flips_the_asked_bytes_and_counts_them(tmp_path):
+    """``hil emulate line``: its two ends on the first line; every byte flipped at rate 1, in
+    one bit; the fault on stderr when it starts; what it carried and flipped when it stops."""
+    line = subprocess.Popen(
+        [sys.executable, "-m", "hil", "emulate", "line", "--fault", "noise@0:rate=1,seed=4"],
+        cwd=tmp_path, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        stdin=subprocess.DEVNULL, text=True)
+    try:
+        assert line.stdout is not None
+        first, second = re.fullmatch(r"hil: line (\S+) <-> (\S+); Ctrl-C stops\n",
+                                     line.stdout.readline()).groups()
+        sent = bytes(range(64))
+        with serial.Serial(first, timeout=5) as a, serial.Serial(second, timeout=5) as b:
+            a.write(sent)
+            got = b.read(len(sent))
+        assert [bin(x ^ y).count("1") for x, y in zip(sent, got, strict=True)] == [1] * 64
+    finally:
+        line.terminate()
+        out, err = line.communicate(timeout=10)
+    assert line.returncode == 0, err
+    assert out.strip().endswith(f"{first} -> {second} 64 bytes, 64 flipped; "
+                                f"{second} -> {first} 0 bytes, 0 flipped")
+    assert "hil: fault: noise@0:rate=1.0,seed=4 injected at t=" in err
+
+
+def test_a_bad_line_fault_is_one_line(tmp_path):
+    refused = subprocess.run(
+        [sys.executable, "-m", "hil", "emulate", "line", "--fault", "drop@0"], cwd=tmp_path,
+        env=ENV, capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2
+    assert refused.stderr.strip().splitlines() == [
+        "hil: error: --fault 'drop@0:every=1,unit=0': a bench emulator fault, not one the line "
+        "emulator plays"]
