@@ -36,14 +36,11 @@ import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from pymodbus.exceptions import ModbusException
 from pymodbus.framer import FramerRTU, FramerSocket
 from pymodbus.pdu import DecodePDU, ModbusPDU
-
-if TYPE_CHECKING:
-    from hil.drivers.bench.modbus import BusSpec
 
 #: the largest Modbus frame: an RTU ADU is at most 256 bytes, a TCP ADU 260
 MAX_FRAME = 260
@@ -68,8 +65,8 @@ class Line(abc.ABC):
     """One master's connection to the bench (a TCP socket or a serial port), requests
     answered in turn. ``timeout_s``: how long :meth:`ask` waits for an answer."""
 
-    def __init__(self, spec: BusSpec, timeout_s: float) -> None:
-        self.spec, self.timeout_s = spec, timeout_s
+    def __init__(self, timeout_s: float) -> None:
+        self.timeout_s = timeout_s
         self.decoder = DecodePDU(is_server=False)
         self.discarded = 0  # frames passed over: late answers, others' answers, noise
         self._received = bytearray()
@@ -168,10 +165,12 @@ def same_shape(first: ModbusPDU, second: ModbusPDU) -> bool:
 
 
 class TcpLine(Line):
-    """Modbus TCP: the answer is the frame with the request's transaction id."""
+    """Modbus TCP to ``host``:``port``: the answer is the frame with the request's transaction
+    id."""
 
-    def __init__(self, spec: BusSpec, timeout_s: float) -> None:
-        super().__init__(spec, timeout_s)
+    def __init__(self, host: str, port: int, timeout_s: float) -> None:
+        super().__init__(timeout_s)
+        self.host, self.port = host, port
         self.framer = FramerSocket(self.decoder)
         self.socket: socket.socket | None = None
         self._tid = 0
@@ -185,7 +184,7 @@ class TcpLine(Line):
         if self.socket is not None:
             return True
         try:
-            self.socket = socket.create_connection((self.spec.host, self.spec.port),
+            self.socket = socket.create_connection((self.host, self.port),
                                                    timeout=self.timeout_s)
         except OSError:
             return False
@@ -264,11 +263,13 @@ class Owed:
 
 
 class RtuLine(Line):
-    """Modbus RTU: the answer is the first whole frame (CRC) of the request's unit and
+    """Modbus RTU on the serial port ``device`` (``settings``: pyserial's baudrate, parity,
+    stopbits, bytesize): the answer is the first whole frame (CRC) of the request's unit and
     function that ``check`` accepts; the frames before it are passed over."""
 
-    def __init__(self, spec: BusSpec, timeout_s: float) -> None:
-        super().__init__(spec, timeout_s)
+    def __init__(self, device: str, settings: dict[str, Any], timeout_s: float) -> None:
+        super().__init__(timeout_s)
+        self.device, self.settings = device, settings
         self.framer = FramerRTU(self.decoder)
         self.port: Any = None  # a pyserial Serial
         self._owed: Owed | None = None
@@ -283,12 +284,9 @@ class RtuLine(Line):
             return True
         import serial
 
-        spec = self.spec
         try:  # non-blocking reads: this line waits with select
-            self.port = serial.Serial(spec.device, spec.baudrate, parity=spec.parity,
-                                      stopbits=spec.stopbits, bytesize=spec.bytesize,
-                                      timeout=0, write_timeout=max(self.timeout_s, 1.0),
-                                      exclusive=True)
+            self.port = serial.Serial(self.device, **self.settings, timeout=0,
+                                      write_timeout=max(self.timeout_s, 1.0), exclusive=True)
         except (OSError, ValueError):
             return False
         self._received.clear()

@@ -28,6 +28,7 @@ import struct
 import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
+from typing import Any
 from urllib.parse import parse_qsl, urlsplit
 
 from pymodbus.exceptions import ModbusException
@@ -114,6 +115,12 @@ class BusSpec:
     bytesize: int = 8
 
     @property
+    def serial_settings(self) -> dict[str, Any]:
+        """The serial line's settings, as pyserial names them."""
+        return {"baudrate": self.baudrate, "parity": self.parity, "stopbits": self.stopbits,
+                "bytesize": self.bytesize}
+
+    @property
     def url(self) -> str:
         if self.kind == "tcp":
             return f"modbus-tcp://{self.host}:{self.port}"
@@ -175,8 +182,8 @@ class ModbusLink:
         self.retries = 0      # tries that failed and were tried again (or given up)
         self.bound_s: float | None = None  # lockstep over the wire: the wall-clock bound
         self.gone: str | None = None  # lockstep: why the peer is gone; None while it is not
-        self.line: Line = (TcpLine(spec, timeout_s) if spec.kind == "tcp"
-                           else RtuLine(spec, timeout_s))
+        self.line: Line = (TcpLine(spec.host, spec.port, timeout_s) if spec.kind == "tcp"
+                           else RtuLine(spec.device, spec.serial_settings, timeout_s))
 
     @property
     def discarded(self) -> int:

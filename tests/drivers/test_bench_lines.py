@@ -125,8 +125,9 @@ def test_a_late_answer_is_passed_over_by_its_transaction_id_on_the_same_connecti
 
 
 def test_a_late_answer_split_across_the_timeout_keeps_the_connection_in_step():
-    """Half of a late frame before the try gives up, the rest after: the next request's answer
-    is still found (what was received is kept between requests)."""
+    """Half of the first try's late frame before that try gives up, the rest during the next
+    try: the frame is completed and passed over, the next try's answer found (what was
+    received is kept from one try to the next)."""
     late = mbap(1, 2, registers_pdu(0x1111, 0x1111))
 
     def script(tid: int, unit: int, pdu: bytes) -> Reply:
@@ -135,12 +136,28 @@ def test_a_late_answer_split_across_the_timeout_keeps_the_connection_in_step():
         return [(0.0, late[5:] + mbap(tid, unit, registers_pdu(0x4000, 0)))]
 
     peer = TcpPeer(script)
+    link = ModbusLink(parse_bus_url(peer.url), timeout_s=0.2, attempts=2)
+    try:
+        assert link.read_floats(2, 0, 2) == [2.0]
+        assert (link.retries, link.discarded, link.connections) == (1, 1, 1)
+    finally:
+        link.close()
+        peer.close()
+
+
+def test_a_request_given_up_on_closes_its_connection():
+    """No backlog of requests given up on builds on the peer's side: the next request goes on
+    a new connection."""
+    def script(tid: int, unit: int, pdu: bytes) -> Reply:
+        return [] if tid == 1 else [(0.0, mbap(tid, unit, registers_pdu(0x4000, 0)))]
+
+    peer = TcpPeer(script)
     link = ModbusLink(parse_bus_url(peer.url), timeout_s=0.2, attempts=1)
     try:
         with pytest.raises(LinkError, match=r"no answer within 0\.2 s"):
             link.read_floats(2, 0, 2)
         assert link.read_floats(2, 0, 2) == [2.0]
-        assert (link.discarded, link.connections) == (1, 1)
+        assert link.connections == 2
     finally:
         link.close()
         peer.close()
