@@ -42,10 +42,12 @@ from pymodbus.exceptions import ModbusException
 from pymodbus.framer import FramerRTU, FramerSocket
 from pymodbus.pdu import DecodePDU, ModbusPDU
 
+from hil.drivers.errors import DriverError
+
 #: the largest Modbus frame: an RTU ADU is at most 256 bytes, a TCP ADU 260
 MAX_FRAME = 260
 #: what a frame may raise on its way through pymodbus's decoders (garbage included)
-DECODE_ERRORS = (ModbusException, ValueError, IndexError, struct.error)
+DECODE_ERRORS = (ModbusException, ValueError, IndexError, KeyError, struct.error)
 
 #: RTU: how long (in timeouts) an answer still out is waited for before a request it could
 #: pass for (an answer later than that to a read of the same unit, function and length is the
@@ -57,7 +59,7 @@ READS = (1, 2, 3, 4)
 Check = Callable[[ModbusPDU], bool]
 
 
-class ReplyMismatchError(Exception):
+class ReplyMismatchError(DriverError):
     """The peer answered the request's transaction with another unit, function or content."""
 
 
