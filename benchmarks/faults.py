@@ -16,9 +16,16 @@ for the servo, the stale cycles outside every fault window (a loaded machine's, 
 counted in ``stale_feedback``). A welded relay nothing asks to switch is "not exercised":
 no read-back can tell it from a healthy one.
 
-``--quick``: one bench machine cycle (28 s of session time) without the no-fault baseline, and
-a 2 s servo run after a 3 s lead (seconds; figures not worth quoting, and the verdict does not
-set the exit status: a fault missed on a loaded machine is a figure there).
+3. Bench over a noisy RTU line: lockstep bench sessions (``--noisy-s`` seconds of session time
+   each) against ``hil emulate bench --serial`` through a null-modem cable that flips a share
+   of the bytes both ways (the ``noise`` fault: clean, 1 in 5000, 1 in 500, 2 %): bytes flipped,
+   requests, retries per thousand requests, how the session ended and its realtime factor.
+   The target: a flipped byte costs a retry, never the session.
+
+``--quick``: one bench machine cycle (28 s of session time) without the no-fault baseline, a 2 s
+servo run after a 3 s lead, and 0.5 s noisy-line sessions, clean and 2 % only (seconds; figures
+not worth quoting, and the verdict does not set the exit status: a fault missed on a loaded
+machine is a figure there).
 """
 
 from __future__ import annotations
@@ -26,7 +33,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import random
+import subprocess
 import sys
 import tempfile
 import time
@@ -41,7 +50,14 @@ sys.path.insert(0, str(REPO))
 from benchkit import add_quick  # noqa: E402
 
 from hil import api  # noqa: E402
+from hil.bench.config import load_bench_config, parse_bench_config  # noqa: E402
+from hil.bench.rig import attach_bench  # noqa: E402
+from hil.core.clock import SimClock  # noqa: E402
+from hil.core.config import deep_merge  # noqa: E402
 from hil.core.recording.reader import read_session  # noqa: E402
+from hil.core.session import Session  # noqa: E402
+from hil.emulators.faults import parse_fault  # noqa: E402
+from hil.emulators.null_modem import NullModem  # noqa: E402
 from hil.errors import HilError  # noqa: E402
 
 CYCLE_S = 28.0  # the machining sequence's period
@@ -216,6 +232,65 @@ def soak_servo(seconds: float, seed: int, tmp: Path, lead: float = 8.0) -> dict[
             "events": sorted({m["kind"] for _, m in data.topic("/events")})}
 
 
+#: the noisy line's cases: the share of the bytes flipped each way (0: a clean line)
+NOISE_RATES = (0.0, 1 / 5000, 1 / 500, 0.02)
+#: over RTU poll what the bench needs (as the README advises): the apparent powers, levels at
+#: 10 Hz
+RTU_POLLS = {"meter": {"poll": ["va_l1", "va_l2", "va_l3", "total_va"]},
+             "sampling": {"levels_every": 10}}
+
+
+def noisy_line(rate: float, seconds: float, seed: int, tmp: Path) -> dict[str, Any]:
+    """A lockstep bench session of ``seconds`` (sequence playing, no controller) over Modbus
+    RTU against ``hil emulate bench --serial`` through a null-modem cable flipping ``rate`` of
+    the bytes both ways: what the cable carried and flipped, the requests, retries and frames
+    passed over, how it ended, its realtime factor."""
+    config = parse_bench_config(deep_merge(load_bench_config().data, RTU_POLLS))
+    faults = [parse_fault(f"noise@0:rate={rate!r},seed={seed}")] if rate else []
+    with NullModem(faults=faults) as modem:
+        emulator = subprocess.Popen(
+            [sys.executable, "-m", "hil", "emulate", "bench", "--serial", modem.ports[1]],
+            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
+            text=True, env={**os.environ, "PYTHONPATH": str(REPO)})
+        try:
+            assert emulator.stdout is not None
+            emulator.stdout.readline()  # listening
+            session = Session(str(tmp / f"noisy-{rate}.mcap"), SimClock(), 0.01, kind="bench",
+                              config=config.data, handle_signals=False)
+            rig = attach_bench(session, config, f"modbus-rtu://{modem.ports[0]}")
+            wall = time.perf_counter()
+            try:
+                session.run(duration_s=seconds)
+            finally:
+                wall = time.perf_counter() - wall
+                rig.close()
+                session.close()
+        finally:
+            emulator.terminate()
+            emulator.wait(10)
+    bench = rig.bench
+    return {"carried": sum(modem.carried), "flipped": sum(modem.flipped),
+            "requests": bench.requests, "retries": bench.retries,
+            "passed_over": bench._driver.link.discarded,
+            "ended": session.loop.stop_reason or "completed",
+            "factor": seconds / wall if wall > 0 else math.nan}
+
+
+def noisy_line_report(seconds: float, seed: int, rates: tuple[float, ...], tmp: Path) -> None:
+    print(f"== bench over a noisy RTU line: lockstep, {seconds:g} s of session time each, "
+          f"seed {seed}")
+    print(f"  {'bytes flipped':<14} {'flipped/carried':>18} {'requests':>9} {'retries':>8} "
+          f"{'per 1000 req':>12} {'passed over':>11} {'realtime':>9}  ended")
+    for rate in rates:
+        case = noisy_line(rate, seconds, seed, tmp)
+        share = "clean" if not rate else (f"1 in {1 / rate:.0f}" if rate < 0.01
+                                          else f"{rate:.0%}")
+        per_1000 = 1000 * case["retries"] / max(1, case["requests"])
+        print(f"  {share:<14} {case['flipped']:>8}/{case['carried']:<9} {case['requests']:>9} "
+              f"{case['retries']:>8} {per_1000:>12.1f} {case['passed_over']:>11} "
+              f"{case['factor']:>8.2f}x  {case['ended']}")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -225,11 +300,15 @@ def main() -> int:
     parser.add_argument("--servo-s", type=float,
                         help="servo run, seconds of faults (default 10, the issue's soak: 60; "
                              "2 with --quick)")
+    parser.add_argument("--noisy-s", type=float,
+                        help="session time of each noisy-line case, seconds (default 5; 0.5 "
+                             "with --quick)")
     parser.add_argument("--seed", type=int, default=1)
     add_quick(parser)
     args = parser.parse_args()
     args.bench_minutes = args.bench_minutes or (CYCLE_S / 60 if args.quick else 2.0)
     args.servo_s = args.servo_s or (2.0 if args.quick else 10.0)
+    args.noisy_s = args.noisy_s or (0.5 if args.quick else 5.0)
     with tempfile.TemporaryDirectory() as directory:
         tmp = Path(directory)
         print(f"== bench: lockstep, {args.bench_minutes:.3g} min of session time, seed "
@@ -264,6 +343,8 @@ def main() -> int:
               f"outside (the machine's, each counted in stale_feedback) of {servo['ticks']}")
         print(f"  the final 'silent' fault: {servo['error'] or 'NOT DETECTED'}")
         print(f"  events: {servo['events']}")
+        noisy_line_report(args.noisy_s, args.seed,
+                          (0.0, 0.02) if args.quick else NOISE_RATES, tmp)
     if args.quick:
         return 0
     return 0 if detected == len(exercised) and not soak["silent"] else 1

@@ -9,14 +9,24 @@ over a paced RTU line. Target (the project's): TCP poll p99 <= 2 ms. The machine
 figures are noisy, run it on a quiet box for figures worth quoting. ``--quick``: 20 TCP and
 5 RTU round trips per row (the driver waiting up to 2 s for each answer), sampling runs of
 0.2 s each (seconds; figures not worth quoting).
+
+Lockstep over the wire, clean line: a lockstep ``hil bench run --controller bc`` against
+``hil emulate bench`` over TCP and over RTU (a pty pair), this code (numbered time requests,
+answers matched by hil) against the code before the time protocol's last revision (``git
+archive`` of that commit's parent, or ``--baseline-code DIR``), alternated, in the same run:
+each one's realtime factor (simulated time over the loop's time), the median of ``--repeat``,
+and after/before (above 1: faster now). ``--quick``: one run of a 2 s cycle each, this code
+only.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import re
 import socket
+import statistics
 import struct
 import subprocess
 import sys
@@ -45,15 +55,21 @@ REPO = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
 METER_UNIT, FULL, SMALL = 2, 76, 6   # whole SDM630 map in one request; va_l1..va_l3
 
-def spawn(*args: str) -> tuple[subprocess.Popen[str], str]:
+def spawn(*args: str, code: Path = REPO, quiet: bool = False
+          ) -> tuple[subprocess.Popen[str], str]:
+    """``python ARGS`` with the checkout at ``code`` on the path (``quiet``: its stderr
+    dropped); its first line."""
     proc = subprocess.Popen([sys.executable, *args], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, text=True, env=ENV)
+                            stdout=subprocess.PIPE, text=True, cwd=code,
+                            stderr=subprocess.DEVNULL if quiet else None,
+                            env={**ENV, "PYTHONPATH": str(code)})
     assert proc.stdout is not None  # stdout=PIPE
     return proc, proc.stdout.readline().strip()
 
 
-def emulator(*where: str) -> tuple[subprocess.Popen[str], str]:
-    proc, line = spawn("-m", "hil", "emulate", "bench", *where)
+def emulator(*where: str, code: Path = REPO, quiet: bool = False
+             ) -> tuple[subprocess.Popen[str], str]:
+    proc, line = spawn("-m", "hil", "emulate", "bench", *where, code=code, quiet=quiet)
     match = re.search(r"listening on (\S+)", line)
     if not match:
         raise SystemExit(f"emulator did not start: {line!r}")
@@ -247,6 +263,106 @@ def sampling_report(duration_s: float, rtu_s: float) -> None:
           "without an answer; >5ms = samples started more than 5 ms late")
 
 
+#: a 2 s machining cycle: --quick's lockstep runs
+SHORT_CYCLE = """[sequence]
+period_s = 2.0
+stages = [{ start_s = 0.0, end_s = 1.0, on = [] },
+          { start_s = 1.0, end_s = 2.0, on = ["M1", "M2"] }]
+[relays.M1]
+dwell_s = 0.5
+[relays.M2]
+dwell_s = 0.5
+"""
+
+
+def baseline_code(folder: Path) -> tuple[Path | None, str]:
+    """The code before the time protocol's last revision (the parent of the last commit that
+    changed ``REVISION`` in hil/protocols/bench_clock.py), extracted into ``folder`` with
+    ``git archive``; (None, why not) outside a git checkout."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", str(REPO), *args], capture_output=True, text=True,
+                              check=True).stdout.strip()
+
+    try:
+        change = git("log", "-1", "--format=%H", "-G", "^REVISION = ", "HEAD", "--",
+                     "hil/protocols/bench_clock.py")
+        if not change:
+            return None, "no earlier time protocol in this checkout's history"
+        ref = git("rev-parse", "--short", f"{change}^")
+        archive = subprocess.Popen(["git", "-C", str(REPO), "archive", ref, "hil", "drivers",
+                                    "emulators", "controllers"], stdout=subprocess.PIPE)
+        subprocess.run(["tar", "-x", "-C", str(folder)], stdin=archive.stdout, check=True)
+        if archive.wait() != 0:
+            return None, f"git archive {ref} failed"
+    except (OSError, subprocess.CalledProcessError) as exc:
+        return None, f"not a git checkout ({exc})"
+    revision = re.search(r'REVISION = "([^"]+)"',
+                         (folder / "hil/protocols/bench_clock.py").read_text())
+    return folder, f"{ref}, time protocol {revision.group(1) if revision else '?'}"
+
+
+def lockstep_run(code: Path, transport: str, cycles: int, config: Path | None) -> float:
+    """One lockstep ``hil bench run --controller bc`` against ``hil emulate bench`` over
+    ``transport`` (tcp, or rtu on an unpaced pty pair), both of the checkout at ``code``: its
+    realtime factor."""
+    flags = ["--config", str(config)] if config is not None else []
+    modem = None
+    if transport == "tcp":
+        proc, url = emulator("--tcp", "127.0.0.1:0", *flags, code=code, quiet=True)
+    else:
+        modem, ports = null_modem(None)
+        proc, _ = emulator("--serial", ports[1], *flags, code=code, quiet=True)
+        url = f"modbus-rtu://{ports[0]}"
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            done = subprocess.run(
+                [sys.executable, "-m", "hil", "bench", "run", "--controller", "bc", "--cycles",
+                 str(cycles), "--bench", url, "--json", "--quiet", "--out", f"{tmp}/run.mcap",
+                 *flags], capture_output=True, text=True, cwd=tmp, stdin=subprocess.DEVNULL,
+                env={**ENV, "PYTHONPATH": str(code)})
+        kpis = json.loads(done.stdout) if done.stdout.startswith("{") else {}
+        if kpis.get("status") != "completed":
+            raise SystemExit(f"lockstep run over {transport} ({code}) did not complete: "
+                             f"{done.stderr.strip()[-500:]}")
+        return float(kpis["realtime_factor"])
+    finally:
+        stop(proc)
+        if modem is not None:
+            stop(modem)
+
+
+def lockstep_protocols(cycles: int, repeat: int, baseline: Path | None, quick: bool) -> None:
+    """This code's lockstep runs over TCP and RTU against the baseline's, alternated."""
+    with tempfile.TemporaryDirectory() as tmp:
+        config = None
+        if quick:
+            config = Path(tmp) / "short.toml"
+            config.write_text(SHORT_CYCLE)
+        if quick:
+            before, why = None, "skipped (--quick)"
+        elif baseline is not None:
+            before, why = baseline.resolve(), str(baseline)
+        else:
+            folder = Path(tmp) / "before"
+            folder.mkdir()
+            before, why = baseline_code(folder)
+        length = "2 s" if quick else "28 s"
+        print(f"\nLockstep over the wire, clean line (bc, {cycles} cycle(s) of {length}; median "
+              f"of {repeat}, alternated): realtime factor\n  before: {why}")
+        for transport in ("tcp", "rtu"):
+            after_x, before_x = [], []
+            for _ in range(repeat):
+                if before is not None:
+                    before_x.append(lockstep_run(before, transport, cycles, config))
+                after_x.append(lockstep_run(REPO, transport, cycles, config))
+            after = statistics.median(after_x)
+            line = f"  {transport.upper():<4} after (numbered time requests) {after:6.2f}x"
+            if before_x:
+                old = statistics.median(before_x)
+                line += f"   before {old:6.2f}x   after/before {after / old:.2f}"
+            print(line)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -258,13 +374,23 @@ def main() -> None:
                         help="TCP round trips per row (default 3000; 20 with --quick)")
     parser.add_argument("--rtu-polls", type=int,
                         help="RTU round trips per row (default 600; 5 with --quick)")
+    parser.add_argument("--cycles", type=int,
+                        help="machine cycles of each lockstep run (default 1)")
+    parser.add_argument("--repeat", type=int,
+                        help="lockstep runs of each code and transport (default 3; 1 with "
+                             "--quick)")
+    parser.add_argument("--baseline-code", type=Path, metavar="DIR",
+                        help="the lockstep runs' before: this checkout (default: git archive "
+                             "of the code before the time protocol's last revision)")
     add_quick(parser)
     args = parser.parse_args()
     fill_defaults(args, {"duration": (30.0, 0.2), "rtu_duration": (10.0, 0.2),
-                         "polls": (3000, 20), "rtu_polls": (600, 5)})
+                         "polls": (3000, 20), "rtu_polls": (600, 5), "cycles": (1, 1),
+                         "repeat": (3, 1)})
     started = time.monotonic()
     round_trips(args.polls, args.rtu_polls, patient=args.quick)
     sampling_report(args.duration, args.rtu_duration)
+    lockstep_protocols(args.cycles, args.repeat, args.baseline_code, args.quick)
     print(f"\n(total {time.monotonic() - started:.0f} s; shared machine: figures are noisy)")
 
 

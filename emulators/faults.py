@@ -9,7 +9,8 @@ Everything is checked when parsed; a bad fault is one
 line naming it.
 
 The bench emulator (:mod:`hil.emulators.bench.server`) plays the Modbus and plant kinds, the drive
-emulator (:mod:`hil.emulators.drive.node`) the CAN kinds; each asks :meth:`FaultSchedule.active`
+emulator (:mod:`hil.emulators.drive.node`) the CAN kinds, the serial line between a master and an
+emulator (:mod:`hil.emulators.null_modem`) the line kinds; each asks :meth:`FaultSchedule.active`
 while it serves, and the schedule records every fault the first time it takes effect
 (:attr:`FaultSchedule.events`, and one ``hil: fault: ...`` line through ``on_event``).
 """
@@ -51,6 +52,10 @@ def _unit(value: Any) -> bool:
     return bool(0 <= value <= 247)
 
 
+def _fraction(value: Any) -> bool:
+    return bool(0 < value <= 1)
+
+
 _UNIT: _Param = (int, 0, _unit, "Modbus unit id it applies to (0 = every unit)")
 
 KINDS: dict[str, tuple[str, dict[str, _Param]]] = {
@@ -75,6 +80,11 @@ KINDS: dict[str, tuple[str, dict[str, _Param]]] = {
     "silent": ("drive", {}),
     "emcy": ("drive", {"code": (int, 0x2310, _u16, "EMCY error code, e.g. 0x2310, 0x4310")}),
     "ignore_controlword": ("drive", {}),
+    # serial line (a null modem between a master and an emulator), both directions
+    "noise": ("line", {"rate": (float, None, _fraction,
+                                "fraction of the bytes flipped, one bit each (0.0002 = 1 in "
+                                "5000)"),
+                       "seed": (int, 0, _any, "seed of the bytes and bits flipped")}),
 }
 _SPEC = re.compile(r"^(?P<kind>[a-z_]+)@(?P<start>[0-9.eE+]+)(?:-(?P<end>[0-9.eE+]+))?"
                    r"(?::(?P<params>.*))?$")
@@ -198,7 +208,7 @@ def parse_faults_table(table: Any, source: str) -> list[Fault]:
 
 
 def for_emulator(faults: Iterable[Fault], emulator: str, what: str = "fault") -> list[Fault]:
-    """``faults``, refusing one the ``emulator`` (bench | drive) cannot play."""
+    """``faults``, refusing one the ``emulator`` (bench | drive | line) cannot play."""
     out = list(faults)
     for fault in out:
         if fault.emulator != emulator:

@@ -1,6 +1,8 @@
 """A lockstep master's side of hil's bench emulator (the wire tables:
 :mod:`hil.protocols.bench_clock`): :func:`identify` tells hil's emulator from a real bench by
-its Modbus device identification, :class:`EmulatorClock` gives the emulator the master's time.
+its Modbus device identification, :class:`EmulatorClock` gives the emulator the master's time,
+in numbered requests: one asked again (a frame lost or garbled on the line) steps the plant
+once, and its answer names the request it answers.
 """
 
 from __future__ import annotations
@@ -16,10 +18,13 @@ from hil.protocols.bench_clock import (
     HELD_BY_ANOTHER,
     KEEPS_WALL_CLOCK,
     PRODUCT_CODE,
+    STEP_REGISTER,
     TIME_REGISTER,
     VENDOR,
+    next_number,
+    same_major_revision,
+    step_words,
     time_of,
-    time_words,
 )
 
 
@@ -35,6 +40,11 @@ class Identity:
     def is_hil_emulator(self) -> bool:
         return self.vendor == VENDOR and self.product_code == PRODUCT_CODE
 
+    @property
+    def speaks_our_clock(self) -> bool:
+        """hil's emulator of this master's time protocol (its major revision)."""
+        return self.is_hil_emulator and same_major_revision(self.revision)
+
     def __str__(self) -> str:
         """``VENDOR PRODUCT_CODE REVISION``, the objects the device gave."""
         return " ".join(filter(None, (self.vendor, self.product_code, self.revision)))
@@ -42,7 +52,8 @@ class Identity:
 
 def identify(link: ModbusLink, unit: int, timeout_s: float) -> Identity | None:
     """The identity of the device at ``unit``, asked once, waiting up to ``timeout_s`` (a busy
-    machine may be slow to answer: a lost answer would make a lockstep run a wall-clock one);
+    machine may be slow to answer: a lost answer would make a lockstep run a wall-clock one;
+    over a serial line the question is asked again every request timeout within it);
     None when it gives none (an exception, as most real devices answer, or nothing). A
     question the device did not answer is no retry of the bench's polls: ``link.retries`` is
     left as it was."""
@@ -71,6 +82,7 @@ class EmulatorClock:
 
     def __init__(self, link: ModbusLink) -> None:
         self.link = link
+        self._number = 0  # of the last time request
 
     def start(self, request_timeout_s: float) -> None:
         """A lockstep session: the emulator's plant starts again from t = 0 on this master's
@@ -94,14 +106,21 @@ class EmulatorClock:
 
     def advance(self, t_ns: int) -> None:
         """The plant steps to ``t_ns`` (the master's time since its first tick); returns once
-        the emulator has."""
-        self.link.write_registers(CLOCK_UNIT, TIME_REGISTER, time_words(t_ns))
+        the emulator has, and answered this request's number."""
+        self._number = number = next_number(self._number)
+        self.link.exchange_registers(
+            CLOCK_UNIT, STEP_REGISTER, step_words(number, t_ns),
+            f"time request {number} ({t_ns / 1e9:.2f} s) to the bench emulator",
+            lambda words: words[0] == number)
 
     def post(self, t_ns: int) -> None:
         """The plant steps to ``t_ns``, the answer not waited for (over TCP: the emulator
         steps while this side works, and answers its next request after the step); where
         that cannot be, as :meth:`advance`."""
-        if not self.link.post_registers(CLOCK_UNIT, TIME_REGISTER, time_words(t_ns)):
+        number = next_number(self._number)
+        if self.link.post_exchange(CLOCK_UNIT, STEP_REGISTER, step_words(number, t_ns)):
+            self._number = number
+        else:
             self.advance(t_ns)
 
     def plant_time_ns(self) -> int:

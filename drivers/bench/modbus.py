@@ -4,34 +4,40 @@ Moves bytes only: no dwell, no decisions (``drivers/bench/safe_bench.py`` wraps 
 else).
 It reads no configuration: :mod:`hil.bench.config` builds the :class:`BusSettings`,
 :class:`RelaySpec` and :class:`BenchMap` it is given.
-pymodbus clients run with ``retries=0``: its own retries re-send on a late reply and, on RTU
-where replies carry no transaction id, can take that late reply for the answer to the next
-request. :class:`ModbusLink` retries itself, checks every reply against its request, and after
-a failure drops the TCP connection or flushes the serial input before trying again.
+pymodbus builds every request and decodes every answer; :mod:`hil.drivers.bench.lines` finds
+the answer to each request among the frames that come back (the TCP transaction id; over RTU
+the CRC, unit, function and length), and passes over late and foreign frames.
+:class:`ModbusLink` keeps the retry rules: each try waits ``timeout_s``, ``attempts`` tries,
+every reply checked against its request.
 
 Lockstep over the wire (:meth:`ModbusLink.hold_on`), the peer follows the master's time and may
 be paused (a busy machine, a debugger): every request may then take up to a generous
 wall-clock bound, and one left unanswered that long means the peer is gone: that request and
 every later one fail at once (:class:`PeerGoneError`), so a run against a dead peer ends
-instead of hanging.
+instead of hanging. TCP loses nothing: a request waits the bound in one try. A serial line
+loses and garbles frames: a request left unanswered for ``timeout_s`` is asked again (each a
+retry) until the bound; a request asked twice is answered twice, and the second answer is
+passed over like any late one.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
-import socket
 import struct
 import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
+from typing import Any
 from urllib.parse import parse_qsl, urlsplit
 
-from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from pymodbus.pdu import ModbusPDU
-from pymodbus.pdu.mei_message import ReadDeviceInformationResponse
+from pymodbus.pdu import bit_message as bits
+from pymodbus.pdu import register_message as registers
+from pymodbus.pdu.mei_message import ReadDeviceInformationRequest, ReadDeviceInformationResponse
 
+from hil.drivers.bench.lines import Line, ReplyMismatchError, RtuLine, TcpLine
 from hil.drivers.errors import DriverError, DriverSetupError
 
 URL_FORMS = "modbus-tcp://HOST:PORT or modbus-rtu:///dev/X?baud=115200&parity=N"
@@ -109,6 +115,12 @@ class BusSpec:
     bytesize: int = 8
 
     @property
+    def serial_settings(self) -> dict[str, Any]:
+        """The serial line's settings, as pyserial names them."""
+        return {"baudrate": self.baudrate, "parity": self.parity, "stopbits": self.stopbits,
+                "bytesize": self.bytesize}
+
+    @property
     def url(self) -> str:
         if self.kind == "tcp":
             return f"modbus-tcp://{self.host}:{self.port}"
@@ -158,23 +170,25 @@ def parse_bus_url(url: str) -> BusSpec:
 
 
 class ModbusLink:
-    """One Modbus master: explicit timeout per request, ``attempts`` tries, reply checks."""
+    """One Modbus master: a timeout per try, ``attempts`` tries, every reply checked against
+    its request (:mod:`hil.drivers.bench.lines` finds it among the frames that come back)."""
 
     def __init__(self, spec: BusSpec, timeout_s: float, attempts: int) -> None:
         self.spec = spec
         self.timeout_s = self.request_timeout_s = timeout_s
         self.attempts = attempts
         self.connections = 0  # successful (re)connections so far
-        self.retries = 0      # attempts that failed and were tried again (or given up)
+        self.requests = 0     # requests asked (however many tries each took)
+        self.retries = 0      # tries that failed and were tried again (or given up)
         self.bound_s: float | None = None  # lockstep over the wire: the wall-clock bound
         self.gone: str | None = None  # lockstep: why the peer is gone; None while it is not
-        if spec.kind == "tcp":
-            self.client: ModbusTcpClient | ModbusSerialClient = ModbusTcpClient(
-                spec.host, port=spec.port, timeout=timeout_s, retries=0)
-        else:
-            self.client = ModbusSerialClient(
-                spec.device, baudrate=spec.baudrate, parity=spec.parity,
-                stopbits=spec.stopbits, bytesize=spec.bytesize, timeout=timeout_s, retries=0)
+        self.line: Line = (TcpLine(spec.host, spec.port, timeout_s) if spec.kind == "tcp"
+                           else RtuLine(spec.device, spec.serial_settings, timeout_s))
+
+    @property
+    def discarded(self) -> int:
+        """Frames passed over so far: answers that came late, others' answers, noise."""
+        return self.line.discarded
 
     def hold_on(self, bound_s: float) -> None:
         """Lockstep over the wire from now on: every request may take up to ``bound_s`` of wall
@@ -184,8 +198,9 @@ class ModbusLink:
 
     def let_go(self) -> None:
         """Lockstep over the wire is over: requests wait the link's own timeout again (the
-        peer keeps the wall clock now; a silent one is silent, not paused)."""
-        self.bound_s = None
+        peer keeps the wall clock now; a silent one is silent, not paused), and a peer that
+        was gone may be asked again."""
+        self.bound_s = self.gone = None
         self._wait(self.request_timeout_s)
 
     @contextlib.contextmanager
@@ -201,58 +216,41 @@ class ModbusLink:
             self.attempts = before[1]
 
     def _wait(self, timeout_s: float) -> None:
+        """One try waits ``timeout_s``: in one wait over TCP; over RTU asked again every
+        ``request_timeout_s`` within it (a serial line loses frames)."""
         self.timeout_s = timeout_s
-        # pymodbus waits for a reply by both: the client's socket and its transaction's deadline
-        self.client.comm_params.timeout_connect = timeout_s
-        self.client.transaction.comm_params.timeout_connect = timeout_s
-        port = getattr(self.client, "socket", None)
-        if self.spec.kind == "rtu" and port is not None:
-            port.timeout = port.write_timeout = timeout_s
+        self.line.timeout_s = (timeout_s if self.spec.kind == "tcp"
+                               else min(timeout_s, self.request_timeout_s))
 
     def connect(self) -> bool:
         if self.gone is not None:
             return False
-        if self.client.connected:
+        if self.line.connected:
             return True
-        if self.client.connect():
+        if self.line.connect():
             self.connections += 1
-            if self.spec.kind == "tcp":  # a request posted ahead of the next must not wait
-                with contextlib.suppress(OSError):
-                    self.client.socket.setsockopt(  # type: ignore[union-attr]
-                        socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             return True
         return False
 
     def close(self) -> None:
-        self.client.close()
+        self.line.close()
 
-    def _reset(self) -> None:
-        """After a failed exchange: no stale bytes may be taken for the next reply."""
-        if self.spec.kind == "tcp":
-            self.client.close()
-        elif self.client.connected:
-            try:
-                self.client.socket.reset_input_buffer()  # type: ignore[union-attr]
-            except OSError:
-                self.client.close()
-
-    def execute(self, what: str, call: Callable[[], ModbusPDU],
-                check: Callable[[ModbusPDU], bool]) -> ModbusPDU:
-        """Run ``call`` until ``check`` accepts a reply; exceptions from the device raise."""
+    def execute(self, what: str, request: ModbusPDU, check: Callable[[ModbusPDU], bool]
+                ) -> ModbusPDU:
+        """Ask ``request`` until ``check`` accepts an answer; exceptions from the device raise."""
         if self.gone is not None:
             raise PeerGoneError(f"{what}: {self.gone}: the peer is gone")
+        self.requests += 1
         reason = ""
         for _ in range(self.attempts):
             if not self.connect():
                 reason = f"cannot connect to {self.spec.url}"
                 continue
             asked = time.monotonic()
-            try:
-                reply = call()
-            except (ModbusException, OSError, ValueError) as exc:
-                reason = _first_line(exc) or type(exc).__name__
+            reply = self._try(request, check)
+            if isinstance(reply, str):
+                reason = reply
                 self.retries += 1
-                self._reset()
                 if self.bound_s is not None and time.monotonic() - asked >= self.bound_s:
                     self.gone = (f"no answer from {self.spec.url} within {self.bound_s:g} s "
                                  "(bus.lockstep_timeout_s)")
@@ -266,39 +264,57 @@ class ModbusLink:
                     reason = f"exception {code:#04x} ({name})"
                     continue
                 raise DeviceError(f"{what}: device answered exception {code:#04x} ({name})", code)
-            if not check(reply):
-                reason = "reply does not match the request"
-                self.retries += 1
-                self._reset()
-                continue
             return reply
         if self.bound_s is not None and reason.startswith("cannot connect"):
             self.gone = reason
             raise PeerGoneError(f"{what}: {self.gone}: the peer is gone")
+        if isinstance(self.line, TcpLine):  # given up: no backlog of it on the peer's side
+            self.line.close()
         raise LinkError(f"{what}: no valid answer from {self.spec.url} after "
                         f"{self.attempts} attempt(s): {reason}")
+
+    def _try(self, request: ModbusPDU, check: Callable[[ModbusPDU], bool]) -> ModbusPDU | str:
+        """One try of ``request``: its answer, or why there is none. A serial line asks
+        again every ``request_timeout_s`` within the try (each a retry); a TCP connection
+        that failed, or whose peer answered the request's transaction with something else, is
+        closed (the next try reconnects). A TCP connection is kept for the next try of a
+        request that timed out (the late answer is passed over by its transaction id) and
+        closed when the request is given up: a peer that serves a connection's requests in
+        turn would otherwise build a backlog of them, and carry out its writes long after."""
+        end = time.monotonic() + self.timeout_s
+        while True:
+            try:
+                reply = self.line.ask(request, check)
+            except (ReplyMismatchError, ModbusException, OSError, ValueError) as exc:
+                self.line.close()
+                return _first_line(exc) or type(exc).__name__
+            if reply is not None:
+                return reply
+            if time.monotonic() >= end:
+                return f"no answer within {self.timeout_s:g} s"
+            self.retries += 1  # a serial line's silence: asked again
 
     def read_coils(self, unit: int, address: int, count: int) -> list[bool]:
         reply = self.execute(
             f"read coils {address}..{address + count - 1} of unit {unit}",
-            lambda: self.client.read_coils(address, count=count, device_id=unit),
-            lambda r: r.function_code == 1 and len(r.bits) >= count,
+            bits.ReadCoilsRequest(address=address, count=count, dev_id=unit),
+            lambda r: len(r.bits) == 8 * ((count + 7) // 8),
         )
         return list(reply.bits[:count])
 
     def write_coil(self, unit: int, address: int, on: bool) -> None:
         self.execute(
             f"write coil {address} of unit {unit}",
-            lambda: self.client.write_coil(address, on, device_id=unit),
-            lambda r: r.function_code == 5 and r.address == address and bool(r.bits[0]) == on,
+            bits.WriteSingleCoilRequest(address=address, bits=[on], dev_id=unit),
+            lambda r: r.address == address and bool(r.bits[0]) == on,
         )
 
     def read_floats(self, unit: int, address: int, count: int) -> list[float]:
         """``count`` registers from ``address`` (FC04) as float32, high word first."""
         reply = self.execute(
             f"read input registers {address:#06x}+{count} of unit {unit}",
-            lambda: self.client.read_input_registers(address, count=count, device_id=unit),
-            lambda r: r.function_code == 4 and len(r.registers) == count,
+            registers.ReadInputRegistersRequest(address=address, count=count, dev_id=unit),
+            lambda r: len(r.registers) == count,
         )
         words = reply.registers
         return list(struct.unpack(f">{count // 2}f", struct.pack(f">{count}H", *words)))
@@ -307,8 +323,8 @@ class ModbusLink:
         """``count`` holding registers from ``address`` (FC03)."""
         reply = self.execute(
             f"read holding registers {address}+{count} of unit {unit}",
-            lambda: self.client.read_holding_registers(address, count=count, device_id=unit),
-            lambda r: r.function_code == 3 and len(r.registers) == count,
+            registers.ReadHoldingRegistersRequest(address=address, count=count, dev_id=unit),
+            lambda r: len(r.registers) == count,
         )
         return list(reply.registers)
 
@@ -316,41 +332,54 @@ class ModbusLink:
         """One holding register (FC06)."""
         self.execute(
             f"write register {address} of unit {unit}",
-            lambda: self.client.write_register(address, value, device_id=unit),
-            lambda r: r.function_code == 6 and r.address == address,
+            registers.WriteSingleRegisterRequest(address=address, registers=[value],
+                                                 dev_id=unit),
+            lambda r: r.address == address and list(r.registers) == [value],
         )
 
-    def write_registers(self, unit: int, address: int, values: list[int]) -> None:
-        """Holding registers from ``address`` (FC16)."""
-        self.execute(
-            f"write registers {address}+{len(values)} of unit {unit}",
-            lambda: self.client.write_registers(address, values, device_id=unit),
-            lambda r: r.function_code == 16 and r.address == address,
+    def exchange_registers(self, unit: int, address: int, values: list[int],
+                           what: str = "", accept: Callable[[list[int]], bool] | None = None
+                           ) -> list[int]:
+        """Holding registers from ``address`` written, then as many read back from there, in
+        one request (FC23); ``accept`` tells the answer among others by the registers read
+        (a numbered request's number), ``what`` names the request in errors."""
+        count = len(values)
+        reply = self.execute(
+            what or f"read/write registers {address}+{count} of unit {unit}",
+            self._exchange_request(unit, address, values),
+            lambda r: len(r.registers) == count and (accept is None or accept(list(r.registers))),
         )
+        return list(reply.registers)
 
-    def post_registers(self, unit: int, address: int, values: list[int]) -> bool:
-        """FC16 sent without waiting for its answer, so the request after it goes in the same
-        breath (Modbus TCP only: a server answers a connection's requests in order, and
-        pymodbus passes over this answer, of another unit or transaction, when it reads the
-        next one). False when it was not sent (RTU, no connection): write it with
-        :meth:`write_registers`. Its answer is never checked: follow it with a written one
+    def post_exchange(self, unit: int, address: int, values: list[int]) -> bool:
+        """:meth:`exchange_registers` sent without waiting for its answer, so the request
+        after it goes in the same breath (Modbus TCP only: a server answers a connection's
+        requests in order, and this answer, of another transaction, is passed over when the
+        next one is read). False when it was not sent (RTU, no connection): ask it with
+        :meth:`exchange_registers`. Its answer is never checked: follow it with an asked one
         now and then."""
-        if self.spec.kind != "tcp" or self.gone is not None or not self.connect():
+        line = self.line
+        if not isinstance(line, TcpLine) or self.gone is not None or not self.connect():
             return False
         try:
-            self.client.write_registers(address, values, device_id=unit,
-                                        no_response_expected=True)
-        except (ModbusException, OSError):
-            self._reset()
+            line.post(self._exchange_request(unit, address, values))
+        except (ModbusException, OSError, ValueError):
+            line.close()
             return False
         return True
+
+    @staticmethod
+    def _exchange_request(unit: int, address: int, values: list[int]) -> ModbusPDU:
+        return registers.ReadWriteMultipleRegistersRequest(
+            read_address=address, read_count=len(values), write_address=address,
+            write_registers=values, dev_id=unit)
 
     def read_identification(self, unit: int) -> dict[int, bytes]:
         """The basic device identification objects of ``unit`` (FC43/MEI 14, read code 1):
         ``{object id: value}`` (0 VendorName, 1 ProductCode, 2 MajorMinorRevision)."""
         reply = self.execute(
             f"read device identification of unit {unit}",
-            lambda: self.client.read_device_information(read_code=1, device_id=unit),
+            ReadDeviceInformationRequest(read_code=1, dev_id=unit),
             lambda r: isinstance(r, ReadDeviceInformationResponse),
         )
         assert isinstance(reply, ReadDeviceInformationResponse)
@@ -434,6 +463,11 @@ class ModbusBenchDriver:
     def write_relay(self, name: str, on: bool) -> dict[str, bool]:
         """Switch one relay, read every relay back; raise RelayStuckError when it disagrees."""
         self.link.write_coil(self.map.units["relays"], self.map.relays[name].coil, on)
+        return self.verify_relay(name, on)
+
+    def verify_relay(self, name: str, on: bool) -> dict[str, bool]:
+        """Every relay read back after a write of ``name``; RelayStuckError when it is not
+        ``on``."""
         states = self.read_relays()
         if states[name] != on:
             raise RelayStuckError(f"relay {name}: wrote {'on' if on else 'off'}, read back "

@@ -10,6 +10,15 @@
   row declare the link lost (event, safe level); the link is then retried every
   ``reconnect_interval_s``; on reconnection every relay is driven to its safe level first and
   the controllers start again from there.
+* After the run (:meth:`SafeBench.confirm_safe`): unless the last safe state read every
+  relay back at its safe level, the bench is reached again (a lost link's rules: up to
+  ``watchdog_polls`` tries, ``reconnect_interval_s`` apart), its relays driven to their safe
+  levels and read back; when they still cannot be confirmed, event
+  ``bench.safe_state_unconfirmed`` (level error) says which may still be on.
+* Another master: a relay found switched with no write of this run since it was last read is
+  another master's doing (event ``relay.foreign_change``), unless a write of this run that was
+  given up on (no answer) asked for that state within :data:`LATE_WRITE_S`: a slow peer
+  carried it out late (event ``relay.late_write``).
 
 Time is the loop clock's (a :class:`~hil.contracts.TimeSource`): dwell and reconnection
 pacing run in simulated time in lockstep and in wall time in real time.
@@ -22,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -29,6 +39,11 @@ from typing import Any
 from hil.contracts import Device, EventSink, LinkWatchdog, TimeSource, no_event
 from hil.drivers.bench.modbus import DeviceError, LinkError, ModbusBenchDriver, RelayStuckError
 from hil.drivers.errors import DriverError
+
+#: how long (the run's clock) a relay write given up on (no answer) may still be carried out by
+#: a slow peer: a Modbus server that serves a connection's requests in turn carries out the
+#: ones it holds after the master gave up on them
+LATE_WRITE_S = 10.0
 
 
 class DwellGuard:
@@ -79,6 +94,7 @@ class SafetyStats:
     failed_writes: int = 0
     stuck_relays: int = 0  # verified writes the relay did not follow
     foreign_changes: int = 0  # relays found switched with no write of ours since last read
+    late_writes: int = 0  # relays found switched by a write of ours given up on earlier
     per_relay_switches: dict[str, int] = field(default_factory=dict)
 
 
@@ -105,13 +121,18 @@ class SafeBench(Device):
         self.reconnect_interval_s = reconnect_interval_s
         self._next_reconnect_s = -math.inf
         self._connections_seen = 0
-        self._retries_reported = 0
+        self._retries_reported = (0, 0)  # link retries, frames passed over
         self._next_retry_report_s = -math.inf
         self._deferral_reported: set[str] = set()
         self.stats = SafetyStats(per_relay_switches={n: 0 for n in relays})
         # each relay as last read with no write of ours since (None: unknown), to tell a
         # relay switched by someone else (another Modbus master) from one that did not follow
         self._seen: dict[str, bool | None] = dict.fromkeys(relays)
+        # the states asked by writes given up on (no answer), by relay: when (s)
+        self._given_up: dict[str, dict[bool, float]] = {name: {} for name in relays}
+        #: every relay read back at its safe level by the last safe state, no write since
+        self.confirmed_safe = False
+        self._read_back: dict[str, bool] | None = None  # the last safe state's read, if any
 
     # -- state -----------------------------------------------------------------------------
     @property
@@ -122,6 +143,11 @@ class SafeBench(Device):
     def retries(self) -> int:
         """Modbus requests tried again so far (timeouts, dropped or garbled answers)."""
         return self._driver.link.retries
+
+    @property
+    def requests(self) -> int:
+        """Modbus requests asked so far (however many tries each took)."""
+        return self._driver.link.requests
 
     def relays(self) -> dict[str, bool]:
         """Last known actual relay states (verified writes and read-backs)."""
@@ -174,18 +200,27 @@ class SafeBench(Device):
         return values
 
     def _report_retries(self) -> None:
-        """A request that needed more than one try is not lost, but it is news: one
-        ``link.retried`` event per second at most, with the count since the last one."""
-        retries = self._driver.link.retries
-        if retries == self._retries_reported:
+        """A request that needed more than one try is not lost, but it is news, and so is a
+        frame passed over (an answer that came late, another's answer, noise): one
+        ``link.retried`` event per second at most, with the counts since the last one
+        (``retries``, ``passed_over``)."""
+        link = self._driver.link
+        counts = (link.retries, link.discarded)
+        if counts == self._retries_reported:
             return
         t_s = self._now_s(None)
         if t_s < self._next_retry_report_s:
             return
-        self._emit("link.retried", f"{retries - self._retries_reported} Modbus request(s) "
-                   "answered only on a later attempt or not at all", level="warning",
-                   retries=retries - self._retries_reported)
-        self._retries_reported = retries
+        retries, passed_over = (now - before for now, before in
+                                zip(counts, self._retries_reported, strict=True))
+        message = (f"{retries} Modbus request(s) answered only on a later attempt or not at "
+                   "all")
+        if passed_over:
+            message += (f"; {passed_over} frame(s) passed over (late answers, others' answers, "
+                        "noise)")
+        self._emit("link.retried", message, level="warning", retries=retries,
+                   passed_over=passed_over)
+        self._retries_reported = counts
         self._next_retry_report_s = t_s + 1.0
 
     def lose_link(self, reason: str) -> None:
@@ -229,10 +264,18 @@ class SafeBench(Device):
         for name, on in actual.items():
             seen = self._seen[name]
             if seen is not None and seen != on:
-                self.stats.foreign_changes += 1
-                self._emit("relay.foreign_change", f"relay {name} switched "
-                           f"{'on' if on else 'off'} with no write of this run: another "
-                           "master on the bench?", level="error", relay=name, actual=on)
+                given_up_at = self._given_up[name].pop(on, None)
+                if given_up_at is not None and t_s - given_up_at <= LATE_WRITE_S:
+                    self.stats.late_writes += 1
+                    self._emit("relay.late_write", f"relay {name} switched "
+                               f"{'on' if on else 'off'} by a write of this run given up on "
+                               f"at t={given_up_at:.2f} s: the bench carried it out late",
+                               level="warning", relay=name, actual=on)
+                else:
+                    self.stats.foreign_changes += 1
+                    self._emit("relay.foreign_change", f"relay {name} switched "
+                               f"{'on' if on else 'off'} with no write of this run: another "
+                               "master on the bench?", level="error", relay=name, actual=on)
             self._seen[name] = on
         for name, on in actual.items():
             if self._guard.state[name] != on:
@@ -278,9 +321,21 @@ class SafeBench(Device):
                    f"{ready - t_s:.2f} s: inside its {self._guard.dwell_s[name]:g} s dwell",
                    level="warning", relay=name, requested=on, ready_at_s=ready)
 
+    def _write(self, name: str, on: bool, t_s: float) -> None:
+        """The relay's coil written; a write left unanswered is remembered (it may still be
+        carried out)."""
+        self.confirmed_safe = False
+        try:
+            self._driver.link.write_coil(self._driver.map.units["relays"],
+                                         self._driver.map.relays[name].coil, on)
+        except LinkError:
+            self._given_up[name][on] = t_s
+            raise
+
     def _switch(self, name: str, on: bool, t_s: float) -> str:
         try:
-            self._driver.write_relay(name, on)
+            self._write(name, on, t_s)
+            self._driver.verify_relay(name, on)
         except RelayStuckError as exc:  # the link works: the relay does not
             self.stats.stuck_relays += 1
             self._emit("relay.stuck", str(exc), level="error", relay=name, requested=on,
@@ -333,10 +388,10 @@ class SafeBench(Device):
     def _drive_safe(self, t_s: float, reason: str) -> None:
         """Every relay to its safe level regardless of dwell, then verify all of them."""
         self._seen = dict.fromkeys(self._seen)
+        self._read_back = None
         for name, level in self.safe_levels.items():
-            self._driver.link.write_coil(self._driver.map.units["relays"],
-                                         self._driver.map.relays[name].coil, level)
-        actual = self._driver.read_relays()
+            self._write(name, level, t_s)
+        actual = self._read_back = self._driver.read_relays()
         wrong = [n for n, level in self.safe_levels.items() if actual[n] != level]
         if wrong:
             raise LinkError(f"relays {wrong} did not reach their safe level ({reason})")
@@ -344,6 +399,7 @@ class SafeBench(Device):
             self._guard.applied(name, on, t_s)
         self._seen = dict(actual)
         self._guard.pending.clear()
+        self.confirmed_safe = True
 
     def safe_state(self) -> None:
         """Every relay to its safe level (ignores dwell). Idempotent; raises when it cannot."""
@@ -355,6 +411,58 @@ class SafeBench(Device):
                 return
         self._drive_safe(self._now_s(None), reason="safe state")
         self._emit("bench.safe", "relays at their safe levels")
+
+    def confirm_safe(self) -> str | None:
+        """After the run: None when every relay is confirmed at its safe level. The last safe
+        state's read-back confirms them; else (a lost link, a failed safe state) the bench is
+        reached again, as a lost link is: up to ``watchdog_polls`` tries, ``reconnect_interval_s``
+        apart (wall clock), its relays driven to their safe levels and read back. Still not
+        confirmed: event ``bench.safe_state_unconfirmed`` (level error; data: ``on`` and ``off``,
+        the relays read away from their safe level, ``unknown``, those that could not be read)
+        and its message, one line naming the relays that may still be on."""
+        if self.confirmed_safe:
+            return None
+        link, tries = self._driver.link, self.watchdog.limit
+        retries = link.retries  # the questions after the run are no retries of its polls
+        try:
+            for attempt in range(tries):
+                if attempt:
+                    time.sleep(self.reconnect_interval_s)
+                link.close()
+                if not link.connect():
+                    continue
+                try:
+                    self._drive_safe(self._now_s(None), reason="after the run")
+                except DriverError:
+                    continue
+                self._emit("bench.safe", "relays at their safe levels, read back after the "
+                           "run")
+                return None
+        finally:
+            link.retries = retries
+        read = self._read_back
+        away = [n for n, level in self.safe_levels.items() if read is not None
+                and read[n] != level]
+        unknown = [] if read is not None else list(self.safe_levels)
+        still = self._may_still_be(away + unknown)
+        why = (f"read back from {self.url} after the run, not at their safe level"
+               if read is not None else f"the bench at {self.url} did not answer after the "
+               f"run ({tries} tries, {self.reconnect_interval_s:g} s apart)")
+        message = f"{still}: {why}"
+        self._emit("bench.safe_state_unconfirmed", message, level="error", url=self.url,
+                   on=[n for n in away if not self.safe_levels[n]],
+                   off=[n for n in away if self.safe_levels[n]], unknown=unknown)
+        return message
+
+    def _may_still_be(self, names: list[str]) -> str:
+        """``relays P1, P2 may still be on`` (``off`` for those whose safe level is on)."""
+        parts = []
+        for state, safe in (("on", False), ("off", True)):
+            chosen = [n for n in names if self.safe_levels[n] == safe]
+            if chosen:
+                word = "relay" if len(chosen) == 1 else "relays"
+                parts.append(f"{word} {', '.join(chosen)} may still be {state}")
+        return "; ".join(parts)
 
     def disconnect(self) -> None:
         """Close the link (the driver's socket or serial port)."""

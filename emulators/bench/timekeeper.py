@@ -10,13 +10,15 @@ on the wire (the tables: :mod:`hil.protocols.bench_clock`).
   it lets go.
 
 A master's session starts the plant and its fault schedule again from t = 0, so a lockstep
-session is the same whatever the emulator did before. On the master's time, each ``TIME``
-write steps the plant, in the connection's thread, before its answer and before the next
-request of that connection (the master's next poll sees that step), as
+session is the same whatever the emulator did before. On the master's time, each numbered
+``STEP`` request steps the plant, in the connection's thread, before its answer and before the
+next request of that connection (the master's next poll sees that step), as
 :class:`hil.bench.emulator_time.PlantStepTask` steps an emulator in the loop's process. A
 master whose connection ends (it dropped it after a failed request, or a ``close`` fault did)
 keeps the time for :data:`GRACE_S`: its next ``TIME`` write, on its next connection, takes it
-back, and no wall-clock step comes between.
+back, and no wall-clock step comes between. A step request carries a number: the same
+number again (the master asked again: the request or its answer was lost on the line) is
+answered as it was, without a step, so no retry moves the plant twice.
 """
 
 from __future__ import annotations
@@ -45,8 +47,10 @@ from hil.protocols.bench_clock import (
     KEEPS_WALL_CLOCK,
     ON_MASTER_TIME,
     ON_WALL_CLOCK,
-    TIME_REGISTER,
+    STEP_REGISTER,
+    STEP_REGISTERS,
     WAITING_FOR_MASTER,
+    step_words,
     time_of,
     time_words,
 )
@@ -92,6 +96,7 @@ class Timekeeper:
         self._orphaned_at: float | None = None  # monotonic: when its connection ended
         self._timeout_s = DEFAULT_TIMEOUT_S
         self._k0 = 0                  # the plant's step at the master's time 0
+        self._step = step_words(0, 0)  # the last step request's number and answer
         self._wall: tuple[float, int] | None = None  # (monotonic, plant step) at its start
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -142,11 +147,11 @@ class Timekeeper:
         return WAITING_FOR_MASTER if self.clock == "master" else ON_WALL_CLOCK
 
     def answer(self, pdu: bytes, peer: object) -> bytes:
-        """The clock's unit: FC03 reads, FC06 ``CONTROL``, FC16 ``TIME``."""
+        """The clock's unit: FC03 reads, FC06 ``CONTROL``, FC23 ``STEP``."""
         code = pdu[0]
-        if code not in (3, 6, 16):
+        if code not in (3, 6, 23):
             return exception_pdu(code, ILLEGAL_FUNCTION)
-        if len(pdu) < (6 if code == 16 else 5):
+        if len(pdu) < (10 if code == 23 else 5):
             return exception_pdu(code, ILLEGAL_VALUE)
         address, value = struct.unpack_from(">HH", pdu, 1)
         if code == 3:
@@ -155,13 +160,26 @@ class Timekeeper:
             if address != CONTROL_REGISTER:
                 return exception_pdu(code, ILLEGAL_ADDRESS)
             error = self._control(value, peer)
-        else:
-            if address != TIME_REGISTER or value != 4:
-                return exception_pdu(code, ILLEGAL_ADDRESS)
-            if pdu[5] != 8 or len(pdu) < 14:
-                return exception_pdu(code, ILLEGAL_VALUE)
-            error = self._advance(time_of(list(struct.unpack_from(">4H", pdu, 6))), peer)
-        return exception_pdu(code, error) if error else pdu[:5]
+            return exception_pdu(code, error) if error else pdu[:5]
+        return self._step_request(pdu, peer)
+
+    def _step_request(self, pdu: bytes, peer: object) -> bytes:
+        """FC23 at ``STEP``: read 5 and write 5 registers there, the number not 0."""
+        read_at, read_count, write_at, write_count, byte_count = struct.unpack_from(
+            ">HHHHB", pdu, 1)
+        if (read_at, write_at) != (STEP_REGISTER, STEP_REGISTER):
+            return exception_pdu(23, ILLEGAL_ADDRESS)
+        if (read_count, write_count, byte_count) != (STEP_REGISTERS, STEP_REGISTERS,
+                                                     2 * STEP_REGISTERS) \
+                or len(pdu) < 10 + 2 * STEP_REGISTERS:
+            return exception_pdu(23, ILLEGAL_VALUE)
+        number, *words = struct.unpack_from(f">{STEP_REGISTERS}H", pdu, 10)
+        if number == 0:
+            return exception_pdu(23, ILLEGAL_VALUE)
+        answer = self._advance(number, time_of(words), peer)
+        if isinstance(answer, int):
+            return exception_pdu(23, answer)
+        return bytes([23, 2 * STEP_REGISTERS]) + struct.pack(f">{STEP_REGISTERS}H", *answer)
 
     def _read(self, address: int, count: int) -> bytes:
         if not 1 <= count <= CLOCK_REGISTERS:
@@ -169,7 +187,7 @@ class Timekeeper:
         if address + count > CLOCK_REGISTERS:
             return exception_pdu(3, ILLEGAL_ADDRESS)
         plant = self.bench.plant
-        words = [*time_words(round(plant.k * plant.dt * 1e9)), self.state()]
+        words = [*time_words(round(plant.k * plant.dt * 1e9)), self.state(), *self._step]
         chosen = words[address:address + count]
         return bytes([3, 2 * count]) + struct.pack(f">{count}H", *chosen)
 
@@ -200,21 +218,26 @@ class Timekeeper:
             self.bench.restart()
             self._held, self._owner, self._orphaned_at = True, peer, None
             self._timeout_s, self._k0 = value / 1000, self.bench.plant.k
+            self._step = step_words(0, 0)
         self.on_change(f"a lockstep master {_name(peer)} took the plant's time; the plant "
                        "starts again from t = 0")
         return None
 
-    def _advance(self, t_ns: int, peer: object) -> int | None:
-        """``TIME`` = t: the plant steps until it is at the master's time t (taking the time
-        back first if its master lost its connection)."""
+    def _advance(self, number: int, t_ns: int, peer: object) -> list[int] | int:
+        """Step request ``number``: the plant steps until it is at the master's time t (taking
+        the time back first if its master lost its connection); the number and the plant's
+        time since the master's time 0, or why not (an exception code). The number of the
+        last step again is a retry: its answer again, no step."""
         with self._lock:
             error = self._refused(peer)
             if error:
                 return error
             self._held, self._owner, self._orphaned_at = True, peer, None
-            plant = self.bench.plant
-            self.bench.step(max(0, self._k0 + round(t_ns / 1e9 / plant.dt) - plant.k))
-        return None
+            if number != self._step[0]:
+                plant = self.bench.plant
+                self.bench.step(max(0, self._k0 + round(t_ns / 1e9 / plant.dt) - plant.k))
+                self._step = step_words(number, round((plant.k - self._k0) * plant.dt * 1e9))
+            return list(self._step)
 
     def closed(self, peer: object) -> None:
         """A connection ended: if it was the master's, the master keeps the time for

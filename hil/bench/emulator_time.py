@@ -14,6 +14,7 @@ from hil.contracts import EventSink, no_event
 from hil.core.loop import Task
 from hil.core.notice import warn
 from hil.errors import HilError
+from hil.protocols.bench_clock import REVISION
 
 if TYPE_CHECKING:
     from hil.bench.config import BenchConfig
@@ -97,13 +98,20 @@ def lockstep_over_the_wire(driver: ModbusBenchDriver, config: BenchConfig, on_ev
     """Who the relay module says it is (the question may take ``bus.lockstep_timeout_s``, once),
     and, when it is hil's emulator, the task that gives it the run's time (its plant starts
     again from t = 0; every request may then take ``bus.lockstep_timeout_s``). None: the wall
-    clock, for any other device, and for an emulator that keeps its wall clock (a warning line
-    and a ``bench.clock`` event)."""
+    clock, for any other device, and for an emulator that keeps its wall clock or speaks
+    another revision of the time protocol (a warning line and a ``bench.clock`` event)."""
     from hil.drivers.bench.emulator_clock import EmulatorClock, KeepsWallClockError, identify
 
     bound = config.bus.lockstep_timeout_s
     identity = identify(driver.link, config.map.units["relays"], bound)
     if identity is None or not identity.is_hil_emulator:
+        return identity, None
+    if not identity.speaks_our_clock:
+        message = (f"the bench emulator at {driver.link.spec.url} speaks time protocol "
+                   f"{identity.revision}, this hil {REVISION}: this run follows the wall clock, "
+                   "as against a real bench (run the same hil on both sides)")
+        warn(message)
+        on_event("bench.clock", message, level="warning", source="bench")
         return identity, None
     clock = EmulatorClock(driver.link)
     try:

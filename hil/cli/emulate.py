@@ -1,5 +1,5 @@
-"""``hil emulate bench|drive``: the flags of a standalone emulator process, and what it prints;
-:mod:`hil.emulation` serves the emulator."""
+"""``hil emulate bench|drive|line``: the flags of a standalone emulator process, and what it
+prints; :mod:`hil.emulation` serves the emulator."""
 
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ from hil.emulation import (
     serve_bench,
     serve_drives,
     serve_until_stopped,
+    until_stopped,
 )
 from hil.emulators.drive.timebase import CLOCKS
 from hil.emulators.faults import (
@@ -113,6 +114,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_fault_arguments(ed, "drive", "emcy@2:code=0x2310, no_heartbeat@1-3")
     add_live_arguments(ed, rates=False, tuning=False)
     ed.set_defaults(handler=emulate_drive_command)
+    el = emu_sub.add_parser(
+        "line", help="a serial line (a null-modem cable between two pseudo-terminals), noisy "
+        "on request: a master on one end, e.g. hil bench run --bench modbus-rtu://END, and "
+        "hil emulate bench --serial OTHER-END on the other")
+    el.add_argument("--baud", type=positive_int,
+                    help="deliver the bytes at this baud rate, 10 bits a byte (default: as fast "
+                    "as the kernel copies them)")
+    _add_fault_arguments(el, "line", "noise@5-10:rate=0.02,seed=1")
+    el.set_defaults(handler=emulate_line_command)
 
 
 def object_value(text: str) -> tuple[str, int]:
@@ -252,6 +262,27 @@ def emulate_drive_command(args: argparse.Namespace) -> int:
               f"(plant time {nodes[0].plant.time_s:.3f} s)", flush=True)
 
     serve_until_stopped(drives, live_address(args), DRIVE_LIVE_HZ, ready, stopped)
+    return 0
+
+
+def emulate_line_command(args: argparse.Namespace) -> int:
+    """Carry the bytes between the line's two ends until Ctrl-C or SIGTERM, playing its faults
+    (seconds since it started); what it carried and flipped each way is the last line."""
+    die_with_parent()
+    from hil.emulators.null_modem import NullModem
+
+    faults = faults_of(args, "line")
+    with until_stopped() as stop, NullModem(args.baud, faults=faults,
+                                            on_fault=print_event) as line:
+        started = time.monotonic()
+        print(f"hil: line {line.ports[0]} <-> {line.ports[1]}; Ctrl-C stops", flush=True)
+        while not stop.wait(0.2):
+            pass
+    ways = (f"{line.ports[0]} -> {line.ports[1]}", f"{line.ports[1]} -> {line.ports[0]}")
+    print(f"hil: line stopped after {time.monotonic() - started:.1f} s: " + "; ".join(
+        f"{way} {carried} bytes, {flipped} flipped"
+        for way, carried, flipped in zip(ways, line.carried, line.flipped, strict=True)),
+        flush=True)
     return 0
 
 

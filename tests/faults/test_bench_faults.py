@@ -8,6 +8,7 @@ the emulator over TCP and over RTU on a real pty pair.
 from __future__ import annotations
 
 import json
+import threading
 import time
 
 import pytest
@@ -105,8 +106,25 @@ def test_a_late_answer_is_a_timeout_and_a_prompt_one_is_not():
         with pytest.raises(LinkError, match="after 2 attempt"):
             driver.read_power()
         assert driver.link.retries == 2
-        assert emulator.faults.hits == {"delay@0:ms=1500.0,unit=2": 2,
-                                        "delay@0:ms=30.0,unit=3": 1}
+        # given up: the connection is closed, the next request goes on a new one
+        assert driver.read_levels()["q1"] == pytest.approx(55.0)
+        assert driver.link.connections == 2
+        driver.close()
+
+
+def test_a_late_answer_is_passed_over_by_its_transaction_id():
+    """The first try's answer comes 0.6 s late, during the second try, on the same
+    connection: passed over by its transaction id; the second try's answer is taken."""
+    with emulator_with("delay@0-1:ms=600,unit=3") as emulator:
+        driver = driver_for(emulator.serve_tcp(), timeout_s=0.5)
+        # the fault's window ends (plant time 1 s) while the first try waits: the emulator
+        # answers the second try at once, after the first one's late answer
+        stepper = threading.Timer(0.1, emulator.step, args=(100,))
+        stepper.start()
+        assert driver.read_levels()["q1"] == pytest.approx(55.0)
+        stepper.join()
+        link = driver.link
+        assert (link.retries, link.discarded, link.connections) == (1, 1, 1)
         driver.close()
 
 
@@ -139,3 +157,96 @@ def test_a_welded_relay_is_caught_by_the_read_back():
 class _Clock:
     def time_ns(self) -> int:
         return time.monotonic_ns()
+
+
+def test_a_write_given_up_on_and_carried_out_late_is_no_foreign_master():
+    """A Modbus server that serves a connection's requests in turn carries out a write after
+    the master gave up on it: the relay is found where that write put it, after a later write
+    of the run said otherwise. This run's own late write (``relay.late_write``), not another
+    master: the run goes on. Another master's switch is still one (test_one_master.py)."""
+    with emulator_with("delay@1-2:ms=1500,unit=1") as emulator:
+        events = []
+        bench = SafeBench(driver_for(emulator.serve_tcp(), timeout_s=0.1, attempts=1), _Clock(),
+                          on_event=lambda kind, *a, **k: events.append(kind))
+        bench.open()
+        assert bench.set_relays({"M1": True}) == {"M1": "switched"}
+        emulator.step(100)  # plant time 1 s: the relay module answers 1.5 s late
+        with pytest.raises(LinkError):
+            bench.safe_state()  # M1 off: given up on, carried out 1.5 s later
+        emulator.step(100)  # the window is over
+        with bench._driver.link.patient(ANSWER_S):
+            assert bench.set_relays({"M1": True}) == {"M1": "unchanged"}  # as it knows it
+            assert bench.readback()["M1"] is True
+            deadline = time.monotonic() + ANSWER_S
+            while emulator.plant.coils()[0] and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert bench.readback()["M1"] is False  # the late write
+        assert (bench.stats.late_writes, bench.stats.foreign_changes) == (1, 0)
+        assert "relay.late_write" in events and "relay.foreign_change" not in events
+        bench.close()
+
+
+def bench_with(emulator, events):
+    """The safety layer over ``emulator``'s TCP server, each event kept as (kind, data); a lost
+    link is retried 3 times, 50 ms apart."""
+    return SafeBench(driver_for(emulator.serve_tcp(), timeout_s=ANSWER_S), _Clock(),
+                     on_event=lambda kind, message, **data: events.append((kind, data)),
+                     watchdog_polls=3, reconnect_interval_s=0.05)
+
+
+def test_relays_confirmed_at_their_safe_level_after_a_run_ask_nothing_more():
+    with emulator_with() as emulator:
+        events = []
+        bench = bench_with(emulator, events)
+        bench.open()
+        assert bench.set_relays({"P2": True}) == {"P2": "switched"}
+        assert not bench.confirmed_safe  # written since
+        bench.safe_state()
+        asked = bench.stats.polls, bench._driver.link.connections
+        assert bench.confirm_safe() is None
+        assert (bench.stats.polls, bench._driver.link.connections) == asked
+        bench.close()
+
+
+def test_a_welded_relay_left_on_is_said_after_the_run():
+    """P2 welded while on: the safe state cannot switch it off; after the run it is tried again
+    as a lost link is, read back on: event bench.safe_state_unconfirmed and one line."""
+    with emulator_with("weld@1:relay=P2") as emulator:
+        events = []
+        bench = bench_with(emulator, events)
+        bench.open()
+        assert bench.set_relays({"P2": True}) == {"P2": "switched"}
+        emulator.step(100)  # plant time 1 s: welded on
+        with pytest.raises(LinkError, match=r"relays \['P2'\] did not reach their safe level"):
+            bench.safe_state()
+        retries = bench.retries
+        message = bench.confirm_safe()
+        assert message == (f"relay P2 may still be on: read back from {emulator.url} after the "
+                           "run, not at their safe level")
+        assert events[-1] == ("bench.safe_state_unconfirmed", {
+            "level": "error", "source": "bench", "url": emulator.url, "on": ["P2"], "off": [],
+            "unknown": []})
+        assert emulator.faults.hits["weld@1:relay=P2"] == 4 * 4  # 4 relays: the run, 3 tries
+        assert bench.retries == retries  # the tries after the run are not the run's retries
+        bench.close()
+
+
+def test_after_a_lost_link_the_relays_are_driven_safe_again_once_the_bench_answers():
+    """The link lost with P2 on (every answer dropped), then back: after the run the relays
+    are driven to their safe levels and read back, nothing is said."""
+    with emulator_with("drop@1-2") as emulator:
+        events = []
+        bench = SafeBench(driver_for(emulator.serve_tcp(), timeout_s=0.1, attempts=1),
+                          _Clock(), on_event=lambda kind, message, **data: events.append(kind),
+                          watchdog_polls=3, reconnect_interval_s=0.3)
+        bench.open()
+        assert bench.set_relays({"P2": True}) == {"P2": "switched"}
+        emulator.step(100)  # every answer dropped
+        emulator.plant.set_coils(3, [True])  # as if the loss's safe state never got through
+        bench.lose_link("gone")
+        assert not bench.confirmed_safe
+        threading.Timer(0.2, emulator.step, args=(100,)).start()  # back during the first wait
+        assert bench.confirm_safe() is None
+        assert emulator.plant.coils()[:4] == [False] * 4
+        assert events[-1] == "bench.safe" and "bench.safe_state_unconfirmed" not in events
+        bench.close()

@@ -148,7 +148,7 @@ def test_a_lockstep_run_over_the_wire_records_the_in_process_session(seeded, tmp
     assert seeded.clock()[1] != ON_MASTER_TIME  # let go: back on the wall clock
     metadata = read_session(str(tmp_path / f"{name}.mcap")).metadata
     assert metadata["session"]["clock"] == "sim"
-    assert metadata["bench"]["identity"] == "hil hil-bench-emulator 1.0"
+    assert metadata["bench"]["identity"] == "hil hil-bench-emulator 2.0"
     assert metadata["bench"]["time"] == "the run's (lockstep over the wire)"
     lines = seeded.lines()[seen:]
     assert "took the plant's time; the plant starts again from t = 0" in lines[0]
@@ -204,9 +204,10 @@ def test_a_second_long_pause_of_either_side_changes_nothing(seeded, tmp_path, pa
 
 
 @pytest.mark.parametrize("how", ["killed", "frozen"])
-def test_a_gone_emulator_ends_the_run_with_one_line_and_status_3(tmp_path, how):
+def test_a_gone_emulator_ends_the_run_with_status_3_and_its_relays_unconfirmed(tmp_path, how):
     """Killed (its connection refused) or frozen for longer than bus.lockstep_timeout_s (2 s
-    here): one line naming the emulator, the run stopped, exit 3, within the bound."""
+    here): one line naming the emulator, the run stopped, exit 3, within the bound; and one
+    saying the relays may still be on (they cannot be read back)."""
     config = tmp_path / "patient.toml"
     config.write_text("[bus]\nlockstep_timeout_s = 2.0\n")
     with Emulator(tmp_path, "--tcp", "127.0.0.1:0") as emulator:
@@ -219,13 +220,20 @@ def test_a_gone_emulator_ends_the_run_with_one_line_and_status_3(tmp_path, how):
     assert watcher.at is not None
     assert run.returncode == 3, run.stderr
     lines = run.stderr.strip().splitlines()
-    assert len(lines) == 1, lines
-    assert lines[0].startswith("hil: run disturbed (link lost: the bench emulator is gone (")
-    assert emulator.url in lines[0] and "link_losses 1" in lines[0]
+    assert len(lines) == 2, lines
+    # the relays could not be read back after the run (tried as a lost link is)
+    assert lines[0] == (f"hil: unsafe: relays M1, M2, P1, P2 may still be on: the bench at "
+                        f"{emulator.url} did not answer after the run (5 tries, 0.5 s apart)")
+    assert lines[1].startswith("hil: run disturbed (link lost: the bench emulator is gone (")
+    assert emulator.url in lines[1] and "link_losses 1" in lines[1]
     if how == "frozen":
-        assert "no answer from" in lines[0] and "within 2 s (bus.lockstep_timeout_s)" in lines[0]
-    events = [m["kind"] for _, m in read_session(str(tmp_path / "gone.mcap")).topic("/events")]
-    assert events.index("link.lost") < events.index("link.gave_up")
+        assert "no answer from" in lines[1] and "within 2 s (bus.lockstep_timeout_s)" in lines[1]
+    events = [m for _, m in read_session(str(tmp_path / "gone.mcap")).topic("/events")]
+    kinds = [event["kind"] for event in events]
+    assert kinds.index("link.lost") < kinds.index("link.gave_up")
+    unconfirmed = events[kinds.index("bench.safe_state_unconfirmed")]
+    assert unconfirmed["level"] == "error" and unconfirmed["data"]["unknown"] == \
+        ["M1", "M2", "P1", "P2"] and unconfirmed["data"]["on"] == []
 
 
 def test_faults_play_on_the_runs_time_and_never_leave_it_waiting(tmp_path):

@@ -43,7 +43,7 @@ def test_every_device_identifies_itself_as_hils_emulator(emulator):
     client = client_of(emulator)
     try:
         basic = client.read_device_information(read_code=1, device_id=2)
-        assert basic.information == {0: b"hil", 1: b"hil-bench-emulator", 2: b"1.0"}
+        assert basic.information == {0: b"hil", 1: b"hil-bench-emulator", 2: b"2.0"}
         regular = client.read_device_information(read_code=2, device_id=1)
         assert regular.information[4] == b"hil relay bench emulator"
         assert regular.information[5] == b"relay module"
@@ -55,6 +55,15 @@ def test_every_device_identifies_itself_as_hils_emulator(emulator):
         client.close()
 
 
+def step(client: ModbusTcpClient, number: int, t_ns: int) -> list[int]:
+    """A numbered time request (FC23 at register 5): the registers it answers."""
+    words = [number, *((t_ns >> s) & 0xFFFF for s in (48, 32, 16, 0))]
+    reply = client.readwrite_registers(read_address=5, read_count=5, write_address=5,
+                                       values=words, device_id=CLOCK)
+    assert not reply.isError(), reply
+    return list(reply.registers)
+
+
 def test_a_master_takes_the_time_steps_the_plant_and_lets_go(emulator):
     client = client_of(emulator)
     try:
@@ -62,14 +71,33 @@ def test_a_master_takes_the_time_steps_the_plant_and_lets_go(emulator):
         assert not client.write_register(4, 100, device_id=CLOCK).isError()  # takes it
         assert plant_ns(client) == 0 and emulator.plant.k == 0  # started again
         t_ns = 1_230_000_000
-        words = [(t_ns >> s) & 0xFFFF for s in (48, 32, 16, 0)]
-        assert not client.write_registers(0, words, device_id=CLOCK).isError()
+        assert step(client, 1, t_ns) == [1, 0, 0, 0x4950, 0x4F80]  # its number, 1.23 s
         assert plant_ns(client) == t_ns and emulator.plant.k == 123
         time.sleep(0.1)  # the wall clock moves nothing meanwhile
         assert emulator.plant.k == 123
-        assert client.read_holding_registers(4, count=1, device_id=CLOCK).registers == [1]
+        assert client.read_holding_registers(4, count=6, device_id=CLOCK).registers == \
+            [1, 1, 0, 0, 0x4950, 0x4F80]  # on a master's time; the last step
         assert not client.write_register(4, 0, device_id=CLOCK).isError()  # lets go
         assert client.read_holding_registers(4, count=1, device_id=CLOCK).registers == [0]
+    finally:
+        client.close()
+
+
+def test_a_time_request_asked_again_is_answered_again_and_steps_once(emulator):
+    """The same number again (the master asked again: the request or its answer was lost) is
+    answered as the first time, with no step, even for another time; a new number steps."""
+    client = client_of(emulator)
+    try:
+        assert not client.write_register(4, 100, device_id=CLOCK).isError()
+        first = step(client, 7, 500_000_000)
+        assert emulator.plant.k == 50
+        assert step(client, 7, 500_000_000) == first and emulator.plant.k == 50
+        assert step(client, 7, 900_000_000) == first and emulator.plant.k == 50
+        assert step(client, 8, 510_000_000)[0] == 8 and emulator.plant.k == 51
+        assert step(client, 9, 200_000_000)[0] == 9 and emulator.plant.k == 51  # never back
+        assert not client.write_register(4, 100, device_id=CLOCK).isError()  # a new session
+        assert step(client, 9, 10_000_000) == [9, 0, 0, 0x98, 0x9680] \
+            and emulator.plant.k == 1  # numbers start afresh with it
     finally:
         client.close()
 
@@ -81,9 +109,18 @@ def test_one_master_at_a_time_and_the_clocks_registers_only(emulator):
         busy = second.write_register(4, 100, device_id=CLOCK)
         assert busy.isError() and busy.exception_code == 6
         assert second.write_register(4, 0, device_id=CLOCK).exception_code == 6
+        refused = second.readwrite_registers(read_address=5, read_count=5, write_address=5,
+                                             values=[1, 0, 0, 0, 0], device_id=CLOCK)
+        assert refused.exception_code == 6
         assert first.write_register(3, 1, device_id=CLOCK).exception_code == 2
-        assert first.write_registers(0, [0, 0], device_id=CLOCK).exception_code == 2
-        assert first.read_holding_registers(4, count=2, device_id=CLOCK).exception_code == 2
+        assert first.write_registers(0, [0, 0], device_id=CLOCK).exception_code == 1  # FC16
+        assert first.readwrite_registers(read_address=0, read_count=5, write_address=5,
+                                         values=[1, 0, 0, 0, 0],
+                                         device_id=CLOCK).exception_code == 2
+        assert first.readwrite_registers(read_address=5, read_count=5, write_address=5,
+                                         values=[0, 0, 0, 0, 0],
+                                         device_id=CLOCK).exception_code == 3  # number 0
+        assert first.read_holding_registers(8, count=3, device_id=CLOCK).exception_code == 2
         assert first.read_coils(0, count=1, device_id=CLOCK).exception_code == 1
         assert second.read_coils(0, count=4, device_id=1).bits[:4] == [False] * 4  # devices
     finally:
@@ -140,7 +177,7 @@ def test_a_device_that_gives_no_identity_is_none_and_costs_no_retry():
     try:
         assert identify(link, 1, 0.3) is None
         assert link.retries == 0 and (link.timeout_s, link.attempts) == (0.1, 2)
-        assert str(identify(link, 2, 30.0)) == "hil hil-bench-emulator 1.0"  # any load
+        assert str(identify(link, 2, 30.0)) == "hil hil-bench-emulator 2.0"  # any load
     finally:
         link.close()
         bench.stop()
