@@ -18,7 +18,6 @@ from typing import TYPE_CHECKING
 from hil.bench.emulator_time import PlantStepTask, WirePlantClock, lockstep_over_the_wire
 from hil.contracts import EventSink, TimeSource, no_event
 from hil.core.clock import Clock, RealtimeClock, SimClock
-from hil.core.notice import unsafe
 from hil.core.registry import SchemeRegistry, scheme_of
 
 if TYPE_CHECKING:
@@ -81,16 +80,14 @@ class OpenedBench:
 
     def close(self) -> None:
         """Let go of an emulator's time (the relays went safe on it), confirm the relays at
-        their safe levels (read back; after a lost link the bench is reached again: a line on
-        the terminal when they cannot be confirmed, :meth:`~hil.drivers.bench.safe_bench.
-        SafeBench.confirm_safe`), close the link (relays safe, best effort), then stop the
-        emulator."""
+        their safe levels (read back; after a lost link the bench is reached again: an event
+        when they cannot be confirmed, which makes the run unsafe and is a line on the
+        terminal, :meth:`~hil.drivers.bench.safe_bench.SafeBench.confirm_safe`), close the
+        link (relays safe, best effort), then stop the emulator."""
         try:
             if isinstance(self.plant_task, WirePlantClock):
                 self.plant_task.clock.release()
-            unconfirmed = self.bench.confirm_safe()
-            if unconfirmed is not None:
-                unsafe(unconfirmed)
+            self.bench.confirm_safe()
             self.bench.close()
         finally:
             if self.emulator is not None:

@@ -106,11 +106,6 @@ def disturbance_line(kpis: Mapping[str, Any]) -> str:
             "the KPIs exclude what the hardware did not report")
 
 
-def unsafe_lines(kpis: Mapping[str, Any]) -> list[str]:
-    """``hil: UNSAFE: ...``, one line per device whose outputs are not known to be safe."""
-    return [f"hil: UNSAFE: {line}" for line in kpis.get("unsafe", ())]
-
-
 def _unsafe_case(kpis: Mapping[str, Any], after: BaseException | None = None) -> RunCase:
     """The JUnit ``run`` case of an unsafe run: an ``UnsafeStop`` error naming each device,
     and the error that ended the run, if one did."""
@@ -127,8 +122,8 @@ def finish(args: argparse.Namespace, command: str, options: Callable[[], Options
     else 0. A run that ended in an error (a safety stop, a fault, a lost link, Ctrl-C...) still
     prints ``--json`` (the KPIs so far, ``status``, ``error``) and writes ``--junit``; then the
     error is raised again for its one line and exit status. A run whose outputs are not known
-    to be safe (status ``unsafe``), however it ended, says so in a line per device after
-    everything else, and exits 4."""
+    to be safe (status ``unsafe``; a ``hil: unsafe:`` line per device was printed when the
+    device said so), however it ended, exits 4."""
     started = time.perf_counter()
     try:
         made = options()
@@ -139,7 +134,7 @@ def finish(args: argparse.Namespace, command: str, options: Callable[[], Options
         if result is None or not result.kpis.get("unsafe"):
             raise
         prefix = "hil: " if isinstance(exc, RunInterruptedError) else "hil: error: "
-        print(f"{prefix}{exc}", *unsafe_lines(result.kpis), sep="\n", file=sys.stderr)
+        print(f"{prefix}{exc}", file=sys.stderr)
         return EXIT_UNSAFE
     print(json_text(kpis) if args.json else summary(made, kpis))
     results = limit_results(kpis)
@@ -153,8 +148,6 @@ def finish(args: argparse.Namespace, command: str, options: Callable[[], Options
         print(f"hil: limit violated: {result.describe()}", file=sys.stderr)
     if disturbed:
         print(disturbance_line(kpis), file=sys.stderr)
-    for line in unsafe_lines(kpis):
-        print(line, file=sys.stderr)
     if kpis.get("unsafe"):
         return EXIT_UNSAFE
     if failed:

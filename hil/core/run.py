@@ -49,6 +49,7 @@ from typing import Any, Generic, TypeVar
 from hil.core.clock import Clock
 from hil.core.device_lock import DeviceLock, lock_device
 from hil.core.kpis import Kpis
+from hil.core.notice import unsafe
 from hil.core.progress import ProgressLine, wants_progress
 from hil.core.recording.output import OutputClaim, claim_output
 from hil.core.recording.recorder import RecordingOptions
@@ -101,9 +102,9 @@ class RunResult:
 
 class EventBuffer:
     """An event sink (:data:`hil.contracts.EventSink`) for devices opened before their
-    session: events are held, then replayed into the session once it exists. It keeps the
-    message of every event that makes the run unsafe (:data:`~hil.core.verdict.UNSAFE_EVENTS`:
-    ``unsafe``)."""
+    session: events are held, then replayed into the session once it exists. An event that
+    makes the run unsafe (:data:`~hil.core.verdict.UNSAFE_EVENTS`) is a ``hil: unsafe:`` line
+    on the terminal at once, and its message is kept (``unsafe``)."""
 
     def __init__(self) -> None:
         self._held: list[tuple[str, str, dict[str, Any]]] = []
@@ -113,6 +114,7 @@ class EventBuffer:
     def __call__(self, kind: str, message: str, **data: Any) -> None:
         if kind in UNSAFE_EVENTS:
             self.unsafe.append(message)
+            unsafe(message)
         if self._session is not None:
             self._session.event(kind, message, **data)
         else:

@@ -94,7 +94,7 @@ def test_a_completed_run_with_its_relays_unconfirmed_is_unsafe(tmp_path, capsys)
     assert status == EXIT_UNSAFE == 4
     kpis = json.loads(out)
     assert kpis["status"] == "unsafe" and kpis["unsafe"] == [UNCONFIRMED]
-    assert err == f"hil: UNSAFE: {UNCONFIRMED}\n"
+    assert err == f"hil: unsafe: {UNCONFIRMED}\n"  # when the device said so
     error = junit_run_case(tmp_path).find("error")
     assert error is not None and error.get("type") == "UnsafeStop"
     assert error.get("message") == UNCONFIRMED
@@ -111,8 +111,8 @@ def test_an_error_and_an_unsafe_stop_give_both_lines_and_exit_4(tmp_path, capsys
     assert status == EXIT_UNSAFE
     assert json.loads(out)["status"] == "unsafe"
     first, second = err.splitlines()
-    assert first.startswith("hil: error: safety stop at tick 3 (session recorded to ")
-    assert second == f"hil: UNSAFE: {UNCONFIRMED}"
+    assert first == f"hil: unsafe: {UNCONFIRMED}"
+    assert second.startswith("hil: error: safety stop at tick 3 (session recorded to ")
     error = junit_run_case(tmp_path).find("error")
     assert error is not None and error.get("type") == "UnsafeStop"
     assert "(the run ended: SafetyStopError: safety stop at tick 3" in error.get("message", "")

@@ -43,7 +43,9 @@ def bench_run(tmp_path, capsys, schedule, *flags):
 
 def test_link_lost_for_good_stops_the_run_with_faults(tmp_path, capsys):
     status, kpis, events, err = bench_run(tmp_path, capsys, ["drop@10"])
-    assert status == 3
+    # the bench never answers again: its relays cannot be confirmed safe after the run
+    assert status == 4 and kpis["status"] == "unsafe"
+    assert "bench.safe_state_unconfirmed" in events
     assert kpis["stop_reason"] == "link lost for 5 s"
     assert kpis["disturbed"] and kpis["faults"]["link_losses"] == 1
     assert kpis["faults"]["link_down_s"] == pytest.approx(5.0, abs=0.02)

@@ -151,7 +151,7 @@ def test_a_line_flipping_2_percent_of_bytes_both_ways_mid_run(tmp_path):
         run = run_through(modem, tmp_path, config, "--controller", "bc", "--cycles", "10")
         relays = relays_read_by_another_master(modem)
     assert modem.flipped[0] > 0 and modem.flipped[1] > 0
-    assert run.returncode in (0, 3), run.stderr
+    assert run.returncode in (0, 3, 4), run.stderr
     kpis = json.loads(run.stdout)
     assert kpis["faults"]["retries"] > 0
     unsafe = [line for line in run.stderr.splitlines() if line.startswith("hil: unsafe: ")]
@@ -159,6 +159,8 @@ def test_a_line_flipping_2_percent_of_bytes_both_ways_mid_run(tmp_path):
         assert kpis["status"] == "completed" and not unsafe
     else:
         assert kpis["stop_reason"].startswith("link lost"), kpis["stop_reason"]
+        # relays not confirmed safe after it: the run is unsafe (exit 4), said on one line
+        assert (run.returncode == 4) == bool(unsafe) == (kpis["status"] == "unsafe")
     if not unsafe:
         assert relays == [False] * 4  # at their safe levels, as hil says
 
@@ -179,8 +181,9 @@ def test_a_line_cut_mid_run_ends_it_and_the_relays_are_read_back_or_said(tmp_pat
                           "--cycles", "20")
         if back:
             relays = relays_read_by_another_master(modem)
-    assert run.returncode == 3, run.stderr
+    assert run.returncode == (3 if back else 4), run.stderr  # 4: the relays unconfirmed
     kpis = json.loads(run.stdout)
+    assert kpis["status"] == ("disturbed" if back else "unsafe")
     assert kpis["stop_reason"].startswith("link lost: the bench emulator is gone (no answer "
                                           "from modbus-rtu://")
     kinds = [e["kind"] for e in events_of(tmp_path)]
@@ -198,6 +201,7 @@ def test_a_line_cut_mid_run_ends_it_and_the_relays_are_read_back_or_said(tmp_pat
         unconfirmed = [e for e in events_of(tmp_path)
                        if e["kind"] == "bench.safe_state_unconfirmed"]
         assert [e["data"]["unknown"] for e in unconfirmed] == [["M1", "M2", "P1", "P2"]]
+        assert kpis["unsafe"] == [unsafe[0].removeprefix("hil: unsafe: ")]
     assert "link_losses 1" in run.stderr
 
 
