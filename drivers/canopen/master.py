@@ -66,7 +66,12 @@ from hil.drivers.canopen.scan import discover
 from hil.drivers.canopen.sdo import SdoClient
 from hil.drivers.canopen.setpoint import holding_value, wire_format, wire_value
 from hil.drivers.canopen.state import MasterClock, StateControl
-from hil.drivers.canopen.stopping import MAY_STILL_MOVE, last_report, stop_together
+from hil.drivers.canopen.stopping import (
+    MAY_STILL_MOVE,
+    confirm_stopped,
+    last_report,
+    stop_together,
+)
 from hil.protocols.can_frames import Frame
 from hil.protocols.cia301 import (
     CONSUMER_HEARTBEAT,
@@ -168,6 +173,7 @@ class CanDriveMaster(Device):
         self.settings = RunSettings(self.sdo, n, self._event)
         self.last_emcy_code = 0
         self._enabled = False
+        self._lost_driving = False  # the link was lost while the drive was enabled
         self._latched: DriveError | SdoAbortError | None = None
         self.foreign: str | None = None  # another master heard on the bus: the run stops
         # told each cycle of a safe stop (quick stop, disable voltage): what the drive reported
@@ -435,7 +441,7 @@ class CanDriveMaster(Device):
         n = self.node_id
         self.nmt.command(NMT_START)
         self.states.enable()
-        self._enabled = True
+        self._enabled, self._lost_driving = True, False
         self.heartbeat_watch.restart()  # the heartbeat is watched from here on
         read = self.sdo.read_int
         feedback = self.cyclic.start((self.states.statusword(), read(POSITION_ACTUAL, 0, "<i"),
@@ -548,7 +554,7 @@ class CanDriveMaster(Device):
         self._latched = error
         self._event("drive.link_lost", str(error), level="error", cycle=self.cyclic.cycle)
         if self._enabled:  # best effort, without waiting: quick stop, then disable voltage
-            self._enabled = False
+            self._enabled, self._lost_driving = False, True
             self.cyclic.send_now([CW_QUICK_STOP, CW_DISABLE_VOLTAGE])
         raise error
 
@@ -756,26 +762,29 @@ class CanDriveMaster(Device):
 
     def disconnect(self) -> None:
         """Release the bus and anything the master was built with (an emulator process);
-        idempotent. :meth:`close` (safe stop, then this) is the usual way out."""
+        idempotent. :meth:`close` (safe stop, then this) is the usual way out. After a link
+        lost while driving, the drive's state is confirmed first (:func:`confirm_stopped`)."""
         if self._closed:
             return
-        self._put_settings_back()
+        reached = self._reach_again() if self._lost_driving or self.settings.log else False
+        if self._lost_driving:
+            confirm_stopped(self.sdo, self.feedback, self._event, reached)
+        if self.settings.log:
+            self.settings.restore()  # those it cannot put back stay in the journal
         self._closed = True
         self._enabled = False
         self.link.shutdown()
         for closer in self._closers:
             closer()
 
-    def _put_settings_back(self) -> None:
-        """This run's settings back on the drive, over the link, or after a lost link over a
-        reconnected one (those it cannot put back stay in the journal for the next open)."""
-        if not self.settings.log:
-            return
-        if not self.link_up:
-            try:
-                self.link.reconnect()
-            except (DriveError, OSError) as exc:
-                self._event("drive.reconnect_failed", f"drive node {self.node_id}: cannot "
-                            f"reach it again to put this run's settings back: {exc}",
-                            level="warning")
-        self.settings.restore()
+    def _reach_again(self) -> bool:
+        """The link, reconnected after a lost one; False (and an event) when it cannot be."""
+        if self.link_up:
+            return True
+        try:
+            self.link.reconnect()
+        except (DriveError, OSError) as exc:
+            self._event("drive.reconnect_failed", f"drive node {self.node_id}: cannot reach it "
+                        f"again after the lost link: {exc}", level="warning")
+            return False
+        return True

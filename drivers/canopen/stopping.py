@@ -11,7 +11,17 @@ from typing import Any, Protocol
 
 from hil.drivers.canopen.cyclic import Feedback
 from hil.drivers.canopen.errors import DriveError
-from hil.protocols.cia402 import CW_DISABLE_VOLTAGE, CW_QUICK_STOP
+from hil.drivers.canopen.sdo import SdoClient
+from hil.protocols.cia301 import SdoAbortError
+from hil.protocols.cia402 import (
+    CONTROLWORD,
+    CW_DISABLE_VOLTAGE,
+    CW_QUICK_STOP,
+    OPERATION_ENABLED,
+    QUICK_STOP_ACTIVE,
+    STATUSWORD,
+    state_of,
+)
 
 
 class StopCycles(Protocol):
@@ -82,3 +92,33 @@ def last_report(feedback: Feedback | None) -> tuple[str, dict[str, Any]]:
     return (f"it last reported {feedback.state} (statusword 0x{feedback.statusword:04X}) at "
             f"{feedback.position_deg:.3f} deg, {feedback.velocity_deg_s:.1f} deg/s, "
             f"{feedback.current_ma:.0f} mA (cycle {feedback.cycle}{stale})"), data
+
+
+def confirm_stopped(sdo: SdoClient, feedback: Feedback | None, event: Callable[..., None],
+                    reached: bool) -> None:
+    """After a link lost while driving (``reached``: the bus could be reconnected): the
+    drive's state read again by SDO, and disable voltage sent by SDO if it is still enabled.
+    ``drive.safe_stop`` when it is disabled or in a fault (its own reaction);
+    ``drive.safe_stop_failed`` when that cannot be confirmed. ``event`` is the master's."""
+    n, timeout = sdo.node_id, sdo.timeout_s
+    said, last = last_report(feedback)
+    driving = (OPERATION_ENABLED, QUICK_STOP_ACTIVE)
+    try:
+        if not reached:
+            raise DriveError("the bus cannot be reached again")
+        state = state_of(sdo.read_int(STATUSWORD, 0, "<H", timeout))
+        if state in driving:
+            sdo.write(CONTROLWORD, 0, CW_DISABLE_VOLTAGE, "<H", timeout_s=timeout)
+            state = state_of(sdo.read_int(STATUSWORD, 0, "<H", timeout))
+    except (DriveError, SdoAbortError) as exc:
+        event("drive.safe_stop_failed", f"drive node {n}: the link was lost while driving and "
+              f"its state cannot be confirmed since ({exc}); {said}: {MAY_STILL_MOVE} unless "
+              "its own watchdog stopped it", level="error", last=last)
+        return
+    if state in driving:
+        event("drive.safe_stop_failed", f"drive node {n} is still {state} after the lost link "
+              f"and disable voltage by SDO: {MAY_STILL_MOVE}", level="error", state=state,
+              last=last)
+    else:
+        event("drive.safe_stop", f"drive node {n} stopped: {state}, confirmed by SDO after the "
+              "lost link", state=state)

@@ -111,7 +111,8 @@ def test_a_master_held_up_is_no_time_at_all(tmp_path):
 
 def test_a_drive_silent_beyond_the_bound_is_gone(tmp_path):
     """Stopped mid-run for longer than master.lockstep_timeout_ms: the run ends, the session
-    finished with what it ran, a disturbed run (exit status 3)."""
+    finished with what it ran; the drive, still silent at the close, cannot be confirmed
+    stopped: an unsafe run (exit status 4, whatever error ended it)."""
     with api.start_drive_emulator() as drive:
         stopped = []
         with pytest.raises(DriveGoneError) as gone:
@@ -124,27 +125,30 @@ def test_a_drive_silent_beyond_the_bound_is_gone(tmp_path):
             os.kill(drive.pid, signal.SIGCONT)
     error = gone.value
     assert error.exit_status == 3 and "nothing on the bus for 0.5 s of wall time" in str(error)
-    assert error.result.kpis["status"] == "disturbed"
+    assert error.result.kpis["status"] == "unsafe"
+    [unsafe] = error.result.kpis["unsafe"]
+    assert "its state cannot be confirmed" in unsafe and "may still move" in unsafe
     assert read_session(str(tmp_path / "gone.mcap")).topic_counts["/drive/feedback"] > 0
 
 
-def test_a_drive_gone_silent_is_one_line_and_exit_3_from_the_command_line(tmp_path):
+def test_a_drive_gone_silent_is_said_and_exit_4_from_the_command_line(tmp_path):
     """The emulator falls silent (its 'silent' fault: bus-off, 0.2 s into its time, which is
     the SYNCs' from power-on: 400 ticks into the run, after it reached the drive; a drive
     silent from the first request on is not found, exit status 2) while a lockstep run waits on
-    it (for its SDO answer or its TPDOs, whichever comes first): one line after the bound, exit
-    status 3, the report disturbed."""
+    it (for its SDO answer or its TPDOs, whichever comes first): after the bound, one line that
+    its stop cannot be confirmed and one for the error; exit status 4, the run unsafe."""
     config = tmp_path / "drive.toml"
     config.write_text("[master]\nlockstep_timeout_ms = 500\n")
     with api.start_drive_emulator(faults=["silent@0.2"], clock="sync") as drive:
         run = hil(tmp_path, "servo", "run", "--controller", "pid", "--drive", drive.url,
                   "--config", str(config), "--duration", "60", "--json", "--out", "gone.mcap")
         out, err = run.communicate(timeout=120)
-    assert run.returncode == 3, err
-    [line] = err.strip().splitlines()
+    assert run.returncode == 4, err
+    unsafe, line = err.strip().splitlines()
+    assert unsafe.startswith("hil: unsafe: drive node 1: the link was lost while driving")
     assert line.startswith("hil: error: drive node 1 ")
     assert "nothing on the bus for 0.5 s of wall time" in line or "did not answer SDO" in line
-    assert json.loads(out)["status"] == "disturbed"
+    assert json.loads(out)["status"] == "unsafe"
 
 
 def test_a_master_silent_beyond_its_bound_finds_the_drive_protected(tmp_path, capsys):
