@@ -302,7 +302,7 @@ class CanDriveMaster(Device):
         profile = profile_writes(self.objects, mode, c.profile, self.scaling)
         scaling, limit = self.scaling, self.limit
         self.nmt.command(NMT_ENTER_PRE_OPERATIONAL)
-        pdos = PdoConfigurator(sdo, n)
+        pdos = PdoConfigurator(sdo, n, self._write_setting)
         if c.sync_echo is not None:
             pdos.start_sync_counter(self.objects.has(CYCLE_PERIOD),
                                     self.objects.has(SYNC_COUNTER_OVERFLOW))

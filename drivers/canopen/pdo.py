@@ -5,7 +5,7 @@ it. PDOs the master does not use are invalidated, where the drive has them."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 from hil.drivers.canopen.cyclic import SYNC_COUNTER_MAX
@@ -51,24 +51,31 @@ def unused_pdos(tpdos: Sequence[PdoMap]) -> tuple[int, ...]:
     return (*RPDO_UNUSED, *(comm for comm in TPDO_COMMS if comm not in used))
 
 
-class PdoConfigurator:
-    """Writes PDO maps to one node through its SDO client."""
+#: how a setting is written: (index, subindex, value, struct format); the master's journal
+SettingWriter = Callable[[int, int, int, str], None]
 
-    def __init__(self, sdo: SdoClient, node_id: int) -> None:
+
+class PdoConfigurator:
+    """Writes PDO maps to one node: reads through its SDO client, writes through ``write``
+    (the master's, which keeps each value found to put it back; default: the SDO client)."""
+
+    def __init__(self, sdo: SdoClient, node_id: int, write: SettingWriter | None = None) -> None:
         self.sdo, self.node_id = sdo, node_id
+        self.write: SettingWriter = write or (
+            lambda index, subindex, value, fmt: sdo.write(index, subindex, value, fmt))
 
     def map(self, pdo: PdoMap) -> None:
         """``pdo``'s COB-ID, mapping and transmission type, as CiA 301 orders the writes."""
-        write = self.sdo.write
+        write = self.write
         comm, mapping, cob_id = pdo.comm, pdo.mapping, pdo.cob_id(self.node_id)
         entries = pdo.mapping_values()
-        write(comm, 1, cob_id | PDO_NOT_VALID)
+        write(comm, 1, cob_id | PDO_NOT_VALID, "<I")
         write(mapping, 0, 0, "<B")
         for sub, entry in enumerate(entries, start=1):
-            write(mapping, sub, entry)
+            write(mapping, sub, entry, "<I")
         write(mapping, 0, len(entries), "<B")
         write(comm, 2, EVERY_SYNC, "<B")
-        write(comm, 1, cob_id)
+        write(comm, 1, cob_id, "<I")
 
     def start_sync_counter(self, has_cycle_period: bool, has_counter: bool) -> None:
         """The SYNC counter on (0x1019 = :data:`SYNC_COUNTER_MAX`; CiA 301: it changes only
@@ -79,15 +86,15 @@ class PdoConfigurator:
                              "overflow value): [master] sync_echo needs the SYNC counter; set "
                              "sync_echo = \"\"")
         if has_cycle_period:
-            self.sdo.write(CYCLE_PERIOD, 0, 0)
-        self.sdo.write(SYNC_COUNTER_OVERFLOW, 0, SYNC_COUNTER_MAX, "<B")
+            self.write(CYCLE_PERIOD, 0, 0, "<I")
+        self.write(SYNC_COUNTER_OVERFLOW, 0, SYNC_COUNTER_MAX, "<B")
 
     def disable(self, comm: int) -> None:
         """Invalidate the PDO of communication object ``comm``; a drive without it is fine."""
         try:
             cob = self.sdo.read_int(comm, 1)
             if not cob & PDO_NOT_VALID:
-                self.sdo.write(comm, 1, cob | PDO_NOT_VALID)
+                self.write(comm, 1, cob | PDO_NOT_VALID, "<I")
         except SdoAbortError as exc:
             if exc.code not in (ABORT_NO_OBJECT, ABORT_NO_SUBINDEX):
                 raise

@@ -117,3 +117,29 @@ def test_a_limit_that_cuts_what_was_asked_is_one_line(tmp_path, capsys):
     asked = hil_here(capsys, "servo", "run", "--controller", "pid", "--umax", "800",
                      "--duration", "0.05", "--out", "asked.mcap", cwd=tmp_path)
     assert asked.returncode == 0 and "cuts it" not in asked.stderr
+
+
+def test_a_run_puts_the_drives_pdo_maps_back(tmp_path, capsys, state):
+    """The PDO maps are settings too: a run with one TPDO (tpdo_layout = "one": TPDO1 remapped,
+    TPDO2 invalidated) leaves the drive's power-on maps as it found them."""
+    config = tmp_path / "drive.toml"
+    config.write_text('[master]\ntpdo_layout = "one"\nsync_echo = ""\n')
+    objects = ("0x1800:1", "0x1801:1", "0x1A00:0", "0x1A00:1", "0x1A00:2", "0x1A00:3")
+
+    def read_all(url):
+        values = {}
+        for name in objects:
+            done = hil_here(capsys, "drive", "sdo", "read", url, name, "--type", "u32" if
+                            name.endswith((":1", ":2", ":3")) else "u8", "--json")
+            assert done.returncode == 0, done.stderr
+            values[name] = json.loads(done.stdout)["value"]
+        return values
+
+    with api.start_drive_emulator() as drive:
+        found = read_all(drive.url)
+        run = hil_here(capsys, "servo", "run", "--controller", "pid", "--drive", drive.url,
+                       "--config", config, "--duration", "0.05", "--out", "one.mcap",
+                       cwd=tmp_path)
+        assert run.returncode == 0, run.stderr
+        assert read_all(drive.url) == found  # on main: TPDO1 three objects, TPDO2 invalid
+    assert journals(state) == []
