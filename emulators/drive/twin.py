@@ -14,7 +14,8 @@ current), the modes it supports (0x6502) and its identity (0x1018). Each of its 
   hil's drive only reads, 0x608F, 0x1014...) is refused with 0x08000020;
 * plain - a constant (access ``const``) or a description without behaviour (0x1000, 0x1008,
   0x1009, 0x100A, 0x1018, 0x6402..0x6404, 0x6503..0x6505): read back as the file gives it,
-  stored when an integer is written; without a value in the file it reads 0x08000024;
+  stored when an integer is written; without a value in the file it reads 0x08000024 (the
+  device type 0x1000, which every CANopen device answers, must have one: from ``set``);
 * not emulated - every other object (manufacturer objects, 0x1003, 0x6073...): a read is
   refused with 0x08000024 (no data available: the twin has no value that means what the
   drive's does), a write with 0x08000020 (data cannot be stored to the application), never
@@ -124,6 +125,9 @@ NEEDED = ((CONTROLWORD, 0, "controlword"), (STATUSWORD, 0, "statusword"),
           (MODES_OF_OPERATION, 0, "modes of operation"),
           (MODES_DISPLAY, 0, "modes of operation display"),
           (POSITION_ACTUAL, 0, "position actual value"))
+#: what every CANopen device answers (CiA 301): a file may leave it empty all the same (Pilz's
+#: and SCHUNK's DCFs give no device type), and a master reads it first
+MANDATORY = ((DEVICE_TYPE, 0, "device type"),)
 #: the axis' unit: from the file, or (a file without it) from ``set`` onto hil's hidden one
 UNIT = ((ENCODER_RESOLUTION, 1, "encoder increments"),
         (ENCODER_RESOLUTION, 2, "motor revolutions"))
@@ -625,6 +629,9 @@ class _Twin:
         modes, listed = self.modes()  # the deciding reason, when there is one
         for lack in self.lacks(NEEDED):
             self.problem(f"{lack}: the twin needs it to run any mode")
+        for lack in self.lacks(MANDATORY):
+            self.problem(f"{lack}: every CANopen device has it (CiA 301), and a master "
+                         "reads it first")
         counts = self.counts_per_turn()
         if counts is not None:
             self.scale_defaults(counts)
