@@ -108,7 +108,7 @@ def objects_used(mode: OperationMode) -> tuple[Need, ...]:
         Need(STATUSWORD, 0, 16, TX, "for the drive's state every cycle"),
         Need(POSITION_ACTUAL, 0, 32, TX, "for the position every cycle"),
         Need(VELOCITY_ACTUAL, 0, 32, TX, "for the velocity every cycle"),
-        Need(TORQUE_ACTUAL, 0, 16, TX, "for the current every cycle"),
+        Need(TORQUE_ACTUAL, 0, 16, TX, "for the current every cycle", _without(TORQUE_ACTUAL)),
         *(Need(base, 1, 32, WRITE, "to set up the cyclic PDOs")
           for base in (RPDO_COMM_BASE, TPDO_COMM_BASE, TPDO_COMM_BASE + 1)),
         *(Need(base, 0, 8, WRITE, "to set up the cyclic PDOs")
