@@ -24,6 +24,7 @@ from hil.protocols.cia301 import (
     TPDO_COMM_BASE,
     TPDO_MAP_BASE,
 )
+from hil.protocols.cia306 import description_encoding
 from hil.protocols.cia402 import (
     CONTROLWORD,
     ENCODER_RESOLUTION,
@@ -195,13 +196,15 @@ def modes_problem(supported: int, mode: OperationMode) -> str | None:
 
 def import_description(path: str, node_id: int) -> Any:
     """The object dictionary of the EDS/DCF at ``path`` for node ``node_id`` (canopen's
-    ``import_od``); a file it cannot read is a DriveError naming it."""
+    ``import_od``, of its text in its encoding); a file it cannot read is a DriveError naming
+    it."""
     import configparser
 
     import canopen
 
     try:
-        return canopen.import_od(path, node_id)
+        with open(path, encoding=description_encoding(path)) as text:
+            return canopen.import_od(text, node_id)
     except (OSError, ValueError, KeyError, configparser.Error) as exc:
         raise DriveError(f"cannot read its EDS {path}: {one_line(exc)}") from None
 

@@ -79,6 +79,7 @@ from hil.protocols.cia301 import (
     SdoAbortError,
     abort_text,
 )
+from hil.protocols.cia306 import description_encoding
 from hil.protocols.cia402 import (
     CONTROLWORD,
     CYCLIC_SYNCHRONOUS_POSITION,
@@ -285,13 +286,10 @@ def _import(path: str, node_id: int) -> ObjectDictionary:
 
 
 def _read_od(path: str, node_id: int) -> ObjectDictionary:
-    """canopen's reading of the file; one that is not UTF-8 (a vendor's comment in
-    Windows-1252) read as Latin-1, which takes every byte."""
-    try:
-        od: ObjectDictionary = import_od(path, node_id)
-    except UnicodeDecodeError:
-        with open(path, encoding="latin-1") as text:
-            od = import_od(text, node_id)
+    """canopen's reading of the file's text, in its encoding (one that is not UTF-8, a
+    vendor's comment in Windows-1252, read as Latin-1)."""
+    with open(path, encoding=description_encoding(path)) as text:
+        od: ObjectDictionary = import_od(text, node_id)
     return od
 
 

@@ -180,6 +180,22 @@ def test_scan_with_an_eds_that_lacks_an_object_hil_needs_reports_it(tmp_path, sl
     assert "cannot read its EDS" in one_error_line(missing)
 
 
+def test_scan_reads_an_eds_that_is_not_utf8(tmp_path, slave, capsys):
+    """FAULHABER's EDS has a Windows-1252 byte in a comment: the twin read it, and the scan,
+    a run's --eds and hil drive sdo said "cannot read its EDS" ('utf-8' codec can't decode)."""
+    url, _drive = slave
+    path = slave_eds(tmp_path, name="cp1252")
+    text = path.read_bytes().replace(b"[FileInfo]\n", b"[FileInfo]\n; \x94quoted\x94\n", 1)
+    path.write_bytes(text)
+    with pytest.raises(UnicodeDecodeError):
+        text.decode("utf-8")
+    scanned = hil_here("drive", "scan", url, "--node", NODE, "--eds", path, "--json",
+                       cwd=tmp_path, capsys=capsys)
+    assert scanned.returncode == 0, scanned.stdout + scanned.stderr
+    [node] = json.loads(scanned.stdout)["nodes"]
+    assert node["eds"]["problems"] == [] and node["drivable"] is True
+
+
 # -- sdo ------------------------------------------------------------------------------------
 def test_sdo_write_then_read_round_trip_on_a_drive_hil_did_not_write(tmp_path, slave, capsys):
     url, drive = slave
