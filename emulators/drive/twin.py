@@ -23,12 +23,16 @@ current), the modes it supports (0x6502) and its identity (0x1018). Each of its 
 * hidden - hil's objects the file lacks: the node keeps them but SDO says they do not exist
   (0x06020000), as the drive would.
 
-hil's manufacturer objects (0x2001..0x2005, :mod:`hil.emulators.drive.od`) stay where the file
+hil's manufacturer objects (0x2001..0x2004, :mod:`hil.emulators.drive.od`) stay where the file
 has no object of their index (or has hil's own, an EDS hil wrote); an object of the file at
-one of them is not emulated and the hook is gone. The modes are those 0x6502 lists that hil
-emulates (:data:`hil.emulators.drive.modes.EMULATED_MODES`) and whose objects the file has
-(``MODE_NEEDS``); another mode it lists is refused with 0x08000020 when 0x6060 is set to it,
-one it does not list with 0x06090030, as the drive would.
+one of them is not emulated and the hook is gone. The time base 0x2005, by which a lockstep
+master gives the drive its SYNCs' time, stays in every twin: a file's own object there (maxon's
+RS232 frame timeout, Nanotec's CANopen baud rate...) is not emulated either way, and without
+it lockstep would leave the twin on its own clock, its SYNC watchdog on the wall clock. The
+modes are those 0x6502 lists that hil emulates (:data:`hil.emulators.drive.modes.EMULATED_MODES`)
+and whose objects the file has (``MODE_NEEDS``); another mode it lists is refused with
+0x08000020 when 0x6060 is set to it, one it does not list with 0x06090030, as the drive
+would.
 
 Vendor files as they come: a value left empty for commissioning comes from ``set``
 (``[emulator] set``, ``--set``; a DCF's ParameterValue is the file's value), which also gives a
@@ -172,6 +176,7 @@ class DriveDictionary:
     counts_per_turn: int | None = None  # 0x6064 counts per turn of the axis (None: config's)
     path: str | None = None
     replaced_hooks: tuple[int, ...] = ()
+    time_base_over: str | None = None  # the file's object at 0x2005, under hil's time base
     unserved_maps: tuple[str, ...] = ()  # valid PDOs whose power-on map was emptied
     motor_turns_per_turn: Fraction = Fraction(1)  # 0x6091: the index pulse's period
 
@@ -251,6 +256,8 @@ class DriveDictionary:
                 f"{increments} increments, gear {gear}); modes {modes}; "
                 f"not emulated: {', '.join(refused) or 'none'}"
                 + (f"; hil's {hooks} replaced by its own" if hooks else "")
+                + (f"; hil's time base 0x{TIME_BASE:04X} over its {self.time_base_over}"
+                   if self.time_base_over else "")
                 + (f"; power-on maps left for the master to write: "
                    f"{', '.join(self.unserved_maps)}" if self.unserved_maps else ""))
 
@@ -341,6 +348,7 @@ class _Twin:
         self.no_read: set[Key] = set()
         self.no_write: set[Key] = set()
         self.replaced: list[int] = []
+        self.time_base_over: str | None = None
         self.gear = _gear_template()
         self.problems: list[str] = []
         self.unserved: list[str] = []  # PDOs whose power-on map the twin cannot serve
@@ -364,8 +372,14 @@ class _Twin:
                 self.od.add_object(own)
                 continue
             theirs = self.od[index]
-            if not (isinstance(theirs, ODVariable) and isinstance(own, ODVariable)
-                    and theirs.name == own.name and theirs.data_type == own.data_type):
+            if isinstance(theirs, ODVariable) and isinstance(own, ODVariable) \
+                    and theirs.name == own.name and theirs.data_type == own.data_type:
+                continue
+            if index == TIME_BASE:  # lockstep's: kept over the file's
+                self.time_base_over = f"{theirs.name!r}"
+                del self.od[index]
+                self.od.add_object(own)
+            else:
                 self.replaced.append(index)
 
     def take_settings(self) -> None:
@@ -638,7 +652,7 @@ class _Twin:
                        if key not in present or key[0] in self.replaced)
         twin = DriveDictionary(self.od, hidden, frozenset(self.no_read),
                                frozenset(self.no_write), modes, listed, counts, self.path,
-                               tuple(self.replaced),
+                               tuple(self.replaced), self.time_base_over,
                                motor_turns_per_turn=self.motor_turns_per_turn)
         if not self.problems:
             self.serve_pdos(twin.store())
