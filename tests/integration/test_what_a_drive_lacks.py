@@ -3,8 +3,9 @@ no 0x608F and no 0x6075), driven from the command line: the master reads only wh
 has, takes the missing scaling from the ``[master]`` keys that stand in for it, stops before
 anything is enabled when neither has a value (one line naming the object and the key), and
 says on the terminal what it does without the rest. The drive is canopen's ``LocalNode``
-(tests/drive_slave.py) built from an EDS file that lacks the objects, over python-can's
-``virtual`` bus in this process (``hil_here``) and over ``udp_multicast`` from another one."""
+(tests/drive_slave.py) built from an EDS file that lacks the objects, or from maxon's own EPOS4
+DCF, over python-can's ``virtual`` bus in this process (``hil_here``) and over
+``udp_multicast`` from another one."""
 
 import json
 import math
@@ -346,3 +347,30 @@ def test_a_maxon_epos4_homes_and_moves(tmp_path, capsys):
     assert json.loads(homed.stdout)["reached"]
     kpis = json.loads(moved.stdout)
     assert kpis["reached"] and kpis["position_deg"] == pytest.approx(45.0, abs=0.5)
+
+
+@pytest.mark.parametrize("mode, controller", [("cst", "pid"), ("csp", "setpoint")])
+def test_a_drive_built_from_maxons_own_dcf_is_driven_with_the_stand_ins(tmp_path, capsys, mode,
+                                                                        controller):
+    """canopen's LocalNode with the dictionary of maxon's EPOS4 DCF (no 0x608F, no 0x6075, no
+    0x6072, no 0x1006; its PDOs valid at power-on, mapped otherwise): a drive hil did not
+    write, as its vendor describes it, that DCF the run's --eds too. Its scaling comes from the
+    stand-ins; nothing it lacks is read or written."""
+    slave = Slave(EPOS4)
+    try:
+        assert not {0x608F, 0x6075} & set(slave.drive.od.keys())
+        ran = run(capsys, tmp_path, slave, STAND_INS + f'mode = "{mode}"\n', "--eds", EPOS4,
+                  "--json", controller=controller)
+    finally:
+        slave.close()
+    assert ran.returncode == 0, ran.stderr
+    kpis = json.loads(ran.stdout)
+    assert kpis["ticks"] == 200 and kpis["stale_feedback"] == 0
+    assert kpis["rms_error_deg"] < 1.0  # scaled right: it tracks the sine
+    assert slave.drive.value(0x6060) == {"cst": CST, "csp": CSP}[mode]
+    assert slave.written(0x608F) == slave.written(0x6075) == slave.written(0x6072) == []
+    assert "drive node 3 has no 0x6072 (max torque)" in ran.stderr
+    drive = json.loads(read_session(str(tmp_path / "run.mcap")).metadata["drive"]["json"])
+    assert drive["scaling_from"] == {"increments_per_rev": "[master] increments_per_rev",
+                                     "rated_current_ma": "[master] rated_current_mA"}
+    assert drive["eds"]["vendor"].startswith("maxon")
