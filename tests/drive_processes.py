@@ -15,13 +15,16 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
-def start_drive_emulator(config: Path, port: int = 0) -> tuple[subprocess.Popen, int]:
-    """Run the drive emulator with ``config`` on 127.0.0.1:``port``; return it and its port."""
+def start_drive_emulator(config: Path | None, port: int = 0, *args: str,
+                         cwd: Path | None = None) -> tuple[subprocess.Popen, int]:
+    """Run the drive emulator with ``config`` (None: none) and ``args`` (``--eds F``, ``--set
+    INDEX:SUB=VALUE``...) on 127.0.0.1:``port``, from ``cwd``; return it and its port."""
     env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(
         [sys.executable, "-m", "hil", "emulate", "drive", "--socketcand",
-         f"127.0.0.1:{port}", "--node", "1", "--config", str(config)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+         f"127.0.0.1:{port}", "--node", "1",
+         *(["--config", str(config)] if config is not None else []), *args],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=cwd)
     ready, _, _ = select.select([proc.stdout], [], [], 30)
     line = proc.stdout.readline() if ready else ""
     match = re.search(r"socketcand 127\.0\.0\.1:(\d+) ", line)

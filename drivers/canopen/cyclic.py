@@ -4,7 +4,8 @@ download) in one transmission, then the TPDOs that answer that SYNC.
 The TPDOs are the master's layout (:data:`hil.protocols.cia402.TPDO_LAYOUTS`): TPDO1 (statusword,
 position) and TPDO2 (velocity, torque), or TPDO1 alone (statusword, position, torque), each
 decoded by the objects it maps. Without a velocity on the wire, the velocity is the position's
-change since the last fresh feedback over the cycles between (a backward difference).
+change since the last fresh feedback over the cycles between (a backward difference); without
+a torque (a drive that has no 0x6077, whose maps leave it out) the current is NaN.
 
 Every feedback is bound to its SYNC:
 
@@ -24,6 +25,7 @@ Every feedback is bound to its SYNC:
 
 from __future__ import annotations
 
+import math
 import struct
 import time
 from collections.abc import Callable, Sequence
@@ -52,7 +54,8 @@ SYNC_COUNTER_MAX = 240  # 0x1019 written when the echo is on: the SYNC counter r
 FEEDBACK_OBJECTS = {STATUSWORD: (0, "H"), POSITION_ACTUAL: (1, "i"), VELOCITY_ACTUAL: (2, "i"),
                     TORQUE_ACTUAL: (3, "h")}
 FEEDBACK_NAMES = ("statusword", "position", "velocity", "torque")  # by slot
-VELOCITY_SLOT = 2  # the one a master can do without: derived from the position
+VELOCITY_SLOT = 2  # one a master can do without: derived from the position
+TORQUE_SLOT = 3    # and one a drive may lack (no 0x6077): no current measured
 
 
 class TpdoDecoder(NamedTuple):
@@ -85,7 +88,7 @@ class Feedback(NamedTuple):
 
     position_deg: float       # multi-turn, unwrapped by the master
     velocity_deg_s: float
-    current_ma: float         # torque actual, as motor current
+    current_ma: float         # torque actual, as motor current (NaN: the drive has none)
     statusword: int
     position_increments: int  # as on the wire: modulo one revolution
     cycle: int                # SYNC count of this master
@@ -134,16 +137,7 @@ class CyclicExchange:
         self._silence_is_gone = silence_is_gone
         self._heard = False  # a frame came since the last SYNC
         self.use_rpdo(rpdo)
-        self._decoders = {pdo.cob_id(node_id): tpdo_decoder(pdo, i)
-                          for i, pdo in enumerate(tpdos)}
-        self._all = (1 << len(tpdos)) - 1  # every TPDO of the cycle received
-        slots = {slot for decoder in self._decoders.values() for slot in decoder.slots}
-        missing = [name for slot, name in enumerate(FEEDBACK_NAMES)
-                   if slot not in slots and name != "velocity"]
-        if missing:
-            raise ValueError(f"the TPDOs carry no {' and no '.join(missing)}: a feedback needs "
-                             "the statusword, the position and the torque")
-        self._derive_velocity = VELOCITY_SLOT not in slots
+        self.use_tpdos(tpdos)
         self._period_s = period_s
         self._last_fresh: tuple[float, int] | None = None  # position, cycle (derived velocity)
         self.scaling = DriveScaling()
@@ -169,6 +163,22 @@ class CyclicExchange:
         sizes = [bits for _, _, bits in rpdo.entries[1:]]
         self._rpdo_layout = struct.Struct("<H" + "".join("h" if b == 16 else "i" for b in sizes))
         self._rpdo_target = bool(sizes)
+
+    def use_tpdos(self, tpdos: Sequence[PdoMap]) -> None:
+        """Decode ``tpdos`` from the next cycle on: they carry the statusword and the position;
+        without the velocity it is derived from the position, without the torque (a drive
+        that has no 0x6077) the current is not measured (NaN)."""
+        self._decoders = {pdo.cob_id(self.node_id): tpdo_decoder(pdo, i)
+                          for i, pdo in enumerate(tpdos)}
+        self._all = (1 << len(tpdos)) - 1  # every TPDO of the cycle received
+        slots = {slot for decoder in self._decoders.values() for slot in decoder.slots}
+        missing = [name for slot, name in enumerate(FEEDBACK_NAMES)
+                   if slot not in slots and slot not in (VELOCITY_SLOT, TORQUE_SLOT)]
+        if missing:
+            raise ValueError(f"the TPDOs carry no {' and no '.join(missing)}: a feedback needs "
+                             "the statusword and the position")
+        self._derive_velocity = VELOCITY_SLOT not in slots
+        self.measures_current = TORQUE_SLOT in slots
 
     @property
     def turns(self) -> int:
@@ -349,5 +359,6 @@ class CyclicExchange:
                 velocity_deg_s = (position_deg - before[0]) / (
                     (self.cycle - before[1]) * self._period_s)
             self._last_fresh = (position_deg, self.cycle)
-        return Feedback(position_deg, velocity_deg_s, scaling.milliamps(torque), statusword,
+        current_ma = scaling.milliamps(torque) if self.measures_current else math.nan
+        return Feedback(position_deg, velocity_deg_s, current_ma, statusword,
                         raw, self.cycle, self._now_ns(), fresh, rtt_us, self._command_ma)

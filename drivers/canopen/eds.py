@@ -24,6 +24,7 @@ from hil.protocols.cia301 import (
     TPDO_COMM_BASE,
     TPDO_MAP_BASE,
 )
+from hil.protocols.cia306 import description_encoding
 from hil.protocols.cia402 import (
     CONTROLWORD,
     ENCODER_RESOLUTION,
@@ -108,7 +109,7 @@ def objects_used(mode: OperationMode) -> tuple[Need, ...]:
         Need(STATUSWORD, 0, 16, TX, "for the drive's state every cycle"),
         Need(POSITION_ACTUAL, 0, 32, TX, "for the position every cycle"),
         Need(VELOCITY_ACTUAL, 0, 32, TX, "for the velocity every cycle"),
-        Need(TORQUE_ACTUAL, 0, 16, TX, "for the current every cycle"),
+        Need(TORQUE_ACTUAL, 0, 16, TX, "for the current every cycle", _without(TORQUE_ACTUAL)),
         *(Need(base, 1, 32, WRITE, "to set up the cyclic PDOs")
           for base in (RPDO_COMM_BASE, TPDO_COMM_BASE, TPDO_COMM_BASE + 1)),
         *(Need(base, 0, 8, WRITE, "to set up the cyclic PDOs")
@@ -195,13 +196,15 @@ def modes_problem(supported: int, mode: OperationMode) -> str | None:
 
 def import_description(path: str, node_id: int) -> Any:
     """The object dictionary of the EDS/DCF at ``path`` for node ``node_id`` (canopen's
-    ``import_od``); a file it cannot read is a DriveError naming it."""
+    ``import_od``, of its text in its encoding); a file it cannot read is a DriveError naming
+    it."""
     import configparser
 
     import canopen
 
     try:
-        return canopen.import_od(path, node_id)
+        with open(path, encoding=description_encoding(path)) as text:
+            return canopen.import_od(text, node_id)
     except (OSError, ValueError, KeyError, configparser.Error) as exc:
         raise DriveError(f"cannot read its EDS {path}: {one_line(exc)}") from None
 

@@ -58,7 +58,7 @@ from hil.drivers.canopen.errors import (
 from hil.drivers.canopen.link import Link
 from hil.drivers.canopen.nmt import HeartbeatProducer, HeartbeatWatch, Nmt
 from hil.drivers.canopen.objects import DriveObjects, Notices, without_text
-from hil.drivers.canopen.pdo import PdoConfigurator, tpdo_maps, unused_pdos
+from hil.drivers.canopen.pdo import PdoConfigurator, tpdo_maps, unused_pdos, without_object
 from hil.drivers.canopen.profile import profile_writes
 from hil.drivers.canopen.run_settings import RunSettings
 from hil.drivers.canopen.scaling import DriveScaling, read_scaling
@@ -302,6 +302,10 @@ class CanDriveMaster(Device):
         profile = profile_writes(self.objects, mode, c.profile, self.scaling)
         scaling, limit = self.scaling, self.limit
         self.nmt.command(NMT_ENTER_PRE_OPERATIONAL)
+        if not self.objects.has(TORQUE_ACTUAL):  # its TPDOs carry what it has
+            self.notices.tell("drive.object_missing", without_text(n, TORQUE_ACTUAL, 0))
+            self._tpdo_maps = without_object(self._tpdo_maps, TORQUE_ACTUAL)
+            self.cyclic.use_tpdos(self._tpdo_maps)
         pdos = PdoConfigurator(sdo, n, self._write_setting)
         if c.sync_echo is not None:
             pdos.start_sync_counter(self.objects.has(CYCLE_PERIOD),
@@ -446,7 +450,7 @@ class CanDriveMaster(Device):
         read = self.sdo.read_int
         feedback = self.cyclic.start((self.states.statusword(), read(POSITION_ACTUAL, 0, "<i"),
                                       self.objects.read(VELOCITY_ACTUAL, 0, "<i") or 0,
-                                      read(TORQUE_ACTUAL, 0, "<h")))
+                                      self.objects.read(TORQUE_ACTUAL, 0, "<h") or 0))
         self._event("drive.enabled", f"drive node {n} OPERATION ENABLED at "
                     f"{feedback.position_deg:.4f} deg", position_deg=feedback.position_deg)
         return feedback

@@ -20,7 +20,7 @@ from hil.protocols.cia301 import (
     PRODUCER_HEARTBEAT,
     SdoAbortError,
 )
-from hil.protocols.cia402 import ERROR_CODE, QUICK_STOP_OPTION, SUPPORTED_MODES
+from hil.protocols.cia402 import ERROR_CODE, QUICK_STOP_OPTION, SUPPORTED_MODES, TORQUE_ACTUAL
 
 ABSENT = (ABORT_NO_OBJECT, ABORT_NO_SUBINDEX)
 #: the optional objects hil does without, by (index, sub-index): what each is, and how
@@ -34,6 +34,8 @@ DOING_WITHOUT: dict[tuple[int, int], tuple[str, str]] = {
                               "master's heartbeat"),
     (QUICK_STOP_OPTION, 0): ("quick stop option code", "its own quick stop applies, not "
                              "[master] quick_stop_option"),
+    (TORQUE_ACTUAL, 0): ("torque actual value", "its current is not measured: /drive/feedback "
+                         "has current_mA NaN"),
 }
 
 

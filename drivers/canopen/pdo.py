@@ -44,6 +44,12 @@ def tpdo_maps(sync_echo: tuple[int, int] | None, layout: str = "two") -> tuple[P
     return echoed
 
 
+def without_object(maps: Sequence[PdoMap], index: int) -> tuple[PdoMap, ...]:
+    """``maps`` with object ``index`` left out of each (an object the drive lacks)."""
+    return tuple(replace(pdo, entries=tuple(e for e in pdo.entries if e[0] != index))
+                 for pdo in maps)
+
+
 def unused_pdos(tpdos: Sequence[PdoMap]) -> tuple[int, ...]:
     """The communication objects of the PDOs the master does not use (RPDO2-4 and the TPDOs
     of 1-4 not in ``tpdos``), invalidated where the drive has them."""

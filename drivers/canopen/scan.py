@@ -60,7 +60,6 @@ from hil.protocols.cia402 import (
     QUICK_STOP_ACTIVE,
     STATUSWORD,
     SUPPORTED_MODES,
-    TORQUE_ACTUAL,
     UNKNOWN_STATE,
     VELOCITY_ACTUAL,
     state_of,
@@ -366,7 +365,7 @@ def _problems(report: NodeReport, sdo: SdoClient) -> list[str]:
     target = () if mode.set_point is None else ((mode.set_point[0], "the mode's target"),)
     for index, what in ((CONTROLWORD, "controlword"), (STATUSWORD, "statusword"),
                         (POSITION_ACTUAL, "position actual"), (VELOCITY_ACTUAL, "velocity actual"),
-                        (TORQUE_ACTUAL, "torque actual"), *target):
+                        *target):
         try:
             sdo.read(index, 0)
         except SdoAbortError as exc:

@@ -14,7 +14,8 @@ current), the modes it supports (0x6502) and its identity (0x1018). Each of its 
   hil's drive only reads, 0x608F, 0x1014...) is refused with 0x08000020;
 * plain - a constant (access ``const``) or a description without behaviour (0x1000, 0x1008,
   0x1009, 0x100A, 0x1018, 0x6402..0x6404, 0x6503..0x6505): read back as the file gives it,
-  stored when an integer is written; without a value in the file it reads 0x08000024;
+  stored when an integer is written; without a value in the file it reads 0x08000024 (the
+  device type 0x1000, which every CANopen device answers, must have one: from ``set``);
 * not emulated - every other object (manufacturer objects, 0x1003, 0x6073...): a read is
   refused with 0x08000024 (no data available: the twin has no value that means what the
   drive's does), a write with 0x08000020 (data cannot be stored to the application), never
@@ -22,12 +23,16 @@ current), the modes it supports (0x6502) and its identity (0x1018). Each of its 
 * hidden - hil's objects the file lacks: the node keeps them but SDO says they do not exist
   (0x06020000), as the drive would.
 
-hil's manufacturer objects (0x2001..0x2005, :mod:`hil.emulators.drive.od`) stay where the file
+hil's manufacturer objects (0x2001..0x2004, :mod:`hil.emulators.drive.od`) stay where the file
 has no object of their index (or has hil's own, an EDS hil wrote); an object of the file at
-one of them is not emulated and the hook is gone. The modes are those 0x6502 lists that hil
-emulates (:data:`hil.emulators.drive.modes.EMULATED_MODES`) and whose objects the file has
-(``MODE_NEEDS``); another mode it lists is refused with 0x08000020 when 0x6060 is set to it,
-one it does not list with 0x06090030, as the drive would.
+one of them is not emulated and the hook is gone. The time base 0x2005, by which a lockstep
+master gives the drive its SYNCs' time, stays in every twin: a file's own object there (maxon's
+RS232 frame timeout, Nanotec's CANopen baud rate...) is not emulated either way, and without
+it lockstep would leave the twin on its own clock, its SYNC watchdog on the wall clock. The
+modes are those 0x6502 lists that hil emulates (:data:`hil.emulators.drive.modes.EMULATED_MODES`)
+and whose objects the file has (``MODE_NEEDS``); another mode it lists is refused with
+0x08000020 when 0x6060 is set to it, one it does not list with 0x06090030, as the drive
+would.
 
 Vendor files as they come: a value left empty for commissioning comes from ``set``
 (``[emulator] set``, ``--set``; a DCF's ParameterValue is the file's value), which also gives a
@@ -78,6 +83,7 @@ from hil.protocols.cia301 import (
     SdoAbortError,
     abort_text,
 )
+from hil.protocols.cia306 import description_encoding
 from hil.protocols.cia402 import (
     CONTROLWORD,
     CYCLIC_SYNCHRONOUS_POSITION,
@@ -124,6 +130,9 @@ NEEDED = ((CONTROLWORD, 0, "controlword"), (STATUSWORD, 0, "statusword"),
           (MODES_OF_OPERATION, 0, "modes of operation"),
           (MODES_DISPLAY, 0, "modes of operation display"),
           (POSITION_ACTUAL, 0, "position actual value"))
+#: what every CANopen device answers (CiA 301): a file may leave it empty all the same (Pilz's
+#: and SCHUNK's DCFs give no device type), and a master reads it first
+MANDATORY = ((DEVICE_TYPE, 0, "device type"),)
 #: the axis' unit: from the file, or (a file without it) from ``set`` onto hil's hidden one
 UNIT = ((ENCODER_RESOLUTION, 1, "encoder increments"),
         (ENCODER_RESOLUTION, 2, "motor revolutions"))
@@ -167,6 +176,7 @@ class DriveDictionary:
     counts_per_turn: int | None = None  # 0x6064 counts per turn of the axis (None: config's)
     path: str | None = None
     replaced_hooks: tuple[int, ...] = ()
+    time_base_over: str | None = None  # the file's object at 0x2005, under hil's time base
     unserved_maps: tuple[str, ...] = ()  # valid PDOs whose power-on map was emptied
     motor_turns_per_turn: Fraction = Fraction(1)  # 0x6091: the index pulse's period
 
@@ -246,6 +256,8 @@ class DriveDictionary:
                 f"{increments} increments, gear {gear}); modes {modes}; "
                 f"not emulated: {', '.join(refused) or 'none'}"
                 + (f"; hil's {hooks} replaced by its own" if hooks else "")
+                + (f"; hil's time base 0x{TIME_BASE:04X} over its {self.time_base_over}"
+                   if self.time_base_over else "")
                 + (f"; power-on maps left for the master to write: "
                    f"{', '.join(self.unserved_maps)}" if self.unserved_maps else ""))
 
@@ -281,13 +293,10 @@ def _import(path: str, node_id: int) -> ObjectDictionary:
 
 
 def _read_od(path: str, node_id: int) -> ObjectDictionary:
-    """canopen's reading of the file; one that is not UTF-8 (a vendor's comment in
-    Windows-1252) read as Latin-1, which takes every byte."""
-    try:
-        od: ObjectDictionary = import_od(path, node_id)
-    except UnicodeDecodeError:
-        with open(path, encoding="latin-1") as text:
-            od = import_od(text, node_id)
+    """canopen's reading of the file's text, in its encoding (one that is not UTF-8, a
+    vendor's comment in Windows-1252, read as Latin-1)."""
+    with open(path, encoding=description_encoding(path)) as text:
+        od: ObjectDictionary = import_od(text, node_id)
     return od
 
 
@@ -339,6 +348,7 @@ class _Twin:
         self.no_read: set[Key] = set()
         self.no_write: set[Key] = set()
         self.replaced: list[int] = []
+        self.time_base_over: str | None = None
         self.gear = _gear_template()
         self.problems: list[str] = []
         self.unserved: list[str] = []  # PDOs whose power-on map the twin cannot serve
@@ -362,8 +372,14 @@ class _Twin:
                 self.od.add_object(own)
                 continue
             theirs = self.od[index]
-            if not (isinstance(theirs, ODVariable) and isinstance(own, ODVariable)
-                    and theirs.name == own.name and theirs.data_type == own.data_type):
+            if isinstance(theirs, ODVariable) and isinstance(own, ODVariable) \
+                    and theirs.name == own.name and theirs.data_type == own.data_type:
+                continue
+            if index == TIME_BASE:  # lockstep's: kept over the file's
+                self.time_base_over = f"{theirs.name!r}"
+                del self.od[index]
+                self.od.add_object(own)
+            else:
                 self.replaced.append(index)
 
     def take_settings(self) -> None:
@@ -625,6 +641,9 @@ class _Twin:
         modes, listed = self.modes()  # the deciding reason, when there is one
         for lack in self.lacks(NEEDED):
             self.problem(f"{lack}: the twin needs it to run any mode")
+        for lack in self.lacks(MANDATORY):
+            self.problem(f"{lack}: every CANopen device has it (CiA 301), and a master "
+                         "reads it first")
         counts = self.counts_per_turn()
         if counts is not None:
             self.scale_defaults(counts)
@@ -633,7 +652,7 @@ class _Twin:
                        if key not in present or key[0] in self.replaced)
         twin = DriveDictionary(self.od, hidden, frozenset(self.no_read),
                                frozenset(self.no_write), modes, listed, counts, self.path,
-                               tuple(self.replaced),
+                               tuple(self.replaced), self.time_base_over,
                                motor_turns_per_turn=self.motor_turns_per_turn)
         if not self.problems:
             self.serve_pdos(twin.store())

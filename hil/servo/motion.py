@@ -183,7 +183,7 @@ class MotionKpis(Kpis):
     error_deg: float | None = kpi(optional=True)  # a move's: position - target
     time_s: float | None = kpi()        # to the end of the move or the homing
     peak_velocity_deg_s: float = kpi(0.0)
-    peak_current_ma: float = kpi(0.0, key="peak_current_mA")
+    peak_current_ma: float | None = kpi(0.0, key="peak_current_mA")  # None: not measured
     ticks: int = kpi(0)
     cycle_period_us: int = kpi(0, limit=False)
     drive: str = kpi("", limit=False)
@@ -207,7 +207,8 @@ class MotionTask(Task):
         self.sent = session.topic("/drive/motion", MOTION_SCHEMA, high_rate=True)
         self.ticks = 0
         self.end_s: float | None = None  # when the motion was done [s]
-        self.peak_velocity = self.peak_current = 0.0
+        self.peak_velocity = 0.0
+        self.peak_current: float | None = 0.0
         self.stopped: str | None = None
         self._feedback: Feedback | None = None
         self._next = (0.0, 0)
@@ -239,7 +240,11 @@ class MotionTask(Task):
         self.sent.log(t_ns, (self.ticks * self.period_s, self.target_deg,
                              self._next[1] | CW_ENABLE_OPERATION))
         self.peak_velocity = max(self.peak_velocity, abs(feedback.velocity_deg_s))
-        self.peak_current = max(self.peak_current, abs(feedback.current_ma))
+        current = feedback.current_ma
+        if not math.isfinite(current):  # a drive without 0x6077: its current is not measured
+            self.peak_current = None
+        elif self.peak_current is not None:
+            self.peak_current = max(self.peak_current, abs(current))
         self.ticks += 1
         stop = self._unsafe(feedback)
         if stop is not None:

@@ -5,7 +5,8 @@ KPIs are taken over the ticks from ``settle_s`` on: the error is the multi-turn 
 (as the master counts it) minus the reference placed where the axis started
 (:class:`~hil.controllers.servo.references.PlacedReference`), turns included, so a runaway's whole
 error shows; ``max_error_pct`` is relative to the sine's amplitude or the trapezoid's stroke
-(None for a hold); ``step_us`` is the controller's compute time (Kalman + MPC, or PID) per
+(None for a hold); the peak currents are None where the drive chose the current and does not
+measure it (no 0x6077); ``step_us`` is the controller's compute time (Kalman + MPC, or PID) per
 tick.
 """
 
@@ -42,6 +43,7 @@ class TrackingStats:
         self.sum_squares = 0.0
         self.peak_current = 0.0    # the current the drive was sent (after the clamp)
         self.peak_requested = 0.0  # the controller's request
+        self.measured = False      # a current was known (a drive without 0x6077 reports NaN)
         self.compute_us = TimingHistogram()
 
     def add(self, t_s: float, error_deg: float, command_ma: float, compute_us: float,
@@ -57,8 +59,10 @@ class TrackingStats:
             self.sum_squares += e * e
             if e > self.max_error:
                 self.max_error = e
-            if abs(command_ma) > self.peak_current:
-                self.peak_current = abs(command_ma)
+            current = abs(command_ma)
+            if current > self.peak_current:
+                self.peak_current = current
+            self.measured = self.measured or current == current  # NaN: not measured
             requested = abs(command_ma if requested_ma is None else requested_ma)
             if requested > self.peak_requested:
                 self.peak_requested = requested
@@ -72,6 +76,7 @@ class TrackingStats:
             kpis.max_error_pct = 100.0 * self.max_error / amplitude if amplitude else None
             kpis.rms_error_deg = math.sqrt(self.sum_squares / self.counted)
             kpis.cumulative_error_deg = self.sum_error
-            kpis.peak_current_ma = self.peak_current
-            kpis.peak_requested_ma = self.peak_requested
+            if self.measured:
+                kpis.peak_current_ma = self.peak_current
+                kpis.peak_requested_ma = self.peak_requested
         return kpis

@@ -153,14 +153,14 @@ def test_scan_of_a_drive_hil_did_not_write_scales_by_its_own_encoder(tmp_path, s
 def test_scan_with_an_eds_that_lacks_an_object_hil_needs_reports_it(tmp_path, slave, capsys):
     url, _drive = slave
 
-    def drop_torque_actual(od):
-        del od[0x6077]
+    def drop_velocity_actual(od):
+        del od[0x606C]
 
     def here(*args):
         return hil_here(*args, cwd=tmp_path, capsys=capsys)
 
     complete = here("drive", "scan", url, "--node", NODE, "--eds", slave_eds(tmp_path), "--json")
-    lacking = slave_eds(tmp_path, drop_torque_actual, "lacking")
+    lacking = slave_eds(tmp_path, drop_velocity_actual, "lacking")
     table = hil("drive", "scan", url, "--node", NODE, "--eds", lacking, cwd=tmp_path)
     report = here("drive", "scan", url, "--node", NODE, "--eds", lacking, "--json")
     emulators = tmp_path / "emulator.eds"
@@ -171,13 +171,29 @@ def test_scan_with_an_eds_that_lacks_an_object_hil_needs_reports_it(tmp_path, sl
     assert node["eds"]["problems"] == [] and node["drivable"] is True
     [node] = json.loads(report.stdout)["nodes"]
     [problem] = node["eds"]["problems"]
-    assert problem.startswith("0x6077 is not in it: hil needs it readable and TPDO-mappable")
+    assert problem.startswith("0x606C is not in it: hil needs it readable and TPDO-mappable")
     assert node["drivable"] is False
     assert f"EDS {lacking}: 1 problem(s), below" in table.stdout
-    assert f"can drive: no, EDS {lacking}: 0x6077 is not in it" in table.stdout
+    assert f"can drive: no, EDS {lacking}: 0x606C is not in it" in table.stdout
     [node] = json.loads(other.stdout)["nodes"]  # hil's emulator's EDS: another product
     assert "is for vendor id 0x0, the drive says 0xC0FFEE (0x1018)" in node["eds"]["problems"]
     assert "cannot read its EDS" in one_error_line(missing)
+
+
+def test_scan_reads_an_eds_that_is_not_utf8(tmp_path, slave, capsys):
+    """FAULHABER's EDS has a Windows-1252 byte in a comment: the twin read it, and the scan,
+    a run's --eds and hil drive sdo said "cannot read its EDS" ('utf-8' codec can't decode)."""
+    url, _drive = slave
+    path = slave_eds(tmp_path, name="cp1252")
+    text = path.read_bytes().replace(b"[FileInfo]\n", b"[FileInfo]\n; \x94quoted\x94\n", 1)
+    path.write_bytes(text)
+    with pytest.raises(UnicodeDecodeError):
+        text.decode("utf-8")
+    scanned = hil_here("drive", "scan", url, "--node", NODE, "--eds", path, "--json",
+                       cwd=tmp_path, capsys=capsys)
+    assert scanned.returncode == 0, scanned.stdout + scanned.stderr
+    [node] = json.loads(scanned.stdout)["nodes"]
+    assert node["eds"]["problems"] == [] and node["drivable"] is True
 
 
 # -- sdo ------------------------------------------------------------------------------------

@@ -3,10 +3,12 @@ no 0x608F and no 0x6075), driven from the command line: the master reads only wh
 has, takes the missing scaling from the ``[master]`` keys that stand in for it, stops before
 anything is enabled when neither has a value (one line naming the object and the key), and
 says on the terminal what it does without the rest. The drive is canopen's ``LocalNode``
-(tests/drive_slave.py) built from an EDS file that lacks the objects, over python-can's
-``virtual`` bus in this process (``hil_here``) and over ``udp_multicast`` from another one."""
+(tests/drive_slave.py) built from an EDS file that lacks the objects, or from maxon's own EPOS4
+DCF, over python-can's ``virtual`` bus in this process (``hil_here``) and over
+``udp_multicast`` from another one."""
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -19,7 +21,7 @@ import pytest
 
 from hil.core.recording.reader import read_session
 from tests.cli import hil_here
-from tests.drive_slave import CSP, CST, INCREMENTS, RATED_MA, dictionary, serve
+from tests.drive_slave import CSP, CST, INCREMENTS, PP, RATED_MA, dictionary, serve
 from tests.integration.test_independent_drive import free_udp_port
 
 pytestmark = [pytest.mark.slow]
@@ -125,6 +127,37 @@ def test_the_keys_that_stand_in_for_them_drive_it_and_are_recorded(tmp_path, cap
     assert slave.written(0x608F) == slave.written(0x6075) == []
 
 
+@pytest.mark.parametrize("mode, command", [("cst", "pid"), ("csp", "setpoint"), ("pp", None)])
+def test_a_drive_without_0x6077_is_driven_and_its_current_is_not_measured(
+        tmp_path, capsys, slave_of, mode, command):
+    """ros2_canopen's CiA 402 test device has no torque actual value: on main every mode
+    failed configuring its TPDOs (abort 0x06020000 on 0x1A01:2 = 0x6077). Its TPDOs now carry
+    what it has; the current is NaN on /drive/feedback, the peak current the commanded one
+    (CST) or none."""
+    slave = slave_of((0x6077,), (CSP, CST, PP))
+    config = f'[master]\nmode = "{mode}"\n'
+    if command is None:
+        (tmp_path / "pp.toml").write_text(config)
+        ran = hil_here(capsys, "drive", "move", slave.url, "10", "--node", NODE, "--config",
+                       "pp.toml", "--json", "--out", "run.mcap", cwd=tmp_path)
+    else:
+        ran = run(capsys, tmp_path, slave, config, "--json", controller=command)
+    assert ran.returncode == 0, ran.stderr
+    assert ("hil: warning: drive node 3 has no 0x6077 (torque actual value): its current is "
+            "not measured: /drive/feedback has current_mA NaN") in ran.stderr
+    kpis = json.loads(ran.stdout)
+    if command is None:
+        assert kpis["reached"] and kpis["position_deg"] == pytest.approx(10.0, abs=0.1)
+    else:
+        assert kpis["ticks"] == 200 and kpis["rms_error_deg"] < 1.0
+    assert (kpis["peak_current_mA"] > 0) if mode == "cst" else kpis["peak_current_mA"] is None
+    mapped = {int.from_bytes(data, "little") >> 16 for index, sub, data in slave.written(0x1A01)
+              if sub > 0}
+    assert mapped == {0x606C}  # TPDO2: the velocity alone
+    currents = read_session(str(tmp_path / "run.mcap")).arrays("/drive/feedback")["current_mA"]
+    assert len(currents) > 0 and all(math.isnan(current) for current in currents)
+
+
 def test_a_key_that_disagrees_with_the_drive_is_refused(tmp_path, capsys, slave_of):
     slave = slave_of(())
     refused = run(capsys, tmp_path, slave, "[master]\nincrements_per_rev = 4096\n")
@@ -209,18 +242,18 @@ def ip_only(tmp_path):
 
 
 def test_scan_with_an_eds_lists_one_problem_a_line_and_fails(tmp_path, capsys, slave_of):
-    slave = slave_of((0x6077,), (CSP, CST))  # no torque actual: hil cannot drive it
-    eds = lacking_eds(tmp_path, (0x6077,), (CSP, CST), "described")
+    slave = slave_of((0x606C,), (CSP, CST))  # no velocity actual: hil cannot drive it
+    eds = lacking_eds(tmp_path, (0x606C,), (CSP, CST), "described")
     (tmp_path / "csp.toml").write_text('[master]\nmode = "csp"\n')
     scanned = hil_here(capsys, "drive", "scan", slave.url, "--node", NODE, "--eds", eds,
                        "--config", "csp.toml", cwd=tmp_path)
     assert scanned.returncode == 1, scanned.stderr
     verdict = scanned.stdout[scanned.stdout.index("can drive: no"):].splitlines()
     assert verdict == [
-        "can drive: no, 0x6077 torque actual: drive node 3 refused SDO read 0x6077:00: "
+        "can drive: no, 0x606C velocity actual: drive node 3 refused SDO read 0x606C:00: "
         "0x06020000 object does not exist in the object dictionary",
-        f"    EDS {eds}: 0x6077 is not in it: hil needs it readable and TPDO-mappable, 16 "
-        "bits, for the current every cycle"]
+        f"    EDS {eds}: 0x606C is not in it: hil needs it readable and TPDO-mappable, 32 "
+        "bits, for the velocity every cycle"]
     healthy = slave_of((), (CSP, CST))
     fine = hil_here(capsys, "drive", "scan", healthy.url, "--node", NODE, "--eds",
                     lacking_eds(tmp_path, (), (CSP, CST), "complete"), "--config", "csp.toml",
@@ -316,3 +349,30 @@ def test_a_maxon_epos4_homes_and_moves(tmp_path, capsys):
     assert json.loads(homed.stdout)["reached"]
     kpis = json.loads(moved.stdout)
     assert kpis["reached"] and kpis["position_deg"] == pytest.approx(45.0, abs=0.5)
+
+
+@pytest.mark.parametrize("mode, controller", [("cst", "pid"), ("csp", "setpoint")])
+def test_a_drive_built_from_maxons_own_dcf_is_driven_with_the_stand_ins(tmp_path, capsys, mode,
+                                                                        controller):
+    """canopen's LocalNode with the dictionary of maxon's EPOS4 DCF (no 0x608F, no 0x6075, no
+    0x6072, no 0x1006; its PDOs valid at power-on, mapped otherwise): a drive hil did not
+    write, as its vendor describes it, that DCF the run's --eds too. Its scaling comes from the
+    stand-ins; nothing it lacks is read or written."""
+    slave = Slave(EPOS4)
+    try:
+        assert not {0x608F, 0x6075} & set(slave.drive.od.keys())
+        ran = run(capsys, tmp_path, slave, STAND_INS + f'mode = "{mode}"\n', "--eds", EPOS4,
+                  "--json", controller=controller)
+    finally:
+        slave.close()
+    assert ran.returncode == 0, ran.stderr
+    kpis = json.loads(ran.stdout)
+    assert kpis["ticks"] == 200 and kpis["stale_feedback"] == 0
+    assert kpis["rms_error_deg"] < 1.0  # scaled right: it tracks the sine
+    assert slave.drive.value(0x6060) == {"cst": CST, "csp": CSP}[mode]
+    assert slave.written(0x608F) == slave.written(0x6075) == slave.written(0x6072) == []
+    assert "drive node 3 has no 0x6072 (max torque)" in ran.stderr
+    drive = json.loads(read_session(str(tmp_path / "run.mcap")).metadata["drive"]["json"])
+    assert drive["scaling_from"] == {"increments_per_rev": "[master] increments_per_rev",
+                                     "rated_current_ma": "[master] rated_current_mA"}
+    assert drive["eds"]["vendor"].startswith("maxon")

@@ -25,6 +25,7 @@ from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.node import DriveNode
 from hil.protocols.cia301 import ABORT_NO_DATA, SdoAbortError
 from tests.cli import hil_here
+from tests.emulators.drive.test_node import Wire
 
 DATA = Path(__file__).resolve().parents[2] / "data"
 EX20 = DATA / "ex20_gear.eds"
@@ -296,13 +297,25 @@ def test_a_unit_the_eds_does_not_give_is_refused_not_guessed(tmp_path, capsys):
 
 
 def test_a_vendor_object_at_a_hook_index_is_the_vendors_and_not_emulated(tmp_path):
+    """But at 0x2005, hil's time base stays: maxon's, Nanotec's and Technosoft's files have an
+    object there, and their twins stayed on their own clocks in a lockstep run (the master's
+    0x2005 refused), their SYNC watchdog on the wall clock: a pause of 100 ms faulted Nanotec's
+    twin in CST on a busy machine."""
+    objects = "".join(f"[{index:04X}]\nParameterName={name}\nObjectType=0x7\n"
+                      "DataType=0x0006\nAccessType=rw\nDefaultValue=20\nPDOMapping=0\n\n"
+                      for index, name in ((0x2003, "Brake delay"), (0x2005, "Baud rate")))
     path = edited(tmp_path, "[ManufacturerObjects]\nSupportedObjects=2\n",
-                  "[2005]\nParameterName=Brake delay\nObjectType=0x7\nDataType=0x0006\n"
-                  "AccessType=rw\nDefaultValue=20\nPDOMapping=0\n\n"
-                  "[ManufacturerObjects]\nSupportedObjects=2\n")
+                  objects + "[ManufacturerObjects]\nSupportedObjects=2\n")
     node = DriveNode(DriveEmulatorConfig(node_id=NODE, eds=str(path)), send=lambda frames: None)
-    assert node.dictionary.summary(NODE).endswith("; hil's 0x2005 replaced by its own")
+    assert node.dictionary.summary(NODE).endswith(
+        "; hil's 0x2003 replaced by its own; hil's time base 0x2005 over its 'Baud rate'")
     with pytest.raises(SdoAbortError) as read:
-        node.objects.read(0x2005, 0)
+        node.objects.read(0x2003, 0)
     assert read.value.code == ABORT_NO_DATA
-    assert node.objects.read(0x2003, 0) == bytes(2)  # hil's disturbance hook is still there
+    assert node.objects.read(0x2002, 0) == (15000).to_bytes(2, "little")  # hil's trip level
+    wire = Wire(node_id=1, eds=str(path))
+    try:
+        assert wire.write(0x2005, 0, 10000, "<I")[0] == 0x60  # a lockstep master asks: taken
+        assert wire.node.on_master_time
+    finally:
+        wire.close()

@@ -60,6 +60,22 @@ def test_an_empty_value_comes_from_set_flag_config_or_dcf(tmp_path, capsys):
         flag_over_config.stderr
 
 
+def test_a_device_type_left_empty_is_refused_until_set(tmp_path, capsys):
+    """Pilz's and SCHUNK's DCFs give 0x1000 no value: a twin serving it empty answered a
+    master's first read with abort 0x08000024, and no master could take the drive."""
+    path = edited(tmp_path, "DefaultValue=0x00020192\n", "DefaultValue=\n")
+    refused = hil_here(capsys, "emulate", "drive", "--eds", path, cwd=tmp_path)
+    assert one_error_line(refused).endswith(
+        "0x1000:0 (device type) has no value; give it with --set 0x1000:0=VALUE or [emulator] "
+        "set = {\"0x1000:0\" = VALUE} (or a DCF's ParameterValue): every CANopen device has "
+        "it (CiA 301), and a master reads it first")
+    wire = Wire(eds=str(path), object_values=(((0x1000, 0), 0x00020192),))
+    try:
+        assert struct.unpack_from("<I", wire.read(0x1000), 4)[0] == 0x00020192
+    finally:
+        wire.close()
+
+
 def test_a_unit_the_file_lacks_comes_from_set_and_stays_hidden(tmp_path, capsys):
     text = EX20.read_text()
     start, end = text.index("[608F]\n"), text.index("[6091]\n")

@@ -20,6 +20,7 @@ from tests.emulators.drive.test_node import enable
 
 DRIVES = Path(__file__).resolve().parents[2] / "data" / "drives"
 UNIT = {"0x608F:1": 4096, "0x608F:2": 1}
+SERVO = {"0x1000:0": 0x00020192}  # a CiA 402 servo drive: Pilz's and SCHUNK's give no 0x1000
 #: file -> (what is supplied, the modes the twin runs)
 TWINNED = {
     "ros2_canopen/cia402_slave.eds": ({"0x608F:1": 4096}, "PP PV HM CSP"),
@@ -32,8 +33,9 @@ TWINNED = {
     "ingenia/eve-net-c_1.8.1.eds": (UNIT, "PP PV HM CSP CSV"),
     "elmo/ElmoSimplIQ.dcf": ({"0x608F:1": 4096, "0x6075:0": 2000, "0x6072:0": 1000,
                               "0x6073:0": 3000}, "PP PV HM"),
-    "pilz/prbt_0_1.dcf": ({**UNIT, "0x6075:0": 2000, "0x6073:0": 3000}, "PP"),
-    "schunk/Schunk_0_63.dcf": ({**UNIT, "0x6075:0": 2000, "0x6073:0": 3000}, "PP"),
+    "pilz/prbt_0_1.dcf": ({**UNIT, "0x6075:0": 2000, "0x6073:0": 3000, **SERVO}, "PP"),
+    "schunk/Schunk_0_63.dcf": ({**UNIT, "0x6075:0": 2000, "0x6073:0": 3000, **SERVO},
+                               "PP"),
 }
 #: files listing no mode hil emulates
 REFUSED = ("elmo/Elmo.dcf", "faulhaber/605.3150.71-A-EK-3-60.eds")
