@@ -4,8 +4,10 @@ number, serial number; only the vendor-ID is mandatory), read by SDO.
 It decides two things. Whether the drive is hil's own drive emulator, the only drive hil
 writes its manufacturer-specific objects to (0x2000-0x5FFF: the time base 0x2005, the
 disturbance torque 0x2003): on a vendor's drive the same index is the vendor's object, with
-its own meaning. And, with the bus and the node id, which drive a setting left behind by an
-earlier run belongs to (:mod:`hil.drivers.canopen.run_settings`).
+its own meaning. hil's emulator says so in 0x1018:5, a sub-index CiA 301 leaves unused
+(:data:`~hil.protocols.cia301.HIL_EMULATOR_SIGNATURE`), also as the twin of a vendor's drive,
+whose 0x1018:1..4 are the vendor's. And, with the bus and the node id, which drive a setting
+left behind by an earlier run belongs to (:mod:`hil.drivers.canopen.run_settings`).
 """
 
 from __future__ import annotations
@@ -13,13 +15,15 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from typing import Protocol
 
-from hil.protocols.cia301 import IDENTITY, SdoAbortError
+from hil.protocols.cia301 import (
+    HIL_EMULATOR_SIGNATURE,
+    HIL_EMULATOR_SUBINDEX,
+    IDENTITY,
+    SdoAbortError,
+)
 
 #: manufacturer-specific objects (CiA 301's profile area starts at 0x6000)
 MANUFACTURER_OBJECTS = range(0x2000, 0x6000)
-#: hil's drive emulator's vendor-ID and product code (emulators/drive/od.py): vendor-ID 0 is
-#: assigned to no vendor, and 0x402 is the profile it emulates
-HIL_EMULATOR = (0x0000_0000, 0x0000_0402)
 
 
 class SdoReader(Protocol):
@@ -35,14 +39,11 @@ class Identity:
     product_code: int | None = None
     revision: int | None = None
     serial: int | None = None
-
-    @property
-    def hil_emulator(self) -> bool:
-        """Whether the drive says it is hil's drive emulator (its vendor-ID and product)."""
-        return (self.vendor_id, self.product_code) == HIL_EMULATOR
+    hil_emulator: bool = False  # 0x1018:5 holds hil's emulator's signature
 
     def as_dict(self) -> dict[str, int | None]:
-        return asdict(self)
+        """0x1018:1..4 by name."""
+        return {key: value for key, value in asdict(self).items() if key != "hil_emulator"}
 
     def text(self) -> str:
         """``vendor 0xC0FFEE, product 0x11, revision 0x3, serial 0x1267`` (what it has)."""
@@ -61,7 +62,11 @@ def read_identity(sdo: SdoReader) -> Identity:
             values[key] = sdo.read_int(IDENTITY, sub)
         except SdoAbortError:
             continue
-    return Identity(**values)
+    try:
+        signed = sdo.read_int(IDENTITY, HIL_EMULATOR_SUBINDEX) == HIL_EMULATOR_SIGNATURE
+    except SdoAbortError:
+        signed = False
+    return Identity(**values, hil_emulator=signed)
 
 
 def not_hil_emulator(node_id: int, identity: Identity, objects: str) -> str:

@@ -31,7 +31,12 @@ from canopen.objectdictionary.datatypes import (
     VISIBLE_STRING,
 )
 
-from hil.protocols.cia301 import SDO_REQUEST_BASE, SDO_RESPONSE_BASE
+from hil.protocols.cia301 import (
+    HIL_EMULATOR_SIGNATURE,
+    HIL_EMULATOR_SUBINDEX,
+    SDO_REQUEST_BASE,
+    SDO_RESPONSE_BASE,
+)
 from hil.protocols.cia402 import (
     MODES_BY_CODE,
     NO_MODE,
@@ -59,6 +64,13 @@ class OdDefaults:
     def per_turn(self, turns: float) -> int:
         """``turns`` axis turns [increments], as UNSIGNED32."""
         return max(1, min(0xFFFF_FFFF, round(turns * self.increments_per_rev)))
+
+
+def emulator_signature() -> ODVariable:
+    """0x1018:5, by which a master tells hil's drive emulator (its own dictionary or a twin)
+    from a vendor's drive (:data:`~hil.protocols.cia301.HIL_EMULATOR_SIGNATURE`)."""
+    return _var("hil drive emulator", 0x1018, HIL_EMULATOR_SUBINDEX, UNSIGNED32, "const",
+                HIL_EMULATOR_SIGNATURE)
 
 
 def _var(name: str, index: int, subindex: int, data_type: int, access: str, default: int | str,
@@ -140,11 +152,12 @@ def build_object_dictionary(node_id: int, defaults: OdDefaults | None = None) ->
         _var("COB-ID server to client", 0x1200, 2, UNSIGNED32, "ro", SDO_RESPONSE_BASE + node_id),
     ]))
     add(_record("Identity object", 0x1018, [
-        _var("Number of entries", 0x1018, 0, UNSIGNED8, "const", 4),
+        _var("Number of entries", 0x1018, 0, UNSIGNED8, "const", HIL_EMULATOR_SUBINDEX),
         _var("Vendor-ID", 0x1018, 1, UNSIGNED32, "ro", 0),
         _var("Product code", 0x1018, 2, UNSIGNED32, "ro", 0x402),
         _var("Revision number", 0x1018, 3, UNSIGNED32, "ro", 1),
         _var("Serial number", 0x1018, 4, UNSIGNED32, "ro", node_id),
+        emulator_signature(),
     ]))
     for pdo in RPDOS:
         _pdo_objects(od, node_id, pdo, tpdo=False)

@@ -68,7 +68,7 @@ from canopen.objectdictionary.datatypes import (
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.modes import EMULATED_MODES
 from hil.emulators.drive.objects import Key, ObjectStore
-from hil.emulators.drive.od import build_object_dictionary, iter_variables
+from hil.emulators.drive.od import build_object_dictionary, emulator_signature, iter_variables
 from hil.emulators.drive.pdo import EXTENDED_ID, MAPPING_OFFSET, MAX_PDO_BITS
 from hil.emulators.drive.timebase import TIME_BASE
 from hil.emulators.errors import EmulatorSetupError
@@ -366,6 +366,11 @@ class _Twin:
         return EmulatorSetupError("\n".join(f"EDS {self.path}: {line}" for line in lines))
 
     def take_hooks(self) -> None:
+        """hil's manufacturer objects (:data:`HOOKS`) where the file leaves them room (the
+        time base always), and its signature 0x1018:5 beside the vendor's identity."""
+        identity = self.od.get(IDENTITY) if IDENTITY in self.od else None
+        if identity is not None and not isinstance(identity, ODVariable):
+            identity.add_member(emulator_signature())
         for index in HOOKS:
             own = self.own[index]
             if index not in self.od:

@@ -159,6 +159,10 @@ DEVICE_NAME = 0x1008
 CONSUMER_HEARTBEAT = 0x1016
 PRODUCER_HEARTBEAT = 0x1017
 IDENTITY = 0x1018               # 1 vendor, 2 product, 3 revision, 4 serial
+#: 0x1018:5, a sub-index CiA 301 leaves unused, answered by hil's drive emulator only (its own
+#: dictionary and every twin, whose 0x1018:1..4 are the vendor's): 'hil' and a format byte.
+#: Reading it is harmless on any drive; it tells hil's emulator from a vendor's drive.
+HIL_EMULATOR_SUBINDEX, HIL_EMULATOR_SIGNATURE = 5, 0x68696C01
 SYNC_COUNTER_OVERFLOW = 0x1019  # 0: SYNC without counter; 2..240: the counter's range
 RPDO_COMM_BASE = 0x1400
 RPDO_MAP_BASE = 0x1600
