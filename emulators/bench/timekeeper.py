@@ -57,6 +57,9 @@ HELD_POLL_S = 0.02
 DEFAULT_TIMEOUT_S = 0.1
 #: how long a master whose connection ended keeps the time (it reconnects within ms)
 GRACE_S = 1.0
+#: the most plant time one ``TIME`` write may ask for (a master asks for one tick); a time
+#: further ahead is refused (exception 3) rather than stepped for hours
+MAX_TIME_STEP_S = 60.0
 
 
 class Stepped(Protocol):
@@ -206,14 +209,18 @@ class Timekeeper:
 
     def _advance(self, t_ns: int, peer: object) -> int | None:
         """``TIME`` = t: the plant steps until it is at the master's time t (taking the time
-        back first if its master lost its connection)."""
+        back first if its master lost its connection); a t more than
+        :data:`MAX_TIME_STEP_S` ahead of the plant is refused."""
         with self._lock:
             error = self._refused(peer)
             if error:
                 return error
-            self._held, self._owner, self._orphaned_at = True, peer, None
             plant = self.bench.plant
-            self.bench.step(max(0, self._k0 + round(t_ns / 1e9 / plant.dt) - plant.k))
+            steps = self._k0 + round(t_ns / 1e9 / plant.dt) - plant.k
+            if steps * plant.dt > MAX_TIME_STEP_S:
+                return ILLEGAL_VALUE
+            self._held, self._owner, self._orphaned_at = True, peer, None
+            self.bench.step(max(0, steps))
         return None
 
     def closed(self, peer: object) -> None:

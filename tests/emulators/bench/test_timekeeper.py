@@ -74,6 +74,22 @@ def test_a_master_takes_the_time_steps_the_plant_and_lets_go(emulator):
         client.close()
 
 
+def test_a_time_too_far_ahead_is_refused_not_stepped_for_ever(emulator):
+    # found by the fuzz campaign (tests/fuzz): TIME = 2^64-1 ns stepped the plant for ever
+    client = client_of(emulator)
+    try:
+        assert not client.write_register(4, 100, device_id=CLOCK).isError()
+        far = client.write_registers(0, [0xFFFF] * 4, device_id=CLOCK)
+        assert far.isError() and far.exception_code == 3
+        assert plant_ns(client) == 0  # not moved
+        t_ns = 1_000_000_000
+        words = [(t_ns >> s) & 0xFFFF for s in (48, 32, 16, 0)]
+        assert not client.write_registers(0, words, device_id=CLOCK).isError()
+        assert plant_ns(client) == t_ns
+    finally:
+        client.close()
+
+
 def test_one_master_at_a_time_and_the_clocks_registers_only(emulator):
     first, second = client_of(emulator), client_of(emulator)
     try:
