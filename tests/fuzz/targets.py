@@ -1,0 +1,12 @@
+"""Every target of the campaign, in one table (the bounded test and benchmarks/fuzz.py)."""
+
+from __future__ import annotations
+
+from tests.fuzz import bench_driver, bench_emulator, drive_emulator
+from tests.fuzz.harness import Target
+
+TARGETS: tuple[Target, ...] = (
+    *bench_emulator.TARGETS,
+    *bench_driver.TARGETS,
+    *drive_emulator.TARGETS,
+)
