@@ -374,6 +374,19 @@ def test_another_master_on_the_bus_stops_the_exchange(cob_id, data, what):
         master.close()
 
 
+def test_the_lockstep_drives_own_time_is_no_other_masters_sync():
+    # found by the fuzz campaign (tests/fuzz): the SYNCs by which the emulated drive lets its
+    # time pass (a master waiting for a state) reached the master, which stopped the run
+    master = emulated()
+    master.start()
+    try:
+        master.clock.sleep(0.01)  # 20 SYNCs of the drive's own
+        assert master.exchange(0.0).state == "OPERATION ENABLED"
+        assert master.foreign is None
+    finally:
+        master.close()
+
+
 def _hils_drive(url: str) -> tuple[int, Callable[[], None]]:
     """hil's emulated drive on the wall clock in a thread (patient with the master's silence)."""
     from hil.emulators.drive.config import DriveEmulatorConfig
