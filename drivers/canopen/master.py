@@ -494,7 +494,10 @@ class CanDriveMaster(Device):
         except DriveLinkLostError as exc:
             self._lose_link(str(exc))
 
-    def _receive(self) -> Feedback:
+    def _receive(self, stopping: bool = False) -> Feedback:
+        """The cycle's feedback; a lost link raises. A refused queued download or another
+        master on the bus raises too (latched), except in a safe stop (``stopping``), which
+        goes on: the drive is stopped all the same."""
         if not self.cyclic.awaiting:  # no cycle since the last read: the same feedback again
             return self.cyclic.receive()
         try:
@@ -516,7 +519,7 @@ class CanDriveMaster(Device):
         error = self.sdo.take_error()
         if error is None and self.foreign is not None:
             error = BusSharedError(self.foreign)
-        if error is not None:
+        if error is not None and not stopping:
             self._latched = error
             raise error
         return feedback
@@ -692,15 +695,16 @@ class CanDriveMaster(Device):
         """Send one stop cycle's frames: ``controlword`` (``CW_QUICK_STOP`` or
         ``CW_DISABLE_VOLTAGE``) with the target held since :meth:`begin_stop`, and a SYNC (on
         an :class:`~hil.drivers.canopen.axes.AxisBus`, at its ``end_cycle``). Raises the error
-        a lost link latched."""
-        if self._latched is not None:
+        a lost link latched (any other latched error, another master on the bus or a refused
+        download, leaves the link up: the stop goes out)."""
+        if isinstance(self._latched, DriveLinkLostError):
             self._check_latched()
         self._send_cycle(controlword, self._stop_target)
 
     def receive_stop_cycle(self) -> Feedback:
         """The drive's TPDOs of the stop cycle sent last; raises (:class:`DriveError`) when
         the link is lost."""
-        return self._receive()
+        return self._receive(stopping=True)
 
     def report_stop_cycle(self, feedback: Feedback) -> None:
         """Hand a stop cycle's feedback to ``on_stop_cycle``: one that raises is told no more
