@@ -25,6 +25,7 @@ map, heartbeats, limits), :meth:`~CanDriveMaster.enable` (OPERATION ENABLED),
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 import struct
@@ -436,7 +437,14 @@ class CanDriveMaster(Device):
     def _enable(self) -> Feedback:
         n = self.node_id
         self.nmt.command(NMT_START)
-        self.states.enable()
+        try:
+            self.states.enable()
+        except (DriveError, SdoAbortError):
+            # the drive may have taken the controlwords whose answers were lost: its safe
+            # state is asked for all the same (best effort: the link may be gone)
+            with contextlib.suppress(DriveError, SdoAbortError):
+                self.states.controlword(CW_DISABLE_VOLTAGE)
+            raise
         self._enabled = True
         self.heartbeat_watch.restart()  # the heartbeat is watched from here on
         read = self.sdo.read_int

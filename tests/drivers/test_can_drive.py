@@ -390,6 +390,25 @@ def test_the_lockstep_drives_own_time_is_no_other_masters_sync():
         master.close()
 
 
+def test_a_drive_enabled_whose_answer_is_lost_is_disabled_again():
+    # found by the fuzz campaign (tests/fuzz): the enable's last answer lost, the master
+    # raised without ever counting the drive enabled, and close() left it enabled
+    master = emulated({"master": {"sdo_timeout_ms": 20}})
+    node, receive = master.emulator.node, master.link._recv_frame
+
+    def lossy(timeout=None):  # every SDO answer given once the drive is enabled is lost
+        frame = receive(timeout)
+        if frame is not None and frame[0] == 0x581 and node.state == "OPERATION ENABLED":
+            return None
+        return frame
+
+    master.link._recv_frame = lossy
+    with pytest.raises(DriveLinkLostError, match="did not answer SDO"):
+        master.start()
+    master.close()
+    assert node.state == "SWITCH ON DISABLED"
+
+
 def _hils_drive(url: str) -> tuple[int, Callable[[], None]]:
     """hil's emulated drive on the wall clock in a thread (patient with the master's silence)."""
     from hil.emulators.drive.config import DriveEmulatorConfig
