@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from tests.fuzz import bench_driver, bench_emulator, drive_emulator
+from tests.fuzz import bench_driver, bench_emulator, drive_emulator, drive_master
 from tests.fuzz.harness import Target
 
 TARGETS: tuple[Target, ...] = (
     *bench_emulator.TARGETS,
     *bench_driver.TARGETS,
     *drive_emulator.TARGETS,
+    *drive_master.TARGETS,
 )
