@@ -61,7 +61,8 @@ def parse_frame(command: bytes) -> Frame | None:
 
 def parse_reply(command: bytes, channel: str) -> can.Message | None:
     """A ``< frame ID SECS.USECS DATA >`` or ``< error ... >`` as a message; None for any
-    other reply (``< ok >``, ``< echo >``) and for a frame that does not parse."""
+    other reply (``< ok >``, ``< echo >``) and for a frame that does not parse (an identifier
+    beyond its 11 or 29 bits among them)."""
     words = command[1:-1].split()
     if len(words) < 3 or words[0] not in (b"frame", b"error"):
         return None
@@ -75,10 +76,11 @@ def parse_reply(command: bytes, channel: str) -> can.Message | None:
         return can.Message(timestamp=stamp, arbitration_id=can_id & 0x1FFFFFFF, data=b"\0",
                            is_error_frame=True, is_extended_id=True, is_rx=True,
                            channel=channel)
-    if len(data) > 8:
+    extended = len(words[1]) == 8
+    if len(data) > 8 or not 0 <= can_id <= (0x1FFFFFFF if extended else 0x7FF):
         return None
     return can.Message(timestamp=stamp, arbitration_id=can_id, data=data,
-                       is_extended_id=len(words[1]) == 8, is_rx=True, channel=channel)
+                       is_extended_id=extended, is_rx=True, channel=channel)
 
 
 class SocketcandBus(can.BusABC):

@@ -148,3 +148,6 @@ def test_wire_format_of_one_frame_and_garbage_replies():
     assert parse_reply(b"< ok >", "can0") is None
     assert parse_reply(b"< frame 18x 1.0 00 >", "can0") is None
     assert parse_reply(b"< frame 181 1.0 000102030405060708 >", "can0") is None  # 9 bytes
+    # found by the fuzz campaign: a 9-digit identifier made a standard frame beyond 11 bits
+    assert parse_reply(b"< frame 2C89BFBA0 1.000000  >", "can0") is None
+    assert parse_reply(b"< frame -1 1.0 00 >", "can0") is None
