@@ -56,7 +56,7 @@ def parse_frame(command: bytes) -> Frame | None:
         data = bytes.fromhex(b"".join(words[3:]).decode("ascii"))
     except ValueError:
         return None
-    return (can_id, data) if can_id <= 0x7FF and len(data) <= 8 else None
+    return (can_id, data) if 0 <= can_id <= 0x7FF and len(data) <= 8 else None
 
 
 def parse_reply(command: bytes, channel: str) -> can.Message | None:

@@ -145,6 +145,7 @@ def test_wire_format_of_one_frame_and_garbage_replies():
     assert parse_frame(b"< frame 181 1.0 000102030405060708 >") is None  # 9 bytes
     assert parse_frame(b"< error 20000004 1.0 >") is None
     assert parse_frame(b"< frame 1g1 1.0 >") is None
+    assert parse_frame(b"< frame -1 1.000000 46 >") is None  # found by the fuzz campaign
     assert parse_reply(b"< ok >", "can0") is None
     assert parse_reply(b"< frame 18x 1.0 00 >", "can0") is None
     assert parse_reply(b"< frame 181 1.0 000102030405060708 >", "can0") is None  # 9 bytes
