@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
-from tests.fuzz import bench_driver, bench_emulator, drive_emulator, drive_master
+from tests.fuzz import (
+    bench_driver,
+    bench_emulator,
+    drive_emulator,
+    drive_master,
+    socketcand,
+)
 from tests.fuzz.harness import Target
 
 TARGETS: tuple[Target, ...] = (
@@ -10,4 +16,5 @@ TARGETS: tuple[Target, ...] = (
     *bench_driver.TARGETS,
     *drive_emulator.TARGETS,
     *drive_master.TARGETS,
+    *socketcand.TARGETS,
 )
