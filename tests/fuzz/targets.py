@@ -7,6 +7,7 @@ from tests.fuzz import (
     bench_emulator,
     drive_emulator,
     drive_master,
+    mcap_reader,
     socketcand,
 )
 from tests.fuzz.harness import Target
@@ -17,4 +18,5 @@ TARGETS: tuple[Target, ...] = (
     *drive_emulator.TARGETS,
     *drive_master.TARGETS,
     *socketcand.TARGETS,
+    *mcap_reader.TARGETS,
 )
