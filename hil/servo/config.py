@@ -41,6 +41,7 @@ AXIS_NAME = re.compile(r"[a-z][a-z0-9_]{0,15}")
 DEFAULT_SOURCE = "hil/configs/drive.toml"
 SOURCE = "drive config"  # what errors name when no user file is given
 U16 = 0xFFFF
+U32 = 0xFFFF_FFFF
 EMULATED = "emulated"
 
 
@@ -320,7 +321,7 @@ def _master(m: Table, bus: Table, fd: bool = False) -> DriveMasterConfig:
     config = DriveMasterConfig(
         node_id=m.integer("node_id", at_least=1, at_most=127),
         mode=m.string("mode", choices=tuple(MODES)),
-        cycle_period_s=m.integer("cycle_period_us", above=0) / 1e6,
+        cycle_period_s=m.integer("cycle_period_us", above=0, at_most=U32) / 1e6,  # 0x1006
         bitrate=_bitrate(bus, fd),
         channel=channel,
         current_limit_ma=m.number("current_limit_mA", above=0, at_most=32_767),

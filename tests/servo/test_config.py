@@ -50,6 +50,9 @@ def test_a_user_file_then_overrides_are_laid_over_the_default(tmp_path):
     ("[bus]\nbitrate = true\n", "key 'bus.bitrate' must be an integer, got a boolean true"),
     ("[emulator]\nchannel = 3\n", "key 'emulator.channel' must be a string, got an integer 3"),
     ("[master]\nnode_id = 128\n", "key 'master.node_id' must be <= 127, got 128"),
+    # found by the fuzz campaign: taken, then a struct.error writing 0x1006 (32 bits)
+    ("[master]\ncycle_period_us = 4294967296\n",
+     "key 'master.cycle_period_us' must be <= 4294967295 us, got 4294967296 us"),
     ("[master]\ncurrent_limit_mA = 0\n", "key 'master.current_limit_mA' must be > 0 mA, got 0 mA"),
     ("[master]\nquick_stop_option = 3\n",
      "key 'master.quick_stop_option' must be one of 0, 1, 2, 5, 6, got 3"),
