@@ -31,6 +31,11 @@ from hil.controllers.servo.model import StateSpaceModel
 from hil.emulators.errors import EmulatorSetupError
 from hil.emulators.model_file import read_model_file
 
+#: the most an axis model may grow per period (its state matrix's largest eigenvalue, in
+#: magnitude): beyond it the axis runs away within seconds (the published axis: 1.0000008)
+MAX_GROWTH_PER_PERIOD = 1.001
+#: an axis model must stay finite for this many periods of this current [mA] from rest
+CHECK_PERIODS, CHECK_CURRENT_MA = 2000, 100_000.0
 #: the signals a servo recording holds the axis' input and output in (``hil identify`` names)
 COMMAND_SIGNAL = "/drive/feedback:command_mA"
 POSITION_SIGNAL = "/drive/feedback:position_deg"
@@ -93,9 +98,32 @@ def load_axis_model(path: str) -> AxisModel:
             f"{path}: its feedthrough D is {model.D[0, 0]:g}, not 0: an axis model pairs each "
             "position with the current held after it (a current cannot move the position it "
             "starts from); identify the axis with 'hil identify F.mcap --servo'")
-    return AxisModel.of_state_space(
+    axis = AxisModel.of_state_space(
         StateSpaceModel(A=model.A, B=model.B, C=model.C, D=model.D, dt=model.dt),
         float(model.u_offset[0]), float(model.y_offset[0]), os.path.abspath(path))
+    problem = runaway_problem(axis)
+    if problem:
+        raise EmulatorSetupError(f"{path}: {problem}: an emulator cannot run that axis")
+    return axis
+
+
+def runaway_problem(axis: AxisModel) -> str | None:
+    """Why ``axis`` cannot be stepped for long (it grows more than
+    :data:`MAX_GROWTH_PER_PERIOD` per period, or a strong current makes it infinite within
+    :data:`CHECK_PERIODS`), or None."""
+    growth = float(max(abs(np.linalg.eigvals(axis.A))))
+    if not growth <= MAX_GROWTH_PER_PERIOD:
+        return f"its state matrix A grows {growth:.6g} times per period (at most " \
+               f"{MAX_GROWTH_PER_PERIOD:g}: the axis would run away)"
+    x = np.zeros(axis.n_states)
+    with np.errstate(all="ignore"):
+        for _ in range(CHECK_PERIODS):
+            y = axis.C @ x + axis.D[:, 0] * CHECK_CURRENT_MA
+            x = axis.A @ x + axis.B[:, 0] * CHECK_CURRENT_MA
+            if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+                return f"its position is not finite after {CHECK_PERIODS} periods of " \
+                       f"{CHECK_CURRENT_MA / 1000:g} A"
+    return None
 
 
 def _check_unit(path: str, role: str, signal: str, unit: str, what: str, example: str) -> None:

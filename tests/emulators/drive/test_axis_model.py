@@ -55,6 +55,28 @@ def test_a_model_with_feedthrough_is_refused_naming_the_servo_identification(tmp
         "identify the axis with 'hil identify F.mcap --servo'")
 
 
+@pytest.mark.parametrize(("a10", "b", "says"), [
+    # found by the fuzz campaign (tests/fuzz): A[1][0] = -2.47e17 loaded, and the drive's
+    # position went infinite on the first SYNCs (floor(inf): internal errors, EMCY 0x6100)
+    (-2.4747881765574195e17, None,
+     "its state matrix A grows 3.97978e+08 times per period (at most 1.001"),
+    (None, 1e308, "its position is not finite after 2000 periods of 100 A"),
+])
+def test_a_model_that_runs_away_is_refused(tmp_path, a10, b, says):
+    axis = published_axis_model()
+    A, B = axis.A.copy(), axis.B.copy()
+    if a10 is not None:
+        A[1, 0] = a10
+    if b is not None:
+        B[0, 0] = b
+    path = tmp_path / "runaway.json"
+    path.write_text(model_file_of(replace(axis, A=A, B=B), ["/drive/feedback:command_mA"],
+                                  ["/drive/feedback:position_deg"]))
+    with pytest.raises(EmulatorSetupError) as refused:
+        load_axis_model(str(path))
+    assert str(refused.value).startswith(f"{path}: {says}")
+
+
 def test_the_published_axis_file_is_the_default_plant():
     file_axis = AxisPlant(AxisModel.of_state_space(published_axis_model()))
     default = AxisPlant()
