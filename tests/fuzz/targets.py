@@ -7,6 +7,7 @@ from tests.fuzz import (
     bench_emulator,
     drive_emulator,
     drive_master,
+    files,
     mcap_reader,
     socketcand,
 )
@@ -19,4 +20,5 @@ TARGETS: tuple[Target, ...] = (
     *drive_master.TARGETS,
     *socketcand.TARGETS,
     *mcap_reader.TARGETS,
+    *files.TARGETS,
 )
