@@ -34,8 +34,9 @@ from hil.emulators.model_file import read_model_file
 #: the most an axis model may grow per period (its state matrix's largest eigenvalue, in
 #: magnitude): beyond it the axis runs away within seconds (the published axis: 1.0000008)
 MAX_GROWTH_PER_PERIOD = 1.001
-#: an axis model must stay finite for this many periods of this current [mA] from rest
-CHECK_PERIODS, CHECK_CURRENT_MA = 2000, 100_000.0
+#: an axis model must stay within MAX_POSITION_DEG for this many periods of this current
+#: [mA] from rest (the drive counts positions in increments: beyond, they overflow)
+CHECK_PERIODS, CHECK_CURRENT_MA, MAX_POSITION_DEG = 2000, 100_000.0, 1e12
 #: the signals a servo recording holds the axis' input and output in (``hil identify`` names)
 COMMAND_SIGNAL = "/drive/feedback:command_mA"
 POSITION_SIGNAL = "/drive/feedback:position_deg"
@@ -109,20 +110,20 @@ def load_axis_model(path: str) -> AxisModel:
 
 def runaway_problem(axis: AxisModel) -> str | None:
     """Why ``axis`` cannot be stepped for long (it grows more than
-    :data:`MAX_GROWTH_PER_PERIOD` per period, or a strong current makes it infinite within
-    :data:`CHECK_PERIODS`), or None."""
+    :data:`MAX_GROWTH_PER_PERIOD` per period, or its position, offsets included, leaves
+    :data:`MAX_POSITION_DEG` within :data:`CHECK_PERIODS` of a strong current), or None."""
     growth = float(max(abs(np.linalg.eigvals(axis.A))))
     if not growth <= MAX_GROWTH_PER_PERIOD:
         return f"its state matrix A grows {growth:.6g} times per period (at most " \
                f"{MAX_GROWTH_PER_PERIOD:g}: the axis would run away)"
-    x = np.zeros(axis.n_states)
+    x, u = np.zeros(axis.n_states), CHECK_CURRENT_MA - axis.u_offset
     with np.errstate(all="ignore"):
         for _ in range(CHECK_PERIODS):
-            y = axis.C @ x + axis.D[:, 0] * CHECK_CURRENT_MA
-            x = axis.A @ x + axis.B[:, 0] * CHECK_CURRENT_MA
-            if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
-                return f"its position is not finite after {CHECK_PERIODS} periods of " \
-                       f"{CHECK_CURRENT_MA / 1000:g} A"
+            position = float((axis.C @ x)[0] + axis.D[0, 0] * u + axis.y_offset)
+            x = axis.A @ x + axis.B[:, 0] * u
+            if not (np.all(np.isfinite(x)) and abs(position) <= MAX_POSITION_DEG):
+                return f"its position leaves +-{MAX_POSITION_DEG:g} deg within " \
+                       f"{CHECK_PERIODS} periods of {CHECK_CURRENT_MA / 1000:g} A"
     return None
 
 

@@ -55,23 +55,31 @@ def test_a_model_with_feedthrough_is_refused_naming_the_servo_identification(tmp
         "identify the axis with 'hil identify F.mcap --servo'")
 
 
-@pytest.mark.parametrize(("a10", "b", "says"), [
+RUNS_AWAY = "its position leaves +-1e+12 deg within 2000 periods of 100 A"
+
+
+@pytest.mark.parametrize(("what", "value", "says"), [
     # found by the fuzz campaign (tests/fuzz): A[1][0] = -2.47e17 loaded, and the drive's
     # position went infinite on the first SYNCs (floor(inf): internal errors, EMCY 0x6100)
-    (-2.4747881765574195e17, None,
+    ("A", -2.4747881765574195e17,
      "its state matrix A grows 3.97978e+08 times per period (at most 1.001"),
-    (None, 1e308, "its position is not finite after 2000 periods of 100 A"),
+    ("B", 1e308, RUNS_AWAY),
+    # found by the fuzz campaign too: offsets of 1e308 (infinite increments, velocities)
+    ("u_offset", 1e308, RUNS_AWAY),
+    ("y_offset", 1e308, RUNS_AWAY),
 ])
-def test_a_model_that_runs_away_is_refused(tmp_path, a10, b, says):
+def test_a_model_that_runs_away_is_refused(tmp_path, what, value, says):
     axis = published_axis_model()
-    A, B = axis.A.copy(), axis.B.copy()
-    if a10 is not None:
-        A[1, 0] = a10
-    if b is not None:
-        B[0, 0] = b
+    A, B, offsets = axis.A.copy(), axis.B.copy(), {}
+    if what == "A":
+        A[1, 0] = value
+    elif what == "B":
+        B[0, 0] = value
+    else:
+        offsets[what] = [value]
     path = tmp_path / "runaway.json"
     path.write_text(model_file_of(replace(axis, A=A, B=B), ["/drive/feedback:command_mA"],
-                                  ["/drive/feedback:position_deg"]))
+                                  ["/drive/feedback:position_deg"], **offsets))
     with pytest.raises(EmulatorSetupError) as refused:
         load_axis_model(str(path))
     assert str(refused.value).startswith(f"{path}: {says}")
