@@ -70,8 +70,9 @@ class AxisModel:
         C, D = np.asarray(model.C, float), np.asarray(model.D, float)
         if B.ndim != 2 or B.shape[1] != 1 or C.shape[0] != 1:
             raise ValueError("the axis model must have one input (mA) and one output (deg)")
-        return cls(A, B, C @ A, C @ B + D.reshape(1, 1), float(model.dt), u_offset, y_offset,
-                   source)
+        with np.errstate(over="ignore", invalid="ignore"):  # a model that runs away: refused
+            C_end, D_end = C @ A, C @ B + D.reshape(1, 1)  # by load_axis_model, not warned of
+        return cls(A, B, C_end, D_end, float(model.dt), u_offset, y_offset, source)
 
 
 def axis_model_file(model: StateSpaceModel, note: str = "") -> str:

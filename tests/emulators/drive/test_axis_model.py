@@ -64,15 +64,19 @@ RUNS_AWAY = "its position leaves +-1e+12 deg within 2000 periods of 100 A"
     ("A", -2.4747881765574195e17,
      "its state matrix A grows 3.97978e+08 times per period (at most 1.001"),
     ("B", 1e308, RUNS_AWAY),
+    ("C A", 1e308, "its state matrix A grows"),  # its overflow is no RuntimeWarning either
     # found by the fuzz campaign too: offsets of 1e308 (infinite increments, velocities)
     ("u_offset", 1e308, RUNS_AWAY),
     ("y_offset", 1e308, RUNS_AWAY),
 ])
+@pytest.mark.filterwarnings("error::RuntimeWarning")
 def test_a_model_that_runs_away_is_refused(tmp_path, what, value, says):
     axis = published_axis_model()
     A, B, offsets = axis.A.copy(), axis.B.copy(), {}
     if what == "A":
         A[1, 0] = value
+    elif what == "C A":  # the row the output reads
+        A[2, 0] = value
     elif what == "B":
         B[0, 0] = value
     else:
