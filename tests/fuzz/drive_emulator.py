@@ -80,6 +80,7 @@ def rig() -> Iterator[Check]:
                         changed = {k for k in before if node.objects.values.get(k) != before[k]}
                         assert not changed, f"{frame[1].hex()} refused, yet changed {changed}"
             finally:
+                bus.shutdown()
                 drive.close()
 
         yield check

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import seed as hypothesis_seed
 from hypothesis import strategies as st
 
 from hil.errors import HilError
@@ -66,9 +67,10 @@ def bounded_settings(examples: int) -> settings:
 
 
 def run_target(target: Target, run_settings: settings | None = None,
-               count: Callable[[], None] | None = None) -> None:
+               count: Callable[[], None] | None = None, seed: int | None = None) -> None:
     """Draw ``target``'s cases under ``run_settings`` (default: the bounded run) through one
-    rig; its regressions first. The first case that breaks the rule raises, shrunk."""
+    rig, from ``seed`` if given; its regressions first. The first case that breaks the rule
+    raises (shrunk, where the settings shrink)."""
     with target.rig() as check:
         for case in target.regressions:
             check(case)
@@ -79,6 +81,8 @@ def run_target(target: Target, run_settings: settings | None = None,
             check(case)
 
         run = (run_settings or bounded_settings(target.examples))(given(target.cases)(one))
+        if seed is not None:
+            run = hypothesis_seed(seed)(run)
         run()
 
 
