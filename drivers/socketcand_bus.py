@@ -46,6 +46,11 @@ def send_text(can_id: int, data: bytes, id_digits: int = 3) -> bytes:
     return b"< send %0*X %X %s >" % (id_digits, can_id, len(data), data.hex(" ").upper().encode())
 
 
+def shown(command: bytes) -> str:
+    """A gateway's reply as an error quotes it: on one line (control characters escaped)."""
+    return command.decode("ascii", "replace").encode("unicode_escape").decode("ascii")
+
+
 def parse_frame(command: bytes) -> Frame | None:
     """An 11-bit ``< frame ID SECS.USECS DATA >`` as a frame; None for any other reply."""
     words = command[1:-1].split()
@@ -129,7 +134,7 @@ class SocketcandBus(can.BusABC):
                 if command != wanted:
                     raise can.CanInitializationError(
                         f"{self.channel_info}, {what}: expected {wanted.decode()}, got "
-                        f"{command.decode('ascii', 'replace')}")
+                        f"{shown(command)}")
                 return
             remaining = deadline - time.monotonic()
             if remaining <= 0:
@@ -213,7 +218,7 @@ class SocketcandBus(can.BusABC):
             self._skipped = 0
             raise can.CanOperationError(
                 f"{self.channel_info}: the gateway sent {MAX_SKIPPED_REPLIES} replies in a row "
-                f"that are not frames (last: {command[:60].decode('ascii', 'replace')})")
+                f"that are not frames (last: {shown(command[:60])})")
 
     def _next_reply(self, timeout: float | None) -> bytes | None:
         """The next complete reply, waiting up to ``timeout`` s when none is buffered."""

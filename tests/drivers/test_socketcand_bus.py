@@ -74,6 +74,26 @@ def test_a_bus_the_gateway_does_not_serve_fails_the_handshake(server):
         SocketcandBus("can9", *server.address)
 
 
+def test_a_greeting_of_several_lines_is_quoted_on_one():
+    # found by the fuzz campaign (benchmarks/fuzz.py): a gateway greeting '< send \n >' put
+    # its line break into the handshake's error
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(1)
+
+        def greet() -> None:
+            conn, _ = listener.accept()
+            with conn:
+                conn.sendall(b"< send \n >")
+
+        thread = threading.Thread(target=greet, daemon=True)
+        thread.start()
+        with pytest.raises(can.CanInitializationError) as refused:
+            SocketcandBus("can0", *listener.getsockname())
+        thread.join(5)
+    assert str(refused.value).endswith("greeting: expected < hi >, got < send \\n >")
+
+
 def test_nobody_listening_is_an_initialisation_error():
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
