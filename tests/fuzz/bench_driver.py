@@ -220,18 +220,18 @@ def _drive(driver: ModbusBenchDriver, peer: Peer) -> None:
         assert expect(value), f"{call} returned {value!r}"
 
     floats = lambda v: v is None or all(isinstance(x, float) for x in v.values())  # noqa: E731
-    step(bench.open, lambda v: v is None)
-    step(bench.read_power, floats)
-    step(bench.read_levels, floats)
-    step(lambda: bench.set_relays({"P1": True}), lambda v: set(v) == {"P1"})
-    step(bench.readback, lambda v: v is None or all(isinstance(x, bool) for x in v.values()))
-    link = driver.link
+    link = driver.link  # the emulator's time first: a session's start restarts its plant
     step(lambda: identify(link, 1, TIMEOUT_S), lambda v: v is None or isinstance(v.vendor, str))
     clock = EmulatorClock(link)
     step(lambda: clock.start(0.1), lambda v: v is None)
     step(lambda: clock.advance(10_000_000), lambda v: v is None)
     step(clock.plant_time_ns, lambda v: isinstance(v, int))
     step(clock.release, lambda v: v is None)
+    step(bench.open, lambda v: v is None)
+    step(bench.read_power, floats)
+    step(bench.read_levels, floats)
+    step(lambda: bench.set_relays({"P1": True}), lambda v: set(v) == {"P1"})
+    step(bench.readback, lambda v: v is None or all(isinstance(x, bool) for x in v.values()))
     try:
         bench.safe_state()
     except Exception as exc:
