@@ -55,8 +55,8 @@ def fuzz(target: Target, seconds: float, first_seed: int, shrink: bool) -> Tally
             run_target(target, run_settings, count, seed=seed)
         except Exception as exc:
             notes = "\n".join(getattr(exc, "__notes__", []))
-            tally.finding = (f"seed {seed}: {type(exc).__name__}: {str(exc).splitlines()[0]}"
-                             f"\n{notes}")
+            first = next(iter(str(exc).splitlines()), "")
+            tally.finding = f"seed {seed}: {type(exc).__name__}: {first}\n{notes}"
             break
         took = time.monotonic() - round_started
         drawn = max(1, tally.cases - before)
