@@ -543,7 +543,9 @@ class CanDriveMaster(Device):
                 f"drive node {n} reports {state} (statusword 0x{feedback.statusword:04X}, last "
                 f"EMCY {emcy_text(code)})", code)
             self._event("drive.fault", str(error), level="error", code=code)
-            self._enabled = False
+            # its safe state asked for all the same: a drive in FAULT takes it as nothing,
+            # one that only said so (a damaged TPDO) stops
+            self.safe_state()
         else:
             error = DriveStateError(f"drive node {n} left OPERATION ENABLED: now {state} "
                                     f"(statusword 0x{feedback.statusword:04X})")
