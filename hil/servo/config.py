@@ -417,7 +417,7 @@ def _emulator(e: Table, cycle_period_s: float) -> DriveEmulatorConfig:
     against the drive's cycle of ``cycle_period_s``."""
     f, d = e.table("friction"), e.table("disturbance")
     friction = Friction(
-        viscous_ma_per_deg_s=f.number("viscous_mA_per_deg_s"),
+        viscous_ma_per_deg_s=f.number("viscous_mA_per_deg_s", at_least=0),  # < 0 drives it
         coulomb_ma=f.number("coulomb_mA"),
         coulomb_smoothing_deg_s=f.number("coulomb_smoothing_deg_s", above=0),
     )

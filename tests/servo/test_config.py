@@ -54,6 +54,9 @@ def test_a_user_file_then_overrides_are_laid_over_the_default(tmp_path):
     ("[master]\ncycle_period_us = 4294967296\n",
      "key 'master.cycle_period_us' must be <= 4294967295 us, got 4294967296 us"),
     ("[master]\ncurrent_limit_mA = 0\n", "key 'master.current_limit_mA' must be > 0 mA, got 0 mA"),
+    # found by the fuzz campaign: a friction that pushes the axis ran it to inf (internal errors)
+    ("[emulator.friction]\nviscous_mA_per_deg_s = -747\n",
+     "key 'emulator.friction.viscous_mA_per_deg_s' must be >= 0 mA/(deg/s), got -747 mA/(deg/s)"),
     ("[master]\nquick_stop_option = 3\n",
      "key 'master.quick_stop_option' must be one of 0, 1, 2, 5, 6, got 3"),
     ("[emulator.disturbance]\nend_s = inf\n",
