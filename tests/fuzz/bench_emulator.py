@@ -248,7 +248,7 @@ def time_request(t_ns: int) -> bytes:
 
 
 TARGETS = (
-    Target("modbus-tcp-emulator", tcp_streams(), tcp_rig, examples=150),
+    Target("modbus-tcp-emulator", tcp_streams(), tcp_rig, examples=120),
     Target("modbus-rtu-emulator", rtu_streams(), rtu_rig, examples=12),
     Target("bench-clock-unit", st.lists(st.tuples(st.integers(0, 1), clock_pdus()),
                                         min_size=1, max_size=6), clock_rig, examples=150,

@@ -119,5 +119,7 @@ TARGETS = (
                (2, [Noise("flip", b"\x04\x00")]),  # a statusword bit: a wait, the drive's SYNCs
                (0, [Noise("relabel", can_id=0x000)]),  # another master: the stop was cancelled
                (52, [Noise("cut")]),  # the enable's answer lost: the drive left enabled
+               # a TPDO1 that says FAULT REACTION ACTIVE: the drive dropped without a stop
+               (56, [Noise("keep"), Noise("keep"), Noise("replace", b"\x0f\x00" + bytes(4))]),
            )),
 )
