@@ -3,8 +3,7 @@ pty pair), and into the clock unit's answers directly.
 
 The rule for the emulator: every answer is a well-formed Modbus answer to a request of the
 stream (a normal response or an exception with a code the protocol has), its threads never
-die, and its relays change only as an answered write asks (or a clock ``CONTROL`` write that
-starts the plant again says).
+die, and its relays change only as an answered write asks.
 """
 
 from __future__ import annotations
@@ -80,11 +79,10 @@ def requests_in(data: bytes) -> list[TcpFrame]:
     return requests
 
 
-def coils_follow(before: list[bool], after: list[bool], answered_writes: int,
-                 restarted: bool) -> None:
-    """The relays moved only through an answered write (or a plant restart)."""
+def coils_follow(before: list[bool], after: list[bool], answered_writes: int) -> None:
+    """The relays moved only through an answered write."""
     if after != before:
-        assert answered_writes or restarted, \
+        assert answered_writes, \
             f"relays changed {before} -> {after} without an answered write"
 
 
@@ -95,8 +93,7 @@ def tcp_rig() -> Iterator[Check]:
     bench = make_emulator(load_bench_config())
     bench.serve_tcp()
     with ThreadFailures() as failures:
-        def check(case: tuple[Stream, tuple[TcpFrame, ...]]) -> None:
-            stream, _ = case
+        def check(stream: Stream) -> None:
             bench.restart()
             before = bench.plant.coils()
             answers = split_mbap(_exchange_tcp(bench.port, stream))
@@ -108,7 +105,7 @@ def tcp_rig() -> Iterator[Check]:
                 assert asked is not None, f"answer {answer} to no request, or out of order"
                 check_answer(answer.pdu, {asked.pdu[0] & 0x7F})
             writes = sum(1 for a in answers if a.pdu and a.pdu[0] in WRITES)
-            coils_follow(before, bench.plant.coils(), writes, restarted=False)
+            coils_follow(before, bench.plant.coils(), writes)
 
         try:
             yield check
@@ -173,7 +170,7 @@ def rtu_rig() -> Iterator[Check]:
             writes = sum(1 for i in range(len(answers) - 7) if answers[i] == 1 and
                          answers[i + 1] in WRITES and crc16(answers[i:i + 6]) ==
                          answers[i + 6:i + 8])
-            coils_follow(before, after, writes, restarted=False)
+            coils_follow(before, after, writes)
 
         try:
             yield check
@@ -200,31 +197,12 @@ def _read_exactly(port: object, size: int, wait_s: float) -> bytes:
     return received
 
 
-class _Bench:
-    """What a Timekeeper moves: the emulator's plant (the TCP rig's emulator, restarted)."""
-
-    def __init__(self) -> None:
-        self._bench = make_emulator(load_bench_config())
-        self.restarts = 0
-
-    @property
-    def plant(self):  # the emulator's BenchPlant
-        return self._bench.plant
-
-    def step(self, steps: int = 1) -> object:
-        return self._bench.step(steps)
-
-    def restart(self) -> None:
-        self.restarts += 1
-        self._bench.restart()
-
-
 @contextlib.contextmanager
 def clock_rig() -> Iterator[Check]:
     """The clock unit's answers, called as the server calls them (the wire adds only time:
     its framing is the TCP and RTU targets'); a new timekeeper for each case, on the master's
     time (``--clock master``: no wall-clock thread)."""
-    bench = _Bench()
+    bench = make_emulator(load_bench_config())  # not served: its clock's answers are called
     peers = (object(), object())
 
     def check(requests: list[tuple[int, bytes]]) -> None:
