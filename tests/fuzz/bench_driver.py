@@ -288,6 +288,6 @@ def rtu_rig() -> Iterator[Check]:
 
 PLANS = st.lists(damages(), min_size=1, max_size=12)
 TARGETS = (
-    Target("modbus-tcp-driver", PLANS, tcp_rig, examples=25),
+    Target("modbus-tcp-driver", PLANS, tcp_rig, examples=20),
     Target("modbus-rtu-driver", PLANS, rtu_rig, examples=6),
 )

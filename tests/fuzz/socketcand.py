@@ -191,7 +191,7 @@ def parser_rig() -> Iterator[Check]:
 
 
 TARGETS = (
-    Target("socketcand-parsers", commands(), parser_rig, examples=800),
+    Target("socketcand-parsers", commands(), parser_rig, examples=500),
     Target("socketcand-server", streams(("< open can0 >", "< rawmode >")), server_rig,
            examples=120),
     Target("socketcand-client", streams(("< hi >", "< ok >", "< ok >")), client_rig,
