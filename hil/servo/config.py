@@ -449,6 +449,9 @@ def _emulator(e: Table, cycle_period_s: float) -> DriveEmulatorConfig:
         axis_model=_axis_model(e, cycle_period_s),
         faults=_faults(e),
     )
+    problem = config.make_plant().friction_problem()
+    if problem:
+        raise e.error("friction", problem)
     for table in (f, d, e):
         table.done()
     _twin_keys(e, config)

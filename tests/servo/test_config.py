@@ -57,6 +57,11 @@ def test_a_user_file_then_overrides_are_laid_over_the_default(tmp_path):
     # found by the fuzz campaign: a friction that pushes the axis ran it to inf (internal errors)
     ("[emulator.friction]\nviscous_mA_per_deg_s = -747\n",
      "key 'emulator.friction.viscous_mA_per_deg_s' must be >= 0 mA/(deg/s), got -747 mA/(deg/s)"),
+    # and a friction too steep for the plant's period: it ran away the same way
+    ("[emulator.friction]\nviscous_mA_per_deg_s = 1498\n",
+     "key 'emulator.friction' makes the axis run away: its slope at standstill, "
+     "viscous_mA_per_deg_s + coulomb_mA / coulomb_smoothing_deg_s = 1498 mA/(deg/s), grows it "
+     "2.786 times per 500 us period (at most 1.001)"),
     ("[master]\nquick_stop_option = 3\n",
      "key 'master.quick_stop_option' must be one of 0, 1, 2, 5, 6, got 3"),
     ("[emulator.disturbance]\nend_s = inf\n",
