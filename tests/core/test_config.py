@@ -88,3 +88,12 @@ def test_a_params_file_with_a_key_of_several_lines_is_one_error_line(tmp_path):
         read_params_file(str(path))
     assert str(refused.value) == (f"{path}: '\\n': a parameter is a number, true/false or "
                                   "text (an axis' own in its [AXIS] table), got []")
+
+
+def test_an_unknown_key_of_several_lines_is_named_on_one(tmp_path):
+    # found by the fuzz campaign (benchmarks/fuzz.py): the key "\n" put its line break into
+    # the unknown key's error
+    table = Table(parse_toml('"\\n" = 1\n', "c.toml"), "c.toml")
+    with pytest.raises(ConfigError) as refused:
+        table.done()
+    assert str(refused.value) == "c.toml: unknown key '\\n' (known here: none)"
