@@ -31,13 +31,12 @@ from hil.controllers.servo.model import published_axis_model
 from hil.core.config import parse_toml
 from hil.core.params import read_params_file
 from hil.drivers.canopen.eds import check, import_description, required_objects
-from hil.emulators.drive.axis_model import axis_model_file, load_axis_model
+from hil.emulators.drive.axis_model import axis_model_file
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.runners import LockstepDrive
 from hil.servo.config import load_drive_config
 from hil.servo.rig import EmulatedDrive
 from tests.fuzz.harness import Check, Target, bound, clear_error
-from tests.fuzz.strategies import bring_up
 
 CONFIGS = Path(__file__).resolve().parents[2] / "hil" / "configs"
 EDS_FILE = Path(__file__).resolve().parents[1] / "data" / "ex20_gear.eds"
@@ -214,30 +213,33 @@ def model_texts(draw: st.DrawFn) -> str:
 
 @contextlib.contextmanager
 def model_rig() -> Iterator[Check]:
-    """The model file read as the emulator reads it, then the drive run on it: enabled, a
-    current applied for 40 cycles."""
-    with _file(".json") as write:
+    """The model file named by a drive config's ``[emulator] model`` (as ``hil emulate drive
+    --model`` and ``emulated?model=`` name it), read with the config, then the emulated drive
+    run on it: started, 40 cycles of 500 mA."""
+    with tempfile.TemporaryDirectory() as folder:
+        model, config = os.path.join(folder, "model.json"), os.path.join(folder, "drive.toml")
+        with open(config, "w", encoding="utf-8") as file:
+            file.write('[emulator]\nmodel = "model.json"\n')
+
         def check(text: str) -> None:
-            path = write(text)
+            with open(model, "w", encoding="utf-8", errors="surrogateescape") as file:
+                file.write(text)
             with bound("a model file"):
                 try:
-                    model = load_axis_model(path)
-                    drive = LockstepDrive(DriveEmulatorConfig(axis_model=model))
+                    drive = load_drive_config(config)
                 except Exception as exc:
                     clear_error(exc)
                     return
-                bus = drive.attach_bus()
+                master = EmulatedDrive(drive.master, drive.emulator)
                 try:
-                    period_us = round(model.dt * 1e6)
-                    frames = [(0x601, struct.pack("<BHBI", 0x23, 0x1006, 0, period_us)),
-                              *bring_up(1), (0x201, struct.pack("<Hh", 15, 500))]
-                    for frame in frames + [(0x080, b"")] * 40:
-                        bus.send_frames([frame])
-                        drive.pump()
-                    assert drive.node.internal_errors == 0, "the drive failed on its model"
+                    master.start()
+                    for _ in range(40):
+                        master.exchange(500.0)
+                except Exception as exc:
+                    clear_error(exc)
                 finally:
-                    bus.shutdown()
-                    drive.close()
+                    master.close()
+                assert master.emulator.node.internal_errors == 0, "the drive failed on its model"
 
         yield check
 
