@@ -46,6 +46,11 @@ def send_text(can_id: int, data: bytes, id_digits: int = 3) -> bytes:
     return b"< send %0*X %X %s >" % (id_digits, can_id, len(data), data.hex(" ").upper().encode())
 
 
+def shown(command: bytes) -> str:
+    """A gateway's reply as an error quotes it: on one line (control characters escaped)."""
+    return command.decode("ascii", "replace").encode("unicode_escape").decode("ascii")
+
+
 def parse_frame(command: bytes) -> Frame | None:
     """An 11-bit ``< frame ID SECS.USECS DATA >`` as a frame; None for any other reply."""
     words = command[1:-1].split()
@@ -56,12 +61,13 @@ def parse_frame(command: bytes) -> Frame | None:
         data = bytes.fromhex(b"".join(words[3:]).decode("ascii"))
     except ValueError:
         return None
-    return (can_id, data) if can_id <= 0x7FF and len(data) <= 8 else None
+    return (can_id, data) if 0 <= can_id <= 0x7FF and len(data) <= 8 else None
 
 
 def parse_reply(command: bytes, channel: str) -> can.Message | None:
     """A ``< frame ID SECS.USECS DATA >`` or ``< error ... >`` as a message; None for any
-    other reply (``< ok >``, ``< echo >``) and for a frame that does not parse."""
+    other reply (``< ok >``, ``< echo >``) and for a frame that does not parse (an identifier
+    beyond its 11 or 29 bits among them)."""
     words = command[1:-1].split()
     if len(words) < 3 or words[0] not in (b"frame", b"error"):
         return None
@@ -75,10 +81,11 @@ def parse_reply(command: bytes, channel: str) -> can.Message | None:
         return can.Message(timestamp=stamp, arbitration_id=can_id & 0x1FFFFFFF, data=b"\0",
                            is_error_frame=True, is_extended_id=True, is_rx=True,
                            channel=channel)
-    if len(data) > 8:
+    extended = len(words[1]) == 8
+    if len(data) > 8 or not 0 <= can_id <= (0x1FFFFFFF if extended else 0x7FF):
         return None
     return can.Message(timestamp=stamp, arbitration_id=can_id, data=data,
-                       is_extended_id=len(words[1]) == 8, is_rx=True, channel=channel)
+                       is_extended_id=extended, is_rx=True, channel=channel)
 
 
 class SocketcandBus(can.BusABC):
@@ -127,7 +134,7 @@ class SocketcandBus(can.BusABC):
                 if command != wanted:
                     raise can.CanInitializationError(
                         f"{self.channel_info}, {what}: expected {wanted.decode()}, got "
-                        f"{command.decode('ascii', 'replace')}")
+                        f"{shown(command)}")
                 return
             remaining = deadline - time.monotonic()
             if remaining <= 0:
@@ -211,7 +218,7 @@ class SocketcandBus(can.BusABC):
             self._skipped = 0
             raise can.CanOperationError(
                 f"{self.channel_info}: the gateway sent {MAX_SKIPPED_REPLIES} replies in a row "
-                f"that are not frames (last: {command[:60].decode('ascii', 'replace')})")
+                f"that are not frames (last: {shown(command[:60])})")
 
     def _next_reply(self, timeout: float | None) -> bytes | None:
         """The next complete reply, waiting up to ``timeout`` s when none is buffered."""

@@ -95,7 +95,8 @@ def parse_send(command: str) -> can.Message | None:
     except ValueError:
         return None
     extended = len(id_text) == 8
-    if length > 8 or length != len(data) or can_id > (0x1FFFFFFF if extended else 0x7FF):
+    if length > 8 or length != len(data) or \
+            not 0 <= can_id <= (0x1FFFFFFF if extended else 0x7FF):
         return None
     return can.Message(arbitration_id=can_id, data=data, is_extended_id=extended,
                        timestamp=time.time())

@@ -105,7 +105,7 @@ def model_from_dict(data: dict[str, Any]) -> IdentifiedModel:
         raise
     except KeyError as exc:
         raise IdentificationError(f"model file lacks the key {exc.args[0]!r}") from None
-    except (TypeError, ValueError, AttributeError) as exc:
+    except (TypeError, ValueError, AttributeError, OverflowError) as exc:  # int(Infinity)
         raise IdentificationError(f"model file has a malformed value: {exc}") from None
 
 

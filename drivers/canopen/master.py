@@ -27,6 +27,7 @@ map, heartbeats, limits), :meth:`~CanDriveMaster.enable` (OPERATION ENABLED),
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 import struct
@@ -444,7 +445,14 @@ class CanDriveMaster(Device):
     def _enable(self) -> Feedback:
         n = self.node_id
         self.nmt.command(NMT_START)
-        self.states.enable()
+        try:
+            self.states.enable()
+        except (DriveError, SdoAbortError):
+            # the drive may have taken the controlwords whose answers were lost: its safe
+            # state is asked for all the same (best effort: the link may be gone)
+            with contextlib.suppress(DriveError, SdoAbortError):
+                self.states.controlword(CW_DISABLE_VOLTAGE)
+            raise
         self._enabled, self._lost_driving = True, False
         self.heartbeat_watch.restart()  # the heartbeat is watched from here on
         read = self.sdo.read_int
@@ -503,6 +511,9 @@ class CanDriveMaster(Device):
             self._lose_link(str(exc))
 
     def _receive(self, stopping: bool = False) -> Feedback:
+        """The cycle's feedback; a lost link raises. A refused queued download or another
+        master on the bus raises too (latched), except in a safe stop (``stopping``), which
+        goes on: the drive is stopped all the same."""
         if not self.cyclic.awaiting:  # no cycle since the last read: the same feedback again
             return self.cyclic.receive()
         try:
@@ -526,7 +537,7 @@ class CanDriveMaster(Device):
         error = self.sdo.take_error()
         if error is None and self.foreign is not None:
             error = BusSharedError(self.foreign)
-        if error is not None:
+        if error is not None and not stopping:
             self._latched = error
             raise error
         return feedback
@@ -542,7 +553,9 @@ class CanDriveMaster(Device):
                 f"drive node {n} reports {state} (statusword 0x{feedback.statusword:04X}, last "
                 f"EMCY {emcy_text(code)})", code)
             self._event("drive.fault", str(error), level="error", code=code)
-            self._enabled = False
+            # its safe state asked for all the same: a drive in FAULT takes it as nothing,
+            # one that only said so (a damaged TPDO) stops
+            self.safe_state()
         else:
             error = DriveStateError(f"drive node {n} left OPERATION ENABLED: now {state} "
                                     f"(statusword 0x{feedback.statusword:04X})")

@@ -61,6 +61,9 @@ HELD_POLL_S = 0.02
 DEFAULT_TIMEOUT_S = 0.1
 #: how long a master whose connection ended keeps the time (it reconnects within ms)
 GRACE_S = 1.0
+#: the most plant time one ``TIME`` write may ask for (a master asks for one tick); a time
+#: further ahead is refused (exception 3) rather than stepped for hours
+MAX_TIME_STEP_S = 60.0
 
 
 class Stepped(Protocol):
@@ -227,16 +230,21 @@ class Timekeeper:
         """Step request ``number``: the plant steps until it is at the master's time t (taking
         the time back first if its master lost its connection); the number and the plant's
         time since the master's time 0, or why not (an exception code). The number of the
-        last step again is a retry: its answer again, no step."""
+        last step again is a retry: its answer again, no step. A t more than
+        :data:`MAX_TIME_STEP_S` ahead of the plant is refused."""
         with self._lock:
             error = self._refused(peer)
             if error:
                 return error
-            self._held, self._owner, self._orphaned_at = True, peer, None
             if number != self._step[0]:
                 plant = self.bench.plant
-                self.bench.step(max(0, self._k0 + round(t_ns / 1e9 / plant.dt) - plant.k))
+                steps = self._k0 + round(t_ns / 1e9 / plant.dt) - plant.k
+                if steps * plant.dt > MAX_TIME_STEP_S:
+                    return ILLEGAL_VALUE
+                self._held, self._owner, self._orphaned_at = True, peer, None
+                self.bench.step(max(0, steps))
                 self._step = step_words(number, round((plant.k - self._k0) * plant.dt * 1e9))
+            self._held, self._owner, self._orphaned_at = True, peer, None
             return list(self._step)
 
     def closed(self, peer: object) -> None:

@@ -31,6 +31,12 @@ from hil.controllers.servo.model import StateSpaceModel
 from hil.emulators.errors import EmulatorSetupError
 from hil.emulators.model_file import read_model_file
 
+#: the most an axis model may grow per period (its state matrix's largest eigenvalue, in
+#: magnitude): beyond it the axis runs away within seconds (the published axis: 1.0000008)
+MAX_GROWTH_PER_PERIOD = 1.001
+#: an axis model must stay within MAX_POSITION_DEG for this many periods of this current
+#: [mA] from rest (the drive counts positions in increments: beyond, they overflow)
+CHECK_PERIODS, CHECK_CURRENT_MA, MAX_POSITION_DEG = 2000, 100_000.0, 1e12
 #: the signals a servo recording holds the axis' input and output in (``hil identify`` names)
 COMMAND_SIGNAL = "/drive/feedback:command_mA"
 POSITION_SIGNAL = "/drive/feedback:position_deg"
@@ -64,8 +70,9 @@ class AxisModel:
         C, D = np.asarray(model.C, float), np.asarray(model.D, float)
         if B.ndim != 2 or B.shape[1] != 1 or C.shape[0] != 1:
             raise ValueError("the axis model must have one input (mA) and one output (deg)")
-        return cls(A, B, C @ A, C @ B + D.reshape(1, 1), float(model.dt), u_offset, y_offset,
-                   source)
+        with np.errstate(over="ignore", invalid="ignore"):  # a model that runs away: refused
+            C_end, D_end = C @ A, C @ B + D.reshape(1, 1)  # by load_axis_model, not warned of
+        return cls(A, B, C_end, D_end, float(model.dt), u_offset, y_offset, source)
 
 
 def axis_model_file(model: StateSpaceModel, note: str = "") -> str:
@@ -93,9 +100,32 @@ def load_axis_model(path: str) -> AxisModel:
             f"{path}: its feedthrough D is {model.D[0, 0]:g}, not 0: an axis model pairs each "
             "position with the current held after it (a current cannot move the position it "
             "starts from); identify the axis with 'hil identify F.mcap --servo'")
-    return AxisModel.of_state_space(
+    axis = AxisModel.of_state_space(
         StateSpaceModel(A=model.A, B=model.B, C=model.C, D=model.D, dt=model.dt),
         float(model.u_offset[0]), float(model.y_offset[0]), os.path.abspath(path))
+    problem = runaway_problem(axis)
+    if problem:
+        raise EmulatorSetupError(f"{path}: {problem}: an emulator cannot run that axis")
+    return axis
+
+
+def runaway_problem(axis: AxisModel) -> str | None:
+    """Why ``axis`` cannot be stepped for long (it grows more than
+    :data:`MAX_GROWTH_PER_PERIOD` per period, or its position, offsets included, leaves
+    :data:`MAX_POSITION_DEG` within :data:`CHECK_PERIODS` of a strong current), or None."""
+    growth = float(max(abs(np.linalg.eigvals(axis.A))))
+    if not growth <= MAX_GROWTH_PER_PERIOD:
+        return f"its state matrix A grows {growth:.6g} times per period (at most " \
+               f"{MAX_GROWTH_PER_PERIOD:g}: the axis would run away)"
+    x, u = np.zeros(axis.n_states), CHECK_CURRENT_MA - axis.u_offset
+    with np.errstate(all="ignore"):
+        for _ in range(CHECK_PERIODS):
+            position = float((axis.C @ x)[0] + axis.D[0, 0] * u + axis.y_offset)
+            x = axis.A @ x + axis.B[:, 0] * u
+            if not (np.all(np.isfinite(x)) and abs(position) <= MAX_POSITION_DEG):
+                return f"its position leaves +-{MAX_POSITION_DEG:g} deg within " \
+                       f"{CHECK_PERIODS} periods of {CHECK_CURRENT_MA / 1000:g} A"
+    return None
 
 
 def _check_unit(path: str, role: str, signal: str, unit: str, what: str, example: str) -> None:

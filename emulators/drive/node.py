@@ -62,6 +62,7 @@ from hil.protocols.can_frames import Frame, from_message
 from hil.protocols.cia301 import (
     ABORT_DEVICE_STATE,
     ABORT_VALUE,
+    ABORT_VALUE_HIGH,
     CONSUMER_HEARTBEAT,
     CYCLE_PERIOD,
     EMCY_BASE,
@@ -121,6 +122,9 @@ SYNC_LOSS_TIMEOUT = 0x2001  # [ms] (manufacturer object)
 DISTURBANCE = 0x2003        # external disturbance torque [mA] (manufacturer object)
 SYNC_ECHO = 0x2004          # the counter of the SYNC the TPDOs answer (manufacturer object)
 SYNC_POLL_PERIODS = 100     # SYNCs are expected until this many cycles passed without one
+#: the most plant steps one SYNC may take (10 s of the published axis' 500 us): a longer
+#: communication cycle (0x1006) is refused, not stepped for minutes under the node's lock
+MAX_STEPS_PER_SYNC = 20_000
 # manufacturer byte 3 of an EMCY 0x8130: which watchdog fired
 CAUSE_HEARTBEAT, CAUSE_SYNC = 0x01, 0x02
 EXTENDED_OR_PRODUCER = 0x6000_0000  # COB-ID SYNC: bit 30 (we would produce), bit 29 (29-bit)
@@ -514,12 +518,15 @@ class DriveNode:
 
     def _steps_for_period(self, period_us: int) -> int:
         """Plant steps per SYNC for a communication cycle period (0 = not set: one step); a
-        period that is no multiple of the plant's is refused (SdoAbortError)."""
+        period that is no multiple of the plant's, or longer than
+        :data:`MAX_STEPS_PER_SYNC` steps, is refused (SdoAbortError)."""
         if period_us == 0:
             return 1
         period_ns = period_us * 1000
         if period_ns % self._plant_period_ns:
             raise SdoAbortError(ABORT_VALUE)
+        if period_ns // self._plant_period_ns > MAX_STEPS_PER_SYNC:
+            raise SdoAbortError(ABORT_VALUE_HIGH)
         return period_ns // self._plant_period_ns
 
     def _apply_controlword(self, cw: int) -> None:

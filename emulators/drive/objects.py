@@ -10,6 +10,7 @@ twin has nothing that would do what writing it does on the drive)."""
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -65,13 +66,17 @@ class ObjectStore:
         return var
 
     def read(self, index: int, subindex: int) -> bytes:
-        """An SDO upload: the value's bytes."""
+        """An SDO upload: the value's bytes. A value its type cannot hold (a twin's file gave
+        a string that is not ASCII, a number out of its range) is no data to give."""
         var = self.find(index, subindex)
         if not var.readable:
             raise SdoAbortError(ABORT_WRITE_ONLY)
         if (index, subindex) in self.no_read:
             raise SdoAbortError(ABORT_NO_DATA)
-        data: bytes = var.encode_raw(self.values[(index, subindex)])
+        try:
+            data: bytes = var.encode_raw(self.values[(index, subindex)])
+        except (ValueError, TypeError, struct.error):  # UnicodeEncodeError is a ValueError
+            raise SdoAbortError(ABORT_NO_DATA) from None
         return data
 
     def decode_download(self, index: int, subindex: int, data: bytes) -> int:

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hil.controllers.servo.model import StateSpaceModel, published_axis_model
-from hil.emulators.drive.axis_model import AxisModel
+from hil.emulators.drive.axis_model import MAX_GROWTH_PER_PERIOD, AxisModel
 
 DEFAULT_INCREMENTS_PER_REV = 1 << 20
 
@@ -144,6 +144,29 @@ class AxisPlant:
             self.position_deg = position
             self.steps += 1
         self._xu, self._next = xu, z
+
+    def friction_problem(self) -> str | None:
+        """Why the friction makes the axis run away, or None. The plant takes the friction of
+        the last period's velocity; from some slope at standstill (viscous plus
+        ``coulomb / smoothing``) that feedback grows faster than the axis (the published one:
+        from ~110 mA per deg/s): the axis, the position a period ago and the one before, with
+        the friction's slope, grow more than :data:`MAX_GROWTH_PER_PERIOD` per period."""
+        f, axis = self.friction, self.axis
+        slope = f.viscous_ma_per_deg_s + f.coulomb_ma / f.coulomb_smoothing_deg_s
+        if not slope:
+            return None
+        n, gain = axis.n_states, -slope / self.dt  # the current per position step
+        M = np.zeros((n + 2, n + 2))  # state: x(k), position(k), position(k-1)
+        M[:n, :n], M[:n, n], M[:n, n + 1] = axis.A, axis.B[:, 0] * gain, -axis.B[:, 0] * gain
+        M[n, :n], M[n, n], M[n, n + 1] = axis.C[0], axis.D[0, 0] * gain, -axis.D[0, 0] * gain
+        M[n + 1, n] = 1.0
+        growth = float(max(abs(np.linalg.eigvals(M))))
+        if growth <= MAX_GROWTH_PER_PERIOD:
+            return None
+        return (f"makes the axis run away: its slope at standstill, viscous_mA_per_deg_s + "
+                f"coulomb_mA / coulomb_smoothing_deg_s = {slope:g} mA/(deg/s), grows it "
+                f"{growth:.4g} times per {self.dt * 1e6:g} us period (at most "
+                f"{MAX_GROWTH_PER_PERIOD:g})")
 
     def position_increments(self) -> int:
         """Encoder reading: position in increments modulo one revolution, in [0, increments)."""

@@ -102,7 +102,6 @@ class LockstepDrive:
             ids = list(node_ids)
         self._node_buses = [self.channel.attach() for _ in ids]
         self.master_bus = self.channel.attach(on_send=self.pump)
-        self._time_bus = self.channel.attach(on_send=self.pump, listen=False)  # SYNCs only
         self.nodes: list[DriveNode] = []
         try:  # a drive that cannot be (a twin's EDS that does not fit) leaves no bus open
             self.nodes = [DriveNode(replace(config, node_id=node_id), send=bus.send_frames,
@@ -146,11 +145,15 @@ class LockstepDrive:
         return self.node.sync_time_ns
 
     def sleep(self, seconds: float) -> None:
-        """Let ``seconds`` of the drive's time pass: one SYNC per communication cycle."""
+        """Let ``seconds`` of the drive's time pass: one SYNC per communication cycle, heard
+        by the drives alone (on the channel it would reach the master too, which takes a SYNC
+        it did not send for another master's)."""
         period_ns = self.node.cycle_period_ns
         for _ in range(max(1, math.ceil(seconds * 1e9 / period_ns))):
-            self._time_bus.send_frames([(SYNC_COB_ID, b"")])
+            for node in self.nodes:
+                node.handle_frame(SYNC_COB_ID, b"")
+            self.pump()
 
     def close(self) -> None:
-        for bus in (*self._node_buses, self.master_bus, self._time_bus):
+        for bus in (*self._node_buses, self.master_bus):
             bus.shutdown()

@@ -500,7 +500,7 @@ def _power_factor(table: Table, key: str, default: float | None = None) -> float
 def _plant(table: Table, coils: int, relays: Mapping[str, RelaySpec],
            resources: list[ResourceSpec]) -> PlantSpec:
     dt = table.number("dt_s", above=0)
-    seed = table.integer("seed", 0)
+    seed = table.integer("seed", 0, at_least=0)  # numpy's generators take none below 0
     meter_table = table.table("meter", required=True)
     meter = MeterSpec(
         voltage_v=meter_table.number("voltage_v", above=0),

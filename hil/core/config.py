@@ -118,7 +118,10 @@ class Table:
         self.reads.append(KeyRead(self.key(name), value, kind, rule, name not in self.data))
 
     def key(self, name: str) -> str:
-        """The dotted key of ``name`` in this table, as errors name it."""
+        """The dotted key of ``name`` in this table, as errors name it (a name with a line
+        break or another control character escaped: an error stays one line)."""
+        if not name.isprintable():
+            name = name.encode("unicode_escape").decode("ascii")
         return f"{self.path}.{name}" if self.path else name
 
     def error(self, name: str, problem: str) -> ConfigError:

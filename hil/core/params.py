@@ -58,7 +58,8 @@ def read_params_file(path: str) -> dict[str, ParamValue]:
         for sub, item in entries:
             name = f"{key}.{sub}" if sub else key
             if isinstance(item, dict) or not isinstance(item, (bool, int, float, str)):
-                raise ConfigError(f"{path}: {name}: a parameter is a number, true/false or "
+                shown = name if name.isprintable() else repr(name)  # one line, whatever the key
+                raise ConfigError(f"{path}: {shown}: a parameter is a number, true/false or "
                                   f"text (an axis' own in its [AXIS] table), got {item!r:.40}")
             params[name] = item
     return params

@@ -31,7 +31,8 @@ it gives the emulator its time. Tables only, read by both sides: the master
   ======== ========= =================================================================
 
   Exception 1 (illegal function): the emulator keeps its wall clock (``--clock wall``);
-  6 (busy): another master holds its time.
+  6 (busy): another master holds its time; 3 (illegal value): a ``TIME`` more than a minute
+  ahead of the plant (a master asks for one tick at a time).
 """
 
 from __future__ import annotations

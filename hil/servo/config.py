@@ -42,6 +42,7 @@ AXIS_NAME = re.compile(r"[a-z][a-z0-9_]{0,15}")
 DEFAULT_SOURCE = "hil/configs/drive.toml"
 SOURCE = "drive config"  # what errors name when no user file is given
 U16 = 0xFFFF
+U32 = 0xFFFF_FFFF
 EMULATED = "emulated"
 
 
@@ -345,7 +346,7 @@ def _master(m: Table, bus: Table, profile: ProfileSettings, fd: bool = False
     config = DriveMasterConfig(
         node_id=m.integer("node_id", at_least=1, at_most=127),
         mode=m.string("mode", choices=tuple(OPERATION_MODES)),
-        cycle_period_s=m.integer("cycle_period_us", above=0) / 1e6,
+        cycle_period_s=m.integer("cycle_period_us", above=0, at_most=U32) / 1e6,  # 0x1006
         bitrate=_bitrate(bus, fd),
         channel=channel,
         current_limit_ma=m.number("current_limit_mA", above=0, at_most=32_767),
@@ -490,7 +491,7 @@ def _emulator(e: Table, cycle_period_s: float) -> DriveEmulatorConfig:
     against the drive's cycle of ``cycle_period_s``."""
     f, d = e.table("friction"), e.table("disturbance")
     friction = Friction(
-        viscous_ma_per_deg_s=f.number("viscous_mA_per_deg_s"),
+        viscous_ma_per_deg_s=f.number("viscous_mA_per_deg_s", at_least=0),  # < 0 drives it
         coulomb_ma=f.number("coulomb_mA"),
         coulomb_smoothing_deg_s=f.number("coulomb_smoothing_deg_s", above=0),
     )
@@ -525,6 +526,9 @@ def _emulator(e: Table, cycle_period_s: float) -> DriveEmulatorConfig:
         homing_search_deg=e.number("homing_search_deg", above=0),
         object_values=_object_values(e),
     )
+    problem = config.make_plant().friction_problem()
+    if problem:
+        raise e.error("friction", problem)
     for table in (f, d, e):
         table.done()
     _twin_keys(e, config)

@@ -49,6 +49,8 @@ def one_line_error(call, *args) -> str:
     ("[[sequence.stages]]\nstart_s = 0.0\nend_s = 28.0\non = []\nof = []\n", "of",
      "unknown key"),
     ("[sampeling]\nperiod_s = 0.01\n", "sampeling", "unknown key"),
+    # found by the fuzz campaign: taken, then numpy's ValueError building the plant
+    ("[plant]\nseed = -1\n", "plant.seed", "must be >= 0, got -1"),
 ])
 def test_a_bad_bench_file_is_one_error_naming_file_and_key(tmp_path, text, key, why):
     path = user_file(tmp_path, text)

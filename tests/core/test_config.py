@@ -75,3 +75,25 @@ def test_table_refuses_a_value_where_a_table_belongs():
     with pytest.raises(ConfigError, match=r"missing key 'bus'"):
         Table({}, "c.toml").table("bus", required=True)
     assert Table({}, "c.toml").table("bus").names() == []
+
+
+def test_a_params_file_with_a_key_of_several_lines_is_one_error_line(tmp_path):
+    # found by the fuzz campaign (benchmarks/fuzz.py): the key "\n" of a --params file put
+    # its line break into the error
+    from hil.core.params import read_params_file
+
+    path = tmp_path / "best.toml"
+    path.write_text('"\\n" = []\n')
+    with pytest.raises(ConfigError) as refused:
+        read_params_file(str(path))
+    assert str(refused.value) == (f"{path}: '\\n': a parameter is a number, true/false or "
+                                  "text (an axis' own in its [AXIS] table), got []")
+
+
+def test_an_unknown_key_of_several_lines_is_named_on_one(tmp_path):
+    # found by the fuzz campaign (benchmarks/fuzz.py): the key "\n" put its line break into
+    # the unknown key's error
+    table = Table(parse_toml('"\\n" = 1\n', "c.toml"), "c.toml")
+    with pytest.raises(ConfigError) as refused:
+        table.done()
+    assert str(refused.value) == "c.toml: unknown key '\\n' (known here: none)"

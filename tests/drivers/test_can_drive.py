@@ -218,8 +218,10 @@ def test_heartbeat_loss_faults_the_drive_and_the_master_reports_the_emcy():
             master.exchange(0.0)
     assert error.value.emcy_code == 0x8130
     # heartbeat stamped at the first SYNC (0.5 ms); silent for more than 20 ms at SYNC 42
-    # (21 ms): the fault shows in the TPDO of the next SYNC
-    assert master.feedback.cycle == 43
+    # (21 ms): the fault shows in the TPDO of the next SYNC; then its safe stop, a quick stop
+    # cycle (FAULT stands) and a disable voltage cycle
+    assert master.feedback.cycle == 45
+    assert events.kinds()[-2:] == ["drive.fault", "drive.safe_stop"]
     emcy = [item for item in events.items if item[0] == "drive.emcy"]
     assert emcy[0][1] == "error" and emcy[0][3]["code"] == 0x8130
     assert "drive.fault" in events.kinds()
@@ -374,6 +376,63 @@ def test_another_master_on_the_bus_stops_the_exchange(cob_id, data, what):
     finally:
         other.shutdown()
         master.close()
+    # the safe stop still went out (found by the fuzz campaign: the latched error stopped it);
+    # the other master's NMT stop faulted the drive before it (it left OPERATIONAL enabled)
+    assert master.emulator.node.state in ("SWITCH ON DISABLED", "FAULT")
+
+
+def test_the_lockstep_drives_own_time_is_no_other_masters_sync():
+    # found by the fuzz campaign (tests/fuzz): the SYNCs by which the emulated drive lets its
+    # time pass (a master waiting for a state) reached the master, which stopped the run
+    master = emulated()
+    master.start()
+    try:
+        master.clock.sleep(0.01)  # 20 SYNCs of the drive's own
+        assert master.exchange(0.0).state == "OPERATION ENABLED"
+        assert master.foreign is None
+    finally:
+        master.close()
+
+
+def test_a_drive_enabled_whose_answer_is_lost_is_disabled_again():
+    # found by the fuzz campaign (tests/fuzz): the enable's last answer lost, the master
+    # raised without ever counting the drive enabled, and close() left it enabled
+    master = emulated({"master": {"sdo_timeout_ms": 20}})
+    node, receive = master.emulator.node, master.link._recv_frame
+
+    def lossy(timeout=None):  # every SDO answer given once the drive is enabled is lost
+        frame = receive(timeout)
+        if frame is not None and frame[0] == 0x581 and node.state == "OPERATION ENABLED":
+            return None
+        return frame
+
+    master.link._recv_frame = lossy
+    with pytest.raises(DriveLinkLostError, match="did not answer SDO"):
+        master.start()
+    master.close()
+    assert node.state == "SWITCH ON DISABLED"
+
+
+def test_a_tpdo_that_says_fault_still_stops_the_drive():
+    # found by the fuzz campaign (benchmarks/fuzz.py): a TPDO1 damaged to statusword 0x000F
+    # (FAULT REACTION ACTIVE) made the master drop the drive without a stop, and the drive,
+    # enabled all along, stayed so
+    master = emulated()
+    master.start()
+    receive, damaged = master.link._recv_frame, []
+
+    def says_fault(timeout=None):
+        frame = receive(timeout)
+        if frame is not None and frame[0] == 0x181 and not damaged:
+            damaged.append(frame)
+            return 0x181, b"\x0f\x00" + frame[1][2:]
+        return frame
+
+    master.link._recv_frame = says_fault
+    with pytest.raises(DriveFaultError, match="FAULT REACTION ACTIVE"):
+        master.exchange(0.0)
+    master.close()
+    assert master.emulator.node.state == "SWITCH ON DISABLED"
 
 
 def _hils_drive(url: str) -> tuple[int, Callable[[], None]]:

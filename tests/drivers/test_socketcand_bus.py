@@ -74,6 +74,26 @@ def test_a_bus_the_gateway_does_not_serve_fails_the_handshake(server):
         SocketcandBus("can9", *server.address)
 
 
+def test_a_greeting_of_several_lines_is_quoted_on_one():
+    # found by the fuzz campaign (benchmarks/fuzz.py): a gateway greeting '< send \n >' put
+    # its line break into the handshake's error
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(1)
+
+        def greet() -> None:
+            conn, _ = listener.accept()
+            with conn:
+                conn.sendall(b"< send \n >")
+
+        thread = threading.Thread(target=greet, daemon=True)
+        thread.start()
+        with pytest.raises(can.CanInitializationError) as refused:
+            SocketcandBus("can0", *listener.getsockname())
+        thread.join(5)
+    assert str(refused.value).endswith("greeting: expected < hi >, got < send \\n >")
+
+
 def test_nobody_listening_is_an_initialisation_error():
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
@@ -145,6 +165,10 @@ def test_wire_format_of_one_frame_and_garbage_replies():
     assert parse_frame(b"< frame 181 1.0 000102030405060708 >") is None  # 9 bytes
     assert parse_frame(b"< error 20000004 1.0 >") is None
     assert parse_frame(b"< frame 1g1 1.0 >") is None
+    assert parse_frame(b"< frame -1 1.000000 46 >") is None  # found by the fuzz campaign
     assert parse_reply(b"< ok >", "can0") is None
     assert parse_reply(b"< frame 18x 1.0 00 >", "can0") is None
     assert parse_reply(b"< frame 181 1.0 000102030405060708 >", "can0") is None  # 9 bytes
+    # found by the fuzz campaign: a 9-digit identifier made a standard frame beyond 11 bits
+    assert parse_reply(b"< frame 2C89BFBA0 1.000000  >", "can0") is None
+    assert parse_reply(b"< frame -1 1.0 00 >", "can0") is None

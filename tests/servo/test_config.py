@@ -50,7 +50,18 @@ def test_a_user_file_then_overrides_are_laid_over_the_default(tmp_path):
     ("[bus]\nbitrate = true\n", "key 'bus.bitrate' must be an integer, got a boolean true"),
     ("[emulator]\nchannel = 3\n", "key 'emulator.channel' must be a string, got an integer 3"),
     ("[master]\nnode_id = 128\n", "key 'master.node_id' must be <= 127, got 128"),
+    # found by the fuzz campaign: taken, then a struct.error writing 0x1006 (32 bits)
+    ("[master]\ncycle_period_us = 4294967296\n",
+     "key 'master.cycle_period_us' must be <= 4294967295 us, got 4294967296 us"),
     ("[master]\ncurrent_limit_mA = 0\n", "key 'master.current_limit_mA' must be > 0 mA, got 0 mA"),
+    # found by the fuzz campaign: a friction that pushes the axis ran it to inf (internal errors)
+    ("[emulator.friction]\nviscous_mA_per_deg_s = -747\n",
+     "key 'emulator.friction.viscous_mA_per_deg_s' must be >= 0 mA/(deg/s), got -747 mA/(deg/s)"),
+    # and a friction too steep for the plant's period: it ran away the same way
+    ("[emulator.friction]\nviscous_mA_per_deg_s = 1498\n",
+     "key 'emulator.friction' makes the axis run away: its slope at standstill, "
+     "viscous_mA_per_deg_s + coulomb_mA / coulomb_smoothing_deg_s = 1498 mA/(deg/s), grows it "
+     "2.786 times per 500 us period (at most 1.001)"),
     ("[master]\nquick_stop_option = 3\n",
      "key 'master.quick_stop_option' must be one of 0, 1, 2, 5, 6, got 3"),
     ("[emulator.disturbance]\nend_s = inf\n",

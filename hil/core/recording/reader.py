@@ -226,9 +226,16 @@ def _read_file(path: str, data: SessionData, raw: dict[str, list[tuple[int, byte
 
 
 def _account(path: str, data: SessionData, state: Walk, seen: int) -> None:
-    """Fold one file's damage into the session; count truncated messages where knowable."""
+    """Fold one file's damage into the session; count truncated messages where knowable. A
+    finished file whose own statistics count other messages than were read lost a record
+    nothing else showed (a chunk's opcode changed, say)."""
     damaged_summary = any(d.kind == "summary" for d in state.damage)
     stats = None if damaged_summary else state.statistics
+    if stats is not None and state.finished and not state.damage and \
+            seen != stats.message_count:
+        state.damage.append(Damage(
+            "record", 0, 0, messages=max(0, stats.message_count - seen),
+            reason=f"its statistics count {stats.message_count} messages, {seen} were read"))
     for damage in state.damage:
         if damage.kind == "truncated" and damage.messages is None and stats is not None:
             damage.messages = max(0, stats.message_count - seen)

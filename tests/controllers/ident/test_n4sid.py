@@ -4,6 +4,7 @@ noise model, bad input, model files."""
 from __future__ import annotations
 
 import json
+import math
 import re
 
 import numpy as np
@@ -260,6 +261,8 @@ def test_model_round_trips_through_its_json_text():
         (lambda d: d.pop("C"), "lacks the key 'C'"),
         (lambda d: d.update(A=[[1.0, 0.0], [0.0, 1.0]]), "A has shape (2, 2), expected (3, 3)"),
         (lambda d: d.update(dt="fast"), "malformed value"),
+        # found by the fuzz campaign: int(Infinity) raised OverflowError, not a clear error
+        (lambda d: d.update(order=math.inf), "cannot convert float infinity to integer"),
     ],
 )
 def test_broken_model_text_raises_a_clear_error(edit, message):

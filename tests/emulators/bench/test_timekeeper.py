@@ -102,6 +102,21 @@ def test_a_time_request_asked_again_is_answered_again_and_steps_once(emulator):
         client.close()
 
 
+def test_a_time_too_far_ahead_is_refused_not_stepped_for_ever(emulator):
+    # found by the fuzz campaign (tests/fuzz): TIME = 2^64-1 ns stepped the plant for ever
+    client = client_of(emulator)
+    try:
+        assert not client.write_register(4, 100, device_id=CLOCK).isError()
+        far = client.readwrite_registers(read_address=5, read_count=5, write_address=5,
+                                         values=[1, 0xFFFF, 0xFFFF, 0xFFFF, 0xFFFF],
+                                         device_id=CLOCK)
+        assert far.isError() and far.exception_code == 3
+        assert plant_ns(client) == 0  # not moved
+        assert step(client, 2, 1_000_000_000)[0] == 2 and plant_ns(client) == 1_000_000_000
+    finally:
+        client.close()
+
+
 def test_one_master_at_a_time_and_the_clocks_registers_only(emulator):
     first, second = client_of(emulator), client_of(emulator)
     try:

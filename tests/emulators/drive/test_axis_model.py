@@ -55,6 +55,40 @@ def test_a_model_with_feedthrough_is_refused_naming_the_servo_identification(tmp
         "identify the axis with 'hil identify F.mcap --servo'")
 
 
+RUNS_AWAY = "its position leaves +-1e+12 deg within 2000 periods of 100 A"
+
+
+@pytest.mark.parametrize(("what", "value", "says"), [
+    # found by the fuzz campaign (tests/fuzz): A[1][0] = -2.47e17 loaded, and the drive's
+    # position went infinite on the first SYNCs (floor(inf): internal errors, EMCY 0x6100)
+    ("A", -2.4747881765574195e17,
+     "its state matrix A grows 3.97978e+08 times per period (at most 1.001"),
+    ("B", 1e308, RUNS_AWAY),
+    ("C A", 1e308, "its state matrix A grows"),  # its overflow is no RuntimeWarning either
+    # found by the fuzz campaign too: offsets of 1e308 (infinite increments, velocities)
+    ("u_offset", 1e308, RUNS_AWAY),
+    ("y_offset", 1e308, RUNS_AWAY),
+])
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_a_model_that_runs_away_is_refused(tmp_path, what, value, says):
+    axis = published_axis_model()
+    A, B, offsets = axis.A.copy(), axis.B.copy(), {}
+    if what == "A":
+        A[1, 0] = value
+    elif what == "C A":  # the row the output reads
+        A[2, 0] = value
+    elif what == "B":
+        B[0, 0] = value
+    else:
+        offsets[what] = [value]
+    path = tmp_path / "runaway.json"
+    path.write_text(model_file_of(replace(axis, A=A, B=B), ["/drive/feedback:command_mA"],
+                                  ["/drive/feedback:position_deg"], **offsets))
+    with pytest.raises(EmulatorSetupError) as refused:
+        load_axis_model(str(path))
+    assert str(refused.value).startswith(f"{path}: {says}")
+
+
 def test_the_published_axis_file_is_the_default_plant():
     file_axis = AxisPlant(AxisModel.of_state_space(published_axis_model()))
     default = AxisPlant()

@@ -319,3 +319,15 @@ def test_a_vendor_object_at_a_hook_index_is_the_vendors_and_not_emulated(tmp_pat
         assert wire.node.on_master_time
     finally:
         wire.close()
+
+
+def test_a_string_the_eds_gives_beyond_ascii_is_no_data_not_an_internal_error(tmp_path):
+    # found by the fuzz campaign (tests/fuzz): 0x1009 = 'z3¤' took the twin's SDO server to
+    # an internal error (a UnicodeEncodeError, its traceback logged, EMCY 0x6100)
+    hardware = "[1009]\nParameterName=Manufacturer hardware version\nObjectType=0x7\n" \
+        "DataType=0x0009\nAccessType=const\nDefaultValue="
+    path = edited(tmp_path, hardware + "B\n", hardware + "z3\u00a4\n")
+    node = DriveNode(DriveEmulatorConfig(node_id=NODE, eds=str(path)), send=lambda frames: None)
+    with pytest.raises(SdoAbortError) as read:
+        node.objects.read(0x1009, 0)
+    assert read.value.code == ABORT_NO_DATA

@@ -117,6 +117,8 @@ def test_every_readable_object_uploads_with_its_size(wire):
     (struct.pack("<BHBb", 0x2F, 0x6060, 0, 2) + bytes(3), 0x06090030),  # unsupported mode (VL)
     (struct.pack("<BHBI", 0x23, 0x6075, 0, 0), 0x06090032),          # rated current 0
     (struct.pack("<BHBI", 0x23, 0x1006, 0, 750), 0x06090030),        # not a plant multiple
+    # found by the fuzz campaign: a SYNC after it stepped the plant 8.6 million times
+    (struct.pack("<BHBI", 0x23, 0x1006, 0, 4_294_967_000), 0x06090031),  # hours per SYNC
     (struct.pack("<BHBh", 0x2B, 0x605A, 0, 3) + bytes(2), 0x06090030),  # quick-stop option 3
     (struct.pack("<BHBI", 0x23, 0x1005, 0, 0x40000080), 0x06090030),  # we do not make SYNC
     (struct.pack("<BHBI", 0x23, 0x1A00, 1, 0x60640020), 0x06010000),  # mapping of a valid PDO

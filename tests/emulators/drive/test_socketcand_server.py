@@ -149,6 +149,7 @@ def test_format_and_parse_are_inverse_for_standard_and_extended_ids():
         parsed = parse_send(command)
         assert (parsed.arbitration_id, parsed.is_extended_id, bytes(parsed.data)) == \
             (can_id, extended, data)
+    assert parse_send("< send -1 1 BB >") is None  # found by the fuzz campaign: id -1
 
 
 def test_a_busy_port_is_one_clear_error(server):
