@@ -30,10 +30,11 @@ from hil.compare.tolerances import tolerances_file
 from hil.controllers.servo.model import published_axis_model
 from hil.core.config import parse_toml
 from hil.core.params import read_params_file
-from hil.drivers.canopen.eds import check, import_description, required_objects
+from hil.drivers.canopen.eds import check, import_description
 from hil.emulators.drive.axis_model import axis_model_file
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.runners import LockstepDrive
+from hil.protocols.cia402 import OPERATION_MODES
 from hil.servo.config import load_drive_config
 from hil.servo.rig import EmulatedDrive
 from tests.fuzz.harness import Check, Target, bound, clear_error
@@ -309,8 +310,8 @@ def eds_rig() -> Iterator[Check]:
 
 
 def check_od(od: Any) -> None:
-    for mode in (8, 10):
-        assert all(isinstance(line, str) for line in check(od, required_objects(mode)))
+    for mode in OPERATION_MODES.values():
+        assert all(isinstance(line, str) for line in check(od, mode))
 
 
 DRIVE_TOML = (CONFIGS / "drive.toml").read_text()

@@ -369,7 +369,9 @@ def test_a_drive_built_from_maxons_own_dcf_is_driven_with_the_stand_ins(tmp_path
     kpis = json.loads(ran.stdout)
     assert kpis["ticks"] == 200 and kpis["stale_feedback"] == 0
     assert kpis["rms_error_deg"] < 1.0  # scaled right: it tracks the sine
-    assert slave.drive.value(0x6060) == {"cst": CST, "csp": CSP}[mode]
+    # the run's mode was written, then the drive's own put back when the run let it go
+    assert slave.drive.written(0x6060) == [{"cst": CST, "csp": CSP}[mode], 1]
+    assert slave.drive.value(0x6060) == 1
     assert slave.written(0x608F) == slave.written(0x6075) == slave.written(0x6072) == []
     assert "drive node 3 has no 0x6072 (max torque)" in ran.stderr
     drive = json.loads(read_session(str(tmp_path / "run.mcap")).metadata["drive"]["json"])
