@@ -60,10 +60,11 @@ models: $(STAMP)
 docs: $(STAMP)
 	$(BIN)/python -m hil.cli.config_reference > docs/CONFIGURATION.md
 
-# the papers reproduced, their reports committed under docs/papers (the sessions beside them are
-# not: docs/papers/.gitignore); minutes, in lockstep on the emulators
+# every paper of hil/cli/paper.py's table reproduced, its report committed under docs/papers (the
+# sessions beside it are not: docs/papers/.gitignore); minutes each, in lockstep on the emulators
 papers: $(STAMP)
-	$(BIN)/hil paper energy --out docs/papers
+	@for paper in $$($(BIN)/python -c 'from hil.cli.paper import PAPERS; print(*PAPERS)'); do \
+	  $(BIN)/hil paper $$paper --out docs/papers || exit 1; done
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

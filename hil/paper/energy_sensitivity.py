@@ -41,6 +41,7 @@ class Point:
     gain: float
     adjusted: float
     j2_gain: float
+    extra_starts: int    # the EEC's starts less BC's
 
 
 class Study:
@@ -55,7 +56,8 @@ class Study:
         adjusted = gain(level_adjusted_j1(ours, self.peripherals),
                         level_adjusted_j1(base, self.peripherals))
         return Point(knob, value, eec, bc, gain(ours.j1, base.j1), adjusted,
-                     gain(ours.j2, base.j2))
+                     gain(ours.j2, base.j2),
+                     sum(ours.starts.values()) - sum(base.starts.values()))
 
     def splits(self) -> dict[str, tuple[float, J1Split, float]]:
         """Per comparison of the paper that ran: hil's J1 gain [%], where the saving goes,
@@ -156,9 +158,9 @@ def value_text(knob: Knob, value: Any, tp_s: int) -> str:
 def points_table(points: list[Point]) -> Table:
     return Table("Sweep points", "every pair of runs of the study (J1, J2 gains of the EEC "
                  "over BC)", ("knob", "value", "EEC run", "BC run", "J1 gain [%]",
-                              "at equal levels [%]", "J2 gain [%]"),
+                              "at equal levels [%]", "J2 gain [%]", "EEC's extra starts"),
                  tuple((p.knob, p.value, p.eec, p.bc, round(p.gain, 2), round(p.adjusted, 2),
-                        round(p.j2_gain, 2)) for p in points))
+                        round(p.j2_gain, 2), p.extra_starts) for p in points))
 
 
 def findings(splits: Mapping[str, tuple[float, J1Split, float]], points: list[Point],
@@ -182,9 +184,10 @@ def findings(splits: Mapping[str, tuple[float, J1Split, float]], points: list[Po
                "optimum of J1" if max(adjusted) <= 0.1 else
                f"and the EEC still saves up to {max(adjusted):.2f} % at equal levels")
     out.append(f"**Where the gain goes.** In each comparison the resource BC leaves in its "
-               f"tanks at the end of the run accounts for {_span(stored, '%')} of the VA s "
-               f"the EEC saves; the EEC's extra starts cost it {_span(inrush, 'VA s')} of "
-               f"inrush, and what neither explains is at most {rest:.1f} VA s. Had both runs "
+               f"tanks at the end of the run accounts for {_span(stored, '%', digits=0)} of "
+               f"the VA s the EEC saves; the EEC's extra starts cost it "
+               f"{_span(inrush, 'VA s', digits=0)} of inrush, and what neither explains is "
+               f"at most {rest:.1f} VA s. Had both runs "
                f"left every level where they found it, the EEC's J1 would differ from BC's by "
                f"{_span(adjusted, '%', signed=True)}: the energy a peripheral draws is fixed "
                f"by what the machining consumes (eq. 10 loses nothing), {optimum}.")
@@ -205,17 +208,22 @@ def findings(splits: Mapping[str, tuple[float, J1Split, float]], points: list[Po
     knobs = [knob.label for knob in KNOBS
              if len({p.value for p in swept if p.knob == knob.key}) > 1]
     if knobs:
+        ahead = [p for p in swept if p.adjusted > 0.1]
+        listed = ", ".join(f"{p.knob} {p.value} ({p.adjusted:+.2f} %, the EEC "
+                           f"{p.extra_starts:+d} starts)" for p in ahead)
+        where = ("; no condition the paper leaves open gives the EEC a J1 gain that is not "
+                 "resource left in BC's tanks" if not ahead else
+                 f"; at equal levels the EEC is ahead only where BC starts its motors more "
+                 f"often than it does: {listed}" if all(p.extra_starts < 0 for p in ahead)
+                 else f"; at equal levels the EEC is ahead at {listed}")
         out.append(f"**Across the sweep** ({'; '.join(knobs)}) the J1 gain runs from "
                    f"{_span([p.gain for p in swept], '%')}, and at equal levels from "
-                   f"{_span([p.adjusted for p in swept], '%', signed=True)}"
-                   + (": no condition the paper leaves open gives the EEC a J1 gain that is "
-                      "not resource left in BC's tanks."
-                      if max(p.adjusted for p in swept) <= 0.1 else "."))
+                   f"{_span([p.adjusted for p in swept], '%', signed=True)}{where}.")
     return out
 
 
-def _span(values: list[float], unit: str, signed: bool = False) -> str:
+def _span(values: list[float], unit: str, signed: bool = False, digits: int = 2) -> str:
     """``low to high UNIT`` of ``values``."""
-    text = "{:+.2f}" if signed else "{:.2f}" if unit == "%" else "{:.0f}"
+    text = f"{{:{'+' if signed else ''}.{digits}f}}"
     low, high = text.format(min(values)), text.format(max(values))
     return f"{low} {unit}" if low == high else f"{low} to {high} {unit}"
