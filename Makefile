@@ -23,7 +23,7 @@ demo: $(STAMP)
 # is set (as on some CI machines): the suite starts some 300 processes (hil runs, their
 # writers), each of which would compile hil, numpy, scipy... again (0.1-0.35 s each), and
 # pytest would rewrite every test module's asserts again in each of its processes (5 s / 2 s).
-demo test check: export PYTHONDONTWRITEBYTECODE :=
+demo test check papers: export PYTHONDONTWRITEBYTECODE :=
 
 # the whole suite: everything but the 1-2 kHz wall-clock tests with 3 workers on the 2 cores
 # (most tests wait on processes and sockets: 160 s against 199 s with 2 workers) and mypy beside

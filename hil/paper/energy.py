@@ -20,6 +20,7 @@ import numpy as np
 
 from hil.bench.config import BenchConfig, load_bench_config
 from hil.controllers.ident.n4sid import IdentificationError
+from hil.emulators.bench.plant import ModelLoadSpec
 from hil.errors import HilError
 from hil.paper import energy_figures as figures
 from hil.paper.energy_measures import (
@@ -164,9 +165,8 @@ class Builder:
         self.results["conditions"] = {"cycles": plan.cycles, "tp_s": plan.tp_s,
                                       "engine": swept.engine, "workers": swept.workers,
                                       "sweep_wall_s": swept.wall_s}
-        eec_rows = [row["kpis"] for row in swept.rows.values() if row.get("kpis")
-                    and row["params"].get("controller") == "eec"]
-        decisions = sum(int(k["solves_at_limit"]) for k in eec_rows)
+        decisions = sum(int(row["kpis"]["solves_at_limit"]) for row in swept.rows.values()
+                        if row.get("kpis") and row["params"].get("controller") == "eec")
         load = paper_load()
         windows = ", ".join(f"{a:g}-{b:g} s" for a, b in load["windows"])
         stated = "as stated"
@@ -205,9 +205,8 @@ class Builder:
              f"a start {p1.inrush_vas:.1f} / {p2.inrush_vas:.1f} VA s beyond the steady "
              "draw (measured on the plant)", "hil's bench emulator (bench.toml): motors with "
              "an inrush, as the paper's; the J1 split measures what they cost"),
-            ("machining sequence", "silent: Fig. 3b without numbers",
-             "7 stages of M1 (heater 230 VA) and M2 (UPS 140 VA) over a 40 VA idle load, "
-             "peak 410 VA", "hil's bench emulator (bench.toml)"),
+            ("machining sequence", "silent: Fig. 3b without numbers", machining_text(config),
+             "hil's bench emulator (bench.toml)"),
         )
         return Section("The paper's conditions", (
             f"Every run is `hil bench run` in lockstep on the emulated bench over Modbus TCP "
@@ -215,11 +214,13 @@ class Builder:
             f"hil) and a few flags of its own; the {len(swept.rows)} runs are one sweep on "
             f"hil's sweep engine ({swept.engine}, {swept.workers} worker(s), "
             f"{swept.wall_s:.0f} s), their sessions and `results.csv` in "
-            f"`{self.options.name}/sessions/` beside this report. Of the EEC's decisions in "
-            f"its {len(eec_rows)} runs, {decisions} stopped at the solver's budget "
-            f"(`time_limit_s`): the others are proven optimal, so a run is the same run "
-            f"however loaded the machine. Where the paper is silent, the table says what hil "
-            f"chose and why.",
+            f"`{self.options.name}/sessions/` beside this report. "
+            + ("No decision of the EEC's runs stopped at the solver's budget "
+               "(`time_limit_s`): each is proven optimal, so a run is the same run however "
+               "loaded the machine. " if decisions == 0 else
+               f"{decisions} decisions of the EEC's runs stopped at the solver's budget "
+               "(`time_limit_s`): those runs depend on the machine's speed. ")
+            + "Where the paper is silent, the table says what hil chose and why.",
             Table("Conditions", "the paper's and hil's", ("condition", "paper", "hil", "why"),
                   rows),
             conditions_table(config),
@@ -456,6 +457,19 @@ def scheduled_load(end_s: float, step_s: float = 0.1) -> tuple[np.ndarray, np.nd
     for start, end in load["windows"]:
         on |= (phase >= start) & (phase < end)
     return t, on * float(load["va"])
+
+
+def machining_text(config: BenchConfig) -> str:
+    """The machining sequence of ``config`` in words: its stages, loads and peak."""
+    sequence = config.problem.sequence
+    rated = {load.relay: load.va for load in config.plant.loads
+             if not isinstance(load, ModelLoadSpec) and load.relay in sequence.relays}
+    base = config.plant.base.va
+    peak = max(base + sum(rated.get(name, 0.0) for name in stage.on)
+               for stage in sequence.stages)
+    loads = ", ".join(f"{name} {va:g} VA" for name, va in rated.items())
+    return (f"{len(sequence.stages)} stages of {loads} over a {base:g} VA idle load, peak "
+            f"{peak:g} VA")
 
 
 def cycles_text(cycles: int) -> str:
