@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test check bench models docs lint clean
+.PHONY: demo test check bench models docs papers lint clean
 
 # uv installs the same packages as pip in seconds instead of a minute; pip is the fallback.
 # Not compiled to bytecode at install (12.8 s against 1.4 s): the first process that imports a
@@ -23,7 +23,7 @@ demo: $(STAMP)
 # is set (as on some CI machines): the suite starts some 300 processes (hil runs, their
 # writers), each of which would compile hil, numpy, scipy... again (0.1-0.35 s each), and
 # pytest would rewrite every test module's asserts again in each of its processes (5 s / 2 s).
-demo test check: export PYTHONDONTWRITEBYTECODE :=
+demo test check papers: export PYTHONDONTWRITEBYTECODE :=
 
 # the whole suite: everything but the 1-2 kHz wall-clock tests with 3 workers on the 2 cores
 # (most tests wait on processes and sockets: 160 s against 199 s with 2 workers) and mypy beside
@@ -59,6 +59,12 @@ models: $(STAMP)
 # docs/CONFIGURATION.md from the code that reads the configuration (a test compares them)
 docs: $(STAMP)
 	$(BIN)/python -m hil.cli.config_reference > docs/CONFIGURATION.md
+
+# every paper of hil/cli/paper.py's table reproduced, its report committed under docs/papers (the
+# sessions beside it are not: docs/papers/.gitignore); minutes each, in lockstep on the emulators
+papers: $(STAMP)
+	@for paper in $$($(BIN)/python -c 'from hil.cli.paper import PAPERS; print(*PAPERS)'); do \
+	  $(BIN)/hil paper $$paper --out docs/papers || exit 1; done
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
