@@ -4,7 +4,8 @@ group ``hil.controllers`` (``eec``, ``bc``) as factories ``(params, context)``.
 * ``eec`` - the energy-efficiency controller (MILP receding horizon) with its Kalman filter;
   ``params`` are ``[eec]`` keys of eec.toml (``hp_s``, ``gamma1``, ``time_limit_s``...), which
   the run has laid over the config's ``[eec]``, under the flags (:mod:`hil.bench.settings`);
-* ``bc`` - the hysteresis baseline; it takes no params.
+* ``bc`` - the hysteresis baseline; ``band`` (default 1, the paper's BC) switches each
+  peripheral off at ``q_min + band (q_max - q_min)`` instead of ``q_max``.
 """
 
 from __future__ import annotations
@@ -37,10 +38,14 @@ def eec(params: Mapping[str, Any], context: BenchContext) -> RecordedEEC:
 
 
 def bc(params: Mapping[str, Any], context: BenchContext) -> BasicController:
-    """The hysteresis baseline (the paper's BC)."""
-    if params:
-        raise ConfigError(f"controller 'bc' takes no params, got {', '.join(params)}")
-    return BasicController(context.problem, context.step_s)
+    """The hysteresis baseline (the paper's BC); ``band`` narrows its hysteresis."""
+    unknown = sorted(set(params) - {"band"})
+    if unknown:
+        raise ConfigError(f"controller 'bc' takes only the param band, got {', '.join(unknown)}")
+    band = params.get("band", 1.0)
+    if isinstance(band, bool) or not isinstance(band, int | float):
+        raise ConfigError(f"controller 'bc': band must be a number in (0, 1], got {band!r}")
+    return BasicController(context.problem, context.step_s, band=float(band))
 
 
 def eec_settings(table: EecTable) -> EECSettings:

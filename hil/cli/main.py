@@ -21,6 +21,7 @@ from hil.cli import (
     export,
     identify,
     layout,
+    paper,
     replay,
     report,
     resim,
@@ -32,7 +33,7 @@ from hil.cli import (
 from hil.errors import HilError, RunInterruptedError
 
 COMMAND_MODULES = (demo, bench, servo, drive, sweep, empc, identify, emulate, report, compare,
-                   export, replay, resim, tune, twin, layout, doctor)
+                   export, replay, resim, tune, twin, layout, paper, doctor)
 
 
 class OneLineParser(argparse.ArgumentParser):

@@ -5,17 +5,20 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
+import pytest
 
 from hil.bench.config import load_bench_config
 from hil.controllers.base import BenchController, BenchObservation
 from hil.controllers.bench.bc import BasicController, hysteresis_rule
 from hil.controllers.bench.problem import DwellClock
+from hil.controllers.errors import ControllerSetupError
 
 
-def simulate_bc(cycles: int = 8, dwell_s: float = 5.0, q0: dict[str, float] | None = None):
+def simulate_bc(cycles: int = 8, dwell_s: float = 5.0, q0: dict[str, float] | None = None,
+                band: float = 1.0):
     """Closed loop of BC with eq. (10) integrated per second; returns levels and relays."""
     problem = load_bench_config().with_dwell(dwell_s).problem
-    bc = BasicController(problem)
+    bc = BasicController(problem, band=band)
     levels = dict(q0 or {r.name: r.q0 for r in problem.resources})
     relays = {n: False for n in problem.peripherals}
     history = []
@@ -71,3 +74,23 @@ def test_bc_is_a_bench_controller_that_keeps_unlisted_relays_out():
     command = bc.decide(BenchObservation(0.0, {"q1": 50.0, "q2": 150.0},
                                          {"P1": False, "P2": False}, 0.0))
     assert command == {"P1": True, "P2": False}   # q1 at its bottom: refill; q2 fine
+
+
+def test_a_narrower_band_switches_off_lower_and_cycles_more_often():
+    """band 0.5: off at the middle of the range instead of its top, so the levels stay in the
+    lower half and the peripherals start more often over the same 8 cycles."""
+    problem, full, _ = simulate_bc()
+    _, half, _ = simulate_bc(band=0.5)
+    for r in problem.resources:
+        middle = r.q_min + 0.5 * (r.q_max - r.q_min)
+        assert max(h[1][r.name] for h in half) <= middle
+        assert max(h[1][r.name] for h in full) > middle
+        starts = [sum(a[2][r.supplier] < b[2][r.supplier] for a, b in itertools.pairwise(run))
+                  for run in (full, half)]
+        assert starts[1] > starts[0]
+
+
+@pytest.mark.parametrize("band", [0.0, -0.5, 1.01])
+def test_a_band_outside_the_range_is_refused_naming_it(band):
+    with pytest.raises(ControllerSetupError, match=r"band must be in \(0, 1\]"):
+        BasicController(load_bench_config().problem, band=band)
