@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test check bench models docs lint clean
+.PHONY: demo test check bench models docs papers lint clean
 
 # uv installs the same packages as pip in seconds instead of a minute; pip is the fallback.
 # Not compiled to bytecode at install (12.8 s against 1.4 s): the first process that imports a
@@ -59,6 +59,12 @@ models: $(STAMP)
 # docs/CONFIGURATION.md from the code that reads the configuration (a test compares them)
 docs: $(STAMP)
 	$(BIN)/python -m hil.cli.config_reference > docs/CONFIGURATION.md
+
+# the papers' reports, committed under docs/papers/ (NAME.md, NAME.json, the PNGs in NAME/):
+# every experiment of the paper in lockstep on the emulators, minutes each; the sessions behind
+# them stay in docs/papers/NAME/sessions/ (not committed)
+papers: $(STAMP)
+	$(BIN)/hil paper servo --out docs/papers
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -23,12 +23,14 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
+from itertools import pairwise
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from hil.core.recording.reader import read_session
 from hil.paper.servo_conditions import ServoConditions, SineCase, load_conditions
+from hil.paper.servo_friction import friction_sweep
 from hil.paper.servo_runs import CONTROLLER_TOPIC, Run, Session, SessionRunner, mpc_params
 
 if TYPE_CHECKING:
@@ -46,8 +48,11 @@ def reproduce(options: PaperOptions) -> PaperReport:
     sessions, the figures and the report."""
     from hil.paper.servo_report import report_of
 
+    started = time.perf_counter()
     conditions = load_conditions(options.quick)
-    return report_of(measure(conditions, options), conditions, options)
+    report = report_of(measure(conditions, options), conditions, options)
+    report.wall_s = time.perf_counter() - started
+    return report
 
 
 def measure(c: ServoConditions, options: PaperOptions) -> dict[str, Any]:
@@ -64,6 +69,7 @@ def measure(c: ServoConditions, options: PaperOptions) -> dict[str, Any]:
     run = SessionRunner(options.sessions, c, planned=len({r.name for r in runs.values()}),
                         echo=echo)
     done = {key: run(spec) for key, spec in runs.items()}
+    done.update(matched_pid(c, done, run))
     results: dict[str, Any] = {
         "paper": "servo", "quick": c.quick, "conditions": conditions_of(c),
         "sine": sine_tables(c, done),
@@ -74,10 +80,12 @@ def measure(c: ServoConditions, options: PaperOptions) -> dict[str, Any]:
     }
     results["fig5"], results["fig6"] = fig5_and_6(c, done)
     results["explain"] = explain(c, done, results["empc"]["box_sweep"])
+    echo("Figs. 9-10 with viscous friction (offline)")
+    results["explain"]["friction"] = friction_sweep(c)
     results["claims"] = claims(c, results)
     results["sessions"] = {key: s.mcap for key, s in done.items()}
     results["session_wall_s"] = round(run.wall_s, 1)
-    results["wall_s"] = round(time.perf_counter() - started, 1)
+    results["measure_s"] = round(time.perf_counter() - started, 1)
     return results
 
 
@@ -85,17 +93,18 @@ def measure(c: ServoConditions, options: PaperOptions) -> dict[str, Any]:
 
 
 def sine_run(c: ServoConditions, case: SineCase, controller: str, ert: str = "foh",
-             ht: int = 8, **params: Any) -> Run:
+             ht: int = 8, params: dict[str, float] | None = None) -> Run:
     """One run on a sine case: ``controller`` "mpc" (``ert``, ``ht``) or "pid", ``params``
     laid over the paper's (Q, R; Table I)."""
+    changed = params or {}
     if controller == "mpc":
         label = f"mpc-{ert}-ht{ht}"
         what = f"{case.title}, MPC {ert.upper()} H_t = {ht}"
-        given = mpc_params(c, **params)
+        given = mpc_params(c, **changed)
     else:
-        label, what, given = "pid", f"{case.title}, PID", {**c.pid_params, **params}
-    extra = "".join(f"-{key}{value:g}" for key, value in sorted(params.items()))
-    what += "".join(f", {key} = {value:g}" for key, value in sorted(params.items()))
+        label, what, given = "pid", f"{case.title}, PID", {**c.pid_params, **changed}
+    extra = "".join(f"-{key}{value:g}" for key, value in sorted(changed.items()))
+    what += "".join(f", {key} = {value:g}" for key, value in sorted(changed.items()))
     return Run(name=f"sine-{case.name}-{label}{extra}", what=what, controller=controller,
                reference=c.sine_spec(case.frequency_hz),
                duration_s=c.sine_duration_s(case.frequency_hz), limit_ma=case.limit_ma,
@@ -119,20 +128,25 @@ def plan(c: ServoConditions, law: Any) -> dict[str, Run]:
                                               "foh", c.fig5_ht)
     for r in c.sweep_r:
         runs[f"r/{r:g}"] = sine_run(c, fast, "mpc", "foh", c.fig5_ht,
-                                    **({} if r == c.r else {"r": r}))
+                                    None if r == c.r else {"r": r})
     for vff in c.sweep_vff:
-        runs[f"vff/{vff:g}"] = sine_run(c, fast, "pid", **({"vff": vff} if vff else {}))
+        runs[f"vff/{vff:g}"] = sine_run(c, fast, "pid", params={"vff": vff} if vff else None)
     empc = recorded_empc(law)
     h = c.empc_ht
     for key, reference, duration in (
             ("trapezoid", c.trapezoid_spec, c.trapezoid_duration_s),
             ("disturbance", c.disturbance_spec, c.disturbance_duration_s)):
-        common = {"reference": reference, "duration_s": duration, "limit_ma": c.limit_ma,
-                  "ht": h}
-        runs[f"{key}/empc"] = Run(name=f"{key}-empc-ht{h}", what=f"{key}, explicit MPC "
-                                  f"H_t = {h}", controller=empc, params=mpc_params(c), **common)
-        runs[f"{key}/mpc"] = Run(name=f"{key}-mpc-ht{h}", what=f"{key}, online MPC H_t = {h}",
-                                 controller="mpc", params=mpc_params(c), **common)
+        for kind, name, controller in (("empc", "explicit", empc), ("mpc", "online", "mpc")):
+            runs[f"{key}/{kind}"] = Run(
+                name=f"{key}-{kind}-ht{h}", what=f"{key}, {name} MPC H_t = {h}",
+                controller=controller, reference=reference, duration_s=duration,
+                limit_ma=c.limit_ma, ht=h, params=mpc_params(c))
+    for start in c.sweep_push_start_s:
+        runs[f"push/{start:g}"] = runs["disturbance/empc"] if start == c.push_start_s else Run(
+            name=f"disturbance-empc-ht{h}-start{start:g}", controller=empc,
+            what=f"disturbance from {start:g} s, explicit MPC H_t = {h}",
+            reference=c.push_spec(start), duration_s=c.disturbance_duration_s,
+            limit_ma=c.limit_ma, ht=h, params=mpc_params(c))
     runs["trapezoid/pid"] = Run(name="trapezoid-pid", what="trapezoid, PID", controller="pid",
                                 reference=c.trapezoid_spec, duration_s=c.trapezoid_duration_s,
                                 limit_ma=c.limit_ma, params=c.pid_params)
@@ -194,7 +208,7 @@ def waterfall(c: ServoConditions, done: dict[str, Session]) -> dict[str, Any]:
     per ERT, the predicted input at the end of the control horizon û(k+H_u-1|k) against the
     current applied at that tick (mean |.| ratio: ZOH's near 0 per the paper), and how far
     the predicted inputs are from the applied ones (RMS, relative to the applied RMS)."""
-    out = {"ht": c.waterfall_ht}
+    out: dict[str, Any] = {"ht": c.waterfall_ht}
     for ert in ("zoh", "foh"):
         session = done[f"{c.fast.name}/{ert}/{c.waterfall_ht}"]
         out[ert] = {**prediction_match(session.mcap, c.settle_s, c.waterfall_ht),
@@ -271,24 +285,28 @@ def trapezoid(c: ServoConditions, done: dict[str, Session]) -> dict[str, Any]:
 
 
 def disturbance(c: ServoConditions, done: dict[str, Session]) -> dict[str, Any]:
-    """Fig. 16: how far the push moved the axis, the overshoot after the release, when the
-    axis settled again (|error| below 1 % of the push's displacement for good), and the
-    controllers used during and after the push."""
+    """Fig. 16: the explicit MPC against the push (:func:`push_response`), the controllers
+    used during it, and both MPCs' KPIs."""
     empc = done["disturbance/empc"]
-    command = read_session(empc.mcap).arrays("/drive/command")
+    return {**push_response(empc.mcap, c.push_end_s),
+            "during": controllers_used(empc.mcap, c.push_start_s, c.push_end_s),
+            "mpc": tracking(done["disturbance/mpc"]), "empc": tracking(empc)}
+
+
+def push_response(mcap: str, end_s: float) -> dict[str, Any]:
+    """How far a push that ends at ``end_s`` moved the axis, the overshoot after the release,
+    when the axis settled again (|error| below 1 % of the displacement for good), and the
+    explicit MPC's controllers after the release."""
+    command = read_session(mcap).arrays("/drive/command")
     t, error = command["t_s"], command["error_deg"].astype(float)
-    pushed = t < c.push_end_s
-    peak = float(np.max(np.abs(error[pushed])))
-    direction = float(np.sign(error[pushed][np.argmax(np.abs(error[pushed]))]))
-    after = ~pushed
-    overshoot = float(max(0.0, np.max(-direction * error[after])))
+    pushed = t < end_s - 1e-9
+    peak_at = int(np.argmax(np.abs(error[pushed])))
+    peak, direction = float(abs(error[peak_at])), float(np.sign(error[peak_at]))
+    overshoot = float(max(0.0, np.max(-direction * error[~pushed])))
     outside = np.flatnonzero(np.abs(error) > 0.01 * peak)
     settled = float(t[outside[-1] + 1]) if outside.size and outside[-1] + 1 < t.size else None
     return {"push_deg": peak, "overshoot_deg": overshoot, "settled_s": settled,
-            "final_error_deg": float(abs(error[-1])),
-            "during": controllers_used(empc.mcap, c.push_start_s, c.push_end_s),
-            "after": controllers_used(empc.mcap, c.push_end_s),
-            "mpc": tracking(done["disturbance/mpc"]), "empc": tracking(empc)}
+            "final_error_deg": float(abs(error[-1])), "after": controllers_used(mcap, end_s)}
 
 
 # -- the differences, explained ------------------------------------------------------------
@@ -296,11 +314,32 @@ def disturbance(c: ServoConditions, done: dict[str, Session]) -> dict[str, Any]:
 
 def crossing(xs: Sequence[float], ys: Sequence[float], target: float) -> float | None:
     """Where the piecewise-linear curve through (xs, ys) first meets ``target``, or None."""
-    for (x0, y0), (x1, y1) in zip(zip(xs, ys, strict=True), zip(xs[1:], ys[1:], strict=True),
-                                  strict=False):
+    for (x0, y0), (x1, y1) in pairwise(zip(xs, ys, strict=True)):
         if (y0 - target) * (y1 - target) <= 0 and y0 != y1:
             return x0 + (target - y0) * (x1 - x0) / (y1 - y0)
     return None
+
+
+def vff_match(c: ServoConditions, done: dict[str, Session]) -> float | None:
+    """The PID's feed-forward share at which its max error on the 10 Hz sine is the paper's
+    Fig. 6 figure (interpolated in the sweep, two decimals), or None outside it."""
+    match = crossing(c.sweep_vff, [done[f"vff/{v:g}"]["max_error_deg"] for v in c.sweep_vff],
+                     PAPER_FIG6["max_error_deg"])
+    return None if match is None else round(match, 2)
+
+
+def matched_pid(c: ServoConditions, done: dict[str, Session],
+                run: SessionRunner) -> dict[str, Session]:
+    """The PID whose feed-forward share matches Fig. 6 (:func:`vff_match`) on every sine (the
+    fast one at the rated current), run once the sweep has found the share."""
+    share = vff_match(c, done)
+    if share is None:
+        return {}
+    run.planned += len(c.frequencies_hz)
+    cases = {f: c.fast if f == c.fast.frequency_hz else SineCase(f, c.limit_ma)
+             for f in c.frequencies_hz}
+    return {f"matched/{f:g}": run(sine_run(c, case, "pid", params={"vff": share}))
+            for f, case in cases.items()}
 
 
 def explain(c: ServoConditions, done: dict[str, Session],
@@ -330,10 +369,12 @@ def explain(c: ServoConditions, done: dict[str, Session],
         "r_match": crossing([row["r"] for row in by_r], [row["max_error_deg"] for row in by_r],
                             PAPER_FIG5["max_error_deg"]),
         "vff": vff_rows,
-        "vff_match": crossing([row["vff"] for row in vff_rows],
-                              [row["max_error_deg"] for row in vff_rows],
-                              PAPER_FIG6["max_error_deg"]),
+        "vff_match": vff_match(c, done),
+        "pid_matched": {f"{f:g}": tracking(done[f"matched/{f:g}"]) for f in c.frequencies_hz
+                        if f"matched/{f:g}" in done},
         "box": box_sweep,
+        "push": [{"start_s": start, **push_response(done[f"push/{start:g}"].mcap, c.push_end_s)}
+                 for start in c.sweep_push_start_s],
     }
 
 
@@ -345,8 +386,10 @@ def claims(c: ServoConditions, results: dict[str, Any]) -> list[dict[str, Any]]:
     bear it out, and the figures that decide it."""
     out: list[dict[str, Any]] = []
 
-    def claim(where: str, text: str, holds: bool, measured: str) -> None:
-        out.append({"where": where, "claim": text, "holds": bool(holds), "measured": measured})
+    def claim(where: str, text: str, holds: bool | None, measured: str) -> None:
+        """``holds`` None: not judged (the run does not make the paper's case)."""
+        out.append({"where": where, "claim": text,
+                    "holds": None if holds is None else bool(holds), "measured": measured})
 
     for panel in results["sine"]:
         if panel["saturated"]:
@@ -354,7 +397,7 @@ def claims(c: ServoConditions, results: dict[str, Any]) -> list[dict[str, Any]]:
         zoh = [r for r in panel["mpc"] if r["ert"] == "zoh"]
         foh = [r for r in panel["mpc"] if r["ert"] == "foh"]
         falls = all(a["normalised"] > b["normalised"] for seq in (zoh, foh)
-                    for a, b in zip(seq, seq[1:], strict=False))
+                    for a, b in pairwise(seq))
         claim(panel["figure"], f"{panel['title']}: the tracking error decreases as H_t "
               "increases", falls, "ZOH " + ", ".join(f"{r['normalised']:.3f}" for r in zoh)
               + "; FOH " + ", ".join(f"{r['normalised']:.3f}" for r in foh))
@@ -363,12 +406,20 @@ def claims(c: ServoConditions, results: dict[str, Any]) -> list[dict[str, Any]]:
               all(f["cumulative_error_deg"] < z["cumulative_error_deg"] for z, f in pairs),
               ", ".join(f"H_t={f['ht']}: {f['normalised']:.3f} < {z['normalised']:.3f}"
                         for z, f in pairs))
-        above = [r for r in panel["mpc"] if r["ht"] > 3]
-        if above:
-            claim(panel["figure"], f"{panel['title']}: for H_t > 3 the MPC beats the PID",
-                  all(r["normalised"] < panel["pid"]["normalised"] for r in above),
-                  f"PID {panel['pid']['normalised']:.3f}; MPC at H_t > 3 at most "
-                  f"{max(r['normalised'] for r in above):.3f}")
+        pid = panel["pid"]["normalised"]
+        for ert, seq in (("ZOH", zoh), ("FOH", foh)):
+            above = [r for r in seq if r["ht"] > 3]
+            beats = [r["ht"] for r in seq if r["normalised"] < pid]
+            if above:
+                claim(panel["figure"], f"{panel['title']}: for H_t > 3 the MPC ({ert}-ERT) "
+                      "beats the PID", all(r["normalised"] < pid for r in above),
+                      f"PID {pid:.4f}; {ert} beats it at H_t = "
+                      f"{', '.join(map(str, beats)) or 'none'}")
+    advantage = high_frequency_advantage(c, results)
+    if advantage is not None:
+        claim("Figs. 7-8", "the MPC's advantage over the PID is largest on the high-frequency "
+              "sine", advantage["table_i"][1] > advantage["table_i"][0],
+              advantage["measured"])
     w = results["waterfall"]
     claim("Figs. 9-10", "ZOH-ERT predicts û(H_u|k) ≈ 0; FOH-ERT's predicted inputs match "
           "the applied ones more closely", w["zoh"]["end_ratio"] < 0.5 * w["foh"]["end_ratio"]
@@ -385,8 +436,9 @@ def claims(c: ServoConditions, results: dict[str, Any]) -> list[dict[str, Any]]:
               f"(at most {seq['regions']} regions, about {seq['hyperplanes']} hyperplanes)",
               row["regions"] <= seq["regions"],
               f"H_t = {seq['ht']}: {row['regions']} regions, {row['sequential_facets']} facets")
+    paper_law = e["ht"] == 3  # --quick builds a smaller law: the paper's counts do not apply
     claim("Sec. III-D", "the explicit law has 11 controllers",
-          e["hil"]["controllers"] == e["paper"]["controllers"],
+          e["hil"]["controllers"] == e["paper"]["controllers"] if paper_law else None,
           f"{e['hil']['controllers']} controllers in {e['hil']['regions']} regions")
     t = results["trapezoid"]
     claim("Fig. 14", "on the trapezoid the current stays within the limits: the explicit MPC "
@@ -403,9 +455,38 @@ def claims(c: ServoConditions, results: dict[str, Any]) -> list[dict[str, Any]]:
           f"pushed {d['push_deg']:.2f} deg, overshoot {d['overshoot_deg']:.3f} deg, settled "
           f"at {d['settled_s']} s")
     claim("Fig. 16", "after the release only three controllers (#1, #2, #3) are used",
-          len([k for k in d["after"] if k > 0]) <= 3,
-          f"after the release: {d['after']}; during the push: {d['during']}")
+          len([k for k in d["after"] if k > 0]) <= 3 if paper_law else None,
+          f"after the release: {', '.join(f'#{k}' for k in d['after'])}; during the push: "
+          f"{', '.join(f'#{k}' for k in d['during'])}")
     return out
+
+
+def high_frequency_advantage(c: ServoConditions, results: dict[str, Any]
+                             ) -> dict[str, Any] | None:
+    """The PID's cumulative error over the best MPC's (FOH at the largest H_t) on the slow
+    sine and on the fast one at the rated current, for the Table I PID and for the PID whose
+    feed-forward matches Fig. 6; None without both sines."""
+    slow = [p for p in results["sine"] if p["frequency_hz"] == min(c.frequencies_hz)
+            and p["limit_mA"] == c.limit_ma]
+    fast = [p for p in results["sine"] if p["frequency_hz"] == c.fast.frequency_hz
+            and p["limit_mA"] == c.rated_ma]
+    if not slow or not fast or slow[0] is fast[0]:
+        return None
+
+    def best(panel: dict[str, Any]) -> float:
+        foh = [r for r in panel["mpc"] if r["ert"] == "foh"]
+        return float(foh[-1]["cumulative_error_deg"]) if foh else math.nan
+
+    table_i = [p["pid"]["cumulative_error_deg"] / best(p) for p in (slow[0], fast[0])]
+    measured = (f"PID / MPC FOH H_t = {max(c.horizons)}, cumulative error: "
+                f"{table_i[0]:.3g} at {slow[0]['title']}, {table_i[1]:.3g} at {fast[0]['title']}")
+    matched = results["explain"].get("pid_matched") or {}
+    if len(matched) == 2:
+        ratios = [matched[f"{p['frequency_hz']:g}"]["cumulative_error_deg"] / best(p)
+                  for p in (slow[0], fast[0])]
+        measured += (f"; with the Fig. 6 feed-forward share: {ratios[0]:.3g} and "
+                     f"{ratios[1]:.3g}")
+    return {"table_i": table_i, "measured": measured}
 
 
 def conditions_of(c: ServoConditions) -> dict[str, Any]:

@@ -66,6 +66,8 @@ class ServoConditions:
     sweep_current_ma: tuple[float, ...]
     sweep_vff: tuple[float, ...]
     sweep_box_scale: tuple[float, ...]
+    sweep_push_start_s: tuple[float, ...]
+    sweep_friction_tau_s: tuple[float, ...]
 
     @property
     def sine_cases(self) -> tuple[SineCase, ...]:
@@ -91,8 +93,11 @@ class ServoConditions:
 
     @property
     def disturbance_spec(self) -> str:
-        return (f"disturbance:torque={self.torque_ma:g},start={self.push_start_s:g},"
-                f"end={self.push_end_s:g}")
+        return self.push_spec(self.push_start_s)
+
+    def push_spec(self, start_s: float) -> str:
+        """The disturbance scenario with the push starting at ``start_s``."""
+        return f"disturbance:torque={self.torque_ma:g},start={start_s:g},end={self.push_end_s:g}"
 
     @property
     def pid_params(self) -> dict[str, float]:
@@ -140,6 +145,8 @@ def load_conditions(quick: bool = False, text: str | None = None) -> ServoCondit
         "sweep_current_ma": _numbers(explain, "current_mA"),
         "sweep_vff": _numbers(explain, "vff", at_most=1.0, at_least=0.0),
         "sweep_box_scale": _numbers(explain, "box_scale"),
+        "sweep_push_start_s": _numbers(explain, "push_start_s", at_least=0.0),
+        "sweep_friction_tau_s": _numbers(explain, "friction_tau_s"),
     }
     shorter = {
         "horizons": _integers(fast, "horizons"),
@@ -155,6 +162,8 @@ def load_conditions(quick: bool = False, text: str | None = None) -> ServoCondit
         "sweep_current_ma": _numbers(fast, "current_mA"),
         "sweep_vff": _numbers(fast, "vff", at_most=1.0, at_least=0.0),
         "sweep_box_scale": _numbers(fast, "box_scale"),
+        "sweep_push_start_s": _numbers(fast, "push_start_s", at_least=0.0),
+        "sweep_friction_tau_s": _numbers(fast, "friction_tau_s"),
     }
     for table in (drive, mpc, sine, trapezoid, push, pid, explain, fast, top):
         table.done()
@@ -167,17 +176,19 @@ def load_conditions(quick: bool = False, text: str | None = None) -> ServoCondit
 
 def _check(c: ServoConditions, top: Table) -> None:
     """What the keys must agree on: horizons within H_p, the paper's cases among the runs."""
-    for name, value in (("mpc.fig5_ht", c.fig5_ht), ("mpc.waterfall_ht", c.waterfall_ht)):
-        if value not in c.horizons or value > c.hp:
-            raise top.error(name, f"({value}) must be one of mpc.horizons ({list(c.horizons)}) "
-                            f"and at most mpc.hp ({c.hp})")
     if 1 not in c.horizons or max(c.horizons) > c.hp:
         raise top.error("mpc.horizons", f"must hold 1 (set-point tracking, what Figs. 7-8 are "
                         f"normalised to) and stay within mpc.hp ({c.hp})")
+    for name, value in (("mpc.fig5_ht", c.fig5_ht), ("mpc.waterfall_ht", c.waterfall_ht)):
+        if value not in c.horizons:
+            raise top.error(name, f"({value}) must be one of mpc.horizons ({list(c.horizons)})")
     if c.empc_ht not in c.empc_horizons:
         raise top.error("mpc.empc_ht", f"({c.empc_ht}) must be one of mpc.empc_horizons")
     if not c.push_start_s < c.push_end_s < c.disturbance_duration_s:
         raise top.error("disturbance.end_s", "must lie after start_s and before duration_s")
+    if not all(start < c.push_end_s for start in c.sweep_push_start_s):
+        raise top.error("explain.push_start_s", f"must all lie before disturbance.end_s "
+                        f"({c.push_end_s:g} s)")
     if c.limit_ma not in c.sweep_current_ma:
         raise top.error("explain.current_mA", f"must hold drive.current_limit_mA "
                         f"({c.limit_ma:g}), the paper's case the sweep starts from")

@@ -127,7 +127,7 @@ def evaluation_times(law: ExplicitLaw, thetas: np.ndarray, repeat: int = 3
     online = DaqpSolver(law.qp)
     explicit = ExplicitSolver(law, DaqpSolver(law.qp))
     regions = [Polyhedron(r.A, r.b, r.boundary) for r in law.solution.regions]
-    sequential = SequentialSearch(regions, law.labels, law.box.lower, law.box.upper)
+    sequential = SequentialSearch(regions, law.labels.tolist(), law.box.lower, law.box.upper)
     P, gains, offsets = law.P, law.gains, law.offsets
 
     def sequential_law(theta: np.ndarray) -> float:
