@@ -176,8 +176,12 @@ def explanations(png: str, panels: Sequence[Mapping[str, Any]]) -> None:
     """The sweeps that explain a difference: per panel, hil's measured points against the
     swept value, and the paper's figure as a horizontal line."""
     plt = _pyplot()
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.6), squeeze=False)
-    for ax, panel in zip(axes[0], panels, strict=True):
+    columns = 3
+    rows = -(-len(panels) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(4.4 * columns, 3.6 * rows), squeeze=False)
+    for ax in axes.flat[len(panels):]:
+        ax.set_axis_off()
+    for ax, panel in zip(axes.flat, panels, strict=False):
         ax.plot(panel["x"], panel["y"], "o-", label="hil")
         ax.axhline(panel["paper"], color="r", ls="--", label=f"paper: {panel['paper']:g}")
         if panel.get("logx"):
