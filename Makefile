@@ -60,10 +60,10 @@ models: $(STAMP)
 docs: $(STAMP)
 	$(BIN)/python -m hil.cli.config_reference > docs/CONFIGURATION.md
 
-# the papers' reports, committed under docs/papers/ (NAME.md, NAME.json, the PNGs in NAME/):
-# every experiment of the paper in lockstep on the emulators, minutes each; the sessions behind
-# them stay in docs/papers/NAME/sessions/ (not committed)
+# the papers reproduced, their reports committed under docs/papers (the sessions beside them are
+# not: docs/papers/.gitignore); minutes, in lockstep on the emulators
 papers: $(STAMP)
+	$(BIN)/hil paper energy --out docs/papers
 	$(BIN)/hil paper servo --out docs/papers
 
 lint: $(STAMP)

@@ -57,19 +57,19 @@ class Knob:
 
 KNOBS = (
     Knob("band", "BC's hysteresis band (share of the range it fills)", 1.0,
-         (0.25, 0.5, 0.75), (0.5,), ("bc",)),
+         (0.25, 0.5, 0.75), (), ("bc",)),
     Knob("range", "levels' range, x Table I's (BC's T_P grows with it)", 1.0,
          (0.5, 0.75, 1.5), (), ("bc", "eec")),
-    Knob("disturbance_va", "unexpected load [VA]", 0.0, (70.0, 180.0, 270.0), (180.0,),
+    Knob("load", "unexpected load [VA]", 0.0, (70.0, 180.0, 270.0), (180.0,),
          ("bc", "eec")),
-    Knob("disturbance_shift", "unexpected load's windows shifted by [s] (180 VA)", 0.0,
+    Knob("shift", "unexpected load's windows shifted by [s] (180 VA)", 0.0,
          (7.0, 14.0, 21.0), (), ("bc", "eec")),
     Knob("hp", "prediction horizon H_p [s]", T_S, (14, 42, 56, "T_P"), (42, 56, "T_P"),
          ("eec",)),
     Knob("gamma", "weights gamma1 / gamma2", (0.9, 0.1),
-         ((1.0, 0.0), (0.7, 0.3), (0.5, 0.5), (0.3, 0.7)), ((0.5, 0.5),), ("eec",)),
-    Knob("terminal", "EEC's terminal condition (hil's default: hold)", "none", ("hold",),
-         ("hold",), ("eec",)),
+         ((1.0, 0.0), (0.7, 0.3), (0.5, 0.5), (0.3, 0.7)), (), ("eec",)),
+    Knob("terminal", "EEC's terminal condition (hil's default: hold)", "none", ("hold",), (),
+         ("eec",)),
 )
 
 
@@ -99,12 +99,18 @@ class RunPlan:
     cycles: int
     tp_s: int
     ident_s: float
+    quick: bool
+
+    @property
+    def ident_block_rows(self) -> int | None:
+        """The Hankel block rows of the identifications: chosen by BIC as ``hil identify``
+        does, or 15 in a quick run (a tenth of the time)."""
+        return 15 if self.quick else None
 
     def point(self, knob: str, value: Any, controller: str) -> str:
-        """The run of ``controller`` with ``knob`` at ``value`` (the baseline's at the
-        baseline value)."""
-        return self.points.get((knob, value, controller), "eec" if controller == "eec"
-                               else "bc")
+        """The run of ``controller`` with ``knob`` at ``value`` (its nominal baseline run
+        when the knob does not move that controller)."""
+        return self.points.get((knob, value, controller), controller)
 
 
 def plan_runs(quick: bool, problem: BenchProblem, configs: Path) -> RunPlan:
@@ -115,28 +121,38 @@ def plan_runs(quick: bool, problem: BenchProblem, configs: Path) -> RunPlan:
             for name, params in BASE_RUNS.items()}
     points = {}
     for knob in KNOBS:
-        for value in knob.quick if quick else knob.values:
+        for value in (knob.baseline, *(knob.quick if quick else knob.values)):
             for controller in knob.controllers:
-                params = knob_params(knob.key, value, controller, tp_s, configs)
+                params = knob_params(knob, value, controller, tp_s, configs)
                 name = next((n for n, p in runs.items() if p == params),
                             f"{controller}-{knob.key}-{_name(value)}")
                 runs.setdefault(name, params)
                 points[knob.key, value, controller] = name
     return RunPlan(runs, points, QUICK_CYCLES if quick else PAPER_CYCLES, tp_s,
-                   40.0 if quick else 600.0)
+                   40.0 if quick else 600.0, quick)
 
 
-def knob_values(quick: bool) -> dict[str, tuple[Any, ...]]:
-    """Each knob's values in this reproduction."""
-    return {knob.key: knob.quick if quick else knob.values for knob in KNOBS}
+def knob_values(knob: Knob, quick: bool) -> tuple[Any, ...]:
+    """The knob's values in this reproduction, its baseline among them, in order."""
+    values = (knob.baseline, *(knob.quick if quick else knob.values))
+    if knob.key == "gamma":
+        return tuple(sorted(values, reverse=True))
+    if knob.key == "terminal":
+        return values
+    return tuple(sorted(values, key=lambda v: math.inf if v == "T_P" else float(v)))
 
 
-def knob_params(key: str, value: Any, controller: str, tp_s: int, configs: Path
+def knob_params(knob: Knob, value: Any, controller: str, tp_s: int, configs: Path
                 ) -> dict[str, Any]:
-    """The flags of ``controller``'s run with knob ``key`` at ``value``, everything else the
-    baseline's (BC; the EEC with H_S = T)."""
+    """The flags of ``controller``'s run with ``knob`` at ``value``, everything else the
+    baseline's (BC; the EEC with H_S = T; for the load's timing, both with the load on)."""
     base: dict[str, Any] = {"controller": controller} | ({"hs": T_S} if controller == "eec"
                                                           else {})
+    key = knob.key
+    if key == "shift":
+        base["disturbance"] = True
+    if value == knob.baseline:
+        return base
     if key == "band":
         return base | {"param.band": value}
     if key == "hp":
@@ -148,13 +164,12 @@ def knob_params(key: str, value: Any, controller: str, tp_s: int, configs: Path
         return base | {"terminal": value}
     if key == "range":
         change = range_change(value)
-    elif key == "disturbance_va":
+    elif key == "load":
         base["disturbance"] = True
         if value == paper_load()["va"]:
             return base
         change = {"plant": {"disturbance": {"va": value}}}
-    else:  # disturbance_shift
-        base["disturbance"] = True
+    else:  # shift
         change = shift_change(value)
     return base | {"config": str(variant_config(configs, f"{key}-{_name(value)}", change))}
 
@@ -285,7 +300,8 @@ class Identified:
     y: np.ndarray          # samples
 
 
-def identify_load(name: str, duration_s: float, folder: Path) -> Identified:
+def identify_load(name: str, duration_s: float, folder: Path,
+                  block_rows: int | None = None) -> Identified:
     """``hil bench identify`` + ``hil identify --order 3 --detrend --no-feedthrough`` of one
     of the paper's models, under the paper's conditions."""
     from hil.bench.identify import run_identify_experiment
@@ -304,6 +320,6 @@ def identify_load(name: str, duration_s: float, folder: Path) -> Identified:
               for relay in switched for suffix in ("", "_start")]
     u, y, dt, _irregular = aligned_signals(read_session(mcap), inputs, [parse_signal(OUTPUT)])
     model = identify(u, y, dt, inputs=tuple(s.text for s in inputs), outputs=(OUTPUT,),
-                     order=3, detrend=True, feedthrough=False)
+                     order=3, detrend=True, feedthrough=False, block_rows=block_rows)
     save_model_file(folder / f"ident-{name}.json", model)
     return Identified(name, model, mcap, np.arange(len(y)) * dt, u, np.asarray(y)[:, 0])

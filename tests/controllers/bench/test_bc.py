@@ -12,6 +12,7 @@ from hil.controllers.base import BenchController, BenchObservation
 from hil.controllers.bench.bc import BasicController, hysteresis_rule
 from hil.controllers.bench.problem import DwellClock
 from hil.controllers.errors import ControllerSetupError
+from tests.cli import hil_here
 
 
 def simulate_bc(cycles: int = 8, dwell_s: float = 5.0, q0: dict[str, float] | None = None,
@@ -88,6 +89,19 @@ def test_a_narrower_band_switches_off_lower_and_cycles_more_often():
         starts = [sum(a[2][r.supplier] < b[2][r.supplier] for a, b in itertools.pairwise(run))
                   for run in (full, half)]
         assert starts[1] > starts[0]
+
+
+@pytest.mark.parametrize(("param", "said"), [
+    ("band=1.5", "BC's band must be in (0, 1]"),
+    ("band=wide", "band must be a number in (0, 1], got 'wide'"),
+    ("hysteresis=5", "controller 'bc' takes only the param band, got hysteresis")])
+def test_a_wrong_bc_param_is_one_line_and_no_session(tmp_path, capsys, param, said):
+    done = hil_here(capsys, "bench", "run", "--controller", "bc", "--param", param,
+                    "--out", "bc.mcap", cwd=tmp_path)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(lines) == 1
+    assert lines[0].startswith("hil: error: ") and said in lines[0]
+    assert not (tmp_path / "bc.mcap").exists()
 
 
 @pytest.mark.parametrize("band", [0.0, -0.5, 1.01])
