@@ -18,8 +18,9 @@ w0/bw = 1.09 as printed, unit DC gain, discretised at 500 us. With it the Table 
 stable on the printed model (largest closed-loop pole |z| = 0.989), and they are kept. (With
 no notch at all this discretisation is only just stable: a 487 Hz pole at |z| = 0.998.)
 
-Table I gives no feed-forward, so none is used by default (``velocity_feedforward`` adds the
-reference's rate to the velocity set-point for comparison).
+Table I gives no feed-forward, so none is used by default (``velocity_feedforward`` adds that
+share of the reference's rate to the velocity set-point: 1 the whole of it, True as 1; the
+paper reproduction sweeps it, as a drive's feed-forward the paper does not give).
 
 Other cycle periods. The gains are continuous-time quantities (rpm per deg, A per rpm, T_i in
 seconds) and the controller discretises them for its model's T: the velocity is the backward
@@ -96,12 +97,16 @@ class PidConfig:
     notch_hz: float | None = None
     notch_quality: float = EQ16_QUALITY
     u_max: float = 1000.0
-    velocity_feedforward: bool = False
+    velocity_feedforward: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("k_pos_rpm_per_deg", "k_vel_a_per_rpm", "ti_s", "u_max"):
             if not getattr(self, name) > 0:
                 raise ControllerSetupError(f"pid.{name} must be > 0, got {getattr(self, name)}")
+        if not 0.0 <= self.velocity_feedforward <= 1.0:
+            raise ControllerSetupError(f"pid.velocity_feedforward must be a share in [0, 1] of "
+                                       f"the reference's velocity, got "
+                                       f"{self.velocity_feedforward}")
         if self.notch not in NOTCH_READINGS:
             raise ControllerSetupError(f"pid.notch must be one of {', '.join(NOTCH_READINGS)}, "
                               f"got {self.notch!r}")
@@ -166,7 +171,7 @@ class CascadedPid:
         v_ref = c.k_pos_rpm_per_deg * wrap180(r - y)
         if c.velocity_feedforward:
             r_next = float(self.reference.position(np.array([t_s + self.dt]))[0])
-            v_ref += wrap180(r_next - r) / self.dt * RPM_PER_DEG_S
+            v_ref += c.velocity_feedforward * wrap180(r_next - r) / self.dt * RPM_PER_DEG_S
         e_v = v_ref - velocity
         k = 1000.0 * c.k_vel_a_per_rpm  # mA per rpm
         raw = k * (e_v + self._integral)

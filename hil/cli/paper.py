@@ -35,6 +35,16 @@ PAPERS: dict[str, Paper] = {
         "every table and figure from lockstep runs on the emulated bench under the paper's "
         "conditions (hil/configs/paper_energy.toml), the paper's value beside hil's with the "
         "ratio, and a sensitivity sweep of the energy gain J1 that explains the differences."),
+    "servo": Paper(
+        "hil.paper.servo",
+        "the servo paper: MPC (FOH/ZOH, H_t), explicit MPC and PID on the drive (Figs. 1-16)",
+        "Reproduce Stephens, Manzie and Good, 'Model Predictive Control for Reference Tracking "
+        "on an Industrial Machine Tool Servo Drive': the MPC variants' errors against the "
+        "trajectory horizon, the explicit MPC's regions, controllers and search tree and its "
+        "evaluation time against the online QP, the cascaded PID + notch baseline, and the "
+        "tracking, error and waterfall plots, from lockstep runs on the emulated drive under "
+        "the paper's conditions (hil/configs/paper_servo.toml), the paper's value beside hil's "
+        "with the ratio, and the sweeps that explain the differences."),
 }
 
 

@@ -6,7 +6,8 @@ and PV (:mod:`hil.controllers.servo.setpoint`), at any cycle period.
 
 Params (default: ``hil servo run``'s flags): ``ht``, ``hu``, ``hp`` (horizons), ``ert``
 (``foh`` | ``zoh``) for the MPCs, ``ti_us`` (the velocity PI's integral time, Table I's
-2000 us) for the PID, and ``umax`` [mA] for all three.
+2000 us) and ``vff`` (velocity feed-forward, the share of the reference's velocity added to the
+velocity set-point: 0 to 1, default 0 as Table I) for the PID, and ``umax`` [mA] for all three.
 
 Cycle periods (:func:`hil.controllers.base.runs_at`): the PID and the MPC run at every multiple of
 500 us up to 10 ms (their model is the published axis stepped that many times; the PID refuses
@@ -86,9 +87,11 @@ def pid(reference: Reference, params: Mapping[str, Any], context: ServoContext
     kv = table.number("kv", PidConfig.k_vel_a_per_rpm, at_least=0)
     notch_hz = table.number("notch_hz", None, above=0, at_most=0.5 / context.period_s)
     notch_q = table.number("notch_q", PidConfig.notch_quality, above=0)
+    vff = table.number("vff", PidConfig.velocity_feedforward, at_least=0, at_most=1)
     table.done()
     config = PidConfig(u_max=umax, ti_s=ti_us / 1e6, k_pos_rpm_per_deg=kp,
-                       k_vel_a_per_rpm=kv, notch_hz=notch_hz, notch_quality=notch_q)
+                       k_vel_a_per_rpm=kv, notch_hz=notch_hz, notch_quality=notch_q,
+                       velocity_feedforward=vff)
     model = axis_model(context.period_s)
     check_stable(config, model)
     return CascadedPid(reference, config, model)

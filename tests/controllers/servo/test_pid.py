@@ -17,6 +17,8 @@ from hil.controllers.servo.pid import (
 from hil.controllers.servo.references import Hold, Modulo360, Ramp, Trapezoid
 from hil.controllers.servo.sim import simulate
 from hil.errors import ConfigError
+from hil.servo import builtin
+from hil.servo.builtin import ServoContext
 
 MODEL = published_axis_model()
 
@@ -93,6 +95,16 @@ def test_velocity_feedforward_removes_the_ramp_lag_of_the_p_position_loop():
     forward = simulate(CascadedPid(ramp, PidConfig(velocity_feedforward=True)), ramp, 1.0)
     assert plain.error[-1] == pytest.approx(-lag, rel=1e-3)
     assert abs(forward.error[-1]) < 0.01 * lag
+    half = simulate(CascadedPid(ramp, PidConfig(velocity_feedforward=0.5)), ramp, 1.0)
+    assert half.error[-1] == pytest.approx(-0.5 * lag, rel=1e-2)  # a share of it: that share
+
+
+def test_the_builtin_takes_the_feedforward_share_as_a_param():
+    context = ServoContext(8, 8, 50, "foh", 1000.0, None)
+    assert builtin.pid(Hold(0.0), {}, context).config.velocity_feedforward == 0.0  # Table I
+    assert builtin.pid(Hold(0.0), {"vff": 0.7}, context).config.velocity_feedforward == 0.7
+    with pytest.raises(ConfigError, match=r"controller 'pid' params.*vff.*1"):
+        builtin.pid(Hold(0.0), {"vff": 1.5}, context)
 
 
 def test_reference_and_position_crossing_360_change_nothing():
@@ -107,6 +119,7 @@ def test_reference_and_position_crossing_360_change_nothing():
     ({"notch": "eq17"}, "notch"),
     ({"ti_s": 0.0}, "ti_s"),
     ({"notch_hz": 1500.0}, "notch centre"),
+    ({"velocity_feedforward": -0.1}, "share in"),
 ])
 def test_bad_configuration_is_one_clear_error(kwargs, match):
     with pytest.raises(ConfigError, match=match):
