@@ -63,7 +63,11 @@ configured one needs `--allow-looser-safety`; the run then prints a warning and 
 the session. A config file may set any value its rule allows.
 
 An unknown key, a value of the wrong kind (a string where a number belongs) or a value outside
-its rule is one error line naming the file (or the flag) and the key, with its unit.
+its rule is one error line naming the file (or the flag) and the key, with its unit. The keys
+are checked with the flags' rules, when the file is read: a misspelt key names the closest one
+(`current_limit_ma`: "did you mean 'master.current_limit_mA'?"), a value written with its unit
+is refused with the number to write (`following_error_ms = "2s"`: "'2s' is 2000"), and a
+current below 1 mA as most likely amperes (`current_limit_mA = 0.3`, as `--umax 0.3`).
 """
 
 

@@ -22,6 +22,7 @@ from typing import Any
 from can.interfaces import VALID_INTERFACES
 
 from hil.core.config import Table, load_toml, parse_toml
+from hil.core.ranges import PLAUSIBLE_MILLIAMPS
 from hil.core.registry import scheme_of
 from hil.core.settings import KeyRead, Layer, Layered, Setting, effective, lay
 from hil.core.verdict import RunTables, read_run_tables
@@ -223,7 +224,8 @@ def _axes(root: Table) -> tuple[AxisSpec, ...]:
         if not AXIS_NAME.fullmatch(name):
             raise table.error("name", f"must be a lower-case name (a-z, 0-9, _), got {name!r}")
         axes.append(AxisSpec(name, table.integer("node", at_least=1, at_most=127),
-                             table.number("current_limit_mA", None, above=0, at_most=32_767),
+                             table.number("current_limit_mA", None, above=0, at_most=32_767,
+                                          plausible=PLAUSIBLE_MILLIAMPS),
                              _axis_bus(table), table.file_path("eds", "") or None,
                              _axis_safety(table.table("safety"))))
         table.done()
@@ -348,7 +350,8 @@ def _master(m: Table, bus: Table, profile: ProfileSettings, fd: bool = False
         cycle_period_s=m.integer("cycle_period_us", above=0) / 1e6,
         bitrate=_bitrate(bus, fd),
         channel=channel,
-        current_limit_ma=m.number("current_limit_mA", above=0, at_most=32_767),
+        current_limit_ma=m.number("current_limit_mA", above=0, at_most=32_767,
+                                  plausible=PLAUSIBLE_MILLIAMPS),
         heartbeat_id=m.integer("heartbeat_id", at_least=1, at_most=127),
         heartbeat_period_ms=m.integer("heartbeat_period_ms", at_least=0, at_most=U16),
         heartbeat_timeout_ms=m.integer("heartbeat_timeout_ms", at_least=0, at_most=U16),
@@ -506,7 +509,7 @@ def _emulator(e: Table, cycle_period_s: float) -> DriveEmulatorConfig:
         eds=e.file_path("eds") or None,
         rated_current_ma=e.integer("rated_current_mA", above=0),
         max_torque_permille=e.integer("max_torque_permille", at_least=0, at_most=U16),
-        current_limit_ma=e.number("current_limit_mA", above=0),
+        current_limit_ma=e.number("current_limit_mA", above=0, plausible=PLAUSIBLE_MILLIAMPS),
         overcurrent_trip_ma=e.integer("overcurrent_trip_mA", above=0, at_most=U16),
         increments_per_rev=e.integer("increments_per_rev", at_least=2, at_most=2**31 - 1),
         heartbeat_ms=e.integer("heartbeat_ms", at_least=0, at_most=U16),

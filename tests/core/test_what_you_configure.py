@@ -456,7 +456,8 @@ def test_the_run_tables_and_the_bus_options_take_effect(tmp_path, capsys):
      "key 'axis[0].safety.following_error_deg' must be > 0 deg, got -1 deg"),
     ("servo", "[[axis]]\nname = \"x\"\nnode = 1\n[axis.safety]\nfollowing_error = 5\n"
               "[[axis]]\nname = \"y\"\nnode = 2\n",
-     "unknown key 'axis[0].safety.following_error' (known here: enabled, following_error_deg, "
+     "unknown key 'axis[0].safety.following_error' (did you mean "
+     "'axis[0].safety.following_error_ms'? known here: enabled, following_error_deg, "
      "following_error_ms, position_max_deg, position_min_deg, stale_share_max, "
      "stale_window_ms, velocity_max_deg_s)"),
 ])
