@@ -2,7 +2,9 @@
 outside the repository: a ``hil`` process for the first case of each finding, the command line
 in this process (:func:`hil_here`, from the same folder) for more cases of it."""
 
+import json
 import os
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -67,3 +69,60 @@ def test_a_bench_config_key_gets_did_you_mean_too(tmp_path, capfd):
                     "--print-config", cwd=tmp_path)
     assert "unknown key 'relays.P1.dwel_s' (did you mean 'relays.P1.dwell_s'? " \
         in one_error_line(done)
+
+
+# -- --print-config prints a config file that runs the same run ---------------------------------
+
+def rerun_line(printed: str, path: str) -> list[str]:
+    """The command line the printed file says runs it again, with its FILE."""
+    line = next(line for line in printed.splitlines() if line.startswith("#   hil "))
+    return [path if word == "FILE" else word for word in shlex.split(line[len("#   hil "):])]
+
+
+def test_print_config_prints_a_config_file_that_runs_the_same_run(tmp_path, capfd):
+    """Printed with flags that set keys (--umax, --safety, --drive with a model) and flags that
+    do not (--param, --limit, --duration), the text is a config file: --config takes it back
+    as it is, the command line it names gives every setting the same value, and the run is
+    the same run."""
+    axis = ROOT / "tests" / "data" / "axis-published.json"
+    flags = ["--controller", "pid", "--duration", "0.1", "--umax", "800", "--param", "kp=4",
+             "--safety", "following_error_deg=30", "--limit", "rms_error_deg<=5",
+             "--drive", f"emulated?model={axis}"]
+    printed = hil(tmp_path, "servo", "run", *flags, "--print-config")
+    assert printed.returncode == 0, printed.stderr
+    (tmp_path / "printed.toml").write_text(printed.stdout)
+    again = rerun_line(printed.stdout, "printed.toml")
+    assert again[:4] == ["servo", "run", "--config", "printed.toml"]
+    assert "--umax" not in again[4:] or again.count("--umax") == 1
+    before = json.loads(hil_here(capfd, "servo", "run", *flags, "--print-config", "--json",
+                                 cwd=tmp_path).stdout)
+    after = hil_here(capfd, *again, "--print-config", "--json", cwd=tmp_path)
+    assert after.returncode == 0, after.stderr
+    after_values = {key: row["value"] for key, row in json.loads(after.stdout).items()}
+    assert {key: row["value"] for key, row in before.items()} == after_values
+    assert after_values["bus.url"] == "emulated" and after_values["emulator.model"] == str(axis)
+    # the same run, the same figures
+    runs = [hil_here(capfd, *argv, "--json", "--out", f"{name}.mcap", cwd=tmp_path)
+            for name, argv in (("flags", ["servo", "run", *flags]), ("file", again))]
+    first, second = (json.loads(done.stdout) for done in runs)
+    for kpi in ("max_error_deg", "rms_error_deg", "peak_current_mA", "ticks", "umax_mA"):
+        assert first[kpi] == second[kpi], kpi
+
+
+def test_a_printed_bench_config_runs_again_and_a_drive_bus_url_is_a_key(tmp_path, capfd):
+    printed = hil_here(capfd, "bench", "run", "--controller", "bc", "--dwell", "6",
+                       "--safety", "max_total_va=1100", "--print-config", cwd=tmp_path)
+    (tmp_path / "bench.toml").write_text(printed.stdout)
+    again = hil_here(capfd, *rerun_line(printed.stdout, "bench.toml"), "--print-config",
+                     "--json", cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    shown = json.loads(again.stdout)
+    assert shown["relays.P1.dwell_s"]["value"] == 6.0
+    assert shown["safety.max_total_va"]["value"] == 1100.0
+    # the drive's bus as one URL, in [bus] as --print-config shows it
+    (tmp_path / "drive.toml").write_text('[bus]\nurl = "socketcand://127.0.0.1:29999"\n')
+    done = hil_here(capfd, "servo", "run", "--config", "drive.toml", "--print-config",
+                    "--json", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["bus.url"] == {
+        "value": "socketcand://127.0.0.1:29999", "origin": "--config drive.toml"}

@@ -30,7 +30,9 @@ def json_text(value: Any) -> str:
 def print_settings(title: str, settings: Sequence[Setting], as_json: bool) -> int:
     """``--print-config``: every setting as a run would use it and its origin (JSON:
     ``{key: {"value", "origin"}}``); the exit status, 0."""
-    from hil.core.settings import format_settings, settings_json
+    from hil.core.printed_config import format_settings
+    from hil.core.settings import settings_json
 
-    print(json_text(settings_json(settings)) if as_json else format_settings(title, settings))
+    print(json_text(settings_json(settings)) if as_json else format_settings(title, settings),
+          end="\n" if as_json else "")
     return 0

@@ -135,6 +135,7 @@ class DriveConfig:
     run: RunTables               # [controller] params and [limits] of a run
     axes: tuple[AxisSpec, ...] = ()  # [[axis]]: several axes on the bus (none: one)
     reads: tuple[KeyRead, ...] = ()  # every key as read, in reading order
+    url: str = ""                # [bus] url: the bus as one URL ("": interface, channel...)
 
     @property
     def data(self) -> dict[str, Any]:
@@ -143,8 +144,9 @@ class DriveConfig:
 
     @property
     def bus_url(self) -> str:
-        """``[bus]`` as a drive URL (``emulated`` for the emulated drive)."""
-        return self.bus.url if self.bus is not None else EMULATED
+        """``[bus]`` as a drive URL: its ``url``, else its interface, channel and options
+        (``emulated`` for the emulated drive)."""
+        return self.url or (self.bus.url if self.bus is not None else EMULATED)
 
     def settings(self) -> list[Setting]:
         """Every key as it runs, with its origin."""
@@ -193,7 +195,8 @@ def parse_drive_config(layered: Layered, source: str, text: str = "") -> DriveCo
     """Complete drive tables (the default's keys all present) -> :class:`DriveConfig`."""
     root = Table(layered.data, source, layered=layered)
     bus_table = root.table("bus", required=True)
-    bus = _bus(bus_table)
+    url = _bus_url(bus_table)
+    bus = _bus(bus_table, url)
     fd = bus is not None and bus.options.get("fd") is True
     profile = _profile(root.table("profile", required=True),
                        root.table("homing", required=True))
@@ -207,7 +210,7 @@ def parse_drive_config(layered: Layered, source: str, text: str = "") -> DriveCo
     root.done()
     return DriveConfig(master=master, emulator=emulator, bus=bus, safety=safety,
                        layered=layered, text=text, source=source, run=run, axes=axes,
-                       reads=tuple(root.reads))
+                       reads=tuple(root.reads), url=url)
 
 
 def _axes(root: Table) -> tuple[AxisSpec, ...]:
@@ -272,11 +275,32 @@ def _safety(s: Table) -> ServoSafety:
     return safety
 
 
-def _bus(bus: Table) -> CanBusSpec | None:
+def _bus_url(bus: Table) -> str:
+    """``[bus] url``: the bus as one URL, as ``--drive`` takes it (``''``: none), checked as a
+    run opens it (a plug-in's scheme is its own to check)."""
+    url = bus.string("url").strip()
+    if url.startswith(EMULATED + "?"):
+        raise bus.error("url", f"is {url!r}: in a config file the emulated drive's axis model "
+                        "is [emulator] model; url = 'emulated'")
+    if url and scheme_of(url) in VALID_INTERFACES:
+        try:
+            parse_can_url(url)
+        except ConfigError as exc:
+            raise bus.error("url", f"is not a bus URL: {exc}") from None
+    return url
+
+
+def _bus(bus: Table, url: str = "") -> CanBusSpec | None:
     """``[bus]``: ``interface`` (``emulated``, ``socketcand`` or a python-can interface),
-    ``channel`` and ``options`` (keyword arguments of ``can.Bus``; socketcand: host, port)."""
+    ``channel`` and ``options`` (keyword arguments of ``can.Bus``; socketcand: host, port);
+    a python-can ``url`` names the bus instead (the others are read, unused)."""
     interface = bus.string("interface")
     table = bus.table("options")
+    if url:
+        for name in table.names():
+            table.value(name)
+        table.done()
+        return parse_can_url(url) if scheme_of(url) in VALID_INTERFACES else None
     if interface == EMULATED:
         if table.names():
             raise table.error(table.names()[0], "is an option of a CAN interface; "

@@ -46,11 +46,14 @@ class ServoResim:
 
 
 def recorded_url(run: Mapping[str, Any], tables: Mapping[str, Any]) -> str:
-    """The URL of the drive the recorded run drove: its ``--drive``, else its ``[bus]``."""
+    """The URL of the drive the recorded run drove: its ``--drive``, else its ``[bus]``
+    (``url``, else ``interface`` and ``channel``)."""
     url, _ = emulated_url(run.get("drive"))
     if url:
         return url
     bus = tables.get("bus") or {}
+    if bus.get("url"):
+        return str(bus["url"])
     interface = str(bus.get("interface", EMULATED))
     return EMULATED if interface == EMULATED else f"{interface}://{bus.get('channel', '')}"
 
