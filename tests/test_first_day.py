@@ -4,6 +4,7 @@ in this process (:func:`hil_here`, from the same folder) for more cases of it.""
 
 import json
 import os
+import re
 import shlex
 import subprocess
 import sys
@@ -126,3 +127,46 @@ def test_a_printed_bench_config_runs_again_and_a_drive_bus_url_is_a_key(tmp_path
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout)["bus.url"] == {
         "value": "socketcand://127.0.0.1:29999", "origin": "--config drive.toml"}
+
+
+# -- hil report and the run's summary, as a person reads them -----------------------------------
+
+#: a float written with more digits than anyone reads (a Python repr's 16)
+LONG_FLOAT = re.compile(r"\d\.\d{7,}|\d{8,}\.\d")
+
+
+def readable(text: str) -> None:
+    """No Python repr (a dict, True/False, None) and no 16-digit float in ``text``."""
+    assert "{'" not in text and "': " not in text, text
+    assert not re.search(r"\b(True|False|None)\b", text), text
+    assert not LONG_FLOAT.search(text), LONG_FLOAT.search(text)
+
+
+def test_hil_report_and_the_summary_read_as_text_with_figures_that_agree(tmp_path, capfd):
+    """The KPIs in ``hil report`` are figures, not Python reprs; the loop's whole tick is
+    ``tick`` (``tick_us``), apart from the controller's compute time (the KPI ``step_us``); and
+    the summary's real-time factor is the session time over the loop time it prints."""
+    done = hil(tmp_path, "servo", "run", "--controller", "mpc", "--duration", "0.2", "--out",
+               "s.mcap", "--limit", "rms_error_deg<=1")
+    assert done.returncode == 0, done.stderr
+    readable(done.stdout)
+    pace = re.search(r"\(([0-9.]+) s in ([0-9.]+) s wall, the loop ([0-9.]+) s: ([0-9.]+)x real "
+                     r"time\)", done.stdout)
+    assert pace, done.stdout
+    session_s, wall_s, loop_s, factor = map(float, pace.groups())
+    assert session_s == 0.2 and loop_s <= wall_s + 0.01
+    # the figures agree within their printed rounding (loop 2 decimals, factor 2 decimals)
+    assert (factor - 0.005) * (loop_s - 0.005) <= session_s <= (factor + 0.005) * (loop_s + 0.005)
+    report = hil_here(capfd, "report", "s.mcap", cwd=tmp_path)
+    assert report.returncode == 0, report.stderr
+    readable(report.stdout)
+    assert "tick p50/p99/max us" in report.stdout and "step p50" not in report.stdout
+    kpi_lines = dict(line.split(None, 1) for line in
+                     report.stdout.split("\nkpis\n")[1].splitlines() if line.startswith("  "))
+    assert kpi_lines["step_us"].startswith("median ") and ", p99 " in kpi_lines["step_us"]
+    assert kpi_lines["disturbed"] == "no" and kpi_lines["passed"] == "yes"
+    assert re.fullmatch(r"rms_error_deg<=1: measured 0\.\d{1,5} \(holds\)", kpi_lines["limit"])
+    document = json.loads(hil_here(capfd, "report", "s.mcap", "--json", cwd=tmp_path).stdout)
+    assert set(document["loop"]["servo"]) >= {"tick_us", "compute_us"}
+    assert "step_us" not in document["loop"]["servo"]
+    assert set(document["kpis"]["step_us"]) == {"median", "p99", "max"}  # the contract's key

@@ -111,17 +111,14 @@ def run_command(args: argparse.Namespace) -> int:
 
 
 def format_kpis(kpis: dict[str, Any]) -> str:
-    """The KPI dictionary as aligned lines."""
-    lines = []
-    for key, value in kpis.items():
-        if key == "limits":
-            lines += [f"{'limit':<17} {row['limit']}: measured {row['measured']} "
-                      f"({'holds' if row['passed'] else 'VIOLATED'})" for row in value]
-            continue
-        if isinstance(value, dict):
-            value = ", ".join(f"{k} {v}" for k, v in value.items())
-        lines.append(f"{key:<17} {value}")
-    return "\n".join(lines)
+    """The KPIs as aligned lines, as a person reads them (:mod:`hil.core.kpi_text`); the two
+    wall-clock figures say what each timed (the loop's pace is not the whole run's)."""
+    from hil.core.kpi_text import kpi_rows
+
+    pace = {"wall_s": " s (the run, its start and safe stop included)",
+            "realtime_factor": "x real time (session time over the time the loop ticked)"}
+    return "\n".join(f"{name:<17} {text}{pace[name] if name in pace and text != '-' else ''}"
+                     for name, text in kpi_rows(kpis))
 
 
 def add_identify_arguments(parser: argparse.ArgumentParser) -> None:

@@ -11,6 +11,7 @@ from hil.cli.place import add_place_arguments, run_on_place
 from hil.cli.recording import add_recording_arguments
 from hil.cli.units import milliamps, seconds, seconds_or_zero
 from hil.cli.verdict import add_controller_arguments, add_junit_argument
+from hil.core.kpi_text import limit_text
 from hil.errors import UsageError
 
 if TYPE_CHECKING:
@@ -309,9 +310,8 @@ def format_axes_run(config: Any, kpis: dict[str, Any]) -> str:
     """The human summary of ``hil servo run --axes``."""
     lines = [f"servo run on {len(kpis['axes'])} axes: {config.describe_controller()}, "
              f"{kpis['reference']}, drive {kpis['drive']}, clock {kpis['clock']}",
-             f"  ticks {kpis['ticks']} ({kpis['ticks'] * kpis['cycle_period_us'] * 1e-6:.3f} s), "
-             f"{kpis['sync_cycles']} SYNC, in {kpis['wall_s']:.2f} s wall "
-             f"({kpis['realtime_factor']}x real time), stopped: {kpis['stop_reason']}"]
+             f"  ticks {kpis['ticks']}, {kpis['sync_cycles']} SYNC ({pace(kpis)}), "
+             f"stopped: {kpis['stop_reason']}"]
     for name, axis in kpis["axes"].items():
         lines.append(f"  axis {name} (node {axis['node']}): error max "
                      f"{_deg(axis['max_error_deg'])}, rms {_deg(axis['rms_error_deg'])}; peak "
@@ -324,6 +324,19 @@ def format_axes_run(config: Any, kpis: dict[str, Any]) -> str:
                      f"{_deg(contour['rms_contour_error_deg'])}")
     lines.append(f"  session {kpis['mcap']}")
     return "\n".join(lines)
+
+
+def pace(kpis: dict[str, Any]) -> str:
+    """The session time, the wall time and the real-time factor, in figures that agree: the
+    factor is the session time over the time the loop ticked, which the whole run's wall time
+    (start and safe stop included) exceeds: ``2.000 s in 0.43 s wall, the loop 0.37 s: 5.46x
+    real time``."""
+    session_s = kpis["ticks"] * kpis["cycle_period_us"] * 1e-6
+    text = f"{session_s:.3f} s in {kpis['wall_s']:.2f} s wall"
+    factor = kpis.get("realtime_factor")
+    if not factor:
+        return text
+    return f"{text}, the loop {session_s / factor:.2f} s: {factor:.2f}x real time"
 
 
 def _deg(value: float | None, digits: int = 4) -> str:
@@ -348,9 +361,7 @@ def format_run(config: Any, kpis: dict[str, Any]) -> str:
     lines = [
         f"servo run: {config.describe_controller()}, {kpis['reference']}, "
         f"|u| <= {kpis['umax_mA']:g} mA, drive {kpis['drive']}, clock {kpis['clock']}",
-        f"  ticks {kpis['ticks']} ({kpis['ticks'] * kpis['cycle_period_us'] * 1e-6:.3f} s) in "
-        f"{kpis['wall_s']:.2f} s "
-        f"wall ({kpis['realtime_factor']}x real time), stopped: {kpis['stop_reason']}",
+        f"  ticks {kpis['ticks']} ({pace(kpis)}), stopped: {kpis['stop_reason']}",
         f"  error{' after ' + format(kpis['settle_s'], 'g') + ' s' if kpis['settle_s'] else ''}"
         f": max {_deg(kpis['max_error_deg'])}"
         + (f" ({pct:.1f} % of the reference amplitude)" if pct is not None else "")
@@ -365,9 +376,7 @@ def format_run(config: Any, kpis: dict[str, Any]) -> str:
                                                  kpis["solver_paths"].items()))
     if "empc_fallbacks" in kpis:
         lines.append(f"  explicit MPC fallbacks to the online QP: {kpis['empc_fallbacks']}")
-    for row in kpis.get("limits", []):
-        lines.append(f"  limit {row['limit']}: measured {row['measured']} "
-                     f"({'holds' if row['passed'] else 'VIOLATED'})")
+    lines += [f"  limit {limit_text(row)}" for row in kpis.get("limits", [])]
     lines.append(f"  session {kpis['mcap']}")
     return "\n".join(lines)
 
