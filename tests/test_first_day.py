@@ -170,3 +170,57 @@ def test_hil_report_and_the_summary_read_as_text_with_figures_that_agree(tmp_pat
     assert set(document["loop"]["servo"]) >= {"tick_us", "compute_us"}
     assert "step_us" not in document["loop"]["servo"]
     assert set(document["kpis"]["step_us"]) == {"median", "p99", "max"}  # the contract's key
+
+
+# -- --help, and --quiet wherever progress is shown ----------------------------------------------
+
+def commands(parser=None, path=()):
+    """Every command of ``hil`` (its words, its parser), the subcommands' too."""
+    import argparse
+
+    from hil.cli.main import build_parser
+
+    parser = parser or build_parser()
+    yield path, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from commands(sub, (*path, name))
+
+
+def test_every_help_text_is_clean(tmp_path, capfd):
+    """Every command's --help exits 0 with text as a person reads it: no '%%' or '%(' left by
+    argparse's formatting, no default shown as None, balanced parentheses."""
+    done = hil(tmp_path, "compare", "--help")
+    assert done.returncode == 0 and "rel:5% for a KPI" in " ".join(done.stdout.split())
+    for words, _parser in commands():
+        shown = hil_here(capfd, *words, "--help", cwd=tmp_path)
+        assert shown.returncode == 0, (words, shown.stderr)
+        text = " ".join(shown.stdout.split())
+        for dirt in ("%%", "%(", "default: None", "(default None)"):
+            assert dirt not in text, (words, dirt)
+        assert text.count("(") == text.count(")"), words
+
+
+#: the commands that show progress while they work
+SHOW_PROGRESS = [("demo",), ("bench", "run"), ("bench", "identify"), ("servo", "run"),
+                 ("servo", "identify"), ("drive", "move"), ("drive", "home"), ("sweep", "bench"),
+                 ("sweep", "servo"), ("resim",), ("twin", "check"), ("doctor",)]
+
+
+def test_every_command_that_shows_progress_takes_quiet(tmp_path, capfd):
+    """``hil resim ... --quiet`` runs (it was refused), and so does every command that shows
+    progress; ``hil doctor --quiet`` prints its report without the lines that say which rate
+    runs now (which it prints otherwise: tests/core/test_doctor.py)."""
+    for words, parser in commands():
+        if words in SHOW_PROGRESS:
+            assert "--quiet" in parser._option_string_actions, words
+    recorded = hil_here(capfd, "servo", "run", "--controller", "pid", "--duration", "0.05",
+                        "--out", "s.mcap", cwd=tmp_path)
+    assert recorded.returncode == 0, recorded.stderr
+    done = hil(tmp_path, "resim", "s.mcap", "--param", "kp=4", "--quiet", "--out", "r.mcap")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("resim of s.mcap") and (tmp_path / "r.mcap").exists()
+    quiet = hil(tmp_path, "doctor", "--duration", "0.05", "--quiet", "--json")  # a process
+    assert quiet.returncode == 0 and "bare loop" not in quiet.stderr  # of its own: hardened
+    assert set(json.loads(quiet.stdout)["loops"]) == {"1000", "2000"}

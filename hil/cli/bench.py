@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Any
 
 from hil.bench.identify_options import MACHINING_MODES, IdentifyOptions, parse_relays
 from hil.cli.argtypes import key_value, nonnegative_float, output_file, positive_float, positive_int
-from hil.cli.output import json_text
+from hil.cli.output import add_quiet_argument, json_text
 from hil.cli.place import add_place_arguments, run_on_place
 from hil.cli.recording import add_recording_arguments
 from hil.cli.units import seconds
@@ -82,9 +82,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         help="follow the wall clock (always so against a real bench)")
     parser.add_argument("--config", metavar="F.toml",
                         help="TOML laid over hil/configs/bench.toml and eec.toml")
-    parser.add_argument("--quiet", action="store_true",
-                        help="no progress line on the terminal (there is none when stderr is "
-                        "not a terminal)")
+    add_quiet_argument(parser)
     parser.add_argument("--safety", action="append", type=key_value, default=[],
                         metavar="KEY=VALUE",
                         help="tighten one safety limit of bench.toml's [safety] for this run "
@@ -150,6 +148,7 @@ def add_identify_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--progress", type=nonnegative_float, default=10.0, metavar="S",
                         help="progress line on stderr every S seconds of experiment time "
                         "(0 = none; default 10)")
+    add_quiet_argument(parser, "no progress lines (as --progress 0)")
     parser.add_argument("--realtime", action="store_true",
                         help="follow the wall clock (always so against a real bench)")
     parser.add_argument("--config", metavar="F.toml", help="TOML laid over hil/configs/bench.toml")
@@ -171,7 +170,8 @@ def _identify(args: argparse.Namespace) -> int:
         relays=args.relays, duration_s=args.duration, min_hold_s=args.min_hold, seed=args.seed,
         bench=args.bench or "emulated", machining=args.machining,
         meter_quantity=args.output_quantity, realtime=args.realtime, out=args.out,
-        config_path=args.config, progress_s=args.progress, lab=getattr(args, "lab", None),
+        config_path=args.config, progress_s=0.0 if args.quiet else args.progress,
+        lab=getattr(args, "lab", None),
     ))
     if args.json:
         print(json_text(summary))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 from collections.abc import Sequence
@@ -9,6 +10,16 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from hil.core.settings import Setting
+
+
+#: what ``--quiet`` leaves out, on every command that shows progress while it works
+QUIET_HELP = "no progress line on the terminal (there is none when stderr is not a terminal)"
+
+
+def add_quiet_argument(parser: argparse.ArgumentParser, help: str = QUIET_HELP) -> None:
+    """``--quiet``: no progress while the command works (its result is printed all the
+    same)."""
+    parser.add_argument("--quiet", action="store_true", help=help)
 
 
 def finite(value: Any) -> Any:

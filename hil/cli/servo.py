@@ -6,7 +6,7 @@ import argparse
 from typing import TYPE_CHECKING, Any
 
 from hil.cli.argtypes import key_value, output_file, positive_float, positive_int
-from hil.cli.output import json_text
+from hil.cli.output import add_quiet_argument, json_text
 from hil.cli.place import add_place_arguments, run_on_place
 from hil.cli.recording import add_recording_arguments
 from hil.cli.units import milliamps, seconds, seconds_or_zero
@@ -252,9 +252,7 @@ def add_clock_arguments(parser: argparse.ArgumentParser) -> None:
     """``--realtime`` and ``--quiet`` (every servo run)."""
     parser.add_argument("--realtime", action="store_true",
                         help="follow the wall clock (default: lockstep virtual time)")
-    parser.add_argument("--quiet", action="store_true",
-                        help="no progress line on the terminal (there is none when stderr is "
-                        "not a terminal)")
+    add_quiet_argument(parser)
 
 
 def add_config_argument(parser: argparse.ArgumentParser) -> None:
