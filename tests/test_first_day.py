@@ -224,3 +224,32 @@ def test_every_command_that_shows_progress_takes_quiet(tmp_path, capfd):
     quiet = hil(tmp_path, "doctor", "--duration", "0.05", "--quiet", "--json")  # a process
     assert quiet.returncode == 0 and "bare loop" not in quiet.stderr  # of its own: hardened
     assert set(json.loads(quiet.stdout)["loops"]) == {"1000", "2000"}
+
+
+# -- the README's resim example, and a stability refusal that names the gain ---------------------
+
+def test_the_readmes_resim_example_runs_and_an_unstable_gain_is_named(tmp_path, capfd):
+    """The README retunes the recorded PID with a kp in its range (0-100 rpm/deg) that holds
+    the loop; a kp outside the range is refused naming it and the range, one inside it that
+    the loop cannot take naming it and the value up to which it holds."""
+    readme = (ROOT / "README.md").read_text()
+    example = re.search(r"^hil resim yesterday\.mcap --param (kp=[0-9.]+) ", readme, re.M)
+    assert example, "the README's resim example"
+    recorded = hil_here(capfd, "servo", "run", "--controller", "pid", "--duration", "0.1",
+                        "--out", "yesterday.mcap", cwd=tmp_path)
+    assert recorded.returncode == 0, recorded.stderr
+    done = hil(tmp_path, "resim", "yesterday.mcap", "--param", example.group(1), "--out",
+               "retuned.mcap", "--json")
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["resim"]["params"] == {"kp": float(example.group(1)[3:])}
+    outside = hil_here(capfd, "resim", "yesterday.mcap", "--param", "kp=600", cwd=tmp_path)
+    assert "key 'kp' must be <= 100, got 600" in one_error_line(outside)
+    unstable = one_error_line(hil_here(capfd, "resim", "yesterday.mcap", "--param", "kp=50",
+                                       cwd=tmp_path))
+    assert "unstable" in unstable and "with kp = 50 rpm/deg (Table I: 3.6111)" in unstable
+    held = re.search(r"kp at most ([0-9.]+) rpm/deg holds it, e.g. --param kp=([0-9.]+)",
+                     unstable)
+    assert held and float(held.group(2)) <= float(held.group(1)) < 50, unstable
+    again = hil_here(capfd, "resim", "yesterday.mcap", "--param", f"kp={held.group(2)}",
+                     "--out", "held.mcap", cwd=tmp_path)
+    assert again.returncode == 0, again.stderr  # the value it names holds

@@ -163,14 +163,19 @@ def _param_lines(changes: list[dict[str, Any]]) -> list[str]:
     lines = ["params   changed while running"] if changes else []
     for change in changes:
         if change["accepted"]:
-            lines.append(f"  {change.get('parameter')}: {value_text(change.get('old'))} -> "
-                         f"{value_text(change.get('new'))} at tick {change.get('tick')} "
+            lines.append(f"  {change.get('parameter')}: {_param(change.get('old'))} -> "
+                         f"{_param(change.get('new'))} at tick {change.get('tick')} "
                          f"({change.get('client')})")
         else:
-            lines.append(f"  {change.get('parameter')} = {value_text(change.get('value'))} "
+            lines.append(f"  {change.get('parameter')} = {_param(change.get('value'))} "
                          "refused "
                          f"({change.get('client')}): {change.get('reason')}")
     return lines
+
+
+def _param(value: Any) -> str:
+    """A parameter's value as it was set (a gain to six digits: 3.6111), not a repr."""
+    return f"{value:g}" if isinstance(value, float) else value_text(value)
 
 
 def format_summary(summary: dict[str, Any]) -> str:
