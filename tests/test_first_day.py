@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.cli import hil_here
@@ -253,3 +254,28 @@ def test_the_readmes_resim_example_runs_and_an_unstable_gain_is_named(tmp_path, 
     again = hil_here(capfd, "resim", "yesterday.mcap", "--param", f"kp={held.group(2)}",
                      "--out", "held.mcap", cwd=tmp_path)
     assert again.returncode == 0, again.stderr  # the value it names holds
+
+
+# -- references: every kind named, and strokes both ways -----------------------------------------
+
+def test_every_reference_kind_is_listed_and_a_stroke_moves_either_way(tmp_path, capfd):
+    done = hil(tmp_path, "servo", "run", "--controller", "pid", "--reference", "square:x=1")
+    assert one_error_line(done).endswith(
+        "unknown kind 'square' (one of sine, trapezoid, hold, disturbance, circle (two axes))")
+    from hil.core.recording.reader import read_session
+
+    finals = {}
+    for stroke in (-90, 90):
+        run = hil_here(capfd, "servo", "run", "--controller", "mpc", "--reference",
+                       f"trapezoid:stroke={stroke},speed=30", "--duration", "0.8", "--out",
+                       f"stroke{stroke}.mcap", cwd=tmp_path)
+        assert run.returncode == 0, run.stderr
+        command = read_session(str(tmp_path / f"stroke{stroke}.mcap")).arrays("/drive/command")
+        reference, error = command["reference_deg"], command["error_deg"]
+        assert reference[-1] == stroke and abs(error[-1]) < 1.0  # there, in either direction
+        assert (np.sign(np.diff(reference)) != -np.sign(stroke)).all()  # never backwards
+        finals[stroke] = reference + error
+    assert np.allclose(finals[-90], -finals[90], atol=0.05)  # the same move, mirrored
+    zero = hil_here(capfd, "servo", "run", "--controller", "pid", "--reference",
+                    "trapezoid:stroke=0", cwd=tmp_path)
+    assert "trapezoid: stroke must not be 0 [deg]" in one_error_line(zero)
