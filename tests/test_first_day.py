@@ -279,3 +279,35 @@ def test_every_reference_kind_is_listed_and_a_stroke_moves_either_way(tmp_path, 
     zero = hil_here(capfd, "servo", "run", "--controller", "pid", "--reference",
                     "trapezoid:stroke=0", cwd=tmp_path)
     assert "trapezoid: stroke must not be 0 [deg]" in one_error_line(zero)
+
+
+# -- hil bench run --duration --------------------------------------------------------------------
+
+def test_a_bench_run_lasts_the_duration_it_is_given(tmp_path, capfd):
+    """``--duration S`` runs S seconds of session time instead of whole 28 s cycles (the KPI
+    cycles: the share it lasted); its text reads as text; with --cycles it is refused."""
+    done = hil(tmp_path, "bench", "run", "--controller", "eec", "--duration", "3", "--out",
+               "short.mcap")
+    assert done.returncode == 0, done.stderr
+    readable(done.stdout)
+    rows = dict(line.split(None, 1) for line in done.stdout.splitlines())
+    assert rows["cycles"] == "0.1071" and rows["disturbed"] == "no"  # 3 s of a 28 s cycle
+    assert rows["solve_ms"].startswith("median ")
+    report = json.loads(hil_here(capfd, "report", "short.mcap", "--json", cwd=tmp_path).stdout)
+    assert report["topics"]["/bench/power"] == 300  # 3 s sampled every 10 ms
+    readable(hil_here(capfd, "report", "short.mcap", cwd=tmp_path).stdout)
+    both = hil_here(capfd, "bench", "run", "--controller", "bc", "--cycles", "1", "--duration",
+                    "3", cwd=tmp_path)
+    assert "argument --duration: not allowed with argument --cycles" in one_error_line(both)
+    shorter = hil_here(capfd, "bench", "run", "--controller", "bc", "--duration", "0.001",
+                       cwd=tmp_path)
+    assert "--duration 0.001 s is shorter than one tick (0.01 s)" in one_error_line(shorter)
+
+
+@pytest.mark.realtime
+def test_a_real_time_bench_smoke_test_takes_seconds_not_a_cycle(tmp_path):
+    done = hil(tmp_path, "bench", "run", "--controller", "bc", "--duration", "2", "--realtime",
+               "--json", "--out", "smoke.mcap")
+    assert done.returncode == 0, done.stderr
+    kpis = json.loads(done.stdout)
+    assert kpis["cycles"] == round(2 / 28, 4) and kpis["status"] == "completed"

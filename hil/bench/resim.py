@@ -64,7 +64,8 @@ def plan_resim(recorded: Recorded, controller: str | None, params: Mapping[str, 
         tables["plant"]["loads"][name]["model"] = path
     try:
         options = BenchRunOptions(
-            controller=spec, params=laid, bench=EMULATED, cycles=int(run["cycles"]), out=out,
+            controller=spec, params=laid, bench=EMULATED, cycles=int(run["cycles"]),
+            duration_s=run.get("duration_s"), out=out,
             config_path=write_config(tables, folder, "bench.toml"),
             limits=recorded.limits(run), controller_budget_s=run.get("controller_budget_s"),
             quiet=quiet)

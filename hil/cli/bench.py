@@ -58,8 +58,13 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bench", metavar="URL",
                         help="where the bench is (default: bench.toml's [bus] url, emulated): "
                         "emulated | modbus-tcp://HOST:PORT | modbus-rtu:///dev/X")
-    parser.add_argument("--cycles", type=positive_int,
+    length = parser.add_mutually_exclusive_group()
+    length.add_argument("--cycles", type=positive_int,
                         help="machine cycles (T = 28 s each; default 8)")
+    length.add_argument("--duration", type=seconds, metavar="S",
+                        help="the run's length [s of session time] instead of whole cycles "
+                        "(a real-time smoke test: --duration 2 --realtime); the KPI cycles is "
+                        "then the share of cycles it lasted")
     parser.add_argument("--hp", type=positive_int, metavar="S",
                         help="prediction horizon [s] (eec.hp_s, default 28)")
     parser.add_argument("--hs", type=positive_int, metavar="S",

@@ -283,6 +283,7 @@ RUN_FLAGS: dict[str, list[tuple[list[str], str, Any]]] = {
         (["--controller-budget", "0.5"], "run.controller_budget_s", 0.5),
         (["--limit", "J2_VA<=560"], "run.limits", ["J2_VA<=560"]),
         (["--cycles", "3"], "run.cycles", 3),
+        (["--duration", "10"], "run.duration_s", 10.0),
         (["--realtime"], "run.realtime", True),
         (["--quiet"], "run.quiet", True),
         (["--out", "here.mcap"], "run.out", "here.mcap"),
