@@ -311,3 +311,56 @@ def test_a_real_time_bench_smoke_test_takes_seconds_not_a_cycle(tmp_path):
     assert done.returncode == 0, done.stderr
     kpis = json.loads(done.stdout)
     assert kpis["cycles"] == round(2 / 28, 4) and kpis["status"] == "completed"
+
+
+# -- the servo report PNG ------------------------------------------------------------------------
+
+def drawn_figures(monkeypatch):
+    """The matplotlib figures ``hil report --out`` saves, kept to be looked at (each is saved
+    to its file all the same)."""
+    from matplotlib.figure import Figure
+
+    figures, save = [], Figure.savefig
+
+    def keep(figure, *args, **kwargs):
+        figures.append(figure)
+        return save(figure, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", keep)
+    return figures
+
+
+def test_a_servo_png_has_the_kpi_table_the_limit_in_its_legend_and_the_settle_window(
+        tmp_path, capfd, monkeypatch):
+    """As the bench PNG: the KPI table (figures as text); the current limit's red lines are in
+    the legend; the error axis is scaled to what follows the start, not to the start
+    transient (the MPC's first ticks: 17 times the rest), which it says; the settle window is
+    shaded and named."""
+    for name, flags in (("mpc", []), ("pid", ["--settle", "0.1"])):
+        done = hil_here(capfd, "servo", "run", "--controller", name, "--duration", "0.5",
+                        "--out", f"{name}.mcap", *flags, cwd=tmp_path)
+        assert done.returncode == 0, done.stderr
+    figures = drawn_figures(monkeypatch)
+    for name in ("mpc", "pid"):
+        done = hil_here(capfd, "report", f"{name}.mcap", "--out", f"{name}.png", cwd=tmp_path)
+        assert done.returncode == 0 and (tmp_path / f"{name}.png").stat().st_size > 0
+    (mpc, pid) = figures
+    tables = [ax.tables[0] for ax in mpc.axes if ax.tables]
+    assert len(tables) == 1
+    cells = {cell.get_text().get_text() for cell in tables[0].get_celld().values()}
+    assert {"KPI", "max_error_deg", "0.0679", "disturbed", "no"} <= cells
+    assert not any(LONG_FLOAT.search(text) or text in ("True", "False") for text in cells)
+    current = next(ax for ax in mpc.axes if ax.get_title() == "motor current")
+    legend = [text.get_text() for text in current.get_legend().get_texts()]
+    assert "current limit ±1000 mA" in legend
+    error = next(ax for ax in mpc.axes if ax.get_title().startswith("tracking error"))
+    peak = float(re.search(r"up to ([0-9.]+) deg", error.get_title()).group(1))
+    assert error.get_ylim()[1] < peak / 3  # the rest is seen, not flattened by the start
+    assert peak == pytest.approx(json.loads(hil_here(
+        capfd, "report", "mpc.mcap", "--json", cwd=tmp_path).stdout)["kpis"]["max_error_deg"],
+        rel=1e-2)
+    shaded = [ax for ax in pid.axes if ax.get_legend() is not None and any(
+        text.get_text() == "settle 0.1 s: not in the KPIs" for text in ax.get_legend().get_texts())]
+    assert len(shaded) == 3  # tracking, error and current
+    assert not any("settle" in text.get_text() for ax in mpc.axes if ax.get_legend()
+                   for text in ax.get_legend().get_texts())  # none without --settle
