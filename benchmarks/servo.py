@@ -185,8 +185,8 @@ def realtime_can(sizes: Sizes) -> tuple[float, float, float]:
     print(f"   {'MPC through CAN':<28}{lat['p50']:>13.1f}{lat['p99']:>9.1f}{lat['max']:>10.1f}"
           f"{stats['missed']:>8}{miss_pct:>8.3f}{stats['overruns']:>9}")
     k = result.kpis
-    print(f"   MPC run: tick (all phases) p50/p99 {stats['step_us']['p50']:.0f}"
-          f"/{stats['step_us']['p99']:.0f} us, controller step p50/p99 "
+    print(f"   MPC run: tick (all phases) p50/p99 {stats['tick_us']['p50']:.0f}"
+          f"/{stats['tick_us']['p99']:.0f} us, controller step p50/p99 "
           f"{k['step_us']['median']:.1f}/{k['step_us']['p99']:.1f} us, deadline misses "
           f"{k['deadline_misses']}, stale feedback {k['stale_feedback']}, max error "
           f"{k['max_error_deg']:.4f} deg")

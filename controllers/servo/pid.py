@@ -189,12 +189,8 @@ class CascadedPid:
         current bound, in force now; each applies at once."""
         c = self.config
         params = [
-            TunableParam("kp", c.k_pos_rpm_per_deg, "rpm/deg", 0.0, 100.0, 0.01,
-                         description="position gain K_pos"),
-            TunableParam("kv", c.k_vel_a_per_rpm, "A/rpm", 0.0, 10.0, 0.001,
-                         description="velocity gain K_vel"),
-            TunableParam("ti_us", c.ti_s * 1e6, "us", 100.0, 1e6, 100.0,
-                         description="integral time T_i of the velocity PI"),
+            TunableParam(name, gain_of(c, name), unit, low, high, step, description=text)
+            for name, (unit, low, high, step, text) in GAINS.items()] + [
             TunableParam("umax", c.u_max, "mA", 0.0, 32_767.0, 10.0,
                          description="current bound of the PI's clamp"),
         ]
@@ -214,7 +210,9 @@ class CascadedPid:
         field = _TUNABLE_FIELDS.get(name)
         if field is None:
             raise ControllerSetupError(f"pid: no tunable parameter {name!r}")
-        changed: dict[str, Any] = {field: value / 1e6 if name == "ti_us" else value}
+        if name in GAINS:
+            return with_gain(self.config, name, value)
+        changed: dict[str, Any] = {field: value}
         return replace(self.config, **changed)
 
     def check_tunable(self, name: str, value: float) -> None:
@@ -237,6 +235,23 @@ class CascadedPid:
 
 _TUNABLE_FIELDS = {"kp": "k_pos_rpm_per_deg", "kv": "k_vel_a_per_rpm", "ti_us": "ti_s",
                    "umax": "u_max", "notch_hz": "notch_hz", "notch_q": "notch_quality"}
+#: the gains as parameters (``--param``, live tuning): unit, range, tuning step, what each is
+GAINS = {"kp": ("rpm/deg", 0.0, 100.0, 0.01, "position gain K_pos"),
+         "kv": ("A/rpm", 0.0, 10.0, 0.001, "velocity gain K_vel"),
+         "ti_us": ("us", 100.0, 1e6, 100.0, "integral time T_i of the velocity PI")}
+
+
+def gain_of(config: PidConfig, name: str) -> float:
+    """The gain ``name`` of :data:`GAINS` in ``config``, in the parameter's unit."""
+    value = float(getattr(config, _TUNABLE_FIELDS[name]))
+    return value * 1e6 if name == "ti_us" else value
+
+
+def with_gain(config: PidConfig, name: str, value: float) -> PidConfig:
+    """``config`` with the gain ``name`` of :data:`GAINS` at ``value`` (the parameter's
+    unit)."""
+    changed: dict[str, Any] = {_TUNABLE_FIELDS[name]: value / 1e6 if name == "ti_us" else value}
+    return replace(config, **changed)
 
 
 def closed_loop_pole(config: PidConfig, model: StateSpaceModel) -> float:
@@ -263,15 +278,29 @@ def closed_loop_pole(config: PidConfig, model: StateSpaceModel) -> float:
 
 
 def check_stable(config: PidConfig, model: StateSpaceModel) -> None:
-    """A ControllerSetupError when the loop is unstable on ``model`` at its period, naming the pole
-    and an integral time that holds it (the configured one doubled until it does)."""
+    """A ControllerSetupError when the loop is unstable on ``model`` at its period, naming the
+    pole, the gains that differ from Table I and what holds it: the value up to which such a
+    gain does (:func:`stable_bound`), else an integral time (the configured one doubled until
+    it does)."""
     pole = closed_loop_pole(config, model)
     if pole < 1.0:
         return
     period_us = model.dt * 1e6
+    table_i = PidConfig()
+    changed = [name for name in ("kp", "kv") if gain_of(config, name) != gain_of(table_i, name)]
+    gains = [f"{name} = {gain_of(config, name):g} {GAINS[name][0]} (Table I: "
+             f"{gain_of(table_i, name):g})" for name in changed]
     message = (f"pid: at a cycle period of {period_us:g} us the loop is unstable on the axis "
-               f"model (largest closed-loop pole |z| = {pole:.3f}) with T_i = "
-               f"{config.ti_s * 1e6:g} us")
+               f"model (largest closed-loop pole |z| = {pole:.3f}) with "
+               f"{', '.join([*gains, f'T_i = {config.ti_s * 1e6:g} us'])}")
+    for name in changed:
+        bound = stable_bound(config, model, name, gain_of(table_i, name))
+        if bound is not None:
+            unit, side = GAINS[name][0], "at most" if bound < gain_of(config, name) else \
+                "at least"
+            raise ControllerSetupError(
+                f"{message}; {name} {side} {bound:.3g} {unit} holds it, e.g. --param "
+                f"{name}={_inside(bound, gain_of(config, name)):g}")
     for factor in (2, 4, 8, 16, 32):
         longer = replace(config, ti_s=config.ti_s * factor)
         holds = closed_loop_pole(longer, model)
@@ -281,6 +310,29 @@ def check_stable(config: PidConfig, model: StateSpaceModel) -> None:
     raise ControllerSetupError(
         f"{message}; no longer integral time holds it: a shorter cycle period "
 "does")
+
+
+def stable_bound(config: PidConfig, model: StateSpaceModel, name: str, stable: float
+                 ) -> float | None:
+    """The value of gain ``name`` nearest ``config``'s that keeps the loop stable, between
+    ``stable`` (a value that does: Table I's) and ``config``'s (one that does not), to 0.1 %;
+    None when ``stable`` does not hold it either."""
+    if closed_loop_pole(with_gain(config, name, stable), model) >= 1.0:
+        return None
+    low, high = stable, gain_of(config, name)
+    while abs(high - low) > 1e-3 * abs(low):
+        middle = (low + high) / 2
+        holds = closed_loop_pole(with_gain(config, name, middle), model) < 1.0
+        low, high = (middle, high) if holds else (low, middle)
+    return low
+
+
+def _inside(bound: float, unstable: float) -> float:
+    """A round value on the stable side of ``bound`` (away from ``unstable``), to two
+    significant digits."""
+    scale = 10.0 ** (math.floor(math.log10(abs(bound))) - 1) if bound else 1.0
+    rounding = math.floor if unstable > bound else math.ceil
+    return float(rounding(bound / scale) * scale)
 
 
 class _AtRest:

@@ -97,7 +97,8 @@ class Ramp:
 
 @dataclass(frozen=True)
 class Trapezoid:
-    """Trapezoidal velocity profile: a ``stroke`` [deg] move at ``speed_rpm`` (Fig. 14).
+    """Trapezoidal velocity profile: a ``stroke`` [deg] move at ``speed_rpm`` (Fig. 14); a
+    negative stroke moves the other way, the same profile mirrored.
 
     The paper gives stroke (270 deg) and top speed (60 rpm) but not the acceleration; the
     default 1000 deg/s^2 needs about 350 mA on the published model, "well within" the 1000 mA
@@ -111,17 +112,24 @@ class Trapezoid:
     offset: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("stroke", "speed_rpm", "acceleration"):
+        if self.stroke == 0:
+            raise ControllerSetupError("trapezoid: stroke must not be 0 [deg] (negative: a "
+                                       "move in the negative direction)")
+        for name in ("speed_rpm", "acceleration"):
             if not getattr(self, name) > 0:
                 raise ControllerSetupError(
                     f"trapezoid: {name} must be > 0, got {getattr(self, name)}")
 
-    def position(self, t: np.ndarray) -> np.ndarray:
-        v = self.speed_rpm * 6.0  # deg/s
-        a = self.acceleration
-        t_acc = min(v / a, math.sqrt(self.stroke / a))  # triangular when the stroke is short
+    def _phases(self) -> tuple[float, float, float]:
+        """(acceleration time, flat time, top speed [deg/s]) of the move's length."""
+        length, a = abs(self.stroke), self.acceleration
+        t_acc = min(self.speed_rpm * 6.0 / a, math.sqrt(length / a))  # triangular when short
         v_top = a * t_acc
-        t_flat = (self.stroke - a * t_acc**2) / v_top
+        return t_acc, (length - a * t_acc**2) / v_top, v_top
+
+    def position(self, t: np.ndarray) -> np.ndarray:
+        a = self.acceleration
+        t_acc, t_flat, v_top = self._phases()
         tau = np.clip(np.asarray(t, dtype=float) - self.start, 0.0, None)
         t1, t2 = t_acc, t_acc + t_flat
         t3 = t2 + t_acc
@@ -129,14 +137,13 @@ class Trapezoid:
         flat = v_top * np.clip(tau - t1, 0.0, t_flat)
         td = np.clip(tau - t2, 0.0, t_acc)
         down = v_top * td - 0.5 * a * td**2
-        return self.offset + np.where(tau >= t3, self.stroke, up + flat + down)
+        moved = np.where(tau >= t3, abs(self.stroke), up + flat + down)
+        return self.offset + math.copysign(1.0, self.stroke) * moved
 
     def duration(self) -> float:
         """Time [s] from t = 0 to the end of the move."""
-        v = self.speed_rpm * 6.0
-        t_acc = min(v / self.acceleration, math.sqrt(self.stroke / self.acceleration))
-        v_top = self.acceleration * t_acc
-        return self.start + 2 * t_acc + (self.stroke - self.acceleration * t_acc**2) / v_top
+        t_acc, t_flat, _ = self._phases()
+        return self.start + 2 * t_acc + t_flat
 
 
 @dataclass(frozen=True)
@@ -303,13 +310,18 @@ _SPECS: dict[str, tuple[Callable[..., Scenario], set[str]]] = {
 }
 
 
+#: every kind of reference, as a refusal lists them: one axis each, and a path of two axes
+KINDS = (*_SPECS, "circle (two axes)")
+
+
 def parse_scenario(spec: str) -> Scenario:
-    """``sine:amplitude=2,frequency=10``, ``trapezoid:stroke=270,speed=60``, ``hold:position=0``
-    or ``disturbance:torque=1200,start=0.1,end=0.35`` -> :class:`Scenario`."""
+    """``sine:amplitude=2,frequency=10``, ``trapezoid:stroke=270,speed=60`` (a negative stroke
+    moves the other way), ``hold:position=0`` or ``disturbance:torque=1200,start=0.1,end=0.35``
+    -> :class:`Scenario` (a circle, of two axes, is :func:`parse_circle`'s)."""
     kind, _, params = spec.partition(":")
     if kind not in _SPECS:
         raise ControllerSetupError(
-            f"reference {spec!r}: unknown kind {kind!r} (one of {', '.join(_SPECS)})")
+            f"reference {spec!r}: unknown kind {kind!r} (one of {', '.join(KINDS)})")
     build, allowed = _SPECS[kind]
     values: dict[str, float] = {}
     for item in filter(None, (p.strip() for p in params.split(","))):

@@ -15,6 +15,7 @@ from hil.errors import UsageError
 
 #: ``hil bench run``'s flags (argparse dests) -> the option they set, where the names differ
 FLAG_OPTIONS = {"hp": "hp_s", "hs": "hs_s", "dwell": "dwell_s", "config": "config_path",
+                "duration": "duration_s",
                 "limit": "limits", "param": "params", "params": "params_file",
                 "controller_budget": "controller_budget_s"}
 
@@ -33,13 +34,16 @@ class BenchRunOptions:
     ``controller`` is a spec (``eec``, ``bc``, ``FILE.py:Class``, ``package.module:Class``, a
     name registered in ``hil.controllers``) or a class; ``params`` are laid over the config's
     ``[controller]`` table; ``limits`` are added to its ``[limits]``; ``overrides`` are
-    ``[eec]`` keys set by a program (benchmarks, the demo)."""
+    ``[eec]`` keys set by a program (benchmarks, the demo). The run lasts ``cycles`` machine
+    cycles, or ``duration_s`` seconds of session time when given (a smoke test in real time
+    need not last a 28 s cycle)."""
 
     controller: str | Callable[..., Any] = "eec"
     params: Mapping[str, Any] = field(default_factory=dict)
     params_file: str | None = None   # --params F.toml: laid under params (the --param flags)
     bench: str | None = None         # a bench URL; None: bench.toml's [bus] url
     cycles: int = 8
+    duration_s: float | None = None  # the run's length instead of whole cycles [s]
     hp_s: int | None = None
     hs_s: int | None = None
     gamma1: float | None = None

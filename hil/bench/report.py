@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from hil.core.recording.reader import SessionData
-from hil.core.report import kpis
+from hil.core.report import KPI_ROW_IN, kpi_table, kpi_table_rows
 
 SOLVE_EDGES_MS = (0.0, 5.0, 10.0, 20.0, 50.0, 100.0, 250.0, 500.0, 1000.0)
 
@@ -99,22 +99,6 @@ def machining_profile(relays: dict[str, np.ndarray], bench: dict[str, Any]) -> n
     return profile
 
 
-def _flat(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    """Nested KPIs (``faults``, ``switches``...) as ``group.key`` rows, one value each."""
-    rows: dict[str, Any] = {}
-    for key, value in table.items():
-        if isinstance(value, dict):
-            rows.update(_flat(value, f"{prefix}{key}."))
-        elif isinstance(value, list):
-            rows[f"{prefix}{key}"] = "; ".join(
-                f"{item.get('limit')}: {item.get('measured')} "
-                f"({'holds' if item.get('passed') else 'VIOLATED'})"
-                if isinstance(item, dict) else str(item) for item in value)
-        else:
-            rows[f"{prefix}{key}"] = value
-    return rows
-
-
 def _seconds(stamps: np.ndarray, t0: int) -> np.ndarray:
     return (stamps - t0) / 1e9
 
@@ -132,8 +116,8 @@ def plot_bench(data: SessionData, out_png: str) -> None:
     levels = data.arrays("/bench/levels")
     stamps = [a["log_time_ns"] for a in (power, relays, levels) if a["log_time_ns"].size]
     t0 = int(min(s[0] for s in stamps)) if stamps else 0
-    rows = [[key, str(value)] for key, value in _flat(kpis(data)).items() if key != "mcap"]
-    table_height = 0.19 * (len(rows) + 1)  # inches: one line of 8 pt text per KPI
+    rows = kpi_table_rows(data)
+    table_height = KPI_ROW_IN * (len(rows) + 1)
     fig, axes = plt.subplots(4, 1, figsize=(12, 8.5 + table_height),
                              gridspec_kw={"height_ratios": [3, 1.4, 2, table_height]})
     axes[1].sharex(axes[0])
@@ -178,14 +162,7 @@ def plot_bench(data: SessionData, out_png: str) -> None:
     ax.set_xlabel("time [s]")
     ax.set_title("resource levels q_j (dotted: bounds)")
     ax.legend(loc="upper right", fontsize=8)
-    ax = axes[3]
-    ax.axis("off")
-    if rows:
-        cell = ax.table(cellText=rows, colLabels=["KPI", "value"], loc="upper center",
-                        colWidths=[0.3, 0.65], cellLoc="left")
-        cell.auto_set_font_size(False)
-        cell.set_fontsize(8)
-        cell.scale(1, 1.0)
+    kpi_table(axes[3], rows)
     fig.tight_layout(h_pad=1.0)
     fig.savefig(out_png, dpi=110)
     plt.close(fig)

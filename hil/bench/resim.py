@@ -44,11 +44,12 @@ class BenchResim:
 
 
 def plan_resim(recorded: Recorded, controller: str | None, params: Mapping[str, Any],
-               models: Sequence[str], out: str, folder: str) -> BenchResim:
+               models: Sequence[str], out: str, folder: str, quiet: bool = False
+               ) -> BenchResim:
     """The resimulation of ``recorded`` with ``controller`` (None: the recorded one) and
     ``params`` (laid over the recorded ones when the controller is the recorded one), each
     ``LOAD=F.json`` of ``models`` that load's model, recorded to ``out``; its config is
-    written into ``folder``."""
+    written into ``folder``. ``quiet``: no progress line."""
     run = recorded.table("run")
     bench, controllers = recorded.table("bench"), recorded.table("controllers")
     url = str(run.get("bench") or (bench.get("bus") or {}).get("url", EMULATED))
@@ -63,10 +64,11 @@ def plan_resim(recorded: Recorded, controller: str | None, params: Mapping[str, 
         tables["plant"]["loads"][name]["model"] = path
     try:
         options = BenchRunOptions(
-            controller=spec, params=laid, bench=EMULATED, cycles=int(run["cycles"]), out=out,
+            controller=spec, params=laid, bench=EMULATED, cycles=int(run["cycles"]),
+            duration_s=run.get("duration_s"), out=out,
             config_path=write_config(tables, folder, "bench.toml"),
             limits=recorded.limits(run), controller_budget_s=run.get("controller_budget_s"),
-            quiet=True)
+            quiet=quiet)
     except KeyError as exc:
         raise UsageError(f"{recorded.path}: its recorded bench run has no {exc.args[0]!r} (a "
                          "session of an older hil?): it cannot be re-simulated") from None

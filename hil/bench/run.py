@@ -44,7 +44,7 @@ from hil.core.clock import Clock
 from hil.core.loop import Task
 from hil.core.notice import warn
 from hil.core.plugins import build_controller, controller_factory, controller_short_name
-from hil.core.ranges import MAX_DURATION_S, MAX_EEC_HORIZON_S, check_at_most
+from hil.core.ranges import MAX_DURATION_S, MAX_EEC_HORIZON_S, check_at_most, check_duration
 from hil.core.run import (
     EventBuffer,
     Experiment,
@@ -122,10 +122,7 @@ def plan_bench(opts: BenchRunOptions) -> BenchPlan:
         raise UsageError("--disturbance switches the emulator's unknown load on: it needs "
                          "the emulated bench")
     bench, eec = settings.bench, settings.eec
-    seconds = opts.cycles * bench.problem.sequence.period_s
-    if seconds > MAX_DURATION_S:
-        raise UsageError(f"--cycles {opts.cycles}: {seconds:g} s is longer than a run can "
-                         f"be ({MAX_DURATION_S:g} s, about {MAX_DURATION_S / 86400:.1f} days)")
+    seconds = run_seconds(opts, bench)
     params = {**bench.run.params, **opts.params}
     kpi_limits, signal_limits = split_limits(
         [*bench.run.limits, *opts.limits],
@@ -149,6 +146,27 @@ def plan_bench(opts: BenchRunOptions) -> BenchPlan:
         config_text=text, recording=opts.recording,
         devices=() if is_emulated(url) else (("bench", url),), quiet=opts.quiet,
         settings=settings, params=params, factory=factory)
+
+
+def run_seconds(opts: BenchRunOptions, bench: BenchConfig) -> float:
+    """How long the run lasts [s of session time]: ``--duration``, else ``--cycles`` machine
+    cycles; a UsageError when it is shorter than a sample or longer than a run can be."""
+    if opts.duration_s is not None:
+        check_duration(opts.duration_s, "--duration", bench.sampling.period_s)
+        return float(opts.duration_s)
+    seconds = opts.cycles * bench.problem.sequence.period_s
+    if seconds > MAX_DURATION_S:
+        raise UsageError(f"--cycles {opts.cycles}: {seconds:g} s is longer than a run can "
+                         f"be ({MAX_DURATION_S:g} s, about {MAX_DURATION_S / 86400:.1f} days)")
+    return seconds
+
+
+def cycles_run(opts: BenchRunOptions, bench: BenchConfig) -> float:
+    """The machine cycles a run lasts (the KPI ``cycles``): ``--cycles``, or the share of
+    cycles ``--duration`` makes (10 s of a 28 s cycle: 0.3571)."""
+    if opts.duration_s is None:
+        return opts.cycles
+    return round(opts.duration_s / bench.problem.sequence.period_s, 4)
 
 
 class BenchExperiment(Experiment[BenchPlan]):
@@ -240,7 +258,8 @@ class BenchExperiment(Experiment[BenchPlan]):
         plan, state = self.planned, self.state
         if state.log is None:
             raise ConfigError("the run recorded no meter or level samples: nothing to evaluate")
-        kpis = kpis_of(state.log, self.opts, plan.label, plan.session_path)
+        kpis = kpis_of(state.log, self.opts, plan.label, plan.session_path,
+                       cycles_run(self.opts, plan.bench))
         loop = session.loop
         kpis.stop_reason = loop.stop_reason
         kpis.wall_s = round(wall_s, 4)
@@ -280,14 +299,16 @@ def link_report(rig: BenchRig, end_ns: int) -> LinkReport:
     return LinkReport(lost, rig.link.gave_up, faults, disturbed)
 
 
-def kpis_of(log: RunLog, opts: BenchRunOptions, label: str, out: str) -> BenchRunKpis:
+def kpis_of(log: RunLog, opts: BenchRunOptions, label: str, out: str, cycles: float
+            ) -> BenchRunKpis:
+    """The run's KPIs over the ``cycles`` machine cycles it lasted."""
     if not log.kpis.power_samples or not log.kpis.level_samples:
         raise ConfigError("the run recorded no meter or level samples: nothing to evaluate")
     times = log.solve_ms if log.solver_reports else log.decide_ms
     solve_ms = {"median": round(times.percentile(50), 3), "p99": round(times.percentile(99), 3),
                 "max": round(times.max_us, 3)}
-    return BenchRunKpis(controller=label, cycles=opts.cycles, solve_ms=solve_ms,
+    return BenchRunKpis(controller=label, cycles=cycles, solve_ms=solve_ms,
                         solves_at_limit=log.solver_limits, max_gap=log.max_gap,
                         fallbacks=log.fallbacks,
-                        mcap=opts.recording.first_file(out)).lay(log.kpis.kpis(opts.cycles))
+                        mcap=opts.recording.first_file(out)).lay(log.kpis.kpis(cycles))
 

@@ -164,10 +164,11 @@ def replay_factory(recording: BenchRecording, peripherals: Sequence[str]) -> Any
     return replay
 
 
-def run_twin(recording: BenchRecording, models: Mapping[str, str], out: str) -> None:
+def run_twin(recording: BenchRecording, models: Mapping[str, str], out: str,
+             quiet: bool = False) -> None:
     """The twin's run of the recording's relays, recorded to ``out``: lockstep on the bench
     emulator, a decision every sampling period (``[eec] step_s``) so every switch lands on
-    its tick."""
+    its tick (``quiet``: no progress line)."""
     from hil.bench.config import parse_bench_config
 
     tables = twin_tables(recording, models)
@@ -180,7 +181,7 @@ def run_twin(recording: BenchRecording, models: Mapping[str, str], out: str) -> 
             file.write(tomli_w.dumps(tables).encode())
         options = BenchRunOptions(
             controller=replay_factory(recording, peripherals), bench="emulated", cycles=1,
-            out=out, quiet=True, config_path=config,
+            out=out, quiet=quiet, config_path=config,
             overrides={"step_s": recording.period_s})
         run_experiment(TwinExperiment(options, recording))
 

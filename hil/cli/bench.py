@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Any
 
 from hil.bench.identify_options import MACHINING_MODES, IdentifyOptions, parse_relays
 from hil.cli.argtypes import key_value, nonnegative_float, output_file, positive_float, positive_int
-from hil.cli.output import json_text
+from hil.cli.output import add_quiet_argument, json_text
 from hil.cli.place import add_place_arguments, run_on_place
 from hil.cli.recording import add_recording_arguments
 from hil.cli.units import seconds
@@ -58,8 +58,13 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bench", metavar="URL",
                         help="where the bench is (default: bench.toml's [bus] url, emulated): "
                         "emulated | modbus-tcp://HOST:PORT | modbus-rtu:///dev/X")
-    parser.add_argument("--cycles", type=positive_int,
+    length = parser.add_mutually_exclusive_group()
+    length.add_argument("--cycles", type=positive_int,
                         help="machine cycles (T = 28 s each; default 8)")
+    length.add_argument("--duration", type=seconds, metavar="S",
+                        help="the run's length [s of session time] instead of whole cycles "
+                        "(a real-time smoke test: --duration 2 --realtime); the KPI cycles is "
+                        "then the share of cycles it lasted")
     parser.add_argument("--hp", type=positive_int, metavar="S",
                         help="prediction horizon [s] (eec.hp_s, default 28)")
     parser.add_argument("--hs", type=positive_int, metavar="S",
@@ -82,9 +87,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         help="follow the wall clock (always so against a real bench)")
     parser.add_argument("--config", metavar="F.toml",
                         help="TOML laid over hil/configs/bench.toml and eec.toml")
-    parser.add_argument("--quiet", action="store_true",
-                        help="no progress line on the terminal (there is none when stderr is "
-                        "not a terminal)")
+    add_quiet_argument(parser)
     parser.add_argument("--safety", action="append", type=key_value, default=[],
                         metavar="KEY=VALUE",
                         help="tighten one safety limit of bench.toml's [safety] for this run "
@@ -111,17 +114,14 @@ def run_command(args: argparse.Namespace) -> int:
 
 
 def format_kpis(kpis: dict[str, Any]) -> str:
-    """The KPI dictionary as aligned lines."""
-    lines = []
-    for key, value in kpis.items():
-        if key == "limits":
-            lines += [f"{'limit':<17} {row['limit']}: measured {row['measured']} "
-                      f"({'holds' if row['passed'] else 'VIOLATED'})" for row in value]
-            continue
-        if isinstance(value, dict):
-            value = ", ".join(f"{k} {v}" for k, v in value.items())
-        lines.append(f"{key:<17} {value}")
-    return "\n".join(lines)
+    """The KPIs as aligned lines, as a person reads them (:mod:`hil.core.kpi_text`); the two
+    wall-clock figures say what each timed (the loop's pace is not the whole run's)."""
+    from hil.core.kpi_text import kpi_rows
+
+    pace = {"wall_s": " s (the run, its start and safe stop included)",
+            "realtime_factor": "x real time (session time over the time the loop ticked)"}
+    return "\n".join(f"{name:<17} {text}{pace[name] if name in pace and text != '-' else ''}"
+                     for name, text in kpi_rows(kpis))
 
 
 def add_identify_arguments(parser: argparse.ArgumentParser) -> None:
@@ -153,6 +153,7 @@ def add_identify_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--progress", type=nonnegative_float, default=10.0, metavar="S",
                         help="progress line on stderr every S seconds of experiment time "
                         "(0 = none; default 10)")
+    add_quiet_argument(parser, "no progress lines (as --progress 0)")
     parser.add_argument("--realtime", action="store_true",
                         help="follow the wall clock (always so against a real bench)")
     parser.add_argument("--config", metavar="F.toml", help="TOML laid over hil/configs/bench.toml")
@@ -174,7 +175,8 @@ def _identify(args: argparse.Namespace) -> int:
         relays=args.relays, duration_s=args.duration, min_hold_s=args.min_hold, seed=args.seed,
         bench=args.bench or "emulated", machining=args.machining,
         meter_quantity=args.output_quantity, realtime=args.realtime, out=args.out,
-        config_path=args.config, progress_s=args.progress, lab=getattr(args, "lab", None),
+        config_path=args.config, progress_s=0.0 if args.quiet else args.progress,
+        lab=getattr(args, "lab", None),
     ))
     if args.json:
         print(json_text(summary))

@@ -36,7 +36,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "on session time: lockstep sessions tick for tick, real-time ones by interpolating "
         "the candidate onto the baseline's ticks. A tolerance is exact, abs:V, rel:P% or "
         "tube:V,LAG (a band of V the candidate may lead or lag by LAG, e.g. tube:0.01,2ms). "
-        "Without one: exact when both sessions are lockstep; in real time rel:5%% for a KPI, "
+        "Without one: exact when both sessions are lockstep; in real time rel:5% for a KPI, "
         "and a signal needs one. Split series and damaged files are read as 'hil report' "
         "reads them. Prints a table (baseline, candidate, difference, tolerance, the time "
         "of a signal's worst tick, verdict) and one summary line. Exit status: 0 within "

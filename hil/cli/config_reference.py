@@ -52,7 +52,8 @@ Every setting of a run comes from one order, the later winning key by key:
 `hil servo run --print-config` and `hil bench run --print-config` print every setting as the
 run would use it and where it came from, and exit (`--json` for JSON: `{"KEY": {"value",
 "origin"}}`); a run records the same under the `settings` key of the session's `config`
-metadata.
+metadata. The printed text is a config file that `--config` takes back as it is; the run's
+options, which are flags, are printed as comments with the command line that runs it again.
 
 A path in a config file (`master.eds`, `models.*`) is relative to the folder of the file that
 names it; a path given as a flag, to the working folder.
@@ -63,7 +64,11 @@ configured one needs `--allow-looser-safety`; the run then prints a warning and 
 the session. A config file may set any value its rule allows.
 
 An unknown key, a value of the wrong kind (a string where a number belongs) or a value outside
-its rule is one error line naming the file (or the flag) and the key, with its unit.
+its rule is one error line naming the file (or the flag) and the key, with its unit. The keys
+are checked with the flags' rules, when the file is read: a misspelt key names the closest one
+(`current_limit_ma`: "did you mean 'master.current_limit_mA'?"), a value written with its unit
+is refused with the number to write (`following_error_ms = "2s"`: "'2s' is 2000"), and a
+current below 1 mA as most likely amperes (`current_limit_mA = 0.3`, as `--umax 0.3`).
 """
 
 
@@ -213,8 +218,7 @@ def _section(title: str, files: Iterable[str], settings: Sequence[Setting],
     for name in files:
         comments.update(toml_comments(
             resources.files("hil.configs").joinpath(name).read_text("utf-8")))
-    keys = [s for s in settings if (not s.key.startswith("run.") and s.key != "bus.url")
-            or (s.key == "bus.url" and command == "bench")]
+    keys = [s for s in settings if not s.key.startswith("run.")]
     comments["[[axis]]"] = AXIS_TABLE
     return [f"## {title}", "", f"### The flags of `hil {command} run`", "",
             *flag_table(_run_parser(command), flags), *key_tables(keys, comments, flags), ""]

@@ -12,6 +12,7 @@ import sys
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
+from hil.cli.output import add_quiet_argument
 from hil.cli.recording import add_live_arguments, live_address
 from hil.core.recording.recording_options import RecordingOptions
 
@@ -28,6 +29,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     demo.add_argument("--out", default="sessions", metavar="DIR",
                       help="output folder (default: sessions, where every run records)")
+    add_quiet_argument(demo, "no progress lines on stderr (which half runs now) and no "
+                       "runs' progress lines")
     add_live_arguments(demo)
     demo.set_defaults(handler=demo_command)
 
@@ -49,12 +52,14 @@ def demo_command(args: argparse.Namespace) -> int:
     os.makedirs(args.out, exist_ok=True)
     first, second = live_ports(args)
     live = {"live_rates": dict(args.live_rate), "live_remote_tuning": args.allow_remote_tuning}
-    progress("relay bench: EEC vs BC, 8 machine cycles over Modbus TCP (lockstep, ~30 s)")
+    say = (lambda message: None) if args.quiet else progress
+    say("relay bench: EEC vs BC, 8 machine cycles over Modbus TCP (lockstep, ~30 s)")
     print(bench_demo(args.out, {"eec": RecordingOptions(live=first, **live),
-                                "bc": RecordingOptions(live=second, **live)}),
+                                "bc": RecordingOptions(live=second, **live)}, args.quiet),
           flush=True)
-    progress("servo drive: MPC (FOH) vs PID through the emulated CiA 402 drive (~5 s)")
-    servo = run_servo_demo(args.out, echo=None, recording=RecordingOptions(live=first, **live))
+    say("servo drive: MPC (FOH) vs PID through the emulated CiA 402 drive (~5 s)")
+    servo = run_servo_demo(args.out, echo=None, recording=RecordingOptions(live=first, **live),
+                           quiet=args.quiet)
     print("\n" + format_servo_demo(servo), flush=True)
     print(f"\nsessions (.mcap) and reports (.png) in {os.path.abspath(args.out)}; "
           f"'hil report {os.path.join(args.out, 'bench_eec.mcap')}' summarises one (with "
@@ -66,26 +71,29 @@ def progress(message: str) -> None:
     print(f"hil demo: {message} ...", file=sys.stderr, flush=True)
 
 
-def _bench_session(controller: str, path: str, recording: RecordingOptions) -> dict[str, Any]:
+def _bench_session(controller: str, path: str, recording: RecordingOptions, quiet: bool
+                   ) -> dict[str, Any]:
     """One 8-cycle run against the emulated bench, plus its report PNG (a worker process)."""
     from hil.bench.run import BenchRunOptions, run_bench
     from hil.core.recording.reader import read_session
     from hil.core.report import plot_session
 
     kpis = run_bench(BenchRunOptions(controller=controller, cycles=8, out=path,
-                                     recording=recording)).kpis
+                                     recording=recording, quiet=quiet)).kpis
     png = os.path.splitext(path)[0] + ".png"
     plot_session(read_session(path), png)
     return {**kpis, "png": png}
 
 
-def bench_demo(out_dir: str, recording: dict[str, RecordingOptions] | None = None) -> str:
-    """EEC and BC side by side (two processes: the machine has two cores)."""
+def bench_demo(out_dir: str, recording: dict[str, RecordingOptions] | None = None,
+               quiet: bool = False) -> str:
+    """EEC and BC side by side (two processes: the machine has two cores); ``quiet``: without
+    their progress lines."""
     paths = {c: os.path.join(out_dir, f"bench_{c}.mcap") for c in ("eec", "bc")}
     options = recording or {}
     with ProcessPoolExecutor(max_workers=2) as pool:
-        futures = {c: pool.submit(_bench_session, c, p, options.get(c, RecordingOptions()))
-                   for c, p in paths.items()}
+        futures = {c: pool.submit(_bench_session, c, p, options.get(c, RecordingOptions()),
+                                  quiet) for c, p in paths.items()}
         rows = {c: f.result() for c, f in futures.items()}
     return format_bench(rows)
 

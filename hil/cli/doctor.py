@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from hil.cli.argtypes import positive_float
-from hil.cli.output import json_text
+from hil.cli.output import add_quiet_argument, json_text
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -19,13 +19,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=positive_float, default=5.0, metavar="S",
                    help="seconds per rate (default 5)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
+    add_quiet_argument(p, "no progress lines on stderr (which rate runs now)")
     p.set_defaults(handler=doctor_command)
 
 
 def doctor_command(args: argparse.Namespace) -> int:
     from hil.core.doctor import format_doctor, run_doctor
 
-    result = run_doctor(args.duration, progress=lambda line: print(line, file=sys.stderr,
-                                                                     flush=True))
+    result = run_doctor(args.duration, progress=None if args.quiet else
+                        lambda line: print(line, file=sys.stderr, flush=True))
     print(json_text(result) if args.json else format_doctor(result))
     return 0

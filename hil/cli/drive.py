@@ -11,6 +11,7 @@ import json
 from typing import Any
 
 from hil.cli.argtypes import node_id, output_file, positive_float, positive_int
+from hil.cli.output import add_quiet_argument
 
 URL_HELP = ("the bus: socketcand://HOST:PORT[/CHANNEL] | INTERFACE://CHANNEL[?key=value&...] "
             "for any python-can interface (socketcan://can0, pcan://PCAN_USBBUS1, gs_usb://0, "
@@ -166,7 +167,7 @@ def _register_motions(sub: argparse._SubParsersAction) -> None:
                             help="clear a drive left in FAULT before enabling it")
         parser.add_argument("--realtime", action="store_true",
                             help="follow the wall clock (default: lockstep virtual time)")
-        parser.add_argument("--quiet", action="store_true", help="no progress line")
+        add_quiet_argument(parser)
         parser.add_argument("--out", metavar="F.mcap", type=output_file, help="session file "
                             "(default: sessions/motion-move|home-DATE-TIME.mcap)")
         parser.add_argument("--json", action="store_true", help="print the KPIs as JSON")

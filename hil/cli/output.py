@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 from collections.abc import Sequence
@@ -9,6 +10,16 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from hil.core.settings import Setting
+
+
+#: what ``--quiet`` leaves out, on every command that shows progress while it works
+QUIET_HELP = "no progress line on the terminal (there is none when stderr is not a terminal)"
+
+
+def add_quiet_argument(parser: argparse.ArgumentParser, help: str = QUIET_HELP) -> None:
+    """``--quiet``: no progress while the command works (its result is printed all the
+    same)."""
+    parser.add_argument("--quiet", action="store_true", help=help)
 
 
 def finite(value: Any) -> Any:
@@ -30,7 +41,9 @@ def json_text(value: Any) -> str:
 def print_settings(title: str, settings: Sequence[Setting], as_json: bool) -> int:
     """``--print-config``: every setting as a run would use it and its origin (JSON:
     ``{key: {"value", "origin"}}``); the exit status, 0."""
-    from hil.core.settings import format_settings, settings_json
+    from hil.core.printed_config import format_settings
+    from hil.core.settings import settings_json
 
-    print(json_text(settings_json(settings)) if as_json else format_settings(title, settings))
+    print(json_text(settings_json(settings)) if as_json else format_settings(title, settings),
+          end="\n" if as_json else "")
     return 0

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from hil.cli.argtypes import output_file
+from hil.cli.output import add_quiet_argument
 from hil.cli.verdict import add_param_argument, finish
 
 if TYPE_CHECKING:
@@ -52,6 +53,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true",
                    help="print the run's KPIs as JSON, with 'resim' (of, controller, params, "
                    "plant, recorded_on)")
+    add_quiet_argument(p)
     p.set_defaults(handler=resim_command, junit=None)
 
 
@@ -73,7 +75,7 @@ def resim_command(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="hil-resim-") as folder:
         if recorded.kind in bench_resim.KINDS:
             bench = bench_resim.plan_resim(recorded, args.controller, params, args.model, out,
-                                           folder)
+                                           folder, quiet=args.quiet)
             return finish(args, "hil resim", lambda: bench,
                           lambda r: _with_resim(args, r, bench_resim.run_resim(r, args.recorded)),
                           _bench_summary(args))
@@ -83,7 +85,7 @@ def resim_command(args: argparse.Namespace) -> int:
         drive = data.metadata.get("drive", {}).get("json")
         servo = servo_resim.plan_resim(recorded, args.controller, params,
                                        args.model[0] if args.model else None, out, folder,
-                                       _json(drive))
+                                       _json(drive), quiet=args.quiet)
         return finish(args, "hil resim", lambda: servo,
                       lambda r: _with_resim(args, r, servo_resim.run_resim(r, args.recorded)),
                       _servo_summary(args))

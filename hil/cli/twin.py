@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from hil.cli.argtypes import output_file
-from hil.cli.output import finite, json_text
+from hil.cli.output import add_quiet_argument, finite, json_text
 
 if TYPE_CHECKING:  # numpy and the reader load when a check runs, not for --help
     import numpy as np
@@ -62,6 +62,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        help="the twin's session (default: RECORDED.twin.mcap beside it)")
     check.add_argument("--json", action="store_true",
                        help="print the check as JSON (passed, min_fit_pct, outputs, session)")
+    add_quiet_argument(check, "no progress line on the terminal while the twin runs (there "
+                       "is none when stderr is not a terminal)")
     check.set_defaults(handler=twin_check_command)
 
 
@@ -116,7 +118,7 @@ def servo_check(args: argparse.Namespace, data: SessionData, twin_out: str) -> C
         if path is not None and not os.path.isfile(path):
             raise UsageError(f"{flag} {path}: no such file")
     recording = read_recording(data)
-    run_twin(recording, model, args.eds, twin_out)
+    run_twin(recording, model, args.eds, twin_out, args.quiet)
     check, pairs = check_twin(recording, read_session(twin_out), args.min_fit)
     return check, recording.t_s, pairs
 
@@ -132,6 +134,6 @@ def bench_check(args: argparse.Namespace, data: SessionData, twin_out: str) -> C
                          "no drive EDS (its twin takes --model LOAD=F.json)")
     recording = read_recording(data)
     models = parse_models(args.model, recording.loads)
-    run_twin(recording, models, twin_out)
+    run_twin(recording, models, twin_out, args.quiet)
     check, pairs = check_twin(recording, read_session(twin_out), args.min_fit)
     return check, recording.t_s, pairs

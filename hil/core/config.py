@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import copy
+import difflib
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from typing import Any, overload
 
 from hil.core.settings import KeyRead, Layered
+from hil.core.units import UNITS, implausible, unit_hint, written_with_unit
 from hil.errors import ConfigError
 
 try:
@@ -166,6 +168,10 @@ class Table:
         if float in kinds and int not in kinds:
             kinds = (*kinds, int)
         if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):
+            unit = unit_of(name)
+            if float in kinds and isinstance(value, str) and unit in UNITS \
+                    and written_with_unit(value):  # '300 mA', '0.3A': the flags' words
+                raise self.error(name, unit_hint(value, unit))
             asked = kind if isinstance(kind, tuple) else (kind,)
             names = " or ".join(_KIND_NAMES.get(k, k.__name__) for k in asked)
             raise self.error(name, f"must be {names}, got {_describe(value)}")
@@ -175,21 +181,30 @@ class Table:
 
     @overload
     def number(self, name: str, default: None, *, above: float | None = None,
-               at_least: float | None = None, at_most: float | None = None) -> float | None: ...
+               at_least: float | None = None, at_most: float | None = None,
+               plausible: tuple[float, str] | None = None) -> float | None: ...
 
     @overload
     def number(self, name: str, default: float = ..., *, above: float | None = None,
-               at_least: float | None = None, at_most: float | None = None) -> float: ...
+               at_least: float | None = None, at_most: float | None = None,
+               plausible: tuple[float, str] | None = None) -> float: ...
 
     def number(self, name: str, default: Any = _MISSING, *, above: float | None = None,
-               at_least: float | None = None, at_most: float | None = None) -> float | None:
+               at_least: float | None = None, at_most: float | None = None,
+               plausible: tuple[float, str] | None = None) -> float | None:
         """A finite float, optionally ``> above``, ``>= at_least``, ``<= at_most``; a None
-        default makes the key optional."""
+        default makes the key optional. ``plausible``: (the smallest plausible value, the unit
+        a smaller one was most likely written in), as the flag of the same value checks it
+        (``current_limit_mA = 0.3``: amperes, as ``--umax 0.3``)."""
         value = self.get(name, float, default)
-        self._note(name, value, "number", _rule(above, at_least, at_most))
+        self._note(name, value, "number", _rule(above, at_least, at_most) if plausible is None
+                   else _rule(None, plausible[0], at_most))
         if value is None:
             return None
         _check_range(self, name, value, above, at_least, at_most)
+        if plausible is not None and value < plausible[0]:
+            raise self.error(name, f"= {value:g}: " + implausible(value, unit_of(name),
+                                                                  *plausible))
         return float(value)
 
     @overload
@@ -264,9 +279,22 @@ class Table:
         """Refuse every key of this table that was not read."""
         unknown = [name for name in self.data if name not in self._read]
         if unknown:
+            close = closest(unknown[0], self._read)
+            hint = f"did you mean '{self.key(close)}'? " if close else ""
             known = ", ".join(sorted(self._read)) or "none"
             raise ConfigError(f"{self.source}: unknown key '{self.key(unknown[0])}' "
-                              f"(known here: {known})")
+                              f"({hint}known here: {known})")
+
+
+def closest(name: str, known: Iterable[str]) -> str | None:
+    """The known name ``name`` most likely misspells (the case aside first:
+    ``current_limit_ma`` is ``current_limit_mA``), or None."""
+    known = sorted(known)
+    same = [k for k in known if k.lower() == name.lower()]
+    if same:
+        return same[0]
+    close = difflib.get_close_matches(name, known, n=1, cutoff=0.75)
+    return close[0] if close else None
 
 
 _KIND_NAMES = {float: "a number", int: "an integer", str: "a string",

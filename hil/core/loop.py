@@ -6,7 +6,7 @@ limits): ros2_control's read -> update -> write, plus recording. A task takes pa
 phases it overrides; what one phase leaves for the next stays on the task (or on an object
 the tasks share), so data flows one way: the feedback read in tick k is computed on and
 written in tick k. Each phase of each task is timed under its own name (``read_us``,
-``compute_us``, ``write_us``, ``record_us``); ``step_us`` is their sum.
+``compute_us``, ``write_us``, ``record_us``); ``tick_us`` is their sum.
 
 Overrun policy: when the loop wakes up one or more whole base periods after a tick's deadline,
 the ticks whose slots have passed are skipped and counted (per task, as ``missed``); the
@@ -149,7 +149,7 @@ class TaskStats:
         return (self.last_start_ns - self.first_start_ns) / (self.runs - 1) / 1e9
 
     def summary(self) -> dict[str, Any]:
-        """Counts, lateness, ``step_us`` (all phases) and ``<phase>_us`` of each phase run."""
+        """Counts, lateness, ``tick_us`` (all phases) and ``<phase>_us`` of each phase run."""
         summary: dict[str, Any] = {
             "period_s": self.period_s,
             "measured_period_s": round(self.measured_period_s(), 9),
@@ -157,7 +157,7 @@ class TaskStats:
             "missed": self.missed,
             "overruns": self.overruns,
             "lateness_us": self.lateness.summary(),
-            "step_us": self.step.summary(),
+            "tick_us": self.step.summary(),
         }
         for phase, histogram in self.phase_times.items():
             summary[f"{phase}_us"] = histogram.summary()

@@ -17,6 +17,9 @@ import math
 from hil.errors import UsageError
 
 MAX_DURATION_S = 1e6
+#: a current below 1 mA sends nothing (one torque unit is 1 mA at the default scaling) and
+#: was most likely written in amperes: (the smallest plausible current [mA], the likely unit)
+PLAUSIBLE_MILLIAMPS = (1.0, "A")
 MAX_DWELL_S = 3600.0
 MAX_EEC_HORIZON_S = 600
 MAX_MPC_HORIZON = 1000
@@ -46,6 +49,6 @@ def check_milliamps(value: float, flag: str) -> None:
     if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value)
                                        and value > 0):
         raise UsageError(f"{flag} must be a positive finite current in mA, got {value!r}")
-    if value < 1:
+    if value < PLAUSIBLE_MILLIAMPS[0]:
         raise UsageError(f"{flag} {value:g} mA is below 1 mA: the current is in mA "
                          f"({value:g} A would be {flag} {value * 1000:g})")

@@ -9,6 +9,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from hil.core.kpi_text import kpi_rows, value_text
 from hil.core.loop import PHASES
 from hil.core.plugins import registered
 from hil.core.recording.reader import SessionData
@@ -48,9 +49,10 @@ def find_summary(kind: str) -> KindSummary | None:
 
 def loop_stats(data: SessionData) -> dict[str, Any]:
     """Per-task timing from the ``/loop/<task>/timing`` topics (exact over what was recorded):
-    lateness, ``step_us`` (the task's whole run) and ``<phase>_us`` for each phase it took part
-    in. A session recorded before the loop had phases timed the whole run as ``compute_us``:
-    it reports as ``step_us``."""
+    lateness, ``tick_us`` (the task's whole run in a tick, every phase: not the controller's
+    step, the KPI ``step_us``) and ``<phase>_us`` for each phase it took part in. A session
+    recorded before the loop had phases timed the whole run as ``compute_us``: it reports as
+    ``tick_us``."""
     out: dict[str, Any] = {}
     for topic in data.messages:
         if not (topic.startswith("/loop/") and topic.endswith("/timing")):
@@ -65,7 +67,7 @@ def loop_stats(data: SessionData) -> dict[str, Any]:
             "overruns": int(sum(m.get("overruns", 0) for m in msgs)),
             "lateness_us": percentile_summary(_samples(msgs, "lateness_us")),
         }
-        stats["step_us"] = percentile_summary(step_samples(msgs))
+        stats["tick_us"] = percentile_summary(tick_samples(msgs))
         if any(f"{phase}_us" in msgs[0] for phase in PHASES if phase != "compute"):
             phases = {phase: _samples(msgs, f"{phase}_us") for phase in PHASES}
             stats.update({f"{phase}_us": percentile_summary(v) for phase, v in phases.items()
@@ -74,8 +76,8 @@ def loop_stats(data: SessionData) -> dict[str, Any]:
     return out
 
 
-def step_samples(messages: list[dict[str, Any]]) -> np.ndarray:
-    """Every recorded run's ``step_us`` (the sum of its phases) from a task's timing
+def tick_samples(messages: list[dict[str, Any]]) -> np.ndarray:
+    """Every recorded run's ``tick_us`` (the sum of its phases) from a task's timing
     messages; a session recorded before the loop had phases: its ``compute_us``."""
     if not messages or not any(f"{phase}_us" in messages[0] for phase in PHASES
                                if phase != "compute"):
@@ -161,13 +163,19 @@ def _param_lines(changes: list[dict[str, Any]]) -> list[str]:
     lines = ["params   changed while running"] if changes else []
     for change in changes:
         if change["accepted"]:
-            lines.append(f"  {change.get('parameter')}: {change.get('old')} -> "
-                         f"{change.get('new')} at tick {change.get('tick')} "
+            lines.append(f"  {change.get('parameter')}: {_param(change.get('old'))} -> "
+                         f"{_param(change.get('new'))} at tick {change.get('tick')} "
                          f"({change.get('client')})")
         else:
-            lines.append(f"  {change.get('parameter')} = {change.get('value')} refused "
+            lines.append(f"  {change.get('parameter')} = {_param(change.get('value'))} "
+                         "refused "
                          f"({change.get('client')}): {change.get('reason')}")
     return lines
+
+
+def _param(value: Any) -> str:
+    """A parameter's value as it was set (a gain to six digits: 3.6111), not a repr."""
+    return f"{value:g}" if isinstance(value, float) else value_text(value)
 
 
 def format_summary(summary: dict[str, Any]) -> str:
@@ -192,13 +200,13 @@ def format_summary(summary: dict[str, Any]) -> str:
         lines.append(f"  {topic:<32} {count:>9} msgs")
     if summary["loop"]:
         lines.append("loop timing           runs   missed  overruns   lateness p50/p99/max us"
-                     "   step p50/p99/max us")
+                     "   tick p50/p99/max us")
         for task, s in summary["loop"].items():
-            lat, step = s["lateness_us"], s["step_us"]
+            lat, tick = s["lateness_us"], s["tick_us"]
             lines.append(
                 f"  {task:<16} {s['runs']:>9} {s['missed']:>8} {s['overruns']:>9}   "
                 f"{lat['p50']:>8.1f}/{lat['p99']:.1f}/{lat['max']:.1f}"
-                f"   {step['p50']:>8.1f}/{step['p99']:.1f}/{step['max']:.1f}"
+                f"   {tick['p50']:>8.1f}/{tick['p99']:.1f}/{tick['max']:.1f}"
             )
             phases = [f"{phase} {s[f'{phase}_us']['p50']:.1f}/{s[f'{phase}_us']['p99']:.1f}"
                       for phase in PHASES if f"{phase}_us" in s]
@@ -218,8 +226,7 @@ def format_summary(summary: dict[str, Any]) -> str:
     lines.extend(_param_lines(summary.get("params", [])))
     if summary["kpis"]:
         lines.append("kpis")
-        for key, value in summary["kpis"].items():
-            lines.append(f"  {key:<24} {value}")
+        lines += [f"  {name:<24} {text}" for name, text in kpi_rows(summary["kpis"])]
     extra = find_summary(summary["kind"])
     if extra is not None and extra.key in summary:
         lines.extend(extra.lines(summary[extra.key]))
@@ -240,6 +247,26 @@ def _damage_lines(summary: dict[str, Any]) -> list[str]:
         lines.append(f"  {d['kind']:<10} {d['bytes']} byte(s) {where}: {count}"
                      + (f" ({d['reason']})" if d.get("reason") else ""))
     return lines
+
+
+#: the height of one row of a PNG's KPI table [inches]: a line of 8 pt text
+KPI_ROW_IN = 0.19
+
+
+def kpi_table_rows(data: SessionData) -> list[list[str]]:
+    """The session's KPIs as a PNG's table rows (name, text), the session's file left out."""
+    return [[name, text] for name, text in kpi_rows(kpis(data)) if name != "mcap"]
+
+
+def kpi_table(ax: Any, rows: list[list[str]]) -> None:
+    """``rows`` as the KPI table of a report PNG, filling ``ax`` (its height:
+    :data:`KPI_ROW_IN` a row, and one for the header)."""
+    ax.axis("off")
+    if rows:
+        cell = ax.table(cellText=rows, colLabels=["KPI", "value"], loc="upper center",
+                        colWidths=[0.3, 0.65], cellLoc="left")
+        cell.auto_set_font_size(False)
+        cell.set_fontsize(8)
 
 
 def plot_loop_timing(data: SessionData, out_png: str) -> None:

@@ -15,7 +15,6 @@ loosen a limit of the layers below them, which a run refuses unless the user say
 from __future__ import annotations
 
 import copy
-import json
 import math
 import os
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
@@ -223,20 +222,6 @@ def _plain(value: Any) -> Any:
 def settings_json(settings: Iterable[Setting]) -> dict[str, Any]:
     """``{key: {"value": ..., "origin": ...}}``: what ``--print-config --json`` prints."""
     return {s.key: s.as_json() for s in settings}
-
-
-def format_settings(title: str, settings: Sequence[Setting]) -> str:
-    """The settings as TOML-like lines, each with its origin as a comment, grouped by table."""
-    lines = [f"# {title}: each value as it runs, and where it came from"]
-    table = None
-    for setting in settings:
-        head, _, name = setting.key.rpartition(".")
-        if head != table:
-            table = head
-            lines.append(f"\n[{head}]" if head else "")
-        value = "(not set)" if setting.value is None else json.dumps(_plain(setting.value))
-        lines.append(f"{name} = {value}".ljust(46) + f" # {setting.origin}")
-    return "\n".join(lines)
 
 
 #: a limit's direction: an upper bound tightens downwards, a lower bound upwards, a switch on

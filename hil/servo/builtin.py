@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any, cast
 
 from hil.controllers.base import CURRENT, POSITION, VELOCITY, returns, runs_at
 from hil.controllers.servo.model import MODEL_PERIODS_US, SAMPLE_PERIOD_S, axis_model
-from hil.controllers.servo.pid import CascadedPid, PidConfig, check_stable
+from hil.controllers.servo.pid import GAINS, CascadedPid, PidConfig, check_stable, gain_of
 from hil.controllers.servo.references import Reference
 from hil.controllers.servo.setpoint import SetPointFollower
 from hil.core.config import Table
@@ -81,10 +81,9 @@ def pid(reference: Reference, params: Mapping[str, Any], context: ServoContext
     loop would be unstable)."""
     table = _params(params, "pid")
     umax = table.number("umax", context.umax, above=0)
-    ti_us = table.number("ti_us", PidConfig.ti_s * 1e6, above=0)
-    # the names and units of its tunables (controller.kp... while it runs)
-    kp = table.number("kp", PidConfig.k_pos_rpm_per_deg, at_least=0)
-    kv = table.number("kv", PidConfig.k_vel_a_per_rpm, at_least=0)
+    # the names, units and ranges of its tunables (controller.kp... while it runs)
+    ti_us, kp, kv = (table.number(name, gain_of(PidConfig(), name), at_least=GAINS[name][1],
+                                  at_most=GAINS[name][2]) for name in ("ti_us", "kp", "kv"))
     notch_hz = table.number("notch_hz", None, above=0, at_most=0.5 / context.period_s)
     notch_q = table.number("notch_q", PidConfig.notch_quality, above=0)
     vff = table.number("vff", PidConfig.velocity_feedforward, at_least=0, at_most=1)

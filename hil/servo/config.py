@@ -22,6 +22,7 @@ from typing import Any
 from can.interfaces import VALID_INTERFACES
 
 from hil.core.config import Table, load_toml, parse_toml
+from hil.core.ranges import PLAUSIBLE_MILLIAMPS
 from hil.core.registry import scheme_of
 from hil.core.settings import KeyRead, Layer, Layered, Setting, effective, lay
 from hil.core.verdict import RunTables, read_run_tables
@@ -135,6 +136,7 @@ class DriveConfig:
     run: RunTables               # [controller] params and [limits] of a run
     axes: tuple[AxisSpec, ...] = ()  # [[axis]]: several axes on the bus (none: one)
     reads: tuple[KeyRead, ...] = ()  # every key as read, in reading order
+    url: str = ""                # [bus] url: the bus as one URL ("": interface, channel...)
 
     @property
     def data(self) -> dict[str, Any]:
@@ -143,8 +145,9 @@ class DriveConfig:
 
     @property
     def bus_url(self) -> str:
-        """``[bus]`` as a drive URL (``emulated`` for the emulated drive)."""
-        return self.bus.url if self.bus is not None else EMULATED
+        """``[bus]`` as a drive URL: its ``url``, else its interface, channel and options
+        (``emulated`` for the emulated drive)."""
+        return self.url or (self.bus.url if self.bus is not None else EMULATED)
 
     def settings(self) -> list[Setting]:
         """Every key as it runs, with its origin."""
@@ -193,7 +196,8 @@ def parse_drive_config(layered: Layered, source: str, text: str = "") -> DriveCo
     """Complete drive tables (the default's keys all present) -> :class:`DriveConfig`."""
     root = Table(layered.data, source, layered=layered)
     bus_table = root.table("bus", required=True)
-    bus = _bus(bus_table)
+    url = _bus_url(bus_table)
+    bus = _bus(bus_table, url)
     fd = bus is not None and bus.options.get("fd") is True
     profile = _profile(root.table("profile", required=True),
                        root.table("homing", required=True))
@@ -207,7 +211,7 @@ def parse_drive_config(layered: Layered, source: str, text: str = "") -> DriveCo
     root.done()
     return DriveConfig(master=master, emulator=emulator, bus=bus, safety=safety,
                        layered=layered, text=text, source=source, run=run, axes=axes,
-                       reads=tuple(root.reads))
+                       reads=tuple(root.reads), url=url)
 
 
 def _axes(root: Table) -> tuple[AxisSpec, ...]:
@@ -224,7 +228,8 @@ def _axes(root: Table) -> tuple[AxisSpec, ...]:
         if not AXIS_NAME.fullmatch(name):
             raise table.error("name", f"must be a lower-case name (a-z, 0-9, _), got {name!r}")
         axes.append(AxisSpec(name, table.integer("node", at_least=1, at_most=127),
-                             table.number("current_limit_mA", None, above=0, at_most=32_767),
+                             table.number("current_limit_mA", None, above=0, at_most=32_767,
+                                          plausible=PLAUSIBLE_MILLIAMPS),
                              _axis_bus(table), table.file_path("eds", "") or None,
                              _axis_safety(table.table("safety"))))
         table.done()
@@ -271,11 +276,32 @@ def _safety(s: Table) -> ServoSafety:
     return safety
 
 
-def _bus(bus: Table) -> CanBusSpec | None:
+def _bus_url(bus: Table) -> str:
+    """``[bus] url``: the bus as one URL, as ``--drive`` takes it (``''``: none), checked as a
+    run opens it (a plug-in's scheme is its own to check)."""
+    url = bus.string("url").strip()
+    if url.startswith(EMULATED + "?"):
+        raise bus.error("url", f"is {url!r}: in a config file the emulated drive's axis model "
+                        "is [emulator] model; url = 'emulated'")
+    if url and scheme_of(url) in VALID_INTERFACES:
+        try:
+            parse_can_url(url)
+        except ConfigError as exc:
+            raise bus.error("url", f"is not a bus URL: {exc}") from None
+    return url
+
+
+def _bus(bus: Table, url: str = "") -> CanBusSpec | None:
     """``[bus]``: ``interface`` (``emulated``, ``socketcand`` or a python-can interface),
-    ``channel`` and ``options`` (keyword arguments of ``can.Bus``; socketcand: host, port)."""
+    ``channel`` and ``options`` (keyword arguments of ``can.Bus``; socketcand: host, port);
+    a python-can ``url`` names the bus instead (the others are read, unused)."""
     interface = bus.string("interface")
     table = bus.table("options")
+    if url:
+        for name in table.names():
+            table.value(name)
+        table.done()
+        return parse_can_url(url) if scheme_of(url) in VALID_INTERFACES else None
     if interface == EMULATED:
         if table.names():
             raise table.error(table.names()[0], "is an option of a CAN interface; "
@@ -349,7 +375,8 @@ def _master(m: Table, bus: Table, profile: ProfileSettings, fd: bool = False
         cycle_period_s=m.integer("cycle_period_us", above=0, at_most=U32) / 1e6,  # 0x1006
         bitrate=_bitrate(bus, fd),
         channel=channel,
-        current_limit_ma=m.number("current_limit_mA", above=0, at_most=32_767),
+        current_limit_ma=m.number("current_limit_mA", above=0, at_most=32_767,
+                                  plausible=PLAUSIBLE_MILLIAMPS),
         heartbeat_id=m.integer("heartbeat_id", at_least=1, at_most=127),
         heartbeat_period_ms=m.integer("heartbeat_period_ms", at_least=0, at_most=U16),
         heartbeat_timeout_ms=m.integer("heartbeat_timeout_ms", at_least=0, at_most=U16),
@@ -507,7 +534,7 @@ def _emulator(e: Table, cycle_period_s: float) -> DriveEmulatorConfig:
         eds=e.file_path("eds") or None,
         rated_current_ma=e.integer("rated_current_mA", above=0),
         max_torque_permille=e.integer("max_torque_permille", at_least=0, at_most=U16),
-        current_limit_ma=e.number("current_limit_mA", above=0),
+        current_limit_ma=e.number("current_limit_mA", above=0, plausible=PLAUSIBLE_MILLIAMPS),
         overcurrent_trip_ma=e.integer("overcurrent_trip_mA", above=0, at_most=U16),
         increments_per_rev=e.integer("increments_per_rev", at_least=2, at_most=2**31 - 1),
         heartbeat_ms=e.integer("heartbeat_ms", at_least=0, at_most=U16),

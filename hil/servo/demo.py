@@ -45,9 +45,11 @@ def drive_for(limit_ma: float) -> dict[str, Any]:
 
 
 def run_servo_demo(out_dir: str | Path, echo: Callable[[str], None] | None = print,
-                   recording: RecordingOptions | None = None) -> list[dict[str, Any]]:
-    """Run the four sessions into ``out_dir`` (MCAP + PNG each); return one row per run and,
-    unless ``echo`` is None, print the comparison table with it."""
+                   recording: RecordingOptions | None = None, quiet: bool = False
+                   ) -> list[dict[str, Any]]:
+    """Run the four sessions into ``out_dir`` (MCAP + PNG each, ``quiet``: without their
+    progress lines); return one row per run and, unless ``echo`` is None, print the comparison
+    table with it."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -60,7 +62,7 @@ def run_servo_demo(out_dir: str | Path, echo: Callable[[str], None] | None = pri
                 drive_overrides=drive_for(limit),
                 reference=f"sine:amplitude={AMPLITUDE_DEG:g},frequency={frequency:g}",
                 duration_s=SETTLE_S + 1.0 / frequency, settle_s=SETTLE_S,
-                out=mcap, recording=recording or RecordingOptions())
+                out=mcap, recording=recording or RecordingOptions(), quiet=quiet)
             kpis = run_servo(config).kpis
             png = out / f"{name}.png"
             plot_session(read_session(mcap), str(png))

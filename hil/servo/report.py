@@ -25,7 +25,7 @@ import numpy as np
 
 from hil.controllers.servo.model import SAMPLE_PERIOD_S
 from hil.core.recording.reader import SessionData
-from hil.core.report import kpis
+from hil.core.report import KPI_ROW_IN, kpi_table, kpi_table_rows, kpis
 from hil.servo.safety import ServoSafety, judge_stale
 
 WATERFALL_TICKS = 100
@@ -218,12 +218,15 @@ def plot_servo(data: SessionData, out_png: str) -> None:
     origin = int(stamps[0])
     t = _seconds(stamps, origin)
     has_prediction = "u_mA" in prediction and prediction["log_time_ns"].size > 0
-    rows = 4 if has_prediction else 3
-    fig, axes = plt.subplots(rows, 1, figsize=(10, 2.6 * rows), squeeze=False)
-    axes = axes[:, 0]
+    plots = 4 if has_prediction else 3
+    table = kpi_table_rows(data)
+    table_in = KPI_ROW_IN * (len(table) + 1)
+    fig, axes = plt.subplots(plots + 1, 1, figsize=(10, 2.6 * plots + table_in),
+                             gridspec_kw={"height_ratios": [2.6] * plots + [table_in]})
     info = kpis(data)
     title = f"servo session: {info.get('controller', '?')}, {info.get('reference', '')}"
     fig.suptitle(title, fontsize=10)
+    settle_s = float(info.get("settle_s") or 0.0)
 
     reference, error = command["reference_deg"], command["error_deg"]
     ax = axes[0]
@@ -233,11 +236,7 @@ def plot_servo(data: SessionData, out_png: str) -> None:
     ax.set_title("tracking", fontsize=9)
     ax.legend(loc="best", fontsize=8)
 
-    ax = axes[1]
-    ax.plot(t, error, lw=0.8)
-    ax.axhline(0.0, color="k", lw=0.5)
-    ax.set_ylabel("error [deg]")
-    ax.set_title("tracking error (position - reference)", fontsize=9)
+    draw_error(axes[1], t, error, settle_s)
 
     ax = axes[2]
     ax.plot(t, command["command_mA"], lw=0.9, label="commanded")
@@ -247,17 +246,61 @@ def plot_servo(data: SessionData, out_png: str) -> None:
     limit = current_limit(data)
     if limit is not None:
         for sign in (1, -1):
-            ax.axhline(sign * limit, color="r", lw=0.6, ls=":")
+            ax.axhline(sign * limit, color="r", lw=0.6, ls=":",
+                       label=f"current limit ±{limit:g} mA" if sign > 0 else None)
     ax.set_ylabel("current [mA]")
     ax.set_title("motor current", fontsize=9)
     ax.legend(loc="best", fontsize=8)
 
     if has_prediction:
         draw_waterfall(axes[3], command, prediction, origin)
-    axes[-1].set_xlabel("time [s]")
+    for ax in axes[:plots]:
+        mark_settle(ax, settle_s)
+    axes[plots - 1].set_xlabel("time [s]")
+    kpi_table(axes[plots], table)
     fig.tight_layout()
     fig.savefig(out_png, dpi=110)
     plt.close(fig)
+
+
+#: the share of a run at its start whose transient the error axis leaves off its scale
+START_SHARE = 0.05
+
+
+def error_scale(t: np.ndarray, error: np.ndarray, settle_s: float) -> tuple[float, float]:
+    """The error axis' half-height [deg]: the largest error after the start (the settle
+    window, else the first :data:`START_SHARE` of the run) with a margin, so a start
+    transient does not flatten the rest; and from when it counts [s]."""
+    start = max(settle_s, float(t[0] + START_SHARE * (t[-1] - t[0]))) if t.size else 0.0
+    after = np.abs(error[(t >= start) & np.isfinite(error)])
+    if after.size == 0 or not after.max() > 0:
+        return 0.0, start
+    return 1.15 * float(after.max()), start
+
+
+def draw_error(ax: Any, t: np.ndarray, error: np.ndarray, settle_s: float) -> None:
+    """The tracking error, scaled to what follows the start (:func:`error_scale`); the start
+    transient, when it goes beyond, clipped and said so."""
+    ax.plot(t, error, lw=0.8)
+    ax.axhline(0.0, color="k", lw=0.5)
+    ax.set_ylabel("error [deg]")
+    title = "tracking error (position - reference)"
+    half, start = error_scale(t, error, settle_s)
+    before = np.abs(error[t < start])
+    if half > 0 and before.size and before.max() > half:
+        ax.set_ylim(-half, half)
+        title += f"; off scale before t = {start:.3g} s: up to {before.max():.3g} deg"
+    ax.set_title(title, fontsize=9)
+
+
+def mark_settle(ax: Any, settle_s: float) -> None:
+    """The settle window (``--settle``: the start the KPIs leave out), shaded, in the
+    legend."""
+    if settle_s <= 0:
+        return
+    ax.axvspan(0.0, settle_s, color="0.85", zorder=0,
+               label=f"settle {settle_s:g} s: not in the KPIs")
+    ax.legend(loc="best", fontsize=8)
 
 
 def draw_waterfall(ax: Any, command: dict[str, np.ndarray], prediction: dict[str, np.ndarray],

@@ -46,23 +46,27 @@ class ServoResim:
 
 
 def recorded_url(run: Mapping[str, Any], tables: Mapping[str, Any]) -> str:
-    """The URL of the drive the recorded run drove: its ``--drive``, else its ``[bus]``."""
+    """The URL of the drive the recorded run drove: its ``--drive``, else its ``[bus]``
+    (``url``, else ``interface`` and ``channel``)."""
     url, _ = emulated_url(run.get("drive"))
     if url:
         return url
     bus = tables.get("bus") or {}
+    if bus.get("url"):
+        return str(bus["url"])
     interface = str(bus.get("interface", EMULATED))
     return EMULATED if interface == EMULATED else f"{interface}://{bus.get('channel', '')}"
 
 
 def plan_resim(recorded: Recorded, controller: str | None, params: Mapping[str, Any],
                model: str | None, out: str, folder: str,
-               drive_info: Mapping[str, Any] | None = None) -> ServoResim:
+               drive_info: Mapping[str, Any] | None = None, quiet: bool = False
+               ) -> ServoResim:
     """The resimulation of ``recorded`` with ``controller`` (None: the recorded one) and
     ``params`` (laid over the recorded ones when the controller is the recorded one),
     ``model`` the emulator's axis (None: the recorded emulator's), recorded to ``out``; its
     drive config is written into ``folder``. ``drive_info``: the session's ``drive``
-    metadata (the current limit the drive applied)."""
+    metadata (the current limit the drive applied). ``quiet``: no progress line."""
     run, tables = recorded.table("servo"), recorded.table("drive")
     if not isinstance(tables.get("master"), Mapping):
         raise UsageError(f"{recorded.path}: its recorded drive config has no [master] table: it "
@@ -96,7 +100,7 @@ def plan_resim(recorded: Recorded, controller: str | None, params: Mapping[str, 
             drive_config=write_config(tables, folder, "drive.toml"),
             settle_s=run["settle_s"], prediction_every=_prediction_every(run),
             limits=recorded.limits(run), controller_budget_s=run.get("controller_budget_s"),
-            quiet=True, axes=axes,
+            quiet=quiet, axes=axes,
             from_here=bool(run.get("from_here")))
     except KeyError as exc:
         raise UsageError(f"{recorded.path}: its recorded servo run has no {exc.args[0]!r} (a "

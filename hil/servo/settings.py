@@ -4,9 +4,9 @@
 
 Flags that set a key of drive.toml are layers over the files (``--node`` is
 ``master.node_id``, ``--eds`` is ``master.eds``, ``--safety K=V`` is ``safety.K``, ``--umax`` is
-``master.current_limit_mA``); ``--drive URL`` names the bus instead of ``[bus]``
-(``--drive 'emulated?model=F.json'``: the emulated drive, ``[emulator] model`` = F.json, its
-path from the working folder). What the run
+``master.current_limit_mA``, ``--drive URL`` is ``bus.url``, which names the bus instead of
+its interface, channel and options; ``--drive 'emulated?model=F.json'``: the emulated drive,
+``[emulator] model`` = F.json, its path from the working folder). What the run
 uses comes from :class:`ServoSettings` only, so what ``--print-config`` shows is what runs.
 
 Limits only tighten from a flag: ``--umax`` above the configured current limit needs
@@ -52,8 +52,7 @@ from hil.servo.options import ServoRunOptions, flag_of
 
 #: the keys of drive.toml a flag sets (a ``*`` stands for any name), for the reference and
 #: --help; the layers themselves are built by :func:`resolve_servo`
-FLAG_KEYS = {"bus.interface": "--drive", "bus.channel": "--drive", "bus.options": "--drive",
-             "bus.options.*": "--drive", "master.node_id": "--node",
+FLAG_KEYS = {"bus.url": "--drive", "master.node_id": "--node",
              "master.current_limit_mA": "--umax", "master.eds": "--eds",
              "emulator.model": "--drive emulated?model=F", "safety.*": "--safety KEY=VALUE"}
 #: the keys of ``[emulator]`` the URL ``emulated?KEY=VALUE`` sets
@@ -99,7 +98,6 @@ class ServoSettings:
             "controller": (options.controller or None,
                            "--controller" if options.controller else "not given")}
         return [*option_settings(options, defaults, resolved, NOT_SETTINGS, flag_of),
-                Setting("bus.url", self.drive_url, self.drive_url_origin, "string"),
                 *self._drive_settings()]
 
     def _umax_origin(self) -> str:
@@ -107,14 +105,20 @@ class ServoSettings:
             self.drive.layered.origin("master.current_limit_mA")
 
     def _drive_settings(self) -> list[Setting]:
-        settings = self.drive.settings()
-        if self.drive_url_origin != "--drive":
-            return settings
-        unused = " (unused: --drive names the bus)"
-        return [Setting(s.key, s.value, s.origin + unused, s.kind, s.rule)
-                if s.key.split(".")[:2] in (["bus", "interface"], ["bus", "channel"],
-                                            ["bus", "options"]) else s
-                for s in settings]
+        """drive.toml's keys as they run: ``bus.url`` the bus the run drives (its ``url``,
+        else what ``interface``, ``channel`` and ``options`` make, which a url leaves
+        unused)."""
+        named = bool(self.drive.url)
+        settings = []
+        for s in self.drive.settings():
+            if s.key == "bus.url":
+                s = Setting(s.key, self.drive_url, self.drive_url_origin, s.kind, s.rule)
+            elif named and s.key.split(".")[:2] in (["bus", "interface"], ["bus", "channel"],
+                                                    ["bus", "options"]):
+                s = Setting(s.key, s.value, s.origin + " (unused: url names the bus)", s.kind,
+                            s.rule)
+            settings.append(s)
+        return settings
 
 
 def resolve_servo(options: ServoRunOptions) -> ServoSettings:
@@ -125,16 +129,16 @@ def resolve_servo(options: ServoRunOptions) -> ServoSettings:
     configured = parse_drive_config(lay(layers), source, text)
     drive_url, url_keys = emulated_url(options.drive)
     flags = _flag_layers(options)
-    if url_keys:  # a flag's path: from the working folder
-        flags.append(Layer("--drive", {"emulator": url_keys}))
+    if drive_url is not None:  # a model's path: from the working folder
+        flags.append(Layer("--drive", {"bus": {"url": drive_url}, "emulator": url_keys}))
     drive = parse_drive_config(lay([*layers, *flags]), source, text)
     notices = [*_current_limit(options, configured), *_safety(options, configured, drive)]
     if options.umax is not None:
         drive = drive.laid_over({"master": {"current_limit_mA": float(options.umax)}}, "--umax")
     if options.drive_overrides:  # a program's, last of all (tests, scripts, the demo)
         drive = drive.laid_over(options.drive_overrides, "drive_overrides")
-    url = drive_url or drive.bus_url
-    url_origin = "--drive" if options.drive else drive.layered.origin("bus.interface")
+    url = drive.bus_url
+    url_origin = drive.layered.origin("bus.url" if drive.url else "bus.interface")
     buses = run_buses(options, drive, url)
     for bus in buses:
         check_emulated_period(drive, bus)

@@ -96,10 +96,12 @@ def twin_overrides(recording: ServoRecording, model: str | None, eds: str | None
     return {"master": master, "safety": {"enabled": False}, "emulator": emulator}
 
 
-def run_twin(recording: ServoRecording, model: str | None, eds: str | None, out: str) -> None:
-    """The twin's run of the recording's currents, recorded to ``out``."""
+def run_twin(recording: ServoRecording, model: str | None, eds: str | None, out: str,
+             quiet: bool = False) -> None:
+    """The twin's run of the recording's currents, recorded to ``out`` (``quiet``: no
+    progress line)."""
     options = ServoRunOptions(
-        controller=replay_factory(recording), drive="emulated", out=out, quiet=True,
+        controller=replay_factory(recording), drive="emulated", out=out, quiet=quiet,
         reference=recording.reference,
         duration_s=recording.currents_ma.size * recording.period_s,
         drive_overrides=twin_overrides(recording, model, eds))

@@ -63,7 +63,8 @@ def test_table_done_refuses_keys_nobody_read():
     p1.integer("coil")
     p1.number("dwell_s", 5.0)
     with pytest.raises(ConfigError, match=r"^my\.toml: unknown key 'relays\.P1\.dwel_s' "
-                                          r"\(known here: coil, dwell_s\)$"):
+                                          r"\(did you mean 'relays\.P1\.dwell_s'\? known "
+                                          r"here: coil, dwell_s\)$"):
         p1.done()
     relays.done()  # P1 itself was read
     t.done()

@@ -148,7 +148,7 @@ def test_report_html_from_the_command_line(folder):
                      "/drive/feedback"):
         assert expected in words, expected
     for panel in ("tracking error", "motor current", "current limit 1000 mA",
-                  "loop step time per task"):
+                  "loop tick time per task"):
         assert panel in text, panel
     assert "Decimated" not in words and "Damage" not in words
 

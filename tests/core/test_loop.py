@@ -80,13 +80,13 @@ def test_a_task_takes_part_only_in_the_phases_it_defines_and_each_is_timed():
     loop.run(max_ticks=10)
     assert calls == [k * 20_000_000 for k in range(5)]
     summary = loop.summary()
-    assert set(summary["sensor"]) >= {"read_us", "step_us"}
+    assert set(summary["sensor"]) >= {"read_us", "tick_us"}
     assert "compute_us" not in summary["sensor"] and "read_us" not in summary["ctl"]
     assert summary["ctl"]["runs"] == 5 and summary["sensor"]["runs"] == 10
     for phase in ("read", "compute", "write", "record"):
         assert summary["all"][f"{phase}_us"]["max"] > 0
-    # the step is the sum of the phases: never less than the longest one
-    assert summary["all"]["step_us"]["max"] >= summary["all"]["read_us"]["max"]
+    # the tick is the sum of the phases: never less than the longest one
+    assert summary["all"]["tick_us"]["max"] >= summary["all"]["read_us"]["max"]
 
 
 def test_timing_records_hold_each_phase_under_its_own_name(tmp_path):

@@ -174,10 +174,9 @@ def print_config(capsys: pytest.CaptureFixture[str], app: str, *argv: str
 
 
 def cases(settings: list[Setting]) -> list[Setting]:
-    """The keys of the configs (``run.*`` are the options; the drive's ``bus.url`` is made of
-    ``[bus]``), but the coupled ones, which have their own test."""
-    keys = [s for s in settings if (not s.key.startswith("run.") and s.key != "bus.url")
-            or (s.key == "bus.url" and s.origin.endswith("bench.toml"))]
+    """The keys of the configs (``run.*`` are the options), but the coupled ones, which have
+    their own test."""
+    keys = [s for s in settings if not s.key.startswith("run.")]
     return [s for s in keys if not _coupled(s.key)]
 
 
@@ -221,8 +220,8 @@ KEY_FLAGS: dict[str, list[tuple[str, Any, list[str], Any]]] = {
         ("master.node_id", 4, ["--node", "9"], 9),
         ("master.current_limit_mA", 800.0, ["--umax", "250"], 250.0),
         ("master.eds", "in-config.eds", ["--eds", "from-flag.eds"], "{cwd}/from-flag.eds"),
-        ("bus.interface", "virtual", ["--drive", "socketcand://127.0.0.1:29999"],
-         "virtual"),  # --drive names the bus instead: bus.url below
+        ("bus.url", "virtual://bench-7", ["--drive", "socketcand://127.0.0.1:29999"],
+         "socketcand://127.0.0.1:29999"),
         ("emulator.model", str(AXIS_MODEL), ["--drive", f"emulated?model={OTHER_AXIS_MODEL}"],
          str(OTHER_AXIS_MODEL)),
         ("safety.enabled", True, ["--safety", "enabled=true"], True),
@@ -277,7 +276,6 @@ RUN_FLAGS: dict[str, list[tuple[list[str], str, Any]]] = {
         (["--axes", "x=1,y=2"], "run.axes", "x=1,y=2"),
         (["--allow-higher-current"], "run.allow_higher_current", True),
         (["--allow-looser-safety"], "run.allow_looser_safety", True),
-        (["--drive", "virtual://elsewhere"], "bus.url", "virtual://elsewhere"),
     ],
     "bench": [
         (["--controller", "bc"], "run.controller", "bc"),
@@ -285,6 +283,7 @@ RUN_FLAGS: dict[str, list[tuple[list[str], str, Any]]] = {
         (["--controller-budget", "0.5"], "run.controller_budget_s", 0.5),
         (["--limit", "J2_VA<=560"], "run.limits", ["J2_VA<=560"]),
         (["--cycles", "3"], "run.cycles", 3),
+        (["--duration", "10"], "run.duration_s", 10.0),
         (["--realtime"], "run.realtime", True),
         (["--quiet"], "run.quiet", True),
         (["--out", "here.mcap"], "run.out", "here.mcap"),
@@ -321,11 +320,6 @@ def test_a_flag_overrides_the_config_file_key_by_key(tmp_path, capsys, monkeypat
     after = print_config(capsys, app, "--config", str(config), *argv)
     if isinstance(runs, str):
         runs = runs.format(cwd=tmp_path)
-    if argv[0] == "--drive" and key.startswith("bus."):  # the URL names the bus; the [bus]
-        # keys are kept, unused
-        assert after["bus.url"] == {"value": argv[1], "origin": "--drive"}
-        assert after[key]["origin"].endswith("(unused: --drive names the bus)")
-        return
     assert after[key] == {"value": runs, "origin": argv[0]}
 
 
@@ -396,8 +390,7 @@ def test_every_key_of_the_packaged_configs_is_covered():
         keys = [s.key for s in settings if not s.key.startswith("run.")]
         assert keys, "the readers read no key"
         for key in keys:
-            assert key in {s.key for s in cases(settings)} or _coupled(key) \
-                or key == "bus.url", key
+            assert key in {s.key for s in cases(settings)} or _coupled(key), key
 
 
 def test_a_new_load_of_any_model_takes_effect(tmp_path, capsys):
@@ -456,7 +449,8 @@ def test_the_run_tables_and_the_bus_options_take_effect(tmp_path, capsys):
      "key 'axis[0].safety.following_error_deg' must be > 0 deg, got -1 deg"),
     ("servo", "[[axis]]\nname = \"x\"\nnode = 1\n[axis.safety]\nfollowing_error = 5\n"
               "[[axis]]\nname = \"y\"\nnode = 2\n",
-     "unknown key 'axis[0].safety.following_error' (known here: enabled, following_error_deg, "
+     "unknown key 'axis[0].safety.following_error' (did you mean "
+     "'axis[0].safety.following_error_ms'? known here: enabled, following_error_deg, "
      "following_error_ms, position_max_deg, position_min_deg, stale_share_max, "
      "stale_window_ms, velocity_max_deg_s)"),
 ])

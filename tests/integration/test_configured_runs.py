@@ -98,8 +98,10 @@ def test_the_config_current_limit_holds_and_a_flag_only_lowers_it(tmp_path, capf
 @pytest.mark.parametrize(("text", "named"), [
     ('[master]\ncurrent_limit_mA = "300"\n',
      "key 'master.current_limit_mA' must be a number, got a string '300'"),
-    ("[master]\ncurrent_limit_mA = 0.3\n",
-     "drive node 1: current limit 0.3 mA, the smallest of the run's 0.3 mA"),
+    ("[master]\ncurrent_limit_mA = 0.3\n",  # amperes, surely: refused when read
+     "key 'master.current_limit_mA' = 0.3: 0.3 mA is below 1 mA"),
+    ("[master]\ncurrent_limit_mA = 3\n[emulator]\nrated_current_mA = 4000\n",
+     "drive node 1: current limit 3 mA, the smallest of the run's 3 mA"),
 ])
 def test_a_current_limit_that_cannot_hold_is_refused(tmp_path, capfd, monkeypatch, text, named):
     monkeypatch.chdir(tmp_path)

@@ -181,10 +181,10 @@ def test_report_and_export_show_the_changes(pid_runs, capsys):
     assert report.returncode == 0, report.stderr
     lines = report.stdout.splitlines()
     first = lines.index("params   changed while running")
-    assert lines[first + 1].startswith("  controller.kp = 500.0 refused (test-client): "
+    assert lines[first + 1].startswith("  controller.kp = 500 refused (test-client): "
                                        "controller.kp = 500 rpm/deg is outside its range")
     assert "  controller.kp: 3.6111 -> 0.6 at tick 200 (test-client)" in lines
-    assert "  safety.current_limit_mA: 1000.0 -> 150.0 at tick 400 (test-client)" in lines
+    assert "  safety.current_limit_mA: 1000 -> 150 at tick 400 (test-client)" in lines
     exported = hil_here(capsys, "export", tuned.path, "--topic", "/params")
     assert exported.returncode == 0, exported.stderr
     assert exported.stdout.splitlines() == [

@@ -68,8 +68,8 @@ def test_a_sweep_table_with_an_unknown_key_is_refused(capsys, tmp_path):
     plan.write_text("[sweep]\nworker = 2\n")
     assert error_of(capsys, ["sweep", "servo", "--controller", "pid", "--sweep-config",
                              str(plan)]) == (
-        f"hil: error: {plan}: unknown key 'sweep.worker' (known here: address, grid, random, "
-        "seed, workers)")
+        f"hil: error: {plan}: unknown key 'sweep.worker' (did you mean 'sweep.workers'? known "
+        "here: address, grid, random, seed, workers)")
 
 
 def test_a_real_drive_is_swept_one_trial_after_another_with_serial(capsys, tmp_path):

@@ -126,7 +126,7 @@ def _write(out_path: str, title: str, head: list[str], sessions: Sequence[Sessio
     from plotly.offline import get_plotlyjs
 
     plots = [figures.time_figure(rows, labels, drawn)] if rows else []
-    histogram = figures.step_histogram(sessions, labels)
+    histogram = figures.tick_histogram(sessions, labels)
     divs = [pio.to_html(fig, full_html=False, include_plotlyjs=False, config=PLOT_CONFIG,
                         div_id=f"plot-{n}") for n, fig in enumerate([*plots, histogram])
             if fig is not None]

@@ -13,7 +13,7 @@ import numpy as np
 from hil.core.html_report.decimate import minmax_decimate
 from hil.core.html_report.panels import Panel, Trace
 from hil.core.recording.reader import SessionData
-from hil.core.report import step_samples
+from hil.core.report import tick_samples
 
 # plotly's own colour cycle; a trace keeps its colour in both sessions of a comparison
 PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2",
@@ -132,12 +132,12 @@ def _draw_row(fig: Any, i: int, row: Row, labels: Sequence[str], legend: str,
                          ticktext=[t for _, t in row.panel.ticks], row=i, col=1)
 
 
-def step_histogram(sessions: Sequence[SessionData], labels: Sequence[str]) -> Any | None:
-    """Runs per step-time bin (log bins, us) of every loop task, as step lines; None without
-    any timing recorded."""
+def tick_histogram(sessions: Sequence[SessionData], labels: Sequence[str]) -> Any | None:
+    """Runs per tick-time bin (log bins, us: a task's run in a tick, every phase) of every
+    loop task, as step lines; None without any timing recorded."""
     import plotly.graph_objects as go
 
-    samples = [(index, topic[len("/loop/"):-len("/timing")], step_samples(
+    samples = [(index, topic[len("/loop/"):-len("/timing")], tick_samples(
         [m for _, m in data.topic(topic) if isinstance(m, dict)]))
         for index, data in enumerate(sessions) for topic in sorted(data.messages)
         if topic.startswith("/loop/") and topic.endswith("/timing")]
@@ -158,8 +158,8 @@ def step_histogram(sessions: Sequence[SessionData], labels: Sequence[str]) -> An
             name=f"{task} ({labels[index]})" if len(labels) > 1 else task, mode="lines",
             line={"shape": "hv", "color": colour, "width": 1.2,
                   "dash": "dot" if baseline else "solid"}))
-    fig.update_xaxes(type="log", title_text="step time (the task's run, all phases) [us]")
+    fig.update_xaxes(type="log", title_text="tick time (the task's run, all phases) [us]")
     fig.update_yaxes(type="log", title_text="runs")
-    fig.update_layout(height=320, template="plotly_white", title="loop step time per task",
+    fig.update_layout(height=320, template="plotly_white", title="loop tick time per task",
                       margin={"l": 70, "r": 20, "t": 40, "b": 50})
     return fig

@@ -167,24 +167,24 @@ def events(sessions: Sequence[SessionData], labels: Sequence[str]) -> str:
 
 def loop(summaries: Sequence[Mapping[str, Any]], labels: Sequence[str], histogram: str
          ) -> str:
-    """Per task: runs, missed, overruns, lateness and step time (p50 / p99 / max, us), the
-    phases' p50 / p99; then the step-time histogram."""
+    """Per task: runs, missed, overruns, lateness and tick time (its run in a tick, every
+    phase: p50 / p99 / max, us), the phases' p50 / p99; then the tick-time histogram."""
     rows = []
     for summary, label in zip(summaries, labels, strict=True):
         for task, s in summary["loop"].items():
-            lat, step = s["lateness_us"], s["step_us"]
+            lat, tick = s["lateness_us"], s["tick_us"]
             phases = ", ".join(f"{p} {s[f'{p}_us']['p50']:.1f}/{s[f'{p}_us']['p99']:.1f}"
                                for p in PHASES if f"{p}_us" in s)
             rows.append([*([label] if len(labels) > 1 else []), task, s["period_s"],
                          s["runs"], s["missed"], s["overruns"],
                          f"{lat['p50']:.1f} / {lat['p99']:.1f} / {lat['max']:.1f}",
-                         f"{step['p50']:.1f} / {step['p99']:.1f} / {step['max']:.1f}", phases])
+                         f"{tick['p50']:.1f} / {tick['p99']:.1f} / {tick['max']:.1f}", phases])
     if not rows:
         return section("Loop timing", paragraph("No loop timing was recorded."),
                        anchor="loop")
     headers = [*(["session"] if len(labels) > 1 else []), "task", "period [s]", "runs",
                "missed", "overruns", "lateness p50 / p99 / max [us]",
-               "step p50 / p99 / max [us]", "phases p50/p99 [us]"]
+               "tick p50 / p99 / max [us]", "phases p50/p99 [us]"]
     return section("Loop timing", table(headers, rows), histogram, anchor="loop")
 
 
