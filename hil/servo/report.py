@@ -19,6 +19,7 @@ the predictions have something to show.
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -260,8 +261,8 @@ def plot_servo(data: SessionData, out_png: str) -> None:
     plt.close(fig)
 
 
-def draw_waterfall(ax: Any, command: dict[str, np.ndarray], prediction: dict[str, np.ndarray],
-                   origin: int) -> None:
+def draw_waterfall(ax: Any, command: Mapping[str, np.ndarray],
+                   prediction: Mapping[str, np.ndarray], origin: int) -> None:
     """Thin lines: û(k+i|k) of each recorded tick in the window; thick: the applied current."""
     stamps = prediction["log_time_ns"]
     window = waterfall_window(command["command_mA"], command["log_time_ns"], stamps)
