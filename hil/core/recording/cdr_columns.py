@@ -145,6 +145,7 @@ class Layout:
 
     def __init__(self, columns: CdrColumns, data: np.ndarray, starts: np.ndarray,
                  places: dict[str, _Fixed | _Sequence | _Strings]) -> None:
+        self.fields = columns.fields
         self.names = [f.name for f in columns.fields]
         self.count = int(starts.size)
         self._head_dtype = columns.head

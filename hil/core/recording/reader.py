@@ -113,6 +113,11 @@ class Topics(Mapping[str, list[tuple[int, Any]]]):
         stored = self._stored.get(topic)
         return 0 if stored is None else int(stored.log_times.size)
 
+    def log_times(self, topic: str) -> np.ndarray:
+        """The log times of ``topic``'s messages [ns], in order (uint64), without decoding."""
+        stored = self._stored.get(topic)
+        return np.empty(0, dtype=np.uint64) if stored is None else stored.log_times
+
     def span_ns(self, topic: str) -> tuple[int, int] | None:
         """The first and last log time of ``topic``, without decoding it."""
         stored = self._stored.get(topic)
