@@ -11,6 +11,11 @@ from typing import Any
 
 from hil.cli.argtypes import output_file
 
+#: below this many nanoseconds t / 1e9 rounded to 9 decimals is t / 1e9: doubles below 2^22
+#: are at most 2^-30 apart, so t / 1e9 is within 2^-31 s (< 0.5e-9 s) of the 9-decimal number
+#: and rounds back to it
+_EXACT_NS = (1 << 22) * 10**9
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
@@ -78,10 +83,9 @@ def _write_columns(data: Any, topic: str, out: io.StringIO) -> bool:
     layout = data.messages.layout(topic) if topic in data.messages else None
     if layout is None or layout.count == 0 or any(f.sequence for f in layout.fields):
         return False
-    log_times = data.messages.log_times(topic).tolist()
-    start = start_ns(data)
-    columns = {"t_s": [round((t - start) / 1e9, 9) for t in log_times],
-               "log_time_ns": log_times}
+    log_times = data.messages.log_times(topic)
+    columns = {"t_s": session_seconds(log_times, start_ns(data)),
+               "log_time_ns": log_times.tolist()}
     for name in layout.names:
         values = layout.values(name)
         if values and isinstance(values[0], float) and not all(map(math.isfinite, values)):
@@ -91,6 +95,19 @@ def _write_columns(data: Any, topic: str, out: io.StringIO) -> bool:
     writer.writerow(columns)
     writer.writerows(zip(*columns.values(), strict=True))
     return True
+
+
+def session_seconds(log_times: Any, start_ns: int) -> list[float]:
+    """``round((t - start_ns) / 1e9, 9)`` of each log time [ns] (uint64), as ``hil report
+    --topic`` gives ``t_s``; less than 2^22 s after the start that rounding changes nothing
+    (the quotient is the double nearest the 9-decimal number already), and numpy divides as
+    Python does."""
+    import numpy as np
+
+    if log_times.size and int(log_times.min()) >= start_ns and \
+            int(log_times.max()) - start_ns < _EXACT_NS:
+        return list(((log_times - np.uint64(start_ns)).astype(np.int64) / 1e9).tolist())
+    return [round((t - start_ns) / 1e9, 9) for t in log_times.tolist()]
 
 
 def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:

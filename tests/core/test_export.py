@@ -10,7 +10,11 @@ import io
 import json
 from pathlib import Path
 
-from hil.cli.export import _flatten, csv_text
+import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
+
+from hil.cli.export import _EXACT_NS, _flatten, csv_text, session_seconds
 from hil.cli.report import topic_lines
 from hil.core.recording.cdr import CdrEncoder, Field, ros2msg_text
 from hil.core.recording.mcap_writer import McapWriter
@@ -91,3 +95,12 @@ def test_a_topic_of_lists_exports_row_by_row(tmp_path):
     text = csv_text(data, "/t")
     assert text == rows_as_before(data, "/t")
     assert text.splitlines()[0] == "t_s,log_time_ns,u_mA.0,u_mA.1"
+
+
+@given(start=st.integers(0, 1 << 62), since=st.lists(
+    st.integers(0, _EXACT_NS - 1) | st.integers(0, 1 << 62) | st.sampled_from(
+        [0, 1, 500_000, _EXACT_NS - 1, _EXACT_NS]), max_size=20))
+def test_session_seconds_are_the_rounded_quotients_of_the_rows(start, since):
+    times = np.array([start + s for s in since], dtype=np.uint64)
+    want = [round((t - start) / 1e9, 9) for t in times.tolist()]
+    assert session_seconds(times, start) == want
