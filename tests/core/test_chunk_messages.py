@@ -157,3 +157,17 @@ def test_a_chunk_of_whole_records_gives_its_messages_as_one_block():
     block = records[-1]
     assert block.log_times.tolist() == [0, 10, 20, 30, 40]
     assert block.sizes.tolist() == [0, 1, 2, 3, 4] and set(block.channel_ids.tolist()) == {2}
+
+
+def test_a_schema_whose_fields_run_past_its_record_reads_as_mcap_reads_it():
+    """mcap reads a chunk's records as one stream: a schema whose data length says more than
+    its record holds takes the next record's first bytes as its data, and reading goes on
+    from there. hil's reading finds the same (found by the property test above)."""
+    builder = RecordBuilder()
+    Schema(id=1, name="s", encoding="ros2msg", data=b"\x00").write(builder)
+    Message(channel_id=1, sequence=0, log_time=1, publish_time=1, data=b"").write(builder)
+    content = bytearray(builder.end())
+    content[9 + 2 + 5 + 11:9 + 2 + 5 + 11 + 4] = (3).to_bytes(4, "little")  # data: 3 bytes
+    body = chunk_body(bytes(content))
+    assert outcome(chunk_records, body) == outcome(mcap_reads, body)
+    assert outcome(mcap_reads, body)[1][0].data == b"\x00\x05\x16"

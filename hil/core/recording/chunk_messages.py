@@ -117,9 +117,12 @@ def _split(content: bytes) -> list[Any] | None:
 
 def _parsed(content: bytes, head: int) -> Any:
     """The schema or channel record at ``head``; None when it does not read as one filling
-    its record."""
+    its record exactly (mcap's reading would then go on where its fields end, not where the
+    record does)."""
     opcode, length = HEAD.unpack_from(content, head)
-    stream = ReadDataStream(io.BytesIO(content[head + HEAD.size:head + HEAD.size + length]))
+    data = io.BytesIO(content)
+    data.seek(head + HEAD.size)
+    stream = ReadDataStream(data)
     try:
         record = _PARSED[opcode](stream)
     except Exception:  # struct, utf-8, end of data: mcap's reading says what
