@@ -82,6 +82,7 @@ class Topics(Mapping[str, list[tuple[int, Any]]]):
         self._columns = columns or {}
         self._layouts: dict[str, Layout | None] = {}
         self._decoded: dict[str, list[tuple[int, Any]]] = {}
+        self._arrays: dict[str, Columns] = {}
 
     def __getitem__(self, topic: str) -> list[tuple[int, Any]]:
         decoded = self._decoded.get(topic)
@@ -136,10 +137,13 @@ class Topics(Mapping[str, list[tuple[int, Any]]]):
 
     def columns(self, topic: str) -> Columns | None:
         """A CDR topic as arrays decoded field by field (None: not one that can be)."""
-        layout = self.layout(topic)
-        if layout is None or layout.count == 0:
-            return None
-        return Columns(self._stored[topic].log_times.astype(np.int64), layout)
+        if topic not in self._arrays:
+            layout = self.layout(topic)
+            if layout is None or layout.count == 0:
+                return None
+            self._arrays[topic] = Columns(self._stored[topic].log_times.astype(np.int64),
+                                          layout)
+        return self._arrays[topic]
 
 
 @dataclass
