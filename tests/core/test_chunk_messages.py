@@ -2,7 +2,8 @@
 (:mod:`hil.core.recording.chunk_messages`) instead of mcap's ``breakup_chunk``: it must find the
 same schemas, channels and messages, in the same order, on any chunk content; raise as
 ``breakup_chunk`` does where it raises; and read files that mcap's own writer wrote (schemas and
-channels inside the chunks; zstd, lz4 or no compression) as mcap's own reader does."""
+channels inside the chunks; zstd, lz4 or no compression; no chunks at all, the messages one by
+one) as mcap's own reader does."""
 
 from __future__ import annotations
 
@@ -123,11 +124,13 @@ def test_a_chunk_whose_crc_does_not_match_raises_as_mcap_says():
 
 
 @pytest.mark.parametrize("compression", [CompressionType.ZSTD, CompressionType.LZ4,
-                                         CompressionType.NONE])
+                                         CompressionType.NONE, "no chunks"])
 def test_a_file_of_mcaps_own_writer_reads_as_mcaps_reader_reads_it(tmp_path, compression):
     path = tmp_path / "theirs.mcap"
     with open(path, "wb") as stream:
-        writer = Writer(stream, compression=compression, chunk_size=2048)
+        writer = Writer(stream, chunk_size=2048, use_chunking=compression != "no chunks",
+                        compression=CompressionType.NONE if compression == "no chunks" else
+                        compression)
         writer.start()
         schema = writer.register_schema("n", "jsonschema", b'{"type": "object"}')
         channels = [writer.register_channel(f"/t{k}", "json", schema) for k in range(3)]

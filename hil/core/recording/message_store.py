@@ -75,10 +75,10 @@ class MessageStore:
     def finish(self) -> dict[str, TopicMessages]:
         """Every topic's messages, in log-time order (stable)."""
         out = {}
+        empty = (np.empty(0, np.uint64), np.empty(0, np.int64), np.empty(0, np.int64))
         for topic, pieces in self._topics.items():
-            times, starts, sizes = (np.concatenate([p[k] for p in pieces]) if pieces else
-                                    np.empty(0, dtype) for k, dtype in
-                                    enumerate((np.uint64, np.int64, np.int64)))
+            times, starts, sizes = (np.concatenate(parts) for parts in
+                                    zip(*pieces, strict=True)) if pieces else empty
             if times.size > 1 and (times[1:] < times[:-1]).any():
                 order = np.argsort(times, kind="stable")
                 times, starts, sizes = times[order], starts[order], sizes[order]
