@@ -1,7 +1,7 @@
 """A chunk's messages as arrays: one pass over its record heads, no object per message.
 
 mcap's ``breakup_chunk`` reads a chunk's records through a stream, a :class:`Message` each:
-some 12 us per message, most of a 60 s servo session's read. :func:`chunk_records` opens the
+several us per message, most of a 60 s servo session's read. :func:`chunk_records` opens the
 chunk as it does (decompression, the CRC of the content) and then only steps from record head
 to record head: schemas and channels are parsed, and the messages are kept as one
 :class:`ChunkMessages` (each one's channel, log time, and where its data lies in the content),

@@ -97,8 +97,8 @@ def _parse(opcode: int, content: bytes) -> Any:
 
 def _read(opcode: int, content: bytes, counting: bool) -> Any:
     """The record of ``opcode`` (None: one the walk skips). A message index is read only when
-    a damaged chunk's loss is being ``counting``: reading its entries costs some 5 us per
-    message; else it is only checked to fit its record."""
+    its entries count a damaged chunk's loss (``counting``): reading them costs microseconds
+    per message; else it is only checked to fit its record."""
     if opcode == INDEX_OPCODE and not counting and _index_fits(content):
         return None
     return _parse(opcode, content)
