@@ -1,14 +1,20 @@
-"""Regression against a baseline: what a baseline and an HTML report of a servo session weigh,
-and what ``hil compare`` costs next to ``hil report`` on the same sessions, in the same run.
+"""Reading sessions: what ``hil compare``, ``hil report`` and ``hil export`` cost on 60 s servo
+sessions, against the code before sessions were read column by column, in the same run; and
+what a baseline and an HTML report of a servo session weigh.
 
 1. A lockstep PID session of ``--report-s`` seconds (10 s: 20 000 ticks) is recorded. Printed:
    the session file, its baseline as ``hil_baseline`` keeps it (position and command at every
    tick, and at every 10th), and its ``hil report --html`` page (plotly.js inlined, each trace
    decimated to 5000 points).
 2. Two lockstep sessions of ``--compare-s`` seconds (60 s) that differ in their gain are
-   recorded. ``hil compare`` of the two on position and command and ``hil report`` of one are
-   run ``--repeats`` times each, alternated; printed: the median wall and CPU seconds of each
-   and their ratio (``hil report`` reads the same file once: the yardstick).
+   recorded. ``hil compare`` of the two on position and command, ``hil report --json`` of one
+   and ``hil export`` of its ``/drive/feedback`` to CSV are run ``--repeats`` times each, with
+   this code and with the code before (``git archive`` of the parent of the commit that
+   brought the column-wise reading, or ``--baseline-code DIR``), alternated. Printed for each:
+   the median wall and CPU seconds and the peak memory of after and before, after/before, and
+   the goal (the project's: compare <= 1 s, report <= 0.6 s, export <= 1 s of wall time, on a
+   quiet machine); then compare against report of this code (report reads one file once: the
+   yardstick). Both codes run from compiled bytecode (a warm-up run of each, not counted).
 
 ``--quick``: 1 s and 2 s sessions, one repeat (seconds; figures not worth quoting).
 """
@@ -17,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import resource
 import statistics
 import subprocess
 import sys
@@ -32,7 +37,17 @@ from benchkit import add_quick, fill_defaults
 from hil.compare.baseline import write_baseline
 from hil.core.html_report import write_session_html
 
+REPO = Path(__file__).resolve().parents[1]
 SIGNALS = ["/drive/feedback:position_deg", "/drive/command:command_mA"]
+#: the commit that brought the column-wise reading: the code before is its parent's
+COLUMN_READER = "hil/core/recording/cdr_columns.py"
+#: each command, and its goal [s of wall time]
+COMMANDS = {
+    "compare": (["compare", "a.mcap", "b.mcap", *[a for s in SIGNALS for a in ("--signal", s)],
+                 "--json"], 1.0),
+    "report": (["report", "a.mcap", "--json"], 0.6),
+    "export": (["export", "a.mcap", "--topic", "/drive/feedback", "--out", "feedback.csv"], 1.0),
+}
 
 
 def hil(*args: str, cwd: Path) -> None:
@@ -40,19 +55,50 @@ def hil(*args: str, cwd: Path) -> None:
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
-def timed(args: list[str], cwd: Path) -> tuple[float, float]:
-    """Wall and CPU seconds of ``hil ARGS`` (its exit status 0 or 1: a comparison that fails
-    is still a comparison)."""
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+def environment(code: Path) -> dict[str, str]:
+    """The children's: the checkout at ``code`` first on the path, bytecode written (each
+    command's first run compiles; the runs counted load it)."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    return {**env, "PYTHONPATH": str(code)}
+
+
+def timed(args: list[str], cwd: Path, code: Path) -> tuple[float, float, float]:
+    """Wall and CPU seconds and peak memory [MiB] of ``hil ARGS`` with the checkout at
+    ``code`` (its exit status 0 or 1: a comparison that fails is still a comparison)."""
     start = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", "hil", *args], cwd=cwd,
-                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, "-m", "hil", *args], cwd=cwd, env=environment(code),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    assert proc.stderr is not None
+    errors = proc.stderr.read()
+    _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - start
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    if done.returncode not in (0, 1):
-        raise SystemExit(f"hil {' '.join(args)} exited {done.returncode}: {done.stderr}")
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return wall, cpu
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode not in (0, 1):
+        raise SystemExit(f"hil {' '.join(args)} ({code}) exited {proc.returncode}: "
+                         f"{errors.decode(errors='replace')}")
+    return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024
+
+
+def code_before(folder: Path) -> tuple[Path | None, str]:
+    """The code before sessions were read column by column (the parent of the commit that
+    added :data:`COLUMN_READER`), extracted into ``folder``; (None, why not) without it."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", str(REPO), *args], capture_output=True, text=True,
+                              check=True).stdout.strip()
+
+    try:
+        added = git("log", "--diff-filter=A", "--format=%H", "HEAD", "--", COLUMN_READER)
+        if not added:
+            return None, f"no commit adds {COLUMN_READER} in this checkout's history"
+        ref = git("rev-parse", "--short", f"{added.splitlines()[-1]}^")
+        archive = subprocess.Popen(["git", "-C", str(REPO), "archive", ref, "hil", "drivers",
+                                    "emulators", "controllers"], stdout=subprocess.PIPE)
+        subprocess.run(["tar", "-x", "-C", str(folder)], stdin=archive.stdout, check=True)
+        if archive.wait() != 0:
+            return None, f"git archive {ref} failed"
+    except (OSError, subprocess.CalledProcessError) as exc:
+        return None, f"not a git checkout with its history ({exc})"
+    return folder, ref
 
 
 def sizes(folder: Path, seconds: float) -> None:
@@ -69,24 +115,38 @@ def sizes(folder: Path, seconds: float) -> None:
           f"points, {len(page.decimated)} of {page.traces} traces decimated)")
 
 
-def speed(folder: Path, seconds: float, repeats: int) -> None:
+def speed(folder: Path, seconds: float, repeats: int, before: Path | None, why: str) -> None:
     for name, kp in (("a", 3.6111), ("b", 3.0)):
         hil("servo", "run", "--controller", "pid", "--param", f"kp={kp}", "--duration",
             str(seconds), "--out", f"{name}.mcap", "--quiet", cwd=folder)
-    compare = ["compare", "a.mcap", "b.mcap", *[a for s in SIGNALS for a in ("--signal", s)],
-               "--json"]
-    report = ["report", "a.mcap", "--json"]
-    runs: dict[str, list[tuple[float, float]]] = {"compare": [], "report": []}
+    codes = {"after": REPO, **({"before": before} if before is not None else {})}
+    for code in codes.values():  # compiles each code's modules, not counted
+        for args, _ in COMMANDS.values():
+            timed(args, folder, code)
+    runs: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
     for _ in range(repeats):
-        runs["compare"].append(timed(compare, folder))
-        runs["report"].append(timed(report, folder))
-    wall = {k: statistics.median(w for w, _ in v) for k, v in runs.items()}
-    cpu = {k: statistics.median(c for _, c in v) for k, v in runs.items()}
-    print(f"two {seconds:g} s sessions ({repeats} alternated runs each, medians):")
-    for name in ("compare", "report"):
-        print(f"  hil {name:<8} wall {wall[name]:6.2f} s  cpu {cpu[name]:6.2f} s")
-    print(f"  compare / report: wall {wall['compare'] / wall['report']:.2f}x, "
-          f"cpu {cpu['compare'] / cpu['report']:.2f}x")
+        for name, (args, _) in COMMANDS.items():
+            for side, code in codes.items():
+                runs.setdefault((name, side), []).append(timed(args, folder, code))
+    median = {key: tuple(statistics.median(run[k] for run in v) for k in range(3))
+              for key, v in runs.items()}
+    print(f"two {seconds:g} s sessions ({repeats} alternated runs each, medians; before: "
+          f"{why})")
+    print(f"  {'':<12}{'wall s':>8}{'before':>8}{'ratio':>7}   {'cpu s':>6}{'before':>8}"
+          f"{'ratio':>7}   {'peak MiB':>8}{'before':>8}   goal (wall)")
+    for name, (_, goal) in COMMANDS.items():
+        wall, cpu, peak = median[(name, "after")]
+        line = f"  hil {name:<8}{wall:8.2f}"
+        if before is not None:
+            old_wall, old_cpu, old_peak = median[(name, "before")]
+            line += (f"{old_wall:8.2f}{wall / old_wall:6.2f}x   {cpu:6.2f}{old_cpu:8.2f}"
+                     f"{cpu / old_cpu:6.2f}x   {peak:8.0f}{old_peak:8.0f}")
+        else:
+            line += f"{'-':>8}{'-':>7}   {cpu:6.2f}{'-':>8}{'-':>7}   {peak:8.0f}{'-':>8}"
+        print(f"{line}   <= {goal:g} s: {'met' if wall <= goal else 'not met'}")
+    wall_ratio = median[("compare", "after")][0] / median[("report", "after")][0]
+    cpu_ratio = median[("compare", "after")][1] / median[("report", "after")][1]
+    print(f"  compare / report (this code): wall {wall_ratio:.2f}x, cpu {cpu_ratio:.2f}x")
 
 
 def main() -> int:
@@ -94,13 +154,21 @@ def main() -> int:
     parser.add_argument("--report-s", type=float, help="the sized session [s] (10)")
     parser.add_argument("--compare-s", type=float, help="the compared sessions [s] (60)")
     parser.add_argument("--repeats", type=int, help="runs of each command (5)")
+    parser.add_argument("--baseline-code", type=Path, metavar="DIR",
+                        help="the code before: this checkout (default: git archive of the "
+                        "parent of the commit that added " + COLUMN_READER + ")")
     add_quick(parser)
     args = parser.parse_args()
     fill_defaults(args, {"report_s": (10.0, 1.0), "compare_s": (60.0, 2.0),
                          "repeats": (5, 1)})
     with tempfile.TemporaryDirectory(prefix="hil-bench-compare-") as folder:
+        if args.baseline_code is not None:
+            before, why = args.baseline_code.resolve(), str(args.baseline_code)
+        else:
+            (Path(folder) / "before").mkdir()
+            before, why = code_before(Path(folder) / "before")
         sizes(Path(folder), args.report_s)
-        speed(Path(folder), args.compare_s, args.repeats)
+        speed(Path(folder), args.compare_s, args.repeats, before, why)
     return 0
 
 

@@ -5,10 +5,16 @@ from __future__ import annotations
 import argparse
 import csv
 import io
+import math
 import sys
 from typing import Any
 
 from hil.cli.argtypes import output_file
+
+#: below this many nanoseconds t / 1e9 rounded to 9 decimals is t / 1e9: doubles below 2^22
+#: are at most 2^-30 apart, so t / 1e9 is within 2^-31 s (< 0.5e-9 s) of the 9-decimal number
+#: and rounds back to it
+_EXACT_NS = (1 << 22) * 10**9
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -42,8 +48,8 @@ def export_command(args: argparse.Namespace) -> int:
     if args.out:
         with open(args.out, "w", encoding="utf-8", newline="") as file:
             file.write(text)
-        print(f"{args.topic}: {text.count(chr(10)) - (0 if args.jsonl else 1)} row(s) to "
-              f"{args.out}", file=sys.stderr)
+        print(f"{args.topic}: {data.messages.count(args.topic)} row(s) to {args.out}",
+              file=sys.stderr)  # a row per message (a text with a newline is one field)
     else:
         sys.stdout.write(text)
     return 0
@@ -55,15 +61,53 @@ def csv_text(data: Any, topic: str) -> str:
 
     from hil.cli.report import topic_lines
 
+    out = io.StringIO()
+    if _write_columns(data, topic, out):
+        return out.getvalue()
     rows = [_flatten(json.loads(line)) for line in topic_lines(data, topic)]
     columns: list[str] = []
     for row in rows:
         columns.extend(key for key in row if key not in columns)
-    out = io.StringIO()
     writer = csv.DictWriter(out, fieldnames=columns, lineterminator="\n")
     writer.writeheader()
     writer.writerows(rows)
     return out.getvalue()
+
+
+def _write_columns(data: Any, topic: str, out: io.StringIO) -> bool:
+    """A CDR topic of single values (no lists) written column by column, the rows the same
+    as :func:`~hil.cli.report.topic_lines` gives them, flattened (a message's own ``t_s``
+    wins over the session time); False for any other topic."""
+    from hil.cli.report import start_ns
+
+    layout = data.messages.layout(topic) if topic in data.messages else None
+    if layout is None or layout.count == 0 or any(f.sequence for f in layout.fields):
+        return False
+    log_times = data.messages.log_times(topic)
+    columns = {"t_s": session_seconds(log_times, start_ns(data)),
+               "log_time_ns": log_times.tolist()}
+    for name in layout.names:
+        values = layout.values(name)
+        if values and isinstance(values[0], float) and not all(map(math.isfinite, values)):
+            values = [v if math.isfinite(v) else None for v in values]  # as JSON's null
+        columns[name] = values
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(columns)
+    writer.writerows(zip(*columns.values(), strict=True))
+    return True
+
+
+def session_seconds(log_times: Any, start_ns: int) -> list[float]:
+    """``round((t - start_ns) / 1e9, 9)`` of each log time [ns] (uint64), as ``hil report
+    --topic`` gives ``t_s``; less than 2^22 s after the start that rounding changes nothing
+    (the quotient is the double nearest the 9-decimal number already), and numpy divides as
+    Python does."""
+    import numpy as np
+
+    if log_times.size and int(log_times.min()) >= start_ns and \
+            int(log_times.max()) - start_ns < _EXACT_NS:
+        return list(((log_times - np.uint64(start_ns)).astype(np.int64) / 1e9).tolist())
+    return [round((t - start_ns) / 1e9, 9) for t in log_times.tolist()]
 
 
 def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:

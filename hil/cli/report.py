@@ -82,14 +82,15 @@ def write_html(data: Any, out: str, max_points: int | None) -> Any:
     return write_session_data_html(data, out, max_points=max_points or DEFAULT_MAX_POINTS)
 
 
-def _start_ns(data: Any) -> int:
+def start_ns(data: Any) -> int:
+    """The session's first log time [ns], which its ``t_s`` count from (0 when empty)."""
     span = data.time_range_ns()
     return span[0] if span else 0
 
 
 def event_lines(data: Any) -> list[str]:
     """``/events`` as aligned lines: seconds from the start, level, kind, message."""
-    start = _start_ns(data)
+    start = start_ns(data)
     return [f"{(t - start) / 1e9:10.4f}  {event.get('level', ''):<7}  "
             f"{event.get('kind', ''):<24}  {event.get('message', '')}"
             for t, event in data.topic("/events")]
@@ -100,7 +101,7 @@ def topic_lines(data: Any, topic: str) -> list[str]:
     if topic not in data.messages:
         raise UsageError(f"no topic {topic!r} in {data.path}; topics: "
                          f"{', '.join(sorted(data.messages))}")
-    start = _start_ns(data)
+    start = start_ns(data)
     lines = []
     for t, message in data.topic(topic):
         fields = message if isinstance(message, dict) else {"value": message}

@@ -19,6 +19,7 @@ the predictions have something to show.
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -303,8 +304,8 @@ def mark_settle(ax: Any, settle_s: float) -> None:
     ax.legend(loc="best", fontsize=8)
 
 
-def draw_waterfall(ax: Any, command: dict[str, np.ndarray], prediction: dict[str, np.ndarray],
-                   origin: int) -> None:
+def draw_waterfall(ax: Any, command: Mapping[str, np.ndarray],
+                   prediction: Mapping[str, np.ndarray], origin: int) -> None:
     """Thin lines: û(k+i|k) of each recorded tick in the window; thick: the applied current."""
     stamps = prediction["log_time_ns"]
     window = waterfall_window(command["command_mA"], command["log_time_ns"], stamps)

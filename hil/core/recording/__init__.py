@@ -29,6 +29,12 @@ Reading:
   truncated or damaged) read back, with what could not be read;
 * :mod:`~hil.core.recording.mcap_walk` - the record-by-record MCAP walk that checks CRCs and
   accounts for damage;
+* :mod:`~hil.core.recording.chunk_messages` - a chunk's messages as arrays, found by their
+  record heads, no object per message;
+* :mod:`~hil.core.recording.message_store` - a session's messages as read: one buffer, and per
+  topic each message's log time and place in it;
+* :mod:`~hil.core.recording.cdr_columns` - a CDR topic decoded field by field over all its
+  messages at once (numpy), each field when asked for;
 * :mod:`~hil.core.recording.replay` - a recorded session streamed through the live view as if
   it ran now.
 

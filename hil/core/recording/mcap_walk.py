@@ -2,13 +2,15 @@
 
 The stock readers stop at the first bad byte. A session file may be truncated (SIGKILL, power
 cut), carry a damaged chunk in the middle (a bad sector, a bit flip) or a damaged summary.
-:func:`walk` reads every top-level record on its own. A chunk whose data or CRC is bad gives
-what it holds before its damage (:func:`hil.core.recording.mcap_salvage.salvage_chunk`, as
-far as hil's check record before it vouches for its bytes, or up to where the file was cut)
-and its loss is counted (from the message indexes that follow it, else from its check). Bytes
-that are no record are skipped up to the next record that surely starts
-(:func:`~hil.core.recording.mcap_salvage.restart_after`), and the walk goes on. What could
-not be read is returned as :class:`Damage` entries, each with its byte offset and size.
+:func:`walk` reads every top-level record on its own; an intact chunk gives its messages as
+one :class:`~hil.core.recording.chunk_messages.ChunkMessages`. A chunk whose data or CRC is
+bad gives what it holds before its damage, message by message
+(:func:`hil.core.recording.mcap_salvage.salvage_chunk`, as far as hil's check record before
+it vouches for its bytes, or up to where the file was cut) and its loss is counted (from the
+message indexes that follow it, else from its check; those of intact chunks are only checked
+to fit their record). Bytes that are no record are skipped up to the next record that surely
+starts (:func:`~hil.core.recording.mcap_salvage.restart_after`), and the walk goes on. What
+could not be read is returned as :class:`Damage` entries, each with its byte offset and size.
 """
 
 from __future__ import annotations
@@ -25,7 +27,6 @@ from mcap.data_stream import ReadDataStream
 from mcap.records import (
     Attachment,
     Channel,
-    Chunk,
     DataEnd,
     Footer,
     Message,
@@ -34,16 +35,18 @@ from mcap.records import (
     Schema,
     Statistics,
 )
-from mcap.stream_reader import breakup_chunk
 
 from hil.core.recording.chunk_check import OPCODE as CHECK_OPCODE
 from hil.core.recording.chunk_check import ChunkCheck
+from hil.core.recording.chunk_messages import chunk_records
 from hil.core.recording.mcap_salvage import restart_after, salvage_chunk, summary_offsets
 
 Buffer = bytes | mmap.mmap
 MAGIC = b"\x89MCAP0\r\n"
 _HEAD = struct.Struct("<BQ")
 CHUNK_OPCODE = 0x06
+INDEX_OPCODE = 0x07
+_INDEX_HEAD = struct.Struct("<HI")  # a message index's channel id and entries' bytes
 
 _READERS: dict[int, Callable[[ReadDataStream, int], Any]] = {
     0x03: lambda s, n: Schema.read(s),
@@ -92,12 +95,21 @@ def _parse(opcode: int, content: bytes) -> Any:
     return reader(ReadDataStream(io.BytesIO(content)), len(content))
 
 
-def _chunk_records(content: bytes) -> list[Any]:
-    chunk = Chunk.read(ReadDataStream(io.BytesIO(content)))
-    if chunk.compression not in ("", "zstd", "lz4"):
-        raise ValueError(f"unknown chunk compression {chunk.compression!r}")
-    records = breakup_chunk(chunk, validate_crc=True)
-    return records
+def _read(opcode: int, content: bytes, counting: bool) -> Any:
+    """The record of ``opcode`` (None: one the walk skips). A message index is read only when
+    its entries count a damaged chunk's loss (``counting``): reading them costs microseconds
+    per message; else it is only checked to fit its record."""
+    if opcode == INDEX_OPCODE and not counting and _index_fits(content):
+        return None
+    return _parse(opcode, content)
+
+
+def _index_fits(content: bytes) -> bool:
+    """Whether a message index's entries fit its record (``MessageIndex.read`` reads them)."""
+    if len(content) < _INDEX_HEAD.size:
+        return False
+    _, length = _INDEX_HEAD.unpack_from(content)
+    return _INDEX_HEAD.size + 16 * -(-length // 16) <= len(content)
 
 
 def _chunk_times(content: bytes) -> tuple[int, int] | None:
@@ -156,7 +168,7 @@ def _damaged_chunk(record: bytes, check: ChunkCheck | None, damage: Damage,
 
 def walk(data: Buffer, state: Walk) -> Iterator[Any]:
     """Yield every readable record of an MCAP file's bytes (chunks opened, damaged ones as far
-    as they go), in file order."""
+    as they go), in file order: an intact chunk's messages as one ``ChunkMessages``."""
     size = len(data)
     known = summary_offsets(data)
     pos = len(MAGIC)
@@ -176,7 +188,7 @@ def walk(data: Buffer, state: Walk) -> Iterator[Any]:
         end = pos + _HEAD.size + length
         if check is not None and (opcode != CHUNK_OPCODE or end != pos + check.chunk_length):
             opcode, end = CHUNK_OPCODE, pos + check.chunk_length  # its head is damaged
-        if broken is not None and opcode != 0x07:
+        if broken is not None and opcode != INDEX_OPCODE:
             broken = None
         if end > size or not _known_opcode(opcode):
             restart = restart_after(data, pos + 1, known)
@@ -197,7 +209,7 @@ def walk(data: Buffer, state: Walk) -> Iterator[Any]:
         content = bytes(data[pos + _HEAD.size:end])
         if opcode == CHUNK_OPCODE:
             try:
-                yield from _chunk_records(content)
+                yield from chunk_records(content)
             except Exception as exc:  # zstd, CRC, struct: what is before the damage is kept
                 damage = Damage("chunk", pos, end - pos,
                                 reason=f"{type(exc).__name__}: {exc}".strip(": "))
@@ -211,7 +223,7 @@ def walk(data: Buffer, state: Walk) -> Iterator[Any]:
             continue
         check = None
         try:
-            record = _parse(opcode, content)
+            record = _read(opcode, content, counting=broken is not None)
         except Exception as exc:  # the record's length may be damaged too: not past a chunk
             restart = restart_after(data, pos + 1, known)
             end = min(end, restart) if restart is not None else end

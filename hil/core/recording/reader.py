@@ -7,7 +7,10 @@ bytes and, where the file's indexes tell, the messages lost. ``recovered`` is tr
 was not finished (no footer: the writer was killed) or anything was damaged.
 
 Messages are decoded by their channel's encoding: ``json``, or ``cdr`` with a ``ros2msg``
-schema (:mod:`hil.core.recording.cdr`). A split series (``<stem>_000.mcap``,
+schema (:mod:`hil.core.recording.cdr`), and only when a topic is read. A CDR topic is decoded
+field by field over all its messages at once (:mod:`hil.core.recording.cdr_columns`), each
+field only when asked for (:meth:`SessionData.arrays`); one with a message its schema does not
+describe is decoded message by message. A split series (``<stem>_000.mcap``,
 ``<stem>_001.mcap``...) is read as one session from its folder, its first file or its unsplit
 name.
 """
@@ -19,7 +22,7 @@ import json
 import mmap
 import os
 import re
-from collections import defaultdict
+import struct
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -28,10 +31,39 @@ import numpy as np
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 
 from hil.core.recording.cdr import CdrDecoder, CdrError, parse_ros2msg
+from hil.core.recording.cdr_columns import CdrColumns, Layout, as_array
+from hil.core.recording.chunk_messages import ChunkMessages
 from hil.core.recording.mcap_walk import Damage, Walk, walk
+from hil.core.recording.message_store import MessageStore, TopicMessages
 from hil.errors import SessionFileError
 
 _SERIES = re.compile(r"^(?P<stem>.*)_(?P<index>\d{3,})\.mcap$")
+
+
+class Columns(Mapping[str, np.ndarray]):
+    """A topic as arrays, ``log_time_ns`` first, each field decoded when first read."""
+
+    def __init__(self, log_time_ns: np.ndarray, layout: Layout) -> None:
+        self._layout = layout
+        self._arrays = {"log_time_ns": log_time_ns}
+        self._keys = dict.fromkeys(["log_time_ns", *layout.names])
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        array = self._arrays.get(key)
+        if array is None:
+            if key not in self._keys:
+                raise KeyError(key)
+            array = self._arrays[key] = self._layout.column(key)
+        return array
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._keys)
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._keys
 
 
 class Topics(Mapping[str, list[tuple[int, Any]]]):
@@ -39,39 +71,79 @@ class Topics(Mapping[str, list[tuple[int, Any]]]):
     topic is decoded when it is first read, so a command that reads two topics of a long
     session decodes only those; counts and time spans come without decoding."""
 
-    def __init__(self, raw: dict[str, list[tuple[int, bytes]]] | None = None,
-                 decoders: dict[str, Callable[[bytes], Any]] | None = None) -> None:
-        self._raw = raw or {}
+    def __init__(self, stored: dict[str, TopicMessages] | None = None,
+                 buffer: bytes | bytearray = b"",
+                 decoders: dict[str, Callable[[bytes], Any]] | None = None,
+                 columns: dict[str, CdrColumns] | None = None) -> None:
+        self._stored = stored or {}
+        self._buffer = buffer
+        self._data = np.frombuffer(buffer, dtype=np.uint8)
         self._decoders = decoders or {}
+        self._columns = columns or {}
+        self._layouts: dict[str, Layout | None] = {}
         self._decoded: dict[str, list[tuple[int, Any]]] = {}
-        self._counts = {topic: len(items) for topic, items in self._raw.items()}
-        self._spans = {topic: (items[0][0], items[-1][0])
-                       for topic, items in self._raw.items() if items}
+        self._arrays: dict[str, Columns] = {}
 
     def __getitem__(self, topic: str) -> list[tuple[int, Any]]:
         decoded = self._decoded.get(topic)
         if decoded is None:
-            items = self._raw.pop(topic)  # the payloads, no longer needed once decoded
-            decode = self._decoders.get(topic, _decode_json)
-            decoded = self._decoded[topic] = [(t, decode(payload)) for t, payload in items]
+            stored = self._stored[topic]
+            layout = self.layout(topic)
+            if layout is not None:
+                messages = layout.messages()
+            else:
+                decode = self._decoders.get(topic, _decode_json)
+                data = memoryview(self._buffer)
+                messages = [decode(bytes(data[start:start + size])) for start, size in
+                            zip(stored.starts.tolist(), stored.sizes.tolist(), strict=True)]
+            decoded = self._decoded[topic] = list(zip(stored.log_times.tolist(), messages,
+                                                      strict=True))
         return decoded
 
     def __iter__(self) -> Iterator[str]:
-        return iter(self._counts)
+        return iter(self._stored)
 
     def __len__(self) -> int:
-        return len(self._counts)
+        return len(self._stored)
 
     def __contains__(self, topic: object) -> bool:
-        return topic in self._counts
+        return topic in self._stored
 
     def count(self, topic: str) -> int:
         """The number of messages of ``topic`` (0 when absent), without decoding them."""
-        return self._counts.get(topic, 0)
+        stored = self._stored.get(topic)
+        return 0 if stored is None else int(stored.log_times.size)
+
+    def log_times(self, topic: str) -> np.ndarray:
+        """The log times of ``topic``'s messages [ns], in order (uint64), without decoding."""
+        stored = self._stored.get(topic)
+        return np.empty(0, dtype=np.uint64) if stored is None else stored.log_times
 
     def span_ns(self, topic: str) -> tuple[int, int] | None:
         """The first and last log time of ``topic``, without decoding it."""
-        return self._spans.get(topic)
+        stored = self._stored.get(topic)
+        if stored is None or stored.log_times.size == 0:
+            return None
+        return int(stored.log_times[0]), int(stored.log_times[-1])
+
+    def layout(self, topic: str) -> Layout | None:
+        """The fields of a CDR topic placed in each message (None: not a CDR topic, or one
+        decoded message by message)."""
+        if topic not in self._layouts:
+            columns, stored = self._columns.get(topic), self._stored.get(topic)
+            self._layouts[topic] = None if columns is None or stored is None else \
+                columns.lay_out(self._data, stored.starts, stored.sizes)
+        return self._layouts[topic]
+
+    def columns(self, topic: str) -> Columns | None:
+        """A CDR topic as arrays decoded field by field (None: not one that can be)."""
+        if topic not in self._arrays:
+            layout = self.layout(topic)
+            if layout is None or layout.count == 0:
+                return None
+            self._arrays[topic] = Columns(self._stored[topic].log_times.astype(np.int64),
+                                          layout)
+        return self._arrays[topic]
 
 
 @dataclass
@@ -120,12 +192,16 @@ class SessionData:
         """(log_time_ns, message) pairs of one topic; empty when absent."""
         return self.messages.get(name, [])
 
-    def arrays(self, name: str) -> dict[str, np.ndarray]:
+    def arrays(self, name: str) -> Mapping[str, np.ndarray]:
         """A topic as numpy arrays: ``log_time_ns`` plus one array per message field.
 
         Scalar fields become 1-D arrays; fixed-length list fields become 2-D arrays; fields
-        whose shape varies between messages become object arrays.
+        whose shape varies between messages become object arrays. A CDR topic's fields are
+        decoded as they are read from the mapping.
         """
+        columns = self.messages.columns(name)
+        if columns is not None:
+            return columns
         msgs = self.topic(name)
         out: dict[str, np.ndarray] = {
             "log_time_ns": np.array([t for t, _ in msgs], dtype=np.int64)
@@ -136,13 +212,7 @@ class SessionData:
         for _, message in msgs:
             keys.extend(k for k in message if k not in keys)
         for key in keys:
-            values = [message.get(key) for _, message in msgs]
-            try:
-                array = np.array(values)
-            except ValueError:  # ragged lists
-                array = np.empty(len(values), dtype=object)
-                array[:] = values
-            out[key] = array
+            out[key] = as_array([message.get(key) for _, message in msgs])
         return out
 
 
@@ -182,37 +252,39 @@ def read_session(path: str | os.PathLike[str]) -> SessionData:
     """Read every readable record of the session at ``path``; never raises on damage."""
     files = session_files(path)
     data = SessionData(path=os.fspath(path), files=files)
-    raw: dict[str, list[tuple[int, bytes]]] = defaultdict(list)
+    store = MessageStore()
     decoders: dict[str, Callable[[bytes], Any]] = {}
+    columns: dict[str, CdrColumns] = {}
     for name in files:
-        _read_file(name, data, raw, decoders)
-    for items in raw.values():
-        items.sort(key=lambda item: item[0])
-    data.messages = Topics(dict(raw), decoders)
+        _read_file(name, data, store, decoders, columns)
+    data.messages = Topics(store.finish(), store.buffer, decoders, columns)
     return data
 
 
-def _read_file(path: str, data: SessionData, raw: dict[str, list[tuple[int, bytes]]],
-               decoders: dict[str, Callable[[bytes], Any]]) -> None:
+def _read_file(path: str, data: SessionData, store: MessageStore,
+               decoders: dict[str, Callable[[bytes], Any]],
+               columns: dict[str, CdrColumns]) -> None:
     size = os.path.getsize(path)
     if size == 0:
         raise SessionFileError(f"{path}: not an MCAP session file (empty)")
     state = Walk()
     schemas: dict[int, Schema] = {}
     channels: dict[int, str] = {}
-    by_channel: dict[int, list[tuple[int, bytes]]] = defaultdict(list)
     with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as view:
         try:
             for record in walk(view, state):
-                if isinstance(record, Schema):
+                if isinstance(record, ChunkMessages):
+                    store.add_chunk(record)
+                elif isinstance(record, Message):
+                    store.add_message(record.channel_id, record.log_time, record.data)
+                elif isinstance(record, Schema):
                     schemas[record.id] = record
                 elif isinstance(record, Channel):
                     channels[record.id] = record.topic
                     if record.topic not in decoders:
-                        _register(data, decoders, record, schemas.get(record.schema_id))
-                    raw.setdefault(record.topic, [])
-                elif isinstance(record, Message):
-                    by_channel[record.channel_id].append((record.log_time, record.data))
+                        _register(data, decoders, columns, record,
+                                  schemas.get(record.schema_id))
+                    store.declare(record.topic)
                 elif isinstance(record, Metadata):
                     data.metadata[record.name] = dict(record.metadata)
                 elif isinstance(record, Attachment):
@@ -220,9 +292,7 @@ def _read_file(path: str, data: SessionData, raw: dict[str, list[tuple[int, byte
         except ValueError as exc:
             raise SessionFileError(f"{path}: {exc}") from None
     # by channel id, once the walk is over: a channel may be known only from the summary
-    for channel_id, items in by_channel.items():
-        raw[channels.get(channel_id, f"<channel {channel_id}>")].extend(items)
-    _account(path, data, state, sum(map(len, by_channel.values())))
+    _account(path, data, state, store.end_file(channels))
 
 
 def _account(path: str, data: SessionData, state: Walk, seen: int) -> None:
@@ -254,7 +324,7 @@ def _account(path: str, data: SessionData, state: Walk, seen: int) -> None:
 
 
 def _register(data: SessionData, decoders: dict[str, Callable[[bytes], Any]],
-              channel: Channel, schema: Schema | None) -> None:
+              columns: dict[str, CdrColumns], channel: Channel, schema: Schema | None) -> None:
     topic = channel.topic
     data.encodings[topic] = channel.message_encoding
     if schema is not None and schema.encoding == "jsonschema":
@@ -266,9 +336,12 @@ def _register(data: SessionData, decoders: dict[str, Callable[[bytes], Any]],
         data.schemas[topic] = {"ros2msg": schema.data.decode(errors="replace")}
     if channel.message_encoding == "cdr" and schema is not None:
         try:
-            decoders[topic] = _guarded(CdrDecoder(parse_ros2msg(schema.data.decode())).decode)
+            fields = parse_ros2msg(schema.data.decode())
         except (CdrError, UnicodeDecodeError):
             decoders[topic] = _undecodable
+        else:
+            decoders[topic] = _guarded(CdrDecoder(fields).decode)
+            columns[topic] = CdrColumns(fields)
     elif channel.message_encoding != "json":
         decoders[topic] = _undecodable
 
@@ -277,7 +350,7 @@ def _guarded(decode: Callable[[bytes], Any]) -> Callable[[bytes], Any]:
     def safe(payload: bytes) -> Any:
         try:
             return decode(payload)
-        except (CdrError, ValueError, IndexError):  # struct.error is a ValueError
+        except (CdrError, ValueError, IndexError, struct.error):  # cut short: struct.error
             return {"_undecodable": len(payload)}
     return safe
 
