@@ -8,12 +8,14 @@ recorded to MCAP, as ``hil sweep servo`` runs them. Each repeat, in turn:
    with its writer process (which has the other core to itself) [baseline];
 2. on a local Ray of one worker per core, as ``hil sweep`` runs them: each trial recorded
    in its worker's own process (no writer process: every core runs a trial), from
-   submission to the last result, the workers' imports included (they start cold);
+   submission to the last result;
 3. serial, recorded in-process like the Ray trials [the same work one after another].
 
-Before the first repeat: one warm-up trial (the baselines pay no imports) and Ray's start-up
-(timed apart: ``hil sweep`` pays it once per sweep). The goal is (2) at least 1.7x as fast as
-(1) on 2 cores; (2) against (3) is how the same trials scale. Each ratio is the median of
+Before the first repeat: one warm-up trial here and one on each Ray worker (neither side pays
+its imports in the figures; a worker's first trial imports hil, about 2 s of CPU), and Ray's
+start-up (timed apart: ``hil sweep`` pays it once per sweep, and its workers' imports too).
+The goal is (2) at least 1.7x as fast as (1) on 2 cores; (2) against (3) is how the same
+trials scale. Each ratio is the median of
 the repeats' own ratios (pairs measured minutes apart on a shared machine). Also printed:
 how many trials Ray kept in flight, whether every trial's KPIs match across the three, and
 the load average: other processes on the cores slow the parallel run most.
@@ -27,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import statistics
 import sys
 import tempfile
@@ -66,12 +69,24 @@ def in_process(jobs: list[TrialJob]) -> list[TrialJob]:
     return [replace(job, in_process=True) for job in jobs]
 
 
-def sweep_s(engine: Engine, jobs: list[TrialJob]) -> tuple[float, list[dict[str, Any]]]:
-    """Wall time of ``jobs`` on ``engine`` and their rows; every trial must pass."""
+def sweep_s(engine: Engine, jobs: list[TrialJob], cpu: dict[str, list[float]] | None = None
+            ) -> tuple[float, list[dict[str, Any]]]:
+    """Wall time of ``jobs`` on ``engine`` and their rows; every trial must pass. ``cpu``:
+    where this process's CPU seconds per trial go (``self``; ``children``: the writer
+    processes), for a sweep run in this process."""
     rows: list[dict[str, Any]] = []
+    before = [resource.getrusage(who) for who in (resource.RUSAGE_SELF,
+                                                  resource.RUSAGE_CHILDREN)]
     start = time.perf_counter()
     engine.run(run_trial, jobs, rows.append)
     wall = time.perf_counter() - start
+    if cpu is not None:
+        for key, who, was in zip(("self", "children"), (resource.RUSAGE_SELF,
+                                                        resource.RUSAGE_CHILDREN), before,
+                                 strict=True):
+            now = resource.getrusage(who)
+            used = now.ru_utime + now.ru_stime - was.ru_utime - was.ru_stime
+            cpu.setdefault(key, []).append(used / len(jobs))
     failed = [row for row in rows if row["status"] != "ok"]
     assert not failed, failed
     return wall, rows
@@ -112,18 +127,24 @@ def main() -> int:
         start_ray(ray, workers, None)
         ray.get(ray.remote(lambda: None).remote())
         startup = time.perf_counter() - startup
+        warm_up = ray.remote(num_cpus=1)(run_trial)   # one at a time on each worker
+        quick = in_process(jobs_in(Path(tmp), 0.05, quick=True))[0]
+        assert all(row["status"] == "ok" for row in ray.get([warm_up.remote(quick)
+                                                             for _ in range(workers)]))
         on_ray = Engine(workers=workers)
         figures: dict[str, list[float]] = {"serial": [], "ray": [], "inline": []}
         busy: list[float] = []
+        with_writer: dict[str, list[float]] = {}
+        inline_cpu: dict[str, list[float]] = {}
         same = True
         for i in range(args.repeat):
             print(f"repeat {i + 1} of {args.repeat}...", file=sys.stderr)
-            wall, rows = sweep_s(serial, jobs)
+            wall, rows = sweep_s(serial, jobs, with_writer)
             figures["serial"].append(wall)
             wall, ray_rows = sweep_s(on_ray, in_process(jobs))
             figures["ray"].append(wall)
             busy.append(sum(r["trial_s"] for r in ray_rows) / wall)
-            wall, inline_rows = sweep_s(serial, in_process(jobs))
+            wall, inline_rows = sweep_s(serial, in_process(jobs), inline_cpu)
             figures["inline"].append(wall)
             same = same and kpis_of(rows) == kpis_of(ray_rows) == kpis_of(inline_rows)
         ray.shutdown()
@@ -145,6 +166,12 @@ def main() -> int:
           f"{statistics.median(figures['ray']):7.2f} s")
     print(f"  trials in flight on Ray (sum of trial times / wall): "
           f"{statistics.median(busy):.2f} of {workers}")
+    loop_s, writer_s = min(with_writer["self"]), min(with_writer["children"])
+    inline_s = min(inline_cpu["self"])
+    print(f"  CPU per trial: hil sweep --serial {loop_s:.2f} s in the loop's process and "
+          f"{writer_s:.2f} s in its writer process beside it; in-process {inline_s:.2f} s")
+    print(f"  what the CPU allows on {workers} idle cores (a model: the serial run as fast as "
+          f"its loop, Ray's trials side by side): {workers * loop_s / inline_s:.2f}x")
     print(f"  KPIs identical in the three: {same}")
     print(f"  load average before / after: {load_before:.1f} / {os.getloadavg()[0]:.1f} "
           f"(other processes on the {workers} cores slow the parallel run most)")
