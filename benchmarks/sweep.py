@@ -129,8 +129,9 @@ def main() -> int:
         startup = time.perf_counter() - startup
         warm_up = ray.remote(num_cpus=1)(run_trial)   # one at a time on each worker
         quick = in_process(jobs_in(Path(tmp), 0.05, quick=True))[0]
-        assert all(row["status"] == "ok" for row in ray.get([warm_up.remote(quick)
-                                                             for _ in range(workers)]))
+        warm = ray.get([warm_up.remote(replace(quick, mcap=f"{quick.mcap}.{i}"))
+                        for i in range(workers)])
+        assert all(row["status"] == "ok" for row in warm), warm
         on_ray = Engine(workers=workers)
         figures: dict[str, list[float]] = {"serial": [], "ray": [], "inline": []}
         busy: list[float] = []
