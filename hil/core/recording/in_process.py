@@ -11,7 +11,9 @@ with the same code, on the records the recorder hands it at each flush: the same
 metadata. What the process gives and this does not: the file finished by another process
 when the loop's is killed (a SIGKILL leaves it cut after its last chunk, which the reader
 recovers with counts like any damaged session), and the loop kept free of the encoding, which
-only lockstep can afford (the recorder refuses this writer in real time).
+only lockstep can afford (the recorder refuses this writer in real time). Its chunks are
+compressed at zstd's default level rather than the writer process's: on the loop's thread
+that costs a servo trial a fifth of level 9's time, for a file about 1 % larger.
 """
 
 from __future__ import annotations
@@ -22,6 +24,9 @@ from collections.abc import Sequence
 from typing import Any
 
 from hil.core.recording.writer import SessionWriter, describe_failure, finish, open_series
+
+#: zstd's own default: 210 MB/s on a servo session's chunks against level 9's 48 MB/s
+ZSTD_LEVEL = 3
 
 
 class InProcessWriter:
@@ -37,8 +42,9 @@ class InProcessWriter:
         self._next_flush = time.monotonic() + self._flush_interval_s
         first_fd = options.get("first_fd")
         try:
+            options = {**options, "zstd_level": ZSTD_LEVEL}
             if first_fd is not None:  # the series closes the descriptor it is given
-                options = {**options, "first_fd": os.dup(first_fd)}
+                options["first_fd"] = os.dup(first_fd)
             self.writer = SessionWriter(open_series(options))
         except Exception as exc:
             self.error = describe_failure(exc)

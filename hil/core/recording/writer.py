@@ -35,6 +35,7 @@ from hil.core.recording.cdr import CdrEncoder, fields_of, ros2msg_text
 from hil.core.recording.live import LiveSink, announce, parse_address
 from hil.core.recording.mcap_series import (
     DEFAULT_CHUNK_BYTES,
+    ZSTD_LEVEL,
     ChannelSpec,
     McapSeries,
     json_schema_channel,
@@ -208,6 +209,7 @@ def open_series(options: dict[str, Any]) -> McapSeries:
     return McapSeries(
         options["path"], chunk_size=int(options.get("chunk_size", DEFAULT_CHUNK_BYTES)),
         chunk_span_s=options.get("chunk_span_s"),
+        zstd_level=int(options.get("zstd_level", ZSTD_LEVEL)),
         split_duration_s=options.get("split_duration_s"),
         split_size_mb=options.get("split_size_mb"), profile=options.get("profile", ""),
         first_fd=options.get("first_fd"), staging=options.get("staging"),
