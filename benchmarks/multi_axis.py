@@ -9,7 +9,9 @@ axis), in one run:
    loop spent ticking (the run's ``realtime_factor``, the writer process working beside it
    on the other core) and this process's CPU time per tick (a run of ``--seconds`` less one
    of a quarter of it: the set-up and the file's finish cancel out; steadier than the wall
-   time on a shared machine).
+   time on a shared machine), of which the emulated drives' (``LockstepDrive.pump``: each
+   node's frames, plant and answers, work real drives do themselves): what is left is hil's
+   own work per tick, printed with its share too.
 
 Each figure is the quickest of ``--repeat`` alternated batches (this shared machine has slow
 minutes: the quickest batch is the one it ran undisturbed). The target is that each axis past
@@ -38,6 +40,31 @@ from hil.servo.rig import open_drive
 from hil.servo.run import ServoExperiment, ServoRunOptions
 
 TICK_S = 500e-6  # the runs' base period (master.cycle_period_us)
+
+
+class DriveTime:
+    """CPU seconds this thread spends in the emulated drives of the lockstep runs started
+    while it is on (each :class:`LockstepDrive`'s ``pump``, timed)."""
+
+    def __init__(self) -> None:
+        self.seconds = 0.0
+        self._pump = LockstepDrive.pump
+
+    def __enter__(self) -> DriveTime:
+        pump = self._pump
+
+        def timed(drive: LockstepDrive) -> None:
+            begin = time.thread_time()
+            try:
+                pump(drive)
+            finally:
+                self.seconds += time.thread_time() - begin
+
+        LockstepDrive.pump = timed  # type: ignore[method-assign]
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        LockstepDrive.pump = self._pump  # type: ignore[method-assign]
 
 
 def group_cycle_us(axes: int, cycles: int) -> float:
@@ -71,25 +98,29 @@ def single_cycle_us(cycles: int) -> float:
     return 1e6 * elapsed / cycles
 
 
-def run(axes: int, seconds: float, tmp: Path) -> tuple[float, float]:
+def run(axes: int, seconds: float, tmp: Path) -> tuple[float, float, float]:
     """A whole lockstep run, fully recorded (one axis as ``hil servo run`` runs it, several as
-    ``--axes`` does): the wall time the loop spent per tick [us] and this process's CPU time
-    for the whole run [s]."""
+    ``--axes`` does): the wall time the loop spent per tick [us], this process's CPU time for
+    the whole run [s] and the emulated drives' part of it [s]."""
     named = ",".join(f"a{i}={i}" for i in range(1, axes + 1)) if axes > 1 else None
     options = ServoRunOptions(controller="pid", duration_s=seconds, out=str(tmp / "run.mcap"),
                               quiet=True, axes=named)
-    begin = time.process_time()
-    kpis = run_experiment(ServoExperiment(options)).kpis
-    cpu_s = time.process_time() - begin
-    return 1e6 * TICK_S / float(kpis["realtime_factor"]), cpu_s
+    with DriveTime() as drives:
+        begin = time.process_time()
+        kpis = run_experiment(ServoExperiment(options)).kpis
+        cpu_s = time.process_time() - begin
+    return 1e6 * TICK_S / float(kpis["realtime_factor"]), cpu_s, drives.seconds
 
 
-def run_tick_us(axes: int, seconds: float, tmp: Path) -> tuple[float, float]:
-    """Per tick of a whole run of ``axes``: wall [us] (the run of ``seconds``) and CPU [us]
-    (that run's less a quarter as long one's, over the ticks between them)."""
-    wall_us, long_cpu = run(axes, seconds, tmp)
-    _, short_cpu = run(axes, seconds / 4, tmp)
-    return wall_us, 1e6 * (long_cpu - short_cpu) / (0.75 * seconds / TICK_S)
+def run_tick_us(axes: int, seconds: float, tmp: Path) -> tuple[float, float, float]:
+    """Per tick of a whole run of ``axes``: wall [us] (the run of ``seconds``), CPU and the
+    emulated drives' CPU [us] (that run's less a quarter as long one's, over the ticks
+    between them)."""
+    wall_us, long_cpu, long_drives = run(axes, seconds, tmp)
+    _, short_cpu, short_drives = run(axes, seconds / 4, tmp)
+    ticks = 0.75 * seconds / TICK_S
+    return (wall_us, 1e6 * (long_cpu - short_cpu) / ticks,
+            1e6 * (long_drives - short_drives) / ticks)
 
 
 def share(first: float, third: float) -> float:
@@ -112,16 +143,18 @@ def main() -> int:
     if args.cycles < 1 or args.repeat < 1:
         parser.error("--cycles and --repeat must be >= 1")
     runs: dict[str, list[float]] = {key: [] for key in (
-        "single", "1", "2", "3", "run1", "run2", "run3", "cpu1", "cpu2", "cpu3")}
+        "single", "1", "2", "3", "run1", "run2", "run3", "cpu1", "cpu2", "cpu3", "own1",
+        "own2", "own3")}
     with tempfile.TemporaryDirectory() as name:
         for i in range(args.repeat):
             print(f"batch {i + 1} of {args.repeat}...", file=sys.stderr)
             runs["single"].append(single_cycle_us(args.cycles))
             for axes in (1, 2, 3):
                 runs[str(axes)].append(group_cycle_us(axes, args.cycles))
-                wall_us, cpu_us = run_tick_us(axes, args.seconds, Path(name))
+                wall_us, cpu_us, drives_us = run_tick_us(axes, args.seconds, Path(name))
                 runs[f"run{axes}"].append(wall_us)
                 runs[f"cpu{axes}"].append(cpu_us)
+                runs[f"own{axes}"].append(cpu_us - drives_us)
     best = {key: min(values) for key, values in runs.items()}
     print(f"lockstep cycle through the CAN link, CPU, quickest of {args.repeat} x {args.cycles}")
     print(f"   one drive, its own link [baseline]   {best['single']:7.1f} us")
@@ -143,6 +176,10 @@ def main() -> int:
     print(f"   each axis past the first: {(best['run3'] - best['run1']) / 2:.1f} us = "
           f"{wall_share:.0f} % of the first (CPU: {(best['cpu3'] - best['cpu1']) / 2:.1f} us "
           f"= {cpu_share:.0f} %)")
+    own_share = share(best["own1"], best["own3"])
+    print(f"   hil's own work, the emulated drives' CPU taken out: {best['own1']:.1f} us with "
+          f"one axis, {best['own3']:.1f} us with 3; each axis past the first "
+          f"{(best['own3'] - best['own1']) / 2:.1f} us = {own_share:.0f} % of the first")
     print(f"   load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} core(s)")
     print("targets")
     print(f"   each extra axis <= 40 % of the first, whole run ({wall_share:.0f} %; CPU "
