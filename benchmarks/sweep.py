@@ -1,42 +1,46 @@
-"""Sweep benchmark: an 8-trial servo sweep on a local Ray against the same trials
-one after another in this process, measured in the same run.
+"""Sweep benchmark: a 12-trial lockstep servo sweep on a local Ray against the same trials one
+after another, measured in the same run.
 
-1. Sequential baseline: the 8 trials (MPC FOH/ZOH x 4 current limits, 3 s of a 1 Hz sine in
-   lockstep each, recorded to MCAP) run in this process one after another, after one warm-up
-   run so the baseline pays no imports (the strict baseline of the target); and the same in
-   a fresh process with its imports, as a script looping over the trials pays them once.
-2. Local Ray start-up: ``ray.init`` for the sweep (one worker per core, loopback, quiet) until
-   a first empty task has come back.
-3. The same 8 trials as Ray tasks on that Ray (workers start cold: each imports hil once),
-   from submission to the last result. Target: >= 1.7x faster than (1) on 2 cores; the ratio
-   with the start-up of (2) included is printed too.
-4. Per-trial overhead: one trial as a Ray task on a warm worker (submit -> result) against
-   the same trial in this process, median of 3.
+The trials: MPC (FOH and ZOH) x 6 current limits, 20 s of a 1 Hz sine in lockstep each,
+recorded to MCAP, as ``hil sweep servo`` runs them. Each repeat, in turn:
 
-Also printed: how many trials Ray kept in flight on average, and the load average, since on a
-shared machine other processes take the cores the workers need.
+1. serial, as ``hil sweep --serial`` runs them: one after another in this process, each
+   with its writer process (which has the other core to itself) [baseline];
+2. on a local Ray of one worker per core, as ``hil sweep`` runs them: each trial recorded
+   in its worker's own process (no writer process: every core runs a trial), from
+   submission to the last result;
+3. serial, recorded in-process like the Ray trials [the same work one after another].
 
-The machine is shared: figures are noisy, run it alone when the numbers matter.
+Before the first repeat: one warm-up trial here and one on each Ray worker (neither side pays
+its imports in the figures; a worker's first trial imports hil, about 2 s of CPU), and Ray's
+start-up (timed apart: ``hil sweep`` pays it once per sweep, and its workers' imports too).
+The goal is (2) at least 1.7x as fast as (1) on 2 cores; (2) against (3) is how the same
+trials scale. Each ratio is the median of
+the repeats' own ratios (pairs measured minutes apart on a shared machine). Also printed:
+how many trials Ray kept in flight, whether every trial's KPIs match across the three, and
+the load average: other processes on the cores slow the parallel run most.
 
-``--quick``: 2 trials of 0.05 s in sequence, in-process, and no Ray at all (its start-up alone
-takes 7-20 s on a shared machine; the sweep's Ray path is tests/sweep/test_sweep_ray.py's):
-what ``make test`` runs so that the script cannot rot, figures not worth quoting.
+``--quick``: 2 trials of 0.05 s each way in sequence, no Ray (its start-up alone takes 7-20 s
+on a shared machine; the sweep's Ray path is tests/sweep/test_sweep_ray.py's): what ``make
+test`` runs so that the script cannot rot, figures not worth quoting.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import resource
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchkit import add_quick
+from benchkit import add_quick, fill_defaults
 
 from hil.cli.servo import add_run_arguments
 from hil.sweep.engine import Engine, import_ray, start_ray
@@ -45,107 +49,138 @@ from hil.sweep.trial import TrialJob, run_trial
 
 TARGET_SPEEDUP = 1.7
 # 1200 and 1500 mA are above drive.toml's 1000 mA limit: a sweep over them says so
-RUN = ["--controller", "mpc", "--duration", "3", "--reference",
-       "sine:amplitude=2,frequency=1", "--allow-higher-current"]
-GRID = {"umax": [800.0, 1000.0, 1200.0, 1500.0], "ert": ["zoh", "foh"]}
-QUICK_RUN = [*RUN[:2], "--duration", "0.05", *RUN[4:]]
+RUN = ["--controller", "mpc", "--reference", "sine:amplitude=2,frequency=1",
+       "--allow-higher-current"]
+GRID = {"umax": [600.0, 800.0, 900.0, 1000.0, 1200.0, 1500.0], "ert": ["zoh", "foh"]}
 QUICK_GRID = {"umax": [800.0, 1500.0], "ert": ["foh"]}
 
-def jobs_in(out: Path, quick: bool = False) -> list[TrialJob]:
+
+def jobs_in(out: Path, seconds: float, quick: bool = False) -> list[TrialJob]:
+    """The trials as ``hil sweep --serial`` makes them (each with its writer process)."""
     parser = argparse.ArgumentParser()
     add_run_arguments(parser)
-    base = vars(parser.parse_args(QUICK_RUN if quick else RUN))
+    base = vars(parser.parse_args([*RUN, "--duration", f"{seconds:g}"]))
     return [TrialJob("servo", base, t.name, t.params, str(out / f"{t.name}.mcap"))
             for t in expand(QUICK_GRID if quick else GRID)]
 
 
-def timed(function, *args):  # type: ignore[no-untyped-def]
+def in_process(jobs: list[TrialJob]) -> list[TrialJob]:
+    """The same trials as ``hil sweep`` makes them for Ray (recorded in their process)."""
+    return [replace(job, in_process=True) for job in jobs]
+
+
+def sweep_s(engine: Engine, jobs: list[TrialJob], cpu: dict[str, list[float]] | None = None
+            ) -> tuple[float, list[dict[str, Any]]]:
+    """Wall time of ``jobs`` on ``engine`` and their rows; every trial must pass. ``cpu``:
+    where this process's CPU seconds per trial go (``self``; ``children``: the writer
+    processes), for a sweep run in this process."""
+    rows: list[dict[str, Any]] = []
+    before = [resource.getrusage(who) for who in (resource.RUSAGE_SELF,
+                                                  resource.RUSAGE_CHILDREN)]
     start = time.perf_counter()
-    result = function(*args)
-    return time.perf_counter() - start, result
+    engine.run(run_trial, jobs, rows.append)
+    wall = time.perf_counter() - start
+    if cpu is not None:
+        for key, who, was in zip(("self", "children"), (resource.RUSAGE_SELF,
+                                                        resource.RUSAGE_CHILDREN), before,
+                                 strict=True):
+            now = resource.getrusage(who)
+            used = now.ru_utime + now.ru_stime - was.ru_utime - was.ru_stime
+            cpu.setdefault(key, []).append(used / len(jobs))
+    failed = [row for row in rows if row["status"] != "ok"]
+    assert not failed, failed
+    return wall, rows
 
 
-def sequential_cold(out: Path) -> float:
-    """The 8 trials in sequence in a fresh process, its imports included (as a script that
-    loops over the trials pays them, and as each Ray worker does)."""
-    code = ("import sys, time; sys.path.insert(0, 'benchmarks'); import sweep; "
-            "from hil.sweep.trial import run_trial; from pathlib import Path; "
-            "t = time.perf_counter(); "
-            f"rows = [run_trial(j) for j in sweep.jobs_in(Path({str(out)!r}))]; "
-            "assert all(r['status'] == 'ok' for r in rows); print(time.perf_counter() - t)")
-    root = Path(__file__).resolve().parents[1]
-    done = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True,
-                          text=True, check=True)
-    return float(done.stdout.strip().splitlines()[-1])
+def kpis_of(rows: list[dict[str, Any]]) -> dict[str, float]:
+    return {row["name"]: row["kpis"]["rms_error_deg"] for row in rows}
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float,
+                        help="lockstep seconds per trial (default 20; 0.05 with --quick)")
+    parser.add_argument("--repeat", type=int,
+                        help="repeats of the three sweeps, in turn (default 2; 1 with --quick)")
     add_quick(parser)
     args = parser.parse_args()
+    fill_defaults(args, {"seconds": (20.0, 0.05), "repeat": (2, 1)})
+    if args.seconds <= 0 or args.repeat < 1:
+        parser.error("--seconds must be > 0 and --repeat >= 1")
     workers = os.cpu_count() or 1
     load_before = os.getloadavg()[0]
+    serial = Engine(serial=True)
     with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp)
-        cold = None if args.quick else sequential_cold(out)
-        jobs = jobs_in(out, args.quick)
-        run_trial(jobs[0])   # warm-up: the baseline pays no imports
-        sequential, rows = timed(lambda: [run_trial(j) for j in jobs])
-        assert all(r["status"] == "ok" for r in rows), rows
+        jobs = jobs_in(Path(tmp), args.seconds, args.quick)
+        run_trial(jobs[0])   # warm-up: the baselines pay no imports
         if args.quick:
-            print(f"sweep: {len(jobs)} servo trials (MPC, {jobs[0].flags['duration']:g} s "
-                  f"lockstep each)\n  in sequence, in-process      {sequential:7.2f} s  "
-                  f"({sequential / len(jobs):.2f} s/trial)\n  on local Ray: skipped (--quick)")
+            process_s, _ = sweep_s(serial, jobs)
+            inline_s, _ = sweep_s(serial, in_process(jobs))
+            print(f"sweep: {len(jobs)} servo trials (MPC, {args.seconds:g} s lockstep each)\n"
+                  f"  in sequence, writer processes  {process_s:7.2f} s\n"
+                  f"  in sequence, in-process        {inline_s:7.2f} s\n"
+                  "  on local Ray: skipped (--quick)")
             return 0
-
         ray = import_ray()
-        startup, _ = timed(lambda: (start_ray(ray, workers, None),
-                                    ray.get(ray.remote(lambda: None).remote())))
-        ray_rows: list[dict] = []
-        on_ray, _ = timed(Engine(workers=workers).run, run_trial, jobs, ray_rows.append)
-        assert all(r["status"] == "ok" for r in ray_rows), ray_rows
-        by_name = {r["name"]: r["kpis"] for r in rows}
-        same = all(r["kpis"]["rms_error_deg"] == by_name[r["name"]]["rms_error_deg"]
-                   for r in ray_rows)
-
-        task = ray.remote(num_cpus=1, max_retries=0)(run_trial)
-        overheads, local_times, remote_times = [], [], []
-        for _ in range(1 if args.quick else 3):
-            remote_s, _ = timed(lambda: ray.get(task.remote(jobs[1])))
-            local_s, _ = timed(run_trial, jobs[1])
-            remote_times.append(remote_s)
-            local_times.append(local_s)
-            overheads.append(remote_s - local_s)
+        startup = time.perf_counter()
+        start_ray(ray, workers, None)
+        ray.get(ray.remote(lambda: None).remote())
+        startup = time.perf_counter() - startup
+        warm_up = ray.remote(num_cpus=1)(run_trial)   # one at a time on each worker
+        quick = in_process(jobs_in(Path(tmp), 0.05, quick=True))[0]
+        warm = ray.get([warm_up.remote(replace(quick, mcap=f"{quick.mcap}.{i}"))
+                        for i in range(workers)])
+        assert all(row["status"] == "ok" for row in warm), warm
+        on_ray = Engine(workers=workers)
+        figures: dict[str, list[float]] = {"serial": [], "ray": [], "inline": []}
+        busy: list[float] = []
+        with_writer: dict[str, list[float]] = {}
+        inline_cpu: dict[str, list[float]] = {}
+        same = True
+        for i in range(args.repeat):
+            print(f"repeat {i + 1} of {args.repeat}...", file=sys.stderr)
+            wall, rows = sweep_s(serial, jobs, with_writer)
+            figures["serial"].append(wall)
+            wall, ray_rows = sweep_s(on_ray, in_process(jobs))
+            figures["ray"].append(wall)
+            busy.append(sum(r["trial_s"] for r in ray_rows) / wall)
+            wall, inline_rows = sweep_s(serial, in_process(jobs), inline_cpu)
+            figures["inline"].append(wall)
+            same = same and kpis_of(rows) == kpis_of(ray_rows) == kpis_of(inline_rows)
         ray.shutdown()
 
-    speedup = sequential / on_ray
-    busy = sum(r["trial_s"] for r in ray_rows) / on_ray
+    def ratio(baseline: str) -> float:
+        return statistics.median(b / r for b, r in zip(figures[baseline], figures["ray"],
+                                                       strict=True))
+
     n = len(jobs)
-    print(f"sweep: {n} servo trials (MPC, {jobs[0].flags['duration']:g} s lockstep each), "
-          f"{workers} core(s)")
-    print(f"  in sequence, in-process      {sequential:7.2f} s  ({sequential / n:.2f} s/trial, "
-          "imports done before)")
-    if cold is None:
-        print("  in sequence, fresh process   skipped (--quick)")
-    else:
-        print(f"  in sequence, fresh process   {cold:7.2f} s  (its imports included, as each "
-              "Ray worker pays them)")
-    print(f"  local Ray start-up           {startup:7.2f} s")
-    print(f"  on local Ray, {workers} workers      {on_ray:7.2f} s  -> {speedup:.2f}x "
-          f"(target >= {TARGET_SPEEDUP}x: {'met' if speedup >= TARGET_SPEEDUP else 'MISSED'})")
-    print(f"  with the start-up            {startup + on_ray:7.2f} s  -> "
-          f"{sequential / (startup + on_ray):.2f}x")
-    if cold is not None:
-        print(f"  against the fresh process    {on_ray:7.2f} s  -> {cold / on_ray:.2f}x")
-    print(f"  per-trial overhead (Ray task on a warm worker vs in-process, median of "
-          f"{len(overheads)}): "
-          f"{statistics.median(overheads) * 1e3:+.0f} ms "
-          f"({statistics.median(remote_times):.2f} s vs {statistics.median(local_times):.2f} s)")
-    print(f"  trials in flight on Ray (sum of trial times / wall): {busy:.2f} of {workers}")
-    print(f"  KPIs identical to the in-process runs: {same}")
+    speedup = ratio("serial")
+    print(f"sweep: {n} servo trials (MPC, {args.seconds:g} s lockstep each, recorded), "
+          f"{workers} core(s), median of {args.repeat} repeat(s)")
+    print(f"  hil sweep --serial (a writer process each) [baseline] "
+          f"{statistics.median(figures['serial']):7.2f} s")
+    print(f"  the same, recorded in-process like the Ray trials      "
+          f"{statistics.median(figures['inline']):7.2f} s")
+    print(f"  local Ray start-up (once per sweep)                    {startup:7.2f} s")
+    print(f"  hil sweep on local Ray, {workers} workers                   "
+          f"{statistics.median(figures['ray']):7.2f} s")
+    print(f"  trials in flight on Ray (sum of trial times / wall): "
+          f"{statistics.median(busy):.2f} of {workers}")
+    loop_s, writer_s = min(with_writer["self"]), min(with_writer["children"])
+    inline_s = min(inline_cpu["self"])
+    print(f"  CPU per trial: hil sweep --serial {loop_s:.2f} s in the loop's process and "
+          f"{writer_s:.2f} s in its writer process beside it; in-process {inline_s:.2f} s")
+    print(f"  what the CPU allows on {workers} idle cores (a model: the serial run as fast as "
+          f"its loop, Ray's trials side by side): {workers * loop_s / inline_s:.2f}x")
+    print(f"  KPIs identical in the three: {same}")
     print(f"  load average before / after: {load_before:.1f} / {os.getloadavg()[0]:.1f} "
           f"(other processes on the {workers} cores slow the parallel run most)")
+    print("targets")
+    print(f"  Ray against hil sweep --serial: {speedup:.2f}x (target >= {TARGET_SPEEDUP}x: "
+          f"{'met' if speedup >= TARGET_SPEEDUP else 'MISSED'})")
+    print(f"  Ray against the same trials in-process one after another: "
+          f"{ratio('inline'):.2f}x")
     return 0
 
 

@@ -73,6 +73,9 @@ class NodeLink:
         self._bus.send(self, frames)
 
     def recv(self, timeout: float | None) -> Frame | None:
+        inbox = self.inbox
+        if inbox:  # routed here already
+            return inbox.popleft()
         return self._bus.recv(self, timeout)
 
     def own_echo(self, frame: Frame) -> bool:
@@ -117,24 +120,34 @@ class AxisBus:
             while (frame := self.link.recv(0)) is not None:
                 self._route(frame)
             for node in self.nodes:
-                node.inbox = deque(frame for frame in node.inbox
-                                   if not TPDO_IDS_FIRST <= frame[0] <= TPDO_IDS_LAST)
+                kept = [frame for frame in node.inbox
+                        if not TPDO_IDS_FIRST <= frame[0] <= TPDO_IDS_LAST]
+                node.inbox.clear()
+                node.inbox.extend(kept)
 
     # -- sending ------------------------------------------------------------------------------
     def send(self, node: NodeLink, frames: list[Frame]) -> None:
         if not self.together:
             self.link.send(frames)
             return
+        held, shared = self._held, self._sync
         for frame in frames:
-            if frame[0] == SYNC_COB_ID or frame[0] == self._heartbeat_id:
-                self._sync.setdefault(frame[0], frame)
+            can_id = frame[0]
+            if can_id == SYNC_COB_ID or can_id == self._heartbeat_id:
+                if can_id not in shared:
+                    shared[can_id] = frame
             else:
-                self._held.append(frame)
+                held.append(frame)
 
     def end_cycle(self) -> None:
         """Every frame the masters sent for this cycle, in their order, then one SYNC (and
         one heartbeat of the master, when one was due), in one transmission."""
-        out = self._held + sorted(self._sync.values(), key=lambda f: f[0] != SYNC_COB_ID)
+        out, shared = self._held, self._sync
+        if shared:
+            sync = shared.pop(SYNC_COB_ID, None)
+            if sync is not None:
+                out.append(sync)
+            out.extend(shared.values())  # the master's heartbeat
         self._held, self._sync = [], {}
         if out:
             self.link.send(out)
@@ -146,26 +159,31 @@ class AxisBus:
         ``timeout`` seconds (0: only what is already here). Frames already received are all
         routed before the time-out counts: another drive's frame ahead of this one's never
         makes this one late."""
-        if node.inbox:
-            return node.inbox.popleft()
+        inbox, link, route = node.inbox, self.link, self._route
+        while (frame := link.recv(0)) is not None:  # all already here, routed, before a wait
+            route(frame)
+        if inbox:
+            return inbox.popleft()
+        if timeout is not None and timeout <= 0:
+            return None
         deadline = None if timeout is None else time.monotonic() + timeout
-        link = self.link
         while True:
-            frame = link.recv(0)
+            remaining = None if deadline is None else deadline - time.monotonic()
+            if remaining is not None and remaining <= 0:
+                return None
+            frame = link.recv(remaining)
             if frame is None:
-                remaining = None if deadline is None else deadline - time.monotonic()
-                if remaining is not None and remaining <= 0:
-                    return None
-                frame = link.recv(remaining)
-                if frame is None:
-                    return None
-            self._route(frame)
-            if node.inbox:
-                return node.inbox.popleft()
+                return None
+            route(frame)
+            while not inbox and (frame := link.recv(0)) is not None:
+                route(frame)
+            if inbox:
+                return inbox.popleft()
 
     def _route(self, frame: Frame) -> None:
         can_id = frame[0]
-        if can_id in self.link.watched_ids and self.link.own_echo(frame):
+        link = self.link
+        if can_id in link.watched_ids and link.own_echo(frame):
             return  # the group's own SYNC / NMT / heartbeat, handed back by an echoing bus
         owner = self._by_id.get(can_id & NODE_ID_BITS)
         if owner is not None and can_id not in self._broadcast:

@@ -1,10 +1,14 @@
 """The axes of a servo run, one or several: their names and nodes (``--axes x=1,y=2``, drive.toml's
 ``[[axis]]``, or the one axis of ``[master]``), the buses they are on with each bus's plan, the
-controller they share when it is a multi-axis one, and the task that ends every bus's cycle
-and records a path's contour error (``/path/contour``).
+controller they share when it is a multi-axis one, and the loop task that ticks them all
+(:class:`AxesTick`): every axis' servo phases, every bus's cycle, a path's contour error
+(``/path/contour``).
 
 Each axis is one drive (its node id) with its own master, its own controller (the run's, built
-once per axis with that axis' reference) and its own servo task. The axes are on the run's bus
+once per axis with that axis' reference) and its own servo task, ticked by the one loop task of
+the run (the loop's own bookkeeping, timing every phase of every task, is then paid once a tick
+rather than once an axis; ``/loop/servo/timing`` times the tick of every axis, as it times the
+one axis of a run that names none). The axes are on the run's bus
 (``--drive`` or ``[bus]``) unless one names another (``--axes x=1,y=2@URL``,
 ``[[axis]] bus = URL``): every axis of a bus shares that bus's SYNC, and every bus has its cycle
 and SYNC in every tick. References: ``--reference`` for every axis, or the path
@@ -145,13 +149,14 @@ class AxisShare:
         return float(self.shared.currents(t_s)[self.index])
 
 
-class BusCycle(Task):
-    """Last in the tick: the cycle on every bus (each axis' RPDO, one SYNC a bus), then the
-    path's contour error."""
+class AxesTick(Task):
+    """The loop's one task for named axes: each phase of every axis' :class:`ServoTask` in the
+    run's order (every feedback read before any controller steps), then the cycle on every bus
+    (each axis' RPDO, one SYNC a bus) and the path's contour error."""
 
     def __init__(self, session: Session, buses: RunDrives, tasks: list[ServoTask],
                  radius: float | None, settle_s: float) -> None:
-        super().__init__("bus")
+        super().__init__("servo")
         self.buses, self.tasks, self.radius = buses, tasks, radius
         self.settle_s = settle_s
         self.topic = session.topic("/path/contour", CONTOUR_SCHEMA, high_rate=True) \
@@ -161,11 +166,23 @@ class BusCycle(Task):
         self.counted = 0
         self.cycles = 0  # cycles put on the bus while ticking
 
+    def read(self, t_ns: int) -> None:
+        for task in self.tasks:
+            task.read(t_ns)
+
+    def compute(self, t_ns: int) -> None:
+        for task in self.tasks:
+            task.compute(t_ns)
+
     def write(self, t_ns: int) -> None:
+        for task in self.tasks:
+            task.write(t_ns)
         self.buses.end_cycle()
         self.cycles += 1
 
     def record(self, t_ns: int) -> None:
+        for task in self.tasks:
+            task.record(t_ns)
         if self.topic is None or self.radius is None:
             return
         x_task, y_task = self.tasks[0], self.tasks[1]

@@ -31,7 +31,7 @@ from hil.core.verdict import SignalWatch, split_limits
 from hil.drivers.can_bus_time import BusPlan
 from hil.drivers.canopen import CanDriveMaster
 from hil.errors import UsageError
-from hil.servo.axes import BusAxes, BusCycle, parse_axes, plan_buses
+from hil.servo.axes import AxesTick, BusAxes, parse_axes, plan_buses
 from hil.servo.config import EMULATED, AxisSpec, DriveConfig, stricter_safety
 from hil.servo.drives import RunDrives
 from hil.servo.kpis import AxesKpis, ServoKpis
@@ -101,15 +101,15 @@ class ServoPlan(RunPlan):
 @dataclass
 class ServoState:
     """What a servo run opened and built, step by step: the drives (bus by bus), each axis'
-    master, reference, controller and task (in the run's order) and the bus task (named
-    axes)."""
+    master, reference, controller and task (in the run's order) and, for named axes, the
+    loop's one task that ticks them (``axes_tick``)."""
 
     drives: RunDrives = field(default_factory=RunDrives)
     masters: list[CanDriveMaster] = field(default_factory=list)
     references: list[PlacedReference] = field(default_factory=list)
     controllers: list[Any] = field(default_factory=list)
     tasks: list[ServoTask] = field(default_factory=list)
-    bus_task: BusCycle | None = None
+    axes_tick: AxesTick | None = None
 
 
 def plan_servo(options: ServoRunOptions) -> ServoPlan:

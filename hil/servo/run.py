@@ -11,7 +11,8 @@ tick and axis: the command (reference, command, error, controller compute time, 
 the feedback (what the drive reported) and the prediction; faults and fallbacks go to
 ``/events``. The one axis of a run that names none records ``/drive/command``,
 ``/drive/feedback`` and ``/mpc/prediction``; named axes record ``/axis/NAME/...``, and the bus
-task (:class:`~hil.servo.axes.BusCycle`) ends every bus's cycle and records a path's contour.
+loop's one task (:class:`~hil.servo.axes.AxesTick`) ticks every axis, ends every bus's cycle and
+records a path's contour.
 
 KPIs (:mod:`hil.servo.tracking`, the ``--json`` document): the tracking error after
 ``settle_s``, the controller's step time, and ``deadline_misses``, which counts, in real
@@ -60,7 +61,7 @@ from hil.core.session import Session
 from hil.core.tuning import Tuner, add_controller
 from hil.drivers.canopen import CanDriveMaster
 from hil.errors import HilError, SafetyStopError
-from hil.servo.axes import AxisShare, BusCycle, SharedStep
+from hil.servo.axes import AxesTick, AxisShare, SharedStep
 from hil.servo.builtin import ServoContext
 from hil.servo.config import stricter_safety
 from hil.servo.drives import RunDrives
@@ -236,11 +237,12 @@ class ServoExperiment(Experiment[ServoPlan]):
                                  plan.base_period_s, axis=None if plan.lone else axis.name),
                              watch=plan.watch, axis=None if plan.lone else axis.name)
             state.tasks.append(task)
-            session.add_task(task)
-        if not plan.lone:
-            state.bus_task = BusCycle(session, state.drives, state.tasks, plan.radius,
-                                      options.settle_s)
-            session.add_task(state.bus_task)
+        if plan.lone:
+            session.add_task(state.tasks[0])
+        else:
+            state.axes_tick = AxesTick(session, state.drives, state.tasks, plan.radius,
+                                       options.settle_s)
+            session.add_task(state.axes_tick)
         if self.on_started is not None:
             self.on_started(state.masters[0])
 
@@ -354,11 +356,11 @@ class ServoExperiment(Experiment[ServoPlan]):
             drive=plan.settings.drive_url, buses=[bus.url for bus in plan.buses],
             clock=session.clock.mode, umax_ma=plan.settings.umax_ma,
             settle_s=options.settle_s,
-            sync_cycles=state.bus_task.cycles if state.bus_task is not None else 0,
+            sync_cycles=state.axes_tick.cycles if state.axes_tick is not None else 0,
             wall_s=round(wall_s, 4), realtime_factor=realtime_factor(ticks, loop),
             stop_reason=loop.stop_reason,
-            contour=state.bus_task.kpis()
-            if state.bus_task is not None and plan.radius is not None else None,
+            contour=state.axes_tick.kpis()
+            if state.axes_tick is not None and plan.radius is not None else None,
             faults={"stale_feedback": stale, "emcy": emcy,
                     "late_frames": sum(a.late_frames for a in axes.values())},
             disturbed=bool(stale or emcy))

@@ -29,6 +29,11 @@ class RayMissingError(HilError):
     """``hil sweep`` on Ray without Ray installed."""
 
 
+class RayStartError(HilError):
+    """The local Ray of a sweep did not start (its temporary folder unusable, or its processes
+    not up in time on an overloaded machine)."""
+
+
 def import_ray() -> ModuleType:
     """The ``ray`` module, or a one-line error naming the extra that installs it."""
     try:
@@ -84,17 +89,28 @@ def start_ray(ray: ModuleType, workers: int | None, address: str | None) -> bool
         # tasks instead of using the ones Ray starts with it: seconds per sweep). Ray runs
         # workers at nice 15 by default; here they are the work: nice 0.
         with environment(SINGLE_THREADED):
-            ray.init(num_cpus=workers or os.cpu_count() or 1, include_dashboard=False,
-                     _node_ip_address="127.0.0.1", _system_config={"worker_niceness": 0},
-                     **quiet)
+            try:
+                ray.init(num_cpus=workers or os.cpu_count() or 1, include_dashboard=False,
+                         _node_ip_address="127.0.0.1", _system_config={"worker_niceness": 0},
+                         **quiet)
+            except Exception as exc:  # Ray's own: an OSError, or a bare Exception (time-out)
+                raise RayStartError(f"the local Ray for the sweep did not start: "
+                                    f"{first_line(exc)} (--serial runs the trials without "
+                                    "Ray)") from None
         return True
     check_address(address)
     try:
         ray.init(address=address, runtime_env={"env_vars": SINGLE_THREADED}, **quiet)
     except (ConnectionError, ValueError) as exc:  # no cluster; no ray[client] for ray://
-        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise UsageError(f"--address {address}: cannot join the Ray cluster: {reason}") from None
+        raise UsageError(f"--address {address}: cannot join the Ray cluster: "
+                         f"{first_line(exc)}") from None
     return True
+
+
+def first_line(exc: BaseException) -> str:
+    """An exception's message in one line (its type when it has none)."""
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
 
 
 @contextlib.contextmanager
@@ -142,7 +158,7 @@ def run_on_ray(ray: ModuleType, function: Callable[[Job], Row], jobs: Sequence[J
 
 def lost_trial(job: Any, exc: BaseException) -> Row:
     """The row of a trial whose worker never returned one."""
-    message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    message = first_line(exc)
     return {"name": getattr(job, "name", "?"), "params": getattr(job, "params", {}),
             "mcap": getattr(job, "mcap", ""), "status": "failed", "kpis": {},
             "error": f"worker lost: {message}", "trial_s": 0.0}

@@ -75,9 +75,10 @@ def run_sweep(sweep: Sweep, stream: TextIO | None = None) -> dict[str, Any]:
 
 
 def job_of(sweep: Sweep, trial: Trial) -> TrialJob:
-    """The job that runs ``trial`` into its own file in the sweep's folder."""
+    """The job that runs ``trial`` into its own file in the sweep's folder (recorded in its
+    own process on Ray: :mod:`hil.sweep.trial`)."""
     return TrialJob(sweep.kind, sweep.base, trial.name, trial.params,
-                    str(sweep.out / f"{trial.name}.mcap"))
+                    str(sweep.out / f"{trial.name}.mcap"), in_process=not sweep.engine.serial)
 
 
 def check_trials(sweep: Sweep) -> None:

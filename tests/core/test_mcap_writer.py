@@ -9,13 +9,14 @@ import json
 
 import pytest
 import zstandard
+from mcap.data_stream import RecordBuilder
 from mcap.reader import make_reader
-from mcap.records import Chunk
+from mcap.records import Chunk, MessageIndex
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from hil.core.recording.chunk_check import compress_in_blocks
-from hil.core.recording.mcap_writer import McapWriter
+from hil.core.recording.mcap_writer import McapWriter, message_index_record
 from hil.core.recording.reader import read_session
 
 
@@ -104,3 +105,12 @@ def test_hils_reader_finds_the_file_intact(tmp_path):
     data = read_session(str(path))
     assert not data.recovered
     assert data.topic_counts == {"/a": 2000, "/b": 1000}
+
+
+@pytest.mark.parametrize("count", [0, 1, 3, 2000])
+def test_a_chunks_message_index_is_the_record_mcap_writes(count):
+    entries = [(1_700_000_000_000_000_000 + 500_000 * k, 31 * k) for k in range(count)]
+    index = MessageIndex(channel_id=7, records=entries)
+    builder = RecordBuilder()
+    index.write(builder)
+    assert message_index_record(index) == builder.end()

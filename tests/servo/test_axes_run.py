@@ -64,6 +64,11 @@ def test_a_circular_test_on_two_axes_reports_each_axis_and_the_contour_error(tmp
     assert plans[0]["bus_time_us"] > plans[0]["period_us"] == 500  # the one figure
     contour_topic = [m for _, m in data.topic("/path/contour")]
     assert len(contour_topic) == 1000
+    # one loop task ticks every axis and the bus (the loop's bookkeeping once a tick, not
+    # once an axis), timed as the one axis of a run that names none
+    assert sorted(t for t in data.topic_counts if t.startswith("/loop/")) == \
+        ["/loop/servo/timing"]
+    assert json.loads(data.metadata["loop"]["servo"])["runs"] == 1000
     assert max(abs(m["contour_error_deg"]) for m in contour_topic[200:]) == \
         pytest.approx(contour["max_contour_error_deg"], rel=1e-5)
     # the human summary names each axis and the contour error

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 
@@ -95,6 +96,23 @@ def test_without_ray_the_sweep_names_the_extra_to_install(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.strip() == ("hil: error: sweeps run on Ray, which is not installed: "
                                    "pip install 'hil[sweep]'")
+
+
+def test_a_local_ray_that_cannot_start_is_one_line_naming_why(tmp_path):
+    not_a_folder = tmp_path / "file"
+    not_a_folder.write_text("")
+    code = ("import sys\n"
+            "from hil.cli.main import main\n"
+            "sys.exit(main(['sweep', 'servo', '--controller', 'pid', '--duration', '0.05',"
+            f" '--grid', 'umax=500,900', '--out', {str(tmp_path / 'out')!r}]))")
+    # Ray's temporary folder is a file: the real Ray fails to start
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120, env={**os.environ, "RAY_TMPDIR": str(not_a_folder)})
+    assert proc.returncode == 2
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("hil:")]
+    assert lines == [f"hil: error: the local Ray for the sweep did not start: [Errno 20] Not a "
+                     f"directory: '{not_a_folder}/ray' (--serial runs the trials without Ray)"]
+    assert "Traceback" not in proc.stderr
 
 
 def servo_space() -> Space:

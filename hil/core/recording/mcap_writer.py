@@ -26,6 +26,7 @@ from __future__ import annotations
 import struct
 import zlib
 from collections import defaultdict
+from itertools import chain
 from typing import IO
 
 import zstandard
@@ -55,6 +56,7 @@ MAGIC = b"\x89MCAP0\r\n"  # MCAP specification, "Magic"
 # publish time (mcap's Message.write, in one call: the writer's busiest record)
 MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 MESSAGE_FIELDS_BYTES = MESSAGE_HEAD.size - 9
+RECORD_HEAD = struct.Struct("<BQ")  # opcode, record length
 DEFAULT_CHUNK_BYTES = 1 << 20
 
 
@@ -212,7 +214,7 @@ class McapWriter:
         offsets = {}
         for channel_id, index in self._chunk_indexes.items():
             offsets[channel_id] = base + self._out.count
-            index.write(self._out)
+            self._out.write(message_index_record(index))
         self._chunk_index_records.append(ChunkIndex(
             message_start_time=self._chunk_start_ns, message_end_time=self._chunk_end_ns,
             chunk_start_offset=start, chunk_length=len(chunk_record),
@@ -231,3 +233,12 @@ class McapWriter:
     def _write(self, data: bytes) -> None:
         self._stream.write(data)
         self._data_crc = zlib.crc32(data, self._data_crc)
+
+
+def message_index_record(index: MessageIndex) -> bytes:
+    """``index`` as mcap's ``MessageIndex.write`` writes it, in one ``struct`` call rather than
+    two calls a message (the records of a chunk's indexes are a writer's second busiest)."""
+    entries = index.records
+    body = struct.pack(f"<HI{2 * len(entries)}Q", index.channel_id, 16 * len(entries),
+                       *chain.from_iterable(entries))
+    return RECORD_HEAD.pack(Opcode.MESSAGE_INDEX, len(body)) + body

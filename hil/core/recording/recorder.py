@@ -17,6 +17,10 @@
   handed over (at most ``flush_every_s`` plus one unflushed chunk), and the file is indexed.
 * Encodings: ``json`` (JSON Schema) by default; ``cdr`` (ros2msg schema, see
   :mod:`hil.core.recording.cdr`) for flat high-rate topics.
+* In process (``RecordingOptions.in_process``, lockstep only): no writer process; each flush
+  hands the records to an :class:`~hil.core.recording.in_process.InProcessWriter` on the loop
+  thread instead, which writes them with the writer process's code (a sweep's trials on Ray:
+  every core already runs a trial). A failure to write is the same RecordingError.
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ from typing import Any
 
 from hil.core.realtime import keep_process_off_cpu
 from hil.core.recording.cdr import CdrError, fields_of
+from hil.core.recording.in_process import InProcessWriter
 from hil.core.recording.output import OutputClaim
 from hil.core.recording.record_stream import FrameDecoder, encode_frame
 from hil.core.recording.recording_options import ENCODINGS, RecordingOptions
@@ -107,9 +112,10 @@ class Topic:
 
 
 class Recorder:
-    """Writes one MCAP session (file or split series) through a writer process; with a
-    ``claim`` (:func:`hil.core.recording.output.claim_output`), its first file goes to the
-    claim's staging file until the claim is started."""
+    """Writes one MCAP session (file or split series) through a writer process (or, with
+    ``options.in_process``, in this process); with a ``claim``
+    (:func:`hil.core.recording.output.claim_output`), its first file goes to the claim's
+    staging file until the claim is started."""
 
     def __init__(
         self,
@@ -130,6 +136,8 @@ class Recorder:
         self.path = os.fspath(path)
         self.options = options or RecordingOptions()
         self.wait_when_full = wait_when_full
+        if self.options.in_process:
+            self._check_in_process()
         self.flush_every_s = flush_every_s
         self.batch_size = batch_size
         self.max_backlog_bytes = max_backlog_bytes
@@ -160,7 +168,7 @@ class Recorder:
         # claim's staging file, whose open descriptor it inherits
         first_fd = claim.fd if claim is not None else None
         tune_fd = writer_end.fileno() if writer_end is not None else None
-        self._process = self._start_writer({
+        writer_options = {
             "path": self.path, "chunk_size": chunk_size, "flush_interval_s": flush_interval_s,
             "chunk_span_s": chunk_span_s,
             "profile": profile, "split_duration_s": self.options.split_duration_s,
@@ -172,15 +180,38 @@ class Recorder:
             "live_remote_tuning": self.options.live_remote_tuning,
             "tune_fd": tune_fd, "first_fd": first_fd,
             "staging": claim.staging if claim is not None and first_fd is not None else None,
-        }, [fd for fd in (tune_fd, first_fd) if fd is not None])
+        }
+        self._inline: InProcessWriter | None = None
+        if self.options.in_process:
+            self._inline = self._start_inline(writer_options)
+        else:
+            self._process = self._start_writer(
+                writer_options, [fd for fd in (tune_fd, first_fd) if fd is not None])
+            assert self._process.stdin is not None
+            self._fd = self._process.stdin.fileno()
+            with contextlib.suppress(OSError):  # a bigger pipe absorbs a slow writer longer
+                fcntl.fcntl(self._fd, fcntl.F_SETPIPE_SZ, PIPE_BYTES)
+            os.set_blocking(self._fd, False)
         if writer_end is not None:
             writer_end.close()
-        assert self._process.stdin is not None
-        self._fd = self._process.stdin.fileno()
-        with contextlib.suppress(OSError):  # a bigger pipe absorbs a slow writer for longer
-            fcntl.fcntl(self._fd, fcntl.F_SETPIPE_SZ, PIPE_BYTES)
-        os.set_blocking(self._fd, False)
         self.events = self.topic(EVENTS_TOPIC, EVENT_SCHEMA)
+
+    def _start_inline(self, options: dict[str, Any]) -> InProcessWriter:
+        """The in-process writer (lockstep only, no live view: :meth:`_check_in_process`)."""
+        inline = InProcessWriter(options)
+        if inline.error:
+            self._writer_gone = "the writer failed to start"
+        return inline
+
+    def _check_in_process(self) -> None:
+        """In-process recording is for lockstep (in real time its encoding would be the
+        loop's) and has no live view (the writer process serves it)."""
+        if not self.wait_when_full:
+            raise HilError("in-process recording is for lockstep sessions: a real-time loop "
+                           "hands its records to a writer process")
+        if self.options.live:
+            raise HilError("in-process recording has no live view: the writer process "
+                           "serves it")
 
     @staticmethod
     def _start_writer(options: dict[str, Any], pass_fds: list[int]) -> subprocess.Popen[bytes]:
@@ -201,13 +232,20 @@ class Recorder:
             self._port_server = PortServer(self._tune_socket, port)
 
     @property
-    def writer_pid(self) -> int:
-        return self._process.pid
+    def writer_pid(self) -> int | None:
+        """The writer process's id (None: the session is written in this process)."""
+        return None if self._inline is not None else self._process.pid
 
     def wait_ready(self, timeout_s: float = WRITER_START_TIMEOUT_S) -> None:
         """Wait until the writer process has started (imports done, file open), so that its
         start-up does not compete with the first ticks of a real-time loop."""
         if self._ready:
+            return
+        if self._inline is not None:
+            if self._inline.error:
+                raise RecordingError(f"{self.path}: the writer failed to start "
+                                     f"({self._inline.error})")
+            self._ready = True
             return
         line, timed_out = self._read_writer(timeout_s, line=True)
         if timed_out:
@@ -289,7 +327,8 @@ class Recorder:
 
     def keep_off_cpu(self, cpu: int) -> None:
         """Move the writer process, every thread of it, off ``cpu`` (the loop's core)."""
-        keep_process_off_cpu(self._process.pid, cpu)
+        if self._inline is None:
+            keep_process_off_cpu(self._process.pid, cpu)
 
     # -- hand-over -----------------------------------------------------------------------
     def flush_if_due(self) -> None:
@@ -300,7 +339,7 @@ class Recorder:
         now = time.monotonic()
         if self._queue and now - self._last_flush >= self.flush_every_s:
             self.flush()
-        if now >= self._next_check and not self._writer_gone:
+        if now >= self._next_check and not self._writer_gone and self._inline is None:
             self._next_check = now + WRITER_CHECK_EVERY_S
             if self._process.poll() is not None:
                 self._writer_gone = "the writer process ended"
@@ -314,6 +353,8 @@ class Recorder:
         (``No space left on device``...) once it has ended, else how it ended."""
         if not self._writer_gone:
             return None
+        if self._inline is not None:
+            return self._inline.error or self._writer_gone
         if self._stats is None and self._report is None:
             with contextlib.suppress(subprocess.TimeoutExpired):
                 self._process.wait(timeout=1.0)
@@ -335,9 +376,21 @@ class Recorder:
                 self._add_drop_report(records)
                 if self._writer_gone:
                     self._count_lost(records)
+                elif self._inline is not None:
+                    self._write_inline(self._inline, records)
                 else:
                     self._backlog += encode_frame(records)
-            self._send(block=self.wait_when_full)
+            if self._inline is None:
+                self._send(block=self.wait_when_full)
+            else:
+                self._refusing = self._closed or bool(self._writer_gone)
+
+    def _write_inline(self, inline: InProcessWriter, records: list[tuple[Any, ...]]) -> None:
+        """``records`` written in this process; on a failure, the rest counted lost."""
+        written = inline.apply(records)
+        if inline.error:
+            self._writer_gone = "the session could not be written"
+            self._count_lost(records[written:])
 
     def _add_drop_report(self, records: list[tuple[Any, ...]]) -> None:
         dropped = self.dropped()
@@ -382,13 +435,16 @@ class Recorder:
             return self._stats
         self._queue.append(("close",))
         self.flush()
-        self._send(block=True)
         self._closed = self._refusing = True
-        assert self._process.stdin is not None
-        with contextlib.suppress(OSError):
-            self._process.stdin.close()
-        if self._report is None:
-            self._report = self._parse_result(self._writer_report())
+        if self._inline is not None:
+            self._report = self._inline.close()
+        else:
+            self._send(block=True)
+            assert self._process.stdin is not None
+            with contextlib.suppress(OSError):
+                self._process.stdin.close()
+            if self._report is None:
+                self._report = self._parse_result(self._writer_report())
         self._close_parameters()
         result = self._report
         drops = self.dropped()

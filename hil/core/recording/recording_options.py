@@ -19,7 +19,9 @@ class RecordingOptions:
     """How a session is written: per-topic encodings, file splitting, and the live view
     (``live``: serve the topics at ``[HOST:]PORT``, see :mod:`hil.core.recording.live`;
     ``live_remote_tuning``: its clients may set the run's parameters even when it listens
-    beyond loopback)."""
+    beyond loopback); ``in_process``: no writer process, the session written on the loop's
+    thread (lockstep only, without a live view; no flag: ``hil sweep`` records its trials on
+    Ray so, see :mod:`hil.core.recording.in_process`)."""
 
     #: the command-line flag of each field
     FLAGS: ClassVar[dict[str, str]] = {
@@ -35,6 +37,7 @@ class RecordingOptions:
     live: str | None = None                # "[HOST:]PORT": serve the topics live (recording.live)
     live_rates: dict[str, float] = field(default_factory=dict)  # topic -> Hz (0: every message)
     live_remote_tuning: bool = False       # clients beyond loopback may set parameters
+    in_process: bool = False               # no writer process (lockstep, no live view)
 
     def __post_init__(self) -> None:
         for name, encoding in [("high-rate topics", self.high_rate_encoding),

@@ -35,6 +35,7 @@ from hil.core.recording.cdr import CdrEncoder, fields_of, ros2msg_text
 from hil.core.recording.live import LiveSink, announce, parse_address
 from hil.core.recording.mcap_series import (
     DEFAULT_CHUNK_BYTES,
+    ZSTD_LEVEL,
     ChannelSpec,
     McapSeries,
     json_schema_channel,
@@ -203,6 +204,37 @@ def describe_failure(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}"
 
 
+def open_series(options: dict[str, Any]) -> McapSeries:
+    """The session's file (or split series) as ``options`` describe it (the recorder's)."""
+    return McapSeries(
+        options["path"], chunk_size=int(options.get("chunk_size", DEFAULT_CHUNK_BYTES)),
+        chunk_span_s=options.get("chunk_span_s"),
+        zstd_level=int(options.get("zstd_level", ZSTD_LEVEL)),
+        split_duration_s=options.get("split_duration_s"),
+        split_size_mb=options.get("split_size_mb"), profile=options.get("profile", ""),
+        first_fd=options.get("first_fd"), staging=options.get("staging"),
+    )
+
+
+def finish(writer: SessionWriter, error: str, cut: int = 0) -> dict[str, Any]:
+    """Finish the file (summary, index, the recorder's final metadata) and return the
+    statistics; a failure to finish it is the report's ``error`` unless one came first."""
+    metadata = writer.final_metadata(cut, error)
+    live = writer.live
+    live_stats = dataclasses.asdict(live.stats()) if live is not None else {}
+    if live_stats:
+        metadata["live"] = {key: json.dumps(value) for key, value in live_stats.items()}
+    try:
+        stats = writer.series.close(metadata)
+    except Exception as exc:  # the disk is full, say: what is in the file stays readable
+        error = error or describe_failure(exc)
+        stats = writer.series.stats
+    return {"messages_written": stats.messages_written, "chunks_flushed": stats.chunks_flushed,
+            "bytes_written": stats.bytes_written, "files": stats.files,
+            "dropped": writer.dropped, "closed": writer.closed, "error": error,
+            "live": live_stats}
+
+
 def run(options: dict[str, Any], fd: int = 0, ready: Callable[[], None] = lambda: None
         ) -> dict[str, Any]:
     """Write the session read from ``fd`` until ``close`` or end of file; return statistics.
@@ -212,13 +244,7 @@ def run(options: dict[str, Any], fd: int = 0, ready: Callable[[], None] = lambda
     first_fd = options.get("first_fd")
     staging = os.fstat(first_fd) if first_fd is not None else None
     try:
-        series = McapSeries(
-            options["path"], chunk_size=int(options.get("chunk_size", DEFAULT_CHUNK_BYTES)),
-            chunk_span_s=options.get("chunk_span_s"),
-            split_duration_s=options.get("split_duration_s"),
-            split_size_mb=options.get("split_size_mb"), profile=options.get("profile", ""),
-            first_fd=first_fd, staging=options.get("staging"),
-        )
+        series = open_series(options)
     except Exception as exc:
         return {"messages_written": 0, "error": describe_failure(exc), "closed": False}
     live = start_live(options)  # serving before the loop starts
@@ -248,23 +274,12 @@ def run(options: dict[str, Any], fd: int = 0, ready: Callable[[], None] = lambda
         writer.event(writer.last_t_ns, "recorder.stream_cut",
                      f"the loop process ended in the middle of a batch ({cut} bytes lost)",
                      bytes=cut)
-    metadata = writer.final_metadata(cut, error)
-    live_stats = dataclasses.asdict(live.stats()) if live is not None else {}
-    if live_stats:
-        metadata["live"] = {key: json.dumps(value) for key, value in live_stats.items()}
-    try:
-        stats = series.close(metadata)
-    except Exception as exc:  # the disk is full, say: what is in the file stays readable
-        error = error or describe_failure(exc)
-        stats = series.stats
+    result = finish(writer, error, cut)
     if staging is not None:  # the run never started (its loop process may be gone): no file
         remove_if_same(options["staging"], staging)
     if live is not None:  # after the file: a stalled client may hold the server's stop
         live.close()
-    return {"messages_written": stats.messages_written, "chunks_flushed": stats.chunks_flushed,
-            "bytes_written": stats.bytes_written, "files": stats.files,
-            "dropped": writer.dropped, "closed": writer.closed, "error": error,
-            "live": live_stats}
+    return result
 
 
 def yield_cpu() -> None:
