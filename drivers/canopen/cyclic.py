@@ -223,16 +223,18 @@ class CyclicExchange:
         self.link.send(frames)
         self.cycle += 1
 
-    def receive(self) -> Feedback:
-        """The TPDO pair of the last SYNC, waiting at most until ``rx_timeout`` after it;
-        without a cycle sent since the last call, the last feedback again."""
+    def receive(self, timeout_s: float | None = None) -> Feedback:
+        """The TPDO pair of the last SYNC, waiting at most until ``rx_timeout`` (or
+        ``timeout_s``) after it; without a cycle sent since the last call, the last feedback
+        again."""
         if not self._awaiting:
             if self.feedback is None:
                 raise DriveError("no feedback yet: enable the drive first")
             return self.feedback
         # measured from the SYNC: in the split form the TPDOs have travelled while the loop
         # slept, and a late pair costs the tick only what is left of the wait
-        deadline_ns = self._sent_ns + self._rx_timeout_ns
+        wait_ns = self._rx_timeout_ns if timeout_s is None else round(timeout_s * 1e9)
+        deadline_ns = self._sent_ns + wait_ns
         recv, dispatch = self.link.recv, self._dispatch
         clock = time.perf_counter_ns
         # a wait of a cycle or so is spent polling: a thread blocked in select() is woken up
@@ -240,7 +242,7 @@ class CyclicExchange:
         # longer one (lockstep over a bus) blocks, leaving the CPU to the drive's process.
         # Past the deadline, what is already here is still read: a master held up (a busy
         # machine) must not call an answer that came in time late.
-        poll_until = deadline_ns if self._rx_timeout_ns <= POLL_WAIT_MAX_NS else self._sent_ns
+        poll_until = deadline_ns if wait_ns <= POLL_WAIT_MAX_NS else self._sent_ns
         try:
             every = self._all
             while self._got != every:
@@ -263,7 +265,7 @@ class CyclicExchange:
             return self.feedback
         if self._silence_is_gone and not self._heard:
             raise DriveGoneError(
-                f"nothing on the bus for {self._rx_timeout_ns / 1e9:g} s of wall time after "
+                f"nothing on the bus for {wait_ns / 1e9:g} s of wall time after "
                 f"SYNC {self.cycle} (lockstep waits that long: master.lockstep_timeout_ms): "
                 "the drive is gone (stopped, disconnected, or paused for longer)")
         stats.stale += 1

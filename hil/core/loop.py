@@ -54,8 +54,9 @@ class Task:
 
     ``read`` takes in what a device reports, ``compute`` runs a controller, ``write`` sends
     to a device, ``record`` logs the tick (topics, KPIs, per-tick limits). Every phase gets
-    the tick's start time (clock ns). ``safe_state`` puts whatever this task drives into its
-    safe state; it must be idempotent.
+    the tick's start time (clock ns). ``prime`` runs once before the clock starts (a first
+    exchange with a device, outside the schedule). ``safe_state`` puts whatever this task
+    drives into its safe state; it must be idempotent.
     """
 
     def __init__(self, name: str, divisor: int = 1) -> None:
@@ -70,6 +71,12 @@ class Task:
     def phases(self) -> tuple[str, ...]:
         """The phases this task takes part in: those its class overrides."""
         return tuple(p for p in PHASES if getattr(type(self), p) is not getattr(Task, p))
+
+    def prime(self) -> None:
+        """Once, after the loop is set up and right before its clock starts (untimed): a
+        device's first answer, which comes late (a peer that has not been asked yet, caches
+        cold), waited for here rather than in the first ticks."""
+        return None
 
     def read(self, t_ns: int) -> None:
         return None
@@ -289,6 +296,8 @@ class FixedRateLoop:
             wait_ready = getattr(self._recorder, "wait_ready", None)
             if wait_ready is not None:  # a recorder's writer process: started before tick 0
                 wait_ready()
+            for task in self.tasks:
+                task.prime()
             began = time.perf_counter()
             try:
                 self._run_ticks(limit)
