@@ -16,11 +16,11 @@ is reported but costs no virtual time). SIGINT/SIGTERM stop the loop at the next
 boundary; every component's ``safe_state()`` runs before :meth:`FixedRateLoop.run` returns,
 also on errors.
 
-Every tick does the same bookkeeping, whatever its number: each sample (lateness, phase times)
-goes into its run-long histogram at once and into the window's compact array, and the window's
-timing record (about once a second) hands those arrays over as they are. Work left for every N
-ticks would cost one tick the work of N: at 2 kHz, a window's worth binned in one tick was a
-skipped tick every second.
+No tick does a period's worth of bookkeeping: each sample (lateness, phase times) goes into
+the window's compact array; the window's timing record (about once a second) hands those arrays
+over as they are, and the following ticks bin them into the run's histograms
+:data:`DIGEST_SAMPLES` at a time. Work left whole for every N ticks costs one tick the work of
+N: at 2 kHz, a window binned and pickled in one tick was a skipped tick every second.
 """
 
 from __future__ import annotations
@@ -30,9 +30,12 @@ import sys
 import threading
 import time
 from array import array
+from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
+
+import numpy as np
 
 from hil.core.clock import Clock
 from hil.core.stats import TimingHistogram
@@ -43,6 +46,9 @@ REALTIME_SWITCH_INTERVAL_S = 1e-4
 
 #: the phases of a tick, in the order they run
 PHASES = ("read", "compute", "write", "record")
+#: samples of finished timing windows binned into the run's histograms after a tick, at most
+#: (a numpy call costs some 20 us whatever its size: a tick each would cost more)
+DIGEST_SAMPLES = 512
 
 
 class SafeStateful(Protocol):
@@ -239,6 +245,8 @@ class FixedRateLoop:
         self.tasks: list[Task] = []
         self.components: list[SafeStateful] = []
         self.stats: dict[str, TaskStats] = {}
+        #: samples of finished windows not in the run's histograms yet (a view, its histogram)
+        self._undigested: deque[tuple[np.ndarray, TimingHistogram]] = deque()
         self._recorder = recorder
         self._timing_topics: dict[str, Any] = {}
         self._on_event = on_event
@@ -311,6 +319,7 @@ class FixedRateLoop:
             try:  # a signal during the safe state is one more stop request, not a kill
                 self.safe_state_all()
                 self._publish_windows(final=True)
+                self._digest(None)
             finally:
                 self._restore_signal_handlers(previous_handlers)
             if self.stop_reason is None:
@@ -323,6 +332,7 @@ class FixedRateLoop:
         self._windows = windows
         schedule, slots = self._schedule(windows), self._slots(windows)
         spent = [0] * len(tasks)  # ns each task spent in this tick's phases
+        undigested = self._undigested
         t0 = self.start_ns = clock.start()
         n = 0
         next_window = self._window_ticks
@@ -345,25 +355,20 @@ class FixedRateLoop:
             if boundary is not None:
                 boundary(n)
             start = clock.time_ns()
-            for index, divisor, method, samples, histogram in schedule:
+            for index, divisor, method, samples in schedule:
                 if n % divisor:
                     continue
                 c0 = perf()
                 method(start)
                 elapsed = perf() - c0
-                us = elapsed / 1e3
-                samples.append(us)
-                histogram.add(us)
+                samples.append(elapsed / 1e3)
                 spent[index] += elapsed
             lateness_us = (start - deadline) / 1e3
             for index, divisor, window, stats in slots:
                 if n % divisor:
                     continue
                 window.lateness_us.append(lateness_us)
-                stats.lateness.add(lateness_us)
-                step_us = spent[index] / 1e3
-                window.step_us.append(step_us)
-                stats.step.add(step_us)
+                window.step_us.append(spent[index] / 1e3)
                 if realtime and spent[index] > divisor * period:
                     window.overruns += 1
                 spent[index] = 0
@@ -375,6 +380,8 @@ class FixedRateLoop:
             self.ticks = n
             if recorder is not None:
                 recorder.flush_if_due()
+            if undigested:
+                self._digest(DIGEST_SAMPLES)
             if n >= next_window:
                 self._publish_windows(final=False)
                 # the new windows and their sample lists
@@ -382,13 +389,10 @@ class FixedRateLoop:
                 next_window = (n // self._window_ticks + 1) * self._window_ticks
 
     def _schedule(self, windows: dict[str, _Window]
-                  ) -> list[tuple[int, int, Callable[[int], None], array[float],
-                                  TimingHistogram]]:
+                  ) -> list[tuple[int, int, Callable[[int], None], array[float]]]:
         """Every phase method of a tick, in order (phase by phase, then in the order the
-        tasks were added): ``(task index, divisor, bound phase method, the window's samples,
-        the run's histogram)``."""
-        return [(index, task.divisor, getattr(task, phase), windows[task.name].phase_us[phase],
-                 self.stats[task.name].phase_times[phase])
+        tasks were added): ``(task index, divisor, bound phase method, samples)``."""
+        return [(index, task.divisor, getattr(task, phase), windows[task.name].phase_us[phase])
                 for phase in PHASES
                 for index, task in enumerate(self.tasks) if phase in task.phases]
 
@@ -414,8 +418,8 @@ class FixedRateLoop:
             )
 
     def _publish_windows(self, final: bool) -> None:
-        """Each task's window as its timing record (its samples are in the run's histograms
-        already), and a new window: the same work for a window of any length."""
+        """Each task's window as its timing record, its samples queued for the run's
+        histograms, and a new window: the same work for a window of any length."""
         windows = getattr(self, "_windows", None)
         if not windows:
             return
@@ -427,6 +431,12 @@ class FixedRateLoop:
             stats = self.stats[task.name]
             stats.missed += window.missed
             stats.overruns += window.overruns
+            for samples, histogram in ((window.lateness_us, stats.lateness),
+                                       (window.step_us, stats.step),
+                                       *((window.phase_us[phase], histogram) for phase, histogram
+                                         in stats.phase_times.items())):
+                if samples:
+                    self._undigested.append((np.frombuffer(samples), histogram))
             topic = self._timing_topics.get(task.name)
             if topic is not None:
                 message: dict[str, Any] = {
@@ -441,6 +451,21 @@ class FixedRateLoop:
                     message[f"{phase}_us"] = window.phase_us[phase]
                 topic.log(t_ns, message)
             windows[task.name] = _Window()
+
+    def _digest(self, most: int | None) -> None:
+        """Bin up to ``most`` (None: all) samples of the finished windows into the run's
+        histograms, oldest first."""
+        undigested = self._undigested
+        while undigested and (most is None or most > 0):
+            samples, histogram = undigested[0]
+            take = samples.size if most is None else min(most, samples.size)
+            histogram.add_many(samples[:take])
+            if take == samples.size:
+                undigested.popleft()
+            else:
+                undigested[0] = (samples[take:], histogram)
+            if most is not None:
+                most -= take
 
     def safe_state_all(self) -> list[str]:
         """Call every task's and component's ``safe_state`` (reverse order); return failures."""
@@ -457,6 +482,7 @@ class FixedRateLoop:
 
     def summary(self) -> dict[str, Any]:
         """Per-task stats of the run so far, keyed by task name."""
+        self._digest(None)
         return {name: s.summary() for name, s in self.stats.items()}
 
     # -- signals ---------------------------------------------------------------------------
