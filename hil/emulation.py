@@ -293,15 +293,15 @@ def serve_drives(config: DriveEmulatorConfig, node_ids: list[int], host: str, po
                        faults=faults, on_fault=on_fault)
              for node_id in node_ids]
 
-    def handle(msg: Any) -> None:
+    def handle(can_id: int, data: bytes) -> None:
         for node in nodes:
-            node.handle(msg)
+            node.handle_frame(can_id, data)
 
     def service() -> None:
         for node in nodes:
             node.service()
 
-    server.on_frame = handle if trace is None else _traced_handle(handle, trace)
+    server.on_data = handle if trace is None else _traced_handle(handle, trace)
     server.on_tick = service
     server.next_frame_ns = nodes[0].next_sync_ns  # one SYNC for them all
     for node in nodes:
@@ -346,13 +346,10 @@ def _traced_send(send: Callable[[list], None], trace: Any) -> Callable[[list], N
     return traced
 
 
-def _traced_handle(handle: Callable[[Any], None], trace: Any) -> Callable[[Any], None]:
-    from hil.protocols.can_frames import from_message
-
-    def traced(msg: Any) -> None:
-        frame = from_message(msg)
-        if frame is not None:
-            trace.received(frame)
-        handle(msg)
+def _traced_handle(handle: Callable[[int, bytes], None], trace: Any
+                   ) -> Callable[[int, bytes], None]:
+    def traced(can_id: int, data: bytes) -> None:
+        trace.received((can_id, data))
+        handle(can_id, data)
 
     return traced
