@@ -33,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import selectors
 import socket
 import threading
@@ -164,7 +165,10 @@ class SocketcandServer:
             timeout = max(0.0, next_tick - time.monotonic())
             if self.next_frame_ns is not None:
                 timeout = min(timeout, self._until_polling())
-            for key, mask in self._selector.select(timeout):
+            events = self._selector.select(timeout)
+            if not events and not timeout:
+                os.sched_yield()  # polling: a process waiting for this core runs first
+            for key, mask in events:
                 if key.data is None:
                     self._accept()
                 else:

@@ -24,13 +24,14 @@ Every feedback is bound to its SYNC:
 
 from __future__ import annotations
 
+import os
 import struct
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
-from hil.contracts import LinkWatchdog
+from hil.contracts import LinkWatchdog, PollBudget
 from hil.drivers.canopen.errors import DriveError, DriveGoneError, DriveLinkLostError
 from hil.drivers.canopen.link import Link
 from hil.drivers.canopen.nmt import HeartbeatProducer
@@ -47,6 +48,7 @@ from hil.protocols.cia402 import (
 )
 
 POLL_WAIT_MAX_NS = 2_000_000  # TPDO waits up to this long poll the bus instead of blocking
+LONG_WAIT_POLL_NS = 500_000  # a longer one (lockstep over a bus) polls at most this long
 SYNC_COUNTER_MAX = 240  # 0x1019 written when the echo is on: the SYNC counter runs 1..240
 # the feedback objects a TPDO carries: their slot in the raw feedback and their wire format
 FEEDBACK_OBJECTS = {STATUSWORD: (0, "H"), POSITION_ACTUAL: (1, "i"), VELOCITY_ACTUAL: (2, "i"),
@@ -133,6 +135,7 @@ class CyclicExchange:
         # lockstep over a bus: a wait with no frame at all is not a late drive but a gone one
         self._silence_is_gone = silence_is_gone
         self._heard = False  # a frame came since the last SYNC
+        self._poll = PollBudget(LONG_WAIT_POLL_NS)  # how a long wait polls before it blocks
         self.use_rpdo(rpdo)
         self._decoders = {pdo.cob_id(node_id): tpdo_decoder(pdo, i)
                           for i, pdo in enumerate(tpdos)}
@@ -239,20 +242,26 @@ class CyclicExchange:
         clock = time.perf_counter_ns
         # a wait of a cycle or so is spent polling: a thread blocked in select() is woken up
         # 50 us to several hundred us after the frame arrives (more on a virtual machine); a
-        # longer one (lockstep over a bus) blocks, leaving the CPU to the drive's process.
-        # Past the deadline, what is already here is still read: a master held up (a busy
-        # machine) must not call an answer that came in time late.
-        poll_until = deadline_ns if wait_ns <= POLL_WAIT_MAX_NS else self._sent_ns
+        # longer one (lockstep over a bus) polls for as long as a drive takes to answer while
+        # that pays (PollBudget), then blocks, leaving the CPU to the drive's process. Past the
+        # deadline, what is already here is still read: a master held up (a busy machine) must
+        # not call an answer that came in time late.
+        long_wait = wait_ns > POLL_WAIT_MAX_NS
+        if long_wait:
+            self._poll.start(clock())
         try:
             every = self._all
             while self._got != every:
                 now = clock()
                 over = now >= deadline_ns
-                frame = recv(0.0 if over or now < poll_until else (deadline_ns - now) / 1e9)
+                look = over or not long_wait or self._poll.polling(now)
+                frame = recv(0.0 if look else (deadline_ns - now) / 1e9)
                 if frame is not None:
                     dispatch(frame)
                 elif over:
                     break
+                elif long_wait and look:  # the drive's process may be waiting for this core
+                    os.sched_yield()
         finally:
             self._awaiting = False
         stats = self.stats
