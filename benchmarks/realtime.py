@@ -1,27 +1,41 @@
-"""The real-time path: a full servo session next to the bare loop, in one run.
+"""The real-time path, each suspect of a late or skipped tick against the bare loop, in one run.
 
-1. the bare 2 kHz loop as ``hil doctor`` runs it (hardened, no I/O): the baseline;
-2. a 10 s real-time servo session: MPC FOH H_t = H_u = 8, the drive emulator in a process of
-   its own over socketcand, every topic recorded;
-3. the same session in lockstep through the CAN link (in-process emulated drive): x real time;
-4. a real-time bench session at 100 Hz over Modbus TCP to the emulator in its own process.
+Each repeat runs, one after the other, at 2 kHz with the loop thread hardened as a session's is:
 
-Targets (docs/ARCHITECTURE.md, performance): 2 skipped <= 1.5x the bare loop's share plus
-0.05 points and its lateness p99 <= 100 us; 3 >= 10x real time; 4 skips no tick. The machine
-is shared: figures are noisy, run it on a quiet box for figures worth quoting, with
-``--repeat 3`` or more: the targets are then checked on the medians of alternated pairs.
-For 2 it also prints the stale feedback, the side that was late (``hil report``'s feedback
-section) and what the drive emulator's process was granted (``realtime.emulator``).
-``--quick``: servo runs of 0.2 s and one bench cycle of a 1 s machining sequence instead of
-the 28 s one (seconds in all; figures not worth quoting).
+1. ``bare`` - the bare loop as ``hil doctor`` runs it (no I/O): the baseline;
+2. ``recorder`` - the loop recording what a servo tick records (its three messages, packed
+   rows) through a session's writer process: the writer and the hand-over to it;
+3. ``wire`` - the loop cycling the drive emulator in a process of its own over socketcand
+   (RPDO + SYNC each tick, the TPDOs read the next), 0 mA, nothing recorded but the loop's
+   timing: the emulator process's wake-up and the socket;
+4. ``servo`` - the full real-time servo session: MPC FOH H_t = H_u = 8, the emulator process,
+   every topic recorded, as ``hil servo run --realtime`` runs it.
+
+For each: the share of skipped ticks, its excess over the bare loop's in the same repeat, the
+lateness p99, and (2-4) the ticks whose feedback was stale and the frames that came late.
+Then: where the servo run's skipped ticks fell (a whole second of the loop, where a timing
+window closes, or elsewhere), its tick breakdown, what the emulator process was granted,
+and the status the run would exit with. Then the same session in lockstep, and a real-time
+bench session at 100 Hz over Modbus TCP to its emulator process.
+
+Targets (docs/ARCHITECTURE.md, performance), on the medians of ``--repeat`` repeats: the servo
+session skips at most the bare loop's share plus 0.01 points, none of its skips is periodic,
+and it completes clean (``completed``: no stale feedback, no late frames: ``hil servo run``
+exits 0); the lockstep session >= 10x real time; the bench skips no tick. A shared machine
+makes every real-time figure noisy: the load average is printed before and after; quote a
+quiet machine's. ``--quick``: runs of 0.2 s and one bench cycle of a 1 s machining sequence
+(seconds in all; figures not worth quoting).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import statistics
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -29,15 +43,23 @@ import numpy as np
 from benchkit import add_quick
 
 from hil.bench.run import BenchRunOptions, run_bench
+from hil.core.clock import RealtimeClock
 from hil.core.doctor import measure_loop
+from hil.core.loop import Task
 from hil.core.realtime import Hardening
 from hil.core.recording.reader import read_session
+from hil.core.session import Session
+from hil.drivers.canopen import CanDriveMaster
+from hil.emulator_process import start_drive_emulator
+from hil.servo.config import load_drive_config
 from hil.servo.report import FEEDBACK_TIMING
+from hil.servo.rig import open_drive
 from hil.servo.run import ServoRunOptions, run_servo
+from hil.servo.topics import FEEDBACK_SCHEMA, PREDICTION_SCHEMA, command_schema
 
-SKIPPED_RATIO_MAX = 1.5     # the servo loop's skipped share against the bare loop's...
-SKIPPED_POINTS_MAX = 0.05   # ...plus this many percentage points
-LATENESS_P99_MAX_US = 100.0
+RATE_HZ = 2000
+SKIPPED_POINTS_MAX = 0.01   # the servo session's skipped share: at most the bare loop's + this
+LOCKSTEP_MIN = 10.0
 # --quick: a 1 s machining sequence instead of bench.toml's 28 s one (M1 and M2 then switch
 # faster than their 1 s dwell allows, so it is shortened too)
 SHORT_SEQUENCE = """[relays]
@@ -49,40 +71,113 @@ period_s = 1.0
 stages = [{ start_s = 0.0, end_s = 0.5, on = ["M1"] },
           { start_s = 0.5, end_s = 1.0, on = ["M1", "M2"] }]
 """
+#: a loaded 2-core box: stale feedback is counted, not fatal, here (the watchdog and the
+#: safety net's stale share)
+TOLERANT = {"master": {"stale_cycles": 100_000}, "safety": {"stale_share_max": 1.0}}
+RUNS = ("bare", "recorder", "wire", "servo")
+LABELS = {"bare": "bare 2 kHz loop, hardened (hil doctor) [baseline]",
+          "recorder": "+ recording a servo tick (writer process)",
+          "wire": "+ the drive emulator process over socketcand",
+          "servo": "real-time servo session, MPC, recorded"}
 
 
-def bare_loop(seconds: float) -> dict[str, float]:
+def bare_loop(_tmp: Path, seconds: float) -> dict[str, Any]:
+    """The bare loop, hardened."""
     hardening = Hardening()
     hardening.apply()
     try:
-        return measure_loop(2000, seconds)
+        loop = measure_loop(RATE_HZ, seconds)
     finally:
         hardening.restore()
+    return {"missed_pct": loop["missed_pct"], "p99_us": loop["p99_us"]}
 
 
-class ZeroCurrent:
-    """A controller that costs nothing (0 mA every tick): the floor of a lockstep tick, i.e.
-    the link, the emulated drive, the loop and the recording."""
+class RecordedTick(Task):
+    """Record phase: the three messages a servo tick records (packed rows, MPC's prediction)."""
 
-    def __init__(self, reference: Any, params: Any) -> None:
-        pass
+    def __init__(self, session: Session) -> None:
+        super().__init__("tick")
+        self.feedback = session.topic("/drive/feedback", FEEDBACK_SCHEMA, high_rate=True)
+        self.command = session.topic("/drive/command", command_schema("current"),
+                                     high_rate=True)
+        self.prediction = session.topic("/mpc/prediction", PREDICTION_SCHEMA, high_rate=True)
+        self.k = 0
+        self.y_pred = [0.01 * i for i in range(50)]
 
-    def step(self, position_deg: float, t_s: float) -> float:
-        return 0.0
+    def record(self, t_ns: int) -> None:
+        k, x = self.k, self.k * 1e-3
+        self.feedback.log(t_ns, (x, 2.0 * x, 3.0, 4.0, 0x1637, k, True, 33.0))
+        self.command.log(t_ns, (k * 5e-4, x, 0.01 * x, 4.0, None, 20.0, "unconstrained"))
+        if k % 10 == 0:
+            self.prediction.log(t_ns, (k * 5e-4, self.y_pred[:8], self.y_pred))
+        self.k += 1
 
 
-def servo_session(tmp: Path, seconds: float, realtime: bool,
+class WireTick(Task):
+    """The servo tick's CAN cycle alone: the TPDOs of the last SYNC, then RPDO (0 mA) + SYNC;
+    a first cycle before the clock starts, as a servo run does."""
+
+    def __init__(self, master: CanDriveMaster) -> None:
+        super().__init__("tick")
+        self.master = master
+        self.stale = 0
+
+    def prime(self) -> None:
+        self.master.prime()
+
+    def read(self, t_ns: int) -> None:
+        self.stale += not self.master.receive_feedback().fresh
+
+    def write(self, t_ns: int) -> None:
+        self.master.send_set_point(0.0)
+
+
+def loop_session(tmp: Path, seconds: float, name: str,
+                 tasks: Callable[[Session], list[Task]]) -> tuple[Session, dict[str, Any]]:
+    """A hardened real-time session of ``tasks`` (built for it): the session (closed) and
+    its loop's figures."""
+    session = Session(str(tmp / f"{name}.mcap"), RealtimeClock(), 1.0 / RATE_HZ, kind="bench")
+    try:
+        for task in tasks(session):
+            session.add_task(task)
+        session.run(duration_s=seconds)
+    finally:
+        session.close()
+    stats = session.loop.summary()["tick"]
+    scheduled = stats["runs"] + stats["missed"]
+    return session, {"missed_pct": 100.0 * stats["missed"] / scheduled,
+                     "p99_us": stats["lateness_us"]["p99"]}
+
+
+def recorder_loop(tmp: Path, seconds: float) -> dict[str, Any]:
+    _, figures = loop_session(tmp, seconds, "recorder", lambda s: [RecordedTick(s)])
+    return figures
+
+
+def wire_loop(tmp: Path, seconds: float) -> dict[str, Any]:
+    with start_drive_emulator(harden=True) as emulator:
+        master = open_drive(emulator.url, load_drive_config(overrides=TOLERANT))
+        try:
+            master.start()
+            tick = WireTick(master)
+
+            def tasks(session: Session) -> list[Task]:
+                session.add_component(master)
+                return [tick]
+
+            _, figures = loop_session(tmp, seconds, "wire", tasks)
+        finally:
+            master.close()
+    return {**figures, "stale": tick.stale, "late_frames": master.stats.late_frames}
+
+
+def servo_session(tmp: Path, seconds: float, realtime: bool = True,
                   controller: Any = "mpc") -> dict[str, Any]:
     out = tmp / f"servo-{'rt' if realtime else 'lockstep'}.mcap"
-    # a loaded 2-core box: stale feedback is counted, not fatal, here (the watchdog and the
-    # safety net's stale share)
     result = run_servo(ServoRunOptions(
         controller=controller, ert="foh", ht=8, hu=8, duration_s=seconds,
-        realtime=realtime, out=str(out),
-        drive_overrides={"master": {"stale_cycles": 100_000},
-                         "safety": {"stale_share_max": 1.0}}))
+        realtime=realtime, out=str(out), drive_overrides=TOLERANT))
     loop = result.loop["servo"]
-    # the loop times each phase of the tick: p50 / p90 / p99 from its timing topic
     session = read_session(out)
     timing = [m for _, m in session.topic("/loop/servo/timing")]
     feedback = FEEDBACK_TIMING.section(session).get("/drive/feedback", {})
@@ -90,13 +185,19 @@ def servo_session(tmp: Path, seconds: float, realtime: bool,
               for phase in ("read", "compute", "write", "record")
               for v in [np.concatenate([np.asarray(m.get(f"{phase}_us", []), float)
                                         for m in timing] or [np.empty(0)])]}
+    skips = [m["data"] for _, m in session.topic("/events") if m["kind"] == "loop.overrun"]
+    window = round(RATE_HZ * 1.0)  # the loop's timing window: 1 s
     scheduled = loop["runs"] + loop["missed"]
     return {"missed_pct": 100.0 * loop["missed"] / scheduled, "p99_us":
             loop["lateness_us"]["p99"], "p50_us": loop["lateness_us"]["p50"],
             "factor": result.kpis["realtime_factor"] or 0.0,
-            "stale": result.kpis["stale_feedback"], "ticks": result.kpis["ticks"],
+            "stale": result.kpis["stale_feedback"],
+            "late_frames": result.kpis["faults"]["late_frames"],
+            "status": result.kpis["status"], "ticks": result.kpis["ticks"],
             "step_us": result.kpis["step_us"]["median"], "phases": phases,
             "late_side": feedback.get("late_side", "-"),
+            "skips": len(skips),
+            "periodic_skips": sum(1 for s in skips if s["tick"] % window <= 2),
             "emulator": session.metadata.get("realtime.emulator", {})}
 
 
@@ -109,6 +210,10 @@ def bench_session(tmp: Path, cycles: int, config_path: str | None = None) -> dic
             "p99_us": sampler["lateness_us"]["p99"]}
 
 
+RUNNERS: dict[str, Callable[[Path, float], dict[str, Any]]] = {
+    "bare": bare_loop, "recorder": recorder_loop, "wire": wire_loop, "servo": servo_session}
+
+
 def median_run(runs: list[dict[str, Any]], key: str) -> dict[str, Any]:
     """The run whose ``key`` is the median of ``runs`` (the lower middle one if even)."""
     return sorted(runs, key=lambda run: run[key])[(len(runs) - 1) // 2]
@@ -118,12 +223,12 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float,
-                        help="servo runs [s] (default 10; 0.2 with --quick)")
+                        help="each real-time run [s] (default 10; 0.2 with --quick)")
     parser.add_argument("--bench-cycles", type=int, help="bench run, 28 s each (default 2; "
                         "one 1 s cycle with --quick)")
     parser.add_argument("--repeat", type=int, default=1,
-                        help="bare loop / real-time servo pairs, alternated (the machine's "
-                             "speed drifts: the targets are checked on the medians)")
+                        help="repeats of the four real-time runs, one after the other (the "
+                             "machine's speed drifts: the targets are checked on the medians)")
     add_quick(parser)
     args = parser.parse_args()
     if args.repeat < 1:
@@ -131,66 +236,80 @@ def main() -> int:
     args.seconds = args.seconds or (0.2 if args.quick else 10.0)
     args.bench_cycles = args.bench_cycles or (1 if args.quick else 2)
     cycle_s = 1.0 if args.quick else 28.0
-    bares: list[dict[str, Any]] = []
-    rts: list[dict[str, Any]] = []
+    runs: dict[str, list[dict[str, Any]]] = {name: [] for name in RUNS}
+    load = [os.getloadavg()[0]]
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
-        for _ in range(args.repeat):
-            bares.append(bare_loop(args.seconds))
-            rts.append(servo_session(tmp, args.seconds, realtime=True))
+        for i in range(args.repeat):
+            print(f"repeat {i + 1} of {args.repeat}...", file=sys.stderr)
+            for name in RUNS:
+                runs[name].append(RUNNERS[name](tmp, args.seconds))
         lockstep = servo_session(tmp, args.seconds, realtime=False)
-        floor = servo_session(tmp, args.seconds, realtime=False, controller=ZeroCurrent)
         bench_config = None
         if args.quick:
             bench_config = str(tmp / "short-sequence.toml")
             Path(bench_config).write_text(SHORT_SEQUENCE)
         bench = bench_session(tmp, args.bench_cycles, bench_config)
-    print(f"{'run':<52} {'skipped %':>9} {'p99 us':>8}")
-    for bare_run, rt_run in zip(bares, rts, strict=True):
-        print(f"{'bare 2 kHz loop, hardened (hil doctor) [baseline]':<52} "
-              f"{bare_run['missed_pct']:>9.3f} {bare_run['p99_us']:>8.1f}")
-        print(f"{'real-time servo, MPC, drive emulator process':<52} "
-              f"{rt_run['missed_pct']:>9.3f} {rt_run['p99_us']:>8.1f}   stale feedback "
-              f"{rt_run['stale']:.0f} of {rt_run['ticks']:.0f} ticks, late side "
-              f"{rt_run['late_side']}")
-    bare = median_run(bares, "missed_pct")
-    rt = median_run(rts, "missed_pct")
-    p99 = median_run(rts, "p99_us")["p99_us"]
-    ratio = rt["missed_pct"] / bare["missed_pct"] if bare["missed_pct"] else float("inf")
-    allowed = SKIPPED_RATIO_MAX * bare["missed_pct"] + SKIPPED_POINTS_MAX
-    print(f"median of {args.repeat}: servo skipped {rt['missed_pct']:.3f} % = {ratio:.1f}x the "
-          f"bare loop's {bare['missed_pct']:.3f} %; lateness p99 {p99:.1f} us, p50 "
-          f"{rt['p50_us']:.1f} us; stale feedback {100 * rt['stale'] / max(1, rt['ticks']):.1f} "
-          "% (TPDOs not back within rx_timeout of their SYNC)")
-    print("   the drive emulator's process: " + "; ".join(
-        f"{step} {outcome}" for step, outcome in rt["emulator"].items()))
+    load.append(os.getloadavg()[0])
+    report(args, runs, lockstep, bench, cycle_s, load)
+    return 0
+
+
+def report(args: argparse.Namespace, runs: dict[str, list[dict[str, Any]]],
+           lockstep: dict[str, Any], bench: dict[str, float], cycle_s: float,
+           load: list[float]) -> None:
+    print(f"machine load average (1 min): {load[0]:.2f} before, {load[1]:.2f} after, on "
+          f"{os.cpu_count()} CPUs (real-time figures are worth quoting near 0)")
+    print(f"real time at {RATE_HZ} Hz, {args.seconds:g} s a run, {args.repeat} repeat(s): "
+          "each suspect against the bare loop of the same repeat")
+    print(f"{'run':<52}{'skipped %':>10}{'vs bare':>9}{'p99 us':>8}{'stale':>7}"
+          f"{'late frames':>12}")
+    for i in range(args.repeat):
+        bare = runs["bare"][i]["missed_pct"]
+        for name in RUNS:
+            run = runs[name][i]
+            excess = "" if name == "bare" else f"{run['missed_pct'] - bare:+.3f}"
+            print(f"{LABELS[name]:<52}{run['missed_pct']:>10.3f}{excess:>9}"
+                  f"{run['p99_us']:>8.1f}{run.get('stale', ''):>7}"
+                  f"{run.get('late_frames', ''):>12}")
+    excess = [servo["missed_pct"] - bare["missed_pct"]
+              for servo, bare in zip(runs["servo"], runs["bare"], strict=True)]
+    servo = median_run(runs["servo"], "missed_pct")
+    median_excess = statistics.median(excess)
+    print(f"median of {args.repeat}: the servo session skipped {median_excess:+.3f} points "
+          "against the bare loop; its lateness p99 "
+          f"{median_run(runs['servo'], 'p99_us')['p99_us']:.1f} us, p50 {servo['p50_us']:.1f} us")
+    print(f"   its skips: {servo['skips']} overrun(s), {servo['periodic_skips']} of them at a "
+          "whole second of the loop (where its timing window closes)")
+    print(f"   stale feedback {servo['stale']} of {servo['ticks']} ticks (late side "
+          f"{servo['late_side']}), late frames {servo['late_frames']}: it would exit as "
+          f"'{servo['status']}'")
+    print("   the drive emulator's process: " + ("; ".join(
+        f"{step} {outcome}" for step, outcome in servo["emulator"].items()) or "-"))
     print("   tick breakdown of that run [us] p50      p90      p99   (write: send, then record)")
-    for name, values in rt["phases"].items():
+    for name, values in servo["phases"].items():
         if values:
             print(f"   {name:<24}" + "".join(f"{v:>9.1f}" for v in values))
     print(f"lockstep servo through the CAN link, MPC, recorded: {lockstep['factor']:.1f}x real "
-          f"time (MPC step median {lockstep['step_us']:.0f} us: at most "
-          f"{1e6 * 500e-6 / max(lockstep['step_us'], 1e-9):.1f}x with nothing else in the tick)")
-    print(f"   the same with a controller that costs nothing (0 mA): {floor['factor']:.1f}x, "
-          "the floor of the link, the emulated drive, the loop and the recording")
-    for name, values in floor["phases"].items():
-        if values:
-            print(f"   {name:<24}" + "".join(f"{v:>9.1f}" for v in values))
+          f"time (MPC step median {lockstep['step_us']:.0f} us)")
     print(f"real-time bench, 100 Hz over Modbus TCP to the emulator process, "
           f"{args.bench_cycles * cycle_s:g} s: {bench['missed']:.0f} of "
           f"{bench['runs'] + bench['missed']:.0f} ticks skipped, sampler p99 "
           f"{bench['p99_us']:.0f} us")
+    clean = all(run["status"] == "completed" for run in runs["servo"])
     print("targets")
-    print(f"   servo skipped <= {SKIPPED_RATIO_MAX:g}x bare + {SKIPPED_POINTS_MAX:g} points "
-          f"({rt['missed_pct']:.3f} % against {allowed:.3f} %, {ratio:.1f}x): "
-          f"{'met' if rt['missed_pct'] <= allowed else 'MISSED'}; p99 <= "
-          f"{LATENESS_P99_MAX_US:g} us ({p99:.0f}): "
-          f"{'met' if p99 <= LATENESS_P99_MAX_US else 'MISSED'}")
-    print(f"   lockstep >= 10x ({lockstep['factor']:.1f}x): "
-          f"{'met' if lockstep['factor'] >= 10 else 'MISSED'}")
+    print(f"   servo skipped <= bare + {SKIPPED_POINTS_MAX:g} points (median "
+          f"{median_excess:+.3f}): {'met' if median_excess <= SKIPPED_POINTS_MAX else 'MISSED'}")
+    print(f"   no periodic overrun ({sum(r['periodic_skips'] for r in runs['servo'])} skip(s) "
+          "at a whole second, all runs): "
+          f"{'met' if not any(r['periodic_skips'] for r in runs['servo']) else 'MISSED'}")
+    print("   every servo session completes clean (stale, late frames: " + ", ".join(
+        f"{r['stale']}/{r['late_frames']}" for r in runs["servo"]) +
+          f"): {'met' if clean else 'MISSED'}")
+    print(f"   lockstep >= {LOCKSTEP_MIN:g}x ({lockstep['factor']:.1f}x): "
+          f"{'met' if lockstep['factor'] >= LOCKSTEP_MIN else 'MISSED'}")
     print(f"   bench skips no tick ({bench['missed']:.0f}): "
           f"{'met' if bench['missed'] == 0 else 'MISSED'}")
-    return 0
 
 
 if __name__ == "__main__":

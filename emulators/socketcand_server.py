@@ -10,8 +10,10 @@ mode (where frames are not forwarded); BCM jobs (add, update, subscribe...) are 
 answer ``< error unknown command >`` as socketcand answers an unknown command. A malformed
 ``send`` is ignored (socketcand only logs it).
 
-Bus semantics: a frame sent by one client goes to ``on_frame`` (the emulated node) and to every
-other client in raw mode; frames from the node (:meth:`broadcast`) go to every raw-mode client.
+Bus semantics: a frame sent by one client goes to ``on_data`` (an 11-bit data frame as its id
+and data: what an emulated node takes, without a :class:`can.Message` built for it) and
+``on_frame`` (every frame, as a message), and to every other client in raw mode; frames from
+the node (:meth:`broadcast`) go to every raw-mode client.
 
 One detail differs from socketcand on purpose: right after ``< rawmode >`` / ``< ok >`` the
 server holds frames for that client until the client sends its next command, or for
@@ -31,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import selectors
 import socket
 import threading
@@ -85,21 +88,33 @@ def frame_text(can_id: int, data: bytes, stamp: float, id_digits: int = 3) -> by
 
 def parse_send(command: str) -> can.Message | None:
     """A ``< send ID LEN B... >`` command as a message, or None when it is malformed."""
+    sent = parse_send_frame(command)
+    if sent is None:
+        return None
+    can_id, data, extended = sent
+    return can.Message(arbitration_id=can_id, data=data, is_extended_id=extended,
+                       timestamp=time.time())
+
+
+def parse_send_frame(command: str) -> tuple[int, bytes, bool] | None:
+    """A ``< send ID LEN B... >`` command as ``(id, data, extended)``, or None when it is
+    malformed (bytes of two hex digits, as hil's master and python-can send them, in one
+    call)."""
     parts = command[1:-1].split()
     if len(parts) < 3 or parts[0] != "send":
         return None
     id_text, len_text, byte_texts = parts[1], parts[2], parts[3:]
     try:
         can_id, length = int(id_text, 16), int(len_text, 16)
-        data = bytes([int(b, 16) for b in byte_texts])
+        data = bytes.fromhex(" ".join(byte_texts)) if all(len(b) == 2 for b in byte_texts) \
+            else bytes([int(b, 16) for b in byte_texts])
     except ValueError:
         return None
     extended = len(id_text) == 8
     if length > 8 or length != len(data) or \
             not 0 <= can_id <= (0x1FFFFFFF if extended else 0x7FF):
         return None
-    return can.Message(arbitration_id=can_id, data=data, is_extended_id=extended,
-                       timestamp=time.time())
+    return can_id, data, extended
 
 
 class SocketcandServer:
@@ -112,6 +127,7 @@ class SocketcandServer:
         *,
         channel: str = "can0",
         on_frame: Callable[[can.Message], None] | None = None,
+        on_data: Callable[[int, bytes], None] | None = None,
         on_tick: Callable[[], None] | None = None,
         tick_period_s: float = 0.001,
         next_frame_ns: Callable[[int], int | None] | None = None,
@@ -119,6 +135,7 @@ class SocketcandServer:
     ) -> None:
         self.channel = channel
         self.on_frame = on_frame
+        self.on_data = on_data
         self.on_tick = on_tick
         self.tick_period_s = tick_period_s
         self.next_frame_ns = next_frame_ns
@@ -149,7 +166,10 @@ class SocketcandServer:
             timeout = max(0.0, next_tick - time.monotonic())
             if self.next_frame_ns is not None:
                 timeout = min(timeout, self._until_polling())
-            for key, mask in self._selector.select(timeout):
+            events = self._selector.select(timeout)
+            if not events and not timeout:
+                os.sched_yield()  # polling: a process waiting for this core runs first
+            for key, mask in events:
                 if key.data is None:
                     self._accept()
                 else:
@@ -281,14 +301,20 @@ class SocketcandServer:
                 self._write(client, b"< error unknown command >")
             return
         if verb == "send":
-            msg = parse_send(command)
-            if msg is None:
+            sent = parse_send_frame(command)
+            if sent is None:
                 log.warning("socketcand: syntax error in send command from %s: %s",
                             client.peer, command)
                 return
-            self._forward(msg, exclude=client)
+            can_id, data, extended = sent
+            if len(self._clients) > 1:
+                self._forward(can_id, data, extended, exclude=client)
+            if self.on_data is not None and not extended:
+                self._call(self.on_data, can_id, data)
             if self.on_frame is not None:
-                self._call(self.on_frame, msg)
+                self._call(self.on_frame, can.Message(arbitration_id=can_id, data=data,
+                                                      is_extended_id=extended,
+                                                      timestamp=time.time()))
         elif verb == "echo" and len(words) == 1:
             self._write(client, b"< echo >")
         elif verb == "rawmode" and len(words) == 1:
@@ -310,10 +336,11 @@ class SocketcandServer:
             self._forward_text(b"".join(frame_text(can_id, data, stamp)
                                         for can_id, data in frames), exclude=None)
 
-    def _forward(self, msg: can.Message, exclude: _Client | None) -> None:
+    def _forward(self, can_id: int, data: bytes, extended: bool, exclude: _Client) -> None:
         """A client's frame to the other raw-mode clients (formatted only if there is one)."""
         if any(c is not exclude and c.mode == "raw" for c in self._clients.values()):
-            self._forward_text(format_frame(msg), exclude)
+            self._forward_text(frame_text(can_id, data, time.time(), 8 if extended else 3),
+                               exclude)
 
     def _forward_text(self, text: bytes, exclude: _Client | None) -> None:
         for client in list(self._clients.values()):

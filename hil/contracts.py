@@ -5,6 +5,9 @@
 * :data:`EventSink` - where a device reports what happened (``Session.event``'s signature).
 * :class:`LinkWatchdog` - "N failures in a row, then the link is lost": one rule for the relay
   bench (failed Modbus polls) and the servo drive (cycles without a TPDO).
+* :class:`PollBudget` - how long a wait for a peer on the wire polls before it blocks, while
+  polling pays: one rule for a lockstep master waiting for the drive's answer and the emulated
+  drive waiting for the master's next SYNC.
 * :class:`Device` - the lifecycle every piece of hardware goes through, in the spirit of
   ros2_control's hardware interface: open -> configure -> enable -> ... -> safe_state -> close.
 """
@@ -73,6 +76,58 @@ class LinkWatchdog:
     def describe(self) -> str:
         """``"5 failed polls in a row"``: the reason of a loss, for events and errors."""
         return f"{self.run} {self.what} in a row"
+
+
+class PollBudget:
+    """How long a wait for a peer polls before it blocks, while polling pays.
+
+    A process blocked in ``select()`` is woken up 50 us to several hundred us after the data
+    arrives (more on a virtual machine, whose idle core must be woken first), where a look
+    that finds it costs a few: a wait that polls for the first ``window_ns`` answers a peer
+    that is quick at once. It pays only on a core of its own: on a busy machine a process
+    that polls keeps others (the very peer it waits for, on a core they share) from running,
+    and a blocked one is woken up first. A look that comes ``preempted_ns`` or more after the
+    one before it (the process was off the CPU) ends the wait's polling; after ``strikes``
+    such waits with no clean one between, the waits of the next ``backoff_ns`` block from their
+    start (one other process's burst, a session's writer, is not a busy machine).
+    :meth:`start` a wait, then ask :meth:`polling` before each look.
+    """
+
+    def __init__(self, window_ns: int, *, preempted_ns: int = 200_000, strikes: int = 3,
+                 backoff_ns: int = 100_000_000) -> None:
+        self.window_ns = window_ns
+        self.preempted_ns = preempted_ns
+        self.strikes = strikes
+        self.backoff_ns = backoff_ns
+        self._until = 0          # this wait polls until then
+        self._last = 0           # the last look
+        self._preempted = False  # this wait was
+        self._struck = 0         # preempted waits since the last clean one
+        self._calm_from = 0      # no polling before then
+        self.backoffs = 0        # times the waits stopped polling for backoff_ns
+
+    def start(self, now_ns: int) -> None:
+        """A wait begins (monotonic or perf-counter ns, the same clock throughout)."""
+        if not self._preempted:
+            self._struck = 0
+        self._preempted = False
+        self._until = now_ns + self.window_ns if now_ns >= self._calm_from else now_ns
+        self._last = now_ns
+
+    def polling(self, now_ns: int) -> bool:
+        """Whether to look without blocking now: within the window, and not preempted since
+        the last look (which ends this wait's polling)."""
+        if now_ns >= self._until:
+            return False
+        if now_ns - self._last >= self.preempted_ns:
+            self._until, self._preempted = now_ns, True
+            self._struck += 1
+            if self._struck >= self.strikes:
+                self._struck, self._calm_from = 0, now_ns + self.backoff_ns
+                self.backoffs += 1
+            return False
+        self._last = now_ns
+        return True
 
 
 class Device(abc.ABC):

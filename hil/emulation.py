@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 if TYPE_CHECKING:
     from hil.bench.config import BenchConfig
+    from hil.core.realtime import Hardening, Step
     from hil.drivers.canopen.can_log import CanLog
     from hil.emulators.bench.server import EmulatedBench
     from hil.emulators.drive.config import DriveEmulatorConfig
@@ -100,6 +101,9 @@ def live_state(address: str | None, topics: Topics, hz: float) -> Iterator[str |
                                              "kind": kind, "message": message, "data": {}})
 
     def publish() -> None:
+        from hil.core.realtime import ordinary_thread
+
+        ordinary_thread()  # not the hardened serving thread's scheduling, if it is one
         event("emulator.start", "emulator serving")
         while not stop.wait(1.0 / hz):
             now = time.time_ns()
@@ -215,6 +219,40 @@ class ServedDrives:
     server: SocketcandServer
     nodes: list[DriveNode]
     trace: CanLog | None = None
+    hardening: Hardening | None = None  # the serving thread's, once hardened
+    hardened: bool = False              # its real-time steps in force now
+
+    def harden(self) -> list[Step]:
+        """Serve as a helper of a real-time loop (:func:`harden_serving_thread`: the calling
+        thread must be the one that serves) while the drives keep their own clock; each step,
+        granted or refused. While they keep a lockstep master's time the thread is an
+        ordinary one again: real time buys nothing there, and a real-time thread polling for
+        the next SYNC would keep a master that shares its core from sending it."""
+        from hil.core.realtime import Hardening
+
+        _short_switch_interval()
+        self.hardening = Hardening.for_helper()
+        steps = self.hardening.apply()
+        self.hardened = True
+        service = self.server.on_tick
+
+        def follow_the_clock_then_serve() -> None:
+            self._follow_the_clock()
+            if service is not None:
+                service()
+
+        self.server.on_tick = follow_the_clock_then_serve
+        return steps
+
+    def _follow_the_clock(self) -> None:
+        assert self.hardening is not None
+        on_master_time = self.nodes[0].on_master_time
+        if on_master_time and self.hardened:
+            self.hardening.restore()
+            self.hardened = False
+        elif not on_master_time and not self.hardened:
+            self.hardening.apply()
+            self.hardened = True
 
     def state(self) -> Topics:
         """Each drive's axis and state machine."""
@@ -255,15 +293,15 @@ def serve_drives(config: DriveEmulatorConfig, node_ids: list[int], host: str, po
                        faults=faults, on_fault=on_fault)
              for node_id in node_ids]
 
-    def handle(msg: Any) -> None:
+    def handle(can_id: int, data: bytes) -> None:
         for node in nodes:
-            node.handle(msg)
+            node.handle_frame(can_id, data)
 
     def service() -> None:
         for node in nodes:
             node.service()
 
-    server.on_frame = handle if trace is None else _traced_handle(handle, trace)
+    server.on_data = handle if trace is None else _traced_handle(handle, trace)
     server.on_tick = service
     server.next_frame_ns = nodes[0].next_sync_ns  # one SYNC for them all
     for node in nodes:
@@ -271,15 +309,21 @@ def serve_drives(config: DriveEmulatorConfig, node_ids: list[int], host: str, po
     return ServedDrives(server, nodes, trace)
 
 
-def harden_serving_thread() -> list[str]:
-    """The calling thread as a helper of a real-time loop: each step granted or refused, as a
-    line to report; another thread of this process (live view, CAN log) holds the GIL 0.1 ms
-    at most, not 5."""
+def harden_serving_thread() -> list[Step]:
+    """The calling thread as a helper of a real-time loop (threads it starts later inherit
+    it): each step, granted or refused."""
+    from hil.core.realtime import Hardening
+
+    _short_switch_interval()
+    return Hardening.for_helper().apply()
+
+
+def _short_switch_interval() -> None:
+    """Another thread of this process (live view, CAN log) holds the GIL 0.1 ms at most, not
+    5, while the serving thread waits for it."""
     from hil.core.loop import REALTIME_SWITCH_INTERVAL_S
-    from hil.core.realtime import Hardening, step_line
 
     sys.setswitchinterval(REALTIME_SWITCH_INTERVAL_S)
-    return [step_line(step) for step in Hardening.for_helper().apply()]
 
 
 def _drive_state(node: Any) -> Callable[[], dict[str, Any]]:
@@ -302,13 +346,10 @@ def _traced_send(send: Callable[[list], None], trace: Any) -> Callable[[list], N
     return traced
 
 
-def _traced_handle(handle: Callable[[Any], None], trace: Any) -> Callable[[Any], None]:
-    from hil.protocols.can_frames import from_message
-
-    def traced(msg: Any) -> None:
-        frame = from_message(msg)
-        if frame is not None:
-            trace.received(frame)
-        handle(msg)
+def _traced_handle(handle: Callable[[int, bytes], None], trace: Any
+                   ) -> Callable[[int, bytes], None]:
+    def traced(can_id: int, data: bytes) -> None:
+        trace.received((can_id, data))
+        handle(can_id, data)
 
     return traced

@@ -41,7 +41,8 @@ FAULT_PREFIX = "hil: fault: "
 class EmulatorProcess:
     """A running ``hil emulate ...`` process; ``url`` is where a driver reaches it."""
 
-    def __init__(self, argv: list[str], what: str, timeout_s: float = 30.0) -> None:
+    def __init__(self, argv: list[str], what: str, timeout_s: float = 30.0, *,
+                 harden: bool = False) -> None:
         self.what = what
         self.hardening: dict[str, str] = {}  # what it was granted, when started with --harden
         self._faults_seen: list[str] = []
@@ -50,11 +51,15 @@ class EmulatorProcess:
         # own, so a Ctrl-C at the terminal reaches the run, which stops it in order
         env = lifeline_env({**os.environ, "PYTHONUNBUFFERED": "1"})
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "hil", "emulate", *argv], stdout=subprocess.PIPE,
+            [sys.executable, "-m", "hil", "emulate", *argv,
+             "--harden" if harden else "--no-harden"], stdout=subprocess.PIPE,
             stderr=self._stderr, stdin=subprocess.DEVNULL, text=True, env=env,
             start_new_session=True)
         register_helper_process(self.process.pid)  # real-time hardening keeps it off the loop
         self.url = self._wait_for_url(timeout_s)
+        if harden:  # reported on stderr before its ready line
+            self.hardening = parse_step_lines(self.stderr_lines())
+            report_helper_hardening(self.process.pid, self.hardening)
 
     def _wait_for_url(self, timeout_s: float) -> str:
         assert self.process.stdout is not None
@@ -157,7 +162,7 @@ def start_bench_emulator(config: str | Path | None = None, *, seed: int | None =
                          disturbance: bool = False, host: str = "127.0.0.1",
                          faults: Iterable[str | Fault] = (), timeout_s: float = 30.0,
                          tables: Mapping[str, Any] | None = None,
-                         clock: str = "auto") -> EmulatorProcess:
+                         clock: str = "auto", harden: bool = False) -> EmulatorProcess:
     """The relay-bench emulator over Modbus TCP on ``host`` and a free port; ``faults``
     (``KIND@START[-END][:KEY=VALUE,...]`` or :class:`~hil.emulators.faults.Fault`) are played on
     its plant clock, seconds after it starts (or after a lockstep master's session starts).
@@ -165,7 +170,8 @@ def start_bench_emulator(config: str | Path | None = None, *, seed: int | None =
     what its plant's time follows (``hil emulate bench --clock``): ``auto`` (the wall clock
     until a lockstep run takes the time, as ``run_bench(bench=url)`` does), ``wall`` or
     ``master``; a master taking or letting go of it is a ``hil: clock:`` line on its stderr
-    (:meth:`EmulatorProcess.stderr_tail`)."""
+    (:meth:`EmulatorProcess.stderr_tail`). ``harden``: as for :func:`start_drive_emulator`
+    (``hil emulate bench --harden``, the command's default, not this function's)."""
     if clock not in BENCH_CLOCKS:
         raise HilError(f"clock must be one of {', '.join(BENCH_CLOCKS)}, got {clock!r}")
     argv = ["bench", "--tcp", f"{host}:0", "--clock", clock, *_fault_flags(faults)]
@@ -175,7 +181,7 @@ def start_bench_emulator(config: str | Path | None = None, *, seed: int | None =
         argv.append("--disturbance")
     with _config_file(config, tables) as path:
         return EmulatorProcess([*argv, *(["--config", path] if path else [])], "bench",
-                               timeout_s)
+                               timeout_s, harden=harden)
 
 
 def start_drive_emulator(config: str | Path | None = None, *, node: int | Iterable[int] = 1,
@@ -188,7 +194,9 @@ def start_drive_emulator(config: str | Path | None = None, *, node: int | Iterab
     node id, or several, one drive and axis each, on the one bus); ``faults`` as for
     :func:`start_bench_emulator`, seconds after it starts (each drive plays them). Its
     config: the file ``config``, or ``tables`` (the effective tables of a run). ``harden``:
-    it serves as a real-time process where the OS allows (``--harden``); what it was granted
+    it serves as a real-time process where the OS allows (``--harden``, the command's
+    default; ``--no-harden`` here otherwise: an emulator for tests and lockstep runs stays an
+    ordinary process); what it was granted
     is its ``hardening`` (``{step: "granted: ..." | "refused: ..."}``), which the next
     real-time session of this process records as ``realtime.emulator`` metadata. ``clock``:
     ``auto`` (its own, until a lockstep master asks for its SYNC time), ``sync`` or ``wall``
@@ -198,12 +206,7 @@ def start_drive_emulator(config: str | Path | None = None, *, node: int | Iterab
     nodes = [node] if isinstance(node, int) else list(node)
     argv = ["drive", "--socketcand", f"{host}:0", "--clock", clock,
             *[arg for n in nodes for arg in ("--node", str(n))], *_fault_flags(faults),
-            *(["--harden"] if harden else []),
             *(["--model", os.path.abspath(model)] if model is not None else [])]
     with _config_file(config, tables) as path:
-        process = EmulatorProcess([*argv, *(["--config", path] if path else [])], "drive",
-                                  timeout_s)
-    if harden:  # reported on stderr before its ready line
-        process.hardening = parse_step_lines(process.stderr_lines())
-        report_helper_hardening(process.pid, process.hardening)
-    return process
+        return EmulatorProcess([*argv, *(["--config", path] if path else [])], "drive",
+                               timeout_s, harden=harden)

@@ -26,13 +26,14 @@ Every feedback is bound to its SYNC:
 from __future__ import annotations
 
 import math
+import os
 import struct
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
-from hil.contracts import LinkWatchdog
+from hil.contracts import LinkWatchdog, PollBudget
 from hil.drivers.canopen.errors import DriveError, DriveGoneError, DriveLinkLostError
 from hil.drivers.canopen.link import Link
 from hil.drivers.canopen.nmt import HeartbeatProducer
@@ -49,6 +50,7 @@ from hil.protocols.cia402 import (
 )
 
 POLL_WAIT_MAX_NS = 2_000_000  # TPDO waits up to this long poll the bus instead of blocking
+LONG_WAIT_POLL_NS = 500_000  # a longer one (lockstep over a bus) polls at most this long
 SYNC_COUNTER_MAX = 240  # 0x1019 written when the echo is on: the SYNC counter runs 1..240
 # the feedback objects a TPDO carries: their slot in the raw feedback and their wire format
 FEEDBACK_OBJECTS = {STATUSWORD: (0, "H"), POSITION_ACTUAL: (1, "i"), VELOCITY_ACTUAL: (2, "i"),
@@ -136,6 +138,7 @@ class CyclicExchange:
         # lockstep over a bus: a wait with no frame at all is not a late drive but a gone one
         self._silence_is_gone = silence_is_gone
         self._heard = False  # a frame came since the last SYNC
+        self._poll = PollBudget(LONG_WAIT_POLL_NS)  # how a long wait polls before it blocks
         self.use_rpdo(rpdo)
         self.use_tpdos(tpdos)
         self._period_s = period_s
@@ -233,34 +236,42 @@ class CyclicExchange:
         self.link.send(frames)
         self.cycle += 1
 
-    def receive(self) -> Feedback:
-        """The TPDO pair of the last SYNC, waiting at most until ``rx_timeout`` after it;
-        without a cycle sent since the last call, the last feedback again."""
+    def receive(self, timeout_s: float | None = None) -> Feedback:
+        """The TPDO pair of the last SYNC, waiting at most until ``rx_timeout`` (or
+        ``timeout_s``) after it; without a cycle sent since the last call, the last feedback
+        again."""
         if not self._awaiting:
             if self.feedback is None:
                 raise DriveError("no feedback yet: enable the drive first")
             return self.feedback
         # measured from the SYNC: in the split form the TPDOs have travelled while the loop
         # slept, and a late pair costs the tick only what is left of the wait
-        deadline_ns = self._sent_ns + self._rx_timeout_ns
+        wait_ns = self._rx_timeout_ns if timeout_s is None else round(timeout_s * 1e9)
+        deadline_ns = self._sent_ns + wait_ns
         recv, dispatch = self.link.recv, self._dispatch
         clock = time.perf_counter_ns
         # a wait of a cycle or so is spent polling: a thread blocked in select() is woken up
         # 50 us to several hundred us after the frame arrives (more on a virtual machine); a
-        # longer one (lockstep over a bus) blocks, leaving the CPU to the drive's process.
-        # Past the deadline, what is already here is still read: a master held up (a busy
-        # machine) must not call an answer that came in time late.
-        poll_until = deadline_ns if self._rx_timeout_ns <= POLL_WAIT_MAX_NS else self._sent_ns
+        # longer one (lockstep over a bus) polls for as long as a drive takes to answer while
+        # that pays (PollBudget), then blocks, leaving the CPU to the drive's process. Past the
+        # deadline, what is already here is still read: a master held up (a busy machine) must
+        # not call an answer that came in time late.
+        long_wait = wait_ns > POLL_WAIT_MAX_NS
+        if long_wait:
+            self._poll.start(clock())
         try:
             every = self._all
             while self._got != every:
                 now = clock()
                 over = now >= deadline_ns
-                frame = recv(0.0 if over or now < poll_until else (deadline_ns - now) / 1e9)
+                look = over or not long_wait or self._poll.polling(now)
+                frame = recv(0.0 if look else (deadline_ns - now) / 1e9)
                 if frame is not None:
                     dispatch(frame)
                 elif over:
                     break
+                elif long_wait and look:  # the drive's process may be waiting for this core
+                    os.sched_yield()
         finally:
             self._awaiting = False
         stats = self.stats
@@ -273,7 +284,7 @@ class CyclicExchange:
             return self.feedback
         if self._silence_is_gone and not self._heard:
             raise DriveGoneError(
-                f"nothing on the bus for {self._rx_timeout_ns / 1e9:g} s of wall time after "
+                f"nothing on the bus for {wait_ns / 1e9:g} s of wall time after "
                 f"SYNC {self.cycle} (lockstep waits that long: master.lockstep_timeout_ms): "
                 "the drive is gone (stopped, disconnected, or paused for longer)")
         stats.stale += 1

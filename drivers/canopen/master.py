@@ -114,6 +114,8 @@ from hil.protocols.cia402 import (
 )
 
 CIA402_DEVICE_TYPE = 402
+#: how long :meth:`CanDriveMaster.prime` waits for the first cycle's answer
+PRIME_TIMEOUT_S = 0.1
 
 
 class CanDriveMaster(Device):
@@ -510,14 +512,14 @@ class CanDriveMaster(Device):
         except DriveLinkLostError as exc:
             self._lose_link(str(exc))
 
-    def _receive(self, stopping: bool = False) -> Feedback:
-        """The cycle's feedback; a lost link raises. A refused queued download or another
-        master on the bus raises too (latched), except in a safe stop (``stopping``), which
-        goes on: the drive is stopped all the same."""
+    def _receive(self, timeout_s: float | None = None, stopping: bool = False) -> Feedback:
+        """The cycle's feedback (waiting at most ``timeout_s`` where given); a lost link raises.
+        A refused queued download or another master on the bus raises too (latched), except in
+        a safe stop (``stopping``), which goes on: the drive is stopped all the same."""
         if not self.cyclic.awaiting:  # no cycle since the last read: the same feedback again
             return self.cyclic.receive()
         try:
-            feedback = self.cyclic.receive()
+            feedback = self.cyclic.receive(timeout_s)
         except DriveLinkLostError as exc:
             self._lose_link(str(exc), type(exc))
         if self.heartbeat_watch.rebooted:
@@ -655,6 +657,19 @@ class CanDriveMaster(Device):
         of :meth:`start` before the first cycle)."""
         self._check_latched()
         return self._check_operation(self._receive())
+
+    def prime(self, timeout_s: float = PRIME_TIMEOUT_S) -> Feedback:
+        """One cycle that holds the axis where it stands (no current, no velocity, or its
+        position), its TPDOs waited for up to ``timeout_s`` rather than ``rx_timeout``: a
+        real-time loop runs it before its clock starts, so that its first ticks do not pay
+        for the first answer of a drive (or a process standing in for one) that has not
+        answered a SYNC yet. Raises on fault or loss, as :meth:`receive_feedback` does."""
+        self._check_latched()
+        start = self.feedback
+        target = holding_value(self.operation,
+                               lambda: None if start is None else start.position_increments)
+        self._send_cycle(CW_ENABLE_OPERATION, target)
+        return self._check_operation(self._receive(timeout_s))
 
     def exchange(self, set_point: float) -> Feedback:
         """One cycle: the mode's set point (:meth:`send_set_point`), SYNC, feedback."""

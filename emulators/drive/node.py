@@ -49,6 +49,7 @@ from functools import partial
 
 import can
 
+from hil.contracts import PollBudget
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.motor import MotorLoops
 from hil.emulators.drive.pdo import Pdo, PdoTable
@@ -125,6 +126,8 @@ SYNC_POLL_PERIODS = 100     # SYNCs are expected until this many cycles passed w
 #: the most plant steps one SYNC may take (10 s of the published axis' 500 us): a longer
 #: communication cycle (0x1006) is refused, not stepped for minutes under the node's lock
 MAX_STEPS_PER_SYNC = 20_000
+#: on a lockstep master's time the next SYNC is expected for this long after the last frame
+LOCKSTEP_POLL_NS = 1_000_000
 # manufacturer byte 3 of an EMCY 0x8130: which watchdog fired
 CAUSE_HEARTBEAT, CAUSE_SYNC = 0x01, 0x02
 EXTENDED_OR_PRODUCER = 0x6000_0000  # COB-ID SYNC: bit 30 (we would produce), bit 29 (29-bit)
@@ -187,6 +190,8 @@ class DriveNode:
         self._sync_origin_ns = 0
         self._gone_after_ns = 0     # SYNC time given up after this much wall time unheard
         self._heard_ns = time.monotonic_ns()  # wall time of the last frame
+        self._sync_poll = PollBudget(LOCKSTEP_POLL_NS)  # the wait for a lockstep master's SYNC
+        self._poll_from_ns = 0  # the frame that wait started from
         self._hb_next_ns: int | None = None     # when the next heartbeat is due
         self._plant_period_ns = round(self.plant.dt * 1e9)
         sdo_response_id = SDO_RESPONSE_BASE + self.node_id
@@ -326,7 +331,17 @@ class DriveNode:
         last one received (the slot after, once half a period has passed without it); None
         when no cyclic SYNC is going on. A real-time runner polls the bus around that time:
         a real drive answers a SYNC within microseconds, a process woken up from a blocking
-        wait may take hundreds."""
+        wait may take hundreds. On a lockstep master's time the next SYNC comes as soon as the
+        master has done its tick: it is due at once until :data:`LOCKSTEP_POLL_NS` of wall
+        time passed since the last frame (then the master is busy elsewhere, and a blocking
+        wait costs the run nothing), while polling pays (:class:`~hil.contracts.PollBudget`:
+        not on a machine too busy to leave the poller its core). ``now_ns``: the monotonic
+        clock."""
+        if self._sync_timebase:
+            if self._heard_ns != self._poll_from_ns:  # a frame came: a new wait begins
+                self._poll_from_ns = self._heard_ns
+                self._sync_poll.start(now_ns)
+            return now_ns if self._sync_poll.polling(now_ns) else None
         period_ns = self._values[(CYCLE_PERIOD, 0)] * 1000
         last = self._sync_last_ns
         if not period_ns or not last or now_ns - last > SYNC_POLL_PERIODS * period_ns:

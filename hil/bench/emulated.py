@@ -61,10 +61,11 @@ def _emulator_process(config: BenchConfig, clock: Clock, on_event: EventSink) ->
     from hil.emulator_process import start_bench_emulator
 
     check_emulation(config)
-    # the run's effective tables, every layer in (seed, disturbance...): what it was given
-    process = start_bench_emulator(tables=config.emulator_tables())
+    # the run's effective tables, every layer in (seed, disturbance...): what it was given;
+    # hardened as the loop is (its steps: the session's realtime.emulator metadata)
+    process = start_bench_emulator(tables=config.emulator_tables(), harden=True)
     on_event("emulator.process", f"bench emulator in process {process.pid} at {process.url}",
-             source="bench", pid=process.pid, url=process.url)
+             source="bench", pid=process.pid, url=process.url, hardening=process.hardening)
     try:
         return OpenedBench(safe_bench(process.url, config, clock, on_event), process)
     except BaseException:

@@ -7,7 +7,7 @@ import argparse
 import sys
 import time
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hil.cli.argtypes import host_port, positive_int
 from hil.cli.recording import add_live_arguments, live_address
@@ -38,6 +38,9 @@ from hil.emulators.faults import (
 from hil.errors import ConfigError
 from hil.protocols.bench_clock import CLOCKS as BENCH_CLOCKS
 
+if TYPE_CHECKING:
+    from hil.core.realtime import Step
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     emulate = subparsers.add_parser("emulate", help="run an emulator as a standalone process")
@@ -63,6 +66,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "always: a lockstep master is refused, and says so in one line), master "
                     "(a master's time only: the plant waits for one). A master's session "
                     "starts the plant and its faults again from t = 0")
+    _add_harden_argument(eb, "")
     _add_fault_arguments(eb, "bench", "delay@2-4:ms=300, drop@5-8, weld@3:relay=P1")
     add_live_arguments(eb, rates=False, tuning=False)
     eb.set_defaults(handler=emulate_bench_command)
@@ -98,12 +102,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     help="the axis as a model file (`hil identify` writes them): one input, a "
                     "current in mA, one output, a position in deg, its period dividing "
                     "master.cycle_period_us (default: emulator.model, else the published axis)")
-    ed.add_argument("--harden", action="store_true",
-                    help="serve as a real-time process where the OS allows (as `hil doctor` "
-                    "reports): SCHED_FIFO below hil's loop, a core apart from the loop's, "
-                    "locked memory; each step granted or refused is printed on stderr as "
-                    "'hil: real-time: STEP granted|refused: ...' (hil servo run --realtime "
-                    "asks for it)")
+    _add_harden_argument(ed, "while the drives keep their own clock (not a lockstep "
+                         "master's): ")
     ed.add_argument("--clock", choices=CLOCKS, default="auto",
                     help="the drives' time: auto (default: their own wall clock, until a "
                     "lockstep master asks for its SYNC time, as `hil servo run` does, and "
@@ -123,6 +123,29 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "as the kernel copies them)")
     _add_fault_arguments(el, "line", "noise@5-10:rate=0.02,seed=1")
     el.set_defaults(handler=emulate_line_command)
+
+
+def _add_harden_argument(parser: argparse.ArgumentParser, when: str) -> None:
+    parser.add_argument("--harden", action=argparse.BooleanOptionalAction, default=True,
+                        help=f"serve as a real-time process where the OS allows (default; as "
+                        f"`hil doctor` reports), {when}SCHED_FIFO below hil's loop, a core "
+                        "apart from the loop's, locked memory; each step granted or refused "
+                        "is printed on stderr as 'hil: real-time: STEP granted|refused: ...', "
+                        "and a warning names those refused. --no-harden: an ordinary process")
+
+
+def say_hardening(steps: list[Step], emulator: str) -> None:
+    """Each hardening step on stderr (``hil: real-time: STEP granted|refused: ...``), then,
+    when the machine refused any, one warning naming them."""
+    from hil.core.realtime import step_line
+
+    for step in steps:
+        print(step_line(step), file=sys.stderr, flush=True)
+    refused = [step.name for step in steps if not step.granted]
+    if refused:
+        warn(f"the {emulator} emulator serves without {', '.join(refused)} (refused, above): "
+             "a real-time master may find its answers late; `hil doctor` says what this "
+             "machine grants and what would change it")
 
 
 def object_value(text: str) -> tuple[str, int]:
@@ -179,6 +202,8 @@ def emulate_bench_command(args: argparse.Namespace) -> int:
 
     config = load_bench_config(args.config)
     config = replace(config, faults=tuple(faults_of(args, "bench", config.faults)))
+    if args.harden:  # before its threads start: they take the same scheduling
+        say_hardening(harden_serving_thread(), "bench")
     bench = serve_bench(
         config.emulating(args.seed, args.disturbance or None), tcp=args.tcp,
         serial=args.serial, baudrate=args.baud, parity=args.parity, stopbits=args.stopbits,
@@ -251,8 +276,7 @@ def emulate_drive_command(args: argparse.Namespace) -> int:
                       args.socketcand[0],
                       "send CAN frames to the emulated drives")
         if args.harden:  # the serving thread only, reported before the ready line
-            for line in harden_serving_thread():
-                print(line, file=sys.stderr, flush=True)
+            say_hardening(drives.harden(), "drive")
         print(f"hil: drive emulator node{'s' if len(nodes) > 1 else ''} {ids} on socketcand "
               f"{bound_host}:{bound_port} (bus {emulator.channel}, clock {args.clock}); "
               "Ctrl-C stops", flush=True)

@@ -15,6 +15,12 @@ phases take longer than its own period is counted in ``overruns`` (in lockstep, 
 is reported but costs no virtual time). SIGINT/SIGTERM stop the loop at the next tick
 boundary; every component's ``safe_state()`` runs before :meth:`FixedRateLoop.run` returns,
 also on errors.
+
+No tick does a period's worth of bookkeeping: each sample (lateness, phase times) goes into
+the window's compact array; the window's timing record (about once a second) hands those arrays
+over as they are, and the following ticks bin them into the run's histograms
+:data:`DIGEST_SAMPLES` at a time. Work left whole for every N ticks costs one tick the work of
+N: at 2 kHz, a window binned and pickled in one tick was a skipped tick every second.
 """
 
 from __future__ import annotations
@@ -23,9 +29,13 @@ import signal
 import sys
 import threading
 import time
+from array import array
+from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
+
+import numpy as np
 
 from hil.core.clock import Clock
 from hil.core.stats import TimingHistogram
@@ -36,6 +46,9 @@ REALTIME_SWITCH_INTERVAL_S = 1e-4
 
 #: the phases of a tick, in the order they run
 PHASES = ("read", "compute", "write", "record")
+#: samples of finished timing windows binned into the run's histograms after a tick, at most
+#: (a numpy call costs some 20 us whatever its size: a tick each would cost more)
+DIGEST_SAMPLES = 512
 
 
 class SafeStateful(Protocol):
@@ -47,8 +60,9 @@ class Task:
 
     ``read`` takes in what a device reports, ``compute`` runs a controller, ``write`` sends
     to a device, ``record`` logs the tick (topics, KPIs, per-tick limits). Every phase gets
-    the tick's start time (clock ns). ``safe_state`` puts whatever this task drives into its
-    safe state; it must be idempotent.
+    the tick's start time (clock ns). ``prime`` runs once before the clock starts (a first
+    exchange with a device, outside the schedule). ``safe_state`` puts whatever this task
+    drives into its safe state; it must be idempotent.
     """
 
     def __init__(self, name: str, divisor: int = 1) -> None:
@@ -63,6 +77,12 @@ class Task:
     def phases(self) -> tuple[str, ...]:
         """The phases this task takes part in: those its class overrides."""
         return tuple(p for p in PHASES if getattr(type(self), p) is not getattr(Task, p))
+
+    def prime(self) -> None:
+        """Once, after the loop is set up and right before its clock starts (untimed): a
+        device's first answer, which comes late (a peer that has not been asked yet, caches
+        cold), waited for here rather than in the first ticks."""
+        return None
 
     def read(self, t_ns: int) -> None:
         return None
@@ -165,14 +185,15 @@ class TaskStats:
 
 
 class _Window:
-    """Samples of one task since the last timing record (handed to the recorder as-is)."""
+    """Samples of one task since the last timing record, in arrays of doubles: handed to the
+    recorder as they are (pickled as one buffer each, where lists cost a call per float)."""
 
     __slots__ = ("lateness_us", "missed", "overruns", "phase_us", "step_us")
 
     def __init__(self) -> None:
-        self.lateness_us: list[float] = []
-        self.step_us: list[float] = []
-        self.phase_us: dict[str, list[float]] = {phase: [] for phase in PHASES}
+        self.lateness_us = array("d")
+        self.step_us = array("d")
+        self.phase_us = {phase: array("d") for phase in PHASES}
         self.missed = 0
         self.overruns = 0
 
@@ -224,6 +245,8 @@ class FixedRateLoop:
         self.tasks: list[Task] = []
         self.components: list[SafeStateful] = []
         self.stats: dict[str, TaskStats] = {}
+        #: samples of finished windows not in the run's histograms yet (a view, its histogram)
+        self._undigested: deque[tuple[np.ndarray, TimingHistogram]] = deque()
         self._recorder = recorder
         self._timing_topics: dict[str, Any] = {}
         self._on_event = on_event
@@ -281,6 +304,8 @@ class FixedRateLoop:
             wait_ready = getattr(self._recorder, "wait_ready", None)
             if wait_ready is not None:  # a recorder's writer process: started before tick 0
                 wait_ready()
+            for task in self.tasks:
+                task.prime()
             began = time.perf_counter()
             try:
                 self._run_ticks(limit)
@@ -294,6 +319,7 @@ class FixedRateLoop:
             try:  # a signal during the safe state is one more stop request, not a kill
                 self.safe_state_all()
                 self._publish_windows(final=True)
+                self._digest(None)
             finally:
                 self._restore_signal_handlers(previous_handlers)
             if self.stop_reason is None:
@@ -306,6 +332,7 @@ class FixedRateLoop:
         self._windows = windows
         schedule, slots = self._schedule(windows), self._slots(windows)
         spent = [0] * len(tasks)  # ns each task spent in this tick's phases
+        undigested = self._undigested
         t0 = self.start_ns = clock.start()
         n = 0
         next_window = self._window_ticks
@@ -353,6 +380,8 @@ class FixedRateLoop:
             self.ticks = n
             if recorder is not None:
                 recorder.flush_if_due()
+            if undigested:
+                self._digest(DIGEST_SAMPLES)
             if n >= next_window:
                 self._publish_windows(final=False)
                 # the new windows and their sample lists
@@ -360,7 +389,7 @@ class FixedRateLoop:
                 next_window = (n // self._window_ticks + 1) * self._window_ticks
 
     def _schedule(self, windows: dict[str, _Window]
-                  ) -> list[tuple[int, int, Callable[[int], None], list[float]]]:
+                  ) -> list[tuple[int, int, Callable[[int], None], array[float]]]:
         """Every phase method of a tick, in order (phase by phase, then in the order the
         tasks were added): ``(task index, divisor, bound phase method, samples)``."""
         return [(index, task.divisor, getattr(task, phase), windows[task.name].phase_us[phase])
@@ -389,6 +418,8 @@ class FixedRateLoop:
             )
 
     def _publish_windows(self, final: bool) -> None:
+        """Each task's window as its timing record, its samples queued for the run's
+        histograms, and a new window: the same work for a window of any length."""
         windows = getattr(self, "_windows", None)
         if not windows:
             return
@@ -398,12 +429,14 @@ class FixedRateLoop:
             if final and not window.lateness_us and not window.missed:
                 continue
             stats = self.stats[task.name]
-            stats.lateness.add_many(window.lateness_us)
-            stats.step.add_many(window.step_us)
-            for phase, histogram in stats.phase_times.items():
-                histogram.add_many(window.phase_us[phase])
             stats.missed += window.missed
             stats.overruns += window.overruns
+            for samples, histogram in ((window.lateness_us, stats.lateness),
+                                       (window.step_us, stats.step),
+                                       *((window.phase_us[phase], histogram) for phase, histogram
+                                         in stats.phase_times.items())):
+                if samples:
+                    self._undigested.append((np.frombuffer(samples), histogram))
             topic = self._timing_topics.get(task.name)
             if topic is not None:
                 message: dict[str, Any] = {
@@ -418,6 +451,21 @@ class FixedRateLoop:
                     message[f"{phase}_us"] = window.phase_us[phase]
                 topic.log(t_ns, message)
             windows[task.name] = _Window()
+
+    def _digest(self, most: int | None) -> None:
+        """Bin up to ``most`` (None: all) samples of the finished windows into the run's
+        histograms, oldest first."""
+        undigested = self._undigested
+        while undigested and (most is None or most > 0):
+            samples, histogram = undigested[0]
+            take = samples.size if most is None else min(most, samples.size)
+            histogram.add_many(samples[:take])
+            if take == samples.size:
+                undigested.popleft()
+            else:
+                undigested[0] = (samples[take:], histogram)
+            if most is not None:
+                most -= take
 
     def safe_state_all(self) -> list[str]:
         """Call every task's and component's ``safe_state`` (reverse order); return failures."""
@@ -434,6 +482,7 @@ class FixedRateLoop:
 
     def summary(self) -> dict[str, Any]:
         """Per-task stats of the run so far, keyed by task name."""
+        self._digest(None)
         return {name: s.summary() for name, s in self.stats.items()}
 
     # -- signals ---------------------------------------------------------------------------

@@ -4,6 +4,10 @@
 samples: count, sum, min and max are exact; a percentile is within ``RELATIVE_ACCURACY``
 (1 %) of the exact one for values from ``LOWEST`` (0.01) to ``HIGHEST`` (1e9, in the caller's
 unit: 1e9 us is about 17 min); below ``LOWEST`` the error is at most ``LOWEST``.
+
+:meth:`TimingHistogram.add` bins its one sample at once, in constant time: a loop that adds a
+sample every tick does the same work at every tick (no batch binned every N samples, which
+would cost one tick the work of N).
 """
 
 from __future__ import annotations
@@ -24,38 +28,34 @@ _REPRESENTATIVE = np.concatenate([
     [0.0],
     LOWEST * _GROWTH ** np.arange(BUCKETS - 1) * 2 * _GROWTH / (1 + _GROWTH),
 ])
-_FLUSH = 1024  # single samples are buffered and binned as a batch (vectorised)
 
 
 class TimingHistogram:
     """Durations (any non-negative unit, us by convention): exact count, sum, min, max;
     percentiles within ``RELATIVE_ACCURACY`` from ``BUCKETS`` fixed counters."""
 
-    __slots__ = ("_bins", "_pending", "_sum", "count", "max_us", "min_us")
+    __slots__ = ("_bins", "_singles", "_sum", "count", "max_us", "min_us")
 
     def __init__(self) -> None:
-        self._bins = np.zeros(BUCKETS, dtype=np.int64)
-        self._pending: list[float] = []  # at most _FLUSH samples not yet binned
+        self._bins = np.zeros(BUCKETS, dtype=np.int64)  # the batches' counts (add_many)
+        self._singles = [0] * BUCKETS  # the single samples' counts (add): a list is cheaper
         self._sum = 0.0
         self.count = 0
         self.max_us = 0.0
         self.min_us = math.inf
 
     def add(self, value: float) -> None:
-        """One sample (negative counts as 0, NaN and infinities are ignored); binned with the
-        next batch of ``_FLUSH``."""
+        """One sample (negative counts as 0, NaN and infinities are ignored), binned now."""
         if not math.isfinite(value):
             return
         v = value if value > 0.0 else 0.0
-        self._pending.append(v)
+        self._singles[_bucket(v)] += 1
         self.count += 1
         self._sum += v
         if v > self.max_us:
             self.max_us = v
         if v < self.min_us:
             self.min_us = v
-        if len(self._pending) == _FLUSH:
-            self._flush()
 
     def add_many(self, samples_us: list[float] | np.ndarray) -> None:
         """A batch of samples (negative values count as 0, NaN and infinities are ignored)."""
@@ -69,16 +69,9 @@ class TimingHistogram:
         self.max_us = max(self.max_us, float(values.max()))
         self.min_us = min(self.min_us, float(values.min()))
 
-    def _flush(self) -> None:
-        if self._pending:
-            pending = bucket_of(np.asarray(self._pending))
-            self._bins += np.bincount(pending, minlength=BUCKETS)
-            self._pending.clear()
-
     def percentile(self, q: float) -> float:
         """The q-th percentile (0-100), linearly interpolated between the two nearest ranks
         as ``numpy.percentile`` does; 0.0 when empty."""
-        self._flush()
         if self.count == 0:
             return 0.0
         h = (self.count - 1) * min(max(q, 0.0), 100.0) / 100.0
@@ -93,7 +86,8 @@ class TimingHistogram:
             return self.min_us
         if rank == self.count - 1:
             return self.max_us
-        bucket = int(np.searchsorted(np.cumsum(self._bins), rank, side="right"))
+        counts = self._bins + np.asarray(self._singles, dtype=np.int64)
+        bucket = int(np.searchsorted(np.cumsum(counts), rank, side="right"))
         return min(max(float(_REPRESENTATIVE[bucket]), self.min_us), self.max_us)
 
     def mean(self) -> float:
@@ -114,6 +108,13 @@ def bucket_of(values: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore"):
         idx = np.floor(np.log(values / LOWEST) / _LOG_GROWTH) + 1
     return np.clip(np.nan_to_num(idx, nan=0.0, neginf=0.0), 0, BUCKETS - 1).astype(np.int64)
+
+
+def _bucket(value: float) -> int:
+    """:func:`bucket_of` of one value >= 0, in plain Python (a numpy call costs more)."""
+    if value < LOWEST:
+        return 0
+    return min(math.floor(math.log(value / LOWEST) / _LOG_GROWTH) + 1, BUCKETS - 1)
 
 
 def percentile_summary(samples_us: np.ndarray) -> dict[str, float]:

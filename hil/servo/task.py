@@ -78,6 +78,7 @@ class ServoTask(Task):
                  safety: SafetyMonitor, watch: SignalWatch | None = None,
                  axis: str | None = None) -> None:
         super().__init__("servo" if axis is None else f"servo-{axis}")
+        self.axis = axis
         self.session, self.master, self.controller = session, master, controller
         self.scenario = scenario
         self.loop = session.loop
@@ -129,6 +130,12 @@ class ServoTask(Task):
     def t_s(self) -> float:
         """This tick's time on the schedule grid [s] (after the compute phase)."""
         return self._t_s
+
+    def prime(self) -> None:
+        """In real time, one axis: a first cycle that holds the axis, its answer waited for
+        before the clock starts (a drive's first answer comes late)."""
+        if self.realtime and self.axis is None:
+            self.master.prime()
 
     def read(self, t_ns: int) -> None:
         self._feedback = self.master.receive_feedback()

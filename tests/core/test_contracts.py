@@ -1,8 +1,9 @@
-"""The shared contracts of hil.contracts: the link watchdog and the device lifecycle."""
+"""The shared contracts of hil.contracts: the link watchdog, the poll budget of a wait for a
+peer and the device lifecycle."""
 
 import pytest
 
-from hil.contracts import Device, LinkWatchdog
+from hil.contracts import Device, LinkWatchdog, PollBudget
 from hil.errors import ConfigError, HilError
 
 
@@ -22,6 +23,43 @@ def test_watchdog_declares_the_link_lost_once_after_limit_failures_in_a_row():
 def test_watchdog_refuses_a_limit_below_one():
     with pytest.raises(ConfigError, match="must be >= 1, got 0"):
         LinkWatchdog(0, "cycles without feedback")
+
+
+US = 1_000  # ns
+
+
+def test_a_wait_polls_for_its_window_then_blocks():
+    budget = PollBudget(500 * US)
+    budget.start(0)
+    assert all(budget.polling(t * US) for t in range(0, 500, 5))  # looks 5 us apart
+    assert not budget.polling(500 * US)  # the window is over: block
+    budget.start(1_000 * US)  # the next wait polls again
+    assert budget.polling(1_010 * US)
+
+
+def test_a_preempted_wait_blocks_and_three_in_a_row_stop_polling_for_a_while():
+    budget = PollBudget(500 * US, preempted_ns=200 * US, strikes=3, backoff_ns=100_000 * US)
+    t = 0
+    for strike in range(3):
+        budget.start(t)
+        assert budget.polling(t + 10 * US)
+        assert not budget.polling(t + 300 * US)  # 290 us off the CPU: this wait blocks
+        assert budget.backoffs == (1 if strike == 2 else 0)
+        t += 1_000 * US
+    budget.start(t)  # a busy machine: the next waits block from their start...
+    assert not budget.polling(t)
+    budget.start(t + 100_000 * US)  # ...for backoff_ns
+    assert budget.polling(t + 100_010 * US)
+
+
+def test_a_clean_wait_between_preempted_ones_keeps_the_polling():
+    budget = PollBudget(500 * US, preempted_ns=200 * US, strikes=2)
+    for t in range(0, 20_000 * US, 2_000 * US):  # one burst of another process, every other
+        budget.start(t)
+        assert budget.polling(t + 10 * US)
+        if t % (4_000 * US):
+            assert not budget.polling(t + 400 * US)
+    assert budget.backoffs == 0
 
 
 class Recording(Device):

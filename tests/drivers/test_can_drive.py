@@ -287,6 +287,22 @@ def test_csp_mode_tracks_a_position_target():
     master.close()
 
 
+@pytest.mark.parametrize("mode", ["cst", "csp"])
+def test_prime_is_one_cycle_that_holds_the_axis_where_it_stands(mode):
+    master = emulated({"master": {"mode": mode}})
+    master.start()
+    for _ in range(400):  # under way: 50 mA, or a position target moving at 180 deg/s
+        moved = master.exchange(50.0 if mode == "cst" else master.feedback.position_deg + 0.09)
+    primed = master.prime()
+    assert primed.fresh and primed.cycle == moved.cycle + 1
+    if mode == "cst":
+        assert primed.command_ma == 0.0  # no current
+    else:  # its target is where the axis stood: the drive brakes towards it
+        assert abs(primed.position_deg - moved.position_deg) < 0.09
+    assert master.receive_feedback() == primed  # a loop's first read: the primed cycle's
+    master.close()
+
+
 def test_a_drive_stuck_in_its_state_gives_an_error_naming_the_state():
     """A canopen LocalNode serving a 402 dictionary answers SDO but has no state machine."""
     channel = f"stuck-{uuid.uuid4().hex}"

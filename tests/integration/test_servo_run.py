@@ -233,9 +233,11 @@ def test_realtime_run_uses_the_split_read_write_path_and_an_emulator_process(tmp
     feedback = data.arrays("/drive/feedback")
     ticks = kpis["ticks"]
     assert kpis["clock"] == "realtime" and ticks > 0 and feedback["cycle"].size == ticks
-    # each tick reads the TPDOs of the previous tick's SYNC: one cycle further per tick run
+    # the clock starts once the drive's first feedback is back (a cycle before tick 0, which
+    # reads it); each later tick reads the TPDOs of the previous tick's SYNC
     cycles = feedback["cycle"]
-    assert cycles[0] == 0 and np.all(np.diff(cycles) == 1)
+    assert cycles[0] == 1 and feedback["fresh"][0] and feedback["rtt_us"][0] > 0
+    assert np.all(np.diff(cycles) == 1)
     assert int(np.sum(~feedback["fresh"])) == kpis["stale_feedback"] < ticks
     process = next(m for _, m in data.topic("/events") if m["kind"] == "emulator.process")
     assert process["data"]["url"].startswith("socketcand://127.0.0.1:")  # not this process

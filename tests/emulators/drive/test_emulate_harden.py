@@ -1,19 +1,26 @@
-"""`hil emulate drive --harden`: the emulator serves as a real-time process where the OS
-allows (SCHED_FIFO below hil's loop, a core apart from the loop's, locked memory) and says
-what it was granted, step by step, before it is ready."""
+"""`hil emulate drive` and `hil emulate bench` serve as real-time processes where the OS
+allows (SCHED_FIFO below hil's loop, a core apart from the loop's, locked memory), by default
+(`--no-harden`: an ordinary process), and say what they were granted, step by step, before
+they are ready, and in a warning what they were not. The drive emulator is an ordinary
+process while a lockstep master keeps its time."""
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
 from hil.core.realtime import HELPER_PRIORITY, helper_metadata, loop_cpu, parse_step_lines
-from hil.emulator_process import start_drive_emulator
+from hil.emulator_process import start_bench_emulator, start_drive_emulator
+from hil.servo.config import load_drive_config
+from hil.servo.rig import open_drive, share_lockstep_time
+from hil.servo.settings import lockstep_over_a_bus
 
 pytestmark = [pytest.mark.slow]
 
@@ -21,12 +28,23 @@ REPO = Path(__file__).resolve().parents[3]
 STEPS = ["sched_fifo", "cpu_affinity", "mlockall", "gc_freeze", "timer_slack"]
 
 
-def test_the_command_reports_every_step_before_its_ready_line(tmp_path):
+def emulate(tmp_path: Path, *argv: str, prefix: tuple[str, ...] = ()) -> subprocess.Popen:
+    """``hil emulate ...`` in a process of its own (``prefix``: a command it runs under)."""
     env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
-    emulator = subprocess.Popen(
-        [sys.executable, "-m", "hil", "emulate", "drive", "--socketcand", "127.0.0.1:0",
-         "--harden"], cwd=tmp_path, env=env, text=True, stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE)
+    return subprocess.Popen([*prefix, sys.executable, "-m", "hil", "emulate", *argv],
+                            cwd=tmp_path, env=env, text=True, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+
+
+def stop(emulator: subprocess.Popen) -> str:
+    """Stop it; its stderr."""
+    emulator.terminate()
+    return emulator.communicate(timeout=30)[1]
+
+
+def test_the_command_hardens_by_default_and_reports_every_step_before_its_ready_line(
+        tmp_path):
+    emulator = emulate(tmp_path, "drive", "--socketcand", "127.0.0.1:0")
     try:
         assert emulator.stdout is not None
         ready = emulator.stdout.readline()
@@ -35,8 +53,7 @@ def test_the_command_reports_every_step_before_its_ready_line(tmp_path):
         policy, cores = os.sched_getscheduler(pid), os.sched_getaffinity(pid)
         priority = os.sched_getparam(pid).sched_priority
     finally:
-        emulator.terminate()
-        _, stderr = emulator.communicate(timeout=30)
+        stderr = stop(emulator)
     steps = parse_step_lines(stderr.splitlines())
     assert list(steps) == STEPS, stderr
     assert steps["gc_freeze"].startswith("granted: ") and "collector on" in steps["gc_freeze"]
@@ -73,3 +90,75 @@ def test_doctor_says_what_an_emulator_would_be_granted(tmp_path):
         # the two cores named: the emulator's apart from the loop's
         assert f"apart from the loop's CPU {report['os']['usable_cpus'][-1]}" in \
             helper["cpu_affinity"]["detail"]
+
+
+def test_no_harden_serves_as_an_ordinary_process(tmp_path):
+    emulator = emulate(tmp_path, "drive", "--socketcand", "127.0.0.1:0", "--no-harden")
+    try:
+        assert emulator.stdout is not None
+        assert "on socketcand 127.0.0.1:" in emulator.stdout.readline()
+        assert os.sched_getscheduler(emulator.pid) == os.SCHED_OTHER
+    finally:
+        stderr = stop(emulator)
+    assert parse_step_lines(stderr.splitlines()) == {} and "warning" not in stderr
+
+
+@pytest.mark.skipif(os.geteuid() != 0 or shutil.which("setpriv") is None,
+                    reason="needs root and setpriv to take the real-time capabilities away")
+def test_what_the_machine_refuses_is_said_in_a_warning(tmp_path):
+    # without CAP_SYS_NICE and CAP_IPC_LOCK, as an ordinary user: no SCHED_FIFO, and the
+    # memory lock above the 8 MiB limit
+    drop = ("setpriv", "--inh-caps=-sys_nice,-ipc_lock", "--bounding-set=-sys_nice,-ipc_lock")
+    emulator = emulate(tmp_path, "drive", "--socketcand", "127.0.0.1:0", prefix=drop)
+    try:
+        assert emulator.stdout is not None
+        assert "on socketcand 127.0.0.1:" in emulator.stdout.readline()
+    finally:
+        stderr = stop(emulator)
+    steps = parse_step_lines(stderr.splitlines())
+    assert steps["sched_fifo"].startswith("refused: ")
+    warning = next(line for line in stderr.splitlines() if line.startswith("hil: warning: "))
+    refused = [name for name, outcome in steps.items() if outcome.startswith("refused")]
+    assert warning.startswith(f"hil: warning: the drive emulator serves without "
+                              f"{', '.join(refused)} (refused, above): ")
+
+
+def test_the_drive_emulator_is_an_ordinary_process_while_a_lockstep_master_keeps_its_time():
+    with start_drive_emulator(harden=True) as emulator:
+        if not emulator.hardening["sched_fifo"].startswith("granted"):
+            pytest.skip("SCHED_FIFO is not granted here: nothing to give up")
+        assert os.sched_getscheduler(emulator.pid) == os.SCHED_FIFO
+        master = open_drive(emulator.url, lockstep_over_a_bus(load_drive_config()))
+        try:
+            assert share_lockstep_time(master)
+            master.sdo.read_int(0x1000, 0)  # a frame: its next service sees the master's time
+            assert wait_for(lambda: os.sched_getscheduler(emulator.pid) == os.SCHED_OTHER)
+            assert len(os.sched_getaffinity(emulator.pid)) == len(os.sched_getaffinity(0))
+        finally:
+            master.close()  # lets the time go (0x2005 = 0): the drive's own clock again
+        assert wait_for(lambda: os.sched_getscheduler(emulator.pid) == os.SCHED_FIFO)
+
+
+def test_the_bench_emulator_hardens_its_serving_threads(tmp_path):
+    emulator = emulate(tmp_path, "bench", "--tcp", "127.0.0.1:0")
+    try:
+        assert emulator.stdout is not None
+        assert "listening on modbus-tcp://127.0.0.1:" in emulator.stdout.readline()
+        threads = [int(tid) for tid in os.listdir(f"/proc/{emulator.pid}/task")]
+        fifo = [tid for tid in threads if os.sched_getscheduler(tid) == os.SCHED_FIFO]
+    finally:
+        stderr = stop(emulator)
+    steps = parse_step_lines(stderr.splitlines())
+    assert list(steps) == STEPS
+    if steps["sched_fifo"].startswith("granted"):  # hardened before its threads started: the
+        # main thread, the plant's and the server's (not the watcher of its parent, older)
+        assert emulator.pid in fifo and len(fifo) >= 3
+    with start_bench_emulator() as plain:  # the API's default: an ordinary process
+        assert plain.hardening == {} and os.sched_getscheduler(plain.pid) == os.SCHED_OTHER
+
+
+def wait_for(predicate, timeout_s: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not predicate() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return predicate()

@@ -10,7 +10,7 @@ import can
 import pytest
 
 from hil.emulators.drive.config import DriveEmulatorConfig
-from hil.emulators.drive.node import DriveNode
+from hil.emulators.drive.node import LOCKSTEP_POLL_NS, DriveNode
 from hil.emulators.drive.od import build_object_dictionary, iter_variables
 from hil.emulators.drive.runners import BusRunner, LockstepDrive, bus_sender
 from hil.protocols.cia402 import STATUSWORD_MASKS, enable_steps
@@ -349,21 +349,34 @@ def test_disturbance_object_pushes_the_axis(wire):
     assert wire.node.plant.velocity_deg_s == pytest.approx(-2.83 * 200 * 0.1, rel=0.05)
 
 
-def test_the_next_sync_is_expected_on_the_grid_of_the_communication_cycle(wire):
-    node, period = wire.node, 500_000
-    assert node.next_sync_ns(0) is None  # no SYNC yet: nothing to poll for
-    wire.write(0x1006, 0, 500, "<I")  # the master's communication cycle period [us]
-    enable(wire)
-    for _ in range(3):
-        wire.send(0x080)
-    last = 3 * period  # lockstep: the node's clock is its SYNC count
+def test_on_its_own_clock_the_next_sync_is_expected_on_the_grid_of_the_communication_cycle():
+    node, period = DriveNode(DriveEmulatorConfig(), send=lambda frames: None, clock="wall"), \
+        500_000
+    node.boot()
+    assert node.next_sync_ns(time.monotonic_ns()) is None  # no SYNC yet: nothing to poll for
+    node.handle_frame(0x601, struct.pack("<BHBI", 0x23, 0x1006, 0, 500))  # the cycle [us]
+    node.handle_frame(0x080, b"")
+    last = node._sync_last_ns  # when that SYNC came, on the node's clock
     assert node.next_sync_ns(last + 100_000) == last + period
     assert node.next_sync_ns(last + 700_000) == last + period  # late, still awaited
     assert node.next_sync_ns(last + 800_000) == last + 2 * period  # given up: the next slot
     assert node.next_sync_ns(last + 1_300_000) == last + 3 * period
     assert node.next_sync_ns(last + 101 * period) is None  # the SYNCs stopped
-    wire.write(0x1006, 0, 0, "<I")  # no communication cycle configured
+    node.handle_frame(0x601, struct.pack("<BHBI", 0x23, 0x1006, 0, 0))  # no cycle configured
     assert node.next_sync_ns(last + 100_000) is None
+
+
+def test_on_a_lockstep_masters_time_the_next_sync_is_due_as_soon_as_a_frame_came(wire):
+    node = wire.node  # on the master's time: SYNCs come as fast as the master ticks
+    wire.send(0x080)
+    now = time.monotonic_ns()
+    assert node.next_sync_ns(now) == now  # polled for at once...
+    assert node.next_sync_ns(now + 150_000) == now + 150_000
+    assert node.next_sync_ns(now + LOCKSTEP_POLL_NS) is None  # ...for a while, then waited for
+    wire.send(0x080)
+    now = time.monotonic_ns()
+    assert node.next_sync_ns(now) == now
+    assert node.next_sync_ns(now + 250_000) is None  # off the CPU for a while: it blocks
 
 
 def test_a_long_lockstep_run_keeps_no_frame_anywhere_it_is_not_read():

@@ -70,6 +70,30 @@ def test_handshake_and_frames_in_the_socketcand_wire_format(server):
     sock.close()
 
 
+def test_a_node_takes_each_11_bit_frame_as_its_id_and_data_without_a_message():
+    data: list[tuple[int, bytes]] = []
+    messages: list[can.Message] = []
+    srv = SocketcandServer("127.0.0.1", 0, on_data=lambda i, d: data.append((i, d))).start()
+    try:
+        sock = connect(srv)
+        read_until(sock, "< hi >")
+        sock.sendall(b"< open can0 >< rawmode >")
+        read_until(sock, "< ok >< ok >")
+        sock.sendall(b"< send 201 4 0F 00 E8 03 >< send 1ABCDEF0 2 1 f1 >< send 080 0 >"
+                     b"< send 601 8 40 0 10 0 0 0 0 0 >< send 123 2 1 1ff >")
+        assert wait_for(lambda: len(data) == 3)
+        assert data == [(0x201, b"\x0f\x00\xe8\x03"), (0x080, b""),
+                        (0x601, bytes([0x40, 0, 0x10, 0, 0, 0, 0, 0]))]  # 29-bit: not a node's
+        srv.on_frame = messages.append  # both hooks: each hears what it takes
+        sock.sendall(b"< send 1ABCDEF0 2 1 f1 >< send 181 1 05 >")
+        assert wait_for(lambda: len(messages) == 2)
+        assert [(m.arbitration_id, m.is_extended_id) for m in messages] == [
+            (0x1ABCDEF0, True), (0x181, False)] and data[-1] == (0x181, b"\x05")
+        sock.close()
+    finally:
+        srv.close()
+
+
 def test_unknown_bus_is_refused_and_the_connection_closed(server):
     sock = connect(server)
     read_until(sock, "< hi >")

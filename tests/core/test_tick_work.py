@@ -1,0 +1,142 @@
+"""No tick does a period's worth of the loop process's bookkeeping.
+
+What the loop process does for its records besides the tick's own phases - samples binned into
+the run's histograms, values handed to the recorder - is counted tick by tick in a lockstep
+servo session (counted, not timed: the count is the same on any machine). A job left for every
+N ticks (a timing window binned at once, a window's samples handed over as lists) costs one
+tick the work of N: at 2 kHz, the once-a-second timing record cost a skipped tick every
+second. The check is first shown to find such a job in a loop that has one.
+
+Counted: each sample a histogram bins (``add``: 1, ``add_many``: its length) and each value a
+topic is handed to pickle for the writer (a message 1, a list in it its length; a buffer,
+pickled as one copy, 1).
+"""
+
+from __future__ import annotations
+
+from array import array
+
+import pytest
+
+from hil.core.clock import SimClock
+from hil.core.loop import DIGEST_SAMPLES, FixedRateLoop, FunctionTask
+from hil.core.recording.recorder import Topic
+from hil.core.session import Session
+from hil.core.stats import TimingHistogram
+from hil.servo.run import ServoRunOptions, run_servo
+
+pytestmark = pytest.mark.timeout(120)
+
+#: a tick's own bookkeeping, with room: the servo tick's samples (lateness, four phases, step,
+#: the controller's compute time) and its three messages, the MPC's prediction as two lists
+#: (8 and 50 values): some 70 values; and a slice of a finished window's samples
+TICK_BOUND = 200 + DIGEST_SAMPLES
+
+
+class TickWork:
+    """Spies on the histograms and the topics: the values each tick hands them."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.per_tick: dict[int, int] = {}
+        self.tick: int | None = None  # None: outside the ticks (set-up, safe stop)
+        add, add_many, log = TimingHistogram.add, TimingHistogram.add_many, Topic.log
+        boundary, safe = FixedRateLoop._run_ticks, FixedRateLoop.safe_state_all
+        work = self
+
+        def counted_add(histogram: TimingHistogram, value: float) -> None:
+            work.count(1)
+            add(histogram, value)
+
+        def counted_add_many(histogram: TimingHistogram, samples) -> None:
+            work.count(len(samples))
+            add_many(histogram, samples)
+
+        def counted_log(topic: Topic, t_ns: int, message) -> bool:
+            values = message.values() if isinstance(message, dict) else message
+            work.count(1 + sum(len(v) for v in values if isinstance(v, list)))
+            return log(topic, t_ns, message)
+
+        def run_ticks(loop: FixedRateLoop, limit) -> None:
+            def at(n: int) -> None:
+                work.tick = n
+                if previous is not None:
+                    previous(n)
+            previous, loop.at_boundary = loop.at_boundary, at
+            boundary(loop, limit)
+
+        def safe_state_all(loop: FixedRateLoop) -> list[str]:
+            work.tick = None  # the safe stop's records are not a tick's
+            return safe(loop)
+
+        monkeypatch.setattr(TimingHistogram, "add", counted_add)
+        monkeypatch.setattr(TimingHistogram, "add_many", counted_add_many)
+        monkeypatch.setattr(Topic, "log", counted_log)
+        monkeypatch.setattr(FixedRateLoop, "_run_ticks", run_ticks)
+        monkeypatch.setattr(FixedRateLoop, "safe_state_all", safe_state_all)
+
+    def count(self, values: int) -> None:
+        if self.tick is not None:
+            self.per_tick[self.tick] = self.per_tick.get(self.tick, 0) + values
+
+    def heaviest(self) -> tuple[int, int]:
+        """(values, tick) of the tick that did the most."""
+        return max((values, tick) for tick, values in self.per_tick.items())
+
+
+def test_the_check_finds_a_job_left_for_every_n_ticks(monkeypatch, tmp_path):
+    # a task that keeps a window of samples and, every 2000 ticks, bins and records it at
+    # once (lists): the way the loop's timing windows were published
+    work = TickWork(monkeypatch)
+    session = Session(str(tmp_path / "n.mcap"), SimClock(), 1e-3, kind="test")
+    topic = session.topic("/windowed", {"type": "object", "properties": {
+        "samples": {"type": "array", "items": {"type": "number"}}}})
+    histogram, window = TimingHistogram(), []
+
+    def record(t_ns: int) -> None:
+        window.append(t_ns / 1e6)
+        if len(window) == 2000:
+            histogram.add_many(window)
+            topic.log(t_ns, {"samples": list(window)})
+            window.clear()
+
+    session.add_task(FunctionTask("windowed", record=record))
+    session.run(max_ticks=5000)
+    session.close()
+    values, tick = work.heaviest()
+    assert values > TICK_BOUND and tick % 2000 == 1999, (values, tick)
+
+
+def test_no_tick_of_a_servo_session_does_a_windows_work(monkeypatch, tmp_path):
+    work = TickWork(monkeypatch)
+    out = tmp_path / "mpc.mcap"
+    result = run_servo(ServoRunOptions("mpc", duration_s=3.0, out=str(out)))
+    assert result.kpis["ticks"] == 6000 and len(work.per_tick) == 6000
+    values, tick = work.heaviest()
+    # three timing windows of 2000 ticks were recorded, each with 2000 samples of each phase
+    assert values <= TICK_BOUND, f"tick {tick} did {values} values' worth of bookkeeping"
+    assert sorted(set(work.per_tick.values()))[0] > 0  # every tick is counted
+
+
+def test_the_timing_record_hands_its_samples_over_as_buffers(monkeypatch, tmp_path):
+    from hil.core.recording.reader import read_session
+
+    handed: list[dict] = []
+    log = Topic.log
+
+    def kept(topic: Topic, t_ns: int, message) -> bool:
+        if topic.name == "/loop/tick/timing":
+            handed.append(message)
+        return log(topic, t_ns, message)
+
+    monkeypatch.setattr(Topic, "log", kept)
+    out = str(tmp_path / "t.mcap")
+    session = Session(out, SimClock(), 1e-3, kind="test")
+    session.add_task(FunctionTask("tick", read=lambda t: None))
+    session.run(max_ticks=2500)
+    session.close()
+    assert [len(m["lateness_us"]) for m in handed] == [1000, 1000, 500]
+    assert all(isinstance(m[f"{p}_us"], array) for m in handed
+               for p in ("lateness", "read", "compute", "write", "record"))
+    recorded = [m for _, m in read_session(out).topic("/loop/tick/timing")]
+    assert [len(m["read_us"]) for m in recorded] == [1000, 1000, 500]
+    assert [len(m["compute_us"]) for m in recorded] == [0, 0, 0]  # not a phase of the task
