@@ -10,7 +10,7 @@ from dataclasses import replace
 
 from hil.drivers.canopen.cyclic import SYNC_COUNTER_MAX
 from hil.drivers.canopen.errors import DriveError
-from hil.drivers.canopen.sdo import SdoClient
+from hil.drivers.canopen.sdo import SdoChannel
 from hil.protocols.cia301 import (
     ABORT_NO_OBJECT,
     ABORT_NO_SUBINDEX,
@@ -54,7 +54,7 @@ def unused_pdos(tpdos: Sequence[PdoMap]) -> tuple[int, ...]:
 class PdoConfigurator:
     """Writes PDO maps to one node through its SDO client."""
 
-    def __init__(self, sdo: SdoClient, node_id: int) -> None:
+    def __init__(self, sdo: SdoChannel, node_id: int) -> None:
         self.sdo, self.node_id = sdo, node_id
 
     def map(self, pdo: PdoMap) -> None:
