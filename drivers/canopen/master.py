@@ -142,7 +142,7 @@ class CanDriveMaster(Device):
         # receive_feedback()
         self.sdo: SdoChannel = self._new_sdo(link)
         self.objects = DriveObjects(self.sdo)  # which the drive has (its EDS's, at open())
-        self.nmt: NmtCommands = Nmt(link, n)
+        self.nmt: NmtCommands = self._new_nmt(link)
         self._tpdo_maps = tpdo_maps(config.sync_echo, config.tpdo_layout)
         self.cyclic = self._new_cyclic(link)
         self.states = StateControl(self.sdo, self.nmt, self._clock, config.state_timeout_s,
@@ -174,6 +174,9 @@ class CanDriveMaster(Device):
         self._frame_handlers[sdo.response_id] = lambda frame: sdo.on_response(frame[1])
         self._queued_sdo_frames = sdo.next_frames
         return sdo
+
+    def _new_nmt(self, link: Link) -> NmtCommands:
+        return Nmt(link, self.config.node_id)
 
     def _new_cyclic(self, link: Link) -> CyclicExchange:
         """RPDO + SYNC out, TPDOs in (:class:`CyclicExchange`), a queued SDO download with
