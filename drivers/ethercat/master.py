@@ -11,8 +11,7 @@ What is EtherCAT's own:
 * :meth:`configure` maps the mode's RxPDO and the TxPDOs into 0x1600 / 0x1A00.. and assigns them
   to the SyncManagers (0x1C12 / 0x1C13), in PRE-OP; no heartbeats (the working counter of every
   cycle tells whether the slave is there);
-* enabling runs the controlwords to OPERATION ENABLED in the process data, as a drive in OP
-  expects them, each state awaited there;
+* enabling is the CAN master's, by SDO (the drive in OP, before the first cycle);
 * the cyclic exchange is one LRW a cycle (:mod:`~hil.drivers.ethercat.cyclic`); its working
   counter is checked every cycle; the mailbox is looked into every
   :data:`MAILBOX_POLL_CYCLES` cycles and whenever the drive reports a fault (its emergency);
@@ -30,18 +29,17 @@ from hil.contracts import EventSink, no_event
 from hil.drivers.can_bus_time import BusBudget
 from hil.drivers.canopen.config import DriveMasterConfig
 from hil.drivers.canopen.cyclic import CyclicExchange, Feedback
-from hil.drivers.canopen.errors import DriveLinkLostError, DriveStateError
+from hil.drivers.canopen.errors import DriveLinkLostError
 from hil.drivers.canopen.link import Link
 from hil.drivers.canopen.master import CanDriveMaster
 from hil.drivers.canopen.sdo import SdoChannel
-from hil.drivers.canopen.setpoint import holding_value
-from hil.drivers.canopen.state import ENABLE_STEPS, MasterClock, NmtCommands
+from hil.drivers.canopen.state import MasterClock, NmtCommands
 from hil.drivers.ethercat.coe import CoeSdo
 from hil.drivers.ethercat.cyclic import ProcessDataExchange
 from hil.drivers.ethercat.segment import Segment
 from hil.protocols.can_frames import Frame
 from hil.protocols.cia301 import CYCLE_PERIOD, NMT_ENTER_PRE_OPERATIONAL, NMT_START, SYNC_COB_ID
-from hil.protocols.cia402 import FAULT, FAULT_REACTION_ACTIVE, PdoMap, state_of
+from hil.protocols.cia402 import FAULT, FAULT_REACTION_ACTIVE, PdoMap
 from hil.protocols.ethercat import RXPDO_ASSIGN, TXPDO_ASSIGN
 
 MAILBOX_POLL_CYCLES = 20       # a look for emergencies every this many cycles (10 ms at 2 kHz)
@@ -179,26 +177,6 @@ class EthercatDriveMaster(CanDriveMaster):
         :meth:`configure`."""
         super().use_mode(name)
         self.segment.mapped = False
-
-    # -- enabling -----------------------------------------------------------------------------
-    def _enable_operation(self) -> None:
-        """The controlwords to OPERATION ENABLED in the process data (the mode's set point held
-        where the axis is), each state awaited for the state time-out of cycles."""
-        position = self.sdo.read_int(0x6064, 0, "<i")
-        target = holding_value(self.operation, lambda: position)
-        cycles = max(1, round(self.config.state_timeout_s / self.config.cycle_period_s))
-        for word, wanted in ENABLE_STEPS:
-            statusword = 0
-            for _ in range(cycles):
-                self.cyclic.send(word, target)
-                statusword = self.cyclic.receive().statusword
-                if state_of(statusword) == wanted:
-                    break
-            else:
-                raise DriveStateError(
-                    f"drive node {self.node_id} stuck in {state_of(statusword)} (statusword "
-                    f"0x{statusword:04X}) waiting for {wanted} (controlword 0x{word:04X}) "
-                    f"after {cycles} cycles")
 
     def describe(self) -> dict[str, Any]:
         described = super().describe()

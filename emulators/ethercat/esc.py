@@ -330,6 +330,7 @@ class Esc:
         area = self._sm_area(INPUTS)
         if area is not None:
             self.memory[area[0]:area[0] + len(inputs)] = inputs[:area[1] - area[0]]
+        self._load_mailbox()  # what the cycle raised (an emergency) is in SM1 at once
 
     # -- the EEPROM ----------------------------------------------------------------------------
     def _eeprom_command(self) -> None:

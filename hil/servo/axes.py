@@ -86,6 +86,12 @@ class BusAxes:
     plan: BusPlan
 
 
+def carries_can(url: str) -> bool:
+    """Whether the bus at ``url`` is CAN (its time budget planned), not an EtherCAT segment
+    (one frame of microseconds a cycle, whatever the axes)."""
+    return scheme_of(url) != "ethercat"
+
+
 def plan_buses(axes: tuple[AxisSpec, ...], run_url: str, drive: DriveConfig
                ) -> list[BusAxes]:
     """The buses of ``axes`` (an axis without a bus of its own on ``run_url``), in the order

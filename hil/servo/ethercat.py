@@ -6,7 +6,7 @@ frame: cycling together, one LRW carries every axis' set point (:class:`SegmentA
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from urllib.parse import parse_qsl
 
 from hil.contracts import EventSink, no_event
@@ -67,11 +67,14 @@ def ethercat_drives(url: str, drive: DriveConfig, axes: Sequence[AxisSpec], *,
     try:
         for axis, position in zip(axes, positions, strict=True):
             label = url if len(axes) == 1 else f"{url} axis {axis.name}"
+            config = replace(axis.master(drive.master), node_id=position)  # named by it
             masters.append(EthercatDriveMaster(
-                segment, position, axis.master(drive.master), on_event=on_event, url=label,
+                segment, position, config, on_event=on_event, url=label,
                 closers=(segment.use(),)))
     except BaseException:
         segment.close()
         raise
+    for master in masters:  # a drive that outlives the run: its settings journaled
+        master.settings.keep_journal(url)
     group = SegmentAxes(segment, masters) if len(masters) > 1 else None
     return BusDrives(url, list(masters), group)
