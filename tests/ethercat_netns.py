@@ -28,7 +28,6 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 CLONE_NEWNET = 0x4000_0000
-MASTER_END, SLAVE_END = "ecm", "ecs"
 
 
 def missing() -> str | None:
@@ -45,8 +44,8 @@ class Veth:
     """A namespace ``ns`` holding a veth pair: ``master`` end and ``slave`` end."""
 
     ns: str
-    master: str = MASTER_END
-    slave: str = SLAVE_END
+    master: str
+    slave: str
 
     def run(self, *argv: str, check: bool = True) -> subprocess.CompletedProcess[str]:
         return subprocess.run(["ip", "-n", self.ns, *argv], check=check, capture_output=True,
@@ -62,7 +61,8 @@ def veth_pair() -> Iterator[Veth]:
     reason = missing()
     if reason is not None:
         pytest.skip(reason)
-    veth = Veth(f"hil-ecat-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+    suffix = uuid.uuid4().hex[:8]  # the ends' names too: a run locks its segment by name
+    veth = Veth(f"hil-ecat-{os.getpid()}-{suffix}", f"em{suffix}", f"es{suffix}")
     made = subprocess.run(["ip", "netns", "add", veth.ns], capture_output=True, text=True,
                           timeout=30)
     if made.returncode:

@@ -38,12 +38,23 @@ NO_FRAME = -1           # SOEM: no frame came back within the time-out
 STATE_TIMEOUT_US = 2_000_000
 
 
+#: SOEM's waits for a datagram's answer [us]: its defaults (2 ms, 20 ms for the scan's first)
+#: assume a slave that answers in microseconds; a frame lost on a real NIC is rare, so longer
+#: waits cost nothing there, and a slave in a busy process (hil's own, a loaded machine) is
+#: not taken for absent
+SOEM_TIMEOUTS_US = {"ret": 50_000, "safe": 200_000, "eeprom": 200_000}
+SCAN_TRIES = 3
+
+
 def load_pysoem() -> Any:
-    """pysoem, or a DriveError saying how to install it."""
+    """pysoem (its waits set to :data:`SOEM_TIMEOUTS_US`), or a DriveError saying how to
+    install it."""
     try:
         import pysoem
     except ImportError:
         raise DriveError(f"EtherCAT needs {EXTRA}") from None
+    for name, us in SOEM_TIMEOUTS_US.items():
+        setattr(pysoem.settings.timeouts, name, max(us, getattr(pysoem.settings.timeouts, name)))
     return pysoem
 
 
@@ -75,7 +86,11 @@ class Segment:
             raise DriveLinkLostError(
                 f"cannot open {self.name}: no interface {self.iface!r}, or no permission (a "
                 "raw socket needs root or CAP_NET_RAW)") from None
-        found = self.master.config_init()
+        found = 0
+        for _ in range(SCAN_TRIES):  # a line that answers nothing is scanned again
+            found = self.master.config_init()
+            if found > 0:
+                break
         self.slaves = list(self.master.slaves) if found > 0 else []
         self.mapped = False
         self._mailboxes: dict[int, tuple[int, int, int, int]] = {}

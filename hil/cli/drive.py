@@ -379,8 +379,10 @@ def _scan_segment(url: str, positions: list[int] | None, mode: str, eds: str | N
 def _bus_lock(url: str) -> contextlib.AbstractContextManager[Any]:
     """The bus locked for this command, as a run locks it (an emulated drive is our own)."""
     from hil.core.device_lock import lock_device
+    from hil.servo.axes import bus_lock_key
 
-    return contextlib.nullcontext() if url == "emulated" else lock_device(url, "drive bus")
+    return contextlib.nullcontext() if url == "emulated" else \
+        lock_device(bus_lock_key(url), "drive bus")
 
 
 def scan_command(args: argparse.Namespace) -> int:
