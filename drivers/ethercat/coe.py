@@ -160,9 +160,10 @@ class CoeSdo:
                                     f"drive {self._name} refused SDO {what}")
             return answer
 
-    def poll(self) -> None:
-        """Read what waits in the slave's mailbox (its emergencies) without waiting."""
-        while (body := self._receive(None)) is not None:
+    def poll(self, wait_s: float | None = None) -> None:
+        """Read what waits in the slave's mailbox (its emergencies) without waiting for more;
+        ``wait_s``: how long each read may take (None: the SDO's own bound)."""
+        while (body := self._receive(None, wait_s)) is not None:
             if COE_HEADER.unpack_from(body)[0] >> 12 == COE_EMERGENCY:
                 self.on_emergency(body[2:10])
 
@@ -173,14 +174,16 @@ class CoeSdo:
             + body
         self.segment.fpwr(self.position, start, message.ljust(size, b"\0"))
 
-    def _receive(self, deadline: float | None) -> bytes | None:
+    def _receive(self, deadline: float | None, wait_s: float | None = None) -> bytes | None:
         """The CoE body of the next message in the slave's mailbox (None: none came by
-        ``deadline``; with no deadline, none there now)."""
+        ``deadline``; with no deadline, none there now); each read waited ``wait_s`` for."""
         _, _, start, size = self.segment.mailbox(self.position)
         status_at = REG_SM0 + SM_SIZE + SM_STATUS
+        wait_us = round((self.timeout_s if wait_s is None else wait_s) * 1e6)
         while True:
-            if self.segment.fprd(self.position, status_at, 1)[0] & SM_STATUS_MAILBOX_FULL:
-                message = self.segment.fprd(self.position, start, size)
+            if self.segment.fprd(self.position, status_at, 1, wait_us)[0] & \
+                    SM_STATUS_MAILBOX_FULL:
+                message = self.segment.fprd(self.position, start, size, wait_us)
                 length, _, _, kind = MAILBOX_HEADER.unpack_from(message)
                 body = message[MAILBOX_HEADER.size:MAILBOX_HEADER.size + length]
                 if kind & 0x0F == MAILBOX_TYPE_COE and len(body) >= COE_HEADER.size:

@@ -42,7 +42,9 @@ from hil.protocols.cia301 import CYCLE_PERIOD, NMT_ENTER_PRE_OPERATIONAL, NMT_ST
 from hil.protocols.cia402 import FAULT, FAULT_REACTION_ACTIVE, PdoMap
 from hil.protocols.ethercat import RXPDO_ASSIGN, TXPDO_ASSIGN
 
-MAILBOX_POLL_CYCLES = 20       # a look for emergencies every this many cycles (10 ms at 2 kHz)
+# a look for emergencies every this many cycles (100 ms at 2 kHz): a read of the slave's
+# mailbox is a round trip of its own in the loop's read phase
+MAILBOX_POLL_CYCLES = 200
 ETHERNET_OVERHEAD_BYTES = 14 + 4 + 8 + 12 + 2 + 12 + 2  # header, FCS, preamble, gap; ECAT, LRW
 FAST_ETHERNET = 100_000_000
 
@@ -148,8 +150,10 @@ class EthercatDriveMaster(CanDriveMaster):
         faulted = feedback.state in (FAULT, FAULT_REACTION_ACTIVE)
         if faulted or self._since_poll >= MAILBOX_POLL_CYCLES:
             self._since_poll = 0
-            with contextlib.suppress(DriveLinkLostError):  # the next working counter tells
-                self.coe.poll()
+            # a read not answered within a cycle's wait is left: the next working counter
+            # tells whether the slave is there
+            with contextlib.suppress(DriveLinkLostError):
+                self.coe.poll(self.config.rx_timeout_s)
 
     # -- configuration ----------------------------------------------------------------------------
     def _configure_transport(self) -> None:

@@ -127,9 +127,11 @@ class Segment:
         status, _, code = struct.unpack("<HHH", self.fprd(position, REG_AL_STATUS, 6))
         return status, code
 
-    def fprd(self, position: int, address: int, size: int) -> bytes:
+    def fprd(self, position: int, address: int, size: int, wait_us: int = 200_000) -> bytes:
+        """``size`` bytes of the slave's memory at ``address`` (one FPRD, waited ``wait_us``
+        for)."""
         try:
-            data: bytes = self.slave(position)._fprd(address, size, 200_000)
+            data: bytes = self.slave(position)._fprd(address, size, wait_us)
         except self.pysoem.WkcError:
             raise DriveLinkLostError(f"EtherCAT slave {position} on {self.name} did not answer "
                                      f"a read of 0x{address:04X}") from None
