@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import time
@@ -165,3 +166,41 @@ def test_the_python_api_drives_over_ethercat_in_this_process(tmp_path):
         kpis = api.run_servo("pid", drive=f"ethercat://{veth.master}?slave=1", duration_s=0.3,
                              out=str(tmp_path / "api.mcap"))
     assert kpis["status"] == "completed" and kpis["ticks"] == 600
+
+
+USER_TEST = '''
+import os
+
+from my_controllers import PdPosition
+
+
+def test_my_controller_on_the_ethercat_drive(hil_drive):
+    kpis = hil_drive.run(PdPosition, {"kp": 300, "kd": 6}, duration_s=0.3,
+                         drive_config=os.environ["DRIVE_CONFIG"])
+    assert kpis["clock"] == "realtime" and kpis["drive"] == os.environ["DRIVE_URL"]
+    assert kpis["status"] in ("completed", "disturbed") and kpis["ticks"] > 0
+'''
+# a loaded machine's real time: stale cycles counted, not fatal
+LOADED_MACHINE = "[master]\nstale_cycles = 100000\nrx_timeout_us = 5000\n" \
+    "[safety]\nstale_share_max = 1.0\n"
+
+
+@pytest.mark.realtime
+def test_the_hil_drive_fixture_runs_a_users_test_on_an_ethercat_drive(tmp_path):
+    """``pytest --hil-drive ethercat://...``: a user's plain test, in real time, on the
+    EtherCAT slave (its lost frames counted as stale cycles)."""
+    folder = tmp_path / "my_lab"
+    folder.mkdir()
+    shutil.copy(REPO / "examples" / "my_controllers.py", folder)
+    (folder / "test_on_ethercat.py").write_text(USER_TEST)
+    (folder / "drive.toml").write_text(LOADED_MACHINE)
+    user_env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    with veth_pair() as veth, slave_on(veth):
+        url = f"ethercat://{veth.master}?slave=1"
+        out = subprocess.run(
+            veth.command(sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                         "--rootdir", str(folder), "test_on_ethercat.py", "--hil-drive", url),
+            cwd=folder, capture_output=True, text=True, timeout=300,
+            env={**user_env, "DRIVE_CONFIG": str(folder / "drive.toml"), "DRIVE_URL": url})
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
+    assert "1 passed" in out.stdout
