@@ -150,7 +150,11 @@ class CoeSdo:
                 self.on_emergency(body[2:10])
                 continue
             answer = body[COE_HEADER.size:]
-            if service != COE_SDO_RESPONSE or len(answer) < 8:
+            # an abort is an "abort SDO transfer request" (service 2, ETG.1000.6); some
+            # slaves send it as a response: either is taken
+            aborted = len(answer) >= 8 and answer[0] == ABORT and \
+                service in (COE_SDO_REQUEST, COE_SDO_RESPONSE)
+            if not aborted and (service != COE_SDO_RESPONSE or len(answer) < 8):
                 continue
             if not segment and struct.unpack_from("<HB", answer, 1) != (index, subindex):
                 continue  # an answer to another request

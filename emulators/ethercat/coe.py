@@ -76,9 +76,9 @@ class CoeServer:
         command, index, subindex = SDO_HEADER.unpack_from(sdo)
         try:
             return [coe(COE_SDO_RESPONSE, self._serve(command, index, subindex, sdo))]
-        except SdoAbortError as exc:
+        except SdoAbortError as exc:  # ETG.1000.6: an "abort SDO transfer request"
             self._upload_left = self._download_at = None
-            return [coe(COE_SDO_RESPONSE, SDO_HEADER.pack(SDO_ABORT, index, subindex)
+            return [coe(COE_SDO_REQUEST, SDO_HEADER.pack(SDO_ABORT, index, subindex)
                         + struct.pack("<I", exc.code))]
 
     def _serve(self, command: int, index: int, subindex: int, sdo: bytes) -> bytes:

@@ -30,7 +30,9 @@ class Objects:
     def ask(self, sdo: bytes) -> bytes:
         (answer,) = self.server.handle(coe(2, sdo))
         length, _, _, kind = struct.unpack_from("<HHBB", answer)
-        assert kind & 0x0F == 3 and struct.unpack_from("<H", answer, 6)[0] >> 12 == 3
+        service = struct.unpack_from("<H", answer, 6)[0] >> 12
+        # an answer is an SDO response; an abort an "abort SDO transfer request" (ETG.1000.6)
+        assert kind & 0x0F == 3 and service == (2 if answer[8] == 0x80 else 3)
         return answer[8:6 + length]
 
 
