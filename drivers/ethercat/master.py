@@ -15,6 +15,7 @@ What is EtherCAT's own:
 * the cyclic exchange is one LRW a cycle (:mod:`~hil.drivers.ethercat.cyclic`); its working
   counter is checked every cycle; the mailbox is looked into every
   :data:`MAILBOX_POLL_CYCLES` cycles and whenever the drive reports a fault (its emergency);
+* distributed clocks where the slaves have them: their clocks aligned, SYNC0 every cycle;
 * in lockstep the master's time is its process-data cycles (the link's ``syncs_sent``), which
   are the time of hil's emulated slave too.
 """
@@ -87,14 +88,14 @@ class SegmentLink:
 class AlStates:
     """NMT commands as AL states: pre-operational is PRE-OP, start is OP."""
 
-    def __init__(self, segment: Segment, position: int) -> None:
-        self.segment, self.position = segment, position
+    def __init__(self, segment: Segment, position: int, period_s: float) -> None:
+        self.segment, self.position, self.period_s = segment, position, period_s
 
     def command(self, command: int) -> None:
         if command == NMT_ENTER_PRE_OPERATIONAL:
             self.segment.pre_operational(self.position)
         elif command == NMT_START:
-            self.segment.operational()
+            self.segment.operational(self.period_s)
 
 
 def ethercat_budget(rpdo: PdoMap, tpdos: tuple[PdoMap, ...], period_s: float,
@@ -133,7 +134,7 @@ class EthercatDriveMaster(CanDriveMaster):
         return self.coe
 
     def _new_nmt(self, link: Link) -> NmtCommands:
-        return AlStates(self.segment, self.position)
+        return AlStates(self.segment, self.position, self.config.cycle_period_s)
 
     def _new_cyclic(self, link: Link) -> CyclicExchange:
         c = self.config
@@ -182,10 +183,21 @@ class EthercatDriveMaster(CanDriveMaster):
         super().use_mode(name)
         self.segment.mapped = False
 
+    def _enable_operation(self) -> None:
+        """The segment is in OP (the NMT start before this): said once, then the CAN
+        master's enabling."""
+        segment, n = self.segment, self.node_id
+        sync0_ns = round(self.config.cycle_period_s * 1e9) \
+            if self.position in segment.dc_slaves else None
+        clock = f"SYNC0 every {sync0_ns / 1e3:g} us" if sync0_ns else "no distributed clock"
+        self._event("ethercat.operational", f"drive node {n}: EtherCAT slave {self.position} "
+                    f"on {segment.name} in OP, working counter {segment.expected_wkc} a "
+                    f"cycle, {clock}", slave=self.position, expected_wkc=segment.expected_wkc,
+                    sync0_ns=sync0_ns)
+        super()._enable_operation()
+
     def describe(self) -> dict[str, Any]:
         described = super().describe()
         described["ethercat"] = {"interface": self.segment.iface, "slave": self.position,
-                                 "name": self.segment.slave(self.position).name,
-                                 "expected_wkc": self.segment.expected_wkc
-                                 if self.segment.mapped else None}
+                                 "name": self.segment.slave(self.position).name}
         return described

@@ -9,9 +9,11 @@ the frame goes out at :meth:`end_cycle`, once for every axis. The first master t
 collects the answer (the working counter and every slave's inputs) for all.
 
 pysoem holds the GIL in SOEM's waits unless asked: the cyclic receive and the mailbox waits let
-it go, so the rest of hil (the session's writer thread) runs meanwhile. SOEM 1.4 loses a CoE
-SDO abort (a refused download passes for done; a refused upload is a "packet error"), so the
-CiA 402 master talks CoE itself over the mailbox registers (:mod:`hil.drivers.ethercat.coe`).
+it go, so the rest of hil (the session's writer thread) runs meanwhile. SOEM 1.4 takes a CoE
+SDO abort only when the slave codes it as a request (as ETG.1000.6 has it); from a slave that
+answers it as a response, a refused download passes for done and a refused upload is a
+"packet error". So the CiA 402 master talks CoE itself over the mailbox registers
+(:mod:`hil.drivers.ethercat.coe`), taking either, each wait bounded by its own clock.
 """
 
 from __future__ import annotations
@@ -22,10 +24,12 @@ from typing import Any
 
 from hil.drivers.canopen.errors import DriveError, DriveLinkLostError, DriveNotFoundError
 from hil.protocols.ethercat import (
+    FEATURE_DC,
     INIT,
     OP,
     PRE_OP,
     REG_AL_STATUS,
+    REG_FEATURES,
     SAFE_OP,
     SII_RX_MAILBOX,
     SII_TX_MAILBOX,
@@ -69,6 +73,7 @@ class Segment:
         self.master = self.pysoem.Master()
         self.slaves: list[Any] = []
         self.mapped = False
+        self.dc_slaves: list[int] = []  # the positions SYNC0 runs on
         self.together = False
         self.cycles = 0          # process-data frames sent: lockstep's time, one period each
         self.wkc = NO_FRAME      # the last cycle's working counter
@@ -168,9 +173,10 @@ class Segment:
         self.request(position, PRE_OP)
         self.mapped = False
 
-    def operational(self) -> None:
-        """The process-data image mapped (once every axis is configured), then every slave to
-        SAFE-OP and OP, process data flowing."""
+    def operational(self, period_s: float) -> None:
+        """The process-data image mapped (once every axis is configured), the distributed
+        clocks set up where the slaves have them (SYNC0 every ``period_s``), then every slave
+        to SAFE-OP and OP, process data flowing."""
         if not self.mapped:
             try:
                 self.master.config_map()
@@ -178,6 +184,7 @@ class Segment:
                 raise DriveError(f"{self.name}: SOEM could not map the process data: "
                                  f"{exc}") from None
             self.mapped = True
+            self._synchronize(period_s)
             for position in range(1, len(self.slaves) + 1):
                 self.request(position, SAFE_OP)
         for position in range(1, len(self.slaves) + 1):
@@ -185,6 +192,19 @@ class Segment:
             if status & 0x0F != OP:
                 self.exchange()  # outputs valid before OP, as a slave expects
                 self.request(position, OP)
+
+    def _synchronize(self, period_s: float) -> None:
+        """Distributed clocks (SOEM's ``config_dc``: the slaves' clocks measured and aligned on
+        the first DC slave's; each frame then carries its system time): SYNC0 every cycle on
+        each slave that has them (ESC features, 0x0008)."""
+        self.dc_slaves = []
+        if not self.master.config_dc():
+            return
+        for position, slave in enumerate(self.slaves, start=1):
+            (features,) = struct.unpack("<H", self.fprd(position, REG_FEATURES, 2))
+            if features & FEATURE_DC:
+                slave.dc_sync(True, round(period_s * 1e9))
+                self.dc_slaves.append(position)
 
     # -- process data ---------------------------------------------------------------------------
     def cycle_together(self, on: bool = True) -> None:

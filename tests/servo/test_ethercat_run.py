@@ -65,6 +65,11 @@ def test_a_lockstep_run_records_the_kpis_the_same_run_over_can_records(tmp_path,
                      "--out", str(tmp_path / "ethercat.mcap"))
     assert out.returncode == 0, out.stderr
     over_ethercat = json.loads(out.stdout)
+    events = subprocess.run([sys.executable, "-m", "hil", "report", over_ethercat["mcap"],
+                             "--events"], capture_output=True, text=True, check=True,
+                            env={**os.environ, "PYTHONPATH": str(REPO)}).stdout
+    # SOEM found the slave's distributed clock: aligned, SYNC0 every cycle
+    assert "in OP, working counter 3 a cycle, SYNC0 every 500 us" in events
     over_can = api.run_servo(controller, duration_s=0.5, drive_config=str(config),
                              out=str(tmp_path / "can.mcap"))
     assert over_ethercat["drive"] == f"ethercat://{veth.master}?slave=1"

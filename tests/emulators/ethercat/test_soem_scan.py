@@ -63,9 +63,10 @@ def test_soem_maps_the_pdos_it_reads_over_coe_and_cycles_in_op(line):
         assert line.receive_processdata(2_000_000) == line.expected_wkc
     statusword, _position = struct.unpack("<Hi", line.slaves[0].input)
     assert statusword & 0x4F == 0x40  # SWITCH ON DISABLED: the drive behind it answers
-    # PDOs are set up in PRE-OP only, as on a vendor's drive: the assignment stays (SOEM's
-    # CoE client does not report the abort; hil's master does: test_coe_client.py)
-    line.slaves[0].sdo_write(0x1C12, 0, bytes([0]))
+    # PDOs are set up in PRE-OP only, as on a vendor's drive: SOEM gets the abort's code
+    with pytest.raises(pysoem.SdoError) as refused:
+        line.slaves[0].sdo_write(0x1C12, 0, bytes([0]))
+    assert refused.value.abort_code == 0x0800_0022
     assert line.slaves[0].sdo_read(0x1C12, 0) == bytes([1])
 
 
