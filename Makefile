@@ -12,8 +12,8 @@ STAMP  := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	{ $(BIN)/pip install --quiet uv && \
-	  $(BIN)/uv pip install --quiet --python $(BIN)/python -e '.[dev,lab]'; } \
-	  || $(BIN)/pip install --quiet -e '.[dev,lab]'
+	  $(BIN)/uv pip install --quiet --python $(BIN)/python -e '.[dev,lab,ethercat]'; } \
+	  || $(BIN)/pip install --quiet -e '.[dev,lab,ethercat]'
 	touch $(STAMP)
 
 demo: $(STAMP)

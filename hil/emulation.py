@@ -1,7 +1,8 @@
 """Emulators served in this process until they are stopped: what ``hil emulate`` runs.
 
 :func:`serve_bench` starts hil's bench emulator on Modbus TCP or RTU, :func:`serve_drives`
-emulated CiA 402 drives on a socketcand server; :func:`serve_until_stopped` serves either
+emulated CiA 402 drives on a socketcand server, :func:`serve_ethercat_drives` the same drives
+as EtherCAT slaves on a network interface; :func:`serve_until_stopped` serves each
 until SIGTERM or Ctrl-C (:class:`StopFlag`), with its state on the live view when asked
 (:func:`live_state`), then stops it. The command line (:mod:`hil.cli.emulate`) parses the
 flags and prints; :mod:`hil.emulator_process` runs that command in a process of its own.
@@ -25,6 +26,7 @@ if TYPE_CHECKING:
     from hil.emulators.bench.server import EmulatedBench
     from hil.emulators.drive.config import DriveEmulatorConfig
     from hil.emulators.drive.node import DriveNode
+    from hil.emulators.ethercat.segment import EmulatedSegment
     from hil.emulators.faults import Fault
     from hil.emulators.socketcand_server import SocketcandServer
 
@@ -307,6 +309,49 @@ def serve_drives(config: DriveEmulatorConfig, node_ids: list[int], host: str, po
     for node in nodes:
         node.boot()
     return ServedDrives(server, nodes, trace)
+
+
+@dataclass
+class ServedEthercatDrives:
+    """Emulated CiA 402 drives as a line of EtherCAT slaves on one interface."""
+
+    segment: EmulatedSegment
+
+    @property
+    def nodes(self) -> list[DriveNode]:
+        return [slave.node for slave in self.segment.slaves]
+
+    def state(self) -> Topics:
+        return {("/emulator/drive" if len(self.nodes) == 1 else f"/emulator/drive/{node.node_id}"):
+                ("hil.EmulatorDrive", _drive_state(node)) for node in self.nodes}
+
+    def serve(self, stop: StopFlag) -> None:
+        """Frames answered in this thread until ``stop``."""
+        self.segment.serve(stop)
+
+    def stop(self) -> None:
+        self.segment.close()
+
+
+def serve_ethercat_drives(config: DriveEmulatorConfig, node_ids: list[int], iface: str, *,
+                          clock: str = "auto", faults: Sequence[Fault] = (),
+                          on_fault: Callable[[str], None] | None = None,
+                          esi: str | None = None) -> ServedEthercatDrives:
+    """The emulated drives of ``config`` as EtherCAT slaves in a line on ``iface`` (a raw
+    socket: CAP_NET_RAW), one per node id (the slaves' order), each with its own axis;
+    ``esi``: a vendor's ESI file their SII is built from (None: hil's defaults)."""
+    from hil.emulators.ethercat.segment import EmulatedSegment
+    from hil.emulators.ethercat.slave import EthercatDrive
+
+    sii = None
+    if esi is not None:
+        from hil.emulators.ethercat.esi import sii_from_esi
+
+        sii = sii_from_esi(esi)
+    slaves = [EthercatDrive(replace(config, node_id=node_id), clock=clock, faults=faults,
+                            on_fault=on_fault, sii=sii, last=i == len(node_ids) - 1)
+              for i, node_id in enumerate(node_ids)]
+    return ServedEthercatDrives(EmulatedSegment(iface, slaves))
 
 
 def harden_serving_thread() -> list[Step]:

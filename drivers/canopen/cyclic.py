@@ -274,15 +274,21 @@ class CyclicExchange:
                     os.sched_yield()
         finally:
             self._awaiting = False
+        return self._conclude(self._got == self._all, self._heard, wait_ns)
+
+    def _conclude(self, complete: bool, heard: bool, wait_ns: int) -> Feedback:
+        """The cycle's feedback: fresh when its answer is ``complete``, else the last one
+        again (stale), which the watchdog counts; in lockstep, nothing ``heard`` within
+        ``wait_ns`` is a gone drive."""
         stats = self.stats
         stats.cycles += 1
-        if self._got == self._all:
+        if complete:
             stats.fresh += 1
             self.watchdog.success()
             rtt_us = (time.perf_counter_ns() - self._sent_ns) / 1e3
             self.feedback = self._make_feedback(fresh=True, rtt_us=rtt_us)
             return self.feedback
-        if self._silence_is_gone and not self._heard:
+        if self._silence_is_gone and not heard:
             raise DriveGoneError(
                 f"nothing on the bus for {wait_ns / 1e9:g} s of wall time after "
                 f"SYNC {self.cycle} (lockstep waits that long: master.lockstep_timeout_ms): "

@@ -64,9 +64,9 @@ from hil.drivers.canopen.profile import profile_writes
 from hil.drivers.canopen.run_settings import RunSettings
 from hil.drivers.canopen.scaling import DriveScaling, read_scaling
 from hil.drivers.canopen.scan import discover
-from hil.drivers.canopen.sdo import SdoClient
+from hil.drivers.canopen.sdo import SdoChannel, SdoClient
 from hil.drivers.canopen.setpoint import holding_value, wire_format, wire_value
-from hil.drivers.canopen.state import MasterClock, StateControl
+from hil.drivers.canopen.state import MasterClock, NmtCommands, StateControl
 from hil.drivers.canopen.stopping import (
     MAY_STILL_MOVE,
     confirm_stopped,
@@ -138,32 +138,21 @@ class CanDriveMaster(Device):
         self._on_event = on_event
         self._closers = closers
         self.watchdog = LinkWatchdog(config.stale_cycles, "cycles without a TPDO")
-        # the drive's SDO and NMT, for everyone (``master.sdo.read_int(...)``); a refusal of a
-        # download queued for the cyclic exchange (``sdo.queue_write``) is raised by the next
-        # receive_feedback()
-        self.sdo = SdoClient(link, n, config.sdo_timeout_s, self._other_frame,
-                             gone_after_s=config.lockstep_timeout_s if config.lockstep else None,
-                             census=partial(discover, link))
-        self.objects = DriveObjects(self.sdo)  # which the drive has (its EDS's, at open())
-        self.nmt = Nmt(link, n)
         self.heartbeat_watch = HeartbeatWatch(n, config.drive_heartbeat_ms, self._clock.time_ns)
         # the frames that are not the cyclic TPDOs, by COB-ID (the watched ids over any other)
         self._frame_handlers: dict[int, Callable[[Frame], None]] = {
-            self.sdo.response_id: lambda frame: self.sdo.on_response(frame[1]),
             EMCY_BASE + n: lambda frame: self._on_emcy(frame[1]),
             self.heartbeat_watch.cob_id: self._on_heartbeat,
             **dict.fromkeys(watched, self._on_watched),
         }
+        # the drive's SDO and NMT, for everyone (``master.sdo.read_int(...)``); a refusal of a
+        # download queued for the cyclic exchange (``sdo.queue_write``) is raised by the next
+        # receive_feedback()
+        self.sdo: SdoChannel = self._new_sdo(link)
+        self.objects = DriveObjects(self.sdo)  # which the drive has (its EDS's, at open())
+        self.nmt: NmtCommands = self._new_nmt(link)
         self._tpdo_maps = tpdo_maps(config.sync_echo, config.tpdo_layout)
-        self.cyclic = CyclicExchange(
-            link, n, self.operation.rpdo1(), self._tpdo_maps, rx_timeout_s=config.rx_timeout_s,
-            silence_is_gone=config.lockstep,
-            period_s=config.cycle_period_s,
-            watchdog=self.watchdog,
-            heartbeat=HeartbeatProducer(config.heartbeat_id, config.heartbeat_period_ms,
-                                        self._clock.time_ns),
-            now_ns=self._clock.time_ns, other=self._other_frame)
-        self.cyclic.extra_frames = self.sdo.next_frames
+        self.cyclic = self._new_cyclic(link)
         self.states = StateControl(self.sdo, self.nmt, self._clock, config.state_timeout_s,
                                    config.sdo_timeout_s)
         self.budget: BusBudget = plan_axes(config, ["axis"]).budget
@@ -183,6 +172,35 @@ class CanDriveMaster(Device):
         self.on_stop_cycle: Callable[[Feedback], None] | None = None
         self._stop_target = 0  # what the stop cycles send as the target (begin_stop)
         self._closed = False
+
+    # -- the transport's services (another transport's master builds its own) ---------------
+    def _new_sdo(self, link: Link) -> SdoChannel:
+        """The CAN SDO client to the drive; its answers among the frames the master reads."""
+        c = self.config
+        sdo = SdoClient(link, c.node_id, c.sdo_timeout_s, self._other_frame,
+                        gone_after_s=c.lockstep_timeout_s if c.lockstep else None,
+                        census=partial(discover, link))
+        self._frame_handlers[sdo.response_id] = lambda frame: sdo.on_response(frame[1])
+        self._queued_sdo_frames = sdo.next_frames
+        return sdo
+
+    def _new_nmt(self, link: Link) -> NmtCommands:
+        return Nmt(link, self.config.node_id)
+
+    def _new_cyclic(self, link: Link) -> CyclicExchange:
+        """RPDO + SYNC out, TPDOs in (:class:`CyclicExchange`), a queued SDO download with
+        them."""
+        c = self.config
+        cyclic = CyclicExchange(
+            link, c.node_id, self.operation.rpdo1(), self._tpdo_maps,
+            rx_timeout_s=c.rx_timeout_s, silence_is_gone=c.lockstep,
+            period_s=c.cycle_period_s,
+            watchdog=self.watchdog,
+            heartbeat=HeartbeatProducer(c.heartbeat_id, c.heartbeat_period_ms,
+                                        self._clock.time_ns),
+            now_ns=self._clock.time_ns, other=self._other_frame)
+        cyclic.extra_frames = self._queued_sdo_frames
+        return cyclic
 
     # -- what the master knows -------------------------------------------------------------
     @property
@@ -304,25 +322,7 @@ class CanDriveMaster(Device):
         self._check_mode()
         profile = profile_writes(self.objects, mode, c.profile, self.scaling)
         scaling, limit = self.scaling, self.limit
-        self.nmt.command(NMT_ENTER_PRE_OPERATIONAL)
-        if not self.objects.has(TORQUE_ACTUAL):  # its TPDOs carry what it has
-            self.notices.tell("drive.object_missing", without_text(n, TORQUE_ACTUAL, 0))
-            self._tpdo_maps = without_object(self._tpdo_maps, TORQUE_ACTUAL)
-            self.cyclic.use_tpdos(self._tpdo_maps)
-        pdos = PdoConfigurator(sdo, n, self._write_setting)
-        if c.sync_echo is not None:
-            pdos.start_sync_counter(self.objects.has(CYCLE_PERIOD),
-                                    self.objects.has(SYNC_COUNTER_OVERFLOW))
-        for comm in unused_pdos(self._tpdo_maps):
-            pdos.disable(comm)
-        for pdo in (mode.rpdo1(), *self._tpdo_maps):
-            pdos.map(pdo)
-        self.cyclic.echo = c.sync_echo is not None
-        self._write_where_present(CYCLE_PERIOD, 0, round(c.cycle_period_s * 1e6))
-        if not self._write_where_present(PRODUCER_HEARTBEAT, 0, c.drive_heartbeat_ms, "<H"):
-            self.heartbeat_watch.period_ms = 0  # no heartbeat to watch
-        consumer = (c.heartbeat_id << 16) | c.heartbeat_timeout_ms if c.heartbeat_period_ms else 0
-        self._write_where_present(CONSUMER_HEARTBEAT, 1, consumer)
+        self._configure_transport()
         self._write_setting(MODES_OF_OPERATION, 0, mode.code, "<b")
         shown = sdo.read_int(MODES_DISPLAY, 0, "<b")
         if shown != mode.code:
@@ -353,6 +353,31 @@ class CanDriveMaster(Device):
             self._event("drive.heartbeat_config",
                         f"master heartbeat every {c.heartbeat_period_ms} ms but the drive gives "
                         f"up after {c.heartbeat_timeout_ms} ms: it will fault", level="warning")
+
+    def _configure_transport(self) -> None:
+        """What :meth:`configure` writes for CAN: NMT pre-operational, the PDO maps (and the
+        SYNC counter for ``sync_echo``), the cycle period, the heartbeats. Another transport's
+        master writes its own here."""
+        c, n, sdo = self.config, self.node_id, self.sdo
+        self.nmt.command(NMT_ENTER_PRE_OPERATIONAL)
+        if not self.objects.has(TORQUE_ACTUAL):  # its TPDOs carry what it has
+            self.notices.tell("drive.object_missing", without_text(n, TORQUE_ACTUAL, 0))
+            self._tpdo_maps = without_object(self._tpdo_maps, TORQUE_ACTUAL)
+            self.cyclic.use_tpdos(self._tpdo_maps)
+        pdos = PdoConfigurator(sdo, n, self._write_setting)
+        if c.sync_echo is not None:
+            pdos.start_sync_counter(self.objects.has(CYCLE_PERIOD),
+                                    self.objects.has(SYNC_COUNTER_OVERFLOW))
+        for comm in unused_pdos(self._tpdo_maps):
+            pdos.disable(comm)
+        for pdo in (self.operation.rpdo1(), *self._tpdo_maps):
+            pdos.map(pdo)
+        self.cyclic.echo = c.sync_echo is not None
+        self._write_where_present(CYCLE_PERIOD, 0, round(c.cycle_period_s * 1e6))
+        if not self._write_where_present(PRODUCER_HEARTBEAT, 0, c.drive_heartbeat_ms, "<H"):
+            self.heartbeat_watch.period_ms = 0  # no heartbeat to watch
+        consumer = (c.heartbeat_id << 16) | c.heartbeat_timeout_ms if c.heartbeat_period_ms else 0
+        self._write_where_present(CONSUMER_HEARTBEAT, 1, consumer)
 
     def _write_where_present(self, index: int, subindex: int, value: int,
                              fmt: str = "<I") -> bool:
@@ -448,7 +473,7 @@ class CanDriveMaster(Device):
         n = self.node_id
         self.nmt.command(NMT_START)
         try:
-            self.states.enable()
+            self._enable_operation()
         except (DriveError, SdoAbortError):
             # the drive may have taken the controlwords whose answers were lost: its safe
             # state is asked for all the same (best effort: the link may be gone)
@@ -464,6 +489,11 @@ class CanDriveMaster(Device):
         self._event("drive.enabled", f"drive node {n} OPERATION ENABLED at "
                     f"{feedback.position_deg:.4f} deg", position_deg=feedback.position_deg)
         return feedback
+
+    def _enable_operation(self) -> None:
+        """The controlwords to OPERATION ENABLED, each state awaited: by SDO on CAN (no
+        RPDO goes out before the drive is enabled)."""
+        self.states.enable()
 
     def start(self) -> Feedback:
         """:meth:`open`, :meth:`configure`, :meth:`enable`; return the drive's feedback."""

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from hil.drivers.canopen.errors import DriveError
-from hil.drivers.canopen.sdo import SdoClient
+from hil.drivers.canopen.sdo import SdoChannel
 from hil.protocols.cia301 import (
     ABORT_NO_OBJECT,
     ABORT_NO_SUBINDEX,
@@ -62,7 +62,7 @@ class DriveObjects:
     """The objects of one drive, by its SDO client and, when given, its description ``od``
     (canopen's object dictionary of its EDS or DCF)."""
 
-    def __init__(self, sdo: SdoClient, od: Any = None) -> None:
+    def __init__(self, sdo: SdoChannel, od: Any = None) -> None:
         self.sdo, self.od = sdo, od
         self._has: dict[tuple[int, int], bool] = {}
 

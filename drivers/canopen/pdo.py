@@ -10,7 +10,7 @@ from dataclasses import replace
 
 from hil.drivers.canopen.cyclic import SYNC_COUNTER_MAX
 from hil.drivers.canopen.errors import DriveError
-from hil.drivers.canopen.sdo import SdoClient
+from hil.drivers.canopen.sdo import SdoChannel
 from hil.protocols.cia301 import (
     ABORT_NO_OBJECT,
     ABORT_NO_SUBINDEX,
@@ -65,7 +65,7 @@ class PdoConfigurator:
     """Writes PDO maps to one node: reads through its SDO client, writes through ``write``
     (the master's, which keeps each value found to put it back; default: the SDO client)."""
 
-    def __init__(self, sdo: SdoClient, node_id: int, write: SettingWriter | None = None) -> None:
+    def __init__(self, sdo: SdoChannel, node_id: int, write: SettingWriter | None = None) -> None:
         self.sdo, self.node_id = sdo, node_id
         self.write: SettingWriter = write or (
             lambda index, subindex, value, fmt: sdo.write(index, subindex, value, fmt))

@@ -35,7 +35,7 @@ from typing import Any
 
 from hil.drivers.canopen.errors import DriveError
 from hil.drivers.canopen.identity import read_identity
-from hil.drivers.canopen.sdo import SdoClient
+from hil.drivers.canopen.sdo import SdoChannel
 from hil.protocols.cia301 import SdoAbortError
 from hil.protocols.cia402 import OPERATION_MODES
 
@@ -78,7 +78,7 @@ class Setting:
 class RunSettings:
     """The settings written to node ``node_id`` through ``sdo``; ``event`` is the master's."""
 
-    def __init__(self, sdo: SdoClient, node_id: int, event: Event) -> None:
+    def __init__(self, sdo: SdoChannel, node_id: int, event: Event) -> None:
         self.sdo, self.node_id, self._event = sdo, node_id, event
         self.log: list[Setting] = []
         #: what :meth:`open` put back of an earlier run's, as one line (None: nothing)

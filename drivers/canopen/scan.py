@@ -13,7 +13,7 @@ from __future__ import annotations
 import re
 import struct
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -25,7 +25,7 @@ from hil.drivers.canopen.link import Link
 from hil.drivers.canopen.objects import DriveObjects
 from hil.drivers.canopen.profile import profile_writes
 from hil.drivers.canopen.scaling import DriveScaling, read_scaling
-from hil.drivers.canopen.sdo import SdoClient
+from hil.drivers.canopen.sdo import SdoChannel, SdoClient
 from hil.protocols.can_frames import Frame
 from hil.protocols.cia301 import (
     DEVICE_NAME,
@@ -214,7 +214,7 @@ def _optional(read: Any, *args: Any) -> Any:
         return None
 
 
-def read_pdos(sdo: SdoClient) -> list[PdoReport]:
+def read_pdos(sdo: SdoChannel) -> list[PdoReport]:
     """The PDOs 1..4 of each direction the node has, as configured now."""
     read = sdo.read_int
     pdos = []
@@ -239,8 +239,17 @@ def inspect(link: Link, node_id: int, mode: str = "cst", eds: str | None = None,
     in ``mode`` (a name of :data:`~hil.protocols.cia402.OPERATION_MODES`) with ``config``'s
     stand-ins for objects it lacks and its profile, its EDS at ``eds`` checked too when
     given. The deciding reason comes first: the modes it supports."""
-    config = config or DriveMasterConfig()
     sdo = SdoClient(link, node_id, READ_TIMEOUT_S, lambda frame: None)
+    return inspect_drive(sdo, node_id, mode, eds, config, read_pdos)
+
+
+def inspect_drive(sdo: SdoChannel, node_id: int, mode: str = "cst", eds: str | None = None,
+                  config: DriveMasterConfig | None = None,
+                  pdos: Callable[[SdoChannel], list[PdoReport]] = lambda sdo: []
+                  ) -> NodeReport:
+    """:func:`inspect` through any SDO channel (CAN's, or CoE over EtherCAT), its PDOs read by
+    ``pdos`` (each transport has its own)."""
+    config = config or DriveMasterConfig()
     objects = DriveObjects(sdo)
     read = sdo.read_int
     report = NodeReport(node_id, mode)
@@ -261,7 +270,7 @@ def inspect(link: Link, node_id: int, mode: str = "cst", eds: str | None = None,
     if report.supported_modes is not None:
         report.modes = mode_names(report.supported_modes)
     report.heartbeat_ms = _optional(read, PRODUCER_HEARTBEAT, 0, "<H")
-    report.pdos = read_pdos(sdo)
+    report.pdos = pdos(sdo)
     _read_state(report, sdo)
     scaling = _read_position(report, objects, config)
     if eds is not None:
@@ -273,7 +282,7 @@ def inspect(link: Link, node_id: int, mode: str = "cst", eds: str | None = None,
     return report
 
 
-def _read_state(report: NodeReport, sdo: SdoClient) -> None:
+def _read_state(report: NodeReport, sdo: SdoChannel) -> None:
     """The CiA 402 state (0x6041) and the error code (0x603F)."""
     report.statusword = _optional(sdo.read_int, STATUSWORD, 0, "<H")
     if report.statusword is not None:
@@ -352,7 +361,7 @@ def _state_notes(report: NodeReport) -> list[str]:
     return []
 
 
-def _problems(report: NodeReport, sdo: SdoClient) -> list[str]:
+def _problems(report: NodeReport, sdo: SdoChannel) -> list[str]:
     """Whether the node is a CiA 402 drive that supports the mode (the deciding reasons,
     first), and has the objects of the cyclic exchange in it."""
     problems = []

@@ -19,6 +19,7 @@ import struct
 import time
 from collections import deque
 from collections.abc import Callable
+from typing import Protocol
 
 from hil.drivers.canopen.errors import (
     DriveError,
@@ -55,6 +56,28 @@ def download_request(index: int, subindex: int, value: int, fmt: str) -> bytes:
     data = struct.pack(fmt, value)
     command = SDO_INITIATE_DOWNLOAD | SDO_EXPEDITED | SDO_SIZE_INDICATED | (4 - len(data)) << 2
     return _HEAD.pack(command, index, subindex) + data.ljust(4, b"\0")
+
+
+class SdoChannel(Protocol):
+    """A drive's SDO as the CiA 402 modules use it (state, objects, profile, scaling, the
+    settings journal), whatever carries it: :class:`SdoClient` on CAN, CoE over EtherCAT
+    (:class:`hil.drivers.ethercat.coe.CoeSdo`). Refusals raise :class:`SdoAbortError` with the
+    CiA 301 code; silence raises :class:`DriveLinkLostError` (or its kinds)."""
+
+    node_id: int
+    timeout_s: float
+
+    def read(self, index: int, subindex: int = 0, timeout_s: float | None = None) -> bytes: ...
+
+    def read_int(self, index: int, subindex: int = 0, fmt: str = "<I",
+                 timeout_s: float | None = None) -> int: ...
+
+    def write(self, index: int, subindex: int, value: int, fmt: str = "<I",
+              timeout_s: float | None = None) -> None: ...
+
+    def queue_write(self, index: int, subindex: int, value: int, fmt: str = "<I") -> None: ...
+
+    def take_error(self) -> DriveError | SdoAbortError | None: ...
 
 
 class SdoClient:

@@ -17,7 +17,7 @@ from hil.drivers.canopen.eds import import_description
 from hil.drivers.canopen.errors import DriveError
 from hil.drivers.canopen.link import Link
 from hil.drivers.canopen.scan import frames_within, nmt_state_name, read_pdos
-from hil.drivers.canopen.sdo import SdoClient
+from hil.drivers.canopen.sdo import SdoChannel, SdoClient
 from hil.drivers.errors import DriverSetupError
 from hil.protocols.cia301 import (
     HEARTBEAT_BASE,
@@ -174,7 +174,7 @@ def download_format(raw: bytes) -> str:
     return WRITE_SIZES[len(raw)]
 
 
-def read_object(sdo: SdoClient, index: int, subindex: int, data_type: int | None
+def read_object(sdo: SdoChannel, index: int, subindex: int, data_type: int | None
                 ) -> ObjectValue:
     """Upload ``index:subindex`` (an SdoAbortError names the drive's abort code)."""
     return ObjectValue(sdo.node_id, index, subindex, sdo.read(index, subindex), data_type)

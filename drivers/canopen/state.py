@@ -9,8 +9,7 @@ from collections.abc import Callable
 from typing import Protocol
 
 from hil.drivers.canopen.errors import DriveLinkLostError, DriveStateError
-from hil.drivers.canopen.nmt import Nmt
-from hil.drivers.canopen.sdo import SdoClient
+from hil.drivers.canopen.sdo import SdoChannel
 from hil.protocols.cia301 import NMT_ENTER_PRE_OPERATIONAL
 from hil.protocols.cia402 import (
     CONTROLWORD,
@@ -36,11 +35,18 @@ class MasterClock(Protocol):
     def sleep(self, seconds: float) -> None: ...
 
 
+class NmtCommands(Protocol):
+    """The drive's communication state by command (CiA 301 NMT on CAN; the AL state on
+    EtherCAT, where ``NMT_START`` is OP)."""
+
+    def command(self, command: int) -> None: ...
+
+
 class StateControl:
     """The CiA 402 state machine of one drive, driven by SDO."""
 
-    def __init__(self, sdo: SdoClient, nmt: Nmt, clock: MasterClock, state_timeout_s: float,
-                 sdo_timeout_s: float) -> None:
+    def __init__(self, sdo: SdoChannel, nmt: NmtCommands, clock: MasterClock,
+                 state_timeout_s: float, sdo_timeout_s: float) -> None:
         self.sdo, self.nmt, self.clock = sdo, nmt, clock
         self.state_timeout_s, self.sdo_timeout_s = state_timeout_s, sdo_timeout_s
         self.node_id = sdo.node_id

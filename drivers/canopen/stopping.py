@@ -11,7 +11,7 @@ from typing import Any, Protocol
 
 from hil.drivers.canopen.cyclic import Feedback
 from hil.drivers.canopen.errors import DriveError
-from hil.drivers.canopen.sdo import SdoClient
+from hil.drivers.canopen.sdo import SdoChannel
 from hil.protocols.cia301 import SdoAbortError
 from hil.protocols.cia402 import (
     CONTROLWORD,
@@ -94,7 +94,7 @@ def last_report(feedback: Feedback | None) -> tuple[str, dict[str, Any]]:
             f"{feedback.current_ma:.0f} mA (cycle {feedback.cycle}{stale})"), data
 
 
-def confirm_stopped(sdo: SdoClient, feedback: Feedback | None, event: Callable[..., None],
+def confirm_stopped(sdo: SdoChannel, feedback: Feedback | None, event: Callable[..., None],
                     reached: bool) -> None:
     """After a link lost while driving (``reached``: the bus could be reconnected): the
     drive's state read again by SDO, and disable voltage sent by SDO if it is still enabled.

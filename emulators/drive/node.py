@@ -415,6 +415,48 @@ class DriveNode:
         elif (pdo := self.pdos.receiver(can_id)) is not None:
             self._on_rpdo(pdo, data)
 
+    # ------------------------------------------------ the drive for another transport's skin
+    # An EtherCAT slave (:mod:`hil.emulators.ethercat`) reaches the same drive through these:
+    # its mailbox's SDO, its AL state, its process-data cycles; no CAN frame is involved.
+    def upload(self, index: int, subindex: int) -> bytes:
+        """An object's value as an SDO upload reads it; raises SdoAbortError."""
+        with self.lock:
+            self._heard_ns = time.monotonic_ns()
+            return self.objects.read(index, subindex)
+
+    def download(self, index: int, subindex: int, data: bytes) -> None:
+        """An SDO download, with what writing the object means; raises SdoAbortError."""
+        with self.lock:
+            self._heard_ns = time.monotonic_ns()
+            self._download(index, subindex, data)
+
+    def set_operational(self, operational: bool) -> None:
+        """Process data on (the outputs applied each cycle: NMT OPERATIONAL) or off
+        (PRE-OPERATIONAL): leaving it with the power stage on faults the drive."""
+        with self.lock:
+            self._set_nmt(NMT_OPERATIONAL if operational else NMT_PRE_OPERATIONAL)
+
+    def process_data_cycle(self, received: list[tuple[Pdo, bytes]]) -> None:
+        """One process-data cycle: ``received`` (each RPDO's data) applied when operational,
+        the plant advanced one period, then what falls due at the new time; never raises."""
+        with self.lock:
+            self._heard_ns = time.monotonic_ns()
+            try:
+                operational = self.nmt_state == NMT_OPERATIONAL
+                self._advance_cycle(received if operational else [])
+                if self._sync_timebase:
+                    self._service(self._now())
+            except Exception:
+                self.internal_errors += 1
+                log.exception("drive node %d: internal error in a process-data cycle",
+                              self.node_id)
+                self._emcy(EMCY_SOFTWARE, ERR_REG_GENERIC)
+
+    def pdo_data(self, pdo: Pdo) -> bytes:
+        """A TPDO's data now (its mapped objects' values)."""
+        with self.lock:
+            return self.pdos.data(pdo)
+
     # ------------------------------------------------------------------------------ NMT
     def _on_nmt(self, data: bytes) -> None:
         if len(data) != 2 or data[1] not in (0, self.node_id):
@@ -607,16 +649,22 @@ class DriveNode:
         if data and self._values[SYNC_OVERFLOW_KEY]:  # the SYNC counter is on
             self._values[SYNC_ECHO_KEY] = data[0]
         operational = self.nmt_state == NMT_OPERATIONAL
-        if operational and self.pdos.pending:
-            for pdo, latched in self.pdos.latched():
-                self._apply_rpdo(pdo, latched)
+        self._advance_cycle(self.pdos.latched() if operational and self.pdos.pending else [])
+        if operational:
+            self._send_tpdos()
+
+    def _advance_cycle(self, received: list[tuple[Pdo, bytes]]) -> None:
+        """One communication cycle: ``received`` RPDO data applied, the plant advanced one
+        period, the cycle's time counted (a SYNC's, or another transport's process-data
+        cycle)."""
+        for pdo, data in received:
+            self._apply_rpdo(pdo, data)
         self._advance_plant()
         self.sync_count += 1
         self._sync_time_ns += self._steps_per_sync * self._plant_period_ns
         self._sync_last_ns = self._now()
-        self._sync_armed = operational and self.state in (OPERATION_ENABLED, QUICK_STOP_ACTIVE)
-        if operational:
-            self._send_tpdos()
+        self._sync_armed = self.nmt_state == NMT_OPERATIONAL and \
+            self.state in (OPERATION_ENABLED, QUICK_STOP_ACTIVE)
 
     def _advance_plant(self) -> None:
         states = self.states

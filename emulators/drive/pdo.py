@@ -213,7 +213,7 @@ class PdoTable:
         frames = []
         for pdo in self._transmitters:
             if pdo.trans_type == 0:  # acyclic: on the SYNC after its data changed
-                data = self._data(pdo)
+                data = self.data(pdo)
                 if data != pdo.last_data:
                     pdo.last_data = data
                     frames.append((pdo.cob_id, data))
@@ -221,7 +221,7 @@ class PdoTable:
             pdo.counter += 1
             if pdo.counter >= pdo.trans_type:
                 pdo.counter = 0
-                frames.append((pdo.cob_id, self._data(pdo)))
+                frames.append((pdo.cob_id, self.data(pdo)))
         return frames
 
     def event_frames(self, now_ns: int) -> list[Frame]:
@@ -229,7 +229,7 @@ class PdoTable:
         passed since the last one), or the event timer ran out."""
         frames = []
         for pdo in self._on_event:
-            data = self._data(pdo)
+            data = self.data(pdo)
             since = now_ns - pdo.last_ns
             changed = data != pdo.last_data and (pdo.last_data is None or
                                                  since >= pdo.inhibit_ns)
@@ -238,6 +238,7 @@ class PdoTable:
                 frames.append((pdo.cob_id, data))
         return frames
 
-    def _data(self, pdo: Pdo) -> bytes:
+    def data(self, pdo: Pdo) -> bytes:
+        """``pdo``'s data now: its mapped objects' values, packed."""
         values = self.objects.values
         return pdo.layout.pack(*map(values.__getitem__, pdo.keys))

@@ -12,11 +12,13 @@ from typing import Any
 
 from hil.cli.argtypes import node_id, output_file, positive_float, positive_int
 from hil.cli.output import add_quiet_argument
+from hil.core.registry import scheme_of
 
 URL_HELP = ("the bus: socketcand://HOST:PORT[/CHANNEL] | INTERFACE://CHANNEL[?key=value&...] "
             "for any python-can interface (socketcan://can0, pcan://PCAN_USBBUS1, gs_usb://0, "
             "slcan:///dev/ttyACM0?bitrate=1000000, udp_multicast://239.0.0.1?port=43113...) | "
-            "emulated")
+            "ethercat://IFACE[?slave=N] (an EtherCAT segment: the ethercat extra, a raw socket) "
+            "| emulated")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -291,8 +293,11 @@ def _sdo_type(args: argparse.Namespace) -> int | None:
 
 def _sdo_client(master: Any) -> Any:
     """An SDO client of the master's node on its bus that ignores every other frame (the tool
-    runs no cyclic exchange to hand them to)."""
+    runs no cyclic exchange to hand them to); on EtherCAT the master's CoE channel."""
     from hil.drivers.canopen.sdo import SdoClient
+
+    if scheme_of(master.url) == "ethercat":
+        return master.sdo
 
     return SdoClient(master.link, master.node_id, master.config.sdo_timeout_s,
                      lambda frame: None)
@@ -332,7 +337,10 @@ def sdo_write_command(args: argparse.Namespace) -> int:
     with _bus_lock(args.url):
         master = _master(args.url, None, args.node)
         try:
-            write_object(master.link, _sdo_client(master), index, subindex, raw)
+            if scheme_of(args.url) == "ethercat":  # SAFE-OP and OP come with a run only
+                master.sdo.download(index, subindex, raw)
+            else:
+                write_object(master.link, _sdo_client(master), index, subindex, raw)
         finally:
             master.disconnect()
     print(f"node {args.node} {object_name(*args.object)} {TYPE_NAMES[data_type]} = "
@@ -340,19 +348,42 @@ def sdo_write_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def _master(url: str, config: str | None, node: int | None) -> Any:
+def _drive_config(config: str | None, node: int | None) -> Any:
     from hil.servo.config import load_drive_config
-    from hil.servo.rig import open_drive
 
     overrides = {"master": {"node_id": node}} if node else {}
-    return open_drive(url, load_drive_config(config, overrides=overrides))
+    return load_drive_config(config, overrides=overrides)
+
+
+def _master(url: str, config: str | None, node: int | None) -> Any:
+    from hil.servo.rig import open_drive
+
+    return open_drive(url, _drive_config(config, node))
+
+
+def _scan_segment(url: str, positions: list[int] | None, mode: str, eds: str | None,
+                  config: Any) -> list[Any]:
+    """The slaves of an EtherCAT segment (``--node N``: slave positions)."""
+    from hil.drivers.ethercat.scan import scan_segment
+    from hil.drivers.ethercat.segment import Segment
+    from hil.servo.ethercat import parse_ethercat_url
+
+    iface, slave = parse_ethercat_url(url)
+    segment = Segment(iface, url.partition("?")[0])
+    try:
+        return scan_segment(segment, positions or ([slave] if slave else None), mode, eds,
+                            config)
+    finally:
+        segment.close()
 
 
 def _bus_lock(url: str) -> contextlib.AbstractContextManager[Any]:
     """The bus locked for this command, as a run locks it (an emulated drive is our own)."""
     from hil.core.device_lock import lock_device
+    from hil.servo.axes import bus_lock_key
 
-    return contextlib.nullcontext() if url == "emulated" else lock_device(url, "drive bus")
+    return contextlib.nullcontext() if url == "emulated" else \
+        lock_device(bus_lock_key(url), "drive bus")
 
 
 def scan_command(args: argparse.Namespace) -> int:
@@ -362,16 +393,21 @@ def scan_command(args: argparse.Namespace) -> int:
     if args.eds:  # an unreadable file is said before the bus is touched
         import_description(args.eds, args.node[0] if args.node else 1)
     with _bus_lock(args.url):
-        master = _master(args.url, args.config, None)
-        try:
-            reports = scan(master.link, args.node, master.config.mode, args.eds, master.config)
-        finally:
-            master.disconnect()
+        if scheme_of(args.url) == "ethercat":
+            config = _drive_config(args.config, None).master
+            reports = _scan_segment(args.url, args.node, config.mode, args.eds, config)
+        else:
+            master = _master(args.url, args.config, None)
+            config = master.config
+            try:
+                reports = scan(master.link, args.node, config.mode, args.eds, config)
+            finally:
+                master.disconnect()
     if args.json:
-        print(json.dumps({"url": args.url, "mode": master.config.mode,
+        print(json.dumps({"url": args.url, "mode": config.mode,
                           "nodes": [r.as_dict() for r in reports]}, indent=2))
     else:
-        print(format_scan(args.url, master.config.mode, reports))
+        print(format_scan(args.url, config.mode, reports))
     # a drive checked against its description that cannot be driven fails the scan
     return 0 if reports and (not args.eds or all(r.drivable for r in reports)) else 1
 
@@ -386,7 +422,8 @@ def format_scan(url: str, mode: str, reports: list[Any]) -> str:
         modes = "-" if r.supported_modes is None else \
             f"{', '.join(r.modes) or 'none'} (0x6502 = 0x{r.supported_modes:08X})"
         lines += [
-            f"node {r.node_id}: {r.device_name or 'unnamed'}, NMT {r.nmt_state}",
+            f"node {r.node_id}: {r.device_name or 'unnamed'}, "
+            f"{r.nmt_state if r.nmt_state.startswith('AL ') else 'NMT ' + r.nmt_state}",
             f"  CiA 402 state {_state(r)}, error code {r.error_text or '-'}",
             f"  position {_position(r)}",
             f"  device type {device}, identity {identity}",
@@ -396,8 +433,13 @@ def format_scan(url: str, mode: str, reports: list[Any]) -> str:
             f"{'-' if r.heartbeat_ms is None else str(r.heartbeat_ms) + ' ms'}",
         ]
         for pdo in r.pdos:
-            lines.append(f"  {pdo.name} 0x{pdo.cob_id:03X} {'valid' if pdo.valid else 'off'}"
-                         f", type {pdo.transmission}: {', '.join(pdo.mapped) or 'nothing mapped'}")
+            mapped = ", ".join(pdo.mapped) or "nothing mapped"
+            if pdo.cob_id:  # a CAN PDO
+                lines.append(f"  {pdo.name} 0x{pdo.cob_id:03X} "
+                             f"{'valid' if pdo.valid else 'off'}, type {pdo.transmission}: "
+                             f"{mapped}")
+            else:  # an EtherCAT PDO, as its SyncManager's assignment lists it
+                lines.append(f"  {pdo.name}: {mapped}")
         if r.eds is not None:
             problems = r.eds["problems"]
             lines.append(f"  EDS {r.eds['path']}: " + (
@@ -445,9 +487,9 @@ def reset_command(args: argparse.Namespace) -> int:
         finally:
             master.disconnect()
     if before == after:
-        print(f"drive node {args.node}: {after}, nothing to reset")
+        print(f"drive node {master.node_id}: {after}, nothing to reset")
     else:
-        print(f"drive node {args.node}: {before} -> {after}")
+        print(f"drive node {master.node_id}: {before} -> {after}")
     return 0
 
 

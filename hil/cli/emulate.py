@@ -70,9 +70,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_fault_arguments(eb, "bench", "delay@2-4:ms=300, drop@5-8, weld@3:relay=P1")
     add_live_arguments(eb, rates=False, tuning=False)
     eb.set_defaults(handler=emulate_bench_command)
-    ed = emu_sub.add_parser("drive", help="CiA 402 servo drive over socketcand")
+    ed = emu_sub.add_parser("drive", help="CiA 402 servo drive over socketcand or EtherCAT")
     ed.add_argument("--socketcand", type=host_port, metavar="HOST:PORT",
                     help="serve the socketcand protocol here (port 0: any free port, printed)")
+    ed.add_argument("--ethercat", metavar="IFACE",
+                    help="answer EtherCAT frames on this network interface instead (a veth "
+                    "end, a NIC of its own; raw socket: root or CAP_NET_RAW): one slave per "
+                    "--node, in that order, CiA 402 over CoE; a master reaches them with "
+                    "ethercat://OTHER-END?slave=N")
+    ed.add_argument("--esi", metavar="F.xml",
+                    help="with --ethercat: a vendor's ESI file the slaves' SII EEPROM is built "
+                    "from (identity, name, mailbox, SyncManagers, default PDOs; default: "
+                    "hil's, from the drive's dictionary)")
     ed.add_argument("--write-eds", metavar="F.eds",
                     help="write the emulated drive's object dictionary as an EDS file (for "
                     "canopen's import_od, CANopen tools, `[master] eds`) and exit")
@@ -261,8 +270,16 @@ def emulate_drive_command(args: argparse.Namespace) -> int:
         return write_eds(emulator, args.write_eds)
     if emulator.eds is not None and not twin_report(emulator, args.socketcand is None):
         return 0
+    if args.ethercat is not None:
+        if args.socketcand is not None or args.can_log:
+            raise UsageError("--ethercat serves EtherCAT frames: no --socketcand or --can-log "
+                             "beside it")
+        return _serve_ethercat(args, emulator, nodes_ids)
+    if args.esi is not None:
+        raise UsageError("--esi builds an EtherCAT slave's SII: it needs --ethercat IFACE")
     if args.socketcand is None:
-        raise UsageError("hil emulate drive needs --socketcand HOST:PORT (or --write-eds F)")
+        raise UsageError("hil emulate drive needs --socketcand HOST:PORT or --ethercat IFACE "
+                         "(or --write-eds F)")
     drives = serve_drives(emulator, nodes_ids, *args.socketcand, clock=args.clock,
                           faults=faults_of(args, "drive", emulator.faults), can_log=args.can_log,
                           on_fault=print_event)
@@ -284,6 +301,42 @@ def emulate_drive_command(args: argparse.Namespace) -> int:
     def stopped() -> None:
         print(f"hil: drive emulator stopped after {nodes[0].sync_count} SYNC "
               f"(plant time {nodes[0].plant.time_s:.3f} s)", flush=True)
+
+    serve_until_stopped(drives, live_address(args), DRIVE_LIVE_HZ, ready, stopped)
+    return 0
+
+
+def _serve_ethercat(args: argparse.Namespace, emulator: Any, nodes_ids: list[int]) -> int:
+    """``--ethercat IFACE``: the drives as a line of EtherCAT slaves until Ctrl-C or SIGTERM."""
+    from hil.emulation import serve_ethercat_drives
+    from hil.errors import UsageError
+
+    try:
+        drives = serve_ethercat_drives(emulator, nodes_ids, args.ethercat, clock=args.clock,
+                                       faults=faults_of(args, "drive", emulator.faults),
+                                       on_fault=print_event, esi=args.esi)
+    except PermissionError:
+        raise UsageError(f"--ethercat {args.ethercat}: a raw socket needs root or "
+                         "CAP_NET_RAW") from None
+    except OSError as exc:
+        raise UsageError(f"--ethercat {args.ethercat}: cannot open the interface "
+                         f"({exc.strerror or exc})") from None
+    nodes = drives.nodes
+    ids = ", ".join(str(node.node_id) for node in nodes)
+
+    def ready(live_url: str | None) -> None:
+        _print_live(live_url, args)
+        if args.harden:
+            for line in harden_serving_thread():
+                print(line, file=sys.stderr, flush=True)
+        print(f"hil: drive emulator node{'s' if len(nodes) > 1 else ''} {ids} as EtherCAT "
+              f"slave{'s' if len(nodes) > 1 else ''} 1..{len(nodes)} on {args.ethercat} "
+              f"(clock {args.clock}); Ctrl-C stops", flush=True)
+
+    def stopped() -> None:
+        print(f"hil: drive emulator stopped after {drives.segment.frames} EtherCAT frames, "
+              f"{nodes[0].sync_count} cycles (plant time {nodes[0].plant.time_s:.3f} s)",
+              flush=True)
 
     serve_until_stopped(drives, live_address(args), DRIVE_LIVE_HZ, ready, stopped)
     return 0

@@ -90,6 +90,18 @@ class BusAxes:
     plan: BusPlan
 
 
+def carries_can(url: str) -> bool:
+    """Whether the bus at ``url`` is CAN (its time budget planned), not an EtherCAT segment
+    (one frame of microseconds a cycle, whatever the axes)."""
+    return scheme_of(url) != "ethercat"
+
+
+def bus_lock_key(url: str) -> str:
+    """What a run locks of the bus at ``url``: the bus; of an EtherCAT segment the segment,
+    whichever slave the URL names (one master a segment)."""
+    return url.partition("?")[0] if scheme_of(url) == "ethercat" else url
+
+
 def plan_buses(axes: tuple[AxisSpec, ...], run_url: str, drive: DriveConfig
                ) -> list[BusAxes]:
     """The buses of ``axes`` (an axis without a bus of its own on ``run_url``), in the order

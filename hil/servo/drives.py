@@ -12,9 +12,28 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 from hil.drivers.canopen.axes import AxisGroup
 from hil.drivers.canopen.master import CanDriveMaster
+
+
+class CycledBus(Protocol):
+    """A bus several masters cycle together: a CAN
+    :class:`~hil.drivers.canopen.axes.AxisBus`, an EtherCAT segment."""
+
+    together: bool
+
+    def cycle_together(self, on: bool = True) -> None: ...
+
+    def end_cycle(self) -> None: ...
+
+
+class AxesOnABus(Protocol):
+    """The group of a bus with several axes (:class:`AxisGroup`, or EtherCAT's)."""
+
+    @property
+    def bus(self) -> CycledBus: ...
 
 
 @dataclass
@@ -26,7 +45,7 @@ class BusDrives:
 
     url: str
     masters: list[CanDriveMaster]
-    group: AxisGroup | None = None
+    group: AxesOnABus | None = None
     closers: tuple[Callable[[], None], ...] = ()
 
     @property

@@ -31,7 +31,14 @@ from hil.core.verdict import SignalWatch, split_limits
 from hil.drivers.can_bus_time import BusPlan
 from hil.drivers.canopen import CanDriveMaster
 from hil.errors import UsageError
-from hil.servo.axes import AxesTick, BusAxes, parse_axes, plan_buses
+from hil.servo.axes import (
+    AxesTick,
+    BusAxes,
+    bus_lock_key,
+    carries_can,
+    parse_axes,
+    plan_buses,
+)
 from hil.servo.config import EMULATED, AxisSpec, DriveConfig, stricter_safety
 from hil.servo.drives import RunDrives
 from hil.servo.kpis import AxesKpis, ServoKpis
@@ -150,13 +157,14 @@ def plan_servo(options: ServoRunOptions) -> ServoPlan:
         config={"servo": run_info, "drive": drive.data,
                 "settings": settings_json(settings.settings())},
         config_text=drive.text, config_name="drive.toml", recording=options.recording,
-        devices=tuple(("drive bus", bus.url) for bus in buses
+        devices=tuple(("drive bus", bus_lock_key(bus.url)) for bus in buses
                       if scheme_of(bus.url) not in (EMULATED, "virtual")),
         quiet=options.quiet,
         settings=settings, axes=axes, lone=not named, scenarios=tuple(scenarios),
         radius=radius, params=params, factory=factory, buses=buses)
     for bus in buses:
-        if not bus.plan.fits and bus.url != EMULATED:  # the in-process bus has no bitrate
+        # the in-process bus has no bitrate
+        if not bus.plan.fits and bus.url != EMULATED and carries_can(bus.url):
             raise UsageError(f"the bus plan does not fit ({bus.url}): "
                              f"{bus.plan.problem(plan.period_note(bus.plan))} (see "
                              f"'hil drive plan --axes {len(bus.axes)}')")

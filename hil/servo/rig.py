@@ -49,7 +49,7 @@ from hil.protocols.cia301 import SdoAbortError
 from hil.servo.config import EMULATED, AxisSpec, DriveConfig, load_drive_config
 from hil.servo.drives import BusDrives
 
-EXPECTED = f"expected emulated, {URL_FORMS}"
+EXPECTED = f"expected emulated, ethercat://IFACE[?slave=N], {URL_FORMS}"
 #: the name of the one axis of a run that names none (its topics stay /drive/...)
 LONE_AXIS = "drive"
 
@@ -155,7 +155,8 @@ def _python_can_interface(scheme: str) -> Factory | None:
 DRIVES = SchemeRegistry(
     "drive",
     {EMULATED: ("hil.servo.rig", "emulated_drives"),
-     "socketcand": ("hil.servo.rig", "can_drives")},
+     "socketcand": ("hil.servo.rig", "can_drives"),
+     "ethercat": ("hil.servo.ethercat", "ethercat_drives")},
     "hil.drive_devices",
     fallback=_python_can_interface,
 )

@@ -61,7 +61,7 @@ from hil.core.session import Session
 from hil.core.tuning import Tuner, add_controller
 from hil.drivers.canopen import CanDriveMaster
 from hil.errors import HilError, SafetyStopError
-from hil.servo.axes import AxesTick, AxisShare, SharedStep
+from hil.servo.axes import AxesTick, AxisShare, SharedStep, carries_can
 from hil.servo.builtin import ServoContext
 from hil.servo.config import stricter_safety
 from hil.servo.drives import RunDrives
@@ -265,12 +265,14 @@ class ServoExperiment(Experiment[ServoPlan]):
         add_servo_limits(tuner, task.safety, task.master)
 
     def _record_bus_plans(self, session: Session) -> None:
-        """Every bus's plan as metadata; one that would not fit a real bus, as a warning."""
+        """Every CAN bus's plan as metadata; one that would not fit a real bus, as a
+        warning."""
         plan = self.planned
+        buses = [bus for bus in plan.buses if carries_can(bus.url)]
         session.recorder.metadata("bus_plan", {"json": json.dumps({"buses": [
             {"url": bus.url, "axis_names": [axis.name for axis in bus.axes],
-             **bus.plan.summary()} for bus in plan.buses]})})
-        for bus in plan.buses:
+             **bus.plan.summary()} for bus in buses]})})
+        for bus in buses:
             if not bus.plan.fits:
                 message = (f"on a real bus this would not fit: "
                            f"{bus.plan.problem(plan.period_note(bus.plan))}")
