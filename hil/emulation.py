@@ -354,13 +354,14 @@ def serve_ethercat_drives(config: DriveEmulatorConfig, node_ids: list[int], ifac
     return ServedEthercatDrives(EmulatedSegment(iface, slaves))
 
 
-def harden_serving_thread() -> list[Step]:
+def harden_serving_thread(hardening: Hardening | None = None) -> list[Step]:
     """The calling thread as a helper of a real-time loop (threads it starts later inherit
-    it): each step, granted or refused."""
+    it), by ``hardening`` (default: a helper's, :meth:`Hardening.for_helper`, kept by the
+    caller to undo it): each step, granted or refused."""
     from hil.core.realtime import Hardening
 
     _short_switch_interval()
-    return Hardening.for_helper().apply()
+    return (hardening or Hardening.for_helper()).apply()
 
 
 def _short_switch_interval() -> None:

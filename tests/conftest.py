@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import atexit
+import contextlib
 import os
 import shutil
 import subprocess
@@ -53,3 +54,31 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     other one waiting at the end of the suite (the not-realtime tests: 218 s in the order of the
     files, 191 s with Ray's first, 209 s with every slow test first as well)."""
     items.sort(key=lambda item: "local_ray" not in getattr(item, "fixturenames", ()))
+
+
+def _scheduling() -> tuple[list[tuple[int, int]], set[int]]:
+    """Each thread of this process' (id, policy), and the process' CPUs."""
+    threads = [(int(tid), os.sched_getscheduler(int(tid))) for tid in os.listdir("/proc/self/task")
+               if os.path.exists(f"/proc/self/task/{tid}")]
+    return threads, os.sched_getaffinity(0)
+
+
+@pytest.fixture(autouse=True)
+def ordinary_test_process():
+    """A test leaves its pytest process as it found it: no thread left real-time (SCHED_FIFO)
+    or pinned to a CPU by a run or emulator served in process, which every process the worker
+    starts after it would inherit (a busy-machine test's spinning processes, SCHED_FIFO on the
+    emulators' CPU, starved every emulator there for minutes). It is put back, and the test
+    that left it so fails."""
+    cpus = os.sched_getaffinity(0)
+    yield
+    threads, now = _scheduling()
+    changed = [tid for tid, policy in threads if policy != os.SCHED_OTHER]
+    for tid in changed:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+    if now != cpus:
+        os.sched_setaffinity(0, cpus)
+    assert not changed and now == cpus, (
+        f"the test left threads {changed} real-time or the process on CPUs {sorted(now)} "
+        f"(was {sorted(cpus)})")

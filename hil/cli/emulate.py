@@ -208,16 +208,25 @@ def emulate_bench_command(args: argparse.Namespace) -> int:
     time (``--clock``); a master taking or letting go of the time is a line on stderr."""
     die_with_parent()
     from hil.bench.config import load_bench_config
+    from hil.core.realtime import Hardening
 
     config = load_bench_config(args.config)
     config = replace(config, faults=tuple(faults_of(args, "bench", config.faults)))
-    if args.harden:  # before its threads start: they take the same scheduling
-        say_hardening(harden_serving_thread(), "bench")
-    bench = serve_bench(
-        config.emulating(args.seed, args.disturbance or None), tcp=args.tcp,
-        serial=args.serial, baudrate=args.baud, parity=args.parity, stopbits=args.stopbits,
-        clock=args.clock, on_fault=print_event,
-        on_clock=lambda line: print(f"hil: clock: {line}", file=sys.stderr, flush=True))
+    hardening = Hardening.for_helper() if args.harden else None
+    # before its threads start (they take the same scheduling); said once it listens
+    steps = harden_serving_thread(hardening) if hardening is not None else []
+    try:
+        bench = serve_bench(
+            config.emulating(args.seed, args.disturbance or None), tcp=args.tcp,
+            serial=args.serial, baudrate=args.baud, parity=args.parity, stopbits=args.stopbits,
+            clock=args.clock, on_fault=print_event,
+            on_clock=lambda line: print(f"hil: clock: {line}", file=sys.stderr, flush=True))
+    except BaseException:  # a port it cannot listen on: the caller's thread as it was
+        if hardening is not None:
+            hardening.restore()
+        raise
+    if steps:
+        say_hardening(steps, "bench")
     units = bench.emulator.devices.units
 
     def ready(live_url: str | None) -> None:
@@ -327,8 +336,7 @@ def _serve_ethercat(args: argparse.Namespace, emulator: Any, nodes_ids: list[int
     def ready(live_url: str | None) -> None:
         _print_live(live_url, args)
         if args.harden:
-            for line in harden_serving_thread():
-                print(line, file=sys.stderr, flush=True)
+            say_hardening(harden_serving_thread(), "drive")
         print(f"hil: drive emulator node{'s' if len(nodes) > 1 else ''} {ids} as EtherCAT "
               f"slave{'s' if len(nodes) > 1 else ''} 1..{len(nodes)} on {args.ethercat} "
               f"(clock {args.clock}); Ctrl-C stops", flush=True)

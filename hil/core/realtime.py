@@ -235,7 +235,7 @@ class Hardening:
     """Applies the hardening steps to the calling thread and undoes what can be undone.
 
     ``apply()`` returns every step, granted or refused; ``restore()`` puts the scheduler, the
-    affinity, the collector and the timer slack back (mlockall stays until the process ends).
+    affinity, the collector, the timer slack and the locked pages back.
     A loop (the default) takes the last core and keeps the registered helper processes off it,
     and holds the collector off; a helper (:meth:`for_helper`) takes the core before it and
     keeps its collector on.
@@ -252,6 +252,7 @@ class Hardening:
         self.pinned_cpu: int | None = None  # the thread's core, once pinned
         self._saved_slack: int | None = None
         self._gc_was_enabled = False
+        self._locked = False  # mlockall granted: munlockall at restore
 
     @classmethod
     def for_helper(cls) -> Hardening:
@@ -310,6 +311,7 @@ class Hardening:
             errno = ctypes.get_errno()
             return Step("mlockall", False, f"refused: {os.strerror(errno)} (memlock limit "
                         f"{_limit(resource.RLIMIT_MEMLOCK)} bytes)")
+        self._locked = True
         return Step("mlockall", True, "current and future pages locked")
 
     def _gc(self) -> Step:
@@ -345,6 +347,10 @@ class Hardening:
             if libc is not None:
                 libc.prctl(PR_SET_TIMERSLACK, self._saved_slack, 0, 0, 0)
             self._saved_slack = None
+        libc = _libc()
+        if self._locked and libc is not None:
+            libc.munlockall()
+            self._locked = False
         gc.unfreeze()
         if self._gc_was_enabled:
             gc.enable()

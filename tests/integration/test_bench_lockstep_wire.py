@@ -88,7 +88,9 @@ class Emulator:
         return t_ns / 1e9, words[4]
 
     def lines(self) -> list[str]:
-        return self.err.read_text().splitlines()
+        """Its stderr lines but the real-time hardening it reports as it starts."""
+        return [line for line in self.err.read_text().splitlines()
+                if not line.startswith("hil: real-time: ")]
 
     def stop(self) -> None:
         if self.process.poll() is None:

@@ -211,7 +211,7 @@ def test_a_drive_fault_stops_the_run_and_the_session_keeps_it(tmp_path):
     (["--ht", "1"], "H_t >= 2"),
     (["--ht", "60"], "must not exceed H_p"),
     (["--settle", "3", "--duration", "1"], "--settle"),
-    (["--drive", "nonsense"], "expected emulated, socketcand://HOST:PORT"),
+    (["--drive", "nonsense"], "expected emulated, ethercat://IFACE[?slave=N], socketcand://HOST:PORT"),
 ])
 def test_bad_values_give_one_clear_line(tmp_path, capsys, argv, message):
     out = tmp_path / "bad.mcap"

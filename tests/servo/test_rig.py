@@ -24,7 +24,7 @@ def test_an_unknown_scheme_is_a_config_error_listing_the_forms(url):
         open_drive(url)
     message = str(error.value)
     assert message.startswith(f"drive '{url}': unknown scheme")
-    assert "(known: emulated, socketcand" in message and "INTERFACE://CHANNEL" in message
+    assert "(known: emulated, ethercat, socketcand" in message and "INTERFACE://CHANNEL" in message
 
 
 def test_schemes_resolve_to_their_factories():
