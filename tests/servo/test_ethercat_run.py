@@ -144,7 +144,8 @@ def test_a_fault_mid_run_is_reported_with_its_emergency(tmp_path):
 
 @pytest.mark.parametrize("pulled", ["killed", "veth down"])
 def test_a_slave_pulled_mid_run_is_a_lost_link(tmp_path, pulled):
-    """Lockstep: no frame back within the bound is a gone drive, exit 3, as on CAN."""
+    """Lockstep: no frame back within the bound is a gone drive, as on CAN: its state cannot
+    be confirmed after (the slave is gone), so the run is unsafe, exit 4, and says so."""
     config = tmp_path / "drive.toml"
     config.write_text(SHORT_LOCKSTEP)
     session = tmp_path / "pulled.mcap"
@@ -161,9 +162,11 @@ def test_a_slave_pulled_mid_run_is_a_lost_link(tmp_path, pulled):
         else:
             veth.set_down(veth.slave)
         _, err = run.communicate(timeout=120)
-    assert run.returncode == 3, err
+    assert run.returncode == 4, err
     assert "drive node 1 link lost: no EtherCAT frame came back for 0.5 s" in \
         err.strip().splitlines()[-1]
+    assert "hil: unsafe: drive node 1: the link was lost while driving and its state cannot " \
+        "be confirmed" in err
 
 
 def test_the_python_api_drives_over_ethercat_in_this_process(tmp_path):
