@@ -3,6 +3,7 @@ outside the repository: a ``hil`` process for the first case of each finding, th
 in this process (:func:`hil_here`, from the same folder) for more cases of it."""
 
 import json
+import math
 import os
 import re
 import shlex
@@ -487,3 +488,33 @@ def test_hil_baseline_takes_one_sided_tolerances_and_fails_as_one_clean_assertio
     assert 'hil_baseline: tolerances={"rms_error_deg": "tube:0.1,2ms"}: a tube is for ' \
         "signals (TOPIC:FIELD)" in out
     assert 'hil_baseline: tolerances={"*": "rel:5"}: a relative tolerance is in percent' in out
+
+
+# -- twin-check figures that agree: terminal, PNG, JSON ------------------------------------------
+
+def test_a_twin_checks_fit_reads_the_same_in_its_text_and_its_png(tmp_path, capfd, monkeypatch):
+    """A machine a hair off the emulator (viscous friction 0.0003 mA per deg/s) fits its twin
+    by 99.97 % in position: the terminal and the PNG both say so, two decimals cut toward
+    minus infinity from the JSON's figure, so a fit short of 100 % never reads 100 % (on main
+    the PNG said 'fit 100.0 %')."""
+    (tmp_path / "machine.toml").write_text(
+        "[emulator.friction]\nviscous_mA_per_deg_s = 0.0003\n")
+    recorded = hil_here(capfd, "servo", "run", "--controller", "pid", "--duration", "0.3",
+                        "--config", "machine.toml", "--quiet", "--out", "machine.mcap",
+                        cwd=tmp_path)
+    assert recorded.returncode == 0, recorded.stderr
+    printed = hil(tmp_path, "twin", "check", "machine.mcap")
+    assert printed.returncode == 0, printed.stderr
+    figures = drawn_figures(monkeypatch)
+    document = hil_here(capfd, "twin", "check", "machine.mcap", "--json", "--out", "t.png",
+                        cwd=tmp_path)
+    fits = {o["name"]: o["fit_pct"] for o in json.loads(document.stdout)["outputs"]}
+    assert 99.9 < fits["position_deg"] < 100  # short of 100 %, as every output here
+    [figure] = figures
+    titles = {ax.get_title() for ax in figure.axes if ax.get_title()}
+    for name, fit in fits.items():
+        text = f"{math.floor(round(fit * 100, 6)) / 100:.2f} %"
+        assert re.search(rf"^  {name} +fit +{re.escape(text)} ", printed.stdout, re.M), \
+            printed.stdout
+        assert f"{name}: fit {text}" in titles, titles
+    assert not any("100" in title for title in titles)
