@@ -12,10 +12,11 @@ from pathlib import Path
 
 import pytest
 
-from hil.compare import Comparison, Tolerance, compare_data, parse_tolerance
+from hil.compare import Comparison, Tolerance, compare_data
 from hil.compare.baseline import write_baseline
 from hil.compare.table import format_table, summary_line
-from hil.core.recording.reader import read_session
+from hil.compare.tolerances import fixture_spelling, parse_named
+from hil.core.recording.reader import SessionData, read_session
 from hil.core.report import session_kind
 from hil.errors import HilError
 from hil.pytest_html import html_folder, write_comparison_report
@@ -38,7 +39,9 @@ class Baseline:
     test with the comparison's table when it is outside tolerance. Without that file, or with
     ``--hil-update-baselines``, it records it instead (keeping ``signals`` at every
     ``every``-th tick) and warns :class:`BaselineRecorded`. ``tolerances``: ``{NAME: SPEC}``
-    as ``hil compare --tolerance``; without one, lockstep runs are held exact."""
+    with the specs of ``hil compare --tolerance`` (one-sided ``worse:5%`` too); without one,
+    lockstep runs are held exact. A failure is one assertion: the comparison's table, or
+    one line that spells a tolerance as ``tolerances=`` does."""
 
     def __init__(self, request: pytest.FixtureRequest, tmp_path: Path) -> None:
         self._request, self._tmp_path = request, tmp_path
@@ -66,12 +69,21 @@ class Baseline:
                                                "bytes) from this run"), stacklevel=2)
                 return None
             limits = {key: value if isinstance(value, Tolerance) else
-                      parse_tolerance(value, f"hil_baseline tolerance {key}")
+                      parse_named(key, value, fixture_spelling)
                       for key, value in (tolerances or {}).items()}
             baseline = read_session(path)
-            comparison = compare_data(baseline, ran, chosen, limits)
+            compared: Comparison | str = compare_data(baseline, ran, chosen, limits,
+                                                      fixture_spelling)
         except HilError as exc:
-            pytest.fail(f"hil_baseline: {exc}", pytrace=False)
+            compared = f"hil_baseline: {exc}"
+        if isinstance(compared, str):  # failed here, not in the handler: no chained error
+            pytest.fail(compared, pytrace=False)
+        return self._held(compared, path, baseline, ran)
+
+    def _held(self, comparison: Comparison, path: Path, baseline: SessionData,
+              ran: SessionData) -> Comparison:
+        """The comparison written (JSON, and its page when asked or failed); the test failed
+        with its table when it is outside tolerance."""
         document = comparison.to_json()
         report = self._tmp_path / f"{path.stem}.compare.json"
         report.write_text(json.dumps(document, indent=1) + "\n")

@@ -35,8 +35,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "solve_ms, deadline_misses - only when a tolerance names them) and every --signal, "
         "on session time: lockstep sessions tick for tick, real-time ones by interpolating "
         "the candidate onto the baseline's ticks. A tolerance is exact, abs:V, rel:P% or "
-        "tube:V,LAG (a band of V the candidate may lead or lag by LAG, e.g. tube:0.01,2ms). "
-        "Without one: exact when both sessions are lockstep; in real time rel:5% for a KPI, "
+        "tube:V,LAG (a band of V the candidate may lead or lag by LAG, e.g. tube:0.01,2ms), "
+        "or one-sided, to ask 'did it get worse?': max:V (at most V above the baseline, any "
+        "amount below), min:V (at most V below), worse:V (V the worse way of a KPI whose "
+        "better direction is known: errors, misses, violations, faults and the bench's costs "
+        "lower, realtime_factor higher; under '*' a KPI or signal better neither way is held "
+        "both ways), each V also as P% of the baseline (worse:P%). Without one: exact when "
+        "both sessions are lockstep; in real time rel:5% for a KPI, "
         "and a signal needs one. Split series and damaged files are read as 'hil report' "
         "reads them. Prints a table (baseline, candidate, difference, tolerance, the time "
         "of a signal's worst tick, verdict) and one summary line. Exit status: 0 within "
@@ -50,7 +55,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="a signal to compare (repeat), e.g. /drive/feedback:position_deg")
     p.add_argument("--tolerance", action="append", default=[], type=_entry,
                    metavar="NAME=SPEC", help="the tolerance of a KPI or signal (repeat; a "
-                   "signal named here is compared): exact, abs:V, rel:P%%, tube:V,LAG; "
+                   "signal named here is compared): exact, abs:V, rel:P%%, tube:V,LAG, "
+                   "max:V, min:V, worse:V (V or P%%); "
                    "NAME '*' for everything else (a tube: every signal); laid over --tolerances")
     p.add_argument("--tolerances", metavar="F.toml",
                    help="tolerances from a TOML file: NAME = \"SPEC\" lines, e.g. "

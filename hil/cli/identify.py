@@ -228,6 +228,8 @@ def format_model(model: IdentifiedModel, out: str) -> str:
     """Human-readable summary: order, fit, singular values, matrices."""
     import numpy as np
 
+    from hil.core.kpi_text import fit_text
+
     samples = model.samples
     if model.order_selection.get("method") == "bic":
         how = f"selected by BIC over orders 1-{len(model.order_selection.get('bic', {}))}"
@@ -244,10 +246,10 @@ def format_model(model: IdentifiedModel, out: str) -> str:
         f"block rows:   {model.block_rows} ({rows_how})",
         f"order:        {model.order} ({how})",
         "singular values: " + " ".join(f"{s:.3g}" for s in model.singular_values[:12]),
-        f"fit_pct:      {model.fit_pct:.2f} % on held-out data (simulated output)",
+        f"fit_pct:      {fit_text(model.fit_pct)} on held-out data (simulated output)",
     ]
     if len(model.outputs) > 1:
-        lines += [f"  {name}: {fit:.2f} %"
+        lines += [f"  {name}: {fit_text(fit)}"
                   for name, fit in zip(model.outputs, model.fit_pct_per_output, strict=True)]
     with np.printoptions(precision=6, suppress=False, linewidth=100):
         for name in ("A", "B", "C", "D", "K"):

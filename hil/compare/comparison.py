@@ -5,8 +5,10 @@ KPIs are those the run recorded (``hil report``'s ``kpis``), nested keys joined 
 KPIs that measure the computer rather than the experiment (:data:`COMPUTER_KPIS`) are left
 out unless a tolerance names them. Without a tolerance, a KPI or a signal is held exact when
 both sessions are lockstep; in real time a KPI gets :data:`REALTIME_KPI_DEFAULT` and a signal
-needs a tolerance of its own (or ``*``). An axis' positions are compared relative to each
-run's start when both runs started from where their axis stood (:mod:`hil.compare.relative`).
+needs a tolerance of its own (or ``*``). ``worse:`` takes a KPI's side by its better direction
+(:mod:`hil.compare.direction`); a signal has none. An axis' positions are compared relative to
+each run's start when both runs started from where their axis stood
+(:mod:`hil.compare.relative`).
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -22,7 +24,15 @@ import numpy as np
 from hil.compare.alignment import Aligned, Series, interpolated, tick_for_tick
 from hil.compare.judge import judge_kpi, judge_signal
 from hil.compare.relative import start_offsets
-from hil.compare.tolerances import DEFAULT, EXACT, Tolerance
+from hil.compare.tolerances import (
+    BOTH,
+    DEFAULT,
+    EXACT,
+    WORSE,
+    Spelling,
+    Tolerance,
+    flag_spelling,
+)
 from hil.core.recording.reader import SessionData, read_session
 from hil.core.report import kpis, session_kind
 from hil.core.verdict import unit_of
@@ -100,16 +110,20 @@ def _plain(value: float | None) -> float | None:
 
 def compare_sessions(baseline: str | os.PathLike[str], candidate: str | os.PathLike[str],
                      signals: Sequence[str] = (),
-                     tolerances: Mapping[str, Tolerance] | None = None) -> Comparison:
+                     tolerances: Mapping[str, Tolerance] | None = None,
+                     spelling: Spelling = flag_spelling) -> Comparison:
     """Compare the session ``candidate`` with ``baseline`` (files, split series or folders,
     damaged ones as ``hil report`` reads them). ``signals``: ``TOPIC:FIELD`` names; a signal a
     tolerance names is compared too. Raises :class:`IncomparableError` when the sessions
-    cannot be compared."""
-    return compare_data(read_session(baseline), read_session(candidate), signals, tolerances)
+    cannot be compared, a UsageError (a tolerance written as ``spelling`` writes it) when a
+    tolerance does not fit what it names."""
+    return compare_data(read_session(baseline), read_session(candidate), signals, tolerances,
+                        spelling)
 
 
 def compare_data(base: SessionData, cand: SessionData, signals: Sequence[str] = (),
-                 tolerances: Mapping[str, Tolerance] | None = None) -> Comparison:
+                 tolerances: Mapping[str, Tolerance] | None = None,
+                 spelling: Spelling = flag_spelling) -> Comparison:
     """:func:`compare_sessions` of two sessions already read."""
     tolerances = dict(tolerances or {})
     application = _application(base, cand)
@@ -127,7 +141,7 @@ def compare_data(base: SessionData, cand: SessionData, signals: Sequence[str] = 
     if only:
         out.notes.append(f"topics in one session only: {', '.join(only)}")
     chosen = list(dict.fromkeys([*signals, *(n for n in tolerances if ":" in n)]))
-    out.rows.extend(_kpi_rows(base, cand, tolerances, lockstep, out.notes))
+    out.rows.extend(_kpi_rows(base, cand, tolerances, lockstep, out.notes, spelling))
     offsets = start_offsets(chosen, base, cand, out.notes)
     ours, out.origins_ns["baseline"] = _from_first_tick(
         [_from(series(base, name, "baseline"), offset, 0)
@@ -136,8 +150,8 @@ def compare_data(base: SessionData, cand: SessionData, signals: Sequence[str] = 
         [_from(series(cand, name, "candidate"), offset, 1)
          for name, offset in zip(chosen, offsets, strict=True)], cand)
     for name, mine, other, offset in zip(chosen, ours, theirs, offsets, strict=True):
-        row = _signal_row(name, mine, other, _tolerance(name, tolerances, lockstep), lockstep,
-                          out.notes)
+        row = _signal_row(name, mine, other, _tolerance(name, tolerances, lockstep, spelling),
+                          lockstep, out.notes)
         row.from_start_deg = offset
         out.rows.append(row)
     if not out.rows:
@@ -164,17 +178,30 @@ def _application(base: SessionData, cand: SessionData) -> str:
 
 
 def _tolerance(name: str, tolerances: Mapping[str, Tolerance], lockstep: bool,
-               kpi: bool = False) -> Tolerance:
+               spelling: Spelling, kpi: bool = False) -> Tolerance:
+    """The tolerance of a KPI or signal: its own, ``*``'s, else the default (``worse:``
+    resolved: a KPI's by its direction; a signal has none: refused when named, else
+    two-sided)."""
     if name in tolerances:
-        return tolerances[name]
+        named = tolerances[name]
+        if kpi:
+            return named.for_kpi(name, True, spelling)
+        if named.side == WORSE:
+            raise UsageError(f"{spelling(name, named.spec())}: a signal has no better "
+                             "direction; bound it with max:V or min:V")
+        return named
     if DEFAULT in tolerances and not (kpi and tolerances[DEFAULT].kind == "tube"):
-        return tolerances[DEFAULT]  # a tube for '*' is the signals' default only
+        default = tolerances[DEFAULT]  # a tube for '*' is the signals' default only
+        if kpi:
+            return default.for_kpi(name, False, spelling)
+        return replace(default, side=BOTH) if default.side == WORSE else default
     if lockstep:
         return EXACT
     if kpi:
         return REALTIME_KPI_DEFAULT
     raise UsageError(f"signal {name}: real-time sessions need a tolerance for it "
-                     f"(--tolerance '{name}=abs:V', or '*=...' for every one)")
+                     f"({spelling(name, 'abs:V')}, or {spelling(DEFAULT, '...')} for every "
+                     "one)")
 
 
 def flat_kpis(document: Mapping[str, Any], prefix: str = "") -> dict[str, float]:
@@ -189,7 +216,7 @@ def flat_kpis(document: Mapping[str, Any], prefix: str = "") -> dict[str, float]
 
 
 def _kpi_rows(base: SessionData, cand: SessionData, tolerances: Mapping[str, Tolerance],
-              lockstep: bool, notes: list[str]) -> list[Row]:
+              lockstep: bool, notes: list[str], spelling: Spelling) -> list[Row]:
     ours, theirs = flat_kpis(kpis(base)), flat_kpis(kpis(cand))
     for name in tolerances:
         if name != DEFAULT and ":" not in name and not (name in ours and name in theirs):
@@ -208,10 +235,11 @@ def _kpi_rows(base: SessionData, cand: SessionData, tolerances: Mapping[str, Tol
     for name in (n for n in ours if n in theirs):
         if name.split(".")[0] in COMPUTER_KPIS and name not in tolerances:
             continue
-        tolerance = _tolerance(name, tolerances, lockstep, kpi=True)
+        tolerance = _tolerance(name, tolerances, lockstep, spelling, kpi=True)
         if tolerance.kind == "tube":
-            raise UsageError(f"--tolerance {name}: a tube is for signals (TOPIC:FIELD); "
-                             "a KPI takes exact, abs:V or rel:P%")
+            raise UsageError(f"{spelling(name, tolerance.spec())}: a tube is for signals "
+                             "(TOPIC:FIELD); a KPI takes exact, abs:V, rel:P%, max:V, min:V "
+                             "or worse:V")
         verdict = judge_kpi(tolerance, ours[name], theirs[name])
         rows.append(Row("kpi", name, ours[name], theirs[name], verdict.difference,
                         tolerance.text(name), verdict.passed))

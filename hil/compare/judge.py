@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hil.compare.alignment import Aligned, Series, window_extremes
-from hil.compare.tolerances import Tolerance
+from hil.compare.tolerances import MAX, MIN, Tolerance
 
 
 @dataclass(frozen=True)
@@ -22,18 +22,19 @@ class Verdict:
 
 
 def judge_kpi(tolerance: Tolerance, baseline: float, candidate: float) -> Verdict:
-    """candidate - baseline within the tolerance (NaN equals only NaN)."""
+    """candidate - baseline within the tolerance, on the sides it bounds (NaN equals only
+    NaN)."""
     if math.isnan(baseline) or math.isnan(candidate):
         same = math.isnan(baseline) and math.isnan(candidate)
         return Verdict(same, 0.0 if same else math.nan)
     difference = candidate - baseline
-    return Verdict(abs(difference) <= tolerance.allowed(baseline), difference)
+    return Verdict(tolerance.holds(difference, tolerance.allowed(baseline)), difference)
 
 
 def judge_signal(tolerance: Tolerance, aligned: Aligned, baseline: Series) -> Verdict:
     """Every aligned tick within the tolerance; a tube lets the candidate lead or lag the
     baseline by ``lag_s``: the band is around the baseline's extremes within that window
-    (of its whole series: ``baseline``)."""
+    (of its whole series: ``baseline``); a one-sided tolerance bounds one side of it."""
     base, cand = aligned.baseline, aligned.candidate
     low, high = base, base
     if tolerance.kind == "tube" and tolerance.lag_s > 0 and baseline.t_ns.size > 1:
@@ -46,7 +47,12 @@ def judge_signal(tolerance: Tolerance, aligned: Aligned, baseline: Series) -> Ve
     else:
         allowed = np.full(base.shape, tolerance.allowed(0.0))
     with np.errstate(invalid="ignore"):
-        outside = np.fmax(np.fmax(cand - (high + allowed), (low - allowed) - cand), 0.0)
+        above, below = cand - (high + allowed), (low - allowed) - cand
+    if tolerance.side == MAX:
+        below = np.where(np.isnan(below), np.nan, -np.inf)
+    elif tolerance.side == MIN:
+        above = np.where(np.isnan(above), np.nan, -np.inf)
+    outside = np.fmax(np.fmax(above, below), 0.0)
     both_nan = np.isnan(base) & np.isnan(cand)
     outside = np.where(both_nan, 0.0, np.where(np.isnan(outside), np.inf, outside))
     if outside.size and outside.max() > 0:

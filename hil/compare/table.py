@@ -21,12 +21,12 @@ def format_table(comparison: Comparison) -> str:
     lines = [f"baseline   {comparison.baseline}", f"candidate  {comparison.candidate}",
              f"{comparison.application} sessions, {comparison.alignment}",
              f"  {'kind':<6} {'name':<{width}} {'baseline':>12} {'candidate':>12} "
-             f"{'difference':>12}  {'tolerance':<24} {'at t [s]':>9}  verdict"]
+             f"{'difference':>12}  {'tolerance':<28} {'at t [s]':>9}  verdict"]
     for row, name in zip(comparison.rows, names, strict=True):
         at = "" if row.worst_t_s is None else f"{row.worst_t_s:.4f}"
         lines.append(f"  {row.kind:<6} {name:<{width}} {_number(row.baseline):>12} "
                      f"{_number(row.candidate):>12} {_number(row.difference):>12}  "
-                     f"{row.tolerance:<24} {at:>9}  {'pass' if row.passed else 'FAIL'}")
+                     f"{row.tolerance:<28} {at:>9}  {'pass' if row.passed else 'FAIL'}")
     lines.extend(f"note: {note}" for note in comparison.notes)
     return "\n".join(lines)
 

@@ -1,8 +1,8 @@
 """KPIs as a person reads them, wherever hil writes them as text (``hil report``, a run's
 summary, the KPI table of a report's PNG): numbers to four significant digits without an
 exponent in the usual range (``0.0679``, ``536.6``, ``22760``), yes / no for a flag, a group
-of figures on one line (``median 11.08, p99 1268, max 22760``), a limit as its verdict. The
-``--json`` documents keep every digit."""
+of figures on one line (``median 11.08, p99 1268, max 22760``), a limit as its verdict, a fit
+as ``99.97 %`` (:func:`fit_text`). The ``--json`` documents keep every digit."""
 
 from __future__ import annotations
 
@@ -12,6 +12,8 @@ from typing import Any
 
 #: significant digits of a number written for a person
 DIGITS = 4
+#: decimals of a fit [%]
+FIT_DECIMALS = 2
 
 
 def number_text(value: float) -> str:
@@ -27,6 +29,16 @@ def number_text(value: float) -> str:
     decimals = max(0, DIGITS - 1 - math.floor(math.log10(size)))
     text = f"{value:.{decimals}f}"
     return text.rstrip("0").rstrip(".") if "." in text else text
+
+
+def fit_text(pct: float) -> str:
+    """A fit [%] (``hil identify``, ``hil twin check``: its text, its PNG) to
+    :data:`FIT_DECIMALS` decimals, cut toward minus infinity so that a fit short of 100 % never
+    reads as 100 % (99.996 is ``99.99 %``; only an exact twin is ``100.00 %``)."""
+    if not math.isfinite(pct):
+        return f"{pct} %"
+    scale = 10**FIT_DECIMALS
+    return f"{math.floor(round(pct * scale, 6)) / scale:.{FIT_DECIMALS}f} %"
 
 
 def value_text(value: Any) -> str:

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from hil.core.kpi_text import fit_text
 from hil.core.recording.reader import SessionData
 
 
@@ -87,8 +88,9 @@ def format_check(check: TwinCheck, recorded: str, twin: str) -> str:
     """The text report: a line per output, then the verdict."""
     lines = [f"twin check of {recorded} (twin's session: {twin})"]
     for o in check.outputs:
-        lines.append(f"  {o.name:<16} fit {o.fit_pct:7.2f} %   max error {o.max_error:.4g} "
-                     f"{o.unit}   RMS error {o.rms_error:.4g} {o.unit}   ({o.samples} samples)")
+        lines.append(f"  {o.name:<16} fit {fit_text(o.fit_pct):>9}   max error "
+                     f"{o.max_error:.4g} {o.unit}   RMS error {o.rms_error:.4g} {o.unit}   "
+                     f"({o.samples} samples)")
     verdict = "PASS" if check.passed else "FAIL"
     lines.append(f"{verdict}: every output's fit must reach {check.min_fit_pct:g} %")
     return "\n".join(lines)
@@ -110,7 +112,7 @@ def plot_check(t_s: np.ndarray, outputs: Sequence[Compared],
         top.plot(t_s[:n], recorded[:n], label="recorded")
         top.plot(t_s[:n], twin[:n], "--", label="twin")
         top.set_ylabel(f"{fit.name} [{fit.unit}]")
-        top.set_title(f"{fit.name}: fit {fit.fit_pct:.1f} %")
+        top.set_title(f"{fit.name}: fit {fit_text(fit.fit_pct)}")
         top.legend(loc="upper right")
         bottom.plot(t_s[:n], recorded[:n] - twin[:n], color="tab:red")
         bottom.set_ylabel(f"error [{fit.unit}]")

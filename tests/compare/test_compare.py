@@ -262,3 +262,18 @@ def test_the_pytest_baseline_records_then_fails_on_a_changed_controller(tmp_path
     pages = sorted(p.name for p in (tmp_path / "pages").iterdir())
     assert pages == ["test_pd-env.compare.html", "test_pd-fixed.compare.html",
                      "test_pd-servo-1.html", "test_pd-servo-2.html"]
+
+
+def test_a_one_sided_tolerance_bounds_a_signal_on_its_side_only():
+    """``max:`` lets a signal fall any amount below the baseline and rise at most V above it,
+    ``min:`` the other way round; the worst tick is the one furthest out on the bounded side."""
+    t = np.arange(0, 10_000_000, 1_000_000)
+    base = Series(t, np.zeros(t.size))
+    cand = Series(t, np.where(np.arange(t.size) == 3, 5.0, -5.0))  # far below, once above
+    aligned = tick_for_tick(base, cand)
+    assert not judge_signal(parse_tolerance("max:1"), aligned, base).passed
+    assert judge_signal(parse_tolerance("max:1"), aligned, base).index == 3
+    assert judge_signal(parse_tolerance("max:5"), aligned, base).passed
+    lower = judge_signal(parse_tolerance("min:1"), aligned, base)
+    assert not lower.passed and lower.difference == pytest.approx(4.0) and lower.index != 3
+    assert not judge_signal(parse_tolerance("abs:4.5"), aligned, base).passed  # both ways
