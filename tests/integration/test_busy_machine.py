@@ -37,7 +37,7 @@ def rounds_of(example: str) -> str:
     return "import pytest\n" + body.replace("(hil_drive)", "(round, hil_drive)")
 
 
-def test_the_readme_fixture_example_passes_round_after_round_under_load(tmp_path):
+def test_the_guides_fixture_example_passes_round_after_round_under_load(tmp_path):
     """The pytest guide's `hil_bench` / `hil_drive` example, as a user copies it, :data:`ROUNDS`
     times over, both cores busy all along (its only run in the suite: tests/test_doc_examples.py
     leaves it here)."""
@@ -47,11 +47,11 @@ def test_the_readme_fixture_example_passes_round_after_round_under_load(tmp_path
     example = block("guides/pytest.md", "python",
                     "def test_threshold_relays_keep_the_levels_in_range")
     assert "def test_threshold_relays_keep_the_levels_in_range(hil_bench)" in example
-    (folder / "test_readme_example.py").write_text(rounds_of(example))
+    (folder / "test_guide_example.py").write_text(rounds_of(example))
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # a user's shell
     with busy_machine() as spinning:
         run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                              "--rootdir", str(folder), "test_readme_example.py"], cwd=folder,
+                              "--rootdir", str(folder), "test_guide_example.py"], cwd=folder,
                              env=env, capture_output=True, text=True, timeout=600)
         loaded = busy_now(spinning)
     assert loaded, "the machine was not kept busy all along"
