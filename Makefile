@@ -56,9 +56,14 @@ bench: $(STAMP)
 models: $(STAMP)
 	PATH="$(CURDIR)/$(BIN):$$PATH" sh hil/configs/models/regenerate.sh
 
-# docs/CONFIGURATION.md from the code that reads the configuration (a test compares them)
+# the site: the references generated from the code (the configuration from its readers, the
+# commands from their parsers, the session format from short lockstep runs; tests compare
+# them), then MkDocs, strict (a broken link fails) and offline, into site/
 docs: $(STAMP)
 	$(BIN)/python -m hil.cli.config_reference > docs/CONFIGURATION.md
+	$(BIN)/python -m hil.cli.command_reference > docs/reference/commands.md
+	$(BIN)/python -m hil.cli.session_reference > docs/reference/sessions.md
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
 
 # every paper of hil/cli/paper.py's table reproduced, its report committed under docs/papers (the
 # sessions beside it are not: docs/papers/.gitignore); minutes each, in lockstep on the emulators
@@ -71,4 +76,4 @@ lint: $(STAMP)
 	$(BIN)/mypy
 
 clean:
-	rm -rf $(VENV) build dist *.egg-info .pytest_cache .ruff_cache
+	rm -rf $(VENV) build dist site *.egg-info .pytest_cache .ruff_cache

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from tests.cli import hil_here
+from tests.docs import page
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = [pytest.mark.timeout(180)]
@@ -234,9 +235,9 @@ def test_the_readmes_resim_example_runs_and_an_unstable_gain_is_named(tmp_path, 
     """The README retunes the recorded PID with a kp in its range (0-100 rpm/deg) that holds
     the loop; a kp outside the range is refused naming it and the range, one inside it that
     the loop cannot take naming it and the value up to which it holds."""
-    readme = (ROOT / "README.md").read_text()
-    example = re.search(r"^hil resim yesterday\.mcap --param (kp=[0-9.]+) ", readme, re.M)
-    assert example, "the README's resim example"
+    example = re.search(r"^hil resim yesterday\.mcap --param (kp=[0-9.]+) ",
+                        page("guides/regression.md"), re.M)
+    assert example, "the regression guide's resim example"
     recorded = hil_here(capfd, "servo", "run", "--controller", "pid", "--duration", "0.1",
                         "--out", "yesterday.mcap", cwd=tmp_path)
     assert recorded.returncode == 0, recorded.stderr

@@ -151,7 +151,9 @@ def _default(setting: Setting) -> str:
 
 
 def _cell(text: str) -> str:
-    return text.replace("|", "\\|").replace("\n", " ")
+    """``text`` as one Markdown table cell: its bars escaped, and ``][`` too (``[-END][:K=V]``
+    would read as a reference link)."""
+    return text.replace("|", "\\|").replace("\n", " ").replace("][", "]\\[")
 
 
 def key_tables(settings: Sequence[Setting], comments: Mapping[str, str],

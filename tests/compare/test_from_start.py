@@ -2,7 +2,7 @@
 drive`` whose axis stays where each run leaves it: two runs from where the axis stands
 (``--from-here``) repeat one 90 deg move from two places, and ``hil compare`` and the
 ``hil_baseline`` fixture (run against the drive with ``--hil-drive``) hold their positions
-relative to each run's start; the README's first cautious run holds an axis standing 90 deg
+relative to each run's start; the drive guide's first cautious run holds an axis standing 90 deg
 away instead of driving it at zero."""
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import pytest
 
 from hil import api
 from tests.cli import hil_here
-from tests.test_readme import block
+from tests.docs import block
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 
@@ -92,10 +92,10 @@ def test_hil_baseline_against_a_given_drive_holds_wherever_the_axis_stood(tmp_pa
 
 
 def test_the_first_cautious_run_holds_the_axis_where_it_stands(tmp_path, capsys):
-    """The README's recipe, in lockstep and for half a second (its `--realtime` and two
+    """The drive guide's recipe, in lockstep and for half a second (its `--realtime` and two
     seconds are for the hardware), against a drive whose axis the run before left 90 deg
     from zero."""
-    recipe = block("sh", "--can-log first.asc").replace("\\\n", " ")
+    recipe = block("guides/drive.md", "sh", "--can-log first.asc").replace("\\\n", " ")
     [line] = [line for line in recipe.splitlines() if line.startswith("hil servo run")]
     argv = shlex.split(line)[1:]
     assert "--from-here" in argv

@@ -1,7 +1,7 @@
 """What emulator-backed tests promise holds on a busy machine: both cores kept busy by
 processes niced as a CI neighbour is (tests/busy.py) while a user's tests and lockstep runs go
 on. A lockstep session under load is its quiet twin, bit for bit; a paused emulator under load
-changes nothing; the README's fixture example passes every time."""
+changes nothing; the pytest guide's fixture example passes every time."""
 
 from __future__ import annotations
 
@@ -19,8 +19,8 @@ import pytest
 from hil import api
 from hil.servo.run import ServoRunOptions, run_servo
 from tests.busy import busy_machine, busy_now
+from tests.docs import block
 from tests.session_digest import EXPERIMENTS, kpi_digest, session_digest
-from tests.test_readme import block
 
 pytestmark = [pytest.mark.slow]
 
@@ -31,26 +31,27 @@ ROUNDS = 3
 
 
 def rounds_of(example: str) -> str:
-    """The README's example, its tests run :data:`ROUNDS` times each."""
+    """The guide's example, its tests run :data:`ROUNDS` times each."""
     body = example.replace("\ndef test_", "\n@pytest.mark.parametrize('round', range("
                            f"{ROUNDS}))\ndef test_").replace("(hil_bench)", "(round, hil_bench)")
     return "import pytest\n" + body.replace("(hil_drive)", "(round, hil_drive)")
 
 
-def test_the_readme_fixture_example_passes_round_after_round_under_load(tmp_path):
-    """The README's `hil_bench` / `hil_drive` example, as a user copies it, :data:`ROUNDS`
-    times over, both cores busy all along (its only run in the suite: tests/test_readme.py
+def test_the_guides_fixture_example_passes_round_after_round_under_load(tmp_path):
+    """The pytest guide's `hil_bench` / `hil_drive` example, as a user copies it, :data:`ROUNDS`
+    times over, both cores busy all along (its only run in the suite: tests/test_doc_examples.py
     leaves it here)."""
     folder = tmp_path / "my_lab"
     folder.mkdir()
     shutil.copy(EXAMPLES / "my_controllers.py", folder / "my_controllers.py")
-    example = block("python", "def test_threshold_relays_keep_the_levels_in_range")
+    example = block("guides/pytest.md", "python",
+                    "def test_threshold_relays_keep_the_levels_in_range")
     assert "def test_threshold_relays_keep_the_levels_in_range(hil_bench)" in example
-    (folder / "test_readme_example.py").write_text(rounds_of(example))
+    (folder / "test_guide_example.py").write_text(rounds_of(example))
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # a user's shell
     with busy_machine() as spinning:
         run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                              "--rootdir", str(folder), "test_readme_example.py"], cwd=folder,
+                              "--rootdir", str(folder), "test_guide_example.py"], cwd=folder,
                              env=env, capture_output=True, text=True, timeout=600)
         loaded = busy_now(spinning)
     assert loaded, "the machine was not kept busy all along"

@@ -1,15 +1,14 @@
 """The flags of a run on a place that are refused before any coordinator is reached, and the
-README's labgrid configs as labgrid reads them."""
+labgrid configs of the shared benches guide as labgrid reads them."""
 
 from __future__ import annotations
 
-import re
 import socket
-from pathlib import Path
 
 import pytest
 
 from tests.cli import hil_here
+from tests.docs import blocks, page
 
 pytestmark = [pytest.mark.lab]
 
@@ -53,13 +52,11 @@ def test_a_negative_wait_is_refused_by_the_parser(capsys, tmp_path):
 
 
 def readme_yaml() -> list[str]:
-    text = (Path(__file__).resolve().parents[2] / "README.md").read_text()
-    section = text.split("## Shared benches (labgrid)", 1)[1]
-    return re.findall(r"^```yaml\n(.*?)^```", section, re.M | re.S)[:2]
+    return blocks(page("guides/shared-benches.md"), "yaml")[:2]
 
 
-def test_the_readme_s_exporter_config_and_environment_are_what_labgrid_reads(tmp_path):
-    """The README's exporter config, read as labgrid's exporter reads it (a Jinja template),
+def test_the_guides_exporter_config_and_environment_are_what_labgrid_reads(tmp_path):
+    """The guide's exporter config, read as labgrid's exporter reads it (a Jinja template),
     makes the hil resources; its environment imports hil.lab and holds a RemotePlace."""
     from labgrid.config import Config
     from labgrid.remote.config import ResourceConfig

@@ -1,9 +1,9 @@
-"""The README's "Make a twin of your machine", its commands run as a user runs them: from a copy
-of examples/twin/ outside the repository, each `hil` line of the section's first sh block in a
-process of its own. "The machine" (machine.toml: another axis, viscous friction) is identified,
-its twin checked against a PID run of it, and the controllers' KPIs on the twin come within a
-hair of the machine's; a machine with Coulomb friction, which a linear twin cannot hold, fails
-its check."""
+"""The twins guide's "Make a twin of your machine" (docs/guides/twins.md), its commands run
+as a user runs them: from a copy of examples/twin/ outside the repository, each `hil` line of
+the page's first sh block in a process of its own. "The machine" (machine.toml: another axis,
+viscous friction) is identified, its twin checked against a PID run of it, and the
+controllers' KPIs on the twin come within a hair of the machine's; a machine with Coulomb
+friction, which a linear twin cannot hold, fails its check."""
 
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ import pytest
 from hil.cli.identify import SERVO_UNITS, analyse_model, analysis_json
 from hil.controllers.ident.model_file import loads_model
 from hil.core.recording.reader import read_session
+from tests.docs import blocks, page
 
 pytestmark = [pytest.mark.slow]
 
@@ -30,12 +31,9 @@ EXAMPLE = ROOT / "examples" / "twin"
 
 
 def readme_commands() -> list[list[str]]:
-    """The `hil` lines of the first sh block of the README's twin section."""
-    readme = (ROOT / "README.md").read_text()
-    section = readme[readme.index("## Make a twin of your machine"):]
-    block = re.search(r"```sh\n(.*?)```", section, re.S)
-    assert block is not None
-    lines = [line.split("  #")[0].strip() for line in block.group(1).splitlines()]
+    """The `hil` lines of the first sh block of the twins guide."""
+    first = blocks(page("guides/twins.md"), "sh")[0]
+    lines = [line.split("  #")[0].strip() for line in first.splitlines()]
     return [shlex.split(line)[1:] for line in lines if line.startswith("hil ")]
 
 
@@ -52,7 +50,7 @@ def machine(tmp_path: Path) -> Path:
     return folder
 
 
-def test_the_readme_makes_a_twin_that_fits_the_machine_and_predicts_its_kpis(machine):
+def test_the_guide_makes_a_twin_that_fits_the_machine_and_predicts_its_kpis(machine):
     commands = readme_commands()
     assert [c[:2] for c in commands[:4]] == [["servo", "identify"], ["identify",
                                               "identify.mcap"], ["servo", "run"],
@@ -67,7 +65,7 @@ def test_the_readme_makes_a_twin_that_fits_the_machine_and_predicts_its_kpis(mac
 
     model_text = (machine / "twin.json").read_text()
     assert json.loads(model_text)["fit_pct"] > 99.0
-    # the analysis `hil identify --json` prints, of the twin the README wrote (the same
+    # the analysis `hil identify --json` prints, of the twin the guide wrote (the same
     # function on the same model: identifying it a second time cost 3-9 s)
     analysis = analysis_json(analyse_model(loads_model(model_text)), SERVO_UNITS)
     resonance = max(analysis["resonances"], key=lambda r: r["peak_gain"])
@@ -76,7 +74,7 @@ def test_the_readme_makes_a_twin_that_fits_the_machine_and_predicts_its_kpis(mac
     assert analysis["integrators"] == 1  # viscous friction: the speed settles, 1 deg/s per mA
     assert analysis["integrator_gain"][0][0] == pytest.approx(1.0, rel=0.02)
 
-    # the README's twin check's report (its --json form: tests/servo/test_twin_check.py)
+    # the guide's twin check's report (its --json form: tests/servo/test_twin_check.py)
     fits = re.findall(r"^  (\w+) +fit +([\d.]+) %", printed["twin"], re.M)
     assert [name for name, _ in fits] == ["position_deg", "velocity_deg_s"], printed["twin"]
     assert all(float(fit) > 99.0 for _, fit in fits)

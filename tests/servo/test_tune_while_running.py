@@ -7,7 +7,6 @@ import os
 import subprocess
 import sys
 import threading
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,6 +15,7 @@ from hil import api
 from hil.core.recording.reader import read_session
 from hil.core.tuning import TunableSpec, Tuner
 from tests.cli import hil_here
+from tests.docs import block
 
 REFERENCE = "sine:amplitude=10,frequency=2"
 PERIOD_S = 500e-6
@@ -193,11 +193,8 @@ def test_report_and_export_show_the_changes(pid_runs, capsys):
         "0.2,200000000,safety.current_limit_mA,1000.0,150.0,mA,test-client,400"]
 
 
-def test_the_readme_example_tunes_a_run_from_outside_the_repository(tmp_path):
-    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
-    section = readme[readme.index("## Tune while it runs"):]
-    start = section.index("```python\n") + len("```python\n")
-    code = section[start:section.index("\n```", start)]
+def test_the_guides_example_tunes_a_run_from_outside_the_repository(tmp_path):
+    code = block("guides/tuning.md", "python", "tuner_started=tune")
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
                           text=True, env=env, timeout=600)
