@@ -78,10 +78,10 @@ def test_the_guide_makes_a_twin_that_fits_the_machine_and_predicts_its_kpis(mach
     fits = re.findall(r"^  (\w+) +fit +([\d.]+) %", printed["twin"], re.M)
     assert [name for name, _ in fits] == ["position_deg", "velocity_deg_s"], printed["twin"]
     assert all(float(fit) > 99.0 for _, fit in fits)
-    # and the README says the figures the commands print (hil/core/kpi_text.py's fit_text)
+    # and the guide says the figures the commands print (hil/core/kpi_text.py's fit_text)
     said = re.search(r"\| fit \| \| ([\d.]+) % held out; twin check of the PID run: ([\d.]+) % "
-                     r"position, ([\d.]+) % velocity \|", (ROOT / "README.md").read_text())
-    assert said, "the README's fit row"
+                     r"position, ([\d.]+) % velocity \|", page("guides/twins.md"))
+    assert said, "the guide's fit row"
     held_out = re.search(r"^fit_pct: +([\d.]+) %", printed["identify"], re.M)
     assert held_out and said.groups() == (held_out.group(1), *(fit for _, fit in fits)), \
         (said.groups(), printed["identify"][:600], fits)
