@@ -234,7 +234,7 @@ def soak_servo(seconds: float, seed: int, tmp: Path, lead: float = 8.0) -> dict[
 
 #: the noisy line's cases: the share of the bytes flipped each way (0: a clean line)
 NOISE_RATES = (0.0, 1 / 5000, 1 / 500, 0.02)
-#: over RTU poll what the bench needs (as the README advises): the apparent powers, levels at
+#: over RTU poll what the bench needs (as the bench guide advises): the apparent powers, levels at
 #: 10 Hz
 RTU_POLLS = {"meter": {"poll": ["va_l1", "va_l2", "va_l3", "total_va"]},
              "sampling": {"levels_every": 10}}

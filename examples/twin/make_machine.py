@@ -1,4 +1,4 @@
-"""Writes machine_axis.json: "the machine" of the README's "Make a twin of your machine", an
+"""Writes machine_axis.json: "the machine" of the twins guide's "Make a twin of your machine" (docs/guides/twins.md), an
 axis other than the servo paper's, for hil's drive emulator to stand for.
 
 A two-mass axis (motor and load coupled by a shaft) whose load is lighter than the published
@@ -51,7 +51,7 @@ def two_mass_axis(initial_gain: float = INITIAL_GAIN, load_ratio: float = LOAD_R
 
 def main() -> None:
     out = Path(__file__).with_name("machine_axis.json")
-    out.write_text(axis_model_file(two_mass_axis(), "the machine of the README's twin "
+    out.write_text(axis_model_file(two_mass_axis(), "the machine of the twins guide's "
                                    "example: a two-mass axis (examples/twin/make_machine.py)"))
     print(f"wrote {out}")
 

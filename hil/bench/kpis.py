@@ -73,7 +73,7 @@ class BenchRunKpis(EnergyKpis):
     disturbed: bool | None = kpi(limit=False, optional=True)
 
     def document(self) -> dict[str, Any]:
-        """The controller and cycles first, as the README lists them."""
+        """The controller and cycles first, as the bench guide lists them."""
         doc = super().document()
         return {"controller": doc.pop("controller"), "cycles": doc.pop("cycles"), **doc}
 

@@ -3,7 +3,7 @@ dataclasses: the names a ``--limit`` may use, the JSON keys and the JUnit proper
 from their fields.
 
 * :class:`TrackingKpis` - one axis' tracking after ``settle_s`` (:mod:`hil.servo.tracking`);
-* :class:`ServoKpis` - a run that names no axis: the flat document the README documents;
+* :class:`ServoKpis` - a run that names no axis: the flat document docs/guides documents;
 * :class:`AxisKpis`, :class:`ContourKpis`, :class:`AxesKpis` - a run on named axes: each axis'
   KPIs under ``axes.NAME``, a circle's under ``contour``.
 """
@@ -31,7 +31,7 @@ class TrackingKpis(Kpis):
 
 @dataclass
 class ServoKpis(Kpis):
-    """A run on one axis, the README's keys first, then context."""
+    """A run on one axis, the documented keys first, then context."""
 
     controller: str = kpi("", limit=False)
     max_error_deg: float | None = kpi()

@@ -292,7 +292,7 @@ class ServoExperiment(Experiment[ServoPlan]):
 
     def kpis(self, session: Session, wall_s: float, error: HilError | None
              ) -> ServoKpis | AxesKpis:
-        """The ``--json`` document: the keys the README documents first, then context."""
+        """The ``--json`` document: the documented keys first, then context."""
         return self._lone_kpis(session, wall_s) if self.planned.lone else \
             self._axes_kpis(session, wall_s)
 
