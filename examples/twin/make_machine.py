@@ -1,5 +1,5 @@
-"""Writes machine_axis.json: "the machine" of the twins guide's "Make a twin of your machine" (docs/guides/twins.md), an
-axis other than the servo paper's, for hil's drive emulator to stand for.
+"""Writes machine_axis.json: "the machine" of the twins guide's "Make a twin of your machine"
+(docs/guides/twins.md), an axis other than the servo paper's, for hil's drive emulator to stand for.
 
 A two-mass axis (motor and load coupled by a shaft) whose load is lighter than the published
 axis': the load-to-motor inertia ratio is 2 where the published axis' is about 3 (its rigid-
