@@ -14,8 +14,9 @@ from __future__ import annotations
 
 import re
 import xml.etree.ElementTree as ET
+from typing import Any
 
-from canopen.objectdictionary import ODArray, ODRecord, ODVariable, ObjectDictionary
+from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable
 from canopen.objectdictionary.datatypes import (
     BOOLEAN,
     INTEGER8,
@@ -163,14 +164,17 @@ def _variable(name: str, index: int, subindex: int, data_type: int,
     var.access_type = ACCESS.get((_text(flags, "Access") or "ro").lower(), "ro")
     var.pdo_mappable = _text(flags, "PdoMapping") is not None
     if data:
-        raw = bytes.fromhex(data)
-        if data_type == VISIBLE_STRING:
-            var.default = raw.decode("latin-1")
-        elif data_type in (OCTET_STRING,):
-            var.default = raw
-        elif data_type in (REAL32, REAL64):
-            var.default = var.decode_raw(raw)
-        else:
-            signed = data_type in (INTEGER8, INTEGER16, INTEGER32, INTEGER64)
-            var.default = int.from_bytes(raw, "little", signed=signed)
+        var.default = _decoded(var, bytes.fromhex(data))
     return var
+
+
+def _decoded(var: ODVariable, raw: bytes) -> Any:
+    """DefaultData's bytes as the value of ``var``'s type."""
+    if var.data_type == VISIBLE_STRING:
+        return raw.decode("latin-1")
+    if var.data_type == OCTET_STRING:
+        return raw
+    if var.data_type in (REAL32, REAL64):
+        return var.decode_raw(raw)
+    signed = var.data_type in (INTEGER8, INTEGER16, INTEGER32, INTEGER64)
+    return int.from_bytes(raw, "little", signed=signed)
