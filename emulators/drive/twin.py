@@ -286,7 +286,7 @@ def _import(path: str, node_id: int) -> ObjectDictionary:
         od: ObjectDictionary = _read_od(path, node_id)
     except (OSError, ValueError, KeyError, configparser.Error) as exc:
         reason = getattr(exc, "strerror", None) or str(exc).splitlines()[0]
-        raise EmulatorSetupError(f"EDS {path}: cannot read it: {reason}") from None
+        raise EmulatorSetupError(f"{_kind(path)} {path}: cannot read it: {reason}") from None
     finally:
         eds_log.setLevel(level)
     return od
@@ -294,10 +294,20 @@ def _import(path: str, node_id: int) -> ObjectDictionary:
 
 def _read_od(path: str, node_id: int) -> ObjectDictionary:
     """canopen's reading of the file's text, in its encoding (one that is not UTF-8, a
-    vendor's comment in Windows-1252, read as Latin-1)."""
+    vendor's comment in Windows-1252, read as Latin-1); an ESI file's (``.xml``) CoE objects
+    as the same dictionary."""
+    if path.lower().endswith(".xml"):
+        from hil.emulators.ethercat.esi_dictionary import od_from_esi
+
+        return od_from_esi(path, node_id)
     with open(path, encoding=description_encoding(path)) as text:
         od: ObjectDictionary = import_od(text, node_id)
     return od
+
+
+def _kind(path: str) -> str:
+    """What the file is, as its lines name it: ``ESI`` (an EtherCAT ``.xml``) or ``EDS``."""
+    return "ESI" if path.lower().endswith(".xml") else "EDS"
 
 
 def _value(var: ODVariable) -> object:
@@ -355,7 +365,7 @@ class _Twin:
         self.motor_turns_per_turn = Fraction(1)  # 0x6091's gear
 
     def error(self, text: str) -> EmulatorSetupError:
-        return EmulatorSetupError(f"EDS {self.path}: {text}")
+        return EmulatorSetupError(f"{_kind(self.path)} {self.path}: {text}")
 
     def problem(self, text: str) -> None:
         self.problems.append(text)
@@ -363,7 +373,8 @@ class _Twin:
     def refusal(self, deciding: str | None = None) -> EmulatorSetupError:
         """The twin refused: the deciding reason first, then every other problem, one a line."""
         lines = ([deciding] if deciding else []) + self.problems
-        return EmulatorSetupError("\n".join(f"EDS {self.path}: {line}" for line in lines))
+        return EmulatorSetupError("\n".join(f"{_kind(self.path)} {self.path}: {line}"
+                                           for line in lines))
 
     def take_hooks(self) -> None:
         """hil's manufacturer objects (:data:`HOOKS`) where the file leaves them room (the

@@ -81,7 +81,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ed.add_argument("--esi", metavar="F.xml",
                     help="with --ethercat: a vendor's ESI file the slaves' SII EEPROM is built "
                     "from (identity, name, mailbox, SyncManagers, default PDOs; default: "
-                    "hil's, from the drive's dictionary)")
+                    "hil's, from the drive's dictionary); where it has a <Dictionary> and "
+                    "no --eds is given, its CoE objects are the twin's too, as --eds F "
+                    "would make them (--set gives what it leaves empty)")
     ed.add_argument("--write-eds", metavar="F.eds",
                     help="write the emulated drive's object dictionary as an EDS file (for "
                     "canopen's import_od, CANopen tools, `[master] eds`) and exit")
@@ -269,6 +271,8 @@ def emulate_drive_command(args: argparse.Namespace) -> int:
     for flag, key, path in (("--model", "model", args.model), ("--eds", "eds", args.eds)):
         if path is not None:
             layers.append(Layer(flag, {"emulator": {key: path}}))
+    if args.esi is not None and args.eds is None and _esi_has_objects(args.esi):
+        layers.append(Layer("--esi", {"emulator": {"eds": args.esi}}))
     if args.set:
         layers.append(Layer("--set", {"emulator": {"set": dict(args.set)}}))
     emulator = parse_drive_config(lay(layers), args.config or SOURCE, text).emulator
@@ -277,7 +281,8 @@ def emulate_drive_command(args: argparse.Namespace) -> int:
             raise UsageError(f"--write-eds writes hil's own dictionary; the twin's is "
                              f"{emulator.eds} (--eds, emulator.eds) already")
         return write_eds(emulator, args.write_eds)
-    if emulator.eds is not None and not twin_report(emulator, args.socketcand is None):
+    if emulator.eds is not None and not twin_report(
+            emulator, args.socketcand is None and args.ethercat is None):
         return 0
     if args.ethercat is not None:
         if args.socketcand is not None or args.can_log:
@@ -382,6 +387,14 @@ def _warn_exposed(server: str, host: str, reach: str) -> None:
     warning = exposure(server, host, reach)
     if warning is not None:
         warn(warning)
+
+
+def _esi_has_objects(path: str) -> bool:
+    """Whether the ESI file at ``path`` describes its CoE objects (a ``<Dictionary>``): then
+    it is the twin's dictionary too, as an EDS is with --eds."""
+    from hil.emulators.ethercat.esi_dictionary import esi_dictionary
+
+    return esi_dictionary(path) is not None
 
 
 def twin_report(emulator: Any, full: bool) -> bool:
