@@ -22,8 +22,9 @@ no read-back can tell it from a healthy one.
    requests, retries per thousand requests, how the session ended and its realtime factor.
    The target: a flipped byte costs a retry, never the session.
 
-``--quick``: one bench machine cycle (28 s of session time) without the no-fault baseline, a 2 s
-servo run after a 3 s lead, and 0.5 s noisy-line sessions, clean and 2 % only (seconds; figures
+``--quick``: one bench machine cycle (28 s of session time) without the no-fault baseline, a 1 s
+servo run after a 1.5 s lead (the final ``silent`` alone), and 0.1 s noisy-line sessions, clean
+and 2 % only (a few dozen requests: the 2 % line still costs retries; seconds; figures
 not worth quoting, and the verdict does not set the exit status: a fault missed on a loaded
 machine is a figure there).
 """
@@ -299,16 +300,16 @@ def main() -> int:
                              "one 28 s cycle with --quick)")
     parser.add_argument("--servo-s", type=float,
                         help="servo run, seconds of faults (default 10, the issue's soak: 60; "
-                             "2 with --quick)")
+                             "1 with --quick)")
     parser.add_argument("--noisy-s", type=float,
-                        help="session time of each noisy-line case, seconds (default 5; 0.5 "
+                        help="session time of each noisy-line case, seconds (default 5; 0.1 "
                              "with --quick)")
     parser.add_argument("--seed", type=int, default=1)
     add_quick(parser)
     args = parser.parse_args()
     args.bench_minutes = args.bench_minutes or (CYCLE_S / 60 if args.quick else 2.0)
-    args.servo_s = args.servo_s or (2.0 if args.quick else 10.0)
-    args.noisy_s = args.noisy_s or (0.5 if args.quick else 5.0)
+    args.servo_s = args.servo_s or (1.0 if args.quick else 10.0)
+    args.noisy_s = args.noisy_s or (0.1 if args.quick else 5.0)
     with tempfile.TemporaryDirectory() as directory:
         tmp = Path(directory)
         print(f"== bench: lockstep, {args.bench_minutes:.3g} min of session time, seed "

@@ -8,7 +8,7 @@ publishing hil's bench emulator as a HilBench resource of the place ``bench``.
    labgrid's import, the connection, acquire and release to the run);
 3. what importing labgrid alone adds to a process (``import hil.lab.place``).
 
-The machine is shared: run it alone when the figures matter. ``--quick``: 5 holds, 2 runs of
+The machine is shared: run it alone when the figures matter. ``--quick``: 2 holds, 1 run of
 each (seconds; figures not worth quoting).
 """
 
@@ -86,7 +86,7 @@ def main() -> None:
     parser.add_argument("--runs", type=int, help="runs of each kind (default 10)")
     add_quick(parser)
     args = parser.parse_args()
-    fill_defaults(args, {"holds": (50, 5), "runs": (10, 2)})
+    fill_defaults(args, {"holds": (50, 2), "runs": (10, 1)})
     with start_bench_emulator() as bench, tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         with local_lab(folder / "lab", EXPORTER_YAML.format(url=bench.url),

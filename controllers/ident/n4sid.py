@@ -52,7 +52,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from hil.controllers.ident.defaults import BLOCK_ROW_CANDIDATES, DEFAULT_MAX_ORDER
 
@@ -272,6 +271,9 @@ def n4sid(
 
     su, sy = u2.std(axis=0), y2.std(axis=0)
     us, ys = u2 / su, y2 / sy  # unit variance: the weighting treats every signal alike
+    # imported here: every servo process reads model files (this module) and never identifies
+    from threadpoolctl import threadpool_limits
+
     with threadpool_limits(limits=1, user_api="blas"):
         rows = _HankelRows(_lq_factor(us, ys, i), i, m, ny)
     Oi, P_uf = _oblique(rows.y(i, 2 * i), rows.u(i, 2 * i), rows.past(i))
