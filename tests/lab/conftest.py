@@ -13,7 +13,7 @@ import itertools
 import os
 import subprocess
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -102,13 +102,27 @@ class Lab:
         with pytest.MonkeyPatch.context() as patch:  # a session names its user at the start
             if user is not None:
                 patch.setenv("LG_USERNAME", user)
-            session = start_session(self.address)
+            session = self._session(start_session)
         try:
             request = getattr(pb2, f"{method}Request")(**fields)
             return session.loop.run_until_complete(getattr(session.stub, method)(request))
         finally:
             session.loop.run_until_complete(session.stop())
             session.loop.run_until_complete(session.close())
+
+    def _session(self, start: Callable[[str], Any]) -> Any:
+        """A client session to the coordinator. The coordinator refuses a stream from a peer
+        address it still lists (``assert peer not in self.clients``): on a loaded machine the
+        stream a call closed just before may not be gone yet, so a refused start is tried
+        again (a few times, 0.2 s apart)."""
+        from labgrid.remote.client import ServerError
+
+        for _ in range(4):
+            try:
+                return start(self.address)
+            except ServerError:
+                time.sleep(0.2)
+        return start(self.address)
 
     def acquire(self, place: str, user: str | None = None) -> None:
         self.rpc("AcquirePlace", user, placename=place)
