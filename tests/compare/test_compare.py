@@ -179,6 +179,7 @@ def test_a_truncated_baseline_is_compared_over_what_was_read(folder, capsys):
     assert nothing.returncode == 2 and "nothing to compare" in nothing.stderr
 
 
+@pytest.mark.realtime  # on the wall clock at 2 kHz: with the other real-time tests, alone
 def test_real_time_is_interpolated_onto_the_baselines_ticks(folder, capsys):
     run = hil(folder, "servo", "run", "--controller", "my_controllers.py:Pd", "--duration",
               "0.3", "--realtime", "--out", "wall.mcap", "--quiet")
