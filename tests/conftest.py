@@ -58,8 +58,10 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 
 def _scheduling() -> tuple[list[tuple[int, int]], set[int]]:
     """Each thread of this process' (id, policy), and the process' CPUs."""
-    threads = [(int(tid), os.sched_getscheduler(int(tid))) for tid in os.listdir("/proc/self/task")
-               if os.path.exists(f"/proc/self/task/{tid}")]
+    threads = []
+    for tid in map(int, os.listdir("/proc/self/task")):
+        with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
+            threads.append((tid, os.sched_getscheduler(tid)))
     return threads, os.sched_getaffinity(0)
 
 
