@@ -73,6 +73,7 @@ def test_a_metadata_record_nobody_described_is_refused():
     assert session_reference.describe_metadata("realtime.emulator")
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_the_site_builds_strictly_and_fetches_nothing(tmp_path):
     """`mkdocs build --strict` (what `make docs` runs), into a folder of its own: every link,
     anchor, page and API object resolves; no page asks the network for a font or a script."""

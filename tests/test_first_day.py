@@ -145,6 +145,7 @@ def readable(text: str) -> None:
     assert not LONG_FLOAT.search(text), LONG_FLOAT.search(text)
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_hil_report_and_the_summary_read_as_text_with_figures_that_agree(tmp_path, capfd):
     """The KPIs in ``hil report`` are figures, not Python reprs; the loop's whole tick is
     ``tick`` (``tick_us``), apart from the controller's compute time (the KPI ``step_us``); and
@@ -211,6 +212,7 @@ SHOW_PROGRESS = [("demo",), ("bench", "run"), ("bench", "identify"), ("servo", "
                  ("sweep", "servo"), ("resim",), ("twin", "check"), ("doctor",)]
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_every_command_that_shows_progress_takes_quiet(tmp_path, capfd):
     """``hil resim ... --quiet`` runs (it was refused), and so does every command that shows
     progress; ``hil doctor --quiet`` prints its report without the lines that say which rate
@@ -231,6 +233,7 @@ def test_every_command_that_shows_progress_takes_quiet(tmp_path, capfd):
 
 # -- the README's resim example, and a stability refusal that names the gain ---------------------
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_the_readmes_resim_example_runs_and_an_unstable_gain_is_named(tmp_path, capfd):
     """The README retunes the recorded PID with a kp in its range (0-100 rpm/deg) that holds
     the loop; a kp outside the range is refused naming it and the range, one inside it that
@@ -260,6 +263,7 @@ def test_the_readmes_resim_example_runs_and_an_unstable_gain_is_named(tmp_path, 
 
 # -- references: every kind named, and strokes both ways -----------------------------------------
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_every_reference_kind_is_listed_and_a_stroke_moves_either_way(tmp_path, capfd):
     done = hil(tmp_path, "servo", "run", "--controller", "pid", "--reference", "square:x=1")
     assert one_error_line(done).endswith(
@@ -285,6 +289,7 @@ def test_every_reference_kind_is_listed_and_a_stroke_moves_either_way(tmp_path, 
 
 # -- hil bench run --duration --------------------------------------------------------------------
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_a_bench_run_lasts_the_duration_it_is_given(tmp_path, capfd):
     """``--duration S`` runs S seconds of session time instead of whole 28 s cycles (the KPI
     cycles: the share it lasted); its text reads as text; with --cycles it is refused."""
@@ -332,6 +337,7 @@ def drawn_figures(monkeypatch):
     return figures
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_a_servo_png_has_the_kpi_table_the_limit_in_its_legend_and_the_settle_window(
         tmp_path, capfd, monkeypatch):
     """As the bench PNG: the KPI table (figures as text); the current limit's red lines are in
@@ -468,6 +474,7 @@ def test_a_percentage_without_its_sign(hil_drive, hil_baseline):
 '''
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_hil_baseline_takes_one_sided_tolerances_and_fails_as_one_clean_assertion(tmp_path):
     """A user's tests run by pytest from their folder: errors that got smaller pass under
     ``worse:1%``, errors that got larger fail with the comparison's table; a tolerance that
@@ -493,6 +500,7 @@ def test_hil_baseline_takes_one_sided_tolerances_and_fails_as_one_clean_assertio
 
 # -- twin-check figures that agree: terminal, PNG, JSON ------------------------------------------
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_a_twin_checks_fit_reads_the_same_in_its_text_and_its_png(tmp_path, capfd, monkeypatch):
     """A machine a hair off the emulator (viscous friction 0.0003 mA per deg/s) fits its twin
     by 99.97 % in position: the terminal and the PNG both say so, two decimals cut toward

@@ -152,6 +152,7 @@ def test_every_topic_hil_records_decodes_column_by_column_as_message_by_message(
     hold_against_per_message(fields, payloads, data.draw(laid_among_other_bytes(payloads)))
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(data=st.data())
 def test_any_flat_schema_decodes_column_by_column_as_message_by_message(data):
@@ -208,6 +209,7 @@ def damaged(payload: bytes, how: str, at: int) -> bytes:
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(data=st.data(), topic=st.sampled_from(sorted(SCHEMAS)), how=st.sampled_from(["cut",
                                                                                    "flip"]))
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_a_topic_with_a_damaged_message_reads_as_message_by_message(data, topic, how):
     fields = SCHEMAS[topic]
     encode = CdrEncoder(fields).encode

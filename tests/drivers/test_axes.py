@@ -108,6 +108,7 @@ def test_a_stop_takes_every_axis_to_its_safe_state_in_the_same_cycles():
     group.close()
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_two_independent_slaves_share_one_sync_and_answer_their_own_master():
     url = f"virtual://axes-{uuid.uuid4().hex}"
     slaves = [serve(url, node_id) for node_id in (3, 4)]

@@ -109,6 +109,7 @@ class SerialPeer:
 ONE_TRY_S = 1.0
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_a_late_answer_is_passed_over_by_its_transaction_id_on_the_same_connection():
     """The first try of a request gets no answer in time; its answer comes just before the
     second try's, in one segment: the second try takes its own, by id."""
@@ -129,6 +130,7 @@ def test_a_late_answer_is_passed_over_by_its_transaction_id_on_the_same_connecti
         peer.close()
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_a_late_answer_split_across_the_timeout_keeps_the_connection_in_step():
     """Half of the first try's late frame before that try gives up, the rest during the next
     try: the frame is completed and passed over, the next try's answer found (what was
@@ -150,6 +152,7 @@ def test_a_late_answer_split_across_the_timeout_keeps_the_connection_in_step():
         peer.close()
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_a_request_given_up_on_closes_its_connection():
     """No backlog of requests given up on builds on the peer's side: the next request goes on
     a new connection."""
@@ -212,6 +215,7 @@ def test_foreign_and_garbled_frames_are_passed_over_in_the_same_try():
             peer.close()
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_a_garbled_answer_is_a_lost_one_asked_again():
     def script(n: int, _frame: bytes) -> Reply:
         answer = bytearray(rtu(2, registers_pdu(0x4000, n)))

@@ -141,6 +141,7 @@ def test_split_exchange_gives_the_same_trajectory_as_exchange():
     two.close()
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_safe_state_quick_stops_then_disables_and_is_idempotent():
     events = Events()
     master = emulated(events=events)
@@ -303,6 +304,7 @@ def test_prime_is_one_cycle_that_holds_the_axis_where_it_stands(mode):
     master.close()
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_a_drive_stuck_in_its_state_gives_an_error_naming_the_state():
     """A canopen LocalNode serving a 402 dictionary answers SDO but has no state machine."""
     channel = f"stuck-{uuid.uuid4().hex}"
@@ -377,6 +379,7 @@ def test_a_period_too_short_for_the_bus_is_warned_about():
     (0x080, [], "a SYNC (0x080)"),
     (0x77F, [0x05], "a heartbeat with this master's node id 127 (0x77F)"),
 ])
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_another_master_on_the_bus_stops_the_exchange(cob_id, data, what):
     events = Events()
     master = emulated(events=events)

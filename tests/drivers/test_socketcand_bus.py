@@ -57,6 +57,7 @@ def test_frames_both_ways_and_several_in_one_write(server):
         bus.shutdown()
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_recv_frame_skips_error_and_29_bit_frames():
     port, thread = scripted_gateway([b"< error 20000004 1.0 >< frame 1ABCDEF0 1.0 01 >"
                                      b"< frame 281 1.5 0A0B >"])
@@ -129,6 +130,7 @@ def scripted_gateway(replies_after_rawmode: list[bytes], close_after: bool = Fal
     return listener.getsockname()[1], thread
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_frames_in_the_same_read_as_the_handshake_and_split_across_reads_are_kept():
     port, thread = scripted_gateway([b"< frame 181 1.000001 0102 >< frame 2",
                                      b"81 1.000002 03 04 >< ok >< error 20000004 1.0 >"])

@@ -63,6 +63,7 @@ def test_hils_emulator_takes_the_remapping_and_the_master_derives_the_velocity()
     assert feedback.velocity_deg_s == pytest.approx(velocity, abs=2 * 360 / 2**20 / 500e-6)
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_a_slave_hil_did_not_write_is_remapped_to_one_tpdo():
     url = f"virtual://layout-{uuid.uuid4().hex}"
     network, slave = serve(url, 3)

@@ -46,6 +46,7 @@ def config(folder: Path, name: str, text: str) -> str:
     ("[bus]\nbitrate = 500000\n", 2, False),            # half the bit rate: twice the time
     ("[master]\ncycle_period_us = 1000\n", 3, False),   # 3 axes at 1 kHz: 1033 us
 ])
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_the_plan_and_the_refusal_give_one_figure(tmp_path, capsys, drive_toml, axes, outside):
     """The first case from outside (``outside``), the others in this process."""
 

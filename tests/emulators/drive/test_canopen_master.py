@@ -33,6 +33,7 @@ def walk_to_operation_enabled(network: canopen.Network) -> canopen.BaseNode402:
     return node
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_base_node_402_enables_the_emulator_and_reads_statusword_and_position():
     channel = f"canopen-master-{uuid.uuid4().hex}"
     node_bus = can.Bus(interface="virtual", channel=channel)
@@ -65,6 +66,7 @@ def test_base_node_402_enables_the_emulator_and_reads_statusword_and_position():
         node_bus.shutdown()
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_base_node_402_homes_the_emulator_through_its_pdos():
     """canopen's BaseNode402 homes it as its ``homing()`` does (its mode switch, the start
     bit in its periodic RPDO, the statusword from its TPDO read as ``Homing.STATES``) on

@@ -79,6 +79,7 @@ def edited(tmp_path: Path, old: str, new: str, name: str = "edited.eds") -> Path
     return path
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_scan_of_the_twin_reads_the_eds_identity_scaling_modes_and_pdos(tmp_path, twin,
                                                                         capsys):
     table = hil(tmp_path, "drive", "scan", twin.url)

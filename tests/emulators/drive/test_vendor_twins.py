@@ -96,6 +96,7 @@ def drive_in(drive: Drive, mode: str, turn: int) -> None:
         assert abs(seen[-1]["position"] - home) <= 1
 
 
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
 @pytest.mark.parametrize("name", sorted(TWINNED))
 def test_each_vendor_file_is_twinned_and_driven_in_each_mode_it_lists(name):
     values, modes = TWINNED[name]
