@@ -24,6 +24,12 @@ shorter than the master's request timeout is answered at once, and where the emu
 leave the master waiting (a dropped answer, a longer delay, an unknown unit, and over RTU a
 closed link or a corrupt frame) it answers exception 0x0B at once, as a Modbus gateway whose
 device did not answer in time. A silence then only ever means a paused or dead emulator.
+
+Read Device Identification (FC43) is answered before any fault too: a lockstep master asks it
+before its session starts the plant and the fault schedule from t = 0, so a fault played on
+it would play on the emulator's own clock (a loaded machine slow to start the run: a fault
+recorded at a time the run never had, or the run taken for a real bench's and put on the wall
+clock).
 """
 
 from __future__ import annotations
@@ -43,6 +49,8 @@ ILLEGAL_FUNCTION = 0x01
 ILLEGAL_ADDRESS = 0x02
 ILLEGAL_VALUE = 0x03
 GATEWAY_TARGET_FAILED = 0x0B
+#: FC43, "encapsulated interface transport" (Read Device Identification, MEI type 0x0E)
+IDENTIFICATION = 0x2B
 
 Answer = Callable[[int, bytes], "bytes | None"]  # (unit, request PDU) -> response PDU | None
 
@@ -182,8 +190,9 @@ class ModbusServer:
         if clock is not None and unit == clock.unit:
             return clock.answer(pdu, peer), False, False
         patience = clock.master_timeout_s if clock is not None else self.loop_timeout_s
-        rtu = self.transport == "rtu"
         no_answer = exception_pdu(pdu[0], GATEWAY_TARGET_FAILED)
+        if pdu[0] == IDENTIFICATION:
+            return self._unfaulted(unit, pdu, patience, no_answer), False, False
         for fault in self._active("delay", unit):
             self.faults.hit(fault)
             late_s = fault.params["ms"] / 1000
@@ -191,6 +200,7 @@ class ModbusServer:
                 time.sleep(late_s)
             elif late_s >= patience:
                 return no_answer, False, False
+        rtu = self.transport == "rtu"
         for fault in self._active("close", unit):
             self.faults.hit(fault)
             if patience is not None and rtu:
@@ -208,12 +218,16 @@ class ModbusServer:
             if patience is not None and rtu:
                 return no_answer, False, False
             corrupt = True
+        return self._unfaulted(unit, pdu, patience, no_answer), corrupt, False
+
+    def _unfaulted(self, unit: int, pdu: bytes, patience: float | None, no_answer: bytes
+                   ) -> bytes | None:
+        """The device's own answer: for an unknown unit silence (the RTU way, while no
+        master holds the time) or ``no_answer``."""
         try:
-            return self._answer(unit, pdu), corrupt, False
+            return self._answer(unit, pdu)
         except UnknownUnitError:
-            if self.silent_unknown and patience is None:
-                return None, False, False
-            return no_answer, corrupt, False
+            return None if self.silent_unknown and patience is None else no_answer
 
     def _active(self, kind: str, unit: int) -> list[Fault]:
         return [f for f in self.faults.active(kind) if f.params["unit"] in (0, unit)]

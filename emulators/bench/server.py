@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from hil.emulators.bench.modbus_server import (
+    IDENTIFICATION,
     ILLEGAL_ADDRESS,
     ILLEGAL_FUNCTION,
     ILLEGAL_VALUE,
@@ -63,7 +64,6 @@ UNKNOWN_UNIT_POLICIES = ("auto", "exception", "silent")
 #: and writes (FC05, FC15) coils; the SDM630 meter and the level sensors read input registers;
 #: each identifies itself (FC43)
 FUNCTIONS = {"relays": (1, 5, 15, 43), "meter": (4, 43), "levels": (4, 43)}
-IDENTIFICATION = 0x2B  # FC43, "encapsulated interface transport"
 READ_DEVICE_ID = 0x0E  # its MEI type "read device identification"
 #: the models the devices name (identification object 5, ModelName)
 MODELS = {"relays": "relay module", "meter": "power meter (SDM630 layout)",

@@ -4,6 +4,7 @@ hil/protocols/bench_clock.py, the exceptions, one master at a time."""
 
 from __future__ import annotations
 
+import socket
 import time
 
 import pytest
@@ -177,22 +178,49 @@ def test_an_emulator_on_its_wall_clock_refuses_the_time():
 
 
 def test_a_device_that_gives_no_identity_is_none_and_costs_no_retry():
-    """The master's question (drivers/bench/emulator_clock.py): no answer at all (a drop
-    fault, the emulator on its wall clock) is None, after one patient try, and the bench's
+    """The master's question (drivers/bench/emulator_clock.py): no answer at all (a peer that
+    takes the connection and never answers) is None, after one patient try, and the bench's
     retry count is left as it was."""
     from hil.drivers.bench.emulator_clock import identify
     from hil.drivers.bench.modbus import ModbusLink, parse_bus_url
+
+    with socket.create_server(("127.0.0.1", 0)) as silent:  # the kernel takes the connection
+        link = ModbusLink(parse_bus_url(f"modbus-tcp://127.0.0.1:{silent.getsockname()[1]}"),
+                          0.1, 2)
+        try:
+            assert identify(link, 1, 0.3) is None
+            assert link.retries == 0 and (link.timeout_s, link.attempts) == (0.1, 2)
+        finally:
+            link.close()
+
+
+@pytest.mark.parametrize(("spec", "answer"), [
+    ("drop@0", "exception 0x0b"), ("delay@0:ms=300", "exception 0x0b"),
+    ("exception@0:code=6", "exception 0x06")])
+def test_the_identity_is_answered_ahead_of_faults_on_the_emulators_own_clock(spec, answer):
+    """A lockstep master asks who the emulator is while the plant still runs on the
+    emulator's own clock (``auto``: its wall clock, for however long a loaded machine takes to
+    start the run): no fault plays on that question, so none is recorded at a time the run
+    never had, and the run is not taken for a real bench's. Its session then plays the fault
+    from its own t = 0 (the first poll: a drop or a delay over the request timeout answered
+    exception 0x0B at once)."""
+    from hil.drivers.bench.emulator_clock import EmulatorClock, identify
+    from hil.drivers.bench.modbus import LinkError, ModbusLink, parse_bus_url
     from hil.emulators.bench.server import EmulatedBench
     from hil.emulators.faults import parse_fault
 
     config = load_bench_config()
-    bench = EmulatedBench(config.plant, config.server, [parse_fault("drop@0:unit=1")])
-    link = ModbusLink(parse_bus_url(bench.serve_tcp()), 0.1, 2)
-    bench.run_realtime()
+    bench = EmulatedBench(config.plant, config.server, [parse_fault(spec)])
+    link = ModbusLink(parse_bus_url(bench.serve_tcp()), 0.1, 1)
+    bench.follow("auto")
     try:
-        assert identify(link, 1, 0.3) is None
-        assert link.retries == 0 and (link.timeout_s, link.attempts) == (0.1, 2)
-        assert str(identify(link, 2, 30.0)) == "hil hil-bench-emulator 2.0"  # any load
+        assert str(identify(link, 1, 10.0)) == "hil hil-bench-emulator 2.0"
+        assert bench.faults.events == []
+        EmulatorClock(link).start(0.1)
+        with pytest.raises(LinkError, match=answer):
+            link.read_coils(1, 0, 4)
+        assert [(e["fault"], e["t_s"]) for e in bench.faults.events] == \
+            [(str(parse_fault(spec)), 0.0)]
     finally:
         link.close()
         bench.stop()
