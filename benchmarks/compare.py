@@ -33,12 +33,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchkit import add_quick, fill_defaults
+from benchkit import REPO, add_quick, extract_code, fill_defaults, git
 
 from hil.compare.baseline import write_baseline
 from hil.core.html_report import write_session_html
 
-REPO = Path(__file__).resolve().parents[1]
 SIGNALS = ["/drive/feedback:position_deg", "/drive/command:command_mA"]
 #: the commit that brought the column-wise reading: the code before is its parent's
 COLUMN_READER = "hil/core/recording/cdr_columns.py"
@@ -83,20 +82,14 @@ def timed(args: list[str], cwd: Path, code: Path) -> tuple[float, float, float]:
 def code_before(folder: Path) -> tuple[Path | None, str]:
     """The code before sessions were read column by column (the parent of the commit that
     added :data:`COLUMN_READER`), extracted into ``folder``; (None, why not) without it."""
-    def git(*args: str) -> str:
-        return subprocess.run(["git", "-C", str(REPO), *args], capture_output=True, text=True,
-                              check=True).stdout.strip()
-
     try:
         added = git("log", "--diff-filter=A", "--format=%H", "HEAD", "--", COLUMN_READER)
         if not added:
             return None, f"no commit adds {COLUMN_READER} in this checkout's history"
         ref = git("rev-parse", "--short", f"{added.splitlines()[-1]}^")
-        archive = subprocess.Popen(["git", "-C", str(REPO), "archive", ref, "hil", "drivers",
-                                    "emulators", "controllers"], stdout=subprocess.PIPE)
-        subprocess.run(["tar", "-x", "-C", str(folder)], stdin=archive.stdout, check=True)
-        if archive.wait() != 0:
-            return None, f"git archive {ref} failed"
+        failed = extract_code(ref, folder)
+        if failed:
+            return None, failed
     except (OSError, subprocess.CalledProcessError) as exc:
         return None, f"not a git checkout with its history ({exc})"
     return folder, ref

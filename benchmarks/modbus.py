@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 import serial
-from benchkit import add_quick, fill_defaults
+from benchkit import REPO, add_quick, extract_code, fill_defaults, git
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.framer.rtu import FramerRTU
 
@@ -51,7 +51,6 @@ from hil.core.session import Session
 from hil.core.stats import percentile_summary
 from hil.drivers.bench.modbus import ModbusLink, parse_bus_url
 
-REPO = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
 METER_UNIT, FULL, SMALL = 2, 76, 6   # whole SDM630 map in one request; va_l1..va_l3
 
@@ -279,21 +278,15 @@ def baseline_code(folder: Path) -> tuple[Path | None, str]:
     """The code before the time protocol's last revision (the parent of the last commit that
     changed ``REVISION`` in hil/protocols/bench_clock.py), extracted into ``folder`` with
     ``git archive``; (None, why not) outside a git checkout."""
-    def git(*args: str) -> str:
-        return subprocess.run(["git", "-C", str(REPO), *args], capture_output=True, text=True,
-                              check=True).stdout.strip()
-
     try:
         change = git("log", "-1", "--format=%H", "-G", "^REVISION = ", "HEAD", "--",
                      "hil/protocols/bench_clock.py")
         if not change:
             return None, "no earlier time protocol in this checkout's history"
         ref = git("rev-parse", "--short", f"{change}^")
-        archive = subprocess.Popen(["git", "-C", str(REPO), "archive", ref, "hil", "drivers",
-                                    "emulators", "controllers"], stdout=subprocess.PIPE)
-        subprocess.run(["tar", "-x", "-C", str(folder)], stdin=archive.stdout, check=True)
-        if archive.wait() != 0:
-            return None, f"git archive {ref} failed"
+        failed = extract_code(ref, folder)
+        if failed:
+            return None, failed
     except (OSError, subprocess.CalledProcessError) as exc:
         return None, f"not a git checkout ({exc})"
     revision = re.search(r'REVISION = "([^"]+)"',

@@ -5,8 +5,13 @@ picks."""
 from __future__ import annotations
 
 import argparse
+import subprocess
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
+
+#: the repository the benchmarks belong to
+REPO = Path(__file__).resolve().parents[2]
 
 QUICK_HELP = ("a seconds-long run that checks the benchmark still works: fewer repeats, shorter "
               "runs, smaller sizes, optional baselines skipped; the same kind of figures, not "
@@ -24,3 +29,18 @@ def fill_defaults(args: argparse.Namespace, defaults: Mapping[str, tuple[Any, An
     for name, (full, quick) in defaults.items():
         if getattr(args, name) is None:
             setattr(args, name, quick if args.quick else full)
+
+
+def git(*args: str) -> str:
+    """``git ARGS`` in the repository, its output stripped (CalledProcessError on failure)."""
+    return subprocess.run(["git", "-C", str(REPO), *args], capture_output=True, text=True,
+                          check=True).stdout.strip()
+
+
+def extract_code(ref: str, folder: Path) -> str | None:
+    """hil's code (hil, drivers, emulators, controllers) at ``ref`` extracted into ``folder``
+    with ``git archive``, a baseline to measure against; None, or why not."""
+    archive = subprocess.Popen(["git", "-C", str(REPO), "archive", ref, "hil", "drivers",
+                                "emulators", "controllers"], stdout=subprocess.PIPE)
+    subprocess.run(["tar", "-x", "-C", str(folder)], stdin=archive.stdout, check=True)
+    return None if archive.wait() == 0 else f"git archive {ref} failed"
