@@ -42,15 +42,21 @@ def short_config(folder: Path, period_s: float = 4.0, dwell_s: float | None = No
     its second half; ``dwell_s``: their minimum on/off time, for a cycle shorter than the
     default's) and a patient poll (a loaded machine may answer late: not what these runs
     test)."""
+    path = Path(folder) / "short.toml"
+    path.write_text("[bus]\ntimeout_s = 1.0\n" + short_cycle(period_s, dwell_s))
+    return path
+
+
+def short_cycle(period_s: float = 2.0, dwell_s: float | None = 0.5) -> str:
+    """The config tables of a ``period_s`` machining cycle (M1 and M2 on for its second half;
+    ``dwell_s``: their minimum on/off time), to follow a config's own tables."""
     half = period_s / 2
-    text = (f"[bus]\ntimeout_s = 1.0\n[sequence]\nperiod_s = {period_s}\n"
+    text = (f"[sequence]\nperiod_s = {period_s}\n"
             f"stages = [{{ start_s = 0.0, end_s = {half}, on = [] }},\n"
             f"          {{ start_s = {half}, end_s = {period_s}, on = [\"M1\", \"M2\"] }}]\n")
     if dwell_s is not None:
         text += "".join(f"[relays.{relay}]\ndwell_s = {dwell_s}\n" for relay in ("M1", "M2"))
-    path = Path(folder) / "short.toml"
-    path.write_text(text)
-    return path
+    return text
 
 
 def start_bench_run(url: str, out: Path | str, config: Path, *extra: str, cycles: int = 1,

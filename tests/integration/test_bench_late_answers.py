@@ -16,23 +16,13 @@ import sys
 import pytest
 
 from hil.core.recording.reader import read_session
+from tests.pymodbus_bench import short_cycle
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
 ENV = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
 #: a 2 s machining cycle, requests waiting 0.1 s, a lost link tried again every 0.5 s
-CONFIG = """\
-[bus]
-timeout_s = 0.1
-[sequence]
-period_s = 2.0
-stages = [{ start_s = 0.0, end_s = 1.0, on = [] },
-          { start_s = 1.0, end_s = 2.0, on = ["M1", "M2"] }]
-[relays.M1]
-dwell_s = 0.5
-[relays.M2]
-dwell_s = 0.5
-"""
+CONFIG = "[bus]\ntimeout_s = 0.1\n" + short_cycle(2.0, dwell_s=0.5)
 
 
 def test_late_answers_are_passed_over_and_no_relay_is_taken_for_another_masters(tmp_path):

@@ -28,6 +28,7 @@ from pymodbus.client import ModbusSerialClient
 from hil.core.recording.reader import read_session
 from hil.emulators.faults import parse_fault
 from hil.emulators.null_modem import NullModem
+from tests.pymodbus_bench import short_cycle
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
@@ -35,21 +36,9 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 ENV = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
 #: a 2 s machining cycle, few meter quantities polled (as the README advises over RTU), a
 #: request timeout of 0.1 s, the emulator declared gone after 2 s without an answer
-CONFIG = """\
-[bus]
-timeout_s = 0.1
-lockstep_timeout_s = 2.0
-[meter]
-poll = ["va_l1", "va_l2", "va_l3", "total_va"]
-[sequence]
-period_s = 2.0
-stages = [{ start_s = 0.0, end_s = 1.0, on = [] },
-          { start_s = 1.0, end_s = 2.0, on = ["M1", "M2"] }]
-[relays.M1]
-dwell_s = 0.5
-[relays.M2]
-dwell_s = 0.5
-"""
+CONFIG = ("[bus]\ntimeout_s = 0.1\nlockstep_timeout_s = 2.0\n"
+          '[meter]\npoll = ["va_l1", "va_l2", "va_l3", "total_va"]\n'
+          + short_cycle(2.0, dwell_s=0.5))
 #: a controller that keeps P2 on: the relay a lost link leaves on
 HOLD_P2 = """\
 class HoldP2:
