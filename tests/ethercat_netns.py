@@ -14,6 +14,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -72,3 +73,23 @@ def slave_on(pair: Veth, *args: str) -> Iterator[subprocess.Popen[str]]:
         yield proc
     finally:
         stop_slave(proc)
+
+
+@contextlib.contextmanager
+def soem_on(pair: Veth, *slave_args: str) -> Iterator[Any]:
+    """hil's slave on ``pair``'s end (``slave_args`` as ``hil emulate drive --ethercat`` takes
+    them) and SOEM's master (pysoem: a master hil did not write) opened on the other, in the
+    pair's namespace, with SOEM's waits as hil's master sets them (a loaded machine's slave is
+    slow)."""
+    import pysoem
+
+    from hil.drivers.ethercat.segment import load_pysoem
+
+    load_pysoem()
+    with slave_on(pair, *slave_args), inside(pair):
+        master = pysoem.Master()
+        master.open(pair.master)
+        try:
+            yield master
+        finally:
+            master.close()

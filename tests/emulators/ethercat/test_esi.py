@@ -8,7 +8,7 @@ import pytest
 from hil.emulators.ethercat.esi import sii_from_esi
 from hil.emulators.ethercat.sii import build_sii
 from hil.errors import HilError
-from tests.ethercat_netns import inside, slave_on, veth_pair
+from tests.ethercat_netns import soem_on, veth_pair
 
 # the shape of a vendor's file (ETG.2000), written for this test: hex and decimal numbers, a
 # namespace, mailboxes of 48 bytes where hil's are 128
@@ -76,22 +76,15 @@ def test_a_file_that_is_no_esi_is_one_line_naming_why(tmp_path, text, said):
 
 @pytest.mark.slow
 def test_soem_reads_the_esis_identity_and_mailbox_from_the_slave(tmp_path):
-    pysoem = pytest.importorskip("pysoem", reason="the ethercat extra is not installed")
-    from hil.drivers.ethercat.segment import load_pysoem
+    pytest.importorskip("pysoem", reason="the ethercat extra is not installed")
 
-    load_pysoem()
     path = tmp_path / "tm402.xml"
     path.write_text(ESI)
-    with veth_pair() as veth, slave_on(veth, "--esi", str(path)), inside(veth):
-        master = pysoem.Master()
-        master.open(veth.master)
-        try:
-            assert master.config_init() == 1
-            slave = master.slaves[0]
-            assert (slave.man, slave.id, slave.rev, slave.name) == (
-                0xAB, 0x1234, 65538, "TM-402 servo drive")
-            # its 48-byte mailboxes where the ESI puts them: CoE through them
-            statusword = int.from_bytes(slave.sdo_read(0x6041, 0), "little")
-            assert statusword & 0x4F == 0x40  # SWITCH ON DISABLED
-        finally:
-            master.close()
+    with veth_pair() as veth, soem_on(veth, "--esi", str(path)) as master:
+        assert master.config_init() == 1
+        slave = master.slaves[0]
+        assert (slave.man, slave.id, slave.rev, slave.name) == (
+            0xAB, 0x1234, 65538, "TM-402 servo drive")
+        # its 48-byte mailboxes where the ESI puts them: CoE through them
+        statusword = int.from_bytes(slave.sdo_read(0x6041, 0), "little")
+        assert statusword & 0x4F == 0x40  # SWITCH ON DISABLED

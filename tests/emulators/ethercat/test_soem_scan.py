@@ -10,8 +10,7 @@ import struct
 
 import pytest
 
-from hil.drivers.ethercat.segment import load_pysoem
-from tests.ethercat_netns import inside, slave_on, veth_pair
+from tests.ethercat_netns import soem_on, veth_pair
 
 pysoem = pytest.importorskip("pysoem", reason="the ethercat extra (pysoem) is not installed")
 
@@ -24,14 +23,8 @@ SM2 = 0x0810
 @pytest.fixture(scope="module")
 def line():
     """Two emulated drives (nodes 1 and 2) in a line, and SOEM's master on the other end."""
-    load_pysoem()  # SOEM's waits as hil's master sets them (a loaded machine's slave is slow)
-    with veth_pair() as veth, slave_on(veth, "--node", "1", "--node", "2"), inside(veth):
-        master = pysoem.Master()
-        master.open(veth.master)
-        try:
-            yield master
-        finally:
-            master.close()
+    with veth_pair() as veth, soem_on(veth, "--node", "1", "--node", "2") as master:
+        yield master
 
 
 def test_soem_finds_each_slave_with_its_identity_from_the_sii(line):

@@ -20,7 +20,7 @@ from hil.emulators.drive.twin import eds_twin
 from hil.emulators.errors import EmulatorSetupError
 from hil.emulators.ethercat.esi import sii_from_esi
 from tests.emulators.drive.test_vendor_files import provenance
-from tests.ethercat_netns import REPO, inside, slave_on, veth_pair
+from tests.ethercat_netns import REPO, soem_on, veth_pair
 
 ESI = Path(__file__).resolve().parents[2] / "data" / "esi"
 INGENIA = ESI / "ingenia" / "EVS-NET-01_ingenia_esi.xml"
@@ -90,20 +90,12 @@ def test_the_refusal_from_the_command_line_is_one_line(tmp_path):
 
 @pytest.mark.slow
 def test_soem_scans_the_ingenia_slave_and_reads_its_identity_and_modes(tmp_path):
-    pysoem = pytest.importorskip("pysoem", reason="the ethercat extra is not installed")
-    from hil.drivers.ethercat.segment import load_pysoem
+    pytest.importorskip("pysoem", reason="the ethercat extra is not installed")
 
-    load_pysoem()
-    with veth_pair() as veth, slave_on(veth, "--esi", str(INGENIA), *INGENIA_SET), \
-            inside(veth):
-        master = pysoem.Master()
-        master.open(veth.master)
-        try:
-            assert master.config_init() == 1
-            slave = master.slaves[0]
-            assert (slave.man, slave.id, slave.rev, slave.name) == (
-                0x29C, 61935618, 327685, "EVS-NET-01")
-            modes = int.from_bytes(slave.sdo_read(0x6502, 0), "little")
-            assert modes == 0x000F03E5  # the file's DefaultData, through CoE
-        finally:
-            master.close()
+    with veth_pair() as veth, soem_on(veth, "--esi", str(INGENIA), *INGENIA_SET) as master:
+        assert master.config_init() == 1
+        slave = master.slaves[0]
+        assert (slave.man, slave.id, slave.rev, slave.name) == (
+            0x29C, 61935618, 327685, "EVS-NET-01")
+        modes = int.from_bytes(slave.sdo_read(0x6502, 0), "little")
+        assert modes == 0x000F03E5  # the file's DefaultData, through CoE
