@@ -26,7 +26,6 @@ import contextlib
 import hashlib
 import json
 import os
-import struct
 import tempfile
 import time
 from collections.abc import Callable
@@ -116,7 +115,7 @@ class RunSettings:
             self.sdo.write(index, subindex, value, fmt)
             return
         try:
-            setting = Setting(index, subindex, fmt, self._read(index, subindex, fmt), value)
+            setting = Setting(index, subindex, fmt, self.sdo.read_int(index, subindex, fmt), value)
         except SdoAbortError as exc:  # write-only: what it held cannot be known
             self._event("drive.setting_unrecorded", f"drive node {self.node_id}: 0x{index:04X}:"
                         f"{subindex:02X} cannot be read ({exc}): the value this run writes "
@@ -161,15 +160,6 @@ class RunSettings:
         self._remove()
 
     # -- the journal on disk -----------------------------------------------------------------
-    def _read(self, index: int, subindex: int, fmt: str) -> int:
-        raw = self.sdo.read(index, subindex)
-        size = struct.calcsize(fmt)
-        if len(raw) < size:
-            raise DriveError(f"drive node {self.node_id}: 0x{index:04X}:{subindex:02X} has "
-                             f"{len(raw)} bytes, expected {size}")
-        value: int = struct.unpack_from(fmt, raw)[0]
-        return value
-
     def _save(self, log: list[Setting]) -> None:
         """The journal as it stands (written whole, never half: a temporary file renamed)."""
         if self._path is None:
@@ -218,7 +208,7 @@ class RunSettings:
         writes undone, last first; the others were changed since and stay."""
         last = {setting.key: setting for setting in left}
         still = {key for key, setting in last.items()
-                 if self._read(*key, setting.fmt) == setting.written}
+                 if self.sdo.read_int(*key, setting.fmt) == setting.written}
         back = [s for s in reversed(left) if s.key in still and s.found != s.written]
         for setting in back:
             self.sdo.write(*setting.key, setting.found, setting.fmt)

@@ -58,6 +58,16 @@ def download_request(index: int, subindex: int, value: int, fmt: str) -> bytes:
     return _HEAD.pack(command, index, subindex) + data.ljust(4, b"\0")
 
 
+def unpack_int(raw: bytes, fmt: str, what: str) -> int:
+    """The value of an object uploaded as ``raw``, unpacked with ``fmt``; too short is a
+    :class:`DriveError` naming ``what`` (the drive and object)."""
+    size = struct.calcsize(fmt)
+    if len(raw) < size:
+        raise DriveError(f"{what} has {len(raw)} bytes, expected {size}")
+    value: int = struct.unpack_from(fmt, raw)[0]
+    return value
+
+
 class SdoChannel(Protocol):
     """A drive's SDO as the CiA 402 modules use it (state, objects, profile, scaling, the
     settings journal), whatever carries it: :class:`SdoClient` on CAN, CoE over EtherCAT
@@ -127,13 +137,8 @@ class SdoClient:
     def read_int(self, index: int, subindex: int = 0, fmt: str = "<I",
                  timeout_s: float | None = None) -> int:
         """Upload one object and unpack it with ``fmt``."""
-        raw = self.read(index, subindex, timeout_s)
-        size = struct.calcsize(fmt)
-        if len(raw) < size:
-            raise DriveError(f"drive node {self.node_id}: 0x{index:04X}:{subindex:02X} has "
-                             f"{len(raw)} bytes, expected {size}")
-        value: int = struct.unpack_from(fmt, raw)[0]
-        return value
+        return unpack_int(self.read(index, subindex, timeout_s), fmt,
+                          f"drive node {self.node_id}: 0x{index:04X}:{subindex:02X}")
 
     def write(self, index: int, subindex: int, value: int, fmt: str = "<I",
               timeout_s: float | None = None) -> None:

@@ -18,6 +18,7 @@ from collections import deque
 from collections.abc import Callable
 
 from hil.drivers.canopen.errors import DriveError, DriveLinkLostError
+from hil.drivers.canopen.sdo import unpack_int
 from hil.drivers.ethercat.segment import Segment
 from hil.protocols.cia301 import SdoAbortError
 from hil.protocols.ethercat import (
@@ -79,13 +80,8 @@ class CoeSdo:
 
     def read_int(self, index: int, subindex: int = 0, fmt: str = "<I",
                  timeout_s: float | None = None) -> int:
-        raw = self.read(index, subindex, timeout_s)
-        size = struct.calcsize(fmt)
-        if len(raw) < size:
-            raise DriveError(f"drive {self._name}: 0x{index:04X}:{subindex:02X} has {len(raw)} "
-                             f"bytes, expected {size}")
-        value: int = struct.unpack_from(fmt, raw)[0]
-        return value
+        return unpack_int(self.read(index, subindex, timeout_s), fmt,
+                          f"drive {self._name}: 0x{index:04X}:{subindex:02X}")
 
     def write(self, index: int, subindex: int, value: int, fmt: str = "<I",
               timeout_s: float | None = None) -> None:
