@@ -13,25 +13,14 @@ import numpy as np
 
 from hil.paper.energy_measures import RunSignals
 from hil.paper.energy_runs import Identified
+from hil.paper.report import pyplot, save_figure
 
 DPI = 100
 VALIDATION_S = 60.0   # Figs. 3a-b show the last minute of the held-out record
 
 
-def _pyplot() -> Any:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def _save(fig: Any, path: Path) -> Path:
-    fig.tight_layout()
-    fig.savefig(path, dpi=DPI)
-    _pyplot().close(fig)
-    return path
+    return save_figure(fig, path, DPI)
 
 
 @dataclass(frozen=True)
@@ -50,7 +39,7 @@ class Labelled:
 def validation(models: Sequence[Identified], path: Path) -> Path:
     """Figs. 3a-b: each model's inputs and its output against the measured one over the last
     minute of the held-out record."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(2, len(models), figsize=(6.5 * len(models), 5.2), squeeze=False,
                              gridspec_kw={"height_ratios": [1, 2.5]}, sharex="col")
     for column, model in enumerate(models):
@@ -75,7 +64,7 @@ def validation(models: Sequence[Identified], path: Path) -> Path:
 
 def profiles(runs: Sequence[Labelled], path: Path, title: str) -> Path:
     """Fig. 3c: the total apparent power of each run, overlaid."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(11, 3.8))
     for run in runs:
         t, va = run.power()
@@ -91,7 +80,7 @@ def power_rows(runs: Sequence[Labelled], path: Path, title: str,
                limit: float | None = None) -> Path:
     """Figs. 4a, 5, 6a: the total apparent power of each run on a row of its own, its peak
     (J2) dashed."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(len(runs), 1, figsize=(11, 1.9 * len(runs) + 0.6), sharex=True,
                              sharey=True, squeeze=False)
     for ax, run in zip(axes[:, 0], runs, strict=True):
@@ -109,7 +98,7 @@ def power_rows(runs: Sequence[Labelled], path: Path, title: str,
 
 def relay_rows(runs: Sequence[Labelled], path: Path) -> Path:
     """Fig. 4b: u_P1 and u_P2 of each run."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(len(runs), 1, figsize=(11, 1.5 * len(runs) + 0.5), sharex=True,
                              squeeze=False)
     for ax, run in zip(axes[:, 0], runs, strict=True):
@@ -127,7 +116,7 @@ def relay_rows(runs: Sequence[Labelled], path: Path) -> Path:
 def level_rows(runs: Sequence[Labelled], bounds: Mapping[str, tuple[float, float]],
                path: Path) -> Path:
     """Fig. 4c: q_1 and q_2 of each run against their operating range."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(len(bounds), 1, figsize=(11, 2.6 * len(bounds)), sharex=True,
                              squeeze=False)
     for ax, (name, (low, high)) in zip(axes[:, 0], bounds.items(), strict=True):
@@ -147,7 +136,7 @@ def disturbance(runs: Sequence[Labelled], scheduled: tuple[np.ndarray, np.ndarra
                 path: Path) -> Path:
     """Fig. 6: (a) the total apparent power of each run; (b) the unexpected load as
     scheduled and as the EEC's Kalman filter estimated it."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(len(runs) + 1, 1, figsize=(11, 1.9 * (len(runs) + 1) + 0.6),
                              sharex=True, squeeze=False)
     for ax, run in zip(axes[:-1, 0], runs, strict=True):
@@ -187,7 +176,7 @@ def sensitivity(panels: Sequence[Panel], paper_gains: Mapping[str, float], path:
                 ) -> Path:
     """The J1 sensitivity study: per knob, the EEC's J1 gain over BC and the same with the
     resource left in the tanks taken out, against the paper's gains."""
-    plt = _pyplot()
+    plt = pyplot()
     columns = 2
     rows = -(-len(panels) // columns)
     fig, axes = plt.subplots(rows, columns, figsize=(12, 2.9 * rows), squeeze=False)

@@ -256,3 +256,21 @@ def _html_text(text: str) -> str:
         return "<ul>" + "".join(f"<li>{_inline(line[2:])}</li>" for line in lines) + "</ul>"
     return f"<p>{_inline(text)}</p>"
 
+
+
+def pyplot() -> Any:
+    """matplotlib's pyplot on its file backend (imported when a figure is drawn)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig: Any, path: Path | str, dpi: int) -> Path:
+    """``fig`` laid out, written to ``path`` and closed; the path."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    pyplot().close(fig)
+    return Path(path)

@@ -13,31 +13,21 @@ import numpy as np
 from hil.controllers.servo.model import StateSpaceModel
 from hil.controllers.servo.mpc import reference_expansion
 from hil.core.recording.reader import read_session
+from hil.paper.report import pyplot, save_figure
 from hil.paper.servo_runs import CONTROLLER_TOPIC
 from hil.servo.report import draw_waterfall
 
 DPI = 110
 
 
-def _pyplot() -> Any:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def _save(fig: Any, png: str) -> None:
-    fig.tight_layout()
-    fig.savefig(png, dpi=DPI)
-    _pyplot().close(fig)
+    save_figure(fig, png, DPI)
 
 
 def horizons(png: str, ht: int = 6, hp: int = 10) -> None:
     """Fig. 1: r(1..H_t|k) and the ERT beyond (FOH and ZOH), from the MPC's own reference
     expansion (the matrix its cost uses), H_t = H_u = 6 and H_p = 10 as in the paper."""
-    plt = _pyplot()
+    plt = pyplot()
     i = np.arange(1, hp + 1)
     reference = 2.0 * np.sin(2 * np.pi * i / 16.0)  # a smooth reference ahead of tick k
     known = reference[:ht]
@@ -62,7 +52,7 @@ def horizons(png: str, ht: int = 6, hp: int = 10) -> None:
 def bode(png: str, model: StateSpaceModel, resonance_hz: float) -> None:
     """Fig. 4: the frequency response of the published model, the emulated drive's plant
     (current [mA] to position [deg]), up to the Nyquist frequency."""
-    plt = _pyplot()
+    plt = pyplot()
     hz = np.logspace(0, np.log10(0.5 / model.dt) - 1e-3, 800)
     z = np.exp(2j * np.pi * hz * model.dt)
     eye = np.eye(model.n_states)
@@ -86,7 +76,7 @@ def tracking(png: str, title: str, mcap: str, settle_s: float,
              others: Mapping[str, str] | None = None) -> None:
     """Figs. 5, 6, 15: reference and position, then the tracking error, of one session;
     ``others`` (label -> session) adds their errors, dashed."""
-    plt = _pyplot()
+    plt = pyplot()
     command = read_session(mcap).arrays("/drive/command")
     t, reference, error = command["t_s"], command["reference_deg"], command["error_deg"]
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
@@ -112,7 +102,7 @@ def tracking(png: str, title: str, mcap: str, settle_s: float,
 def normalised_errors(png: str, panels: Sequence[Mapping[str, Any]]) -> None:
     """Figs. 7-8: per case, the cumulative |error| over the measured cycle against H_t,
     normalised to set-point MPC (ZOH, H_t = 1), with the PID's as a line."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, len(panels), figsize=(4.4 * len(panels), 3.6), squeeze=False)
     for ax, panel in zip(axes[0], panels, strict=True):
         for ert, style in (("zoh", "o-"), ("foh", "s-")):
@@ -132,7 +122,7 @@ def normalised_errors(png: str, panels: Sequence[Mapping[str, Any]]) -> None:
 def waterfalls(png: str, sessions: Mapping[str, str]) -> None:
     """Figs. 9-10: the predicted inputs of every recorded tick (thin) over the applied
     current (thick), one panel per session (label -> file)."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(len(sessions), 1, figsize=(8, 3.2 * len(sessions)), squeeze=False)
     for ax, (label, mcap) in zip(axes[:, 0], sessions.items(), strict=True):
         data = read_session(mcap)
@@ -147,7 +137,7 @@ def explicit_run(png: str, title: str, mcap: str, limit_ma: float,
                  push: tuple[float, float] | None = None) -> None:
     """Figs. 14 and 16: position and reference, tracking error, current, and the explicit
     MPC's controller of every tick (``/empc/controller``: 1 the unconstrained law)."""
-    plt = _pyplot()
+    plt = pyplot()
     data = read_session(mcap)
     command, used = data.arrays("/drive/command"), data.arrays(CONTROLLER_TOPIC)
     t = command["t_s"]
@@ -175,7 +165,7 @@ def explicit_run(png: str, title: str, mcap: str, limit_ma: float,
 def explanations(png: str, panels: Sequence[Mapping[str, Any]]) -> None:
     """The sweeps that explain a difference: per panel, hil's measured points against the
     swept value, and the paper's figure as a horizontal line."""
-    plt = _pyplot()
+    plt = pyplot()
     columns = 3
     rows = -(-len(panels) // columns)
     fig, axes = plt.subplots(rows, columns, figsize=(4.4 * columns, 3.6 * rows), squeeze=False)
