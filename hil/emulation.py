@@ -11,6 +11,7 @@ flags and prints; :mod:`hil.emulator_process` runs that command in a process of 
 from __future__ import annotations
 
 import contextlib
+import secrets
 import signal
 import sys
 import threading
@@ -271,6 +272,19 @@ class ServedDrives:
             self.trace.close()
 
 
+def with_serial(config: DriveEmulatorConfig, serial: int) -> DriveEmulatorConfig:
+    """``config`` whose drive answers ``serial`` as its serial number (0x1018:4): a number
+    of this emulator process (its low 7 bits the node id), by which a master that reaches
+    its drive's URL again tells this drive from one an earlier process served there (the
+    in-process emulator keeps the node id). A ``set`` of 0x1018:4 and a twin's (the vendor's
+    identity) are left as they are."""
+    from hil.protocols.cia301 import IDENTITY
+
+    if config.eds is not None or any(key == (IDENTITY, 4) for key, _ in config.object_values):
+        return config
+    return replace(config, object_values=(((IDENTITY, 4), serial), *config.object_values))
+
+
 def serve_drives(config: DriveEmulatorConfig, node_ids: list[int], host: str, port: int, *,
                  clock: str = "auto", faults: Sequence[Fault] = (),
                  can_log: str | None = None,
@@ -291,8 +305,9 @@ def serve_drives(config: DriveEmulatorConfig, node_ids: list[int], host: str, po
         trace = CanLog(can_log, config.channel)
         send = _traced_send(server.broadcast, trace)
     # one drive per node id, each with its own axis, all hearing every frame of the bus
-    nodes = [DriveNode(replace(config, node_id=node_id), send=send, clock=clock,
-                       faults=faults, on_fault=on_fault)
+    boot = secrets.randbits(32) & ~0x7F
+    nodes = [DriveNode(with_serial(replace(config, node_id=node_id), boot | node_id),
+                       send=send, clock=clock, faults=faults, on_fault=on_fault)
              for node_id in node_ids]
 
     def handle(can_id: int, data: bytes) -> None:

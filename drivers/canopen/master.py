@@ -829,15 +829,35 @@ class CanDriveMaster(Device):
         if self._closed:
             return
         reached = self._reach_again() if self._lost_driving or self.settings.log else False
+        another = reached and self._another_drive()  # its own drive is not reached then
         if self._lost_driving:
-            confirm_stopped(self.sdo, self.feedback, self._event, reached)
-        if self.settings.log:
+            confirm_stopped(self.sdo, self.feedback, self._event, reached and not another)
+        if self.settings.log and not another:
             self.settings.restore()  # those it cannot put back stay in the journal
         self._closed = True
         self._enabled = False
         self.link.shutdown()
         for closer in self._closers:
             closer()
+
+    def _another_drive(self) -> bool:
+        """After the link was reconnected: whether another drive than the one opened answers
+        at the URL now (0x1018, :meth:`RunSettings.stranger`), which is then told and written
+        nothing (its own run's settings, its state); this run's stay in the journal."""
+        if self.link_up:
+            return False
+        try:
+            stranger = self.settings.stranger()
+        except DriveError:  # silent: the restore's time-out keeps the journal
+            return False
+        if stranger is None:
+            return False
+        opened = self.settings.identity.text() if self.settings.identity else "no identity"
+        self._event("drive.not_the_drive_opened", f"drive node {self.node_id} at {self.url} is "
+                    f"not the drive the run opened (0x1018: {stranger.text()}, opened: "
+                    f"{opened}): nothing put back; the journal keeps it", level="warning",
+                    identity=stranger.as_dict())
+        return True
 
     def _reach_again(self) -> bool:
         """The link, reconnected after a lost one; False (and an event) when it cannot be."""

@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from hil.drivers.canopen.errors import DriveError
-from hil.drivers.canopen.identity import read_identity
+from hil.drivers.canopen.identity import Identity, read_identity
 from hil.drivers.canopen.sdo import SdoChannel
 from hil.protocols.cia301 import SdoAbortError
 from hil.protocols.cia402 import OPERATION_MODES
@@ -82,6 +82,8 @@ class RunSettings:
         self.log: list[Setting] = []
         #: what :meth:`open` put back of an earlier run's, as one line (None: nothing)
         self.restored: str | None = None
+        #: the drive's 0x1018 as read at :meth:`open` (None: not journaled, never read)
+        self.identity: Identity | None = None
         self._folder: str | None = None
         self._bus = ""
         self._path: str | None = None
@@ -98,7 +100,7 @@ class RunSettings:
         before this run writes its first setting (the master's open, or a write before it)."""
         if self._folder is None or self._path is not None:
             return
-        identity = read_identity(self.sdo)
+        self.identity = identity = read_identity(self.sdo)
         self._drive = {"bus": self._bus, "node": self.node_id, "identity": identity.as_dict()}
         key = json.dumps(self._drive, sort_keys=True)
         self._path = os.path.join(self._folder,
@@ -106,6 +108,15 @@ class RunSettings:
         left = self._load()
         if left is not None:
             self._restore_leftover(*left)
+
+    def stranger(self) -> Identity | None:
+        """The drive now answering when it is not the one :meth:`open` read (0x1018 read
+        again: another drive at the bus's URL since); None when it is, or when none was read
+        at open. A DriveError when the drive does not answer."""
+        if self.identity is None:
+            return None
+        now = read_identity(self.sdo)
+        return None if now == self.identity else now
 
     def write(self, index: int, subindex: int, value: int, fmt: str) -> None:
         """Write one setting, the value it replaces kept first (in the journal too); a set

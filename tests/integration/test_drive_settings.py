@@ -14,7 +14,12 @@ import signal
 import pytest
 
 from hil import api
-from hil.drivers.canopen.errors import DriveGoneError
+from hil.drivers.canopen.errors import DriveGoneError, DriveLinkLostError
+from hil.drivers.canopen.master import CanDriveMaster
+from hil.emulator_process import EmulatorProcess
+from hil.emulators.drive.timebase import TIME_BASE
+from hil.protocols.cia402 import OPERATION_ENABLED, state_of
+from hil.servo.rig import open_drive, share_lockstep_time
 from hil.servo.run import ServoRunOptions, run_servo
 from tests.cli import hil_here
 
@@ -143,3 +148,58 @@ def test_a_run_puts_the_drives_pdo_maps_back(tmp_path, capsys, state):
         assert run.returncode == 0, run.stderr
         assert read_all(drive.url) == found  # on main: TPDO1 three objects, TPDO2 invalid
     assert journals(state) == []
+
+
+def drive_emulator_on(port: int) -> EmulatorProcess:
+    """``hil emulate drive`` bound to ``port`` on loopback (a port another emulator held)."""
+    return EmulatorProcess(["drive", "--socketcand", f"127.0.0.1:{port}", "--node", "1"],
+                           "drive")
+
+
+def driving(url: str, events: list[dict]) -> CanDriveMaster:
+    """A master driving the drive at ``url`` on the master's time (0x2005), its events kept."""
+    def keep(kind: str, message: str, **data: object) -> None:
+        events.append({"kind": kind, "message": message, **data})
+
+    master = open_drive(url, on_event=keep)
+    assert share_lockstep_time(master, keep), events
+    master.start()
+    for _ in range(5):
+        master.exchange(0.0)
+    return master
+
+
+def test_a_master_that_lost_its_drive_puts_nothing_on_the_one_now_at_its_url(state):
+    """A's emulator dies while its master drives it; B's, another process, now listens on
+    the same port, driven by its own master on the master's time. A's master closes: it
+    reaches the URL again, finds another drive there (0x1018) and writes nothing to it (no
+    disable voltage, no 0x2005 = 0 that would put B back on its wall clock): an event says
+    so, and A's journal stays for A."""
+    first_events: list[dict] = []
+    gone = drive_emulator_on(0)
+    port = int(gone.url.rsplit(":", 1)[1])
+    first = driving(gone.url, first_events)
+    os.kill(gone.pid, signal.SIGKILL)
+    gone.stop()
+    with pytest.raises(DriveLinkLostError):
+        for _ in range(10_000):  # until the master finds the link lost
+            first.exchange(0.0)
+    other = drive_emulator_on(port)
+    try:
+        assert other.url == gone.url
+        second_events: list[dict] = []
+        second = driving(other.url, second_events)
+        try:
+            first.close()
+            assert second.sdo.read_int(TIME_BASE, 0) == 10_000  # on main: 0, the first's restore
+            assert state_of(second.exchange(0.0).statusword) == OPERATION_ENABLED  # on main: off
+            [told] = [e for e in first_events if e["kind"] == "drive.not_the_drive_opened"]
+            assert told["message"].startswith(
+                f"drive node 1 at {gone.url} is not the drive the run opened")
+            assert "nothing put back; the journal keeps it" in told["message"]
+        finally:
+            second.close()
+    finally:
+        other.stop()
+    [kept] = journals(state)  # the first drive's (the second's put back and gone)
+    assert json.loads((state / kept).read_text())["identity"] == first.settings.identity.as_dict()
