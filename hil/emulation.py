@@ -363,8 +363,10 @@ def serve_ethercat_drives(config: DriveEmulatorConfig, node_ids: list[int], ifac
         from hil.emulators.ethercat.esi import sii_from_esi
 
         sii = sii_from_esi(esi)
+    twin_of_esi = esi is not None and config.eds == esi  # its PDOs are the ESI's
     slaves = [EthercatDrive(replace(config, node_id=node_id), clock=clock, faults=faults,
-                            on_fault=on_fault, sii=sii, last=i == len(node_ids) - 1)
+                            on_fault=on_fault, sii=sii, pdos_from_sii=twin_of_esi,
+                            last=i == len(node_ids) - 1)
               for i, node_id in enumerate(node_ids)]
     return ServedEthercatDrives(EmulatedSegment(iface, slaves))
 

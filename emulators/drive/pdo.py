@@ -6,7 +6,10 @@ the TPDO frames: on SYNC (transmission types 1..240 every that many SYNCs, 0 on 
 its data changed) or on an event (254, 255: when its data changed, at most once per inhibit
 time, sub 3 in 100 us, and at least every event timer, sub 5 in ms, when it is set). The
 PDOs are those the dictionary has: every communication object 0x1400.. (RPDO) and 0x1800..
-(TPDO) with its mapping object 0x200 above it."""
+(TPDO) with its mapping object 0x200 above it, and every mapping object 0x1600.. / 0x1A00..
+without one (an EtherCAT drive's PDOs, from its ESI: no CAN frame carries them, so they are
+never valid on CAN and are not held to a frame's 64 bits; the EtherCAT slave assigns them to
+its SyncManagers, :mod:`hil.emulators.ethercat.assignment`)."""
 
 from __future__ import annotations
 
@@ -46,7 +49,7 @@ class Pdo:
     """Compiled view of one PDO (rebuilt whenever its communication or mapping object
     changes)."""
 
-    comm: int
+    comm: int | None  # None: a mapping object alone (EtherCAT's PDOs)
     mapping: int
     transmit: bool
     cob_id: int = 0
@@ -77,13 +80,14 @@ class PdoTable:
     def __init__(self, objects: ObjectStore) -> None:
         self.objects = objects
         od = objects.od
-        self.pdos = [Pdo(comm, comm + MAPPING_OFFSET, transmit)
+        self.pdos = [Pdo(comm if comm in od else None, comm + MAPPING_OFFSET, transmit)
                      for base, transmit in ((RPDO_COMM_BASE, False), (TPDO_COMM_BASE, True))
                      for comm in range(base, base + PDOS_PER_DIRECTION)
-                     if comm in od and comm + MAPPING_OFFSET in od]
+                     if comm + MAPPING_OFFSET in od]
         self.by_object: dict[int, Pdo] = {}
         for pdo in self.pdos:
-            self.by_object[pdo.comm] = pdo
+            if pdo.comm is not None:
+                self.by_object[pdo.comm] = pdo
             self.by_object[pdo.mapping] = pdo
         self.pending: dict[int, bytes] = {}  # RPDO data held for the next SYNC
         # the cyclic path's views, rebuilt whenever a PDO is compiled
@@ -97,12 +101,13 @@ class PdoTable:
 
     def compile(self, pdo: Pdo) -> None:
         values = self.objects.values
-        cob = values[(pdo.comm, 1)]
-        pdo.cob_id = cob & 0x7FF
-        pdo.valid = not cob & PDO_NOT_VALID
-        pdo.trans_type = values[(pdo.comm, 2)]
-        pdo.inhibit_ns = (values.get((pdo.comm, INHIBIT)) or 0) * 100_000
-        pdo.event_ns = (values.get((pdo.comm, EVENT_TIMER)) or 0) * 1_000_000
+        if pdo.comm is not None:
+            cob = values[(pdo.comm, 1)]
+            pdo.cob_id = cob & 0x7FF
+            pdo.valid = not cob & PDO_NOT_VALID
+            pdo.trans_type = values[(pdo.comm, 2)]
+            pdo.inhibit_ns = (values.get((pdo.comm, INHIBIT)) or 0) * 100_000
+            pdo.event_ns = (values.get((pdo.comm, EVENT_TIMER)) or 0) * 1_000_000
         keys, fmt = [], "<"
         for sub in range(1, values[(pdo.mapping, 0)] + 1):
             entry = values[(pdo.mapping, sub)]
@@ -139,7 +144,7 @@ class PdoTable:
                     raise SdoAbortError(ABORT_VALUE)
             values[key] = value
         else:
-            if not values[(pdo.comm, 1)] & PDO_NOT_VALID:
+            if pdo.comm is not None and not values[(pdo.comm, 1)] & PDO_NOT_VALID:
                 raise SdoAbortError(ABORT_UNSUPPORTED)  # mapping of a valid PDO is frozen
             if subindex == 0:
                 if any((index, s) not in values for s in range(1, value + 1)):
@@ -166,7 +171,7 @@ class PdoTable:
             if not var.pdo_mappable or not usable or not emulated or size != len(var):
                 raise SdoAbortError(ABORT_CANNOT_MAP)
             bits += size
-        if bits > MAX_PDO_BITS:
+        if pdo.comm is not None and bits > MAX_PDO_BITS:  # a CAN frame's
             raise SdoAbortError(ABORT_PDO_TOO_LONG)
 
     # -- the cyclic path ------------------------------------------------------------------
@@ -190,14 +195,14 @@ class PdoTable:
         elif len(data) == size:
             pdo.length_error = False
         if pdo.trans_type <= LAST_SYNCHRONOUS_TYPE:
-            self.pending[pdo.comm] = data[:size]  # latched on the next SYNC
+            self.pending[pdo.mapping] = data[:size]  # latched on the next SYNC
             return None, emcy
         return data[:size], emcy
 
     def latched(self) -> list[tuple[Pdo, bytes]]:
         """The RPDO data held for this SYNC, in PDO order (then forgotten)."""
         pending, by_object = self.pending, self.by_object
-        out = [(by_object[comm], pending[comm]) for comm in sorted(pending)]
+        out = [(by_object[mapping], pending[mapping]) for mapping in sorted(pending)]
         pending.clear()
         return out
 

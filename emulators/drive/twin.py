@@ -120,6 +120,10 @@ HOOKS = (0x2001, 0x2002, 0x2003, 0x2004, TIME_BASE)
 #: objects that only describe the drive: read back as the file gives them
 DESCRIPTIONS = (DEVICE_TYPE, 0x1008, 0x1009, 0x100A, IDENTITY, 0x6402, 0x6403, 0x6404,
                 SUPPORTED_MODES, 0x6503, 0x6504, 0x6505)
+#: an EtherCAT drive's SyncManager objects (communication types, PDO assignment), which hil's
+#: EtherCAT slave serves (:mod:`hil.emulators.ethercat.assignment`): the twin keeps the file's
+#: power-on values for it
+SYNC_MANAGER_OBJECTS = (0x1C00, 0x1C12, 0x1C13)
 #: hil's node behaves by these, whatever they hold: a file must give the value it behaves by
 FIXED = ((0x1014, 0, "COB-ID EMCY"), (0x1200, 1, "SDO request COB-ID"),
          (0x1200, 2, "SDO response COB-ID"))
@@ -438,8 +442,9 @@ class _Twin:
             key = (var.index, var.subindex)
             value = _value(var)
             template = self.template(key)
-            if var.index in DESCRIPTIONS or (var.access_type == "const" and template is None
-                                             and var.index not in self.replaced):
+            if var.index in DESCRIPTIONS + SYNC_MANAGER_OBJECTS or (
+                    var.access_type == "const" and template is None
+                    and var.index not in self.replaced):
                 var.default = value
                 if value is None:
                     self.no_read.add(key)
@@ -596,8 +601,20 @@ class _Twin:
         values = store.values
         for base, transmit in ((RPDO_COMM_BASE, False), (TPDO_COMM_BASE, True)):
             for comm in range(base, base + PDO_SPAN):
-                if comm in self.od and comm + PDO_SPAN in self.od:
+                if comm + PDO_SPAN not in self.od:
+                    continue
+                if comm in self.od:
                     self.serve_pdo(values, comm, transmit)
+                else:
+                    self.serve_map(values, comm + PDO_SPAN, transmit)
+
+    def serve_map(self, values: dict[Key, object], mapping: int, transmit: bool) -> None:
+        """An EtherCAT drive's PDO (a mapping object alone, from an ESI): its power-on map
+        emptied where the twin cannot serve it; no CAN frame carries it, so no 64 bits' limit."""
+        why = self.unservable(mapping, values.get((mapping, 0)), transmit, frame_bits=None)
+        if why is not None:
+            self.empty_map(mapping)
+            self.unserved.append(f"{'TxPDO' if transmit else 'RxPDO'} 0x{mapping:04X} ({why})")
 
     def serve_pdo(self, values: dict[Key, object], comm: int, transmit: bool) -> None:
         mapping = comm + PDO_SPAN
@@ -623,8 +640,10 @@ class _Twin:
             self.problem(f"{name} has a 29-bit COB-ID 0x{cob:08X}; the twin uses 11-bit "
                          "identifiers")
 
-    def unservable(self, mapping: int, count: object, transmit: bool) -> str | None:
-        """Why the twin cannot serve the power-on map of ``mapping`` (None: it can)."""
+    def unservable(self, mapping: int, count: object, transmit: bool,
+                   frame_bits: int | None = MAX_PDO_BITS) -> str | None:
+        """Why the twin cannot serve the power-on map of ``mapping`` (None: it can), in a
+        frame of ``frame_bits`` (None: no limit)."""
         if not isinstance(count, int):
             return f"{_name((mapping, 0))} has no value"
         bits = 0
@@ -643,7 +662,9 @@ class _Twin:
             if not mapped.pdo_mappable or size != len(mapped):
                 return f"maps {_name(key)} as {size} bits, not as the file declares it"
             bits += size
-        return f"maps {bits} bits, more than a CAN frame's 64" if bits > MAX_PDO_BITS else None
+        if frame_bits is not None and bits > frame_bits:
+            return f"maps {bits} bits, more than a CAN frame's {frame_bits}"
+        return None
 
     def empty_map(self, mapping: int) -> None:
         var = self.variable((mapping, 0))
@@ -654,6 +675,11 @@ class _Twin:
         self.take_hooks()
         self.take_settings()
         self.classify()
+        if _kind(self.path) == "ESI":
+            from hil.emulators.ethercat.esi import fixed_pdo_problems
+
+            for line in fixed_pdo_problems(self.path):
+                self.problem(line)
         modes, listed = self.modes()  # the deciding reason, when there is one
         for lack in self.lacks(NEEDED):
             self.problem(f"{lack}: the twin needs it to run any mode")

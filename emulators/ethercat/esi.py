@@ -19,6 +19,7 @@ from hil.emulators.ethercat.sii import (
     SiiContent,
     SyncManagerSpec,
 )
+from hil.protocols.cia402 import RPDO1, TPDO_LAYOUTS
 from hil.protocols.ethercat import (
     COE_COMPLETE_ACCESS,
     COE_PDO_ASSIGN,
@@ -84,8 +85,8 @@ def sii_from_esi(path: str) -> SiiContent:
         serial=0,
         name=(_text(name) or kind.text or "").strip() or "ESI device",
         sync_managers=_sync_managers(device),
-        rx_pdos=tuple(_pdo(pdo) for pdo in _children(device, "RxPdo")),
-        tx_pdos=tuple(_pdo(pdo) for pdo in _children(device, "TxPdo")),
+        rx_pdos=tuple(_pdo(pdo, 2) for pdo in _children(device, "RxPdo")),
+        tx_pdos=tuple(_pdo(pdo, 3) for pdo in _children(device, "TxPdo")),
         coe_details=_coe_details(device),
         source=f"ESI {Path(path).name}")
 
@@ -108,15 +109,25 @@ def _sync_managers(device: ET.Element) -> tuple[SyncManagerSpec, ...]:
     return tuple(found)
 
 
-def _pdo(pdo: ET.Element) -> PdoSpec:
+def _pdo(pdo: ET.Element, sync_manager: int) -> PdoSpec:
+    """An ``<RxPdo>`` (``sync_manager`` 2) or ``<TxPdo>`` (3): assigned to its ``Sm`` at
+    power-on where it names one."""
     entries = []
     for entry in _children(pdo, "Entry"):
         entries.append(PdoEntrySpec(esi_number(_text(_child(entry, "Index")), "Entry Index"),
                                     esi_number(_text(_child(entry, "SubIndex")), "SubIndex", 0),
                                     esi_number(_text(_child(entry, "BitLen")), "BitLen")))
     return PdoSpec(esi_number(_text(_child(pdo, "Index")), "Pdo Index"),
-                   esi_number(pdo.get("Sm"), "Pdo Sm", 2), tuple(entries),
-                   (_text(_child(pdo, "Name")) or "").strip())
+                   esi_number(pdo.get("Sm"), "Pdo Sm", sync_manager), tuple(entries),
+                   (_text(_child(pdo, "Name")) or "").strip(), assigned=pdo.get("Sm") is not None,
+                   fixed=_flag(pdo.get("Fixed")), mandatory=_flag(pdo.get("Mandatory")),
+                   excludes=tuple(esi_number(_text(exclude), "Exclude")
+                                  for exclude in _children(pdo, "Exclude")))
+
+
+def _flag(text: str | None) -> bool:
+    """An ESI boolean: ``1`` or ``true``."""
+    return (text or "").strip().lower() in ("1", "true")
 
 
 def _coe_details(device: ET.Element) -> int:
@@ -126,6 +137,19 @@ def _coe_details(device: ET.Element) -> int:
         return COE_SDO | COE_PDO_ASSIGN | COE_PDO_CONFIG
     details = COE_SDO
     for attribute, flag in COE_FLAGS.items():
-        if coe.get(attribute, "0").strip().lower() in ("1", "true"):
+        if _flag(coe.get(attribute)):
             details |= flag
     return details & ~COE_COMPLETE_ACCESS  # the emulated mailbox does not serve it
+
+
+def fixed_pdo_problems(path: str) -> list[str]:
+    """One line for each PDO of the ESI file at ``path`` that hil's master maps its own objects
+    into (:data:`~hil.protocols.cia402.RPDO1`, the TxPDOs of every ``[master] tpdo_layout``)
+    and the file fixes: hil remaps PDOs; it does not adopt a fixed map."""
+    content = sii_from_esi(path)
+    mapped = {RPDO1.mapping} | {pdo.mapping for layout in TPDO_LAYOUTS.values()
+                                for pdo in layout}
+    return [f"{kind} 0x{pdo.index:04X} ({pdo.name or 'no name'}) is Fixed: hil's master maps "
+            "its own objects into it (hil remaps PDOs; it does not adopt a fixed map)"
+            for kind, pdos in (("RxPDO", content.rx_pdos), ("TxPDO", content.tx_pdos))
+            for pdo in pdos if pdo.fixed and pdo.index in mapped]

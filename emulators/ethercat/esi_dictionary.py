@@ -2,7 +2,9 @@
 ``<Profile><Dictionary>`` as the canopen :class:`~canopen.objectdictionary.ObjectDictionary`
 an EDS gives, so that the twin (:mod:`hil.emulators.drive.twin`) is built from either by the
 same rules (values left empty come from ``set``, modes from 0x6502, a refusal naming the
-deciding reason).
+deciding reason). Its PDO mapping objects (0x1600.., 0x1A00..) are the dictionary's where it
+has them and the ``<RxPdo>`` / ``<TxPdo>`` elements' where it does not (an entry the
+dictionary leaves empty is the element's); a ``Fixed`` PDO's map is read-only.
 
 ESI's ``DefaultData`` is the value's bytes in hexadecimal, least significant first
 (``e5030f00`` is 0x000F03E5); an object or sub-item without one is empty, as an EDS entry
@@ -34,6 +36,8 @@ from canopen.objectdictionary.datatypes import (
 )
 
 from hil.emulators.errors import EmulatorSetupError
+from hil.emulators.ethercat.esi import sii_from_esi
+from hil.emulators.ethercat.sii import PdoSpec
 
 #: ESI's base types (ETG.2000, IEC 61131 names) as CANopen's
 BASE_TYPES = {
@@ -98,7 +102,34 @@ def od_from_esi(path: str, node_id: int) -> ObjectDictionary:
                                      f"{exc}") from None
         if obj is not None:
             od.add_object(obj)
+    content = sii_from_esi(path)
+    for pdo in (*content.rx_pdos, *content.tx_pdos):
+        _pdo_mapping(od, pdo)
     return od
+
+
+def _pdo_mapping(od: ObjectDictionary, pdo: PdoSpec) -> None:
+    """The mapping object of an ``<RxPdo>`` / ``<TxPdo>``: the dictionary's, its sub-indices
+    left empty given the element's entries; made from the element where the dictionary lacks
+    it; read-only where the element says its map is ``Fixed``."""
+    entries = pdo.mapping_values()
+    record = od.get(pdo.index)
+    if record is None:
+        record = ODRecord(pdo.name or f"PDO 0x{pdo.index:04X}", pdo.index)
+        for sub in range(len(entries) + 1):
+            var = ODVariable(f"{record.name} {sub}" if sub else "Number of entries",
+                             pdo.index, sub)
+            var.data_type, var.access_type = (UNSIGNED32, "rw") if sub else (UNSIGNED8, "rw")
+            record.add_member(var)
+        od.add_object(record)
+    if isinstance(record, ODVariable):
+        return  # not a mapping object: the twin refuses its type
+    for sub, var in record.subindices.items():
+        if var.default is None:
+            var.default = len(entries) if sub == 0 else \
+                entries[sub - 1] if sub <= len(entries) else 0
+        if pdo.fixed:
+            var.access_type = "ro"
 
 
 def _object(element: ET.Element, types: dict[str, ET.Element]
@@ -124,12 +155,12 @@ def _object(element: ET.Element, types: dict[str, ET.Element]
         if array is not None and _child(array, "ArrayInfo") is not None:
             base = _data_type(_text(array, "BaseType") or "", types)
             elements = int(_text(_child(array, "ArrayInfo"), "Elements") or 0)
-            for _ in range(elements):
-                subindex += 1
+            for _ in range(elements):  # sub-indices from the one after sub-index 0 on
                 if base is not None:
                     record.add_member(_variable(
                         f"{name} {subindex}", index, subindex, base, _child(item, "Flags"),
                         values[subindex] if subindex < len(values) else None))
+                subindex += 1
             continue
         if _text(item, "SubIdx") is not None:
             subindex = _number(_text(item, "SubIdx") or "0")

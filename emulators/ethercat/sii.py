@@ -63,12 +63,22 @@ class PdoEntrySpec:
 @dataclass(frozen=True)
 class PdoSpec:
     """A PDO's default mapping: its index (0x1600.. RxPDO, 0x1A00.. TxPDO), its
-    SyncManager, its entries."""
+    SyncManager, its entries; as an ESI describes it besides: ``assigned`` to that
+    SyncManager at power-on (its ``Sm``), its map ``fixed``, ``mandatory`` (assigned in
+    SAFE-OP and OP), the PDOs it ``excludes`` (never assigned with it)."""
 
     index: int
     sync_manager: int
     entries: tuple[PdoEntrySpec, ...]
     name: str = ""
+    assigned: bool = True
+    fixed: bool = False
+    mandatory: bool = False
+    excludes: tuple[int, ...] = ()
+
+    def mapping_values(self) -> list[int]:
+        """The mapping object's sub-indices 1..n (index, sub-index, bits)."""
+        return [entry.index << 16 | entry.subindex << 8 | entry.bits for entry in self.entries]
 
 
 #: SM0/SM1 the mailbox, SM2 outputs (3 buffers, watchdog), SM3 inputs: the usual layout

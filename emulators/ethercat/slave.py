@@ -20,6 +20,7 @@ from collections.abc import Callable, Iterable
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.node import DriveNode
 from hil.emulators.drive.pdo import Pdo
+from hil.emulators.ethercat.assignment import Assignment
 from hil.emulators.ethercat.coe import CoeServer, emergency
 from hil.emulators.ethercat.esc import Esc
 from hil.emulators.ethercat.sii import PdoEntrySpec, PdoSpec, SiiContent, build_sii
@@ -29,8 +30,6 @@ from hil.protocols.cia301 import (
     ABORT_DEVICE_STATE,
     ABORT_NO_SUBINDEX,
     ABORT_READ_ONLY,
-    ABORT_UNSUPPORTED,
-    ABORT_VALUE,
     DEVICE_NAME,
     EMCY_BASE,
     IDENTITY,
@@ -42,6 +41,7 @@ from hil.protocols.ethercat import (
     PRE_OP,
     RXPDO_ASSIGN,
     RXPDO_MAPPINGS,
+    SAFE_OP,
     SM_COMM_TYPES,
     SM_TYPE_INPUTS,
     SM_TYPE_MAILBOX_IN,
@@ -52,7 +52,6 @@ from hil.protocols.ethercat import (
 )
 
 SM_TYPES = (SM_TYPE_MAILBOX_OUT, SM_TYPE_MAILBOX_IN, SM_TYPE_OUTPUTS, SM_TYPE_INPUTS)
-ASSIGN_SLOTS = 4  # PDOs an assignment object holds
 DEFAULT_ASSIGNMENT = {RXPDO_ASSIGN: (0x1600,), TXPDO_ASSIGN: (0x1A00, 0x1A01)}
 
 
@@ -63,20 +62,21 @@ class EthercatDrive:
 
     def __init__(self, config: DriveEmulatorConfig | None = None, *, clock: str = "auto",
                  faults: Iterable[Fault] = (), on_fault: Callable[[str], None] | None = None,
-                 sii: SiiContent | None = None, last: bool = True) -> None:
+                 sii: SiiContent | None = None, pdos_from_sii: bool = False,
+                 last: bool = True) -> None:
         self._messages: list[bytes] = []
         self.node = DriveNode(config, send=self._from_drive, clock=clock, faults=faults,
                               on_fault=on_fault)
         self._free_mappings()
-        pdos = self.node.pdos.by_object
-        self.assignment = {
-            index: [pdo for pdo in default if pdo in pdos and pdos[pdo].keys]
-            for index, default in DEFAULT_ASSIGNMENT.items()}
-        # what each assignment's sub-indices hold (its count says how many are assigned)
-        self._slots = {index: (assigned + [0] * ASSIGN_SLOTS)[:ASSIGN_SLOTS]
-                       for index, assigned in self.assignment.items()}
         content = sii or default_sii(self.node)
         self.sii = content
+        # the PDOs the node has, with their rules: the SII's where they are its (a twin of
+        # the ESI file), else hil's
+        rx, tx = (content.rx_pdos, content.tx_pdos) if pdos_from_sii else \
+            default_pdos(self.node)
+        pdos, values = self.node.pdos.by_object, self.node.objects.values
+        self.assignment = {RXPDO_ASSIGN: Assignment(RXPDO_ASSIGN, rx, pdos, values),
+                           TXPDO_ASSIGN: Assignment(TXPDO_ASSIGN, tx, pdos, values)}
         self.esc = Esc(self, build_sii(content), last=last)
         self.coe = CoeServer(self._upload, self._download,
                              content.mailbox(SM_TYPE_MAILBOX_OUT).length)
@@ -87,7 +87,8 @@ class EthercatDrive:
         every PDO's is marked not valid (CiA 301 freezes a valid PDO's mapping)."""
         values = self.node.objects.values
         for pdo in self.node.pdos.pdos:
-            values[(pdo.comm, 1)] |= PDO_NOT_VALID
+            if pdo.comm is not None:
+                values[(pdo.comm, 1)] |= PDO_NOT_VALID
         self.node.pdos.compile_all()
 
     # -- what a CAN node would send --------------------------------------------------------
@@ -109,12 +110,7 @@ class EthercatDrive:
                 raise SdoAbortError(ABORT_NO_SUBINDEX)
             return bytes([SM_TYPES[subindex - 1] if subindex else len(SM_TYPES)])
         if index in self.assignment:
-            assigned = self.assignment[index]
-            if subindex > ASSIGN_SLOTS:
-                raise SdoAbortError(ABORT_NO_SUBINDEX)
-            if subindex == 0:
-                return bytes([len(assigned)])
-            return struct.pack("<H", self._slots[index][subindex - 1])
+            return self.assignment[index].read(subindex)
         return self.node.upload(index, subindex)
 
     def _download(self, index: int, subindex: int, data: bytes) -> None:
@@ -124,31 +120,14 @@ class EthercatDrive:
         if (mapping or index in self.assignment) and self.esc.state != PRE_OP:
             raise SdoAbortError(ABORT_DEVICE_STATE)  # PDOs are set up in PRE-OP
         if index in self.assignment:
-            self._assign(index, subindex, int.from_bytes(data, "little"))
+            self.assignment[index].write(subindex, int.from_bytes(data, "little"))
             return
         self.node.download(index, subindex, data)
-
-    def _assign(self, index: int, subindex: int, value: int) -> None:
-        """0x1C12 / 0x1C13: sub 0 the count (0 first, then the PDOs, then the count)."""
-        slots = self._slots[index]
-        if subindex > ASSIGN_SLOTS:
-            raise SdoAbortError(ABORT_NO_SUBINDEX)
-        if subindex == 0:
-            if value > ASSIGN_SLOTS or not all(slots[:value]):
-                raise SdoAbortError(ABORT_VALUE)
-            self.assignment[index] = slots[:value]
-            return
-        if self.assignment[index]:
-            raise SdoAbortError(ABORT_UNSUPPORTED)  # clear the count first
-        mappings = RXPDO_MAPPINGS if index == RXPDO_ASSIGN else TXPDO_MAPPINGS
-        if value not in mappings or value not in self.node.pdos.by_object:
-            raise SdoAbortError(ABORT_VALUE)
-        slots[subindex - 1] = value
 
     # -- process data ------------------------------------------------------------------------
     def _pdos(self, index: int) -> list[Pdo]:
         by_object = self.node.pdos.by_object
-        return [by_object[mapping] for mapping in self.assignment[index]]
+        return [by_object[mapping] for mapping in self.assignment[index].assigned]
 
     @property
     def output_size(self) -> int:
@@ -175,7 +154,11 @@ class EthercatDrive:
         return self.coe.handle(request)
 
     def refuse(self, requested: int) -> int:
-        return 0
+        """SAFE-OP needs every mandatory PDO assigned."""
+        if requested != SAFE_OP:
+            return 0
+        return next((code for assignment in self.assignment.values()
+                     if (code := assignment.refusal())), 0)
 
     def entered(self, state: int, left: int) -> None:
         if state == OP or left == OP:
@@ -193,7 +176,16 @@ def default_sii(node: DriveNode) -> SiiContent:
         return int.from_bytes(node.upload(IDENTITY, sub), "little")
 
     name = node.upload(DEVICE_NAME, 0).decode("ascii", "replace").rstrip("\0")
+    rx, tx = default_pdos(node)
+    return SiiContent(vendor_id=u32(1), product_code=u32(2), revision=u32(3), serial=u32(4),
+                      name=name, rx_pdos=rx, tx_pdos=tx)
+
+
+def default_pdos(node: DriveNode) -> tuple[tuple[PdoSpec, ...], tuple[PdoSpec, ...]]:
+    """hil's default assignment (:data:`DEFAULT_ASSIGNMENT`) of ``node``'s PDOs, RxPDOs and
+    TxPDOs, each as mapped now (a PDO mapping nothing left out)."""
     pdos = node.pdos.by_object
+
     def spec(mapping: int, sync_manager: int) -> PdoSpec:
         entries = []
         for index, subindex in pdos[mapping].keys:
@@ -201,9 +193,8 @@ def default_sii(node: DriveNode) -> SiiContent:
             entries.append(PdoEntrySpec(index, subindex, len(var), var.data_type or 0))
         return PdoSpec(mapping, sync_manager, tuple(entries))
 
-    return SiiContent(
-        vendor_id=u32(1), product_code=u32(2), revision=u32(3), serial=u32(4), name=name,
-        rx_pdos=tuple(spec(m, 2) for m in DEFAULT_ASSIGNMENT[RXPDO_ASSIGN]
-                      if m in pdos and pdos[m].keys),
-        tx_pdos=tuple(spec(m, 3) for m in DEFAULT_ASSIGNMENT[TXPDO_ASSIGN]
-                      if m in pdos and pdos[m].keys))
+    def specs(assign: int, sync_manager: int) -> tuple[PdoSpec, ...]:
+        return tuple(spec(m, sync_manager) for m in DEFAULT_ASSIGNMENT[assign]
+                     if m in pdos and pdos[m].keys)
+
+    return specs(RXPDO_ASSIGN, 2), specs(TXPDO_ASSIGN, 3)

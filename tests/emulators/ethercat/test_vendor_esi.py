@@ -51,9 +51,11 @@ def test_the_ingenia_file_is_a_twin_with_the_modes_its_0x6502_lists():
     config = replace(DriveEmulatorConfig(), object_values=(((0x608F, 1), 4096),
                                                            ((0x608F, 2), 1)))
     twin = eds_twin(str(INGENIA), config)
-    # 0x6502 = 0x000F03E5: PP PV HM IP CSP CSV CST and vendor bits; IP and HM not emulated
-    # (HM: the file lacks an object homing needs)
-    assert twin.summary(1).count("modes PP, PV, CSP, CSV, CST") == 1
+    # 0x6502 = 0x000F03E5: PP PV HM IP CSP CSV CST and vendor bits; IP not emulated. HM: its
+    # 0x6099 is an array (ArrayInfo) whose elements are sub-indices 1 and 2
+    assert twin.summary(1).count("modes PP, PV, HM, CSP, CSV, CST") == 1
+    assert [twin.od[0x6099][sub].name for sub in (1, 2)] == [
+        "Homing search velocities 1", "Homing search velocities 2"]
     assert 0x6502 in twin.od
 
 
