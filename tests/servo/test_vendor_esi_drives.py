@@ -1,0 +1,228 @@
+"""Every vendor ESI file of tests/data/esi (its README: what each lists and lacks) as a user
+brings one to hil's EtherCAT master, from a folder outside the repository, lockstep, over a
+veth pair in a namespace of the test's own.
+
+Each file that lists a mode hil emulates is twinned by ``hil emulate drive --ethercat IFACE
+--esi F --set ...`` (a process of its own: its SII, objects and PDOs from the file, the values
+its vendor leaves for commissioning supplied); scanned by ``hil drive scan ethercat://IFACE
+--json`` (the SII's identity, the modes 0x6502 lists); and driven in every mode it lists that
+hil emulates: CST, CSP, CSV and PV by ``hil servo run`` (0.2 s from where the axis stands: pid
+in CST, the built-in ``setpoint`` in the others), PP by ``hil drive move`` (HM: not yet, the
+matrix says why). The ``[master]`` keys stand in for what a file lacks (Ingenia's 0x1A00 excludes
+0x1A01, so its feedback comes in one TxPDO: ``tpdo_layout = "one"``). A file the twin cannot
+run is refused with the deciding reason on its first line and every Fixed PDO hil's master
+maps named on one of its own. The commands run ``main`` in this process, in the namespace
+(``hil_here``); each twin in its own process.
+
+:data:`MATRIX` is the table of tests/data/esi/README.md's section "Driven by hil's master"
+(:func:`matrix_table`), held to it by a test."""
+
+from __future__ import annotations
+
+import functools
+import json
+import subprocess
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+from hil.core.recording.reader import read_session
+from hil.emulators.ethercat.esi_dictionary import od_from_esi
+from tests.cli import hil_here
+from tests.ethercat_netns import inside, slave_on, veth_pair
+
+pytest.importorskip("pysoem", reason="the ethercat extra (pysoem) is not installed")
+
+pytestmark = pytest.mark.slow
+
+ESI = Path(__file__).resolve().parents[1] / "data" / "esi"
+SERVO = 0x00020192  # 0x1000 of a CiA 402 servo drive
+CYCLIC = ("CST", "CSP", "CSV", "PV")
+#: what a 0.2 s run from where the axis stands must track the default 2 deg, 1 Hz sine within
+#: (the reference alone: 1.3 deg), as over CAN (tests/integration/test_vendor_drives.py)
+RMS_BOUND_DEG = {"CST": 1.0, "CSP": 0.7, "CSV": 0.3, "PV": 0.4}
+
+
+@dataclass(frozen=True)
+class EsiFile:
+    """One vendor ESI file, as the matrix says hil takes it."""
+
+    path: str                  # under tests/data/esi
+    vendor: str
+    product: str
+    identity: tuple[int, int, int]  # 0x1018 over CoE: vendor id, product code, revision
+    listed: tuple[str, ...] = ()     # 0x6502's modes, as the scan names them
+    supplied: dict[str, int] = field(default_factory=dict)  # --set: what the file leaves out
+    stand_ins: dict[str, object] = field(default_factory=dict)  # [master] keys
+    driven: tuple[str, ...] = ()     # the modes hil drives it in
+    not_driven: str = ""             # why a mode it lists that the twin emulates is not
+    not_twinned: tuple[str, ...] = ()  # the twin's refusal: its lines, deciding one first
+
+    @property
+    def file(self) -> Path:
+        return ESI / self.path
+
+    def lists(self, index: int) -> bool:
+        """Whether the file's dictionary has object ``index``."""
+        return index in _objects(self.path)
+
+
+@functools.cache
+def _objects(path: str) -> frozenset[int]:
+    return frozenset(od_from_esi(str(ESI / path), 1).keys())
+
+
+INGENIA_MODES = ("PP", "PV", "HM", "IP", "CSP", "CSV", "CST", "bit 16", "bit 17", "bit 18",
+                 "bit 19")
+FIXED = "is Fixed: hil's master maps its own objects into it (hil remaps PDOs; it does not " \
+    "adopt a fixed map)"
+MATRIX = {esi.path: esi for esi in (
+    EsiFile("ingenia/EVS-NET-01_ingenia_esi.xml", "Ingenia", "EVS-NET-01",
+            (0x29C, 0x32, 0), INGENIA_MODES,  # its SII's: 0x29C, 61935618, 327685
+            {"0x608F:1": 4096, "0x608F:2": 1, "0x1000:0": SERVO},
+            {"increments_per_rev": 4096, "tpdo_layout": "one"},
+            driven=("CST", "CSP", "CSV", "PV", "PP"),
+            not_driven="HM: with one TxPDO the master derives the velocity from the position, "
+            "and homing's new zero reads as a runaway ([safety] velocity_max_deg_s)"),
+    EsiFile("stmbl/STMBL_ECAT.xml", "STMBL (kubabuda)", "STMBL ECAT", (4919, 0x20192, 1),
+            not_twinned=(
+                "no 0x6502 (supported drive modes) with a value: the twin emulates the modes "
+                "it lists (PP, PV, HM, CSP, CSV, CST)",
+                "0x6064:0 (Position actual) is UNSIGNED32, the twin's is INTEGER32",
+                "0x607A:0 (Target position) is UNSIGNED32, the twin's is INTEGER32",
+                f"RxPDO 0x1600 (Control Word) {FIXED}",
+                f"TxPDO 0x1A00 (Status Word) {FIXED}",
+                f"TxPDO 0x1A01 (Position actual) {FIXED}")),
+)}
+TWINNED = [path for path, esi in MATRIX.items() if not esi.not_twinned]
+REFUSED = [path for path, esi in MATRIX.items() if esi.not_twinned]
+
+
+def matrix_table() -> str:
+    """The matrix as tests/data/esi/README.md shows it."""
+    rows = ["| file | twinned | driven in (lockstep, over a veth pair) | supplied |",
+            "| --- | --- | --- | --- |"]
+    for esi in MATRIX.values():
+        supplied = [f"`--set {key}={value:#x}`" if key == "0x1000:0" else
+                    f"`--set {key}={value}`" for key, value in esi.supplied.items()]
+        supplied += [f"`[master] {key} = {json.dumps(value)}`"
+                     for key, value in esi.stand_ins.items()]
+        refusal = "; ".join(esi.not_twinned)
+        driven = "; not ".join(filter(None, (", ".join(esi.driven), esi.not_driven)))
+        rows.append(f"| `{esi.path}` | {'no: ' + refusal if refusal else 'yes'} | "
+                    f"{driven or '-'} | {', '.join(supplied) or '-'} |")
+    return "\n".join(rows)
+
+
+def test_the_matrix_holds_every_esi_file_and_the_readme_shows_it():
+    files = {str(p.relative_to(ESI)) for p in ESI.rglob("*.xml")}
+    assert files == set(MATRIX)
+    section = (ESI / "README.md").read_text().split("## Driven by hil's master\n", 1)[1]
+    assert matrix_table() in section
+
+
+@dataclass
+class Twin:
+    """A vendor ESI's twin on the slave end of ``veth``, and the folder (outside the
+    repository) hil's commands run from, in the namespace."""
+
+    esi: EsiFile
+    url: str
+    folder: Path
+    capsys: pytest.CaptureFixture[str]
+
+    def config(self, mode: str, extra: str = "") -> str:
+        name = f"{mode}.toml"
+        keys = "".join(f"{key} = {json.dumps(value)}\n" for key, value in
+                       self.esi.stand_ins.items())
+        (self.folder / name).write_text(f'[master]\nmode = "{mode}"\n{keys}{extra}')
+        return name
+
+    def hil(self, *args: object) -> subprocess.CompletedProcess[str]:
+        return hil_here(self.capsys, *args, cwd=self.folder)
+
+    def last_statusword(self, session: str) -> int:
+        *_, (_, last) = read_session(str(self.folder / session)).topic("/drive/feedback")
+        return int(last["statusword"])
+
+
+@pytest.mark.parametrize("path", TWINNED)
+def test_each_vendor_esi_is_twinned_scanned_and_driven_in_each_mode_it_lists(
+        path, tmp_path, capsys, subtests):
+    """One twin per file, every step of it a subtest: the scan, then each mode it is driven
+    in (the cyclic ones from where the axis stands, then PP)."""
+    esi = MATRIX[path]
+    sets = [arg for key, value in esi.supplied.items() for arg in ("--set", f"{key}={value}")]
+    with veth_pair() as veth, slave_on(veth, "--esi", str(esi.file), *sets), inside(veth):
+        twin = Twin(esi, f"ethercat://{veth.master}?slave=1", tmp_path, capsys)
+        with subtests.test("scan"):
+            scanned(twin, f"ethercat://{veth.master}")
+        for mode in esi.driven:
+            with subtests.test(mode):
+                if mode in CYCLIC:
+                    track(twin, mode)
+                else:
+                    move(twin)
+
+
+def scanned(twin: Twin, segment: str) -> None:
+    """``hil drive scan``: the identity 0x1018 gives, the SII's name, the modes 0x6502 lists,
+    drivable in the mode it is driven in first."""
+    esi = twin.esi
+    mode = esi.driven[0].lower()
+    scan = twin.hil("drive", "scan", segment, "--config", twin.config(mode), "--json")
+    [node] = json.loads(scan.stdout)["nodes"]
+    assert (node["identity"]["vendor_id"], node["identity"]["product_code"],
+            node["identity"]["revision"]) == esi.identity
+    assert node["device_name"] == esi.product and node["nmt_state"] == "AL PRE-OP"
+    assert node["modes"] == list(esi.listed)
+    assert scan.returncode == 0 and node["verdict"].startswith(
+        f"can drive: yes, in {mode.upper()}"), node["verdict"]
+
+
+def track(twin: Twin, mode: str) -> None:
+    """``hil servo run``: CST with pid, the others with ``setpoint``; lockstep, the twin on
+    the master's process-data cycles; the KPIs of a driven axis."""
+    ran = twin.hil("servo", "run", "--controller", "pid" if mode == "CST" else "setpoint",
+                   "--drive", twin.url, "--config", twin.config(mode.lower()), "--from-here",
+                   "--duration", "0.2", "--json", "--out", f"{mode}.mcap")
+    assert ran.returncode == 0, ran.stderr
+    kpis = json.loads(ran.stdout)
+    assert kpis["status"] == "completed" and kpis["clock"] == "sim"
+    assert kpis["ticks"] == 400 and kpis["stale_feedback"] == 0
+    assert kpis["rms_error_deg"] < RMS_BOUND_DEG[mode], kpis
+    assert kpis["peak_current_mA"] > 0
+    if mode == "CST":  # hil's current, clamped (in the others the drive chooses it)
+        assert kpis["peak_current_mA"] <= kpis["current_limit_mA"]
+    if mode != "CST":
+        assert kpis["set_point"] == ("position" if mode == "CSP" else "velocity")
+    events = {m["kind"]: m["message"] for _, m in
+              read_session(str(twin.folder / f"{mode}.mcap")).topic("/events")}
+    assert events["drive.clock"].startswith("drive node 1 keeps the master's time")
+    assert "in OP, working counter 3 a cycle" in events["ethercat.operational"]
+
+
+def move(twin: Twin) -> None:
+    """``hil drive move`` 30 deg on: done (statusword bit 10) within a degree."""
+    decelerate = ("--deceleration", 360) if twin.esi.lists(0x6084) else ()
+    moved = twin.hil("drive", "move", twin.url, "30", "--relative", "--config",
+                     twin.config("pp"), "--velocity", 90, "--acceleration", 360, *decelerate,
+                     "--json", "--out", "move.mcap")
+    assert moved.returncode == 0, moved.stderr
+    kpis = json.loads(moved.stdout)
+    assert kpis["reached"] and abs(kpis["error_deg"]) <= 1.0, kpis
+    assert twin.last_statusword("move.mcap") & 0x0400  # target reached
+
+
+@pytest.mark.parametrize("path", REFUSED)
+def test_a_file_the_twin_cannot_run_is_refused_one_reason_a_line(tmp_path, capsys, path):
+    """From outside the repository, before any interface is opened: the deciding reason
+    first, then every other, each a line (the Fixed PDOs hil's master maps among them)."""
+    esi = MATRIX[path]
+    out = hil_here(capsys, "emulate", "drive", "--ethercat", "hil-no-such-if", "--esi",
+                   esi.file, cwd=tmp_path)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    lines = out.stderr.strip().splitlines()
+    assert lines == [f"hil: error: ESI {esi.file}: {esi.not_twinned[0]}"] + [
+        f"ESI {esi.file}: {line}" for line in esi.not_twinned[1:]]
