@@ -43,6 +43,7 @@ from hil.protocols.cia301 import SYNC_COB_ID
 from hil.protocols.cia402 import (
     POSITION_ACTUAL,
     STATUSWORD,
+    SW_HOMING_ATTAINED,
     TORQUE_ACTUAL,
     VELOCITY_ACTUAL,
     PdoMap,
@@ -143,6 +144,7 @@ class CyclicExchange:
         self.use_tpdos(tpdos)
         self._period_s = period_s
         self._last_fresh: tuple[float, int] | None = None  # position, cycle (derived velocity)
+        self._homing: bool | None = None  # a homing runs: None, then whether bit 12 was low
         self.scaling = DriveScaling()
         self.echo = False          # TPDOs carry the SYNC counter as their last byte
         self.sync_counter = 0      # the counter of the last SYNC sent (echo on)
@@ -194,6 +196,12 @@ class CyclicExchange:
         the axis: home; a drive that counts one turn says -5 deg as 355)."""
         self._turns, self._last_raw, self._last_fresh = 0, None, None
         self._near = self.scaling.counts(near_deg)
+
+    def homing_starts(self) -> None:
+        """A homing runs: the feedback whose statusword says homing attained (bit 12 rising)
+        may hold the position in the drive's new frame already, so no velocity is derived
+        from it and the one before (the axis stands there: bit 10)."""
+        self._homing = False
 
     def start(self, feedback_raw: tuple[int, int, int, int]) -> Feedback:
         """Enabled: the first feedback from values read by SDO (statusword, position,
@@ -371,6 +379,11 @@ class CyclicExchange:
         position_deg = scaling.degrees(self._turns * turn + raw)
         velocity_deg_s = scaling.degrees(velocity)
         if self._derive_velocity and fresh:
+            if self._homing is not None:
+                if not statusword & SW_HOMING_ATTAINED:
+                    self._homing = True
+                elif self._homing:
+                    self._homing, self._last_fresh = None, None
             before = self._last_fresh
             if before is not None and self.cycle > before[1]:
                 velocity_deg_s = (position_deg - before[0]) / (

@@ -123,6 +123,7 @@ def homing(master: CanDriveMaster, method: int) -> Homing:
     the drive's new frame from home, its position there the home offset (0x607C)."""
     offset = master.objects.read(HOME_OFFSET, 0, "<i")
     home_deg = 0.0 if offset is None else master.scaling.degrees(offset)
+    master.cyclic.homing_starts()
     return Homing(method, lambda: master.cyclic.forget_turns(home_deg))
 
 

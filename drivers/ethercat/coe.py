@@ -20,7 +20,7 @@ from collections.abc import Callable
 from hil.drivers.canopen.errors import DriveError, DriveLinkLostError
 from hil.drivers.canopen.sdo import unpack_int
 from hil.drivers.ethercat.segment import Segment
-from hil.protocols.cia301 import SdoAbortError
+from hil.protocols.cia301 import SDO_COMMAND_MASK, SdoAbortError
 from hil.protocols.ethercat import (
     COE_EMERGENCY,
     COE_HEADER,
@@ -37,7 +37,15 @@ from hil.protocols.ethercat import (
 SM_STATUS = 5  # the status byte of a SyncManager's registers
 UPLOAD, DOWNLOAD_EXPEDITED, DOWNLOAD_NORMAL, UPLOAD_SEGMENT = 0x40, 0x23, 0x21, 0x60
 ABORT, EXPEDITED, SIZE_INDICATED, TOGGLE, LAST = 0x80, 0x02, 0x01, 0x10, 0x01
+DOWNLOAD_CONFIRMED = 0x60  # the initiate-download response's command specifier
 POLL_S = 50e-6   # the answer's mailbox polled this often
+
+
+def download_confirmed(command: int) -> bool:
+    """Whether an answer's command byte confirms a download: its specifier (the top three
+    bits) is 3, whatever the bits CiA 301 reserves hold (some slaves echo the request's size
+    bits there: 0x6B for a 1-byte expedited download), as the CAN SDO client takes it."""
+    return command & SDO_COMMAND_MASK == DOWNLOAD_CONFIRMED
 
 
 class CoeSdo:
@@ -104,7 +112,7 @@ class CoeSdo:
             request = SDO_HEADER.pack(DOWNLOAD_NORMAL, index, subindex) + \
                 struct.pack("<I", len(data)) + data
         answer = self._request(request, index, subindex, what, timeout_s)
-        if answer[0] != 0x60:
+        if not download_confirmed(answer[0]):
             raise DriveError(f"drive {self._name}: bad SDO answer to {what}")
 
     def queue_write(self, index: int, subindex: int, value: int, fmt: str = "<I") -> None:

@@ -5,6 +5,7 @@ did not write (canopen's LocalNode, tests/drive_slave.py) on a python-can virtua
 
 from __future__ import annotations
 
+import json
 import uuid
 
 import pytest
@@ -15,6 +16,7 @@ from hil.drivers.canopen.bus_plan import axis_traffic
 from hil.drivers.canopen.pdo import tpdo_maps, unused_pdos
 from hil.emulators.drive.runners import LockstepDrive
 from hil.protocols.cia402 import TPDO1, TPDO1_ALONE, TPDO2
+from tests.cli import hil_here
 from tests.drive_slave import INCREMENTS, serve
 
 ONE = DriveMasterConfig(tpdo_layout="one")
@@ -93,3 +95,20 @@ def test_a_slave_hil_did_not_write_is_remapped_to_one_tpdo():
     # the slave moves 500 us per SYNC: its velocity is the position's change per cycle
     assert velocity > 1000.0
     assert feedback.velocity_deg_s == pytest.approx(velocity, abs=2 * 360 / INCREMENTS / 500e-6)
+
+
+@pytest.mark.parametrize("method", [17, 34, 37])
+def test_a_homing_with_one_tpdo_is_no_runaway_at_its_new_zero(tmp_path, capsys, method):
+    """The velocity is derived from the position: the feedback in which the drive says homing
+    attained already holds the position in its new frame (a jump of up to a turn in one
+    cycle), which is not a speed. The homing ends at home, the axis' peak speed that of the
+    search, and [safety] velocity_max_deg_s still holds."""
+    (tmp_path / "one.toml").write_text('[master]\ntpdo_layout = "one"\n')
+    homed = hil_here(capsys, "drive", "home", "emulated", "--config", "one.toml", "--method",
+                     method, "--speed", 90, "--zero-speed", 45, "--json", "--out", "h.mcap",
+                     cwd=tmp_path)
+    assert homed.returncode == 0, homed.stderr
+    kpis = json.loads(homed.stdout)
+    assert kpis["reached"] and kpis["status"] == "completed"
+    assert abs(kpis["position_deg"]) < 0.5
+    assert kpis["peak_velocity_deg_s"] < 120.0, kpis

@@ -7,12 +7,13 @@ Each file that lists a mode hil emulates is twinned by ``hil emulate drive --eth
 its vendor leaves for commissioning supplied); scanned by ``hil drive scan ethercat://IFACE
 --json`` (the SII's identity, the modes 0x6502 lists); and driven in every mode it lists that
 hil emulates: CST, CSP, CSV and PV by ``hil servo run`` (0.2 s from where the axis stands: pid
-in CST, the built-in ``setpoint`` in the others), PP by ``hil drive move`` (HM: not yet, the
-matrix says why). The ``[master]`` keys stand in for what a file lacks (Ingenia's 0x1A00 excludes
-0x1A01, so its feedback comes in one TxPDO: ``tpdo_layout = "one"``). A file the twin cannot
-run is refused with the deciding reason on its first line and every Fixed PDO hil's master
-maps named on one of its own. The commands run ``main`` in this process, in the namespace
-(``hil_here``); each twin in its own process.
+in CST, the built-in ``setpoint`` in the others), PP by ``hil drive move``, HM by ``hil drive
+home`` (a method that searches a switch, one that homes where the axis stands). The
+``[master]`` keys stand in for what a file lacks (Ingenia's 0x1A00 excludes 0x1A01, so its
+feedback comes in one TxPDO: ``tpdo_layout = "one"``). A file the twin cannot run is refused
+with the deciding reason on its first line and every Fixed PDO hil's master maps named on one
+of its own. The commands run ``main`` in this process, in the namespace (``hil_here``); each
+twin in its own process.
 
 :data:`MATRIX` is the table of tests/data/esi/README.md's section "Driven by hil's master"
 (:func:`matrix_table`), held to it by a test."""
@@ -82,9 +83,7 @@ MATRIX = {esi.path: esi for esi in (
             (0x29C, 0x32, 0), INGENIA_MODES,  # its SII's: 0x29C, 61935618, 327685
             {"0x608F:1": 4096, "0x608F:2": 1, "0x1000:0": SERVO},
             {"increments_per_rev": 4096, "tpdo_layout": "one"},
-            driven=("CST", "CSP", "CSV", "PV", "PP"),
-            not_driven="HM: with one TxPDO the master derives the velocity from the position, "
-            "and homing's new zero reads as a runaway ([safety] velocity_max_deg_s)"),
+            driven=("CST", "CSP", "CSV", "PV", "PP", "HM")),
     EsiFile("stmbl/STMBL_ECAT.xml", "STMBL (kubabuda)", "STMBL ECAT", (4919, 0x20192, 1),
             not_twinned=(
                 "no 0x6502 (supported drive modes) with a value: the twin emulates the modes "
@@ -151,7 +150,7 @@ class Twin:
 def test_each_vendor_esi_is_twinned_scanned_and_driven_in_each_mode_it_lists(
         path, tmp_path, capsys, subtests):
     """One twin per file, every step of it a subtest: the scan, then each mode it is driven
-    in (the cyclic ones from where the axis stands, then PP)."""
+    in (the cyclic ones from where the axis stands, then PP, then HM)."""
     esi = MATRIX[path]
     sets = [arg for key, value in esi.supplied.items() for arg in ("--set", f"{key}={value}")]
     with veth_pair() as veth, slave_on(veth, "--esi", str(esi.file), *sets), inside(veth):
@@ -162,8 +161,10 @@ def test_each_vendor_esi_is_twinned_scanned_and_driven_in_each_mode_it_lists(
             with subtests.test(mode):
                 if mode in CYCLIC:
                     track(twin, mode)
-                else:
+                elif mode == "PP":
                     move(twin)
+                else:
+                    home(twin)
 
 
 def scanned(twin: Twin, segment: str) -> None:
@@ -213,6 +214,21 @@ def move(twin: Twin) -> None:
     kpis = json.loads(moved.stdout)
     assert kpis["reached"] and abs(kpis["error_deg"]) <= 1.0, kpis
     assert twin.last_statusword("move.mcap") & 0x0400  # target reached
+
+
+def home(twin: Twin) -> None:
+    """``hil drive home`` by a method that searches the home switch (17) and one that homes
+    where the axis stands (37): done at home (the position 0, no home offset given) with
+    statusword bits 12 and 10; with one TxPDO the new zero is not taken for a speed."""
+    for method in (17, 37):
+        homed = twin.hil("drive", "home", twin.url, "--config", twin.config("hm"), "--method",
+                         method, "--speed", 360, "--zero-speed", 180, "--json", "--out",
+                         f"home{method}.mcap")
+        assert homed.returncode == 0, homed.stderr
+        kpis = json.loads(homed.stdout)
+        assert kpis["reached"] and kpis["method"] == method, kpis
+        assert abs(kpis["position_deg"]) <= 1.0, kpis
+        assert twin.last_statusword(f"home{method}.mcap") & 0x1400 == 0x1400
 
 
 @pytest.mark.parametrize("path", REFUSED)
