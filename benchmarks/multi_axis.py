@@ -15,7 +15,9 @@ axis), in one run:
 
 ``--parts`` then times hil's parts of a tick (each master's read and write, each controller's
 step, the bus's SYNC, each axis' rows, KPIs and checks, the hand-over to the writer; the loop's
-own is the rest) with one axis and with 3: where each extra axis' microseconds go.
+own is the rest) with one axis and with 3: where each extra axis' microseconds go (the timer
+costs each timed call about 2 us of a cache-cold tick, 5 calls an axis: read the shares, not
+the sums).
 
 Each figure is the quickest of ``--repeat`` alternated batches (this shared machine has slow
 minutes: the quickest batch is the one it ran undisturbed). The target is that each axis past
@@ -197,8 +199,8 @@ def print_parts(repeat: int, seconds: float, tmp: Path) -> None:
                           for label, us in figures.items()}
     labels = [DRIVES, *dict.fromkeys(label for label, _, _ in HIL_PARTS), "rest"]
     own = {axes: sum(best[axes][label] for label in labels[1:]) for axes in best}
-    print(f"where the CPU of a tick goes (parts timed: each call costs the timer ~0.5 us), "
-          f"quickest of {repeat}")
+    print(f"where the CPU of a tick goes, quickest of {repeat} (each timed call costs about 2 us "
+          "more, 5 an axis: read the shares, not the sums)")
     print(f"   {'':36s} {'1 axis':>8s} {'3 axes':>8s}  each axis past the first")
     for label in labels:
         one, three = best[1][label], best[3][label]
