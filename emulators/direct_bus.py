@@ -78,6 +78,7 @@ class DirectBus(can.BusABC):
         return self.recv(), False
 
     def shutdown(self) -> None:
-        if self._inbox in self._channel.inboxes:
-            self._channel.inboxes.remove(self._inbox)
+        # by identity: deques compare by their frames, and another bus's may equal this one's
+        self._channel.inboxes[:] = [inbox for inbox in self._channel.inboxes
+                                    if inbox is not self._inbox]
         super().shutdown()

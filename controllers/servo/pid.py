@@ -165,12 +165,14 @@ class CascadedPid:
     def step(self, position_deg: float, t_s: float) -> float:
         c = self.config
         y = self._position.update(float(position_deg))
-        r = float(self.reference.position(np.array([t_s]))[0])
+        # sampled at a numpy scalar, as the excitation does: a 1-element array costs ~2 us more
+        # a step, the same bits
+        r = float(self.reference.position(np.float64(t_s)))
         velocity = 0.0 if self._last_y is None else (y - self._last_y) / self.dt * RPM_PER_DEG_S
         self._last_y = y
         v_ref = c.k_pos_rpm_per_deg * wrap180(r - y)
         if c.velocity_feedforward:
-            r_next = float(self.reference.position(np.array([t_s + self.dt]))[0])
+            r_next = float(self.reference.position(np.float64(t_s + self.dt)))
             v_ref += c.velocity_feedforward * wrap180(r_next - r) / self.dt * RPM_PER_DEG_S
         e_v = v_ref - velocity
         k = 1000.0 * c.k_vel_a_per_rpm  # mA per rpm

@@ -252,9 +252,24 @@ class CyclicExchange:
             if self.feedback is None:
                 raise DriveError("no feedback yet: enable the drive first")
             return self.feedback
+        wait_ns = self._rx_timeout_ns if timeout_s is None else round(timeout_s * 1e9)
+        recv, dispatch = self.link.recv, self._dispatch
+        every = self._all
+        try:
+            # an answer already here (in lockstep; in real time one that travelled while the
+            # loop slept) is read without a clock or a poll budget: every axis pays this a tick
+            while self._got != every and (frame := recv(0.0)) is not None:
+                dispatch(frame)
+            if self._got != every:
+                self._wait_for_rest(wait_ns)
+        finally:
+            self._awaiting = False
+        return self._conclude(self._got == every, self._heard, wait_ns)
+
+    def _wait_for_rest(self, wait_ns: int) -> None:
+        """The rest of the answer, waited for until ``wait_ns`` after the SYNC."""
         # measured from the SYNC: in the split form the TPDOs have travelled while the loop
         # slept, and a late pair costs the tick only what is left of the wait
-        wait_ns = self._rx_timeout_ns if timeout_s is None else round(timeout_s * 1e9)
         deadline_ns = self._sent_ns + wait_ns
         recv, dispatch = self.link.recv, self._dispatch
         clock = time.perf_counter_ns
@@ -267,22 +282,18 @@ class CyclicExchange:
         long_wait = wait_ns > POLL_WAIT_MAX_NS
         if long_wait:
             self._poll.start(clock())
-        try:
-            every = self._all
-            while self._got != every:
-                now = clock()
-                over = now >= deadline_ns
-                look = over or not long_wait or self._poll.polling(now)
-                frame = recv(0.0 if look else (deadline_ns - now) / 1e9)
-                if frame is not None:
-                    dispatch(frame)
-                elif over:
-                    break
-                elif long_wait and look:  # the drive's process may be waiting for this core
-                    os.sched_yield()
-        finally:
-            self._awaiting = False
-        return self._conclude(self._got == self._all, self._heard, wait_ns)
+        every = self._all
+        while self._got != every:
+            now = clock()
+            over = now >= deadline_ns
+            look = over or not long_wait or self._poll.polling(now)
+            frame = recv(0.0 if look else (deadline_ns - now) / 1e9)
+            if frame is not None:
+                dispatch(frame)
+            elif over:
+                break
+            elif long_wait and look:  # the drive's process may be waiting for this core
+                os.sched_yield()
 
     def _conclude(self, complete: bool, heard: bool, wait_ns: int) -> Feedback:
         """The cycle's feedback: fresh when its answer is ``complete``, else the last one

@@ -173,6 +173,9 @@ class AxesTick(Task):
         self.settle_s = settle_s
         self.topic = session.topic("/path/contour", CONTOUR_SCHEMA, high_rate=True) \
             if radius is not None else None
+        # every axis' feedback and command of a tick, handed to the writer in one record
+        self.rows = session.recorder.rows(tuple(
+            topic for task in tasks for topic in (task.feedbacks, task.commands)))
         self.max_error = 0.0
         self.sum_squares = 0.0
         self.counted = 0
@@ -193,8 +196,13 @@ class AxesTick(Task):
         self.cycles += 1
 
     def record(self, t_ns: int) -> None:
+        """Every axis' rows in one hand-over, then every axis' checks, then the contour."""
+        rows: list[tuple[object, ...]] = []
         for task in self.tasks:
-            task.record(t_ns)
+            rows.extend(task.rows())
+        self.rows.log(t_ns, tuple(rows))
+        for task in self.tasks:
+            task.check(t_ns)
         if self.topic is None or self.radius is None:
             return
         x_task, y_task = self.tasks[0], self.tasks[1]

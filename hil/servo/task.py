@@ -117,6 +117,8 @@ class ServoTask(Task):
         self._feedback: Feedback | None = None
         self._command = 0.0
         self._compute_us = 0.0
+        self._error = 0.0    # position - reference [deg] (rows)
+        self._applied = 0.0  # the current the drive was sent, or reports [mA] (rows)
         self.late_writes = 0
         self.stale = 0
 
@@ -160,30 +162,45 @@ class ServoTask(Task):
 
     def record(self, t_ns: int) -> None:
         """KPIs, /drive/feedback, /drive/command, limits and the MPC prediction of this tick."""
+        feedback_row, command_row = self.rows()
+        self.feedbacks.log(t_ns, feedback_row)
+        self.commands.log(t_ns, command_row)
+        self.check(t_ns)
+
+    def rows(self) -> tuple[tuple[object, ...], tuple[object, ...]]:
+        """This tick in the KPIs, and its rows of ``feedbacks`` and ``commands`` (packed, in
+        the order of FEEDBACK_SCHEMA and command_schema; None: left out), for :meth:`record`
+        to log, or the bus's task with every axis' in one hand-over; :meth:`check` next."""
         feedback, n, t_s, u = self._feedback, self._tick, self._t_s, self._command
         assert feedback is not None
         position = feedback.position_deg
         r = self.reference(n)
-        error = position - r
+        self._error = error = position - r
         if not feedback.fresh:
             self.stale += 1
         disturbance = self._disturbance_for(t_s) if self.scenario.disturbance is not None \
             else None
         path = self._solver_path()
-        # packed rows, in the order of FEEDBACK_SCHEMA and command_schema (None: left out)
-        self.feedbacks.log(t_ns, (position, feedback.velocity_deg_s, feedback.current_ma,
-                                  feedback.command_ma, feedback.statusword, feedback.cycle,
-                                  feedback.fresh, feedback.rtt_us))
+        feedback_row = (position, feedback.velocity_deg_s, feedback.current_ma,
+                        feedback.command_ma, feedback.statusword, feedback.cycle,
+                        feedback.fresh, feedback.rtt_us)
         if self.currents:  # the current the drive is sent; the request on /drive/command
-            applied = self.master.applied_current(u) if math.isfinite(u) else u
+            self._applied = applied = self.master.applied_current(u) if math.isfinite(u) else u
             self.stats.add(t_s, error, applied, self._compute_us, requested_ma=u)
-            self.commands.log(t_ns, (t_s, r, error, u, disturbance, self._compute_us,
-                                     path or None))
-        else:  # the drive chooses the current: the KPIs take the one it reports
-            applied = feedback.current_ma
-            self.stats.add(t_s, error, applied, self._compute_us)
-            self.commands.log(t_ns, (t_s, r, error, math.nan, disturbance, self._compute_us,
-                                     path or None, u))
+            return feedback_row, (t_s, r, error, u, disturbance, self._compute_us,
+                                  path or None)
+        # the drive chooses the current: the KPIs take the one it reports
+        self._applied = applied = feedback.current_ma
+        self.stats.add(t_s, error, applied, self._compute_us)
+        return feedback_row, (t_s, r, error, math.nan, disturbance, self._compute_us,
+                              path or None, u)
+
+    def check(self, t_ns: int) -> None:
+        """This tick's safety limits and ``--limit`` signals (after :meth:`rows`), and its MPC
+        prediction."""
+        feedback, n, t_s = self._feedback, self._tick, self._t_s
+        assert feedback is not None
+        error, position = self._error, feedback.position_deg
         stop = self.safety.check(t_s, error, position, feedback.velocity_deg_s, feedback.fresh,
                                  rtt_us=feedback.rtt_us, late_us=(t_ns - self.loop.start_ns
                                                                   - n * self.period_ns) / 1e3)
@@ -191,7 +208,7 @@ class ServoTask(Task):
             self.session.event("safety.stop", stop, level="error", source="safety", t_s=t_s)
             self.loop.stop(stop)
         if self.watch is not None:
-            self._check_limits(error, applied, feedback)
+            self._check_limits(error, self._applied, feedback)
         if self.predictor is not None and self.predictions is not None \
                 and n % self.prediction_every == 0:
             u_pred, y_pred = self.predictor.prediction()

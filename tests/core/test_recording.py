@@ -93,6 +93,48 @@ def test_packed_rows_record_the_same_bytes_as_dicts(tmp_path, encoding):
     assert len(by_dict) == 500 and by_dict == by_row
 
 
+@pytest.mark.parametrize("in_process", [False, True])
+def test_topics_logged_together_record_what_each_topic_logs_alone(tmp_path, in_process):
+    """A group of topics (Recorder.rows: one hand-over a tick for every axis of a bus) gives,
+    topic by topic, the bytes and times of each topic's own log, through the writer process
+    and in process."""
+    names = list(FLAT["properties"])
+    options = RecordingOptions(in_process=in_process)
+    files = {}
+    for form in ("alone", "together"):
+        files[form] = tmp_path / f"{form}.mcap"
+        with Recorder(files[form], wait_when_full=True, options=options) as rec:
+            a, b = rec.topic("/a", FLAT, encoding="cdr"), rec.topic("/b", FLAT, encoding="json")
+            both = rec.rows((a, b))
+            for k in range(700):
+                row_a = tuple(_message(k).get(name) for name in names)
+                row_b = tuple(_message(k + 1).get(name) for name in names)
+                if form == "alone":
+                    a.log(k * 500_000, row_a)
+                    b.log(k * 500_000, row_b)
+                else:
+                    assert both.log(k * 500_000, (row_a, row_b))
+    for topic in ("/a", "/b"):
+        alone, together = _raw_messages(files["alone"], topic), \
+            _raw_messages(files["together"], topic)
+        assert len(alone) == 700 and together == alone
+
+
+def test_topics_logged_together_count_their_drops_each(tmp_path):
+    """Rows refused (the backlog full) are counted on every topic of the group, and the
+    counts reach the file's /events as each topic's."""
+    rec = Recorder(tmp_path / "d.mcap", batch_size=1, max_backlog_bytes=1)
+    a, b = rec.topic("/a", NESTED), rec.topic("/b", NESTED)
+    both = rec.rows((a, b))
+    accepted = sum(both.log(k, ({"data": {"pad": "x" * 10_000}}, {"data": {"k": k}}))
+                   for k in range(2000))
+    stats = rec.close()
+    assert 0 < a.dropped == b.dropped == 2000 - accepted
+    assert stats.messages_dropped == {"/a": a.dropped, "/b": b.dropped}
+    data = read_session(tmp_path / "d.mcap")
+    assert len(data.topic("/a")) == len(data.topic("/b")) == accepted
+
+
 def test_a_row_of_the_wrong_length_fails_the_recording_naming_the_fields(tmp_path):
     rec = Recorder(tmp_path / "bad.mcap", wait_when_full=True)
     rec.topic("/flat", FLAT, encoding="cdr").log(1, (1.0, 2.0))

@@ -52,3 +52,19 @@ def test_the_direct_channel_carries_tuples_and_python_can_messages_alike():
     assert node.recv_frame() == (0x701, b"\x05") and node.recv_frame() is None
     for bus in (master, node, observer):
         bus.shutdown()
+
+
+def test_a_bus_shut_down_leaves_every_other_bus_of_the_channel_hearing():
+    """Inboxes are told apart by identity: two empty ones are equal deques, and shutting one
+    bus down once detached the first empty inbox of the channel, another bus's."""
+    channel = DirectChannel()
+    node, master, observer = channel.attach(), channel.attach(), channel.attach()
+    observer.shutdown()  # every inbox empty: equal to the node's and the master's
+    master.send_frames([(0x80, b"")])
+    assert node.recv_frame() == (0x80, b"")
+    node.send_frames([(0x181, b"\x27\x02")])
+    assert master.recv_frame() == (0x181, b"\x27\x02")
+    assert len(channel.inboxes) == 2
+    for bus in (master, node):
+        bus.shutdown()
+    assert channel.inboxes == []

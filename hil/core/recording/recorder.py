@@ -1,10 +1,12 @@
 """MCAP recorder, loop side: producers only queue; a writer *process* encodes and writes.
 
 * :meth:`Topic.log` appends ``(channel, t_ns, message)`` to a queue: the whole cost on the
-  loop thread. :meth:`Recorder.flush` (the loop calls it once per tick, at most every
-  ``flush_every_s`` of wall time) pickles the queue as one frame and writes it, without
-  blocking, to a pipe read by the writer process (:mod:`hil.core.recording.writer`). JSON or CDR
-  encoding, zstd compression and file I/O happen there, off this interpreter's GIL.
+  loop thread (a :class:`TopicRows` appends ``(channels, t_ns, rows)``: several topics' rows
+  of one time in one record, for the writer to split). :meth:`Recorder.flush` (the loop
+  calls it once per tick, at most every ``flush_every_s`` of wall time) pickles the queue as
+  one frame and writes it, without blocking, to a pipe read by the writer process
+  (:mod:`hil.core.recording.writer`). JSON or CDR encoding, zstd compression and file I/O
+  happen there, off this interpreter's GIL.
 * Back-pressure: what the pipe does not take waits in a backlog of at most
   ``max_backlog_bytes``; beyond it messages are dropped at :meth:`Topic.log` and counted per
   topic, and the counts reach ``/events`` (``recorder.dropped``) and the file's ``recorder``
@@ -106,6 +108,32 @@ class Topic:
             self.dropped += 1
             return False
         rec._queue.append((self.channel_key, t_ns, message))
+        if len(rec._queue) >= rec.batch_size:
+            rec.flush()
+        return True
+
+
+class TopicRows:
+    """Several topics logged together at one time, one packed row each (the axes of a bus,
+    every tick): one hand-over for them all, which the writer makes into one message a topic,
+    in order, the messages :meth:`Topic.log` would have made of each row."""
+
+    __slots__ = ("_recorder", "keys", "topics")
+
+    def __init__(self, recorder: Recorder, topics: tuple[Topic, ...]) -> None:
+        self._recorder = recorder
+        self.topics = topics
+        self.keys = tuple(topic.channel_key for topic in topics)
+
+    def log(self, t_ns: int, rows: tuple[tuple[Any, ...], ...]) -> bool:
+        """Queue ``rows`` (one packed row per topic, in the order of :attr:`topics`) stamped
+        ``t_ns``. Returns False when they were dropped (each topic counts its message)."""
+        rec = self._recorder
+        if rec._refusing:
+            for topic in self.topics:
+                topic.dropped += 1
+            return False
+        rec._queue.append((self.keys, t_ns, rows))
         if len(rec._queue) >= rec.batch_size:
             rec.flush()
         return True
@@ -306,6 +334,10 @@ class Recorder:
             self._queue.append(("topic", topic.channel_key, name, schema, chosen))
             return topic
 
+    def rows(self, topics: tuple[Topic, ...]) -> TopicRows:
+        """``topics`` logged together, one row each, in one hand-over (:class:`TopicRows`)."""
+        return TopicRows(self, topics)
+
     def event(
         self, t_ns: int, kind: str, message: str, level: str = "info", source: str = "", **data: Any
     ) -> None:
@@ -371,7 +403,7 @@ class Recorder:
             records = [queue.popleft() for _ in range(len(queue))]
             if records:
                 last = records[-1]
-                if isinstance(last[0], int):
+                if isinstance(last[0], int | tuple):  # a message, or a topic group's
                     self._last_t_ns = last[1]
                 self._add_drop_report(records)
                 if self._writer_gone:
@@ -422,8 +454,10 @@ class Recorder:
     def _count_lost(self, records: list[tuple[Any, ...]]) -> None:
         by_key = {t.channel_key: t for t in self._topics.values()}
         for record in records:
-            if isinstance(record[0], int) and record[0] in by_key:
-                by_key[record[0]].dropped += 1
+            keys = record[0]
+            for key in keys if type(keys) is tuple else (keys,):
+                if isinstance(key, int) and key in by_key:
+                    by_key[key].dropped += 1
 
     # -- lifecycle -------------------------------------------------------------------------
     def close(self) -> RecorderStats:

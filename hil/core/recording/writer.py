@@ -124,6 +124,10 @@ class SessionWriter:
             self.last_t_ns = t_ns
             if self.live is not None:
                 self.live.log(kind, t_ns, message)
+        elif type(kind) is tuple:  # a topic group's rows (recorder.TopicRows): one a topic
+            _, t_ns, rows = record
+            for key, row in zip(kind, rows, strict=True):
+                self.apply((key, t_ns, row))
         elif kind == "topic":
             _, key, name, schema, encoding_name = record
             spec, self.encodings[key] = channel_for(name, schema, encoding_name)
