@@ -203,10 +203,12 @@ class CyclicExchange:
         from it and the one before (the axis stands there: bit 10)."""
         self._homing = False
 
-    def start(self, feedback_raw: tuple[int, int, int, int]) -> Feedback:
+    def start(self, feedback_raw: tuple[int, int, int, int] | None) -> Feedback:
         """Enabled: the first feedback from values read by SDO (statusword, position,
-        velocity, torque); the master's heartbeat and the watchdog start afresh."""
-        self._rx = list(feedback_raw)
+        velocity, torque), or (None) the last cycle's answer (a drive enabled through the
+        process data); the master's heartbeat and the watchdog start afresh."""
+        if feedback_raw is not None:
+            self._rx = list(feedback_raw)
         self._last_fresh = None  # the velocity read by SDO is this feedback's
         self._awaiting = False
         self.heartbeat.restart()

@@ -66,7 +66,13 @@ from hil.drivers.canopen.scaling import DriveScaling, read_scaling
 from hil.drivers.canopen.scan import discover
 from hil.drivers.canopen.sdo import SdoChannel, SdoClient
 from hil.drivers.canopen.setpoint import holding_value, wire_format, wire_value
-from hil.drivers.canopen.state import MasterClock, NmtCommands, StateControl
+from hil.drivers.canopen.state import (
+    MasterClock,
+    NmtCommands,
+    SdoWords,
+    StateControl,
+    StateWords,
+)
 from hil.drivers.canopen.stopping import (
     MAY_STILL_MOVE,
     confirm_stopped,
@@ -153,8 +159,8 @@ class CanDriveMaster(Device):
         self.nmt: NmtCommands = self._new_nmt(link)
         self._tpdo_maps = tpdo_maps(config.sync_echo, config.tpdo_layout)
         self.cyclic = self._new_cyclic(link)
-        self.states = StateControl(self.sdo, self.nmt, self._clock, config.state_timeout_s,
-                                   config.sdo_timeout_s)
+        self.states = StateControl(self._new_words(), self.nmt, self._clock,
+                                   config.state_timeout_s, config.sdo_timeout_s, n)
         self.budget: BusBudget = plan_axes(config, ["axis"]).budget
         self.description: DriveDescription | None = None
         self._limit: CurrentLimit | None = None   # read at open()
@@ -186,6 +192,11 @@ class CanDriveMaster(Device):
 
     def _new_nmt(self, link: Link) -> NmtCommands:
         return Nmt(link, self.config.node_id)
+
+    def _new_words(self) -> StateWords:
+        """The controlword and statusword by SDO (no RPDO goes out before the drive is
+        enabled)."""
+        return SdoWords(self.sdo, self._clock)
 
     def _new_cyclic(self, link: Link) -> CyclicExchange:
         """RPDO + SYNC out, TPDOs in (:class:`CyclicExchange`), a queued SDO download with
@@ -411,7 +422,9 @@ class CanDriveMaster(Device):
     # -- life cycle -----------------------------------------------------------------------------
     def open(self) -> None:
         """Check the drive's EDS (``eds``: every object hil uses, before anything is written),
-        reach the drive by SDO and leave it in SWITCH ON DISABLED (voltage disabled).
+        reach the drive by SDO and leave it in SWITCH ON DISABLED (voltage disabled), or in
+        NOT READY TO SWITCH ON on its own way there (:meth:`enable` awaits it: some drives
+        run their state machine only while process data flows).
 
         A drive found in FAULT is left alone (DriveFaultError): clearing a fault is an explicit
         decision, :meth:`recover`."""
@@ -434,7 +447,7 @@ class CanDriveMaster(Device):
                                   "--reset-fault on a run, or recover()", code)
         if state not in (SWITCH_ON_DISABLED, NOT_READY_TO_SWITCH_ON):
             self.states.controlword(CW_DISABLE_VOLTAGE)  # left enabled by someone
-        self.states.wait_state(SWITCH_ON_DISABLED, "disable voltage")
+            self.states.wait_state(SWITCH_ON_DISABLED, "disable voltage")
         self._check_mode()
         self.settings.open()  # an earlier run's leftover put back before the limits are read
         self._read_units_and_limits()
@@ -466,7 +479,7 @@ class CanDriveMaster(Device):
 
     def enable(self) -> None:
         """NMT start, then the controlwords to OPERATION ENABLED; ``feedback`` is then the
-        drive's, read by SDO. After :meth:`open` and :meth:`configure`."""
+        drive's (:meth:`_enabled_feedback`). After :meth:`open` and :meth:`configure`."""
         self._enable()
 
     def _enable(self) -> Feedback:
@@ -482,18 +495,23 @@ class CanDriveMaster(Device):
             raise
         self._enabled, self._lost_driving = True, False
         self.heartbeat_watch.restart()  # the heartbeat is watched from here on
-        read = self.sdo.read_int
-        feedback = self.cyclic.start((self.states.statusword(), read(POSITION_ACTUAL, 0, "<i"),
-                                      self.objects.read(VELOCITY_ACTUAL, 0, "<i") or 0,
-                                      self.objects.read(TORQUE_ACTUAL, 0, "<h") or 0))
+        feedback = self.cyclic.start(self._enabled_feedback())
         self._event("drive.enabled", f"drive node {n} OPERATION ENABLED at "
                     f"{feedback.position_deg:.4f} deg", position_deg=feedback.position_deg)
         return feedback
 
     def _enable_operation(self) -> None:
-        """The controlwords to OPERATION ENABLED, each state awaited: by SDO on CAN (no
-        RPDO goes out before the drive is enabled)."""
+        """The controlwords to OPERATION ENABLED, each state awaited (on the master's
+        :class:`~hil.drivers.canopen.state.StateWords`)."""
         self.states.enable()
+
+    def _enabled_feedback(self) -> tuple[int, int, int, int] | None:
+        """The enabled drive's first feedback (statusword, position, velocity, torque): read
+        by SDO on CAN; None: the last cycle's answer."""
+        read = self.sdo.read_int
+        return (self.states.statusword(), read(POSITION_ACTUAL, 0, "<i"),
+                self.objects.read(VELOCITY_ACTUAL, 0, "<i") or 0,
+                self.objects.read(TORQUE_ACTUAL, 0, "<h") or 0)
 
     def start(self) -> Feedback:
         """:meth:`open`, :meth:`configure`, :meth:`enable`; return the drive's feedback."""
@@ -745,10 +763,15 @@ class CanDriveMaster(Device):
         if not self.enabled:
             return False
         self._enabled = False
-        feedback = self.feedback
-        self._stop_target = holding_value(
-            self.operation, lambda: None if feedback is None else feedback.position_increments)
+        self._stop_target = self._holding_target()
         return True
+
+    def _holding_target(self) -> int:
+        """The raw set point that holds the axis where it last stood (its last feedback's
+        position in a position mode; none read yet: 0x6064 by SDO)."""
+        feedback = self.feedback
+        return holding_value(self.operation, lambda: self.sdo.read_int(POSITION_ACTUAL, 0, "<i")
+                             if feedback is None else feedback.position_increments)
 
     def quick_stop_cycles(self) -> Iterator[None]:
         """The quick-stop cycles of a safe stop: :meth:`periods` of the quick-stop

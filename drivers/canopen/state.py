@@ -1,11 +1,11 @@
-"""CiA 402 state control by SDO: reach the drive, wait for a state, the controlwords to
-OPERATION ENABLED, a fault reset (rising edge of bit 7), and the safe stop (quick stop on the
-cyclic channel until standstill or its time-out, then disable voltage). The tables are
-:mod:`hil.protocols.cia402`'s."""
+"""CiA 402 state control: reach the drive, wait for a state, the controlwords to OPERATION
+ENABLED, a fault reset (rising edge of bit 7). The tables are :mod:`hil.protocols.cia402`'s;
+the two words travel on a :class:`StateWords` channel: by SDO (:class:`SdoWords`: 0x6040
+written, 0x6041 read) on CAN, in the process data cycle by cycle on EtherCAT once the slave is
+in OP (:mod:`hil.drivers.ethercat.words`), where its RxPDO would overwrite an SDO write."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Protocol
 
 from hil.drivers.canopen.errors import DriveLinkLostError, DriveStateError
@@ -22,7 +22,8 @@ from hil.protocols.cia402 import (
 )
 
 ENABLE_STEPS = enable_steps()  # (controlword, state it leads to) from SWITCH ON DISABLED
-REACH_TIMEOUT_S = 0.2          # a first SDO read this long unanswered: try NMT pre-operational
+REACH_TIMEOUT_S = 0.2          # a first read this long unanswered: try NMT pre-operational
+SDO_POLL_S = 0.002             # a wait for a state reads 0x6041 by SDO this often
 
 
 class MasterClock(Protocol):
@@ -42,29 +43,60 @@ class NmtCommands(Protocol):
     def command(self, command: int) -> None: ...
 
 
-class StateControl:
-    """The CiA 402 state machine of one drive, driven by SDO."""
+class StateWords(Protocol):
+    """Where a master's controlword goes and the drive's statusword comes from."""
 
-    def __init__(self, sdo: SdoChannel, nmt: NmtCommands, clock: MasterClock,
-                 state_timeout_s: float, sdo_timeout_s: float) -> None:
-        self.sdo, self.nmt, self.clock = sdo, nmt, clock
-        self.state_timeout_s, self.sdo_timeout_s = state_timeout_s, sdo_timeout_s
-        self.node_id = sdo.node_id
+    def controlword(self, word: int) -> None:
+        """Send ``word`` (the drive takes it before the next :meth:`statusword`)."""
 
-    def statusword(self) -> int:
-        return self.sdo.read_int(STATUSWORD, 0, "<H")
+    def statusword(self, timeout_s: float | None = None) -> int:
+        """The drive's statusword now (its answer waited for at most ``timeout_s`` where
+        given); a DriveLinkLostError when none comes."""
+
+    def pause(self) -> None:
+        """Let the drive's time pass between two reads of a wait."""
+
+
+class SdoWords:
+    """The two words by SDO: 0x6040 written, 0x6041 read, a read every :data:`SDO_POLL_S` of
+    a wait."""
+
+    def __init__(self, sdo: SdoChannel, clock: MasterClock) -> None:
+        self.sdo, self.clock = sdo, clock
 
     def controlword(self, word: int) -> None:
         self.sdo.write(CONTROLWORD, 0, word, "<H")
 
+    def statusword(self, timeout_s: float | None = None) -> int:
+        return self.sdo.read_int(STATUSWORD, 0, "<H", timeout_s)
+
+    def pause(self) -> None:
+        self.clock.sleep(SDO_POLL_S)
+
+
+class StateControl:
+    """The CiA 402 state machine of drive ``node_id``, its two words on ``words``."""
+
+    def __init__(self, words: StateWords, nmt: NmtCommands, clock: MasterClock,
+                 state_timeout_s: float, sdo_timeout_s: float, node_id: int) -> None:
+        self.words, self.nmt, self.clock = words, nmt, clock
+        self.state_timeout_s, self.sdo_timeout_s = state_timeout_s, sdo_timeout_s
+        self.node_id = node_id
+
+    def statusword(self) -> int:
+        return self.words.statusword()
+
+    def controlword(self, word: int) -> None:
+        self.words.controlword(word)
+
     def reach(self) -> int:
-        """The statusword by SDO; a node in NMT STOPPED (no SDO) is sent to PRE-OPERATIONAL.
+        """The statusword; a node that does not answer (in NMT STOPPED: no SDO) is sent to
+        PRE-OPERATIONAL, and asked again.
 
         NMT is not sent first on purpose: a drive left enabled in OPERATIONAL may take leaving
         OPERATIONAL as a communication fault."""
         try:
-            return self.sdo.read_int(STATUSWORD, 0, "<H",
-                                     min(REACH_TIMEOUT_S, self.sdo_timeout_s))
+            return self.words.statusword(min(REACH_TIMEOUT_S, self.sdo_timeout_s))
         except DriveLinkLostError:
             self.nmt.command(NMT_ENTER_PRE_OPERATIONAL)
         return self.statusword()
@@ -83,10 +115,12 @@ class StateControl:
                     f"drive node {self.node_id} stuck in {state_of(statusword)} (statusword "
                     f"0x{statusword:04X}) waiting for {wanted} ({why}) after "
                     f"{deadline_s:g} s")
-            self.clock.sleep(0.002)
+            self.words.pause()
 
-    def enable(self, on_step: Callable[[], None] | None = None) -> None:
-        """The controlwords from SWITCH ON DISABLED to OPERATION ENABLED, each state awaited."""
+    def enable(self) -> None:
+        """SWITCH ON DISABLED awaited (a drive may still be in NOT READY TO SWITCH ON, whose
+        way out is its own), then the controlwords to OPERATION ENABLED, each state awaited."""
+        self.wait_state(SWITCH_ON_DISABLED, "the drive's own transition 1")
         for word, wanted in ENABLE_STEPS:
             self.controlword(word)
             self.wait_state(wanted, f"controlword 0x{word:04X}")

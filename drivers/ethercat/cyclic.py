@@ -20,7 +20,7 @@ from hil.drivers.canopen.errors import DriveGoneError, DriveLinkLostError
 from hil.drivers.canopen.link import Link
 from hil.drivers.canopen.nmt import HeartbeatProducer
 from hil.drivers.ethercat.segment import NO_FRAME, Segment
-from hil.protocols.cia402 import PdoMap
+from hil.protocols.cia402 import CW_DISABLE_VOLTAGE, PdoMap
 
 
 class ProcessDataExchange(CyclicExchange):
@@ -46,6 +46,7 @@ class ProcessDataExchange(CyclicExchange):
             self._inputs.append((offset, decoder.layout, decoder.slots))
             offset += decoder.layout.size
         self.input_size = offset
+        self.controlword = CW_DISABLE_VOLTAGE  # the one the outputs hold: the last sent
         self.wkc_errors = 0   # cycles whose working counter was not the expected one
         self.no_frame = 0     # cycles whose frame did not come back in time
 
@@ -57,6 +58,7 @@ class ProcessDataExchange(CyclicExchange):
         self._awaiting = True
         self._sent_ns = time.perf_counter_ns()
         self.cycle += 1
+        self.controlword = controlword
         self.segment.stage(self.position, self._rpdo_frame(controlword, target))
 
     def receive(self, timeout_s: float | None = None) -> Feedback:
@@ -98,6 +100,7 @@ class ProcessDataExchange(CyclicExchange):
         """Each controlword (target 0) in a frame of its own, at once, answers unread: the
         best effort of a master that lost its link."""
         for word in controlwords:
+            self.controlword = word
             try:
                 self.segment.slave(self.position).output = self._rpdo_frame(word, 0)
                 self.segment.send()

@@ -11,7 +11,11 @@ What is EtherCAT's own:
 * :meth:`configure` maps the mode's RxPDO and the TxPDOs into 0x1600 / 0x1A00.. and assigns them
   to the SyncManagers (0x1C12 / 0x1C13), in PRE-OP; no heartbeats (the working counter of every
   cycle tells whether the slave is there);
-* enabling is the CAN master's, by SDO (the drive in OP, before the first cycle);
+* the state machine's two words (:mod:`~hil.drivers.ethercat.words`): in OP the
+  controlwords of the enabling, a fault reset and an open go out in the RxPDO of a cycle and
+  the statusword is the TxPDO's, cycle by cycle (a drive's RxPDO overwrites an SDO write of
+  0x6040); by SDO only where no process data flows (PRE-OP, a segment scanned again after a
+  lost link);
 * the cyclic exchange is one LRW a cycle (:mod:`~hil.drivers.ethercat.cyclic`); its working
   counter is checked every cycle; the mailbox is looked into every
   :data:`MAILBOX_POLL_CYCLES` cycles and whenever the drive reports a fault (its emergency);
@@ -34,10 +38,11 @@ from hil.drivers.canopen.errors import DriveLinkLostError
 from hil.drivers.canopen.link import Link
 from hil.drivers.canopen.master import CanDriveMaster
 from hil.drivers.canopen.sdo import SdoChannel
-from hil.drivers.canopen.state import MasterClock, NmtCommands
+from hil.drivers.canopen.state import MasterClock, NmtCommands, SdoWords, StateWords
 from hil.drivers.ethercat.coe import CoeSdo
 from hil.drivers.ethercat.cyclic import ProcessDataExchange
 from hil.drivers.ethercat.segment import Segment
+from hil.drivers.ethercat.words import ProcessDataWords, SegmentWords
 from hil.protocols.can_frames import Frame
 from hil.protocols.cia301 import CYCLE_PERIOD, NMT_ENTER_PRE_OPERATIONAL, NMT_START, SYNC_COB_ID
 from hil.protocols.cia402 import FAULT, FAULT_REACTION_ACTIVE, PdoMap
@@ -138,12 +143,24 @@ class EthercatDriveMaster(CanDriveMaster):
 
     def _new_cyclic(self, link: Link) -> CyclicExchange:
         c = self.config
-        return ProcessDataExchange(
+        self.process_data = ProcessDataExchange(
             self.segment, self.position, link, c.node_id, self.operation.rpdo1(),
             self._tpdo_maps, rx_timeout_s=c.rx_timeout_s,
             period_s=c.cycle_period_s, watchdog=self.watchdog, silence_is_gone=c.lockstep,
             now_ns=self._clock.time_ns, before_cycle=self.coe.flush,
             after_cycle=self._look_in_mailbox)
+        return self.process_data
+
+    def _new_words(self) -> StateWords:
+        """In the process data while the slave is in OP, by SDO while it is not."""
+        in_cycles = ProcessDataWords(self.process_data, self._holding_target, self._clock,
+                                     self.config.cycle_period_s)
+        return SegmentWords(self.segment, self.position, in_cycles,
+                            SdoWords(self.sdo, self._clock))
+
+    def _enabled_feedback(self) -> None:
+        """The last cycle's answer: the enabling's last statusword came in it."""
+        return None
 
     def _look_in_mailbox(self, feedback: Feedback) -> None:
         """The slave's emergencies: every few cycles, and at once when it reports a fault."""
@@ -184,8 +201,8 @@ class EthercatDriveMaster(CanDriveMaster):
         self.segment.mapped = False
 
     def _enable_operation(self) -> None:
-        """The segment is in OP (the NMT start before this): said once, then the CAN
-        master's enabling."""
+        """The segment is in OP (the NMT start before this): said once, then the enabling,
+        through the process data."""
         segment, n = self.segment, self.node_id
         sync0_ns = round(self.config.cycle_period_s * 1e9) \
             if self.position in segment.dc_slaves else None

@@ -74,6 +74,7 @@ class Segment:
         self.slaves: list[Any] = []
         self.mapped = False
         self.dc_slaves: list[int] = []  # the positions SYNC0 runs on
+        self.in_op: set[int] = set()    # the positions this master put in OP: process data flows
         self.together = False
         self.cycles = 0          # process-data frames sent: lockstep's time, one period each
         self.wkc = NO_FRAME      # the last cycle's working counter
@@ -98,6 +99,7 @@ class Segment:
                 break
         self.slaves = list(self.master.slaves) if found > 0 else []
         self.mapped = False
+        self.in_op = set()
         self._mailboxes: dict[int, tuple[int, int, int, int]] = {}
 
     def reopen(self) -> None:
@@ -165,6 +167,7 @@ class Segment:
 
     def pre_operational(self, position: int) -> None:
         """Back to PRE-OP (the PDOs are set up there); the image is mapped again after."""
+        self.in_op.discard(position)
         status, _ = self.al_status(position)
         if status & 0x0F in (INIT, PRE_OP) and not status & 0x10:
             if status & 0x0F == INIT:
@@ -184,6 +187,7 @@ class Segment:
                 raise DriveError(f"{self.name}: SOEM could not map the process data: "
                                  f"{exc}") from None
             self.mapped = True
+            self.in_op = set()
             self._synchronize(period_s)
             for position in range(1, len(self.slaves) + 1):
                 self.request(position, SAFE_OP)
@@ -192,6 +196,7 @@ class Segment:
             if status & 0x0F != OP:
                 self.exchange()  # outputs valid before OP, as a slave expects
                 self.request(position, OP)
+            self.in_op.add(position)
 
     def _synchronize(self, period_s: float) -> None:
         """Distributed clocks (SOEM's ``config_dc``: the slaves' clocks measured and aligned on
@@ -274,6 +279,7 @@ class Segment:
         return release
 
     def close(self) -> None:
+        self.in_op = set()
         try:
             if self.slaves:
                 self.master.state = INIT

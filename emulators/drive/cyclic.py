@@ -38,12 +38,16 @@ class CyclicPosition(ModeMotion):
         self.last_target_deg: float | None = None
 
     def forget(self) -> None:
-        """The feed-forward starts afresh."""
-        self.last_target_deg = None
+        """The feed-forward starts afresh, from the target held now (an enabled drive holds
+        0x607A from then on, whether a cycle has run since or not)."""
+        self.last_target_deg = self._target_deg()
+
+    def _target_deg(self) -> float:
+        return self.axis.values[(TARGET_POSITION, 0)] * 360.0 / self.axis.plant.increments_per_rev
 
     def current(self, cycle_s: float) -> float:
         plant = self.axis.plant
-        target_deg = self.axis.values[(TARGET_POSITION, 0)] * 360.0 / plant.increments_per_rev
+        target_deg = self._target_deg()
         previous, self.last_target_deg = self.last_target_deg, target_deg
         feed_forward = 0.0 if previous is None else wrap_degrees(target_deg - previous) / cycle_s
         error = wrap_degrees(target_deg - plant.position_deg - self.axis.count.offset_deg)

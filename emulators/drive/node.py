@@ -430,6 +430,13 @@ class DriveNode:
             self._heard_ns = time.monotonic_ns()
             self._download(index, subindex, data)
 
+    def store(self, index: int, subindex: int, data: bytes) -> None:
+        """An SDO download stored, without what writing the object means (one the process
+        data writes every cycle: the next cycle's value is the one that counts)."""
+        with self.lock:
+            self._heard_ns = time.monotonic_ns()
+            self._values[(index, subindex)] = self.objects.decode_download(index, subindex, data)
+
     def set_operational(self, operational: bool) -> None:
         """Process data on (the outputs applied each cycle: NMT OPERATIONAL) or off
         (PRE-OPERATIONAL): leaving it with the power stage on faults the drive."""

@@ -6,10 +6,11 @@ What is EtherCAT's own lives here: the SII (hil's defaults from the drive's iden
 maps, or a vendor's ESI file), the CoE mailbox in front of the drive's objects, the
 SyncManager objects (0x1C00 communication types; 0x1C12 / 0x1C13 the PDOs assigned to the
 outputs and inputs, written in PRE-OP only, as the PDO mappings are), the AL state as the
-drive's NMT state (OP: outputs applied), and the process-data cycle: each one advances the
-drive one communication cycle, as a SYNC does on CAN (in lockstep the master's cycles are the
-drive's time). The drive's emergencies go out as CoE emergencies; its CAN frames (TPDOs,
-heartbeats) have no wire here and are dropped.
+drive's NMT state (OP: outputs applied; an SDO write of an object they carry is stored only,
+and their next cycle overwrites it, as on a vendor's drive), and the process-data cycle: each
+one advances the drive one communication cycle, as a SYNC does on CAN (in lockstep the
+master's cycles are the drive's time). The drive's emergencies go out as CoE emergencies;
+its CAN frames (TPDOs, heartbeats) have no wire here and are dropped.
 """
 
 from __future__ import annotations
@@ -121,6 +122,12 @@ class EthercatDrive:
             raise SdoAbortError(ABORT_DEVICE_STATE)  # PDOs are set up in PRE-OP
         if index in self.assignment:
             self.assignment[index].write(subindex, int.from_bytes(data, "little"))
+            return
+        if self.esc.state == OP and any((index, subindex) in pdo.keys
+                                        for pdo in self._pdos(RXPDO_ASSIGN)):
+            # the outputs write it every cycle, before the drive's cycle reads it: a
+            # controlword written so never reaches the state machine (the RxPDO's does)
+            self.node.store(index, subindex, data)
             return
         self.node.download(index, subindex, data)
 

@@ -80,3 +80,31 @@ def test_a_transition_the_configuration_does_not_allow_is_refused_with_its_code(
     slave._fpwr(AL_CONTROL, struct.pack("<H", pysoem.OP_STATE))
     status, _, code = struct.unpack("<HHH", slave._fprd(AL_STATUS, 6))
     assert (status, code) == (pysoem.PREOP_STATE | 0x10, 0x0011)
+
+
+def test_in_op_the_rxpdo_controlword_wins_over_one_written_by_sdo(line):
+    """As on a vendor's drive with 0x6040 in its RxPDO: an SDO write of it is overwritten by
+    the outputs before the drive's cycle reads it, so the state machine follows the RxPDO
+    alone (a master enabling by SDO in OP stays in SWITCH ON DISABLED)."""
+    line.config_init()
+    line.config_map()
+    assert line.state_check(pysoem.SAFEOP_STATE, 2_000_000) == pysoem.SAFEOP_STATE
+    line.state = pysoem.OP_STATE
+    line.write_state()
+    assert line.state_check(pysoem.OP_STATE, 2_000_000) == pysoem.OP_STATE
+    drive = line.slaves[0]
+
+    def cycle(controlword: int) -> int:
+        drive.output = struct.pack("<Hh", controlword, 0)
+        line.send_processdata()
+        assert line.receive_processdata(2_000_000) == line.expected_wkc
+        return struct.unpack_from("<H", drive.input)[0] & 0x6F
+
+    assert cycle(0x0000) == 0x40                            # SWITCH ON DISABLED
+    drive.sdo_write(0x6040, 0, struct.pack("<H", 0x0006))    # shutdown, by SDO: taken...
+    assert drive.sdo_read(0x6040, 0) == struct.pack("<H", 0x0006)
+    assert struct.unpack("<H", drive.sdo_read(0x6041, 0))[0] & 0x6F == 0x40  # ...not applied
+    assert cycle(0x0000) == 0x40                            # and the RxPDO's word wins
+    assert drive.sdo_read(0x6040, 0) == struct.pack("<H", 0x0000)
+    assert cycle(0x0006) == 0x21                            # READY TO SWITCH ON, by the RxPDO
+    assert cycle(0x0000) == 0x40
