@@ -14,7 +14,9 @@ line, the Python API, the sweep and the pytest fixtures alike:
 3. The session is created (its metadata and config attachment), written to a staging file
    beside its path (:mod:`hil.core.recording.output`).
 4. ``build_controller(session)`` - the controller, guarded.
-5. ``start(session)`` - enable the devices and add the loop's tasks; ``tunables(tuner)``
+5. ``start(session)`` - enable the devices and add the loop's tasks (after the session is
+   prepared: its writer up, the loop thread hardened in real time, so that the loop's first
+   tick follows the enabling at once); ``tunables(tuner)``
    registers what may change while the run runs on the run's :class:`~hil.core.tuning.Tuner`
    (applied at the loop's tick boundaries), the live view (``--live``) serves it
    (:mod:`hil.core.recording.tune_wire`), and ``tuner_started(tuner)``, when the run was given
@@ -251,6 +253,7 @@ def _run_locked(experiment: Experiment[Any], plan: RunPlan, output: OutputClaim,
     progress = None
     tuner = Tuner(event=session.event, topic=session.topic, time_ns=session.clock.time_ns)
     try:
+        session.prepare()  # the writer up and the loop thread hardened before any enabling
         experiment.start(session)
         experiment.tunables(tuner)
         session.loop.at_boundary = tuner.tick

@@ -77,6 +77,7 @@ class Session:
         # real-time hardening of the loop thread (hil.core.realtime); default: in real time
         self.harden = clock.mode == "realtime" if harden is None else harden
         self.hardening: dict[str, str] = {}
+        self._hardening: Hardening | None = None  # applied by prepare, undone after the loop
         self.clock = clock
         self.kind = kind
         self.recorder = Recorder(path, wait_when_full=clock.mode == "sim", options=recording,
@@ -121,27 +122,44 @@ class Session:
         level = "warning" if kind.startswith("loop.overrun") else "error"
         self.event(kind, message, level=level, source="loop", **data)
 
+    def prepare(self) -> None:
+        """What must be done before the devices are enabled, so that no long pause falls
+        between the drive's first cycles and the loop's first tick (an EtherCAT drive's
+        watch on lost cycles is 100 ms): the writer process started, and the loop thread
+        hardened where the session is (mlockall, the collector frozen, SCHED_FIFO, pinned).
+        :meth:`run` does what is not done yet; :meth:`close` undoes the hardening."""
+        wait_ready = getattr(self.recorder, "wait_ready", None)
+        if wait_ready is not None:
+            wait_ready()
+        if self.harden and self._hardening is None:
+            self._hardening = Hardening()
+            self._hardening.apply()
+            if self._hardening.pinned_cpu is not None:
+                self.recorder.keep_off_cpu(self._hardening.pinned_cpu)
+
     def run(self, duration_s: float | None = None, max_ticks: int | None = None) -> None:
         """Put the session file in place, then run the loop; safe-state hooks run before this
         returns, whatever happens."""
         self.output.start()
         self.event("session.start", f"{self.kind} session started", source="session")
-        hardening = Hardening() if self.harden else None
-        if hardening is not None:
-            hardening.apply()
-            if hardening.pinned_cpu is not None:
-                self.recorder.keep_off_cpu(hardening.pinned_cpu)
-            self._record_hardening(hardening)
         try:
+            self.prepare()
+            if self._hardening is not None:
+                self._record_hardening(self._hardening)
             self.loop.run(duration_s=duration_s, max_ticks=max_ticks)
         finally:
-            if hardening is not None:
-                hardening.restore()
+            self._restore()
             self.event(
                 "session.stop", f"stopped: {self.loop.stop_reason}", source="session",
                 reason=self.loop.stop_reason, ticks=self.loop.ticks,
                 skipped_ticks=self.loop.skipped_ticks,
             )
+
+    def _restore(self) -> None:
+        """The loop thread as it was before :meth:`prepare` hardened it."""
+        hardening, self._hardening = self._hardening, None
+        if hardening is not None:
+            hardening.restore()
 
     def _record_hardening(self, hardening: Hardening) -> None:
         """Each step, granted or refused: metadata ``realtime`` and one event."""
@@ -166,6 +184,7 @@ class Session:
         if self._closed and self.recorder_stats is not None:
             return self.recorder_stats
         self._closed = True
+        self._restore()  # prepared, then refused before the loop ran
         self.recorder.metadata("loop", {
             name: json.dumps(stats) for name, stats in self.loop.summary().items()
         })

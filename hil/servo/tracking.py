@@ -19,7 +19,8 @@ from hil.core.stats import TimingHistogram
 from hil.servo.kpis import TrackingKpis
 
 #: controller step times are binned this many at a time (one numpy pass) rather than each tick
-STEP_TIMES_BATCH = 1024
+#: (within the per-tick bookkeeping bound tests/core/test_tick_work.py holds)
+STEP_TIMES_BATCH = 128
 
 
 def reference_amplitude(scenario: Scenario) -> float | None:
