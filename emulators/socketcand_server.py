@@ -34,6 +34,7 @@ import contextlib
 import logging
 import math
 import os
+import select
 import selectors
 import socket
 import threading
@@ -52,6 +53,7 @@ log = logging.getLogger(__name__)
 RAW_HOLD_S = 0.2
 POLL_MARGIN_S = 300e-6  # polled from this long before due: a timed wake-up is ~60 us late here
 MAX_COMMAND_CHARS = 256
+SELECT_FD_LIMIT = 1024  # select() takes descriptors below FD_SETSIZE
 class StopRequest(Protocol):
     """Anything with ``is_set()``: a threading.Event, or a flag a signal handler sets."""
 
@@ -117,6 +119,16 @@ def parse_send_frame(command: str) -> tuple[int, bytes, bool] | None:
     return can_id, data, extended
 
 
+def _fine_wait_fd(selector: selectors.BaseSelector) -> int | None:
+    """The descriptor of an epoll ``selector`` that select() can wait on to the microsecond
+    (None: another selector, or a descriptor beyond select()'s range)."""
+    epoll = getattr(selectors, "EpollSelector", None)  # Linux only
+    if epoll is None or not isinstance(selector, epoll):
+        return None
+    fd: int = selector.fileno()
+    return fd if fd < SELECT_FD_LIMIT else None
+
+
 class SocketcandServer:
     """Serves one emulated CAN bus named ``channel`` to any number of TCP clients."""
 
@@ -153,6 +165,7 @@ class SocketcandServer:
         self.address: tuple[str, int] = self._listener.getsockname()[:2]
         self._selector = selectors.DefaultSelector()
         self._selector.register(self._listener, selectors.EVENT_READ, None)
+        self._fine_wait_fd = _fine_wait_fd(self._selector)
         self._clients: dict[socket.socket, _Client] = {}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -166,7 +179,7 @@ class SocketcandServer:
             timeout = max(0.0, next_tick - time.monotonic())
             if self.next_frame_ns is not None:
                 timeout = min(timeout, self._until_polling())
-            events = self._selector.select(timeout)
+            events = self._events(timeout)
             if not events and not timeout:
                 os.sched_yield()  # polling: a process waiting for this core runs first
             for key, mask in events:
@@ -184,6 +197,15 @@ class SocketcandServer:
                 if self.on_tick is not None:
                     self._call(self.on_tick)
                 next_tick = now + self.tick_period_s
+
+    def _events(self, timeout: float) -> list[tuple[selectors.SelectorKey, int]]:
+        """The sockets ready within ``timeout`` s, waited for to the microsecond: epoll counts
+        whole milliseconds (Python rounds a shorter wait up to one, which would sleep through
+        the poll window), so a timed wait is a select() on the epoll descriptor."""
+        if self._fine_wait_fd is not None and timeout > 0:
+            select.select([self._fine_wait_fd], [], [], timeout)
+            timeout = 0.0
+        return self._selector.select(timeout)
 
     def _until_polling(self) -> float:
         """Seconds until the bus is polled for the next expected frame (0: poll now)."""
