@@ -289,8 +289,10 @@ class Hardening:
         return self._saved_policy is not None
 
     def apply(self) -> list[Step]:
-        self.steps = [self._fifo(), self._affinity(), self._mlockall(), self._gc(),
-                      self._slack()]
+        # the slow steps first (locking the pages of a process takes 0.2 s), before the thread
+        # is real-time: an answering helper would take them out of the loop's core
+        locked, frozen = self._mlockall(), self._gc()
+        self.steps = [self._fifo(), self._affinity(), locked, frozen, self._slack()]
         return self.steps
 
     def _fifo(self) -> Step:
