@@ -13,8 +13,8 @@ Steps (all Linux; elsewhere each is refused with the reason):
 * ``gc_freeze`` - ``gc.collect()`` then ``gc.freeze()``, and the collector held off for the run;
 * ``timer_slack`` - the thread's timer slack set to 1 ns (``prctl``), so sleeps end on time.
 
-A helper process that stands in for hardware (``hil emulate drive --harden``, started for a
-``--realtime`` run against ``emulated``) takes the same steps as a *helper*
+A helper process that stands in for hardware (``hil emulate bench --harden``, started for a
+``--realtime`` bench run against its emulator) takes the same steps as a *helper*
 (:meth:`Hardening.for_helper`): SCHED_FIFO at :data:`HELPER_PRIORITY` (below the loop's; not
 taken on a single usable CPU, where it would starve the loop's recording), pinned to the core
 before the loop's (:func:`helper_cpu`), its collector frozen but kept on (it serves for as
@@ -23,15 +23,16 @@ long as it is asked). It reports each step on a line of its stderr
 (:func:`report_helper_hardening`, :func:`helper_metadata`).
 
 A helper that answers the loop's frames within its tick, as a drive answers a SYNC
-(:meth:`Hardening.for_answering_helper`: ``hil emulate drive``), takes the loop's core instead,
+(:meth:`Hardening.for_answering_helper`: ``hil emulate drive --harden`` over socketcand, and
+the drive emulator process of a ``--realtime`` servo run), takes the loop's core instead,
 at :data:`ANSWER_PRIORITY`, above the loop's: the loop's send makes it runnable there and it
 answers at once, before the loop goes on, and before the core can go to any ordinary process.
 On a core of its own it waits for the next SYNC with its core idle, and an ordinary process
 given that core keeps it for as long as its system call lasts: a kernel without full
 preemption (``Dynamic Preempt: none``) does not take the core back for a real-time thread
 whose wake-up came meanwhile. On the 2-core virtual machine this was measured on, the VM's
-agent takes the idle core once a second for 1.0-1.5 ms: one SYNC a second was answered too
-late (stale feedback, late frames).
+agent takes an idle core once a second, for 0.5-1.5 ms at a time: one SYNC a second was
+answered too late (stale feedback, late frames).
 """
 
 from __future__ import annotations

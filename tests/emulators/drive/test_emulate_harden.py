@@ -94,11 +94,12 @@ def test_doctor_says_what_an_emulator_would_be_granted(tmp_path):
     helper = report["emulator_hardening"]
     assert list(helper) == STEPS
     if helper["sched_fifo"]["granted"]:
-        assert helper["sched_fifo"]["detail"] == f"priority {HELPER_PRIORITY}"
+        assert helper["sched_fifo"]["detail"] == f"priority {ANSWER_PRIORITY}"
     if helper["cpu_affinity"]["granted"] and report["hardening"]["cpu_affinity"]["granted"]:
-        # the two cores named: the emulator's apart from the loop's
-        assert f"apart from the loop's CPU {report['os']['usable_cpus'][-1]}" in \
-            helper["cpu_affinity"]["detail"]
+        # the loop's core, named
+        assert helper["cpu_affinity"]["detail"].startswith(
+            f"on CPU {report['os']['usable_cpus'][-1]} of ")
+        assert "the loop's: it answers within the loop's tick" in helper["cpu_affinity"]["detail"]
 
 
 def test_no_harden_serves_as_an_ordinary_process(tmp_path):
@@ -162,6 +163,7 @@ def test_the_bench_emulator_hardens_its_serving_threads(tmp_path):
     if steps["sched_fifo"].startswith("granted"):  # hardened before its threads started: the
         # main thread, the plant's and the server's (not the watcher of its parent, older)
         assert emulator.pid in fifo and len(fifo) >= 3
+        assert steps["sched_fifo"] == f"granted: priority {HELPER_PRIORITY}"  # below the loop
     with start_bench_emulator() as plain:  # the API's default: an ordinary process
         assert plain.hardening == {} and os.sched_getscheduler(plain.pid) == os.SCHED_OTHER
 
