@@ -152,6 +152,10 @@ class SocketcandServer:
         self.tick_period_s = tick_period_s
         self.next_frame_ns = next_frame_ns
         self.poll_margin_ns = round(poll_margin_s * 1e9)
+        #: the time service runs after the frames that come when it is due, its own wake-up
+        #: one period later only (a bus gone quiet): a server on a real-time loop's core would
+        #: otherwise interrupt that loop once a period
+        self.service_follows_frames = False
         self._listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
@@ -176,7 +180,8 @@ class SocketcandServer:
         stop = stop or self._stop
         next_tick = time.monotonic()
         while not stop.is_set() and not self._stop.is_set():
-            timeout = max(0.0, next_tick - time.monotonic())
+            wake = next_tick + (self.tick_period_s if self.service_follows_frames else 0.0)
+            timeout = max(0.0, wake - time.monotonic())
             if self.next_frame_ns is not None:
                 timeout = min(timeout, self._until_polling())
             events = self._events(timeout)

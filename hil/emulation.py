@@ -260,12 +260,14 @@ class ServedDrives:
             self._set_hardened(True)
 
     def _set_hardened(self, hardened: bool) -> None:
-        """Its real-time steps in force, or not; it polls for the next SYNC unless it is on
-        SCHED_FIFO."""
+        """Its real-time steps in force, or not. On SCHED_FIFO (the loop's core) it neither
+        polls for the next SYNC nor wakes up for its time service, which follows the frames;
+        otherwise it polls."""
         assert self.hardening is not None
         self.hardened = hardened
-        self.server.next_frame_ns = None if self.hardening.real_time \
-            else self.nodes[0].next_sync_ns
+        real_time = self.hardening.real_time
+        self.server.next_frame_ns = None if real_time else self.nodes[0].next_sync_ns
+        self.server.service_follows_frames = real_time
 
     def state(self) -> Topics:
         """Each drive's axis and state machine."""

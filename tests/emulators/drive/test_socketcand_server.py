@@ -236,3 +236,28 @@ def test_a_poll_window_shorter_than_a_millisecond_is_polled():
         return bool(inside)
 
     assert any(looks_inside_the_window() for _ in range(5))
+
+
+@pytest.mark.parametrize("follows", [True, False])
+def test_the_time_service_can_follow_the_frames_instead_of_waking_up(follows):
+    """A server on a real-time loop's core serves its time after the frame that comes when the
+    service is due, rather than from a wake-up of its own that would interrupt the loop; a
+    bus gone quiet gets it one period late. Here the service is due 0.5 s after the start,
+    a frame comes at 0.6 s and the fallback would be at 1.0 s."""
+    events: list[str] = []
+    srv = SocketcandServer("127.0.0.1", 0, tick_period_s=0.5,
+                           on_data=lambda *_: events.append("data"),
+                           on_tick=lambda: events.append("tick"))
+    srv.service_follows_frames = follows
+    started = time.monotonic()
+    srv.start()
+    try:
+        sock = connect(srv)
+        sock.sendall(b"< open can0 >< rawmode >")
+        time.sleep(max(0.0, started + 0.6 - time.monotonic()))
+        sock.sendall(b"< send 080 0 >")
+        assert wait_for(lambda: len(events) >= 3)
+        sock.close()
+    finally:
+        srv.close()
+    assert events[:3] == (["tick", "data", "tick"] if follows else ["tick", "tick", "data"])
