@@ -7,7 +7,7 @@ Each repeat runs, one after the other, at 2 kHz with the loop thread hardened as
    rows) through a session's writer process: the writer and the hand-over to it;
 3. ``wire`` - the loop cycling the drive emulator in a process of its own over socketcand
    (RPDO + SYNC each tick, the TPDOs read the next), 0 mA, nothing recorded but the loop's
-   timing: the emulator process's wake-up and the socket;
+   timing: the emulator process's answer (on the loop's core) and the socket;
 4. ``servo`` - the full real-time servo session: MPC FOH H_t = H_u = 8, the emulator process,
    every topic recorded, as ``hil servo run --realtime`` runs it.
 
@@ -24,17 +24,26 @@ and it completes clean (``completed``: no stale feedback, no late frames: ``hil 
 exits 0); the lockstep session >= 10x real time; the bench skips no tick. A shared machine
 makes every real-time figure noisy: the load average is printed before and after; quote a
 quiet machine's. ``--quick``: runs of 0.2 s and one bench cycle of a 1 s machining sequence
-(seconds in all; figures not worth quoting).
+(seconds in all; figures not worth quoting), and the hops.
+
+``--hops``: one more wire run with a second client on the emulator's bus
+(``benchkit/bus_observer.py``), which the emulator forwards every frame stamped when it took
+it (the master's SYNC, after its wake-up) or sent it (its TPDOs): each cycle's hops, the SYNC's
+way to the emulator, the emulator's answer, and the TPDO's wait for the master's read
+(negative: it came after the read began, a stale cycle), over all cycles and the stale ones.
 """
 
 from __future__ import annotations
 
 import argparse
+import bisect
 import json
 import os
 import statistics
+import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -46,11 +55,12 @@ from hil.bench.run import BenchRunOptions, run_bench
 from hil.core.clock import RealtimeClock
 from hil.core.doctor import measure_loop
 from hil.core.loop import Task
-from hil.core.realtime import Hardening
+from hil.core.realtime import Hardening, forget_helper_process, register_helper_process
 from hil.core.recording.reader import read_session
 from hil.core.session import Session
 from hil.drivers.canopen import CanDriveMaster
 from hil.emulator_process import start_drive_emulator
+from hil.protocols.cia301 import SYNC_COB_ID
 from hil.servo.config import load_drive_config
 from hil.servo.report import FEEDBACK_TIMING
 from hil.servo.rig import open_drive
@@ -58,6 +68,9 @@ from hil.servo.run import ServoRunOptions, run_servo
 from hil.servo.topics import FEEDBACK_SCHEMA, PREDICTION_SCHEMA, command_schema
 
 RATE_HZ = 2000
+OBSERVER = Path(__file__).resolve().parent / "benchkit" / "bus_observer.py"
+TPDO1_ID = 0x181            # node 1's TPDO1: the first of its answers to a SYNC
+STAMP_RESOLUTION_S = 1e-6   # socketcand's stamps are whole microseconds
 SKIPPED_POINTS_MAX = 0.01   # the servo session's skipped share: at most the bare loop's + this
 LOCKSTEP_MIN = 10.0
 # --quick: a 1 s machining sequence instead of bench.toml's 28 s one (M1 and M2 then switch
@@ -115,20 +128,29 @@ class RecordedTick(Task):
 
 class WireTick(Task):
     """The servo tick's CAN cycle alone: the TPDOs of the last SYNC, then RPDO (0 mA) + SYNC;
-    a first cycle before the clock starts, as a servo run does."""
+    a first cycle before the clock starts, as a servo run does. ``cycles``: for each SYNC of
+    the loop, when it was sent, when its TPDOs were read (wall clock, s) and whether they were
+    fresh."""
 
     def __init__(self, master: CanDriveMaster) -> None:
         super().__init__("tick")
         self.master = master
         self.stale = 0
+        self.cycles: list[tuple[float, float, bool]] = []
+        self._sent: float | None = None
 
     def prime(self) -> None:
         self.master.prime()
 
     def read(self, t_ns: int) -> None:
-        self.stale += not self.master.receive_feedback().fresh
+        began = time.time()
+        fresh = self.master.receive_feedback().fresh
+        self.stale += not fresh
+        if self._sent is not None:
+            self.cycles.append((self._sent, began, fresh))
 
     def write(self, t_ns: int) -> None:
+        self._sent = time.time()
         self.master.send_set_point(0.0)
 
 
@@ -154,8 +176,11 @@ def recorder_loop(tmp: Path, seconds: float) -> dict[str, Any]:
     return figures
 
 
-def wire_loop(tmp: Path, seconds: float) -> dict[str, Any]:
+def wire_loop(tmp: Path, seconds: float, observe: bool = False) -> dict[str, Any]:
+    """The wire run; ``observe``: a second client of the emulator's bus records every frame
+    with the emulator's stamp, for the hops of each cycle (``hops``)."""
     with start_drive_emulator(harden=True) as emulator:
+        observer = start_observer(emulator.url) if observe else None
         master = open_drive(emulator.url, load_drive_config(overrides=TOLERANT))
         try:
             master.start()
@@ -168,7 +193,54 @@ def wire_loop(tmp: Path, seconds: float) -> dict[str, Any]:
             _, figures = loop_session(tmp, seconds, "wire", tasks)
         finally:
             master.close()
-    return {**figures, "stale": tick.stale, "late_frames": master.stats.late_frames}
+    figures = {**figures, "stale": tick.stale, "late_frames": master.stats.late_frames}
+    if observer is not None:
+        figures["hops"] = cycle_hops(tick.cycles, observed_frames(observer))
+    return figures
+
+
+def start_observer(url: str) -> subprocess.Popen[str]:
+    """:mod:`benchkit.bus_observer` on the bus at ``url``, in raw mode once this returns, kept
+    off the loop's core (an ordinary process, as a helper)."""
+    host, _, port = url.removeprefix("socketcand://").rpartition(":")
+    observer = subprocess.Popen([sys.executable, str(OBSERVER), host, port], text=True,
+                                stdout=subprocess.PIPE)
+    assert observer.stdout is not None
+    if observer.stdout.readline().strip() != "ready":
+        observer.kill()
+        raise RuntimeError("the bus observer did not start")
+    register_helper_process(observer.pid, "observer")
+    return observer
+
+
+def observed_frames(observer: subprocess.Popen[str]) -> list[tuple[int, float]]:
+    """What the observer saw, once the emulator has stopped (which ends its connection)."""
+    out, _ = observer.communicate(timeout=60)
+    forget_helper_process(observer.pid)
+    return [(can_id, stamp) for can_id, stamp in json.loads(out)]
+
+
+def cycle_hops(cycles: list[tuple[float, float, bool]], frames: list[tuple[int, float]]
+               ) -> dict[str, dict[str, list[float]]]:
+    """Each cycle's hops [us]: the SYNC from the master's send to the emulator taking it, the
+    emulator's answer (its TPDO1 sent), and from there to the master's read of the cycle
+    (negative: the TPDO came after the read began, a stale cycle), for all cycles and for the
+    stale ones."""
+    syncs = [stamp for can_id, stamp in frames if can_id == SYNC_COB_ID]
+    tpdos = [stamp for can_id, stamp in frames if can_id == TPDO1_ID]
+    hops: dict[str, dict[str, list[float]]] = {"all": {}, "stale": {}}
+    for sent, read, fresh in cycles:
+        i = bisect.bisect_left(syncs, sent - STAMP_RESOLUTION_S)
+        j = bisect.bisect_left(tpdos, syncs[i]) if i < len(syncs) else len(tpdos)
+        if j >= len(tpdos):
+            continue
+        took, answered = syncs[i], tpdos[j]
+        for group in ("all",) if fresh else ("all", "stale"):
+            for hop, value in (("SYNC sent -> emulator took it", took - sent),
+                               ("emulator took it -> TPDO sent", answered - took),
+                               ("TPDO sent -> master read the cycle", read - answered)):
+                hops[group].setdefault(hop, []).append(value * 1e6)
+    return hops
 
 
 def servo_session(tmp: Path, seconds: float, realtime: bool = True,
@@ -229,6 +301,11 @@ def main() -> int:
     parser.add_argument("--repeat", type=int, default=1,
                         help="repeats of the four real-time runs, one after the other (the "
                              "machine's speed drifts: the targets are checked on the medians)")
+    parser.add_argument("--hops", action="store_true",
+                        help="one more wire run, a second client of the emulator's bus "
+                             "recording each frame with the emulator's stamp: each cycle's "
+                             "hops (SYNC to the emulator, its answer, back to the master), "
+                             "over all cycles and the stale ones")
     add_quick(parser)
     args = parser.parse_args()
     if args.repeat < 1:
@@ -244,6 +321,8 @@ def main() -> int:
             print(f"repeat {i + 1} of {args.repeat}...", file=sys.stderr)
             for name in RUNS:
                 runs[name].append(RUNNERS[name](tmp, args.seconds))
+        observed = args.hops or args.quick  # --quick: the observer's path runs too
+        hops = wire_loop(tmp, args.seconds, observe=True)["hops"] if observed else None
         lockstep = servo_session(tmp, args.seconds, realtime=False)
         bench_config = None
         if args.quick:
@@ -252,7 +331,24 @@ def main() -> int:
         bench = bench_session(tmp, args.bench_cycles, bench_config)
     load.append(os.getloadavg()[0])
     report(args, runs, lockstep, bench, cycle_s, load)
+    if hops is not None:
+        report_hops(hops)
     return 0
+
+
+def report_hops(hops: dict[str, dict[str, list[float]]]) -> None:
+    """Each hop's quantiles over all cycles, then over the stale ones."""
+    print("hops of a wire run's cycles, observed on the bus (a second client: the emulator "
+          "forwards it every frame) [us]")
+    for group, rows in hops.items():
+        if not rows:
+            print(f"   {group} cycles: none")
+            continue
+        count = len(next(iter(rows.values())))
+        print(f"   {group} cycles ({count}){'':<19}p50      p99      max")
+        for hop, values in rows.items():
+            p50, p99 = np.percentile(values, [50, 99])
+            print(f"   {hop:<36}{p50:>8.1f} {p99:>8.1f} {max(values):>8.1f}")
 
 
 def report(args: argparse.Namespace, runs: dict[str, list[dict[str, Any]]],

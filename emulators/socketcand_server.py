@@ -34,6 +34,7 @@ import contextlib
 import logging
 import math
 import os
+import select
 import selectors
 import socket
 import threading
@@ -52,6 +53,7 @@ log = logging.getLogger(__name__)
 RAW_HOLD_S = 0.2
 POLL_MARGIN_S = 300e-6  # polled from this long before due: a timed wake-up is ~60 us late here
 MAX_COMMAND_CHARS = 256
+SELECT_FD_LIMIT = 1024  # select() takes descriptors below FD_SETSIZE
 class StopRequest(Protocol):
     """Anything with ``is_set()``: a threading.Event, or a flag a signal handler sets."""
 
@@ -117,6 +119,16 @@ def parse_send_frame(command: str) -> tuple[int, bytes, bool] | None:
     return can_id, data, extended
 
 
+def _fine_wait_fd(selector: selectors.BaseSelector) -> int | None:
+    """The descriptor of an epoll ``selector`` that select() can wait on to the microsecond
+    (None: another selector, or a descriptor beyond select()'s range)."""
+    epoll = getattr(selectors, "EpollSelector", None)  # Linux only
+    if epoll is None or not isinstance(selector, epoll):
+        return None
+    fd: int = selector.fileno()
+    return fd if fd < SELECT_FD_LIMIT else None
+
+
 class SocketcandServer:
     """Serves one emulated CAN bus named ``channel`` to any number of TCP clients."""
 
@@ -140,6 +152,10 @@ class SocketcandServer:
         self.tick_period_s = tick_period_s
         self.next_frame_ns = next_frame_ns
         self.poll_margin_ns = round(poll_margin_s * 1e9)
+        #: the time service runs after the frames that come when it is due, its own wake-up
+        #: one period later only (a bus gone quiet): a server on a real-time loop's core would
+        #: otherwise interrupt that loop once a period
+        self.service_follows_frames = False
         self._listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
@@ -153,6 +169,7 @@ class SocketcandServer:
         self.address: tuple[str, int] = self._listener.getsockname()[:2]
         self._selector = selectors.DefaultSelector()
         self._selector.register(self._listener, selectors.EVENT_READ, None)
+        self._fine_wait_fd = _fine_wait_fd(self._selector)
         self._clients: dict[socket.socket, _Client] = {}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -163,10 +180,11 @@ class SocketcandServer:
         stop = stop or self._stop
         next_tick = time.monotonic()
         while not stop.is_set() and not self._stop.is_set():
-            timeout = max(0.0, next_tick - time.monotonic())
+            wake = next_tick + (self.tick_period_s if self.service_follows_frames else 0.0)
+            timeout = max(0.0, wake - time.monotonic())
             if self.next_frame_ns is not None:
                 timeout = min(timeout, self._until_polling())
-            events = self._selector.select(timeout)
+            events = self._events(timeout)
             if not events and not timeout:
                 os.sched_yield()  # polling: a process waiting for this core runs first
             for key, mask in events:
@@ -184,6 +202,15 @@ class SocketcandServer:
                 if self.on_tick is not None:
                     self._call(self.on_tick)
                 next_tick = now + self.tick_period_s
+
+    def _events(self, timeout: float) -> list[tuple[selectors.SelectorKey, int]]:
+        """The sockets ready within ``timeout`` s, waited for to the microsecond: epoll counts
+        whole milliseconds (Python rounds a shorter wait up to one, which would sleep through
+        the poll window), so a timed wait is a select() on the epoll descriptor."""
+        if self._fine_wait_fd is not None and timeout > 0:
+            select.select([self._fine_wait_fd], [], [], timeout)
+            timeout = 0.0
+        return self._selector.select(timeout)
 
     def _until_polling(self) -> float:
         """Seconds until the bus is polled for the next expected frame (0: poll now)."""

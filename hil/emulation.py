@@ -226,17 +226,19 @@ class ServedDrives:
     hardened: bool = False              # its real-time steps in force now
 
     def harden(self) -> list[Step]:
-        """Serve as a helper of a real-time loop (:func:`harden_serving_thread`: the calling
-        thread must be the one that serves) while the drives keep their own clock; each step,
-        granted or refused. While they keep a lockstep master's time the thread is an
-        ordinary one again: real time buys nothing there, and a real-time thread polling for
-        the next SYNC would keep a master that shares its core from sending it."""
+        """Serve as a real-time loop's answering helper (the calling thread must be the one
+        that serves) while the drives keep their own clock; each step, granted or refused.
+        Hardened, it answers on the loop's core, above the loop
+        (:meth:`~hil.core.realtime.Hardening.for_answering_helper`), and does not poll for
+        the next SYNC: the master's send wakes it on that core, where polling would keep the
+        master from sending. While the drives keep a lockstep master's time the thread is an
+        ordinary one again, polling for the master's next SYNC: real time buys nothing there."""
         from hil.core.realtime import Hardening
 
         _short_switch_interval()
-        self.hardening = Hardening.for_helper()
+        self.hardening = Hardening.for_answering_helper()
         steps = self.hardening.apply()
-        self.hardened = True
+        self._set_hardened(True)
         service = self.server.on_tick
 
         def follow_the_clock_then_serve() -> None:
@@ -252,10 +254,20 @@ class ServedDrives:
         on_master_time = self.nodes[0].on_master_time
         if on_master_time and self.hardened:
             self.hardening.restore()
-            self.hardened = False
+            self._set_hardened(False)
         elif not on_master_time and not self.hardened:
             self.hardening.apply()
-            self.hardened = True
+            self._set_hardened(True)
+
+    def _set_hardened(self, hardened: bool) -> None:
+        """Its real-time steps in force, or not. On SCHED_FIFO (the loop's core) it neither
+        polls for the next SYNC nor wakes up for its time service, which follows the frames;
+        otherwise it polls."""
+        assert self.hardening is not None
+        self.hardened = hardened
+        real_time = self.hardening.real_time
+        self.server.next_frame_ns = None if real_time else self.nodes[0].next_sync_ns
+        self.server.service_follows_frames = real_time
 
     def state(self) -> Topics:
         """Each drive's axis and state machine."""

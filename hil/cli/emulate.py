@@ -38,6 +38,9 @@ from hil.emulators.faults import (
 from hil.errors import ConfigError
 from hil.protocols.bench_clock import CLOCKS as BENCH_CLOCKS
 
+#: where a hardened emulator serves that does not answer within the loop's tick
+APART = "SCHED_FIFO below hil's loop, a core apart from the loop's"
+
 if TYPE_CHECKING:
     from hil.core.realtime import Step
 
@@ -66,7 +69,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "always: a lockstep master is refused, and says so in one line), master "
                     "(a master's time only: the plant waits for one). A master's session "
                     "starts the plant and its faults again from t = 0")
-    _add_harden_argument(eb, "")
+    _add_harden_argument(eb, APART)
     _add_fault_arguments(eb, "bench", "delay@2-4:ms=300, drop@5-8, weld@3:relay=P1")
     add_live_arguments(eb, rates=False, tuning=False)
     eb.set_defaults(handler=emulate_bench_command)
@@ -114,7 +117,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "current in mA, one output, a position in deg, its period dividing "
                     "master.cycle_period_us (default: emulator.model, else the published axis)")
     _add_harden_argument(ed, "while the drives keep their own clock (not a lockstep "
-                         "master's): ")
+                         "master's): over socketcand SCHED_FIFO above hil's loop, on the "
+                         "loop's core (each SYNC answered within the loop's tick); as EtherCAT "
+                         f"slaves {APART}")
     ed.add_argument("--clock", choices=CLOCKS, default="auto",
                     help="the drives' time: auto (default: their own wall clock, until a "
                     "lockstep master asks for its SYNC time, as `hil servo run` does, and "
@@ -136,13 +141,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     el.set_defaults(handler=emulate_line_command)
 
 
-def _add_harden_argument(parser: argparse.ArgumentParser, when: str) -> None:
+def _add_harden_argument(parser: argparse.ArgumentParser, how: str) -> None:
     parser.add_argument("--harden", action=argparse.BooleanOptionalAction, default=True,
                         help=f"serve as a real-time process where the OS allows (default; as "
-                        f"`hil doctor` reports), {when}SCHED_FIFO below hil's loop, a core "
-                        "apart from the loop's, locked memory; each step granted or refused "
-                        "is printed on stderr as 'hil: real-time: STEP granted|refused: ...', "
-                        "and a warning names those refused. --no-harden: an ordinary process")
+                        f"`hil doctor` reports), {how}, locked memory; each step granted or "
+                        "refused is printed on stderr as 'hil: real-time: STEP granted|"
+                        "refused: ...', and a warning names those refused. --no-harden: an "
+                        "ordinary process")
 
 
 def say_hardening(steps: list[Step], emulator: str) -> None:

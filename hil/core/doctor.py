@@ -64,12 +64,12 @@ def run_doctor(duration_s: float, rates_hz: Sequence[int] = RATES_HZ,
 
 
 def helper_steps() -> list[Step]:
-    """What an emulator's serving thread would be granted (:meth:`Hardening.for_helper`),
-    tried on a thread started for it and undone."""
+    """What a drive emulator's serving thread would be granted
+    (:meth:`Hardening.for_answering_helper`), tried on a thread started for it and undone."""
     steps: list[Step] = []
 
     def attempt() -> None:
-        helper = Hardening.for_helper()
+        helper = Hardening.for_answering_helper()
         steps.extend(helper.apply())
         helper.restore()
 

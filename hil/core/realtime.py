@@ -13,14 +13,26 @@ Steps (all Linux; elsewhere each is refused with the reason):
 * ``gc_freeze`` - ``gc.collect()`` then ``gc.freeze()``, and the collector held off for the run;
 * ``timer_slack`` - the thread's timer slack set to 1 ns (``prctl``), so sleeps end on time.
 
-A helper process that stands in for hardware (``hil emulate drive --harden``, started for a
-``--realtime`` run against ``emulated``) takes the same steps as a *helper*
+A helper process that stands in for hardware (``hil emulate bench --harden``, started for a
+``--realtime`` bench run against its emulator) takes the same steps as a *helper*
 (:meth:`Hardening.for_helper`): SCHED_FIFO at :data:`HELPER_PRIORITY` (below the loop's; not
 taken on a single usable CPU, where it would starve the loop's recording), pinned to the core
 before the loop's (:func:`helper_cpu`), its collector frozen but kept on (it serves for as
 long as it is asked). It reports each step on a line of its stderr
 (:func:`step_line`); the run records them as ``realtime.emulator`` metadata
 (:func:`report_helper_hardening`, :func:`helper_metadata`).
+
+A helper that answers the loop's frames within its tick, as a drive answers a SYNC
+(:meth:`Hardening.for_answering_helper`: ``hil emulate drive --harden`` over socketcand, and
+the drive emulator process of a ``--realtime`` servo run), takes the loop's core instead,
+at :data:`ANSWER_PRIORITY`, above the loop's: the loop's send makes it runnable there and it
+answers at once, before the loop goes on, and before the core can go to any ordinary process.
+On a core of its own it waits for the next SYNC with its core idle, and an ordinary process
+given that core keeps it for as long as its system call lasts: a kernel without full
+preemption (``Dynamic Preempt: none``) does not take the core back for a real-time thread
+whose wake-up came meanwhile. On the 2-core virtual machine this was measured on, the VM's
+agent takes an idle core once a second, for 0.5-1.5 ms at a time: one SYNC a second was
+answered too late (stale feedback, late frames).
 """
 
 from __future__ import annotations
@@ -43,6 +55,9 @@ MCL_CURRENT, MCL_FUTURE = 1, 2
 DEFAULT_PRIORITY = 80  # below the kernel's threaded IRQs (50) would starve the NIC; above is usual
 #: an emulator standing in for hardware: real time too, below the loop (on one CPU the loop wins)
 HELPER_PRIORITY = DEFAULT_PRIORITY - 10
+#: an emulator answering within the loop's tick, on the loop's core: above the loop, which its
+#: answers interrupt for tens of microseconds
+ANSWER_PRIORITY = DEFAULT_PRIORITY + 5
 #: the prefix of a helper's lines that report its hardening steps (on its stderr)
 STEP_PREFIX = "hil: real-time: "
 
@@ -200,7 +215,8 @@ def parse_step_lines(lines: list[str]) -> dict[str, str]:
 
 def keep_process_off_cpu(pid: int, cpu: int) -> bool:
     """Move every thread of process ``pid`` off ``cpu`` (threads it starts later inherit the
-    affinity of the thread that starts them). False when it could not be done."""
+    affinity of the thread that starts them), but for a thread pinned to ``cpu`` alone (an
+    answering helper's serving thread). False when no thread was moved."""
     if not hasattr(os, "sched_setaffinity"):
         return False
     try:
@@ -236,16 +252,18 @@ class Hardening:
 
     ``apply()`` returns every step, granted or refused; ``restore()`` puts the scheduler, the
     affinity, the collector, the timer slack and the locked pages back.
-    A loop (the default) takes the last core and keeps the registered helper processes off it,
-    and holds the collector off; a helper (:meth:`for_helper`) takes the core before it and
-    keeps its collector on.
+    A loop (the default) takes the last core and keeps the registered helper processes off it
+    (but for a thread that answers on it), and holds the collector off; a helper
+    (:meth:`for_helper`) takes the core before it, an answering helper
+    (:meth:`for_answering_helper`) the loop's core, and both keep their collector on.
     """
 
     def __init__(self, priority: int = DEFAULT_PRIORITY, pin: bool = True, *,
-                 helper: bool = False) -> None:
+                 helper: bool = False, answering: bool = False) -> None:
         self.priority = priority
         self.pin = pin
-        self.helper = helper
+        self.helper = helper or answering
+        self.answering = answering
         self.steps: list[Step] = []
         self._saved_policy: tuple[int, int] | None = None
         self._saved_affinity: set[int] | None = None
@@ -260,9 +278,22 @@ class Hardening:
         the loop, on a core apart from the loop's."""
         return cls(HELPER_PRIORITY, helper=True)
 
+    @classmethod
+    def for_answering_helper(cls) -> Hardening:
+        """The hardening of an emulator that answers the loop's frames within its tick (a
+        drive answering SYNC): real time above the loop, on the loop's core."""
+        return cls(ANSWER_PRIORITY, answering=True)
+
+    @property
+    def real_time(self) -> bool:
+        """Whether the thread is on SCHED_FIFO now (applied and granted, not restored)."""
+        return self._saved_policy is not None
+
     def apply(self) -> list[Step]:
-        self.steps = [self._fifo(), self._affinity(), self._mlockall(), self._gc(),
-                      self._slack()]
+        # the slow steps first (locking the pages of a process takes 0.2 s), before the thread
+        # is real-time: an answering helper would take them out of the loop's core
+        locked, frozen = self._mlockall(), self._gc()
+        self.steps = [self._fifo(), self._affinity(), locked, frozen, self._slack()]
         return self.steps
 
     def _fifo(self) -> Step:
@@ -286,7 +317,10 @@ class Hardening:
         if not hasattr(os, "sched_setaffinity"):
             return Step("cpu_affinity", False, "not available on this platform")
         usable = sorted(os.sched_getaffinity(0))
-        core = (helper_cpu if self.helper else loop_cpu)(usable)
+        if self.answering and not self.real_time:
+            return Step("cpu_affinity", False, "not taken without SCHED_FIFO: on the loop's "
+                        "core it would answer only while the loop sleeps")
+        core = (helper_cpu if self.helper and not self.answering else loop_cpu)(usable)
         if core is None:
             return Step("cpu_affinity", False, f"only CPU {usable} usable: nothing to pin to")
         try:
@@ -296,11 +330,15 @@ class Hardening:
             self._saved_affinity = None
             return Step("cpu_affinity", False, f"refused: {exc.strerror or exc}")
         self.pinned_cpu = core
+        if self.answering:
+            return Step("cpu_affinity", True, f"on CPU {core} of {usable}, the loop's: it "
+                        "answers within the loop's tick")
         if self.helper:
             return Step("cpu_affinity", True, f"on CPU {core} of {usable}, apart from the "
                         f"loop's CPU {loop_cpu(usable)}")
         moved = [pid for pid in sorted(_HELPERS) if keep_process_off_cpu(pid, core)]
-        helpers = f"; helper process(es) {moved} kept off it" if moved else ""
+        helpers = f"; helper process(es) {moved} kept off it (a thread answering within the " \
+            "tick stays)" if moved else ""
         return Step("cpu_affinity", True, f"loop thread on CPU {core} of {usable}{helpers}")
 
     def _mlockall(self) -> Step:

@@ -1,8 +1,9 @@
 """`hil emulate drive` and `hil emulate bench` serve as real-time processes where the OS
-allows (SCHED_FIFO below hil's loop, a core apart from the loop's, locked memory), by default
-(`--no-harden`: an ordinary process), and say what they were granted, step by step, before
-they are ready, and in a warning what they were not. The drive emulator is an ordinary
-process while a lockstep master keeps its time."""
+allows, by default (`--no-harden`: an ordinary process), and say what they were granted, step
+by step, before they are ready, and in a warning what they were not: the bench below hil's
+loop on a core apart from the loop's, the drive above it on the loop's core, where it answers
+each SYNC before the loop goes on; locked memory. The drive emulator is an ordinary process
+while a lockstep master keeps its time."""
 
 from __future__ import annotations
 
@@ -16,7 +17,14 @@ from pathlib import Path
 
 import pytest
 
-from hil.core.realtime import HELPER_PRIORITY, helper_metadata, loop_cpu, parse_step_lines
+from hil.core.realtime import (
+    ANSWER_PRIORITY,
+    HELPER_PRIORITY,
+    Hardening,
+    helper_metadata,
+    loop_cpu,
+    parse_step_lines,
+)
 from hil.emulator_process import start_bench_emulator, start_drive_emulator
 from hil.servo.config import load_drive_config
 from hil.servo.rig import open_drive, share_lockstep_time
@@ -58,12 +66,13 @@ def test_the_command_hardens_by_default_and_reports_every_step_before_its_ready_
     assert list(steps) == STEPS, stderr
     assert steps["gc_freeze"].startswith("granted: ") and "collector on" in steps["gc_freeze"]
     if steps["sched_fifo"].startswith("granted"):  # what it says is what it got
-        assert (policy, priority) == (os.SCHED_FIFO, HELPER_PRIORITY)
+        assert (policy, priority) == (os.SCHED_FIFO, ANSWER_PRIORITY)
     usable = sorted(os.sched_getaffinity(0))
-    if steps["cpu_affinity"].startswith("granted"):
-        assert len(cores) == 1 and loop_cpu(usable) not in cores
+    if steps["cpu_affinity"].startswith("granted"):  # the loop's core: it answers there
+        assert cores == {loop_cpu(usable)}
+        assert steps["cpu_affinity"].endswith("the loop's: it answers within the loop's tick")
     else:
-        assert len(usable) < 2 or "refused" in steps["cpu_affinity"]
+        assert len(usable) < 2 or not steps["sched_fifo"].startswith("granted")
 
 
 def test_a_started_emulator_reports_what_it_was_granted_for_the_next_session():
@@ -85,11 +94,12 @@ def test_doctor_says_what_an_emulator_would_be_granted(tmp_path):
     helper = report["emulator_hardening"]
     assert list(helper) == STEPS
     if helper["sched_fifo"]["granted"]:
-        assert helper["sched_fifo"]["detail"] == f"priority {HELPER_PRIORITY}"
+        assert helper["sched_fifo"]["detail"] == f"priority {ANSWER_PRIORITY}"
     if helper["cpu_affinity"]["granted"] and report["hardening"]["cpu_affinity"]["granted"]:
-        # the two cores named: the emulator's apart from the loop's
-        assert f"apart from the loop's CPU {report['os']['usable_cpus'][-1]}" in \
-            helper["cpu_affinity"]["detail"]
+        # the loop's core, named
+        assert helper["cpu_affinity"]["detail"].startswith(
+            f"on CPU {report['os']['usable_cpus'][-1]} of ")
+        assert "the loop's: it answers within the loop's tick" in helper["cpu_affinity"]["detail"]
 
 
 def test_no_harden_serves_as_an_ordinary_process(tmp_path):
@@ -153,8 +163,36 @@ def test_the_bench_emulator_hardens_its_serving_threads(tmp_path):
     if steps["sched_fifo"].startswith("granted"):  # hardened before its threads started: the
         # main thread, the plant's and the server's (not the watcher of its parent, older)
         assert emulator.pid in fifo and len(fifo) >= 3
+        assert steps["sched_fifo"] == f"granted: priority {HELPER_PRIORITY}"  # below the loop
     with start_bench_emulator() as plain:  # the API's default: an ordinary process
         assert plain.hardening == {} and os.sched_getscheduler(plain.pid) == os.SCHED_OTHER
+
+
+@pytest.mark.realtime
+def test_a_hardened_loop_finds_each_answer_when_its_send_returns():
+    """The hand-over on the loop's core: the master's SYNC wakes the emulator there, above
+    the loop, which answers before the loop's send returns; no SYNC waits for the core to
+    come free. The master looks for the TPDOs 1 us after each SYNC: an emulator on a core of
+    its own answers 30 us or more after the SYNC, and every cycle would be stale."""
+    usable = sorted(os.sched_getaffinity(0))
+    if os.geteuid() != 0 or len(usable) < 2:
+        pytest.skip("needs SCHED_FIFO (root) and two usable cores")
+    with start_drive_emulator(harden=True) as emulator:
+        master = open_drive(emulator.url, load_drive_config(overrides={"master": {
+            "rx_timeout_us": 1, "stale_cycles": 100_000}}))
+        loop = Hardening()
+        try:
+            master.start()
+            loop.apply()
+            assert loop.pinned_cpu == loop_cpu(usable)
+            stale = 0
+            for _ in range(2000):
+                master.send_set_point(0.0)
+                stale += not master.receive_feedback().fresh
+        finally:
+            loop.restore()
+            master.close()
+    assert stale == 0
 
 
 def wait_for(predicate, timeout_s: float = 10.0) -> bool:

@@ -206,3 +206,58 @@ def test_polling_for_an_expected_frame_serves_the_same_bus():
             bus.shutdown()
     finally:
         srv.close()
+
+
+def test_a_poll_window_shorter_than_a_millisecond_is_polled():
+    """The wait before the poll window is timed to the microsecond: epoll counts whole
+    milliseconds (Python rounds a shorter wait up to one), which slept through a window of
+    less than that and answered every SYNC from a blocking wake-up. Here the window opens
+    50 us after the server starts and closes 900 us later: an epoll wait cannot end before a
+    millisecond, so a server waiting that way never looks inside it; a loaded machine may
+    wake this one late once, not in each of five tries."""
+
+    def looks_inside_the_window() -> bool:
+        due: list[int] = []
+        inside: list[int] = []
+
+        def next_frame_ns(now: int) -> int:
+            if not due:
+                due.append(now + 950_000)
+            if due[0] - 900_000 <= now < due[0]:
+                inside.append(now)
+            return due[0]
+
+        srv = SocketcandServer("127.0.0.1", 0, tick_period_s=1.0, next_frame_ns=next_frame_ns,
+                               poll_margin_s=900e-6).start()
+        try:
+            assert wait_for(lambda: bool(due) and time.monotonic_ns() > due[0] + 1_000_000)
+        finally:
+            srv.close()
+        return bool(inside)
+
+    assert any(looks_inside_the_window() for _ in range(5))
+
+
+@pytest.mark.parametrize("follows", [True, False])
+def test_the_time_service_can_follow_the_frames_instead_of_waking_up(follows):
+    """A server on a real-time loop's core serves its time after the frame that comes when the
+    service is due, rather than from a wake-up of its own that would interrupt the loop; a
+    bus gone quiet gets it one period late. Here the service is due 0.5 s after the start,
+    a frame comes at 0.6 s and the fallback would be at 1.0 s."""
+    events: list[str] = []
+    srv = SocketcandServer("127.0.0.1", 0, tick_period_s=0.5,
+                           on_data=lambda *_: events.append("data"),
+                           on_tick=lambda: events.append("tick"))
+    srv.service_follows_frames = follows
+    started = time.monotonic()
+    srv.start()
+    try:
+        sock = connect(srv)
+        sock.sendall(b"< open can0 >< rawmode >")
+        time.sleep(max(0.0, started + 0.6 - time.monotonic()))
+        sock.sendall(b"< send 080 0 >")
+        assert wait_for(lambda: len(events) >= 3)
+        sock.close()
+    finally:
+        srv.close()
+    assert events[:3] == (["tick", "data", "tick"] if follows else ["tick", "tick", "data"])
