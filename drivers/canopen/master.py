@@ -335,9 +335,7 @@ class CanDriveMaster(Device):
         scaling, limit = self.scaling, self.limit
         self._configure_transport()
         self._write_setting(MODES_OF_OPERATION, 0, mode.code, "<b")
-        shown = sdo.read_int(MODES_DISPLAY, 0, "<b")
-        if shown != mode.code:
-            raise DriveStateError(f"drive node {n} shows mode {shown} after 0x6060 = {mode.code}")
+        self._confirm_mode()
         if limit.unenforced:
             self.notices.tell("drive.limit_unenforced", unenforced_text(n, mode, limit))
         else:
@@ -364,6 +362,13 @@ class CanDriveMaster(Device):
             self._event("drive.heartbeat_config",
                         f"master heartbeat every {c.heartbeat_period_ms} ms but the drive gives "
                         f"up after {c.heartbeat_timeout_ms} ms: it will fault", level="warning")
+
+    def _confirm_mode(self) -> None:
+        """The drive shows the mode written (0x6061 after 0x6060), else a DriveStateError."""
+        shown = self.sdo.read_int(MODES_DISPLAY, 0, "<b")
+        if shown != self.operation.code:
+            raise DriveStateError(f"drive node {self.node_id} shows mode {shown} after 0x6060 "
+                                  f"= {self.operation.code}")
 
     def _configure_transport(self) -> None:
         """What :meth:`configure` writes for CAN: NMT pre-operational, the PDO maps (and the

@@ -34,7 +34,7 @@ from hil.contracts import EventSink, no_event
 from hil.drivers.can_bus_time import BusBudget
 from hil.drivers.canopen.config import DriveMasterConfig
 from hil.drivers.canopen.cyclic import CyclicExchange, Feedback
-from hil.drivers.canopen.errors import DriveLinkLostError
+from hil.drivers.canopen.errors import DriveLinkLostError, DriveStateError
 from hil.drivers.canopen.link import Link
 from hil.drivers.canopen.master import CanDriveMaster
 from hil.drivers.canopen.sdo import SdoChannel
@@ -211,7 +211,25 @@ class EthercatDriveMaster(CanDriveMaster):
                     f"on {segment.name} in OP, working counter {segment.expected_wkc} a "
                     f"cycle, {clock}", slave=self.position, expected_wkc=segment.expected_wkc,
                     sync0_ns=sync0_ns)
+        self._confirm_mode_in_op()
         super()._enable_operation()
+
+    def _confirm_mode(self) -> None:
+        """Not in PRE-OP: a drive may apply 0x6060 only once it runs its cycles (SAFE-OP,
+        OP); :meth:`_confirm_mode_in_op` checks it there."""
+
+    def _confirm_mode_in_op(self) -> None:
+        """In OP, before the enabling: cycles until the drive shows the mode written (0x6061
+        read by CoE after each), for up to the state time-out; else a DriveStateError."""
+        deadline_ns = self._clock.time_ns() + round(self.config.state_timeout_s * 1e9)
+        while True:
+            self.states.statusword()  # a cycle: the drive takes its outputs
+            try:
+                super()._confirm_mode()
+                return
+            except DriveStateError:
+                if self._clock.time_ns() >= deadline_ns:
+                    raise
 
     def describe(self) -> dict[str, Any]:
         described = super().describe()
