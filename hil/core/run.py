@@ -251,7 +251,8 @@ def _run_locked(experiment: Experiment[Any], plan: RunPlan, output: OutputClaim,
     kpis: dict[str, Any] = {}
     outcome: dict[str, Any] = {}
     progress = None
-    tuner = Tuner(event=session.event, topic=session.topic, time_ns=session.clock.time_ns)
+    tuner = Tuner(event=session.event, topic=session.topic, time_ns=session.clock.time_ns,
+                  lockstep=session.clock.mode == "sim")
     try:
         session.prepare()  # the writer up and the loop thread hardened before any enabling
         experiment.start(session)

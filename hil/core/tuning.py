@@ -12,7 +12,8 @@ before it are in place (so it starts from the parameters in force). The change t
 a queue that the loop looks at once per tick, before the tick's phases
 (:attr:`FixedRateLoop.at_boundary <hil.core.loop.FixedRateLoop.at_boundary>`: one look at an
 empty queue when nobody tunes), and is applied at the first tick boundary (``at_tick``: not
-before that tick), the tick's number reported back. Every applied change is
+before that tick; in lockstep at that tick, the loop waiting there for its rebuild), the
+tick's number reported back. Every applied change is
 an event ``param.changed`` on ``/events`` (parameter, old, new, client, tick) and a message on
 ``/params`` (:data:`PARAMS_SCHEMA`); a refused one an event ``param.refused`` (parameter,
 value, client, reason). Both are recorded by the loop's thread.
@@ -40,6 +41,8 @@ from hil.errors import HilError
 
 #: the topic of applied changes, and its schema: one message per change
 PARAMS_TOPIC = "/params"
+#: lockstep: how long the loop waits at its tick for the rebuild of a change asked for then
+SCHEDULED_REBUILD_WAIT_S = 60.0
 PARAMS_SCHEMA: dict[str, Any] = {
     "type": "object",
     "title": "hil.ParamChange",
@@ -110,6 +113,7 @@ class PendingChange:
         self.cancelled = False
         self.result: TuneResult | None = refused
         self.done = threading.Event()
+        self.prepared = threading.Event()  # rebuilt (or refused): nothing left off the loop
 
 
 class Tuner:
@@ -117,8 +121,12 @@ class Tuner:
 
     def __init__(self, *, event: Callable[..., None] | None = None,
                  topic: Callable[[str, dict[str, Any]], Any] | None = None,
-                 time_ns: Callable[[], int] | None = None) -> None:
+                 time_ns: Callable[[], int] | None = None, lockstep: bool = False) -> None:
         self._entries: dict[str, _Entry] = {}
+        # lockstep: a change asked for at a tick is applied at that tick, its rebuild waited
+        # for there (the session the same however long the rebuild takes on the wall clock)
+        self._lockstep = lockstep
+        self._scheduled: list[PendingChange] = []  # rebuilds asked for at a tick, not prepared
         self._queue: deque[PendingChange] = deque()
         self._lock = threading.Lock()            # the entries and the queue
         self._requests = threading.Lock()        # one request checked at a time
@@ -198,6 +206,8 @@ class Tuner:
                         self._queue.append(pending)
                     else:  # rebuilt by the worker, then queued
                         self._rebuilds.append(pending)
+                        if self._lockstep and at_tick is not None:
+                            self._scheduled.append(pending)
                         self._start_worker()
                         self._work.notify()
             if ended:
@@ -237,16 +247,19 @@ class Tuner:
                             pending.name, False, entry.spec.value, str(exc), None)
                         if not self._ended:
                             self._queue.append(pending)  # recorded by the loop's thread
+                pending.prepared.set()
                 pending.done.set()
                 continue
             with self._lock:
                 if not pending.cancelled and not self._ended:
                     pending.swap = swap
                     self._queue.append(pending)
+                    pending.prepared.set()
                     continue
                 if pending.result is None:  # the run ended while it was rebuilt
                     pending.result = TuneResult(pending.name, False, entry.spec.value,
                                                 "the run ended before it was applied", None)
+            pending.prepared.set()
             pending.done.set()
 
     def wait(self, pending: PendingChange, timeout_s: float) -> TuneResult:
@@ -262,6 +275,7 @@ class Tuner:
                         pending.name, False, entry.spec.value,
                         f"not applied within {timeout_s:g} s: the loop reached no tick "
                         "boundary", None)
+                    pending.prepared.set()
                     pending.done.set()
         assert pending.result is not None
         return pending.result
@@ -278,9 +292,21 @@ class Tuner:
         return pending
 
     # -- the loop's side -------------------------------------------------------------------
+    def _await_scheduled(self, n: int) -> None:
+        """Lockstep: the rebuilds asked for at tick ``n`` or before, waited for here (for up to
+        :data:`SCHEDULED_REBUILD_WAIT_S` each: one that takes longer is applied when done)."""
+        with self._lock:
+            due = [p for p in self._scheduled if p.at_tick is not None and p.at_tick <= n]
+            self._scheduled = [p for p in self._scheduled if p not in due]
+        for pending in due:
+            pending.prepared.wait(SCHEDULED_REBUILD_WAIT_S)
+
+
     def tick(self, n: int) -> None:
         """At the boundary of tick ``n`` (the loop's thread): apply what is due."""
         self.now = n
+        if self._scheduled:
+            self._await_scheduled(n)
         if not self._queue:
             return
         with self._lock:
@@ -354,6 +380,7 @@ class Tuner:
             left = list(self._queue) + list(self._rebuilds)
             self._queue.clear()
             self._rebuilds.clear()
+            self._scheduled.clear()
             for pending in left:
                 if pending.result is None:
                     entry = pending.entry
@@ -361,6 +388,7 @@ class Tuner:
                     pending.result = TuneResult(pending.name, False, entry.spec.value,
                                                 "the run ended before it was applied", None)
         for pending in left:
+            pending.prepared.set()
             pending.done.set()
 
 

@@ -226,6 +226,34 @@ def test_rebuilds_run_in_turn_off_the_caller_and_the_end_of_the_run_refuses_the_
     assert swapped == [10] and tuner.specs()[0].value == 10
 
 
+@pytest.mark.parametrize("lockstep", [True, False])
+def test_in_lockstep_a_change_asked_for_at_a_tick_waits_there_for_its_rebuild(lockstep):
+    """A slow rebuild (a busy machine, a big horizon) asked for at tick 3: in lockstep the
+    loop waits at tick 3 until it is built, so the session is the same however long it takes
+    on the wall clock; in real time the loop goes on, and it lands at a later tick."""
+    release = threading.Event()
+
+    def prepare(value):
+        release.wait(60.0)
+        return lambda: None
+
+    tuner = Tuner(lockstep=lockstep)
+    tuner.add(TunableSpec("controller.h", 8, "ticks", 1, 50, 1, True, None, ""),
+              lambda value: None, prepare=prepare)
+    asked = tuner.submit("controller.h", 10, "t", at_tick=3)
+    for n in range(3):
+        tuner.tick(n)
+    threading.Timer(0.2, release.set).start()
+    n = 3
+    while not asked.done.is_set():
+        tuner.tick(n)
+        n += 1
+    result = tuner.wait(asked, 60.0)
+    assert result.accepted
+    assert result.tick == 3 if lockstep else result.tick > 3
+    tuner.close()
+
+
 @pytest.mark.parametrize("controller, params", [
     ("pid", {"kp": 3.0, "kv": 0.05, "ti_us": 4000.0, "umax": 800.0, "notch_hz": 500.0,
              "notch_q": 2.0}),
