@@ -83,6 +83,7 @@ def rerun_line(printed: str, path: str) -> list[str]:
     return [path if word == "FILE" else word for word in shlex.split(line[len("#   hil "):])]
 
 
+@pytest.mark.slow
 def test_print_config_prints_a_config_file_that_runs_the_same_run(tmp_path, capfd):
     """Printed with flags that set keys (--umax, --safety, --drive with a model) and flags that
     do not (--param, --limit, --duration), the text is a config file: --config takes it back
@@ -382,6 +383,7 @@ def kpi_verdicts(done: subprocess.CompletedProcess[str]) -> dict[str, tuple[str,
             for row in json.loads(done.stdout)["rows"] if row["kind"] == "kpi"}
 
 
+@pytest.mark.slow
 def test_a_one_sided_tolerance_passes_what_got_better_and_fails_what_got_worse(tmp_path, capfd):
     """A PID baseline against an MPC candidate: held both ways, the four errors fail because
     they got smaller (as on main, where no tolerance was one-sided); ``worse:5%`` bounds only

@@ -98,6 +98,7 @@ def mcap_reads(body: bytes) -> list:
     return breakup_chunk(Chunk.read(ReadDataStream(io.BytesIO(body))), validate_crc=True)
 
 
+@pytest.mark.slow
 @settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(content=chunk_contents(), compression=st.sampled_from(["", "zstd"]))
 def test_any_chunk_reads_as_mcaps_breakup_chunk_reads_it(content, compression):

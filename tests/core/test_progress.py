@@ -29,6 +29,7 @@ def full_pipe() -> tuple[int, int]:
     return read_end, write_end
 
 
+@pytest.mark.slow
 def test_a_stream_that_blocks_holds_up_the_line_not_the_loop(monkeypatch):
     monkeypatch.setattr(progress, "REFRESH_S", 0.02)
     read_end, write_end = full_pipe()

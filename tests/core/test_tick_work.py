@@ -106,6 +106,7 @@ def test_the_check_finds_a_job_left_for_every_n_ticks(monkeypatch, tmp_path):
     assert values > TICK_BOUND and tick % 2000 == 1999, (values, tick)
 
 
+@pytest.mark.slow
 def test_no_tick_of_a_servo_session_does_a_windows_work(monkeypatch, tmp_path):
     work = TickWork(monkeypatch)
     out = tmp_path / "mpc.mcap"

@@ -234,6 +234,7 @@ def test_a_garbled_answer_is_a_lost_one_asked_again():
             peer.close()
 
 
+@pytest.mark.slow
 def test_an_answer_still_out_is_waited_out_before_a_request_it_could_pass_for():
     """Request A (2 registers at 0) gives up after 0.15 s; its answer comes 0.4 s late. The
     next request B (2 registers at 0x10: the same unit, function and length) is sent only
@@ -278,6 +279,7 @@ def test_a_serial_request_patient_for_long_is_asked_again_every_timeout():
             peer.close()
 
 
+@pytest.mark.slow
 def test_an_answer_that_came_before_the_request_does_not_answer_it():
     """The same question asked again after a given-up try: the old answer, which came in
     between, is passed over and the new one taken."""

@@ -156,6 +156,7 @@ def test_noisy_bench_plant_fits_at_least_95_percent_on_held_out_data(seed):
     assert model.samples == {"total": 4000, "train": 2800, "test": 1200}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2, 3, 4, 5])
 def test_order_selection_picks_3_on_third_order_plants_with_moderate_noise(seed):
     rng = np.random.default_rng(100 + seed)

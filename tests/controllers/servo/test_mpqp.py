@@ -112,6 +112,7 @@ def test_explicit_law_equals_online_qp_everywhere_in_the_box(law):
     assert paths == {"unconstrained", "qp"}
 
 
+@pytest.mark.slow
 def test_explicit_law_with_rate_limits_equals_online_qp():
     """Δu limits next to asymmetric u limits, H_u < H_t: more active-set combinations, some
     pruned as infeasible (|Δu| too small to reach a current limit in time)."""
@@ -123,6 +124,7 @@ def test_explicit_law_with_rate_limits_equals_online_qp():
     assert paths == {"unconstrained", "qp"}
 
 
+@pytest.mark.slow
 def test_every_point_of_the_box_lies_in_exactly_one_region(law):
     rng = np.random.default_rng(2)
     inside, owners = region_samples(law.solution, rng, 20)
@@ -160,6 +162,7 @@ def test_no_redundant_half_space_is_kept(law):
             assert a[k] * face == pytest.approx(b, rel=1e-12)
 
 
+@pytest.mark.slow
 def test_state_constrained_problem_matches_daqp_and_excludes_infeasible_parameters():
     """A problem with state constraints: some active sets are pruned as infeasible, the
     regions cover exactly the parameters where the QP is feasible."""

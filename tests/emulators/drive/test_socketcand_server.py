@@ -121,6 +121,7 @@ def test_bad_commands_are_answered_or_ignored_never_fatal(server):
     sock.close()
 
 
+@pytest.mark.slow
 def test_frames_go_to_the_other_clients_in_raw_mode_only(server):
     a, b, bcm = connect(server), connect(server), connect(server)
     for sock in (a, b, bcm):
@@ -238,6 +239,7 @@ def test_a_poll_window_shorter_than_a_millisecond_is_polled():
     assert any(looks_inside_the_window() for _ in range(5))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("follows", [True, False])
 def test_the_time_service_can_follow_the_frames_instead_of_waking_up(follows):
     """A server on a real-time loop's core serves its time after the frame that comes when the
