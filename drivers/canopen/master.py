@@ -365,10 +365,14 @@ class CanDriveMaster(Device):
 
     def _confirm_mode(self) -> None:
         """The drive shows the mode written (0x6061 after 0x6060), else a DriveStateError."""
-        shown = self.sdo.read_int(MODES_DISPLAY, 0, "<b")
+        shown = self._mode_shown()
         if shown != self.operation.code:
             raise DriveStateError(f"drive node {self.node_id} shows mode {shown} after 0x6060 "
                                   f"= {self.operation.code}")
+
+    def _mode_shown(self) -> int:
+        """The mode the drive shows (0x6061)."""
+        return self.sdo.read_int(MODES_DISPLAY, 0, "<b")
 
     def _configure_transport(self) -> None:
         """What :meth:`configure` writes for CAN: NMT pre-operational, the PDO maps (and the

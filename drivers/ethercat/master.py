@@ -34,7 +34,7 @@ from hil.contracts import EventSink, no_event
 from hil.drivers.can_bus_time import BusBudget
 from hil.drivers.canopen.config import DriveMasterConfig
 from hil.drivers.canopen.cyclic import CyclicExchange, Feedback
-from hil.drivers.canopen.errors import DriveLinkLostError, DriveStateError
+from hil.drivers.canopen.errors import DriveLinkLostError
 from hil.drivers.canopen.link import Link
 from hil.drivers.canopen.master import CanDriveMaster
 from hil.drivers.canopen.sdo import SdoChannel
@@ -222,14 +222,9 @@ class EthercatDriveMaster(CanDriveMaster):
         """In OP, before the enabling: cycles until the drive shows the mode written (0x6061
         read by CoE after each), for up to the state time-out; else a DriveStateError."""
         deadline_ns = self._clock.time_ns() + round(self.config.state_timeout_s * 1e9)
-        while True:
+        while self._mode_shown() != self.operation.code and self._clock.time_ns() < deadline_ns:
             self.states.statusword()  # a cycle: the drive takes its outputs
-            try:
-                super()._confirm_mode()
-                return
-            except DriveStateError:
-                if self._clock.time_ns() >= deadline_ns:
-                    raise
+        super()._confirm_mode()
 
     def describe(self) -> dict[str, Any]:
         described = super().describe()

@@ -89,5 +89,5 @@ class Assignment:
     def refusal(self) -> int:
         """The AL status code keeping the slave out of SAFE-OP (0: none): a mandatory PDO
         is not assigned."""
-        missing = [pdo for pdo in self.mandatory if pdo not in self.assigned]
+        missing = any(pdo not in self.assigned for pdo in self.mandatory)
         return REFUSALS[self.index] if missing else 0

@@ -9,6 +9,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass, field
 
+from hil.protocols.cia402 import mapping_entry
 from hil.protocols.ethercat import (
     CAT_END,
     CAT_FMMU,
@@ -78,7 +79,7 @@ class PdoSpec:
 
     def mapping_values(self) -> list[int]:
         """The mapping object's sub-indices 1..n (index, sub-index, bits)."""
-        return [entry.index << 16 | entry.subindex << 8 | entry.bits for entry in self.entries]
+        return [mapping_entry(entry.index, entry.subindex, entry.bits) for entry in self.entries]
 
 
 #: SM0/SM1 the mailbox, SM2 outputs (3 buffers, watchdog), SM3 inputs: the usual layout

@@ -22,7 +22,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import json
-import subprocess
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -33,11 +32,14 @@ import pytest
 from canopen.objectdictionary import ODVariable
 from canopen.objectdictionary import datatypes as dt
 
-from hil.core.recording.reader import read_session
 from hil.protocols.cia306 import description_encoding
 from tests.cli import hil_here
 from tests.drive_processes import start_drive_emulator, stop_drive_emulator
 from tests.drive_slave import serve
+from tests.vendor_twin import TwinFolder, supplied_cell
+from tests.vendor_twin import home as homed
+from tests.vendor_twin import move as moved
+from tests.vendor_twin import track as tracked
 
 pytestmark = [pytest.mark.slow]
 
@@ -142,9 +144,6 @@ def matrix_table() -> str:
     rows = ["| vendor | product | file | modes listed | twinned | driven in | supplied |",
             "| --- | --- | --- | --- | --- | --- | --- |"]
     for vendor in MATRIX.values():
-        supplied = [f"`--set {key}={value:#x}`" if key == "0x1000:0" else
-                    f"`--set {key}={value}`" for key, value in vendor.supplied.items()]
-        supplied += [f"`[master] {key} = {value}`" for key, value in vendor.stand_ins.items()]
         driven = ", ".join(vendor.driven) or f"none: {vendor.not_driven}" \
             if not vendor.not_twinned else "-"
         named = [mode for mode in vendor.listed if not mode.startswith("bit ")]
@@ -152,7 +151,7 @@ def matrix_table() -> str:
         rows.append(f"| {vendor.vendor} | {vendor.product} | `{vendor.path}` | "
                     f"{listed or '-'} | "
                     f"{'no: ' + vendor.not_twinned if vendor.not_twinned else 'yes'} | "
-                    f"{driven} | {', '.join(supplied) or '-'} |")
+                    f"{driven} | {supplied_cell(vendor.supplied, vendor.stand_ins)} |")
     return "\n".join(rows)
 
 
@@ -166,28 +165,11 @@ def test_the_matrix_holds_every_vendor_file_and_the_readme_shows_it():
 
 # -- the twins -------------------------------------------------------------------------------
 @dataclass
-class Twin:
+class Twin(TwinFolder):
     """A vendor file's twin over socketcand, and the folder (outside the repository) its
     commands run from."""
 
     vendor: VendorFile
-    url: str
-    folder: Path
-    capsys: pytest.CaptureFixture[str]
-
-    def config(self, mode: str, extra: str = "") -> str:
-        """A config file in the folder: ``[master]`` mode and stand-ins, then ``extra``."""
-        name = f"{mode}.toml"
-        keys = "".join(f"{key} = {value}\n" for key, value in self.vendor.stand_ins.items())
-        (self.folder / name).write_text(f'[master]\nmode = "{mode}"\n{keys}{extra}')
-        return name
-
-    def hil(self, *args: object) -> subprocess.CompletedProcess[str]:
-        return hil_here(self.capsys, *args, cwd=self.folder)
-
-    def last_statusword(self, session: str) -> int:
-        *_, (_, last) = read_session(str(self.folder / session)).topic("/drive/feedback")
-        return int(last["statusword"])
 
     def position_window_deg(self) -> float:
         """The drive's position window 0x6067 [deg] as ``hil drive sdo read`` reads it (a
@@ -210,7 +192,7 @@ def twin_of(vendor: VendorFile, folder: Path, capsys: pytest.CaptureFixture[str]
     sets = [arg for key, value in vendor.supplied.items() for arg in ("--set", f"{key}={value}")]
     proc, port = start_drive_emulator(None, 0, "--eds", str(vendor.file), *sets, cwd=folder)
     try:
-        yield Twin(vendor, f"socketcand://127.0.0.1:{port}", folder, capsys)
+        yield Twin(f"socketcand://127.0.0.1:{port}", folder, capsys, vendor.stand_ins, vendor)
     finally:
         stop_drive_emulator(proc)
 
@@ -269,47 +251,21 @@ def refused(twin: Twin) -> None:
     assert not (twin.folder / "never.mcap").exists()
 
 
-#: what a 0.2 s run from where the axis stands must track the default 2 deg, 1 Hz sine within
-#: (the reference alone: 1.3 deg; on a twin of 4096 increments a turn CSP lags by 0.3-0.45)
-RMS_BOUND_DEG = {"CST": 1.0, "CSP": 0.7, "CSV": 0.3, "PV": 0.4}
-
-
 def track(twin: Twin, mode: str) -> None:
-    """``hil servo run``: CST with pid (hil's current every cycle), the others with
-    ``setpoint`` (the reference as the drive's set point: a position, a velocity); PV with a
-    profile acceleration that lets the drive's ramp follow the sine. Lockstep: the twin keeps
-    the master's SYNC time."""
+    """``hil servo run`` (:func:`tests.vendor_twin.track`); PV with a profile acceleration
+    that lets the drive's ramp follow the sine. Lockstep: the twin keeps the master's SYNC
+    time."""
     profile = ""
     if mode == "PV":
         profile = "[profile]\nacceleration_deg_s2 = 36000.0\n" + (
             "deceleration_deg_s2 = 36000.0\n" if twin.vendor.lists(0x6084) else "")
-    ran = twin.hil("servo", "run", "--controller", "pid" if mode == "CST" else "setpoint",
-                   "--drive", twin.url, "--config", twin.config(mode.lower(), profile),
-                   "--from-here", "--duration", "0.2", "--json", "--out", f"{mode}.mcap")
-    assert ran.returncode == 0, ran.stderr
-    kpis = json.loads(ran.stdout)
-    assert kpis["clock"] == "sim" and kpis["ticks"] == 400 and kpis["stale_feedback"] == 0
-    assert kpis["rms_error_deg"] < RMS_BOUND_DEG[mode], kpis
-    if mode != "CST":
-        assert kpis["set_point"] == ("position" if mode == "CSP" else "velocity")
-    clock = [m for _, m in read_session(str(twin.folder / f"{mode}.mcap")).topic("/events")
-             if m["kind"] == "drive.clock"]
-    assert clock and clock[0]["message"].startswith("drive node 1 keeps the master's time")
+    tracked(twin, mode, profile)
 
 
 def move(twin: Twin) -> None:
     """``hil drive move`` 30 deg on: done (statusword bit 10) within the drive's position
     window, at a speed its current allows."""
-    vendor = twin.vendor
-    speed = ("--velocity", 90, "--acceleration", 360)
-    decelerate = ("--deceleration", 360) if vendor.lists(0x6084) else ()
-    window_deg = twin.position_window_deg()
-    moved = twin.hil("drive", "move", twin.url, "30", "--relative", "--config",
-                     twin.config("pp"), *speed, *decelerate, "--json", "--out", "move.mcap")
-    assert moved.returncode == 0, moved.stderr
-    kpis = json.loads(moved.stdout)
-    assert kpis["reached"] and abs(kpis["error_deg"]) <= window_deg, (kpis, window_deg)
-    assert twin.last_statusword("move.mcap") & 0x0400  # target reached
+    moved(twin, twin.position_window_deg(), twin.vendor.lists(0x6084))
 
 
 def home(twin: Twin, subtests: pytest.Subtests) -> None:
@@ -326,14 +282,7 @@ def home(twin: Twin, subtests: pytest.Subtests) -> None:
     window_deg = twin.position_window_deg()
     for method in HOMING_ORDER:
         with subtests.test(f"HM {method}"):
-            homed = twin.hil("drive", "home", twin.url, "--config", twin.config("hm"),
-                             "--method", method, *given, *speeds, *accelerate, "--json",
-                             "--out", f"home{method}.mcap")
-            assert homed.returncode == 0, homed.stderr
-            kpis = json.loads(homed.stdout)
-            assert kpis["reached"] and kpis["method"] == method
-            assert abs(kpis["position_deg"] - offset) <= window_deg, (kpis, window_deg)
-            assert twin.last_statusword(f"home{method}.mcap") & 0x1400 == 0x1400
+            homed(twin, method, (*given, *speeds, *accelerate), offset, window_deg)
 
 
 # -- the files no twin can be -------------------------------------------------------------------

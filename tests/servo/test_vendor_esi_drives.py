@@ -22,16 +22,18 @@ from __future__ import annotations
 
 import functools
 import json
-import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
 
-from hil.core.recording.reader import read_session
 from hil.emulators.ethercat.esi_dictionary import od_from_esi
 from tests.cli import hil_here
 from tests.ethercat_netns import inside, slave_on, veth_pair
+from tests.vendor_twin import TwinFolder, supplied_cell
+from tests.vendor_twin import home as homed
+from tests.vendor_twin import move as moved
+from tests.vendor_twin import track as tracked
 
 pytest.importorskip("pysoem", reason="the ethercat extra (pysoem) is not installed")
 
@@ -40,10 +42,6 @@ pytestmark = pytest.mark.slow
 ESI = Path(__file__).resolve().parents[1] / "data" / "esi"
 SERVO = 0x00020192  # 0x1000 of a CiA 402 servo drive
 CYCLIC = ("CST", "CSP", "CSV", "PV")
-#: what a 0.2 s run from where the axis stands must track the default 2 deg, 1 Hz sine within
-#: (the reference alone: 1.3 deg), as over CAN (tests/integration/test_vendor_drives.py)
-RMS_BOUND_DEG = {"CST": 1.0, "CSP": 0.7, "CSV": 0.3, "PV": 0.4}
-
 
 @dataclass(frozen=True)
 class EsiFile:
@@ -103,14 +101,10 @@ def matrix_table() -> str:
     rows = ["| file | twinned | driven in (lockstep, over a veth pair) | supplied |",
             "| --- | --- | --- | --- |"]
     for esi in MATRIX.values():
-        supplied = [f"`--set {key}={value:#x}`" if key == "0x1000:0" else
-                    f"`--set {key}={value}`" for key, value in esi.supplied.items()]
-        supplied += [f"`[master] {key} = {json.dumps(value)}`"
-                     for key, value in esi.stand_ins.items()]
         refusal = "; ".join(esi.not_twinned)
         driven = "; not ".join(filter(None, (", ".join(esi.driven), esi.not_driven)))
         rows.append(f"| `{esi.path}` | {'no: ' + refusal if refusal else 'yes'} | "
-                    f"{driven or '-'} | {', '.join(supplied) or '-'} |")
+                    f"{driven or '-'} | {supplied_cell(esi.supplied, esi.stand_ins)} |")
     return "\n".join(rows)
 
 
@@ -122,28 +116,11 @@ def test_the_matrix_holds_every_esi_file_and_the_readme_shows_it():
 
 
 @dataclass
-class Twin:
+class Twin(TwinFolder):
     """A vendor ESI's twin on the slave end of ``veth``, and the folder (outside the
     repository) hil's commands run from, in the namespace."""
 
     esi: EsiFile
-    url: str
-    folder: Path
-    capsys: pytest.CaptureFixture[str]
-
-    def config(self, mode: str, extra: str = "") -> str:
-        name = f"{mode}.toml"
-        keys = "".join(f"{key} = {json.dumps(value)}\n" for key, value in
-                       self.esi.stand_ins.items())
-        (self.folder / name).write_text(f'[master]\nmode = "{mode}"\n{keys}{extra}')
-        return name
-
-    def hil(self, *args: object) -> subprocess.CompletedProcess[str]:
-        return hil_here(self.capsys, *args, cwd=self.folder)
-
-    def last_statusword(self, session: str) -> int:
-        *_, (_, last) = read_session(str(self.folder / session)).topic("/drive/feedback")
-        return int(last["statusword"])
 
 
 @pytest.mark.parametrize("path", TWINNED)
@@ -154,7 +131,7 @@ def test_each_vendor_esi_is_twinned_scanned_and_driven_in_each_mode_it_lists(
     esi = MATRIX[path]
     sets = [arg for key, value in esi.supplied.items() for arg in ("--set", f"{key}={value}")]
     with veth_pair() as veth, slave_on(veth, "--esi", str(esi.file), *sets), inside(veth):
-        twin = Twin(esi, f"ethercat://{veth.master}?slave=1", tmp_path, capsys)
+        twin = Twin(f"ethercat://{veth.master}?slave=1", tmp_path, capsys, esi.stand_ins, esi)
         with subtests.test("scan"):
             scanned(twin, f"ethercat://{veth.master}")
         for mode in esi.driven:
@@ -183,37 +160,19 @@ def scanned(twin: Twin, segment: str) -> None:
 
 
 def track(twin: Twin, mode: str) -> None:
-    """``hil servo run``: CST with pid, the others with ``setpoint``; lockstep, the twin on
-    the master's process-data cycles; the KPIs of a driven axis."""
-    ran = twin.hil("servo", "run", "--controller", "pid" if mode == "CST" else "setpoint",
-                   "--drive", twin.url, "--config", twin.config(mode.lower()), "--from-here",
-                   "--duration", "0.2", "--json", "--out", f"{mode}.mcap")
-    assert ran.returncode == 0, ran.stderr
-    kpis = json.loads(ran.stdout)
-    assert kpis["status"] == "completed" and kpis["clock"] == "sim"
-    assert kpis["ticks"] == 400 and kpis["stale_feedback"] == 0
-    assert kpis["rms_error_deg"] < RMS_BOUND_DEG[mode], kpis
-    assert kpis["peak_current_mA"] > 0
+    """``hil servo run`` (:func:`tests.vendor_twin.track`), the twin on the master's
+    process-data cycles: completed, a current that moved the axis (in CST hil's, clamped), in
+    OP with the working counter of one slave."""
+    kpis, events = tracked(twin, mode)
+    assert kpis["status"] == "completed" and kpis["peak_current_mA"] > 0
     if mode == "CST":  # hil's current, clamped (in the others the drive chooses it)
         assert kpis["peak_current_mA"] <= kpis["current_limit_mA"]
-    if mode != "CST":
-        assert kpis["set_point"] == ("position" if mode == "CSP" else "velocity")
-    events = {m["kind"]: m["message"] for _, m in
-              read_session(str(twin.folder / f"{mode}.mcap")).topic("/events")}
-    assert events["drive.clock"].startswith("drive node 1 keeps the master's time")
     assert "in OP, working counter 3 a cycle" in events["ethercat.operational"]
 
 
 def move(twin: Twin) -> None:
     """``hil drive move`` 30 deg on: done (statusword bit 10) within a degree."""
-    decelerate = ("--deceleration", 360) if twin.esi.lists(0x6084) else ()
-    moved = twin.hil("drive", "move", twin.url, "30", "--relative", "--config",
-                     twin.config("pp"), "--velocity", 90, "--acceleration", 360, *decelerate,
-                     "--json", "--out", "move.mcap")
-    assert moved.returncode == 0, moved.stderr
-    kpis = json.loads(moved.stdout)
-    assert kpis["reached"] and abs(kpis["error_deg"]) <= 1.0, kpis
-    assert twin.last_statusword("move.mcap") & 0x0400  # target reached
+    moved(twin, 1.0, twin.esi.lists(0x6084))
 
 
 def home(twin: Twin) -> None:
@@ -221,14 +180,7 @@ def home(twin: Twin) -> None:
     where the axis stands (37): done at home (the position 0, no home offset given) with
     statusword bits 12 and 10; with one TxPDO the new zero is not taken for a speed."""
     for method in (17, 37):
-        homed = twin.hil("drive", "home", twin.url, "--config", twin.config("hm"), "--method",
-                         method, "--speed", 360, "--zero-speed", 180, "--json", "--out",
-                         f"home{method}.mcap")
-        assert homed.returncode == 0, homed.stderr
-        kpis = json.loads(homed.stdout)
-        assert kpis["reached"] and kpis["method"] == method, kpis
-        assert abs(kpis["position_deg"]) <= 1.0, kpis
-        assert twin.last_statusword(f"home{method}.mcap") & 0x1400 == 0x1400
+        homed(twin, method, ("--speed", 360, "--zero-speed", 180), 0.0, 1.0)
 
 
 @pytest.mark.parametrize("path", REFUSED)

@@ -127,7 +127,8 @@ class TopicRows:
 
     def log(self, t_ns: int, rows: tuple[tuple[Any, ...], ...]) -> bool:
         """Queue ``rows`` (one packed row per topic, in the order of :attr:`topics`) stamped
-        ``t_ns``. Returns False when they were dropped (each topic counts its message)."""
+        ``t_ns``. Returns False when they were dropped (each topic counts its message).
+        Inline as :meth:`Topic.log` is, not through a shared call: both run every tick."""
         rec = self._recorder
         if rec._refusing:
             for topic in self.topics:
