@@ -17,7 +17,7 @@ from hil.drivers.canopen.pdo import tpdo_maps, unused_pdos
 from hil.emulators.drive.runners import LockstepDrive
 from hil.protocols.cia402 import TPDO1, TPDO1_ALONE, TPDO2
 from tests.cli import hil_here
-from tests.drive_slave import INCREMENTS, serve
+from tests.drive_slave import CST, HM, INCREMENTS, dictionary, serve
 
 ONE = DriveMasterConfig(tpdo_layout="one")
 
@@ -112,3 +112,26 @@ def test_a_homing_with_one_tpdo_is_no_runaway_at_its_new_zero(tmp_path, capsys, 
     assert kpis["reached"] and kpis["status"] == "completed"
     assert abs(kpis["position_deg"]) < 0.5
     assert kpis["peak_velocity_deg_s"] < 120.0, kpis
+
+
+@pytest.mark.slow  # a second or more: make test runs it, make check does not
+def test_a_homing_on_a_slave_hil_did_not_write_is_no_runaway_with_one_tpdo(tmp_path, capsys):
+    """canopen's LocalNode (tests/drive_slave.py) homes by method 37 where it stands: its
+    position jumps from 120 deg to the home offset (0) in the cycle its statusword says homing
+    attained. With the velocity derived from the position, that jump is no speed: the homing
+    ends at home, the axis never moved."""
+    url = f"virtual://layout-{uuid.uuid4().hex}"
+    network, slave = serve(url, 3, od=dictionary(3, modes=(CST, HM)))
+    slave.position = 120.0
+    # a thread answers here, not a drive: a patient deadline (what is tested is the homing)
+    (tmp_path / "one.toml").write_text('[master]\ntpdo_layout = "one"\nmode = "hm"\n'
+                                       'rx_timeout_us = 50000\nstale_cycles = 1000\n')
+    try:
+        homed = hil_here(capsys, "drive", "home", url, "--node", 3, "--config", "one.toml",
+                         "--method", 37, "--json", "--out", "h.mcap", cwd=tmp_path)
+    finally:
+        network.disconnect()
+    assert homed.returncode == 0, homed.stderr
+    kpis = json.loads(homed.stdout)
+    assert kpis["reached"] and abs(kpis["position_deg"]) < 0.5, kpis
+    assert kpis["peak_velocity_deg_s"] < 1.0, kpis

@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -228,9 +229,10 @@ def test_rebuilds_run_in_turn_off_the_caller_and_the_end_of_the_run_refuses_the_
 
 @pytest.mark.parametrize("lockstep", [True, False])
 def test_in_lockstep_a_change_asked_for_at_a_tick_waits_there_for_its_rebuild(lockstep):
-    """A slow rebuild (a busy machine, a big horizon) asked for at tick 3: in lockstep the
-    loop waits at tick 3 until it is built, so the session is the same however long it takes
-    on the wall clock; in real time the loop goes on, and it lands at a later tick."""
+    """A slow rebuild (a busy machine, a big horizon) asked for at tick 3, done only once the
+    loop is there: in lockstep the loop waits at tick 3 until it is built, so the session is
+    the same however long it takes on the wall clock; in real time the loop goes on, and it
+    lands at a later tick."""
     release = threading.Event()
 
     def prepare(value):
@@ -241,10 +243,14 @@ def test_in_lockstep_a_change_asked_for_at_a_tick_waits_there_for_its_rebuild(lo
     tuner.add(TunableSpec("controller.h", 8, "ticks", 1, 50, 1, True, None, ""),
               lambda value: None, prepare=prepare)
     asked = tuner.submit("controller.h", 10, "t", at_tick=3)
-    for n in range(3):
-        tuner.tick(n)
-    threading.Timer(0.2, release.set).start()
-    n = 3
+
+    def release_at_tick_3():  # the rebuild ends only once the loop has reached tick 3
+        while tuner.now < 3:
+            time.sleep(0.001)
+        release.set()
+
+    threading.Thread(target=release_at_tick_3).start()
+    n = 0
     while not asked.done.is_set():
         tuner.tick(n)
         n += 1
