@@ -244,7 +244,8 @@ def _typed(wire: np.ndarray, kind: str) -> np.ndarray | None:
     if kind == "bool":
         return wire != 0
     if wire.dtype.kind == "f":
-        return wire.astype(np.float64)
+        with np.errstate(invalid="ignore"):  # a signalling NaN (damaged bytes) stays a NaN
+            return wire.astype(np.float64)
     if wire.dtype == np.uint64 and wire.size and int(wire.max()) > _INT64_MAX:
         return None
     return wire.astype(np.int64)
