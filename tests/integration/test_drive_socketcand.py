@@ -282,13 +282,15 @@ def test_several_drives_on_one_bus_each_move_their_own_axis():
         finally:
             # the periodic tasks (RPDOs, SYNC) stopped and their threads ended before the bus
             # they send on closes: python-can's stop() only asks the thread to end, and one
-            # still in its send then writes to a closed socket
+            # still in its send then writes to a closed socket. canopen's task wraps
+            # python-can's (its ``_task``), whose thread is the one to wait for
             tasks = [node.rpdo[1]._task for node, _ in nodes.values()] + [network.sync._task]
+            threads = [task._task.thread for task in tasks if task is not None]
             for node, _ in nodes.values():
                 node.rpdo[1].stop()
             network.sync.stop()
-            for task in tasks:
-                if task is not None and getattr(task, "thread", None) is not None:
-                    task.thread.join(timeout=5)
+            for thread in threads:
+                thread.join(timeout=5)
+                assert not thread.is_alive(), f"{thread.name} still sends after its stop"
             network.disconnect()
     assert moved[1] >= 500 and moved[2] <= -500, moved
