@@ -171,6 +171,29 @@ def test_every_command_is_handled_by_a_function_named_for_it():
     assert [path for path, name in named.items() if not name.endswith("_command")] == []
 
 
+def test_a_process_imports_what_its_command_uses():
+    """The suite starts hundreds of `hil` and writer processes: each imports its own command's
+    module (not the seventeen others'), a loop or an emulator process no MCAP writer (its
+    writer process writes), no JUnit XML and no tuning port, and a writer without a live view
+    no live view. The modules named are each imported where they are used (first lines)."""
+    writer_side = ("mcap", "zstandard", "xml.etree.ElementTree", "socket",
+                   "hil.core.recording.live", "hil.core.recording.tune_wire")
+    assert imported("import hil.core.recording.writer", *writer_side) == ["mcap", "zstandard"]
+    assert imported("import hil.core.recording.live", *writer_side) == [
+        "hil.core.recording.live", "socket"]
+    assert imported("import hil.core.verdict as v; v.junit_xml([], 's')",
+                    "xml.etree.ElementTree") == ["xml.etree.ElementTree"]
+    others = ("hil.cli.bench", "hil.cli.demo", "hil.cli.drive", "hil.cli.sweep",
+              "hil.cli.servo", "hil.cli.emulate")
+    assert imported("import hil.cli.main as m; m.build_parser('servo')", *others) == [
+        "hil.cli.servo"]
+    assert imported("import hil.cli.main as m; m.build_parser()", *others) == sorted(others)
+    loop_side = ("mcap", "zstandard", "xml.etree.ElementTree", "hil.core.recording.tune_wire",
+                 "hil.core.recording.in_process", "concurrent.futures.process")
+    assert imported("import hil.servo.run, hil.bench.run, hil.emulation, hil.cli.emulate",
+                    *loop_side) == []
+
+
 def test_runs_that_build_no_estimator_import_no_scipy_stats():
     """A run's modules import filterpy and scipy.signal (each pulls in scipy.stats, about a
     second of every process start), scipy.linalg, HiGHS and daqp (half a second together)

@@ -4,36 +4,18 @@ from __future__ import annotations
 
 import argparse
 import difflib
+import importlib
 import os
 import sys
 from collections.abc import Sequence
 from typing import NoReturn
 
 from hil import __version__
-from hil.cli import (
-    bench,
-    compare,
-    demo,
-    doctor,
-    drive,
-    empc,
-    emulate,
-    export,
-    identify,
-    layout,
-    paper,
-    replay,
-    report,
-    resim,
-    servo,
-    sweep,
-    tune,
-    twin,
-)
 from hil.errors import HilError, RunInterruptedError
 
-COMMAND_MODULES = (demo, bench, servo, drive, sweep, empc, identify, emulate, report, compare,
-                   export, replay, resim, tune, twin, layout, paper, doctor)
+# each command is registered by the module hil.cli.NAME, in this order in `hil --help`
+COMMANDS = ("demo", "bench", "servo", "drive", "sweep", "empc", "identify", "emulate", "report",
+            "compare", "export", "replay", "resim", "tune", "twin", "layout", "paper", "doctor")
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -44,7 +26,9 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The whole command line; with ``command`` (one of :data:`COMMANDS`) only that command's
+    branch, so that a process imports the command modules it runs and not all eighteen."""
     parser = OneLineParser(
         prog="hil",
         description="Hardware-in-the-loop bridge: run model-based controllers in a fixed-rate "
@@ -54,9 +38,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"hil {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for module in COMMAND_MODULES:
-        module.register(subparsers)
+    for name in (command,) if command in COMMANDS else COMMANDS:
+        importlib.import_module(f"hil.cli.{name}").register(subparsers)
     return parser
+
+
+def command_of(argv: Sequence[str]) -> str | None:
+    """The command ``argv`` names first (None for ``--help``, ``--version`` or a typo: those
+    need every command's parser)."""
+    return argv[0] if argv and argv[0] in COMMANDS else None
 
 
 def _leaf_parser(parser: argparse.ArgumentParser, args: argparse.Namespace
@@ -89,9 +79,9 @@ def parse_arguments(parser: argparse.ArgumentParser, argv: Sequence[str] | None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    parser = build_parser(command_of(sys.argv[1:] if argv is None else argv))
     args = parse_arguments(parser, argv)
-    from hil.core.session import set_command_line
+    from hil.core.command_line import set_command_line
 
     set_command_line(["hil", *(sys.argv[1:] if argv is None else argv)])
     try:

@@ -12,11 +12,13 @@ as ``emulated``) is its own scheme.
 from __future__ import annotations
 
 import importlib
-import importlib.metadata
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hil.errors import ConfigError
+
+if TYPE_CHECKING:
+    import importlib.metadata
 
 Factory = Callable[..., Any]
 
@@ -45,6 +47,8 @@ class SchemeRegistry:
     def _installed(self) -> dict[str, importlib.metadata.EntryPoint]:
         if self.entry_point_group is None:
             return {}
+        import importlib.metadata  # here: a built-in scheme reads no package metadata
+
         return {ep.name: ep for ep in importlib.metadata.entry_points(group=self.entry_point_group)}
 
     def schemes(self) -> list[str]:

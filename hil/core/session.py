@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import json
 import platform
-import sys
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from importlib import metadata as importlib_metadata
 from typing import Any
 
 from hil.core.clock import Clock
+from hil.core.command_line import command_line
 from hil.core.loop import FixedRateLoop, Task
 from hil.core.realtime import Hardening, helper_metadata
 from hil.core.recording.output import OutputClaim, claim_output
@@ -20,16 +20,6 @@ VERSIONED_PACKAGES = (
     "hil", "numpy", "scipy", "pymodbus", "python-can", "canopen", "cvxpy", "highspy", "daqp",
     "filterpy", "mcap", "pyserial",
 )
-
-
-_command_line: list[str] | None = None
-
-
-def set_command_line(argv: Sequence[str]) -> None:
-    """The command line sessions of this process record (``hil.cli.main`` sets it, so a call
-    of ``main([...])`` from Python records its own arguments, not the interpreter's)."""
-    global _command_line
-    _command_line = list(argv)
 
 
 def package_versions(names: Iterable[str] = VERSIONED_PACKAGES) -> dict[str, str]:
@@ -91,7 +81,7 @@ class Session:
             "clock": clock.mode,
             "base_period_s": repr(base_period_s),
             "start_wall_time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "argv": json.dumps(_command_line if _command_line is not None else sys.argv),
+            "argv": json.dumps(command_line()),
         })
         self.recorder.metadata("versions", package_versions())
         self.recorder.metadata("config", {"json": json.dumps(config or {}, default=str)})

@@ -16,7 +16,6 @@ import json
 import math
 import operator
 import re
-import xml.etree.ElementTree as ET
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -169,6 +168,8 @@ def junit_xml(results: Sequence[LimitResult], suite: str, *, duration_s: float =
     one test case per limit, a ``<failure>`` where it is violated; then, with ``run``, the
     test case ``run``, an ``<error>`` when the run did not end well. ``properties`` (the KPIs,
     the session) go on the suite."""
+    import xml.etree.ElementTree as ET  # here: only a run asked for JUnit needs it
+
     failures = sum(not r.passed for r in results)
     errors = int(run is not None and run.error_type is not None)
     tests = len(results) + int(run is not None)

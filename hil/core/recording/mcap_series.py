@@ -17,16 +17,11 @@ from dataclasses import dataclass, field
 from typing import IO, Any
 
 from hil.core.recording.mcap_writer import McapWriter
+from hil.core.recording.output import series_file
 
 SPLIT_CHECK_EVERY = 256  # messages between two size checks
 ZSTD_LEVEL = 9  # 12 MB/s on this data, about 12 % smaller than zstandard's default level 3
 DEFAULT_CHUNK_BYTES = 1 << 20  # larger chunks compress better; the 1 s flush bounds them
-
-
-def series_file(path: str, index: int) -> str:
-    """The name of file ``index`` of the split series of ``path``."""
-    stem, ext = os.path.splitext(path)
-    return f"{stem}_{index:03d}{ext or '.mcap'}"
 
 
 @dataclass

@@ -82,6 +82,12 @@ def remove_if_same(path: str, identity: os.stat_result) -> None:
             os.remove(path)
 
 
+def series_file(path: str, index: int) -> str:
+    """The name of file ``index`` of the split series of ``path``."""
+    stem, ext = os.path.splitext(path)
+    return f"{stem}_{index:03d}{ext or '.mcap'}"
+
+
 def staging_path(path: str) -> str:
     """Where the session at ``path`` is written until its run starts: ``.NAME.starting``."""
     folder, name = os.path.split(path)

@@ -40,16 +40,18 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hil.core.realtime import keep_process_off_cpu
 from hil.core.recording.cdr import CdrError, fields_of
-from hil.core.recording.in_process import InProcessWriter
 from hil.core.recording.output import OutputClaim
 from hil.core.recording.record_stream import FrameDecoder, encode_frame
 from hil.core.recording.recording_options import ENCODINGS, RecordingOptions
-from hil.core.recording.tune_wire import PortServer
 from hil.errors import HilError, RecordingError
+
+if TYPE_CHECKING:  # imported where used: most runs write in a writer process, untuned
+    from hil.core.recording.in_process import InProcessWriter
+    from hil.core.recording.tune_wire import PortServer
 
 EVENTS_TOPIC = "/events"
 PIPE_BYTES = 1 << 20          # asked of the kernel for the pipe (Linux caps it at pipe-max-size)
@@ -227,6 +229,8 @@ class Recorder:
 
     def _start_inline(self, options: dict[str, Any]) -> InProcessWriter:
         """The in-process writer (lockstep only, no live view: :meth:`_check_in_process`)."""
+        from hil.core.recording.in_process import InProcessWriter
+
         inline = InProcessWriter(options)
         if inline.error:
             self._writer_gone = "the writer failed to start"
@@ -258,6 +262,8 @@ class Recorder:
         ``specs()`` and ``request(name, value, client, timeout_s)``); nothing without a live
         view. Once per session."""
         if self._tune_socket is not None and self._port_server is None:
+            from hil.core.recording.tune_wire import PortServer
+
             self._port_server = PortServer(self._tune_socket, port)
 
     @property

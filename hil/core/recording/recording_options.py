@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 from hil.core.recording.live import parse_address
-from hil.core.recording.mcap_series import series_file
+from hil.core.recording.output import series_file
 from hil.errors import HilError
 
 ENCODINGS = ("json", "cdr")

@@ -25,14 +25,12 @@ import json
 import os
 import select
 import signal
-import socket
 import sys
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hil.core.recording.cdr import CdrEncoder, fields_of, ros2msg_text
-from hil.core.recording.live import LiveSink, announce, parse_address
 from hil.core.recording.mcap_series import (
     DEFAULT_CHUNK_BYTES,
     ZSTD_LEVEL,
@@ -42,7 +40,9 @@ from hil.core.recording.mcap_series import (
 )
 from hil.core.recording.output import remove_if_same
 from hil.core.recording.record_stream import FrameDecoder
-from hil.core.recording.tune_wire import RemotePort
+
+if TYPE_CHECKING:
+    from hil.core.recording.live import LiveSink
 
 EVENTS_KEY = 0  # the recorder registers /events first
 READ_BYTES = 1 << 20
@@ -186,6 +186,12 @@ def start_live(options: dict[str, Any]) -> LiveSink | None:
     """
     if not options.get("live"):
         return None
+    # imported here: a writer without a live view (most) spares their start-up
+    import socket
+
+    from hil.core.recording.live import LiveSink, announce, parse_address
+    from hil.core.recording.tune_wire import RemotePort
+
     tune_fd = options.get("tune_fd")
     parameters = RemotePort(socket.socket(fileno=tune_fd)) if tune_fd is not None else None
     try:
