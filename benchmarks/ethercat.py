@@ -35,6 +35,9 @@ from pathlib import Path
 
 from benchkit import add_quick, fill_defaults
 
+from hil.cli.output import json_text
+from hil.core.recording.reader import read_session
+from hil.core.report import summarize
 from hil.emulators.ethercat import veth
 
 REPO = Path(__file__).resolve().parents[1]
@@ -62,7 +65,8 @@ def emulator(prefix: list[str], *args: str) -> Iterator[str]:
 
 def servo_run(prefix: list[str], url: str, seconds: float, folder: Path, realtime: bool
               ) -> tuple[dict, dict]:
-    """One run: its KPIs and its loop timing (``hil report --json``)."""
+    """One run (a process, as the drive's host would run it): its KPIs and its loop timing
+    (``hil report --json``'s summary, read in this process)."""
     out = folder / f"run-{len(list(folder.iterdir()))}.mcap"
     args = ["servo", "run", "--drive", url, "--controller", "pid", "--duration", str(seconds),
             "--json", "--out", str(out), *(["--realtime"] if realtime else [])]
@@ -71,9 +75,7 @@ def servo_run(prefix: list[str], url: str, seconds: float, folder: Path, realtim
     lost = done.returncode == 2 and "link lost" in done.stderr and out.exists()
     if done.returncode not in (0, 3) and not lost:  # a loaded machine may lose a real-time link
         raise SystemExit(f"hil {' '.join(args)} exited {done.returncode}: {done.stderr}")
-    report = json.loads(subprocess.run(
-        [sys.executable, "-m", "hil", "report", str(out), "--json"], capture_output=True,
-        text=True, env=ENV, check=True, timeout=120).stdout)
+    report = json.loads(json_text(summarize(read_session(out))))  # `hil report --json`'s
     kpis = report["kpis"] if lost else json.loads(done.stdout)
     return {**kpis, "lost": lost}, report["loop"]["servo"]
 
