@@ -213,6 +213,8 @@ def soak_servo(seconds: float, seed: int, tmp: Path, lead: float = 8.0) -> dict[
         except Exception as exc:  # the final silent fault ends the run: the reaction
             error = str(exc).split(" (session")[0]
         injected = emulator.fault_events()
+    if not out.exists():  # it ended before its session began: say why, not a missing file
+        raise SystemExit(f"the servo run ended before it recorded anything: {error}")
     data = read_session(out)
     feedback = data.topic("/drive/feedback")
     stale_t = np.array([t for t, m in feedback if not m["fresh"]], dtype=np.int64) / 1e9
