@@ -14,7 +14,7 @@ phase (a cycle's answer: TPDOs by SYNC on CAN, the LRW's working counter and inp
 EtherCAT), median of the runs; the KPIs must be the same over both. Real time at 2 kHz
 (``--realtime-s`` s each): stale cycles (CAN: TPDOs not back in time; EtherCAT: a wrong or
 missing working counter), the loop's lateness and read phase p99. The machine is shared: the
-figures are noisy, run it alone when they matter. ``--quick``: 0.2 s runs, one repeat, 0.3 s
+figures are noisy, run it alone when they matter. ``--quick``: 0.1 s runs, one repeat, 0.2 s
 real time (seconds; figures not worth quoting).
 """
 
@@ -133,7 +133,7 @@ def main() -> None:
                         "(default 3)")
     add_quick(parser)
     args = parser.parse_args()
-    fill_defaults(args, {"duration": (2.0, 0.2), "repeat": (3, 1), "realtime_s": (3.0, 0.3)})
+    fill_defaults(args, {"duration": (2.0, 0.1), "repeat": (3, 1), "realtime_s": (3.0, 0.2)})
     reason = veth.missing()
     if reason is not None:
         print(f"EtherCAT rows left out: {reason}")
