@@ -47,7 +47,7 @@ QUICK_LINES = {
     "realtime": ("hops of a wire run's cycles", "lockstep servo through the CAN link",
                  "real-time bench"),
     "servo": ("max |u_fast - u_cvxpy|", "lockstep MPC FOH H_t = H_u = 8", "MPC through CAN"),
-    "tune": ("pushed #1", "MPC, controller.hp changed", "skipped share: pushed"),
+    "tune": ("MPC, controller.hp changed", "skipped share: MPC"),
 }
 
 
