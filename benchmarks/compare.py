@@ -16,13 +16,16 @@ what a baseline and an HTML report of a servo session weigh.
    quiet machine); then compare against report of this code (report reads one file once: the
    yardstick). Both codes run from compiled bytecode (a warm-up run of each, not counted).
 
-``--quick``: 0.5 s sessions, one repeat and no warm-up runs (each code compiles in the run it
-times; seconds; figures not worth quoting).
+``--quick``: 0.5 s sessions (the sized one is the first compared: both are PID at its default
+gain), one repeat, no warm-up runs (each code compiles in the run it times), the code before
+for ``hil compare`` only (seconds; figures not worth quoting).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import os
 import statistics
 import subprocess
@@ -35,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchkit import REPO, add_quick, extract_code, fill_defaults, git
 
+from hil.cli.main import main as main_cli
 from hil.compare.baseline import write_baseline
 from hil.core.html_report import write_session_html
 
@@ -50,9 +54,14 @@ COMMANDS = {
 }
 
 
-def hil(*args: str, cwd: Path) -> None:
-    subprocess.run([sys.executable, "-m", "hil", *args], cwd=cwd, check=True,
-                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+def record(session: Path, seconds: float, *params: str) -> None:
+    """A lockstep PID session of ``seconds`` into ``session`` (``hil servo run`` in this
+    process: what is timed reads it, not how it was recorded)."""
+    with contextlib.redirect_stdout(io.StringIO()):  # its summary: not this benchmark's
+        status = main_cli(["servo", "run", "--controller", "pid", *params, "--duration",
+                           str(seconds), "--out", str(session), "--quiet"])
+    if status:
+        raise SystemExit(f"hil servo run exited {status}")
 
 
 def environment(code: Path) -> dict[str, str]:
@@ -95,10 +104,10 @@ def code_before(folder: Path) -> tuple[Path | None, str]:
     return folder, ref
 
 
-def sizes(folder: Path, seconds: float) -> None:
-    hil("servo", "run", "--controller", "pid", "--duration", str(seconds), "--out", "s.mcap",
-        "--quiet", cwd=folder)
-    session = folder / "s.mcap"
+def sizes(folder: Path, seconds: float, name: str = "s") -> None:
+    """The sizes of the ``name``.mcap session recorded for them (PID, its default gain)."""
+    session = folder / f"{name}.mcap"
+    record(session, seconds)
     every_tick = write_baseline(session, folder / "base.mcap", SIGNALS)
     tenth = write_baseline(session, folder / "base10.mcap", SIGNALS, every=10)
     page = write_session_html(str(session), str(folder / "s.html"))
@@ -110,19 +119,23 @@ def sizes(folder: Path, seconds: float) -> None:
 
 
 def speed(folder: Path, seconds: float, repeats: int, before: Path | None, why: str,
-          warm_up: bool = True) -> None:
+          quick: bool = False) -> None:
+    """The commands timed on a.mcap (recorded unless there) and b.mcap, this code and the code
+    ``before``; ``quick``: no warm-up runs, the code before runs ``hil compare`` only."""
     for name, kp in (("a", 3.6111), ("b", 3.0)):
-        hil("servo", "run", "--controller", "pid", "--param", f"kp={kp}", "--duration",
-            str(seconds), "--out", f"{name}.mcap", "--quiet", cwd=folder)
+        if (folder / f"{name}.mcap").exists():
+            continue
+        record(folder / f"{name}.mcap", seconds, "--param", f"kp={kp}")
     codes = {"after": REPO, **({"before": before} if before is not None else {})}
-    for code in codes.values() if warm_up else ():  # compiles each code's modules, not counted
+    for code in () if quick else codes.values():  # compiles each code's modules, not counted
         for args, _ in COMMANDS.values():
             timed(args, folder, code)
     runs: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
     for _ in range(repeats):
         for name, (args, _) in COMMANDS.items():
             for side, code in codes.items():
-                runs.setdefault((name, side), []).append(timed(args, folder, code))
+                if side == "after" or name == "compare" or not quick:
+                    runs.setdefault((name, side), []).append(timed(args, folder, code))
     median = {key: tuple(statistics.median(run[k] for run in v) for k in range(3))
               for key, v in runs.items()}
     print(f"two {seconds:g} s sessions ({repeats} alternated runs each, medians; before: "
@@ -132,7 +145,7 @@ def speed(folder: Path, seconds: float, repeats: int, before: Path | None, why: 
     for name, (_, goal) in COMMANDS.items():
         wall, cpu, peak = median[(name, "after")]
         line = f"  hil {name:<8}{wall:8.2f}"
-        if before is not None:
+        if (name, "before") in median:
             old_wall, old_cpu, old_peak = median[(name, "before")]
             line += (f"{old_wall:8.2f}{wall / old_wall:6.2f}x   {cpu:6.2f}{old_cpu:8.2f}"
                      f"{cpu / old_cpu:6.2f}x   {peak:8.0f}{old_peak:8.0f}")
@@ -162,8 +175,10 @@ def main() -> int:
         else:
             (Path(folder) / "before").mkdir()
             before, why = code_before(Path(folder) / "before")
-        sizes(Path(folder), args.report_s)
-        speed(Path(folder), args.compare_s, args.repeats, before, why, warm_up=not args.quick)
+        # --quick: the sized session is the first compared one (PID, default gain) if as long
+        reuse = args.quick and args.report_s == args.compare_s
+        sizes(Path(folder), args.report_s, "a" if reuse else "s")
+        speed(Path(folder), args.compare_s, args.repeats, before, why, quick=args.quick)
     return 0
 
 

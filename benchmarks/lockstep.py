@@ -23,8 +23,8 @@ Targets: MPC >= 10x real time, 0 mA >= 25x, over the wire at least half the in-p
 up to 2x between minutes, and a loaded one (its load average is printed) leaves the two
 processes no core of their own, which is what the wire's speed needs; use ``--repeat 3`` or
 more on a quiet machine. ``--quick``:
-one run of each kind, 0.1 s each, 200 recorder ticks and 100 CAN cycles (seconds in all;
-figures not worth quoting).
+one run of each kind, 0.1 s each, both wire runs on one emulator process, 200 recorder ticks
+and 100 CAN cycles (seconds in all; figures not worth quoting).
 """
 
 from __future__ import annotations
@@ -63,13 +63,17 @@ class ZeroCurrent:
         return 0.0
 
 
-def session(tmp: Path, seconds: float, controller: Any, wire: bool = False) -> dict[str, Any]:
+def session(tmp: Path, seconds: float, controller: Any, wire: bool = False,
+            emulator_url: str | None = None) -> dict[str, Any]:
     """One lockstep run, fully recorded: its factor and the tick's phases (p50, us). With
-    ``wire``: the emulator in a process of its own, over socketcand on loopback, on the
-    master's SYNC time (the emulator in this process otherwise)."""
+    ``wire``: the emulator in a process of its own (started for the run, or the one at
+    ``emulator_url``), over socketcand on loopback, on the master's SYNC time (the emulator in
+    this process otherwise)."""
     out = tmp / "lockstep.mcap"
     with contextlib.ExitStack() as stack:
-        drive = stack.enter_context(start_drive_emulator()).url if wire else None
+        drive = None
+        if wire:
+            drive = emulator_url or stack.enter_context(start_drive_emulator()).url
         result = run_servo(ServoRunOptions(controller=controller, ert="foh", ht=8, hu=8,
                                            duration_s=seconds, realtime=False, out=str(out),
                                            drive=drive))
@@ -160,14 +164,16 @@ def main() -> int:
                                              "zero-wire": []}
     costs: dict[str, list[float]] = {"rows": [], "dicts": []}
     load = [os.getloadavg()[0]]
-    with tempfile.TemporaryDirectory() as name:
+    with tempfile.TemporaryDirectory() as name, contextlib.ExitStack() as stack:
         tmp = Path(name)
+        # --quick: one emulator process for both wire runs (each run starts its own otherwise)
+        shared = stack.enter_context(start_drive_emulator()).url if args.quick else None
         for i in range(args.repeat):
             print(f"run {i + 1} of {args.repeat}...", file=sys.stderr)
             runs["mpc"].append(session(tmp, args.seconds, "mpc"))
             runs["zero"].append(session(tmp, args.seconds, ZeroCurrent))
-            runs["mpc-wire"].append(session(tmp, args.seconds, "mpc", wire=True))
-            runs["zero-wire"].append(session(tmp, args.seconds, ZeroCurrent, wire=True))
+            runs["mpc-wire"].append(session(tmp, args.seconds, "mpc", True, shared))
+            runs["zero-wire"].append(session(tmp, args.seconds, ZeroCurrent, True, shared))
             for form in ("dicts", "rows"):
                 costs[form].append(recorder_cost(tmp, sizes, rows=form == "rows"))
     cycle_us, node_us = can_cycle(sizes // 2 if args.quick else sizes)

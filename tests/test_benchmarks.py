@@ -33,6 +33,24 @@ def test_every_benchmark_imports(script: Path, monkeypatch: pytest.MonkeyPatch) 
     assert callable(getattr(module, "main", None)), f"{script.name} has no main()"
 
 
+#: what a script's --quick must print besides a figure: the lines of the paths its quick run
+#: folds into fewer runs (a run that no longer reaches one fails here, not on `make bench`);
+#: none that a loaded machine's pace decides (a client that connected in time, say)
+QUICK_LINES = {
+    "compare": ("hil compare", "hil report", "hil export", "compare / report"),
+    "ethercat": ("CAN (socketcand)",),
+    "faults": ("the final 'silent' fault:", "bench over a noisy RTU line"),
+    "fuzz": ("cases in",),
+    "lab": ("--bench URL", "--place adds", "importing labgrid"),
+    "modbus": ("TCP hil driver", "RTU pty: hil driver", "RTU pty paced at 115200 8N1: hil driver",
+               "TCP emulator process", "RTU paced 115200", "TCP  after", "RTU  after"),
+    "realtime": ("hops of a wire run's cycles", "lockstep servo through the CAN link",
+                 "real-time bench"),
+    "servo": ("max |u_fast - u_cvxpy|", "lockstep MPC FOH H_t = H_u = 8", "MPC through CAN"),
+    "tune": ("MPC, controller.hp changed", "skipped share: MPC"),
+}
+
+
 #: the scripts whose --quick drives an axis in real time at 2 kHz, its safety on: run with the
 #: other real-time tests, alone (beside 3 workers a late loop stopped one on its velocity limit)
 REAL_TIME = {"servo", "ethercat"}
@@ -52,3 +70,5 @@ def test_every_benchmark_runs_quick(script: Path) -> None:
                                  f"{done.stdout[-2000:]}\n{done.stderr[-3000:]}"
     figures = [line for line in done.stdout.splitlines() if FIGURE.search(line)]
     assert figures, f"{script.name} --quick printed no figure:\n{done.stdout[-2000:]}"
+    missing = [line for line in QUICK_LINES.get(script.stem, ()) if line not in done.stdout]
+    assert not missing, f"{script.name} --quick printed none of {missing}:\n{done.stdout[-3000:]}"
