@@ -291,10 +291,11 @@ def test_the_python_api_moves_and_homes(tmp_path, profile_drive):
     url, _slave = profile_drive()
     homed = api.home_drive(url, node=NODE, method=37, offset_deg=-5.0,
                            out=str(tmp_path / "h.mcap"))
-    moved = api.move_drive(20.0, url, node=NODE, velocity_deg_s=40.0,
+    # its 17-bit encoder is single-turn: the move enables it at 355 deg, 15 deg from 340
+    moved = api.move_drive(340.0, url, node=NODE, velocity_deg_s=40.0,
                            out=str(tmp_path / "m.mcap"))
     assert homed["position_deg"] == pytest.approx(-5.0, abs=0.01)  # 17-bit: 0.003 deg
-    assert moved["reached"] and moved["position_deg"] == pytest.approx(20.0, abs=0.1)
+    assert moved["reached"] and moved["position_deg"] == pytest.approx(340.0, abs=0.1)
     assert moved["peak_velocity_deg_s"] == pytest.approx(40.0, rel=0.02)
     with pytest.raises(UsageError, match="unknown option 'speed'"):
         api.home_drive(url, speed=3.0)
