@@ -48,7 +48,8 @@ def config(folder: Path, name: str, text: str) -> str:
 ])
 @pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_the_plan_and_the_refusal_give_one_figure(tmp_path, capsys, drive_toml, axes, outside):
-    """The first case from outside (``outside``), the others in this process."""
+    """The first case's plan and refusal from outside (``outside``), the others in this
+    process; the plan's text, the same command without --json, in this process."""
 
     def hil_as_set(*args: str) -> subprocess.CompletedProcess[str]:
         return hil(tmp_path, *args) if outside else hil_here(tmp_path, capsys, *args)
@@ -67,7 +68,7 @@ def test_the_plan_and_the_refusal_give_one_figure(tmp_path, capsys, drive_toml, 
     assert said.startswith(figure) and FIGURE in said
     assert refused.stderr.startswith(f"hil: error: the bus plan does not fit "
                                      f"(virtual://one-figure): {said}; ways out: ")
-    text = hil_as_set("drive", "plan", "--axes", str(axes), "--config", path)
+    text = hil_here(tmp_path, capsys, "drive", "plan", "--axes", str(axes), "--config", path)
     assert f"bus time per cycle {plan['bus_time_us']:.0f} us {FIGURE}" in text.stdout
     assert f"does not fit: {said}" in text.stdout
 
