@@ -48,7 +48,8 @@ def config(folder: Path, name: str, text: str) -> str:
 ])
 @pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_the_plan_and_the_refusal_give_one_figure(tmp_path, capsys, drive_toml, axes, outside):
-    """The first case from outside (``outside``), the others in this process."""
+    """The first case's plan and refusal from outside (``outside``), the others in this
+    process; the plan's text, the same command without --json, in this process."""
 
     def hil_as_set(*args: str) -> subprocess.CompletedProcess[str]:
         return hil(tmp_path, *args) if outside else hil_here(tmp_path, capsys, *args)
@@ -67,7 +68,7 @@ def test_the_plan_and_the_refusal_give_one_figure(tmp_path, capsys, drive_toml, 
     assert said.startswith(figure) and FIGURE in said
     assert refused.stderr.startswith(f"hil: error: the bus plan does not fit "
                                      f"(virtual://one-figure): {said}; ways out: ")
-    text = hil_as_set("drive", "plan", "--axes", str(axes), "--config", path)
+    text = hil_here(tmp_path, capsys, "drive", "plan", "--axes", str(axes), "--config", path)
     assert f"bus time per cycle {plan['bus_time_us']:.0f} us {FIGURE}" in text.stdout
     assert f"does not fit: {said}" in text.stdout
 
@@ -144,11 +145,11 @@ def test_an_axis_on_a_bus_of_its_own_in_the_drive_config(tmp_path, capsys):
         assert bad.returncode == 2 and problem in bad.stderr, bad.stderr
 
 
-def axes_run(tmp_path: Path, out: str, *args: str,
-             capsys: pytest.CaptureFixture[str] | None = None) -> dict:
-    """The KPIs of a 0.5 s run: from outside, or in this process given ``capsys``."""
+def axes_run(tmp_path: Path, out: str, capsys: pytest.CaptureFixture[str], *args: str) -> dict:
+    """The KPIs of a 0.5 s run, by ``main`` in this process (``servo run --axes`` runs from
+    outside in :func:`test_the_emulated_bus_warns_on_the_terminal`)."""
     argv = ("servo", "run", *args, "--duration", "0.5", "--out", out, "--json")
-    done = hil(tmp_path, *argv) if capsys is None else hil_here(tmp_path, capsys, *argv)
+    done = hil_here(tmp_path, capsys, *argv)
     assert done.returncode == 0, done.stderr
     return json.loads(done.stdout)
 
@@ -170,9 +171,8 @@ def test_a_longer_cycle_with_pid_takes_two_axes_onto_one_bus(tmp_path, capsys):
         unstable = hil_here(tmp_path, capsys, "servo", "run", "--axes", "x=1,y=2",
                             "--controller", "pid", "--drive", drive.url, "--config", slow,
                             "--out", "no.mcap")
-        kpis = axes_run(tmp_path, "slow.mcap", "--axes", "x=1,y=2", "--controller", "pid",
-                        "--param", "ti_us=8000", "--drive", drive.url, "--config", slow,
-                        capsys=capsys)
+        kpis = axes_run(tmp_path, "slow.mcap", capsys, "--axes", "x=1,y=2", "--controller",
+                        "pid", "--param", "ti_us=8000", "--drive", drive.url, "--config", slow)
     assert refused.returncode == 2
     assert "master.cycle_period_us >= 707 (1415 Hz or slower; controller 'pid' runs at " \
            "1000 us)" in refused.stderr
@@ -191,8 +191,8 @@ def test_one_tpdo_per_axis_takes_three_axes_onto_one_bus_at_1_khz(tmp_path, caps
         refused = hil_here(tmp_path, capsys, "servo", "run", "--axes", "x=1,y=2,z=3",
                            "--controller", "mpc", "--drive", drive.url, "--config", two,
                            "--out", "no.mcap")
-        kpis = axes_run(tmp_path, "one.mcap", "--axes", "x=1,y=2,z=3", "--controller", "mpc",
-                        "--drive", drive.url, "--config", one, capsys=capsys)
+        kpis = axes_run(tmp_path, "one.mcap", capsys, "--axes", "x=1,y=2,z=3", "--controller",
+                        "mpc", "--drive", drive.url, "--config", one)
     assert refused.returncode == 2
     assert 'master.tpdo_layout = "one"' in refused.stderr and "748 us, fits" in refused.stderr
     tracking(kpis, ("x", "y", "z"), 500, 0.1)
@@ -202,9 +202,9 @@ def test_one_tpdo_per_axis_takes_three_axes_onto_one_bus_at_1_khz(tmp_path, caps
 
 
 @pytest.mark.slow
-def test_a_second_bus_takes_two_axes_at_2_khz(tmp_path):
+def test_a_second_bus_takes_two_axes_at_2_khz(tmp_path, capsys):
     with api.start_drive_emulator(node=1) as first, api.start_drive_emulator(node=1) as second:
-        kpis = axes_run(tmp_path, "buses.mcap", "--axes",
+        kpis = axes_run(tmp_path, "buses.mcap", capsys, "--axes",
                         f"x=1@{first.url},y=1@{second.url}", "--controller", "pid")
     tracking(kpis, ("x", "y"), 1000, 0.6)
     assert [kpis["axes"][name]["bus"] for name in ("x", "y")] == \

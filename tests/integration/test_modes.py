@@ -35,7 +35,7 @@ def mode_config(folder, mode, name=None):
     return path.name
 
 
-def test_csp_tracks_the_default_reference_with_the_kpis_and_plots_of_cst(tmp_path):
+def test_csp_tracks_the_default_reference_with_the_kpis_and_plots_of_cst(tmp_path, capsys):
     csp = hil("servo", "run", "--controller", "setpoint", "--config",
               mode_config(tmp_path, "csp"), "--duration", "0.5", "--json", "--out", "csp.mcap",
               cwd=tmp_path)
@@ -54,7 +54,7 @@ def test_csp_tracks_the_default_reference_with_the_kpis_and_plots_of_cst(tmp_pat
     # the set point is where the reference is one period ahead (multi-turn degrees)
     assert first["set_point_deg"] == pytest.approx(first["reference_deg"], abs=0.01)
     assert first["command_mA"] != first["command_mA"]  # NaN: the drive chooses the current
-    report = hil("report", "csp.mcap", "--out", "csp.png", "--json", cwd=tmp_path)
+    report = hil_here(capsys, "report", "csp.mcap", "--out", "csp.png", "--json", cwd=tmp_path)
     assert report.returncode == 0, report.stderr
     assert json.loads(report.stdout)["kpis"]["rms_error_deg"] == kpis["rms_error_deg"]
     assert (tmp_path / "csp.png").stat().st_size > 10_000
@@ -111,12 +111,12 @@ class PositionPd:
         return r + self.gain * (r - position_deg)
 
 
-def test_csp_over_the_wire_with_a_controller_of_ones_own(tmp_path):
+def test_csp_over_the_wire_with_a_controller_of_ones_own(tmp_path, capsys):
     """The standalone emulator, lockstep over socketcand; a user's position controller. The
     scan claims CSP (on main it did, and every CSP run failed)."""
     with api.start_drive_emulator() as emulator:
-        scanned = hil("drive", "scan", emulator.url, "--config", mode_config(tmp_path, "csp"),
-                      cwd=tmp_path)
+        scanned = hil_here(capsys, "drive", "scan", emulator.url, "--config",
+                           mode_config(tmp_path, "csp"), cwd=tmp_path)
         kpis = api.run_servo(PositionPd, {"gain": 0.2}, drive=emulator.url, duration_s=0.3,
                              drive_overrides={"master": {"mode": "csp"}},
                              out=str(tmp_path / "own.mcap"))
@@ -291,20 +291,21 @@ def test_the_python_api_moves_and_homes(tmp_path, profile_drive):
     url, _slave = profile_drive()
     homed = api.home_drive(url, node=NODE, method=37, offset_deg=-5.0,
                            out=str(tmp_path / "h.mcap"))
-    moved = api.move_drive(20.0, url, node=NODE, velocity_deg_s=40.0,
+    # its 17-bit encoder is single-turn: the move enables it at 355 deg, 15 deg from 340
+    moved = api.move_drive(340.0, url, node=NODE, velocity_deg_s=40.0,
                            out=str(tmp_path / "m.mcap"))
     assert homed["position_deg"] == pytest.approx(-5.0, abs=0.01)  # 17-bit: 0.003 deg
-    assert moved["reached"] and moved["position_deg"] == pytest.approx(20.0, abs=0.1)
+    assert moved["reached"] and moved["position_deg"] == pytest.approx(340.0, abs=0.1)
     assert moved["peak_velocity_deg_s"] == pytest.approx(40.0, rel=0.02)
     with pytest.raises(UsageError, match="unknown option 'speed'"):
         api.home_drive(url, speed=3.0)
 
 
 # -- every mode on hil's emulated drive ---------------------------------------------------------
-def test_csv_on_the_emulator_tracks_the_default_reference(tmp_path):
-    csv = hil("servo", "run", "--controller", "setpoint", "--config",
-              mode_config(tmp_path, "csv"), "--duration", "0.5", "--json", "--out", "csv.mcap",
-              cwd=tmp_path)
+def test_csv_on_the_emulator_tracks_the_default_reference(tmp_path, capsys):
+    csv = hil_here(capsys, "servo", "run", "--controller", "setpoint", "--config",
+                   mode_config(tmp_path, "csv"), "--duration", "0.5", "--json", "--out",
+                   "csv.mcap", cwd=tmp_path)
     assert csv.returncode == 0, csv.stderr
     kpis = json.loads(csv.stdout)
     assert kpis["set_point"] == "velocity" and kpis["stale_feedback"] == 0
@@ -340,12 +341,12 @@ def test_every_emulated_homing_method_ends_at_home_with_bit_12(tmp_path, capsys,
     assert last["statusword"] & 0x1400 == 0x1400 and not last["statusword"] & 0x2000
 
 
-def test_servo_run_home_on_the_emulator_holds_absolute_from_home(tmp_path):
+def test_servo_run_home_on_the_emulator_holds_absolute_from_home(tmp_path, capsys):
     (tmp_path / "csp.toml").write_text('[master]\nmode = "csp"\n[homing]\nmethod = 17\n'
                                        'offset_deg = 0.0\nswitch_speed_deg_s = 180.0\n')
-    ran = hil("servo", "run", "--controller", "setpoint", "--config", "csp.toml", "--home",
-              "--reference", "hold:position=30", "--duration", "0.5", "--json", "--out",
-              "run.mcap", cwd=tmp_path)
+    ran = hil_here(capsys, "servo", "run", "--controller", "setpoint", "--config", "csp.toml",
+                   "--home", "--reference", "hold:position=30", "--duration", "0.5", "--json",
+                   "--out", "run.mcap", cwd=tmp_path)
     assert ran.returncode == 0, ran.stderr
     data = read_session(str(tmp_path / "run.mcap"))
     assert data.metadata["reference"]["placed"] == "absolute (homed)"

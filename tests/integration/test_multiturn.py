@@ -140,7 +140,8 @@ def test_a_runaway_past_half_a_turn_is_stopped_by_a_200_deg_window(stopped_runaw
     assert kpis["max_error_deg"] > 200.0 and kpis["ticks"] < 6000  # stopped, not completed
 
 
-def test_the_stop_after_a_safety_stop_is_recorded_until_the_axis_stands(stopped_runaway):
+def test_the_stop_after_a_safety_stop_is_recorded_until_the_axis_stands(stopped_runaway,
+                                                                         capsys):
     folder, _ = stopped_runaway
     data = read_session(folder / "runaway.mcap")
     last_tick_ns, last = data.topic("/drive/feedback")[-1]
@@ -156,8 +157,9 @@ def test_the_stop_after_a_safety_stop_is_recorded_until_the_axis_stands(stopped_
     assert braking > 100 and states[braking:] == [SWITCH_ON_DISABLED] * (len(states) - braking)
     assert abs(final["velocity_deg_s"]) < 2.5  # ...braked to standstill, then disabled
     assert final["position_deg"] > first["position_deg"] + 20.0
-    # and the command line reads it
-    shown = hil(folder, "report", "runaway.mcap", "--topic", "/drive/stop")
+    # and the command line reads it (``main`` in this process: ``report --topic`` runs from
+    # outside in tests/test_first_hour.py)
+    shown = hil_here(folder, capsys, "report", "runaway.mcap", "--topic", "/drive/stop")
     assert shown.returncode == 0, shown.stderr
     lines = [json.loads(line) for line in shown.stdout.splitlines()]
     assert [m["cycle"] for m in lines] == [m["cycle"] for _, m in stop]

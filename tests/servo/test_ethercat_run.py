@@ -2,7 +2,10 @@
 (SOEM) on one end of a veth pair in a namespace of the test's own, hil's EtherCAT slave
 (``hil emulate drive --ethercat``, a process of its own) on the other. A lockstep run records
 the KPIs the same run over CAN records; the scan lists the slaves; a refused SDO, an emergency,
-a killed slave and a veth end set down each end the way they end on CAN."""
+a killed slave and a veth end set down each end the way they end on CAN. Each command runs
+from outside at least once; its variants run ``main`` in this process, in the namespace
+(``hil_here`` inside ``inside``: the same exit status and output, without an interpreter
+start)."""
 
 from __future__ import annotations
 
@@ -18,6 +21,7 @@ from pathlib import Path
 import pytest
 
 from hil import api
+from tests.cli import hil_here
 from tests.ethercat_netns import (
     REPO,
     Veth,
@@ -46,6 +50,14 @@ def hil_in(veth: Veth, cwd: Path, *args: str, timeout: float = 180
                           cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env)
 
 
+def hil_here_in(veth: Veth, cwd: Path, capsys: pytest.CaptureFixture[str], *args: str
+                ) -> subprocess.CompletedProcess[str]:
+    """``hil ARGS`` by ``main`` in this process, in the namespace, from ``cwd``, as
+    :func:`hil_in` reports it."""
+    with inside(veth):
+        return hil_here(capsys, *args, cwd=cwd)
+
+
 def popen_hil_in(veth: Veth, cwd: Path, *args: str) -> subprocess.Popen[str]:
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     return subprocess.Popen(["ip", "netns", "exec", veth.ns, sys.executable, "-m", "hil", *args],
@@ -53,21 +65,25 @@ def popen_hil_in(veth: Veth, cwd: Path, *args: str) -> subprocess.Popen[str]:
                             env=env)
 
 
-@pytest.mark.parametrize(("mode", "controller"), [("cst", "pid"), ("csp", "setpoint")])
-def test_a_lockstep_run_records_the_kpis_the_same_run_over_can_records(tmp_path, mode,
-                                                                        controller):
+@pytest.mark.parametrize(("mode", "controller", "outside"), [("cst", "pid", True),
+                                                          ("csp", "setpoint", False)])
+def test_a_lockstep_run_records_the_kpis_the_same_run_over_can_records(tmp_path, capsys, mode,
+                                                                        controller, outside):
+    """The first case from outside (``outside``), the other in this process."""
     config = tmp_path / "drive.toml"
     config.write_text(f'[master]\nmode = "{mode}"\n')
     with veth_pair() as veth, slave_on(veth):
-        out = hil_in(veth, tmp_path, "servo", "run", "--drive",
-                     f"ethercat://{veth.master}?slave=1", "--controller", controller,
-                     "--config", str(config), "--duration", "0.5", "--json",
-                     "--out", str(tmp_path / "ethercat.mcap"))
+        argv = ("servo", "run", "--drive", f"ethercat://{veth.master}?slave=1", "--controller",
+                controller, "--config", str(config), "--duration", "0.5", "--json",
+                "--out", str(tmp_path / "ethercat.mcap"))
+        out = hil_in(veth, tmp_path, *argv) if outside else \
+            hil_here_in(veth, tmp_path, capsys, *argv)
     assert out.returncode == 0, out.stderr
     over_ethercat = json.loads(out.stdout)
-    events = subprocess.run([sys.executable, "-m", "hil", "report", over_ethercat["mcap"],
-                             "--events"], capture_output=True, text=True, check=True,
-                            env={**os.environ, "PYTHONPATH": str(REPO)}).stdout
+    # the session read back by ``main`` in this process: reading it is not what this tests
+    report = hil_here(capsys, "report", over_ethercat["mcap"], "--events")
+    assert report.returncode == 0, report.stderr
+    events = report.stdout
     # SOEM found the slave's distributed clock: aligned, SYNC0 every cycle
     assert "in OP, working counter 3 a cycle, SYNC0 every 500 us" in events
     over_can = api.run_servo(controller, duration_s=0.5, drive_config=str(config),
@@ -119,22 +135,23 @@ def test_two_axes_on_one_segment_run_in_one_frame_each_cycle(tmp_path):
     assert 1000 <= cycles < 1500, said
 
 
-def test_a_refused_sdo_is_one_line_with_its_abort_code(tmp_path):
+def test_a_refused_sdo_is_one_line_with_its_abort_code(tmp_path, capsys):
     with veth_pair() as veth, slave_on(veth):
-        out = hil_in(veth, tmp_path, "drive", "sdo", "write", f"ethercat://{veth.master}?slave=1",
-                     "0x1000", "5", "--type", "UNSIGNED32")
+        out = hil_here_in(veth, tmp_path, capsys, "drive", "sdo", "write",
+                          f"ethercat://{veth.master}?slave=1", "0x1000", "5", "--type",
+                          "UNSIGNED32")
     assert out.returncode == 2
     assert out.stderr.strip().splitlines() == [
         f"hil: error: drive node 1 (EtherCAT slave 1 on ethercat://{veth.master}) refused SDO "
         "write 0x1000:00: 0x06010002 attempt to write a read only object"]
 
 
-def test_a_fault_mid_run_is_reported_with_its_emergency(tmp_path):
+def test_a_fault_mid_run_is_reported_with_its_emergency(tmp_path, capsys):
     with veth_pair() as veth, slave_on(veth, "--clock", "sync", "--fault",
                                        "emcy@0.2:code=0x2310"):
-        out = hil_in(veth, tmp_path, "servo", "run", "--drive",
-                     f"ethercat://{veth.master}?slave=1", "--controller", "pid", "--duration",
-                     "1", "--out", str(tmp_path / "fault.mcap"))
+        out = hil_here_in(veth, tmp_path, capsys, "servo", "run", "--drive",
+                          f"ethercat://{veth.master}?slave=1", "--controller", "pid",
+                          "--duration", "1", "--out", str(tmp_path / "fault.mcap"))
     assert out.returncode == 2
     # the drive in FAULT, or braking towards it (its fault reaction), with the EMCY's code
     assert re.match(r"hil: error: drive node 1 reports FAULT( REACTION ACTIVE)? \(statusword "
