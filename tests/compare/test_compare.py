@@ -181,8 +181,8 @@ def test_a_truncated_baseline_is_compared_over_what_was_read(folder, capsys):
 
 @pytest.mark.realtime  # on the wall clock at 2 kHz: with the other real-time tests, alone
 def test_real_time_is_interpolated_onto_the_baselines_ticks(folder, capsys):
-    run = hil(folder, "servo", "run", "--controller", "my_controllers.py:Pd", "--duration",
-              "0.3", "--realtime", "--out", "wall.mcap", "--quiet")
+    run = hil_here(capsys, "servo", "run", "--controller", "my_controllers.py:Pd",
+                   "--duration", "0.3", "--realtime", "--out", "wall.mcap", "--quiet", cwd=folder)
     assert run.returncode in (0, 3), run.stderr  # 3: the wall clock disturbed it (a busy CPU)
     refused = hil_here(capsys, "compare", "base.mcap", "wall.mcap", "--signal", POSITION,
                        cwd=folder)
