@@ -13,6 +13,7 @@ import sys
 import textwrap
 import time
 import xml.etree.ElementTree as ET
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -242,10 +243,16 @@ def test_a_long_run_shows_progress_on_a_terminal_only(tmp_path):
                       .replace("end_s = 2.0", "end_s = 1.0")
                       .replace("start_s = 2.0, end_s = 4.0", "start_s = 1.0, end_s = 2.0")
                       + "[relays.M1]\ndwell_s = 0.5\n[relays.M2]\ndwell_s = 0.5\n")
-    run = ("bench", "run", "--controller", "bc", "--cycles", "1", "--config", str(config),
-           "--out", "p.mcap")
-    shown = _stderr_on_a_terminal(tmp_path, *run, "--realtime")
-    assert "\rbench bc: " in shown and " of 2 s (" in shown and shown.endswith("\r\x1b[K")
-    assert _stderr_on_a_terminal(tmp_path, *run, "--realtime", "--quiet") == ""
-    piped = hil(tmp_path, *run)
-    assert piped.returncode == 0 and piped.stderr == ""
+    run = ("bench", "run", "--controller", "bc", "--cycles", "1", "--config", str(config))
+    # the three runs at once, each its own file (the emulated bench is no locked device): the
+    # wall time of one
+    with ThreadPoolExecutor(3) as runs:
+        shown = runs.submit(_stderr_on_a_terminal, tmp_path, *run, "--realtime",
+                            "--out", "shown.mcap")
+        quiet = runs.submit(_stderr_on_a_terminal, tmp_path, *run, "--realtime", "--quiet",
+                            "--out", "quiet.mcap")
+        piped = runs.submit(hil, tmp_path, *run, "--out", "piped.mcap")
+    assert "\rbench bc: " in shown.result() and " of 2 s (" in shown.result() \
+        and shown.result().endswith("\r\x1b[K")
+    assert quiet.result() == ""
+    assert piped.result().returncode == 0 and piped.result().stderr == ""

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from hil.cli.main import main
 from hil.core.recording.reader import read_session
 from tests.session_damage import (
     CHUNK_SPAN_S,
@@ -51,9 +52,11 @@ def lockstep(folder: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def realtime(folder: Path) -> Path:
+    """A real-time servo run of 1.5 s, in this process: five chunks or so (each closed after
+    a second of wall time or of session time, whichever comes first)."""
     (folder / "patient.toml").write_text(PATIENT)
-    hil(folder, "servo", "run", "--controller", "pid", "--realtime", "--duration", "2.5",
-        "--config", "patient.toml", "--out", "realtime.mcap")
+    main(["servo", "run", "--controller", "pid", "--realtime", "--duration", "1.5",
+          "--config", str(folder / "patient.toml"), "--out", str(folder / "realtime.mcap")])
     return folder / "realtime.mcap"
 
 

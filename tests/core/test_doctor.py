@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from hil.core.realtime import Hardening
+from tests.cli import hil_here
 
 pytestmark = [pytest.mark.slow]
 
@@ -115,15 +116,13 @@ def test_a_realtime_session_records_every_hardening_step_and_a_lockstep_one_none
 
 
 @pytest.mark.realtime
-def test_hil_report_json_shows_the_loop_figures_and_what_was_granted(tmp_path):
+def test_hil_report_json_shows_the_loop_figures_and_what_was_granted(tmp_path, capsys):
+    # the run and the report in this process (the hardening is undone when the run ends)
     path = tmp_path / "rt.mcap"
-    run = subprocess.run([sys.executable, "-m", "hil", "servo", "run", "--controller", "pid",
-                          "--realtime", "--duration", "0.3", "--out", str(path)],
-                         capture_output=True, text=True, timeout=120, cwd=REPO)
+    run = hil_here(capsys, "servo", "run", "--controller", "pid", "--realtime", "--duration",
+                   "0.3", "--out", path)
     assert run.returncode in (0, 2, 3), run.stderr  # a starved emulator: ended early, or disturbed
-    report = json.loads(subprocess.run([sys.executable, "-m", "hil", "report", str(path),
-                                        "--json"], capture_output=True, text=True,
-                                       timeout=60, cwd=REPO).stdout)
+    report = json.loads(hil_here(capsys, "report", path, "--json").stdout)
     assert report["loop"]["servo"]["runs"] > 0
     assert set(report["loop"]["servo"]["lateness_us"]) >= {"p50", "p99", "max"}
     assert list(report["realtime"]) == STEPS

@@ -2,7 +2,6 @@
 quick stop, then disables the drive (the safe-stop path on every exit)."""
 
 import signal
-import time
 
 import pytest
 
@@ -20,7 +19,15 @@ observer = master.emulator.attach_bus()
 loop = FixedRateLoop(RealtimeClock(), 0.0005)
 loop.add_component(master)
 loop.add_task(FunctionTask("drive", write=lambda t: master.exchange(300.0)))
-print("running", flush=True)
+
+
+def moving(_t):
+    if not moving.said and abs(master.emulator.node.plant.velocity_deg_s) > 300.0:
+        moving.said = print("moving", flush=True) or True
+
+
+moving.said = False
+loop.add_task(FunctionTask("moving", write=moving))
 loop.run(duration_s=60)
 words = []
 while (msg := observer.recv(0)) is not None:
@@ -38,8 +45,7 @@ master.close()
 
 def test_ctrl_c_quick_stops_then_disables_the_drive(run_python):
     child = run_python(CHILD)
-    assert child.stdout.readline().strip() == "running"
-    time.sleep(0.5)  # the axis is moving at a few hundred deg/s by now
+    assert child.stdout.readline().strip() == "moving"  # at more than 300 deg/s
     child.send_signal(signal.SIGINT)
     out, err = child.communicate(timeout=30)
     assert child.returncode == 0, err

@@ -201,20 +201,21 @@ def test_can_log_writes_every_frame_in_a_format_python_can_reads(tmp_path, suffi
 
 @pytest.mark.realtime
 def test_late_tpdos_of_the_emulator_in_real_time_are_never_fresh(tmp_path):
-    """The emulator holds its TPDOs 60 ms at 1.5 s of its time (then the ones behind them, in
-    order); with the SYNC counter echo every fresh feedback is, on the wire trace, the TPDO
-    pair that carries its SYNC's counter. (Its clock starts with the process: the run's first
-    SYNC comes about 1 s later, so the hold is taken past that, within the 3 s run.)"""
+    """The emulator holds its TPDOs 60 ms for 0.1 s every 0.5 s of its time (then the ones
+    behind them, in order); with the SYNC counter echo every fresh feedback is, on the wire
+    trace, the TPDO pair that carries its SYNC's counter. (Its clock starts with the process:
+    the run's first SYNC comes about 1 s later on a quiet machine, seconds later on a loaded
+    one; holds from 1.5 s to 6 s of its time put two or more in the 1.5 s run either way.)"""
     config = tmp_path / "drive.toml"
-    # the 60 ms hold leaves ~300 cycles in a row stale, the axis driven blind: beyond the
+    # a 60 ms hold leaves ~300 cycles in a row stale, the axis driven blind: beyond the
     # default safety limits, which are not what this test is about
     config.write_text('[master]\nstale_cycles = 100000\nsync_echo = "0x2004:0"\n'
                       '[emulator]\nsync_loss_timeout_ms = 5000\n'
                       '[safety]\nenabled = false\n')
     log = tmp_path / "wire.asc"
-    with api.start_drive_emulator(config, faults=["delay_tpdo@1.5-1.6:ms=60"],
-                                  harden=True) as emulator:
-        kpis = api.run_servo("pid", drive=emulator.url, realtime=True, duration_s=3.0,
+    holds = [f"delay_tpdo@{start / 2:g}-{start / 2 + 0.1:g}:ms=60" for start in range(3, 13)]
+    with api.start_drive_emulator(config, faults=holds, harden=True) as emulator:
+        kpis = api.run_servo("pid", drive=emulator.url, realtime=True, duration_s=1.5,
                              drive_config=str(config), can_log=str(log),
                              out=str(tmp_path / "late.mcap"))
     assert kpis["faults"]["late_frames"] > 0 and kpis["stale_feedback"] > 0

@@ -24,6 +24,7 @@ from hil.controllers.servo.model import StateSpaceModel, published_axis_model, r
 from hil.core.recording.reader import read_session
 from hil.emulators.drive.axis_model import axis_model_file
 from hil.emulators.drive.plant import AxisPlant
+from tests.cli import hil_here
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
@@ -239,7 +240,7 @@ def test_hil_emulate_drive_runs_the_model_given_by_its_flag(machine):
 
 
 @pytest.mark.realtime
-def test_a_real_time_run_hands_the_model_to_the_emulator_process(tmp_path):
+def test_a_real_time_run_hands_the_model_to_the_emulator_process(tmp_path, capsys):
     """--realtime: the emulator in a process of its own reads the model file named beside the
     config (its rest position 90 deg: the first position the run records)."""
     (tmp_path / "cfg").mkdir()
@@ -247,9 +248,9 @@ def test_a_real_time_run_hands_the_model_to_the_emulator_process(tmp_path):
         loads_model(axis_model_file(other_axis())), ["/drive/feedback:command_mA"],
         ["/drive/feedback:position_deg"], y_offset=[90.0]))
     (tmp_path / "cfg" / "drive.toml").write_text('[emulator]\nmodel = "offset.json"\n')
-    done = hil(tmp_path, "servo", "run", "--controller", "pid", "--reference", "hold",
-               "--from-here", "--duration", "0.1", "--realtime", "--config", "cfg/drive.toml",
-               "--out", "rt.mcap")
+    done = hil_here(capsys, "servo", "run", "--controller", "pid", "--reference", "hold",
+                    "--from-here", "--duration", "0.1", "--realtime", "--config",
+                    "cfg/drive.toml", "--out", "rt.mcap", cwd=tmp_path)
     assert done.returncode in (0, 3), done.stderr  # 3: a loaded machine answered late
     positions, _ = positions_and_currents(tmp_path / "rt.mcap")
     assert positions[0] == pytest.approx(90.0, abs=INCREMENT_DEG)

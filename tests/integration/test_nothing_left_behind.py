@@ -41,6 +41,22 @@ def alive(pid):
     return state != "Z"
 
 
+def size_of(path):
+    """The size of the file at ``path``, 0 while there is none."""
+    try:
+        return path.stat().st_size
+    except FileNotFoundError:
+        return 0
+
+
+def wait_for(condition, timeout_s):
+    """Whether ``condition()`` came true within ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return condition()
+
+
 def wait_gone(pid, timeout_s):
     deadline = time.monotonic() + timeout_s
     while alive(pid) and time.monotonic() < deadline:
@@ -68,7 +84,11 @@ def test_a_sigkilled_run_leaves_no_emulator_and_a_finished_file(tmp_path, argv):
             time.sleep(0.1)
         emulator = next(p for p, c in helpers.items() if "emulate" in c)
         writer = next(p for p, c in helpers.items() if "hil.core.recording.writer" in c)
-        time.sleep(1.5)  # the run is under way
+        # the run is under way: its loop started (the staging file became the session) and
+        # the file grew past what the writer had when it did (the loop's records reach it)
+        assert wait_for(lambda: size_of(out) > 0, 60), "the run did not start"
+        started = size_of(out)
+        assert wait_for(lambda: size_of(out) > started, 30), "nothing reached the file"
         run.send_signal(signal.SIGKILL)
         run.wait(10)
         assert wait_gone(emulator, 5), "the emulator outlived its run"

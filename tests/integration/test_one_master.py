@@ -105,10 +105,10 @@ def test_a_second_run_on_the_same_drive_bus_refuses_and_a_foreign_sync_stops_the
         first = hil("servo", "run", "--controller", "pid", "--drive", emulator.url,
                     "--config", str(config), "--realtime", "--duration", "20",
                     "--out", str(tmp_path / "first.mcap"))
+        # the session file takes its name when the loop starts: the bus is locked by then
         deadline = time.monotonic() + 30
         while not (tmp_path / "first.mcap").exists() and time.monotonic() < deadline:
             time.sleep(0.05)
-        time.sleep(1.0)
         second = hil("servo", "run", "--controller", "pid", "--drive", emulator.url,
                      "--duration", "1", "--out", str(tmp_path / "second.mcap"))
         _, stderr = second.communicate(timeout=30)

@@ -15,6 +15,7 @@ import pytest
 from websockets.exceptions import ConnectionClosed, WebSocketException
 
 from hil.core.recording.reader import read_session
+from tests.cli import hil_here
 from tests.live.foxglove_client import FoxgloveClient
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]
@@ -61,7 +62,8 @@ def come_and_go(url: str, until: threading.Event, done: list[int]) -> None:
             client.close()
 
 
-def test_a_run_with_clients_coming_and_going_completes_and_reports_who_was_late(tmp_path):
+def test_a_run_with_clients_coming_and_going_completes_and_reports_who_was_late(tmp_path,
+                                                                                capsys):
     port = free_port()
     run = hil(tmp_path, "servo", "run", "--controller", "pid", "--realtime", "--duration",
               "2", "--live", str(port), "--out", "churn.mcap", "--json")
@@ -88,8 +90,9 @@ def test_a_run_with_clients_coming_and_going_completes_and_reports_who_was_late(
     sent = json.loads(session.metadata["live"]["sent"])
     assert sum(sent.values()) > 0  # the clients were served while they came and went
 
-    report = json.loads(hil(tmp_path, "report", "churn.mcap", "--json").communicate(
-        timeout=120)[0])
+    # the run is a process of its own (the clients' threads are no part of its loop); the
+    # reports are read in this one
+    report = json.loads(hil_here(capsys, "report", "churn.mcap", "--json", cwd=tmp_path).stdout)
     emulator = report["realtime_helpers"]["emulator"]
     assert emulator == session.metadata["realtime.emulator"]
     assert list(emulator) == ["pid", *STEPS]
@@ -108,7 +111,7 @@ def test_a_run_with_clients_coming_and_going_completes_and_reports_who_was_late(
     assert feedback["late_frames"] == kpis["faults"]["late_frames"]
     worst = feedback["worst_window"]
     assert worst["cycles"] == min(400, feedback["cycles"]) and worst["stale"] <= feedback["stale"]
-    text = hil(tmp_path, "report", "churn.mcap").communicate(timeout=120)[0]
+    text = hil_here(capsys, "report", "churn.mcap", cwd=tmp_path).stdout
     assert f"real-time hardening of the emulator (process {emulator['pid']})" in text
     assert f"feedback /drive/feedback: {feedback['stale']} of {feedback['cycles']} cycles " \
            f"stale" in text

@@ -191,7 +191,7 @@ def test_bad_axes_are_one_line_before_anything_runs(tmp_path, capsys, args, prob
 
 
 @pytest.mark.realtime
-def test_two_axes_in_real_time_with_the_built_in_emulator(tmp_path):
+def test_two_axes_in_real_time_with_the_built_in_emulator(tmp_path, capsys):
     """``--realtime`` with the built-in emulator and two axes: the emulated drives in a
     process of their own (one node per axis, on socketcand), 1 kHz in real time, both axes
     recorded tick by tick on the same SYNCs. Two emulated drives in Python on a shared 2-core
@@ -200,10 +200,10 @@ def test_two_axes_in_real_time_with_the_built_in_emulator(tmp_path):
     config = tmp_path / "patient.toml"
     config.write_text("[master]\ncycle_period_us = 1000\nstale_cycles = 100000\n"
                       "[safety]\nenabled = false\n")
-    done = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller", "pid",
-               "--param", "ti_us=8000", "--reference", "circle:radius=2,feed=20",
-               "--duration", "0.5", "--realtime", "--config", str(config), "--out", "rt.mcap",
-               "--json")
+    done = hil_here(tmp_path, capsys, "servo", "run", "--axes", "x=1,y=2", "--controller",
+                    "pid", "--param", "ti_us=8000", "--reference", "circle:radius=2,feed=20",
+                    "--duration", "0.5", "--realtime", "--config", str(config), "--out",
+                    "rt.mcap", "--json")
     assert done.returncode in (0, 3), done.stderr
     kpis = json.loads(done.stdout)
     assert kpis["clock"] == "realtime" and kpis["sync_cycles"] == kpis["ticks"] > 450

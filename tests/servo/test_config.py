@@ -89,8 +89,8 @@ def test_servo_run_with_a_bad_config_prints_one_error_line_and_exits_2(tmp_path,
     assert not out.exists()
 
 
-@pytest.mark.realtime
 def test_mpc_prediction_is_decimated_in_real_time_and_in_long_lockstep_runs():
+    """The period of /mpc/prediction, from the options alone (no loop runs)."""
     from hil.servo.options import ServoRunOptions
     from hil.servo.task import PREDICTION_EVERY_REALTIME, PREDICTION_EVERY_TICK_UP_TO_S
 

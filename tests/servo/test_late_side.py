@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -17,9 +16,9 @@ from hil.errors import HilError
 from hil.servo.options import ServoRunOptions
 from hil.servo.run import run_servo
 from hil.servo.safety import SafetyMonitor, ServoSafety, judge_stale
+from tests.cli import hil_here
 
 PERIOD_S = 0.0005
-ROOT = Path(__file__).resolve().parents[2]
 
 
 def fresh(k: int, stale_from: int = 600) -> bool:
@@ -107,7 +106,7 @@ def _emulator_pid() -> int:
 
 @pytest.mark.slow
 @pytest.mark.realtime
-def test_an_emulator_paused_mid_run_is_named_as_the_late_side(tmp_path):
+def test_an_emulator_paused_mid_run_is_named_as_the_late_side(tmp_path, capsys):
     """The drive emulator process stopped (SIGSTOP) for 0.4 s of a real-time run: the safety
     net stops the run and its message names the drive; `hil report` says the same."""
     config = tmp_path / "drive.toml"
@@ -134,10 +133,7 @@ def test_an_emulator_paused_mid_run_is_named_as_the_late_side(tmp_path):
     message = str(stopped.value)
     assert "cycles without fresh feedback" in message and "\n" not in message
     assert ": the drive was late (" in message and "the loop was on time" in message
-    report = json.loads(subprocess.run(
-        [sys.executable, "-m", "hil", "report", str(out), "--json"], cwd=tmp_path,
-        capture_output=True, text=True, timeout=120,
-        env=dict(os.environ, PYTHONPATH=str(ROOT))).stdout)
+    report = json.loads(hil_here(capsys, "report", str(out), "--json", cwd=tmp_path).stdout)
     feedback = report["feedback"]["/drive/feedback"]
     assert feedback["worst_window"]["late_side"] == "drive"
     assert feedback["worst_window"]["stale"] > 200  # what tripped the net: 201 of 400

@@ -83,7 +83,9 @@ def test_each_limit_can_be_moved_for_a_run_and_stops_on_its_own(tmp_path, safety
 @pytest.mark.realtime
 def test_driving_blind_is_stopped_by_the_stale_share(tmp_path):
     config = tmp_path / "drive.toml"
-    config.write_text("[master]\nstale_cycles = 100000\n"
+    # the safe stop that follows, which the blind drive cannot confirm, gives up after 300 ms
+    # instead of 3 s: what is tested is the stop
+    config.write_text("[master]\nstale_cycles = 100000\nquick_stop_timeout_ms = 300\n"
                       "[emulator]\nsync_loss_timeout_ms = 5000\n")
     with (api.start_drive_emulator(config, faults=["drop_tpdo@0.3"], harden=True) as emulator,
           pytest.raises(HilError, match="cycles without fresh feedback")):
