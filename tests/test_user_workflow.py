@@ -339,10 +339,10 @@ def test_a_split_servo_session_is_one_session_to_report(tmp_path, capfd, monkeyp
     assert reports[0]["encodings"]["/drive/feedback"] == "cdr"
     assert reports[0]["encodings"]["/events"] == "json"
 
-    plain = hil(folder, "servo", "run", "--controller", "pid", "--duration", "0.5",
-                "--encoding", "json", "--out", "plain.mcap")
+    plain = hil_here(capfd, "servo", "run", "--controller", "pid", "--duration", "0.5",
+                     "--encoding", "json", "--out", "plain.mcap")
     assert plain.returncode == 0, plain.stderr
     report = json.loads(hil_here(capfd, "report", "plain.mcap", "--json").stdout)
     assert report["encodings"]["/drive/feedback"] == "json"
-    bad = hil(folder, "servo", "run", "--controller", "pid", "--split-size", "0")
+    bad = hil_here(capfd, "servo", "run", "--controller", "pid", "--split-size", "0")
     assert bad.returncode == 2 and "--split-size" in bad.stderr
