@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from hil.cli.main import build_parser, main
+from tests.cli import NOT_A_USERS_PLUGINS
 from tests.docs import block, blocks, page, pages, section
 
 pytestmark = [pytest.mark.timeout(240), pytest.mark.slow]
@@ -131,7 +132,8 @@ def test_the_readme_tour_runs_the_users_controller_and_first_test(tmp_path, monk
     assert first_test in blocks(page("getting-started.md"), "python")
     (tmp_path / "test_first.py").write_text(first_test)
     done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                           "--rootdir", str(tmp_path), "test_first.py"], cwd=tmp_path,
+                           *NOT_A_USERS_PLUGINS, "--rootdir", str(tmp_path), "test_first.py"],
+                          cwd=tmp_path,
                           capture_output=True, text=True, env=ENV, timeout=180, check=False)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "1 passed" in done.stdout

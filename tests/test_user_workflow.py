@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from hil import api
-from tests.cli import hil_here
+from tests.cli import NOT_A_USERS_PLUGINS, hil_here
 from tests.pymodbus_bench import short_config
 
 pytestmark = [pytest.mark.slow]
@@ -39,7 +39,7 @@ def user_env():
 
 def run_pytest(folder, *args, env=None):
     return subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                           "--rootdir", str(folder), *args], cwd=folder,
+                           *NOT_A_USERS_PLUGINS, "--rootdir", str(folder), *args], cwd=folder,
                           env={**user_env(), **(env or {})}, capture_output=True, text=True,
                           timeout=300)
 

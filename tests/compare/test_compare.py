@@ -19,7 +19,7 @@ import pytest
 from hil.compare.alignment import Series, interpolated, tick_for_tick
 from hil.compare.judge import judge_signal
 from hil.compare.tolerances import parse_tolerance
-from tests.cli import hil_here
+from tests.cli import NOT_A_USERS_PLUGINS, hil_here
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
@@ -238,7 +238,8 @@ def test_the_pytest_baseline_records_then_fails_on_a_changed_controller(tmp_path
 
     def pytest_run(kp: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run(
-            [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "0",
+            [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+             *NOT_A_USERS_PLUGINS, "-n", "0",
              "--basetemp", str(tmp_path / f"runs-{kp}"), "test_mine.py",
              *(["--hil-html", "pages"] if kp == "250" else [])],
             cwd=tmp_path, env={**ENV, "KP": kp}, capture_output=True, text=True,
