@@ -13,6 +13,12 @@ import pytest
 
 from hil.cli.main import main
 
+#: what a pytest process of a user's tests leaves out: the plugins of hil's own test tools and
+#: lab extra (hypothesis's, labgrid's), which cost some 0.65 s of CPU to start and are not what
+#: these tests try; hil's plugin loads as installed (tests/integration/test_busy_machine.py
+#: runs a user's pytest with every plugin)
+NOT_A_USERS_PLUGINS = ("-p", "no:hypothesispytest", "-p", "no:labgrid")
+
 
 def hil_here(capture: Any, *args: Any, cwd: str | os.PathLike[str] | None = None
              ) -> subprocess.CompletedProcess[str]:

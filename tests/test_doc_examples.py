@@ -1,12 +1,14 @@
 """The documentation's code (the README and the site's pages, tests/docs.py), run as a user
 would, from a folder outside the repository: its Python blocks (the controllers file, the API
-tour, the README's tour and first test; the pytest guide's example runs five times over on a
-busy machine in tests/integration/test_busy_machine.py), its `hil` commands checked against
+tour and the several axes, run as scripts in this process; the README's tour and first test;
+the pytest guide's example runs five times over on a busy machine in
+tests/integration/test_busy_machine.py), its `hil` commands checked against
 the parser (every flag it shows exists) and the limit examples run for the exit status the
 pages promise (the first from a ``hil`` process, the others from the command line run in this
 process). A page that drifts from the code fails here."""
 
 import os
+import runpy
 import shlex
 import subprocess
 import sys
@@ -15,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from hil.cli.main import build_parser, main
+from tests.cli import NOT_A_USERS_PLUGINS
 from tests.docs import block, blocks, page, pages, section
 
 pytestmark = [pytest.mark.timeout(240), pytest.mark.slow]
@@ -81,26 +84,37 @@ def test_the_docs_commands_give_the_status_they_say(user_folder, monkeypatch, ca
         assert main(argv) == status, capfd.readouterr().err
 
 
-def test_the_api_tour_runs(user_folder):
+def run_here(folder, script, text, monkeypatch, capfd):
+    """A user's ``script`` (``text``) run from ``folder`` in this process, as ``python
+    SCRIPT`` would (the Python API is what it tries, not a process start): what it printed.
+    Its own modules are forgotten after, so another folder's file of the same name loads."""
+    (folder / script).write_text(text)
+    monkeypatch.chdir(folder)
+    monkeypatch.syspath_prepend(str(folder))
+    before = set(sys.modules)
+    capfd.readouterr()
+    try:
+        runpy.run_path(script, run_name="__main__")
+    finally:
+        for name in set(sys.modules) - before:
+            if str(getattr(sys.modules[name], "__file__", "")).startswith(str(folder)):
+                del sys.modules[name]
+    return capfd.readouterr().out
+
+
+def test_the_api_tour_runs(user_folder, monkeypatch, capfd):
     script = "from my_controllers import PdPosition, ThresholdRelays\n" + \
         block(API, "python", "kpis = api.run_bench(ThresholdRelays")
-    (user_folder / "tour.py").write_text(script)
-    done = subprocess.run([sys.executable, "tour.py"], cwd=user_folder, capture_output=True,
-                          text=True, env=ENV, timeout=180, check=False)
-    assert done.returncode == 0, done.stderr
-    rms, passed, mcap = done.stdout.splitlines()[0].split()
+    printed = run_here(user_folder, "tour.py", script, monkeypatch, capfd)
+    rms, passed, mcap = printed.splitlines()[0].split()
     assert float(rms) < 0.5 and passed == "True" and Path(user_folder, mcap).exists()
 
 
-def test_the_several_axes_example_moves_each_axis_its_own_way(user_folder):
-    (user_folder / "axes.py").write_text(block("guides/drive.md", "python", "CanDriveMaster"))
-    done = subprocess.run([sys.executable, "axes.py"], cwd=user_folder, capture_output=True,
-                          text=True, env=ENV, timeout=180, check=False)
-    assert done.returncode == 0, done.stderr
-    x, y = map(float, done.stdout.split())
+def test_the_several_axes_example_moves_each_axis_its_own_way(user_folder, monkeypatch, capfd):
+    printed = run_here(user_folder, "axes.py", block("guides/drive.md", "python",
+                                                     "CanDriveMaster"), monkeypatch, capfd)
+    x, y = map(float, printed.split())
     assert x > 0.5 and y < -0.5
-
-
 
 
 def test_connect_your_drive_names_every_mode_the_homing_and_the_stand_ins():
@@ -131,7 +145,8 @@ def test_the_readme_tour_runs_the_users_controller_and_first_test(tmp_path, monk
     assert first_test in blocks(page("getting-started.md"), "python")
     (tmp_path / "test_first.py").write_text(first_test)
     done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                           "--rootdir", str(tmp_path), "test_first.py"], cwd=tmp_path,
+                           *NOT_A_USERS_PLUGINS, "--rootdir", str(tmp_path), "test_first.py"],
+                          cwd=tmp_path,
                           capture_output=True, text=True, env=ENV, timeout=180, check=False)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "1 passed" in done.stdout

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.cli import hil_here
+from tests.cli import NOT_A_USERS_PLUGINS, hil_here
 from tests.docs import page
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -486,7 +486,8 @@ def test_hil_baseline_takes_one_sided_tolerances_and_fails_as_one_clean_assertio
     (tmp_path / "test_mine.py").write_text(BASELINE_TESTS)
     env = {key: value for key, value in os.environ.items() if key != "PYTHONPATH"}
     done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                           "-n", "0", "-rA", "test_mine.py"], cwd=tmp_path, env=env,
+                           *NOT_A_USERS_PLUGINS, "-n", "0", "-rA", "test_mine.py"], cwd=tmp_path,
+                          env=env,
                           capture_output=True, text=True, timeout=150, check=False)
     out = done.stdout
     assert done.returncode == 1 and "3 failed, 1 passed" in out, out + done.stderr

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from hil import api
-from tests.cli import hil_here
+from tests.cli import NOT_A_USERS_PLUGINS, hil_here
 from tests.pymodbus_bench import short_config
 
 pytestmark = [pytest.mark.slow]
@@ -39,7 +39,7 @@ def user_env():
 
 def run_pytest(folder, *args, env=None):
     return subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                           "--rootdir", str(folder), *args], cwd=folder,
+                           *NOT_A_USERS_PLUGINS, "--rootdir", str(folder), *args], cwd=folder,
                           env={**user_env(), **(env or {})}, capture_output=True, text=True,
                           timeout=300)
 
@@ -339,10 +339,10 @@ def test_a_split_servo_session_is_one_session_to_report(tmp_path, capfd, monkeyp
     assert reports[0]["encodings"]["/drive/feedback"] == "cdr"
     assert reports[0]["encodings"]["/events"] == "json"
 
-    plain = hil(folder, "servo", "run", "--controller", "pid", "--duration", "0.5",
-                "--encoding", "json", "--out", "plain.mcap")
+    plain = hil_here(capfd, "servo", "run", "--controller", "pid", "--duration", "0.5",
+                     "--encoding", "json", "--out", "plain.mcap")
     assert plain.returncode == 0, plain.stderr
     report = json.loads(hil_here(capfd, "report", "plain.mcap", "--json").stdout)
     assert report["encodings"]["/drive/feedback"] == "json"
-    bad = hil(folder, "servo", "run", "--controller", "pid", "--split-size", "0")
+    bad = hil_here(capfd, "servo", "run", "--controller", "pid", "--split-size", "0")
     assert bad.returncode == 2 and "--split-size" in bad.stderr

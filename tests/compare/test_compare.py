@@ -1,6 +1,7 @@
 """``hil compare`` and the ``hil_baseline`` fixture, tried as a user would: lockstep servo
 sessions recorded once per module by ``hil`` processes in a folder outside the repository
-(the repository not on PYTHONPATH), then compared; the alignment and the tube on their own
+(the repository not on PYTHONPATH), then compared (by a ``hil`` process first, the variants
+by the command line in this process); the alignment and the tube on their own
 on made-up tick grids."""
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import pytest
 from hil.compare.alignment import Series, interpolated, tick_for_tick
 from hil.compare.judge import judge_signal
 from hil.compare.tolerances import parse_tolerance
-from tests.cli import hil_here
+from tests.cli import NOT_A_USERS_PLUGINS, hil_here
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
@@ -87,7 +88,8 @@ def test_identical_lockstep_sessions_are_within_exact_tolerance(folder):
 
 
 def test_a_changed_gain_is_outside_naming_the_signal_and_its_time(folder, capsys):
-    done = hil(folder, "compare", "base.mcap", "stiffer.mcap", "--signal", POSITION)
+    done = hil_here(capsys, "compare", "base.mcap", "stiffer.mcap", "--signal", POSITION,
+                    cwd=folder)
     assert done.returncode == 1, done.stderr
     [line] = done.stderr.strip().splitlines()
     assert line.startswith("hil: outside tolerance (") and f"{POSITION} by " in line
@@ -114,7 +116,8 @@ def test_a_comparison_as_one_html_page(folder, capsys):
     assert "FAILED" in page and POSITION in page and "<script src" not in page
     assert "worst: difference" in page and worst["worst_t_s"] > 0
     assert "Decimated for size" in page  # 1000 ticks drawn with at most 300 points
-    refused = hil(folder, "compare", "base.mcap", "again.mcap", "--max-points", "300")
+    refused = hil_here(capsys, "compare", "base.mcap", "again.mcap", "--max-points", "300",
+                       cwd=folder)
     assert refused.returncode == 2 and "needs --html" in refused.stderr
 
 
@@ -147,10 +150,11 @@ def test_what_cannot_be_compared_is_one_line_and_exit_2(folder, capsys, args, wh
     assert why in line
 
 
-def test_sessions_of_different_applications_are_not_compared(folder):
-    bench = hil(folder, "bench", "identify", "--duration", "1", "--out", "bench.mcap")
+def test_sessions_of_different_applications_are_not_compared(folder, capfd):
+    bench = hil_here(capfd, "bench", "identify", "--duration", "1", "--out", "bench.mcap",
+                     cwd=folder)
     assert bench.returncode == 0, bench.stderr
-    done = hil(folder, "compare", "base.mcap", "bench.mcap")
+    done = hil_here(capfd, "compare", "base.mcap", "bench.mcap", cwd=folder)
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr.strip().splitlines() == [
         "hil: error: different applications: the baseline is a servo session, the candidate "
@@ -242,7 +246,8 @@ def test_the_pytest_baseline_records_then_fails_on_a_changed_controller(tmp_path
 
     def pytest_run(kp: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run(
-            [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "0",
+            [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+             *NOT_A_USERS_PLUGINS, "-n", "0",
              "--basetemp", str(tmp_path / f"runs-{kp}"), "test_mine.py",
              *(["--hil-html", "pages"] if kp == "250" else [])],
             cwd=tmp_path, env={**ENV, "KP": kp}, capture_output=True, text=True,

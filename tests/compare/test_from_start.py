@@ -18,7 +18,7 @@ import textwrap
 import pytest
 
 from hil import api
-from tests.cli import hil_here
+from tests.cli import NOT_A_USERS_PLUGINS, hil_here
 from tests.docs import block
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
@@ -76,7 +76,8 @@ def test_hil_baseline_against_a_given_drive_holds_wherever_the_axis_stood(tmp_pa
 
     def pytest_run(url: str, name: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run(
-            [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "0",
+            [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+             *NOT_A_USERS_PLUGINS, "-n", "0",
              "--basetemp", str(tmp_path / name), "test_mine.py", "--hil-drive", url],
             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=200, check=False)
 

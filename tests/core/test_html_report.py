@@ -167,12 +167,13 @@ def test_long_signals_are_decimated_and_the_page_says_so(folder, tmp_path, capsy
         assert "at most 200 points each" in words
 
 
-def test_bad_html_options_are_one_line(folder, tmp_path):
+def test_bad_html_options_are_one_line(folder, tmp_path, capfd):
+    """A variant of the command line run above: ``hil`` in this process."""
     for argv, message in (
             (["--max-points", "300"], "--max-points N (points per trace) needs --html"),
             (["--html", "x.html", "--max-points", "1"], "at least 2 points per trace"),
             (["--html", "x.html", "--events"], "not with --events or --topic")):
-        done = hil(folder, "report", "base.mcap", *argv)
+        done = hil_here(capfd, "report", "base.mcap", *argv, cwd=folder)
         assert done.returncode == 2 and message in done.stderr, done.stderr
         assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
     assert not (folder / "x.html").exists()
@@ -210,14 +211,14 @@ def test_comparison_html_overlays_both_sessions_and_marks_the_worst_point(folder
                               signals=["/drive/command:nope"])
 
 
-def test_a_recovered_file_shows_its_damage(folder, tmp_path):
+def test_a_recovered_file_shows_its_damage(folder, tmp_path, capfd):
     """The file cut just after its last chunk (its summary lost, as when the writer is
     killed): every message is read, and the page says what was lost."""
     with open(folder / "base.mcap", "rb") as f:
         end = max(c.chunk_start_offset + c.chunk_length
                   for c in make_reader(f).get_summary().chunk_indexes)
     (tmp_path / "cut.mcap").write_bytes((folder / "base.mcap").read_bytes()[: end + 10])
-    done = hil(tmp_path, "report", "cut.mcap", "--html", "cut.html")
+    done = hil_here(capfd, "report", "cut.mcap", "--html", "cut.html", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     words = Page((tmp_path / "cut.html").read_text(encoding="utf-8")).text
     assert "Damage: a recovered file" in words
@@ -225,8 +226,8 @@ def test_a_recovered_file_shows_its_damage(folder, tmp_path):
     assert "tracking error" in (tmp_path / "cut.html").read_text()   # what was read
 
 
-def test_bench_report_draws_power_relays_and_levels(bench_folder):
-    done = hil(bench_folder, "report", "bench.mcap", "--html", "bench.html")
+def test_bench_report_draws_power_relays_and_levels(bench_folder, capfd):
+    done = hil_here(capfd, "report", "bench.mcap", "--html", "bench.html", cwd=bench_folder)
     assert done.returncode == 0, done.stderr
     text = (bench_folder / "bench.html").read_text(encoding="utf-8")
     words = Page(text).text

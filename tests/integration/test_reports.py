@@ -169,7 +169,7 @@ def test_a_bench_safety_stop_and_a_bench_fault_are_reported(tmp_path, capfd, mon
 
 def test_a_disturbed_bench_run_is_an_error_case_with_exit_3(tmp_path):
     (tmp_path / "faults.toml").write_text('[faults]\nschedule = ["freeze@6-8:device=meter"]\n')
-    done = hil(tmp_path, "bench", "run", "--controller", "bc", "--cycles", "1", "--config",
+    done = hil(tmp_path, "bench", "run", "--controller", "bc", "--duration", "10", "--config",
                "faults.toml", "--out", "d.mcap", "--json", "--junit", "report.xml")
     assert done.returncode == 3
     line = one_error_line(done, "hil: run disturbed (completed): stale_readings 1")

@@ -6,6 +6,7 @@ nothing left over), and the EEC beats BC's peak as the paper says it does."""
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import re
@@ -28,14 +29,27 @@ FIGURES = ("Fig. 3a", "Fig. 3b", "Fig. 3c", "Fig. 4a", "Fig. 4b", "Fig. 4c", "Fi
 
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory):
-    """One quick reproduction for the module: its folder, its printed summary, its JSON."""
-    folder = tmp_path_factory.mktemp("user")
-    done = subprocess.run([sys.executable, "-m", "hil", "paper", "energy", "--quick", "--out",
-                           "report", "--json"], cwd=folder, capture_output=True, text=True,
-                          env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=540, check=False)
-    assert done.returncode == 0, done.stderr[-3000:]
+    """One quick reproduction for the whole run: its folder, its printed summary, its JSON.
+    Under xdist the first worker to ask makes it in the run's shared temp folder, under a
+    lock, and the others read it (pytest-xdist's documented pattern; the tests only read)."""
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        folder = tmp_path_factory.mktemp("user")
+    else:
+        folder = tmp_path_factory.getbasetemp().parent / "energy-paper-user"
+        folder.mkdir(exist_ok=True)
+    with open(folder.with_suffix(".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        run = folder / "run.json"
+        if not run.exists():
+            done = subprocess.run([sys.executable, "-m", "hil", "paper", "energy", "--quick",
+                                   "--out", "report", "--json"], cwd=folder,
+                                  capture_output=True, text=True, timeout=540, check=False,
+                                  env=dict(os.environ, PYTHONPATH=str(ROOT)))
+            run.write_text(json.dumps([done.returncode, done.stdout, done.stderr]))
+    returncode, stdout, stderr = json.loads(run.read_text())
+    assert returncode == 0, stderr[-3000:]
     report = folder / "report"
-    return report, json.loads(done.stdout), json.loads((report / "energy.json").read_text())
+    return report, json.loads(stdout), json.loads((report / "energy.json").read_text())
 
 
 def test_the_report_holds_every_table_and_figure_of_the_paper(quick):

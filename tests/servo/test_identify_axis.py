@@ -2,7 +2,8 @@
 emulated drive (lockstep, deterministic) inside its current and safety limits, and ``hil
 identify --servo`` finds the published axis in the session (resonance, damping, rigid-body
 gain, held-out fit). Each command runs as a ``hil`` process in a folder outside the
-repository."""
+repository; its variants (a tighter limit, a refusal, the help) run the command line in this
+process (:func:`hil_here`), from the same folder."""
 
 from __future__ import annotations
 
@@ -100,21 +101,21 @@ def test_the_emulated_axis_identified_as_the_published_one(tmp_path):
     assert "--servo" in written["command"]
 
 
-def test_a_tightened_current_limit_holds(tmp_path):
+def test_a_tightened_current_limit_holds(tmp_path, capfd):
     """--umax lowers the limit; the experiment's peak (amplitude and stabiliser) stays inside
     it, with another excitation."""
     session = tmp_path / "low.mcap"
-    run = hil(tmp_path, "servo", "identify", "--duration", "0.5", "--umax", "200",
-              "--amplitude", "120", "--excitation", "chirp", "--out", session)
+    run = hil_here(capfd, "servo", "identify", "--duration", "0.5", "--umax", "200",
+                   "--amplitude", "120", "--excitation", "chirp", "--out", session, cwd=tmp_path)
     assert run.returncode == 0, run.stderr
     assert "|u| <= 200 mA" in run.stdout
     command, _ = feedback(session)
     assert 100 < np.max(np.abs(command)) <= 200
 
 
-def test_an_amplitude_that_cannot_fit_is_one_line(tmp_path):
-    run = hil(tmp_path, "servo", "identify", "--amplitude", "400", "--umax", "500",
-              "--out", tmp_path / "never.mcap")
+def test_an_amplitude_that_cannot_fit_is_one_line(tmp_path, capfd):
+    run = hil_here(capfd, "servo", "identify", "--amplitude", "400", "--umax", "500",
+                   "--out", tmp_path / "never.mcap", cwd=tmp_path)
     assert run.returncode == 2
     assert run.stderr.count("\n") == 1 and "Traceback" not in run.stderr
     assert "--amplitude 400 mA" in run.stderr and "current limit of 500 mA" in run.stderr
@@ -122,15 +123,15 @@ def test_an_amplitude_that_cannot_fit_is_one_line(tmp_path):
     assert not (tmp_path / "never.mcap").exists()
 
 
-def test_help_explains_both_commands(tmp_path):
-    servo = hil(tmp_path, "servo", "identify", "--help")
+def test_help_explains_both_commands(tmp_path, capfd):
+    servo = hil_here(capfd, "servo", "identify", "--help", cwd=tmp_path)
     assert servo.returncode == 0
     text = " ".join(servo.stdout.split())
     for words in ("stabilising loop", "hil identify F.mcap --servo", "--excitation",
                   "crest factor 1", "--amplitude MA", "peak current of the excitation [mA]",
                   "--umax MA", "only lower"):
         assert words in text
-    ident = hil(tmp_path, "identify", "--help")
+    ident = hil_here(capfd, "identify", "--help", cwd=tmp_path)
     assert "--servo" in ident.stdout and "--axis NAME" in ident.stdout
 
 

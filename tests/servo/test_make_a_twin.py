@@ -22,6 +22,7 @@ import pytest
 from hil.cli.identify import SERVO_UNITS, analyse_model, analysis_json
 from hil.controllers.ident.model_file import loads_model
 from hil.core.recording.reader import read_session
+from tests.cli import hil_here
 from tests.docs import blocks, page
 
 pytestmark = [pytest.mark.slow]
@@ -95,11 +96,13 @@ def test_the_guide_makes_a_twin_that_fits_the_machine_and_predicts_its_kpis(mach
     assert tables["model"].endswith("twin.json") and tables["friction"]["viscous_mA_per_deg_s"] == 0
 
 
-def test_a_machine_with_coulomb_friction_fails_the_check_of_a_linear_twin(machine):
+def test_a_machine_with_coulomb_friction_fails_the_check_of_a_linear_twin(machine, capfd):
+    """The guide's first four commands on another machine: a variant of the guide's run,
+    so ``hil`` runs in this process (the test above runs each line as a process)."""
     (machine / "machine.toml").write_text((machine / "machine.toml").read_text()
                                           + "coulomb_mA = 20.0\ncoulomb_smoothing_deg_s = 2.0\n")
     for args in readme_commands()[:4]:
-        done = hil(machine, *args)
+        done = hil_here(capfd, *args, cwd=machine)
     assert done.returncode == 1, done.stdout + done.stderr  # the twin check, last of the four
     assert "FAIL: every output's fit must reach 80 %" in done.stdout
 
