@@ -81,7 +81,8 @@ def test_a_lockstep_run_over_the_wire_under_load_with_its_emulator_paused_is_its
     quiet = experiment(name, tmp_path / "quiet.mcap")
     _, arguments = EXPERIMENTS[name]
     options = {key: value for key, value in arguments.items() if key != "limits"}
-    with busy_machine() as spinning, api.start_drive_emulator() as drive:
+    # the emulator started before the machine is loaded: the run under load is what is checked
+    with api.start_drive_emulator() as drive, busy_machine() as spinning:
         def pause() -> None:
             time.sleep(0.1)
             os.kill(drive.pid, signal.SIGSTOP)
