@@ -25,9 +25,10 @@ from tests.session_digest import EXPERIMENTS, kpi_digest, session_digest
 pytestmark = [pytest.mark.slow]
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
-# three rounds: about 30 s of a make test worker with both cores busy, where ten took 88 s
-# (ten of ten pass by hand too: ROUNDS = 10)
-ROUNDS = 3
+# two rounds: each test of the example after one of its kind in the same session (a fixture's
+# emulator gone, the next one started) with both cores busy; each round costs the two spinning
+# cores its whole length (ten of ten pass by hand too: ROUNDS = 10)
+ROUNDS = 2
 
 
 def rounds_of(example: str) -> str:
