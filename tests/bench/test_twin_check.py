@@ -42,14 +42,15 @@ def relays_of(path: Path) -> list[dict[str, int]]:
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A user's folder: a BC run of the default bench (one cycle) with the plant's noise seed
-    7, a 60 s PRBS experiment on P1 (seed 1) and the P1 model identified from it."""
+    7, a 30 s PRBS experiment on P1 (seed 1) and the P1 model identified from it (its fit of
+    the run: 99.63 %, as from 60 s)."""
     folder = tmp_path_factory.mktemp("twin")
     (folder / "seed7.toml").write_text("[plant]\nseed = 7\n")
     with pytest.MonkeyPatch.context() as patch:  # in this process: each start costs a second
         patch.chdir(folder)
         for args in (("bench", "run", "--controller", "bc", "--cycles", "1", "--quiet",
                       "--config", "seed7.toml", "--out", "run.mcap"),
-                     ("bench", "identify", "--relays", "P1", "--duration", "60",
+                     ("bench", "identify", "--relays", "P1", "--duration", "30",
                       "--progress", "0", "--out", "P1.mcap"),
                      ("identify", "P1.mcap", "--input", P1_INPUTS[0], "--input", P1_INPUTS[1],
                       "--output", "/bench/power:va_l2", "--order", "3", "--detrend",

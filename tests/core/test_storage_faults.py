@@ -10,8 +10,6 @@ import os
 import re
 import resource
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -21,13 +19,12 @@ from hil import api
 from hil.bench.config import load_bench_config
 from hil.core.recording.output import OutputError
 from hil.core.recording.reader import read_session
+from tests.cli import hil_here
 from tests.pymodbus_bench import PymodbusBench, short_config, start_bench_run
 
 pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
 
-ROOT = Path(__file__).resolve().parents[2]
 CONFIG = load_bench_config()
-ENV = dict(os.environ, PYTHONPATH=str(ROOT))
 
 
 def bench_run(bench, out, *extra, cycles=10, config_dir=None, **popen):
@@ -105,12 +102,14 @@ def test_a_killed_writer_stops_the_run_within_a_second(tmp_path):
     ("{tmp}/a_file/x.mcap", "a_file is a file, not a folder"),
     ("/proc/hil-test/x.mcap", "cannot create (the|its) folder /proc/hil-test: "),
 ])
-def test_an_unwritable_output_refuses_before_the_bench_is_reached(tmp_path, out, why):
+def test_an_unwritable_output_refuses_before_the_bench_is_reached(tmp_path, capfd, out, why):
+    """The command line (``hil`` in this process) and the Python API alike."""
     (tmp_path / "a_file").write_text("not a folder")
     path = out.format(tmp=tmp_path)
     with PymodbusBench(CONFIG) as bench:
-        run = bench_run(bench, path, config_dir=tmp_path)
-        _, stderr = run.communicate(timeout=30)
+        run = hil_here(capfd, "bench", "run", "--controller", "bc", "--bench", bench.url,
+                       "--config", short_config(tmp_path), "--out", path)
+        stderr = run.stderr
         assert run.returncode == 2
         # the Python API checks the same before it opens the bench
         with pytest.raises(OutputError, match=why):
@@ -142,14 +141,18 @@ def test_two_runs_on_one_file_the_second_refuses_and_nothing_mixes(tmp_path):
     assert kinds.count("session.start") == kinds.count("session.stop") == 1  # one run alone
 
 
-def test_bytes_after_the_end_of_a_session_are_damage_not_intact(tmp_path):
+def test_bytes_after_the_end_of_a_session_are_damage_not_intact(tmp_path, capfd):
+    """A session of one 2 s cycle, recorded and reported by ``hil`` in this process (the
+    session is what is looked at, not the process that wrote it)."""
     out = tmp_path / "s.mcap"
+    config = short_config(tmp_path, period_s=2.0, dwell_s=0.5)
     with PymodbusBench(CONFIG) as bench:
-        assert bench_run(bench, out, cycles=1).wait(timeout=30) == 0
+        run = hil_here(capfd, "bench", "run", "--controller", "bc", "--bench", bench.url,
+                       "--cycles", "1", "--config", config, "--out", out)
+        assert run.returncode == 0, run.stderr
     with open(out, "ab") as file:
         file.write(b"\x89MCAP0\r\n" + bytes(100))  # another writer's start, mixed in
-    report = subprocess.run([sys.executable, "-m", "hil", "report", str(out), "--json"],
-                            capture_output=True, text=True, env=ENV, timeout=60, check=False)
+    report = hil_here(capfd, "report", out, "--json")
     summary = json.loads(report.stdout)
     assert summary["recovered"] is True
     assert [d["kind"] for d in summary["damage"]] == ["trailing"]

@@ -1,7 +1,8 @@
 """The bench emulator's loads from model files (``[plant.loads.NAME] model = "F.json"``): the
 recorded power is what the model says of the relays ``hil bench identify`` switched, in lockstep
 in-process and against ``hil emulate bench`` over Modbus TCP, from a folder outside the
-repository; the machining model stands for M1 and M2 together, as the EEC reads it; a model
+repository (the emulator a process of its own, ``hil`` run in this process: tests/cli.py); the
+machining model stands for M1 and M2 together, as the EEC reads it; a model
 that cannot be the load is one line, exit 2."""
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from hil.controllers.bench.models import load_linear_model
 from hil.controllers.ident.model_file import loads_model, model_file_of
 from hil.core.recording.reader import read_session
 from hil.emulators.bench.plant import BenchPlant, ModelLoadSpec
+from tests.cli import hil_here
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
@@ -36,11 +38,6 @@ PACKAGED_MODELS = Path(str(resources.files("hil.configs"))) / "models"
 def user_env() -> dict[str, str]:
     """A user's shell: hil installed, the repository not on the path."""
     return {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-
-
-def hil(folder: Path, *args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "hil", *args], cwd=folder, env=user_env(),
-                          capture_output=True, text=True, timeout=timeout)
 
 
 def pump_model(steady_va: float = 300.0, tau_s: float = 0.1, kick_va: float = 200.0,
@@ -75,19 +72,21 @@ def expected_and_recorded(session: Path) -> tuple[np.ndarray, np.ndarray, int]:
     return expected, power["va_l2"], int(relays["P1_start"].sum())
 
 
-def test_a_load_model_gives_the_recorded_power_in_lockstep(bench):
-    done = hil(bench, *IDENTIFY, "--config", "models/bench.toml", "--out", "model.mcap")
+def test_a_load_model_gives_the_recorded_power_in_lockstep(bench, capfd):
+    done = hil_here(capfd, *IDENTIFY, "--config", "models/bench.toml", "--out", "model.mcap",
+                    cwd=bench)
     assert done.returncode == 0, done.stderr
     expected, recorded, starts = expected_and_recorded(bench / "model.mcap")
     assert starts >= 1 and len(recorded) == 3000
     assert np.max(np.abs(recorded - expected)) < 1e-3  # VA: float32 registers
-    built_in = hil(bench, *IDENTIFY, "--config", "quiet.toml", "--out", "motor.mcap")
+    built_in = hil_here(capfd, *IDENTIFY, "--config", "quiet.toml", "--out", "motor.mcap",
+                        cwd=bench)
     assert built_in.returncode == 0, built_in.stderr
     _, motor, _ = expected_and_recorded(bench / "motor.mcap")
     assert np.max(np.abs(motor - recorded)) > 100.0  # the induction motor's inrush and steady
 
 
-def test_hil_emulate_bench_serves_the_load_model(bench):
+def test_hil_emulate_bench_serves_the_load_model(bench, capfd):
     """The standalone emulator reads the model beside its config; an experiment over Modbus
     TCP, in lockstep over the wire as a run is, records what the model says."""
     process = subprocess.Popen(
@@ -99,8 +98,8 @@ def test_hil_emulate_bench_serves_the_load_model(bench):
         line = process.stdout.readline()
         url = re.search(r"listening on (modbus-tcp://\S+?) \(", line)
         assert url, line
-        done = hil(bench, *IDENTIFY, "--bench", url.group(1), "--config", "models/bench.toml",
-                   "--out", "wire.mcap")
+        done = hil_here(capfd, *IDENTIFY, "--bench", url.group(1), "--config",
+                        "models/bench.toml", "--out", "wire.mcap", cwd=bench)
         assert done.returncode == 0, done.stderr
     finally:
         process.send_signal(signal.SIGTERM)
@@ -162,14 +161,15 @@ BAD_LOADS = {
 
 
 @pytest.mark.parametrize("case", BAD_LOADS)
-def test_a_load_model_that_cannot_be_the_load_is_one_line_exit_2(tmp_path, case):
+def test_a_load_model_that_cannot_be_the_load_is_one_line_exit_2(tmp_path, capsys, case):
     text, problem = BAD_LOADS[case]
     names = {"machining": PACKAGED_MODELS / "machining.json", "folder": tmp_path}
     (tmp_path / "slow.json").write_text(pump_model(dt=0.02))
     (tmp_path / "watts.json").write_text(pump_model(output="/bench/power:total_w"))
     (tmp_path / "pump.json").write_text(pump_model())
     (tmp_path / "bad.toml").write_text(text.format(**names))
-    done = hil(tmp_path, "emulate", "bench", "--tcp", "127.0.0.1:0", "--config", "bad.toml")
+    done = hil_here(capsys, "emulate", "bench", "--tcp", "127.0.0.1:0", "--config", "bad.toml",
+                    cwd=tmp_path)
     assert done.returncode == 2
     lines = done.stderr.splitlines()
     assert len(lines) == 1 and done.stdout == "", done.stderr

@@ -1,13 +1,14 @@
 """Lockstep over the wire: ``hil bench run --bench URL`` (no ``--realtime``) against ``hil emulate
 bench`` in a process of its own, both from the command line in a folder outside the
-repository. The emulator follows the run's time (the clock unit 248 of
-hil/protocols/bench_clock.py, read here with pymodbus's own client), so the sessions are
-those of the in-process lockstep, bit for bit, and one emulator serves them one after the
-other; a pause of either side changes nothing; a dead or frozen emulator ends the run with one
-line and exit status 3; a Modbus server hil did not write is not taken for the emulator;
-``--clock wall`` refuses a lockstep run (which then goes by the wall clock, with a warning) and
-``--clock master`` waits for one; over RTU too. (The ``hil_bench`` fixture's runs over the
-wire: tests/test_user_workflow.py.)"""
+repository for the reference sessions and the pauses (the other cases run ``hil`` in this
+process, tests/cli.py, from the same folder). The emulator follows the run's time (the clock
+unit 248 of hil/protocols/bench_clock.py, read here with pymodbus's own client), so the
+sessions are those of the in-process lockstep, bit for bit, and one emulator serves them one
+after the other; a pause of either side changes nothing; a dead or frozen emulator ends the
+run with one line and exit status 3; a Modbus server hil did not write is not taken for the
+emulator; ``--clock wall`` refuses a lockstep run (which then goes by the wall clock, with a
+warning) and ``--clock master`` waits for one; over RTU too. (The ``hil_bench`` fixture's
+runs over the wire: tests/test_user_workflow.py.)"""
 
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ from pymodbus.client import ModbusTcpClient
 from hil.bench.config import load_bench_config
 from hil.core.recording.reader import read_session
 from hil.emulators.null_modem import NullModem
+from tests.cli import hil_here
 from tests.pymodbus_bench import PymodbusBench, short_config
 from tests.session_digest import (
     EXPERIMENTS,
@@ -206,7 +208,7 @@ def test_a_second_long_pause_of_either_side_changes_nothing(seeded, tmp_path, pa
 
 
 @pytest.mark.parametrize("how", ["killed", "frozen"])
-def test_a_gone_emulator_ends_the_run_with_its_relays_unconfirmed_unsafe(tmp_path, how):
+def test_a_gone_emulator_ends_the_run_with_its_relays_unconfirmed_unsafe(tmp_path, capfd, how):
     """Killed (its connection refused) or frozen for longer than bus.lockstep_timeout_s (2 s
     here): one line naming the emulator, the run stopped within the bound; and one saying the
     relays may still be on (they cannot be read back): the run is unsafe, exit 4."""
@@ -216,8 +218,8 @@ def test_a_gone_emulator_ends_the_run_with_its_relays_unconfirmed_unsafe(tmp_pat
         pid = emulator.process.pid
         end = {"killed": signal.SIGKILL, "frozen": signal.SIGSTOP}[how]
         watcher = AtPlantTime(emulator, 3.0, lambda: os.kill(pid, end))
-        run = hil(tmp_path, "bench", "run", "--controller", "bc", "--cycles", "1", "--bench",
-                  emulator.url, "--config", str(config), "--out", "gone.mcap", timeout=120)
+        run = hil_here(capfd, "bench", "run", "--controller", "bc", "--cycles", "1", "--bench",
+                       emulator.url, "--config", config, "--out", "gone.mcap", cwd=tmp_path)
         watcher.join()
     assert watcher.at is not None
     assert run.returncode == 4, run.stderr
@@ -238,7 +240,7 @@ def test_a_gone_emulator_ends_the_run_with_its_relays_unconfirmed_unsafe(tmp_pat
         ["M1", "M2", "P1", "P2"] and unconfirmed["data"]["on"] == []
 
 
-def test_faults_play_on_the_runs_time_and_never_leave_it_waiting(tmp_path):
+def test_faults_play_on_the_runs_time_and_never_leave_it_waiting(tmp_path, capfd):
     """Late answers (300 ms, over timeout_s) and dropped ones are answered at once with
     exception 0x0B: retried, the link lost (and restored), then given up after give_up_s of the
     run's time; never the 60 s bound a silence would take to mean a gone emulator."""
@@ -246,8 +248,9 @@ def test_faults_play_on_the_runs_time_and_never_leave_it_waiting(tmp_path):
     config.write_text("[bus]\ngive_up_s = 5.0\nlockstep_timeout_s = 60.0\n")
     with Emulator(tmp_path, "--tcp", "127.0.0.1:0", "--fault", "delay@2-2.5:ms=300",
                   "--fault", "drop@10") as emulator:
-        run = hil(tmp_path, "bench", "run", "--controller", "bc", "--cycles", "1", "--bench",
-                  emulator.url, "--config", str(config), "--json", "--out", "faults.mcap")
+        run = hil_here(capfd, "bench", "run", "--controller", "bc", "--cycles", "1", "--bench",
+                       emulator.url, "--config", config, "--json", "--out", "faults.mcap",
+                       cwd=tmp_path)
     assert run.returncode == 4, run.stderr  # dropped for good: the relays unconfirmed
     kpis = json.loads(run.stdout)
     assert kpis["stop_reason"] == "link lost for 5 s"
@@ -258,26 +261,26 @@ def test_faults_play_on_the_runs_time_and_never_leave_it_waiting(tmp_path):
         ["t=2.000", "t=10.000"]  # on the run's time, from its start
 
 
-def test_a_modbus_server_hil_did_not_write_is_not_taken_for_the_emulator(tmp_path):
+def test_a_modbus_server_hil_did_not_write_is_not_taken_for_the_emulator(tmp_path, capfd):
     """pymodbus's own server answers Read Device Identification with an identity that is not
     hil's: the run (no --realtime) follows the wall clock, as against any real bench (a 2 s
     cycle)."""
     config = short_config(tmp_path, period_s=2.0, dwell_s=0.5)
     with PymodbusBench(load_bench_config(str(config))) as peer:
-        run = hil(tmp_path, "bench", "run", "--controller", "bc", "--cycles", "1", "--bench",
-                  peer.url, "--config", str(config), "--out", "peer.mcap")
+        run = hil_here(capfd, "bench", "run", "--controller", "bc", "--cycles", "1", "--bench",
+                       peer.url, "--config", config, "--out", "peer.mcap", cwd=tmp_path)
     assert run.returncode in (0, 3), run.stderr  # 3: a loaded machine answered late
     metadata = read_session(str(tmp_path / "peer.mcap")).metadata
     assert metadata["session"]["clock"] == "realtime"
     assert metadata["bench"] == {"url": peer.url, "identity": "", "time": "its own"}
 
 
-def test_an_emulator_on_its_wall_clock_refuses_a_lockstep_run_in_one_line(tmp_path):
+def test_an_emulator_on_its_wall_clock_refuses_a_lockstep_run_in_one_line(tmp_path, capfd):
     """The run is then on the wall clock, as against a real bench (a 2 s cycle)."""
     config = short_config(tmp_path, period_s=2.0, dwell_s=0.5)
     with Emulator(tmp_path, "--tcp", "127.0.0.1:0", "--clock", "wall") as emulator:
-        run = hil(tmp_path, "bench", "run", "--controller", "bc", "--cycles", "1", "--bench",
-                  emulator.url, "--config", str(config), "--out", "wall.mcap")
+        run = hil_here(capfd, "bench", "run", "--controller", "bc", "--cycles", "1", "--bench",
+                       emulator.url, "--config", config, "--out", "wall.mcap", cwd=tmp_path)
         assert emulator.clock()[1] == 0  # still on its wall clock
     warning = (f"hil: warning: the bench emulator at {emulator.url} keeps its wall clock (hil "
                "emulate bench --clock wall): this run follows the wall clock too, as against "
@@ -292,14 +295,14 @@ def test_an_emulator_on_its_wall_clock_refuses_a_lockstep_run_in_one_line(tmp_pa
                for line in emulator.lines())
 
 
-def test_an_emulator_on_master_time_waits_for_a_master_before_and_after(tmp_path):
+def test_an_emulator_on_master_time_waits_for_a_master_before_and_after(tmp_path, capfd):
     """A 2 s cycle: the plant stays where the run left it."""
     config = short_config(tmp_path, period_s=2.0, dwell_s=0.5)
     with Emulator(tmp_path, "--tcp", "127.0.0.1:0", "--clock", "master") as emulator:
         time.sleep(0.3)  # what the wall clock would have stepped
         assert emulator.clock() == (0.0, WAITING_FOR_MASTER)
-        run = hil(tmp_path, "bench", "run", "--controller", "bc", "--cycles", "1", "--bench",
-                  emulator.url, "--config", str(config), "--out", "run.mcap")
+        run = hil_here(capfd, "bench", "run", "--controller", "bc", "--cycles", "1", "--bench",
+                       emulator.url, "--config", config, "--out", "run.mcap", cwd=tmp_path)
         assert run.returncode == 0, run.stderr
         time.sleep(0.3)
         assert emulator.clock() == (2.0, WAITING_FOR_MASTER)
@@ -310,18 +313,19 @@ def test_an_emulator_on_master_time_waits_for_a_master_before_and_after(tmp_path
 SHORT_RUN = ["--controller", "bc", "--cycles", "1", "--limit", "total_va<=5000", "--json"]
 
 
-def test_lockstep_over_rtu_records_the_in_process_session(tmp_path):
+def test_lockstep_over_rtu_records_the_in_process_session(tmp_path, capfd):
     """Over Modbus RTU (a pty pair) too; the sessions differ only by the bench URL in the
     events. A 2 s cycle: pymodbus' serial client polls its port every millisecond, so a
     lockstep RTU run goes about as fast as real time."""
     config = str(short_config(tmp_path, period_s=2.0, dwell_s=0.5))
-    inside = hil(tmp_path, "bench", "run", *SHORT_RUN, "--config", config, "--out", "in.mcap")
+    inside = hil_here(capfd, "bench", "run", *SHORT_RUN, "--config", config, "--out", "in.mcap",
+                      cwd=tmp_path)
     assert inside.returncode == 0, inside.stderr
     with NullModem() as modem, Emulator(tmp_path, "--serial", modem.ports[1], "--config",
                                         config) as emulator:
         url = f"modbus-rtu://{modem.ports[0]}?baud=115200&parity=N"
-        wire = hil(tmp_path, "bench", "run", *SHORT_RUN, "--config", config, "--bench", url,
-                   "--out", "rtu.mcap")
+        wire = hil_here(capfd, "bench", "run", *SHORT_RUN, "--config", config, "--bench", url,
+                        "--out", "rtu.mcap", cwd=tmp_path)
     assert wire.returncode == 0, wire.stderr
     assert kpi_digest(json.loads(wire.stdout)) == kpi_digest(json.loads(inside.stdout))
     ours, theirs = (session_digest(str(tmp_path / f)) for f in ("rtu.mcap", "in.mcap"))

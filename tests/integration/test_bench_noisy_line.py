@@ -118,9 +118,11 @@ def events_of(folder: Path) -> list[dict]:
 
 
 def test_one_flipped_byte_in_5000_costs_a_retry_not_the_run(tmp_path):
+    """Two cycles, some 20,000 bytes each way: seed 1 flips the first byte after some 6,300
+    of either way's, then one in 5000 on average."""
     with noisy_line("noise@0:rate=0.0002,seed=1") as modem, \
             emulator_on(modem, tmp_path) as config:
-        run = run_through(modem, tmp_path, config, "--controller", "bc", "--cycles", "3")
+        run = run_through(modem, tmp_path, config, "--controller", "bc", "--cycles", "2")
     assert run.returncode == 0, run.stderr
     kpis = json.loads(run.stdout)
     assert kpis["status"] == "completed" and not kpis["disturbed"]
@@ -132,12 +134,12 @@ def test_one_flipped_byte_in_5000_costs_a_retry_not_the_run(tmp_path):
 
 
 def test_a_line_flipping_2_percent_of_bytes_both_ways_mid_run(tmp_path):
-    """4 s of a line flipping 2 % of the bytes each way, from about a fifth of the run on: the
-    run completes, or ends by the link-loss rules with its relays read back or said; the
-    relays are where hil says."""
-    with noisy_line("noise@1-5:rate=0.02,seed=2", after_bytes=40_000) as modem, \
+    """4 s of a line flipping 2 % of the bytes each way, from about a fifth of the run on (six
+    cycles, some 11,000 bytes each from the emulator): the run completes, or ends by the
+    link-loss rules with its relays read back or said; the relays are where hil says."""
+    with noisy_line("noise@1-5:rate=0.02,seed=2", after_bytes=24_000) as modem, \
             emulator_on(modem, tmp_path) as config:
-        run = run_through(modem, tmp_path, config, "--controller", "bc", "--cycles", "10")
+        run = run_through(modem, tmp_path, config, "--controller", "bc", "--cycles", "6")
         relays = relays_read_by_another_master(modem)
     assert modem.flipped[0] > 0 and modem.flipped[1] > 0
     assert run.returncode in (0, 3, 4), run.stderr

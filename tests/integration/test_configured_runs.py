@@ -85,8 +85,8 @@ def test_the_config_current_limit_holds_and_a_flag_only_lowers_it(tmp_path, capf
         f"hil: error: --umax 500 mA is above the configured current limit "
         f"(master.current_limit_mA = 300 mA, --config {config}): a flag may lower it, not raise "
         "it; --allow-higher-current raises it (recorded)\n")
-    raised = hil(tmp_path, *base, "--umax", "500", "--allow-higher-current", "--out",
-                 "raised.mcap")
+    raised = hil_here(capfd, *base, "--umax", "500", "--allow-higher-current", "--out",
+                      "raised.mcap")
     assert raised.returncode == 0, raised.stderr
     assert json.loads(raised.stdout)["current_limit_mA"] == 500
     assert "hil: warning: --umax 500 mA raises the configured current limit of 300 mA" \
@@ -199,12 +199,12 @@ def test_a_typo_or_another_unit_is_one_line_that_says_what_was_meant(tmp_path, c
     assert not (tmp_path / "never.mcap").exists()
 
 
-def test_an_eds_beside_the_config_file_is_the_one_checked(tmp_path):
+def test_an_eds_beside_the_config_file_is_the_one_checked(tmp_path, capfd):
     """[master] eds is read from the config file's folder, --eds from the working folder;
     the run checks the drive against it before anything is written."""
     folder = tmp_path / "bench"
     folder.mkdir()
-    written = hil(folder, "emulate", "drive", "--write-eds", "drive.eds")
+    written = hil_here(capfd, "emulate", "drive", "--write-eds", "drive.eds", cwd=folder)
     assert written.returncode == 0, written.stderr
     config = folder / "drive.toml"
     config.write_text('[master]\neds = "drive.eds"\n')
@@ -215,8 +215,8 @@ def test_an_eds_beside_the_config_file_is_the_one_checked(tmp_path):
     assert run.returncode == 0, run.stderr
     drive = json.loads(read_session(str(elsewhere / "eds.mcap")).metadata["drive"]["json"])
     assert drive["eds"]["path"] == str(folder / "drive.eds")
-    missing = hil(elsewhere, "servo", "run", "--controller", "pid", "--eds", "drive.eds",
-                  "--duration", "0.1", "--out", "none.mcap")
+    missing = hil_here(capfd, "servo", "run", "--controller", "pid", "--eds", "drive.eds",
+                       "--duration", "0.1", "--out", "none.mcap", cwd=elsewhere)
     assert missing.returncode == 2 and str(elsewhere / "drive.eds") in missing.stderr
 
 

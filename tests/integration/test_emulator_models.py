@@ -3,7 +3,9 @@ model``, ``--drive 'emulated?model=F'``, ``hil emulate drive --model``) and a be
 whose load is one (``[plant.loads.NAME] model``), from the command line in a folder outside
 the repository. The machine is a different axis (the published one with its resonance moved
 and its gain changed, written by :func:`axis_model_file`): a run's recorded positions are that
-axis' (the plant stepped directly with the recorded currents), not the default's."""
+axis' (the plant stepped directly with the recorded currents), not the default's. A run of
+the default axis and the standalone emulator are processes of their own; the variants run
+``hil`` in this process (tests/cli.py), from the same folder."""
 
 from __future__ import annotations
 
@@ -99,13 +101,13 @@ def test_the_other_axis_has_its_resonance_moved():
 
 
 @pytest.mark.parametrize("where", ["config", "url"])
-def test_a_lockstep_run_moves_the_model_files_axis(machine, where):
+def test_a_lockstep_run_moves_the_model_files_axis(machine, capfd, where):
     """The key (its path beside the config file) or the URL (its path from the working
     folder): the positions are the other axis', within the encoder's resolution."""
     out = f"other-{where}.mcap"
     given = ["--config", "models/drive.toml"] if where == "config" \
         else ["--drive", "emulated?model=models/other.json"]
-    done = hil(machine, *RUN, *given, "--out", out)
+    done = hil_here(capfd, *RUN, *given, "--out", out, cwd=machine)
     assert done.returncode == 0, done.stderr
     positions, currents = positions_and_currents(machine / out)
     default, _ = positions_and_currents(machine / "default.mcap")
@@ -115,16 +117,17 @@ def test_a_lockstep_run_moves_the_model_files_axis(machine, where):
     assert np.max(np.abs(positions - simulated(None, currents))) > 100 * INCREMENT_DEG
 
 
-def test_the_published_axis_as_a_model_file_runs_as_the_default(machine):
+def test_the_published_axis_as_a_model_file_runs_as_the_default(machine, capfd):
     (machine / "published.json").write_text(axis_model_file(published_axis_model()))
-    done = hil(machine, *RUN, "--drive", "emulated?model=published.json", "--out", "pub.mcap")
+    done = hil_here(capfd, *RUN, "--drive", "emulated?model=published.json", "--out", "pub.mcap",
+                    cwd=machine)
     assert done.returncode == 0, done.stderr
     positions, _ = positions_and_currents(machine / "pub.mcap")
     default, _ = positions_and_currents(machine / "default.mcap")
     assert np.array_equal(positions, default)
 
 
-def test_a_model_steps_as_often_as_its_period_fits_in_the_cycle(machine):
+def test_a_model_steps_as_often_as_its_period_fits_in_the_cycle(machine, capfd):
     """A 1000 us cycle: the published axis' 500 us file steps twice per SYNC, as the default
     axis does; the same axis sampled every 1000 us steps once, to the same positions."""
     axis = published_axis_model()
@@ -134,8 +137,8 @@ def test_a_model_steps_as_often_as_its_period_fits_in_the_cycle(machine):
     positions = {}
     for name in ("default", "p500", "p1000"):
         drive = "emulated" if name == "default" else f"emulated?model={name}.json"
-        done = hil(machine, *RUN, "--param", "ti_us=8000", "--config", "cycle.toml",
-                   "--drive", drive, "--out", f"cycle-{name}.mcap")
+        done = hil_here(capfd, *RUN, "--param", "ti_us=8000", "--config", "cycle.toml",
+                        "--drive", drive, "--out", f"cycle-{name}.mcap", cwd=machine)
         assert done.returncode == 0, done.stderr
         positions[name], _ = positions_and_currents(machine / f"cycle-{name}.mcap")
     assert len(positions["default"]) == 300
@@ -176,13 +179,13 @@ BAD_AXES = {
 
 
 @pytest.mark.parametrize("case", BAD_AXES)
-def test_a_bad_axis_model_is_one_line_exit_2(tmp_path, case):
+def test_a_bad_axis_model_is_one_line_exit_2(tmp_path, capsys, case):
     text, problem = BAD_AXES[case]
     model = tmp_path / f"{case}.json"
     if text is not None:
         model.write_text(text)
     (tmp_path / "drive.toml").write_text(f'[emulator]\nmodel = "{case}.json"\n')
-    done = hil(tmp_path, *RUN, "--config", "drive.toml")
+    done = hil_here(capsys, *RUN, "--config", "drive.toml", cwd=tmp_path)
     assert done.returncode == 2
     lines = done.stderr.splitlines()
     assert len(lines) == 1, done.stderr
@@ -190,8 +193,8 @@ def test_a_bad_axis_model_is_one_line_exit_2(tmp_path, case):
                                f"{problem.format(path=model)}"), lines[0]
 
 
-def test_the_url_takes_the_model_key_only(tmp_path):
-    done = hil(tmp_path, *RUN, "--drive", "emulated?axis=x.json")
+def test_the_url_takes_the_model_key_only(tmp_path, capsys):
+    done = hil_here(capsys, *RUN, "--drive", "emulated?axis=x.json", cwd=tmp_path)
     assert done.returncode == 2
     assert done.stderr == ("hil: error: --drive 'emulated?axis=x.json': 'axis=x.json' is not a "
                            "key of the emulated drive (it takes model=F.json: its axis as a "
@@ -217,15 +220,15 @@ def stop(process: subprocess.Popen[str]) -> str:
     return err
 
 
-def test_hil_emulate_drive_runs_the_model_given_by_its_flag(machine):
+def test_hil_emulate_drive_runs_the_model_given_by_its_flag(machine, capfd):
     """The standalone emulator with --model: a lockstep run over socketcand moves the other
     axis; a bad model is refused in one line."""
     process, line = start_emulator(machine, "--model", "models/other.json")
     try:
         port = re.search(r"socketcand 127\.0\.0\.1:(\d+) ", line)
         assert port, line
-        done = hil(machine, *RUN, "--drive", f"socketcand://127.0.0.1:{port.group(1)}",
-                   "--out", "wire.mcap")
+        done = hil_here(capfd, *RUN, "--drive", f"socketcand://127.0.0.1:{port.group(1)}",
+                        "--out", "wire.mcap", cwd=machine)
         assert done.returncode == 0, done.stderr
     finally:
         stop(process)
