@@ -12,6 +12,7 @@ import tempfile
 from pathlib import Path
 
 import pytest
+from threadpoolctl import threadpool_limits
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -20,6 +21,13 @@ REPO = Path(__file__).resolve().parents[1]
 if "HIL_STATE_DIR" not in os.environ:
     os.environ["HIL_STATE_DIR"] = tempfile.mkdtemp(prefix="hil-test-state-")
     atexit.register(shutil.rmtree, os.environ["HIL_STATE_DIR"], True)
+
+# BLAS on one thread, in this process (numpy is loaded already, by hil's pytest plugin) and in
+# the processes the tests start: the suite's workers fill both cores, and OpenBLAS's second
+# thread only spins against them (tests/controllers/ident/test_n4sid.py: 31 s -> 3 s of CPU
+# under load); the golden session digests are the same either way
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+threadpool_limits(limits=int(os.environ["OPENBLAS_NUM_THREADS"]), user_api="blas")
 
 
 @pytest.fixture

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import marshal
 import struct
 import sys
 from collections import Counter
@@ -30,7 +31,10 @@ from hil.core.recording.reader import SessionData, read_session
 
 CHUNK_SPAN_S = 1.0  # the recorder's default: a chunk closes once it spans this much
 OVERWRITE_BYTES = 4096
-Item = tuple[str, int, str]  # topic, log time, the decoded message's repr
+#: topic, log time, the decoded message marshalled: its content, types, key order and -0.0 told
+#: apart as its repr tells them apart, at a sixth of repr's CPU; format 2, which writes every
+#: object out (no references: two equal strings read by two paths give the same bytes)
+Item = tuple[str, int, bytes]
 
 
 @dataclass(frozen=True)
@@ -58,7 +62,7 @@ class DamageReport:
 
 
 def items_of(data: SessionData) -> Counter[Item]:
-    return Counter((topic, t, repr(message)) for topic in data.messages
+    return Counter((topic, t, marshal.dumps(message, 2)) for topic in data.messages
                    for t, message in data.topic(topic))
 
 

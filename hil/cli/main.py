@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import difflib
+import functools
 import importlib
 import os
 import sys
@@ -49,6 +50,14 @@ def command_of(argv: Sequence[str]) -> str | None:
     return argv[0] if argv and argv[0] in COMMANDS else None
 
 
+@functools.cache
+def _shared_parser(command: str | None) -> argparse.ArgumentParser:
+    """The parser of ``command`` (None: of every command), built once per process: parsing
+    leaves it as it was (its defaults are only read), and building it costs ~10 ms of CPU,
+    which every in-process ``main`` call paid."""
+    return build_parser(command)
+
+
 def _leaf_parser(parser: argparse.ArgumentParser, args: argparse.Namespace
                  ) -> argparse.ArgumentParser:
     """The (sub)command parser that ``args`` came through."""
@@ -79,8 +88,8 @@ def parse_arguments(parser: argparse.ArgumentParser, argv: Sequence[str] | None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser(command_of(sys.argv[1:] if argv is None else argv))
-    args = parse_arguments(parser, argv)
+    args = parse_arguments(_shared_parser(command_of(sys.argv[1:] if argv is None else argv)),
+                           argv)
     from hil.core.command_line import set_command_line
 
     set_command_line(["hil", *(sys.argv[1:] if argv is None else argv)])

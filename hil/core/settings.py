@@ -19,7 +19,7 @@ import math
 import os
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, fields, is_dataclass
-from functools import partial
+from functools import cached_property, partial
 from typing import Any
 
 from hil.errors import UsageError
@@ -68,12 +68,22 @@ class Layered:
         """The layer that set ``key`` last: a leaf's, a table's last-set leaf's, or for a key
         inside an array of tables (``axis[0].eds``) the array's, which a layer sets whole."""
         while key:
-            found = [index for dotted, index in self.origins.items()
-                     if dotted == key or dotted.startswith(key + ".")]
-            if found:
-                return max(found)
+            if key in self._last_setters:
+                return self._last_setters[key]
             key = key[:max(key.rfind("."), key.rfind("["), 0)]  # its parent: a table, an array
         return None
+
+    @cached_property
+    def _last_setters(self) -> dict[str, int]:
+        """Per set key and per table holding one, the last layer that set it or a key in it
+        (built once: a run's settings ask it of each of their keys)."""
+        last: dict[str, int] = {}
+        for dotted, index in self.origins.items():
+            cut = len(dotted)
+            while cut > 0:  # the key, then each table it is in
+                last[dotted[:cut]] = max(index, last.get(dotted[:cut], index))
+                cut = dotted.rfind(".", 0, cut)
+        return last
 
     def origin(self, key: str) -> str:
         """Who set ``key`` (a leaf, or a table: its last-set leaf); :data:`BUILT_IN` if nobody."""
@@ -117,7 +127,10 @@ def _lay(into: dict[str, Any], data: Mapping[str, Any], prefix: str, index: int,
                     origins[dotted] = index
             _lay(into[key], value, dotted + ".", index, origins, whole)
         else:
-            _forget(origins, dotted)
+            if isinstance(into.get(key), Mapping):  # a table replaced by a value
+                _forget(origins, dotted)
+            else:  # a value (or nothing) before: it held no keys to forget
+                origins.pop(dotted, None)
             into[key] = copy.deepcopy(value)
             origins[dotted] = index
 

@@ -8,6 +8,7 @@ UTF-8) reads as it did message by message, that message undecodable and the othe
 
 from __future__ import annotations
 
+import functools
 import math
 import string
 import struct
@@ -84,6 +85,13 @@ def values_of(f: Field) -> st.SearchStrategy[Any]:
 
 
 def messages_of(fields: list[Field], size: int = 12) -> st.SearchStrategy[list[dict]]:
+    return _messages_of(tuple(fields), size)
+
+
+@functools.cache
+def _messages_of(fields: tuple[Field, ...], size: int) -> st.SearchStrategy[list[dict]]:
+    """One strategy per schema, not one per example: hypothesis checks a new strategy's
+    structure before its first draw (a third of test_a_topic_with_a_damaged_message...)."""
     return st.lists(st.fixed_dictionaries({f.name: values_of(f) for f in fields}),
                     min_size=1, max_size=size)
 

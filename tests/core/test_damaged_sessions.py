@@ -46,7 +46,10 @@ def folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def lockstep(folder: Path) -> Path:
-    hil(folder, "bench", "run", "--controller", "bc", "--cycles", "1", "--out", "lockstep.mcap")
+    """Recorded in this process (the file is what these tests read, not how it was started)."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.chdir(folder)
+        main(["bench", "run", "--controller", "bc", "--cycles", "1", "--out", "lockstep.mcap"])
     return folder / "lockstep.mcap"
 
 

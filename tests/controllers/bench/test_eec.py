@@ -16,7 +16,6 @@ from hil.bench.config import load_bench_config
 from hil.controllers.base import BenchController, BenchEstimator, BenchObservation
 from hil.controllers.bench.eec import EEC
 from hil.controllers.bench.eec_costs import HorizonCosts
-from hil.controllers.bench.eec_cvxpy import CvxpyEEC, solve_naive
 from hil.controllers.bench.eec_repair import feasible, repair
 from hil.controllers.bench.eec_settings import EECSettings
 from hil.controllers.bench.eec_solver import HorizonSolver
@@ -162,6 +161,10 @@ def test_infeasible_problem_is_reported_not_raised():
 @pytest.mark.parametrize("t_s, q0, u_prev", [(3.0, [56.0, 66.0], [0, 0]),
                                              (15.0, [70.0, 90.0], [1, 0])])
 def test_highs_model_equals_the_cvxpy_reference(t_s, q0, u_prev):
+    # imported here: cvxpy costs ~1 s of CPU to import, which every xdist worker paid when it
+    # collected this module, whether it ran this test or not
+    from hil.controllers.bench.eec_cvxpy import CvxpyEEC, solve_naive
+
     problem = problem_with_dwell(5.0)
     models = synthetic_models(problem)
     settings = EECSettings(hp_steps=10, limit_va=500.0, peak_resolution_va=0.0,

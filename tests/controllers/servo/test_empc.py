@@ -21,8 +21,8 @@ PAPER = MpcConfig(ht=3, hu=3, hp=50, ert="foh")
 
 
 @pytest.fixture(scope="module")
-def law():
-    return build_explicit_law(PAPER)
+def law(explicit_law):
+    return explicit_law(PAPER)
 
 
 @pytest.mark.parametrize(("reference", "duration"), [

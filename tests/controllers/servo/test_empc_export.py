@@ -8,7 +8,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from hil.controllers.servo.empc import build_explicit_law, relative_map
+from hil.controllers.servo.empc import relative_map
 from hil.controllers.servo.empc_export import c_source, write_c
 from hil.controllers.servo.empc_tree import NOT_FOUND, OUTSIDE_BOX
 from hil.controllers.servo.mpc import MpcConfig
@@ -25,8 +25,8 @@ SENTINEL = 1234.5
 
 
 @pytest.fixture(scope="module", params=list(CASES))
-def compiled(request, tmp_path_factory):
-    law = build_explicit_law(CASES[request.param])
+def compiled(request, tmp_path_factory, explicit_law):
+    law = explicit_law(CASES[request.param])
     folder = tmp_path_factory.mktemp(request.param)
     source = write_c(law, folder / "empc_law.c")
     obj = folder / "empc_law.o"
@@ -90,8 +90,8 @@ def test_nan_parameter_is_outside_the_box(compiled):
     assert NOT_FOUND not in law.tree.label[law.tree.plane < 0]  # covered box: no gap leaf
 
 
-def test_source_documents_its_interface():
-    law = build_explicit_law(CASES["paper"])
+def test_source_documents_its_interface(explicit_law):
+    law = explicit_law(CASES["paper"])
     text = c_source(law)
     assert "int empc_eval(const double theta[], double *du)" in text
     assert "malloc" not in text and "#include" not in text
@@ -99,7 +99,7 @@ def test_source_documents_its_interface():
         assert f" {name} " in text
 
 
-def test_unwritable_path_is_one_clear_error(tmp_path):
-    law = build_explicit_law(CASES["paper"])
+def test_unwritable_path_is_one_clear_error(tmp_path, explicit_law):
+    law = explicit_law(CASES["paper"])
     with pytest.raises(HilError, match="cannot write"):
         write_c(law, tmp_path / "missing" / "law.c")

@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 
-from hil.controllers.servo.empc import build_explicit_law
 from hil.controllers.servo.empc_tree import (
     NOT_FOUND,
     OUTSIDE_BOX,
@@ -27,8 +26,8 @@ def polyhedra(solution):
 
 
 @pytest.fixture(scope="module")
-def law():
-    return build_explicit_law(MpcConfig(ht=3, hu=3, hp=50, ert="foh"))
+def law(explicit_law):
+    return explicit_law(MpcConfig(ht=3, hu=3, hp=50, ert="foh"))
 
 
 @pytest.fixture(scope="module")

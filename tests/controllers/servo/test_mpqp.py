@@ -5,7 +5,6 @@ from __future__ import annotations
 import daqp
 import numpy as np
 import pytest
-from scipy.optimize import linprog
 
 from hil.controllers.servo.empc import build_explicit_law, relative_map
 from hil.controllers.servo.mpc import DaqpSolver, MpcConfig
@@ -16,8 +15,8 @@ PAPER = MpcConfig(ht=3, hu=3, hp=50, ert="foh")  # Q = 1e6, R = 1, |u| <= 1000 m
 
 
 @pytest.fixture(scope="module")
-def law():
-    return build_explicit_law(PAPER)
+def law(explicit_law):
+    return explicit_law(PAPER)
 
 
 def region_samples(solution, rng, per_region):
@@ -144,6 +143,10 @@ def test_every_point_of_the_box_lies_in_exactly_one_region(law):
 
 def test_no_redundant_half_space_is_kept(law):
     """Each kept row cuts its region: dropping it lets a'p exceed b (checked with scipy)."""
+    # imported here, not when every xdist worker collects this module (and the two that
+    # import its helpers): scipy.optimize is ~0.15 s of CPU to import
+    from scipy.optimize import linprog
+
     for region in law.solution.regions:
         assert region.A.shape[0] == region.b.size == region.boundary.size
         for i in range(region.A.shape[0]):
