@@ -113,4 +113,4 @@ def test_a_chunks_message_index_is_the_record_mcap_writes(count):
     index = MessageIndex(channel_id=7, records=entries)
     builder = RecordBuilder()
     index.write(builder)
-    assert message_index_record(index) == builder.end()
+    assert message_index_record(7, entries) == builder.end()

@@ -55,17 +55,14 @@ class InProcessWriter:
         writer = self.writer
         if writer is None or self.error:
             return 0
-        done = 0
         try:
-            for record in records:
-                writer.apply(record)
-                done += 1
+            writer.apply_all(records)
             if time.monotonic() >= self._next_flush:
                 writer.series.flush()
                 self._next_flush = time.monotonic() + self._flush_interval_s
         except Exception as exc:
             self.error = describe_failure(exc)
-        return done
+        return writer.applied
 
     def close(self) -> dict[str, Any]:
         """Finish the file; the writer process's report (``messages_written``, ``error``...)."""
