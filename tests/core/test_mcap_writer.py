@@ -113,7 +113,7 @@ def test_a_chunks_message_index_is_the_record_mcap_writes(count):
     index = MessageIndex(channel_id=7, records=entries)
     builder = RecordBuilder()
     index.write(builder)
-    assert message_index_record(7, entries) == builder.end()
+    assert message_index_record(7, [n for entry in entries for n in entry]) == builder.end()
 
 
 def test_messages_added_a_batch_at_a_time_are_the_messages_mcaps_writer_adds_one_by_one():
