@@ -168,7 +168,6 @@ class CdrEncoder:
             lead += 1
         self._head = struct.Struct(fmt)
         self._head_types = [(f.type, PRIMITIVES[f.type][0] not in "fd?") for f in fields[:lead]]
-        self._head_defaults = tuple(_DEFAULTS.get(f.type, 0) for f in fields[:lead])
         self._lead = lead
         self._tail = [_tail_writer(f) for f in fields[lead:]]
         self._names = [f.name for f in fields]
@@ -181,9 +180,8 @@ class CdrEncoder:
         lead = self._lead
         head: Sequence[Any] = row[:lead] if self._tail else row
         try:
-            if None in head:
-                head = [default if value is None else value
-                        for value, default in zip(head, self._head_defaults, strict=False)]
+            if None in head:  # left out: 0 packs as 0.0 and as false too
+                head = [0 if value is None else value for value in head]
             try:  # the values as they are: an integer field given a float is the rare case
                 data = self._head.pack(ENCAPSULATION, *head)
             except struct.error:
@@ -248,6 +246,8 @@ def _tail_writer(f: Field) -> Callable[[bytearray, Any], None]:
         return lambda buf, value: CdrEncoder._put_field(buf, f, value)
     code, size = PRIMITIVES[f.type]
     integral = code not in "fd?"
+    # items of 4 bytes or less follow the count without padding: count and items in one call
+    counted_format = "<I{}" + code if size <= 4 else None
     item_format = "<{}" + code
 
     def write(buf: bytearray, value: Any) -> None:
@@ -257,6 +257,9 @@ def _tail_writer(f: Field) -> Callable[[bytearray, Any], None]:
         if integral:
             value = [int(item) for item in value]
         buf += _ZEROS[-(len(buf) - 4) % 4]
+        if counted_format is not None:
+            buf += struct.pack(counted_format.format(len(value)), len(value), *value)
+            return
         buf += _COUNT.pack(len(value))
         if value:
             buf += _ZEROS[-(len(buf) - 4) % size]
