@@ -50,8 +50,9 @@ class InProcessWriter:
             self.error = describe_failure(exc)
 
     def apply(self, records: Sequence[tuple[Any, ...]]) -> int:
-        """Write ``records`` in order; return how many were written (all of them unless
-        the writing failed on one: :attr:`error` then says why)."""
+        """Write ``records`` in order, in one pass; return how many were written (all of
+        them unless the writing failed: :attr:`error` then says why, and the count stops
+        before the run of messages the failure was in)."""
         writer = self.writer
         if writer is None or self.error:
             return 0
