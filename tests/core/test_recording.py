@@ -376,13 +376,18 @@ def test_a_batch_of_records_writes_what_they_write_one_by_one(tmp_path):
     assert len(summaries[0].chunk_indexes) > 3
 
 
-def test_a_bad_row_in_a_batch_says_how_many_records_were_written_before_its_run(tmp_path):
-    from hil.core.recording.writer import SessionWriter, open_series
+def test_a_bad_row_in_a_batch_fails_it_after_writing_the_records_before_it(tmp_path):
+    """As apply one record at a time: the messages before the one that cannot be encoded are
+    in the file, and ``applied`` counts the records they came in."""
+    from hil.core.recording.writer import SessionWriter, finish, open_series
 
-    writer = SessionWriter(open_series({"path": str(tmp_path / "bad.mcap")}))
+    path = str(tmp_path / "bad.mcap")
+    writer = SessionWriter(open_series({"path": path}))
     records = [("topic", 1, "/flat", FLAT, "cdr"), ("topic", 2, "/json", FLAT, "json"),
-               *_session_records(0, 2)]   # k = 0's messages and metadata at 2-5
+               *_session_records(0, 2)]   # k = 0's messages and metadata at 2-5, k = 1's at 6-8
     records.insert(7, (1, 1, (1.0, 2.0)))
     with pytest.raises(ValueError, match=r"a row of 2 value\(s\) for a topic of 9 field\(s\)"):
         writer.apply_all(records)
-    assert writer.applied == 6   # up to the metadata; the run the bad row is in is not
+    assert writer.applied == 7
+    finish(writer, "")
+    assert read_session(path).topic_counts == {"/flat": 3, "/json": 2}

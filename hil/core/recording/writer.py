@@ -147,8 +147,10 @@ class SessionWriter:
 
     def apply_all(self, records: Sequence[tuple[Any, ...]]) -> None:
         """:meth:`apply` each of ``records`` in order, in fewer calls: a run of messages is
-        encoded in one loop and handed to the series at once (the same bytes). When one
-        fails, :attr:`applied` says how many records before its run were written."""
+        encoded in one loop and handed to the series at once (the same bytes). A message
+        that cannot be encoded fails it as it fails :meth:`apply`, the messages before it
+        written; :attr:`applied` then says how many records were (none of a run the series
+        failed to take)."""
         self.applied = 0
         if self.live is not None:  # the live view takes each message as a dict
             for record in records:
@@ -157,22 +159,30 @@ class SessionWriter:
             return
         encodings = self.encodings
         run: list[tuple[int, int, bytes]] = []
-        for at, record in enumerate(records):
-            kind = record[0]
-            if type(kind) is int:
-                message = record[2]
-                encoding = encodings[kind]
-                run.append((kind, record[1], encoding.encode_row(message)
-                            if type(message) is tuple else encoding.encode(message)))
-            elif type(kind) is tuple:  # a topic group's rows (recorder.TopicRows)
-                t_ns = record[1]
-                for key, row in zip(kind, record[2], strict=True):
-                    run.append((key, t_ns, encodings[key].encode_row(row)))
-            else:
+        at = 0
+        try:
+            for at, record in enumerate(records):
+                kind = record[0]
+                if type(kind) is int:
+                    message = record[2]
+                    encoding = encodings[kind]
+                    run.append((kind, record[1], encoding.encode_row(message)
+                                if type(message) is tuple else encoding.encode(message)))
+                elif type(kind) is tuple:  # a topic group's rows (recorder.TopicRows)
+                    t_ns = record[1]
+                    for key, row in zip(kind, record[2], strict=True):
+                        run.append((key, t_ns, encodings[key].encode_row(row)))
+                else:
+                    done, run = run, []
+                    self._add_messages(done)
+                    self.applied = at
+                    self.apply(record)
+                    self.applied = at + 1
+        except Exception:
+            if run:  # a message failed to encode: those before it are written, as by apply
                 self._add_messages(run)
-                self.applied, run = at, []
-                self.apply(record)
-                self.applied = at + 1
+                self.applied = at
+            raise
         self._add_messages(run)
         self.applied = len(records)
 
