@@ -51,8 +51,8 @@ class InProcessWriter:
 
     def apply(self, records: Sequence[tuple[Any, ...]]) -> int:
         """Write ``records`` in order, in one pass; return how many were written (all of
-        them unless the writing failed: :attr:`error` then says why, and the count stops
-        before the run of messages the failure was in)."""
+        them unless the writing failed: :attr:`error` then says why;
+        :meth:`SessionWriter.apply_all` says what the count is then)."""
         writer = self.writer
         if writer is None or self.error:
             return 0
