@@ -113,4 +113,38 @@ def test_a_chunks_message_index_is_the_record_mcap_writes(count):
     index = MessageIndex(channel_id=7, records=entries)
     builder = RecordBuilder()
     index.write(builder)
-    assert message_index_record(index) == builder.end()
+    assert message_index_record(7, [n for entry in entries for n in entry]) == builder.end()
+
+
+def test_messages_added_a_batch_at_a_time_are_the_messages_mcaps_writer_adds_one_by_one():
+    """``add_messages`` (a flush's worth at once, how a session's writer adds them) across
+    chunks closed by size and by time span, with times out of order, against mcap's own
+    writer given the same messages one by one: the same records, indexes and statistics."""
+    messages = [(1 + k % 3 // 2, 1000 * k + 2000 - (1500 if k % 5 == 0 else 0), 1000 * k,
+                 json.dumps({"k": k, "v": [k * 0.5] * (k % 7)}).encode()) for k in range(3000)]
+
+    def write(writer, batch=0):
+        writer.start(profile="", library="hil test")
+        schema = writer.register_schema(name="T", encoding="jsonschema", data=b"{}")
+        for topic in ("/a", "/b"):
+            writer.register_channel(topic=topic, message_encoding="json", schema_id=schema)
+        for at in range(0, len(messages), batch or len(messages)):
+            if batch:
+                writer.add_messages(messages[at:at + batch], sequence=at)
+            else:
+                for sequence, (channel, log_time, publish_time, data) in enumerate(messages):
+                    writer.add_message(channel_id=channel, log_time=log_time, data=data,
+                                       publish_time=publish_time, sequence=sequence)
+        writer.finish()
+
+    theirs = io.BytesIO()
+    write(Writer(theirs, chunk_size=64 * 1024, compression=CompressionType.ZSTD))
+    for span_ns in (None, 200_000):
+        ours_ = io.BytesIO()
+        write(McapWriter(ours_, chunk_size=16 * 1024, chunk_span_ns=span_ns), batch=37)
+        assert len(chunks(ours_.getvalue())) > 10
+        assert read_back(ours_.getvalue()) == read_back(theirs.getvalue())
+        stats = [make_reader(io.BytesIO(data)).get_summary().statistics
+                 for data in (ours_.getvalue(), theirs.getvalue())]
+        assert stats[0].message_start_time == stats[1].message_start_time == 500
+        assert stats[0].message_end_time == stats[1].message_end_time == 3_001_000

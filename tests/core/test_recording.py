@@ -135,8 +135,10 @@ def test_topics_logged_together_count_their_drops_each(tmp_path):
     assert len(data.topic("/a")) == len(data.topic("/b")) == accepted
 
 
-def test_a_row_of_the_wrong_length_fails_the_recording_naming_the_fields(tmp_path):
-    rec = Recorder(tmp_path / "bad.mcap", wait_when_full=True)
+@pytest.mark.parametrize("in_process", [False, True])
+def test_a_row_of_the_wrong_length_fails_the_recording_naming_the_fields(tmp_path, in_process):
+    rec = Recorder(tmp_path / "bad.mcap", wait_when_full=True,
+                   options=RecordingOptions(in_process=in_process))
     rec.topic("/flat", FLAT, encoding="cdr").log(1, (1.0, 2.0))
     with pytest.raises(HilError, match=r"a row of 2 value\(s\) for a topic of 9 field\(s\) "
                                        r"\(t_s, narrow, count"):
@@ -145,7 +147,10 @@ def test_a_row_of_the_wrong_length_fails_the_recording_naming_the_fields(tmp_pat
 
 def test_the_compiled_cdr_encoder_writes_the_bytes_of_the_field_by_field_one():
     """The encoder's precompiled head and one-call sequences against the plain definition,
-    on messages with every type, missing fields, numpy arrays and values that do not fit."""
+    on messages with every type, missing fields, numpy arrays and scalars, arrays of the
+    standard library, integer fields given floats and bools, and values that do not fit."""
+    from array import array
+
     import numpy as np
 
     from hil.core.recording.cdr import CdrEncoder, CdrError, fields_of
@@ -154,8 +159,13 @@ def test_the_compiled_cdr_encoder_writes_the_bytes_of_the_field_by_field_one():
     rng = np.random.default_rng(7)
     for k in range(300):
         message = _message(k)
-        message["samples_mA"] = rng.normal(size=k % 5) if k % 2 else message["samples_mA"]
-        message["counts"] = np.arange(k % 4, dtype=np.int64)
+        message["samples_mA"] = rng.normal(size=k % 5) if k % 2 else \
+            array("d", message["samples_mA"]) if k % 3 else message["samples_mA"]
+        message["counts"] = np.arange(k % 4, dtype=np.int64) if k % 2 else \
+            [float(c) for c in range(k % 4)]
+        if k % 4 == 1:  # integer fields given floats, a bool and numpy scalars
+            message.update(word=float(k % 65536), small=k % 2 == 0, count=np.int64(k),
+                           t_s=np.float32(k / 7))
         for name in list(message)[k % 9:k % 9 + k % 3]:
             del message[name]
         assert encoder.encode(message) == encoder.encode_by_field(message)
@@ -318,3 +328,66 @@ def test_numpy_arrays_in_messages_arrive_as_their_values(tmp_path):
     [(_, free_message)] = list(data.topic("/free"))
     assert free_message == {"grid": [[0.0, 0.25, 0.5], [0.75, 1.0, 1.25]],
                             "mixed": [1, "a"], "scalar": 7}
+
+
+def _session_records(k0: int, k1: int) -> list[tuple]:
+    """Records of the stream as the recorder hands them over: messages as dicts, as rows and
+    as a topic group's rows, on a CDR and a JSON topic, with metadata among them."""
+    names = list(FLAT["properties"])
+    records: list[tuple] = []
+    for k in range(k0, k1):
+        row = tuple(_message(k).get(name) for name in names)
+        records += [(1, k * 500_000, row), (2, k * 500_000, _message(k)),
+                    ((1, 2), k * 500_000 + 1, (row, row))]
+        if k % 97 == 0:
+            records.append(("metadata", f"m{k}", {"k": str(k)}))
+    return records
+
+
+def test_a_batch_of_records_writes_what_they_write_one_by_one(tmp_path):
+    """SessionWriter.apply_all (how the writer process and the in-process writer apply a
+    hand-over) against apply record by record: the same messages, bytes, times and sequence
+    numbers, chunk for chunk."""
+    from hil.core.recording.writer import SessionWriter, finish, open_series
+
+    topics = [("topic", 1, "/flat", FLAT, "cdr"), ("topic", 2, "/json", FLAT, "json")]
+    files = {}
+    for form in ("one by one", "batch"):
+        files[form] = str(tmp_path / f"{form}.mcap")
+        writer = SessionWriter(open_series({"path": files[form], "chunk_span_s": 0.05}))
+        for at in range(0, 900, 300):
+            records = topics + _session_records(at, at + 300) if at == 0 else \
+                _session_records(at, at + 300)
+            if form == "batch":
+                writer.apply_all(records)
+                assert writer.applied == len(records)
+            else:
+                for record in records:
+                    writer.apply(record)
+        finish(writer, "")
+    for topic in ("/flat", "/json"):
+        with open(files["one by one"], "rb") as a, open(files["batch"], "rb") as b:
+            alone, batch = ([(m.log_time, m.sequence, m.data) for _, _, m in
+                             make_reader(f).iter_messages(topics=[topic])] for f in (a, b))
+        assert len(alone) == 1800 and batch == alone
+    summaries = [make_reader(open(files[form], "rb")).get_summary()  # noqa: SIM115
+                 for form in files]
+    assert [len(s.chunk_indexes) for s in summaries] == [len(summaries[0].chunk_indexes)] * 2
+    assert len(summaries[0].chunk_indexes) > 3
+
+
+def test_a_bad_row_in_a_batch_fails_it_after_writing_the_records_before_it(tmp_path):
+    """As apply one record at a time: the messages before the one that cannot be encoded are
+    in the file, and ``applied`` counts the records they came in."""
+    from hil.core.recording.writer import SessionWriter, finish, open_series
+
+    path = str(tmp_path / "bad.mcap")
+    writer = SessionWriter(open_series({"path": path}))
+    records = [("topic", 1, "/flat", FLAT, "cdr"), ("topic", 2, "/json", FLAT, "json"),
+               *_session_records(0, 2)]   # k = 0's messages and metadata at 2-5, k = 1's at 6-8
+    records.insert(7, (1, 1, (1.0, 2.0)))
+    with pytest.raises(ValueError, match=r"a row of 2 value\(s\) for a topic of 9 field\(s\)"):
+        writer.apply_all(records)
+    assert writer.applied == 7
+    finish(writer, "")
+    assert read_session(path).topic_counts == {"/flat": 3, "/json": 2}

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import re
 import struct
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -130,27 +131,33 @@ def _pad(buf: bytearray, align: int) -> None:
         buf.extend(b"\x00" * (align - offset))
 
 
-def _put_string(buf: bytearray, value: str) -> None:
-    data = value.encode()
-    _pad(buf, 4)
-    buf.extend(struct.pack("<I", len(data) + 1))
-    buf.extend(data)
+_ZEROS = tuple(bytes(n) for n in range(8))  # padding
+_COUNT = struct.Struct("<I")
+
+
+def _put_string(buf: bytearray, value: Any) -> None:
+    """A string (None: empty; anything else as ``str`` gives it), null-terminated."""
+    data = ("" if value is None else str(value)).encode()
+    buf += _ZEROS[-(len(buf) - 4) % 4]
+    buf += _COUNT.pack(len(data) + 1)
+    buf += data
     buf.append(0)
 
 
 class CdrEncoder:
     """Encodes dicts to CDR for one fixed list of fields.
 
-    The leading run of fixed-size fields (their offsets are known in advance) is one
-    precompiled ``struct`` with the alignment padding in it, and each numeric sequence one
-    ``struct`` call: the writer process encodes a servo tick's topics several times faster
-    than field by field, and the bytes are the same (:meth:`encode_by_field`, the plain
-    definition, is what the tests compare it with and what names a value that does not fit).
+    The encapsulation and the leading run of fixed-size fields (their offsets are known in
+    advance) are one precompiled ``struct`` with the alignment padding in it, and each
+    numeric sequence or string one ``struct`` call: the writer encodes a servo tick's topics
+    several times faster than field by field, and the bytes are the same
+    (:meth:`encode_by_field`, the plain definition, is what the tests compare it with and
+    what names a value that does not fit).
     """
 
     def __init__(self, fields: list[Field]) -> None:
         self.fields = fields
-        fmt, offset, lead = "<", 0, 0
+        fmt, offset, lead = "<4s", 0, 0
         for f in fields:
             if f.sequence or f.type == "string":
                 break
@@ -162,7 +169,7 @@ class CdrEncoder:
         self._head = struct.Struct(fmt)
         self._head_types = [(f.type, PRIMITIVES[f.type][0] not in "fd?") for f in fields[:lead]]
         self._lead = lead
-        self._tail = fields[lead:]
+        self._tail = [_tail_writer(f) for f in fields[lead:]]
         self._names = [f.name for f in fields]
 
     def encode(self, message: dict[str, Any]) -> bytes:
@@ -170,23 +177,28 @@ class CdrEncoder:
 
     def encode_row(self, row: tuple[Any, ...]) -> bytes:
         """A message given as the values of the fields in order (None: left out)."""
-        values = []
-        for (kind, integral), value in zip(self._head_types, row, strict=False):  # the head
-            if value is None:
-                value = _DEFAULTS.get(kind, 0)
-            elif integral:
-                value = int(value)
-            values.append(value)
+        lead = self._lead
+        head: Sequence[Any] = row[:lead] if self._tail else row
         try:
-            buf = bytearray(ENCAPSULATION) + self._head.pack(*values)
-            for f, value in zip(self._tail, row[self._lead:], strict=True):
-                if f.sequence and f.type != "string":
-                    self._put_numbers(buf, f, value)
-                else:
-                    self._put_field(buf, f, value)
+            if None in head:  # left out: 0 packs as 0.0 and as false too
+                head = [0 if value is None else value for value in head]
+            try:  # the values as they are: an integer field given a float is the rare case
+                data = self._head.pack(ENCAPSULATION, *head)
+            except struct.error:
+                data = self._head.pack(ENCAPSULATION, *self._integral(head))
+            if not self._tail:
+                return data
+            buf = bytearray(data)
+            for write, value in zip(self._tail, row[lead:], strict=True):
+                write(buf, value)
         except (struct.error, CdrError):  # raises, naming the field
             return self.encode_by_field(dict(zip(self._names, row, strict=True)))
         return bytes(buf)
+
+    def _integral(self, head: Sequence[Any]) -> list[Any]:
+        """The head's values with integer fields as ``int`` (``3.0`` for a ``uint16``)."""
+        return [int(value) if integral else value
+                for (_, integral), value in zip(self._head_types, head, strict=False)]
 
     def encode_by_field(self, message: dict[str, Any]) -> bytes:
         """The same bytes as :meth:`encode`, written field by field and item by item."""
@@ -195,37 +207,22 @@ class CdrEncoder:
             self._put_field(buf, f, message.get(f.name))
         return bytes(buf)
 
-    def _put_field(self, buf: bytearray, f: Field, value: Any) -> None:
+    @staticmethod
+    def _put_field(buf: bytearray, f: Field, value: Any) -> None:
         """One field, a sequence item by item."""
         if not f.sequence:
-            self._put(buf, f, value)
+            CdrEncoder._put(buf, f, value)
             return
         items = [] if value is None else list(value)
         _pad(buf, 4)
         buf.extend(struct.pack("<I", len(items)))
         for item in items:
-            self._put(buf, f, item)
-
-    @staticmethod
-    def _put_numbers(buf: bytearray, f: Field, value: Any) -> None:
-        """A numeric sequence: its count, then every item in one ``struct`` call."""
-        if value is None:
-            items: list[Any] = []
-        else:  # numpy arrays as Python numbers in one call
-            items = value.tolist() if hasattr(value, "tolist") else list(value)
-        code, size = PRIMITIVES[f.type]
-        _pad(buf, 4)
-        buf.extend(struct.pack("<I", len(items)))
-        if items:
-            if code not in "fd?":
-                items = [int(item) for item in items]
-            _pad(buf, size)
-            buf.extend(struct.pack(f"<{len(items)}{code}", *items))
+            CdrEncoder._put(buf, f, item)
 
     @staticmethod
     def _put(buf: bytearray, f: Field, value: Any) -> None:
         if f.type == "string":
-            _put_string(buf, "" if value is None else str(value))
+            _put_string(buf, value)
             return
         code, size = PRIMITIVES[f.type]
         if value is None:
@@ -237,6 +234,38 @@ class CdrEncoder:
             buf.extend(struct.pack("<" + code, value))
         except struct.error as exc:
             raise CdrError(f"field {f.name!r}: {value!r} does not fit {f.type}") from exc
+
+
+def _tail_writer(f: Field) -> Callable[[bytearray, Any], None]:
+    """How :class:`CdrEncoder` writes a field after the fixed head: a numeric sequence as
+    its count and items in one ``struct`` call, anything else as :meth:`CdrEncoder._put_field`
+    writes it."""
+    if not f.sequence or f.type == "string":
+        if f.type == "string" and not f.sequence:
+            return _put_string
+        return lambda buf, value: CdrEncoder._put_field(buf, f, value)
+    code, size = PRIMITIVES[f.type]
+    integral = code not in "fd?"
+    # items of 4 bytes or less follow the count without padding: count and items in one call
+    counted_format = "<I{}" + code if size <= 4 else None
+    item_format = "<{}" + code
+
+    def write(buf: bytearray, value: Any) -> None:
+        if type(value) is not list:
+            value = [] if value is None else (
+                value.tolist() if hasattr(value, "tolist") else list(value))  # numpy: one call
+        if integral:
+            value = [int(item) for item in value]
+        buf += _ZEROS[-(len(buf) - 4) % 4]
+        if counted_format is not None:
+            buf += struct.pack(counted_format.format(len(value)), len(value), *value)
+            return
+        buf += _COUNT.pack(len(value))
+        if value:
+            buf += _ZEROS[-(len(buf) - 4) % size]
+            buf += struct.pack(item_format.format(len(value)), *value)
+
+    return write
 
 
 class CdrDecoder:

@@ -50,22 +50,20 @@ class InProcessWriter:
             self.error = describe_failure(exc)
 
     def apply(self, records: Sequence[tuple[Any, ...]]) -> int:
-        """Write ``records`` in order; return how many were written (all of them unless
-        the writing failed on one: :attr:`error` then says why)."""
+        """Write ``records`` in order, in one pass; return how many were written (all of
+        them unless the writing failed: :attr:`error` then says why;
+        :meth:`SessionWriter.apply_all` says what the count is then)."""
         writer = self.writer
         if writer is None or self.error:
             return 0
-        done = 0
         try:
-            for record in records:
-                writer.apply(record)
-                done += 1
+            writer.apply_all(records)
             if time.monotonic() >= self._next_flush:
                 writer.series.flush()
                 self._next_flush = time.monotonic() + self._flush_interval_s
         except Exception as exc:
             self.error = describe_failure(exc)
-        return done
+        return writer.applied
 
     def close(self) -> dict[str, Any]:
         """Finish the file; the writer process's report (``messages_written``, ``error``...)."""

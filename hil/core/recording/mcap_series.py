@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import IO, Any
 
@@ -137,13 +138,25 @@ class McapSeries:
         self._register(key)
 
     def add_message(self, key: int, t_ns: int, payload: bytes) -> None:
+        self.add_messages(((key, t_ns, payload),))
+
+    def add_messages(self, messages: Sequence[tuple[int, int, bytes]]) -> None:
+        """``(key, t_ns, payload)`` each, in order, in one call to the file's writer (one
+        call each where the series splits: a file may end between two of them)."""
         if self.split:
-            self._maybe_roll(t_ns)
+            for message in messages:
+                self._maybe_roll(message[1])
+                self._add((message,))
+            return
+        self._add(messages)
+
+    def _add(self, messages: Sequence[tuple[int, int, bytes]]) -> None:
         writer = self._writer
         assert writer is not None
-        writer.add_message(channel_id=self._file_channels[key], log_time=t_ns, publish_time=t_ns,
-                           data=payload, sequence=self.stats.messages_written)
-        self.stats.messages_written += 1
+        channels = self._file_channels
+        writer.add_messages([(channels[key], t_ns, t_ns, payload)
+                             for key, t_ns, payload in messages], self.stats.messages_written)
+        self.stats.messages_written += len(messages)
 
     def _register(self, key: int) -> int:
         spec = self._channels[key]

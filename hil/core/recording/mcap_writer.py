@@ -26,7 +26,7 @@ from __future__ import annotations
 import struct
 import zlib
 from collections import defaultdict
-from itertools import chain
+from collections.abc import Iterable
 from typing import IO
 
 import zstandard
@@ -41,7 +41,6 @@ from mcap.records import (
     DataEnd,
     Footer,
     Header,
-    MessageIndex,
     Metadata,
     MetadataIndex,
     Schema,
@@ -71,8 +70,9 @@ class McapWriter:
         self._chunk_span_ns = chunk_span_ns
         self._compressor = zstandard.ZstdCompressor(level=zstd_level)
         self._out = RecordBuilder()    # records outside chunks, written out at once
-        self._chunk = RecordBuilder()  # the records of the chunk in progress
-        self._chunk_indexes: dict[int, MessageIndex] = {}
+        self._chunk = bytearray()  # the records of the chunk in progress
+        # per channel, each message's log time and offset in the chunk, one after the other
+        self._chunk_indexes: dict[int, list[int]] = {}
         self._chunk_messages = 0
         self._chunk_start_ns = self._chunk_end_ns = 0
         self._schemas: dict[int, Schema] = {}
@@ -145,30 +145,44 @@ class McapWriter:
 
     def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int,
                     sequence: int = 0) -> None:
-        stats = self._statistics
-        if stats.message_count == 0 or log_time < stats.message_start_time:
-            stats.message_start_time = log_time
-        stats.message_end_time = max(stats.message_end_time, log_time)
-        stats.channel_message_counts[channel_id] += 1
-        stats.message_count += 1
-        if self._chunk_messages and self._chunk_span_ns is not None and \
-                log_time - self._chunk_start_ns >= self._chunk_span_ns:
-            self._finish_chunk()
-        if self._chunk_messages == 0 or log_time < self._chunk_start_ns:
-            self._chunk_start_ns = log_time
-        self._chunk_end_ns = max(self._chunk_end_ns, log_time)
-        self._chunk_messages += 1
-        index = self._chunk_indexes.get(channel_id)
-        if index is None:
-            index = self._chunk_indexes[channel_id] = MessageIndex(channel_id=channel_id,
-                                                                   records=[])
-        chunk = self._chunk
-        index.records.append((log_time, chunk.count))
-        chunk.write(MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS_BYTES + len(data),
-                                      channel_id, sequence, log_time, publish_time))
-        chunk.write(data)
-        if chunk.count > self._chunk_size:
-            self._finish_chunk()
+        self.add_messages(((channel_id, log_time, publish_time, data),), sequence)
+
+    def add_messages(self, messages: Iterable[tuple[int, int, int, bytes]],
+                     sequence: int = 0) -> None:
+        """``(channel_id, log_time, publish_time, data)`` each, numbered from ``sequence``:
+        what :meth:`add_message` one by one writes, in one loop over local state (a
+        session's writer adds its messages a flush's worth at a time). The statistics count
+        each chunk's messages when it closes."""
+        span, limit, pack = self._chunk_span_ns, self._chunk_size, MESSAGE_HEAD.pack
+        chunk, indexes = self._chunk, self._chunk_indexes
+        count, start, end = self._chunk_messages, self._chunk_start_ns, self._chunk_end_ns
+        for channel_id, log_time, publish_time, data in messages:
+            if count and span is not None and log_time - start >= span:
+                self._chunk_messages, self._chunk_start_ns, self._chunk_end_ns = \
+                    count, start, end
+                self._finish_chunk()
+                chunk, indexes, count = self._chunk, self._chunk_indexes, 0
+            if count == 0:
+                start = end = log_time
+            elif log_time < start:
+                start = log_time
+            elif log_time > end:
+                end = log_time
+            count += 1
+            index = indexes.get(channel_id)
+            if index is None:
+                index = indexes[channel_id] = []
+            index += (log_time, len(chunk))
+            chunk += pack(Opcode.MESSAGE, MESSAGE_FIELDS_BYTES + len(data), channel_id,
+                          sequence, log_time, publish_time)
+            chunk += data
+            sequence += 1
+            if len(chunk) > limit:
+                self._chunk_messages, self._chunk_start_ns, self._chunk_end_ns = \
+                    count, start, end
+                self._finish_chunk()
+                chunk, indexes, count = self._chunk, self._chunk_indexes, 0
+        self._chunk_messages, self._chunk_start_ns, self._chunk_end_ns = count, start, end
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         offset = self._stream.tell() + self._out.count
@@ -198,7 +212,8 @@ class McapWriter:
     def _finish_chunk(self) -> None:
         if self._chunk_messages == 0:
             return
-        records = self._chunk.end()
+        self._count_chunk()
+        records = bytes(self._chunk)
         compressed = compress_in_blocks(records, self._compressor)
         chunk = RecordBuilder()
         Chunk(message_start_time=self._chunk_start_ns, message_end_time=self._chunk_end_ns,
@@ -212,9 +227,9 @@ class McapWriter:
         self._out.write(chunk_record)
         index_start = base + self._out.count
         offsets = {}
-        for channel_id, index in self._chunk_indexes.items():
+        for channel_id, entries in self._chunk_indexes.items():
             offsets[channel_id] = base + self._out.count
-            self._out.write(message_index_record(index))
+            self._out.write(message_index_record(channel_id, entries))
         self._chunk_index_records.append(ChunkIndex(
             message_start_time=self._chunk_start_ns, message_end_time=self._chunk_end_ns,
             chunk_start_offset=start, chunk_length=len(chunk_record),
@@ -223,9 +238,20 @@ class McapWriter:
             compressed_size=len(compressed), uncompressed_size=len(records)))
         self._statistics.chunk_count += 1
         self._write_out()
+        self._chunk = bytearray()
         self._chunk_indexes = {}
         self._chunk_messages = 0
         self._chunk_start_ns = self._chunk_end_ns = 0
+
+    def _count_chunk(self) -> None:
+        """The chunk in progress into the statistics (its messages, their times, per channel)."""
+        stats = self._statistics
+        if stats.message_count == 0 or self._chunk_start_ns < stats.message_start_time:
+            stats.message_start_time = self._chunk_start_ns
+        stats.message_end_time = max(stats.message_end_time, self._chunk_end_ns)
+        stats.message_count += self._chunk_messages
+        for channel_id, entries in self._chunk_indexes.items():
+            stats.channel_message_counts[channel_id] += len(entries) // 2
 
     def _write_out(self) -> None:
         self._write(self._out.end())
@@ -235,10 +261,9 @@ class McapWriter:
         self._data_crc = zlib.crc32(data, self._data_crc)
 
 
-def message_index_record(index: MessageIndex) -> bytes:
-    """``index`` as mcap's ``MessageIndex.write`` writes it, in one ``struct`` call rather than
-    two calls a message (the records of a chunk's indexes are a writer's second busiest)."""
-    entries = index.records
-    body = struct.pack(f"<HI{2 * len(entries)}Q", index.channel_id, 16 * len(entries),
-                       *chain.from_iterable(entries))
+def message_index_record(channel_id: int, entries: list[int]) -> bytes:
+    """A channel's message index (each message's log time and offset, one after the other)
+    as mcap's ``MessageIndex.write`` writes it, in one ``struct`` call rather than two calls
+    a message (the records of a chunk's indexes are a writer's second busiest)."""
+    body = struct.pack(f"<HI{len(entries)}Q", channel_id, 8 * len(entries), *entries)
     return RECORD_HEAD.pack(Opcode.MESSAGE_INDEX, len(body)) + body

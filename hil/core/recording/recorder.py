@@ -22,7 +22,9 @@
 * In process (``RecordingOptions.in_process``, lockstep only): no writer process; each flush
   hands the records to an :class:`~hil.core.recording.in_process.InProcessWriter` on the loop
   thread instead, which writes them with the writer process's code (a sweep's trials on Ray:
-  every core already runs a trial). A failure to write is the same RecordingError.
+  every core already runs a trial), a ``batch_size`` at a time (or every
+  ``flush_interval_s``): a SIGKILL loses the queue and the chunk in progress either way. A
+  failure to write is the same RecordingError.
 """
 
 from __future__ import annotations
@@ -169,7 +171,10 @@ class Recorder:
         self.wait_when_full = wait_when_full
         if self.options.in_process:
             self._check_in_process()
-        self.flush_every_s = flush_every_s
+        # in process, a hand-over is the writing itself and a crash loses the queue and the
+        # chunk in progress alike: the queue goes over when it holds ``batch_size`` records,
+        # or at the writer's own wall-time flush
+        self.flush_every_s = flush_interval_s if self.options.in_process else flush_every_s
         self.batch_size = batch_size
         self.max_backlog_bytes = max_backlog_bytes
         self._queue: deque[tuple[Any, ...]] = deque()
