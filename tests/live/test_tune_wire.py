@@ -59,13 +59,19 @@ class StandInTuner:
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._specs = {s.name: s for s in [
-            Spec("controller.kp", 2.0, "mA/deg", 0.0, 500.0, None, False, None, "gain"),
-            Spec("controller.hp", 10, "ticks", 2, 40, 1, True, None, "horizon"),
-            Spec("safety.max_following_error_deg", 20.0, "deg", 0.0, None, None, False,
-                 "lower", "trip")]}
+        self._specs: dict[str, Spec] = {}
+        self.reset()
         self.requests: list[tuple[str, object, str]] = []
         self.tick = 0
+
+    def reset(self) -> None:
+        """Every parameter back to its first value."""
+        with self._lock:
+            self._specs = {s.name: s for s in [
+                Spec("controller.kp", 2.0, "mA/deg", 0.0, 500.0, None, False, None, "gain"),
+                Spec("controller.hp", 10, "ticks", 2, 40, 1, True, None, "horizon"),
+                Spec("safety.max_following_error_deg", 20.0, "deg", 0.0, None, None, False,
+                     "lower", "trip")]}
 
     def specs(self) -> list[Spec]:
         with self._lock:
@@ -107,6 +113,13 @@ def live_session(tmp_path_factory: pytest.TempPathFactory
     recorder.serve_parameters(tuner)
     yield port, tuner
     recorder.close()
+
+
+@pytest.fixture(autouse=True)
+def first_values(live_session: tuple[int, StandInTuner]) -> None:
+    """Each test starts from the tuner's first values, whatever the module's tests before it
+    set: xdist's work stealing can run them out of the file's order."""
+    live_session[1].reset()
 
 
 @pytest.fixture(scope="module")
