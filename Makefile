@@ -25,14 +25,14 @@ demo: $(STAMP)
 # pytest would rewrite every test module's asserts again in each of its processes (5 s / 2 s).
 demo test check papers: export PYTHONDONTWRITEBYTECODE :=
 
-# the whole suite: everything but the 1-2 kHz wall-clock tests with 3 workers on the 2 cores
-# (most tests wait on processes and sockets: 160 s against 199 s with 2 workers) and mypy beside
-# them, niced into the CPU they leave idle (13-28 s sooner than before them, fresh clones);
-# then the wall-clock tests alone
+# the whole suite: everything but the 1-2 kHz wall-clock tests with 4 workers on the 2 cores
+# (many tests wait on processes, sockets and runs of session time: 223 s against 255 s with 3
+# workers, a quiet machine) and mypy beside them, niced into the CPU they leave idle (13-28 s
+# sooner than before them, fresh clones); then the wall-clock tests alone
 test: $(STAMP)
 	$(BIN)/ruff check .
 	nice -n 10 $(BIN)/mypy > $(VENV)/mypy.log 2>&1 & mypy=$$!; \
-	$(BIN)/pytest -q -n 3 --dist worksteal -m "not realtime"; tests=$$?; \
+	$(BIN)/pytest -q -n 4 --dist worksteal -m "not realtime"; tests=$$?; \
 	wait $$mypy; typed=$$?; cat $(VENV)/mypy.log; [ $$tests = 0 ] && [ $$typed = 0 ]
 	$(BIN)/pytest -q -m realtime
 
