@@ -1,7 +1,6 @@
 """Modbus poll round trips (TCP loopback, RTU 115200 on a pty) and 100 Hz bench sampling.
 
-The emulator runs as its own process (``hil emulate bench``), like the hardware it replaces
-(the same TCP one and the same one on the paced RTU line for the round trips and sampling).
+The emulator runs as its own process (``hil emulate bench``), like the hardware it replaces.
 Round trips: each transport's figure is printed next to a baseline measured in the same run
 (a hand-made frame on a raw socket or serial port; for a paced RTU line, the wire time of the
 frames). Sampling: a real-time session at 100 Hz polls the meter and the levels for
@@ -23,7 +22,6 @@ only.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import re
@@ -34,7 +32,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
@@ -145,66 +143,55 @@ def raw_rtu(port: str, count: int) -> Callable[[], bytes]:
     return call
 
 
-@contextlib.contextmanager
-def serial_emulator(baud: int | None) -> Iterator[str]:
-    """``hil emulate bench`` on one end of a pty pair (``baud``: paced at it, else as fast as
-    the ptys go) until the block ends; the other end's port."""
-    modem, ports = null_modem(baud)
+def round_trips(n_tcp: int, n_rtu: int, patient: bool = False) -> None:
+    """``patient`` (``--quick``): the hil driver waits 2 s for an answer, not 0.1 s (TCP) and
+    0.2 s (RTU): on a loaded machine (make test) an emulator answers late, and a quick run
+    checks that the benchmark runs, not the machine's pace."""
+    header("Poll round trip, meter unit (FC04)")
+    proc, url = emulator("--tcp", "127.0.0.1:0")
     try:
-        proc, _ = emulator("--serial", ports[1], "--baud", "115200")
+        port = parse_bus_url(url).port
+        row(f"TCP raw socket frame ({FULL} regs) [baseline]", time_calls(raw_tcp(port), n_tcp))
+        client = ModbusTcpClient("127.0.0.1", port=port, timeout=1, retries=0)
+        client.connect()
+        row(f"TCP pymodbus client ({FULL} regs)", time_calls(
+            lambda: client.read_input_registers(0, count=FULL, device_id=METER_UNIT), n_tcp))
+        client.close()
+        link = ModbusLink(parse_bus_url(url), timeout_s=2.0 if patient else 0.1, attempts=2)
+        samples = time_calls(lambda: link.read_floats(METER_UNIT, 0, FULL), n_tcp)
+        row(f"TCP hil driver ({FULL} regs)", samples,
+            f"target p99 <= 2000 us: {'met' if np.percentile(samples, 99) <= 2000 else 'MISSED'}")
+        link.close()
+    finally:
+        stop(proc)
+    for baud in (None, 115200):
+        modem, ports = null_modem(baud)
+        proc, url = emulator("--serial", ports[1], "--baud", "115200")
+        kind = "RTU pty" if baud is None else "RTU pty paced at 115200 8N1"
         try:
-            yield ports[0]
+            if baud is None:
+                row(f"{kind}: raw frame ({FULL} regs) [baseline]",
+                    time_calls(raw_rtu(ports[0], FULL), n_rtu))
+                serial_client = ModbusSerialClient(ports[0], baudrate=115200, timeout=1,
+                                                   retries=0)
+                serial_client.connect()
+                row(f"{kind}: pymodbus client ({FULL} regs)", time_calls(
+                    partial(serial_client.read_input_registers, 0, count=FULL,
+                            device_id=METER_UNIT), n_rtu))
+                serial_client.close()
+            link = ModbusLink(parse_bus_url(f"modbus-rtu://{ports[0]}?baud=115200"),
+                              timeout_s=2.0 if patient else 0.2, attempts=2)
+            for count in (FULL, SMALL):
+                n = n_rtu if baud is None else max(min(50, n_rtu), n_rtu // 5)
+                wire_us = (8 + 5 + 2 * count) * 10 / 115200 * 1e6
+                note = "" if baud is None else f"wire time of the frames {wire_us:.0f} us"
+                first = 0x12 if count == SMALL else 0
+                row(f"{kind}: hil driver ({count} regs)", time_calls(
+                    partial(link.read_floats, METER_UNIT, first, count), n), note)
+            link.close()
         finally:
             stop(proc)
-    finally:
-        stop(modem)
-
-
-def round_trips(n_tcp: int, n_rtu: int, tcp_url: str, paced_port: str,
-                patient: bool = False) -> None:
-    """Against the TCP emulator at ``tcp_url``, one on a pty pair of its own and the one on
-    the paced line at ``paced_port``. ``patient`` (``--quick``): the hil driver waits 2 s for
-    an answer, not 0.1 s (TCP) and 0.2 s (RTU): on a loaded machine (make test) an emulator
-    answers late, and a quick run checks that the benchmark runs, not the machine's pace."""
-    header("Poll round trip, meter unit (FC04)")
-    port = parse_bus_url(tcp_url).port
-    row(f"TCP raw socket frame ({FULL} regs) [baseline]", time_calls(raw_tcp(port), n_tcp))
-    client = ModbusTcpClient("127.0.0.1", port=port, timeout=1, retries=0)
-    client.connect()
-    row(f"TCP pymodbus client ({FULL} regs)", time_calls(
-        lambda: client.read_input_registers(0, count=FULL, device_id=METER_UNIT), n_tcp))
-    client.close()
-    link = ModbusLink(parse_bus_url(tcp_url), timeout_s=2.0 if patient else 0.1, attempts=2)
-    samples = time_calls(lambda: link.read_floats(METER_UNIT, 0, FULL), n_tcp)
-    row(f"TCP hil driver ({FULL} regs)", samples,
-        f"target p99 <= 2000 us: {'met' if np.percentile(samples, 99) <= 2000 else 'MISSED'}")
-    link.close()
-    with serial_emulator(None) as unpaced_port:
-        rtu_rows(unpaced_port, None, n_rtu, patient)
-    rtu_rows(paced_port, 115200, n_rtu, patient)
-
-
-def rtu_rows(port: str, baud: int | None, n_rtu: int, patient: bool) -> None:
-    """The RTU rows over the emulator's line at ``port`` (``baud``: paced at it)."""
-    kind = "RTU pty" if baud is None else "RTU pty paced at 115200 8N1"
-    if baud is None:
-        row(f"{kind}: raw frame ({FULL} regs) [baseline]", time_calls(raw_rtu(port, FULL), n_rtu))
-        serial_client = ModbusSerialClient(port, baudrate=115200, timeout=1, retries=0)
-        serial_client.connect()
-        row(f"{kind}: pymodbus client ({FULL} regs)", time_calls(
-            partial(serial_client.read_input_registers, 0, count=FULL, device_id=METER_UNIT),
-            n_rtu))
-        serial_client.close()
-    link = ModbusLink(parse_bus_url(f"modbus-rtu://{port}?baud=115200"),
-                      timeout_s=2.0 if patient else 0.2, attempts=2)
-    for count in (FULL, SMALL):
-        n = n_rtu if baud is None else max(min(50, n_rtu), n_rtu // 5)
-        wire_us = (8 + 5 + 2 * count) * 10 / 115200 * 1e6
-        note = "" if baud is None else f"wire time of the frames {wire_us:.0f} us"
-        first = 0x12 if count == SMALL else 0
-        row(f"{kind}: hil driver ({count} regs)", time_calls(
-            partial(link.read_floats, METER_UNIT, first, count), n), note)
-    link.close()
+            stop(modem)
 
 
 def loop_only(duration_s: float) -> tuple[dict, int, int]:
@@ -240,9 +227,7 @@ def _timing_messages(session: Session) -> list[dict]:
     return [m for _, m in read_session(session.path).topic("/loop/bench_io/timing")]
 
 
-def sampling_report(duration_s: float, rtu_s: float, tcp_url: str, paced_port: str) -> None:
-    """Against the TCP emulator at ``tcp_url`` and the one on the paced line at
-    ``paced_port``."""
+def sampling_report(duration_s: float, rtu_s: float) -> None:
     print(f"\n100 Hz sampling (meter + levels every 10 ms, real time, recorded)\n"
           f"  {'':<54} {'samples':>8} {'missed':>7} {'failed':>7} {'>5ms':>6} "
           f"{'p50 us':>7} {'p99 us':>7} {'max us':>8}")
@@ -254,14 +239,25 @@ def sampling_report(duration_s: float, rtu_s: float, tcp_url: str, paced_port: s
     lat, runs, missed = loop_only(min(5.0, duration_s))
     line(f"loop without I/O, {min(5.0, duration_s):g} s [baseline]", lat, runs, missed, "-", "-")
     config = load_bench_config()
-    lat, runs, missed, failed, late = sampling(tcp_url, duration_s, config)
-    line(f"TCP emulator process, {duration_s:g} s", lat, runs, missed, str(failed), str(late))
+    proc, url = emulator("--tcp", "127.0.0.1:0")
+    try:
+        lat, runs, missed, failed, late = sampling(url, duration_s, config)
+        line(f"TCP emulator process, {duration_s:g} s", lat, runs, missed, str(failed),
+             str(late))
+    finally:
+        stop(proc)
+    modem, ports = null_modem(115200)
+    proc, _ = emulator("--serial", ports[1])
     small = parse_bench_config(deep_merge(config.data, {
         "meter": {"poll": ["va_l1", "va_l2", "va_l3"]}, "sampling": {"levels_every": 10}}))
-    lat, runs, missed, failed, late = sampling(f"modbus-rtu://{paced_port}?baud=115200", rtu_s,
-                                               small)
-    line(f"RTU paced 115200, VA only, levels 10 Hz, {rtu_s:g} s", lat, runs, missed,
-         str(failed), str(late))
+    try:
+        lat, runs, missed, failed, late = sampling(f"modbus-rtu://{ports[0]}?baud=115200",
+                                                   rtu_s, small)
+        line(f"RTU paced 115200, VA only, levels 10 Hz, {rtu_s:g} s", lat, runs, missed,
+             str(failed), str(late))
+    finally:
+        stop(proc)
+        stop(modem)
     print("  missed = loop ticks skipped (the previous sample overran 10 ms); failed = polls "
           "without an answer; >5ms = samples started more than 5 ms late")
 
@@ -385,14 +381,8 @@ def main() -> None:
                          "polls": (3000, 20), "rtu_polls": (600, 5), "cycles": (1, 1),
                          "repeat": (3, 1)})
     started = time.monotonic()
-    # one TCP emulator and one on the paced line serve the round trips and the sampling
-    proc, tcp_url = emulator("--tcp", "127.0.0.1:0")
-    try:
-        with serial_emulator(115200) as paced_port:
-            round_trips(args.polls, args.rtu_polls, tcp_url, paced_port, patient=args.quick)
-            sampling_report(args.duration, args.rtu_duration, tcp_url, paced_port)
-    finally:
-        stop(proc)
+    round_trips(args.polls, args.rtu_polls, patient=args.quick)
+    sampling_report(args.duration, args.rtu_duration)
     lockstep_protocols(args.cycles, args.repeat, args.baseline_code, args.quick)
     print(f"\n(total {time.monotonic() - started:.0f} s; shared machine: figures are noisy)")
 
