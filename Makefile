@@ -37,7 +37,7 @@ test: $(STAMP)
 	$(BIN)/pytest -q -m realtime
 
 # what a developer runs before every change (under 45 s): no processes, Ray or long runs; mypy
-# beside the tests as in `test`, niced (46.0 s -> 42.7 s from a fresh clone, its cache cold)
+# beside the tests as in `test`, niced (24.6 s from a fresh clone, its cache cold)
 check: $(STAMP)
 	$(BIN)/ruff check .
 	nice -n 10 $(BIN)/mypy > $(VENV)/mypy.log 2>&1 & mypy=$$!; \
