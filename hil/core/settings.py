@@ -121,24 +121,24 @@ def _lay(into: dict[str, Any], data: Mapping[str, Any], prefix: str, index: int,
         dotted = f"{prefix}{key}"
         if isinstance(value, Mapping):
             if not isinstance(into.get(key), Mapping) or dotted in whole:
-                _forget(origins, dotted)
+                _forget(origins, dotted, into.get(key))
                 into[key] = {}
                 if not value:  # an empty table laid whole is set, by this layer
                     origins[dotted] = index
             _lay(into[key], value, dotted + ".", index, origins, whole)
         else:
-            if isinstance(into.get(key), Mapping):  # a table replaced by a value
-                _forget(origins, dotted)
-            else:  # a value (or nothing) before: it held no keys to forget
-                origins.pop(dotted, None)
+            _forget(origins, dotted, into.get(key))
             into[key] = copy.deepcopy(value)
             origins[dotted] = index
 
 
-def _forget(origins: dict[str, int], key: str) -> None:
-    """A key replaced whole: the origins of what it held go with it."""
-    for dotted in [d for d in origins if d == key or d.startswith(key + ".")]:
-        del origins[dotted]
+def _forget(origins: dict[str, int], key: str, replaced: Any) -> None:
+    """A key replaced whole: its origin goes, and, when it held a table, the origins of what
+    the table held (a value held none: no search of every key then)."""
+    origins.pop(key, None)
+    if isinstance(replaced, Mapping):
+        for dotted in [d for d in origins if d.startswith(key + ".")]:
+            del origins[dotted]
 
 
 @dataclass(frozen=True)
