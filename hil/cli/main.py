@@ -88,11 +88,11 @@ def parse_arguments(parser: argparse.ArgumentParser, argv: Sequence[str] | None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = parse_arguments(_shared_parser(command_of(sys.argv[1:] if argv is None else argv)),
-                           argv)
+    arguments = sys.argv[1:] if argv is None else list(argv)
+    args = parse_arguments(_shared_parser(command_of(arguments)), arguments)
     from hil.core.command_line import set_command_line
 
-    set_command_line(["hil", *(sys.argv[1:] if argv is None else argv)])
+    set_command_line(["hil", *arguments])
     try:
         return int(args.handler(args) or 0)
     except RunInterruptedError as exc:
