@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,13 @@ from tests.cli import hil_here
 #: what a 0.2 s run from where the axis stands must track the default 2 deg, 1 Hz sine within
 #: (the reference alone: 1.3 deg; on a twin of 4096 increments a turn CSP lags by 0.3-0.45)
 RMS_BOUND_DEG = {"CST": 1.0, "CSP": 0.7, "CSV": 0.3, "PV": 0.4}
+
+
+def twinned_and_refused(matrix: Mapping[str, Any]) -> tuple[list[str], list[str]]:
+    """The paths of a vendor matrix a twin is made of, and those it refuses (each entry's
+    ``not_twinned`` says why, or is empty)."""
+    return ([path for path, entry in matrix.items() if not entry.not_twinned],
+            [path for path, entry in matrix.items() if entry.not_twinned])
 
 
 def supplied_cell(supplied: dict[str, int], stand_ins: dict[str, Any]) -> str:

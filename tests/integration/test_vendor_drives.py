@@ -36,7 +36,7 @@ from hil.protocols.cia306 import description_encoding
 from tests.cli import hil_here
 from tests.drive_processes import start_drive_emulator, stop_drive_emulator
 from tests.drive_slave import serve
-from tests.vendor_twin import TwinFolder, supplied_cell
+from tests.vendor_twin import TwinFolder, supplied_cell, twinned_and_refused
 from tests.vendor_twin import home as homed
 from tests.vendor_twin import move as moved
 from tests.vendor_twin import track as tracked
@@ -135,8 +135,7 @@ MATRIX = {vendor.path: vendor for vendor in (
     VendorFile("faulhaber/605.3150.71-A-EK-3-60.eds", "FAULHABER", "MCBL motion controller", (),
                not_twinned="it has no 0x6502 (supported drive modes)"),
 )}
-TWINNED = [path for path, vendor in MATRIX.items() if not vendor.not_twinned]
-REFUSED = [path for path, vendor in MATRIX.items() if vendor.not_twinned]
+TWINNED, REFUSED = twinned_and_refused(MATRIX)
 
 
 def matrix_table() -> str:

@@ -30,7 +30,7 @@ import pytest
 from hil.emulators.ethercat.esi_dictionary import od_from_esi
 from tests.cli import hil_here
 from tests.ethercat_netns import inside, slave_on, veth_pair
-from tests.vendor_twin import TwinFolder, supplied_cell
+from tests.vendor_twin import TwinFolder, supplied_cell, twinned_and_refused
 from tests.vendor_twin import home as homed
 from tests.vendor_twin import move as moved
 from tests.vendor_twin import track as tracked
@@ -92,8 +92,7 @@ MATRIX = {esi.path: esi for esi in (
                 f"TxPDO 0x1A00 (Status Word) {FIXED}",
                 f"TxPDO 0x1A01 (Position actual) {FIXED}")),
 )}
-TWINNED = [path for path, esi in MATRIX.items() if not esi.not_twinned]
-REFUSED = [path for path, esi in MATRIX.items() if esi.not_twinned]
+TWINNED, REFUSED = twinned_and_refused(MATRIX)
 
 
 def matrix_table() -> str:
