@@ -202,16 +202,14 @@ def test_killing_the_emulator_loses_the_link_and_restarting_reconnects(tmp_path)
     kinds = [m["kind"] for _, m in data.topic("/events")]
     last_safe = max(i for i, kind in enumerate(kinds) if kind == "bench.safe")
     assert kinds.index("link.lost") < kinds.index("link.restored") < last_safe
-    link = data.arrays("/bench/relays")["link_up"]
+    # no samples while the link was down, by the run's own record of each tick's link (the
+    # link.restored event may come a few ticks after the first sample of the new emulator)
+    relays = data.arrays("/bench/relays")
+    link = relays["link_up"]
     assert link[0] == 1 and link.min() == 0 and link[-1] == 1
-    # no samples while the link was down (however soon the new emulator answered): the last
-    # one before the loss is followed by none until a tick before the link was back
-    lost_ns, restored_ns = (next(t for t, m in data.topic("/events") if m["kind"] == kind)
-                            for kind in ("link.lost", "link.restored"))
+    down_ns = relays["log_time_ns"][link == 0]
     power_ns = data.arrays("/bench/power")["log_time_ns"]
-    resumed_ns = power_ns[power_ns > lost_ns].min()
-    assert restored_ns > lost_ns and resumed_ns >= restored_ns - 10_000_000  # the 0.01 s tick
-    assert resumed_ns - power_ns[power_ns < lost_ns].max() > 0.02e9  # two ticks or more
+    assert not ((power_ns >= down_ns.min()) & (power_ns <= down_ns.max())).any()
     stats = rig.bench.stats
     assert (stats.link_losses, stats.reconnections) == (1, 1)
     assert stats.failed_polls >= 5 and stats.per_relay_switches["P1"] >= 2
