@@ -293,22 +293,26 @@ class Tuner:
 
     # -- the loop's side -------------------------------------------------------------------
     def _await_scheduled(self, n: int) -> None:
-        """Lockstep: the rebuilds asked for at tick ``n`` or before, waited for here (for up to
-        :data:`SCHEDULED_REBUILD_WAIT_S` each: one that takes longer is applied when done)."""
+        """Lockstep: the rebuilds asked for at tick ``n`` or before, waited for here in turn
+        (for up to :data:`SCHEDULED_REBUILD_WAIT_S` each: one that takes longer is applied when
+        done). What is ready is applied before each wait: the next rebuild starts from it."""
         with self._lock:
             due = [p for p in self._scheduled if p.at_tick is not None and p.at_tick <= n]
             self._scheduled = [p for p in self._scheduled if p not in due]
         for pending in due:
+            self._apply_due(n)
             pending.prepared.wait(SCHEDULED_REBUILD_WAIT_S)
-
 
     def tick(self, n: int) -> None:
         """At the boundary of tick ``n`` (the loop's thread): apply what is due."""
         self.now = n
         if self._scheduled:
             self._await_scheduled(n)
-        if not self._queue:
-            return
+        if self._queue:
+            self._apply_due(n)
+
+    def _apply_due(self, n: int) -> None:
+        """Apply (or record the refusal of) every queued change due at tick ``n``."""
         with self._lock:
             due = [p for p in self._queue if p.at_tick is None or p.at_tick <= n]
             for pending in due:
