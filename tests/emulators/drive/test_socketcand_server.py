@@ -209,6 +209,7 @@ def test_polling_for_an_expected_frame_serves_the_same_bus():
         srv.close()
 
 
+@pytest.mark.realtime  # a window of 900 us on the wall clock: with the other timed tests
 def test_a_poll_window_shorter_than_a_millisecond_is_polled():
     """The wait before the poll window is timed to the microsecond: epoll counts whole
     milliseconds (Python rounds a shorter wait up to one), which slept through a window of
