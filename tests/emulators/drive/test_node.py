@@ -394,3 +394,18 @@ def test_a_long_lockstep_run_keeps_no_frame_anywhere_it_is_not_read():
     # (a heartbeat), taken before the next SYNC
     assert len(inboxes[0]) == 0 and len(inboxes[1]) <= 2
     master.close()
+
+
+def test_a_batch_of_frames_is_handled_frame_by_frame_and_says_when_the_time_service_ran():
+    """A lockstep runner hands a node everything one transmission brought in one call: the
+    same as each frame alone, another node's PDO ignored, and True when the last frame was a
+    SYNC on the master's time (its time service ran then: the runner need not run it again)."""
+    drive = LockstepDrive(node_ids=[1, 2])
+    node = drive.nodes[0]
+    assert node.handle_frames([(0x000, bytes([0x01, 0]))]) is False  # NMT start: no SYNC
+    assert node.handle_frames([(0x080, b""), (0x182, bytes(6))]) is True  # node 2's TPDO
+    assert node.sync_count == 1
+    read = struct.pack("<BHB", 0x40, 0x6041, 0) + bytes(4)
+    assert node.handle_frames([(0x080, b""), (0x601, read)]) is False  # a request after it
+    assert node.sync_count == 2
+    drive.close()
