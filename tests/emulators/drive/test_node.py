@@ -409,3 +409,41 @@ def test_a_batch_of_frames_is_handled_frame_by_frame_and_says_when_the_time_serv
     assert node.handle_frames([(0x080, b""), (0x601, read)]) is False  # a request after it
     assert node.sync_count == 2
     drive.close()
+
+
+def test_a_lockstep_node_runs_its_time_service_once_for_each_moment_of_its_time(monkeypatch):
+    """Three drives cycled together: a node's time service runs after each SYNC (its time
+    moved), and again only once a frame came since; never twice in a row at one node time,
+    which would only repeat what it just did."""
+    from hil.drivers.canopen import CanDriveMaster, CanLink, DriveMasterConfig
+    from hil.drivers.canopen.axes import AxisBus, AxisGroup
+
+    service, dispatch = DriveNode._service, DriveNode._dispatch
+    last: dict[int, int | None] = {}  # node id -> the node time of its last service, if no
+    repeats = []                      # frame came since
+
+    def counted_service(node, now):
+        if last.get(node.node_id) == now:
+            repeats.append((node.node_id, now))
+        last[node.node_id] = now
+        service(node, now)
+
+    def counted_dispatch(node, can_id, data):
+        last[node.node_id] = None
+        dispatch(node, can_id, data)
+
+    monkeypatch.setattr(DriveNode, "_service", counted_service)
+    monkeypatch.setattr(DriveNode, "_dispatch", counted_dispatch)
+    ids = [1, 2, 3]
+    drive = LockstepDrive(node_ids=ids)
+    bus = AxisBus(CanLink(drive.master_bus), ids)
+    group = AxisGroup(bus, [CanDriveMaster(bus.node_link(n), DriveMasterConfig(node_id=n),
+                                           clock=drive) for n in ids])
+    group.start()
+    for _ in range(400):  # 0.2 s: the master's and the drives' heartbeats come in it too
+        group.send_currents([10.0, -10.0, 5.0])
+        assert all(feedback.fresh for feedback in group.receive())
+    group.close()
+    drive.close()
+    assert all(node.sync_count >= 400 for node in drive.nodes)
+    assert repeats == []
