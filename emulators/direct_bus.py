@@ -65,6 +65,13 @@ class DirectBus(can.BusABC):
         inbox = self._inbox
         return inbox.popleft() if inbox else None
 
+    def take_frames(self) -> list[Frame]:
+        """Every frame waiting, oldest first (none left waiting)."""
+        inbox = self._inbox
+        frames = list(inbox)
+        inbox.clear()
+        return frames
+
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         frame = from_message(msg)
         if frame is not None:

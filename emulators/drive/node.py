@@ -242,6 +242,7 @@ class DriveNode:
         self.faults = FaultSchedule(for_emulator(faults, "drive"),
                                     lambda: (self._now() - self._t0_ns) / 1e9, on_fault)
         self._delayed: list[tuple[int, list[Frame]]] = []
+        self._serviced = False  # the time service ran after the frame just dispatched
         self._reset_application()
 
     # ---------------------------------------------------------------- life cycle and time
@@ -389,20 +390,33 @@ class DriveNode:
 
     def handle_frame(self, can_id: int, data: bytes) -> None:
         """Process one received 11-bit data frame; never raises."""
+        self.handle_frames(((can_id, data),))
+
+    def handle_frames(self, frames: Iterable[Frame]) -> bool:
+        """Process received 11-bit data frames in their order, the lock taken once (a
+        lockstep runner hands over all that came in one transmission); never raises.
+        Returns whether the time service ran after the last of them (its SYNC's, on the
+        master's time): a runner need not run it again before time moves on."""
         self._heard_ns = time.monotonic_ns()
-        if PDO_IDS_FIRST <= can_id <= PDO_IDS_LAST and can_id != self._sync_cob_id and \
-                self.pdos.receiver(can_id) is None:
-            return  # another node's PDO (several drives on a bus hear each other's): nothing
+        pdos = self.pdos
+        serviced = False
         with self.lock:
-            if self.faults and self.faults.active("silent"):
-                return  # bus-off: it hears nothing either
-            try:
-                self._dispatch(can_id, data)
-            except Exception:  # a bug must not take the drive down: report it as an EMCY
-                self.internal_errors += 1
-                log.exception("drive node %d: internal error on frame 0x%03X %s",
-                              self.node_id, can_id, data.hex())
-                self._emcy(EMCY_SOFTWARE, ERR_REG_GENERIC)
+            for can_id, data in frames:
+                if PDO_IDS_FIRST <= can_id <= PDO_IDS_LAST and can_id != self._sync_cob_id \
+                        and pdos.receiver(can_id) is None:
+                    continue  # another node's PDO (drives on a bus hear each other's): nothing
+                if self.faults and self.faults.active("silent"):
+                    return False  # bus-off: it hears nothing either
+                self._serviced = False
+                try:
+                    self._dispatch(can_id, data)
+                except Exception:  # a bug must not take the drive down: report it as an EMCY
+                    self.internal_errors += 1
+                    log.exception("drive node %d: internal error on frame 0x%03X %s",
+                                  self.node_id, can_id, data.hex())
+                    self._emcy(EMCY_SOFTWARE, ERR_REG_GENERIC)
+                serviced = self._serviced
+        return serviced
 
     def _dispatch(self, can_id: int, data: bytes) -> None:
         handler = self._always_served.get(can_id)
@@ -648,6 +662,7 @@ class DriveNode:
         self._sync_cycle(data)
         if self._sync_timebase:  # time moved on: what is due now, in the SYNC's order
             self._service(self._now())
+            self._serviced = True
 
     def _sync_cycle(self, data: bytes) -> None:
         if len(data) > 1:

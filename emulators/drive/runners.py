@@ -132,13 +132,16 @@ class LockstepDrive:
         return self.channel.attach()
 
     def pump(self) -> None:
-        """Deliver every frame waiting for the nodes, then run their time service."""
+        """Deliver every frame waiting for the nodes (each node all of its own in one call),
+        then run the time service of each node whose last frame did not just run it (a
+        SYNC's, on the master's time: time has not moved since)."""
+        serviced = []
         for bus, node in zip(self._node_buses, self.nodes, strict=True):
-            recv, handle = bus.recv_frame, node.handle_frame
-            while (frame := recv()) is not None:
-                handle(*frame)
-        for node in self.nodes:
-            node.service()
+            frames = bus.take_frames()
+            serviced.append(bool(frames) and node.handle_frames(frames))
+        for node, done in zip(self.nodes, serviced, strict=True):
+            if not done:
+                node.service()
 
     def time_ns(self) -> int:
         """The drive's time: its SYNCs so far, one communication cycle each."""

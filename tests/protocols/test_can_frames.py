@@ -54,6 +54,17 @@ def test_the_direct_channel_carries_tuples_and_python_can_messages_alike():
         bus.shutdown()
 
 
+def test_a_direct_bus_hands_over_every_frame_waiting_at_once():
+    channel = DirectChannel()
+    master, node = channel.attach(), channel.attach()
+    master.send_frames([(0x201, b"\x0f\x00"), (0x80, b"")])
+    master.send_frames([(0x701, b"\x05")])
+    assert node.take_frames() == [(0x201, b"\x0f\x00"), (0x80, b""), (0x701, b"\x05")]
+    assert node.take_frames() == [] and node.recv_frame() is None  # none left waiting
+    for bus in (master, node):
+        bus.shutdown()
+
+
 def test_a_bus_shut_down_leaves_every_other_bus_of_the_channel_hearing():
     """Inboxes are told apart by identity: two empty ones are equal deques, and shutting one
     bus down once detached the first empty inbox of the channel, another bus's."""

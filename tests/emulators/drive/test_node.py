@@ -394,3 +394,56 @@ def test_a_long_lockstep_run_keeps_no_frame_anywhere_it_is_not_read():
     # (a heartbeat), taken before the next SYNC
     assert len(inboxes[0]) == 0 and len(inboxes[1]) <= 2
     master.close()
+
+
+def test_a_batch_of_frames_is_handled_frame_by_frame_and_says_when_the_time_service_ran():
+    """A lockstep runner hands a node everything one transmission brought in one call: the
+    same as each frame alone, another node's PDO ignored, and True when the last frame was a
+    SYNC on the master's time (its time service ran then: the runner need not run it again)."""
+    drive = LockstepDrive(node_ids=[1, 2])
+    node = drive.nodes[0]
+    assert node.handle_frames([(0x000, bytes([0x01, 0]))]) is False  # NMT start: no SYNC
+    assert node.handle_frames([(0x080, b""), (0x182, bytes(6))]) is True  # node 2's TPDO
+    assert node.sync_count == 1
+    read = struct.pack("<BHB", 0x40, 0x6041, 0) + bytes(4)
+    assert node.handle_frames([(0x080, b""), (0x601, read)]) is False  # a request after it
+    assert node.sync_count == 2
+    drive.close()
+
+
+def test_a_lockstep_node_runs_its_time_service_once_for_each_moment_of_its_time(monkeypatch):
+    """Three drives cycled together: a node's time service runs after each SYNC (its time
+    moved), and again only once a frame came since; never twice in a row at one node time,
+    which would only repeat what it just did."""
+    from hil.drivers.canopen import CanDriveMaster, CanLink, DriveMasterConfig
+    from hil.drivers.canopen.axes import AxisBus, AxisGroup
+
+    service, dispatch = DriveNode._service, DriveNode._dispatch
+    last: dict[int, int | None] = {}  # node id -> the node time of its last service, if no
+    repeats = []                      # frame came since
+
+    def counted_service(node, now):
+        if last.get(node.node_id) == now:
+            repeats.append((node.node_id, now))
+        last[node.node_id] = now
+        service(node, now)
+
+    def counted_dispatch(node, can_id, data):
+        last[node.node_id] = None
+        dispatch(node, can_id, data)
+
+    monkeypatch.setattr(DriveNode, "_service", counted_service)
+    monkeypatch.setattr(DriveNode, "_dispatch", counted_dispatch)
+    ids = [1, 2, 3]
+    drive = LockstepDrive(node_ids=ids)
+    bus = AxisBus(CanLink(drive.master_bus), ids)
+    group = AxisGroup(bus, [CanDriveMaster(bus.node_link(n), DriveMasterConfig(node_id=n),
+                                           clock=drive) for n in ids])
+    group.start()
+    for _ in range(400):  # 0.2 s: the master's and the drives' heartbeats come in it too
+        group.send_currents([10.0, -10.0, 5.0])
+        assert all(feedback.fresh for feedback in group.receive())
+    group.close()
+    drive.close()
+    assert all(node.sync_count >= 400 for node in drive.nodes)
+    assert repeats == []
