@@ -142,8 +142,9 @@ def test_the_drive_emulator_is_an_ordinary_process_while_a_lockstep_master_keeps
         try:
             assert share_lockstep_time(master)
             master.sdo.read_int(0x1000, 0)  # a frame: its next service sees the master's time
-            assert wait_for(lambda: os.sched_getscheduler(emulator.pid) == os.SCHED_OTHER)
-            assert len(os.sched_getaffinity(emulator.pid)) == len(os.sched_getaffinity(0))
+            # SCHED_OTHER and every core: two calls of the emulator's, waited for together
+            assert wait_for(lambda: os.sched_getscheduler(emulator.pid) == os.SCHED_OTHER
+                            and os.sched_getaffinity(emulator.pid) == os.sched_getaffinity(0))
         finally:
             master.close()  # lets the time go (0x2005 = 0): the drive's own clock again
         assert wait_for(lambda: os.sched_getscheduler(emulator.pid) == os.SCHED_FIFO)
