@@ -30,10 +30,15 @@ demo test check papers: export PYTHONDONTWRITEBYTECODE :=
 # session time), and so does mypy: the wall-clock tests, at nice 0, take the CPU they need
 # the moment they need it and the rest take what is left (each process woken up preempts a
 # niced one at once), so they pass as on a quiet machine, in the same minute as the rest. Their
-# output is shown at the end
+# output is shown at the end. First, one process collects the suite while another compiles
+# hil: each process that imports a module first writes its bytecode (pytest its own, asserts
+# rewritten), and five pytest processes and the first hil processes would otherwise all
+# compile the same modules at once
 test: $(STAMP)
 	$(BIN)/ruff check .
 	nice -n 19 $(BIN)/mypy > $(VENV)/mypy.log 2>&1 & mypy=$$!; \
+	$(BIN)/python -m compileall -q hil > /dev/null & compiled=$$!; \
+	$(BIN)/pytest -q --collect-only -p no:cacheprovider > /dev/null 2>&1; wait $$compiled; \
 	nice -n 19 $(BIN)/pytest -q -n 4 --dist worksteal -m "not realtime" & tests=$$!; \
 	$(BIN)/pytest -q -p no:cacheprovider -m realtime > $(VENV)/realtime.log 2>&1; timed=$$?; \
 	wait $$tests; tests=$$?; wait $$mypy; typed=$$?; \
