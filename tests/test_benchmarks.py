@@ -52,7 +52,8 @@ QUICK_LINES = {
 
 
 #: the scripts whose --quick drives an axis in real time at 2 kHz, its safety on: run with the
-#: other real-time tests, alone (beside 3 workers a late loop stopped one on its velocity limit)
+#: other real-time tests, ahead of the niced rest (beside 3 workers at the same priority a late
+#: loop stopped one on its velocity limit)
 REAL_TIME = {"servo", "ethercat"}
 
 
