@@ -79,13 +79,14 @@ def test_current_limits_and_the_peak_are_on_the_current_the_drive_is_sent(tmp_pa
 
 def test_output_paths_follow_one_rule(tmp_path, capfd, monkeypatch):
     session = tmp_path / "s.mcap"
-    assert hil(tmp_path, "servo", "run", "--controller", "pid", "--duration", "0.05",
-               "--out", str(session)).returncode == 0
+    monkeypatch.chdir(tmp_path)  # the session to report on, in this process
+    assert hil_here(capfd, "servo", "run", "--controller", "pid", "--duration", "0.05",
+                    "--out", str(session)).returncode == 0
     # missing folders are created, for every output
     done = hil(tmp_path, "report", str(session), "--out", "plots/new/s.png")
     assert done.returncode == 0, done.stderr
     assert (tmp_path / "plots" / "new" / "s.png").stat().st_size > 0
-    monkeypatch.chdir(tmp_path)  # the other cases in this process, from the same folder
+    # the other cases in this process, from the same folder
     done = hil_here(capfd, "servo", "run", "--controller", "pid", "--duration", "0.05",
                     "--junit", "reports/junit.xml", "--limit", "rms_error_deg<=5", "--out",
                     "runs/a.mcap")

@@ -72,25 +72,6 @@ def test_runs_in_lockstep_on_the_fixtures_own_emulator(hil_bench):
 '''
 
 
-def test_users_tests_pass_with_plain_pytest_and_the_installed_plugin(tmp_path):
-    """The examples' tests, and one more that looks at how the fixture's runs go."""
-    folder = user_folder(tmp_path)
-    (folder / "test_over_the_wire.py").write_text(OVER_THE_WIRE)
-    out = run_pytest(folder, str(folder), "--junitxml", "results.xml")
-    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
-    assert "4 passed" in out.stdout
-    # each run's KPIs are the test case's properties; the emulators' runs are lockstep
-    cases = {case.get("name"): {p.get("name"): p.get("value") for p in case.iter("property")}
-             for case in ET.parse(folder / "results.xml").getroot().iter("testcase")}
-    servo = cases["test_pd_tracks_a_slow_sine_through_the_drive"]
-    assert servo["servo-1.clock"] == "sim" and servo["servo-1.status"] == "completed"
-    assert servo["servo-1.passed"] == "true" and float(servo["servo-1.rms_error_deg"]) < 0.5
-    bench = cases["test_threshold_relays_keep_the_levels_in_range"]
-    assert bench["bench-1.level_violations"] == "0" and bench["bench-1.status"] == "completed"
-    assert bench["bench-1.mcap"].endswith("bench-1.mcap")
-    assert cases["test_the_bench_driver_switches_a_relay_and_reads_power"] == {}  # no run
-
-
 #: the hil_drive fixture in every mode: a homing, a profile move, a CSP run homed first
 EVERY_MODE = '''
 def test_homes_moves_and_runs_csp_from_home(hil_drive):
@@ -107,12 +88,48 @@ def test_homes_moves_and_runs_csp_from_home(hil_drive):
 '''
 
 
-def test_the_drive_fixture_homes_moves_and_runs_every_mode(tmp_path):
-    folder = user_folder(tmp_path)
+@pytest.fixture(scope="module")
+def passing_run(tmp_path_factory):
+    """One plain ``pytest`` run of a user's tests that pass (each start of pytest and hil's
+    plugin costs CPU): the examples' tests, :data:`OVER_THE_WIRE` and :data:`EVERY_MODE`. The
+    finished run and its test cases (name: the case's element) from ``results.xml``."""
+    folder = user_folder(tmp_path_factory.mktemp("users"))
+    (folder / "test_over_the_wire.py").write_text(OVER_THE_WIRE)
     (folder / "test_every_mode.py").write_text(EVERY_MODE)
-    out = run_pytest(folder, "test_every_mode.py")
+    out = run_pytest(folder, str(folder), "--junitxml", "results.xml")
+    cases = {case.get("name"): case
+             for case in ET.parse(folder / "results.xml").getroot().iter("testcase")}
+    return out, cases
+
+
+def passed(case):
+    """Whether a junit test case passed: no failure, error or skip in it."""
+    return not [child.tag for child in case if child.tag in ("failure", "error", "skipped")]
+
+
+def test_users_tests_pass_with_plain_pytest_and_the_installed_plugin(passing_run):
+    """The examples' tests, and one more that looks at how the fixture's runs go."""
+    out, cases = passing_run
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
-    assert "1 passed" in out.stdout
+    assert "5 passed" in out.stdout  # with test_every_mode.py's one
+    assert len(cases) == 5 and all(passed(case) for case in cases.values())
+    # each run's KPIs are the test case's properties; the emulators' runs are lockstep
+    properties = {name: {p.get("name"): p.get("value") for p in case.iter("property")}
+                  for name, case in cases.items()}
+    servo = properties["test_pd_tracks_a_slow_sine_through_the_drive"]
+    assert servo["servo-1.clock"] == "sim" and servo["servo-1.status"] == "completed"
+    assert servo["servo-1.passed"] == "true" and float(servo["servo-1.rms_error_deg"]) < 0.5
+    bench = properties["test_threshold_relays_keep_the_levels_in_range"]
+    assert bench["bench-1.level_violations"] == "0" and bench["bench-1.status"] == "completed"
+    assert bench["bench-1.mcap"].endswith("bench-1.mcap")
+    assert properties["test_the_bench_driver_switches_a_relay_and_reads_power"] == {}  # no run
+
+
+def test_the_drive_fixture_homes_moves_and_runs_every_mode(passing_run):
+    out, cases = passing_run
+    case = cases["test_homes_moves_and_runs_csp_from_home"]
+    assert case.get("classname") == "test_every_mode" and passed(case), \
+        out.stdout[-3000:] + out.stderr[-2000:]
 
 
 LEAVES_A_RELAY_ON = '''

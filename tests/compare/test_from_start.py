@@ -2,8 +2,9 @@
 drive`` whose axis stays where each run leaves it: two runs from where the axis stands
 (``--from-here``) repeat one 90 deg move from two places, and ``hil compare`` and the
 ``hil_baseline`` fixture (run against the drive with ``--hil-drive``) hold their positions
-relative to each run's start; the drive guide's first cautious run holds an axis standing 90 deg
-away instead of driving it at zero."""
+relative to each run's start; the drive guide's first cautious run holds an axis standing 180 deg
+away instead of driving it at zero. The two runs from here and the cautious run share one drive
+(:func:`moved_twice`)."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ import textwrap
 import pytest
 
 from hil import api
+from hil.cli.main import main
 from tests.cli import NOT_A_USERS_PLUGINS, hil_here
 from tests.docs import block
 
@@ -32,12 +34,22 @@ CLOSE = ["--tolerance", "*=rel:5%", "--tolerance", f"{POSITION}=abs:0.01",
          "--tolerance", "/drive/command:reference_deg=abs:1e-9"]
 
 
-def test_hil_compare_holds_two_runs_from_here_relative_to_their_starts(tmp_path, capsys):
+@pytest.fixture(scope="module")
+def moved_twice(tmp_path_factory):
+    """A standalone drive emulator and a folder with two runs of :data:`MOVE` on it, one
+    after the other (``first.mcap``, ``second.mcap``): its axis stands 180 deg on."""
+    folder = tmp_path_factory.mktemp("from_start")
     with api.start_drive_emulator() as drive:
-        for name in ("first", "second"):
-            run = hil_here(capsys, "servo", "run", *MOVE, "--drive", drive.url, "--out",
-                           f"{name}.mcap", cwd=tmp_path)
-            assert run.returncode == 0, run.stderr
+        with pytest.MonkeyPatch.context() as patch:  # in this process, as hil_here runs it
+            patch.chdir(folder)
+            for name in ("first", "second"):
+                assert main(["servo", "run", *MOVE, "--drive", drive.url, "--out",
+                             f"{name}.mcap"]) == 0, name
+        yield drive, folder
+
+
+def test_hil_compare_holds_two_runs_from_here_relative_to_their_starts(moved_twice, capsys):
+    _, tmp_path = moved_twice
     compared = hil_here(capsys, "compare", "first.mcap", "second.mcap", "--signal", POSITION,
                         "--signal", "/drive/command:reference_deg", *CLOSE, "--json",
                         cwd=tmp_path)
@@ -92,21 +104,18 @@ def test_hil_baseline_against_a_given_drive_holds_wherever_the_axis_stood(tmp_pa
     assert position["from_start_deg"][1] == pytest.approx(90.0, abs=1.0)
 
 
-def test_the_first_cautious_run_holds_the_axis_where_it_stands(tmp_path, capsys):
+def test_the_first_cautious_run_holds_the_axis_where_it_stands(moved_twice, tmp_path, capsys):
     """The drive guide's recipe, in lockstep and for half a second (its `--realtime` and two
-    seconds are for the hardware), against a drive whose axis the run before left 90 deg
+    seconds are for the hardware), against a drive whose axis the runs before left 180 deg
     from zero."""
     recipe = block("guides/drive.md", "sh", "--can-log first.asc").replace("\\\n", " ")
     [line] = [line for line in recipe.splitlines() if line.startswith("hil servo run")]
     argv = shlex.split(line)[1:]
     assert "--from-here" in argv
-    with api.start_drive_emulator() as drive:
-        moved = hil_here(capsys, "servo", "run", *MOVE, "--drive", drive.url, "--out",
-                         "moved.mcap", cwd=tmp_path)
-        assert moved.returncode == 0, moved.stderr
-        argv = [drive.url if arg == "socketcan://can0" else arg for arg in argv
-                if arg != "--realtime"]
-        argv[argv.index("--duration") + 1] = "0.5"
-        cautious = hil_here(capsys, *argv, "--out", "cautious.mcap", cwd=tmp_path)
+    drive, _ = moved_twice
+    argv = [drive.url if arg == "socketcan://can0" else arg for arg in argv
+            if arg != "--realtime"]
+    argv[argv.index("--duration") + 1] = "0.5"
+    cautious = hil_here(capsys, *argv, "--out", "cautious.mcap", cwd=tmp_path)
     assert cautious.returncode == 0, cautious.stderr  # on main: 2, stopped 10 ms in
     assert (tmp_path / "first.asc").stat().st_size > 0

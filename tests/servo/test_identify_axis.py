@@ -140,9 +140,10 @@ def test_an_axis_of_a_session_with_several(tmp_path, capsys):
     names the feedback topics of such a session, --axis picks one (variants of the command the
     test above runs from outside, run here)."""
     session = tmp_path / "axes.mcap"
-    run = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller",
-              "hil.servo.identify:excitation", "--reference", "hold:position=0", "--from-here",
-              "--param", "y.amplitude=200", "--duration", "0.4", "--out", session)
+    run = hil_here(capsys, "servo", "run", "--axes", "x=1,y=2", "--controller",
+                   "hil.servo.identify:excitation", "--reference", "hold:position=0",
+                   "--from-here", "--param", "y.amplitude=200", "--duration", "0.4", "--out",
+                   session, cwd=tmp_path)
     assert run.returncode == 0, run.stderr
     whole = hil_here(capsys, "identify", session, "--servo", cwd=tmp_path)
     assert whole.returncode == 2

@@ -1,6 +1,8 @@
 """The twins guide's "Make a twin of your machine" (docs/guides/twins.md), its commands run
 as a user runs them: from a copy of examples/twin/ outside the repository, each `hil` line of
-the page's first sh block in a process of its own. "The machine" (machine.toml: another axis,
+the page's first sh block in turn, by ``main`` in this process (:func:`hil_here`: each command
+runs as a ``hil`` process from outside the repository in its own tests, tests/servo/
+test_identify_axis.py and test_twin_check.py among them). "The machine" (machine.toml: another axis,
 viscous friction) is identified, its twin checked against a PID run of it, and the
 controllers' KPIs on the twin come within a hair of the machine's; a machine with Coulomb
 friction, which a linear twin cannot hold, fails its check."""
@@ -9,7 +11,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 import shlex
 import shutil
@@ -38,12 +39,6 @@ def readme_commands() -> list[list[str]]:
     return [shlex.split(line)[1:] for line in lines if line.startswith("hil ")]
 
 
-def hil(folder: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    return subprocess.run([sys.executable, "-m", "hil", *args], cwd=folder, env=env,
-                          capture_output=True, text=True, timeout=300)
-
-
 @pytest.fixture
 def machine(tmp_path: Path) -> Path:
     folder = tmp_path / "machine"
@@ -51,14 +46,14 @@ def machine(tmp_path: Path) -> Path:
     return folder
 
 
-def test_the_guide_makes_a_twin_that_fits_the_machine_and_predicts_its_kpis(machine):
+def test_the_guide_makes_a_twin_that_fits_the_machine_and_predicts_its_kpis(machine, capfd):
     commands = readme_commands()
     assert [c[:2] for c in commands[:4]] == [["servo", "identify"], ["identify",
                                               "identify.mcap"], ["servo", "run"],
                                              ["twin", "check"]]
     kpis, printed = {}, {}
     for args in commands:
-        done = hil(machine, *args)
+        done = hil_here(capfd, *args, cwd=machine)
         assert done.returncode == 0, (args, done.stdout[-2000:], done.stderr[-2000:])
         printed[args[0]] = done.stdout
         if "--json" in args and args[:2] == ["servo", "run"]:
@@ -97,8 +92,7 @@ def test_the_guide_makes_a_twin_that_fits_the_machine_and_predicts_its_kpis(mach
 
 
 def test_a_machine_with_coulomb_friction_fails_the_check_of_a_linear_twin(machine, capfd):
-    """The guide's first four commands on another machine: a variant of the guide's run,
-    so ``hil`` runs in this process (the test above runs each line as a process)."""
+    """The guide's first four commands on another machine: a variant of the guide's run."""
     (machine / "machine.toml").write_text((machine / "machine.toml").read_text()
                                           + "coulomb_mA = 20.0\ncoulomb_smoothing_deg_s = 2.0\n")
     for args in readme_commands()[:4]:

@@ -16,6 +16,7 @@ from hil import api
 from hil.core.recording.reader import read_session
 from hil.errors import HilError
 from hil.servo.run import ServoRunOptions, run_servo
+from tests.cli import hil_here
 
 pytestmark = [pytest.mark.slow]
 
@@ -93,25 +94,30 @@ def test_driving_blind_is_stopped_by_the_stale_share(tmp_path):
                       drive_config=str(config), out=str(tmp_path / "blind.mcap"))
 
 
-def test_from_the_command_line_exit_2_and_the_limits_can_be_switched_off(tmp_path):
+def test_from_the_command_line_exit_2_and_the_limits_can_be_switched_off(tmp_path, capfd):
+    """A safety stop and the limits switched off as ``hil`` processes; the refusals, more cases
+    of --safety, run the command line in this process (:func:`hil_here`), from the same
+    folder."""
     spec = runaway_file(tmp_path)
     env = dict(os.environ, PYTHONPATH=str(ROOT))
+    argv = ("servo", "run", "--controller", spec, "--reference", "hold:position=0")
 
     def hil(*args):
-        return subprocess.run([sys.executable, "-m", "hil", "servo", "run", "--controller",
-                               spec, "--reference", "hold:position=0", *args], cwd=tmp_path,
+        return subprocess.run([sys.executable, "-m", "hil", *argv, *args], cwd=tmp_path,
                               env=env, capture_output=True, text=True, timeout=120)
 
     stopped = hil("--duration", "3", "--out", "a.mcap")
     assert stopped.returncode == 2
     [line] = stopped.stderr.strip().splitlines()
     assert line.startswith("hil: error: safety stop at t=") and "a.mcap" in line
-    loose = hil("--duration", "0.3", "--safety", "enabled=false", "--out", "b.mcap")
+    loose = hil_here(capfd, *argv, "--duration", "0.3", "--safety", "enabled=false", "--out",
+                     "b.mcap", cwd=tmp_path)
     assert loose.returncode == 2 and "--allow-looser-safety" in loose.stderr  # never silently
     free = hil("--duration", "0.3", "--safety", "enabled=false", "--allow-looser-safety",
                "--json", "--out", "b.mcap")
     assert free.returncode == 0, free.stderr
     assert "hil: warning: safety limits loosened by --safety: enabled true -> false" \
         in free.stderr
-    bad = hil("--duration", "0.3", "--safety", "following_error_dg=3", "--out", "c.mcap")
+    bad = hil_here(capfd, *argv, "--duration", "0.3", "--safety", "following_error_dg=3",
+                   "--out", "c.mcap", cwd=tmp_path)
     assert bad.returncode == 2 and "safety.following_error_dg" in bad.stderr

@@ -1,16 +1,21 @@
 """``hil twin check`` from the command line: a recording replayed into its twin. The emulator
 that made a recording is its perfect twin (fit 100 %, exit 0); a machine with friction the
-twin lacks fails the fit (exit 1); what cannot be checked is one line, exit 2."""
+twin lacks fails the fit (exit 1); what cannot be checked is one line, exit 2. The first check
+runs as a ``hil`` process from a folder outside the repository, the others run the command line
+in this process (:func:`hil_here`); the two recordings are made once (:func:`recorded`)."""
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
+from hil.cli.main import main
 from hil.core.recording.reader import read_session
 from tests.cli import hil_here
 
@@ -26,18 +31,29 @@ def hil(cwd, *args):
                           capture_output=True, text=True, timeout=180)
 
 
-def record(tmp_path, capsys, name, *extra):
-    done = hil_here(capsys, "servo", "run", "--controller", "pid", "--duration", "0.3",
-                    "--quiet", "--out", name, *extra, cwd=tmp_path)
-    assert done.returncode == 0, done.stderr
-    return tmp_path / name
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """0.3 s of pid on the emulator (``same.mcap``) and on a machine with friction the twin
+    lacks (``machine.mcap``), recorded once, in this process."""
+    folder = tmp_path_factory.mktemp("recorded")
+    (folder / "machine.toml").write_text(FRICTION)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.chdir(folder)
+        for name, *extra in (("same.mcap",), ("machine.mcap", "--config", "machine.toml")):
+            assert main(["servo", "run", "--controller", "pid", "--duration", "0.3", "--quiet",
+                         "--out", name, *extra]) == 0, name
+    return folder
+
+
+def record(recorded: Path, tmp_path: Path, name: str) -> Path:
+    """The recording ``name`` of :func:`recorded`, in the test's own folder."""
+    return Path(shutil.copy(recorded / name, tmp_path / name))
 
 
 def test_the_emulator_is_its_own_perfect_twin_and_a_machine_with_friction_is_not(
-        tmp_path, capsys):
-    same = record(tmp_path, capsys, "same.mcap")
-    (tmp_path / "machine.toml").write_text(FRICTION)
-    machine = record(tmp_path, capsys, "machine.mcap", "--config", "machine.toml")
+        recorded, tmp_path, capsys):
+    same = record(recorded, tmp_path, "same.mcap")
+    machine = record(recorded, tmp_path, "machine.mcap")
 
     done = hil(tmp_path, "twin", "check", same.name, "--json", "--out", "same.png")
     assert done.returncode == 0, done.stderr
@@ -52,16 +68,15 @@ def test_the_emulator_is_its_own_perfect_twin_and_a_machine_with_friction_is_not
     assert twin.metadata["session"]["kind"] == "servo"
     assert check["session"] == "same.twin.mcap"
 
-    done = hil(tmp_path, "twin", "check", machine.name)
+    done = hil_here(capsys, "twin", "check", machine.name, cwd=tmp_path)
     assert done.returncode == 1, done.stdout + done.stderr
     assert "FAIL: every output's fit must reach 80 %" in done.stdout
     position = next(line for line in done.stdout.splitlines() if "position_deg" in line)
     assert "fit" in position and "max error" in position
 
 
-def test_the_minimum_fit_decides_the_exit_status(tmp_path, capsys):
-    (tmp_path / "machine.toml").write_text(FRICTION)
-    machine = record(tmp_path, capsys, "machine.mcap", "--config", "machine.toml")
+def test_the_minimum_fit_decides_the_exit_status(recorded, tmp_path, capsys):
+    machine = record(recorded, tmp_path, "machine.mcap")
     done = hil_here(capsys, "twin", "check", machine.name, "--json", cwd=tmp_path)
     fits = [o["fit_pct"] for o in json.loads(done.stdout)["outputs"]]
     below = min(fits) - 1.0
@@ -77,8 +92,8 @@ def test_the_minimum_fit_decides_the_exit_status(tmp_path, capsys):
     (("same.mcap", "--min-fit", "120"), "expected a fit in %, at most 100, got 120"),
     (("same.mcap", "--twin-out", "same.mcap"), "is the recording itself"),
 ])
-def test_what_cannot_be_checked_is_one_line(tmp_path, capsys, args, message):
-    record(tmp_path, capsys, "same.mcap")
+def test_what_cannot_be_checked_is_one_line(recorded, tmp_path, capsys, args, message):
+    record(recorded, tmp_path, "same.mcap")
     done = hil_here(capsys, "twin", "check", *args, cwd=tmp_path)
     assert done.returncode == 2, done.stdout + done.stderr
     lines = done.stderr.strip().splitlines()
