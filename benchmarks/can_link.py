@@ -138,6 +138,9 @@ def canopen_sdo_round_trip(requests: int) -> np.ndarray:
     node_bus = can.Bus(interface="virtual", channel=channel)
     runner = BusRunner(DriveNode(send=bus_sender(node_bus)), node_bus).start()
     network = canopen.Network()
+    # its notifier thread sees that it should stop once per cycle (1 s by default): the
+    # disconnect waited that long, and nothing else depends on it
+    network.NOTIFIER_CYCLE = 0.05
     network.connect(interface="virtual", channel=channel)
     remote = network.add_node(1, build_object_dictionary(1))
     samples = np.empty(requests)

@@ -23,7 +23,7 @@ no read-back can tell it from a healthy one.
    The target: a flipped byte costs a retry, never the session.
 
 ``--quick``: one bench machine cycle (28 s of session time) without the no-fault baseline, a 1 s
-servo run after a 1.5 s lead (the final ``silent`` alone), and one 0.1 s noisy-line session,
+servo run after a 1 s lead (the final ``silent`` alone), and one 0.1 s noisy-line session,
 2 % (a few dozen requests: it still costs retries; the clean line is the full run's baseline;
 seconds; figures not worth quoting, and the verdict does not set the exit status: a fault
 missed on a loaded machine is a figure there).
@@ -342,7 +342,7 @@ def main() -> int:
             "" if base is None else f", {base['wall_s']:.1f} s without") +
             f" ({soak['session_s']:g} s of session time)")
         print(f"== servo: real time over socketcand, {args.servo_s:g} s with faults")
-        servo = soak_servo(args.servo_s, args.seed, tmp, lead=1.5 if args.quick else 8.0)
+        servo = soak_servo(args.servo_s, args.seed, tmp, lead=1.0 if args.quick else 8.0)
         print(f"  faults scheduled {servo['scheduled']}, injected {servo['injected']}, "
               f"detected (stale cycles in their window) {len(servo['detected'])}")
         print(f"  stale cycles: {servo['stale_in']} inside fault windows, {servo['stale_out']} "

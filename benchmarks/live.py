@@ -17,7 +17,7 @@ went: the loop process, the drive emulator (with the time it waited for a CPU), 
 split into the recording (its Python thread) and the live server (the SDK's threads), and the
 clients. The default runs keep the watchdogs off the machine's CAN timing (a late TPDO is
 counted, a late heartbeat does not fault the drive); ``--churn`` runs as shipped, safety net
-and watchdogs on, so that whether they complete is part of the figures. ``--quick``: one 0.5 s run
+and watchdogs on, so that whether they complete is part of the figures. ``--quick``: one 0.3 s run
 with the live view, the one without it (the baseline) skipped (seconds; figures not worth
 quoting).
 """
@@ -43,7 +43,7 @@ from benchkit import add_quick
 
 from hil.core.config import deep_merge
 from hil.core.recording.reader import read_session
-from hil.servo.demo import drive_for
+from hil.servo.config import drive_for
 from hil.servo.report import FEEDBACK_TIMING
 
 REPO = Path(__file__).resolve().parents[1]
@@ -253,7 +253,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--duration", type=float,
-                        help="seconds per run (default 10; 0.5 with --quick)")
+                        help="seconds per run (default 10; 0.3 with --quick)")
     parser.add_argument("--pairs", type=int, help="off/on pairs (default 2; 1 with --quick)")
     parser.add_argument("--churn", type=int, default=0, metavar="N",
                         help="N clients coming and going instead of one watching throughout")
@@ -261,7 +261,7 @@ def main() -> None:
                         help="with --churn: seconds each connection reads before it closes")
     add_quick(parser)
     args = parser.parse_args()
-    args.duration = args.duration or (0.5 if args.quick else 10.0)
+    args.duration = args.duration or (0.3 if args.quick else 10.0)
     args.pairs = args.pairs or (1 if args.quick else 2)
     clients = f"{args.churn} clients coming and going" if args.churn else "1 client"
     print(f"real-time servo, MPC FOH H_t = H_u = 8 at 2 kHz, {args.duration:g} s per run, "

@@ -23,7 +23,7 @@ session skips at most the bare loop's share plus 0.01 points, none of its skips 
 and it completes clean (``completed``: no stale feedback, no late frames: ``hil servo run``
 exits 0); the lockstep session >= 10x real time; the bench skips no tick. A shared machine
 makes every real-time figure noisy: the load average is printed before and after; quote a
-quiet machine's. ``--quick``: runs of 0.2 s and one bench cycle of a 1 s machining sequence
+quiet machine's. ``--quick``: runs of 0.1 s and one bench cycle of a 0.5 s machining sequence
 (seconds in all; figures not worth quoting), and the hops, observed in the wire run.
 
 ``--hops``: one more wire run with a second client on the emulator's bus
@@ -73,16 +73,16 @@ TPDO1_ID = 0x181            # node 1's TPDO1: the first of its answers to a SYNC
 STAMP_RESOLUTION_S = 1e-6   # socketcand's stamps are whole microseconds
 SKIPPED_POINTS_MAX = 0.01   # the servo session's skipped share: at most the bare loop's + this
 LOCKSTEP_MIN = 10.0
-# --quick: a 1 s machining sequence instead of bench.toml's 28 s one (M1 and M2 then switch
+# --quick: a 0.5 s machining sequence instead of bench.toml's 28 s one (M1 and M2 then switch
 # faster than their 1 s dwell allows, so it is shortened too)
 SHORT_SEQUENCE = """[relays]
 M1 = { coil = 0, safe = false, dwell_s = 0.2 }
 M2 = { coil = 1, safe = false, dwell_s = 0.2 }
 
 [sequence]
-period_s = 1.0
-stages = [{ start_s = 0.0, end_s = 0.5, on = ["M1"] },
-          { start_s = 0.5, end_s = 1.0, on = ["M1", "M2"] }]
+period_s = 0.5
+stages = [{ start_s = 0.0, end_s = 0.25, on = ["M1"] },
+          { start_s = 0.25, end_s = 0.5, on = ["M1", "M2"] }]
 """
 #: a loaded 2-core box: stale feedback is counted, not fatal, here (the watchdog and the
 #: safety net's stale share)
@@ -295,9 +295,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float,
-                        help="each real-time run [s] (default 10; 0.2 with --quick)")
+                        help="each real-time run [s] (default 10; 0.1 with --quick)")
     parser.add_argument("--bench-cycles", type=int, help="bench run, 28 s each (default 2; "
-                        "one 1 s cycle with --quick)")
+                        "one 0.5 s cycle with --quick)")
     parser.add_argument("--repeat", type=int, default=1,
                         help="repeats of the four real-time runs, one after the other (the "
                              "machine's speed drifts: the targets are checked on the medians)")
@@ -310,9 +310,9 @@ def main() -> int:
     args = parser.parse_args()
     if args.repeat < 1:
         parser.error("--repeat must be >= 1")
-    args.seconds = args.seconds or (0.2 if args.quick else 10.0)
+    args.seconds = args.seconds or (0.1 if args.quick else 10.0)
     args.bench_cycles = args.bench_cycles or (1 if args.quick else 2)
-    cycle_s = 1.0 if args.quick else 28.0
+    cycle_s = 0.5 if args.quick else 28.0
     runs: dict[str, list[dict[str, Any]]] = {name: [] for name in RUNS}
     load = [os.getloadavg()[0]]
     with tempfile.TemporaryDirectory() as tmp_name:

@@ -47,7 +47,7 @@ from benchkit import add_quick, fill_defaults
 
 from hil.core.config import deep_merge
 from hil.core.recording.reader import read_session
-from hil.servo.demo import drive_for
+from hil.servo.config import drive_for
 
 REPO = Path(__file__).resolve().parents[1]
 TOLERANT = {"master": {"stale_cycles": 100_000, "heartbeat_timeout_ms": 0},

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from hil.paper.servo_conditions import ServoConditions
-from hil.servo.demo import drive_for
+from hil.servo.config import drive_for
 
 if TYPE_CHECKING:
     from hil.controllers.servo.empc import ExplicitLaw, ExplicitMpc

@@ -180,6 +180,14 @@ def drive_layers(path: str | os.PathLike[str] | None = None) -> tuple[list[Layer
     return layers, text
 
 
+def drive_for(limit_ma: float) -> dict[str, Any]:
+    """The drive configured for a case's current (the paper's rated 12 A at 10 Hz): the
+    master's limit, and the emulated drive's own max torque 0x6072 (per mille of its rated
+    1000 mA), which no master goes above."""
+    return {"master": {"current_limit_mA": limit_ma},
+            "emulator": {"max_torque_permille": max(1000, round(limit_ma))}}
+
+
 def load_drive_config(path: str | os.PathLike[str] | None = None,
                       overrides: Mapping[str, Any] | None = None,
                       origin: str = "overrides") -> DriveConfig:

@@ -26,6 +26,7 @@ from hil.core.recording.reader import read_session
 from hil.core.recording.recorder import RecordingOptions
 from hil.core.report import plot_session
 from hil.errors import HilError
+from hil.servo.config import drive_for
 from hil.servo.run import ServoRunOptions, run_servo
 from hil.sweep.engine import Engine
 from hil.sweep.space import Trial, named
@@ -34,14 +35,6 @@ SETTLE_S = 0.5
 CASES = ((1.0, 1000.0), (10.0, 12000.0))  # (sine frequency [Hz], current limit [mA])
 CONTROLLERS = ("mpc", "pid")
 AMPLITUDE_DEG = 2.0
-
-
-def drive_for(limit_ma: float) -> dict[str, Any]:
-    """The drive configured for a case's current (the paper's rated 12 A at 10 Hz): the
-    master's limit, and the emulated drive's own max torque 0x6072 (per mille of its rated
-    1000 mA), which no master goes above."""
-    return {"master": {"current_limit_mA": limit_ma},
-            "emulator": {"max_torque_permille": max(1000, round(limit_ma))}}
 
 
 def run_servo_demo(out_dir: str | Path, echo: Callable[[str], None] | None = print,

@@ -164,6 +164,8 @@ class TcpPeer(Peer):
                     return
 
     def close(self) -> None:
+        with contextlib.suppress(OSError):  # wakes its accept(), which closing alone does not
+            self._listener.shutdown(socket.SHUT_RDWR)
         self._listener.close()
         self._thread.join(timeout=2)
 

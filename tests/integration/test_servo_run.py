@@ -21,7 +21,7 @@ from hil.controllers.servo.references import parse_scenario
 from hil.controllers.servo.sim import simulate
 from hil.core.recording.reader import read_session
 from hil.drivers.canopen import DriveFaultError
-from hil.servo.demo import drive_for
+from hil.servo.config import drive_for
 from hil.servo.run import ServoRunOptions, make_controller, run_servo
 from tests.drive_processes import start_drive_emulator, stop_drive_emulator
 
