@@ -8,8 +8,7 @@ frames). Sampling: a real-time session at 100 Hz polls the meter and the levels 
 over a paced RTU line. Target (the project's): TCP poll p99 <= 2 ms. The machine is shared:
 figures are noisy, run it on a quiet box for figures worth quoting. ``--quick``: 20 TCP and
 5 RTU round trips per row (the driver waiting up to 2 s for each answer), sampling runs of
-0.2 s each against the round trips' TCP emulator and paced RTU line (seconds; figures not
-worth quoting).
+0.2 s each (seconds; figures not worth quoting).
 
 Lockstep over the wire, clean line: a lockstep ``hil bench run --controller bc`` against
 ``hil emulate bench`` over TCP and over RTU (a pty pair), this code (numbered time requests,
@@ -23,7 +22,6 @@ only.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import re
@@ -34,10 +32,9 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import serial
@@ -97,59 +94,6 @@ def stop(proc: subprocess.Popen[str]) -> None:
         proc.kill()
 
 
-class Emulators:
-    """The emulator processes of the round trips and the sampling runs: each use starts its
-    own, or with ``share`` (``--quick``) the TCP emulator and each RTU line (its null modem
-    and emulator) start once and serve every use, until :meth:`close`."""
-
-    def __init__(self, share: bool) -> None:
-        self.share = share
-        self._kept: dict[Any, tuple[list[subprocess.Popen[str]], Any]] = {}
-
-    def __enter__(self) -> Emulators:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def tcp(self) -> contextlib.AbstractContextManager[str]:
-        """A TCP emulator's URL."""
-        def start() -> tuple[list[subprocess.Popen[str]], str]:
-            proc, url = emulator("--tcp", "127.0.0.1:0")
-            return [proc], url
-        return self._use("tcp", start)
-
-    def rtu(self, baud: int | None) -> contextlib.AbstractContextManager[list[str]]:
-        """The ports of a null modem (paced at ``baud``, None: unpaced) whose second end an
-        emulator at 115200 serves."""
-        def start() -> tuple[list[subprocess.Popen[str]], list[str]]:
-            modem, ports = null_modem(baud)
-            proc, _ = emulator("--serial", ports[1], "--baud", "115200")
-            return [proc, modem], ports
-        return self._use(("rtu", baud), start)
-
-    @contextlib.contextmanager
-    def _use(self, key: Any, start: Callable[[], tuple[list[subprocess.Popen[str]], Any]]
-             ) -> Iterator[Any]:
-        if key not in self._kept:
-            procs, value = start()
-            if not self.share:
-                try:
-                    yield value
-                finally:
-                    for proc in procs:
-                        stop(proc)
-                return
-            self._kept[key] = (procs, value)
-        yield self._kept[key][1]
-
-    def close(self) -> None:
-        for procs, _ in self._kept.values():
-            for proc in procs:
-                stop(proc)
-        self._kept.clear()
-
-
 def time_calls(call: Callable[[], object], n: int) -> np.ndarray:
     for _ in range(min(50, n)):
         call()
@@ -199,12 +143,13 @@ def raw_rtu(port: str, count: int) -> Callable[[], bytes]:
     return call
 
 
-def round_trips(n_tcp: int, n_rtu: int, emulators: Emulators, patient: bool = False) -> None:
+def round_trips(n_tcp: int, n_rtu: int, patient: bool = False) -> None:
     """``patient`` (``--quick``): the hil driver waits 2 s for an answer, not 0.1 s (TCP) and
     0.2 s (RTU): on a loaded machine (make test) an emulator answers late, and a quick run
     checks that the benchmark runs, not the machine's pace."""
     header("Poll round trip, meter unit (FC04)")
-    with emulators.tcp() as url:
+    proc, url = emulator("--tcp", "127.0.0.1:0")
+    try:
         port = parse_bus_url(url).port
         row(f"TCP raw socket frame ({FULL} regs) [baseline]", time_calls(raw_tcp(port), n_tcp))
         client = ModbusTcpClient("127.0.0.1", port=port, timeout=1, retries=0)
@@ -217,9 +162,13 @@ def round_trips(n_tcp: int, n_rtu: int, emulators: Emulators, patient: bool = Fa
         row(f"TCP hil driver ({FULL} regs)", samples,
             f"target p99 <= 2000 us: {'met' if np.percentile(samples, 99) <= 2000 else 'MISSED'}")
         link.close()
+    finally:
+        stop(proc)
     for baud in (None, 115200):
+        modem, ports = null_modem(baud)
+        proc, url = emulator("--serial", ports[1], "--baud", "115200")
         kind = "RTU pty" if baud is None else "RTU pty paced at 115200 8N1"
-        with emulators.rtu(baud) as ports:
+        try:
             if baud is None:
                 row(f"{kind}: raw frame ({FULL} regs) [baseline]",
                     time_calls(raw_rtu(ports[0], FULL), n_rtu))
@@ -240,6 +189,9 @@ def round_trips(n_tcp: int, n_rtu: int, emulators: Emulators, patient: bool = Fa
                 row(f"{kind}: hil driver ({count} regs)", time_calls(
                     partial(link.read_floats, METER_UNIT, first, count), n), note)
             link.close()
+        finally:
+            stop(proc)
+            stop(modem)
 
 
 def loop_only(duration_s: float) -> tuple[dict, int, int]:
@@ -275,7 +227,7 @@ def _timing_messages(session: Session) -> list[dict]:
     return [m for _, m in read_session(session.path).topic("/loop/bench_io/timing")]
 
 
-def sampling_report(duration_s: float, rtu_s: float, emulators: Emulators) -> None:
+def sampling_report(duration_s: float, rtu_s: float) -> None:
     print(f"\n100 Hz sampling (meter + levels every 10 ms, real time, recorded)\n"
           f"  {'':<54} {'samples':>8} {'missed':>7} {'failed':>7} {'>5ms':>6} "
           f"{'p50 us':>7} {'p99 us':>7} {'max us':>8}")
@@ -287,17 +239,25 @@ def sampling_report(duration_s: float, rtu_s: float, emulators: Emulators) -> No
     lat, runs, missed = loop_only(min(5.0, duration_s))
     line(f"loop without I/O, {min(5.0, duration_s):g} s [baseline]", lat, runs, missed, "-", "-")
     config = load_bench_config()
-    with emulators.tcp() as url:
+    proc, url = emulator("--tcp", "127.0.0.1:0")
+    try:
         lat, runs, missed, failed, late = sampling(url, duration_s, config)
         line(f"TCP emulator process, {duration_s:g} s", lat, runs, missed, str(failed),
              str(late))
+    finally:
+        stop(proc)
+    modem, ports = null_modem(115200)
+    proc, _ = emulator("--serial", ports[1])
     small = parse_bench_config(deep_merge(config.data, {
         "meter": {"poll": ["va_l1", "va_l2", "va_l3"]}, "sampling": {"levels_every": 10}}))
-    with emulators.rtu(115200) as ports:
+    try:
         lat, runs, missed, failed, late = sampling(f"modbus-rtu://{ports[0]}?baud=115200",
                                                    rtu_s, small)
         line(f"RTU paced 115200, VA only, levels 10 Hz, {rtu_s:g} s", lat, runs, missed,
              str(failed), str(late))
+    finally:
+        stop(proc)
+        stop(modem)
     print("  missed = loop ticks skipped (the previous sample overran 10 ms); failed = polls "
           "without an answer; >5ms = samples started more than 5 ms late")
 
@@ -421,10 +381,8 @@ def main() -> None:
                          "polls": (3000, 20), "rtu_polls": (600, 5), "cycles": (1, 1),
                          "repeat": (3, 1)})
     started = time.monotonic()
-    # --quick: the sampling runs use the round trips' TCP emulator and paced RTU line
-    with Emulators(share=args.quick) as emulators:
-        round_trips(args.polls, args.rtu_polls, emulators, patient=args.quick)
-        sampling_report(args.duration, args.rtu_duration, emulators)
+    round_trips(args.polls, args.rtu_polls, patient=args.quick)
+    sampling_report(args.duration, args.rtu_duration)
     lockstep_protocols(args.cycles, args.repeat, args.baseline_code, args.quick)
     print(f"\n(total {time.monotonic() - started:.0f} s; shared machine: figures are noisy)")
 
