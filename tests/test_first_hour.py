@@ -233,7 +233,7 @@ def _stderr_on_a_terminal(cwd, *args):
     return seen.decode()
 
 
-@pytest.mark.realtime  # on the wall clock at 2 kHz: with the other real-time tests, ahead of the niced rest
+@pytest.mark.realtime  # on the wall clock at 2 kHz: at nice 0, ahead of the niced rest
 def test_a_long_run_shows_progress_on_a_terminal_only(tmp_path):
     from tests.pymodbus_bench import short_config
 

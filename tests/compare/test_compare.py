@@ -183,7 +183,7 @@ def test_a_truncated_baseline_is_compared_over_what_was_read(folder, capsys):
     assert nothing.returncode == 2 and "nothing to compare" in nothing.stderr
 
 
-@pytest.mark.realtime  # on the wall clock at 2 kHz: with the other real-time tests, ahead of the niced rest
+@pytest.mark.realtime  # on the wall clock at 2 kHz: at nice 0, ahead of the niced rest
 def test_real_time_is_interpolated_onto_the_baselines_ticks(tmp_path, capsys):
     # its own baseline, the module's base.mcap recorded in this process: the real-time tests
     # run apart, where the module's three sessions would be recorded again for this one
