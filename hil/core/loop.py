@@ -256,6 +256,9 @@ class FixedRateLoop:
         self._signalled = False  # set by the signal handler: a plain store, nothing that locks
         self.stop_reason: str | None = None
         self.ticks = 0
+        #: the number of the tick whose phases run now, its slot on the schedule grid (a
+        #: tick that starts late, even by nearly a period, keeps its slot's number)
+        self.tick_number = 0
         self.skipped_ticks = 0
         self.ticking_s = 0.0  # wall time from the first tick to the end of the last
         self.start_ns = 0  # clock time of tick 0's deadline: the origin of the schedule grid
@@ -352,6 +355,7 @@ class FixedRateLoop:
                 if limit is not None and n >= limit:
                     break
                 deadline = t0 + n * period
+            self.tick_number = n
             if boundary is not None:
                 boundary(n)
             start = clock.time_ns()

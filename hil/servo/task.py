@@ -145,7 +145,7 @@ class ServoTask(Task):
     def compute(self, t_ns: int) -> None:
         """The controller's step only: the tick is recorded after the command has left."""
         assert self._feedback is not None
-        n = (t_ns - self.loop.start_ns) // self.period_ns
+        n = self.loop.tick_number  # its slot's, late or not: (t_ns - start) // T may be the next
         self._tick, self._t_s = n, n * self.dt
         position = self._feedback.position_deg
         self._command, self._compute_us = self._step(

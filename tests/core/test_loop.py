@@ -199,3 +199,39 @@ def test_duplicate_task_names_are_refused():
     loop = FixedRateLoop(SimClock(), 0.01, [Task("a")], handle_signals=False)
     with pytest.raises(ValueError, match="duplicate"):
         loop.add_task(Task("a"))
+
+
+class LateClock(SimClock):
+    """A real-time clock that wakes tick ``late_tick`` up a nanosecond short of a period late,
+    and lets 2 ns pass before the tick starts: its start falls in the next slot."""
+
+    mode = "realtime"
+
+    def __init__(self, period_ns: int, late_tick: int) -> None:
+        super().__init__()
+        self.period_ns, self.late_tick, self.waits = period_ns, late_tick, 0
+
+    def wait_until(self, deadline_ns: int) -> int:
+        late = self.period_ns - 1 if self.waits == self.late_tick else 0
+        self.waits += 1
+        self._now_ns = max(self._now_ns, deadline_ns + late)
+        return late
+
+    def time_ns(self) -> int:
+        self._now_ns += 1
+        return self._now_ns
+
+
+def test_a_tick_that_starts_in_the_next_slot_keeps_its_own_number():
+    period_ns = 1_000_000
+    numbers: list[tuple[int, int]] = []
+    loop: FixedRateLoop
+
+    def note(t_ns: int) -> None:
+        numbers.append((loop.tick_number, (t_ns - loop.start_ns) // period_ns))
+
+    loop = FixedRateLoop(LateClock(period_ns, late_tick=3), period_ns / 1e9,
+                         [FunctionTask("noted", 1, compute=note)], handle_signals=False)
+    loop.run(max_ticks=6)
+    assert [number for number, _ in numbers] == [0, 1, 2, 3, 4, 5]  # no skip, no repeat
+    assert numbers[3] == (3, 4)  # it started in slot 4's time, and is tick 3
