@@ -151,7 +151,8 @@ def main() -> None:
     gammas = args.gamma3 or ([0.0] if args.quick else [0.0, 0.02, 0.1, 1.0])
     exact_every = args.exact_every or (28 if args.quick else 8)
     cases = (("nominal", False),) if args.quick else (("nominal", False), ("disturbed", True))
-    # --quick: half a machine cycle of session time, enough for the solves of every path
+    # --quick: every run half a machine cycle of session time, enough for the solves of every
+    # path (the trade-off table's runs too, so its rows and BC's are alike)
     duration_s = QUICK_RUN_S if args.quick else None
     length = f"{QUICK_RUN_S:g} s" if args.quick else f"{cycles} cyc"
     t_start = time.perf_counter()
@@ -212,13 +213,15 @@ def main() -> None:
     print(f"  {'gamma3':>8} {'J1/cycle [VA s]':>16} {'J2 [VA]':>8} {'starts/h P1':>12} "
           f"{'starts/h P2':>12} {'solve median ms':>16}")
     # BC takes no gamma3: the nominal run of section 1 is the same run when the cycles agree
-    bc = runs["nominal", "bc"] if sweep_cycles == cycles else closed_loop("bc", sweep_cycles)
+    bc = runs["nominal", "bc"] if sweep_cycles == cycles else \
+        closed_loop("bc", sweep_cycles, duration_s=duration_s)
     for gamma3 in gammas:
         # the nominal run of section 1 is this one when its gamma3 and cycles agree
         nominal = sweep_cycles == cycles and eec_run.solver is not None \
             and eec_run.solver.horizon.settings.gamma3 == gamma3
         run = eec_run if nominal else closed_loop("eec", sweep_cycles, hp_s=28,
-                                                  overrides={"gamma3": gamma3})
+                                                  overrides={"gamma3": gamma3},
+                                                  duration_s=duration_s)
         k = run.kpis
         print(f"  {gamma3:>8g} {k['SEC_VA']:>16.1f} {k['J2_VA']:>8.1f} "
               f"{k['starts_per_hour']['P1']:>12.1f} {k['starts_per_hour']['P2']:>12.1f} "
