@@ -20,20 +20,26 @@ from hil.cli.main import main
 NOT_A_USERS_PLUGINS = ("-p", "no:hypothesispytest", "-p", "no:labgrid")
 
 
+def hil_in(folder: str | os.PathLike[str], *args: Any) -> int:
+    """``hil ARGS`` run in this process from ``folder``: its exit status (an argument the parser
+    refused included). What it prints goes to the test's output: for a module's fixture, which
+    has no ``capsys``; a test checks what a command prints with :func:`hil_here`."""
+    argv = [str(arg) for arg in args]
+    with pytest.MonkeyPatch.context() as patch:
+        patch.chdir(Path(folder))
+        try:
+            return main(argv)
+        except SystemExit as exit_:  # the parser refused an argument
+            return int(exit_.code or 0)
+
+
 def hil_here(capture: Any, *args: Any, cwd: str | os.PathLike[str] | None = None
              ) -> subprocess.CompletedProcess[str]:
     """``hil ARGS`` run in this process (from ``cwd``, else the current folder), reported as
     :func:`subprocess.run` reports a process: its exit status (an argument the parser refused
     included) and what it printed to ``capture`` (pytest's ``capsys``, or ``capfd``, which also
     holds what the session writer process printed)."""
-    argv = [str(arg) for arg in args]
     capture.readouterr()
-    with pytest.MonkeyPatch.context() as patch:
-        if cwd is not None:
-            patch.chdir(Path(cwd))
-        try:
-            status = main(argv)
-        except SystemExit as exit_:  # the parser refused an argument
-            status = int(exit_.code or 0)
+    status = hil_in(Path.cwd() if cwd is None else cwd, *args)
     out, err = capture.readouterr()
-    return subprocess.CompletedProcess(["hil", *argv], status, out, err)
+    return subprocess.CompletedProcess(["hil", *map(str, args)], status, out, err)

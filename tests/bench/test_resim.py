@@ -13,9 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from hil.cli.main import main
 from hil.core.recording.reader import SessionData, read_session
-from tests.cli import hil_here
+from tests.cli import hil_here, hil_in
 
 pytestmark = [pytest.mark.slow]  # processes, emulators, sessions
 
@@ -47,10 +46,9 @@ period_s = 10.0
 stages = [{{ start_s = 0.0, end_s = 4.0, on = [] }},
           {{ start_s = 4.0, end_s = 10.0, on = ["M1", "M2"] }}]
 """)
-    with pytest.MonkeyPatch.context() as patch:  # in this process: each start costs a second
-        patch.chdir(folder)
-        assert main(["bench", "run", "--controller", "bc", "--cycles", "1", "--config",
-                     "bench.toml", "--quiet", "--out", "recorded.mcap"]) == 0
+    # in this process: each start costs a second
+    assert hil_in(folder, "bench", "run", "--controller", "bc", "--cycles", "1", "--config",
+                  "bench.toml", "--quiet", "--out", "recorded.mcap") == 0
     return folder
 
 

@@ -17,10 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hil.cli.main import main
 from hil.controllers.ident.model_file import model_file_of
 from hil.core.recording.reader import read_session
-from tests.cli import hil_here
+from tests.cli import hil_here, hil_in
 
 pytestmark = [pytest.mark.slow]
 
@@ -46,16 +45,15 @@ def folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
     the run: 99.63 %, as from 60 s)."""
     folder = tmp_path_factory.mktemp("twin")
     (folder / "seed7.toml").write_text("[plant]\nseed = 7\n")
-    with pytest.MonkeyPatch.context() as patch:  # in this process: each start costs a second
-        patch.chdir(folder)
-        for args in (("bench", "run", "--controller", "bc", "--cycles", "1", "--quiet",
-                      "--config", "seed7.toml", "--out", "run.mcap"),
-                     ("bench", "identify", "--relays", "P1", "--duration", "30",
-                      "--progress", "0", "--out", "P1.mcap"),
-                     ("identify", "P1.mcap", "--input", P1_INPUTS[0], "--input", P1_INPUTS[1],
-                      "--output", "/bench/power:va_l2", "--order", "3", "--detrend",
-                      "--no-feedthrough", "--out", "P1.json")):
-            assert main(list(args)) == 0, args
+    for args in (  # in this process: each start costs a second
+            ("bench", "run", "--controller", "bc", "--cycles", "1", "--quiet", "--config",
+             "seed7.toml", "--out", "run.mcap"),
+            ("bench", "identify", "--relays", "P1", "--duration", "30", "--progress", "0",
+             "--out", "P1.mcap"),
+            ("identify", "P1.mcap", "--input", P1_INPUTS[0], "--input", P1_INPUTS[1],
+             "--output", "/bench/power:va_l2", "--order", "3", "--detrend",
+             "--no-feedthrough", "--out", "P1.json")):
+        assert hil_in(folder, *args) == 0, args
     # P1 at twice its power (220 VA, the motor's 110 VA), reached in 0.3 s
     a = float(np.exp(-0.01 / 0.3))
     wrong = types.SimpleNamespace(A=np.diag([a, 0.0]), B=np.diag([1.0 - a, 0.0]),

@@ -19,8 +19,7 @@ import textwrap
 import pytest
 
 from hil import api
-from hil.cli.main import main
-from tests.cli import NOT_A_USERS_PLUGINS, hil_here
+from tests.cli import NOT_A_USERS_PLUGINS, hil_here, hil_in
 from tests.docs import block
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
@@ -40,11 +39,9 @@ def moved_twice(tmp_path_factory):
     after the other (``first.mcap``, ``second.mcap``): its axis stands 180 deg on."""
     folder = tmp_path_factory.mktemp("from_start")
     with api.start_drive_emulator() as drive:
-        with pytest.MonkeyPatch.context() as patch:  # in this process, as hil_here runs it
-            patch.chdir(folder)
-            for name in ("first", "second"):
-                assert main(["servo", "run", *MOVE, "--drive", drive.url, "--out",
-                             f"{name}.mcap"]) == 0, name
+        for name in ("first", "second"):
+            assert hil_in(folder, "servo", "run", *MOVE, "--drive", drive.url, "--out",
+                          f"{name}.mcap") == 0, name
         yield drive, folder
 
 

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from hil.cli.main import main
 from hil.core.recording.reader import read_session
+from tests.cli import hil_in
 from tests.session_damage import (
     CHUNK_SPAN_S,
     OVERWRITE_BYTES,
@@ -47,9 +47,8 @@ def folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def lockstep(folder: Path) -> Path:
     """Recorded in this process (the file is what these tests read, not how it was started)."""
-    with pytest.MonkeyPatch.context() as patch:
-        patch.chdir(folder)
-        main(["bench", "run", "--controller", "bc", "--cycles", "1", "--out", "lockstep.mcap"])
+    hil_in(folder, "bench", "run", "--controller", "bc", "--cycles", "1", "--out",
+           "lockstep.mcap")
     return folder / "lockstep.mcap"
 
 
@@ -58,8 +57,8 @@ def realtime(folder: Path) -> Path:
     """A real-time servo run of 1.5 s, in this process: five chunks or so (each closed after
     a second of wall time or of session time, whichever comes first)."""
     (folder / "patient.toml").write_text(PATIENT)
-    main(["servo", "run", "--controller", "pid", "--realtime", "--duration", "1.5",
-          "--config", str(folder / "patient.toml"), "--out", str(folder / "realtime.mcap")])
+    hil_in(folder, "servo", "run", "--controller", "pid", "--realtime", "--duration", "1.5",
+           "--config", "patient.toml", "--out", "realtime.mcap")
     return folder / "realtime.mcap"
 
 

@@ -19,9 +19,8 @@ import pytest
 from mcap.writer import Writer
 
 from hil import api
-from hil.cli.main import main
 from hil.core.recording.reader import SessionData, read_session
-from tests.cli import hil_here
+from tests.cli import hil_here, hil_in
 
 pytestmark = [pytest.mark.slow]  # processes, emulators, sessions
 
@@ -59,11 +58,10 @@ def folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
     folder = tmp_path_factory.mktemp("resim")
     shutil.copy(ROOT / "examples" / "my_controllers.py", folder)
     (folder / "faults.toml").write_text(f'[emulator]\nfaults = ["{FAULT}"]\n')
-    with pytest.MonkeyPatch.context() as patch:  # in this process: each start costs a second
-        patch.chdir(folder)
-        assert main(["servo", "run", "--controller", CONTROLLER, "--param", "kp=300",
-                     "--duration", "0.5", "--config", "faults.toml", "--limit",
-                     "abs_error_deg<=30", "--quiet", "--out", "recorded.mcap"]) == 3
+    # in this process: each start costs a second
+    assert hil_in(folder, "servo", "run", "--controller", CONTROLLER, "--param", "kp=300",
+                  "--duration", "0.5", "--config", "faults.toml", "--limit",
+                  "abs_error_deg<=30", "--quiet", "--out", "recorded.mcap") == 3
     return folder
 
 

@@ -15,9 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from hil.cli.main import main
 from hil.core.recording.reader import read_session
-from tests.cli import hil_here
+from tests.cli import hil_here, hil_in
 
 pytestmark = [pytest.mark.slow]
 
@@ -37,11 +36,9 @@ def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:
     lacks (``machine.mcap``), recorded once, in this process."""
     folder = tmp_path_factory.mktemp("recorded")
     (folder / "machine.toml").write_text(FRICTION)
-    with pytest.MonkeyPatch.context() as patch:
-        patch.chdir(folder)
-        for name, *extra in (("same.mcap",), ("machine.mcap", "--config", "machine.toml")):
-            assert main(["servo", "run", "--controller", "pid", "--duration", "0.3", "--quiet",
-                         "--out", name, *extra]) == 0, name
+    for name, *extra in (("same.mcap",), ("machine.mcap", "--config", "machine.toml")):
+        assert hil_in(folder, "servo", "run", "--controller", "pid", "--duration", "0.3",
+                      "--quiet", "--out", name, *extra) == 0, name
     return folder
 
 
