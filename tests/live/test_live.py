@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -9,6 +10,7 @@ import socket
 import struct
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -249,13 +251,29 @@ def test_emulators_serve_their_state_live(device: str, where: str, topic: str,
     assert isinstance(client.messages[topic][-1][1][field], float)
 
 
+@contextlib.contextmanager
+def taken_beside_a_free_port() -> Iterator[int]:
+    """A listening port P + 1 held for the block, P free, both below 32768; P + 1."""
+    for port in range(20_001, 32_767, 2):
+        with socket.socket() as taken:
+            try:
+                taken.bind(("127.0.0.1", port + 1))
+                with socket.socket() as probe:
+                    probe.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            taken.listen()
+            yield port + 1
+            return
+    raise AssertionError("no free pair of ports below 32768")
+
+
 def test_demo_live_takes_two_ports_and_says_which_is_taken(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    with socket.socket() as taken:
-        taken.bind(("127.0.0.1", 0))
-        taken.listen()
-        busy = taken.getsockname()[1]
-        # the EEC (and later the servo) sessions on PORT, the BC session beside it on PORT + 1
+    # the EEC (and later the servo) sessions on PORT, the BC session beside it on PORT + 1:
+    # PORT + 1 taken here, PORT free and below the kernel's ephemeral ports (32768 and up),
+    # which the other tests' servers and clients take: none of them can take it meanwhile
+    with taken_beside_a_free_port() as busy:
         assert main(["demo", "--out", str(tmp_path), "--live", str(busy - 1)]) == 2
     assert f"cannot serve on 127.0.0.1:{busy}" in capsys.readouterr().err
     assert not list(tmp_path.glob("*.mcap"))
