@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import abc
 import contextlib
+import os
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -78,6 +79,25 @@ class LinkWatchdog:
         return f"{self.run} {self.what} in a row"
 
 
+#: Linux's pressure stall information for the CPUs (kernels 4.20 and later)
+CPU_PRESSURE = "/proc/pressure/cpu"
+#: a machine whose tasks waited for a CPU over this share (%) of the last 10 s is contended
+CONTENDED_PRESSURE = 10.0
+
+
+def cpu_contended(pressure: str = CPU_PRESSURE,
+                  load: Callable[[], tuple[float, float, float]] = os.getloadavg) -> bool:
+    """Whether this machine's CPUs are oversubscribed: some runnable task waited for one over
+    :data:`CONTENDED_PRESSURE` % of the last 10 s (``pressure``'s ``some avg10``) or, where the
+    kernel has no such file, the 1-minute ``load`` average is over the usable cores plus one."""
+    try:
+        with open(pressure, "rb") as stalls:
+            some = stalls.readline().split()  # b"some avg10=17.82 avg60=56.35 ..."
+        return float(some[1].removeprefix(b"avg10=")) > CONTENDED_PRESSURE
+    except (OSError, ValueError, IndexError):
+        return load()[0] > len(os.sched_getaffinity(0)) + 1
+
+
 class PollBudget:
     """How long a wait for a peer polls before it blocks, while polling pays.
 
@@ -89,12 +109,15 @@ class PollBudget:
     and a blocked one is woken up first. A look that comes ``preempted_ns`` or more after the
     one before it (the process was off the CPU) ends the wait's polling; after ``strikes``
     such waits with no clean one between, the waits of the next ``backoff_ns`` block from their
-    start (one other process's burst, a session's writer, is not a busy machine).
-    :meth:`start` a wait, then ask :meth:`polling` before each look.
+    start (one other process's burst, a session's writer, is not a busy machine). Nor do they
+    poll for ``backoff_ns`` while the machine is ``contended()`` (:func:`cpu_contended`, asked
+    at most once per ``backoff_ns``): where tasks already wait for a CPU, polling takes one
+    from them. :meth:`start` a wait, then ask :meth:`polling` before each look.
     """
 
     def __init__(self, window_ns: int, *, preempted_ns: int = 200_000, strikes: int = 3,
-                 backoff_ns: int = 100_000_000) -> None:
+                 backoff_ns: int = 100_000_000,
+                 contended: Callable[[], bool] = cpu_contended) -> None:
         self.window_ns = window_ns
         self.preempted_ns = preempted_ns
         self.strikes = strikes
@@ -104,6 +127,8 @@ class PollBudget:
         self._preempted = False  # this wait was
         self._struck = 0         # preempted waits since the last clean one
         self._calm_from = 0      # no polling before then
+        self.contended = contended
+        self._machine_due = 0    # when contended() is asked next
         self.backoffs = 0        # times the waits stopped polling for backoff_ns
 
     def start(self, now_ns: int) -> None:
@@ -111,6 +136,10 @@ class PollBudget:
         if not self._preempted:
             self._struck = 0
         self._preempted = False
+        if now_ns >= self._machine_due:
+            self._machine_due = now_ns + self.backoff_ns
+            if self.contended():
+                self._calm_from = now_ns + self.backoff_ns
         self._until = now_ns + self.window_ns if now_ns >= self._calm_from else now_ns
         self._last = now_ns
 
