@@ -89,13 +89,20 @@ def cpu_contended(pressure: str = CPU_PRESSURE,
                   load: Callable[[], tuple[float, float, float]] = os.getloadavg) -> bool:
     """Whether this machine's CPUs are oversubscribed: some runnable task waited for one over
     :data:`CONTENDED_PRESSURE` % of the last 10 s (``pressure``'s ``some avg10``) or, where the
-    kernel has no such file, the 1-minute ``load`` average is over the usable cores plus one."""
+    kernel has no such file, the 1-minute ``load`` average is over the usable cores plus one
+    (where there is neither: not contended)."""
     try:
         with open(pressure, "rb") as stalls:
             some = stalls.readline().split()  # b"some avg10=17.82 avg60=56.35 ..."
         return float(some[1].removeprefix(b"avg10=")) > CONTENDED_PRESSURE
     except (OSError, ValueError, IndexError):
-        return load()[0] > len(os.sched_getaffinity(0)) + 1
+        pass
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") \
+        else os.cpu_count() or 1
+    try:
+        return load()[0] > cores + 1
+    except OSError:
+        return False
 
 
 class PollBudget:

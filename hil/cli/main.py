@@ -14,7 +14,6 @@ from typing import NoReturn
 from hil import __version__
 from hil.errors import HilError, RunInterruptedError
 
-# each command is registered by the module hil.cli.NAME, in this order in `hil --help`
 #: the environment a hil process gives the libraries it imports, where the user has not set it.
 #: numpy's and scipy's OpenBLAS start a thread per core at import and keep them spinning after
 #: each call: hil's matrices are small, so a second thread gains nothing and takes the core
@@ -22,6 +21,7 @@ from hil.errors import HilError, RunInterruptedError
 #: fifth of an MPC run's). The processes hil starts inherit it.
 LIBRARY_DEFAULTS = {"OPENBLAS_NUM_THREADS": "1"}
 
+# each command is registered by the module hil.cli.NAME, in this order in `hil --help`
 COMMANDS = ("demo", "bench", "servo", "drive", "sweep", "empc", "identify", "emulate", "report",
             "compare", "export", "replay", "resim", "tune", "twin", "layout", "paper", "doctor")
 

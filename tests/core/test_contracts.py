@@ -106,6 +106,11 @@ def test_without_pressure_information_the_load_average_says_it(tmp_path):
     assert cpu_contended(missing, load=lambda: (cores + 1.5, 0.0, 0.0))
     assert not cpu_contended(missing, load=lambda: (cores + 0.5, 9.0, 9.0))
 
+    def unknown() -> tuple[float, float, float]:
+        raise OSError("no load average")
+
+    assert not cpu_contended(missing, load=unknown)  # neither: as a quiet machine
+
 
 class Recording(Device):
     """A device that records its lifecycle calls; safe_state may fail like a lost link."""
