@@ -8,6 +8,10 @@ import os
 import subprocess
 import sys
 
+import pytest
+
+pytestmark = pytest.mark.slow  # each test starts a process
+
 #: main as the ``hil`` command runs it, then numpy and scipy.linalg imported as a command does:
 #: the variable as the process has it, and the threads the process then has
 PROGRAM = """
