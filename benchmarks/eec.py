@@ -208,16 +208,17 @@ def main() -> None:
     if speedups:
         print("  median speed-up over the naive baseline: " + "; ".join(speedups))
 
+    # the runs of section 1 are as long as this table's (--quick: all of one length)
+    same_length = args.quick or sweep_cycles == cycles
     print(f"\n3. Relay wear: gamma3 (cost per switch-on, units of J), H_p = T, nominal, "
           f"{length if args.quick else f'{sweep_cycles} cycles'}")
     print(f"  {'gamma3':>8} {'J1/cycle [VA s]':>16} {'J2 [VA]':>8} {'starts/h P1':>12} "
           f"{'starts/h P2':>12} {'solve median ms':>16}")
-    # BC takes no gamma3: the nominal run of section 1 is the same run when the cycles agree
-    bc = runs["nominal", "bc"] if sweep_cycles == cycles else \
-        closed_loop("bc", sweep_cycles, duration_s=duration_s)
+    # BC takes no gamma3: the nominal run of section 1 is the same run when the lengths agree
+    bc = runs["nominal", "bc"] if same_length else closed_loop("bc", sweep_cycles)
     for gamma3 in gammas:
-        # the nominal run of section 1 is this one when its gamma3 and cycles agree
-        nominal = sweep_cycles == cycles and eec_run.solver is not None \
+        # the nominal run of section 1 is this one when its gamma3 and length agree
+        nominal = same_length and eec_run.solver is not None \
             and eec_run.solver.horizon.settings.gamma3 == gamma3
         run = eec_run if nominal else closed_loop("eec", sweep_cycles, hp_s=28,
                                                   overrides={"gamma3": gamma3},

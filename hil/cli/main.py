@@ -14,13 +14,6 @@ from typing import NoReturn
 from hil import __version__
 from hil.errors import HilError, RunInterruptedError
 
-#: the environment a hil process gives the libraries it imports, where the user has not set it.
-#: numpy's and scipy's OpenBLAS start a thread per core at import and keep them spinning after
-#: each call: hil's matrices are small, so a second thread gains nothing and takes the core
-#: that the loop, the emulator and the session's writer need (0.1 s of CPU per process and a
-#: fifth of an MPC run's). The processes hil starts inherit it.
-LIBRARY_DEFAULTS = {"OPENBLAS_NUM_THREADS": "1"}
-
 # each command is registered by the module hil.cli.NAME, in this order in `hil --help`
 COMMANDS = ("demo", "bench", "servo", "drive", "sweep", "empc", "identify", "emulate", "report",
             "compare", "export", "replay", "resim", "tune", "twin", "layout", "paper", "doctor")
@@ -95,8 +88,12 @@ def parse_arguments(parser: argparse.ArgumentParser, argv: Sequence[str] | None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    for name, value in LIBRARY_DEFAULTS.items():  # before a command's modules import numpy
-        os.environ.setdefault(name, value)
+    # numpy's and scipy's BLAS on one thread unless the user says otherwise, set before a
+    # command's modules import numpy (the processes hil starts inherit it): OpenBLAS starts a
+    # thread per core that spins after each call, and hil's matrices are small, so a second one
+    # gains nothing and takes the core the loop, an emulator or the writer needs (0.1 s of CPU
+    # per process, a fifth of an MPC run's)
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     arguments = sys.argv[1:] if argv is None else list(argv)
     args = parse_arguments(_shared_parser(command_of(arguments)), arguments)
     from hil.core.command_line import set_command_line
