@@ -1,6 +1,9 @@
 """What a new user met on the first day, each tried with the ``hil`` command from a folder
-outside the repository: a ``hil`` process for the first case of each finding, the command line
-in this process (:func:`hil_here`, from the same folder) for more cases of it."""
+outside the repository: the command line in this process (:func:`hil_here`, from that folder),
+a ``hil`` process where the process is part of what is tried (``hil doctor``, hardened; the
+README's resim example; a twin check's text; a user's pytest run). Each command these tests
+run in this process is run as a process from outside the repository elsewhere (servo and
+bench run, compare and report: tests/test_user_workflow.py, tests/compare/test_compare.py)."""
 
 import json
 import math
@@ -56,10 +59,8 @@ def test_a_config_key_is_checked_when_read_with_the_flags_rules(tmp_path, capfd,
     words ``--umax 0.3`` and ``--duration 10ms`` get, when the file is read: before anything
     runs, and with --print-config too."""
     (tmp_path / "mine.toml").write_text(text)
-    first = text.startswith("[master]\ncurrent_limit_ma")
-    run = hil if first else lambda cwd, *a: hil_here(capfd, *a, cwd=cwd)
-    done = run(tmp_path, "servo", "run", "--controller", "pid", "--config", "mine.toml",
-               "--duration", "0.05")
+    done = hil_here(capfd, "servo", "run", "--controller", "pid", "--config", "mine.toml",
+                    "--duration", "0.05", cwd=tmp_path)
     assert one_error_line(done).startswith(f"hil: error: mine.toml: {says}")
     assert not (tmp_path / "sessions").exists()  # refused before the run
     shown = hil_here(capfd, "servo", "run", "--config", "mine.toml", "--print-config",
@@ -93,7 +94,7 @@ def test_print_config_prints_a_config_file_that_runs_the_same_run(tmp_path, capf
     flags = ["--controller", "pid", "--duration", "0.1", "--umax", "800", "--param", "kp=4",
              "--safety", "following_error_deg=30", "--limit", "rms_error_deg<=5",
              "--drive", f"emulated?model={axis}"]
-    printed = hil(tmp_path, "servo", "run", *flags, "--print-config")
+    printed = hil_here(capfd, "servo", "run", *flags, "--print-config", cwd=tmp_path)
     assert printed.returncode == 0, printed.stderr
     (tmp_path / "printed.toml").write_text(printed.stdout)
     again = rerun_line(printed.stdout, "printed.toml")
@@ -151,8 +152,8 @@ def test_hil_report_and_the_summary_read_as_text_with_figures_that_agree(tmp_pat
     """The KPIs in ``hil report`` are figures, not Python reprs; the loop's whole tick is
     ``tick`` (``tick_us``), apart from the controller's compute time (the KPI ``step_us``); and
     the summary's real-time factor is the session time over the loop time it prints."""
-    done = hil(tmp_path, "servo", "run", "--controller", "mpc", "--duration", "0.2", "--out",
-               "s.mcap", "--limit", "rms_error_deg<=1")
+    done = hil_here(capfd, "servo", "run", "--controller", "mpc", "--duration", "0.2", "--out",
+                    "s.mcap", "--limit", "rms_error_deg<=1", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     readable(done.stdout)
     pace = re.search(r"\(([0-9.]+) s in ([0-9.]+) s wall, the loop ([0-9.]+) s: ([0-9.]+)x real "
@@ -196,7 +197,7 @@ def commands(parser=None, path=()):
 def test_every_help_text_is_clean(tmp_path, capfd):
     """Every command's --help exits 0 with text as a person reads it: no '%%' or '%(' left by
     argparse's formatting, no default shown as None, balanced parentheses."""
-    done = hil(tmp_path, "compare", "--help")
+    done = hil_here(capfd, "compare", "--help", cwd=tmp_path)
     assert done.returncode == 0 and "rel:5% for a KPI" in " ".join(done.stdout.split())
     for words, _parser in commands():
         shown = hil_here(capfd, *words, "--help", cwd=tmp_path)
@@ -224,7 +225,8 @@ def test_every_command_that_shows_progress_takes_quiet(tmp_path, capfd):
     recorded = hil_here(capfd, "servo", "run", "--controller", "pid", "--duration", "0.05",
                         "--out", "s.mcap", cwd=tmp_path)
     assert recorded.returncode == 0, recorded.stderr
-    done = hil(tmp_path, "resim", "s.mcap", "--param", "kp=4", "--quiet", "--out", "r.mcap")
+    done = hil_here(capfd, "resim", "s.mcap", "--param", "kp=4", "--quiet", "--out", "r.mcap",
+                    cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     assert done.stdout.startswith("resim of s.mcap") and (tmp_path / "r.mcap").exists()
     quiet = hil(tmp_path, "doctor", "--duration", "0.05", "--quiet", "--json")  # a process
@@ -266,7 +268,8 @@ def test_the_readmes_resim_example_runs_and_an_unstable_gain_is_named(tmp_path, 
 
 @pytest.mark.slow  # a second or more: make test runs it, make check does not
 def test_every_reference_kind_is_listed_and_a_stroke_moves_either_way(tmp_path, capfd):
-    done = hil(tmp_path, "servo", "run", "--controller", "pid", "--reference", "square:x=1")
+    done = hil_here(capfd, "servo", "run", "--controller", "pid", "--reference", "square:x=1",
+                    cwd=tmp_path)
     assert one_error_line(done).endswith(
         "unknown kind 'square' (one of sine, trapezoid, hold, disturbance, circle (two axes))")
     from hil.core.recording.reader import read_session
@@ -294,8 +297,8 @@ def test_every_reference_kind_is_listed_and_a_stroke_moves_either_way(tmp_path, 
 def test_a_bench_run_lasts_the_duration_it_is_given(tmp_path, capfd):
     """``--duration S`` runs S seconds of session time instead of whole 28 s cycles (the KPI
     cycles: the share it lasted); its text reads as text; with --cycles it is refused."""
-    done = hil(tmp_path, "bench", "run", "--controller", "eec", "--duration", "3", "--out",
-               "short.mcap")
+    done = hil_here(capfd, "bench", "run", "--controller", "eec", "--duration", "3", "--out",
+                    "short.mcap", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     readable(done.stdout)
     rows = dict(line.split(None, 1) for line in done.stdout.splitlines())
@@ -396,8 +399,8 @@ def test_a_one_sided_tolerance_passes_what_got_better_and_fails_what_got_worse(t
                         "--out", f"{name}.mcap", "--quiet", cwd=tmp_path)
         assert done.returncode == 0, done.stderr
     errors = {"max_error_deg", "max_error_pct", "rms_error_deg", "cumulative_error_deg"}
-    both_ways = hil(tmp_path, "compare", "pid.mcap", "mpc.mcap", "--tolerance", "*=rel:5%",
-                    "--json")
+    both_ways = hil_here(capfd, "compare", "pid.mcap", "mpc.mcap", "--tolerance", "*=rel:5%",
+                         "--json", cwd=tmp_path)
     assert both_ways.returncode == 1
     assert errors <= {name for name, (_, passed) in kpi_verdicts(both_ways).items()
                       if not passed}

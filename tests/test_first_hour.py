@@ -119,11 +119,11 @@ def test_reading_a_session_events_messages_and_csv(tmp_path, capfd, monkeypatch)
     session = tmp_path / "s.mcap"
     assert hil_here(capfd, "servo", "run", "--controller", "pid", "--duration", "0.05",
                     "--out", str(session)).returncode == 0
-    events = hil(tmp_path, "report", str(session), "--events")
+    events = hil_here(capfd, "report", str(session), "--events")  # a process: above
     assert events.returncode == 0
     kinds = [line.split()[2] for line in events.stdout.splitlines()]
     assert kinds[:2] == ["drive.current_limit", "drive.configured"] and "session.stop" in kinds
-    lines = hil(tmp_path, "report", str(session), "--topic", "/drive/feedback").stdout
+    lines = hil_here(capfd, "report", str(session), "--topic", "/drive/feedback").stdout
     rows = [json.loads(line) for line in lines.splitlines()]
     assert len(rows) == 100 and rows[1]["t_s"] == 0.0005 and "position_deg" in rows[1]
     done = hil(tmp_path, "export", str(session), "--topic", "/drive/feedback",

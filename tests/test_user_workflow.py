@@ -336,8 +336,8 @@ def test_a_split_servo_session_is_one_session_to_report(tmp_path, capfd, monkeyp
     the drive topics are CDR by default and JSON with --encoding json."""
     folder = tmp_path / "lab"
     (folder / "runs").mkdir(parents=True)
-    out = hil(folder, "servo", "run", "--controller", "pid", "--duration", "2",
-              "--split-duration", "0.5", "--out", "runs/long.mcap", "--json")
+    out = hil_here(capfd, "servo", "run", "--controller", "pid", "--duration", "2",
+                   "--split-duration", "0.5", "--out", "runs/long.mcap", "--json", cwd=folder)
     assert out.returncode == 0, out.stderr
     kpis = json.loads(out.stdout)
     assert kpis["mcap"] == "runs/long_000.mcap"

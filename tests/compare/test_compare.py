@@ -1,8 +1,8 @@
 """``hil compare`` and the ``hil_baseline`` fixture, tried as a user would: lockstep servo
-sessions recorded once per module by ``hil`` processes in a folder outside the repository
-(the repository not on PYTHONPATH), then compared (by a ``hil`` process first, the variants
-by the command line in this process); the alignment and the tube on their own
-on made-up tick grids."""
+sessions recorded once per module in a folder outside the repository (the first by a ``hil``
+process, the repository not on PYTHONPATH), then compared (by a ``hil`` process first, the
+variants by the command line in this process); the alignment and the tube on their own on
+made-up tick grids."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ import pytest
 from hil.compare.alignment import Series, interpolated, tick_for_tick
 from hil.compare.judge import judge_signal
 from hil.compare.tolerances import parse_tolerance
-from tests.cli import NOT_A_USERS_PLUGINS, hil_here
+from tests.cli import NOT_A_USERS_PLUGINS, hil_here, hil_in
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
@@ -56,16 +56,22 @@ def hil(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """base.mcap (a split series: base_000.mcap...) and again.mcap, the same PD (lockstep,
-    0.5 s); stiffer.mcap, its kp 250 instead of 300."""
+    0.5 s); stiffer.mcap, its kp 250 instead of 300. base.mcap by a ``hil`` process, the other
+    two by the command line in this process meanwhile (a process start costs CPU; that a
+    process and this one record the same session is part of what the exact comparison of
+    base and again holds)."""
     here = tmp_path_factory.mktemp("sessions")
     (here / "my_controllers.py").write_text(PD)
-    runs = [start(here, "servo", "run", "--controller", "my_controllers.py:Pd", "--param",
-                  f"kp={kp}", "--duration", "0.5", "--out", f"{name}.mcap", "--quiet", *split)
-            for name, kp, split in (("base", 300, ["--split-duration", "0.25"]),
-                                    ("again", 300, []), ("stiffer", 250, []))]
-    for run in runs:
-        _, err = run.communicate(timeout=120)
-        assert run.returncode == 0, err
+
+    def servo_run(name: str, kp: int, *split: str) -> list[str]:
+        return ["servo", "run", "--controller", "my_controllers.py:Pd", "--param", f"kp={kp}",
+                "--duration", "0.5", "--out", f"{name}.mcap", "--quiet", *split]
+
+    base = start(here, *servo_run("base", 300, "--split-duration", "0.25"))
+    for name, kp in (("again", 300), ("stiffer", 250)):
+        assert hil_in(here, *servo_run(name, kp)) == 0, name
+    _, err = base.communicate(timeout=120)
+    assert base.returncode == 0, err
     return here
 
 

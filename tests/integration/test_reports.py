@@ -122,13 +122,13 @@ def test_a_safety_stop_of_a_servo_run_is_reported(tmp_path, capfd, monkeypatch):
     assert recorded["status"] == "stopped" and recorded["ticks"] == kpis["ticks"]
 
 
-def test_a_drive_fault_during_a_servo_run_is_reported(tmp_path):
+def test_a_drive_fault_during_a_servo_run_is_reported(tmp_path, capfd):
     # an emulator on SYNC time from power-on counts the run's time: the fault comes 0.5 s into
     # the run (long after it enabled the drive), however late the run starts
     with api.start_drive_emulator(faults=["emcy@0.5:code=0x2310"], clock="sync") as emulator:
-        done = hil(tmp_path, "servo", "run", "--controller", "pid", "--drive", emulator.url,
-                   "--duration", "2", "--out", "s.mcap", "--json", "--junit",
-                   "report.xml")
+        done = hil_here(capfd, "servo", "run", "--controller", "pid", "--drive", emulator.url,
+                        "--duration", "2", "--out", "s.mcap", "--json", "--junit",
+                        "report.xml", cwd=tmp_path)
     assert done.returncode == 2
     line = one_error_line(done, "hil: error: drive node 1 reports FAULT")
     assert "statusword 0x" in line and "EMCY 0x2310" in line
@@ -167,10 +167,11 @@ def test_a_bench_safety_stop_and_a_bench_fault_are_reported(tmp_path, capfd, mon
     assert properties["status"] == "failed" and properties["mcap"] == "f.mcap"
 
 
-def test_a_disturbed_bench_run_is_an_error_case_with_exit_3(tmp_path):
+def test_a_disturbed_bench_run_is_an_error_case_with_exit_3(tmp_path, capfd):
     (tmp_path / "faults.toml").write_text('[faults]\nschedule = ["freeze@6-8:device=meter"]\n')
-    done = hil(tmp_path, "bench", "run", "--controller", "bc", "--duration", "10", "--config",
-               "faults.toml", "--out", "d.mcap", "--json", "--junit", "report.xml")
+    done = hil_here(capfd, "bench", "run", "--controller", "bc", "--duration", "10",
+                    "--config", "faults.toml", "--out", "d.mcap", "--json", "--junit",
+                    "report.xml", cwd=tmp_path)
     assert done.returncode == 3
     line = one_error_line(done, "hil: run disturbed (completed): stale_readings 1")
     kpis, suite, properties = report(tmp_path, done)
