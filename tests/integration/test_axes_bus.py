@@ -88,8 +88,8 @@ def test_the_emulated_bus_warns_on_the_terminal(tmp_path):
 
 def test_empc_at_1000_us_is_refused_naming_it(tmp_path, capsys):
     path = config(tmp_path, "slow.toml", "[master]\ncycle_period_us = 1000\n")
-    done = hil(tmp_path, "servo", "run", "--controller", "empc", "--config", path, "--out",
-               "empc.mcap")
+    done = hil_here(tmp_path, capsys, "servo", "run", "--controller", "empc", "--config", path,
+                    "--out", "empc.mcap")
     assert done.returncode == 2 and not (tmp_path / "empc.mcap").exists()
     assert done.stderr == ("hil: error: controller 'empc' does not run at a cycle period of "
                            "1000 us (master.cycle_period_us): it runs at 500 us\n")
@@ -132,7 +132,10 @@ def test_a_bitrate_above_1_mbit_is_refused_unless_the_bus_is_can_fd(tmp_path, ca
 def test_an_axis_on_a_bus_of_its_own_in_the_drive_config(tmp_path, capsys):
     axes = '[[axis]]\nname = "x"\nnode = 1\n\n[[axis]]\nname = "y"\nnode = 1\n'
     path = config(tmp_path, "axes.toml", axes + 'bus = "socketcand://127.0.0.1:29536"\n')
-    shown = hil(tmp_path, "servo", "run", "--print-config", "--json", "--config", path)
+    # in this process: --print-config runs from outside in tests/integration/
+    # test_configured_runs.py, --config in test_the_plan_and_the_refusal_give_one_figure
+    shown = hil_here(tmp_path, capsys, "servo", "run", "--print-config", "--json", "--config",
+                     path)
     assert shown.returncode == 0, shown.stderr
     assert json.loads(shown.stdout)["axis"]["value"][1]["bus"] == \
         "socketcand://127.0.0.1:29536"

@@ -31,12 +31,12 @@ def identify_json(capsys, argv: list[str]) -> dict:
 
 def test_prbs_experiment_then_identification(tmp_path, capsys):
     session = tmp_path / "p1.mcap"
-    code, out, err = run_cli(capsys, "bench", "identify", "--relays", "P1", "--duration", "90",
-                             "--seed", "3", "--progress", "30", "--out", str(session),
+    code, out, err = run_cli(capsys, "bench", "identify", "--relays", "P1", "--duration", "60",
+                             "--seed", "6", "--progress", "20", "--out", str(session),
                              "--json")
     assert code == 0, err
     summary = json.loads(out)
-    assert "t =   30.0 / 90 s" in err and "t =   60.0 / 90 s" in err  # progress on stderr
+    assert "t =   20.0 / 60 s" in err and "t =   40.0 / 60 s" in err  # progress on stderr
     assert summary["clock"] == "sim" and summary["stop_reason"] == "completed"
     assert summary["min_hold_s"] == {"P1": DWELL_P1_S}
     assert summary["deferred_requests"] == 0 and summary["failed_writes"] == 0
@@ -52,7 +52,7 @@ def test_prbs_experiment_then_identification(tmp_path, capsys):
     written = np.array([m["P1"] for _, m in prbs])
     starts = np.array([m["P1_start"] for _, m in prbs])
     seen = np.array([m["P1"] for _, m in data.topic("/bench/relays")])
-    assert len(written) == len(seen) == 9000
+    assert len(written) == len(seen) == 6000
     np.testing.assert_array_equal(seen[1:], written[:-1])
     rising = np.flatnonzero(np.diff(np.concatenate([[0], written])) == 1)
     np.testing.assert_array_equal(np.flatnonzero(starts), rising)
@@ -69,8 +69,8 @@ def test_prbs_experiment_then_identification(tmp_path, capsys):
     assert two_input["order"] == 3
     assert two_input["fit_pct"] >= 90.0, two_input["fit_pct"]
     # the model file names the experiment that recorded its data
-    assert two_input["experiment"] == (f"hil bench identify --relays P1 --duration 90 --seed 3 "
-                                       f"--progress 30 --out {session} --json")
+    assert two_input["experiment"] == (f"hil bench identify --relays P1 --duration 60 --seed 6 "
+                                       f"--progress 20 --out {session} --json")
 
     # the one-input form: a linear model of the relay alone cannot hold the inrush
     one_input = identify_json(capsys, [

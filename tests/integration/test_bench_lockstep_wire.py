@@ -263,9 +263,9 @@ def test_faults_play_on_the_runs_time_and_never_leave_it_waiting(tmp_path, capfd
 
 def test_a_modbus_server_hil_did_not_write_is_not_taken_for_the_emulator(tmp_path, capfd):
     """pymodbus's own server answers Read Device Identification with an identity that is not
-    hil's: the run (no --realtime) follows the wall clock, as against any real bench (a 2 s
+    hil's: the run (no --realtime) follows the wall clock, as against any real bench (a 1 s
     cycle)."""
-    config = short_config(tmp_path, period_s=2.0, dwell_s=0.5)
+    config = short_config(tmp_path, period_s=1.0, dwell_s=0.25)
     with PymodbusBench(load_bench_config(str(config))) as peer:
         run = hil_here(capfd, "bench", "run", "--controller", "bc", "--cycles", "1", "--bench",
                        peer.url, "--config", config, "--out", "peer.mcap", cwd=tmp_path)
@@ -276,8 +276,8 @@ def test_a_modbus_server_hil_did_not_write_is_not_taken_for_the_emulator(tmp_pat
 
 
 def test_an_emulator_on_its_wall_clock_refuses_a_lockstep_run_in_one_line(tmp_path, capfd):
-    """The run is then on the wall clock, as against a real bench (a 2 s cycle)."""
-    config = short_config(tmp_path, period_s=2.0, dwell_s=0.5)
+    """The run is then on the wall clock, as against a real bench (a 1 s cycle)."""
+    config = short_config(tmp_path, period_s=1.0, dwell_s=0.25)
     with Emulator(tmp_path, "--tcp", "127.0.0.1:0", "--clock", "wall") as emulator:
         run = hil_here(capfd, "bench", "run", "--controller", "bc", "--cycles", "1", "--bench",
                        emulator.url, "--config", config, "--out", "wall.mcap", cwd=tmp_path)
@@ -296,8 +296,8 @@ def test_an_emulator_on_its_wall_clock_refuses_a_lockstep_run_in_one_line(tmp_pa
 
 
 def test_an_emulator_on_master_time_waits_for_a_master_before_and_after(tmp_path, capfd):
-    """A 2 s cycle: the plant stays where the run left it."""
-    config = short_config(tmp_path, period_s=2.0, dwell_s=0.5)
+    """A 1 s cycle: the plant stays where the run left it."""
+    config = short_config(tmp_path, period_s=1.0, dwell_s=0.25)
     with Emulator(tmp_path, "--tcp", "127.0.0.1:0", "--clock", "master") as emulator:
         time.sleep(0.3)  # what the wall clock would have stepped
         assert emulator.clock() == (0.0, WAITING_FOR_MASTER)
@@ -305,8 +305,8 @@ def test_an_emulator_on_master_time_waits_for_a_master_before_and_after(tmp_path
                        emulator.url, "--config", config, "--out", "run.mcap", cwd=tmp_path)
         assert run.returncode == 0, run.stderr
         time.sleep(0.3)
-        assert emulator.clock() == (2.0, WAITING_FOR_MASTER)
-    assert emulator.lines()[-1].endswith("let go at plant time 2.00 s; the plant waits for "
+        assert emulator.clock() == (1.0, WAITING_FOR_MASTER)
+    assert emulator.lines()[-1].endswith("let go at plant time 1.00 s; the plant waits for "
                                          "a master")
 
 
@@ -315,9 +315,9 @@ SHORT_RUN = ["--controller", "bc", "--cycles", "1", "--limit", "total_va<=5000",
 
 def test_lockstep_over_rtu_records_the_in_process_session(tmp_path, capfd):
     """Over Modbus RTU (a pty pair) too; the sessions differ only by the bench URL in the
-    events. A 2 s cycle: pymodbus' serial client polls its port every millisecond, so a
+    events. A 1 s cycle: pymodbus' serial client polls its port every millisecond, so a
     lockstep RTU run goes about as fast as real time."""
-    config = str(short_config(tmp_path, period_s=2.0, dwell_s=0.5))
+    config = str(short_config(tmp_path, period_s=1.0, dwell_s=0.25))
     inside = hil_here(capfd, "bench", "run", *SHORT_RUN, "--config", config, "--out", "in.mcap",
                       cwd=tmp_path)
     assert inside.returncode == 0, inside.stderr

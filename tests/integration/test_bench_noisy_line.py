@@ -28,6 +28,7 @@ from pymodbus.client import ModbusSerialClient
 from hil.core.recording.reader import read_session
 from hil.emulators.faults import parse_fault
 from hil.emulators.null_modem import NullModem
+from tests.cli import hil_here
 from tests.pymodbus_bench import short_cycle
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
@@ -221,10 +222,9 @@ def test_hil_emulate_line_flips_the_asked_bytes_and_counts_them(tmp_path):
     assert "hil: fault: noise@0:rate=1.0,seed=4 injected at t=" in err
 
 
-def test_a_bad_line_fault_is_one_line(tmp_path):
-    refused = subprocess.run(
-        [sys.executable, "-m", "hil", "emulate", "line", "--fault", "drop@0"], cwd=tmp_path,
-        env=ENV, capture_output=True, text=True, timeout=60)
+def test_a_bad_line_fault_is_one_line(tmp_path, capsys):
+    """In this process (``hil emulate line`` runs from outside just above)."""
+    refused = hil_here(capsys, "emulate", "line", "--fault", "drop@0", cwd=tmp_path)
     assert refused.returncode == 2
     assert refused.stderr.strip().splitlines() == [
         "hil: error: --fault 'drop@0:every=1,unit=0': a bench emulator fault, not one the line "

@@ -154,8 +154,10 @@ def test_limits_name_an_axis_or_the_path(tmp_path, capsys):
 def test_axes_from_the_drive_config(tmp_path, capsys):
     config = tmp_path / "axes.toml"
     config.write_text('[[axis]]\nname = "x"\nnode = 1\n\n[[axis]]\nname = "c"\nnode = 5\n')
-    done = hil(tmp_path, "servo", "run", "--config", str(config), "--controller", "pid",
-               "--duration", "0.1", "--out", "cfg.mcap", "--json")
+    # in this process: --config runs from outside in
+    # test_an_installed_drive_scheme_opens_one_axis_or_several
+    done = hil_here(tmp_path, capsys, "servo", "run", "--config", str(config), "--controller",
+                    "pid", "--duration", "0.1", "--out", "cfg.mcap", "--json")
     assert done.returncode == 0, done.stderr
     kpis = json.loads(done.stdout)
     assert {name: axis["node"] for name, axis in kpis["axes"].items()} == {"x": 1, "c": 5}

@@ -86,13 +86,10 @@ def test_a_real_drive_is_swept_one_trial_after_another_with_serial(capsys, tmp_p
                for t in result["trials"])
 
 
-def test_without_ray_the_sweep_names_the_extra_to_install(tmp_path):
-    code = ("import sys; sys.modules['ray'] = None\n"   # `import ray` now raises ImportError
-            "from hil.cli.main import main\n"
-            "sys.exit(main(['sweep', 'servo', '--controller', 'pid', '--grid', 'umax=500,900',"
-            f" '--out', {str(tmp_path)!r}]))")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=60)
+def test_without_ray_the_sweep_names_the_extra_to_install(tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)   # `import ray` now raises ImportError
+    proc = hil_here(capsys, "sweep", "servo", "--controller", "pid", "--grid", "umax=500,900",
+                    "--out", tmp_path)
     assert proc.returncode == 2
     assert proc.stderr.strip() == ("hil: error: sweeps run on Ray, which is not installed: "
                                    "pip install 'hil[sweep]'")

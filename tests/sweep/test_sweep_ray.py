@@ -16,7 +16,7 @@ from hil.controllers.servo.sim import figure_table
 HERE = Path(__file__).resolve().parent
 GAIN = f"{HERE / 'gain_controller.py'}:Gain"
 TIMING = {"step_us", "wall_s", "realtime_factor", "mcap"}   # wall-clock figures, file name
-SERVO = ["sweep", "servo", "--duration", "0.6", "--reference", "sine:amplitude=2,frequency=2"]
+SERVO = ["sweep", "servo", "--duration", "0.3", "--reference", "sine:amplitude=2,frequency=2"]
 
 pytestmark = [pytest.mark.timeout(180), pytest.mark.slow]
 
