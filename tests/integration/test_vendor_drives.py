@@ -8,11 +8,11 @@ was supplied give them); and driven in every mode it lists that hil emulates: CS
 PV by ``hil servo run`` (0.2 s from where the axis stands: pid in CST, the built-in
 ``setpoint`` in the others), PP by ``hil drive move`` (done within the drive's position window
 0x6067), HM by ``hil drive home`` with each emulated method (done at the method's home point,
-which then reads the home offset, statusword bit 12 set). The ``[master]`` keys stand in for
-what a file lacks. One test per file, its steps subtests: one twin process per file, however
-xdist shares the tests out. A file that lists no mode is refused with that reason on its first
-line by the twin. The commands run ``main`` in this process (``hil_here``), each twin in its
-own.
+which then reads the home offset, statusword bit 12 set), both at a 2 ms SYNC where the file
+has 0x1006 (:data:`MOTION_CYCLE`). The ``[master]`` keys stand in for what a file lacks. One
+test per file, its steps subtests: one twin process per file, however xdist shares the tests
+out. A file that lists no mode is refused with that reason on its first line by the twin. The
+commands run ``main`` in this process (``hil_here``), each twin in its own.
 
 :data:`MATRIX` is the table of tests/data/drives/README.md's section "What hil does with each
 file" (:func:`matrix_table`), held to it by a test."""
@@ -54,6 +54,11 @@ HOME_OFFSET_DEG = 5.0
 NODE = 3  # the LocalNode of a file no twin can be
 WINDOW_OFF = 0xFFFF_FFFF  # CiA 402: a position window of all ones is none
 OFF_WINDOW_DEG = 1.0      # where the window is off: within a degree all the same
+#: the SYNC period of the PP moves and homings of a drive told it (0x1006; hil's default 500
+#: us): the drive runs the profile and the search itself, its axis still stepping 500 us, and
+#: the master watches its statusword, so 2 ms proves the same in a quarter of the cycles (a
+#: drive without 0x1006 keeps its 500 us a SYNC, so runs at hil's default)
+MOTION_CYCLE = "cycle_period_us = 2000\n"
 
 
 @dataclass(frozen=True)
@@ -170,6 +175,11 @@ class Twin(TwinFolder):
 
     vendor: VendorFile
 
+    def motion_cycle(self) -> str:
+        """The ``[master]`` key of its moves and homings: :data:`MOTION_CYCLE` where it has
+        0x1006."""
+        return MOTION_CYCLE if self.vendor.lists(0x1006) else ""
+
     def position_window_deg(self) -> float:
         """The drive's position window 0x6067 [deg] as ``hil drive sdo read`` reads it (a
         file without one: the twin's, hil's tenth of a degree to the increment), and the wire's
@@ -264,7 +274,7 @@ def track(twin: Twin, mode: str) -> None:
 def move(twin: Twin) -> None:
     """``hil drive move`` 30 deg on: done (statusword bit 10) within the drive's position
     window, at a speed its current allows."""
-    moved(twin, twin.position_window_deg(), twin.vendor.lists(0x6084))
+    moved(twin, twin.position_window_deg(), twin.vendor.lists(0x6084), twin.motion_cycle())
 
 
 def home(twin: Twin, subtests: pytest.Subtests) -> None:
@@ -281,7 +291,8 @@ def home(twin: Twin, subtests: pytest.Subtests) -> None:
     window_deg = twin.position_window_deg()
     for method in HOMING_ORDER:
         with subtests.test(f"HM {method}"):
-            homed(twin, method, (*given, *speeds, *accelerate), offset, window_deg)
+            homed(twin, method, (*given, *speeds, *accelerate), offset, window_deg,
+                  twin.motion_cycle())
 
 
 # -- the files no twin can be -------------------------------------------------------------------
