@@ -48,8 +48,10 @@ SERVO = 0x00020192  # 0x1000 of a CiA 402 servo drive
 UNIT = {"0x608F:1": 4096, "0x608F:2": 1}
 CYCLIC = ("CST", "CSP", "CSV", "PV")
 #: the homing methods the emulated drive runs, in an order each starts within the limit
-#: switches (+-190 deg) and not on the index pulse it looks for (one every 360 deg, at 180)
-HOMING_ORDER = (17, 1, 34, 2, 18, 33, 35, 37)
+#: switches (+-190 deg) and not on the index pulse it looks for (one every 360 deg, at 180):
+#: 34 and 33 each from a limit switch's edge, 10 deg before theirs (from an index pulse, where
+#: the axis stands within the window of it, the next could be a turn on)
+HOMING_ORDER = (17, 34, 1, 2, 18, 33, 35, 37)
 HOME_OFFSET_DEG = 5.0
 NODE = 3  # the LocalNode of a file no twin can be
 WINDOW_OFF = 0xFFFF_FFFF  # CiA 402: a position window of all ones is none
