@@ -1,8 +1,9 @@
 """Every vendor drive file of tests/data/drives (its README: what each lists and lacks) over the
 wire, as a user brings one, from a folder outside the repository, lockstep.
 
-Each file that lists a mode hil emulates is twinned by ``hil emulate drive --eds F --set ...
---socketcand 127.0.0.1:0`` with the values its vendor leaves for commissioning supplied;
+Each file that lists a mode hil emulates is twinned with the values its vendor leaves for
+commissioning supplied (``hil emulate drive --eds F --set ... --socketcand 127.0.0.1:0``, or
+what those flags configure served in this process: :func:`twin_of`);
 scanned by ``hil drive scan URL --eds F --json`` (identity, modes and units as the file and what
 was supplied give them); and driven in every mode it lists that hil emulates: CST, CSP, CSV and
 PV by ``hil servo run`` (0.2 s from where the axis stands: pid in CST, the built-in
@@ -10,9 +11,10 @@ PV by ``hil servo run`` (0.2 s from where the axis stands: pid in CST, the built
 0x6067), HM by ``hil drive home`` with each emulated method (done at the method's home point,
 which then reads the home offset, statusword bit 12 set), both at a 2 ms SYNC where the file
 has 0x1006 (:data:`MOTION_CYCLE`). The ``[master]`` keys stand in for what a file lacks. One
-test per file, its steps subtests: one twin process per file, however xdist shares the tests
-out. A file that lists no mode is refused with that reason on its first line by the twin. The
-commands run ``main`` in this process (``hil_here``), each twin in its own.
+test per file, its steps subtests: one twin per file, however xdist shares the tests out. A
+file that lists no mode is refused with that reason on its first line by the twin. The
+commands run ``main`` in this process (``hil_here``); :data:`OWN_PROCESS`'s twin runs in a
+process of its own, the others' in this process.
 
 :data:`MATRIX` is the table of tests/data/drives/README.md's section "What hil does with each
 file" (:func:`matrix_table`), held to it by a test."""
@@ -22,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import json
+import threading
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -32,7 +35,9 @@ import pytest
 from canopen.objectdictionary import ODVariable
 from canopen.objectdictionary import datatypes as dt
 
+from hil.emulation import StopFlag, serve_drives
 from hil.protocols.cia306 import description_encoding
+from hil.servo.config import load_drive_config
 from tests.cli import hil_here
 from tests.drive_processes import start_drive_emulator, stop_drive_emulator
 from tests.drive_slave import serve
@@ -61,6 +66,10 @@ OFF_WINDOW_DEG = 1.0      # where the window is off: within a degree all the sam
 #: the master watches its statusword, so 2 ms proves the same in a quarter of the cycles (a
 #: drive without 0x1006 keeps its 500 us a SYNC, so runs at hil's default)
 MOTION_CYCLE = "cycle_period_us = 2000\n"
+#: the file whose twin a user's way starts, ``hil emulate drive --eds F --set ...`` in a process
+#: of its own (the most steps, three values supplied); the others' serve in this process (a
+#: process start is some 0.45 s of CPU), the same drive on the same wire
+OWN_PROCESS = "nanotec/CL4-E-1-12.eds"
 
 
 @dataclass(frozen=True)
@@ -198,14 +207,36 @@ class Twin(TwinFolder):
 @contextlib.contextmanager
 def twin_of(vendor: VendorFile, folder: Path, capsys: pytest.CaptureFixture[str]
             ) -> Iterator[Twin]:
-    """``hil emulate drive --eds F --set ... --socketcand 127.0.0.1:0`` of ``vendor``, from
-    ``folder``."""
-    sets = [arg for key, value in vendor.supplied.items() for arg in ("--set", f"{key}={value}")]
-    proc, port = start_drive_emulator(None, 0, "--eds", str(vendor.file), *sets, cwd=folder)
+    """The twin of ``vendor`` on socketcand 127.0.0.1, its commands run from ``folder``: for
+    :data:`OWN_PROCESS`, ``hil emulate drive --eds F --set ... --socketcand 127.0.0.1:0`` from
+    ``folder``; for the others, :func:`hil.emulation.serve_drives` in this process, of a
+    config whose ``[emulator] eds`` and ``set`` are what those flags lay over the defaults."""
+    if vendor.path == OWN_PROCESS:
+        sets = [arg for key, value in vendor.supplied.items()
+                for arg in ("--set", f"{key}={value}")]
+        proc, port = start_drive_emulator(None, 0, "--eds", str(vendor.file), *sets,
+                                          cwd=folder)
+        try:
+            yield Twin(f"socketcand://127.0.0.1:{port}", folder, capsys, vendor.stand_ins,
+                       vendor)
+        finally:
+            stop_drive_emulator(proc)
+        return
+    values = ", ".join(f"{json.dumps(key)} = {value}" for key, value in vendor.supplied.items())
+    config = folder / "twin.toml"
+    config.write_text(f"[emulator]\neds = {json.dumps(str(vendor.file))}\nset = {{{values}}}\n")
+    served = serve_drives(load_drive_config(config).emulator, [1], "127.0.0.1", 0)
+    stop = StopFlag()
+    serving = threading.Thread(target=served.serve, args=(stop,), name="vendor twin",
+                               daemon=True)
+    serving.start()
     try:
+        _, port = served.server.address
         yield Twin(f"socketcand://127.0.0.1:{port}", folder, capsys, vendor.stand_ins, vendor)
     finally:
-        stop_drive_emulator(proc)
+        stop.set()
+        serving.join(10)
+        served.stop()
 
 
 @pytest.mark.parametrize("path", TWINNED)
