@@ -24,7 +24,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import json
-import threading
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -35,11 +34,9 @@ import pytest
 from canopen.objectdictionary import ODVariable
 from canopen.objectdictionary import datatypes as dt
 
-from hil.emulation import StopFlag, serve_drives
 from hil.protocols.cia306 import description_encoding
-from hil.servo.config import load_drive_config
 from tests.cli import hil_here
-from tests.drive_processes import start_drive_emulator, stop_drive_emulator
+from tests.drive_processes import drive_served_here, start_drive_emulator, stop_drive_emulator
 from tests.drive_slave import serve
 from tests.vendor_twin import TwinFolder, supplied_cell, twinned_and_refused
 from tests.vendor_twin import home as homed
@@ -209,8 +206,9 @@ def twin_of(vendor: VendorFile, folder: Path, capsys: pytest.CaptureFixture[str]
             ) -> Iterator[Twin]:
     """The twin of ``vendor`` on socketcand 127.0.0.1, its commands run from ``folder``: for
     :data:`OWN_PROCESS`, ``hil emulate drive --eds F --set ... --socketcand 127.0.0.1:0`` from
-    ``folder``; for the others, :func:`hil.emulation.serve_drives` in this process, of a
-    config whose ``[emulator] eds`` and ``set`` are what those flags lay over the defaults."""
+    ``folder``; for the others, the same served in this process
+    (:func:`tests.drive_processes.drive_served_here`), of a config whose ``[emulator] eds``
+    and ``set`` are what those flags lay over the defaults."""
     if vendor.path == OWN_PROCESS:
         sets = [arg for key, value in vendor.supplied.items()
                 for arg in ("--set", f"{key}={value}")]
@@ -225,18 +223,8 @@ def twin_of(vendor: VendorFile, folder: Path, capsys: pytest.CaptureFixture[str]
     values = ", ".join(f"{json.dumps(key)} = {value}" for key, value in vendor.supplied.items())
     config = folder / "twin.toml"
     config.write_text(f"[emulator]\neds = {json.dumps(str(vendor.file))}\nset = {{{values}}}\n")
-    served = serve_drives(load_drive_config(config).emulator, [1], "127.0.0.1", 0)
-    stop = StopFlag()
-    serving = threading.Thread(target=served.serve, args=(stop,), name="vendor twin",
-                               daemon=True)
-    serving.start()
-    try:
-        _, port = served.server.address
-        yield Twin(f"socketcand://127.0.0.1:{port}", folder, capsys, vendor.stand_ins, vendor)
-    finally:
-        stop.set()
-        serving.join(10)
-        served.stop()
+    with drive_served_here(config) as here:
+        yield Twin(here.url, folder, capsys, vendor.stand_ins, vendor)
 
 
 @pytest.mark.parametrize("path", TWINNED)
