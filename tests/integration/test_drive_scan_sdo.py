@@ -2,9 +2,9 @@
 repository), against hil's emulator (a fault injected, an axis moved by a run) and against a
 drive hil did not write (tests/drive_slave.py: canopen's LocalNode, 17-bit encoder, 2 A rated,
 CST only) on ``udp_multicast`` from this process; and ``hil emulate drive --write-eds``'s file
-read back by canopen at two node ids, against the emulator serving at the second. The faulted
-emulator runs in a process of its own; the others serve in this one (a process start is some
-0.45 s of CPU).
+read back by canopen at two node ids, against the emulator serving at the second. The emulator
+serves in this process (:func:`tests.drive_processes.drive_served_here`: a process start is
+some 0.45 s of CPU).
 
 Each command and flag runs from outside at least once; its other cases run ``main`` in this
 process (``hil_here``: the same exit status and output, without a second of interpreter start)."""
@@ -94,7 +94,7 @@ def wait_for_fault(emulator, timeout_s=30.0):
 
 # -- scan -----------------------------------------------------------------------------------
 def test_scan_of_a_faulted_drive_says_it_cannot_drive_it_and_names_the_fault(tmp_path, capsys):
-    with api.start_drive_emulator(faults=["emcy@0:code=0x8130"]) as emulator:
+    with drive_served_here(faults=["emcy@0:code=0x8130"]) as emulator:
         wait_for_fault(emulator)
         table = hil("drive", "scan", emulator.url, cwd=tmp_path)
         faulted = hil_here("drive", "scan", emulator.url, "--json", cwd=tmp_path, capsys=capsys)
