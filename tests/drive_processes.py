@@ -72,16 +72,16 @@ class DrivesHere:
 
 @contextlib.contextmanager
 def drive_served_here(config: str | os.PathLike[str] | None = None, *,
-                      node: int | Iterable[int] = 1, faults: Iterable[str] = ()
-                      ) -> Iterator[DrivesHere]:
-    """What ``hil emulate drive --config CONFIG --node N... --fault F...`` serves, on socketcand
-    127.0.0.1 and a free port, by a thread of this process until the block ends: for a test
-    whose point is not the emulator's process (``hil.api.start_drive_emulator`` starts one:
-    some 0.45 s of CPU)."""
+                      node: int | Iterable[int] = 1, clock: str = "auto",
+                      faults: Iterable[str] = ()) -> Iterator[DrivesHere]:
+    """What ``hil emulate drive --config CONFIG --node N... --clock C --fault F...`` serves,
+    on socketcand 127.0.0.1 and a free port, by a thread of this process until the block
+    ends: for a test whose point is not the emulator's process
+    (``hil.api.start_drive_emulator`` starts one: some 0.45 s of CPU)."""
     nodes = [node] if isinstance(node, int) else list(node)
     emulator = load_drive_config(config).emulator
     seen: list[str] = []
-    served = serve_drives(emulator, nodes, "127.0.0.1", 0,
+    served = serve_drives(emulator, nodes, "127.0.0.1", 0, clock=clock,
                           faults=[*emulator.faults, *map(parse_fault, faults)],
                           on_fault=seen.append)
     stop = StopFlag()
