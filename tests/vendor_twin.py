@@ -83,13 +83,14 @@ def track(twin: TwinFolder, mode: str, profile: str = "") -> tuple[dict[str, Any
     return kpis, events
 
 
-def move(twin: TwinFolder, window_deg: float, decelerate: bool) -> None:
+def move(twin: TwinFolder, window_deg: float, decelerate: bool, master: str = "") -> None:
     """``hil drive move`` 30 deg on at 90 deg/s: done (statusword bit 10) within
-    ``window_deg``; ``decelerate``: the drive has a profile deceleration (0x6084)."""
+    ``window_deg``; ``decelerate``: the drive has a profile deceleration (0x6084); ``master``:
+    more ``[master]`` keys."""
     deceleration = ("--deceleration", 360) if decelerate else ()
     moved = twin.hil("drive", "move", twin.url, "30", "--relative", "--config",
-                     twin.config("pp"), "--velocity", 90, "--acceleration", 360, *deceleration,
-                     "--json", "--out", "move.mcap")
+                     twin.config("pp", master), "--velocity", 90, "--acceleration", 360,
+                     *deceleration, "--json", "--out", "move.mcap")
     assert moved.returncode == 0, moved.stderr
     kpis = json.loads(moved.stdout)
     assert kpis["reached"] and abs(kpis["error_deg"]) <= window_deg, (kpis, window_deg)
@@ -97,11 +98,11 @@ def move(twin: TwinFolder, window_deg: float, decelerate: bool) -> None:
 
 
 def home(twin: TwinFolder, method: int, options: tuple[object, ...], offset_deg: float,
-         window_deg: float) -> None:
+         window_deg: float, master: str = "") -> None:
     """``hil drive home`` by ``method`` (with ``options``: speeds, acceleration, offset): done
     at the method's home point, which then reads ``offset_deg``, within ``window_deg``;
-    statusword bits 12 (homing attained) and 10."""
-    homed = twin.hil("drive", "home", twin.url, "--config", twin.config("hm"), "--method",
+    statusword bits 12 (homing attained) and 10; ``master``: more ``[master]`` keys."""
+    homed = twin.hil("drive", "home", twin.url, "--config", twin.config("hm", master), "--method",
                      method, *options, "--json", "--out", f"home{method}.mcap")
     assert homed.returncode == 0, homed.stderr
     kpis = json.loads(homed.stdout)

@@ -2,7 +2,9 @@
 repository), against hil's emulator (a fault injected, an axis moved by a run) and against a
 drive hil did not write (tests/drive_slave.py: canopen's LocalNode, 17-bit encoder, 2 A rated,
 CST only) on ``udp_multicast`` from this process; and ``hil emulate drive --write-eds``'s file
-read back by canopen at two node ids, against the emulator serving at the second.
+read back by canopen at two node ids, against the emulator serving at the second. The emulator
+serves in this process (:func:`tests.drive_processes.drive_served_here`: a process start is
+some 0.45 s of CPU).
 
 Each command and flag runs from outside at least once; its other cases run ``main`` in this
 process (``hil_here``: the same exit status and output, without a second of interpreter start)."""
@@ -24,6 +26,7 @@ from hil.core.device_lock import LOCK_DIR_ENV, lock_device
 from hil.core.recording.reader import read_session
 from hil.emulators.drive.eds import BIT_RATES
 from tests.cli import hil_here as in_process
+from tests.drive_processes import drive_served_here
 from tests.drive_slave import INCREMENTS, RATED_MA, dictionary, serve
 
 pytestmark = [pytest.mark.slow]
@@ -91,7 +94,7 @@ def wait_for_fault(emulator, timeout_s=30.0):
 
 # -- scan -----------------------------------------------------------------------------------
 def test_scan_of_a_faulted_drive_says_it_cannot_drive_it_and_names_the_fault(tmp_path, capsys):
-    with api.start_drive_emulator(faults=["emcy@0:code=0x8130"]) as emulator:
+    with drive_served_here(faults=["emcy@0:code=0x8130"]) as emulator:
         wait_for_fault(emulator)
         table = hil("drive", "scan", emulator.url, cwd=tmp_path)
         faulted = hil_here("drive", "scan", emulator.url, "--json", cwd=tmp_path, capsys=capsys)
@@ -113,7 +116,7 @@ def test_scan_of_a_faulted_drive_says_it_cannot_drive_it_and_names_the_fault(tmp
 
 
 def test_scan_of_a_healthy_drive_names_its_modes_and_where_the_axis_stands(tmp_path, capsys):
-    with api.start_drive_emulator() as emulator:
+    with drive_served_here() as emulator:
         api.run_servo("pid", drive=emulator.url, duration_s=0.5,
                       reference="hold:position=40", out=str(tmp_path / "hold.mcap"))
         table = hil_here("drive", "scan", emulator.url, cwd=tmp_path, capsys=capsys)
@@ -319,7 +322,7 @@ def test_the_written_eds_gives_every_node_its_own_cob_ids_and_claims_the_bit_rat
     assert rates == {f"baudrate_{r // 1000}": "1" for r in BIT_RATES}
     # what the file says of node 5 is what the emulator serving node 5 answers
     od5 = canopen.import_od(str(eds), 5)
-    with api.start_drive_emulator(node=5) as emulator:
+    with drive_served_here(node=5) as emulator:
         for index, sub in ((0x1014, 0), (0x1200, 1), (0x1200, 2), (0x1400, 1), (0x1800, 1),
                            (0x1801, 1), (0x1018, 4)):
             read = hil_here("drive", "sdo", "read", emulator.url, f"0x{index:04X}:{sub}",

@@ -1,9 +1,10 @@
-"""The drive's own settings are never lost, tried from outside against a standalone ``hil
-emulate drive`` (its 0x6072 max torque 1000 mA at power-on) over socketcand: a run at
-``--umax 300`` writes 300 to 0x6072 and puts 1000 back, also after its link is lost (once the
-drive answers again at the close); when the drive is silent at the close, the journal keeps what
-the run left, and the next run puts it back before it reads the drive's limits. A limit that
-cuts what was asked is one terminal line."""
+"""The drive's own settings are never lost, tried against hil's drive emulator (its 0x6072
+max torque 1000 mA at power-on) over socketcand: a standalone ``hil emulate drive`` where it
+falls silent or dies, elsewhere served in this process (a process start is some 0.45 s of CPU).
+A run at ``--umax 300`` writes 300 to 0x6072 and puts 1000 back, also after its link is lost
+(once the drive answers again at the close); when the drive is silent at the close, the journal
+keeps what the run left, and the next run puts it back before it reads the drive's limits. A
+limit that cuts what was asked is one terminal line."""
 
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ from hil.protocols.cia402 import OPERATION_ENABLED, state_of
 from hil.servo.rig import open_drive, share_lockstep_time
 from hil.servo.run import ServoRunOptions, run_servo
 from tests.cli import hil_here
+from tests.drive_processes import drive_served_here
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
@@ -53,7 +55,7 @@ def test_a_run_puts_the_drives_limit_back_also_after_its_link_was_lost(tmp_path,
     config.write_text(PATIENCE)
     # TPDOs dropped from 0.05 s of the drive's time on (its SYNCs': 100 ticks into the run),
     # while it still answers SDO
-    with api.start_drive_emulator(clock="sync", faults=["drop_tpdo@0.05"]) as drive:
+    with drive_served_here(clock="sync", faults=["drop_tpdo@0.05"]) as drive:
         assert max_torque(capsys, drive.url) == 1000
         run = hil_here(capsys, "servo", "run", "--controller", "pid", "--drive", drive.url,
                        "--config", config, "--umax", "300", "--duration", "1", "--out",
@@ -140,7 +142,7 @@ def test_a_run_puts_the_drives_pdo_maps_back(tmp_path, capsys, state):
             values[name] = json.loads(done.stdout)["value"]
         return values
 
-    with api.start_drive_emulator() as drive:
+    with drive_served_here() as drive:
         found = read_all(drive.url)
         run = hil_here(capsys, "servo", "run", "--controller", "pid", "--drive", drive.url,
                        "--config", config, "--duration", "0.05", "--out", "one.mcap",

@@ -22,7 +22,7 @@ from hil.protocols.cia402 import state_of
 from hil.servo.config import load_drive_config
 from hil.servo.rig import open_drive
 from tests.canopen_peer import add_402_node
-from tests.drive_processes import start_drive_emulator, stop_drive_emulator
+from tests.drive_processes import drive_served_here, start_drive_emulator, stop_drive_emulator
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
@@ -246,12 +246,11 @@ def test_restarted_emulator_is_used_again_only_after_recover(tmp_path):
 
 
 def test_several_drives_on_one_bus_each_move_their_own_axis():
-    """``hil emulate drive --node 1 --node 2``: two drives on one socketcand bus, driven by
-    canopen's own master (one SYNC for both): each answers as its node and moves its axis with
-    its own torque, the other way for node 2."""
-    from hil import api
-
-    with api.start_drive_emulator(node=[1, 2]) as emulator:
+    """What ``hil emulate drive --node 1 --node 2`` serves (here in this process; the command's
+    own process drives several axes in tests/integration/test_axes_bus.py): two drives on one
+    socketcand bus, driven by canopen's own master (one SYNC for both): each answers as its
+    node and moves its axis with its own torque, the other way for node 2."""
+    with drive_served_here(node=[1, 2]) as emulator:
         host, port = emulator.url.removeprefix("socketcand://").split(":")
         network = canopen.Network()
         network.connect(interface="socketcand", host=host, port=int(port), channel="can0")

@@ -3,7 +3,9 @@ emulator and against a drive hil did not write, ``hil drive reset`` and ``--rese
 the drive's EDS checked before anything is enabled, ``--can-log`` files python-can reads
 back, and the emulator's late TPDOs in real time bound to their SYNC through the wire trace.
 Each command and flag runs from outside at least once; its other cases run ``main`` in this
-process (``hil_here``: the same exit status and output, without a second of interpreter start)."""
+process (``hil_here``: the same exit status and output, without a second of interpreter start).
+The emulator serves in this process (:func:`tests.drive_processes.drive_served_here`) but where
+it runs in real time, as a process of its own."""
 
 import json
 import os
@@ -23,6 +25,7 @@ from hil.core.recording.reader import read_session
 from hil.drivers.canopen import DriveError
 from hil.servo.run import ServoRunOptions, run_servo
 from tests.cli import hil_here as in_process
+from tests.drive_processes import drive_served_here
 from tests.drive_slave import dictionary, serve
 
 pytestmark = [pytest.mark.slow]
@@ -43,7 +46,7 @@ def hil_here(*args, cwd, capsys):
 
 def test_scan_of_the_emulator_from_outside_lists_the_node_and_says_hil_can_drive_it(tmp_path,
                                                                                    capsys):
-    with api.start_drive_emulator() as emulator:
+    with drive_served_here() as emulator:  # the scan from outside, the drive in this process
         out = hil("drive", "scan", emulator.url, "--json", cwd=tmp_path)
         table = hil_here("drive", "scan", emulator.url, cwd=tmp_path, capsys=capsys)
     assert out.returncode == 0, out.stderr
@@ -89,7 +92,7 @@ def test_scan_of_an_independent_drive_names_what_it_lacks_for_csp():
 def test_reset_clears_a_fault_left_behind_and_a_run_can_reset_it_too(tmp_path, capsys):
     strong = tmp_path / "strong.toml"  # a drive whose own limit lets 20 A through
     strong.write_text("[emulator]\nmax_torque_permille = 20000\n")
-    with api.start_drive_emulator(strong) as emulator:
+    with drive_served_here(strong) as emulator:
         with pytest.raises(DriveError):  # beyond the 15 A trip level: EMCY 0x2310, FAULT
             api.run_servo("pid", drive=emulator.url, duration_s=0.2,
                           drive_overrides={"master": {"current_limit_mA": 20000.0}},

@@ -11,10 +11,10 @@ import uuid
 
 import pytest
 
-from hil import api
 from hil.core.recording.reader import read_session
 from hil.drivers.canopen.identity import MANUFACTURER_OBJECTS
 from tests.cli import hil_here
+from tests.drive_processes import drive_served_here
 from tests.drive_slave import serve
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
@@ -68,7 +68,7 @@ def test_the_disturbance_scenario_is_refused_on_a_vendors_drive(vendor_drive, tm
 
 
 def test_hils_own_emulator_still_keeps_the_masters_time(tmp_path, capsys):
-    with api.start_drive_emulator() as emulator:
+    with drive_served_here() as emulator:
         run = hil_here(capsys, "servo", "run", "--controller", "pid", "--drive", emulator.url,
                        "--duration", "0.1", "--out", "own.mcap", cwd=tmp_path)
     assert run.returncode == 0, run.stderr

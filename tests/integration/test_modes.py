@@ -17,6 +17,7 @@ from hil import api
 from hil.core.recording.reader import read_session
 from hil.errors import UsageError
 from tests.cli import hil_here
+from tests.drive_processes import drive_served_here
 
 pytestmark = [pytest.mark.slow]
 
@@ -112,9 +113,9 @@ class PositionPd:
 
 
 def test_csp_over_the_wire_with_a_controller_of_ones_own(tmp_path, capsys):
-    """The standalone emulator, lockstep over socketcand; a user's position controller. The
-    scan claims CSP (on main it did, and every CSP run failed)."""
-    with api.start_drive_emulator() as emulator:
+    """hil's emulator lockstep over socketcand (served in this process); a user's position
+    controller. The scan claims CSP (on main it did, and every CSP run failed)."""
+    with drive_served_here() as emulator:
         scanned = hil_here(capsys, "drive", "scan", emulator.url, "--config",
                            mode_config(tmp_path, "csp"), cwd=tmp_path)
         kpis = api.run_servo(PositionPd, {"gain": 0.2}, drive=emulator.url, duration_s=0.3,

@@ -1,18 +1,20 @@
 """Every vendor drive file of tests/data/drives (its README: what each lists and lacks) over the
 wire, as a user brings one, from a folder outside the repository, lockstep.
 
-Each file that lists a mode hil emulates is twinned by ``hil emulate drive --eds F --set ...
---socketcand 127.0.0.1:0`` with the values its vendor leaves for commissioning supplied;
+Each file that lists a mode hil emulates is twinned with the values its vendor leaves for
+commissioning supplied (``hil emulate drive --eds F --set ... --socketcand 127.0.0.1:0``, or
+what those flags configure served in this process: :func:`twin_of`);
 scanned by ``hil drive scan URL --eds F --json`` (identity, modes and units as the file and what
 was supplied give them); and driven in every mode it lists that hil emulates: CST, CSP, CSV and
 PV by ``hil servo run`` (0.2 s from where the axis stands: pid in CST, the built-in
 ``setpoint`` in the others), PP by ``hil drive move`` (done within the drive's position window
 0x6067), HM by ``hil drive home`` with each emulated method (done at the method's home point,
-which then reads the home offset, statusword bit 12 set). The ``[master]`` keys stand in for
-what a file lacks. One test per file, its steps subtests: one twin process per file, however
-xdist shares the tests out. A file that lists no mode is refused with that reason on its first
-line by the twin. The commands run ``main`` in this process (``hil_here``), each twin in its
-own.
+which then reads the home offset, statusword bit 12 set), both at a 2 ms SYNC where the file
+has 0x1006 (:data:`MOTION_CYCLE`). The ``[master]`` keys stand in for what a file lacks. One
+test per file, its steps subtests: one twin per file, however xdist shares the tests out. A
+file that lists no mode is refused with that reason on its first line by the twin. The
+commands run ``main`` in this process (``hil_here``); :data:`OWN_PROCESS`'s twin runs in a
+process of its own, the others' in this process.
 
 :data:`MATRIX` is the table of tests/data/drives/README.md's section "What hil does with each
 file" (:func:`matrix_table`), held to it by a test."""
@@ -34,7 +36,7 @@ from canopen.objectdictionary import datatypes as dt
 
 from hil.protocols.cia306 import description_encoding
 from tests.cli import hil_here
-from tests.drive_processes import start_drive_emulator, stop_drive_emulator
+from tests.drive_processes import drive_served_here, start_drive_emulator, stop_drive_emulator
 from tests.drive_slave import serve
 from tests.vendor_twin import TwinFolder, supplied_cell, twinned_and_refused
 from tests.vendor_twin import home as homed
@@ -48,12 +50,23 @@ SERVO = 0x00020192  # 0x1000 of a CiA 402 servo drive
 UNIT = {"0x608F:1": 4096, "0x608F:2": 1}
 CYCLIC = ("CST", "CSP", "CSV", "PV")
 #: the homing methods the emulated drive runs, in an order each starts within the limit
-#: switches (+-190 deg) and not on the index pulse it looks for (one every 360 deg, at 180)
-HOMING_ORDER = (17, 1, 34, 2, 18, 33, 35, 37)
+#: switches (+-190 deg) and not on the index pulse it looks for (one every 360 deg, at 180):
+#: 34 and 33 each from a limit switch's edge, 10 deg before theirs (from an index pulse, where
+#: the axis stands within the window of it, the next could be a turn on)
+HOMING_ORDER = (17, 34, 1, 2, 18, 33, 35, 37)
 HOME_OFFSET_DEG = 5.0
 NODE = 3  # the LocalNode of a file no twin can be
 WINDOW_OFF = 0xFFFF_FFFF  # CiA 402: a position window of all ones is none
 OFF_WINDOW_DEG = 1.0      # where the window is off: within a degree all the same
+#: the SYNC period of the PP moves and homings of a drive told it (0x1006; hil's default 500
+#: us): the drive runs the profile and the search itself, its axis still stepping 500 us, and
+#: the master watches its statusword, so 2 ms proves the same in a quarter of the cycles (a
+#: drive without 0x1006 keeps its 500 us a SYNC, so runs at hil's default)
+MOTION_CYCLE = "cycle_period_us = 2000\n"
+#: the file whose twin a user's way starts, ``hil emulate drive --eds F --set ...`` in a process
+#: of its own (the most steps, three values supplied); the others' serve in this process (a
+#: process start is some 0.45 s of CPU), the same drive on the same wire
+OWN_PROCESS = "nanotec/CL4-E-1-12.eds"
 
 
 @dataclass(frozen=True)
@@ -170,6 +183,11 @@ class Twin(TwinFolder):
 
     vendor: VendorFile
 
+    def motion_cycle(self) -> str:
+        """The ``[master]`` key of its moves and homings: :data:`MOTION_CYCLE` where it has
+        0x1006."""
+        return MOTION_CYCLE if self.vendor.lists(0x1006) else ""
+
     def position_window_deg(self) -> float:
         """The drive's position window 0x6067 [deg] as ``hil drive sdo read`` reads it (a
         file without one: the twin's, hil's tenth of a degree to the increment), and the wire's
@@ -186,14 +204,27 @@ class Twin(TwinFolder):
 @contextlib.contextmanager
 def twin_of(vendor: VendorFile, folder: Path, capsys: pytest.CaptureFixture[str]
             ) -> Iterator[Twin]:
-    """``hil emulate drive --eds F --set ... --socketcand 127.0.0.1:0`` of ``vendor``, from
-    ``folder``."""
-    sets = [arg for key, value in vendor.supplied.items() for arg in ("--set", f"{key}={value}")]
-    proc, port = start_drive_emulator(None, 0, "--eds", str(vendor.file), *sets, cwd=folder)
-    try:
-        yield Twin(f"socketcand://127.0.0.1:{port}", folder, capsys, vendor.stand_ins, vendor)
-    finally:
-        stop_drive_emulator(proc)
+    """The twin of ``vendor`` on socketcand 127.0.0.1, its commands run from ``folder``: for
+    :data:`OWN_PROCESS`, ``hil emulate drive --eds F --set ... --socketcand 127.0.0.1:0`` from
+    ``folder``; for the others, the same served in this process
+    (:func:`tests.drive_processes.drive_served_here`), of a config whose ``[emulator] eds``
+    and ``set`` are what those flags lay over the defaults."""
+    if vendor.path == OWN_PROCESS:
+        sets = [arg for key, value in vendor.supplied.items()
+                for arg in ("--set", f"{key}={value}")]
+        proc, port = start_drive_emulator(None, 0, "--eds", str(vendor.file), *sets,
+                                          cwd=folder)
+        try:
+            yield Twin(f"socketcand://127.0.0.1:{port}", folder, capsys, vendor.stand_ins,
+                       vendor)
+        finally:
+            stop_drive_emulator(proc)
+        return
+    values = ", ".join(f"{json.dumps(key)} = {value}" for key, value in vendor.supplied.items())
+    config = folder / "twin.toml"
+    config.write_text(f"[emulator]\neds = {json.dumps(str(vendor.file))}\nset = {{{values}}}\n")
+    with drive_served_here(config) as here:
+        yield Twin(here.url, folder, capsys, vendor.stand_ins, vendor)
 
 
 @pytest.mark.parametrize("path", TWINNED)
@@ -264,7 +295,7 @@ def track(twin: Twin, mode: str) -> None:
 def move(twin: Twin) -> None:
     """``hil drive move`` 30 deg on: done (statusword bit 10) within the drive's position
     window, at a speed its current allows."""
-    moved(twin, twin.position_window_deg(), twin.vendor.lists(0x6084))
+    moved(twin, twin.position_window_deg(), twin.vendor.lists(0x6084), twin.motion_cycle())
 
 
 def home(twin: Twin, subtests: pytest.Subtests) -> None:
@@ -281,7 +312,8 @@ def home(twin: Twin, subtests: pytest.Subtests) -> None:
     window_deg = twin.position_window_deg()
     for method in HOMING_ORDER:
         with subtests.test(f"HM {method}"):
-            homed(twin, method, (*given, *speeds, *accelerate), offset, window_deg)
+            homed(twin, method, (*given, *speeds, *accelerate), offset, window_deg,
+                  twin.motion_cycle())
 
 
 # -- the files no twin can be -------------------------------------------------------------------

@@ -214,14 +214,16 @@ def test_emulate_drive_eds_alone_lists_what_the_twin_refuses(tmp_path, capsys):
     assert lines[-1].endswith("): PP, HM")
 
 
-def test_an_eds_of_no_drive_is_one_line(tmp_path):
+def test_an_eds_of_no_drive_is_one_line(tmp_path, capsys):
     refused = hil(tmp_path, "emulate", "drive", "--eds", SAMPLE, "--socketcand", "127.0.0.1:0")
     said = (f"hil: error: EDS {SAMPLE}: no 0x6502 (supported drive modes) with a value: the twin "
             "emulates the modes it lists (PP, PV, HM, CSP, CSV, CST)")
     assert one_error_line(refused) == said
     (tmp_path / "sample.toml").write_text(f'[emulator]\neds = "{SAMPLE}"\n')
-    run = hil(tmp_path, "servo", "run", "--config", "sample.toml", "--controller", "pid",
-              "--duration", "0.1", "--out", "never.mcap")  # the in-process lockstep twin
+    # the lockstep twin of a run, in its process (here this one: the command runs from
+    # outside in test_a_lockstep_run_against_the_twin_moves_its_axis_in_the_eds_units)
+    run = hil_here(capsys, "servo", "run", "--config", "sample.toml", "--controller", "pid",
+                   "--duration", "0.1", "--out", "never.mcap", cwd=tmp_path)
     assert one_error_line(run) == said
 
 
