@@ -1,5 +1,6 @@
-"""Relative where the run is relative, tried as a user would against a standalone ``hil emulate
-drive`` whose axis stays where each run leaves it: two runs from where the axis stands
+"""Relative where the run is relative, tried as a user would against a drive on socketcand (what
+``hil emulate drive`` serves, served in the test's process) whose axis stays where each run
+leaves it: two runs from where the axis stands
 (``--from-here``) repeat one 90 deg move from two places, and ``hil compare`` and the
 ``hil_baseline`` fixture (run against the drive with ``--hil-drive``) hold their positions
 relative to each run's start; the drive guide's first cautious run holds an axis standing 180 deg
@@ -18,9 +19,9 @@ import textwrap
 
 import pytest
 
-from hil import api
 from tests.cli import NOT_A_USERS_PLUGINS, hil_here, hil_in
 from tests.docs import block
+from tests.drive_processes import drive_served_here
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 
@@ -35,10 +36,10 @@ CLOSE = ["--tolerance", "*=rel:5%", "--tolerance", f"{POSITION}=abs:0.01",
 
 @pytest.fixture(scope="module")
 def moved_twice(tmp_path_factory):
-    """A standalone drive emulator and a folder with two runs of :data:`MOVE` on it, one
+    """A drive emulator on socketcand and a folder with two runs of :data:`MOVE` on it, one
     after the other (``first.mcap``, ``second.mcap``): its axis stands 180 deg on."""
     folder = tmp_path_factory.mktemp("from_start")
-    with api.start_drive_emulator() as drive:
+    with drive_served_here() as drive:
         for name in ("first", "second"):
             assert hil_in(folder, "servo", "run", *MOVE, "--drive", drive.url, "--out",
                           f"{name}.mcap") == 0, name
@@ -90,7 +91,7 @@ def test_hil_baseline_against_a_given_drive_holds_wherever_the_axis_stood(tmp_pa
              "--basetemp", str(tmp_path / name), "test_mine.py", "--hil-drive", url],
             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=200, check=False)
 
-    with api.start_drive_emulator() as drive:
+    with drive_served_here() as drive:
         recorded = pytest_run(drive.url, "first")
         assert recorded.returncode == 0, recorded.stdout[-3000:]
         assert "BaselineRecorded" in recorded.stdout

@@ -1,7 +1,8 @@
 """Several axes on a real bus, from the command line as a user runs it (a folder outside the
 repository): the plan and the refusal give one figure, every way out the plan names can be
-taken (a longer cycle, one TPDO per axis, a second bus: each run against `hil emulate drive`
-processes on socketcand), the warning of the emulated bus is on the terminal, and a bit rate
+taken (a longer cycle, one TPDO per axis, a second bus: each run against hil's drive emulator
+on socketcand, three axes' a `hil emulate drive` process, the others' served in the test's
+process), the warning of the emulated bus is on the terminal, and a bit rate
 classic CAN cannot carry is refused unless the bus is CAN FD. Each command and flag runs from
 outside at least once; its other cases run ``main`` in this process, in the same folder
 (``hil_here``: the same exit status and output, without a second of interpreter start)."""
@@ -19,6 +20,7 @@ import pytest
 from hil import api
 from hil.core.recording.reader import read_session
 from tests.cli import hil_here as in_process
+from tests.drive_processes import drive_served_here
 
 ROOT = Path(__file__).resolve().parents[2]
 FIGURE = "(worst case: every frame with all the stuff bits it can take)"
@@ -168,7 +170,7 @@ def tracking(kpis: dict, names: tuple[str, ...], ticks: int, bound_deg: float) -
 @pytest.mark.slow
 def test_a_longer_cycle_with_pid_takes_two_axes_onto_one_bus(tmp_path, capsys):
     slow = config(tmp_path, "slow.toml", "[master]\ncycle_period_us = 1000\n")
-    with api.start_drive_emulator(node=[1, 2]) as drive:
+    with drive_served_here(node=[1, 2]) as drive:
         refused = hil_here(tmp_path, capsys, "servo", "run", "--axes", "x=1,y=2", "--controller",
                            "pid", "--drive", drive.url, "--out", "no.mcap")
         unstable = hil_here(tmp_path, capsys, "servo", "run", "--axes", "x=1,y=2",
@@ -206,7 +208,7 @@ def test_one_tpdo_per_axis_takes_three_axes_onto_one_bus_at_1_khz(tmp_path, caps
 
 @pytest.mark.slow
 def test_a_second_bus_takes_two_axes_at_2_khz(tmp_path, capsys):
-    with api.start_drive_emulator(node=1) as first, api.start_drive_emulator(node=1) as second:
+    with drive_served_here() as first, drive_served_here() as second:
         kpis = axes_run(tmp_path, "buses.mcap", capsys, "--axes",
                         f"x=1@{first.url},y=1@{second.url}", "--controller", "pid")
     tracking(kpis, ("x", "y"), 1000, 0.6)

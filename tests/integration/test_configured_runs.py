@@ -19,6 +19,7 @@ import pytest
 from hil import api
 from hil.core.recording.reader import read_session
 from tests.cli import hil_here
+from tests.drive_processes import drive_served_here
 from tests.drive_slave import RATED_MA, serve
 
 pytestmark = [pytest.mark.slow]
@@ -40,7 +41,7 @@ def events(path: str, kind: str) -> list[dict]:
 def test_a_bus_in_the_config_file_is_the_drive_that_runs(tmp_path, capfd, monkeypatch):
     """[bus] naming a socketcand gateway, no --drive: the run reaches that drive, in lockstep
     over the wire; a gateway nobody serves is a one-line error, never the emulator."""
-    with api.start_drive_emulator() as drive:
+    with drive_served_here() as drive:
         host, port = drive.url.removeprefix("socketcand://").split(":")
         config = tmp_path / "drive.toml"
         config.write_text(f'[bus]\ninterface = "socketcand"\n[bus.options]\nhost = "{host}"\n'

@@ -1,14 +1,15 @@
-"""The first contact with a drive, from outside: a standalone ``hil emulate drive`` at node 4
-and a run that looks for node 1. A node that has never answered gets the SDO time-out, not the
-lockstep bound, and the error names the nodes a scan of the bus found; ``hil drive scan``
-takes node ids of CiA 301 only."""
+"""The first contact with a drive, from outside: a drive at node 4 on socketcand (what
+``hil emulate drive --node 4`` serves, served in the test's process) and a run that looks for
+node 1. A node that has never answered gets the SDO time-out, not the lockstep bound, and the
+error names the nodes a scan of the bus found; ``hil drive scan`` takes node ids of CiA 301
+only."""
 
 from __future__ import annotations
 
 import pytest
 
-from hil import api
 from tests.cli import hil_here
+from tests.drive_processes import drive_served_here
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
@@ -19,7 +20,7 @@ PATIENT = "[master]\nlockstep_timeout_ms = 600000\n"
 
 @pytest.fixture(scope="module")
 def node_4():
-    with api.start_drive_emulator(node=4) as emulator:
+    with drive_served_here(node=4) as emulator:
         yield emulator
 
 

@@ -23,6 +23,7 @@ from hil.core.recording.reader import read_session
 from hil.drivers.canopen.errors import DriveFaultError, DriveGoneError
 from hil.servo.run import ServoRunOptions, run_servo
 from tests.cli import hil_here
+from tests.drive_processes import drive_served_here
 from tests.session_digest import kpi_digest, session_digest
 
 pytestmark = [pytest.mark.slow]
@@ -140,7 +141,7 @@ def test_a_drive_gone_silent_is_said_and_exit_4_from_the_command_line(tmp_path):
     its stop cannot be confirmed and one for the error; exit status 4, the run unsafe."""
     config = tmp_path / "drive.toml"
     config.write_text("[master]\nlockstep_timeout_ms = 500\n")
-    with api.start_drive_emulator(faults=["silent@0.2"], clock="sync") as drive:
+    with drive_served_here(faults=["silent@0.2"], clock="sync") as drive:
         run = hil(tmp_path, "servo", "run", "--controller", "pid", "--drive", drive.url,
                   "--config", str(config), "--duration", "60", "--json", "--out", "gone.mcap")
         out, err = run.communicate(timeout=120)
@@ -155,7 +156,7 @@ def test_a_drive_gone_silent_is_said_and_exit_4_from_the_command_line(tmp_path):
 def test_a_master_silent_beyond_its_bound_finds_the_drive_protected(tmp_path, capsys):
     """The other way round: a lockstep master silent for longer than it told the drive (0x2005)
     leaves it on its own clock, which reacts as to a SYNC loss: a fault, EMCY 0x8130."""
-    with api.start_drive_emulator() as drive:
+    with drive_served_here() as drive:
         with pytest.raises(DriveFaultError, match="0x8130"):
             run_servo(ServoRunOptions(**PID, duration_s=1.0, drive=drive.url,
                                       drive_overrides={"master": {"lockstep_timeout_ms": 300}},
@@ -170,8 +171,9 @@ def test_a_drive_on_its_own_clock_is_watched_on_the_wall_clock(tmp_path):
     # the drive's wall-clock watchdogs (SYNC loss, master heartbeat) at 10 s, not 100/300 ms:
     # this test is about the clock the run says it is on, not about a busy machine's stalls
     patient = 10_000
-    with api.start_drive_emulator(clock="wall", tables={
-            "emulator": {"sync_loss_timeout_ms": patient}}) as drive:
+    config = tmp_path / "drive.toml"
+    config.write_text(f"[emulator]\nsync_loss_timeout_ms = {patient}\n")
+    with drive_served_here(config, clock="wall") as drive:
         kpis = api.run_servo(**PID, duration_s=0.3, drive=drive.url,
                              drive_overrides={"master": {"heartbeat_timeout_ms": patient}},
                              out=str(tmp_path / "wall.mcap"))

@@ -27,6 +27,7 @@ from hil.core.recording.reader import read_session
 from hil.errors import ConfigError, HilError
 from hil.protocols.cia402 import QUICK_STOP_ACTIVE, SWITCH_ON_DISABLED, state_of
 from tests.cli import hil_here as in_process
+from tests.drive_processes import drive_served_here
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
@@ -211,7 +212,7 @@ def test_from_here_on_two_axes_runs_the_circle_from_where_they_stand(folder):
     # 0.2 s of the circle: its start is what is checked
     config = folder / "two.toml"
     config.write_text("[master]\ncycle_period_us = 1000\n")
-    with api.start_drive_emulator(node=[1, 2]) as drive:
+    with drive_served_here(node=[1, 2]) as drive:
         api.run_servo("pid", {"ti_us": 8000}, drive=drive.url, axes="x=1,y=2",
                       drive_config=str(config),
                       reference="trapezoid:stroke=270", duration_s=1.2,

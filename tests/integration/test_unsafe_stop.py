@@ -1,9 +1,9 @@
 """A safe stop that fails is an outcome of its own, tried from outside: a lockstep run against
-a standalone ``hil emulate drive`` on SYNC time whose link is cut during the stop (the
-emulator falls silent 40 ms into the quick stop of an axis turning at 200 deg/s), and the
-emulated drive ignoring the controlword. The terminal says what the drive last reported and
-that the axis may still move; ``--json``, ``--junit``, ``hil report`` and its HTML page say
-``unsafe``; the exit status is 4."""
+what ``hil emulate drive`` serves (in the test's process), on SYNC time, whose link is cut
+during the stop (the emulator falls silent 40 ms into the quick stop of an axis turning at
+200 deg/s), and the emulated drive ignoring the controlword. The terminal says what the drive
+last reported and that the axis may still move; ``--json``, ``--junit``, ``hil report`` and its
+HTML page say ``unsafe``; the exit status is 4."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import xml.etree.ElementTree as ET
 
 import pytest
 
-from hil import api
 from tests.cli import hil_here
+from tests.drive_processes import drive_served_here
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
@@ -25,7 +25,7 @@ MOVING = ["--reference", "trapezoid:stroke=3600,speed=300", "--duration", "0.3"]
 def test_a_link_lost_during_the_stop_is_unsafe_exit_4(tmp_path, capsys):
     config = tmp_path / "drive.toml"
     config.write_text("[master]\nlockstep_timeout_ms = 500\n")
-    with api.start_drive_emulator(clock="sync", faults=["silent@0.34"]) as drive:
+    with drive_served_here(clock="sync", faults=["silent@0.34"]) as drive:
         run = hil_here(capsys, "servo", "run", "--controller", "pid", "--drive", drive.url,
                        "--config", config, *MOVING, "--json", "--junit", "run.xml",
                        "--out", "cut.mcap", cwd=tmp_path)

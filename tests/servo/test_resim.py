@@ -21,6 +21,7 @@ from mcap.writer import Writer
 from hil import api
 from hil.core.recording.reader import SessionData, read_session
 from tests.cli import hil_here, hil_in
+from tests.drive_processes import drive_served_here
 
 pytestmark = [pytest.mark.slow]  # processes, emulators, sessions
 
@@ -122,7 +123,7 @@ def test_an_axis_model_file_is_the_plant(folder, capsys):
 
 def test_a_recording_of_hardware_is_resimulated_on_the_emulator_of_its_config(tmp_path,
                                                                                capsys):
-    with api.start_drive_emulator() as drive:  # the machine: a drive over socketcand
+    with drive_served_here() as drive:  # the machine: a drive over socketcand
         done = hil_here(capsys, "servo", "run", "--controller", "pid", "--drive", drive.url,
                         "--duration", "0.1", "--quiet", "--out", "machine.mcap", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
