@@ -16,6 +16,7 @@ import pytest
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
 from hil.emulators.null_modem import NullModem
+from tests.bench_served import bench_served_here
 from tests.cli import hil_here
 from tests.pymodbus_bench import ANSWER_S
 
@@ -118,13 +119,9 @@ def test_garbage_in_is_one_error_line(tmp_path, capfd, args, config, why, outsid
 
 
 def test_busy_port_is_one_error_line(capfd):
-    first = hil("emulate", "bench", "--tcp", "127.0.0.1:0")
-    try:
-        port = re.search(r":(\d+) ", first.stdout.readline()).group(1)
+    with bench_served_here() as first:  # the port's holder: a bench emulator in this process
+        port = first.url.rsplit(":", 1)[1]
         done = hil_here(capfd, "emulate", "bench", "--tcp", f"127.0.0.1:{port}")
         status, err = done.returncode, done.stderr
-    finally:
-        first.kill()
-        first.wait()
     assert status == 2 and err.count("\n") == 1
     assert f"cannot listen on 127.0.0.1:{port}" in err

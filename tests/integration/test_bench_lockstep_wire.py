@@ -1,14 +1,15 @@
 """Lockstep over the wire: ``hil bench run --bench URL`` (no ``--realtime``) against ``hil emulate
 bench`` in a process of its own, both from the command line in a folder outside the
-repository for the reference sessions and the pauses (the other cases run ``hil`` in this
-process, tests/cli.py, from the same folder). The emulator follows the run's time (the clock
-unit 248 of hil/protocols/bench_clock.py, read here with pymodbus's own client), so the
-sessions are those of the in-process lockstep, bit for bit, and one emulator serves them one
-after the other; a pause of either side changes nothing; a dead or frozen emulator ends the
-run with one line and exit status 3; a Modbus server hil did not write is not taken for the
-emulator; ``--clock wall`` refuses a lockstep run (which then goes by the wall clock, with a
-warning) and ``--clock master`` waits for one; over RTU too. (The ``hil_bench`` fixture's
-runs over the wire: tests/test_user_workflow.py.)"""
+repository for the reference sessions and the pauses (a gone emulator's process is killed or
+frozen; the other cases run ``hil`` in this process, tests/cli.py, from the same folder, and
+serve the emulator in this process too, tests/bench_served.py). The emulator follows the
+run's time (the clock unit 248 of hil/protocols/bench_clock.py, read here with pymodbus's own
+client), so the sessions are those of the in-process lockstep, bit for bit, and one emulator
+serves them one after the other; a pause of either side changes nothing; a dead or frozen
+emulator ends the run with one line and exit status 3; a Modbus server hil did not write is
+not taken for the emulator; ``--clock wall`` refuses a lockstep run (which then goes by the
+wall clock, with a warning) and ``--clock master`` waits for one; over RTU too. (The
+``hil_bench`` fixture's runs over the wire: tests/test_user_workflow.py.)"""
 
 from __future__ import annotations
 
@@ -30,6 +31,7 @@ from pymodbus.client import ModbusTcpClient
 from hil.bench.config import load_bench_config
 from hil.core.recording.reader import read_session
 from hil.emulators.null_modem import NullModem
+from tests.bench_served import bench_served_here
 from tests.cli import hil_here
 from tests.pymodbus_bench import PymodbusBench, short_config
 from tests.session_digest import (
@@ -62,6 +64,20 @@ def skip_without_avx2() -> None:
         pytest.skip(f"the reference digests need OpenBLAS's {REFERENCE_BLAS_KERNEL} kernel")
 
 
+def plant_clock(url: str) -> tuple[float, int]:
+    """The plant's time [s] and whose time it follows (CONTROL) of the emulator at ``url``,
+    read with pymodbus."""
+    host, port = url.removeprefix("modbus-tcp://").split(":")
+    client = ModbusTcpClient(host, port=int(port), timeout=2, retries=0)
+    try:
+        assert client.connect()
+        words = client.read_holding_registers(0, count=5, device_id=CLOCK_UNIT).registers
+    finally:
+        client.close()
+    t_ns = (words[0] << 48) | (words[1] << 32) | (words[2] << 16) | words[3]
+    return t_ns / 1e9, words[4]
+
+
 class Emulator:
     """``hil emulate bench FLAGS`` in a process of its own; its stderr kept in a file."""
 
@@ -79,15 +95,7 @@ class Emulator:
 
     def clock(self) -> tuple[float, int]:
         """The plant's time [s] and whose time it follows (CONTROL), read with pymodbus."""
-        host, port = self.url.removeprefix("modbus-tcp://").split(":")
-        client = ModbusTcpClient(host, port=int(port), timeout=2, retries=0)
-        try:
-            assert client.connect()
-            words = client.read_holding_registers(0, count=5, device_id=CLOCK_UNIT).registers
-        finally:
-            client.close()
-        t_ns = (words[0] << 48) | (words[1] << 32) | (words[2] << 16) | words[3]
-        return t_ns / 1e9, words[4]
+        return plant_clock(self.url)
 
     def lines(self) -> list[str]:
         """Its stderr lines but the real-time hardening it reports as it starts."""
@@ -246,8 +254,7 @@ def test_faults_play_on_the_runs_time_and_never_leave_it_waiting(tmp_path, capfd
     run's time; never the 60 s bound a silence would take to mean a gone emulator."""
     config = tmp_path / "faults.toml"
     config.write_text("[bus]\ngive_up_s = 5.0\nlockstep_timeout_s = 60.0\n")
-    with Emulator(tmp_path, "--tcp", "127.0.0.1:0", "--fault", "delay@2-2.5:ms=300",
-                  "--fault", "drop@10") as emulator:
+    with bench_served_here(faults=["delay@2-2.5:ms=300", "drop@10"]) as emulator:
         run = hil_here(capfd, "bench", "run", "--controller", "bc", "--cycles", "1", "--bench",
                        emulator.url, "--config", config, "--json", "--out", "faults.mcap",
                        cwd=tmp_path)
@@ -256,7 +263,7 @@ def test_faults_play_on_the_runs_time_and_never_leave_it_waiting(tmp_path, capfd
     assert kpis["stop_reason"] == "link lost for 5 s"
     # late answers for 0.5 s: lost, then restored; dropped ones from 10 s: lost for good
     assert (kpis["faults"]["link_losses"], kpis["faults"]["reconnections"]) == (2, 1)
-    injected = [line for line in emulator.lines() if line.startswith("hil: fault: ")]
+    injected = emulator.fault_events()
     assert [line.split(" injected at ")[1].split(" ")[0] for line in injected] == \
         ["t=2.000", "t=10.000"]  # on the run's time, from its start
 
@@ -278,10 +285,10 @@ def test_a_modbus_server_hil_did_not_write_is_not_taken_for_the_emulator(tmp_pat
 def test_an_emulator_on_its_wall_clock_refuses_a_lockstep_run_in_one_line(tmp_path, capfd):
     """The run is then on the wall clock, as against a real bench (a 1 s cycle)."""
     config = short_config(tmp_path, period_s=1.0, dwell_s=0.25)
-    with Emulator(tmp_path, "--tcp", "127.0.0.1:0", "--clock", "wall") as emulator:
+    with bench_served_here(clock="wall") as emulator:
         run = hil_here(capfd, "bench", "run", "--controller", "bc", "--cycles", "1", "--bench",
                        emulator.url, "--config", config, "--out", "wall.mcap", cwd=tmp_path)
-        assert emulator.clock()[1] == 0  # still on its wall clock
+        assert plant_clock(emulator.url)[1] == 0  # still on its wall clock
     warning = (f"hil: warning: the bench emulator at {emulator.url} keeps its wall clock (hil "
                "emulate bench --clock wall): this run follows the wall clock too, as against "
                "a real bench")
@@ -292,21 +299,21 @@ def test_an_emulator_on_its_wall_clock_refuses_a_lockstep_run_in_one_line(tmp_pa
     assert [m["message"] for _, m in data.topic("/events") if m["kind"] == "bench.clock"] == \
         [warning.removeprefix("hil: warning: ")]
     assert any(line.endswith("asked for the plant's time: refused (--clock wall)")
-               for line in emulator.lines())
+               for line in emulator.clock_lines)
 
 
 def test_an_emulator_on_master_time_waits_for_a_master_before_and_after(tmp_path, capfd):
     """A 1 s cycle: the plant stays where the run left it."""
     config = short_config(tmp_path, period_s=1.0, dwell_s=0.25)
-    with Emulator(tmp_path, "--tcp", "127.0.0.1:0", "--clock", "master") as emulator:
+    with bench_served_here(clock="master") as emulator:
         time.sleep(0.3)  # what the wall clock would have stepped
-        assert emulator.clock() == (0.0, WAITING_FOR_MASTER)
+        assert plant_clock(emulator.url) == (0.0, WAITING_FOR_MASTER)
         run = hil_here(capfd, "bench", "run", "--controller", "bc", "--cycles", "1", "--bench",
                        emulator.url, "--config", config, "--out", "run.mcap", cwd=tmp_path)
         assert run.returncode == 0, run.stderr
         time.sleep(0.3)
-        assert emulator.clock() == (1.0, WAITING_FOR_MASTER)
-    assert emulator.lines()[-1].endswith("let go at plant time 1.00 s; the plant waits for "
+        assert plant_clock(emulator.url) == (1.0, WAITING_FOR_MASTER)
+    assert emulator.clock_lines[-1].endswith("let go at plant time 1.00 s; the plant waits for "
                                          "a master")
 
 
@@ -321,8 +328,7 @@ def test_lockstep_over_rtu_records_the_in_process_session(tmp_path, capfd):
     inside = hil_here(capfd, "bench", "run", *SHORT_RUN, "--config", config, "--out", "in.mcap",
                       cwd=tmp_path)
     assert inside.returncode == 0, inside.stderr
-    with NullModem() as modem, Emulator(tmp_path, "--serial", modem.ports[1], "--config",
-                                        config) as emulator:
+    with NullModem() as modem, bench_served_here(config, serial=modem.ports[1]) as emulator:
         url = f"modbus-rtu://{modem.ports[0]}?baud=115200&parity=N"
         wire = hil_here(capfd, "bench", "run", *SHORT_RUN, "--config", config, "--bench", url,
                         "--out", "rtu.mcap", cwd=tmp_path)
@@ -333,7 +339,7 @@ def test_lockstep_over_rtu_records_the_in_process_session(tmp_path, capfd):
     assert {t: d for t, d in ours.items() if t != "/events"} == \
         {t: d for t, d in theirs.items() if t != "/events"}
     assert events_digest(tmp_path / "rtu.mcap", url) == events_digest(tmp_path / "in.mcap")
-    assert "took the plant's time" in emulator.lines()[0]
+    assert "took the plant's time" in emulator.clock_lines[0]
 
 
 def events_digest(path: Path, url: str = "") -> str:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import re
@@ -24,6 +25,7 @@ from hil.core.loop import FunctionTask
 from hil.core.recording.reader import read_session
 from hil.core.session import Session
 from hil.drivers.bench.safe_bench import DwellGuard
+from tests.bench_served import bench_served_here
 
 pytestmark = [pytest.mark.timeout(90), pytest.mark.slow]
 
@@ -146,7 +148,7 @@ def test_killing_the_emulator_loses_the_link_and_restarting_reconnects(tmp_path)
         "relays": {"P1": {"dwell_s": 0.5}},
         "bus": {"timeout_s": 0.1, "reconnect_interval_s": 0.2}}))
     first, port = start_emulator(0)
-    processes = [first]
+    restarted = contextlib.ExitStack()  # the emulator started again: served in this process
     session = Session(str(tmp_path / "kill.mcap"), RealtimeClock(), 0.01, kind="bench",
                       config=config.data)
     rig = attach_bench(session, config, f"modbus-tcp://127.0.0.1:{port}")
@@ -168,8 +170,7 @@ def test_killing_the_emulator_loses_the_link_and_restarting_reconnects(tmp_path)
             timeline["killed"] = time.monotonic()
             assert wait_for(lambda: not rig.bench.link_up)
             timeline["lost"] = time.monotonic()
-            second, _ = start_emulator(port)
-            processes.append(second)
+            restarted.enter_context(bench_served_here(tcp=("127.0.0.1", port)))
             assert wait_for(lambda: rig.bench.link_up)
             timeline["restored"] = time.monotonic()
             samples = rig.sampler.samples - rig.sampler.missed_power
@@ -195,9 +196,9 @@ def test_killing_the_emulator_loses_the_link_and_restarting_reconnects(tmp_path)
         assert client.read_coils(0, count=8, device_id=1).bits[:8] == [False] * 8  # safe
         client.close()
     finally:
-        for proc in processes:
-            proc.kill()
-            proc.wait()
+        first.kill()
+        first.wait()
+        restarted.close()
     data = read_session(tmp_path / "kill.mcap")
     kinds = [m["kind"] for _, m in data.topic("/events")]
     last_safe = max(i for i, kind in enumerate(kinds) if kind == "bench.safe")
