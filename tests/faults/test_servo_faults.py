@@ -20,8 +20,10 @@ def test_an_emcy_during_a_run_over_socketcand_ends_it_with_one_line(tmp_path, ca
     config.write_text("[master]\nstale_cycles = 100000\nheartbeat_timeout_ms = 5000\n"
                       "rx_timeout_us = 5000\n[emulator]\nsync_loss_timeout_ms = 5000\n")
     out = tmp_path / "servo.mcap"
-    # 3 s after the emulator starts: after the run enabled the drive (it takes about 1 s)
-    with api.start_drive_emulator(config, faults=["emcy@3:code=0x4310"],
+    # 0.5 s of the run's SYNCs (clock="sync": the emulator's time passes only with SYNCs,
+    # which start with the run's loop, after it enabled the drive): 1000 ticks into the run,
+    # however long the start took on a loaded machine
+    with api.start_drive_emulator(config, faults=["emcy@0.5:code=0x4310"], clock="sync",
                                   harden=True) as emulator:
         status = main(["servo", "run", "--controller", "pid", "--drive", emulator.url,
                        "--config", str(config), "--duration", "60", "--realtime",
@@ -31,7 +33,7 @@ def test_an_emcy_during_a_run_over_socketcand_ends_it_with_one_line(tmp_path, ca
     assert status == 2
     assert err.count("\n") == 1 and err.startswith("hil: error: drive node 1 reports FAULT")
     assert "0x4310" in err and "Traceback" not in err
-    assert injected and injected[0].startswith("emcy@3:code=0x4310 injected at t=")
+    assert injected and injected[0].startswith("emcy@0.5:code=0x4310 injected at t=")
     events = read_session(out).topic("/events")
     emcy = [m for _, m in events if m["kind"] == "drive.emcy"]
-    assert emcy and emcy[0]["data"]["code"] == 0x4310
+    assert emcy and emcy[0]["data"]["code"] == 0x4310 and emcy[0]["data"]["while_driving"]

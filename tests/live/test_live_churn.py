@@ -66,7 +66,7 @@ def test_a_run_with_clients_coming_and_going_completes_and_reports_who_was_late(
                                                                                 capsys):
     port = free_port()
     run = hil(tmp_path, "servo", "run", "--controller", "pid", "--realtime", "--duration",
-              "2", "--live", str(port), "--out", "churn.mcap", "--json")
+              "1", "--live", str(port), "--out", "churn.mcap", "--json")
     over, done = threading.Event(), []
     clients = [threading.Thread(target=come_and_go, args=(f"ws://127.0.0.1:{port}", over,
                                                           done), daemon=True)
