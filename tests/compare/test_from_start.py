@@ -21,7 +21,7 @@ import pytest
 
 from tests.cli import NOT_A_USERS_PLUGINS, hil_here, hil_in
 from tests.docs import block
-from tests.drive_processes import drive_served_here
+from tests.served_here import drive_served_here
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 

@@ -20,7 +20,7 @@ import pytest
 from hil import api
 from hil.core.recording.reader import read_session
 from tests.cli import hil_here as in_process
-from tests.drive_processes import drive_served_here
+from tests.served_here import drive_served_here
 
 ROOT = Path(__file__).resolve().parents[2]
 FIGURE = "(worst case: every frame with all the stuff bits it can take)"

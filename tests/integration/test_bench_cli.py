@@ -16,9 +16,9 @@ import pytest
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
 from hil.emulators.null_modem import NullModem
-from tests.bench_served import bench_served_here
 from tests.cli import hil_here
 from tests.pymodbus_bench import ANSWER_S
+from tests.served_here import bench_served_here
 
 pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
 

@@ -25,7 +25,7 @@ from hil.core.loop import FunctionTask
 from hil.core.recording.reader import read_session
 from hil.core.session import Session
 from hil.drivers.bench.safe_bench import DwellGuard
-from tests.bench_served import bench_served_here
+from tests.served_here import bench_served_here
 
 pytestmark = [pytest.mark.timeout(90), pytest.mark.slow]
 

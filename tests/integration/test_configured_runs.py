@@ -19,8 +19,8 @@ import pytest
 from hil import api
 from hil.core.recording.reader import read_session
 from tests.cli import hil_here
-from tests.drive_processes import drive_served_here
 from tests.drive_slave import RATED_MA, serve
+from tests.served_here import drive_served_here
 
 pytestmark = [pytest.mark.slow]
 

@@ -3,7 +3,7 @@ repository), against hil's emulator (a fault injected, an axis moved by a run) a
 drive hil did not write (tests/drive_slave.py: canopen's LocalNode, 17-bit encoder, 2 A rated,
 CST only) on ``udp_multicast`` from this process; and ``hil emulate drive --write-eds``'s file
 read back by canopen at two node ids, against the emulator serving at the second. The emulator
-serves in this process (:func:`tests.drive_processes.drive_served_here`: a process start is
+serves in this process (:func:`tests.served_here.drive_served_here`: a process start is
 some 0.45 s of CPU).
 
 Each command and flag runs from outside at least once; its other cases run ``main`` in this
@@ -26,8 +26,8 @@ from hil.core.device_lock import LOCK_DIR_ENV, lock_device
 from hil.core.recording.reader import read_session
 from hil.emulators.drive.eds import BIT_RATES
 from tests.cli import hil_here as in_process
-from tests.drive_processes import drive_served_here
 from tests.drive_slave import INCREMENTS, RATED_MA, dictionary, serve
+from tests.served_here import drive_served_here
 
 pytestmark = [pytest.mark.slow]
 

@@ -23,7 +23,7 @@ from hil.protocols.cia402 import OPERATION_ENABLED, state_of
 from hil.servo.rig import open_drive, share_lockstep_time
 from hil.servo.run import ServoRunOptions, run_servo
 from tests.cli import hil_here
-from tests.drive_processes import drive_served_here
+from tests.served_here import drive_served_here
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 

@@ -22,7 +22,8 @@ from hil.protocols.cia402 import state_of
 from hil.servo.config import load_drive_config
 from hil.servo.rig import open_drive
 from tests.canopen_peer import add_402_node
-from tests.drive_processes import drive_served_here, start_drive_emulator, stop_drive_emulator
+from tests.drive_processes import start_drive_emulator, stop_drive_emulator
+from tests.served_here import drive_served_here
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]

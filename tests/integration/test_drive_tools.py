@@ -4,7 +4,7 @@ the drive's EDS checked before anything is enabled, ``--can-log`` files python-c
 back, and the emulator's late TPDOs in real time bound to their SYNC through the wire trace.
 Each command and flag runs from outside at least once; its other cases run ``main`` in this
 process (``hil_here``: the same exit status and output, without a second of interpreter start).
-The emulator serves in this process (:func:`tests.drive_processes.drive_served_here`) but where
+The emulator serves in this process (:func:`tests.served_here.drive_served_here`) but where
 it runs in real time, as a process of its own."""
 
 import json
@@ -25,8 +25,8 @@ from hil.core.recording.reader import read_session
 from hil.drivers.canopen import DriveError
 from hil.servo.run import ServoRunOptions, run_servo
 from tests.cli import hil_here as in_process
-from tests.drive_processes import drive_served_here
 from tests.drive_slave import dictionary, serve
+from tests.served_here import drive_served_here
 
 pytestmark = [pytest.mark.slow]
 

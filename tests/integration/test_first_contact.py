@@ -9,7 +9,7 @@ from __future__ import annotations
 import pytest
 
 from tests.cli import hil_here
-from tests.drive_processes import drive_served_here
+from tests.served_here import drive_served_here
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 

@@ -14,8 +14,8 @@ import pytest
 from hil.core.recording.reader import read_session
 from hil.drivers.canopen.identity import MANUFACTURER_OBJECTS
 from tests.cli import hil_here
-from tests.drive_processes import drive_served_here
 from tests.drive_slave import serve
+from tests.served_here import drive_served_here
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 

@@ -23,7 +23,7 @@ from hil.core.recording.reader import read_session
 from hil.drivers.canopen.errors import DriveFaultError, DriveGoneError
 from hil.servo.run import ServoRunOptions, run_servo
 from tests.cli import hil_here
-from tests.drive_processes import drive_served_here
+from tests.served_here import drive_served_here
 from tests.session_digest import kpi_digest, session_digest
 
 pytestmark = [pytest.mark.slow]

@@ -17,7 +17,7 @@ from hil import api
 from hil.core.recording.reader import read_session
 from hil.errors import UsageError
 from tests.cli import hil_here
-from tests.drive_processes import drive_served_here
+from tests.served_here import drive_served_here
 
 pytestmark = [pytest.mark.slow]
 

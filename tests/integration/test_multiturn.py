@@ -27,7 +27,7 @@ from hil.core.recording.reader import read_session
 from hil.errors import ConfigError, HilError
 from hil.protocols.cia402 import QUICK_STOP_ACTIVE, SWITCH_ON_DISABLED, state_of
 from tests.cli import hil_here as in_process
-from tests.drive_processes import drive_served_here
+from tests.served_here import drive_served_here
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 

@@ -36,8 +36,9 @@ from canopen.objectdictionary import datatypes as dt
 
 from hil.protocols.cia306 import description_encoding
 from tests.cli import hil_here
-from tests.drive_processes import drive_served_here, start_drive_emulator, stop_drive_emulator
+from tests.drive_processes import start_drive_emulator, stop_drive_emulator
 from tests.drive_slave import serve
+from tests.served_here import drive_served_here
 from tests.vendor_twin import TwinFolder, supplied_cell, twinned_and_refused
 from tests.vendor_twin import home as homed
 from tests.vendor_twin import move as moved
@@ -204,27 +205,34 @@ class Twin(TwinFolder):
 @contextlib.contextmanager
 def twin_of(vendor: VendorFile, folder: Path, capsys: pytest.CaptureFixture[str]
             ) -> Iterator[Twin]:
-    """The twin of ``vendor`` on socketcand 127.0.0.1, its commands run from ``folder``: for
-    :data:`OWN_PROCESS`, ``hil emulate drive --eds F --set ... --socketcand 127.0.0.1:0`` from
-    ``folder``; for the others, the same served in this process
-    (:func:`tests.drive_processes.drive_served_here`), of a config whose ``[emulator] eds``
-    and ``set`` are what those flags lay over the defaults."""
+    """The twin of ``vendor`` on socketcand 127.0.0.1, its commands run from ``folder``."""
+    with twin_url(vendor, folder) as url:
+        yield Twin(url, folder, capsys, vendor.stand_ins, vendor)
+
+
+@contextlib.contextmanager
+def twin_url(vendor: VendorFile, folder: Path) -> Iterator[str]:
+    """Where the twin of ``vendor`` serves: for :data:`OWN_PROCESS`, ``hil emulate drive --eds
+    F --set ... --socketcand 127.0.0.1:0`` from ``folder``; for the others, the same served in
+    this process (:func:`tests.served_here.drive_served_here`), of a config whose ``[emulator]
+    eds`` and ``set`` are what those flags lay over the defaults."""
     if vendor.path == OWN_PROCESS:
         sets = [arg for key, value in vendor.supplied.items()
                 for arg in ("--set", f"{key}={value}")]
         proc, port = start_drive_emulator(None, 0, "--eds", str(vendor.file), *sets,
                                           cwd=folder)
         try:
-            yield Twin(f"socketcand://127.0.0.1:{port}", folder, capsys, vendor.stand_ins,
-                       vendor)
+            yield f"socketcand://127.0.0.1:{port}"
         finally:
             stop_drive_emulator(proc)
-        return
-    values = ", ".join(f"{json.dumps(key)} = {value}" for key, value in vendor.supplied.items())
-    config = folder / "twin.toml"
-    config.write_text(f"[emulator]\neds = {json.dumps(str(vendor.file))}\nset = {{{values}}}\n")
-    with drive_served_here(config) as here:
-        yield Twin(here.url, folder, capsys, vendor.stand_ins, vendor)
+    else:
+        values = ", ".join(f"{json.dumps(key)} = {value}"
+                           for key, value in vendor.supplied.items())
+        config = folder / "twin.toml"
+        config.write_text(f"[emulator]\neds = {json.dumps(str(vendor.file))}\n"
+                          f"set = {{{values}}}\n")
+        with drive_served_here(config) as here:
+            yield here.url
 
 
 @pytest.mark.parametrize("path", TWINNED)

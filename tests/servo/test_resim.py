@@ -21,7 +21,7 @@ from mcap.writer import Writer
 from hil import api
 from hil.core.recording.reader import SessionData, read_session
 from tests.cli import hil_here, hil_in
-from tests.drive_processes import drive_served_here
+from tests.served_here import drive_served_here
 
 pytestmark = [pytest.mark.slow]  # processes, emulators, sessions
 
