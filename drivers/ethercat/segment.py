@@ -45,8 +45,10 @@ STATE_TIMEOUT_US = 2_000_000
 #: SOEM's waits for a datagram's answer [us]: its defaults (2 ms, 20 ms for the scan's first)
 #: assume a slave that answers in microseconds; a frame lost on a real NIC is rare, so longer
 #: waits cost nothing there, and a slave in a busy process (hil's own, a loaded machine) is
-#: not taken for absent
-SOEM_TIMEOUTS_US = {"ret": 50_000, "safe": 200_000, "eeprom": 200_000}
+#: not taken for absent. ``tx_mailbox`` too (20 ms): ``config_map`` reads each slave's PDO
+#: assignment over CoE, and a read whose request found the mailbox busy that long fails, so
+#: SOEM sizes the SyncManagers from the SII's PDOs instead, and the slave refuses SAFE-OP
+SOEM_TIMEOUTS_US = {"ret": 50_000, "safe": 200_000, "eeprom": 200_000, "tx_mailbox": 200_000}
 SCAN_TRIES = 3
 
 
