@@ -6,6 +6,12 @@ and the emulated node run in one thread, one after the other, so none of that is
 :class:`DirectChannel` keeps one inbox (a ``deque``) per attached bus, a send appends the
 frame to every other inbox, and a receive pops from its own without ever waiting.
 
+A bus may have an acceptance filter, as a CAN controller has (:meth:`DirectBus.accept`: the
+COB-IDs its node serves): then each sender routes a frame by one dict lookup of its COB-ID to
+the inboxes that take it, worked out once per COB-ID until a filter changes
+(:meth:`DirectChannel.refilter`); several drives on one channel then no longer each receive,
+and drop, the others' PDOs.
+
 Frames travel as :data:`~hil.protocols.can_frames.Frame` tuples ``(id, data)``: the master and the
 node exchange them through ``send_frames`` / ``recv_frame`` without building a
 :class:`can.Message`. A :class:`DirectBus` is also a python-can bus (``send`` / ``recv``), for
@@ -22,6 +28,8 @@ import can
 
 from hil.protocols.can_frames import Frame, from_message, to_message
 
+Accepts = Callable[[int], bool]  # an acceptance filter: whether a bus takes a COB-ID
+
 
 class DirectChannel:
     """The buses attached to one in-process channel."""
@@ -29,6 +37,10 @@ class DirectChannel:
     def __init__(self, name: str = "direct") -> None:
         self.name = name
         self.inboxes: list[deque[Frame]] = []
+        self.buses: list[DirectBus] = []  # every bus attached, listening or not
+        self.filters: dict[int, Accepts] = {}  # by id() of the inbox: the filtered ones
+        #: a frame was sent since the last :meth:`carried_frames`
+        self.carried = False
 
     def attach(self, on_send: Callable[[], None] | None = None, *,
                listen: bool = True) -> DirectBus:
@@ -37,6 +49,16 @@ class DirectChannel:
         ``on_send`` runs after each of its transmissions (a lockstep rig runs the emulated
         node there, so a cycle is function calls)."""
         return DirectBus(self, on_send=on_send, listen=listen)
+
+    def refilter(self) -> None:
+        """What a filter accepts changed (or a bus came or went): every route afresh."""
+        for bus in self.buses:
+            bus.routes.clear()
+
+    def carried_frames(self) -> bool:
+        """Whether a frame was sent since the last call."""
+        carried, self.carried = self.carried, False
+        return carried
 
 
 class DirectBus(can.BusABC):
@@ -47,18 +69,46 @@ class DirectBus(can.BusABC):
         self._channel = channel
         self._on_send = on_send
         self._inbox: deque[Frame] = deque()
+        #: the inboxes each COB-ID goes to, when the channel has a filter (worked out once)
+        self.routes: dict[int, tuple[deque[Frame], ...]] = {}
         if listen:
             channel.inboxes.append(self._inbox)
+        channel.buses.append(self)
+        channel.refilter()
         super().__init__(channel=channel.name, **kwargs)
         self.channel_info = f"direct channel {channel.name}"
 
+    def accept(self, accepts: Accepts) -> None:
+        """From now on this bus receives only the frames whose COB-ID ``accepts`` takes (it
+        must tell :meth:`DirectChannel.refilter` whenever that changes)."""
+        self._channel.filters[id(self._inbox)] = accepts
+        self._channel.refilter()
+
     def send_frames(self, frames: list[Frame]) -> None:
-        """``frames``, in order, to every other bus of the channel."""
-        for inbox in self._channel.inboxes:
-            if inbox is not self._inbox:
-                inbox.extend(frames)
+        """``frames``, in order, to every other bus of the channel (that accepts them)."""
+        channel = self._channel
+        if channel.filters:
+            routes = self.routes
+            for frame in frames:
+                inboxes = routes.get(frame[0])
+                if inboxes is None:
+                    inboxes = routes[frame[0]] = self._route(frame[0])
+                for inbox in inboxes:
+                    inbox.append(frame)
+        else:
+            for inbox in channel.inboxes:
+                if inbox is not self._inbox:
+                    inbox.extend(frames)
+        if frames:
+            channel.carried = True
         if self._on_send is not None:
             self._on_send()
+
+    def _route(self, can_id: int) -> tuple[deque[Frame], ...]:
+        """The other inboxes that take ``can_id``."""
+        filters = self._channel.filters
+        return tuple(inbox for inbox in self._channel.inboxes if inbox is not self._inbox
+                     and ((accepts := filters.get(id(inbox))) is None or accepts(can_id)))
 
     def recv_frame(self, timeout: float | None = None) -> Frame | None:
         """The oldest frame waiting, or None (never waits: in lockstep nothing else runs)."""
@@ -86,6 +136,9 @@ class DirectBus(can.BusABC):
 
     def shutdown(self) -> None:
         # by identity: deques compare by their frames, and another bus's may equal this one's
-        self._channel.inboxes[:] = [inbox for inbox in self._channel.inboxes
-                                    if inbox is not self._inbox]
+        channel = self._channel
+        channel.inboxes[:] = [inbox for inbox in channel.inboxes if inbox is not self._inbox]
+        channel.buses[:] = [bus for bus in channel.buses if bus is not self]
+        channel.filters.pop(id(self._inbox), None)
+        channel.refilter()
         super().shutdown()

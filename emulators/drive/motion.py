@@ -52,6 +52,13 @@ class PositionCount:
         """The velocity now [increments/s]."""
         return self.plant.velocity_deg_s / 360.0 * self.per_turn
 
+    def now(self) -> tuple[float, float]:
+        """:meth:`exact` and :meth:`velocity` in one call (the cyclic path's)."""
+        plant = self.plant
+        per_turn = plant.increments_per_rev
+        return plant.position_deg / 360.0 * per_turn + self.offset, \
+            plant.velocity_deg_s / 360.0 * per_turn
+
     def degrees(self, counts: float) -> float:
         """``counts`` increments [deg] (no offset: a distance or a speed)."""
         return counts * 360.0 / self.per_turn
@@ -184,5 +191,4 @@ class ModeMotion:
     def demand(self) -> tuple[float, float]:
         """The position [increments] and velocity [increments/s] demanded now (0x6062,
         0x606B)."""
-        count = self.axis.count
-        return count.exact(), count.velocity()
+        return self.axis.count.now()

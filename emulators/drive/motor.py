@@ -61,14 +61,14 @@ class MotorLoops:
 
     def status_bits(self) -> int:
         """Statusword bits 10, 12, 13 of the mode in effect."""
-        motion = self.motion()
+        motion = self.motions.get(self.values[MODE_KEY])
         return SW_FOLLOWS_COMMAND if motion is None else motion.status_bits()
 
     def demand(self) -> tuple[float, float]:
         """The position [increments] and velocity [increments/s] demanded now."""
-        motion = self.motion()
+        motion = self.motions.get(self.values[MODE_KEY])
         if motion is None or self.states.state != OPERATION_ENABLED:
-            return self.count.exact(), self.count.velocity()
+            return self.count.now()
         return motion.demand()
 
     def current_limit_ma(self) -> float:
@@ -82,7 +82,7 @@ class MotorLoops:
         states = self.states
         limit = self.current_limit_ma()
         if states.state == OPERATION_ENABLED:
-            motion = self.motion()
+            motion = self.motions.get(self.values[MODE_KEY])
             if motion is None:
                 return 0.0, False
             wanted = motion.current(cycle_s)

@@ -176,6 +176,7 @@ class DriveNode:
         config = config or DriveEmulatorConfig()
         self.dictionary = drive_dictionary(config)  # hil's own, or the twin of config.eds
         self.config = config = self.dictionary.configure(config)
+        self._switches = config.switches
         self.node_id = config.node_id
         self.plant = plant if plant is not None else config.make_plant()
         self.object_dictionary = self.dictionary.od
@@ -206,6 +207,9 @@ class DriveNode:
                for node in range(MAX_NODE_ID + 1)},
         }
         self._served_unless_stopped: dict[int, FrameHandler] = {}  # SYNC, SDO: _listen_to_sync
+        # all three in one table outside STOPPED (rebuilt when the RPDOs or the SYNC change)
+        self._served: dict[int, FrameHandler] = {}
+        self._served_receivers: dict[int, Pdo] | None = None  # the RPDOs it was built for
         # what each NMT command does
         self._nmt_commands: dict[int, Callable[[], None]] = {
             NMT_START: partial(self._set_nmt, NMT_OPERATIONAL),
@@ -217,7 +221,7 @@ class DriveNode:
         # the objects whose writing means more than storing the value, and what it means: the
         # one list of them (:meth:`_write`)
         self._write_effects: dict[int, WriteEffect] = {
-            **{index: partial(self.pdos.write, pdo) for index, pdo in self.pdos.by_object.items()},
+            **{index: partial(self._write_pdo, pdo) for index, pdo in self.pdos.by_object.items()},
             SYNC_COB_ID_OBJECT: self._write_sync_cob_id,
             SYNC_COUNTER_OVERFLOW: self._write_sync_counter_overflow,
             CYCLE_PERIOD: self._write_cycle_period,
@@ -241,8 +245,11 @@ class DriveNode:
         #: the faults played, in seconds of the node's time since it was created
         self.faults = FaultSchedule(for_emulator(faults, "drive"),
                                     lambda: (self._now() - self._t0_ns) / 1e9, on_fault)
+        self._fault_list = self.faults.faults  # empty: no fault to look for on the cyclic path
         self._delayed: list[tuple[int, list[Frame]]] = []
         self._serviced = False  # the time service ran after the frame just dispatched
+        #: told whenever :meth:`hears` may answer differently (a bus's acceptance filter)
+        self.on_hearing_changed: Callable[[], None] | None = None
         self._reset_application()
 
     # ---------------------------------------------------------------- life cycle and time
@@ -326,6 +333,18 @@ class DriveNode:
         self._sync_cob_id = cob_id
         self._served_unless_stopped = {SDO_REQUEST_BASE + self.node_id: self.sdo.handle,
                                        cob_id: self._on_sync}
+        self._served_receivers = None  # the table of what it serves, afresh
+        self._hearing_changed()
+
+    def hears(self, can_id: int) -> bool:
+        """Whether a frame with ``can_id`` may mean anything to the node: every one but a PDO
+        that is neither its SYNC nor one of its valid RPDOs (another node's)."""
+        return not PDO_IDS_FIRST <= can_id <= PDO_IDS_LAST or can_id == self._sync_cob_id \
+            or can_id in self.pdos.receivers
+
+    def _hearing_changed(self) -> None:
+        if self.on_hearing_changed is not None:
+            self.on_hearing_changed()
 
     def next_sync_ns(self, now_ns: int) -> int | None:
         """When the next SYNC is due, on the grid of the communication cycle (0x1006) from the
@@ -371,7 +390,7 @@ class DriveNode:
 
     # ---------------------------------------------------------------------- transport
     def _send(self, frames: list[Frame]) -> None:
-        if self.faults:
+        if self._fault_list:
             for fault in self.faults.active("silent"):
                 self.faults.hit(fault)
                 return
@@ -392,20 +411,21 @@ class DriveNode:
         """Process one received 11-bit data frame; never raises."""
         self.handle_frames(((can_id, data),))
 
-    def handle_frames(self, frames: Iterable[Frame]) -> bool:
+    def handle_frames(self, frames: Iterable[Frame], heard_ns: int | None = None) -> bool:
         """Process received 11-bit data frames in their order, the lock taken once (a
-        lockstep runner hands over all that came in one transmission); never raises.
+        lockstep runner hands over all that came in one transmission, heard at ``heard_ns``
+        of the monotonic clock: now by default); never raises.
         Returns whether the time service ran after the last of them (its SYNC's, on the
         master's time): a runner need not run it again before time moves on."""
-        self._heard_ns = time.monotonic_ns()
+        self._heard_ns = time.monotonic_ns() if heard_ns is None else heard_ns
         pdos = self.pdos
         serviced = False
         with self.lock:
             for can_id, data in frames:
                 if PDO_IDS_FIRST <= can_id <= PDO_IDS_LAST and can_id != self._sync_cob_id \
-                        and pdos.receiver(can_id) is None:
+                        and can_id not in pdos.receivers:
                     continue  # another node's PDO (drives on a bus hear each other's): nothing
-                if self.faults and self.faults.active("silent"):
+                if self._fault_list and self.faults.active("silent"):
                     return False  # bus-off: it hears nothing either
                 self._serviced = False
                 try:
@@ -418,16 +438,28 @@ class DriveNode:
                 serviced = self._serviced
         return serviced
 
+    def hear(self, heard_ns: int) -> None:
+        """A frame was on the bus at ``heard_ns`` (monotonic), though none for this node
+        (a bus's acceptance filter took it away): the master is there."""
+        self._heard_ns = heard_ns
+
     def _dispatch(self, can_id: int, data: bytes) -> None:
-        handler = self._always_served.get(can_id)
+        if self.nmt_state == NMT_STOPPED:
+            handler = self._always_served.get(can_id)  # NMT and heartbeats alone
+        else:
+            if self.pdos.receivers is not self._served_receivers:
+                self._serve()
+            handler = self._served.get(can_id)
         if handler is not None:
             handler(data)
-        elif self.nmt_state == NMT_STOPPED:
-            return  # only NMT and heartbeats are served in STOPPED
-        elif (handler := self._served_unless_stopped.get(can_id)) is not None:
-            handler(data)
-        elif (pdo := self.pdos.receiver(can_id)) is not None:
-            self._on_rpdo(pdo, data)
+
+    def _serve(self) -> None:
+        """The table of what it serves outside STOPPED, for the RPDOs it has now: NMT and
+        heartbeats first, then SYNC (ahead of an SDO request with its COB-ID), then RPDOs."""
+        receivers = self.pdos.receivers
+        self._served_receivers = receivers
+        rpdos = {cob_id: partial(self._on_rpdo, pdo) for cob_id, pdo in receivers.items()}
+        self._served = {**rpdos, **self._served_unless_stopped, **self._always_served}
 
     # ------------------------------------------------ the drive for another transport's skin
     # An EtherCAT slave (:mod:`hil.emulators.ethercat`) reaches the same drive through these:
@@ -542,6 +574,13 @@ class DriveNode:
         else:
             effect(index, subindex, value)
 
+    def _write_pdo(self, pdo: Pdo, index: int, subindex: int, value: int) -> None:
+        """A PDO's communication or mapping object: the RPDOs it hears may change."""
+        try:
+            self.pdos.write(pdo, index, subindex, value)
+        finally:
+            self._hearing_changed()
+
     def _write_sync_cob_id(self, index: int, subindex: int, value: int) -> None:
         if value & EXTENDED_OR_PRODUCER or value & 0x7FF == 0:  # we do not produce SYNC
             raise SdoAbortError(ABORT_VALUE)
@@ -608,7 +647,7 @@ class DriveNode:
         return period_ns // self._plant_period_ns
 
     def _apply_controlword(self, cw: int) -> None:
-        if self.faults:
+        if self._fault_list:
             for fault in self.faults.active("ignore_controlword"):
                 self.faults.hit(fault)
                 return
@@ -629,9 +668,12 @@ class DriveNode:
 
     def _apply_rpdo(self, pdo: Pdo, data: bytes) -> None:
         controlword = None
+        values, effects = self._values, self._write_effects
         for key, value in zip(pdo.keys, pdo.layout.unpack(data), strict=True):
             if key == CONTROLWORD_KEY:
                 controlword = value  # applied after the targets of the same PDO
+            elif key[0] not in effects:
+                values[key] = value  # a plain value (:meth:`_write`)
             elif key == MODE_KEY and value not in self.dictionary.modes:
                 continue  # invalid mode in a PDO: ignored, the display keeps the active mode
             else:
@@ -644,7 +686,7 @@ class DriveNode:
 
     def _send_tpdos(self) -> None:
         frames = self.pdos.tpdo_frames()
-        if frames and self.faults:
+        if frames and self._fault_list:
             for fault in self.faults.active("drop_tpdo"):
                 if self.faults.hit(fault) % fault.params["every"] == 0:
                     return
@@ -661,7 +703,7 @@ class DriveNode:
     def _on_sync(self, data: bytes) -> None:
         self._sync_cycle(data)
         if self._sync_timebase:  # time moved on: what is due now, in the SYNC's order
-            self._service(self._now())
+            self._service(self._sync_origin_ns + self._sync_time_ns)  # its _now()
             self._serviced = True
 
     def _sync_cycle(self, data: bytes) -> None:
@@ -686,7 +728,7 @@ class DriveNode:
         self._sync_time_ns += self._steps_per_sync * self._plant_period_ns
         self._sync_last_ns = self._now()
         self._sync_armed = self.nmt_state == NMT_OPERATIONAL and \
-            self.state in (OPERATION_ENABLED, QUICK_STOP_ACTIVE)
+            self.states.state in (OPERATION_ENABLED, QUICK_STOP_ACTIVE)
 
     def _advance_plant(self) -> None:
         states = self.states
@@ -697,15 +739,17 @@ class DriveNode:
         self._refresh_actuals()
 
     def _refresh_actuals(self) -> None:
-        values, plant = self._values, self.plant
-        values[POSITION_KEY] = self.motor.count.on_wire()
-        demand_position, demand_velocity = self.motor.demand()
+        values, plant, motor = self._values, self.plant, self.motor
+        per_turn = plant.increments_per_rev  # motor.count.on_wire(), inline:
+        values[POSITION_KEY] = (math.floor(plant.position_deg / 360.0 * per_turn)
+                                + motor.count.offset) % per_turn
+        demand_position, demand_velocity = motor.demand()
         values[DEMAND_POSITION_KEY] = _int32(math.floor(demand_position))
         values[DEMAND_VELOCITY_KEY] = _int32(round(demand_velocity))
-        values[INPUTS_KEY] = self.config.switches.inputs(plant.position_deg)
+        values[INPUTS_KEY] = self._switches.inputs(plant.position_deg)
         values[VELOCITY_KEY] = plant.velocity_increments_s()
         torque = round(plant.applied_current_ma * 1000.0 / values[RATED_KEY])
-        values[TORQUE_KEY] = max(-32768, min(32767, torque))
+        values[TORQUE_KEY] = -32768 if torque < -32768 else 32767 if torque > 32767 else torque
         values[STATUSWORD_KEY] = self.states.statusword
 
     # ----------------------------------------------------------------------------- EMCY
@@ -736,9 +780,10 @@ class DriveNode:
         if self._gone_after_ns and time.monotonic_ns() - self._heard_ns > self._gone_after_ns:
             self._master_gone()
             now = self._now()
-        if self.faults:
+        if self._fault_list:
             self._service_faults(now)
-        if self.nmt_state == NMT_OPERATIONAL and (events := self.pdos.event_frames(now)):
+        if self.nmt_state == NMT_OPERATIONAL and self.pdos.on_event and \
+                (events := self.pdos.event_frames(now)):
             self._send(events)  # event-driven TPDOs (transmission types 254, 255)
         period_ms = self._values[(PRODUCER_HEARTBEAT, 0)]
         if period_ms and (self._hb_next_ns is None or now >= self._hb_next_ns):

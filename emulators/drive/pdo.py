@@ -14,7 +14,10 @@ its SyncManagers, :mod:`hil.emulators.ethercat.assignment`)."""
 from __future__ import annotations
 
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from operator import itemgetter
+from typing import Any
 
 from canopen.objectdictionary import ODVariable
 
@@ -57,12 +60,22 @@ class Pdo:
     trans_type: int = 1
     keys: tuple[Key, ...] = ()
     layout: struct.Struct = field(default_factory=lambda: struct.Struct("<"))
+    #: the values of ``keys`` from a value store, as a tuple
+    read: Callable[[dict[Key, Any]], tuple[Any, ...]] = field(default=lambda _values: ())
     counter: int = 0
     length_error: bool = False
     inhibit_ns: int = 0       # event-driven TPDO: at most one per this
     event_ns: int = 0         # event-driven TPDO: at least one per this (0: on change only)
     last_data: bytes | None = None  # a TPDO's data when it was last sent
     last_ns: int = 0
+
+
+def reader(keys: tuple[Key, ...]) -> Callable[[dict[Key, Any]], tuple[Any, ...]]:
+    """What reads the values of ``keys`` from a value store, as a tuple, in one call."""
+    if len(keys) == 1:
+        key = keys[0]
+        return lambda values: (values[key],)
+    return itemgetter(*keys) if keys else lambda _values: ()
 
 
 def pdo_struct(var: ODVariable) -> struct.Struct:
@@ -91,9 +104,10 @@ class PdoTable:
             self.by_object[pdo.mapping] = pdo
         self.pending: dict[int, bytes] = {}  # RPDO data held for the next SYNC
         # the cyclic path's views, rebuilt whenever a PDO is compiled
-        self._receivers: dict[int, Pdo] = {}  # the valid RPDOs by COB-ID (the first one wins)
+        #: the valid RPDOs by COB-ID (the first one wins): a new dict whenever one is compiled
+        self.receivers: dict[int, Pdo] = {}
         self._transmitters: list[Pdo] = []    # the valid synchronous TPDOs, in order
-        self._on_event: list[Pdo] = []        # the valid event-driven TPDOs, in order
+        self.on_event: list[Pdo] = []         # the valid event-driven TPDOs, in order
 
     def compile_all(self) -> None:
         for pdo in self.pdos:
@@ -116,13 +130,14 @@ class PdoTable:
             keys.append((index, subindex))
             fmt += pdo_struct(var).format.lstrip("<")
         pdo.keys, pdo.layout = tuple(keys), struct.Struct(fmt)
-        self._receivers = {}
+        pdo.read = reader(pdo.keys)
+        self.receivers = {}
         for each in self.pdos:
             if not each.transmit and each.valid:
-                self._receivers.setdefault(each.cob_id, each)
+                self.receivers.setdefault(each.cob_id, each)
         self._transmitters = [each for each in self.pdos if each.transmit and each.valid
                               and each.trans_type <= LAST_SYNCHRONOUS_TYPE]
-        self._on_event = [each for each in self.pdos if each.transmit and each.valid
+        self.on_event = [each for each in self.pdos if each.transmit and each.valid
                           and each.trans_type in EVENT_TYPES]
 
     # -- writes to the PDO objects (SDO) ----------------------------------------------------
@@ -175,10 +190,6 @@ class PdoTable:
             raise SdoAbortError(ABORT_PDO_TOO_LONG)
 
     # -- the cyclic path ------------------------------------------------------------------
-    def receiver(self, can_id: int) -> Pdo | None:
-        """The valid RPDO with this COB-ID, if any."""
-        return self._receivers.get(can_id)
-
     def receive(self, pdo: Pdo, data: bytes) -> tuple[bytes | None, int]:
         """RPDO data: (the data to apply now, or None when it is held for the next SYNC or
         refused; the EMCY code of a length error, reported once per episode, or 0)."""
@@ -216,9 +227,10 @@ class PdoTable:
     def tpdo_frames(self) -> list[Frame]:
         """The TPDOs this SYNC sends (each valid one whose transmission type is due)."""
         frames = []
+        values = self.objects.values
         for pdo in self._transmitters:
             if pdo.trans_type == 0:  # acyclic: on the SYNC after its data changed
-                data = self.data(pdo)
+                data = pdo.layout.pack(*pdo.read(values))
                 if data != pdo.last_data:
                     pdo.last_data = data
                     frames.append((pdo.cob_id, data))
@@ -226,14 +238,14 @@ class PdoTable:
             pdo.counter += 1
             if pdo.counter >= pdo.trans_type:
                 pdo.counter = 0
-                frames.append((pdo.cob_id, self.data(pdo)))
+                frames.append((pdo.cob_id, pdo.layout.pack(*pdo.read(values))))
         return frames
 
     def event_frames(self, now_ns: int) -> list[Frame]:
         """The event-driven TPDOs due at ``now_ns``: their data changed (and the inhibit time
         passed since the last one), or the event timer ran out."""
         frames = []
-        for pdo in self._on_event:
+        for pdo in self.on_event:
             data = self.data(pdo)
             since = now_ns - pdo.last_ns
             changed = data != pdo.last_data and (pdo.last_data is None or
@@ -245,5 +257,4 @@ class PdoTable:
 
     def data(self, pdo: Pdo) -> bytes:
         """``pdo``'s data now: its mapped objects' values, packed."""
-        values = self.objects.values
-        return pdo.layout.pack(*map(values.__getitem__, pdo.keys))
+        return pdo.layout.pack(*pdo.read(self.objects.values))

@@ -129,16 +129,22 @@ class AxisPlant:
 
     def step(self, current_ma: float, periods: int = 1) -> None:
         """Apply ``current_ma`` (saturated at the current limit) for ``periods`` model periods."""
-        limit = self.current_limit_ma
-        applied = min(max(float(current_ma), -limit), limit) if math.isfinite(current_ma) else 0.0
+        limit, applied = self.current_limit_ma, float(current_ma)
+        if applied - applied != 0.0:  # not finite: no current
+            applied = 0.0
+        elif applied > limit:
+            applied = limit
+        elif applied < -limit:
+            applied = -limit
         self.applied_current_ma = applied
-        M, xu, z, n = self._step_matrix, self._xu, self._next, self._n
+        xu, z, n = self._xu, self._next, self._n
+        product = self._step_matrix.dot  # np.matmul's (the same BLAS call), without a ufunc's cost
         u_offset, y_offset = self.axis.u_offset, self.axis.y_offset
+        loaded = self._configured_load or self.extra_disturbance_ma
         for _ in range(periods):
-            loaded = self._configured_load or self.extra_disturbance_ma
             xu[n] = (applied - self.load_current_ma() if loaded else applied) - u_offset
-            np.matmul(M, xu, out=z)
-            position = float(z[n]) + y_offset
+            product(xu, out=z)
+            position = z.item(n) + y_offset
             xu, z = z, xu  # x(k+1) is where the product put it; its last entry takes u(k+1)
             self.velocity_deg_s = (position - self.position_deg) / self.dt
             self.position_deg = position

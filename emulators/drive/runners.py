@@ -113,6 +113,10 @@ class LockstepDrive:
             self.close()
             raise
         self.node = self.nodes[0]
+        if len(self.nodes) > 1:  # each node's bus takes only the frames it serves
+            for node, bus in zip(self.nodes, self._node_buses, strict=True):
+                bus.accept(node.hears)
+                node.on_hearing_changed = self.channel.refilter
         for node in self.nodes:
             node.boot()
 
@@ -132,13 +136,20 @@ class LockstepDrive:
         return self.channel.attach()
 
     def pump(self) -> None:
-        """Deliver every frame waiting for the nodes (each node all of its own in one call),
+        """Deliver every frame waiting for the nodes (each node all of its own in one call;
+        one that the filters left none of still heard the bus),
         then run the time service of each node whose last frame did not just run it (a
         SYNC's, on the master's time: time has not moved since)."""
+        heard_ns = time.monotonic_ns() if self.channel.carried_frames() else None
         serviced = []
         for bus, node in zip(self._node_buses, self.nodes, strict=True):
             frames = bus.take_frames()
-            serviced.append(bool(frames) and node.handle_frames(frames))
+            if frames:
+                serviced.append(node.handle_frames(frames, heard_ns))
+                continue
+            if heard_ns is not None:
+                node.hear(heard_ns)
+            serviced.append(False)
         for node, done in zip(self.nodes, serviced, strict=True):
             if not done:
                 node.service()

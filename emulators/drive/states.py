@@ -69,12 +69,13 @@ class DriveStates:
 
     @property
     def statusword(self) -> int:
-        word = STATUSWORD[self.state]
-        if self.state == OPERATION_ENABLED:
+        state = self.state
+        word = STATUSWORD[state]
+        if state == OPERATION_ENABLED:
             word |= self.mode_bits()
             if self.limit_active:
                 word |= SW_INTERNAL_LIMIT
-        if self.comm_warning and self.state not in (FAULT, FAULT_REACTION_ACTIVE):
+        if self.comm_warning and state not in (FAULT, FAULT_REACTION_ACTIVE):
             word |= SW_WARNING
         return word
 
