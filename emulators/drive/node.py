@@ -144,12 +144,6 @@ INPUTS_KEY = (DIGITAL_INPUTS, 0)
 NO_HOMING = 0  # 0x6098 = 0: no homing method
 
 
-
-def _int32(value: int) -> int:
-    """``value`` wrapped into INTEGER32, as a drive's counter wraps."""
-    return (value + 2**31) % 2**32 - 2**31
-
-
 SendFn = Callable[[list[Frame]], None]
 # what writing an object means beyond storing its value: (index, subindex, value), raises
 # SdoAbortError with the CiA code to refuse it
@@ -744,10 +738,13 @@ class DriveNode:
         values[POSITION_KEY] = (math.floor(plant.position_deg / 360.0 * per_turn)
                                 + motor.count.offset) % per_turn
         demand_position, demand_velocity = motor.demand()
-        values[DEMAND_POSITION_KEY] = _int32(math.floor(demand_position))
-        values[DEMAND_VELOCITY_KEY] = _int32(round(demand_velocity))
+        # wrapped into INTEGER32, as a drive's counter wraps
+        values[DEMAND_POSITION_KEY] = (math.floor(demand_position) + 2**31) % 2**32 - 2**31
+        values[DEMAND_VELOCITY_KEY] = (round(demand_velocity) + 2**31) % 2**32 - 2**31
         values[INPUTS_KEY] = self._switches.inputs(plant.position_deg)
-        values[VELOCITY_KEY] = plant.velocity_increments_s()
+        velocity = round(plant.velocity_deg_s / 360.0 * per_turn)  # velocity_increments_s()
+        values[VELOCITY_KEY] = -(2**31) if velocity < -(2**31) else \
+            2**31 - 1 if velocity > 2**31 - 1 else velocity
         torque = round(plant.applied_current_ma * 1000.0 / values[RATED_KEY])
         values[TORQUE_KEY] = -32768 if torque < -32768 else 32767 if torque > 32767 else torque
         values[STATUSWORD_KEY] = self.states.statusword

@@ -213,6 +213,9 @@ class PdoTable:
     def latched(self) -> list[tuple[Pdo, bytes]]:
         """The RPDO data held for this SYNC, in PDO order (then forgotten)."""
         pending, by_object = self.pending, self.by_object
+        if len(pending) == 1:  # the usual one: no order to sort out
+            mapping, data = pending.popitem()
+            return [(by_object[mapping], data)]
         out = [(by_object[mapping], pending[mapping]) for mapping in sorted(pending)]
         pending.clear()
         return out

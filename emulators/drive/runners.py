@@ -141,18 +141,18 @@ class LockstepDrive:
         then run the time service of each node whose last frame did not just run it (a
         SYNC's, on the master's time: time has not moved since)."""
         heard_ns = time.monotonic_ns() if self.channel.carried_frames() else None
-        serviced = []
+        unserviced = []
         for bus, node in zip(self._node_buses, self.nodes, strict=True):
             frames = bus.take_frames()
             if frames:
-                serviced.append(node.handle_frames(frames, heard_ns))
+                if not node.handle_frames(frames, heard_ns):
+                    unserviced.append(node)
                 continue
             if heard_ns is not None:
                 node.hear(heard_ns)
-            serviced.append(False)
-        for node, done in zip(self.nodes, serviced, strict=True):
-            if not done:
-                node.service()
+            unserviced.append(node)
+        for node in unserviced:
+            node.service()
 
     def time_ns(self) -> int:
         """The drive's time: its SYNCs so far, one communication cycle each."""
