@@ -173,7 +173,7 @@ class SafetyMonitor:
                 found = (f"following error {abs(error_deg):.2f} deg beyond "
                          f"{limits.following_error_deg:g} deg for more than "
                          f"{limits.following_error_ms:g} ms")
-        else:
+        elif self._beyond:
             self._beyond = 0
         if found is None:  # the first limit crossed, in this order
             if not limits.position_min_deg <= position_deg <= limits.position_max_deg:
@@ -185,15 +185,14 @@ class SafetyMonitor:
             elif not math.isfinite(position_deg + velocity_deg_s):
                 found = (f"non-finite feedback (position {position_deg}, velocity "
                          f"{velocity_deg_s})")
-        cycles = self._cycles
-        full = len(cycles) == self._stale_ticks  # the window's length (the deque's maxlen)
-        if full and cycles[0][0]:
+        cycles, window = self._cycles, self._stale_ticks  # the deque's maxlen
+        if len(cycles) == window and cycles[0][0]:  # a stale cycle leaves the window
             self._stale_count -= 1
         cycles.append((not fresh, late_us, rtt_us, round(t_s / self.period_s)))
         if not fresh:
             self._stale_count += 1
-        if found is None and (full or len(cycles) == self._stale_ticks) and \
-                self._stale_count > limits.stale_share_max * self._stale_ticks:
+        if found is None and self._stale_count > limits.stale_share_max * window and \
+                len(cycles) == window:
             self.verdict = self._judge()
             found = (f"{self._stale_count} of the last {self._stale_ticks} cycles without fresh "
                      f"feedback (more than {limits.stale_share_max:.0%} in "
