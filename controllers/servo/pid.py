@@ -177,12 +177,19 @@ class CascadedPid:
         e_v = v_ref - velocity
         k = 1000.0 * c.k_vel_a_per_rpm  # mA per rpm
         raw = k * (e_v + self._integral)
-        command = min(max(raw, -c.u_max), c.u_max)
+        # min(max(x, -u_max), u_max), written out (the same result, NaN included: a step of
+        # every axis every tick)
+        high = c.u_max
+        low = -high
+        command = low if low > raw else raw
+        command = high if high < command else command
         if command == raw or (raw > 0) != (e_v > 0):  # anti-windup: conditional integration
             self._integral += self.dt / c.ti_s * e_v
         if self.notch:
             command = self.notch(command)
-        return min(max(command, -c.u_max), c.u_max)
+            command = low if low > command else command
+            command = high if high < command else command
+        return command
 
 
     # -- parameters changed while it runs (hil.controllers.base.Tunable) ----------------------

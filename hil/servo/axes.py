@@ -170,6 +170,8 @@ class AxesTick(Task):
                  radius: float | None, settle_s: float) -> None:
         super().__init__("servo")
         self.buses, self.tasks, self.radius = buses, tasks, radius
+        self.loop = session.loop
+        self.dt = tasks[0].dt  # every axis' task ticks on the loop's base period
         self.settle_s = settle_s
         self.topic = session.topic("/path/contour", CONTOUR_SCHEMA, high_rate=True) \
             if radius is not None else None
@@ -186,8 +188,11 @@ class AxesTick(Task):
             task.read(t_ns)
 
     def compute(self, t_ns: int) -> None:
+        """Every axis' step, at the tick's number and time worked out once."""
+        n = self.loop.tick_number
+        t_s = n * self.dt
         for task in self.tasks:
-            task.compute(t_ns)
+            task.compute_at(n, t_s)
 
     def write(self, t_ns: int) -> None:
         for task in self.tasks:
@@ -197,12 +202,14 @@ class AxesTick(Task):
 
     def record(self, t_ns: int) -> None:
         """Every axis' rows in one hand-over, then every axis' checks, then the contour."""
+        tasks = self.tasks
         rows: list[tuple[object, ...]] = []
-        for task in self.tasks:
-            rows.extend(task.rows())
+        for task in tasks:
+            rows += task.rows()
         self.rows.log(t_ns, tuple(rows))
-        for task in self.tasks:
-            task.check(t_ns)
+        late_us = tasks[0].late_us(t_ns)  # the tick's, every axis'
+        for task in tasks:
+            task.check(t_ns, late_us)
         if self.topic is None or self.radius is None:
             return
         x_task, y_task = self.tasks[0], self.tasks[1]

@@ -159,7 +159,7 @@ class SafetyMonitor:
         self.verdict: StaleVerdict | None = None  # who was late, when the stale share stopped it
 
     def check(self, t_s: float, error_deg: float, position_deg: float, velocity_deg_s: float,
-              fresh: bool, *, rtt_us: float = 0.0, late_us: float = 0.0) -> str | None:
+              fresh: bool, rtt_us: float = 0.0, late_us: float = 0.0) -> str | None:
         """The limit this tick crosses, as one line (None: all hold, or already stopped).
         ``rtt_us``: the feedback's SYNC-to-reply time; ``late_us``: the loop's lateness of
         this tick (both for naming the late side of a stale-share stop)."""
@@ -173,24 +173,26 @@ class SafetyMonitor:
                 found = (f"following error {abs(error_deg):.2f} deg beyond "
                          f"{limits.following_error_deg:g} deg for more than "
                          f"{limits.following_error_ms:g} ms")
-        else:
+        elif self._beyond:
             self._beyond = 0
-        if found is None and not (limits.position_min_deg <= position_deg
-                                  <= limits.position_max_deg):
-            found = (f"position {position_deg:.2f} deg outside [{limits.position_min_deg:g}, "
-                     f"{limits.position_max_deg:g}] deg")
-        if found is None and abs(velocity_deg_s) > limits.velocity_max_deg_s:
-            found = (f"velocity {abs(velocity_deg_s):.1f} deg/s above "
-                     f"{limits.velocity_max_deg_s:g} deg/s")
-        if found is None and not math.isfinite(position_deg + velocity_deg_s):
-            found = f"non-finite feedback (position {position_deg}, velocity {velocity_deg_s})"
-        cycles = self._cycles
-        if len(cycles) == cycles.maxlen and cycles[0][0]:
+        if found is None:  # the first limit crossed, in this order
+            if not limits.position_min_deg <= position_deg <= limits.position_max_deg:
+                found = (f"position {position_deg:.2f} deg outside "
+                         f"[{limits.position_min_deg:g}, {limits.position_max_deg:g}] deg")
+            elif abs(velocity_deg_s) > limits.velocity_max_deg_s:
+                found = (f"velocity {abs(velocity_deg_s):.1f} deg/s above "
+                         f"{limits.velocity_max_deg_s:g} deg/s")
+            elif not math.isfinite(position_deg + velocity_deg_s):
+                found = (f"non-finite feedback (position {position_deg}, velocity "
+                         f"{velocity_deg_s})")
+        cycles, window = self._cycles, self._stale_ticks  # the deque's maxlen
+        if len(cycles) == window and cycles[0][0]:  # a stale cycle leaves the window
             self._stale_count -= 1
         cycles.append((not fresh, late_us, rtt_us, round(t_s / self.period_s)))
-        self._stale_count += not fresh
-        if found is None and len(cycles) == cycles.maxlen and \
-                self._stale_count > limits.stale_share_max * self._stale_ticks:
+        if not fresh:
+            self._stale_count += 1
+        if found is None and self._stale_count > limits.stale_share_max * window and \
+                len(cycles) == window:
             self.verdict = self._judge()
             found = (f"{self._stale_count} of the last {self._stale_ticks} cycles without fresh "
                      f"feedback (more than {limits.stale_share_max:.0%} in "

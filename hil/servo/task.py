@@ -31,6 +31,8 @@ tick, otherwise every ``PREDICTION_EVERY_REALTIME``-th tick by default (200 Hz).
 from __future__ import annotations
 
 import math
+from time import perf_counter
+from typing import NoReturn
 
 import numpy as np
 
@@ -47,13 +49,13 @@ from hil.controllers.base import (
     solver_of,
 )
 from hil.controllers.servo.references import PlacedReference, ReferenceSamples, Scenario
-from hil.core.guard import guarded_call
+from hil.core.guard import over_budget, raised_in
 from hil.core.loop import Task
 from hil.core.session import Session
 from hil.core.verdict import SignalWatch
 from hil.drivers.canopen import CanDriveMaster, Feedback, SdoAbortError
 from hil.drivers.canopen.identity import not_hil_emulator, read_identity
-from hil.errors import ControllerError, UsageError
+from hil.errors import ControllerError, HilError, UsageError
 from hil.servo.safety import SafetyMonitor
 from hil.servo.topics import FEEDBACK_SCHEMA, PREDICTION_SCHEMA, STOP_SCHEMA, command_schema
 from hil.servo.tracking import TrackingStats
@@ -144,12 +146,31 @@ class ServoTask(Task):
 
     def compute(self, t_ns: int) -> None:
         """The controller's step only: the tick is recorded after the command has left."""
-        assert self._feedback is not None
         n = self.loop.tick_number  # its slot's, late or not: (t_ns - start) // T may be the next
-        self._tick, self._t_s = n, n * self.dt
-        position = self._feedback.position_deg
-        self._command, self._compute_us = self._step(
-            position if self.unwrapped else position % 360.0, self._t_s)
+        self.compute_at(n, n * self.dt)
+
+    def compute_at(self, n: int, t_s: float) -> None:
+        """:meth:`compute` of tick ``n`` at ``t_s`` (``n * dt``: the axes' task works it out
+        once for them all). The step guarded as :func:`guarded_call` guards it: a raise, a
+        command that is not a finite number or a step over budget is a ControllerError (on
+        ``/events`` too)."""
+        feedback = self._feedback
+        assert feedback is not None
+        self._tick, self._t_s = n, t_s
+        position = feedback.position_deg
+        if not self.unwrapped:
+            position %= 360.0
+        start = perf_counter()
+        try:
+            u = self.controller.step(position, t_s)
+        except Exception as exc:
+            self._failed(exc, t_s)
+        elapsed = perf_counter() - start
+        if self.budget_s is not None and elapsed > self.budget_s:
+            self._failed(over_budget(self.label, "step", elapsed, self.budget_s), t_s)
+        if u.__class__ is not float or u - u != 0.0:  # not a finite float: checked in full
+            u = self._command_of(u, t_s)
+        self._command, self._compute_us = u, elapsed * 1e6
 
     def write(self, t_ns: int) -> None:
         """RPDO + SYNC (and the scenario's disturbance torque, applied from that SYNC on)."""
@@ -173,37 +194,40 @@ class ServoTask(Task):
         to log, or the bus's task with every axis' in one hand-over; :meth:`check` next."""
         feedback, n, t_s, u = self._feedback, self._tick, self._t_s, self._command
         assert feedback is not None
-        position = feedback.position_deg
+        position, fresh = feedback.position_deg, feedback.fresh
         r = self.reference(n)
         self._error = error = position - r
-        if not feedback.fresh:
+        if not fresh:
             self.stale += 1
         disturbance = self._disturbance_for(t_s) if self.scenario.disturbance is not None \
             else None
-        path = self._solver_path()
+        path = self._solver_path() if self._paths else None
         feedback_row = (position, feedback.velocity_deg_s, feedback.current_ma,
                         feedback.command_ma, feedback.statusword, feedback.cycle,
-                        feedback.fresh, feedback.rtt_us)
+                        fresh, feedback.rtt_us)
+        compute_us = self._compute_us
         if self.currents:  # the current the drive is sent; the request on /drive/command
-            self._applied = applied = self.master.applied_current(u) if math.isfinite(u) else u
-            self.stats.add(t_s, error, applied, self._compute_us, requested_ma=u)
-            return feedback_row, (t_s, r, error, u, disturbance, self._compute_us,
-                                  path or None)
+            # u is finite (compute_at): the master's clamp
+            self._applied = applied = self.master.applied_current(u)
+            self.stats.add(t_s, error, applied, compute_us, u)
+            return feedback_row, (t_s, r, error, u, disturbance, compute_us, path or None)
         # the drive chooses the current: the KPIs take the one it reports
         self._applied = applied = feedback.current_ma
-        self.stats.add(t_s, error, applied, self._compute_us)
-        return feedback_row, (t_s, r, error, math.nan, disturbance, self._compute_us,
-                              path or None, u)
+        self.stats.add(t_s, error, applied, compute_us)
+        return feedback_row, (t_s, r, error, math.nan, disturbance, compute_us, path or None,
+                              u)
 
-    def check(self, t_ns: int) -> None:
+    def check(self, t_ns: int, late_us: float | None = None) -> None:
         """This tick's safety limits and ``--limit`` signals (after :meth:`rows`), and its MPC
-        prediction."""
+        prediction. ``late_us``: the loop's lateness of this tick (None: worked out here; the
+        axes' task works it out once for them all, :meth:`late_us`)."""
         feedback, n, t_s = self._feedback, self._tick, self._t_s
         assert feedback is not None
-        error, position = self._error, feedback.position_deg
-        stop = self.safety.check(t_s, error, position, feedback.velocity_deg_s, feedback.fresh,
-                                 rtt_us=feedback.rtt_us, late_us=(t_ns - self.loop.start_ns
-                                                                  - n * self.period_ns) / 1e3)
+        error = self._error
+        if late_us is None:
+            late_us = self.late_us(t_ns)
+        stop = self.safety.check(t_s, error, feedback.position_deg, feedback.velocity_deg_s,
+                                 feedback.fresh, feedback.rtt_us, late_us)
         if stop is not None:
             self.session.event("safety.stop", stop, level="error", source="safety", t_s=t_s)
             self.loop.stop(stop)
@@ -216,6 +240,10 @@ class ServoTask(Task):
             # (CDR float32 by default)
             self.predictions.log(t_ns, (t_s, u_pred[: self.hu].tolist(), y_pred.tolist()))
 
+    def late_us(self, t_ns: int) -> float:
+        """The loop's lateness of this tick, started at ``t_ns`` [us]."""
+        return (t_ns - self.loop.start_ns - self._tick * self.period_ns) / 1e3
+
     def controller_changed(self) -> None:
         """Read again what the task keeps of its controller (after a rebuild swapped its
         horizons or solver in, at a tick boundary)."""
@@ -226,6 +254,10 @@ class ServoTask(Task):
         self.predictor = controller if isinstance(controller, Predicting) else None
         # decided here: a runtime-checkable Protocol's isinstance costs microseconds a tick
         self.event_source = controller if isinstance(controller, ReportsEvents) else None
+        # a path to record (or events to report) each tick; else the row's path is None
+        self._paths = self.solver is not None or self.event_source is not None
+        if not self._paths:
+            self._last_path = ""
 
     # -- helpers -----------------------------------------------------------------------
     def _place(self, reference: PlacedReference, axis: str | None) -> float:
@@ -251,22 +283,26 @@ class ServoTask(Task):
                                        feedback.current_ma, feedback.statusword,
                                        feedback.cycle, feedback.fresh))
 
-    def _step(self, position: float, t_s: float) -> tuple[float, float]:
-        """The controller's command and its compute time [us]; a raise, a command that is not
-        a finite number or a step over budget is a ControllerError (on ``/events`` too)."""
-        try:
-            u, elapsed = guarded_call(self.label, "step", self.controller.step, position, t_s,
-                                      budget_s=self.budget_s)
-            if isinstance(u, bool) or not isinstance(u, NUMBERS) \
-                    or not math.isfinite(u):
-                raise ControllerError(f"controller {self.label!r}: step() must return a finite "
-                                      f"{self.output} in {OUTPUT_UNITS[self.output]}, got "
-                                      f"{type(u).__name__} {u!r:.60}")
-        except ControllerError as exc:
-            self.session.event("controller.error", str(exc), level="error",
+    def _command_of(self, u: object, t_s: float) -> float:
+        """A step's ``u`` that is not a plain finite float: as a float, or a ControllerError
+        when it is not a finite number."""
+        if isinstance(u, bool) or not isinstance(u, NUMBERS) or not math.isfinite(u):
+            self._failed(ControllerError(
+                f"controller {self.label!r}: step() must return a finite {self.output} in "
+                f"{OUTPUT_UNITS[self.output]}, got {type(u).__name__} {u!r:.60}"), t_s)
+        return float(u)
+
+    def _failed(self, exc: Exception, t_s: float) -> NoReturn:
+        """Raise what the step's ``exc`` is to the run: a HilError as it is, any other as a
+        ControllerError naming the controller (:func:`raised_in`); a ControllerError on
+        ``/events`` too."""
+        error = exc if isinstance(exc, HilError) else raised_in(self.label, "step", exc)
+        if isinstance(error, ControllerError):
+            self.session.event("controller.error", str(error), level="error",
                                source="controller", t_s=t_s)
-            raise
-        return float(u), elapsed * 1e6
+        if error is exc:
+            raise exc
+        raise error from exc
 
     def _check_limits(self, error: float, command: float, feedback: Feedback) -> None:
         assert self.watch is not None

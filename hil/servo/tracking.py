@@ -61,20 +61,22 @@ class TrackingStats:
         step_times.append(compute_us)
         if len(step_times) >= STEP_TIMES_BATCH:
             self._bin_step_times()
-        if t_s >= self.settle_s:
-            e = abs(error_deg)
-            self.counted += 1
-            self.sum_error += e
-            self.sum_squares += e * e
-            if e > self.max_error:
-                self.max_error = e
-            current = abs(command_ma)
-            if current > self.peak_current:
-                self.peak_current = current
-            self.measured = self.measured or current == current  # NaN: not measured
-            requested = abs(command_ma if requested_ma is None else requested_ma)
-            if requested > self.peak_requested:
-                self.peak_requested = requested
+        if not t_s >= self.settle_s:  # before settle_s (as a NaN time would be)
+            return
+        e = abs(error_deg)
+        self.counted += 1
+        self.sum_error += e
+        self.sum_squares += e * e
+        if e > self.max_error:
+            self.max_error = e
+        current = abs(command_ma)
+        if current > self.peak_current:
+            self.peak_current = current
+        if current == current:  # NaN: not measured
+            self.measured = True
+        requested = current if requested_ma is None else abs(requested_ma)
+        if requested > self.peak_requested:
+            self.peak_requested = requested
 
     def _bin_step_times(self) -> None:
         self.compute_us.add_many(self._step_times)

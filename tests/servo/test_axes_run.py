@@ -6,10 +6,12 @@ folder (``hil_here``: the same exit status and output, without a second of inter
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any, ClassVar
 
 import numpy as np
 import pytest
@@ -292,6 +294,84 @@ def test_a_multi_axis_controller_is_stepped_once_a_tick_with_every_axis(tmp_path
     with pytest.raises(ControllerError, match=r"one current per axis \(2\), got shape \(1,\)"):
         api.run_servo(WrongShape, axes="x=1,y=2", duration_s=0.01,
                       out=str(tmp_path / "wrong.mcap"))
+
+
+
+class Answers:
+    """Steps each axis to ``kinds[name]`` of a current: the step's answer as that type."""
+
+    kinds: ClassVar[dict[str, Any]] = {}
+
+    def __init__(self, reference, params):
+        self.kind = self.kinds[params.get("kind", "float")]
+
+    def step(self, position_deg, t_s):
+        return self.kind(10.0)
+
+
+class Milliamps(float):
+    """A float of another class: taken as the float it is."""
+
+
+@pytest.mark.parametrize("kind", ["float", "int", "float64", "float32", "subclass"])
+def test_every_kind_of_number_a_step_returns_is_the_float_it_is(tmp_path, kind):
+    """A step's finite float is taken as it is; any other number as its float, on every axis
+    as with one."""
+    from hil import api
+
+    Answers.kinds = {"float": float, "int": int, "float64": np.float64,
+                     "float32": np.float32, "subclass": Milliamps}
+    for axes in (None, "x=1,y=2"):
+        out = tmp_path / f"{kind}-{axes is not None}.mcap"
+        kpis = api.run_servo(Answers, {"kind": kind}, axes=axes, duration_s=0.01, out=str(out))
+        assert kpis["stop_reason"] == "completed"
+        session = read_session(out)
+        for topic in ("/drive/command",) if axes is None else ("/axis/x/command",
+                                                              "/axis/y/command"):
+            assert {m["command_mA"] for _, m in session.topic(topic)} == {10.0}
+
+
+@pytest.mark.parametrize(("kind", "got"), [
+    ("nan", "float nan"), ("inf", "float -inf"), ("bool", "bool True"), ("text", "str '10.0'"),
+    ("none", "NoneType None")])
+def test_a_step_that_is_not_a_finite_number_stops_every_axis(tmp_path, kind, got):
+    from hil import api
+    from hil.errors import ControllerError
+
+    Answers.kinds = {"nan": lambda u: math.nan, "inf": lambda u: -math.inf,
+                     "bool": lambda u: True, "text": str, "none": lambda u: None}
+    for axes in (None, "x=1,y=2"):
+        out = tmp_path / f"{kind}-{axes is not None}.mcap"
+        with pytest.raises(ControllerError, match=rf"step\(\) must return a finite current "
+                           rf"in mA, got {got}"):
+            api.run_servo(Answers, {"kind": kind}, axes=axes, duration_s=0.01, out=str(out))
+        errors = [m for _, m in read_session(out).topic("/events")
+                  if m["kind"] == "controller.error"]
+        assert len(errors) == 1 and errors[0]["data"]["t_s"] == 0.0
+
+
+
+def test_a_step_that_raises_or_overruns_its_budget_stops_every_axis(tmp_path):
+    from hil import api
+    from hil.errors import ControllerError
+
+    def fails(u):
+        raise ZeroDivisionError("no gain")
+
+    Answers.kinds = {"raises": fails, "float": float}
+    for axes in (None, "x=1,y=2"):
+        out = tmp_path / f"raises-{axes is not None}.mcap"
+        with pytest.raises(ControllerError, match=r"raised in step\(\): ZeroDivisionError: "
+                           r"no gain") as raised:
+            api.run_servo(Answers, {"kind": "raises"}, axes=axes, duration_s=0.01, out=str(out))
+        assert isinstance(raised.value.__cause__, ZeroDivisionError)
+        with pytest.raises(ControllerError, match=r"took .* s in step\(\), over its budget of "
+                           r"1e-09 s"):
+            api.run_servo(Answers, axes=axes, duration_s=0.01, controller_budget_s=1e-9,
+                          out=str(tmp_path / "slow.mcap"))
+        for path in (out, tmp_path / "slow.mcap"):
+            assert [m["kind"] for _, m in read_session(path).topic("/events")
+                    ].count("controller.error") == 1
 
 
 PLUGIN = '''

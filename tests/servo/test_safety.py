@@ -121,3 +121,49 @@ def test_from_the_command_line_exit_2_and_the_limits_can_be_switched_off(tmp_pat
     bad = hil_here(capfd, *argv, "--duration", "0.3", "--safety", "following_error_dg=3",
                    "--out", "c.mcap", cwd=tmp_path)
     assert bad.returncode == 2 and "safety.following_error_dg" in bad.stderr
+
+
+def first_stop(monitor, ticks):
+    """The tick whose check first names a limit, and its line; ticks: (error, position,
+    velocity, fresh) per tick, 1 ms apart."""
+    for k, (error, position, velocity, fresh) in enumerate(ticks):
+        stop = monitor.check(k * 1e-3, error, position, velocity, fresh, rtt_us=300.0,
+                             late_us=5.0)
+        if stop is not None:
+            return k, stop
+    return None, None
+
+
+def test_each_limit_stops_at_the_tick_it_is_crossed_and_in_order():
+    from hil.servo.safety import SafetyMonitor, ServoSafety
+
+    limits = ServoSafety(following_error_deg=1.0, following_error_ms=3.0, stale_window_ms=10.0,
+                         stale_share_max=0.5)
+    calm = (0.0, 0.0, 0.0, True)
+    # beyond the window for 3 ms, back in (the count starts again), then beyond for good
+    ticks = [(2.0, 0, 0, True)] * 3 + [calm] + [(-2.0, 0, 0, True)] * 5
+    assert first_stop(SafetyMonitor(limits, 1e-3), ticks)[0] == 7
+    # the first limit crossed is named: the following error before the position and the speed
+    k, stop = first_stop(SafetyMonitor(limits, 1e-3, axis="x"),
+                         [(2.0, 0.0, 0.0, True)] * 3 + [(2.0, 1e5, 1e5, True)])
+    assert k == 3 and stop.startswith("axis x: safety stop at t=0.0030 s: following error")
+    for tick, named in (((0.0, 1e5, 1e5, True), "position 100000.00 deg outside"),
+                        ((0.0, 0.0, -1e5, True), "velocity 100000.0 deg/s above"),
+                        ((0.0, 0.0, np.inf, True), "velocity inf deg/s above"),
+                        ((0.0, 0.0, np.nan, True), "non-finite feedback (position 0.0, "
+                                                   "velocity nan)")):
+        k, stop = first_stop(SafetyMonitor(limits, 1e-3), [calm, tick])
+        assert k == 1 and named in stop, stop
+    # the stale share: over half of a full window of 10 cycles, not before the window is full
+    stale = (0.0, 0.0, 0.0, False)
+    assert first_stop(SafetyMonitor(limits, 1e-3), [stale] * 9)[0] is None
+    assert first_stop(SafetyMonitor(limits, 1e-3), [stale] * 10)[0] == 9
+    # a stale cycle leaving the window is no longer counted: 5 of 10 is not over half
+    assert first_stop(SafetyMonitor(limits, 1e-3), ([stale] * 5 + [calm] * 5) * 4)[0] is None
+    tightened = SafetyMonitor(limits, 1e-3)
+    assert first_stop(tightened, ([stale] * 5 + [calm] * 5) * 2)[0] is None
+    tightened.tighten("stale_share_max", 0.3)  # the oldest stale cycle leaves: 4 of 10
+    assert first_stop(tightened, [calm])[0] == 0
+    assert tightened.verdict is not None and tightened.verdict.stale == 4
+    assert SafetyMonitor(ServoSafety(enabled=False), 1e-3).check(0.0, 1e9, 1e9, 1e9,
+                                                                  False) is None
