@@ -215,15 +215,15 @@ class ServoExperiment(Experiment[ServoPlan]):
                      for axis, master in zip(plan.axes, state.masters, strict=True)}
         session.recorder.metadata("drive", {"json": json.dumps(
             described[plan.axes[0].name] if plan.lone else described)})
+        if any(scenario.disturbance is not None for scenario in plan.scenarios):
+            for master in state.masters:  # by SDO, before the axes' cycles are held together
+                check_disturbance_object(master)
         for master in state.masters:
             master.enable()
         state.drives.cycle_together()
         session.add_component(state.drives)
         if not plan.lone:
             self._record_bus_plans(session)
-        if any(scenario.disturbance is not None for scenario in plan.scenarios):
-            for master in state.masters:
-                check_disturbance_object(master)
         budget = controller_budget(options.controller_budget_s, options.realtime,
                                    STEP_BUDGET_S)
         for axis, master, controller, scenario, reference in zip(

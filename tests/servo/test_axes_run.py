@@ -429,3 +429,20 @@ def test_an_axis_own_eds_is_the_one_its_drive_is_checked_against(tmp_path, capsy
                     "pid", "--duration", "0.05", "--out", "eds.mcap")
     assert done.returncode == 2 and str(folder / "y-drive.eds") in done.stderr, done.stderr
     assert "Traceback" not in done.stderr
+
+
+def test_the_disturbance_scenario_pushes_every_axis(tmp_path):
+    """The scenario's torque reaches each axis' drive by SDO (0x2003): the drives are checked
+    for it before their cycles are held together, where an SDO answer would wait for a SYNC."""
+    from hil import api
+
+    kpis = api.run_servo("pid", axes="x=1,y=2", duration_s=0.3,
+                         reference="disturbance:torque=300,start=0.1,end=0.2",
+                         out=str(tmp_path / "pushed.mcap"))
+    assert kpis["stop_reason"] == "completed"
+    data = read_session(tmp_path / "pushed.mcap")
+    for name in ("x", "y"):
+        pushed = [m["disturbance_mA"] for _, m in data.topic(f"/axis/{name}/command")]
+        assert pushed[0] == 0 and max(pushed) == 300 and pushed[-1] == 0
+        # the axis moved under the torque and the controller pushed back
+        assert kpis["axes"][name]["max_error_deg"] > 0.001
