@@ -98,7 +98,7 @@ DRIVE_PART = ((DRIVES, LockstepDrive, "pump"),)
 #: hil's parts of a tick (``--parts``); what is left of the run's CPU is the loop's own
 HIL_PARTS = (
     ("read: each master's TPDOs, checks", ServoTask, "read"),
-    ("compute: each controller's step", ServoTask, "compute"),
+    ("compute: each controller's step", ServoTask, "compute_at"),
     ("write: each master's RPDO", ServoTask, "write"),
     ("write: the bus's SYNC, one send", AxesTick, "write"),
     ("record: each axis' rows, KPIs", ServoTask, "rows"),
