@@ -672,7 +672,9 @@ class CanDriveMaster(Device):
         """The current the drive is sent for a request of ``current_ma``: clamped to
         :attr:`current_limit_ma`."""
         limit = self.current_limit_ma
-        return min(max(current_ma, -limit), limit)
+        low = -limit  # min(max(current_ma, low), limit), without two calls of a builtin
+        above = low if low > current_ma else current_ma
+        return limit if limit < above else above
 
     def send_set_point(self, value: float, bits: int = 0) -> None:
         """Send the mode's set point in its unit (a current [mA] in CST, clamped to the limit;
