@@ -375,13 +375,13 @@ class CyclicExchange:
             self.stats.malformed_frames += 1
         elif not self._awaiting or self._got & bit or (echo and data[size] != self.sync_counter):
             self.stats.late_frames += 1
+        elif span is not None:
+            self._rx[span] = layout.unpack_from(data)
+            self._got |= bit
         else:
-            if span is not None:
-                self._rx[span] = layout.unpack_from(data)
-            else:
-                rx = self._rx
-                for slot, value in zip(slots, layout.unpack_from(data), strict=True):
-                    rx[slot] = value
+            rx = self._rx
+            for slot, value in zip(slots, layout.unpack_from(data), strict=True):
+                rx[slot] = value
             self._got |= bit
 
     def _make_feedback(self, fresh: bool, rtt_us: float) -> Feedback:
