@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Protocol
 
 from hil.drivers.canopen.cyclic import Feedback
@@ -47,6 +47,7 @@ class NodeLink:
         self.node_id = node_id
         self._watched: frozenset[int] = frozenset()
         self.inbox: deque[Frame] = deque()
+        self.send: Callable[[list[Frame]], None] = bus.send  # held until the cycle ends
 
     @property
     def watched_ids(self) -> frozenset[int]:
@@ -68,9 +69,6 @@ class NodeLink:
     def syncs_sent(self) -> int:
         """The SYNCs of the bus: one a cycle for every axis."""
         return self._bus.link.syncs_sent
-
-    def send(self, frames: list[Frame]) -> None:
-        self._bus.send(self, frames)
 
     def recv(self, timeout: float | None) -> Frame | None:
         inbox = self.inbox
@@ -100,12 +98,17 @@ class AxisBus:
         self.nodes = [NodeLink(self, node_id) for node_id in node_ids]
         self._by_id = {node.node_id: node for node in self.nodes}
         self._broadcast = {NMT_COB_ID, SYNC_COB_ID, HEARTBEAT_BASE + master_heartbeat_id}
-        self._heartbeat_id = HEARTBEAT_BASE + master_heartbeat_id
+        # the SYNC and the master's heartbeat: one of each a cycle (the first master's)
+        self._once = frozenset((SYNC_COB_ID, HEARTBEAT_BASE + master_heartbeat_id))
         self.together = False
         self._held: list[Frame] = []
         self._sync: dict[int, Frame] = {}  # this cycle's SYNC and master heartbeat (the first)
         self._open = len(self.nodes)
         self.cycles = 0  # cycles put on the bus together (one SYNC each)
+        # the inbox of each COB-ID seen that goes to one master alone without an echo check
+        # (a drive's TPDOs...), for the link's watched ids it was worked out with
+        self._routes: dict[int, deque[Frame]] = {}
+        self._routes_for = link.watched_ids
 
     def node_link(self, node_id: int) -> NodeLink:
         return self._by_id[node_id]
@@ -117,8 +120,7 @@ class AxisBus:
         self.together = on
         self._held, self._sync = [], {}
         if on:
-            while (frame := self.link.recv(0)) is not None:
-                self._route(frame)
+            self._route_waiting()
             for node in self.nodes:
                 kept = [frame for frame in node.inbox
                         if not TPDO_IDS_FIRST <= frame[0] <= TPDO_IDS_LAST]
@@ -126,16 +128,16 @@ class AxisBus:
                 node.inbox.extend(kept)
 
     # -- sending ------------------------------------------------------------------------------
-    def send(self, node: NodeLink, frames: list[Frame]) -> None:
+    def send(self, frames: list[Frame]) -> None:
+        """A master's frames: on the bus at once while setting up, else held for
+        :meth:`end_cycle`."""
         if not self.together:
             self.link.send(frames)
             return
-        held, shared = self._held, self._sync
+        held, shared, once = self._held, self._sync, self._once
         for frame in frames:
-            can_id = frame[0]
-            if can_id == SYNC_COB_ID or can_id == self._heartbeat_id:
-                if can_id not in shared:
-                    shared[can_id] = frame
+            if frame[0] in once:
+                shared.setdefault(frame[0], frame)
             else:
                 held.append(frame)
 
@@ -160,8 +162,7 @@ class AxisBus:
         routed before the time-out counts: another drive's frame ahead of this one's never
         makes this one late."""
         inbox, link, route = node.inbox, self.link, self._route
-        while (frame := link.recv(0)) is not None:  # all already here, routed, before a wait
-            route(frame)
+        self._route_waiting()  # all already here, routed, before a wait
         if inbox:
             return inbox.popleft()
         if timeout is not None and timeout <= 0:
@@ -180,14 +181,38 @@ class AxisBus:
             if inbox:
                 return inbox.popleft()
 
+    def _route_waiting(self) -> None:
+        """Every frame already here, to its master's inbox: taken in one call where the link
+        can (then each COB-ID routed before goes by :attr:`_routes`), else frame by frame."""
+        link, route = self.link, self._route
+        if not link.takes_frames:
+            while (frame := link.recv(0)) is not None:
+                route(frame)
+            return
+        frames = link.take_frames()
+        if not frames:
+            return
+        if link.watched_ids is not self._routes_for:
+            self._routes, self._routes_for = {}, link.watched_ids
+        routes = self._routes
+        for frame in frames:
+            inbox = routes.get(frame[0])
+            if inbox is None:
+                route(frame)
+            else:
+                inbox.append(frame)
+
     def _route(self, frame: Frame) -> None:
         can_id = frame[0]
         link = self.link
-        if can_id in link.watched_ids and link.own_echo(frame):
+        watched = can_id in link.watched_ids
+        if watched and link.own_echo(frame):
             return  # the group's own SYNC / NMT / heartbeat, handed back by an echoing bus
         owner = self._by_id.get(can_id & NODE_ID_BITS)
         if owner is not None and can_id not in self._broadcast:
             owner.inbox.append(frame)
+            if not watched and link.watched_ids is self._routes_for:
+                self._routes[can_id] = owner.inbox
         else:
             for node in self.nodes:
                 node.inbox.append(frame)

@@ -53,6 +53,7 @@ from hil.protocols.cia402 import (
 POLL_WAIT_MAX_NS = 2_000_000  # TPDO waits up to this long poll the bus instead of blocking
 LONG_WAIT_POLL_NS = 500_000  # a longer one (lockstep over a bus) polls at most this long
 SYNC_COUNTER_MAX = 240  # 0x1019 written when the echo is on: the SYNC counter runs 1..240
+SYNC_FRAME: Frame = (SYNC_COB_ID, b"")  # without the echo: a SYNC without a counter
 # the feedback objects a TPDO carries: their slot in the raw feedback and their wire format
 FEEDBACK_OBJECTS = {STATUSWORD: (0, "H"), POSITION_ACTUAL: (1, "i"), VELOCITY_ACTUAL: (2, "i"),
                     TORQUE_ACTUAL: (3, "h")}
@@ -63,12 +64,14 @@ TORQUE_SLOT = 3    # and one a drive may lack (no 0x6077): no current measured
 
 class TpdoDecoder(NamedTuple):
     """How one TPDO's data becomes feedback: its bit among the cycle's TPDOs, the layout of its
-    feedback objects (first in the PDO; a SYNC counter echo, if any, follows them) and the
-    slot of each in the raw feedback."""
+    feedback objects (first in the PDO; a SYNC counter echo, if any, follows them), the slot
+    of each in the raw feedback and, where those slots follow each other, their slice (the
+    values stored in one assignment)."""
 
     bit: int
     layout: struct.Struct
     slots: tuple[int, ...]
+    span: slice | None
 
 
 def tpdo_decoder(pdo: PdoMap, index: int) -> TpdoDecoder:
@@ -79,9 +82,12 @@ def tpdo_decoder(pdo: PdoMap, index: int) -> TpdoDecoder:
             [bits for _, _, bits in pdo.entries[len(feedback):]] not in ([], [8]):
         raise ValueError(f"TPDO 0x{pdo.comm:04X}: feedback objects first, then at most the "
                          "SYNC counter echo byte")
+    slots = tuple(FEEDBACK_OBJECTS[i][0] for i, _, _ in feedback)
+    span = slice(slots[0], slots[-1] + 1) \
+        if slots and slots == tuple(range(slots[0], slots[-1] + 1)) else None
     return TpdoDecoder(1 << index,
                        struct.Struct("<" + "".join(FEEDBACK_OBJECTS[i][1] for i, _, _ in feedback)),
-                       tuple(FEEDBACK_OBJECTS[i][0] for i, _, _ in feedback))
+                       slots, span)
 
 
 class Feedback(NamedTuple):
@@ -103,6 +109,10 @@ class Feedback(NamedTuple):
     @property
     def state(self) -> str:
         return state_of(self.statusword)
+
+
+#: a :class:`Feedback` from its fields in order, in one call (``Feedback(...)`` makes two)
+new_feedback = tuple.__new__
 
 
 @dataclass
@@ -166,8 +176,10 @@ class CyclicExchange:
         set point if it has one (INTEGER16 torque, INTEGER32 position or velocity)."""
         self._rpdo_id = rpdo.cob_id(self.node_id)
         sizes = [bits for _, _, bits in rpdo.entries[1:]]
-        self._rpdo_layout = struct.Struct("<H" + "".join("h" if b == 16 else "i" for b in sizes))
-        self._rpdo_target = bool(sizes)
+        pack = struct.Struct("<H" + "".join("h" if b == 16 else "i" for b in sizes)).pack
+        # the RPDO's data of a controlword and a target (one the mode has none of: left out)
+        self._rpdo_frame: Callable[[int, int], bytes] = pack if sizes else \
+            (lambda controlword, _target: pack(controlword))
 
     def use_tpdos(self, tpdos: Sequence[PdoMap]) -> None:
         """Decode ``tpdos`` from the next cycle on: they carry the statusword and the position;
@@ -235,7 +247,7 @@ class CyclicExchange:
             self.sync_counter = self.sync_counter % SYNC_COUNTER_MAX + 1
             frames.append((SYNC_COB_ID, bytes([self.sync_counter])))
         else:
-            frames.append((SYNC_COB_ID, b""))
+            frames.append(SYNC_FRAME)
         if self.heartbeat.due():
             frames.append(self.heartbeat.frame)
         self._command_ma = command_ma
@@ -332,17 +344,11 @@ class CyclicExchange:
     def send_now(self, controlwords: list[int]) -> None:
         """RPDO (each controlword, target 0) + SYNC, at once, no bookkeeping, as far as the
         link lets it: the best effort of a master that lost its link."""
-        sync: Frame = (SYNC_COB_ID, b"")
         for word in controlwords:
             try:
-                self.link.send([(self._rpdo_id, self._rpdo_frame(word, 0)), sync])
+                self.link.send([(self._rpdo_id, self._rpdo_frame(word, 0)), SYNC_FRAME])
             except DriveError:
                 return
-
-    def _rpdo_frame(self, controlword: int, target: int) -> bytes:
-        if self._rpdo_target:
-            return self._rpdo_layout.pack(controlword, target)
-        return self._rpdo_layout.pack(controlword)
 
     def drain(self) -> None:
         """Every frame already here, read now (TPDOs among them are late): before a recovery,
@@ -358,18 +364,20 @@ class CyclicExchange:
 
     def _dispatch(self, frame: Frame) -> None:
         self._heard = True
-        can_id, data = frame
-        decoder = self._decoders.get(can_id)
+        decoder = self._decoders.get(frame[0])
         if decoder is None:
             self._other(frame)
             return
-        bit, layout, slots = decoder
-        size = layout.size
-        if len(data) < size + self.echo:
+        data = frame[1]
+        bit, layout, slots, span = decoder
+        size, echo = layout.size, self.echo
+        if len(data) < size + echo:
             self.stats.malformed_frames += 1
-        elif not self._awaiting or self._got & bit or \
-                (self.echo and data[size] != self.sync_counter):
+        elif not self._awaiting or self._got & bit or (echo and data[size] != self.sync_counter):
             self.stats.late_frames += 1
+        elif span is not None:
+            self._rx[span] = layout.unpack_from(data)
+            self._got |= bit
         else:
             rx = self._rx
             for slot, value in zip(slots, layout.unpack_from(data), strict=True):
@@ -380,8 +388,9 @@ class CyclicExchange:
         statusword, raw, velocity, torque = self._rx
         scaling = self.scaling
         turn = scaling.counts_per_turn
-        if self._last_raw is not None:
-            step = raw - self._last_raw
+        last_raw = self._last_raw
+        if last_raw is not None:
+            step = raw - last_raw
             if step > turn // 2:
                 self._turns -= 1
             elif step < -(turn // 2):
@@ -389,8 +398,9 @@ class CyclicExchange:
         elif self._near is not None:
             self._turns, self._near = round((self._near - raw) / turn), None
         self._last_raw = raw
-        position_deg = scaling.degrees(self._turns * turn + raw)
-        velocity_deg_s = scaling.degrees(velocity)
+        per_count = scaling.degrees_per_count  # DriveScaling.degrees, without two calls
+        position_deg = (self._turns * turn + raw) * per_count
+        velocity_deg_s = velocity * per_count
         if self._derive_velocity and fresh:
             if self._homing is not None:
                 if not statusword & SW_HOMING_ATTAINED:
@@ -402,6 +412,9 @@ class CyclicExchange:
                 velocity_deg_s = (position_deg - before[0]) / (
                     (self.cycle - before[1]) * self._period_s)
             self._last_fresh = (position_deg, self.cycle)
-        current_ma = scaling.milliamps(torque) if self.measures_current else math.nan
-        return Feedback(position_deg, velocity_deg_s, current_ma, statusword,
-                        raw, self.cycle, self._now_ns(), fresh, rtt_us, self._command_ma)
+        # DriveScaling.milliamps, without a call
+        current_ma = torque * scaling.rated_current_ma / 1000.0 if self.measures_current \
+            else math.nan
+        return new_feedback(Feedback, (position_deg, velocity_deg_s, current_ma, statusword, raw,
+                                       self.cycle, self._now_ns(), fresh, rtt_us,
+                                       self._command_ma))

@@ -73,6 +73,8 @@ class CanLink:
         self.echoes = type(bus).__module__.startswith(ECHOING_BUS_MODULES)
         frames = frames_of(bus)
         self._send_frames, self._recv_frame = frames.send_frames, frames.recv_frame
+        # the bus hands every frame waiting in one call (the in-process one): :meth:`take_frames`
+        self.takes_frames = callable(getattr(bus, "take_frames", None))
 
     @property
     def name(self) -> str:
@@ -114,6 +116,18 @@ class CanLink:
         if frame is not None and self.trace is not None:
             self.trace.received(frame)
         return frame
+
+    def take_frames(self) -> list[Frame]:
+        """Every frame already here, oldest first, in one call (what :meth:`recv` ``(0)``
+        gives one call after the other until None): on a bus that :attr:`takes_frames`."""
+        try:
+            frames: list[Frame] = self.bus.take_frames()  # type: ignore[attr-defined]
+        except (can.CanError, OSError) as exc:
+            raise DriveLinkLostError(f"cannot read {self.name}: {self._detail(exc)}") from None
+        if frames and self.trace is not None:
+            for frame in frames:
+                self.trace.received(frame)
+        return frames
 
     def _detail(self, exc: BaseException) -> str:
         """The bus error's message without the bus name it may start with (ours names it)."""

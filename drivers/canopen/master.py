@@ -173,6 +173,7 @@ class CanDriveMaster(Device):
         self._enabled = False
         self._lost_driving = False  # the link was lost while the drive was enabled
         self._latched: DriveError | SdoAbortError | None = None
+        self._operating_word = -1  # the last statusword found OPERATION ENABLED
         self.foreign: str | None = None  # another master heard on the bus: the run stops
         # told each cycle of a safe stop (quick stop, disable voltage): what the drive reported
         self.on_stop_cycle: Callable[[Feedback], None] | None = None
@@ -573,15 +574,17 @@ class CanDriveMaster(Device):
         """The cycle's feedback (waiting at most ``timeout_s`` where given); a lost link raises.
         A refused queued download or another master on the bus raises too (latched), except in
         a safe stop (``stopping``), which goes on: the drive is stopped all the same."""
-        if not self.cyclic.awaiting:  # no cycle since the last read: the same feedback again
-            return self.cyclic.receive()
+        cyclic, watch = self.cyclic, self.heartbeat_watch
+        if not cyclic.awaiting:  # no cycle since the last read: the same feedback again
+            return cyclic.receive()
         try:
-            feedback = self.cyclic.receive(timeout_s)
+            feedback = cyclic.receive(timeout_s)
         except DriveLinkLostError as exc:
             self._lose_link(str(exc), type(exc))
-        if self.heartbeat_watch.rebooted:
+        if watch.rebooted:
             self._lose_link("the drive restarted (boot-up message)")
-        silent_ns = self.heartbeat_watch.silent_ns() if self._enabled else None
+        # silent as of the feedback's time (the master's clock, read for it a moment ago)
+        silent_ns = watch.silent_ns(feedback.t_ns) if self._enabled else None
         if silent_ns is not None:  # unless a heartbeat already here says otherwise: the frames
             try:                   # behind this cycle's TPDOs are read before the silence counts
                 self.cyclic.drain()
@@ -603,7 +606,10 @@ class CanDriveMaster(Device):
 
     def _check_operation(self, feedback: Feedback) -> Feedback:
         state = feedback.state
-        if state == OPERATION_ENABLED or not feedback.fresh:
+        if state == OPERATION_ENABLED:
+            self._operating_word = feedback.statusword
+            return feedback
+        if not feedback.fresh:
             return feedback
         n = self.node_id
         if state in (FAULT, FAULT_REACTION_ACTIVE):
@@ -666,27 +672,28 @@ class CanDriveMaster(Device):
         """The current the drive is sent for a request of ``current_ma``: clamped to
         :attr:`current_limit_ma`."""
         limit = self.current_limit_ma
-        return min(max(current_ma, -limit), limit)
-
-    def _torque_units(self, current_ma: float) -> tuple[int, float]:
-        if not math.isfinite(current_ma):
-            raise DriveError(f"drive node {self.node_id}: refusing a non-finite current "
-                             f"command ({current_ma!r})")
-        clamped = self.applied_current(current_ma)
-        if clamped != current_ma:
-            self.stats.clamped_commands += 1
-        return round(clamped * 1000.0 / self.scaling.rated_current_ma), clamped
+        low = -limit  # min(max(current_ma, low), limit), without two calls of a builtin
+        above = low if low > current_ma else current_ma
+        return limit if limit < above else above
 
     def send_set_point(self, value: float, bits: int = 0) -> None:
         """Send the mode's set point in its unit (a current [mA] in CST, clamped to the limit;
         a multi-turn position [deg] in CSP and PP; a velocity [deg/s] in CSV and PV; none in
         HM) and a SYNC; ``bits``: the mode's own controlword bits beside enable operation
         (:data:`~hil.protocols.cia402.CW_NEW_SET_POINT`, ``CW_HALT``...)."""
-        self._check_latched()
+        if self._latched is not None or not self._enabled:
+            self._check_latched()
         mode = self.operation
         if mode.unit == "mA":
-            units, clamped = self._torque_units(value)
-            self._send_cycle(CW_ENABLE_OPERATION | bits, units, clamped)
+            if not math.isfinite(value):
+                raise DriveError(f"drive node {self.node_id}: refusing a non-finite current "
+                                 f"command ({value!r})")
+            clamped = self.applied_current(value)
+            if clamped != value:
+                self.stats.clamped_commands += 1
+            self._send_cycle(CW_ENABLE_OPERATION | bits,
+                             round(clamped * 1000.0 / self.cyclic.scaling.rated_current_ma),
+                             clamped)
             return
         self._send_cycle(CW_ENABLE_OPERATION | bits, wire_value(
             mode, value, self.scaling, self.cyclic.turns, self.node_id), math.nan)
@@ -712,8 +719,12 @@ class CanDriveMaster(Device):
 
         Without a cycle sent since the last call it returns the last feedback again (the one
         of :meth:`start` before the first cycle)."""
-        self._check_latched()
-        return self._check_operation(self._receive())
+        if self._latched is not None or not self._enabled:
+            self._check_latched()
+        feedback = self._receive()
+        if feedback.statusword == self._operating_word:  # the state of the last good cycles
+            return feedback
+        return self._check_operation(feedback)
 
     def prime(self, timeout_s: float = PRIME_TIMEOUT_S) -> Feedback:
         """One cycle that holds the axis where it stands (no current, no velocity, or its

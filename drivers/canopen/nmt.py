@@ -74,9 +74,10 @@ class HeartbeatWatch:
             return True
         return False
 
-    def silent_ns(self) -> int | None:
-        """How long the drive has been silent, when that is longer than allowed; else None."""
+    def silent_ns(self, now_ns: int | None = None) -> int | None:
+        """How long the drive has been silent (at ``now_ns``, a time of the clock it was given;
+        default: now), when that is longer than allowed; else None."""
         if not self.period_ms:
             return None
-        silent = self._now_ns() - self.last_ns
+        silent = (self._now_ns() if now_ns is None else now_ns) - self.last_ns
         return silent if silent > self.timeout_ns else None

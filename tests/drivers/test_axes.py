@@ -19,10 +19,28 @@ from hil.protocols.cia402 import CW_QUICK_STOP, SWITCH_ON_DISABLED
 from tests.drive_slave import serve
 
 
-def lockstep_group(node_ids=(1, 2)):
+class FrameByFrame:
+    """A bus's frames one at a time, as every bus but the in-process one gives them (no
+    ``take_frames``)."""
+
+    def __init__(self, bus):
+        self.bus, self.channel_info = bus, bus.channel_info
+
+    def send_frames(self, frames):
+        self.bus.send_frames(frames)
+
+    def recv_frame(self, timeout=None):
+        return self.bus.recv_frame(timeout)
+
+    def shutdown(self):
+        self.bus.shutdown()
+
+
+def lockstep_group(node_ids=(1, 2), frame_by_frame=False):
     emulator = LockstepDrive(node_ids=node_ids)
     observer = emulator.attach_bus()  # what is on the wire, in order
-    bus = AxisBus(CanLink(emulator.master_bus), node_ids)
+    master_bus = FrameByFrame(emulator.master_bus) if frame_by_frame else emulator.master_bus
+    bus = AxisBus(CanLink(master_bus), node_ids)
     masters = [CanDriveMaster(bus.node_link(n), DriveMasterConfig(node_id=n), clock=emulator)
                for n in node_ids]
     return emulator, observer, AxisGroup(bus, masters)
@@ -158,5 +176,57 @@ def test_a_frame_already_received_is_found_behind_another_drives_frames():
     assert bus.recv(bus.node_link(1), 0.0) == (0x181, b"\x37\x02\0\0\0\0")
     assert bus.recv(bus.node_link(2), 0.0) == (0x702, b"\x05")  # routed on the way
     assert bus.recv(bus.node_link(1), 0.0) is None  # nothing else is node 1's
+    node_bus.shutdown()
+    emulator.close()
+
+
+def group_run(frame_by_frame):
+    """Three axes for 300 cycles, node 2 tripping at cycle 200, then the stop: each cycle's
+    feedbacks (the wall-clock rtt left out) or the error, the wire, the masters' counters."""
+    emulator, observer, group = lockstep_group((1, 2, 3), frame_by_frame)
+    assert group.bus.link.takes_frames is not frame_by_frame
+    seen = [group.start()]
+    for k in range(300):
+        if k == 200:
+            emulator.nodes[1].states.fault(EMCY_OVERCURRENT, ERR_REG_CURRENT)
+        group.send_currents([300.0, -300.0, 100.0])
+        try:
+            seen.append([f._replace(rtt_us=0.0) for f in group.receive()])
+        except DriveFaultError as exc:
+            seen.append(str(exc))
+            break
+    group.safe_state()
+    frames = wire(observer)
+    stats = [master.stats for master in group.masters]
+    group.close()
+    emulator.close()
+    return seen, frames, stats
+
+
+def test_frames_taken_at_once_go_where_frame_by_frame_they_would():
+    """The in-process bus hands every waiting frame in one call, routed in one pass (each
+    COB-ID seen once by its route): the same cycles, feedbacks, fault, stop and wire as a bus
+    read frame by frame."""
+    taken, by_frame = group_run(False), group_run(True)
+    assert isinstance(taken[0][-1], str) and "drive node 2 reports FAULT" in taken[0][-1]
+    assert taken == by_frame
+
+
+def test_a_route_learnt_is_forgotten_when_the_watched_ids_change():
+    """A COB-ID routed once goes straight to its master's inbox, until the ids the link
+    watches change: then it is checked for an echo again."""
+    emulator = LockstepDrive(node_ids=(1, 2))
+    bus = AxisBus(CanLink(emulator.master_bus), (1, 2))
+    while emulator.master_bus.recv_frame() is not None:
+        pass  # the boot-up messages
+    node_bus = emulator.attach_bus()
+    node_bus.send_frames([(0x181, b"\x01")])
+    assert bus.recv(bus.node_link(1), 0.0) == (0x181, b"\x01")
+    echoes = []
+    bus.link.own_echo = lambda frame: echoes.append(frame) or True
+    bus.link.watched_ids = frozenset({SYNC_COB_ID, 0x181})
+    node_bus.send_frames([(0x181, b"\x02")])
+    assert bus.recv(bus.node_link(1), 0.0) is None  # taken for the link's own echo
+    assert echoes == [(0x181, b"\x02")]
     node_bus.shutdown()
     emulator.close()

@@ -506,3 +506,18 @@ def test_a_held_up_master_reads_the_heartbeats_waiting_before_it_calls_the_drive
     finally:
         master.close()
         stop()
+
+
+def test_the_heartbeat_watch_tells_the_silence_at_a_time_given_or_now():
+    """The master asks for the silence at its feedback's time (its clock, read a moment
+    before); asked without a time, the watch reads the clock itself."""
+    from hil.drivers.canopen.nmt import HeartbeatWatch
+
+    now = [1_000_000_000]
+    watch = HeartbeatWatch(1, 100, lambda: now[0])  # silent past 300 ms
+    watch.restart()
+    assert watch.silent_ns(now[0] + 300_000_000) is None
+    assert watch.silent_ns(now[0] + 300_000_001) == 300_000_001
+    now[0] += 400_000_000
+    assert watch.silent_ns() == 400_000_000
+    assert HeartbeatWatch(1, 0, lambda: now[0]).silent_ns(now[0] + 10**12) is None  # unwatched
