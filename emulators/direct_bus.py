@@ -115,6 +115,12 @@ class DirectBus(can.BusABC):
         inbox = self._inbox
         return inbox.popleft() if inbox else None
 
+    @property
+    def waiting(self) -> deque[Frame]:
+        """The frames waiting, oldest first: the inbox itself (a reader that takes them
+        clears it)."""
+        return self._inbox
+
     def take_frames(self) -> list[Frame]:
         """Every frame waiting, oldest first (none left waiting)."""
         inbox = self._inbox

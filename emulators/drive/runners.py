@@ -19,6 +19,7 @@ from typing import Any
 import can
 
 from hil.emulators.direct_bus import DirectChannel
+from hil.emulators.drive.bank import DriveBank
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.node import DriveNode, SendFn
 from hil.emulators.drive.plant import AxisPlant
@@ -86,12 +87,17 @@ class LockstepDrive:
     :meth:`sleep`):
     time passes for it when SYNCs come, so a master waiting for a state lets time pass by
     sending SYNCs.
+
+    A steady cycle (each node's RPDO, then one SYNC, every node running CST) runs for all
+    the nodes at once (:class:`~hil.emulators.drive.bank.DriveBank`), exactly as each node's
+    own would; ``bank=False``: each node's own path always.
     """
 
     def __init__(self, config: DriveEmulatorConfig | None = None,
                  plant: AxisPlant | None = None, *,
                  node_ids: Sequence[int] | None = None,
-                 on_fault: Callable[[int, dict[str, Any]], None] | None = None) -> None:
+                 on_fault: Callable[[int, dict[str, Any]], None] | None = None,
+                 bank: bool = True) -> None:
         self.channel = DirectChannel(f"hil-drive-{uuid.uuid4().hex}")
         config = config or DriveEmulatorConfig()
         if node_ids is None:
@@ -119,6 +125,8 @@ class LockstepDrive:
                 node.on_hearing_changed = self.channel.refilter
         for node in self.nodes:
             node.boot()
+        self._bank = DriveBank.of(self.nodes, [bus.waiting for bus in self._node_buses]) \
+            if bank else None
 
     def _teller(self, i: int, on_fault: Callable[[int, dict[str, Any]], None] | None
                 ) -> Callable[[str], None] | None:
@@ -136,11 +144,13 @@ class LockstepDrive:
         return self.channel.attach()
 
     def pump(self) -> None:
-        """Deliver every frame waiting for the nodes (each node all of its own in one call;
-        one that the filters left none of still heard the bus),
+        """Deliver every frame waiting for the nodes: a steady cycle to the bank, else each
+        node all of its own in one call (one that the filters left none of still heard the bus),
         then run the time service of each node whose last frame did not just run it (a
         SYNC's, on the master's time: time has not moved since)."""
         heard_ns = time.monotonic_ns() if self.channel.carried_frames() else None
+        if self._bank is not None and self._bank.cycle(heard_ns):
+            return
         unserviced = []
         for bus, node in zip(self._node_buses, self.nodes, strict=True):
             frames = bus.take_frames()
