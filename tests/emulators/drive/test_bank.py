@@ -187,6 +187,11 @@ def test_the_plants_stacked_product_is_each_plants_own():
     (the bank is built only where it does)."""
     plants = [AxisPlant() for _ in range(4)]
     assert stack_matches(plants)
-    drive = LockstepDrive(node_ids=[1, 2])
-    assert isinstance(drive._bank, DriveBank)
-    drive.close()
+
+
+def test_several_drives_run_as_a_bank_and_a_lone_one_on_its_own():
+    drives = LockstepDrive(node_ids=[1, 2]), LockstepDrive()
+    assert isinstance(drives[0]._bank, DriveBank)
+    assert drives[1]._bank is None
+    for drive in drives:
+        drive.close()
