@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from hil.emulators.drive import bank as bank_module
 from hil.emulators.drive.bank import DriveBank, stack_matches
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.plant import AxisPlant
@@ -141,8 +142,13 @@ def script(rig: Rig) -> None:
                     rig.sdo_read(node, index)
 
 
-def test_the_bank_leaves_every_frame_and_state_as_each_nodes_own_path():
+@pytest.mark.parametrize("stacked", [False, True])
+def test_the_bank_leaves_every_frame_and_state_as_each_nodes_own_path(stacked, monkeypatch):
+    """Every frame and state equal, with the plants stepped by their own products and by
+    one stacked product."""
+    monkeypatch.setattr(bank_module, "STACK_FROM_NODES", 1 if stacked else 99)
     own, bank = Rig(bank=False), Rig(bank=True)
+    assert bank.drive._bank is not None and bank.drive._bank.stacked is stacked
     script(own)
     script(bank)
     assert bank.banked > 200  # most cycles ran as a bank
@@ -189,9 +195,11 @@ def test_the_plants_stacked_product_is_each_plants_own():
     assert stack_matches(plants)
 
 
-def test_several_drives_run_as_a_bank_and_a_lone_one_on_its_own():
-    drives = LockstepDrive(node_ids=[1, 2]), LockstepDrive()
-    assert isinstance(drives[0]._bank, DriveBank)
-    assert drives[1]._bank is None
+def test_drives_run_as_a_bank_by_default_stacked_from_four():
+    drives = LockstepDrive(), LockstepDrive(node_ids=[1, 2, 3]), \
+        LockstepDrive(node_ids=[1, 2, 3, 4]), LockstepDrive(node_ids=[1, 2], bank=False)
+    banks = [drive._bank for drive in drives]
+    assert [isinstance(bank, DriveBank) for bank in banks] == [True, True, True, False]
+    assert [bank.stacked for bank in banks[:3] if bank is not None] == [False, False, True]
     for drive in drives:
         drive.close()
