@@ -10,10 +10,13 @@ nodes in one fused pass, without the dispatch, the latching, the fault and state
 the calls between them - and leaves every node exactly as its own cycle would have (the same
 values, states, plant, counters and frames, bit for bit).
 
-It is a fast path for that steady state alone: whenever anything differs (a frame it does not
-expect, a node not OPERATION ENABLED in CST or not NMT OPERATIONAL, a fault scheduled or
-tripping, a changed controlword, a heartbeat or a watchdog due, a PDO map it cannot pack, a
-load on a plant...) it declines before changing anything, and the nodes run their own path.
+It is a fast path for that steady state alone, node by node: a node whose frames or state
+differ (a frame it does not expect, not OPERATION ENABLED in CST or not NMT OPERATIONAL, a fault
+scheduled or tripping, a changed controlword, a heartbeat or a watchdog due, a load on its
+plant...) runs its own path in its turn, the others' cycles around it in node order (as their
+frames go out), nothing of it changed before (but, where the bank had stepped its plant, the
+plant's input and product buffers, which its own step then writes over). A PDO map the bank
+cannot pack sends every node down its own path.
 
 Exactness by construction: each node's current, plant input and actual values are the node's
 own Python expressions (the same operations on the same Python floats and ints, in the same
@@ -23,7 +26,7 @@ same BLAS ``gemv`` per plant (checked when the bank is built: where it is not, e
 own ``dot``). Stacked, each plant's state vector lives in the bank's arrays (two rows, swapped
 each period as the plant swaps its own buffers), so the plant's own step works on them too.
 
-Cost (this machine, micro-benchmark of ``pump``): ~4 us a cycle plus ~3.5 us a node; a
+Cost (this machine, micro-benchmark of ``pump``): ~3 us a cycle plus ~3.8 us a node; a
 node's own path is ~8 us for a lone node and ~10 us a node on a shared bus.
 """
 
@@ -256,84 +259,85 @@ class DriveBank:
         self.ends = tuple(buffer[:, n] for buffer in self.buffers)
         self._adopt()
 
-    def cycle(self, heard_ns: int | None) -> bool:
-        """Each node's waiting frames as one steady cycle, when they and the nodes are in the
-        steady state (then the frames are taken, and True); else False, nothing changed."""
+    def cycle(self, heard_ns: int | None, own: Callable[[int], None]) -> bool:
+        """The transmission waiting in the nodes' inboxes: each node whose waiting frames
+        are its RPDO and a SYNC, in the steady state, runs its cycle in the bank's pass (its
+        frames taken); each other node, in its turn (node order, as the sends go out), runs
+        its own path (``own(i)`` for the ``i``-th node). False, with nothing changed, when no
+        node is steady (the caller runs each node's own path)."""
         layout = self.layout
         if layout is None or not layout.current(self.nodes):
             layout = self.layout = BankLayout(self.nodes)
         if not layout.ok:
             return False
-        steps = self._steps(layout)
-        if steps is None:
+        steps = [self._step(layout, node, inbox, rpdo_cob, sync_cob) for node, inbox,
+                 rpdo_cob, sync_cob in zip(self.nodes, self.inboxes, layout.rpdo_cobs,
+                                           layout.sync_cobs, strict=True)]
+        if steps.count(None) == len(steps):
             return False
-        outputs = self._products([step[3] for step in steps])
-        actuals = self._actuals(steps, outputs)
-        if actuals is None:
-            return False
-        self._commit(layout, heard_ns, steps, actuals)
+        outputs = self._products(steps)
+        self._commit(layout, heard_ns, steps, self._actuals(steps, outputs), own)
         return True
 
-    def _steps(self, layout: BankLayout) -> list[Step] | None:
-        """Each node's cycle up to its plant's product (the RPDO decoded, the current as
+    def _step(self, layout: BankLayout, node: DriveNode, inbox: deque[Frame], rpdo_cob: int,
+              sync_cob: int) -> Step | None:
+        """The node's cycle up to its plant's product (the RPDO decoded, the current as
         MotorLoops.current and CyclicTorque.current compute it, the plant's saturation and
-        input as AxisPlant.step's), when each node has exactly its RPDO and a SYNC waiting
-        and is in the steady state with nothing due this cycle; else None."""
-        steps = []
-        size, unpack, cw_index, torque_index = layout.rpdo_size, layout.unpack, \
-            layout.cw_index, layout.torque_index
-        steady_controlwords = self.steady_controlwords
-        for node, inbox, rpdo_cob, sync_cob in zip(self.nodes, self.inboxes, layout.rpdo_cobs,
-                                                   layout.sync_cobs, strict=True):
-            if len(inbox) != 2:
-                return None
-            (first_id, first), (second_id, second) = inbox
-            if first_id != rpdo_cob or len(first) != size or second_id != sync_cob or second:
-                return None
-            fields = unpack(first)
-            cw = fields[cw_index]
-            states, plant, values = node.states, node.plant, node._values
-            if node.nmt_state != NMT_OPERATIONAL or states.state != OPERATION_ENABLED or \
-                    node._fault_list or node._delayed or node.pdos.pending or \
-                    states.comm_warning or states.ramp_start_ns is not None or \
-                    cw != states.controlword or not (steady_controlwords.get(cw) or
-                                                     self._steady_controlword(cw)) or \
-                    node._gone_after_ns or not node._sync_timebase or \
-                    node._steps_per_sync != 1 or plant._configured_load or \
-                    plant.extra_disturbance_ma or values[MODE_KEY] != CST:
-                return None
-            t = node._sync_origin_ns + node._sync_time_ns + node._plant_period_ns
-            period_ms = values[(PRODUCER_HEARTBEAT, 0)]
-            if period_ms and (node._hb_next_ns is None or t >= node._hb_next_ns):
-                return None  # a heartbeat due
-            if node._hb_consumer_armed and t - node._hb_last_ns > \
-                    (values[(CONSUMER_HEARTBEAT, 1)] & 0xFFFF) * 1_000_000:
-                return None  # the master's heartbeat lost
-            rated = values[RATED_KEY]
-            wanted = fields[torque_index] * rated / 1000.0
-            if abs(wanted) > values[TRIP_KEY]:
-                return None  # the over-current fault
-            per_mille = min(values[MAX_TORQUE_KEY], values.get(MAX_CURRENT_KEY, math.inf))
-            limit = min(per_mille * rated / 1000.0, plant.current_limit_ma)
-            limited = min(max(wanted, -limit), limit)
-            amplifier, applied = plant.current_limit_ma, float(limited)
-            if applied - applied != 0.0:  # not finite: no current
-                applied = 0.0
-            elif applied > amplifier:
-                applied = amplifier
-            elif applied < -amplifier:
-                applied = -amplifier
-            steps.append((fields, limited != wanted, applied, applied - plant.axis.u_offset, t))
-        return steps
+        input as AxisPlant.step's), when it has exactly its RPDO and a SYNC waiting and is in
+        the steady state with nothing due this cycle; else None."""
+        if len(inbox) != 2:
+            return None
+        (first_id, first), (second_id, second) = inbox
+        if first_id != rpdo_cob or len(first) != layout.rpdo_size or second_id != sync_cob \
+                or second:
+            return None
+        fields = layout.unpack(first)
+        cw = fields[layout.cw_index]
+        states, plant, values = node.states, node.plant, node._values
+        if node.nmt_state != NMT_OPERATIONAL or states.state != OPERATION_ENABLED or \
+                node._fault_list or node._delayed or node.pdos.pending or \
+                states.comm_warning or states.ramp_start_ns is not None or \
+                cw != states.controlword or not (self.steady_controlwords.get(cw) or
+                                                 self._steady_controlword(cw)) or \
+                node._gone_after_ns or not node._sync_timebase or \
+                node._steps_per_sync != 1 or plant._configured_load or \
+                plant.extra_disturbance_ma or values[MODE_KEY] != CST:
+            return None
+        t = node._sync_origin_ns + node._sync_time_ns + node._plant_period_ns
+        period_ms = values[(PRODUCER_HEARTBEAT, 0)]
+        if period_ms and (node._hb_next_ns is None or t >= node._hb_next_ns):
+            return None  # a heartbeat due
+        if node._hb_consumer_armed and t - node._hb_last_ns > \
+                (values[(CONSUMER_HEARTBEAT, 1)] & 0xFFFF) * 1_000_000:
+            return None  # the master's heartbeat lost
+        rated = values[RATED_KEY]
+        wanted = fields[layout.torque_index] * rated / 1000.0
+        if abs(wanted) > values[TRIP_KEY]:
+            return None  # the over-current fault
+        per_mille = min(values[MAX_TORQUE_KEY], values.get(MAX_CURRENT_KEY, math.inf))
+        limit = min(per_mille * rated / 1000.0, plant.current_limit_ma)
+        limited = min(max(wanted, -limit), limit)
+        amplifier, applied = plant.current_limit_ma, float(limited)
+        if applied - applied != 0.0:  # not finite: no current
+            applied = 0.0
+        elif applied > amplifier:
+            applied = amplifier
+        elif applied < -amplifier:
+            applied = -amplifier
+        return fields, limited != wanted, applied, applied - plant.axis.u_offset, t
 
-    def _products(self, inputs: list[float]) -> list[float]:
-        """Each plant stepped one period from ``inputs`` (its buffers' product made, not yet
-        swapped): the model's output of each."""
+    def _products(self, steps: list[Step | None]) -> list[float]:
+        """Each stepping plant's product for one period from its step's input (its buffers'
+        product made, not yet swapped): the model's output of each (0.0 for the others,
+        whose buffers are left as they are)."""
+        outputs = []
         if not self.stacked:
-            outputs = []
-            for plant, u in zip(self.plants, inputs, strict=True):
+            for plant, step in zip(self.plants, steps, strict=True):
+                if step is None:
+                    outputs.append(0.0)
+                    continue
                 xu, z, n = plant._xu, plant._next, plant._n
-                xu[n] = u
+                xu[n] = step[3]
                 plant._step_matrix.dot(xu, out=z)
                 outputs.append(z.item(n))
             return outputs
@@ -342,8 +346,15 @@ class DriveBank:
                                                            strict=True)):
             self._adopt()
             phase = 0
-        self.ends[phase][:] = inputs
+        ends, kept = self.ends[phase], []
+        for i, step in enumerate(steps):
+            if step is None:  # its input as it is, its product's buffer put back after
+                kept.append((i, self.rows[1 - phase][i].copy()))
+            else:
+                ends[i] = step[3]
         np.matmul(self.matrices, self.columns[phase], out=self.columns[1 - phase])
+        for i, row in kept:
+            self.rows[1 - phase][i][...] = row
         return self.ends[1 - phase].tolist()  # type: ignore[no-any-return]
 
     def _adopt(self) -> None:
@@ -354,24 +365,27 @@ class DriveBank:
             first[i], second[i] = state, spare
             plant._xu, plant._next = self.rows[0][i], self.rows[1][i]
 
-    def _actuals(self, steps: list[Step], outputs: list[float]) -> list[Actual] | None:
-        """Each node's plant position and velocity after the period (AxisPlant.step) and its
-        actual values (DriveNode._refresh_actuals, in ACTUAL_KEYS order); None when one of
-        them cannot be counted (not finite: the node's own path reports it)."""
-        actuals: list[Actual] = []
-        try:
-            for node, plant, (_, active, applied, _, _), output in zip(
-                    self.nodes, self.plants, steps, outputs, strict=True):
-                position = output + plant.axis.y_offset
-                velocity = (position - plant.position_deg) / plant.dt
-                per_turn, offset = plant.increments_per_rev, node.motor.count.offset
-                exact = position / 360.0 * per_turn
+    def _actuals(self, steps: list[Step | None], outputs: list[float]) -> list[Actual | None]:
+        """Each stepping node's plant position and velocity after the period (AxisPlant.step)
+        and its actual values (DriveNode._refresh_actuals, in ACTUAL_KEYS order); None for a
+        node whose values cannot be counted (not finite: its own path reports it)."""
+        actuals: list[Actual | None] = []
+        for node, plant, step, output in zip(self.nodes, self.plants, steps, outputs,
+                                             strict=True):
+            if step is None:
+                actuals.append(None)
+                continue
+            position = output + plant.axis.y_offset
+            velocity = (position - plant.position_deg) / plant.dt
+            per_turn, offset = plant.increments_per_rev, node.motor.count.offset
+            exact = position / 360.0 * per_turn
+            switches = node._switches
+            inputs = (DI_NEGATIVE_LIMIT if position <= switches.negative_limit_deg else 0) \
+                | (DI_POSITIVE_LIMIT if position >= switches.positive_limit_deg else 0) \
+                | (DI_HOME_SWITCH if position >= switches.home_switch_deg else 0)
+            try:
                 speed = round(velocity / 360.0 * per_turn)
-                torque = round(applied * 1000.0 / node._values[RATED_KEY])
-                switches = node._switches
-                inputs = (DI_NEGATIVE_LIMIT if position <= switches.negative_limit_deg else 0) \
-                    | (DI_POSITIVE_LIMIT if position >= switches.positive_limit_deg else 0) \
-                    | (DI_HOME_SWITCH if position >= switches.home_switch_deg else 0)
+                torque = round(step[2] * 1000.0 / node._values[RATED_KEY])
                 actuals.append((position, velocity, (
                     (math.floor(exact) + offset) % per_turn,
                     (math.floor(exact + offset) + 2**31) % 2**32 - 2**31,
@@ -379,9 +393,9 @@ class DriveBank:
                     inputs,
                     -(2**31) if speed < -(2**31) else 2**31 - 1 if speed > 2**31 - 1 else speed,
                     -32768 if torque < -32768 else 32767 if torque > 32767 else torque,
-                    LIMITED_STATUSWORD if active else STEADY_STATUSWORD)))
-        except (ValueError, OverflowError):
-            return None
+                    LIMITED_STATUSWORD if step[1] else STEADY_STATUSWORD)))
+            except (ValueError, OverflowError):
+                actuals.append(None)
         return actuals
 
     def _steady_controlword(self, cw: int) -> bool:
@@ -397,17 +411,21 @@ class DriveBank:
             self.steady_controlwords[cw] = steady
         return steady
 
-    def _commit(self, layout: BankLayout, heard_ns: int | None, steps: list[Step],
-                actuals: list[Actual]) -> None:
-        """Each node left as its own cycle leaves it, its TPDOs sent."""
-        for inbox in self.inboxes:
-            inbox.clear()
+    def _commit(self, layout: BankLayout, heard_ns: int | None, steps: list[Step | None],
+                actuals: list[Actual | None], own: Callable[[int], None]) -> None:
+        """Each node in turn: left as its own cycle leaves it, its TPDOs sent; or, where
+        the bank has no step for it or a node before it sent it a frame, its own path."""
         heard = time.monotonic_ns() if heard_ns is None else heard_ns
         keys, pack, pick = layout.written_keys, layout.pack, layout.pick
-        for (node, plant, rpdo, transmitters, (fields, active, applied, _, t),
-             (position, velocity, values), slices) in zip(
-                self.nodes, self.plants, layout.rpdos, layout.transmitters, steps, actuals,
-                layout.tpdo_slices, strict=True):
+        for i, (node, plant, inbox, rpdo, transmitters, step, actual, slices) in enumerate(zip(
+                self.nodes, self.plants, self.inboxes, layout.rpdos, layout.transmitters,
+                steps, actuals, layout.tpdo_slices, strict=True)):
+            if step is None or actual is None or len(inbox) != 2:
+                own(i)
+                continue
+            fields, active, applied, _, t = step
+            position, velocity, values = actual
+            inbox.clear()
             node._heard_ns = heard
             rpdo.length_error = False
             node._values.update(zip(keys, (*values, *fields), strict=True))

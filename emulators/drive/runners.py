@@ -145,23 +145,26 @@ class LockstepDrive:
         return self.channel.attach()
 
     def pump(self) -> None:
-        """Deliver every frame waiting for the nodes: a steady cycle to the bank, else each
-        node all of its own in one call (one that the filters left none of still heard the bus),
-        then run the time service of each node whose last frame did not just run it (a
-        SYNC's, on the master's time: time has not moved since)."""
+        """Deliver every frame waiting for the nodes: each steady node's cycle in the bank's
+        pass, each other node all of its own in one call in its turn (one that the filters left
+        none of still heard the bus), then run the time service of each node whose last frame
+        did not just run it (a SYNC's, on the master's time: time has not moved since)."""
         heard_ns = time.monotonic_ns() if self.channel.carried_frames() else None
-        if self._bank is not None and self._bank.cycle(heard_ns):
-            return
-        unserviced = []
-        for bus, node in zip(self._node_buses, self.nodes, strict=True):
-            frames = bus.take_frames()
+        unserviced: list[DriveNode] = []
+
+        def own(i: int) -> None:
+            node = self.nodes[i]
+            frames = self._node_buses[i].take_frames()
             if frames:
                 if not node.handle_frames(frames, heard_ns):
                     unserviced.append(node)
-                continue
+                return
             if heard_ns is not None:
                 node.hear(heard_ns)
             unserviced.append(node)
+        if self._bank is None or not self._bank.cycle(heard_ns, own):
+            for i in range(len(self.nodes)):
+                own(i)
         for node in unserviced:
             node.service()
 

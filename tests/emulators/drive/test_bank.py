@@ -4,6 +4,7 @@ each transmission, bit for bit."""
 
 import math
 import struct
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -69,14 +70,20 @@ class Rig:
                                                        home_switch_deg=1.0))
         self.drive = LockstepDrive(config, node_ids=IDS, bank=bank)
         self.bus = self.drive.master_bus
-        self.banked = 0
+        self.banked = self.mixed = 0  # transmissions the bank ran, with some nodes' own path
         if bank:
             assert self.drive._bank is not None
             cycle = self.drive._bank.cycle
 
-            def counted(heard_ns: int | None) -> bool:
-                done = cycle(heard_ns)
+            def counted(heard_ns: int | None, own: Callable[[int], None]) -> bool:
+                owned = []
+
+                def told(i: int) -> None:
+                    owned.append(i)
+                    own(i)
+                done = cycle(heard_ns, told)
                 self.banked += done
+                self.mixed += done and bool(owned)
                 return done
             self.drive._bank.cycle = counted  # type: ignore[method-assign]
         self.log: list[Any] = []
@@ -106,13 +113,15 @@ class Rig:
 
 def script(rig: Rig) -> None:
     """Enable three CST drives, run them (current limit reached, a homed count, heartbeats
-    both ways, a cycle without one RPDO), fault one by over-current mid-run and reset it,
-    read actual values by SDO, quick-stop one, and run on."""
+    both ways and from node to node, a cycle without one RPDO), fault one by over-current
+    mid-run and reset it, read actual values by SDO, quick-stop one, and run on."""
     rig.send([(0x000, bytes([0x01, 0]))])  # NMT start all
     for node in IDS:
         rig.sdo_write(node, 0x6060, 0, CST, 1)
     rig.sdo_write(2, 0x1017, 0, 7, 2)  # node 2 produces a heartbeat every 7 ms
     rig.sdo_write(1, 0x1016, 1, (0x7F << 16) | 40, 4)  # node 1 watches the master: 40 ms
+    # node 3 watches node 2: node 2's heartbeat reaches it within the transmission
+    rig.sdo_write(3, 0x1016, 1, (2 << 16) | 40, 4)
     cws = dict.fromkeys(IDS, 0x06)
     zero = dict.fromkeys(IDS, 0)
     for cw in (0x06, 0x07, ENABLE):
@@ -135,6 +144,10 @@ def script(rig: Rig) -> None:
             cws[3] = (0x06, 0x07, ENABLE)[k - 260]
         if k == 300:
             torques.pop(1)  # a cycle without node 1's RPDO
+        if k in (320, 330):  # node 3 stopped (its plant not stepped), started again
+            extra = ((0x000, bytes([0x02 if k == 320 else 0x01, 3])),)
+        if k in (400, 401, 402, 403):  # its fault (the communication lost) reset
+            cws[3] = (FAULT_RESET, 0x06, 0x07, ENABLE)[k - 400]
         rig.cycle(cws, torques, extra)
         if k in (50, 150, 250, 350):
             for node in IDS:
@@ -152,6 +165,7 @@ def test_the_bank_leaves_every_frame_and_state_as_each_nodes_own_path(stacked, m
     script(own)
     script(bank)
     assert bank.banked > 200  # most cycles ran as a bank
+    assert bank.mixed > 20  # some with a node on its own path (a fault, a quick stop...)
     assert len(own.log) == len(bank.log)
     for step, (a, b) in enumerate(zip(own.log, bank.log, strict=True)):
         assert a[0] == b[0], step
