@@ -317,13 +317,7 @@ class DriveBank:
         per_mille = min(values[MAX_TORQUE_KEY], values.get(MAX_CURRENT_KEY, math.inf))
         limit = min(per_mille * rated / 1000.0, plant.current_limit_ma)
         limited = min(max(wanted, -limit), limit)
-        amplifier, applied = plant.current_limit_ma, float(limited)
-        if applied - applied != 0.0:  # not finite: no current
-            applied = 0.0
-        elif applied > amplifier:
-            applied = amplifier
-        elif applied < -amplifier:
-            applied = -amplifier
+        applied = plant.saturated(limited)
         return fields, limited != wanted, applied, applied - plant.axis.u_offset, t
 
     def _products(self, steps: list[Step | None]) -> list[float]:

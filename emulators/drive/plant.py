@@ -127,16 +127,21 @@ class AxisPlant:
         return (self.friction.current_ma(self.velocity_deg_s)
                 - self.disturbance.current_ma(self.time_s) - self.extra_disturbance_ma)
 
-    def step(self, current_ma: float, periods: int = 1) -> None:
-        """Apply ``current_ma`` (saturated at the current limit) for ``periods`` model periods."""
+    def saturated(self, current_ma: float) -> float:
+        """The current the amplifier applies for ``current_ma``: saturated at the current
+        limit, none when it is not finite."""
         limit, applied = self.current_limit_ma, float(current_ma)
         if applied - applied != 0.0:  # not finite: no current
-            applied = 0.0
-        elif applied > limit:
-            applied = limit
-        elif applied < -limit:
-            applied = -limit
-        self.applied_current_ma = applied
+            return 0.0
+        if applied > limit:
+            return limit
+        if applied < -limit:
+            return -limit
+        return applied
+
+    def step(self, current_ma: float, periods: int = 1) -> None:
+        """Apply ``current_ma`` (saturated at the current limit) for ``periods`` model periods."""
+        self.applied_current_ma = applied = self.saturated(current_ma)
         xu, z, n = self._xu, self._next, self._n
         product = self._step_matrix.dot  # np.matmul's (the same BLAS call), without a ufunc's cost
         u_offset, y_offset = self.axis.u_offset, self.axis.y_offset
