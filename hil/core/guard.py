@@ -35,20 +35,10 @@ def guarded_call(label: str, method: str, call: Callable[..., Any], *args: Any,
     except HilError:
         raise
     except Exception as exc:
-        raise raised_in(label, method, exc) from exc
+        raise ControllerError(f"controller {label!r} raised in {method}(): "
+                              f"{describe_exception(exc)}") from exc
     elapsed = time.perf_counter() - start
     if budget_s is not None and elapsed > budget_s:
-        raise over_budget(label, method, elapsed, budget_s)
+        raise ControllerError(f"controller {label!r} took {elapsed:.3g} s in {method}(), over "
+                              f"its budget of {budget_s:g} s (--controller-budget)")
     return result, elapsed
-
-
-def raised_in(label: str, method: str, exc: Exception) -> ControllerError:
-    """The error of :func:`guarded_call` for ``exc`` (not a HilError) raised by ``method``."""
-    return ControllerError(f"controller {label!r} raised in {method}(): "
-                           f"{describe_exception(exc)}")
-
-
-def over_budget(label: str, method: str, elapsed: float, budget_s: float) -> ControllerError:
-    """The error of :func:`guarded_call` for a call that took ``elapsed`` [s]."""
-    return ControllerError(f"controller {label!r} took {elapsed:.3g} s in {method}(), over "
-                           f"its budget of {budget_s:g} s (--controller-budget)")

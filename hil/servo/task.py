@@ -31,8 +31,6 @@ tick, otherwise every ``PREDICTION_EVERY_REALTIME``-th tick by default (200 Hz).
 from __future__ import annotations
 
 import math
-from time import perf_counter
-from typing import NoReturn
 
 import numpy as np
 
@@ -49,13 +47,13 @@ from hil.controllers.base import (
     solver_of,
 )
 from hil.controllers.servo.references import PlacedReference, ReferenceSamples, Scenario
-from hil.core.guard import over_budget, raised_in
+from hil.core.guard import guarded_call
 from hil.core.loop import Task
 from hil.core.session import Session
 from hil.core.verdict import SignalWatch
 from hil.drivers.canopen import CanDriveMaster, Feedback, SdoAbortError
 from hil.drivers.canopen.identity import not_hil_emulator, read_identity
-from hil.errors import ControllerError, HilError, UsageError
+from hil.errors import ControllerError, UsageError
 from hil.servo.safety import SafetyMonitor
 from hil.servo.topics import FEEDBACK_SCHEMA, PREDICTION_SCHEMA, STOP_SCHEMA, command_schema
 from hil.servo.tracking import TrackingStats
@@ -151,25 +149,23 @@ class ServoTask(Task):
 
     def compute_at(self, n: int, t_s: float) -> None:
         """:meth:`compute` of tick ``n`` at ``t_s`` (``n * dt``: the axes' task works it out
-        once for them all). The step guarded as :func:`guarded_call` guards it: a raise, a
-        command that is not a finite number or a step over budget is a ControllerError (on
-        ``/events`` too)."""
+        once for them all). A raise, a command that is not a finite number or a step over
+        budget is a ControllerError (on ``/events`` too)."""
         feedback = self._feedback
         assert feedback is not None
         self._tick, self._t_s = n, t_s
         position = feedback.position_deg
         if not self.unwrapped:
             position %= 360.0
-        start = perf_counter()
         try:
-            u = self.controller.step(position, t_s)
-        except Exception as exc:
-            self._failed(exc, t_s)
-        elapsed = perf_counter() - start
-        if self.budget_s is not None and elapsed > self.budget_s:
-            self._failed(over_budget(self.label, "step", elapsed, self.budget_s), t_s)
-        if u.__class__ is not float or u - u != 0.0:  # not a finite float: checked in full
-            u = self._command_of(u, t_s)
+            u, elapsed = guarded_call(self.label, "step", self.controller.step, position, t_s,
+                                      budget_s=self.budget_s)
+            if u.__class__ is not float or u - u != 0.0:  # not a finite float: checked in full
+                u = self._command_of(u)
+        except ControllerError as exc:
+            self.session.event("controller.error", str(exc), level="error",
+                               source="controller", t_s=t_s)
+            raise
         self._command, self._compute_us = u, elapsed * 1e6
 
     def write(self, t_ns: int) -> None:
@@ -283,26 +279,14 @@ class ServoTask(Task):
                                        feedback.current_ma, feedback.statusword,
                                        feedback.cycle, feedback.fresh))
 
-    def _command_of(self, u: object, t_s: float) -> float:
+    def _command_of(self, u: object) -> float:
         """A step's ``u`` that is not a plain finite float: as a float, or a ControllerError
         when it is not a finite number."""
         if isinstance(u, bool) or not isinstance(u, NUMBERS) or not math.isfinite(u):
-            self._failed(ControllerError(
+            raise ControllerError(
                 f"controller {self.label!r}: step() must return a finite {self.output} in "
-                f"{OUTPUT_UNITS[self.output]}, got {type(u).__name__} {u!r:.60}"), t_s)
+                f"{OUTPUT_UNITS[self.output]}, got {type(u).__name__} {u!r:.60}")
         return float(u)
-
-    def _failed(self, exc: Exception, t_s: float) -> NoReturn:
-        """Raise what the step's ``exc`` is to the run: a HilError as it is, any other as a
-        ControllerError naming the controller (:func:`raised_in`); a ControllerError on
-        ``/events`` too."""
-        error = exc if isinstance(exc, HilError) else raised_in(self.label, "step", exc)
-        if isinstance(error, ControllerError):
-            self.session.event("controller.error", str(error), level="error",
-                               source="controller", t_s=t_s)
-        if error is exc:
-            raise exc
-        raise error from exc
 
     def _check_limits(self, error: float, command: float, feedback: Feedback) -> None:
         assert self.watch is not None
