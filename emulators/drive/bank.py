@@ -60,9 +60,6 @@ from hil.emulators.drive.states import STATUSWORD
 from hil.protocols.can_frames import Frame
 from hil.protocols.cia301 import CONSUMER_HEARTBEAT, NMT_OPERATIONAL, PRODUCER_HEARTBEAT
 from hil.protocols.cia402 import (
-    DI_HOME_SWITCH,
-    DI_NEGATIVE_LIMIT,
-    DI_POSITIVE_LIMIT,
     MAX_CURRENT,
     MAX_TORQUE,
     MODES_DISPLAY,
@@ -314,8 +311,7 @@ class DriveBank:
         wanted = fields[layout.torque_index] * rated / 1000.0
         if abs(wanted) > values[TRIP_KEY]:
             return None  # the over-current fault
-        per_mille = min(values[MAX_TORQUE_KEY], values.get(MAX_CURRENT_KEY, math.inf))
-        limit = min(per_mille * rated / 1000.0, plant.current_limit_ma)
+        limit = node.motor.current_limit_ma()
         limited = min(max(wanted, -limit), limit)
         applied = plant.saturated(limited)
         return fields, limited != wanted, applied, applied - plant.axis.u_offset, t
@@ -373,10 +369,6 @@ class DriveBank:
             velocity = (position - plant.position_deg) / plant.dt
             per_turn, offset = plant.increments_per_rev, node.motor.count.offset
             exact = position / 360.0 * per_turn
-            switches = node._switches
-            inputs = (DI_NEGATIVE_LIMIT if position <= switches.negative_limit_deg else 0) \
-                | (DI_POSITIVE_LIMIT if position >= switches.positive_limit_deg else 0) \
-                | (DI_HOME_SWITCH if position >= switches.home_switch_deg else 0)
             try:
                 speed = round(velocity / 360.0 * per_turn)
                 torque = round(step[2] * 1000.0 / node._values[RATED_KEY])
@@ -384,7 +376,7 @@ class DriveBank:
                     (math.floor(exact) + offset) % per_turn,
                     (math.floor(exact + offset) + 2**31) % 2**32 - 2**31,
                     (speed + 2**31) % 2**32 - 2**31,
-                    inputs,
+                    node._switches.inputs(position),
                     -(2**31) if speed < -(2**31) else 2**31 - 1 if speed > 2**31 - 1 else speed,
                     -32768 if torque < -32768 else 32767 if torque > 32767 else torque,
                     LIMITED_STATUSWORD if step[1] else STEADY_STATUSWORD)))
