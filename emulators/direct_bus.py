@@ -38,7 +38,7 @@ class DirectChannel:
         self.name = name
         self.inboxes: list[deque[Frame]] = []
         self.buses: list[DirectBus] = []  # every bus attached, listening or not
-        self.filters: dict[int, Accepts] = {}  # by id() of the inbox: the filtered ones
+        self.filtered = False  # a bus has an acceptance filter: frames go by routes
         #: a frame was sent since the last :meth:`carried_frames`
         self.carried = False
 
@@ -52,6 +52,7 @@ class DirectChannel:
 
     def refilter(self) -> None:
         """What a filter accepts changed (or a bus came or went): every route afresh."""
+        self.filtered = any(bus.accepts is not None for bus in self.buses)
         for bus in self.buses:
             bus.routes.clear()
 
@@ -69,6 +70,8 @@ class DirectBus(can.BusABC):
         self._channel = channel
         self._on_send = on_send
         self._inbox: deque[Frame] = deque()
+        self.listening = listen
+        self.accepts: Accepts | None = None  # the acceptance filter (None: every frame)
         #: the inboxes each COB-ID goes to, when the channel has a filter (worked out once)
         self.routes: dict[int, tuple[deque[Frame], ...]] = {}
         if listen:
@@ -81,13 +84,13 @@ class DirectBus(can.BusABC):
     def accept(self, accepts: Accepts) -> None:
         """From now on this bus receives only the frames whose COB-ID ``accepts`` takes (it
         must tell :meth:`DirectChannel.refilter` whenever that changes)."""
-        self._channel.filters[id(self._inbox)] = accepts
+        self.accepts = accepts
         self._channel.refilter()
 
     def send_frames(self, frames: list[Frame]) -> None:
         """``frames``, in order, to every other bus of the channel (that accepts them)."""
         channel = self._channel
-        if channel.filters:
+        if channel.filtered:
             routes = self.routes
             for frame in frames:
                 inboxes = routes.get(frame[0])
@@ -106,9 +109,9 @@ class DirectBus(can.BusABC):
 
     def _route(self, can_id: int) -> tuple[deque[Frame], ...]:
         """The other inboxes that take ``can_id``."""
-        filters = self._channel.filters
-        return tuple(inbox for inbox in self._channel.inboxes if inbox is not self._inbox
-                     and ((accepts := filters.get(id(inbox))) is None or accepts(can_id)))
+        return tuple(bus._inbox for bus in self._channel.buses
+                     if bus is not self and bus.listening
+                     and (bus.accepts is None or bus.accepts(can_id)))
 
     def recv_frame(self, timeout: float | None = None) -> Frame | None:
         """The oldest frame waiting, or None (never waits: in lockstep nothing else runs)."""
@@ -145,6 +148,5 @@ class DirectBus(can.BusABC):
         channel = self._channel
         channel.inboxes[:] = [inbox for inbox in channel.inboxes if inbox is not self._inbox]
         channel.buses[:] = [bus for bus in channel.buses if bus is not self]
-        channel.filters.pop(id(self._inbox), None)
         channel.refilter()
         super().shutdown()
