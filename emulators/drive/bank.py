@@ -32,7 +32,6 @@ node's own path is ~8 us for a lone node and ~10 us a node on a shared bus.
 
 from __future__ import annotations
 
-import math
 import struct
 import time
 from collections import deque
@@ -44,6 +43,7 @@ import numpy as np
 
 from hil.emulators.drive.cyclic import OVERCURRENT_TRIP, CyclicTorque
 from hil.emulators.drive.node import (
+    ACTUAL_KEYS,
     CONTROLWORD_KEY,
     DEMAND_POSITION_KEY,
     DEMAND_VELOCITY_KEY,
@@ -53,6 +53,7 @@ from hil.emulators.drive.node import (
     TORQUE_KEY,
     VELOCITY_KEY,
     DriveNode,
+    wire_actuals,
 )
 from hil.emulators.drive.pdo import Pdo
 from hil.emulators.drive.plant import AxisPlant
@@ -78,8 +79,6 @@ STACK_FROM_NODES = 4
 #: the struct codes a PDO the bank unpacks or packs may map (integers)
 INTEGER_CODES = frozenset("bBhHlLq")
 #: the actual values the bank computes each cycle: what its TPDOs may map
-ACTUAL_KEYS = (POSITION_KEY, DEMAND_POSITION_KEY, DEMAND_VELOCITY_KEY, INPUTS_KEY, VELOCITY_KEY,
-               TORQUE_KEY, STATUSWORD_KEY)
 MODE_KEY, TARGET_TORQUE_KEY = (MODES_DISPLAY, 0), (TARGET_TORQUE, 0)
 RATED_KEY, MAX_TORQUE_KEY, MAX_CURRENT_KEY, TRIP_KEY = \
     (RATED_CURRENT, 0), (MAX_TORQUE, 0), (MAX_CURRENT, 0), (OVERCURRENT_TRIP, 0)
@@ -368,17 +367,11 @@ class DriveBank:
             position = output + plant.axis.y_offset
             velocity = (position - plant.position_deg) / plant.dt
             per_turn, offset = plant.increments_per_rev, node.motor.count.offset
-            exact = position / 360.0 * per_turn
-            try:
-                speed = round(velocity / 360.0 * per_turn)
-                torque = round(step[2] * 1000.0 / node._values[RATED_KEY])
-                actuals.append((position, velocity, (
-                    (math.floor(exact) + offset) % per_turn,
-                    (math.floor(exact + offset) + 2**31) % 2**32 - 2**31,
-                    (speed + 2**31) % 2**32 - 2**31,
-                    node._switches.inputs(position),
-                    -(2**31) if speed < -(2**31) else 2**31 - 1 if speed > 2**31 - 1 else speed,
-                    -32768 if torque < -32768 else 32767 if torque > 32767 else torque,
+            try:  # CST's demand: the count now (MotorLoops.demand)
+                actuals.append((position, velocity, wire_actuals(
+                    position, velocity, per_turn, offset,
+                    (position / 360.0 * per_turn + offset, velocity / 360.0 * per_turn),
+                    node._switches.inputs(position), step[2], node._values[RATED_KEY],
                     LIMITED_STATUSWORD if step[1] else STEADY_STATUSWORD)))
             except (ValueError, OverflowError):
                 actuals.append(None)

@@ -44,10 +44,6 @@ class PositionCount:
         """The position now [increments, not rounded]."""
         return self.plant.position_deg / 360.0 * self.per_turn + self.offset
 
-    def on_wire(self) -> int:
-        """0x6064: the position modulo one turn, in [0, increments per turn)."""
-        return self.counts() % self.per_turn
-
     def velocity(self) -> float:
         """The velocity now [increments/s]."""
         return self.plant.velocity_deg_s / 360.0 * self.per_turn

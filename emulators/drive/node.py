@@ -144,6 +144,32 @@ INPUTS_KEY = (DIGITAL_INPUTS, 0)
 NO_HOMING = 0  # 0x6098 = 0: no homing method
 
 
+#: the actual values a drive refreshes each cycle, in the order :func:`wire_actuals` gives them
+ACTUAL_KEYS = (POSITION_KEY, DEMAND_POSITION_KEY, DEMAND_VELOCITY_KEY, INPUTS_KEY, VELOCITY_KEY,
+               TORQUE_KEY, STATUSWORD_KEY)
+
+
+def wire_actuals(position_deg: float, velocity_deg_s: float, per_turn: int, offset: int,
+                 demand: tuple[float, float], inputs: int, applied_ma: float, rated_ma: int,
+                 statusword: int) -> tuple[int, ...]:
+    """The :data:`ACTUAL_KEYS` as the drive's objects hold them: the position modulo one turn
+    (0x6064), the demand position and velocity [increments, increments/s] wrapped into
+    INTEGER32 as a drive's counter wraps (0x6062, 0x606B), the inputs (0x60FD), the velocity
+    and the torque clamped to INTEGER32 and INTEGER16 (0x606C, 0x6077 in per mille of the
+    rated current), the statusword. A value that is not finite raises (ValueError,
+    OverflowError)."""
+    velocity = round(velocity_deg_s / 360.0 * per_turn)
+    torque = round(applied_ma * 1000.0 / rated_ma)
+    demand_position, demand_velocity = demand
+    return ((math.floor(position_deg / 360.0 * per_turn) + offset) % per_turn,
+            (math.floor(demand_position) + 2**31) % 2**32 - 2**31,
+            (round(demand_velocity) + 2**31) % 2**32 - 2**31,
+            inputs,
+            -(2**31) if velocity < -(2**31) else 2**31 - 1 if velocity > 2**31 - 1 else velocity,
+            -32768 if torque < -32768 else 32767 if torque > 32767 else torque,
+            statusword)
+
+
 SendFn = Callable[[list[Frame]], None]
 # what writing an object means beyond storing its value: (index, subindex, value), raises
 # SdoAbortError with the CiA code to refuse it
@@ -733,21 +759,11 @@ class DriveNode:
         self._refresh_actuals()
 
     def _refresh_actuals(self) -> None:
-        values, plant, motor = self._values, self.plant, self.motor
-        per_turn = plant.increments_per_rev  # motor.count.on_wire(), inline:
-        values[POSITION_KEY] = (math.floor(plant.position_deg / 360.0 * per_turn)
-                                + motor.count.offset) % per_turn
-        demand_position, demand_velocity = motor.demand()
-        # wrapped into INTEGER32, as a drive's counter wraps
-        values[DEMAND_POSITION_KEY] = (math.floor(demand_position) + 2**31) % 2**32 - 2**31
-        values[DEMAND_VELOCITY_KEY] = (round(demand_velocity) + 2**31) % 2**32 - 2**31
-        values[INPUTS_KEY] = self._switches.inputs(plant.position_deg)
-        velocity = round(plant.velocity_deg_s / 360.0 * per_turn)  # velocity_increments_s()
-        values[VELOCITY_KEY] = -(2**31) if velocity < -(2**31) else \
-            2**31 - 1 if velocity > 2**31 - 1 else velocity
-        torque = round(plant.applied_current_ma * 1000.0 / values[RATED_KEY])
-        values[TORQUE_KEY] = -32768 if torque < -32768 else 32767 if torque > 32767 else torque
-        values[STATUSWORD_KEY] = self.states.statusword
+        plant, motor, values = self.plant, self.motor, self._values
+        values.update(zip(ACTUAL_KEYS, wire_actuals(
+            plant.position_deg, plant.velocity_deg_s, plant.increments_per_rev,
+            motor.count.offset, motor.demand(), self._switches.inputs(plant.position_deg),
+            plant.applied_current_ma, values[RATED_KEY], self.states.statusword), strict=True))
 
     # ----------------------------------------------------------------------------- EMCY
     def _emcy(self, code: int, register: int, manufacturer: bytes = b"",

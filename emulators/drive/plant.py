@@ -184,7 +184,3 @@ class AxisPlant:
         return math.floor(self.position_deg / 360.0 * self.increments_per_rev) \
             % self.increments_per_rev
 
-    def velocity_increments_s(self) -> int:
-        """Velocity in increments per second (the drive's 0x606C unit), clamped to int32."""
-        value = round(self.velocity_deg_s / 360.0 * self.increments_per_rev)
-        return max(-(2**31), min(2**31 - 1, value))

@@ -100,7 +100,14 @@ def test_encoder_reports_increments_modulo_one_revolution():
     run(backwards, -100.0, 0.1)
     assert backwards.position_deg < 0
     assert backwards.position_increments() == math.floor(backwards.position_deg / 0.36) % 1000
-    assert backwards.velocity_increments_s() == round(backwards.velocity_deg_s / 0.36)
+    # what a drive puts in 0x6064 and 0x606C for that axis (its count's offset 0)
+    from hil.emulators.drive.node import ACTUAL_KEYS, POSITION_KEY, VELOCITY_KEY, wire_actuals
+
+    wire = dict(zip(ACTUAL_KEYS, wire_actuals(
+        backwards.position_deg, backwards.velocity_deg_s, 1000, 0, (0.0, 0.0), 0, 0.0, 1000, 0),
+        strict=True))
+    assert wire[POSITION_KEY] == backwards.position_increments()
+    assert wire[VELOCITY_KEY] == round(backwards.velocity_deg_s / 0.36)
 
 
 @pytest.mark.parametrize("kwargs", [{"current_limit_ma": 0.0}, {"increments_per_rev": 1},
