@@ -13,7 +13,10 @@ answer ``< error unknown command >`` as socketcand answers an unknown command. A
 Bus semantics: a frame sent by one client goes to ``on_data`` (an 11-bit data frame as its id
 and data: what an emulated node takes, without a :class:`can.Message` built for it) and
 ``on_frame`` (every frame, as a message), and to every other client in raw mode; frames from
-the node (:meth:`broadcast`) go to every raw-mode client.
+the node (:meth:`broadcast`) go to every raw-mode client. With ``on_frames`` instead of
+``on_data``, the 11-bit data frames of one read (a master's transmission: its RPDOs and the
+SYNC, sent together) are handed over together, once the read's commands are done or before
+the first that is not a ``send``.
 
 One detail differs from socketcand on purpose: right after ``< rawmode >`` / ``< ok >`` the
 server holds frames for that client until the client sends its next command, or for
@@ -140,6 +143,7 @@ class SocketcandServer:
         channel: str = "can0",
         on_frame: Callable[[can.Message], None] | None = None,
         on_data: Callable[[int, bytes], None] | None = None,
+        on_frames: Callable[[list[Frame]], None] | None = None,
         on_tick: Callable[[], None] | None = None,
         tick_period_s: float = 0.001,
         next_frame_ns: Callable[[int], int | None] | None = None,
@@ -148,6 +152,8 @@ class SocketcandServer:
         self.channel = channel
         self.on_frame = on_frame
         self.on_data = on_data
+        self.on_frames = on_frames
+        self._read_frames: list[Frame] = []  # this read's frames, for on_frames
         self.on_tick = on_tick
         self.tick_period_s = tick_period_s
         self.next_frame_ns = next_frame_ns
@@ -309,11 +315,20 @@ class SocketcandServer:
             self._command(client, buf[start:end + 1])
             buf = buf[end + 1:]
         client.inbuf = buf
+        self._hand_over()
+
+    def _hand_over(self) -> None:
+        """The frames read so far to ``on_frames``, together."""
+        if self._read_frames and self.on_frames is not None:
+            frames, self._read_frames = self._read_frames, []
+            self._call(self.on_frames, frames)
 
     # ------------------------------------------------------------------------ commands
     def _command(self, client: _Client, command: str) -> None:
         words = command[1:-1].split()
         verb = words[0] if words else ""
+        if verb != "send":
+            self._hand_over()  # the frames before it are taken before it is answered
         if client.hold_until is not None:
             self._release(client)
         if client.mode == "nobus":
@@ -336,8 +351,11 @@ class SocketcandServer:
             can_id, data, extended = sent
             if len(self._clients) > 1:
                 self._forward(can_id, data, extended, exclude=client)
-            if self.on_data is not None and not extended:
-                self._call(self.on_data, can_id, data)
+            if not extended:
+                if self.on_frames is not None:
+                    self._read_frames.append((can_id, data))
+                elif self.on_data is not None:
+                    self._call(self.on_data, can_id, data)
             if self.on_frame is not None:
                 self._call(self.on_frame, can.Message(arbitration_id=can_id, data=data,
                                                       is_extended_id=extended,

@@ -16,6 +16,7 @@ import signal
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Protocol
@@ -25,11 +26,13 @@ if TYPE_CHECKING:
     from hil.core.realtime import Hardening, Step
     from hil.drivers.canopen.can_log import CanLog
     from hil.emulators.bench.server import EmulatedBench
+    from hil.emulators.drive.bank import DriveBank
     from hil.emulators.drive.config import DriveEmulatorConfig
     from hil.emulators.drive.node import DriveNode
     from hil.emulators.ethercat.segment import EmulatedSegment
     from hil.emulators.faults import Fault
     from hil.emulators.socketcand_server import SocketcandServer
+    from hil.protocols.can_frames import Frame
 
 BENCH_LIVE_HZ = 10.0   # the emulators' state on --live: a modest rate, off their serving thread
 DRIVE_LIVE_HZ = 50.0
@@ -217,11 +220,13 @@ def serve_bench(config: BenchConfig, *, tcp: tuple[str, int] | None = None,
 @dataclass
 class ServedDrives:
     """Emulated CiA 402 drives, one per node id, on one socketcand server; every frame
-    received and sent goes to ``trace`` too, if any."""
+    received and sent goes to ``trace`` too, if any. ``bank`` runs their steady lockstep
+    cycles (None: each node's own path)."""
 
     server: SocketcandServer
     nodes: list[DriveNode]
     trace: CanLog | None = None
+    bank: DriveBank | None = None
     hardening: Hardening | None = None  # the serving thread's, once hardened
     hardened: bool = False              # its real-time steps in force now
 
@@ -300,11 +305,15 @@ def with_serial(config: DriveEmulatorConfig, serial: int) -> DriveEmulatorConfig
 def serve_drives(config: DriveEmulatorConfig, node_ids: list[int], host: str, port: int, *,
                  clock: str = "auto", faults: Sequence[Fault] = (),
                  can_log: str | None = None,
-                 on_fault: Callable[[str], None] | None = None) -> ServedDrives:
+                 on_fault: Callable[[str], None] | None = None,
+                 bank: bool = True) -> ServedDrives:
     """The emulated drives of ``config``, one per node id, each with its own axis, booted on
     a socketcand server at ``host``:``port`` (port 0: any free port); ``clock`` is their
     time, ``faults`` they play (each told to ``on_fault`` as it starts), ``can_log`` a file
-    every CAN frame is written to."""
+    every CAN frame is written to. Each read's frames go to the nodes together, a lockstep
+    master's steady cycle for every node in one pass (``bank``: False for each node's own
+    path, as :class:`~hil.emulators.drive.runners.LockstepDrive`)."""
+    from hil.emulators.drive.bank import DriveBank, deliver
     from hil.emulators.drive.node import DriveNode
     from hil.emulators.socketcand_server import SocketcandServer
 
@@ -322,20 +331,28 @@ def serve_drives(config: DriveEmulatorConfig, node_ids: list[int], host: str, po
                        send=send, clock=clock, faults=faults, on_fault=on_fault)
              for node_id in node_ids]
 
-    def handle(can_id: int, data: bytes) -> None:
-        for node in nodes:
-            node.handle_frame(can_id, data)
+    # each transmission's frames to the nodes that hear them, the steady ones in one pass
+    inboxes: list[deque[Frame]] = [deque() for _ in nodes]
+    banked = DriveBank(nodes, inboxes) if bank else None
+
+    def handle(frames: list[Frame]) -> None:
+        heard_ns = time.monotonic_ns()
+        for frame in frames:
+            for node, inbox in zip(nodes, inboxes, strict=True):
+                if node.hears(frame[0]):
+                    inbox.append(frame)
+        deliver(nodes, inboxes, banked, heard_ns, service=False)
 
     def service() -> None:
         for node in nodes:
             node.service()
 
-    server.on_data = handle if trace is None else _traced_handle(handle, trace)
+    server.on_frames = handle if trace is None else _traced_handle(handle, trace)
     server.on_tick = service
     server.next_frame_ns = nodes[0].next_sync_ns  # one SYNC for them all
     for node in nodes:
         node.boot()
-    return ServedDrives(server, nodes, trace)
+    return ServedDrives(server, nodes, trace, banked)
 
 
 @dataclass
@@ -421,10 +438,11 @@ def _traced_send(send: Callable[[list], None], trace: Any) -> Callable[[list], N
     return traced
 
 
-def _traced_handle(handle: Callable[[int, bytes], None], trace: Any
-                   ) -> Callable[[int, bytes], None]:
-    def traced(can_id: int, data: bytes) -> None:
-        trace.received((can_id, data))
-        handle(can_id, data)
+def _traced_handle(handle: Callable[[list[Frame]], None], trace: Any
+                   ) -> Callable[[list[Frame]], None]:
+    def traced(frames: list[Frame]) -> None:
+        for frame in frames:
+            trace.received(frame)
+        handle(frames)
 
     return traced

@@ -266,7 +266,8 @@ class DriveBank:
             layout = self.layout = BankLayout(self.nodes)
         if not layout.ok:
             return False
-        steps = [self._step(layout, node, inbox, rpdo_cob, sync_cob) for node, inbox,
+        quiet_ns = 0 if heard_ns is None else time.monotonic_ns() - heard_ns
+        steps = [self._step(layout, node, inbox, rpdo_cob, sync_cob, quiet_ns) for node, inbox,
                  rpdo_cob, sync_cob in zip(self.nodes, self.inboxes, layout.rpdo_cobs,
                                            layout.sync_cobs, strict=True)]
         if steps.count(None) == len(steps):
@@ -276,11 +277,13 @@ class DriveBank:
         return True
 
     def _step(self, layout: BankLayout, node: DriveNode, inbox: deque[Frame], rpdo_cob: int,
-              sync_cob: int) -> Step | None:
+              sync_cob: int, quiet_ns: int) -> Step | None:
         """The node's cycle up to its plant's product (the RPDO decoded, the current as
         MotorLoops.current and CyclicTorque.current compute it, the plant's saturation and
         input as AxisPlant.step's), when it has exactly its RPDO and a SYNC waiting and is in
-        the steady state with nothing due this cycle; else None."""
+        the steady state with nothing due this cycle; else None. ``quiet_ns``: the wall time
+        since the transmission was heard (a master on whose time the node is, bounded, gone
+        after it: DriveNode._service)."""
         if len(inbox) != 2:
             return None
         (first_id, first), (second_id, second) = inbox
@@ -295,7 +298,8 @@ class DriveBank:
                 states.comm_warning or states.ramp_start_ns is not None or \
                 cw != states.controlword or not (self.steady_controlwords.get(cw) or
                                                  self._steady_controlword(cw)) or \
-                node._gone_after_ns or not node._sync_timebase or \
+                (node._gone_after_ns and quiet_ns > node._gone_after_ns) or \
+                not node._sync_timebase or \
                 node._steps_per_sync != 1 or plant._configured_load or \
                 plant.extra_disturbance_ma or values[MODE_KEY] != CST:
             return None
@@ -423,3 +427,32 @@ class DriveBank:
             if pick is not None:
                 raw = pack(*pick(values))
                 node._send([(cob, raw[begin:end]) for cob, begin, end in slices])
+
+
+def deliver(nodes: Sequence[DriveNode], inboxes: Sequence[deque[Frame]], bank: DriveBank | None,
+            heard_ns: int | None, *, service: bool) -> None:
+    """Every frame waiting in each node's inbox (``inboxes``, node by node) handed to it: each
+    steady node's cycle in ``bank``'s pass, each other node all of its own in one call in its
+    turn (one with none waiting, a bus's filter having taken them away, still heard the bus
+    at ``heard_ns``, the monotonic clock; None: nothing was on the bus). With ``service``,
+    then the time service of each node whose last frame did not just run it (a SYNC's, on
+    the master's time: time has not moved since)."""
+    unserviced: list[DriveNode] = []
+
+    def own(i: int) -> None:
+        node, inbox = nodes[i], inboxes[i]
+        if inbox:
+            frames = list(inbox)
+            inbox.clear()
+            if not node.handle_frames(frames, heard_ns):
+                unserviced.append(node)
+            return
+        if heard_ns is not None:
+            node.hear(heard_ns)
+        unserviced.append(node)
+    if bank is None or not bank.cycle(heard_ns, own):
+        for i in range(len(nodes)):
+            own(i)
+    if service:
+        for node in unserviced:
+            node.service()

@@ -19,7 +19,7 @@ from typing import Any
 import can
 
 from hil.emulators.direct_bus import DirectChannel
-from hil.emulators.drive.bank import DriveBank
+from hil.emulators.drive.bank import DriveBank, deliver
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.node import DriveNode, SendFn
 from hil.emulators.drive.plant import AxisPlant
@@ -126,8 +126,8 @@ class LockstepDrive:
                 node.on_hearing_changed = self.channel.refilter
         for node in self.nodes:
             node.boot()
-        self._bank = DriveBank(self.nodes, [bus.waiting for bus in self._node_buses]) \
-            if bank else None
+        self._inboxes = [bus.waiting for bus in self._node_buses]
+        self._bank = DriveBank(self.nodes, self._inboxes) if bank else None
 
     def _teller(self, i: int, on_fault: Callable[[int, dict[str, Any]], None] | None
                 ) -> Callable[[str], None] | None:
@@ -145,28 +145,11 @@ class LockstepDrive:
         return self.channel.attach()
 
     def pump(self) -> None:
-        """Deliver every frame waiting for the nodes: each steady node's cycle in the bank's
-        pass, each other node all of its own in one call in its turn (one that the filters left
-        none of still heard the bus), then run the time service of each node whose last frame
-        did not just run it (a SYNC's, on the master's time: time has not moved since)."""
-        heard_ns = time.monotonic_ns() if self.channel.carried_frames() else None
-        unserviced: list[DriveNode] = []
-
-        def own(i: int) -> None:
-            node = self.nodes[i]
-            frames = self._node_buses[i].take_frames()
-            if frames:
-                if not node.handle_frames(frames, heard_ns):
-                    unserviced.append(node)
-                return
-            if heard_ns is not None:
-                node.hear(heard_ns)
-            unserviced.append(node)
-        if self._bank is None or not self._bank.cycle(heard_ns, own):
-            for i in range(len(self.nodes)):
-                own(i)
-        for node in unserviced:
-            node.service()
+        """Deliver every frame waiting for the nodes (:func:`~hil.emulators.drive.bank.deliver`:
+        the steady ones in the bank's pass), then run the time service of each node whose
+        last frame did not just run it."""
+        deliver(self.nodes, self._inboxes, self._bank,
+                time.monotonic_ns() if self.channel.carried_frames() else None, service=True)
 
     def time_ns(self) -> int:
         """The drive's time: its SYNCs so far, one communication cycle each."""

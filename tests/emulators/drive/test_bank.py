@@ -3,15 +3,20 @@ path: one scripted sequence through both, every frame and every node's state com
 each transmission, bit for bit."""
 
 import math
+import re
+import socket
 import struct
+import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 import pytest
 
+from hil.emulation import serve_drives
 from hil.emulators.drive import bank as bank_module
-from hil.emulators.drive.bank import DriveBank, stack_matches
+from hil.emulators.drive.bank import DriveBank, deliver, stack_matches
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.plant import AxisPlant
 from hil.emulators.drive.runners import LockstepDrive
@@ -20,6 +25,11 @@ from hil.emulators.drive.switches import Switches
 IDS = (1, 2, 3)
 CST, ENABLE, FAULT_RESET, QUICK_STOP = 10, 0x0F, 0x80, 0x02
 MASTER_HEARTBEAT = 0x77F
+# a rated current that makes the torque's per mille a fraction to round; switches within the
+# axes' travel
+CONFIG = DriveEmulatorConfig(rated_current_ma=1300, max_torque_permille=900,
+                             switches=Switches(negative_limit_deg=-0.5, positive_limit_deg=2.0,
+                                               home_switch_deg=1.0))
 
 
 def exact(value: Any) -> Any:
@@ -62,18 +72,20 @@ class Rig:
     state after it, recorded."""
 
     def __init__(self, bank: bool) -> None:
-        # a rated current that makes the torque's per mille a fraction to round; switches
-        # within the axes' travel
-        config = DriveEmulatorConfig(rated_current_ma=1300, max_torque_permille=900,
-                                     switches=Switches(negative_limit_deg=-0.5,
-                                                       positive_limit_deg=2.0,
-                                                       home_switch_deg=1.0))
-        self.drive = LockstepDrive(config, node_ids=IDS, bank=bank)
+        self.drive: Any = LockstepDrive(CONFIG, node_ids=IDS, bank=bank)
         self.bus = self.drive.master_bus
+        self.bank = self.drive._bank
+        self.count(self.bank)
+        self.log: list[Any] = []
+
+    def close(self) -> None:
+        self.drive.close()
+
+    def count(self, bank: DriveBank | None) -> None:
+        """Count the transmissions ``bank`` runs."""
         self.banked = self.mixed = 0  # transmissions the bank ran, with some nodes' own path
-        if bank:
-            assert self.drive._bank is not None
-            cycle = self.drive._bank.cycle
+        if bank is not None:
+            cycle = bank.cycle
 
             def counted(heard_ns: int | None, own: Callable[[int], None]) -> bool:
                 owned = []
@@ -85,8 +97,7 @@ class Rig:
                 self.banked += done
                 self.mixed += done and bool(owned)
                 return done
-            self.drive._bank.cycle = counted  # type: ignore[method-assign]
-        self.log: list[Any] = []
+            bank.cycle = counted  # type: ignore[method-assign]
 
     def send(self, frames: list[tuple[int, bytes]]) -> None:
         self.bus.send_frames(frames)
@@ -109,6 +120,47 @@ class Rig:
 
     def sdo_read(self, node: int, index: int, sub: int = 0) -> None:
         self.send([(0x600 + node, struct.pack("<BHB", 0x40, index, sub) + bytes(4))])
+
+
+class WireRig(Rig):
+    """The same raw master over socketcand on loopback, the drives served as ``hil emulate
+    drive`` serves them (on SYNC time): each transmission one TCP write, its answers those
+    before the echo that follows it."""
+
+    def __init__(self, bank: bool) -> None:
+        config = replace(CONFIG, object_values=(((0x1018, 4), 1234),))  # not a random serial
+        self.drive = serve_drives(config, list(IDS), "127.0.0.1", 0, clock="sync", bank=bank)
+        # the time service on the frames alone: its wall-clock ticks would land between the
+        # script's transmissions at random (what they do is the same on both paths)
+        self.drive.server.tick_period_s = 3600.0
+        self.drive.server.start()
+        self.sock = socket.create_connection(self.drive.server.address, timeout=5.0)
+        self.replies = b""
+        self.sock.sendall(b"< open can0 >< rawmode >")
+        self.read_until(b"< ok >< ok >")
+        self.bank = self.drive.bank
+        self.count(self.bank)
+        self.log = []
+
+    def read_until(self, mark: bytes) -> bytes:
+        """What the server sent before ``mark`` (read up to and including it)."""
+        while mark not in self.replies:
+            self.replies += self.sock.recv(65536)
+        before, _, self.replies = self.replies.partition(mark)
+        return before
+
+    def send(self, frames: list[tuple[int, bytes]]) -> None:
+        self.sock.sendall(b"".join(b"< send %03X %d %s >" % (can_id, len(data), " ".join(
+            f"{byte:02X}" for byte in data).encode()) for can_id, data in frames))
+        self.sock.sendall(b"< echo >")
+        answers = [(int(can_id, 16), bytes.fromhex(data.decode())) for can_id, data in
+                   re.findall(rb"< frame ([0-9A-Fa-f]+) [0-9.]+ ([0-9A-Fa-f]*) >",
+                              self.read_until(b"< echo >"))]
+        self.log.append((frames, answers, snapshot(self.drive)))
+
+    def close(self) -> None:
+        self.sock.close()
+        self.drive.stop()
 
 
 def script(rig: Rig) -> None:
@@ -161,7 +213,27 @@ def test_the_bank_leaves_every_frame_and_state_as_each_nodes_own_path(stacked, m
     one stacked product."""
     monkeypatch.setattr(bank_module, "STACK_FROM_NODES", 1 if stacked else 99)
     own, bank = Rig(bank=False), Rig(bank=True)
-    assert bank.drive._bank is not None and bank.drive._bank.stacked is stacked
+    check_the_same(own, bank, stacked)
+    own.close()
+    bank.close()
+
+
+@pytest.mark.parametrize("stacked", [False, True])
+def test_drives_served_over_socketcand_run_as_a_bank_too(stacked, monkeypatch):
+    """``hil emulate drive``'s drives (each read's frames handed over together) leave every
+    answer and state as each node's own path does over the same wire."""
+    monkeypatch.setattr(bank_module, "STACK_FROM_NODES", 1 if stacked else 99)
+    own, bank = WireRig(bank=False), WireRig(bank=True)
+    try:
+        check_the_same(own, bank, stacked)
+    finally:
+        own.close()
+        bank.close()
+
+
+def check_the_same(own: Rig, bank: Rig, stacked: bool) -> None:
+    """The script through both rigs: the same answers and states, most cycles banked."""
+    assert own.bank is None and bank.bank is not None and bank.bank.stacked is stacked
     script(own)
     script(bank)
     assert bank.banked > 200  # most cycles ran as a bank
@@ -175,8 +247,6 @@ def test_the_bank_leaves_every_frame_and_state_as_each_nodes_own_path(stacked, m
     assert states == ["OPERATION ENABLED"] * 3
     emcy = [answer for _, answers, _ in own.log for answer in answers if answer[0] == 0x82]
     assert emcy[0][1][:2] == struct.pack("<H", 0x2310)  # the over-current fault happened
-    own.drive.close()
-    bank.drive.close()
 
 
 @pytest.mark.parametrize("node_ids", [None, [5]])
@@ -217,3 +287,27 @@ def test_drives_run_as_a_bank_by_default_stacked_from_four():
     assert [bank.stacked for bank in banks[:3] if bank is not None] == [False, False, True]
     for drive in drives:
         drive.close()
+
+
+@pytest.mark.parametrize("bank", [False, True])
+def test_a_master_silent_past_its_bound_is_gone_for_a_banked_drive_too(bank):
+    """A transmission heard longer after the last one than the master's bound (0x2005 on a
+    drive of its own clock) ends the master's time on both paths: the drives fault."""
+    rig = Rig(bank=bank)
+    rig.send([(0x000, bytes([0x01, 0]))])
+    for node in IDS:
+        rig.sdo_write(node, 0x6060, 0, CST, 1)
+    torques = dict.fromkeys(IDS, 100)
+    for cw in (0x06, 0x07, *[ENABLE] * 10):
+        rig.cycle(dict.fromkeys(IDS, cw), torques)
+    for node in rig.drive.nodes:
+        node._gone_after_ns = 50_000_000  # as a master's 0x2005 = 50 sets it
+    rig.cycle(dict.fromkeys(IDS, ENABLE), torques)
+    assert [node.state for node in rig.drive.nodes] == ["OPERATION ENABLED"] * 3
+    assert rig.banked >= 10 * bank  # the steady cycles ran in the bank's pass
+    for node, inbox in zip(IDS, rig.drive._inboxes, strict=True):
+        inbox.extend([(0x200 + node, struct.pack("<Hh", ENABLE, 100)), (0x080, b"")])
+    deliver(rig.drive.nodes, rig.drive._inboxes, rig.bank, time.monotonic_ns() - 100_000_000,
+            service=True)
+    assert [node.state for node in rig.drive.nodes] == ["FAULT REACTION ACTIVE"] * 3
+    rig.close()

@@ -94,6 +94,31 @@ def test_a_node_takes_each_11_bit_frame_as_its_id_and_data_without_a_message():
         srv.close()
 
 
+def test_a_reads_frames_reach_on_frames_together_and_before_the_next_command_is_answered():
+    """A master's transmission (its frames in one write) is one call of ``on_frames``; a
+    command after frames in the same read is answered after they were taken (their answers
+    come first)."""
+    batches: list[list[tuple[int, bytes]]] = []
+
+    def take(frames: list[tuple[int, bytes]]) -> None:
+        batches.append(frames)
+        srv.broadcast([(0x180 + len(batches), b"")])  # an answer to this batch
+    srv = SocketcandServer("127.0.0.1", 0, on_frames=take).start()
+    try:
+        sock = connect(srv)
+        read_until(sock, "< hi >")
+        sock.sendall(b"< open can0 >< rawmode >")
+        read_until(sock, "< ok >< ok >")
+        sock.sendall(b"< send 201 4 0F 00 E8 03 >< send 1ABCDEF0 2 1 f1 >< send 080 0 >"
+                     b"< echo >< send 202 1 07 >")
+        text = read_until(sock, "< frame 182 ")
+        assert re.match(r"< frame 181 [\d.]+  >< echo >< frame 182 ", text), text
+        assert batches == [[(0x201, b"\x0f\x00\xe8\x03"), (0x080, b"")], [(0x202, b"\x07")]]
+        sock.close()
+    finally:
+        srv.close()
+
+
 def test_unknown_bus_is_refused_and_the_connection_closed(server):
     sock = connect(server)
     read_until(sock, "< hi >")
