@@ -15,6 +15,7 @@ from hil.cli.argtypes import output_file
 #: are at most 2^-30 apart, so t / 1e9 is within 2^-31 s (< 0.5e-9 s) of the 9-decimal number
 #: and rounds back to it
 _EXACT_NS = (1 << 22) * 10**9
+CSV_BLOCK_ROWS = 8192  # rows formatted at a time: the text of a block, not of the topic
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -93,8 +94,23 @@ def _write_columns(data: Any, topic: str, out: io.StringIO) -> bool:
         columns[name] = values
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(columns)
-    writer.writerows(zip(*columns.values(), strict=True))
+    if any(isinstance(values[0], str) for values in columns.values()):
+        writer.writerows(zip(*columns.values(), strict=True))  # quoted as csv quotes them
+        return True
+    # numbers and booleans, cell by cell as csv.writer writes them (str; None as nothing),
+    # column by column in blocks of rows: a fifth less time than the writer's row by row
+    values = list(columns.values())
+    for begin in range(0, len(log_times), CSV_BLOCK_ROWS):
+        cells = [_cells(column[begin:begin + CSV_BLOCK_ROWS]) for column in values]
+        out.write("".join(f"{line}\n" for line in map(",".join, zip(*cells, strict=True))))
     return True
+
+
+def _cells(values: list[Any]) -> list[str]:
+    """Numbers or booleans as csv.writer writes them: ``str``, None as nothing."""
+    if None in values:
+        return ["" if value is None else str(value) for value in values]
+    return list(map(str, values))
 
 
 def session_seconds(log_times: Any, start_ns: int) -> list[float]:

@@ -14,6 +14,7 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
+from hil.cli import export as export_module
 from hil.cli.export import _EXACT_NS, _flatten, csv_text, session_seconds
 from hil.cli.report import topic_lines
 from hil.core.recording.cdr import CdrEncoder, Field, ros2msg_text
@@ -74,6 +75,26 @@ def test_a_cdr_topic_exports_as_its_rows_do(tmp_path, capsys):
                     cwd=tmp_path)
     assert done.returncode == 0 and "60 row(s) to t.csv" in done.stderr
     assert (tmp_path / "t.csv").read_text(encoding="utf-8") == text
+
+
+def test_a_topic_of_numbers_exports_as_its_rows_do_block_by_block(tmp_path, monkeypatch):
+    """No strings: the cells are made column by column, a block of rows at a time (blocks of 7
+    here: rows across blocks, a last one short), NaN and infinities left empty."""
+    monkeypatch.setattr(export_module, "CSV_BLOCK_ROWS", 7)
+    fields = [field for field in FIELDS if field.type != "string"]
+    messages = [{"t_s": VALUES[k % 8], "position_deg": VALUES[(k + 3) % 8],
+                 "current_mA": [*VALUES[:5], 3.4e38, *VALUES[6:]][(k + 5) % 8],
+                 "word": k * 997 % 65536, "fresh": k % 3 == 0, "count": -k * 10**12}
+                for k in range(60)]
+    path = tmp_path / "s.mcap"
+    write_session(path, messages, fields)
+    data = read_session(path)
+    text = csv_text(data, "/t")
+    assert text == rows_as_before(data, "/t")
+    table = list(csv.DictReader(io.StringIO(text)))
+    assert len(table) == 60 and table[2]["t_s"] == "" and table[6]["current_mA"] == ""  # inf
+    assert table[2]["current_mA"] == "0.3333333432674408"  # float32's 1/3
+    assert table[59]["count"] == str(-59 * 10**12) and table[57]["fresh"] == "True"
 
 
 def test_a_topic_without_its_own_t_s_counts_from_the_sessions_start(tmp_path):
