@@ -156,7 +156,8 @@ def _worst_window(stale: np.ndarray, late_us: np.ndarray, rtt: np.ndarray, slots
                   period_s: float, window_ms: float) -> dict[str, Any]:
     """The safety net's window (``window_ms`` of cycles) with the most stale cycles, judged."""
     size = min(stale.size, max(1, round(window_ms / 1000 / period_s)))
-    counts = np.convolve(stale.astype(np.int64), np.ones(size, np.int64), "valid")
+    sums = np.concatenate(([0], np.cumsum(stale, dtype=np.int64)))
+    counts = sums[size:] - sums[:-size]  # each window's stale cycles, as a convolution counts
     start = int(np.argmax(counts))
     part = slice(start, start + size)
     verdict = judge_stale(stale[part], late_us[part], rtt[part], period_s, slots[part])

@@ -139,3 +139,25 @@ def test_an_emulator_paused_mid_run_is_named_as_the_late_side(tmp_path, capsys):
     assert feedback["worst_window"]["stale"] > 200  # what tripped the net: 201 of 400
     assert read_session(out).metadata["realtime.emulator"]["pid"] == str(
         report["realtime_helpers"]["emulator"]["pid"])
+
+
+@pytest.mark.parametrize("cycles,window_ms", [(1, 10.0), (7, 1.0), (400, 20.0), (400, 200.0),
+                                              (2000, 20.0)])
+def test_the_worst_window_is_the_first_with_the_most_stale_cycles(cycles, window_ms):
+    """``hil report``'s worst window: each window's count as a convolution gives it, the first
+    of the largest taken."""
+    import numpy as np
+
+    from hil.servo.report import _worst_window
+
+    rng = np.random.default_rng(cycles)
+    stale = rng.random(cycles) < 0.3
+    stale[cycles // 3: cycles // 3 + 15] = True  # a burst
+    slots = np.arange(cycles)
+    window = _worst_window(stale, np.zeros(cycles), np.full(cycles, 100.0), slots, PERIOD_S,
+                           window_ms)
+    size = min(cycles, max(1, round(window_ms / 1000 / PERIOD_S)))
+    counts = np.convolve(stale.astype(np.int64), np.ones(size, np.int64), "valid")
+    start = int(np.argmax(counts))
+    assert (window["cycles"], window["stale"], window["t_s"]) == \
+        (size, int(counts.max()), round(start * PERIOD_S, 4))
