@@ -24,6 +24,15 @@ def connect(srv):
     return sock
 
 
+def raw_client(srv):
+    """A client of ``srv`` through the handshake, in raw mode."""
+    sock = connect(srv)
+    read_until(sock, "< hi >")
+    sock.sendall(b"< open can0 >< rawmode >")
+    read_until(sock, "< ok >< ok >")
+    return sock
+
+
 def read_until(sock, text, timeout=5.0):
     data, deadline = b"", time.monotonic() + timeout
     while text.encode() not in data and time.monotonic() < deadline:
@@ -75,10 +84,7 @@ def test_a_node_takes_each_11_bit_frame_as_its_id_and_data_without_a_message():
     messages: list[can.Message] = []
     srv = SocketcandServer("127.0.0.1", 0, on_data=lambda i, d: data.append((i, d))).start()
     try:
-        sock = connect(srv)
-        read_until(sock, "< hi >")
-        sock.sendall(b"< open can0 >< rawmode >")
-        read_until(sock, "< ok >< ok >")
+        sock = raw_client(srv)
         sock.sendall(b"< send 201 4 0F 00 E8 03 >< send 1ABCDEF0 2 1 f1 >< send 080 0 >"
                      b"< send 601 8 40 0 10 0 0 0 0 0 >< send 123 2 1 1ff >")
         assert wait_for(lambda: len(data) == 3)
@@ -105,10 +111,7 @@ def test_a_reads_frames_reach_on_frames_together_and_before_the_next_command_is_
         srv.broadcast([(0x180 + len(batches), b"")])  # an answer to this batch
     srv = SocketcandServer("127.0.0.1", 0, on_frames=take).start()
     try:
-        sock = connect(srv)
-        read_until(sock, "< hi >")
-        sock.sendall(b"< open can0 >< rawmode >")
-        read_until(sock, "< ok >< ok >")
+        sock = raw_client(srv)
         sock.sendall(b"< send 201 4 0F 00 E8 03 >< send 1ABCDEF0 2 1 f1 >< send 080 0 >"
                      b"< echo >< send 202 1 07 >")
         text = read_until(sock, "< frame 182 ")
