@@ -132,7 +132,7 @@ class WireRig(Rig):
         self.drive = serve_drives(config, list(IDS), "127.0.0.1", 0, clock="sync", bank=bank)
         # the time service on the frames alone: its wall-clock ticks would land between the
         # script's transmissions at random (what they do is the same on both paths)
-        self.drive.server.tick_period_s = 3600.0
+        self.drive.server.on_tick = None
         self.drive.server.start()
         self.sock = socket.create_connection(self.drive.server.address, timeout=5.0)
         self.replies = b""
