@@ -313,8 +313,9 @@ def serve_drives(config: DriveEmulatorConfig, node_ids: list[int], host: str, po
     every CAN frame is written to. Each read's frames go to the nodes together, a lockstep
     master's steady cycle for every node in one pass (``bank``: False for each node's own
     path, as :class:`~hil.emulators.drive.runners.LockstepDrive`)."""
-    from hil.emulators.drive.bank import DriveBank, deliver
+    from hil.emulators.drive.bank import DriveBank
     from hil.emulators.drive.node import DriveNode
+    from hil.emulators.drive.runners import deliver
     from hil.emulators.socketcand_server import SocketcandServer
 
     server = SocketcandServer(host, port, channel=config.channel)

@@ -266,8 +266,7 @@ class DriveBank:
             layout = self.layout = BankLayout(self.nodes)
         if not layout.ok:
             return False
-        quiet_ns = 0 if heard_ns is None else time.monotonic_ns() - heard_ns
-        steps = [self._step(layout, node, inbox, rpdo_cob, sync_cob, quiet_ns) for node, inbox,
+        steps = [self._step(layout, node, inbox, rpdo_cob, sync_cob, heard_ns) for node, inbox,
                  rpdo_cob, sync_cob in zip(self.nodes, self.inboxes, layout.rpdo_cobs,
                                            layout.sync_cobs, strict=True)]
         if steps.count(None) == len(steps):
@@ -277,13 +276,13 @@ class DriveBank:
         return True
 
     def _step(self, layout: BankLayout, node: DriveNode, inbox: deque[Frame], rpdo_cob: int,
-              sync_cob: int, quiet_ns: int) -> Step | None:
+              sync_cob: int, heard_ns: int | None) -> Step | None:
         """The node's cycle up to its plant's product (the RPDO decoded, the current as
         MotorLoops.current and CyclicTorque.current compute it, the plant's saturation and
         input as AxisPlant.step's), when it has exactly its RPDO and a SYNC waiting and is in
-        the steady state with nothing due this cycle; else None. ``quiet_ns``: the wall time
-        since the transmission was heard (a master on whose time the node is, bounded, gone
-        after it: DriveNode._service)."""
+        the steady state with nothing due this cycle; else None. ``heard_ns``: when the
+        transmission was heard (monotonic; None: now), which a node on a master's time with
+        a bound judges the master gone by (DriveNode._service)."""
         if len(inbox) != 2:
             return None
         (first_id, first), (second_id, second) = inbox
@@ -298,11 +297,13 @@ class DriveBank:
                 states.comm_warning or states.ramp_start_ns is not None or \
                 cw != states.controlword or not (self.steady_controlwords.get(cw) or
                                                  self._steady_controlword(cw)) or \
-                (node._gone_after_ns and quiet_ns > node._gone_after_ns) or \
                 not node._sync_timebase or \
                 node._steps_per_sync != 1 or plant._configured_load or \
                 plant.extra_disturbance_ma or values[MODE_KEY] != CST:
             return None
+        gone_ns = node._gone_after_ns
+        if gone_ns and heard_ns is not None and time.monotonic_ns() - heard_ns > gone_ns:
+            return None  # the master silent past its bound: the node's own path ends its time
         t = node._sync_origin_ns + node._sync_time_ns + node._plant_period_ns
         period_ms = values[(PRODUCER_HEARTBEAT, 0)]
         if period_ms and (node._hb_next_ns is None or t >= node._hb_next_ns):
@@ -428,31 +429,3 @@ class DriveBank:
                 raw = pack(*pick(values))
                 node._send([(cob, raw[begin:end]) for cob, begin, end in slices])
 
-
-def deliver(nodes: Sequence[DriveNode], inboxes: Sequence[deque[Frame]], bank: DriveBank | None,
-            heard_ns: int | None, *, service: bool) -> None:
-    """Every frame waiting in each node's inbox (``inboxes``, node by node) handed to it: each
-    steady node's cycle in ``bank``'s pass, each other node all of its own in one call in its
-    turn (one with none waiting, a bus's filter having taken them away, still heard the bus
-    at ``heard_ns``, the monotonic clock; None: nothing was on the bus). With ``service``,
-    then the time service of each node whose last frame did not just run it (a SYNC's, on
-    the master's time: time has not moved since)."""
-    unserviced: list[DriveNode] = []
-
-    def own(i: int) -> None:
-        node, inbox = nodes[i], inboxes[i]
-        if inbox:
-            frames = list(inbox)
-            inbox.clear()
-            if not node.handle_frames(frames, heard_ns):
-                unserviced.append(node)
-            return
-        if heard_ns is not None:
-            node.hear(heard_ns)
-        unserviced.append(node)
-    if bank is None or not bank.cycle(heard_ns, own):
-        for i in range(len(nodes)):
-            own(i)
-    if service:
-        for node in unserviced:
-            node.service()

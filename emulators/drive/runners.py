@@ -2,8 +2,10 @@
 a thread), or in lockstep on a private in-process channel (:class:`LockstepDrive`), where the
 node runs whenever the master transmits and its SYNC count is the clock.
 
-(``hil emulate drive`` wires the node straight to a
-:class:`~hil.emulators.socketcand_server.SocketcandServer`, in real time.)
+Both lockstep ways hand the nodes their frames through :func:`deliver` (the steady ones in a
+:class:`~hil.emulators.drive.bank.DriveBank`'s pass): :class:`LockstepDrive`, and ``hil
+emulate drive``, which wires the nodes to a
+:class:`~hil.emulators.socketcand_server.SocketcandServer` (``hil.emulation.serve_drives``).
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import math
 import threading
 import time
 import uuid
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any
@@ -19,17 +22,46 @@ from typing import Any
 import can
 
 from hil.emulators.direct_bus import DirectChannel
-from hil.emulators.drive.bank import DriveBank, deliver
+from hil.emulators.drive.bank import DriveBank
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.node import DriveNode, SendFn
 from hil.emulators.drive.plant import AxisPlant
-from hil.protocols.can_frames import frames_of
+from hil.protocols.can_frames import Frame, frames_of
 from hil.protocols.cia301 import SYNC_COB_ID
 
 
 def bus_sender(bus: can.BusABC) -> SendFn:
     """A node ``send`` function writing to a python-can bus."""
     return frames_of(bus).send_frames
+
+
+def deliver(nodes: Sequence[DriveNode], inboxes: Sequence[deque[Frame]], bank: DriveBank | None,
+            heard_ns: int | None, *, service: bool) -> None:
+    """Every frame waiting in each node's inbox (``inboxes``, node by node) handed to it: each
+    steady node's cycle in ``bank``'s pass, each other node all of its own in one call in its
+    turn (one with none waiting, a bus's filter having taken them away, still heard the bus
+    at ``heard_ns``, the monotonic clock; None: nothing was on the bus). With ``service``,
+    then the time service of each node whose last frame did not just run it (a SYNC's, on
+    the master's time: time has not moved since)."""
+    unserviced: list[DriveNode] = []
+
+    def own(i: int) -> None:
+        node, inbox = nodes[i], inboxes[i]
+        if inbox:
+            frames = list(inbox)
+            inbox.clear()
+            if not node.handle_frames(frames, heard_ns):
+                unserviced.append(node)
+            return
+        if heard_ns is not None:
+            node.hear(heard_ns)
+        unserviced.append(node)
+    if bank is None or not bank.cycle(heard_ns, own):
+        for i in range(len(nodes)):
+            own(i)
+    if service:
+        for node in unserviced:
+            node.service()
 
 
 class BusRunner:
@@ -145,7 +177,7 @@ class LockstepDrive:
         return self.channel.attach()
 
     def pump(self) -> None:
-        """Deliver every frame waiting for the nodes (:func:`~hil.emulators.drive.bank.deliver`:
+        """Deliver every frame waiting for the nodes (:func:`deliver`:
         the steady ones in the bank's pass), then run the time service of each node whose
         last frame did not just run it."""
         deliver(self.nodes, self._inboxes, self._bank,

@@ -94,14 +94,14 @@ def _write_columns(data: Any, topic: str, out: io.StringIO) -> bool:
         columns[name] = values
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(columns)
-    if any(isinstance(values[0], str) for values in columns.values()):
-        writer.writerows(zip(*columns.values(), strict=True))  # quoted as csv quotes them
+    table = list(columns.values())
+    if any(isinstance(column[0], str) for column in table):
+        writer.writerows(zip(*table, strict=True))  # quoted as csv quotes them
         return True
     # numbers and booleans, cell by cell as csv.writer writes them (str; None as nothing),
-    # column by column in blocks of rows: a fifth less time than the writer's row by row
-    values = list(columns.values())
+    # column by column in blocks of rows: about a quarter less time than row by row
     for begin in range(0, len(log_times), CSV_BLOCK_ROWS):
-        cells = [_cells(column[begin:begin + CSV_BLOCK_ROWS]) for column in values]
+        cells = [_cells(column[begin:begin + CSV_BLOCK_ROWS]) for column in table]
         out.write("".join(f"{line}\n" for line in map(",".join, zip(*cells, strict=True))))
     return True
 

@@ -16,10 +16,10 @@ import pytest
 
 from hil.emulation import serve_drives
 from hil.emulators.drive import bank as bank_module
-from hil.emulators.drive.bank import DriveBank, deliver, stack_matches
+from hil.emulators.drive.bank import DriveBank, stack_matches
 from hil.emulators.drive.config import DriveEmulatorConfig
 from hil.emulators.drive.plant import AxisPlant
-from hil.emulators.drive.runners import LockstepDrive
+from hil.emulators.drive.runners import LockstepDrive, deliver
 from hil.emulators.drive.switches import Switches
 
 IDS = (1, 2, 3)
