@@ -16,7 +16,8 @@ and data: what an emulated node takes, without a :class:`can.Message` built for 
 the node (:meth:`broadcast`) go to every raw-mode client. With ``on_frames`` instead of
 ``on_data``, the 11-bit data frames of one read (a master's transmission: its RPDOs and the
 SYNC, sent together) are handed over together, once the read's commands are done or before
-the first that is not a ``send``.
+the first that is not a ``send``; the sends of a lone raw-mode client in the form hil's master
+writes them (:data:`CANONICAL_SEND`) are taken in one pass, anything else command by command.
 
 One detail differs from socketcand on purpose: right after ``< rawmode >`` / ``< ok >`` the
 server holds frames for that client until the client sends its next command, or for
@@ -33,10 +34,12 @@ virtual machine), where a drive answers a SYNC within microseconds.
 
 from __future__ import annotations
 
+import binascii
 import contextlib
 import logging
 import math
 import os
+import re
 import select
 import selectors
 import socket
@@ -57,6 +60,11 @@ RAW_HOLD_S = 0.2
 POLL_MARGIN_S = 300e-6  # polled from this long before due: a timed wake-up is ~60 us late here
 MAX_COMMAND_CHARS = 256
 SELECT_FD_LIMIT = 1024  # select() takes descriptors below FD_SETSIZE
+#: an 11-bit ``send`` as hil's master writes it (ID of 3 hex digits, LEN, the bytes)
+CANONICAL_SEND = re.compile(r"< send ([0-7][0-9A-Fa-f]{2}) ([0-8]) "
+                            r"((?:[0-9A-Fa-f]{2}(?: [0-9A-Fa-f]{2})*)?) >")
+
+
 class StopRequest(Protocol):
     """Anything with ``is_set()``: a threading.Event, or a flag a signal handler sets."""
 
@@ -85,10 +93,14 @@ def format_frame(msg: can.Message) -> bytes:
 
 def frame_text(can_id: int, data: bytes, stamp: float, id_digits: int = 3) -> bytes:
     """``< frame ID SECS.USECS DATA >`` of a frame received at ``stamp`` (epoch seconds)."""
+    return b"< frame %0*X %s %s >" % (id_digits, can_id, stamp_text(stamp),
+                                       binascii.hexlify(data).upper())
+
+
+def stamp_text(stamp: float) -> bytes:
+    """``SECS.USECS`` of ``stamp`` (epoch seconds), as a frame carries it."""
     secs = int(stamp)
-    usecs = int((stamp - secs) * 1e6)
-    return b"< frame %0*X %d.%06d %s >" % (id_digits, can_id, secs, usecs,
-                                            data.hex().upper().encode())
+    return b"%d.%06d" % (secs, int((stamp - secs) * 1e6))
 
 
 def parse_send(command: str) -> can.Message | None:
@@ -299,6 +311,9 @@ class SocketcandServer:
 
     def _parse(self, client: _Client) -> None:
         buf = client.inbuf
+        if self.on_frames is not None and self.on_frame is None and client.mode == "raw" and \
+                client.hold_until is None and len(self._clients) == 1:
+            buf = buf[self._take_sends(buf):]
         while client.sock in self._clients:
             start = buf.find("<")
             if start < 0:
@@ -316,6 +331,20 @@ class SocketcandServer:
             buf = buf[end + 1:]
         client.inbuf = buf
         self._hand_over()
+
+    def _take_sends(self, buf: str) -> int:
+        """The canonical sends at the start of ``buf`` (a lone raw-mode client's, for
+        ``on_frames``), taken as :meth:`_command` takes them, in one pass: the position after
+        them (the rest, if any, is parsed command by command)."""
+        frames, match, pos = self._read_frames, CANONICAL_SEND.match, 0
+        while (found := match(buf, pos)) is not None:
+            id_text, length, data_text = found.groups()
+            data = bytes.fromhex(data_text)
+            if len(data) != int(length):
+                break  # malformed: logged where it is parsed command by command
+            frames.append((int(id_text, 16), data))
+            pos = found.end()
+        return pos
 
     def _hand_over(self) -> None:
         """The frames read so far to ``on_frames``, together."""
@@ -377,9 +406,10 @@ class SocketcandServer:
         """Frames from the emulated node (11-bit, stamped now), to every client in raw mode
         (one write per client: a TPDO pair reaches the master in one TCP segment)."""
         if self._clients and frames:
-            stamp = time.time()
-            self._forward_text(b"".join(frame_text(can_id, data, stamp)
-                                        for can_id, data in frames), exclude=None)
+            stamp, hexlify = stamp_text(time.time()), binascii.hexlify
+            self._forward_text(b"".join([b"< frame %03X %s %s >" % (can_id, stamp,
+                                                                     hexlify(data).upper())
+                                         for can_id, data in frames]), exclude=None)
 
     def _forward(self, can_id: int, data: bytes, extended: bool, exclude: _Client) -> None:
         """A client's frame to the other raw-mode clients (formatted only if there is one)."""

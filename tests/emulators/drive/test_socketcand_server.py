@@ -1,6 +1,7 @@
 """The socketcand-protocol server: handshake, raw mode, frames both ways, several clients, bad
 input. Real TCP sockets on 127.0.0.1 and python-can's stock ``socketcand`` client."""
 
+import random
 import re
 import socket
 import time
@@ -8,8 +9,14 @@ import time
 import can
 import pytest
 
+from hil.drivers.socketcand_bus import send_text
 from hil.emulators.drive.node import DriveNode
-from hil.emulators.socketcand_server import SocketcandServer, format_frame, parse_send
+from hil.emulators.socketcand_server import (
+    SocketcandServer,
+    format_frame,
+    parse_send,
+    parse_send_frame,
+)
 from hil.errors import HilError
 
 
@@ -117,6 +124,48 @@ def test_a_reads_frames_reach_on_frames_together_and_before_the_next_command_is_
         text = read_until(sock, "< frame 182 ")
         assert re.match(r"< frame 181 [\d.]+  >< echo >< frame 182 ", text), text
         assert batches == [[(0x201, b"\x0f\x00\xe8\x03"), (0x080, b"")], [(0x202, b"\x07")]]
+        sock.close()
+    finally:
+        srv.close()
+
+
+#: sends in the form hil's master writes them, and in every other form a read may hold
+SENDS_OF_EVERY_FORM = (
+    [send_text(can_id, bytes(range(size))) for can_id, size in
+     ((0x201, 6), (0x080, 0), (0x7FF, 8), (0x000, 1), (0x601, 8), (0x17F, 2))]
+    + [b"< send 1ab 2 0f e8 >",           # lower-case hex
+       b"< send 201  2 0F E8 >",          # two spaces
+       b"< send 201 2 0F E8>",            # no space before '>'
+       b"< send 201 2 F E8 >",            # a byte of one digit
+       b"< send 800 0  >",                # an 11-bit id beyond 0x7FF: ignored
+       b"< send 123 3 01 02 >",           # a length that is not the data's: ignored
+       b"< send 123 9 01 02 03 04 05 06 07 08 09 >",
+       b"< send 1ABCDEF0 2 01 F1 >",      # 29-bit: not a node's
+       b"< send 12 1 AA >",               # an id of two digits
+       b"garbage", b" ", b"\n"])
+
+
+def test_a_reads_sends_reach_on_frames_as_each_command_parsed_alone_gives_them():
+    """A lone raw-mode client's read of sends in the master's form is taken in one pass: the
+    frames handed over are those each command parsed on its own gives, in order, whatever
+    other forms and garbage the read mixes in."""
+    batches: list[list[tuple[int, bytes]]] = []
+    srv = SocketcandServer("127.0.0.1", 0, on_frames=batches.append).start()
+    shuffle = random.Random(7)
+    try:
+        sock = raw_client(srv)
+        sock.sendall(b"< echo >")  # the first command after rawmode: the hold is over
+        read_until(sock, "< echo >")
+        for _ in range(150):
+            read = [shuffle.choice(SENDS_OF_EVERY_FORM)
+                    for _ in range(shuffle.randint(1, 6))]
+            expected = [sent[:2] for command in read
+                        if (sent := parse_send_frame(command.decode())) and not sent[2]]
+            done = len(batches)
+            sock.sendall(b"".join(read) + b"< echo >")  # its frames are handed over first
+            read_until(sock, "< echo >")
+            assert [frame for batch in batches[done:] for frame in batch] == expected, read
+            assert len(batches) - done == (1 if expected else 0), read
         sock.close()
     finally:
         srv.close()
