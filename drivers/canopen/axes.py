@@ -74,6 +74,10 @@ class NodeLink:
         inbox = self.inbox
         if inbox:  # routed here already
             return inbox.popleft()
+        if timeout is not None and timeout <= 0:
+            waiting = self._bus.link.waiting
+            if waiting is not None and not waiting:
+                return None  # nor is anything on the bus: each master looks twice a cycle
         return self._bus.recv(self, timeout)
 
     def own_echo(self, frame: Frame) -> bool:

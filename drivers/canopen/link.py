@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import contextlib
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sized
 from typing import Protocol
 
 import can
@@ -75,6 +75,10 @@ class CanLink:
         self._send_frames, self._recv_frame = frames.send_frames, frames.recv_frame
         # the bus hands every frame waiting in one call (the in-process one): :meth:`take_frames`
         self.takes_frames = callable(getattr(bus, "take_frames", None))
+        #: the frames waiting, where such a bus keeps them in a queue of its own: empty, a
+        #: look finds nothing (None: only a look tells)
+        self.waiting: Sized | None = getattr(bus, "waiting", None) if self.takes_frames \
+            else None
 
     @property
     def name(self) -> str:
