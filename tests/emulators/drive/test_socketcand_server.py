@@ -142,6 +142,7 @@ SENDS_OF_EVERY_FORM = (
        b"< send 123 9 01 02 03 04 05 06 07 08 09 >",
        b"< send 1ABCDEF0 2 01 F1 >",      # 29-bit: not a node's
        b"< send 12 1 AA >",               # an id of two digits
+       b"< send 80 0  >", b"< send 080 0 >",  # a SYNC as python-can writes it, one space
        b"garbage", b" ", b"\n"])
 
 
