@@ -93,8 +93,13 @@ def format_frame(msg: can.Message) -> bytes:
 
 def frame_text(can_id: int, data: bytes, stamp: float, id_digits: int = 3) -> bytes:
     """``< frame ID SECS.USECS DATA >`` of a frame received at ``stamp`` (epoch seconds)."""
-    return b"< frame %0*X %s %s >" % (id_digits, can_id, stamp_text(stamp),
-                                       binascii.hexlify(data).upper())
+    return frame_line(can_id, data, stamp_text(stamp), id_digits)
+
+
+def frame_line(can_id: int, data: bytes, stamp: bytes, id_digits: int = 3) -> bytes:
+    """``< frame ID SECS.USECS DATA >`` with its stamp already formatted (:func:`stamp_text`:
+    one for every frame sent together)."""
+    return b"< frame %0*X %s %s >" % (id_digits, can_id, stamp, binascii.hexlify(data).upper())
 
 
 def stamp_text(stamp: float) -> bytes:
@@ -406,9 +411,8 @@ class SocketcandServer:
         """Frames from the emulated node (11-bit, stamped now), to every client in raw mode
         (one write per client: a TPDO pair reaches the master in one TCP segment)."""
         if self._clients and frames:
-            stamp, hexlify = stamp_text(time.time()), binascii.hexlify
-            self._forward_text(b"".join([b"< frame %03X %s %s >" % (can_id, stamp,
-                                                                     hexlify(data).upper())
+            stamp = stamp_text(time.time())
+            self._forward_text(b"".join([frame_line(can_id, data, stamp)
                                          for can_id, data in frames]), exclude=None)
 
     def _forward(self, can_id: int, data: bytes, extended: bool, exclude: _Client) -> None:
