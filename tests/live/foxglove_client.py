@@ -8,6 +8,11 @@ Text frames are JSON (``serverInfo``, ``advertise``, ``status``...); the client 
 a ``subscribe`` JSON message and receives binary ``messageData`` frames: opcode 1, a uint32
 subscription id, a uint64 log time (little endian), then the payload (JSON here).
 
+A subscription the server refuses as ``Unknown channel ID: N`` is sent again, once: the foxglove-sdk
+server sends a channel's ``advertise`` to a connected client before it adds the channel to that
+client's table (``ConnectedClient::advertise_channels``), so a client that subscribes at once to
+a channel advertised while it is connected can be answered in between, on a loaded machine.
+
 Parameters (capability ``parameters``): ``getParameters`` and ``setParameters`` (with an id, the
 answer is a ``parameterValues`` with that id), ``subscribeParameterUpdates`` (later changes come
 as ``parameterValues`` without an id), and ``status`` messages (level 1: warning).
@@ -18,6 +23,7 @@ from __future__ import annotations
 import base64
 import json
 import os
+import re
 import socket
 import struct
 import time
@@ -59,6 +65,8 @@ class FoxgloveClient:
         self.server_info: dict[str, Any] = {}
         self.channels: dict[int, dict[str, Any]] = {}   # channel id -> advertised channel
         self.subscriptions: dict[int, str] = {}         # subscription id -> topic
+        self.subscribed: dict[int, int] = {}            # channel id -> subscription id
+        self.resubscribed: set[int] = set()             # channel ids subscribed again
         self.messages: dict[str, list[tuple[int, Any]]] = {}
         self.answers: dict[str, list[dict[str, Any]]] = {}   # request id -> its parameters
         self.updates: list[dict[str, Any]] = []   # parameterValues without an id, in order
@@ -96,6 +104,7 @@ class FoxgloveClient:
                     self.updates.extend(message["parameters"])
             elif message["op"] == "status":
                 self.statuses.append(message)
+                self._subscribe_again(message)
             return True
         opcode, sub_id, log_time = _HEADER.unpack_from(frame)
         if opcode == MESSAGE_DATA:
@@ -121,8 +130,20 @@ class FoxgloveClient:
         for topic in topics:
             sub_id = len(self.subscriptions) + 1
             self.subscriptions[sub_id] = topic
+            self.subscribed[by_topic[topic]] = sub_id
             subs.append({"id": sub_id, "channelId": by_topic[topic]})
         self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+
+    def _subscribe_again(self, status: dict[str, Any]) -> None:
+        """A subscription refused for a channel this client was advertised, sent again (see
+        the module's doc: by then the server knows the channel)."""
+        refused = re.fullmatch(r"Unknown channel ID: (\d+)", str(status.get("message", "")))
+        channel_id = int(refused.group(1)) if refused else None
+        if channel_id in self.subscribed and channel_id in self.channels and \
+                channel_id not in self.resubscribed:
+            self.resubscribed.add(channel_id)
+            self.ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                {"id": self.subscribed[channel_id], "channelId": channel_id}]}))
 
 
     def get_parameters(self, names: list[str], request_id: str,

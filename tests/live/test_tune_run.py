@@ -64,7 +64,7 @@ def watch(port: int, run: subprocess.Popen[str]) -> FoxgloveClient:
 def run_until(client: FoxgloveClient, session_s: float) -> None:
     """Wait until the run's session time passed ``session_s``."""
     assert client.wait_for(lambda: session_time_s(client) > session_s, CONNECT_S), \
-        session_time_s(client)
+        (session_time_s(client), client.statuses)
 
 
 def stop(run: subprocess.Popen[str], client: FoxgloveClient, cwd: Path) -> SessionData:
