@@ -81,9 +81,9 @@ def events(session: SessionData, kind: str) -> list[dict[str, Any]]:
 
 
 def status_of(client: FoxgloveClient, request_id: str, name: str) -> dict[str, Any]:
-    assert client.wait_for(lambda: any(s["id"].endswith(f":{request_id}:{name}")
+    assert client.wait_for(lambda: any(s.get("id", "").endswith(f":{request_id}:{name}")
                                        for s in client.statuses), ANSWER_S)
-    return next(s for s in client.statuses if s["id"].endswith(f":{request_id}:{name}"))
+    return next(s for s in client.statuses if s.get("id", "").endswith(f":{request_id}:{name}"))
 
 
 def rms_error(session: SessionData, start_ns: int, end_ns: int) -> float:
