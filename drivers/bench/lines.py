@@ -12,6 +12,9 @@ one:
   of another id is an answer that came late, to a request given up on (or posted: a request
   whose answer nobody waits for): passed over. A frame with the id but of another unit or
   function, or that the caller's check refuses, is a confused peer: ``ReplyMismatchError``.
+* In this process (:class:`InProcessLine`): Modbus TCP frames handed to a peer that answers
+  them in the caller's thread (a lockstep emulator in the loop's process): the same frames, no
+  socket and no thread hop; the answer is there when the write returns, or never comes.
 * Modbus RTU (:class:`RtuLine`): RTU frames carry no id. A frame whose CRC fails is noise;
   one of another unit or function, or that the caller's check refuses (its length, its echo
   of the address and value), answers someone else or something else (a late answer, another
@@ -251,6 +254,56 @@ class TcpLine(Line):
             pdu.transaction_id = tid
             return pdu
         return None
+
+
+#: one connection to a peer in this process: a request frame in; the frames it answers, and
+#: whether the peer then closed the connection
+Exchange = Callable[[bytes], tuple[bytes, bool]]
+
+
+class InProcessLine(TcpLine):
+    """Modbus TCP to a peer in this process: ``connect()`` opens a connection (an
+    :data:`Exchange`), each request frame is answered by the time it is written. Nothing is
+    waited for: an answer the peer did not give is an answer that never comes (a try that
+    fails at once), a connection the peer closed is gone, as over a socket."""
+
+    def __init__(self, connect: Callable[[], Exchange], timeout_s: float) -> None:
+        super().__init__("in-process", 0, timeout_s)
+        self._open = connect
+        self._exchange: Exchange | None = None
+        self._peer_closed = False
+
+    @property
+    def connected(self) -> bool:
+        return self._exchange is not None
+
+    def connect(self) -> bool:
+        if self._exchange is None:
+            self._exchange = self._open()
+            self._peer_closed = False
+            self._received.clear()
+            self._posted.clear()
+        return True
+
+    def close(self) -> None:
+        self._exchange = None
+
+    def _fileno(self) -> int:
+        raise NotImplementedError("a line in this process has no file to wait on")
+
+    def _read_available(self) -> bytes:
+        raise NotImplementedError("a line in this process receives in _write")
+
+    def _write(self, frame: bytes) -> None:
+        if self._exchange is None or self._peer_closed:
+            raise ConnectionError("not connected")
+        answered, self._peer_closed = self._exchange(frame)
+        self._received += answered
+
+    def _receive(self, wait_s: float) -> bool:
+        if self._peer_closed:
+            raise ConnectionResetError("the peer closed the connection")
+        return False  # all it answered came with the write
 
 
 @dataclass

@@ -171,9 +171,12 @@ def parse_bus_url(url: str) -> BusSpec:
 
 class ModbusLink:
     """One Modbus master: a timeout per try, ``attempts`` tries, every reply checked against
-    its request (:mod:`hil.drivers.bench.lines` finds it among the frames that come back)."""
+    its request (:mod:`hil.drivers.bench.lines` finds it among the frames that come back).
+    ``line``: the line to the peer (:class:`~hil.drivers.bench.lines.InProcessLine`, say) in
+    place of the one ``spec`` names."""
 
-    def __init__(self, spec: BusSpec, timeout_s: float, attempts: int) -> None:
+    def __init__(self, spec: BusSpec, timeout_s: float, attempts: int,
+                 line: Line | None = None) -> None:
         self.spec = spec
         self.timeout_s = self.request_timeout_s = timeout_s
         self.attempts = attempts
@@ -182,8 +185,9 @@ class ModbusLink:
         self.retries = 0      # tries that failed and were tried again (or given up)
         self.bound_s: float | None = None  # lockstep over the wire: the wall-clock bound
         self.gone: str | None = None  # lockstep: why the peer is gone; None while it is not
-        self.line: Line = (TcpLine(spec.host, spec.port, timeout_s) if spec.kind == "tcp"
-                           else RtuLine(spec.device, spec.serial_settings, timeout_s))
+        self.line: Line = line or (TcpLine(spec.host, spec.port, timeout_s)
+                                   if spec.kind == "tcp"
+                                   else RtuLine(spec.device, spec.serial_settings, timeout_s))
 
     @property
     def discarded(self) -> int:

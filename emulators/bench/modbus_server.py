@@ -254,22 +254,9 @@ class ModbusServer:
                 data = connection.recv(4096)
                 if not data:
                     return
-                buffer += data
-                while len(buffer) >= 8:
-                    tid, protocol, length, unit = struct.unpack_from(">HHHB", buffer)
-                    if len(buffer) < 6 + length:
-                        break
-                    pdu, buffer = buffer[7:6 + length], buffer[6 + length:]
-                    if protocol != 0 or not pdu:
-                        continue  # not Modbus: discarded whole
-                    response, corrupt, close = self.respond(unit, pdu, connection)
-                    if close:
-                        return
-                    if response is not None:
-                        frame = struct.pack(">HHHB", tid, 0, len(response) + 1, unit) + response
-                        if corrupt:
-                            frame = frame[:-1] + bytes([frame[-1] ^ 0xFF])
-                        connection.sendall(frame)
+                buffer, close = self.answer_tcp(buffer + data, connection, connection.sendall)
+                if close:
+                    return
         except OSError:
             return
         finally:
@@ -278,6 +265,45 @@ class ModbusServer:
             connection.close()
             if self.clock is not None:
                 self.clock.closed(connection)
+
+    def answer_tcp(self, buffer: bytes, peer: object, send: Callable[[bytes], object]
+                   ) -> tuple[bytes, bool]:
+        """Answer the whole Modbus TCP frames at the start of ``buffer`` from ``peer``, each
+        answer given to ``send`` as it is made: (what is left of ``buffer``, whether to close
+        the connection; the frames after the one that closes it are not answered)."""
+        while len(buffer) >= 8:
+            tid, protocol, length, unit = struct.unpack_from(">HHHB", buffer)
+            if len(buffer) < 6 + length:
+                break
+            pdu, buffer = buffer[7:6 + length], buffer[6 + length:]
+            if protocol != 0 or not pdu:
+                continue  # not Modbus: discarded whole
+            response, corrupt, close = self.respond(unit, pdu, peer)
+            if close:
+                return buffer, True
+            if response is not None:
+                frame = struct.pack(">HHHB", tid, 0, len(response) + 1, unit) + response
+                if corrupt:
+                    frame = frame[:-1] + bytes([frame[-1] ^ 0xFF])
+                send(frame)
+        return buffer, False
+
+    def connect_in_process(self) -> Callable[[bytes], tuple[bytes, bool]]:
+        """A Modbus TCP connection from a master in this process, answered in its thread
+        (:class:`~hil.drivers.bench.lines.InProcessLine`): each call takes request frames and
+        gives their answers and whether the server closed the connection."""
+        peer = object()
+        buffer = b""
+
+        def exchange(frames: bytes) -> tuple[bytes, bool]:
+            nonlocal buffer
+            answers: list[bytes] = []
+            buffer, close = self.answer_tcp(buffer + frames, peer, answers.append)
+            if close and self.clock is not None:
+                self.clock.closed(peer)
+            return b"".join(answers), close
+
+        return exchange
 
     # -- RTU --------------------------------------------------------------------------------
     def _serve_rtu(self) -> None:

@@ -341,6 +341,13 @@ class EmulatedBench:
             raise EmulatorError("the emulator serves no link yet: serve_tcp() first")
         self._server.loop_timeout_s = request_timeout_s
 
+    def connect_in_process(self) -> Callable[[bytes], tuple[bytes, bool]]:
+        """A Modbus TCP connection to the server from a master in this process, answered in
+        the master's thread (:meth:`ModbusServer.connect_in_process`)."""
+        if self._server is None:
+            raise EmulatorError("the emulator serves no link yet: serve_tcp() first")
+        return self._server.connect_in_process()
+
     @property
     def port(self) -> int:
         address = self._server.address if self._server is not None else None

@@ -2,9 +2,11 @@
 
 Lockstep (a SimClock): the emulator in this process on 127.0.0.1 (a free port), stepped by
 the loop (:class:`~hil.bench.emulator_time.PlantStepTask`), which holds its time as a master
-over the wire does (no answer is late on a busy machine); real time: the emulator in a
-process of its own (:mod:`hil.emulator_process`). Either way the same Modbus driver talks to
-it. :func:`make_emulator` makes the emulated bench of a config for anyone who serves it.
+over the wire does (no answer is late on a busy machine); the loop's driver hands its Modbus
+TCP frames to the emulator's server in the loop's thread
+(:class:`~hil.drivers.bench.lines.InProcessLine`). Real time: the emulator in a process of its
+own (:mod:`hil.emulator_process`). Either way the same Modbus driver talks to it.
+:func:`make_emulator` makes the emulated bench of a config for anyone who serves it.
 """
 
 from __future__ import annotations
@@ -42,8 +44,13 @@ def open_emulated(url: str, config: BenchConfig, clock: Clock, on_event: EventSi
     disturbance switch."""
     if clock.mode != "sim":
         return _emulator_process(config, clock, on_event)
+    from hil.drivers.bench.lines import InProcessLine
+
     emulator = make_emulator(config)
-    driver = modbus_driver(emulator.serve_tcp(), config)
+    # its frames go to the server in this thread: the same frames as over its socket (which
+    # serves on for anyone else), without the socket and the hop to the server's thread
+    line = InProcessLine(emulator.connect_in_process, config.bus.timeout_s)
+    driver = modbus_driver(emulator.serve_tcp(), config, line)
     # the loop holds the plant's time: no answer is late, whatever else the machine does, and
     # a request waits as long as over the wire (a silence that long is a broken emulator)
     emulator.hold_in_process(config.bus.timeout_s)

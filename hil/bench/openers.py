@@ -23,6 +23,7 @@ from hil.core.registry import SchemeRegistry, scheme_of
 if TYPE_CHECKING:
     from hil.bench.config import BenchConfig
     from hil.drivers.bench.emulator_clock import Identity
+    from hil.drivers.bench.lines import Line
     from hil.drivers.bench.modbus import ModbusBenchDriver
     from hil.drivers.bench.safe_bench import SafeBench
     from hil.emulator_process import EmulatorProcess
@@ -94,12 +95,14 @@ class OpenedBench:
                 self.emulator.stop()
 
 
-def modbus_driver(url: str, config: BenchConfig) -> ModbusBenchDriver:
-    """The Modbus driver of the bench at ``url`` (not connected yet)."""
+def modbus_driver(url: str, config: BenchConfig, line: Line | None = None
+                  ) -> ModbusBenchDriver:
+    """The Modbus driver of the bench at ``url`` (not connected yet), over ``line`` if
+    given."""
     from hil.drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 
     bus = config.bus
-    return ModbusBenchDriver(ModbusLink(parse_bus_url(url), bus.timeout_s, bus.attempts),
+    return ModbusBenchDriver(ModbusLink(parse_bus_url(url), bus.timeout_s, bus.attempts, line),
                              config.map)
 
 

@@ -156,12 +156,19 @@ def test_a_drive_gone_silent_is_said_and_exit_4_from_the_command_line(tmp_path):
 def test_a_master_silent_beyond_its_bound_finds_the_drive_protected(tmp_path, capsys):
     """The other way round: a lockstep master silent for longer than it told the drive (0x2005)
     leaves it on its own clock, which reacts as to a SYNC loss: a fault, EMCY 0x8130."""
+    out = tmp_path / "left.mcap"
     with drive_served_here() as drive:
-        with pytest.raises(DriveFaultError, match="0x8130"):
+        try:
             run_servo(ServoRunOptions(**PID, duration_s=1.0, drive=drive.url,
                                       drive_overrides={"master": {"lockstep_timeout_ms": 300}},
-                                      out=str(tmp_path / "left.mcap")),
+                                      out=str(out)),
                       on_started=lambda _m: time.sleep(1.5))  # enabled, then silent
+            raised = "nothing"
+        except DriveFaultError as exc:
+            raised = str(exc)
+        # what the session recorded, should it not (seen once in a loaded suite run)
+        assert "0x8130" in raised, [(t, m["kind"], m["message"])
+                                    for t, m in read_session(out).topic("/events")]
         assert main(["drive", "scan", drive.url, "--json"]) == 0
     [node] = json.loads(capsys.readouterr().out)["nodes"]
     assert node["state"] == "FAULT" and node["error_code"] == 0x8130
