@@ -12,6 +12,9 @@ A subscription the server refuses as ``Unknown channel ID: N`` is sent again, on
 server sends a channel's ``advertise`` to a connected client before it adds the channel to that
 client's table (``ConnectedClient::advertise_channels``), so a client that subscribes at once to
 a channel advertised while it is connected can be answered in between, on a loaded machine.
+:func:`stalled_client`, which reads nothing once subscribed, first has each subscription
+confirmed: it sends each twice, and the server answers the second "already subscribed" once
+it holds one.
 
 Parameters (capability ``parameters``): ``getParameters`` and ``setParameters`` (with an id, the
 answer is a ``parameterValues`` with that id), ``subscribeParameterUpdates`` (later changes come
@@ -34,6 +37,9 @@ from websockets.sync.client import ClientConnection, connect
 
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 MESSAGE_DATA = 1
+#: the server's answers to a subscription it refuses, and to one it holds already
+UNKNOWN_CHANNEL = re.compile(r"Unknown channel ID: (\d+)")
+ALREADY_SUBSCRIBED = re.compile(r"Client is already subscribed to channel: (\d+)")
 _HEADER = struct.Struct("<BIQ")
 
 
@@ -137,7 +143,7 @@ class FoxgloveClient:
     def _subscribe_again(self, status: dict[str, Any]) -> None:
         """A subscription refused for a channel this client was advertised, sent again (see
         the module's doc: by then the server knows the channel)."""
-        refused = re.fullmatch(r"Unknown channel ID: (\d+)", str(status.get("message", "")))
+        refused = UNKNOWN_CHANNEL.fullmatch(str(status.get("message", "")))
         channel_id = int(refused.group(1)) if refused else None
         if channel_id in self.subscribed and channel_id in self.channels and \
                 channel_id not in self.resubscribed:
@@ -222,10 +228,31 @@ def stalled_client(host: str, port: int, topics: list[str], timeout_s: float = 1
             message = json.loads(payload)
             if message.get("op") == "advertise":
                 channels.update({c["topic"]: c["id"] for c in message["channels"]})
-    subscribe = json.dumps({"op": "subscribe", "subscriptions": [
-        {"id": i + 1, "channelId": channels[t]} for i, t in enumerate(topics)]}).encode()
-    mask = os.urandom(4)
-    header = bytes([0x81]) + (bytes([0x80 | len(subscribe)]) if len(subscribe) < 126 else
-                              bytes([0x80 | 126]) + struct.pack(">H", len(subscribe)))
-    sock.sendall(header + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(subscribe)))
+    subscriptions = {channels[t]: {"id": i + 1, "channelId": channels[t]}
+                     for i, t in enumerate(topics)}
+    # each subscription sent twice: the second is answered "already subscribed" once the
+    # server took one; one refused in the server's race (see the module's doc) is sent twice
+    # again. Then it never reads
+    _send_text(sock, {"op": "subscribe", "subscriptions": list(subscriptions.values())})
+    _send_text(sock, {"op": "subscribe", "subscriptions": list(subscriptions.values())})
+    unconfirmed = set(subscriptions)
+    while unconfirmed:
+        opcode, payload = _read_frame(sock)
+        status = json.loads(payload).get("message", "") if opcode == 1 else ""
+        if (taken := ALREADY_SUBSCRIBED.match(status)) is not None:
+            unconfirmed.discard(int(taken.group(1)))
+        elif (refused := UNKNOWN_CHANNEL.fullmatch(status)) is not None and \
+                int(refused.group(1)) in unconfirmed:
+            again = [subscriptions[int(refused.group(1))]]
+            _send_text(sock, {"op": "subscribe", "subscriptions": again})
+            _send_text(sock, {"op": "subscribe", "subscriptions": again})
     return sock
+
+
+def _send_text(sock: socket.socket, message: dict[str, Any]) -> None:
+    """``message`` as a masked text frame, as a client sends it."""
+    text = json.dumps(message).encode()
+    mask = os.urandom(4)
+    header = bytes([0x81]) + (bytes([0x80 | len(text)]) if len(text) < 126 else
+                              bytes([0x80 | 126]) + struct.pack(">H", len(text)))
+    sock.sendall(header + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(text)))
