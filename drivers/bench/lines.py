@@ -8,10 +8,11 @@ frame behind it included, while a frame of another function is taken as it comes
 line keeps what it received between requests, and takes for the answer only a frame that is
 one:
 
-* Modbus TCP (:class:`TcpLine`): the frame that carries the request's transaction id. A frame
-  of another id is an answer that came late, to a request given up on (or posted: a request
-  whose answer nobody waits for): passed over. A frame with the id but of another unit or
-  function, or that the caller's check refuses, is a confused peer: ``ReplyMismatchError``.
+* Modbus TCP (:class:`MbapLine`; over a socket, :class:`TcpLine`): the frame that carries
+  the request's transaction id. A frame of another id is an answer that came late, to a
+  request given up on (or posted: a request whose answer nobody waits for): passed over. A
+  frame with the id but of another unit or function, or that the caller's check refuses, is a
+  confused peer: ``ReplyMismatchError``.
 * In this process (:class:`InProcessLine`): Modbus TCP frames handed to a peer that answers
   them in the caller's thread (a lockstep emulator in the loop's process): the same frames, no
   socket and no thread hop; the answer is there when the write returns, or never comes.
@@ -89,14 +90,14 @@ class Line(abc.ABC):
     def close(self) -> None:
         """Close the connection; idempotent."""
 
-    @abc.abstractmethod
     def _fileno(self) -> int:
-        """What :func:`select.select` waits on."""
+        """What :func:`select.select` waits on (for :meth:`_receive`)."""
+        raise NotImplementedError
 
-    @abc.abstractmethod
     def _read_available(self) -> bytes:
-        """What has arrived (at least one byte: select said so); raises OSError when the
-        connection is gone."""
+        """What has arrived (at least one byte: select said so; for :meth:`_receive`);
+        raises OSError when the connection is gone."""
+        raise NotImplementedError
 
     @abc.abstractmethod
     def _write(self, frame: bytes) -> None:
@@ -126,7 +127,7 @@ class Line(abc.ABC):
 
     def _receive(self, wait_s: float) -> bool:
         """What arrives within ``wait_s``, added to what was received; False when nothing
-        did."""
+        did. By default what :func:`select.select` says of :meth:`_fileno`."""
         ready, _, _ = select.select([self._fileno()], [], [], wait_s)
         if not ready:
             return False
@@ -169,57 +170,20 @@ def same_shape(first: ModbusPDU, second: ModbusPDU) -> bool:
         and getattr(first, "count", None) == getattr(second, "count", None)
 
 
-class TcpLine(Line):
-    """Modbus TCP to ``host``:``port``: the answer is the frame with the request's transaction
-    id."""
+class MbapLine(Line):
+    """Modbus TCP framing (MBAP), whatever carries it: the answer is the frame with the
+    request's transaction id."""
 
-    def __init__(self, host: str, port: int, timeout_s: float) -> None:
+    def __init__(self, timeout_s: float) -> None:
         super().__init__(timeout_s)
-        self.host, self.port = host, port
         self.framer = FramerSocket(self.decoder)
-        self.socket: socket.socket | None = None
         self._tid = 0
         self._posted: set[int] = set()  # ids of requests whose answers nobody waits for
 
-    @property
-    def connected(self) -> bool:
-        return self.socket is not None
-
-    def connect(self) -> bool:
-        if self.socket is not None:
-            return True
-        try:
-            self.socket = socket.create_connection((self.host, self.port),
-                                                   timeout=self.timeout_s)
-        except OSError:
-            return False
-        # a request posted ahead of the next must not wait for it
-        self.socket.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    def _forget(self) -> None:
+        """A new connection: nothing received on the last one is waited for."""
         self._received.clear()
         self._posted.clear()
-        return True
-
-    def close(self) -> None:
-        if self.socket is not None:
-            with contextlib.suppress(OSError):
-                self.socket.close()
-            self.socket = None
-
-    def _fileno(self) -> int:
-        assert self.socket is not None
-        return self.socket.fileno()
-
-    def _read_available(self) -> bytes:
-        assert self.socket is not None
-        data = self.socket.recv(4096)
-        if not data:
-            raise ConnectionResetError("the peer closed the connection")
-        return data
-
-    def _write(self, frame: bytes) -> None:
-        if self.socket is None:
-            raise ConnectionError("not connected")
-        self.socket.sendall(frame)
 
     def _frame(self, request: ModbusPDU) -> bytes:
         self._tid = self._tid % 0xFFFF + 1  # 1..65535: 0 is no id
@@ -256,19 +220,67 @@ class TcpLine(Line):
         return None
 
 
+class TcpLine(MbapLine):
+    """Modbus TCP to ``host``:``port``."""
+
+    def __init__(self, host: str, port: int, timeout_s: float) -> None:
+        super().__init__(timeout_s)
+        self.host, self.port = host, port
+        self.socket: socket.socket | None = None
+
+    @property
+    def connected(self) -> bool:
+        return self.socket is not None
+
+    def connect(self) -> bool:
+        if self.socket is not None:
+            return True
+        try:
+            self.socket = socket.create_connection((self.host, self.port),
+                                                   timeout=self.timeout_s)
+        except OSError:
+            return False
+        # a request posted ahead of the next must not wait for it
+        self.socket.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._forget()
+        return True
+
+    def close(self) -> None:
+        if self.socket is not None:
+            with contextlib.suppress(OSError):
+                self.socket.close()
+            self.socket = None
+
+    def _fileno(self) -> int:
+        assert self.socket is not None
+        return self.socket.fileno()
+
+    def _read_available(self) -> bytes:
+        assert self.socket is not None
+        data = self.socket.recv(4096)
+        if not data:
+            raise ConnectionResetError("the peer closed the connection")
+        return data
+
+    def _write(self, frame: bytes) -> None:
+        if self.socket is None:
+            raise ConnectionError("not connected")
+        self.socket.sendall(frame)
+
+
 #: one connection to a peer in this process: a request frame in; the frames it answers, and
 #: whether the peer then closed the connection
 Exchange = Callable[[bytes], tuple[bytes, bool]]
 
 
-class InProcessLine(TcpLine):
+class InProcessLine(MbapLine):
     """Modbus TCP to a peer in this process: ``connect()`` opens a connection (an
     :data:`Exchange`), each request frame is answered by the time it is written. Nothing is
     waited for: an answer the peer did not give is an answer that never comes (a try that
     fails at once), a connection the peer closed is gone, as over a socket."""
 
     def __init__(self, connect: Callable[[], Exchange], timeout_s: float) -> None:
-        super().__init__("in-process", 0, timeout_s)
+        super().__init__(timeout_s)
         self._open = connect
         self._exchange: Exchange | None = None
         self._peer_closed = False
@@ -281,18 +293,11 @@ class InProcessLine(TcpLine):
         if self._exchange is None:
             self._exchange = self._open()
             self._peer_closed = False
-            self._received.clear()
-            self._posted.clear()
+            self._forget()
         return True
 
     def close(self) -> None:
         self._exchange = None
-
-    def _fileno(self) -> int:
-        raise NotImplementedError("a line in this process has no file to wait on")
-
-    def _read_available(self) -> bytes:
-        raise NotImplementedError("a line in this process receives in _write")
 
     def _write(self, frame: bytes) -> None:
         if self._exchange is None or self._peer_closed:

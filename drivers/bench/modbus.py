@@ -37,7 +37,7 @@ from pymodbus.pdu import bit_message as bits
 from pymodbus.pdu import register_message as registers
 from pymodbus.pdu.mei_message import ReadDeviceInformationRequest, ReadDeviceInformationResponse
 
-from hil.drivers.bench.lines import Line, ReplyMismatchError, RtuLine, TcpLine
+from hil.drivers.bench.lines import Line, MbapLine, ReplyMismatchError, RtuLine, TcpLine
 from hil.drivers.errors import DriverError, DriverSetupError
 
 URL_FORMS = "modbus-tcp://HOST:PORT or modbus-rtu:///dev/X?baud=115200&parity=N"
@@ -272,7 +272,7 @@ class ModbusLink:
         if self.bound_s is not None and reason.startswith("cannot connect"):
             self.gone = reason
             raise PeerGoneError(f"{what}: {self.gone}: the peer is gone")
-        if isinstance(self.line, TcpLine):  # given up: no backlog of it on the peer's side
+        if isinstance(self.line, MbapLine):  # given up: no backlog of it on the peer's side
             self.line.close()
         raise LinkError(f"{what}: no valid answer from {self.spec.url} after "
                         f"{self.attempts} attempt(s): {reason}")
@@ -363,7 +363,7 @@ class ModbusLink:
         :meth:`exchange_registers`. Its answer is never checked: follow it with an asked one
         now and then."""
         line = self.line
-        if not isinstance(line, TcpLine) or self.gone is not None or not self.connect():
+        if not isinstance(line, MbapLine) or self.gone is not None or not self.connect():
             return False
         try:
             line.post(self._exchange_request(unit, address, values))

@@ -337,16 +337,18 @@ class EmulatedBench:
         as to a master holding its time whose requests wait ``request_timeout_s``: where it
         would leave the master waiting (a drop, a longer delay, an unknown unit), exception 0x0B
         at once. A busy machine then changes no answer: the session is the same, bit for bit."""
-        if self._server is None:
-            raise EmulatorError("the emulator serves no link yet: serve_tcp() first")
-        self._server.loop_timeout_s = request_timeout_s
+        self._serving().loop_timeout_s = request_timeout_s
 
     def connect_in_process(self) -> Callable[[bytes], tuple[bytes, bool]]:
         """A Modbus TCP connection to the server from a master in this process, answered in
         the master's thread (:meth:`ModbusServer.connect_in_process`)."""
+        return self._serving().connect_in_process()
+
+    def _serving(self) -> ModbusServer:
+        """The server started by :meth:`serve_tcp` (or :meth:`serve_serial`)."""
         if self._server is None:
             raise EmulatorError("the emulator serves no link yet: serve_tcp() first")
-        return self._server.connect_in_process()
+        return self._server
 
     @property
     def port(self) -> int:
