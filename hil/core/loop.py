@@ -16,15 +16,20 @@ is reported but costs no virtual time). SIGINT/SIGTERM stop the loop at the next
 boundary; every component's ``safe_state()`` runs before :meth:`FixedRateLoop.run` returns,
 also on errors.
 
-No tick does a period's worth of bookkeeping: each sample (lateness, phase times) goes into
-the window's compact array; the window's timing record (about once a second) hands those arrays
-over as they are, and the following ticks bin them into the run's histograms
-:data:`DIGEST_SAMPLES` at a time. Work left whole for every N ticks costs one tick the work of
-N: at 2 kHz, a window binned and pickled in one tick was a skipped tick every second.
+No tick does a period's worth of bookkeeping. Each run's samples (lateness, phase times) go
+into the window's compact arrays, and to the recorder as one row
+(:class:`~hil.core.recording.recorder.ColumnTopic`): the writer builds the window's timing
+record (about once a second) from the rows, so its close hands over no samples. The ticks of
+the next window bin the arrays into the run's histograms, an even share each, one sample at a
+time. Work left whole for every N ticks costs one tick the work of N: at 2 kHz, a window
+binned and pickled in one tick was a skipped tick every second; binned 512 samples a tick by
+numpy (some 40 us a call, whatever its size) and handed over as five buffers at once
+(100-300 us), it still made the ticks after each whole second late, with skips among them.
 """
 
 from __future__ import annotations
 
+import math
 import signal
 import sys
 import threading
@@ -46,9 +51,9 @@ REALTIME_SWITCH_INTERVAL_S = 1e-4
 
 #: the phases of a tick, in the order they run
 PHASES = ("read", "compute", "write", "record")
-#: samples of finished timing windows binned into the run's histograms after a tick, at most
-#: (a numpy call costs some 20 us whatever its size: a tick each would cost more)
-DIGEST_SAMPLES = 512
+#: the share of a window over whose ticks the samples of the window before are binned (the
+#: rest: room for a window shortened by skipped ticks)
+DIGEST_SPREAD = 0.8
 
 
 class SafeStateful(Protocol):
@@ -245,10 +250,13 @@ class FixedRateLoop:
         self.tasks: list[Task] = []
         self.components: list[SafeStateful] = []
         self.stats: dict[str, TaskStats] = {}
-        #: samples of finished windows not in the run's histograms yet (a view, its histogram)
-        self._undigested: deque[tuple[np.ndarray, TimingHistogram]] = deque()
+        #: samples of finished windows not in the run's histograms yet: [samples, the index of
+        #: the first not binned, their histogram]
+        self._undigested: deque[list[Any]] = deque()
+        self._digest_per_tick = 1
         self._recorder = recorder
-        self._timing_topics: dict[str, Any] = {}
+        #: each task's timing record, built in the writer a row a tick (recorder.ColumnTopic)
+        self._timing_columns: dict[str, Any] = {}
         self._on_event = on_event
         self._window_ticks = max(1, round(stats_window_s * 1e9 / self.base_period_ns))
         self._handle_signals = handle_signals
@@ -276,9 +284,8 @@ class FixedRateLoop:
         self.stats[task.name] = TaskStats(task.name, task.divisor * self.base_period_ns / 1e9,
                                           task.phases)
         if self._recorder is not None:
-            self._timing_topics[task.name] = self._recorder.topic(
-                f"/loop/{task.name}/timing", TIMING_SCHEMA, high_rate=True
-            )
+            self._timing_columns[task.name] = self._recorder.columns(self._recorder.topic(
+                f"/loop/{task.name}/timing", TIMING_SCHEMA, high_rate=True))
         return task
 
     def add_component(self, component: SafeStateful) -> None:
@@ -309,6 +316,8 @@ class FixedRateLoop:
                 wait_ready()
             for task in self.tasks:
                 task.prime()
+            if self._recorder is not None:  # what set-up logged (topics...) goes before tick 0
+                self._recorder.flush()
             began = time.perf_counter()
             try:
                 self._run_ticks(limit)
@@ -368,11 +377,13 @@ class FixedRateLoop:
                 samples.append(elapsed / 1e3)
                 spent[index] += elapsed
             lateness_us = (start - deadline) / 1e3
-            for index, divisor, window, stats in slots:
+            for index, divisor, window, stats, columns, phase_us in slots:
                 if n % divisor:
                     continue
                 window.lateness_us.append(lateness_us)
                 window.step_us.append(spent[index] / 1e3)
+                if columns is not None:  # this run's row of the window's timing record
+                    columns.add((lateness_us, *[samples[-1] for samples in phase_us]))
                 if realtime and spent[index] > divisor * period:
                     window.overruns += 1
                 spent[index] = 0
@@ -385,7 +396,7 @@ class FixedRateLoop:
             if recorder is not None:
                 recorder.flush_if_due()
             if undigested:
-                self._digest(DIGEST_SAMPLES)
+                self._digest(self._digest_per_tick)
             if n >= next_window:
                 self._publish_windows(final=False)
                 # the new windows and their sample lists
@@ -400,9 +411,13 @@ class FixedRateLoop:
                 for phase in PHASES
                 for index, task in enumerate(self.tasks) if phase in task.phases]
 
-    def _slots(self, windows: dict[str, _Window]) -> list[tuple[int, int, _Window, TaskStats]]:
-        """Per task: ``(index, divisor, its window, its stats)``, for the end of a tick."""
-        return [(index, task.divisor, windows[task.name], self.stats[task.name])
+    def _slots(self, windows: dict[str, _Window]) -> list[tuple[
+            int, int, _Window, TaskStats, Any, list[array[float]]]]:
+        """Per task, for the end of a tick: ``(index, divisor, its window, its stats, its
+        timing record's columns or None, the window's samples of each of its phases)``."""
+        return [(index, task.divisor, windows[task.name], self.stats[task.name],
+                 self._timing_columns.get(task.name),
+                 [windows[task.name].phase_us[phase] for phase in task.phases])
                 for index, task in enumerate(self.tasks)]
 
     def _count_skipped(self, first: int, count: int, windows: dict[str, _Window]) -> None:
@@ -440,36 +455,45 @@ class FixedRateLoop:
                                        *((window.phase_us[phase], histogram) for phase, histogram
                                          in stats.phase_times.items())):
                 if samples:
-                    self._undigested.append((np.frombuffer(samples), histogram))
-            topic = self._timing_topics.get(task.name)
-            if topic is not None:
-                message: dict[str, Any] = {
+                    self._undigested.append([samples, 0, histogram])
+            columns = self._timing_columns.get(task.name)
+            if columns is not None:  # the rows handed over each tick are its columns
+                fields: dict[str, Any] = {
                     "task": task.name,
                     "period_s": stats.period_s,
                     "runs": len(window.lateness_us),
                     "missed": window.missed,
                     "overruns": window.overruns,
-                    "lateness_us": window.lateness_us,
+                    **{f"{phase}_us": array("d") for phase in PHASES
+                       if phase not in task.phases},
                 }
-                for phase in PHASES:
-                    message[f"{phase}_us"] = window.phase_us[phase]
-                topic.log(t_ns, message)
+                columns.log(t_ns, fields, ("lateness_us", *(f"{p}_us" for p in task.phases)))
             windows[task.name] = _Window()
+        left = sum(len(samples) - start for samples, start, _ in self._undigested)
+        self._digest_per_tick = max(1, math.ceil(left / (DIGEST_SPREAD * self._window_ticks)))
 
     def _digest(self, most: int | None) -> None:
-        """Bin up to ``most`` (None: all) samples of the finished windows into the run's
-        histograms, oldest first."""
+        """Bin up to ``most`` samples of the finished windows into the run's histograms,
+        oldest first, one at a time (the same work for each); None: all of them at once
+        (after the last tick)."""
         undigested = self._undigested
-        while undigested and (most is None or most > 0):
-            samples, histogram = undigested[0]
-            take = samples.size if most is None else min(most, samples.size)
-            histogram.add_many(samples[:take])
-            if take == samples.size:
+        if most is None:
+            for samples, start, histogram in undigested:
+                histogram.add_many(np.frombuffer(samples)[start:])
+            undigested.clear()
+            return
+        while undigested and most > 0:
+            entry = undigested[0]
+            samples, start, histogram = entry
+            end = min(start + most, len(samples))
+            add = histogram.add
+            for index in range(start, end):
+                add(samples[index])
+            most -= end - start
+            if end == len(samples):
                 undigested.popleft()
             else:
-                undigested[0] = (samples[take:], histogram)
-            if most is not None:
-                most -= take
+                entry[1] = end
 
     def safe_state_all(self) -> list[str]:
         """Call every task's and component's ``safe_state`` (reverse order); return failures."""

@@ -7,6 +7,11 @@ little-endian length, then the pickled list of records. A record is either a mes
 * ``("topic", key, name, json_schema, encoding)``: register a channel (``json`` or ``cdr``);
 * ``("metadata", name, {str: str})`` and ``("attachment", name, data, media_type, t_ns)``;
 * ``("drops", t_ns, {topic: total_dropped})``: the loop dropped messages (backlog full);
+* ``("row", key, (value, ...))``: a row of a column topic's next message
+  (:class:`~hil.core.recording.recorder.ColumnTopic`), a value for each column;
+* ``("message", key, log_time_ns, fields, column_names)``: that message, ``fields`` and the
+  rows since the last one as the columns named (``fields`` None: a row was lost, the rows
+  are let go);
 * ``("close",)``: the session ended normally; write the summary and stop.
 
 The stream is ordered, so a topic is always registered before its first message. When the

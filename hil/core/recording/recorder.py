@@ -144,6 +144,55 @@ class TopicRows:
         return True
 
 
+class ColumnTopic:
+    """A topic whose messages carry columns of numbers built up in the writer a row at a
+    time (the loop's timing windows: lateness and phase times). :meth:`add` hands over one
+    row, a few numbers, each tick; :meth:`log` then has the writer make the message of the
+    rows since the last one, its columns, with the other fields given. No tick hands over a
+    window's worth: at 2 kHz, a second's columns (80 KB) pickled at once made the tick after
+    every whole second late.
+
+    A row refused (backlog full, recorder closed) loses its whole message, counted as one
+    dropped message of the topic, as :meth:`Topic.log` counts one."""
+
+    __slots__ = ("_lost", "_recorder", "topic")
+
+    def __init__(self, recorder: Recorder, topic: Topic) -> None:
+        self._recorder = recorder
+        self.topic = topic
+        self._lost = False  # a row of the message being built was refused
+
+    def add(self, row: tuple[float, ...]) -> None:
+        """One row: a value for each column, in the order :meth:`log` will name them."""
+        rec = self._recorder
+        if rec._refusing:
+            self._lost = True
+            return
+        rec._queue.append(("row", self.topic.channel_key, row))
+        if len(rec._queue) >= rec.batch_size:
+            rec.flush()
+
+    def log(self, t_ns: int, fields: dict[str, Any], columns: tuple[str, ...]) -> bool:
+        """The message stamped ``t_ns``: ``fields``, and each of ``columns`` as the values of
+        the rows added since the last message (in that position of each row). Returns False
+        when it was dropped (and counted)."""
+        rec = self._recorder
+        if rec._refusing:
+            self.topic.dropped += 1
+            self._lost = True
+            return False
+        key = self.topic.channel_key
+        if self._lost:  # the writer lets the rows it holds go, not made into a message
+            rec._queue.append(("message", key, t_ns, None, columns))
+            self.topic.dropped += 1
+            self._lost = False
+            return False
+        rec._queue.append(("message", key, t_ns, fields, columns))
+        if len(rec._queue) >= rec.batch_size:
+            rec.flush()
+        return True
+
+
 class Recorder:
     """Writes one MCAP session (file or split series) through a writer process (or, with
     ``options.in_process``, in this process); with a ``claim``
@@ -350,6 +399,10 @@ class Recorder:
         """``topics`` logged together, one row each, in one hand-over (:class:`TopicRows`)."""
         return TopicRows(self, topics)
 
+    def columns(self, topic: Topic) -> ColumnTopic:
+        """``topic``'s messages built in the writer from rows (:class:`ColumnTopic`)."""
+        return ColumnTopic(self, topic)
+
     def event(
         self, t_ns: int, kind: str, message: str, level: str = "info", source: str = "", **data: Any
     ) -> None:
@@ -466,8 +519,9 @@ class Recorder:
     def _count_lost(self, records: list[tuple[Any, ...]]) -> None:
         by_key = {t.channel_key: t for t in self._topics.values()}
         for record in records:
-            keys = record[0]
-            for key in keys if type(keys) is tuple else (keys,):
+            kind = record[0]  # a message's key, a topic group's keys, a column message's
+            keys = (record[1],) if kind == "message" else kind if type(kind) is tuple else (kind,)
+            for key in keys:
                 if isinstance(key, int) and key in by_key:
                     by_key[key].dropped += 1
 

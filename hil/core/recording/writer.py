@@ -27,6 +27,7 @@ import select
 import signal
 import sys
 import time
+from array import array
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -108,6 +109,25 @@ class SessionWriter:
         self.closed = False
         self.last_t_ns = 0
         self.applied = 0  # of the records given to apply_all
+        #: the columns of each column topic's message being built (recorder.ColumnTopic)
+        self.columns: dict[int, list[array[float]]] = {}
+
+    def add_row(self, key: int, row: tuple[float, ...]) -> None:
+        """One row of ``key``'s next message: a value appended to each of its columns."""
+        columns = self.columns.get(key)
+        if columns is None:
+            columns = self.columns[key] = [array("d") for _ in row]
+        for column, value in zip(columns, row, strict=True):
+            column.append(value)
+
+    def column_message(self, key: int, fields: dict[str, Any] | None,
+                       names: tuple[str, ...]) -> dict[str, Any] | None:
+        """``fields`` with the rows added to ``key`` since its last message as the columns
+        ``names``; None (the rows let go) when ``fields`` is None: a row was lost."""
+        columns = self.columns.pop(key, None) or [array("d") for _ in names]
+        if fields is None:
+            return None
+        return {**fields, **dict(zip(names, columns, strict=True))}
 
     def apply(self, record: tuple[Any, ...]) -> None:
         kind = record[0]
@@ -128,6 +148,13 @@ class SessionWriter:
             _, t_ns, rows = record
             for key, row in zip(kind, rows, strict=True):
                 self.apply((key, t_ns, row))
+        elif kind == "row":
+            self.add_row(record[1], record[2])
+        elif kind == "message":
+            _, key, t_ns, fields, names = record
+            message = self.column_message(key, fields, names)
+            if message is not None:
+                self.apply((key, t_ns, message))
         elif kind == "topic":
             _, key, name, schema, encoding_name = record
             spec, self.encodings[key] = channel_for(name, schema, encoding_name)
@@ -172,6 +199,8 @@ class SessionWriter:
                     t_ns = record[1]
                     for key, row in zip(kind, record[2], strict=True):
                         run.append((key, t_ns, encodings[key].encode_row(row)))
+                elif kind == "row":  # a row of a column topic's message: no message yet
+                    self.add_row(record[1], record[2])
                 else:
                     done, run = run, []
                     self._add_messages(done)
