@@ -135,6 +135,66 @@ def test_topics_logged_together_count_their_drops_each(tmp_path):
     assert len(data.topic("/a")) == len(data.topic("/b")) == accepted
 
 
+COLUMNS = {"type": "object", "title": "C", "properties": {
+    "window": {"type": "integer"}, "a": {"type": "array", "items": {"type": "number"}},
+    "b": {"type": "array", "items": {"type": "number"}},
+    "c": {"type": "array", "items": {"type": "number"}}}}
+
+
+@pytest.mark.parametrize("in_process", [False, True])
+def test_a_column_topic_records_the_rows_since_its_last_message_as_its_columns(
+        tmp_path, in_process):
+    """Rows handed over one at a time are the columns of the next message, in the writer
+    process and in process; a message with no rows has empty columns; a field given is
+    kept as given."""
+    path = tmp_path / "c.mcap"
+    with Recorder(path, wait_when_full=True,
+                  options=RecordingOptions(in_process=in_process)) as rec:
+        columns = rec.columns(rec.topic("/c", COLUMNS, encoding="json"))
+        for window, rows in enumerate((3, 0, 2)):
+            for k in range(rows):
+                columns.add((window + k / 10, -k))
+            assert columns.log(window, {"window": window, "c": [7.5]}, ("a", "b"))
+    recorded = [m for _, m in read_session(path).topic("/c")]
+    assert recorded == [
+        {"window": 0, "a": [0.0, 0.1, 0.2], "b": [0, -1, -2], "c": [7.5]},
+        {"window": 1, "a": [], "b": [], "c": [7.5]},
+        {"window": 2, "a": [2.0, 2.1], "b": [0, -1], "c": [7.5]}]
+
+
+def test_a_column_message_with_a_refused_row_is_dropped_whole_and_counted(tmp_path):
+    """A row refused (the writer process stopped, the pipe and the backlog full) drops its
+    whole message, counted once: the rows of the message after it are its own only."""
+    rec = Recorder(tmp_path / "d.mcap", batch_size=1, max_backlog_bytes=1)
+    columns = rec.columns(rec.topic("/c", COLUMNS, encoding="json"))
+    pad = rec.topic("/pad", NESTED)
+    rec.wait_ready()
+
+    def window(number: int, rows: int) -> bool:
+        for k in range(rows):
+            columns.add((number, k))
+        return columns.log(number, {"window": number}, ("a", "b"))
+
+    assert window(0, 4)
+    os.kill(rec.writer_pid, signal.SIGSTOP)
+    try:
+        while pad.log(0, {"data": {"pad": "x" * 100_000}}):  # until the pipe is full
+            pass
+        columns.add((1, 0))  # refused
+    finally:
+        os.kill(rec.writer_pid, signal.SIGCONT)
+    while not pad.log(1, {"data": {}}):  # the backlog handed over
+        time.sleep(0.01)
+        rec.flush()
+    assert not window(1, 2)  # two rows more, taken: the message is dropped all the same
+    assert window(2, 3)
+    stats = rec.close()
+    recorded = [m for _, m in read_session(tmp_path / "d.mcap").topic("/c")]
+    assert recorded == [{"window": 0, "a": [0, 0, 0, 0], "b": [0, 1, 2, 3]},
+                        {"window": 2, "a": [2, 2, 2], "b": [0, 1, 2]}]
+    assert columns.topic.dropped == 1 == stats.messages_dropped["/c"]
+
+
 @pytest.mark.parametrize("in_process", [False, True])
 def test_a_row_of_the_wrong_length_fails_the_recording_naming_the_fields(tmp_path, in_process):
     rec = Recorder(tmp_path / "bad.mcap", wait_when_full=True,
