@@ -392,15 +392,19 @@ def test_numpy_arrays_in_messages_arrive_as_their_values(tmp_path):
 
 def _session_records(k0: int, k1: int) -> list[tuple]:
     """Records of the stream as the recorder hands them over: messages as dicts, as rows and
-    as a topic group's rows, on a CDR and a JSON topic, with metadata among them."""
+    as a topic group's rows, on a CDR and a JSON topic, with metadata among them; and a
+    column topic's rows, a message of them every 50 (every 150th's rows let go)."""
     names = list(FLAT["properties"])
     records: list[tuple] = []
     for k in range(k0, k1):
         row = tuple(_message(k).get(name) for name in names)
         records += [(1, k * 500_000, row), (2, k * 500_000, _message(k)),
-                    ((1, 2), k * 500_000 + 1, (row, row))]
+                    ((1, 2), k * 500_000 + 1, (row, row)), ("row", 3, (k / 2, -k))]
         if k % 97 == 0:
             records.append(("metadata", f"m{k}", {"k": str(k)}))
+        if k % 50 == 49:
+            fields = None if k % 150 == 149 else {"window": k}
+            records.append(("message", 3, k * 500_000 + 2, fields, ("a", "b")))
     return records
 
 
@@ -410,7 +414,8 @@ def test_a_batch_of_records_writes_what_they_write_one_by_one(tmp_path):
     numbers, chunk for chunk."""
     from hil.core.recording.writer import SessionWriter, finish, open_series
 
-    topics = [("topic", 1, "/flat", FLAT, "cdr"), ("topic", 2, "/json", FLAT, "json")]
+    topics = [("topic", 1, "/flat", FLAT, "cdr"), ("topic", 2, "/json", FLAT, "json"),
+              ("topic", 3, "/columns", COLUMNS, "cdr")]
     files = {}
     for form in ("one by one", "batch"):
         files[form] = str(tmp_path / f"{form}.mcap")
@@ -425,11 +430,14 @@ def test_a_batch_of_records_writes_what_they_write_one_by_one(tmp_path):
                 for record in records:
                     writer.apply(record)
         finish(writer, "")
-    for topic in ("/flat", "/json"):
+    for topic, count in (("/flat", 1800), ("/json", 1800), ("/columns", 12)):
         with open(files["one by one"], "rb") as a, open(files["batch"], "rb") as b:
             alone, batch = ([(m.log_time, m.sequence, m.data) for _, _, m in
                              make_reader(f).iter_messages(topics=[topic])] for f in (a, b))
-        assert len(alone) == 1800 and batch == alone
+        assert len(alone) == count and batch == alone
+    columns = [m for _, m in read_session(files["batch"]).topic("/columns")]
+    assert [m["window"] for m in columns[:2]] == [49, 99]
+    assert columns[1]["a"] == [k / 2 for k in range(50, 100)] and columns[1]["b"][-1] == -99
     summaries = [make_reader(open(files[form], "rb")).get_summary()  # noqa: SIM115
                  for form in files]
     assert [len(s.chunk_indexes) for s in summaries] == [len(summaries[0].chunk_indexes)] * 2
@@ -444,7 +452,8 @@ def test_a_bad_row_in_a_batch_fails_it_after_writing_the_records_before_it(tmp_p
     path = str(tmp_path / "bad.mcap")
     writer = SessionWriter(open_series({"path": path}))
     records = [("topic", 1, "/flat", FLAT, "cdr"), ("topic", 2, "/json", FLAT, "json"),
-               *_session_records(0, 2)]   # k = 0's messages and metadata at 2-5, k = 1's at 6-8
+               *[record for record in _session_records(0, 2) if record[0] != "row"]]
+    # k = 0's messages and metadata at 2-5, k = 1's at 6-8
     records.insert(7, (1, 1, (1.0, 2.0)))
     with pytest.raises(ValueError, match=r"a row of 2 value\(s\) for a topic of 9 field\(s\)"):
         writer.apply_all(records)
