@@ -32,9 +32,9 @@ def reference_amplitude(scenario: Scenario) -> float | None:
 class TrackingStats:
     """The run's KPIs, accumulated tick by tick in constant memory: error and current over the
     ticks from ``settle_s`` on (exact running sums and maxima), controller compute time over
-    all ticks (a log-bucket histogram: percentiles within 1 %, max exact; each tick's binned
-    at once, the same small work every tick: 128 at a time, one numpy call, cost every 128th
-    tick some 40 us)."""
+    all ticks (a log-bucket histogram: percentiles within 1 %, max exact; each tick's time
+    binned as it comes, the same small work every tick: binned 128 at a time, one numpy call
+    cost every 128th tick some 40 us)."""
 
     def __init__(self, settle_s: float) -> None:
         self.settle_s = settle_s - 1e-12
