@@ -14,6 +14,7 @@ from dataclasses import dataclass, field, replace
 
 from hil.bench.config import load_bench_config
 from hil.emulation import StopFlag, serve_bench, serve_drives
+from hil.emulators.drive.node import DriveNode
 from hil.emulators.faults import for_emulator, parse_fault
 from hil.servo.config import load_drive_config
 
@@ -22,11 +23,12 @@ from hil.servo.config import load_drive_config
 class ServedHere:
     """An emulator served in this process: ``url`` is where a master reaches it;
     ``clock_lines`` what the bench emulator's process says of a master taking or letting go of
-    the time (``hil: clock: LINE``)."""
+    the time (``hil: clock: LINE``); ``nodes`` the drives served (none for a bench)."""
 
     url: str
     faults_seen: list[str] = field(default_factory=list)
     clock_lines: list[str] = field(default_factory=list)
+    nodes: list[DriveNode] = field(default_factory=list)
 
     def fault_events(self) -> list[str]:
         """The faults it started injecting so far (as ``EmulatorProcess.fault_events``)."""
@@ -45,6 +47,7 @@ def drive_served_here(config: str | os.PathLike[str] | None = None, *,
     served = serve_drives(emulator, nodes, "127.0.0.1", 0, clock=clock,
                           faults=[*emulator.faults, *map(parse_fault, faults)],
                           on_fault=here.faults_seen.append)
+    here.nodes = served.nodes
     stop = StopFlag()
     serving = threading.Thread(target=served.serve, args=(stop,), name="drive emulator",
                                daemon=True)
