@@ -53,7 +53,7 @@ from hil.protocols.cia402 import CW_ENABLE_OPERATION, HOMING_METHOD, PROFILE_OBJ
 from hil.servo.config import EMULATED, DriveConfig
 from hil.servo.drives import RunDrives
 from hil.servo.options import ServoRunOptions
-from hil.servo.rig import lone_axis, open_drives, reach, tell_notices
+from hil.servo.rig import keep_lockstep_time, lone_axis, open_drives, reach, tell_notices
 from hil.servo.safety import ServoSafety
 from hil.servo.settings import lockstep_over_a_bus, resolve_servo
 from hil.servo.topics import FEEDBACK_SCHEMA
@@ -309,6 +309,7 @@ class MotionExperiment(Experiment[MotionPlan]):
         session.recorder.metadata("drive", {"json": json.dumps(master.describe())})
         session.recorder.metadata("motion", {"json": json.dumps(profile_held(master))})
         master.enable()
+        keep_lockstep_time(master, session.event)
         session.add_component(self.drives)
         motion: Motion
         target = None

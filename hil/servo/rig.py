@@ -269,6 +269,24 @@ def share_lockstep_time(master: CanDriveMaster, on_event: EventSink = no_event) 
     return True
 
 
+def keep_lockstep_time(master: CanDriveMaster, on_event: EventSink = no_event) -> None:
+    """Once the drive is enabled: a drive that took the master's time
+    (:func:`share_lockstep_time`) still keeps it, or is asked again, in a warning event. A
+    master set up on a busy machine can be silent for longer than the bound before the drive
+    is enabled: the drive, not driving, lets the time go without a fault, and the run went on
+    in lockstep against a drive on its own clock, unsaid."""
+    if not isinstance(master.clock, SyncClock):
+        return
+    n, bound_ms = master.node_id, round(master.config.lockstep_timeout_s * 1e3)
+    if master.sdo.read_int(TIME_BASE, 0, "<I") == bound_ms:
+        return
+    master.sdo.write(TIME_BASE, 0, bound_ms, "<I")  # journaled when share_lockstep_time wrote it
+    on_event("drive.clock", f"drive node {n} had let the master's time go while the run was "
+             f"set up (nothing sent for over {bound_ms} ms of wall time: a busy machine); it "
+             "keeps it again from here", level="warning", source=f"drive{n}", shared=True,
+             bound_ms=bound_ms, taken_again=True)
+
+
 def reach(master: CanDriveMaster, on_event: EventSink, reset_fault: bool,
           asked: str = "master.current_limit_mA") -> None:
     """Reach ``master``'s drive and leave it not enabled: over a bus in lockstep, one clock

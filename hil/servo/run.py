@@ -69,7 +69,7 @@ from hil.servo.kpis import AxesKpis, AxisKpis, ServoKpis, no_tracking
 from hil.servo.motion import home_axis
 from hil.servo.options import ServoRunOptions
 from hil.servo.plan import ServoPlan, ServoState, plan_servo
-from hil.servo.rig import open_drives, reach, tell_notices
+from hil.servo.rig import keep_lockstep_time, open_drives, reach, tell_notices
 from hil.servo.safety import SafetyMonitor
 from hil.servo.settings import resolve_servo, run_output
 from hil.servo.task import ServoTask, check_disturbance_object
@@ -220,6 +220,7 @@ class ServoExperiment(Experiment[ServoPlan]):
                 check_disturbance_object(master)
         for master in state.masters:
             master.enable()
+            keep_lockstep_time(master, session.event)
         state.drives.cycle_together()
         session.add_component(state.drives)
         if not plan.lone:
