@@ -16,31 +16,27 @@ is reported but costs no virtual time). SIGINT/SIGTERM stop the loop at the next
 boundary; every component's ``safe_state()`` runs before :meth:`FixedRateLoop.run` returns,
 also on errors.
 
-No tick does a period's worth of bookkeeping. Each run's samples (lateness, phase times) go
-into the window's compact arrays, and to the recorder as one row
+No tick does a period's worth of bookkeeping. Each run's samples (lateness, phase times) are
+binned into the run's histograms as they are taken (:meth:`TimingHistogram.add`: the same
+small work each tick) and handed to the recorder as one row
 (:class:`~hil.core.recording.recorder.ColumnTopic`): the writer builds the window's timing
-record (about once a second) from the rows, so its close hands over no samples. The ticks of
-the next window bin the arrays into the run's histograms, an even share each, one sample at a
-time. Work left whole for every N ticks costs one tick the work of N: at 2 kHz, a window
-binned and pickled in one tick was a skipped tick every second; binned 512 samples a tick by
-numpy (some 40 us a call, whatever its size) and handed over as five buffers at once
-(100-300 us), it still made the ticks after each whole second late, with skips among them.
+record (about once a second) from the rows, so its close hands over no samples. Work left
+whole for every N ticks costs one tick the work of N: at 2 kHz, a window binned and pickled in
+one tick was a skipped tick every second; binned 512 samples a tick by numpy (some 40 us a
+call, whatever its size) and handed over as five buffers at once (100-300 us), it still made
+the ticks after each whole second late, with skips among them.
 """
 
 from __future__ import annotations
 
-import math
 import signal
 import sys
 import threading
 import time
 from array import array
-from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
-
-import numpy as np
 
 from hil.core.clock import Clock
 from hil.core.stats import TimingHistogram
@@ -51,10 +47,6 @@ REALTIME_SWITCH_INTERVAL_S = 1e-4
 
 #: the phases of a tick, in the order they run
 PHASES = ("read", "compute", "write", "record")
-#: the share of a window over whose ticks the samples of the window before are binned (the
-#: rest: room for a window shortened by skipped ticks)
-DIGEST_SPREAD = 0.8
-
 
 class SafeStateful(Protocol):
     def safe_state(self) -> None: ...
@@ -190,15 +182,13 @@ class TaskStats:
 
 
 class _Window:
-    """Samples of one task since the last timing record, in arrays of doubles: handed to the
-    recorder as they are (pickled as one buffer each, where lists cost a call per float)."""
+    """One task's counts since its last timing record (its samples went to the recorder as
+    rows)."""
 
-    __slots__ = ("lateness_us", "missed", "overruns", "phase_us", "step_us")
+    __slots__ = ("missed", "overruns", "runs")
 
     def __init__(self) -> None:
-        self.lateness_us = array("d")
-        self.step_us = array("d")
-        self.phase_us = {phase: array("d") for phase in PHASES}
+        self.runs = 0
         self.missed = 0
         self.overruns = 0
 
@@ -250,10 +240,6 @@ class FixedRateLoop:
         self.tasks: list[Task] = []
         self.components: list[SafeStateful] = []
         self.stats: dict[str, TaskStats] = {}
-        #: samples of finished windows not in the run's histograms yet: [samples, the index of
-        #: the first not binned, their histogram]
-        self._undigested: deque[list[Any]] = deque()
-        self._digest_per_tick = 1
         self._recorder = recorder
         #: each task's timing record, built in the writer a row a tick (recorder.ColumnTopic)
         self._timing_columns: dict[str, Any] = {}
@@ -331,7 +317,6 @@ class FixedRateLoop:
             try:  # a signal during the safe state is one more stop request, not a kill
                 self.safe_state_all()
                 self._publish_windows(final=True)
-                self._digest(None)
             finally:
                 self._restore_signal_handlers(previous_handlers)
             if self.stop_reason is None:
@@ -342,9 +327,10 @@ class FixedRateLoop:
         tasks = self.tasks
         windows = {t.name: _Window() for t in tasks}
         self._windows = windows
-        schedule, slots = self._schedule(windows), self._slots(windows)
+        # each task's row of this tick: its lateness, then each of its phases' times (us)
+        rows = [[0.0] * (1 + len(task.phases)) for task in tasks]
+        schedule, slots = self._schedule(rows), self._slots(windows, rows)
         spent = [0] * len(tasks)  # ns each task spent in this tick's phases
-        undigested = self._undigested
         t0 = self.start_ns = clock.start()
         n = 0
         next_window = self._window_ticks
@@ -368,22 +354,25 @@ class FixedRateLoop:
             if boundary is not None:
                 boundary(n)
             start = clock.time_ns()
-            for index, divisor, method, samples in schedule:
+            for index, divisor, method, bin_time, row, at in schedule:
                 if n % divisor:
                     continue
                 c0 = perf()
                 method(start)
                 elapsed = perf() - c0
-                samples.append(elapsed / 1e3)
+                row[at] = elapsed / 1e3
+                bin_time(row[at])
                 spent[index] += elapsed
             lateness_us = (start - deadline) / 1e3
-            for index, divisor, window, stats, columns, phase_us in slots:
+            for index, divisor, window, stats, columns, row in slots:
                 if n % divisor:
                     continue
-                window.lateness_us.append(lateness_us)
-                window.step_us.append(spent[index] / 1e3)
+                stats.lateness.add(lateness_us)
+                stats.step.add(spent[index] / 1e3)
+                window.runs += 1
                 if columns is not None:  # this run's row of the window's timing record
-                    columns.add((lateness_us, *[samples[-1] for samples in phase_us]))
+                    row[0] = lateness_us
+                    columns.add(tuple(row))
                 if realtime and spent[index] > divisor * period:
                     window.overruns += 1
                 spent[index] = 0
@@ -395,29 +384,28 @@ class FixedRateLoop:
             self.ticks = n
             if recorder is not None:
                 recorder.flush_if_due()
-            if undigested:
-                self._digest(self._digest_per_tick)
             if n >= next_window:
                 self._publish_windows(final=False)
-                # the new windows and their sample lists
-                schedule, slots = self._schedule(windows), self._slots(windows)
+                slots = self._slots(windows, rows)  # the new windows
                 next_window = (n // self._window_ticks + 1) * self._window_ticks
 
-    def _schedule(self, windows: dict[str, _Window]
-                  ) -> list[tuple[int, int, Callable[[int], None], array[float]]]:
+    def _schedule(self, rows: list[list[float]]) -> list[tuple[
+            int, int, Callable[[int], None], Callable[[float], None], list[float], int]]:
         """Every phase method of a tick, in order (phase by phase, then in the order the
-        tasks were added): ``(task index, divisor, bound phase method, samples)``."""
-        return [(index, task.divisor, getattr(task, phase), windows[task.name].phase_us[phase])
+        tasks were added): ``(task index, divisor, bound phase method, what bins its time,
+        the task's row, the time's place in it)``."""
+        return [(index, task.divisor, getattr(task, phase),
+                 self.stats[task.name].phase_times[phase].add, rows[index],
+                 1 + task.phases.index(phase))
                 for phase in PHASES
                 for index, task in enumerate(self.tasks) if phase in task.phases]
 
-    def _slots(self, windows: dict[str, _Window]) -> list[tuple[
-            int, int, _Window, TaskStats, Any, list[array[float]]]]:
+    def _slots(self, windows: dict[str, _Window], rows: list[list[float]]) -> list[tuple[
+            int, int, _Window, TaskStats, Any, list[float]]]:
         """Per task, for the end of a tick: ``(index, divisor, its window, its stats, its
-        timing record's columns or None, the window's samples of each of its phases)``."""
+        timing record's columns or None, its row)``."""
         return [(index, task.divisor, windows[task.name], self.stats[task.name],
-                 self._timing_columns.get(task.name),
-                 [windows[task.name].phase_us[phase] for phase in task.phases])
+                 self._timing_columns.get(task.name), rows[index])
                 for index, task in enumerate(self.tasks)]
 
     def _count_skipped(self, first: int, count: int, windows: dict[str, _Window]) -> None:
@@ -437,31 +425,25 @@ class FixedRateLoop:
             )
 
     def _publish_windows(self, final: bool) -> None:
-        """Each task's window as its timing record, its samples queued for the run's
-        histograms, and a new window: the same work for a window of any length."""
+        """Each task's window as its timing record (its columns: the rows handed over each
+        tick) and a new window: the same work for a window of any length."""
         windows = getattr(self, "_windows", None)
         if not windows:
             return
         t_ns = self.clock.time_ns()
         for task in self.tasks:
             window = windows[task.name]
-            if final and not window.lateness_us and not window.missed:
+            if final and not window.runs and not window.missed:
                 continue
             stats = self.stats[task.name]
             stats.missed += window.missed
             stats.overruns += window.overruns
-            for samples, histogram in ((window.lateness_us, stats.lateness),
-                                       (window.step_us, stats.step),
-                                       *((window.phase_us[phase], histogram) for phase, histogram
-                                         in stats.phase_times.items())):
-                if samples:
-                    self._undigested.append([samples, 0, histogram])
             columns = self._timing_columns.get(task.name)
-            if columns is not None:  # the rows handed over each tick are its columns
+            if columns is not None:
                 fields: dict[str, Any] = {
                     "task": task.name,
                     "period_s": stats.period_s,
-                    "runs": len(window.lateness_us),
+                    "runs": window.runs,
                     "missed": window.missed,
                     "overruns": window.overruns,
                     **{f"{phase}_us": array("d") for phase in PHASES
@@ -469,31 +451,6 @@ class FixedRateLoop:
                 }
                 columns.log(t_ns, fields, ("lateness_us", *(f"{p}_us" for p in task.phases)))
             windows[task.name] = _Window()
-        left = sum(len(samples) - start for samples, start, _ in self._undigested)
-        self._digest_per_tick = max(1, math.ceil(left / (DIGEST_SPREAD * self._window_ticks)))
-
-    def _digest(self, most: int | None) -> None:
-        """Bin up to ``most`` samples of the finished windows into the run's histograms,
-        oldest first, one at a time (the same work for each); None: all of them at once
-        (after the last tick)."""
-        undigested = self._undigested
-        if most is None:
-            for samples, start, histogram in undigested:
-                histogram.add_many(np.frombuffer(samples)[start:])
-            undigested.clear()
-            return
-        while undigested and most > 0:
-            entry = undigested[0]
-            samples, start, histogram = entry
-            end = min(start + most, len(samples))
-            add = histogram.add
-            for index in range(start, end):
-                add(samples[index])
-            most -= end - start
-            if end == len(samples):
-                undigested.popleft()
-            else:
-                entry[1] = end
 
     def safe_state_all(self) -> list[str]:
         """Call every task's and component's ``safe_state`` (reverse order); return failures."""
@@ -510,7 +467,6 @@ class FixedRateLoop:
 
     def summary(self) -> dict[str, Any]:
         """Per-task stats of the run so far, keyed by task name."""
-        self._digest(None)
         return {name: s.summary() for name, s in self.stats.items()}
 
     # -- signals ---------------------------------------------------------------------------

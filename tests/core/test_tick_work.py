@@ -31,8 +31,7 @@ pytestmark = pytest.mark.timeout(120)
 
 #: a tick's own bookkeeping, with room: the servo tick's samples (lateness, four phases, step,
 #: the controller's compute time), its three messages, the MPC's prediction as two lists
-#: (8 and 50 values) and its timing row: some 75 values; and its share of binning the last
-#: window's samples (8 a tick over four fifths of the next)
+#: (8 and 50 values) and its timing row: some 75 values
 TICK_BOUND = 100
 
 
