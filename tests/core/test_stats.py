@@ -47,8 +47,10 @@ def test_percentiles_of_a_recorded_servo_session_are_within_one_percent(tmp_path
     # stall of 77 ms, seen once on a loaded machine): equal up to the coarser of the two
     assert step["max"] == pytest.approx(compute.max(), abs=5e-4, rel=2.0**-23)
     for key, q in (("median", 50), ("p99", 99)):
-        assert step[key] == pytest.approx(np.percentile(compute, q), rel=RELATIVE_ACCURACY,
-                                          abs=2e-3)
+        # within the histogram's accuracy, then rounded to 3 decimals: both bounds add up (a
+        # median 1.0 % over was rounded 0.00008 us past the accuracy alone, once)
+        exact = float(np.percentile(compute, q))
+        assert abs(step[key] - exact) <= (RELATIVE_ACCURACY + 2.0**-23) * exact + 5e-4, key
 
 
 @pytest.mark.realtime
