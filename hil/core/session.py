@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import platform
 import time
@@ -24,6 +25,15 @@ VERSIONED_PACKAGES = (
 
 def package_versions(names: Iterable[str] = VERSIONED_PACKAGES) -> dict[str, str]:
     """Installed versions of the packages that shape a session's behaviour."""
+    return dict(_installed_versions(tuple(names)))
+
+
+@functools.cache
+def _installed_versions(names: tuple[str, ...]) -> dict[str, str]:
+    """:func:`package_versions`, read once a process: each read parses the package's metadata
+    file (some 15 ms for the twelve, a third of a short lockstep run's CPU in a process that
+    runs many, a sweep's or a test worker's), and the packages a process has imported do not
+    change while it runs."""
     versions = {"python": platform.python_version()}
     for name in names:
         try:

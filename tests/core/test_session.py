@@ -70,6 +70,36 @@ def test_logged_messages_read_back_identically_with_schemas_metadata_and_config(
     assert kinds[0] == "session.start" and kinds[-1] == "session.stop"
 
 
+def test_every_session_records_the_installed_versions_read_once_a_process(tmp_path,
+                                                                         monkeypatch):
+    from importlib import metadata
+
+    from hil.core import session as session_module
+
+    session_module._installed_versions.cache_clear()
+    reads: list[str] = []
+    installed = metadata.version
+
+    def version(name: str) -> str:
+        reads.append(name)
+        return installed(name)
+
+    monkeypatch.setattr(session_module.importlib_metadata, "version", version)
+    recorded = []
+    for name in ("a", "b"):
+        session = Session(str(tmp_path / f"{name}.mcap"), SimClock(), 0.01, kind="test",
+                          handle_signals=False)
+        session.run(max_ticks=2)
+        session.close()
+        recorded.append(read_session(tmp_path / f"{name}.mcap").metadata["versions"])
+    assert recorded[0] == recorded[1]
+    assert recorded[0]["numpy"] == np.__version__ and recorded[0]["mcap"] == installed("mcap")
+    # each package's metadata file parsed by the first session alone
+    assert sorted(reads) == sorted(session_module.VERSIONED_PACKAGES)
+    session_module.package_versions()["numpy"] = "changed"  # a caller's copy, not the cache
+    assert session_module.package_versions()["numpy"] == np.__version__
+
+
 def test_topic_as_numpy_arrays(tmp_path):
     path = tmp_path / "a.mcap"
     with Recorder(path) as rec:
