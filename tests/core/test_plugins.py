@@ -1,5 +1,8 @@
 """Loading a user's object from NAME, FILE.py:Class or package.module:Class."""
 
+import importlib.metadata
+import os
+
 import pytest
 
 from hil.core.params import merge_params, parse_param, parse_value
@@ -43,6 +46,46 @@ def test_entry_point_name(tmp_path, monkeypatch):
     assert load_object("threshold", GROUP).__name__ == "Threshold"
     with pytest.raises(ConfigError, match=r"'thresold': no such name \(registered: threshold\)"):
         load_object("thresold", GROUP)
+
+
+def install(folder, name, entry):
+    """A package ``name`` with ``entry`` in GROUP, as pip leaves it in ``folder``."""
+    write_controller(folder / f"{name}.py")
+    info = folder / f"{name}-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text(f"[{GROUP}]\n{entry} = {name}:Threshold\n")
+
+
+def test_entry_points_are_read_once_until_a_package_comes_or_goes(tmp_path, monkeypatch):
+    reads = []
+    read = importlib.metadata.entry_points
+
+    def counted(**selection):
+        reads.append(selection["group"])
+        return read(**selection)
+
+    monkeypatch.setattr(importlib.metadata, "entry_points", counted)
+    site = tmp_path / "site"
+    site.mkdir()
+    install(site, "plugin_one", "one")
+    monkeypatch.syspath_prepend(str(site))
+    assert load_object("one", GROUP).__name__ == "Threshold"
+    assert load_object("one", GROUP).__name__ == "Threshold"
+    assert reads == [GROUP]  # the second run read no package's metadata
+    # installed into a folder already on the path, a moment later: the folder's time moves
+    install(site, "plugin_two", "two")
+    later = site.stat().st_mtime_ns + 1_000_000_000
+    os.utime(site, ns=(later, later))
+    assert load_object("two", GROUP).__name__ == "Threshold"
+    assert len(reads) == 2
+    # a folder put on the path is a new state too
+    other = tmp_path / "other"
+    other.mkdir()
+    install(other, "plugin_three", "three")
+    monkeypatch.syspath_prepend(str(other))
+    assert load_object("three", GROUP).__name__ == "Threshold"
+    assert len(reads) == 3
 
 
 @pytest.mark.parametrize(("spec", "message"), [
