@@ -2,6 +2,7 @@
 
 import importlib.metadata
 import os
+import sys
 
 import pytest
 
@@ -49,8 +50,10 @@ def test_entry_point_name(tmp_path, monkeypatch):
 
 
 def install(folder, name, entry):
-    """A package ``name`` with ``entry`` in GROUP, as pip leaves it in ``folder``."""
-    write_controller(folder / f"{name}.py")
+    """A package ``name`` with ``entry`` in GROUP, as pip leaves it in ``folder`` (its
+    bytecode, once imported, in a folder of its own: ``folder``'s time stays)."""
+    (folder / name).mkdir()
+    write_controller(folder / name / "__init__.py")
     info = folder / f"{name}-1.0.dist-info"
     info.mkdir()
     (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: 1.0\n")
@@ -69,7 +72,9 @@ def test_entry_points_are_read_once_until_a_package_comes_or_goes(tmp_path, monk
     site = tmp_path / "site"
     site.mkdir()
     install(site, "plugin_one", "one")
-    monkeypatch.syspath_prepend(str(site))
+    # the path is this folder alone: no other folder's time (another test's, mypy's cache
+    # made beside the suite) moves under the test
+    monkeypatch.setattr(sys, "path", [str(site)])
     assert load_object("one", GROUP).__name__ == "Threshold"
     assert load_object("one", GROUP).__name__ == "Threshold"
     assert reads == [GROUP]  # the second run read no package's metadata
@@ -83,7 +88,7 @@ def test_entry_points_are_read_once_until_a_package_comes_or_goes(tmp_path, monk
     other = tmp_path / "other"
     other.mkdir()
     install(other, "plugin_three", "three")
-    monkeypatch.syspath_prepend(str(other))
+    sys.path.insert(0, str(other))
     assert load_object("three", GROUP).__name__ == "Threshold"
     assert len(reads) == 3
 
