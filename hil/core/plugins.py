@@ -30,36 +30,36 @@ from hil.errors import ConfigError, HilError
 
 def registered_names(group: str) -> list[str]:
     """The names installed packages register in ``group``."""
-    return sorted({ep.name for ep in entry_points(group)})
+    return sorted({ep.name for ep in _entry_points(group)})
 
 
 def registered(group: str, name: str) -> Any | None:
     """The object installed packages register as ``name`` in ``group`` (loaded), or None."""
-    for entry in entry_points(group):
+    for entry in _entry_points(group):
         if entry.name == name:
             return entry.load()
     return None
 
 
-def entry_points(group: str) -> tuple[importlib.metadata.EntryPoint, ...]:
+def _entry_points(group: str) -> tuple[importlib.metadata.EntryPoint, ...]:
     """The entry points installed packages register in ``group``, read again only once the
-    packages on ``sys.path`` may have changed (:func:`path_state`): each read opens every
+    packages on ``sys.path`` may have changed (:func:`_path_state`): each read opens every
     installed package's ``entry_points.txt`` (some 5 ms, a fifth of a short lockstep run's CPU
     in a process that runs many)."""
-    return _entry_points_of(group, path_state())
+    return _entry_points_of(group, _path_state())
 
 
-def path_state() -> tuple[tuple[str, int], ...]:
+def _path_state() -> tuple[tuple[str, int], ...]:
     """Each folder of ``sys.path`` (the current one for ``''``) with its modification time: a
     package installed into one, or removed, changes its time, and a folder added is a new
     entry."""
     state = []
     for entry in sys.path:
-        folder = entry or os.getcwd()
         try:
+            folder = entry or os.getcwd()
             state.append((folder, os.stat(folder).st_mtime_ns))
-        except OSError:
-            state.append((folder, -1))
+        except OSError:  # gone (the current folder too): as it is now
+            state.append((entry, -1))
     return tuple(state)
 
 
