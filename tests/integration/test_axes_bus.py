@@ -75,6 +75,7 @@ def test_the_plan_and_the_refusal_give_one_figure(tmp_path, capsys, drive_toml, 
     assert f"does not fit: {said}" in text.stdout
 
 
+@pytest.mark.slow  # a process of its own: make test runs it, make check does not
 def test_the_emulated_bus_warns_on_the_terminal(tmp_path):
     done = hil(tmp_path, "servo", "run", "--axes", "x=1,y=2", "--controller", "pid",
                "--duration", "0.02", "--out", "warned.mcap", "--quiet")
@@ -103,6 +104,7 @@ def test_empc_at_1000_us_is_refused_naming_it(tmp_path, capsys):
            "500 us" in done.stderr
 
 
+@pytest.mark.slow  # a process of its own: make test runs it, make check does not
 def test_a_bitrate_above_1_mbit_is_refused_unless_the_bus_is_can_fd(tmp_path, capsys):
     def here(*args: str) -> subprocess.CompletedProcess[str]:
         return hil_here(tmp_path, capsys, *args)

@@ -194,6 +194,7 @@ def test_report_and_export_show_the_changes(pid_runs, capsys):
         "0.2,200000000,safety.current_limit_mA,1000.0,150.0,mA,test-client,400"]
 
 
+@pytest.mark.slow  # a process of its own: make test runs it, make check does not
 def test_the_guides_example_tunes_a_run_from_outside_the_repository(tmp_path):
     code = block("guides/tuning.md", "python", "tuner_started=tune")
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}

@@ -112,6 +112,7 @@ def test_scan_of_the_twin_reads_the_eds_identity_scaling_modes_and_pdos(tmp_path
                          "0x608F:1/2 (writes), 0x6091:1/2 (writes), modes PP, HM")
 
 
+@pytest.mark.slow  # a process of its own: make test runs it, make check does not
 def test_what_the_twin_cannot_emulate_answers_with_its_abort_code(tmp_path, twin, capsys):
     def sdo(*args: object) -> subprocess.CompletedProcess[str]:
         return hil_here(capsys, "drive", "sdo", *args, "--node", NODE, "--eds", EX20,
@@ -150,6 +151,7 @@ def test_what_the_twin_cannot_emulate_answers_with_its_abort_code(tmp_path, twin
     assert "0x06020000 object does not exist" in one_error_line(missing)
 
 
+@pytest.mark.slow  # a process of its own: make test runs it, make check does not
 def test_a_lockstep_run_against_the_twin_moves_its_axis_in_the_eds_units(tmp_path, ex20):
     done = hil(tmp_path, "servo", "run", "--config", ex20, "--controller", "pid",
                "--duration", "0.5", "--reference", "hold:position=40", "--out", "run.mcap",
@@ -214,6 +216,7 @@ def test_emulate_drive_eds_alone_lists_what_the_twin_refuses(tmp_path, capsys):
     assert lines[-1].endswith("): PP, HM")
 
 
+@pytest.mark.slow  # a process of its own: make test runs it, make check does not
 def test_an_eds_of_no_drive_is_one_line(tmp_path, capsys):
     refused = hil(tmp_path, "emulate", "drive", "--eds", SAMPLE, "--socketcand", "127.0.0.1:0")
     said = (f"hil: error: EDS {SAMPLE}: no 0x6502 (supported drive modes) with a value: the twin "
@@ -324,6 +327,7 @@ def test_a_vendor_object_at_a_hook_index_is_the_vendors_and_not_emulated(tmp_pat
         wire.close()
 
 
+@pytest.mark.slow  # a process of its own: make test runs it, make check does not
 def test_a_string_the_eds_gives_beyond_ascii_is_no_data_not_an_internal_error(tmp_path):
     # found by the fuzz campaign (tests/fuzz): 0x1009 = 'z3¤' took the twin's SDO server to
     # an internal error (a UnicodeEncodeError, its traceback logged, EMCY 0x6100)

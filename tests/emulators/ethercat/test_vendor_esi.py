@@ -81,6 +81,7 @@ def hil(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
                           text=True, timeout=120, env=env)
 
 
+@pytest.mark.slow  # a process of its own: make test runs it, make check does not
 def test_the_refusal_from_the_command_line_is_one_line(tmp_path):
     out = hil(tmp_path, "emulate", "drive", "--ethercat", "hil-no-such-if", "--esi",
               str(STMBL))
