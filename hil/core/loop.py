@@ -360,8 +360,8 @@ class FixedRateLoop:
                 c0 = perf()
                 method(start)
                 elapsed = perf() - c0
-                row[at] = elapsed / 1e3
-                bin_time(row[at])
+                row[at] = us = elapsed / 1e3
+                bin_time(us)
                 spent[index] += elapsed
             lateness_us = (start - deadline) / 1e3
             for index, divisor, window, stats, columns, row in slots:

@@ -37,18 +37,6 @@ def test_module_spec(tmp_path, monkeypatch):
     assert load_object("labctl.ctl:Threshold", GROUP).__name__ == "Threshold"
 
 
-def test_entry_point_name(tmp_path, monkeypatch):
-    write_controller(tmp_path / "plugin_ctl.py")
-    info = tmp_path / "plugin_ctl-1.0.dist-info"
-    info.mkdir()
-    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: plugin-ctl\nVersion: 1.0\n")
-    (info / "entry_points.txt").write_text(f"[{GROUP}]\nthreshold = plugin_ctl:Threshold\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
-    assert load_object("threshold", GROUP).__name__ == "Threshold"
-    with pytest.raises(ConfigError, match=r"'thresold': no such name \(registered: threshold\)"):
-        load_object("thresold", GROUP)
-
-
 def install(folder, name, entry):
     """A package ``name`` with ``entry`` in GROUP, as pip leaves it in ``folder`` (its
     bytecode, once imported, in a folder of its own: ``folder``'s time stays)."""
@@ -58,6 +46,14 @@ def install(folder, name, entry):
     info.mkdir()
     (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: 1.0\n")
     (info / "entry_points.txt").write_text(f"[{GROUP}]\n{entry} = {name}:Threshold\n")
+
+
+def test_entry_point_name(tmp_path, monkeypatch):
+    install(tmp_path, "plugin_ctl", "threshold")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert load_object("threshold", GROUP).__name__ == "Threshold"
+    with pytest.raises(ConfigError, match=r"'thresold': no such name \(registered: threshold\)"):
+        load_object("thresold", GROUP)
 
 
 def test_entry_points_are_read_once_until_a_package_comes_or_goes(tmp_path, monkeypatch):
