@@ -8,7 +8,11 @@ the `websockets` package, as Foxglove would be:
 
 * default: one client subscribed to every topic for the whole run;
 * ``--churn N``: N clients that connect, subscribe to everything, read for ``--hold`` seconds
-  and disconnect, over and over (browser tabs coming and going).
+  and disconnect, over and over (browser tabs coming and going);
+* ``--stalled``: one client that subscribes to the busiest topics, served at every message,
+  and then never reads (a browser tab frozen in the background): its queue in the server
+  overflows, and the session's skipped ticks beside the run without the live view say whether
+  it slowed the loop.
 
 The runs alternate (off, on, off, on...) so that drift in the shared machine's load hits both.
 Printed per run: the loop's lateness p50/p99/max and skipped ticks, the stale feedback and the
@@ -88,6 +92,17 @@ for _ in range(clients):
     threading.Thread(target=come_and_go, daemon=True).start()
 sys.stdin.read()  # until the benchmark closes it
 print(f"{done[0]} {failed[0]} {messages[0]}", flush=True)
+"""
+
+STALLED_TOPICS = (
+    "/drive/command", "/drive/feedback", "/loop/servo/timing", "/mpc/prediction")
+STALLED = f"""
+import sys
+from tests.live.foxglove_client import stalled_client
+sock = stalled_client("127.0.0.1", int(sys.argv[1]), {list(STALLED_TOPICS)!r}, 120)
+sys.stdin.read()  # until the benchmark closes it
+sock.close()
+print("stalled")
 """
 
 
@@ -190,7 +205,7 @@ def _threads(pid: int) -> list[tuple[int, str, float, float]]:
 
 
 def run_once(tmp: str, name: str, duration_s: float, live: bool, churn: int,
-             hold_s: float) -> dict[str, Any]:
+             hold_s: float, stalled: bool = False) -> dict[str, Any]:
     """One real-time session in a process of its own, with its clients if ``live``."""
     port, out = _free_port(), f"{tmp}/{name}.mcap"
     drive = drive_for(12000.0) if churn else deep_merge(drive_for(12000.0), TOLERANT)
@@ -200,18 +215,21 @@ def run_once(tmp: str, name: str, duration_s: float, live: bool, churn: int,
         [sys.executable, "-m", "hil", "servo", "run", "--controller", "mpc", "--realtime",
          "--reference", "sine:amplitude=2,frequency=10", "--duration", str(duration_s),
          "--config", str(config), "--out", out, "--json", "--quiet",
-         *(["--live", str(port)] if live else [])],
+         *(["--live", str(port)] if live else []),
+         # a stalled client is served every message, so that its queue overflows
+         *([f"--live-rate={topic}=0" for topic in STALLED_TOPICS] if live and stalled else [])],
         cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     clients = None
     if live:
-        script, args = (CHURN, [str(churn), str(hold_s)]) if churn else (WATCHER, [])
+        script, args = (CHURN, [str(churn), str(hold_s)]) if churn else \
+            (STALLED, []) if stalled else (WATCHER, [])
         clients = subprocess.Popen([sys.executable, "-c", script, str(port), *args], cwd=REPO,
                                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     cpu = ProcessCpu([run.pid, *([clients.pid] if clients else [])])
     stdout, stderr = run.communicate()
     received = "-"
     if clients is not None:
-        if churn:
+        if churn or stalled:
             received, _ = clients.communicate("", timeout=60)
         else:
             received, _ = clients.communicate(timeout=60)
@@ -221,9 +239,10 @@ def run_once(tmp: str, name: str, duration_s: float, live: bool, churn: int,
     session = read_session(out)
     loop = json.loads(session.metadata.get("loop", {}).get("servo", "{}"))
     feedback = FEEDBACK_TIMING.section(session).get("/drive/feedback", {})
+    live_meta = session.metadata.get("live", {})
     return {"loop": loop, "kpis": kpis, "feedback": feedback, "cpu": roles,
-            "received": received, "error": stderr.strip().splitlines()[-1:] if
-            run.returncode not in (0, 3) else []}
+            "received": received, "queue_full": live_meta.get("client_queue_full", "-"),
+            "error": stderr.strip().splitlines()[-1:] if run.returncode not in (0, 3) else []}
 
 
 def print_run(label: str, row: dict[str, Any], churn: int) -> None:
@@ -242,6 +261,8 @@ def print_run(label: str, row: dict[str, Any], churn: int) -> None:
     if churn and row["received"] != "-":
         done, failed, messages = row["received"].split()
         print(f"   clients: {done} connections done, {failed} failed, {messages} messages")
+    elif row["received"] == "stalled":
+        print(f"   client: stalled, its queue overflowed {row['queue_full']} time(s)")
     elif row["received"] != "-":
         print(f"   client: {row['received']} messages")
     print("   CPU [s]: " + ", ".join(
@@ -259,11 +280,16 @@ def main() -> None:
                         help="N clients coming and going instead of one watching throughout")
     parser.add_argument("--hold", type=float, default=0.3, metavar="S",
                         help="with --churn: seconds each connection reads before it closes")
+    parser.add_argument("--stalled", action="store_true",
+                        help="one client that subscribes and never reads instead of one watching")
     add_quick(parser)
     args = parser.parse_args()
     args.duration = args.duration or (0.3 if args.quick else 10.0)
     args.pairs = args.pairs or (1 if args.quick else 2)
-    clients = f"{args.churn} clients coming and going" if args.churn else "1 client"
+    if args.churn and args.stalled:
+        parser.error("--churn and --stalled are two kinds of client: choose one")
+    clients = f"{args.churn} clients coming and going" if args.churn else \
+        "1 stalled client" if args.stalled else "1 client"
     print(f"real-time servo, MPC FOH H_t = H_u = 8 at 2 kHz, {args.duration:g} s per run, "
           + (f"--live + {clients} only (--quick)" if args.quick else
              f"{args.pairs} pair(s), alternating: no live view / --live + {clients}"))
@@ -272,7 +298,7 @@ def main() -> None:
         for pair in range(args.pairs):
             for live in (True,) if args.quick else (False, True):
                 row = run_once(tmp, f"r{pair}{int(live)}", args.duration, live, args.churn,
-                               args.hold)
+                               args.hold, args.stalled)
                 rows[live].append(row)
                 print_run(f"{'--live + ' + clients if live else 'no live view'} #{pair + 1}",
                           row, args.churn)

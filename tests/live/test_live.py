@@ -135,11 +135,11 @@ def test_replay_of_a_truncated_session_serves_the_recorded_messages(
     assert prediction["y_deg_max"] == pytest.approx(max(prediction["y_deg"]))
 
 
-def _run_ticks(path: Path, port: int, with_stalled_client: bool) -> tuple[int, int, dict]:
+def _run_ticks(path: Path, port: int, with_stalled_client: bool) -> tuple[int, dict]:
     """1.5 s at 1 kHz, each tick a 7.2 kB message served live (10.8 MB in all: more than the
     kernel's buffers and the SDK's queue for a stalled client hold).
 
-    Returns the skipped ticks, the ticks and the file's ``live`` metadata."""
+    Returns the ticks (run or skipped) and the file's ``live`` metadata."""
     session = Session(str(path), RealtimeClock(), 1e-3, kind="live-test", handle_signals=False,
                       recording=RecordingOptions(live=f"127.0.0.1:{port}",
                                                  live_rates={"/tick": 0}))
@@ -160,21 +160,21 @@ def _run_ticks(path: Path, port: int, with_stalled_client: bool) -> tuple[int, i
     stats = session.loop.stats["tick"]
     data = read_session(path)
     assert len(data.topic("/tick")) == stats.runs  # the file lost nothing
-    return stats.missed, stats.runs + stats.missed, data.metadata.get("live", {})
+    return stats.runs + stats.missed, data.metadata.get("live", {})
 
 
 @pytest.mark.realtime
-def test_a_stalled_client_does_not_slow_the_loop_or_the_file(tmp_path: Path) -> None:
-    alone_missed, alone_ticks, alone_live = _run_ticks(tmp_path / "a.mcap", free_port(), False)
-    stalled_missed, stalled_ticks, stalled_live = _run_ticks(tmp_path / "b.mcap", free_port(),
-                                                             True)
-    assert json.loads(alone_live["sent"]) == {}  # nobody subscribed: nothing encoded
+def test_a_stalled_client_overflows_its_own_queue_and_the_file_loses_nothing(
+        tmp_path: Path) -> None:
+    """What a stalled client costs the loop in skipped ticks is a wall-clock figure:
+    ``benchmarks/live.py --stalled`` measures it beside a run without the live view."""
+    alone_ticks, alone_live = _run_ticks(tmp_path / "a.mcap", free_port(), False)
+    stalled_ticks, stalled_live = _run_ticks(tmp_path / "b.mcap", free_port(), True)
+    assert alone_ticks > 0 and json.loads(alone_live["sent"]) == {}  # nobody subscribed
     sent = json.loads(stalled_live["sent"])["/tick"]
     assert sent >= 0.9 * stalled_ticks  # served every tick to the client that never read
     # the SDK's queue for the client overflowed and dropped, and said so
     assert int(stalled_live["client_queue_full"]) >= 1
-    # skipped ticks within noise of the run without the client (the machine is shared)
-    assert stalled_missed <= alone_missed + max(10, 0.01 * alone_ticks)
 
 
 def test_live_flag_errors_are_one_line(capsys: pytest.CaptureFixture[str]) -> None:
