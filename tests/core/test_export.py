@@ -97,6 +97,30 @@ def test_a_topic_of_numbers_exports_as_its_rows_do_block_by_block(tmp_path, monk
     assert table[59]["count"] == str(-59 * 10**12) and table[57]["fresh"] == "True"
 
 
+def test_repeated_values_are_formatted_once_and_exported_as_their_rows(tmp_path, monkeypatch):
+    """Columns whose values repeat (a memo of each distinct value's text, cleared when full):
+    the same CSV, the two zeros told apart in a block that holds both and in blocks that hold
+    one each, non-finite values empty, a time that never repeats value by value."""
+    monkeypatch.setattr(export_module, "CSV_BLOCK_ROWS", 6)
+    monkeypatch.setattr(export_module, "MEMO_VALUES", 4)
+    fields = [Field("position_deg", "float64"), Field("current_mA", "float32"),
+              Field("word", "uint16"), Field("fresh", "bool"), Field("count", "int64")]
+    zeros = [0.0, 0.0, 1.5, 0.0, 2.5, 1.5,        # a block with +0.0 alone
+             -0.0, 1.5, -0.0, 2.5, 1.5, 2.5,      # -0.0 alone, the memo holding +0.0's text
+             0.0, -0.0, float("nan"), 1.5, 0.0, -0.0,  # both zeros in one block
+             3.5, 4.5, 5.5, 6.5, 7.5, float("inf")]    # more than the memo holds
+    messages = [{"position_deg": zeros[k], "current_mA": [0.0, 1 / 3, -0.0][k % 3],
+                 "word": k % 2, "fresh": k % 4 == 0, "count": k // 3} for k in range(24)]
+    path = tmp_path / "s.mcap"
+    write_session(path, messages, fields)
+    data = read_session(path)
+    text = csv_text(data, "/t")
+    assert text == rows_as_before(data, "/t")
+    positions = [row["position_deg"] for row in csv.DictReader(io.StringIO(text))]
+    assert positions[:9] == ["0.0", "0.0", "1.5", "0.0", "2.5", "1.5", "-0.0", "1.5", "-0.0"]
+    assert positions[12:15] == ["0.0", "-0.0", ""] and positions[-1] == ""
+
+
 def test_a_topic_without_its_own_t_s_counts_from_the_sessions_start(tmp_path):
     fields = [Field("position_deg", "float64"), Field("word", "uint8")]
     path = tmp_path / "s.mcap"
