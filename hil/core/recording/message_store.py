@@ -48,7 +48,8 @@ class MessageStore:
         base = len(self.buffer)
         self.buffer += messages.content
         ids = messages.channel_ids
-        for channel_id in np.unique(ids).tolist():
+        # the channels present, ascending (np.unique would import numpy.ma: 15 ms a process)
+        for channel_id in np.flatnonzero(np.bincount(ids)).tolist():
             mine = ids == channel_id
             self._file[channel_id].append((messages.log_times[mine],
                                            messages.starts[mine] + base, messages.sizes[mine]))
