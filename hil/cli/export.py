@@ -16,7 +16,7 @@ from hil.cli.argtypes import output_file
 #: and rounds back to it
 _EXACT_NS = (1 << 22) * 10**9
 CSV_BLOCK_ROWS = 8192  # rows formatted at a time: the text of a block, not of the topic
-MEMO_VALUES = 65536  # distinct floats a column keeps the text of (a few MB)
+MEMO_VALUES = 65536  # distinct values a column keeps the text of (a few MB)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
