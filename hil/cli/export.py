@@ -140,7 +140,7 @@ class _ColumnCells:
         for value in distinct:
             if value not in memo:
                 memo[value] = "" if value is None else str(value)
-        if 0.0 in memo and values.count(0.0) and \
+        if values.count(0.0) and \
                 len({str(value) for value in values if value == 0.0} | {memo[0.0]}) > 1:
             return _cells(values)  # 0.0 and -0.0
         return list(map(memo.__getitem__, values))
