@@ -178,8 +178,10 @@ def _children(pid: int) -> list[int]:
 
 
 def _role(pid: int) -> str:
+    if _read(f"/proc/{pid}/comm").strip() == "hil writer":  # forked: the server's command line
+        return "writer"
     command = _read(f"/proc/{pid}/cmdline").replace("\0", " ")
-    for needle, role in (("hil.core.recording.writer", "writer"),
+    for needle, role in (("hil.core.recording.writer_fork", "writer fork server"),
                          ("emulate drive", "drive emulator"),
                          ("servo run", "loop process"), ("foxglove_client", "clients")):
         if needle in command:

@@ -19,6 +19,7 @@ from hil import api
 from hil.bench.config import load_bench_config
 from hil.core.recording.output import OutputError
 from hil.core.recording.reader import read_session
+from hil.core.recording.writer_fork import WRITER_NAME
 from tests.cli import hil_here
 from tests.pymodbus_bench import PymodbusBench, short_config, start_bench_run
 
@@ -75,11 +76,13 @@ def test_a_killed_writer_stops_the_run_within_a_second(tmp_path):
             time.sleep(0.2)
             for pid in os.listdir("/proc"):
                 if pid.isdigit():
-                    try:
-                        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+                    try:  # the run's writer process: its child, by the name it goes by
+                        comm = Path(f"/proc/{pid}/comm").read_text().strip()
+                        parent = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")")[1]
+                                     .split()[1])
                     except OSError:
                         continue
-                    if b"hil.core.recording.writer" in cmdline and str(out).encode() in cmdline:
+                    if comm == WRITER_NAME and parent == run.pid:
                         writer = int(pid)
         assert writer is not None
         while bench.meter_reads < 200:  # 2 s into the run

@@ -12,13 +12,15 @@ from pathlib import Path
 import pytest
 
 from hil.core.recording.reader import read_session
+from hil.core.recording.writer_fork import WRITER_NAME
 
 pytestmark = [pytest.mark.timeout(90), pytest.mark.slow, pytest.mark.realtime]
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def children_of(pid):
-    """{child pid: command line} of the processes whose parent is ``pid``."""
+    """{child pid: command line, or the name a writer process goes by} of the processes
+    whose parent is ``pid``."""
     found = {}
     for entry in os.listdir("/proc"):
         if not entry.isdigit():
@@ -26,10 +28,11 @@ def children_of(pid):
         try:
             stat = Path(f"/proc/{entry}/stat").read_text()
             cmdline = Path(f"/proc/{entry}/cmdline").read_bytes().replace(b"\0", b" ")
+            comm = Path(f"/proc/{entry}/comm").read_text().strip()
         except OSError:
             continue
         if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
-            found[int(entry)] = cmdline.decode(errors="replace")
+            found[int(entry)] = comm if comm == WRITER_NAME else cmdline.decode(errors="replace")
     return found
 
 
@@ -79,11 +82,11 @@ def test_a_sigkilled_run_leaves_no_emulator_and_a_finished_file(tmp_path, argv):
         while time.monotonic() < deadline:
             helpers = children_of(run.pid)
             if any("emulate" in c for c in helpers.values()) and \
-                    any("hil.core.recording.writer" in c for c in helpers.values()):
+                    WRITER_NAME in helpers.values():
                 break
             time.sleep(0.1)
         emulator = next(p for p, c in helpers.items() if "emulate" in c)
-        writer = next(p for p, c in helpers.items() if "hil.core.recording.writer" in c)
+        writer = next(p for p, c in helpers.items() if c == WRITER_NAME)
         # the run is under way: its loop started (the staging file became the session) and
         # the file grew past what the writer had when it did (the loop's records reach it)
         assert wait_for(lambda: size_of(out) > 0, 60), "the run did not start"

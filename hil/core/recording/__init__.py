@@ -16,6 +16,8 @@ Writing, in the writer process:
 
 * :mod:`~hil.core.recording.writer` - the writer process: encoding, compression and file I/O
   off the loop's interpreter; finishes the file however the loop ends;
+* :mod:`~hil.core.recording.writer_fork` - the writer processes forked from a server per
+  loop process, each still the loop process's child;
 * :mod:`~hil.core.recording.cdr` - the compact CDR encoding of flat topics, with ``ros2msg``
   schemas derived from their JSON Schemas;
 * :mod:`~hil.core.recording.mcap_series` - one session as one MCAP file or a split series;

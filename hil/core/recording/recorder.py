@@ -37,7 +37,6 @@ import select
 import signal
 import socket
 import subprocess
-import sys
 import threading
 import time
 from collections import deque
@@ -54,6 +53,7 @@ from hil.errors import HilError, RecordingError
 if TYPE_CHECKING:  # imported where used: most runs write in a writer process, untuned
     from hil.core.recording.in_process import InProcessWriter
     from hil.core.recording.tune_wire import PortServer
+    from hil.core.recording.writer_fork import ForkedWriter
 
 EVENTS_TOPIC = "/events"
 PIPE_BYTES = 1 << 20          # asked of the kernel for the pipe (Linux caps it at pipe-max-size)
@@ -301,15 +301,16 @@ class Recorder:
                            "serves it")
 
     @staticmethod
-    def _start_writer(options: dict[str, Any], pass_fds: list[int]) -> subprocess.Popen[bytes]:
-        root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join(filter(None, [root, env.get("PYTHONPATH")]))
-        return subprocess.Popen(
-            [sys.executable, "-m", "hil.core.recording.writer", json.dumps(options)],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, start_new_session=True,
-            pass_fds=pass_fds,
-        )
+    def _start_writer(options: dict[str, Any], pass_fds: list[int]) -> ForkedWriter:
+        """The writer process, forked by this process's fork server
+        (:mod:`hil.core.recording.writer_fork`)."""
+        from hil.core.recording.writer_fork import start_writer
+
+        try:
+            return start_writer(options, pass_fds)
+        except OSError as exc:
+            raise RecordingError(f"{options['path']}: the writer process could not start "
+                                 f"({exc})") from None
 
     def serve_parameters(self, port: Any) -> None:
         """Answer the live view's parameter requests from ``port`` (the run's tuner: its

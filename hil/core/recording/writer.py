@@ -1,8 +1,9 @@
 """The session's writer process: encoding, compression and file I/O off the loop's interpreter.
 
-Started by :class:`hil.core.recording.recorder.Recorder` as
-``python -m hil.core.recording.writer OPTIONS_JSON`` with the record stream
-(:mod:`hil.core.recording.record_stream`) on its standard input. It encodes each
+Forked for :class:`hil.core.recording.recorder.Recorder` by its process's fork server
+(:mod:`hil.core.recording.writer_fork`), which then runs :func:`serve` with the recorder's
+options and the record stream (:mod:`hil.core.recording.record_stream`) on its standard
+input. It encodes each
 message (JSON, or CDR for compact topics), writes the MCAP file or split series
 (:class:`~hil.core.recording.mcap_series.McapSeries`), closes a chunk at least every
 ``flush_interval_s`` of wall time and every ``chunk_span_s`` of session time, and finishes
@@ -377,10 +378,11 @@ def yield_cpu() -> None:
             os.nice(WRITER_NICENESS)
 
 
-def main() -> int:
+def serve(options: dict[str, Any]) -> int:
+    """The writer process's whole life, its record stream on standard input, "ready" then
+    its statistics on standard output; the exit status (1: the writing failed)."""
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
-    options = json.loads(sys.argv[1])
     if options.get("yield_cpu"):  # real time: the loop, the drive and its emulator come first
         yield_cpu()
         # unpickling a numpy message imports numpy (0.1-0.2 s of CPU): in real time, do it
@@ -398,7 +400,3 @@ def main() -> int:
     with contextlib.suppress(OSError):  # nobody listens any more: the loop process is gone
         print(json.dumps(result), flush=True)
     return 1 if result["error"] else 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
