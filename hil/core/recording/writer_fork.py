@@ -1,13 +1,13 @@
 """Writer processes forked from a small server, one per loop process, instead of started afresh.
 
-A fresh ``python -m hil.core.recording.writer`` costs each session 0.1-0.2 s of CPU before
-it is ready: the interpreter's start, the imports of mcap, zstandard and the encoders, and
-numpy's as soon as a message holds a numpy value. The fork server
-(``python -m hil.core.recording.writer_fork``) pays the first two once per loop process, at
-its first session, and forks each writer from itself in a few milliseconds: a process that records
-many sessions (a test suite, a script of runs, a sweep run serially) pays them once. The
-server is small and single-threaded, so its forks copy little and take no lock another
-thread held; the loop's own process is never forked (its pages would turn copy-on-write).
+A writer started as a fresh interpreter would cost each session about 0.1 s of CPU before it
+is ready: the interpreter's start and the imports of mcap, zstandard and the encoders. The
+fork server (``python -m hil.core.recording.writer_fork``) pays them once per loop process,
+at its first session, and forks each writer from itself in a few milliseconds: a process
+that records many sessions (a test suite, a script of runs, a sweep run serially) pays them
+once (``benchmarks/session_start.py``). The server is small and single-threaded, so its forks
+copy little and take no lock another thread held; the loop's own process is never forked
+(its pages would turn copy-on-write under the loop).
 
 Each writer is still the loop process's child, as a ``Popen``'s would be: the server forks
 it through a short-lived intermediate process and the loop process is the writer's
