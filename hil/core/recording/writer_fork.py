@@ -16,10 +16,10 @@ to it. Its exit status, a kill and its ``pid`` then mean what they meant
 (:class:`ForkedWriter`). It gets the loop process's record pipe, standard error, working
 directory and passed descriptors over the server's socket (``SCM_RIGHTS``) under the same
 numbers, runs in its own session, SCHED_OTHER on every usable core, with nothing else
-open: :func:`hil.core.recording.writer.serve` then does the rest. Its environment, resource
-limits and umask are the loop process's when the server started (its first session). The
-server ends when the loop process closes its socket, and by the same token when the loop
-process ends.
+open: :func:`hil.core.recording.writer.serve` then does the rest. Its user, environment,
+resource limits and umask are the loop process's when the server started (its first
+session). The server ends when the loop process closes its socket, and by the same token
+when the loop process ends.
 """
 
 from __future__ import annotations
