@@ -9,6 +9,10 @@ a test suite's or a script's runs follow one another. Printed for each code, med
 writer's), then per later session its wall time and the CPU time of the child, its writers
 and its fork server (from /proc: the server is not the child's to reap), and after/before.
 
+The first session here waits for the fork server's start, as a script's first ``Recorder``
+does; a run (``hil servo run``...) starts the server beside the opening of its devices
+(``hil.core.recording.writer_fork.start_server``), so its first session finds it up.
+
 ``--quick``: 5 sessions, one run of each code (seconds; figures not worth quoting).
 """
 

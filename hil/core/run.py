@@ -55,6 +55,7 @@ from hil.core.notice import unsafe
 from hil.core.progress import ProgressLine, wants_progress
 from hil.core.recording.output import OutputClaim, claim_output
 from hil.core.recording.recorder import RecordingOptions
+from hil.core.recording.writer_fork import start_server
 from hil.core.session import Session
 from hil.core.tuning import Tuner
 from hil.core.verdict import UNSAFE_EVENTS, Limit, SignalWatch, run_status, verdict
@@ -206,6 +207,8 @@ def run_experiment(experiment: Experiment[Any], *,
     the KPIs so far, its message ending with the session's path, its ``result`` the
     :class:`RunResult` so far."""
     plan = experiment.decide()
+    if not plan.recording.in_process:  # the writers' fork server starts beside the devices
+        start_server()
     # the file is checked and locked before any device is reached, and each device locked
     output = claim_output(plan.recording.first_file(plan.session_path))
     locks: list[DeviceLock] = []

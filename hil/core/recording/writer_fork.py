@@ -99,14 +99,26 @@ class ForkedWriter:
 
 def start_writer(options: dict[str, Any], pass_fds: Sequence[int]) -> ForkedWriter:
     """The writer of ``options`` (the recorder's), forked by this process's server (started
-    at the first call), ``pass_fds`` open in it under the same numbers."""
+    now unless :func:`start_server` did), ``pass_fds`` open in it under the same numbers."""
     with _LOCK:
-        global _SERVER
-        if _SERVER is None or not _SERVER.alive():
-            if _SERVER is not None:  # killed, say: its writers run on, ours to reap
-                _SERVER.socket.close()
-            _SERVER = _Server()
-        return _SERVER.fork(options, pass_fds)
+        return _running_server().fork(options, pass_fds)
+
+
+def start_server() -> None:
+    """Start this process's fork server unless it runs, without waiting for it: a run calls
+    this before it opens its devices, so the server's start-up (an interpreter and the
+    writer's imports, 0.1 s) goes on beside theirs rather than before its first session."""
+    with _LOCK:
+        _running_server()
+
+
+def _running_server() -> _Server:
+    global _SERVER
+    if _SERVER is None or not _SERVER.alive():
+        if _SERVER is not None:  # killed, say: its writers run on, ours to reap
+            _SERVER.socket.close()
+        _SERVER = _Server()
+    return _SERVER
 
 
 class _Server:
