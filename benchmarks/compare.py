@@ -36,7 +36,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchkit import REPO, add_quick, extract_code, fill_defaults, git
+from benchkit import REPO, add_quick, code_before_adding, fill_defaults
 
 from hil.cli.main import main as main_cli
 from hil.compare.baseline import write_baseline
@@ -86,22 +86,6 @@ def timed(args: list[str], cwd: Path, code: Path) -> tuple[float, float, float]:
         raise SystemExit(f"hil {' '.join(args)} ({code}) exited {proc.returncode}: "
                          f"{errors.decode(errors='replace')}")
     return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024
-
-
-def code_before(folder: Path) -> tuple[Path | None, str]:
-    """The code before sessions were read column by column (the parent of the commit that
-    added :data:`COLUMN_READER`), extracted into ``folder``; (None, why not) without it."""
-    try:
-        added = git("log", "--diff-filter=A", "--format=%H", "HEAD", "--", COLUMN_READER)
-        if not added:
-            return None, f"no commit adds {COLUMN_READER} in this checkout's history"
-        ref = git("rev-parse", "--short", f"{added.splitlines()[-1]}^")
-        failed = extract_code(ref, folder)
-        if failed:
-            return None, failed
-    except (OSError, subprocess.CalledProcessError) as exc:
-        return None, f"not a git checkout with its history ({exc})"
-    return folder, ref
 
 
 def sizes(folder: Path, seconds: float, name: str = "s") -> None:
@@ -174,7 +158,7 @@ def main() -> int:
             before, why = args.baseline_code.resolve(), str(args.baseline_code)
         else:
             (Path(folder) / "before").mkdir()
-            before, why = code_before(Path(folder) / "before")
+            before, why = code_before_adding(COLUMN_READER, Path(folder) / "before")
         # --quick: the sized session is the first compared one (PID, default gain) if as long
         reuse = args.quick and args.report_s == args.compare_s
         sizes(Path(folder), args.report_s, "a" if reuse else "s")

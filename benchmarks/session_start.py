@@ -28,7 +28,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchkit import REPO, add_quick, extract_code, fill_defaults, git
+from benchkit import REPO, add_quick, code_before_adding, fill_defaults
 
 FORK_SERVER = "hil/core/recording/writer_fork.py"
 
@@ -77,21 +77,6 @@ def run_child(code: Path, sessions: int, folder: Path) -> tuple[float, float, fl
     return first, wall / (sessions - 1), cpu / (sessions - 1)
 
 
-def code_before(folder: Path) -> tuple[Path | None, str]:
-    """The code before the fork server, extracted into ``folder``; (None, why not)."""
-    try:
-        added = git("log", "--diff-filter=A", "--format=%H", "HEAD", "--", FORK_SERVER)
-        if not added:
-            return None, f"no commit adds {FORK_SERVER} in this checkout's history"
-        ref = git("rev-parse", "--short", f"{added.splitlines()[-1]}^")
-        failed = extract_code(ref, folder)
-        if failed:
-            return None, failed
-    except (OSError, subprocess.CalledProcessError) as exc:
-        return None, f"not a git checkout with its history ({exc})"
-    return folder, ref
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sessions", type=int, help="sessions a run records (40)")
@@ -110,7 +95,7 @@ def main() -> int:
             before, why = args.baseline_code.resolve(), str(args.baseline_code)
         else:
             (folder / "before").mkdir()
-            before, why = code_before(folder / "before")
+            before, why = code_before_adding(FORK_SERVER, folder / "before")
         codes = {"after": REPO, **({"before": before} if before is not None else {})}
         runs: dict[str, list[tuple[float, float, float]]] = {name: [] for name in codes}
         for repeat in range(args.repeats):

@@ -44,3 +44,19 @@ def extract_code(ref: str, folder: Path) -> str | None:
                                 "emulators", "controllers"], stdout=subprocess.PIPE)
     subprocess.run(["tar", "-x", "-C", str(folder)], stdin=archive.stdout, check=True)
     return None if archive.wait() == 0 else f"git archive {ref} failed"
+
+
+def code_before_adding(path: str, folder: Path) -> tuple[Path | None, str]:
+    """hil's code at the parent of the commit that added ``path`` (a file of the
+    repository), extracted into ``folder``: (``folder``, that commit), or (None, why not)."""
+    try:
+        added = git("log", "--diff-filter=A", "--format=%H", "HEAD", "--", path)
+        if not added:
+            return None, f"no commit adds {path} in this checkout's history"
+        ref = git("rev-parse", "--short", f"{added.splitlines()[-1]}^")
+        failed = extract_code(ref, folder)
+        if failed:
+            return None, failed
+    except (OSError, subprocess.CalledProcessError) as exc:
+        return None, f"not a git checkout with its history ({exc})"
+    return folder, ref
