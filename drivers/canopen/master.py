@@ -172,6 +172,7 @@ class CanDriveMaster(Device):
         self.last_emcy_code = 0
         self._enabled = False
         self._lost_driving = False  # the link was lost while the drive was enabled
+        self._watch_from_next_cycle = False  # enabled: the heartbeat watched from the 1st SYNC
         self._latched: DriveError | SdoAbortError | None = None
         self._operating_word = -1  # the last statusword found OPERATION ENABLED
         self.foreign: str | None = None  # another master heard on the bus: the run stops
@@ -504,7 +505,10 @@ class CanDriveMaster(Device):
                 self.states.controlword(CW_DISABLE_VOLTAGE)
             raise
         self._enabled, self._lost_driving = True, False
-        self.heartbeat_watch.restart()  # the heartbeat is watched from here on
+        # watched from the first cycle on: a drive on the master's SYNC time (lockstep, or
+        # an emulator's clock "sync") beats only once SYNCs come, however long the run took
+        # between enabling it and its first tick
+        self._watch_from_next_cycle = True
         feedback = self.cyclic.start(self._enabled_feedback())
         self._event("drive.enabled", f"drive node {n} OPERATION ENABLED at "
                     f"{feedback.position_deg:.4f} deg", position_deg=feedback.position_deg)
@@ -565,6 +569,9 @@ class CanDriveMaster(Device):
             raise DriveStateError(f"drive node {self.node_id} is not enabled: call start()")
 
     def _send_cycle(self, controlword: int, target: int, command_ma: float = 0.0) -> None:
+        if self._watch_from_next_cycle:
+            self._watch_from_next_cycle = False
+            self.heartbeat_watch.restart()
         try:
             self.cyclic.send(controlword, target, command_ma)
         except DriveLinkLostError as exc:

@@ -521,3 +521,25 @@ def test_the_heartbeat_watch_tells_the_silence_at_a_time_given_or_now():
     now[0] += 400_000_000
     assert watch.silent_ns() == 400_000_000
     assert HeartbeatWatch(1, 0, lambda: now[0]).silent_ns(now[0] + 10**12) is None  # unwatched
+
+
+def test_a_drive_on_sync_time_is_watched_from_the_first_cycle_not_from_its_enabling():
+    """A drive on the master's SYNC time (an emulator's clock "sync") beats only once SYNCs
+    come: a master held up between enabling the drive and its first cycle for longer than its
+    heartbeat watch (a run starting on a loaded machine) does not call the drive silent."""
+    from tests.served_here import drive_served_here
+
+    with drive_served_here(clock="sync") as drive:
+        config = load_drive_config(overrides={"master": {
+            "drive_heartbeat_ms": 100,   # watched for 300 ms
+            "cycle_period_us": 2000,     # a beat every 50 SYNCs of the drive's time
+            "heartbeat_timeout_ms": 5000, "stale_cycles": 1000}})
+        master = open_drive(drive.url, config)
+        try:
+            master.start()
+            time.sleep(0.5)  # held up past the watch, no SYNC sent: the drive's time stands
+            for _ in range(150):  # 300 ms of the drive's time: its beats come, the link holds
+                master.exchange(0.0)
+            assert master.link_up
+        finally:
+            master.close()
