@@ -8,16 +8,15 @@ parent's pid twice a second. A parent already gone when the helper starts ends i
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import os
 import signal
 import sys
 import threading
 import time
 
+from hil.core.libc import die_with_parent_signal
+
 PARENT_ENV = "HIL_PARENT_PID"
-PR_SET_PDEATHSIG = 1
 
 
 def lifeline_env(env: dict[str, str] | None = None) -> dict[str, str]:
@@ -32,10 +31,7 @@ def die_with_parent() -> None:
     if not text.isdigit():
         return
     parent = int(text)
-    if sys.platform.startswith("linux"):
-        with contextlib.suppress(OSError, AttributeError):
-            libc = ctypes.CDLL(None, use_errno=True)
-            libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+    die_with_parent_signal(signal.SIGTERM)
     if os.getppid() != parent:  # gone before the lifeline was tied
         os.kill(os.getpid(), signal.SIGTERM)
         return

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import ctypes.util
 import gc
 import os
 import platform
@@ -48,6 +47,8 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from hil.core.libc import libc as c_library
 
 PR_SET_TIMERSLACK = 29
 PR_GET_TIMERSLACK = 30
@@ -71,14 +72,6 @@ class Step:
     detail: str
 
 
-def _libc() -> ctypes.CDLL | None:
-    name = ctypes.util.find_library("c")
-    try:
-        return ctypes.CDLL(name, use_errno=True) if name else None
-    except OSError:
-        return None
-
-
 def _read(path: str) -> str | None:
     try:
         return Path(path).read_text().strip()
@@ -93,7 +86,7 @@ def _limit(which: int) -> str:
 
 def timer_slack_ns() -> int | None:
     """The calling thread's timer slack (Linux), or None where it cannot be read."""
-    libc = _libc()
+    libc = c_library()
     if libc is None or not sys.platform.startswith("linux"):
         return None
     value = libc.prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0)
@@ -342,7 +335,7 @@ class Hardening:
         return Step("cpu_affinity", True, f"loop thread on CPU {core} of {usable}{helpers}")
 
     def _mlockall(self) -> Step:
-        libc = _libc()
+        libc = c_library()
         if libc is None or not sys.platform.startswith("linux"):
             return Step("mlockall", False, "no libc mlockall on this platform")
         if libc.mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
@@ -364,7 +357,7 @@ class Hardening:
                     "collector off during the run")
 
     def _slack(self) -> Step:
-        libc = _libc()
+        libc = c_library()
         if libc is None or not sys.platform.startswith("linux"):
             return Step("timer_slack", False, "no prctl on this platform")
         self._saved_slack = timer_slack_ns()
@@ -381,11 +374,11 @@ class Hardening:
             os.sched_setaffinity(0, self._saved_affinity)
             self._saved_affinity = None
         if self._saved_slack is not None:
-            libc = _libc()
+            libc = c_library()
             if libc is not None:
                 libc.prctl(PR_SET_TIMERSLACK, self._saved_slack, 0, 0, 0)
             self._saved_slack = None
-        libc = _libc()
+        libc = c_library()
         if self._locked and libc is not None:
             libc.munlockall()
             self._locked = False

@@ -6,23 +6,16 @@ however it ends)."""
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import os
-import signal
 import subprocess
 import sys
 import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+from hil.core.libc import die_with_parent_signal
+
 BIN = Path(sys.executable).parent
-PR_SET_PDEATHSIG = 1
-
-
-def _die_with_parent() -> None:
-    """In the child, before exec: SIGTERM when the process that started it dies (Linux)."""
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
 
 
 def start(argv: list[str], log: Path, env: dict[str, str] | None = None
@@ -31,7 +24,7 @@ def start(argv: list[str], log: Path, env: dict[str, str] | None = None
     fill and stop it)."""
     with log.open("wb") as out:
         return subprocess.Popen(argv, cwd=log.parent, env=env, stdout=out,
-                                stderr=subprocess.STDOUT, preexec_fn=_die_with_parent)
+                                stderr=subprocess.STDOUT, preexec_fn=die_with_parent_signal)
 
 
 def stop(process: subprocess.Popen[bytes]) -> None:

@@ -26,8 +26,8 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import errno
 import fcntl
-import functools
 import gc
 import io
 import json
@@ -40,6 +40,8 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
+
+from hil.core.libc import libc
 
 PR_SET_CHILD_SUBREAPER = 36  # prctl(2)
 PR_GET_CHILD_SUBREAPER = 37
@@ -179,7 +181,7 @@ os.register_at_fork(after_in_child=_forget_server)
 def _subreaper() -> Iterator[None]:
     """This process the subreaper of its orphaned descendants for the block, as it was
     after it."""
-    prctl = _libc().prctl
+    prctl = _prctl()
     was = ctypes.c_int(0)
     if prctl(PR_GET_CHILD_SUBREAPER, ctypes.byref(was), 0, 0, 0) != 0 or \
             prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) != 0:
@@ -190,13 +192,15 @@ def _subreaper() -> Iterator[None]:
         prctl(PR_SET_CHILD_SUBREAPER, was.value, 0, 0, 0)
 
 
-@functools.cache
-def _libc() -> ctypes.CDLL:
-    return ctypes.CDLL(None, use_errno=True)
+def _prctl() -> Any:
+    library = libc()
+    if library is None:
+        raise OSError(errno.ENOSYS, "no C library to call prctl through")
+    return library.prctl
 
 
 def _name_process(name: str) -> None:
-    _libc().prctl(PR_SET_NAME, name.encode(), 0, 0, 0)
+    _prctl()(PR_SET_NAME, name.encode(), 0, 0, 0)
 
 
 # -- the server -------------------------------------------------------------------------------
