@@ -9,7 +9,7 @@ from hil.bench.identify_options import MACHINING_MODES, IdentifyOptions, parse_r
 from hil.cli.argtypes import key_value, nonnegative_float, output_file, positive_float, positive_int
 from hil.cli.output import add_quiet_argument, json_text
 from hil.cli.place import add_place_arguments, run_on_place
-from hil.cli.recording import add_recording_arguments
+from hil.cli.recording import add_recording_arguments, start_writer_server
 from hil.cli.units import seconds
 from hil.cli.verdict import add_controller_arguments, add_junit_argument
 
@@ -110,6 +110,7 @@ def application() -> RunApplication[BenchRunOptions]:
 
 
 def run_command(args: argparse.Namespace) -> int:
+    start_writer_server()
     return run_on_place(args, "bench", lambda: application().command_line(args))
 
 

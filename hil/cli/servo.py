@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Any
 from hil.cli.argtypes import key_value, output_file, positive_float, positive_int
 from hil.cli.output import add_quiet_argument, json_text
 from hil.cli.place import add_place_arguments, run_on_place
-from hil.cli.recording import add_recording_arguments
+from hil.cli.recording import add_recording_arguments, start_writer_server
 from hil.cli.units import milliamps, seconds, seconds_or_zero
 from hil.cli.verdict import add_controller_arguments, add_junit_argument
 from hil.core.kpi_text import limit_text
@@ -278,6 +278,7 @@ def application() -> RunApplication[ServoRunOptions]:
 
 
 def run_command(args: argparse.Namespace) -> int:
+    start_writer_server()
     return run_on_place(args, "servo", lambda: application().command_line(args))
 
 
