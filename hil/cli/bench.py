@@ -166,6 +166,7 @@ def add_identify_arguments(parser: argparse.ArgumentParser) -> None:
 
 def identify_command(args: argparse.Namespace) -> int:
     """Handler of ``hil bench identify``."""
+    start_writer_server()
     return run_on_place(args, "bench", lambda: _identify(args))
 
 

@@ -284,6 +284,7 @@ def run_command(args: argparse.Namespace) -> int:
 
 def servo_identify_command(args: argparse.Namespace) -> int:
     """``hil servo identify``: the excitation as a servo run."""
+    start_writer_server()
     from hil.cli.application import RunApplication
     from hil.controllers.servo.excitation_defaults import DEFAULT_AMPLITUDE_MA, DEFAULT_KIND
     from hil.servo.identify import identify_options, identify_settings
