@@ -10,8 +10,12 @@ writer's), then per later session its wall time and the CPU time of the child, i
 and its fork server (from /proc: the server is not the child's to reap), and after/before.
 
 The first session here waits for the fork server's start, as a script's first ``Recorder``
-does; a run (``hil servo run``...) starts the server beside the opening of its devices
-(``hil.core.recording.writer_fork.start_server``), so its first session finds it up.
+does; a run command (``hil servo run``...) starts the server as it begins, beside its own
+imports (``hil.cli.recording.start_writer_server``), so its first session finds it up.
+
+Then the start-up goal: ``hil servo run --controller pid --duration 0.1`` from the command's
+start to its end, with each code (alternated with the sessions' runs, one untimed run of each
+first: the bytecode), against at most 0.4 s.
 
 ``--quick``: 5 sessions, one run of each code (seconds; figures not worth quoting).
 """
@@ -24,6 +28,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -65,6 +70,23 @@ print(marks[0][0] - began, marks[-1][0] - marks[0][0], marks[-1][1] - marks[0][1
 """
 
 
+#: the start-up goal's run, from the command line
+RUN = ["-m", "hil", "servo", "run", "--controller", "pid", "--duration", "0.1"]
+STARTUP_GOAL_S = 0.4
+
+
+def run_command_s(code: Path, out: Path) -> float:
+    """:data:`RUN` with ``code``, recorded to ``out``: its wall time from start to end [s]."""
+    begin = time.perf_counter()
+    done = subprocess.run([sys.executable, *RUN, "--out", str(out)], cwd=out.parent,
+                          capture_output=True, text=True, check=False,
+                          env={**os.environ, "PYTHONPATH": str(code)})
+    elapsed = time.perf_counter() - begin
+    if done.returncode != 0:
+        raise SystemExit(f"hil servo run with {code} failed:\n{done.stderr[-2000:]}")
+    return elapsed
+
+
 def run_child(code: Path, sessions: int, folder: Path) -> tuple[float, float, float]:
     """One child's sessions with ``code``: first session [s], then per later session its wall
     and CPU [s]."""
@@ -98,11 +120,15 @@ def main() -> int:
             before, why = code_before_adding(FORK_SERVER, folder / "before")
         codes = {"after": REPO, **({"before": before} if before is not None else {})}
         runs: dict[str, list[tuple[float, float, float]]] = {name: [] for name in codes}
+        commands: dict[str, list[float]] = {name: [] for name in codes}
+        for name, code in codes.items():  # untimed: each code's first run writes its bytecode
+            run_command_s(code, folder / f"warm-{name}.mcap")
         for repeat in range(args.repeats):
             for name, code in codes.items():
                 out = folder / f"{name}{repeat}"
                 out.mkdir()
                 runs[name].append(run_child(code, args.sessions, out))
+                commands[name].append(run_command_s(code, out / "run.mcap"))
         print(f"{args.sessions} lockstep sessions one after another in one process, "
               f"medians of {args.repeats} run(s)" + ("" if before else f"; no code before: {why}"))
         median = {name: [statistics.median(run[i] for run in got) for i in range(3)]
@@ -116,6 +142,13 @@ def main() -> int:
             after, old = median["after"], median["before"]
             print(f"  after/before, each later session: wall {after[1] / old[1]:.2f}x, "
                   f"CPU {after[2] / old[2]:.2f}x; first session {after[0] / old[0]:.2f}x")
+        startup = {name: statistics.median(got) for name, got in commands.items()}
+        before_text = f", the code before {startup['before']:.3f} s (" \
+            f"{startup['after'] / startup['before']:.2f}x)" if "before" in startup else ""
+        print(f"hil {' '.join(RUN[2:])}, start to end, medians of {args.repeats}: this code "
+              f"{startup['after']:.3f} s{before_text}")
+        met = "met" if startup["after"] <= STARTUP_GOAL_S else "MISSED"
+        print(f"targets\n   start-up <= {STARTUP_GOAL_S} s ({startup['after']:.3f} s): {met}")
     return 0
 
 

@@ -46,6 +46,7 @@ QUICK_LINES = {
                "TCP emulator process", "RTU paced 115200", "TCP  after", "RTU  after"),
     "realtime": ("hops of a wire run's cycles", "lockstep servo through the CAN link",
                  "real-time bench"),
+    "session_start": ("hil servo run --controller pid --duration 0.1, start to end",),
     "servo": ("max |u_fast - u_cvxpy|", "lockstep MPC FOH H_t = H_u = 8", "MPC through CAN"),
     "tune": ("MPC, controller.hp changed", "skipped share: MPC"),
 }
