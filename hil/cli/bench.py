@@ -9,9 +9,10 @@ from hil.bench.identify_options import MACHINING_MODES, IdentifyOptions, parse_r
 from hil.cli.argtypes import key_value, nonnegative_float, output_file, positive_float, positive_int
 from hil.cli.output import add_quiet_argument, json_text
 from hil.cli.place import add_place_arguments, run_on_place
-from hil.cli.recording import add_recording_arguments, start_writer_server
+from hil.cli.recording import add_recording_arguments
 from hil.cli.units import seconds
 from hil.cli.verdict import add_controller_arguments, add_junit_argument
+from hil.core.recording.writer_fork import start_server
 
 if TYPE_CHECKING:
     from hil.bench.run import BenchRunOptions
@@ -110,7 +111,7 @@ def application() -> RunApplication[BenchRunOptions]:
 
 
 def run_command(args: argparse.Namespace) -> int:
-    start_writer_server()
+    start_server()  # beside this command's imports: its first session finds it up
     return run_on_place(args, "bench", lambda: application().command_line(args))
 
 
@@ -166,7 +167,7 @@ def add_identify_arguments(parser: argparse.ArgumentParser) -> None:
 
 def identify_command(args: argparse.Namespace) -> int:
     """Handler of ``hil bench identify``."""
-    start_writer_server()
+    start_server()  # beside this command's imports: its first session finds it up
     return run_on_place(args, "bench", lambda: _identify(args))
 
 

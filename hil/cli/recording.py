@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 from collections.abc import Callable
 from typing import TypeVar
 
 from hil.cli.argtypes import positive_float
 from hil.core.recording.live import DEFAULT_RATE_HZ, check_bindable, parse_address, parse_rate
 from hil.core.recording.recording_options import ENCODINGS, RecordingOptions
-from hil.core.recording.writer_fork import start_server
 from hil.errors import UsageError
 
 T = TypeVar("T")
@@ -84,16 +82,6 @@ def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--split-size", type=positive_float, metavar="MB",
                        help="start a new file when the current one reaches MB megabytes")
     add_live_arguments(parser)
-
-
-def start_writer_server() -> None:
-    """Start the session writers' fork server as a run command begins (a run from the
-    command line always records through a writer process): its start-up, an interpreter
-    and the writer's imports (0.1 s), goes on beside the run's own imports (0.3 s), and the
-    first session finds it ready. Best effort: a server that cannot start is reported by
-    the session that needs it."""
-    with contextlib.suppress(OSError):
-        start_server()
 
 
 def recording_options(args: argparse.Namespace) -> RecordingOptions:

@@ -8,10 +8,11 @@ from typing import TYPE_CHECKING, Any
 from hil.cli.argtypes import key_value, output_file, positive_float, positive_int
 from hil.cli.output import add_quiet_argument, json_text
 from hil.cli.place import add_place_arguments, run_on_place
-from hil.cli.recording import add_recording_arguments, start_writer_server
+from hil.cli.recording import add_recording_arguments
 from hil.cli.units import milliamps, seconds, seconds_or_zero
 from hil.cli.verdict import add_controller_arguments, add_junit_argument
 from hil.core.kpi_text import limit_text
+from hil.core.recording.writer_fork import start_server
 from hil.errors import UsageError
 
 if TYPE_CHECKING:
@@ -278,13 +279,13 @@ def application() -> RunApplication[ServoRunOptions]:
 
 
 def run_command(args: argparse.Namespace) -> int:
-    start_writer_server()
+    start_server()  # beside this command's imports: its first session finds it up
     return run_on_place(args, "servo", lambda: application().command_line(args))
 
 
 def servo_identify_command(args: argparse.Namespace) -> int:
     """``hil servo identify``: the excitation as a servo run."""
-    start_writer_server()
+    start_server()  # beside this command's imports: its first session finds it up
     from hil.cli.application import RunApplication
     from hil.controllers.servo.excitation_defaults import DEFAULT_AMPLITUDE_MA, DEFAULT_KIND
     from hil.servo.identify import identify_options, identify_settings

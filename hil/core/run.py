@@ -41,7 +41,6 @@ by default (:func:`default_session_path`) and how long one controller call may t
 from __future__ import annotations
 
 import abc
-import contextlib
 import os
 import signal
 import time
@@ -209,8 +208,7 @@ def run_experiment(experiment: Experiment[Any], *,
     :class:`RunResult` so far."""
     plan = experiment.decide()
     if not plan.recording.in_process:  # the writers' fork server starts beside the devices
-        with contextlib.suppress(OSError):  # else the recorder says why it has no writer
-            start_server()
+        start_server()
     # the file is checked and locked before any device is reached, and each device locked
     output = claim_output(plan.recording.first_file(plan.session_path))
     locks: list[DeviceLock] = []

@@ -3,11 +3,11 @@
 A writer started as a fresh interpreter would cost each session about 0.1 s of CPU before it
 is ready: the interpreter's start and the imports of mcap, zstandard and the encoders. The
 fork server (``python -m hil.core.recording.writer_fork``) pays them once per loop process,
-at its first session, and forks each writer from itself in a few milliseconds: a process
-that records many sessions (a test suite, a script of runs, a sweep run serially) pays them
-once (``benchmarks/session_start.py``). The server is small and single-threaded, so its forks
-copy little and take no lock another thread held; the loop's own process is never forked
-(its pages would turn copy-on-write under the loop).
+as a run command begins (else at its first session), and forks each writer from itself in a
+few milliseconds: a process that records many sessions (a test suite, a script of runs, a
+sweep run serially) pays them once (``benchmarks/session_start.py``). The server is small
+and single-threaded, so its forks copy little and take no lock another thread held; the
+loop's own process is never forked (its pages would turn copy-on-write under the loop).
 
 Each writer is still the loop process's child, as a ``Popen``'s would be: the server forks
 it through a short-lived intermediate process and the loop process is the writer's
@@ -17,9 +17,8 @@ to it. Its exit status, a kill and its ``pid`` then mean what they meant
 directory and passed descriptors over the server's socket (``SCM_RIGHTS``) under the same
 numbers, runs in its own session, SCHED_OTHER on every usable core, with nothing else
 open: :func:`hil.core.recording.writer.serve` then does the rest. Its user, environment,
-resource limits and umask are the loop process's when the server started (its first
-session). The server ends when the loop process closes its socket, and by the same token
-when the loop process ends.
+resource limits and umask are the loop process's when the server started. The server ends
+when the loop process closes its socket, and by the same token when the loop process ends.
 """
 
 from __future__ import annotations
@@ -107,10 +106,12 @@ def start_writer(options: dict[str, Any], pass_fds: Sequence[int]) -> ForkedWrit
 
 
 def start_server() -> None:
-    """Start this process's fork server unless it runs, without waiting for it: a run calls
-    this before it opens its devices, so the server's start-up (an interpreter and the
-    writer's imports, 0.1 s) goes on beside theirs rather than before its first session."""
-    with _LOCK:
+    """Start this process's fork server unless it runs, without waiting for it: a run command
+    calls this as it begins (and a run before it opens its devices), so the server's start-up
+    (an interpreter and the writer's imports, 0.1 s) goes on beside the run's own imports
+    rather than before its first session. Best effort: a server that cannot start is
+    reported by :func:`start_writer`, which tries again."""
+    with _LOCK, contextlib.suppress(OSError):
         _running_server()
 
 
