@@ -36,7 +36,14 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchkit import REPO, add_quick, code_before_adding, fill_defaults
+from benchkit import (
+    REPO,
+    add_baseline_code,
+    add_quick,
+    baseline_code,
+    code_before_adding,
+    fill_defaults,
+)
 
 from hil.cli.main import main as main_cli
 from hil.compare.baseline import write_baseline
@@ -146,19 +153,14 @@ def main() -> int:
     parser.add_argument("--report-s", type=float, help="the sized session [s] (10)")
     parser.add_argument("--compare-s", type=float, help="the compared sessions [s] (60)")
     parser.add_argument("--repeats", type=int, help="runs of each command (5)")
-    parser.add_argument("--baseline-code", type=Path, metavar="DIR",
-                        help="the code before: this checkout (default: git archive of the "
-                        "parent of the commit that added " + COLUMN_READER + ")")
+    add_baseline_code(parser, f"the parent of the commit that added {COLUMN_READER}")
     add_quick(parser)
     args = parser.parse_args()
     fill_defaults(args, {"report_s": (10.0, 0.5), "compare_s": (60.0, 0.5),
                          "repeats": (5, 1)})
     with tempfile.TemporaryDirectory(prefix="hil-bench-compare-") as folder:
-        if args.baseline_code is not None:
-            before, why = args.baseline_code.resolve(), str(args.baseline_code)
-        else:
-            (Path(folder) / "before").mkdir()
-            before, why = code_before_adding(COLUMN_READER, Path(folder) / "before")
+        before, why = baseline_code(args, Path(folder),
+                                    lambda into: code_before_adding(COLUMN_READER, into))
         # --quick: the sized session is the first compared one (PID, default gain) if as long
         reuse = args.quick and args.report_s == args.compare_s
         sizes(Path(folder), args.report_s, "a" if reuse else "s")

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 import serial
-from benchkit import REPO, add_quick, extract_code, fill_defaults, git
+from benchkit import REPO, add_baseline_code, add_quick, code_before, fill_defaults, git
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.framer.rtu import FramerRTU
 
@@ -281,14 +281,13 @@ def baseline_code(folder: Path) -> tuple[Path | None, str]:
     try:
         change = git("log", "-1", "--format=%H", "-G", "^REVISION = ", "HEAD", "--",
                      "hil/protocols/bench_clock.py")
-        if not change:
-            return None, "no earlier time protocol in this checkout's history"
-        ref = git("rev-parse", "--short", f"{change}^")
-        failed = extract_code(ref, folder)
-        if failed:
-            return None, failed
     except (OSError, subprocess.CalledProcessError) as exc:
         return None, f"not a git checkout ({exc})"
+    if not change:
+        return None, "no earlier time protocol in this checkout's history"
+    code, ref = code_before(change, folder)
+    if code is None:
+        return None, ref
     revision = re.search(r'REVISION = "([^"]+)"',
                          (folder / "hil/protocols/bench_clock.py").read_text())
     return folder, f"{ref}, time protocol {revision.group(1) if revision else '?'}"
@@ -372,9 +371,8 @@ def main() -> None:
     parser.add_argument("--repeat", type=int,
                         help="lockstep runs of each code and transport (default 3; 1 with "
                              "--quick)")
-    parser.add_argument("--baseline-code", type=Path, metavar="DIR",
-                        help="the lockstep runs' before: this checkout (default: git archive "
-                             "of the code before the time protocol's last revision)")
+    add_baseline_code(parser, "the code before the time protocol's last revision; for the "
+                      "lockstep runs")
     add_quick(parser)
     args = parser.parse_args()
     fill_defaults(args, {"duration": (30.0, 0.2), "rtu_duration": (10.0, 0.2),

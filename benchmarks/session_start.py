@@ -11,7 +11,7 @@ and its fork server (from /proc: the server is not the child's to reap), and aft
 
 The first session here waits for the fork server's start, as a script's first ``Recorder``
 does; a run command (``hil servo run``...) starts the server as it begins, beside its own
-imports (``hil.cli.recording.start_writer_server``), so its first session finds it up.
+imports (``hil.core.recording.writer_fork.start_server``), so its first session finds it up.
 
 Then the start-up goal: ``hil servo run --controller pid --duration 0.1`` from the command's
 start to its end, with each code (alternated with the sessions' runs, one untimed run of each
@@ -33,7 +33,14 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchkit import REPO, add_quick, code_before_adding, fill_defaults
+from benchkit import (
+    REPO,
+    add_baseline_code,
+    add_quick,
+    baseline_code,
+    code_before_adding,
+    fill_defaults,
+)
 
 FORK_SERVER = "hil/core/recording/writer_fork.py"
 
@@ -103,9 +110,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sessions", type=int, help="sessions a run records (40)")
     parser.add_argument("--repeats", type=int, help="runs of each code (5)")
-    parser.add_argument("--baseline-code", type=Path, metavar="DIR",
-                        help="the code before: this checkout (default: git archive of the "
-                        "parent of the commit that added " + FORK_SERVER + ")")
+    add_baseline_code(parser, f"the parent of the commit that added {FORK_SERVER}")
     add_quick(parser)
     args = parser.parse_args()
     fill_defaults(args, {"sessions": (40, 5), "repeats": (5, 1)})
@@ -113,11 +118,8 @@ def main() -> int:
         parser.error(f"--sessions {args.sessions}: at least 2 (the first one is timed apart)")
     with tempfile.TemporaryDirectory(prefix="hil-bench-sessions-") as tmp:
         folder = Path(tmp)
-        if args.baseline_code is not None:
-            before, why = args.baseline_code.resolve(), str(args.baseline_code)
-        else:
-            (folder / "before").mkdir()
-            before, why = code_before_adding(FORK_SERVER, folder / "before")
+        before, why = baseline_code(args, folder,
+                                    lambda into: code_before_adding(FORK_SERVER, into))
         codes = {"after": REPO, **({"before": before} if before is not None else {})}
         runs: dict[str, list[tuple[float, float, float]]] = {name: [] for name in codes}
         commands: dict[str, list[float]] = {name: [] for name in codes}

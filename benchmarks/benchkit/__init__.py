@@ -1,12 +1,13 @@
 """What every benchmark script shares: its ``--quick`` flag (a seconds-long run that checks the
 script still works; ``make test`` runs every benchmark this way) and the defaults that flag
-picks."""
+picks; and the code before a change (``--baseline-code``, or git's) to measure against in the
+same run."""
 
 from __future__ import annotations
 
 import argparse
 import subprocess
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -46,17 +47,43 @@ def extract_code(ref: str, folder: Path) -> str | None:
     return None if archive.wait() == 0 else f"git archive {ref} failed"
 
 
+def code_before(commit: str, folder: Path) -> tuple[Path | None, str]:
+    """hil's code at the parent of ``commit`` extracted into ``folder``: (``folder``, the
+    parent's short hash), or (None, why not)."""
+    try:
+        ref = git("rev-parse", "--short", f"{commit}^")
+        failed = extract_code(ref, folder)
+    except (OSError, subprocess.CalledProcessError) as exc:
+        return None, f"not a git checkout with its history ({exc})"
+    return (None, failed) if failed else (folder, ref)
+
+
 def code_before_adding(path: str, folder: Path) -> tuple[Path | None, str]:
     """hil's code at the parent of the commit that added ``path`` (a file of the
     repository), extracted into ``folder``: (``folder``, that commit), or (None, why not)."""
     try:
         added = git("log", "--diff-filter=A", "--format=%H", "HEAD", "--", path)
-        if not added:
-            return None, f"no commit adds {path} in this checkout's history"
-        ref = git("rev-parse", "--short", f"{added.splitlines()[-1]}^")
-        failed = extract_code(ref, folder)
-        if failed:
-            return None, failed
     except (OSError, subprocess.CalledProcessError) as exc:
         return None, f"not a git checkout with its history ({exc})"
-    return folder, ref
+    if not added:
+        return None, f"no commit adds {path} in this checkout's history"
+    return code_before(added.splitlines()[-1], folder)
+
+
+def add_baseline_code(parser: argparse.ArgumentParser, default: str) -> None:
+    """``--baseline-code DIR``: the code to measure against instead of ``default`` (what the
+    script extracts with git)."""
+    parser.add_argument("--baseline-code", type=Path, metavar="DIR",
+                        help=f"the code before: this checkout (default: git archive of "
+                        f"{default})")
+
+
+def baseline_code(args: argparse.Namespace, folder: Path,
+                  default: Callable[[Path], tuple[Path | None, str]]
+                  ) -> tuple[Path | None, str]:
+    """The code before: ``--baseline-code``'s, else ``default(folder / "before")``'s (the
+    folder made here); (None, why not) when there is none."""
+    if args.baseline_code is not None:
+        return args.baseline_code.resolve(), str(args.baseline_code)
+    (folder / "before").mkdir()
+    return default(folder / "before")
