@@ -235,6 +235,29 @@ def test_the_compiled_cdr_encoder_writes_the_bytes_of_the_field_by_field_one():
         encoder.encode({"counts": [1, 3_000_000_000]})
 
 
+def test_the_kept_strings_and_sequence_structs_write_the_field_by_field_bytes():
+    """A string right after the head is written from the bytes kept for its value, the
+    structs of a numeric sequence are kept per length: past how many of each are kept, with
+    a head of every alignment before the string, strings that are not ``str`` and a string
+    alone after the head (written without a buffer), the bytes are the plain definition's."""
+    from hil.core.recording.cdr import LENGTHS_KEPT, STRINGS_KEPT, CdrEncoder, Field
+
+    heads = ([], [Field("flag", "bool")], [Field("t_s", "float64"), Field("b", "uint8")],
+             [Field("w", "uint16")], [Field("x", "float32"), Field("n", "int8")])
+    tails = ([], [Field("y", "float32", sequence=True)],
+             [Field("q", "float64", sequence=True), Field("tag", "string")])
+    for head in heads:
+        for tail in tails:
+            encoder = CdrEncoder([*head, Field("path", "string"), *tail])
+            for k in range(2 * STRINGS_KEPT + 3):
+                path = (None, 7, "\u00fc" * (k % 5), f"qp{k}", "explicit")[k % 5]
+                message = {"path": path, "y": [k / 3] * (k % (LENGTHS_KEPT + 5)),
+                           "q": [k * 0.5] * (k % 3), "tag": "t" * (k % 4),
+                           **{f.name: k % 2 for f in head}}
+                assert encoder.encode(message) == encoder.encode_by_field(message), \
+                    (head, tail, message)
+
+
 def test_missing_fields_are_written_as_zero_and_extra_fields_are_not(tmp_path):
     path = tmp_path / "partial.mcap"
     with Recorder(path) as rec:

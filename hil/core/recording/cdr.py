@@ -133,6 +133,8 @@ def _pad(buf: bytearray, align: int) -> None:
 
 _ZEROS = tuple(bytes(n) for n in range(8))  # padding
 _COUNT = struct.Struct("<I")
+STRINGS_KEPT = 64  # distinct strings right after a head whose bytes an encoder keeps
+LENGTHS_KEPT = 16  # lengths of a numeric sequence whose ``struct`` its writer keeps
 
 
 def _put_string(buf: bytearray, value: Any) -> None:
@@ -149,8 +151,9 @@ class CdrEncoder:
 
     The encapsulation and the leading run of fixed-size fields (their offsets are known in
     advance) are one precompiled ``struct`` with the alignment padding in it, and each
-    numeric sequence or string one ``struct`` call: the writer encodes a servo tick's topics
-    several times faster than field by field, and the bytes are the same
+    numeric sequence or string one ``struct`` call (a string right after the head, a servo
+    command's path, from the bytes kept for its value): the writer encodes a servo tick's
+    topics several times faster than field by field, and the bytes are the same
     (:meth:`encode_by_field`, the plain definition, is what the tests compare it with and
     what names a value that does not fit).
     """
@@ -171,6 +174,12 @@ class CdrEncoder:
         self._lead = lead
         self._tail = [_tail_writer(f) for f in fields[lead:]]
         self._names = [f.name for f in fields]
+        # a string right after the head starts at a known offset: its bytes (padding, count,
+        # text, NUL) depend on its value alone, and a topic's strings repeat (a path, a mode)
+        self._string_at: int | None = offset if lead < len(fields) \
+            and fields[lead].type == "string" and not fields[lead].sequence else None
+        self._strings: dict[str, bytes] = {}
+        self._after_string = self._tail[1:]
 
     def encode(self, message: dict[str, Any]) -> bytes:
         return self.encode_row(tuple(map(message.get, self._names)))
@@ -188,12 +197,36 @@ class CdrEncoder:
                 data = self._head.pack(ENCAPSULATION, *self._integral(head))
             if not self._tail:
                 return data
-            buf = bytearray(data)
-            for write, value in zip(self._tail, row[lead:], strict=True):
+            if self._string_at is None:
+                buf = bytearray(data)
+                writers, values = self._tail, row[lead:]
+            else:
+                text = self._string_bytes(row[lead])
+                if not self._after_string:  # the head and one string: no buffer to build
+                    return data + text
+                buf = bytearray(data)
+                buf += text
+                writers, values = self._after_string, row[lead + 1:]
+            for write, value in zip(writers, values, strict=True):
                 write(buf, value)
         except (struct.error, CdrError):  # raises, naming the field
             return self.encode_by_field(dict(zip(self._names, row, strict=True)))
         return bytes(buf)
+
+    def _string_bytes(self, value: Any) -> bytes:
+        """The string right after the head as :func:`_put_string` writes it there; the
+        bytes of the first :data:`STRINGS_KEPT` distinct ones kept."""
+        if type(value) is str:
+            kept = self._strings.get(value)
+            if kept is not None:
+                return kept
+        assert self._string_at is not None
+        buf = bytearray(4 + self._string_at)
+        _put_string(buf, value)
+        data = bytes(buf[4 + self._string_at:])
+        if type(value) is str and len(self._strings) < STRINGS_KEPT:
+            self._strings[value] = data
+        return data
 
     def _integral(self, head: Sequence[Any]) -> list[Any]:
         """The head's values with integer fields as ``int`` (``3.0`` for a ``uint16``)."""
@@ -246,8 +279,10 @@ def _tail_writer(f: Field) -> Callable[[bytearray, Any], None]:
         return lambda buf, value: CdrEncoder._put_field(buf, f, value)
     code, size = PRIMITIVES[f.type]
     integral = code not in "fd?"
-    # items of 4 bytes or less follow the count without padding: count and items in one call
+    # items of 4 bytes or less follow the count without padding: count and items in one call,
+    # a struct per length kept (a topic's sequences keep theirs: a horizon)
     counted_format = "<I{}" + code if size <= 4 else None
+    counted: dict[int, struct.Struct] = {}
     item_format = "<{}" + code
 
     def write(buf: bytearray, value: Any) -> None:
@@ -258,7 +293,13 @@ def _tail_writer(f: Field) -> Callable[[bytearray, Any], None]:
             value = [int(item) for item in value]
         buf += _ZEROS[-(len(buf) - 4) % 4]
         if counted_format is not None:
-            buf += struct.pack(counted_format.format(len(value)), len(value), *value)
+            items = len(value)
+            packer = counted.get(items)
+            if packer is None:
+                packer = struct.Struct(counted_format.format(items))
+                if len(counted) < LENGTHS_KEPT:
+                    counted[items] = packer
+            buf += packer.pack(items, *value)
             return
         buf += _COUNT.pack(len(value))
         if value:
