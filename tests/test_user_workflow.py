@@ -220,6 +220,7 @@ LOADED_MACHINE_DRIVE = """
 [master]
 stale_cycles = 100000
 heartbeat_timeout_ms = 5000
+drive_heartbeat_ms = 1000
 rx_timeout_us = 5000
 [emulator]
 sync_loss_timeout_ms = 5000

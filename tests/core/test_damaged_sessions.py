@@ -30,7 +30,8 @@ ROOT = Path(__file__).resolve().parents[2]
 OFFSETS = 20
 # a loaded machine must not end the real-time run early: watchdogs far beyond its length
 PATIENT = ("[master]\nheartbeat_timeout_ms = 5000\nstale_cycles = 100000\n"
-           "[emulator]\nsync_loss_timeout_ms = 5000\n[safety]\nenabled = false\n")
+           "drive_heartbeat_ms = 1000\n[emulator]\nsync_loss_timeout_ms = 5000\n"
+           "[safety]\nenabled = false\n")
 
 
 def hil(folder: Path, *argv: str) -> None:

@@ -100,7 +100,8 @@ def test_a_second_run_on_the_same_drive_bus_refuses_and_a_foreign_sync_stops_the
     # the foreign master stops it (what this test is about)
     config = tmp_path / "drive.toml"
     config.write_text("[master]\nheartbeat_timeout_ms = 5000\nstale_cycles = 100000\n"
-                      "[emulator]\nsync_loss_timeout_ms = 5000\n[safety]\nenabled = false\n")
+                      "drive_heartbeat_ms = 1000\n[emulator]\nsync_loss_timeout_ms = 5000\n"
+                      "[safety]\nenabled = false\n")
     with api.start_drive_emulator(config, harden=True) as emulator:
         first = hil("servo", "run", "--controller", "pid", "--drive", emulator.url,
                     "--config", str(config), "--realtime", "--duration", "20",
