@@ -159,7 +159,7 @@ def main() -> int:
     fill_defaults(args, {"report_s": (10.0, 0.5), "compare_s": (60.0, 0.5),
                          "repeats": (5, 1)})
     with tempfile.TemporaryDirectory(prefix="hil-bench-compare-") as folder:
-        before, why = baseline_code(args, Path(folder),
+        before, why = baseline_code(args.baseline_code, Path(folder),
                                     lambda into: code_before_adding(COLUMN_READER, into))
         # --quick: the sized session is the first compared one (PID, default gain) if as long
         reuse = args.quick and args.report_s == args.compare_s

@@ -38,7 +38,15 @@ from pathlib import Path
 
 import numpy as np
 import serial
-from benchkit import REPO, add_baseline_code, add_quick, code_before, fill_defaults, git
+from benchkit import (
+    REPO,
+    add_baseline_code,
+    add_quick,
+    baseline_code,
+    code_before,
+    fill_defaults,
+    git,
+)
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.framer.rtu import FramerRTU
 
@@ -274,7 +282,7 @@ dwell_s = 0.5
 """
 
 
-def baseline_code(folder: Path) -> tuple[Path | None, str]:
+def code_before_time_protocol(folder: Path) -> tuple[Path | None, str]:
     """The code before the time protocol's last revision (the parent of the last commit that
     changed ``REVISION`` in hil/protocols/bench_clock.py), extracted into ``folder`` with
     ``git archive``; (None, why not) outside a git checkout."""
@@ -330,14 +338,9 @@ def lockstep_protocols(cycles: int, repeat: int, baseline: Path | None, quick: b
         if quick:
             config = Path(tmp) / "short.toml"
             config.write_text(SHORT_CYCLE)
-        if quick:
             before, why = None, "skipped (--quick)"
-        elif baseline is not None:
-            before, why = baseline.resolve(), str(baseline)
         else:
-            folder = Path(tmp) / "before"
-            folder.mkdir()
-            before, why = baseline_code(folder)
+            before, why = baseline_code(baseline, Path(tmp), code_before_time_protocol)
         length = "2 s" if quick else "28 s"
         print(f"\nLockstep over the wire, clean line (bc, {cycles} cycle(s) of {length}; median "
               f"of {repeat}, alternated): realtime factor\n  before: {why}")

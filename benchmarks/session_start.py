@@ -118,7 +118,7 @@ def main() -> int:
         parser.error(f"--sessions {args.sessions}: at least 2 (the first one is timed apart)")
     with tempfile.TemporaryDirectory(prefix="hil-bench-sessions-") as tmp:
         folder = Path(tmp)
-        before, why = baseline_code(args, folder,
+        before, why = baseline_code(args.baseline_code, folder,
                                     lambda into: code_before_adding(FORK_SERVER, into))
         codes = {"after": REPO, **({"before": before} if before is not None else {})}
         runs: dict[str, list[tuple[float, float, float]]] = {name: [] for name in codes}

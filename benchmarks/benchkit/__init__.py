@@ -78,12 +78,12 @@ def add_baseline_code(parser: argparse.ArgumentParser, default: str) -> None:
                         f"{default})")
 
 
-def baseline_code(args: argparse.Namespace, folder: Path,
+def baseline_code(given: Path | None, folder: Path,
                   default: Callable[[Path], tuple[Path | None, str]]
                   ) -> tuple[Path | None, str]:
-    """The code before: ``--baseline-code``'s, else ``default(folder / "before")``'s (the
-    folder made here); (None, why not) when there is none."""
-    if args.baseline_code is not None:
-        return args.baseline_code.resolve(), str(args.baseline_code)
+    """The code before: ``given`` (``--baseline-code``), else ``default(folder / "before")``'s
+    (the folder made here); (None, why not) when there is none."""
+    if given is not None:
+        return given.resolve(), str(given)
     (folder / "before").mkdir()
     return default(folder / "before")
