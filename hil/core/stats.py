@@ -7,12 +7,15 @@ unit: 1e9 us is about 17 min); below ``LOWEST`` the error is at most ``LOWEST``.
 
 :meth:`TimingHistogram.add` bins its one sample at once, in constant time: a loop that adds a
 sample every tick does the same work at every tick (no batch binned every N samples, which
-would cost one tick the work of N).
+would cost one tick the work of N). A sample's bucket is found by bisecting the buckets' lower
+bounds (:data:`BOUNDS`), one C call, and :meth:`TimingHistogram.add_many` searches the same
+bounds: a value lands in the same bucket either way.
 """
 
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 
 import numpy as np
 
@@ -24,6 +27,10 @@ HIGHEST = 1e9
 _GROWTH = (1 + RELATIVE_ACCURACY) / (1 - RELATIVE_ACCURACY)
 _LOG_GROWTH = math.log(_GROWTH)
 BUCKETS = math.ceil(math.log(HIGHEST / LOWEST) / _LOG_GROWTH) + 2  # + below LOWEST, + above
+#: bucket i >= 1 holds the values from BOUNDS[i - 1] (LOWEST g^(i-1)) up to the next bound: a
+#: value's bucket is how many bounds it has reached
+BOUNDS = [LOWEST * _GROWTH**k for k in range(BUCKETS - 1)]
+_BOUNDS_ARRAY = np.array(BOUNDS)
 _REPRESENTATIVE = np.concatenate([
     [0.0],
     LOWEST * _GROWTH ** np.arange(BUCKETS - 1) * 2 * _GROWTH / (1 + _GROWTH),
@@ -49,7 +56,7 @@ class TimingHistogram:
         if not math.isfinite(value):
             return
         v = value if value > 0.0 else 0.0
-        self._singles[_bucket(v)] += 1
+        self._singles[bisect_right(BOUNDS, v)] += 1
         self.count += 1
         self._sum += v
         if v > self.max_us:
@@ -104,17 +111,9 @@ class TimingHistogram:
 
 
 def bucket_of(values: np.ndarray) -> np.ndarray:
-    """The bucket index of each value (0: below ``LOWEST``; the last: ``HIGHEST`` and above)."""
-    with np.errstate(divide="ignore"):
-        idx = np.floor(np.log(values / LOWEST) / _LOG_GROWTH) + 1
-    return np.clip(np.nan_to_num(idx, nan=0.0, neginf=0.0), 0, BUCKETS - 1).astype(np.int64)
-
-
-def _bucket(value: float) -> int:
-    """:func:`bucket_of` of one value >= 0, in plain Python (a numpy call costs more)."""
-    if value < LOWEST:
-        return 0
-    return min(math.floor(math.log(value / LOWEST) / _LOG_GROWTH) + 1, BUCKETS - 1)
+    """The bucket index of each value >= 0 (0: below ``LOWEST``; the last: from the last
+    bound, ``HIGHEST`` or just above, on), as :meth:`TimingHistogram.add` bins one."""
+    return np.searchsorted(_BOUNDS_ARRAY, values, side="right")
 
 
 def percentile_summary(samples_us: np.ndarray) -> dict[str, float]:
