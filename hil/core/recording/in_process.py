@@ -12,10 +12,9 @@ metadata. What the process gives and this does not: the file finished by another
 when the loop's is killed (a SIGKILL leaves it cut after its last chunk, which the reader
 recovers with counts like any damaged session), and the loop kept free of the encoding, which
 only lockstep can afford (the recorder refuses this writer in real time). Its chunks are
-compressed at zstd's level 1 rather than the writer process's 9: on the loop's thread, which
-every core of a sweep spends on a trial, the compression is a small share of a trial's time
-(a fifth of level 9's at level 3, and level 1 takes 2 % less of a 20 s MPC trial's CPU
-than level 3) for a file a few % larger (2 % more than level 3's).
+compressed at zstd level 1 rather than the writer process's 9, since the trial itself pays
+for the compression here: level 3 took a fifth of level 9's time for a file about 1 % larger,
+and level 1 takes 2 % less of a 20 s MPC trial's CPU than level 3 for a file 2 % larger.
 """
 
 from __future__ import annotations
