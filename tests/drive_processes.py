@@ -46,3 +46,14 @@ def stop_drive_emulator(proc: subprocess.Popen) -> None:
             proc.wait(5)
     proc.stdout.close()
     proc.stderr.close()
+
+
+def patient_watchdogs(master: str = "", safety: str = "") -> str:
+    """drive.toml text for a run on a loaded machine, where only what the test injects may end
+    it: every link watchdog far beyond a stall of the machine - the master's stale cycles, its
+    heartbeat as the drive watches it (0x1016), the drive's heartbeat as the master watches it
+    (3 periods of ``drive_heartbeat_ms``) and the drive's SYNC loss. ``master``: more
+    ``[master]`` lines; ``safety``: the ``[safety]`` table's lines (none without)."""
+    return ("[master]\nstale_cycles = 100000\nheartbeat_timeout_ms = 5000\n"
+            f"drive_heartbeat_ms = 1000\n{master}[emulator]\nsync_loss_timeout_ms = 5000\n"
+            + (f"[safety]\n{safety}" if safety else ""))

@@ -17,6 +17,7 @@ import pytest
 
 from hil import api
 from tests.cli import NOT_A_USERS_PLUGINS, hil_here
+from tests.drive_processes import patient_watchdogs
 from tests.pymodbus_bench import short_config
 
 pytestmark = [pytest.mark.slow]
@@ -216,17 +217,7 @@ def test_a_violated_limit_exits_1_with_a_junit_failure_and_a_loose_one_exits_0(t
 
 # generous watchdogs: on a loaded machine a wall-clock run over socketcand may miss many
 # cycles; only what these tests look at may end a run
-LOADED_MACHINE_DRIVE = """
-[master]
-stale_cycles = 100000
-heartbeat_timeout_ms = 5000
-drive_heartbeat_ms = 1000
-rx_timeout_us = 5000
-[emulator]
-sync_loss_timeout_ms = 5000
-[safety]
-stale_share_max = 1.0
-"""
+LOADED_MACHINE_DRIVE = patient_watchdogs("rx_timeout_us = 5000\n", "stale_share_max = 1.0\n")
 
 RUNS_ON_THE_GIVEN_DRIVE = '''
 import os

@@ -16,6 +16,7 @@ import pytest
 
 from hil.core.recording.reader import read_session
 from tests.cli import hil_in
+from tests.drive_processes import patient_watchdogs
 from tests.session_damage import (
     CHUNK_SPAN_S,
     OVERWRITE_BYTES,
@@ -29,9 +30,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 ROOT = Path(__file__).resolve().parents[2]
 OFFSETS = 20
 # a loaded machine must not end the real-time run early: watchdogs far beyond its length
-PATIENT = ("[master]\nheartbeat_timeout_ms = 5000\nstale_cycles = 100000\n"
-           "drive_heartbeat_ms = 1000\n[emulator]\nsync_loss_timeout_ms = 5000\n"
-           "[safety]\nenabled = false\n")
+PATIENT = patient_watchdogs(safety="enabled = false\n")
 
 
 def hil(folder: Path, *argv: str) -> None:

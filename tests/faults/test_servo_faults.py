@@ -9,6 +9,7 @@ import pytest
 from hil import api
 from hil.cli.main import main
 from hil.core.recording.reader import read_session
+from tests.drive_processes import patient_watchdogs
 
 pytestmark = [pytest.mark.timeout(90), pytest.mark.slow]
 
@@ -16,12 +17,8 @@ pytestmark = [pytest.mark.timeout(90), pytest.mark.slow]
 @pytest.mark.realtime
 def test_an_emcy_during_a_run_over_socketcand_ends_it_with_one_line(tmp_path, capsys):
     config = tmp_path / "drive.toml"
-    # generous watchdogs: on a loaded machine only the injected fault may end the run (the
-    # drive's heartbeat, watched for 3 periods: a drive process held up 0.45 s ended it as a
-    # lost link with the default period of 100 ms)
-    config.write_text("[master]\nstale_cycles = 100000\nheartbeat_timeout_ms = 5000\n"
-                      "drive_heartbeat_ms = 1000\nrx_timeout_us = 5000\n"
-                      "[emulator]\nsync_loss_timeout_ms = 5000\n")
+    # generous watchdogs: on a loaded machine only the injected fault may end the run
+    config.write_text(patient_watchdogs("rx_timeout_us = 5000\n"))
     out = tmp_path / "servo.mcap"
     # 0.5 s of the run's SYNCs (clock="sync": the emulator's time passes only with SYNCs,
     # which start with the run's loop, after it enabled the drive): 1000 ticks into the run,

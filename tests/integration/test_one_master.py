@@ -19,6 +19,7 @@ from hil import api
 from hil.bench.config import load_bench_config
 from hil.drivers.bench.modbus import ModbusBenchDriver, ModbusLink, parse_bus_url
 from hil.drivers.socketcand_bus import SocketcandBus
+from tests.drive_processes import patient_watchdogs
 from tests.pymodbus_bench import (
     ANSWER_S,
     PymodbusBench,
@@ -99,9 +100,7 @@ def test_a_second_run_on_the_same_drive_bus_refuses_and_a_foreign_sync_stops_the
     # a loaded machine may starve the real-time run: generous watchdogs keep it going until
     # the foreign master stops it (what this test is about)
     config = tmp_path / "drive.toml"
-    config.write_text("[master]\nheartbeat_timeout_ms = 5000\nstale_cycles = 100000\n"
-                      "drive_heartbeat_ms = 1000\n[emulator]\nsync_loss_timeout_ms = 5000\n"
-                      "[safety]\nenabled = false\n")
+    config.write_text(patient_watchdogs(safety="enabled = false\n"))
     with api.start_drive_emulator(config, harden=True) as emulator:
         first = hil("servo", "run", "--controller", "pid", "--drive", emulator.url,
                     "--config", str(config), "--realtime", "--duration", "20",
