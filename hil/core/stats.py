@@ -29,12 +29,9 @@ _LOG_GROWTH = math.log(_GROWTH)
 BUCKETS = math.ceil(math.log(HIGHEST / LOWEST) / _LOG_GROWTH) + 2  # + below LOWEST, + above
 #: bucket i >= 1 holds the values from BOUNDS[i - 1] (LOWEST g^(i-1)) up to the next bound: a
 #: value's bucket is how many bounds it has reached
-BOUNDS = [LOWEST * _GROWTH**k for k in range(BUCKETS - 1)]
-_BOUNDS_ARRAY = np.array(BOUNDS)
-_REPRESENTATIVE = np.concatenate([
-    [0.0],
-    LOWEST * _GROWTH ** np.arange(BUCKETS - 1) * 2 * _GROWTH / (1 + _GROWTH),
-])
+_BOUNDS_ARRAY = LOWEST * _GROWTH ** np.arange(BUCKETS - 1)
+BOUNDS: list[float] = _BOUNDS_ARRAY.tolist()
+_REPRESENTATIVE = np.concatenate([[0.0], _BOUNDS_ARRAY * 2 * _GROWTH / (1 + _GROWTH)])
 
 
 class TimingHistogram:
