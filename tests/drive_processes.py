@@ -50,10 +50,12 @@ def stop_drive_emulator(proc: subprocess.Popen) -> None:
 
 def patient_watchdogs(master: str = "", safety: str = "") -> str:
     """drive.toml text for a run on a loaded machine, where only what the test injects may end
-    it: every link watchdog far beyond a stall of the machine - the master's stale cycles, its
+    it: every watchdog far beyond a stall of the machine - the master's stale cycles, its
     heartbeat as the drive watches it (0x1016), the drive's heartbeat as the master watches it
-    (3 periods of ``drive_heartbeat_ms``) and the drive's SYNC loss. ``master``: more
-    ``[master]`` lines; ``safety``: the ``[safety]`` table's lines (none without)."""
+    (3 periods of ``drive_heartbeat_ms``), the drive's SYNC loss, and the safety net's share
+    of stale cycles and following error (a drive process held up 0.45 s leaves the axis
+    blind, then over 100 deg from its reference). ``master``: more ``[master]`` lines;
+    ``safety``: more ``[safety]`` lines."""
     return ("[master]\nstale_cycles = 100000\nheartbeat_timeout_ms = 5000\n"
             f"drive_heartbeat_ms = 1000\n{master}[emulator]\nsync_loss_timeout_ms = 5000\n"
-            + (f"[safety]\n{safety}" if safety else ""))
+            f"[safety]\nstale_share_max = 1.0\nfollowing_error_deg = 3600.0\n{safety}")

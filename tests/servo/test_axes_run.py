@@ -18,6 +18,7 @@ import pytest
 
 from hil.core.recording.reader import read_session
 from tests.cli import hil_here as in_process
+from tests.drive_processes import patient_watchdogs
 
 pytestmark = [pytest.mark.slow]
 
@@ -202,8 +203,7 @@ def test_two_axes_in_real_time_with_the_built_in_emulator(tmp_path, capsys):
     machine miss many deadlines: the link and the stale-share limit are made patient, so what
     is checked is the plumbing, and stale feedback makes it exit 3."""
     config = tmp_path / "patient.toml"
-    config.write_text("[master]\ncycle_period_us = 1000\nstale_cycles = 100000\n"
-                      "[safety]\nenabled = false\n")
+    config.write_text(patient_watchdogs("cycle_period_us = 1000\n", "enabled = false\n"))
     done = hil_here(tmp_path, capsys, "servo", "run", "--axes", "x=1,y=2", "--controller",
                     "pid", "--param", "ti_us=8000", "--reference", "circle:radius=2,feed=20",
                     "--duration", "0.5", "--realtime", "--config", str(config), "--out",
